@@ -1,0 +1,34 @@
+"""Shared fixtures. Random tests are seeded so a failure reproduces."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cochlea
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(20261122)
+
+
+@pytest.fixture(scope="session")
+def serial_arm1():
+    return cochlea.model("serial", arm="arm1")
+
+
+def random_state(rng, n, scale=2.0):
+    """A random (q, qd, qdd) of n joints: angles over the full circle, rates of order one."""
+    return (rng.uniform(-np.pi, np.pi, n), rng.uniform(-scale, scale, n),
+            rng.uniform(-scale, scale, n))
+
+
+def ev(f, *args):
+    """Evaluate a CasADi Function to a numpy array (vector results flattened)."""
+    out = np.array(f(*args))
+    return out.ravel() if out.shape[1] == 1 else out

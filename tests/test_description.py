@@ -1,0 +1,114 @@
+"""Loading robot descriptions: the shipped file is right, every kind of mistake is reported
+with one clear error naming the file, the key and what was expected."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cochlea import DescriptionError, load_serial
+from cochlea.description import MODELS_DIR
+
+SERIAL = (MODELS_DIR / "serial.toml").read_text()
+
+
+def test_shipped_serial_description_holds_the_thesis_numbers():
+    system = load_serial("serial")
+    assert [a.name for a in system.arms] == ["arm1", "arm2"]
+    assert np.allclose(system.arm("arm1").base_xyz, [0.101, -0.128, 0.0])
+    assert np.allclose(system.arm("arm2").base_xyz, [-0.105, -0.105, 0.0])
+    for arm in system.arms:
+        assert [l.length for l in arm.links] == [0.105, 0.105, 0.04]
+        assert [l.mass for l in arm.links] == [0.09518, 0.07878, 0.01119]
+        for link in arm.links:
+            assert np.allclose(link.com, [link.length / 2, 0, 0])
+            assert link.inertia_com[2, 2] == pytest.approx(link.mass * link.length**2 / 12,
+                                                           rel=1e-12)
+            assert link.joint.type == "revolute"
+            assert link.motor.model == "MX-64"
+    ids = [l.motor.id for a in system.arms for l in a.links]
+    assert ids == [1, 2, 3, 4, 5, 6]
+    fit = system.arm("arm1").links[0].motor.fit
+    assert (fit.a, fit.b, fit.x, fit.y) == (108.2, -15.47, "current_A", "torque_Ncm")
+    # Degrees in the file, radians inside.
+    assert system.arm("arm1").links[0].joint.position_limits[1] == pytest.approx(np.radians(170))
+
+
+def _broken(tmp_path, old, new, count=1):
+    assert old in SERIAL, old
+    path = tmp_path / "broken.toml"
+    path.write_text(SERIAL.replace(old, new, count))
+    return path
+
+
+CASES = {
+    "missing key": ("mass_kg = 0.09518\n", "", "arm[0].link[0].mass_kg",
+                    "positive number (kg) (the key is missing)"),
+    "unknown key": ("mass_kg = 0.09518\n", "mass_kg = 0.09518\n  colour = \"red\"\n",
+                    "arm[0].link[0].colour", "no such key here"),
+    "wrong type": ("mass_kg = 0.07878", "mass_kg = \"heavy\"", "arm[0].link[1].mass_kg",
+                   "a positive number (kg), got 'heavy'"),
+    "boolean is not a number": ("length_m = 0.04", "length_m = true", "arm[0].link[2].length_m",
+                                "a non-negative number (m)"),
+    "negative mass": ("mass_kg = 0.01119", "mass_kg = -0.01119", "arm[0].link[2].mass_kg",
+                      "positive number (kg), got -0.01119"),
+    "inertia not positive definite": (
+        "[1.18975e-06, 8.7446625e-05, 8.7446625e-05", "[1.18975e-06, 8.7446625e-05, -8.7e-05",
+        "arm[0].link[0].inertia_com_kgm2", "positive definite"),
+    "inertia breaks the triangle inequality": (
+        "[1.18975e-06, 8.7446625e-05, 8.7446625e-05", "[1.0e-06, 1.0e-06, 8.7446625e-05",
+        "arm[0].link[0].inertia_com_kgm2", "triangle inequality"),
+    "unknown joint type": ('type = "revolute"', 'type = "spherical"', "arm[0].link[0].joint.type",
+                           "one of 'revolute', 'prismatic'"),
+    "zero axis": ("axis = [0.0, 0.0, 1.0]", "axis = [0.0, 0.0, 0.0]", "arm[0].link[0].joint.axis",
+                  "non-zero direction"),
+    "reversed limits": ("position_limits_deg = [-170.0, 170.0]",
+                        "position_limits_deg = [170.0, -170.0]",
+                        "arm[0].link[0].joint.position_limits_deg", "lower < upper"),
+    "unit of another joint type": ("torque_limit_Nm = 2.5", "force_limit_N = 2.5",
+                                   "arm[0].link[0].joint.torque_limit_Nm", "the key is missing"),
+    "duplicate motor id": ("id = 4", "id = 1", "arm[1].link[0].motor.id",
+                           "a motor ID not already used (by arm1.link1)"),
+    "motor id out of range": ("id = 2", "id = 300", "arm[0].link[1].motor.id", "0..252"),
+    "unknown motor": ('model = "MX-64"', 'model = "AX-12"', "arm[0].link[0].motor.model",
+                      "one of 'MX-64', 'XM540-W270'"),
+    "fit without units": ('x = "current_A"', 'x = "current"', "arm[0].link[0].motor.fit.x",
+                          "'current_A'"),
+    "wrong format": ('format = "cochlea-robot/1"', 'format = "urdf"', "format",
+                     "the string 'cochlea-robot/1'"),
+    "vector of wrong size": ("base_xyz_m = [0.101, -0.128, 0.0]", "base_xyz_m = [0.101, -0.128]",
+                             "arm[0].base_xyz_m", "a list of 3 numbers in m"),
+    "syntax error": ("name = \"arm1\"", "name = arm1", "(syntax)", "valid TOML"),
+}
+
+
+@pytest.mark.parametrize("case", CASES, ids=list(CASES))
+def test_bad_description_names_file_key_and_expectation(tmp_path, case):
+    old, new, key, expected = CASES[case]
+    path = _broken(tmp_path, old, new)
+    with pytest.raises(DescriptionError) as info:
+        load_serial(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: {key}: expected "), message
+    assert expected in message, message
+    assert info.value.key == key
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(DescriptionError, match="expected an existing robot description file"):
+        load_serial(tmp_path / "nowhere.toml")
+
+
+def test_command_line_reports_a_bad_description_without_traceback(tmp_path):
+    path = _broken(tmp_path, "mass_kg = 0.07878", "mass_kg = -1")
+    result = subprocess.run(
+        [sys.executable, "-c", "import sys; from cochlea.cli import model_main; "
+                               "sys.exit(model_main(sys.argv[1:]))", "--description", str(path)],
+        capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert result.stderr.strip() == (f"cochlea-model: {path}: arm[0].link[1].mass_kg: expected a "
+                                     "positive number (kg), got -1")
