@@ -17,11 +17,10 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# Until the controllers exist (issue 4) the demo prints the serial arms' model at the thesis's
-# joint-space initial configuration of arm 1 and arm 2.
+# The main job: the thesis's task-space study of the serial system (controller g) on the
+# simulated robot; the log, summary.json and figures land in runs/demo/.
 demo: $(STAMP)
-	$(BIN)/cochlea-model serial --arm arm1 --at-deg 73 83 110
-	$(BIN)/cochlea-model serial --arm arm2 --at-deg 110 -128 100
+	$(BIN)/cochlea-run --robot serial --space task --out runs/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

@@ -1,0 +1,93 @@
+"""Controllers: each regressor factors the expression it stands for, the variants differ where
+the thesis's law differs, and the projection bounds the estimates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import cochlea
+from cochlea.controllers import build
+
+from .conftest import ev
+
+SERIAL_CASES = [(k, v, par) for k in "eg" for v in ("corrected", "thesis")
+                for par in ("base", "mass", "inertial")]
+
+
+@pytest.fixture(scope="module")
+def serial_models():
+    return {par: cochlea.model("serial", parameterisation=par) for par in ("base", "mass",
+                                                                           "inertial")}
+
+
+def _random_inputs(rng, c):
+    n, nd = c.nq, c.n_desired
+    q = rng.uniform(-np.pi, np.pi, n)
+    if c.space == "task":  # keep clear of the stretched-arm singularity
+        q[1] = rng.choice([-1, 1]) * rng.uniform(0.4, 2.6)
+    return (q, rng.uniform(-2, 2, n), rng.uniform(-0.05, 0.05, nd), rng.uniform(-0.1, 0.1, nd),
+            rng.uniform(-0.5, 0.5, nd))
+
+
+@pytest.mark.parametrize("kind,variant,par", SERIAL_CASES)
+def test_regressor_factors_its_expression(serial_models, kind, variant, par, rng):
+    """Y_x(...) p == f_x(...; p) for random states and random p, f built from M_p, C_p, G_p."""
+    model = serial_models[par]
+    c = build(model, kind, variant=variant, task_angles=(2,))
+    for _ in range(50):
+        args = _random_inputs(rng, c)
+        gains = rng.uniform(0.1, 5.0, sum(c.gain_sizes))
+        p = model.p_nominal * rng.uniform(0.2, 3.0, c.n_params)
+        Y = ev(c.regressor, *args, gains).reshape(c.nq, c.n_params)
+        f = ev(c.auxiliary, *args, gains, p)
+        assert np.abs(Y @ p - f).max() <= 1e-11 * max(1.0, np.abs(f).max())
+
+
+def test_law_e_is_the_thesis_law(serial_models, rng):
+    """tau = Y_e p^ + e + G_e r, p^' = Y_e' r (Gamma = 1), checked against M, C directly."""
+    model = serial_models["mass"]
+    c = build(model, "e")
+    q, qd, xd, xd_dot, xd_ddot = _random_inputs(rng, c)
+    alpha, G_e = np.array([5.0, 4.0, 3.0]), np.array([0.05, 0.04, 0.003])
+    p_hat = model.p_nominal * 0.7
+    tau, p_dot, errors = c.law(q, qd, xd, xd_dot, xd_ddot, p_hat, np.r_[alpha, G_e],
+                               np.ones(3), 1e9)
+    e, e_dot = xd - q, xd_dot - qd
+    r = e_dot + alpha * e
+    M, C = ev(model.M_p, q, p_hat), ev(model.C_p, q, qd, p_hat)
+    expected = M @ (xd_ddot + alpha * e_dot) + C @ (qd + r) + e + G_e * r
+    assert np.allclose(np.array(tau).ravel(), expected, rtol=1e-12, atol=1e-15)
+    Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, np.r_[alpha, G_e]).reshape(3, 3)
+    assert np.allclose(np.array(p_dot).ravel(), Y.T @ r, rtol=1e-12)
+    assert np.allclose(np.array(errors).ravel(), np.r_[e, r])
+
+
+def test_variant_g_differs_by_the_backstepping_cross_term(serial_models, rng):
+    model = serial_models["mass"]
+    corrected = build(model, "g", variant="corrected", task_angles=(2,))
+    thesis = build(model, "g", variant="thesis", task_angles=(2,))
+    args = _random_inputs(rng, corrected)
+    gains = np.r_[2.0, 2.0, 3.0, 0.06, 0.06, 0.007]
+    common = (model.p_nominal, gains, np.ones(3), 1e9)
+    tau_c, _, errors = corrected.law(*args, *common)
+    tau_t, _, _ = thesis.law(*args, *common)
+    e_g = np.array(errors).ravel()[:3]
+    J = ev(model.J_world, args[0])
+    assert np.allclose(np.array(tau_c - tau_t).ravel(), -J.T @ e_g, rtol=1e-10, atol=1e-14)
+    assert np.abs(J.T @ e_g).max() > 1e-3
+
+
+def test_projection_keeps_estimates_in_the_ball(serial_models, rng):
+    model = serial_models["mass"]
+    c = build(model, "e")
+    bound = 0.05
+    for _ in range(50):
+        args = _random_inputs(rng, c)
+        direction = rng.standard_normal(3)
+        p_hat = bound * direction / np.linalg.norm(direction)  # on the boundary
+        gains = np.r_[5.0, 4.0, 3.0, 0.05, 0.04, 0.003]
+        _, p_dot, _ = c.law(*args, p_hat, gains, np.array([1.0, 2.0, 0.5]), bound)
+        assert float(np.dot(p_hat, np.array(p_dot).ravel())) <= 1e-15
+        _, p_next, _ = c.step(*args, p_hat, gains, np.ones(3), bound, 10.0)
+        assert np.linalg.norm(np.array(p_next).ravel()) <= bound * (1 + 1e-12)

@@ -1,0 +1,95 @@
+"""Bad scenario files fail with one clear error naming the key; unreachable targets fail before
+anything runs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from cochlea import CochleaError, DescriptionError
+from cochlea.scenario import SCENARIOS_DIR
+from cochlea.serial_ik import UnreachableTarget
+from cochlea.simulation import load_scenario, unit_setups
+
+JOINT = (SCENARIOS_DIR / "serial_joint.toml").read_text()
+TASK = (SCENARIOS_DIR / "serial_task.toml").read_text()
+
+CASES = {
+    "missing key": (JOINT, "duration_s = 20.0\n", "", "duration_s", "the key is missing"),
+    "unknown key": (JOINT, "duration_s = 20.0\n", "duration_s = 20.0\nspeed = 2\n", "speed",
+                    "no such key here"),
+    "quantity without unit": (JOINT, '["73 deg"', "[73", "unit[0].initial_joint[0]",
+                              "'<formula in t> <unit>'"),
+    "length where an angle belongs": (JOINT, '"83 deg"', '"0.083 m"',
+                                      "unit[0].initial_joint[1]", "(an angle)"),
+    "unknown function in a formula": (TASK, '"0.03*cos(a1) m"', '"0.03*cosh(a1) m"',
+                                      "desired.leader[0]", "unknown function 'cosh'"),
+    "unknown name in a formula": (TASK, '"0.03*sin(a1) m"', '"0.03*sin(b1) m"',
+                                  "desired.leader[1]", "unknown name 'b1'"),
+    "gain of wrong size": (JOINT, "alpha = [5.0, 4.0, 3.0]", "alpha = [5.0, 4.0]",
+                           "unit[0].gains.alpha", "a list of 3 numbers"),
+    "negative gain": (JOINT, "G_e = [0.05, 0.04, 0.003]", "G_e = [0.05, -0.04, 0.003]",
+                      "unit[0].gains.G_e", "all positive"),
+    "gain of the other controller": (JOINT, "alpha = [5.0, 4.0, 3.0]", "G_g = [5.0, 4.0, 3.0]",
+                                     "unit[0].gains.alpha", "the key is missing"),
+    "units out of order": (JOINT, 'name = "arm1"', 'name = "arm3"', "unit",
+                           "units named, in order, 'arm1', 'arm2'"),
+    "unknown variant": (JOINT, 'variant = "corrected"', 'variant = "best"', "control.variant",
+                        "one of 'corrected', 'thesis'"),
+    "both initial forms": (JOINT, 'initial_joint = ["73 deg", "83 deg", "110 deg"]',
+                           'initial_joint = ["73 deg", "83 deg", "110 deg"]\n'
+                           'initial_task = ["0.03 m", "0 m", "0 deg"]',
+                           "unit[0].initial_joint", "exactly one of"),
+    "time-varying initial state": (JOINT, '["73 deg"', '["73*t deg"', "unit[0].initial_joint",
+                                   "must be a constant"),
+}
+
+
+@pytest.mark.parametrize("case", CASES, ids=list(CASES))
+def test_bad_scenario_names_the_key(tmp_path, case):
+    text, old, new, key, expected = CASES[case]
+    assert old in text
+    path = tmp_path / "bad.toml"
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(DescriptionError) as info:
+        load_scenario(path)
+    assert str(info.value).startswith(f"{path}: {key}: expected"), str(info.value)
+    assert expected in str(info.value)
+
+
+def test_unreachable_initial_pose_fails_before_the_run(tmp_path):
+    path = tmp_path / "far.toml"
+    path.write_text(TASK.replace('["0.028 m", "0.01 m", "-103 deg"]',
+                                 '["0.4 m", "0.01 m", "-103 deg"]'))
+    with pytest.raises(UnreachableTarget, match="out of reach"):
+        unit_setups(load_scenario(path))
+
+
+def test_unreachable_follower_trajectory_fails_before_the_run(tmp_path):
+    """Arm 1 stretched out towards +x puts arm 2's mirrored target beyond arm 2's reach."""
+    path = tmp_path / "wide.toml"
+    leader = JOINT[JOINT.index("leader = ["):JOINT.index("]", JOINT.index("leader = [")) + 1]
+    path.write_text(JOINT.replace(leader, 'leader = ["0 deg", "0 deg", "20*sin(t) deg"]'))
+    with pytest.raises(UnreachableTarget, match=r"arm2's desired pose leaves the workspace at "
+                                                r"t = \d+\.\d+ s"):
+        unit_setups(load_scenario(path))
+
+
+def test_command_line_reports_unreachable_target_with_exit_2(tmp_path):
+    path = tmp_path / "far.toml"
+    path.write_text(TASK.replace('["0.028 m", "0.01 m", "-103 deg"]',
+                                 '["0.4 m", "0.01 m", "-103 deg"]'))
+    out = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+         "--robot", "serial", "--space", "task", "--scenario", str(path), "--out", str(out)],
+        capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "out of reach" in result.stderr and "Traceback" not in result.stderr
+    assert not out.exists()
+
+
+def test_unreachable_is_a_user_error():
+    assert issubclass(UnreachableTarget, CochleaError)
