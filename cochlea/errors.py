@@ -34,3 +34,7 @@ class DescriptionError(CochleaError):
 
 class ModelError(CochleaError):
     """A model was asked for something it does not have (unknown robot, arm, option)."""
+
+
+class KinematicsError(CochleaError):
+    """A kinematic target the mechanism cannot reach (out of the workspace or inconsistent)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -67,6 +68,9 @@ class RobotModel:
     functions: dict[str, ca.Function] = field(repr=False)
     full_parameters: Parameterisation = field(repr=False)
     source: Path | None = None
+    #: Python-level helpers of the mechanism's geometry, or None (parallel: closed-form IK,
+    #: target consistency and workspace checks, a ``cochlea.parallel.ParallelGeometry``).
+    geometry: Any = field(default=None, repr=False)
 
     def __getattr__(self, item):  # Functions as attributes: model.M, model.Y, ...
         functions = self.__dict__.get("functions", {})
@@ -265,7 +269,9 @@ def model(name: str = "serial", *, arm: str | None = None, parameterisation: str
     if method not in METHODS:
         raise ModelError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if name == "parallel":
-        raise ModelError("the parallel mechanism's model is not implemented yet (issue 3)")
+        from .parallel import parallel_model  # here, not at the top: parallel imports this module
+
+        return parallel_model(parameterisation, method, description)
     system = load_serial(description if description is not None else name)
     chosen_arm = system.arms[0] if arm is None else system.arm(arm)
     return _serial_arm_model(system, chosen_arm, parameterisation, method)
