@@ -1,0 +1,75 @@
+"""The parallel mechanism on the command line, its figure, and the examples of its
+documentation."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from cochlea.cli import model_main
+from cochlea.figures import DOCS_DIR, draw_parallel
+
+DOC = Path(__file__).resolve().parent.parent / "docs" / "parallel.md"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_prints_the_parallel_summary(capsys):
+    assert model_main(["parallel"]) == 0
+    out = capsys.readouterr().out
+    assert "model 'parallel': 5 joints, lagrange dynamics" in out
+    assert "joint slider.d1: prismatic, 0..0.15 m" in out
+    assert "base parameters (27):" in out
+    assert "motor slider.d1: XM540-W270 ID 1" in out and "pinion 0.02 m" in out
+    assert "left  end effector C  = (0.125772, 0.114928) m, phi  = 19.354 deg" in out
+    assert "right end effector C' = (-0.125772, 0.114928) m, phi' = 160.646 deg" in out
+    assert "inside the workspace" in out
+
+
+def test_cli_at_a_given_configuration(capsys):
+    assert model_main(["parallel", "--parameterisation", "mass", "--at", "131.5", "29",
+                       "0.073", "43", "150"]) == 0
+    out = capsys.readouterr().out
+    assert "mass parameters (13):" in out
+    assert "q = [131.5, 29.0, 0.073, 43.0, 150.0]" in out
+    assert "C  = (0.141200, 0.123377) m" in out
+    assert model_main(["parallel", "--at", "10", "29", "0.073", "43", "150"]) == 0
+    assert "outside the workspace: left.th1 = 10.000 deg is outside [45, 180] deg" in \
+        capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["parallel", "--arm", "arm1"], "--arm is for the serial system"),
+    (["parallel", "--at-deg", "1", "2", "3"], "with --at"),
+    (["parallel", "--method", "newton-euler"], "Lagrange method only"),
+    (["serial", "--at", "1", "2", "3", "4", "5"], "give the serial arm's joint angles"),
+])
+def test_cli_refuses_options_of_the_other_robot(argv, message, capsys):
+    assert model_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cochlea-model: ") and message in err
+
+
+def test_cli_serial_unchanged(capsys):
+    assert model_main(["serial", "--arm", "arm1", "--at-deg", "73", "83", "110"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("model 'serial/arm1': 3 joints, newton-euler dynamics")
+
+
+def test_figure_is_written(tmp_path):
+    import matplotlib.pyplot as plt
+
+    path = tmp_path / "geometry.png"
+    plt.close(draw_parallel(path=path))
+    data = path.read_bytes()
+    assert data.startswith(PNG_SIGNATURE) and len(data) > 10_000
+    committed = DOCS_DIR / "parallel_geometry.png"
+    assert committed.read_bytes().startswith(PNG_SIGNATURE)
+
+
+def test_documentation_examples_run():
+    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    assert blocks
+    for block in blocks:
+        exec(compile(block, str(DOC), "exec"), {})
