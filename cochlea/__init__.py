@@ -10,9 +10,9 @@ See README.md for the whole API.
 """
 
 from .description import load_serial
-from .errors import CochleaError, DescriptionError, ModelError
+from .errors import CochleaError, DescriptionError, KinematicsError, ModelError
 from .model import RobotModel, model
 
 __all__ = ["model", "RobotModel", "load_serial", "CochleaError", "DescriptionError",
-           "ModelError"]
+           "KinematicsError", "ModelError"]
 __version__ = "0.1.0"

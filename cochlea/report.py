@@ -145,7 +145,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
 
     paths = []
     t = result.time
-    label = f"{result.scenario.name} (controller {result.scenario.controller})"
+    label_text = f"{result.scenario.name} (controller {result.scenario.controller})"
 
     def save(fig, name):
         fig.tight_layout()
@@ -156,7 +156,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
 
     for u in result.units:
         actual = u.q if u.space == "joint" else u.x
-        fig, axes = _grid(plt, len(u.tracked_names), f"{label}: {u.name}, desired vs actual")
+        fig, axes = _grid(plt, len(u.tracked_names), f"{label_text}: {u.name}, desired vs actual")
         for i, (ax, name, unit) in enumerate(zip(axes, u.tracked_names, u.tracked_units)):
             d, shown = _display(u.desired[:, i], unit)
             a, _ = _display(actual[:, i], unit)
@@ -169,7 +169,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         axes[-1].set_xlabel("time [s]")
         save(fig, f"{u.name}_tracking.png")
 
-        fig, axes = _grid(plt, len(u.tracked_names), f"{label}: {u.name}, tracking error "
+        fig, axes = _grid(plt, len(u.tracked_names), f"{label_text}: {u.name}, tracking error "
                                                      "(desired - actual)")
         for i, (ax, name, unit) in enumerate(zip(axes, u.tracked_names, u.tracked_units)):
             v, shown = _display(u.tracking_error[:, i], unit)
@@ -179,7 +179,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         axes[-1].set_xlabel("time [s]")
         save(fig, f"{u.name}_errors.png")
 
-        fig, axes = _grid(plt, 1, f"{label}: {u.name}, commanded joint efforts")
+        fig, axes = _grid(plt, 1, f"{label_text}: {u.name}, commanded joint efforts")
         for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
             axes[0].plot(t, u.tau[:, i], label=f"{j.name} [{_UNIT_TEXT[_EFFORT_UNIT[unit]]}]")
         axes[0].set_ylabel("torque [N m] / force [N]")
@@ -188,7 +188,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         save(fig, f"{u.name}_torques.png")
 
         params = u.setup.controller_model.parameters
-        fig, axes = _grid(plt, 1, f"{label}: {u.name}, parameter estimates")
+        fig, axes = _grid(plt, 1, f"{label_text}: {u.name}, parameter estimates")
         for i, (name, unit) in enumerate(zip(params.names, params.units)):
             axes[0].plot(t, u.p_hat[:, i], label=f"{name} [{unit}]")
         axes[0].set_ylabel("estimate [SI]")
@@ -197,33 +197,35 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         save(fig, f"{u.name}_estimates.png")
 
     fig, ax = plt.subplots(figsize=(6, 6))
-    centre = np.zeros(2)
+    centre = np.asarray(result.units[0].setup.centre, float)
     radius = None
     for u in result.units:
-        desired_xy = _desired_positions(u)
-        ax.plot(desired_xy[:, 0], desired_xy[:, 1], "--", lw=1, label=f"{u.name} desired")
-        ax.plot(u.x[:, 0], u.x[:, 1], lw=1.2, label=f"{u.name} actual")
-        ax.plot(u.x[0, 0], u.x[0, 1], "o", ms=4, color=ax.lines[-1].get_color())
-        if radius is None:
-            radius = float(np.linalg.norm(desired_xy[0] - centre))
+        desired = _desired_poses(u)
+        for label, (iu, iv) in u.setup.tool_points:
+            name = u.name if len(u.setup.tool_points) == 1 else f"{u.name} {label}"
+            ax.plot(desired[:, iu], desired[:, iv], "--", lw=1, label=f"{name} desired")
+            ax.plot(u.x[:, iu], u.x[:, iv], lw=1.2, label=f"{name} actual")
+            ax.plot(u.x[0, iu], u.x[0, iv], "o", ms=4, color=ax.lines[-1].get_color())
+            if radius is None:
+                radius = float(np.hypot(*(desired[0, [iu, iv]] - centre)))
     circle = plt.Circle(centre, radius, fill=False, color="0.5", lw=0.8, ls=":",
                         label=f"cochlea-centred circle, r = {radius * 1000:.1f} mm")
     ax.add_patch(circle)
     ax.plot(*centre, "k+", ms=10, label="cochlea centre")
     ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"{label}: tool paths in the plane")
+    ax.set_xlabel(f"{u.setup.task_names[0]} [m]")
+    ax.set_ylabel(f"{u.setup.task_names[1]} [m]")
+    ax.set_title(f"{label_text}: tool paths in the plane")
     ax.legend(loc="best", fontsize=7)
     save(fig, "paths.png")
     return paths
 
 
-def _desired_positions(u: UnitLog) -> np.ndarray:
+def _desired_poses(u: UnitLog) -> np.ndarray:
+    """The desired task pose of every period (through the FK for joint-space runs)."""
     if u.space == "task":
-        return u.desired[:, :2]
-    pose = np.array(u.setup.fk_world.map(len(u.desired))(u.desired.T)).T
-    return pose[:, :2]
+        return u.desired
+    return np.array(u.setup.fk_world.map(len(u.desired))(u.desired.T)).T
 
 
 def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None) -> dict:

@@ -12,10 +12,10 @@ import casadi as ca
 import numpy as np
 
 from .description import Arm
-from .errors import CochleaError, ModelError
+from .errors import KinematicsError, ModelError
 
 
-class UnreachableTarget(CochleaError):
+class UnreachableTarget(KinematicsError):
     """A task-space target lies outside the arm's workspace."""
 
 

@@ -44,6 +44,10 @@ class UnitSetup:
     task_units: tuple[str, ...]
     task_angles: tuple[int, ...]
     fk_world: ca.Function = field(repr=False)
+    #: Tool points drawn in the path figure: label -> indices of (u, v) in the task pose.
+    tool_points: tuple[tuple[str, tuple[int, int]], ...] = (("tool", (0, 1)),)
+    #: Centre of the cochlea-centred circle in the path figure (m, world frame).
+    centre: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass

@@ -3,15 +3,11 @@ documentation."""
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
-
 import pytest
 
 from cochlea.cli import model_main
 from cochlea.figures import DOCS_DIR, draw_parallel
 
-DOC = Path(__file__).resolve().parent.parent / "docs" / "parallel.md"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -66,10 +62,3 @@ def test_figure_is_written(tmp_path):
     assert data.startswith(PNG_SIGNATURE) and len(data) > 10_000
     committed = DOCS_DIR / "parallel_geometry.png"
     assert committed.read_bytes().startswith(PNG_SIGNATURE)
-
-
-def test_documentation_examples_run():
-    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
-    assert blocks
-    for block in blocks:
-        exec(compile(block, str(DOC), "exec"), {})
