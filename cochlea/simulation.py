@@ -234,17 +234,23 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
 # --------------------------------------------------------------------------------------------
 
 
-def plant_step(u: UnitSetup, h: float, substeps: int) -> ca.Function:
-    """One control period of the plant: RK4 with ``substeps`` steps, torque held."""
-    n = u.plant_model.nq
+def plant_step(plant: RobotModel, substeps: int) -> ca.Function:
+    """One control period of a plant, torque held: RK4 with ``substeps`` equal steps.
+
+    ``(x, tau, p, friction, h) -> x_next`` with ``x = [q, qd]``, ``p`` the plant's full
+    inertial parameters and ``friction`` its viscous coefficients (N m s/rad or N s/m). Generic
+    in the parameters, so the same Function is the simulation's plant and a C kernel.
+    """
+    n = plant.nq
     x = ca.SX.sym("x", 2 * n)
     tau = ca.SX.sym("tau", n)
-    p = ca.DM(u.plant_params)
-    F = ca.DM(u.friction)
+    p = ca.SX.sym("p", len(plant.param_names))
+    friction = ca.SX.sym("friction", n)
+    h = ca.SX.sym("h")
 
     def f(state):
         q, qd = state[:n], state[n:]
-        return ca.vertcat(qd, u.plant_model.forward_dynamics_p(q, qd, tau - F * qd, p))
+        return ca.vertcat(qd, plant.forward_dynamics_p(q, qd, tau - friction * qd, p))
 
     dt = h / substeps
     xk = x
@@ -254,7 +260,9 @@ def plant_step(u: UnitSetup, h: float, substeps: int) -> ca.Function:
         k3 = f(xk + dt / 2 * k2)
         k4 = f(xk + dt * k3)
         xk = xk + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return ca.Function(f"plant_step_{u.name}", [x, tau], [xk], ["x", "tau"], ["x_next"])
+    prefix = plant.name.replace("/", "_")
+    return ca.Function(f"{prefix}_plant_step", [x, tau, p, friction, h], [xk],
+                       ["x", "tau", "p", "friction", "h"], ["x_next"])
 
 
 def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
@@ -268,7 +276,8 @@ def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
     tau, p_next, errors = u.controller.step(
         x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot, p_hat, ca.DM(u.gains), ca.DM(u.gamma),
         u.bound, h)
-    x_next = plant_step(u, h, substeps)(x_true, tau)
+    x_next = plant_step(u.plant_model, substeps)(x_true, tau, ca.DM(u.plant_params),
+                                                 ca.DM(u.friction), h)
     return ca.Function(f"period_{u.name}", [t, x_true, x_meas, p_hat],
                        [x_next, p_next, tau, errors, xd, xd_dot],
                        ["t", "x_true", "x_meas", "p_hat"],
