@@ -161,9 +161,14 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         gain_names, gain_sizes = ("K_p", "G_d"), (m, n)
         gains = ca.SX.sym("gains", m + n)
         K_p, G_d = gains[:m], gains[m:]
-        x, J = fk_f(q), J_f(q)
+        if "A" not in model.functions:
+            raise ModelError(f"controller d needs the model's A = (J'J)^-1 J' ({model.name} "
+                             "has none)")
+        x = fk_f(q)
         e_p = _task_error(xd - x, task_angles)
-        A = ca.solve(J.T @ J, J.T)
+        # The model's A comes from a QR factorisation of J: the normal equations solved
+        # symbolically lose all accuracy near the pantographs' singular poses.
+        A = model.A(q)
         k_sign = 1 if variant == "corrected" else -1
         x_Nd = A @ (xd_dot + k_sign * K_p * e_p)
         x_Nd_dot = _total_derivative(x_Nd, q, qd, xd, xd_dot, xd_ddot)

@@ -448,6 +448,17 @@ class ParallelGeometry:
         th1, th2 = psi + branch * delta, psi - branch * delta
         return self._wrap(th1, s.th1, check_limits), self._wrap(th2, s.th2, check_limits)
 
+    def side_ik_symbolic(self, side: str, C, branch: int, offsets=(0.0, 0.0)) -> ca.SX:
+        """:meth:`side_ik` as an expression of a symbolic C, on a fixed branch, for desired
+        trajectories whose derivatives must be exact. ``offsets`` adds whole turns chosen once.
+        Valid only where C is in reach; callers check the trajectory numerically first."""
+        s = self.system.left if side == "left" else self.system.right
+        B = self.base(s)
+        wu, wv = C[0] - B[0], C[1] - B[1]
+        psi = ca.atan2(wv, wu)
+        delta = ca.acos(ca.sqrt(wu ** 2 + wv ** 2) / (2.0 * self.lp))
+        return ca.vertcat(psi + branch * delta + offsets[0], psi - branch * delta + offsets[1])
+
     def ik(self, x_p, branches: tuple[int, int] | None = None, *, check_limits: bool = True,
            tol: float = 1e-9) -> np.ndarray:
         """Joint coordinates q for a task-space target ``x_p = [C_u, C_v, phi, C'_u, C'_v,

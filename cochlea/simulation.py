@@ -19,7 +19,6 @@ from .controllers import Controller, build
 from .description import load_serial
 from .errors import CochleaError
 from .model import RobotModel, model
-from .serial_chain import N_INERTIAL
 from .serial_ik import UnreachableTarget, elbow_cosine, ik, ik_symbolic, world_to_base
 
 
@@ -123,19 +122,32 @@ def load_scenario(name_or_path) -> scenario_mod.Scenario:
     return scenario_mod.load(name_or_path, layout)
 
 
-def _perturbed_plant(plant: RobotModel, link_blocks: int, sc: scenario_mod.Scenario,
-                     tool_point: np.ndarray) -> np.ndarray:
-    """Full inertial parameters of the simulated robot: scaled bodies plus a tip payload."""
-    p = plant.p_nominal.copy()
-    if sc.plant.mass_scale is not None:
-        for i, s in enumerate(sc.plant.mass_scale):
-            p[N_INERTIAL * i: N_INERTIAL * (i + 1)] *= s
-    if sc.plant.payload_kg > 0:
-        m, c = sc.plant.payload_kg, tool_point
-        last = slice(N_INERTIAL * (link_blocks - 1), N_INERTIAL * link_blocks)
-        inertia = m * (float(c @ c) * np.eye(3) - np.outer(c, c))
-        p[last] += np.array([m, *(m * c), inertia[0, 0], inertia[1, 1], inertia[2, 2],
-                             inertia[0, 1], inertia[0, 2], inertia[1, 2]])
+def perturbed_parameters(full, plant: scenario_mod.Plant,
+                         payload_points: dict[str, np.ndarray]) -> np.ndarray:
+    """Full inertial parameters of the simulated robot: bodies scaled, payloads added.
+
+    Works from the parameter names ``<body>.<m|mx|my|mz|Ixx|...>`` of any model: each body's
+    parameters scale with ``plant.mass_scale`` (same shape, denser), and a point mass
+    ``plant.payload_kg`` is added at ``payload_points[body]`` (m, body frame).
+    """
+    p = np.asarray(full.nominal, float).copy()
+    bodies = list(dict.fromkeys(name.rsplit(".", 1)[0] for name in full.names))
+    if plant.mass_scale is not None:
+        for body, scale in zip(bodies, plant.mass_scale, strict=True):
+            for i, name in enumerate(full.names):
+                if name.rsplit(".", 1)[0] == body:
+                    p[i] *= scale
+    m = plant.payload_kg
+    for body, point in payload_points.items():
+        x, y, z = (list(point) + [0.0, 0.0])[:3]
+        added = {"m": m, "mx": m * x, "my": m * y, "mz": m * z,
+                 "Ixx": m * (y * y + z * z), "Iyy": m * (x * x + z * z),
+                 "Izz": m * (x * x + y * y), "Ixy": -m * x * y, "Ixz": -m * x * z,
+                 "Iyz": -m * y * z}
+        for i, name in enumerate(full.names):
+            owner, kind = name.rsplit(".", 1)
+            if owner == body:
+                p[i] += added[kind]
     return p
 
 
@@ -212,9 +224,10 @@ def serial_units(sc: scenario_mod.Scenario) -> list[UnitSetup]:
         n = m.nq
         friction = (sc.plant.viscous_friction if sc.plant.viscous_friction is not None
                     else np.zeros(n))
-        tool = np.array([arm.links[-1].length, 0.0, 0.0])
+        tool = {arm.links[-1].name: np.array([arm.links[-1].length, 0.0, 0.0])}
         setups.append(UnitSetup(
-            arm.name, m, plant, _perturbed_plant(plant, n, sc, tool), controller, desired,
+            arm.name, m, plant, perturbed_parameters(plant.parameters, sc.plant, tool),
+            controller, desired,
             np.concatenate([q0, qd0]), gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0,
             friction, tuple("rad" if j.type == "revolute" else "m" for j in m.joints),
             ("x", "y", "phi"), ("m", "m", "rad"), (2,), m.fk_world))

@@ -16,6 +16,7 @@ from cochlea.scenario import Plant
 from cochlea.simulation import load_scenario, simulate, unit_setups
 
 from .conftest import ev
+from .lyapunov import derivative_misfits
 
 
 def converged(result):
@@ -56,34 +57,15 @@ def test_converges_with_heavier_plant_and_payload(name):
     assert setup.plant_params[20] == pytest.approx(1.3 * 0.01119 + 0.02)
 
 
-def _lyapunov_derivative_misfits(result):
-    """Misfit of dV/dt along the log against the analysis without / with the cross term."""
-    u = result.units[0]
-    m, h = u.setup.controller_model, result.scenario.period
-    N = len(u.q)
-    M = np.array(m.M.map(N)(u.q.T)).reshape(3, N, 3).transpose(1, 0, 2)
-    J = np.array(m.J_world.map(N)(u.q.T)).reshape(3, N, 3).transpose(1, 0, 2)
-    e_g, e_v = -u.tracking_error, u.errors[:, 3:]
-    V = (0.5 * (e_g ** 2).sum(1) + 0.5 * np.einsum("ki,kij,kj->k", e_v, M, e_v)
-         + 0.5 * ((m.p_nominal - u.p_hat) ** 2).sum(1))
-    G_g, G_a = u.setup.gains[:3], u.setup.gains[3:]
-    analysed = -(G_g * e_g ** 2).sum(1) - (G_a * e_v ** 2).sum(1)
-    cross = np.einsum("ki,kij,kj->k", e_g, J, e_v)
-    dV = (V[2:] - V[:-2]) / (2 * h)
-    window = slice(200, None)  # after the first 0.2 s, where sampling effects dominate
-    rms = lambda x: float(np.sqrt(np.mean(x[window] ** 2)))  # noqa: E731
-    return rms(dV - analysed[1:-1]), rms(dV - analysed[1:-1] - cross[1:-1])
-
-
 def test_erratum_2_cross_term_shows_in_the_lyapunov_derivative():
     """Corrected g: dV/dt = -e_g'G_g e_g - e_v'G_a e_v along the simulation; the thesis's g
     keeps the cross term e_g'J e_v that its (3.40) drops."""
     sc = load_scenario("serial_task")
     corrected = simulate(sc, duration=1.0)
     thesis = simulate(dataclasses.replace(sc, variant="thesis"), duration=1.0)
-    without, with_cross = _lyapunov_derivative_misfits(corrected)
+    without, with_cross = derivative_misfits(corrected)
     assert without < 1e-2 * with_cross
-    without, with_cross = _lyapunov_derivative_misfits(thesis)
+    without, with_cross = derivative_misfits(thesis)
     assert with_cross < 1e-2 * without
     assert not np.allclose(corrected.units[0].tau, thesis.units[0].tau)
 
