@@ -126,24 +126,24 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
     M, C, G = model.M_p(q, p), model.C_p(q, qd, p), model.G_p(q, p)
 
     if kind in ("e", "f"):
-        gain_names, gain_sizes = ("alpha", f"G_{kind}"), (n, n)
-        gains = ca.SX.sym("gains", 2 * n)
-        alpha, G_s = gains[:n], gains[n:]
+        gain_names, gain_sizes = ("alpha", f"G_{kind}", "K_e"), (n, n, n)
+        gains = ca.SX.sym("gains", 3 * n)
+        alpha, G_s, K_e = gains[:n], gains[n:2 * n], gains[2 * n:]
         e = xd - q
         e_dot = xd_dot - qd
         r = e_dot + alpha * e
         qd_r, qdd_r = xd_dot + alpha * e, xd_ddot + alpha * e_dot
         Y = model.Y(q, qd, qd_r, qdd_r)
         f_aux = M @ qdd_r + C @ (qd + r) + G
-        known = e if (kind == "e" or variant == "corrected") else ca.SX.zeros(n)
+        known = K_e * e if (kind == "e" or variant == "corrected") else ca.SX.zeros(n)
         tau = Y @ p_hat + known + G_s * r
         signal = r
         errors = ca.vertcat(e, r)
         error_names = ("e", "r")
     elif kind == "g":
-        gain_names, gain_sizes = ("G_g", "G_a"), (m, n)
-        gains = ca.SX.sym("gains", m + n)
-        G_g, G_a = gains[:m], gains[m:]
+        gain_names, gain_sizes = ("G_g", "G_a", "K_c"), (m, n, m)
+        gains = ca.SX.sym("gains", 2 * m + n)
+        G_g, G_a, K_c = gains[:m], gains[m:m + n], gains[m + n:]
         x, J = fk_f(q), J_f(q)
         e_g = _task_error(x - xd, task_angles)
         tau_v = ca.solve(J, xd_dot - G_g * e_g)
@@ -153,7 +153,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         f_aux = -(M @ tau_v_dot + C @ tau_v + G)
         tau = -Y @ p_hat - G_a * e_v
         if variant == "corrected":
-            tau = tau - J.T @ e_g
+            tau = tau - J.T @ (K_c * e_g)
         signal = e_v
         errors = ca.vertcat(e_g, e_v)
         error_names = ("e_g", "e_v")

@@ -116,6 +116,7 @@ class SerialSystem:
     path: Path
     gravity: np.ndarray  # m/s^2, in the world frame
     arms: tuple[Arm, ...]
+    keep_out_radius: float = 0.0  # m, R_m: the tools stay this far from the cochlea centre
 
     def arm(self, name: str) -> Arm:
         for arm in self.arms:
@@ -356,6 +357,9 @@ def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
     name = system.string("name")
     system.string("kind", ("serial",))
     gravity = system.vector("gravity_m_s2", 3, "m/s^2", what="in the world frame")
+    keep_out = system.number("keep_out_radius_m", "a positive number (m): R_m, the radius "
+                             "around the cochlea centre that the tools must not enter",
+                             lambda v: v > 0)
     system.done()
     arms = tuple(_read_arm(a) for a in top.tables("arm", "one per serial arm"))
     top.done()
@@ -373,7 +377,7 @@ def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
                     path, where, f"a motor ID not already used (by {seen[link.motor.id]})",
                     link.motor.id)
             seen[link.motor.id] = f"{arm.name}.{link.name}"
-    return SerialSystem(name, path, gravity, arms)
+    return SerialSystem(name, path, gravity, arms, keep_out)
 
 
 def joint_rotation(joint: Joint) -> np.ndarray:

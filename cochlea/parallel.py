@@ -161,6 +161,7 @@ class ParallelSystem:
     d1: ParallelJoint
     left: Side
     right: Side
+    keep_out_radius: float = 0.0  # m, R_m: the end effectors stay this far from S (safety)
 
     @property
     def sides(self) -> tuple[Side, Side]:
@@ -234,6 +235,9 @@ def load_parallel(name_or_path: str | Path = "parallel") -> ParallelSystem:
     name = system.string("name")
     system.string("kind", ("parallel",))
     gravity = system.vector("gravity_m_s2", 2, "m/s^2", what="in the (u, v) plane, v up")
+    keep_out = system.number("keep_out_radius_m", "a positive number (m): R_m, the radius "
+                             "around the slider pivot S that the end effectors must not enter",
+                             lambda v: v > 0)
     system.done()
 
     geo = top.table("geometry")
@@ -261,7 +265,8 @@ def load_parallel(name_or_path: str | Path = "parallel") -> ParallelSystem:
                                    f"a motor ID not already used (by {seen[joint.motor.id]})",
                                    joint.motor.id)
         seen[joint.motor.id] = joint.name
-    return ParallelSystem(name, path, gravity, lp, d2, d3, r_min, slider_mass, d1, left, right)
+    return ParallelSystem(name, path, gravity, lp, d2, d3, r_min, slider_mass, d1, left, right,
+                          keep_out)
 
 
 # --------------------------------------------------------------------------------------------

@@ -121,4 +121,4 @@ def parallel_units(sc: scenario_mod.Scenario):
         tuple("rad" if j.type == "revolute" else "m" for j in ctrl_model.joints),
         ("C_u", "C_v", "phi", "C'_u", "C'_v", "phi'"), ("m", "m", "rad") * 2, (2, 5),
         ctrl_model.fk_world, tool_points=(("C", (0, 1)), ("C'", (3, 4))),
-        centre=(0.0, d1_0))]
+        centre=(0.0, d1_0), moving_centre_joint=2)]

@@ -53,6 +53,10 @@ def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
         n_track = u.setup.controller.n_desired
         blocks += [u.q, u.qd, u.desired, u.desired_dot, u.tracking_error, u.errors[:, n_track:],
                    u.tau, u.p_hat, u.x]
+    if result.timing:  # real-time runs: the timing of every period
+        for name, values in result.timing.items():
+            names.append(name)
+            blocks.append(values[:, None])
     return names, np.hstack(blocks)
 
 
@@ -66,6 +70,10 @@ def unit_summary(u: UnitLog) -> dict:
     tail = e[int(len(e) * (1 - TAIL_FRACTION)):] if len(e) else e
     tracked = {}
     for i, (name, unit) in enumerate(zip(u.tracked_names, u.tracked_units)):
+        if not len(e):  # a run stopped before its first period
+            tracked[name] = {"unit": unit, "initial_abs_error": None, "final_rms_error": None,
+                             "converged": False}
+            continue
         initial = float(abs(e[0, i]))
         final_rms = float(np.sqrt(np.mean(tail[:, i] ** 2)))
         tracked[name] = {
@@ -78,8 +86,8 @@ def unit_summary(u: UnitLog) -> dict:
     torque = {}
     for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
         torque[j.name] = {"unit": _UNIT_TEXT[_EFFORT_UNIT[unit]],
-                          "max_abs": float(np.max(np.abs(u.tau[:, i])))}
-    norms = np.linalg.norm(u.p_hat, axis=1)
+                          "max_abs": float(np.max(np.abs(u.tau[:, i]), initial=0.0))}
+    norms = np.linalg.norm(u.p_hat, axis=1) if len(u.p_hat) else np.zeros(1)
     params = u.setup.controller_model.parameters
     return {
         "tracked": tracked,
@@ -91,13 +99,14 @@ def unit_summary(u: UnitLog) -> dict:
             "max_norm": float(np.max(norms)),
             "bounded": bool(np.isfinite(u.p_hat).all()
                             and np.max(norms) <= u.setup.bound * (1 + 1e-9)),
-            "final": [float(v) for v in u.p_hat[-1]],
+            "final": [float(v) for v in u.p_hat[-1]] if len(u.p_hat) else None,
             "nominal": [float(v) for v in u.setup.controller_model.p_nominal],
         },
     }
 
 
-def summary(result: SimulationResult, wall_time_s: float | None = None) -> dict:
+def summary(result: SimulationResult, wall_time_s: float | None = None,
+            timing: dict | None = None) -> dict:
     sc = result.scenario
     units = {u.name: unit_summary(u) for u in result.units}
     converged = all(c["converged"] for s in units.values() for c in s["tracked"].values())
@@ -115,8 +124,11 @@ def summary(result: SimulationResult, wall_time_s: float | None = None) -> dict:
         "convergence_rule": f"final RMS over the last {TAIL_FRACTION:.0%} <= "
                             f"{CONVERGENCE_RATIO:.0%} of the initial absolute error, or below "
                             + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items()),
-        "converged": bool(converged and not result.diverged),
+        "converged": bool(converged and not result.diverged and (
+            result.stop is None or result.stop["rule"] == "completed")),
         "diverged": result.diverged,
+        "stop": result.stop,
+        "timing": timing,
         "wall_time_s": wall_time_s,
         "units": units,
     }
@@ -228,10 +240,11 @@ def _desired_poses(u: UnitLog) -> np.ndarray:
     return np.array(u.setup.fk_world.map(len(u.desired))(u.desired.T)).T
 
 
-def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None) -> dict:
+def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None,
+              timing: dict | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     write_csv(result, out / "log.csv")
-    data = summary(result, wall_time_s)
+    data = summary(result, wall_time_s, timing)
     (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n")
-    data["figures"] = [str(p) for p in figures(result, out)]
+    data["figures"] = [str(p) for p in figures(result, out)] if len(result.time) > 1 else []
     return data

@@ -1,18 +1,36 @@
-"""``cochlea-run``: run a controller on the simulated robot and leave a log, a summary and plots.
+"""``cochlea-run``: run a robust adaptive controller and leave a log, a summary and plots.
 
-Exit codes: 0 the run finished (``summary.json`` says whether it converged), 2 the user's input
-is wrong (options, scenario, description, an unreachable target: nothing ran), 3 the simulation
-diverged (the log up to that period is written).
+By default the run is real time (1 kHz, absolute deadlines) on the simulated robot, watched by
+the safety supervisor; ``--realtime off`` runs the same scenario as fast as possible.
+
+Exit codes (also in the README):
+
+====  ======================================================================================
+ 0    the run finished, or the user stopped it (Ctrl-C) after the safe sequence
+ 2    the user's input is wrong (options, scenario, description, unreachable target); nothing
+      moved
+ 3    ``--realtime off``: the simulation diverged (the log up to that period is written)
+ 5    the backend could not start (port, motors); nothing moved
+ 10   safe stop: a joint left its position limits
+ 11   safe stop: a joint exceeded its velocity limit
+ 12   safe stop: a tool entered the keep-out circle of radius R_m
+ 13   safe stop: a non-finite state, command or estimate
+ 14   safe stop: a parameter estimate's norm exceeded its bound
+ 15   safe stop: watchdog, too many consecutive deadline misses or backend failures
+ 16   safe stop: terminated by SIGTERM
+====  ======================================================================================
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from datetime import datetime
 from pathlib import Path
 
+from .backends import BackendError
 from .errors import EXIT_USER_ERROR, CochleaError
 
 EXIT_DIVERGED = 3
@@ -21,21 +39,38 @@ EXIT_DIVERGED = 3
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="cochlea-run",
-        description="Run one of the four robust adaptive controllers on the simulated robot "
-                    "(as fast as possible) and write log.csv, summary.json and PNG figures.",
-        epilog="Example: cochlea-run --robot serial --space task --out runs/first. Without "
-               "--scenario the thesis's study for that robot and space is used "
-               "(models/scenarios/ROBOT_SPACE.toml).",
+        description="Run one of the four robust adaptive controllers of the thesis -- e "
+                    "(serial, joint space), g (serial, task space), f (parallel, joint space), "
+                    "d (parallel, task space) -- on the simulated robot, in real time under a "
+                    "safety supervisor, and write log.csv, summary.json and PNG figures.",
+        epilog="Examples:\n"
+               "  cochlea-run --robot serial --space task          # the thesis study, real time\n"
+               "  cochlea-run --robot parallel --space joint --realtime off --out runs/f\n"
+               "Without --scenario the thesis's study for the robot and space is used "
+               "(models/scenarios/ROBOT_SPACE.toml). Ctrl-C stops safely (zero effort, drives "
+               "off) and keeps the log. Exit codes: see README.md.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--robot", required=True, choices=["serial", "parallel"],
                    help="serial: the two 3R arms; parallel: the 5-DoF mechanism")
     p.add_argument("--space", required=True, choices=["joint", "task"],
                    help="joint: controllers e/f; task: controllers g/d")
-    p.add_argument("--scenario", help="scenario TOML (default: the thesis's study)")
+    p.add_argument("--scenario", metavar="FILE",
+                   help="scenario TOML (default: the thesis's study for ROBOT and SPACE)")
     p.add_argument("--duration", type=float, metavar="S",
-                   help="simulated seconds (default: the scenario's)")
+                   help="seconds to run (default: the scenario's)")
     p.add_argument("--out", type=Path, metavar="DIR",
-                   help="output folder (default: runs/ROBOT_SPACE_YYYYmmdd-HHMMSS)")
+                   help="output folder (default: a new runs/ROBOT_SPACE_YYYYmmdd-HHMMSS)")
+    p.add_argument("--backend", default="sim", choices=["sim"],
+                   help="what the loop drives: sim, the plant model advanced in real time "
+                        "(default)")
+    p.add_argument("--realtime", default="on", choices=["on", "off"],
+                   help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
+                        "off: the as-fast-as-possible simulation")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="control rate (default: the scenario's, 1000 Hz)")
+    p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
+                   help="live one-line status while running (auto: when stderr is a terminal)")
     return p
 
 
@@ -43,9 +78,31 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return _run(args)
+    except BackendError as exc:
+        print(f"cochlea-run: the backend could not start, nothing moved: {exc}", file=sys.stderr)
+        from .runtime import EXIT_BACKEND
+
+        return EXIT_BACKEND
     except CochleaError as exc:
         print(f"cochlea-run: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
+
+
+def _validate(args: argparse.Namespace, scenario) -> None:
+    if (scenario.robot, scenario.space) != (args.robot, args.space):
+        raise CochleaError(f"scenario {scenario.path} is for --robot {scenario.robot} --space "
+                           f"{scenario.space}, not --robot {args.robot} --space {args.space}: "
+                           "change the options or the scenario")
+    if args.duration is not None and not args.duration > 0:
+        raise CochleaError(f"--duration must be positive, got {args.duration}")
+    if args.rate is not None and not 1.0 <= args.rate <= 20_000.0:
+        raise CochleaError(f"--rate must be between 1 and 20000 Hz, got {args.rate}")
+    if args.realtime == "off" and args.backend != "sim":
+        raise CochleaError("--realtime off simulates as fast as possible and needs "
+                           "--backend sim")
+    if args.out is not None and args.out.exists() and any(args.out.iterdir()):
+        raise CochleaError(f"--out {args.out} exists and is not empty: choose a new folder "
+                           "(runs never overwrite a log)")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -53,33 +110,85 @@ def _run(args: argparse.Namespace) -> int:
     from .simulation import load_scenario, simulate, unit_setups
 
     scenario = load_scenario(args.scenario or f"{args.robot}_{args.space}")
-    if (scenario.robot, scenario.space) != (args.robot, args.space):
-        raise CochleaError(f"scenario {scenario.path} is for --robot {scenario.robot} --space "
-                           f"{scenario.space}, not --robot {args.robot} --space {args.space}: "
-                           "change the options or the scenario")
-    if args.duration is not None and not args.duration > 0:
-        raise CochleaError(f"--duration must be positive, got {args.duration}")
-    setups = unit_setups(scenario)  # validates reachability before anything runs
+    _validate(args, scenario)
+    if args.rate is not None:
+        scenario = dataclasses.replace(scenario, rate_hz=args.rate)
+    setups = unit_setups(scenario)  # validates reachability before anything moves
     out = args.out or Path("runs") / (f"{args.robot}_{args.space}_"
                                       f"{datetime.now().strftime('%Y%m%d-%H%M%S')}")
-    print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, "
-          f"{scenario.variant} variant) -> {out}")
+    out.mkdir(parents=True, exist_ok=True)
+    mode = "real time" if args.realtime == "on" else "as fast as possible"
+    print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, {scenario.variant} "
+          f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz -> {out}",
+          flush=True)
+    if args.realtime == "off":
+        start = time.perf_counter()
+        result = simulate(scenario, args.duration, setups)
+        wall = time.perf_counter() - start
+        data = report.write_all(result, out, wall)
+        _report(data, out, wall)
+        if result.diverged:
+            for name, t in result.diverged.items():
+                print(f"cochlea-run: {name} diverged at t = {t:.3f} s (log kept up to there)",
+                      file=sys.stderr)
+            return EXIT_DIVERGED
+        return 0
+    return _run_realtime(args, scenario, setups, out)
+
+
+def _run_realtime(args, scenario, setups, out: Path) -> int:
+    from . import report
+    from .description import load_serial
+    from .runtime import (STOP_CODES, RealTimeLoop, SimBackend, build_supervisor,
+                          write_raw_columns)
+
+    if scenario.robot == "serial":
+        keep_out = load_serial(scenario.description).keep_out_radius
+    else:
+        from .parallel import load_parallel
+
+        keep_out = load_parallel(scenario.description).keep_out_radius
+    duration = scenario.duration if args.duration is None else args.duration
+    steps = int(round(duration * scenario.rate_hz))
+    backend = SimBackend(setups, scenario.period, scenario.plant_substeps)
+    supervisor = build_supervisor(setups, scenario.space, keep_out)
+    loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True)
+    write_raw_columns(out / "log.columns.json", loop)
+    status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
     start = time.perf_counter()
-    result = simulate(scenario, args.duration, setups)
+    stop = loop.run(out / "log.bin", status=status)
     wall = time.perf_counter() - start
-    data = report.write_all(result, out, wall)
-    print(f"  simulated {data['duration_s']:.2f} s in {wall:.2f} s "
-          f"({data['duration_s'] / wall:.1f}x real time)")
+    result = loop.result(scenario)
+    result.stop = {"rule": stop.rule, "time_s": stop.time, "detail": stop.detail,
+                   "exit_code": stop.code}
+    timing = loop.timing_summary()
+    data = report.write_all(result, out, wall, timing)
+    _report(data, out, wall)
+    print(f"  timing: period p50 {timing['period_p50'] * 1e3:.3f} ms, p99 "
+          f"{timing['period_p99'] * 1e3:.3f} ms, max {timing['period_max'] * 1e3:.3f} ms; "
+          f"deadline misses {timing['deadline_misses']} "
+          f"({100 * timing['deadline_miss_fraction']:.2f} %); compute p99 "
+          f"{timing['compute_p99'] * 1e6:.0f} us")
+    if stop.rule == "completed":
+        return 0
+    line = (f"cochlea-run: stopped by rule {stop.rule} at t = {stop.time:.3f} s: {stop.detail}"
+            if stop.rule != "user-stop" else
+            f"cochlea-run: stopped by the user at t = {stop.time:.3f} s")
+    print(line + "; zero effort commanded, drives disabled, log complete", file=sys.stderr)
+    return STOP_CODES[stop.rule]
+
+
+def _report(data: dict, out: Path, wall: float) -> None:
+    print(f"  ran {data['duration_s']:.2f} s in {wall:.2f} s "
+          f"({data['duration_s'] / max(wall, 1e-9):.1f}x real time)")
     for name, unit in data["units"].items():
         for coord, c in unit["tracked"].items():
+            if c["initial_abs_error"] is None:
+                continue
             print(f"  {name}.{coord}: initial |e| {c['initial_abs_error']:.3e} {c['unit']}, "
                   f"final RMS {c['final_rms_error']:.3e} {c['unit']}"
                   f"{'' if c['converged'] else '  NOT CONVERGED'}")
-    print(f"  converged: {'yes' if data['converged'] else 'no'}; log: {out / 'log.csv'}; "
-          f"summary: {out / 'summary.json'}; figures: {len(data['figures'])} PNG in {out}")
-    if result.diverged:
-        for name, t in result.diverged.items():
-            print(f"cochlea-run: {name} diverged at t = {t:.3f} s (log kept up to there)",
-                  file=sys.stderr)
-        return EXIT_DIVERGED
-    return 0
+    print(f"  converged: {'yes' if data['converged'] else 'no'}")
+    print(f"  log: {out / 'log.csv'}\n  summary: {out / 'summary.json'}")
+    for figure in data["figures"]:
+        print(f"  figure: {figure}")

@@ -24,6 +24,10 @@ UNITS = {"deg": ("angle", np.pi / 180.0), "rad": ("angle", 1.0), "m": ("length",
          "mm": ("length", 1e-3)}
 GAIN_NAMES = {("serial", "joint"): ("alpha", "G_e"), ("serial", "task"): ("G_g", "G_a"),
               ("parallel", "joint"): ("alpha", "G_f"), ("parallel", "task"): ("K_p", "G_d")}
+#: The weight of the position error in each Lyapunov function, ``V = e' K e / 2 + ...``: any
+#: positive weight keeps the analysis; ones reproduce the thesis. Optional in a scenario.
+WEIGHT_NAMES = {("serial", "joint"): "K_e", ("serial", "task"): "K_c",
+                ("parallel", "joint"): "K_e"}
 CONTROLLER_OF = {("serial", "joint"): "e", ("serial", "task"): "g",
                  ("parallel", "joint"): "f", ("parallel", "task"): "d"}
 
@@ -235,6 +239,12 @@ def load(name_or_path: str | Path, coordinates) -> Scenario:
         sizes = {gain_names[0]: layout["n_task"] if space == "task" else layout["n_joint"],
                  gain_names[1]: layout["n_joint"]}
         gains = {k: _positive_list(g, k, sizes[k]) for k in gain_names}
+        weight = WEIGHT_NAMES.get((robot, space))
+        if weight:
+            size = layout["n_task"] if weight == "K_c" else layout["n_joint"]
+            given = g.vector(weight, size, "the gain's SI unit", required=False,
+                             check=lambda v: all(x > 0 for x in v), what="(all positive)")
+            gains[weight] = np.ones(size) if given is None else given
         g.done()
         u.done()
         try:

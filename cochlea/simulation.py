@@ -47,6 +47,15 @@ class UnitSetup:
     tool_points: tuple[tuple[str, tuple[int, int]], ...] = (("tool", (0, 1)),)
     #: Centre of the cochlea-centred circle in the path figure (m, world frame).
     centre: tuple[float, float] = (0.0, 0.0)
+    #: Index of the joint whose value moves the keep-out centre along v (the parallel
+    #: mechanism's slider: S = (0, d1)), or None for a fixed centre at ``centre``.
+    moving_centre_joint: int | None = None
+
+    def keep_out_centre(self, q) -> tuple[float, float]:
+        """Centre of the safety keep-out circle at joint position q (m, world frame)."""
+        if self.moving_centre_joint is None:
+            return self.centre
+        return (0.0, float(q[self.moving_centre_joint]))
 
 
 @dataclass
@@ -90,6 +99,9 @@ class SimulationResult:
     time: np.ndarray  # (N,) s
     units: list[UnitLog]
     diverged: dict[str, float] = field(default_factory=dict)  # unit -> time (s) it diverged
+    #: Real-time runs: per-period timing arrays (s) by name, and how the run stopped.
+    timing: dict[str, np.ndarray] | None = None
+    stop: dict | None = None
 
     def unit(self, name: str) -> UnitLog:
         return next(u for u in self.units if u.name == name)

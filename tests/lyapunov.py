@@ -13,10 +13,11 @@ def _batch(f, q):
 def derivative_misfits(result, skip_s: float = 0.2):
     """RMS misfit of dV/dt along the log against the analysis without / with the cross term.
 
-    g (3.39): V = e_g'e_g/2 + e_v'M e_v/2 + p~'p~/2, dV/dt = -e_g'G_g e_g - e_v'G_a e_v
-    [+ e_g'J e_v, the term the thesis's (3.40) drops].
-    e, f (3.12, 3.60): V = e'e/2 + r'M r/2 + p~'p~/2, dV/dt = -e'alpha e - r'G r
-    [+ e'r, left when the law has no +e term].
+    With the scenario's weight K of the position error (ones in the thesis):
+    g (3.39): V = e_g'K e_g/2 + e_v'M e_v/2 + p~'p~/2, dV/dt = -e_g'K G_g e_g - e_v'G_a e_v
+    [+ e_g'K J e_v, the term the thesis's (3.40) drops].
+    e, f (3.12, 3.60): V = e'K e/2 + r'M r/2 + p~'p~/2, dV/dt = -e'K alpha e - r'G r
+    [+ e'K r, left when the law has no known term K e].
     The plant must be nominal (p~ = p_nominal - p^) and Gamma = 1. The first ``skip_s``
     seconds are left out: there, sampling effects of the large initial errors dominate.
     """
@@ -25,14 +26,14 @@ def derivative_misfits(result, skip_s: float = 0.2):
     n, nd = m.nq, u.setup.controller.n_desired
     M = _batch(m.M, u.q)
     first, second = u.errors[:, :nd], u.errors[:, nd:]
-    V = (0.5 * (first ** 2).sum(1) + 0.5 * np.einsum("ki,kij,kj->k", second, M, second)
+    g1, g2, weight = u.setup.gains[:nd], u.setup.gains[nd:nd + n], u.setup.gains[nd + n:]
+    V = (0.5 * (weight * first ** 2).sum(1) + 0.5 * np.einsum("ki,kij,kj->k", second, M, second)
          + 0.5 * ((m.p_nominal - u.p_hat) ** 2).sum(1))
-    g1, g2 = u.setup.gains[:nd], u.setup.gains[nd:]
-    analysed = -(g1 * first ** 2).sum(1) - (g2 * second ** 2).sum(1)
+    analysed = -(weight * g1 * first ** 2).sum(1) - (g2 * second ** 2).sum(1)
     if u.setup.controller.kind == "g":
-        cross = np.einsum("ki,kij,kj->k", first, _batch(m.J_world, u.q), second)
+        cross = np.einsum("ki,kij,kj->k", weight * first, _batch(m.J_world, u.q), second)
     else:
-        cross = (first * second).sum(1)
+        cross = (weight * first * second).sum(1)
     dV = (V[2:] - V[:-2]) / (2 * h)
     window = slice(int(round(skip_s / h)), None)
     rms = lambda x: float(np.sqrt(np.mean(x[window] ** 2)))  # noqa: E731

@@ -50,15 +50,16 @@ def test_law_e_is_the_thesis_law(serial_models, rng):
     c = build(model, "e")
     q, qd, xd, xd_dot, xd_ddot = _random_inputs(rng, c)
     alpha, G_e = np.array([5.0, 4.0, 3.0]), np.array([0.05, 0.04, 0.003])
+    K_e = np.array([1.0, 0.5, 0.01])
     p_hat = model.p_nominal * 0.7
-    tau, p_dot, errors = c.law(q, qd, xd, xd_dot, xd_ddot, p_hat, np.r_[alpha, G_e],
+    tau, p_dot, errors = c.law(q, qd, xd, xd_dot, xd_ddot, p_hat, np.r_[alpha, G_e, K_e],
                                np.ones(3), 1e9)
     e, e_dot = xd - q, xd_dot - qd
     r = e_dot + alpha * e
     M, C = ev(model.M_p, q, p_hat), ev(model.C_p, q, qd, p_hat)
-    expected = M @ (xd_ddot + alpha * e_dot) + C @ (qd + r) + e + G_e * r
+    expected = M @ (xd_ddot + alpha * e_dot) + C @ (qd + r) + K_e * e + G_e * r
     assert np.allclose(np.array(tau).ravel(), expected, rtol=1e-12, atol=1e-15)
-    Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, np.r_[alpha, G_e]).reshape(3, 3)
+    Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, np.r_[alpha, G_e, K_e]).reshape(3, 3)
     assert np.allclose(np.array(p_dot).ravel(), Y.T @ r, rtol=1e-12)
     assert np.allclose(np.array(errors).ravel(), np.r_[e, r])
 
@@ -68,14 +69,16 @@ def test_variant_g_differs_by_the_backstepping_cross_term(serial_models, rng):
     corrected = build(model, "g", variant="corrected", task_angles=(2,))
     thesis = build(model, "g", variant="thesis", task_angles=(2,))
     args = _random_inputs(rng, corrected)
-    gains = np.r_[2.0, 2.0, 3.0, 0.06, 0.06, 0.007]
+    K_c = np.array([1.0, 0.5, 0.01])
+    gains = np.r_[2.0, 2.0, 3.0, 0.06, 0.06, 0.007, K_c]
     common = (model.p_nominal, gains, np.ones(3), 1e9)
     tau_c, _, errors = corrected.law(*args, *common)
     tau_t, _, _ = thesis.law(*args, *common)
     e_g = np.array(errors).ravel()[:3]
     J = ev(model.J_world, args[0])
-    assert np.allclose(np.array(tau_c - tau_t).ravel(), -J.T @ e_g, rtol=1e-10, atol=1e-14)
-    assert np.abs(J.T @ e_g).max() > 1e-3
+    assert np.allclose(np.array(tau_c - tau_t).ravel(), -J.T @ (K_c * e_g), rtol=1e-10,
+                       atol=1e-14)
+    assert np.abs(J.T @ (K_c * e_g)).max() > 1e-3
 
 
 def test_projection_keeps_estimates_in_the_ball(serial_models, rng):
@@ -86,7 +89,7 @@ def test_projection_keeps_estimates_in_the_ball(serial_models, rng):
         args = _random_inputs(rng, c)
         direction = rng.standard_normal(3)
         p_hat = bound * direction / np.linalg.norm(direction)  # on the boundary
-        gains = np.r_[5.0, 4.0, 3.0, 0.05, 0.04, 0.003]
+        gains = np.r_[5.0, 4.0, 3.0, 0.05, 0.04, 0.003, 1.0, 1.0, 1.0]
         _, p_dot, _ = c.law(*args, p_hat, gains, np.array([1.0, 2.0, 0.5]), bound)
         assert float(np.dot(p_hat, np.array(p_dot).ravel())) <= 1e-15
         _, p_next, _ = c.step(*args, p_hat, gains, np.ones(3), bound, 10.0)
