@@ -1,0 +1,228 @@
+"""The real-time runtime: each supervisor rule triggered by an injected fault ends in the safe
+sequence (zero effort, drives off) with the log complete, the rule named and its exit code."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cochlea.runtime import STOP_CODES, RealTimeLoop, SimBackend, build_supervisor
+from cochlea.simulation import load_scenario, simulate, unit_setups
+
+
+class RecordingBackend(SimBackend):
+    """The sim backend, recording every command and disable, with faults injected at a period."""
+
+    def __init__(self, setups, period, substeps, fault=None, at=5):
+        super().__init__(setups, period, substeps)
+        self.fault, self.at, self.k = fault, at, 0
+        self.commands, self.disabled = [], 0
+
+    def read(self, x):
+        ok = super().read(x)
+        self.k += 1
+        if self.fault and self.k > self.at:
+            result = self.fault(x)
+            if result is False:
+                return False
+        return ok
+
+    def write(self, tau):
+        self.commands.append(tau.copy())
+        return super().write(tau)
+
+    def disable(self):
+        self.disabled += 1
+        super().disable()
+
+
+def make_loop(name="serial_task", fault=None, at=5, seconds=0.2, realtime=False,
+              keep_out=None, backend_cls=RecordingBackend):
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    backend = backend_cls(setups, sc.period, sc.plant_substeps, fault=fault, at=at)
+    supervisor = build_supervisor(setups, sc.space, keep_out)
+    loop = RealTimeLoop(setups, backend, supervisor, sc.period, int(seconds / sc.period),
+                        realtime=realtime)
+    return sc, loop, backend
+
+
+def assert_safe_stop(loop, backend, stop, rule, rows):
+    assert stop.rule == rule and stop.code == STOP_CODES[rule]
+    assert np.array_equal(backend.commands[-1], np.zeros(loop.n))  # zero effort last ...
+    assert backend.disabled == 1 and not backend.enabled  # ... then the drives off
+    assert loop.rows == rows  # every period up to the stop is in the log
+    assert np.isfinite(loop.buffer[:rows, 0]).all() and np.isnan(loop.buffer[rows:, 0]).all()
+
+
+def test_completed_run_matches_the_fast_simulation_exactly():
+    """The loop's periods are the simulation's periods: the same log, whatever the timing."""
+    sc, loop, backend = make_loop(seconds=1.0, realtime=True)
+    stop = loop.run()
+    assert stop.rule == "completed" and loop.rows == 1000
+    fast = simulate(sc, duration=1.0, backend="casadi") if "backend" in \
+        simulate.__code__.co_varnames else simulate(sc, duration=1.0)
+    rt = loop.result(sc)
+    for a, b in zip(rt.units, fast.units):
+        assert np.allclose(a.q, b.q, rtol=0, atol=1e-12)
+        assert np.allclose(a.tau, b.tau, rtol=0, atol=1e-12)
+        assert np.allclose(a.p_hat, b.p_hat, rtol=0, atol=1e-12)
+    assert backend.disabled == 1  # the safe sequence also ends a normal run
+
+
+def _set(index, value):
+    def fault(x):
+        x[index] = value
+    return fault
+
+
+@pytest.mark.parametrize("rule,fault,text", [
+    ("position-limit", _set(2, math.radians(175)), "arm1.joint3 = 175.00 deg outside "
+                                                   "[-170.00 deg, 170.00 deg]"),
+    ("velocity-limit", _set(6 + 4, -7.5), "arm2.joint2 speed = -7.5 rad/s, limit 6 rad/s"),
+    ("non-finite", _set(1, math.nan), "state = [")])
+def test_state_rules(rule, fault, text):
+    _, loop, backend = make_loop(fault=fault, at=5)
+    stop = loop.run()
+    assert_safe_stop(loop, backend, stop, rule, rows=6)
+    assert text in stop.detail and stop.time == pytest.approx(0.005)
+
+
+def test_keep_out_circle():
+    """Arm 1's tool starts 29.6 mm from the cochlea centre: a 40 mm circle stops the run."""
+    _, loop, backend = make_loop(keep_out=0.04)
+    stop = loop.run()
+    assert_safe_stop(loop, backend, stop, "keep-out", rows=1)
+    assert "arm1 tool at (0.0280, 0.0100) m is 29.7 mm from the centre" in stop.detail
+
+
+def test_parallel_keep_out_circle_moves_with_the_slider():
+    _, loop, backend = make_loop("parallel_task", keep_out=0.2)
+    stop = loop.run()
+    assert_safe_stop(loop, backend, stop, "keep-out", rows=1)
+    assert "mechanism C at (0.1540, 0.1210) m" in stop.detail
+    d1 = 0.121 - 0.154 * math.tan(math.radians(20.1))  # the consistency rule at the start
+    assert f"centre (0.0000, {d1:.4f}) m" in stop.detail  # S = (0, d1)
+
+
+def test_non_finite_command():
+    _, loop, backend = make_loop()
+    loop.kernels[1].inputs[5][:] = math.nan  # arm 2's estimate corrupted
+    stop = loop.run()
+    assert_safe_stop(loop, backend, stop, "non-finite", rows=1)
+    assert stop.detail.startswith("command = [")
+
+
+def test_estimate_beyond_its_bound():
+    """The projection keeps estimates inside the bound; a kernel that did not is caught."""
+    _, loop, backend = make_loop()
+    kernel = loop.kernels[0]
+    original = kernel._trigger
+
+    def broken():
+        original()
+        kernel.outputs[1][:] = 2 * loop.setups[0].bound
+
+    kernel._trigger = broken
+    stop = loop.run()
+    assert_safe_stop(loop, backend, stop, "estimate-bound", rows=1)
+    assert "arm1 |p_hat| = " in stop.detail
+
+
+def test_watchdog_on_backend_failures():
+    _, loop, backend = make_loop(fault=lambda x: False, at=10)
+    stop = loop.run()
+    limit = loop.supervisor.limits.watchdog_errors
+    assert_safe_stop(loop, backend, stop, "watchdog", rows=10 + limit)
+    assert f"{limit + 1} consecutive backend read failures" in stop.detail
+
+
+class SlowBackend(RecordingBackend):
+    def read(self, x):
+        if self.k >= 50:
+            time.sleep(0.003)  # a 3 ms stall every period from then on
+        return super().read(x)
+
+
+def test_watchdog_on_deadline_misses():
+    _, loop, backend = make_loop(seconds=1.0, realtime=True, backend_cls=SlowBackend)
+    stop = loop.run()
+    assert stop.rule == "watchdog" and "consecutive deadline misses" in stop.detail
+    assert np.array_equal(backend.commands[-1], np.zeros(loop.n)) and backend.disabled == 1
+    assert 50 < loop.rows < 200
+
+
+def test_saturation_clips_without_stopping():
+    _, loop, backend = make_loop(seconds=0.05)
+    loop.supervisor.limits.effort[:] = 1e-3
+    stop = loop.run()
+    assert stop.rule == "completed"
+    tau = loop.result(load_scenario("serial_task")).units[0].tau
+    assert np.abs(tau).max() == pytest.approx(1e-3)
+
+
+def _cli(args, cwd):
+    return subprocess.Popen(
+        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+         *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.parametrize("signum,code,rule", [(signal.SIGINT, 0, "user-stop"),
+                                               (signal.SIGTERM, 16, "terminated")])
+def test_signals_stop_safely_and_keep_the_log(tmp_path, signum, code, rule):
+    out = tmp_path / "run"
+    proc = _cli(["--robot", "serial", "--space", "task", "--out", str(out)], tmp_path)
+    deadline = time.time() + 60
+    while not (out / "log.bin").exists() or (out / "log.bin").stat().st_size == 0:
+        assert time.time() < deadline and proc.poll() is None
+        time.sleep(0.05)
+    proc.send_signal(signum)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == code, stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == rule and summary["stop"]["exit_code"] == code
+    rows = summary["periods"]
+    assert 0 < rows < 20000
+    data = np.loadtxt(out / "log.csv", delimiter=",", skiprows=1)
+    assert data.shape[0] == rows
+    raw = np.fromfile(out / "log.bin")
+    columns = json.loads((out / "log.columns.json").read_text())
+    assert raw.size == rows * columns["row_length"]  # the background log is complete too
+    assert "zero effort commanded, drives disabled, log complete" in stderr
+    assert "timing" in summary and summary["timing"]["nominal_period"] == 0.001
+
+
+def test_defaults_pick_the_thesis_study_and_a_new_folder(tmp_path):
+    proc = _cli(["--robot", "parallel", "--space", "joint", "--duration", "0.3"], tmp_path)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    assert "parallel_joint (controller f, corrected variant), sim backend, real time at " \
+           "1000 Hz -> runs/parallel_joint_" in stdout
+    (folder,) = (tmp_path / "runs").iterdir()
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "completed" and summary["periods"] == 300
+    for key in ("period_mean", "period_std", "period_p50", "period_p99", "period_max",
+                "deadline_misses", "compute_p50", "compute_p99", "backend_mean"):
+        assert key in summary["timing"]
+
+
+def test_wrong_combinations_fail_before_anything_moves(tmp_path):
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "log.csv").write_text("x")
+    for args, message in [
+        (["--robot", "serial", "--space", "task", "--rate", "0"], "--rate must be between"),
+        (["--robot", "serial", "--space", "task", "--out", str(tmp_path / "full")],
+         "exists and is not empty"),
+        (["--robot", "serial", "--space", "task", "--duration", "-1"], "must be positive")]:
+        proc = _cli(args, tmp_path)
+        _, stderr = proc.communicate(timeout=60)
+        assert proc.returncode == 2 and message in stderr and "Traceback" not in stderr
+    assert not (tmp_path / "runs").exists()
