@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install clean
+.PHONY: demo test install clean lib codegen bench
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -19,11 +19,39 @@ install: $(STAMP)
 
 # The main job: the thesis's task-space study of the serial system (controller g) on the
 # simulated robot; the log, summary.json and figures land in runs/demo/.
-demo: $(STAMP)
+demo: $(STAMP) lib
 	$(BIN)/cochlea-run --robot serial --space task --out runs/demo
 
-test: $(STAMP)
+test: $(STAMP) lib
 	$(BIN)/python -m pytest
+
+# The C kernels: build/libcochlea.so from the committed generated_c/, no Python needed.
+# Warnings are errors, so none can creep into the generated code.
+CC       ?= cc
+CFLAGS_C ?= -O2
+LIBFLAGS := -std=c99 -fPIC -Wall -Wextra -Werror
+JOBS     ?= $(shell nproc 2>/dev/null || echo 2)
+LIB      := build/libcochlea.so
+C_SRC    := $(sort $(wildcard generated_c/*.c))
+C_OBJ    := $(patsubst generated_c/%.c,build/obj/%.o,$(C_SRC))
+
+lib:
+	@$(MAKE) --no-print-directory -j$(JOBS) $(LIB)
+
+build/obj/%.o: generated_c/%.c $(wildcard generated_c/*.h)
+	@mkdir -p $(@D)
+	$(CC) $(CFLAGS_C) $(LIBFLAGS) -c $< -o $@
+
+$(LIB): $(C_OBJ)
+	$(CC) -shared -o $@ $(C_OBJ) -lm
+
+# Regenerate generated_c/ from models/ and codegen/kernels.toml (then commit it).
+codegen: $(STAMP)
+	$(BIN)/cochlea-codegen
+
+# The benchmark: writes bench/results.md and bench/results.json (takes a few minutes).
+bench: $(STAMP) lib
+	$(BIN)/python bench/run.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
