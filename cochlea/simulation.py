@@ -309,17 +309,30 @@ def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
                        ["x_true_next", "p_hat_next", "tau", "errors", "xd", "xd_dot"])
 
 
+#: ``simulate``'s backends: the generated C kernels (default) and the CasADi reference.
+BACKENDS = ("c", "casadi")
+
+
 def simulate(sc: scenario_mod.Scenario, duration: float | None = None,
-             setups: list[UnitSetup] | None = None) -> SimulationResult:
+             setups: list[UnitSetup] | None = None, backend: str = "c") -> SimulationResult:
     """Run the scenario as fast as possible and return the log of every period.
 
     A unit whose state or estimate becomes non-finite stops the run: ``result.diverged`` names
     it with the time, and the log keeps every period up to that one.
+
+    ``backend``: ``"c"`` (default) runs the generated C kernels (``cochlea.csim``; if they
+    cannot run this scenario it warns and falls back), ``"casadi"`` the CasADi reference below.
     """
+    if backend not in BACKENDS:
+        raise CochleaError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     duration = sc.duration if duration is None else duration
     if not duration > 0:
         raise CochleaError(f"the duration must be positive, got {duration} s")
     setups = unit_setups(sc) if setups is None else setups
+    if backend == "c":
+        from .csim import simulate as simulate_c  # noqa: PLC0415 (csim imports this module)
+
+        return simulate_c(sc, duration, setups, fallback=True)
     h = sc.period
     steps = int(round(duration / h))
     time = np.arange(steps) * h
