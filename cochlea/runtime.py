@@ -44,6 +44,11 @@ STOP_CODES = {
 }
 
 
+#: The loop sleeps until this long before each deadline, then spins: the OS wakes a sleeping
+#: thread late by up to a few hundred microseconds on a loaded machine.
+SPIN_NS = 500_000
+
+
 class BufferedFunction:
     """A CasADi Function called through preallocated numpy buffers (no allocation per call).
 
@@ -376,8 +381,15 @@ class RealTimeLoop:
                 writer.start()
             if status_thread:
                 status_thread.start()
-            gc.disable()
-            self.stop = self._loop(writer)
+            gc.disable()  # no collector pauses inside the loop
+            # Hand the GIL back to the loop within 0.1 ms when it wakes (default: 5 ms), so the
+            # writer and status threads cannot delay a period.
+            switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(1e-4)
+            try:
+                self.stop = self._loop(writer)
+            finally:
+                sys.setswitchinterval(switch_interval)
         finally:
             gc.enable()
             # The safe sequence, whatever happened: zero effort, drives off.
@@ -407,12 +419,12 @@ class RealTimeLoop:
             t = self.time[k]
             if self.realtime:
                 deadline = t0 + k * h_ns
-                while True:  # sleep until 0.3 ms before the deadline, then spin
+                while True:  # sleep until SPIN before the deadline, then spin
                     remaining = deadline - clock()
                     if remaining <= 0:
                         break
-                    if remaining > 300_000:
-                        time.sleep((remaining - 300_000) * 1e-9)
+                    if remaining > SPIN_NS:
+                        time.sleep((remaining - SPIN_NS) * 1e-9)
             start = clock()
             if self._signal:
                 return Stop(self._signal, t, "signal received")
