@@ -88,6 +88,8 @@ class SimBackend:
         self.units = setups
         self.nq = sum(u.plant_model.nq for u in setups)
         self._steps = []
+        self._spans = []  # per unit: its joints' slice of q and of qd in the system state
+        start = 0
         for u in setups:
             f = BufferedFunction(plant_step(u.plant_model, substeps))
             f.inputs[2][:] = u.plant_params
@@ -95,32 +97,32 @@ class SimBackend:
             f.inputs[4][:] = period
             f.inputs[0][:] = u.x0
             self._steps.append(f)
+            n = u.plant_model.nq
+            self._spans.append((n, slice(start, start + n),
+                                slice(self.nq + start, self.nq + start + n)))
+            start += n
         self.enabled = False
         self.last_io_time_s = 0.0
+        self._read_time = 0.0
 
     def enable(self) -> None:
         self.enabled = True
 
     def read(self, x: np.ndarray) -> bool:
         t0 = time.perf_counter()
-        i = 0
-        for u, f in zip(self.units, self._steps):
-            n = u.plant_model.nq
-            x[i:i + n] = f.inputs[0][:n]
-            x[self.nq + i:self.nq + i + n] = f.inputs[0][n:]
-            i += n
+        for f, (n, q_span, qd_span) in zip(self._steps, self._spans):
+            state = f.inputs[0]
+            x[q_span] = state[:n]
+            x[qd_span] = state[n:]
         self._read_time = time.perf_counter() - t0
         return True
 
     def write(self, tau: np.ndarray) -> bool:
         t0 = time.perf_counter()
-        i = 0
-        for u, f in zip(self.units, self._steps):
-            n = u.plant_model.nq
-            f.inputs[1][:] = tau[i:i + n] if self.enabled else 0.0
+        for f, (_, q_span, _) in zip(self._steps, self._spans):
+            f.inputs[1][:] = tau[q_span] if self.enabled else 0.0
             f()
             f.inputs[0][:] = f.outputs[0]
-            i += n
         self.last_io_time_s = self._read_time + time.perf_counter() - t0
         return True
 
@@ -166,24 +168,31 @@ class Supervisor:
         self.limits = limits
         self.setups = setups
         self.n = len(limits.position_lo)
+        self._below = np.zeros(self.n, bool)  # scratch: the checks allocate nothing
+        self._above = np.zeros(self.n, bool)
+        self._speed = np.zeros(self.n)
         # keep_out_points: callables (q_all) -> list of (label, point, centre) for the rule
         self.keep_out_points = keep_out_points
         self.bounds = [u.bound for u in setups]
 
-    def check_state(self, t: float, x: np.ndarray) -> Stop | None:
-        n, L = self.n, self.limits
-        if not np.isfinite(x).all():
+    def check_state(self, t: float, x: np.ndarray, q: np.ndarray, qd: np.ndarray
+                    ) -> Stop | None:
+        """``q``, ``qd``: views of ``x``, made once by the caller."""
+        L = self.limits
+        if not _finite(x):
             return Stop("non-finite", t, f"state = {_fmt(x)}")
-        q, qd = x[:n], x[n:]
-        bad = np.flatnonzero((q < L.position_lo) | (q > L.position_hi))
-        if bad.size:
-            j = bad[0]
+        np.less(q, L.position_lo, out=self._below)
+        np.greater(q, L.position_hi, out=self._above)
+        np.logical_or(self._below, self._above, out=self._below)
+        if self._below.any():
+            j = int(np.argmax(self._below))
             return Stop("position-limit", t, f"{L.joint_names[j]} = {_show(q[j], L.joint_units[j])}"
                         f" outside [{_show(L.position_lo[j], L.joint_units[j])}, "
                         f"{_show(L.position_hi[j], L.joint_units[j])}]")
-        bad = np.flatnonzero(np.abs(qd) > L.velocity)
-        if bad.size:
-            j = bad[0]
+        np.abs(qd, out=self._speed)
+        np.greater(self._speed, L.velocity, out=self._above)
+        if self._above.any():
+            j = int(np.argmax(self._above))
             unit = "rad/s" if L.joint_units[j] == "rad" else "m/s"
             return Stop("velocity-limit", t, f"{L.joint_names[j]} speed = {qd[j]:.4g} {unit}, "
                         f"limit {L.velocity[j]:.4g} {unit}")
@@ -199,19 +208,25 @@ class Supervisor:
 
     def check_command(self, t: float, tau: np.ndarray, estimates: list[np.ndarray]
                       ) -> Stop | None:
-        if not np.isfinite(tau).all():
+        if not _finite(tau):
             return Stop("non-finite", t, f"command = {_fmt(tau)}")
         for u, p, bound in zip(self.setups, estimates, self.bounds):
-            if not np.isfinite(p).all():
+            square = float(p @ p)
+            if not math.isfinite(square):
                 return Stop("non-finite", t, f"{u.name} estimate = {_fmt(p)}")
-            norm = float(np.linalg.norm(p))
-            if norm > bound * (1 + 1e-9):
+            if square > (bound * (1 + 1e-9)) ** 2:
+                norm = math.sqrt(square)
                 return Stop("estimate-bound", t, f"{u.name} |p_hat| = {norm:.4g}, bound "
                             f"{bound:.4g}")
         return None
 
     def saturate(self, tau: np.ndarray) -> None:
         np.clip(tau, -self.limits.effort, self.limits.effort, out=tau)
+
+
+def _finite(v: np.ndarray) -> bool:
+    """All finite, without a temporary array (a NaN or infinity makes the sum of squares so)."""
+    return math.isfinite(float(v @ v))
 
 
 def _fmt(v) -> str:
@@ -405,13 +420,28 @@ class RealTimeLoop:
                 signal.signal(s, handler)
         return self.stop
 
+    def _views(self):
+        """Views made once, so the period only copies into existing arrays."""
+        n, x, tau, off = self.n, self.x, self.tau, self.offsets
+        row = np.zeros(self.buffer.shape[1])  # the period's row, copied into the log at its end
+        units = []
+        for i, (kern, sl, desired) in enumerate(zip(self.kernels, self.slices, self.desired)):
+            ne = len(kern.outputs[2])
+            units.append((kern, kern.inputs, x[sl], x[n + sl.start:n + sl.stop], tau[sl],
+                          desired, row[int(off[3 + 2 * i]):int(off[3 + 2 * i]) + ne],
+                          row[int(off[4 + 2 * i]):int(off[5 + 2 * i])]))
+        timing = row[int(off[-2]):int(off[-1])]
+        return row, row[1:1 + 2 * n], row[1 + 2 * n:1 + 3 * n], timing, units
+
     def _loop(self, writer) -> Stop:
         h_ns = int(round(self.h * 1e9))
         misses = errors = 0
-        sup, backend, x, tau, buf, off = (self.supervisor, self.backend, self.x, self.tau,
-                                          self.buffer, self.offsets)
+        sup, backend, x, tau, buf = (self.supervisor, self.backend, self.x, self.tau,
+                                     self.buffer)
         n = self.n
-        timing_col = int(off[-2])
+        q_view, qd_view = x[:n], x[n:]
+        row, row_x, row_tau, row_timing, units = self._views()
+        estimates = [kern.outputs[1] for kern in self.kernels]
         clock = time.perf_counter_ns
         t0 = clock()
         previous_start = t0
@@ -432,42 +462,42 @@ class RealTimeLoop:
             errors = 0 if ok else errors + 1
             if errors > sup.limits.watchdog_errors:
                 return Stop("watchdog", t, f"{errors} consecutive backend read failures")
-            stop = sup.check_state(t, x) if ok else None
-            row = buf[k]
             row[0] = t
-            row[1:1 + 2 * n] = x
-            if stop:
+            row_x[:] = x
+            stop = sup.check_state(t, x, q_view, qd_view) if ok else None
+            if stop:  # nothing was commanded in this period
+                row[1 + 2 * n:] = np.nan
+                buf[k] = row
                 self.rows = k + 1
                 return stop
-            estimates = []
-            for i, (u, kern, sl, (xd, xd_dot, xd_ddot)) in enumerate(
-                    zip(self.setups, self.kernels, self.slices, self.desired)):
-                kin = kern.inputs
-                kin[0][:] = x[sl]
-                kin[1][:] = x[n + sl.start:n + sl.stop]
+            for kern, kin, q_u, qd_u, tau_u, (xd, xd_dot, xd_ddot), row_err, row_p in units:
+                kin[0][:] = q_u
+                kin[1][:] = qd_u
                 kin[2][:] = xd[k]
                 kin[3][:] = xd_dot[k]
                 kin[4][:] = xd_ddot[k]
                 kern()
-                tau[sl] = kern.outputs[0]
-                estimates.append(kern.outputs[1])
-                ne = len(kern.outputs[2])
-                row[int(off[3 + 2 * i]):int(off[3 + 2 * i]) + ne] = kern.outputs[2]
-                row[int(off[4 + 2 * i]):int(off[5 + 2 * i])] = kin[5]  # estimate used
+                tau_u[:] = kern.outputs[0]
+                row_err[:] = kern.outputs[2]
+                row_p[:] = kin[5]  # the estimate used in this period
                 kin[5][:] = kern.outputs[1]  # next period's estimate
             stop = sup.check_command(t, tau, estimates)
-            if stop:
+            if stop:  # the refused command is logged as computed; it was never written
+                row_tau[:] = tau
+                row_timing[:] = np.nan
+                buf[k] = row
                 self.rows = k + 1
                 return stop
             sup.saturate(tau)
             if not backend.write(tau):
                 errors += 1
-            row[1 + 2 * n:1 + 3 * n] = tau
+            row_tau[:] = tau
             end = clock()
-            row[timing_col] = (start - t0) * 1e-9 - t
-            row[timing_col + 1] = (start - previous_start) * 1e-9
-            row[timing_col + 2] = (end - start) * 1e-9
-            row[timing_col + 3] = backend.last_io_time_s
+            row_timing[0] = (start - t0) * 1e-9 - t
+            row_timing[1] = (start - previous_start) * 1e-9
+            row_timing[2] = (end - start) * 1e-9
+            row_timing[3] = backend.last_io_time_s
+            buf[k] = row
             previous_start = start
             if self.realtime and end - t0 > (k + 1) * h_ns:
                 misses += 1
