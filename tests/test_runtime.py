@@ -226,3 +226,15 @@ def test_wrong_combinations_fail_before_anything_moves(tmp_path):
         _, stderr = proc.communicate(timeout=60)
         assert proc.returncode == 2 and message in stderr and "Traceback" not in stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_live_status_line_refreshes(tmp_path):
+    proc = _cli(["--robot", "serial", "--space", "joint", "--duration", "1.2", "--status", "on",
+                 "--out", str(tmp_path / "run")], tmp_path)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    # text mode reads the carriage returns as newlines
+    lines = [part for part in stderr.splitlines() if part.startswith("t = ")]
+    assert len(lines) >= 3  # refreshed a few times a second
+    assert "|e| = " in lines[-1] and "period p99 = " in lines[-1] and "misses = " in lines[-1]
+    assert lines[-1].startswith("t =   1.20 s")
