@@ -67,6 +67,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", default="on", choices=["on", "off"],
                    help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
                         "off: the as-fast-as-possible simulation")
+    p.add_argument("--kernels", default="c", choices=["c", "casadi"],
+                   help="c: the generated C kernels (default; falls back to casadi with a "
+                        "warning when build/libcochlea.so is missing or stale); casadi: the "
+                        "reference")
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="control rate (default: the scenario's, 1000 Hz)")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
@@ -119,11 +123,11 @@ def _run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     mode = "real time" if args.realtime == "on" else "as fast as possible"
     print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, {scenario.variant} "
-          f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz -> {out}",
-          flush=True)
+          f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz, "
+          f"{args.kernels} kernels -> {out}", flush=True)
     if args.realtime == "off":
         start = time.perf_counter()
-        result = simulate(scenario, args.duration, setups)
+        result = simulate(scenario, args.duration, setups, backend=args.kernels)
         wall = time.perf_counter() - start
         data = report.write_all(result, out, wall)
         _report(data, out, wall)
@@ -150,9 +154,12 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
         keep_out = load_parallel(scenario.description).keep_out_radius
     duration = scenario.duration if args.duration is None else args.duration
     steps = int(round(duration * scenario.rate_hz))
-    backend = SimBackend(setups, scenario.period, scenario.plant_substeps)
-    supervisor = build_supervisor(setups, scenario.space, keep_out)
-    loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True)
+    substeps = scenario.plant_substeps
+    backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels)
+    supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
+                                  substeps=substeps)
+    loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
+                        kernels=args.kernels, substeps=substeps)
     write_raw_columns(out / "log.columns.json", loop)
     status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
     start = time.perf_counter()

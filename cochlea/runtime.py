@@ -26,6 +26,7 @@ import casadi as ca
 import numpy as np
 
 from .backends import Backend
+from .errors import CochleaError
 from .simulation import SimulationResult, UnitLog, UnitSetup, plant_step
 
 # Exit codes of a stopped run (README lists them).
@@ -70,6 +71,49 @@ class BufferedFunction:
         self._trigger()
 
 
+class _CKernel:
+    """A generated C kernel (:mod:`cochlea.ckernels`) behind the same interface: ``inputs`` and
+    ``outputs`` lists of the kernel's own buffers, in order, and a call. SX kernels cannot
+    fail, so the call's return code is not checked in the period."""
+
+    def __init__(self, kernel):
+        self.kernel = kernel
+        self.inputs = list(kernel.inputs.values())
+        self.outputs = list(kernel.outputs.values())
+        self._trigger = kernel.call
+
+    def __call__(self) -> None:
+        self._trigger()
+
+
+KERNEL_SOURCES = ("c", "casadi")
+
+
+def unit_kernels(u: UnitSetup, substeps: int, source: str = "c"):
+    """A unit's ``(step, plant_step, pose)`` kernels and where they come from.
+
+    ``source="c"``: the generated C kernels, checked against the Functions the setup uses (a
+    missing or stale library falls back to CasADi with a warning); ``"casadi"``: CasADi
+    Functions called through preallocated buffers.
+    """
+    if source == "c":
+        from . import ckernels
+        from .csim import unit_kernels as find
+
+        try:
+            lib = ckernels.load()
+            names = find(lib, u, substeps)
+            return (_CKernel(lib.kernel(names.step)), _CKernel(lib.kernel(names.plant)),
+                    _CKernel(lib.kernel(names.pose)), "c")
+        except CochleaError as exc:
+            import warnings
+
+            warnings.warn(f"{exc}; running on the CasADi kernels", stacklevel=2)
+    return (BufferedFunction(u.controller.step), BufferedFunction(plant_step(u.plant_model,
+                                                                               substeps)),
+            BufferedFunction(u.fk_world), "casadi")
+
+
 # --------------------------------------------------------------------------------------------
 # Backends
 # --------------------------------------------------------------------------------------------
@@ -84,18 +128,19 @@ class SimBackend:
 
     name = "sim"
 
-    def __init__(self, setups: list[UnitSetup], period: float, substeps: int):
+    def __init__(self, setups: list[UnitSetup], period: float, substeps: int,
+                 kernels: str = "c"):
         self.units = setups
         self.nq = sum(u.plant_model.nq for u in setups)
         self._steps = []
         self._spans = []  # per unit: its joints' slice of q and of qd in the system state
         start = 0
         for u in setups:
-            f = BufferedFunction(plant_step(u.plant_model, substeps))
-            f.inputs[2][:] = u.plant_params
-            f.inputs[3][:] = u.friction
-            f.inputs[4][:] = period
-            f.inputs[0][:] = u.x0
+            f = unit_kernels(u, substeps, kernels)[1]
+            f.inputs[2][...] = u.plant_params
+            f.inputs[3][...] = u.friction
+            f.inputs[4][...] = period
+            f.inputs[0][...] = u.x0
             self._steps.append(f)
             n = u.plant_model.nq
             self._spans.append((n, slice(start, start + n),
@@ -330,7 +375,8 @@ class RealTimeLoop:
     """
 
     def __init__(self, setups: list[UnitSetup], backend: Backend, supervisor: Supervisor,
-                 period: float, steps: int, realtime: bool = True):
+                 period: float, steps: int, realtime: bool = True, kernels: str = "c",
+                 substeps: int = 4):
         self.setups, self.backend, self.supervisor = setups, backend, supervisor
         self.h, self.steps, self.realtime = period, steps, realtime
         self.time = np.arange(steps) * period
@@ -342,14 +388,17 @@ class RealTimeLoop:
         # Per unit: the fused step through buffers, its slice of the joint vector, the desired
         # samples of the whole run (exact, precomputed), and the column layout of the log.
         self.kernels, self.slices, self.desired = [], [], []
+        self.kernel_source = "c"
         start = 0
         for u in setups:
-            k = BufferedFunction(u.controller.step)
-            k.inputs[5][:] = u.p_hat0
-            k.inputs[6][:] = u.gains
-            k.inputs[7][:] = u.gamma
-            k.inputs[8][:] = u.bound
-            k.inputs[9][:] = period
+            k, _, _, source = unit_kernels(u, substeps, kernels)
+            if source != "c":
+                self.kernel_source = source
+            k.inputs[5][...] = u.p_hat0
+            k.inputs[6][...] = u.gains
+            k.inputs[7][...] = u.gamma
+            k.inputs[8][...] = u.bound
+            k.inputs[9][...] = period
             self.kernels.append(k)
             n = u.controller_model.nq
             self.slices.append(slice(start, start + n))
@@ -571,7 +620,8 @@ def write_raw_columns(path: Path, loop: RealTimeLoop) -> None:
 
 
 def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float | None,
-                     watchdog_misses: int = 20, watchdog_errors: int = 5) -> Supervisor:
+                     watchdog_misses: int = 20, watchdog_errors: int = 5,
+                     kernels: str = "c", substeps: int = 4) -> Supervisor:
     """Limits from the descriptions of every unit's joints; the keep-out circle for task-space
     runs around each unit's centre (serial: the cochlea centre; parallel: the slider pivot S,
     which moves with d1) for each of its tool points."""
@@ -587,14 +637,14 @@ def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float
         watchdog_misses=watchdog_misses, watchdog_errors=watchdog_errors)
     fks, slices, start = [], [], 0
     for u in setups:
-        fks.append(BufferedFunction(u.fk_world))
+        fks.append(unit_kernels(u, substeps, kernels)[2])
         slices.append(slice(start, start + u.controller_model.nq))
         start += u.controller_model.nq
 
     def keep_out_points(q):
         points = []
         for u, fk, sl in zip(setups, fks, slices):
-            fk.inputs[0][:] = q[sl]
+            fk.inputs[0][...] = q[sl]
             fk()
             pose = fk.outputs[0]
             centre = u.keep_out_centre(q[sl])

@@ -21,8 +21,8 @@ from cochlea.simulation import load_scenario, simulate, unit_setups
 class RecordingBackend(SimBackend):
     """The sim backend, recording every command and disable, with faults injected at a period."""
 
-    def __init__(self, setups, period, substeps, fault=None, at=5):
-        super().__init__(setups, period, substeps)
+    def __init__(self, setups, period, substeps, fault=None, at=5, kernels="c"):
+        super().__init__(setups, period, substeps, kernels=kernels)
         self.fault, self.at, self.k = fault, at, 0
         self.commands, self.disabled = [], 0
 
@@ -52,6 +52,7 @@ def make_loop(name="serial_task", fault=None, at=5, seconds=0.2, realtime=False,
     supervisor = build_supervisor(setups, sc.space, keep_out)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, int(seconds / sc.period),
                         realtime=realtime)
+    assert loop.kernel_source == "c"  # the generated kernels, not the fallback
     return sc, loop, backend
 
 
@@ -205,7 +206,7 @@ def test_defaults_pick_the_thesis_study_and_a_new_folder(tmp_path):
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
     assert "parallel_joint (controller f, corrected variant), sim backend, real time at " \
-           "1000 Hz -> runs/parallel_joint_" in stdout
+           "1000 Hz, c kernels -> runs/parallel_joint_" in stdout
     (folder,) = (tmp_path / "runs").iterdir()
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["stop"]["rule"] == "completed" and summary["periods"] == 300
