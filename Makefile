@@ -31,14 +31,16 @@ CC       ?= cc
 CFLAGS_C ?= -O2
 LIBFLAGS := -std=c99 -fPIC -Wall -Wextra -Werror
 JOBS     ?= $(shell nproc 2>/dev/null || echo 2)
-LIB      := build/libcochlea.so
-C_SRC    := $(sort $(wildcard generated_c/*.c))
-C_OBJ    := $(patsubst generated_c/%.c,build/obj/%.o,$(C_SRC))
+GEN      ?= generated_c
+BUILD    ?= build
+LIB      := $(BUILD)/libcochlea.so
+C_SRC    := $(sort $(wildcard $(GEN)/*.c))
+C_OBJ    := $(patsubst $(GEN)/%.c,$(BUILD)/obj/%.o,$(C_SRC))
 
 lib:
 	@$(MAKE) --no-print-directory -j$(JOBS) $(LIB)
 
-build/obj/%.o: generated_c/%.c $(wildcard generated_c/*.h)
+$(BUILD)/obj/%.o: $(GEN)/%.c $(wildcard $(GEN)/*.h)
 	@mkdir -p $(@D)
 	$(CC) $(CFLAGS_C) $(LIBFLAGS) -c $< -o $@
 

@@ -23,6 +23,7 @@ the scenario's RK4 sub-steps, pose): a missing library, a scenario outside what
 
 from __future__ import annotations
 
+import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -55,11 +56,30 @@ class UnitKernels:
     closed_loop: str
 
 
+#: Per-object caches of the checks (objects kept alive, so their ids stay theirs).
+_HASHES: dict[int, tuple[object, str]] = {}
+_PLANTS: dict[tuple[int, int], tuple[object, object]] = {}
+
+
+def _hash(function) -> str:
+    if id(function) not in _HASHES:
+        _HASHES[id(function)] = (function, source_hash(function))
+    return _HASHES[id(function)][1]
+
+
+def _plant(model, substeps: int):
+    key = (id(model), substeps)
+    if key not in _PLANTS:
+        _PLANTS[key] = (model, plant_step(model, substeps))
+    return _PLANTS[key][1]
+
+
 def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKernels:
-    """Find a unit's kernels in the library and check they compute what the setup does."""
+    """Find a unit's kernels in the library and check they compute what the setup does
+    (source hashes; computed once per Function object)."""
     c = u.controller
     group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "")[:-1]
-    plant = plant_step(u.plant_model, substeps)
+    plant = _plant(u.plant_model, substeps)
     wanted = [(f"{group}_step", c.step, f"controller {c.kind} ({c.variant})"),
               (plant.name(), plant, f"the plant with {substeps} RK4 sub-steps"),
               (u.fk_world.name(), u.fk_world, "the logged pose")]
@@ -69,7 +89,7 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
                 f"{lib.path} has no kernel {name} ({what} of unit {u.name}): add it to "
                 "codegen/kernels.toml, run cochlea-codegen and make lib, or use the CasADi "
                 "backend")
-        if lib.source_hash(name) != source_hash(function):
+        if lib.source_hash(name) != _hash(function):
             raise CKernelsUnavailable(
                 f"the C kernel {name} in {lib.path} computes something else than {what} of "
                 f"unit {u.name} (a different description, parameterisation or option, or a "
@@ -84,8 +104,9 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
 
 
 def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
-    """``(xd, xd_dot, xd_ddot)`` at every time of the grid, each ``(N, nd)``, in one call."""
-    mapped = u.desired.map(len(time))(time)
+    """``(xd, xd_dot, xd_ddot)`` at every time of the grid, each ``(N, nd)``, in one call
+    (CasADi's map on up to 4 threads; every sample is computed on its own)."""
+    mapped = u.desired.map(len(time), "thread", max(1, min(4, os.cpu_count() or 1)))(time)
     return tuple(np.ascontiguousarray(np.array(m).T) for m in mapped)
 
 

@@ -196,3 +196,24 @@ def test_closed_loop_checks_its_arrays(lib):
         loop.run(4, **good, noise=np.zeros((4, 3)))
     with pytest.raises(KernelError, match="delay"):
         loop.run(4, **good, delay=-1)
+
+
+def test_the_benchmarks_numpy_law_is_the_c_step(lib, rng):
+    """bench/numpy_law.py (the benchmark's NumPy baseline) computes controller e's step."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("numpy_law", ROOT / "bench" / "numpy_law.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    system = cochlea.load_serial("serial")
+    for arm in system.arms:
+        law = module.NumpyStepE(arm, arm.base_rotation.T @ system.gravity)
+        step = lib.kernel(f"serial_{arm.name}_e_step")
+        n_gains = step["gains"].size
+        for i in range(20):
+            args = [rng.uniform(-3, 3, 3), rng.uniform(-1, 1, 3), rng.uniform(-3, 3, 3),
+                    rng.uniform(-1, 1, 3), rng.uniform(-1, 1, 3), rng.uniform(0, 0.2, 3),
+                    rng.uniform(0.5, 5, n_gains), rng.uniform(0.5, 2, 3),
+                    np.array(0.3 if i % 2 else 10.0), np.array(1e-3)]  # projection on / off
+            for got, want in zip(law(*args), step.evaluate(*args)):
+                assert np.max(np.abs(got - want)) <= 1e-12 * max(1, np.max(np.abs(want)))
