@@ -328,8 +328,8 @@ def verdicts(steps: list[dict], loops: list[dict], build: dict) -> list[str]:
         else:
             rest = r["ctypes_s"] - r["floor_s"] - r["c_alone_s"]
             lines.append(
-                f"- **missed** by {ratio / target:.2f}x: `{r['kernel']}` through ctypes is "
-                f"{ratio:.2f}x the floor (target <= {target:g}x). Why: the law's own "
+                f"- **missed** by {ratio / target:.3f}x: `{r['kernel']}` through ctypes is "
+                f"{ratio:.3f}x the floor (target <= {target:g}x). Why: the law's own "
                 f"arithmetic, {us(r['c_alone_s'])} us alone in C ({r['operations']} "
                 f"operations) against a floor of {us(r['floor_s'])} us, so even a free call "
                 f"would be {1 + r['c_alone_s'] / r['floor_s']:.2f}x the floor; the remaining "
