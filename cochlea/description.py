@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .dynamixel.control_table import MODELS as MOTOR_SPECS
 from .errors import DescriptionError
 
 #: Folder of the descriptions shipped with the project.
@@ -75,9 +76,20 @@ class MotorFit:
 
 @dataclass(frozen=True)
 class Motor:
+    """The Dynamixel driving a joint and how the bridge maps it (``cochlea.dynamixel.units``).
+
+    ``zero_offset`` is the motor's angle (rad, Present Position x 2 pi / 4096) at which the
+    joint coordinate is zero and ``direction`` (+1 or -1) whether joint and motor turn the same
+    way. ``current_limit_mA`` is the Current Limit the bridge writes; ``None`` derives it from
+    the joint's torque (force) limit through the fit.
+    """
+
     model: str
     id: int
     fit: MotorFit
+    direction: int = 1
+    zero_offset: float = 0.0  # rad, motor angle at joint zero
+    current_limit_mA: float | None = None
 
 
 @dataclass(frozen=True)
@@ -287,8 +299,17 @@ def _read_motor(t: _Table) -> Motor:
         y=f.string("y", FIT_OUTPUTS),
     )
     f.done()
+    direction = t.get("direction", "1 or -1 (the motor turns with the joint, or against it)",
+                      lambda v: isinstance(v, int) and not isinstance(v, bool) and v in (1, -1),
+                      default=1, required=False)
+    zero_offset = t.number("zero_offset_deg", "a number (deg): the motor angle (Present "
+                           "Position x 0.088 deg) at which the joint coordinate is zero",
+                           default=0.0, required=False)
+    largest = MOTOR_SPECS[model].max_current_mA
+    current_limit = t.number("current_limit_mA", f"a positive number (mA) up to the {model}'s "
+                             f"{largest:g} mA", lambda v: 0 < v <= largest, required=False)
     t.done()
-    return Motor(model, motor_id, fit)
+    return Motor(model, motor_id, fit, direction, math.radians(zero_offset), current_limit)
 
 
 def _read_link(t: _Table, parent_length: float) -> Link:
