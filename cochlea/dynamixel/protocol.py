@@ -1,0 +1,364 @@
+"""Dynamixel Protocol 2.0 frames: CRC-16, byte stuffing, instruction builders, a packet parser.
+
+Frame layout (little-endian)::
+
+    instruction:  FF FF FD 00 | ID | LEN_L LEN_H | INST | params...      | CRC_L CRC_H
+    status:       FF FF FD 00 | ID | LEN_L LEN_H | 0x55 | ERR | params... | CRC_L CRC_H
+
+``LEN`` counts the bytes after it (instruction, error, parameters, CRC) *after* byte stuffing:
+from the instruction byte to the last parameter, every ``FF FF FD`` gets an extra ``FD``. The
+CRC (polynomial 0x8005, initial value 0, no reflection, no final XOR) covers the whole stuffed
+frame from the header on. A receiver checks the CRC, then removes the stuffing.
+
+The builders (:func:`ping`, :func:`read`, :func:`write`, :func:`sync_read`, :func:`sync_write`,
+...) return ``bytes`` and are for set-up code. The per-period path uses :class:`FrameBuffer`
+(a frame rebuilt in place in a preallocated buffer) and :class:`PacketParser` (a streaming
+parser over a preallocated buffer that returns a result code, never raises).
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Sequence
+
+from .control_table import (
+    BROADCAST_ID,
+    MAX_ID,
+    PING,
+    READ,
+    REBOOT,
+    STATUS,
+    SYNC_READ,
+    SYNC_WRITE,
+    WRITE,
+)
+
+HEADER = b"\xff\xff\xfd\x00"
+#: Bytes before the instruction: header (4), ID, LEN_L, LEN_H.
+PREFIX = 7
+#: Largest frame the parser accepts (the official SDK uses the same bound).
+MAX_FRAME = 1024
+
+
+def _crc_table() -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else (crc << 1)
+        table.append(crc & 0xFFFF)
+    return tuple(table)
+
+
+CRC_TABLE = _crc_table()
+
+
+def crc16(data, start: int = 0, end: int | None = None, crc: int = 0) -> int:
+    """CRC-16 of ``data[start:end]`` as Protocol 2.0 defines it (``crc16(b"123456789")`` is
+    0xFEE8). Works on bytes, bytearray and memoryview without copying."""
+    table = CRC_TABLE
+    stop = len(data) if end is None else end
+    for i in range(start, stop):
+        crc = ((crc << 8) & 0xFFFF) ^ table[((crc >> 8) ^ data[i]) & 0xFF]
+    return crc
+
+
+def stuff(body: bytes | bytearray) -> bytes:
+    """Byte stuffing of the instruction-to-parameters part: ``FF FF FD`` -> ``FF FF FD FD``."""
+    out = bytearray()
+    last1 = last2 = 0
+    for x in body:
+        out.append(x)
+        if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
+            out.append(0xFD)
+        last2, last1 = last1, x
+    return bytes(out)
+
+
+def unstuff(body: bytes | bytearray) -> bytes:
+    """The inverse of :func:`stuff`. A missing stuffing byte (a sender that does not stuff) is
+    tolerated: the data are kept as sent."""
+    buf = bytearray(body)
+    n = _unstuff_in_place(buf, 0, len(buf))
+    return bytes(buf[:n])
+
+
+def _unstuff_in_place(buf: bytearray, start: int, end: int) -> int:
+    """Remove stuffing from ``buf[start:end]`` in place; returns the end of the result."""
+    w = start
+    last1 = last2 = 0
+    skip = False
+    for r in range(start, end):
+        x = buf[r]
+        if skip:
+            skip = False
+            if x == 0xFD:
+                continue
+        buf[w] = x
+        w += 1
+        if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
+            skip = True
+        last2, last1 = last1, x
+    return w
+
+
+def encode_into(out: bytearray, packet_id: int, first: int, params, n_params: int) -> int:
+    """Write a whole frame into ``out`` (header, ID, length, stuffed ``first`` byte and
+    parameters, CRC) and return its length. ``first`` is the instruction (instruction packets)
+    or ``0x55`` followed by the error byte as the first parameter (status packets). Allocates
+    nothing; ``out`` must hold the stuffed frame (at most ``PREFIX + 2 * (1 + n_params) + 2``)."""
+    out[0] = 0xFF
+    out[1] = 0xFF
+    out[2] = 0xFD
+    out[3] = 0x00
+    out[4] = packet_id
+    w = PREFIX
+    out[w] = first
+    w += 1
+    last1, last2 = first, 0
+    for i in range(n_params):
+        x = params[i]
+        out[w] = x
+        w += 1
+        if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
+            out[w] = 0xFD
+            w += 1
+        last2, last1 = last1, x
+    length = w - PREFIX + 2
+    out[5] = length & 0xFF
+    out[6] = length >> 8
+    crc = crc16(out, 0, w)
+    out[w] = crc & 0xFF
+    out[w + 1] = crc >> 8
+    return w + 2
+
+
+def _frame(packet_id: int, first: int, params: bytes | bytearray) -> bytes:
+    out = bytearray(PREFIX + 2 * (1 + len(params)) + 2)
+    n = encode_into(out, packet_id, first, params, len(params))
+    return bytes(out[:n])
+
+
+def instruction(packet_id: int, instruction_code: int, params: bytes | bytearray = b"") -> bytes:
+    """Any instruction packet."""
+    if not 0 <= packet_id <= BROADCAST_ID or packet_id == 0xFD:
+        raise ValueError(f"packet ID {packet_id} is not 0..{MAX_ID} or broadcast (254)")
+    return _frame(packet_id, instruction_code, params)
+
+
+def status(packet_id: int, error: int = 0, params: bytes | bytearray = b"") -> bytes:
+    """A status packet (what a motor answers)."""
+    return _frame(packet_id, STATUS, bytes([error]) + bytes(params))
+
+
+def le(value: int, size: int) -> bytes:
+    """``value`` as ``size`` little-endian bytes (negative values in two's complement)."""
+    return (value & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
+
+
+def from_le(data, signed: bool) -> int:
+    return int.from_bytes(bytes(data), "little", signed=signed)
+
+
+def ping(motor_id: int) -> bytes:
+    return instruction(motor_id, PING)
+
+
+def read(motor_id: int, address: int, length: int) -> bytes:
+    return instruction(motor_id, READ, le(address, 2) + le(length, 2))
+
+
+def write(motor_id: int, address: int, data: bytes | bytearray) -> bytes:
+    return instruction(motor_id, WRITE, le(address, 2) + bytes(data))
+
+
+def reboot(motor_id: int) -> bytes:
+    return instruction(motor_id, REBOOT)
+
+
+def sync_read(address: int, length: int, ids: Iterable[int]) -> bytes:
+    return instruction(BROADCAST_ID, SYNC_READ, le(address, 2) + le(length, 2) + bytes(ids))
+
+
+def sync_write(address: int, length: int, data: Sequence[tuple[int, bytes]]) -> bytes:
+    """``data``: one ``(id, bytes)`` per motor, each ``length`` bytes long."""
+    params = bytearray(le(address, 2) + le(length, 2))
+    for motor_id, values in data:
+        if len(values) != length:
+            raise ValueError(f"SYNC_WRITE data of ID {motor_id} has {len(values)} bytes, "
+                             f"not {length}")
+        params.append(motor_id)
+        params += values
+    return instruction(BROADCAST_ID, SYNC_WRITE, params)
+
+
+class FrameBuffer:
+    """An instruction frame rebuilt in place each period: the parameters live in ``params``
+    (change them in place), :meth:`encode` writes the frame into ``out`` and returns its
+    length. Nothing is allocated after construction."""
+
+    def __init__(self, packet_id: int, instruction_code: int, params: bytes | bytearray):
+        self.packet_id = packet_id
+        self.instruction = instruction_code
+        self.params = bytearray(params)
+        self.out = bytearray(PREFIX + 2 * (1 + len(self.params)) + 2)
+        self.view = memoryview(self.out)
+
+    def encode(self) -> int:
+        return encode_into(self.out, self.packet_id, self.instruction, self.params,
+                           len(self.params))
+
+
+def sync_write_buffer(address: int, length: int, ids: Sequence[int]) -> FrameBuffer:
+    """A SYNC_WRITE frame whose data start at ``params[5 + k * (1 + length)]`` for motor k."""
+    params = bytearray(le(address, 2) + le(length, 2))
+    for motor_id in ids:
+        params.append(motor_id)
+        params += bytes(length)
+    return FrameBuffer(BROADCAST_ID, SYNC_WRITE, params)
+
+
+# --------------------------------------------------------------------------------------------
+# Streaming parser
+# --------------------------------------------------------------------------------------------
+
+#: Result codes of :meth:`PacketParser.parse`.
+OK = 0  # a whole packet with a good CRC: see id, instruction, error, params_*
+NEED_MORE = 1  # no whole packet in the buffer yet
+CRC_FAILURE = 2  # a packet whose CRC does not match (``id`` is its ID field, maybe corrupted)
+BAD_LENGTH = 3  # a header whose length field is impossible (dropped one byte to resynchronise)
+BAD_ID = 4  # a header whose ID field is impossible (dropped one byte)
+WRONG_KIND = 5  # a good packet of the other kind (an instruction where a status was expected)
+SHORT = 6  # a good packet too short for its kind (a status without error byte)
+RESULT_NAMES = {OK: "ok", NEED_MORE: "need more", CRC_FAILURE: "CRC failure",
+                BAD_LENGTH: "bad length", BAD_ID: "bad ID", WRONG_KIND: "wrong packet kind",
+                SHORT: "short packet"}
+
+
+class PacketParser:
+    """Finds packets in a byte stream, resynchronising on garbage.
+
+    Bytes go in through :meth:`feed` (a copy) or :meth:`space` + :meth:`commit` (read straight
+    into the buffer). Each :meth:`parse` call returns one result code; on ``OK`` the packet's
+    fields are ``id``, ``instruction``, ``error`` (status packets) and the unstuffed
+    parameters ``buf[params_start:params_start + params_len]``, valid until the next call.
+    ``status=True`` parses status packets (what the bridge reads), ``False`` instruction
+    packets (what the emulator reads). Every call either consumes at least one byte or returns
+    ``NEED_MORE``, so a loop of calls ends; nothing raises, whatever the bytes.
+    """
+
+    def __init__(self, status: bool = True, capacity: int = 2 * MAX_FRAME):
+        self.status = status
+        self.capacity = capacity
+        self.buf = bytearray(capacity)
+        self.view = memoryview(self.buf)
+        self.start = 0
+        self.end = 0
+        self.id = 0
+        self.instruction = 0
+        self.error = 0
+        self.params_start = 0
+        self.params_len = 0
+        self.frame_len = 0  # stuffed length of the last packet returned (OK or CRC_FAILURE)
+        self.dropped = 0  # garbage bytes skipped since construction
+
+    def reset(self) -> None:
+        """Forget buffered bytes (start of a new transaction)."""
+        self.start = self.end = 0
+
+    @property
+    def pending(self) -> int:
+        return self.end - self.start
+
+    def _compact(self) -> None:
+        n = self.end - self.start
+        if n and self.start:
+            self.buf[0:n] = bytes(self.view[self.start:self.end])
+        self.start, self.end = 0, n
+
+    def space(self) -> memoryview:
+        """Free room at the end of the buffer to read into (then :meth:`commit`)."""
+        if self.start == self.end:
+            self.start = self.end = 0
+        elif self.end >= self.capacity - 64:
+            self._compact()
+        return self.view[self.end:]
+
+    def commit(self, n: int) -> None:
+        self.end = min(self.end + max(n, 0), self.capacity)
+
+    def feed(self, data) -> int:
+        """Copy bytes in; returns how many fitted (the rest must be fed again after parsing)."""
+        room = self.space()
+        n = min(len(data), len(room))
+        room[:n] = data[:n]
+        self.commit(n)
+        return n
+
+    def params(self) -> bytes:
+        """The last packet's parameters as bytes (a copy: for set-up code, not the loop)."""
+        return bytes(self.view[self.params_start:self.params_start + self.params_len])
+
+    def parse(self) -> int:
+        b = self.buf
+        s, e = self.start, self.end
+        if e - s < 4:
+            return NEED_MORE
+        i = b.find(HEADER, s, e)
+        if i < 0:
+            keep = max(s, e - 3)  # a header may be split across reads
+            self.dropped += keep - s
+            self.start = keep
+            return NEED_MORE
+        if i > s:
+            self.dropped += i - s
+            s = self.start = i
+        if e - s < PREFIX:
+            return NEED_MORE
+        packet_id = b[s + 4]
+        length = b[s + 5] | (b[s + 6] << 8)
+        if self.status:
+            if packet_id > MAX_ID:
+                self.start = s + 1
+                self.dropped += 1
+                return BAD_ID
+            shortest = 4  # 0x55, error, CRC
+        else:
+            if packet_id == 0xFD or packet_id == 0xFF:
+                self.start = s + 1
+                self.dropped += 1
+                return BAD_ID
+            shortest = 3  # instruction, CRC
+        total = PREFIX + length
+        if length < shortest or total > self.capacity:
+            self.start = s + 1
+            self.dropped += 1
+            return BAD_LENGTH
+        if e - s < total:
+            if total > self.capacity - s:
+                self._compact()
+            return NEED_MORE
+        crc_end = s + total - 2
+        self.id = packet_id
+        self.frame_len = total
+        if crc16(b, s, crc_end) != (b[crc_end] | (b[crc_end + 1] << 8)):
+            self.start = s + 1  # resynchronise inside: the next header may be real
+            self.dropped += 1
+            return CRC_FAILURE
+        self.start = s + total
+        body = s + PREFIX
+        body_end = _unstuff_in_place(b, body, crc_end)
+        self.instruction = b[body]
+        if self.status:
+            if self.instruction != STATUS:
+                return WRONG_KIND
+            if body_end - body < 2:
+                return SHORT
+            self.error = b[body + 1]
+            self.params_start = body + 2
+        else:
+            if self.instruction == STATUS:
+                return WRONG_KIND
+            self.error = 0
+            self.params_start = body + 1
+        self.params_len = body_end - self.params_start
+        return OK
