@@ -1,0 +1,556 @@
+"""``DynamixelBackend``: the real motors of a robot description, behind the loop's backend
+interface (:mod:`cochlea.backends`).
+
+Start-up (:meth:`DynamixelBackend.enable`), each step on every motor before the next, every
+write confirmed by its status packet; any failure raises :class:`BackendError` after the safe
+shut-down, before anything moved:
+
+1. PING every motor of the description and check its model number (and its alert bit);
+2. Torque Enable 0, and Bus Watchdog 0 (clears a watchdog error latched by an earlier run,
+   which would make Goal Current read-only);
+3. Operating Mode 0 (current control);
+4. Return Delay Time 0;
+5. Current Limit from the description (see :func:`cochlea.dynamixel.units.current_limit_lsb`);
+6. Goal Current 0 (the mode change reset it to the Current Limit);
+7. Bus Watchdog (default 100 ms): the motors stop by themselves if the loop stops talking;
+8. SYNC_READ until the first good read; the joints must lie within their limits;
+9. Torque Enable 1.
+
+Each period: :meth:`~DynamixelBackend.read` is one SYNC_READ of 126..135 (current, velocity,
+position), :meth:`~DynamixelBackend.write` one SYNC_WRITE of Goal Current. Both work in
+preallocated buffers and report failures (timeout, CRC, error byte, hardware alert, port) as a
+False return and counters, never as an exception.
+
+Protocol 2.0 has no sequence numbers: a status packet later than the read timeout would pass
+for the next period's. So after a failed read the next one first waits until the line has been
+quiet for one timeout, dropping what arrives (and fails as ``late-traffic`` if it never is).
+
+Shut-down (:meth:`~DynamixelBackend.disable`, also at interpreter exit and after a failed
+start-up): SYNC_WRITE Goal Current 0, SYNC_WRITE Torque Enable 0 (each sent twice, no reply
+needed, so one dead motor cannot hold up the others), then a READ of Torque Enable per motor
+to confirm; ``shutdown_report`` says what was confirmed.
+"""
+
+from __future__ import annotations
+
+import atexit
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..backends import BackendError
+from . import protocol as proto
+from .budget import DEFAULT_ADAPTER_LATENCY_S, BusBudget, Verdict, bus_budget
+from .control_table import (
+    ADDR_BUS_WATCHDOG,
+    ADDR_CURRENT_LIMIT,
+    ADDR_GOAL_CURRENT,
+    ADDR_HARDWARE_ERROR,
+    ADDR_OPERATING_MODE,
+    ADDR_RETURN_DELAY,
+    ADDR_TORQUE_ENABLE,
+    ALERT_BIT,
+    CURRENT_MODE,
+    MODELS_BY_NUMBER,
+    STATE_ADDRESS,
+    STATE_LENGTH,
+    WATCHDOG_UNIT_S,
+    describe_error,
+    describe_hardware_error,
+)
+from .port import SerialPort, latency_timer_ms
+from .units import DEFAULT_RAMP_NM, JointDrive, joint_drives
+
+#: Failure kinds a period can report (index into ``DynamixelBackend.failures``).
+TIMEOUT, CRC, ERROR_BYTE, ALERT, LENGTH, PORT, LATE, NON_FINITE, NOT_ENABLED, INTERNAL = \
+    range(10)
+FAILURE_NAMES = ("timeout", "crc", "error-byte", "hardware-alert", "length", "port",
+                 "late-traffic", "non-finite-command", "not-enabled", "internal")
+
+_STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+_GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
+
+
+class DynamixelBackend:
+    """The motors of ``robot`` (``"serial"`` or ``"parallel"``) as described in
+    ``description`` (default ``models/ROBOT.toml``), on the serial port ``port``.
+
+    Joint order: serial, arm 1's joints then arm 2's; parallel, th1, th2, d1, th1', th2'.
+    ``x = [q, qd]`` in rad (m) and rad/s (m/s), efforts in N m (N).
+
+    Options: ``baud`` must be the motors' configured rate (the bridge does not change it);
+    ``watchdog_s`` the Bus Watchdog (20 ms steps, 0.02..2.54 s); ``timeout_s`` how long a read
+    waits for all status packets (default: the bus time plus 3 ms); ``ramp_Nm`` the fit's
+    blending band (:mod:`cochlea.dynamixel.units`); ``position_margin_rad`` how far outside its
+    limits a joint may be at start-up; ``adapter_latency_s`` for the bus budget (default: the
+    adapter's latency timer from sysfs, 0 for a pseudo-terminal, else 1 ms).
+    """
+
+    name = "dynamixel"
+
+    def __init__(self, robot: str, port: str, baud: int = 4_000_000, *,
+                 description: str | Path | None = None, watchdog_s: float = 0.1,
+                 timeout_s: float | None = None, ramp_Nm: float = DEFAULT_RAMP_NM,
+                 position_margin_rad: float = math.radians(2.0),
+                 adapter_latency_s: float | None = None, retries: int = 3,
+                 open_port=SerialPort):
+        self.robot = robot
+        self.port_path = str(port)
+        self.baud = int(baud)
+        self.drives: list[JointDrive] = joint_drives(robot, description, ramp_Nm)
+        self.nq = n = len(self.drives)
+        self.ids = [d.id for d in self.drives]
+        if not 0.02 <= watchdog_s <= 127 * WATCHDOG_UNIT_S:
+            raise BackendError(f"the Bus Watchdog must be 0.02..2.54 s, got {watchdog_s} s")
+        self.watchdog_lsb = max(1, min(127, int(math.ceil(watchdog_s / WATCHDOG_UNIT_S - 1e-9))))
+        if adapter_latency_s is None:
+            timer = latency_timer_ms(self.port_path)
+            if timer is not None:
+                adapter_latency_s = timer * 1e-3
+            elif self.port_path.startswith("/dev/pts/"):
+                adapter_latency_s = 0.0
+            else:
+                adapter_latency_s = DEFAULT_ADAPTER_LATENCY_S
+        self.budget: BusBudget = bus_budget(n, self.baud, adapter_latency_s=adapter_latency_s)
+        self.timeout_s = timeout_s if timeout_s is not None else self.budget.cycle_s + 3e-3
+        self.position_margin = position_margin_rad
+        self.retries = max(1, retries)
+        self._open_port = open_port
+        self._port: SerialPort | None = None
+        self._active = False
+        self._suspect = False  # the last read failed: wait for a quiet line first
+        self.last_io_time_s = 0.0
+        self._read_time = 0.0
+
+        # ---- preallocated per-period state -----------------------------------------------------
+        self._parser = proto.PacketParser(status=True)
+        self._read_frame = proto.sync_read(STATE_ADDRESS, STATE_LENGTH, self.ids)
+        self._read_view = memoryview(self._read_frame)
+        self._write_frame = proto.sync_write_buffer(ADDR_GOAL_CURRENT, 2, self.ids)
+        self._goal = np.frombuffer(self._write_frame.params, _GOAL_DTYPE, count=n,
+                                   offset=4)["current"]
+        self._raw = bytearray(STATE_LENGTH * n)
+        self._raw_view = memoryview(self._raw)
+        state = np.frombuffer(self._raw, _STATE_DTYPE)
+        self._cur, self._vel, self._pos = state["current"], state["velocity"], state["position"]
+        self._slot_of = [-1] * 256
+        for j, motor_id in enumerate(self.ids):
+            self._slot_of[motor_id] = j
+        self._slots = bytearray(n)  # 0 waiting, 1 good, 2 failed
+        f = np.array
+        self._q_per_count = f([d.q_per_count for d in self.drives])
+        self._q_offset = f([d.q_offset for d in self.drives])
+        self._qd_per_lsb = f([d.qd_per_lsb for d in self.drives])
+        self._mA_per_lsb = f([d.spec.current_unit_mA for d in self.drives])
+        self._torque_per_effort = f([d.torque_per_effort for d in self.drives])
+        self._inv_a = f([1.0 / d.fit.a for d in self.drives])
+        self._inv_ramp = f([1.0 / d.fit.ramp for d in self.drives])
+        self._i0 = f([d.fit.offset_current for d in self.drives])
+        self._lsb_per_ampere = f([d.lsb_per_ampere for d in self.drives])
+        self._limit = f([float(d.current_limit_lsb) for d in self.drives])
+        self._neg_limit = -self._limit
+        self._torque = np.zeros(n)
+        self._blend = np.zeros(n)
+        self._amps = np.zeros(n)
+        self._finite = np.zeros(n, dtype=bool)
+        #: Present Current of the last good read (mA) and the last Goal Current sent (LSB).
+        self.present_current_mA = np.zeros(n)
+        self.goal_current_lsb = self._goal
+
+        # ---- diagnostics -------------------------------------------------------------------------
+        self.failures = [0] * len(FAILURE_NAMES)  # periods failed, by first cause
+        self.garbage_packets = 0  # headers with impossible fields, packets of the wrong kind
+        self.unexpected_packets = 0  # good packets nobody asked for (duplicates, other IDs)
+        self.reads = 0
+        self.good_reads = 0
+        self.writes = 0
+        self.last_failure = -1
+        self.last_failure_id = -1
+        self.alert_ids: set[int] = set()
+        self.shutdown_report = "not started"
+        self._zero_frame = proto.sync_write(ADDR_GOAL_CURRENT, 2, [(i, b"\0\0") for i in self.ids])
+        self._torque_off_frame = proto.sync_write(ADDR_TORQUE_ENABLE, 1,
+                                                  [(i, b"\0") for i in self.ids])
+
+    # ---- the Backend interface ------------------------------------------------------------------
+
+    def enable(self) -> None:
+        if self._active:
+            return
+        try:
+            self._port = self._open_port(self.port_path, self.baud)
+            self._startup()
+        except BackendError:
+            self.disable()
+            raise
+        except Exception as exc:  # noqa: BLE001 (anything else is a start-up failure too)
+            self.disable()
+            raise BackendError(f"start-up on {self.port_path} failed: {exc!r}") from exc
+        self._active = True
+        atexit.register(self.disable)
+
+    def read(self, x: np.ndarray) -> bool:
+        t0 = time.perf_counter()
+        try:
+            ok = self._sync_read(x, t0)
+        except Exception:  # noqa: BLE001 (the loop must never see an exception)
+            ok = self._fail(INTERNAL, -1)
+        self._read_time = time.perf_counter() - t0
+        return ok
+
+    def write(self, tau: np.ndarray) -> bool:
+        t0 = time.perf_counter()
+        try:
+            ok = self._sync_write(tau, t0)
+        except Exception:  # noqa: BLE001
+            ok = self._fail(INTERNAL, -1)
+        self.last_io_time_s = self._read_time + (time.perf_counter() - t0)
+        return ok
+
+    def disable(self) -> None:
+        """Goal Current 0 and Torque Enable 0 on every motor, then close the port. Never
+        raises; a second call does nothing."""
+        self._active = False
+        port, self._port = self._port, None
+        if port is None:
+            return
+        try:
+            atexit.unregister(self.disable)
+            self.shutdown_report = self._shutdown(port)
+        except Exception as exc:  # noqa: BLE001
+            self.shutdown_report = f"shut-down interrupted: {exc!r}"
+        finally:
+            port.close()
+
+    # ---- reports --------------------------------------------------------------------------------
+
+    @property
+    def enabled(self) -> bool:
+        return self._active
+
+    def check_rate(self, rate_hz: float) -> Verdict:
+        """Whether this bus can carry the loop's rate (see :mod:`cochlea.dynamixel.budget`)."""
+        return self.budget.check(rate_hz)
+
+    def describe_last_failure(self) -> str:
+        if self.last_failure < 0:
+            return "no failure"
+        who = f" (ID {self.last_failure_id}{self._joint_of(self.last_failure_id)})" \
+            if self.last_failure_id >= 0 else ""
+        return FAILURE_NAMES[self.last_failure] + who
+
+    def summary(self) -> dict:
+        """Counters and settings for a run's summary (JSON-ready)."""
+        port = self._port
+        return {
+            "port": self.port_path, "baud": self.baud, "motors": self.ids,
+            "bus_budget": {"bytes_per_period": self.budget.total_bytes,
+                           "wire_s": self.budget.wire_s, "bus_s": self.budget.bus_s,
+                           "with_adapter_latency_s": self.budget.cycle_s},
+            "read_timeout_s": self.timeout_s, "watchdog_s": self.watchdog_lsb * WATCHDOG_UNIT_S,
+            "reads": self.reads, "good_reads": self.good_reads, "writes": self.writes,
+            "failures": {name: c for name, c in zip(FAILURE_NAMES, self.failures) if c},
+            "garbage_packets": self.garbage_packets,
+            "unexpected_packets": self.unexpected_packets,
+            "last_failure": self.describe_last_failure(),
+            "low_latency": None if port is None else port.low_latency,
+            "shutdown": self.shutdown_report,
+        }
+
+    def _joint_of(self, motor_id: int) -> str:
+        j = self._slot_of[motor_id] if 0 <= motor_id < 256 else -1
+        return f", {self.drives[j].name}" if j >= 0 else ""
+
+    # ---- per period -----------------------------------------------------------------------------
+
+    def _fail(self, kind: int, motor_id: int) -> bool:
+        self.failures[kind] += 1
+        self.last_failure = kind
+        self.last_failure_id = motor_id
+        if kind < NON_FINITE:
+            self._suspect = True
+        return False
+
+    def _quiet(self, port: SerialPort, t0: float) -> bool:
+        """After a failed read, replies may still be on their way: Protocol 2.0 has no sequence
+        numbers, so a late one would pass for the next period's. Wait until the line has been
+        quiet for one read timeout, dropping what arrives; give up at twice that."""
+        parser = self._parser
+        give_up = t0 + 2 * self.timeout_s
+        quiet_until = t0 + self.timeout_s
+        while True:
+            got = port.read_into(parser.space(), quiet_until if quiet_until < give_up
+                                 else give_up)
+            parser.reset()
+            now = time.perf_counter()
+            if got < 0:
+                return False
+            if got == 0 and now >= quiet_until:
+                self._suspect = False
+                return True
+            if now >= give_up:
+                return False
+            if got > 0:
+                quiet_until = now + self.timeout_s
+
+    def _sync_read(self, x: np.ndarray, t0: float) -> bool:
+        self.reads += 1
+        port = self._port
+        if not self._active or port is None:
+            return self._fail(NOT_ENABLED, -1)
+        parser = self._parser
+        port.discard_input()
+        parser.reset()
+        if self._suspect and not self._quiet(port, t0):
+            return self._fail(LATE, -1)
+        deadline = time.perf_counter() + self.timeout_s
+        if not port.write(self._read_view, len(self._read_frame), deadline):
+            return self._fail(PORT, -1)
+        slots, slot_of = self._slots, self._slot_of
+        n = self.nq
+        for j in range(n):
+            slots[j] = 0
+        pending = n
+        failure, failure_id = -1, -1
+        while pending:
+            code = parser.parse()
+            if code == proto.NEED_MORE:
+                got = port.read_into(parser.space(), deadline)
+                if got > 0:
+                    parser.commit(got)
+                    continue
+                if got < 0:
+                    return self._fail(PORT, -1)
+                if failure < 0:
+                    failure = TIMEOUT
+                    failure_id = self.ids[slots.index(0)]
+                break
+            if code == proto.OK:
+                j = slot_of[parser.id]
+                if j < 0 or slots[j]:
+                    self.unexpected_packets += 1
+                    continue
+                pending -= 1
+                error = parser.error
+                if error & ALERT_BIT:
+                    self.alert_ids.add(parser.id)
+                    failure, failure_id = ALERT, parser.id  # outranks every other cause
+                if parser.params_len != STATE_LENGTH or error & 0x7F:
+                    slots[j] = 2
+                    if failure < 0:
+                        failure = LENGTH if parser.params_len != STATE_LENGTH else ERROR_BYTE
+                        failure_id = parser.id
+                    continue
+                slots[j] = 1
+                start = parser.params_start
+                self._raw_view[j * STATE_LENGTH:(j + 1) * STATE_LENGTH] = \
+                    parser.view[start:start + STATE_LENGTH]
+            elif code == proto.CRC_FAILURE:
+                if failure < 0:
+                    failure, failure_id = CRC, parser.id
+                j = slot_of[parser.id]
+                if j >= 0 and slots[j] == 0:
+                    slots[j] = 2
+                    pending -= 1
+            else:
+                self.garbage_packets += 1
+        if failure >= 0:
+            return self._fail(failure, failure_id)
+        q, qd = x[:n], x[n:]
+        np.multiply(self._pos, self._q_per_count, out=q)
+        np.add(q, self._q_offset, out=q)
+        np.multiply(self._vel, self._qd_per_lsb, out=qd)
+        np.multiply(self._cur, self._mA_per_lsb, out=self.present_current_mA)
+        self.good_reads += 1
+        return True
+
+    def _sync_write(self, tau: np.ndarray, t0: float) -> bool:
+        port = self._port
+        if not self._active or port is None:
+            return self._fail(NOT_ENABLED, -1)
+        self.writes += 1
+        finite = bool(np.isfinite(tau, out=self._finite).all())
+        if finite:
+            torque, blend, amps = self._torque, self._blend, self._amps
+            np.multiply(tau, self._torque_per_effort, out=torque)  # motor torque, N m
+            np.multiply(torque, self._inv_ramp, out=blend)
+            np.clip(blend, -1.0, 1.0, out=blend)
+            np.multiply(blend, self._i0, out=blend)
+            np.multiply(torque, self._inv_a, out=amps)
+            np.add(amps, blend, out=amps)  # A: tau / a + I0 clip(tau / ramp, -1, 1)
+            np.multiply(amps, self._lsb_per_ampere, out=amps)
+            np.rint(amps, out=amps)
+            np.clip(amps, self._neg_limit, self._limit, out=amps)
+            self._goal[:] = amps
+        else:
+            self._goal[:] = 0  # a NaN or infinite command: zero current, and report it
+        frame = self._write_frame
+        length = frame.encode()
+        if not port.write(frame.view, length, t0 + self.timeout_s):
+            return self._fail(PORT, -1)
+        return True if finite else self._fail(NON_FINITE, -1)
+
+    # ---- start-up and shut-down -----------------------------------------------------------------
+
+    def _who(self, d: JointDrive) -> str:
+        return f"ID {d.id} ({d.name}, {d.spec.name})"
+
+    def _transact(self, frame: bytes, motor_id: int, timeout: float, tries: int):
+        """Send a unicast instruction and wait for its status packet: ``(result, error,
+        params)`` with ``result`` one of ``"ok"``, ``"timeout"``, ``"crc"``, ``"port"``."""
+        port, parser = self._port, self._parser
+        result = "timeout"
+        view = memoryview(frame)
+        for _ in range(tries):
+            deadline = time.perf_counter() + timeout
+            port.discard_input()
+            parser.reset()
+            if not port.write(view, len(frame), deadline):
+                return "port", 0, b""
+            while True:
+                code = parser.parse()
+                if code == proto.OK:
+                    if parser.id == motor_id:
+                        return "ok", parser.error, parser.params()
+                    continue
+                if code == proto.CRC_FAILURE:
+                    result = "crc"
+                    continue
+                if code != proto.NEED_MORE:
+                    continue
+                got = port.read_into(parser.space(), deadline)
+                if got < 0:
+                    return "port", 0, b""
+                if got == 0:
+                    break
+                parser.commit(got)
+        return result, 0, b""
+
+    def _setup_timeout(self) -> float:
+        return max(0.02, 4 * self.timeout_s)
+
+    def _command(self, d: JointDrive, what: str, frame: bytes) -> bytes:
+        result, error, params = self._transact(frame, d.id, self._setup_timeout(), self.retries)
+        if result == "timeout":
+            raise BackendError(f"{self._who(d)} did not answer {what} on {self.port_path} at "
+                               f"{self.baud} baud ({self.retries} tries): check its power, "
+                               "cable, ID and baud rate")
+        if result == "crc":
+            raise BackendError(f"{self._who(d)} answered {what} with corrupted packets (CRC) "
+                               f"{self.retries} times: check the cable and the baud rate")
+        if result == "port":
+            raise BackendError(f"the serial port {self.port_path} failed during {what}")
+        if error & ALERT_BIT:
+            raise BackendError(f"{self._who(d)} reports a hardware error "
+                               f"({self._hardware_error_text(d)}): remove the cause and reboot "
+                               "the motor (power cycle) before a run")
+        if error & 0x7F:
+            raise BackendError(f"{self._who(d)} refused {what}: {describe_error(error)}")
+        return params
+
+    def _hardware_error_text(self, d: JointDrive) -> str:
+        result, _, params = self._transact(proto.read(d.id, ADDR_HARDWARE_ERROR, 1), d.id,
+                                           self._setup_timeout(), 1)
+        if result != "ok" or len(params) != 1:
+            return "Hardware Error Status unreadable"
+        return describe_hardware_error(params[0])
+
+    def _write_all(self, address: int, size: int, values, what: str) -> None:
+        for d, value in zip(self.drives, values):
+            self._command(d, f"{what} (WRITE {address} = {value})",
+                          proto.write(d.id, address, proto.le(int(value), size)))
+
+    def _startup(self) -> None:
+        n = self.nq
+        # 1. PING: every motor there, of the model the description names.
+        problems = []
+        for d in self.drives:
+            try:
+                params = self._command(d, "PING", proto.ping(d.id))
+            except BackendError as exc:
+                problems.append(str(exc))
+                continue
+            number = proto.from_le(params[0:2], False) if len(params) >= 2 else -1
+            if number != d.spec.number:
+                other = MODELS_BY_NUMBER.get(number)
+                problems.append(f"{self._who(d)} is model number {number}"
+                                f"{f' ({other.name})' if other else ''}, not the "
+                                f"{d.spec.name}'s {d.spec.number}: check the IDs and the "
+                                "description")
+        if problems:
+            raise BackendError("; ".join(problems))
+        # 2.-7. Configure, torque off.
+        self._write_all(ADDR_TORQUE_ENABLE, 1, [0] * n, "torque off")
+        self._write_all(ADDR_BUS_WATCHDOG, 1, [0] * n, "clear the Bus Watchdog")
+        self._write_all(ADDR_OPERATING_MODE, 1, [CURRENT_MODE] * n, "current control mode")
+        self._write_all(ADDR_RETURN_DELAY, 1, [0] * n, "return delay 0")
+        self._write_all(ADDR_CURRENT_LIMIT, 2, [d.current_limit_lsb for d in self.drives],
+                        "the current limit")
+        self._write_all(ADDR_GOAL_CURRENT, 2, [0] * n, "goal current 0")
+        self._write_all(ADDR_BUS_WATCHDOG, 1, [self.watchdog_lsb] * n, "the Bus Watchdog")
+        # 8. The first good read; the joints within their limits.
+        x = np.zeros(2 * n)
+        self._active = True  # the read path checks it
+        try:
+            for _ in range(3 * self.retries):
+                if self.read(x):
+                    break
+            else:
+                raise BackendError(f"no good SYNC_READ of the motors' state on {self.port_path} "
+                                   f"in {3 * self.retries} tries (last failure: "
+                                   f"{self.describe_last_failure()})")
+        finally:
+            self._active = False
+        self._unwrap_and_check(x[:n])
+        # 9. Torque on.
+        self._write_all(ADDR_TORQUE_ENABLE, 1, [1] * n, "torque on")
+
+    def _unwrap_and_check(self, q: np.ndarray) -> None:
+        """A revolute joint's absolute encoder is single-turn after power-up: take the turn that
+        puts it nearest the middle of its limits, then refuse joints outside their limits."""
+        problems = []
+        for j, d in enumerate(self.drives):
+            lo, hi = d.position_limits
+            if d.type == "revolute":
+                turns = round(((lo + hi) / 2 - q[j]) / (2 * math.pi))
+                self._q_offset[j] += 2 * math.pi * turns
+                q[j] += 2 * math.pi * turns
+            if not lo - self.position_margin <= q[j] <= hi + self.position_margin:
+                if d.type == "revolute":
+                    where = (f"{math.degrees(q[j]):.1f} deg, outside its limits "
+                             f"[{math.degrees(lo):g}, {math.degrees(hi):g}] deg")
+                else:
+                    where = f"{q[j]:.4f} m, outside its limits [{lo:g}, {hi:g}] m"
+                problems.append(f"{d.name} (ID {d.id}) reads {where}")
+        if problems:
+            raise BackendError("; ".join(problems) + ": check zero_offset_deg and direction in "
+                               "the description, or move the joint by hand with the power off")
+
+    def _shutdown(self, port: SerialPort) -> str:
+        deadline = time.perf_counter() + 0.05
+        for frame in (self._zero_frame, self._torque_off_frame) * 2:
+            port.write(memoryview(frame), len(frame), deadline)
+        self._port = port  # for the confirming reads only
+        try:
+            unconfirmed = []
+            for d in self.drives:
+                result, error, params = self._transact(
+                    proto.read(d.id, ADDR_TORQUE_ENABLE, 1), d.id, max(0.01, self.timeout_s), 2)
+                if result != "ok" or params != b"\0":
+                    unconfirmed.append(d)
+                elif error & ALERT_BIT:
+                    self.alert_ids.add(d.id)
+            alerts = [self.drives[self._slot_of[i]] for i in sorted(self.alert_ids)]
+            notes = [f"{self._who(d)}: hardware error ({self._hardware_error_text(d)})"
+                     for d in alerts]
+        finally:
+            self._port = None
+        if unconfirmed:
+            who = ", ".join(self._who(d) for d in unconfirmed)
+            text = (f"goal current 0 and torque off sent; not confirmed by {who} (its Bus "
+                    f"Watchdog, {self.watchdog_lsb * WATCHDOG_UNIT_S * 1e3:.0f} ms, stops it)")
+        else:
+            text = f"goal current 0 and torque off sent; torque off confirmed by all {self.nq}"
+        return "; ".join([text] + notes)
