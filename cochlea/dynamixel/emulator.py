@@ -1,0 +1,772 @@
+"""``cochlea-emulator``: a virtual Dynamixel chain on a pseudo-terminal, driven by the plant model.
+
+The motors of a scenario's robot description answer Protocol 2.0 on a pseudo-terminal (PING,
+READ, WRITE, REBOOT, SYNC_READ, SYNC_WRITE; other instructions get an Instruction Error) with
+the control tables of :mod:`cochlea.dynamixel.control_table`: EEPROM items locked while the
+torque is on, range and limit checks, Goal Current reset to the Current Limit when the
+Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return Level.
+
+The joints move in real time under the scenario's plant (the same parameters, friction and
+initial state as the simulation): every ``plant_period_s`` the plant step integrates the joint
+efforts that the motors' currents give through the fit (:class:`cochlea.dynamixel.units.Fit`,
+the inverse of the bridge's torque-to-current map). A motor that is not driving (torque off, not
+in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
+200:1 servo does not back-drive. Present Position, Velocity and Current follow the plant.
+
+Optionally the wire's timing (``wire_timing``): an instruction occupies the bus for its bytes at
+the configured baud rate (10 bits each), each motor then waits its Return Delay Time and sends
+its status packet, which takes its bytes' time too; replies are written to the pseudo-terminal
+when their last byte would have arrived.
+
+Faults (:class:`Faults`), all counted from the first Torque Enable 1 (the start of a run) plus
+``delay_s``: dropped replies, corrupted CRCs, late replies (each with a probability, on the
+motors ``ids`` or all), a hardware error on one motor (alert bit, torque off), a motor that
+stops answering; and, from the start, motors missing from the bus or reporting another model
+number.
+
+Everything the motors do is recorded in ``events`` (and ``--log FILE``): each item written (by
+WRITE or SYNC_WRITE), each read, ping and reboot, each refused instruction, each fault and
+watchdog trip, with its time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import heapq
+import math
+import os
+import random
+import select
+import signal
+import struct
+import sys
+import threading
+import time
+import tty
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EXIT_USER_ERROR, CochleaError
+from . import protocol as proto
+from .control_table import (
+    ACCESS,
+    ADDR_BUS_WATCHDOG,
+    ADDR_GOAL_CURRENT,
+    ADDR_HARDWARE_ERROR,
+    ADDR_TORQUE_ENABLE,
+    ALERT_BIT,
+    BAUD_RATES,
+    BROADCAST_ID,
+    CRC_ERROR,
+    CURRENT_MODE,
+    DATA_LENGTH,
+    DATA_LIMIT,
+    DATA_RANGE,
+    HARDWARE_ERROR_BITS,
+    INSTRUCTION_ERROR,
+    INSTRUCTION_NAMES,
+    OPERATING_MODES,
+    PING,
+    READ,
+    REBOOT,
+    RESULT_FAIL,
+    RETURN_DELAY_UNIT_S,
+    SYNC_READ,
+    SYNC_WRITE,
+    WATCHDOG_UNIT_S,
+    WRITE,
+    Item,
+)
+from .units import JointDrive, joint_drives
+
+_PRESENT = struct.Struct("<hii")  # Present Current, Velocity, Position at 126
+_INT32 = (-(2**31), 2**31 - 1)
+
+
+@dataclass
+class Faults:
+    """What goes wrong, and when (seconds after the first Torque Enable 1, plus ``delay_s``)."""
+
+    drop: float = 0.0  # probability that a status packet is not sent
+    crc: float = 0.0  # probability that a status packet's CRC is corrupted
+    late: float = 0.0  # probability that a status packet comes late_s late
+    late_s: float = 0.005
+    ids: frozenset[int] | None = None  # the motors drop/crc/late hit (None: all)
+    hardware_error: tuple[int, int] | None = None  # (id, bit of Hardware Error Status)
+    silent: int | None = None  # the ID of a motor that stops answering
+    missing: frozenset[int] = frozenset()  # IDs not on the bus at all
+    model_number: dict[int, int] = field(default_factory=dict)  # ID -> reported model number
+    delay_s: float = 0.0
+    seed: int = 0
+
+
+class VirtualMotor:
+    """One motor: its control table and what it does with an instruction."""
+
+    def __init__(self, drive: JointDrive, baud_code: int, model_number: int | None = None):
+        self.drive = drive
+        self.spec = drive.spec
+        self.items = {it.address: it for it in self.spec.items}
+        self.table = bytearray(self.spec.table_size)
+        self.answering = True
+        self.last_contact = 0.0
+        for it in self.spec.items:
+            self._put(it, it.default)
+        self._put(self.items[0], self.spec.number if model_number is None else model_number)
+        self._put(self.items[6], self.spec.firmware)
+        self._put(self.items[7], drive.id)
+        self._put(self.items[8], baud_code)
+        self.defaults = bytes(self.table)
+        self.on_torque = None  # callback(motor) when the torque goes on
+
+    # ---- registers -----------------------------------------------------------------------------
+
+    def _put(self, item: Item, value: int) -> None:
+        self.table[item.address:item.address + item.size] = proto.le(value, item.size)
+
+    def get(self, address: int) -> int:
+        it = self.items[address]
+        return proto.from_le(self.table[address:address + it.size], it.signed)
+
+    @property
+    def id(self) -> int:
+        return self.table[7]
+
+    @property
+    def torque_on(self) -> bool:
+        return self.table[ADDR_TORQUE_ENABLE] == 1
+
+    @property
+    def hardware_error(self) -> int:
+        return self.table[ADDR_HARDWARE_ERROR]
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return self.get(ADDR_BUS_WATCHDOG) == -1
+
+    @property
+    def driving(self) -> bool:
+        return (self.torque_on and self.table[11] == CURRENT_MODE and not self.hardware_error
+                and not self.watchdog_tripped)
+
+    @property
+    def applied_current(self) -> int:
+        return self.get(ADDR_GOAL_CURRENT) if self.driving else 0
+
+    @property
+    def return_delay_s(self) -> float:
+        return self.table[9] * RETURN_DELAY_UNIT_S
+
+    def set_present(self, current: int, velocity: int, position: int, tick_ms: int) -> None:
+        _PRESENT.pack_into(self.table, 126, current, velocity, position)
+        self.table[120:122] = proto.le(tick_ms % 32768, 2)
+
+    def latch_hardware_error(self, bit: int) -> None:
+        self.table[ADDR_HARDWARE_ERROR] |= 1 << bit
+        self.table[ADDR_TORQUE_ENABLE] = 0  # Shutdown: torque off, output 0
+
+    def trip_watchdog(self) -> None:
+        self.table[ADDR_BUS_WATCHDOG] = 0xFF  # -1: Bus Watchdog Error
+        self._put(self.items[ADDR_GOAL_CURRENT], 0)
+
+    def reboot(self) -> None:
+        """RAM back to its defaults (torque off, errors cleared); EEPROM kept."""
+        present = bytes(self.table[120:136])
+        self.table[64:] = self.defaults[64:]
+        self._put(self.items[ADDR_GOAL_CURRENT], self.get(38))
+        self.table[120:136] = present
+
+    # ---- instructions --------------------------------------------------------------------------
+
+    def read(self, address: int, length: int) -> tuple[int, bytes]:
+        if length < 1 or address + length > len(self.table):
+            return ACCESS, b""
+        return 0, bytes(self.table[address:address + length])
+
+    def write(self, address: int, data: bytes) -> tuple[int, list[tuple[int, int]]]:
+        """Write whole items, all or nothing: ``(error, [(address, value) written])``."""
+        if not data:
+            return DATA_LENGTH, []
+        plan = []
+        p, end = address, address + len(data)
+        while p < end:
+            it = self.items.get(p)
+            if it is None:
+                return ACCESS, []
+            if p + it.size > end:
+                return DATA_LENGTH, []
+            if not it.writable or (it.eeprom and self.torque_on):
+                return ACCESS, []
+            value = proto.from_le(data[p - address:p - address + it.size], it.signed)
+            error = self._check(it, value)
+            if error:
+                return error, []
+            plan.append((it, value))
+            p += it.size
+        for it, value in plan:
+            self._apply(it, value)
+        return 0, [(it.address, value) for it, value in plan]
+
+    def _check(self, it: Item, value: int) -> int:
+        if not it.lo <= value <= it.hi:
+            return DATA_RANGE
+        if it.name == "Operating Mode" and value not in OPERATING_MODES:
+            return DATA_RANGE
+        if it.name.startswith("Goal") and self.watchdog_tripped:
+            return DATA_RANGE  # goal values are read-only after a watchdog error
+        limits = {"Goal Current": 38, "Goal PWM": 36, "Goal Velocity": 44}
+        if it.name in limits and abs(value) > self.get(limits[it.name]):
+            return DATA_LIMIT
+        if it.name == "Torque Enable" and value == 1 and self.hardware_error:
+            return RESULT_FAIL  # only a REBOOT re-enables the torque after a shutdown
+        return 0
+
+    def _apply(self, it: Item, value: int) -> None:
+        before = self.get(it.address)
+        self._put(it, value)
+        if it.name == "Operating Mode" and value != before:
+            self._put(self.items[100], self.get(36))  # Goal PWM = PWM Limit
+            self._put(self.items[102], self.get(38))  # Goal Current = Current Limit
+            self._put(self.items[108], 0)
+            self._put(self.items[112], 0)
+        if it.name == "Torque Enable" and value == 1 and before == 0 and self.on_torque:
+            self.on_torque(self)
+
+
+class _Unit:
+    """One plant (an arm, or the parallel mechanism) and its motors."""
+
+    def __init__(self, setup, substeps: int, h: float, motors: list[VirtualMotor]):
+        from ..simulation import plant_step  # noqa: PLC0415 (CasADi is heavy to import)
+
+        self.name = setup.name
+        self.motors = motors
+        self.n = n = len(motors)
+        self.x = np.asarray(setup.x0, float).copy()
+        # The plant step (x, tau, p, friction, h) -> x_next, called through CasADi's buffers
+        # (about 10 us instead of 60 us with numpy arguments).
+        step = plant_step(setup.plant_model, substeps)
+        self._buffer, self._call = step.buffer()
+        self._x, self._tau = np.zeros(2 * n), np.zeros(n)
+        self._next = np.zeros(2 * n)
+        arguments = [self._x, self._tau, np.asarray(setup.plant_params, float).copy(),
+                     np.asarray(setup.friction, float).copy(), np.array([h])]
+        self._arguments = arguments  # the buffers point into these arrays: keep them alive
+        for i, a in enumerate(arguments):
+            self._buffer.set_arg(i, memoryview(a))
+        self._buffer.set_res(0, memoryview(self._next))
+
+    def advance(self) -> bool:
+        """One plant period; False if the plant went non-finite (the state is kept)."""
+        n, x = self.n, self.x
+        held = [not m.driving for m in self.motors]
+        if all(held):
+            x[n:] = 0.0
+            return True
+        for j, m in enumerate(self.motors):
+            self._tau[j] = m.drive.effort(m.applied_current)
+        self._x[:] = x
+        self._call()
+        nxt = self._next
+        for j, hold in enumerate(held):
+            if hold:
+                nxt[j] = x[j]
+                nxt[n + j] = 0.0
+        if not np.isfinite(nxt).all():
+            x[n:] = 0.0
+            return False
+        x[:] = nxt
+        return True
+
+    def publish(self, tick_ms: int) -> None:
+        n, x = self.n, self.x
+        for j, m in enumerate(self.motors):
+            d = m.drive
+            pos = int(np.clip(d.counts(x[j]), *_INT32))
+            vel = int(np.clip(d.velocity_lsb(x[n + j]), *_INT32))
+            m.set_present(m.applied_current, vel, pos, tick_ms)
+
+
+class VirtualChain:
+    """The motors of a scenario's robot on a pseudo-terminal (see the module docstring).
+
+    Use :meth:`start` (a background thread) and :meth:`stop`, or :meth:`serve` in the
+    foreground; :attr:`path` is the pseudo-terminal to open.
+    """
+
+    def __init__(self, robot: str, scenario: str | Path | None = None, *,
+                 baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
+                 plant_period_s: float = 1e-3, log_path: str | Path | None = None,
+                 max_events: int = 200_000):
+        from ..simulation import load_scenario, unit_setups  # noqa: PLC0415
+
+        codes = {rate: code for code, rate in BAUD_RATES.items()}
+        if baud not in codes:
+            raise CochleaError(f"--baud {baud} is not a Dynamixel rate: "
+                               + ", ".join(str(b) for b in BAUD_RATES.values()))
+        self.scenario = load_scenario(scenario or f"{robot}_joint")
+        if self.scenario.robot != robot:
+            raise CochleaError(f"scenario {self.scenario.path} is for the {self.scenario.robot} "
+                               f"robot, not {robot}")
+        self.robot = robot
+        self.faults = faults or Faults()
+        self.drives = joint_drives(robot, self.scenario.description)
+        self.motors = [VirtualMotor(d, codes[baud], self.faults.model_number.get(d.id))
+                       for d in self.drives]
+        for m in self.motors:
+            m.on_torque = self._on_torque
+            m.answering = m.id not in self.faults.missing
+        self._index()
+        setups = unit_setups(self.scenario)
+        self.units, start = [], 0
+        for s in setups:
+            n = s.plant_model.nq
+            self.units.append(_Unit(s, self.scenario.plant_substeps, plant_period_s,
+                                    self.motors[start:start + n]))
+            start += n
+        if start != len(self.motors):
+            raise CochleaError(f"the scenario's plant has {start} joints, its description "
+                               f"{len(self.motors)} motors")
+        self.baud = baud
+        self.byte_time = 10.0 / baud if wire_timing else 0.0
+        self.wire_timing = wire_timing
+        self.h = plant_period_s
+        self._rng = random.Random(self.faults.seed)
+        self.events: deque = deque(maxlen=max_events)
+        self._log = open(log_path, "w", encoding="utf-8") if log_path else None  # noqa: SIM115
+        self.counts = {"instructions": 0, "bad_instructions": 0, "replies": 0, "dropped": 0,
+                       "corrupted": 0, "late": 0, "watchdog_trips": 0, "plant_overruns": 0,
+                       "plant_steps": 0}
+        self.run_start: float | None = None  # time of the first Torque Enable 1
+        self._injected_hw = self._injected_silent = False
+        self._parser = proto.PacketParser(status=False)
+        self._queue: list = []  # (due, seq, bytes)
+        self._seq = 0
+        self._bus_free = 0.0
+        self._t0 = time.perf_counter()
+        self._next_step = self._t0 + self.h
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.master = self.slave = -1
+        self.path = ""
+        for u in self.units:
+            u.publish(0)
+
+    # ---- set-up --------------------------------------------------------------------------------
+
+    def _index(self) -> None:
+        self.by_id = {m.id: m for m in self.motors}
+
+    def open(self) -> str:
+        if self.master < 0:
+            self.master, self.slave = os.openpty()
+            tty.setraw(self.slave)  # no echo, no line editing: bytes as they are
+            os.set_blocking(self.master, False)
+            self.path = os.ttyname(self.slave)
+        return self.path
+
+    def start(self) -> "VirtualChain":
+        self.open()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self.serve, name="cochlea-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    def close(self) -> None:
+        self.stop()
+        for fd in (self.master, self.slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = -1
+        if self._log:
+            self._log.close()
+            self._log = None
+
+    def __enter__(self) -> "VirtualChain":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- state for tests and reports --------------------------------------------------------------
+
+    def joint_state(self) -> np.ndarray:
+        """``[q, qd]`` of all joints (SI), in the bridge's order."""
+        q = np.concatenate([u.x[:u.n] for u in self.units])
+        qd = np.concatenate([u.x[u.n:] for u in self.units])
+        return np.concatenate([q, qd])
+
+    def writes(self, kinds=("write", "sync-write")) -> list[tuple]:
+        """``(id, address, value)`` of every item written, in order."""
+        return [(e[2], e[3], e[4]) for e in list(self.events) if e[1] in kinds]
+
+    def _event(self, now: float, kind: str, motor_id: int, address: int = -1,
+               value: object = None) -> None:
+        t = now - self._t0
+        self.events.append((t, kind, motor_id, address, value))
+        if self._log:
+            self._log.write(f"{t:.6f} {kind} id={motor_id} address={address} value={value}\n")
+
+    # ---- the loop ------------------------------------------------------------------------------
+
+    def serve(self, duration: float | None = None) -> None:
+        self.open()
+        end = None if duration is None else time.perf_counter() + duration
+        while not self._stop.is_set():
+            now = time.perf_counter()
+            if end is not None and now >= end:
+                break
+            wake = min(self._next_step, self._queue[0][0] if self._queue else math.inf,
+                       now + 0.05)
+            try:
+                ready, _, _ = select.select([self.master], [], [], max(0.0, wake - now))
+            except (OSError, ValueError):
+                break
+            if ready:
+                self._receive()
+                self._flush(time.perf_counter())
+            self._tick(time.perf_counter())
+            self._flush(time.perf_counter())
+        if self._log:
+            self._log.flush()
+
+    def _receive(self) -> None:
+        try:
+            data = os.read(self.master, 4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            return  # nobody has the other end open
+        now = time.perf_counter()  # replies first, from the state published last (at most
+        offset = 0                  # one plant period old); the plant catches up after them
+        while offset < len(data):
+            offset += self._parser.feed(data[offset:])
+            while True:
+                code = self._parser.parse()
+                if code == proto.NEED_MORE:
+                    break
+                if code == proto.OK:
+                    self._instruction(now)
+                elif code == proto.CRC_FAILURE:
+                    self.counts["bad_instructions"] += 1
+                    m = self.by_id.get(self._parser.id)
+                    if m is not None and m.answering:
+                        self._event(now, "crc-error", m.id)
+                        self._reply(now, self._parser.frame_len, [(m, CRC_ERROR, b"")], -1)
+                else:
+                    self.counts["bad_instructions"] += 1
+
+    def _tick(self, now: float) -> None:
+        self._faults(now)
+        steps = 0
+        while self._next_step <= now:
+            steps += 1
+            if steps > 50:  # far behind (the host was busy): skip ahead, count it
+                self.counts["plant_overruns"] += 1
+                self._next_step = now + self.h
+                break
+            for u in self.units:
+                if not u.advance():
+                    for m in u.motors:
+                        m.latch_hardware_error(5)
+                    self._event(now, "fault", -1, -1, f"{u.name}: plant not finite, overload")
+            self.counts["plant_steps"] += 1
+            self._next_step += self.h
+        tick_ms = int((now - self._t0) * 1000)
+        for u in self.units:
+            u.publish(tick_ms)
+        for m in self.motors:
+            wd = m.get(ADDR_BUS_WATCHDOG)
+            if m.torque_on and wd > 0 and now - m.last_contact > wd * WATCHDOG_UNIT_S:
+                m.trip_watchdog()
+                self.counts["watchdog_trips"] += 1
+                self._event(now, "watchdog", m.id, ADDR_BUS_WATCHDOG, -1)
+
+    def _active(self, now: float) -> bool:
+        return self.run_start is not None and now >= self.run_start + self.faults.delay_s
+
+    def _faults(self, now: float) -> None:
+        f = self.faults
+        if not self._active(now):
+            return
+        if f.hardware_error and not self._injected_hw:
+            self._injected_hw = True
+            motor_id, bit = f.hardware_error
+            m = self.by_id.get(motor_id)
+            if m is not None:
+                m.latch_hardware_error(bit)
+                self._event(now, "fault", motor_id, ADDR_HARDWARE_ERROR,
+                            f"hardware error: {HARDWARE_ERROR_BITS.get(bit, bit)}")
+        if f.silent is not None and not self._injected_silent:
+            self._injected_silent = True
+            m = self.by_id.get(f.silent)
+            if m is not None:
+                m.answering = False
+                self._event(now, "fault", f.silent, -1, "stops answering")
+
+    def _on_torque(self, motor: VirtualMotor) -> None:
+        if self.run_start is None:
+            self.run_start = time.perf_counter()
+
+    def _flush(self, now: float) -> None:
+        while self._queue and self._queue[0][0] <= now:
+            _, _, packet = heapq.heappop(self._queue)
+            try:
+                os.write(self.master, packet)
+            except OSError:
+                pass
+
+    # ---- instructions --------------------------------------------------------------------------
+
+    def _contact(self, m: VirtualMotor, now: float) -> bool:
+        if not m.answering:
+            return False
+        m.last_contact = now
+        return True
+
+    def _instruction(self, now: float) -> None:
+        p = self._parser
+        pid, inst, params = p.id, p.instruction, p.params()
+        self.counts["instructions"] += 1
+        replies = []
+        broadcast = pid == BROADCAST_ID
+        targets = sorted(self.motors, key=lambda m: m.id) if broadcast else \
+            [m for m in [self.by_id.get(pid)] if m is not None]
+        if inst == PING:
+            for m in targets:
+                if self._contact(m, now):
+                    self._event(now, "ping", m.id)
+                    replies.append((m, 0, bytes(m.table[0:2]) + bytes(m.table[6:7])))
+        elif inst == READ and not broadcast:
+            for m in targets:
+                if self._contact(m, now):
+                    if len(params) != 4:
+                        replies.append((m, DATA_LENGTH, b""))
+                        continue
+                    address, length = proto.from_le(params[0:2], False), \
+                        proto.from_le(params[2:4], False)
+                    error, data = m.read(address, length)
+                    self._event(now, "read", m.id, address, length)
+                    replies.append((m, error, data))
+        elif inst == WRITE:
+            for m in targets:
+                if self._contact(m, now):
+                    error = self._write(m, params, now, "write") if len(params) > 2 \
+                        else DATA_LENGTH
+                    if not broadcast:
+                        replies.append((m, error, b""))
+        elif inst == REBOOT:
+            for m in targets:
+                if self._contact(m, now):
+                    m.reboot()
+                    self._event(now, "reboot", m.id)
+                    if not broadcast:
+                        replies.append((m, 0, b""))
+        elif inst == SYNC_READ and broadcast and len(params) >= 4:
+            address, length = proto.from_le(params[0:2], False), proto.from_le(params[2:4], False)
+            self._event(now, "sync-read", BROADCAST_ID, address, length)
+            for motor_id in params[4:]:
+                m = self.by_id.get(motor_id)
+                if m is not None and self._contact(m, now):
+                    error, data = m.read(address, length)
+                    replies.append((m, error, data))
+        elif inst == SYNC_WRITE and broadcast and len(params) >= 4:
+            address, length = proto.from_le(params[0:2], False), proto.from_le(params[2:4], False)
+            chunk = 1 + length
+            for k in range(4, len(params) - chunk + 1, chunk):
+                m = self.by_id.get(params[k])
+                if m is not None and self._contact(m, now):
+                    self._write(m, proto.le(address, 2) + params[k + 1:k + chunk], now,
+                                "sync-write")
+        elif not broadcast:
+            for m in targets:
+                if self._contact(m, now):
+                    self._event(now, "refused", m.id, -1,
+                                f"{INSTRUCTION_NAMES.get(inst, hex(inst))} not emulated")
+                    replies.append((m, INSTRUCTION_ERROR, b""))
+        self._reply(now, p.frame_len, replies, inst)
+
+    def _write(self, m: VirtualMotor, params: bytes, now: float, kind: str) -> int:
+        address = proto.from_le(params[0:2], False)
+        error, written = m.write(address, params[2:])
+        if error:
+            self._event(now, "refused", m.id, address, f"{kind}: error {error}")
+        for a, value in written:
+            self._event(now, kind, m.id, a, value)
+            if a == 7:
+                self._index()
+        return error
+
+    def _reply(self, now: float, request_len: int, replies, inst: int) -> None:
+        """Schedule the status packets: after the request's and each other's wire time."""
+        f = self.faults
+        t = max(now, self._bus_free) + request_len * self.byte_time
+        active = self._active(now)
+        for m, error, data in replies:
+            level = m.table[68]  # Status Return Level: 0 PING only, 1 + READ, 2 all
+            if not (inst == PING or level == 2 or (level == 1 and inst in (READ, SYNC_READ))):
+                continue
+            if m.hardware_error:
+                error |= ALERT_BIT
+            packet = proto.status(m.id, error, data)
+            hit = active and (f.ids is None or m.id in f.ids)
+            if hit and f.drop and self._rng.random() < f.drop:
+                self.counts["dropped"] += 1
+                self._event(now, "fault", m.id, -1, "reply dropped")
+                continue
+            if hit and f.crc and self._rng.random() < f.crc:
+                packet = packet[:-2] + bytes([packet[-2] ^ 0xFF, packet[-1]])
+                self.counts["corrupted"] += 1
+                self._event(now, "fault", m.id, -1, "CRC corrupted")
+            if self.wire_timing:
+                t += m.return_delay_s
+            t += len(packet) * self.byte_time
+            if hit and f.late and self._rng.random() < f.late:
+                t += f.late_s
+                self.counts["late"] += 1
+                self._event(now, "fault", m.id, -1, f"reply {f.late_s * 1e3:g} ms late")
+            self._seq += 1
+            heapq.heappush(self._queue, (t, self._seq, packet))
+            self.counts["replies"] += 1
+        self._bus_free = t
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def _id_list(text: str) -> frozenset[int]:
+    try:
+        return frozenset(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected IDs like 1,2,3, got {text!r}") from None
+
+
+def _probability(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}")
+    return value
+
+
+def _id_bit(text: str) -> tuple[int, int]:
+    try:
+        motor_id, _, bit = text.partition(":")
+        result = (int(motor_id), int(bit) if bit else 5)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ID[:BIT], got {text!r}") from None
+    if result[1] not in HARDWARE_ERROR_BITS:
+        raise argparse.ArgumentTypeError(
+            f"BIT must be one of {', '.join(f'{b} ({n})' for b, n in HARDWARE_ERROR_BITS.items())}")
+    return result
+
+
+def _id_number(text: str) -> tuple[int, int]:
+    try:
+        motor_id, number = text.split(":")
+        return int(motor_id), int(number)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ID:NUMBER, got {text!r}") from None
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="cochlea-emulator",
+        description="A virtual Dynamixel chain: the motors of the robot description answer "
+                    "Protocol 2.0 on a pseudo-terminal, their joints moved in real time by the "
+                    "scenario's plant model. Prints the pseudo-terminal's path on the first "
+                    "line, then runs until Ctrl-C (or --duration).",
+        epilog="Example: cochlea-emulator --robot serial, then cochlea-run ... --backend "
+               "dynamixel --port PATH. Faults start at the first Torque Enable 1 plus "
+               "--fault-delay.")
+    p.add_argument("--robot", required=True, choices=["serial", "parallel"])
+    p.add_argument("--scenario", help="the scenario whose description, plant and initial state "
+                   "the chain takes (default: ROBOT_joint)")
+    p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate, for "
+                   "--wire-timing and their Baud Rate register (default 4000000)")
+    p.add_argument("--wire-timing", action="store_true", help="bytes take the time the baud "
+                   "rate gives them and each motor waits its Return Delay Time")
+    p.add_argument("--plant-period-ms", type=float, default=1.0, metavar="MS",
+                   help="the plant's integration period in real time (default 1)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--log", type=Path, metavar="FILE", help="write every event to FILE")
+    f = p.add_argument_group("fault injection")
+    f.add_argument("--drop-replies", type=_probability, default=0.0, metavar="P",
+                   help="probability that a status packet is not sent")
+    f.add_argument("--corrupt-crc", type=_probability, default=0.0, metavar="P",
+                   help="probability that a status packet's CRC is wrong")
+    f.add_argument("--late-replies", type=_probability, default=0.0, metavar="P",
+                   help="probability that a status packet comes --late-ms late")
+    f.add_argument("--late-ms", type=float, default=5.0, metavar="MS")
+    f.add_argument("--fault-ids", type=_id_list, metavar="IDS",
+                   help="the motors the three options above hit, e.g. 1,3 (default: all)")
+    f.add_argument("--hardware-error", type=_id_bit, metavar="ID[:BIT]",
+                   help="motor ID latches a hardware error (bit of Hardware Error Status, "
+                        "default 5 = overload): alert bit set, torque off")
+    f.add_argument("--silent-motor", type=int, metavar="ID", help="motor ID stops answering")
+    f.add_argument("--fault-delay", type=float, default=0.0, metavar="S",
+                   help="the faults above start S seconds after the first Torque Enable 1")
+    f.add_argument("--missing-motor", type=int, action="append", default=[], metavar="ID",
+                   help="motor ID is not on the bus at all (repeatable)")
+    f.add_argument("--model-number", type=_id_number, action="append", default=[],
+                   metavar="ID:NUMBER", help="motor ID reports another model number")
+    f.add_argument("--seed", type=int, default=0, help="seed of the random faults")
+    return p
+
+
+def faults_from_args(args: argparse.Namespace) -> Faults:
+    return Faults(drop=args.drop_replies, crc=args.corrupt_crc, late=args.late_replies,
+                  late_s=args.late_ms * 1e-3, ids=args.fault_ids,
+                  hardware_error=args.hardware_error, silent=args.silent_motor,
+                  missing=frozenset(args.missing_motor), model_number=dict(args.model_number),
+                  delay_s=args.fault_delay, seed=args.seed)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        chain = VirtualChain(args.robot, args.scenario, baud=args.baud,
+                             wire_timing=args.wire_timing, faults=faults_from_args(args),
+                             plant_period_s=args.plant_period_ms * 1e-3, log_path=args.log)
+    except CochleaError as exc:
+        print(f"cochlea-emulator: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    path = chain.open()
+    print(path, flush=True)
+    ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)
+    print(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
+          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}; Ctrl-C stops",
+          flush=True)
+
+    def stop(signum, frame):  # noqa: ARG001
+        chain._stop.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        chain.serve(args.duration)
+    finally:
+        counts = ", ".join(f"{k} {v}" for k, v in chain.counts.items())
+        print(f"cochlea-emulator: stopped ({counts})", flush=True)
+        chain.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,307 @@
+"""The bridge against the virtual chain over a real pseudo-terminal: the start-up sequence in
+order, reads and writes through the plant, the shut-down, start-up refusals, and every injected
+fault seen from the bridge as a reported failure (never an exception)."""
+
+from __future__ import annotations
+
+import gc
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cochlea.backends import BackendError
+from cochlea.description import MODELS_DIR
+from cochlea.dynamixel import bridge as br
+from cochlea.dynamixel.bridge import DynamixelBackend
+from cochlea.dynamixel.emulator import Faults, VirtualChain
+from cochlea.scenario import SCENARIOS_DIR
+
+
+def scenario_with(tmp_path: Path, robot: str, replace: list[tuple[str, str]] = ()) -> Path:
+    """A copy of ROBOT_joint whose description is models/ROBOT.toml with some text replaced."""
+    text = (MODELS_DIR / f"{robot}.toml").read_text()
+    for old, new in replace:
+        assert old in text, old
+        text = text.replace(old, new, 1)
+    description = tmp_path / f"{robot}.toml"
+    description.write_text(text)
+    scenario = (SCENARIOS_DIR / f"{robot}_joint.toml").read_text().replace(
+        f'robot = "{robot}"', f'robot = "{robot}"\ndescription = "{description}"', 1)
+    path = tmp_path / f"{robot}_joint.toml"
+    path.write_text(scenario)
+    return path
+
+
+def connect(chain: VirtualChain, **options) -> DynamixelBackend:
+    return DynamixelBackend(chain.robot, chain.path, description=chain.scenario.description,
+                            **options)
+
+
+@pytest.fixture(autouse=True)
+def no_gc():
+    """The emulator runs in a thread of this process: a full garbage collection of the test
+    process (pytest, hypothesis, CasADi hold many objects) can stall it past a read timeout.
+    The real-time loop disables the collector too."""
+    gc.collect()
+    gc.disable()
+    yield
+    gc.enable()
+
+
+@pytest.fixture
+def serial_chain():
+    chain = VirtualChain("serial").start()
+    yield chain
+    chain.close()
+
+
+@pytest.fixture
+def live(serial_chain):
+    """The serial chain and an enabled bridge on it (disabled afterwards)."""
+    backend = connect(serial_chain)
+    backend.enable()
+    yield serial_chain, backend
+    backend.disable()
+
+
+def test_start_up_sequence_in_order(live):
+    chain, backend = live
+    events = list(chain.events)
+    kinds = [e[1] for e in events]
+    # Every motor pinged before anything is written.
+    assert kinds.index("write") > max(i for i, k in enumerate(kinds) if k == "ping")
+    assert sorted(e[2] for e in events if e[1] == "ping") == backend.ids
+    writes = [(e[2], e[3], e[4]) for e in events if e[1] == "write"]
+    limits = {d.id: d.current_limit_lsb for d in backend.drives}
+    steps = [(64, 0), (98, 0), (11, 0), (9, 0), (38, None), (102, 0), (98, 5), (64, 1)]
+    for motor_id in backend.ids:
+        mine = [(a, v) for i, a, v in writes if i == motor_id]
+        assert mine == [(a, limits[motor_id] if v is None else v) for a, v in steps]
+    # Step by step over all motors: each step done on every motor before the next.
+    assert [(a, v) for _, a, v in writes][::6] == [(a, v if v is not None else limits[1])
+                                                    for a, v in steps]
+    # Torque on only after a good read of the state, which came after the watchdog.
+    first_on = next(i for i, e in enumerate(events) if e[1] == "write" and e[3:] == (64, 1))
+    last_watchdog = max(i for i, e in enumerate(events) if e[1] == "write"
+                        and e[3:] == (98, 5))
+    reads = [i for i, e in enumerate(events) if e[1] == "sync-read"]
+    assert any(last_watchdog < i < first_on for i in reads)
+    for m in chain.motors:
+        assert m.torque_on and m.table[11] == 0 and m.table[9] == 0
+        assert m.get(38) == limits[m.id] and m.get(102) == 0 and m.get(98) == 5
+
+
+def test_reads_and_writes_go_through_the_plant(live):
+    chain, backend = live
+    x = np.zeros(12)
+    assert backend.read(x)
+    truth = chain.joint_state()
+    assert np.allclose(x[:6], truth[:6], atol=math.radians(0.088))
+    assert np.allclose(x[6:], 0.0)
+    tau = np.array([0.02, -0.01, 0.0, 0.03, -0.002, 0.001])
+    assert backend.write(tau)
+    time.sleep(0.02)
+    for m, lsb in zip(chain.motors, backend.goal_current_lsb):
+        assert m.get(102) == lsb
+        # The emulator's motor gives back the torque asked for, to one current LSB.
+        one_lsb = float(m.drive.effort(abs(lsb) + 1) - m.drive.effort(abs(lsb)))
+        assert abs(float(m.drive.effort(lsb)) - tau[m.drive.id - 1]) <= one_lsb
+    assert backend.read(x)
+    # Joint 1 accelerates the way its torque points (arm 1 starts at rest).
+    assert x[6] > 0 and x[9] > 0
+    assert backend.failures == [0] * len(br.FAILURE_NAMES)
+    assert 0 < backend.last_io_time_s < 0.01
+
+
+def test_shut_down_zero_current_torque_off_idempotent(live):
+    chain, backend = live
+    backend.write(np.full(6, 0.02))
+    x = np.zeros(12)
+    backend.read(x)
+    before = len(chain.events)
+    backend.disable()
+    backend.disable()
+    assert "torque off confirmed by all 6" in backend.shutdown_report
+    for m in chain.motors:
+        assert not m.torque_on and m.get(102) == 0
+    tail = [(e[1], e[3], e[4]) for e in list(chain.events)[before:]]
+    first_zero = tail.index(("sync-write", 102, 0))
+    first_off = tail.index(("sync-write", 64, 0))
+    assert first_zero < first_off
+    # After the shut-down nothing is sent and nothing raises.
+    count = len(chain.events)
+    assert not backend.read(x) and not backend.write(np.zeros(6))
+    assert backend.last_failure == br.NOT_ENABLED
+    time.sleep(0.01)
+    assert len(chain.events) == count
+
+
+def test_a_non_finite_command_sends_zero_current(live):
+    chain, backend = live
+    backend.write(np.full(6, 0.05))
+    assert not backend.write(np.array([0.01, math.nan, 0, 0, 0, 0]))
+    assert backend.describe_last_failure() == "non-finite-command"
+    time.sleep(0.02)
+    assert [m.get(102) for m in chain.motors] == [0] * 6
+    assert not backend.write(np.array([math.inf, -math.inf, 0, 0, 0, 0]))
+    x = np.zeros(12)
+    assert backend.read(x)  # a bad command does not spoil the next read
+
+
+@pytest.mark.parametrize("faults, message", [
+    (Faults(missing=frozenset({3})), "ID 3 (arm1.link3, MX-64) did not answer PING"),
+    (Faults(model_number={5: 1120}), "ID 5 (arm2.link2, MX-64) is model number 1120 "
+                                     "(XM540-W270), not the MX-64's 311"),
+])
+def test_start_up_refuses_a_missing_or_wrong_motor(faults, message):
+    with VirtualChain("serial", faults=faults) as chain:
+        backend = connect(chain, retries=1)
+        with pytest.raises(BackendError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            backend.enable()
+        assert not any(e[1] == "write" for e in chain.events)  # nothing was configured
+        assert not backend.enabled
+
+
+def test_start_up_refuses_a_joint_outside_its_limits(serial_chain, tmp_path):
+    """arm1.link1 is at 73 deg; a bridge whose description puts the motor's zero at -107 deg
+    reads 180 deg, in the 20 deg its limits (+-170 deg) leave out, whichever turn it takes."""
+    chain = serial_chain
+    wrong = tmp_path / "serial.toml"
+    wrong.write_text((MODELS_DIR / "serial.toml").read_text().replace(
+        "zero_offset_deg = 0.0", "zero_offset_deg = -107.0", 1))
+    backend = DynamixelBackend("serial", chain.path, description=wrong)
+    with pytest.raises(BackendError, match=r"arm1\.link1 \(ID 1\) reads -?180\.0 deg, outside "
+                                           r"its limits \[-170, 170\] deg: check "
+                                           r"zero_offset_deg and direction"):
+        backend.enable()
+    assert not any(m.torque_on for m in chain.motors)
+    assert not any(e[1] == "write" and e[3:] == (64, 1) for e in chain.events)
+    # 193 deg is taken as -167 deg (single-turn encoder): inside the limits, accepted.
+    wrong.write_text((MODELS_DIR / "serial.toml").read_text().replace(
+        "zero_offset_deg = 0.0", "zero_offset_deg = -120.0", 1))
+    backend = DynamixelBackend("serial", chain.path, description=wrong)
+    backend.enable()
+    x = np.zeros(12)
+    assert backend.read(x)
+    backend.disable()
+    assert x[0] == pytest.approx(math.radians(193 - 360), abs=math.radians(0.1))
+
+
+def test_direction_and_zero_offset_map_joint_to_motor(tmp_path):
+    edits = [("direction = 1", "direction = -1"), ("zero_offset_deg = 0.0", "zero_offset_deg = 30.0")]
+    with VirtualChain("serial", scenario_with(tmp_path, "serial", edits)) as chain:
+        m = chain.motors[0]
+        # q = direction (theta - zero): theta = zero + q / direction = 30 - 73 deg.
+        assert m.get(132) == round(math.radians(30 - 73) / (2 * math.pi / 4096))
+        backend = connect(chain)
+        backend.enable()
+        try:
+            x = np.zeros(12)
+            assert backend.read(x)
+            assert np.allclose(x[:6], chain.joint_state()[:6], atol=math.radians(0.088))
+            tau = np.array([0.05, 0, 0, 0, 0, 0])
+            backend.write(tau)
+            time.sleep(0.02)
+            assert m.get(102) < 0  # a positive joint torque is a negative motor current
+            assert backend.read(x) and x[6] > 0  # and the joint still goes the positive way
+        finally:
+            backend.disable()
+
+
+def _run(backend: DynamixelBackend, seconds: float) -> tuple[list[bool], tuple]:
+    """Read and write for a while; the results and the first failure (kind, motor ID)."""
+    x, tau = np.zeros(backend.nq * 2), np.zeros(backend.nq)
+    results, first = [], None
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        ok = backend.read(x)  # raises nothing, whatever happens
+        results.append(ok)
+        if not ok and first is None:
+            first = (backend.last_failure, backend.last_failure_id)
+        backend.write(tau)
+        time.sleep(0.001)
+    return results, first
+
+
+def _consecutive_failures(results: list[bool]) -> int:
+    best = run = 0
+    for ok in results:
+        run = 0 if ok else run + 1
+        best = max(best, run)
+    return best
+
+
+FAULTS = {
+    "dropped replies": (Faults(drop=1.0, ids=frozenset({3})), br.TIMEOUT),
+    "corrupted CRC": (Faults(crc=1.0, ids=frozenset({3})), br.CRC),
+    "late replies": (Faults(late=1.0, late_s=0.005, ids=frozenset({3})), br.TIMEOUT),
+    "hardware error": (Faults(hardware_error=(3, 5)), br.ALERT),
+    "motor stops answering": (Faults(silent=3), br.TIMEOUT),
+}
+
+
+@pytest.mark.parametrize("name", FAULTS)
+def test_every_fault_is_a_reported_failure(name):
+    faults, kind = FAULTS[name]
+    faults.delay_s = 0.1  # after the start-up
+    with VirtualChain("serial", faults=faults) as chain:
+        backend = connect(chain)
+        backend.enable()
+        try:
+            results, first = _run(backend, 0.35)
+        finally:
+            backend.disable()
+        assert results[0] is True
+        assert first == (kind, 3), backend.summary()  # the fault, and the motor it hit
+        # Failing reads in a row: the loop's watchdog (5 in a row by default) stops the run.
+        assert _consecutive_failures(results) >= 6, backend.summary()
+        summary = backend.summary()
+        assert br.FAILURE_NAMES[kind] in summary["failures"]
+    if name == "hardware error":
+        assert "ID 3 (arm1.link3, MX-64): hardware error (overload)" in backend.shutdown_report
+        assert 3 in backend.alert_ids
+    if name == "motor stops answering":
+        # Its Bus Watchdog stopped it by itself, and the shut-down says it could not confirm.
+        assert any(e[1] == "watchdog" and e[2] == 3 for e in chain.events)
+        assert "not confirmed by ID 3" in backend.shutdown_report
+
+
+def test_the_bus_watchdog_stops_the_motors_when_the_loop_stops(serial_chain):
+    chain = serial_chain
+    backend = connect(chain, watchdog_s=0.04)
+    backend.enable()
+    try:
+        backend.write(np.full(6, 0.01))
+        time.sleep(0.15)  # the loop "hangs": no instruction for 150 ms > 40 ms
+        trips = {e[2] for e in chain.events if e[1] == "watchdog"}
+        assert trips == set(backend.ids)
+        assert all(not m.driving and m.applied_current == 0 for m in chain.motors)
+    finally:
+        backend.disable()
+
+
+def test_wire_timing_shows_the_bus_budget():
+    """At 1 Mbaud the 6 replies alone take 1.26 ms of wire: the measured read shows it."""
+    with VirtualChain("serial", baud=1_000_000, wire_timing=True) as chain:
+        backend = connect(chain, baud=1_000_000)
+        backend.enable()
+        try:
+            x, tau = np.zeros(12), np.zeros(6)
+            io = []
+            for _ in range(60):
+                if backend.read(x):  # a busy host may make one late now and then
+                    backend.write(tau)
+                    io.append(backend.last_io_time_s)
+                time.sleep(0.002)
+        finally:
+            backend.disable()
+    assert len(io) >= 55
+    budget = backend.budget
+    read_wire = (budget.sync_read_bytes + 6 * budget.reply_bytes) * budget.byte_time_s
+    median = float(np.median(io))
+    assert read_wire == pytest.approx(1.46e-3)
+    assert read_wire <= median < budget.bus_s + 3e-3, (median, budget.describe())
+    assert backend.check_rate(1000).level == "refuse"

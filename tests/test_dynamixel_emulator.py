@@ -1,0 +1,235 @@
+"""The virtual chain: control-table semantics of the two models, Protocol 2.0 over the
+pseudo-terminal (broadcast ping, CRC errors, unsupported instructions, Status Return Level),
+the plant moving the joints, the event log and the command line's errors."""
+
+from __future__ import annotations
+
+import gc
+import math
+import os
+import select
+import time
+from datetime import timedelta
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cochlea.dynamixel import control_table as ct
+from cochlea.dynamixel import protocol as proto
+from cochlea.dynamixel.emulator import VirtualChain, main
+
+instruction_frames = st.builds(
+    lambda i, c, p: proto.instruction(i, c, p), st.sampled_from([1, 2, 3, 0xFE, 252]),
+    st.sampled_from([0x01, 0x02, 0x03, 0x08, 0x82, 0x83, 0x06, 0x77]), st.binary(max_size=40))
+
+
+@pytest.fixture(scope="module")
+def parallel_chain():
+    return VirtualChain("parallel")  # not started: the motors are used directly
+
+
+@pytest.fixture
+def motor(parallel_chain):
+    m = parallel_chain.by_id[1]  # the slider's XM540-W270
+    m.table[:] = m.defaults  # as it came from the box
+    yield m
+    m.table[:] = m.defaults
+
+
+def write(m, address, value, size):
+    return m.write(address, proto.le(value, size))[0]
+
+
+def test_the_control_table_of_each_model(parallel_chain):
+    xm, mx = parallel_chain.by_id[1], parallel_chain.by_id[2]
+    assert (xm.get(0), mx.get(0)) == (1120, 311)
+    assert (xm.get(38), mx.get(38)) == (2047, 1941)  # Current Limit at its maximum
+    assert (xm.spec.current_unit_mA, mx.spec.current_unit_mA) == (2.69, 3.36)
+    for m in (xm, mx):
+        assert (m.get(9), m.get(11), m.get(64), m.get(68)) == (250, 3, 0, 2)
+        assert m.get(102) == m.get(38)  # Goal Current starts at the limit: write 0 first
+        assert ct.BAUD_RATES[m.get(8)] == 4_000_000
+
+
+def test_eeprom_is_locked_while_the_torque_is_on(motor):
+    assert write(motor, 11, 0, 1) == 0
+    assert write(motor, 64, 1, 1) == 0
+    for address, size in ((11, 1), (9, 1), (38, 2)):
+        assert write(motor, address, 0, size) == ct.ACCESS
+    assert write(motor, 64, 0, 1) == 0
+    assert write(motor, 9, 0, 1) == 0
+
+
+def test_a_mode_change_resets_goal_current_to_the_limit(motor):
+    assert write(motor, 38, 500, 2) == 0
+    assert write(motor, 102, 0, 2) == 0
+    assert write(motor, 11, 0, 1) == 0
+    assert motor.get(102) == 500
+    assert write(motor, 102, -501, 2) == ct.DATA_LIMIT
+    assert write(motor, 102, -500, 2) == 0 and motor.get(102) == -500
+
+
+def test_writes_are_checked_whole(motor):
+    assert write(motor, 11, 2, 1) == ct.DATA_RANGE  # no such operating mode
+    assert write(motor, 9, 255, 1) == ct.DATA_RANGE
+    assert write(motor, 38, 2048, 2) == ct.DATA_RANGE
+    assert write(motor, 102, 5, 1) == ct.DATA_LENGTH  # half of Goal Current
+    assert write(motor, 103, 5, 1) == ct.ACCESS  # inside an item
+    assert write(motor, 126, 5, 2) == ct.ACCESS  # read-only
+    assert write(motor, 14, 1, 1) == ct.ACCESS  # a gap in the table
+    # All or nothing: Return Delay fine, Drive Mode out of range -> neither is written.
+    assert motor.write(9, bytes([7, 9]))[0] == ct.DATA_RANGE and motor.get(9) == 250
+    assert motor.write(9, bytes([7, 1]))[0] == 0 and (motor.get(9), motor.get(10)) == (7, 1)
+    assert motor.read(126, 10)[0] == 0 and motor.read(140, 20)[0] == ct.ACCESS
+
+
+def test_bus_watchdog_and_hardware_error(motor):
+    assert write(motor, 11, 0, 1) == 0 and write(motor, 102, 0, 2) == 0
+    motor.trip_watchdog()
+    assert motor.get(98) == -1 and not motor.driving
+    assert write(motor, 102, 10, 2) == ct.DATA_RANGE  # goal values read-only
+    assert write(motor, 98, 0, 1) == 0  # cleared
+    assert write(motor, 102, 10, 2) == 0
+    assert write(motor, 64, 1, 1) == 0 and motor.driving
+    motor.latch_hardware_error(5)
+    assert not motor.torque_on and not motor.driving
+    assert write(motor, 64, 1, 1) == ct.RESULT_FAIL  # only a reboot re-enables
+    motor.reboot()
+    assert motor.hardware_error == 0 and write(motor, 64, 1, 1) == 0
+
+
+class Client:
+    """Our own frames on the slave side of the pseudo-terminal."""
+
+    def __init__(self, path):
+        import termios
+        import tty
+
+        self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(self.fd)
+        termios.tcflush(self.fd, termios.TCIFLUSH)
+
+    def ask(self, frame: bytes, replies: int = 1, timeout: float = 0.5) -> list[tuple]:
+        parser = proto.PacketParser()
+        os.write(self.fd, frame)
+        out, end = [], time.perf_counter() + timeout
+        while len(out) < replies and time.perf_counter() < end:
+            if select.select([self.fd], [], [], 0.01)[0]:
+                parser.feed(os.read(self.fd, 4096))
+            while (code := parser.parse()) != proto.NEED_MORE:
+                out.append((code, parser.id, parser.error, parser.params()))
+        return out
+
+    def close(self):
+        os.close(self.fd)
+
+
+@pytest.fixture
+def client_chain():
+    gc.disable()
+    chain = VirtualChain("serial").start()
+    client = Client(chain.path)
+    yield client, chain
+    client.close()
+    chain.close()
+    gc.enable()
+
+
+def test_protocol_over_the_pseudo_terminal(client_chain):
+    client, chain = client_chain
+    # Broadcast ping: everyone, in ID order, with model number and firmware.
+    answers = client.ask(proto.ping(0xFE), replies=6)
+    assert [(a[0], a[1], a[3][:2]) for a in answers] == [(proto.OK, i, b"\x37\x01")
+                                                         for i in range(1, 7)]
+    # A corrupted instruction to ID 2: a status with the CRC error number.
+    bad = bytearray(proto.read(2, 132, 4))
+    bad[-1] ^= 1
+    assert client.ask(bytes(bad)) == [(proto.OK, 2, ct.CRC_ERROR, b"")]
+    # Unemulated instruction: Instruction Error. Unknown ID: silence.
+    assert client.ask(proto.instruction(3, ct.REG_WRITE, b"\x40\x00\x01")) == \
+        [(proto.OK, 3, ct.INSTRUCTION_ERROR, b"")]
+    assert client.ask(proto.ping(42), timeout=0.05) == []
+    # Status Return Level 1: READ answered, WRITE not (this one included: it is done first).
+    assert client.ask(proto.write(4, 68, b"\x01"), timeout=0.05) == []
+    assert client.ask(proto.write(4, 65, b"\x01"), timeout=0.05) == []
+    assert client.ask(proto.read(4, 65, 1)) == [(proto.OK, 4, 0, b"\x01")]
+    # SYNC_READ of 126..135 for IDs 6, 1: one status each, in the order asked.
+    answers = client.ask(proto.sync_read(126, 10, [6, 1]), replies=2)
+    assert [a[1] for a in answers] == [6, 1] and all(len(a[3]) == 10 for a in answers)
+    kinds = {e[1] for e in chain.events}
+    assert {"ping", "crc-error", "refused", "write", "read", "sync-read"} <= kinds
+
+
+def test_the_plant_moves_a_driven_joint_and_holds_the_others(client_chain):
+    client, chain = client_chain
+    q0 = chain.joint_state()[:6].copy()
+    for frame in (proto.write(1, 11, b"\x00"), proto.write(1, 102, proto.le(0, 2)),
+                  proto.write(1, 64, b"\x01"), proto.write(1, 102, proto.le(200, 2))):
+        assert client.ask(frame)[0][2] == 0
+    time.sleep(0.05)
+    state = chain.joint_state()
+    assert state[0] > q0[0] + 1e-3 and state[6] > 0  # 0.67 A -> about 0.57 N m, positive
+    assert list(state[1:6]) == list(q0[1:6]) and not state[7:].any()  # torque off: held
+    # The registers follow: Present Position, Velocity, Current.
+    motor = chain.by_id[1]
+    assert motor.get(126) == 200
+    assert motor.get(132) == round(state[0] / ct.RAD_PER_COUNT)
+    assert motor.get(128) > 0
+
+
+def test_the_event_log_file(tmp_path):
+    log = tmp_path / "events.txt"
+    with VirtualChain("serial", log_path=log) as chain:
+        client = Client(chain.path)
+        client.ask(proto.write(5, 65, b"\x01"))
+        client.close()
+    lines = log.read_text().splitlines()
+    assert any(" write id=5 address=65 value=1" in line for line in lines)
+
+
+def test_command_line_errors(capsys):
+    assert main(["--robot", "serial", "--baud", "12345"]) == 2
+    assert "12345 is not a Dynamixel rate" in capsys.readouterr().err
+    assert main(["--robot", "parallel", "--scenario", "serial_joint"]) == 2
+    assert "is for the serial robot, not parallel" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--robot", "serial", "--drop-replies", "1.5"])
+    with pytest.raises(SystemExit):
+        main(["--robot", "serial", "--hardware-error", "3:1"])
+    assert "BIT must be one of" in capsys.readouterr().err
+
+
+def test_wire_timing_delays_replies():
+    """A PING at 57600 baud: 10 + 14 bytes of 10 bits -> 4.2 ms, plus 500 us return delay."""
+    gc.disable()
+    try:
+        with VirtualChain("serial", baud=57600, wire_timing=True) as chain:
+            client = Client(chain.path)
+            t0 = time.perf_counter()
+            assert client.ask(proto.ping(1))[0][:3] == (proto.OK, 1, 0)
+            elapsed = time.perf_counter() - t0
+            client.close()
+    finally:
+        gc.enable()
+    expected = 24 * 10 / 57600 + 250 * 2e-6
+    assert expected <= elapsed < expected + 0.01
+    assert math.isclose(expected, 0.004667, rel_tol=1e-3)
+
+
+@settings(max_examples=600, deadline=timedelta(milliseconds=500), database=None,
+          derandomize=True)
+@given(frame=instruction_frames, address=st.integers(0, 160), data=st.binary(max_size=12))
+def test_the_emulator_survives_random_instructions(parallel_chain, frame, address, data):
+    """Random instructions with valid CRCs, and random writes and reads of the table."""
+    chain = parallel_chain
+    for raw in (frame, proto.write(2, address, data), proto.read(3, address, len(data)),
+                proto.sync_write(address, len(data), [(1, data), (4, data)])):
+        chain._parser.reset()
+        chain._parser.feed(raw)
+        assert chain._parser.parse() == proto.OK
+        chain._instruction(time.perf_counter())
+    chain._queue.clear()
+    for m in chain.motors:  # back to the factory state (a random write may change an ID)
+        m.table[:] = m.defaults
+    chain._index()
