@@ -401,7 +401,7 @@ class RealTimeLoop:
 
     def __init__(self, setups: list[UnitSetup], backend: Backend, supervisor: Supervisor,
                  period: float, steps: int, realtime: bool = True, kernels: str = "c",
-                 substeps: int = 4):
+                 substeps: int = 1):
         self.setups, self.backend, self.supervisor = setups, backend, supervisor
         self.h, self.steps, self.realtime = period, steps, realtime
         self.time = np.arange(steps) * period
@@ -649,7 +649,7 @@ def write_raw_columns(path: Path, loop: RealTimeLoop) -> None:
 
 def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float | None,
                      watchdog_misses: int = 20, watchdog_errors: int = 5,
-                     kernels: str = "c", substeps: int = 4) -> Supervisor:
+                     kernels: str = "c", substeps: int = 1) -> Supervisor:
     """Limits from the descriptions of every unit's joints; the keep-out circle for task-space
     runs around each unit's centre (serial: the cochlea centre; parallel: the slider pivot S,
     which moves with d1) for each of its tool points."""

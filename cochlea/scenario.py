@@ -189,7 +189,7 @@ def load(name_or_path: str | Path, coordinates) -> Scenario:
     rate = c.number("rate_Hz", "a positive number (Hz)", lambda v: v > 0, required=False,
                     default=1000.0)
     substeps = c.get("plant_substeps", "a positive integer", lambda v: isinstance(v, int)
-                     and not isinstance(v, bool) and v > 0, required=False, default=4)
+                     and not isinstance(v, bool) and v > 0, required=False, default=1)
     variant = c.string("variant", ("corrected", "thesis"), required=False, default="corrected")
     parameterisation = c.string("parameterisation", ("base", "inertial", "mass"),
                                 required=False, default="base")

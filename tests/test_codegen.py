@@ -141,7 +141,7 @@ def test_configuration_errors_name_the_key(tmp_path):
          "robot[0].controllers"),
         (good.replace('variants = ["corrected", "thesis"]', 'variants = ["best"]', 1),
          "robot[0].variants"),
-        (good.replace("plant_substeps = 4", "plant_substeps = 0", 1), "robot[0].plant_substeps"),
+        (good.replace("plant_substeps = 1", "plant_substeps = 0", 1), "robot[0].plant_substeps"),
         ("speed = 3\n" + good, "speed"),
         (good.replace('task = ["fk_world", "J_world"]', 'task = ["fk"]'), "robot[0].task"),
     ]

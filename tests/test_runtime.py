@@ -49,9 +49,9 @@ def make_loop(name="serial_task", fault=None, at=5, seconds=0.2, realtime=False,
     sc = load_scenario(name)
     setups = unit_setups(sc)
     backend = backend_cls(setups, sc.period, sc.plant_substeps, fault=fault, at=at)
-    supervisor = build_supervisor(setups, sc.space, keep_out)
+    supervisor = build_supervisor(setups, sc.space, keep_out, substeps=sc.plant_substeps)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, int(seconds / sc.period),
-                        realtime=realtime)
+                        realtime=realtime, substeps=sc.plant_substeps)
     assert loop.kernel_source == "c"  # the generated kernels, not the fallback
     return sc, loop, backend
 
