@@ -28,6 +28,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import casadi as ca
 import numpy as np
 
 from . import ckernels
@@ -106,8 +107,17 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
 def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     """``(xd, xd_dot, xd_ddot)`` at every time of the grid, each ``(N, nd)``, in one call
     (CasADi's map on up to 4 threads; every sample is computed on its own)."""
-    mapped = u.desired.map(len(time), "thread", max(1, min(4, os.cpu_count() or 1)))(time)
-    return tuple(np.ascontiguousarray(np.array(m).T) for m in mapped)
+    from .runtime import BufferedFunction  # noqa: PLC0415 (runtime imports this module)
+
+    n = len(time)
+    t = ca.SX.sym("t")
+    # Dense outputs: a constant coordinate's derivatives are structural zeros otherwise.
+    dense = ca.Function("desired_dense", [t], [ca.densify(v) for v in u.desired(t)])
+    mapped = BufferedFunction(dense.map(n, "thread", max(1, min(4, os.cpu_count() or 1))))
+    mapped.inputs[0][:] = time
+    mapped()  # straight into numpy buffers: no conversion of CasADi matrices afterwards
+    # CasADi stores the (nd x n) outputs column by column: each row of the reshape is a sample.
+    return tuple(out.reshape(n, -1) for out in mapped.outputs)
 
 
 def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, delay: int,
