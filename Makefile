@@ -18,9 +18,10 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # The main job: the thesis's task-space study of the serial system (controller g) on the
-# simulated robot; the log, summary.json and figures land in runs/demo/.
+# simulated robot, in real time under the supervisor; the log, summary.json and figures land in
+# a new runs/serial_task_<date-time>/ folder whose path it prints.
 demo: $(STAMP) lib
-	$(BIN)/cochlea-run --robot serial --space task --out runs/demo
+	$(BIN)/cochlea-run --robot serial --space task
 
 test: $(STAMP) lib
 	$(BIN)/python -m pytest
