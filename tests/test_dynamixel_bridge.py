@@ -36,6 +36,10 @@ def scenario_with(tmp_path: Path, robot: str, replace: list[tuple[str, str]] = (
 
 
 def connect(chain: VirtualChain, **options) -> DynamixelBackend:
+    """A bridge on the chain's pseudo-terminal. The read timeout is generous (50 ms instead of
+    the bus time plus 3 ms): the emulator is a Python thread on a machine that CI and other
+    work share, and these tests are about behaviour, not timing."""
+    options.setdefault("timeout_s", 0.05)
     return DynamixelBackend(chain.robot, chain.path, description=chain.scenario.description,
                             **options)
 
@@ -211,19 +215,19 @@ def test_direction_and_zero_offset_map_joint_to_motor(tmp_path):
             backend.disable()
 
 
-def _run(backend: DynamixelBackend, seconds: float) -> tuple[list[bool], tuple]:
-    """Read and write for a while; the results and the first failure (kind, motor ID)."""
+def _run(backend: DynamixelBackend, seconds: float) -> tuple[list[bool], set]:
+    """Read and write for a while; the results and the failures seen (kind, motor ID)."""
     x, tau = np.zeros(backend.nq * 2), np.zeros(backend.nq)
-    results, first = [], None
+    results, seen = [], set()
     end = time.perf_counter() + seconds
     while time.perf_counter() < end:
         ok = backend.read(x)  # raises nothing, whatever happens
         results.append(ok)
-        if not ok and first is None:
-            first = (backend.last_failure, backend.last_failure_id)
+        if not ok:
+            seen.add((backend.last_failure, backend.last_failure_id))
         backend.write(tau)
         time.sleep(0.001)
-    return results, first
+    return results, seen
 
 
 def _consecutive_failures(results: list[bool]) -> int:
@@ -237,7 +241,7 @@ def _consecutive_failures(results: list[bool]) -> int:
 FAULTS = {
     "dropped replies": (Faults(drop=1.0, ids=frozenset({3})), br.TIMEOUT),
     "corrupted CRC": (Faults(crc=1.0, ids=frozenset({3})), br.CRC),
-    "late replies": (Faults(late=1.0, late_s=0.005, ids=frozenset({3})), br.TIMEOUT),
+    "late replies": (Faults(late=1.0, late_s=0.03, ids=frozenset({3})), br.TIMEOUT),
     "hardware error": (Faults(hardware_error=(3, 5)), br.ALERT),
     "motor stops answering": (Faults(silent=3), br.TIMEOUT),
 }
@@ -248,14 +252,14 @@ def test_every_fault_is_a_reported_failure(name):
     faults, kind = FAULTS[name]
     faults.delay_s = 0.1  # after the start-up
     with VirtualChain("serial", faults=faults) as chain:
-        backend = connect(chain)
+        backend = connect(chain, timeout_s=0.02)  # a late reply is 30 ms late
         backend.enable()
         try:
-            results, first = _run(backend, 0.35)
+            results, seen = _run(backend, 0.5)
         finally:
             backend.disable()
         assert results[0] is True
-        assert first == (kind, 3), backend.summary()  # the fault, and the motor it hit
+        assert (kind, 3) in seen, (seen, backend.summary())  # the fault, and the motor it hit
         # Failing reads in a row: the loop's watchdog (5 in a row by default) stops the run.
         assert _consecutive_failures(results) >= 6, backend.summary()
         summary = backend.summary()
@@ -276,7 +280,11 @@ def test_the_bus_watchdog_stops_the_motors_when_the_loop_stops(serial_chain):
     try:
         backend.write(np.full(6, 0.01))
         time.sleep(0.15)  # the loop "hangs": no instruction for 150 ms > 40 ms
-        trips = {e[2] for e in chain.events if e[1] == "watchdog"}
+        for _ in range(100):  # (the emulator's thread may itself be late on a busy machine)
+            trips = {e[2] for e in chain.events if e[1] == "watchdog"}
+            if trips == set(backend.ids):
+                break
+            time.sleep(0.01)
         assert trips == set(backend.ids)
         assert all(not m.driving and m.applied_current == 0 for m in chain.motors)
     finally:
@@ -286,7 +294,7 @@ def test_the_bus_watchdog_stops_the_motors_when_the_loop_stops(serial_chain):
 def test_wire_timing_shows_the_bus_budget():
     """At 1 Mbaud the 6 replies alone take 1.26 ms of wire: the measured read shows it."""
     with VirtualChain("serial", baud=1_000_000, wire_timing=True) as chain:
-        backend = connect(chain, baud=1_000_000)
+        backend = connect(chain, baud=1_000_000, timeout_s=None)  # the default: bus + 3 ms
         backend.enable()
         try:
             x, tau = np.zeros(12), np.zeros(6)
@@ -298,10 +306,10 @@ def test_wire_timing_shows_the_bus_budget():
                 time.sleep(0.002)
         finally:
             backend.disable()
-    assert len(io) >= 55
+    assert len(io) >= 30  # most reads make the 4.9 ms timeout, even on a busy machine
     budget = backend.budget
     read_wire = (budget.sync_read_bytes + 6 * budget.reply_bytes) * budget.byte_time_s
-    median = float(np.median(io))
     assert read_wire == pytest.approx(1.46e-3)
-    assert read_wire <= median < budget.bus_s + 3e-3, (median, budget.describe())
+    assert read_wire <= min(io)  # no read is quicker than its bytes on the wire
+    assert float(np.median(io)) < budget.bus_s + backend.timeout_s
     assert backend.check_rate(1000).level == "refuse"

@@ -213,7 +213,7 @@ def test_wire_timing_delays_replies():
     finally:
         gc.enable()
     expected = 24 * 10 / 57600 + 250 * 2e-6
-    assert expected <= elapsed < expected + 0.01
+    assert expected <= elapsed < expected + 0.05  # no sooner than the wire allows
     assert math.isclose(expected, 0.004667, rel_tol=1e-3)
 
 

@@ -163,7 +163,8 @@ class DynamixelBackend:
         self.failures = [0] * len(FAILURE_NAMES)  # periods failed, by first cause
         self.garbage_packets = 0  # headers with impossible fields, packets of the wrong kind
         self.unexpected_packets = 0  # good packets nobody asked for (duplicates, other IDs)
-        self.reads = 0
+        self.reads = 0  # SYNC_READs since enable() returned
+        self.startup_reads = 0  # those of the start-up
         self.good_reads = 0
         self.writes = 0
         self.last_failure = -1
@@ -188,6 +189,9 @@ class DynamixelBackend:
         except Exception as exc:  # noqa: BLE001 (anything else is a start-up failure too)
             self.disable()
             raise BackendError(f"start-up on {self.port_path} failed: {exc!r}") from exc
+        # The counters cover the run from here; the start-up's reads are kept apart.
+        self.startup_reads, self.reads, self.good_reads, self.writes = self.reads, 0, 0, 0
+        self.failures = [0] * len(FAILURE_NAMES)
         self._active = True
         atexit.register(self.disable)
 

@@ -7,7 +7,8 @@ torque is on, range and limit checks, Goal Current reset to the Current Limit wh
 Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return Level.
 
 The joints move in real time under the scenario's plant (the same parameters, friction and
-initial state as the simulation): every ``plant_period_s`` the plant step integrates the joint
+initial state as the simulation): every ``plant_period_s`` (default the simulation's RK4 step,
+0.25 ms, and a request sees the state at its arrival) one RK4 step integrates the joint
 efforts that the motors' currents give through the fit (:class:`cochlea.dynamixel.units.Fit`,
 the inverse of the bridge's torque-to-current map). A motor that is not driving (torque off, not
 in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
@@ -27,11 +28,16 @@ number.
 Everything the motors do is recorded in ``events`` (and ``--log FILE``): each item written (by
 WRITE or SYNC_WRITE), each read, ping and reboot, each refused instruction, each fault and
 watchdog trip, with its time.
+
+The command (``main``) runs under SCHED_FIFO when permitted and with the garbage collector off
+while serving, as the real-time loop does: a virtual device should answer as promptly as a real
+one, whatever else the machine runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import heapq
 import math
 import os
@@ -82,7 +88,11 @@ from .control_table import (
 )
 from .units import JointDrive, joint_drives
 
+#: The command's real-time priority: below cochlea-run's loop (40), above normal processes.
+EMULATOR_FIFO_PRIORITY = 30
+
 _PRESENT = struct.Struct("<hii")  # Present Current, Velocity, Position at 126
+_TICK = struct.Struct("<H")  # Realtime Tick at 120
 _INT32 = (-(2**31), 2**31 - 1)
 
 
@@ -121,6 +131,8 @@ class VirtualMotor:
         self._put(self.items[8], baud_code)
         self.defaults = bytes(self.table)
         self.on_torque = None  # callback(motor) when the torque goes on
+        self._key: tuple = ()
+        self._state = (False, 0, 0.0)
 
     # ---- registers -----------------------------------------------------------------------------
 
@@ -145,16 +157,27 @@ class VirtualMotor:
 
     @property
     def watchdog_tripped(self) -> bool:
-        return self.get(ADDR_BUS_WATCHDOG) == -1
+        return self.table[ADDR_BUS_WATCHDOG] == 0xFF  # -1
+
+    def state(self) -> tuple[bool, int, float]:
+        """``(driving, applied current (LSB), joint effort it gives)``, recomputed only when one
+        of the registers it depends on changed (the plant asks at every step)."""
+        t = self.table
+        key = (t[64], t[11], t[70], t[98], t[102], t[103])
+        if key != self._key:
+            driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
+                       and key[3] != 0xFF)
+            current = proto.from_le(t[102:104], True) if driving else 0
+            self._key, self._state = key, (driving, current, float(self.drive.effort(current)))
+        return self._state
 
     @property
     def driving(self) -> bool:
-        return (self.torque_on and self.table[11] == CURRENT_MODE and not self.hardware_error
-                and not self.watchdog_tripped)
+        return self.state()[0]
 
     @property
     def applied_current(self) -> int:
-        return self.get(ADDR_GOAL_CURRENT) if self.driving else 0
+        return self.state()[1]
 
     @property
     def return_delay_s(self) -> float:
@@ -162,7 +185,7 @@ class VirtualMotor:
 
     def set_present(self, current: int, velocity: int, position: int, tick_ms: int) -> None:
         _PRESENT.pack_into(self.table, 126, current, velocity, position)
-        self.table[120:122] = proto.le(tick_ms % 32768, 2)
+        _TICK.pack_into(self.table, 120, tick_ms % 32768)
 
     def latch_hardware_error(self, bit: int) -> None:
         self.table[ADDR_HARDWARE_ERROR] |= 1 << bit
@@ -210,29 +233,34 @@ class VirtualMotor:
             self._apply(it, value)
         return 0, [(it.address, value) for it, value in plan]
 
+    #: Goal values (address) and the limit (address) that bounds each.
+    GOAL_LIMITS = {100: 36, 102: 38, 104: 44}
+    GOALS = (100, 102, 104, 116)
+
     def _check(self, it: Item, value: int) -> int:
+        a = it.address
         if not it.lo <= value <= it.hi:
             return DATA_RANGE
-        if it.name == "Operating Mode" and value not in OPERATING_MODES:
+        if a == 11 and value not in OPERATING_MODES:
             return DATA_RANGE
-        if it.name.startswith("Goal") and self.watchdog_tripped:
+        if a in self.GOALS and self.watchdog_tripped:
             return DATA_RANGE  # goal values are read-only after a watchdog error
-        limits = {"Goal Current": 38, "Goal PWM": 36, "Goal Velocity": 44}
-        if it.name in limits and abs(value) > self.get(limits[it.name]):
+        if a in self.GOAL_LIMITS and abs(value) > self.get(self.GOAL_LIMITS[a]):
             return DATA_LIMIT
-        if it.name == "Torque Enable" and value == 1 and self.hardware_error:
+        if a == ADDR_TORQUE_ENABLE and value == 1 and self.hardware_error:
             return RESULT_FAIL  # only a REBOOT re-enables the torque after a shutdown
         return 0
 
     def _apply(self, it: Item, value: int) -> None:
-        before = self.get(it.address)
+        a = it.address
+        before = self.get(a) if a in (11, ADDR_TORQUE_ENABLE) else None
         self._put(it, value)
-        if it.name == "Operating Mode" and value != before:
+        if a == 11 and value != before:
             self._put(self.items[100], self.get(36))  # Goal PWM = PWM Limit
             self._put(self.items[102], self.get(38))  # Goal Current = Current Limit
             self._put(self.items[108], 0)
             self._put(self.items[112], 0)
-        if it.name == "Torque Enable" and value == 1 and before == 0 and self.on_torque:
+        if a == ADDR_TORQUE_ENABLE and value == 1 and before == 0 and self.on_torque:
             self.on_torque(self)
 
 
@@ -255,39 +283,49 @@ class _Unit:
         arguments = [self._x, self._tau, np.asarray(setup.plant_params, float).copy(),
                      np.asarray(setup.friction, float).copy(), np.array([h])]
         self._arguments = arguments  # the buffers point into these arrays: keep them alive
+        self._h = arguments[4]
+        self._held = [True] * n
+        self._scales = [(m.drive.q_offset, m.drive.q_per_count, m.drive.qd_per_lsb)
+                        for m in motors]
         for i, a in enumerate(arguments):
             self._buffer.set_arg(i, memoryview(a))
         self._buffer.set_res(0, memoryview(self._next))
 
-    def advance(self) -> bool:
-        """One plant period; False if the plant went non-finite (the state is kept)."""
-        n, x = self.n, self.x
-        held = [not m.driving for m in self.motors]
-        if all(held):
+    def advance(self, h: float) -> bool:
+        """One RK4 step of ``h`` seconds; False if the plant went non-finite (state kept)."""
+        n, x, tau = self.n, self.x, self._tau
+        held = self._held
+        moving = False
+        for j, m in enumerate(self.motors):
+            driving, _, effort = m.state()
+            held[j] = not driving
+            tau[j] = effort
+            moving = moving or driving
+        if not moving:
             x[n:] = 0.0
             return True
-        for j, m in enumerate(self.motors):
-            self._tau[j] = m.drive.effort(m.applied_current)
+        self._h[0] = h
         self._x[:] = x
         self._call()
         nxt = self._next
-        for j, hold in enumerate(held):
-            if hold:
+        for j in range(n):
+            if held[j]:
                 nxt[j] = x[j]
                 nxt[n + j] = 0.0
-        if not np.isfinite(nxt).all():
+        if not math.isfinite(float(nxt.sum())):
             x[n:] = 0.0
             return False
         x[:] = nxt
         return True
 
     def publish(self, tick_ms: int) -> None:
+        """Present Current, Velocity and Position of each motor from the plant's state."""
         n, x = self.n, self.x
-        for j, m in enumerate(self.motors):
-            d = m.drive
-            pos = int(np.clip(d.counts(x[j]), *_INT32))
-            vel = int(np.clip(d.velocity_lsb(x[n + j]), *_INT32))
-            m.set_present(m.applied_current, vel, pos, tick_ms)
+        lo, hi = _INT32
+        for j, (m, (offset, per_count, per_lsb)) in enumerate(zip(self.motors, self._scales)):
+            pos = min(max(round((x[j] - offset) / per_count), lo), hi)
+            vel = min(max(round(x[n + j] / per_lsb), lo), hi)
+            m.set_present(m.state()[1], vel, pos, tick_ms)
 
 
 class VirtualChain:
@@ -299,7 +337,7 @@ class VirtualChain:
 
     def __init__(self, robot: str, scenario: str | Path | None = None, *,
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
-                 plant_period_s: float = 1e-3, log_path: str | Path | None = None,
+                 plant_period_s: float | None = None, log_path: str | Path | None = None,
                  max_events: int = 200_000):
         from ..simulation import load_scenario, unit_setups  # noqa: PLC0415
 
@@ -321,11 +359,12 @@ class VirtualChain:
             m.answering = m.id not in self.faults.missing
         self._index()
         setups = unit_setups(self.scenario)
+        if plant_period_s is None:  # the simulation's RK4 step, one per plant period
+            plant_period_s = self.scenario.period / self.scenario.plant_substeps
         self.units, start = [], 0
         for s in setups:
             n = s.plant_model.nq
-            self.units.append(_Unit(s, self.scenario.plant_substeps, plant_period_s,
-                                    self.motors[start:start + n]))
+            self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):
             raise CochleaError(f"the scenario's plant has {start} joints, its description "
@@ -347,6 +386,7 @@ class VirtualChain:
         self._seq = 0
         self._bus_free = 0.0
         self._t0 = time.perf_counter()
+        self._plant_time = self._t0  # the plant is integrated up to this time
         self._next_step = self._t0 + self.h
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -449,8 +489,9 @@ class VirtualChain:
             return
         except OSError:
             return  # nobody has the other end open
-        now = time.perf_counter()  # replies first, from the state published last (at most
-        offset = 0                  # one plant period old); the plant catches up after them
+        now = time.perf_counter()
+        self._tick(now)  # the state a request sees is the state at its arrival (one sub-step)
+        offset = 0
         while offset < len(data):
             offset += self._parser.feed(data[offset:])
             while True:
@@ -469,27 +510,29 @@ class VirtualChain:
                     self.counts["bad_instructions"] += 1
 
     def _tick(self, now: float) -> None:
+        """Integrate the plant up to ``now`` (steps of at most ``h``, the last one partial), so
+        a request sees the state at its arrival and a new current acts from its arrival."""
         self._faults(now)
-        steps = 0
-        while self._next_step <= now:
-            steps += 1
-            if steps > 50:  # far behind (the host was busy): skip ahead, count it
-                self.counts["plant_overruns"] += 1
-                self._next_step = now + self.h
-                break
+        if now - self._plant_time > 0.05:  # 50 ms behind (the host was busy): skip ahead
+            self.counts["plant_overruns"] += 1
+            self._plant_time = now - self.h
+        while now - self._plant_time > 1e-6:
+            h = min(self.h, now - self._plant_time)
             for u in self.units:
-                if not u.advance():
+                if not u.advance(h):
                     for m in u.motors:
                         m.latch_hardware_error(5)
                     self._event(now, "fault", -1, -1, f"{u.name}: plant not finite, overload")
             self.counts["plant_steps"] += 1
-            self._next_step += self.h
+            self._plant_time += h
+        # Requests integrate up to their arrival themselves: between them, 1 ms is enough.
+        self._next_step = self._plant_time + max(self.h, 1e-3)
         tick_ms = int((now - self._t0) * 1000)
         for u in self.units:
             u.publish(tick_ms)
         for m in self.motors:
-            wd = m.get(ADDR_BUS_WATCHDOG)
-            if m.torque_on and wd > 0 and now - m.last_contact > wd * WATCHDOG_UNIT_S:
+            wd = m.table[ADDR_BUS_WATCHDOG]  # 0 off, 1..127 on, 0xFF (-1) tripped
+            if 0 < wd < 0x80 and m.torque_on and now - m.last_contact > wd * WATCHDOG_UNIT_S:
                 m.trip_watchdog()
                 self.counts["watchdog_trips"] += 1
                 self._event(now, "watchdog", m.id, ADDR_BUS_WATCHDOG, -1)
@@ -702,10 +745,15 @@ def _parser() -> argparse.ArgumentParser:
                    "--wire-timing and their Baud Rate register (default 4000000)")
     p.add_argument("--wire-timing", action="store_true", help="bytes take the time the baud "
                    "rate gives them and each motor waits its Return Delay Time")
-    p.add_argument("--plant-period-ms", type=float, default=1.0, metavar="MS",
-                   help="the plant's integration period in real time (default 1)")
+    p.add_argument("--plant-period-ms", type=float, metavar="MS",
+                   help="the plant's RK4 step in real time (default: the scenario's, its "
+                        "control period over its plant_substeps, 0.25 ms)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--log", type=Path, metavar="FILE", help="write every event to FILE")
+    p.add_argument("--priority", choices=["fifo", "normal"], default="fifo",
+                   help="fifo: run under SCHED_FIFO 30 when permitted (below cochlea-run's loop, "
+                        "above everything else), as real motors run on their own; normal: a "
+                        "plain process (default fifo)")
     f = p.add_argument_group("fault injection")
     f.add_argument("--drop-replies", type=_probability, default=0.0, metavar="P",
                    help="probability that a status packet is not sent")
@@ -743,22 +791,36 @@ def main(argv: list[str] | None = None) -> int:
     try:
         chain = VirtualChain(args.robot, args.scenario, baud=args.baud,
                              wire_timing=args.wire_timing, faults=faults_from_args(args),
-                             plant_period_s=args.plant_period_ms * 1e-3, log_path=args.log)
+                             plant_period_s=None if args.plant_period_ms is None
+                             else args.plant_period_ms * 1e-3, log_path=args.log,
+                             max_events=1000)  # the --log file keeps them all
     except CochleaError as exc:
         print(f"cochlea-emulator: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
+    priority = "normal"
+    if args.priority == "fifo":
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(EMULATOR_FIFO_PRIORITY))
+            priority = f"SCHED_FIFO {EMULATOR_FIFO_PRIORITY}"
+        except (AttributeError, PermissionError, OSError):
+            priority = "normal (SCHED_FIFO not permitted)"
     path = chain.open()
     print(path, flush=True)
     ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)
     print(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
-          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}; Ctrl-C stops",
-          flush=True)
+          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}; "
+          "Ctrl-C stops", flush=True)
 
     def stop(signum, frame):  # noqa: ARG001
         chain._stop.set()
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
+    # As in the real-time loop: no collector pauses while serving (what the chain makes per
+    # request is freed by reference counting; the set-up's objects are frozen out of the way).
+    gc.collect()
+    gc.freeze()
+    gc.disable()
     try:
         chain.serve(args.duration)
     finally:
