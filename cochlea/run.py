@@ -61,9 +61,15 @@ def _parser() -> argparse.ArgumentParser:
                    help="seconds to run (default: the scenario's)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output folder (default: a new runs/ROBOT_SPACE_YYYYmmdd-HHMMSS)")
-    p.add_argument("--backend", default="sim", choices=["sim"],
+    p.add_argument("--backend", default="sim", choices=["sim", "dynamixel"],
                    help="what the loop drives: sim, the plant model advanced in real time "
-                        "(default)")
+                        "(default); dynamixel, the motors on --port (real ones, or the virtual "
+                        "chain of cochlea-emulator)")
+    p.add_argument("--port", metavar="PATH",
+                   help="--backend dynamixel: the serial port, e.g. /dev/ttyUSB0, or the "
+                        "pseudo-terminal cochlea-emulator prints")
+    p.add_argument("--baud", type=int, metavar="B",
+                   help="--backend dynamixel: the motors' baud rate (default 4000000)")
     p.add_argument("--realtime", default="on", choices=["on", "off"],
                    help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
                         "off: the as-fast-as-possible simulation")
@@ -104,6 +110,11 @@ def _validate(args: argparse.Namespace, scenario) -> None:
     if args.realtime == "off" and args.backend != "sim":
         raise CochleaError("--realtime off simulates as fast as possible and needs "
                            "--backend sim")
+    if args.backend == "dynamixel" and not args.port:
+        raise CochleaError("--backend dynamixel needs --port PATH: the motors' serial port, "
+                           "or the path cochlea-emulator prints")
+    if args.backend != "dynamixel" and (args.port is not None or args.baud is not None):
+        raise CochleaError("--port and --baud go with --backend dynamixel")
     if args.out is not None and args.out.exists() and any(args.out.iterdir()):
         raise CochleaError(f"--out {args.out} exists and is not empty: choose a new folder "
                            "(runs never overwrite a log)")
@@ -155,13 +166,20 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
     duration = scenario.duration if args.duration is None else args.duration
     steps = int(round(duration * scenario.rate_hz))
     substeps = scenario.plant_substeps
-    backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels)
+    if args.backend == "dynamixel":
+        backend = _dynamixel_backend(args, scenario)
+    else:
+        backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels)
     supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
                                   substeps=substeps)
     loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
                         kernels=args.kernels, substeps=substeps)
     write_raw_columns(out / "log.columns.json", loop)
     status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
+    if args.backend == "dynamixel":
+        # The motors' start-up (ping, configure, first read, torque on) before the loop: a
+        # refusal ends here with nothing to undo (the loop's own enable() is then a no-op).
+        backend.enable()
     start = time.perf_counter()
     stop = loop.run(out / "log.bin", status=status)
     wall = time.perf_counter() - start
@@ -169,8 +187,18 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
     result.stop = {"rule": stop.rule, "time_s": stop.time, "detail": stop.detail,
                    "exit_code": stop.code}
     timing = loop.timing_summary()
+    if args.backend == "dynamixel":
+        timing["bus"] = backend.summary()
     data = report.write_all(result, out, wall, timing)
     _report(data, out, wall)
+    if args.backend == "dynamixel":
+        bus = timing["bus"]
+        print(f"  bus: {bus['bus_budget']['bytes_per_period']} bytes per period, budget "
+              f"{bus['bus_budget']['bus_s'] * 1e6:.0f} us; read + write mean "
+              f"{timing['backend_mean'] * 1e6:.0f} us, p99 {timing['backend_p99'] * 1e6:.0f} us; "
+              f"{bus['good_reads']} of {bus['reads']} reads good"
+              + (f", failures {bus['failures']}" if bus["failures"] else "")
+              + f"; shut-down: {bus['shutdown']}")
     print(f"  timing: period p50 {timing['period_p50'] * 1e3:.3f} ms, p99 "
           f"{timing['period_p99'] * 1e3:.3f} ms, max {timing['period_max'] * 1e3:.3f} ms; "
           f"deadline misses {timing['deadline_misses']} "
@@ -183,6 +211,21 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
             f"cochlea-run: stopped by the user at t = {stop.time:.3f} s")
     print(line + "; zero effort commanded, drives disabled, log complete", file=sys.stderr)
     return STOP_CODES[stop.rule]
+
+
+def _dynamixel_backend(args, scenario):
+    """The motors of the scenario's description on ``--port``; refused before anything moves
+    when the bus cannot carry the loop's rate, with a warning when it only just can."""
+    from .dynamixel.bridge import DynamixelBackend
+
+    backend = DynamixelBackend(scenario.robot, args.port, args.baud or 4_000_000,
+                               description=scenario.description)
+    verdict = backend.check_rate(scenario.rate_hz)
+    if verdict.level == "refuse":
+        raise CochleaError(f"{verdict.message} (--rate sets a lower one)")
+    if verdict.level == "warn":
+        print(f"cochlea-run: warning: {verdict.message}", file=sys.stderr, flush=True)
+    return backend
 
 
 def _report(data: dict, out: Path, wall: float) -> None:

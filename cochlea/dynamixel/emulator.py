@@ -8,8 +8,8 @@ Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return 
 
 The joints move in real time under the scenario's plant (the same parameters, friction and
 initial state as the simulation): every ``plant_period_s`` (default the simulation's RK4 step,
-0.25 ms, and a request sees the state at its arrival) one RK4 step integrates the joint
-efforts that the motors' currents give through the fit (:class:`cochlea.dynamixel.units.Fit`,
+the scenario's period over its ``plant_substeps``; a request sees the state at its arrival) one
+RK4 step integrates the joint efforts that the motors' currents give through the fit (:class:`cochlea.dynamixel.units.Fit`,
 the inverse of the bridge's torque-to-current map). A motor that is not driving (torque off, not
 in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
 200:1 servo does not back-drive. Present Position, Velocity and Current follow the plant.
@@ -747,7 +747,7 @@ def _parser() -> argparse.ArgumentParser:
                    "rate gives them and each motor waits its Return Delay Time")
     p.add_argument("--plant-period-ms", type=float, metavar="MS",
                    help="the plant's RK4 step in real time (default: the scenario's, its "
-                        "control period over its plant_substeps, 0.25 ms)")
+                        "control period over its plant_substeps)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--log", type=Path, metavar="FILE", help="write every event to FILE")
     p.add_argument("--priority", choices=["fifo", "normal"], default="fifo",
