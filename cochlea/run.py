@@ -34,6 +34,7 @@ from .backends import BackendError
 from .errors import EXIT_USER_ERROR, CochleaError
 
 EXIT_DIVERGED = 3
+EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -96,6 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     except CochleaError as exc:
         print(f"cochlea-run: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except KeyboardInterrupt:  # Ctrl-C while preparing: the loop's own handler was not yet set
+        print("cochlea-run: interrupted before the run started; nothing moved", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _validate(args: argparse.Namespace, scenario) -> None:

@@ -488,9 +488,10 @@ class RealTimeLoop:
                 self.backend.write(self.zero)
             finally:
                 self.backend.disable()
-            if writer:
+            # Only threads that started can be joined: enable() may have failed before them.
+            if writer and writer.is_alive():
                 writer.close()
-            if status_thread:
+            if status_thread and status_thread.is_alive():
                 status_thread.close()
             for s, handler in previous.items():
                 signal.signal(s, handler)

@@ -239,3 +239,19 @@ def test_live_status_line_refreshes(tmp_path):
     assert len(lines) >= 3  # refreshed a few times a second
     assert "|e| = " in lines[-1] and "period p99 = " in lines[-1] and "misses = " in lines[-1]
     assert lines[-1].startswith("t =   1.20 s")
+
+
+class FailingBackend(RecordingBackend):
+    def enable(self):
+        from cochlea.backends import BackendError
+
+        raise BackendError("no motor answers on /dev/null")
+
+
+def test_a_backend_that_cannot_start_raises_its_own_error_and_stays_off(tmp_path):
+    from cochlea.backends import BackendError
+
+    _, loop, backend = make_loop(backend_cls=FailingBackend)
+    with pytest.raises(BackendError, match="no motor answers"):
+        loop.run(tmp_path / "log.bin", status=True)
+    assert backend.disabled == 1 and np.array_equal(backend.commands[-1], np.zeros(loop.n))

@@ -13,7 +13,7 @@ Modules, one concept each:
 * :mod:`~cochlea.dynamixel.emulator` -- ``cochlea-emulator``, the motors of a description on a
   pseudo-terminal, moved by the plant model in real time.
 
-``docs/dynamixel.md`` describes the start-up and shut-down sequences, the units and fits, the
+The README's section on the Dynamixel bridge describes the start-up and shut-down sequences, the units and fits, the
 bus budget, the emulator and how to run against real hardware. This package module imports
 nothing, so :mod:`cochlea.description` can use the control tables without a cycle.
 """
