@@ -94,3 +94,30 @@ def test_projection_keeps_estimates_in_the_ball(serial_models, rng):
         assert float(np.dot(p_hat, np.array(p_dot).ravel())) <= 1e-15
         _, p_next, _ = c.step(*args, p_hat, gains, np.ones(3), bound, 10.0)
         assert np.linalg.norm(np.array(p_next).ravel()) <= bound * (1 + 1e-12)
+
+
+@pytest.fixture(scope="module")
+def parallel_models():
+    return {par: cochlea.model("parallel", parameterisation=par) for par in ("mass", "base")}
+
+
+@pytest.mark.parametrize("kind,variant,par", [(k, v, par) for k in "fd"
+                                              for v in ("corrected", "thesis")
+                                              for par in ("mass", "base")])
+def test_parallel_regressor_factors_its_expression(parallel_models, kind, variant, par, rng):
+    """Y_f, Y_d: the identity at random configurations inside the workspace."""
+    model = parallel_models[par]
+    c = build(model, kind, variant=variant, task_angles=(2, 5), task=(model.fk, model.J))
+    for _ in range(20):
+        q = model.geometry.random_configuration(rng)
+        qd = rng.uniform(-1, 1, 5)
+        if kind == "f":
+            xd = q + rng.uniform(-0.05, 0.05, 5)
+        else:
+            xd = ev(model.fk, q) + rng.uniform(-0.005, 0.005, 6)
+        xd_dot, xd_ddot = (rng.uniform(-0.1, 0.1, c.n_desired) for _ in range(2))
+        gains = rng.uniform(0.1, 5.0, sum(c.gain_sizes))
+        p = model.p_nominal * rng.uniform(0.2, 3.0, c.n_params)
+        Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, gains).reshape(5, c.n_params)
+        f = ev(c.auxiliary, q, qd, xd, xd_dot, xd_ddot, gains, p)
+        assert np.abs(Y @ p - f).max() <= 1e-10 * max(1.0, np.abs(f).max())
