@@ -369,19 +369,27 @@ def resolve_path(name_or_path: str | Path) -> Path:
     return candidate
 
 
-def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
-    """Load and validate a description of serial arms (``kind = "serial"``)."""
-    path = resolve_path(name_or_path)
+def open_description(path: Path, kind: str, gravity_size: int, gravity_frame: str,
+                     keep_out_around: str) -> tuple[_Table, str, np.ndarray, float]:
+    """The part every description shares: ``format`` and the ``[system]`` table (name, kind,
+    gravity, the keep-out radius R_m). Returns the top-level table for the rest."""
     top = _Table(path, _read_toml(path), "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     system = top.table("system")
     name = system.string("name")
-    system.string("kind", ("serial",))
-    gravity = system.vector("gravity_m_s2", 3, "m/s^2", what="in the world frame")
-    keep_out = system.number("keep_out_radius_m", "a positive number (m): R_m, the radius "
-                             "around the cochlea centre that the tools must not enter",
-                             lambda v: v > 0)
+    system.string("kind", (kind,))
+    gravity = system.vector("gravity_m_s2", gravity_size, "m/s^2", what=gravity_frame)
+    keep_out = system.number("keep_out_radius_m", f"a positive number (m): R_m, the radius "
+                             f"around {keep_out_around} must not enter", lambda v: v > 0)
     system.done()
+    return top, name, gravity, keep_out
+
+
+def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
+    """Load and validate a description of serial arms (``kind = "serial"``)."""
+    path = resolve_path(name_or_path)
+    top, name, gravity, keep_out = open_description(
+        path, "serial", 3, "in the world frame", "the cochlea centre that the tools")
     arms = tuple(_read_arm(a) for a in top.tables("arm", "one per serial arm"))
     top.done()
 

@@ -37,7 +37,7 @@ import casadi as ca
 import numpy as np
 
 from . import parameters as params_mod
-from .description import FORMAT, Motor, _read_motor, _read_toml, _Table, resolve_path
+from .description import Motor, _read_motor, _Table, open_description, resolve_path
 from .errors import DescriptionError, KinematicsError, ModelError
 from .lagrange import christoffel_coriolis, gravity_vector, mass_matrix, time_derivative
 from .model import METHODS, JointInfo, RobotModel, assemble_model, full_inertial
@@ -229,16 +229,9 @@ def _read_side(t: _Table, name: str, sign: float) -> Side:
 def load_parallel(name_or_path: str | Path = "parallel") -> ParallelSystem:
     """Load and validate a description of the parallel mechanism (``kind = "parallel"``)."""
     path = resolve_path(name_or_path)
-    top = _Table(path, _read_toml(path), "")
-    top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
-    system = top.table("system")
-    name = system.string("name")
-    system.string("kind", ("parallel",))
-    gravity = system.vector("gravity_m_s2", 2, "m/s^2", what="in the (u, v) plane, v up")
-    keep_out = system.number("keep_out_radius_m", "a positive number (m): R_m, the radius "
-                             "around the slider pivot S that the end effectors must not enter",
-                             lambda v: v > 0)
-    system.done()
+    top, name, gravity, keep_out = open_description(
+        path, "parallel", 2, "in the (u, v) plane, v up",
+        "the slider pivot S that the end effectors")
 
     geo = top.table("geometry")
     positive = lambda v: v > 0  # noqa: E731
