@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install clean realtime-check lib codegen bench
+.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -23,8 +23,16 @@ install: $(STAMP)
 demo: $(STAMP) lib
 	$(BIN)/cochlea-run --robot serial --space task
 
-test: $(STAMP) lib
+# Everything: the linter, then every test (slow, real-time and hardware-in-the-loop included).
+test: $(STAMP) lib lint
 	$(BIN)/python -m pytest
+
+# The quick loop while editing: every test but those marked slow, realtime or hil (< 1 min).
+test-fast: $(STAMP) lib
+	$(BIN)/python -m pytest -m "not slow and not realtime and not hil" -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check cochlea tests bench
 
 # The C kernels: build/libcochlea.so from the committed generated_c/, no Python needed.
 # Warnings are errors, so none can creep into the generated code.
@@ -48,7 +56,8 @@ $(BUILD)/obj/%.o: $(GEN)/%.c $(wildcard $(GEN)/*.h)
 $(LIB): $(C_OBJ)
 	$(CC) -shared -o $@ $(C_OBJ) -lm
 
-# Regenerate generated_c/ from models/ and codegen/kernels.toml (then commit it).
+# Regenerate generated_c/ from cochlea/data/robots/ and cochlea/data/codegen/kernels.toml
+# (then commit it).
 codegen: $(STAMP)
 	$(BIN)/cochlea-codegen
 

@@ -26,7 +26,7 @@ MISS_TARGET = 0.005
 
 
 def run(out: Path, *extra: str) -> dict:
-    cmd = [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+    cmd = [sys.executable, "-m", "cochlea.apps.cochlea_run",
            "--robot", "serial", "--space", "task", "--out", str(out), "--status", "off", *extra]
     result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0:

@@ -37,12 +37,15 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
+from numpy_law import NumpyStepE  # noqa: E402
 
 import cochlea  # noqa: E402
-from cochlea import ckernels, csim  # noqa: E402
-from cochlea.description import load_serial  # noqa: E402
-from cochlea.simulation import load_scenario, plant_step, simulate, unit_setups  # noqa: E402
-from numpy_law import NumpyStepE  # noqa: E402
+from cochlea.kernels import library as ckernels
+from cochlea.resources import SCENARIOS_DIR  # noqa: E402
+from cochlea.robots.plant import plant_step
+from cochlea.robots.serial import load_serial  # noqa: E402
+from cochlea.sim import compiled as csim  # noqa: E402
+from cochlea.sim import load_scenario, simulate, unit_setups  # noqa: E402
 from tests.test_pinocchio_oracle import pinocchio_arm  # noqa: E402
 
 OUT = ROOT / "bench"
@@ -138,7 +141,7 @@ def bench_steps(lib: ckernels.Library, floor_path: Path, harness: Path) -> list[
     import ctypes  # noqa: PLC0415
 
     floor_fn = ctypes.CDLL(str(floor_path)).cochlea_floor
-    floor_fn.argtypes, floor_fn.restype = ckernels._KERNEL_ARGTYPES, ctypes.c_int
+    floor_fn.argtypes, floor_fn.restype = ckernels.KERNEL_ARGTYPES, ctypes.c_int
     system = load_serial("serial")
     rows = []
     for kind, scenario in CONTROLLERS:
@@ -215,15 +218,16 @@ def max_log_difference(a, b) -> float:
 
 def bench_closed_loops(lib: ckernels.Library, harness: Path) -> list[dict]:
     rows = []
-    for path in sorted((ROOT / "models" / "scenarios").glob("*.toml")):
+    for path in sorted(SCENARIOS_DIR.glob("*.toml")):
         sc = load_scenario(path.stem)
         setups = unit_setups(sc)
         duration = sc.duration
         row = {"scenario": path.stem, "duration_s": duration, "units": len(setups),
                "periods": int(round(duration * sc.rate_hz))}
-        t_ref, reference = wall(lambda: simulate(sc, setups=setups, backend="casadi"), 3)
-        t_py, python_loop = wall(lambda: csim.simulate(sc, setups=setups, loop="python"), 5)
-        t_c, c_loop = wall(lambda: csim.simulate(sc, setups=setups, loop="c"), 11)
+        t_ref, reference = wall(lambda: simulate(sc, setups=setups, kernels="casadi"), 3)
+        t_py, python_loop = wall(
+            lambda: csim.simulate_compiled(sc, setups=setups, loop="python"), 5)
+        t_c, c_loop = wall(lambda: csim.simulate_compiled(sc, setups=setups, loop="c"), 11)
         # The C driver calls alone, units one after the other, inputs prepared once.
         steps = row["periods"]
         time_grid = np.arange(steps) * sc.period
@@ -273,8 +277,8 @@ def bench_build() -> dict:
     with tempfile.TemporaryDirectory(prefix="cochlea-bench-") as tmp:
         gen, build = Path(tmp) / "gen", Path(tmp) / "build"
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "cochlea.codegen", "--out", str(gen)], cwd=ROOT,
-                       check=True, capture_output=True)
+        subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_codegen", "--out", str(gen)],
+                       cwd=ROOT, check=True, capture_output=True)
         t_gen = time.perf_counter() - t0
         t0 = time.perf_counter()
         subprocess.run(["make", "-s", "lib", f"GEN={gen}", f"BUILD={build}"], cwd=ROOT,
@@ -411,7 +415,7 @@ def markdown(results: dict) -> str:
             "## Closed-loop simulation (real-time factor: simulated s per wall s)", "",
             "Full scenario length. *CasADi*: `simulate(backend=\"casadi\")`, the reference; "
             "*Python + ctypes*: a Python loop over the step, plant and pose kernels "
-            "(`csim.simulate(loop=\"python\")`); *all-in-C*: `simulate()` (the default: the "
+            "(`simulate_compiled(loop=\"python\")`); *all-in-C*: `simulate()` (the default: the "
             "generated driver, units on parallel threads, setup included); *C driver*: the "
             "driver calls alone, units one after the other. Max diff: the largest absolute "
             "difference of any logged value from the CasADi reference.", "",

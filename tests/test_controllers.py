@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import cochlea
-from cochlea.controllers import build
+from cochlea.control import build
 
 from .conftest import ev
 

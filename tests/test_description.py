@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from cochlea import DescriptionError, load_serial
-from cochlea.description import MODELS_DIR
+from cochlea.resources import ROBOTS_DIR
 
-SERIAL = (MODELS_DIR / "serial.toml").read_text()
+SERIAL = (ROBOTS_DIR / "serial.toml").read_text()
 
 
 def test_shipped_serial_description_holds_the_thesis_numbers():
@@ -105,8 +105,7 @@ def test_missing_file(tmp_path):
 def test_command_line_reports_a_bad_description_without_traceback(tmp_path):
     path = _broken(tmp_path, "mass_kg = 0.07878", "mass_kg = -1")
     result = subprocess.run(
-        [sys.executable, "-c", "import sys; from cochlea.cli import model_main; "
-                               "sys.exit(model_main(sys.argv[1:]))", "--description", str(path)],
+        [sys.executable, "-m", "cochlea.apps.cochlea_model", "--description", str(path)],
         capture_output=True, text=True)
     assert result.returncode == 2
     assert "Traceback" not in result.stderr

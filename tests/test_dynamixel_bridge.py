@@ -12,17 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cochlea.backends import BackendError
-from cochlea.description import MODELS_DIR
 from cochlea.dynamixel import bridge as br
 from cochlea.dynamixel.bridge import DynamixelBackend
 from cochlea.dynamixel.emulator import Faults, VirtualChain
-from cochlea.scenario import SCENARIOS_DIR
+from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
+from cochlea.runtime.backend import BackendError
+
+# The bridge against the virtual chain on a pseudo-terminal, in real time.
+pytestmark = pytest.mark.hil
 
 
 def scenario_with(tmp_path: Path, robot: str, replace: list[tuple[str, str]] = ()) -> Path:
     """A copy of ROBOT_joint whose description is models/ROBOT.toml with some text replaced."""
-    text = (MODELS_DIR / f"{robot}.toml").read_text()
+    text = (ROBOTS_DIR / f"{robot}.toml").read_text()
     for old, new in replace:
         assert old in text, old
         text = text.replace(old, new, 1)
@@ -174,7 +176,7 @@ def test_start_up_refuses_a_joint_outside_its_limits(serial_chain, tmp_path):
     reads 180 deg, in the 20 deg its limits (+-170 deg) leave out, whichever turn it takes."""
     chain = serial_chain
     wrong = tmp_path / "serial.toml"
-    wrong.write_text((MODELS_DIR / "serial.toml").read_text().replace(
+    wrong.write_text((ROBOTS_DIR / "serial.toml").read_text().replace(
         "zero_offset_deg = 0.0", "zero_offset_deg = -107.0", 1))
     backend = DynamixelBackend("serial", chain.path, description=wrong)
     with pytest.raises(BackendError, match=r"arm1\.link1 \(ID 1\) reads -?180\.0 deg, outside "
@@ -184,7 +186,7 @@ def test_start_up_refuses_a_joint_outside_its_limits(serial_chain, tmp_path):
     assert not any(m.torque_on for m in chain.motors)
     assert not any(e[1] == "write" and e[3:] == (64, 1) for e in chain.events)
     # 193 deg is taken as -167 deg (single-turn encoder): inside the limits, accepted.
-    wrong.write_text((MODELS_DIR / "serial.toml").read_text().replace(
+    wrong.write_text((ROBOTS_DIR / "serial.toml").read_text().replace(
         "zero_offset_deg = 0.0", "zero_offset_deg = -120.0", 1))
     backend = DynamixelBackend("serial", chain.path, description=wrong)
     backend.enable()
@@ -195,7 +197,8 @@ def test_start_up_refuses_a_joint_outside_its_limits(serial_chain, tmp_path):
 
 
 def test_direction_and_zero_offset_map_joint_to_motor(tmp_path):
-    edits = [("direction = 1", "direction = -1"), ("zero_offset_deg = 0.0", "zero_offset_deg = 30.0")]
+    edits = [("direction = 1", "direction = -1"),
+             ("zero_offset_deg = 0.0", "zero_offset_deg = 30.0")]
     with VirtualChain("serial", scenario_with(tmp_path, "serial", edits)) as chain:
         m = chain.motors[0]
         # q = direction (theta - zero): theta = zero + q / direction = 30 - 73 deg.

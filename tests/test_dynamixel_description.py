@@ -8,12 +8,12 @@ import math
 import pytest
 
 from cochlea import DescriptionError, load_serial
-from cochlea.description import MODELS_DIR
-from cochlea.dynamixel.units import joint_drives
-from cochlea.parallel import load_parallel
+from cochlea.dynamixel.drives import joint_drives
+from cochlea.resources import ROBOTS_DIR
+from cochlea.robots.parallel import load_parallel
 
-SERIAL = (MODELS_DIR / "serial.toml").read_text()
-PARALLEL = (MODELS_DIR / "parallel.toml").read_text()
+SERIAL = (ROBOTS_DIR / "serial.toml").read_text()
+PARALLEL = (ROBOTS_DIR / "parallel.toml").read_text()
 FIRST_MOTOR = 'id = 1\n  fit = { a = 108.2, b = -15.47, x = "current_A", y = "torque_Ncm" }\n'
 
 

@@ -19,6 +19,9 @@ from cochlea.dynamixel import control_table as ct
 from cochlea.dynamixel import protocol as proto
 from cochlea.dynamixel.emulator import VirtualChain, main
 
+# The virtual chain on a pseudo-terminal, in real time.
+pytestmark = pytest.mark.hil
+
 instruction_frames = st.builds(
     lambda i, c, p: proto.instruction(i, c, p), st.sampled_from([1, 2, 3, 0xFE, 252]),
     st.sampled_from([0x01, 0x02, 0x03, 0x08, 0x82, 0x83, 0x06, 0x77]), st.binary(max_size=40))

@@ -11,10 +11,15 @@ from __future__ import annotations
 import time
 from datetime import timedelta
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cochlea.dynamixel import protocol as proto
+
+# Hypothesis feeds the parser thousands of streams.
+pytestmark = pytest.mark.slow
+
 
 def fuzz(examples: int):
     return settings(max_examples=examples, deadline=timedelta(milliseconds=500), database=None,

@@ -15,9 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cochlea.apps.report import unit_summary
 from cochlea.dynamixel.control_table import RAD_PER_COUNT
-from cochlea.report import unit_summary
-from cochlea.simulation import load_scenario, simulate
+from cochlea.sim import load_scenario, simulate
+
+# Two processes on a pseudo-terminal, the loop in real time against the virtual chain.
+pytestmark = pytest.mark.hil
 
 #: What a run over the motors can show beyond the ideal simulation. Angles are measured in
 #: counts of 0.088 deg and efforts commanded in current LSBs of about 0.7 mN m (near zero torque;
@@ -45,7 +48,7 @@ def emulator(robot: str, scenario: str, log: Path, *options: str):
 
 def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+        [sys.executable, "-m", "cochlea.apps.cochlea_run",
          *args], cwd=cwd, capture_output=True, text=True, timeout=180)
 
 

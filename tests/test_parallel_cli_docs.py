@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from cochlea.cli import model_main
-from cochlea.figures import DOCS_DIR, draw_parallel
+from cochlea.apps.cochlea_model import main as model_main
+from cochlea.apps.figures import DOCS_DIR, draw_parallel
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

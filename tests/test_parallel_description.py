@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cochlea import DescriptionError
-from cochlea.description import MODELS_DIR, load_serial
-from cochlea.parallel import SIDE_BODIES, load_parallel
+from cochlea import DescriptionError, load_serial
+from cochlea.resources import ROBOTS_DIR
+from cochlea.robots.parallel.description import SIDE_BODIES, load_parallel
 
-PARALLEL = (MODELS_DIR / "parallel.toml").read_text()
+PARALLEL = (ROBOTS_DIR / "parallel.toml").read_text()
 
 
 def test_shipped_description_holds_the_thesis_numbers():

@@ -11,7 +11,7 @@ import pytest
 
 import cochlea
 from cochlea.errors import KinematicsError
-from cochlea.parallel import SCENARIO_START
+from cochlea.robots.parallel import SCENARIO_START
 
 from .conftest import ev
 

@@ -11,8 +11,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import cochlea
-from cochlea.lagrange import time_derivative
-from cochlea.parallel import SCENARIO_START, load_parallel, parallel_model
+from cochlea.robots.lagrange import time_derivative
+from cochlea.robots.parallel import SCENARIO_START, load_parallel
 
 from .conftest import ev
 
@@ -44,9 +44,9 @@ def test_model_has_the_common_api_and_the_parallel_extras(parallel):
     # The serial arms' default method name is accepted and still means the Lagrange model.
     assert cochlea.model("parallel", method="newton-euler").method == "lagrange"
     with pytest.raises(cochlea.ModelError, match="unknown method"):
-        parallel_model(method="recursive")
+        cochlea.model("parallel", method="recursive")
     with pytest.raises(cochlea.ModelError, match="unknown parameterisation"):
-        parallel_model(parameterisation="full")
+        cochlea.model("parallel", parameterisation="full")
 
 
 # ------------------------------------------------------------------------------------------
@@ -68,6 +68,7 @@ def test_power_balance_with_random_inputs(parallel, rng):
         assert power == pytest.approx(tau @ qdv, rel=1e-10, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_energy_is_conserved_without_input(parallel, rng):
     """Zero input, no friction: K + U stays constant over 5 s of a DOP853 integration (rtol and
     atol 1e-12) from random initial states. The slider then falls freely (about 120 m in 5 s)

@@ -12,9 +12,11 @@ import sys
 import numpy as np
 import pytest
 
-from cochlea import KinematicsError, report
-from cochlea.scenario import SCENARIOS_DIR, Plant
-from cochlea.simulation import load_scenario, simulate, unit_setups
+from cochlea import KinematicsError
+from cochlea.apps import report
+from cochlea.resources import SCENARIOS_DIR
+from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import Plant
 
 from .conftest import ev
 from .lyapunov import derivative_misfits
@@ -117,10 +119,11 @@ def test_task_target_out_of_reach_fails_before_the_run(tmp_path):
         unit_setups(load_scenario(path))
 
 
+@pytest.mark.realtime
 def test_run_writes_both_end_effector_paths(tmp_path):
     out = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+        [sys.executable, "-m", "cochlea.apps.cochlea_run",
          "--robot", "parallel", "--space", "task", "--duration", "1", "--out", str(out)],
         capture_output=True, text=True)
     assert result.returncode == 0, result.stderr

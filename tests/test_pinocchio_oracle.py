@@ -11,7 +11,7 @@ import pinocchio as pin
 import pytest
 
 import cochlea
-from cochlea.description import joint_rotation, load_serial
+from cochlea.robots.serial.description import joint_rotation, load_serial
 
 from .conftest import DATA, ev, random_state
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 
 from cochlea.runtime import STOP_CODES, RealTimeLoop, SimBackend, build_supervisor
-from cochlea.simulation import load_scenario, simulate, unit_setups
+from cochlea.sim import load_scenario, simulate, unit_setups
 
 
 class RecordingBackend(SimBackend):
@@ -64,12 +63,13 @@ def assert_safe_stop(loop, backend, stop, rule, rows):
     assert np.isfinite(loop.buffer[:rows, 0]).all() and np.isnan(loop.buffer[rows:, 0]).all()
 
 
+@pytest.mark.realtime
 def test_completed_run_matches_the_fast_simulation_exactly():
     """The loop's periods are the simulation's periods: the same log, whatever the timing."""
     sc, loop, backend = make_loop(seconds=1.0, realtime=True)
     stop = loop.run()
     assert stop.rule == "completed" and loop.rows == 1000
-    fast = simulate(sc, duration=1.0, backend="casadi") if "backend" in \
+    fast = simulate(sc, duration=1.0, kernels="casadi") if "backend" in \
         simulate.__code__.co_varnames else simulate(sc, duration=1.0)
     rt = loop.result(sc)
     for a, b in zip(rt.units, fast.units):
@@ -153,6 +153,7 @@ class SlowBackend(RecordingBackend):
         return super().read(x)
 
 
+@pytest.mark.realtime
 def test_watchdog_on_deadline_misses():
     _, loop, backend = make_loop(seconds=1.0, realtime=True, backend_cls=SlowBackend)
     stop = loop.run()
@@ -172,12 +173,13 @@ def test_saturation_clips_without_stopping():
 
 def _cli(args, cwd):
     return subprocess.Popen(
-        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+        [sys.executable, "-m", "cochlea.apps.cochlea_run",
          *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 @pytest.mark.parametrize("signum,code,rule", [(signal.SIGINT, 0, "user-stop"),
                                                (signal.SIGTERM, 16, "terminated")])
+@pytest.mark.realtime
 def test_signals_stop_safely_and_keep_the_log(tmp_path, signum, code, rule):
     out = tmp_path / "run"
     proc = _cli(["--robot", "serial", "--space", "task", "--out", str(out)], tmp_path)
@@ -201,6 +203,7 @@ def test_signals_stop_safely_and_keep_the_log(tmp_path, signum, code, rule):
     assert "timing" in summary and summary["timing"]["nominal_period"] == 0.001
 
 
+@pytest.mark.realtime
 def test_defaults_pick_the_thesis_study_and_a_new_folder(tmp_path):
     proc = _cli(["--robot", "parallel", "--space", "joint", "--duration", "0.3"], tmp_path)
     stdout, stderr = proc.communicate(timeout=120)
@@ -229,6 +232,7 @@ def test_wrong_combinations_fail_before_anything_moves(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.realtime
 def test_live_status_line_refreshes(tmp_path):
     proc = _cli(["--robot", "serial", "--space", "joint", "--duration", "1.2", "--status", "on",
                  "--out", str(tmp_path / "run")], tmp_path)
@@ -243,13 +247,13 @@ def test_live_status_line_refreshes(tmp_path):
 
 class FailingBackend(RecordingBackend):
     def enable(self):
-        from cochlea.backends import BackendError
+        from cochlea.runtime.backend import BackendError
 
         raise BackendError("no motor answers on /dev/null")
 
 
 def test_a_backend_that_cannot_start_raises_its_own_error_and_stays_off(tmp_path):
-    from cochlea.backends import BackendError
+    from cochlea.runtime.backend import BackendError
 
     _, loop, backend = make_loop(backend_cls=FailingBackend)
     with pytest.raises(BackendError, match="no motor answers"):

@@ -9,9 +9,9 @@ import sys
 import pytest
 
 from cochlea import CochleaError, DescriptionError
-from cochlea.scenario import SCENARIOS_DIR
-from cochlea.serial_ik import UnreachableTarget
-from cochlea.simulation import load_scenario, unit_setups
+from cochlea.resources import SCENARIOS_DIR
+from cochlea.robots.serial.ik import UnreachableTarget
+from cochlea.sim import load_scenario, unit_setups
 
 JOINT = (SCENARIOS_DIR / "serial_joint.toml").read_text()
 TASK = (SCENARIOS_DIR / "serial_task.toml").read_text()
@@ -83,7 +83,7 @@ def test_command_line_reports_unreachable_target_with_exit_2(tmp_path):
                                  '["0.4 m", "0.01 m", "-103 deg"]'))
     out = tmp_path / "out"
     result = subprocess.run(
-        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+        [sys.executable, "-m", "cochlea.apps.cochlea_run",
          "--robot", "serial", "--space", "task", "--scenario", str(path), "--out", str(out)],
         capture_output=True, text=True)
     assert result.returncode == 2

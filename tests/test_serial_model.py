@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import cochlea
-from cochlea.lagrange import time_derivative
+from cochlea.robots.lagrange import time_derivative
 
 from .conftest import DATA, ev, random_state
 
@@ -206,7 +206,7 @@ def test_base_regressor_has_full_column_rank_and_same_span(description, rng):
 
 def test_mass_parameterisation_scales_the_rods(tmp_path, rng):
     """M_p with every mass doubled equals the model of a description with doubled masses."""
-    text = (cochlea.description.MODELS_DIR / "serial.toml").read_text()
+    text = (cochlea.resources.ROBOTS_DIR / "serial.toml").read_text()
     doubled = text
     for m in ("0.09518", "0.07878", "0.01119"):
         doubled = doubled.replace(f"mass_kg = {m}", f"mass_kg = {2 * float(m)!r}")

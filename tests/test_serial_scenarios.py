@@ -11,9 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from cochlea import report
-from cochlea.scenario import Plant
-from cochlea.simulation import load_scenario, simulate, unit_setups
+from cochlea.apps import report
+from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import Plant
 
 from .conftest import ev
 from .lyapunov import derivative_misfits
@@ -105,10 +105,11 @@ def test_desired_trajectories_and_derivatives_are_exact():
         assert np.allclose(v2, np.r_[-v1[:2], v1[2]], atol=1e-12)
 
 
+@pytest.mark.realtime
 def test_run_writes_log_summary_and_figures(tmp_path):
     out = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+        [sys.executable, "-m", "cochlea.apps.cochlea_run",
          "--robot", "serial", "--space", "joint", "--duration", "1.5", "--out", str(out)],
         capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
@@ -135,7 +136,7 @@ def test_run_writes_log_summary_and_figures(tmp_path):
 
 def test_run_refuses_mismatched_options(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-c", "import sys; from cochlea.run import main; sys.exit(main())",
+        [sys.executable, "-m", "cochlea.apps.cochlea_run",
          "--robot", "serial", "--space", "joint", "--scenario", "serial_task", "--out",
          str(tmp_path / "x")], capture_output=True, text=True)
     assert result.returncode == 2

@@ -6,8 +6,9 @@ import dataclasses
 
 import numpy as np
 
-from cochlea.scenario import Plant
-from cochlea.simulation import load_scenario, plant_step, simulate, unit_setups
+from cochlea.robots.plant import plant_step
+from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import Plant
 
 
 def _joint_run(plant, duration=0.3):

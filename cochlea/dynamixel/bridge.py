@@ -1,5 +1,5 @@
 """``DynamixelBackend``: the real motors of a robot description, behind the loop's backend
-interface (:mod:`cochlea.backends`).
+interface (:mod:`cochlea.runtime.backend`).
 
 Start-up (:meth:`DynamixelBackend.enable`), each step on every motor before the next, every
 write confirmed by its status packet; any failure raises :class:`BackendError` after the safe
@@ -10,7 +10,7 @@ shut-down, before anything moved:
    which would make Goal Current read-only);
 3. Operating Mode 0 (current control);
 4. Return Delay Time 0;
-5. Current Limit from the description (see :func:`cochlea.dynamixel.units.current_limit_lsb`);
+5. Current Limit from the description (see :func:`cochlea.dynamixel.drives.current_limit_lsb`);
 6. Goal Current 0 (the mode change reset it to the Current Limit);
 7. Bus Watchdog (default 100 ms): the motors stop by themselves if the loop stops talking;
 8. SYNC_READ until the first good read; the joints must lie within their limits;
@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..backends import BackendError
+from ..runtime.backend import BackendError
 from . import protocol as proto
 from .budget import DEFAULT_ADAPTER_LATENCY_S, BusBudget, Verdict, bus_budget
 from .control_table import (
@@ -60,8 +60,8 @@ from .control_table import (
     describe_error,
     describe_hardware_error,
 )
+from .drives import DEFAULT_RAMP_NM, JointDrive, joint_drives
 from .port import SerialPort, latency_timer_ms
-from .units import DEFAULT_RAMP_NM, JointDrive, joint_drives
 
 #: Failure kinds a period can report (index into ``DynamixelBackend.failures``).
 TIMEOUT, CRC, ERROR_BYTE, ALERT, LENGTH, PORT, LATE, NON_FINITE, NOT_ENABLED, INTERNAL = \
@@ -75,7 +75,8 @@ _GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
 
 class DynamixelBackend:
     """The motors of ``robot`` (``"serial"`` or ``"parallel"``) as described in
-    ``description`` (default ``models/ROBOT.toml``), on the serial port ``port``.
+    ``description`` (default: the shipped ``cochlea/data/robots/ROBOT.toml``; or ``system``,
+    the description already loaded), on the serial port ``port``.
 
     Joint order: serial, arm 1's joints then arm 2's; parallel, th1, th2, d1, th1', th2'.
     ``x = [q, qd]`` in rad (m) and rad/s (m/s), efforts in N m (N).
@@ -83,7 +84,7 @@ class DynamixelBackend:
     Options: ``baud`` must be the motors' configured rate (the bridge does not change it);
     ``watchdog_s`` the Bus Watchdog (20 ms steps, 0.02..2.54 s); ``timeout_s`` how long a read
     waits for all status packets (default: the bus time plus 3 ms); ``ramp_Nm`` the fit's
-    blending band (:mod:`cochlea.dynamixel.units`); ``position_margin_rad`` how far outside its
+    blending band (:mod:`cochlea.dynamixel.drives`); ``position_margin_rad`` how far outside its
     limits a joint may be at start-up; ``adapter_latency_s`` for the bus budget (default: the
     adapter's latency timer from sysfs, 0 for a pseudo-terminal, else 1 ms).
     """
@@ -95,11 +96,12 @@ class DynamixelBackend:
                  timeout_s: float | None = None, ramp_Nm: float = DEFAULT_RAMP_NM,
                  position_margin_rad: float = math.radians(2.0),
                  adapter_latency_s: float | None = None, retries: int = 3,
-                 open_port=SerialPort):
+                 open_port=SerialPort, system=None):
         self.robot = robot
         self.port_path = str(port)
         self.baud = int(baud)
-        self.drives: list[JointDrive] = joint_drives(robot, description, ramp_Nm)
+        self.drives: list[JointDrive] = joint_drives(robot, description, ramp_Nm,
+                                                    system=system)
         self.nq = n = len(self.drives)
         self.ids = [d.id for d in self.drives]
         if not 0.02 <= watchdog_s <= 127 * WATCHDOG_UNIT_S:

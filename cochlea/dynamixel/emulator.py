@@ -9,8 +9,9 @@ Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return 
 The joints move in real time under the scenario's plant (the same parameters, friction and
 initial state as the simulation): every ``plant_period_s`` (default the simulation's RK4 step,
 the scenario's period over its ``plant_substeps``; a request sees the state at its arrival) one
-RK4 step integrates the joint efforts that the motors' currents give through the fit (:class:`cochlea.dynamixel.units.Fit`,
-the inverse of the bridge's torque-to-current map). A motor that is not driving (torque off, not
+RK4 step integrates the joint efforts that the motors' currents give through the fit
+(:class:`cochlea.dynamixel.drives.Fit`, the inverse of the bridge's torque-to-current map). A
+motor that is not driving (torque off, not
 in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
 200:1 servo does not back-drive. Present Position, Velocity and Current follow the plant.
 
@@ -56,6 +57,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..robots.plant import plant_step
+from ..sim import load_scenario, unit_setups
 from . import protocol as proto
 from .control_table import (
     ACCESS,
@@ -86,7 +89,7 @@ from .control_table import (
     WRITE,
     Item,
 )
-from .units import JointDrive, joint_drives
+from .drives import JointDrive, joint_drives
 
 #: The command's real-time priority: below cochlea-run's loop (40), above normal processes.
 EMULATOR_FIFO_PRIORITY = 30
@@ -268,8 +271,6 @@ class _Unit:
     """One plant (an arm, or the parallel mechanism) and its motors."""
 
     def __init__(self, setup, substeps: int, h: float, motors: list[VirtualMotor]):
-        from ..simulation import plant_step  # noqa: PLC0415 (CasADi is heavy to import)
-
         self.name = setup.name
         self.motors = motors
         self.n = n = len(motors)
@@ -339,8 +340,6 @@ class VirtualChain:
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
                  max_events: int = 200_000):
-        from ..simulation import load_scenario, unit_setups  # noqa: PLC0415
-
         codes = {rate: code for code, rate in BAUD_RATES.items()}
         if baud not in codes:
             raise CochleaError(f"--baud {baud} is not a Dynamixel rate: "
@@ -351,7 +350,7 @@ class VirtualChain:
                                f"robot, not {robot}")
         self.robot = robot
         self.faults = faults or Faults()
-        self.drives = joint_drives(robot, self.scenario.description)
+        self.drives = joint_drives(robot, system=self.scenario.system)
         self.motors = [VirtualMotor(d, codes[baud], self.faults.model_number.get(d.id))
                        for d in self.drives]
         for m in self.motors:
@@ -408,7 +407,7 @@ class VirtualChain:
             self.path = os.ttyname(self.slave)
         return self.path
 
-    def start(self) -> "VirtualChain":
+    def start(self) -> VirtualChain:
         self.open()
         self._stop.clear()
         self._thread = threading.Thread(target=self.serve, name="cochlea-emulator", daemon=True)
@@ -434,13 +433,13 @@ class VirtualChain:
             self._log.close()
             self._log = None
 
-    def __enter__(self) -> "VirtualChain":
+    def __enter__(self) -> VirtualChain:
         return self.start()
 
     def __exit__(self, *exc) -> None:
         self.close()
 
-    # ---- state for tests and reports --------------------------------------------------------------
+    # ---- state for tests and reports ---------------------------------------------------------
 
     def joint_state(self) -> np.ndarray:
         """``[q, qd]`` of all joints (SI), in the bridge's order."""

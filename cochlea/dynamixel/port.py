@@ -14,7 +14,7 @@ import termios
 import time
 from pathlib import Path
 
-from ..backends import BackendError
+from ..runtime.backend import BackendError
 
 
 def latency_timer_ms(path: str) -> int | None:

@@ -18,7 +18,7 @@ parser over a preallocated buffer that returns a result code, never raises).
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 from .control_table import (
     BROADCAST_ID,

@@ -1,0 +1,247 @@
+"""``cochlea-run``: run a robust adaptive controller and leave a log, a summary and plots.
+
+By default the run is real time (1 kHz, absolute deadlines) on the simulated robot, watched by
+the safety supervisor; ``--realtime off`` runs the same scenario as fast as possible.
+
+Exit codes (also in the README):
+
+====  ======================================================================================
+ 0    the run finished, or the user stopped it (Ctrl-C) after the safe sequence
+ 2    the user's input is wrong (options, scenario, description, unreachable target); nothing
+      moved
+ 3    ``--realtime off``: the simulation diverged (the log up to that period is written)
+ 5    the backend could not start (port, motors); nothing moved
+ 10   safe stop: a joint left its position limits
+ 11   safe stop: a joint exceeded its velocity limit
+ 12   safe stop: a tool entered the keep-out circle of radius R_m
+ 13   safe stop: a non-finite state, command or estimate
+ 14   safe stop: a parameter estimate's norm exceeded its bound
+ 15   safe stop: watchdog, too many consecutive deadline misses or backend failures
+ 16   safe stop: terminated by SIGTERM
+====  ======================================================================================
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from ..dynamixel.bridge import DynamixelBackend
+from ..errors import EXIT_USER_ERROR, CochleaError
+from ..robots import ROBOTS
+from ..runtime import (
+    EXIT_BACKEND,
+    STOP_CODES,
+    BackendError,
+    RealTimeLoop,
+    SimBackend,
+    build_supervisor,
+    write_raw_columns,
+)
+from ..sim import KERNELS, load_scenario, simulate, unit_setups
+from . import report
+
+EXIT_DIVERGED = 3
+EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="cochlea-run",
+        description="Run one of the four robust adaptive controllers of the thesis -- e "
+                    "(serial, joint space), g (serial, task space), f (parallel, joint space), "
+                    "d (parallel, task space) -- on the simulated robot, in real time under a "
+                    "safety supervisor, and write log.csv, summary.json and PNG figures.",
+        epilog="Examples:\n"
+               "  cochlea-run --robot serial --space task          # the thesis study, real time\n"
+               "  cochlea-run --robot parallel --space joint --realtime off --out runs/f\n"
+               "Without --scenario the thesis's study for the robot and space is used "
+               "(cochlea/data/scenarios/ROBOT_SPACE.toml). Ctrl-C stops safely (zero effort, "
+               "drives off) and keeps the log. Exit codes: see README.md.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robot", required=True, choices=list(ROBOTS),
+                   help="serial: the two 3R arms; parallel: the 5-DoF mechanism")
+    p.add_argument("--space", required=True, choices=["joint", "task"],
+                   help="joint: controllers e/f; task: controllers g/d")
+    p.add_argument("--scenario", metavar="FILE",
+                   help="scenario TOML (default: the thesis's study for ROBOT and SPACE)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="seconds to run (default: the scenario's)")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="output folder (default: a new runs/ROBOT_SPACE_YYYYmmdd-HHMMSS)")
+    p.add_argument("--backend", default="sim", choices=["sim", "dynamixel"],
+                   help="what the loop drives: sim, the plant model advanced in real time "
+                        "(default); dynamixel, the motors on --port (real ones, or the virtual "
+                        "chain of cochlea-emulator)")
+    p.add_argument("--port", metavar="PATH",
+                   help="--backend dynamixel: the serial port, e.g. /dev/ttyUSB0, or the "
+                        "pseudo-terminal cochlea-emulator prints")
+    p.add_argument("--baud", type=int, metavar="B",
+                   help="--backend dynamixel: the motors' baud rate (default 4000000)")
+    p.add_argument("--realtime", default="on", choices=["on", "off"],
+                   help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
+                        "off: the as-fast-as-possible simulation")
+    p.add_argument("--kernels", default="c", choices=list(KERNELS),
+                   help="c: the generated C kernels (default; falls back to casadi with a "
+                        "warning when build/libcochlea.so is missing or stale); casadi: the "
+                        "reference")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="control rate (default: the scenario's, 1000 Hz)")
+    p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
+                   help="live one-line status while running (auto: when stderr is a terminal)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except BackendError as exc:
+        print(f"cochlea-run: the backend could not start, nothing moved: {exc}", file=sys.stderr)
+        return EXIT_BACKEND
+    except CochleaError as exc:
+        print(f"cochlea-run: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:  # Ctrl-C while preparing: the loop's own handler was not yet set
+        print("cochlea-run: interrupted before the run started; nothing moved", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _validate(args: argparse.Namespace, scenario) -> None:
+    if (scenario.robot, scenario.space) != (args.robot, args.space):
+        raise CochleaError(f"scenario {scenario.path} is for --robot {scenario.robot} --space "
+                           f"{scenario.space}, not --robot {args.robot} --space {args.space}: "
+                           "change the options or the scenario")
+    if args.duration is not None and not args.duration > 0:
+        raise CochleaError(f"--duration must be positive, got {args.duration}")
+    if args.rate is not None and not 1.0 <= args.rate <= 20_000.0:
+        raise CochleaError(f"--rate must be between 1 and 20000 Hz, got {args.rate}")
+    if args.realtime == "off" and args.backend != "sim":
+        raise CochleaError("--realtime off simulates as fast as possible and needs "
+                           "--backend sim")
+    if args.backend == "dynamixel" and not args.port:
+        raise CochleaError("--backend dynamixel needs --port PATH: the motors' serial port, "
+                           "or the path cochlea-emulator prints")
+    if args.backend != "dynamixel" and (args.port is not None or args.baud is not None):
+        raise CochleaError("--port and --baud go with --backend dynamixel")
+    if args.out is not None and args.out.exists() and any(args.out.iterdir()):
+        raise CochleaError(f"--out {args.out} exists and is not empty: choose a new folder "
+                           "(runs never overwrite a log)")
+
+
+def _run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario or f"{args.robot}_{args.space}")
+    _validate(args, scenario)
+    if args.rate is not None:
+        scenario = dataclasses.replace(scenario, rate_hz=args.rate)
+    setups = unit_setups(scenario)  # validates reachability before anything moves
+    out = args.out or Path("runs") / (f"{args.robot}_{args.space}_"
+                                      f"{datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    out.mkdir(parents=True, exist_ok=True)
+    mode = "real time" if args.realtime == "on" else "as fast as possible"
+    print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, {scenario.variant} "
+          f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz, "
+          f"{args.kernels} kernels -> {out}", flush=True)
+    if args.realtime == "off":
+        start = time.perf_counter()
+        result = simulate(scenario, args.duration, setups, kernels=args.kernels)
+        wall = time.perf_counter() - start
+        data = report.write_all(result, out, wall)
+        _report(data, out, wall)
+        if result.diverged:
+            for name, t in result.diverged.items():
+                print(f"cochlea-run: {name} diverged at t = {t:.3f} s (log kept up to there)",
+                      file=sys.stderr)
+            return EXIT_DIVERGED
+        return 0
+    return _run_realtime(args, scenario, setups, out)
+
+
+def _run_realtime(args, scenario, setups, out: Path) -> int:
+    keep_out = scenario.system.keep_out_radius
+    duration = scenario.duration if args.duration is None else args.duration
+    steps = int(round(duration * scenario.rate_hz))
+    substeps = scenario.plant_substeps
+    if args.backend == "dynamixel":
+        backend = _dynamixel_backend(args, scenario)
+    else:
+        backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels)
+    supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
+                                  substeps=substeps)
+    loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
+                        kernels=args.kernels, substeps=substeps)
+    write_raw_columns(out / "log.columns.json", loop)
+    status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
+    if args.backend == "dynamixel":
+        # The motors' start-up (ping, configure, first read, torque on) before the loop: a
+        # refusal ends here with nothing to undo (the loop's own enable() is then a no-op).
+        backend.enable()
+    start = time.perf_counter()
+    stop = loop.run(out / "log.bin", status=status)
+    wall = time.perf_counter() - start
+    result = loop.result(scenario)
+    result.stop = {"rule": stop.rule, "time_s": stop.time, "detail": stop.detail,
+                   "exit_code": stop.code}
+    timing = loop.timing_summary()
+    if args.backend == "dynamixel":
+        timing["bus"] = backend.summary()
+    data = report.write_all(result, out, wall, timing)
+    _report(data, out, wall)
+    if args.backend == "dynamixel":
+        bus = timing["bus"]
+        print(f"  bus: {bus['bus_budget']['bytes_per_period']} bytes per period, budget "
+              f"{bus['bus_budget']['bus_s'] * 1e6:.0f} us; read + write mean "
+              f"{timing['backend_mean'] * 1e6:.0f} us, p99 {timing['backend_p99'] * 1e6:.0f} us; "
+              f"{bus['good_reads']} of {bus['reads']} reads good"
+              + (f", failures {bus['failures']}" if bus["failures"] else "")
+              + f"; shut-down: {bus['shutdown']}")
+    print(f"  timing: period p50 {timing['period_p50'] * 1e3:.3f} ms, p99 "
+          f"{timing['period_p99'] * 1e3:.3f} ms, max {timing['period_max'] * 1e3:.3f} ms; "
+          f"deadline misses {timing['deadline_misses']} "
+          f"({100 * timing['deadline_miss_fraction']:.2f} %); compute p99 "
+          f"{timing['compute_p99'] * 1e6:.0f} us")
+    if stop.rule == "completed":
+        return 0
+    line = (f"cochlea-run: stopped by rule {stop.rule} at t = {stop.time:.3f} s: {stop.detail}"
+            if stop.rule != "user-stop" else
+            f"cochlea-run: stopped by the user at t = {stop.time:.3f} s")
+    print(line + "; zero effort commanded, drives disabled, log complete", file=sys.stderr)
+    return STOP_CODES[stop.rule]
+
+
+def _dynamixel_backend(args, scenario):
+    """The motors of the scenario's description on ``--port``; refused before anything moves
+    when the bus cannot carry the loop's rate, with a warning when it only just can."""
+    backend = DynamixelBackend(scenario.robot, args.port, args.baud or 4_000_000,
+                               system=scenario.system)
+    verdict = backend.check_rate(scenario.rate_hz)
+    if verdict.level == "refuse":
+        raise CochleaError(f"{verdict.message} (--rate sets a lower one)")
+    if verdict.level == "warn":
+        print(f"cochlea-run: warning: {verdict.message}", file=sys.stderr, flush=True)
+    return backend
+
+
+def _report(data: dict, out: Path, wall: float) -> None:
+    print(f"  ran {data['duration_s']:.2f} s in {wall:.2f} s "
+          f"({data['duration_s'] / max(wall, 1e-9):.1f}x real time)")
+    for name, unit in data["units"].items():
+        for coord, c in unit["tracked"].items():
+            if c["initial_abs_error"] is None:
+                continue
+            print(f"  {name}.{coord}: initial |e| {c['initial_abs_error']:.3e} {c['unit']}, "
+                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}"
+                  f"{'' if c['converged'] else '  NOT CONVERGED'}")
+    print(f"  converged: {'yes' if data['converged'] else 'no'}")
+    print(f"  log: {out / 'log.csv'}\n  summary: {out / 'summary.json'}")
+    for figure in data["figures"]:
+        print(f"  figure: {figure}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

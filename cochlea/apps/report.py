@@ -1,0 +1,250 @@
+"""What a run leaves behind: the CSV log, ``summary.json`` and the figures.
+
+The log has one row per control period; every column name ends in its unit (``_s``, ``_rad``,
+``_m``, ``_rad_s``, ``_m_s``, ``_Nm``, ``_N`` or the parameter's unit). Figures show angles in
+degrees (an edge of the program) with the unit on every axis.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..sim.result import SimulationResult, UnitLog
+
+#: Convergence: the RMS tracking error over the last 20 % of the run must be at most this
+#: fraction of the initial absolute error ...
+CONVERGENCE_RATIO = 0.05
+#: ... or below this floor (for coordinates that start on target), by unit.
+CONVERGENCE_FLOOR = {"rad": 1e-5, "m": 1e-6}
+TAIL_FRACTION = 0.2
+
+_RATE_UNIT = {"rad": "rad_s", "m": "m_s"}
+_EFFORT_UNIT = {"rad": "Nm", "m": "N"}
+_UNIT_TEXT = {"rad": "rad", "m": "m", "Nm": "N m", "N": "N"}
+
+
+def _slug(unit: str) -> str:
+    return unit.replace(" ", "").replace("^", "")
+
+
+def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
+    """Column names (with units) and the data matrix of the log."""
+    names = ["time_s"]
+    blocks = [result.time[:, None]]
+    for u in result.units:
+        joints = [j.name for j in u.setup.controller_model.joints]
+        ju = u.setup.joint_units
+        names += [f"{u.name}.q.{j}_{un}" for j, un in zip(joints, ju)]
+        names += [f"{u.name}.qd.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
+        names += [f"{u.name}.desired.{c}_{un}" for c, un in zip(u.tracked_names, u.tracked_units)]
+        names += [f"{u.name}.desired_dot.{c}_{_RATE_UNIT[un]}"
+                  for c, un in zip(u.tracked_names, u.tracked_units)]
+        names += [f"{u.name}.error.{c}_{un}" for c, un in zip(u.tracked_names, u.tracked_units)]
+        aux = u.setup.controller.error_names[1]
+        names += [f"{u.name}.{aux}.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
+        names += [f"{u.name}.tau.{j}_{_EFFORT_UNIT[un]}" for j, un in zip(joints, ju)]
+        params = u.setup.controller_model.parameters
+        names += [f"{u.name}.p_hat.{p}_{_slug(un)}" for p, un in zip(params.names, params.units)]
+        names += [f"{u.name}.pose.{c}_{un}" for c, un in zip(u.setup.task_names,
+                                                              u.setup.task_units)]
+        n_track = u.setup.controller.n_desired
+        blocks += [u.q, u.qd, u.desired, u.desired_dot, u.tracking_error, u.errors[:, n_track:],
+                   u.tau, u.p_hat, u.x]
+    if result.timing:  # real-time runs: the timing of every period
+        for name, values in result.timing.items():
+            names.append(name)
+            blocks.append(values[:, None])
+    return names, np.hstack(blocks)
+
+
+def write_csv(result: SimulationResult, path: Path) -> None:
+    names, data = columns(result)
+    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
+
+
+def unit_summary(u: UnitLog) -> dict:
+    e = u.tracking_error
+    tail = e[int(len(e) * (1 - TAIL_FRACTION)):] if len(e) else e
+    tracked = {}
+    for i, (name, unit) in enumerate(zip(u.tracked_names, u.tracked_units)):
+        if not len(e):  # a run stopped before its first period
+            tracked[name] = {"unit": unit, "initial_abs_error": None, "final_rms_error": None,
+                             "converged": False}
+            continue
+        initial = float(abs(e[0, i]))
+        final_rms = float(np.sqrt(np.mean(tail[:, i] ** 2)))
+        tracked[name] = {
+            "unit": unit,
+            "initial_abs_error": initial,
+            "final_rms_error": final_rms,
+            "converged": bool(np.isfinite(final_rms) and (
+                final_rms <= CONVERGENCE_RATIO * initial or final_rms <= CONVERGENCE_FLOOR[unit])),
+        }
+    torque = {}
+    for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
+        torque[j.name] = {"unit": _UNIT_TEXT[_EFFORT_UNIT[unit]],
+                          "max_abs": float(np.max(np.abs(u.tau[:, i]), initial=0.0))}
+    norms = np.linalg.norm(u.p_hat, axis=1) if len(u.p_hat) else np.zeros(1)
+    params = u.setup.controller_model.parameters
+    return {
+        "tracked": tracked,
+        "torque": torque,
+        "estimates": {
+            "names": list(params.names),
+            "units": list(params.units),
+            "bound_norm": u.setup.bound,
+            "max_norm": float(np.max(norms)),
+            "bounded": bool(np.isfinite(u.p_hat).all()
+                            and np.max(norms) <= u.setup.bound * (1 + 1e-9)),
+            "final": [float(v) for v in u.p_hat[-1]] if len(u.p_hat) else None,
+            "nominal": [float(v) for v in u.setup.controller_model.p_nominal],
+        },
+    }
+
+
+def summary(result: SimulationResult, wall_time_s: float | None = None,
+            timing: dict | None = None) -> dict:
+    sc = result.scenario
+    units = {u.name: unit_summary(u) for u in result.units}
+    converged = all(c["converged"] for s in units.values() for c in s["tracked"].values())
+    return {
+        "scenario": sc.name,
+        "scenario_file": str(sc.path),
+        "robot": sc.robot,
+        "space": sc.space,
+        "controller": sc.controller,
+        "variant": sc.variant,
+        "parameterisation": sc.parameterisation,
+        "rate_Hz": sc.rate_hz,
+        "duration_s": float(len(result.time) / sc.rate_hz),
+        "periods": int(len(result.time)),
+        "convergence_rule": f"final RMS over the last {TAIL_FRACTION:.0%} <= "
+                            f"{CONVERGENCE_RATIO:.0%} of the initial absolute error, or below "
+                            + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items()),
+        "converged": bool(converged and not result.diverged and (
+            result.stop is None or result.stop["rule"] == "completed")),
+        "diverged": result.diverged,
+        "stop": result.stop,
+        "timing": timing,
+        "wall_time_s": wall_time_s,
+        "units": units,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Figures
+# --------------------------------------------------------------------------------------------
+
+
+def _display(values: np.ndarray, unit: str) -> tuple[np.ndarray, str]:
+    return (np.degrees(values), "deg") if unit == "rad" else (values, unit)
+
+
+def _grid(plt, rows: int, title: str):
+    fig, axes = plt.subplots(rows, 1, figsize=(7, 1.9 * rows + 0.6), sharex=True, squeeze=False)
+    fig.suptitle(title)
+    return fig, axes[:, 0]
+
+
+def figures(result: SimulationResult, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    t = result.time
+    label_text = f"{result.scenario.name} (controller {result.scenario.controller})"
+
+    def save(fig, name):
+        fig.tight_layout()
+        path = out / name
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+
+    for u in result.units:
+        actual = u.q if u.space == "joint" else u.x
+        fig, axes = _grid(plt, len(u.tracked_names), f"{label_text}: {u.name}, desired vs actual")
+        for i, (ax, name, unit) in enumerate(zip(axes, u.tracked_names, u.tracked_units)):
+            d, shown = _display(u.desired[:, i], unit)
+            a, _ = _display(actual[:, i], unit)
+            if unit == "rad" and u.space == "task":
+                a = d - np.degrees(u.tracking_error[:, i])  # unwrapped like the desired
+            ax.plot(t, d, "--", label="desired")
+            ax.plot(t, a, label="actual")
+            ax.set_ylabel(f"{name} [{shown}]")
+        axes[0].legend(loc="best", fontsize=8)
+        axes[-1].set_xlabel("time [s]")
+        save(fig, f"{u.name}_tracking.png")
+
+        fig, axes = _grid(plt, len(u.tracked_names), f"{label_text}: {u.name}, tracking error "
+                                                     "(desired - actual)")
+        for i, (ax, name, unit) in enumerate(zip(axes, u.tracked_names, u.tracked_units)):
+            v, shown = _display(u.tracking_error[:, i], unit)
+            ax.plot(t, v)
+            ax.axhline(0.0, color="0.6", lw=0.8)
+            ax.set_ylabel(f"e {name} [{shown}]")
+        axes[-1].set_xlabel("time [s]")
+        save(fig, f"{u.name}_errors.png")
+
+        fig, axes = _grid(plt, 1, f"{label_text}: {u.name}, commanded joint efforts")
+        for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
+            axes[0].plot(t, u.tau[:, i], label=f"{j.name} [{_UNIT_TEXT[_EFFORT_UNIT[unit]]}]")
+        axes[0].set_ylabel("torque [N m] / force [N]")
+        axes[0].legend(loc="best", fontsize=8)
+        axes[-1].set_xlabel("time [s]")
+        save(fig, f"{u.name}_torques.png")
+
+        params = u.setup.controller_model.parameters
+        fig, axes = _grid(plt, 1, f"{label_text}: {u.name}, parameter estimates")
+        for i, (name, unit) in enumerate(zip(params.names, params.units)):
+            axes[0].plot(t, u.p_hat[:, i], label=f"{name} [{unit}]")
+        axes[0].set_ylabel("estimate [SI]")
+        axes[0].legend(loc="best", fontsize=7, ncol=2)
+        axes[-1].set_xlabel("time [s]")
+        save(fig, f"{u.name}_estimates.png")
+
+    fig, ax = plt.subplots(figsize=(6, 6))
+    centre = np.asarray(result.units[0].setup.centre, float)
+    radius = None
+    for u in result.units:
+        desired = _desired_poses(u)
+        for label, (iu, iv) in u.setup.tool_points:
+            name = u.name if len(u.setup.tool_points) == 1 else f"{u.name} {label}"
+            ax.plot(desired[:, iu], desired[:, iv], "--", lw=1, label=f"{name} desired")
+            ax.plot(u.x[:, iu], u.x[:, iv], lw=1.2, label=f"{name} actual")
+            ax.plot(u.x[0, iu], u.x[0, iv], "o", ms=4, color=ax.lines[-1].get_color())
+            if radius is None:
+                radius = float(np.hypot(*(desired[0, [iu, iv]] - centre)))
+    circle = plt.Circle(centre, radius, fill=False, color="0.5", lw=0.8, ls=":",
+                        label=f"cochlea-centred circle, r = {radius * 1000:.1f} mm")
+    ax.add_patch(circle)
+    ax.plot(*centre, "k+", ms=10, label="cochlea centre")
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"{u.setup.task_names[0]} [m]")
+    ax.set_ylabel(f"{u.setup.task_names[1]} [m]")
+    ax.set_title(f"{label_text}: tool paths in the plane")
+    ax.legend(loc="best", fontsize=7)
+    save(fig, "paths.png")
+    return paths
+
+
+def _desired_poses(u: UnitLog) -> np.ndarray:
+    """The desired task pose of every period (through the FK for joint-space runs)."""
+    if u.space == "task":
+        return u.desired
+    return np.array(u.setup.fk_world.map(len(u.desired))(u.desired.T)).T
+
+
+def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None,
+              timing: dict | None = None) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(result, out / "log.csv")
+    data = summary(result, wall_time_s, timing)
+    (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n")
+    data["figures"] = [str(p) for p in figures(result, out)] if len(result.time) > 1 else []
+    return data

@@ -1,0 +1,208 @@
+"""Joint <-> motor conversions: position counts, velocity units, current units and the fit.
+
+Per joint (SI on the joint side: rad or m, rad/s or m/s, N m or N):
+
+* **Position.** The motor's angle is ``theta = counts * 2 pi / 4096`` (Present Position, 0.088
+  deg per count). ``zero_offset_deg`` in the description is the motor angle at which the joint
+  coordinate is zero, ``direction`` (+1 or -1) whether they turn the same way, and ``ratio`` the
+  joint travel per motor radian (1 for a revolute joint: the motor's output shaft is the joint;
+  for the slider the transmission's m/rad, e.g. the pinion radius)::
+
+      q = direction * ratio * (theta - zero_offset)
+
+* **Velocity.** ``qd = direction * ratio * v * 0.229 rpm`` (Present Velocity, 0.229 rpm/LSB).
+* **Current.** ``I = lsb * unit`` with 3.36 mA/LSB (MX-64(2.0)) or 2.69 mA/LSB (XM540-W270).
+* **Effort.** The motor torque is ``tau_m = direction * ratio * effort`` (the same power
+  ``effort * qd = tau_m * theta_dot``); for the slider this is ``force * radius``, the
+  transmission of the description.
+
+The fit (thesis Table C.1, ``y = a x + b`` with the units its ``x`` and ``y`` name) maps current
+to torque. The rule, :class:`Fit`:
+
+* Forward (current -> torque, what the motor does): odd in the current. For ``|tau| >=
+  ramp``, ``|tau| = a |I| + b``: with the thesis's negative ``b`` (all seven fits) the first
+  ``I0 = -b / a`` of current is lost to friction before any torque comes out (0.14-0.22 A for
+  the MX-64s). Below ``ramp`` the offset is scaled down linearly, so the map stays continuous
+  and strictly increasing through zero instead of jumping by ``2 I0`` at ``tau = 0``.
+* Inverse (torque -> current, what the bridge commands)::
+
+      I = tau / a + I0 * clip(tau / ramp, -1, 1)          (SI: A, N m)
+
+  i.e. ``|I| = (|tau| - b) / a`` with the sign of ``tau`` once ``|tau| >= ramp``, zero current
+  for zero torque, and a linear blend in between (Coulomb-friction compensation without
+  chattering around zero torque). ``ramp`` is 0.05 N m by default, and at least ``2 b`` when
+  a re-fit gives a positive ``b`` (then the rule is a current dead-band), so the map is always
+  invertible: the emulator turns commanded currents back into exactly the torque the
+  controller asked for, up to the current's quantisation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DescriptionError, ModelError
+from ..robots import robot
+from ..robots.description import Motor, MotorFit
+from ..runtime.backend import BackendError
+from .control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB, ModelSpec
+
+#: Default width of the torque band over which the fit's offset is blended in (N m).
+DEFAULT_RAMP_NM = 0.05
+
+_X_TO_A = {"current_A": 1.0, "current_mA": 1e-3}
+_Y_TO_NM = {"torque_Nm": 1.0, "torque_Ncm": 1e-2}
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A motor's torque/current relation in SI (A, N m): see the module docstring."""
+
+    a: float  # N m per A
+    b: float  # N m
+    ramp: float  # N m
+
+    @classmethod
+    def from_description(cls, fit: MotorFit, ramp: float = DEFAULT_RAMP_NM) -> Fit:
+        a = fit.a * _Y_TO_NM[fit.y] / _X_TO_A[fit.x]
+        b = fit.b * _Y_TO_NM[fit.y]
+        if not a > 0:
+            raise BackendError(f"the fit y = {fit.a:g} x + {fit.b:g} gives less torque for more "
+                               "current (a <= 0): the bridge needs a positive slope")
+        return cls(a, b, max(ramp, 2.0 * b))
+
+    @property
+    def offset_current(self) -> float:
+        """``I0 = -b / a`` (A): the current the offset takes (positive for Table C.1)."""
+        return -self.b / self.a
+
+    def current(self, torque):
+        """Current (A) for a motor torque (N m); works on numbers and arrays."""
+        t = np.asarray(torque, dtype=float)
+        return t / self.a + self.offset_current * np.clip(t / self.ramp, -1.0, 1.0)
+
+    def torque(self, current):
+        """Motor torque (N m) a current (A) gives: the exact inverse of :meth:`current`."""
+        i = np.asarray(current, dtype=float)
+        knee = self.ramp / self.a + self.offset_current  # current at |torque| = ramp
+        slope = 1.0 / (1.0 / self.a + self.offset_current / self.ramp)
+        outer = np.sign(i) * (self.a * np.abs(i) + self.b)
+        return np.where(np.abs(i) <= knee, slope * i, outer)
+
+
+@dataclass(frozen=True)
+class JointDrive:
+    """One joint and the motor driving it, with every conversion between them."""
+
+    name: str  # e.g. "arm1.link2", "slider.d1"
+    type: str  # "revolute" | "prismatic"
+    motor: Motor
+    spec: ModelSpec
+    direction: int  # +1 | -1
+    zero_offset: float  # rad, motor angle at joint zero
+    ratio: float  # joint travel per motor radian (1 for revolute, m/rad for the slider)
+    fit: Fit
+    position_limits: tuple[float, float]
+    effort_limit: float  # N m or N
+    current_limit_lsb: int  # Current Limit (38) this joint uses
+
+    @property
+    def id(self) -> int:
+        return self.motor.id
+
+    @property
+    def unit(self) -> str:
+        return "rad" if self.type == "revolute" else "m"
+
+    # ---- position and velocity ---------------------------------------------------------------
+
+    @property
+    def q_per_count(self) -> float:
+        return self.direction * self.ratio * RAD_PER_COUNT
+
+    @property
+    def q_offset(self) -> float:
+        """``q = q_per_count * counts + q_offset``."""
+        return -self.direction * self.ratio * self.zero_offset
+
+    @property
+    def qd_per_lsb(self) -> float:
+        return self.direction * self.ratio * RAD_S_PER_VELOCITY_LSB
+
+    def q(self, counts):
+        return self.q_per_count * np.asarray(counts, dtype=float) + self.q_offset
+
+    def counts(self, q):
+        """Present Position (counts) at joint coordinate q, rounded."""
+        return np.rint((np.asarray(q, dtype=float) - self.q_offset) / self.q_per_count)
+
+    def qd(self, lsb):
+        return self.qd_per_lsb * np.asarray(lsb, dtype=float)
+
+    def velocity_lsb(self, qd):
+        return np.rint(np.asarray(qd, dtype=float) / self.qd_per_lsb)
+
+    # ---- effort and current --------------------------------------------------------------------
+
+    @property
+    def torque_per_effort(self) -> float:
+        """Motor torque (N m) per unit of joint effort (N m or N)."""
+        return self.direction * self.ratio
+
+    @property
+    def lsb_per_ampere(self) -> float:
+        return 1000.0 / self.spec.current_unit_mA
+
+    def current_mA(self, lsb):
+        return np.asarray(lsb, dtype=float) * self.spec.current_unit_mA
+
+    def goal_current_lsb(self, effort):
+        """Goal Current (LSB) for a joint effort: the fit's inverse, rounded, within the
+        current limit."""
+        amps = self.fit.current(self.torque_per_effort * np.asarray(effort, dtype=float))
+        lim = self.current_limit_lsb
+        return np.clip(np.rint(amps * self.lsb_per_ampere), -lim, lim)
+
+    def effort(self, lsb):
+        """Joint effort (N m or N) a current (LSB) produces through the fit."""
+        torque = self.fit.torque(np.asarray(lsb, dtype=float) / self.lsb_per_ampere)
+        return torque / self.torque_per_effort
+
+
+def current_limit_lsb(motor: Motor, spec: ModelSpec, fit: Fit, effort_limit: float,
+                      ratio: float) -> int:
+    """The Current Limit (38) of a joint: ``current_limit_mA`` if the description gives it,
+    otherwise the current the fit needs for the joint's effort limit; never above the model's
+    maximum."""
+    if motor.current_limit_mA is not None:
+        milliamps = motor.current_limit_mA
+    else:
+        milliamps = 1000.0 * float(fit.current(effort_limit * ratio))
+    lsb = int(math.ceil(milliamps / spec.current_unit_mA - 1e-9))
+    return max(1, min(lsb, spec.current_limit_max))
+
+
+def joint_drives(robot_name: str, description: str | Path | None = None,
+                 ramp: float = DEFAULT_RAMP_NM, *, system=None) -> list[JointDrive]:
+    """The joints of a whole system in the loop's order (serial: arm 1's joints then arm 2's;
+    parallel: th1, th2, d1, th1', th2'), each with its motor. ``system``: the description
+    already loaded (then ``description`` is not read again)."""
+    try:
+        adapter = robot(robot_name)
+        if system is None:
+            system = adapter.load(description)
+        joints = adapter.actuated_joints(system)
+    except (DescriptionError, ModelError) as exc:
+        raise BackendError(str(exc)) from exc
+    drives = []
+    for j in joints:
+        spec = MODELS[j.motor.model]
+        fit = Fit.from_description(j.motor.fit, ramp)
+        drives.append(JointDrive(j.name, j.type, j.motor, spec, j.motor.direction,
+                                 j.motor.zero_offset, j.ratio, fit, tuple(j.position_limits),
+                                 j.effort_limit,
+                                 current_limit_lsb(j.motor, spec, fit, j.effort_limit, j.ratio)))
+    return drives

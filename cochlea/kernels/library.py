@@ -1,0 +1,379 @@
+"""The generated C kernels from Python, through ctypes, without per-call overhead.
+
+``load()`` opens ``libcochlea.so``: the file the environment variable ``COCHLEA_LIB`` names,
+else the checkout's ``build/libcochlea.so`` (built by ``make lib`` from ``generated_c/``), else
+the copy an installed wheel carries in ``cochlea/lib/``. ``library.kernel(name)`` binds one
+kernel: it reads the kernel's signature from the library itself (``NAME_n_in``,
+``NAME_sparsity_in``, ``NAME_work``, ...), allocates one numpy buffer per input and output (or
+takes the caller's arrays, checked once here: dtype float64, shape, memory order, writeable), and
+prepares the pointer arrays CasADi's calling convention needs. A call then is one ctypes call on
+those prepared arrays -- no allocation, no argument conversion, no loop over elements::
+
+    import numpy as np
+    from cochlea.kernels import library
+
+    lib = library.load()
+    step = lib.kernel("serial_arm1_e_step")
+    step["q"][:] = np.radians([73.0, 83.0, 110.0])   # write into the input buffers ...
+    step["gains"][:] = [5, 4, 3, 0.05, 0.04, 0.003]
+    step["Gamma"][:] = 1.0
+    step["bound"][...] = 1.0
+    step["h"][...] = 1e-3
+    step()                                           # ... call ...
+    tau = step["tau"]                                # ... and read the output buffers (views)
+
+Buffers have the kernel's shapes: a column ``n x 1`` is a vector ``(n,)``, a scalar ``()``, a
+matrix ``r x c`` an ``(r, c)`` array in Fortran (column-major) order, CasADi's layout.
+``library.closed_loop(name)`` binds a generated closed-loop driver (N periods in C).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CochleaError
+from ..resources import PACKAGED_LIBRARY, checkout
+from .naming import MANIFEST_FORMAT
+
+ENVIRONMENT = "COCHLEA_LIB"
+
+_int = ctypes.c_longlong  # casadi_int: CasADi's default, long long int
+_double_p = ctypes.POINTER(ctypes.c_double)
+KERNEL_ARGTYPES = [ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(ctypes.c_void_p),
+                    ctypes.POINTER(_int), _double_p, ctypes.c_int]
+
+
+class LibraryError(CochleaError):
+    """The C library is missing, stale or does not have what was asked for."""
+
+
+class KernelError(CochleaError):
+    """A kernel returned a nonzero code or was bound to unsuitable buffers."""
+
+
+@dataclass(frozen=True)
+class Argument:
+    """One input or output of a kernel: its name and dense shape (rows x cols)."""
+
+    name: str
+    rows: int
+    cols: int
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The numpy shape of the buffer: ``()``, ``(rows,)`` or ``(rows, cols)``."""
+        if self.cols == 1:
+            return () if self.rows == 1 else (self.rows,)
+        return (self.rows, self.cols)
+
+    @property
+    def size(self) -> int:
+        return self.rows * self.cols
+
+
+@dataclass(frozen=True)
+class Signature:
+    """A kernel's inputs, outputs and work-array sizes, as the library reports them."""
+
+    name: str
+    inputs: tuple[Argument, ...]
+    outputs: tuple[Argument, ...]
+    sz_arg: int
+    sz_res: int
+    sz_iw: int
+    sz_w: int
+
+
+def default_library() -> Path:
+    """Run from a checkout: its ``build/libcochlea.so``; installed: the package's copy."""
+    root = checkout()
+    return root / "build" / "libcochlea.so" if root is not None else PACKAGED_LIBRARY
+
+
+def library_path(path: str | Path | None = None) -> Path:
+    """The library to load: ``path``, else ``$COCHLEA_LIB``, else :func:`default_library`."""
+    if path is not None:
+        return Path(path)
+    return Path(os.environ[ENVIRONMENT]) if os.environ.get(ENVIRONMENT) else default_library()
+
+
+@functools.cache
+def _load(path: str) -> Library:
+    return Library(path)
+
+
+def load(path: str | Path | None = None) -> Library:
+    """The library (opened once per path and process)."""
+    resolved = library_path(path)
+    if not resolved.is_file():
+        raise LibraryError(f"the C kernels' library {resolved} does not exist: build it with "
+                           "`make lib` (it compiles generated_c/; no Python needed)")
+    return _load(str(resolved.resolve()))
+
+
+class Library:
+    """``libcochlea.so``: its manifest, and kernels bound to buffers on request."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self._cdll = ctypes.CDLL(str(self.path))
+        except OSError as exc:
+            raise LibraryError(f"cannot load {self.path}: {exc}; rebuild it with `make lib`") \
+                from exc
+        try:
+            manifest = self._cdll.cochlea_manifest
+        except AttributeError as exc:
+            raise LibraryError(f"{self.path} has no cochlea_manifest(): not a cochlea kernel "
+                               "library") from exc
+        manifest.argtypes, manifest.restype = [], ctypes.c_char_p
+        self.manifest = json.loads(manifest().decode())
+        if self.manifest.get("format") != MANIFEST_FORMAT:
+            raise LibraryError(f"{self.path}: manifest format {self.manifest.get('format')!r},"
+                               f" expected {MANIFEST_FORMAT!r}: rebuild with `make lib`")
+        self._signatures: dict[str, Signature] = {}
+        self._functions: dict[str, ctypes._CFuncPtr] = {}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Every kernel in the library."""
+        return tuple(self.manifest["kernels"])
+
+    @property
+    def closed_loops(self) -> tuple[str, ...]:
+        return tuple(self.manifest["closed_loops"])
+
+    def source_hash(self, name: str) -> str:
+        """SHA-256 of the CasADi Function ``name`` was generated from (see codegen)."""
+        return self._entry(name)["sha256"]
+
+    def _entry(self, name: str) -> dict:
+        try:
+            return self.manifest["kernels"][name]
+        except KeyError:
+            raise LibraryError(f"{self.path} has no kernel {name!r}; it has "
+                               + ", ".join(self.names)) from None
+
+    def _symbol(self, name: str, restype, argtypes):
+        try:
+            f = getattr(self._cdll, name)
+        except AttributeError:
+            raise LibraryError(f"{self.path} has no symbol {name!r}: rebuild with "
+                               "`make lib`") from None
+        f.restype, f.argtypes = restype, argtypes
+        return f
+
+    def function(self, name: str):
+        """The raw ctypes function of kernel ``name``, its argtypes and restype declared."""
+        if name not in self._functions:
+            self._entry(name)
+            self._functions[name] = self._symbol(name, ctypes.c_int, KERNEL_ARGTYPES)
+        return self._functions[name]
+
+    def signature(self, name: str) -> Signature:
+        """The kernel's signature, read from the library's CasADi metadata functions."""
+        if name in self._signatures:
+            return self._signatures[name]
+        self._entry(name)
+        n_in = self._symbol(f"{name}_n_in", _int, [])()
+        n_out = self._symbol(f"{name}_n_out", _int, [])()
+        name_in = self._symbol(f"{name}_name_in", ctypes.c_char_p, [_int])
+        name_out = self._symbol(f"{name}_name_out", ctypes.c_char_p, [_int])
+        sp_in = self._symbol(f"{name}_sparsity_in", ctypes.POINTER(_int), [_int])
+        sp_out = self._symbol(f"{name}_sparsity_out", ctypes.POINTER(_int), [_int])
+        work = self._symbol(f"{name}_work", ctypes.c_int, [ctypes.POINTER(_int)] * 4)
+
+        def argument(label, sparsity, i) -> Argument:
+            sp = sparsity(i)
+            rows, cols = sp[0], sp[1]
+            dense = sp[2] == 1 or sp[2 + cols] == rows * cols  # compact dense, or full CCS
+            if not dense:
+                raise LibraryError(f"{name}: argument {label(i).decode()} is sparse; cochlea's "
+                                   "kernels are dense: regenerate with cochlea-codegen")
+            return Argument(label(i).decode(), rows, cols)
+
+        sizes = [_int() for _ in range(4)]
+        if work(*[ctypes.byref(s) for s in sizes]):
+            raise LibraryError(f"{name}_work failed")
+        sig = Signature(name, tuple(argument(name_in, sp_in, i) for i in range(n_in)),
+                        tuple(argument(name_out, sp_out, i) for i in range(n_out)),
+                        *(s.value for s in sizes))
+        expected = self._entry(name)
+        for key, args in (("inputs", sig.inputs), ("outputs", sig.outputs)):
+            listed = [(a["name"], a["rows"], a["cols"]) for a in expected[key]]
+            if listed != [(a.name, a.rows, a.cols) for a in args]:
+                raise LibraryError(f"{name}: the library's {key} disagree with its manifest: "
+                                   "rebuild with `make lib`")
+        self._signatures[name] = sig
+        return sig
+
+    def kernel(self, name: str, **buffers: np.ndarray) -> Kernel:
+        """Bind kernel ``name``; keyword arguments supply the caller's own buffers by
+        argument name (checked here, then used in place), the rest are allocated."""
+        return Kernel(self.function(name), self.signature(name), buffers)
+
+    def closed_loop(self, name: str) -> ClosedLoop:
+        """Bind the generated closed-loop driver ``name`` (see generated_c/README.md)."""
+        try:
+            meta = self.manifest["closed_loops"][name]
+        except KeyError:
+            raise LibraryError(f"{self.path} has no closed loop {name!r}; it has "
+                               + ", ".join(self.closed_loops)) from None
+        pointer = ctypes.c_void_p
+        argtypes = ([_int, _int] + [pointer] * 8 + [ctypes.c_double, ctypes.c_double]
+                    + [pointer] * 7 + [ctypes.POINTER(_int)])
+        return ClosedLoop(name, meta, self._symbol(name, ctypes.c_int, argtypes))
+
+
+def _check_buffer(kernel: str, arg: Argument, array: np.ndarray, output: bool) -> None:
+    what = f"{kernel}: buffer for {'output' if output else 'input'} {arg.name!r}"
+    if not isinstance(array, np.ndarray):
+        raise KernelError(f"{what} must be a numpy array, got {type(array).__name__}")
+    if array.dtype != np.float64:
+        raise KernelError(f"{what} must have dtype float64, got {array.dtype}")
+    if array.shape != arg.shape:
+        raise KernelError(f"{what} must have shape {arg.shape}, got {array.shape}")
+    if not array.flags.f_contiguous or not array.flags.aligned:
+        raise KernelError(f"{what} must be contiguous in column-major (Fortran) order")
+    if output and not array.flags.writeable:
+        raise KernelError(f"{what} must be writeable")
+
+
+class Kernel:
+    """One kernel bound to its buffers. ``kernel()`` runs it on the buffers' current values.
+
+    ``kernel[name]`` is the buffer of input or output ``name`` (a numpy array the C code reads
+    or writes in place); ``kernel.inputs`` and ``kernel.outputs`` map names to buffers in order.
+    """
+
+    def __init__(self, function, signature: Signature, buffers: dict[str, np.ndarray]):
+        self.signature = signature
+        self.name = signature.name
+        known = {a.name for a in signature.inputs + signature.outputs}
+        unknown = sorted(set(buffers) - known)
+        if unknown:
+            raise KernelError(f"{self.name} has no argument {', '.join(unknown)}; its arguments "
+                              f"are {', '.join(a.name for a in signature.inputs)} -> "
+                              f"{', '.join(a.name for a in signature.outputs)}")
+
+        def bind(args, output):
+            bound = {}
+            for a in args:
+                array = buffers.get(a.name)
+                if array is None:
+                    array = np.zeros(a.shape, order="F")
+                _check_buffer(self.name, a, array, output)
+                bound[a.name] = array
+            return bound
+
+        self.inputs = bind(signature.inputs, False)
+        self.outputs = bind(signature.outputs, True)
+        self._arg = (ctypes.c_void_p * max(signature.sz_arg, len(self.inputs)))(
+            *[a.ctypes.data for a in self.inputs.values()])
+        self._res = (ctypes.c_void_p * max(signature.sz_res, len(self.outputs)))(
+            *[a.ctypes.data for a in self.outputs.values()])
+        self._iw = (_int * signature.sz_iw)() if signature.sz_iw else None
+        self._w = (ctypes.c_double * signature.sz_w)() if signature.sz_w else None
+        #: The bare call: returns the kernel's code (0 on success), checks nothing.
+        self.call = functools.partial(function, self._arg, self._res, self._iw, self._w, 0)
+
+    def __call__(self) -> None:
+        if self.call():
+            raise KernelError(f"{self.name} returned a nonzero code")
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name in self.inputs:
+            return self.inputs[name]
+        try:
+            return self.outputs[name]
+        except KeyError:
+            raise KeyError(f"{self.name} has no argument {name!r}") from None
+
+    def evaluate(self, *args, **kwargs) -> tuple[np.ndarray, ...]:
+        """Convenience for tests and one-off calls (it copies): set the inputs from ``args``
+        (in order) and ``kwargs`` (by name), run, return copies of the outputs."""
+        for a, value in zip(self.signature.inputs, args):
+            self.inputs[a.name][...] = np.reshape(value, a.shape, order="F")
+        for name, value in kwargs.items():
+            a = next(x for x in self.signature.inputs if x.name == name)
+            self.inputs[name][...] = np.reshape(value, a.shape, order="F")
+        self()
+        return tuple(out.copy() for out in self.outputs.values())
+
+    def __repr__(self) -> str:
+        def fmt(args):
+            return ", ".join(f"{a.name}[{a.rows}x{a.cols}]" for a in args)
+
+        return f"<Kernel {self.name}({fmt(self.signature.inputs)}) -> " \
+               f"({fmt(self.signature.outputs)})>"
+
+
+@dataclass
+class ClosedLoopLog:
+    """What a closed-loop run writes: one row per period (row-major), ``rows`` filled."""
+
+    rows: int
+    x: np.ndarray  # (N, 2 nq) true state [q, qd] at the start of each period
+    p_hat: np.ndarray  # (N, np) estimate used in the period
+    tau: np.ndarray  # (N, nq)
+    errors: np.ndarray  # (N, ne)
+    pose: np.ndarray  # (N, npose)
+
+
+class ClosedLoop:
+    """A generated closed-loop driver: N periods of controller, update and plant in C."""
+
+    def __init__(self, name: str, meta: dict, function):
+        self.name, self.meta, self._fn = name, meta, function
+        self.nq, self.n_params = meta["nq"], meta["n_params"]
+        self.n_desired, self.n_errors, self.n_pose = (meta["n_desired"], meta["n_errors"],
+                                                      meta["n_pose"])
+        self.n_plant_params, self.n_gains = meta["n_plant_params"], meta["n_gains"]
+
+    def _array(self, label: str, value, shape: tuple[int, ...]) -> np.ndarray:
+        array = np.ascontiguousarray(value, dtype=np.float64)
+        if array.shape != shape:
+            raise KernelError(f"{self.name}: {label} must have shape {shape}, got "
+                              f"{array.shape}")
+        return array
+
+    def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
+            h: float, plant_p, friction, noise=None, delay: int = 0) -> ClosedLoopLog:
+        """Run ``n`` periods; every array is checked and converted once, before the call."""
+        nq, nd = self.nq, self.n_desired
+        ins = {
+            "x0": self._array("x0", x0, (2 * nq,)),
+            "p_hat0": self._array("p_hat0", p_hat0, (self.n_params,)),
+            "xd": self._array("xd", xd, (n, nd)),
+            "xd_dot": self._array("xd_dot", xd_dot, (n, nd)),
+            "xd_ddot": self._array("xd_ddot", xd_ddot, (n, nd)),
+            "gains": self._array("gains", gains, (self.n_gains,)),
+            "Gamma": self._array("Gamma", Gamma, (self.n_params,)),
+            "plant_p": self._array("plant_p", plant_p, (self.n_plant_params,)),
+            "friction": self._array("friction", friction, (nq,)),
+        }
+        noise = None if noise is None else self._array("noise", noise, (n, 2 * nq))
+        if delay < 0:
+            raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
+        log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
+                            np.empty((n, nq)), np.empty((n, self.n_errors)),
+                            np.empty((n, self.n_pose)))
+        rows = _int(0)
+        flag = self._fn(n, delay, ins["x0"].ctypes.data, ins["p_hat0"].ctypes.data,
+                        ins["xd"].ctypes.data, ins["xd_dot"].ctypes.data,
+                        ins["xd_ddot"].ctypes.data, None if noise is None else noise.ctypes.data,
+                        ins["gains"].ctypes.data, ins["Gamma"].ctypes.data, float(bound),
+                        float(h), ins["plant_p"].ctypes.data, ins["friction"].ctypes.data,
+                        log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
+                        log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))
+        if flag:
+            raise KernelError(f"{self.name}: a kernel returned code {flag}")
+        log.rows = rows.value
+        return log

@@ -1,0 +1,34 @@
+"""How kernels are named and identified, shared by the generator and every caller.
+
+A kernel's C name is ``<unit prefix>_<Function>`` (``serial_arm1_M``, ``parallel_plant_step``)
+or, for a controller, ``<unit prefix>_<kind>[_<variant>]_<part>``; its identity is the SHA-256
+of the CasADi Function it was generated from, recorded in the library's manifest, so a caller
+can tell a stale library from a fresh one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import casadi as ca
+
+from ..robots.model import RobotModel
+
+#: The format tag of the manifest ``cochlea_manifest()`` returns (JSON).
+MANIFEST_FORMAT = "cochlea-kernels/1"
+
+
+def source_hash(function: ca.Function) -> str:
+    """SHA-256 of a Function's CasADi serialisation: equal hashes, equal computations."""
+    return hashlib.sha256(function.serialize().encode()).hexdigest()
+
+
+def unit_prefix(m: RobotModel) -> str:
+    """The C prefix of a unit's kernels: its model's name with ``/`` as ``_``."""
+    return m.name.replace("/", "_")
+
+
+def controller_kernel_name(prefix: str, kind: str, variant: str, part: str) -> str:
+    """``<prefix>_<kind>[_<variant>]_<part>``; the corrected variant has no suffix."""
+    suffix = "" if variant == "corrected" else f"_{variant}"
+    return f"{prefix}_{kind}{suffix}_{part}"

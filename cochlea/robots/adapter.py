@@ -1,0 +1,123 @@
+"""What every robot offers the layers above it: the interface of a robot adapter.
+
+A robot (``serial``, ``parallel``) is one :class:`RobotAdapter` in :mod:`cochlea.robots`'s
+registry. Everything above the robots layer -- scenarios, simulation, the real-time loop, the
+Dynamixel bridge, the command-line tools -- asks the adapter instead of branching on the
+robot's name:
+
+* ``load(description)``: the description (a shipped name or a TOML path), read once;
+* ``model(system, ...)``: the symbolic :class:`~cochlea.robots.model.RobotModel` of one unit;
+* ``layout(system, space)``: what a scenario of this robot is made of (:class:`Layout`);
+* ``unit_plans(system, scenario)``: each controlled unit's models, initial state and desired
+  trajectory for a scenario (:class:`UnitPlan`); the simulation adds controller and gains;
+* ``actuated_joints(system)``: every joint with its motor, in the loop's order;
+* ``system.keep_out_radius``: the supervisor's keep-out circle (m).
+
+A *unit* is one controlled robot unit: an arm of the serial system, or the whole parallel
+mechanism. (Physical units are called SI units everywhere.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import casadi as ca
+import numpy as np
+
+from .description import Motor
+from .model import RobotModel
+
+if TYPE_CHECKING:  # the scenario is read by the simulation layer, above this one
+    from ..sim.scenario import Scenario
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The coordinates of a robot's scenarios: kinds (``"angle"`` | ``"length"``) of the
+    leader's desired trajectory and of one unit's joint and task coordinates, the units' names,
+    and the sizes the scenario's gains and plant options must have."""
+
+    leader: tuple[str, ...]
+    joint: tuple[str, ...]
+    task: tuple[str, ...]
+    units: tuple[str, ...]
+    n_joint: int
+    n_task: int
+    n_bodies: int  # per unit: one mass-scale factor each
+
+
+@dataclass
+class UnitPlan:
+    """One controlled unit of a scenario, as the robot sees it (SI)."""
+
+    name: str
+    controller_model: RobotModel
+    plant_model: RobotModel  # full inertial parameterisation
+    desired: ca.Function  # t -> (xd, xd_dot, xd_ddot) in the controller's space
+    x0: np.ndarray  # [q0, qd0]
+    #: Where the scenario's payload sits: body name -> point (m, body frame).
+    payload_points: dict[str, np.ndarray]
+    task_names: tuple[str, ...]
+    task_units: tuple[str, ...]
+    task_angles: tuple[int, ...]  # task coordinates whose error wraps to (-pi, pi]
+    fk_world: ca.Function = field(repr=False)
+    #: ``(fk, J)`` of the task-space controllers; None: the model's ``fk_world``, ``J_world``.
+    task: tuple[ca.Function, ca.Function] | None = field(default=None, repr=False)
+    #: Tool points drawn in the path figure: label -> indices of (u, v) in the task pose.
+    tool_points: tuple[tuple[str, tuple[int, int]], ...] = (("tool", (0, 1)),)
+    #: Centre of the cochlea-centred circle in the path figure (m, world frame).
+    centre: tuple[float, float] = (0.0, 0.0)
+    #: Index of the joint whose value moves the keep-out centre along v (the parallel
+    #: mechanism's slider: S = (0, d1)), or None for a fixed centre at ``centre``.
+    moving_centre_joint: int | None = None
+
+    @property
+    def joint_units(self) -> tuple[str, ...]:
+        return tuple("rad" if j.type == "revolute" else "m"
+                     for j in self.controller_model.joints)
+
+
+@dataclass(frozen=True)
+class ActuatedJoint:
+    """A joint of the whole system with the motor that drives it (SI)."""
+
+    name: str  # unique in the system: "arm1.link2", "th1", "d1", ...
+    type: str  # "revolute" | "prismatic"
+    position_limits: tuple[float, float]  # rad or m
+    effort_limit: float  # N m or N
+    motor: Motor
+    ratio: float  # motor torque (N m) per unit of joint effort (1 for a direct drive)
+
+
+def desired_function(name: str, expr_t: ca.SX, t: ca.SX) -> ca.Function:
+    """``t -> (x, x_dot, x_ddot)`` of a trajectory expression in ``t``, derivatives exact."""
+    x_dot = ca.jacobian(expr_t, t)
+    return ca.Function(f"desired_{name}", [t], [expr_t, x_dot, ca.jacobian(x_dot, t)],
+                       ["t"], ["x", "x_dot", "x_ddot"])
+
+
+class RobotAdapter:
+    """The interface; :mod:`cochlea.robots.serial` and :mod:`cochlea.robots.parallel`
+    implement it."""
+
+    name: str
+    #: The default ``method`` of :meth:`model`.
+    method: str = "newton-euler"
+
+    def load(self, description: str | Path | None = None) -> Any:
+        raise NotImplementedError
+
+    def model(self, system: Any, arm: str | None = None, parameterisation: str = "inertial",
+              method: str | None = None) -> RobotModel:
+        raise NotImplementedError
+
+    def layout(self, system: Any, space: str) -> Layout:
+        raise NotImplementedError
+
+    def unit_plans(self, system: Any, scenario: Scenario) -> list[UnitPlan]:
+        raise NotImplementedError
+
+    def actuated_joints(self, system: Any) -> list[ActuatedJoint]:
+        raise NotImplementedError

@@ -1,0 +1,214 @@
+"""The robot model object: CasADi Functions for dynamics, kinematics and the regressor.
+
+``cochlea.model("serial")`` (:func:`cochlea.robots.model`) returns a :class:`RobotModel`. Every
+Function takes and returns SI values (rad, m, rad/s, N m, N) and can be called with numbers
+(numpy arrays, lists) or with
+CasADi symbols to build larger graphs (controllers, code generation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from ..errors import ModelError
+from . import parameters as params_mod
+from .parameters import Parameterisation
+
+METHODS = ("newton-euler", "lagrange")
+
+#: The ten standard inertial parameters of a rigid body, in its frame, and their meanings.
+INERTIAL_NAMES = ("m", "mx", "my", "mz", "Ixx", "Iyy", "Izz", "Ixy", "Ixz", "Iyz")
+INERTIAL_MEANING = {
+    "m": ("mass", "kg"),
+    "mx": ("first moment of mass m*c_x", "kg m"),
+    "my": ("first moment of mass m*c_y", "kg m"),
+    "mz": ("first moment of mass m*c_z", "kg m"),
+    "Ixx": ("inertia about the link-frame origin", "kg m^2"),
+    "Iyy": ("inertia about the link-frame origin", "kg m^2"),
+    "Izz": ("inertia about the link-frame origin", "kg m^2"),
+    "Ixy": ("product of inertia about the link-frame origin", "kg m^2"),
+    "Ixz": ("product of inertia about the link-frame origin", "kg m^2"),
+    "Iyz": ("product of inertia about the link-frame origin", "kg m^2"),
+}
+
+
+def check_options(parameterisation: str, method: str) -> None:
+    """Refuse an unknown parameterisation or derivation method with the choices."""
+    if parameterisation not in params_mod.PARAMETERISATIONS:
+        raise ModelError(f"unknown parameterisation {parameterisation!r}; choose one of "
+                         + ", ".join(params_mod.PARAMETERISATIONS))
+    if method not in METHODS:
+        raise ModelError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+
+
+@dataclass(frozen=True)
+class JointInfo:
+    name: str
+    type: str  # "revolute" | "prismatic"
+    position_limits: tuple[float, float]  # rad or m
+    velocity_limit: float  # rad/s or m/s
+    effort_limit: float  # N m or N
+
+
+@dataclass
+class RobotModel:
+    """Symbolic model of one robot (for "serial": one arm in its base frame).
+
+    Functions evaluated at the nominal parameters:
+
+    * ``M(q)`` mass matrix, ``C(q, qd)`` Christoffel Coriolis matrix, ``G(q)`` gravity torques;
+    * ``inverse_dynamics(q, qd, qdd) -> tau`` and ``forward_dynamics(q, qd, tau) -> qdd``;
+    * ``fk(q) -> [x, y, phi]`` of the tool in the base frame (m, m, rad), ``J(q) = dfk/dq``;
+      ``fk_world`` / ``J_world`` the same in the world (cochlea-centred) frame;
+    * ``Y(q, qd, qd_r, qdd_r)``, the regressor: ``Y @ p == M qdd_r + C(q, qd) qd_r + G``.
+
+    The same dynamics for any parameter vector ``p`` of this model's parameterisation:
+    ``M_p(q, p)``, ``C_p(q, qd, p)``, ``G_p(q, p)``, ``inverse_dynamics_p(q, qd, qdd, p)``,
+    ``forward_dynamics_p(q, qd, tau, p)``.
+    """
+
+    name: str
+    joints: tuple[JointInfo, ...]
+    parameters: Parameterisation
+    method: str
+    functions: dict[str, ca.Function] = field(repr=False)
+    full_parameters: Parameterisation = field(repr=False)
+    source: Path | None = None
+    #: Python-level helpers of the mechanism's geometry, or None (parallel: closed-form IK,
+    #: target consistency and workspace checks, a
+    #: :class:`~cochlea.robots.parallel.geometry.ParallelGeometry`).
+    geometry: Any = field(default=None, repr=False)
+
+    def __getattr__(self, item):  # Functions as attributes: model.M, model.Y, ...
+        functions = self.__dict__.get("functions", {})
+        if item in functions:
+            return functions[item]
+        raise AttributeError(f"{type(self).__name__} has no attribute {item!r}")
+
+    @property
+    def nq(self) -> int:
+        return len(self.joints)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(j.name for j in self.joints)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return self.parameters.names
+
+    @property
+    def p_nominal(self) -> np.ndarray:
+        return self.parameters.nominal.copy()
+
+    def describe(self) -> str:
+        lines = [f"model {self.name!r}: {self.nq} joints, {self.method} dynamics"]
+        if self.source:
+            lines.append(f"  description: {self.source}")
+        for j in self.joints:
+            lo, hi = j.position_limits
+            if j.type == "revolute":
+                lines.append(f"  joint {j.name}: revolute, "
+                             f"{np.degrees(lo):.1f}..{np.degrees(hi):.1f} deg, "
+                             f"|qd| <= {j.velocity_limit:g} rad/s, |tau| <= "
+                             f"{j.effort_limit:g} N m")
+            else:
+                lines.append(f"  joint {j.name}: prismatic, {lo:g}..{hi:g} m, |qd| <= "
+                             f"{j.velocity_limit:g} m/s, |f| <= {j.effort_limit:g} N")
+        lines.append(self.parameters.describe())
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Building
+# --------------------------------------------------------------------------------------------
+
+
+def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, kinematics,
+               parameterisation: Parameterisation) -> dict[str, ca.Function]:
+    """Turn full-inertial-parameter expressions into the model's Functions."""
+    n = q.shape[0]
+    tau = ca.SX.sym("tau", n)
+    qd_r = ca.SX.sym("qd_r", n)
+    qdd_r = ca.SX.sym("qdd_r", n)
+    p = ca.SX.sym("p", len(parameterisation.names))
+
+    def at_p(expr):
+        return ca.substitute(expr, phi, ca.DM(parameterisation.to_full) @ p)
+
+    M, C, G, ID = at_p(M_full), at_p(C_full), at_p(G_full), at_p(tau_full)
+    # Forward dynamics: M qdd = tau - bias, with the bias taken from the inverse dynamics at
+    # qdd = 0. For a serial chain that is the Newton-Euler recursion, about half the operations
+    # of C qd + G from Christoffel symbols (256 against 447 for the 3R arm): the plant step,
+    # hence every simulation, runs on it. For a Lagrangian model it is C qd + G itself.
+    bias = ca.substitute(ID, qdd, ca.SX.zeros(n))
+    FD = ca.solve(M, tau - bias)
+    Y = ca.jacobian(M @ qdd_r + C @ qd_r + G, p)
+
+    F = ca.Function
+    out = {
+        "M_p": F(f"{prefix}_M_p", [q, p], [M], ["q", "p"], ["M"]),
+        "C_p": F(f"{prefix}_C_p", [q, qd, p], [C], ["q", "qd", "p"], ["C"]),
+        "G_p": F(f"{prefix}_G_p", [q, p], [G], ["q", "p"], ["G"]),
+        "inverse_dynamics_p": F(f"{prefix}_inverse_dynamics_p", [q, qd, qdd, p], [ID],
+                                ["q", "qd", "qdd", "p"], ["tau"]),
+        "forward_dynamics_p": F(f"{prefix}_forward_dynamics_p", [q, qd, tau, p], [FD],
+                                ["q", "qd", "tau", "p"], ["qdd"]),
+        "Y": F(f"{prefix}_Y", [q, qd, qd_r, qdd_r], [Y], ["q", "qd", "qd_r", "qdd_r"], ["Y"]),
+    }
+    nominal = ca.DM(parameterisation.nominal)
+    for key in ("M", "C", "G", "inverse_dynamics", "forward_dynamics"):
+        f = out[f"{key}_p"]
+        args = [ca.SX.sym(nm, f.size1_in(i)) for i, nm in enumerate(f.name_in()[:-1])]
+        out[key] = F(f"{prefix}_{key}", args, [f(*args, nominal)], f.name_in()[:-1],
+                     f.name_out())
+    for key, expr in kinematics.items():
+        out[key] = F(f"{prefix}_{key}", [q], [expr], ["q"], [key])
+    return out
+
+
+def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, qd, qdd, phi,
+                   M, C, G, tau, kinematics: dict[str, ca.SX], full: Parameterisation,
+                   bodies: list[tuple[str, slice]], parameterisation: str, method: str,
+                   source: Path | None) -> RobotModel:
+    """Build a :class:`RobotModel` from expressions in the full inertial parameters ``phi``.
+
+    ``M, C, G, tau`` are the mass matrix, Christoffel Coriolis matrix, gravity vector and
+    inverse dynamics (an expression in ``q, qd, qdd``); ``kinematics`` maps Function names to
+    expressions in ``q``; ``bodies`` names each body's slice of ``phi`` (for the mass-only set).
+    Any robot -- serial chain or closed chain -- goes through here, so all share one API.
+    """
+    n = q.shape[0]
+    if parameterisation == "inertial":
+        chosen = full
+    elif parameterisation == "mass":
+        chosen = params_mod.mass_only(full.names, full.nominal, bodies)
+    else:
+        full_functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, {}, full)
+        chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.units,
+                                 [n, n, n, n])
+    functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen)
+    return RobotModel(name, joints, chosen, method, functions, full, source)
+
+
+def full_inertial(bodies: list[tuple[str, np.ndarray]], names=INERTIAL_NAMES,
+                  meanings=INERTIAL_MEANING) -> tuple[Parameterisation, list[tuple[str, slice]]]:
+    """The full parameter set of named bodies, each with its block of nominal values."""
+    full_names, full_units, full_meanings, blocks, nominal = [], [], [], [], []
+    start = 0
+    for body, values in bodies:
+        blocks.append((body, slice(start, start + len(values))))
+        start += len(values)
+        nominal.append(values)
+        for pname in names:
+            meaning, unit = meanings[pname]
+            full_names.append(f"{body}.{pname}")
+            full_units.append(unit)
+            full_meanings.append(f"{meaning} of {body}")
+    full = params_mod.inertial(full_names, np.concatenate(nominal), full_units, full_meanings)
+    return full, blocks

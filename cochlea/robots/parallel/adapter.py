@@ -1,0 +1,137 @@
+"""The parallel mechanism in scenarios: its one controlled unit, the leader (the left side) and
+the right side by the mirror rule.
+
+Joint space (controller f): the scenario gives the left side's ``th1, th2`` and the slider's
+``d1``; the right pantograph's desired end point is the mirror image ``C' = (-C_u, C_v)`` of the
+left's, turned into ``th1', th2'`` by closed-form IK on the branch of the initial
+configuration. Task space (controller d): the scenario gives ``C_u, C_v, phi`` of the left end
+effector; the right one follows the mirror rule ``C' = (-C_u, C_v)``, ``phi' = 180 deg - phi``,
+which makes ``x_pd`` consistent (both sides imply the same slider height).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+from ...errors import KinematicsError
+from ..adapter import ActuatedJoint, Layout, RobotAdapter, UnitPlan, desired_function
+from ..model import RobotModel
+from .description import ParallelSystem, load_parallel
+from .model import build_model
+
+if TYPE_CHECKING:
+    from ...sim.scenario import Scenario, Unit
+
+UNIT = "mechanism"
+END_EFFECTORS = ("left.link5", "right.link5")  # the magnets; their frames sit at C and C'
+
+
+def _sample_times(sc: Scenario, count: int = 501) -> np.ndarray:
+    return np.linspace(0.0, sc.duration, count)
+
+
+def _check_workspace(geometry, q_of_t: ca.Function, sc: Scenario) -> None:
+    """Refuse a desired trajectory that leaves the workspace, before anything runs."""
+    for t in _sample_times(sc):
+        q = np.array(q_of_t(t)).ravel()
+        problems = geometry.violations(q) if np.isfinite(q).all() else ["out of reach"]
+        if problems:
+            raise KinematicsError(f"scenario {sc.name}: the desired configuration leaves the "
+                                  f"workspace at t = {t:.3f} s: {'; '.join(problems)}")
+
+
+def _initial_joint(geometry, unit: Unit) -> np.ndarray:
+    if unit.initial_joint is not None:
+        q0 = unit.initial_joint
+    else:
+        # The thesis's printed x_p(0) is not consistent (its two sides imply slider heights
+        # 7 mm apart): the slider height comes from the left side's (C, phi), each pantograph
+        # from its own end point; phi' then follows from the mechanism.
+        x = unit.initial_task
+        d1 = geometry.slider_height(x[0:2], x[2])
+        q0 = np.array([*geometry.side_ik("left", x[0:2]), d1, *geometry.side_ik("right", x[3:5])])
+    problems = geometry.violations(q0)
+    if problems:
+        raise KinematicsError("the initial configuration is outside the workspace: "
+                              + "; ".join(problems))
+    return np.asarray(q0, float)
+
+
+
+TASK_NAMES = ("C_u", "C_v", "phi", "C'_u", "C'_v", "phi'")
+TASK_UNITS = ("m", "m", "rad") * 2
+TASK_ANGLES = (2, 5)
+
+
+class ParallelRobot(RobotAdapter):
+    name = "parallel"
+    method = "lagrange"
+
+    def load(self, description: str | Path | None = None) -> ParallelSystem:
+        return load_parallel(description if description is not None else self.name)
+
+    def model(self, system: ParallelSystem, arm: str | None = None,
+              parameterisation: str = "inertial", method: str | None = None) -> RobotModel:
+        # One unit: ``arm`` is accepted (and ignored) so every robot is called alike.
+        return build_model(system, parameterisation, method or self.method)
+
+    def layout(self, system: ParallelSystem, space: str) -> Layout:
+        joint = ("angle", "angle", "length", "angle", "angle")
+        task = ("length", "length", "angle") * 2
+        n_bodies = 1 + sum(len(side.bodies) for side in system.sides)
+        return Layout(leader=joint[:3] if space == "joint" else task[:3], joint=joint,
+                      task=task, units=(UNIT,), n_joint=5, n_task=6, n_bodies=n_bodies)
+
+    def unit_plans(self, system: ParallelSystem, sc: Scenario) -> list[UnitPlan]:
+        ctrl_model = self.model(system, parameterisation=sc.parameterisation)
+        plant = self.model(system, parameterisation="inertial")
+        geometry = ctrl_model.geometry
+        (unit,) = sc.units
+        q0 = _initial_joint(geometry, unit)
+        qd0 = unit.initial_velocity if unit.initial_velocity is not None else np.zeros(5)
+
+        t = ca.SX.sym("t")
+        lead, _, _ = sc.desired_leader()(t)
+        if sc.space == "joint":
+            th1, th2, d1 = lead[0], lead[1], lead[2]
+            B = geometry.base(system.left)
+            lp = geometry.lp
+            C_u = B[0] + lp * (ca.cos(th1) + ca.cos(th2))
+            C_v = B[1] + lp * (ca.sin(th1) + ca.sin(th2))
+            mirrored = ca.vertcat(-C_u, C_v)
+            branch = geometry.branches(q0)[1]
+            right0 = np.array(geometry.side_ik_symbolic(
+                "right", ca.evalf(ca.substitute(mirrored, t, 0.0)), branch)).ravel()
+            offsets = 2 * np.pi * np.round((q0[3:5] - right0) / (2 * np.pi))
+            right = geometry.side_ik_symbolic("right", mirrored, branch, offsets)
+            desired_expr = ca.vertcat(th1, th2, d1, right)
+            _check_workspace(geometry, ca.Function("q_d", [t], [desired_expr]), sc)
+        else:
+            phi = lead[2]
+            desired_expr = ca.vertcat(lead[0], lead[1], phi, -lead[0], lead[1], math.pi - phi)
+            x_of_t = ca.Function("x_d", [t], [desired_expr])
+            for time in _sample_times(sc):  # consistent and inside the workspace at every sample
+                geometry.ik(np.array(x_of_t(time)).ravel())
+        desired = desired_function(UNIT, desired_expr, t)
+        x_start = np.array(desired(0.0)[0]).ravel()
+        d1_0 = float(x_start[2]) if sc.space == "joint" else \
+            float(geometry.slider_height(x_start[0:2], float(x_start[2])))
+        return [UnitPlan(
+            UNIT, ctrl_model, plant, desired, np.concatenate([q0, qd0]),
+            {body: np.zeros(3) for body in END_EFFECTORS}, TASK_NAMES, TASK_UNITS, TASK_ANGLES,
+            ctrl_model.fk_world, task=(ctrl_model.fk, ctrl_model.J),
+            tool_points=(("C", (0, 1)), ("C'", (3, 4))), centre=(0.0, d1_0),
+            moving_centre_joint=2)]
+
+    def actuated_joints(self, system: ParallelSystem) -> list[ActuatedJoint]:
+        return [ActuatedJoint(j.name, j.type, tuple(j.position_limits), j.effort_limit, j.motor,
+                              j.transmission.ratio if j.transmission else 1.0)
+                for j in system.joints]
+
+
+ROBOT = ParallelRobot()

@@ -1,0 +1,128 @@
+"""The serial system in scenarios: two planar 3R arms, the first the leader, the second
+following it by the dual-arm rule (point reflection through the cochlea centre, facing the
+leader); joint-space followers track the mirrored pose through closed-form IK on an explicit
+elbow branch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+from ...errors import DescriptionError
+from ..adapter import ActuatedJoint, Layout, RobotAdapter, UnitPlan, desired_function
+from ..model import RobotModel
+from .description import Arm, SerialSystem, load_serial
+from .ik import UnreachableTarget, elbow_cosine, ik, ik_symbolic, world_to_base
+from .model import build_model
+
+if TYPE_CHECKING:
+    from ...sim.scenario import Scenario
+
+TASK_NAMES = ("x", "y", "phi")
+TASK_UNITS = ("m", "m", "rad")
+TASK_ANGLES = (2,)
+
+
+def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: Scenario) -> None:
+    """Refuse a follower trajectory that leaves the workspace, before anything runs."""
+    c2 = ca.Function("c2", [t], [elbow_cosine(arm, pose_base_t)])
+    times = np.arange(0.0, sc.duration + 0.5 * sc.period, sc.period)
+    values = np.array(c2.map(len(times))(times)).ravel()
+    bad = np.flatnonzero(~(np.abs(values) <= 1.0))
+    if bad.size:
+        k = bad[0]
+        raise UnreachableTarget(f"scenario {sc.name}: {arm.name}'s desired pose leaves the "
+                                f"workspace at t = {times[k]:.3f} s (cos th2 = {values[k]:.4f})")
+
+
+def _initial_joint(arm: Arm, unit) -> np.ndarray:
+    """The initial joint position; the branch is explicit for a task-space initial pose."""
+    if unit.initial_joint is not None:
+        return unit.initial_joint
+    reference = np.array([0.0, unit.elbow or 1, 0.0])
+    q0, _, _ = ik(arm, unit.initial_task, reference)
+    if unit.elbow is not None and np.sign(q0[1]) != unit.elbow:
+        raise UnreachableTarget(f"{arm.name}: the initial pose has no solution on elbow branch "
+                                f"{unit.elbow:+d}")
+    return q0
+
+
+class SerialRobot(RobotAdapter):
+    name = "serial"
+    method = "newton-euler"
+
+    def load(self, description: str | Path | None = None) -> SerialSystem:
+        return load_serial(description if description is not None else self.name)
+
+    def model(self, system: SerialSystem, arm: str | Arm | None = None,
+              parameterisation: str = "inertial", method: str | None = None) -> RobotModel:
+        return build_model(system, arm, parameterisation, method or self.method)
+
+    def layout(self, system: SerialSystem, space: str) -> Layout:
+        n = len(system.arms[0].links)
+        kinds = ("angle",) * n
+        task = ("length", "length", "angle")
+        return Layout(leader=kinds if space == "joint" else task, joint=kinds, task=task,
+                      units=tuple(a.name for a in system.arms), n_joint=n, n_task=3,
+                      n_bodies=n)
+
+    def unit_plans(self, system: SerialSystem, sc: Scenario) -> list[UnitPlan]:
+        t = ca.SX.sym("t")
+        x_lead, _, _ = sc.desired_leader()(t)
+        models = {a.name: self.model(system, a, sc.parameterisation) for a in system.arms}
+        leader_arm = system.arms[0]
+        # The leader's tool pose in the cochlea frame, as a function of t.
+        lead_pose = x_lead if sc.space == "task" else models[leader_arm.name].fk_world(x_lead)
+        plans = []
+        for arm, unit in zip(system.arms, sc.units, strict=True):
+            m = models[arm.name]
+            q0 = _initial_joint(arm, unit)
+            qd0 = (unit.initial_velocity if unit.initial_velocity is not None
+                   else np.zeros(len(q0)))
+            if arm is leader_arm:
+                desired_expr = x_lead
+            else:  # dual-arm rule: point reflection through the cochlea centre
+                pose = ca.vertcat(-lead_pose[0], -lead_pose[1], lead_pose[2] + np.pi)
+                if sc.space == "task":
+                    desired_expr = pose
+                else:
+                    pose_base = world_to_base(arm, pose)
+                    _check_reachable(arm, pose_base, t, sc)
+                    pose0 = np.array(ca.evalf(ca.substitute(pose, t, 0.0))).ravel()
+                    _, elbow, offsets = ik(arm, pose0, q0)
+                    if unit.elbow is not None:
+                        elbow = unit.elbow
+                        q_branch = np.array(ik_symbolic(arm, ca.DM(world_to_base(arm, pose0)),
+                                                        elbow)).ravel()
+                        offsets = 2 * np.pi * np.round((q0 - q_branch) / (2 * np.pi))
+                    desired_expr = ik_symbolic(arm, pose_base, elbow, offsets)
+            if sc.space == "task":
+                _check_reachable(arm, world_to_base(arm, desired_expr), t, sc)
+            tool = arm.links[-1]
+            plans.append(UnitPlan(
+                arm.name, m, self.model(system, arm, "inertial"),
+                desired_function(arm.name, desired_expr, t), np.concatenate([q0, qd0]),
+                {tool.name: np.array([tool.length, 0.0, 0.0])},
+                TASK_NAMES, TASK_UNITS, TASK_ANGLES, m.fk_world))
+        return plans
+
+    def actuated_joints(self, system: SerialSystem) -> list[ActuatedJoint]:
+        joints = []
+        for arm in system.arms:
+            for link in arm.links:
+                j = link.joint
+                if j.type != "revolute":
+                    raise DescriptionError(
+                        system.path, f"{arm.name}.{link.name}.joint.type",
+                        "revolute: a motor drives a serial arm's prismatic joint only through "
+                        "a transmission, which serial descriptions do not have", j.type)
+                joints.append(ActuatedJoint(f"{arm.name}.{link.name}", j.type,
+                                            tuple(j.position_limits), j.effort_limit,
+                                            link.motor, 1.0))
+        return joints
+
+
+ROBOT = SerialRobot()

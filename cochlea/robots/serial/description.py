@@ -1,0 +1,205 @@
+"""The serial system's description: planar (or general) serial arms in one world frame.
+
+Read from a TOML file with ``kind = "serial"`` (the shipped one: ``cochlea/data/robots/
+serial.toml``); see :mod:`cochlea.robots.description` for what every description shares.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import DescriptionError, ModelError
+from ..description import (
+    Motor,
+    Table,
+    check_unique_motor_ids,
+    open_description,
+    read_limits,
+    read_motor,
+    resolve_path,
+)
+
+# --------------------------------------------------------------------------------------------
+# Dataclasses (SI units)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Joint:
+    """The joint that moves a link relative to its parent.
+
+    The joint frame sits at ``origin_xyz`` (m) in the parent link's frame, rotated by
+    ``origin_rpy`` (rad, fixed-axis roll-pitch-yaw). The link frame is the joint frame rotated
+    about ``axis`` by q (revolute, rad) or translated along it by q (prismatic, m).
+    """
+
+    type: str  # "revolute" | "prismatic"
+    axis: np.ndarray  # unit vector in the joint frame
+    origin_xyz: np.ndarray  # m, in the parent frame
+    origin_rpy: np.ndarray  # rad
+    position_limits: tuple[float, float]  # rad or m
+    velocity_limit: float  # rad/s or m/s
+    effort_limit: float  # N m or N
+
+
+@dataclass(frozen=True)
+class Link:
+    """A rigid link with its inertial data expressed in the link frame (SI)."""
+
+    name: str
+    length: float  # m: the next joint (or the tool point) sits at [length, 0, 0]
+    mass: float  # kg
+    com: np.ndarray  # m, centre of mass in the link frame
+    inertia_com: np.ndarray  # kg m^2, 3x3 about the centre of mass, link-frame axes
+    joint: Joint
+    motor: Motor
+
+
+@dataclass(frozen=True)
+class Arm:
+    """A serial chain fixed at a base pose in the world (cochlea-centred) frame."""
+
+    name: str
+    base_xyz: np.ndarray  # m, base origin in the world frame
+    base_yaw: float  # rad, rotation of the base frame about world z
+    links: tuple[Link, ...]
+
+    @property
+    def base_rotation(self) -> np.ndarray:
+        c, s = math.cos(self.base_yaw), math.sin(self.base_yaw)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class SerialSystem:
+    """A system of serial arms sharing one world frame (the cochlea frame)."""
+
+    name: str
+    path: Path
+    gravity: np.ndarray  # m/s^2, in the world frame
+    arms: tuple[Arm, ...]
+    keep_out_radius: float = 0.0  # m, R_m: the tools stay this far from the cochlea centre
+
+    def arm(self, name: str) -> Arm:
+        for arm in self.arms:
+            if arm.name == name:
+                return arm
+        raise ModelError(
+            f"{self.path}: no arm named {name!r}; the arms are "
+            + ", ".join(repr(a.name) for a in self.arms)
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Readers
+# --------------------------------------------------------------------------------------------
+
+
+def _rpy_matrix(rpy: np.ndarray) -> np.ndarray:
+    """Fixed-axis roll-pitch-yaw (rad) to a rotation matrix, R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), \
+        math.sin(y)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def inertia_matrix(six: np.ndarray) -> np.ndarray:
+    """``[Ixx, Iyy, Izz, Ixy, Ixz, Iyz]`` to the symmetric 3x3 inertia matrix."""
+    ixx, iyy, izz, ixy, ixz, iyz = six
+    return np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+
+
+def _physical_inertia(six: list[float]) -> bool:
+    """Positive definite with principal moments obeying the triangle inequality."""
+    moments = np.linalg.eigvalsh(inertia_matrix(np.array(six, dtype=float)))
+    if moments[0] <= 0.0:
+        return False
+    a, b, c = moments
+    slack = 1e-12 * c
+    return a + b >= c - slack
+
+
+
+def _read_joint(t: Table, parent_length: float) -> Joint:
+    jtype = t.string("type", ("revolute", "prismatic"))
+    axis = t.vector("axis", 3, "the joint frame", check=lambda v: np.linalg.norm(v) > 1e-9,
+                    what="(a non-zero direction)")
+    axis = axis / np.linalg.norm(axis)
+    origin_xyz = t.vector("origin_xyz_m", 3, "m", required=False)
+    if origin_xyz is None:
+        origin_xyz = np.array([parent_length, 0.0, 0.0])
+    origin_rpy = t.vector("origin_rpy_deg", 3, "deg", required=False)
+    origin_rpy = np.zeros(3) if origin_rpy is None else np.radians(origin_rpy)
+
+    lo, hi, velocity, effort = read_limits(t, jtype)
+    t.done()
+    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort)
+
+
+
+def _read_link(t: Table, parent_length: float) -> Link:
+    name = t.string("name")
+    length = t.number("length_m", "a non-negative number (m)", lambda v: v >= 0)
+    mass = t.number("mass_kg", "a positive number (kg)", lambda v: v > 0)
+    com = t.vector("com_m", 3, "m", what="in the link frame")
+    inertia = t.vector(
+        "inertia_com_kgm2", 6, "kg m^2",
+        check=_physical_inertia,
+        what="as [Ixx, Iyy, Izz, Ixy, Ixz, Iyz] about the centre of mass, forming a positive "
+             "definite matrix whose principal moments obey the triangle inequality",
+    )
+    joint = _read_joint(t.table("joint"), parent_length)
+    motor = read_motor(t.table("motor"))
+    t.done()
+    return Link(name, length, mass, com, inertia_matrix(inertia), joint, motor)
+
+
+def _read_arm(t: Table) -> Arm:
+    name = t.string("name")
+    base_xyz = t.vector("base_xyz_m", 3, "m", what="in the world (cochlea) frame")
+    base_yaw = math.radians(t.number("base_yaw_deg", "a number (deg)"))
+    links = []
+    parent_length = 0.0  # the first joint sits at the base origin unless told otherwise
+    for lt in t.tables("link", "the links from base to tip"):
+        link = _read_link(lt, parent_length)
+        links.append(link)
+        parent_length = link.length
+    t.done()
+    names = [link.name for link in links]
+    for i, n in enumerate(names):
+        if n in names[:i]:
+            raise DescriptionError(t.path, f"{t.where}.link[{i}].name",
+                                   "a link name unique within the arm", n)
+    return Arm(name, base_xyz, base_yaw, tuple(links))
+
+
+def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
+    """Load and validate a description of serial arms (``kind = "serial"``)."""
+    path = resolve_path(name_or_path)
+    top, name, gravity, keep_out = open_description(
+        path, "serial", 3, "in the world frame", "the cochlea centre that the tools")
+    arms = tuple(_read_arm(a) for a in top.tables("arm", "one per serial arm"))
+    top.done()
+
+    arm_names = [a.name for a in arms]
+    for i, n in enumerate(arm_names):
+        if n in arm_names[:i]:
+            raise DescriptionError(path, f"arm[{i}].name", "an arm name unique in the file", n)
+    check_unique_motor_ids(path, [(f"arm[{i}].link[{j}].motor.id", f"{arm.name}.{link.name}",
+                                   link.motor)
+                                  for i, arm in enumerate(arms)
+                                  for j, link in enumerate(arm.links)])
+    return SerialSystem(name, path, gravity, arms, keep_out)
+
+
+def joint_rotation(joint: Joint) -> np.ndarray:
+    """Rotation of the joint frame in the parent frame, from ``origin_rpy``."""
+    return _rpy_matrix(joint.origin_rpy)

@@ -1,0 +1,69 @@
+"""The symbolic model of one arm of the serial system: Newton-Euler (default) or Lagrange."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix
+from ..model import JointInfo, RobotModel, assemble_model, check_options, full_inertial
+from ..spatial import rot_z
+from .chain import (
+    N_INERTIAL,
+    energies,
+    inertial_parameters,
+    planar_orientation,
+    rnea,
+    tool_point,
+)
+from .description import Arm, SerialSystem
+
+
+def build_model(system: SerialSystem, arm: Arm | str | None = None,
+                parameterisation: str = "inertial", method: str = "newton-euler") -> RobotModel:
+    """The model of one arm (default: the first) of a loaded serial system, in its base frame
+    (``fk``, ``J``) and in the world frame (``fk_world``, ``J_world``)."""
+    check_options(parameterisation, method)
+    if not isinstance(arm, Arm):
+        arm = system.arms[0] if arm is None else system.arm(arm)
+    n = len(arm.links)
+    q = ca.SX.sym("q", n)
+    qd = ca.SX.sym("qd", n)
+    qdd = ca.SX.sym("qdd", n)
+    phi = ca.SX.sym("phi", N_INERTIAL * n)
+    g_base = arm.base_rotation.T @ system.gravity
+
+    if method == "newton-euler":
+        tau = rnea(arm, q, qd, qdd, phi, g_base)
+        M = ca.jacobian(rnea(arm, q, ca.SX.zeros(n), qdd, phi, np.zeros(3)), qdd)
+        M = 0.5 * (M + M.T)  # symmetric by construction, not only up to rounding
+        G = rnea(arm, q, ca.SX.zeros(n), ca.SX.zeros(n), phi, g_base)
+        C = christoffel_coriolis(M, q, qd)
+    else:
+        K, U = energies(arm, q, qd, phi, g_base)
+        M = mass_matrix(K, qd)
+        G = gravity_vector(U, q)
+        C = christoffel_coriolis(M, q, qd)
+        tau = M @ qdd + C @ qd + G
+
+    tip, _ = tool_point(arm, q)
+    fk = ca.vertcat(tip[0], tip[1], planar_orientation(arm, q))
+    Rb = rot_z(arm.base_yaw)
+    tip_world = ca.DM(arm.base_xyz[:2]) + Rb[:2, :2] @ tip[:2]
+    fk_world = ca.vertcat(tip_world, fk[2] + arm.base_yaw)
+    kinematics = {"fk": fk, "J": ca.jacobian(fk, q), "fk_world": fk_world,
+                  "J_world": ca.jacobian(fk_world, q)}
+
+    full, blocks = full_inertial([(link.name, inertial_parameters(link)) for link in arm.links])
+    joints = tuple(
+        JointInfo(link.name.replace("link", "joint", 1) if link.name.startswith("link")
+                  else f"{link.name}_joint",
+                  link.joint.type, link.joint.position_limits, link.joint.velocity_limit,
+                  link.joint.effort_limit)
+        for link in arm.links
+    )
+    return assemble_model(f"{system.name}/{arm.name}", f"{system.name}_{arm.name}",
+                          joints=joints, q=q, qd=qd, qdd=qdd, phi=phi, M=M, C=C, G=G, tau=tau,
+                          kinematics=kinematics, full=full, bodies=blocks,
+                          parameterisation=parameterisation, method=method, source=system.path)
+

@@ -1,0 +1,20 @@
+"""The runtime layer: a scenario's controllers at the control rate against a backend (the
+simulated robot, or the Dynamixel bridge above this layer), under the safety supervisor, with
+the log written behind the loop."""
+
+from .backend import Backend, BackendError
+from .loop import RealTimeLoop, raw_columns, write_raw_columns
+from .sim_backend import SimBackend
+from .supervisor import (
+           EXIT_BACKEND,
+           EXIT_OK,
+           STOP_CODES,
+           Limits,
+           Stop,
+           Supervisor,
+           build_supervisor,
+)
+
+__all__ = ["Backend", "BackendError", "RealTimeLoop", "raw_columns", "write_raw_columns",
+           "SimBackend", "EXIT_BACKEND", "EXIT_OK", "STOP_CODES", "Limits", "Stop", "Supervisor",
+           "build_supervisor"]

@@ -1,0 +1,170 @@
+"""The safety supervisor of a run: every rule that stops the motors, and the exit code of each.
+
+Each period the loop asks :meth:`Supervisor.check_state` about the measured state and
+:meth:`Supervisor.check_command` about the command and the estimates; the first rule broken
+returns a :class:`Stop`, and the loop then commands zero effort and disables the drives in the
+same period. The checks allocate nothing unless a rule is broken.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..sim.compiled import period_kernels
+from ..sim.setup import UnitSetup
+
+# Exit codes of a stopped run (README lists them).
+EXIT_OK = 0
+EXIT_BACKEND = 5
+STOP_CODES = {
+    "completed": 0,
+    "user-stop": 0,  # SIGINT (Ctrl-C): the user's own stop, after the same safe sequence
+    "position-limit": 10,
+    "velocity-limit": 11,
+    "keep-out": 12,
+    "non-finite": 13,
+    "estimate-bound": 14,
+    "watchdog": 15,
+    "terminated": 16,  # SIGTERM
+}
+
+
+@dataclass
+class Stop:
+    rule: str
+    time: float
+    detail: str
+
+    @property
+    def code(self) -> int:
+        return STOP_CODES[self.rule]
+
+
+@dataclass
+class Limits:
+    """Everything the supervisor enforces, per joint of the whole system (SI)."""
+
+    position_lo: np.ndarray
+    position_hi: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    joint_names: tuple[str, ...]
+    joint_units: tuple[str, ...]
+    keep_out_radius: float | None = None  # m, task-space runs only
+    watchdog_misses: int = 20  # consecutive deadline misses
+    watchdog_errors: int = 5  # consecutive backend failures
+
+
+class Supervisor:
+    """The safety rules of a run. Checks allocate nothing but their result on a violation."""
+
+    def __init__(self, limits: Limits, setups: list[UnitSetup], keep_out_points):
+        self.limits = limits
+        self.setups = setups
+        self.n = len(limits.position_lo)
+        self._below = np.zeros(self.n, bool)  # scratch: the checks allocate nothing
+        self._above = np.zeros(self.n, bool)
+        self._speed = np.zeros(self.n)
+        # keep_out_points: callables (q_all) -> list of (label, point, centre) for the rule
+        self.keep_out_points = keep_out_points
+        self.bounds = [u.bound for u in setups]
+
+    def check_state(self, t: float, x: np.ndarray, q: np.ndarray, qd: np.ndarray
+                    ) -> Stop | None:
+        """``q``, ``qd``: views of ``x``, made once by the caller."""
+        L = self.limits
+        if not _finite(x):
+            return Stop("non-finite", t, f"state = {_fmt(x)}")
+        np.less(q, L.position_lo, out=self._below)
+        np.greater(q, L.position_hi, out=self._above)
+        np.logical_or(self._below, self._above, out=self._below)
+        if self._below.any():
+            j = int(np.argmax(self._below))
+            return Stop("position-limit", t, f"{L.joint_names[j]} = {_show(q[j], L.joint_units[j])}"
+                        f" outside [{_show(L.position_lo[j], L.joint_units[j])}, "
+                        f"{_show(L.position_hi[j], L.joint_units[j])}]")
+        np.abs(qd, out=self._speed)
+        np.greater(self._speed, L.velocity, out=self._above)
+        if self._above.any():
+            j = int(np.argmax(self._above))
+            unit = "rad/s" if L.joint_units[j] == "rad" else "m/s"
+            return Stop("velocity-limit", t, f"{L.joint_names[j]} speed = {qd[j]:.4g} {unit}, "
+                        f"limit {L.velocity[j]:.4g} {unit}")
+        if L.keep_out_radius is not None:
+            for label, point, centre in self.keep_out_points(q):
+                r = math.hypot(point[0] - centre[0], point[1] - centre[1])
+                if r < L.keep_out_radius:
+                    return Stop("keep-out", t, f"{label} at ({point[0]:.4f}, {point[1]:.4f}) m "
+                                f"is {r * 1000:.1f} mm from the centre "
+                                f"({centre[0]:.4f}, {centre[1]:.4f}) m, inside the keep-out "
+                                f"radius {L.keep_out_radius * 1000:.1f} mm")
+        return None
+
+    def check_command(self, t: float, tau: np.ndarray, estimates: list[np.ndarray]
+                      ) -> Stop | None:
+        if not _finite(tau):
+            return Stop("non-finite", t, f"command = {_fmt(tau)}")
+        for u, p, bound in zip(self.setups, estimates, self.bounds):
+            square = float(p @ p)
+            if not math.isfinite(square):
+                return Stop("non-finite", t, f"{u.name} estimate = {_fmt(p)}")
+            if square > (bound * (1 + 1e-9)) ** 2:
+                norm = math.sqrt(square)
+                return Stop("estimate-bound", t, f"{u.name} |p_hat| = {norm:.4g}, bound "
+                            f"{bound:.4g}")
+        return None
+
+    def saturate(self, tau: np.ndarray) -> None:
+        np.clip(tau, -self.limits.effort, self.limits.effort, out=tau)
+
+
+def _finite(v: np.ndarray) -> bool:
+    """All finite, without a temporary array (a NaN or infinity makes the sum of squares so)."""
+    return math.isfinite(float(v @ v))
+
+
+def _fmt(v) -> str:
+    return "[" + ", ".join(f"{x:.4g}" for x in np.asarray(v).ravel()) + "]"
+
+
+def _show(value: float, unit: str) -> str:
+    return f"{math.degrees(value):.2f} deg" if unit == "rad" else f"{value:.4f} m"
+
+
+def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float | None,
+                     watchdog_misses: int = 20, watchdog_errors: int = 5,
+                     kernels: str = "c", substeps: int = 1) -> Supervisor:
+    """Limits from the descriptions of every unit's joints; the keep-out circle for task-space
+    runs around each unit's centre (serial: the cochlea centre; parallel: the slider pivot S,
+    which moves with d1) for each of its tool points."""
+    joints = [j for u in setups for j in u.controller_model.joints]
+    limits = Limits(
+        position_lo=np.array([j.position_limits[0] for j in joints]),
+        position_hi=np.array([j.position_limits[1] for j in joints]),
+        velocity=np.array([j.velocity_limit for j in joints]),
+        effort=np.array([j.effort_limit for j in joints]),
+        joint_names=tuple(f"{u.name}.{j.name}" for u in setups for j in u.controller_model.joints),
+        joint_units=tuple(un for u in setups for un in u.joint_units),
+        keep_out_radius=keep_out_radius if space == "task" else None,
+        watchdog_misses=watchdog_misses, watchdog_errors=watchdog_errors)
+    fks, slices, start = [], [], 0
+    for u in setups:
+        fks.append(period_kernels(u, substeps, kernels)[2])
+        slices.append(slice(start, start + u.controller_model.nq))
+        start += u.controller_model.nq
+
+    def keep_out_points(q):
+        points = []
+        for u, fk, sl in zip(setups, fks, slices):
+            fk.inputs[0][...] = q[sl]
+            fk()
+            pose = fk.outputs[0]
+            centre = u.keep_out_centre(q[sl])
+            for label, (iu, iv) in u.tool_points:
+                points.append((f"{u.name} {label}", (pose[iu], pose[iv]), centre))
+        return points
+
+    return Supervisor(limits, setups, keep_out_points)

@@ -1,0 +1,55 @@
+"""The simulation layer: scenarios, the setups they make, and the as-fast closed loop on either
+kernels -- the generated C (default) or the CasADi reference they are checked against.
+
+    from cochlea.sim import load_scenario, simulate
+    result = simulate(load_scenario("serial_task"))             # C kernels
+    reference = simulate(load_scenario("serial_task"), kernels="casadi")
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import CochleaError
+from .compiled import CKernelsUnavailable, CKernelsWarning, simulate_compiled
+from .reference import simulate_reference
+from .result import SimulationResult, UnitLog
+from .scenario import Scenario
+from .scenario import load as _load
+from .setup import UnitSetup, perturbed_parameters, unit_setups
+
+#: Which kernels ``simulate`` runs: the generated C (default) or the CasADi reference.
+KERNELS = ("c", "casadi")
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """A shipped scenario by name (``"serial_task"``) or a scenario file, with its robot's
+    description loaded once."""
+    return _load(name_or_path)
+
+
+def simulate(sc: Scenario, duration: float | None = None,
+             setups: list[UnitSetup] | None = None, kernels: str = "c") -> SimulationResult:
+    """Run the scenario as fast as possible and return the log of every period.
+
+    A unit whose state or estimate becomes non-finite stops the run: ``result.diverged`` names
+    it with the time, and the log keeps every period up to that one.
+
+    ``kernels``: ``"c"`` (default) runs the generated C kernels (:mod:`cochlea.sim.compiled`;
+    if they cannot run this scenario it warns and falls back), ``"casadi"`` the CasADi
+    reference (:mod:`cochlea.sim.reference`).
+    """
+    if kernels not in KERNELS:
+        raise CochleaError(f"unknown kernels {kernels!r}; choose one of {', '.join(KERNELS)}")
+    duration = sc.duration if duration is None else duration
+    if not duration > 0:
+        raise CochleaError(f"the duration must be positive, got {duration} s")
+    setups = unit_setups(sc) if setups is None else setups
+    if kernels == "c":
+        return simulate_compiled(sc, duration, setups, fallback=True)
+    return simulate_reference(sc, duration, setups)
+
+
+__all__ = ["KERNELS", "load_scenario", "simulate", "simulate_compiled", "simulate_reference",
+           "SimulationResult", "UnitLog", "UnitSetup", "Scenario", "unit_setups",
+           "perturbed_parameters", "CKernelsUnavailable", "CKernelsWarning"]

@@ -1,0 +1,279 @@
+"""Closed-loop simulation on the generated C kernels: what ``simulate(kernels="c")`` runs.
+
+Same scenario, same setups, same :class:`~cochlea.sim.result.SimulationResult` as the CasADi
+reference (``simulate(..., kernels="casadi")``); the tests hold every log to 1e-10 of it. Per
+unit:
+
+* the desired samples of the whole run come first, in one call of the unit's ``desired``
+  Function mapped over the time grid (the trajectory formulas are scenario-specific, the kernels
+  are not);
+* measurement noise, if the scenario has any, is drawn up front from the scenario's seed in the
+  reference's order and passed as an array; a measurement delay is read from the state log;
+* then either the generated driver ``<unit>_<kind>[_thesis]_closed_loop`` runs every period in C
+  (``loop="c"``, the default; the units of a scenario run on parallel threads, since ctypes
+  releases the GIL), or a Python loop calls the fused ``step``, ``plant_step`` and ``fk_world``
+  kernels through :mod:`cochlea.kernels.library` once per period (``loop="python"``, for
+  comparison).
+
+Before anything runs, every kernel a unit needs is looked up in the library's manifest and its
+source hash compared with the Function the setup really uses (controller step, plant step with
+the scenario's RK4 sub-steps, pose): a missing library, a scenario outside what
+``cochlea/data/codegen/kernels.toml`` generates, or a stale library raises
+:class:`CKernelsUnavailable`; with ``fallback=True`` (what ``simulate`` does) that becomes a
+warning and the CasADi reference runs.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ..errors import CochleaError
+from ..kernels import library as ckernels
+from ..kernels.bind import BufferedFunction, BufferedKernel
+from ..kernels.naming import controller_kernel_name, source_hash, unit_prefix
+from ..robots.plant import plant_step
+from .reference import simulate_reference
+from .result import SimulationResult, UnitLog
+from .setup import UnitSetup, unit_setups
+
+LOOPS = ("c", "python")
+
+
+class CKernelsUnavailable(CochleaError):
+    """The generated C kernels cannot run this scenario (missing, not generated, or stale)."""
+
+
+class CKernelsWarning(UserWarning):
+    """The C kernels could not run a scenario: the CasADi reference ran instead."""
+
+
+@dataclass(frozen=True)
+class UnitKernels:
+    """The kernels one unit runs on."""
+
+    step: str
+    plant: str
+    pose: str
+    closed_loop: str
+
+
+#: Per-object caches of the checks (objects kept alive, so their ids stay theirs).
+_HASHES: dict[int, tuple[object, str]] = {}
+_PLANTS: dict[tuple[int, int], tuple[object, object]] = {}
+
+
+def _hash(function) -> str:
+    if id(function) not in _HASHES:
+        _HASHES[id(function)] = (function, source_hash(function))
+    return _HASHES[id(function)][1]
+
+
+def _plant(model, substeps: int):
+    key = (id(model), substeps)
+    if key not in _PLANTS:
+        _PLANTS[key] = (model, plant_step(model, substeps))
+    return _PLANTS[key][1]
+
+
+def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKernels:
+    """Find a unit's kernels in the library and check they compute what the setup does
+    (source hashes; computed once per Function object)."""
+    c = u.controller
+    group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "")[:-1]
+    plant = _plant(u.plant_model, substeps)
+    wanted = [(f"{group}_step", c.step, f"controller {c.kind} ({c.variant})"),
+              (plant.name(), plant, f"the plant with {substeps} RK4 sub-steps"),
+              (u.fk_world.name(), u.fk_world, "the logged pose")]
+    for name, function, what in wanted:
+        if name not in lib.manifest["kernels"]:
+            raise CKernelsUnavailable(
+                f"{lib.path} has no kernel {name} ({what} of unit {u.name}): add it to "
+                "cochlea/data/codegen/kernels.toml, run cochlea-codegen and make lib, or use "
+                "the CasADi kernels")
+        if lib.source_hash(name) != _hash(function):
+            raise CKernelsUnavailable(
+                f"the C kernel {name} in {lib.path} computes something else than {what} of "
+                f"unit {u.name} (a different description, parameterisation or option, or a "
+                "stale library): run cochlea-codegen and make lib, or use the CasADi kernels")
+    loop = f"{group}_closed_loop"
+    meta = lib.manifest["closed_loops"].get(loop)
+    if meta is None or (meta["step"], meta["plant"], meta["pose"]) != \
+            (f"{group}_step", plant.name(), u.fk_world.name()):
+        raise CKernelsUnavailable(f"{lib.path} has no closed loop {loop} on {plant.name()}: "
+                                  "run cochlea-codegen and make lib")
+    return UnitKernels(f"{group}_step", plant.name(), u.fk_world.name(), loop)
+
+
+def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``(xd, xd_dot, xd_ddot)`` at every time of the grid, each ``(N, nd)``, in one call
+    (CasADi's map on up to 4 threads; every sample is computed on its own)."""
+    n = len(time)
+    t = ca.SX.sym("t")
+    # Dense outputs: a constant coordinate's derivatives are structural zeros otherwise.
+    dense = ca.Function("desired_dense", [t], [ca.densify(v) for v in u.desired(t)])
+    mapped = BufferedFunction(dense.map(n, "thread", max(1, min(4, os.cpu_count() or 1))))
+    mapped.inputs[0][:] = time
+    mapped()  # straight into numpy buffers: no conversion of CasADi matrices afterwards
+    # CasADi stores the (nd x n) outputs column by column: each row of the reshape is a sample.
+    return tuple(out.reshape(n, -1) for out in mapped.outputs)
+
+
+def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, delay: int,
+           desired, noise) -> ckernels.ClosedLoopLog:
+    loop = lib.closed_loop(kernels.closed_loop)
+    xd, xd_dot, xd_ddot = desired
+    return loop.run(len(xd), x0=u.x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot, xd_ddot=xd_ddot,
+                    gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h, plant_p=u.plant_params,
+                    friction=u.friction, noise=noise, delay=delay)
+
+
+def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
+                delay: int, desired, noise) -> ckernels.ClosedLoopLog:
+    """The same periods as the C driver, looping in Python over the ctypes kernels."""
+    xd, xd_dot, xd_ddot = desired
+    steps, n, n_p = len(xd), u.controller_model.nq, u.controller.n_params
+    x = np.array(u.x0, dtype=float)
+    p_hat = np.array(u.p_hat0, dtype=float)
+    meas = np.empty(2 * n)
+    step = lib.kernel(kernels.step, q=meas[:n], qd=meas[n:], p_hat=p_hat)
+    plant = lib.kernel(kernels.plant, x=x, tau=step["tau"])
+    pose = lib.kernel(kernels.pose, q=x[:n])
+    step["gains"][:] = u.gains
+    step["Gamma"][:] = u.gamma
+    step["bound"][...] = u.bound
+    step["h"][...] = h
+    plant["p"][:] = u.plant_params
+    plant["friction"][:] = u.friction
+    plant["h"][...] = h
+    b_xd, b_xd_dot, b_xd_ddot = step["xd"], step["xd_dot"], step["xd_ddot"]
+    tau, p_next, errors = step["tau"], step["p_hat_next"], step["errors"]
+    x_next, pose_out = plant["x_next"], pose.outputs[next(iter(pose.outputs))]
+    call_step, call_plant, call_pose = step.call, plant.call, pose.call
+    log = ckernels.ClosedLoopLog(steps, np.empty((steps, 2 * n)), np.empty((steps, n_p)),
+                                 np.empty((steps, n)), np.empty((steps, len(errors))),
+                                 np.empty((steps, len(pose_out))))
+    X, P, TAU, E, POSE = log.x, log.p_hat, log.tau, log.errors, log.pose
+    isfinite = np.isfinite
+    for k in range(steps):
+        X[k] = x
+        seen = X[k - delay] if k >= delay else X[0]
+        if noise is None:
+            meas[:] = seen
+        else:
+            np.add(seen, noise[k], out=meas)
+        P[k] = p_hat
+        b_xd[:] = xd[k]
+        b_xd_dot[:] = xd_dot[k]
+        b_xd_ddot[:] = xd_ddot[k]
+        if call_step() or call_plant() or call_pose():
+            raise ckernels.KernelError(f"a kernel of unit {u.name} returned a nonzero code")
+        TAU[k] = tau
+        E[k] = errors
+        POSE[k] = pose_out
+        x[:] = x_next
+        p_hat[:] = p_next
+        if not (isfinite(x).all() and isfinite(p_hat).all()):
+            log.rows = k + 1
+            break
+    return log
+
+
+def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup] | None = None,
+                      *, loop: str = "c", library=None, fallback: bool = False
+                      ) -> SimulationResult:
+    """Run the scenario on the C kernels; the result equals ``simulate(kernels="casadi")``'s.
+
+    ``loop``: ``"c"`` (every period in the generated C driver) or ``"python"`` (a Python loop
+    over the ctypes kernels). ``library``: the ``.so`` to use (default: ``ckernels.load()``'s).
+    ``fallback``: run the CasADi reference, with a :class:`CKernelsWarning`, when the C kernels
+    cannot run this scenario, instead of raising :class:`CKernelsUnavailable`.
+    """
+    if loop not in LOOPS:
+        raise CochleaError(f"unknown loop {loop!r}; choose one of {', '.join(LOOPS)}")
+    duration = sc.duration if duration is None else duration
+    if not duration > 0:
+        raise CochleaError(f"the duration must be positive, got {duration} s")
+    setups = unit_setups(sc) if setups is None else setups
+    try:
+        lib = ckernels.load(library)
+        plans = [unit_kernels(lib, u, sc.plant_substeps) for u in setups]
+    except CochleaError as exc:
+        if not fallback:
+            raise CKernelsUnavailable(str(exc)) from exc
+        warnings.warn(f"{exc}. Simulating on the CasADi kernels instead.", CKernelsWarning,
+                      stacklevel=3)
+        return simulate_reference(sc, duration, setups)
+
+    h = sc.period
+    steps = int(round(duration / h))
+    time = np.arange(steps) * h
+    delay = sc.plant.delay_periods
+    run = _run_c if loop == "c" else _run_python
+    desired = [desired_samples(u, time) for u in setups]
+    noisy = [np.concatenate([np.full(u.controller_model.nq, sc.plant.noise_q_std),
+                             np.full(u.controller_model.nq, sc.plant.noise_qd_std)])
+             for u in setups]
+    if any(std.any() for std in noisy):
+        # The reference draws 2n normals per period, unit after unit, until a unit stops.
+        rng = np.random.default_rng(sc.plant.seed)
+        runs = []
+        for u, plan, d, std in zip(setups, plans, desired, noisy):
+            noise = None
+            if std.any():
+                state = rng.bit_generator.state
+                noise = std * rng.standard_normal((steps, len(std)))
+            runs.append(run(lib, plan, u, h, delay, d, noise))
+            if noise is not None and runs[-1].rows < steps:
+                rng.bit_generator.state = state
+                rng.standard_normal((runs[-1].rows, len(std)))
+    elif loop == "c" and len(setups) > 1:
+        with ThreadPoolExecutor(max_workers=len(setups)) as pool:
+            runs = list(pool.map(lambda a: run(lib, a[0], a[1], h, delay, a[2], None),
+                                 list(zip(plans, setups, desired))))
+    else:
+        runs = [run(lib, p, u, h, delay, d, None) for p, u, d in zip(plans, setups, desired)]
+
+    logs, diverged = [], {}
+    for u, d, r in zip(setups, desired, runs):
+        n, rows = u.controller_model.nq, r.rows
+        if rows < steps:
+            diverged[u.name] = float(time[rows - 1])
+        X = r.x[:rows]
+        logs.append(UnitLog(u.name, sc.space, X[:, :n], X[:, n:], d[0][:rows], d[1][:rows],
+                            r.errors[:rows], r.tau[:rows], r.p_hat[:rows], r.pose[:rows], u))
+    rows = min(len(u.q) for u in logs)
+    if rows < steps:  # every unit's log ends where the first one diverged (as the reference)
+        for u in logs:
+            for key in ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x"):
+                setattr(u, key, getattr(u, key)[:rows])
+    return SimulationResult(sc, time[:rows], logs, diverged)
+
+
+#: Where a unit's kernels come from: the generated C library or CasADi.
+KERNEL_SOURCES = ("c", "casadi")
+
+
+def period_kernels(u: UnitSetup, substeps: int, source: str = "c"):
+    """A unit's ``(step, plant_step, pose)`` kernels, each called through bound buffers, and
+    where they come from.
+
+    ``source="c"``: the generated C kernels, checked against the Functions the setup uses (a
+    missing or stale library falls back to CasADi with a warning); ``"casadi"``: CasADi
+    Functions called through preallocated buffers.
+    """
+    if source == "c":
+        try:
+            lib = ckernels.load()
+            names = unit_kernels(lib, u, substeps)
+            return (BufferedKernel(lib.kernel(names.step)), BufferedKernel(lib.kernel(names.plant)),
+                    BufferedKernel(lib.kernel(names.pose)), "c")
+        except CochleaError as exc:
+            warnings.warn(f"{exc}; running on the CasADi kernels", CKernelsWarning, stacklevel=2)
+    return (BufferedFunction(u.controller.step), BufferedFunction(_plant(u.plant_model, substeps)),
+            BufferedFunction(u.fk_world), "casadi")

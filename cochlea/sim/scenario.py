@@ -1,0 +1,279 @@
+"""Simulation scenarios: load a TOML file (a shipped one from ``cochlea/data/scenarios/``) and
+validate it.
+
+A scenario names the robot and the space, the duration, the control settings, the leader's
+desired trajectory (formulas in ``t`` with a unit, exactly as printed in the thesis), each
+controlled unit's initial state and gains, and optionally how the simulated plant differs from
+the controller's nominal model. Every quantity with a dimension is written with its unit, e.g.
+``"73 deg"``, ``"0.03*cos(a1) m"``; degrees are converted to radians on loading.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from ..control.gains import controller_of
+from ..errors import DescriptionError
+from ..resources import SCENARIOS_DIR, shipped
+from ..robots import ROBOTS
+from ..robots import robot as robot_adapter
+from ..robots.description import Table, read_toml
+from .expressions import ExpressionError, parse
+
+FORMAT = "cochlea-scenario/1"
+UNITS = {"deg": ("angle", np.pi / 180.0), "rad": ("angle", 1.0), "m": ("length", 1.0),
+         "mm": ("length", 1e-3)}
+@dataclass(frozen=True)
+class Quantity:
+    """A formula in t (s) with its unit; ``expression(t)`` gives SI values (rad or m)."""
+
+    text: str
+    kind: str  # "angle" | "length"
+    scale: float  # to SI
+
+    def expression(self, t: ca.SX, definitions: dict[str, ca.SX]) -> ca.SX:
+        return self.scale * parse(self.text, t, definitions)
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One controlled unit: an arm of the serial system, or the parallel mechanism."""
+
+    name: str
+    initial_joint: np.ndarray | None  # SI
+    initial_task: np.ndarray | None  # SI
+    initial_velocity: np.ndarray | None  # SI per second (joint space)
+    elbow: int | None  # IK branch (serial: sign of th2)
+    gains: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Plant:
+    """How the simulated robot differs from the controller's nominal description."""
+
+    mass_scale: np.ndarray | None = None  # per link / body: all its inertial parameters scale
+    payload_kg: float = 0.0  # point mass at each tool point
+    viscous_friction: np.ndarray | None = None  # N m s/rad or N s/m per joint
+    noise_q_std: float = 0.0  # rad (or m), Gaussian, on measured positions
+    noise_qd_std: float = 0.0  # rad/s (or m/s), on measured velocities
+    delay_periods: int = 0  # whole control periods between measurement and command
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    path: Path
+    name: str
+    robot: str
+    space: str
+    description: str
+    duration: float  # s
+    rate_hz: float
+    plant_substeps: int
+    variant: str
+    parameterisation: str
+    adaptation_gain: float
+    initial_estimate: str  # "zero" | "nominal"
+    estimate_bound: float  # relative to |p_nominal|
+    mirror: str  # "desired"
+    definitions: dict[str, str]
+    leader: tuple[Quantity, ...]
+    units: tuple[Unit, ...]
+    plant: Plant = field(default_factory=Plant)
+    #: The robot's description, loaded once with the scenario (SerialSystem or ParallelSystem).
+    system: Any = field(default=None, repr=False, compare=False)
+
+    @property
+    def controller(self) -> str:
+        return controller_of(self.robot, self.space).kind
+
+    @property
+    def period(self) -> float:
+        return 1.0 / self.rate_hz
+
+    def desired_leader(self) -> ca.Function:
+        """``t -> (x_d, x_d', x_d'')`` of the leader, derivatives exact (symbolic)."""
+        t = ca.SX.sym("t")
+        definitions: dict[str, ca.SX] = {}
+        for name, text in self.definitions.items():
+            definitions[name] = parse(text, t, definitions)
+        x = ca.vertcat(*[q.expression(t, definitions) for q in self.leader])
+        xd = ca.jacobian(x, t)
+        xdd = ca.jacobian(xd, t)
+        return ca.Function("desired_leader", [t], [x, xd, xdd], ["t"], ["x", "x_dot", "x_ddot"])
+
+
+def resolve(name_or_path: str | Path) -> Path:
+    """A bare name (``"serial_task"``) is a shipped scenario; anything else a path."""
+    return shipped(SCENARIOS_DIR, name_or_path)
+
+
+def _quantity(table: Table, key: str, text, kinds: tuple[str, ...] | None, index: int,
+              definitions: tuple[str, ...]) -> Quantity:
+    where = f"{key}[{index}]"
+    expected = ("a string '<formula in t> <unit>' with unit one of " + ", ".join(UNITS)
+                + (f" (a{'n' if kinds[0][0] in 'aeiou' else ''} {kinds[0]})" if kinds else ""))
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        raise table.error(where, expected, text)
+    if not isinstance(text, str) or len(text.rsplit(None, 1)) != 2:
+        raise table.error(where, expected, text)
+    formula, unit = text.rsplit(None, 1)
+    if unit not in UNITS or (kinds and UNITS[unit][0] != kinds[0]):
+        raise table.error(where, expected, text)
+    try:
+        parse(formula, ca.SX.sym("t"), {n: ca.SX(0) for n in definitions})
+    except ExpressionError as exc:
+        raise table.error(where, f"a valid formula ({exc})", text) from None
+    return Quantity(formula, UNITS[unit][0], UNITS[unit][1])
+
+
+def quantities(table: Table, key: str, kinds: tuple[str, ...], required: bool = True,
+               definitions: tuple[str, ...] = ()) -> tuple[Quantity, ...] | None:
+    """A list of quantities of the given kinds (``angle`` / ``length``), one per coordinate."""
+    table.used.add(key)
+    if key not in table.data:
+        if required:
+            raise table.error(key, f"a list of {len(kinds)} quantities (the key is missing)",
+                              show_got=False)
+        return None
+    items = table.data[key]
+    if not isinstance(items, list) or len(items) != len(kinds):
+        raise table.error(key, f"a list of {len(kinds)} quantities ("
+                          + ", ".join(kinds) + ")", items)
+    return tuple(_quantity(table, key, item, (kind,), i, definitions)
+                 for i, (item, kind) in enumerate(zip(items, kinds)))
+
+
+def constant_values(qs: tuple[Quantity, ...] | None) -> np.ndarray | None:
+    """Values of quantities that must not depend on t (initial states)."""
+    if qs is None:
+        return None
+    t = ca.SX.sym("t")
+    values = []
+    for q in qs:
+        expr = q.expression(t, {})
+        if ca.depends_on(expr, t):
+            raise ExpressionError(f"{q.text!r} must be a constant")
+        values.append(float(ca.evalf(expr)))
+    return np.array(values)
+
+
+def _positive_list(table: Table, key: str, size: int) -> np.ndarray:
+    return table.vector(key, size, "the gain's SI unit", check=lambda v: all(x > 0 for x in v),
+                        what="(all positive)")
+
+
+def load(name_or_path: str | Path) -> Scenario:
+    """Load a scenario and the robot description it names; the robot's adapter tells the
+    kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`)."""
+    path = resolve(name_or_path)
+    top = Table(path, read_toml(path), "")
+    top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
+    robot = top.string("robot", tuple(ROBOTS))
+    space = top.string("space", ("joint", "task"))
+    description = top.string("description", required=False, default=robot)
+    duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
+    adapter = robot_adapter(robot)
+    system = adapter.load(description)
+    layout = adapter.layout(system, space)
+
+    c = top.table("control")
+    rate = c.number("rate_Hz", "a positive number (Hz)", lambda v: v > 0, required=False,
+                    default=1000.0)
+    substeps = c.get("plant_substeps", "a positive integer", lambda v: isinstance(v, int)
+                     and not isinstance(v, bool) and v > 0, required=False, default=1)
+    variant = c.string("variant", ("corrected", "thesis"), required=False, default="corrected")
+    parameterisation = c.string("parameterisation", ("base", "inertial", "mass"),
+                                required=False, default="base")
+    adaptation = c.number("adaptation_gain", "a positive number (Gamma = value * identity)",
+                          lambda v: v > 0, required=False, default=1.0)
+    initial_estimate = c.string("initial_estimate", ("zero", "nominal"), required=False,
+                                default="zero")
+    bound = c.number("estimate_bound", "a positive number (times |p_nominal|)", lambda v: v > 0,
+                     required=False, default=10.0)
+    mirror = c.string("mirror", ("desired",), required=False, default="desired")
+    c.done()
+
+    d = top.table("desired")
+    definitions = d.get("define", "a table of named formulas in t (dimensionless)",
+                        lambda v: isinstance(v, dict) and all(isinstance(x, str)
+                                                              for x in v.values()),
+                        required=False, default={})
+    t = ca.SX.sym("t")
+    defs: dict[str, ca.SX] = {}
+    for name, text in definitions.items():
+        try:
+            defs[name] = parse(text, t, defs)
+        except ExpressionError as exc:
+            raise d.error(f"define.{name}", f"a valid formula ({exc})", text) from None
+    leader = quantities(d, "leader", layout.leader, definitions=tuple(definitions))
+    d.done()
+
+    gain_set = controller_of(robot, space)
+    units = []
+    unit_tables = top.tables("unit", "one per controlled unit: "
+                             + ", ".join(layout.units))
+    if [u.data.get("name") for u in unit_tables] != list(layout.units):
+        raise DescriptionError(path, "unit", "units named, in order, "
+                               + ", ".join(repr(u) for u in layout.units),
+                               [u.data.get("name") for u in unit_tables])
+    for u in unit_tables:
+        name = u.string("name")
+        joint_q = quantities(u, "initial_joint", layout.joint, required=False)
+        task_q = quantities(u, "initial_task", layout.task, required=False)
+        if (joint_q is None) == (task_q is None):
+            raise u.error("initial_joint", "exactly one of initial_joint or initial_task",
+                          show_got=False)
+        velocity_q = quantities(u, "initial_velocity", layout.joint, required=False)
+        elbow = u.get("elbow", "+1 or -1 (inverse-kinematics branch)", lambda v: v in (1, -1)
+                      and not isinstance(v, bool), required=False)
+        g = u.table("gains")
+        gains = {k: _positive_list(g, k, gain_set.size(k, layout.n_joint, layout.n_task))
+                 for k in gain_set.required}
+        weight = gain_set.weight
+        if weight:
+            size = gain_set.size(weight, layout.n_joint, layout.n_task)
+            given = g.vector(weight, size, "the gain's SI unit", required=False,
+                             check=lambda v: all(x > 0 for x in v), what="(all positive)")
+            gains[weight] = np.ones(size) if given is None else given
+        g.done()
+        u.done()
+        try:
+            units.append(Unit(name, constant_values(joint_q), constant_values(task_q),
+                              constant_values(velocity_q), elbow, gains))
+        except ExpressionError as exc:
+            raise u.error("initial_joint", f"constant values ({exc})", show_got=False) from None
+
+    plant = Plant()
+    if "plant" in top.data:
+        p = top.table("plant")
+        n_bodies = layout.n_bodies
+        plant = Plant(
+            mass_scale=p.vector("mass_scale", n_bodies, "(dimensionless)", required=False,
+                                check=lambda v: all(x > 0 for x in v),
+                                what=f"(one positive factor per body: {n_bodies})"),
+            payload_kg=p.number("payload_kg", "a non-negative number (kg)", lambda v: v >= 0,
+                                required=False, default=0.0),
+            viscous_friction=p.vector("viscous_friction_SI", layout.n_joint,
+                                      "N m s/rad (revolute) or N s/m (prismatic)",
+                                      check=lambda v: all(x >= 0 for x in v), required=False),
+            noise_q_std=p.number("noise_q_std_SI", "a non-negative number (rad or m)",
+                                 lambda v: v >= 0, required=False, default=0.0),
+            noise_qd_std=p.number("noise_qd_std_SI", "a non-negative number (rad/s or m/s)",
+                                  lambda v: v >= 0, required=False, default=0.0),
+            delay_periods=p.get("delay_periods", "a non-negative integer",
+                                lambda v: isinstance(v, int) and not isinstance(v, bool)
+                                and v >= 0, required=False, default=0),
+            seed=p.get("seed", "an integer", lambda v: isinstance(v, int), required=False,
+                       default=0),
+        )
+        p.done()
+    top.done()
+    return Scenario(path, path.stem, robot, space, description, duration, rate, substeps,
+                    variant, parameterisation, adaptation, initial_estimate, bound, mirror,
+                    dict(definitions), leader, tuple(units), plant, system)

@@ -1,0 +1,110 @@
+"""What each controlled unit of a scenario needs to run: the robot's plan (models, initial state,
+desired trajectory) plus the controller, its gains and the simulated plant's parameters.
+
+The same setups drive the as-fast simulation (CasADi or C kernels), the real-time loop and the
+emulator, so every one of them runs exactly the same controller on exactly the same plant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ..control import Controller, build
+from ..robots import robot
+from ..robots.model import RobotModel
+from . import scenario as scenario_mod
+
+
+@dataclass
+class UnitSetup:
+    """Everything one controlled unit needs, in SI."""
+
+    name: str
+    controller_model: RobotModel
+    plant_model: RobotModel  # full inertial parameterisation
+    plant_params: np.ndarray
+    controller: Controller
+    desired: ca.Function  # t -> (xd, xd_dot, xd_ddot) in the controller's space
+    x0: np.ndarray  # [q0, qd0]
+    gains: np.ndarray
+    gamma: np.ndarray
+    bound: float
+    p_hat0: np.ndarray
+    friction: np.ndarray
+    joint_units: tuple[str, ...]  # "rad" | "m" per joint
+    task_names: tuple[str, ...]
+    task_units: tuple[str, ...]
+    task_angles: tuple[int, ...]
+    fk_world: ca.Function = field(repr=False)
+    #: Tool points drawn in the path figure: label -> indices of (u, v) in the task pose.
+    tool_points: tuple[tuple[str, tuple[int, int]], ...] = (("tool", (0, 1)),)
+    #: Centre of the cochlea-centred circle in the path figure (m, world frame).
+    centre: tuple[float, float] = (0.0, 0.0)
+    #: Index of the joint whose value moves the keep-out centre along v (the parallel
+    #: mechanism's slider: S = (0, d1)), or None for a fixed centre at ``centre``.
+    moving_centre_joint: int | None = None
+
+    def keep_out_centre(self, q) -> tuple[float, float]:
+        """Centre of the safety keep-out circle at joint position q (m, world frame)."""
+        if self.moving_centre_joint is None:
+            return self.centre
+        return (0.0, float(q[self.moving_centre_joint]))
+
+
+def perturbed_parameters(full, plant: scenario_mod.Plant,
+                         payload_points: dict[str, np.ndarray]) -> np.ndarray:
+    """Full inertial parameters of the simulated robot: bodies scaled, payloads added.
+
+    Works from the parameter names ``<body>.<m|mx|my|mz|Ixx|...>`` of any model: each body's
+    parameters scale with ``plant.mass_scale`` (same shape, denser), and a point mass
+    ``plant.payload_kg`` is added at ``payload_points[body]`` (m, body frame).
+    """
+    p = np.asarray(full.nominal, float).copy()
+    bodies = list(dict.fromkeys(name.rsplit(".", 1)[0] for name in full.names))
+    if plant.mass_scale is not None:
+        for body, scale in zip(bodies, plant.mass_scale, strict=True):
+            for i, name in enumerate(full.names):
+                if name.rsplit(".", 1)[0] == body:
+                    p[i] *= scale
+    m = plant.payload_kg
+    for body, point in payload_points.items():
+        x, y, z = (list(point) + [0.0, 0.0])[:3]
+        added = {"m": m, "mx": m * x, "my": m * y, "mz": m * z,
+                 "Ixx": m * (y * y + z * z), "Iyy": m * (x * x + z * z),
+                 "Izz": m * (x * x + y * y), "Ixy": -m * x * y, "Ixz": -m * x * z,
+                 "Iyz": -m * y * z}
+        for i, name in enumerate(full.names):
+            owner, kind = name.rsplit(".", 1)
+            if owner == body:
+                p[i] += added[kind]
+    return p
+
+
+def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
+    """Every controlled unit of the scenario, ready to run (the description read once, with
+    the scenario)."""
+    adapter = robot(sc.robot)
+    system = sc.system if sc.system is not None else adapter.load(sc.description)
+    setups = []
+    for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
+        m = plan.controller_model
+        controller = build(m, sc.controller, variant=sc.variant, task_angles=plan.task_angles,
+                           task=plan.task)
+        gains = np.concatenate([unit.gains[k] for k in controller.gain_names])
+        n_p = len(m.param_names)
+        bound = sc.estimate_bound * max(np.linalg.norm(m.p_nominal), 1e-12)
+        p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal
+        friction = (sc.plant.viscous_friction if sc.plant.viscous_friction is not None
+                    else np.zeros(m.nq))
+        plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
+                                            plan.payload_points)
+        setups.append(UnitSetup(
+            plan.name, m, plan.plant_model, plant_params, controller, plan.desired, plan.x0,
+            gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0, friction,
+            plan.joint_units, plan.task_names, plan.task_units, plan.task_angles, plan.fk_world,
+            tool_points=plan.tool_points, centre=plan.centre,
+            moving_centre_joint=plan.moving_centre_joint))
+    return setups

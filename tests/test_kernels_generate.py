@@ -1,0 +1,167 @@
+"""cochlea-codegen: the configuration, determinism, and generated_c/ kept fresh (the CI check)."""
+
+from __future__ import annotations
+
+import dataclasses
+import filecmp
+import json
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from cochlea.kernels import generate as codegen
+from cochlea.kernels.generate import CodegenError, load_config
+from cochlea.resources import CODEGEN_DIR
+
+ROOT = Path(__file__).resolve().parent.parent
+GENERATED = ROOT / "generated_c"
+
+
+@pytest.fixture(scope="module")
+def config():
+    return load_config()
+
+
+@pytest.fixture(scope="module")
+def regenerated(tmp_path_factory, config):
+    out = tmp_path_factory.mktemp("generated_c")
+    codegen.generate(config, out)
+    return out
+
+
+def test_generated_c_is_fresh(regenerated):
+    """The CI check: regenerating from models/ and codegen/ gives generated_c/ byte for byte.
+    If this fails, run `cochlea-codegen` (or `make codegen`) and commit generated_c/."""
+    fresh = sorted(p.name for p in regenerated.iterdir())
+    committed = sorted(p.name for p in GENERATED.iterdir())
+    assert fresh == committed, "files added or removed: run cochlea-codegen"
+    stale = [name for name in fresh
+             if not filecmp.cmp(regenerated / name, GENERATED / name, shallow=False)]
+    assert not stale, f"generated_c/ is stale ({', '.join(stale)}): run cochlea-codegen"
+
+
+def test_generation_is_deterministic(regenerated, config, tmp_path):
+    codegen.generate(config, tmp_path)
+    for path in regenerated.iterdir():
+        assert path.read_bytes() == (tmp_path / path.name).read_bytes(), path.name
+
+
+def test_check_mode_reports_a_stale_folder(config, tmp_path):
+    stale = tmp_path / "generated_c"
+    shutil.copytree(GENERATED, stale)
+    (stale / "serial_arm1.c").write_text((stale / "serial_arm1.c").read_text() + "\n")
+    (stale / "extra.c").write_text("int x;\n")
+    assert codegen.check(dataclasses.replace(config, output=stale)) == ["extra.c",
+                                                                        "serial_arm1.c"]
+
+
+def test_console_script_is_declared():
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["cochlea-codegen"] == "cochlea.apps.cochlea_codegen:main"
+
+
+@pytest.mark.slow
+def test_check_command_exit_codes(tmp_path):
+    script = [sys.executable, "-m", "cochlea.apps.cochlea_codegen"]
+    ok = subprocess.run(script + ["--check"], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    assert "up to date" in ok.stdout
+    text = (CODEGEN_DIR / "kernels.toml").read_text()
+    moved = tmp_path / "kernels.toml"
+    moved.write_text(text.replace('output = "generated_c"', f'output = "{tmp_path / "out"}"'))
+    (tmp_path / "out").mkdir()
+    stale = subprocess.run(script + ["--check", "--config", str(moved)], capture_output=True,
+                           text=True)
+    assert stale.returncode == 1
+    assert "stale" in stale.stderr and "cochlea-codegen" in stale.stderr
+
+
+def test_every_configured_kernel_is_generated(config):
+    manifest = _manifest_json()
+    names = set(manifest["kernels"])
+    for robot in config.robots:
+        prefixes = [f"{robot.name}_{u}" for u in robot.units] or [robot.name]
+        for prefix in prefixes:
+            for key in robot.kernels:
+                assert f"{prefix}_{key}" in names
+            assert f"{prefix}_plant_step" in names
+            for kind in robot.controllers:
+                for variant in robot.variants:
+                    group = f"{prefix}_{kind}" + ("" if variant == "corrected" else f"_{variant}")
+                    for part in codegen.CONTROLLER_PARTS:
+                        assert f"{group}_{part}" in names
+                    assert f"{group}_closed_loop" in manifest["closed_loops"]
+    # The issue's list: M, C, G, fk, J, forward dynamics, RK4 plant step per robot.
+    for unit in ("serial_arm1", "serial_arm2", "parallel"):
+        for key in ("M", "C", "G", "fk", "J", "forward_dynamics", "plant_step"):
+            assert f"{unit}_{key}" in names
+
+
+def test_kernels_need_no_work_memory():
+    for name, entry in _manifest_json()["kernels"].items():
+        assert entry["work"]["iw"] == 0 and entry["work"]["w"] == 0, name
+        assert entry["work"]["arg"] == len(entry["inputs"]), name
+        assert entry["work"]["res"] == len(entry["outputs"]), name
+
+
+def test_readme_documents_every_function():
+    readme = (GENERATED / "README.md").read_text()
+    manifest = _manifest_json()
+    for name, entry in manifest["kernels"].items():
+        section = readme.split(f"### `{name}`\n", 1)
+        assert len(section) == 2, f"README has no section for {name}"
+        body = section[1].split("### ", 1)[0]
+        assert "Work memory" in body
+        for i, arg in enumerate(entry["inputs"]):
+            row = f"| in {i} | `{arg['name']}` | {arg['rows']}x{arg['cols']} | "
+            assert row in body, (name, row)
+        for i, arg in enumerate(entry["outputs"]):
+            row = f"| out {i} | `{arg['name']}` | {arg['rows']}x{arg['cols']} | "
+            assert row in body, (name, row)
+            assert not body.split(row, 1)[1].startswith(" |"), f"{name}.{arg['name']}: no unit"
+    for loop in manifest["closed_loops"]:
+        assert f"| `{loop}` |" in readme
+    assert "make lib" in readme and "without Python" in readme
+
+
+def test_generated_code_has_no_timestamps_or_paths():
+    for path in GENERATED.iterdir():
+        text = path.read_text()
+        assert str(ROOT) not in text, path.name
+        assert not re.search(r"\b20\d\d-\d\d-\d\d\b", text), path.name
+
+
+def test_configuration_errors_name_the_key(tmp_path):
+    good = (CODEGEN_DIR / "kernels.toml").read_text()
+    cases = [
+        (good.replace('format = "cochlea-codegen/1"', 'format = "x"'), "format"),
+        (good.replace('controllers = ["e", "g"]', 'controllers = ["d"]'),
+         "robot[0].controllers"),
+        (good.replace('variants = ["corrected", "thesis"]', 'variants = ["best"]', 1),
+         "robot[0].variants"),
+        (good.replace("plant_substeps = 1", "plant_substeps = 0", 1), "robot[0].plant_substeps"),
+        ("speed = 3\n" + good, "speed"),
+        (good.replace('task = ["fk_world", "J_world"]', 'task = ["fk"]'), "robot[0].task"),
+    ]
+    for text, key in cases:
+        path = tmp_path / "k.toml"
+        path.write_text(text)
+        with pytest.raises(CodegenError, match=re.escape(f"{path}: {key}:")):
+            load_config(path)
+    bad_kernel = tmp_path / "kernel.toml"
+    bad_kernel.write_text(good.replace('"M", "C"', '"Mass", "C"', 1))
+    with pytest.raises(CodegenError, match="has no Function 'Mass'"):
+        codegen.collect(load_config(bad_kernel))
+
+
+def _manifest_json() -> dict:
+    text = (GENERATED / "manifest.c").read_text()
+    body = text.split("static const char manifest[] =\n", 1)[1].split(";\n", 1)[0]
+    lines = re.findall(r'^  "(.*)\\n"$', body, flags=re.M)
+    return json.loads("\n".join(line.replace('\\"', '"').replace("\\\\", "\\")
+                                for line in lines))

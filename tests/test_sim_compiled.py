@@ -1,0 +1,152 @@
+"""The simulation on the C kernels gives the CasADi reference's log to 1e-10, for every scenario
+in models/scenarios/, through the all-in-C loop and the Python loop over ctypes kernels."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cochlea.sim
+from cochlea.errors import CochleaError
+from cochlea.resources import SCENARIOS_DIR
+from cochlea.sim import compiled as csim
+from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import Plant
+
+ROOT = Path(__file__).resolve().parent.parent
+
+SCENARIOS = sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
+FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
+DURATION = 1.5  # s: short, to keep the suite fast (the benchmark runs full length)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def library():
+    subprocess.run(["make", "-s", "lib"], cwd=ROOT, check=True, capture_output=True)
+
+
+def assert_same_log(result, reference, tol=1e-10, rows=None):
+    """Every logged array equal to ``tol`` (relative and absolute); ``rows`` limits the
+    comparison to the first rows (a diverging run's last rows grow past 1e100, where any two
+    correct evaluations part ways)."""
+    assert np.array_equal(result.time, reference.time)
+    assert result.diverged == reference.diverged
+    assert [u.name for u in result.units] == [u.name for u in reference.units]
+    for u, r in zip(result.units, reference.units):
+        for key in FIELDS:
+            a, b = getattr(u, key), getattr(r, key)
+            assert a.shape == b.shape, (u.name, key)
+            np.testing.assert_allclose(a[:rows], b[:rows], rtol=tol, atol=tol,
+                                       err_msg=f"{u.name}.{key}")
+
+
+@pytest.fixture(scope="module")
+def references():
+    runs = {}
+    for name in SCENARIOS:
+        sc = load_scenario(name)
+        setups = unit_setups(sc)
+        runs[name] = (sc, setups, simulate(sc, DURATION, setups, kernels="casadi"))
+    return runs
+
+
+def test_every_scenario_is_covered():
+    assert {"serial_joint", "serial_task"} <= set(SCENARIOS)
+
+
+@pytest.mark.parametrize("loop", csim.LOOPS)
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_c_backend_gives_the_reference_log(references, name, loop):
+    sc, setups, reference = references[name]
+    result = csim.simulate_compiled(sc, DURATION, setups, loop=loop)  # no fallback: C or fail
+    assert_same_log(result, reference)
+    assert len(result.time) == round(DURATION * sc.rate_hz)
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_default_kernels_are_c(references, name, monkeypatch):
+    sc, setups, reference = references[name]
+    calls = []
+    real = csim.simulate_compiled
+    monkeypatch.setattr(cochlea.sim, "simulate_compiled",
+                        lambda *a, **k: calls.append(k) or real(*a, **k))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no fallback to CasADi
+        result = simulate(sc, DURATION, setups)
+    assert calls == [{"fallback": True}]
+    assert_same_log(result, reference)
+
+
+@pytest.mark.parametrize("loop", csim.LOOPS)
+def test_noise_delay_and_friction_match(loop):
+    sc = load_scenario("serial_joint")
+    sc = dataclasses.replace(sc, plant=Plant(noise_q_std=1e-3, noise_qd_std=1e-2,
+                                             delay_periods=3, viscous_friction=np.full(3, 1e-3),
+                                             mass_scale=np.full(3, 1.2), payload_kg=0.01,
+                                             seed=11))
+    setups = unit_setups(sc)
+    reference = simulate(sc, 0.5, setups, kernels="casadi")
+    assert_same_log(csim.simulate_compiled(sc, 0.5, setups, loop=loop), reference)
+
+
+@pytest.mark.parametrize("loop", csim.LOOPS)
+def test_divergence_stops_both_backends_at_the_same_period(loop):
+    """Arm 2's printed G_a diverges within 0.1 s (README): same rows, same time, and the noise
+    of the units after it drawn as the reference does."""
+    sc = load_scenario("serial_task")
+    units = list(sc.units)
+    units[1] = dataclasses.replace(units[1], gains={**units[1].gains,
+                                                    "G_a": np.array([0.1, 0.05, 1.0])})
+    for plant in (Plant(), Plant(noise_q_std=1e-6, seed=3)):
+        diverging = dataclasses.replace(sc, units=tuple(units), plant=plant)
+        setups = unit_setups(diverging)
+        reference = simulate(diverging, 0.3, setups, kernels="casadi")
+        assert reference.diverged and "arm2" in reference.diverged
+        result = csim.simulate_compiled(diverging, 0.3, setups, loop=loop)
+        wild = [np.abs(getattr(u, key)).max(axis=1) > 1e6 for u in reference.units
+                for key in FIELDS]
+        tame = min(int(np.argmax(w)) if w.any() else len(w) for w in wild)
+        assert tame >= 3  # the rows before the blow-up are compared
+        assert_same_log(result, reference, rows=tame)
+
+
+def test_unavailable_kernels_fall_back_with_a_warning(tmp_path):
+    sc = load_scenario("serial_joint")
+    base = dataclasses.replace(sc, parameterisation="base", adaptation_gain=1e-4)
+    setups = unit_setups(base)
+    with pytest.raises(csim.CKernelsUnavailable, match="computes something else|no kernel"):
+        csim.simulate_compiled(base, 0.05, setups)
+    with pytest.warns(csim.CKernelsWarning, match="CasADi kernels"):
+        result = simulate(base, 0.05, setups)
+    assert_same_log(result, simulate(base, 0.05, setups, kernels="casadi"), tol=0)
+    with pytest.raises(csim.CKernelsUnavailable, match="make lib"):
+        csim.simulate_compiled(sc, 0.05, library=tmp_path / "missing.so")
+
+
+def test_other_rk4_substeps_are_not_generated():
+    sc = dataclasses.replace(load_scenario("serial_joint"), plant_substeps=2)
+    with pytest.raises(csim.CKernelsUnavailable, match="2 RK4 sub-steps"):
+        csim.simulate_compiled(sc, 0.01)
+
+
+def test_bad_kernels_and_loop_are_user_errors():
+    sc = load_scenario("serial_joint")
+    with pytest.raises(CochleaError, match="unknown kernels 'fortran'"):
+        simulate(sc, 0.01, kernels="fortran")
+    with pytest.raises(CochleaError, match="unknown loop"):
+        csim.simulate_compiled(sc, 0.01, loop="rust")
+
+
+def test_desired_samples_are_the_desired_function(references):
+    sc, setups, _ = references["serial_task"]
+    time = np.arange(50) * sc.period
+    xd, xd_dot, xd_ddot = csim.desired_samples(setups[1], time)
+    for k in (0, 17, 49):
+        expected = [np.array(v).ravel() for v in setups[1].desired(time[k])]
+        for got, want in zip((xd[k], xd_dot[k], xd_ddot[k]), expected):
+            assert np.allclose(got, want, rtol=1e-14, atol=1e-15)
