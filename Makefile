@@ -32,7 +32,7 @@ test-fast: $(STAMP) lib
 	$(BIN)/python -m pytest -m "not slow and not realtime and not hil" -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check cochlea tests bench
+	$(BIN)/ruff check cochlea tests bench setup.py
 
 # The C kernels: build/libcochlea.so from the committed generated_c/, no Python needed.
 # Warnings are errors, so none can creep into the generated code.
