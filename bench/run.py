@@ -413,7 +413,7 @@ def markdown(results: dict) -> str:
     out += ["", f"Every path's outputs agree with the CasADi Function to {max(checks):.1e} "
                 "(relative to max(1, |value|)).", "",
             "## Closed-loop simulation (real-time factor: simulated s per wall s)", "",
-            "Full scenario length. *CasADi*: `simulate(backend=\"casadi\")`, the reference; "
+            "Full scenario length. *CasADi*: `simulate(kernels=\"casadi\")`, the reference; "
             "*Python + ctypes*: a Python loop over the step, plant and pose kernels "
             "(`simulate_compiled(loop=\"python\")`); *all-in-C*: `simulate()` (the default: the "
             "generated driver, units on parallel threads, setup included); *C driver*: the "

@@ -61,7 +61,7 @@ def test_every_scenario_is_covered():
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", SCENARIOS)
-def test_c_backend_gives_the_reference_log(references, name, loop):
+def test_c_kernels_give_the_reference_log(references, name, loop):
     sc, setups, reference = references[name]
     result = csim.simulate_compiled(sc, DURATION, setups, loop=loop)  # no fallback: C or fail
     assert_same_log(result, reference)
@@ -95,7 +95,7 @@ def test_noise_delay_and_friction_match(loop):
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
-def test_divergence_stops_both_backends_at_the_same_period(loop):
+def test_divergence_stops_both_kernels_at_the_same_period(loop):
     """Arm 2's printed G_a diverges within 0.1 s (README): same rows, same time, and the noise
     of the units after it drawn as the reference does."""
     sc = load_scenario("serial_task")

@@ -47,7 +47,7 @@ def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
         names += [f"{u.name}.{aux}.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
         names += [f"{u.name}.tau.{j}_{_EFFORT_UNIT[un]}" for j, un in zip(joints, ju)]
         params = u.setup.controller_model.parameters
-        names += [f"{u.name}.p_hat.{p}_{_slug(un)}" for p, un in zip(params.names, params.units)]
+        names += [f"{u.name}.p_hat.{p}_{_slug(un)}" for p, un in zip(params.names, params.si_units)]
         names += [f"{u.name}.pose.{c}_{un}" for c, un in zip(u.setup.task_names,
                                                               u.setup.task_units)]
         n_track = u.setup.controller.n_desired
@@ -94,7 +94,7 @@ def unit_summary(u: UnitLog) -> dict:
         "torque": torque,
         "estimates": {
             "names": list(params.names),
-            "units": list(params.units),
+            "units": list(params.si_units),
             "bound_norm": u.setup.bound,
             "max_norm": float(np.max(norms)),
             "bounded": bool(np.isfinite(u.p_hat).all()
@@ -201,7 +201,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
 
         params = u.setup.controller_model.parameters
         fig, axes = _grid(plt, 1, f"{label_text}: {u.name}, parameter estimates")
-        for i, (name, unit) in enumerate(zip(params.names, params.units)):
+        for i, (name, unit) in enumerate(zip(params.names, params.si_units)):
             axes[0].plot(t, u.p_hat[:, i], label=f"{name} [{unit}]")
         axes[0].set_ylabel("estimate [SI]")
         axes[0].legend(loc="best", fontsize=7, ncol=2)

@@ -288,7 +288,7 @@ class _Units:
         self.stiffness = per_joint("N m/rad", "N/m")
         task_units = ("m", "m", "rad")
         self.task = ", ".join(task_units * (m.functions["fk"].size1_out(0) // 3))
-        self.params = ", ".join(dict.fromkeys(m.parameters.units)) + " (see the parameter list)"
+        self.params = ", ".join(dict.fromkeys(m.parameters.si_units)) + " (see the parameter list)"
 
     def _desired(self, rate: str) -> str:
         if self.c is not None and self.c.space == "task":

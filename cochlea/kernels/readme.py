@@ -120,7 +120,7 @@ def _parameters(config: CodegenConfig) -> list[str]:
                                        "`p_hat`, `Gamma` of the controllers")):
             m = model(robot.name, arm=unit, parameterisation=parameterisation)
             entries = ", ".join(f"`{n}` {u}" for n, u in zip(m.param_names,
-                                                             m.parameters.units))
+                                                             m.parameters.si_units))
             lines.append(f"- {robot.name}, {parameterisation} ({len(m.param_names)}; {use}): "
                          f"{entries}")
     lines.append("")

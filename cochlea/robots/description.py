@@ -51,7 +51,7 @@ class MotorFit:
 
 @dataclass(frozen=True)
 class Motor:
-    """The Dynamixel driving a joint and how the bridge maps it (``cochlea.dynamixel.units``).
+    """The Dynamixel driving a joint and how the bridge maps it (``cochlea.dynamixel.drives``).
 
     ``zero_offset`` is the motor's angle (rad, Present Position x 2 pi / 4096) at which the
     joint coordinate is zero and ``direction`` (+1 or -1) whether joint and motor turn the same

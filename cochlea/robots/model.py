@@ -190,7 +190,7 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
         chosen = params_mod.mass_only(full.names, full.nominal, bodies)
     else:
         full_functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, {}, full)
-        chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.units,
+        chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.si_units,
                                  [n, n, n, n])
     functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen)
     return RobotModel(name, joints, chosen, method, functions, full, source)

@@ -22,14 +22,15 @@ class Parameterisation:
     kind: str  # one of PARAMETERISATIONS
     names: tuple[str, ...]
     nominal: np.ndarray
-    units: tuple[str, ...]
+    si_units: tuple[str, ...]  # the SI unit of each parameter ("kg", "kg m", "kg m^2")
     to_full: np.ndarray  # (n_full, n): phi_full = to_full @ p
     meanings: tuple[str, ...]  # what each parameter is or combines, printable
 
     def describe(self) -> str:
         width = max(len(n) for n in self.names)
         lines = [f"{self.kind} parameters ({len(self.names)}):"]
-        for name, value, unit, meaning in zip(self.names, self.nominal, self.units, self.meanings):
+        for name, value, unit, meaning in zip(self.names, self.nominal, self.si_units,
+                                              self.meanings):
             lines.append(f"  {name:<{width}} = {value: .6e} {unit:<7}  {meaning}")
         return "\n".join(lines)
 

@@ -114,7 +114,7 @@ def _full_parameters(system: ParallelSystem):
                               for body, s in planar_blocks]
     full = params_mod.inertial(slider.names + planar.names,
                                np.concatenate([slider.nominal, planar.nominal]),
-                               slider.units + planar.units, slider.meanings + planar.meanings)
+                               slider.si_units + planar.si_units, slider.meanings + planar.meanings)
     return full, blocks
 
 
