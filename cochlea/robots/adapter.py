@@ -19,9 +19,10 @@ mechanism. (Physical units are called SI units everywhere.)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import casadi as ca
 import numpy as np
@@ -29,8 +30,31 @@ import numpy as np
 from .description import Motor
 from .model import RobotModel
 
-if TYPE_CHECKING:  # the scenario is read by the simulation layer, above this one
-    from ..sim.scenario import Scenario
+
+class UnitStart(Protocol):
+    """What an adapter reads of one unit of a scenario (SI): its initial state."""
+
+    name: str
+    initial_joint: np.ndarray | None
+    initial_task: np.ndarray | None
+    initial_velocity: np.ndarray | None
+    elbow: int | None  # inverse-kinematics branch where the robot has one
+
+
+class ScenarioView(Protocol):
+    """What an adapter reads of a scenario. Scenarios are read by the simulation layer above
+    (:class:`cochlea.sim.scenario.Scenario`), so the robots see them through this view."""
+
+    name: str
+    space: str  # "joint" | "task"
+    duration: float  # s
+    parameterisation: str
+    units: Sequence[UnitStart]
+
+    @property
+    def period(self) -> float: ...  # s
+
+    def desired_leader(self) -> ca.Function: ...  # t -> (x, x_dot, x_ddot) of the leader
 
 
 @dataclass(frozen=True)
@@ -116,7 +140,7 @@ class RobotAdapter:
     def layout(self, system: Any, space: str) -> Layout:
         raise NotImplementedError
 
-    def unit_plans(self, system: Any, scenario: Scenario) -> list[UnitPlan]:
+    def unit_plans(self, system: Any, scenario: ScenarioView) -> list[UnitPlan]:
         raise NotImplementedError
 
     def actuated_joints(self, system: Any) -> list[ActuatedJoint]:

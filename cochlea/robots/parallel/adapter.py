@@ -13,29 +13,33 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
 from ...errors import KinematicsError
-from ..adapter import ActuatedJoint, Layout, RobotAdapter, UnitPlan, desired_function
+from ..adapter import (
+    ActuatedJoint,
+    Layout,
+    RobotAdapter,
+    ScenarioView,
+    UnitPlan,
+    UnitStart,
+    desired_function,
+)
 from ..model import RobotModel
 from .description import ParallelSystem, load_parallel
 from .model import build_model
-
-if TYPE_CHECKING:
-    from ...sim.scenario import Scenario, Unit
 
 UNIT = "mechanism"
 END_EFFECTORS = ("left.link5", "right.link5")  # the magnets; their frames sit at C and C'
 
 
-def _sample_times(sc: Scenario, count: int = 501) -> np.ndarray:
+def _sample_times(sc: ScenarioView, count: int = 501) -> np.ndarray:
     return np.linspace(0.0, sc.duration, count)
 
 
-def _check_workspace(geometry, q_of_t: ca.Function, sc: Scenario) -> None:
+def _check_workspace(geometry, q_of_t: ca.Function, sc: ScenarioView) -> None:
     """Refuse a desired trajectory that leaves the workspace, before anything runs."""
     for t in _sample_times(sc):
         q = np.array(q_of_t(t)).ravel()
@@ -45,7 +49,7 @@ def _check_workspace(geometry, q_of_t: ca.Function, sc: Scenario) -> None:
                                   f"workspace at t = {t:.3f} s: {'; '.join(problems)}")
 
 
-def _initial_joint(geometry, unit: Unit) -> np.ndarray:
+def _initial_joint(geometry, unit: UnitStart) -> np.ndarray:
     if unit.initial_joint is not None:
         q0 = unit.initial_joint
     else:
@@ -87,7 +91,7 @@ class ParallelRobot(RobotAdapter):
         return Layout(leader=joint[:3] if space == "joint" else task[:3], joint=joint,
                       task=task, units=(UNIT,), n_joint=5, n_task=6, n_bodies=n_bodies)
 
-    def unit_plans(self, system: ParallelSystem, sc: Scenario) -> list[UnitPlan]:
+    def unit_plans(self, system: ParallelSystem, sc: ScenarioView) -> list[UnitPlan]:
         ctrl_model = self.model(system, parameterisation=sc.parameterisation)
         plant = self.model(system, parameterisation="inertial")
         geometry = ctrl_model.geometry

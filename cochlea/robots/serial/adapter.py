@@ -6,27 +6,31 @@ elbow branch."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
 from ...errors import DescriptionError
-from ..adapter import ActuatedJoint, Layout, RobotAdapter, UnitPlan, desired_function
+from ..adapter import (
+    ActuatedJoint,
+    Layout,
+    RobotAdapter,
+    ScenarioView,
+    UnitPlan,
+    UnitStart,
+    desired_function,
+)
 from ..model import RobotModel
 from .description import Arm, SerialSystem, load_serial
 from .ik import UnreachableTarget, elbow_cosine, ik, ik_symbolic, world_to_base
 from .model import build_model
-
-if TYPE_CHECKING:
-    from ...sim.scenario import Scenario
 
 TASK_NAMES = ("x", "y", "phi")
 TASK_UNITS = ("m", "m", "rad")
 TASK_ANGLES = (2,)
 
 
-def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: Scenario) -> None:
+def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView) -> None:
     """Refuse a follower trajectory that leaves the workspace, before anything runs."""
     c2 = ca.Function("c2", [t], [elbow_cosine(arm, pose_base_t)])
     times = np.arange(0.0, sc.duration + 0.5 * sc.period, sc.period)
@@ -38,7 +42,7 @@ def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: Scenario) -> No
                                 f"workspace at t = {times[k]:.3f} s (cos th2 = {values[k]:.4f})")
 
 
-def _initial_joint(arm: Arm, unit) -> np.ndarray:
+def _initial_joint(arm: Arm, unit: UnitStart) -> np.ndarray:
     """The initial joint position; the branch is explicit for a task-space initial pose."""
     if unit.initial_joint is not None:
         return unit.initial_joint
@@ -69,7 +73,7 @@ class SerialRobot(RobotAdapter):
                       units=tuple(a.name for a in system.arms), n_joint=n, n_task=3,
                       n_bodies=n)
 
-    def unit_plans(self, system: SerialSystem, sc: Scenario) -> list[UnitPlan]:
+    def unit_plans(self, system: SerialSystem, sc: ScenarioView) -> list[UnitPlan]:
         t = ca.SX.sym("t")
         x_lead, _, _ = sc.desired_leader()(t)
         models = {a.name: self.model(system, a, sc.parameterisation) for a in system.arms}
