@@ -4,12 +4,9 @@
 #define COCHLEA_H
 #include "serial_arm1.h"
 #include "serial_arm1_e.h"
-#include "serial_arm1_e_thesis.h"
 #include "serial_arm1_g.h"
 #include "serial_arm1_g_thesis.h"
 #include "serial_arm2.h"
-#include "serial_arm2_e.h"
-#include "serial_arm2_e_thesis.h"
 #include "serial_arm2_g.h"
 #include "serial_arm2_g_thesis.h"
 #include "parallel.h"

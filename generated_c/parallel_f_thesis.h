@@ -17,24 +17,6 @@ extern "C" {
 #define casadi_int long long int
 #endif
 
-int parallel_f_thesis_Y(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem);
-int parallel_f_thesis_Y_checkout(void);
-void parallel_f_thesis_Y_release(int mem);
-void parallel_f_thesis_Y_incref(void);
-void parallel_f_thesis_Y_decref(void);
-casadi_int parallel_f_thesis_Y_n_in(void);
-casadi_int parallel_f_thesis_Y_n_out(void);
-casadi_real parallel_f_thesis_Y_default_in(casadi_int i);
-const char* parallel_f_thesis_Y_name_in(casadi_int i);
-const char* parallel_f_thesis_Y_name_out(casadi_int i);
-const casadi_int* parallel_f_thesis_Y_sparsity_in(casadi_int i);
-const casadi_int* parallel_f_thesis_Y_sparsity_out(casadi_int i);
-int parallel_f_thesis_Y_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-int parallel_f_thesis_Y_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define parallel_f_thesis_Y_SZ_ARG 6
-#define parallel_f_thesis_Y_SZ_RES 1
-#define parallel_f_thesis_Y_SZ_IW 0
-#define parallel_f_thesis_Y_SZ_W 0
 int parallel_f_thesis_law(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem);
 int parallel_f_thesis_law_checkout(void);
 void parallel_f_thesis_law_release(int mem);
@@ -53,24 +35,6 @@ int parallel_f_thesis_law_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, cas
 #define parallel_f_thesis_law_SZ_RES 3
 #define parallel_f_thesis_law_SZ_IW 0
 #define parallel_f_thesis_law_SZ_W 0
-int parallel_f_thesis_update(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem);
-int parallel_f_thesis_update_checkout(void);
-void parallel_f_thesis_update_release(int mem);
-void parallel_f_thesis_update_incref(void);
-void parallel_f_thesis_update_decref(void);
-casadi_int parallel_f_thesis_update_n_in(void);
-casadi_int parallel_f_thesis_update_n_out(void);
-casadi_real parallel_f_thesis_update_default_in(casadi_int i);
-const char* parallel_f_thesis_update_name_in(casadi_int i);
-const char* parallel_f_thesis_update_name_out(casadi_int i);
-const casadi_int* parallel_f_thesis_update_sparsity_in(casadi_int i);
-const casadi_int* parallel_f_thesis_update_sparsity_out(casadi_int i);
-int parallel_f_thesis_update_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-int parallel_f_thesis_update_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define parallel_f_thesis_update_SZ_ARG 9
-#define parallel_f_thesis_update_SZ_RES 1
-#define parallel_f_thesis_update_SZ_IW 0
-#define parallel_f_thesis_update_SZ_W 0
 int parallel_f_thesis_step(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem);
 int parallel_f_thesis_step_checkout(void);
 void parallel_f_thesis_step_release(int mem);

@@ -14,8 +14,9 @@ The layers, lowest first (a module may import its own layer and those below):
 7. ``apps``: the command-line tools and reports; and the package's own ``__init__`` (the
    public facade), which nothing inside imports.
 
-Imports under ``if TYPE_CHECKING:`` are annotations only and are not counted; imports inside
-functions are.
+Every import counts: inside functions, and under ``if TYPE_CHECKING:`` too (an annotation that
+names a higher layer is a dependency all the same; a lower layer describes what it needs with a
+Protocol instead, as ``robots.adapter.ScenarioView`` does).
 """
 
 from __future__ import annotations
@@ -57,31 +58,12 @@ def layer(module: str) -> int:
     return LAYERS[max(matches, key=len)]
 
 
-def _is_type_checking(node: ast.If) -> bool:
-    test = node.test
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or \
-        (isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
-
-
-def _nodes(tree: ast.AST):
-    """Every node, except the bodies of ``if TYPE_CHECKING:`` blocks."""
-    stack = [tree]
-    while stack:
-        node = stack.pop()
-        yield node
-        for child in ast.iter_child_nodes(node):
-            if isinstance(child, ast.If) and _is_type_checking(child):
-                stack.extend(child.orelse)
-            else:
-                stack.append(child)
-
-
 def imports(module: str) -> list[tuple[str, str | None, int]]:
     """``(imported cochlea module, name imported from it or None, line)`` of one module."""
     path = MODULES[module]
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     found = []
-    for node in _nodes(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.name == "cochlea" or alias.name.startswith("cochlea."):

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from cochlea.kernels import generate as codegen
+from cochlea.kernels.catalogue import CONTROLLER_PARTS
 from cochlea.kernels.generate import CodegenError, load_config
 from cochlea.resources import CODEGEN_DIR
 
@@ -93,7 +94,7 @@ def test_every_configured_kernel_is_generated(config):
             for kind in robot.controllers:
                 for variant in robot.variants:
                     group = f"{prefix}_{kind}" + ("" if variant == "corrected" else f"_{variant}")
-                    for part in codegen.CONTROLLER_PARTS:
+                    for part in CONTROLLER_PARTS:
                         assert f"{group}_{part}" in names
                     assert f"{group}_closed_loop" in manifest["closed_loops"]
     # The issue's list: M, C, G, fk, J, forward dynamics, RK4 plant step per robot.
@@ -116,6 +117,9 @@ def test_readme_documents_every_function():
         section = readme.split(f"### `{name}`\n", 1)
         assert len(section) == 2, f"README has no section for {name}"
         body = section[1].split("### ", 1)[0]
+        if entry["symbol"] != name:  # an alias: documented where its symbol is
+            assert f"Alias of `{entry['symbol']}`" in body, name
+            body = readme.split(f"### `{entry['symbol']}`\n", 1)[1].split("### ", 1)[0]
         assert "Work memory" in body
         for i, arg in enumerate(entry["inputs"]):
             row = f"| in {i} | `{arg['name']}` | {arg['rows']}x{arg['cols']} | "
@@ -124,8 +128,9 @@ def test_readme_documents_every_function():
             row = f"| out {i} | `{arg['name']}` | {arg['rows']}x{arg['cols']} | "
             assert row in body, (name, row)
             assert not body.split(row, 1)[1].startswith(" |"), f"{name}.{arg['name']}: no unit"
-    for loop in manifest["closed_loops"]:
-        assert f"| `{loop}` |" in readme
+    for loop, entry in manifest["closed_loops"].items():
+        runs = "" if entry["symbol"] == loop else f" (runs `{entry['symbol']}`)"
+        assert f"| `{loop}`{runs} |" in readme
     assert "make lib" in readme and "without Python" in readme
 
 
@@ -165,3 +170,61 @@ def _manifest_json() -> dict:
     lines = re.findall(r'^  "(.*)\\n"$', body, flags=re.M)
     return json.loads("\n".join(line.replace('\\"', '"').replace("\\\\", "\\")
                                 for line in lines))
+
+
+def _normalised_body(path, names) -> str:
+    """A generated C file with its comments and every kernel, group and driver name replaced
+    by one placeholder: what it computes, not what it is called."""
+    text = re.sub(r"/\*.*?\*/", "", path.read_text(), flags=re.S)
+    text = re.sub(r"//[^\n]*", "", text)
+    pattern = re.compile(r"\b(?:" + "|".join(sorted(map(re.escape, names), key=len,
+                                                        reverse=True)) + r")(?=\w*)")
+    text = pattern.sub("NAME", text)
+    return re.sub(r"\bNAME\w*", "NAME", text)
+
+
+def test_no_committed_file_repeats_another_up_to_names():
+    manifest = _manifest_json()
+    names = set(manifest["kernels"]) | set(manifest["closed_loops"])
+    names |= {entry["group"] for entry in manifest["kernels"].values()}
+    names |= {n.upper() for n in names}  # the headers' include guards and macros
+    bodies: dict[str, str] = {}
+    for path in sorted(GENERATED.glob("*.c")):  # bodies (a header only declares them)
+        body = _normalised_body(path, names)
+        assert body not in bodies, f"{path.name} repeats {bodies.get(body)} up to names"
+        bodies[body] = path.name
+
+
+def test_aliases_run_an_emitted_kernel_that_computes_the_same(config):
+    """Every alias names a kernel that has C of its own, with its signature; and the
+    computations really are equal (the generator's identity, recomputed here on CasADi)."""
+    manifest = _manifest_json()
+    kernels = manifest["kernels"]
+    aliases = {n: e["symbol"] for n, e in kernels.items() if e["symbol"] != n}
+    # What the issue found duplicated is shared now, and the thesis variants that differ stay.
+    assert aliases["serial_arm1_e_thesis_step"] == "serial_arm1_e_step"
+    assert aliases["serial_arm2_e_step"] == "serial_arm1_e_step"
+    assert aliases["serial_arm2_M"] == "serial_arm1_M"
+    assert "serial_arm2_fk_world" not in aliases and "serial_arm1_g_thesis_step" not in aliases
+    assert "parallel_f_thesis_step" not in aliases and "parallel_d_thesis_step" not in aliases
+    c_text = "".join(p.read_text() for p in GENERATED.glob("*.c"))
+    for name, symbol in aliases.items():
+        assert kernels[symbol]["symbol"] == symbol, name  # one step: no alias of an alias
+        assert re.search(rf"\bint {re.escape(symbol)}\(const casadi_real\*\* arg", c_text)
+        assert not re.search(rf"\bint {re.escape(name)}\(", c_text), name
+        for key in ("inputs", "outputs"):
+            assert kernels[name][key] == kernels[symbol][key], name
+    for loop, entry in manifest["closed_loops"].items():
+        if entry["symbol"] != loop:
+            driver = manifest["closed_loops"][entry["symbol"]]
+            assert [kernels[entry[k]]["symbol"] for k in ("step", "plant", "pose")] == \
+                [kernels[driver[k]]["symbol"] for k in ("step", "plant", "pose")], loop
+    # The identity the generator used: equal for the pairs above, different for a real change.
+    from cochlea.kernels.catalogue import collect
+    from cochlea.kernels.naming import computation_hash
+
+    built = {k.name: k.function for k in collect(config)[0]}
+    for name, symbol in aliases.items():
+        assert computation_hash(built[name]) == computation_hash(built[symbol]), name
+    assert computation_hash(built["serial_arm1_g_step"]) != \
+        computation_hash(built["serial_arm1_g_thesis_step"])

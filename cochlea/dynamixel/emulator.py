@@ -57,6 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..robots import ROBOTS
 from ..robots.plant import plant_step
 from ..sim import load_scenario, unit_setups
 from . import protocol as proto
@@ -737,7 +738,7 @@ def _parser() -> argparse.ArgumentParser:
         epilog="Example: cochlea-emulator --robot serial, then cochlea-run ... --backend "
                "dynamixel --port PATH. Faults start at the first Torque Enable 1 plus "
                "--fault-delay.")
-    p.add_argument("--robot", required=True, choices=["serial", "parallel"])
+    p.add_argument("--robot", required=True, choices=list(ROBOTS))
     p.add_argument("--scenario", help="the scenario whose description, plant and initial state "
                    "the chain takes (default: ROBOT_joint)")
     p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate, for "

@@ -161,6 +161,11 @@ class Library:
             raise LibraryError(f"{self.path} has no kernel {name!r}; it has "
                                + ", ".join(self.names)) from None
 
+    def symbol(self, name: str) -> str:
+        """The C function kernel ``name`` runs: its own, or, for an alias (a kernel computing
+        exactly what an earlier one does), that kernel's."""
+        return self._entry(name).get("symbol", name)
+
     def _symbol(self, name: str, restype, argtypes):
         try:
             f = getattr(self._cdll, name)
@@ -173,22 +178,22 @@ class Library:
     def function(self, name: str):
         """The raw ctypes function of kernel ``name``, its argtypes and restype declared."""
         if name not in self._functions:
-            self._entry(name)
-            self._functions[name] = self._symbol(name, ctypes.c_int, KERNEL_ARGTYPES)
+            self._functions[name] = self._symbol(self.symbol(name), ctypes.c_int,
+                                                 KERNEL_ARGTYPES)
         return self._functions[name]
 
     def signature(self, name: str) -> Signature:
         """The kernel's signature, read from the library's CasADi metadata functions."""
         if name in self._signatures:
             return self._signatures[name]
-        self._entry(name)
-        n_in = self._symbol(f"{name}_n_in", _int, [])()
-        n_out = self._symbol(f"{name}_n_out", _int, [])()
-        name_in = self._symbol(f"{name}_name_in", ctypes.c_char_p, [_int])
-        name_out = self._symbol(f"{name}_name_out", ctypes.c_char_p, [_int])
-        sp_in = self._symbol(f"{name}_sparsity_in", ctypes.POINTER(_int), [_int])
-        sp_out = self._symbol(f"{name}_sparsity_out", ctypes.POINTER(_int), [_int])
-        work = self._symbol(f"{name}_work", ctypes.c_int, [ctypes.POINTER(_int)] * 4)
+        c = self.symbol(name)
+        n_in = self._symbol(f"{c}_n_in", _int, [])()
+        n_out = self._symbol(f"{c}_n_out", _int, [])()
+        name_in = self._symbol(f"{c}_name_in", ctypes.c_char_p, [_int])
+        name_out = self._symbol(f"{c}_name_out", ctypes.c_char_p, [_int])
+        sp_in = self._symbol(f"{c}_sparsity_in", ctypes.POINTER(_int), [_int])
+        sp_out = self._symbol(f"{c}_sparsity_out", ctypes.POINTER(_int), [_int])
+        work = self._symbol(f"{c}_work", ctypes.c_int, [ctypes.POINTER(_int)] * 4)
 
         def argument(label, sparsity, i) -> Argument:
             sp = sparsity(i)
@@ -229,7 +234,9 @@ class Library:
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 8 + [ctypes.c_double, ctypes.c_double]
                     + [pointer] * 7 + [ctypes.POINTER(_int)])
-        return ClosedLoop(name, meta, self._symbol(name, ctypes.c_int, argtypes))
+        # An alias runs the driver that makes the same kernel calls.
+        return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
+                                                   argtypes))
 
 
 def _check_buffer(kernel: str, arg: Argument, array: np.ndarray, output: bool) -> None:

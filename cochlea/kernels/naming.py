@@ -32,3 +32,12 @@ def controller_kernel_name(prefix: str, kind: str, variant: str, part: str) -> s
     """``<prefix>_<kind>[_<variant>]_<part>``; the corrected variant has no suffix."""
     suffix = "" if variant == "corrected" else f"_{variant}"
     return f"{prefix}_{kind}{suffix}_{part}"
+
+
+def computation_hash(function: ca.Function) -> str:
+    """SHA-256 of what a Function computes, whatever its name: the same graph under a fixed
+    name. Two kernels with equal computation hashes can share one C body."""
+    inputs = function.sx_in() if function.is_a("SXFunction") else function.mx_in()
+    renamed = ca.Function("kernel", inputs, function.call(inputs), function.name_in(),
+                          function.name_out())
+    return hashlib.sha256(renamed.serialize().encode()).hexdigest()

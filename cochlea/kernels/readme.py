@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from ..robots import model
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .generate import ClosedLoop, CodegenConfig, Kernel
+    from .catalogue import ClosedLoop, CodegenConfig, Kernel
 
 _INTRO = """# generated_c/
 
@@ -59,6 +59,13 @@ Units are SI. Per robot unit the files are:
   period: torque, Euler step of the projected estimate clipped to `|p_hat| <= bound`, errors.
 - `closed_loop.c`: `<unit>_<kind>[_thesis]_closed_loop`, N periods of controller, estimate update
   and plant in C (below).
+
+No body is generated twice. A kernel that computes exactly what an earlier one does is an
+*alias*: it keeps its name, signature and source hash in the manifest, and runs the earlier
+kernel's C function (the manifest's `symbol`; `cochlea.kernels.library` resolves it). The thesis
+variant of controller e equals the corrected one, arm 2's joint-space controller equals arm 1's,
+and arm 2's model kernels that do not depend on the base pose equal arm 1's; a file whose every
+kernel is an alias is not written. The sections below say which kernel each alias runs.
 
 ## The closed loop in C
 
@@ -135,16 +142,23 @@ def readme(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLoop]
     lines = [_INTRO.format(casadi=ca.__version__, library=config.library, substeps=substeps)
              .rstrip("\n")]
     for loop in loops:
-        lines.append(f"| `{loop.name}` | `{loop.step}` | `{loop.plant}` | `{loop.pose}` | "
+        runs = f" (runs `{loop.symbol}`)" if loop.is_alias else ""
+        lines.append(f"| `{loop.name}`{runs} | `{loop.step}` | `{loop.plant}` | `{loop.pose}` | "
                      f"{loop.nq} | {loop.n_params} | {loop.n_desired} | {loop.n_errors} | "
                      f"{loop.n_pose} | {loop.n_gains} | {loop.n_plant_params} |")
     lines.append("")
     lines += _parameters(config)
     lines += ["## Kernels", ""]
+    written = {k.group for k in kernels if not k.is_alias}
     group = None
     for k in kernels:
         if k.group != group:
             group = k.group
-            lines += [f"## `{group}.c` / `{group}.h`", ""]
-        lines += _table(k, work[k.name])
+            lines += [f"## `{group}.c` / `{group}.h`" if group in written else
+                      f"## `{group}` (every kernel an alias: no file)", ""]
+        if k.is_alias:
+            lines += [f"### `{k.name}`", "", f"Alias of `{k.symbol}`: the same computation "
+                      "(same signature and units), run by that C function.", ""]
+        else:
+            lines += _table(k, work[k.name])
     return "\n".join(lines).rstrip("\n") + "\n"

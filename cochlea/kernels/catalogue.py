@@ -1,0 +1,344 @@
+"""What ``cochlea-codegen`` generates: the configuration, and the kernels it asks for.
+
+Stage 1, ``cochlea/data/codegen/kernels.toml`` (:func:`load_config`) says which model Functions
+to export per robot unit, which controllers and variants, and with which CasADi options.
+Stage 2 (:func:`collect`) builds those CasADi Functions from the robot descriptions and names
+each kernel; a kernel that computes exactly what an earlier one does (the thesis variant of
+controller e, the second arm's copy of a model Function that does not depend on the base pose,
+...) becomes an *alias*: it keeps its name, signature and source hash in the manifest but runs
+the earlier kernel's C (its ``symbol``), so no body is generated twice. Writing the files is
+:mod:`cochlea.kernels.generate`.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+
+from ..control import KINDS, VARIANTS, Controller, build
+from ..errors import CochleaError
+from ..resources import CODEGEN_DIR, checkout
+from ..robots import model
+from ..robots.model import RobotModel
+from ..robots.plant import plant_step
+from .naming import computation_hash, controller_kernel_name, unit_prefix
+
+CONFIG = CODEGEN_DIR / "kernels.toml"
+TEMPLATE = CODEGEN_DIR / "closed_loop.c.in"
+FORMAT = "cochlea-codegen/1"
+CONTROLLER_PARTS = ("Y", "law", "update", "step")
+
+
+class CodegenError(CochleaError):
+    """The generator's configuration is wrong, or generated_c/ is stale."""
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 1: the configuration
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """What to generate for one robot of ``cochlea/data/robots/`` (a ``[[robot]]`` table)."""
+
+    name: str  # "serial" | "parallel"
+    units: tuple[str, ...]  # serial arms; empty for the parallel mechanism
+    kernels: tuple[str, ...]  # model Functions exported as they are (names in RobotModel)
+    plant_substeps: int
+    controller_parameterisation: str
+    controllers: tuple[str, ...]
+    variants: tuple[str, ...]
+    task: tuple[str, str]  # (fk, J) of the task-space controllers
+    task_angles: tuple[int, ...]
+    pose: str  # the model Function whose value the closed loop logs
+
+
+@dataclass(frozen=True)
+class CodegenConfig:
+    """The generator's whole configuration, from ``cochlea/data/codegen/kernels.toml``."""
+
+    path: Path
+    output: Path
+    library: str
+    casadi: dict = field(default_factory=dict)  # casadi.CodeGenerator options
+    function: dict = field(default_factory=dict)  # casadi.Function options
+    robots: tuple[RobotConfig, ...] = ()
+
+
+_ROBOT_KEYS = {"name": str, "units": list, "kernels": list, "plant_substeps": int,
+               "controller_parameterisation": str, "controllers": list, "variants": list,
+               "task": list, "task_angles": list, "pose": str}
+
+
+def _fail(path: Path, key: str, expected: str, got: object) -> CodegenError:
+    return CodegenError(f"{path}: {key}: expected {expected}, got {got!r}")
+
+
+def load_config(path: str | Path = CONFIG) -> CodegenConfig:
+    """Read and validate the generator's configuration."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise CodegenError(f"{path}: cannot read the codegen configuration: {exc}") from exc
+    top = {"format", "output", "library", "casadi", "function", "robot"}
+    for key in data:
+        if key not in top:
+            raise _fail(path, key, "one of " + ", ".join(sorted(top)), key)
+    if data.get("format") != FORMAT:
+        raise _fail(path, "format", repr(FORMAT), data.get("format"))
+    for key in ("output", "library"):
+        if not isinstance(data.get(key), str) or not data[key]:
+            raise _fail(path, key, "a non-empty string", data.get(key))
+    robots = []
+    for i, table in enumerate(data.get("robot", [])):
+        where = f"robot[{i}]"
+        for key in table:
+            if key not in _ROBOT_KEYS:
+                raise _fail(path, f"{where}.{key}", "one of " + ", ".join(_ROBOT_KEYS), key)
+        for key, kind in _ROBOT_KEYS.items():
+            if not isinstance(table.get(key), kind):
+                raise _fail(path, f"{where}.{key}", f"a {kind.__name__}", table.get(key))
+        for kind in table["controllers"]:
+            if kind not in KINDS or KINDS[kind][0] != table["name"]:
+                raise _fail(path, f"{where}.controllers", f"controllers of {table['name']}",
+                            kind)
+        for variant in table["variants"]:
+            if variant not in VARIANTS:
+                raise _fail(path, f"{where}.variants", "one of " + ", ".join(VARIANTS),
+                            variant)
+        if table["plant_substeps"] < 1:
+            raise _fail(path, f"{where}.plant_substeps", "a positive integer",
+                        table["plant_substeps"])
+        if len(table["task"]) != 2:
+            raise _fail(path, f"{where}.task", "[fk, J]", table["task"])
+        robots.append(RobotConfig(
+            table["name"], tuple(table["units"]), tuple(table["kernels"]),
+            table["plant_substeps"], table["controller_parameterisation"],
+            tuple(table["controllers"]), tuple(table["variants"]), tuple(table["task"]),
+            tuple(table["task_angles"]), table["pose"]))
+    if not robots:
+        raise _fail(path, "robot", "at least one [[robot]] table", [])
+    # The output folder is relative to the checkout (or, installed, the working directory).
+    root = checkout() or Path.cwd()
+    return CodegenConfig(path, (root / data["output"]).resolve(), data["library"],
+                         dict(data.get("casadi", {})), dict(data.get("function", {})),
+                         tuple(robots))
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 2: which Functions become which C functions
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Kernel:
+    """One exported C function and the CasADi Function it comes from."""
+
+    name: str
+    function: ca.Function  # exported: renamed if needed, every output dense
+    source: ca.Function  # as cochlea builds it; its hash identifies the kernel
+    group: str  # the .c/.h file stem
+    role: str  # "model" | "plant" | "controller"
+    robot: str
+    unit: str  # the robot unit's prefix (serial_arm1, parallel)
+    kind: str | None = None
+    variant: str | None = None
+    units: dict[str, str] = field(default_factory=dict)  # argument name -> unit text
+    #: The kernel whose C runs this one: itself, or an earlier kernel computing the same.
+    symbol: str = ""
+
+    @property
+    def is_alias(self) -> bool:
+        return self.symbol != self.name
+
+
+@dataclass
+class ClosedLoop:
+    """One generated closed-loop driver: controller step + plant step + logged pose."""
+
+    name: str
+    step: str
+    plant: str
+    pose: str
+    nq: int
+    n_params: int
+    n_desired: int
+    n_errors: int
+    n_pose: int
+    n_plant_params: int
+    n_gains: int
+    #: The C the driver calls: the symbols of its step, plant and pose kernels.
+    calls: tuple[str, str, str] = ("", "", "")
+    #: The driver whose C runs this one: itself, or an earlier one making the same calls.
+    symbol: str = ""
+
+    @property
+    def is_alias(self) -> bool:
+        return self.symbol != self.name
+
+
+def export(function: ca.Function, name: str, options: dict | None = None) -> ca.Function:
+    """The same computation as ``function`` under ``name``, every output dense."""
+    if not function.is_a("SXFunction"):
+        function = function.expand()
+    inputs = function.sx_in()
+    outputs = function.call(inputs)
+    return ca.Function(name, inputs, [ca.densify(o) for o in outputs], function.name_in(),
+                       function.name_out(), dict(options or {}))
+
+
+def controller_for(robot: RobotConfig, m: RobotModel, kind: str, variant: str) -> Controller:
+    """The controller as the simulation builds it (same task map and wrapped angles)."""
+    fk, J = robot.task
+    return build(m, kind, variant=variant, task_angles=robot.task_angles,
+                 task=(m.functions[fk], m.functions[J]))
+
+
+def _controller_parts(c: Controller) -> dict[str, ca.Function]:
+    law = c.law
+    inputs = law.sx_in()
+    update = ca.Function(law.name().replace("_law", "_update"), inputs,
+                         [law.call(inputs)[1]], law.name_in(), ["p_hat_dot"])
+    return {"Y": c.regressor, "law": law, "update": update, "step": c.step}
+
+
+def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
+    """Build every kernel the configuration asks for, in a stable order."""
+    kernels: list[Kernel] = []
+    loops: list[ClosedLoop] = []
+    opts = config.function
+    for robot in config.robots:
+        for unit in robot.units or (None,):
+            plant = model(robot.name, arm=unit, parameterisation="inertial")
+            ctrl_model = model(robot.name, arm=unit,
+                               parameterisation=robot.controller_parameterisation)
+            prefix = unit_prefix(plant)
+            info = _Units(plant)
+            for key in robot.kernels:
+                if key not in plant.functions:
+                    raise CodegenError(f"{config.path}: {robot.name} has no Function {key!r}; "
+                                       "choose from " + ", ".join(sorted(plant.functions)))
+                f = plant.functions[key]
+                kernels.append(Kernel(f.name(), export(f, f.name(), opts), f, prefix, "model",
+                                      robot.name, prefix, units=info.of(f)))
+            step = plant_step(plant, robot.plant_substeps)
+            kernels.append(Kernel(step.name(), export(step, step.name(), opts), step, prefix,
+                                  "plant", robot.name, prefix, units=info.of(step)))
+            pose = ctrl_model.functions[robot.pose]
+            for kind in robot.controllers:
+                for variant in robot.variants:
+                    c = controller_for(robot, ctrl_model, kind, variant)
+                    group = controller_kernel_name(prefix, kind, variant, "")[:-1]
+                    cinfo = _Units(ctrl_model, c)
+                    for part, f in _controller_parts(c).items():
+                        name = controller_kernel_name(prefix, kind, variant, part)
+                        kernels.append(Kernel(name, export(f, name, opts), f, group,
+                                              "controller", robot.name, prefix, kind, variant,
+                                              cinfo.of(f)))
+                    loops.append(ClosedLoop(
+                        f"{group}_closed_loop", controller_kernel_name(prefix, kind, variant,
+                                                                        "step"),
+                        step.name(), pose.name(), c.nq, c.n_params, c.n_desired,
+                        c.n_desired + c.nq, pose.size1_out(0), len(plant.param_names),
+                        sum(c.gain_sizes)))
+    names = [k.name for k in kernels]
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise CodegenError(f"{config.path}: kernels generated twice: {', '.join(duplicates)}")
+    _share_bodies(kernels, loops)
+    return kernels, loops
+
+
+def _share_bodies(kernels: list[Kernel], loops: list[ClosedLoop]) -> None:
+    """Point every kernel (and driver) at the first one that computes the same thing."""
+    first: dict[str, str] = {}
+    for k in kernels:
+        k.symbol = first.setdefault(computation_hash(k.function), k.name)
+    symbol = {k.name: k.symbol for k in kernels}
+    drivers: dict[tuple[str, str, str], str] = {}
+    for loop in loops:
+        loop.calls = (symbol[loop.step], symbol[loop.plant], symbol[loop.pose])
+        loop.symbol = drivers.setdefault(loop.calls, loop.name)
+
+
+# --------------------------------------------------------------------------------------------
+# Units of every argument (for the README)
+# --------------------------------------------------------------------------------------------
+
+
+class _Units:
+    """Unit text of each argument name, for one robot model (and controller)."""
+
+    def __init__(self, m: RobotModel, controller: Controller | None = None):
+        types = [j.type for j in m.joints]
+        self.m, self.c = m, controller
+
+        def per_joint(revolute: str, prismatic: str) -> str:
+            units = [revolute if t == "revolute" else prismatic for t in types]
+            return units[0] if len(set(units)) == 1 else ", ".join(units)
+
+        self.q = per_joint("rad", "m")
+        self.qd = per_joint("rad/s", "m/s")
+        self.qdd = per_joint("rad/s^2", "m/s^2")
+        self.tau = per_joint("N m", "N")
+        self.damping = per_joint("N m s/rad", "N s/m")
+        self.stiffness = per_joint("N m/rad", "N/m")
+        task_units = ("m", "m", "rad")
+        self.task = ", ".join(task_units * (m.functions["fk"].size1_out(0) // 3))
+        self.params = ", ".join(dict.fromkeys(m.parameters.si_units)) + " (see the parameter list)"
+
+    def _desired(self, rate: str) -> str:
+        if self.c is not None and self.c.space == "task":
+            base = self.task
+        else:
+            base = self.q
+        if not rate:
+            return base
+        return ", ".join(f"{u}{rate}" for u in base.split(", "))
+
+    def _gains(self) -> str:
+        unit = {"alpha": "1/s", "K_p": "1/s", "G_g": "1/s", "G_e": self.damping,
+                "G_f": self.damping, "G_a": self.damping, "G_d": self.damping,
+                "K_e": self.stiffness}
+        parts = []
+        for name, size in zip(self.c.gain_names, self.c.gain_sizes):
+            parts.append(f"{name}[{size}] {unit.get(name, 'SI')}")
+        return "; ".join(parts)
+
+    def _errors(self) -> str:
+        first, second = self.c.error_names
+        return (f"{first}[{self.c.n_desired}] {self._desired('')}; "
+                f"{second}[{self.c.nq}] {self.qd}")
+
+    def of(self, f: ca.Function) -> dict[str, str]:
+        table = {
+            "q": self.q, "qd": self.qd, "qdd": self.qdd, "tau": self.tau,
+            "qd_r": self.qd, "qdd_r": self.qdd,
+            "x": f"[q; qd]: {self.q}; {self.qd}", "x_next": f"[q; qd]: {self.q}; {self.qd}",
+            "p": self.params, "friction": f"viscous coefficients, {self.damping}",
+            "h": "s (control period)",
+            "M": "kg m^2 (revolute pairs), kg (prismatic), kg m (mixed)",
+            "C": "N m s/rad (revolute), N s/m (prismatic): C(q, qd) qd is a torque",
+            "G": self.tau, "fk": self.task, "fk_world": self.task,
+            "J": "d fk / d q (task unit per joint unit)",
+            "J_world": "d fk_world / d q (task unit per joint unit)",
+            "A": "(J'J)^-1 J' (joint unit per task unit)",
+            "Y": f"regressor: {self.tau} per parameter unit",
+        }
+        if self.c is not None:
+            table.update({
+                "xd": self._desired(""), "xd_dot": self._desired("/s"),
+                "xd_ddot": self._desired("/s^2"), "p_hat": self.params,
+                "p_hat_next": self.params, "p_hat_dot": "parameter units per s",
+                "gains": self._gains(), "Gamma": "adaptation gain per parameter (diagonal)",
+                "bound": "projection radius of |p_hat|, parameter units",
+                "errors": self._errors(), "Y": f"regressor: {self.tau} per parameter unit",
+            })
+        return {name: table.get(name, "") for name in list(f.name_in()) + list(f.name_out())}
+
+
