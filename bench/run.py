@@ -5,15 +5,15 @@ repetitions (garbage collector off while timing). Per-call times of a Python pat
 Python loop that repeats the call (tens of ns, the same for every path, the floor included).
 
 1. Per call of each controller's fused step (e, g on serial arm 1; f, d on the parallel
-   mechanism), at the thesis scenario's initial state: through ctypes (cochlea.ckernels), the
+   mechanism), at the thesis scenario's initial state: through ctypes (kernels.library), the
    same step as a CasADi Function called from Python, CasADi's Function.buffer() on the compiled
    library (casadi.external), a C function with the same signature that does nothing, called
    through ctypes the same way (the floor), the kernel alone timed in C (bench/time_kernel.c);
    for controller e a NumPy implementation of the same law (bench/numpy_law.py) and, for the
    serial arm, Pinocchio's rnea called from Python. Every path's outputs are checked equal.
-2. Closed-loop simulation of every scenario in models/scenarios/, full length, as a real-time
-   factor: the CasADi reference, the Python loop over ctypes kernels, the all-in-C driver (end
-   to end, and the driver calls alone).
+2. Closed-loop simulation of every scenario in cochlea/data/scenarios/, full length, as a
+   real-time factor: the CasADi reference, the Python loop over ctypes kernels, the all-in-C
+   driver (end to end, and the driver calls alone).
 3. Generation and compile time of all kernels (clean, into a scratch folder), generated size.
 """
 
