@@ -16,7 +16,7 @@ from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
 from .scenario import Scenario
 from .scenario import load as _load
-from .setup import UnitSetup, perturbed_parameters, unit_setups
+from .setup import UnitSetup, perturbed_parameters, run_inputs, unit_setups
 
 #: Which kernels ``simulate`` runs: the generated C (default) or the CasADi reference.
 KERNELS = ("c", "casadi")
@@ -41,10 +41,7 @@ def simulate(sc: Scenario, duration: float | None = None,
     """
     if kernels not in KERNELS:
         raise CochleaError(f"unknown kernels {kernels!r}; choose one of {', '.join(KERNELS)}")
-    duration = sc.duration if duration is None else duration
-    if not duration > 0:
-        raise CochleaError(f"the duration must be positive, got {duration} s")
-    setups = unit_setups(sc) if setups is None else setups
+    duration, setups = run_inputs(sc, duration, setups)
     if kernels == "c":
         return simulate_compiled(sc, duration, setups, fallback=True)
     return simulate_reference(sc, duration, setups)

@@ -40,7 +40,7 @@ from ..kernels.naming import controller_kernel_name, source_hash, unit_prefix
 from ..robots.plant import plant_step
 from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
-from .setup import UnitSetup, unit_setups
+from .setup import UnitSetup, run_inputs
 
 LOOPS = ("c", "python")
 
@@ -196,10 +196,7 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     """
     if loop not in LOOPS:
         raise CochleaError(f"unknown loop {loop!r}; choose one of {', '.join(LOOPS)}")
-    duration = sc.duration if duration is None else duration
-    if not duration > 0:
-        raise CochleaError(f"the duration must be positive, got {duration} s")
-    setups = unit_setups(sc) if setups is None else setups
+    duration, setups = run_inputs(sc, duration, setups)
     try:
         lib = ckernels.load(library)
         plans = [unit_kernels(lib, u, sc.plant_substeps) for u in setups]

@@ -13,6 +13,7 @@ import casadi as ca
 import numpy as np
 
 from ..control import Controller, build
+from ..errors import CochleaError
 from ..robots import robot
 from ..robots.model import RobotModel
 from . import scenario as scenario_mod
@@ -108,3 +109,13 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
             tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint))
     return setups
+
+
+def run_inputs(sc: scenario_mod.Scenario, duration: float | None,
+               setups: list[UnitSetup] | None) -> tuple[float, list[UnitSetup]]:
+    """A run's duration (default: the scenario's; s, positive) and its setups (default: made
+    from the scenario): what every simulation entry point starts from."""
+    duration = sc.duration if duration is None else duration
+    if not duration > 0:
+        raise CochleaError(f"the duration must be positive, got {duration} s")
+    return duration, unit_setups(sc) if setups is None else setups
