@@ -364,10 +364,10 @@ def verdicts(steps: list[dict], loops: list[dict], build: dict) -> list[str]:
             f"evaluations, {r['plant_operations']} operations), plus the controller step, "
             f"{us(r['step_kernel_c_s'])} us: {us(per_unit)} us per arm and period, so "
             f"{r['units']} arms cap one core at about {1e-3 / (r['units'] * per_unit):.0f}x. "
-            "The driver adds nothing measurable; csim runs the arms on parallel threads, and the "
-            "end-to-end figure also pays the run's set-up (the desired samples of the whole "
-            "run, evaluated by CasADi, and binding the kernels). The plant's forward dynamics "
-            f"already takes its bias from recursive Newton-Euler "
+            "The driver adds nothing measurable; simulate() runs the arms on parallel threads, "
+            "and the end-to-end figure also pays the run's set-up (the desired samples of the "
+            "whole run, evaluated by CasADi, and binding the kernels). The plant's forward "
+            f"dynamics already takes its bias from recursive Newton-Euler "
             f"({r['forward_dynamics_operations']} operations).")
     total, target = build["total_s"], TARGETS["codegen_compile_s"]
     verdict = "met" if total < target else f"missed by {total / target:.2f}x"
@@ -391,7 +391,7 @@ def markdown(results: dict) -> str:
     out += verdicts(steps, loops, build)
     out += ["", "## Per call of the fused step (us)", "",
             "At the thesis scenario's initial state, corrected variant. *ctypes*: "
-            "`kernel()` of `cochlea.ckernels` (return code checked); *bare*: the prepared "
+            "`kernel()` of `cochlea.kernels.library` (return code checked); *bare*: the prepared "
             "ctypes call alone; *floor*: an empty C function with the same signature called the "
             "same way; *C alone*: the kernel timed in C; *buffer*: CasADi's `Function.buffer()` "
             "on `casadi.external` of libcochlea.so; *CasADi*: the CasADi Function called from "
