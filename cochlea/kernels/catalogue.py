@@ -148,7 +148,7 @@ class Kernel:
     unit: str  # the robot unit's prefix (serial_arm1, parallel)
     kind: str | None = None
     variant: str | None = None
-    units: dict[str, str] = field(default_factory=dict)  # argument name -> unit text
+    si_units: dict[str, str] = field(default_factory=dict)  # argument name -> its SI unit
     #: The kernel whose C runs this one: itself, or an earlier kernel computing the same.
     symbol: str = ""
 
@@ -218,23 +218,23 @@ def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
             ctrl_model = model(robot.name, arm=unit,
                                parameterisation=robot.controller_parameterisation)
             prefix = unit_prefix(plant)
-            info = _Units(plant)
+            info = _ArgumentUnits(plant)
             for key in robot.kernels:
                 if key not in plant.functions:
                     raise CodegenError(f"{config.path}: {robot.name} has no Function {key!r}; "
                                        "choose from " + ", ".join(sorted(plant.functions)))
                 f = plant.functions[key]
                 kernels.append(Kernel(f.name(), export(f, f.name(), opts), f, prefix, "model",
-                                      robot.name, prefix, units=info.of(f)))
+                                      robot.name, prefix, si_units=info.of(f)))
             step = plant_step(plant, robot.plant_substeps)
             kernels.append(Kernel(step.name(), export(step, step.name(), opts), step, prefix,
-                                  "plant", robot.name, prefix, units=info.of(step)))
+                                  "plant", robot.name, prefix, si_units=info.of(step)))
             pose = ctrl_model.functions[robot.pose]
             for kind in robot.controllers:
                 for variant in robot.variants:
                     c = controller_for(robot, ctrl_model, kind, variant)
                     group = controller_kernel_name(prefix, kind, variant, "")[:-1]
-                    cinfo = _Units(ctrl_model, c)
+                    cinfo = _ArgumentUnits(ctrl_model, c)
                     for part, f in _controller_parts(c).items():
                         name = controller_kernel_name(prefix, kind, variant, part)
                         kernels.append(Kernel(name, export(f, name, opts), f, group,
@@ -271,7 +271,7 @@ def _share_bodies(kernels: list[Kernel], loops: list[ClosedLoop]) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-class _Units:
+class _ArgumentUnits:
     """Unit text of each argument name, for one robot model (and controller)."""
 
     def __init__(self, m: RobotModel, controller: Controller | None = None):

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import casadi as ca
+
 from ..robots import model
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -109,11 +111,11 @@ def _table(kernel: Kernel, work: dict[str, int]) -> list[str]:
     for i in range(f.n_in()):
         name = f.name_in(i)
         lines.append(f"| in {i} | `{name}` | {f.size1_in(i)}x{f.size2_in(i)} | "
-                     f"{kernel.units.get(name, '')} |")
+                     f"{kernel.si_units.get(name, '')} |")
     for i in range(f.n_out()):
         name = f.name_out(i)
         lines.append(f"| out {i} | `{name}` | {f.size1_out(i)}x{f.size2_out(i)} | "
-                     f"{kernel.units.get(name, '')} |")
+                     f"{kernel.si_units.get(name, '')} |")
     lines.append("")
     return lines
 
@@ -136,8 +138,6 @@ def _parameters(config: CodegenConfig) -> list[str]:
 
 def readme(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLoop],
            work: dict[str, dict[str, int]]) -> str:
-    import casadi as ca  # noqa: PLC0415
-
     substeps = ", ".join(sorted({str(r.plant_substeps) for r in config.robots}))
     lines = [_INTRO.format(casadi=ca.__version__, library=config.library, substeps=substeps)
              .rstrip("\n")]
