@@ -259,3 +259,72 @@ def test_a_backend_that_cannot_start_raises_its_own_error_and_stays_off(tmp_path
     with pytest.raises(BackendError, match="no motor answers"):
         loop.run(tmp_path / "log.bin", status=True)
     assert backend.disabled == 1 and np.array_equal(backend.commands[-1], np.zeros(loop.n))
+
+
+def _tight(supervisor, velocity=None):
+    if velocity is not None:
+        supervisor.limits.velocity[:] = velocity
+    return supervisor
+
+
+@pytest.mark.parametrize("name, keep_out, velocity", [
+    ("serial_joint", None, 2.0),         # the arms pass 2 rad/s after a few periods
+    ("parallel_joint", None, 1.0),       # the mechanism's joints pass 1 (rad or m)/s
+    ("parallel_task", 0.139, None),      # C' comes within 139 mm of the moving pivot S
+])
+def test_as_fast_run_reports_the_rule_the_loop_stops_on(name, keep_out, velocity):
+    """The supervisor's verdict on an as-fast log names the rule, the period and the message
+    that the loop, running the same periods against the simulated robot, stops with."""
+    from cochlea.runtime import first_violation
+
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    seconds = 0.5
+    sup = _tight(build_supervisor(setups, sc.space, keep_out, substeps=sc.plant_substeps),
+                 velocity)
+    backend = SimBackend(setups, sc.period, sc.plant_substeps)
+    loop = RealTimeLoop(setups, backend, sup, sc.period, int(seconds / sc.period),
+                        realtime=False, substeps=sc.plant_substeps)
+    stop = loop.run()
+    assert stop.rule in ("velocity-limit", "keep-out") and stop.time > 0.005, stop  # mid-run
+    fast = simulate(sc, duration=seconds, setups=unit_setups(sc))
+    verdict = first_violation(fast, _tight(build_supervisor(
+        [u.setup for u in fast.units], sc.space, keep_out, substeps=sc.plant_substeps),
+        velocity))
+    assert verdict is not None
+    assert (verdict.rule, verdict.time, verdict.detail) == (stop.rule, stop.time, stop.detail)
+
+
+def test_as_fast_run_of_a_safe_scenario_reports_no_rule():
+    from cochlea.runtime import verdict
+
+    sc = load_scenario("serial_task")
+    result = simulate(sc, duration=1.0)
+    sup = build_supervisor([u.setup for u in result.units], sc.space,
+                           sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    assert verdict(result, sup) == {"rule": "none", "saturated_periods": 0}
+    sup.limits.effort[:] = 1e-4  # N m: every command above it would be clipped
+    assert verdict(result, sup)["saturated_periods"] > 0
+
+
+def test_cli_as_fast_run_exits_with_the_rule_a_real_run_would_stop_on(tmp_path):
+    from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
+
+    slow = tmp_path / "slow_arms.toml"
+    slow.write_text((ROBOTS_DIR / "serial.toml").read_text().replace(
+        "velocity_limit_rad_s = 6.0", "velocity_limit_rad_s = 0.25"))
+    scenario = tmp_path / "serial_joint_slow.toml"
+    text = (SCENARIOS_DIR / "serial_joint.toml").read_text()
+    scenario.write_text(text.replace('robot = "serial"', f'robot = "serial"\ndescription = '
+                                     f'"{slow}"', 1))
+    out = tmp_path / "run"
+    result = subprocess.run(
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+         "joint", "--scenario", str(scenario), "--realtime", "off", "--duration", "1",
+         "--out", str(out)], capture_output=True, text=True)
+    assert result.returncode == STOP_CODES["velocity-limit"], result.stderr
+    assert "a real run would have been stopped by rule velocity-limit at t = " in \
+        result.stderr.strip().splitlines()[-1]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["supervisor"]["rule"] == "velocity-limit"
+    assert summary["supervisor"]["exit_code"] == 11 and summary["periods"] == 1000

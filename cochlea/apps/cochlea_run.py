@@ -11,7 +11,8 @@ Exit codes (also in the README):
       moved
  3    ``--realtime off``: the simulation diverged (the log up to that period is written)
  5    the backend could not start (port, motors); nothing moved
- 10   safe stop: a joint left its position limits
+ 10   safe stop: a joint left its position limits (10-14 also for ``--realtime off``: the rule
+      a real run would have stopped on; the as-fast run went on, its log is complete)
  11   safe stop: a joint exceeded its velocity limit
  12   safe stop: a tool entered the keep-out circle of radius R_m
  13   safe stop: a non-finite state, command or estimate
@@ -40,6 +41,7 @@ from ..runtime import (
     RealTimeLoop,
     SimBackend,
     build_supervisor,
+    verdict,
     write_raw_columns,
 )
 from ..sim import KERNELS, load_scenario, simulate, unit_setups
@@ -151,14 +153,24 @@ def _run(args: argparse.Namespace) -> int:
         start = time.perf_counter()
         result = simulate(scenario, args.duration, setups, kernels=args.kernels)
         wall = time.perf_counter() - start
+        # The as-fast run does not stop, but it answers to the same rules as a real one.
+        supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
+                                      kernels=args.kernels, substeps=scenario.plant_substeps)
+        result.supervisor = verdict(result, supervisor)
         data = report.write_all(result, out, wall)
         _report(data, out, wall)
         if result.diverged:
             for name, t in result.diverged.items():
                 print(f"cochlea-run: {name} diverged at t = {t:.3f} s (log kept up to there)",
                       file=sys.stderr)
+        rule = result.supervisor
+        if rule["rule"] != "none":
+            print(f"cochlea-run: a real run would have been stopped by rule {rule['rule']} at "
+                  f"t = {rule['time_s']:.3f} s: {rule['detail']} (the as-fast run went on)",
+                  file=sys.stderr)
+        if result.diverged:
             return EXIT_DIVERGED
-        return 0
+        return STOP_CODES[rule["rule"]] if rule["rule"] != "none" else 0
     return _run_realtime(args, scenario, setups, out)
 
 

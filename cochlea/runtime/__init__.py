@@ -13,8 +13,10 @@ from .supervisor import (
            Stop,
            Supervisor,
            build_supervisor,
+           first_violation,
+           verdict,
 )
 
 __all__ = ["Backend", "BackendError", "RealTimeLoop", "raw_columns", "write_raw_columns",
            "SimBackend", "EXIT_BACKEND", "EXIT_OK", "STOP_CODES", "Limits", "Stop", "Supervisor",
-           "build_supervisor"]
+           "build_supervisor", "first_violation", "verdict"]

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sim.compiled import period_kernels
+from ..sim.result import SimulationResult
 from ..sim.setup import UnitSetup
 
 # Exit codes of a stopped run (README lists them).
@@ -168,3 +169,67 @@ def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float
         return points
 
     return Supervisor(limits, setups, keep_out_points)
+
+
+def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | None:
+    """The rule a real-time run of the same periods would have stopped on, and when: the
+    supervisor's checks applied to a logged run (an as-fast simulation, which does not stop).
+
+    Period k is checked as the loop checks it: the state at its start (positions, velocities,
+    keep-out circle, finite), then the command and the estimate it produces for period k + 1.
+    The rows are screened at once with numpy; the first flagged row is then passed through the
+    supervisor itself, so the rule and its message are the loop's own.
+    """
+    logs = result.units
+    rows = len(result.time)
+    if rows == 0:
+        return None
+    q = np.hstack([u.q for u in logs])
+    qd = np.hstack([u.qd for u in logs])
+    tau = np.hstack([u.tau for u in logs])
+    # The estimate each period hands on: the next row's (the last row's own at the end).
+    estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in logs]
+    L = supervisor.limits
+    with np.errstate(invalid="ignore", over="ignore"):
+        flagged = ~np.isfinite(q).all(axis=1) | ~np.isfinite(qd).all(axis=1)
+        flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
+        flagged |= (np.abs(qd) > L.velocity).any(axis=1)
+        if L.keep_out_radius is not None:
+            for u in logs:
+                s = u.setup
+                for _, (iu, iv) in s.tool_points:
+                    if s.moving_centre_joint is None:
+                        cu, cv = s.centre
+                    else:
+                        cu, cv = 0.0, u.q[:, s.moving_centre_joint]
+                    flagged |= np.hypot(u.x[:, iu] - cu, u.x[:, iv] - cv) < L.keep_out_radius
+        flagged |= ~np.isfinite(tau).all(axis=1)
+        for p, bound in zip(estimates, supervisor.bounds):
+            square = np.einsum("ij,ij->i", p, p)
+            flagged |= ~np.isfinite(square) | (square > (bound * (1 + 1e-9)) ** 2)
+    n = q.shape[1]
+    for k in np.flatnonzero(flagged):
+        t = float(result.time[k])
+        x = np.concatenate([q[k], qd[k]])
+        stop = supervisor.check_state(t, x, x[:n], x[n:])
+        if stop is None:
+            stop = supervisor.check_command(t, tau[k].copy(), [p[k] for p in estimates])
+        if stop is not None:
+            return stop
+    return None
+
+
+def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
+    """Periods whose command exceeds a joint's effort limit: a real run clips them."""
+    tau = np.hstack([u.tau for u in result.units])
+    with np.errstate(invalid="ignore"):
+        return int(np.sum((np.abs(tau) > supervisor.limits.effort).any(axis=1)))
+
+
+def verdict(result: SimulationResult, supervisor: Supervisor) -> dict:
+    """``summary.json``'s ``supervisor`` entry of an as-fast run: the first rule a real run
+    would have stopped on (``"none"``: it would have run to the end) and the clipped periods."""
+    stop = first_violation(result, supervisor)
+    entry = {"rule": "none"} if stop is None else {
+        "rule": stop.rule, "time_s": stop.time, "detail": stop.detail, "exit_code": stop.code}
+    return {**entry, "saturated_periods": saturated_periods(result, supervisor)}

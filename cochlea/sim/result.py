@@ -58,6 +58,9 @@ class SimulationResult:
     #: Real-time runs: per-period timing arrays (s) by name, and how the run stopped.
     timing: dict[str, np.ndarray] | None = None
     stop: dict | None = None
+    #: As-fast runs: the rule a real run's supervisor would have stopped on, if any (see
+    #: :func:`cochlea.runtime.supervisor.verdict`).
+    supervisor: dict | None = None
 
     def unit(self, name: str) -> UnitLog:
         return next(u for u in self.units if u.name == name)
