@@ -170,6 +170,17 @@ def read_limits(t: Table, jtype: str) -> tuple[float, float, float, float]:
     return float(lo), float(hi), velocity, effort
 
 
+def read_armature(t: Table, jtype: str) -> float | None:
+    """The reflected rotor inertia of a joint's drive, if the description gives it: kg m^2 at a
+    revolute joint (``armature_kgm2``), kg at a prismatic one (``armature_kg``). Absent, the
+    model has no actuator term for the joint (the thesis's rigid links)."""
+    if jtype == "revolute":
+        return t.number("armature_kgm2", "a non-negative number (kg m^2, the rotor's inertia "
+                        "times the gear ratio squared)", lambda v: v >= 0, required=False)
+    return t.number("armature_kg", "a non-negative number (kg, the rotor's inertia over the "
+                    "transmission's radius squared)", lambda v: v >= 0, required=False)
+
+
 def read_motor(t: Table) -> Motor:
     model = t.string("model", tuple(MOTOR_SPECS))
     motor_id = t.get("id", f"an integer Dynamixel ID in 0..{MAX_MOTOR_ID}",

@@ -187,13 +187,43 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
     if parameterisation == "inertial":
         chosen = full
     elif parameterisation == "mass":
-        chosen = params_mod.mass_only(full.names, full.nominal, bodies)
+        chosen = params_mod.mass_only(full.names, full.nominal, bodies, full.si_units,
+                                      full.meanings)
     else:
         full_functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, {}, full)
         chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.si_units,
                                  [n, n, n, n])
     functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen)
     return RobotModel(name, joints, chosen, method, functions, full, source)
+
+
+#: The actuator parameter a joint may carry: its drive's reflected rotor inertia (armature).
+ARMATURE = "Ia"
+
+
+def with_armatures(full: Parameterisation, blocks: list[tuple[str, slice]],
+                   joints: list[tuple[str, str, float | None]]
+                   ) -> tuple[Parameterisation, list[tuple[str, slice]]]:
+    """``full`` and its blocks, followed by one parameter ``<joint>.Ia`` per joint whose drive
+    declares an armature (``joints``: name, type, armature or None), each its own block.
+
+    The armature is inertia the joint's own coordinate drives: it adds ``Ia * qdd_i`` to the
+    joint's torque and ``Ia * qd_i**2 / 2`` to the kinetic energy, i.e. ``Ia`` on the diagonal
+    of ``M`` (the usual reduced model of a geared drive: the rotor's gyroscopic coupling with
+    the link that carries it is left out). Linear in ``Ia``, so it is identifiable like any
+    inertial parameter.
+    """
+    declared = [(name, jtype, value) for name, jtype, value in joints if value is not None]
+    if not declared:
+        return full, blocks
+    n0 = len(full.names)
+    names = [f"{name}.{ARMATURE}" for name, _, _ in declared]
+    units = ["kg m^2" if jtype == "revolute" else "kg" for _, jtype, _ in declared]
+    meanings = [f"reflected rotor inertia (armature) of {name}" for name, _, _ in declared]
+    joined = params_mod.inertial(full.names + tuple(names),
+                                 np.concatenate([full.nominal, [v for _, _, v in declared]]),
+                                 full.si_units + tuple(units), full.meanings + tuple(meanings))
+    return joined, blocks + [(name, slice(n0 + k, n0 + k + 1)) for k, name in enumerate(names)]
 
 
 def full_inertial(bodies: list[tuple[str, np.ndarray]], names=INERTIAL_NAMES,

@@ -41,24 +41,34 @@ def inertial(names, nominal, units, meanings) -> Parameterisation:
                             np.eye(n), tuple(meanings))
 
 
-def mass_only(full_names, full_nominal, bodies: list[tuple[str, slice]]) -> Parameterisation:
+def mass_only(full_names, full_nominal, bodies: list[tuple[str, slice]], full_units=(),
+              full_meanings=()) -> Parameterisation:
     """One parameter per body, its mass, with the body's geometry held at nominal.
 
     All inertial parameters of a rigid body scale with its mass when its shape and density
     distribution are kept, so ``phi_body(m) = m * phi_body_nominal / m_nominal``: the thesis's
-    parameterisation in link masses.
+    parameterisation in link masses. A single-parameter block named like its parameter (an
+    actuator's armature, see :func:`cochlea.robots.model.with_armatures`) is estimated itself.
     """
     full_nominal = np.asarray(full_nominal, float)
     to_full = np.zeros((len(full_names), len(bodies)))
-    names, nominal = [], []
+    names, nominal, units, meanings = [], [], [], []
     for k, (body, block) in enumerate(bodies):
+        if full_names[block.start] == body:  # an actuator parameter (armature): kept itself
+            to_full[block, k] = 1.0
+            names.append(body)
+            nominal.append(full_nominal[block.start])
+            units.append(full_units[block.start])
+            meanings.append(full_meanings[block.start])
+            continue
         m = full_nominal[block][0]
         to_full[block, k] = full_nominal[block] / m
         names.append(f"{body}.m")
         nominal.append(m)
-    meanings = tuple(f"mass of {body}, geometry fixed at nominal" for body, _ in bodies)
-    return Parameterisation("mass", tuple(names), np.array(nominal), ("kg",) * len(bodies),
-                            to_full, meanings)
+        units.append("kg")
+        meanings.append(f"mass of {body}, geometry fixed at nominal")
+    return Parameterisation("mass", tuple(names), np.array(nominal), tuple(units), to_full,
+                            tuple(meanings))
 
 
 def _format_coefficient(c: float) -> str:

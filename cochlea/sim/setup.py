@@ -15,7 +15,7 @@ import numpy as np
 from ..control import Controller, build
 from ..errors import CochleaError
 from ..robots import robot
-from ..robots.model import RobotModel
+from ..robots.model import INERTIAL_NAMES, RobotModel
 from . import scenario as scenario_mod
 
 
@@ -64,7 +64,9 @@ def perturbed_parameters(full, plant: scenario_mod.Plant,
     ``plant.payload_kg`` is added at ``payload_points[body]`` (m, body frame).
     """
     p = np.asarray(full.nominal, float).copy()
-    bodies = list(dict.fromkeys(name.rsplit(".", 1)[0] for name in full.names))
+    # Rigid bodies only: an actuator's parameters (armature) neither scale nor carry payloads.
+    bodies = list(dict.fromkeys(name.rsplit(".", 1)[0] for name in full.names
+                                if name.rsplit(".", 1)[1] in INERTIAL_NAMES))
     if plant.mass_scale is not None:
         for body, scale in zip(bodies, plant.mass_scale, strict=True):
             for i, name in enumerate(full.names):
@@ -79,7 +81,7 @@ def perturbed_parameters(full, plant: scenario_mod.Plant,
                  "Iyz": -m * y * z}
         for i, name in enumerate(full.names):
             owner, kind = name.rsplit(".", 1)
-            if owner == body:
+            if owner == body and kind in added:
                 p[i] += added[kind]
     return p
 

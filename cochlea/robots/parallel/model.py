@@ -37,7 +37,14 @@ import numpy as np
 
 from .. import parameters as params_mod
 from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix, time_derivative
-from ..model import RobotModel, assemble_model, check_options, full_inertial
+from ..model import (
+    ARMATURE,
+    RobotModel,
+    assemble_model,
+    check_options,
+    full_inertial,
+    with_armatures,
+)
 from .description import (
     PLANAR_MEANING,
     PLANAR_NAMES,
@@ -103,7 +110,8 @@ def _side_expressions(system: ParallelSystem, side: Side, th1, th2, d1, q, qd, p
 
 def _full_parameters(system: ParallelSystem):
     """The full parameter set: the slider's mass, then ``[m, mx, my, Izz]`` per planar body
-    (left side, then right side, proximal links first), with each body's slice."""
+    (left side, then right side, proximal links first), then the armature of each joint whose
+    drive declares one, with each body's slice."""
     slider, slider_blocks = full_inertial([("slider", np.array([system.slider_mass]))],
                                           names=("m",), meanings=SLIDER_MEANING)
     planar, planar_blocks = full_inertial(
@@ -115,7 +123,7 @@ def _full_parameters(system: ParallelSystem):
     full = params_mod.inertial(slider.names + planar.names,
                                np.concatenate([slider.nominal, planar.nominal]),
                                slider.si_units + planar.si_units, slider.meanings + planar.meanings)
-    return full, blocks
+    return with_armatures(full, blocks, [(j.name, j.type, j.armature) for j in system.joints])
 
 
 def _left_pseudo_inverse(J: ca.SX) -> ca.SX:
@@ -156,6 +164,9 @@ def _symbolic(system: ParallelSystem):
         k, u, C, angle = _side_expressions(system, side, q[i1], q[i2], d1, q, qd, phi_of)
         K, U = K + k, U + u
         task += [C[0], C[1], angle]
+    for i, joint in enumerate(system.joints):  # the rotors, each on its own coordinate
+        if joint.armature is not None:
+            K = K + 0.5 * phi_of(f"{joint.name}.{ARMATURE}")[0] * qd[i] ** 2
     M = mass_matrix(K, qd)
     G = gravity_vector(U, q)
     Cor = christoffel_coriolis(M, q, qd)

@@ -97,12 +97,23 @@ def planar_orientation(arm: Arm, q: ca.SX) -> ca.SX:
     return ca.atan2(R[1, 0], R[0, 0])
 
 
+def armature_indices(arm: Arm) -> list[int]:
+    """The joints whose drive declares an armature, in order: their parameters follow the
+    links' ten each in ``phi``."""
+    return [i for i, link in enumerate(arm.links) if link.joint.armature is not None]
+
+
+def n_parameters(arm: Arm) -> int:
+    return N_INERTIAL * len(arm.links) + len(armature_indices(arm))
+
+
 def rnea(arm: Arm, q, qd, qdd, phi, gravity_base) -> ca.SX:
     """Inverse dynamics ``tau(q, qd, qdd)`` by the recursive Newton-Euler algorithm.
 
-    ``phi`` stacks the ten inertial parameters of each link; ``gravity_base`` is the gravity
-    vector in the arm's base frame (m/s^2). Quantities are expressed in each link's own frame;
-    gravity enters as an upward acceleration of the base (thesis 2.8).
+    ``phi`` stacks the ten inertial parameters of each link, then the armature of each joint
+    that has one (``Ia * qdd`` on that joint); ``gravity_base`` is the gravity vector in the
+    arm's base frame (m/s^2). Quantities are expressed in each link's own frame; gravity enters
+    as an upward acceleration of the base (thesis 2.8).
     """
     n = len(arm.links)
     w = ca.SX.zeros(3)
@@ -140,6 +151,8 @@ def rnea(arm: Arm, q, qd, qdd, phi, gravity_base) -> ca.SX:
         z = ca.DM(arm.links[i].joint.axis)
         tau[i] = ca.dot(z, N) if arm.links[i].joint.type == "revolute" else ca.dot(z, F)
         F_child, N_child, R_child, p_child = F, N, R, p
+    for k, i in enumerate(armature_indices(arm)):
+        tau[i] = tau[i] + phi[N_INERTIAL * n + k] * qdd[i]
     return tau
 
 
@@ -158,4 +171,7 @@ def energies(arm: Arm, q, qd, phi, gravity_base) -> tuple[ca.SX, ca.SX]:
         w = R.T @ vee(time_derivative(R, q, qd) @ R.T)
         K = K + 0.5 * m * ca.dot(v, v) + ca.dot(v, ca.cross(w, h)) + 0.5 * ca.dot(w, I @ w)
         U = U - ca.dot(g, m * p + R @ h)
+    n = len(arm.links)
+    for k, i in enumerate(armature_indices(arm)):  # the rotors, each on its own coordinate
+        K = K + 0.5 * phi[N_INERTIAL * n + k] * qd[i] ** 2
     return K, U

@@ -18,6 +18,7 @@ from ..description import (
     Table,
     check_unique_motor_ids,
     open_description,
+    read_armature,
     read_limits,
     read_motor,
     resolve_path,
@@ -44,6 +45,8 @@ class Joint:
     position_limits: tuple[float, float]  # rad or m
     velocity_limit: float  # rad/s or m/s
     effort_limit: float  # N m or N
+    #: Reflected rotor inertia (kg m^2 or kg), or None: no actuator term for this joint.
+    armature: float | None = None
 
 
 @dataclass(frozen=True)
@@ -140,8 +143,9 @@ def _read_joint(t: Table, parent_length: float) -> Joint:
     origin_rpy = np.zeros(3) if origin_rpy is None else np.radians(origin_rpy)
 
     lo, hi, velocity, effort = read_limits(t, jtype)
+    armature = read_armature(t, jtype)
     t.done()
-    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort)
+    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, armature)
 
 
 

@@ -6,12 +6,19 @@ import casadi as ca
 import numpy as np
 
 from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix
-from ..model import JointInfo, RobotModel, assemble_model, check_options, full_inertial
+from ..model import (
+    JointInfo,
+    RobotModel,
+    assemble_model,
+    check_options,
+    full_inertial,
+    with_armatures,
+)
 from ..spatial import rot_z
 from .chain import (
-    N_INERTIAL,
     energies,
     inertial_parameters,
+    n_parameters,
     planar_orientation,
     rnea,
     tool_point,
@@ -30,7 +37,7 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
     q = ca.SX.sym("q", n)
     qd = ca.SX.sym("qd", n)
     qdd = ca.SX.sym("qdd", n)
-    phi = ca.SX.sym("phi", N_INERTIAL * n)
+    phi = ca.SX.sym("phi", n_parameters(arm))
     g_base = arm.base_rotation.T @ system.gravity
 
     if method == "newton-euler":
@@ -54,7 +61,6 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
     kinematics = {"fk": fk, "J": ca.jacobian(fk, q), "fk_world": fk_world,
                   "J_world": ca.jacobian(fk_world, q)}
 
-    full, blocks = full_inertial([(link.name, inertial_parameters(link)) for link in arm.links])
     joints = tuple(
         JointInfo(link.name.replace("link", "joint", 1) if link.name.startswith("link")
                   else f"{link.name}_joint",
@@ -62,6 +68,9 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
                   link.joint.effort_limit)
         for link in arm.links
     )
+    full, blocks = with_armatures(
+        *full_inertial([(link.name, inertial_parameters(link)) for link in arm.links]),
+        [(j.name, j.type, link.joint.armature) for j, link in zip(joints, arm.links)])
     return assemble_model(f"{system.name}/{arm.name}", f"{system.name}_{arm.name}",
                           joints=joints, q=q, qd=qd, qdd=qdd, phi=phi, M=M, C=C, G=G, tau=tau,
                           kinematics=kinematics, full=full, bodies=blocks,
