@@ -28,7 +28,9 @@
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -37,7 +39,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -70,6 +72,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -95,7 +104,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -104,7 +115,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -137,6 +148,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -162,7 +180,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -171,7 +191,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -204,6 +224,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -229,7 +256,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -238,7 +267,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -271,6 +300,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -296,7 +332,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -305,7 +343,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -338,6 +376,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -363,7 +408,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -372,7 +419,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -405,6 +452,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -430,7 +484,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -439,7 +495,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -472,6 +528,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -497,7 +560,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -506,7 +571,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -539,6 +604,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -564,7 +636,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -573,7 +647,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -606,6 +680,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
     }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
@@ -631,7 +712,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL); it returns the torque, held over the
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -640,7 +723,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -672,6 +755,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
     } else {
       for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
     }
     for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
     step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;

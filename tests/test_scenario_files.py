@@ -44,6 +44,8 @@ CASES = {
                            "unit[0].initial_joint", "exactly one of"),
     "time-varying initial state": (JOINT, '["73 deg"', '["73*t deg"', "unit[0].initial_joint",
                                    "must be a constant"),
+    "encoder flag not a boolean": (JOINT, "[control]", "[plant]\nposition_encoder = 1\n\n"
+                                   "[control]", "plant.position_encoder", "true or false"),
 }
 
 

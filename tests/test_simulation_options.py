@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from cochlea.robots.plant import plant_step
 from cochlea.sim import load_scenario, simulate, unit_setups
@@ -47,3 +48,36 @@ def test_viscous_friction_takes_energy_out_of_the_plant():
     damped = np.array(step(x, np.zeros(3), setup.plant_params, np.full(3, 1e-3), 1e-3)).ravel()
     assert abs(kinetic(free) - kinetic(x)) < 1e-9 * kinetic(x)  # horizontal arm: conserved
     assert kinetic(damped) < kinetic(x) * (1 - 1e-3)
+
+
+@pytest.mark.parametrize("kernels", ["casadi", "c"])
+def test_quantised_measurements_lie_on_the_encoder_grid(kernels):
+    """With the motors' encoder and velocity register, controller e sees positions on the
+    4096-count grid: e = xd - q_measured, so xd - e is a whole number of counts."""
+    from cochlea.dynamixel.control_table import RAD_PER_COUNT
+
+    sc = load_scenario("serial_joint")
+    sc = dataclasses.replace(sc, plant=Plant(position_encoder=True, velocity_register=True))
+    result = simulate(sc, duration=0.3, kernels=kernels)
+    for u in result.units:
+        n = u.setup.controller_model.nq
+        assert np.allclose(u.setup.quantum[:n], RAD_PER_COUNT)
+        seen = u.desired - u.errors[:, :n]  # rad: what the controller was given
+        counts = seen / RAD_PER_COUNT
+        assert np.allclose(counts, np.rint(counts), rtol=0, atol=1e-6)
+        continuous = u.q / RAD_PER_COUNT  # the true joints are not on the grid
+        assert not np.allclose(continuous, np.rint(continuous), rtol=0, atol=1e-6)
+
+
+def test_quantised_c_loop_equals_the_reference():
+    sc = load_scenario("parallel_joint")
+    sc = dataclasses.replace(sc, plant=Plant(position_encoder=True, velocity_register=True,
+                                             noise_q_std=1e-4, delay_periods=1))
+    setups = unit_setups(sc)
+    reference = simulate(sc, 0.5, setups, kernels="casadi")
+    compiled = simulate(sc, 0.5, setups, kernels="c")
+    for a, b in zip(compiled.units, reference.units):
+        for key in ("q", "qd", "tau", "errors", "p_hat"):
+            assert np.allclose(getattr(a, key), getattr(b, key), rtol=0, atol=1e-10), key
+    slider = setups[0].quantum[2]  # m per count: through the pinion's radius
+    assert slider == pytest.approx(2 * np.pi / 4096 * 0.02)

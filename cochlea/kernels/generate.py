@@ -143,7 +143,8 @@ _EXPORT = """#ifndef CASADI_SYMBOL_EXPORT
 
 _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_real* x0, const casadi_real* p_hat0, "
               "const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot, "
-              "const casadi_real* noise, const casadi_real* gains, const casadi_real* Gamma, "
+              "const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset, "
+              "const casadi_real* gains, const casadi_real* Gamma, "
               "casadi_real bound, casadi_real h, const casadi_real* plant_p, "
               "const casadi_real* friction, casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "

@@ -232,7 +232,7 @@ class Library:
             raise LibraryError(f"{self.path} has no closed loop {name!r}; it has "
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
-        argtypes = ([_int, _int] + [pointer] * 8 + [ctypes.c_double, ctypes.c_double]
+        argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
                     + [pointer] * 7 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
@@ -352,7 +352,8 @@ class ClosedLoop:
         return array
 
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
-            h: float, plant_p, friction, noise=None, delay: int = 0) -> ClosedLoopLog:
+            h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
+            offset=None) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call."""
         nq, nd = self.nq, self.n_desired
         ins = {
@@ -367,6 +368,10 @@ class ClosedLoop:
             "friction": self._array("friction", friction, (nq,)),
         }
         noise = None if noise is None else self._array("noise", noise, (n, 2 * nq))
+        if quantum is not None:  # the measurement grid; the offset defaults to zero
+            quantum = self._array("quantum", quantum, (2 * nq,))
+            offset = self._array("offset", np.zeros(2 * nq) if offset is None else offset,
+                                 (2 * nq,))
         if delay < 0:
             raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
         log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
@@ -376,6 +381,8 @@ class ClosedLoop:
         flag = self._fn(n, delay, ins["x0"].ctypes.data, ins["p_hat0"].ctypes.data,
                         ins["xd"].ctypes.data, ins["xd_dot"].ctypes.data,
                         ins["xd_ddot"].ctypes.data, None if noise is None else noise.ctypes.data,
+                        None if quantum is None else quantum.ctypes.data,
+                        None if quantum is None else offset.ctypes.data,
                         ins["gains"].ctypes.data, ins["Gamma"].ctypes.data, float(bound),
                         float(h), ins["plant_p"].ctypes.data, ins["friction"].ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,

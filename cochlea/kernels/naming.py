@@ -15,7 +15,8 @@ import casadi as ca
 from ..robots.model import RobotModel
 
 #: The format tag of the manifest ``cochlea_manifest()`` returns (JSON).
-MANIFEST_FORMAT = "cochlea-kernels/1"
+#: 2: the closed-loop drivers take the measurement grid (quantum, offset) after the noise.
+MANIFEST_FORMAT = "cochlea-kernels/2"
 
 
 def source_hash(function: ca.Function) -> str:

@@ -75,7 +75,7 @@ kernel is an alias is not written. The sections below say which kernel each alia
 int NAME_closed_loop(casadi_int n, casadi_int delay,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
-    const casadi_real* noise,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -86,10 +86,13 @@ Runs `n` periods of length `h` (s). All arrays are row-major with one row per pe
 the caller's (the function allocates nothing): `gains` stacks the controller's diagonal gains
 (the `gains` input of its step), `plant_p` the plant's full inertial parameters; inputs
 `xd, xd_dot, xd_ddot` (n x nd, the desired samples at `t = k h`), `noise` (n x 2nq, added to
-the measurement; NULL for none); outputs
+the measurement; NULL for none), `quantum` and `offset` (2nq each: the measurement grid, e.g.
+encoder counts; NULL for continuous measurements); outputs
 `x_log` (n x 2nq, the true state `[q, qd]` at the start of each period), `p_hat_log` (n x np, the
 estimate used in the period), `tau_log` (n x nq), `errors_log` (n x ne), `pose_log` (n x npose).
-The controller sees `x_log[max(k - delay, 0)] + noise[k]` (a measurement `delay` periods old).
+The controller sees `x_log[max(k - delay, 0)] + noise[k]` (a measurement `delay` periods old),
+rounded to `offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i])` where
+`quantum[i] > 0`.
 The run stops after the first period whose next state or estimate is not finite; `*rows` says
 how many rows were written. Returns 0, or the failing kernel's code.
 

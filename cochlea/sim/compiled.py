@@ -40,7 +40,7 @@ from ..kernels.naming import controller_kernel_name, source_hash, unit_prefix
 from ..robots.plant import plant_step
 from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
-from .setup import UnitSetup, run_inputs
+from .setup import UnitSetup, quantise, run_inputs
 
 LOOPS = ("c", "python")
 
@@ -130,7 +130,8 @@ def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, 
     xd, xd_dot, xd_ddot = desired
     return loop.run(len(xd), x0=u.x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot, xd_ddot=xd_ddot,
                     gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h, plant_p=u.plant_params,
-                    friction=u.friction, noise=noise, delay=delay)
+                    friction=u.friction, noise=noise, delay=delay, quantum=u.quantum,
+                    offset=u.grid_offset)
 
 
 def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -167,6 +168,8 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
             meas[:] = seen
         else:
             np.add(seen, noise[k], out=meas)
+        if u.quantum is not None:
+            meas[:] = quantise(meas, u.quantum, u.grid_offset)
         P[k] = p_hat
         b_xd[:] = xd[k]
         b_xd_dot[:] = xd_dot[k]

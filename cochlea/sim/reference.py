@@ -16,7 +16,7 @@ import numpy as np
 from ..robots.plant import plant_step
 from .result import SimulationResult, UnitLog
 from .scenario import Scenario
-from .setup import UnitSetup
+from .setup import UnitSetup, quantise
 
 
 def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
@@ -66,6 +66,8 @@ def simulate_reference(sc: Scenario, duration: float,
             measured = X[max(k - delay, 0)]
             if noise.any():
                 measured = measured + noise * rng.standard_normal(2 * n)
+            if u.quantum is not None:  # as the motors report it: encoder and velocity counts
+                measured = quantise(measured, u.quantum, u.grid_offset)
             log["p_hat"][k] = p_hat
             out = period(time[k], x, measured, p_hat)
             x = np.array(out[0]).ravel()

@@ -63,6 +63,10 @@ class Plant:
     noise_qd_std: float = 0.0  # rad/s (or m/s), on measured velocities
     delay_periods: int = 0  # whole control periods between measurement and command
     seed: int = 0
+    #: Measured positions on the motor's encoder grid (4096 counts per motor turn).
+    position_encoder: bool = False
+    #: Measured velocities in the motor's Present Velocity units (0.229 rpm per count).
+    velocity_register: bool = False
 
 
 @dataclass(frozen=True)
@@ -271,6 +275,12 @@ def load(name_or_path: str | Path) -> Scenario:
                                 and v >= 0, required=False, default=0),
             seed=p.get("seed", "an integer", lambda v: isinstance(v, int), required=False,
                        default=0),
+            position_encoder=p.get("position_encoder", "true or false (measured positions on "
+                                   "the encoder grid)", lambda v: isinstance(v, bool),
+                                   required=False, default=False),
+            velocity_register=p.get("velocity_register", "true or false (measured velocities "
+                                    "in 0.229 rpm counts)", lambda v: isinstance(v, bool),
+                                    required=False, default=False),
         )
         p.done()
     top.done()

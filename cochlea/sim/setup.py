@@ -13,6 +13,7 @@ import casadi as ca
 import numpy as np
 
 from ..control import Controller, build
+from ..dynamixel.control_table import RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB
 from ..errors import CochleaError
 from ..robots import robot
 from ..robots.model import INERTIAL_NAMES, RobotModel
@@ -47,6 +48,11 @@ class UnitSetup:
     #: Index of the joint whose value moves the keep-out centre along v (the parallel
     #: mechanism's slider: S = (0, d1)), or None for a fixed centre at ``centre``.
     moving_centre_joint: int | None = None
+    #: The measurement grid per coordinate of ``[q, qd]``: measured values are
+    #: ``offset + quantum * round((value - offset) / quantum)``; a zero quantum leaves the
+    #: coordinate continuous. SI (rad, m, rad/s, m/s).
+    quantum: np.ndarray | None = None
+    grid_offset: np.ndarray | None = None
 
     def keep_out_centre(self, q) -> tuple[float, float]:
         """Centre of the safety keep-out circle at joint position q (m, world frame)."""
@@ -86,11 +92,32 @@ def perturbed_parameters(full, plant: scenario_mod.Plant,
     return p
 
 
+def measurement_grids(adapter, system, plant: scenario_mod.Plant
+                      ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per joint of the whole system, the ``(quantum, offset)`` of its measured position and
+    velocity as the motor reports them: positions in encoder counts (``2 pi / 4096`` rad per
+    motor turn's count, through the joint's ratio and zero offset), velocities in Present
+    Velocity counts (0.229 rpm). Zero quanta where the scenario's plant keeps it continuous."""
+    if not (plant.position_encoder or plant.velocity_register):
+        return []
+    grids = []
+    for joint in adapter.actuated_joints(system):
+        scale = abs(joint.ratio)  # joint travel per motor radian
+        position = RAD_PER_COUNT * scale if plant.position_encoder else 0.0
+        velocity = RAD_S_PER_VELOCITY_LSB * scale if plant.velocity_register else 0.0
+        # q = direction * ratio * (theta - zero_offset): the grid is shifted by the offset.
+        offset = -joint.motor.direction * joint.ratio * joint.motor.zero_offset
+        grids.append((np.array([position, velocity]), np.array([offset, 0.0])))
+    return grids
+
+
 def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario)."""
     adapter = robot(sc.robot)
     system = sc.system if sc.system is not None else adapter.load(sc.description)
+    grids = measurement_grids(adapter, system, sc.plant)
+    first_joint = 0
     setups = []
     for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
         m = plan.controller_model
@@ -110,7 +137,20 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
             plan.joint_units, plan.task_names, plan.task_units, plan.task_angles, plan.fk_world,
             tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint))
+        if grids:  # [q..., qd...] of this unit's joints
+            mine = grids[first_joint:first_joint + m.nq]
+            setups[-1].quantum = np.concatenate([[g[0][0] for g in mine], [g[0][1] for g in mine]])
+            setups[-1].grid_offset = np.concatenate([[g[1][0] for g in mine],
+                                                     [g[1][1] for g in mine]])
+        first_joint += m.nq
     return setups
+
+
+def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``values`` on their measurement grid where the quantum is positive (round half to even,
+    as C's ``nearbyint``), unchanged elsewhere."""
+    on_grid = offset + quantum * np.rint((values - offset) / np.where(quantum > 0, quantum, 1.0))
+    return np.where(quantum > 0, on_grid, values)
 
 
 def run_inputs(sc: scenario_mod.Scenario, duration: float | None,
