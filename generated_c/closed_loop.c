@@ -30,7 +30,8 @@
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -41,7 +42,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
@@ -84,6 +85,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = serial_arm1_e_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -106,7 +111,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -117,7 +123,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
@@ -160,6 +166,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = serial_arm1_g_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -182,7 +192,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -193,7 +204,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
@@ -236,6 +247,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = serial_arm1_g_thesis_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -258,7 +273,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -269,7 +285,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
@@ -312,6 +328,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = serial_arm1_e_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -334,7 +354,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -345,7 +366,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
@@ -388,6 +409,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = serial_arm2_g_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -410,7 +435,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -421,7 +447,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
@@ -464,6 +490,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = serial_arm2_g_thesis_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -486,7 +516,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -497,7 +528,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
@@ -540,6 +571,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = parallel_f_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -562,7 +597,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -573,7 +609,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
@@ -616,6 +652,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = parallel_f_thesis_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -638,7 +678,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -649,7 +690,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
@@ -692,6 +733,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = parallel_d_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -714,7 +759,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
- * and offset may be NULL: continuous measurements); it returns the torque, held over the
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
  * period, and the next estimate; the plant integrates the period. The run stops after period
  * k when the next state or estimate is not finite: *rows = k + 1 rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -725,7 +771,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
@@ -768,6 +814,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
     flag = parallel_d_thesis_step(step_arg, step_res, 0, 0, 0);
     if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;

@@ -170,7 +170,7 @@ static const char manifest[] =
   "   \"symbol\": \"serial_arm2_g_thesis_closed_loop\"\n"
   "  }\n"
   " },\n"
-  " \"format\": \"cochlea-kernels/2\",\n"
+  " \"format\": \"cochlea-kernels/3\",\n"
   " \"kernels\": {\n"
   "  \"parallel_A\": {\n"
   "   \"group\": \"parallel\",\n"

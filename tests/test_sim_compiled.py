@@ -4,6 +4,7 @@ in models/scenarios/, through the all-in-C loop and the Python loop over ctypes 
 from __future__ import annotations
 
 import dataclasses
+import re
 import subprocess
 import warnings
 from pathlib import Path
@@ -12,8 +13,9 @@ import numpy as np
 import pytest
 
 import cochlea.sim
+from cochlea import load_serial
 from cochlea.errors import CochleaError
-from cochlea.resources import SCENARIOS_DIR
+from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.scenario import Plant
@@ -95,10 +97,15 @@ def test_noise_delay_and_friction_match(loop):
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
-def test_divergence_stops_both_kernels_at_the_same_period(loop):
-    """Arm 2's printed G_a diverges within 0.1 s (README): same rows, same time, and the noise
-    of the units after it drawn as the reference does."""
+def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
+    """Arm 2's printed G_a diverges within 0.1 s once its torques are not clipped (a
+    description with no effective torque limit): same rows, same time, and the noise of the
+    units after it drawn as the reference does."""
+    unlimited = tmp_path / "unlimited.toml"
+    unlimited.write_text(re.sub(r"torque_limit_Nm = [0-9.]+", "torque_limit_Nm = 1e12",
+                                (ROBOTS_DIR / "serial.toml").read_text()))
     sc = load_scenario("serial_task")
+    sc = dataclasses.replace(sc, description=str(unlimited), system=load_serial(unlimited))
     units = list(sc.units)
     units[1] = dataclasses.replace(units[1], gains={**units[1].gains,
                                                     "G_a": np.array([0.1, 0.05, 1.0])})

@@ -233,7 +233,7 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 7 + [ctypes.POINTER(_int)])
+                    + [pointer] * 8 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -353,7 +353,7 @@ class ClosedLoop:
 
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
-            offset=None) -> ClosedLoopLog:
+            offset=None, effort_limit=None) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call."""
         nq, nd = self.nq, self.n_desired
         ins = {
@@ -372,6 +372,8 @@ class ClosedLoop:
             quantum = self._array("quantum", quantum, (2 * nq,))
             offset = self._array("offset", np.zeros(2 * nq) if offset is None else offset,
                                  (2 * nq,))
+        if effort_limit is not None:
+            effort_limit = self._array("effort_limit", effort_limit, (nq,))
         if delay < 0:
             raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
         log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
@@ -385,6 +387,7 @@ class ClosedLoop:
                         None if quantum is None else offset.ctypes.data,
                         ins["gains"].ctypes.data, ins["Gamma"].ctypes.data, float(bound),
                         float(h), ins["plant_p"].ctypes.data, ins["friction"].ctypes.data,
+                        None if effort_limit is None else effort_limit.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
                         log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))
         if flag:

@@ -15,8 +15,9 @@ import casadi as ca
 from ..robots.model import RobotModel
 
 #: The format tag of the manifest ``cochlea_manifest()`` returns (JSON).
-#: 2: the closed-loop drivers take the measurement grid (quantum, offset) after the noise.
-MANIFEST_FORMAT = "cochlea-kernels/2"
+#: 2: the closed-loop drivers take the measurement grid (quantum, offset) after the noise;
+#: 3: and the joints' effort limits after the friction.
+MANIFEST_FORMAT = "cochlea-kernels/3"
 
 
 def source_hash(function: ca.Function) -> str:

@@ -77,7 +77,7 @@ int NAME_closed_loop(casadi_int n, casadi_int delay,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows);
 ```
@@ -92,7 +92,8 @@ encoder counts; NULL for continuous measurements); outputs
 estimate used in the period), `tau_log` (n x nq), `errors_log` (n x ne), `pose_log` (n x npose).
 The controller sees `x_log[max(k - delay, 0)] + noise[k]` (a measurement `delay` periods old),
 rounded to `offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i])` where
-`quantum[i] > 0`.
+`quantum[i] > 0`; its command is clipped to `+-effort_limit[i]` (NULL: no limit), as the
+runtime's supervisor clips every command, and logged as applied.
 The run stops after the first period whose next state or estimate is not finite; `*rows` says
 how many rows were written. Returns 0, or the failing kernel's code.
 

@@ -220,10 +220,11 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
 
 
 def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
-    """Periods whose command exceeds a joint's effort limit: a real run clips them."""
+    """Periods whose command was clipped to a joint's effort limit (the logs hold the applied
+    command, so a clipped one sits exactly on its limit)."""
     tau = np.hstack([u.tau for u in result.units])
     with np.errstate(invalid="ignore"):
-        return int(np.sum((np.abs(tau) > supervisor.limits.effort).any(axis=1)))
+        return int(np.sum((np.abs(tau) >= supervisor.limits.effort).any(axis=1)))
 
 
 def verdict(result: SimulationResult, supervisor: Supervisor) -> dict:

@@ -131,7 +131,7 @@ def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, 
     return loop.run(len(xd), x0=u.x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot, xd_ddot=xd_ddot,
                     gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h, plant_p=u.plant_params,
                     friction=u.friction, noise=noise, delay=delay, quantum=u.quantum,
-                    offset=u.grid_offset)
+                    offset=u.grid_offset, effort_limit=u.effort_limit)
 
 
 def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -160,6 +160,7 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
                                  np.empty((steps, n)), np.empty((steps, len(errors))),
                                  np.empty((steps, len(pose_out))))
     X, P, TAU, E, POSE = log.x, log.p_hat, log.tau, log.errors, log.pose
+    limit = u.effort_limit
     isfinite = np.isfinite
     for k in range(steps):
         X[k] = x
@@ -174,7 +175,9 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
         b_xd[:] = xd[k]
         b_xd_dot[:] = xd_dot[k]
         b_xd_ddot[:] = xd_ddot[k]
-        if call_step() or call_plant() or call_pose():
+        failed = call_step()
+        np.clip(tau, -limit, limit, out=tau)  # as the supervisor clips every command
+        if failed or call_plant() or call_pose():
             raise ckernels.KernelError(f"a kernel of unit {u.name} returned a nonzero code")
         TAU[k] = tau
         E[k] = errors

@@ -20,7 +20,8 @@ from .setup import UnitSetup, quantise
 
 
 def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
-    """``(t, x_true, x_measured, p_hat) -> (x_true_next, p_hat_next, tau, errors, xd, xd_dot)``."""
+    """``(t, x_true, x_measured, p_hat) -> (x_true_next, p_hat_next, tau, errors, xd, xd_dot)``;
+    ``tau`` is the command as applied: clipped to the joints' effort limits."""
     n = u.controller_model.nq
     t = ca.SX.sym("t")
     x_true = ca.SX.sym("x_true", 2 * n)
@@ -30,6 +31,8 @@ def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
     tau, p_next, errors = u.controller.step(
         x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot, p_hat, ca.DM(u.gains), ca.DM(u.gamma),
         u.bound, h)
+    limit = ca.DM(u.effort_limit)
+    tau = ca.fmin(ca.fmax(tau, -limit), limit)  # as the supervisor clips every command
     x_next = plant_step(u.plant_model, substeps)(x_true, tau, ca.DM(u.plant_params),
                                                  ca.DM(u.friction), h)
     return ca.Function(f"period_{u.name}", [t, x_true, x_meas, p_hat],

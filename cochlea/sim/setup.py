@@ -54,6 +54,12 @@ class UnitSetup:
     quantum: np.ndarray | None = None
     grid_offset: np.ndarray | None = None
 
+    @property
+    def effort_limit(self) -> np.ndarray:
+        """Per joint, the largest effort a command may ask (N m or N): the supervisor clips
+        every command to it, in the real-time loop and the as-fast simulation alike."""
+        return np.array([j.effort_limit for j in self.controller_model.joints])
+
     def keep_out_centre(self, q) -> tuple[float, float]:
         """Centre of the safety keep-out circle at joint position q (m, world frame)."""
         if self.moving_centre_joint is None:
