@@ -67,7 +67,6 @@ class Motor:
     current_limit_mA: float | None = None
 
 
-
 # --------------------------------------------------------------------------------------------
 # Validation helpers
 # --------------------------------------------------------------------------------------------
@@ -153,7 +152,6 @@ class Table:
                              show_got=False)
 
 
-
 def read_limits(t: Table, jtype: str) -> tuple[float, float, float, float]:
     """A joint's ``(lower, upper, velocity, effort)`` limits in SI: rad, rad/s, N m for a
     revolute joint (limits written in deg), m, m/s, N for a prismatic one."""
@@ -207,7 +205,6 @@ def read_motor(t: Table) -> Motor:
     return Motor(model, motor_id, fit, direction, math.radians(zero_offset), current_limit)
 
 
-
 def read_toml(path: Path) -> dict:
     try:
         text = path.read_text(encoding="utf-8")
@@ -219,8 +216,6 @@ def read_toml(path: Path) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise DescriptionError(path, "(syntax)", "valid TOML", str(exc)) from None
-
-
 
 
 def resolve_path(name_or_path: str | Path) -> Path:
@@ -243,8 +238,6 @@ def open_description(path: Path, kind: str, gravity_size: int, gravity_frame: st
                              f"around {keep_out_around} must not enter", lambda v: v > 0)
     system.done()
     return top, name, gravity, keep_out
-
-
 
 
 def check_unique_motor_ids(path: Path, joints: list[tuple[str, str, Motor]]) -> None:

@@ -66,7 +66,6 @@ def _initial_joint(geometry, unit: UnitStart) -> np.ndarray:
     return np.asarray(q0, float)
 
 
-
 TASK_NAMES = ("C_u", "C_v", "phi", "C'_u", "C'_v", "phi'")
 TASK_UNITS = ("m", "m", "rad") * 2
 TASK_ANGLES = (2, 5)

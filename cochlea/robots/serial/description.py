@@ -130,7 +130,6 @@ def _physical_inertia(six: list[float]) -> bool:
     return a + b >= c - slack
 
 
-
 def _read_joint(t: Table, parent_length: float) -> Joint:
     jtype = t.string("type", ("revolute", "prismatic"))
     axis = t.vector("axis", 3, "the joint frame", check=lambda v: np.linalg.norm(v) > 1e-9,
@@ -146,7 +145,6 @@ def _read_joint(t: Table, parent_length: float) -> Joint:
     armature = read_armature(t, jtype)
     t.done()
     return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, armature)
-
 
 
 def _read_link(t: Table, parent_length: float) -> Link:
