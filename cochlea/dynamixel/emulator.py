@@ -278,12 +278,14 @@ class _Unit:
         self.x = np.asarray(setup.x0, float).copy()
         # The plant step (x, tau, p, friction, h) -> x_next, called through CasADi's buffers
         # (about 10 us instead of 60 us with numpy arguments).
-        step = plant_step(setup.plant_model, substeps)
+        step = plant_step(setup.plant_model, substeps, coulomb=setup.coulomb is not None)
         self._buffer, self._call = step.buffer()
         self._x, self._tau = np.zeros(2 * n), np.zeros(n)
         self._next = np.zeros(2 * n)
         arguments = [self._x, self._tau, np.asarray(setup.plant_params, float).copy(),
                      np.asarray(setup.friction, float).copy(), np.array([h])]
+        if setup.coulomb is not None:  # dry friction: the motors' gearboxes stick and slip
+            arguments.append(np.asarray(setup.coulomb, float).copy())
         self._arguments = arguments  # the buffers point into these arrays: keep them alive
         self._h = arguments[4]
         self._held = [True] * n

@@ -32,6 +32,8 @@ class SimBackend:
             f.inputs[2][...] = u.plant_params
             f.inputs[3][...] = u.friction
             f.inputs[4][...] = period
+            if u.coulomb is not None:  # the plant with dry friction has it as a last input
+                f.inputs[5][...] = u.coulomb
             f.inputs[0][...] = u.x0
             self._steps.append(f)
             n = u.plant_model.nq

@@ -74,10 +74,10 @@ def _hash(function) -> str:
     return _HASHES[id(function)][1]
 
 
-def _plant(model, substeps: int):
-    key = (id(model), substeps)
+def _plant(model, substeps: int, coulomb: bool = False):
+    key = (id(model), substeps, coulomb)
     if key not in _PLANTS:
-        _PLANTS[key] = (model, plant_step(model, substeps))
+        _PLANTS[key] = (model, plant_step(model, substeps, coulomb))
     return _PLANTS[key][1]
 
 
@@ -86,7 +86,7 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
     (source hashes; computed once per Function object)."""
     c = u.controller
     group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "")[:-1]
-    plant = _plant(u.plant_model, substeps)
+    plant = _plant(u.plant_model, substeps, u.coulomb is not None)
     wanted = [(f"{group}_step", c.step, f"controller {c.kind} ({c.variant})"),
               (plant.name(), plant, f"the plant with {substeps} RK4 sub-steps"),
               (u.fk_world.name(), u.fk_world, "the logged pose")]
@@ -278,5 +278,6 @@ def period_kernels(u: UnitSetup, substeps: int, source: str = "c"):
                     BufferedKernel(lib.kernel(names.pose)), "c")
         except CochleaError as exc:
             warnings.warn(f"{exc}; running on the CasADi kernels", CKernelsWarning, stacklevel=2)
-    return (BufferedFunction(u.controller.step), BufferedFunction(_plant(u.plant_model, substeps)),
+    return (BufferedFunction(u.controller.step), BufferedFunction(_plant(u.plant_model, substeps,
+                                                                   u.coulomb is not None)),
             BufferedFunction(u.fk_world), "casadi")

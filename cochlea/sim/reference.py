@@ -33,8 +33,9 @@ def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
         u.bound, h)
     limit = ca.DM(u.effort_limit)
     tau = ca.fmin(ca.fmax(tau, -limit), limit)  # as the supervisor clips every command
-    x_next = plant_step(u.plant_model, substeps)(x_true, tau, ca.DM(u.plant_params),
-                                                 ca.DM(u.friction), h)
+    step = plant_step(u.plant_model, substeps, coulomb=u.coulomb is not None)
+    extra = [] if u.coulomb is None else [ca.DM(u.coulomb)]
+    x_next = step(x_true, tau, ca.DM(u.plant_params), ca.DM(u.friction), h, *extra)
     return ca.Function(f"period_{u.name}", [t, x_true, x_meas, p_hat],
                        [x_next, p_next, tau, errors, xd, xd_dot],
                        ["t", "x_true", "x_meas", "p_hat"],

@@ -59,6 +59,7 @@ class Plant:
     mass_scale: np.ndarray | None = None  # per link / body: all its inertial parameters scale
     payload_kg: float = 0.0  # point mass at each tool point
     viscous_friction: np.ndarray | None = None  # N m s/rad or N s/m per joint
+    coulomb_friction: np.ndarray | None = None  # N m or N per joint, with sticking
     noise_q_std: float = 0.0  # rad (or m), Gaussian, on measured positions
     noise_qd_std: float = 0.0  # rad/s (or m/s), on measured velocities
     delay_periods: int = 0  # whole control periods between measurement and command
@@ -265,6 +266,9 @@ def load(name_or_path: str | Path) -> Scenario:
                                 required=False, default=0.0),
             viscous_friction=p.vector("viscous_friction_SI", layout.n_joint,
                                       "N m s/rad (revolute) or N s/m (prismatic)",
+                                      check=lambda v: all(x >= 0 for x in v), required=False),
+            coulomb_friction=p.vector("coulomb_friction_SI", layout.n_joint,
+                                      "N m (revolute) or N (prismatic)",
                                       check=lambda v: all(x >= 0 for x in v), required=False),
             noise_q_std=p.number("noise_q_std_SI", "a non-negative number (rad or m)",
                                  lambda v: v >= 0, required=False, default=0.0),

@@ -53,6 +53,9 @@ class UnitSetup:
     #: coordinate continuous. SI (rad, m, rad/s, m/s).
     quantum: np.ndarray | None = None
     grid_offset: np.ndarray | None = None
+    #: Coulomb friction per joint (N m or N; the plant sticks and slips, see
+    #: :func:`cochlea.robots.plant.plant_step`), or None: none.
+    coulomb: np.ndarray | None = None
 
     @property
     def effort_limit(self) -> np.ndarray:
@@ -142,7 +145,9 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
             gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0, friction,
             plan.joint_units, plan.task_names, plan.task_units, plan.task_angles, plan.fk_world,
             tool_points=plan.tool_points, centre=plan.centre,
-            moving_centre_joint=plan.moving_centre_joint))
+            moving_centre_joint=plan.moving_centre_joint,
+            coulomb=(None if sc.plant.coulomb_friction is None
+                     else np.asarray(sc.plant.coulomb_friction, float))))
         if grids:  # [q..., qd...] of this unit's joints
             mine = grids[first_joint:first_joint + m.nq]
             setups[-1].quantum = np.concatenate([[g[0][0] for g in mine], [g[0][1] for g in mine]])

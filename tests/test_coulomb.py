@@ -1,0 +1,108 @@
+"""Dry (Coulomb) friction in the plant (issue 11, item 2): a joint pushed below breakaway from
+rest stays put, one pushed past it moves against the friction, a sliding joint stops and stays
+stopped; the scenario key reaches the simulation, and without it the plant is unchanged."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+import cochlea
+from cochlea.robots.plant import plant_step
+from cochlea.sim import CKernelsWarning, load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import Plant
+
+LEVEL = np.array([0.02, 0.015, 0.01])  # N m: the order of the Table C.1 fits' offsets
+H = 1e-3  # s
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return cochlea.model("serial", parameterisation="inertial")
+
+
+@pytest.fixture(scope="module")
+def step(arm):
+    return plant_step(arm, 1, coulomb=True)
+
+
+#: Joints 2 and 3 with levels far above any reaction joint 1 puts on them: locked by friction.
+LOCKED = np.array([LEVEL[0], 1.0, 1.0])
+
+
+def run(step, arm, x0, tau, periods, level=LEVEL):
+    x = np.array(x0, float)
+    states = [x]
+    for _ in range(periods):
+        x = np.array(step(x, tau, arm.p_nominal, np.zeros(3), H, level)).ravel()
+        states.append(x)
+    return np.array(states)
+
+
+Q0 = np.radians([73.0, 83.0, 110.0])
+
+
+def test_below_breakaway_the_joints_stay_exactly_put(step, arm):
+    for tau in ([0.5 * LEVEL[0], 0.0, 0.0], 0.9 * LEVEL, [-0.01, 0.012, -0.009]):
+        states = run(step, arm, np.r_[Q0, 0, 0, 0], np.array(tau), 500)
+        assert np.array_equal(states[-1], states[0]), tau
+
+
+def test_past_breakaway_a_joint_moves_against_the_friction(step, arm):
+    """3x the level on joint 1 alone, joints 2 and 3 locked by friction: joint 1 accelerates
+    with (3 - 1) x level over its inertia, and joints 2 and 3 do not move at all."""
+    tau = np.array([3 * LEVEL[0], 0.0, 0.0])
+    states = run(step, arm, np.r_[Q0, 0, 0, 0], tau, 100, LOCKED)
+    assert np.array_equal(states[:, 1:3], np.tile(Q0[1:], (101, 1)))  # joints 2, 3 held
+    M11 = float(np.array(arm.M(Q0))[0, 0])  # constant while joints 2 and 3 stay put
+    t = 0.1
+    assert states[-1, 3] == pytest.approx(2 * LEVEL[0] / M11 * t, rel=1e-3)
+    frictionless = plant_step(arm, 1)
+    x = np.r_[Q0, 0, 0, 0]
+    for _ in range(100):
+        x = np.array(frictionless(x, tau, arm.p_nominal, np.zeros(3), H)).ravel()
+    assert abs(states[-1, 0] - Q0[0]) < abs(x[0] - Q0[0])
+    # With the real, lower levels the reaction of joint 1's acceleration moves joints 2 and 3.
+    slipping = run(step, arm, np.r_[Q0, 0, 0, 0], tau, 100)
+    assert not np.allclose(slipping[-1, 1:3], Q0[1:], rtol=0, atol=1e-6)
+
+
+def test_a_sliding_joint_stops_and_stays_stopped(step, arm):
+    qd0 = 0.2  # rad/s on joint 1, no torque: the friction brakes it
+    M11 = float(np.array(arm.M(Q0))[0, 0])
+    stopping = M11 * qd0 / LEVEL[0]  # s, if joints 2 and 3 stay put
+    states = run(step, arm, np.r_[Q0, qd0, 0, 0], np.zeros(3), int(3 * stopping / H), LOCKED)
+    assert np.array_equal(states[-1, 3:], np.zeros(3))
+    stopped = int(np.argmax(np.all(states[:, 3:] == 0, axis=1)))
+    assert abs(stopped * H - stopping) <= H  # within the period it stops in
+    assert np.array_equal(states[stopped:, :3], np.tile(states[stopped, :3], (len(states)
+                                                                              - stopped, 1)))
+    travel = states[-1, 0] - Q0[0]
+    assert travel == pytest.approx(0.5 * qd0 ** 2 * M11 / LEVEL[0], rel=0.02)
+
+
+def test_without_coulomb_the_plant_is_the_one_generated():
+    """The plain plant Function is untouched by the option (same name, same graph)."""
+    m = cochlea.model("serial", parameterisation="inertial")
+    plain, again = plant_step(m, 1), plant_step(m, 1, coulomb=False)
+    assert plain.name() == "serial_arm1_plant_step" and plain.serialize() == again.serialize()
+    assert plant_step(m, 1, coulomb=True).name() == "serial_arm1_plant_step_coulomb"
+
+
+def test_scenario_coulomb_friction_reaches_the_plant():
+    sc = load_scenario("serial_joint")
+    sc = dataclasses.replace(sc, plant=Plant(coulomb_friction=np.array([0.02, 0.015, 0.01])))
+    setups = unit_setups(sc)
+    assert np.array_equal(setups[0].coulomb, [0.02, 0.015, 0.01])
+    reference = simulate(sc, 0.2, setups, kernels="casadi")
+    with warnings.catch_warnings(record=True) as caught:  # no C kernel for it yet
+        warnings.simplefilter("always")
+        fallback = simulate(sc, 0.2, setups)
+    assert any(issubclass(w.category, CKernelsWarning) for w in caught)
+    plain = simulate(load_scenario("serial_joint"), 0.2, kernels="casadi")
+    for a, b, c in zip(reference.units, fallback.units, plain.units):
+        assert np.array_equal(a.q, b.q)
+        assert not np.allclose(a.q, c.q, rtol=0, atol=1e-9)  # the friction acts
