@@ -118,7 +118,7 @@ def test_readme_documents_every_function():
         assert len(section) == 2, f"README has no section for {name}"
         body = section[1].split("### ", 1)[0]
         if entry["symbol"] != name:  # an alias: documented where its symbol is
-            assert f"Alias of `{entry['symbol']}`" in body, name
+            assert body.startswith(f"\nSame as `{entry['symbol']}` (an alias"), name
             body = readme.split(f"### `{entry['symbol']}`\n", 1)[1].split("### ", 1)[0]
         assert "Work memory" in body
         for i, arg in enumerate(entry["inputs"]):
@@ -129,7 +129,7 @@ def test_readme_documents_every_function():
             assert row in body, (name, row)
             assert not body.split(row, 1)[1].startswith(" |"), f"{name}.{arg['name']}: no unit"
     for loop, entry in manifest["closed_loops"].items():
-        runs = "" if entry["symbol"] == loop else f" (runs `{entry['symbol']}`)"
+        runs = "" if entry["symbol"] == loop else f" (same as `{entry['symbol']}`)"
         assert f"| `{loop}`{runs} |" in readme
     assert "make lib" in readme and "without Python" in readme
 
