@@ -118,7 +118,7 @@ def test_readme_documents_every_function():
         assert len(section) == 2, f"README has no section for {name}"
         body = section[1].split("### ", 1)[0]
         if entry["symbol"] != name:  # an alias: documented where its symbol is
-            assert f"Alias of `{entry['symbol']}`" in body, name
+            assert body.startswith(f"\nSame as `{entry['symbol']}` (an alias"), name
             body = readme.split(f"### `{entry['symbol']}`\n", 1)[1].split("### ", 1)[0]
         assert "Work memory" in body
         for i, arg in enumerate(entry["inputs"]):
@@ -129,7 +129,7 @@ def test_readme_documents_every_function():
             assert row in body, (name, row)
             assert not body.split(row, 1)[1].startswith(" |"), f"{name}.{arg['name']}: no unit"
     for loop, entry in manifest["closed_loops"].items():
-        runs = "" if entry["symbol"] == loop else f" (runs `{entry['symbol']}`)"
+        runs = "" if entry["symbol"] == loop else f" (same as `{entry['symbol']}`)"
         assert f"| `{loop}`{runs} |" in readme
     assert "make lib" in readme and "without Python" in readme
 
@@ -228,3 +228,31 @@ def test_aliases_run_an_emitted_kernel_that_computes_the_same(config):
         assert computation_hash(built[name]) == computation_hash(built[symbol]), name
     assert computation_hash(built["serial_arm1_g_step"]) != \
         computation_hash(built["serial_arm1_g_thesis_step"])
+
+
+_KERNEL = re.compile(r"^CASADI_SYMBOL_EXPORT int (\w+)\(const casadi_real\*\* arg, "
+                     r"casadi_real\*\* res, casadi_int\* iw, casadi_real\* w, int mem\)\{\n"
+                     r"  return (casadi_f\d+)\(", flags=re.M)
+
+
+def test_no_emitted_kernel_repeats_another_up_to_names():
+    """Inside the files too (arm 2's M, C, G, plant step, ... were arm 1's): no two kernels with
+    C of their own have the same signature and the same body once CasADi's local names are
+    normalised. Kernels whose arguments are named differently (``parallel_fk`` and
+    ``parallel_fk_world``, equal because the mechanism's frame is the world's) have different
+    signatures, so neither can run the other's C: they stay."""
+    manifest = _manifest_json()["kernels"]
+    emitted: dict[str, str] = {}
+    seen: dict[tuple[str, str], str] = {}
+    for path in sorted(GENERATED.glob("*.c")):
+        text = path.read_text()
+        for name, local in _KERNEL.findall(text):
+            body = re.search(rf"^static int {local}\(.*?^\}}$", text, flags=re.S | re.M)
+            assert body, (path.name, name)
+            emitted[name] = path.name
+            signature = json.dumps([manifest[name]["inputs"], manifest[name]["outputs"]])
+            key = (signature, body.group(0).replace(local, "F"))
+            assert key not in seen, f"{name} ({path.name}) repeats {seen.get(key)}"
+            seen[key] = name
+    # The parser found every kernel that has C of its own, and none of the aliases.
+    assert set(emitted) == {n for n, e in manifest.items() if e["symbol"] == n}

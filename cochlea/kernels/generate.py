@@ -24,6 +24,14 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
   Function it came from, so a caller can tell a stale library), ``cochlea.h`` (includes every
   header) and ``README.md`` (each function's inputs, outputs, sizes, units and work memory).
 
+No body is generated twice: a kernel that computes exactly what an earlier one does (the same
+:func:`~cochlea.kernels.naming.computation_hash`) is an *alias*. It has no C of its own; the
+manifest keeps its entry (name, signature, source hash) with ``"symbol"``, the kernel whose C it
+runs, and :mod:`cochlea.kernels.library` resolves it. So ``serial_arm2.c`` holds only what differs
+from arm 1 (the base pose: ``fk_world``), a file whose every kernel is an alias
+(``serial_arm1_e_thesis``, ``serial_arm2_e``, ...) is not written, and a driver making the same
+calls as an earlier one is an alias of it in ``closed_loops``.
+
 Every output is dense (column-major for matrices) and every kernel is generic in what a scenario
 chooses: gains, adaptation gain, projection bound, period, plant parameters, friction.
 Generation is deterministic: the same inputs give byte-identical files.

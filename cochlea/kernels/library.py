@@ -25,6 +25,11 @@ those prepared arrays -- no allocation, no argument conversion, no loop over ele
 Buffers have the kernel's shapes: a column ``n x 1`` is a vector ``(n,)``, a scalar ``()``, a
 matrix ``r x c`` an ``(r, c)`` array in Fortran (column-major) order, CasADi's layout.
 ``library.closed_loop(name)`` binds a generated closed-loop driver (N periods in C).
+
+Every name the manifest lists binds, aliases included: a kernel (or driver) computing exactly
+what an earlier one does has no C of its own, and its manifest entry's ``symbol`` names the C
+function it runs; :meth:`Library.symbol` resolves it before any C symbol (``NAME``,
+``NAME_n_in``, ...) is looked up, while the signature and source hash stay the alias's own.
 """
 
 from __future__ import annotations
@@ -143,7 +148,7 @@ class Library:
 
     @property
     def names(self) -> tuple[str, ...]:
-        """Every kernel in the library."""
+        """Every kernel in the library, aliases included."""
         return tuple(self.manifest["kernels"])
 
     @property

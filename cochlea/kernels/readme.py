@@ -67,7 +67,8 @@ No body is generated twice. A kernel that computes exactly what an earlier one d
 kernel's C function (the manifest's `symbol`; `cochlea.kernels.library` resolves it). The thesis
 variant of controller e equals the corrected one, arm 2's joint-space controller equals arm 1's,
 and arm 2's model kernels that do not depend on the base pose equal arm 1's; a file whose every
-kernel is an alias is not written. The sections below say which kernel each alias runs.
+kernel is an alias is not written. The sections below list each alias as "same as" the
+kernel it runs.
 
 ## The closed loop in C
 
@@ -146,7 +147,7 @@ def readme(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLoop]
     lines = [_INTRO.format(casadi=ca.__version__, library=config.library, substeps=substeps)
              .rstrip("\n")]
     for loop in loops:
-        runs = f" (runs `{loop.symbol}`)" if loop.is_alias else ""
+        runs = f" (same as `{loop.symbol}`)" if loop.is_alias else ""
         lines.append(f"| `{loop.name}`{runs} | `{loop.step}` | `{loop.plant}` | `{loop.pose}` | "
                      f"{loop.nq} | {loop.n_params} | {loop.n_desired} | {loop.n_errors} | "
                      f"{loop.n_pose} | {loop.n_gains} | {loop.n_plant_params} |")
@@ -161,8 +162,8 @@ def readme(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLoop]
             lines += [f"## `{group}.c` / `{group}.h`" if group in written else
                       f"## `{group}` (every kernel an alias: no file)", ""]
         if k.is_alias:
-            lines += [f"### `{k.name}`", "", f"Alias of `{k.symbol}`: the same computation "
-                      "(same signature and units), run by that C function.", ""]
+            lines += [f"### `{k.name}`", "", f"Same as `{k.symbol}` (an alias: the same "
+                      "computation, signature and units, run by that C function).", ""]
         else:
             lines += _table(k, work[k.name])
     return "\n".join(lines).rstrip("\n") + "\n"
