@@ -102,22 +102,22 @@ def perturbed_parameters(full, plant: scenario_mod.Plant,
 
 
 def measurement_grids(adapter, system, plant: scenario_mod.Plant
-                      ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per joint of the whole system, the ``(quantum, offset)`` of its measured position and
-    velocity as the motor reports them: positions in encoder counts (``2 pi / 4096`` rad per
-    motor turn's count, through the joint's ratio and zero offset), velocities in Present
-    Velocity counts (0.229 rpm). Zero quanta where the scenario's plant keeps it continuous."""
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """For every joint of the whole system in the loop's order, the measurement grid as the
+    motor reports it: ``(quantum, offset)``, each ``(n_joints, 2)`` for (position, velocity).
+    Positions in encoder counts (``2 pi / 4096`` rad per count of the motor, through the
+    joint's ratio and zero offset), velocities in Present Velocity counts (0.229 rpm). A zero
+    quantum where the scenario's plant keeps the measurement continuous; None: neither."""
     if not (plant.position_encoder or plant.velocity_register):
-        return []
-    grids = []
-    for joint in adapter.actuated_joints(system):
-        scale = abs(joint.ratio)  # joint travel per motor radian
-        position = RAD_PER_COUNT * scale if plant.position_encoder else 0.0
-        velocity = RAD_S_PER_VELOCITY_LSB * scale if plant.velocity_register else 0.0
-        # q = direction * ratio * (theta - zero_offset): the grid is shifted by the offset.
-        offset = -joint.motor.direction * joint.ratio * joint.motor.zero_offset
-        grids.append((np.array([position, velocity]), np.array([offset, 0.0])))
-    return grids
+        return None
+    joints = adapter.actuated_joints(system)
+    scale = np.array([abs(j.ratio) for j in joints])  # joint travel per motor radian
+    quantum = np.column_stack([scale * RAD_PER_COUNT * plant.position_encoder,
+                               scale * RAD_S_PER_VELOCITY_LSB * plant.velocity_register])
+    # q = direction * ratio * (theta - zero_offset): the position grid is shifted.
+    offset = np.column_stack([[-j.motor.direction * j.ratio * j.motor.zero_offset
+                               for j in joints], np.zeros(len(joints))])
+    return quantum, offset
 
 
 def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
@@ -126,7 +126,7 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     adapter = robot(sc.robot)
     system = sc.system if sc.system is not None else adapter.load(sc.description)
     grids = measurement_grids(adapter, system, sc.plant)
-    first_joint = 0
+    first_joint = 0  # the unit's first joint in the system
     setups = []
     for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
         m = plan.controller_model
@@ -140,6 +140,11 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
                     else np.zeros(m.nq))
         plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
                                             plan.payload_points)
+        quantum = offset = None
+        if grids is not None:  # this unit's joints, as [q..., qd...]
+            mine = slice(first_joint, first_joint + m.nq)
+            quantum, offset = (grid[mine].T.ravel() for grid in grids)
+        first_joint += m.nq
         setups.append(UnitSetup(
             plan.name, m, plan.plant_model, plant_params, controller, plan.desired, plan.x0,
             gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0, friction,
@@ -147,13 +152,8 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
             tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
             coulomb=(None if sc.plant.coulomb_friction is None
-                     else np.asarray(sc.plant.coulomb_friction, float))))
-        if grids:  # [q..., qd...] of this unit's joints
-            mine = grids[first_joint:first_joint + m.nq]
-            setups[-1].quantum = np.concatenate([[g[0][0] for g in mine], [g[0][1] for g in mine]])
-            setups[-1].grid_offset = np.concatenate([[g[1][0] for g in mine],
-                                                     [g[1][1] for g in mine]])
-        first_joint += m.nq
+                     else np.asarray(sc.plant.coulomb_friction, float)),
+            quantum=quantum, grid_offset=offset))
     return setups
 
 
