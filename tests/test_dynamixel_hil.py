@@ -46,10 +46,17 @@ def emulator(robot: str, scenario: str, log: Path, *options: str):
         proc.communicate(timeout=20)
 
 
+#: These tests are about tracking and faults over the bus, not timing: on the shared 2-core CI
+#: machine three processes (pytest, emulator, loop) sometimes lose 20 ms at once, which the
+#: default watchdog rightly stops. The deadline watchdog has its own test (test_runtime.py).
+SHARED_MACHINE = ("--watchdog-misses", "300")
+
+
 def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "cochlea.apps.cochlea_run",
-         *args], cwd=cwd, capture_output=True, text=True, timeout=180)
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", *args,
+         *(SHARED_MACHINE if "--port" in args else ())],
+        cwd=cwd, capture_output=True, text=True, timeout=180)
 
 
 def assert_log_complete(out: Path, summary: dict) -> None:
@@ -84,6 +91,7 @@ def test_each_scenario_converges_over_the_virtual_chain(tmp_path, robot, space):
     assert bus["bus_budget"]["bytes_per_period"] == (14 + 3 * n) + (14 + n) + 21 * n
     assert bus["reads"] == summary["periods"] and bus["good_reads"] >= 0.98 * bus["reads"]
     assert 0 < timing["backend_mean"] < 0.01 and "deadline_miss_fraction" in timing
+    assert timing["watchdog_misses_allowed"] == int(SHARED_MACHINE[1])
     assert f"torque off confirmed by all {n}" in bus["shutdown"]
     assert "  bus: " in done.stdout and "  timing: period p50" in done.stdout
     # After the run: zero current, then torque off, on every motor.

@@ -49,6 +49,8 @@ from . import report
 
 EXIT_DIVERGED = 3
 EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
+#: Half a second at 1 kHz: beyond that the loop is not controlling the motors at all.
+MAX_WATCHDOG_MISSES = 500
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -94,6 +96,10 @@ def _parser() -> argparse.ArgumentParser:
                         "reference")
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="control rate (default: the scenario's, 1000 Hz)")
+    p.add_argument("--watchdog-misses", type=int, default=20, metavar="N",
+                   help="real time: consecutive missed periods before the watchdog's safe stop "
+                        f"(default 20; at most {MAX_WATCHDOG_MISSES}). Raise it only on a loaded "
+                        "machine where a missed period is harmless, e.g. the virtual chain")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
                    help="live one-line status while running (auto: when stderr is a terminal)")
     return p
@@ -123,6 +129,9 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError(f"--duration must be positive, got {args.duration}")
     if args.rate is not None and not 1.0 <= args.rate <= 20_000.0:
         raise CochleaError(f"--rate must be between 1 and 20000 Hz, got {args.rate}")
+    if not 1 <= args.watchdog_misses <= MAX_WATCHDOG_MISSES:
+        raise CochleaError(f"--watchdog-misses must be between 1 and {MAX_WATCHDOG_MISSES} "
+                           f"periods, got {args.watchdog_misses}")
     if args.realtime == "off" and args.backend != "sim":
         raise CochleaError("--realtime off simulates as fast as possible and needs "
                            "--backend sim")
@@ -184,7 +193,7 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
     else:
         backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels)
     supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
-                                  substeps=substeps)
+                                  substeps=substeps, watchdog_misses=args.watchdog_misses)
     loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
                         kernels=args.kernels, substeps=substeps)
     write_raw_columns(out / "log.columns.json", loop)

@@ -345,7 +345,8 @@ class RealTimeLoop:
         t = self.buffer[:self.rows, int(off[-2]):int(off[-1])]
         timing = LoopTiming(start=self.time[:self.rows] + t[:, 0], period=t[:, 1],
                             compute=t[:, 2], backend=t[:, 3])
-        return {**timing.summary(self.h, self.rows), "scheduling": self.scheduling}
+        return {**timing.summary(self.h, self.rows), "scheduling": self.scheduling,
+                "watchdog_misses_allowed": self.supervisor.limits.watchdog_misses}
 
 
 def raw_columns(loop: RealTimeLoop) -> list[str]:
