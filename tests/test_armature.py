@@ -17,13 +17,15 @@ from cochlea.sim.scenario import Plant
 from cochlea.sim.setup import perturbed_parameters
 
 SERIAL_ARMATURE = (4e-3, 3e-3, 2e-3)  # kg m^2 per joint: the MX-64's order of magnitude at 200:1
+#: The shipped descriptions declare their own armatures: these tests set theirs.
+WITHOUT_ARMATURE = re.compile(r"(?m)^\s*armature_kg(m2)? = .*\n")
 PARALLEL_ARMATURE = {"left.th1": 4e-3, "left.th2": 3e-3, "slider.d1": 18.0,  # kg at the slider
                      "right.th1": 4e-3, "right.th2": 3e-3}
 
 
 @pytest.fixture(scope="module")
 def serial_with_armature(tmp_path_factory):
-    text = (ROBOTS_DIR / "serial.toml").read_text()
+    text = WITHOUT_ARMATURE.sub("", (ROBOTS_DIR / "serial.toml").read_text())
     count = iter(range(100))
     text = re.sub(r"(?m)^(\s*velocity_limit_rad_s = .*)$",
                   lambda m: f"{m.group(1)}\n  armature_kgm2 = {SERIAL_ARMATURE[next(count) % 3]}",
@@ -35,7 +37,7 @@ def serial_with_armature(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def parallel_with_armature(tmp_path_factory):
-    text = (ROBOTS_DIR / "parallel.toml").read_text()
+    text = WITHOUT_ARMATURE.sub("", (ROBOTS_DIR / "parallel.toml").read_text())
     for joint, value in PARALLEL_ARMATURE.items():
         side, name = joint.split(".")
         key = "armature_kg" if name == "d1" else "armature_kgm2"
@@ -54,7 +56,8 @@ def _random_states(rng, n, count=5):
 @pytest.mark.parametrize("method", ["newton-euler", "lagrange"])
 def test_serial_armature_is_inertia_on_the_diagonal_only(serial_with_armature, method, rng):
     plain = cochlea.model("serial", method=method)
-    geared = cochlea.model("serial", method=method, description=serial_with_armature)
+    geared = cochlea.model("serial", method=method, description=serial_with_armature,
+                      actuators="armature")
     for q, qd, _ in _random_states(rng, 3):
         assert np.allclose(np.array(geared.M(q)) - np.array(plain.M(q)),
                            np.diag(SERIAL_ARMATURE), rtol=0, atol=1e-15)
@@ -63,8 +66,10 @@ def test_serial_armature_is_inertia_on_the_diagonal_only(serial_with_armature, m
 
 
 def test_newton_euler_equals_lagrange_with_armature(serial_with_armature, rng):
-    ne = cochlea.model("serial", arm="arm2", description=serial_with_armature)
-    la = cochlea.model("serial", arm="arm2", method="lagrange", description=serial_with_armature)
+    ne = cochlea.model("serial", arm="arm2", description=serial_with_armature,
+                      actuators="armature")
+    la = cochlea.model("serial", arm="arm2", method="lagrange", description=serial_with_armature,
+                      actuators="armature")
     for q, qd, qdd in _random_states(rng, 3):
         for f in ("M", "G"):
             assert np.allclose(np.array(getattr(ne, f)(q)), np.array(getattr(la, f)(q)), rtol=0,
@@ -79,7 +84,8 @@ def test_regressor_identity_with_armature(serial_with_armature, parallel_with_ar
                                           parameterisation, rng):
     for robot, path, n in (("serial", serial_with_armature, 3),
                            ("parallel", parallel_with_armature, 5)):
-        m = cochlea.model(robot, parameterisation=parameterisation, description=path)
+        m = cochlea.model(robot, parameterisation=parameterisation, description=path,
+                      actuators="armature")
         for _ in range(3):
             q = SCENARIO_START + rng.uniform(-0.05, 0.05, 5) if robot == "parallel" else \
                 rng.uniform(-2, 2, n)
@@ -91,25 +97,29 @@ def test_regressor_identity_with_armature(serial_with_armature, parallel_with_ar
 
 
 def test_armature_parameters_in_every_parameterisation(serial_with_armature):
-    full = cochlea.model("serial", description=serial_with_armature).parameters
+    full = cochlea.model("serial", description=serial_with_armature,
+                      actuators="armature").parameters
     assert full.names[-3:] == ("joint1.Ia", "joint2.Ia", "joint3.Ia")
     assert full.si_units[-3:] == ("kg m^2",) * 3
     assert np.allclose(full.nominal[-3:], SERIAL_ARMATURE)
     mass = cochlea.model("serial", parameterisation="mass",
-                         description=serial_with_armature).parameters
+                         description=serial_with_armature,
+                      actuators="armature").parameters
     assert mass.names == ("link1.m", "link2.m", "link3.m", "joint1.Ia", "joint2.Ia", "joint3.Ia")
     # In the base set, joint 1's armature only adds to the constant part of M11, exactly as
     # link 1's Izz does, so the two merge; joints 2 and 3 add parameters of their own.
     plain = cochlea.model("serial", parameterisation="base").parameters
     base = cochlea.model("serial", parameterisation="base",
-                         description=serial_with_armature).parameters
+                         description=serial_with_armature,
+                      actuators="armature").parameters
     assert len(base.names) == len(plain.names) + 2
     assert any("joint1.Ia" in meaning and "link1.Izz" in meaning for meaning in base.meanings)
 
 
 def test_parallel_armature_is_inertia_on_the_diagonal_only(parallel_with_armature, rng):
     plain = cochlea.model("parallel")
-    geared = cochlea.model("parallel", description=parallel_with_armature)
+    geared = cochlea.model("parallel", description=parallel_with_armature,
+                      actuators="armature")
     assert geared.parameters.names[-5:] == tuple(f"{j}.Ia" for j in PARALLEL_ARMATURE)
     assert geared.parameters.si_units[-5:] == ("kg m^2", "kg m^2", "kg", "kg m^2", "kg m^2")
     for _ in range(3):
@@ -121,8 +131,8 @@ def test_parallel_armature_is_inertia_on_the_diagonal_only(parallel_with_armatur
         assert np.allclose(np.array(geared.G(q)), np.array(plain.G(q)), rtol=0, atol=1e-12)
 
 
-def test_shipped_descriptions_have_no_actuator_terms():
-    """The thesis's rigid links, as printed: no parameter beyond the bodies'."""
+def test_the_thesis_models_have_no_actuator_terms():
+    """actuators="none" (the default): the thesis's rigid links, no parameter beyond the bodies'."""
     for robot in ("serial", "parallel"):
         assert not any(n.endswith(".Ia") for n in cochlea.model(robot).parameters.names)
 
@@ -133,7 +143,7 @@ def test_shipped_descriptions_have_no_actuator_terms():
     ('  armature_kgm2 = "4e-3"\n', "armature_kgm2"),  # a string
 ])
 def test_bad_armature_names_the_key(tmp_path, edit, key):
-    text = (ROBOTS_DIR / "serial.toml").read_text().replace(
+    text = WITHOUT_ARMATURE.sub("", (ROBOTS_DIR / "serial.toml").read_text()).replace(
         "  velocity_limit_rad_s = 6.0\n", "  velocity_limit_rad_s = 6.0\n" + edit, 1)
     path = tmp_path / "bad.toml"
     path.write_text(text)
@@ -142,7 +152,8 @@ def test_bad_armature_names_the_key(tmp_path, edit, key):
 
 
 def test_scaled_masses_and_payload_leave_the_armature_alone(serial_with_armature):
-    m = cochlea.model("serial", description=serial_with_armature)
+    m = cochlea.model("serial", description=serial_with_armature,
+                      actuators="armature")
     full = m.parameters
     plant = Plant(mass_scale=np.array([1.3, 1.3, 1.3]), payload_kg=0.05)
     p = perturbed_parameters(full, plant, {"link3": np.array([0.08, 0.0, 0.0])})

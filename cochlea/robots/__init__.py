@@ -27,7 +27,8 @@ def robot(name: str) -> RobotAdapter:
 
 
 def model(name: str = "serial", *, arm: str | None = None, parameterisation: str = "inertial",
-          method: str = "newton-euler", description: str | Path | None = None) -> RobotModel:
+          method: str = "newton-euler", description: str | Path | None = None,
+          actuators: str = "none") -> RobotModel:
     """Build the symbolic model of a robot.
 
     Parameters
@@ -45,9 +46,14 @@ def model(name: str = "serial", *, arm: str | None = None, parameterisation: str
         cross-check). The parallel mechanism's closed chain has one model, from its energies.
     description:
         A TOML description to use instead of the shipped ``cochlea/data/robots/<name>.toml``.
+    actuators:
+        What the model carries of the joints' drives, as the description gives them:
+        ``"none"`` (default: the thesis's rigid links), ``"armature"`` (reflected rotor
+        inertia on the diagonal of ``M``) or ``"all"`` (armature, viscous and Coulomb friction
+        as parameters, in the regressor too).
     """
     adapter = robot(name)
-    return adapter.model(adapter.load(description), arm, parameterisation, method)
+    return adapter.model(adapter.load(description), arm, parameterisation, method, actuators)
 
 
 __all__ = ["ROBOTS", "robot", "model", "RobotModel", "RobotAdapter", "Layout", "UnitPlan",

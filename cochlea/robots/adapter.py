@@ -27,7 +27,7 @@ from typing import Any, Protocol
 import casadi as ca
 import numpy as np
 
-from .description import Motor
+from .description import Actuator, Motor
 from .model import RobotModel
 
 
@@ -50,6 +50,10 @@ class ScenarioView(Protocol):
     duration: float  # s
     parameterisation: str
     units: Sequence[UnitStart]
+    #: What the controller's model and the simulated plant carry of the drives
+    #: (:data:`~cochlea.robots.model.ACTUATORS`; the plant: "none" or "armature").
+    controller_actuators: str
+    plant_actuators: str
 
     @property
     def period(self) -> float: ...  # s
@@ -113,6 +117,7 @@ class ActuatedJoint:
     effort_limit: float  # N m or N
     motor: Motor
     ratio: float  # motor torque (N m) per unit of joint effort (1 for a direct drive)
+    actuator: Actuator = Actuator()  # the drive's armature and friction at the joint
 
 
 def desired_function(name: str, expr_t: ca.SX, t: ca.SX) -> ca.Function:
@@ -134,7 +139,7 @@ class RobotAdapter:
         raise NotImplementedError
 
     def model(self, system: Any, arm: str | None = None, parameterisation: str = "inertial",
-              method: str | None = None) -> RobotModel:
+              method: str | None = None, actuators: str = "none") -> RobotModel:
         raise NotImplementedError
 
     def layout(self, system: Any, space: str) -> Layout:

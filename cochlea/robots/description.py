@@ -168,15 +168,41 @@ def read_limits(t: Table, jtype: str) -> tuple[float, float, float, float]:
     return float(lo), float(hi), velocity, effort
 
 
-def read_armature(t: Table, jtype: str) -> float | None:
-    """The reflected rotor inertia of a joint's drive, if the description gives it: kg m^2 at a
-    revolute joint (``armature_kgm2``), kg at a prismatic one (``armature_kg``). Absent, the
-    model has no actuator term for the joint (the thesis's rigid links)."""
-    if jtype == "revolute":
-        return t.number("armature_kgm2", "a non-negative number (kg m^2, the rotor's inertia "
-                        "times the gear ratio squared)", lambda v: v >= 0, required=False)
-    return t.number("armature_kg", "a non-negative number (kg, the rotor's inertia over the "
-                    "transmission's radius squared)", lambda v: v >= 0, required=False)
+@dataclass(frozen=True)
+class Actuator:
+    """What a joint's drive adds to the rigid links, in the joint's own coordinate (SI): the
+    reflected rotor inertia (armature; kg m^2, or kg at a prismatic joint), viscous friction
+    (N m s/rad or N s/m) and Coulomb friction (N m or N). None where the description gives no
+    value. The thesis's rigid links are a model built with ``actuators="none"``."""
+
+    armature: float | None = None
+    viscous: float | None = None
+    coulomb: float | None = None
+
+    @property
+    def declared(self) -> bool:
+        return any(v is not None for v in (self.armature, self.viscous, self.coulomb))
+
+
+#: Per joint type: the description keys of an actuator's terms and what each must be.
+ACTUATOR_KEYS = {
+    "revolute": {"armature": ("armature_kgm2", "kg m^2, the rotor's inertia times the gear "
+                              "ratio squared"),
+                 "viscous": ("viscous_friction_Nms_rad", "N m s/rad"),
+                 "coulomb": ("coulomb_friction_Nm", "N m")},
+    "prismatic": {"armature": ("armature_kg", "kg, the rotor's inertia over the "
+                               "transmission's radius squared"),
+                  "viscous": ("viscous_friction_Ns_m", "N s/m"),
+                  "coulomb": ("coulomb_friction_N", "N")},
+}
+
+
+def read_actuator(t: Table, jtype: str) -> Actuator:
+    """A joint's actuator terms, each optional (keys by joint type: :data:`ACTUATOR_KEYS`)."""
+    values = {field: t.number(key, f"a non-negative number ({meaning})", lambda v: v >= 0,
+                              required=False)
+              for field, (key, meaning) in ACTUATOR_KEYS[jtype].items()}
+    return Actuator(**values)
 
 
 def read_motor(t: Table) -> Motor:

@@ -20,6 +20,16 @@ from . import parameters as params_mod
 from .parameters import Parameterisation
 
 METHODS = ("newton-euler", "lagrange")
+#: What a model carries of the joints' drives (see :class:`~cochlea.robots.description.Actuator`):
+#: ``none``, the thesis's rigid links; ``armature``, each declared reflected rotor inertia on
+#: the diagonal of ``M`` (the simulated plant: its friction is the plant step's own input);
+#: ``all``, armature plus viscous and Coulomb friction as estimated parameters (a controller's
+#: model: friction is compensated through the regressor).
+ACTUATORS = ("none", "armature", "all")
+#: Velocity (rad/s at a revolute joint, m/s at a prismatic one) over which the model's Coulomb
+#: friction ``Fc tanh(qd / v)`` changes sign. About two counts of the MX-64's velocity register
+#: (0.024 rad/s each): a sharper sign would switch the compensation on every quantised count.
+COULOMB_SMOOTHING = {"revolute": 0.05, "prismatic": 0.001}
 
 #: The ten standard inertial parameters of a rigid body, in its frame, and their meanings.
 INERTIAL_NAMES = ("m", "mx", "my", "mz", "Ixx", "Iyy", "Izz", "Ixy", "Ixz", "Iyz")
@@ -37,13 +47,17 @@ INERTIAL_MEANING = {
 }
 
 
-def check_options(parameterisation: str, method: str) -> None:
-    """Refuse an unknown parameterisation or derivation method with the choices."""
+def check_options(parameterisation: str, method: str, actuators: str = "none") -> None:
+    """Refuse an unknown parameterisation, derivation method or actuator option with the
+    choices."""
     if parameterisation not in params_mod.PARAMETERISATIONS:
         raise ModelError(f"unknown parameterisation {parameterisation!r}; choose one of "
                          + ", ".join(params_mod.PARAMETERISATIONS))
     if method not in METHODS:
         raise ModelError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if actuators not in ACTUATORS:
+        raise ModelError(f"unknown actuators option {actuators!r}; choose one of "
+                         + ", ".join(ACTUATORS))
 
 
 @dataclass(frozen=True)
@@ -65,7 +79,9 @@ class RobotModel:
     * ``inverse_dynamics(q, qd, qdd) -> tau`` and ``forward_dynamics(q, qd, tau) -> qdd``;
     * ``fk(q) -> [x, y, phi]`` of the tool in the base frame (m, m, rad), ``J(q) = dfk/dq``;
       ``fk_world`` / ``J_world`` the same in the world (cochlea-centred) frame;
-    * ``Y(q, qd, qd_r, qdd_r)``, the regressor: ``Y @ p == M qdd_r + C(q, qd) qd_r + G``.
+    * ``Y(q, qd, qd_r, qdd_r)``, the regressor: ``Y @ p == M qdd_r + C(q, qd) qd_r + G + F``
+      with ``F(qd)`` the joints' friction when the model estimates it (``actuators="all"``);
+    * ``friction_p(qd, p)``: that friction torque ``F`` (zero without friction parameters).
 
     The same dynamics for any parameter vector ``p`` of this model's parameterisation:
     ``M_p(q, p)``, ``C_p(q, qd, p)``, ``G_p(q, p)``, ``inverse_dynamics_p(q, qd, qdd, p)``,
@@ -130,8 +146,9 @@ class RobotModel:
 
 
 def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, kinematics,
-               parameterisation: Parameterisation) -> dict[str, ca.Function]:
-    """Turn full-inertial-parameter expressions into the model's Functions."""
+               parameterisation: Parameterisation, F_full) -> dict[str, ca.Function]:
+    """Turn full-parameter expressions into the model's Functions (``F_full``: the joints'
+    friction torque, already part of ``tau_full``)."""
     n = q.shape[0]
     tau = ca.SX.sym("tau", n)
     qd_r = ca.SX.sym("qd_r", n)
@@ -141,14 +158,15 @@ def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, k
     def at_p(expr):
         return ca.substitute(expr, phi, ca.DM(parameterisation.to_full) @ p)
 
-    M, C, G, ID = at_p(M_full), at_p(C_full), at_p(G_full), at_p(tau_full)
+    M, C, G, ID, F_fr = (at_p(M_full), at_p(C_full), at_p(G_full), at_p(tau_full),
+                         at_p(F_full))
     # Forward dynamics: M qdd = tau - bias, with the bias taken from the inverse dynamics at
     # qdd = 0. For a serial chain that is the Newton-Euler recursion, about half the operations
     # of C qd + G from Christoffel symbols (256 against 447 for the 3R arm): the plant step,
     # hence every simulation, runs on it. For a Lagrangian model it is C qd + G itself.
     bias = ca.substitute(ID, qdd, ca.SX.zeros(n))
     FD = ca.solve(M, tau - bias)
-    Y = ca.jacobian(M @ qdd_r + C @ qd_r + G, p)
+    Y = ca.jacobian(M @ qdd_r + C @ qd_r + G + F_fr, p)
 
     F = ca.Function
     out = {
@@ -160,6 +178,7 @@ def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, k
         "forward_dynamics_p": F(f"{prefix}_forward_dynamics_p", [q, qd, tau, p], [FD],
                                 ["q", "qd", "tau", "p"], ["qdd"]),
         "Y": F(f"{prefix}_Y", [q, qd, qd_r, qdd_r], [Y], ["q", "qd", "qd_r", "qdd_r"], ["Y"]),
+        "friction_p": F(f"{prefix}_friction_p", [qd, p], [F_fr], ["qd", "p"], ["tau"]),
     }
     nominal = ca.DM(parameterisation.nominal)
     for key in ("M", "C", "G", "inverse_dynamics", "forward_dynamics"):
@@ -175,25 +194,32 @@ def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, k
 def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, qd, qdd, phi,
                    M, C, G, tau, kinematics: dict[str, ca.SX], full: Parameterisation,
                    bodies: list[tuple[str, slice]], parameterisation: str, method: str,
-                   source: Path | None) -> RobotModel:
+                   source: Path | None,
+                   friction: list[tuple[float | None, float | None]] | None = None
+                   ) -> RobotModel:
     """Build a :class:`RobotModel` from expressions in the full inertial parameters ``phi``.
 
     ``M, C, G, tau`` are the mass matrix, Christoffel Coriolis matrix, gravity vector and
     inverse dynamics (an expression in ``q, qd, qdd``); ``kinematics`` maps Function names to
     expressions in ``q``; ``bodies`` names each body's slice of ``phi`` (for the mass-only set).
     Any robot -- serial chain or closed chain -- goes through here, so all share one API.
+
+    ``friction``: per joint, its (viscous, Coulomb) friction or None each; every declared one
+    becomes an estimated parameter (:func:`with_friction`) and its torque joins ``tau``.
     """
     n = q.shape[0]
+    full, bodies, phi, F_full = with_friction(full, bodies, phi, qd, joints, friction)
+    tau = tau + F_full
     if parameterisation == "inertial":
         chosen = full
     elif parameterisation == "mass":
         chosen = params_mod.mass_only(full.names, full.nominal, bodies, full.si_units,
                                       full.meanings)
     else:
-        full_functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, {}, full)
+        full_functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, {}, full, F_full)
         chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.si_units,
                                  [n, n, n, n])
-    functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen)
+    functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen, F_full)
     return RobotModel(name, joints, chosen, method, functions, full, source)
 
 
@@ -224,6 +250,54 @@ def with_armatures(full: Parameterisation, blocks: list[tuple[str, slice]],
                                  np.concatenate([full.nominal, [v for _, _, v in declared]]),
                                  full.si_units + tuple(units), full.meanings + tuple(meanings))
     return joined, blocks + [(name, slice(n0 + k, n0 + k + 1)) for k, name in enumerate(names)]
+
+
+#: The friction parameters a joint may carry: viscous and Coulomb.
+VISCOUS, COULOMB = "Fv", "Fc"
+
+
+def with_friction(full: Parameterisation, blocks: list[tuple[str, slice]], phi: ca.SX,
+                  qd: ca.SX, joints: tuple[JointInfo, ...],
+                  friction: list[tuple[float | None, float | None]] | None):
+    """``full``, its blocks and its symbol ``phi`` extended by one parameter per declared
+    friction term of each joint, ``<joint>.Fv`` (viscous) and ``<joint>.Fc`` (Coulomb), each its
+    own block; and the friction torque, ``Fv qd + Fc tanh(qd / v)`` per joint
+    (:data:`COULOMB_SMOOTHING`), an expression in ``qd`` and the extended ``phi``.
+
+    Linear in the parameters, so the regressor gains their columns (``qd`` and the smoothed
+    sign) and an adaptive controller estimates and compensates them like the inertial ones.
+    """
+    n = qd.shape[0]
+    if not friction:
+        return full, blocks, phi, ca.SX.zeros(n)
+    names, values, units, meanings, terms = [], [], [], [], []
+    for i, (joint, (viscous, coulomb)) in enumerate(zip(joints, friction, strict=True)):
+        revolute = joint.type == "revolute"
+        if viscous is not None:
+            names.append(f"{joint.name}.{VISCOUS}")
+            values.append(viscous)
+            units.append("N m s/rad" if revolute else "N s/m")
+            meanings.append(f"viscous friction of {joint.name}")
+            terms.append((i, qd[i]))
+        if coulomb is not None:
+            names.append(f"{joint.name}.{COULOMB}")
+            values.append(coulomb)
+            units.append("N m" if revolute else "N")
+            meanings.append(f"Coulomb friction of {joint.name} (sign smoothed over "
+                            f"{COULOMB_SMOOTHING[joint.type]:g} {'rad/s' if revolute else 'm/s'})")
+            terms.append((i, ca.tanh(qd[i] / COULOMB_SMOOTHING[joint.type])))
+    if not names:
+        return full, blocks, phi, ca.SX.zeros(n)
+    n0 = len(full.names)
+    extra = ca.SX.sym("phi_friction", len(names))
+    torque = ca.SX.zeros(n)
+    for k, (i, column) in enumerate(terms):
+        torque[i] = torque[i] + extra[k] * column
+    joined = params_mod.inertial(full.names + tuple(names),
+                                 np.concatenate([full.nominal, values]),
+                                 full.si_units + tuple(units), full.meanings + tuple(meanings))
+    blocks = blocks + [(name, slice(n0 + k, n0 + k + 1)) for k, name in enumerate(names)]
+    return joined, blocks, ca.vertcat(phi, extra), torque
 
 
 def full_inertial(bodies: list[tuple[str, np.ndarray]], names=INERTIAL_NAMES,

@@ -18,14 +18,24 @@ import casadi as ca
 import numpy as np
 
 from ..control.gains import controller_of
-from ..errors import DescriptionError
+from ..errors import CochleaError, DescriptionError
 from ..resources import SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.description import Table, read_toml
+from ..robots.model import ACTUATORS
 from .expressions import ExpressionError, parse
 
 FORMAT = "cochlea-scenario/1"
+#: ``[plant] plant = "<preset>"``: defaults for the plant's keys, each still settable.
+#: realistic: the geared Dynamixels as the description gives them -- armature, viscous and
+#: Coulomb friction -- measured on the encoder grid and in velocity-register counts, one period
+#: of measurement delay.
+PLANT_PRESETS = {
+    "ideal": {},
+    "realistic": {"armature": True, "friction_from_description": True,
+                  "position_encoder": True, "velocity_register": True, "delay_periods": 1},
+}
 UNITS = {"deg": ("angle", np.pi / 180.0), "rad": ("angle", 1.0), "m": ("length", 1.0),
          "mm": ("length", 1e-3)}
 @dataclass(frozen=True)
@@ -68,6 +78,13 @@ class Plant:
     position_encoder: bool = False
     #: Measured velocities in the motor's Present Velocity units (0.229 rpm per count).
     velocity_register: bool = False
+    #: The preset the table started from (:data:`PLANT_PRESETS`).
+    preset: str = "ideal"
+    #: The description's armature (reflected rotor inertia) in the plant's mass matrix.
+    armature: bool = False
+    #: Viscous and Coulomb friction from the description's actuators wherever the scenario
+    #: gives no ``viscous_friction_SI`` / ``coulomb_friction_SI``.
+    friction_from_description: bool = False
 
 
 @dataclass(frozen=True)
@@ -86,6 +103,8 @@ class Scenario:
     initial_estimate: str  # "zero" | "nominal"
     estimate_bound: float  # relative to |p_nominal|
     mirror: str  # "desired"
+    #: What the controller's model carries of the drives (:data:`cochlea.robots.model.ACTUATORS`)
+    controller_actuators: str
     definitions: dict[str, str]
     leader: tuple[Quantity, ...]
     units: tuple[Unit, ...]
@@ -100,6 +119,12 @@ class Scenario:
     @property
     def period(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def plant_actuators(self) -> str:
+        """What the simulated plant's model carries of the drives: its friction is the plant
+        step's own input, so at most the armature."""
+        return "armature" if self.plant.armature else "none"
 
     def desired_leader(self) -> ca.Function:
         """``t -> (x_d, x_d', x_d'')`` of the leader, derivatives exact (symbolic)."""
@@ -173,9 +198,12 @@ def _positive_list(table: Table, key: str, size: int) -> np.ndarray:
                         what="(all positive)")
 
 
-def load(name_or_path: str | Path) -> Scenario:
+def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     """Load a scenario and the robot description it names; the robot's adapter tells the
-    kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`)."""
+    kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`).
+
+    ``plant_preset`` (``cochlea-run --plant``) replaces the preset of the scenario's
+    ``[plant]`` table (or gives one where there is none); its other keys still apply."""
     path = resolve(name_or_path)
     top = Table(path, read_toml(path), "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
@@ -202,6 +230,7 @@ def load(name_or_path: str | Path) -> Scenario:
     bound = c.number("estimate_bound", "a positive number (times |p_nominal|)", lambda v: v > 0,
                      required=False, default=10.0)
     mirror = c.string("mirror", ("desired",), required=False, default="desired")
+    controller_actuators = c.string("actuators", ACTUATORS, required=False, default="none")
     c.done()
 
     d = top.table("desired")
@@ -254,40 +283,57 @@ def load(name_or_path: str | Path) -> Scenario:
         except ExpressionError as exc:
             raise u.error("initial_joint", f"constant values ({exc})", show_got=False) from None
 
-    plant = Plant()
-    if "plant" in top.data:
-        p = top.table("plant")
-        n_bodies = layout.n_bodies
-        plant = Plant(
-            mass_scale=p.vector("mass_scale", n_bodies, "(dimensionless)", required=False,
-                                check=lambda v: all(x > 0 for x in v),
-                                what=f"(one positive factor per body: {n_bodies})"),
-            payload_kg=p.number("payload_kg", "a non-negative number (kg)", lambda v: v >= 0,
-                                required=False, default=0.0),
-            viscous_friction=p.vector("viscous_friction_SI", layout.n_joint,
-                                      "N m s/rad (revolute) or N s/m (prismatic)",
-                                      check=lambda v: all(x >= 0 for x in v), required=False),
-            coulomb_friction=p.vector("coulomb_friction_SI", layout.n_joint,
-                                      "N m (revolute) or N (prismatic)",
-                                      check=lambda v: all(x >= 0 for x in v), required=False),
-            noise_q_std=p.number("noise_q_std_SI", "a non-negative number (rad or m)",
-                                 lambda v: v >= 0, required=False, default=0.0),
-            noise_qd_std=p.number("noise_qd_std_SI", "a non-negative number (rad/s or m/s)",
-                                  lambda v: v >= 0, required=False, default=0.0),
-            delay_periods=p.get("delay_periods", "a non-negative integer",
-                                lambda v: isinstance(v, int) and not isinstance(v, bool)
-                                and v >= 0, required=False, default=0),
-            seed=p.get("seed", "an integer", lambda v: isinstance(v, int), required=False,
-                       default=0),
-            position_encoder=p.get("position_encoder", "true or false (measured positions on "
-                                   "the encoder grid)", lambda v: isinstance(v, bool),
-                                   required=False, default=False),
-            velocity_register=p.get("velocity_register", "true or false (measured velocities "
-                                    "in 0.229 rpm counts)", lambda v: isinstance(v, bool),
-                                    required=False, default=False),
-        )
-        p.done()
+    plant = _plant(top.table("plant") if "plant" in top.data else None, layout, plant_preset)
     top.done()
     return Scenario(path, path.stem, robot, space, description, duration, rate, substeps,
                     variant, parameterisation, adaptation, initial_estimate, bound, mirror,
-                    dict(definitions), leader, tuple(units), plant, system)
+                    controller_actuators, dict(definitions), leader, tuple(units), plant, system)
+
+
+def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
+    """The ``[plant]`` table: a preset's defaults (:data:`PLANT_PRESETS`), then its keys."""
+    if preset_override is not None and preset_override not in PLANT_PRESETS:
+        raise CochleaError(f"unknown plant preset {preset_override!r}; choose one of "
+                           + ", ".join(PLANT_PRESETS))
+    preset = "ideal"
+    if p is not None:
+        preset = p.string("plant", tuple(PLANT_PRESETS), required=False, default="ideal")
+    preset = preset_override or preset
+    d = {**Plant().__dict__, **PLANT_PRESETS[preset], "preset": preset}
+    if p is None:
+        return Plant(**d)
+
+    def flag(key: str, meaning: str) -> bool:
+        return p.get(key, f"true or false ({meaning})", lambda v: isinstance(v, bool),
+                     required=False, default=d[key])
+
+    n_bodies = layout.n_bodies
+    plant = Plant(
+        mass_scale=p.vector("mass_scale", n_bodies, "(dimensionless)", required=False,
+                            check=lambda v: all(x > 0 for x in v),
+                            what=f"(one positive factor per body: {n_bodies})"),
+        payload_kg=p.number("payload_kg", "a non-negative number (kg)", lambda v: v >= 0,
+                            required=False, default=0.0),
+        viscous_friction=p.vector("viscous_friction_SI", layout.n_joint,
+                                  "N m s/rad (revolute) or N s/m (prismatic)",
+                                  check=lambda v: all(x >= 0 for x in v), required=False),
+        coulomb_friction=p.vector("coulomb_friction_SI", layout.n_joint,
+                                  "N m (revolute) or N (prismatic)",
+                                  check=lambda v: all(x >= 0 for x in v), required=False),
+        noise_q_std=p.number("noise_q_std_SI", "a non-negative number (rad or m)",
+                             lambda v: v >= 0, required=False, default=0.0),
+        noise_qd_std=p.number("noise_qd_std_SI", "a non-negative number (rad/s or m/s)",
+                              lambda v: v >= 0, required=False, default=0.0),
+        delay_periods=p.get("delay_periods", "a non-negative integer",
+                            lambda v: isinstance(v, int) and not isinstance(v, bool)
+                            and v >= 0, required=False, default=d["delay_periods"]),
+        seed=p.get("seed", "an integer", lambda v: isinstance(v, int), required=False,
+                   default=0),
+        position_encoder=flag("position_encoder", "measured positions on the encoder grid"),
+        velocity_register=flag("velocity_register", "measured velocities in 0.229 rpm counts"),
+        preset=preset,
+        armature=flag("armature", "the description's armature in the plant"),
+        friction_from_description=d["friction_from_description"],
+    )
+    p.done()
+    return plant

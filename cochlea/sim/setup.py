@@ -120,12 +120,34 @@ def measurement_grids(adapter, system, plant: scenario_mod.Plant
     return quantum, offset
 
 
+def plant_friction(adapter, system, plant: scenario_mod.Plant
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """For every joint of the whole system in the loop's order, the plant's viscous friction
+    (N m s/rad or N s/m) and Coulomb friction (N m or N; None: the plant has none, so its step
+    needs no stick-slip). The scenario's values (one per joint of a unit, the same for every
+    unit) come first; then, with ``friction_from_description``, the description's actuators
+    (zero where a joint declares none)."""
+    joints = adapter.actuated_joints(system)
+
+    def per_joint(given, field):
+        if given is not None:
+            return np.tile(np.asarray(given, float), len(joints) // len(given))
+        if plant.friction_from_description:
+            return np.array([getattr(j.actuator, field) or 0.0 for j in joints])
+        return None
+
+    viscous = per_joint(plant.viscous_friction, "viscous")
+    coulomb = per_joint(plant.coulomb_friction, "coulomb")
+    return (np.zeros(len(joints)) if viscous is None else viscous), coulomb
+
+
 def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario)."""
     adapter = robot(sc.robot)
     system = sc.system if sc.system is not None else adapter.load(sc.description)
     grids = measurement_grids(adapter, system, sc.plant)
+    viscous, coulomb = plant_friction(adapter, system, sc.plant)
     first_joint = 0  # the unit's first joint in the system
     setups = []
     for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
@@ -136,23 +158,20 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
         n_p = len(m.param_names)
         bound = sc.estimate_bound * max(np.linalg.norm(m.p_nominal), 1e-12)
         p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal
-        friction = (sc.plant.viscous_friction if sc.plant.viscous_friction is not None
-                    else np.zeros(m.nq))
+        mine = slice(first_joint, first_joint + m.nq)
         plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
                                             plan.payload_points)
         quantum = offset = None
         if grids is not None:  # this unit's joints, as [q..., qd...]
-            mine = slice(first_joint, first_joint + m.nq)
             quantum, offset = (grid[mine].T.ravel() for grid in grids)
         first_joint += m.nq
         setups.append(UnitSetup(
             plan.name, m, plan.plant_model, plant_params, controller, plan.desired, plan.x0,
-            gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0, friction,
+            gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0, viscous[mine],
             plan.joint_units, plan.task_names, plan.task_units, plan.task_angles, plan.fk_world,
             tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
-            coulomb=(None if sc.plant.coulomb_friction is None
-                     else np.asarray(sc.plant.coulomb_friction, float)),
+            coulomb=None if coulomb is None else coulomb[mine],
             quantum=quantum, grid_offset=offset))
     return setups
 

@@ -79,9 +79,10 @@ class ParallelRobot(RobotAdapter):
         return load_parallel(description if description is not None else self.name)
 
     def model(self, system: ParallelSystem, arm: str | None = None,
-              parameterisation: str = "inertial", method: str | None = None) -> RobotModel:
+              parameterisation: str = "inertial", method: str | None = None,
+              actuators: str = "none") -> RobotModel:
         # One unit: ``arm`` is accepted (and ignored) so every robot is called alike.
-        return build_model(system, parameterisation, method or self.method)
+        return build_model(system, parameterisation, method or self.method, actuators)
 
     def layout(self, system: ParallelSystem, space: str) -> Layout:
         joint = ("angle", "angle", "length", "angle", "angle")
@@ -91,8 +92,9 @@ class ParallelRobot(RobotAdapter):
                       task=task, units=(UNIT,), n_joint=5, n_task=6, n_bodies=n_bodies)
 
     def unit_plans(self, system: ParallelSystem, sc: ScenarioView) -> list[UnitPlan]:
-        ctrl_model = self.model(system, parameterisation=sc.parameterisation)
-        plant = self.model(system, parameterisation="inertial")
+        ctrl_model = self.model(system, parameterisation=sc.parameterisation,
+                                actuators=sc.controller_actuators)
+        plant = self.model(system, parameterisation="inertial", actuators=sc.plant_actuators)
         geometry = ctrl_model.geometry
         (unit,) = sc.units
         q0 = _initial_joint(geometry, unit)
@@ -133,7 +135,7 @@ class ParallelRobot(RobotAdapter):
 
     def actuated_joints(self, system: ParallelSystem) -> list[ActuatedJoint]:
         return [ActuatedJoint(j.name, j.type, tuple(j.position_limits), j.effort_limit, j.motor,
-                              j.transmission.ratio if j.transmission else 1.0)
+                              j.transmission.ratio if j.transmission else 1.0, j.actuator)
                 for j in system.joints]
 
 

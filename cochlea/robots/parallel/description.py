@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from ..description import (
+    Actuator,
     Motor,
     Table,
     check_unique_motor_ids,
     open_description,
-    read_armature,
+    read_actuator,
     read_limits,
     read_motor,
     resolve_path,
@@ -111,8 +112,8 @@ class ParallelJoint:
     effort_limit: float  # N m or N
     motor: Motor
     transmission: Transmission | None = None  # the prismatic joint's drive
-    #: Reflected rotor inertia (kg m^2, or kg at the slider), or None: no actuator term.
-    armature: float | None = None
+    #: What the joint's drive adds to the rigid links: armature and friction.
+    actuator: Actuator = Actuator()
 
     def info(self) -> JointInfo:
         return JointInfo(self.name, self.type, self.position_limits, self.velocity_limit,
@@ -177,12 +178,12 @@ def _read_transmission(t: Table) -> Transmission:
 
 def _read_joint(t: Table, name: str, jtype: str) -> ParallelJoint:
     lo, hi, velocity, effort = read_limits(t, jtype)
-    armature = read_armature(t, jtype)
+    actuator = read_actuator(t, jtype)
     motor = read_motor(t.table("motor"))
     transmission = _read_transmission(t.table("transmission")) if jtype == "prismatic" else None
     t.done()
     return ParallelJoint(name, jtype, (lo, hi), velocity, effort, motor, transmission,
-                         armature)
+                         actuator)
 
 
 def _read_body(t: Table, name: str) -> PlanarBody:

@@ -36,6 +36,7 @@ import casadi as ca
 import numpy as np
 
 from .. import parameters as params_mod
+from ..description import Actuator
 from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix, time_derivative
 from ..model import (
     ARMATURE,
@@ -54,6 +55,17 @@ from .description import (
     Side,
 )
 from .geometry import ParallelGeometry
+
+
+def rigid_system(system: ParallelSystem) -> ParallelSystem:
+    """The mechanism without its drives' terms: the thesis's rigid links."""
+    def rigid(joint):
+        return replace(joint, actuator=Actuator())
+    return replace(system, d1=rigid(system.d1),
+                   left=replace(system.left, th1=rigid(system.left.th1),
+                                th2=rigid(system.left.th2)),
+                   right=replace(system.right, th1=rigid(system.right.th1),
+                                 th2=rigid(system.right.th2)))
 
 # --------------------------------------------------------------------------------------------
 # Symbolic model
@@ -123,7 +135,8 @@ def _full_parameters(system: ParallelSystem):
     full = params_mod.inertial(slider.names + planar.names,
                                np.concatenate([slider.nominal, planar.nominal]),
                                slider.si_units + planar.si_units, slider.meanings + planar.meanings)
-    return with_armatures(full, blocks, [(j.name, j.type, j.armature) for j in system.joints])
+    return with_armatures(full, blocks, [(j.name, j.type, j.actuator.armature)
+                                         for j in system.joints])
 
 
 def _left_pseudo_inverse(J: ca.SX) -> ca.SX:
@@ -165,7 +178,7 @@ def _symbolic(system: ParallelSystem):
         K, U = K + k, U + u
         task += [C[0], C[1], angle]
     for i, joint in enumerate(system.joints):  # the rotors, each on its own coordinate
-        if joint.armature is not None:
+        if joint.actuator.armature is not None:
             K = K + 0.5 * phi_of(f"{joint.name}.{ARMATURE}")[0] * qd[i] ** 2
     M = mass_matrix(K, qd)
     G = gravity_vector(U, q)
@@ -186,7 +199,7 @@ def _function_prefix(name: str) -> str:
 
 
 def build_model(system: ParallelSystem, parameterisation: str = "inertial",
-                method: str = "lagrange") -> RobotModel:
+                method: str = "lagrange", actuators: str = "none") -> RobotModel:
     """The symbolic model of a loaded parallel mechanism as a
     :class:`~cochlea.robots.model.RobotModel`.
 
@@ -200,7 +213,9 @@ def build_model(system: ParallelSystem, parameterisation: str = "inertial",
     :class:`~cochlea.robots.parallel.geometry.ParallelGeometry` (closed-form IK, target
     consistency, workspace check).
     """
-    check_options(parameterisation, method)
+    check_options(parameterisation, method, actuators)
+    if actuators == "none":
+        system = rigid_system(system)
     x = _symbolic(system)
     q, qd = x["q"], x["qd"]
     prefix = _function_prefix(system.name)
@@ -211,7 +226,9 @@ def build_model(system: ParallelSystem, parameterisation: str = "inertial",
                            phi=x["phi"], M=x["M"], C=x["C"], G=x["G"], tau=x["tau"],
                            kinematics=kinematics, full=x["full"], bodies=x["blocks"],
                            parameterisation=parameterisation, method="lagrange",
-                           source=system.path)
+                           source=system.path,
+                           friction=([(j.actuator.viscous, j.actuator.coulomb)
+                                      for j in system.joints] if actuators == "all" else None))
     nominal = ca.DM(x["full"].nominal)
     energy = ca.substitute(ca.vertcat(x["K"], x["U"]), x["phi"], nominal)
     F = ca.Function

@@ -62,8 +62,9 @@ class SerialRobot(RobotAdapter):
         return load_serial(description if description is not None else self.name)
 
     def model(self, system: SerialSystem, arm: str | Arm | None = None,
-              parameterisation: str = "inertial", method: str | None = None) -> RobotModel:
-        return build_model(system, arm, parameterisation, method or self.method)
+              parameterisation: str = "inertial", method: str | None = None,
+              actuators: str = "none") -> RobotModel:
+        return build_model(system, arm, parameterisation, method or self.method, actuators)
 
     def layout(self, system: SerialSystem, space: str) -> Layout:
         n = len(system.arms[0].links)
@@ -76,7 +77,8 @@ class SerialRobot(RobotAdapter):
     def unit_plans(self, system: SerialSystem, sc: ScenarioView) -> list[UnitPlan]:
         t = ca.SX.sym("t")
         x_lead, _, _ = sc.desired_leader()(t)
-        models = {a.name: self.model(system, a, sc.parameterisation) for a in system.arms}
+        models = {a.name: self.model(system, a, sc.parameterisation,
+                                     actuators=sc.controller_actuators) for a in system.arms}
         leader_arm = system.arms[0]
         # The leader's tool pose in the cochlea frame, as a function of t.
         lead_pose = x_lead if sc.space == "task" else models[leader_arm.name].fk_world(x_lead)
@@ -107,7 +109,7 @@ class SerialRobot(RobotAdapter):
                 _check_reachable(arm, world_to_base(arm, desired_expr), t, sc)
             tool = arm.links[-1]
             plans.append(UnitPlan(
-                arm.name, m, self.model(system, arm, "inertial"),
+                arm.name, m, self.model(system, arm, "inertial", actuators=sc.plant_actuators),
                 desired_function(arm.name, desired_expr, t), np.concatenate([q0, qd0]),
                 {tool.name: np.array([tool.length, 0.0, 0.0])},
                 TASK_NAMES, TASK_UNITS, TASK_ANGLES, m.fk_world))
@@ -125,7 +127,7 @@ class SerialRobot(RobotAdapter):
                         "a transmission, which serial descriptions do not have", j.type)
                 joints.append(ActuatedJoint(f"{arm.name}.{link.name}", j.type,
                                             tuple(j.position_limits), j.effort_limit,
-                                            link.motor, 1.0))
+                                            link.motor, 1.0, j.actuator))
         return joints
 
 

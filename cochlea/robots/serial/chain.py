@@ -100,7 +100,7 @@ def planar_orientation(arm: Arm, q: ca.SX) -> ca.SX:
 def armature_indices(arm: Arm) -> list[int]:
     """The joints whose drive declares an armature, in order: their parameters follow the
     links' ten each in ``phi``."""
-    return [i for i, link in enumerate(arm.links) if link.joint.armature is not None]
+    return [i for i, link in enumerate(arm.links) if link.joint.actuator.armature is not None]
 
 
 def n_parameters(arm: Arm) -> int:

@@ -14,11 +14,12 @@ import numpy as np
 
 from ...errors import DescriptionError, ModelError
 from ..description import (
+    Actuator,
     Motor,
     Table,
     check_unique_motor_ids,
     open_description,
-    read_armature,
+    read_actuator,
     read_limits,
     read_motor,
     resolve_path,
@@ -45,8 +46,8 @@ class Joint:
     position_limits: tuple[float, float]  # rad or m
     velocity_limit: float  # rad/s or m/s
     effort_limit: float  # N m or N
-    #: Reflected rotor inertia (kg m^2 or kg), or None: no actuator term for this joint.
-    armature: float | None = None
+    #: What the joint's drive adds to the rigid link: armature and friction.
+    actuator: Actuator = Actuator()
 
 
 @dataclass(frozen=True)
@@ -142,9 +143,9 @@ def _read_joint(t: Table, parent_length: float) -> Joint:
     origin_rpy = np.zeros(3) if origin_rpy is None else np.radians(origin_rpy)
 
     lo, hi, velocity, effort = read_limits(t, jtype)
-    armature = read_armature(t, jtype)
+    actuator = read_actuator(t, jtype)
     t.done()
-    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, armature)
+    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, actuator)
 
 
 def _read_link(t: Table, parent_length: float) -> Link:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import casadi as ca
 import numpy as np
 
+from ..description import Actuator
 from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix
 from ..model import (
     JointInfo,
@@ -26,13 +29,23 @@ from .chain import (
 from .description import Arm, SerialSystem
 
 
+def rigid_arm(arm: Arm) -> Arm:
+    """The arm without its drives' terms: the thesis's rigid links."""
+    return replace(arm, links=tuple(replace(link, joint=replace(link.joint, actuator=Actuator()))
+                                    for link in arm.links))
+
+
 def build_model(system: SerialSystem, arm: Arm | str | None = None,
-                parameterisation: str = "inertial", method: str = "newton-euler") -> RobotModel:
+                parameterisation: str = "inertial", method: str = "newton-euler",
+                actuators: str = "none") -> RobotModel:
     """The model of one arm (default: the first) of a loaded serial system, in its base frame
-    (``fk``, ``J``) and in the world frame (``fk_world``, ``J_world``)."""
-    check_options(parameterisation, method)
+    (``fk``, ``J``) and in the world frame (``fk_world``, ``J_world``); ``actuators``: what it
+    carries of the drives (:data:`~cochlea.robots.model.ACTUATORS`)."""
+    check_options(parameterisation, method, actuators)
     if not isinstance(arm, Arm):
         arm = system.arms[0] if arm is None else system.arm(arm)
+    if actuators == "none":
+        arm = rigid_arm(arm)
     n = len(arm.links)
     q = ca.SX.sym("q", n)
     qd = ca.SX.sym("qd", n)
@@ -70,9 +83,12 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
     )
     full, blocks = with_armatures(
         *full_inertial([(link.name, inertial_parameters(link)) for link in arm.links]),
-        [(j.name, j.type, link.joint.armature) for j, link in zip(joints, arm.links)])
+        [(j.name, j.type, link.joint.actuator.armature) for j, link in zip(joints, arm.links)])
+    friction = ([(link.joint.actuator.viscous, link.joint.actuator.coulomb) for link in arm.links]
+                if actuators == "all" else None)
     return assemble_model(f"{system.name}/{arm.name}", f"{system.name}_{arm.name}",
                           joints=joints, q=q, qd=qd, qdd=qdd, phi=phi, M=M, C=C, G=G, tau=tau,
                           kinematics=kinematics, full=full, bodies=blocks,
-                          parameterisation=parameterisation, method=method, source=system.path)
+                          parameterisation=parameterisation, method=method, source=system.path,
+                          friction=friction)
 
