@@ -10,9 +10,11 @@
 =====  ==================  =========================================================
 
 Every regressor is the model's ``Y(q, qd, qd_r, qdd_r)`` (the Jacobian of
-``M qdd_r + C qd_r + G + F(qd)`` with respect to the parameters, ``F`` the joints' friction
+``M qdd_r + C qd_r + G + F(qd_r)`` with respect to the parameters, ``F`` the joints' friction
 when the model carries it: ``actuators="all"``) at the controller's reference signals, never
-typed by hand:
+typed by hand. Friction is compensated at the reference velocity (``qd_r``, ``tau_v``,
+``x_Nd``): the mismatch with the plant's ``F(qd)`` is monotone in the sliding error and only
+adds dissipation to each Lyapunov derivative.
 
 * e, f: ``e = th_d - th``, ``r = e' + alpha e``; ``qd_r = th_d' + alpha e``,
   ``qdd_r = th_d'' + alpha e'``, so ``Y phi = M(th_d'' + alpha e') + C(th' + r) + G``.
@@ -125,9 +127,10 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
     Gamma, bound, h = ca.SX.sym("Gamma", n_p), ca.SX.sym("bound"), ca.SX.sym("h")
 
     M, C, G = model.M_p(q, p), model.C_p(q, qd, p), model.G_p(q, p)
-    # The joints' friction where the model estimates it (zero otherwise): compensated through
-    # the regressor like the rest, since its columns depend on the measured velocity only.
-    F = model.friction_p(qd, p)
+    # The joints' friction where the model estimates it (zero otherwise), at each law's
+    # reference velocity as in the model's regressor.
+    def F(velocity):
+        return model.friction_p(velocity, p)
 
     if kind in ("e", "f"):
         gains = ca.SX.sym("gains", 3 * n)
@@ -137,7 +140,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         r = e_dot + alpha * e
         qd_r, qdd_r = xd_dot + alpha * e, xd_ddot + alpha * e_dot
         Y = model.Y(q, qd, qd_r, qdd_r)
-        f_aux = M @ qdd_r + C @ (qd + r) + G + F
+        f_aux = M @ qdd_r + C @ (qd + r) + G + F(qd_r)
         known = K_e * e if (kind == "e" or variant == "corrected") else ca.SX.zeros(n)
         tau = Y @ p_hat + known + G_s * r
         signal = r
@@ -152,7 +155,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         tau_v_dot = _total_derivative(tau_v, q, qd, xd, xd_dot, xd_ddot)
         e_v = qd - tau_v
         Y = -model.Y(q, qd, tau_v, tau_v_dot)
-        f_aux = -(M @ tau_v_dot + C @ tau_v + G + F)
+        f_aux = -(M @ tau_v_dot + C @ tau_v + G + F(tau_v))
         tau = -Y @ p_hat - G_a * e_v
         if variant == "corrected":
             tau = tau - J.T @ (K_c * e_g)
@@ -175,7 +178,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         x_Nd_dot = _total_derivative(x_Nd, q, qd, xd, xd_dot, xd_ddot)
         e_d = x_Nd - qd
         Y = model.Y(q, qd, x_Nd, x_Nd_dot)
-        f_aux = M @ x_Nd_dot + C @ x_Nd + G + F
+        f_aux = M @ x_Nd_dot + C @ x_Nd + G + F(x_Nd)
         g_sign = 1 if variant == "corrected" else -1
         tau = Y @ p_hat + g_sign * G_d * e_d
         signal = e_d

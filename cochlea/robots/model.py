@@ -79,8 +79,9 @@ class RobotModel:
     * ``inverse_dynamics(q, qd, qdd) -> tau`` and ``forward_dynamics(q, qd, tau) -> qdd``;
     * ``fk(q) -> [x, y, phi]`` of the tool in the base frame (m, m, rad), ``J(q) = dfk/dq``;
       ``fk_world`` / ``J_world`` the same in the world (cochlea-centred) frame;
-    * ``Y(q, qd, qd_r, qdd_r)``, the regressor: ``Y @ p == M qdd_r + C(q, qd) qd_r + G + F``
-      with ``F(qd)`` the joints' friction when the model estimates it (``actuators="all"``);
+    * ``Y(q, qd, qd_r, qdd_r)``, the regressor:
+      ``Y @ p == M qdd_r + C(q, qd) qd_r + G + F(qd_r)`` with ``F`` the joints' friction when
+      the model estimates it (``actuators="all"``), at the reference velocity;
     * ``friction_p(qd, p)``: that friction torque ``F`` (zero without friction parameters).
 
     The same dynamics for any parameter vector ``p`` of this model's parameterisation:
@@ -166,7 +167,11 @@ def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, k
     # hence every simulation, runs on it. For a Lagrangian model it is C qd + G itself.
     bias = ca.substitute(ID, qdd, ca.SX.zeros(n))
     FD = ca.solve(M, tau - bias)
-    Y = ca.jacobian(M @ qdd_r + C @ qd_r + G + F_fr, p)
+    # Friction at the reference velocity, not the measured one: the controllers then
+    # compensate it ahead of a reversal instead of sticking there, the velocity quantisation
+    # does not switch it, and the mismatch F(qd_r) - F(qd) only dissipates (F is monotone and
+    # the sliding error is qd_r - qd), so every Lyapunov argument still holds.
+    Y = ca.jacobian(M @ qdd_r + C @ qd_r + G + ca.substitute(F_fr, qd, qd_r), p)
 
     F = ca.Function
     out = {

@@ -22,10 +22,11 @@ from .setup import UnitSetup, perturbed_parameters, run_inputs, unit_setups
 KERNELS = ("c", "casadi")
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
+def load_scenario(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     """A shipped scenario by name (``"serial_task"``) or a scenario file, with its robot's
-    description loaded once."""
-    return _load(name_or_path)
+    description loaded once; ``plant_preset`` (e.g. ``"realistic"``) replaces the preset of
+    its ``[plant]`` table."""
+    return _load(name_or_path, plant_preset)
 
 
 def simulate(sc: Scenario, duration: float | None = None,
