@@ -45,6 +45,7 @@ from ..runtime import (
     write_raw_columns,
 )
 from ..sim import KERNELS, load_scenario, simulate, unit_setups
+from ..sim.scenario import PLANT_PRESETS
 from . import report
 
 EXIT_DIVERGED = 3
@@ -74,6 +75,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="joint: controllers e/f; task: controllers g/d")
     p.add_argument("--scenario", metavar="FILE",
                    help="scenario TOML (default: the thesis's study for ROBOT and SPACE)")
+    p.add_argument("--plant", choices=list(PLANT_PRESETS),
+                   help="the simulated robot: ideal, the rigid links as the scenario says; "
+                        "realistic, the geared Dynamixels (armature, friction with sticking, "
+                        "encoder and velocity-register counts, 1 period of delay). Without "
+                        "--scenario, realistic runs the study tuned for it "
+                        "(ROBOT_SPACE_realistic.toml); with one, it sets that scenario's plant")
     p.add_argument("--duration", type=float, metavar="S",
                    help="seconds to run (default: the scenario's)")
     p.add_argument("--out", type=Path, metavar="DIR",
@@ -146,7 +153,8 @@ def _validate(args: argparse.Namespace, scenario) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario or f"{args.robot}_{args.space}")
+    study = f"{args.robot}_{args.space}" + ("_realistic" if args.plant == "realistic" else "")
+    scenario = load_scenario(args.scenario or study, plant_preset=args.plant)
     _validate(args, scenario)
     if args.rate is not None:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)

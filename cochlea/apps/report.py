@@ -17,7 +17,9 @@ from ..sim.result import SimulationResult, UnitLog
 #: Convergence: the RMS tracking error over the last 20 % of the run must be at most this
 #: fraction of the initial absolute error ...
 CONVERGENCE_RATIO = 0.05
-#: ... or below this floor (for coordinates that start on target), by unit.
+#: ... or below this floor (for coordinates that start on target), by unit; on a plant that
+#: measures positions in encoder counts, below the resolution of a count (see
+#: :func:`measurement_resolution`): no controller can resolve less.
 CONVERGENCE_FLOOR = {"rad": 1e-5, "m": 1e-6}
 TAIL_FRACTION = 0.2
 
@@ -65,8 +67,26 @@ def write_csv(result: SimulationResult, path: Path) -> None:
     np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
 
 
+def measurement_resolution(u: UnitLog) -> np.ndarray | None:
+    """Per tracked coordinate, what one encoder count on every joint moves it at the run's
+    last pose (rad or m): the joint's quantum in joint space, ``sum_j |fk(q + count_j) -
+    fk(q)|`` in task space. None when the plant measures positions without a grid."""
+    quantum = u.setup.quantum
+    if quantum is None or not len(u.q) or not np.any(quantum[:u.q.shape[1]] > 0):
+        return None
+    counts = quantum[:u.q.shape[1]]
+    if u.setup.controller.space == "joint":
+        return counts.copy()
+    q = u.q[-1]
+    pose = np.array(u.setup.fk_world(q)).ravel()
+    moved = [np.abs(np.array(u.setup.fk_world(q + step)).ravel() - pose)
+             for step in np.diag(counts)]
+    return np.sum(moved, axis=0)
+
+
 def unit_summary(u: UnitLog) -> dict:
     e = u.tracking_error
+    resolution = measurement_resolution(u)
     tail = e[int(len(e) * (1 - TAIL_FRACTION)):] if len(e) else e
     tracked = {}
     for i, (name, unit) in enumerate(zip(u.tracked_names, u.tracked_units)):
@@ -76,13 +96,17 @@ def unit_summary(u: UnitLog) -> dict:
             continue
         initial = float(abs(e[0, i]))
         final_rms = float(np.sqrt(np.mean(tail[:, i] ** 2)))
+        floor = CONVERGENCE_FLOOR[unit] if resolution is None else \
+            max(CONVERGENCE_FLOOR[unit], float(resolution[i]))
         tracked[name] = {
             "unit": unit,
             "initial_abs_error": initial,
             "final_rms_error": final_rms,
             "converged": bool(np.isfinite(final_rms) and (
-                final_rms <= CONVERGENCE_RATIO * initial or final_rms <= CONVERGENCE_FLOOR[unit])),
+                final_rms <= CONVERGENCE_RATIO * initial or final_rms <= floor)),
         }
+        if resolution is not None:
+            tracked[name]["measurement_resolution"] = float(resolution[i])
     torque = {}
     for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
         torque[j.name] = {"unit": _UNIT_TEXT[_EFFORT_UNIT[unit]],
@@ -123,7 +147,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "periods": int(len(result.time)),
         "convergence_rule": f"final RMS over the last {TAIL_FRACTION:.0%} <= "
                             f"{CONVERGENCE_RATIO:.0%} of the initial absolute error, or below "
-                            + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items()),
+                            + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items())
+                            + " (with encoder counts: below the coordinate's "
+                              "measurement_resolution, one count on every joint)",
         "converged": bool(converged and not result.diverged and (
             result.stop is None or result.stop["rule"] == "completed")),
         "diverged": result.diverged,

@@ -27,9 +27,11 @@ METHODS = ("newton-euler", "lagrange")
 #: model: friction is compensated through the regressor).
 ACTUATORS = ("none", "armature", "all")
 #: Velocity (rad/s at a revolute joint, m/s at a prismatic one) over which the model's Coulomb
-#: friction ``Fc tanh(qd / v)`` changes sign. About two counts of the MX-64's velocity register
-#: (0.024 rad/s each): a sharper sign would switch the compensation on every quantised count.
-COULOMB_SMOOTHING = {"revolute": 0.05, "prismatic": 0.001}
+#: friction ``Fc tanh(v / v_s)`` changes sign. The controllers evaluate it at their reference
+#: velocity, which is smooth, so it can be sharp: 0.01 rad/s, under half a count of the MX-64's
+#: velocity register; at the slider 2e-4 m/s, the same at its 20 mm pinion. Wider, the
+#: compensation fades over seconds of the studies' slow reversals and the joints stick there.
+COULOMB_SMOOTHING = {"revolute": 0.02, "prismatic": 0.0004}
 
 #: The ten standard inertial parameters of a rigid body, in its frame, and their meanings.
 INERTIAL_NAMES = ("m", "mx", "my", "mz", "Ixx", "Iyy", "Izz", "Ixy", "Ixz", "Iyz")

@@ -100,6 +100,10 @@ class Scenario:
     variant: str
     parameterisation: str
     adaptation_gain: float
+    #: How Gamma spreads over the parameters: "uniform" (``adaptation_gain`` each, the
+    #: thesis) or "relative" (``adaptation_gain * p_nominal_i^2``: every estimate moves at the
+    #: same rate relative to its size, whatever its unit).
+    adaptation: str
     initial_estimate: str  # "zero" | "nominal"
     estimate_bound: float  # relative to |p_nominal|
     mirror: str  # "desired"
@@ -223,8 +227,10 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     variant = c.string("variant", ("corrected", "thesis"), required=False, default="corrected")
     parameterisation = c.string("parameterisation", ("base", "inertial", "mass"),
                                 required=False, default="base")
-    adaptation = c.number("adaptation_gain", "a positive number (Gamma = value * identity)",
-                          lambda v: v > 0, required=False, default=1.0)
+    adaptation_gain = c.number("adaptation_gain", "a positive number (Gamma's scale)",
+                               lambda v: v > 0, required=False, default=1.0)
+    adaptation = c.string("adaptation", ("uniform", "relative"), required=False,
+                          default="uniform")
     initial_estimate = c.string("initial_estimate", ("zero", "nominal"), required=False,
                                 default="zero")
     bound = c.number("estimate_bound", "a positive number (times |p_nominal|)", lambda v: v > 0,
@@ -286,7 +292,8 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     plant = _plant(top.table("plant") if "plant" in top.data else None, layout, plant_preset)
     top.done()
     return Scenario(path, path.stem, robot, space, description, duration, rate, substeps,
-                    variant, parameterisation, adaptation, initial_estimate, bound, mirror,
+                    variant, parameterisation, adaptation_gain, adaptation, initial_estimate,
+                    bound, mirror,
                     controller_actuators, dict(definitions), leader, tuple(units), plant, system)
 
 

@@ -141,6 +141,17 @@ def plant_friction(adapter, system, plant: scenario_mod.Plant
     return (np.zeros(len(joints)) if viscous is None else viscous), coulomb
 
 
+def adaptation_gains(sc: scenario_mod.Scenario, p_nominal: np.ndarray) -> np.ndarray:
+    """The diagonal of Gamma. "relative": ``adaptation_gain * max(|p_i|, 1e-3 max|p|)^2``, so
+    an armature of 3e-3 kg m^2 and a slider's 18 kg both move by the same fraction of themselves
+    (with one gain for all, the small ones swing past their size and the loop goes unstable on
+    the realistic plant); the floor keeps a zero nominal adaptable."""
+    if sc.adaptation == "uniform":
+        return sc.adaptation_gain * np.ones(len(p_nominal))
+    size = np.abs(np.asarray(p_nominal, float))
+    return sc.adaptation_gain * np.maximum(size, 1e-3 * max(size.max(), 1e-300)) ** 2
+
+
 def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario)."""
@@ -167,7 +178,7 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
         first_joint += m.nq
         setups.append(UnitSetup(
             plan.name, m, plan.plant_model, plant_params, controller, plan.desired, plan.x0,
-            gains, sc.adaptation_gain * np.ones(n_p), bound, p_hat0, viscous[mine],
+            gains, adaptation_gains(sc, m.p_nominal), bound, p_hat0, viscous[mine],
             plan.joint_units, plan.task_names, plan.task_units, plan.task_angles, plan.fk_world,
             tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
