@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench
+.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -60,6 +60,11 @@ $(LIB): $(C_OBJ)
 # (then commit it).
 codegen: $(STAMP)
 	$(BIN)/cochlea-codegen
+
+# The robustness table of the four controllers (ideal, realistic, stressed plants):
+# writes docs/robustness.md (about a minute).
+robustness: $(STAMP)
+	$(BIN)/python bench/robustness.py
 
 # The benchmark: writes bench/results.md and bench/results.json (takes a few minutes).
 bench: $(STAMP) lib
