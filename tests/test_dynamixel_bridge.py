@@ -316,3 +316,34 @@ def test_wire_timing_shows_the_bus_budget():
     assert read_wire <= min(io)  # no read is quicker than its bytes on the wire
     assert float(np.median(io)) < budget.bus_s + backend.timeout_s
     assert backend.check_rate(1000).level == "refuse"
+
+
+def test_the_realistic_plant_holds_a_joint_below_breakaway():
+    """``plant="realistic"`` (``cochlea-emulator --plant realistic``): the gearboxes' Coulomb
+    friction from the description holds every joint against torques below it, and the rotors
+    add their armature; a torque past breakaway moves the joint."""
+    with VirtualChain("serial", plant="realistic") as chain:
+        unit = chain.scenario.system.arms[0].links
+        coulomb = [link.joint.actuator.coulomb for link in unit] * 2
+        assert chain.scenario.plant_actuators == "armature"
+        backend = connect(chain)
+        backend.enable()
+        try:
+            def hold(tau, seconds=0.1):  # keep the bus busy: its watchdog would trip
+                for _ in range(int(seconds / 0.002)):
+                    assert backend.write(tau)
+                    time.sleep(0.002)
+
+            start = chain.joint_state()[:6].copy()
+            below = 0.5 * np.array(coulomb)  # half of each joint's breakaway
+            below[1::2] *= -1
+            hold(below)
+            assert np.array_equal(chain.joint_state()[:6], start)  # stuck, exactly
+            above = np.zeros(6)
+            above[0] = 2.0 * coulomb[0]
+            hold(above)
+            moved = chain.joint_state()[:6] - start
+            # Joint 1 slides (and its reaction drags the links it carries); arm 2 stays.
+            assert moved[0] > 1e-4 and np.all(moved[3:] == 0.0)
+        finally:
+            backend.disable()

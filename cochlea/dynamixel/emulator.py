@@ -60,6 +60,7 @@ from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..robots.plant import plant_step
 from ..sim import load_scenario, unit_setups
+from ..sim.scenario import PLANT_PRESETS
 from . import protocol as proto
 from .control_table import (
     ACCESS,
@@ -342,12 +343,14 @@ class VirtualChain:
     def __init__(self, robot: str, scenario: str | Path | None = None, *,
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
-                 max_events: int = 200_000):
+                 max_events: int = 200_000, plant: str | None = None):
         codes = {rate: code for code, rate in BAUD_RATES.items()}
         if baud not in codes:
             raise CochleaError(f"--baud {baud} is not a Dynamixel rate: "
                                + ", ".join(str(b) for b in BAUD_RATES.values()))
-        self.scenario = load_scenario(scenario or f"{robot}_joint")
+        # plant: a preset of the scenario's [plant] table, e.g. "realistic": the motors' rotors
+        # and gearbox friction move the joints (their counts are the motors' own already).
+        self.scenario = load_scenario(scenario or f"{robot}_joint", plant_preset=plant)
         if self.scenario.robot != robot:
             raise CochleaError(f"scenario {self.scenario.path} is for the {self.scenario.robot} "
                                f"robot, not {robot}")
@@ -747,6 +750,9 @@ def _parser() -> argparse.ArgumentParser:
                    "--wire-timing and their Baud Rate register (default 4000000)")
     p.add_argument("--wire-timing", action="store_true", help="bytes take the time the baud "
                    "rate gives them and each motor waits its Return Delay Time")
+    p.add_argument("--plant", choices=list(PLANT_PRESETS),
+                   help="the plant's preset: ideal, the scenario's; realistic, the geared "
+                        "Dynamixels (armature, friction with sticking from the description)")
     p.add_argument("--plant-period-ms", type=float, metavar="MS",
                    help="the plant's RK4 step in real time (default: the scenario's, its "
                         "control period over its plant_substeps)")
@@ -795,7 +801,8 @@ def main(argv: list[str] | None = None) -> int:
                              wire_timing=args.wire_timing, faults=faults_from_args(args),
                              plant_period_s=None if args.plant_period_ms is None
                              else args.plant_period_ms * 1e-3, log_path=args.log,
-                             max_events=1000)  # the --log file keeps them all
+                             max_events=1000,  # the --log file keeps them all
+                             plant=args.plant)
     except CochleaError as exc:
         print(f"cochlea-emulator: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
