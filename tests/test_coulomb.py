@@ -93,16 +93,61 @@ def test_without_coulomb_the_plant_is_the_one_generated():
 
 
 def test_scenario_coulomb_friction_reaches_the_plant():
+    """The scenario key reaches the plant, and simulate() runs it in C (no fallback): the log
+    equals the CasADi reference's."""
     sc = load_scenario("serial_joint")
     sc = dataclasses.replace(sc, plant=Plant(coulomb_friction=np.array([0.02, 0.015, 0.01])))
     setups = unit_setups(sc)
     assert np.array_equal(setups[0].coulomb, [0.02, 0.015, 0.01])
     reference = simulate(sc, 0.2, setups, kernels="casadi")
-    with warnings.catch_warnings(record=True) as caught:  # no C kernel for it yet
-        warnings.simplefilter("always")
-        fallback = simulate(sc, 0.2, setups)
-    assert any(issubclass(w.category, CKernelsWarning) for w in caught)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CKernelsWarning)  # the C kernels run it
+        compiled = simulate(sc, 0.2, setups)
     plain = simulate(load_scenario("serial_joint"), 0.2, kernels="casadi")
-    for a, b, c in zip(reference.units, fallback.units, plain.units):
-        assert np.array_equal(a.q, b.q)
+    for a, b, c in zip(reference.units, compiled.units, plain.units):
+        for key in ("q", "qd", "tau", "errors", "p_hat"):
+            np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=0, atol=1e-10)
         assert not np.allclose(a.q, c.q, rtol=0, atol=1e-9)  # the friction acts
+
+
+@pytest.mark.parametrize("name", ["serial_arm1", "serial_arm2", "parallel"])
+def test_the_c_plant_step_equals_the_casadi_one(name):
+    """``<unit>_plant_step_coulomb`` from the library against the Function, from rest below and
+    above breakaway and while sliding (arm 2's kernel is an alias of arm 1's C)."""
+    from cochlea.kernels import library
+
+    arm, unit = (name.split("_") + [None])[:2]
+    m = cochlea.model(arm, arm=unit, parameterisation="inertial")
+    f = plant_step(m, 1, coulomb=True)
+    kernel = library.load().kernel(f.name())
+    assert kernel["x_next"].shape == (2 * m.nq,)
+    if name == "serial_arm2":
+        assert library.load().symbol(f.name()) == "serial_arm1_plant_step_coulomb"
+    rng = np.random.default_rng(5)
+    level = np.full(m.nq, 0.02)
+    x = np.zeros(2 * m.nq)
+    x[:m.nq] = [0.7, 1.2, 1.9] if m.nq == 3 else [2.478, 0.563, 0.07075, 0.663, 2.579]
+    for tau_scale, speed in ((0.5, 0.0), (3.0, 0.0), (0.0, 0.3), (1.0, 0.05)):
+        state = x.copy()
+        state[m.nq:] = speed * rng.standard_normal(m.nq)
+        tau = tau_scale * level * rng.choice([-1.0, 1.0], m.nq)
+        friction = np.full(m.nq, 1e-3)
+        want = np.array(f(state, tau, m.p_nominal, friction, H, level)).ravel()
+        got, = kernel.evaluate(state, tau, m.p_nominal, friction, H, level)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+
+
+def test_the_real_time_sim_backend_runs_the_c_plant():
+    from cochlea.runtime.sim_backend import SimBackend
+    from cochlea.sim.compiled import period_kernels
+
+    sc = load_scenario("serial_joint")
+    sc = dataclasses.replace(sc, plant=Plant(coulomb_friction=np.array([0.02, 0.015, 0.01])))
+    setups = unit_setups(sc)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CKernelsWarning)
+        kernels = period_kernels(setups[0], sc.plant_substeps)
+        backend = SimBackend(setups, sc.period, sc.plant_substeps)
+    assert kernels[3] == "c" and kernels[1].kernel.name == "serial_arm1_plant_step_coulomb"
+    assert [f.kernel.name for f in backend._steps] == ["serial_arm1_plant_step_coulomb",
+                                                       "serial_arm2_plant_step_coulomb"]

@@ -91,12 +91,17 @@ def test_every_configured_kernel_is_generated(config):
             for key in robot.kernels:
                 assert f"{prefix}_{key}" in names
             assert f"{prefix}_plant_step" in names
+            assert (f"{prefix}_plant_step_coulomb" in names) == robot.plant_coulomb
             for kind in robot.controllers:
                 for variant in robot.variants:
                     group = f"{prefix}_{kind}" + ("" if variant == "corrected" else f"_{variant}")
                     for part in CONTROLLER_PARTS:
                         assert f"{group}_{part}" in names
                     assert f"{group}_closed_loop" in manifest["closed_loops"]
+                    coulomb = manifest["closed_loops"].get(f"{group}_closed_loop_coulomb")
+                    assert (coulomb is not None) == robot.plant_coulomb
+                    if coulomb is not None:
+                        assert coulomb["plant"] == f"{prefix}_plant_step_coulomb"
     # The list: M, C, G, fk, J, forward dynamics, RK4 plant step per robot.
     for unit in ("serial_arm1", "serial_arm2", "parallel"):
         for key in ("M", "C", "G", "fk", "J", "forward_dynamics", "plant_step"):

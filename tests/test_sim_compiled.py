@@ -135,6 +135,25 @@ def test_noise_delay_and_friction_match(loop):
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
+@pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+def test_coulomb_friction_runs_in_c(name, loop):
+    """A plant with dry friction runs on ``<unit>_plant_step_coulomb`` and its driver
+    ``*_closed_loop_coulomb``, not on the CasADi fallback, and gives the reference's log."""
+    sc = load_scenario(name)
+    n = 3 if sc.robot == "serial" else 5
+    sc = dataclasses.replace(sc, plant=Plant(coulomb_friction=np.linspace(0.01, 0.03, n),
+                                             viscous_friction=np.full(n, 1e-3)))
+    setups = unit_setups(sc)
+    lib = ckernels.load()
+    for u in setups:
+        names = csim.unit_kernels(lib, u, sc.plant_substeps)
+        assert names.plant.endswith("_plant_step_coulomb")
+        assert names.closed_loop.endswith("_closed_loop_coulomb")
+    reference = simulate(sc, 0.5, setups, kernels="casadi")
+    assert_same_log(csim.simulate_compiled(sc, 0.5, setups, loop=loop), reference)
+
+
+@pytest.mark.parametrize("loop", csim.LOOPS)
 def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
     """Arm 2's printed G_a diverges within 0.1 s once its torques are not clipped (a
     description with no effective torque limit): same rows, same time, and the noise of the

@@ -55,6 +55,9 @@ class RobotConfig:
     task: tuple[str, str]  # (fk, J) of the task-space controllers
     task_angles: tuple[int, ...]
     pose: str  # the model Function whose value the closed loop logs
+    #: Also the plant with Coulomb friction (``<prefix>_plant_step_coulomb``) and, per
+    #: controller, a closed loop on it (``<group>_closed_loop_coulomb``).
+    plant_coulomb: bool = False
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,7 @@ class CodegenConfig:
 
 _ROBOT_KEYS = {"name": str, "units": list, "kernels": list, "plant_substeps": int,
                "controller_parameterisation": str, "controllers": list, "variants": list,
-               "task": list, "task_angles": list, "pose": str}
+               "task": list, "task_angles": list, "pose": str, "plant_coulomb": bool}
 
 
 def _fail(path: Path, key: str, expected: str, got: object) -> CodegenError:
@@ -120,7 +123,7 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
             table["name"], tuple(table["units"]), tuple(table["kernels"]),
             table["plant_substeps"], table["controller_parameterisation"],
             tuple(table["controllers"]), tuple(table["variants"]), tuple(table["task"]),
-            tuple(table["task_angles"]), table["pose"]))
+            tuple(table["task_angles"]), table["pose"], table["plant_coulomb"]))
     if not robots:
         raise _fail(path, "robot", "at least one [[robot]] table", [])
     # The output folder is relative to the checkout (or, installed, the working directory).
@@ -174,6 +177,8 @@ class ClosedLoop:
     n_gains: int
     #: The C the driver calls: the symbols of its step, plant and pose kernels.
     calls: tuple[str, str, str] = ("", "", "")
+    #: Whether the plant has a Coulomb friction input (its 6th, ``coulomb``).
+    coulomb: bool = False
     #: The driver whose C runs this one: itself, or an earlier one making the same calls.
     symbol: str = ""
 
@@ -226,9 +231,13 @@ def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
                 f = plant.functions[key]
                 kernels.append(Kernel(f.name(), export(f, f.name(), opts), f, prefix, "model",
                                       robot.name, prefix, si_units=info.of(f)))
-            step = plant_step(plant, robot.plant_substeps)
-            kernels.append(Kernel(step.name(), export(step, step.name(), opts), step, prefix,
-                                  "plant", robot.name, prefix, si_units=info.of(step)))
+            plants = [plant_step(plant, robot.plant_substeps)]
+            if robot.plant_coulomb:
+                plants.append(plant_step(plant, robot.plant_substeps, coulomb=True))
+            for step in plants:
+                kernels.append(Kernel(step.name(), export(step, step.name(), opts), step,
+                                      prefix, "plant", robot.name, prefix,
+                                      si_units=info.of(step)))
             pose = ctrl_model.functions[robot.pose]
             for kind in robot.controllers:
                 for variant in robot.variants:
@@ -240,12 +249,14 @@ def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
                         kernels.append(Kernel(name, export(f, name, opts), f, group,
                                               "controller", robot.name, prefix, kind, variant,
                                               cinfo.of(f)))
-                    loops.append(ClosedLoop(
-                        f"{group}_closed_loop", controller_kernel_name(prefix, kind, variant,
-                                                                        "step"),
-                        step.name(), pose.name(), c.nq, c.n_params, c.n_desired,
-                        c.n_desired + c.nq, pose.size1_out(0), len(plant.param_names),
-                        sum(c.gain_sizes)))
+                    for step in plants:
+                        coulomb = "coulomb" in step.name_in()
+                        loops.append(ClosedLoop(
+                            f"{group}_closed_loop" + ("_coulomb" if coulomb else ""),
+                            controller_kernel_name(prefix, kind, variant, "step"),
+                            step.name(), pose.name(), c.nq, c.n_params, c.n_desired,
+                            c.n_desired + c.nq, pose.size1_out(0), len(plant.param_names),
+                            sum(c.gain_sizes), coulomb=coulomb))
     names = [k.name for k in kernels]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
@@ -321,6 +332,7 @@ class _ArgumentUnits:
             "qd_r": self.qd, "qdd_r": self.qdd,
             "x": f"[q; qd]: {self.q}; {self.qd}", "x_next": f"[q; qd]: {self.q}; {self.qd}",
             "p": self.params, "friction": f"viscous coefficients, {self.damping}",
+            "coulomb": f"Coulomb friction levels, {self.tau}",
             "h": "s (control period)",
             "M": "kg m^2 (revolute pairs), kg (prismatic), kg m (mixed)",
             "C": "N m s/rad (revolute), N s/m (prismatic): C(q, qd) qd is a torque",

@@ -14,12 +14,15 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
 
 * ``<unit>.c``: the model's kernels (``<unit>_M``, ``_C``, ``_G``, ``_fk``, ``_J``, ...,
   ``_forward_dynamics``, the ``*_p`` kernels in the full inertial parameters) and
-  ``<unit>_plant_step``, one RK4 control period of the plant (``cochlea.robots.plant.plant_step``);
+  ``<unit>_plant_step``, one RK4 control period of the plant (``cochlea.robots.plant.plant_step``),
+  and ``<unit>_plant_step_coulomb``, the same with dry friction (``plant_coulomb`` in the
+  configuration);
 * ``<unit>_<kind>[_thesis].c``: controller ``kind`` (and its thesis variant): the regressor
   ``_Y``, the law ``_law`` (torque, estimate rate, errors), the update law ``_update`` (estimate
   rate alone) and the fused ``_step`` (torque, next estimate, errors);
-* ``closed_loop.c``: ``<unit>_<kind>[_thesis]_closed_loop``, N periods of controller, estimate
-  update and plant in C (from the template ``cochlea/data/codegen/closed_loop.c.in``);
+* ``closed_loop.c``: ``<unit>_<kind>[_thesis]_closed_loop[_coulomb]``, N periods of controller,
+  estimate update and plant (``_coulomb``: the plant with dry friction) in C (from the template
+  ``cochlea/data/codegen/closed_loop.c.in``);
 * ``manifest.c`` (``cochlea_manifest()``: every kernel's signature and the SHA-256 of the CasADi
   Function it came from, so a caller can tell a stale library), ``cochlea.h`` (includes every
   header) and ``README.md`` (each function's inputs, outputs, sizes, units and work memory).
@@ -154,7 +157,8 @@ _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_real* x0, const casa
               "const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset, "
               "const casadi_real* gains, const casadi_real* Gamma, "
               "casadi_real bound, casadi_real h, const casadi_real* plant_p, "
-              "const casadi_real* friction, const casadi_real* effort_limit, "
+              "const casadi_real* friction, const casadi_real* coulomb, "
+              "const casadi_real* effort_limit, "
               "casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "
               "casadi_int* rows")
@@ -173,7 +177,8 @@ def _write_closed_loops(loops: list[ClosedLoop], kernels: list[Kernel], out: Pat
         step, plant, pose = loop.calls
         parts.append("\n" + template.substitute(
             name=loop.name, step=step, plant=plant, pose=pose, nq=loop.nq,
-            np=loop.n_params, nd=loop.n_desired, ne=loop.n_errors, npose=loop.n_pose))
+            np=loop.n_params, nd=loop.n_desired, ne=loop.n_errors, npose=loop.n_pose,
+            coulomb_arg="plant_arg[5] = coulomb;" if loop.coulomb else "(void)coulomb;"))
     (out / "closed_loop.c").write_text("".join(parts))
     header = [_preamble("Closed-loop drivers (closed_loop.c); see README.md."),
               "#ifndef COCHLEA_CLOSED_LOOP_H\n#define COCHLEA_CLOSED_LOOP_H\n",

@@ -238,7 +238,7 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 8 + [ctypes.POINTER(_int)])
+                    + [pointer] * 9 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -358,7 +358,7 @@ class ClosedLoop:
 
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
-            offset=None, effort_limit=None) -> ClosedLoopLog:
+            offset=None, effort_limit=None, coulomb=None) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call."""
         nq, nd = self.nq, self.n_desired
         ins = {
@@ -379,6 +379,8 @@ class ClosedLoop:
                                  (2 * nq,))
         if effort_limit is not None:
             effort_limit = self._array("effort_limit", effort_limit, (nq,))
+        if coulomb is not None:  # read by a driver whose plant has dry friction (*_coulomb)
+            coulomb = self._array("coulomb", coulomb, (nq,))
         if delay < 0:
             raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
         log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
@@ -392,6 +394,7 @@ class ClosedLoop:
                         None if quantum is None else offset.ctypes.data,
                         ins["gains"].ctypes.data, ins["Gamma"].ctypes.data, float(bound),
                         float(h), ins["plant_p"].ctypes.data, ins["friction"].ctypes.data,
+                        None if coulomb is None else coulomb.ctypes.data,
                         None if effort_limit is None else effort_limit.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
                         log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))

@@ -55,12 +55,14 @@ Units are SI. Per robot unit the files are:
 - `<unit>.c`: the model at nominal parameters (`M`, `C`, `G`, `fk`, `J`, `fk_world`, `J_world`,
   `forward_dynamics`, `inverse_dynamics`, ...), the same in the full inertial parameters `p`
   (`*_p`, `Y`) and `<unit>_plant_step`, one control period of the plant: RK4 with
-  {substeps} sub-steps, torque held, viscous friction `tau - friction * qd`.
+  {substeps} sub-steps, torque held, viscous friction `tau - friction * qd`;
+  `<unit>_plant_step_coulomb` adds Coulomb friction with sticking (levels `coulomb`, a 6th
+  input; `cochlea.robots.plant.plant_step`).
 - `<unit>_<kind>.c` (and `<unit>_<kind>_thesis.c`, the printed thesis's variant): controller
   `kind`'s regressor `_Y`, law `_law`, update law `_update` and the fused `_step`, which does one
   period: torque, Euler step of the projected estimate clipped to `|p_hat| <= bound`, errors.
-- `closed_loop.c`: `<unit>_<kind>[_thesis]_closed_loop`, N periods of controller, estimate update
-  and plant in C (below).
+- `closed_loop.c`: `<unit>_<kind>[_thesis]_closed_loop[_coulomb]`, N periods of controller,
+  estimate update and plant (without or with dry friction) in C (below).
 
 No body is generated twice. A kernel that computes exactly what an earlier one does is an
 *alias*: it keeps its name, signature and source hash in the manifest, and runs the earlier
@@ -78,7 +80,8 @@ int NAME_closed_loop(casadi_int n, casadi_int delay,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* effort_limit,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* effort_limit,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows);
 ```
@@ -94,7 +97,9 @@ estimate used in the period), `tau_log` (n x nq), `errors_log` (n x ne), `pose_l
 The controller sees `x_log[max(k - delay, 0)] + noise[k]` (a measurement `delay` periods old),
 rounded to `offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i])` where
 `quantum[i] > 0`; its command is clipped to `+-effort_limit[i]` (NULL: no limit), as the
-runtime's supervisor clips every command, and logged as applied.
+runtime's supervisor clips every command, and logged as applied. A driver `*_closed_loop_coulomb`
+runs the plant with dry friction, `<unit>_plant_step_coulomb`, whose levels are `coulomb` (nq,
+N m or N per joint; NULL: zero); the others ignore `coulomb`.
 The run stops after the first period whose next state or estimate is not finite; `*rows` says
 how many rows were written. Returns 0, or the failing kernel's code.
 

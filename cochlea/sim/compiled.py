@@ -101,7 +101,7 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
                 f"the C kernel {name} in {lib.path} computes something else than {what} of "
                 f"unit {u.name} (a different description, parameterisation or option, or a "
                 "stale library): run cochlea-codegen and make lib, or use the CasADi kernels")
-    loop = f"{group}_closed_loop"
+    loop = f"{group}_closed_loop" + ("_coulomb" if u.coulomb is not None else "")
     meta = lib.manifest["closed_loops"].get(loop)
     if meta is None or (meta["step"], meta["plant"], meta["pose"]) != \
             (f"{group}_step", plant.name(), u.fk_world.name()):
@@ -131,7 +131,7 @@ def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, 
     return loop.run(len(xd), x0=u.x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot, xd_ddot=xd_ddot,
                     gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h, plant_p=u.plant_params,
                     friction=u.friction, noise=noise, delay=delay, quantum=u.quantum,
-                    offset=u.grid_offset, effort_limit=u.effort_limit)
+                    offset=u.grid_offset, effort_limit=u.effort_limit, coulomb=u.coulomb)
 
 
 def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -152,6 +152,8 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
     plant["p"][:] = u.plant_params
     plant["friction"][:] = u.friction
     plant["h"][...] = h
+    if u.coulomb is not None:  # the plant with dry friction: its levels, a 6th input
+        plant["coulomb"][:] = u.coulomb
     b_xd, b_xd_dot, b_xd_ddot = step["xd"], step["xd_dot"], step["xd_ddot"]
     tau, p_next, errors = step["tau"], step["p_hat_next"], step["errors"]
     x_next, pose_out = plant["x_next"], pose.outputs[next(iter(pose.outputs))]
