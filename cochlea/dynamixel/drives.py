@@ -16,29 +16,13 @@ Per joint (SI on the joint side: rad or m, rad/s or m/s, N m or N):
   ``effort * qd = tau_m * theta_dot``); for the slider this is ``force * radius``, the
   transmission of the description.
 
-The fit (thesis Table C.1, ``y = a x + b`` with the units its ``x`` and ``y`` name) maps current
-to torque. The rule, :class:`Fit`:
-
-* Forward (current -> torque, what the motor does): odd in the current. For ``|tau| >=
-  ramp``, ``|tau| = a |I| + b``: with the thesis's negative ``b`` (all seven fits) the first
-  ``I0 = -b / a`` of current is lost to friction before any torque comes out (0.14-0.22 A for
-  the MX-64s). Below ``ramp`` the offset is scaled down linearly, so the map stays continuous
-  and strictly increasing through zero instead of jumping by ``2 I0`` at ``tau = 0``.
-* Inverse (torque -> current, what the bridge commands)::
-
-      I = tau / a + I0 * clip(tau / ramp, -1, 1)          (SI: A, N m)
-
-  i.e. ``|I| = (|tau| - b) / a`` with the sign of ``tau`` once ``|tau| >= ramp``, zero current
-  for zero torque, and a linear blend in between (Coulomb-friction compensation without
-  chattering around zero torque). ``ramp`` is 0.05 N m by default, and at least ``2 b`` when
-  a re-fit gives a positive ``b`` (then the rule is a current dead-band), so the map is always
-  invertible: the emulator turns commanded currents back into exactly the torque the
-  controller asked for, up to the current's quantisation.
+The fit (thesis Table C.1) maps current to torque: :class:`~cochlea.robots.motor_fit.Fit`, with
+the rule for the offset and the ramp, lives with the robots (:mod:`cochlea.robots.motor_fit`,
+pure conversions the simulation uses too) and is re-exported here.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,51 +30,12 @@ import numpy as np
 
 from ..errors import DescriptionError, ModelError
 from ..robots import robot
-from ..robots.description import Motor, MotorFit
+from ..robots.description import Motor
+from ..robots.motor_fit import DEFAULT_RAMP_NM, Fit, MotorFitError, current_limit_lsb
 from ..runtime.backend import BackendError
 from .control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB, ModelSpec
 
-#: Default width of the torque band over which the fit's offset is blended in (N m).
-DEFAULT_RAMP_NM = 0.05
-
-_X_TO_A = {"current_A": 1.0, "current_mA": 1e-3}
-_Y_TO_NM = {"torque_Nm": 1.0, "torque_Ncm": 1e-2}
-
-
-@dataclass(frozen=True)
-class Fit:
-    """A motor's torque/current relation in SI (A, N m): see the module docstring."""
-
-    a: float  # N m per A
-    b: float  # N m
-    ramp: float  # N m
-
-    @classmethod
-    def from_description(cls, fit: MotorFit, ramp: float = DEFAULT_RAMP_NM) -> Fit:
-        a = fit.a * _Y_TO_NM[fit.y] / _X_TO_A[fit.x]
-        b = fit.b * _Y_TO_NM[fit.y]
-        if not a > 0:
-            raise BackendError(f"the fit y = {fit.a:g} x + {fit.b:g} gives less torque for more "
-                               "current (a <= 0): the bridge needs a positive slope")
-        return cls(a, b, max(ramp, 2.0 * b))
-
-    @property
-    def offset_current(self) -> float:
-        """``I0 = -b / a`` (A): the current the offset takes (positive for Table C.1)."""
-        return -self.b / self.a
-
-    def current(self, torque):
-        """Current (A) for a motor torque (N m); works on numbers and arrays."""
-        t = np.asarray(torque, dtype=float)
-        return t / self.a + self.offset_current * np.clip(t / self.ramp, -1.0, 1.0)
-
-    def torque(self, current):
-        """Motor torque (N m) a current (A) gives: the exact inverse of :meth:`current`."""
-        i = np.asarray(current, dtype=float)
-        knee = self.ramp / self.a + self.offset_current  # current at |torque| = ramp
-        slope = 1.0 / (1.0 / self.a + self.offset_current / self.ramp)
-        outer = np.sign(i) * (self.a * np.abs(i) + self.b)
-        return np.where(np.abs(i) <= knee, slope * i, outer)
+__all__ = ["DEFAULT_RAMP_NM", "Fit", "JointDrive", "current_limit_lsb", "joint_drives"]
 
 
 @dataclass(frozen=True)
@@ -172,19 +117,6 @@ class JointDrive:
         return torque / self.torque_per_effort
 
 
-def current_limit_lsb(motor: Motor, spec: ModelSpec, fit: Fit, effort_limit: float,
-                      ratio: float) -> int:
-    """The Current Limit (38) of a joint: ``current_limit_mA`` if the description gives it,
-    otherwise the current the fit needs for the joint's effort limit; never above the model's
-    maximum."""
-    if motor.current_limit_mA is not None:
-        milliamps = motor.current_limit_mA
-    else:
-        milliamps = 1000.0 * float(fit.current(effort_limit * ratio))
-    lsb = int(math.ceil(milliamps / spec.current_unit_mA - 1e-9))
-    return max(1, min(lsb, spec.current_limit_max))
-
-
 def joint_drives(robot_name: str, description: str | Path | None = None,
                  ramp: float = DEFAULT_RAMP_NM, *, system=None) -> list[JointDrive]:
     """The joints of a whole system in the loop's order (serial: arm 1's joints then arm 2's;
@@ -200,7 +132,10 @@ def joint_drives(robot_name: str, description: str | Path | None = None,
     drives = []
     for j in joints:
         spec = MODELS[j.motor.model]
-        fit = Fit.from_description(j.motor.fit, ramp)
+        try:
+            fit = Fit.from_description(j.motor.fit, ramp)
+        except MotorFitError as exc:
+            raise BackendError(str(exc)) from exc
         drives.append(JointDrive(j.name, j.type, j.motor, spec, j.motor.direction,
                                  j.motor.zero_offset, j.ratio, fit, tuple(j.position_limits),
                                  j.effort_limit,

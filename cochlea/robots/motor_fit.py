@@ -1,0 +1,99 @@
+"""A motor's calibration fit in SI, and what it means at the joint: pure conversions, no I/O.
+
+The bridge (:mod:`cochlea.dynamixel.drives`) turns joint efforts into Goal Currents with it and
+the emulator turns currents back into torques; it lives here, below the simulation, so the
+simulated plant can use the same fit.
+
+The fit (thesis Table C.1, ``y = a x + b`` with the units its ``x`` and ``y`` name) maps current
+to torque. The rule, :class:`Fit`:
+
+* Forward (current -> torque, what the motor does): odd in the current. For ``|tau| >=
+  ramp``, ``|tau| = a |I| + b``: with the thesis's negative ``b`` (all seven fits) the first
+  ``I0 = -b / a`` of current is lost to friction before any torque comes out (0.14-0.22 A for
+  the MX-64s). Below ``ramp`` the offset is scaled down linearly, so the map stays continuous
+  and strictly increasing through zero instead of jumping by ``2 I0`` at ``tau = 0``.
+* Inverse (torque -> current, what the bridge commands)::
+
+      I = tau / a + I0 * clip(tau / ramp, -1, 1)          (SI: A, N m)
+
+  i.e. ``|I| = (|tau| - b) / a`` with the sign of ``tau`` once ``|tau| >= ramp``, zero current
+  for zero torque, and a linear blend in between (Coulomb-friction compensation without
+  chattering around zero torque). ``ramp`` is 0.05 N m by default, and at least ``2 b`` when
+  a re-fit gives a positive ``b`` (then the rule is a current dead-band), so the map is always
+  invertible: the emulator turns commanded currents back into exactly the torque the
+  controller asked for, up to the current's quantisation.
+
+At the joint, the motor torque is ``direction * ratio * effort`` with ``ratio`` the joint travel
+per motor radian (1 for a revolute joint driven by the motor's output shaft; the pinion radius,
+m/rad, for the slider), so an effort is the motor torque over ``|ratio|``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..dynamixel.control_table import ModelSpec
+from ..errors import CochleaError
+from .description import Motor, MotorFit
+
+#: Default width of the torque band over which the fit's offset is blended in (N m).
+DEFAULT_RAMP_NM = 0.05
+
+_X_TO_A = {"current_A": 1.0, "current_mA": 1e-3}
+_Y_TO_NM = {"torque_Nm": 1.0, "torque_Ncm": 1e-2}
+
+
+class MotorFitError(CochleaError):
+    """A motor's fit cannot drive it (e.g. less torque for more current)."""
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A motor's torque/current relation in SI (A, N m): see the module docstring."""
+
+    a: float  # N m per A
+    b: float  # N m
+    ramp: float  # N m
+
+    @classmethod
+    def from_description(cls, fit: MotorFit, ramp: float = DEFAULT_RAMP_NM) -> Fit:
+        a = fit.a * _Y_TO_NM[fit.y] / _X_TO_A[fit.x]
+        b = fit.b * _Y_TO_NM[fit.y]
+        if not a > 0:
+            raise MotorFitError(f"the fit y = {fit.a:g} x + {fit.b:g} gives less torque for "
+                                "more current (a <= 0): the bridge needs a positive slope")
+        return cls(a, b, max(ramp, 2.0 * b))
+
+    @property
+    def offset_current(self) -> float:
+        """``I0 = -b / a`` (A): the current the offset takes (positive for Table C.1)."""
+        return -self.b / self.a
+
+    def current(self, torque):
+        """Current (A) for a motor torque (N m); works on numbers and arrays."""
+        t = np.asarray(torque, dtype=float)
+        return t / self.a + self.offset_current * np.clip(t / self.ramp, -1.0, 1.0)
+
+    def torque(self, current):
+        """Motor torque (N m) a current (A) gives: the exact inverse of :meth:`current`."""
+        i = np.asarray(current, dtype=float)
+        knee = self.ramp / self.a + self.offset_current  # current at |torque| = ramp
+        slope = 1.0 / (1.0 / self.a + self.offset_current / self.ramp)
+        outer = np.sign(i) * (self.a * np.abs(i) + self.b)
+        return np.where(np.abs(i) <= knee, slope * i, outer)
+
+
+def current_limit_lsb(motor: Motor, spec: ModelSpec, fit: Fit, effort_limit: float,
+                      ratio: float) -> int:
+    """The Current Limit (38) of a joint: ``current_limit_mA`` if the description gives it,
+    otherwise the current the fit needs for the joint's effort limit; never above the model's
+    maximum."""
+    if motor.current_limit_mA is not None:
+        milliamps = motor.current_limit_mA
+    else:
+        milliamps = 1000.0 * float(fit.current(effort_limit * ratio))
+    lsb = int(math.ceil(milliamps / spec.current_unit_mA - 1e-9))
+    return max(1, min(lsb, spec.current_limit_max))
