@@ -31,7 +31,10 @@
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -45,8 +48,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -92,6 +95,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -116,7 +128,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -130,8 +145,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -177,6 +192,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
@@ -201,7 +225,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -215,8 +242,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -262,6 +289,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -286,7 +322,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -300,8 +339,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -348,6 +387,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -371,7 +419,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -385,8 +436,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -432,6 +483,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -456,7 +516,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -470,8 +533,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -518,6 +581,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -541,7 +613,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -555,8 +630,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -602,6 +677,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -626,7 +710,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -640,8 +727,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -688,6 +775,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -711,7 +807,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -725,8 +824,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -772,6 +871,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -796,7 +904,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -810,8 +921,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -858,6 +969,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -881,7 +1001,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -895,8 +1018,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -943,6 +1066,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -966,7 +1098,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -980,8 +1115,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1028,6 +1163,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -1051,7 +1195,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1065,8 +1212,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1112,6 +1259,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -1136,7 +1292,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1150,8 +1309,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1198,6 +1357,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -1221,7 +1389,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1235,8 +1406,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1282,6 +1453,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -1306,7 +1486,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1320,8 +1503,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1368,6 +1551,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -1391,7 +1583,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1405,8 +1600,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1452,6 +1647,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
@@ -1476,7 +1680,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1490,8 +1697,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1538,6 +1745,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -1561,7 +1777,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1575,8 +1794,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1623,6 +1842,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
@@ -1646,7 +1874,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
- * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, held over the
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
  * period, and the next estimate; the plant integrates the period, with the Coulomb friction
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
@@ -1660,8 +1891,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
-    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
   casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
@@ -1707,6 +1938,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
     }
     plant_arg[1] = tau_log + k * NQ;
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);

@@ -326,7 +326,7 @@ static const char manifest[] =
   "   \"symbol\": \"serial_arm2_g_thesis_closed_loop_coulomb\"\n"
   "  }\n"
   " },\n"
-  " \"format\": \"cochlea-kernels/4\",\n"
+  " \"format\": \"cochlea-kernels/5\",\n"
   " \"kernels\": {\n"
   "  \"parallel_A\": {\n"
   "   \"group\": \"parallel\",\n"

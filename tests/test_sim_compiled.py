@@ -154,6 +154,27 @@ def test_coulomb_friction_runs_in_c(name, loop):
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_every_plant_option_at_once_matches(name, loop):
+    """Dry friction, both measurement grids, current quantisation, delay and noise together:
+    the C loops give the reference's log (and the applied efforts sit on the effort grid)."""
+    sc = load_scenario(name)
+    n = 3 if sc.robot == "serial" else 5
+    sc = dataclasses.replace(sc, plant=Plant(
+        coulomb_friction=np.full(n, 0.01), viscous_friction=np.full(n, 1e-3),
+        position_encoder=True, velocity_register=True, current_quantisation=True,
+        delay_periods=2, noise_q_std=1e-4, noise_qd_std=1e-3, seed=5))
+    setups = unit_setups(sc)
+    reference = simulate(sc, 0.5, setups, kernels="casadi")
+    assert_same_log(csim.simulate_compiled(sc, 0.5, setups, loop=loop), reference)
+    for u in reference.units:
+        grid = u.setup.effort_grid
+        steps = u.tau / grid.quantum
+        on_grid = np.isclose(steps, np.rint(steps), rtol=0, atol=1e-9)
+        assert np.all(on_grid | (np.abs(u.tau) == grid.bound))
+
+
+@pytest.mark.parametrize("loop", csim.LOOPS)
 def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
     """Arm 2's printed G_a diverges within 0.1 s once its torques are not clipped (a
     description with no effective torque limit): same rows, same time, and the noise of the

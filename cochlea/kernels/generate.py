@@ -158,7 +158,8 @@ _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_real* x0, const casa
               "const casadi_real* gains, const casadi_real* Gamma, "
               "casadi_real bound, casadi_real h, const casadi_real* plant_p, "
               "const casadi_real* friction, const casadi_real* coulomb, "
-              "const casadi_real* effort_limit, "
+              "const casadi_real* effort_limit, const casadi_real* effort_quantum, "
+              "const casadi_real* effort_bound, "
               "casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "
               "casadi_int* rows")

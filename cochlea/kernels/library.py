@@ -238,7 +238,7 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 9 + [ctypes.POINTER(_int)])
+                    + [pointer] * 11 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -358,8 +358,11 @@ class ClosedLoop:
 
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
-            offset=None, effort_limit=None, coulomb=None) -> ClosedLoopLog:
-        """Run ``n`` periods; every array is checked and converted once, before the call."""
+            offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
+            effort_bound=None) -> ClosedLoopLog:
+        """Run ``n`` periods; every array is checked and converted once, before the call.
+        ``effort_quantum`` and ``effort_bound`` (nq each; the bound defaults to no bound) put
+        the applied efforts on the drives' grid (see generated_c/README.md)."""
         nq, nd = self.nq, self.n_desired
         ins = {
             "x0": self._array("x0", x0, (2 * nq,)),
@@ -381,6 +384,10 @@ class ClosedLoop:
             effort_limit = self._array("effort_limit", effort_limit, (nq,))
         if coulomb is not None:  # read by a driver whose plant has dry friction (*_coulomb)
             coulomb = self._array("coulomb", coulomb, (nq,))
+        if effort_quantum is not None:
+            effort_quantum = self._array("effort_quantum", effort_quantum, (nq,))
+            effort_bound = self._array("effort_bound", np.full(nq, np.inf) if effort_bound
+                                       is None else effort_bound, (nq,))
         if delay < 0:
             raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
         log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
@@ -396,6 +403,8 @@ class ClosedLoop:
                         float(h), ins["plant_p"].ctypes.data, ins["friction"].ctypes.data,
                         None if coulomb is None else coulomb.ctypes.data,
                         None if effort_limit is None else effort_limit.ctypes.data,
+                        None if effort_quantum is None else effort_quantum.ctypes.data,
+                        None if effort_quantum is None else effort_bound.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
                         log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))
         if flag:

@@ -17,8 +17,9 @@ from ..robots.model import RobotModel
 #: The format tag of the manifest ``cochlea_manifest()`` returns (JSON).
 #: 2: the closed-loop drivers take the measurement grid (quantum, offset) after the noise;
 #: 3: and the joints' effort limits after the friction;
-#: 4: and the Coulomb friction levels between them (drivers ``*_closed_loop_coulomb``).
-MANIFEST_FORMAT = "cochlea-kernels/4"
+#: 4: and the Coulomb friction levels between them (drivers ``*_closed_loop_coulomb``);
+#: 5: and the drives' effort grid (quantum, bound) after the effort limits.
+MANIFEST_FORMAT = "cochlea-kernels/5"
 
 
 def source_hash(function: ca.Function) -> str:

@@ -81,7 +81,8 @@ int NAME_closed_loop(casadi_int n, casadi_int delay,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
-    const casadi_real* effort_limit,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows);
 ```
@@ -97,7 +98,11 @@ estimate used in the period), `tau_log` (n x nq), `errors_log` (n x ne), `pose_l
 The controller sees `x_log[max(k - delay, 0)] + noise[k]` (a measurement `delay` periods old),
 rounded to `offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i])` where
 `quantum[i] > 0`; its command is clipped to `+-effort_limit[i]` (NULL: no limit), as the
-runtime's supervisor clips every command, and logged as applied. A driver `*_closed_loop_coulomb`
+runtime's supervisor clips every command; with `effort_quantum` (nq; NULL: none) it is then put
+on the drives' effort grid, `effort_quantum[i] * nearbyint(tau / effort_quantum[i])` where
+`effort_quantum[i] > 0`, and bounded by `+-effort_bound[i]` (whole Goal Current LSBs through the
+motor's fit, saturated at its Current Limit: the scenario key `current_quantisation`); it is
+logged as applied. A driver `*_closed_loop_coulomb`
 runs the plant with dry friction, `<unit>_plant_step_coulomb`, whose levels are `coulomb` (nq,
 N m or N per joint; NULL: zero); the others ignore `coulomb`.
 The run stops after the first period whose next state or estimate is not finite; `*rows` says

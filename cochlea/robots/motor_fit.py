@@ -1,8 +1,8 @@
 """A motor's calibration fit in SI, and what it means at the joint: pure conversions, no I/O.
 
-The bridge (:mod:`cochlea.dynamixel.drives`) turns joint efforts into Goal Currents with it and
-the emulator turns currents back into torques; it lives here, below the simulation, so the
-simulated plant can use the same fit.
+The bridge (:mod:`cochlea.dynamixel.drives`) turns joint efforts into Goal Currents with it, the
+emulator turns currents back into torques, and the simulation (:mod:`cochlea.sim.setup`) takes
+from it the effort resolution and saturation of each joint's drive (:func:`effort_grid`).
 
 The fit (thesis Table C.1, ``y = a x + b`` with the units its ``x`` and ``y`` name) maps current
 to torque. The rule, :class:`Fit`:
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..dynamixel.control_table import ModelSpec
+from ..dynamixel.control_table import MODELS, ModelSpec
 from ..errors import CochleaError
 from .description import Motor, MotorFit
 
@@ -97,3 +97,28 @@ def current_limit_lsb(motor: Motor, spec: ModelSpec, fit: Fit, effort_limit: flo
         milliamps = 1000.0 * float(fit.current(effort_limit * ratio))
     lsb = int(math.ceil(milliamps / spec.current_unit_mA - 1e-9))
     return max(1, min(lsb, spec.current_limit_max))
+
+
+def effort_grid(motor: Motor, ratio: float, effort_limit: float,
+                ramp: float = DEFAULT_RAMP_NM) -> tuple[float, float]:
+    """A joint's effort resolution and saturation through its drive, ``(quantum, saturation)``
+    in N m (revolute) or N (prismatic):
+
+    * ``quantum = a * LSB / |ratio|``: one Goal Current LSB (3.36 mA on the MX-64(2.0), 2.69 mA
+      on the XM540-W270) through the fit's slope, at the joint. It is the fit's slope outside
+      the ramp band; inside it (``|torque| < ramp``) the bridge's blended inverse makes the real
+      steps finer, and outside it the real grid is shifted by the offset ``b``: a model of the
+      resolution, not of every level.
+    * ``saturation``: the effort the fit gives at the joint's Current Limit
+      (:func:`current_limit_lsb`), offset included: ``(a I_lim + b) / |ratio|``, the most the
+      motor produces (the offset current is lost to friction at the limit too). Without
+      ``current_limit_mA`` the limit is the current the joint's effort limit needs, rounded up
+      to a whole LSB, so the saturation is then the effort limit or up to one quantum above.
+    """
+    spec = MODELS[motor.model]
+    fit = Fit.from_description(motor.fit, ramp)
+    amperes_per_lsb = spec.current_unit_mA * 1e-3
+    scale = abs(ratio)
+    limit = current_limit_lsb(motor, spec, fit, effort_limit, ratio)
+    return (fit.a * amperes_per_lsb / scale,
+            float(fit.torque(limit * amperes_per_lsb)) / scale)

@@ -13,6 +13,8 @@ Contract:
   period's read failed (timeout, CRC error, ...): the loop counts consecutive failures for its
   watchdog. It must not raise during the loop and must not allocate.
 * ``write(tau)`` commands the efforts, held until the next write; returns False on failure.
+  A backend that knows the efforts its drives really apply (the sim backend with current
+  quantisation) writes them back into ``tau``: the loop logs ``tau`` after the write.
 * ``disable()`` commands zero effort and then switches the drives off (torque off). It must
   never raise, must be idempotent, and must be safe to call at any time, also from a stop
   caused by the backend itself.

@@ -25,6 +25,7 @@ class SimBackend:
         self.units = setups
         self.nq = sum(u.plant_model.nq for u in setups)
         self._steps = []
+        self._grids = []  # per unit: its drives' effort grid, or None
         self._spans = []  # per unit: its joints' slice of q and of qd in the system state
         start = 0
         for u in setups:
@@ -36,6 +37,7 @@ class SimBackend:
                 f.inputs[5][...] = u.coulomb
             f.inputs[0][...] = u.x0
             self._steps.append(f)
+            self._grids.append(u.effort_grid)
             n = u.plant_model.nq
             self._spans.append((n, slice(start, start + n),
                                 slice(self.nq + start, self.nq + start + n)))
@@ -57,9 +59,20 @@ class SimBackend:
         return True
 
     def write(self, tau: np.ndarray) -> bool:
+        """Advance the plant one period under ``tau``. With the drives' effort grid (scenario
+        key ``current_quantisation``) the efforts applied are rounded to whole current LSBs and
+        saturated, as the as-fast run applies them, and written back into ``tau`` so the loop
+        logs them."""
         t0 = time.perf_counter()
-        for f, (_, q_span, _) in zip(self._steps, self._spans):
-            f.inputs[1][:] = tau[q_span] if self.enabled else 0.0
+        for f, (_, q_span, _), grid in zip(self._steps, self._spans, self._grids):
+            applied = f.inputs[1]
+            if self.enabled:
+                applied[:] = tau[q_span]
+                if grid is not None:
+                    grid.apply(applied)
+                    tau[q_span] = applied
+            else:
+                applied[:] = 0.0
             f()
             f.inputs[0][:] = f.outputs[0]
         self.last_io_time_s = self._read_time + time.perf_counter() - t0

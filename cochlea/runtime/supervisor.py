@@ -220,11 +220,19 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
 
 
 def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
-    """Periods whose command was clipped to a joint's effort limit (the logs hold the applied
-    command, so a clipped one sits exactly on its limit)."""
+    """Periods whose command was clipped to a joint's effort limit or, with current
+    quantisation, saturated by its drive (the logs hold the applied command, so a clipped one
+    sits exactly on the largest effort the joint can get: its limit, or its drive's
+    :attr:`~cochlea.sim.setup.EffortGrid.top`, the Current Limit's effort or the grid level
+    the limit rounds to)."""
     tau = np.hstack([u.tau for u in result.units])
+    top = supervisor.limits.effort
+    if any(u.setup.effort_grid is not None for u in result.units):
+        top = np.minimum(top, np.concatenate([
+            u.setup.effort_limit if u.setup.effort_grid is None else u.setup.effort_grid.top
+            for u in result.units]))
     with np.errstate(invalid="ignore"):
-        return int(np.sum((np.abs(tau) >= supervisor.limits.effort).any(axis=1)))
+        return int(np.sum((np.abs(tau) >= top).any(axis=1)))
 
 
 def verdict(result: SimulationResult, supervisor: Supervisor) -> dict:

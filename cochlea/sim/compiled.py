@@ -128,10 +128,13 @@ def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, 
            desired, noise) -> ckernels.ClosedLoopLog:
     loop = lib.closed_loop(kernels.closed_loop)
     xd, xd_dot, xd_ddot = desired
+    grid = u.effort_grid
     return loop.run(len(xd), x0=u.x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot, xd_ddot=xd_ddot,
                     gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h, plant_p=u.plant_params,
                     friction=u.friction, noise=noise, delay=delay, quantum=u.quantum,
-                    offset=u.grid_offset, effort_limit=u.effort_limit, coulomb=u.coulomb)
+                    offset=u.grid_offset, effort_limit=u.effort_limit, coulomb=u.coulomb,
+                    effort_quantum=None if grid is None else grid.quantum,
+                    effort_bound=None if grid is None else grid.bound)
 
 
 def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -163,6 +166,7 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
                                  np.empty((steps, len(pose_out))))
     X, P, TAU, E, POSE = log.x, log.p_hat, log.tau, log.errors, log.pose
     limit = u.effort_limit
+    drive = None if u.effort_grid is None else u.effort_grid.apply
     isfinite = np.isfinite
     for k in range(steps):
         X[k] = x
@@ -179,6 +183,8 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
         b_xd_ddot[:] = xd_ddot[k]
         failed = call_step()
         np.clip(tau, -limit, limit, out=tau)  # as the supervisor clips every command
+        if drive is not None:  # as the drives apply it: whole current LSBs, saturated
+            drive(tau)
         if failed or call_plant() or call_pose():
             raise ckernels.KernelError(f"a kernel of unit {u.name} returned a nonzero code")
         TAU[k] = tau

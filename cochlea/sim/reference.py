@@ -3,8 +3,11 @@ integrated with RK4 sub-steps, estimates integrated once per period.
 
 The plant is the same symbolic model with its own parameters (the scenario may scale masses, add
 a tip payload and viscous friction); measurements may carry Gaussian noise and a delay of whole
-periods. Everything that can be is fused into one CasADi Function per unit and period; the
-Python loop only adds noise, delays measurements and stores the log. The generated C kernels
+periods, measurements and applied efforts may sit on the motors' grids. Everything that can be
+is fused into one CasADi Function per unit and period; the Python loop only adds noise, delays
+measurements, rounds what CasADi cannot round exactly (measurements, and with current
+quantisation the commands, between the controller's Function and the plant's) and stores the
+log. The generated C kernels
 (:mod:`cochlea.sim.compiled`) are checked against this loop.
 """
 
@@ -19,27 +22,81 @@ from .scenario import Scenario
 from .setup import UnitSetup, quantise
 
 
-def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
-    """``(t, x_true, x_measured, p_hat) -> (x_true_next, p_hat_next, tau, errors, xd, xd_dot)``;
-    ``tau`` is the command as applied: clipped to the joints' effort limits."""
+def _command(u: UnitSetup, h: float, t, x_meas, p_hat):
+    """The controller's period on symbols: ``(tau, p_hat_next, errors, xd, xd_dot)``, ``tau``
+    clipped to the joints' effort limits as the supervisor clips every command."""
     n = u.controller_model.nq
-    t = ca.SX.sym("t")
-    x_true = ca.SX.sym("x_true", 2 * n)
-    x_meas = ca.SX.sym("x_meas", 2 * n)
-    p_hat = ca.SX.sym("p_hat", u.controller.n_params)
     xd, xd_dot, xd_ddot = u.desired(t)
     tau, p_next, errors = u.controller.step(
         x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot, p_hat, ca.DM(u.gains), ca.DM(u.gamma),
         u.bound, h)
     limit = ca.DM(u.effort_limit)
-    tau = ca.fmin(ca.fmax(tau, -limit), limit)  # as the supervisor clips every command
+    return ca.fmin(ca.fmax(tau, -limit), limit), p_next, errors, xd, xd_dot
+
+
+def _plant(u: UnitSetup, h: float, substeps: int, x_true, tau):
     step = plant_step(u.plant_model, substeps, coulomb=u.coulomb is not None)
     extra = [] if u.coulomb is None else [ca.DM(u.coulomb)]
-    x_next = step(x_true, tau, ca.DM(u.plant_params), ca.DM(u.friction), h, *extra)
+    return step(x_true, tau, ca.DM(u.plant_params), ca.DM(u.friction), h, *extra)
+
+
+def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
+    """``(t, x_true, x_meas, p_hat) -> (x_true_next, p_hat_next, tau, errors, xd, xd_dot)``;
+    ``tau`` is the command as applied: clipped to the joints' effort limits.
+
+    With the drives' effort grid (``u.effort_grid``) the command is rounded between the
+    controller and the plant, which CasADi cannot do exactly (it has no round half to even):
+    use :func:`command_function` and :func:`plant_function` then, the rounding in numpy."""
+    n = u.controller_model.nq
+    t = ca.SX.sym("t")
+    x_true = ca.SX.sym("x_true", 2 * n)
+    x_meas = ca.SX.sym("x_meas", 2 * n)
+    p_hat = ca.SX.sym("p_hat", u.controller.n_params)
+    tau, p_next, errors, xd, xd_dot = _command(u, h, t, x_meas, p_hat)
+    x_next = _plant(u, h, substeps, x_true, tau)
     return ca.Function(f"period_{u.name}", [t, x_true, x_meas, p_hat],
                        [x_next, p_next, tau, errors, xd, xd_dot],
                        ["t", "x_true", "x_meas", "p_hat"],
                        ["x_true_next", "p_hat_next", "tau", "errors", "xd", "xd_dot"])
+
+
+def command_function(u: UnitSetup, h: float) -> ca.Function:
+    """``(t, x_meas, p_hat) -> (tau, p_hat_next, errors, xd, xd_dot)``: the controller's half
+    of :func:`period_function`, ``tau`` clipped to the effort limits (not yet on the grid)."""
+    n = u.controller_model.nq
+    t = ca.SX.sym("t")
+    x_meas = ca.SX.sym("x_meas", 2 * n)
+    p_hat = ca.SX.sym("p_hat", u.controller.n_params)
+    return ca.Function(f"command_{u.name}", [t, x_meas, p_hat],
+                       list(_command(u, h, t, x_meas, p_hat)), ["t", "x_meas", "p_hat"],
+                       ["tau", "p_hat_next", "errors", "xd", "xd_dot"])
+
+
+def plant_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
+    """``(x_true, tau) -> x_true_next``: the plant's half of :func:`period_function`."""
+    n = u.controller_model.nq
+    x_true = ca.SX.sym("x_true", 2 * n)
+    tau = ca.SX.sym("tau", n)
+    return ca.Function(f"plant_{u.name}", [x_true, tau], [_plant(u, h, substeps, x_true, tau)],
+                       ["x_true", "tau"], ["x_true_next"])
+
+
+def _period(u: UnitSetup, h: float, substeps: int):
+    """One period as a callable ``(t, x_true, x_meas, p_hat) -> (x_true_next, p_hat_next, tau,
+    errors, xd, xd_dot)`` (numpy arrays): the fused Function, or, with the drives' effort grid,
+    the controller, the rounding in numpy and the plant."""
+    if u.effort_grid is None:
+        fused = period_function(u, h, substeps)
+        return lambda *args: [np.array(v).ravel() for v in fused(*args)]
+    command, plant, grid = command_function(u, h), plant_function(u, h, substeps), u.effort_grid
+
+    def period(t, x_true, x_meas, p_hat):
+        tau, p_next, errors, xd, xd_dot = (np.array(v).ravel() for v in command(t, x_meas,
+                                                                                 p_hat))
+        grid.apply(tau)
+        return [np.array(plant(x_true, tau)).ravel(), p_next, tau, errors, xd, xd_dot]
+
+    return period
 
 
 def simulate_reference(sc: Scenario, duration: float,
@@ -55,7 +112,7 @@ def simulate_reference(sc: Scenario, duration: float,
     for u in setups:
         n, n_p = u.controller_model.nq, u.controller.n_params
         nd, ne = u.controller.n_desired, u.controller.n_desired + n
-        period = period_function(u, h, sc.plant_substeps)
+        period = _period(u, h, sc.plant_substeps)
         X = np.empty((steps, 2 * n))
         log = {k: np.empty((steps, s)) for k, s in
                [("tau", n), ("errors", ne), ("xd", nd), ("xd_dot", nd), ("p_hat", n_p)]}
@@ -73,13 +130,8 @@ def simulate_reference(sc: Scenario, duration: float,
             if u.quantum is not None:  # as the motors report it: encoder and velocity counts
                 measured = quantise(measured, u.quantum, u.grid_offset)
             log["p_hat"][k] = p_hat
-            out = period(time[k], x, measured, p_hat)
-            x = np.array(out[0]).ravel()
-            p_hat = np.array(out[1]).ravel()
-            log["tau"][k] = np.array(out[2]).ravel()
-            log["errors"][k] = np.array(out[3]).ravel()
-            log["xd"][k] = np.array(out[4]).ravel()
-            log["xd_dot"][k] = np.array(out[5]).ravel()
+            x, p_hat, log["tau"][k], log["errors"][k], log["xd"][k], log["xd_dot"][k] = \
+                period(time[k], x, measured, p_hat)
             if not (np.isfinite(x).all() and np.isfinite(p_hat).all()):
                 diverged[u.name] = float(time[k])  # keep the log up to and including row k
                 rows = k + 1

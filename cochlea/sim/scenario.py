@@ -29,12 +29,13 @@ from .expressions import ExpressionError, parse
 FORMAT = "cochlea-scenario/1"
 #: ``[plant] plant = "<preset>"``: defaults for the plant's keys, each still settable.
 #: realistic: the geared Dynamixels as the description gives them -- armature, viscous and
-#: Coulomb friction -- measured on the encoder grid and in velocity-register counts, one period
-#: of measurement delay.
+#: Coulomb friction -- measured on the encoder grid and in velocity-register counts, driven in
+#: whole Goal Current LSBs up to the Current Limit, one period of measurement delay.
 PLANT_PRESETS = {
     "ideal": {},
     "realistic": {"armature": True, "friction_from_description": True,
-                  "position_encoder": True, "velocity_register": True, "delay_periods": 1},
+                  "position_encoder": True, "velocity_register": True,
+                  "current_quantisation": True, "delay_periods": 1},
 }
 UNITS = {"deg": ("angle", np.pi / 180.0), "rad": ("angle", 1.0), "m": ("length", 1.0),
          "mm": ("length", 1e-3)}
@@ -78,6 +79,9 @@ class Plant:
     position_encoder: bool = False
     #: Measured velocities in the motor's Present Velocity units (0.229 rpm per count).
     velocity_register: bool = False
+    #: Applied efforts as the motors produce them: whole Goal Current LSBs through each joint's
+    #: fit, saturated at the Current Limit (see :func:`cochlea.robots.motor_fit.effort_grid`).
+    current_quantisation: bool = False
     #: The preset the table started from (:data:`PLANT_PRESETS`).
     preset: str = "ideal"
     #: The description's armature (reflected rotor inertia) in the plant's mass matrix.
@@ -338,6 +342,8 @@ def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
                    default=0),
         position_encoder=flag("position_encoder", "measured positions on the encoder grid"),
         velocity_register=flag("velocity_register", "measured velocities in 0.229 rpm counts"),
+        current_quantisation=flag("current_quantisation", "applied efforts in whole Goal Current "
+                                  "LSBs, saturated at the Current Limit"),
         preset=preset,
         armature=flag("armature", "the description's armature in the plant"),
         friction_from_description=d["friction_from_description"],

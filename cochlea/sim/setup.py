@@ -17,7 +17,47 @@ from ..dynamixel.control_table import RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB
 from ..errors import CochleaError
 from ..robots import robot
 from ..robots.model import INERTIAL_NAMES, RobotModel
+from ..robots.motor_fit import effort_grid
 from . import scenario as scenario_mod
+
+
+@dataclass
+class EffortGrid:
+    """What each joint's drive applies (scenario key ``current_quantisation``), per joint, in
+    N m (revolute) or N (prismatic). The bridge turns each command, already clipped to the
+    effort limit ``limit`` by the supervisor, into a whole number of Goal Current LSBs, and the
+    motor saturates at its Current Limit; the applied effort is ::
+
+        clip(quantum * round(tau / quantum), -bound, bound),   bound = min(saturation, limit)
+
+    rounded half to even (C's ``nearbyint``). ``quantum`` is one LSB through the fit's slope
+    and the joint's ratio, ``saturation`` the fit's effort at the Current Limit, offset included
+    (:func:`cochlea.robots.motor_fit.effort_grid`). Bounding by ``limit`` too keeps the
+    supervisor's promise where rounding would add up to half a quantum."""
+
+    quantum: np.ndarray
+    saturation: np.ndarray
+    limit: np.ndarray
+
+    def __post_init__(self):
+        self.bound = np.minimum(self.saturation, self.limit)
+        self._lower = -self.bound
+
+    @property
+    def top(self) -> np.ndarray:
+        """The effort a saturated command gets (per joint): a command clipped to ``limit``,
+        rounded and bounded; no applied effort is larger."""
+        return np.minimum(self.quantum * np.rint(self.limit / self.quantum), self.bound)
+
+    def apply(self, tau: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """The applied efforts of the commands ``tau`` (clipped to ``limit``) into ``out``
+        (default: in place); no allocation, the C driver's floating-point operations."""
+        out = tau if out is None else out
+        np.divide(tau, self.quantum, out=out)
+        np.rint(out, out=out)
+        np.multiply(out, self.quantum, out=out)
+        np.clip(out, self._lower, self.bound, out=out)
+        return out
 
 
 @dataclass
@@ -56,6 +96,9 @@ class UnitSetup:
     #: Coulomb friction per joint (N m or N; the plant sticks and slips, see
     #: :func:`cochlea.robots.plant.plant_step`), or None: none.
     coulomb: np.ndarray | None = None
+    #: The drives' effort resolution and saturation (:class:`EffortGrid`), or None: every
+    #: command clipped to the effort limit is applied as it is.
+    effort_grid: EffortGrid | None = None
 
     @property
     def effort_limit(self) -> np.ndarray:
@@ -152,6 +195,18 @@ def adaptation_gains(sc: scenario_mod.Scenario, p_nominal: np.ndarray) -> np.nda
     return sc.adaptation_gain * np.maximum(size, 1e-3 * max(size.max(), 1e-300)) ** 2
 
 
+def drive_grids(adapter, system, plant: scenario_mod.Plant
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """For every joint of the whole system in the loop's order, ``(quantum, saturation)`` of
+    its drive's effort (N m or N, :func:`cochlea.robots.motor_fit.effort_grid`), or None when
+    the scenario's plant applies efforts as commanded."""
+    if not plant.current_quantisation:
+        return None
+    grids = [effort_grid(j.motor, j.ratio, j.effort_limit)
+             for j in adapter.actuated_joints(system)]
+    return np.array([g[0] for g in grids]), np.array([g[1] for g in grids])
+
+
 def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario)."""
@@ -159,6 +214,7 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     system = sc.system if sc.system is not None else adapter.load(sc.description)
     grids = measurement_grids(adapter, system, sc.plant)
     viscous, coulomb = plant_friction(adapter, system, sc.plant)
+    drives = drive_grids(adapter, system, sc.plant)
     first_joint = 0  # the unit's first joint in the system
     setups = []
     for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
@@ -169,12 +225,15 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
         n_p = len(m.param_names)
         bound = sc.estimate_bound * max(np.linalg.norm(m.p_nominal), 1e-12)
         p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal
-        mine = slice(first_joint, first_joint + m.nq)
         plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
                                             plan.payload_points)
-        quantum = offset = None
+        quantum = offset = drive = None
+        mine = slice(first_joint, first_joint + m.nq)
         if grids is not None:  # this unit's joints, as [q..., qd...]
             quantum, offset = (grid[mine].T.ravel() for grid in grids)
+        if drives is not None:
+            limit = np.array([j.effort_limit for j in m.joints])
+            drive = EffortGrid(drives[0][mine], drives[1][mine], limit)
         first_joint += m.nq
         setups.append(UnitSetup(
             plan.name, m, plan.plant_model, plant_params, controller, plan.desired, plan.x0,
@@ -183,7 +242,7 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
             tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
             coulomb=None if coulomb is None else coulomb[mine],
-            quantum=quantum, grid_offset=offset))
+            quantum=quantum, grid_offset=offset, effort_grid=drive))
     return setups
 
 
