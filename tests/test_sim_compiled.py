@@ -174,6 +174,81 @@ def test_every_plant_option_at_once_matches(name, loop):
         assert np.all(on_grid | (np.abs(u.tau) == grid.bound))
 
 
+#: The plant options a real-time run on the sim backend must reproduce: the grids and a delay,
+#: then everything at once (noise, dry friction and current quantisation too).
+MEASURED = {
+    "grids+delay": dict(position_encoder=True, velocity_register=True, delay_periods=2),
+    "everything": dict(position_encoder=True, velocity_register=True, delay_periods=2,
+                       noise_q_std=1e-4, noise_qd_std=1e-3, seed=9, current_quantisation=True,
+                       coulomb=0.01),
+}
+
+
+@pytest.mark.parametrize("options", MEASURED, ids=list(MEASURED))
+@pytest.mark.parametrize("name", ["serial_joint", "parallel_task"])
+def test_the_sim_backend_measures_as_the_as_fast_run(name, options):
+    """The real-time loop (run back to back) against SimBackend over N periods sees, commands
+    and estimates exactly what the as-fast run does; its logged state is the measurement, the
+    true state `delay` periods before put on the grid."""
+    from cochlea.runtime import RealTimeLoop, build_supervisor
+    from cochlea.runtime.sim_backend import SimBackend
+    from cochlea.sim.setup import quantise
+
+    sc = load_scenario(name)
+    n = 3 if sc.robot == "serial" else 5
+    plant = dict(MEASURED[options])
+    coulomb = plant.pop("coulomb", None)
+    sc = dataclasses.replace(sc, plant=Plant(**plant, coulomb_friction=None if coulomb is None
+                                             else np.full(n, coulomb)))
+    setups = unit_setups(sc)
+    periods = 400
+    backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
+    loop = RealTimeLoop(setups, backend, build_supervisor(setups, sc.space, None,
+                                                          substeps=sc.plant_substeps),
+                        sc.period, periods, realtime=False, substeps=sc.plant_substeps)
+    assert loop.run().rule == "completed"
+    looped = loop.result(sc)
+    fast = simulate(sc, periods * sc.period, setups)
+    delay = sc.plant.delay_periods
+    for a, b in zip(fast.units, looped.units):
+        for key in ("tau", "errors", "p_hat", "desired"):
+            np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=0, atol=1e-12,
+                                       err_msg=f"{a.name}.{key}")
+        state = np.hstack([a.q, a.qd])
+        true = np.vstack([state[:1].repeat(delay, axis=0), state[:-delay]])
+        seen = np.hstack([b.q, b.qd])
+        if not sc.plant.noise_q_std:
+            np.testing.assert_array_equal(seen, quantise(true, a.setup.quantum,
+                                                         a.setup.grid_offset))
+        else:  # noisy, then on the grid: within the noise of the delayed true state
+            assert np.abs(seen - true)[:, :n].max() < 10 * sc.plant.noise_q_std + 1e-3
+        assert not np.array_equal(seen, state)  # the log holds what was measured
+
+
+def test_the_sim_backend_reads_and_writes_without_growing_memory():
+    import gc
+    import sys
+
+    from cochlea.runtime.sim_backend import SimBackend
+
+    sc = load_scenario("serial_joint")
+    sc = dataclasses.replace(sc, plant=Plant(**{k: v for k, v in MEASURED["everything"].items()
+                                                if k != "coulomb"}))
+    setups = unit_setups(sc)
+    backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=6000)
+    backend.enable()
+    x, tau = np.zeros(12), np.full(6, 1e-3)
+    for _ in range(200):
+        assert backend.read(x) and backend.write(tau)
+    gc.collect()
+    before = sys.getallocatedblocks()
+    for _ in range(5000):
+        backend.read(x)
+        backend.write(tau)
+    gc.collect()
+    assert sys.getallocatedblocks() - before < 50
+
+
 @pytest.mark.parametrize("loop", csim.LOOPS)
 def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
     """Arm 2's printed G_a diverges within 0.1 s once its torques are not clipped (a

@@ -199,7 +199,9 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
     if args.backend == "dynamixel":
         backend = _dynamixel_backend(args, scenario)
     else:
-        backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels)
+        # Measured (delay, noise, grids) and driven (effort grid) as the as-fast run is.
+        backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels,
+                             plant=scenario.plant, steps=steps)
     supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
                                   substeps=substeps, watchdog_misses=args.watchdog_misses)
     loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,

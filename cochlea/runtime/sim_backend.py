@@ -1,5 +1,6 @@
 """The simulated robot as a backend of the real-time loop: the plant model advanced one control
-period per write, on the same kernels as the as-fast simulation."""
+period per write, on the same kernels as the as-fast simulation, measured and driven as the
+as-fast simulation measures and drives it."""
 
 from __future__ import annotations
 
@@ -7,8 +8,13 @@ import time
 
 import numpy as np
 
+from ..errors import CochleaError
 from ..sim.compiled import period_kernels
+from ..sim.scenario import Plant
 from ..sim.setup import UnitSetup
+
+#: Normals drawn at a time while skipping the earlier units' noise (bounded memory).
+_SKIP_CHUNK = 1 << 16
 
 
 class SimBackend:
@@ -16,12 +22,22 @@ class SimBackend:
 
     Real time comes from the loop's deadlines; the plant itself integrates each period with the
     scenario's RK4 sub-steps, the same kernel as the as-fast-as-possible simulation.
+
+    ``read`` reports the state as the as-fast run's controller sees it (period ``k`` is the
+    ``k``-th read): the true state ``plant.delay_periods`` reads ago (the initial state before
+    that), plus the plant's Gaussian noise, then on the units' measurement grid (encoder and
+    velocity counts, ``UnitSetup.quantum``). The noise is the as-fast run's, number for number:
+    drawn from ``plant.seed``, unit after unit, each unit's ``steps`` periods in turn, so
+    ``steps`` (the run's periods) is needed when there is noise; past them the draws go on.
+    ``write`` applies the drives' effort grid (``UnitSetup.effort_grid``). Without ``plant``
+    there is no delay and no noise; the grids come with the setups. ``read`` and ``write``
+    allocate nothing.
     """
 
     name = "sim"
 
     def __init__(self, setups: list[UnitSetup], period: float, substeps: int,
-                 kernels: str = "c"):
+                 kernels: str = "c", plant: Plant | None = None, steps: int | None = None):
         self.units = setups
         self.nq = sum(u.plant_model.nq for u in setups)
         self._steps = []
@@ -42,19 +58,77 @@ class SimBackend:
             self._spans.append((n, slice(start, start + n),
                                 slice(self.nq + start, self.nq + start + n)))
             start += n
+        self._measurement_model(plant or Plant(), steps)
         self.enabled = False
         self.last_io_time_s = 0.0
         self._read_time = 0.0
+
+    def _measurement_model(self, plant: Plant, steps: int | None) -> None:
+        """Everything ``read`` needs, allocated once: the delay line of true states, the
+        noise streams, the measurement grid in the system's layout."""
+        nx = 2 * self.nq
+        self.delay = plant.delay_periods
+        self._history = np.empty((self.delay + 1, nx))  # true states, a ring of delay + 1
+        self._reads = 0
+        # Unit by unit, as the as-fast run draws them: 2n normals per period and unit.
+        self._noise = []  # per unit: (generator, std [q..., qd...], buffer) or None
+        if plant.noise_q_std or plant.noise_qd_std:
+            if steps is None and len(self.units) > 1:
+                raise CochleaError("the simulated robot draws its measurement noise as the "
+                                   "as-fast run does, unit after unit over the whole run: give "
+                                   "SimBackend the run's number of periods (steps)")
+            skip = 0
+            for u in self.units:
+                n = u.plant_model.nq
+                rng = np.random.default_rng(plant.seed)
+                left = skip
+                while left:  # the earlier units' periods, drawn and dropped
+                    rng.standard_normal(min(left, _SKIP_CHUNK))
+                    left -= min(left, _SKIP_CHUNK)
+                std = np.concatenate([np.full(n, plant.noise_q_std),
+                                      np.full(n, plant.noise_qd_std)])
+                self._noise.append((rng, std, np.empty(2 * n)))
+                skip += 2 * n * (steps or 0)
+        # The grid where a unit has one; a zero quantum keeps a coordinate continuous.
+        self._quantum = np.zeros(nx)
+        self._offset = np.zeros(nx)
+        for u, (n, q_span, qd_span) in zip(self.units, self._spans):
+            if u.quantum is not None:
+                for span, part in ((q_span, slice(0, n)), (qd_span, slice(n, 2 * n))):
+                    self._quantum[span] = u.quantum[part]
+                    self._offset[span] = u.grid_offset[part]
+        self._on_grid = self._quantum > 0
+        self._quantised = bool(self._on_grid.any())
+        self._divisor = np.where(self._on_grid, self._quantum, 1.0)
+        self._scratch = np.empty(nx)
 
     def enable(self) -> None:
         self.enabled = True
 
     def read(self, x: np.ndarray) -> bool:
         t0 = time.perf_counter()
+        ring = self.delay + 1
+        now = self._history[self._reads % ring]
         for f, (n, q_span, qd_span) in zip(self._steps, self._spans):
             state = f.inputs[0]
-            x[q_span] = state[:n]
-            x[qd_span] = state[n:]
+            now[q_span] = state[:n]
+            now[qd_span] = state[n:]
+        x[:] = self._history[max(self._reads - self.delay, 0) % ring]
+        self._reads += 1
+        for noise, (n, q_span, qd_span) in zip(self._noise, self._spans):
+            rng, std, draw = noise
+            rng.standard_normal(out=draw)
+            np.multiply(std, draw, out=draw)
+            x[q_span] += draw[:n]
+            x[qd_span] += draw[n:]
+        if self._quantised:  # offset + quantum * round((x - offset) / quantum), as the C driver
+            s = self._scratch
+            np.subtract(x, self._offset, out=s)
+            np.divide(s, self._divisor, out=s)
+            np.rint(s, out=s)
+            np.multiply(self._quantum, s, out=s)
+            np.add(self._offset, s, out=s)
+            np.copyto(x, s, where=self._on_grid)
         self._read_time = time.perf_counter() - t0
         return True
 
