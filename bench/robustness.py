@@ -85,7 +85,8 @@ def main() -> int:
         "",
         "The realistic plant (`--plant realistic`): armature, viscous and Coulomb friction with "
         "sticking from the descriptions, positions in encoder counts, velocities in "
-        "velocity-register counts, one period of measurement delay. The realistic studies "
+        "velocity-register counts, efforts in whole current LSBs up to the Current Limit, "
+        "one period of measurement delay. The realistic studies "
         "(`cochlea/data/scenarios/*_realistic.toml`) carry the actuators in the controller's "
         "model, relative adaptation gains and re-tuned gains; their headers say why.",
         "",
