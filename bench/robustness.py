@@ -12,27 +12,18 @@ realistic rows.
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from datetime import date
 from pathlib import Path
 
-import numpy as np
-
 from cochlea.apps.report import unit_summary
-from cochlea.robots import robot
 from cochlea.runtime.supervisor import build_supervisor, verdict
 from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import stressed
 
 STUDIES = (("e", "serial_joint"), ("g", "serial_task"), ("f", "parallel_joint"),
            ("d", "parallel_task"))
 OUT = Path(__file__).resolve().parent.parent / "docs" / "robustness.md"
-
-
-def stressed(sc, scale: float):
-    n_bodies = robot(sc.robot).layout(sc.system, sc.space).n_bodies
-    return dataclasses.replace(sc, plant=dataclasses.replace(
-        sc.plant, delay_periods=2, payload_kg=0.05, mass_scale=np.full(n_bodies, scale)))
 
 
 def cases(study: str):

@@ -4,7 +4,6 @@ masses scaled by 0.7 or 1.3 and a 50 g payload -- with no supervisor rule violat
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from cochlea.errors import CochleaError
 from cochlea.robots import robot
 from cochlea.runtime.supervisor import build_supervisor, verdict
 from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import stressed
 from cochlea.sim.setup import adaptation_gains
 
 STUDIES = ("serial_joint", "serial_task", "parallel_joint", "parallel_task")
@@ -95,13 +95,6 @@ def _run(sc):
     return result, verdict(result, supervisor)
 
 
-def _stressed(sc, scale: float):
-    n_bodies = robot(sc.robot).layout(sc.system, sc.space).n_bodies
-    plant = dataclasses.replace(sc.plant, delay_periods=2, payload_kg=0.05,
-                                mass_scale=np.full(n_bodies, scale))
-    return dataclasses.replace(sc, plant=plant)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("study", STUDIES)
 @pytest.mark.parametrize("stress", ["nominal", "0.7", "1.3"])
@@ -109,7 +102,7 @@ def test_each_study_converges_on_the_realistic_plant(study, stress):
     sc = load_scenario(f"{study}_realistic")
     assert sc.plant.preset == "realistic" and sc.controller_actuators == "all"
     if stress != "nominal":
-        sc = _stressed(sc, float(stress))
+        sc = stressed(sc, float(stress))
     result, rule = _run(sc)
     assert not result.diverged and rule["rule"] == "none", rule
     for u in result.units:

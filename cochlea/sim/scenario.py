@@ -10,7 +10,7 @@ the controller's nominal model. Every quantity with a dimension is written with 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -144,6 +144,17 @@ class Scenario:
         xd = ca.jacobian(x, t)
         xdd = ca.jacobian(xd, t)
         return ca.Function("desired_leader", [t], [x, xd, xdd], ["t"], ["x", "x_dot", "x_ddot"])
+
+
+def stressed(sc: Scenario, mass_scale: float, delay_periods: int = 2,
+             payload_kg: float = 0.05) -> Scenario:
+    """``sc`` with its plant's errors of the robustness studies: every body's inertial
+    parameters scaled by ``mass_scale``, a payload (kg) at each tool, whole periods of
+    measurement delay; the rest of its ``[plant]`` as it was."""
+    n_bodies = robot_adapter(sc.robot).layout(sc.system, sc.space).n_bodies
+    plant = replace(sc.plant, delay_periods=delay_periods, payload_kg=payload_kg,
+                    mass_scale=np.full(n_bodies, float(mass_scale)))
+    return replace(sc, plant=plant)
 
 
 def resolve(name_or_path: str | Path) -> Path:
