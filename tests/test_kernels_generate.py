@@ -157,6 +157,13 @@ def test_configuration_errors_name_the_key(tmp_path):
         (good.replace("plant_substeps = 1", "plant_substeps = 0", 1), "robot[0].plant_substeps"),
         ("speed = 3\n" + good, "speed"),
         (good.replace('task = ["fk_world", "J_world"]', 'task = ["fk"]'), "robot[0].task"),
+        (good.replace('plant_actuators = ["none", "armature"]', 'plant_actuators = ["rotor"]',
+                      1), "robot[0].plant_actuators"),
+        (good.replace('controller_actuators = ["none", "all"]',
+                      'controller_actuators = ["all", "all"]', 1),
+         "robot[0].controller_actuators"),
+        (good.replace('plant_actuators = ["none", "armature"]', 'plant_actuators = []', 1),
+         "robot[0].plant_actuators"),
     ]
     for text, key in cases:
         path = tmp_path / "k.toml"
@@ -167,6 +174,13 @@ def test_configuration_errors_name_the_key(tmp_path):
     bad_kernel.write_text(good.replace('"M", "C"', '"Mass", "C"', 1))
     with pytest.raises(CodegenError, match="has no Function 'Mass'"):
         codegen.collect(load_config(bad_kernel))
+    # A configuration that fails to build leaves the folder as it was.
+    out = tmp_path / "generated"
+    out.mkdir()
+    (out / "serial_arm1.c").write_text("/* committed */\n")
+    with pytest.raises(CodegenError, match="has no Function 'Mass'"):
+        codegen.generate(load_config(bad_kernel), out)
+    assert (out / "serial_arm1.c").read_text() == "/* committed */\n"
 
 
 def _manifest_json() -> dict:

@@ -32,9 +32,9 @@ def kernels():
 
 
 @functools.cache
-def _model(robot: str, unit: str, parameterisation: str = "inertial"):
+def _model(robot: str, unit: str, parameterisation: str = "inertial", actuators: str = "none"):
     arm = unit.split("_")[1] if robot == "serial" else None
-    return cochlea.model(robot, arm=arm, parameterisation=parameterisation)
+    return cochlea.model(robot, arm=arm, parameterisation=parameterisation, actuators=actuators)
 
 
 def _inputs(kernel: codegen.Kernel, rng) -> list[np.ndarray]:
@@ -53,12 +53,13 @@ def _inputs(kernel: codegen.Kernel, rng) -> list[np.ndarray]:
             v = q
         elif name == "x":
             v = np.concatenate([q, rng.uniform(-1, 1, m.nq)])
-        elif name in ("p", "p_hat"):
-            if size == len(m.p_nominal):  # full inertial: scale the whole robot (physical)
-                v = m.p_nominal * rng.uniform(0.5, 1.5)
+        elif name in ("p", "p_hat"):  # of the kernel's model: with its drives' terms, if any
+            full = _model(kernel.robot, kernel.unit, "inertial", kernel.actuators)
+            if size == len(full.p_nominal):  # full inertial: scale the whole robot (physical)
+                v = full.p_nominal * rng.uniform(0.5, 1.5)
             else:  # one mass per body
-                v = _model(kernel.robot, kernel.unit, "mass").p_nominal * rng.uniform(0.5, 1.5,
-                                                                                      size)
+                v = _model(kernel.robot, kernel.unit, "mass",
+                           kernel.actuators).p_nominal * rng.uniform(0.5, 1.5, size)
         elif name == "xd" and size == len(q):
             v = q + rng.uniform(-0.05, 0.05, size)
         elif name == "xd" and kernel.kind in ("g", "d"):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -88,9 +89,11 @@ def test_the_convergence_floor_is_one_encoder_count():
     assert measurement_resolution(ideal.units[0]) is None
 
 
-def _run(sc):
+def _run(sc, kernels="casadi"):
     setups = unit_setups(sc)
-    result = simulate(sc, None, setups, kernels="casadi")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the C run must not fall back to CasADi
+        result = simulate(sc, None, setups, kernels=kernels)
     supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius, kernels="casadi")
     return result, verdict(result, supervisor)
 
@@ -99,19 +102,25 @@ def _run(sc):
 @pytest.mark.parametrize("study", STUDIES)
 @pytest.mark.parametrize("stress", ["nominal", "0.7", "1.3"])
 def test_each_study_converges_on_the_realistic_plant(study, stress):
+    """On the CasADi reference and on the generated C alike. Their logs agree to round-off
+    period by period (tests/test_sim_compiled.py), but over a whole run on quantised
+    measurements a last-bit difference can put one sample on the other side of a grid point,
+    so each run is judged on its own."""
     sc = load_scenario(f"{study}_realistic")
     assert sc.plant.preset == "realistic" and sc.controller_actuators == "all"
     if stress != "nominal":
         sc = stressed(sc, float(stress))
-    result, rule = _run(sc)
-    assert not result.diverged and rule["rule"] == "none", rule
-    for u in result.units:
-        s = unit_summary(u)
-        assert all(t["converged"] for t in s["tracked"].values()), (u.name, s["tracked"])
-        assert s["estimates"]["bounded"]
-        limits = [j.effort_limit for j in u.setup.controller_model.joints]
-        assert all(t["max_abs"] <= lim * (1 + 1e-12) for t, lim in zip(s["torque"].values(),
-                                                                         limits))
+    for kernels in ("casadi", "c"):
+        result, rule = _run(sc, kernels)
+        assert not result.diverged and rule["rule"] == "none", (kernels, rule)
+        for u in result.units:
+            s = unit_summary(u)
+            assert all(t["converged"] for t in s["tracked"].values()), (kernels, u.name,
+                                                                        s["tracked"])
+            assert s["estimates"]["bounded"]
+            limits = [j.effort_limit for j in u.setup.controller_model.joints]
+            assert all(t["max_abs"] <= lim * (1 + 1e-12)
+                       for t, lim in zip(s["torque"].values(), limits))
 
 
 @pytest.mark.slow

@@ -23,11 +23,11 @@ from cochlea.sim.scenario import Plant
 
 ROOT = Path(__file__).resolve().parent.parent
 
-#: The studies the generated C covers. The realistic ones (a controller with actuator terms,
-#: a plant with armature and sticking friction) have no C kernels yet: they run on CasADi with
-#: a CKernelsWarning (test_realistic_studies_fall_back_to_casadi_with_a_warning).
-ALL_SCENARIOS = sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
-SCENARIOS = [name for name in ALL_SCENARIOS if not name.endswith("_realistic")]
+#: The generated C covers every shipped study, the realistic ones (the controller estimating
+#: its drives' armature and friction, the plant with armature and sticking friction) included.
+SCENARIOS = sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
+#: The thesis's variants exist in C for the rigid-link controllers only.
+RIGID = [name for name in SCENARIOS if load_scenario(name).controller_actuators == "none"]
 FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
 DURATION = 1.5  # s: short, to keep the suite fast (the benchmark runs full length)
 
@@ -63,13 +63,31 @@ def references():
 
 
 def test_every_scenario_is_covered():
-    assert {"serial_joint", "serial_task"} <= set(SCENARIOS)
+    assert {"serial_joint", "serial_task", "parallel_task_realistic"} <= set(SCENARIOS)
+    assert {"serial_joint", "parallel_task"} <= set(RIGID)
 
 
-def test_realistic_studies_fall_back_to_casadi_with_a_warning():
-    for name in set(ALL_SCENARIOS) - set(SCENARIOS):
-        sc = load_scenario(name)
-        with pytest.raises(csim.CKernelsUnavailable, match="computes something else"):
+@pytest.mark.parametrize("name", ["serial_task_realistic", "parallel_joint_realistic"])
+def test_the_realistic_studies_run_the_actuated_kernels(name):
+    """Controller with the drives modelled, plant with their armature and dry friction."""
+    sc = load_scenario(name)
+    lib = ckernels.load()
+    for u in unit_setups(sc):
+        names = csim.unit_kernels(lib, u, sc.plant_substeps)
+        assert names.step.endswith(f"_{sc.controller}_actuated_step")
+        assert names.plant.endswith("_armature_plant_step_coulomb")
+        assert names.closed_loop.endswith("_actuated_closed_loop_armature_coulomb")
+        assert lib.manifest["kernels"][names.step]["actuators"] == "all"
+        assert lib.manifest["kernels"][names.plant]["actuators"] == "armature"
+
+
+def test_controllers_outside_the_catalogue_fall_back_to_casadi_with_a_warning():
+    """The thesis's law with the drives modelled, and a model with the armature alone, are not
+    generated: they run on CasADi, with a warning naming the missing kernel."""
+    realistic = load_scenario("serial_joint_realistic")
+    for sc in (dataclasses.replace(realistic, variant="thesis"),
+               dataclasses.replace(realistic, controller_actuators="armature")):
+        with pytest.raises(csim.CKernelsUnavailable, match="has no kernel serial_arm1_e"):
             csim.simulate_compiled(sc, 0.01)
         with pytest.warns(csim.CKernelsWarning, match="on the CasADi kernels"):
             fallback = csim.simulate_compiled(sc, 0.01, fallback=True)
@@ -86,7 +104,7 @@ def test_c_kernels_give_the_reference_log(references, name, loop):
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
-@pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.parametrize("name", RIGID)
 def test_thesis_variants_run_on_the_c_kernels(name, loop):
     """The printed thesis's laws by name, though the C of a law that computes what the corrected
     one does is that law's (serial_arm*_e_thesis_step and its driver are aliases): the source
@@ -163,7 +181,8 @@ def test_every_plant_option_at_once_matches(name, loop):
     sc = dataclasses.replace(sc, plant=Plant(
         coulomb_friction=np.full(n, 0.01), viscous_friction=np.full(n, 1e-3),
         position_encoder=True, velocity_register=True, current_quantisation=True,
-        delay_periods=2, noise_q_std=1e-4, noise_qd_std=1e-3, seed=5))
+        delay_periods=2, noise_q_std=1e-4, noise_qd_std=1e-3, seed=5,
+        armature=sc.plant.armature))  # the realistic gains are for a plant with its rotors
     setups = unit_setups(sc)
     reference = simulate(sc, 0.5, setups, kernels="casadi")
     assert_same_log(csim.simulate_compiled(sc, 0.5, setups, loop=loop), reference)

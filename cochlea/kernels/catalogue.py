@@ -22,9 +22,9 @@ from ..control import KINDS, VARIANTS, Controller, build
 from ..errors import CochleaError
 from ..resources import CODEGEN_DIR, checkout
 from ..robots import model
-from ..robots.model import RobotModel
+from ..robots.model import ACTUATORS, RobotModel
 from ..robots.plant import plant_step
-from .naming import computation_hash, controller_kernel_name, unit_prefix
+from .naming import closed_loop_name, computation_hash, controller_kernel_name, unit_prefix
 
 CONFIG = CODEGEN_DIR / "kernels.toml"
 TEMPLATE = CODEGEN_DIR / "closed_loop.c.in"
@@ -58,6 +58,12 @@ class RobotConfig:
     #: Also the plant with Coulomb friction (``<prefix>_plant_step_coulomb``) and, per
     #: controller, a closed loop on it (``<group>_closed_loop_coulomb``).
     plant_coulomb: bool = False
+    #: The plant models generated (``cochlea.robots.model.ACTUATORS``): "none", the rigid
+    #: links; "armature", with the drives' reflected rotor inertia (``--plant realistic``).
+    plant_actuators: tuple[str, ...] = ("none",)
+    #: The controllers' models generated: "none" (every variant) and, for the corrected
+    #: variant only, "all" (armature and friction estimated: the realistic studies).
+    controller_actuators: tuple[str, ...] = ("none",)
 
 
 @dataclass(frozen=True)
@@ -74,7 +80,10 @@ class CodegenConfig:
 
 _ROBOT_KEYS = {"name": str, "units": list, "kernels": list, "plant_substeps": int,
                "controller_parameterisation": str, "controllers": list, "variants": list,
-               "task": list, "task_angles": list, "pose": str, "plant_coulomb": bool}
+               "task": list, "task_angles": list, "pose": str, "plant_coulomb": bool,
+               "plant_actuators": list, "controller_actuators": list}
+#: Keys a [[robot]] table may leave out, and their defaults.
+_OPTIONAL = {"plant_actuators": ["none"], "controller_actuators": ["none"]}
 
 
 def _fail(path: Path, key: str, expected: str, got: object) -> CodegenError:
@@ -103,6 +112,7 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
         for key in table:
             if key not in _ROBOT_KEYS:
                 raise _fail(path, f"{where}.{key}", "one of " + ", ".join(_ROBOT_KEYS), key)
+        table = {**_OPTIONAL, **table}
         for key, kind in _ROBOT_KEYS.items():
             if not isinstance(table.get(key), kind):
                 raise _fail(path, f"{where}.{key}", f"a {kind.__name__}", table.get(key))
@@ -114,6 +124,11 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
             if variant not in VARIANTS:
                 raise _fail(path, f"{where}.variants", "one of " + ", ".join(VARIANTS),
                             variant)
+        for key in ("plant_actuators", "controller_actuators"):
+            if not table[key] or any(a not in ACTUATORS for a in table[key]) \
+                    or len(set(table[key])) != len(table[key]):
+                raise _fail(path, f"{where}.{key}", "distinct options of "
+                            + ", ".join(ACTUATORS), table[key])
         if table["plant_substeps"] < 1:
             raise _fail(path, f"{where}.plant_substeps", "a positive integer",
                         table["plant_substeps"])
@@ -123,7 +138,8 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
             table["name"], tuple(table["units"]), tuple(table["kernels"]),
             table["plant_substeps"], table["controller_parameterisation"],
             tuple(table["controllers"]), tuple(table["variants"]), tuple(table["task"]),
-            tuple(table["task_angles"]), table["pose"], table["plant_coulomb"]))
+            tuple(table["task_angles"]), table["pose"], table["plant_coulomb"],
+            tuple(table["plant_actuators"]), tuple(table["controller_actuators"])))
     if not robots:
         raise _fail(path, "robot", "at least one [[robot]] table", [])
     # The output folder is relative to the checkout (or, installed, the working directory).
@@ -154,6 +170,8 @@ class Kernel:
     si_units: dict[str, str] = field(default_factory=dict)  # argument name -> its SI unit
     #: The kernel whose C runs this one: itself, or an earlier kernel computing the same.
     symbol: str = ""
+    #: What the kernel's model carries of the drives (``cochlea.robots.model.ACTUATORS``).
+    actuators: str = "none"
 
     @property
     def is_alias(self) -> bool:
@@ -212,6 +230,28 @@ def _controller_parts(c: Controller) -> dict[str, ca.Function]:
     return {"Y": c.regressor, "law": law, "update": update, "step": c.step}
 
 
+def _controller_kernels(robot: RobotConfig, ctrl_model: RobotModel, kind: str, variant: str,
+                        prefix: str, pose: ca.Function, plants: list, opts: dict,
+                        kernels: list[Kernel]) -> list[ClosedLoop]:
+    """Append one controller's kernels; its closed loops, one per plant step."""
+    actuators = ctrl_model.actuators
+    c = controller_for(robot, ctrl_model, kind, variant)
+    group = controller_kernel_name(prefix, kind, variant, "", actuators)[:-1]
+    cinfo = _ArgumentUnits(ctrl_model, c)
+    for part, f in _controller_parts(c).items():
+        name = controller_kernel_name(prefix, kind, variant, part, actuators)
+        kernels.append(Kernel(name, export(f, name, opts), f, group, "controller", robot.name,
+                              prefix, kind, variant, cinfo.of(f), actuators=actuators))
+    loops = []
+    for plant_model, step in plants:
+        coulomb = "coulomb" in step.name_in()
+        loops.append(ClosedLoop(
+            closed_loop_name(group, plant_model, coulomb), f"{group}_step", step.name(),
+            pose.name(), c.nq, c.n_params, c.n_desired, c.n_desired + c.nq, pose.size1_out(0),
+            len(plant_model.param_names), sum(c.gain_sizes), coulomb=coulomb))
+    return loops
+
+
 def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
     """Build every kernel the configuration asks for, in a stable order."""
     kernels: list[Kernel] = []
@@ -231,32 +271,28 @@ def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
                 f = plant.functions[key]
                 kernels.append(Kernel(f.name(), export(f, f.name(), opts), f, prefix, "model",
                                       robot.name, prefix, si_units=info.of(f)))
-            plants = [plant_step(plant, robot.plant_substeps)]
-            if robot.plant_coulomb:
-                plants.append(plant_step(plant, robot.plant_substeps, coulomb=True))
-            for step in plants:
-                kernels.append(Kernel(step.name(), export(step, step.name(), opts), step,
-                                      prefix, "plant", robot.name, prefix,
-                                      si_units=info.of(step)))
-            pose = ctrl_model.functions[robot.pose]
-            for kind in robot.controllers:
-                for variant in robot.variants:
-                    c = controller_for(robot, ctrl_model, kind, variant)
-                    group = controller_kernel_name(prefix, kind, variant, "")[:-1]
-                    cinfo = _ArgumentUnits(ctrl_model, c)
-                    for part, f in _controller_parts(c).items():
-                        name = controller_kernel_name(prefix, kind, variant, part)
-                        kernels.append(Kernel(name, export(f, name, opts), f, group,
-                                              "controller", robot.name, prefix, kind, variant,
-                                              cinfo.of(f)))
-                    for step in plants:
-                        coulomb = "coulomb" in step.name_in()
-                        loops.append(ClosedLoop(
-                            f"{group}_closed_loop" + ("_coulomb" if coulomb else ""),
-                            controller_kernel_name(prefix, kind, variant, "step"),
-                            step.name(), pose.name(), c.nq, c.n_params, c.n_desired,
-                            c.n_desired + c.nq, pose.size1_out(0), len(plant.param_names),
-                            sum(c.gain_sizes), coulomb=coulomb))
+            plants = []  # (plant model, its step Function)
+            for actuators in robot.plant_actuators:
+                plant_model = (plant if actuators == "none" else
+                               model(robot.name, arm=unit, parameterisation="inertial",
+                                     actuators=actuators))
+                for coulomb in (False, True)[:1 + robot.plant_coulomb]:
+                    step = plant_step(plant_model, robot.plant_substeps, coulomb=coulomb)
+                    plants.append((plant_model, step))
+                    kernels.append(Kernel(step.name(), export(step, step.name(), opts), step,
+                                          prefix, "plant", robot.name, prefix,
+                                          si_units=_ArgumentUnits(plant_model).of(step),
+                                          actuators=actuators))
+            for actuators in robot.controller_actuators:
+                ctrl_model = model(robot.name, arm=unit, actuators=actuators,
+                                   parameterisation=robot.controller_parameterisation)
+                pose = ctrl_model.functions[robot.pose]
+                # The thesis's variant reproduces its printed studies: rigid links only.
+                variants = robot.variants if actuators == "none" else ("corrected",)
+                for kind in robot.controllers:
+                    for variant in variants:
+                        loops += _controller_kernels(robot, ctrl_model, kind, variant, prefix,
+                                                     pose, plants, opts, kernels)
     names = [k.name for k in kernels]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:

@@ -16,12 +16,15 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
   ``_forward_dynamics``, the ``*_p`` kernels in the full inertial parameters) and
   ``<unit>_plant_step``, one RK4 control period of the plant (``cochlea.robots.plant.plant_step``),
   and ``<unit>_plant_step_coulomb``, the same with dry friction (``plant_coulomb`` in the
-  configuration);
-* ``<unit>_<kind>[_thesis].c``: controller ``kind`` (and its thesis variant): the regressor
-  ``_Y``, the law ``_law`` (torque, estimate rate, errors), the update law ``_update`` (estimate
-  rate alone) and the fused ``_step`` (torque, next estimate, errors);
-* ``closed_loop.c``: ``<unit>_<kind>[_thesis]_closed_loop[_coulomb]``, N periods of controller,
-  estimate update and plant (``_coulomb``: the plant with dry friction) in C (from the template
+  configuration); ``<unit>_armature_plant_step[_coulomb]``, the plant with its drives'
+  reflected rotor inertia (``plant_actuators``);
+* ``<unit>_<kind>[_thesis|_actuated].c``: controller ``kind`` (and its thesis variant, and the
+  variant whose model carries the drives' armature and friction, ``controller_actuators``): the
+  regressor ``_Y``, the law ``_law`` (torque, estimate rate, errors), the update law ``_update``
+  (estimate rate alone) and the fused ``_step`` (torque, next estimate, errors);
+* ``closed_loop.c``: ``<unit>_<kind>[_thesis|_actuated]_closed_loop[_armature][_coulomb]``, N
+  periods of controller, estimate update and plant (``_armature``: with the drives' rotor
+  inertia; ``_coulomb``: with dry friction) in C (from the template
   ``cochlea/data/codegen/closed_loop.c.in``);
 * ``manifest.c`` (``cochlea_manifest()``: every kernel's signature and the SHA-256 of the CasADi
   Function it came from, so a caller can tell a stale library), ``cochlea.h`` (includes every
@@ -199,7 +202,8 @@ def _manifest(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLo
         "library": config.library,
         "kernels": {k.name: {
             "group": k.group, "role": k.role, "robot": k.robot, "unit": k.unit,
-            "kind": k.kind, "variant": k.variant, "source": k.source.name(),
+            "kind": k.kind, "variant": k.variant, "actuators": k.actuators,
+            "source": k.source.name(),
             "sha256": source_hash(k.source), "work": work[k.symbol], "symbol": k.symbol,
             **_signature(k.function),
         } for k in kernels},
@@ -217,11 +221,13 @@ def generate(config: CodegenConfig | None = None, out: str | Path | None = None)
     """Write every file of ``generated_c/`` (or ``out``); return the paths written."""
     config = config or load_config()
     out = Path(out) if out is not None else config.output
+    # Everything is built before the folder is touched: a configuration that fails to build
+    # leaves the committed files in place.
+    kernels, loops = collect(config)
     out.mkdir(parents=True, exist_ok=True)
     for old in out.iterdir():  # the folder holds generated files only
         if old.is_file():
             old.unlink()
-    kernels, loops = collect(config)
     groups: dict[str, list[Kernel]] = {}
     for k in kernels:
         if not k.is_alias:  # an alias runs its symbol's C: nothing of its own to write

@@ -1,9 +1,9 @@
 """How kernels are named and identified, shared by the generator and every caller.
 
 A kernel's C name is ``<unit prefix>_<Function>`` (``serial_arm1_M``, ``parallel_plant_step``)
-or, for a controller, ``<unit prefix>_<kind>[_<variant>]_<part>``; its identity is the SHA-256
-of the CasADi Function it was generated from, recorded in the library's manifest, so a caller
-can tell a stale library from a fresh one.
+or, for a controller, ``<unit prefix>_<kind>[_<variant>][_actuated]_<part>``; its identity is
+the SHA-256 of the CasADi Function it was generated from, recorded in the library's manifest, so
+a caller can tell a stale library from a fresh one.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import hashlib
 
 import casadi as ca
 
-from ..robots.model import RobotModel
+from ..robots.model import ACTUATOR_SUFFIX, RobotModel
 
 #: The format tag of the manifest ``cochlea_manifest()`` returns (JSON).
 #: 2: the closed-loop drivers take the measurement grid (quantum, offset) after the noise;
@@ -32,10 +32,20 @@ def unit_prefix(m: RobotModel) -> str:
     return m.name.replace("/", "_")
 
 
-def controller_kernel_name(prefix: str, kind: str, variant: str, part: str) -> str:
-    """``<prefix>_<kind>[_<variant>]_<part>``; the corrected variant has no suffix."""
+def controller_kernel_name(prefix: str, kind: str, variant: str, part: str,
+                           actuators: str = "none") -> str:
+    """``<prefix>_<kind>[_<variant>][_<actuators>]_<part>``: the corrected variant has no
+    suffix, nor a controller on the rigid-link model; one that models its drives (armature
+    and friction, ``actuators="all"``) is ``_actuated``."""
     suffix = "" if variant == "corrected" else f"_{variant}"
-    return f"{prefix}_{kind}{suffix}_{part}"
+    return f"{prefix}_{kind}{suffix}{ACTUATOR_SUFFIX[actuators]}_{part}"
+
+
+def closed_loop_name(group: str, plant: RobotModel, coulomb: bool) -> str:
+    """The driver of a controller's kernel group (``controller_kernel_name(...)`` without its
+    part) on a plant: ``<group>_closed_loop[_armature][_coulomb]``."""
+    return (f"{group}_closed_loop{ACTUATOR_SUFFIX[plant.actuators]}"
+            + ("_coulomb" if coulomb else ""))
 
 
 def computation_hash(function: ca.Function) -> str:

@@ -57,12 +57,17 @@ Units are SI. Per robot unit the files are:
   (`*_p`, `Y`) and `<unit>_plant_step`, one control period of the plant: RK4 with
   {substeps} sub-steps, torque held, viscous friction `tau - friction * qd`;
   `<unit>_plant_step_coulomb` adds Coulomb friction with sticking (levels `coulomb`, a 6th
-  input; `cochlea.robots.plant.plant_step`).
-- `<unit>_<kind>.c` (and `<unit>_<kind>_thesis.c`, the printed thesis's variant): controller
-  `kind`'s regressor `_Y`, law `_law`, update law `_update` and the fused `_step`, which does one
-  period: torque, Euler step of the projected estimate clipped to `|p_hat| <= bound`, errors.
-- `closed_loop.c`: `<unit>_<kind>[_thesis]_closed_loop[_coulomb]`, N periods of controller,
-  estimate update and plant (without or with dry friction) in C (below).
+  input; `cochlea.robots.plant.plant_step`). `<unit>_armature_plant_step[_coulomb]` is the
+  plant with its drives' reflected rotor inertia (`p` then ends with one `<joint>.Ia` per
+  joint): the plant of `--plant realistic`.
+- `<unit>_<kind>.c` (and `<unit>_<kind>_thesis.c`, the printed thesis's variant, and
+  `<unit>_<kind>_actuated.c`, whose model estimates the drives' armature and friction too: the
+  realistic studies' controller): controller `kind`'s regressor `_Y`, law `_law`, update law
+  `_update` and the fused `_step`, which does one period: torque, Euler step of the projected
+  estimate clipped to `|p_hat| <= bound`, errors.
+- `closed_loop.c`: `<unit>_<kind>[_thesis|_actuated]_closed_loop[_armature][_coulomb]`, N
+  periods of controller, estimate update and plant (rigid or with the armature, without or
+  with dry friction) in C (below).
 
 No body is generated twice. A kernel that computes exactly what an earlier one does is an
 *alias*: it keeps its name, signature and source hash in the manifest, and runs the earlier
@@ -118,7 +123,9 @@ def _table(kernel: Kernel, work: dict[str, int]) -> list[str]:
     lines = [f"### `{kernel.name}`", ""]
     origin = {"model": f"the model Function `{kernel.source.name()}`",
               "plant": "`cochlea.robots.plant.plant_step`",
-              "controller": f"controller {kernel.kind} ({kernel.variant}), "
+              "controller": f"controller {kernel.kind} ({kernel.variant}"
+                            + ("" if kernel.actuators == "none" else ", drives modelled")
+                            + "), "
                             f"`{kernel.source.name()}`"}[kernel.role]
     lines.append(f"From {origin}. Work memory: `sz_arg` {work['arg']}, `sz_res` "
                  f"{work['res']}, `sz_iw` {work['iw']}, `sz_w` {work['w']}.")

@@ -26,10 +26,13 @@ METHODS = ("newton-euler", "lagrange")
 #: ``all``, armature plus viscous and Coulomb friction as estimated parameters (a controller's
 #: model: friction is compensated through the regressor).
 ACTUATORS = ("none", "armature", "all")
+#: How the generated C names what a model with each option computes: ``<unit>_plant_step``,
+#: ``<unit>_armature_plant_step``; ``<unit>_e_step``, ``<unit>_e_actuated_step``.
+ACTUATOR_SUFFIX = {"none": "", "armature": "_armature", "all": "_actuated"}
 #: Velocity (rad/s at a revolute joint, m/s at a prismatic one) over which the model's Coulomb
 #: friction ``Fc tanh(v / v_s)`` changes sign. The controllers evaluate it at their reference
-#: velocity, which is smooth, so it can be sharp: 0.01 rad/s, under half a count of the MX-64's
-#: velocity register; at the slider 2e-4 m/s, the same at its 20 mm pinion. Wider, the
+#: velocity, which is smooth, so it can be sharp: 0.02 rad/s, under one count of the MX-64's
+#: velocity register (0.024 rad/s); at the slider 4e-4 m/s. Wider, the
 #: compensation fades over seconds of the studies' slow reversals and the joints stick there.
 COULOMB_SMOOTHING = {"revolute": 0.02, "prismatic": 0.0004}
 
@@ -102,6 +105,8 @@ class RobotModel:
     #: target consistency and workspace checks, a
     #: :class:`~cochlea.robots.parallel.geometry.ParallelGeometry`).
     geometry: Any = field(default=None, repr=False)
+    #: What the model carries of the joints' drives (one of :data:`ACTUATORS`).
+    actuators: str = "none"
 
     def __getattr__(self, item):  # Functions as attributes: model.M, model.Y, ...
         functions = self.__dict__.get("functions", {})
@@ -202,8 +207,8 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
                    M, C, G, tau, kinematics: dict[str, ca.SX], full: Parameterisation,
                    bodies: list[tuple[str, slice]], parameterisation: str, method: str,
                    source: Path | None,
-                   friction: list[tuple[float | None, float | None]] | None = None
-                   ) -> RobotModel:
+                   friction: list[tuple[float | None, float | None]] | None = None,
+                   actuators: str = "none") -> RobotModel:
     """Build a :class:`RobotModel` from expressions in the full inertial parameters ``phi``.
 
     ``M, C, G, tau`` are the mass matrix, Christoffel Coriolis matrix, gravity vector and
@@ -227,7 +232,8 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
         chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.si_units,
                                  [n, n, n, n])
     functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen, F_full)
-    return RobotModel(name, joints, chosen, method, functions, full, source)
+    return RobotModel(name, joints, chosen, method, functions, full, source,
+                      actuators=actuators)
 
 
 #: The actuator parameter a joint may carry: its drive's reflected rotor inertia (armature).

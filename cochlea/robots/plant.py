@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import casadi as ca
 
-from .model import RobotModel
+from .model import ACTUATOR_SUFFIX, RobotModel
 
 
 def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False) -> ca.Function:
@@ -20,7 +20,8 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False) -> ca.Fu
     in the parameters, so the same Function is the simulation's plant and a C kernel.
 
     ``coulomb=True`` adds a last input, each joint's Coulomb friction level (N m or N), and
-    names the Function ``<unit>_plant_step_coulomb``. Dry friction is decided once per RK4
+    names the Function ``<unit>_plant_step_coulomb``; a plant with its drives' armature is
+    ``<unit>_armature_plant_step[_coulomb]``. Dry friction is decided once per RK4
     step, from the state at its start (an implicit, time-stepping treatment):
 
     * ``stop = M qd / dt + (tau - bias)`` is, per joint, the friction that would bring every
@@ -79,6 +80,6 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False) -> ca.Fu
             x_rk4 = ca.vertcat(sticks * (q0 + qd0 * dt / 2) + (1 - sticks) * x_rk4[:n],
                                (1 - sticks) * x_rk4[n:])
         xk = x_rk4
-    prefix = plant.name.replace("/", "_")
+    prefix = plant.name.replace("/", "_") + ACTUATOR_SUFFIX[plant.actuators]
     suffix = "_coulomb" if coulomb else ""
     return ca.Function(f"{prefix}_plant_step{suffix}", inputs, [xk], names, ["x_next"])

@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import CochleaError
 from ..kernels import library as ckernels
 from ..kernels.bind import BufferedFunction, BufferedKernel
-from ..kernels.naming import controller_kernel_name, source_hash, unit_prefix
+from ..kernels.naming import closed_loop_name, controller_kernel_name, source_hash, unit_prefix
 from ..robots.plant import plant_step
 from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
@@ -85,7 +85,8 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
     """Find a unit's kernels in the library and check they compute what the setup does
     (source hashes; computed once per Function object)."""
     c = u.controller
-    group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "")[:-1]
+    group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "",
+                                   u.controller_model.actuators)[:-1]
     plant = _plant(u.plant_model, substeps, u.coulomb is not None)
     wanted = [(f"{group}_step", c.step, f"controller {c.kind} ({c.variant})"),
               (plant.name(), plant, f"the plant with {substeps} RK4 sub-steps"),
@@ -101,7 +102,7 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
                 f"the C kernel {name} in {lib.path} computes something else than {what} of "
                 f"unit {u.name} (a different description, parameterisation or option, or a "
                 "stale library): run cochlea-codegen and make lib, or use the CasADi kernels")
-    loop = f"{group}_closed_loop" + ("_coulomb" if u.coulomb is not None else "")
+    loop = closed_loop_name(group, u.plant_model, u.coulomb is not None)
     meta = lib.manifest["closed_loops"].get(loop)
     if meta is None or (meta["step"], meta["plant"], meta["pose"]) != \
             (f"{group}_step", plant.name(), u.fk_world.name()):

@@ -228,7 +228,8 @@ def build_model(system: ParallelSystem, parameterisation: str = "inertial",
                            parameterisation=parameterisation, method="lagrange",
                            source=system.path,
                            friction=([(j.actuator.viscous, j.actuator.coulomb)
-                                      for j in system.joints] if actuators == "all" else None))
+                                      for j in system.joints] if actuators == "all" else None),
+                           actuators=actuators)
     nominal = ca.DM(x["full"].nominal)
     energy = ca.substitute(ca.vertcat(x["K"], x["U"]), x["phi"], nominal)
     F = ca.Function

@@ -90,5 +90,5 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
                           joints=joints, q=q, qd=qd, qdd=qdd, phi=phi, M=M, C=C, G=G, tau=tau,
                           kinematics=kinematics, full=full, bodies=blocks,
                           parameterisation=parameterisation, method=method, source=system.path,
-                          friction=friction)
+                          friction=friction, actuators=actuators)
 
