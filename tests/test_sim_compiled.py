@@ -329,3 +329,24 @@ def test_desired_samples_are_the_desired_function(references):
         expected = [np.array(v).ravel() for v in setups[1].desired(time[k])]
         for got, want in zip((xd[k], xd_dot[k], xd_ddot[k]), expected):
             assert np.allclose(got, want, rtol=1e-14, atol=1e-15)
+
+
+def test_the_in_place_measurement_grid_equals_quantise(rng):
+    """The per-period grid (Python loop, sim backend) gives quantise's values bit for bit,
+    halves included, and leaves a continuous coordinate alone."""
+    from cochlea.sim.setup import MeasurementGrid, quantise
+
+    quantum = np.array([1.5e-3, 0.0, 2.4e-2, 3.1e-5])
+    offset = np.array([0.3, 0.0, 0.0, -0.01])
+    grid = MeasurementGrid(quantum, offset)
+    values = rng.uniform(-3, 3, (500, 4))
+    values[:50] = offset + quantum * (np.arange(50)[:, None] - 24.5)  # exact halves
+    for row in values:
+        x = row.copy()
+        assert grid.apply(x) is x
+        np.testing.assert_array_equal(x, quantise(row, quantum, offset))
+        assert x[1] == row[1]
+    everywhere = MeasurementGrid(quantum[[0, 2]], offset[[0, 2]])
+    x = values[7, [0, 2]].copy()
+    np.testing.assert_array_equal(everywhere.apply(x), quantise(values[7, [0, 2]],
+                                                                quantum[[0, 2]], offset[[0, 2]]))

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import CochleaError
 from ..sim.compiled import period_kernels
 from ..sim.scenario import Plant
-from ..sim.setup import UnitSetup
+from ..sim.setup import MeasurementGrid, UnitSetup
 
 #: Normals drawn at a time while skipping the earlier units' noise (bounded memory).
 _SKIP_CHUNK = 1 << 16
@@ -90,17 +90,13 @@ class SimBackend:
                 self._noise.append((rng, std, np.empty(2 * n)))
                 skip += 2 * n * (steps or 0)
         # The grid where a unit has one; a zero quantum keeps a coordinate continuous.
-        self._quantum = np.zeros(nx)
-        self._offset = np.zeros(nx)
+        quantum, offset = np.zeros(nx), np.zeros(nx)
         for u, (n, q_span, qd_span) in zip(self.units, self._spans):
             if u.quantum is not None:
                 for span, part in ((q_span, slice(0, n)), (qd_span, slice(n, 2 * n))):
-                    self._quantum[span] = u.quantum[part]
-                    self._offset[span] = u.grid_offset[part]
-        self._on_grid = self._quantum > 0
-        self._quantised = bool(self._on_grid.any())
-        self._divisor = np.where(self._on_grid, self._quantum, 1.0)
-        self._scratch = np.empty(nx)
+                    quantum[span] = u.quantum[part]
+                    offset[span] = u.grid_offset[part]
+        self._grid = MeasurementGrid(quantum, offset) if (quantum > 0).any() else None
 
     def enable(self) -> None:
         self.enabled = True
@@ -121,14 +117,8 @@ class SimBackend:
             np.multiply(std, draw, out=draw)
             x[q_span] += draw[:n]
             x[qd_span] += draw[n:]
-        if self._quantised:  # offset + quantum * round((x - offset) / quantum), as the C driver
-            s = self._scratch
-            np.subtract(x, self._offset, out=s)
-            np.divide(s, self._divisor, out=s)
-            np.rint(s, out=s)
-            np.multiply(self._quantum, s, out=s)
-            np.add(self._offset, s, out=s)
-            np.copyto(x, s, where=self._on_grid)
+        if self._grid is not None:  # in encoder and velocity counts, as the C driver
+            self._grid.apply(x)
         self._read_time = time.perf_counter() - t0
         return True
 

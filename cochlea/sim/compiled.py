@@ -40,7 +40,7 @@ from ..kernels.naming import closed_loop_name, controller_kernel_name, source_ha
 from ..robots.plant import plant_step
 from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
-from .setup import UnitSetup, quantise, run_inputs
+from .setup import MeasurementGrid, UnitSetup, run_inputs
 
 LOOPS = ("c", "python")
 
@@ -125,8 +125,9 @@ def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(out.reshape(n, -1) for out in mapped.outputs)
 
 
-def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, delay: int,
+def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, delay: int,
            desired, noise) -> ckernels.ClosedLoopLog:
+    """A unit's whole run in its generated driver, every plant option of the setup passed."""
     loop = lib.closed_loop(kernels.closed_loop)
     xd, xd_dot, xd_ddot = desired
     grid = u.effort_grid
@@ -138,7 +139,7 @@ def _run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, 
                     effort_bound=None if grid is None else grid.bound)
 
 
-def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
+def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
                 delay: int, desired, noise) -> ckernels.ClosedLoopLog:
     """The same periods as the C driver, looping in Python over the ctypes kernels."""
     xd, xd_dot, xd_ddot = desired
@@ -168,6 +169,7 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
     X, P, TAU, E, POSE = log.x, log.p_hat, log.tau, log.errors, log.pose
     limit = u.effort_limit
     drive = None if u.effort_grid is None else u.effort_grid.apply
+    grid = None if u.quantum is None else MeasurementGrid(u.quantum, u.grid_offset).apply
     isfinite = np.isfinite
     for k in range(steps):
         X[k] = x
@@ -176,8 +178,8 @@ def _run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: fl
             meas[:] = seen
         else:
             np.add(seen, noise[k], out=meas)
-        if u.quantum is not None:
-            meas[:] = quantise(meas, u.quantum, u.grid_offset)
+        if grid is not None:
+            grid(meas)
         P[k] = p_hat
         b_xd[:] = xd[k]
         b_xd_dot[:] = xd_dot[k]
@@ -226,7 +228,7 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     steps = int(round(duration / h))
     time = np.arange(steps) * h
     delay = sc.plant.delay_periods
-    run = _run_c if loop == "c" else _run_python
+    run = run_c if loop == "c" else run_python
     desired = [desired_samples(u, time) for u in setups]
     noisy = [np.concatenate([np.full(u.controller_model.nq, sc.plant.noise_q_std),
                              np.full(u.controller_model.nq, sc.plant.noise_qd_std)])

@@ -247,10 +247,36 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
 
 
 def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """``values`` on their measurement grid where the quantum is positive (round half to even,
-    as C's ``nearbyint``), unchanged elsewhere."""
+    """``values`` (one state, or rows of states) on their measurement grid where the quantum is
+    positive (round half to even, as C's ``nearbyint``), unchanged elsewhere."""
     on_grid = offset + quantum * np.rint((values - offset) / np.where(quantum > 0, quantum, 1.0))
     return np.where(quantum > 0, on_grid, values)
+
+
+class MeasurementGrid:
+    """:func:`quantise` for one state vector at a time, in place and without allocating: what
+    the per-period loops (the Python loop over the C kernels, the sim backend) run each period.
+    The same floating-point operations, so the same values."""
+
+    def __init__(self, quantum: np.ndarray, offset: np.ndarray):
+        self.quantum = np.asarray(quantum, float)
+        self.offset = np.asarray(offset, float)
+        self.on_grid = self.quantum > 0
+        self.everywhere = bool(self.on_grid.all())
+        self._divisor = np.where(self.on_grid, self.quantum, 1.0)
+        self._scratch = np.empty_like(self.quantum)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """``x`` on the grid, in place; returned."""
+        s = x if self.everywhere else self._scratch
+        np.subtract(x, self.offset, out=s)
+        np.divide(s, self._divisor, out=s)
+        np.rint(s, out=s)
+        np.multiply(self.quantum, s, out=s)
+        np.add(self.offset, s, out=s)
+        if not self.everywhere:
+            np.copyto(x, s, where=self.on_grid)
+        return x
 
 
 def run_inputs(sc: scenario_mod.Scenario, duration: float | None,
