@@ -1,0 +1,117 @@
+/* cochlea embedded runtime: the pieces every port shares.
+ *
+ * What a stopped run reports (rules and exit codes, the same as cochlea-run's; README lists
+ * them), the hardware-abstraction layer a port implements, and the limits the supervisor
+ * enforces. Portable C99: no allocation, no stdio, no libc beyond <stddef.h> and <stdint.h>.
+ * Units are SI throughout: rad, m, rad/s, m/s, N m, N, s.
+ */
+#ifndef COCHLEA_RT_H
+#define COCHLEA_RT_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* ---- rules and exit codes --------------------------------------------------------------- */
+
+/* Why a run ended. The order is the Python supervisor's; cochlea_exit_code() maps each to
+ * cochlea-run's exit code. */
+enum cochlea_rule {
+    COCHLEA_RULE_NONE = 0,      /* still running */
+    COCHLEA_COMPLETED,          /* exit 0 */
+    COCHLEA_USER_STOP,          /* SIGINT or the port's stop request: exit 0 */
+    COCHLEA_POSITION_LIMIT,     /* exit 10 */
+    COCHLEA_VELOCITY_LIMIT,     /* exit 11 */
+    COCHLEA_KEEP_OUT,           /* exit 12 */
+    COCHLEA_NON_FINITE,         /* exit 13 */
+    COCHLEA_ESTIMATE_BOUND,     /* exit 14 */
+    COCHLEA_WATCHDOG,           /* exit 15 */
+    COCHLEA_TERMINATED,         /* SIGTERM: exit 16 */
+    COCHLEA_RULE_COUNT
+};
+
+/* Exit code of a process whose motors could not be started or talked to (cochlea-run's). */
+#define COCHLEA_EXIT_BACKEND 5
+
+int cochlea_exit_code(int rule);
+/* The rule's name as summary.json and cochlea-run spell it ("velocity-limit", ...). */
+const char *cochlea_rule_name(int rule);
+
+/* Where a rule was broken: enough for the port to print the same message as cochlea-run. */
+typedef struct {
+    int rule;          /* enum cochlea_rule */
+    double time_s;     /* the period's time */
+    int joint;         /* joint index (position, velocity, non-finite state), else -1 */
+    int unit;          /* unit index (estimate rules) or keep-out point index, else -1 */
+    int what;          /* non-finite: 0 state, 1 command, 2 estimate */
+    double value;      /* the offending value: position, speed, |p_hat|, distance (SI) */
+    double limit;      /* the limit it broke (SI) */
+    double point[2];   /* keep-out: the tool point and the circle's centre (m, world frame) */
+    double centre[2];
+    int count;         /* watchdog: consecutive misses or failures */
+    int reason;        /* watchdog: 0 deadline misses, 1 backend read failures */
+} cochlea_stop;
+
+/* ---- the hardware-abstraction layer ----------------------------------------------------- */
+
+/* Everything a port implements. The core calls nothing else that touches hardware or time.
+ * Callbacks return a negative number on an error of the port itself. */
+typedef struct {
+    void *ctx;
+    /* Send n bytes; the number sent (all of them, or an error). */
+    long (*serial_write)(void *ctx, const uint8_t *data, size_t n);
+    /* Receive up to n bytes, waiting at most timeout_ns for them to start arriving; the
+     * number received (0: timeout). Must not block longer than the timeout. */
+    long (*serial_read)(void *ctx, uint8_t *data, size_t n, int64_t timeout_ns);
+    /* Drop whatever the port has received and not yet read (may be NULL). */
+    void (*serial_discard_input)(void *ctx);
+    /* Switch an RS-485 transceiver to transmit (1) or receive (0); NULL when the adapter
+     * switches by itself (U2D2, USB-RS485 with automatic direction). */
+    void (*rs485_direction)(void *ctx, int transmit);
+    /* Monotonic time (ns) and a wait until an absolute monotonic time. */
+    int64_t (*now_ns)(void *ctx);
+    void (*wait_until_ns)(void *ctx, int64_t deadline_ns);
+} cochlea_hal;
+
+/* ---- the supervisor ----------------------------------------------------------------------- */
+
+/* What the supervisor enforces, per joint of the whole system in the loop's order (SI). */
+typedef struct {
+    int n_joints;
+    const double *position_lo;     /* rad or m */
+    const double *position_hi;
+    const double *velocity;        /* rad/s or m/s */
+    const double *effort;          /* N m or N: every command is clipped to it */
+    double keep_out_radius;        /* m; 0 or less: no keep-out rule (joint-space runs) */
+    int watchdog_misses;           /* consecutive deadline misses tolerated */
+    int watchdog_errors;           /* consecutive backend failures tolerated */
+} cochlea_limits;
+
+/* The measured state: finite, inside the position limits, under the velocity limits (in that
+ * order, first joint first, as the Python supervisor). 1 and *stop filled when a rule is
+ * broken, else 0. */
+int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
+                        const double *qd, cochlea_stop *stop);
+
+/* Tool points against the keep-out circle: n_points points and their circles' centres
+ * (m, world frame). */
+int cochlea_check_keep_out(const cochlea_limits *limits, double t, int n_points,
+                           const double *points, const double *centres, cochlea_stop *stop);
+
+/* The command (finite) and each unit's next estimate (finite, |p_hat| within its bound with
+ * the Python supervisor's 1e-9 relative tolerance). estimates[u] has n_params[u] values. */
+int cochlea_check_command(const cochlea_limits *limits, double t, const double *tau,
+                          int n_units, const double *const *estimates, const int *n_params,
+                          const double *bounds, cochlea_stop *stop);
+
+/* Clip every command to its joint's effort limit; the number of joints clipped. */
+int cochlea_saturate(const cochlea_limits *limits, double *tau);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COCHLEA_RT_H */

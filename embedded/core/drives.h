@@ -1,0 +1,58 @@
+/* cochlea embedded runtime: joint <-> motor conversions of one Dynamixel drive, the Python
+ * bridge's (cochlea/dynamixel/drives.py, cochlea/robots/motor_fit.py) in C.
+ *
+ * Joint side SI (rad or m, rad/s or m/s, N m or N); motor side in control-table units:
+ * Present Position in counts (2 pi / 4096 rad), Present Velocity in 0.229 rpm, currents in the
+ * model's LSB (3.36 mA MX-64(2.0), 2.69 mA XM540-W270). The tables of a robot are generated
+ * from its description (generated_c/embedded/<robot>_drives.h).
+ */
+#ifndef COCHLEA_DRIVES_H
+#define COCHLEA_DRIVES_H
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* One joint and its motor. The conversion constants are the Python bridge's own values
+ * (generated, printed to 17 digits), so C and Python give the same counts bit for bit. */
+typedef struct {
+    const char *name;          /* the joint, e.g. "arm1.joint2" */
+    uint8_t id;                /* Dynamixel ID */
+    uint16_t model_number;     /* what PING must answer (311 MX-64(2.0), 1120 XM540-W270) */
+    int revolute;              /* 1 revolute (rad), 0 prismatic (m) */
+    double q_per_count;        /* direction ratio 2 pi / 4096 (rad or m per count) */
+    double q_offset;           /* -direction ratio zero_offset (rad or m) */
+    double qd_per_lsb;         /* direction ratio 0.229 rpm (rad/s or m/s per LSB) */
+    double torque_per_effort;  /* direction ratio: motor N m per joint N m (or N) */
+    double inv_a;              /* 1 / a of the fit (A per N m) */
+    double inv_ramp;           /* 1 / ramp (per N m) */
+    double i0;                 /* -b / a: the current the fit's offset takes (A) */
+    double lsb_per_ampere;     /* current LSBs per A */
+    int32_t current_limit_lsb; /* Current Limit (address 38) this joint uses */
+    double position_lo;        /* joint limits (rad or m) */
+    double position_hi;
+    double velocity_limit;     /* rad/s or m/s */
+    double effort_limit;       /* N m or N */
+} cochlea_drive;
+
+/* q = q_per_count counts + position_offset, with position_offset the drive's q_offset plus
+ * the whole turns chosen at start-up (cochlea_drive_unwrap). */
+double cochlea_drive_position(const cochlea_drive *d, int32_t counts, double position_offset);
+double cochlea_drive_velocity(const cochlea_drive *d, int32_t velocity_lsb);
+/* A revolute joint's encoder is single-turn after power-up: the offset that puts q nearest
+ * the middle of its limits (whole turns added); a prismatic joint keeps its offset. q is the
+ * position read with position_offset. */
+double cochlea_drive_unwrap(const cochlea_drive *d, double q, double position_offset);
+/* Goal Current (LSB) for a joint effort: the fit's inverse
+ * I = tau_m / a + I0 clip(tau_m / ramp, -1, 1), tau_m = torque_per_effort effort, rounded
+ * half to even, within +-current_limit_lsb. A non-finite effort gives 0 (the caller reports
+ * it). */
+int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COCHLEA_DRIVES_H */

@@ -1,0 +1,162 @@
+/* cochlea embedded runtime: the safety supervisor, the Python one's rules in C
+ * (cochlea/runtime/supervisor.py). Checks allocate nothing and call no library function but
+ * sqrt from libm. */
+#include "cochlea_rt.h"
+
+#include <math.h>
+
+static const char *const RULE_NAMES[COCHLEA_RULE_COUNT] = {
+    "none", "completed", "user-stop", "position-limit", "velocity-limit", "keep-out",
+    "non-finite", "estimate-bound", "watchdog", "terminated"};
+static const int EXIT_CODES[COCHLEA_RULE_COUNT] = {0, 0, 0, 10, 11, 12, 13, 14, 15, 16};
+
+int cochlea_exit_code(int rule)
+{
+    return (rule >= 0 && rule < COCHLEA_RULE_COUNT) ? EXIT_CODES[rule] : COCHLEA_EXIT_BACKEND;
+}
+
+const char *cochlea_rule_name(int rule)
+{
+    return (rule >= 0 && rule < COCHLEA_RULE_COUNT) ? RULE_NAMES[rule] : "unknown";
+}
+
+static void stop_at(cochlea_stop *stop, int rule, double t)
+{
+    stop->rule = rule;
+    stop->time_s = t;
+    stop->joint = -1;
+    stop->unit = -1;
+    stop->what = 0;
+    stop->value = 0.0;
+    stop->limit = 0.0;
+    stop->point[0] = stop->point[1] = 0.0;
+    stop->centre[0] = stop->centre[1] = 0.0;
+    stop->count = 0;
+    stop->reason = 0;
+}
+
+/* Finite as the Python supervisor judges it: the sum of squares is finite (so a value whose
+ * square overflows counts as non-finite too, as there). x - x is 0 only for finite x. */
+static int all_finite(const double *v, int n, double *square)
+{
+    double s = 0.0;
+    int i;
+    for (i = 0; i < n; ++i) {
+        s += v[i] * v[i];
+    }
+    *square = s;
+    return (s - s) == 0.0;
+}
+
+int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
+                        const double *qd, cochlea_stop *stop)
+{
+    const int n = limits->n_joints;
+    double square;
+    int j;
+    int finite = all_finite(q, n, &square);
+    finite = finite && all_finite(qd, n, &square);
+    if (!finite) {
+        stop_at(stop, COCHLEA_NON_FINITE, t);
+        for (j = 0; j < n; ++j) {
+            if (!((q[j] - q[j]) == 0.0) || !((qd[j] - qd[j]) == 0.0)) {
+                stop->joint = j;
+                break;
+            }
+        }
+        return 1;
+    }
+    for (j = 0; j < n; ++j) {
+        if (q[j] < limits->position_lo[j] || q[j] > limits->position_hi[j]) {
+            stop_at(stop, COCHLEA_POSITION_LIMIT, t);
+            stop->joint = j;
+            stop->value = q[j];
+            stop->limit = q[j] < limits->position_lo[j] ? limits->position_lo[j]
+                                                        : limits->position_hi[j];
+            return 1;
+        }
+    }
+    for (j = 0; j < n; ++j) {
+        if (fabs(qd[j]) > limits->velocity[j]) {
+            stop_at(stop, COCHLEA_VELOCITY_LIMIT, t);
+            stop->joint = j;
+            stop->value = qd[j];
+            stop->limit = limits->velocity[j];
+            return 1;
+        }
+    }
+    return 0;
+}
+
+int cochlea_check_keep_out(const cochlea_limits *limits, double t, int n_points,
+                           const double *points, const double *centres, cochlea_stop *stop)
+{
+    int i;
+    if (!(limits->keep_out_radius > 0.0)) {
+        return 0;
+    }
+    for (i = 0; i < n_points; ++i) {
+        const double du = points[2 * i] - centres[2 * i];
+        const double dv = points[2 * i + 1] - centres[2 * i + 1];
+        const double r = sqrt(du * du + dv * dv);
+        /* A NaN distance is not inside the circle here: the state check catches it first. */
+        if (r < limits->keep_out_radius) {
+            stop_at(stop, COCHLEA_KEEP_OUT, t);
+            stop->unit = i;
+            stop->value = r;
+            stop->limit = limits->keep_out_radius;
+            stop->point[0] = points[2 * i];
+            stop->point[1] = points[2 * i + 1];
+            stop->centre[0] = centres[2 * i];
+            stop->centre[1] = centres[2 * i + 1];
+            return 1;
+        }
+    }
+    return 0;
+}
+
+int cochlea_check_command(const cochlea_limits *limits, double t, const double *tau,
+                          int n_units, const double *const *estimates, const int *n_params,
+                          const double *bounds, cochlea_stop *stop)
+{
+    double square;
+    int u;
+    if (!all_finite(tau, limits->n_joints, &square)) {
+        stop_at(stop, COCHLEA_NON_FINITE, t);
+        stop->what = 1;
+        return 1;
+    }
+    for (u = 0; u < n_units; ++u) {
+        const double tolerated = bounds[u] * (1.0 + 1e-9);
+        if (!all_finite(estimates[u], n_params[u], &square)) {
+            stop_at(stop, COCHLEA_NON_FINITE, t);
+            stop->what = 2;
+            stop->unit = u;
+            return 1;
+        }
+        if (square > tolerated * tolerated) {
+            stop_at(stop, COCHLEA_ESTIMATE_BOUND, t);
+            stop->unit = u;
+            stop->value = sqrt(square);
+            stop->limit = bounds[u];
+            return 1;
+        }
+    }
+    return 0;
+}
+
+int cochlea_saturate(const cochlea_limits *limits, double *tau)
+{
+    int j, clipped = 0;
+    for (j = 0; j < limits->n_joints; ++j) {
+        const double lim = limits->effort[j];
+        if (tau[j] > lim) {
+            tau[j] = lim;
+            ++clipped;
+        } else if (tau[j] < -lim) {
+            tau[j] = -lim;
+            ++clipped;
+        }
+    }
+    return clipped;
+}
