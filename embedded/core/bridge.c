@@ -1,0 +1,530 @@
+/* cochlea embedded runtime: the Dynamixel bridge (see bridge.h). */
+#include "bridge.h"
+
+#define ADDR_RETURN_DELAY 9
+#define ADDR_OPERATING_MODE 11
+#define ADDR_CURRENT_LIMIT 38
+#define ADDR_TORQUE_ENABLE 64
+#define ADDR_HARDWARE_ERROR 70
+#define ADDR_BUS_WATCHDOG 98
+#define ADDR_GOAL_CURRENT 102
+#define CURRENT_MODE 0
+#define ALERT_BIT 0x80
+#define MS 1000000LL
+
+static const char *const FAILURE_NAMES[COCHLEA_FAIL_KINDS] = {
+    "timeout", "crc", "error-byte", "hardware-alert", "length", "port", "late-traffic",
+    "non-finite-command", "not-enabled"};
+
+const char *cochlea_failure_name(int kind)
+{
+    return (kind >= 0 && kind < COCHLEA_FAIL_KINDS) ? FAILURE_NAMES[kind] : "unknown";
+}
+
+enum { RESULT_OK, RESULT_TIMEOUT, RESULT_CRC, RESULT_PORT };
+
+int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
+                        int n, int64_t timeout_ns, double watchdog_s)
+{
+    int i;
+    double lsb;
+    if (n < 1 || n > COCHLEA_MAX_DRIVES) {
+        return -1;
+    }
+    b->hal = hal;
+    b->drives = drives;
+    b->n = n;
+    b->timeout_ns = timeout_ns;
+    lsb = watchdog_s / 0.020 - 1e-9;
+    lsb = lsb < 1.0 ? 1.0 : (lsb > 127.0 ? 127.0 : lsb);
+    b->watchdog_lsb = (uint8_t)lsb;
+    if ((double)b->watchdog_lsb < lsb) { /* ceil */
+        b->watchdog_lsb = (uint8_t)(b->watchdog_lsb + 1);
+    }
+    b->position_margin = 2.0 * 3.14159265358979323846 / 180.0;
+    b->retries = 3;
+    b->active = 0;
+    b->suspect = 0;
+    b->reads = b->good_reads = b->writes = 0;
+    b->unexpected_packets = b->garbage_packets = 0;
+    for (i = 0; i < COCHLEA_FAIL_KINDS; ++i) {
+        b->failures[i] = 0;
+    }
+    b->last_failure = -1;
+    b->last_failure_id = -1;
+    b->alert_id = -1;
+    b->confirmed_off = 0;
+    for (i = 0; i < n; ++i) {
+        b->position_offset[i] = drives[i].q_offset;
+        b->present_current[i] = 0;
+        b->goal[i] = 0;
+    }
+    dxl_parser_init(&b->parser, 1);
+    {
+        uint8_t ids[COCHLEA_MAX_DRIVES];
+        int32_t len;
+        for (i = 0; i < n; ++i) {
+            ids[i] = drives[i].id;
+        }
+        len = dxl_sync_read(b->read_frame, sizeof b->read_frame, COCHLEA_STATE_ADDRESS,
+                            COCHLEA_STATE_LENGTH, ids, (size_t)n);
+        if (len < 0) {
+            return -1;
+        }
+        b->read_len = (size_t)len;
+    }
+    return 0;
+}
+
+/* ---- the wire ------------------------------------------------------------------------------ */
+
+static int64_t now(const cochlea_bridge *b)
+{
+    return b->hal->now_ns(b->hal->ctx);
+}
+
+static int send(cochlea_bridge *b, const uint8_t *frame, size_t len)
+{
+    const cochlea_hal *hal = b->hal;
+    long sent;
+    if (hal->rs485_direction) {
+        hal->rs485_direction(hal->ctx, 1);
+    }
+    sent = hal->serial_write(hal->ctx, frame, len);
+    if (hal->rs485_direction) {
+        hal->rs485_direction(hal->ctx, 0);
+    }
+    return sent == (long)len;
+}
+
+static void discard(cochlea_bridge *b)
+{
+    if (b->hal->serial_discard_input) {
+        b->hal->serial_discard_input(b->hal->ctx);
+    }
+    dxl_parser_reset(&b->parser);
+}
+
+/* Bytes into the parser until deadline: the count, 0 at the deadline, -1 on a port error. */
+static long receive(cochlea_bridge *b, int64_t deadline)
+{
+    size_t room;
+    uint8_t *space = dxl_parser_space(&b->parser, &room);
+    int64_t left = deadline - now(b);
+    long got;
+    if (left < 0) {
+        left = 0;
+    }
+    if (room == 0) { /* full of garbage: start over rather than stall */
+        dxl_parser_reset(&b->parser);
+        space = dxl_parser_space(&b->parser, &room);
+    }
+    got = b->hal->serial_read(b->hal->ctx, space, room, left);
+    if (got > 0) {
+        dxl_parser_commit(&b->parser, (size_t)got);
+    }
+    return got;
+}
+
+/* A unicast instruction and its status packet. */
+static int transact(cochlea_bridge *b, const uint8_t *frame, size_t len, uint8_t id,
+                    int64_t timeout, int tries, uint8_t *error)
+{
+    int result = RESULT_TIMEOUT, attempt;
+    for (attempt = 0; attempt < tries; ++attempt) {
+        const int64_t deadline = now(b) + timeout;
+        discard(b);
+        if (!send(b, frame, len)) {
+            return RESULT_PORT;
+        }
+        for (;;) {
+            const int code = dxl_parser_parse(&b->parser);
+            long got;
+            if (code == DXL_OK) {
+                if (b->parser.id == id) {
+                    *error = b->parser.error;
+                    return RESULT_OK;
+                }
+                continue;
+            }
+            if (code == DXL_CRC_FAILURE) {
+                result = RESULT_CRC;
+                continue;
+            }
+            if (code != DXL_NEED_MORE) {
+                continue;
+            }
+            got = receive(b, deadline);
+            if (got < 0) {
+                return RESULT_PORT;
+            }
+            if (got == 0) {
+                break;
+            }
+        }
+    }
+    return result;
+}
+
+static int64_t setup_timeout(const cochlea_bridge *b)
+{
+    const int64_t four = 4 * b->timeout_ns;
+    return four > 20 * MS ? four : 20 * MS;
+}
+
+static int fail_start(cochlea_start_report *r, int error, int step, int drive, int detail)
+{
+    r->error = error;
+    r->step = step;
+    r->drive = drive;
+    r->detail = detail;
+    return 0;
+}
+
+/* One start-up instruction to drive i, confirmed. On success the reply's parameters are in the
+ * parser (b->parser.params). */
+static int command(cochlea_bridge *b, int step, int i, const uint8_t *frame, int32_t len,
+                   cochlea_start_report *r)
+{
+    uint8_t error = 0;
+    int result;
+    if (len < 0) {
+        return fail_start(r, COCHLEA_START_BAD_CONFIG, step, i, 0);
+    }
+    result = transact(b, frame, (size_t)len, b->drives[i].id, setup_timeout(b), b->retries,
+                      &error);
+    if (result == RESULT_TIMEOUT) {
+        return fail_start(r, COCHLEA_START_NO_ANSWER, step, i, 0);
+    }
+    if (result == RESULT_CRC) {
+        return fail_start(r, COCHLEA_START_CRC, step, i, 0);
+    }
+    if (result == RESULT_PORT) {
+        return fail_start(r, COCHLEA_START_PORT, step, i, 0);
+    }
+    if (error & ALERT_BIT) {
+        int status = -1;
+        const int32_t n = dxl_read(b->scratch, sizeof b->scratch, b->drives[i].id,
+                                   ADDR_HARDWARE_ERROR, 1);
+        uint8_t ignored;
+        if (n > 0 && transact(b, b->scratch, (size_t)n, b->drives[i].id, setup_timeout(b), 1,
+                              &ignored) == RESULT_OK && b->parser.params_len == 1) {
+            status = b->parser.params[0];
+        }
+        return fail_start(r, COCHLEA_START_ALERT, step, i, status);
+    }
+    if (error & 0x7F) {
+        return fail_start(r, COCHLEA_START_REFUSED, step, i, error);
+    }
+    return 1;
+}
+
+static int write_all(cochlea_bridge *b, int step, uint16_t address, int size,
+                     const int32_t *values, int32_t same, cochlea_start_report *r)
+{
+    int i;
+    for (i = 0; i < b->n; ++i) {
+        uint8_t data[4];
+        const int32_t v = values ? values[i] : same;
+        int32_t len;
+        if (size == 1) {
+            data[0] = (uint8_t)v;
+        } else {
+            dxl_put_u16(data, (uint16_t)(int16_t)v);
+        }
+        len = dxl_write(b->scratch, sizeof b->scratch, b->drives[i].id, address, data,
+                        (uint16_t)size);
+        if (!command(b, step, i, b->scratch, len, r)) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* ---- each period ---------------------------------------------------------------------------- */
+
+static int fail(cochlea_bridge *b, int kind, int id)
+{
+    b->failures[kind] += 1;
+    b->last_failure = kind;
+    b->last_failure_id = id;
+    if (kind < COCHLEA_FAIL_NON_FINITE) {
+        b->suspect = 1;
+    }
+    return 0;
+}
+
+/* After a failed read, replies may still be on their way: Protocol 2.0 has no sequence
+ * numbers, so a late one would pass for the next period's. Wait until the line has been quiet
+ * for one timeout, dropping what arrives; give up at twice that. */
+static int quiet(cochlea_bridge *b, int64_t t0)
+{
+    const int64_t give_up = t0 + 2 * b->timeout_ns;
+    int64_t quiet_until = t0 + b->timeout_ns;
+    for (;;) {
+        const long got = receive(b, quiet_until < give_up ? quiet_until : give_up);
+        const int64_t t = now(b);
+        dxl_parser_reset(&b->parser);
+        if (got < 0) {
+            return 0;
+        }
+        if (got == 0 && t >= quiet_until) {
+            b->suspect = 0;
+            return 1;
+        }
+        if (t >= give_up) {
+            return 0;
+        }
+        if (got > 0) {
+            quiet_until = t + b->timeout_ns;
+        }
+    }
+}
+
+static int slot_of(const cochlea_bridge *b, uint8_t id)
+{
+    int i;
+    for (i = 0; i < b->n; ++i) {
+        if (b->drives[i].id == id) {
+            return i;
+        }
+    }
+    return -1;
+}
+
+static int sync_read(cochlea_bridge *b, double *q, double *qd)
+{
+    const int64_t t0 = now(b);
+    const int64_t deadline = t0 + b->timeout_ns;
+    int pending = b->n, failure = -1, failure_id = -1, i;
+    b->reads += 1;
+    discard(b);
+    if (b->suspect && !quiet(b, t0)) {
+        return fail(b, COCHLEA_FAIL_LATE, -1);
+    }
+    if (!send(b, b->read_frame, b->read_len)) {
+        return fail(b, COCHLEA_FAIL_PORT, -1);
+    }
+    for (i = 0; i < b->n; ++i) {
+        b->slots[i] = 0;
+    }
+    while (pending) {
+        const int code = dxl_parser_parse(&b->parser);
+        if (code == DXL_NEED_MORE) {
+            const long got = receive(b, deadline);
+            if (got > 0) {
+                continue;
+            }
+            if (got < 0) {
+                return fail(b, COCHLEA_FAIL_PORT, -1);
+            }
+            if (failure < 0) {
+                failure = COCHLEA_FAIL_TIMEOUT;
+                for (i = 0; i < b->n; ++i) {
+                    if (b->slots[i] == 0) {
+                        failure_id = b->drives[i].id;
+                        break;
+                    }
+                }
+            }
+            break;
+        }
+        if (code == DXL_OK) {
+            const int j = slot_of(b, b->parser.id);
+            const uint8_t error = b->parser.error;
+            size_t k;
+            if (j < 0 || b->slots[j]) {
+                b->unexpected_packets += 1;
+                continue;
+            }
+            --pending;
+            if (error & ALERT_BIT) {
+                b->alert_id = b->parser.id;
+                failure = COCHLEA_FAIL_ALERT; /* outranks every other cause */
+                failure_id = b->parser.id;
+            }
+            if (b->parser.params_len != COCHLEA_STATE_LENGTH || (error & 0x7F)) {
+                b->slots[j] = 2;
+                if (failure < 0) {
+                    failure = b->parser.params_len != COCHLEA_STATE_LENGTH
+                                  ? COCHLEA_FAIL_LENGTH : COCHLEA_FAIL_ERROR_BYTE;
+                    failure_id = b->parser.id;
+                }
+                continue;
+            }
+            b->slots[j] = 1;
+            for (k = 0; k < COCHLEA_STATE_LENGTH; ++k) {
+                b->raw[(size_t)j * COCHLEA_STATE_LENGTH + k] = b->parser.params[k];
+            }
+        } else if (code == DXL_CRC_FAILURE) {
+            const int j = slot_of(b, b->parser.id);
+            if (failure < 0) {
+                failure = COCHLEA_FAIL_CRC;
+                failure_id = b->parser.id;
+            }
+            if (j >= 0 && b->slots[j] == 0) {
+                b->slots[j] = 2;
+                --pending;
+            }
+        } else {
+            b->garbage_packets += 1;
+        }
+    }
+    if (failure >= 0) {
+        return fail(b, failure, failure_id);
+    }
+    for (i = 0; i < b->n; ++i) {
+        const uint8_t *raw = b->raw + (size_t)i * COCHLEA_STATE_LENGTH;
+        b->present_current[i] = dxl_get_i16(raw);
+        qd[i] = cochlea_drive_velocity(&b->drives[i], dxl_get_i32(raw + 2));
+        q[i] = cochlea_drive_position(&b->drives[i], dxl_get_i32(raw + 6),
+                                      b->position_offset[i]);
+    }
+    b->good_reads += 1;
+    return 1;
+}
+
+int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd)
+{
+    if (!b->active) {
+        return fail(b, COCHLEA_FAIL_NOT_ENABLED, -1);
+    }
+    return sync_read(b, q, qd);
+}
+
+static int32_t goal_frame(cochlea_bridge *b, uint16_t address, int size, const int16_t *values,
+                          int32_t same)
+{
+    uint8_t ids[COCHLEA_MAX_DRIVES];
+    uint8_t data[2 * COCHLEA_MAX_DRIVES];
+    int i;
+    for (i = 0; i < b->n; ++i) {
+        const int32_t v = values ? values[i] : same;
+        ids[i] = b->drives[i].id;
+        if (size == 1) {
+            data[i] = (uint8_t)v;
+        } else {
+            dxl_put_u16(data + 2 * i, (uint16_t)(int16_t)v);
+        }
+    }
+    return dxl_sync_write(b->write_frame, sizeof b->write_frame, address, (uint16_t)size, ids,
+                          data, (size_t)b->n);
+}
+
+int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
+{
+    int i, finite = 1;
+    int32_t len;
+    if (!b->active) {
+        return fail(b, COCHLEA_FAIL_NOT_ENABLED, -1);
+    }
+    b->writes += 1;
+    for (i = 0; i < b->n; ++i) {
+        finite = finite && (tau[i] - tau[i]) == 0.0;
+    }
+    for (i = 0; i < b->n; ++i) { /* a NaN or infinite command: zero current, and report it */
+        b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i]) : 0;
+    }
+    len = goal_frame(b, ADDR_GOAL_CURRENT, 2, b->goal, 0);
+    if (len < 0 || !send(b, b->write_frame, (size_t)len)) {
+        return fail(b, COCHLEA_FAIL_PORT, -1);
+    }
+    return finite ? 1 : fail(b, COCHLEA_FAIL_NON_FINITE, -1);
+}
+
+/* ---- start-up and shut-down ----------------------------------------------------------------- */
+
+int cochlea_bridge_stop(cochlea_bridge *b)
+{
+    int i, round, confirmed = 0;
+    for (round = 0; round < 2; ++round) {
+        int32_t len = goal_frame(b, ADDR_GOAL_CURRENT, 2, 0, 0);
+        if (len > 0) {
+            (void)send(b, b->write_frame, (size_t)len);
+        }
+        len = goal_frame(b, ADDR_TORQUE_ENABLE, 1, 0, 0);
+        if (len > 0) {
+            (void)send(b, b->write_frame, (size_t)len);
+        }
+    }
+    b->active = 0;
+    for (i = 0; i < b->n; ++i) {
+        uint8_t error = 0;
+        const int32_t len = dxl_read(b->scratch, sizeof b->scratch, b->drives[i].id,
+                                     ADDR_TORQUE_ENABLE, 1);
+        const int64_t timeout = b->timeout_ns > 10 * MS ? b->timeout_ns : 10 * MS;
+        if (len > 0 && transact(b, b->scratch, (size_t)len, b->drives[i].id, timeout, 2,
+                                &error) == RESULT_OK && b->parser.params_len == 1 &&
+            b->parser.params[0] == 0) {
+            ++confirmed;
+            if (error & ALERT_BIT) {
+                b->alert_id = b->drives[i].id;
+            }
+        }
+    }
+    b->confirmed_off = confirmed;
+    return confirmed;
+}
+
+static int start(cochlea_bridge *b, cochlea_start_report *r)
+{
+    int32_t limits[COCHLEA_MAX_DRIVES];
+    double q[COCHLEA_MAX_DRIVES], qd[COCHLEA_MAX_DRIVES];
+    int i, tries, read_ok = 0;
+    for (i = 0; i < b->n; ++i) { /* 1. every motor there, of the model the table names */
+        const int32_t len = dxl_ping(b->scratch, sizeof b->scratch, b->drives[i].id);
+        int number;
+        if (!command(b, COCHLEA_STEP_PING, i, b->scratch, len, r)) {
+            return 0;
+        }
+        number = b->parser.params_len >= 2 ? dxl_get_u16(b->parser.params) : -1;
+        if (number != b->drives[i].model_number) {
+            return fail_start(r, COCHLEA_START_WRONG_MODEL, COCHLEA_STEP_PING, i, number);
+        }
+    }
+    for (i = 0; i < b->n; ++i) {
+        limits[i] = b->drives[i].current_limit_lsb;
+    }
+    if (!write_all(b, COCHLEA_STEP_TORQUE_OFF, ADDR_TORQUE_ENABLE, 1, 0, 0, r) ||
+        !write_all(b, COCHLEA_STEP_WATCHDOG_CLEAR, ADDR_BUS_WATCHDOG, 1, 0, 0, r) ||
+        !write_all(b, COCHLEA_STEP_MODE, ADDR_OPERATING_MODE, 1, 0, CURRENT_MODE, r) ||
+        !write_all(b, COCHLEA_STEP_RETURN_DELAY, ADDR_RETURN_DELAY, 1, 0, 0, r) ||
+        !write_all(b, COCHLEA_STEP_CURRENT_LIMIT, ADDR_CURRENT_LIMIT, 2, limits, 0, r) ||
+        !write_all(b, COCHLEA_STEP_GOAL_ZERO, ADDR_GOAL_CURRENT, 2, 0, 0, r) ||
+        !write_all(b, COCHLEA_STEP_WATCHDOG, ADDR_BUS_WATCHDOG, 1, 0, b->watchdog_lsb, r)) {
+        return 0;
+    }
+    for (tries = 0; tries < 3 * b->retries && !read_ok; ++tries) { /* 8. the first good read */
+        read_ok = sync_read(b, q, qd);
+    }
+    if (!read_ok) {
+        return fail_start(r, COCHLEA_START_NO_READ, COCHLEA_STEP_FIRST_READ, -1, b->last_failure);
+    }
+    for (i = 0; i < b->n; ++i) {
+        const cochlea_drive *d = &b->drives[i];
+        const double offset = cochlea_drive_unwrap(d, q[i], b->position_offset[i]);
+        q[i] += offset - b->position_offset[i];
+        b->position_offset[i] = offset;
+        if (!(q[i] >= d->position_lo - b->position_margin &&
+              q[i] <= d->position_hi + b->position_margin)) {
+            r->value = q[i];
+            return fail_start(r, COCHLEA_START_OUTSIDE_LIMITS, COCHLEA_STEP_LIMITS, i, 0);
+        }
+    }
+    return write_all(b, COCHLEA_STEP_TORQUE_ON, ADDR_TORQUE_ENABLE, 1, 0, 1, r);
+}
+
+int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report)
+{
+    report->error = COCHLEA_START_OK;
+    report->step = 0;
+    report->drive = -1;
+    report->detail = 0;
+    report->value = 0.0;
+    if (start(b, report)) {
+        b->active = 1;
+        return 1;
+    }
+    (void)cochlea_bridge_stop(b);
+    return 0;
+}

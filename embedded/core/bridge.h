@@ -1,0 +1,125 @@
+/* cochlea embedded runtime: the Dynamixel bridge, cochlea/dynamixel/bridge.py in C.
+ *
+ * Start-up (cochlea_bridge_start), each step on every motor before the next, every write
+ * confirmed by its status packet; a failure shuts down safely and reports which step and which
+ * motor, before anything moved:
+ *   1. PING every motor and check its model number (and the alert bit);
+ *   2. Torque Enable 0, Bus Watchdog 0 (clears a watchdog error latched by an earlier run);
+ *   3. Operating Mode 0 (current control);  4. Return Delay Time 0;
+ *   5. Current Limit from the drive table;  6. Goal Current 0;
+ *   7. Bus Watchdog: the motors stop by themselves if the loop stops talking;
+ *   8. SYNC_READ until the first good read; unwrap the single-turn encoders to the turn nearest
+ *      the middle of each joint's limits, and refuse a joint outside its limits;
+ *   9. Torque Enable 1.
+ * Each period: cochlea_bridge_read is one SYNC_READ of Present Current, Velocity and Position
+ * (126..135), cochlea_bridge_write one SYNC_WRITE of Goal Current. Failures (timeout, CRC,
+ * error byte, hardware alert, length, port, late traffic, non-finite command) are a 0 return
+ * and counters, never a stop of their own: the loop's watchdog decides.
+ * Shut-down (cochlea_bridge_stop, also after a failed start-up and on every fault): SYNC_WRITE
+ * Goal Current 0 and Torque Enable 0, each twice (no reply needed, so one dead motor cannot hold
+ * up the others), then a READ of Torque Enable per motor to confirm.
+ */
+#ifndef COCHLEA_BRIDGE_H
+#define COCHLEA_BRIDGE_H
+
+#include "cochlea_rt.h"
+#include "drives.h"
+#include "dxl.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define COCHLEA_MAX_DRIVES 16
+/* Present Current (2) + Present Velocity (4) + Present Position (4) from address 126. */
+#define COCHLEA_STATE_ADDRESS 126
+#define COCHLEA_STATE_LENGTH 10
+
+/* Failure kinds of a period (indices into cochlea_bridge.failures), the Python bridge's. */
+enum cochlea_failure {
+    COCHLEA_FAIL_TIMEOUT = 0, COCHLEA_FAIL_CRC, COCHLEA_FAIL_ERROR_BYTE, COCHLEA_FAIL_ALERT,
+    COCHLEA_FAIL_LENGTH, COCHLEA_FAIL_PORT, COCHLEA_FAIL_LATE, COCHLEA_FAIL_NON_FINITE,
+    COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_KINDS
+};
+const char *cochlea_failure_name(int kind);
+
+/* Why a start-up failed. */
+enum cochlea_start_error {
+    COCHLEA_START_OK = 0,
+    COCHLEA_START_NO_ANSWER,      /* a motor did not answer (motor, step) */
+    COCHLEA_START_CRC,            /* it answered with corrupted packets only */
+    COCHLEA_START_PORT,           /* the port itself failed */
+    COCHLEA_START_ALERT,          /* it reports a hardware error (detail: Hardware Error) */
+    COCHLEA_START_REFUSED,        /* it refused an instruction (detail: its error byte) */
+    COCHLEA_START_WRONG_MODEL,    /* detail: the model number it answered */
+    COCHLEA_START_NO_READ,        /* no good SYNC_READ in 3 x retries tries */
+    COCHLEA_START_OUTSIDE_LIMITS, /* a joint reads outside its limits (value: q, SI) */
+    COCHLEA_START_BAD_CONFIG      /* too many drives, a frame that does not fit */
+};
+
+/* Start-up steps, for messages. */
+enum cochlea_start_step {
+    COCHLEA_STEP_PING = 1, COCHLEA_STEP_TORQUE_OFF, COCHLEA_STEP_WATCHDOG_CLEAR,
+    COCHLEA_STEP_MODE, COCHLEA_STEP_RETURN_DELAY, COCHLEA_STEP_CURRENT_LIMIT,
+    COCHLEA_STEP_GOAL_ZERO, COCHLEA_STEP_WATCHDOG, COCHLEA_STEP_FIRST_READ,
+    COCHLEA_STEP_LIMITS, COCHLEA_STEP_TORQUE_ON
+};
+
+typedef struct {
+    int error;        /* enum cochlea_start_error */
+    int step;         /* enum cochlea_start_step */
+    int drive;        /* index into the drive table, or -1 */
+    int detail;       /* model number, error byte, Hardware Error Status, failure kind */
+    double value;     /* the joint's position (SI) for COCHLEA_START_OUTSIDE_LIMITS */
+} cochlea_start_report;
+
+typedef struct {
+    /* Configuration (cochlea_bridge_init). */
+    const cochlea_hal *hal;
+    const cochlea_drive *drives;
+    int n;
+    int64_t timeout_ns;         /* a period's transaction: the bus budget plus margin */
+    uint8_t watchdog_lsb;       /* Bus Watchdog, 20 ms per LSB */
+    double position_margin;     /* start-up: how far outside its limits a joint may read (SI) */
+    int retries;
+    /* State. */
+    int active;                 /* between a successful start and the stop */
+    int suspect;                /* a failed read: wait for a quiet line before the next */
+    double position_offset[COCHLEA_MAX_DRIVES];
+    int16_t present_current[COCHLEA_MAX_DRIVES];  /* LSB, last good read */
+    int16_t goal[COCHLEA_MAX_DRIVES];             /* LSB, last written */
+    /* Counters. */
+    uint32_t reads, good_reads, writes, unexpected_packets, garbage_packets;
+    uint32_t failures[COCHLEA_FAIL_KINDS];
+    int last_failure, last_failure_id;
+    int alert_id;               /* a motor that raised the alert bit, or -1 */
+    int confirmed_off;          /* motors that confirmed torque off at the last stop */
+    /* Buffers. */
+    dxl_parser parser;
+    uint8_t read_frame[DXL_FRAME_SIZE(4 + COCHLEA_MAX_DRIVES)];
+    size_t read_len;
+    uint8_t write_frame[DXL_FRAME_SIZE(4 + 3 * COCHLEA_MAX_DRIVES)];
+    uint8_t scratch[DXL_FRAME_SIZE(4 + 5 * COCHLEA_MAX_DRIVES)];
+    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_STATE_LENGTH];
+    uint8_t slots[COCHLEA_MAX_DRIVES];
+} cochlea_bridge;
+
+/* 0, or -1 when the drive table does not fit (n > COCHLEA_MAX_DRIVES). watchdog_s is
+ * rounded up to whole 20 ms, within 20..2540 ms. */
+int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
+                        int n, int64_t timeout_ns, double watchdog_s);
+/* Steps 1-9; 1 on success (torque on), else 0 with *report filled, after the safe stop. */
+int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report);
+/* One SYNC_READ into q[n], qd[n] (SI); 1, or 0 on a failure (counted). */
+int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd);
+/* One SYNC_WRITE of Goal Current for the joint efforts tau[n] (SI); a non-finite effort sends
+ * zero current to every motor and counts as a failure. 1, or 0 on a failure. */
+int cochlea_bridge_write(cochlea_bridge *b, const double *tau);
+/* The safe shut-down; the number of motors that confirmed torque off. */
+int cochlea_bridge_stop(cochlea_bridge *b);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COCHLEA_BRIDGE_H */
