@@ -9,13 +9,15 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.generate import CONFIG, check, generate, load_config
+from ..sim.embedded import write_embedded
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="cochlea-codegen",
         description="Regenerate the C kernels (generated_c/) from the robot descriptions in "
-                    "cochlea/data/robots/ and the configuration cochlea/data/codegen/kernels.toml.",
+                    "cochlea/data/robots/ and the configuration cochlea/data/codegen/kernels.toml, "
+                    "and the scenarios' embedded controllers (generated_c/embedded/).",
         epilog="Then `make lib` builds build/libcochlea.so (no Python needed).")
     parser.add_argument("--config", type=Path, default=CONFIG, help="generator configuration")
     parser.add_argument("--out", type=Path, help="output folder (default: the configuration's)")
@@ -26,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config)
         if args.check:
-            differ = check(config)
+            differ = check(config, write_embedded)
             if differ:
                 print(f"cochlea-codegen: {config.output} is stale; these files differ: "
                       + ", ".join(differ) + ". Run cochlea-codegen and commit the result.",
@@ -35,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"cochlea-codegen: {config.output} is up to date")
             return 0
         start = time.perf_counter()
-        paths = generate(config, args.out)
+        paths = generate(config, args.out, write_embedded)
     except CochleaError as exc:
         print(f"cochlea-codegen: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR

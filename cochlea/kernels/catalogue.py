@@ -12,6 +12,7 @@ the earlier kernel's C (its ``symbol``), so no body is generated twice. Writing 
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,6 +68,16 @@ class RobotConfig:
 
 
 @dataclass(frozen=True)
+class EmbeddedConfig:
+    """The ``[embedded]`` table: the per-scenario embedded controllers written to
+    ``<output>/<folder>/<scenario>.{h,c}`` (:mod:`cochlea.kernels.embedded`)."""
+
+    folder: str = "embedded"
+    scenarios: tuple[str, ...] = ()  # shipped scenario names (cochlea/data/scenarios/)
+    function: dict = field(default_factory=lambda: {"cse": True})  # casadi.Function options
+
+
+@dataclass(frozen=True)
 class CodegenConfig:
     """The generator's whole configuration, from ``cochlea/data/codegen/kernels.toml``."""
 
@@ -76,6 +87,7 @@ class CodegenConfig:
     casadi: dict = field(default_factory=dict)  # casadi.CodeGenerator options
     function: dict = field(default_factory=dict)  # casadi.Function options
     robots: tuple[RobotConfig, ...] = ()
+    embedded: EmbeddedConfig = field(default_factory=EmbeddedConfig)
 
 
 _ROBOT_KEYS = {"name": str, "units": list, "kernels": list, "plant_substeps": int,
@@ -97,7 +109,7 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
         data = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise CodegenError(f"{path}: cannot read the codegen configuration: {exc}") from exc
-    top = {"format", "output", "library", "casadi", "function", "robot"}
+    top = {"format", "output", "library", "casadi", "function", "robot", "embedded"}
     for key in data:
         if key not in top:
             raise _fail(path, key, "one of " + ", ".join(sorted(top)), key)
@@ -142,11 +154,33 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
             tuple(table["plant_actuators"]), tuple(table["controller_actuators"])))
     if not robots:
         raise _fail(path, "robot", "at least one [[robot]] table", [])
+    embedded = _embedded_config(path, data.get("embedded", {}))
     # The output folder is relative to the checkout (or, installed, the working directory).
     root = checkout() or Path.cwd()
     return CodegenConfig(path, (root / data["output"]).resolve(), data["library"],
                          dict(data.get("casadi", {})), dict(data.get("function", {})),
-                         tuple(robots))
+                         tuple(robots), embedded)
+
+
+def _embedded_config(path: Path, table: object) -> EmbeddedConfig:
+    keys = {"folder": str, "scenarios": list, "function": dict}
+    if not isinstance(table, dict):
+        raise _fail(path, "embedded", "a table", table)
+    for key, value in table.items():
+        if key not in keys:
+            raise _fail(path, f"embedded.{key}", "one of " + ", ".join(keys), key)
+        if not isinstance(value, keys[key]):
+            raise _fail(path, f"embedded.{key}", f"a {keys[key].__name__}", value)
+    folder = table.get("folder", "embedded")
+    if not re.fullmatch(r"[A-Za-z0-9_]+", folder):
+        raise _fail(path, "embedded.folder", "a plain folder name", folder)
+    scenarios = table.get("scenarios", [])
+    for name in scenarios:
+        if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_]*", name):
+            raise _fail(path, "embedded.scenarios", "scenario names (C identifiers)", name)
+    if len(set(scenarios)) != len(scenarios):
+        raise _fail(path, "embedded.scenarios", "distinct names", scenarios)
+    return EmbeddedConfig(folder, tuple(scenarios), dict(table.get("function", {"cse": True})))
 
 
 # --------------------------------------------------------------------------------------------
@@ -316,6 +350,11 @@ def _share_bodies(kernels: list[Kernel], loops: list[ClosedLoop]) -> None:
 # --------------------------------------------------------------------------------------------
 # Units of every argument (for the README)
 # --------------------------------------------------------------------------------------------
+
+
+def law_units(m: RobotModel, controller: Controller) -> dict[str, str]:
+    """The SI unit text of every argument of ``controller.law`` (built on model ``m``)."""
+    return _ArgumentUnits(m, controller).of(controller.law)
 
 
 class _ArgumentUnits:

@@ -26,6 +26,10 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
   periods of controller, estimate update and plant (``_armature``: with the drives' rotor
   inertia; ``_coulomb``: with dry friction) in C (from the template
   ``cochlea/data/codegen/closed_loop.c.in``);
+* ``embedded/<scenario>.{h,c}`` (the ``[embedded]`` table, when ``cochlea-codegen`` passes
+  :func:`cochlea.sim.embedded.write_embedded`): each listed scenario's whole controller (desired
+  trajectory, law, estimate update) for an embedded target, float or double at compile time
+  (:mod:`cochlea.kernels.embedded`, ``docs/embedded.md``); ``make lib`` does not build them;
 * ``manifest.c`` (``cochlea_manifest()``: every kernel's signature and the SHA-256 of the CasADi
   Function it came from, so a caller can tell a stale library), ``cochlea.h`` (includes every
   header) and ``README.md`` (each function's inputs, outputs, sizes, units and work memory).
@@ -49,6 +53,7 @@ import filecmp
 import json
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from string import Template
 
@@ -217,8 +222,18 @@ def _manifest(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLo
     }
 
 
-def generate(config: CodegenConfig | None = None, out: str | Path | None = None) -> list[Path]:
-    """Write every file of ``generated_c/`` (or ``out``); return the paths written."""
+#: Writes the ``[embedded]`` scenarios' controllers into a folder: ``(config, folder) -> paths``
+#: (:func:`cochlea.sim.embedded.write_embedded`; a scenario is the simulation layer's, so the
+#: caller, ``cochlea-codegen``, passes it in).
+EmbeddedWriter = Callable[[CodegenConfig, Path], list[Path]]
+
+
+def generate(config: CodegenConfig | None = None, out: str | Path | None = None,
+             embedded: EmbeddedWriter | None = None) -> list[Path]:
+    """Write every file of ``generated_c/`` (or ``out``); return the paths written.
+
+    ``embedded``: also write the per-scenario embedded controllers of ``config.embedded`` into
+    the subfolder ``config.embedded.folder`` (without it, that subfolder is left alone)."""
     config = config or load_config()
     out = Path(out) if out is not None else config.output
     # Everything is built before the folder is touched: a configuration that fails to build
@@ -254,17 +269,33 @@ def generate(config: CodegenConfig | None = None, out: str | Path | None = None)
                  "#ifdef __cplusplus\n}\n#endif\n#endif\n"]
     (out / f"{config.library}.h").write_text("".join(umbrella))
     (out / "README.md").write_text(readme(config, kernels, loops, work))
-    return sorted(out.iterdir())
+    written = sorted(p for p in out.iterdir() if p.is_file())
+    if embedded is not None and config.embedded.scenarios:
+        written += embedded(config, out / config.embedded.folder)
+    return written
 
 
-def check(config: CodegenConfig | None = None) -> list[str]:
-    """Regenerate into a temporary folder; return the files that differ (empty: fresh)."""
+def _files(folder: Path, embedded: str | None) -> set[str]:
+    """The generated files under ``folder``: its own, and ``<embedded>/<name>`` if asked."""
+    if not folder.is_dir():
+        return set()
+    names = {p.name for p in folder.iterdir() if p.is_file()}
+    if embedded is not None and (folder / embedded).is_dir():
+        names |= {f"{embedded}/{p.name}" for p in (folder / embedded).iterdir() if p.is_file()}
+    return names
+
+
+def check(config: CodegenConfig | None = None, embedded: EmbeddedWriter | None = None
+          ) -> list[str]:
+    """Regenerate into a temporary folder; return the files that differ (empty: fresh).
+    With ``embedded``, the embedded controllers' subfolder is compared too (as
+    ``embedded/<file>``)."""
     config = config or load_config()
+    sub = config.embedded.folder if embedded is not None else None
     with tempfile.TemporaryDirectory(prefix="cochlea-codegen-") as tmp:
-        generate(config, tmp)
-        fresh = {p.name for p in Path(tmp).iterdir()}
-        committed = ({p.name for p in config.output.iterdir() if p.is_file()}
-                     if config.output.is_dir() else set())
+        generate(config, tmp, embedded)
+        fresh = _files(Path(tmp), sub)
+        committed = _files(config.output, sub)
         differ = sorted(fresh ^ committed)
         differ += sorted(name for name in fresh & committed
                          if not filecmp.cmp(Path(tmp) / name, config.output / name,
