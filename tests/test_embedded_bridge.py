@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from cochlea.dynamixel.drives import joint_drives
+from cochlea.dynamixel.embedded_drives import drives_header
 from cochlea.dynamixel.emulator import Faults, VirtualChain
-from cochlea.kernels.embedded_drives import drives_header
 
 ROOT = Path(__file__).resolve().parent.parent
 CORE, POSIX = ROOT / "embedded" / "core", ROOT / "embedded" / "posix"

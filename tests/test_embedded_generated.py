@@ -16,11 +16,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from cochlea.apps.cochlea_codegen import write_embedded_folder
 from cochlea.kernels.catalogue import load_config
 from cochlea.kernels.embedded import MATH_FUNCTIONS
 from cochlea.robots.plant import plant_step
 from cochlea.sim import load_scenario, simulate, unit_setups
-from cochlea.sim.embedded import write_embedded
 from cochlea.sim.setup import MeasurementGrid
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -44,7 +44,7 @@ def test_every_shipped_scenario_is_listed():
 
 def test_embedded_folder_is_fresh(tmp_path):
     """Regenerating gives generated_c/embedded/ byte for byte (run cochlea-codegen if not)."""
-    write_embedded(CONFIG, tmp_path)
+    write_embedded_folder(CONFIG, tmp_path)  # what cochlea-codegen writes there
     fresh = sorted(p.name for p in tmp_path.iterdir())
     assert fresh == sorted(p.name for p in EMBEDDED.iterdir()), "run cochlea-codegen"
     stale = [n for n in fresh if not filecmp.cmp(tmp_path / n, EMBEDDED / n, shallow=False)]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cochlea.dynamixel.drives import joint_drives
-from cochlea.kernels.embedded_drives import drives_header
+from cochlea.dynamixel.embedded_drives import drives_header
 from cochlea.runtime.supervisor import STOP_CODES, Limits, Supervisor
 
 ROOT = Path(__file__).resolve().parent.parent

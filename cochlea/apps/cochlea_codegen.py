@@ -7,9 +7,16 @@ import sys
 import time
 from pathlib import Path
 
+from ..dynamixel.embedded_drives import write_drive_tables
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.generate import CONFIG, check, generate, load_config
 from ..sim.embedded import write_embedded
+
+
+def write_embedded_folder(config, folder) -> list[Path]:
+    """generated_c/embedded/: every embedded scenario's controller, then the Dynamixel drive
+    tables of the robots (embedded/core/drives.h reads them)."""
+    return sorted(write_embedded(config, folder) + write_drive_tables(folder))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config)
         if args.check:
-            differ = check(config, write_embedded)
+            differ = check(config, write_embedded_folder)
             if differ:
                 print(f"cochlea-codegen: {config.output} is stale; these files differ: "
                       + ", ".join(differ) + ". Run cochlea-codegen and commit the result.",
@@ -37,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"cochlea-codegen: {config.output} is up to date")
             return 0
         start = time.perf_counter()
-        paths = generate(config, args.out, write_embedded)
+        paths = generate(config, args.out, write_embedded_folder)
     except CochleaError as exc:
         print(f"cochlea-codegen: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR

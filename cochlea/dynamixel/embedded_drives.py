@@ -12,9 +12,10 @@ import math
 import re
 from pathlib import Path
 
-from ..dynamixel.drives import JointDrive, joint_drives
+from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.model import JointInfo
+from .drives import JointDrive, joint_drives
 
 
 def _real(value: float) -> str:
@@ -88,3 +89,13 @@ def supervised_joints(robot: str, system) -> list[JointInfo]:
     models = ([adapter.model(system, arm) for arm in arms] if arms is not None
               else [adapter.model(system)])
     return [j for m in models for j in m.joints]
+
+
+def write_drive_tables(folder: str | Path) -> list[Path]:
+    """``<robot>_drives.h`` of every robot's shipped description into ``folder``; the paths."""
+    written = []
+    for robot in ROBOTS:
+        path = Path(folder) / f"{robot}_drives.h"
+        path.write_text(drives_header(robot))
+        written.append(path)
+    return written
