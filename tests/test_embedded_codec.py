@@ -68,6 +68,18 @@ def test_compiles_freestanding_without_warnings_or_libc(tmp_path, opt):
     assert undefined.strip() == ""
 
 
+def test_compiles_for_a_32_bit_target(tmp_path):
+    """size_t of 32 bits (a Cortex-M's) is where -Wconversion finds size_t/uint32_t mixes."""
+    obj = tmp_path / "dxl32.o"
+    done = subprocess.run([compiler(), *FREESTANDING, "-m32", "-fno-pic", "-O2",
+                           str(dxl.SOURCE), "-o", str(obj)], capture_output=True, text=True)
+    if done.returncode != 0 and "-m32" in done.stderr:
+        pytest.skip("the compiler has no 32-bit target")
+    assert done.returncode == 0, done.stderr
+    assert subprocess.run(["nm", "-u", str(obj)], capture_output=True, text=True,
+                          check=True).stdout.strip() == ""
+
+
 def test_includes_only_stddef_and_stdint():
     for path in (dxl.CORE / "dxl.h", dxl.SOURCE):
         includes = set(re.findall(r'#include\s*[<"]([^>"]+)[>"]', path.read_text()))
