@@ -82,8 +82,8 @@ static void put(encoder *e, uint8_t x)
     e->w++;
 }
 
-/* The instruction (or 0x55) byte is never stuffed: it is only preceded by the LEN bytes, and
- * protocol.py and the SDK start the stuffing window there. */
+/* The stuffing window starts at the instruction (or 0x55) byte, as the specification and
+ * protocol.py define it: the LEN bytes before it never count towards an FF FF FD. */
 static void begin(encoder *e, uint8_t *out, size_t cap, uint8_t id, uint8_t first)
 {
     e->out = out;
