@@ -41,11 +41,18 @@ static const uint16_t crc_table[256] = {
     0x822F, 0x022A, 0x823B, 0x023E, 0x0234, 0x8231, 0x8213, 0x0216, 0x021C, 0x8219, 0x0208,
     0x820D, 0x8207, 0x0202};
 
+/* Shifts go through unsigned int: where int has 16 bits, a uint16_t or uint8_t promotes to
+ * signed int and 0xFF << 8 would overflow it. */
+static uint16_t crc_step(uint16_t crc, uint8_t x)
+{
+    return (uint16_t)(((unsigned)crc << 8) ^ crc_table[(((unsigned)crc >> 8) ^ x) & 0xFFu]);
+}
+
 uint16_t dxl_crc16(uint16_t crc, const uint8_t *data, size_t n)
 {
     size_t i;
     for (i = 0; i < n; i++) {
-        crc = (uint16_t)((uint16_t)(crc << 8) ^ crc_table[((crc >> 8) ^ data[i]) & 0xFFu]);
+        crc = crc_step(crc, data[i]);
     }
     return crc;
 }
@@ -75,8 +82,8 @@ static void put(encoder *e, uint8_t x)
     e->w++;
 }
 
-/* The instruction (or 0x55) byte is never stuffed: it is only preceded by the LEN bytes, and
- * protocol.py and the SDK start the stuffing window there. */
+/* The stuffing window starts at the instruction (or 0x55) byte, as the specification and
+ * protocol.py define it: the LEN bytes before it never count towards an FF FF FD. */
 static void begin(encoder *e, uint8_t *out, size_t cap, uint8_t id, uint8_t first)
 {
     e->out = out;
@@ -261,7 +268,7 @@ void dxl_put_u32(uint8_t *p, uint32_t value)
 
 uint16_t dxl_get_u16(const uint8_t *p)
 {
-    return (uint16_t)((uint16_t)p[0] | (uint16_t)((uint16_t)p[1] << 8));
+    return (uint16_t)((unsigned)p[0] | (unsigned)p[1] << 8);
 }
 
 uint32_t dxl_get_u32(const uint8_t *p)
@@ -407,7 +414,7 @@ static uint16_t frame_crc(const dxl_parser *p, size_t from, size_t to)
     uint16_t crc = 0;
     size_t i;
     for (i = from; i < to; i++) {
-        crc = (uint16_t)((uint16_t)(crc << 8) ^ crc_table[((crc >> 8) ^ p->buf[i]) & 0xFFu]);
+        crc = crc_step(crc, p->buf[i]);
     }
     return crc;
 }
@@ -486,7 +493,7 @@ int dxl_parser_parse(dxl_parser *p)
     p->id = packet_id;
     p->frame_len = total;
     if (frame_crc(p, s, crc_end)
-        != (uint16_t)(p->buf[crc_end] | (uint16_t)(p->buf[crc_end + 1] << 8))) {
+        != (uint16_t)((unsigned)p->buf[crc_end] | (unsigned)p->buf[crc_end + 1] << 8)) {
         /* Resynchronise inside the frame: a real header may start in its middle. */
         return drop_one(p, s, DXL_CRC_FAILURE);
     }
