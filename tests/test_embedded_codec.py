@@ -25,6 +25,7 @@ from cochlea.dynamixel import protocol as proto
 
 from . import dxl_codec as dxl
 from .embedded_build import ROOT, SANITIZE, compiler, sanitizer_environment
+from .test_dynamixel_sdk import CapturePort  # the SDK's transmit path, captured
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler")
 
@@ -125,37 +126,6 @@ def test_u32_and_i32(lib, value):
 # --------------------------------------------------------------------------------------------
 # Builders
 # --------------------------------------------------------------------------------------------
-
-class CapturePort:
-    """Enough of the SDK's PortHandler to capture what it transmits (nothing ever answers)."""
-
-    is_using = False
-
-    def __init__(self):
-        self.sent: list[bytes] = []
-
-    def clearPort(self):
-        pass
-
-    def writePort(self, packet):
-        self.sent.append(bytes(packet))
-        return len(packet)
-
-    def readPort(self, length):
-        return b""
-
-    def setPacketTimeout(self, packet_length):
-        pass
-
-    def setPacketTimeoutMillis(self, msec):
-        pass
-
-    def isPacketTimeout(self):
-        return True
-
-    def getBaudRate(self):
-        return 4_000_000
-
 
 GOAL = [12, -40, 0, 731, -731, 5]
 STUFFED = bytes([0xFF, 0xFF, 0xFD, 0x07])

@@ -17,6 +17,8 @@ from cochlea.dynamixel.drives import joint_drives
 from cochlea.dynamixel.embedded_drives import drives_header
 from cochlea.runtime.supervisor import STOP_CODES, Limits, Supervisor
 
+from .embedded_build import build_library
+
 ROOT = Path(__file__).resolve().parent.parent
 CORE = ROOT / "embedded" / "core"
 FREESTANDING = ["-std=c99", "-pedantic", "-ffreestanding", "-fno-builtin", "-Wall", "-Wextra",
@@ -68,13 +70,12 @@ RULES = ["none", "completed", "user-stop", "position-limit", "velocity-limit", "
 
 
 def _compile(tmp: Path, robot: str) -> ctypes.CDLL:
+    """The core and a shim over the drive table, as a port includes it (a header of its own)."""
     (tmp / f"{robot}_drives.h").write_text(drives_header(robot))
-    (tmp / "shim.c").write_text(SHIM.format(robot=robot, upper=robot.upper()))
-    lib = tmp / f"lib{robot}.so"
-    subprocess.run(["cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-fPIC", "-shared",
-                    f"-I{CORE}", f"-I{tmp}", str(CORE / "drives.c"),
-                    str(CORE / "supervisor.c"), str(tmp / "shim.c"), "-o", str(lib), "-lm"],
-                   check=True, capture_output=True, text=True)
+    lib = build_library(f"core_{robot}", [CORE / "drives.c", CORE / "supervisor.c",
+                                          ("shim.c", SHIM.format(robot=robot,
+                                                                 upper=robot.upper()))],
+                        include=[CORE, tmp])
     c = ctypes.CDLL(str(lib))
     c.table.restype = ctypes.POINTER(Drive)
     c.limit.restype = ctypes.POINTER(ctypes.c_double)
@@ -92,8 +93,7 @@ def _compile(tmp: Path, robot: str) -> ctypes.CDLL:
 
 @pytest.fixture(scope="module", params=["serial", "parallel"])
 def built(request, tmp_path_factory):
-    robot = request.param
-    return robot, _compile(tmp_path_factory.mktemp(robot), robot)
+    return request.param, _compile(tmp_path_factory.mktemp(request.param), request.param)
 
 
 def test_the_core_compiles_freestanding_and_needs_only_libm(tmp_path):
