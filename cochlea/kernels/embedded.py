@@ -58,6 +58,23 @@ class EmbeddedUnit:
     p_hat0: np.ndarray
     effort_limit: np.ndarray
     controller: str = ""  # e.g. "g (corrected), task space"
+    #: The world-frame task pose of the unit's joints (q -> pose), for the keep-out rule's tool
+    #: points; None: the unit has no tool points.
+    fk: ca.Function | None = None
+    #: Tool points: label -> indices of (u, v) in the pose (m, world frame).
+    tool_points: tuple[tuple[str, tuple[int, int]], ...] = ()
+    #: The keep-out circle's centre (m, world frame), or the joint whose value moves it along
+    #: v (the parallel mechanism's slider: S = (0, d1)).
+    centre: tuple[float, float] = (0.0, 0.0)
+    moving_centre_joint: int | None = None
+    # What the run's summary says of the unit (cochlea-run's summary.json).
+    tracked_names: tuple[str, ...] = ()
+    tracked_units: tuple[str, ...] = ()
+    joint_names: tuple[str, ...] = ()
+    param_units: tuple[str, ...] = ()
+    p_nominal: np.ndarray | None = None
+    #: +1: the first error block is desired - actual; -1: actual - desired (controller g).
+    tracking_sign: int = 1
 
     @property
     def nq(self) -> int:
@@ -78,6 +95,10 @@ class EmbeddedUnit:
     @property
     def n_errors(self) -> int:
         return self.law.size1_out(2)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.tool_points) if self.fk is not None else 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -181,7 +202,9 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
              "ND": (sum(u.nd for u in units), "desired coordinates of all units"),
              "NP": (sum(u.n_params for u in units), "estimated parameters of all units"),
              "NG": (sum(u.n_gains for u in units), "gains of all units"),
-             "NE": (sum(u.n_errors for u in units), "errors_out entries")}
+             "NE": (sum(u.n_errors for u in units), "errors_out entries"),
+             "NPOINTS": (sum(u.n_points for u in units),
+                         "keep-out tool points of all units (<name>_tool_points)")}
     lines = [_preamble(f"{name}: {title}"),
              f"#ifndef {N}_H\n#define {N}_H\n",
              "#ifdef __cplusplus\nextern \"C\" {\n#endif\n",
@@ -256,8 +279,8 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
         " * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;",
         " * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.",
         " * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound), in double.",
-        " * Returns 0; -1 if not initialised; 1 if a command, error or the next estimate is not",
-        " * finite (the state is then left unchanged). */",
+        " * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the",
+        " * next estimate is not (the state is then left unchanged, command_out as computed). */",
         f"int {name}_step({name}_state *s, double t, const {name}_real measurement[{N}_NX],",
         f"    {name}_real command_out[{N}_NQ], {name}_real errors_out[{N}_NE]);\n",
         "/* Ends the run: the state must be initialised again before the next step. */",
@@ -266,6 +289,12 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
         " * acceleration, exact derivatives, unit after unit (ND each). Returns 0. */",
         f"int {name}_desired(double t, {name}_real xd[{N}_ND], {name}_real xd_dot[{N}_ND],",
         f"    {name}_real xd_ddot[{N}_ND]);\n",
+        "/* The keep-out rule's tool points at joint positions q[NQ] (all units, rad or m): per",
+        " * point its (u, v) and its circle's centre (m, world frame), point after point in the",
+        " * order of the units. Returns 0. */",
+        f"int {name}_tool_points(const {name}_real q[{N}_NQ], "
+        f"{name}_real points[2 * {N}_NPOINTS + 1],",
+        f"    {name}_real centres[2 * {N}_NPOINTS + 1]);\n",
         "#ifdef __cplusplus\n}\n#endif\n#endif\n"]
     return "\n".join(lines)
 
@@ -291,9 +320,11 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
              f'#include "{name}.h"\n#include <float.h>\n#include <math.h>\n', _PRECISION,
              f"static {R} CSQ({R} x) {{ return x * x; }}\n"]
     for u in units:
-        for kind in ("desired", "law"):
+        for kind in ("desired", "law", "fk"):
+            if kind == "fk" and not u.n_points:
+                continue
             fname = f"{name}_{u.name}_{kind}"
-            f = u.desired if kind == "desired" else u.law
+            f = {"desired": u.desired, "law": u.law, "fk": u.fk}[kind]
             sig = ", ".join(f"{f.name_in(i)}[{f.size1_in(i)}]" for i in range(f.n_in()))
             res = ", ".join(f"{f.name_out(i)}[{f.size1_out(i)}]" for i in range(f.n_out()))
             parts.append(f"/* {u.name}: {kind} ({sig}) -> ({res}) */\n"
@@ -376,7 +407,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         f"  for (i = 0; i < {N}_NE; ++i)",
         "    if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;",
         f"  for (i = 0; i < {N}_NP; ++i)",
-        "    if (!(next[i] - next[i] == 0.0)) return 1;",
+        "    if (!(next[i] - next[i] == 0.0)) return 2;",
         "  /* the supervisor's clip: |command| <= effort limit */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
         "    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), "
@@ -386,7 +417,36 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
                  f"s->p_hat[i] = next[i] * scale[{k}];"]
     step += ["  s->steps += 1;", "  return 0;", "}\n"]
     parts.append("\n".join(step))
+    parts.append(_tool_points(name, units, off))
     return "\n".join(parts)
+
+
+def _tool_points(name: str, units: list[EmbeddedUnit], off: list[_Offsets]) -> str:
+    N, R = name.upper(), f"{name}_real"
+    lines = [f"int {name}_tool_points(const {R} q[{N}_NQ], {R} points[2 * {N}_NPOINTS + 1],",
+             f"    {R} centres[2 * {N}_NPOINTS + 1]) {{"]
+    if any(u.n_points for u in units):
+        lines += [f"  {R} pose[{max(u.fk.size1_out(0) for u in units if u.n_points)}];",
+                  f"  const {R}* arg[1];", f"  {R}* res[1];", "  res[0] = pose;"]
+    point = 0
+    for u, o in zip(units, off):
+        if not u.n_points:
+            continue
+        lines += [f"  /* {u.name} */", f"  arg[0] = q + {o.q};",
+                  f"  if ({name}_{u.name}_fk(arg, res)) return -1;"]
+        for label, (iu, iv) in u.tool_points:
+            if u.moving_centre_joint is None:
+                cu, cv = (f"CR({_double(c)})" for c in u.centre)
+            else:
+                cu, cv = "CR(0.)", f"q[{o.q + u.moving_centre_joint}]"
+            lines += [f"  /* {label} */",
+                      f"  points[{2 * point}] = pose[{iu}]; points[{2 * point + 1}] = pose[{iv}];",
+                      f"  centres[{2 * point}] = {cu}; centres[{2 * point + 1}] = {cv};"]
+            point += 1
+    if not point:
+        lines += ["  (void)q;", "  points[0] = centres[0] = CR(0.);"]
+    lines += ["  return 0;", "}\n"]
+    return "\n".join(lines)
 
 
 def _default_config(name: str, period: float, units: list[EmbeddedUnit]) -> str:
@@ -417,7 +477,146 @@ def embedded_sources(name: str, title: str, period: float, units: list[EmbeddedU
             raise CodegenError(f"unit {u.name}: unexpected law or desired signature")
         functions.append(export(u.desired, f"{name}_{u.name}_desired", options))
         functions.append(export(u.law, f"{name}_{u.name}_law", options))
+        if u.n_points:
+            functions.append(export(u.fk, f"{name}_{u.name}_fk", options))
     bodies = _bodies(functions, f"{name}_real")
     config = _default_config(name, period, units)
     return (_header(name, title, period, units),
             _source(name, title, units, bodies, config))
+
+
+# --------------------------------------------------------------------------------------------
+# The runtime's view of a scenario: <name>_scenario.c and the table of all (scenarios.{h,c})
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class EmbeddedScenario:
+    """What the embedded runtime (``embedded/core/scenario.h``) needs to know of a scenario
+    besides its controller: names for the summary, the drive table, the keep-out radius."""
+
+    name: str
+    robot: str  # "serial" | "parallel": its drive table is <robot>_drives.h
+    space: str
+    controller: str
+    variant: str
+    parameterisation: str
+    period: float  # s
+    duration: float  # s: the scenario's own duration
+    keep_out_radius: float  # m; 0 for joint-space runs (no keep-out rule)
+
+
+def _strings(values) -> str:
+    return "{" + ", ".join('"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+                           for v in values) + "}"
+
+
+def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
+    """``<name>_scenario.c``: the scenario as a ``cochlea_scenario`` (``embedded/core/
+    scenario.h``), its controller behind the runtime's double-precision interface."""
+    name, N, R = sc.name, sc.name.upper(), f"{sc.name}_real"
+    off = _offsets(units)
+    D = f"{sc.robot.upper()}_N_DRIVES"
+    parts = [_preamble(f"{name}: the scenario as the embedded runtime runs it "
+                       "(embedded/core/scenario.h)"),
+             f'#include "scenario.h"\n#include "{name}.h"\n#include "{sc.robot}_drives.h"\n',
+             f"#if {D} != {N}_NQ\n#error \"the {sc.robot} drive table does not have one drive "
+             f"per joint of {name}\"\n#endif\n"]
+    infos = []
+    for u, o in zip(units, off):
+        p = f"{u.name}_"
+        nominal = u.p_nominal if u.p_nominal is not None else np.full(u.n_params, np.nan)
+        labels = [label for label, _ in u.tool_points] if u.n_points else [""]
+        parts += [
+            f"static const char *const {p}tracked[{u.nd}] = {_strings(u.tracked_names)};",
+            f"static const char *const {p}tracked_units[{u.nd}] = "
+            f"{_strings(u.tracked_units)};",
+            f"static const char *const {p}joints[{u.nq}] = {_strings(u.joint_names)};",
+            f"static const char *const {p}joint_units[{u.nq}] = {_strings(u.joint_units)};",
+            f"static const char *const {p}params[{u.n_params}] = {_strings(u.param_names)};",
+            f"static const char *const {p}param_units[{u.n_params}] = "
+            f"{_strings(u.param_units)};",
+            f"static const double {p}nominal[{u.n_params}] = "
+            "{" + ", ".join(_double(v) for v in nominal) + "};",
+            f"static const char *const {p}points[{max(u.n_points, 1)}] = {_strings(labels)};\n"]
+        infos.append(
+            f"    {{\"{u.name}\", \"{u.controller}\", {u.nq}, {u.nd}, {u.n_params}, "
+            f"{u.n_errors}, {o.q}, {o.d}, {o.p}, {o.e}, {p}tracked, {p}tracked_units, "
+            f"{p}joints, {p}joint_units, {p}params, {p}param_units, {p}nominal, "
+            f"{_double(u.bound)}, {_strings(u.error_names)}, {u.tracking_sign}, {u.n_points}, "
+            f"{p}points}},")
+    parts.append(f"static const cochlea_unit_info units[{N}_UNITS] = {{\n"
+                 + "\n".join(infos) + "\n};\n")
+    to_real = [f"  {R} x[{N}_NX], u[{N}_NQ], e[{N}_NE];", "  int i, r;"]
+    for u, o in zip(units, off):
+        to_real += [f"  for (i = 0; i < {u.nq}; ++i) {{",
+                    f"    x[{o.x} + i] = ({R})q[{o.q} + i];",
+                    f"    x[{o.x + u.nq} + i] = ({R})qd[{o.q} + i];", "  }"]
+    parts += [
+        "static int init(void *state) {",
+        f"  {name}_config c;",
+        f"  {name}_default_config(&c);",
+        f"  return {name}_init(({name}_state *)state, &c);",
+        "}\n",
+        "static int step(void *state, double t, const double *q, const double *qd, "
+        "double *command,",
+        "                double *errors) {",
+        *to_real,
+        f"  r = {name}_step(({name}_state *)state, t, x, u, e);",
+        f"  for (i = 0; i < {N}_NQ; ++i) command[i] = (double)u[i];",
+        f"  for (i = 0; i < {N}_NE; ++i) errors[i] = (double)e[i];",
+        "  return r;",
+        "}\n",
+        f"static void terminate(void *state) {{ {name}_terminate(({name}_state *)state); }}\n",
+        "static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {",
+        f"  {R} a[{N}_ND], b[{N}_ND], c[{N}_ND];",
+        "  int i;",
+        f"  if ({name}_desired(t, a, b, c)) return -1;",
+        f"  for (i = 0; i < {N}_ND; ++i) {{",
+        "    xd[i] = (double)a[i]; xd_dot[i] = (double)b[i]; xd_ddot[i] = (double)c[i];",
+        "  }",
+        "  return 0;",
+        "}\n",
+        "static const double *estimate(const void *state) {",
+        f"  return ((const {name}_state *)state)->p_hat;",
+        "}\n",
+        "static int tool_points(const double *q, double *points, double *centres) {",
+        f"  {R} qr[{N}_NQ], p[2 * {N}_NPOINTS + 1], c[2 * {N}_NPOINTS + 1];",
+        "  int i;",
+        f"  for (i = 0; i < {N}_NQ; ++i) qr[i] = ({R})q[i];",
+        f"  if ({name}_tool_points(qr, p, c)) return -1;",
+        f"  for (i = 0; i < 2 * {N}_NPOINTS; ++i) {{",
+        "    points[i] = (double)p[i]; centres[i] = (double)c[i];",
+        "  }",
+        "  return 0;",
+        "}\n",
+        f"const cochlea_scenario {name}_scenario = {{",
+        f"    \"{name}\", \"{sc.robot}\", \"{sc.space}\", \"{sc.controller}\", \"{sc.variant}\", "
+        f"\"{sc.parameterisation}\",",
+        f"    {_double(sc.period)}, {_double(sc.duration)}, {_double(sc.keep_out_radius)},",
+        f"    {N}_UNITS, units, {N}_NQ, {N}_ND, {N}_NP, {N}_NE, {N}_NPOINTS,",
+        f"    {sc.robot}_drives, {sc.robot}_position_lo, {sc.robot}_position_hi, "
+        f"{sc.robot}_velocity, {sc.robot}_effort,",
+        f"    sizeof({name}_state), (int)sizeof({R}), init, step, terminate, desired, estimate, "
+        "tool_points",
+        "};\n"]
+    return "\n".join(parts)
+
+
+def scenario_table(names: list[str]) -> tuple[str, str]:
+    """``(scenarios.h, scenarios.c)``: every generated scenario, for a program that runs any
+    of them by name (``build/cochlea-embedded --scenario NAME``)."""
+    title = "every embedded scenario, by name"
+    header = [_preamble(f"scenarios: {title}"), "#ifndef COCHLEA_SCENARIOS_H",
+              "#define COCHLEA_SCENARIOS_H\n", '#include "scenario.h"\n',
+              "#ifdef __cplusplus\nextern \"C\" {\n#endif\n",
+              f"#define COCHLEA_N_SCENARIOS {len(names)}\n"]
+    header += [f"extern const cochlea_scenario {n}_scenario;" for n in names]
+    header += ["", "/* Every scenario above, in this order, then a null pointer. */",
+               "extern const cochlea_scenario *const "
+               "cochlea_scenarios[COCHLEA_N_SCENARIOS + 1];\n",
+               "#ifdef __cplusplus\n}\n#endif\n#endif\n"]
+    source = [_preamble(f"scenarios: {title}"), '#include "scenarios.h"\n',
+              "const cochlea_scenario *const cochlea_scenarios[COCHLEA_N_SCENARIOS + 1] = {"]
+    source += [f"    &{n}_scenario," for n in names] + ["    0", "};\n"]
+    return "\n".join(header), "\n".join(source)

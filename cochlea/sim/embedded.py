@@ -11,13 +11,21 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..kernels.catalogue import CodegenConfig, law_units
-from ..kernels.embedded import EmbeddedUnit, embedded_sources
+from ..kernels.embedded import (
+    EmbeddedScenario,
+    EmbeddedUnit,
+    embedded_sources,
+    scenario_source,
+    scenario_table,
+)
 from .scenario import Scenario
 from .scenario import load as load_scenario
 from .setup import unit_setups
 
-__all__ = ["embedded_units", "write_embedded"]
+__all__ = ["embedded_scenario", "embedded_units", "write_embedded"]
 
 
 def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
@@ -29,8 +37,26 @@ def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
             u.name, u.desired, c.law, tuple(u.joint_units), c.gain_names, c.gain_sizes,
             c.error_names, tuple(u.controller_model.param_names),
             law_units(u.controller_model, c), u.gains, u.gamma, float(u.bound), u.p_hat0,
-            u.effort_limit, controller=f"{c.kind} ({c.variant}), {c.space} space"))
+            u.effort_limit, controller=f"{c.kind} ({c.variant}), {c.space} space",
+            fk=u.fk_world, tool_points=tuple(u.tool_points), centre=tuple(u.centre),
+            moving_centre_joint=u.moving_centre_joint,
+            tracked_names=(tuple(j.name for j in u.controller_model.joints)
+                           if c.space == "joint" else tuple(u.task_names)),
+            tracked_units=(tuple(u.joint_units) if c.space == "joint"
+                           else tuple(u.task_units)),
+            joint_names=tuple(j.name for j in u.controller_model.joints),
+            param_units=tuple(u.controller_model.parameters.si_units),
+            p_nominal=np.asarray(u.controller_model.p_nominal, float),
+            tracking_sign=-1 if c.kind == "g" else 1))
     return units
+
+
+def embedded_scenario(sc: Scenario) -> EmbeddedScenario:
+    """The scenario's facts the embedded runtime carries (names, period, keep-out radius)."""
+    radius = sc.system.keep_out_radius if sc.space == "task" else None
+    return EmbeddedScenario(sc.name, sc.robot, sc.space, sc.controller, sc.variant,
+                            sc.parameterisation, sc.period, float(sc.duration),
+                            float(radius) if radius is not None else 0.0)
 
 
 def write_embedded(config: CodegenConfig, folder: str | Path) -> list[Path]:
@@ -42,15 +68,20 @@ def write_embedded(config: CodegenConfig, folder: str | Path) -> list[Path]:
         sc = load_scenario(name)
         title = (f"the embedded controller of scenario {name} ({sc.robot} robot, "
                  f"{sc.space} space, controller {sc.controller})")
-        sources[name] = embedded_sources(name, title, sc.period, embedded_units(sc),
-                                         config.embedded.function)
+        units = embedded_units(sc)
+        header, source = embedded_sources(name, title, sc.period, units,
+                                          config.embedded.function)
+        sources[name] = {".h": header, ".c": source,
+                         "_scenario.c": scenario_source(embedded_scenario(sc), units)}
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.iterdir():
         if old.is_file():
             old.unlink()
+    table_h, table_c = scenario_table(list(sources))
+    sources["scenarios"] = {".h": table_h, ".c": table_c}
     written = []
-    for name, (header, source) in sources.items():
-        for suffix, text in ((".h", header), (".c", source)):
+    for name, files in sources.items():
+        for suffix, text in files.items():
             path = folder / f"{name}{suffix}"
             path.write_text(text)
             written.append(path)

@@ -528,3 +528,28 @@ int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report)
     (void)cochlea_bridge_stop(b);
     return 0;
 }
+
+static int backend_read(void *ctx, double *q, double *qd)
+{
+    return cochlea_bridge_read((cochlea_bridge *)ctx, q, qd);
+}
+
+static int backend_write(void *ctx, const double *tau)
+{
+    return cochlea_bridge_write((cochlea_bridge *)ctx, tau);
+}
+
+static int backend_shutdown(void *ctx)
+{
+    return cochlea_bridge_stop((cochlea_bridge *)ctx);
+}
+
+cochlea_backend cochlea_bridge_backend(cochlea_bridge *b)
+{
+    cochlea_backend backend;
+    backend.ctx = b;
+    backend.read = backend_read;
+    backend.write = backend_write;
+    backend.shutdown = backend_shutdown;
+    return backend;
+}

@@ -117,6 +117,8 @@ int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd);
 int cochlea_bridge_write(cochlea_bridge *b, const double *tau);
 /* The safe shut-down; the number of motors that confirmed torque off. */
 int cochlea_bridge_stop(cochlea_bridge *b);
+/* The bridge as the loop's backend (read, write, and the safe shut-down as its shutdown). */
+cochlea_backend cochlea_bridge_backend(cochlea_bridge *b);
 
 #ifdef __cplusplus
 }

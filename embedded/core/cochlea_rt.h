@@ -76,6 +76,19 @@ typedef struct {
     void (*wait_until_ns)(void *ctx, int64_t deadline_ns);
 } cochlea_hal;
 
+/* ---- a backend: the motors (cochlea_bridge_backend) or a simulated robot ---------------- */
+
+/* What the loop drives. q, qd and tau hold every joint of the scenario in its order (SI). */
+typedef struct {
+    void *ctx;
+    /* One measurement; 1, or 0 on a failure (q and qd then left as they were). */
+    int (*read)(void *ctx, double *q, double *qd);
+    /* One command; 1, or 0 on a failure. */
+    int (*write)(void *ctx, const double *tau);
+    /* The safe stop: zero effort, drives off. The number of drives that confirmed it. */
+    int (*shutdown)(void *ctx);
+} cochlea_backend;
+
 /* ---- the supervisor ----------------------------------------------------------------------- */
 
 /* What the supervisor enforces, per joint of the whole system in the loop's order (SI). */

@@ -2240,6 +2240,52 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   return 0;
 }
 
+/* mechanism: fk (q[5]) -> (fk_world[6]) */
+static int parallel_joint_realistic_mechanism_fk(const parallel_joint_realistic_real** arg, parallel_joint_realistic_real** res) {
+  parallel_joint_realistic_real a0, a1, a2, a3, a4, a5;
+  a0=CR(1.2000000000000000e-01);
+  a1=CR(1.0000000000000001e-01);
+  a2=arg[0]? arg[0][0] : 0;
+  a3=CM(cos)(a2);
+  a3=(a1*a3);
+  a0=(a0+a3);
+  a3=arg[0]? arg[0][1] : 0;
+  a4=CM(cos)(a3);
+  a4=(a1*a4);
+  a0=(a0+a4);
+  if (res[0]!=0) res[0][0]=a0;
+  a2=CM(sin)(a2);
+  a2=(a1*a2);
+  a3=CM(sin)(a3);
+  a3=(a1*a3);
+  a2=(a2+a3);
+  if (res[0]!=0) res[0][1]=a2;
+  a3=arg[0]? arg[0][2] : 0;
+  a2=(a2-a3);
+  a2=CM(atan2)(a2,a0);
+  if (res[0]!=0) res[0][2]=a2;
+  a2=-CR(1.2000000000000000e-01);
+  a0=arg[0]? arg[0][3] : 0;
+  a4=CM(cos)(a0);
+  a4=(a1*a4);
+  a2=(a2+a4);
+  a4=arg[0]? arg[0][4] : 0;
+  a5=CM(cos)(a4);
+  a5=(a1*a5);
+  a2=(a2+a5);
+  if (res[0]!=0) res[0][3]=a2;
+  a0=CM(sin)(a0);
+  a0=(a1*a0);
+  a4=CM(sin)(a4);
+  a1=(a1*a4);
+  a0=(a0+a1);
+  if (res[0]!=0) res[0][4]=a0;
+  a0=(a0-a3);
+  a0=CM(atan2)(a0,a2);
+  if (res[0]!=0) res[0][5]=a0;
+  return 0;
+}
+
 void parallel_joint_realistic_default_config(parallel_joint_realistic_config *c) {
   /* mechanism: gains */
   c->gains[0] = 15.0;
@@ -2396,11 +2442,29 @@ int parallel_joint_realistic_step(parallel_joint_realistic_state *s, double t, c
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NE; ++i)
     if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NP; ++i)
-    if (!(next[i] - next[i] == 0.0)) return 1;
+    if (!(next[i] - next[i] == 0.0)) return 2;
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
   for (i = 0; i < 28; ++i) s->p_hat[i] = next[i] * scale[0];
   s->steps += 1;
+  return 0;
+}
+
+int parallel_joint_realistic_tool_points(const parallel_joint_realistic_real q[PARALLEL_JOINT_REALISTIC_NQ], parallel_joint_realistic_real points[2 * PARALLEL_JOINT_REALISTIC_NPOINTS + 1],
+    parallel_joint_realistic_real centres[2 * PARALLEL_JOINT_REALISTIC_NPOINTS + 1]) {
+  parallel_joint_realistic_real pose[6];
+  const parallel_joint_realistic_real* arg[1];
+  parallel_joint_realistic_real* res[1];
+  res[0] = pose;
+  /* mechanism */
+  arg[0] = q + 0;
+  if (parallel_joint_realistic_mechanism_fk(arg, res)) return -1;
+  /* C */
+  points[0] = pose[0]; points[1] = pose[1];
+  centres[0] = CR(0.); centres[1] = q[2];
+  /* C' */
+  points[2] = pose[3]; points[3] = pose[4];
+  centres[2] = CR(0.); centres[3] = q[2];
   return 0;
 }

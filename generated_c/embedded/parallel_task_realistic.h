@@ -24,6 +24,7 @@ typedef double parallel_task_realistic_real;
 #define PARALLEL_TASK_REALISTIC_NP 28  /* estimated parameters of all units */
 #define PARALLEL_TASK_REALISTIC_NG 11  /* gains of all units */
 #define PARALLEL_TASK_REALISTIC_NE 11  /* errors_out entries */
+#define PARALLEL_TASK_REALISTIC_NPOINTS 2  /* keep-out tool points of all units (<name>_tool_points) */
 #define PARALLEL_TASK_REALISTIC_PERIOD 0.001  /* s: the scenario's control period */
 
 /* Unit mechanism: controller d (corrected), task space. */
@@ -88,8 +89,8 @@ int parallel_task_realistic_init(parallel_task_realistic_state *s, const paralle
  * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;
  * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.
  * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound), in double.
- * Returns 0; -1 if not initialised; 1 if a command, error or the next estimate is not
- * finite (the state is then left unchanged). */
+ * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the
+ * next estimate is not (the state is then left unchanged, command_out as computed). */
 int parallel_task_realistic_step(parallel_task_realistic_state *s, double t, const parallel_task_realistic_real measurement[PARALLEL_TASK_REALISTIC_NX],
     parallel_task_realistic_real command_out[PARALLEL_TASK_REALISTIC_NQ], parallel_task_realistic_real errors_out[PARALLEL_TASK_REALISTIC_NE]);
 
@@ -100,6 +101,12 @@ void parallel_task_realistic_terminate(parallel_task_realistic_state *s);
  * acceleration, exact derivatives, unit after unit (ND each). Returns 0. */
 int parallel_task_realistic_desired(double t, parallel_task_realistic_real xd[PARALLEL_TASK_REALISTIC_ND], parallel_task_realistic_real xd_dot[PARALLEL_TASK_REALISTIC_ND],
     parallel_task_realistic_real xd_ddot[PARALLEL_TASK_REALISTIC_ND]);
+
+/* The keep-out rule's tool points at joint positions q[NQ] (all units, rad or m): per
+ * point its (u, v) and its circle's centre (m, world frame), point after point in the
+ * order of the units. Returns 0. */
+int parallel_task_realistic_tool_points(const parallel_task_realistic_real q[PARALLEL_TASK_REALISTIC_NQ], parallel_task_realistic_real points[2 * PARALLEL_TASK_REALISTIC_NPOINTS + 1],
+    parallel_task_realistic_real centres[2 * PARALLEL_TASK_REALISTIC_NPOINTS + 1]);
 
 #ifdef __cplusplus
 }

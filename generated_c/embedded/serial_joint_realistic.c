@@ -690,6 +690,63 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   return 0;
 }
 
+/* arm1: fk (q[3]) -> (fk_world[3]) */
+static int serial_joint_realistic_arm1_fk(const serial_joint_realistic_real** arg, serial_joint_realistic_real** res) {
+  serial_joint_realistic_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
+  serial_joint_realistic_real a12, a13, a14;
+  a00=CR(1.0100000000000001e-01);
+  a01=CR(1.0500000000000000e-01);
+  a02=CR(1.);
+  a03=arg[0]? arg[0][0] : 0;
+  a04=CM(cos)(a03);
+  a04=(a02-a04);
+  a04=(a02-a04);
+  a05=(a01*a04);
+  a06=arg[0]? arg[0][1] : 0;
+  a07=CM(cos)(a06);
+  a07=(a02-a07);
+  a07=(a02-a07);
+  a08=(a04*a07);
+  a09=CM(sin)(a03);
+  a10=CM(sin)(a06);
+  a11=(a09*a10);
+  a08=(a08-a11);
+  a11=(a01*a08);
+  a05=(a05+a11);
+  a11=CR(4.0000000000000001e-02);
+  a12=arg[0]? arg[0][2] : 0;
+  a13=CM(cos)(a12);
+  a13=(a02-a13);
+  a02=(a02-a13);
+  a13=(a08*a02);
+  a04=(a04*a10);
+  a07=(a09*a07);
+  a10=(a04+a07);
+  a14=CM(sin)(a12);
+  a10=(a10*a14);
+  a13=(a13-a10);
+  a13=(a11*a13);
+  a05=(a05+a13);
+  a00=(a00+a05);
+  if (res[0]!=0) res[0][0]=a00;
+  a00=-CR(1.2800000000000000e-01);
+  a09=(a01*a09);
+  a07=(a07+a04);
+  a01=(a01*a07);
+  a09=(a09+a01);
+  a07=(a07*a02);
+  a08=(a08*a14);
+  a07=(a07+a08);
+  a11=(a11*a07);
+  a09=(a09+a11);
+  a00=(a00+a09);
+  if (res[0]!=0) res[0][1]=a00;
+  a03=(a03+a06);
+  a03=(a03+a12);
+  if (res[0]!=0) res[0][2]=a03;
+  return 0;
+}
+
 /* arm2: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
 static int serial_joint_realistic_arm2_desired(const serial_joint_realistic_real** arg, serial_joint_realistic_real** res) {
   serial_joint_realistic_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
@@ -1705,6 +1762,62 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   return 0;
 }
 
+/* arm2: fk (q[3]) -> (fk_world[3]) */
+static int serial_joint_realistic_arm2_fk(const serial_joint_realistic_real** arg, serial_joint_realistic_real** res) {
+  serial_joint_realistic_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
+  serial_joint_realistic_real a12, a13, a14;
+  a00=-CR(1.0500000000000000e-01);
+  a01=CR(1.0500000000000000e-01);
+  a02=CR(1.);
+  a03=arg[0]? arg[0][0] : 0;
+  a04=CM(cos)(a03);
+  a04=(a02-a04);
+  a04=(a02-a04);
+  a05=(a01*a04);
+  a06=arg[0]? arg[0][1] : 0;
+  a07=CM(cos)(a06);
+  a07=(a02-a07);
+  a07=(a02-a07);
+  a08=(a04*a07);
+  a09=CM(sin)(a03);
+  a10=CM(sin)(a06);
+  a11=(a09*a10);
+  a08=(a08-a11);
+  a11=(a01*a08);
+  a05=(a05+a11);
+  a11=CR(4.0000000000000001e-02);
+  a12=arg[0]? arg[0][2] : 0;
+  a13=CM(cos)(a12);
+  a13=(a02-a13);
+  a02=(a02-a13);
+  a13=(a08*a02);
+  a04=(a04*a10);
+  a07=(a09*a07);
+  a10=(a04+a07);
+  a14=CM(sin)(a12);
+  a10=(a10*a14);
+  a13=(a13-a10);
+  a13=(a11*a13);
+  a05=(a05+a13);
+  a05=(a00+a05);
+  if (res[0]!=0) res[0][0]=a05;
+  a09=(a01*a09);
+  a07=(a07+a04);
+  a01=(a01*a07);
+  a09=(a09+a01);
+  a07=(a07*a02);
+  a08=(a08*a14);
+  a07=(a07+a08);
+  a11=(a11*a07);
+  a09=(a09+a11);
+  a00=(a00+a09);
+  if (res[0]!=0) res[0][1]=a00;
+  a03=(a03+a06);
+  a03=(a03+a12);
+  if (res[0]!=0) res[0][2]=a03;
+  return 0;
+}
+
 void serial_joint_realistic_default_config(serial_joint_realistic_config *c) {
   /* arm1: gains */
   c->gains[0] = 10.0;
@@ -1878,12 +1991,33 @@ int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NE; ++i)
     if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NP; ++i)
-    if (!(next[i] - next[i] == 0.0)) return 1;
+    if (!(next[i] - next[i] == 0.0)) return 2;
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
   for (i = 0; i < 12; ++i) s->p_hat[i] = next[i] * scale[0];
   for (i = 12; i < 24; ++i) s->p_hat[i] = next[i] * scale[1];
   s->steps += 1;
+  return 0;
+}
+
+int serial_joint_realistic_tool_points(const serial_joint_realistic_real q[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real points[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1],
+    serial_joint_realistic_real centres[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1]) {
+  serial_joint_realistic_real pose[3];
+  const serial_joint_realistic_real* arg[1];
+  serial_joint_realistic_real* res[1];
+  res[0] = pose;
+  /* arm1 */
+  arg[0] = q + 0;
+  if (serial_joint_realistic_arm1_fk(arg, res)) return -1;
+  /* tool */
+  points[0] = pose[0]; points[1] = pose[1];
+  centres[0] = CR(0.0); centres[1] = CR(0.0);
+  /* arm2 */
+  arg[0] = q + 3;
+  if (serial_joint_realistic_arm2_fk(arg, res)) return -1;
+  /* tool */
+  points[2] = pose[0]; points[3] = pose[1];
+  centres[2] = CR(0.0); centres[3] = CR(0.0);
   return 0;
 }

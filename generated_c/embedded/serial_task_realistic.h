@@ -24,6 +24,7 @@ typedef double serial_task_realistic_real;
 #define SERIAL_TASK_REALISTIC_NP 24  /* estimated parameters of all units */
 #define SERIAL_TASK_REALISTIC_NG 18  /* gains of all units */
 #define SERIAL_TASK_REALISTIC_NE 12  /* errors_out entries */
+#define SERIAL_TASK_REALISTIC_NPOINTS 2  /* keep-out tool points of all units (<name>_tool_points) */
 #define SERIAL_TASK_REALISTIC_PERIOD 0.001  /* s: the scenario's control period */
 
 /* Unit arm1: controller g (corrected), task space. */
@@ -111,8 +112,8 @@ int serial_task_realistic_init(serial_task_realistic_state *s, const serial_task
  * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;
  * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.
  * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound), in double.
- * Returns 0; -1 if not initialised; 1 if a command, error or the next estimate is not
- * finite (the state is then left unchanged). */
+ * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the
+ * next estimate is not (the state is then left unchanged, command_out as computed). */
 int serial_task_realistic_step(serial_task_realistic_state *s, double t, const serial_task_realistic_real measurement[SERIAL_TASK_REALISTIC_NX],
     serial_task_realistic_real command_out[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real errors_out[SERIAL_TASK_REALISTIC_NE]);
 
@@ -123,6 +124,12 @@ void serial_task_realistic_terminate(serial_task_realistic_state *s);
  * acceleration, exact derivatives, unit after unit (ND each). Returns 0. */
 int serial_task_realistic_desired(double t, serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND], serial_task_realistic_real xd_dot[SERIAL_TASK_REALISTIC_ND],
     serial_task_realistic_real xd_ddot[SERIAL_TASK_REALISTIC_ND]);
+
+/* The keep-out rule's tool points at joint positions q[NQ] (all units, rad or m): per
+ * point its (u, v) and its circle's centre (m, world frame), point after point in the
+ * order of the units. Returns 0. */
+int serial_task_realistic_tool_points(const serial_task_realistic_real q[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real points[2 * SERIAL_TASK_REALISTIC_NPOINTS + 1],
+    serial_task_realistic_real centres[2 * SERIAL_TASK_REALISTIC_NPOINTS + 1]);
 
 #ifdef __cplusplus
 }

@@ -1,0 +1,236 @@
+/* cochlea embedded runtime: the control loop (loop.h says what each period does). */
+#include "loop.h"
+
+#include <math.h>
+
+int cochlea_loop_row_length(const cochlea_scenario *sc)
+{
+    int u, n = 1 + 3 * sc->nq + 4;
+    for (u = 0; u < sc->n_units; ++u) {
+        n += sc->units[u].ne + sc->units[u].np;
+    }
+    return n;
+}
+
+int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const cochlea_hal *hal,
+                      const cochlea_backend *backend, void *controller, double duration_s,
+                      int watchdog_misses, int watchdog_errors, int realtime)
+{
+    int u, i;
+    double periods;
+    loop->scenario = sc;
+    loop->hal = hal;
+    loop->backend = *backend;
+    loop->controller = controller;
+    loop->realtime = realtime;
+    loop->on_row = 0;
+    loop->row_ctx = 0;
+    loop->stop_request = COCHLEA_RULE_NONE;
+    loop->rows = 0;
+    loop->deadline_misses = 0;
+    loop->stop.rule = COCHLEA_RULE_NONE;
+    loop->shutdown_confirmed = -1;
+    loop->t0_ns = loop->end_ns = 0;
+    if (sc->nq > COCHLEA_MAX_JOINTS || sc->n_units > COCHLEA_MAX_UNITS
+        || sc->n_points > COCHLEA_MAX_POINTS || sc->ne > COCHLEA_MAX_ERRORS
+        || cochlea_loop_row_length(sc) > COCHLEA_MAX_ROW) {
+        return COCHLEA_LOOP_TOO_BIG;
+    }
+    periods = duration_s / sc->period_s;
+    if (!(periods >= 0.5 && periods < 2.0e9)) { /* also refuses NaN */
+        return COCHLEA_LOOP_BAD_DURATION;
+    }
+    if (watchdog_misses < 1 || watchdog_errors < 1) {
+        return COCHLEA_LOOP_BAD_WATCHDOG;
+    }
+    if (realtime && (hal == 0 || hal->now_ns == 0 || hal->wait_until_ns == 0)) {
+        return COCHLEA_LOOP_NO_CLOCK;
+    }
+    loop->steps = (long)nearbyint(periods);
+    loop->period_ns = (int64_t)nearbyint(sc->period_s * 1e9);
+    loop->row_length = cochlea_loop_row_length(sc);
+    loop->limits.n_joints = sc->nq;
+    loop->limits.position_lo = sc->position_lo;
+    loop->limits.position_hi = sc->position_hi;
+    loop->limits.velocity = sc->velocity;
+    loop->limits.effort = sc->effort;
+    loop->limits.keep_out_radius = sc->keep_out_radius;
+    loop->limits.watchdog_misses = watchdog_misses;
+    loop->limits.watchdog_errors = watchdog_errors;
+    if (sc->init(controller) != 0) {
+        return COCHLEA_LOOP_BAD_CONTROLLER;
+    }
+    for (u = 0; u < sc->n_units; ++u) {
+        loop->estimates[u] = sc->estimate(controller) + sc->units[u].p0;
+        loop->n_params[u] = sc->units[u].np;
+        loop->bounds[u] = sc->units[u].bound;
+    }
+    for (i = 0; i < sc->nq; ++i) {
+        loop->q[i] = loop->qd[i] = loop->tau[i] = 0.0;
+    }
+    return COCHLEA_LOOP_OK;
+}
+
+static int64_t now(const cochlea_loop *loop)
+{
+    return (loop->hal && loop->hal->now_ns) ? loop->hal->now_ns(loop->hal->ctx) : 0;
+}
+
+static void fill_nan(double *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        v[i] = NAN;
+    }
+}
+
+static void emit(cochlea_loop *loop)
+{
+    loop->rows += 1;
+    if (loop->on_row) {
+        loop->on_row(loop->row_ctx, loop->row, loop->row_length);
+    }
+}
+
+static void stop_here(cochlea_stop *stop, int rule, double t)
+{
+    stop->rule = rule;
+    stop->time_s = t;
+    stop->joint = stop->unit = -1;
+    stop->what = 0;
+    stop->value = stop->limit = 0.0;
+    stop->point[0] = stop->point[1] = stop->centre[0] = stop->centre[1] = 0.0;
+    stop->count = 0;
+    stop->reason = 0;
+}
+
+/* Every period; the rule that ended them (the shutdown is the caller's). */
+static int periods(cochlea_loop *loop)
+{
+    const cochlea_scenario *sc = loop->scenario;
+    const cochlea_backend *be = &loop->backend;
+    const int n = sc->nq;
+    const double h = sc->period_s;
+    double *row = loop->row;
+    double *row_tau = row + 1 + 2 * n;
+    double *timing = row + loop->row_length - 4;
+    int64_t t0, start, previous_start, io_start, io_ns, end;
+    int errors = 0, misses = 0, u, i, r;
+    long k;
+
+    t0 = now(loop);
+    loop->t0_ns = t0;
+    previous_start = t0;
+    for (k = 0; k < loop->steps; ++k) {
+        const double t = (double)k * h;
+        if (loop->realtime) {
+            loop->hal->wait_until_ns(loop->hal->ctx, t0 + (int64_t)k * loop->period_ns);
+        }
+        start = now(loop);
+        if (loop->stop_request) {
+            stop_here(&loop->stop, loop->stop_request, t);
+            return loop->stop.rule;
+        }
+        io_start = now(loop);
+        r = be->read(be->ctx, loop->q, loop->qd);
+        io_ns = now(loop) - io_start;
+        errors = r ? 0 : errors + 1;
+        if (errors > loop->limits.watchdog_errors) {
+            stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
+            loop->stop.count = errors;
+            loop->stop.reason = 1;
+            return COCHLEA_WATCHDOG;
+        }
+        row[0] = t;
+        for (i = 0; i < n; ++i) {
+            row[1 + i] = loop->q[i];
+            row[1 + n + i] = loop->qd[i];
+        }
+        if (r && (cochlea_check_state(&loop->limits, t, loop->q, loop->qd, &loop->stop)
+                  || (loop->limits.keep_out_radius > 0.0 && sc->n_points > 0
+                      && sc->tool_points(loop->q, loop->points, loop->centres) == 0
+                      && cochlea_check_keep_out(&loop->limits, t, sc->n_points, loop->points,
+                                                loop->centres, &loop->stop)))) {
+            fill_nan(row_tau, loop->row_length - (1 + 2 * n)); /* nothing was commanded */
+            emit(loop);
+            return loop->stop.rule;
+        }
+        { /* the estimate this period uses, in the row */
+            const double *p_hat = sc->estimate(loop->controller);
+            double *cell = row_tau + n;
+            for (u = 0; u < sc->n_units; ++u) {
+                const cochlea_unit_info *unit = &sc->units[u];
+                cell += unit->ne;
+                for (i = 0; i < unit->np; ++i) {
+                    cell[i] = p_hat[unit->p0 + i];
+                }
+                cell += unit->np;
+            }
+        }
+        r = sc->step(loop->controller, t, loop->q, loop->qd, loop->tau, loop->errors);
+        { /* errors, unit after unit, between tau and the estimate */
+            double *cell = row_tau + n;
+            for (u = 0; u < sc->n_units; ++u) {
+                const cochlea_unit_info *unit = &sc->units[u];
+                for (i = 0; i < unit->ne; ++i) {
+                    cell[i] = loop->errors[unit->e0 + i];
+                }
+                cell += unit->ne + unit->np;
+            }
+        }
+        if (r == 0) { /* finite: the supervisor's estimate rule on the next estimate */
+            r = cochlea_check_command(&loop->limits, t, loop->tau, sc->n_units, loop->estimates,
+                                      loop->n_params, loop->bounds, &loop->stop) ? 3 : 0;
+        } else {
+            stop_here(&loop->stop, COCHLEA_NON_FINITE, t);
+            loop->stop.what = r == 2 ? 2 : 1;
+        }
+        if (r != 0) { /* the refused command is logged as computed; it was never written */
+            for (i = 0; i < n; ++i) {
+                row_tau[i] = loop->tau[i];
+            }
+            fill_nan(timing, 4);
+            emit(loop);
+            return loop->stop.rule;
+        }
+        cochlea_saturate(&loop->limits, loop->tau); /* the controller clipped it already */
+        io_start = now(loop);
+        if (!be->write(be->ctx, loop->tau)) {
+            errors += 1;
+        }
+        io_ns += now(loop) - io_start;
+        for (i = 0; i < n; ++i) {
+            row_tau[i] = loop->tau[i];
+        }
+        end = now(loop);
+        timing[0] = (double)(start - t0) * 1e-9 - t;
+        timing[1] = (double)(start - previous_start) * 1e-9;
+        timing[2] = (double)(end - start) * 1e-9;
+        timing[3] = (double)io_ns * 1e-9;
+        emit(loop);
+        previous_start = start;
+        if (loop->realtime && end - t0 > (int64_t)(k + 1) * loop->period_ns) {
+            misses += 1;
+            loop->deadline_misses += 1;
+            if (misses > loop->limits.watchdog_misses) {
+                stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
+                loop->stop.count = misses;
+                loop->stop.value = timing[2];
+                return COCHLEA_WATCHDOG;
+            }
+        } else {
+            misses = 0;
+        }
+    }
+    stop_here(&loop->stop, COCHLEA_COMPLETED, (double)loop->steps * h);
+    return COCHLEA_COMPLETED;
+}
+
+int cochlea_loop_run(cochlea_loop *loop)
+{
+    const int rule = periods(loop);
+    loop->end_ns = now(loop);
+    loop->shutdown_confirmed = loop->backend.shutdown(loop->backend.ctx);
+    loop->scenario->terminate(loop->controller);
+    return rule;
+}

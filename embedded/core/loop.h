@@ -1,0 +1,100 @@
+/* cochlea embedded runtime: the control loop, cochlea/runtime/loop.py in C.
+ *
+ * Each period k (t = k h), at the absolute deadline t0 + k h:
+ *   1. a stop request (the port's signal handler: user stop, terminate) ends the run;
+ *   2. read the measurement; more than watchdog_errors consecutive failures end the run
+ *      (a failed read leaves the last measurement and skips the state's checks);
+ *   3. the supervisor checks the measured state: finite, position and velocity limits, then
+ *      every tool point against its keep-out circle (task-space scenarios);
+ *   4. the generated controller computes the command and the next estimate;
+ *   5. the supervisor checks them (finite; |p_hat| within its bound) and clips the command;
+ *   6. write the command; the row of the period goes to the port's on_row callback;
+ *   7. more than watchdog_misses consecutive deadline misses end the run.
+ * Whatever ends the run, the backend's shutdown (zero effort, drives off) runs before
+ * cochlea_loop_run returns: it is the only exit.
+ *
+ * The row of a period is cochlea-run's log.bin row: t, q[nq], qd[nq], tau[nq], per unit its
+ * errors[ne] and the estimate used in the period[np], then start lateness, wall period,
+ * compute and backend i/o time (s). A stop on the state logs the state and NaN after it; a stop
+ * on the command logs the command as computed (never written) and NaN timing.
+ * No allocation, no stdio: the caller owns every buffer.
+ */
+#ifndef COCHLEA_LOOP_H
+#define COCHLEA_LOOP_H
+
+#include "cochlea_rt.h"
+#include "scenario.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define COCHLEA_MAX_JOINTS 16
+#define COCHLEA_MAX_UNITS 4
+#define COCHLEA_MAX_POINTS 8
+#define COCHLEA_MAX_ERRORS 64
+#define COCHLEA_MAX_ROW 512
+
+/* Why cochlea_loop_init refused: nothing was started. */
+enum cochlea_loop_error {
+    COCHLEA_LOOP_OK = 0,
+    COCHLEA_LOOP_TOO_BIG,        /* the scenario does not fit the loop's buffers */
+    COCHLEA_LOOP_BAD_DURATION,   /* not finite, not positive, or more periods than a long */
+    COCHLEA_LOOP_BAD_WATCHDOG,   /* a watchdog count below 1 */
+    COCHLEA_LOOP_BAD_CONTROLLER, /* the controller's init refused its configuration */
+    COCHLEA_LOOP_NO_CLOCK        /* a real-time loop without now_ns and wait_until_ns */
+};
+
+typedef struct {
+    /* Configuration (cochlea_loop_init). */
+    const cochlea_scenario *scenario;
+    const cochlea_hal *hal;          /* now_ns, wait_until_ns */
+    cochlea_backend backend;
+    void *controller;                /* scenario->state_size bytes, the caller's */
+    cochlea_limits limits;           /* from the scenario, with the watchdog's counts */
+    int64_t period_ns;
+    long steps;
+    int realtime;                    /* 0: periods back to back, no waiting (tests) */
+    /* Called at the end of every period with its row (row_length values). It runs inside
+     * the period: copy the row and return (the POSIX port hands it to a writer thread). */
+    void (*on_row)(void *ctx, const double *row, int row_length);
+    void *row_ctx;
+    /* Set from outside the loop (a signal handler): COCHLEA_USER_STOP or COCHLEA_TERMINATED. */
+    volatile int stop_request;
+    /* Results. */
+    int row_length;
+    long rows;                       /* periods logged */
+    uint32_t deadline_misses;        /* in the whole run */
+    cochlea_stop stop;               /* why it ended (stop.rule) */
+    int shutdown_confirmed;          /* the backend's shutdown result */
+    int64_t t0_ns, end_ns;           /* start of period 0 and the end of the run (hal time) */
+    /* Scratch. */
+    double q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
+    double errors[COCHLEA_MAX_ERRORS];
+    double points[2 * COCHLEA_MAX_POINTS], centres[2 * COCHLEA_MAX_POINTS];
+    const double *estimates[COCHLEA_MAX_UNITS];
+    int n_params[COCHLEA_MAX_UNITS];
+    double bounds[COCHLEA_MAX_UNITS];
+    double row[COCHLEA_MAX_ROW];
+} cochlea_loop;
+
+/* The length of a log row of the scenario (see above). */
+int cochlea_loop_row_length(const cochlea_scenario *sc);
+
+/* Configure the loop and initialise the controller (p_hat = p_hat0). duration_s: the run
+ * (rounded to whole periods); watchdog_misses and watchdog_errors as cochlea-run's. The
+ * backend must already be started (cochlea_bridge_start): the loop only reads, writes and
+ * shuts it down. COCHLEA_LOOP_OK or a cochlea_loop_error; on an error nothing ran. */
+int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const cochlea_hal *hal,
+                      const cochlea_backend *backend, void *controller, double duration_s,
+                      int watchdog_misses, int watchdog_errors, int realtime);
+
+/* Run every period until the end or a rule; then the backend's shutdown. The rule
+ * (enum cochlea_rule); loop->stop says where, cochlea_exit_code() the process's exit code. */
+int cochlea_loop_run(cochlea_loop *loop);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COCHLEA_LOOP_H */

@@ -1,0 +1,73 @@
+/* cochlea embedded runtime: a scenario as the runtime runs it.
+ *
+ * cochlea-codegen writes one cochlea_scenario per scenario (generated_c/embedded/
+ * <name>_scenario.c, from the same scenario file as cochlea-run's) and the table of all of them
+ * (scenarios.{h,c}). It puts the generated controller, whatever its precision, behind one
+ * double-precision interface, and carries what the loop and the run's summary need: the drive
+ * table and limits of the robot, each unit's names and units, the keep-out tool points.
+ * Units are SI throughout: rad, m, rad/s, m/s, N m, N, s, kg.
+ */
+#ifndef COCHLEA_SCENARIO_H
+#define COCHLEA_SCENARIO_H
+
+#include <stddef.h>
+
+#include "drives.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* One controlled unit (an arm, the mechanism). Offsets index the scenario's whole arrays. */
+typedef struct {
+    const char *name;                   /* "arm1", "mechanism" */
+    const char *controller;             /* "g (corrected), task space" */
+    int nq, nd, np, ne;                 /* joints, desired coordinates, parameters, errors */
+    int q0, d0, p0, e0;                 /* first joint, coordinate, parameter, error */
+    const char *const *tracked_names;   /* nd: the tracked coordinates ("x", "joint1") */
+    const char *const *tracked_units;   /* nd: "m" or "rad" */
+    const char *const *joint_names;     /* nq: "joint1" */
+    const char *const *joint_units;     /* nq: "rad" or "m" */
+    const char *const *param_names;     /* np: "link1.m" */
+    const char *const *param_units;     /* np: "kg" */
+    const double *p_nominal;            /* np: the description's values */
+    double bound;                       /* the projection radius of |p_hat| */
+    const char *error_names[2];         /* the two error blocks: "e_g", "e_v" */
+    int tracking_sign;                  /* +1: first block = desired - actual; -1: reversed */
+    int n_points;                       /* keep-out tool points */
+    const char *const *point_labels;
+} cochlea_unit_info;
+
+typedef struct {
+    const char *name, *robot, *space, *controller, *variant, *parameterisation;
+    double period_s;                    /* the control period */
+    double duration_s;                  /* the scenario's own run length */
+    double keep_out_radius;             /* m; 0: no keep-out rule (joint-space runs) */
+    int n_units;
+    const cochlea_unit_info *units;
+    int nq, nd, np, ne, n_points;       /* sizes of the whole scenario */
+    const cochlea_drive *drives;        /* nq drives, in the joints' order */
+    const double *position_lo, *position_hi, *velocity, *effort;  /* nq, the supervisor's */
+    size_t state_size;                  /* bytes of the controller's state */
+    int real_size;                      /* sizeof the working precision: 4 float, 8 double */
+    /* Set p_hat to p_hat0 with the scenario's gains; 0, or -1. */
+    int (*init)(void *state);
+    /* One period: q, qd[nq] measured (unit after unit); command[nq] clipped to the effort
+     * limits; errors[ne]. 0; -1 not initialised; 1 non-finite command or error; 2 non-finite
+     * estimate (the state then unchanged). */
+    int (*step)(void *state, double t, const double *q, const double *qd, double *command,
+                double *errors);
+    void (*terminate)(void *state);
+    /* The desired trajectory at t: nd positions, velocities, accelerations. */
+    int (*desired)(double t, double *xd, double *xd_dot, double *xd_ddot);
+    /* The estimate p_hat the next period will use (np values, unit after unit). */
+    const double *(*estimate)(const void *state);
+    /* The keep-out tool points at q[nq]: (u, v) of each point and of its circle's centre. */
+    int (*tool_points)(const double *q, double *points, double *centres);
+} cochlea_scenario;
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COCHLEA_SCENARIO_H */
