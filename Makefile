@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness
+.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness embedded
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -55,6 +55,25 @@ $(BUILD)/obj/%.o: $(GEN)/%.c $(wildcard $(GEN)/*.h)
 
 $(LIB): $(C_OBJ)
 	$(CC) -shared -o $@ $(C_OBJ) -lm
+
+# The embedded program, no Python: build/cochlea-embedded (double) and
+# build/cochlea-embedded-float (single precision) from the portable core (embedded/core/), the
+# POSIX port (embedded/posix/) and every generated scenario (generated_c/embedded/).
+# See docs/embedded.md.
+EMB_SRC   := $(sort $(wildcard embedded/core/*.c embedded/posix/*.c $(GEN)/embedded/*.c))
+EMB_DEPS  := $(EMB_SRC) $(wildcard embedded/core/*.h embedded/posix/*.h $(GEN)/embedded/*.h)
+EMB_FLAGS := -std=c99 -O2 -Wall -Wextra -Werror -pthread -Iembedded/core -Iembedded/posix \
+             -I$(GEN)/embedded
+
+embedded: $(BUILD)/cochlea-embedded $(BUILD)/cochlea-embedded-float
+
+$(BUILD)/cochlea-embedded: $(EMB_DEPS)
+	@mkdir -p $(@D)
+	$(CC) $(EMB_FLAGS) $(EMB_SRC) -o $@ -lm
+
+$(BUILD)/cochlea-embedded-float: $(EMB_DEPS)
+	@mkdir -p $(@D)
+	$(CC) $(EMB_FLAGS) -DCOCHLEA_FLOAT $(EMB_SRC) -o $@ -lm
 
 # Regenerate generated_c/ from cochlea/data/robots/ and cochlea/data/codegen/kernels.toml
 # (then commit it).

@@ -448,8 +448,15 @@ int cochlea_bridge_stop(cochlea_bridge *b)
         }
     }
     b->active = 0;
+    /* After a failed read, its late replies may still come: one from a motor would pass for
+     * that motor's confirmation. The motors already have their orders; wait for a quiet line
+     * (at most two read timeouts) before asking them. */
+    if (b->suspect) {
+        (void)quiet(b, now(b));
+    }
     for (i = 0; i < b->n; ++i) {
         uint8_t error = 0;
+        b->off_confirmed[i] = 0;
         const int32_t len = dxl_read(b->scratch, sizeof b->scratch, b->drives[i].id,
                                      ADDR_TORQUE_ENABLE, 1);
         const int64_t timeout = b->timeout_ns > 10 * MS ? b->timeout_ns : 10 * MS;
@@ -457,9 +464,21 @@ int cochlea_bridge_stop(cochlea_bridge *b)
                                 &error) == RESULT_OK && b->parser.params_len == 1 &&
             b->parser.params[0] == 0) {
             ++confirmed;
+            b->off_confirmed[i] = 1;
             if (error & ALERT_BIT) {
                 b->alert_id = b->drives[i].id;
             }
+        }
+    }
+    b->alert_status = -1;
+    if (b->alert_id >= 0) { /* what the alert was, for the report */
+        const int32_t len = dxl_read(b->scratch, sizeof b->scratch, (uint8_t)b->alert_id,
+                                     ADDR_HARDWARE_ERROR, 1);
+        uint8_t error = 0;
+        if (len > 0 && transact(b, b->scratch, (size_t)len, (uint8_t)b->alert_id,
+                                b->timeout_ns > 10 * MS ? b->timeout_ns : 10 * MS, 1,
+                                &error) == RESULT_OK && b->parser.params_len == 1) {
+            b->alert_status = b->parser.params[0];
         }
     }
     b->confirmed_off = confirmed;
@@ -522,6 +541,13 @@ int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report)
     report->detail = 0;
     report->value = 0.0;
     if (start(b, report)) {
+        int k;
+        /* The counters cover the run from here; the start-up's reads are kept apart. */
+        b->startup_reads = b->reads;
+        b->reads = b->good_reads = b->writes = 0;
+        for (k = 0; k < COCHLEA_FAIL_KINDS; ++k) {
+            b->failures[k] = 0;
+        }
         b->active = 1;
         return 1;
     }

@@ -89,11 +89,14 @@ typedef struct {
     int16_t present_current[COCHLEA_MAX_DRIVES];  /* LSB, last good read */
     int16_t goal[COCHLEA_MAX_DRIVES];             /* LSB, last written */
     /* Counters. */
-    uint32_t reads, good_reads, writes, unexpected_packets, garbage_packets;
+    uint32_t reads, good_reads, writes, unexpected_packets, garbage_packets;  /* of the run */
+    uint32_t startup_reads;     /* SYNC_READs of the start-up, kept apart */
     uint32_t failures[COCHLEA_FAIL_KINDS];
     int last_failure, last_failure_id;
     int alert_id;               /* a motor that raised the alert bit, or -1 */
     int confirmed_off;          /* motors that confirmed torque off at the last stop */
+    uint8_t off_confirmed[COCHLEA_MAX_DRIVES];  /* per drive: 1 if it confirmed */
+    int alert_status;           /* the alert motor's Hardware Error Status, -1 unreadable */
     /* Buffers. */
     dxl_parser parser;
     uint8_t read_frame[DXL_FRAME_SIZE(4 + COCHLEA_MAX_DRIVES)];

@@ -1,0 +1,1321 @@
+/* cochlea-embedded: a scenario's controller on the Dynamixel motors, with no Python.
+ *
+ *   build/cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S] --out DIR
+ *                          [--watchdog-misses N] [--list]
+ *
+ * The POSIX program around the portable core (embedded/core/): it opens the port (termios, any
+ * Dynamixel baud rate up to 4.5 Mbaud), starts the motors as cochlea-run's bridge does, runs
+ * the loop at absolute deadlines (clock_nanosleep) under SCHED_FIFO with its memory locked
+ * when the system permits, and streams every period's row to DIR/log.bin from a writer thread,
+ * outside the period. After the run, whatever ended it: log.csv, log.columns.json and
+ * summary.json, the same files and schema as cochlea-run's (figures aside), and the same exit
+ * codes: 0 completed or user stop (SIGINT), 2 a wrong option, 5 the motors could not be
+ * started (nothing moved), 10..16 the supervisor's rules, 130 interrupted before the start.
+ * Every scenario cochlea-codegen generated is linked in; --list prints them.
+ * Units: SI inside and in every file (rad, m, rad/s, m/s, N m, N, s); degrees only in messages.
+ */
+#define _GNU_SOURCE /* pthread_setschedparam, mlockall, clock_gettime on glibc */
+
+#include <errno.h>
+#include <math.h>
+#include <pthread.h>
+#include <sched.h>
+#include <signal.h>
+#include <stdarg.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <dirent.h>
+#include <fcntl.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "bridge.h"
+#include "cochlea_rt.h"
+#include "hal_posix.h"
+#include "loop.h"
+#include "scenarios.h"
+
+#ifdef COCHLEA_FLOAT
+#define PRECISION "float"
+#else
+#define PRECISION "double"
+#endif
+
+#define EXIT_USER_ERROR 2
+#define EXIT_INTERRUPTED 130
+#define MAX_WATCHDOG_MISSES 1000
+#define FIFO_PRIORITY 40
+/* The bus budget (cochlea/dynamixel/budget.py): 10 bit times a byte, a motor's turnaround,
+ * the FTDI adapter's best latency timer, and the read timeout's margin over that. */
+#define BITS_PER_BYTE 10.0
+#define TURNAROUND_S 20e-6
+#define ADAPTER_LATENCY_S 1e-3
+#define TIMEOUT_MARGIN_S 3e-3
+#define WATCHDOG_S 0.1
+/* Convergence (cochlea/apps/report.py). */
+#define CONVERGENCE_RATIO 0.05
+#define TAIL_FRACTION 0.2
+#define CONVERGENCE_RULE                                                                      \
+    "final RMS over the last 20% <= 5% of the initial absolute error, or below 1e-05 rad, "   \
+    "1e-06 m (with encoder counts: below the coordinate's measurement_resolution, one count " \
+    "on every joint)"
+
+/* ---- options ------------------------------------------------------------------------------ */
+
+typedef struct {
+    const char *scenario, *port, *out;
+    long baud;
+    double duration; /* NaN: the scenario's */
+    int watchdog_misses;
+} options;
+
+static int fail_usage(const char *fmt, ...)
+{
+    va_list args;
+    fputs("cochlea-embedded: ", stderr);
+    va_start(args, fmt);
+    vfprintf(stderr, fmt, args);
+    va_end(args);
+    fputs("\n", stderr);
+    return EXIT_USER_ERROR;
+}
+
+static void usage(FILE *to)
+{
+    fprintf(to,
+            "usage: cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S]\n"
+            "                        --out DIR [--watchdog-misses N] | --list\n"
+            "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
+            "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
+            " precision.\n"
+            "  --baud B             the motors' baud rate (default 4000000)\n"
+            "  --duration S         seconds to run (default: the scenario's)\n"
+            "  --out DIR            a new or empty folder for log.bin, log.csv, summary.json\n"
+            "  --watchdog-misses N  consecutive deadline misses tolerated (default 20)\n"
+            "  --list               the scenarios linked into this program\n"
+            "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
+            "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
+            "14 estimate-bound,\n15 watchdog, 16 terminated, 130 interrupted before the start.\n");
+}
+
+static int parse_number(const char *text, double *value)
+{
+    char *end;
+    errno = 0;
+    *value = strtod(text, &end);
+    return errno == 0 && end != text && *end == '\0' && isfinite(*value);
+}
+
+static const cochlea_scenario *find_scenario(const char *name)
+{
+    int i;
+    for (i = 0; cochlea_scenarios[i]; ++i) {
+        if (strcmp(cochlea_scenarios[i]->name, name) == 0) {
+            return cochlea_scenarios[i];
+        }
+    }
+    return 0;
+}
+
+static int parse(int argc, char **argv, options *o)
+{
+    int i;
+    double v;
+    o->scenario = o->port = o->out = 0;
+    o->baud = 4000000;
+    o->duration = NAN;
+    o->watchdog_misses = 20;
+    for (i = 1; i < argc; ++i) {
+        const char *a = argv[i];
+        const char *value = i + 1 < argc ? argv[i + 1] : 0;
+        if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
+            usage(stdout);
+            exit(0);
+        }
+        if (strcmp(a, "--list") == 0) {
+            int k;
+            for (k = 0; cochlea_scenarios[k]; ++k) {
+                printf("%s (%s robot, %s space, controller %s)\n", cochlea_scenarios[k]->name,
+                       cochlea_scenarios[k]->robot, cochlea_scenarios[k]->space,
+                       cochlea_scenarios[k]->controller);
+            }
+            exit(0);
+        }
+        if (!value) {
+            usage(stderr);
+            return fail_usage("%s needs a value", a);
+        }
+        ++i;
+        if (strcmp(a, "--scenario") == 0) {
+            o->scenario = value;
+        } else if (strcmp(a, "--port") == 0) {
+            o->port = value;
+        } else if (strcmp(a, "--out") == 0) {
+            o->out = value;
+        } else if (strcmp(a, "--baud") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < 9600 || v > 10.5e6) {
+                return fail_usage("--baud must be a whole number of baud, got %s", value);
+            }
+            o->baud = (long)v;
+        } else if (strcmp(a, "--duration") == 0) {
+            if (!parse_number(value, &v) || !(v > 0)) {
+                return fail_usage("--duration must be positive, got %s", value);
+            }
+            o->duration = v;
+        } else if (strcmp(a, "--watchdog-misses") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < 1 || v > MAX_WATCHDOG_MISSES) {
+                return fail_usage("--watchdog-misses must be between 1 and %d periods, got %s",
+                                  MAX_WATCHDOG_MISSES, value);
+            }
+            o->watchdog_misses = (int)v;
+        } else {
+            usage(stderr);
+            return fail_usage("unknown option %s", a);
+        }
+    }
+    if (!o->scenario || !o->port || !o->out) {
+        usage(stderr);
+        return fail_usage("--scenario, --port and --out are needed");
+    }
+    return 0;
+}
+
+/* ---- the output folder --------------------------------------------------------------------- */
+
+static int make_folders(const char *path)
+{
+    char buf[4096];
+    size_t i, n = strlen(path);
+    if (n == 0 || n >= sizeof buf) {
+        errno = ENAMETOOLONG;
+        return -1;
+    }
+    memcpy(buf, path, n + 1);
+    for (i = 1; i <= n; ++i) {
+        if (buf[i] == '/' || buf[i] == '\0') {
+            const char keep = buf[i];
+            buf[i] = '\0';
+            if (mkdir(buf, 0777) != 0 && errno != EEXIST) {
+                return -1;
+            }
+            buf[i] = keep;
+        }
+    }
+    return 0;
+}
+
+static int folder_is_empty(const char *path)
+{
+    DIR *d = opendir(path);
+    struct dirent *e;
+    int empty = 1;
+    if (!d) {
+        return errno == ENOENT;
+    }
+    while ((e = readdir(d)) != 0) {
+        if (strcmp(e->d_name, ".") != 0 && strcmp(e->d_name, "..") != 0) {
+            empty = 0;
+            break;
+        }
+    }
+    closedir(d);
+    return empty;
+}
+
+static FILE *open_in(const char *folder, const char *name, const char *mode)
+{
+    char path[4352];
+    snprintf(path, sizeof path, "%s/%s", folder, name);
+    return fopen(path, mode);
+}
+
+/* ---- names of things, as cochlea-run spells them -------------------------------------------- */
+
+static const char *model_name(int model_number)
+{
+    switch (model_number) {
+    case 311: return "MX-64";
+    case 1120: return "XM540-W270";
+    default: return "unknown model";
+    }
+}
+
+static void who(char *buf, size_t n, const cochlea_drive *d)
+{
+    snprintf(buf, n, "ID %d (%s, %s)", d->id, d->name, model_name(d->model_number));
+}
+
+/* The joint j of the scenario as "unit.joint", and its unit (rad or m). */
+static const char *joint_of(const cochlea_scenario *sc, int j, char *buf, size_t n)
+{
+    int u;
+    for (u = 0; u < sc->n_units; ++u) {
+        const cochlea_unit_info *unit = &sc->units[u];
+        if (j >= unit->q0 && j < unit->q0 + unit->nq) {
+            snprintf(buf, n, "%s.%s", unit->name, unit->joint_names[j - unit->q0]);
+            return unit->joint_units[j - unit->q0];
+        }
+    }
+    snprintf(buf, n, "joint %d", j);
+    return "rad";
+}
+
+static void show(char *buf, size_t n, double value, const char *unit)
+{
+    if (strcmp(unit, "rad") == 0) {
+        snprintf(buf, n, "%.2f deg", value * 180.0 / M_PI);
+    } else {
+        snprintf(buf, n, "%.4f m", value);
+    }
+}
+
+static void vector_text(char *buf, size_t n, const double *v, int count)
+{
+    size_t used = 0;
+    int i;
+    used += (size_t)snprintf(buf, n, "[");
+    for (i = 0; i < count && used < n; ++i) {
+        used += (size_t)snprintf(buf + used, n - used, "%s%.4g", i ? ", " : "", v[i]);
+    }
+    if (used < n) {
+        snprintf(buf + used, n - used, "]");
+    }
+}
+
+/* The supervisor's message for a stop, as cochlea/runtime/supervisor.py words it. */
+static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const double *row)
+{
+    const cochlea_stop *s = &loop->stop;
+    const cochlea_scenario *sc = loop->scenario;
+    char name[128], a[64], b[64], c[64], vec[1024];
+    const char *unit;
+    buf[0] = '\0';
+    switch (s->rule) {
+    case COCHLEA_USER_STOP:
+    case COCHLEA_TERMINATED:
+        snprintf(buf, n, "signal received");
+        break;
+    case COCHLEA_POSITION_LIMIT:
+        unit = joint_of(sc, s->joint, name, sizeof name);
+        show(a, sizeof a, s->value, unit);
+        show(b, sizeof b, sc->position_lo[s->joint], unit);
+        show(c, sizeof c, sc->position_hi[s->joint], unit);
+        snprintf(buf, n, "%s = %s outside [%s, %s]", name, a, b, c);
+        break;
+    case COCHLEA_VELOCITY_LIMIT:
+        unit = strcmp(joint_of(sc, s->joint, name, sizeof name), "rad") == 0 ? "rad/s" : "m/s";
+        snprintf(buf, n, "%s speed = %.4g %s, limit %.4g %s", name, s->value, unit, s->limit,
+                 unit);
+        break;
+    case COCHLEA_KEEP_OUT: {
+        int u, first = 0;
+        const char *label = "?", *owner = "?";
+        for (u = 0; u < sc->n_units; ++u) {
+            if (s->unit < first + sc->units[u].n_points) {
+                owner = sc->units[u].name;
+                label = sc->units[u].point_labels[s->unit - first];
+                break;
+            }
+            first += sc->units[u].n_points;
+        }
+        snprintf(buf, n,
+                 "%s %s at (%.4f, %.4f) m is %.1f mm from the centre (%.4f, %.4f) m, inside "
+                 "the keep-out radius %.1f mm",
+                 owner, label, s->point[0], s->point[1], s->value * 1000.0, s->centre[0],
+                 s->centre[1], s->limit * 1000.0);
+        break;
+    }
+    case COCHLEA_NON_FINITE:
+        if (s->what == 0) {
+            vector_text(vec, sizeof vec, row + 1, 2 * sc->nq);
+            snprintf(buf, n, "state = %s", vec);
+        } else if (s->what == 1) {
+            vector_text(vec, sizeof vec, loop->tau, sc->nq);
+            snprintf(buf, n, "command = %s", vec);
+        } else {
+            snprintf(buf, n, "%s estimate is not finite",
+                     s->unit >= 0 ? sc->units[s->unit].name : "the next");
+        }
+        break;
+    case COCHLEA_ESTIMATE_BOUND:
+        snprintf(buf, n, "%s |p_hat| = %.4g, bound %.4g", sc->units[s->unit].name, s->value,
+                 s->limit);
+        break;
+    case COCHLEA_WATCHDOG:
+        if (s->reason == 1) {
+            snprintf(buf, n, "%d consecutive backend read failures", s->count);
+        } else {
+            snprintf(buf, n, "%d consecutive deadline misses (last period took %.3f ms of "
+                     "compute)", s->count, s->value * 1e3);
+        }
+        break;
+    default:
+        break;
+    }
+}
+
+static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
+                          const cochlea_start_report *r, const options *o)
+{
+    static const char *const steps[] = {
+        "", "PING", "Torque Enable 0 (WRITE 64 = 0)", "Bus Watchdog 0 (WRITE 98 = 0)",
+        "Operating Mode 0 (WRITE 11 = 0)", "Return Delay Time 0 (WRITE 9 = 0)",
+        "the Current Limit (WRITE 38)", "Goal Current 0 (WRITE 102 = 0)",
+        "the Bus Watchdog (WRITE 98)", "the first SYNC_READ", "the joint limits",
+        "Torque Enable 1 (WRITE 64 = 1)"};
+    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_TORQUE_ON ? steps[r->step] : "?";
+    char name[160] = "the bus";
+    char value[64];
+    if (r->drive >= 0 && r->drive < b->n) {
+        who(name, sizeof name, &b->drives[r->drive]);
+    }
+    switch (r->error) {
+    case COCHLEA_START_NO_ANSWER:
+        snprintf(buf, n, "%s did not answer %s on %s at %ld baud", name, what, o->port, o->baud);
+        break;
+    case COCHLEA_START_CRC:
+        snprintf(buf, n, "%s answered %s with corrupted packets (CRC) only", name, what);
+        break;
+    case COCHLEA_START_PORT:
+        snprintf(buf, n, "the serial port %s failed during %s", o->port, what);
+        break;
+    case COCHLEA_START_ALERT:
+        snprintf(buf, n, "%s reports a hardware error (Hardware Error Status 0x%02X)", name,
+                 (unsigned)r->detail);
+        break;
+    case COCHLEA_START_REFUSED:
+        snprintf(buf, n, "%s refused %s (error byte 0x%02X)", name, what, (unsigned)r->detail);
+        break;
+    case COCHLEA_START_WRONG_MODEL:
+        snprintf(buf, n, "%s is model number %d, not %d (%s)", name, r->detail,
+                 b->drives[r->drive].model_number, model_name(b->drives[r->drive].model_number));
+        break;
+    case COCHLEA_START_NO_READ:
+        snprintf(buf, n, "no good SYNC_READ of the motors' state on %s (last failure: %s)",
+                 o->port, cochlea_failure_name(r->detail));
+        break;
+    case COCHLEA_START_OUTSIDE_LIMITS:
+        show(value, sizeof value, r->value,
+             b->drives[r->drive].revolute ? "rad" : "m");
+        snprintf(buf, n, "%s reads %s, outside its limits: check zero_offset_deg and direction "
+                 "in the description", name, value);
+        break;
+    default:
+        snprintf(buf, n, "the drive table does not fit the bridge (%d drives)", b->n);
+    }
+}
+
+/* ---- the log: a whole-run buffer and a writer thread behind the loop ------------------------- */
+
+typedef struct {
+    double *rows;        /* steps x row_length, written by the loop */
+    int row_length;
+    long capacity;
+    long done;           /* rows the loop has finished (atomic) */
+    int finished;        /* the loop has ended (atomic) */
+    FILE *file;
+    long written;
+    int failed;
+} run_log;
+
+static void log_row(void *ctx, const double *row, int row_length)
+{
+    run_log *log = (run_log *)ctx;
+    const long k = __atomic_load_n(&log->done, __ATOMIC_RELAXED);
+    if (k < log->capacity) {
+        memcpy(log->rows + (size_t)k * (size_t)row_length, row,
+               (size_t)row_length * sizeof(double));
+        __atomic_store_n(&log->done, k + 1, __ATOMIC_RELEASE);
+    }
+}
+
+static void write_rows(run_log *log)
+{
+    const long done = __atomic_load_n(&log->done, __ATOMIC_ACQUIRE);
+    if (done > log->written && !log->failed) {
+        const size_t count = (size_t)(done - log->written);
+        if (fwrite(log->rows + (size_t)log->written * (size_t)log->row_length,
+                   sizeof(double) * (size_t)log->row_length, count, log->file) != count
+            || fflush(log->file) != 0) {
+            log->failed = 1;
+        }
+        log->written = done;
+    }
+}
+
+static void *writer(void *arg)
+{
+    run_log *log = (run_log *)arg;
+    const struct timespec pause = {0, 20000000}; /* 20 ms: a few rows per write */
+    while (!__atomic_load_n(&log->finished, __ATOMIC_ACQUIRE)) {
+        write_rows(log);
+        nanosleep(&pause, 0);
+    }
+    write_rows(log);
+    return 0;
+}
+
+/* ---- statistics (numpy's, for the summary) ------------------------------------------------- */
+
+static int compare(const void *a, const void *b)
+{
+    const double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+/* numpy.percentile with linear interpolation; NaN for no values. values is sorted in place. */
+static double percentile(double *values, long n, double p)
+{
+    double position, low;
+    long i;
+    if (n <= 0) {
+        return NAN;
+    }
+    qsort(values, (size_t)n, sizeof(double), compare);
+    position = p / 100.0 * (double)(n - 1);
+    low = floor(position);
+    i = (long)low;
+    if (i + 1 >= n) {
+        return values[n - 1];
+    }
+    return values[i] + (values[i + 1] - values[i]) * (position - low);
+}
+
+/* The finite values of column c of rows [from, to) into out; their count. */
+static long column(const run_log *log, int c, long from, long to, double *out)
+{
+    long k, m = 0;
+    for (k = from; k < to; ++k) {
+        const double v = log->rows[(size_t)k * (size_t)log->row_length + (size_t)c];
+        if (isfinite(v)) {
+            out[m++] = v;
+        }
+    }
+    return m;
+}
+
+/* ---- JSON ------------------------------------------------------------------------------------ */
+
+static void json_number(FILE *f, double v)
+{
+    if (isnan(v)) {
+        fputs("NaN", f); /* as Python's json writes it */
+    } else if (isinf(v)) {
+        fputs(v > 0 ? "Infinity" : "-Infinity", f);
+    } else {
+        fprintf(f, "%.17g", v);
+    }
+}
+
+static void json_string(FILE *f, const char *s)
+{
+    fputc('"', f);
+    for (; *s; ++s) {
+        const unsigned char ch = (unsigned char)*s;
+        if (ch == '"' || ch == '\\') {
+            fprintf(f, "\\%c", ch);
+        } else if (ch < 0x20) {
+            fprintf(f, "\\u%04x", ch);
+        } else {
+            fputc(ch, f);
+        }
+    }
+    fputc('"', f);
+}
+
+static void key(FILE *f, int indent, const char *name)
+{
+    fprintf(f, "%*s", indent, "");
+    json_string(f, name);
+    fputs(": ", f);
+}
+
+/* ---- the run's files --------------------------------------------------------------------- */
+
+static const char *rate_unit(const char *unit) { return strcmp(unit, "rad") == 0 ? "rad_s" : "m_s"; }
+static const char *effort_unit(const char *unit) { return strcmp(unit, "rad") == 0 ? "Nm" : "N"; }
+
+static void slug(char *buf, size_t n, const char *unit)
+{
+    size_t k = 0;
+    for (; *unit && k + 1 < n; ++unit) {
+        if (*unit != ' ' && *unit != '^') {
+            buf[k++] = *unit;
+        }
+    }
+    buf[k] = '\0';
+}
+
+/* log.columns.json: how to read log.bin, cochlea-run's raw columns. */
+static int write_columns(const char *out, const cochlea_scenario *sc, int row_length)
+{
+    FILE *f = open_in(out, "log.columns.json", "w");
+    int u, i, first = 1;
+    char name[256];
+    static const char *const timing[] = {"start_lateness_s", "wall_period_s", "compute_s",
+                                         "backend_io_s"};
+    if (!f) {
+        return -1;
+    }
+    fprintf(f, "{\n \"dtype\": \"float64\",\n \"row_length\": %d,\n \"columns\": [\n",
+            row_length);
+#define COLUMN(...)                                   \
+    do {                                              \
+        snprintf(name, sizeof name, __VA_ARGS__);     \
+        fputs(first ? "  " : ",\n  ", f);             \
+        json_string(f, name);                         \
+        first = 0;                                    \
+    } while (0)
+    COLUMN("time_s");
+    for (u = 0; u < sc->n_units; ++u) {
+        for (i = 0; i < sc->units[u].nq; ++i) {
+            COLUMN("q.%s.%s_%s", sc->units[u].name, sc->units[u].joint_names[i],
+                   sc->units[u].joint_units[i]);
+        }
+    }
+    for (u = 0; u < sc->n_units; ++u) {
+        for (i = 0; i < sc->units[u].nq; ++i) {
+            COLUMN("qd.%s.%s_%s", sc->units[u].name, sc->units[u].joint_names[i],
+                   rate_unit(sc->units[u].joint_units[i]));
+        }
+    }
+    for (u = 0; u < sc->n_units; ++u) {
+        for (i = 0; i < sc->units[u].nq; ++i) {
+            COLUMN("tau.%s.%s_%s", sc->units[u].name, sc->units[u].joint_names[i],
+                   effort_unit(sc->units[u].joint_units[i]));
+        }
+    }
+    for (u = 0; u < sc->n_units; ++u) {
+        const cochlea_unit_info *unit = &sc->units[u];
+        for (i = 0; i < unit->nd; ++i) {
+            COLUMN("%s.%s[%d]_SI", unit->name, unit->error_names[0], i);
+        }
+        for (i = 0; i < unit->ne - unit->nd; ++i) {
+            COLUMN("%s.%s[%d]_SI", unit->name, unit->error_names[1], i);
+        }
+        for (i = 0; i < unit->np; ++i) {
+            COLUMN("%s.p_hat.%s_SI", unit->name, unit->param_names[i]);
+        }
+    }
+    for (i = 0; i < 4; ++i) {
+        COLUMN("%s", timing[i]);
+    }
+#undef COLUMN
+    fputs("\n ]\n}\n", f);
+    return fclose(f);
+}
+
+/* Offsets in a row of unit u's errors and estimate. */
+static int unit_offset(const cochlea_scenario *sc, int u)
+{
+    int k, off = 1 + 3 * sc->nq;
+    for (k = 0; k < u; ++k) {
+        off += sc->units[k].ne + sc->units[k].np;
+    }
+    return off;
+}
+
+/* log.csv: cochlea-run's columns (its pose columns aside), SI, one row per period. */
+static int write_csv(const char *out, const cochlea_scenario *sc, const run_log *log, long rows)
+{
+    FILE *f = open_in(out, "log.csv", "w");
+    static const char *const timing[] = {"start_lateness_s", "wall_period_s", "compute_s",
+                                         "backend_io_s"};
+    double xd[64], xd_dot[64], xd_ddot[64];
+    char buf[64];
+    int u, i;
+    long k;
+    if (!f || sc->nd > 64) {
+        if (f) {
+            fclose(f);
+        }
+        return -1;
+    }
+    fputs("time_s", f);
+    for (u = 0; u < sc->n_units; ++u) {
+        const cochlea_unit_info *t = &sc->units[u];
+        for (i = 0; i < t->nq; ++i) {
+            fprintf(f, ",%s.q.%s_%s", t->name, t->joint_names[i], t->joint_units[i]);
+        }
+        for (i = 0; i < t->nq; ++i) {
+            fprintf(f, ",%s.qd.%s_%s", t->name, t->joint_names[i], rate_unit(t->joint_units[i]));
+        }
+        for (i = 0; i < t->nd; ++i) {
+            fprintf(f, ",%s.desired.%s_%s", t->name, t->tracked_names[i], t->tracked_units[i]);
+        }
+        for (i = 0; i < t->nd; ++i) {
+            fprintf(f, ",%s.desired_dot.%s_%s", t->name, t->tracked_names[i],
+                    rate_unit(t->tracked_units[i]));
+        }
+        for (i = 0; i < t->nd; ++i) {
+            fprintf(f, ",%s.error.%s_%s", t->name, t->tracked_names[i], t->tracked_units[i]);
+        }
+        for (i = 0; i < t->nq; ++i) {
+            fprintf(f, ",%s.%s.%s_%s", t->name, t->error_names[1], t->joint_names[i],
+                    rate_unit(t->joint_units[i]));
+        }
+        for (i = 0; i < t->nq; ++i) {
+            fprintf(f, ",%s.tau.%s_%s", t->name, t->joint_names[i],
+                    effort_unit(t->joint_units[i]));
+        }
+        for (i = 0; i < t->np; ++i) {
+            slug(buf, sizeof buf, t->param_units[i]);
+            fprintf(f, ",%s.p_hat.%s_%s", t->name, t->param_names[i], buf);
+        }
+    }
+    for (i = 0; i < 4; ++i) {
+        fprintf(f, ",%s", timing[i]);
+    }
+    fputc('\n', f);
+    for (k = 0; k < rows; ++k) {
+        const double *row = log->rows + (size_t)k * (size_t)log->row_length;
+        const int n = sc->nq;
+        if (sc->desired(row[0], xd, xd_dot, xd_ddot) != 0) {
+            for (i = 0; i < sc->nd; ++i) {
+                xd[i] = xd_dot[i] = NAN;
+            }
+        }
+        fprintf(f, "%.10g", row[0]);
+        for (u = 0; u < sc->n_units; ++u) {
+            const cochlea_unit_info *t = &sc->units[u];
+            const double *e = row + unit_offset(sc, u);
+            for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + t->q0 + i]);
+            for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + n + t->q0 + i]);
+            for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", xd[t->d0 + i]);
+            for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", xd_dot[t->d0 + i]);
+            for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", t->tracking_sign * e[i]);
+            for (i = t->nd; i < t->ne; ++i) fprintf(f, ",%.10g", e[i]);
+            for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + 2 * n + t->q0 + i]);
+            for (i = 0; i < t->np; ++i) fprintf(f, ",%.10g", e[t->ne + i]);
+        }
+        for (i = 0; i < 4; ++i) {
+            fprintf(f, ",%.10g", row[log->row_length - 4 + i]);
+        }
+        fputc('\n', f);
+    }
+    return fclose(f);
+}
+
+/* summary.json's "units" entry of unit u; whether every tracked coordinate converged. */
+static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const run_log *log,
+                        long rows)
+{
+    const cochlea_unit_info *t = &sc->units[u];
+    const int off = unit_offset(sc, u);
+    const long tail = (long)((double)rows * (1.0 - TAIL_FRACTION));
+    int i, all = 1;
+    long k;
+    double max_norm = 0.0;
+    int finite = 1;
+    key(f, 4, t->name);
+    fputs("{\n", f);
+    key(f, 6, "tracked");
+    fputs("{\n", f);
+    for (i = 0; i < t->nd; ++i) {
+        const double floor_ = strcmp(t->tracked_units[i], "rad") == 0 ? 1e-5 : 1e-6;
+        key(f, 8, t->tracked_names[i]);
+        fputs("{\n", f);
+        key(f, 10, "unit");
+        json_string(f, t->tracked_units[i]);
+        fputs(",\n", f);
+        if (rows == 0) {
+            fputs("          \"initial_abs_error\": null,\n          \"final_rms_error\": null,\n"
+                  "          \"converged\": false\n", f);
+            all = 0;
+        } else {
+            const double initial = fabs(log->rows[(size_t)off + (size_t)i]);
+            double sum = 0.0, rms;
+            int ok;
+            for (k = tail; k < rows; ++k) {
+                const double e = log->rows[(size_t)k * (size_t)log->row_length + (size_t)off
+                                           + (size_t)i];
+                sum += e * e;
+            }
+            rms = sqrt(sum / (double)(rows - tail));
+            ok = isfinite(rms) && (rms <= CONVERGENCE_RATIO * initial || rms <= floor_);
+            all = all && ok;
+            key(f, 10, "initial_abs_error");
+            json_number(f, initial);
+            fputs(",\n", f);
+            key(f, 10, "final_rms_error");
+            json_number(f, rms);
+            fputs(",\n", f);
+            key(f, 10, "converged");
+            fputs(ok ? "true\n" : "false\n", f);
+        }
+        fprintf(f, "        }%s\n", i + 1 < t->nd ? "," : "");
+    }
+    fputs("      },\n", f);
+    key(f, 6, "torque");
+    fputs("{\n", f);
+    for (i = 0; i < t->nq; ++i) {
+        double max = 0.0;
+        for (k = 0; k < rows; ++k) {
+            const double v = fabs(log->rows[(size_t)k * (size_t)log->row_length
+                                            + (size_t)(1 + 2 * sc->nq + t->q0 + i)]);
+            max = (isnan(v) || isnan(max)) ? NAN : (v > max ? v : max);
+        }
+        key(f, 8, t->joint_names[i]);
+        fputs("{\n", f);
+        key(f, 10, "unit");
+        json_string(f, strcmp(t->joint_units[i], "rad") == 0 ? "N m" : "N");
+        fputs(",\n", f);
+        key(f, 10, "max_abs");
+        json_number(f, max);
+        fprintf(f, "\n        }%s\n", i + 1 < t->nq ? "," : "");
+    }
+    fputs("      },\n", f);
+    for (k = 0; k < rows; ++k) {
+        const double *p = log->rows + (size_t)k * (size_t)log->row_length + (size_t)(off + t->ne);
+        double s = 0.0;
+        for (i = 0; i < t->np; ++i) {
+            s += p[i] * p[i];
+        }
+        finite = finite && isfinite(s);
+        if (!(sqrt(s) <= max_norm)) {
+            max_norm = sqrt(s);
+        }
+    }
+    key(f, 6, "estimates");
+    fputs("{\n", f);
+    key(f, 8, "names");
+    fputs("[", f);
+    for (i = 0; i < t->np; ++i) {
+        fputs(i ? ", " : "", f);
+        json_string(f, t->param_names[i]);
+    }
+    fputs("],\n", f);
+    key(f, 8, "units");
+    fputs("[", f);
+    for (i = 0; i < t->np; ++i) {
+        fputs(i ? ", " : "", f);
+        json_string(f, t->param_units[i]);
+    }
+    fputs("],\n", f);
+    key(f, 8, "bound_norm");
+    json_number(f, t->bound);
+    fputs(",\n", f);
+    key(f, 8, "max_norm");
+    json_number(f, max_norm);
+    fputs(",\n", f);
+    key(f, 8, "bounded");
+    fputs(finite && max_norm <= t->bound * (1 + 1e-9) ? "true" : "false", f);
+    fputs(",\n", f);
+    key(f, 8, "final");
+    if (rows == 0) {
+        fputs("null", f);
+    } else {
+        const double *p = log->rows + (size_t)(rows - 1) * (size_t)log->row_length
+                          + (size_t)(off + t->ne);
+        fputs("[", f);
+        for (i = 0; i < t->np; ++i) {
+            fputs(i ? ", " : "", f);
+            json_number(f, p[i]);
+        }
+        fputs("]", f);
+    }
+    fputs(",\n", f);
+    key(f, 8, "nominal");
+    fputs("[", f);
+    for (i = 0; i < t->np; ++i) {
+        fputs(i ? ", " : "", f);
+        json_number(f, t->p_nominal[i]);
+    }
+    fputs("]\n      }\n", f);
+    fprintf(f, "    }%s\n", u + 1 < sc->n_units ? "," : "");
+    return all;
+}
+
+typedef struct {
+    const char *scheduling, *memory;
+    double wall_s;
+    char detail[2048];
+    char shutdown[2048];
+    char last_failure[256];
+    double budget_bytes, wire_s, bus_s, cycle_s, timeout_s, watchdog_s;
+} run_facts;
+
+static void timing_summary(FILE *f, const cochlea_loop *loop, const run_log *log, long rows,
+                           const run_facts *facts, const cochlea_bridge *b, const options *o)
+{
+    const int L = log->row_length;
+    const double h = loop->scenario->period_s;
+    double *scratch = malloc(sizeof(double) * (size_t)(rows > 0 ? rows : 1));
+    long m, k;
+    double sum = 0.0, sq = 0.0, max = NAN;
+    int i;
+    fputs("{\n", f);
+    key(f, 4, "unit");
+    fputs("\"s\",\n", f);
+    key(f, 4, "nominal_period");
+    json_number(f, h);
+    fputs(",\n", f);
+    /* the wall period of every row but the first */
+    m = scratch ? column(log, L - 3, 1, rows, scratch) : 0;
+    for (k = 0; k < m; ++k) {
+        sum += scratch[k];
+        max = (k == 0 || scratch[k] > max) ? scratch[k] : max;
+    }
+    for (k = 0; k < m; ++k) {
+        sq += (scratch[k] - sum / (double)m) * (scratch[k] - sum / (double)m);
+    }
+    key(f, 4, "period_mean");
+    json_number(f, m ? sum / (double)m : NAN);
+    fputs(",\n", f);
+    key(f, 4, "period_std");
+    json_number(f, m ? sqrt(sq / (double)m) : NAN);
+    fputs(",\n", f);
+    key(f, 4, "period_p50");
+    json_number(f, percentile(scratch, m, 50));
+    fputs(",\n", f);
+    key(f, 4, "period_p99");
+    json_number(f, percentile(scratch, m, 99));
+    fputs(",\n", f);
+    key(f, 4, "period_max");
+    json_number(f, m ? max : NAN);
+    fputs(",\n", f);
+    key(f, 4, "deadline_misses");
+    fprintf(f, "%u,\n", loop->deadline_misses);
+    key(f, 4, "deadline_miss_fraction");
+    json_number(f, (double)loop->deadline_misses / (double)(rows > 1 ? rows : 1));
+    fputs(",\n", f);
+    m = scratch ? column(log, L - 2, 0, rows, scratch) : 0;
+    key(f, 4, "compute_p50");
+    json_number(f, percentile(scratch, m, 50));
+    fputs(",\n", f);
+    key(f, 4, "compute_p99");
+    json_number(f, percentile(scratch, m, 99));
+    fputs(",\n", f);
+    key(f, 4, "compute_max");
+    json_number(f, m ? scratch[m - 1] : NAN);
+    fputs(",\n", f);
+    m = scratch ? column(log, L - 1, 0, rows, scratch) : 0;
+    sum = 0.0;
+    for (k = 0; k < m; ++k) {
+        sum += scratch[k];
+    }
+    key(f, 4, "backend_mean");
+    json_number(f, m ? sum / (double)m : NAN);
+    fputs(",\n", f);
+    key(f, 4, "backend_p99");
+    json_number(f, percentile(scratch, m, 99));
+    fputs(",\n", f);
+    key(f, 4, "scheduling");
+    json_string(f, facts->scheduling);
+    fputs(",\n", f);
+    key(f, 4, "memory");
+    json_string(f, facts->memory);
+    fputs(",\n", f);
+    key(f, 4, "watchdog_misses_allowed");
+    fprintf(f, "%d,\n", loop->limits.watchdog_misses);
+    key(f, 4, "bus");
+    fputs("{\n", f);
+    key(f, 6, "port");
+    json_string(f, o->port);
+    fprintf(f, ",\n      \"baud\": %ld,\n      \"motors\": [", o->baud);
+    for (i = 0; i < b->n; ++i) {
+        fprintf(f, "%s%d", i ? ", " : "", b->drives[i].id);
+    }
+    fputs("],\n", f);
+    key(f, 6, "bus_budget");
+    fprintf(f, "{\"bytes_per_period\": %d, \"wire_s\": ", (int)facts->budget_bytes);
+    json_number(f, facts->wire_s);
+    fputs(", \"bus_s\": ", f);
+    json_number(f, facts->bus_s);
+    fputs(", \"with_adapter_latency_s\": ", f);
+    json_number(f, facts->cycle_s);
+    fputs("},\n", f);
+    key(f, 6, "read_timeout_s");
+    json_number(f, facts->timeout_s);
+    fputs(",\n", f);
+    key(f, 6, "watchdog_s");
+    json_number(f, facts->watchdog_s);
+    fprintf(f, ",\n      \"reads\": %u,\n      \"good_reads\": %u,\n      \"writes\": %u,\n",
+            b->reads, b->good_reads, b->writes);
+    key(f, 6, "failures");
+    fputs("{", f);
+    for (i = 0, k = 0; i < COCHLEA_FAIL_KINDS; ++i) {
+        if (b->failures[i]) {
+            fprintf(f, "%s\"%s\": %u", k++ ? ", " : "", cochlea_failure_name(i), b->failures[i]);
+        }
+    }
+    fprintf(f, "},\n      \"garbage_packets\": %u,\n      \"unexpected_packets\": %u,\n",
+            b->garbage_packets, b->unexpected_packets);
+    key(f, 6, "last_failure");
+    json_string(f, facts->last_failure);
+    fputs(",\n      \"low_latency\": null,\n", f);
+    key(f, 6, "shutdown");
+    json_string(f, facts->shutdown);
+    fputs("\n    }\n  }", f);
+    free(scratch);
+}
+
+static int write_summary(const char *out, const cochlea_loop *loop, const run_log *log,
+                         long rows, const run_facts *facts, const cochlea_bridge *b,
+                         const options *o, int *converged_out)
+{
+    const cochlea_scenario *sc = loop->scenario;
+    FILE *f = open_in(out, "summary.json", "w");
+    int u, converged = 1;
+    long pos;
+    if (!f) {
+        return -1;
+    }
+    fputs("{\n", f);
+    key(f, 2, "scenario");
+    json_string(f, sc->name);
+    fputs(",\n", f);
+    key(f, 2, "scenario_file");
+    fprintf(f, "\"compiled in: generated_c/embedded/%s_scenario.c\",\n", sc->name);
+    key(f, 2, "robot");
+    json_string(f, sc->robot);
+    fputs(",\n", f);
+    key(f, 2, "space");
+    json_string(f, sc->space);
+    fputs(",\n", f);
+    key(f, 2, "controller");
+    json_string(f, sc->controller);
+    fputs(",\n", f);
+    key(f, 2, "variant");
+    json_string(f, sc->variant);
+    fputs(",\n", f);
+    key(f, 2, "parameterisation");
+    json_string(f, sc->parameterisation);
+    fputs(",\n", f);
+    key(f, 2, "program");
+    fputs("\"cochlea-embedded (" PRECISION ")\",\n", f);
+    key(f, 2, "rate_Hz");
+    json_number(f, 1.0 / sc->period_s);
+    fputs(",\n", f);
+    key(f, 2, "duration_s");
+    json_number(f, (double)rows * sc->period_s);
+    fprintf(f, ",\n  \"periods\": %ld,\n", rows);
+    key(f, 2, "convergence_rule");
+    json_string(f, CONVERGENCE_RULE);
+    fputs(",\n", f);
+    /* "converged" needs the units: written last-but-known, so leave room and come back. */
+    key(f, 2, "converged");
+    pos = ftell(f);
+    fputs("false,\n", f);
+    fputs("  \"diverged\": {},\n", f);
+    key(f, 2, "stop");
+    fputs("{\n", f);
+    key(f, 4, "rule");
+    json_string(f, cochlea_rule_name(loop->stop.rule));
+    fputs(",\n", f);
+    key(f, 4, "time_s");
+    json_number(f, loop->stop.time_s);
+    fputs(",\n", f);
+    key(f, 4, "detail");
+    json_string(f, facts->detail);
+    fprintf(f, ",\n    \"exit_code\": %d\n  },\n", cochlea_exit_code(loop->stop.rule));
+    fputs("  \"supervisor\": null,\n", f);
+    key(f, 2, "timing");
+    timing_summary(f, loop, log, rows, facts, b, o);
+    fputs(",\n", f);
+    key(f, 2, "wall_time_s");
+    json_number(f, facts->wall_s);
+    fputs(",\n", f);
+    key(f, 2, "units");
+    fputs("{\n", f);
+    for (u = 0; u < sc->n_units; ++u) {
+        converged = unit_summary(f, sc, u, log, rows) && converged;
+    }
+    fputs("  }\n}\n", f);
+    converged = converged && loop->stop.rule == COCHLEA_COMPLETED;
+    if (converged && pos >= 0 && fseek(f, pos, SEEK_SET) == 0) {
+        fputs("true, ", f); /* "false," and "true, " have the same length */
+    }
+    *converged_out = converged;
+    return fclose(f);
+}
+
+/* ---- signals and real-time settings --------------------------------------------------------- */
+
+static cochlea_loop the_loop;
+static volatile sig_atomic_t interrupted;
+
+static void on_signal(int signum)
+{
+    interrupted = signum;
+    the_loop.stop_request = signum == SIGINT ? COCHLEA_USER_STOP : COCHLEA_TERMINATED;
+}
+
+static const char *realtime_priority(void)
+{
+    struct sched_param p;
+    memset(&p, 0, sizeof p);
+    p.sched_priority = FIFO_PRIORITY;
+    return pthread_setschedparam(pthread_self(), SCHED_FIFO, &p) == 0
+               ? "SCHED_FIFO 40" : "normal (SCHED_FIFO not permitted)";
+}
+
+static void normal_priority(void)
+{
+    struct sched_param p;
+    memset(&p, 0, sizeof p);
+    (void)pthread_setschedparam(pthread_self(), SCHED_OTHER, &p);
+}
+
+/* ---- main ----------------------------------------------------------------------------------- */
+
+int main(int argc, char **argv)
+{
+    options o;
+    const cochlea_scenario *sc;
+    cochlea_posix_port port;
+    cochlea_hal hal;
+    static cochlea_bridge bridge;
+    cochlea_start_report report;
+    cochlea_backend backend;
+    run_log log;
+    run_facts facts;
+    pthread_t writer_thread;
+    struct sigaction action;
+    void *controller;
+    double duration, period;
+    int n, rule, code, converged = 0, i, loop_error;
+    int64_t started, ended;
+    long steps;
+    char text[512];
+
+    if ((code = parse(argc, argv, &o)) != 0) {
+        return code;
+    }
+    sc = find_scenario(o.scenario);
+    if (!sc) {
+        fprintf(stderr, "cochlea-embedded: no scenario %s in this program (--list shows them). "
+                "Scenarios are compiled in: add a scenario to kernels.toml's [embedded] "
+                "scenarios, run cochlea-codegen, then make embedded\n", o.scenario);
+        return EXIT_USER_ERROR;
+    }
+    n = sc->nq;
+    period = sc->period_s;
+    duration = isnan(o.duration) ? sc->duration_s : o.duration;
+    steps = (long)nearbyint(duration / period);
+    if (steps < 1) {
+        return fail_usage("--duration %g s is shorter than one period (%g s)", duration, period);
+    }
+    if (!folder_is_empty(o.out)) {
+        return fail_usage("--out %s exists and is not empty: choose a new folder (runs never "
+                          "overwrite a log)", o.out);
+    }
+    { /* the bus budget, cochlea/dynamixel/budget.py's */
+        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + 21.0 * n;
+        facts.budget_bytes = bytes;
+        facts.wire_s = bytes * BITS_PER_BYTE / (double)o.baud;
+        facts.bus_s = facts.wire_s + n * TURNAROUND_S;
+        facts.cycle_s = facts.bus_s + ADAPTER_LATENCY_S;
+        facts.timeout_s = facts.cycle_s + TIMEOUT_MARGIN_S;
+        snprintf(text, sizeof text,
+                 "bus budget for %d motors at %ld baud: %.0f bytes per period = %.0f us on the "
+                 "bus, %.0f us with the adapter's 1 ms latency; the period is %.0f us", n,
+                 o.baud, bytes, facts.bus_s * 1e6, facts.cycle_s * 1e6, period * 1e6);
+        if (facts.bus_s > period) {
+            return fail_usage("%s: the bus cannot meet the loop rate; use a higher baud rate "
+                              "(4 Mbaud) or a lower rate", text);
+        }
+        if (facts.cycle_s > period) {
+            fprintf(stderr, "cochlea-embedded: warning: %s: the bus fits but the adapter's "
+                    "latency does not, so periods will overrun now and then\n", text);
+        }
+    }
+    if (make_folders(o.out) != 0) {
+        return fail_usage("cannot create --out %s: %s", o.out, strerror(errno));
+    }
+    log.row_length = cochlea_loop_row_length(sc);
+    log.capacity = steps;
+    log.done = log.written = 0;
+    log.finished = log.failed = 0;
+    log.rows = malloc(sizeof(double) * (size_t)steps * (size_t)log.row_length);
+    controller = malloc(sc->state_size);
+    if (!log.rows || !controller) {
+        return fail_usage("not enough memory for a %g s log", duration);
+    }
+    if (write_columns(o.out, sc, log.row_length) != 0
+        || !(log.file = open_in(o.out, "log.bin", "wb"))) {
+        return fail_usage("cannot write to %s: %s", o.out, strerror(errno));
+    }
+
+    /* Signals first: a Ctrl-C during the start-up still ends in the safe stop. */
+    memset(&action, 0, sizeof action);
+    action.sa_handler = on_signal;
+    sigemptyset(&action.sa_mask);
+    sigaction(SIGINT, &action, 0);
+    sigaction(SIGTERM, &action, 0);
+
+    printf("cochlea-embedded: %s (controller %s, %s variant), Dynamixel motors on %s, real time "
+           "at %g Hz, %s precision -> %s\n", sc->name, sc->controller, sc->variant, o.port,
+           1.0 / period, PRECISION, o.out);
+    fflush(stdout);
+    if (cochlea_posix_open(&port, o.port, o.baud) != 0) {
+        fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: cannot "
+                "open the serial port %s: %s\n", o.port, strerror(errno));
+        return COCHLEA_EXIT_BACKEND;
+    }
+    cochlea_posix_hal(&hal, &port);
+    if (cochlea_bridge_init(&bridge, &hal, sc->drives, n,
+                            (int64_t)nearbyint(facts.timeout_s * 1e9), WATCHDOG_S) != 0) {
+        cochlea_posix_close(&port);
+        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
+    }
+    facts.watchdog_s = bridge.watchdog_lsb * 0.02;
+    backend = cochlea_bridge_backend(&bridge);
+    /* The controller before the motors: a configuration it refuses moves nothing. */
+    loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, duration,
+                                   o.watchdog_misses, 5, 1);
+    if (loop_error != COCHLEA_LOOP_OK) {
+        cochlea_posix_close(&port);
+        return fail_usage("the loop refused the scenario (error %d)", loop_error);
+    }
+    the_loop.on_row = log_row;
+    the_loop.row_ctx = &log;
+    if (!cochlea_bridge_start(&bridge, &report)) {
+        start_failure(text, sizeof text, &bridge, &report, &o);
+        fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: %s\n",
+                text);
+        cochlea_posix_close(&port);
+        return COCHLEA_EXIT_BACKEND;
+    }
+    if (interrupted) {
+        cochlea_bridge_stop(&bridge);
+        cochlea_posix_close(&port);
+        fprintf(stderr, "cochlea-embedded: interrupted before the run started; drives "
+                "disabled\n");
+        return EXIT_INTERRUPTED;
+    }
+
+    /* The writer starts before the real-time priority, so it does not inherit it. */
+    if (pthread_create(&writer_thread, 0, writer, &log) != 0) {
+        cochlea_bridge_stop(&bridge);
+        cochlea_posix_close(&port);
+        return fail_usage("cannot start the log writer");
+    }
+    facts.memory = mlockall(MCL_CURRENT | MCL_FUTURE) == 0
+                       ? "locked" : "not locked (mlockall not permitted)";
+    facts.scheduling = realtime_priority();
+    started = hal.now_ns(hal.ctx);
+    rule = cochlea_loop_run(&the_loop); /* ends with the motors' safe stop, always */
+    ended = hal.now_ns(hal.ctx);
+    normal_priority();
+    munlockall();
+    cochlea_posix_close(&port);
+    __atomic_store_n(&log.finished, 1, __ATOMIC_RELEASE);
+    pthread_join(writer_thread, 0);
+    if (fclose(log.file) != 0) {
+        log.failed = 1;
+    }
+    facts.wall_s = (double)(ended - started) * 1e-9;
+
+    /* The reports, from the rows the loop logged. */
+    {
+        const long rows = __atomic_load_n(&log.done, __ATOMIC_ACQUIRE);
+        const double *last = rows ? log.rows + (size_t)(rows - 1) * (size_t)log.row_length : 0;
+        size_t used;
+        stop_detail(facts.detail, sizeof facts.detail, &the_loop, last ? last : log.rows);
+        if (bridge.last_failure < 0) {
+            snprintf(facts.last_failure, sizeof facts.last_failure, "no failure");
+        } else {
+            int slot = -1;
+            for (i = 0; i < bridge.n; ++i) {
+                if (bridge.drives[i].id == bridge.last_failure_id) {
+                    slot = i;
+                }
+            }
+            if (slot >= 0) {
+                snprintf(facts.last_failure, sizeof facts.last_failure, "%s (ID %d, %s)",
+                         cochlea_failure_name(bridge.last_failure), bridge.last_failure_id,
+                         bridge.drives[slot].name);
+            } else {
+                snprintf(facts.last_failure, sizeof facts.last_failure, "%s",
+                         cochlea_failure_name(bridge.last_failure));
+            }
+        }
+        if (bridge.confirmed_off == bridge.n) {
+            used = (size_t)snprintf(facts.shutdown, sizeof facts.shutdown,
+                                    "goal current 0 and torque off sent; torque off confirmed "
+                                    "by all %d", bridge.n);
+        } else {
+            used = (size_t)snprintf(facts.shutdown, sizeof facts.shutdown,
+                                    "goal current 0 and torque off sent; not confirmed by ");
+            for (i = 0, code = 0; i < bridge.n && used < sizeof facts.shutdown; ++i) {
+                if (!bridge.off_confirmed[i]) {
+                    who(text, sizeof text, &bridge.drives[i]);
+                    used += (size_t)snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
+                                             "%s%s", code++ ? ", " : "", text);
+                }
+            }
+            if (used < sizeof facts.shutdown) {
+                used += (size_t)snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
+                                         " (its Bus Watchdog, %.0f ms, stops it)",
+                                         facts.watchdog_s * 1e3);
+            }
+        }
+        if (bridge.alert_id >= 0 && used < sizeof facts.shutdown) {
+            const cochlea_drive *d = 0;
+            static const char *const bits[8] = {"input voltage", 0, "overheating",
+                                                "motor encoder", "electrical shock", "overload",
+                                                0, 0};
+            char what[128] = "";
+            for (i = 0; i < bridge.n; ++i) {
+                if (bridge.drives[i].id == bridge.alert_id) {
+                    d = &bridge.drives[i];
+                }
+            }
+            if (bridge.alert_status < 0) {
+                snprintf(what, sizeof what, "Hardware Error Status unreadable");
+            } else {
+                size_t w = 0;
+                int bit;
+                for (bit = 0; bit < 8; ++bit) {
+                    if ((bridge.alert_status >> bit & 1) && bits[bit] && w < sizeof what) {
+                        w += (size_t)snprintf(what + w, sizeof what - w, "%s%s", w ? ", " : "",
+                                              bits[bit]);
+                    }
+                }
+                if (w == 0) {
+                    snprintf(what, sizeof what, bridge.alert_status ? "0x%02X" : "none",
+                             (unsigned)bridge.alert_status);
+                }
+            }
+            if (d) {
+                who(text, sizeof text, d);
+                snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
+                         "; %s: hardware error (%s)", text, what);
+            }
+        }
+        if (write_summary(o.out, &the_loop, &log, rows, &facts, &bridge, &o, &converged) != 0
+            || write_csv(o.out, sc, &log, rows) != 0 || log.failed) {
+            fprintf(stderr, "cochlea-embedded: writing the log to %s failed: %s (log.bin keeps "
+                    "what was written)\n", o.out, strerror(errno));
+        }
+        printf("  ran %.2f s in %.2f s (%.1fx real time)\n", (double)rows * period,
+               facts.wall_s, (double)rows * period / (facts.wall_s > 1e-9 ? facts.wall_s : 1e-9));
+        printf("  converged: %s\n  log: %s/log.csv\n  summary: %s/summary.json\n",
+               converged ? "yes" : "no", o.out, o.out);
+        printf("  bus: %.0f bytes per period, budget %.0f us; %u of %u reads good; shut-down: "
+               "%s\n", facts.budget_bytes, facts.bus_s * 1e6, bridge.good_reads, bridge.reads,
+               facts.shutdown);
+        printf("  timing: deadline misses %u; %s; memory %s\n", the_loop.deadline_misses,
+               facts.scheduling, facts.memory);
+        fflush(stdout);
+    }
+    free(log.rows);
+    free(controller);
+    if (rule == COCHLEA_COMPLETED) {
+        return 0;
+    }
+    if (rule == COCHLEA_USER_STOP) {
+        fprintf(stderr, "cochlea-embedded: stopped by the user at t = %.3f s; zero effort "
+                "commanded, drives disabled, log complete\n", the_loop.stop.time_s);
+    } else {
+        fprintf(stderr, "cochlea-embedded: stopped by rule %s at t = %.3f s: %s; zero effort "
+                "commanded, drives disabled, log complete\n", cochlea_rule_name(rule),
+                the_loop.stop.time_s, facts.detail);
+    }
+    return cochlea_exit_code(rule);
+}

@@ -1,0 +1,253 @@
+"""``build/cochlea-embedded`` (``make embedded``, docs/embedded.md) against ``cochlea-emulator``:
+the C program with no Python runs the four studies over the virtual chain and tracks like
+``cochlea-run --backend dynamixel`` on the same emulator; every fault ends in the safe stop with
+cochlea-run's exit code, torque off in the emulator's log and the log kept; bad options are
+refused before anything opens."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cochlea.apps.report import CONVERGENCE_FLOOR, CONVERGENCE_RATIO, TAIL_FRACTION
+from cochlea.runtime.supervisor import STOP_CODES
+from tests.test_dynamixel_hil import (
+    FAULTS,
+    FLOOR,
+    SHARED_MACHINE,
+    assert_log_complete,
+    last_commands,
+    run,
+)
+from tests.test_dynamixel_hil import emulator as started_emulator
+
+pytestmark = pytest.mark.hil
+
+ROOT = Path(__file__).resolve().parent.parent
+PROGRAM = ROOT / "build" / "cochlea-embedded"
+STUDIES = [("serial", "joint"), ("serial", "task"), ("parallel", "joint"), ("parallel", "task")]
+#: cochlea-emulator prints its port before it serves at full pace: talked to at once, it falls
+#: behind by tens of milliseconds now and then in its first seconds (seen about one run in
+#: three; enough for the read watchdog). cochlea-run takes about 2 s to import before it talks;
+#: the C program starts in a millisecond, so its tests give the emulator that time.
+EMULATOR_SETTLE_S = 2.0
+
+
+@contextmanager
+def emulator(robot: str, scenario: str, log: Path, *options: str):
+    with started_emulator(robot, scenario, log, *options) as port:
+        time.sleep(EMULATOR_SETTLE_S)
+        yield port
+
+
+@pytest.fixture(scope="module")
+def program() -> Path:
+    """``make embedded``, as a user builds it (up to date: make rebuilds only what changed)."""
+    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "warning" not in done.stderr
+    return PROGRAM
+
+
+def embedded(program: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([str(program), *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
+    with path.open() as f:
+        header = f.readline().strip().split(",")
+    return header, np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+
+
+@pytest.mark.parametrize("robot,space", STUDIES)
+def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, program, robot,
+                                                                 space):
+    name, duration = f"{robot}_{space}", 5.0
+    c_out, py_out = tmp_path / "c", tmp_path / "py"
+    with emulator(robot, name, tmp_path / "c.log") as port:
+        done = embedded(program, "--scenario", name, "--port", port, "--duration",
+                        str(duration), "--out", str(c_out), *SHARED_MACHINE)
+    assert done.returncode == 0, done.stderr
+    with emulator(robot, name, tmp_path / "py.log") as port:
+        reference = run("--robot", robot, "--space", space, "--backend", "dynamixel", "--port",
+                        port, "--duration", str(duration), "--out", str(py_out), cwd=tmp_path)
+    assert reference.returncode == 0, reference.stderr
+
+    summary = json.loads((c_out / "summary.json").read_text())
+    python = json.loads((py_out / "summary.json").read_text())
+    # cochlea-run's schema: every key it writes, at every level the two share.
+    assert set(python) <= set(summary)
+    assert set(python["timing"]) <= set(summary["timing"])
+    assert set(python["timing"]["bus"]) <= set(summary["timing"]["bus"])
+    for unit, entry in python["units"].items():
+        assert set(entry) == set(summary["units"][unit])
+        assert set(entry["tracked"]) == set(summary["units"][unit]["tracked"])
+        assert entry["estimates"]["names"] == summary["units"][unit]["estimates"]["names"]
+    assert summary["convergence_rule"] == python["convergence_rule"]
+    assert summary["stop"] == {"rule": "completed", "time_s": pytest.approx(duration),
+                               "detail": "", "exit_code": 0}
+    assert summary["periods"] == python["periods"] == int(duration * 1000)
+    assert_log_complete(c_out, summary)
+    bus = summary["timing"]["bus"]
+    n = 6 if robot == "serial" else 5
+    assert bus["reads"] == summary["periods"]  # the start-up's are kept apart
+    assert bus["good_reads"] >= 0.98 * bus["reads"]
+    assert f"torque off confirmed by all {n}" in bus["shutdown"]
+    tail = last_commands(tmp_path / "c.log")[-4 * n:]
+    assert tail == [("sync-write", a, v) for a, v in [(102, 0)] * n + [(64, 0)] * n] * 2
+
+    # The logged joint trajectory is cochlea-run's, to the tolerance of a run over the motors:
+    # FLOOR is what one run may stray from the ideal one (the distal links stick and slip by
+    # several counts, differently each run), so two runs differ by up to twice that at an
+    # instant, and by FLOOR in RMS.
+    c_head, c_rows = read_csv(c_out / "log.csv")
+    py_head, py_rows = read_csv(py_out / "log.csv")
+    shared = [h for h in c_head if ".q." in h]
+    assert shared and set(shared) <= set(py_head)
+    for h in shared:
+        unit = h.rsplit("_", 1)[1]
+        gap = np.abs(c_rows[:, c_head.index(h)] - py_rows[:, py_head.index(h)])
+        assert gap.max() <= 2 * FLOOR[unit], (h, gap.max())
+        assert np.sqrt(np.mean(gap ** 2)) <= FLOOR[unit], (h, np.sqrt(np.mean(gap ** 2)))
+    # ... and it converges as cochlea-run's does: tracking within the HIL floor of the run.
+    for unit, entry in summary["units"].items():
+        for coord, c in entry["tracked"].items():
+            py = python["units"][unit]["tracked"][coord]
+            assert c["initial_abs_error"] == pytest.approx(py["initial_abs_error"], rel=0.05,
+                                                           abs=2 * FLOOR["m"])
+            bound = max(CONVERGENCE_RATIO * c["initial_abs_error"],
+                        py["final_rms_error"] + FLOOR[c["unit"]])
+            assert c["final_rms_error"] <= bound, (unit, coord, c, py)
+            # The summary's numbers are the CSV's, by cochlea-run's own rule.
+            column = c_head.index(f"{unit}.error.{coord}_{c['unit']}")
+            error = c_rows[:, column]
+            tail = error[int(len(error) * (1 - TAIL_FRACTION)):]
+            assert c["initial_abs_error"] == pytest.approx(abs(error[0]), rel=1e-9)
+            assert c["final_rms_error"] == pytest.approx(np.sqrt(np.mean(tail ** 2)), rel=1e-6)
+            assert c["converged"] == bool(c["final_rms_error"] <= max(
+                CONVERGENCE_RATIO * c["initial_abs_error"], CONVERGENCE_FLOOR[c["unit"]]))
+
+
+@pytest.mark.parametrize("name", FAULTS)
+def test_every_fault_ends_in_the_safe_stop(tmp_path, program, name):
+    options, kind = FAULTS[name]
+    out, log = tmp_path / "c", tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log, "--fault-delay", "0.3", *options) as port:
+        done = embedded(program, "--scenario", "serial_joint", "--port", port, "--duration",
+                        "3", "--out", str(out), *SHARED_MACHINE)
+    assert done.returncode == STOP_CODES["watchdog"] == 15, done.stderr
+    assert "stopped by rule watchdog" in done.stderr
+    assert "zero effort commanded, drives disabled, log complete" in done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "watchdog" and 0.3 < summary["stop"]["time_s"] < 2.0
+    assert "consecutive backend read failures" in summary["stop"]["detail"]
+    assert_log_complete(out, summary)
+    bus = summary["timing"]["bus"]
+    assert bus["failures"].get(kind, 0) > 0, bus
+    assert "goal current 0 and torque off sent" in bus["shutdown"]
+    if name == "hardware error":
+        assert "ID 3 (arm1.link3, MX-64): hardware error (overload)" in bus["shutdown"]
+    elif name != "late replies":  # its answers to the confirming reads are lost too
+        assert "not confirmed by ID 3 (arm1.link3, MX-64)" in bus["shutdown"]
+    # The motors that hear the bus got zero current and torque off, in that order.
+    tail = [(a, v) for _, a, v in last_commands(log)[-24:]]
+    hearing = 5 if name == "motor stops answering" else 6
+    assert tail[-2 * hearing:] == [(102, 0)] * hearing + [(64, 0)] * hearing
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--missing-motor", "3"], "ID 3 (arm1.link3, MX-64) did not answer PING"),
+    (["--model-number", "5:1120"], "ID 5 (arm2.link2, MX-64) is model number 1120"),
+])
+def test_a_wrong_bus_stops_before_anything_moves(tmp_path, program, options, message):
+    log = tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log, *options) as port:
+        done = embedded(program, "--scenario", "serial_joint", "--port", port, "--duration",
+                        "1", "--out", str(tmp_path / "c"))
+    assert done.returncode == 5, done.stderr
+    assert "the backend could not start, nothing moved" in done.stderr and message in done.stderr
+    assert " write " not in log.read_text()  # nothing was configured, let alone enabled
+
+
+def test_the_emulator_killed_mid_run_ends_in_the_safe_stop(tmp_path, program):
+    out, log = tmp_path / "c", tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log) as port:
+        proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
+                                 "--duration", "5", "--out", str(out), *SHARED_MACHINE],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(1.5)  # the emulator's start-up, the motors' start-up, then running
+        assert proc.poll() is None
+        pids = subprocess.run(["pgrep", "-f", f"cochlea.dynamixel.emulator.*{log}"],
+                              capture_output=True, text=True).stdout.split()
+        assert pids
+        for pid in pids:
+            os.kill(int(pid), signal.SIGKILL)
+        stdout, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 15, stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "watchdog" and summary["stop"]["time_s"] < 4.9
+    assert_log_complete(out, summary)
+    bus = summary["timing"]["bus"]
+    assert "port" in bus["failures"] or "timeout" in bus["failures"], bus
+    assert "not confirmed by" in bus["shutdown"]
+
+
+def test_sigint_is_the_users_stop(tmp_path, program):
+    out, log = tmp_path / "c", tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log) as port:
+        proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
+                                 "--duration", "10", "--out", str(out), *SHARED_MACHINE],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+        time.sleep(0.2)
+    assert proc.returncode == 0, stderr
+    assert "stopped by the user" in stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "user-stop" and summary["stop"]["time_s"] < 9.0
+    assert_log_complete(out, summary)
+    assert "torque off confirmed by all 6" in summary["timing"]["bus"]["shutdown"]
+
+
+@pytest.mark.parametrize("args, code, text", [
+    (["--scenario", "serial_task"], 2, "--scenario, --port and --out are needed"),
+    (["--scenario", "nope", "--port", "/dev/null", "--out", "X"], 2, "no scenario nope"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--duration", "-1"],
+     2, "--duration must be positive"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--duration", "nan"],
+     2, "--duration must be positive"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--baud", "fast"],
+     2, "--baud must be a whole number"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--watchdog-misses",
+      "0"], 2, "--watchdog-misses must be between 1 and"),
+    (["--scenario", "serial_task", "--port", "/dev/pts/999", "--out", "X", "--baud",
+      "1000000"], 2, "the bus cannot meet the loop rate"),
+    (["--scenario", "serial_task", "--port", "/dev/ttyUSB-none", "--out", "X"], 5,
+     "cannot open the serial port /dev/ttyUSB-none"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--bogus", "1"], 2,
+     "unknown option --bogus"),
+])
+def test_bad_options_are_refused_with_a_message(tmp_path, program, args, code, text):
+    done = subprocess.run([str(program), *args], capture_output=True, text=True, timeout=30,
+                          cwd=tmp_path)
+    assert done.returncode == code and text in done.stderr, done.stderr
+
+
+def test_a_used_output_folder_is_refused(tmp_path, program):
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "log.csv").write_text("keep me\n")
+    done = embedded(program, "--scenario", "serial_task", "--port", "/dev/null", "--out",
+                    str(tmp_path / "used"))
+    assert done.returncode == 2 and "is not empty" in done.stderr
+    assert (tmp_path / "used" / "log.csv").read_text() == "keep me\n"
