@@ -75,8 +75,8 @@ int shim_run(int i, read_fn r, write_fn w, shutdown_fn s, row_fn row, double dur
     rd = r; wr = w; sd = s; rw = row;
     backend.ctx = 0; backend.read = b_read; backend.write = b_write;
     backend.shutdown = b_shutdown;
-    code = cochlea_loop_init(&loop, cochlea_scenarios[i], 0, &backend, storage, duration,
-                             misses, errors, 0);
+    code = cochlea_loop_init(&loop, cochlea_scenarios[i], 0, &backend, storage, 0.0,
+                             duration, misses, errors, 0);
     if (code != COCHLEA_LOOP_OK) return -code;
     loop.on_row = on_row;
     code = cochlea_loop_run(&loop);

@@ -237,6 +237,12 @@ def test_sigint_is_the_users_stop(tmp_path, program):
      "cannot open the serial port /dev/ttyUSB-none"),
     (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--bogus", "1"], 2,
      "unknown option --bogus"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--rate", "50000"], 2,
+     "--rate must be between 1 and 20000 Hz"),
+    # 1 Mbaud carries 6 motors at 400 Hz (1900 us of bus per 2500 us): past the budget, to
+    # the port (which is missing).
+    (["--scenario", "serial_task", "--port", "/dev/ttyUSB-none", "--out", "X", "--baud",
+      "1000000", "--rate", "400"], 5, "cannot open the serial port /dev/ttyUSB-none"),
 ])
 def test_bad_options_are_refused_with_a_message(tmp_path, program, args, code, text):
     done = subprocess.run([str(program), *args], capture_output=True, text=True, timeout=30,

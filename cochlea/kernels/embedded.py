@@ -553,9 +553,10 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
                     f"    x[{o.x} + i] = ({R})q[{o.q} + i];",
                     f"    x[{o.x + u.nq} + i] = ({R})qd[{o.q} + i];", "  }"]
     parts += [
-        "static int init(void *state) {",
+        "static int init(void *state, double period_s) {",
         f"  {name}_config c;",
         f"  {name}_default_config(&c);",
+        "  c.h = period_s;",
         f"  return {name}_init(({name}_state *)state, &c);",
         "}\n",
         "static int step(void *state, double t, const double *q, const double *qd, "

@@ -13,11 +13,13 @@ int cochlea_loop_row_length(const cochlea_scenario *sc)
 }
 
 int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const cochlea_hal *hal,
-                      const cochlea_backend *backend, void *controller, double duration_s,
-                      int watchdog_misses, int watchdog_errors, int realtime)
+                      const cochlea_backend *backend, void *controller, double period_s,
+                      double duration_s, int watchdog_misses, int watchdog_errors,
+                      int realtime)
 {
     int u, i;
     double periods;
+    const double h = period_s > 0.0 ? period_s : sc->period_s;
     loop->scenario = sc;
     loop->hal = hal;
     loop->backend = *backend;
@@ -36,8 +38,8 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
         || cochlea_loop_row_length(sc) > COCHLEA_MAX_ROW) {
         return COCHLEA_LOOP_TOO_BIG;
     }
-    periods = duration_s / sc->period_s;
-    if (!(periods >= 0.5 && periods < 2.0e9)) { /* also refuses NaN */
+    periods = duration_s / h;
+    if (!(h >= 5e-5 && h <= 1.0 && periods >= 0.5 && periods < 2.0e9)) { /* and NaN */
         return COCHLEA_LOOP_BAD_DURATION;
     }
     if (watchdog_misses < 1 || watchdog_errors < 1) {
@@ -47,7 +49,8 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
         return COCHLEA_LOOP_NO_CLOCK;
     }
     loop->steps = (long)nearbyint(periods);
-    loop->period_ns = (int64_t)nearbyint(sc->period_s * 1e9);
+    loop->period_s = h;
+    loop->period_ns = (int64_t)nearbyint(h * 1e9);
     loop->row_length = cochlea_loop_row_length(sc);
     loop->limits.n_joints = sc->nq;
     loop->limits.position_lo = sc->position_lo;
@@ -57,7 +60,7 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     loop->limits.keep_out_radius = sc->keep_out_radius;
     loop->limits.watchdog_misses = watchdog_misses;
     loop->limits.watchdog_errors = watchdog_errors;
-    if (sc->init(controller) != 0) {
+    if (sc->init(controller, h) != 0) {
         return COCHLEA_LOOP_BAD_CONTROLLER;
     }
     for (u = 0; u < sc->n_units; ++u) {
@@ -110,7 +113,7 @@ static int periods(cochlea_loop *loop)
     const cochlea_scenario *sc = loop->scenario;
     const cochlea_backend *be = &loop->backend;
     const int n = sc->nq;
-    const double h = sc->period_s;
+    const double h = loop->period_s;
     double *row = loop->row;
     double *row_tau = row + 1 + 2 * n;
     double *timing = row + loop->row_length - 4;

@@ -39,7 +39,8 @@ extern "C" {
 enum cochlea_loop_error {
     COCHLEA_LOOP_OK = 0,
     COCHLEA_LOOP_TOO_BIG,        /* the scenario does not fit the loop's buffers */
-    COCHLEA_LOOP_BAD_DURATION,   /* not finite, not positive, or more periods than a long */
+    COCHLEA_LOOP_BAD_DURATION,   /* a period outside 50 us..1 s, or a duration not finite,
+                                  * under half a period or over 2e9 periods */
     COCHLEA_LOOP_BAD_WATCHDOG,   /* a watchdog count below 1 */
     COCHLEA_LOOP_BAD_CONTROLLER, /* the controller's init refused its configuration */
     COCHLEA_LOOP_NO_CLOCK        /* a real-time loop without now_ns and wait_until_ns */
@@ -52,6 +53,7 @@ typedef struct {
     cochlea_backend backend;
     void *controller;                /* scenario->state_size bytes, the caller's */
     cochlea_limits limits;           /* from the scenario, with the watchdog's counts */
+    double period_s;                 /* the control period (s) */
     int64_t period_ns;
     long steps;
     int realtime;                    /* 0: periods back to back, no waiting (tests) */
@@ -81,13 +83,15 @@ typedef struct {
 /* The length of a log row of the scenario (see above). */
 int cochlea_loop_row_length(const cochlea_scenario *sc);
 
-/* Configure the loop and initialise the controller (p_hat = p_hat0). duration_s: the run
- * (rounded to whole periods); watchdog_misses and watchdog_errors as cochlea-run's. The
+/* Configure the loop and initialise the controller (p_hat = p_hat0). period_s: the control
+ * period (0: the scenario's; cochlea-run's --rate); duration_s: the run (rounded to whole
+ * periods); watchdog_misses and watchdog_errors as cochlea-run's. The
  * backend must already be started (cochlea_bridge_start): the loop only reads, writes and
  * shuts it down. COCHLEA_LOOP_OK or a cochlea_loop_error; on an error nothing ran. */
 int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const cochlea_hal *hal,
-                      const cochlea_backend *backend, void *controller, double duration_s,
-                      int watchdog_misses, int watchdog_errors, int realtime);
+                      const cochlea_backend *backend, void *controller, double period_s,
+                      double duration_s, int watchdog_misses, int watchdog_errors,
+                      int realtime);
 
 /* Run every period until the end or a rule; then the backend's shutdown. The rule
  * (enum cochlea_rule); loop->stop says where, cochlea_exit_code() the process's exit code. */

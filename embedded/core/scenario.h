@@ -50,8 +50,9 @@ typedef struct {
     const double *position_lo, *position_hi, *velocity, *effort;  /* nq, the supervisor's */
     size_t state_size;                  /* bytes of the controller's state */
     int real_size;                      /* sizeof the working precision: 4 float, 8 double */
-    /* Set p_hat to p_hat0 with the scenario's gains; 0, or -1. */
-    int (*init)(void *state);
+    /* Set p_hat to p_hat0 with the scenario's gains, for a loop of period period_s (the
+     * estimate's Euler step); 0, or -1. */
+    int (*init)(void *state, double period_s);
     /* One period: q, qd[nq] measured (unit after unit); command[nq] clipped to the effort
      * limits; errors[ne]. 0; -1 not initialised; 1 non-finite command or error; 2 non-finite
      * estimate (the state then unchanged). */

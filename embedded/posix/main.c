@@ -70,6 +70,7 @@ typedef struct {
     const char *scenario, *port, *out;
     long baud;
     double duration; /* NaN: the scenario's */
+    double rate;     /* Hz; NaN: the scenario's */
     int watchdog_misses;
 } options;
 
@@ -88,12 +89,13 @@ static void usage(FILE *to)
 {
     fprintf(to,
             "usage: cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S]\n"
-            "                        --out DIR [--watchdog-misses N] | --list\n"
+            "                        [--rate HZ] --out DIR [--watchdog-misses N] | --list\n"
             "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
             "  --baud B             the motors' baud rate (default 4000000)\n"
             "  --duration S         seconds to run (default: the scenario's)\n"
+            "  --rate HZ            the control rate (default: the scenario's)\n"
             "  --out DIR            a new or empty folder for log.bin, log.csv, summary.json\n"
             "  --watchdog-misses N  consecutive deadline misses tolerated (default 20)\n"
             "  --list               the scenarios linked into this program\n"
@@ -128,6 +130,7 @@ static int parse(int argc, char **argv, options *o)
     o->scenario = o->port = o->out = 0;
     o->baud = 4000000;
     o->duration = NAN;
+    o->rate = NAN;
     o->watchdog_misses = 20;
     for (i = 1; i < argc; ++i) {
         const char *a = argv[i];
@@ -166,6 +169,11 @@ static int parse(int argc, char **argv, options *o)
                 return fail_usage("--duration must be positive, got %s", value);
             }
             o->duration = v;
+        } else if (strcmp(a, "--rate") == 0) {
+            if (!parse_number(value, &v) || !(v >= 1.0 && v <= 20000.0)) {
+                return fail_usage("--rate must be between 1 and 20000 Hz, got %s", value);
+            }
+            o->rate = v;
         } else if (strcmp(a, "--watchdog-misses") == 0) {
             if (!parse_number(value, &v) || v != floor(v) || v < 1 || v > MAX_WATCHDOG_MISSES) {
                 return fail_usage("--watchdog-misses must be between 1 and %d periods, got %s",
@@ -843,7 +851,7 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const run_log *log
                            const run_facts *facts, const cochlea_bridge *b, const options *o)
 {
     const int L = log->row_length;
-    const double h = loop->scenario->period_s;
+    const double h = loop->period_s;
     double *scratch = malloc(sizeof(double) * (size_t)(rows > 0 ? rows : 1));
     long m, k;
     double sum = 0.0, sq = 0.0, max = NAN;
@@ -989,10 +997,10 @@ static int write_summary(const char *out, const cochlea_loop *loop, const run_lo
     key(f, 2, "program");
     fputs("\"cochlea-embedded (" PRECISION ")\",\n", f);
     key(f, 2, "rate_Hz");
-    json_number(f, 1.0 / sc->period_s);
+    json_number(f, 1.0 / loop->period_s);
     fputs(",\n", f);
     key(f, 2, "duration_s");
-    json_number(f, (double)rows * sc->period_s);
+    json_number(f, (double)rows * loop->period_s);
     fprintf(f, ",\n  \"periods\": %ld,\n", rows);
     key(f, 2, "convergence_rule");
     json_string(f, CONVERGENCE_RULE);
@@ -1094,7 +1102,7 @@ int main(int argc, char **argv)
         return EXIT_USER_ERROR;
     }
     n = sc->nq;
-    period = sc->period_s;
+    period = isnan(o.rate) ? sc->period_s : 1.0 / o.rate;
     duration = isnan(o.duration) ? sc->duration_s : o.duration;
     steps = (long)nearbyint(duration / period);
     if (steps < 1) {
@@ -1117,7 +1125,7 @@ int main(int argc, char **argv)
                  o.baud, bytes, facts.bus_s * 1e6, facts.cycle_s * 1e6, period * 1e6);
         if (facts.bus_s > period) {
             return fail_usage("%s: the bus cannot meet the loop rate; use a higher baud rate "
-                              "(4 Mbaud) or a lower rate", text);
+                              "(4 Mbaud) or a lower rate (--rate)", text);
         }
         if (facts.cycle_s > period) {
             fprintf(stderr, "cochlea-embedded: warning: %s: the bus fits but the adapter's "
@@ -1166,7 +1174,7 @@ int main(int argc, char **argv)
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
     backend = cochlea_bridge_backend(&bridge);
     /* The controller before the motors: a configuration it refuses moves nothing. */
-    loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, duration,
+    loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, period, duration,
                                    o.watchdog_misses, 5, 1);
     if (loop_error != COCHLEA_LOOP_OK) {
         cochlea_posix_close(&port);

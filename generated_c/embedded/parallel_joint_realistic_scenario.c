@@ -22,9 +22,10 @@ static const cochlea_unit_info units[PARALLEL_JOINT_REALISTIC_UNITS] = {
     {"mechanism", "f (corrected), joint space", 5, 5, 28, 10, 0, 0, 0, 0, mechanism_tracked, mechanism_tracked_units, mechanism_joints, mechanism_joint_units, mechanism_params, mechanism_param_units, mechanism_nominal, 533.4109423549539, {"e", "r"}, 1, 2, mechanism_points},
 };
 
-static int init(void *state) {
+static int init(void *state, double period_s) {
   parallel_joint_realistic_config c;
   parallel_joint_realistic_default_config(&c);
+  c.h = period_s;
   return parallel_joint_realistic_init((parallel_joint_realistic_state *)state, &c);
 }
 

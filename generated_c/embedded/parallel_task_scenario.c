@@ -22,9 +22,10 @@ static const cochlea_unit_info units[PARALLEL_TASK_UNITS] = {
     {"mechanism", "d (corrected), task space", 5, 6, 13, 11, 0, 0, 0, 0, mechanism_tracked, mechanism_tracked_units, mechanism_joints, mechanism_joint_units, mechanism_params, mechanism_param_units, mechanism_nominal, 16.6837885385784, {"e_p", "e_d"}, 1, 2, mechanism_points},
 };
 
-static int init(void *state) {
+static int init(void *state, double period_s) {
   parallel_task_config c;
   parallel_task_default_config(&c);
+  c.h = period_s;
   return parallel_task_init((parallel_task_state *)state, &c);
 }
 

@@ -32,9 +32,10 @@ static const cochlea_unit_info units[SERIAL_JOINT_REALISTIC_UNITS] = {
     {"arm2", "e (corrected), joint space", 3, 3, 12, 6, 3, 3, 12, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 3.8998514958905806, {"e", "r"}, 1, 1, arm2_points},
 };
 
-static int init(void *state) {
+static int init(void *state, double period_s) {
   serial_joint_realistic_config c;
   serial_joint_realistic_default_config(&c);
+  c.h = period_s;
   return serial_joint_realistic_init((serial_joint_realistic_state *)state, &c);
 }
 

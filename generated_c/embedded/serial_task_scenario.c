@@ -32,9 +32,10 @@ static const cochlea_unit_info units[SERIAL_TASK_UNITS] = {
     {"arm2", "g (corrected), task space", 3, 3, 3, 6, 3, 3, 3, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 1.2405940875241992, {"e_g", "e_v"}, -1, 1, arm2_points},
 };
 
-static int init(void *state) {
+static int init(void *state, double period_s) {
   serial_task_config c;
   serial_task_default_config(&c);
+  c.h = period_s;
   return serial_task_init((serial_task_state *)state, &c);
 }
 

@@ -1,0 +1,184 @@
+"""Benchmark rows of ``build/cochlea-embedded`` (issue 12) against ``cochlea-emulator``: the C
+loop's own compute per period against the Python loop's on the same scenario and emulator, the
+bus time of one period at 1-4 Mbaud with the emulator's wire timing, and the deadline misses of
+a 20 s run. Every number comes from the runs' own log.bin (per-period timing columns, s), so
+the rows of one table are taken in one bench run on the same machine.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+PROGRAM = ROOT / "build" / "cochlea-embedded"
+#: cochlea-emulator serves at full pace a moment after it prints its port (see
+#: tests/test_embedded_program.py).
+SETTLE_S = 2.0
+
+
+def build() -> Path:
+    subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT, check=True,
+                   capture_output=True)
+    return PROGRAM
+
+
+@contextmanager
+def emulator(robot: str, scenario: str, *options: str):
+    proc = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot", robot,
+                             "--scenario", scenario, *options], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        if not port.startswith("/dev/"):
+            raise RuntimeError(f"cochlea-emulator did not start: {proc.stderr.read()}")
+        time.sleep(SETTLE_S)
+        yield port
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+
+
+def timing(out: Path) -> dict[str, np.ndarray]:
+    """The per-period timing columns of a run's log.bin (s), rows that have them."""
+    columns = json.loads((out / "log.columns.json").read_text())
+    rows = np.fromfile(out / "log.bin").reshape(-1, columns["row_length"])
+    names = columns["columns"]
+    table = {n: rows[:, names.index(n)] for n in ("compute_s", "backend_io_s", "wall_period_s",
+                                                  "start_lateness_s")}
+    keep = np.isfinite(table["compute_s"])
+    return {k: v[keep] for k, v in table.items()}
+
+
+def _stats(values: np.ndarray) -> dict:
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
+            "max": float(values.max())}
+
+
+def run_c(scenario: str, port: str, out: Path, seconds: float, *options: str) -> dict:
+    done = subprocess.run([str(PROGRAM), "--scenario", scenario, "--port", port, "--duration",
+                           str(seconds), "--out", str(out), *options], capture_output=True,
+                          text=True, timeout=seconds + 60)
+    if done.returncode != 0:
+        raise RuntimeError(f"cochlea-embedded failed ({done.returncode}): {done.stderr}")
+    return json.loads((out / "summary.json").read_text())
+
+
+def run_python(robot: str, space: str, port: str, out: Path, seconds: float) -> dict:
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", robot,
+                           "--space", space, "--backend", "dynamixel", "--port", port,
+                           "--duration", str(seconds), "--out", str(out), "--status", "off",
+                           "--watchdog-misses", "300"], capture_output=True, text=True,
+                          timeout=seconds + 120)
+    if done.returncode != 0:
+        raise RuntimeError(f"cochlea-run failed ({done.returncode}): {done.stderr}")
+    return json.loads((out / "summary.json").read_text())
+
+
+def loop_compute(studies=(("serial", "task"), ("parallel", "task")), seconds: float = 5.0
+                 ) -> list[dict]:
+    """Per period, the loop's own work (its compute less the bus transaction), C against
+    Python, each against its own fresh emulator of the same scenario."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for robot, space in studies:
+            name = f"{robot}_{space}"
+            with emulator(robot, name) as port:
+                run_c(name, port, Path(tmp) / f"c-{name}", seconds, "--watchdog-misses", "300")
+            with emulator(robot, name) as port:
+                run_python(robot, space, port, Path(tmp) / f"py-{name}", seconds)
+            own = {}
+            for who in ("c", "py"):
+                t = timing(Path(tmp) / f"{who}-{name}")
+                own[who] = _stats(t["compute_s"] - t["backend_io_s"])
+                own[who + "_bus"] = _stats(t["backend_io_s"])
+            rows.append({"scenario": name, "unit": "s", "c_loop": own["c"],
+                         "python_loop": own["py"], "c_bus": own["c_bus"],
+                         "python_bus": own["py_bus"],
+                         "python_over_c_p50": own["py"]["p50"] / own["c"]["p50"]})
+    return rows
+
+
+def wire_times(bauds=(1_000_000, 2_000_000, 3_000_000, 4_000_000), seconds: float = 3.0
+               ) -> list[dict]:
+    """The bus transaction of one period (SYNC_WRITE, SYNC_READ and the six status packets of
+    the serial system) with the emulator holding each byte for its time on the wire; a rate the
+    bus can carry at each baud (1 kHz from 2 Mbaud; 400 Hz at 1 Mbaud)."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for baud in bauds:
+            rate = 1000 if baud >= 2_000_000 else 400
+            with emulator("serial", "serial_joint", "--wire-timing", "--baud", str(baud)) as port:
+                summary = run_c("serial_joint", port, Path(tmp) / f"w{baud}", seconds, "--baud",
+                                str(baud), "--rate", str(rate), "--watchdog-misses", "300")
+            t = timing(Path(tmp) / f"w{baud}")
+            budget = summary["timing"]["bus"]["bus_budget"]
+            rows.append({"baud": baud, "rate_Hz": rate, "unit": "s",
+                         "bus_io": _stats(t["backend_io_s"]), "budget_bus_s": budget["bus_s"],
+                         "budget_wire_s": budget["wire_s"],
+                         "good_reads": summary["timing"]["bus"]["good_reads"],
+                         "reads": summary["timing"]["bus"]["reads"]})
+    return rows
+
+
+def deadline_misses(seconds: float = 20.0) -> dict:
+    """The C program's serial task study for 20 s at 4 Mbaud: its missed deadlines and period."""
+    with tempfile.TemporaryDirectory() as tmp, emulator("serial", "serial_task") as port:
+        summary = run_c("serial_task", port, Path(tmp) / "m", seconds, "--watchdog-misses",
+                        "1000")
+    t = summary["timing"]
+    return {"scenario": "serial_task", "seconds": seconds, "periods": summary["periods"],
+            "deadline_misses": t["deadline_misses"],
+            "deadline_miss_fraction": t["deadline_miss_fraction"],
+            "period_p99_s": t["period_p99"], "period_max_s": t["period_max"],
+            "scheduling": t["scheduling"], "memory": t["memory"]}
+
+
+def bench() -> dict:
+    build()
+    return {"loop_compute": loop_compute(), "wire": wire_times(),
+            "deadline_misses": deadline_misses()}
+
+
+def us(seconds: float) -> str:
+    return f"{seconds * 1e6:.0f} us" if seconds >= 1e-5 else f"{seconds * 1e6:.1f} us"
+
+
+def markdown(results: dict) -> str:
+    lines = ["## The embedded program (build/cochlea-embedded) against cochlea-emulator", "",
+             "The loop's own work per period (its compute less the bus transaction), C against "
+             "Python on the same scenario, each against a fresh emulator (5 s):", "",
+             "| scenario | C p50 | C p99 | C max | Python p50 | Python p99 | Python max | "
+             "Python / C (p50) |", "|---|---|---|---|---|---|---|---|"]
+    for r in results["loop_compute"]:
+        c, p = r["c_loop"], r["python_loop"]
+        lines.append(f"| {r['scenario']} | {us(c['p50'])} | {us(c['p99'])} | {us(c['max'])} | "
+                     f"{us(p['p50'])} | {us(p['p99'])} | {us(p['max'])} | "
+                     f"{r['python_over_c_p50']:.0f}x |")
+    lines += ["", "The bus transaction of one period (6 motors, serial_joint) with the emulator's "
+              "wire timing:", "",
+              "| baud | rate | bus i/o p50 | p99 | max | budget (wire + turnaround) | good reads |",
+              "|---|---|---|---|---|---|---|"]
+    for r in results["wire"]:
+        b = r["bus_io"]
+        lines.append(f"| {r['baud'] / 1e6:g} M | {r['rate_Hz']} Hz | {us(b['p50'])} | "
+                     f"{us(b['p99'])} | {us(b['max'])} | {us(r['budget_bus_s'])} | "
+                     f"{r['good_reads']} of {r['reads']} |")
+    m = results["deadline_misses"]
+    lines += ["", f"Deadline misses of the C program over {m['seconds']:g} s ({m['scenario']}, "
+              f"4 Mbaud, {m['scheduling']}, memory {m['memory']}): {m['deadline_misses']} of "
+              f"{m['periods']} periods ({100 * m['deadline_miss_fraction']:.2f} %); period p99 "
+              f"{m['period_p99_s'] * 1e3:.3f} ms, max {m['period_max_s'] * 1e3:.3f} ms.", ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    results = bench()
+    print(markdown(results))
