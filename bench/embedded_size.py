@@ -657,7 +657,8 @@ def measure(target: Target, precision: str, work: Path) -> dict:
         machine.add(elf.machine)
         objects[obj.stem] = elf.sizes()
         undefined |= elf.undefined()
-    defined = {s.name for o in build.objects for s in Elf.read(o).defined_functions()}
+    defined = {s.name for o in build.objects for s in Elf.read(o).symbols
+               if s.shndx != SHN_UNDEF and s.bind != STB_LOCAL}
     total = {k: sum(o[k] for o in objects.values()) for k in ("text", "data", "bss")}
     runtime = {k: sum(objects[s.stem][k] for s in CORE.glob("*.c")) for k in total}
     entries, callbacks = stack_report(build)
