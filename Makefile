@@ -6,7 +6,12 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
+<<<<<<< HEAD
 .PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness embedded
+=======
+.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness \
+        embedded-size
+>>>>>>> embedded-portability
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -88,6 +93,12 @@ robustness: $(STAMP)
 # The benchmark: writes bench/results.md and bench/results.json (takes a few minutes).
 bench: $(STAMP) lib
 	$(BIN)/python bench/run.py
+
+# The embedded core's code size and worst stack per entry point, cross-compiled for a
+# Cortex-M4F and aarch64 Linux with zig cc (the ziglang wheel) and for the host: writes the
+# size section of docs/embedded.md and bench/embedded_size.json (about 10 s).
+embedded-size: $(STAMP)
+	$(BIN)/python bench/embedded_size.py
 
 # The runtime's acceptance measurement: a 20 s real-time run of the serial task study
 # (deadline misses below 0.5 %, same results as the as-fast run) -> bench/realtime.md.

@@ -83,7 +83,7 @@ static void fill_nan(double *v, int n)
 {
     int i;
     for (i = 0; i < n; ++i) {
-        v[i] = NAN;
+        v[i] = (double)NAN; /* NAN is a float constant: no promotion warning */
     }
 }
 
