@@ -6,12 +6,8 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-<<<<<<< HEAD
-.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness embedded
-=======
 .PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness \
-        embedded-size
->>>>>>> embedded-portability
+        embedded embedded-size
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
