@@ -87,14 +87,6 @@ ALLOWED = LIBM | AEABI
 #: Single-precision helpers: a float build for an FPU target must not call them.
 SOFT_SINGLE = frozenset(n for n in AEABI if re.match(r"__aeabi_c?f[a-z]|__aeabi_u?i2f$", n))
 
-#: clang (zig cc) reads ``a && b`` and ``a ? b : c`` on floats as a conversion to _Bool and
-#: -Wfloat-conversion warns about it; GCC does not. The generated controllers have such code,
-#: so a clang float build tolerates exactly this warning in generated_c/embedded/ (and reports
-#: how many), and tests/test_embedded_portability.py marks the clean build a known failure.
-KNOWN_CLANG_FLOAT = re.compile(
-    r"^" + re.escape(str(GENERATED)) + r"/\w+\.c:\d+:\d+: warning: implicit conversion turns "
-    r"floating-point number into integer: '\w+' \(aka 'float'\) to '_Bool' "
-    r"\[-Wfloat-conversion\]$")
 
 
 # --------------------------------------------------------------------------------------------
@@ -183,7 +175,6 @@ class Build:
     precision: str
     objects: list[Path]
     seconds: float  # wall time of the whole build (sources compiled in parallel)
-    tolerated: int  # warnings of KNOWN_CLANG_FLOAT let through
     stack_files: dict[Path, Path] = field(default_factory=dict)  # object -> its .su
     assembly: dict[Path, Path] = field(default_factory=dict)  # object -> its assembly (-S)
 
@@ -214,9 +205,7 @@ def compile_core(target: Target, precision: str, out: Path, flags: tuple[str, ..
         if cc is None:
             raise BuildError("no C compiler (set CC or install cc)")
         command, env = [cc], None
-    clang_float = target.zig and precision == "float"
     command += [*STRICT, *(FLOAT if precision == "float" else ()), *flags,
-                *(["-Wno-error=float-conversion"] if clang_float else []),
                 *(f"-I{d}" for d in INCLUDE)]
     names = [s.stem for s in sources]
     if len(set(names)) != len(names):
@@ -247,17 +236,15 @@ def compile_core(target: Target, precision: str, out: Path, flags: tuple[str, ..
         # The stack report reads the calls through pointers from the assembly: the same
         # compiler and flags, so the same code as the objects.
         assembly = list(pool.map(assemble, sources)) if stack else []
-    problems, tolerated = [], 0
+    problems = []
     for source, (_, _, stderr, code) in zip(sources, results):
         lines = [line for line in stderr.splitlines() if re.search(r": (warning|error):", line)]
-        known = [line for line in lines if clang_float and KNOWN_CLANG_FLOAT.match(line)]
-        tolerated += len(known)
-        if code != 0 or len(known) < len(lines):
+        if code != 0 or lines:
             shown = source.relative_to(ROOT) if source.is_relative_to(ROOT) else source
             problems.append(f"{shown} (exit {code}):\n{stderr.strip()}")
     if problems:
         raise BuildError(f"{' '.join(command)}\n" + "\n".join(problems))
-    build = Build(target, precision, [r[0] for r in results], seconds, tolerated)
+    build = Build(target, precision, [r[0] for r in results], seconds)
     if stack:
         failed = [f"{s.name}: {a[1]}" for s, a in zip(sources, assembly) if a[2] != 0]
         if failed:
@@ -678,7 +665,6 @@ def measure(target: Target, precision: str, work: Path) -> dict:
         "stack": {name: row(s) for name, s in sorted(entries.items())},
         "callbacks": {stem: {name: row(s) for name, s in sorted(table.items())}
                       for stem, table in sorted(callbacks.items())},
-        "tolerated_warnings": build.tolerated,
         "seconds": build.seconds,
     }
 
@@ -810,13 +796,6 @@ def markdown(results: list[dict]) -> str:
                   + ("" if len(where) == len(results) else f" ({', '.join(where)})")
                   for path, where in deepest.items()]
         lines += ["", _paragraph("The deepest step's chain: " + "; ".join(chains) + ".")]
-    tolerated = [f"{r['title']} {r['precision']}: {r['tolerated_warnings']}" for r in results
-                 if r["tolerated_warnings"]]
-    if tolerated:
-        lines += ["", _paragraph(
-            "clang warns (`-Wfloat-conversion`) where the generated float code uses a float as a "
-            "condition (`a && b`, `a ? b : c`), GCC does not; the builds let exactly that warning "
-            "through: " + "; ".join(tolerated) + ".")]
     return "\n".join(lines) + "\n"
 
 

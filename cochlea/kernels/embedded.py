@@ -112,6 +112,9 @@ _BODY = re.compile(r"/\* (\w+):\([^\n]*\*/\n"
 #: part of an identifier or of an index.
 _LITERAL = re.compile(r"(?<![\w.])(\d+\.\d*(?:[eE][+-]?\d+)?|\d+[eE][+-]?\d+)(?![\w.])")
 _MATH = re.compile(r"\b(" + "|".join(MATH_FUNCTIONS) + r")\(")
+#: A work variable as the condition of ``?:``, and both sides of ``&&`` / ``||``.
+_CONDITION = re.compile(r"\((a\d+)\?")
+_LOGICAL = re.compile(r"\b(a\d+)(&&|\|\|)(a\d+)\b")
 #: Literals below this (and not zero) are division guards: FLT_MIN in the float build.
 _TINY = 1e-30
 
@@ -148,6 +151,10 @@ def _bodies(functions: list[ca.Function], real: str) -> dict[str, str]:
         body = body.replace("casadi_sq(", "CSQ(")
         body = re.sub(r"\bcasadi_(fmin|fmax)\(", r"\1(", body)
         body = _LITERAL.sub(_literal, body)
+        # A float as a condition (CasADi's if_else and logical and/or) is a conversion to
+        # _Bool that clang's -Wfloat-conversion reports: compare with zero, as C would.
+        body = _CONDITION.sub(r"(\1!=CR(0.)?", body)
+        body = _LOGICAL.sub(r"\1!=CR(0.)\2\3!=CR(0.)", body)
         body = _MATH.sub(lambda m: f"CM({m.group(1)})(", body)
         left = sorted(set(re.findall(r"\bcasadi_\w+", body)))
         if left:
