@@ -58,6 +58,33 @@ def program() -> Path:
     return PROGRAM
 
 
+def lagged(out: Path, before: float = float("inf")) -> bool:
+    """Whether a run stopped on the read watchdog before ``before`` s: on this shared machine
+    the emulator (a Python process integrating the plant) now and then falls tens of
+    milliseconds behind, six reads time out and the program rightly stops. Seen about one run
+    in ten under load, never with an idle machine; such a run is repeated once, on a fresh
+    emulator, and a second one fails the test."""
+    try:
+        stop = json.loads((out / "summary.json").read_text())["stop"]
+    except (OSError, ValueError, KeyError):
+        return False
+    return (stop["rule"] == "watchdog" and "read failures" in stop["detail"]
+            and stop["time_s"] < before)
+
+
+def on_emulator(program: Path, tmp_path: Path, emulator_args: tuple, *args: str,
+                before: float = float("inf")) -> tuple[subprocess.CompletedProcess, Path, Path]:
+    """``build/cochlea-embedded ARGS --out DIR`` on a fresh emulator; once more if the first
+    run lagged (:func:`lagged`). The result, the output folder and the emulator's log."""
+    for attempt in range(2):
+        out, log = tmp_path / f"c{attempt}", tmp_path / f"emulator{attempt}.log"
+        with emulator(*emulator_args[:2], log, *emulator_args[2:]) as port:
+            done = embedded(program, "--port", port, "--out", str(out), *args)
+        if not lagged(out, before):
+            break
+    return done, out, log
+
+
 def embedded(program: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run([str(program), *args], capture_output=True, text=True,
                           timeout=timeout)
@@ -73,10 +100,9 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
 def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, program, robot,
                                                                  space):
     name, duration = f"{robot}_{space}", 5.0
-    c_out, py_out = tmp_path / "c", tmp_path / "py"
-    with emulator(robot, name, tmp_path / "c.log") as port:
-        done = embedded(program, "--scenario", name, "--port", port, "--duration",
-                        str(duration), "--out", str(c_out), *SHARED_MACHINE)
+    py_out = tmp_path / "py"
+    done, c_out, c_log = on_emulator(program, tmp_path, (robot, name), "--scenario", name,
+                                     "--duration", str(duration), *SHARED_MACHINE)
     assert done.returncode == 0, done.stderr
     with emulator(robot, name, tmp_path / "py.log") as port:
         reference = run("--robot", robot, "--space", space, "--backend", "dynamixel", "--port",
@@ -103,7 +129,7 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
     assert bus["reads"] == summary["periods"]  # the start-up's are kept apart
     assert bus["good_reads"] >= 0.98 * bus["reads"]
     assert f"torque off confirmed by all {n}" in bus["shutdown"]
-    tail = last_commands(tmp_path / "c.log")[-4 * n:]
+    tail = last_commands(c_log)[-4 * n:]
     assert tail == [("sync-write", a, v) for a, v in [(102, 0)] * n + [(64, 0)] * n] * 2
 
     # The logged joint trajectory is cochlea-run's, to the tolerance of a run over the motors:
@@ -141,10 +167,10 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
 @pytest.mark.parametrize("name", FAULTS)
 def test_every_fault_ends_in_the_safe_stop(tmp_path, program, name):
     options, kind = FAULTS[name]
-    out, log = tmp_path / "c", tmp_path / "emulator.log"
-    with emulator("serial", "serial_joint", log, "--fault-delay", "0.3", *options) as port:
-        done = embedded(program, "--scenario", "serial_joint", "--port", port, "--duration",
-                        "3", "--out", str(out), *SHARED_MACHINE)
+    done, out, log = on_emulator(program, tmp_path,
+                                 ("serial", "serial_joint", "--fault-delay", "0.3", *options),
+                                 "--scenario", "serial_joint", "--duration", "3",
+                                 *SHARED_MACHINE, before=0.3)
     assert done.returncode == STOP_CODES["watchdog"] == 15, done.stderr
     assert "stopped by rule watchdog" in done.stderr
     assert "zero effort commanded, drives disabled, log complete" in done.stderr
@@ -179,23 +205,37 @@ def test_a_wrong_bus_stops_before_anything_moves(tmp_path, program, options, mes
     assert " write " not in log.read_text()  # nothing was configured, let alone enabled
 
 
+def _interrupted_run(program: Path, tmp_path: Path, interrupt) -> tuple:
+    """serial_joint on a fresh emulator, ``interrupt(proc, log)`` 1.5 s after the start (the
+    motors' start-up, then about a second of running); once more if it lagged before that."""
+    for attempt in range(2):
+        out, log = tmp_path / f"c{attempt}", tmp_path / f"emulator{attempt}.log"
+        with emulator("serial", "serial_joint", log) as port:
+            proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
+                                     "--duration", "10", "--out", str(out), *SHARED_MACHINE],
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            time.sleep(1.5)
+            running = proc.poll() is None
+            if running:
+                interrupt(proc, log)
+            _, stderr = proc.communicate(timeout=30)
+        if running or not lagged(out):
+            return proc, stderr, out, log
+    return proc, stderr, out, log
+
+
 def test_the_emulator_killed_mid_run_ends_in_the_safe_stop(tmp_path, program):
-    out, log = tmp_path / "c", tmp_path / "emulator.log"
-    with emulator("serial", "serial_joint", log) as port:
-        proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
-                                 "--duration", "5", "--out", str(out), *SHARED_MACHINE],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        time.sleep(1.5)  # the emulator's start-up, the motors' start-up, then running
-        assert proc.poll() is None
+    def kill_emulator(proc, log):
         pids = subprocess.run(["pgrep", "-f", f"cochlea.dynamixel.emulator.*{log}"],
                               capture_output=True, text=True).stdout.split()
         assert pids
         for pid in pids:
             os.kill(int(pid), signal.SIGKILL)
-        stdout, stderr = proc.communicate(timeout=30)
+
+    proc, stderr, out, _ = _interrupted_run(program, tmp_path, kill_emulator)
     assert proc.returncode == 15, stderr
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["stop"]["rule"] == "watchdog" and summary["stop"]["time_s"] < 4.9
+    assert summary["stop"]["rule"] == "watchdog" and summary["stop"]["time_s"] < 9.9
     assert_log_complete(out, summary)
     bus = summary["timing"]["bus"]
     assert "port" in bus["failures"] or "timeout" in bus["failures"], bus
@@ -203,15 +243,8 @@ def test_the_emulator_killed_mid_run_ends_in_the_safe_stop(tmp_path, program):
 
 
 def test_sigint_is_the_users_stop(tmp_path, program):
-    out, log = tmp_path / "c", tmp_path / "emulator.log"
-    with emulator("serial", "serial_joint", log) as port:
-        proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
-                                 "--duration", "10", "--out", str(out), *SHARED_MACHINE],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        time.sleep(1.5)
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=30)
-        time.sleep(0.2)
+    proc, stderr, out, _ = _interrupted_run(
+        program, tmp_path, lambda proc, log: proc.send_signal(signal.SIGINT))
     assert proc.returncode == 0, stderr
     assert "stopped by the user" in stderr
     summary = json.loads((out / "summary.json").read_text())
