@@ -122,11 +122,21 @@ FAULTS = {
 
 @pytest.mark.parametrize("name", FAULTS)
 def test_every_fault_ends_in_the_safe_stop(tmp_path, name):
-    options, kind = FAULTS[name]
+    options = FAULTS[name][0]
     out, log = tmp_path / "hil", tmp_path / "emulator.log"
     with emulator("serial", "serial_joint", log, "--fault-delay", "0.3", *options) as port:
         done = run("--robot", "serial", "--space", "joint", "--backend", "dynamixel", "--port",
                    port, "--duration", "3", "--out", str(out), cwd=tmp_path)
+    assert_fault_stop(done, out, log, name)
+
+
+def assert_fault_stop(done: subprocess.CompletedProcess, out: Path, log: Path, name: str
+                      ) -> dict:
+    """The safe stop of a run on the virtual chain with fault ``name`` of FAULTS injected at
+    0.3 s (cochlea-run or build/cochlea-embedded): the watchdog's exit code and message, the
+    log complete, the failure counted, the shut-down reported, and zero current then torque off
+    in the emulator's log for every motor that hears the bus. The run's summary."""
+    kind = FAULTS[name][1]
     assert done.returncode == 15, done.stderr  # the watchdog's safe stop
     assert "stopped by rule watchdog" in done.stderr
     assert "zero effort commanded, drives disabled, log complete" in done.stderr
@@ -144,6 +154,7 @@ def test_every_fault_ends_in_the_safe_stop(tmp_path, name):
     tail = [(a, v) for kind_, a, v in last_commands(log)[-24:]]
     hearing = 5 if name == "motor stops answering" else 6
     assert tail[-2 * hearing:] == [(102, 0)] * hearing + [(64, 0)] * hearing
+    return summary
 
 
 @pytest.mark.parametrize("options, message", [
