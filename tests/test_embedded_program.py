@@ -40,6 +40,10 @@ STUDIES = [("serial", "joint"), ("serial", "task"), ("parallel", "joint"), ("par
 #: three; enough for the read watchdog). cochlea-run takes about 2 s to import before it talks;
 #: the C program starts in a millisecond, so its tests give the emulator that time.
 EMULATOR_SETTLE_S = 2.0
+#: Runs that are not about failed reads tolerate more of them: the emulator's lag (see
+#: :func:`lagged`) then costs a few late periods, not the run (as SHARED_MACHINE does for
+#: deadline misses).
+PATIENT = (*SHARED_MACHINE, "--watchdog-errors", "100")
 
 
 @contextmanager
@@ -62,9 +66,10 @@ def program() -> Path:
 def lagged(out: Path, before: float = float("inf")) -> bool:
     """Whether a run stopped on the read watchdog before ``before`` s: on this shared machine
     the emulator (a Python process integrating the plant) now and then falls tens of
-    milliseconds behind, six reads time out and the program rightly stops. Seen about one run
-    in ten under load, never with an idle machine; such a run is repeated once, on a fresh
-    emulator, and a second one fails the test."""
+    milliseconds behind, six reads time out and the program rightly stops. Seen in a few runs
+    of a hundred on a quiet machine, more under load; the runs that are not about failed
+    reads tolerate more of them (PATIENT), and a fault run stopped so before its fault is
+    repeated once, on a fresh emulator; a second one fails the test."""
     try:
         stop = json.loads((out / "summary.json").read_text())["stop"]
     except (OSError, ValueError, KeyError):
@@ -103,7 +108,7 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
     name, duration = f"{robot}_{space}", 5.0
     py_out = tmp_path / "py"
     done, c_out, c_log = on_emulator(program, tmp_path, (robot, name), "--scenario", name,
-                                     "--duration", str(duration), *SHARED_MACHINE)
+                                     "--duration", str(duration), *PATIENT)
     assert done.returncode == 0, done.stderr
     with emulator(robot, name, tmp_path / "py.log") as port:
         reference = run("--robot", robot, "--space", space, "--backend", "dynamixel", "--port",
@@ -171,7 +176,7 @@ def test_every_fault_ends_in_the_safe_stop(tmp_path, program, name):
     done, out, log = on_emulator(program, tmp_path,
                                  ("serial", "serial_joint", "--fault-delay", "0.3", *options),
                                  "--scenario", "serial_joint", "--duration", "3",
-                                 *SHARED_MACHINE, before=0.3)
+                                 *SHARED_MACHINE, before=0.32)
     assert STOP_CODES["watchdog"] == 15
     summary = assert_fault_stop(done, out, log, name)
     assert "consecutive backend read failures" in summary["stop"]["detail"]
@@ -198,7 +203,7 @@ def _interrupted_run(program: Path, tmp_path: Path, interrupt) -> tuple:
         out, log = tmp_path / f"c{attempt}", tmp_path / f"emulator{attempt}.log"
         with emulator("serial", "serial_joint", log) as port:
             proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
-                                     "--duration", "10", "--out", str(out), *SHARED_MACHINE],
+                                     "--duration", "10", "--out", str(out), *PATIENT],
                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             time.sleep(1.5)
             running = proc.poll() is None
@@ -256,6 +261,8 @@ def test_sigint_is_the_users_stop(tmp_path, program):
      "cannot open the serial port /dev/ttyUSB-none"),
     (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--bogus", "1"], 2,
      "unknown option --bogus"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--watchdog-errors",
+      "0"], 2, "--watchdog-errors must be between 1 and"),
     (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--rate", "50000"], 2,
      "--rate must be between 1 and 20000 Hz"),
     # 1 Mbaud carries 6 motors at 400 Hz (1900 us of bus per 2500 us): past the budget, to

@@ -1,7 +1,7 @@
 /* cochlea-embedded: a scenario's controller on the Dynamixel motors, with no Python.
  *
  *   build/cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S] --out DIR
- *                          [--watchdog-misses N] [--list]
+ *                          [--watchdog-misses N] [--watchdog-errors N] [--list]
  *
  * The POSIX program around the portable core (embedded/core/): it opens the port (termios, any
  * Dynamixel baud rate up to 4.5 Mbaud), starts the motors as cochlea-run's bridge does, runs
@@ -72,6 +72,7 @@ typedef struct {
     double duration; /* NaN: the scenario's */
     double rate;     /* Hz; NaN: the scenario's */
     int watchdog_misses;
+    int watchdog_errors;
 } options;
 
 static int fail_usage(const char *fmt, ...)
@@ -89,7 +90,8 @@ static void usage(FILE *to)
 {
     fprintf(to,
             "usage: cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S]\n"
-            "                        [--rate HZ] --out DIR [--watchdog-misses N] | --list\n"
+            "                        [--rate HZ] --out DIR [--watchdog-misses N]\n"
+            "                        [--watchdog-errors N] | --list\n"
             "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
@@ -98,6 +100,7 @@ static void usage(FILE *to)
             "  --rate HZ            the control rate (default: the scenario's)\n"
             "  --out DIR            a new or empty folder for log.bin, log.csv, summary.json\n"
             "  --watchdog-misses N  consecutive deadline misses tolerated (default 20)\n"
+            "  --watchdog-errors N  consecutive failed reads tolerated (default 5)\n"
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
@@ -132,6 +135,7 @@ static int parse(int argc, char **argv, options *o)
     o->duration = NAN;
     o->rate = NAN;
     o->watchdog_misses = 20;
+    o->watchdog_errors = 5;
     for (i = 1; i < argc; ++i) {
         const char *a = argv[i];
         const char *value = i + 1 < argc ? argv[i + 1] : 0;
@@ -180,6 +184,12 @@ static int parse(int argc, char **argv, options *o)
                                   MAX_WATCHDOG_MISSES, value);
             }
             o->watchdog_misses = (int)v;
+        } else if (strcmp(a, "--watchdog-errors") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < 1 || v > MAX_WATCHDOG_MISSES) {
+                return fail_usage("--watchdog-errors must be between 1 and %d reads, got %s",
+                                  MAX_WATCHDOG_MISSES, value);
+            }
+            o->watchdog_errors = (int)v;
         } else {
             usage(stderr);
             return fail_usage("unknown option %s", a);
@@ -920,6 +930,8 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const run_log *log
     fputs(",\n", f);
     key(f, 4, "watchdog_misses_allowed");
     fprintf(f, "%d,\n", loop->limits.watchdog_misses);
+    key(f, 4, "watchdog_errors_allowed");
+    fprintf(f, "%d,\n", loop->limits.watchdog_errors);
     key(f, 4, "bus");
     fputs("{\n", f);
     key(f, 6, "port");
@@ -1175,7 +1187,7 @@ int main(int argc, char **argv)
     backend = cochlea_bridge_backend(&bridge);
     /* The controller before the motors: a configuration it refuses moves nothing. */
     loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, period, duration,
-                                   o.watchdog_misses, 5, 1);
+                                   o.watchdog_misses, o.watchdog_errors, 1);
     if (loop_error != COCHLEA_LOOP_OK) {
         cochlea_posix_close(&port);
         return fail_usage("the loop refused the scenario (error %d)", loop_error);
