@@ -1081,6 +1081,19 @@ static void normal_priority(void)
     (void)pthread_setschedparam(pthread_self(), SCHED_OTHER, &p);
 }
 
+/* Back to normal priority and unlocked memory; the writer flushes what is left and the log
+ * file is closed (a failed close counts as a failed log). */
+static void leave_realtime(run_log *log, pthread_t writer_thread)
+{
+    normal_priority();
+    munlockall();
+    __atomic_store_n(&log->finished, 1, __ATOMIC_RELEASE);
+    pthread_join(writer_thread, 0);
+    if (fclose(log->file) != 0) {
+        log->failed = 1;
+    }
+}
+
 /* ---- main ----------------------------------------------------------------------------------- */
 
 int main(int argc, char **argv)
@@ -1194,7 +1207,19 @@ int main(int argc, char **argv)
     }
     the_loop.on_row = log_row;
     the_loop.row_ctx = &log;
+
+    /* Everything the run needs is ready before the motors' torque goes on, so the first period
+     * follows it at once: the writer (started before the real-time priority, so it does not
+     * inherit it), the locked memory and the priority. */
+    if (pthread_create(&writer_thread, 0, writer, &log) != 0) {
+        cochlea_posix_close(&port);
+        return fail_usage("cannot start the log writer");
+    }
+    facts.memory = mlockall(MCL_CURRENT | MCL_FUTURE) == 0
+                       ? "locked" : "not locked (mlockall not permitted)";
+    facts.scheduling = realtime_priority();
     if (!cochlea_bridge_start(&bridge, &report)) {
+        leave_realtime(&log, writer_thread);
         start_failure(text, sizeof text, &bridge, &report, &o);
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: %s\n",
                 text);
@@ -1203,32 +1228,17 @@ int main(int argc, char **argv)
     }
     if (interrupted) {
         cochlea_bridge_stop(&bridge);
+        leave_realtime(&log, writer_thread);
         cochlea_posix_close(&port);
         fprintf(stderr, "cochlea-embedded: interrupted before the run started; drives "
                 "disabled\n");
         return EXIT_INTERRUPTED;
     }
-
-    /* The writer starts before the real-time priority, so it does not inherit it. */
-    if (pthread_create(&writer_thread, 0, writer, &log) != 0) {
-        cochlea_bridge_stop(&bridge);
-        cochlea_posix_close(&port);
-        return fail_usage("cannot start the log writer");
-    }
-    facts.memory = mlockall(MCL_CURRENT | MCL_FUTURE) == 0
-                       ? "locked" : "not locked (mlockall not permitted)";
-    facts.scheduling = realtime_priority();
     started = hal.now_ns(hal.ctx);
     rule = cochlea_loop_run(&the_loop); /* ends with the motors' safe stop, always */
     ended = hal.now_ns(hal.ctx);
-    normal_priority();
-    munlockall();
+    leave_realtime(&log, writer_thread);
     cochlea_posix_close(&port);
-    __atomic_store_n(&log.finished, 1, __ATOMIC_RELEASE);
-    pthread_join(writer_thread, 0);
-    if (fclose(log.file) != 0) {
-        log.failed = 1;
-    }
     facts.wall_s = (double)(ended - started) * 1e-9;
 
     /* The reports, from the rows the loop logged. */
