@@ -70,6 +70,13 @@ robustness: $(STAMP)
 bench: $(STAMP) lib
 	$(BIN)/python bench/run.py
 
+# The all-in-C simulations (embedded/sim/simulate.c): per scenario and precision, the embedded
+# controller and the plant kernels in one program, build/embedded-sim/<scenario>/<precision>/
+# simulate (no arguments: the whole scenario; --duration S, --log FILE). See docs/embedded.md.
+.PHONY: embedded-sim
+embedded-sim: $(STAMP) lib
+	$(BIN)/python bench/embedded_bench.py build
+
 # The runtime's acceptance measurement: a 20 s real-time run of the serial task study
 # (deadline misses below 0.5 %, same results as the as-fast run) -> bench/realtime.md.
 realtime-check: $(STAMP) lib
