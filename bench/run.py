@@ -317,10 +317,11 @@ def bench_build() -> dict:
         subprocess.run(["make", "-s", "lib", f"GEN={gen}", f"BUILD={build}"], cwd=ROOT,
                        check=True, capture_output=True)
         t_compile = time.perf_counter() - t0
-        identical = all((gen / p.name).read_bytes() == p.read_bytes()
-                        for p in (ROOT / "generated_c").iterdir())
+        committed = ROOT / "generated_c"  # the library's sources and embedded/, every file
+        identical = all((gen / p.relative_to(committed)).read_bytes() == p.read_bytes()
+                        for p in committed.rglob("*") if p.is_file())
         so_size = (build / "libcochlea.so").stat().st_size
-    files = sorted((ROOT / "generated_c").iterdir())
+    files = sorted(p for p in (ROOT / "generated_c").iterdir() if p.is_file())
     c_files = [p for p in files if p.suffix in (".c", ".h")]
     return {"generate_s": t_gen, "compile_s": t_compile, "total_s": t_gen + t_compile,
             "jobs": os.cpu_count(), "regenerated_identical": identical,
