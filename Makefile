@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
 .PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness \
-        embedded embedded-size
+        embedded embedded-size embedded-sim
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -95,6 +95,12 @@ bench: $(STAMP) lib
 # size section of docs/embedded.md and bench/embedded_size.json (about 10 s).
 embedded-size: $(STAMP)
 	$(BIN)/python bench/embedded_size.py
+
+# The all-in-C simulations (embedded/sim/simulate.c): per scenario and precision, the embedded
+# controller and the plant kernels in one program, build/embedded-sim/<scenario>/<precision>/
+# simulate (no arguments: the whole scenario; --duration S, --log FILE). See docs/embedded.md.
+embedded-sim: $(STAMP) lib
+	$(BIN)/python bench/embedded_bench.py build
 
 # The runtime's acceptance measurement: a 20 s real-time run of the serial task study
 # (deadline misses below 0.5 %, same results as the as-fast run) -> bench/realtime.md.

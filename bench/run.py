@@ -15,6 +15,8 @@ Python loop that repeats the call (tens of ns, the same for every path, the floo
    real-time factor: the CasADi reference, the Python loop over ctypes kernels, the all-in-C
    driver (end to end, and the driver calls alone).
 3. Generation and compile time of all kernels (clean, into a scratch folder), generated size.
+4. The embedded controller (bench/embedded_bench.py): the step in double and in float, and the
+   all-in-C simulation (embedded/sim) end to end.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 import casadi as ca  # noqa: E402
+import embedded_bench  # noqa: E402
 import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 from numpy_law import NumpyStepE  # noqa: E402
@@ -53,7 +56,7 @@ WORK = ROOT / "build" / "bench"
 CONTROLLERS = (("e", "serial_joint"), ("g", "serial_task"), ("f", "parallel_joint"),
                ("d", "parallel_task"))
 TARGETS = {"step_vs_floor": 2.0, "casadi_vs_step": 10.0, "serial_rtf": 1000.0,
-           "codegen_compile_s": 60.0, "realistic_rtf_ratio": 0.8}
+           "codegen_compile_s": 60.0, "realistic_rtf_ratio": 0.8, **embedded_bench.TARGETS}
 
 
 # --------------------------------------------------------------------------------------------
@@ -317,10 +320,11 @@ def bench_build() -> dict:
         subprocess.run(["make", "-s", "lib", f"GEN={gen}", f"BUILD={build}"], cwd=ROOT,
                        check=True, capture_output=True)
         t_compile = time.perf_counter() - t0
-        identical = all((gen / p.name).read_bytes() == p.read_bytes()
-                        for p in (ROOT / "generated_c").iterdir())
+        committed = ROOT / "generated_c"  # the library's sources and embedded/, every file
+        identical = all((gen / p.relative_to(committed)).read_bytes() == p.read_bytes()
+                        for p in committed.rglob("*") if p.is_file())
         so_size = (build / "libcochlea.so").stat().st_size
-    files = sorted((ROOT / "generated_c").iterdir())
+    files = sorted(p for p in (ROOT / "generated_c").iterdir() if p.is_file())
     c_files = [p for p in files if p.suffix in (".c", ".h")]
     return {"generate_s": t_gen, "compile_s": t_compile, "total_s": t_gen + t_compile,
             "jobs": os.cpu_count(), "regenerated_identical": identical,
@@ -435,6 +439,7 @@ def markdown(results: dict) -> str:
            "the run (other work on the machine slows every path alike).", "",
            "## Targets", ""]
     out += verdicts(steps, loops, build)
+    out += embedded_bench.verdicts(results["embedded_steps"], results["embedded_sims"])
     out += ["", "## Per call of the fused step (us)", "",
             "At the thesis scenario's initial state, corrected variant. *ctypes*: "
             "`kernel()` of `cochlea.kernels.library` (return code checked); *bare*: the prepared "
@@ -497,6 +502,7 @@ def markdown(results: dict) -> str:
         f"- generated_c/: {build['files']} files, {build['c_and_h_files']} C sources and "
         f"headers, {build['c_and_h_bytes'] / 1024:.0f} KiB, {build['c_and_h_lines']} lines; "
         f"libcochlea.so {build['library_bytes'] / 1024:.0f} KiB", ""]
+    out += embedded_bench.markdown(results["embedded_steps"], results["embedded_sims"], loops)
     return "\n".join(out)
 
 
@@ -510,6 +516,10 @@ def main() -> int:
     results["steps"] = bench_steps(lib, floor, harness)
     print("bench: closed-loop simulation", flush=True)
     results["closed_loops"] = bench_closed_loops(lib, harness)
+    print("bench: the embedded step in double and float", flush=True)
+    results["embedded_steps"] = embedded_bench.bench_embedded_steps()
+    print("bench: the all-in-C simulation (embedded/sim)", flush=True)
+    results["embedded_sims"] = embedded_bench.bench_embedded_sims()
     results["load_after"] = load_average()
     (OUT / "results.json").write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     (OUT / "results.md").write_text(markdown(results))

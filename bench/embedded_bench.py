@@ -1,0 +1,620 @@
+"""The embedded controller's rows of ``make bench`` (issue 12), and the all-in-C simulation.
+
+1. **The step in double and in float.** Each scenario's generated controller
+   (``generated_c/embedded/<scenario>.c``) is built twice into a shared library with a small
+   timing harness (``bench/time_embedded_step.c``), once as is and once with
+   ``-DCOCHLEA_FLOAT``. Both libraries are loaded into this process and timed turn about, on
+   the measurements the simulation's controller saw over its first second (delayed and on the
+   encoder grid where the scenario says so): ns per ``<scenario>_step`` call, and their ratio.
+   For comparison, the Python real-time loop's controller work per period on the same scenario
+   (``RealTimeLoop`` as fast as possible on the sim backend: its compute time less the
+   backend's read and write).
+2. **The all-in-C simulation** (``embedded/sim/simulate.c``): the embedded controller (its own
+   desired trajectory, evaluated in C every period) and the units' generated plant kernels
+   (``generated_c/<group>.c``), one process, no Python and no CasADi. Its real-time factor is
+   taken end to end: from starting the process to its exit, log written.
+
+Build the programs with ``python bench/embedded_bench.py build [SCENARIO ...]`` (or
+``make embedded-sim``); ``python bench/embedded_bench.py bench`` runs only these rows and writes
+``build/embedded-bench.json``. ``bench/run.py`` calls :func:`bench_embedded_steps`,
+:func:`bench_embedded_sims`, :func:`verdicts` and :func:`markdown`.
+
+A program's scenario is compiled in: :func:`sim_scenario_header` writes its
+``sim_scenario.h`` (``embedded/sim/sim.h`` says what it defines) from ``unit_setups`` -- the
+plant's parameters, the initial state, the grids -- once, at build time.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import hashlib
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from cochlea.kernels import library as ckernels
+from cochlea.sim import compiled as csim
+from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim.result import SimulationResult, UnitLog
+from cochlea.sim.setup import MeasurementGrid
+
+GENERATED = ROOT / "generated_c"
+EMBEDDED = GENERATED / "embedded"
+SIM_SOURCE = ROOT / "embedded" / "sim"
+HARNESS = ROOT / "bench" / "time_embedded_step.c"
+BUILD = ROOT / "build" / "embedded-sim"
+
+#: Every scenario with an embedded controller, the four thesis studies first.
+THESIS = ("serial_joint", "serial_task", "parallel_joint", "parallel_task")
+SCENARIOS = THESIS + tuple(f"{n}_realistic" for n in THESIS)
+PRECISIONS = ("double", "float")
+#: Warnings are errors; the optimisation of the rest of the benchmark (make lib).
+CFLAGS = ("-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2")
+FLOAT_FLAGS = ("-DCOCHLEA_FLOAT",)
+#: The targets of these rows (bench/run.py merges them into its TARGETS).
+TARGETS = {"embedded_sim_serial_rtf": 2000.0}
+#: What the step timing replays: the first second of each scenario (periods).
+REPLAY_PERIODS = 1000
+#: Fields of a unit's log, compared with the simulation's.
+LOG_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
+
+
+def compiler() -> str:
+    cc = os.environ.get("CC", "cc")
+    if shutil.which(cc) is None:
+        raise RuntimeError(f"no C compiler {cc!r} (set CC)")
+    return cc
+
+
+# --------------------------------------------------------------------------------------------
+# Building
+# --------------------------------------------------------------------------------------------
+
+
+def _digest(*parts) -> str:
+    return hashlib.sha256(repr(parts).encode()).hexdigest()[:16]
+
+
+def _run_cc(command: list[str]) -> None:
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0 or done.stderr:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr}")
+
+
+def _object(source: Path, flags: tuple[str, ...], include: tuple[Path, ...] = ()) -> Path:
+    """``source`` compiled with ``flags``, cached in build/embedded-sim/obj/ by the compiler,
+    the flags and the text of the source and of every header in its include folders."""
+    cc = compiler()
+    headers = sorted({h for d in (source.parent, *include) for h in Path(d).glob("*.h")})
+    key = _digest(cc, flags, source.read_text(), [(h.name, h.read_text()) for h in headers])
+    obj = BUILD / "obj" / f"{source.stem}-{key}.o"
+    if not obj.exists():
+        obj.parent.mkdir(parents=True, exist_ok=True)
+        partial = obj.with_name(f".{obj.name}.{os.getpid()}")
+        _run_cc([cc, *flags, *(f"-I{d}" for d in include), "-c", str(source), "-o",
+                 str(partial)])
+        os.replace(partial, obj)
+    return obj
+
+
+def _c_array(name: str, values) -> str:
+    values = [repr(float(v)) for v in np.ravel(values)]
+    return f"static const double {name}[{len(values)}] = {{{', '.join(values)}}};"
+
+
+def _kernel_source(lib: ckernels.Library, kernel: str) -> tuple[str, str]:
+    """The C function a library kernel runs and the group (``generated_c/<group>.c``) that
+    defines it."""
+    symbol = lib.symbol(kernel)
+    entry = lib.manifest["kernels"][symbol]
+    if entry["work"]["iw"] or entry["work"]["w"]:
+        raise RuntimeError(f"{symbol} needs work memory: simulate.c passes none")
+    group = entry["group"]
+    header = (GENERATED / f"{group}.h").read_text()
+    if f"int {symbol}(const casadi_real** arg" not in header:
+        raise RuntimeError(f"{symbol} is not declared in generated_c/{group}.h")
+    return symbol, group
+
+
+def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple[str, list[str]]:
+    """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, and the groups of
+    generated_c/ its plant and pose kernels are in.
+
+    The kernels are the ones ``cochlea.sim.simulate`` runs for the scenario (found and checked
+    against the setups by :func:`cochlea.sim.compiled.unit_kernels`); the data are the setups'
+    (initial state, plant parameters, friction, grids), written as literals that round-trip."""
+    lib = lib or ckernels.load()
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    if sc.plant.noise_q_std or sc.plant.noise_qd_std:
+        raise RuntimeError(f"{name}: simulate.c has no measurement noise")
+    upper = name.upper()
+    lines = [f"/* Scenario {name} for embedded/sim/simulate.c (see embedded/sim/sim.h).",
+             " * Written by bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit. "
+             "SI units. */",
+             "#ifndef SIM_SCENARIO_H", "#define SIM_SCENARIO_H", "",
+             '#include "sim.h"', f'#include "{name}.h"']
+    groups, body, table = [], [], []
+    n_pose, sizes = 0, []
+    for u in setups:
+        kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
+        loop = lib.manifest["closed_loops"][kernels.closed_loop]
+        plant, plant_group = _kernel_source(lib, kernels.plant)
+        pose, pose_group = _kernel_source(lib, kernels.pose)
+        for g in (plant_group, pose_group):
+            if g not in groups:
+                groups.append(g)
+        n = u.controller_model.nq
+        nd, np_, ne = u.controller.n_desired, u.controller.n_params, loop["n_errors"]
+        n_pose += loop["n_pose"]
+        unit = f"{upper}_{u.name.upper()}"
+        sizes += [f"{unit}_NQ == {n}", f"{unit}_NP == {np_}", f"{unit}_ND == {nd}",
+                  f"{unit}_NE == {ne}"]
+        prefix = f"sim_{u.name}"
+        body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} */",
+                 _c_array(f"{prefix}_x0", u.x0),
+                 _c_array(f"{prefix}_plant_p", u.plant_params),
+                 _c_array(f"{prefix}_friction", u.friction)]
+        fields = {"coulomb": u.coulomb, "quantum": u.quantum, "offset": u.grid_offset,
+                  "effort_quantum": None if u.effort_grid is None else u.effort_grid.quantum,
+                  "effort_bound": None if u.effort_grid is None else u.effort_grid.bound}
+        names = {}
+        for key, value in fields.items():
+            if value is None:
+                names[key] = "NULL"
+            else:
+                body.append(_c_array(f"{prefix}_{key}", value))
+                names[key] = f"{prefix}_{key}"
+        table.append(
+            f'    {{"{u.name}", {n}, {np_}, {nd}, {ne}, {loop["n_pose"]}, {plant}, '
+            f"{pose}, {prefix}_x0, {prefix}_plant_p, {prefix}_friction, {names['coulomb']}, "
+            f"{names['quantum']}, {names['offset']}, {names['effort_quantum']}, "
+            f"{names['effort_bound']}}},")
+    lines += [f'#include "{g}.h"' for g in groups]
+    lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x"]
+    for size in ("UNITS", "NQ", "NX", "ND", "NP", "NE"):
+        lines.append(f"#define SIM_{size} {upper}_{size}")
+    lines += [f"#define SIM_NPOSE {n_pose}",
+              f"#define SIM_PERIOD {sc.period!r} /* s */",
+              f"#define SIM_DURATION {float(sc.duration)!r} /* s */",
+              f"#define SIM_DELAY {int(sc.plant.delay_periods)} /* periods */",
+              "",
+              "/* The controller's sizes are the setups' (a negative array size otherwise). */",
+              f"typedef char sim_sizes_agree[({' && '.join(sizes)} && {upper}_UNITS == "
+              f"{len(setups)}) ? 1 : -1];", ""]
+    lines += body
+    lines += ["", "static const sim_unit sim_units[SIM_UNITS] = {", *table, "};", "",
+              "#endif", ""]
+    return "\n".join(lines), groups
+
+
+def build_simulation(name: str, precision: str = "double",
+                     lib: ckernels.Library | None = None) -> Path:
+    """The all-in-C simulation of scenario ``name``: ``build/embedded-sim/<name>/<precision>/
+    simulate`` (rebuilt when its scenario header, a source or the flags change)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: one of {PRECISIONS}")
+    header, groups = sim_scenario_header(name, lib)
+    folder = BUILD / name / precision
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "sim_scenario.h"
+    if not path.exists() or path.read_text() != header:
+        partial = folder / f".sim_scenario.h.{os.getpid()}"
+        partial.write_text(header)
+        os.replace(partial, path)
+    flags = CFLAGS + (FLOAT_FLAGS if precision == "float" else ())
+    include = (SIM_SOURCE, EMBEDDED, GENERATED)
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
+        jobs = [pool.submit(_object, GENERATED / f"{g}.c", CFLAGS) for g in groups]
+        jobs.append(pool.submit(_object, EMBEDDED / f"{name}.c", flags))
+        jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
+                                (folder, *include)))
+        objects = [j.result() for j in jobs]
+    binary = folder / "simulate"
+    key = _digest([o.name for o in objects])
+    stamp = folder / "simulate.key"
+    if not binary.exists() or not stamp.exists() or stamp.read_text() != key:
+        partial = folder / f".simulate.{os.getpid()}"
+        _run_cc([compiler(), *map(str, objects), "-lm", "-o", str(partial)])
+        os.replace(partial, binary)
+        stamp.write_text(key)
+    return binary
+
+
+def run_simulation(binary: Path, duration: float | None = None,
+                   log: Path | None = None) -> dict:
+    """Run a built simulation; its JSON summary (``status``, ``rows``, ``loop_s``, ...)."""
+    command = [str(binary)]
+    if duration is not None:
+        command += ["--duration", repr(float(duration))]
+    if log is not None:
+        command += ["--log", str(log)]
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode == 2:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr}")
+    return json.loads(done.stdout)
+
+
+def read_log(path: Path, info: dict, sc, setups) -> SimulationResult:
+    """The log of :func:`run_simulation` as a :class:`SimulationResult` (what
+    ``cochlea.sim.simulate`` returns), one UnitLog per unit."""
+    data = np.fromfile(path, dtype=np.float64).reshape(-1, info["columns"])
+    assert len(data) == info["rows"]
+    blocks, start = {}, 0
+    for key, width in (("t", 1), ("x", info["nx"]), ("p_hat", info["np"]), ("tau", info["nq"]),
+                       ("errors", info["ne"]), ("pose", info["npose"]), ("xd", info["nd"]),
+                       ("xd_dot", info["nd"])):
+        blocks[key] = data[:, start:start + width]
+        start += width
+    logs, at = [], dict.fromkeys(("x", "p_hat", "tau", "errors", "pose", "xd", "xd_dot"), 0)
+    for u, size in zip(setups, info["unit_sizes"], strict=True):
+        assert size["name"] == u.name
+        n = size["nq"]
+        part = {}
+        for key, width in (("x", 2 * n), ("p_hat", size["np"]), ("tau", n),
+                           ("errors", size["ne"]), ("pose", size["npose"]), ("xd", size["nd"]),
+                           ("xd_dot", size["nd"])):
+            part[key] = blocks[key][:, at[key]:at[key] + width]
+            at[key] += width
+        x = part["x"]
+        logs.append(UnitLog(u.name, sc.space, x[:, :n], x[:, n:], part["xd"], part["xd_dot"],
+                            part["errors"], part["tau"], part["p_hat"], part["pose"], u))
+    diverged = {}
+    if info["status"] == "diverged":
+        diverged = {u.name: float(blocks["t"][-1, 0]) for u in setups}
+    return SimulationResult(sc, blocks["t"][:, 0].copy(), logs, diverged)
+
+
+def max_log_difference(a: SimulationResult, b: SimulationResult) -> float:
+    """The largest absolute difference of any logged value (same rows)."""
+    worst = 0.0
+    for u, r in zip(a.units, b.units):
+        for key in LOG_FIELDS:
+            x, y = getattr(u, key), getattr(r, key)
+            worst = max(worst, float(np.max(np.abs(x - y))) if x.size else 0.0)
+    return worst
+
+
+# --------------------------------------------------------------------------------------------
+# 1. The step in double and in float
+# --------------------------------------------------------------------------------------------
+
+
+def build_step_library(name: str, precision: str) -> Path:
+    """``build/embedded-sim/<name>/<precision>/libtime_step.so``: the scenario's controller and
+    bench/time_embedded_step.c (symbols bound inside the library, so two precisions can share
+    one process)."""
+    flags = (*CFLAGS, *(FLOAT_FLAGS if precision == "float" else ()), "-fPIC", "-shared",
+             "-Wl,-Bsymbolic", f"-DSCENARIO_HEADER=\"{name}.h\"", f"-DSCENARIO={name}",
+             f"-DSCENARIO_UPPER={name.upper()}", f"-I{EMBEDDED}")
+    sources = (HARNESS, EMBEDDED / f"{name}.c", EMBEDDED / f"{name}.h")
+    key = _digest(compiler(), flags, [s.read_text() for s in sources])
+    folder = BUILD / name / precision
+    library = folder / f"libtime_step-{key}.so"
+    if not library.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        partial = folder / f".{library.name}.{os.getpid()}"
+        _run_cc([compiler(), *flags, str(HARNESS), str(EMBEDDED / f"{name}.c"), "-lm", "-o",
+                 str(partial)])
+        os.replace(partial, library)
+    return library
+
+
+def recorded_measurements(name: str, periods: int = REPLAY_PERIODS):
+    """What the simulation's controller measured over the first ``periods`` (delayed and on the
+    measurement grid as the scenario says), unit after unit: ``(times (s), measurements
+    (periods, NX), applied commands (periods, NQ), setups)``."""
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    result = simulate(sc, duration=periods * sc.period, setups=setups)
+    delay = sc.plant.delay_periods
+    seen = []
+    for u in result.units:
+        x = np.hstack([u.q, u.qd])
+        x = np.vstack([np.repeat(x[:1], delay, axis=0), x[:len(x) - delay]]) if delay else x
+        if u.setup.quantum is not None:
+            grid = MeasurementGrid(u.setup.quantum, u.setup.grid_offset)
+            x = np.array([grid.apply(row.copy()) for row in x])
+        seen.append(x)
+    return (result.time.copy(), np.ascontiguousarray(np.hstack(seen)),
+            np.hstack([u.tau for u in result.units]), setups)
+
+
+class StepLibrary:
+    """One precision's timing library, loaded through ctypes."""
+
+    def __init__(self, path: Path):
+        self.lib = ctypes.CDLL(str(path))
+        sizes = np.zeros(3, np.intc)
+        self.real_bytes = self.lib.bench_sizes(sizes.ctypes.data_as(ctypes.c_void_p))
+        self.nx, self.nq, self.ne = map(int, sizes)
+        self.lib.bench_time.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_long,
+                                        ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
+
+    def time(self, times: np.ndarray, measurements: np.ndarray, reps: int):
+        """``(ns per step of each repetition, the commands of the run)``."""
+        ns = np.zeros(reps)
+        commands = np.zeros((len(times), self.nq))
+        code = self.lib.bench_time(times.ctypes.data, measurements.ctypes.data, len(times), reps,
+                                   ns.ctypes.data, commands.ctypes.data)
+        if code:
+            raise RuntimeError(f"bench_time returned {code}")
+        return ns, commands
+
+
+def python_period_cost(name: str, periods: int = 2000) -> float:
+    """The Python real-time loop's controller work per period (s, median): ``RealTimeLoop`` as
+    fast as possible on the sim backend, each period's compute time less the backend's read and
+    write (what is left: the supervisor's checks, every unit's step through ctypes, the
+    copies)."""
+    from cochlea.runtime.loop import RealTimeLoop
+    from cochlea.runtime.sim_backend import SimBackend
+    from cochlea.runtime.supervisor import build_supervisor
+
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
+    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+                                  substeps=sc.plant_substeps)
+    loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
+                        substeps=sc.plant_substeps)
+    stop = loop.run()
+    if stop.rule != "completed" or loop.kernel_source != "c":
+        raise RuntimeError(f"{name}: the Python loop stopped ({stop.rule}) or ran "
+                           f"{loop.kernel_source} kernels")
+    timing = loop.result(sc).timing
+    return float(np.median(timing["compute_s"] - timing["backend_io_s"]))
+
+
+def bench_embedded_steps(rounds: int = 15, reps: int = 7) -> list[dict]:
+    """Per scenario: ns per ``<scenario>_step`` in double and in float (the two libraries
+    timed turn about in this process, ``rounds`` x ``reps`` repetitions of REPLAY_PERIODS
+    steps each, medians), their ratio, the checks, and the Python loop's cost per period."""
+    rows = []
+    for name in SCENARIOS:
+        times, measured, applied, setups = recorded_measurements(name)
+        libs = {p: StepLibrary(build_step_library(name, p)) for p in PRECISIONS}
+        samples = {p: [] for p in PRECISIONS}
+        commands = {}
+        gc.disable()
+        try:
+            for r in range(rounds):
+                order = PRECISIONS if r % 2 == 0 else PRECISIONS[::-1]
+                for p in order:
+                    ns, commands[p] = libs[p].time(times, measured, reps)
+                    samples[p].extend(ns)
+        finally:
+            gc.enable()
+        # The double build's commands, applied as the drives apply them, are the simulation's.
+        start, drive = 0, commands["double"].copy()
+        for u in setups:
+            n = u.controller_model.nq
+            if u.effort_grid is not None:
+                for row in drive[:, start:start + n]:
+                    u.effort_grid.apply(row)
+            start += n
+        peak = float(np.max(np.abs(commands["double"])))
+        row = {"scenario": name, "periods": len(times), "units": len(setups),
+               "double_ns": statistics.median(samples["double"]),
+               "float_ns": statistics.median(samples["float"]),
+               "check_double": float(np.max(np.abs(drive - applied))),
+               "float_vs_double": float(np.max(np.abs(commands["float"] - commands["double"]))
+                                        / peak),
+               "python_period_s": python_period_cost(name)}
+        row["float_over_double"] = row["float_ns"] / row["double_ns"]
+        row["python_over_double"] = row["python_period_s"] * 1e9 / row["double_ns"]
+        rows.append(row)
+        print(f"  {name}: step {row['double_ns']:.0f} ns double, {row['float_ns']:.0f} ns "
+              f"float ({row['float_over_double']:.2f}x); Python loop "
+              f"{row['python_period_s'] * 1e6:.1f} us per period", flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# 2. The all-in-C simulation, end to end
+# --------------------------------------------------------------------------------------------
+
+
+def _timed_run(command: list[str], log: Path | None = None) -> tuple[float, dict]:
+    """Wall time (s) from starting the process to its exit, and its summary. ``log``: removed
+    first (untimed), so every run writes a new file."""
+    if log is not None:
+        log.unlink(missing_ok=True)
+    t0 = time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} exited {done.returncode}:\n{done.stderr}")
+    return wall, json.loads(done.stdout)
+
+
+def bench_embedded_sims(runs: int = 11) -> list[dict]:
+    """Per scenario, full length: the all-in-C simulation's log against ``simulate()``'s (the
+    largest difference of any logged value, double and float builds), then ``runs`` timed runs
+    of each variant in turn -- double with its log written, double without a log, float with
+    its log -- as wall time from process start to exit (medians), and the loop's own time."""
+    rows = []
+    work = BUILD / "bench"
+    work.mkdir(parents=True, exist_ok=True)
+    for name in SCENARIOS:
+        sc = load_scenario(name)
+        setups = unit_setups(sc)
+        binaries = {p: build_simulation(name, p) for p in PRECISIONS}
+        log = work / f"{name}.log"
+        reference = simulate(sc, setups=setups)
+        row = {"scenario": name, "duration_s": float(sc.duration), "units": len(setups),
+               "periods": len(reference.time), "delay_periods": int(sc.plant.delay_periods)}
+        for p, binary in binaries.items():
+            info = run_simulation(binary, log=log)
+            result = read_log(log, info, sc, setups)
+            if info["status"] != "completed" or len(result.time) != len(reference.time):
+                raise RuntimeError(f"{name} ({p}): {info['status']} after {info['rows']} rows")
+            row[f"max_diff_{p}"] = max_log_difference(result, reference)
+            row["log_bytes"] = log.stat().st_size
+        variants = {"double": [str(binaries["double"]), "--log", str(log)],
+                    "double_no_log": [str(binaries["double"])],
+                    "float": [str(binaries["float"]), "--log", str(log)]}
+        walls = {v: [] for v in variants}
+        loops = {v: [] for v in variants}
+        for command in variants.values():  # warm up: page cache, CPU frequency
+            _timed_run(command, log)
+        for _ in range(runs):
+            for v, command in variants.items():
+                wall, info = _timed_run(command, log)
+                walls[v].append(wall)
+                loops[v].append(info["loop_s"])
+        log.unlink(missing_ok=True)
+        for v in variants:
+            row[f"wall_{v}_s"] = statistics.median(walls[v])
+            row[f"loop_{v}_s"] = statistics.median(loops[v])
+            row[f"rtf_{v}"] = row["duration_s"] / row[f"wall_{v}_s"]
+        row["rtf_loop_double"] = row["duration_s"] / row["loop_double_s"]
+        row["startup_s"] = row["wall_double_no_log_s"] - row["loop_double_no_log_s"]
+        rows.append(row)
+        print(f"  {name}: all-in-C {row['rtf_double']:.0f}x real time end to end (no log "
+              f"{row['rtf_double_no_log']:.0f}x, float {row['rtf_float']:.0f}x); max diff "
+              f"{row['max_diff_double']:.1e} (float {row['max_diff_float']:.1e})", flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# Report (bench/run.py writes these into bench/results.md)
+# --------------------------------------------------------------------------------------------
+
+
+def _serial(rows: list[dict]) -> list[dict]:
+    return [r for r in rows if r["scenario"].startswith("serial")]
+
+
+def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
+    """The target lines of these rows."""
+    lines = []
+    target = TARGETS["embedded_sim_serial_rtf"]
+    by_name = {r["scenario"]: r for r in steps}
+    for r in _serial(sims):
+        rtf = r["rtf_double"]
+        if rtf >= target:
+            lines.append(f"- **met**: {r['scenario']} all-in-C simulation (embedded/sim) at "
+                         f"{rtf:.0f}x real time end to end, log written (target >= "
+                         f"{target:g}x).")
+            continue
+        period = r["loop_double_no_log_s"] / r["periods"]
+        log_period = (r["loop_double_s"] - r["loop_double_no_log_s"]) / r["periods"]
+        why = f"without a log each period costs {period * 1e6:.2f} us in the loop"
+        if r["scenario"] in by_name:
+            step = by_name[r["scenario"]]["double_ns"] * 1e-9
+            why += (f": the controller's step {step * 1e6:.2f} us (both arms, the desired "
+                    f"trajectory evaluated in C), the rest ({(period - step) * 1e6:.2f} us) the "
+                    f"{r['units']} arms' RK4 plant periods (4 forward-dynamics evaluations "
+                    "each) and the measurement")
+        lines.append(
+            f"- **missed** by {target / rtf:.2f}x: {r['scenario']} all-in-C simulation "
+            f"(embedded/sim) at {rtf:.0f}x real time end to end, log written "
+            f"({r['rtf_double_no_log']:.0f}x without a log; target >= {target:g}x). Why: "
+            f"{why}, a cap of {1e-3 / period:.0f}x on one core. The log adds "
+            f"{log_period * 1e6:.2f} us per period: the poses, a second evaluation of the "
+            "desired trajectory (the step evaluates it but does not return it) and "
+            f"{r['log_bytes'] / 1e6:.1f} MB written; the process start-up "
+            f"{r['startup_s'] * 1e3:.2f} ms.")
+    return lines
+
+
+def markdown(steps: list[dict], sims: list[dict], loops: list[dict] | None = None) -> list[str]:
+    """The section of results.md. ``loops``: bench/run.py's closed-loop rows, for the
+    real-time factor of ``simulate()``'s all-in-C path on the same scenario."""
+    out = ["## Embedded controller: the step in double and in float", "",
+           "Each scenario's generated controller (`generated_c/embedded/<scenario>.c`, -O2) "
+           "built twice, as is and with `-DCOCHLEA_FLOAT`, both loaded into the benchmark's "
+           "process and timed turn about in C (bench/time_embedded_step.c) on what the "
+           f"simulation's controller measured over its first {REPLAY_PERIODS} periods. One "
+           "`<scenario>_step` call is every unit's desired trajectory, control law, estimate "
+           "update and clip. *Python loop*: the real-time loop's controller work per period on "
+           "the same scenario (`RealTimeLoop` as fast as possible on the sim backend, compute "
+           "less the backend's read and write: the supervisor's checks, each unit's C step "
+           "through ctypes on precomputed desired samples, the copies). *check*: the double "
+           "build's commands, applied as the drives apply them, against the simulation's "
+           "(largest absolute difference, N m or N); *float*: the float build's commands "
+           "against the double build's, relative to the peak command.", "",
+           "| scenario | units | double (ns) | float (ns) | float / double | Python loop (us) | "
+           "Python / double | check | float |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in steps:
+        out.append(f"| {r['scenario']} | {r['units']} | {r['double_ns']:.0f} | "
+                   f"{r['float_ns']:.0f} | {r['float_over_double']:.2f} | "
+                   f"{r['python_period_s'] * 1e6:.1f} | {r['python_over_double']:.0f} | "
+                   f"{r['check_double']:.1e} | {r['float_vs_double']:.1e} |")
+    c_rtf = {r["scenario"]: r["rtf_c"] for r in loops or []}
+    out += ["", "## All-in-C simulation (embedded/sim, real-time factor)", "",
+            "`embedded/sim/simulate.c` built per scenario (-O2): the embedded controller, which "
+            "evaluates its desired trajectory in C each period, and each unit's generated plant "
+            "kernel (RK4, the scenario's sub-steps), with the scenario's measurement delay and "
+            "grids; no Python, no CasADi. Full scenario length; wall time from starting the "
+            "process to its exit (medians of runs taken turn about), log written (a row of "
+            "doubles per period) unless said. *loop*: the program's own time for its loop "
+            "(log written); *start-up*: process wall time less the loop, without a log; "
+            "*simulate()*: the all-in-C path of `cochlea.sim.simulate` on the same scenario, end "
+            "to end (its set-up samples the desired trajectory with CasADi; units on threads), "
+            "from the closed-loop table above. *max diff*: the largest absolute difference of "
+            "any logged value from `simulate()`'s log (double; float build).", "",
+            "| scenario | s | units | end to end | no log | loop | float | start-up (ms) | "
+            "simulate() | max diff (double / float) |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sims:
+        ref = c_rtf.get(r["scenario"])
+        out.append(f"| {r['scenario']} | {r['duration_s']:g} | {r['units']} | "
+                   f"{r['rtf_double']:.0f}x | {r['rtf_double_no_log']:.0f}x | "
+                   f"{r['rtf_loop_double']:.0f}x | {r['rtf_float']:.0f}x | "
+                   f"{r['startup_s'] * 1e3:.2f} | "
+                   f"{f'{ref:.0f}x' if ref is not None else '-'} | "
+                   f"{r['max_diff_double']:.1e} / {r['max_diff_float']:.1e} |")
+    out.append("")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    build = sub.add_parser("build", help="build the all-in-C simulations into build/embedded-sim/")
+    build.add_argument("scenarios", nargs="*", default=list(SCENARIOS))
+    sub.add_parser("bench", help="run only these rows; write build/embedded-bench.json")
+    args = parser.parse_args(argv)
+    lib = ckernels.load()
+    if args.command == "build":
+        for name in args.scenarios:
+            for p in PRECISIONS:
+                print(build_simulation(name, p, lib))
+        return 0
+    print("bench: the embedded step in double and float", flush=True)
+    steps = bench_embedded_steps()
+    print("bench: the all-in-C simulation", flush=True)
+    sims = bench_embedded_sims()
+    out = ROOT / "build" / "embedded-bench.json"
+    out.write_text(json.dumps({"targets": TARGETS, "embedded_steps": steps,
+                               "embedded_sims": sims}, indent=1, sort_keys=True) + "\n")
+    print("\n".join(["## Targets", "", *verdicts(steps, sims), "", *markdown(steps, sims)]))
+    print(f"bench: wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

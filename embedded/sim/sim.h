@@ -1,0 +1,56 @@
+/* cochlea all-in-C simulation: what simulate.c needs of a scenario.
+ *
+ * A scenario is compiled in through "sim_scenario.h", which bench/embedded_bench.py writes from
+ * the scenario (build/embedded-sim/<scenario>/sim_scenario.h). It includes the scenario's
+ * embedded controller (generated_c/embedded/<scenario>.h) and the headers of its plant kernels
+ * (generated_c/<group>.h), and defines:
+ *
+ *   SIM_NAME            the scenario's name (a string)
+ *   SIM_C(x)            the controller's identifier x: SIM_C(_step) is <scenario>_step
+ *   SIM_UNITS, SIM_NQ, SIM_NX, SIM_ND, SIM_NP, SIM_NE
+ *                       the controller's sizes (<SCENARIO>_UNITS, ...)
+ *   SIM_NPOSE           logged pose coordinates, all units
+ *   SIM_PERIOD          s: the control period (the plant integrates one period per call)
+ *   SIM_DURATION        s: the scenario's duration
+ *   SIM_DELAY           periods of measurement delay
+ *   sim_units[SIM_UNITS] one sim_unit per unit, in the controller's order
+ *
+ * Units: SI throughout (rad, m, rad/s, m/s, N m, N, s). */
+#ifndef COCHLEA_SIM_H
+#define COCHLEA_SIM_H
+
+#include <stddef.h>
+
+/* A generated kernel (CasADi's calling convention); the plant and pose kernels need no work
+ * memory (iw and w are NULL). */
+typedef int (*sim_kernel)(const double **arg, double **res, long long int *iw, double *w,
+                          int mem);
+
+/* One unit of the scenario: its plant, its start and how it is measured and driven. */
+typedef struct {
+    const char *name;
+    int nq;    /* joints; the unit's state is x = [q, qd] (rad or m, rad/s or m/s) */
+    int np;    /* estimated parameters */
+    int nd;    /* desired coordinates */
+    int ne;    /* errors */
+    int npose; /* logged pose coordinates (m, rad) */
+    /* x_next = plant(x, tau, p, friction, h[, coulomb]): the period, RK4 with the scenario's
+     * sub-steps */
+    sim_kernel plant;
+    sim_kernel pose;          /* pose = fk_world(q) */
+    const double *x0;         /* initial state [q, qd] */
+    const double *plant_p;    /* the plant's parameters (SI) */
+    const double *friction;   /* viscous friction per joint: N m s/rad or N s/m */
+    const double *coulomb;    /* Coulomb friction per joint: N m or N; NULL: none */
+    /* Measurement grid, per entry of x (NULL: continuous): where quantum[i] > 0 the
+     * controller sees offset[i] + quantum[i] * nearbyint((x[i] - offset[i]) / quantum[i]) */
+    const double *quantum;
+    const double *offset;
+    /* Effort grid, per joint (NULL: the command as given): where effort_quantum[i] > 0 the
+     * drive applies effort_quantum[i] * nearbyint(tau / effort_quantum[i]), then every joint
+     * within +-effort_bound[i] (N m or N) */
+    const double *effort_quantum;
+    const double *effort_bound;
+} sim_unit;
+
+#endif

@@ -1,0 +1,236 @@
+/* cochlea all-in-C simulation: one scenario's closed loop with no Python and no CasADi.
+ *
+ *   simulate [--duration S] [--log FILE]
+ *
+ * The controller is the scenario's generated embedded controller (generated_c/embedded/), which
+ * evaluates the desired trajectory itself at each period's time; the plant is the generated
+ * plant kernel of each unit (generated_c/), the same RK4 period as the simulation's. The
+ * scenario is compiled in (sim.h, sim_scenario.h): build it with
+ * `python bench/embedded_bench.py build` or `make embedded-sim`.
+ *
+ * Period k, at t = k h (h = SIM_PERIOD, s), as cochlea.sim.simulate runs it:
+ *   1. the state x_k of every unit is logged, and the estimate the controller holds;
+ *   2. the controller measures x_{k - delay} (x_0 before that) of every unit, put on the
+ *      unit's measurement grid, if any;
+ *   3. <scenario>_step returns the commands (N m, N), clipped to the effort limits as the
+ *      supervisor clips them, the errors, and advances the estimate one period;
+ *   4. each drive applies its command on its effort grid, if any; the applied effort is logged
+ *      and held over the period;
+ *   5. each unit's plant integrates the period: x_{k+1}.
+ * The run stops after period k when a state or the estimate is no longer finite ("diverged",
+ * k + 1 rows), or before it when the step refuses a non-finite output ("step-failed", k rows).
+ *
+ * --log FILE writes one row of doubles (native byte order) per period:
+ *   t (s), x[NX], p_hat[NP], tau[NQ], errors[NE], pose[NPOSE], xd[ND], xd_dot[ND]
+ * each block unit after unit (x: per unit [q, qd]). Without --log the pose and the desired
+ * trajectory, which only the log needs, are not evaluated.
+ *
+ * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status and the
+ * wall time (s) of the loop and of the whole program from main() on, and each unit's sizes.
+ * Exit status: 0 completed, 1 diverged or step-failed, 2 bad arguments or an unwritable log. */
+#define _POSIX_C_SOURCE 199309L
+#include "sim_scenario.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#ifdef COCHLEA_FLOAT
+#define SIM_PRECISION "float"
+#else
+#define SIM_PRECISION "double"
+#endif
+
+#define SIM_COLUMNS (1 + SIM_NX + SIM_NP + SIM_NQ + SIM_NE + SIM_NPOSE + 2 * SIM_ND)
+
+typedef SIM_C(_real) sim_real;
+
+static double now_s(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
+}
+
+static int all_finite(const double *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i)
+        if (!(v[i] - v[i] == 0.0)) return 0;
+    return 1;
+}
+
+static int usage(void)
+{
+    fprintf(stderr, "usage: simulate [--duration S] [--log FILE]   (scenario %s)\n", SIM_NAME);
+    return 2;
+}
+
+int main(int argc, char **argv)
+{
+    static double history[SIM_DELAY + 1][SIM_NX]; /* x of the last delay + 1 periods */
+    static double row[SIM_COLUMNS];
+    static char log_buffer[1 << 20];
+    const double start = now_s();
+    const double h = SIM_PERIOD;
+    double duration = SIM_DURATION, x[SIM_NX], x_next[SIM_NX], tau[SIM_NQ], loop_start, end;
+    sim_real measurement[SIM_NX], command[SIM_NQ], errors[SIM_NE];
+    sim_real xd[SIM_ND], xd_dot[SIM_ND], xd_ddot[SIM_ND];
+    SIM_C(_config) config;
+    SIM_C(_state) state;
+    const char *log_path = NULL, *status = "completed";
+    FILE *log = NULL;
+    long steps, k, rows = 0;
+    int i, u, code = 0;
+
+    for (i = 1; i < argc; ++i) {
+        if (strcmp(argv[i], "--duration") == 0 && i + 1 < argc) {
+            char *rest;
+            duration = strtod(argv[++i], &rest);
+            if (*rest != '\0' || !(duration >= 0.0 && duration < 1e9)) return usage();
+        } else if (strcmp(argv[i], "--log") == 0 && i + 1 < argc) {
+            log_path = argv[++i];
+        } else {
+            return usage();
+        }
+    }
+    steps = lround(duration / h); /* as the simulation's int(round(duration / h)) */
+
+    SIM_C(_default_config)(&config);
+    if (config.h != h || SIM_C(_init)(&state, &config) != 0) {
+        fprintf(stderr, "simulate: the default configuration of %s is refused\n", SIM_NAME);
+        return 2;
+    }
+    if (log_path) {
+        log = fopen(log_path, "wb");
+        if (!log || setvbuf(log, log_buffer, _IOFBF, sizeof log_buffer) != 0) {
+            fprintf(stderr, "simulate: cannot write %s\n", log_path);
+            return 2;
+        }
+    }
+    for (u = 0, i = 0; u < SIM_UNITS; i += 2 * sim_units[u].nq, ++u)
+        memcpy(x + i, sim_units[u].x0, (size_t)(2 * sim_units[u].nq) * sizeof(double));
+
+    loop_start = now_s();
+    for (k = 0; k < steps; ++k) {
+        const double t = (double)k * h; /* as the simulation's time grid, arange(N) * h */
+        const double *seen = history[k >= SIM_DELAY ? (k - SIM_DELAY) % (SIM_DELAY + 1) : 0];
+        double *slot = history[k % (SIM_DELAY + 1)];
+        const double *p_hat = state.p_hat; /* the estimate used in this period */
+        double *r = row;
+
+        for (i = 0; i < SIM_NX; ++i) slot[i] = x[i];
+        if (log) {
+            *r++ = t;
+            for (i = 0; i < SIM_NX; ++i) *r++ = x[i];
+            for (i = 0; i < SIM_NP; ++i) *r++ = p_hat[i];
+        }
+
+        /* The measurement, on each unit's grid */
+        for (u = 0, i = 0; u < SIM_UNITS; ++u) {
+            const sim_unit *s = &sim_units[u];
+            int j;
+            for (j = 0; j < 2 * s->nq; ++j, ++i) {
+                double m = seen[i];
+                if (s->quantum && s->quantum[j] > 0) {
+                    const double q = s->quantum[j], o = s->offset[j];
+                    m = o + q * nearbyint((m - o) / q);
+                }
+                measurement[i] = (sim_real)m;
+            }
+        }
+
+        code = SIM_C(_step)(&state, t, measurement, command, errors);
+        if (code != 0) {
+            status = "step-failed";
+            break;
+        }
+
+        /* The drives: each command on its joint's effort grid */
+        for (u = 0, i = 0; u < SIM_UNITS; ++u) {
+            const sim_unit *s = &sim_units[u];
+            int j;
+            for (j = 0; j < s->nq; ++j, ++i) {
+                double e = (double)command[i];
+                if (s->effort_quantum) {
+                    if (s->effort_quantum[j] > 0)
+                        e = s->effort_quantum[j] * nearbyint(e / s->effort_quantum[j]);
+                    e = fmin(fmax(e, -s->effort_bound[j]), s->effort_bound[j]);
+                }
+                tau[i] = e;
+            }
+        }
+
+        /* The plants, unit after unit */
+        for (u = 0, i = 0; u < SIM_UNITS; ++u) {
+            const sim_unit *s = &sim_units[u];
+            const double *arg[6]; /* a plant without dry friction reads the first 5 */
+            double *res[1];
+            const int qi = i / 2; /* the unit's first joint (x holds 2 nq entries per unit) */
+            arg[0] = x + i;
+            arg[1] = tau + qi;
+            arg[2] = s->plant_p;
+            arg[3] = s->friction;
+            arg[4] = &h;
+            arg[5] = s->coulomb;
+            res[0] = x_next + i;
+            code = s->plant(arg, res, NULL, NULL, 0);
+            if (code != 0) {
+                fprintf(stderr, "simulate: the plant of %s returned %d\n", s->name, code);
+                return 2;
+            }
+            i += 2 * s->nq;
+        }
+
+        if (log) {
+            for (i = 0; i < SIM_NQ; ++i) *r++ = tau[i];
+            for (i = 0; i < SIM_NE; ++i) *r++ = (double)errors[i];
+            for (u = 0, i = 0; u < SIM_UNITS; ++u) {
+                const sim_unit *s = &sim_units[u];
+                const double *arg[1];
+                double *res[1];
+                arg[0] = x + i;
+                res[0] = r;
+                if (s->pose(arg, res, NULL, NULL, 0) != 0) return 2;
+                r += s->npose;
+                i += 2 * s->nq;
+            }
+            SIM_C(_desired)(t, xd, xd_dot, xd_ddot);
+            for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd[i];
+            for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd_dot[i];
+            if (fwrite(row, sizeof row, 1, log) != 1) {
+                fprintf(stderr, "simulate: cannot write %s\n", log_path);
+                return 2;
+            }
+        }
+        rows = k + 1;
+        memcpy(x, x_next, sizeof x);
+        if (!all_finite(x, SIM_NX) || !all_finite(state.p_hat, SIM_NP)) {
+            status = "diverged";
+            break;
+        }
+    }
+    end = now_s();
+    SIM_C(_terminate)(&state);
+    if (log && fclose(log) != 0) {
+        fprintf(stderr, "simulate: cannot write %s\n", log_path);
+        return 2;
+    }
+    printf("{\"scenario\": \"%s\", \"precision\": \"%s\", \"period_s\": %.17g, "
+           "\"duration_s\": %.17g, \"periods\": %ld, \"rows\": %ld, \"status\": \"%s\", "
+           "\"step_code\": %d, \"units\": %d, \"nx\": %d, \"np\": %d, \"nq\": %d, \"ne\": %d, "
+           "\"npose\": %d, \"nd\": %d, \"columns\": %d, \"log\": %s, \"loop_s\": %.9f, "
+           "\"main_s\": %.9f, \"unit_sizes\": [",
+           SIM_NAME, SIM_PRECISION, h, duration, steps, rows, status, code, SIM_UNITS, SIM_NX,
+           SIM_NP, SIM_NQ, SIM_NE, SIM_NPOSE, SIM_ND, SIM_COLUMNS, log ? "true" : "false",
+           end - loop_start, now_s() - start);
+    for (u = 0; u < SIM_UNITS; ++u) {
+        const sim_unit *s = &sim_units[u];
+        printf("%s{\"name\": \"%s\", \"nq\": %d, \"np\": %d, \"nd\": %d, \"ne\": %d, "
+               "\"npose\": %d}", u ? ", " : "", s->name, s->nq, s->np, s->nd, s->ne, s->npose);
+    }
+    printf("]}\n");
+    return strcmp(status, "completed") == 0 ? 0 : 1;
+}

@@ -1,0 +1,127 @@
+"""The all-in-C simulation (embedded/sim/simulate.c): the embedded controller and the generated
+plant kernels in one C program, with no Python and no CasADi, log the simulation's periods.
+
+The tolerance. Both runs integrate the same plant kernel from the same state; what may differ is
+the controller: the embedded step evaluates the desired trajectory and the law through its own
+generated C, held to the CasADi Functions to 1e-12 relative per step
+(tests/test_embedded_generated.py). How much the closed loop amplifies a per-step relative
+difference was measured with the float build, whose per-step rounding is 2**-24: over 2 s of the
+four thesis studies, no logged value moved by more than 132 x 2**-24 relative to max(1, its
+peak). So per-step differences of 1e-12 show at most about 1.3e-10; TOLERANCE = 1e-9 (relative
+to max(1, peak), every logged value) leaves a factor of 7. On the realistic studies a difference
+could also move a measurement across a grid step; at 1e-12 that has a chance of the order of
+1e-12 / 1.5e-3 per sample, never seen. Measured with the same compiler: 0 (bit for bit equal),
+on all eight studies over their full length (bench/results.md).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench import embedded_bench as eb
+from cochlea.sim import load_scenario, simulate, unit_setups
+
+ROOT = Path(__file__).resolve().parent.parent
+DURATION = 2.0  # s
+TOLERANCE = 1e-9  # relative to max(1, peak) of each logged value; see the module's docstring
+
+pytestmark = pytest.mark.skipif(shutil.which(os.environ.get("CC", "cc")) is None,
+                                reason="no C compiler")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def library():
+    """The simulation this is compared with runs on libcochlea.so; the program's plant kernels
+    are found through its manifest."""
+    subprocess.run(["make", "-s", "lib"], cwd=ROOT, check=True, capture_output=True)
+
+
+def run_logged(name: str, precision: str, tmp_path: Path, duration: float = DURATION):
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    log = tmp_path / f"{name}_{precision}.log"
+    info = eb.run_simulation(eb.build_simulation(name, precision), duration, log)
+    return eb.read_log(log, info, sc, setups), info, sc, setups
+
+
+def worst_relative(result, reference) -> dict[str, float]:
+    """Per logged value: the largest difference relative to max(1, the reference's peak)."""
+    worst = {}
+    for u, r in zip(result.units, reference.units, strict=True):
+        assert u.name == r.name
+        for key in eb.LOG_FIELDS:
+            a, b = getattr(u, key), getattr(r, key)
+            assert a.shape == b.shape, (u.name, key)
+            scale = max(1.0, float(np.max(np.abs(b))))
+            worst[f"{u.name}.{key}"] = float(np.max(np.abs(a - b))) / scale
+    return worst
+
+
+@pytest.mark.parametrize("name", eb.SCENARIOS)
+def test_log_equals_the_simulation(name, tmp_path):
+    """2 s of every study: states, desired trajectory, errors, applied efforts, estimates and
+    poses equal ``simulate()``'s, period for period (ideal plant; realistic: delayed, encoder
+    grid, current grid, armature and Coulomb friction)."""
+    result, info, sc, setups = run_logged(name, "double", tmp_path)
+    reference = simulate(sc, duration=DURATION, setups=setups)
+    assert info["status"] == "completed" and info["precision"] == "double"
+    assert info["periods"] == info["rows"] == len(reference.time) == round(DURATION / sc.period)
+    np.testing.assert_array_equal(result.time, reference.time)
+    worst = worst_relative(result, reference)
+    assert max(worst.values()) <= TOLERANCE, worst
+
+
+@pytest.mark.parametrize("name", eb.THESIS)
+def test_float_build_follows_the_simulation(name, tmp_path):
+    """The float controller in the same loop: efforts within 1e-5 of the run's peak effort, as
+    the float build's own test holds it (tests/test_embedded_generated.py), and the joints
+    within 1e-5 (rad, m)."""
+    result, info, sc, setups = run_logged(name, "float", tmp_path)
+    reference = simulate(sc, duration=DURATION, setups=setups)
+    assert info["status"] == "completed" and info["precision"] == "float"
+    peak = max(float(np.max(np.abs(r.tau))) for r in reference.units)
+    for u, r in zip(result.units, reference.units):
+        assert np.max(np.abs(u.tau - r.tau)) <= 1e-5 * peak
+        assert np.max(np.abs(u.q - r.q)) <= 1e-5
+
+
+def test_full_length_without_a_log():
+    """The scenario's own duration by default; without a log nothing is written."""
+    sc = load_scenario("serial_task")
+    info = eb.run_simulation(eb.build_simulation("serial_task"))
+    assert info["status"] == "completed" and info["log"] is False
+    assert info["rows"] == info["periods"] == round(sc.duration / sc.period)
+    assert info["duration_s"] == sc.duration and info["period_s"] == sc.period
+    assert 0 < info["loop_s"] <= info["main_s"]
+
+
+def test_needs_neither_python_nor_casadi():
+    """The program links the C library and libm only."""
+    binary = eb.build_simulation("parallel_task_realistic")
+    dynamic = subprocess.run(["readelf", "-d", str(binary)], capture_output=True, text=True,
+                             check=True).stdout
+    needed = {line.split("[")[1].split("]")[0] for line in dynamic.splitlines()
+              if "(NEEDED)" in line}
+    assert needed <= {"libm.so.6", "libc.so.6"}, needed
+
+
+@pytest.mark.parametrize("args", [["--duration", "-1"], ["--duration", "2s"], ["--rate", "1"],
+                                  ["--log"], ["--log", "/nonexistent/folder/log.bin"]])
+def test_refuses_bad_arguments(args):
+    done = subprocess.run([str(eb.build_simulation("serial_joint")), *args],
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and done.stderr and not done.stdout
+
+
+def test_zero_duration_runs_no_period(tmp_path):
+    log = tmp_path / "empty.log"
+    info = eb.run_simulation(eb.build_simulation("serial_joint"), 0.0, log)
+    assert info["status"] == "completed" and info["rows"] == 0 and log.stat().st_size == 0
+    assert json.loads(json.dumps(info)) == info
