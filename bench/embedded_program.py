@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cochlea.dynamixel.budget import bus_budget
+
 ROOT = Path(__file__).resolve().parent.parent
 PROGRAM = ROOT / "build" / "cochlea-embedded"
 #: cochlea-emulator serves at full pace a moment after it prints its port (see
@@ -62,24 +64,50 @@ def _stats(values: np.ndarray) -> dict:
             "max": float(values.max())}
 
 
-def run_c(scenario: str, port: str, out: Path, seconds: float, *options: str) -> dict:
-    done = subprocess.run([str(PROGRAM), "--scenario", scenario, "--port", port, "--duration",
-                           str(seconds), "--out", str(out), *options], capture_output=True,
-                          text=True, timeout=seconds + 60)
-    if done.returncode != 0:
-        raise RuntimeError(f"cochlea-embedded failed ({done.returncode}): {done.stderr}")
-    return json.loads((out / "summary.json").read_text())
+#: A run is repeated (on a fresh emulator) at most this often when it does not complete: the
+#: Python emulator now and then falls tens of milliseconds behind on a shared machine (see
+#: tests/test_embedded_program.py), which can stop a run on the failed-read watchdog.
+ATTEMPTS = 3
 
 
-def run_python(robot: str, space: str, port: str, out: Path, seconds: float) -> dict:
-    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", robot,
-                           "--space", space, "--backend", "dynamixel", "--port", port,
-                           "--duration", str(seconds), "--out", str(out), "--status", "off",
-                           "--watchdog-misses", "300"], capture_output=True, text=True,
-                          timeout=seconds + 120)
-    if done.returncode != 0:
-        raise RuntimeError(f"cochlea-run failed ({done.returncode}): {done.stderr}")
-    return json.loads((out / "summary.json").read_text())
+def _attempts(what: str, emulator_args: tuple, command) -> dict:
+    """``command(port, attempt)`` on a fresh emulator until it completes (exit 0): its
+    summary. The failures before it are kept in the result (``failed_attempts``)."""
+    failures = []
+    for attempt in range(ATTEMPTS):
+        with emulator(*emulator_args) as port:
+            done, out = command(port, attempt)
+        if done.returncode == 0:
+            summary = json.loads((out / "summary.json").read_text())
+            summary["failed_attempts"] = failures
+            summary["out"] = str(out)
+            return summary
+        failures.append(f"exit {done.returncode}: {done.stderr.strip()[-300:]}")
+    raise RuntimeError(f"{what} failed {ATTEMPTS} times: {failures}")
+
+
+def run_c(scenario: str, emulator_args: tuple, out: Path, seconds: float, *options: str
+          ) -> dict:
+    """``build/cochlea-embedded`` on a fresh emulator; the read watchdog allows 100 failed
+    reads in a row (the runs measure time, not faults)."""
+    def command(port: str, attempt: int):
+        folder = out.with_name(f"{out.name}-{attempt}")
+        return subprocess.run([str(PROGRAM), "--scenario", scenario, "--port", port,
+                               "--duration", str(seconds), "--out", str(folder),
+                               "--watchdog-errors", "100", *options], capture_output=True,
+                              text=True, timeout=seconds + 60), folder
+    return _attempts("cochlea-embedded", emulator_args, command)
+
+
+def run_python(robot: str, space: str, out: Path, seconds: float) -> dict:
+    def command(port: str, attempt: int):
+        folder = out.with_name(f"{out.name}-{attempt}")
+        return subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot",
+                               robot, "--space", space, "--backend", "dynamixel", "--port",
+                               port, "--duration", str(seconds), "--out", str(folder),
+                               "--status", "off", "--watchdog-misses", "300"],
+                              capture_output=True, text=True, timeout=seconds + 120), folder
+    return _attempts("cochlea-run", (robot, f"{robot}_{space}"), command)
 
 
 def loop_compute(studies=(("serial", "task"), ("parallel", "task")), seconds: float = 5.0
@@ -90,37 +118,47 @@ def loop_compute(studies=(("serial", "task"), ("parallel", "task")), seconds: fl
     with tempfile.TemporaryDirectory() as tmp:
         for robot, space in studies:
             name = f"{robot}_{space}"
-            with emulator(robot, name) as port:
-                run_c(name, port, Path(tmp) / f"c-{name}", seconds, "--watchdog-misses", "300")
-            with emulator(robot, name) as port:
-                run_python(robot, space, port, Path(tmp) / f"py-{name}", seconds)
+            runs = {"c": run_c(name, (robot, name), Path(tmp) / f"c-{name}", seconds,
+                               "--watchdog-misses", "300"),
+                    "py": run_python(robot, space, Path(tmp) / f"py-{name}", seconds)}
             own = {}
-            for who in ("c", "py"):
-                t = timing(Path(tmp) / f"{who}-{name}")
+            for who, summary in runs.items():
+                t = timing(Path(summary["out"]))
                 own[who] = _stats(t["compute_s"] - t["backend_io_s"])
                 own[who + "_bus"] = _stats(t["backend_io_s"])
             rows.append({"scenario": name, "unit": "s", "c_loop": own["c"],
                          "python_loop": own["py"], "c_bus": own["c_bus"],
                          "python_bus": own["py_bus"],
-                         "python_over_c_p50": own["py"]["p50"] / own["c"]["p50"]})
+                         "python_over_c_p50": own["py"]["p50"] / own["c"]["p50"],
+                         "repeated_runs": len(runs["c"]["failed_attempts"])
+                         + len(runs["py"]["failed_attempts"])})
     return rows
+
+
+def carried_rate(motors: int, baud: int, rates=(1000, 500, 400, 250, 200, 100)) -> int:
+    """The highest control rate (Hz) whose period holds the bus time of one period
+    (cochlea/dynamixel/budget.py; the adapter's latency aside, as the emulator has none)."""
+    budget = bus_budget(motors, baud)
+    return next(r for r in rates if budget.bus_s <= 1.0 / r)
 
 
 def wire_times(bauds=(1_000_000, 2_000_000, 3_000_000, 4_000_000), seconds: float = 3.0
                ) -> list[dict]:
     """The bus transaction of one period (SYNC_WRITE, SYNC_READ and the six status packets of
-    the serial system) with the emulator holding each byte for its time on the wire; a rate the
-    bus can carry at each baud (1 kHz from 2 Mbaud; 400 Hz at 1 Mbaud)."""
+    the serial system) with the emulator holding each byte for its time on the wire, at the
+    highest rate the bus carries at each baud (:func:`carried_rate`)."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for baud in bauds:
-            rate = 1000 if baud >= 2_000_000 else 400
-            with emulator("serial", "serial_joint", "--wire-timing", "--baud", str(baud)) as port:
-                summary = run_c("serial_joint", port, Path(tmp) / f"w{baud}", seconds, "--baud",
-                                str(baud), "--rate", str(rate), "--watchdog-misses", "300")
-            t = timing(Path(tmp) / f"w{baud}")
+            rate = carried_rate(6, baud)
+            summary = run_c("serial_joint", ("serial", "serial_joint", "--wire-timing",
+                                             "--baud", str(baud)),
+                            Path(tmp) / f"w{baud}", seconds, "--baud", str(baud), "--rate",
+                            str(rate), "--watchdog-misses", "300")
+            t = timing(Path(summary["out"]))
             budget = summary["timing"]["bus"]["bus_budget"]
             rows.append({"baud": baud, "rate_Hz": rate, "unit": "s",
+                         "repeated_runs": len(summary["failed_attempts"]),
                          "bus_io": _stats(t["backend_io_s"]), "budget_bus_s": budget["bus_s"],
                          "budget_wire_s": budget["wire_s"],
                          "good_reads": summary["timing"]["bus"]["good_reads"],
@@ -130,15 +168,16 @@ def wire_times(bauds=(1_000_000, 2_000_000, 3_000_000, 4_000_000), seconds: floa
 
 def deadline_misses(seconds: float = 20.0) -> dict:
     """The C program's serial task study for 20 s at 4 Mbaud: its missed deadlines and period."""
-    with tempfile.TemporaryDirectory() as tmp, emulator("serial", "serial_task") as port:
-        summary = run_c("serial_task", port, Path(tmp) / "m", seconds, "--watchdog-misses",
-                        "1000")
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = run_c("serial_task", ("serial", "serial_task"), Path(tmp) / "m", seconds,
+                        "--watchdog-misses", "1000")
     t = summary["timing"]
     return {"scenario": "serial_task", "seconds": seconds, "periods": summary["periods"],
             "deadline_misses": t["deadline_misses"],
             "deadline_miss_fraction": t["deadline_miss_fraction"],
             "period_p99_s": t["period_p99"], "period_max_s": t["period_max"],
-            "scheduling": t["scheduling"], "memory": t["memory"]}
+            "scheduling": t["scheduling"], "memory": t["memory"],
+            "repeated_runs": len(summary["failed_attempts"])}
 
 
 def bench() -> dict:
@@ -171,11 +210,16 @@ def markdown(results: dict) -> str:
         lines.append(f"| {r['baud'] / 1e6:g} M | {r['rate_Hz']} Hz | {us(b['p50'])} | "
                      f"{us(b['p99'])} | {us(b['max'])} | {us(r['budget_bus_s'])} | "
                      f"{r['good_reads']} of {r['reads']} |")
+    repeated = sum(r["repeated_runs"] for r in results["loop_compute"]) \
+        + sum(r["repeated_runs"] for r in results["wire"]) \
+        + results["deadline_misses"]["repeated_runs"]
     m = results["deadline_misses"]
     lines += ["", f"Deadline misses of the C program over {m['seconds']:g} s ({m['scenario']}, "
               f"4 Mbaud, {m['scheduling']}, memory {m['memory']}): {m['deadline_misses']} of "
               f"{m['periods']} periods ({100 * m['deadline_miss_fraction']:.2f} %); period p99 "
-              f"{m['period_p99_s'] * 1e3:.3f} ms, max {m['period_max_s'] * 1e3:.3f} ms.", ""]
+              f"{m['period_p99_s'] * 1e3:.3f} ms, max {m['period_max_s'] * 1e3:.3f} ms.", "",
+              f"Runs repeated because one stopped early (the emulator's lag, see "
+              f"bench/embedded_program.py): {repeated}.", ""]
     return "\n".join(lines)
 
 

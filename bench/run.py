@@ -17,6 +17,9 @@ Python loop that repeats the call (tens of ns, the same for every path, the floo
 3. Generation and compile time of all kernels (clean, into a scratch folder), generated size.
 4. The embedded controller (bench/embedded_bench.py): the step in double and in float, and the
    all-in-C simulation (embedded/sim) end to end.
+5. The embedded program build/cochlea-embedded against cochlea-emulator
+   (bench/embedded_program.py): its loop's compute against cochlea-run's, the bus time of one
+   period at 1-4 Mbaud with the emulator's wire timing, the deadline misses of 20 s.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 import casadi as ca  # noqa: E402
 import embedded_bench  # noqa: E402
+import embedded_program  # noqa: E402
 import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 from numpy_law import NumpyStepE  # noqa: E402
@@ -503,6 +507,7 @@ def markdown(results: dict) -> str:
         f"headers, {build['c_and_h_bytes'] / 1024:.0f} KiB, {build['c_and_h_lines']} lines; "
         f"libcochlea.so {build['library_bytes'] / 1024:.0f} KiB", ""]
     out += embedded_bench.markdown(results["embedded_steps"], results["embedded_sims"], loops)
+    out += ["", embedded_program.markdown(results["embedded_program"])]
     return "\n".join(out)
 
 
@@ -520,6 +525,8 @@ def main() -> int:
     results["embedded_steps"] = embedded_bench.bench_embedded_steps()
     print("bench: the all-in-C simulation (embedded/sim)", flush=True)
     results["embedded_sims"] = embedded_bench.bench_embedded_sims()
+    print("bench: the embedded program against the emulator (about 2 min)", flush=True)
+    results["embedded_program"] = embedded_program.bench()
     results["load_after"] = load_average()
     (OUT / "results.json").write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     (OUT / "results.md").write_text(markdown(results))
