@@ -32,3 +32,22 @@ def ev(f, *args):
     """Evaluate a CasADi Function to a numpy array (vector results flattened)."""
     out = np.array(f(*args))
     return out.ravel() if out.shape[1] == 1 else out
+
+
+def assert_periods_allocate_nothing(backend, x: np.ndarray, tau: np.ndarray,
+                                    warmup: int = 200, periods: int = 5000) -> None:
+    """A backend's per-period path (read into ``x``, write ``tau``) makes no buffer, list or
+    array: after a warm-up, ``periods`` more periods leave Python's allocated blocks where they
+    were (a per-period allocation would add thousands; 50 allows the interpreter's own)."""
+    import gc
+    import sys
+
+    for _ in range(warmup):
+        assert backend.read(x) and backend.write(tau)
+    gc.collect()
+    before = sys.getallocatedblocks()
+    for _ in range(periods):
+        backend.read(x)
+        backend.write(tau)
+    gc.collect()
+    assert sys.getallocatedblocks() - before < 50

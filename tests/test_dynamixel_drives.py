@@ -14,6 +14,7 @@ from cochlea.dynamixel.budget import bus_budget
 from cochlea.dynamixel.control_table import MX64, XM540_W270
 from cochlea.dynamixel.drives import DEFAULT_RAMP_NM, Fit, joint_drives
 from cochlea.robots.description import MotorFit
+from tests.conftest import assert_periods_allocate_nothing
 
 
 @pytest.fixture(scope="module")
@@ -176,9 +177,6 @@ def test_the_per_period_conversions_match_the_scalar_ones(robot, rng):
 
 def test_the_per_period_path_does_not_grow_memory(rng):
     """No buffer, list or array is made per period: the allocated blocks stay put."""
-    import gc
-    import sys
-
     from cochlea.dynamixel import protocol as proto
 
     backend, port = _scripted("serial")
@@ -191,16 +189,7 @@ def test_the_per_period_path_does_not_grow_memory(rng):
         return len(reply)
 
     port.read_into = read_into
-    x, tau = np.zeros(12), rng.uniform(-0.1, 0.1, 6)
-    for _ in range(200):
-        assert backend.read(x) and backend.write(tau)
-    gc.collect()
-    before = sys.getallocatedblocks()
-    for _ in range(5000):
-        backend.read(x)
-        backend.write(tau)
-    gc.collect()
-    assert sys.getallocatedblocks() - before < 50
+    assert_periods_allocate_nothing(backend, np.zeros(12), rng.uniform(-0.1, 0.1, 6))
 
 
 def test_bus_budget_numbers():

@@ -20,6 +20,7 @@ from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.scenario import Plant
+from tests.conftest import assert_periods_allocate_nothing
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -245,9 +246,6 @@ def test_the_sim_backend_measures_as_the_as_fast_run(name, options):
 
 
 def test_the_sim_backend_reads_and_writes_without_growing_memory():
-    import gc
-    import sys
-
     from cochlea.runtime.sim_backend import SimBackend
 
     sc = load_scenario("serial_joint")
@@ -256,16 +254,7 @@ def test_the_sim_backend_reads_and_writes_without_growing_memory():
     setups = unit_setups(sc)
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=6000)
     backend.enable()
-    x, tau = np.zeros(12), np.full(6, 1e-3)
-    for _ in range(200):
-        assert backend.read(x) and backend.write(tau)
-    gc.collect()
-    before = sys.getallocatedblocks()
-    for _ in range(5000):
-        backend.read(x)
-        backend.write(tau)
-    gc.collect()
-    assert sys.getallocatedblocks() - before < 50
+    assert_periods_allocate_nothing(backend, np.zeros(12), np.full(6, 1e-3))
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
