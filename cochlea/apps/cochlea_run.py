@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import signal
 import sys
 import time
 from datetime import datetime
@@ -46,10 +47,13 @@ from ..runtime import (
 )
 from ..sim import KERNELS, load_scenario, simulate, unit_setups
 from ..sim.scenario import PLANT_PRESETS
-from . import report
+from . import outputs, report
 
 EXIT_DIVERGED = 3
 EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
+EXIT_TERMINATED = 143  # ... and for SIGTERM
+#: The run happened but part of its report (log.csv, figures, summary.json) is lost.
+EXIT_REPORT_FAILED = 18
 #: Half a second at 1 kHz: beyond that the loop is not controlling the motors at all.
 MAX_WATCHDOG_MISSES = 500
 
@@ -114,17 +118,67 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    run = _Run(args)
+    run.shield.install()
     try:
-        return _run(args)
+        return _run(args, run)
     except BackendError as exc:
         print(f"cochlea-run: the backend could not start, nothing moved: {exc}", file=sys.stderr)
         return EXIT_BACKEND
     except CochleaError as exc:
         print(f"cochlea-run: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:  # Ctrl-C while preparing: the loop's own handler was not yet set
-        print("cochlea-run: interrupted before the run started; nothing moved", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except outputs.ReportError as exc:
+        print(f"cochlea-run: {exc}", file=sys.stderr)
+        return EXIT_REPORT_FAILED
+    except KeyboardInterrupt as exc:  # only ever raised before anything ran (see _Run)
+        terminated = getattr(exc, "signum", signal.SIGINT) == signal.SIGTERM
+        what = "terminated" if terminated else "interrupted"
+        if run.simulating:
+            print(f"cochlea-run: {what} during the as-fast simulation; nothing written (a "
+                  "simulation: nothing moved)", file=sys.stderr)
+        else:
+            print(f"cochlea-run: {what} before the run started; nothing moved",
+                  file=sys.stderr)
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+    finally:
+        run.close()
+        if argv is None:
+            # The program itself: it is about to exit with the run's own code, which a late
+            # Ctrl-C must not turn into a KeyboardInterrupt's traceback or a SIGTERM's 143.
+            run.shield.ignore()
+        else:
+            run.shield.restore()  # called from Python (the tests): give the handlers back
+
+
+class _Run:
+    """What one invocation holds: its output folder and its signal handling.
+
+    Until the run has produced something (``kept``), a failure or an interrupt undoes the
+    start (the folder and what was written in it are removed, so the identical retry works);
+    from then on nothing is removed. The lock on the folder is held to the end."""
+
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+        self.folder: outputs.OutputFolder | None = None
+        self.shield = outputs.SignalShield("cochlea-run")
+        self.kept = False
+        self.simulating = False
+
+    def claim(self, default: str) -> Path:
+        if self.args.out is not None:
+            self.folder = outputs.claim(self.args.out)
+        else:
+            self.folder = outputs.claim_new(Path("runs"), default)
+        return self.folder.path
+
+    def close(self) -> None:
+        if self.folder is None:
+            return
+        if self.kept:
+            self.folder.release()
+        else:
+            self.folder.discard()
 
 
 def _validate(args: argparse.Namespace, scenario) -> None:
@@ -152,24 +206,35 @@ def _validate(args: argparse.Namespace, scenario) -> None:
                            "(runs never overwrite a log)")
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, run: _Run) -> int:
+    if args.out is not None:  # the cheap checks first; the folder is created only at the end
+        outputs.check_folder(args.out)
     study = f"{args.robot}_{args.space}" + ("_realistic" if args.plant == "realistic" else "")
     scenario = load_scenario(args.scenario or study, plant_preset=args.plant)
     _validate(args, scenario)
     if args.rate is not None:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
     setups = unit_setups(scenario)  # validates reachability before anything moves
-    out = args.out or Path("runs") / (f"{args.robot}_{args.space}_"
-                                      f"{datetime.now().strftime('%Y%m%d-%H%M%S')}")
-    out.mkdir(parents=True, exist_ok=True)
+    duration = scenario.duration if args.duration is None else args.duration
+    periods = int(round(duration * scenario.rate_hz))
+    target = args.out if args.out is not None else Path("runs")
+    outputs.check_free_space(
+        target, outputs.log_bytes(setups, periods, args.realtime == "on"),
+        "--out" if args.out is not None else "the output folder",
+        f"{periods} periods of " + ("log.bin and log.csv" if args.realtime == "on" else
+                                    "log.csv"))
+    out = run.claim(f"{args.robot}_{args.space}_{datetime.now().strftime('%Y%m%d-%H%M%S')}")
     mode = "real time" if args.realtime == "on" else "as fast as possible"
     print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, {scenario.variant} "
           f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz, "
           f"{args.kernels} kernels -> {out}", flush=True)
     if args.realtime == "off":
+        run.simulating = True
         start = time.perf_counter()
         result = simulate(scenario, args.duration, setups, kernels=args.kernels)
         wall = time.perf_counter() - start
+        run.shield.defer()  # from here the report is written whatever the user presses
+        run.simulating, run.kept = False, True
         # The as-fast run does not stop, but it answers to the same rules as a real one.
         supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
                                       kernels=args.kernels, substeps=scenario.plant_substeps)
@@ -188,10 +253,11 @@ def _run(args: argparse.Namespace) -> int:
         if result.diverged:
             return EXIT_DIVERGED
         return STOP_CODES[rule["rule"]] if rule["rule"] != "none" else 0
-    return _run_realtime(args, scenario, setups, out)
+    return _run_realtime(args, scenario, setups, run)
 
 
-def _run_realtime(args, scenario, setups, out: Path) -> int:
+def _run_realtime(args, scenario, setups, run: _Run) -> int:
+    out = run.folder.path
     keep_out = scenario.system.keep_out_radius
     duration = scenario.duration if args.duration is None else args.duration
     steps = int(round(duration * scenario.rate_hz))
@@ -206,14 +272,23 @@ def _run_realtime(args, scenario, setups, out: Path) -> int:
                                   substeps=substeps, watchdog_misses=args.watchdog_misses)
     loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
                         kernels=args.kernels, substeps=substeps)
-    write_raw_columns(out / "log.columns.json", loop)
+    write_raw_columns(run.folder.track(out / "log.columns.json"), loop)
     status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
+    # From here a signal is the loop's safe stop (the loop installs the same handler for its
+    # periods): one arriving while the motors start stops the loop before its first command.
+    run.shield.forward(loop._on_signal)
     if args.backend == "dynamixel":
         # The motors' start-up (ping, configure, first read, torque on) before the loop: a
         # refusal ends here with nothing to undo (the loop's own enable() is then a no-op).
         backend.enable()
     start = time.perf_counter()
-    stop = loop.run(out / "log.bin", status=status)
+    try:
+        stop = loop.run(out / "log.bin", status=status)
+    finally:
+        # The loop hands SIGINT and SIGTERM back to the shield as it returns: from now on they
+        # are acknowledged, not obeyed, until the report is written.
+        run.shield.defer()
+        run.kept = run.kept or (out / "log.bin").exists()
     wall = time.perf_counter() - start
     result = loop.result(scenario)
     result.stop = {"rule": stop.rule, "time_s": stop.time, "detail": stop.detail,

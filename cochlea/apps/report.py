@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..sim.result import SimulationResult, UnitLog
+from .outputs import ReportError, atomic_path, write_text_atomic
 
 #: Convergence: the RMS tracking error over the last 20 % of the run must be at most this
 #: fraction of the initial absolute error ...
@@ -189,8 +190,11 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
     def save(fig, name):
         fig.tight_layout()
         path = out / name
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        try:
+            with atomic_path(path) as tmp:
+                fig.savefig(tmp, dpi=110)
+        finally:
+            plt.close(fig)
         paths.append(path)
 
     for u in result.units:
@@ -269,9 +273,33 @@ def _desired_poses(u: UnitLog) -> np.ndarray:
 
 def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None,
               timing: dict | None = None) -> dict:
+    """log.csv, the figures, then summary.json, each to a temporary name and renamed: a reader
+    never sees half a file, and a summary.json without ``report_lost`` means the report is
+    whole. A part that fails to write (a full disk) does not stop the others; then
+    :class:`ReportError` names what was lost."""
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(result, out / "log.csv")
+    lost, causes = [], []
+    try:
+        with atomic_path(out / "log.csv") as tmp:
+            write_csv(result, tmp)
+    except OSError as exc:
+        lost.append("log.csv")
+        causes.append(exc)
     data = summary(result, wall_time_s, timing)
-    (out / "summary.json").write_text(json.dumps(data, indent=2) + "\n")
-    data["figures"] = [str(p) for p in figures(result, out)] if len(result.time) > 1 else []
+    try:
+        data["figures"] = [str(p) for p in figures(result, out)] if len(result.time) > 1 else []
+    except OSError as exc:
+        lost.append("figures")
+        causes.append(exc)
+        data["figures"] = []
+    saved = {k: v for k, v in data.items() if k != "figures"}
+    if lost:
+        saved["report_lost"] = list(lost)
+    try:
+        write_text_atomic(out / "summary.json", json.dumps(saved, indent=2) + "\n")
+    except OSError as exc:
+        lost.append("summary.json")
+        causes.append(exc)
+    if lost:
+        raise ReportError(out, lost, causes[0])
     return data

@@ -1,0 +1,422 @@
+"""Where the command-line programs write: output folders checked before anything moves, claimed
+by one run at a time, removed again when a start fails, and files that a reader never sees
+half written.
+
+The rules (docs/runtime.md, "Output folders"):
+
+- An ``--out`` that cannot become a folder of ours (a file, a device such as /dev/null, a path
+  under a file, a place we may not write, a folder that already holds something) is refused in
+  one line naming the option, before anything is created or moves.
+- A default folder is created with ``mkdir`` (never ``exist_ok``): two runs started in the same
+  second get two folders (``NAME``, ``NAME-2``, ...).
+- A claimed folder holds a lock file locked with ``flock`` for the life of the run; a second run
+  given the same ``--out`` is refused. The kernel drops the lock when a process dies, so a
+  killed run never blocks a retry.
+- A start that fails before the run removes what it created, so the identical retry works; once
+  the run has produced a log nothing is ever removed.
+- Files are written to a temporary name in the same folder and renamed (``os.replace``), so a
+  reader (or a second interrupt, or a full disk) never leaves a half file under the real name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import shutil
+import signal
+import stat
+from pathlib import Path
+
+from ..errors import CochleaError
+
+#: The lock file of a claimed folder (removed when the run ends).
+LOCK_NAME = ".cochlea.lock"
+#: Default folders tried for one name before giving up (``NAME``, ``NAME-2``, ...).
+MAX_SUFFIX = 1000
+#: Bytes of one value in log.csv: ``%.10g`` (up to 10 digits, a sign, a point, an exponent)
+#: and the comma.
+CSV_VALUE_BYTES = 17
+#: Room left for summary.json and the figures beyond the logs' own estimate.
+REPORT_MARGIN_BYTES = 16 * 2**20
+
+
+class ReportError(Exception):
+    """Part of a run's report could not be written (full disk, I/O error): names what was lost
+    and what is kept. Not a user error: the run itself happened."""
+
+    def __init__(self, folder: Path, lost: list[str], cause: OSError):
+        self.folder, self.lost, self.cause = folder, lost, cause
+        reason = cause.strerror or str(cause)
+        kept = sorted(p.name for p in folder.iterdir()
+                      if p.is_file() and not p.name.startswith(".")) if folder.is_dir() else []
+        super().__init__(
+            f"the report could not be written in full ({reason}): lost "
+            + ", ".join(lost) + "; kept in " + str(folder) + ": "
+            + (", ".join(kept) if kept else "nothing")
+            + (" (log.bin is the whole raw log; log.columns.json names its columns)"
+               if "log.bin" in kept else "")
+            + ". Free some space before the next run")
+
+
+# --------------------------------------------------------------------------------------------
+# Checks that create nothing
+# --------------------------------------------------------------------------------------------
+
+
+def _kind(mode: int) -> str:
+    if stat.S_ISREG(mode):
+        return "a file"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISFIFO(mode):
+        return "a pipe"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a folder"
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """The nearest part of ``path`` (itself included) that exists."""
+    path = Path(os.path.abspath(path))
+    while not os.path.lexists(path):
+        path = path.parent
+    return path
+
+
+def check_folder(path: Path, option: str = "--out", *, empty: bool = True,
+                 allow: tuple[str, ...] = ()) -> None:
+    """Refuse ``path`` as an output folder unless it is, or can become, a folder we may write
+    (and, with ``empty``, one that holds nothing but the names in ``allow``). Creates nothing."""
+    where = f"{option} {path}"
+    if os.path.lexists(path):
+        try:
+            mode = os.stat(path).st_mode
+        except OSError as exc:  # a dangling symbolic link, a loop of them, no permission
+            raise CochleaError(f"{where}: cannot use it ({exc.strerror}): name a new or empty "
+                               "folder") from None
+        if not stat.S_ISDIR(mode):
+            raise CochleaError(f"{where} is {_kind(mode)}, not a folder: name a new or empty "
+                               "folder")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise CochleaError(f"{where}: the folder is not writable: name a folder you may "
+                               "write")
+        if empty:
+            try:
+                others = [p.name for p in Path(path).iterdir() if p.name not in allow]
+            except OSError as exc:
+                raise CochleaError(f"{where}: cannot list the folder ({exc.strerror})") from None
+            if others:
+                raise CochleaError(f"{where} exists and is not empty: choose a new folder "
+                                   "(runs never overwrite a log)")
+        return
+    base = _existing_ancestor(path)
+    try:
+        mode = os.stat(base).st_mode
+    except OSError as exc:
+        raise CochleaError(f"{where}: cannot create it under {base} ({exc.strerror})") from None
+    if not stat.S_ISDIR(mode):
+        raise CochleaError(f"{where}: cannot create it, {base} is {_kind(mode)}, not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise CochleaError(f"{where}: cannot create it, {base} is not writable: name a folder "
+                           "you may write")
+
+
+def free_bytes(path: Path) -> int:
+    """Bytes an unprivileged user may still write on the disk that holds (or would hold)
+    ``path``."""
+    return shutil.disk_usage(_existing_ancestor(path)).free
+
+
+def log_bytes(setups, periods: int, realtime: bool) -> int:
+    """An estimate of the bytes of a run's logs: log.bin (real time, float64 rows) and
+    log.csv (as :func:`cochlea.apps.report.columns` lays it out), plus room for the rest."""
+    raw = 1 + 4  # time, then the four timing columns
+    csv = 1 + (4 if realtime else 0)
+    for u in setups:
+        nq, nd, n_p = u.controller_model.nq, u.controller.n_desired, u.controller.n_params
+        raw += 3 * nq + nd + nq + n_p
+        csv += 2 * nq + 3 * nd + 2 * nq + n_p + len(u.task_names)
+    total = periods * csv * CSV_VALUE_BYTES
+    if realtime:
+        total += periods * raw * 8
+    return total + REPORT_MARGIN_BYTES
+
+
+def check_free_space(path: Path, need: int, option: str, what: str) -> None:
+    """Refuse a run whose logs will not fit on the disk of ``path``, before anything moves."""
+    free = free_bytes(path)
+    if need > free:
+        raise CochleaError(f"{option} {path}: the run's log needs about {_size(need)} ({what}) "
+                           f"but only {_size(free)} are free on that disk: free some space, "
+                           f"choose another {option} or a shorter --duration")
+
+
+def _size(n: float) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    raise AssertionError  # pragma: no cover
+
+
+# --------------------------------------------------------------------------------------------
+# A claimed folder
+# --------------------------------------------------------------------------------------------
+
+
+class OutputFolder:
+    """A folder this process writes into, locked for it until :meth:`release`.
+
+    ``track`` the files written before the run starts; :meth:`discard` removes them and the
+    folders created for the run, but only while the folder holds nothing else (a log is never
+    removed)."""
+
+    def __init__(self, path: Path, created: list[Path], lock_fd: int, option: str):
+        self.path, self.created, self.option = path, created, option
+        self._lock_fd: int | None = lock_fd
+        self._tracked: set[str] = set()
+
+    @property
+    def lock_path(self) -> Path:
+        return self.path / LOCK_NAME
+
+    def track(self, path: Path) -> Path:
+        self._tracked.add(Path(path).name)
+        return path
+
+    def discard(self) -> None:
+        """Undo a failed start: remove what it created, if nothing else was written since."""
+        with contextlib.suppress(OSError):
+            names = {p.name for p in self.path.iterdir()} - {LOCK_NAME}
+            if not names <= self._tracked:
+                return  # something else (a log) is there: keep everything
+            for name in names:
+                (self.path / name).unlink()
+        self.release()
+        for folder in reversed(self.created):  # innermost first
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty: never remove what others put there
+
+    def release(self) -> None:
+        """Remove the lock file, then drop the lock (in that order: a run waiting for it finds
+        the folder's contents, never a stale lock)."""
+        if self._lock_fd is None:
+            return
+        with contextlib.suppress(OSError):
+            self.lock_path.unlink()
+        os.close(self._lock_fd)
+        self._lock_fd = None
+
+
+def _mkdir_missing(path: Path, option: str) -> list[Path]:
+    """Create ``path``'s missing parents (not ``path``); return those created, outermost
+    first."""
+    missing = []
+    parent = Path(path).parent
+    while not os.path.lexists(parent):
+        missing.append(parent)
+        parent = parent.parent
+    created = []
+    for folder in reversed(missing):
+        try:
+            folder.mkdir()
+        except FileExistsError:
+            continue  # another run made it in the meantime: fine, it is not ours to remove
+        except OSError as exc:
+            _rmdirs(created)
+            raise CochleaError(f"{option} {path}: cannot create {folder} ({exc.strerror})"
+                               ) from None
+        created.append(folder)
+    return created
+
+
+def _rmdirs(created: list[Path]) -> None:
+    for folder in reversed(created):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _lock(path: Path, option: str, created: list[Path]) -> int:
+    """Lock ``path`` for this process, or refuse: another run holds it, or it is not empty."""
+    lock_path = path / LOCK_NAME
+    try:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError as exc:
+        _rmdirs(created)
+        raise CochleaError(f"{option} {path}: cannot write in the folder ({exc.strerror})"
+                           ) from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise CochleaError(f"{option} {path}: cannot lock the folder ({exc.strerror})"
+                               ) from None
+        try:
+            owner = lock_path.read_text().strip() or "?"
+        except OSError:
+            owner = "?"
+        raise CochleaError(f"{option} {path} is in use by another run (pid {owner}): wait "
+                           "for it to end or choose another folder") from None
+    try:
+        same = os.fstat(fd).st_ino == os.stat(lock_path).st_ino
+        others = [p.name for p in path.iterdir() if p.name != LOCK_NAME]
+    except OSError:
+        same, others = False, []
+    if not same or others:
+        # The lock was another run's, released as it ended: the folder holds its results now.
+        os.close(fd)
+        raise CochleaError(f"{option} {path} exists and is not empty: choose a new folder "
+                           "(runs never overwrite a log)")
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
+def claim(path: Path, option: str = "--out") -> OutputFolder:
+    """Create (or take, if it exists and is empty) the folder ``path`` and lock it."""
+    check_folder(path, option, allow=(LOCK_NAME,))
+    created = _mkdir_missing(path, option)
+    try:
+        path.mkdir()
+        created.append(path)
+    except FileExistsError:
+        pass  # an empty folder the user made (or a racing run: the lock decides)
+    except OSError as exc:
+        _rmdirs(created)
+        raise CochleaError(f"{option} {path}: cannot create the folder ({exc.strerror})"
+                           ) from None
+    return OutputFolder(path, created, _lock(path, option, created), option)
+
+
+def claim_new(parent: Path, name: str, option: str = "--out") -> OutputFolder:
+    """A new folder ``parent/name`` (or ``name-2``, ``name-3``, ...) that no other run has,
+    even one started in the same second: ``mkdir`` either creates it or fails."""
+    what = f"the default output folder {parent / name}"
+    check_folder(parent, what, empty=False)
+    created = _mkdir_missing(parent / name, what)
+    for i in range(1, MAX_SUFFIX + 1):
+        path = parent / (name if i == 1 else f"{name}-{i}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            _rmdirs(created)
+            raise CochleaError(f"cannot create {what} ({exc.strerror}): run from a folder you "
+                               f"may write, or give {option} DIR") from None
+        created.append(path)
+        return OutputFolder(path, created, _lock(path, option, created), option)
+    _rmdirs(created)
+    raise CochleaError(f"{parent} already holds {MAX_SUFFIX} folders named {name}*: give "
+                       f"{option} DIR")
+
+
+# --------------------------------------------------------------------------------------------
+# Atomic files
+# --------------------------------------------------------------------------------------------
+
+
+def temporary_name(path: Path) -> Path:
+    """A hidden name next to ``path`` (same folder, so same disk: the rename is atomic), with
+    ``path``'s suffix kept (matplotlib picks the format by it)."""
+    path = Path(path)
+    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path):
+    """Yield a temporary path to write; on success it is synced and renamed to ``path``, on
+    failure removed. A reader sees the old file or the whole new one, never a part."""
+    tmp = temporary_name(path)
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+# --------------------------------------------------------------------------------------------
+# Signals while a run is prepared, runs and is reported
+# --------------------------------------------------------------------------------------------
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM while a run was prepared: nothing moved; ``signum`` says which."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+class SignalShield:
+    """SIGINT and SIGTERM for the life of a run, in three phases:
+
+    - ``prepare()``: a signal raises :class:`Interrupted` (the start is undone, nothing moved);
+    - ``forward(handler)``: a signal goes to ``handler`` (the loop's own safe stop);
+    - ``defer()``: the log and report are being written; a signal is acknowledged on stderr and
+      otherwise ignored, however many arrive, so the report is completed;
+    - ``ignore()``: all is written and the program exits with the run's own code.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, program: str):
+        self.program = program
+        self.received: list[int] = []
+        self._mode: object = "prepare"
+        self._previous: dict | None = None
+
+    def install(self) -> None:
+        self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+
+    def restore(self) -> None:
+        for s, handler in (self._previous or {}).items():
+            signal.signal(s, handler)
+        self._previous = None
+
+    def prepare(self) -> None:
+        self._mode = "prepare"
+
+    def forward(self, handler) -> None:
+        self._mode = handler
+
+    def defer(self) -> None:
+        self._mode = "defer"
+
+    def ignore(self) -> None:
+        """Everything is written and the program exits: a signal changes nothing now. SIG_IGN,
+        not a Python handler: the interpreter resets its own handlers to the default (death
+        by the signal) while it shuts down."""
+        self._mode = "ignore"
+        for s in self.SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+
+    def _handle(self, signum, frame) -> None:
+        mode = self._mode
+        if mode == "prepare":
+            raise Interrupted(signum)
+        if mode == "ignore":
+            return
+        if mode == "defer":
+            self.received.append(signum)
+            # os.write, not print: the main thread may be inside a print to stderr right now.
+            with contextlib.suppress(OSError):
+                os.write(2, f"{self.program}: finishing the log, please wait (interrupts are "
+                            "ignored until the report is written)\n".encode())
+            return
+        mode(signum, frame)
