@@ -11,12 +11,36 @@ from ..dynamixel.embedded_drives import write_drive_tables
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.generate import CONFIG, check, generate, load_config
 from ..sim.embedded import write_embedded
+from .outputs import check_folder
 
 
 def write_embedded_folder(config, folder) -> list[Path]:
     """generated_c/embedded/: every embedded scenario's controller, then the Dynamixel drive
     tables of the robots (embedded/core/drives.h reads them)."""
     return sorted(write_embedded(config, folder) + write_drive_tables(folder))
+
+
+def _load_config(path: Path):
+    if path.is_dir():
+        raise CochleaError(f"--config {path} is a folder: name the generator's TOML "
+                           "configuration file")
+    try:
+        return load_config(path)
+    except UnicodeDecodeError as exc:
+        raise CochleaError(f"--config {path}: not UTF-8 text (byte {exc.start}): save the "
+                           "configuration as UTF-8") from None
+
+
+def _check_out(out: Path, option: str) -> None:
+    """The output folder, checked before anything is generated. The generator replaces every
+    file at the folder's top level, so a folder that holds other files (it has no manifest.c,
+    the mark of generated_c/) is refused rather than emptied."""
+    check_folder(out, option, empty=False)
+    if out.is_dir() and not (out / "manifest.c").is_file() and any(
+            p.is_file() for p in out.iterdir()):
+        raise CochleaError(f"{option} {out} holds files that cochlea-codegen did not generate "
+                           "(no manifest.c), and it replaces every file there: choose a new "
+                           "or empty folder, or a generated_c/ folder")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
                              "differs (stale)")
     args = parser.parse_args(argv)
     try:
-        config = load_config(args.config)
+        config = _load_config(args.config)
         if args.check:
             differ = check(config, write_embedded_folder)
             if differ:
@@ -43,8 +67,15 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             print(f"cochlea-codegen: {config.output} is up to date")
             return 0
+        out = args.out if args.out is not None else config.output
+        _check_out(out, "--out" if args.out is not None else f"{config.path}: output")
         start = time.perf_counter()
-        paths = generate(config, args.out, write_embedded_folder)
+        try:
+            paths = generate(config, out, write_embedded_folder)
+        except OSError as exc:  # a full disk, or the folder changed under us
+            raise CochleaError(f"cannot write {exc.filename or out} ({exc.strerror}); "
+                               f"{out} may be incomplete: free some space and run "
+                               "cochlea-codegen again") from None
     except CochleaError as exc:
         print(f"cochlea-codegen: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
