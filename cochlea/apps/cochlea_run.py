@@ -224,12 +224,13 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
         f"{periods} periods of " + ("log.bin and log.csv" if args.realtime == "on" else
                                     "log.csv"))
     out = run.claim(f"{args.robot}_{args.space}_{datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    # An as-fast run is the simulation from its first line on (an interrupt says so).
+    run.simulating = args.realtime == "off"
     mode = "real time" if args.realtime == "on" else "as fast as possible"
     print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, {scenario.variant} "
           f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz, "
           f"{args.kernels} kernels -> {out}", flush=True)
     if args.realtime == "off":
-        run.simulating = True
         start = time.perf_counter()
         result = simulate(scenario, args.duration, setups, kernels=args.kernels)
         wall = time.perf_counter() - start

@@ -85,6 +85,21 @@ def _existing_ancestor(path: Path) -> Path:
     return path
 
 
+def _lock_owner(folder: Path) -> str | None:
+    """The pid written in ``folder``'s lock file while another process holds it, else None."""
+    try:
+        fd = os.open(folder / LOCK_NAME, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return (os.read(fd, 64).decode(errors="replace").strip() or "?")
+    finally:
+        os.close(fd)  # also drops the shared lock taken to test it
+    return None
+
+
 def check_folder(path: Path, option: str = "--out", *, empty: bool = True,
                  allow: tuple[str, ...] = ()) -> None:
     """Refuse ``path`` as an output folder unless it is, or can become, a folder we may write
@@ -102,9 +117,15 @@ def check_folder(path: Path, option: str = "--out", *, empty: bool = True,
         if not os.access(path, os.W_OK | os.X_OK):
             raise CochleaError(f"{where}: the folder is not writable: name a folder you may "
                                "write")
+        owner = _lock_owner(Path(path))
+        if owner is not None:
+            raise CochleaError(f"{where} is in use by another run (pid {owner}): wait for it "
+                               "to end or choose another folder")
         if empty:
             try:
-                others = [p.name for p in Path(path).iterdir() if p.name not in allow]
+                # A lock file nobody holds is a run killed before it wrote anything.
+                others = [p.name for p in Path(path).iterdir()
+                          if p.name not in allow and p.name != LOCK_NAME]
             except OSError as exc:
                 raise CochleaError(f"{where}: cannot list the folder ({exc.strerror})") from None
             if others:
@@ -254,10 +275,7 @@ def _lock(path: Path, option: str, created: list[Path]) -> int:
         if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
             raise CochleaError(f"{option} {path}: cannot lock the folder ({exc.strerror})"
                                ) from None
-        try:
-            owner = lock_path.read_text().strip() or "?"
-        except OSError:
-            owner = "?"
+        owner = _lock_owner(path) or "?"
         raise CochleaError(f"{option} {path} is in use by another run (pid {owner}): wait "
                            "for it to end or choose another folder") from None
     try:
