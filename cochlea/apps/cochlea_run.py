@@ -19,6 +19,8 @@ Exit codes (also in the README):
  14   safe stop: a parameter estimate's norm exceeded its bound
  15   safe stop: watchdog, too many consecutive deadline misses or backend failures
  16   safe stop: terminated by SIGTERM
+ 17   safe stop: the log could not be written (full disk, I/O error, a writer too slow);
+      log.bin holds the periods written before
 ====  ======================================================================================
 """
 
