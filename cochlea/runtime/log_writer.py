@@ -11,11 +11,16 @@ to see; the writer never raises into the loop.
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CochleaError
+
+#: An as-fast run waits for a writer that is behind; one that writes nothing for this long
+#: (a hung disk) is a log failure there too.
+WRITER_STALL_S = 10.0
 
 
 class LogWriter(threading.Thread):
@@ -28,6 +33,7 @@ class LogWriter(threading.Thread):
         self.written = 0  # rows handed to the file (written by this thread only)
         self.error: OSError | None = None
         self.finished = threading.Event()
+        self._nudge = threading.Event()  # wakes the writer before its interval is up
         # Opened by the caller's thread, before anything moves: a log that cannot even be
         # created is the user's to fix (the folder), not a stop in the middle of a run.
         try:
@@ -39,11 +45,30 @@ class LogWriter(threading.Thread):
     def run(self) -> None:
         try:
             with self._file as f:
-                while not self.finished.wait(self.interval):
+                while not self.finished.is_set():
+                    self._nudge.wait(self.interval)
+                    self._nudge.clear()
                     self._flush(f)
                 self._flush(f)
         except OSError as exc:  # the loop sees it at its next period and stops safely
             self.error = exc
+
+    def wait_for(self, rows: int, stall_s: float | None = None) -> bool:
+        """Wake the writer and wait until it has written ``rows`` rows (an as-fast run, which
+        may outpace a disk: nothing is late there). False if it failed, or made no progress
+        for ``stall_s`` seconds (a hung disk; default :data:`WRITER_STALL_S`)."""
+        stall_s = WRITER_STALL_S if stall_s is None else stall_s
+        last, since = self.written, time.monotonic()
+        while self.written < rows:
+            if self.error is not None or not self.is_alive():
+                return False
+            if self.written != last:
+                last, since = self.written, time.monotonic()
+            elif time.monotonic() - since > stall_s:
+                return False
+            self._nudge.set()
+            time.sleep(1e-4)
+        return True
 
     def _flush(self, f) -> None:
         end = self.done_rows
@@ -61,6 +86,7 @@ class LogWriter(threading.Thread):
 
     def close(self) -> None:
         self.finished.set()
+        self._nudge.set()
         self.join()
 
     def discard(self) -> None:

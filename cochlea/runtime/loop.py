@@ -33,6 +33,7 @@ import numpy as np
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult, StreamedResult, UnitLog
 from ..sim.setup import UnitSetup
+from . import log_writer as _log_writer
 from .backend import Backend
 from .log_writer import LogWriter
 from .supervisor import Stop, Supervisor
@@ -48,7 +49,7 @@ RING_SECONDS = 4.0
 #: about 100 us plus 1-2 us a sample, so 100 samples fit in a 1 kHz period's slack.
 DESIRED_CHUNK = 100
 #: Rows read back from ``log.bin`` at a time (a few MB), for the timing and the report.
-READ_CHUNK = 1 << 15
+READ_CHUNK = 1 << 13
 
 
 # --------------------------------------------------------------------------------------------
@@ -86,8 +87,9 @@ class RowSource:
         return np.fromfile(self.path, dtype=np.float64, count=(stop - start) * self.width,
                            offset=start * self.width * 8).reshape(-1, self.width)
 
-    def chunks(self, size: int = READ_CHUNK):
+    def chunks(self, size: int | None = None):
         """``(first row, rows)`` pairs covering the run in order."""
+        size = size or READ_CHUNK
         for start in range(0, self.rows, size):
             yield start, self.read(start, start + size)
 
@@ -319,7 +321,7 @@ class RealTimeLoop:
         widths += [4]
         self.offsets = np.concatenate([[0], np.cumsum(widths)])
         self.width = int(self.offsets[-1])
-        self.buffer = self._allocate(None)
+        self.buffer = np.full((0, self.width), np.nan)  # sized by run(): whole run or ring
         self.x = np.zeros(2 * self.n)
         self.tau = np.zeros(self.n)
         self.zero = np.zeros(self.n)
@@ -422,9 +424,11 @@ class RealTimeLoop:
         if writer.error is not None:
             reason = writer.error.strerror or str(writer.error)
             what = f"the log writer failed: {reason} ({self.log_path})"
-        else:
+        elif self.realtime:
             what = (f"the log writer fell {len(self.buffer)} periods "
                     f"({len(self.buffer) * self.h:g} s) behind the loop")
+        else:
+            what = f"the log writer wrote nothing for {_log_writer.WRITER_STALL_S:g} s"
         return (f"{what}; log.bin holds the first {writer.written} of {self.rows} periods: "
                 "free the disk or choose another --out")
 
@@ -475,7 +479,9 @@ class RealTimeLoop:
             # The log must keep up: a failed writer, or one that has not yet written the row
             # this period would overwrite, stops the run before anything else is commanded.
             if writer is not None and (writer.error is not None or k - writer.written >= ring):
-                return Stop("log-failure", t, self._log_failure(writer))
+                # As fast as possible, nothing is late: wait for the disk rather than stop.
+                if self.realtime or not writer.wait_for(k - ring + 1):
+                    return Stop("log-failure", t, self._log_failure(writer))
             ok = backend.read(x)
             errors = 0 if ok else errors + 1
             if errors > sup.limits.watchdog_errors:

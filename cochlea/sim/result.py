@@ -18,7 +18,7 @@ from .scenario import Scenario
 from .setup import UnitSetup
 
 #: Periods per chunk when a result is read in pieces (a few MB of rows).
-CHUNK_ROWS = 1 << 15
+CHUNK_ROWS = 1 << 13
 _ROW_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
 
 
@@ -85,8 +85,9 @@ class SimulationResult:
         timing = None if self.timing is None else {k: v[part] for k, v in self.timing.items()}
         return dataclasses.replace(self, time=self.time[part], units=units, timing=timing)
 
-    def chunks(self, size: int = CHUNK_ROWS):
-        """The run in order, ``size`` periods at a time."""
+    def chunks(self, size: int | None = None):
+        """The run in order, ``size`` periods at a time (default :data:`CHUNK_ROWS`)."""
+        size = size or CHUNK_ROWS
         for start in range(0, self.periods, size):
             yield self.rows(start, min(start + size, self.periods))
 
