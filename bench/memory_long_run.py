@@ -30,8 +30,10 @@ def peak_rss_mb() -> float:
     raise RuntimeError("no VmHWM in /proc/self/status")
 
 
-def case(scenario: str, duration: float, report: bool, out: Path) -> dict:
-    """One run in this process: the loop, then (``report``) log.csv, summary and figures."""
+def case(scenario: str, duration: float, report: bool, out: Path,
+         figures_only: bool = False) -> dict:
+    """One run in this process: the loop, then the summary, and (``report``) log.csv and the
+    figures, or (``figures_only``) the figures."""
     from cochlea.apps import report as reporting
     from cochlea.runtime import RealTimeLoop, SimBackend, build_supervisor
     from cochlea.sim import load_scenario, unit_setups
@@ -58,6 +60,9 @@ def case(scenario: str, duration: float, report: bool, out: Path) -> dict:
         data = reporting.write_all(result, out, None, timing)
         figures.update(report_s=time.perf_counter() - start, csv_MB=(out / "log.csv").stat(
             ).st_size / 2 ** 20, figures=len(data["figures"]))
+    elif figures_only:  # the report's reading without the CSV's minutes of formatting
+        reporting.summary(result, None, timing)
+        figures.update(figures=len(reporting.figures(result, out)))
     else:
         reporting.summary(result, None, timing)
     figures.update(after_report_MB=peak_rss_mb(), periods=loop.rows, rule=stop.rule,
@@ -83,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.case:
         scenario, duration, report, out = args.case
-        print(json.dumps(case(scenario, float(duration), report == "1", Path(out))))
+        print(json.dumps(case(scenario, float(duration), report == "1", Path(out),
+                              figures_only=report == "figures")))
         return 0
     rows = [measure(args.scenario, d, not args.no_report) for d in args.durations]
     for r in rows:

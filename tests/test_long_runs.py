@@ -205,18 +205,20 @@ def test_chunked_percentiles_equal_numpys(monkeypatch, seed):
 
 
 def _peak_mb(seconds: float, tmp_path: Path) -> float:
+    """Peak RSS (MB) of the loop, the summary and the figures of a run, in a fresh process."""
     done = subprocess.run([sys.executable, str(BENCH), "--case", "serial_task", str(seconds),
-                           "0", str(tmp_path / f"run{seconds:g}")],
+                           "figures", str(tmp_path / f"run{seconds:g}")],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     case = json.loads(done.stdout.strip().splitlines()[-1])
     assert case["rule"] == "completed" and case["periods"] == round(seconds * 1000)
+    assert case["figures"] == 9
     return case["after_report_MB"]
 
 
 def test_memory_is_flat_in_the_runs_length(tmp_path):
-    """Ten times the periods, the same peak: the loop, its log and the summary read back from
-    it take memory bounded by the ring and the chunks (the whole-run buffer of 200 s of a serial
-    task run would add about 90 MB)."""
-    short, long = _peak_mb(20, tmp_path), _peak_mb(200, tmp_path)
+    """Ten times the periods, the same peak: the loop, its log, the summary and the figures
+    read back from it take memory bounded by the ring and the chunks (the whole-run buffer of
+    100 s of a serial task run alone would add about 45 MB)."""
+    short, long = _peak_mb(10, tmp_path), _peak_mb(100, tmp_path)
     assert long - short < 8.0, (short, long)

@@ -24,7 +24,7 @@ CONVERGENCE_RATIO = 0.05
 CONVERGENCE_FLOOR = {"rad": 1e-5, "m": 1e-6}
 TAIL_FRACTION = 0.2
 #: Periods the figures plot at most (a long run is decimated evenly; a short one is whole).
-FIGURE_POINTS = 20_000
+FIGURE_POINTS = 5_000
 
 _RATE_UNIT = {"rad": "rad_s", "m": "m_s"}
 _EFFORT_UNIT = {"rad": "Nm", "m": "N"}

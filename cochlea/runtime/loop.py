@@ -78,9 +78,10 @@ class RowSource:
             return self.buffer[start:stop:step]
         if step == 1:
             return self._file_rows(start, stop)
-        # Decimated: read a chunk at a time, keep every step-th row.
+        # Decimated: read a chunk at a time, keep a copy of every step-th row (a view would
+        # keep the whole chunk alive, and with it the whole run).
         size = max(READ_CHUNK // step, 1) * step
-        return np.concatenate([self._file_rows(a, min(a + size, stop))[::step]
+        return np.concatenate([self._file_rows(a, min(a + size, stop))[::step].copy()
                                for a in range(start, stop, size)])
 
     def _file_rows(self, start: int, stop: int) -> np.ndarray:
