@@ -19,6 +19,8 @@ Exit codes (also in the README):
  14   safe stop: a parameter estimate's norm exceeded its bound
  15   safe stop: watchdog, too many consecutive deadline misses or backend failures
  16   safe stop: terminated by SIGTERM
+ 17   safe stop: the log could not be written (full disk, I/O error, a writer too slow);
+      log.bin holds the periods written before
 ====  ======================================================================================
 """
 
@@ -317,7 +319,9 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     line = (f"cochlea-run: stopped by rule {stop.rule} at t = {stop.time:.3f} s: {stop.detail}"
             if stop.rule != "user-stop" else
             f"cochlea-run: stopped by the user at t = {stop.time:.3f} s")
-    print(line + "; zero effort commanded, drives disabled, log complete", file=sys.stderr)
+    # A failed log is the one stop whose log is not whole: the detail says how much was kept.
+    kept = "log kept up to the failure" if stop.rule == "log-failure" else "log complete"
+    print(f"{line}; zero effort commanded, drives disabled, {kept}", file=sys.stderr)
     return STOP_CODES[stop.rule]
 
 

@@ -7,6 +7,7 @@ degrees (an edge of the program) with the unit on every axis.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -23,6 +24,8 @@ CONVERGENCE_RATIO = 0.05
 #: :func:`measurement_resolution`): no controller can resolve less.
 CONVERGENCE_FLOOR = {"rad": 1e-5, "m": 1e-6}
 TAIL_FRACTION = 0.2
+#: Periods the figures plot at most (a long run is decimated evenly; a short one is whole).
+FIGURE_POINTS = 5_000
 
 _RATE_UNIT = {"rad": "rad_s", "m": "m_s"}
 _EFFORT_UNIT = {"rad": "Nm", "m": "N"}
@@ -64,8 +67,12 @@ def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
 
 
 def write_csv(result: SimulationResult, path: Path) -> None:
-    names, data = columns(result)
-    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
+    """The log a chunk of periods at a time: memory bounded by the chunk, not the run."""
+    names, _ = columns(result.rows(0, 0))
+    with open(path, "w") as f:
+        f.write(",".join(names) + "\n")
+        for chunk in result.chunks():
+            np.savetxt(f, columns(chunk)[1], delimiter=",", fmt="%.10g")
 
 
 def measurement_resolution(u: UnitLog) -> np.ndarray | None:
@@ -85,18 +92,57 @@ def measurement_resolution(u: UnitLog) -> np.ndarray | None:
     return np.sum(moved, axis=0)
 
 
+class _UnitStats:
+    """What a unit's summary needs from every period, gathered a chunk at a time."""
+
+    def __init__(self, periods: int):
+        self.tail_start = int(periods * (1 - TAIL_FRACTION))
+        self.initial = None  # |e| of the first period
+        self.tail_sq = self.tail_n = 0
+        self.tau_max = None
+        self.max_norm = np.zeros(())
+        self.finite = True
+        self.last = None  # the last period, as a one-row UnitLog
+
+    def add(self, u: UnitLog, start: int) -> None:
+        if not len(u.q):
+            return
+        e = u.tracking_error
+        if self.initial is None:
+            self.initial = np.abs(e[0])
+        first = max(self.tail_start - start, 0)
+        if first < len(e):
+            # Column by column, as np.mean sums a column: a one-chunk run's numbers are exact.
+            self.tail_sq = self.tail_sq + np.array([np.sum(e[first:, i] ** 2)
+                                                    for i in range(e.shape[1])])
+            self.tail_n += len(e) - first
+        peaks = np.array([np.max(np.abs(u.tau[:, i]), initial=0.0)
+                          for i in range(u.tau.shape[1])])
+        self.tau_max = peaks if self.tau_max is None else np.maximum(self.tau_max, peaks)
+        self.max_norm = np.maximum(self.max_norm, np.max(np.linalg.norm(u.p_hat, axis=1)))
+        self.finite = self.finite and bool(np.isfinite(u.p_hat).all())
+        self.last = dataclasses.replace(u, **{name: getattr(u, name)[-1:] for name in (
+            "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")})
+
+
 def unit_summary(u: UnitLog) -> dict:
-    e = u.tracking_error
-    resolution = measurement_resolution(u)
-    tail = e[int(len(e) * (1 - TAIL_FRACTION)):] if len(e) else e
+    """The summary of one unit's log held in memory."""
+    stats = _UnitStats(len(u.q))
+    stats.add(u, 0)
+    return _unit_summary(u, stats)
+
+
+def _unit_summary(u: UnitLog, stats: _UnitStats) -> dict:
+    """``u`` describes the unit (its rows are not read); ``stats`` holds every period's."""
+    resolution = measurement_resolution(stats.last) if stats.last is not None else None
     tracked = {}
     for i, (name, unit) in enumerate(zip(u.tracked_names, u.tracked_units)):
-        if not len(e):  # a run stopped before its first period
+        if stats.initial is None:  # a run stopped before its first period
             tracked[name] = {"unit": unit, "initial_abs_error": None, "final_rms_error": None,
                              "converged": False}
             continue
-        initial = float(abs(e[0, i]))
-        final_rms = float(np.sqrt(np.mean(tail[:, i] ** 2)))
+        initial = float(stats.initial[i])
+        final_rms = float(np.sqrt(stats.tail_sq[i] / stats.tail_n))
         floor = CONVERGENCE_FLOOR[unit] if resolution is None else \
             max(CONVERGENCE_FLOOR[unit], float(resolution[i]))
         tracked[name] = {
@@ -110,9 +156,9 @@ def unit_summary(u: UnitLog) -> dict:
             tracked[name]["measurement_resolution"] = float(resolution[i])
     torque = {}
     for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
-        torque[j.name] = {"unit": _UNIT_TEXT[_EFFORT_UNIT[unit]],
-                          "max_abs": float(np.max(np.abs(u.tau[:, i]), initial=0.0))}
-    norms = np.linalg.norm(u.p_hat, axis=1) if len(u.p_hat) else np.zeros(1)
+        peak = 0.0 if stats.tau_max is None else float(stats.tau_max[i])
+        torque[j.name] = {"unit": _UNIT_TEXT[_EFFORT_UNIT[unit]], "max_abs": peak}
+    max_norm = float(stats.max_norm)
     params = u.setup.controller_model.parameters
     return {
         "tracked": tracked,
@@ -121,10 +167,10 @@ def unit_summary(u: UnitLog) -> dict:
             "names": list(params.names),
             "units": list(params.si_units),
             "bound_norm": u.setup.bound,
-            "max_norm": float(np.max(norms)),
-            "bounded": bool(np.isfinite(u.p_hat).all()
-                            and np.max(norms) <= u.setup.bound * (1 + 1e-9)),
-            "final": [float(v) for v in u.p_hat[-1]] if len(u.p_hat) else None,
+            "max_norm": max_norm,
+            "bounded": bool(stats.finite and max_norm <= u.setup.bound * (1 + 1e-9)),
+            "final": [float(v) for v in stats.last.p_hat[-1]] if stats.last is not None
+            else None,
             "nominal": [float(v) for v in u.setup.controller_model.p_nominal],
         },
     }
@@ -133,7 +179,13 @@ def unit_summary(u: UnitLog) -> dict:
 def summary(result: SimulationResult, wall_time_s: float | None = None,
             timing: dict | None = None) -> dict:
     sc = result.scenario
-    units = {u.name: unit_summary(u) for u in result.units}
+    stats = [_UnitStats(result.periods) for _ in result.units]
+    start = 0
+    for chunk in result.chunks():
+        for s, u in zip(stats, chunk.units):
+            s.add(u, start)
+        start += chunk.periods
+    units = {u.name: _unit_summary(u, s) for u, s in zip(result.units, stats)}
     converged = all(c["converged"] for s in units.values() for c in s["tracked"].values())
     return {
         "scenario": sc.name,
@@ -144,8 +196,8 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "variant": sc.variant,
         "parameterisation": sc.parameterisation,
         "rate_Hz": sc.rate_hz,
-        "duration_s": float(len(result.time) / sc.rate_hz),
-        "periods": int(len(result.time)),
+        "duration_s": float(result.periods / sc.rate_hz),
+        "periods": int(result.periods),
         "convergence_rule": f"final RMS over the last {TAIL_FRACTION:.0%} <= "
                             f"{CONVERGENCE_RATIO:.0%} of the initial absolute error, or below "
                             + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items())
@@ -184,6 +236,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     paths = []
+    result = result.decimated(FIGURE_POINTS)  # figures of a long run read a sample of it
     t = result.time
     label_text = f"{result.scenario.name} (controller {result.scenario.controller})"
 
@@ -287,7 +340,7 @@ def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = N
         causes.append(exc)
     data = summary(result, wall_time_s, timing)
     try:
-        data["figures"] = [str(p) for p in figures(result, out)] if len(result.time) > 1 else []
+        data["figures"] = [str(p) for p in figures(result, out)] if result.periods > 1 else []
     except OSError as exc:
         lost.append("figures")
         causes.append(exc)

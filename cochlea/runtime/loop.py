@@ -6,6 +6,12 @@ arrays. Nothing in the period allocates, formats or touches the disk: a writer t
 finished rows to ``log.bin`` behind the loop, and the CSV, summary and figures are produced
 after the loop has stopped -- whatever stopped it.
 
+Memory does not grow with the run's length: with a log file the periods go through a ring of
+:data:`RING_SECONDS` that the writer empties, the desired samples are evaluated
+:data:`DESIRED_CHUNK` periods at a time in the slack after a period's work, and the timing
+statistics and the report read ``log.bin`` back in chunks. If the writer fails (a full disk)
+or falls a whole ring behind, the loop stops safely with its own rule, ``log-failure``.
+
 On any supervisor rule the loop commands zero effort and disables the drives in the same
 period, then finishes the log and reports the rule, its time and values.
 """
@@ -14,19 +20,20 @@ from __future__ import annotations
 
 import gc
 import json
+import math
 import os
 import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..sim.compiled import period_kernels
-from ..sim.result import SimulationResult, UnitLog
+from ..sim.result import SimulationResult, StreamedResult, UnitLog
 from ..sim.setup import UnitSetup
+from . import log_writer as _log_writer
 from .backend import Backend
 from .log_writer import LogWriter
 from .supervisor import Stop, Supervisor
@@ -35,42 +42,184 @@ from .supervisor import Stop, Supervisor
 #: thread late by up to a few hundred microseconds on a loaded machine.
 SPIN_NS = 500_000
 
+#: With a log file, the periods the loop keeps in memory (s): the writer empties the ring every
+#: 0.2 s, so a ring of seconds absorbs a slow disk; a writer a whole ring behind is a failure.
+RING_SECONDS = 4.0
+#: Desired samples evaluated at once, in the slack after a period's work: a CasADi call costs
+#: about 100 us plus 1-2 us a sample, so 100 samples fit in a 1 kHz period's slack.
+DESIRED_CHUNK = 100
+#: Rows read back from ``log.bin`` at a time (a few MB), for the timing and the report.
+READ_CHUNK = 1 << 13
+
 
 # --------------------------------------------------------------------------------------------
-# The loop
+# The run's rows, read back in chunks
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
-class LoopTiming:
-    """Per-period timing, s: start lateness, wall time since the previous start, compute."""
+class RowSource:
+    """The rows of a run, read a chunk at a time: from the in-memory buffer of a run without a
+    log file, or from ``log.bin`` (the rows the writer wrote; the ring holds only the last few
+    seconds). Nothing reads the whole run at once."""
 
-    start: np.ndarray
-    period: np.ndarray
-    compute: np.ndarray
-    backend: np.ndarray
+    def __init__(self, width: int, rows: int, buffer: np.ndarray | None = None,
+                 path: Path | None = None):
+        self.width, self.buffer, self.path = width, buffer, path
+        if path is not None:  # a failed writer may have left fewer rows, or a partial one
+            on_disk = path.stat().st_size // (8 * width) if path.exists() else 0
+            rows = min(rows, on_disk)
+        self.rows = rows
 
-    def summary(self, nominal_period: float, rows: int) -> dict:
-        wall = self.period[1:rows]
-        compute = self.compute[:rows]
-        backend = self.backend[:rows]
+    def read(self, start: int, stop: int, step: int = 1) -> np.ndarray:
+        stop = min(stop, self.rows)
+        if stop <= start:
+            return np.zeros((0, self.width))
+        if self.buffer is not None:
+            return self.buffer[start:stop:step]
+        if step == 1:
+            return self._file_rows(start, stop)
+        # Decimated: read a chunk at a time, keep a copy of every step-th row (a view would
+        # keep the whole chunk alive, and with it the whole run).
+        size = max(READ_CHUNK // step, 1) * step
+        return np.concatenate([self._file_rows(a, min(a + size, stop))[::step].copy()
+                               for a in range(start, stop, size)])
+
+    def _file_rows(self, start: int, stop: int) -> np.ndarray:
+        return np.fromfile(self.path, dtype=np.float64, count=(stop - start) * self.width,
+                           offset=start * self.width * 8).reshape(-1, self.width)
+
+    def chunks(self, size: int | None = None):
+        """``(first row, rows)`` pairs covering the run in order."""
+        size = size or READ_CHUNK
+        for start in range(0, self.rows, size):
+            yield start, self.read(start, start + size)
+
+
+#: Bins of each narrowing pass of :func:`chunked_percentiles`, and the count of values in the
+#: final bin below which they are gathered and selected exactly.
+_BINS = 4096
+_EXACT = 1 << 16
+
+
+def _order_statistic(columns, k: int, lo: float, hi: float) -> float:
+    """The ``k``-th smallest value (0-based) of the column that ``columns()`` yields in chunks,
+    all finite in ``[lo, hi]``: a histogram narrows the range to the bin holding it until that
+    bin is small enough to select in memory."""
+    hi_open = False  # after the first pass the range is a half-open bin [lo, hi)
+    while True:
+        if lo == hi or (hi_open and np.nextafter(lo, np.inf) >= hi):
+            return float(lo)  # a single representable value left
+        edges = np.linspace(lo, hi, _BINS + 1)
+        counts = np.zeros(_BINS, np.int64)
+        below = 0
+        for c in columns():
+            below += int(np.count_nonzero(c < lo))
+            inside = c[(c >= lo) & ((c < hi) if hi_open else (c <= hi))]
+            index = np.clip(np.searchsorted(edges, inside, side="right") - 1, 0, _BINS - 1)
+            counts += np.bincount(index, minlength=_BINS)
+        cumulative = below + np.cumsum(counts)
+        b = int(np.searchsorted(cumulative, k, side="right"))
+        lo_b, hi_b = float(edges[b]), float(edges[b + 1])
+        last = b == _BINS - 1 and not hi_open  # the top bin of a closed range is closed
+        if counts[b] <= _EXACT:
+            values = np.concatenate([c[(c >= lo_b) & ((c <= hi_b) if last else (c < hi_b))]
+                                     for c in columns()] or [np.zeros(0)])
+            rank = k - int(cumulative[b] - counts[b])
+            return float(np.partition(values, rank)[rank])
+        lo, hi, hi_open = lo_b, hi_b, not last
+
+
+def chunked_percentiles(columns, percents) -> list[float]:
+    """numpy's default (linear) percentiles of a column read in chunks by ``columns()`` (a
+    callable returning an iterator of 1-D arrays), in memory bounded by the chunk rather than
+    the column; NaN when the column is empty or holds a NaN, as ``np.percentile``."""
+    n, lo, hi, nan = 0, np.inf, -np.inf, False
+    for c in columns():
+        if c.size:
+            n += c.size
+            nan = nan or bool(np.isnan(c).any())
+            lo, hi = min(lo, float(np.min(c))), max(hi, float(np.max(c)))
+    if n == 0 or nan or not (np.isfinite(lo) and np.isfinite(hi)):
+        return [float("nan")] * len(percents)
+    out = []
+    for p in percents:
+        q = p / 100
+        virtual = n * q + (1 + q * (1 - 1 - 1)) - 1  # numpy's "linear" method, term for term
+        i = int(np.floor(virtual))
+        gamma = virtual - i
+        a = _order_statistic(columns, min(i, n - 1), lo, hi)
+        b = a if gamma == 0 or i + 1 > n - 1 else _order_statistic(columns, i + 1, lo, hi)
+        diff = b - a
+        out.append(float(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma))
+    return out
+
+
+class _Moments:
+    """Count, mean and spread of a column seen in chunks (Chan et al.'s merge)."""
+
+    def __init__(self):
+        self.n, self.mean, self.m2, self.max = 0, 0.0, 0.0, -np.inf
+
+    def add(self, values: np.ndarray) -> None:
+        if not values.size:
+            return
+        n, mean = values.size, float(np.mean(values))
+        m2 = float(np.sum((values - mean) ** 2))
+        if not self.n:  # the first chunk as numpy computes it
+            self.n, self.mean, self.m2 = n, mean, m2
+            self.max = float(np.max(values))
+            return
+        total = self.n + n
+        delta = mean - self.mean
+        self.mean += delta * n / total
+        self.m2 += m2 + delta * delta * self.n * n / total
+        self.n = total
+        self.max = float(np.maximum(self.max, np.max(values)))  # NaN propagates, as np.max
+
+    @property
+    def std(self) -> float:
+        return math.sqrt(self.m2 / self.n) if self.n else float("nan")
+
+
+def timing_of(source: RowSource, first: int, nominal_period: float) -> dict:
+    """The timing summary of a run from its rows (column ``first`` on: start lateness, wall
+    period, compute, backend I/O; s), read in chunks."""
+    rows = source.rows
+    wall, compute, backend = _Moments(), _Moments(), _Moments()
+    misses = 0
+    for start, block in source.chunks():
+        timing = block[:, first:first + 4]
+        wall.add(timing[1:, 1] if start == 0 else timing[:, 1])
+        compute.add(timing[:, 2])
+        backend.add(timing[:, 3])
         # A deadline is missed when a period's work ends after the next period should start.
-        finish = self.start[:rows] + compute
-        misses = int(np.sum(finish > np.arange(1, rows + 1) * nominal_period))
-        pct = lambda a, p: float(np.percentile(a, p)) if a.size else float("nan")  # noqa: E731
-        return {
-            "unit": "s",
-            "nominal_period": nominal_period,
-            "period_mean": float(wall.mean()) if wall.size else float("nan"),
-            "period_std": float(wall.std()) if wall.size else float("nan"),
-            "period_p50": pct(wall, 50), "period_p99": pct(wall, 99),
-            "period_max": float(wall.max()) if wall.size else float("nan"),
-            "deadline_misses": misses,
-            "deadline_miss_fraction": misses / max(rows, 1),
-            "compute_p50": pct(compute, 50), "compute_p99": pct(compute, 99),
-            "backend_mean": float(backend.mean()) if rows else float("nan"),
-            "backend_p99": pct(backend, 99),
-        }
+        finish = block[:, 0] + timing[:, 0] + timing[:, 2]
+        due = np.arange(start + 1, start + len(block) + 1) * nominal_period
+        misses += int(np.sum(finish > due))
+
+    def column(index, skip_first=False):
+        def chunks():
+            for start, block in source.chunks():
+                yield block[1 if skip_first and start == 0 else 0:, first + index]
+        return chunks
+
+    period_p50, period_p99 = chunked_percentiles(column(1, True), (50, 99))
+    compute_p50, compute_p99 = chunked_percentiles(column(2), (50, 99))
+    backend_p99, = chunked_percentiles(column(3), (99,))
+    nan = float("nan")
+    return {
+        "unit": "s",
+        "nominal_period": nominal_period,
+        "period_mean": wall.mean if wall.n else nan,
+        "period_std": wall.std,
+        "period_p50": period_p50, "period_p99": period_p99,
+        "period_max": wall.max if wall.n else nan,
+        "deadline_misses": misses,
+        "deadline_miss_fraction": misses / max(rows, 1),
+        "compute_p50": compute_p50, "compute_p99": compute_p99,
+        "backend_mean": backend.mean if rows else nan,
+        "backend_p99": backend_p99,
+    }
 
 
 #: Priority of the loop under SCHED_FIFO: above every normal process, below the kernel's own
@@ -122,6 +271,10 @@ class RealTimeLoop:
 
     ``realtime=False`` runs the same periods back to back (no sleeping): the loop's logic with
     the timing taken out, which the tests use to inject faults quickly.
+
+    Without a log file, :meth:`run` keeps every period in ``buffer`` (short runs, tests); with
+    one, ``buffer`` is a ring of :data:`RING_SECONDS` that the writer streams to the file, and
+    :meth:`result` and :meth:`timing_summary` read the file back in chunks.
     """
 
     def __init__(self, setups: list[UnitSetup], backend: Backend, supervisor: Supervisor,
@@ -129,16 +282,18 @@ class RealTimeLoop:
                  substeps: int = 1):
         self.setups, self.backend, self.supervisor = setups, backend, supervisor
         self.h, self.steps, self.realtime = period, steps, realtime
-        self.time = np.arange(steps) * period
         self.n = sum(u.controller_model.nq for u in setups)
         self.stop: Stop | None = None
         self.rows = 0
+        self.misses = 0
         self._signal: str | None = None
         self.scheduling = "normal"
+        self.log_path: Path | None = None
 
         # Per unit: the fused step through buffers, its slice of the joint vector, the desired
-        # samples of the whole run (exact, precomputed), and the column layout of the log.
+        # samples of the current chunk of periods, and the column layout of the log.
         self.kernels, self.slices, self.desired = [], [], []
+        self._desired_maps = []
         self.kernel_source = "c"
         start = 0
         for u in setups:
@@ -154,9 +309,11 @@ class RealTimeLoop:
             n = u.controller_model.nq
             self.slices.append(slice(start, start + n))
             start += n
-            xd, xd_dot, xd_ddot = u.desired.map(steps)(self.time)
-            self.desired.append((np.array(xd).T.copy(), np.array(xd_dot).T.copy(),
-                                 np.array(xd_ddot).T.copy()))
+            nd = u.controller.n_desired
+            self.desired.append(tuple(np.zeros((DESIRED_CHUNK, nd)) for _ in range(3)))
+            self._desired_maps.append(u.desired.map(DESIRED_CHUNK))
+        self._chunk_times = np.arange(DESIRED_CHUNK, dtype=float)
+        self._fill_desired(0)
 
         # One row per period: t, x (all), tau (all), then per unit errors and p_hat, then timing.
         widths = [1, 2 * self.n, self.n]
@@ -164,10 +321,37 @@ class RealTimeLoop:
             widths += [u.controller.n_desired + u.controller_model.nq, u.controller.n_params]
         widths += [4]
         self.offsets = np.concatenate([[0], np.cumsum(widths)])
-        self.buffer = np.full((steps, int(self.offsets[-1])), np.nan)
+        self.width = int(self.offsets[-1])
+        self.buffer = np.full((0, self.width), np.nan)  # sized by run(): whole run or ring
         self.x = np.zeros(2 * self.n)
         self.tau = np.zeros(self.n)
         self.zero = np.zeros(self.n)
+
+    def _allocate(self, log_path: Path | None) -> np.ndarray:
+        """The period buffer: the whole run without a log file, else a ring of a few seconds."""
+        rows = self.steps
+        if log_path is not None:
+            rows = min(rows, max(int(math.ceil(RING_SECONDS / self.h)), 16))
+        return np.full((max(rows, 1), self.width), np.nan)
+
+    def _fill_desired(self, chunk: int) -> None:
+        """The desired samples of periods ``chunk * DESIRED_CHUNK`` on, at the times the rows
+        log (``k * h``, bit for bit)."""
+        k0 = chunk * DESIRED_CHUNK
+        t = (k0 + self._chunk_times) * self.h
+        for f, arrays in zip(self._desired_maps, self.desired):
+            for target, value in zip(arrays, f(t)):
+                target[...] = np.asarray(value).T
+
+    def desired_samples(self, unit: int, start: int, stop: int) -> tuple[np.ndarray, ...]:
+        """``(xd, xd_dot, xd_ddot)`` of periods ``start..stop - 1`` for the report: the same
+        function at the same times as the loop's chunks."""
+        t = np.arange(start, stop) * self.h
+        if not len(t):
+            nd = self.setups[unit].controller.n_desired
+            return tuple(np.zeros((0, nd)) for _ in range(3))
+        return tuple(np.array(v).T.copy()
+                     for v in self.setups[unit].desired.map(len(t))(t))
 
     # ---- the loop ----------------------------------------------------------------------------
 
@@ -178,16 +362,23 @@ class RealTimeLoop:
         k = self.rows
         if k == 0:
             return "waiting for the first period"
-        t = self.time[min(k, self.steps) - 1]
-        err = self.buffer[k - 1, self.offsets[3]:self.offsets[3] + 3]
-        timing = self.buffer[:k, self.offsets[-2]:self.offsets[-1]]
-        p99 = float(np.percentile(timing[-2000:, 1], 99)) if k > 2 else float("nan")
+        buf, ring = self.buffer, len(self.buffer)
+        t = (min(k, self.steps) - 1) * self.h
+        err = buf[(k - 1) % ring, self.offsets[3]:self.offsets[3] + 3]
+        # The last periods still in the buffer (the ring's, or the last 2000 of a whole run).
+        recent = buf[:min(k, ring), self.offsets[-2] + 1]
+        if ring >= k:
+            recent = recent[-2000:]
+        p99 = float(np.percentile(recent, 99)) if k > 2 else float("nan")
         return (f"t = {t:6.2f} s  |e| = {np.abs(err).max():.2e}  period p99 = "
                 f"{p99 * 1e3:.3f} ms  misses = {self.misses}")
 
     def run(self, log_path: Path | None = None, status: bool = False) -> Stop:
-        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        self.log_path = log_path
+        self.buffer = self._allocate(log_path)
+        # Opened before anything moves: a log that cannot be written stops nothing.
         writer = LogWriter(self.buffer, log_path) if log_path else None
+        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         status_thread = _Status(self) if status else None
         self.misses = 0
         try:
@@ -214,14 +405,33 @@ class RealTimeLoop:
             finally:
                 self.backend.disable()
             # Only threads that started can be joined: enable() may have failed before them.
-            if writer and writer.is_alive():
-                writer.close()
+            if writer:
+                writer.done_rows = self.rows  # a stop's own row goes to the log too
+                if writer.is_alive():
+                    writer.close()
+                else:
+                    writer.discard()
             if status_thread and status_thread.is_alive():
                 status_thread.close()
             for s, handler in previous.items():
                 signal.signal(s, handler)
             _normal_priority()
+        if writer and writer.error is not None and self.stop.rule != "log-failure":
+            # The writer failed while the last rows were flushed, after the loop had stopped.
+            self.stop = Stop("log-failure", self.stop.time, self._log_failure(writer))
         return self.stop
+
+    def _log_failure(self, writer) -> str:
+        if writer.error is not None:
+            reason = writer.error.strerror or str(writer.error)
+            what = f"the log writer failed: {reason} ({self.log_path})"
+        elif self.realtime:
+            what = (f"the log writer fell {len(self.buffer)} periods "
+                    f"({len(self.buffer) * self.h:g} s) behind the loop")
+        else:
+            what = f"the log writer wrote nothing for {_log_writer.WRITER_STALL_S:g} s"
+        return (f"{what}; log.bin holds the first {writer.written} of {self.rows} periods: "
+                "free the disk or choose another --out")
 
     def _views(self):
         """Views made once, so the period only copies into existing arrays."""
@@ -241,15 +451,21 @@ class RealTimeLoop:
         misses = errors = 0
         sup, backend, x, tau, buf = (self.supervisor, self.backend, self.x, self.tau,
                                      self.buffer)
+        ring = len(buf)
         n = self.n
         q_view, qd_view = x[:n], x[n:]
         row, row_x, row_tau, row_timing, units = self._views()
         estimates = [kern.outputs[1] for kern in self.kernels]
         clock = time.perf_counter_ns
+        if self.rows:  # a second run of the same loop starts from the first chunk again
+            self._fill_desired(0)
+        self.rows = 0
         t0 = clock()
         previous_start = t0
         for k in range(self.steps):
-            t = self.time[k]
+            t = k * self.h
+            j = k % DESIRED_CHUNK
+            slot = k % ring
             if self.realtime:
                 deadline = t0 + k * h_ns
                 while True:  # sleep until SPIN before the deadline, then spin
@@ -261,6 +477,12 @@ class RealTimeLoop:
             start = clock()
             if self._signal:
                 return Stop(self._signal, t, "signal received")
+            # The log must keep up: a failed writer, or one that has not yet written the row
+            # this period would overwrite, stops the run before anything else is commanded.
+            if writer is not None and (writer.error is not None or k - writer.written >= ring):
+                # As fast as possible, nothing is late: wait for the disk rather than stop.
+                if self.realtime or not writer.wait_for(k - ring + 1):
+                    return Stop("log-failure", t, self._log_failure(writer))
             ok = backend.read(x)
             errors = 0 if ok else errors + 1
             if errors > sup.limits.watchdog_errors:
@@ -270,15 +492,15 @@ class RealTimeLoop:
             stop = sup.check_state(t, x, q_view, qd_view) if ok else None
             if stop:  # nothing was commanded in this period
                 row[1 + 2 * n:] = np.nan
-                buf[k] = row
+                buf[slot] = row
                 self.rows = k + 1
                 return stop
             for kern, kin, q_u, qd_u, tau_u, (xd, xd_dot, xd_ddot), row_err, row_p in units:
                 kin[0][:] = q_u
                 kin[1][:] = qd_u
-                kin[2][:] = xd[k]
-                kin[3][:] = xd_dot[k]
-                kin[4][:] = xd_ddot[k]
+                kin[2][:] = xd[j]
+                kin[3][:] = xd_dot[j]
+                kin[4][:] = xd_ddot[j]
                 kern()
                 tau_u[:] = kern.outputs[0]
                 row_err[:] = kern.outputs[2]
@@ -288,7 +510,7 @@ class RealTimeLoop:
             if stop:  # the refused command is logged as computed; it was never written
                 row_tau[:] = tau
                 row_timing[:] = np.nan
-                buf[k] = row
+                buf[slot] = row
                 self.rows = k + 1
                 return stop
             sup.saturate(tau)
@@ -300,7 +522,7 @@ class RealTimeLoop:
             row_timing[1] = (start - previous_start) * 1e-9
             row_timing[2] = (end - start) * 1e-9
             row_timing[3] = backend.last_io_time_s
-            buf[k] = row
+            buf[slot] = row
             previous_start = start
             if self.realtime and end - t0 > (k + 1) * h_ns:
                 misses += 1
@@ -314,38 +536,62 @@ class RealTimeLoop:
             self.rows = k + 1
             if writer:
                 writer.done_rows = k + 1
-        return Stop("completed", self.time[-1] + self.h if self.steps else 0.0, "")
+            if j == DESIRED_CHUNK - 1:  # the next chunk, in this period's slack
+                self._fill_desired((k + 1) // DESIRED_CHUNK)
+        return Stop("completed", (self.steps - 1) * self.h + self.h if self.steps else 0.0, "")
 
     # ---- results -------------------------------------------------------------------------
 
-    def result(self, scenario) -> SimulationResult:
-        """The log as a :class:`SimulationResult`, so the report writes it like any run."""
-        rows = self.rows
-        buf, off, n = self.buffer[:rows], self.offsets, self.n
+    def rows_source(self) -> RowSource:
+        """The run's rows: ``log.bin`` when the run streamed to it, else the buffer."""
+        if self.log_path is not None:
+            return RowSource(self.width, self.rows, path=self.log_path)
+        return RowSource(self.width, self.rows, buffer=self.buffer)
+
+    def chunk_result(self, scenario, source: RowSource, start: int, stop: int,
+                     step: int = 1) -> SimulationResult:
+        """Periods ``start:stop:step`` of the run as an in-memory :class:`SimulationResult`."""
+        buf, off, n = source.read(start, stop, step), self.offsets, self.n
+        index = np.arange(start, start + len(buf) * step, step)
         logs = []
-        for i, (u, sl, (xd, xd_dot, _)) in enumerate(zip(self.setups, self.slices,
-                                                         self.desired)):
+        for i, (u, sl) in enumerate(zip(self.setups, self.slices)):
             q = buf[:, 1 + sl.start:1 + sl.stop]
             qd = buf[:, 1 + n + sl.start:1 + n + sl.stop]
             errors = buf[:, int(off[3 + 2 * i]):int(off[4 + 2 * i])]
             p_hat = buf[:, int(off[4 + 2 * i]):int(off[5 + 2 * i])]
             tau = buf[:, 1 + 2 * n + sl.start:1 + 2 * n + sl.stop]
+            rows = len(buf)
             pose = np.array(u.fk_world.map(rows)(np.nan_to_num(q).T)).T if rows else \
                 np.zeros((0, len(u.task_names)))
-            logs.append(UnitLog(u.name, scenario.space, q, qd, xd[:rows], xd_dot[:rows], errors,
-                                tau, p_hat, pose, u))
-        result = SimulationResult(scenario, self.time[:rows], logs)
+            if step == 1:
+                xd, xd_dot, _ = self.desired_samples(i, start, start + rows)
+            else:
+                t = index * self.h
+                xd, xd_dot = (np.array(v).T.copy() for v in u.desired.map(rows)(t)[:2]) \
+                    if rows else self.desired_samples(i, 0, 0)[:2]
+            logs.append(UnitLog(u.name, scenario.space, q, qd, xd, xd_dot, errors, tau, p_hat,
+                                pose, u))
+        result = SimulationResult(scenario, index * self.h, logs)
         timing = buf[:, int(off[-2]):int(off[-1])]
         result.timing = {"start_lateness_s": timing[:, 0], "wall_period_s": timing[:, 1],
                          "compute_s": timing[:, 2], "backend_io_s": timing[:, 3]}
         return result
 
+    def result(self, scenario) -> SimulationResult:
+        """The log as a :class:`SimulationResult`, so the report writes it like any run: in
+        memory for a run without a log file, else read back from ``log.bin`` a chunk at a time
+        (:class:`~cochlea.sim.result.StreamedResult`)."""
+        source = self.rows_source()
+        if self.log_path is None:
+            return self.chunk_result(scenario, source, 0, source.rows)
+        head = self.chunk_result(scenario, source, 0, 0)
+        return StreamedResult(scenario, head.units, source.rows, timing=head.timing,
+                              read=lambda a, b, step=1: self.chunk_result(scenario, source, a, b,
+                                                                          step))
+
     def timing_summary(self) -> dict:
-        off = self.offsets
-        t = self.buffer[:self.rows, int(off[-2]):int(off[-1])]
-        timing = LoopTiming(start=self.time[:self.rows] + t[:, 0], period=t[:, 1],
-                            compute=t[:, 2], backend=t[:, 3])
-        return {**timing.summary(self.h, self.rows), "scheduling": self.scheduling,
+        return {**timing_of(self.rows_source(), int(self.offsets[-2]), self.h),
+                "scheduling": self.scheduling,
                 "watchdog_misses_allowed": self.supervisor.limits.watchdog_misses}
 
 

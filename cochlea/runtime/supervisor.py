@@ -30,6 +30,7 @@ STOP_CODES = {
     "estimate-bound": 14,
     "watchdog": 15,
     "terminated": 16,  # SIGTERM
+    "log-failure": 17,  # the log writer failed (full disk) or fell a whole ring behind
 }
 
 
