@@ -45,7 +45,8 @@ from ..runtime import (
     write_raw_columns,
 )
 from ..sim import KERNELS, load_scenario, simulate, unit_setups
-from ..sim.scenario import PLANT_PRESETS
+from ..sim.scenario import MAX_PERIODS, MAX_RATE_HZ, MIN_RATE_HZ, PLANT_PRESETS
+from ..sim.setup import MAX_FAST_PERIODS, check_run_length
 from . import report
 
 EXIT_DIVERGED = 3
@@ -132,10 +133,15 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError(f"scenario {scenario.path} is for --robot {scenario.robot} --space "
                            f"{scenario.space}, not --robot {args.robot} --space {args.space}: "
                            "change the options or the scenario")
-    if args.duration is not None and not args.duration > 0:
-        raise CochleaError(f"--duration must be positive, got {args.duration}")
-    if args.rate is not None and not 1.0 <= args.rate <= 20_000.0:
-        raise CochleaError(f"--rate must be between 1 and 20000 Hz, got {args.rate}")
+    if args.rate is not None and not MIN_RATE_HZ <= args.rate <= MAX_RATE_HZ:
+        raise CochleaError(f"--rate must be between {MIN_RATE_HZ:g} and {MAX_RATE_HZ:g} Hz, "
+                           f"got {args.rate}")
+    # The run as it will be: its duration and rate, at least one period, at most what one run
+    # may hold (the as-fast simulation keeps every period in memory).
+    check_run_length(scenario.duration if args.duration is None else args.duration,
+                     scenario.rate_hz if args.rate is None else args.rate,
+                     "duration_s of the scenario" if args.duration is None else "--duration",
+                     MAX_FAST_PERIODS if args.realtime == "off" else MAX_PERIODS)
     if not 1 <= args.watchdog_misses <= MAX_WATCHDOG_MISSES:
         raise CochleaError(f"--watchdog-misses must be between 1 and {MAX_WATCHDOG_MISSES} "
                            f"periods, got {args.watchdog_misses}")
@@ -158,7 +164,9 @@ def _run(args: argparse.Namespace) -> int:
     _validate(args, scenario)
     if args.rate is not None:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
-    setups = unit_setups(scenario)  # validates reachability before anything moves
+    if args.duration is not None:  # the up-front checks sample the run's actual duration
+        scenario = dataclasses.replace(scenario, duration=args.duration)
+    setups = unit_setups(scenario)  # validates the whole run's path before anything moves
     out = args.out or Path("runs") / (f"{args.robot}_{args.space}_"
                                       f"{datetime.now().strftime('%Y%m%d-%H%M%S')}")
     out.mkdir(parents=True, exist_ok=True)
