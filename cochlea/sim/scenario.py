@@ -352,7 +352,8 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
         if weight:
             size = gain_set.size(weight, layout.n_joint, layout.n_task)
             given = g.vector(weight, size, "the gain's SI unit", required=False,
-                             check=lambda v: all(x > 0 for x in v), what="(all positive)")
+                             check=lambda v: all(0 < x <= MAX_GAIN for x in v),
+                             what=f"(all positive, at most {MAX_GAIN:g})")
             gains[weight] = np.ones(size) if given is None else given
         g.done()
         u.done()

@@ -31,6 +31,10 @@ TASK_UNITS = ("m", "m", "rad")
 TASK_ANGLES = (2,)
 
 
+def _where(sc: ScenarioView) -> str:
+    return str(getattr(sc, "path", sc.name))  # the file when the view has one
+
+
 def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView) -> None:
     """Refuse a follower trajectory that leaves the workspace, before anything runs."""
     c2 = ca.Function("c2", [t], [elbow_cosine(arm, pose_base_t)])
@@ -39,7 +43,7 @@ def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView) -
         bad = np.flatnonzero(~(np.abs(values) <= 1.0))
         if bad.size:
             k = bad[0]
-            raise UnreachableTarget(f"scenario {sc.name}: {arm.name}'s desired pose leaves the "
+            raise UnreachableTarget(f"scenario {_where(sc)}: {arm.name}'s desired pose leaves the "
                                     f"workspace at t = {times[k]:.3f} s (cos th2 = "
                                     f"{values[k]:.4f})")
 
@@ -58,7 +62,7 @@ def _check_path(arm: Arm, q_t: ca.SX, tool_t: ca.SX, t: ca.SX, sc: ScenarioView,
             j, k = np.argwhere(outside.T)[0][::-1]
             lo_j, hi_j = np.degrees(arm.links[j].joint.position_limits)
             raise UnreachableTarget(
-                f"scenario {sc.name}: {arm.name}'s desired path takes joint "
+                f"scenario {_where(sc)}: {arm.name}'s desired path takes joint "
                 f"{arm.links[j].name} to {np.degrees(q[j, k]):.2f} deg at t = {times[k]:.3f} s, "
                 f"outside its limits [{lo_j:g}, {hi_j:g}] deg: the supervisor would stop the "
                 "run there; change the trajectory or shorten --duration")
@@ -67,7 +71,7 @@ def _check_path(arm: Arm, q_t: ca.SX, tool_t: ca.SX, t: ca.SX, sc: ScenarioView,
             if inside.size:
                 k = inside[0]
                 raise UnreachableTarget(
-                    f"scenario {sc.name}: {arm.name}'s desired tool path passes "
+                    f"scenario {_where(sc)}: {arm.name}'s desired tool path passes "
                     f"{r.ravel()[k] * 1000:.1f} mm from the cochlea centre at t = "
                     f"{times[k]:.3f} s, inside the keep-out radius {keep_out * 1000:.1f} mm: the "
                     "supervisor would stop the run there; change the trajectory or shorten "
