@@ -294,6 +294,9 @@ def read_toml(path: Path, what: str = "robot description") -> dict:
     except OSError as exc:
         raise DescriptionError(path, "(file)", f"a readable {what} file",
                                exc.strerror or str(exc)) from None
+    except ValueError:  # a NUL byte in the path
+        raise DescriptionError(path, "(file)", f"a {what} file name without NUL bytes") \
+            from None
     if len(raw) > MAX_FILE_BYTES:
         raise DescriptionError(path, "(file)", f"a {what} file of at most "
                                f"{MAX_FILE_BYTES // 1024} KiB")
