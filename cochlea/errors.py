@@ -28,7 +28,9 @@ class DescriptionError(CochleaError):
         self.got = got
         message = f"{self.path}: {key}: expected {expected}"
         if got is not _MISSING:
-            message += f", got {got!r}"
+            shown = repr(got)
+            # One line of reasonable length, whatever the file held (a megabyte-long string).
+            message += f", got {shown if len(shown) <= 200 else shown[:200] + '...'}"
         super().__init__(message)
 
 

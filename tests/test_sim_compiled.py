@@ -261,9 +261,10 @@ def test_the_sim_backend_reads_and_writes_without_growing_memory():
 def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
     """Arm 2's printed G_a diverges within 0.1 s once its torques are not clipped (a
     description with no effective torque limit): same rows, same time, and the noise of the
-    units after it drawn as the reference does."""
+    units after it drawn as the reference does. (1000 N m: the largest torque limit a
+    description may give, far beyond what these links need.)"""
     unlimited = tmp_path / "unlimited.toml"
-    unlimited.write_text(re.sub(r"torque_limit_Nm = [0-9.]+", "torque_limit_Nm = 1e12",
+    unlimited.write_text(re.sub(r"torque_limit_Nm = [0-9.]+", "torque_limit_Nm = 1000.0",
                                 (ROBOTS_DIR / "serial.toml").read_text()))
     sc = load_scenario("serial_task")
     sc = dataclasses.replace(sc, description=str(unlimited), system=load_serial(unlimited))

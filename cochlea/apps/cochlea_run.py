@@ -48,7 +48,8 @@ from ..runtime import (
     write_raw_columns,
 )
 from ..sim import KERNELS, load_scenario, simulate, unit_setups
-from ..sim.scenario import PLANT_PRESETS
+from ..sim.scenario import MAX_PERIODS, MAX_RATE_HZ, MIN_RATE_HZ, PLANT_PRESETS
+from ..sim.setup import MAX_FAST_PERIODS, check_run_length
 from . import outputs, report
 
 EXIT_DIVERGED = 3
@@ -188,10 +189,15 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError(f"scenario {scenario.path} is for --robot {scenario.robot} --space "
                            f"{scenario.space}, not --robot {args.robot} --space {args.space}: "
                            "change the options or the scenario")
-    if args.duration is not None and not args.duration > 0:
-        raise CochleaError(f"--duration must be positive, got {args.duration}")
-    if args.rate is not None and not 1.0 <= args.rate <= 20_000.0:
-        raise CochleaError(f"--rate must be between 1 and 20000 Hz, got {args.rate}")
+    if args.rate is not None and not MIN_RATE_HZ <= args.rate <= MAX_RATE_HZ:
+        raise CochleaError(f"--rate must be between {MIN_RATE_HZ:g} and {MAX_RATE_HZ:g} Hz, "
+                           f"got {args.rate}")
+    # The run as it will be: its duration and rate, at least one period, at most what one run
+    # may hold (the as-fast simulation keeps every period in memory).
+    check_run_length(scenario.duration if args.duration is None else args.duration,
+                     scenario.rate_hz if args.rate is None else args.rate,
+                     "duration_s of the scenario" if args.duration is None else "--duration",
+                     MAX_FAST_PERIODS if args.realtime == "off" else MAX_PERIODS)
     if not 1 <= args.watchdog_misses <= MAX_WATCHDOG_MISSES:
         raise CochleaError(f"--watchdog-misses must be between 1 and {MAX_WATCHDOG_MISSES} "
                            f"periods, got {args.watchdog_misses}")
@@ -203,9 +209,7 @@ def _validate(args: argparse.Namespace, scenario) -> None:
                            "or the path cochlea-emulator prints")
     if args.backend != "dynamixel" and (args.port is not None or args.baud is not None):
         raise CochleaError("--port and --baud go with --backend dynamixel")
-    if args.out is not None and args.out.exists() and any(args.out.iterdir()):
-        raise CochleaError(f"--out {args.out} exists and is not empty: choose a new folder "
-                           "(runs never overwrite a log)")
+    # --out is outputs.check_folder's (a leftover lock of a killed run is not "not empty").
 
 
 def _run(args: argparse.Namespace, run: _Run) -> int:
@@ -216,9 +220,10 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
     _validate(args, scenario)
     if args.rate is not None:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
-    setups = unit_setups(scenario)  # validates reachability before anything moves
-    duration = scenario.duration if args.duration is None else args.duration
-    periods = int(round(duration * scenario.rate_hz))
+    if args.duration is not None:  # the up-front checks sample the run's actual duration
+        scenario = dataclasses.replace(scenario, duration=args.duration)
+    setups = unit_setups(scenario)  # validates the whole run's path before anything moves
+    periods = int(round(scenario.duration * scenario.rate_hz))
     target = args.out if args.out is not None else Path("runs")
     outputs.check_free_space(
         target, outputs.log_bytes(setups, periods, args.realtime == "on"),

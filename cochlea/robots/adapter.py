@@ -19,6 +19,7 @@ mechanism. (Physical units are called SI units everywhere.)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,6 +119,35 @@ class ActuatedJoint:
     motor: Motor
     ratio: float  # motor torque (N m) per unit of joint effort (1 for a direct drive)
     actuator: Actuator = Actuator()  # the drive's armature and friction at the joint
+
+
+#: The up-front checks of a desired path sample it at every control period up to this many
+#: samples; a longer run is sampled at this many evenly spaced times (the supervisor still
+#: watches every period). About 10 us a sample: at most ~2 s before a run starts.
+MAX_CHECK_SAMPLES = 200_000
+#: Samples evaluated at once: bounds the check's memory whatever the run's length.
+CHECK_CHUNK = 20_000
+
+
+def sample_times(duration: float, period: float):
+    """The times (s) at which a run's desired path is checked, in chunks (numpy arrays): every
+    period from 0 to ``duration`` inclusive, or :data:`MAX_CHECK_SAMPLES` evenly spaced times
+    when that is fewer."""
+    count = int(math.floor(duration / period + 1e-9)) + 1
+    step = period
+    if count > MAX_CHECK_SAMPLES:
+        count, step = MAX_CHECK_SAMPLES, duration / (MAX_CHECK_SAMPLES - 1)
+    for start in range(0, count, CHECK_CHUNK):
+        yield np.minimum(np.arange(start, min(start + CHECK_CHUNK, count)) * step, duration)
+
+
+def sampled(f: ca.Function, duration: float, period: float):
+    """``(times, outputs)`` chunk by chunk of a function of t over a run: each output a
+    ``(size, n_times)`` array."""
+    for times in sample_times(duration, period):
+        values = f.map(len(times))(times.reshape(1, -1))
+        values = values if isinstance(values, (list, tuple)) else [values]
+        yield times, [np.array(v) for v in values]
 
 
 def desired_function(name: str, expr_t: ca.SX, t: ca.SX) -> ca.Function:

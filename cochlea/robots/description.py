@@ -12,6 +12,7 @@ the key and what was expected. Each robot's own tables are read by its package
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,6 +34,25 @@ FIT_OUTPUTS = ("torque_Ncm", "torque_Nm")
 
 #: Largest Dynamixel ID usable by a motor (253..255 are reserved by Protocol 2.0).
 MAX_MOTOR_ID = 252
+
+#: Bounds on what a description may say, physically generous but finite: a value beyond them
+#: is a typo or a unit mistake, and refusing it here keeps CasADi from overflowing to inf/NaN
+#: in a model built from it (docs/runtime.md, "Bad input").
+MAX_FILE_BYTES = 1024 * 1024  # a description or scenario file (the shipped ones: ~10 KiB)
+MAX_NESTING = 32  # levels of tables and lists
+MAX_LENGTH_M = 10.0  # any length, position or offset
+MIN_MASS_KG, MAX_MASS_KG = 1e-6, 1000.0
+MIN_INERTIA_KGM2, MAX_INERTIA_KGM2 = 1e-12, 1000.0
+MAX_GRAVITY_M_S2 = 100.0  # about 10 g
+MAX_ANGLE_DEG = 3600.0  # ten turns: joint limits, offsets, base and frame angles
+MAX_VELOCITY = {"revolute": 1000.0, "prismatic": 100.0}  # rad/s, m/s
+MAX_EFFORT = {"revolute": 1000.0, "prismatic": 10000.0}  # N m, N
+MAX_ARMATURE = {"revolute": 1000.0, "prismatic": 10000.0}  # kg m^2, kg
+MAX_FIT = 1e6  # |a| and |b| of a motor's fit
+MIN_FIT_SLOPE = 1e-6
+#: Names of systems, arms and links: they become column names, parameter names
+#: (``link2.Izz``) and file names (``arm1_tracking.png``).
+NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,63}")
 
 
 @dataclass(frozen=True)
@@ -117,6 +137,21 @@ class Table:
             return self.get(name, expected, lambda v: isinstance(v, str) and v in choices, **kw)
         return self.get(name, "a non-empty string", lambda v: isinstance(v, str) and v != "", **kw)
 
+    def name(self, name: str, **kw) -> str:
+        """A name that can become a column, a parameter's prefix and part of a file name."""
+        return self.get(name, "a name of at most 64 letters, digits, _ or -, starting with a "
+                        "letter", lambda v: isinstance(v, str) and NAME_PATTERN.fullmatch(v)
+                        is not None, **kw)
+
+    def bounded(self, name: str, expected: str, check, lo: float, hi: float, unit: str,
+                **kw) -> float | None:
+        """:meth:`number`, then within [lo, hi]: a finite value beyond the bounds is refused
+        with the range in the message."""
+        value = self.number(name, expected, check, **kw)
+        if value is not None and not lo <= value <= hi:
+            raise self.error(name, f"{expected}, within [{lo:g}, {hi:g}] {unit}", value)
+        return value
+
     def vector(self, name: str, size: int, unit: str, check=lambda v: True, what: str = "",
                **kw) -> np.ndarray | None:
         expected = f"a list of {size} numbers in {unit}" + (f" {what}" if what else "")
@@ -155,16 +190,25 @@ class Table:
 def read_limits(t: Table, jtype: str) -> tuple[float, float, float, float]:
     """A joint's ``(lower, upper, velocity, effort)`` limits in SI: rad, rad/s, N m for a
     revolute joint (limits written in deg), m, m/s, N for a prismatic one."""
-    ordered = lambda v: v[0] < v[1]  # noqa: E731
-    what = "as [lower, upper] with lower < upper"
+    def ordered(bound):
+        return lambda v: v[0] < v[1] and -bound <= v[0] and v[1] <= bound
+
+    vmax, emax = MAX_VELOCITY[jtype], MAX_EFFORT[jtype]
+    positive = lambda v: v > 0  # noqa: E731
     if jtype == "revolute":
-        lo, hi = np.radians(t.vector("position_limits_deg", 2, "deg", check=ordered, what=what))
-        velocity = t.number("velocity_limit_rad_s", "a positive number (rad/s)", lambda v: v > 0)
-        effort = t.number("torque_limit_Nm", "a positive number (N m)", lambda v: v > 0)
+        what = f"as [lower, upper] with lower < upper, within +-{MAX_ANGLE_DEG:g} deg"
+        lo, hi = np.radians(t.vector("position_limits_deg", 2, "deg",
+                                     check=ordered(MAX_ANGLE_DEG), what=what))
+        velocity = t.bounded("velocity_limit_rad_s", "a positive number (rad/s)", positive, 0,
+                             vmax, "rad/s")
+        effort = t.bounded("torque_limit_Nm", "a positive number (N m)", positive, 0, emax,
+                           "N m")
     else:
-        lo, hi = t.vector("position_limits_m", 2, "m", check=ordered, what=what)
-        velocity = t.number("velocity_limit_m_s", "a positive number (m/s)", lambda v: v > 0)
-        effort = t.number("force_limit_N", "a positive number (N)", lambda v: v > 0)
+        what = f"as [lower, upper] with lower < upper, within +-{MAX_LENGTH_M:g} m"
+        lo, hi = t.vector("position_limits_m", 2, "m", check=ordered(MAX_LENGTH_M), what=what)
+        velocity = t.bounded("velocity_limit_m_s", "a positive number (m/s)", positive, 0, vmax,
+                             "m/s")
+        effort = t.bounded("force_limit_N", "a positive number (N)", positive, 0, emax, "N")
     return float(lo), float(hi), velocity, effort
 
 
@@ -199,8 +243,10 @@ ACTUATOR_KEYS = {
 
 def read_actuator(t: Table, jtype: str) -> Actuator:
     """A joint's actuator terms, each optional (keys by joint type: :data:`ACTUATOR_KEYS`)."""
-    values = {field: t.number(key, f"a non-negative number ({meaning})", lambda v: v >= 0,
-                              required=False)
+    top = {"armature": MAX_ARMATURE[jtype], "viscous": MAX_EFFORT[jtype],
+           "coulomb": MAX_EFFORT[jtype]}
+    values = {field: t.bounded(key, f"a non-negative number ({meaning})", lambda v: v >= 0, 0,
+                               top[field], meaning.split(",")[0], required=False)
               for field, (key, meaning) in ACTUATOR_KEYS[jtype].items()}
     return Actuator(**values)
 
@@ -212,8 +258,10 @@ def read_motor(t: Table) -> Motor:
                      and 0 <= v <= MAX_MOTOR_ID)
     f = t.table("fit")
     fit = MotorFit(
-        a=f.number("a", "a non-zero number (slope of y = a x + b)", lambda v: v != 0),
-        b=f.number("b", "a number (offset of y = a x + b)"),
+        a=f.number("a", f"a number with {MIN_FIT_SLOPE:g} <= |a| <= {MAX_FIT:g} (slope of "
+                   "y = a x + b)", lambda v: MIN_FIT_SLOPE <= abs(v) <= MAX_FIT),
+        b=f.bounded("b", "a number (offset of y = a x + b)", lambda v: True, -MAX_FIT, MAX_FIT,
+                    "(the fit's unit)"),
         x=f.string("x", FIT_INPUTS),
         y=f.string("y", FIT_OUTPUTS),
     )
@@ -221,9 +269,10 @@ def read_motor(t: Table) -> Motor:
     direction = t.get("direction", "1 or -1 (the motor turns with the joint, or against it)",
                       lambda v: isinstance(v, int) and not isinstance(v, bool) and v in (1, -1),
                       default=1, required=False)
-    zero_offset = t.number("zero_offset_deg", "a number (deg): the motor angle (Present "
-                           "Position x 0.088 deg) at which the joint coordinate is zero",
-                           default=0.0, required=False)
+    zero_offset = t.bounded("zero_offset_deg", "a number (deg): the motor angle (Present "
+                            "Position x 0.088 deg) at which the joint coordinate is zero",
+                            lambda v: True, -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg", default=0.0,
+                            required=False)
     largest = MOTOR_SPECS[model].max_current_mA
     current_limit = t.number("current_limit_mA", f"a positive number (mA) up to the {model}'s "
                              f"{largest:g} mA", lambda v: 0 < v <= largest, required=False)
@@ -231,17 +280,57 @@ def read_motor(t: Table) -> Motor:
     return Motor(model, motor_id, fit, direction, math.radians(zero_offset), current_limit)
 
 
-def read_toml(path: Path) -> dict:
+def read_toml(path: Path, what: str = "robot description") -> dict:
+    """The TOML file at ``path`` (a ``what``: "robot description", "scenario") as a dict; any
+    file that is missing, unreadable, too large, not UTF-8, not TOML or nested too deep is one
+    :class:`DescriptionError` naming the file."""
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)  # bounded: a device or a huge file never fills memory
     except FileNotFoundError:
-        raise DescriptionError(path, "(file)", "an existing robot description file") from None
+        raise DescriptionError(path, "(file)", f"an existing {what} file") from None
+    except IsADirectoryError:
+        raise DescriptionError(path, "(file)", f"a {what} file, not a folder") from None
     except OSError as exc:
-        raise DescriptionError(path, "(file)", "a readable file", str(exc)) from None
+        raise DescriptionError(path, "(file)", f"a readable {what} file",
+                               exc.strerror or str(exc)) from None
+    except ValueError:  # a NUL byte in the path
+        raise DescriptionError(path, "(file)", f"a {what} file name without NUL bytes") \
+            from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise DescriptionError(path, "(file)", f"a {what} file of at most "
+                               f"{MAX_FILE_BYTES // 1024} KiB")
     try:
-        return tomllib.loads(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise DescriptionError(path, f"(line {line})", "UTF-8 text (save the file as UTF-8)",
+                               f"byte 0x{raw[exc.start]:02x}") from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise DescriptionError(path, "(syntax)", "valid TOML", str(exc)) from None
+    except RecursionError:
+        raise DescriptionError(path, "(syntax)", f"tables and lists nested at most "
+                               f"{MAX_NESTING} deep") from None
+    _check_nesting(path, data)
+    return data
+
+
+def _check_nesting(path: Path, data: dict) -> None:
+    """Refuse structures deeper than MAX_NESTING, which no description or scenario needs and
+    which recursive code (printing a value, copying it) could not handle."""
+    stack = [("", data, 0)]
+    while stack:
+        key, value, depth = stack.pop()
+        if depth > MAX_NESTING:
+            raise DescriptionError(path, key, f"tables and lists nested at most {MAX_NESTING} "
+                                   "deep")
+        if isinstance(value, dict):
+            stack.extend((f"{key}.{k}" if key else str(k), v, depth + 1)
+                         for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((f"{key}[{i}]", v, depth + 1) for i, v in enumerate(value))
 
 
 def resolve_path(name_or_path: str | Path) -> Path:
@@ -257,11 +346,14 @@ def open_description(path: Path, kind: str, gravity_size: int, gravity_frame: st
     top = Table(path, read_toml(path), "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     system = top.table("system")
-    name = system.string("name")
+    name = system.name("name")
     system.string("kind", (kind,))
-    gravity = system.vector("gravity_m_s2", gravity_size, "m/s^2", what=gravity_frame)
-    keep_out = system.number("keep_out_radius_m", f"a positive number (m): R_m, the radius "
-                             f"around {keep_out_around} must not enter", lambda v: v > 0)
+    gravity = system.vector("gravity_m_s2", gravity_size, "m/s^2",
+                            check=lambda v: math.hypot(*v) <= MAX_GRAVITY_M_S2,
+                            what=f"{gravity_frame}, of magnitude at most {MAX_GRAVITY_M_S2:g}")
+    keep_out = system.bounded("keep_out_radius_m", f"a positive number (m): R_m, the radius "
+                              f"around {keep_out_around} must not enter", lambda v: v > 0, 0,
+                              MAX_LENGTH_M, "m")
     system.done()
     return top, name, gravity, keep_out
 

@@ -22,9 +22,10 @@ from ..errors import CochleaError, DescriptionError
 from ..resources import SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
+from ..robots.adapter import sampled
 from ..robots.description import Table, read_toml
 from ..robots.model import ACTUATORS
-from .expressions import ExpressionError, parse
+from .expressions import FUNCTIONS, ExpressionError, parse
 
 FORMAT = "cochlea-scenario/1"
 #: ``[plant] plant = "<preset>"``: defaults for the plant's keys, each still settable.
@@ -39,6 +40,24 @@ PLANT_PRESETS = {
 }
 UNITS = {"deg": ("angle", np.pi / 180.0), "rad": ("angle", 1.0), "m": ("length", 1.0),
          "mm": ("length", 1e-3)}
+
+#: Bounds on what a scenario may ask (docs/runtime.md, "Bad input"): generous for the lab,
+#: finite so that no value exhausts the machine or overflows the maths.
+MIN_RATE_HZ, MAX_RATE_HZ = 1.0, 20_000.0
+#: RK4 steps per period: each adds a full step to every period's plant (and the symbolic
+#: plant grows with it); 1000 already costs seconds to build and milliseconds per period.
+MAX_PLANT_SUBSTEPS = 1000
+#: Periods of one run: 24 h at 1 kHz. Longer runs are split into several.
+MAX_PERIODS = 86_400_000
+MAX_GAIN = 1e6  # every controller gain, Gamma's scale, the estimate bound (SI)
+MAX_MASS_SCALE = 100.0
+MAX_PAYLOAD_KG = 100.0
+MAX_FRICTION = 1e4  # N m (s/rad) or N (s/m)
+MAX_NOISE_Q, MAX_NOISE_QD = 1.0, 100.0  # rad or m; rad/s or m/s
+MAX_DELAY_PERIODS = 1000
+MAX_DEFINITIONS = 100
+#: Names a definition may not take: they already mean something in a formula.
+RESERVED_NAMES = frozenset({"t", "pi", *FUNCTIONS})
 @dataclass(frozen=True)
 class Quantity:
     """A formula in t (s) with its unit; ``expression(t)`` gives SI values (rad or m)."""
@@ -146,6 +165,23 @@ class Scenario:
         return ca.Function("desired_leader", [t], [x, xd, xdd], ["t"], ["x", "x_dot", "x_ddot"])
 
 
+def check_desired(sc: Scenario) -> None:
+    """Every leader coordinate and its first two derivatives finite at every period of the
+    scenario's run (``sc.duration``; sampled, :func:`cochlea.robots.adapter.sample_times`):
+    a formula that divides by zero, overflows or leaves its domain at some t is refused with
+    the file and the key, before anything moves."""
+    names = ("", "its velocity ", "its acceleration ")
+    for times, outputs in sampled(sc.desired_leader(), sc.duration, sc.period):
+        for order, values in enumerate(outputs):
+            bad = np.argwhere(~np.isfinite(values))
+            if bad.size:
+                i, k = bad[0]
+                raise DescriptionError(
+                    sc.path, f"desired.leader[{i}]", "a formula finite at every t of the run",
+                    f"{names[order]}{values[i, k]} at t = {times[k]:.6g} s "
+                    f"({sc.leader[i].text})")
+
+
 def stressed(sc: Scenario, mass_scale: float, delay_periods: int = 2,
              payload_kg: float = 0.05) -> Scenario:
     """``sc`` with its plant's errors of the robustness studies: every body's inertial
@@ -199,7 +235,7 @@ def quantities(table: Table, key: str, kinds: tuple[str, ...], required: bool = 
 
 
 def constant_values(qs: tuple[Quantity, ...] | None) -> np.ndarray | None:
-    """Values of quantities that must not depend on t (initial states)."""
+    """Values of quantities that must not depend on t (initial states), each finite."""
     if qs is None:
         return None
     t = ca.SX.sym("t")
@@ -208,13 +244,29 @@ def constant_values(qs: tuple[Quantity, ...] | None) -> np.ndarray | None:
         expr = q.expression(t, {})
         if ca.depends_on(expr, t):
             raise ExpressionError(f"{q.text!r} must be a constant")
-        values.append(float(ca.evalf(expr)))
+        value = float(ca.evalf(expr))
+        if not np.isfinite(value):
+            raise ExpressionError(f"{q.text!r} is {value}, not a finite number")
+        values.append(value)
     return np.array(values)
 
 
 def _positive_list(table: Table, key: str, size: int) -> np.ndarray:
-    return table.vector(key, size, "the gain's SI unit", check=lambda v: all(x > 0 for x in v),
-                        what="(all positive)")
+    return table.vector(key, size, "the gain's SI unit",
+                        check=lambda v: all(0 < x <= MAX_GAIN for x in v),
+                        what=f"(all positive, at most {MAX_GAIN:g})")
+
+
+def _check_run_length(top: Table, duration: float, rate: float) -> None:
+    """A scenario's own run: at least one period, at most MAX_PERIODS."""
+    periods = duration * rate
+    if periods < 1.0:
+        raise top.error("duration_s", f"at least one control period ({1.0 / rate:g} s at "
+                        f"[control] rate_Hz = {rate:g})", duration)
+    if periods > MAX_PERIODS:
+        raise top.error("duration_s", f"at most {MAX_PERIODS:,} control periods "
+                        f"({MAX_PERIODS / rate:g} s at {rate:g} Hz): split a longer session "
+                        "into several runs", duration)
 
 
 def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
@@ -224,7 +276,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     ``plant_preset`` (``cochlea-run --plant``) replaces the preset of the scenario's
     ``[plant]`` table (or gives one where there is none); its other keys still apply."""
     path = resolve(name_or_path)
-    top = Table(path, read_toml(path), "")
+    top = Table(path, read_toml(path, "scenario"), "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     robot = top.string("robot", tuple(ROBOTS))
     space = top.string("space", ("joint", "task"))
@@ -235,29 +287,35 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     layout = adapter.layout(system, space)
 
     c = top.table("control")
-    rate = c.number("rate_Hz", "a positive number (Hz)", lambda v: v > 0, required=False,
-                    default=1000.0)
-    substeps = c.get("plant_substeps", "a positive integer", lambda v: isinstance(v, int)
-                     and not isinstance(v, bool) and v > 0, required=False, default=1)
+    rate = c.number("rate_Hz", f"a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] (Hz)",
+                    lambda v: MIN_RATE_HZ <= v <= MAX_RATE_HZ, required=False, default=1000.0)
+    substeps = c.get("plant_substeps", f"an integer in 1..{MAX_PLANT_SUBSTEPS} (RK4 steps per "
+                     "period)", lambda v: isinstance(v, int) and not isinstance(v, bool)
+                     and 0 < v <= MAX_PLANT_SUBSTEPS, required=False, default=1)
     variant = c.string("variant", ("corrected", "thesis"), required=False, default="corrected")
     parameterisation = c.string("parameterisation", ("base", "inertial", "mass"),
                                 required=False, default="base")
-    adaptation_gain = c.number("adaptation_gain", "a positive number (Gamma's scale)",
-                               lambda v: v > 0, required=False, default=1.0)
+    adaptation_gain = c.number("adaptation_gain", f"a positive number up to {MAX_GAIN:g} "
+                               "(Gamma's scale)", lambda v: 0 < v <= MAX_GAIN, required=False,
+                               default=1.0)
     adaptation = c.string("adaptation", ("uniform", "relative"), required=False,
                           default="uniform")
     initial_estimate = c.string("initial_estimate", ("zero", "nominal"), required=False,
                                 default="zero")
-    bound = c.number("estimate_bound", "a positive number (times |p_nominal|)", lambda v: v > 0,
-                     required=False, default=10.0)
+    bound = c.number("estimate_bound", f"a positive number up to {MAX_GAIN:g} (times "
+                     "|p_nominal|)", lambda v: 0 < v <= MAX_GAIN, required=False, default=10.0)
     mirror = c.string("mirror", ("desired",), required=False, default="desired")
     controller_actuators = c.string("actuators", ACTUATORS, required=False, default="none")
     c.done()
+    _check_run_length(top, duration, rate)
 
     d = top.table("desired")
-    definitions = d.get("define", "a table of named formulas in t (dimensionless)",
-                        lambda v: isinstance(v, dict) and all(isinstance(x, str)
-                                                              for x in v.values()),
+    definitions = d.get("define", f"a table of at most {MAX_DEFINITIONS} named formulas in t "
+                        "(dimensionless), each name a plain identifier other than t, pi and "
+                        "the functions",
+                        lambda v: isinstance(v, dict) and len(v) <= MAX_DEFINITIONS
+                        and all(isinstance(x, str) for x in v.values())
+                        and all(k.isidentifier() and k not in RESERVED_NAMES for k in v),
                         required=False, default={})
     t = ca.SX.sym("t")
     defs: dict[str, ca.SX] = {}
@@ -294,15 +352,20 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
         if weight:
             size = gain_set.size(weight, layout.n_joint, layout.n_task)
             given = g.vector(weight, size, "the gain's SI unit", required=False,
-                             check=lambda v: all(x > 0 for x in v), what="(all positive)")
+                             check=lambda v: all(0 < x <= MAX_GAIN for x in v),
+                             what=f"(all positive, at most {MAX_GAIN:g})")
             gains[weight] = np.ones(size) if given is None else given
         g.done()
         u.done()
-        try:
-            units.append(Unit(name, constant_values(joint_q), constant_values(task_q),
-                              constant_values(velocity_q), elbow, gains))
-        except ExpressionError as exc:
-            raise u.error("initial_joint", f"constant values ({exc})", show_got=False) from None
+        initial = {}
+        for key, qs in (("initial_joint", joint_q), ("initial_task", task_q),
+                        ("initial_velocity", velocity_q)):
+            try:
+                initial[key] = constant_values(qs)
+            except ExpressionError as exc:
+                raise u.error(key, f"constant, finite values ({exc})", show_got=False) from None
+        units.append(Unit(name, initial["initial_joint"], initial["initial_task"],
+                          initial["initial_velocity"], elbow, gains))
 
     plant = _plant(top.table("plant") if "plant" in top.data else None, layout, plant_preset)
     top.done()
@@ -332,25 +395,32 @@ def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
     n_bodies = layout.n_bodies
     plant = Plant(
         mass_scale=p.vector("mass_scale", n_bodies, "(dimensionless)", required=False,
-                            check=lambda v: all(x > 0 for x in v),
-                            what=f"(one positive factor per body: {n_bodies})"),
-        payload_kg=p.number("payload_kg", "a non-negative number (kg)", lambda v: v >= 0,
-                            required=False, default=0.0),
+                            check=lambda v: all(0 < x <= MAX_MASS_SCALE for x in v),
+                            what=f"(one positive factor per body: {n_bodies}, each at most "
+                            f"{MAX_MASS_SCALE:g})"),
+        payload_kg=p.number("payload_kg", f"a non-negative number (kg) up to {MAX_PAYLOAD_KG:g}",
+                            lambda v: 0 <= v <= MAX_PAYLOAD_KG, required=False, default=0.0),
         viscous_friction=p.vector("viscous_friction_SI", layout.n_joint,
                                   "N m s/rad (revolute) or N s/m (prismatic)",
-                                  check=lambda v: all(x >= 0 for x in v), required=False),
+                                  check=lambda v: all(0 <= x <= MAX_FRICTION for x in v),
+                                  what=f"(each in [0, {MAX_FRICTION:g}])", required=False),
         coulomb_friction=p.vector("coulomb_friction_SI", layout.n_joint,
                                   "N m (revolute) or N (prismatic)",
-                                  check=lambda v: all(x >= 0 for x in v), required=False),
-        noise_q_std=p.number("noise_q_std_SI", "a non-negative number (rad or m)",
-                             lambda v: v >= 0, required=False, default=0.0),
-        noise_qd_std=p.number("noise_qd_std_SI", "a non-negative number (rad/s or m/s)",
-                              lambda v: v >= 0, required=False, default=0.0),
-        delay_periods=p.get("delay_periods", "a non-negative integer",
+                                  check=lambda v: all(0 <= x <= MAX_FRICTION for x in v),
+                                  what=f"(each in [0, {MAX_FRICTION:g}])", required=False),
+        noise_q_std=p.number("noise_q_std_SI", f"a non-negative number (rad or m) up to "
+                             f"{MAX_NOISE_Q:g}", lambda v: 0 <= v <= MAX_NOISE_Q, required=False,
+                             default=0.0),
+        noise_qd_std=p.number("noise_qd_std_SI", f"a non-negative number (rad/s or m/s) up to "
+                              f"{MAX_NOISE_QD:g}", lambda v: 0 <= v <= MAX_NOISE_QD,
+                              required=False, default=0.0),
+        delay_periods=p.get("delay_periods", f"an integer in 0..{MAX_DELAY_PERIODS}",
                             lambda v: isinstance(v, int) and not isinstance(v, bool)
-                            and v >= 0, required=False, default=d["delay_periods"]),
-        seed=p.get("seed", "an integer", lambda v: isinstance(v, int), required=False,
-                   default=0),
+                            and 0 <= v <= MAX_DELAY_PERIODS, required=False,
+                            default=d["delay_periods"]),
+        seed=p.get("seed", "a non-negative integer below 2**63",
+                   lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**63,
+                   required=False, default=0),
         position_encoder=flag("position_encoder", "measured positions on the encoder grid"),
         velocity_register=flag("velocity_register", "measured velocities in 0.229 rpm counts"),
         current_quantisation=flag("current_quantisation", "applied efforts in whole Goal Current "

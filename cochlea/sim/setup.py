@@ -7,6 +7,8 @@ emulator, so every one of them runs exactly the same controller on exactly the s
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -16,6 +18,7 @@ from ..control import Controller, build
 from ..dynamixel.control_table import RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB
 from ..errors import CochleaError
 from ..robots import robot
+from ..robots.adapter import sampled
 from ..robots.model import INERTIAL_NAMES, RobotModel
 from ..robots.motor_fit import effort_grid
 from . import scenario as scenario_mod
@@ -207,17 +210,80 @@ def drive_grids(adapter, system, plant: scenario_mod.Plant
     return np.array([g[0] for g in grids]), np.array([g[1] for g in grids])
 
 
+#: Periods of one as-fast simulation, which keeps every period in memory (about 1.2 kB each
+#: for the serial system: 4.5 GB for an hour at 1 kHz). The real-time loop's own bound is
+#: :data:`cochlea.sim.scenario.MAX_PERIODS`.
+MAX_FAST_PERIODS = 3_600_000
+
+
+def check_run_length(duration: float, rate_hz: float, what: str = "the duration",
+                     max_periods: int = scenario_mod.MAX_PERIODS) -> int:
+    """The number of periods of a run of ``duration`` s at ``rate_hz``, refused unless finite,
+    at least one period and at most ``max_periods``; ``what`` names the option or key."""
+    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise CochleaError(f"{what} must be positive and finite (seconds), got "
+                           f"{duration}")
+    periods = int(round(duration * rate_hz))
+    if periods < 1:
+        raise CochleaError(f"{what} {duration:g} s is shorter than one control period "
+                           f"({1.0 / rate_hz:g} s at {rate_hz:g} Hz): give at least "
+                           f"{1.0 / rate_hz:g} s")
+    if periods > max_periods:
+        raise CochleaError(f"{what} {duration:g} s at {rate_hz:g} Hz is {periods:,} periods, "
+                           f"more than the {max_periods:,} one run may hold: split the session "
+                           f"into runs of at most {max_periods / rate_hz:g} s")
+    return periods
+
+
+def check_start(sc: scenario_mod.Scenario, plan) -> None:
+    """A unit's initial state finite and inside its joints' position and velocity limits, and
+    its desired trajectory finite over the run: what the supervisor would otherwise stop at
+    the first period, or later, after the robot moved."""
+    m = plan.controller_model
+    q0, qd0 = plan.x0[:m.nq], plan.x0[m.nq:]
+    where = f"scenario {sc.path}: unit {plan.name}"
+    if not np.isfinite(plan.x0).all():
+        raise CochleaError(f"{where}: the initial state {plan.x0.tolist()} is not finite: "
+                           "check initial_joint / initial_task / initial_velocity")
+    for j, q, qd in zip(m.joints, q0, qd0):
+        lo, hi = j.position_limits
+        unit, scale = ("deg", 180.0 / math.pi) if j.type == "revolute" else ("m", 1.0)
+        if not lo - 1e-9 <= q <= hi + 1e-9:
+            raise CochleaError(f"{where}: the initial position of joint {j.name}, "
+                               f"{q * scale:.4g} {unit}, is outside its limits "
+                               f"[{lo * scale:g}, {hi * scale:g}] {unit}")
+        if not abs(qd) <= j.velocity_limit:
+            raise CochleaError(f"{where}: the initial velocity of joint {j.name}, {qd:.4g} "
+                               f"{'rad/s' if j.type == 'revolute' else 'm/s'}, exceeds its "
+                               f"limit {j.velocity_limit:g}")
+    names = ("position", "velocity", "acceleration")
+    for times, outputs in sampled(plan.desired, sc.duration, sc.period):
+        for order, values in enumerate(outputs):
+            bad = np.argwhere(~np.isfinite(values))
+            if bad.size:
+                i, k = bad[0]
+                raise CochleaError(f"{where}: the desired {names[order]} of coordinate {i} is "
+                                   f"{values[i, k]} at t = {times[k]:.6g} s (derived from "
+                                   "[desired] leader): change the trajectory or shorten "
+                                   "--duration")
+
+
 def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
-    the scenario)."""
+    the scenario). Everything the run's duration (``sc.duration``) lets us check before
+    anything moves is checked here: the leader's formulas finite, each unit's initial state
+    and desired path inside the workspace and the limits (the adapters' checks)."""
     adapter = robot(sc.robot)
     system = sc.system if sc.system is not None else adapter.load(sc.description)
+    check_run_length(sc.duration, sc.rate_hz, "duration_s")
+    scenario_mod.check_desired(sc)
     grids = measurement_grids(adapter, system, sc.plant)
     viscous, coulomb = plant_friction(adapter, system, sc.plant)
     drives = drive_grids(adapter, system, sc.plant)
     first_joint = 0  # the unit's first joint in the system
     setups = []
     for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
+        check_start(sc, plan)
         m = plan.controller_model
         controller = build(m, sc.controller, variant=sc.variant, task_angles=plan.task_angles,
                            task=plan.task)
@@ -284,6 +350,7 @@ def run_inputs(sc: scenario_mod.Scenario, duration: float | None,
     """A run's duration (default: the scenario's; s, positive) and its setups (default: made
     from the scenario): what every simulation entry point starts from."""
     duration = sc.duration if duration is None else duration
-    if not duration > 0:
-        raise CochleaError(f"the duration must be positive, got {duration} s")
-    return duration, unit_setups(sc) if setups is None else setups
+    check_run_length(duration, sc.rate_hz, max_periods=MAX_FAST_PERIODS)
+    if setups is None:  # checked over this run's duration, not the scenario's
+        setups = unit_setups(dataclasses.replace(sc, duration=duration))
+    return duration, setups

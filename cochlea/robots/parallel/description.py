@@ -14,6 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from ..description import (
+    MAX_INERTIA_KGM2,
+    MAX_LENGTH_M,
+    MAX_MASS_KG,
+    MIN_INERTIA_KGM2,
+    MIN_MASS_KG,
     Actuator,
     Motor,
     Table,
@@ -167,11 +172,11 @@ class ParallelSystem:
 def _read_transmission(t: Table) -> Transmission:
     kind = t.string("kind", tuple(TRANSMISSIONS))
     if kind == "pinion":
-        size = t.number("radius_m", "a positive number (m, the pinion's pitch radius)",
-                        lambda v: v > 0)
+        size = t.bounded("radius_m", "a positive number (m, the pinion's pitch radius)",
+                         lambda v: v > 0, 0, MAX_LENGTH_M, "m")
     else:
-        size = t.number("lead_m", "a positive number (m of slider travel per motor revolution)",
-                        lambda v: v > 0)
+        size = t.bounded("lead_m", "a positive number (m of slider travel per motor "
+                         "revolution)", lambda v: v > 0, 0, MAX_LENGTH_M, "m")
     t.done()
     return Transmission(kind, size)
 
@@ -187,11 +192,13 @@ def _read_joint(t: Table, name: str, jtype: str) -> ParallelJoint:
 
 
 def _read_body(t: Table, name: str) -> PlanarBody:
-    mass = t.number("mass_kg", "a positive number (kg)", lambda v: v > 0)
-    com = t.vector("com_m", 2, "m", what="(x, y) in the body frame")
-    inertia = t.number("inertia_com_kgm2",
-                       "a positive number (kg m^2, about the centre of mass and the plane "
-                       "normal)", lambda v: v > 0)
+    mass = t.bounded("mass_kg", "a positive number (kg)", lambda v: v > 0, MIN_MASS_KG,
+                     MAX_MASS_KG, "kg")
+    com = t.vector("com_m", 2, "m", check=lambda v: all(abs(x) <= MAX_LENGTH_M for x in v),
+                   what=f"(x, y) in the body frame, each within +-{MAX_LENGTH_M:g} m")
+    inertia = t.bounded("inertia_com_kgm2", "a positive number (kg m^2, about the centre of "
+                        "mass and the plane normal)", lambda v: v > 0, MIN_INERTIA_KGM2,
+                        MAX_INERTIA_KGM2, "kg m^2")
     t.done()
     return PlanarBody(name, mass, com, inertia)
 
@@ -213,16 +220,17 @@ def load_parallel(name_or_path: str | Path = "parallel") -> ParallelSystem:
 
     geo = top.table("geometry")
     positive = lambda v: v > 0  # noqa: E731
-    lp = geo.number("link_length_m", "a positive number (m)", positive)
-    d2 = geo.number("base_offset_m", "a positive number (m)", positive)
-    d3 = geo.number("rod_length_m", "a positive number (m)", positive)
+    lp = geo.bounded("link_length_m", "a positive number (m)", positive, 0, MAX_LENGTH_M, "m")
+    d2 = geo.bounded("base_offset_m", "a positive number (m)", positive, 0, MAX_LENGTH_M, "m")
+    d3 = geo.bounded("rod_length_m", "a positive number (m)", positive, 0, MAX_LENGTH_M, "m")
     r_min = geo.number("min_pivot_distance_m",
                        f"a positive number (m) below rod_length_m = {d3:g}",
                        lambda v: 0 < v < d3)
     geo.done()
 
     slider = top.table("slider")
-    slider_mass = slider.number("mass_kg", "a positive number (kg)", positive)
+    slider_mass = slider.bounded("mass_kg", "a positive number (kg)", positive, MIN_MASS_KG,
+                                 MAX_MASS_KG, "kg")
     d1 = _read_joint(slider.table("d1"), "slider.d1", "prismatic")
     slider.done()
     left = _read_side(top.table("left"), "left", 1.0)

@@ -19,6 +19,7 @@ from ..adapter import (
     UnitPlan,
     UnitStart,
     desired_function,
+    sampled,
 )
 from ..model import RobotModel
 from .description import Arm, SerialSystem, load_serial
@@ -30,16 +31,51 @@ TASK_UNITS = ("m", "m", "rad")
 TASK_ANGLES = (2,)
 
 
+def _where(sc: ScenarioView) -> str:
+    return str(getattr(sc, "path", sc.name))  # the file when the view has one
+
+
 def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView) -> None:
     """Refuse a follower trajectory that leaves the workspace, before anything runs."""
     c2 = ca.Function("c2", [t], [elbow_cosine(arm, pose_base_t)])
-    times = np.arange(0.0, sc.duration + 0.5 * sc.period, sc.period)
-    values = np.array(c2.map(len(times))(times)).ravel()
-    bad = np.flatnonzero(~(np.abs(values) <= 1.0))
-    if bad.size:
-        k = bad[0]
-        raise UnreachableTarget(f"scenario {sc.name}: {arm.name}'s desired pose leaves the "
-                                f"workspace at t = {times[k]:.3f} s (cos th2 = {values[k]:.4f})")
+    for times, (values,) in sampled(c2, sc.duration, sc.period):
+        values = values.ravel()
+        bad = np.flatnonzero(~(np.abs(values) <= 1.0))
+        if bad.size:
+            k = bad[0]
+            raise UnreachableTarget(f"scenario {_where(sc)}: {arm.name}'s desired pose leaves the "
+                                    f"workspace at t = {times[k]:.3f} s (cos th2 = "
+                                    f"{values[k]:.4f})")
+
+
+def _check_path(arm: Arm, q_t: ca.SX, tool_t: ca.SX, t: ca.SX, sc: ScenarioView,
+                keep_out: float | None) -> None:
+    """Refuse a desired path the supervisor would stop, before anything moves: a joint beyond
+    its position limits, or (``keep_out``, task space) the tool inside the keep-out circle
+    around the cochlea centre, at any sampled time of the run."""
+    lo = np.array([link.joint.position_limits[0] for link in arm.links])[:, None]
+    hi = np.array([link.joint.position_limits[1] for link in arm.links])[:, None]
+    path = ca.Function("path", [t], [q_t, ca.norm_2(tool_t[0:2])])
+    for times, (q, r) in sampled(path, sc.duration, sc.period):
+        outside = ~((lo <= q) & (q <= hi))
+        if outside.any():
+            j, k = np.argwhere(outside.T)[0][::-1]
+            lo_j, hi_j = np.degrees(arm.links[j].joint.position_limits)
+            raise UnreachableTarget(
+                f"scenario {_where(sc)}: {arm.name}'s desired path takes joint "
+                f"{arm.links[j].name} to {np.degrees(q[j, k]):.2f} deg at t = {times[k]:.3f} s, "
+                f"outside its limits [{lo_j:g}, {hi_j:g}] deg: the supervisor would stop the "
+                "run there; change the trajectory or shorten --duration")
+        if keep_out is not None:
+            inside = np.flatnonzero(~(r.ravel() >= keep_out))
+            if inside.size:
+                k = inside[0]
+                raise UnreachableTarget(
+                    f"scenario {_where(sc)}: {arm.name}'s desired tool path passes "
+                    f"{r.ravel()[k] * 1000:.1f} mm from the cochlea centre at t = "
+                    f"{times[k]:.3f} s, inside the keep-out radius {keep_out * 1000:.1f} mm: the "
+                    "supervisor would stop the run there; change the trajectory or shorten "
+                    "--duration")
 
 
 def _initial_joint(arm: Arm, unit: UnitStart) -> np.ndarray:
@@ -106,7 +142,18 @@ class SerialRobot(RobotAdapter):
                         offsets = 2 * np.pi * np.round((q0 - q_branch) / (2 * np.pi))
                     desired_expr = ik_symbolic(arm, pose_base, elbow, offsets)
             if sc.space == "task":
-                _check_reachable(arm, world_to_base(arm, desired_expr), t, sc)
+                pose_base = world_to_base(arm, desired_expr)
+                _check_reachable(arm, pose_base, t, sc)
+                # The joints follow the branch and turns of the initial configuration.
+                elbow = unit.elbow or (1 if q0[1] >= 0 else -1)
+                pose0 = np.array(ca.evalf(ca.substitute(desired_expr, t, 0.0))).ravel()
+                q_branch = np.array(ik_symbolic(arm, ca.DM(world_to_base(arm, pose0)),
+                                                elbow)).ravel()
+                offsets = 2 * np.pi * np.round((q0 - q_branch) / (2 * np.pi))
+                _check_path(arm, ik_symbolic(arm, pose_base, elbow, offsets), desired_expr, t,
+                            sc, system.keep_out_radius)
+            else:
+                _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc, None)
             tool = arm.links[-1]
             plans.append(UnitPlan(
                 arm.name, m, self.model(system, arm, "inertial", actuators=sc.plant_actuators),

@@ -14,6 +14,12 @@ import numpy as np
 
 from ...errors import DescriptionError, ModelError
 from ..description import (
+    MAX_ANGLE_DEG,
+    MAX_INERTIA_KGM2,
+    MAX_LENGTH_M,
+    MAX_MASS_KG,
+    MIN_INERTIA_KGM2,
+    MIN_MASS_KG,
     Actuator,
     Motor,
     Table,
@@ -103,6 +109,10 @@ class SerialSystem:
 # --------------------------------------------------------------------------------------------
 
 
+def _within(bound: float):
+    return lambda v: all(abs(x) <= bound for x in v)
+
+
 def _rpy_matrix(rpy: np.ndarray) -> np.ndarray:
     """Fixed-axis roll-pitch-yaw (rad) to a rotation matrix, R = Rz(yaw) Ry(pitch) Rx(roll)."""
     r, p, y = rpy
@@ -122,9 +132,12 @@ def inertia_matrix(six: np.ndarray) -> np.ndarray:
 
 
 def _physical_inertia(six: list[float]) -> bool:
-    """Positive definite with principal moments obeying the triangle inequality."""
+    """Positive definite with principal moments obeying the triangle inequality, every entry
+    and moment within the description's bounds."""
+    if not all(abs(x) <= MAX_INERTIA_KGM2 for x in six):
+        return False
     moments = np.linalg.eigvalsh(inertia_matrix(np.array(six, dtype=float)))
-    if moments[0] <= 0.0:
+    if moments[0] < MIN_INERTIA_KGM2:
         return False
     a, b, c = moments
     slack = 1e-12 * c
@@ -133,13 +146,16 @@ def _physical_inertia(six: list[float]) -> bool:
 
 def _read_joint(t: Table, parent_length: float) -> Joint:
     jtype = t.string("type", ("revolute", "prismatic"))
-    axis = t.vector("axis", 3, "the joint frame", check=lambda v: np.linalg.norm(v) > 1e-9,
-                    what="(a non-zero direction)")
+    axis = t.vector("axis", 3, "the joint frame",
+                    check=lambda v: all(abs(x) <= 1e3 for x in v) and np.linalg.norm(v) > 1e-9,
+                    what="(a non-zero direction, each component within +-1000)")
     axis = axis / np.linalg.norm(axis)
-    origin_xyz = t.vector("origin_xyz_m", 3, "m", required=False)
+    origin_xyz = t.vector("origin_xyz_m", 3, "m", check=_within(MAX_LENGTH_M),
+                          what=f"(each within +-{MAX_LENGTH_M:g} m)", required=False)
     if origin_xyz is None:
         origin_xyz = np.array([parent_length, 0.0, 0.0])
-    origin_rpy = t.vector("origin_rpy_deg", 3, "deg", required=False)
+    origin_rpy = t.vector("origin_rpy_deg", 3, "deg", check=_within(MAX_ANGLE_DEG),
+                          what=f"(each within +-{MAX_ANGLE_DEG:g} deg)", required=False)
     origin_rpy = np.zeros(3) if origin_rpy is None else np.radians(origin_rpy)
 
     lo, hi, velocity, effort = read_limits(t, jtype)
@@ -149,15 +165,19 @@ def _read_joint(t: Table, parent_length: float) -> Joint:
 
 
 def _read_link(t: Table, parent_length: float) -> Link:
-    name = t.string("name")
-    length = t.number("length_m", "a non-negative number (m)", lambda v: v >= 0)
-    mass = t.number("mass_kg", "a positive number (kg)", lambda v: v > 0)
-    com = t.vector("com_m", 3, "m", what="in the link frame")
+    name = t.name("name")
+    length = t.bounded("length_m", "a non-negative number (m)", lambda v: v >= 0, 0,
+                       MAX_LENGTH_M, "m")
+    mass = t.bounded("mass_kg", "a positive number (kg)", lambda v: v > 0, MIN_MASS_KG,
+                     MAX_MASS_KG, "kg")
+    com = t.vector("com_m", 3, "m", check=_within(MAX_LENGTH_M),
+                   what=f"in the link frame, each within +-{MAX_LENGTH_M:g} m")
     inertia = t.vector(
         "inertia_com_kgm2", 6, "kg m^2",
         check=_physical_inertia,
         what="as [Ixx, Iyy, Izz, Ixy, Ixz, Iyz] about the centre of mass, forming a positive "
-             "definite matrix whose principal moments obey the triangle inequality",
+             "definite matrix whose principal moments obey the triangle inequality, each "
+             f"moment in [{MIN_INERTIA_KGM2:g}, {MAX_INERTIA_KGM2:g}] kg m^2",
     )
     joint = _read_joint(t.table("joint"), parent_length)
     motor = read_motor(t.table("motor"))
@@ -166,9 +186,11 @@ def _read_link(t: Table, parent_length: float) -> Link:
 
 
 def _read_arm(t: Table) -> Arm:
-    name = t.string("name")
-    base_xyz = t.vector("base_xyz_m", 3, "m", what="in the world (cochlea) frame")
-    base_yaw = math.radians(t.number("base_yaw_deg", "a number (deg)"))
+    name = t.name("name")
+    base_xyz = t.vector("base_xyz_m", 3, "m", check=_within(MAX_LENGTH_M),
+                        what=f"in the world (cochlea) frame, each within +-{MAX_LENGTH_M:g} m")
+    base_yaw = math.radians(t.bounded("base_yaw_deg", "a number (deg)", lambda v: True,
+                                      -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg"))
     links = []
     parent_length = 0.0  # the first joint sits at the base origin unless told otherwise
     for lt in t.tables("link", "the links from base to tip"):
