@@ -1,0 +1,190 @@
+"""Issue 13, the emulator and the bridge, and messages: every bad option of cochlea-emulator
+refused in one line before anything is served, the emulator answering SIGINT, SIGTERM and
+--duration in any valid configuration, baud rates the motors do not have refused by every
+program, and the stop line of a motor's hardware alert naming the motor and the alert."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cochlea.dynamixel import protocol as proto
+from cochlea.dynamixel.emulator import Faults, VirtualChain, check_faults
+from cochlea.dynamixel.emulator import main as emulator_main
+from cochlea.errors import EXIT_USER_ERROR, CochleaError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def refused(capsys, argv: list[str]) -> str:
+    """Run cochlea-emulator in-process on ``argv``: it must refuse with exit 2 and one line."""
+    try:
+        code = emulator_main(argv)
+    except SystemExit as exc:  # the parser's own refusals
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == EXIT_USER_ERROR, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cochlea-emulator: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+# ---- class 8: every option validated ---------------------------------------------------------
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "-inf", "1e-6", "0.049", "51",
+                                   "1e300"])
+def test_plant_periods_outside_the_sane_range_are_refused(capsys, value):
+    line = refused(capsys, ["--robot", "serial", f"--plant-period-ms={value}"])
+    assert "--plant-period-ms" in line and "expected 0.05 to 50 ms" in line
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "nan", "inf", "-inf", "x"])
+def test_durations_that_are_not_positive_and_finite_are_refused(capsys, value):
+    assert "--duration" in refused(capsys, ["--robot", "parallel", f"--duration={value}"])
+
+
+@pytest.mark.parametrize("option,value", [
+    ("--drop-replies", "nan"), ("--corrupt-crc", "inf"), ("--late-replies", "-0.1"),
+    ("--drop-replies", "1.0001"), ("--late-ms", "nan"), ("--late-ms", "-1"),
+    ("--late-ms", "1e9"), ("--fault-delay", "inf"), ("--fault-delay", "nan"),
+    ("--fault-delay", "-1")])
+def test_fault_numbers_out_of_range_are_refused(capsys, option, value):
+    assert option in refused(capsys, ["--robot", "serial", f"{option}={value}"])
+
+
+@pytest.mark.parametrize("robot,option,value", [
+    ("serial", "--silent-motor", "7"), ("serial", "--silent-motor", "-1"),
+    ("serial", "--hardware-error", "42"), ("serial", "--hardware-error", "0:5"),
+    ("serial", "--fault-ids", "1,77"), ("parallel", "--fault-ids", "6"),
+    ("parallel", "--missing-motor", "6"), ("serial", "--model-number", "300:311"),
+    ("parallel", "--hardware-error", "9:2")])
+def test_faults_naming_motors_that_are_not_on_the_chain_are_refused(capsys, robot, option,
+                                                                      value):
+    line = refused(capsys, ["--robot", robot, option, value])
+    assert option in line and "is not on this chain" in line
+
+
+@pytest.mark.parametrize("option,value", [
+    ("--model-number", "3:70000"), ("--model-number", "3:-1"), ("--fault-ids", ","),
+    ("--hardware-error", "3:1"), ("--hardware-error", "3:x"), ("--fault-ids", "a,b"),
+    ("--seed", "1.5"), ("--nonsense", "1")])
+def test_malformed_fault_options_are_one_line(capsys, option, value):
+    refused(capsys, ["--robot", "serial", f"{option}={value}"])
+
+
+def test_the_library_checks_what_the_command_checks():
+    ids = [1, 2, 3]
+    for faults in (Faults(drop=float("nan")), Faults(late_s=-1.0), Faults(silent=9),
+                   Faults(hardware_error=(1, 1)), Faults(delay_s=float("inf")),
+                   Faults(model_number={1: 1 << 16}), Faults(ids=frozenset())):
+        with pytest.raises(CochleaError):
+            check_faults(faults, ids)
+    check_faults(Faults(drop=1.0, ids=frozenset({3}), hardware_error=(2, 5), silent=1), ids)
+    with pytest.raises(CochleaError, match="--plant-period-ms"):
+        VirtualChain("serial", plant_period_s=0.0)
+
+
+def test_a_log_that_cannot_be_written_is_refused_and_nothing_is_left(tmp_path, capsys):
+    plain = tmp_path / "plain"
+    plain.write_text("")
+    for log in (tmp_path, plain / "events.txt", tmp_path / "missing" / "events.txt"):
+        line = refused(capsys, ["--robot", "serial", "--log", str(log)])
+        assert f"--log {log}" in line and "expected a file in a writable folder" in line
+    # A refused option leaves no log file behind, even when the log's path itself is fine.
+    log = tmp_path / "events.txt"
+    refused(capsys, ["--robot", "serial", "--log", str(log), "--silent-motor", "9"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plain"]
+
+
+@pytest.mark.hil
+def test_a_log_that_fails_while_serving_stops_the_chain_with_its_own_code():
+    """/dev/full: every write fails with ENOSPC, as on a full disk."""
+    proc, fd = _start("--robot", "serial", "--log", "/dev/full", "--duration", "30")
+    try:
+        for _ in range(400):  # more events than the log's buffer holds
+            try:
+                os.write(fd, proto.ping(1))
+            except OSError:
+                break  # the chain stopped and closed its end
+            time.sleep(0.001)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        os.close(fd)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 3, err
+    assert len(lines) == 1 and "writing the event log /dev/full failed" in lines[0], err
+    assert "--log" in lines[0] and "Traceback" not in err
+    assert "cochlea-emulator: stopped (" in out
+
+
+# ---- class 8: responsive to signals and --duration in any valid configuration --------------
+
+def _start(*options: str) -> tuple[subprocess.Popen, int]:
+    """The emulator with ``options``, every motor driven (current mode, Goal Current 0, torque
+    on) so the plant integrates at every step: the heaviest work its options can ask for."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cochlea.dynamixel.emulator", "--priority", "normal", *options],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    path = proc.stdout.readline().strip()
+    assert path.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else path
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+    for motor_id in range(1, 7):
+        for address, value, size in ((11, 0, 1), (102, 0, 2), (64, 1, 1)):
+            os.write(fd, proto.write(motor_id, address, proto.le(value, size)))
+            time.sleep(0.005)
+    return proc, fd
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+EXTREME = [
+    ("--robot", "parallel", "--plant", "realistic", "--plant-period-ms", "0.05"),
+    ("--robot", "serial", "--plant-period-ms", "0.05", "--wire-timing", "--baud", "9600",
+     "--late-replies", "1", "--late-ms", "10000"),
+    ("--robot", "serial", "--plant-period-ms", "50", "--drop-replies", "1"),
+]
+
+
+@pytest.mark.hil
+@pytest.mark.parametrize("options", EXTREME)
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_extreme_options_still_answer_signals(options, signum):
+    proc, fd = _start(*options)
+    try:
+        # The plant's smallest step costs more than real time allows on this machine: the
+        # emulator must fall behind (and count it), never spin: a spin under SCHED_FIFO would
+        # starve the machine. Only a spin can use the whole of a processor.
+        before, start = _cpu_seconds(proc.pid), time.monotonic()
+        time.sleep(1.5)
+        share = (_cpu_seconds(proc.pid) - before) / (time.monotonic() - start)
+        assert share < 0.95, share
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        os.close(fd)
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "cochlea-emulator: stopped (" in out and "Traceback" not in err
+
+
+@pytest.mark.hil
+def test_duration_ends_the_most_demanding_configuration():
+    proc, fd = _start(*EXTREME[0], "--duration", "1")
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        os.close(fd)
+    assert proc.returncode == 0, err
+    assert "plant_overruns" in out and "Traceback" not in err
