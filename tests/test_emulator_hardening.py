@@ -188,3 +188,59 @@ def test_duration_ends_the_most_demanding_configuration():
         os.close(fd)
     assert proc.returncode == 0, err
     assert "plant_overruns" in out and "Traceback" not in err
+
+
+# ---- class 8: baud rates the motors do not have, in every program --------------------------
+
+BAD_BAUDS = ["0", "-5", "12345", "4000001", "1"]
+
+
+@pytest.mark.parametrize("baud", BAD_BAUDS)
+def test_the_emulator_refuses_rates_the_motors_do_not_have(capsys, baud):
+    line = refused(capsys, ["--robot", "serial", f"--baud={baud}"])
+    assert f"--baud {baud} is not a Dynamixel rate" in line and "4500000" in line
+
+
+@pytest.mark.parametrize("baud", [0, -5, 12345, 4_000_001, True, 4e6])
+def test_the_bridge_refuses_them_as_the_user_s_mistake_before_the_port(baud):
+    from cochlea.dynamixel.bridge import DynamixelBackend  # noqa: PLC0415
+    from cochlea.runtime import BackendError  # noqa: PLC0415
+
+    with pytest.raises(CochleaError, match="is not a Dynamixel rate") as caught:
+        DynamixelBackend("serial", "/dev/null-never-opened", baud)
+    assert not isinstance(caught.value, BackendError)  # exit 2, not "could not start"
+
+
+@pytest.mark.parametrize("baud", ["0", "-5", "12345"])
+def test_cochlea_run_refuses_them_in_one_line(tmp_path, baud):
+    done = subprocess.run(
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+         "joint", "--backend", "dynamixel", "--port", "/dev/null-never-opened",
+         f"--baud={baud}", "--out", str(tmp_path / "run")],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == EXIT_USER_ERROR, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        f"cochlea-run: --baud {baud} is not a Dynamixel rate: expected one of 9600, 57600, "
+        "115200, 1000000, 2000000, 3000000, 4000000, 4500000"]
+
+
+@pytest.fixture(scope="module")
+def program() -> Path:
+    """``make embedded``: up to date, make rebuilds only what changed."""
+    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return ROOT / "build" / "cochlea-embedded"
+
+
+@pytest.mark.parametrize("baud", [*BAD_BAUDS, "nan", "4e6x", "115200.5"])
+def test_the_c_program_refuses_them_in_one_line(tmp_path, program, baud):
+    out = tmp_path / "run"
+    done = subprocess.run([str(program), "--scenario", "serial_joint", "--port",
+                           "/dev/null-never-opened", "--baud", baud, "--out", str(out)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == EXIT_USER_ERROR, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"--baud {baud} is not a Dynamixel rate" in lines[0]
+    assert not out.exists()
+

@@ -57,6 +57,7 @@ from .control_table import (
     STATE_ADDRESS,
     STATE_LENGTH,
     WATCHDOG_UNIT_S,
+    baud_code,
     describe_error,
     describe_hardware_error,
 )
@@ -99,6 +100,7 @@ class DynamixelBackend:
                  open_port=SerialPort, system=None):
         self.robot = robot
         self.port_path = str(port)
+        baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
         self.baud = int(baud)
         self.drives: list[JointDrive] = joint_drives(robot, description, ramp_Nm,
                                                     system=system)

@@ -69,7 +69,6 @@ from .control_table import (
     ADDR_HARDWARE_ERROR,
     ADDR_TORQUE_ENABLE,
     ALERT_BIT,
-    BAUD_RATES,
     BROADCAST_ID,
     CRC_ERROR,
     CURRENT_MODE,
@@ -90,6 +89,7 @@ from .control_table import (
     WATCHDOG_UNIT_S,
     WRITE,
     Item,
+    baud_code,
 )
 from .drives import JointDrive, joint_drives
 
@@ -403,10 +403,7 @@ class VirtualChain:
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
                  max_events: int = 200_000, plant: str | None = None):
-        codes = {rate: code for code, rate in BAUD_RATES.items()}
-        if baud not in codes:
-            raise CochleaError(f"--baud {baud} is not a Dynamixel rate: "
-                               + ", ".join(str(b) for b in BAUD_RATES.values()))
+        code = baud_code(baud)
         # plant: a preset of the scenario's [plant] table, e.g. "realistic": the motors' rotors
         # and gearbox friction move the joints (their counts are the motors' own already).
         self.scenario = load_scenario(scenario or f"{robot}_joint", plant_preset=plant)
@@ -422,7 +419,7 @@ class VirtualChain:
             if not lo <= plant_period_s <= hi:  # NaN fails too
                 raise CochleaError(f"--plant-period-ms: expected {lo * 1e3:g} to {hi * 1e3:g} "
                                    f"ms, got {plant_period_s * 1e3:g}")
-        self.motors = [VirtualMotor(d, codes[baud], self.faults.model_number.get(d.id))
+        self.motors = [VirtualMotor(d, code, self.faults.model_number.get(d.id))
                        for d in self.drives]
         for m in self.motors:
             m.on_torque = self._on_torque

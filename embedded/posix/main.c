@@ -164,8 +164,18 @@ static int parse(int argc, char **argv, options *o)
         } else if (strcmp(a, "--out") == 0) {
             o->out = value;
         } else if (strcmp(a, "--baud") == 0) {
-            if (!parse_number(value, &v) || v != floor(v) || v < 9600 || v > 10.5e6) {
-                return fail_usage("--baud must be a whole number of baud, got %s", value);
+            /* Only the rates the motors have (Baud Rate, address 8): at any other the port
+             * would find no motor, and 0 is the termios "hang up" rate. */
+            static const long rates[] = {9600, 57600, 115200, 1000000, 2000000, 3000000,
+                                         4000000, 4500000};
+            size_t k, found = 0;
+            for (k = 0; k < sizeof rates / sizeof rates[0]; ++k) {
+                found |= parse_number(value, &v) && v == (double)rates[k];
+            }
+            if (!found) {
+                return fail_usage("--baud %s is not a Dynamixel rate: expected one of 9600, "
+                                  "57600, 115200, 1000000, 2000000, 3000000, 4000000, 4500000",
+                                  value);
             }
             o->baud = (long)v;
         } else if (strcmp(a, "--duration") == 0) {
