@@ -5,6 +5,7 @@ program, and the stop line of a motor's hardware alert naming the motor and the 
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -244,3 +245,49 @@ def test_the_c_program_refuses_them_in_one_line(tmp_path, program, baud):
     assert len(lines) == 1 and f"--baud {baud} is not a Dynamixel rate" in lines[0]
     assert not out.exists()
 
+
+# ---- class 9: the stop line of a motor's alert names the motor and the alert --------------
+
+@pytest.mark.hil
+@pytest.mark.parametrize("fault,expected", [
+    ("3:2", "ID 3 (arm1.link3, MX-64): hardware error (overheating)"),
+    ("5:4", "ID 5 (arm2.link2, MX-64): hardware error (electrical shock)"),
+    (None, "last failure timeout from ID 3 (arm1.link3, MX-64)")])
+def test_cochlea_run_s_stop_line_names_the_motor_and_its_alert(tmp_path, fault, expected):
+    from tests.test_dynamixel_hil import emulator, run  # noqa: PLC0415
+
+    options = ["--hardware-error", fault] if fault else ["--silent-motor", "3"]
+    out = tmp_path / "run"
+    with emulator("serial", "serial_joint", tmp_path / "emulator.log", "--fault-delay", "0.3",
+                  *options) as port:
+        done = run("--robot", "serial", "--space", "joint", "--backend", "dynamixel", "--port",
+                   port, "--duration", "3", "--out", str(out), cwd=tmp_path)
+    assert done.returncode == 15, done.stderr
+    (line,) = [x for x in done.stderr.splitlines() if "stopped by rule watchdog" in x]
+    assert "consecutive backend read failures: " + expected in line, line
+    summary = json.loads((out / "summary.json").read_text())
+    assert expected in summary["stop"]["detail"]
+
+
+@pytest.mark.hil
+@pytest.mark.parametrize("fault,expected", [
+    ("3:0", "ID 3 (arm1.link3, MX-64): hardware error (input voltage)"),
+    ("2:5", "ID 2 (arm1.link2, MX-64): hardware error (overload)"),
+    # Which motor a timed-out read blames first depends on where the emulator was: any of them.
+    (None, "last failure timeout from ID ")])
+def test_the_c_program_s_stop_line_names_the_motor_and_its_alert(tmp_path, program, fault,
+                                                                expected):
+    from tests.test_embedded_program import PATIENT, emulator  # noqa: PLC0415
+
+    options = ["--hardware-error", fault] if fault else ["--silent-motor", "3"]
+    out = tmp_path / "run"
+    with emulator("serial", "serial_joint", tmp_path / "emulator.log", "--fault-delay", "0.3",
+                  *options) as port:
+        done = subprocess.run(
+            [str(program), "--scenario", "serial_joint", "--port", port, "--duration", "3",
+             "--out", str(out), *PATIENT[:2]], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 15, done.stderr
+    (line,) = [x for x in done.stderr.splitlines() if "stopped by rule watchdog" in x]
+    assert "consecutive backend read failures: " + expected in line, line
+    summary = json.loads((out / "summary.json").read_text())
+    assert expected in summary["stop"]["detail"]

@@ -1295,7 +1295,7 @@ int main(int argc, char **argv)
                                          facts.watchdog_s * 1e3);
             }
         }
-        if (bridge.alert_id >= 0 && used < sizeof facts.shutdown) {
+        if (bridge.alert_id >= 0) {
             const cochlea_drive *d = 0;
             static const char *const bits[8] = {"input voltage", 0, "overheating",
                                                 "motor encoder", "electrical shock", "overload",
@@ -1324,8 +1324,28 @@ int main(int argc, char **argv)
             }
             if (d) {
                 who(text, sizeof text, d);
-                snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
-                         "; %s: hardware error (%s)", text, what);
+                if (used < sizeof facts.shutdown) {
+                    snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
+                             "; %s: hardware error (%s)", text, what);
+                }
+                /* The stop line names the motor and its alert, as cochlea-run's does. */
+                if (the_loop.stop.rule == COCHLEA_WATCHDOG && the_loop.stop.reason == 1) {
+                    const size_t at = strlen(facts.detail);
+                    snprintf(facts.detail + at, sizeof facts.detail - at,
+                             ": %s: hardware error (%s)", text, what);
+                }
+            }
+        } else if (the_loop.stop.rule == COCHLEA_WATCHDOG && the_loop.stop.reason == 1
+                   && bridge.last_failure >= 0) {
+            const size_t at = strlen(facts.detail);
+            snprintf(facts.detail + at, sizeof facts.detail - at, ": last failure %s",
+                     cochlea_failure_name(bridge.last_failure));
+            for (i = 0; i < bridge.n; ++i) {
+                if (bridge.drives[i].id == bridge.last_failure_id) {
+                    const size_t end = strlen(facts.detail);
+                    who(text, sizeof text, &bridge.drives[i]);
+                    snprintf(facts.detail + end, sizeof facts.detail - end, " from %s", text);
+                }
             }
         }
         if (write_summary(o.out, &the_loop, &log, rows, &facts, &bridge, &o, &converged) != 0
