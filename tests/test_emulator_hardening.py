@@ -291,3 +291,53 @@ def test_the_c_program_s_stop_line_names_the_motor_and_its_alert(tmp_path, progr
     assert "consecutive backend read failures: " + expected in line, line
     summary = json.loads((out / "summary.json").read_text())
     assert expected in summary["stop"]["detail"]
+
+
+# ---- class 9: a reader that goes away, a full output ------------------------------------------
+
+def _closed_pipe() -> int:
+    """The write end of a pipe whose reader is already gone: the first write fails (EPIPE),
+    whatever the timing, as in ``| head -1`` once head has exited."""
+    r, w = os.pipe()
+    os.close(r)
+    return w
+
+
+@pytest.mark.parametrize("argv", [["serial"], ["parallel"], ["serial", "--arm", "arm2"]])
+def test_cochlea_model_ends_quietly_when_its_reader_goes_away(argv):
+    w = _closed_pipe()
+    try:
+        done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_model", *argv],
+                              stdout=w, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(w)
+    assert done.stderr == "" and done.returncode == 128 + signal.SIGPIPE
+
+
+def test_cochlea_model_through_head_prints_its_first_line_only():
+    done = subprocess.run(f"{sys.executable} -u -m cochlea.apps.cochlea_model parallel | head -1",
+                          shell=True, capture_output=True, text=True, timeout=120)
+    assert done.stdout.startswith("model 'parallel'") and done.stdout.count("\n") == 1
+    assert done.stderr == ""
+
+
+def test_cochlea_model_on_a_full_disk_says_so_in_one_line():
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_model"], stdout=full,
+                              stderr=subprocess.PIPE, text=True, timeout=120)
+    assert done.returncode == 1
+    assert done.stderr.splitlines() == ["cochlea-model: cannot write the output: No space left "
+                                        "on device"]
+
+
+@pytest.mark.hil
+def test_the_emulator_keeps_serving_when_the_reader_of_its_path_goes_away():
+    w = _closed_pipe()
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
+                                 "serial", "--priority", "normal", "--duration", "1"],
+                                stdout=w, stderr=subprocess.PIPE, text=True)
+    finally:
+        os.close(w)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and err == ""
