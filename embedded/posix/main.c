@@ -173,9 +173,9 @@ static int parse(int argc, char **argv, options *o)
                 found |= parse_number(value, &v) && v == (double)rates[k];
             }
             if (!found) {
-                return fail_usage("--baud %s is not a Dynamixel rate: expected one of 9600, "
-                                  "57600, 115200, 1000000, 2000000, 3000000, 4000000, 4500000",
-                                  value);
+                return fail_usage("--baud must be a whole number of baud the motors have: "
+                                  "9600, 57600, 115200, 1000000, 2000000, 3000000, 4000000 or "
+                                  "4500000, got %s", value);
             }
             o->baud = (long)v;
         } else if (strcmp(a, "--duration") == 0) {
