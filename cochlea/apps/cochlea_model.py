@@ -1,9 +1,12 @@
 """``cochlea-model``: a robot's model summarised (parameters, M, G and the tool pose at a
-configuration). User mistakes print one line and exit with EXIT_USER_ERROR."""
+configuration). User mistakes print one line and exit with EXIT_USER_ERROR; a reader that
+stops reading (``cochlea-model | head -1``) ends it quietly, with the shell's code for SIGPIPE."""
 
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 
 import numpy as np
@@ -96,6 +99,19 @@ def _print_parallel_summary(args: argparse.Namespace) -> None:
           + "  ".join(f"{v: .4e}" for v in np.array(robot.G(q)).ravel()))
 
 
+#: Exit code when the reader of the output went away: 128 + SIGPIPE, as the shell reports a
+#: program that signal ended (``yes | head -1`` under ``set -o pipefail``).
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
+EXIT_INTERRUPTED = 130
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: Python flushes it again at exit, which must not fail too."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
 #: What ``cochlea-model`` prints for each robot (every robot of :data:`cochlea.robots.ROBOTS`).
 SUMMARIES = {"serial": _print_serial_summary, "parallel": _print_parallel_summary}
 
@@ -126,9 +142,21 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         SUMMARIES[args.robot](args)
+        sys.stdout.flush()  # what is still buffered fails here, not in the interpreter's exit
     except CochleaError as exc:
         print(f"cochlea-model: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except BrokenPipeError:  # the reader has what it wanted
+        _quiet_stdout()
+        return EXIT_BROKEN_PIPE
+    except OSError as exc:  # the output's disk is full, its device gone
+        _quiet_stdout()
+        where = f" {exc.filename}" if exc.filename else " the output"
+        print(f"cochlea-model: cannot write{where}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:  # Ctrl-C while CasADi builds a model
+        print("cochlea-model: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return 0
 
 

@@ -333,7 +333,9 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
 def _dynamixel_backend(args, scenario):
     """The motors of the scenario's description on ``--port``; refused before anything moves
     when the bus cannot carry the loop's rate, with a warning when it only just can."""
-    backend = DynamixelBackend(scenario.robot, args.port, args.baud or 4_000_000,
+    # Only a missing --baud means the default: --baud 0 is refused like any other bad rate.
+    backend = DynamixelBackend(scenario.robot, args.port,
+                               4_000_000 if args.baud is None else args.baud,
                                system=scenario.system)
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":

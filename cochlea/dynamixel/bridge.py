@@ -57,6 +57,7 @@ from .control_table import (
     STATE_ADDRESS,
     STATE_LENGTH,
     WATCHDOG_UNIT_S,
+    baud_code,
     describe_error,
     describe_hardware_error,
 )
@@ -99,6 +100,7 @@ class DynamixelBackend:
                  open_port=SerialPort, system=None):
         self.robot = robot
         self.port_path = str(port)
+        baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
         self.baud = int(baud)
         self.drives: list[JointDrive] = joint_drives(robot, description, ramp_Nm,
                                                     system=system)
@@ -172,6 +174,12 @@ class DynamixelBackend:
         self.last_failure = -1
         self.last_failure_id = -1
         self.alert_ids: set[int] = set()
+        #: Hardware Error Status (70) of each motor that raised its alert, read in the period
+        #: after the alert (that period fails anyway: the alert bit stays until a reboot).
+        self.alert_status: dict[int, int] = {}
+        self._alert_pending = -1  # the motor whose status is still to be read, or -1
+        self._alert_tries = 0
+        self._alert_frames = {i: proto.read(i, ADDR_HARDWARE_ERROR, 1) for i in self.ids}
         self.shutdown_report = "not started"
         self._zero_frame = proto.sync_write(ADDR_GOAL_CURRENT, 2, [(i, b"\0\0") for i in self.ids])
         self._torque_off_frame = proto.sync_write(ADDR_TORQUE_ENABLE, 1,
@@ -247,6 +255,25 @@ class DynamixelBackend:
             if self.last_failure_id >= 0 else ""
         return FAILURE_NAMES[self.last_failure] + who
 
+    def failure_detail(self) -> str:
+        """Why the reads failed, for the loop's stop line: the motor and its hardware error
+        when one raised its alert (the bits decoded, e.g. ``ID 3 (arm1.link3, MX-64): hardware
+        error (overload)``), else the last failure and its motor."""
+        if self.alert_ids:
+            notes = []
+            for motor_id in sorted(self.alert_ids):
+                d = self.drives[self._slot_of[motor_id]]
+                status = self.alert_status.get(motor_id)
+                what = "Hardware Error Status not read" if status is None \
+                    else describe_hardware_error(status)
+                notes.append(f"{self._who(d)}: hardware error ({what})")
+            return "; ".join(notes)
+        if self.last_failure < 0:
+            return "no failure recorded"
+        j = self._slot_of[self.last_failure_id] if 0 <= self.last_failure_id < 256 else -1
+        return (f"last failure {FAILURE_NAMES[self.last_failure]}"
+                + (f" from {self._who(self.drives[j])}" if j >= 0 else ""))
+
     def summary(self) -> dict:
         """Counters and settings for a run's summary (JSON-ready)."""
         port = self._port
@@ -311,6 +338,8 @@ class DynamixelBackend:
         parser.reset()
         if self._suspect and not self._quiet(port, t0):
             return self._fail(LATE, -1)
+        if self._alert_pending >= 0:
+            return self._read_alert(port)
         deadline = time.perf_counter() + self.timeout_s
         if not port.write(self._read_view, len(self._read_frame), deadline):
             return self._fail(PORT, -1)
@@ -341,7 +370,9 @@ class DynamixelBackend:
                 pending -= 1
                 error = parser.error
                 if error & ALERT_BIT:
-                    self.alert_ids.add(parser.id)
+                    if parser.id not in self.alert_ids:
+                        self.alert_ids.add(parser.id)
+                        self._alert_pending, self._alert_tries = parser.id, 0
                     failure, failure_id = ALERT, parser.id  # outranks every other cause
                 if parser.params_len != STATE_LENGTH or error & 0x7F:
                     slots[j] = 2
@@ -371,6 +402,34 @@ class DynamixelBackend:
         np.multiply(self._cur, self._mA_per_lsb, out=self.present_current_mA)
         self.good_reads += 1
         return True
+
+    def _read_alert(self, port: SerialPort) -> bool:
+        """Instead of the state, this period reads the Hardware Error Status of the motor that
+        raised its alert, so the stop can say what it was; a failed period all the same."""
+        motor_id = self._alert_pending
+        self._alert_tries += 1
+        if self._alert_tries >= 3:
+            self._alert_pending = -1  # give up; the shut-down report reads it once more
+        parser = self._parser
+        frame = self._alert_frames[motor_id]
+        deadline = time.perf_counter() + self.timeout_s
+        if not port.write(memoryview(frame), len(frame), deadline):
+            return self._fail(PORT, -1)
+        while True:
+            code = parser.parse()
+            if code == proto.NEED_MORE:
+                got = port.read_into(parser.space(), deadline)
+                if got > 0:
+                    parser.commit(got)
+                    continue
+                if got < 0:
+                    return self._fail(PORT, -1)
+                break
+            if code == proto.OK and parser.id == motor_id and parser.params_len == 1:
+                self.alert_status[motor_id] = parser.view[parser.params_start]
+                self._alert_pending = -1
+                break
+        return self._fail(ALERT, motor_id)
 
     def _sync_write(self, tau: np.ndarray, t0: float) -> bool:
         port = self._port

@@ -12,7 +12,10 @@ are listed; indirect addresses and the external ports are left out.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
+
+from ..errors import CochleaError
 
 #: Protocol 2.0 instruction codes.
 PING, READ, WRITE, REG_WRITE, ACTION, FACTORY_RESET, REBOOT, CLEAR = (
@@ -65,6 +68,17 @@ def describe_error(error: int) -> str:
     if error & ALERT_BIT:
         parts.append("hardware alert")
     return " + ".join(parts) if parts else "no error"
+
+
+def baud_code(baud: object, option: str = "--baud") -> int:
+    """The Baud Rate (8) code of ``baud``. Any other rate is refused, naming ``option``: the
+    motors answer only at these, and a serial port set to another one (or 0, which termios
+    takes as "hang up") finds no motor at all."""
+    codes = {rate: code for code, rate in BAUD_RATES.items()}
+    if isinstance(baud, bool) or not isinstance(baud, numbers.Integral) or int(baud) not in codes:
+        raise CochleaError(f"{option} {baud} is not a Dynamixel rate: expected one of "
+                           + ", ".join(str(b) for b in BAUD_RATES.values()))
+    return codes[int(baud)]
 
 
 def describe_hardware_error(status: int) -> str:

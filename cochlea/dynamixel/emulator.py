@@ -69,7 +69,6 @@ from .control_table import (
     ADDR_HARDWARE_ERROR,
     ADDR_TORQUE_ENABLE,
     ALERT_BIT,
-    BAUD_RATES,
     BROADCAST_ID,
     CRC_ERROR,
     CURRENT_MODE,
@@ -90,11 +89,26 @@ from .control_table import (
     WATCHDOG_UNIT_S,
     WRITE,
     Item,
+    baud_code,
 )
 from .drives import JointDrive, joint_drives
 
 #: The command's real-time priority: below cochlea-run's loop (40), above normal processes.
 EMULATOR_FIFO_PRIORITY = 30
+
+#: The plant's RK4 step in real time, seconds. Below 50 us the steps of even the smallest plant
+#: (about 15 us each) would take most of the processor; above 50 ms a request would see a state
+#: a whole step old and the skip-ahead of a late host (50 ms) would drop every step.
+PLANT_PERIOD_RANGE_S = (5e-5, 5e-2)
+#: The share of the wall time the plant may take: a plant that cannot keep up with real time
+#: (a tiny step, a slow machine) skips ahead instead of spinning, so the emulator never takes
+#: the whole processor (under SCHED_FIFO that would starve the machine) and always hears its
+#: signals and its --duration.
+MAX_PLANT_DUTY = 0.8
+#: The longest --late-ms: a reply later than this is a lost one (--drop-replies).
+MAX_LATE_S = 10.0
+#: Exit code of the command when its --log could not be written (a full disk, a lost device).
+EXIT_LOG_FAILED = 3
 
 _PRESENT = struct.Struct("<hii")  # Present Current, Velocity, Position at 126
 _TICK = struct.Struct("<H")  # Realtime Tick at 120
@@ -116,6 +130,51 @@ class Faults:
     model_number: dict[int, int] = field(default_factory=dict)  # ID -> reported model number
     delay_s: float = 0.0
     seed: int = 0
+
+
+def check_faults(faults: Faults, ids: list[int]) -> None:
+    """Refuse fault settings that are not numbers in range or name motors that are not on the
+    chain (``ids``), with the option that sets each (a fault on no motor would silently test
+    nothing)."""
+    for option, value in (("--drop-replies", faults.drop), ("--corrupt-crc", faults.crc),
+                          ("--late-replies", faults.late)):
+        if not 0.0 <= value <= 1.0:  # NaN fails too
+            raise CochleaError(f"{option}: expected a probability in [0, 1], got {value}")
+    if not 0.0 <= faults.late_s <= MAX_LATE_S:
+        raise CochleaError(f"--late-ms: expected 0 to {MAX_LATE_S * 1e3:g} ms, got "
+                           f"{faults.late_s * 1e3:g}")
+    if not 0.0 <= faults.delay_s < math.inf:
+        raise CochleaError(f"--fault-delay: expected a finite number of seconds >= 0, got "
+                           f"{faults.delay_s}")
+    chain = ", ".join(str(i) for i in ids)
+    named = [("--fault-ids", i) for i in sorted(faults.ids or ())]
+    named += [("--missing-motor", i) for i in sorted(faults.missing)]
+    named += [("--model-number", i) for i in sorted(faults.model_number)]
+    if faults.hardware_error is not None:
+        named.append(("--hardware-error", faults.hardware_error[0]))
+        if faults.hardware_error[1] not in HARDWARE_ERROR_BITS:
+            raise CochleaError("--hardware-error: BIT must be one of " + ", ".join(
+                f"{b} ({n})" for b, n in HARDWARE_ERROR_BITS.items()))
+    if faults.silent is not None:
+        named.append(("--silent-motor", faults.silent))
+    for option, motor_id in named:
+        if motor_id not in ids:
+            raise CochleaError(f"{option}: motor ID {motor_id} is not on this chain (its motors "
+                               f"are {chain})")
+    if faults.ids is not None and not faults.ids:
+        raise CochleaError(f"--fault-ids: expected at least one motor ID of {chain}")
+    for motor_id, number in faults.model_number.items():
+        if not 0 <= number <= 0xFFFF:
+            raise CochleaError(f"--model-number {motor_id}:{number}: expected a model number "
+                               "0..65535 (two bytes)")
+
+
+def _open_log(path: Path):
+    try:
+        return open(path, "w", encoding="utf-8")  # noqa: SIM115 (closed by close())
+    except OSError as exc:
+        raise CochleaError(f"--log {path}: cannot write it ({exc.strerror or exc}); expected a "
+                           "file in a writable folder") from None
 
 
 class VirtualMotor:
@@ -344,10 +403,7 @@ class VirtualChain:
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
                  max_events: int = 200_000, plant: str | None = None):
-        codes = {rate: code for code, rate in BAUD_RATES.items()}
-        if baud not in codes:
-            raise CochleaError(f"--baud {baud} is not a Dynamixel rate: "
-                               + ", ".join(str(b) for b in BAUD_RATES.values()))
+        code = baud_code(baud)
         # plant: a preset of the scenario's [plant] table, e.g. "realistic": the motors' rotors
         # and gearbox friction move the joints (their counts are the motors' own already).
         self.scenario = load_scenario(scenario or f"{robot}_joint", plant_preset=plant)
@@ -357,7 +413,13 @@ class VirtualChain:
         self.robot = robot
         self.faults = faults or Faults()
         self.drives = joint_drives(robot, system=self.scenario.system)
-        self.motors = [VirtualMotor(d, codes[baud], self.faults.model_number.get(d.id))
+        check_faults(self.faults, [d.id for d in self.drives])
+        if plant_period_s is not None:
+            lo, hi = PLANT_PERIOD_RANGE_S
+            if not lo <= plant_period_s <= hi:  # NaN fails too
+                raise CochleaError(f"--plant-period-ms: expected {lo * 1e3:g} to {hi * 1e3:g} "
+                                   f"ms, got {plant_period_s * 1e3:g}")
+        self.motors = [VirtualMotor(d, code, self.faults.model_number.get(d.id))
                        for d in self.drives]
         for m in self.motors:
             m.on_torque = self._on_torque
@@ -380,7 +442,8 @@ class VirtualChain:
         self.h = plant_period_s
         self._rng = random.Random(self.faults.seed)
         self.events: deque = deque(maxlen=max_events)
-        self._log = open(log_path, "w", encoding="utf-8") if log_path else None  # noqa: SIM115
+        self.log_path = None if log_path is None else Path(log_path)
+        self.log_error: str | None = None  # why the event log stopped, if it failed
         self.counts = {"instructions": 0, "bad_instructions": 0, "replies": 0, "dropped": 0,
                        "corrupted": 0, "late": 0, "watchdog_trips": 0, "plant_overruns": 0,
                        "plant_steps": 0}
@@ -397,8 +460,11 @@ class VirtualChain:
         self._thread: threading.Thread | None = None
         self.master = self.slave = -1
         self.path = ""
+        self._last_tick_end = self._t0
         for u in self.units:
             u.publish(0)
+        # Last, once everything else was accepted: a refused chain leaves no file behind.
+        self._log = _open_log(self.log_path) if self.log_path is not None else None
 
     # ---- set-up --------------------------------------------------------------------------------
 
@@ -436,8 +502,11 @@ class VirtualChain:
                     pass
         self.master = self.slave = -1
         if self._log:
-            self._log.close()
-            self._log = None
+            log, self._log = self._log, None
+            try:
+                log.close()
+            except OSError as exc:
+                self._log_failed(exc)
 
     def __enter__(self) -> VirtualChain:
         return self.start()
@@ -462,8 +531,23 @@ class VirtualChain:
         t = now - self._t0
         self.events.append((t, kind, motor_id, address, value))
         if self._log:
-            self._log.write(f"{t:.6f} {kind} id={motor_id} address={address} value={value}\n")
+            try:
+                self._log.write(f"{t:.6f} {kind} id={motor_id} address={address} "
+                                f"value={value}\n")
+            except OSError as exc:
+                self._log_failed(exc)
 
+    def _log_failed(self, exc: OSError) -> None:
+        """The event log cannot be written (a full disk): stop serving, as a recorder that lost
+        its record should; the motors go silent and the bridge on the other end stops safely."""
+        self.log_error = f"writing the event log {self.log_path} failed: {exc.strerror or exc}"
+        log, self._log = self._log, None
+        if log is not None:
+            try:
+                log.close()
+            except OSError:
+                pass  # the buffered rest cannot be written either
+        self._stop.set()
     # ---- the loop ------------------------------------------------------------------------------
 
     def serve(self, duration: float | None = None) -> None:
@@ -485,7 +569,10 @@ class VirtualChain:
             self._tick(time.perf_counter())
             self._flush(time.perf_counter())
         if self._log:
-            self._log.flush()
+            try:
+                self._log.flush()
+            except OSError as exc:
+                self._log_failed(exc)
 
     def _receive(self) -> None:
         try:
@@ -521,7 +608,17 @@ class VirtualChain:
         if now - self._plant_time > 0.05:  # 50 ms behind (the host was busy): skip ahead
             self.counts["plant_overruns"] += 1
             self._plant_time = now - self.h
+        started = time.perf_counter()
+        budget = MAX_PLANT_DUTY * max(started - self._last_tick_end, 0.0)
+        steps = 0
         while now - self._plant_time > 1e-6:
+            if steps and time.perf_counter() - started > budget:
+                # The plant cannot keep up with real time: skip ahead, count it, and let the
+                # loop sleep (see MAX_PLANT_DUTY) rather than spin.
+                self.counts["plant_overruns"] += 1
+                self._plant_time = now
+                break
+            steps += 1
             h = min(self.h, now - self._plant_time)
             for u in self.units:
                 if not u.advance(h):
@@ -532,6 +629,7 @@ class VirtualChain:
             self._plant_time += h
         # Requests integrate up to their arrival themselves: between them, 1 ms is enough.
         self._next_step = self._plant_time + max(self.h, 1e-3)
+        self._last_tick_end = time.perf_counter()
         tick_ms = int((now - self._t0) * 1000)
         for u in self.units:
             u.publish(tick_ms)
@@ -733,8 +831,15 @@ def _id_number(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected ID:NUMBER, got {text!r}") from None
 
 
+class _Parser(argparse.ArgumentParser):
+    """An option the parser cannot read is one line naming it, as every other mistake is."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: {message} (--help lists the options)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="cochlea-emulator",
         description="A virtual Dynamixel chain: the motors of the robot description answer "
                     "Protocol 2.0 on a pseudo-terminal, their joints moved in real time by the "
@@ -794,9 +899,36 @@ def faults_from_args(args: argparse.Namespace) -> Faults:
                   delay_s=args.fault_delay, seed=args.seed)
 
 
+def check_options(args: argparse.Namespace) -> None:
+    """What the parser's types cannot see: the run's duration (the chain checks the rest)."""
+    if args.duration is not None and not 0.0 < args.duration < math.inf:
+        raise CochleaError(f"--duration: expected a finite number of seconds > 0, got "
+                           f"{args.duration} (without --duration the chain runs until Ctrl-C)")
+
+
+def _say(text: str) -> None:
+    """Print a line; a reader that went away (``| head -1`` took the path) does not stop the
+    motors: the rest goes to /dev/null."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        return _main(args)
+    except KeyboardInterrupt:  # Ctrl-C while the plant was being built: nothing was served
+        print("cochlea-emulator: interrupted before serving", file=sys.stderr)
+        return 130
+
+
+def _main(args: argparse.Namespace) -> int:
+    try:
+        check_options(args)
         chain = VirtualChain(args.robot, args.scenario, baud=args.baud,
                              wire_timing=args.wire_timing, faults=faults_from_args(args),
                              plant_period_s=None if args.plant_period_ms is None
@@ -813,18 +945,27 @@ def main(argv: list[str] | None = None) -> int:
             priority = f"SCHED_FIFO {EMULATOR_FIFO_PRIORITY}"
         except (AttributeError, PermissionError, OSError):
             priority = "normal (SCHED_FIFO not permitted)"
-    path = chain.open()
-    print(path, flush=True)
-    ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)
-    print(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
-          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}; "
-          "Ctrl-C stops", flush=True)
 
     def stop(signum, frame):  # noqa: ARG001
         chain._stop.set()
 
+    # Before anything is printed: whoever reads the path may signal at once.
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
+    try:
+        path = chain.open()
+    except OSError as exc:
+        chain.close()
+        if chain.log_path is not None:
+            chain.log_path.unlink(missing_ok=True)
+        print(f"cochlea-emulator: cannot open a pseudo-terminal: {exc.strerror or exc}",
+              file=sys.stderr)
+        return 1
+    _say(path)
+    ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)
+    _say(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
+         f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}; "
+         "Ctrl-C stops")
     # As in the real-time loop: no collector pauses while serving (what the chain makes per
     # request is freed by reference counting; the set-up's objects are frozen out of the way).
     gc.collect()
@@ -833,9 +974,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         chain.serve(args.duration)
     finally:
-        counts = ", ".join(f"{k} {v}" for k, v in chain.counts.items())
-        print(f"cochlea-emulator: stopped ({counts})", flush=True)
         chain.close()
+        counts = ", ".join(f"{k} {v}" for k, v in chain.counts.items())
+        _say(f"cochlea-emulator: stopped ({counts})")
+    if chain.log_error:
+        print(f"cochlea-emulator: {chain.log_error}; stopped serving (the bridge on the other "
+              "end sees its motors go silent and stops safely): free space, or choose another "
+              "--log", file=sys.stderr)
+        return EXIT_LOG_FAILED
     return 0
 
 

@@ -486,7 +486,10 @@ class RealTimeLoop:
             ok = backend.read(x)
             errors = 0 if ok else errors + 1
             if errors > sup.limits.watchdog_errors:
-                return Stop("watchdog", t, f"{errors} consecutive backend read failures")
+                # A hardware backend knows why (a motor's alert, a timeout): the stop says so.
+                cause = getattr(backend, "failure_detail", None)
+                return Stop("watchdog", t, f"{errors} consecutive backend read failures"
+                            + (f": {cause()}" if cause else ""))
             row[0] = t
             row_x[:] = x
             stop = sup.check_state(t, x, q_view, qd_view) if ok else None

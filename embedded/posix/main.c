@@ -164,8 +164,18 @@ static int parse(int argc, char **argv, options *o)
         } else if (strcmp(a, "--out") == 0) {
             o->out = value;
         } else if (strcmp(a, "--baud") == 0) {
-            if (!parse_number(value, &v) || v != floor(v) || v < 9600 || v > 10.5e6) {
-                return fail_usage("--baud must be a whole number of baud, got %s", value);
+            /* Only the rates the motors have (Baud Rate, address 8): at any other the port
+             * would find no motor, and 0 is the termios "hang up" rate. */
+            static const long rates[] = {9600, 57600, 115200, 1000000, 2000000, 3000000,
+                                         4000000, 4500000};
+            size_t k, found = 0;
+            for (k = 0; k < sizeof rates / sizeof rates[0]; ++k) {
+                found |= parse_number(value, &v) && v == (double)rates[k];
+            }
+            if (!found) {
+                return fail_usage("--baud must be a whole number of baud the motors have: "
+                                  "9600, 57600, 115200, 1000000, 2000000, 3000000, 4000000 or "
+                                  "4500000, got %s", value);
             }
             o->baud = (long)v;
         } else if (strcmp(a, "--duration") == 0) {
@@ -1285,7 +1295,7 @@ int main(int argc, char **argv)
                                          facts.watchdog_s * 1e3);
             }
         }
-        if (bridge.alert_id >= 0 && used < sizeof facts.shutdown) {
+        if (bridge.alert_id >= 0) {
             const cochlea_drive *d = 0;
             static const char *const bits[8] = {"input voltage", 0, "overheating",
                                                 "motor encoder", "electrical shock", "overload",
@@ -1314,8 +1324,28 @@ int main(int argc, char **argv)
             }
             if (d) {
                 who(text, sizeof text, d);
-                snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
-                         "; %s: hardware error (%s)", text, what);
+                if (used < sizeof facts.shutdown) {
+                    snprintf(facts.shutdown + used, sizeof facts.shutdown - used,
+                             "; %s: hardware error (%s)", text, what);
+                }
+                /* The stop line names the motor and its alert, as cochlea-run's does. */
+                if (the_loop.stop.rule == COCHLEA_WATCHDOG && the_loop.stop.reason == 1) {
+                    const size_t at = strlen(facts.detail);
+                    snprintf(facts.detail + at, sizeof facts.detail - at,
+                             ": %s: hardware error (%s)", text, what);
+                }
+            }
+        } else if (the_loop.stop.rule == COCHLEA_WATCHDOG && the_loop.stop.reason == 1
+                   && bridge.last_failure >= 0) {
+            const size_t at = strlen(facts.detail);
+            snprintf(facts.detail + at, sizeof facts.detail - at, ": last failure %s",
+                     cochlea_failure_name(bridge.last_failure));
+            for (i = 0; i < bridge.n; ++i) {
+                if (bridge.drives[i].id == bridge.last_failure_id) {
+                    const size_t end = strlen(facts.detail);
+                    who(text, sizeof text, &bridge.drives[i]);
+                    snprintf(facts.detail + end, sizeof facts.detail - end, " from %s", text);
+                }
             }
         }
         if (write_summary(o.out, &the_loop, &log, rows, &facts, &bridge, &o, &converged) != 0
