@@ -223,6 +223,7 @@ def test_cochlea_run_refuses_them_in_one_line(tmp_path, baud):
     assert done.stderr.strip().splitlines() == [
         f"cochlea-run: --baud {baud} is not a Dynamixel rate: expected one of 9600, 57600, "
         "115200, 1000000, 2000000, 3000000, 4000000, 4500000"]
+    assert sorted(tmp_path.iterdir()) == []  # refused before any folder was made
 
 
 @pytest.fixture(scope="module")

@@ -35,6 +35,7 @@ from datetime import datetime
 from pathlib import Path
 
 from ..dynamixel.bridge import DynamixelBackend
+from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..runtime import (
@@ -209,6 +210,8 @@ def _validate(args: argparse.Namespace, scenario) -> None:
                            "or the path cochlea-emulator prints")
     if args.backend != "dynamixel" and (args.port is not None or args.baud is not None):
         raise CochleaError("--port and --baud go with --backend dynamixel")
+    if args.baud is not None:
+        baud_code(args.baud)  # a rate the motors do not have, refused before the folder exists
     # --out is outputs.check_folder's (a leftover lock of a killed run is not "not empty").
 
 

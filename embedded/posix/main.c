@@ -179,8 +179,11 @@ static int parse(int argc, char **argv, options *o)
             }
             o->baud = (long)v;
         } else if (strcmp(a, "--duration") == 0) {
-            if (!parse_number(value, &v) || !(v > 0)) {
-                return fail_usage("--duration must be positive, got %s", value);
+            /* At most a day: the run's log is held in memory whole (issue 13's ring is the
+             * Python loop's), and inf or 1e300 s would overflow the period count. */
+            if (!parse_number(value, &v) || !(v > 0 && v <= 86400.0)) {
+                return fail_usage("--duration must be positive and at most 86400 s, got %s",
+                                  value);
             }
             o->duration = v;
         } else if (strcmp(a, "--rate") == 0) {
