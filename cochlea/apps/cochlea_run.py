@@ -287,7 +287,7 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
     # From here a signal is the loop's safe stop (the loop installs the same handler for its
     # periods): one arriving while the motors start stops the loop before its first command.
-    run.shield.forward(loop._on_signal)
+    run.shield.forward(loop.on_signal)
     if args.backend == "dynamixel":
         # The motors' start-up (ping, configure, first read, torque on) before the loop: a
         # refusal ends here with nothing to undo (the loop's own enable() is then a no-op).

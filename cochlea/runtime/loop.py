@@ -355,7 +355,9 @@ class RealTimeLoop:
 
     # ---- the loop ----------------------------------------------------------------------------
 
-    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002
+    def on_signal(self, signum, frame) -> None:  # noqa: ARG002
+        """SIGINT or SIGTERM: the loop's safe stop at its next period (public: cochlea-run
+        forwards the signals here while the motors start, before the loop installs it)."""
         self._signal = "user-stop" if signum == signal.SIGINT else "terminated"
 
     def status_line(self) -> str:
@@ -378,7 +380,7 @@ class RealTimeLoop:
         self.buffer = self._allocate(log_path)
         # Opened before anything moves: a log that cannot be written stops nothing.
         writer = LogWriter(self.buffer, log_path) if log_path else None
-        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        previous = {s: signal.signal(s, self.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         status_thread = _Status(self) if status else None
         self.misses = 0
         try:
