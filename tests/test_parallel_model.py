@@ -287,6 +287,11 @@ def test_base_parameters(rng):
     assert Wb.shape[1] == rank  # sampling far outside the workspace found the same rank
     assert np.linalg.matrix_rank(Wb, tol=1e-9 * np.abs(Wb).max()) == rank
     assert np.allclose(W @ full.p_nominal, Wb @ base.p_nominal, rtol=0, atol=1e-12)
+    phi = full.p_nominal * rng.uniform(0.2, 3.0, full.p_nominal.size)
+    beta = base.parameters.from_full @ phi
+    assert np.allclose(W @ phi, Wb @ beta, rtol=0, atol=1e-11 * max(1.0, np.abs(W @ phi).max()))
+    assert np.allclose(base.parameters.from_full @ base.parameters.to_full, np.eye(27),
+                       rtol=0, atol=1e-12)
 
 
 def test_mass_parameterisation(rng):

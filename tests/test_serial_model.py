@@ -202,6 +202,11 @@ def test_base_regressor_has_full_column_rank_and_same_span(description, rng):
     assert np.linalg.matrix_rank(Wb, tol=1e-9 * np.abs(Wb).max()) == rank
     # Same dynamics: W phi_nominal == Wb beta_nominal.
     assert np.allclose(W @ full.p_nominal, Wb @ base.p_nominal, rtol=0, atol=1e-12)
+    # Any full parameters (a perturbed plant's, an identified one) map onto the base set
+    # through from_full with the same dynamics: what identification compares against.
+    phi = full.p_nominal * rng.uniform(0.2, 3.0, full.p_nominal.size)
+    beta = base.parameters.from_full @ phi
+    assert np.allclose(W @ phi, Wb @ beta, rtol=0, atol=1e-12 * max(1.0, np.abs(W @ phi).max()))
 
 
 def test_mass_parameterisation_scales_the_rods(tmp_path, rng):

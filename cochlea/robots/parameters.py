@@ -25,6 +25,10 @@ class Parameterisation:
     si_units: tuple[str, ...]  # the SI unit of each parameter ("kg", "kg m", "kg m^2")
     to_full: np.ndarray  # (n_full, n): phi_full = to_full @ p
     meanings: tuple[str, ...]  # what each parameter is or combines, printable
+    #: (n, n_full): ``p = from_full @ phi_full``, how any full parameter vector (a perturbed
+    #: plant's, an identified one) maps onto this set; None for the mass-only set, which is a
+    #: restriction of the full set (its bodies' shapes fixed), not a projection of it.
+    from_full: np.ndarray | None = None
 
     def describe(self) -> str:
         width = max(len(n) for n in self.names)
@@ -38,7 +42,7 @@ class Parameterisation:
 def inertial(names, nominal, units, meanings) -> Parameterisation:
     n = len(names)
     return Parameterisation("inertial", tuple(names), np.asarray(nominal, float), tuple(units),
-                            np.eye(n), tuple(meanings))
+                            np.eye(n), tuple(meanings), np.eye(n))
 
 
 def mass_only(full_names, full_nominal, bodies: list[tuple[str, slice]], full_units=(),
@@ -138,4 +142,4 @@ def base(regressor_full: ca.Function, full_names, full_nominal, full_units, inpu
     to_full[kept, np.arange(len(kept))] = 1.0
     units = tuple(full_units[j] for j in kept)
     return Parameterisation("base", tuple(names), combine @ full_nominal, units, to_full,
-                            tuple(meanings))
+                            tuple(meanings), combine)
