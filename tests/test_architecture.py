@@ -31,7 +31,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "cochlea"
 
 #: Module-name prefixes and their layer; the longest matching prefix decides.
 LAYERS = {
-    "errors": 0, "resources": 0, "dynamixel.control_table": 0,
+    "errors": 0, "resources": 0, "console": 0, "dynamixel.control_table": 0,
     "robots": 1,
     "control": 2,
     "kernels": 3,

@@ -371,3 +371,88 @@ def test_a_start_that_fails_removes_what_it_created(tmp_path, existing):
         assert "the backend could not start, nothing moved" in done.stderr
         assert "Traceback" not in done.stderr
         assert _tree(tmp_path) == (["a", "a/b", "a/b/run"] if existing else [])
+
+
+# --------------------------------------------------------------------------------------------
+# cochlea-codegen: all or nothing
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"),
+                                     KeyboardInterrupt()], ids=["full disk", "Ctrl-C"])
+def test_codegen_that_fails_midway_leaves_the_old_files_whole(tmp_path, capsys, monkeypatch,
+                                                              failure):
+    import shutil
+
+    from cochlea.kernels import generate as generate_mod
+
+    out = tmp_path / "generated_c"
+    shutil.copytree(generate_mod.load_config().output, out)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    real_group = generate_mod._generate_group
+    calls = []
+
+    def fail_on_second_group(*args, **kwargs):  # one group's files are written, then it fails
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise failure
+        return real_group(*args, **kwargs)
+
+    monkeypatch.setattr(generate_mod, "_generate_group", fail_on_second_group)
+    if isinstance(failure, OSError):
+        assert cochlea_codegen.main(["--out", str(out)]) == 2
+        line = _one_line(capsys.readouterr().err, f"cochlea-codegen: cannot write {out}")
+        assert "No space left on device" in line and "as it was" in line
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            cochlea_codegen.main(["--out", str(out)])
+    assert len(calls) == 2
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["generated_c"]  # no staging left
+
+
+# --------------------------------------------------------------------------------------------
+# A reader that goes away: `cochlea-run ... | head -1`
+# --------------------------------------------------------------------------------------------
+
+
+def _closed_pipe() -> int:
+    """The write end of a pipe whose reader is already gone: the first write fails (EPIPE)."""
+    r, w = os.pipe()
+    os.close(r)
+    return w
+
+
+def test_run_whose_reader_went_away_still_runs_and_reports(tmp_path):
+    out = tmp_path / "run"
+    w = _closed_pipe()
+    try:
+        done = subprocess.run([*RUN, *SERIAL_FAST, "--duration", "0.2", "--out", str(out)],
+                              stdout=w, stderr=subprocess.PIPE, text=True, timeout=300)
+    finally:
+        os.close(w)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["duration_s"] == pytest.approx(0.2)
+    rows = (out / "log.csv").read_text().count("\n") - 1
+    assert rows == 200  # every period of 0.2 s at 1 kHz
+
+
+def test_run_through_head_prints_its_first_line_and_keeps_its_log(tmp_path):
+    out = tmp_path / "run"
+    done = subprocess.run(" ".join([*RUN, *SERIAL_FAST, "--duration", "0.2", "--out", str(out)])
+                          + " | head -1; exit ${PIPESTATUS[0]}", shell=True,
+                          executable="/bin/bash", capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    assert done.stdout.startswith("cochlea-run: ") and done.stdout.count("\n") == 1
+    assert (out / "summary.json").is_file()
+
+
+def test_codegen_check_whose_reader_went_away_exits_with_its_verdict(tmp_path):
+    w = _closed_pipe()
+    try:
+        done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_codegen", "--check"],
+                              stdout=w, stderr=subprocess.PIPE, text=True, timeout=300)
+    finally:
+        os.close(w)
+    assert done.returncode == 0 and done.stderr == "", done.stderr

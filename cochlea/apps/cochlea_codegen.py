@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..console import tolerate_closed_stdout
 from ..dynamixel.embedded_drives import write_drive_tables
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.generate import CONFIG, check, generate, load_config
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="regenerate into a temporary folder and exit 1 if generated_c/ "
                              "differs (stale)")
     args = parser.parse_args(argv)
+    tolerate_closed_stdout()
     try:
         config = _load_config(args.config)
         if args.check:
@@ -73,9 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             paths = generate(config, out, write_embedded_folder)
         except OSError as exc:  # a full disk, or the folder changed under us
-            raise CochleaError(f"cannot write {exc.filename or out} ({exc.strerror}); "
-                               f"{out} may be incomplete: free some space and run "
-                               "cochlea-codegen again") from None
+            raise CochleaError(f"cannot write {out} ({exc.strerror or exc}); it is as it was: "
+                               "free some space and run cochlea-codegen again") from None
     except CochleaError as exc:
         print(f"cochlea-codegen: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 
 import numpy as np
 
+from ..console import EXIT_BROKEN_PIPE, stdout_was_closed, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS, model
 from ..robots.parallel import SCENARIO_START
@@ -99,17 +99,7 @@ def _print_parallel_summary(args: argparse.Namespace) -> None:
           + "  ".join(f"{v: .4e}" for v in np.array(robot.G(q)).ravel()))
 
 
-#: Exit code when the reader of the output went away: 128 + SIGPIPE, as the shell reports a
-#: program that signal ended (``yes | head -1`` under ``set -o pipefail``).
-EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 EXIT_INTERRUPTED = 130
-
-
-def _quiet_stdout() -> None:
-    """Point stdout at /dev/null: Python flushes it again at exit, which must not fail too."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-    os.close(devnull)
 
 
 #: What ``cochlea-model`` prints for each robot (every robot of :data:`cochlea.robots.ROBOTS`).
@@ -140,15 +130,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="parallel: th1 th2 d1 th1' th2' in deg, deg, m, deg, deg (default: "
                              "the joint-space scenario's start)")
     args = parser.parse_args(argv)
+    tolerate_closed_stdout()
     try:
         SUMMARIES[args.robot](args)
         sys.stdout.flush()  # what is still buffered fails here, not in the interpreter's exit
     except CochleaError as exc:
         print(f"cochlea-model: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except BrokenPipeError:  # the reader has what it wanted
-        _quiet_stdout()
-        return EXIT_BROKEN_PIPE
     except OSError as exc:  # the output's disk is full, its device gone
         _quiet_stdout()
         where = f" {exc.filename}" if exc.filename else " the output"
@@ -157,7 +145,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # Ctrl-C while CasADi builds a model
         print("cochlea-model: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    return 0
+    # The reader had what it wanted (``| head -1``): the shell's code for a closed pipe.
+    return EXIT_BROKEN_PIPE if stdout_was_closed() else 0
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: Python flushes it again at exit, which must not fail too."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+from ..console import tolerate_closed_stdout
 from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
@@ -122,6 +123,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    # A reader that went away (``| head -1``) must not end a run mid-motion or before its
+    # report: the rest of stdout goes to /dev/null and the run keeps its exit code.
+    tolerate_closed_stdout()
     run = _Run(args)
     run.shield.install()
     try:

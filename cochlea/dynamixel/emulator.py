@@ -56,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..console import tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..robots.plant import plant_step
@@ -906,19 +907,10 @@ def check_options(args: argparse.Namespace) -> None:
                            f"{args.duration} (without --duration the chain runs until Ctrl-C)")
 
 
-def _say(text: str) -> None:
-    """Print a line; a reader that went away (``| head -1`` took the path) does not stop the
-    motors: the rest goes to /dev/null."""
-    try:
-        print(text, flush=True)
-    except BrokenPipeError:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    # A reader that went away (``| head -1`` took the path) does not stop the motors' service.
+    tolerate_closed_stdout()
     try:
         return _main(args)
     except KeyboardInterrupt:  # Ctrl-C while the plant was being built: nothing was served
@@ -961,11 +953,11 @@ def _main(args: argparse.Namespace) -> int:
         print(f"cochlea-emulator: cannot open a pseudo-terminal: {exc.strerror or exc}",
               file=sys.stderr)
         return 1
-    _say(path)
+    print(path, flush=True)
     ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)
-    _say(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
-         f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}; "
-         "Ctrl-C stops")
+    print(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
+          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}; "
+          "Ctrl-C stops", flush=True)
     # As in the real-time loop: no collector pauses while serving (what the chain makes per
     # request is freed by reference counting; the set-up's objects are frozen out of the way).
     gc.collect()
@@ -976,7 +968,7 @@ def _main(args: argparse.Namespace) -> int:
     finally:
         chain.close()
         counts = ", ".join(f"{k} {v}" for k, v in chain.counts.items())
-        _say(f"cochlea-emulator: stopped ({counts})")
+        print(f"cochlea-emulator: stopped ({counts})", flush=True)
     if chain.log_error:
         print(f"cochlea-emulator: {chain.log_error}; stopped serving (the bridge on the other "
               "end sees its motors go silent and stops safely): free space, or choose another "

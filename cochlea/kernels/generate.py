@@ -51,7 +51,10 @@ from __future__ import annotations
 
 import filecmp
 import json
+import os
 import re
+import shutil
+import signal
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -233,16 +236,50 @@ def generate(config: CodegenConfig | None = None, out: str | Path | None = None,
     """Write every file of ``generated_c/`` (or ``out``); return the paths written.
 
     ``embedded``: also write the per-scenario embedded controllers of ``config.embedded`` into
-    the subfolder ``config.embedded.folder`` (without it, that subfolder is left alone)."""
+    the subfolder ``config.embedded.folder`` (without it, that subfolder is left alone).
+
+    All or nothing: everything is written into a temporary folder beside ``out`` first, so a
+    configuration that fails to build, a full disk or an interrupt leaves the old files whole;
+    only then are the new files renamed into ``out`` (renames need no space) and the stale ones
+    removed, with SIGINT and SIGTERM held off for those few milliseconds.
+    """
     config = config or load_config()
     out = Path(out) if out is not None else config.output
-    # Everything is built before the folder is touched: a configuration that fails to build
-    # leaves the committed files in place.
     kernels, loops = collect(config)
-    out.mkdir(parents=True, exist_ok=True)
-    for old in out.iterdir():  # the folder holds generated files only
-        if old.is_file():
-            old.unlink()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
+    try:
+        written = _write_all(config, kernels, loops, staging, embedded)
+        return _install(staging, out, [p.relative_to(staging) for p in written])
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _install(staging: Path, out: Path, names: list[Path]) -> list[Path]:
+    """Move the files ``names`` (relative paths) from ``staging`` into ``out``, replacing what
+    is there, and remove ``out``'s other files in the folders written (its generated files
+    only: see ``cochlea-codegen``'s check of ``--out``)."""
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    try:
+        folders = {out / name.parent for name in names}
+        for folder in sorted(folders):
+            folder.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            os.replace(staging / name, out / name)
+        kept = {out / name for name in names}
+        for folder in folders:
+            for old in folder.iterdir():
+                if old.is_file() and old not in kept:
+                    old.unlink()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+    return sorted(out / name for name in names)
+
+
+def _write_all(config: CodegenConfig, kernels, loops, out: Path,
+               embedded: EmbeddedWriter | None) -> list[Path]:
+    """Write every generated file into the (new, empty) folder ``out``."""
     groups: dict[str, list[Kernel]] = {}
     for k in kernels:
         if not k.is_alias:  # an alias runs its symbol's C: nothing of its own to write

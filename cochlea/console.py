@@ -1,0 +1,70 @@
+"""Standard output that a departed reader cannot crash.
+
+``cochlea-run ... | head -1`` closes the pipe after the first line; the next ``print`` raises
+BrokenPipeError, which would end a run mid-motion or before its report. Every command-line
+program calls :func:`tolerate_closed_stdout` first: from then on a write to a closed pipe sends
+the rest of the output to /dev/null and the program goes on (a run finishes, stops its motors
+and keeps its log). :func:`stdout_was_closed` tells the few programs whose only product is their
+output (``cochlea-model``) to exit with the shell's code for SIGPIPE instead.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+
+#: Exit code when the reader of the output went away: 128 + SIGPIPE, as the shell reports a
+#: program that signal ended (``yes | head -1`` under ``set -o pipefail``).
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
+
+
+class _ClosedPipeTolerantStream:
+    """Delegates to the real stream; a BrokenPipeError on write or flush points the file
+    descriptor at /dev/null (so the interpreter's own flush at exit succeeds too) and is
+    swallowed."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.closed_pipe = False
+
+    def _divert(self) -> None:
+        self.closed_pipe = True
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):  # no descriptor (a captured stream): nothing to divert
+            pass
+
+    def write(self, text: str) -> int:
+        if self.closed_pipe:
+            return len(text)
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._divert()
+            return len(text)
+
+    def flush(self) -> None:
+        if self.closed_pipe:
+            return
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._divert()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def tolerate_closed_stdout() -> None:
+    """Make ``sys.stdout`` survive a reader that went away (idempotent)."""
+    if not isinstance(sys.stdout, _ClosedPipeTolerantStream) and sys.stdout is not None:
+        sys.stdout = _ClosedPipeTolerantStream(sys.stdout)
+
+
+def stdout_was_closed() -> bool:
+    """Whether a write found standard output's reader gone since
+    :func:`tolerate_closed_stdout`."""
+    return isinstance(sys.stdout, _ClosedPipeTolerantStream) and sys.stdout.closed_pipe
