@@ -297,3 +297,23 @@ def test_entry_point_refuses_without_traceback(tmp_path, argv):
     lines = [ln for ln in done.stderr.splitlines() if "Warning" not in ln and ln.strip()]
     assert len(lines) == 1 and "Traceback" not in done.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_parallel_task_path_is_checked_against_the_keep_out_circle(refused, tmp_path):
+    """The end effectors keep out of the circle around the slider point S = (0, d1) at every
+    period, like the serial arms' tools: here C_u drifts inward, 5 mm/s, and the path crosses a
+    140 mm keep-out radius at t = (0.16 - 0.14 cos(19.25 deg)) / 0.005 = 5.567 s."""
+    robot = (ROBOTS_DIR / "parallel.toml").read_text()
+    assert "keep_out_radius_m = 0.06" in robot
+    robot = write(tmp_path, "parallel.toml",
+                  robot.replace("keep_out_radius_m = 0.06", "keep_out_radius_m = 0.14"))
+    scenario = (SCENARIOS_DIR / "parallel_task.toml").read_text()
+    old = '"-0.000547*min(t, 5)**3 + 0.0041*min(t, 5)**2 + 0.1258 m"'
+    assert old in scenario
+    scenario = scenario.replace(old, '"0.16 - 0.005*t m"').replace(
+        'format = "cochlea-scenario/1"', f'format = "cochlea-scenario/1"\ndescription = "{robot}"')
+    path = write(tmp_path, "drift.toml", scenario)
+    line = refused("--scenario", path, "--duration", "7", robot="parallel", space="task")
+    assert "inside the keep-out radius 140.0 mm" in line and "slider point S" in line
+    assert "t = 5.56" in line  # the first period inside: 5.566 s
+    unit_setups(dataclasses.replace(load_scenario(path), duration=5.0))  # allowed up to 5.57 s

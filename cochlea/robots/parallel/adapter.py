@@ -26,6 +26,7 @@ from ..adapter import (
     UnitPlan,
     UnitStart,
     desired_function,
+    sampled,
 )
 from ..model import RobotModel
 from .description import ParallelSystem, load_parallel
@@ -47,6 +48,25 @@ def _check_workspace(geometry, q_of_t: ca.Function, sc: ScenarioView) -> None:
         if problems:
             raise KinematicsError(f"scenario {sc.name}: the desired configuration leaves the "
                                   f"workspace at t = {t:.3f} s: {'; '.join(problems)}")
+
+
+def _check_keep_out(lead: ca.SX, t: ca.SX, radius: float, sc: ScenarioView) -> None:
+    """Refuse a task-space path that takes an end effector inside the keep-out circle around
+    the slider point S = (0, d1), at any period of the run: the supervisor would stop it there.
+
+    With the slider at ``d1 = C_v - C_u tan(phi)`` (the consistency rule), ``C - S =
+    (C_u, C_u tan(phi))``, so ``|C - S| = |C_u| / |cos(phi)|``, in closed form and the same for
+    the mirrored C'; checked period by period, not only at the workspace check's samples."""
+    distance = ca.Function("distance", [t], [ca.fabs(lead[0]) / ca.fabs(ca.cos(lead[2]))])
+    for times, (r,) in sampled(distance, sc.duration, sc.period):
+        inside = np.flatnonzero(~(r.ravel() >= radius))
+        if inside.size:
+            k = inside[0]
+            raise KinematicsError(
+                f"scenario {getattr(sc, 'path', sc.name)}: the desired end-effector path passes "
+                f"{r.ravel()[k] * 1000:.1f} mm from the slider point S at t = {times[k]:.3f} s, "
+                f"inside the keep-out radius {radius * 1000:.1f} mm: the supervisor would stop "
+                "the run there; change the trajectory or shorten --duration")
 
 
 def _initial_joint(geometry, unit: UnitStart) -> np.ndarray:
@@ -122,6 +142,7 @@ class ParallelRobot(RobotAdapter):
             x_of_t = ca.Function("x_d", [t], [desired_expr])
             for time in _sample_times(sc):  # consistent and inside the workspace at every sample
                 geometry.ik(np.array(x_of_t(time)).ravel())
+            _check_keep_out(lead, t, system.keep_out_radius, sc)
         desired = desired_function(UNIT, desired_expr, t)
         x_start = np.array(desired(0.0)[0]).ravel()
         d1_0 = float(x_start[2]) if sc.space == "joint" else \
