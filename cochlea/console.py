@@ -1,4 +1,5 @@
-"""Standard output that a departed reader cannot crash.
+"""What every command-line program shares: standard output that a departed reader cannot
+crash, and critical sections that an interrupt cannot cut in two.
 
 ``cochlea-run ... | head -1`` closes the pipe after the first line; the next ``print`` raises
 BrokenPipeError, which would end a run mid-motion or before its report. Every command-line
@@ -10,6 +11,7 @@ output (``cochlea-model``) to exit with the shell's code for SIGPIPE instead.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -68,3 +70,31 @@ def stdout_was_closed() -> bool:
     """Whether a write found standard output's reader gone since
     :func:`tolerate_closed_stdout`."""
     return isinstance(sys.stdout, _ClosedPipeTolerantStream) and sys.stdout.closed_pipe
+
+
+@contextlib.contextmanager
+def signals_held(signals=(signal.SIGINT, signal.SIGTERM)):
+    """Hold ``signals`` off for a few steps that must happen together (create a folder and
+    record it for clean-up; rename a set of files into place): one that arrives meanwhile is
+    recorded and raised again as the section ends, so the program's own handler runs after the
+    section, never inside it.
+
+    Python-level handlers, not a signal mask: a mask covers only the calling thread, and a
+    process-directed signal (Ctrl-C, ``kill``) goes to any thread that does not block it
+    (numpy's, CasADi's), whose C handler then wakes the main thread's Python handler all the
+    same. Only the main thread may set handlers: elsewhere the section is not held.
+    """
+    arrived: list[int] = []
+    try:
+        previous = {s: signal.signal(s, lambda signum, frame: arrived.append(signum))
+                    for s in signals}
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+        for signum in dict.fromkeys(arrived):  # each kind once, in order of arrival
+            signal.raise_signal(signum)

@@ -265,6 +265,31 @@ def test_an_interrupt_while_preparing_undoes_the_start(tmp_path, capsys, monkeyp
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handed back
 
 
+@pytest.mark.parametrize("where", ["_mkdir_missing", "_lock"])
+@pytest.mark.parametrize("default_folder", [False, True], ids=["--out", "runs/"])
+def test_an_interrupt_while_the_folder_is_claimed_leaves_no_folder(tmp_path, capsys,
+                                                                    monkeypatch, where,
+                                                                    default_folder):
+    """Ctrl-C between creating the folders and locking them: held off until the folder is
+    recorded, then obeyed, and the start undone (no empty folder blocks the retry)."""
+    monkeypatch.chdir(tmp_path)
+    real = getattr(outputs, where)
+
+    def interrupted(*args, **kwargs):
+        result = real(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGINT)
+        return result
+
+    monkeypatch.setattr(outputs, where, interrupted)
+    args = ["--robot", "serial", "--space", "task", "--duration", "0.2"]
+    if not default_folder:
+        args += ["--out", str(tmp_path / "deep" / "run")]
+    assert cochlea_run.main(args) == cochlea_run.EXIT_INTERRUPTED
+    _one_line(capsys.readouterr().err,
+              "cochlea-run: interrupted before the run started; nothing moved")
+    assert _tree(tmp_path) == []
+
+
 @pytest.mark.realtime
 def test_repeated_ctrl_c_stops_a_real_run_once_and_keeps_every_row(tmp_path):
     out = tmp_path / "run"
@@ -409,6 +434,35 @@ def test_codegen_that_fails_midway_leaves_the_old_files_whole(tmp_path, capsys, 
     assert len(calls) == 2
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["generated_c"]  # no staging left
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_signals_held_over_a_section_are_obeyed_after_it(signum):
+    """What codegen's renames and cochlea-run's folder claim rely on: a signal sent to the
+    process (any thread may take it) inside the section runs its handler only after it."""
+    import threading
+
+    from cochlea.console import signals_held
+
+    steps, handled = [], []
+
+    def handler(s, frame):
+        handled.append((s, list(steps)))
+
+    previous = signal.signal(signum, handler)
+    worker = threading.Thread(target=time.sleep, args=(0.5,))  # another thread that may take it
+    worker.start()
+    try:
+        with signals_held():
+            steps.append("first")
+            os.kill(os.getpid(), signum)
+            time.sleep(0.01)
+            steps.append("second")
+        assert handled == [(signum, ["first", "second"])]
+        assert signal.getsignal(signum) is handler  # the program's handler is back
+    finally:
+        signal.signal(signum, previous)
+        worker.join()
 
 
 # --------------------------------------------------------------------------------------------

@@ -34,7 +34,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from ..console import tolerate_closed_stdout
+from ..console import signals_held, tolerate_closed_stdout
 from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
@@ -174,10 +174,13 @@ class _Run:
         self.simulating = False
 
     def claim(self, default: str) -> Path:
-        if self.args.out is not None:
-            self.folder = outputs.claim(self.args.out)
-        else:
-            self.folder = outputs.claim_new(Path("runs"), default)
+        # Held off until the folder is recorded here: an interrupt meanwhile would leave the
+        # folder (and its lock file) behind, blocking the identical retry.
+        with signals_held():
+            if self.args.out is not None:
+                self.folder = outputs.claim(self.args.out)
+            else:
+                self.folder = outputs.claim_new(Path("runs"), default)
         return self.folder.path
 
     def close(self) -> None:

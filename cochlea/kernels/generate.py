@@ -54,7 +54,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -62,6 +61,7 @@ from string import Template
 
 import casadi as ca
 
+from ..console import signals_held
 from .catalogue import (
     CONFIG,
     TEMPLATE,
@@ -259,9 +259,7 @@ def _install(staging: Path, out: Path, names: list[Path]) -> list[Path]:
     """Move the files ``names`` (relative paths) from ``staging`` into ``out``, replacing what
     is there, and remove ``out``'s other files in the folders written (its generated files
     only: see ``cochlea-codegen``'s check of ``--out``)."""
-    blocked = {signal.SIGINT, signal.SIGTERM}
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
-    try:
+    with signals_held():
         folders = {out / name.parent for name in names}
         for folder in sorted(folders):
             folder.mkdir(parents=True, exist_ok=True)
@@ -272,8 +270,6 @@ def _install(staging: Path, out: Path, names: list[Path]) -> list[Path]:
             for old in folder.iterdir():
                 if old.is_file() and old not in kept:
                     old.unlink()
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
     return sorted(out / name for name in names)
 
 
