@@ -14,8 +14,26 @@ EXIT_USER_ERROR = 2
 _MISSING = object()
 
 
+#: Control characters (C0, DEL, C1) as they may come from a file name or a value in a file:
+#: printed raw, a NUL or an escape sequence garbles the terminal and a newline splits the
+#: one-line message.
+_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x00, 0x20), *range(0x7f, 0xa0))}
+
+
+def printable(text: str) -> str:
+    """``text`` with its control characters shown as ``\\xNN`` escapes: one line, nothing the
+    terminal would act on."""
+    return text.translate(_CONTROL)
+
+
 class CochleaError(Exception):
-    """Base class of errors caused by the user's input, with a message that says what to do."""
+    """Base class of errors caused by the user's input, with a message that says what to do.
+
+    Its text is always one printable line (:func:`printable`), whatever the file names and
+    values it quotes hold."""
+
+    def __str__(self) -> str:
+        return printable(super().__str__())
 
 
 class DescriptionError(CochleaError):

@@ -317,3 +317,31 @@ def test_parallel_task_path_is_checked_against_the_keep_out_circle(refused, tmp_
     assert "inside the keep-out radius 140.0 mm" in line and "slider point S" in line
     assert "t = 5.56" in line  # the first period inside: 5.566 s
     unit_setups(dataclasses.replace(load_scenario(path), duration=5.0))  # allowed up to 5.57 s
+
+
+@pytest.mark.parametrize("formula, reason", [
+    ("1/(1-1)", "'1/(1-1)' divides by zero"),
+    ("sin(1, 2)", "sin() takes 1 argument, given 2"),
+    ("foo(t)", "unknown function 'foo'"),
+    ("t**", "not a formula: invalid syntax"),
+    ("exp(1e5)", "'exp(1e5)' is not a finite real number"),
+])
+def test_a_bad_formula_is_quoted_once(refused, tmp_path, formula, reason):
+    """The message gives the reason and the formula as the file has it, once."""
+    old = '"81.14 - 3.007*cos(0.632*t) - 0.129*sin(0.632*t) deg"'
+    assert old in SERIAL_JOINT
+    path = write(tmp_path, "s.toml", SERIAL_JOINT.replace(old, f'"{formula} deg"'))
+    line = refused("--scenario", path)
+    assert f"desired.leader[0]: expected a valid formula ({reason}" in line
+    assert line.count(formula) == 1 + reason.count(formula), line
+
+
+@pytest.mark.parametrize("name", ["a\\u0000b", "red\\u001b[31m", "two\\nlines", "c1\\u009b"])
+def test_control_characters_from_a_file_are_shown_escaped(refused, tmp_path, name):
+    """A description name holding a NUL, a terminal escape or a newline: the one line says
+    which file, with the characters shown as escapes the terminal does not act on."""
+    text = SERIAL_JOINT.replace('format = "cochlea-scenario/1"',
+                                f'format = "cochlea-scenario/1"\ndescription = "{name}"')
+    line = refused("--scenario", write(tmp_path, "s.toml", text))
+    assert line.isprintable(), repr(line)
+    assert "\\x" in line

@@ -29,7 +29,7 @@ import signal
 import stat
 from pathlib import Path
 
-from ..errors import CochleaError
+from ..errors import CochleaError, printable
 
 #: The lock file of a claimed folder (removed when the run ends).
 LOCK_NAME = ".cochlea.lock"
@@ -45,6 +45,9 @@ REPORT_MARGIN_BYTES = 16 * 2**20
 class ReportError(Exception):
     """Part of a run's report could not be written (full disk, I/O error): names what was lost
     and what is kept. Not a user error: the run itself happened."""
+
+    def __str__(self) -> str:
+        return printable(super().__str__())  # one line, whatever the folder's name holds
 
     def __init__(self, folder: Path, lost: list[str], cause: OSError):
         self.folder, self.lost, self.cause = folder, lost, cause

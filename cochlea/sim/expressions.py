@@ -39,7 +39,12 @@ _OPS = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b,
 
 
 class ExpressionError(ValueError):
-    """The formula is not one this parser accepts; the message says why."""
+    """The formula is not one this parser accepts; the message says why and, if given the
+    formula, where (``reason`` alone, for a caller that quotes the formula itself)."""
+
+    def __init__(self, reason: str, text: str | None = None):
+        self.reason = reason
+        super().__init__(reason if text is None else f"{reason} in {_short(text)}")
 
 
 def _short(text: str, size: int = 60) -> str:
@@ -57,14 +62,13 @@ def parse(text: str, t: ca.SX, definitions: dict[str, ca.SX] | None = None) -> c
     try:
         tree = ast.parse(text, mode="eval")
     except SyntaxError as exc:
-        raise ExpressionError(f"not a formula: {exc.msg} in {_short(text)}") from None
+        raise ExpressionError(f"not a formula: {exc.msg}", text) from None
     except (ValueError, RecursionError, MemoryError) as exc:  # NUL bytes, deep nesting
-        raise ExpressionError(f"not a formula ({type(exc).__name__}) in {_short(text)}") \
-            from None
+        raise ExpressionError(f"not a formula ({type(exc).__name__})", text) from None
     _check_depth(tree.body, text)
     value = ca.SX(_build(tree.body, t, text, definitions or {}))
     if value.is_constant() and not math.isfinite(float(ca.evalf(value))):
-        raise ExpressionError(f"{_short(text)} is not a finite number at any t")
+        raise ExpressionError("not a finite number at any t", text)
     return value
 
 
@@ -74,15 +78,15 @@ def _check_depth(root, text: str) -> None:
     while stack:
         node, depth = stack.pop()
         if depth > MAX_DEPTH:
-            raise ExpressionError(f"a formula nested at most {MAX_DEPTH} operations deep in "
-                                  f"{_short(text)}")
+            raise ExpressionError(f"a formula nested at most {MAX_DEPTH} operations deep",
+                                  text)
         stack.extend((child, depth + 1) for child in ast.iter_child_nodes(node))
 
 
 def _constant(value, what: str, text: str) -> float:
     """A t-independent part as a finite real number, or a message naming what went wrong."""
     if isinstance(value, complex) or not math.isfinite(value):
-        raise ExpressionError(f"{what} is not a finite real number in {_short(text)}")
+        raise ExpressionError(f"{what} is not a finite real number", text)
     return float(value)
 
 
@@ -93,7 +97,7 @@ def _build(node, t, text, definitions):
             part = ast.get_source_segment(text, node) or "a number"
             return _constant(float(node.value), f"the number {_short(part, 30)}", text)
         except OverflowError:
-            raise ExpressionError(f"a number too large for a float in {_short(text)}") from None
+            raise ExpressionError("a number too large for a float", text) from None
     if isinstance(node, ast.Name):
         if node.id == "t":
             return t
@@ -102,7 +106,7 @@ def _build(node, t, text, definitions):
         if node.id in definitions:
             return definitions[node.id]
         known = ", ".join(["t", "pi", *definitions])
-        raise ExpressionError(f"unknown name {node.id!r} in {_short(text)} (known: {known})")
+        raise ExpressionError(f"unknown name {node.id!r} (known: {known})", text)
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
         value = _build(node.operand, t, text, definitions)
         return -value if isinstance(node.op, ast.USub) else value
@@ -116,32 +120,30 @@ def _build(node, t, text, definitions):
             try:
                 return _constant(op(left, right), _short(part, 30), text)
             except ZeroDivisionError:
-                raise ExpressionError(f"{_short(part, 30)} divides by zero in "
-                                      f"{_short(text)}") from None
+                raise ExpressionError(f"{_short(part, 30)} divides by zero", text) from None
             except OverflowError:
-                raise ExpressionError(f"{_short(part, 30)} overflows in {_short(text)}") \
-                    from None
+                raise ExpressionError(f"{_short(part, 30)} overflows", text) from None
         return op(left, right)
     if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and not node.keywords:
         name = node.func.id
         if name not in FUNCTIONS:
-            raise ExpressionError(f"unknown function {name!r} in {_short(text)} (allowed: "
-                                  + ", ".join(FUNCTIONS) + ")")
+            raise ExpressionError(f"unknown function {name!r} (allowed: "
+                                  + ", ".join(FUNCTIONS) + ")", text)
         if len(node.args) != ARITY[name] or any(isinstance(a, ast.Starred) for a in node.args):
             raise ExpressionError(f"{name}() takes {ARITY[name]} argument"
-                                  f"{'s' if ARITY[name] > 1 else ''}, given {len(node.args)} "
-                                  f"in {_short(text)}")
+                                  f"{'s' if ARITY[name] > 1 else ''}, given {len(node.args)}",
+                                  text)
         args = [_build(a, t, text, definitions) for a in node.args]
         try:
             value = FUNCTIONS[name](*args)
         except (RuntimeError, TypeError, ValueError, OverflowError) as exc:
-            raise ExpressionError(f"{name}() cannot take these arguments in {_short(text)} "
-                                  f"({str(exc).splitlines()[0][:60] if str(exc) else ''})") \
-                from None
+            raise ExpressionError(f"{name}() cannot take these arguments "
+                                  f"({str(exc).splitlines()[0][:60] if str(exc) else ''})",
+                                  text) from None
         if all(isinstance(a, float) for a in args):
             part = ast.get_source_segment(text, node) or name
             return _constant(float(value), _short(part, 30), text)
         return value
-    raise ExpressionError(f"unsupported element {type(node).__name__} in {_short(text)} "
+    raise ExpressionError(f"unsupported element {type(node).__name__} "
                           "(allowed: numbers, t, pi, + - * / **, and the functions "
-                          + ", ".join(FUNCTIONS) + ")")
+                          + ", ".join(FUNCTIONS) + ")", text)

@@ -213,7 +213,7 @@ def _quantity(table: Table, key: str, text, kinds: tuple[str, ...] | None, index
     try:
         parse(formula, ca.SX.sym("t"), {n: ca.SX(0) for n in definitions})
     except ExpressionError as exc:
-        raise table.error(where, f"a valid formula ({exc})", text) from None
+        raise table.error(where, f"a valid formula ({exc.reason})", text) from None
     return Quantity(formula, UNITS[unit][0], UNITS[unit][1])
 
 
@@ -323,7 +323,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
         try:
             defs[name] = parse(text, t, defs)
         except ExpressionError as exc:
-            raise d.error(f"define.{name}", f"a valid formula ({exc})", text) from None
+            raise d.error(f"define.{name}", f"a valid formula ({exc.reason})", text) from None
     leader = quantities(d, "leader", layout.leader, definitions=tuple(definitions))
     d.done()
 
