@@ -70,6 +70,9 @@ TIMEOUT, CRC, ERROR_BYTE, ALERT, LENGTH, PORT, LATE, NON_FINITE, NOT_ENABLED, IN
 FAILURE_NAMES = ("timeout", "crc", "error-byte", "hardware-alert", "length", "port",
                  "late-traffic", "non-finite-command", "not-enabled", "internal")
 
+#: What ``DynamixelBackend._next_packet`` returns besides the parser's own codes (>= 0).
+_PORT_FAILED, _TIMED_OUT = -1, -2
+
 _STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 _GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
 
@@ -350,14 +353,10 @@ class DynamixelBackend:
         pending = n
         failure, failure_id = -1, -1
         while pending:
-            code = parser.parse()
-            if code == proto.NEED_MORE:
-                got = port.read_into(parser.space(), deadline)
-                if got > 0:
-                    parser.commit(got)
-                    continue
-                if got < 0:
-                    return self._fail(PORT, -1)
+            code = self._next_packet(port, deadline)
+            if code == _PORT_FAILED:
+                return self._fail(PORT, -1)
+            if code == _TIMED_OUT:
                 if failure < 0:
                     failure = TIMEOUT
                     failure_id = self.ids[slots.index(0)]
@@ -403,6 +402,23 @@ class DynamixelBackend:
         self.good_reads += 1
         return True
 
+    def _next_packet(self, port: SerialPort, deadline: float) -> int:
+        """The parser's code for the next packet on the line (``proto.OK``, ``CRC_FAILURE``,
+        or another for garbage), reading from ``port`` as needed until ``deadline``;
+        ``_PORT_FAILED`` if the port failed, ``_TIMED_OUT`` if nothing whole came in time."""
+        parser = self._parser
+        while True:
+            code = parser.parse()
+            if code != proto.NEED_MORE:
+                return code
+            got = port.read_into(parser.space(), deadline)
+            if got > 0:
+                parser.commit(got)
+            elif got < 0:
+                return _PORT_FAILED
+            else:
+                return _TIMED_OUT
+
     def _read_alert(self, port: SerialPort) -> bool:
         """Instead of the state, this period reads the Hardware Error Status of the motor that
         raised its alert, so the stop can say what it was; a failed period all the same."""
@@ -416,14 +432,10 @@ class DynamixelBackend:
         if not port.write(memoryview(frame), len(frame), deadline):
             return self._fail(PORT, -1)
         while True:
-            code = parser.parse()
-            if code == proto.NEED_MORE:
-                got = port.read_into(parser.space(), deadline)
-                if got > 0:
-                    parser.commit(got)
-                    continue
-                if got < 0:
-                    return self._fail(PORT, -1)
+            code = self._next_packet(port, deadline)
+            if code == _PORT_FAILED:
+                return self._fail(PORT, -1)
+            if code == _TIMED_OUT:
                 break
             if code == proto.OK and parser.id == motor_id and parser.params_len == 1:
                 self.alert_status[motor_id] = parser.view[parser.params_start]
