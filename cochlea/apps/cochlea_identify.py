@@ -1,0 +1,240 @@
+"""``cochlea-identify``: a robot's base parameters from its own logs, with their statistics,
+figures and (optionally) the values written back into a description.
+
+User mistakes -- a bad option, a missing or bad log, a robot that was not excited -- print one
+line and exit with EXIT_USER_ERROR, before any output file exists.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import json
+import math
+import sys
+from pathlib import Path
+
+from ..errors import EXIT_USER_ERROR, CochleaError
+from ..ident import estimate, writeback
+from ..ident.logs import read_run
+from ..robots import ROBOTS, model, robot
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _unit(args) -> str:
+    adapter = robot(args.robot)
+    system = adapter.load(args.description)
+    units = adapter.layout(system, "joint").units
+    if args.robot != "serial":
+        if args.arm is not None:
+            raise CochleaError("--arm is for the serial system; the parallel mechanism is one "
+                               "robot")
+        return units[0]
+    arm = args.arm or units[0]
+    if arm not in units:
+        raise CochleaError(f"--arm {arm!r}: no such arm; the arms are {', '.join(units)}")
+    return arm
+
+
+def _physical(m, result: estimate.Identification):
+    # The physically consistent fit is its own module (cochlea.ident.physical), imported by
+    # name only when asked for: an installation without it still identifies.
+    try:
+        physically_consistent_fit = importlib.import_module(
+            "cochlea.ident.physical").physically_consistent_fit
+    except (ImportError, AttributeError):
+        raise CochleaError("--physical needs cochlea.ident.physical (the physically "
+                           "consistent fit), which this installation lacks") from None
+    return physically_consistent_fit(m, result.W, result.y, result.weights,
+                                     prior_full=m.full_parameters.nominal)
+
+
+def _report(args, m, unit, logs, validate, result, physical) -> dict:
+    p = m.parameters
+    params = []
+    for i, name in enumerate(p.names):
+        entry = {"name": name, "meaning": p.meanings[i], "si_unit": p.si_units[i],
+                 "nominal": float(p.nominal[i]), "ols": float(result.ols.beta[i]),
+                 "ols_std_error": float(result.ols.std_error[i]),
+                 "wls": float(result.wls.beta[i]),
+                 "wls_std_error": float(result.wls.std_error[i]),
+                 "wls_relative_std_error_percent": _finite(result.wls.relative_std_error[i])}
+        if physical is not None:
+            entry["physical"] = float(physical.base[i])
+        params.append(entry)
+    joints = list(m.joint_names)
+    doc = {
+        "format": "cochlea-identification/1",
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "robot": args.robot, "unit": unit, "model": m.name,
+        "description": str(m.source),
+        "logs": [{"folder": str(log.folder), "sha256": log.sha256, "rows": log.rows}
+                 for log in logs],
+        "validation_logs": [{"folder": str(log.folder), "sha256": log.sha256,
+                             "rows": log.rows} for log in validate],
+        "held_out": result.held_out,
+        "settings": {"cutoff_hz": result.settings.cutoff_hz,
+                     "filter": f"Butterworth order {estimate.FILTER_ORDER}, zero-phase",
+                     "decimate": result.settings.decimate,
+                     "min_speed_rad_s": result.settings.min_speed,
+                     "effort_lag_periods": result.settings.effort_lag,
+                     "holdout": result.settings.holdout,
+                     "max_condition": result.settings.max_condition},
+        "fit_rows": result.fit_rows, "fit_samples": result.fit_samples,
+        "condition_number": _finite(result.condition),
+        "condition_number_scaled": _finite(result.condition_scaled),
+        "parameters": params,
+        "prediction_nrms_percent": {
+            "joints": joints,
+            "wls": [_finite(x) for x in result.prediction_nrms()],
+            "ols": [_finite(x) for x in result.prediction_nrms(result.ols.beta)],
+            "wls_all_samples": [_finite(x) for x in result.prediction_nrms(moving=False)]},
+        "residual_rms_wls": dict(zip(joints, map(float, result.wls.residual_rms))),
+    }
+    if physical is not None:
+        doc["physical"] = {"full_names": list(m.full_parameters.names),
+                           "full": [float(x) for x in physical.full],
+                           "cost": float(physical.cost), "iterations": int(physical.iterations),
+                           "prediction_nrms_percent":
+                               [_finite(x) for x in result.prediction_nrms(physical.base)]}
+    return doc
+
+
+def _print_table(doc: dict) -> None:
+    print(f"{doc['model']}: {doc['fit_samples']} samples from {len(doc['logs'])} log(s), "
+          f"{doc['fit_rows']} equations; condition number {doc['condition_number']:.4g} "
+          f"(columns scaled: {doc['condition_number_scaled']:.4g})")
+    width = max(len(p["name"]) for p in doc["parameters"])
+    print(f"  {'':<{width}}  {'nominal':>12}  {'OLS':>12}  {'WLS':>12}  {'std err':>10}  "
+          f"{'rel %':>8}  unit")
+    for p in doc["parameters"]:
+        rel = p["wls_relative_std_error_percent"]
+        print(f"  {p['name']:<{width}}  {p['nominal']:>12.5g}  {p['ols']:>12.5g}  "
+              f"{p['wls']:>12.5g}  {p['wls_std_error']:>10.3g}  "
+              f"{'inf' if rel is None else f'{rel:.3g}':>8}  {p['si_unit']}")
+    pred = doc["prediction_nrms_percent"]
+    print(f"  held-out effort NRMS on {doc['held_out']} (moving samples), WLS: "
+          + ", ".join(f"{j} {'inf' if v is None else f'{v:.2f}'} %"
+                      for j, v in zip(pred["joints"], pred["wls"])))
+
+
+def run(args) -> int:
+    # Every check that needs no fit, before anything is read at length or written.
+    out = Path(args.out)
+    if out.is_dir() or not out.parent.is_dir():
+        raise CochleaError(f"--out {out}: expected a file name in an existing folder")
+    target = None
+    if args.update_description:
+        target = writeback.check_writable(Path(args.update_description), args.in_place)
+    if args.decimate is not None and args.decimate < 1:
+        raise CochleaError(f"--decimate must be a whole number of at least 1, got "
+                           f"{args.decimate}")
+    if not (math.isfinite(args.max_condition) and args.max_condition > 1):
+        raise CochleaError(f"--max-condition must be a finite number above 1, got "
+                           f"{args.max_condition:g}")
+    if not (math.isfinite(args.effort_lag) and 0 <= args.effort_lag <= 10):
+        raise CochleaError(f"--effort-lag must lie in [0, 10] control periods, got "
+                           f"{args.effort_lag:g}")
+    unit = _unit(args)
+    m = model(args.robot, arm=unit if args.robot == "serial" else None,
+              parameterisation="base", actuators="all", description=args.description)
+    logs = [read_run(folder, m, args.robot, unit) for folder in args.logs]
+    validate = [read_run(folder, m, args.robot, unit) for folder in (args.validate or [])]
+    settings = estimate.Settings(args.cutoff_hz, args.decimate, args.holdout,
+                                 args.max_condition, args.min_speed, args.effort_lag)
+    result = estimate.identify(m, logs, validate or None, settings)
+    physical = _physical(m, result) if args.physical else None
+    doc = _report(args, m, unit, logs, validate, result, physical)
+    written = []
+    if target is not None:
+        if physical is not None:
+            phi, how = physical.full, "physically consistent fit"
+        else:
+            phi = writeback.closest_full(m, result.beta)
+            how = "WLS, the full vector nearest the nominal one"
+        path = writeback.write_back(m, args.robot, unit, Path(args.update_description), phi,
+                                    [(str(log.folder), log.sha256) for log in logs],
+                                    args.in_place, how)
+        doc["description_written"] = str(path)
+        written.append(path)
+    out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    if not args.no_figures:
+        from ..ident import figures  # noqa: PLC0415 (matplotlib only when drawing)
+
+        stem = out.with_suffix("")
+        doc["figures"] = [str(figures.torque_figure(result, Path(f"{stem}_torques.png"))),
+                          str(figures.parameter_figure(result, Path(f"{stem}_parameters.png")))]
+        out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    _print_table(doc)
+    print(f"  wrote {out}" + "".join(f", {p}" for p in written + doc.get("figures", [])))
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="cochlea-identify",
+        description="Identify a robot's base dynamic parameters (inertial, armature, viscous "
+                    "and Coulomb friction) from the logs of its runs (cochlea-run, "
+                    "cochlea-embedded): zero-phase filtering, the stacked base regressor, "
+                    "ordinary and weighted least squares with standard errors, and the "
+                    "effort predicted on held-out data. See docs/identification.md.")
+    p.add_argument("logs", nargs="+", metavar="LOG_DIR",
+                   help="run folders (each with its log.csv) to fit")
+    p.add_argument("--robot", required=True, choices=list(ROBOTS))
+    p.add_argument("--arm", help="serial: which arm's columns to identify (default: arm1)")
+    p.add_argument("--description", help="the robot description the logs' robot was run "
+                   "with (default: the shipped one)")
+    p.add_argument("--out", default="ident.json", help="the report (JSON; default "
+                   "ident.json); figures go beside it as OUT_torques.png, OUT_parameters.png")
+    p.add_argument("--validate", nargs="+", metavar="LOG_DIR", help="run folders held out "
+                   "for validation (default: the last --holdout of every fitted log)")
+    p.add_argument("--holdout", type=float, default=estimate.DEFAULT_HOLDOUT,
+                   help="fraction of each log held out when no --validate is given "
+                        f"(default {estimate.DEFAULT_HOLDOUT:g})")
+    p.add_argument("--cutoff-hz", type=float, default=estimate.DEFAULT_CUTOFF_HZ,
+                   help="cut-off of the zero-phase Butterworth filter (default "
+                        f"{estimate.DEFAULT_CUTOFF_HZ:g} Hz)")
+    p.add_argument("--decimate", type=int, help="keep every N-th filtered sample (default: "
+                   "the log's rate over ten times the cut-off)")
+    p.add_argument("--min-speed", type=float, default=estimate.DEFAULT_MIN_SPEED,
+                   help="leave out samples where a joint moves slower than this (rad/s; a "
+                        "prismatic joint: times 0.02 m/rad) (default "
+                        f"{estimate.DEFAULT_MIN_SPEED:g})")
+    p.add_argument("--effort-lag", type=float, default=estimate.DEFAULT_EFFORT_LAG,
+                   help="control periods by which the logged effort lags the motion it "
+                        f"causes (default {estimate.DEFAULT_EFFORT_LAG:g}: a held command)")
+    p.add_argument("--max-condition", type=float, default=estimate.DEFAULT_MAX_CONDITION,
+                   help="largest condition number of the column-scaled regressor accepted "
+                        f"(default {estimate.DEFAULT_MAX_CONDITION:g})")
+    p.add_argument("--physical", action="store_true",
+                   help="also fit physically consistent parameters (and write those back)")
+    p.add_argument("--update-description", metavar="TOML",
+                   help="write the identified values into a copy of this description, "
+                        "NAME.identified.toml beside it")
+    p.add_argument("--in-place", action="store_true",
+                   help="with --update-description: overwrite the description itself")
+    p.add_argument("--no-figures", action="store_true", help="write no PNG figures")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.in_place and not args.update_description:
+        print("cochlea-identify: --in-place needs --update-description", file=sys.stderr)
+        return EXIT_USER_ERROR
+    try:
+        return run(args)
+    except CochleaError as exc:
+        print(f"cochlea-identify: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+

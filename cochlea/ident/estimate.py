@@ -1,0 +1,363 @@
+"""Base parameters from logged motion and effort: filtering, the stacked regressor, least squares.
+
+The steps, as a robotics researcher runs them on a real arm (Gautier and Khalil; Swevers et al.):
+
+1. **Filter** each log's positions and efforts with the same zero-phase low-pass Butterworth
+   filter (``scipy.signal.filtfilt``, order :data:`FILTER_ORDER`, cut-off ``cutoff_hz``): the
+   same filter on both sides keeps torque and motion in phase and equally attenuated.
+   The efforts are first read ``effort_lag`` control periods earlier (default half a period:
+   each command is held over its period; see :data:`DEFAULT_EFFORT_LAG`).
+2. **Differentiate** the filtered positions twice (central differences) for velocity and
+   acceleration. The logged velocity is not used: on the motors it is the Present Velocity
+   register, 0.024 rad/s a count, coarser than what differentiating the 1.5 mrad encoder
+   counts gives after the filter, and the embedded and simulated logs then all go through
+   one path.
+3. **Drop the ends** the filter spoils (:func:`edge_rows`) and **decimate** (every
+   ``decimate``-th row: the filtered signals hold nothing above the cut-off, and residuals
+   of nearby rows would otherwise be correlated, making the standard errors optimistic).
+4. **Stack** the base regressor ``Y(q, qd, qd, qdd)`` of the model built with
+   ``parameterisation="base", actuators="all"``, so ``tau = Y beta`` holds row by row with the
+   armature and the viscous and Coulomb friction the description declares.
+5. **Solve** ordinary least squares, then weighted least squares with one weight per joint,
+   ``1 / sigma_j`` from the OLS residuals of that joint (the classic scheme: the joints'
+   efforts differ in size and noise). Each estimate's standard error is
+   ``sqrt(diag(s^2 (W^T W)^-1))`` of the (weighted) regressor with ``s^2`` the residual
+   variance; the relative standard error is it over ``|beta|`` in %.
+6. **Validate** on data held out from the fit: the effort the estimate predicts against the
+   one logged, per joint, as an NRMS error: ``RMS(tau - Y beta) / RMS(tau)`` in %.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from ..errors import CochleaError
+from ..robots import RobotModel
+from .logs import LogError, RunLog
+
+#: Butterworth order of the zero-phase filter (filtfilt doubles it).
+FILTER_ORDER = 4
+#: Default cut-off of the filter (Hz): above a Fourier excitation's highest harmonic (a few
+#: Hz on these robots), far below the 1 kHz loop's noise.
+DEFAULT_CUTOFF_HZ = 20.0
+#: Default lag of the logged effort behind the motion it causes, in control periods: a command
+#: is held over its period (zero-order hold), so on average it acts half a period after the
+#: row's state was sampled. Measured on the simulated ideal plant: without the half period the
+#: armature and first-moment estimates are biased by 2-7 %, with it below 1 %.
+DEFAULT_EFFORT_LAG = 0.5
+#: Default fraction of each log held out for validation when no --validate log is given.
+DEFAULT_HOLDOUT = 0.25
+#: Largest condition number of the column-scaled regressor accepted: beyond it some base
+#: parameter is hardly excited and its estimate is noise. Scaling each column to unit norm
+#: makes the number independent of the parameters' units.
+DEFAULT_MAX_CONDITION = 1e4
+#: Default of ``min_speed`` (rad/s): five times the model's Coulomb smoothing (0.02 rad/s)
+#: and above the filter's smearing of the friction's sign change at a reversal.
+DEFAULT_MIN_SPEED = 0.1
+#: A prismatic joint's speed threshold relative to a revolute joint's (m/s per rad/s): the
+#: model's own ratio of Coulomb smoothings (0.0004 m/s against 0.02 rad/s).
+PRISMATIC_SPEED_RATIO = 0.02
+#: Rows of the regressor evaluated per CasADi map call (bounds the memory of one call).
+CHUNK = 4096
+#: The fit needs at least this many samples per base parameter, after the ends are dropped
+#: and the log decimated.
+SAMPLES_PER_PARAMETER = 10
+
+
+class NotExcitedError(LogError):
+    """The logs do not excite every base parameter: the regressor is (nearly) rank-deficient."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    cutoff_hz: float = DEFAULT_CUTOFF_HZ
+    decimate: int | None = None  # None: rate / (10 cutoff)
+    holdout: float = DEFAULT_HOLDOUT
+    max_condition: float = DEFAULT_MAX_CONDITION
+    #: Rows of a joint moving slower than this (rad/s, and a fiftieth of it in m/s at a
+    #: prismatic joint) are left out: see :func:`moving_rows`.
+    min_speed: float = DEFAULT_MIN_SPEED
+    effort_lag: float = DEFAULT_EFFORT_LAG  # control periods
+
+    def decimation(self, rate_hz: float) -> int:
+        if self.decimate is not None:
+            return self.decimate
+        return max(1, int(rate_hz / (10.0 * self.cutoff_hz)))
+
+
+def edge_rows(rate_hz: float, cutoff_hz: float) -> int:
+    """Rows dropped at each end of a filtered log: two periods of the cut-off frequency, where
+    filtfilt's start-up transient and the one-sided differences live."""
+    return int(math.ceil(2.0 * rate_hz / cutoff_hz)) + 2
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Filtered, differentiated and decimated samples of one log (SI)."""
+
+    time: np.ndarray  # (N,)
+    q: np.ndarray  # (N, n)
+    qd: np.ndarray
+    qdd: np.ndarray
+    tau: np.ndarray
+
+    def rows(self, part: slice) -> Samples:
+        return Samples(self.time[part], self.q[part], self.qd[part], self.qdd[part],
+                       self.tau[part])
+
+
+def process(log: RunLog, settings: Settings, n_parameters: int) -> Samples:
+    """``log`` filtered, differentiated, with its ends dropped and decimated: see the module
+    docstring. Refuses a log too short for the filter and the parameters (one line)."""
+    rate = log.rate_hz
+    dt = 1.0 / rate
+    nyquist = rate / 2.0
+    if not 0.0 < settings.cutoff_hz < nyquist:
+        raise CochleaError(f"--cutoff-hz {settings.cutoff_hz:g} must lie between 0 and the "
+                           f"log's Nyquist frequency {nyquist:g} Hz ({log.file})")
+    step = settings.decimation(rate)
+    edge = edge_rows(rate, settings.cutoff_hz)
+    needed = 2 * edge + step * SAMPLES_PER_PARAMETER * n_parameters
+    if log.rows < needed:
+        raise LogError(f"{log.file}: too short to identify from: {log.rows} rows "
+                       f"({log.rows * dt:.3g} s at {rate:.4g} Hz); at least {needed} rows "
+                       f"({needed * dt:.3g} s) are needed for {n_parameters} base parameters "
+                       f"with --cutoff-hz {settings.cutoff_hz:g}: record a longer excitation")
+    b, a = signal.butter(FILTER_ORDER, settings.cutoff_hz / nyquist)
+    q = signal.filtfilt(b, a, log.q, axis=0)
+    # The effort at each row's time: the logged commands read `effort_lag` periods earlier.
+    lagged = log.time - settings.effort_lag * dt
+    tau = np.column_stack([np.interp(lagged, log.time, col) for col in log.tau.T])
+    tau = signal.filtfilt(b, a, tau, axis=0)
+    qd = np.gradient(q, dt, axis=0)
+    qdd = np.gradient(qd, dt, axis=0)
+    keep = slice(edge, log.rows - edge, step)
+    return Samples(log.time[keep], q[keep], qd[keep], qdd[keep], tau[keep])
+
+
+def regressor(model: RobotModel, samples: Samples) -> np.ndarray:
+    """The stacked base regressor ``(N n, n_b)``: rows of sample k are ``k n .. k n + n - 1``,
+    one per joint, so ``stacked @ beta`` is the efforts in the order of ``samples.tau.ravel()``.
+    Evaluated with ``Y.map`` a chunk at a time (one CasADi call per chunk, not per sample)."""
+    n, n_b = model.nq, len(model.parameters.names)
+    total = len(samples.time)
+    out = np.empty((total, n, n_b))
+    mapped = {}
+    for start in range(0, total, CHUNK):
+        stop = min(start + CHUNK, total)
+        size = stop - start
+        if size not in mapped:
+            mapped[size] = model.Y.map(size)
+        qd = samples.qd[start:stop].T
+        block = np.array(mapped[size](samples.q[start:stop].T, qd, qd, samples.qdd[start:stop].T))
+        out[start:stop] = block.reshape(n, size, n_b).transpose(1, 0, 2)
+    return out.reshape(total * n, n_b)
+
+
+def scaled_condition(W: np.ndarray) -> tuple[float, np.ndarray]:
+    """The condition number of ``W`` with every column scaled to unit norm (inf when a column
+    is zero or the columns are dependent), and the right singular vector of its smallest
+    singular value (which parameters it mixes)."""
+    norms = np.linalg.norm(W, axis=0)
+    if (norms == 0).any():
+        v = (norms == 0).astype(float)
+        return math.inf, v / np.linalg.norm(v)
+    _, s, vt = np.linalg.svd(W / norms, full_matrices=False)
+    return (float(s[0] / s[-1]) if s[-1] > 0 else math.inf), vt[-1]
+
+
+def moving_rows(model: RobotModel, samples: Samples, min_speed: float) -> np.ndarray:
+    """Which stacked rows (sample-major, see :func:`regressor`) to fit: every row of a sample
+    whose joints all move at least ``min_speed``. The model's friction is
+    ``Fv qd + Fc tanh(qd / v_s)``: a joint that sticks at a reversal is held by whatever
+    static friction it takes, which no term predicts, and the filter smears the friction's
+    sign change over a few tens of ms around it. The whole sample goes, not only the stuck
+    joint's row: while one joint sticks the others' equations hold only if it is exactly at
+    rest, which neither a real joint's micro-slip nor the simulated plant's stick-slip
+    time-stepping (which re-places a stuck joint at rest each step) guarantees."""
+    limit = np.array([min_speed * (1.0 if j.type == "revolute" else PRISMATIC_SPEED_RATIO)
+                      for j in model.joints])
+    moving = (np.abs(samples.qd) >= limit).all(axis=1)
+    return np.repeat(moving, model.nq)
+
+
+@dataclass(frozen=True)
+class LeastSquares:
+    """One least-squares estimate with its statistics."""
+
+    beta: np.ndarray
+    std_error: np.ndarray
+    residual_rms: np.ndarray  # per joint, N m or N
+
+    @property
+    def relative_std_error(self) -> np.ndarray:
+        """Standard error over |estimate|, in % (inf for an estimate of zero)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.beta != 0, 100.0 * self.std_error / np.abs(self.beta), np.inf)
+
+
+def _solve(W: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(beta, cov_unit)``: the least-squares solution and ``(W^T W)^-1`` through the SVD."""
+    u, s, vt = np.linalg.svd(W, full_matrices=False)
+    beta = vt.T @ ((u.T @ y) / s)
+    cov_unit = (vt.T / s**2) @ vt
+    return beta, cov_unit
+
+
+def _per_joint_rms(r: np.ndarray, joint: np.ndarray, n_joints: int) -> np.ndarray:
+    return np.array([np.sqrt(np.mean(r[joint == j] ** 2)) if (joint == j).any() else 0.0
+                     for j in range(n_joints)])
+
+
+def least_squares(W: np.ndarray, y: np.ndarray, joint: np.ndarray, n_joints: int,
+                  weights: np.ndarray | None = None) -> LeastSquares:
+    """Least squares of ``W beta = y`` (``joint``: the joint of each row), each row multiplied
+    by ``weights`` when given."""
+    m, n_b = W.shape
+    w = np.ones(m) if weights is None else weights
+    beta, cov_unit = _solve(W * w[:, None], y * w)
+    r = y - W @ beta
+    s2 = float(np.sum((r * w) ** 2)) / max(m - n_b, 1)
+    std = np.sqrt(np.maximum(np.diag(cov_unit) * s2, 0.0))
+    return LeastSquares(beta, std, _per_joint_rms(r, joint, n_joints))
+
+
+def joint_weights(W: np.ndarray, y: np.ndarray, joint: np.ndarray, n_joints: int,
+                  ols: LeastSquares) -> np.ndarray:
+    """Per row, ``1 / sigma_j`` of its joint: ``sigma_j^2`` is the OLS residual variance of
+    joint j's rows, the fit's degrees of freedom shared out in proportion to its rows."""
+    m, n_b = W.shape
+    r = y - W @ ols.beta
+    sigma = np.ones(n_joints)
+    for j in range(n_joints):
+        rows = joint == j
+        if rows.any():
+            dof = max(rows.sum() * (m - n_b) / m, 1.0)
+            sigma[j] = np.sqrt(np.sum(r[rows] ** 2) / dof)
+    sigma = np.maximum(sigma, 1e-12 * max(sigma.max(), 1e-300))  # an exact joint: no 1/0
+    return 1.0 / sigma[joint]
+
+
+def nrms(measured: np.ndarray, predicted: np.ndarray, mask: np.ndarray | None = None
+         ) -> np.ndarray:
+    """Per joint (columns), ``RMS(measured - predicted) / RMS(measured)`` in %, over the
+    entries where ``mask`` (same shape) is true."""
+    mask = np.ones(measured.shape, bool) if mask is None else mask
+    out = np.full(measured.shape[1], np.inf)
+    for j in range(measured.shape[1]):
+        rows = mask[:, j]
+        size = np.sqrt(np.mean(measured[rows, j] ** 2)) if rows.any() else 0.0
+        if size > 0:
+            err = np.sqrt(np.mean((measured[rows, j] - predicted[rows, j]) ** 2))
+            out[j] = 100.0 * err / size
+    return out
+
+
+@dataclass
+class Identification:
+    """What :func:`identify` finds: the estimates, their statistics, the data behind them."""
+
+    model: RobotModel
+    ols: LeastSquares
+    wls: LeastSquares
+    weights: np.ndarray  # per fitted row
+    W: np.ndarray  # the fit's stacked regressor (moving rows only)
+    y: np.ndarray  # the fit's stacked efforts
+    joint: np.ndarray  # the joint of each fitted row
+    condition: float  # of W as it is (depends on the parameters' units)
+    condition_scaled: float  # of W with unit-norm columns: the excitation's quality
+    validation: list[Samples]  # the held-out samples
+    W_validation: np.ndarray  # every held-out row, sample-major
+    moving_validation: np.ndarray  # (N, n): the held-out entries of moving joints
+    fit_rows: int  # stacked rows in the fit
+    fit_samples: int  # samples (before leaving out slow joints' rows)
+    held_out: str  # how the validation data was chosen
+    settings: Settings
+
+    @property
+    def beta(self) -> np.ndarray:
+        """The estimate: weighted least squares."""
+        return self.wls.beta
+
+    def predict(self, beta: np.ndarray | None = None) -> np.ndarray:
+        """Efforts the estimate predicts on the held-out samples, ``(N, n)``."""
+        beta = self.wls.beta if beta is None else beta
+        return (self.W_validation @ beta).reshape(-1, self.model.nq)
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Logged (filtered) efforts of the held-out samples, ``(N, n)``."""
+        return np.vstack([s.tau for s in self.validation])
+
+    @property
+    def validation_time(self) -> np.ndarray:
+        return np.concatenate([s.time for s in self.validation])
+
+    def prediction_nrms(self, beta: np.ndarray | None = None, moving: bool = True
+                        ) -> np.ndarray:
+        """Per joint, the held-out NRMS error (%) of ``beta`` (default: WLS), over the moving
+        joints' entries (the figure of merit) or over all of them (``moving=False``)."""
+        return nrms(self.measured, self.predict(beta),
+                    self.moving_validation if moving else None)
+
+
+def _check_excited(model: RobotModel, W: np.ndarray, settings: Settings, where: str) -> float:
+    cond, v = scaled_condition(W)
+    if cond > settings.max_condition:
+        names = model.parameters.names
+        worst = np.argsort(-np.abs(v))[:3]
+        mixed = ", ".join(f"{names[i]} ({model.parameters.meanings[i]})" for i in worst
+                          if abs(v[i]) > 0.1)
+        shown = "inf (rank-deficient)" if math.isinf(cond) else f"{cond:.3g}"
+        raise NotExcitedError(
+            f"{where}: the robot was not excited enough to identify its base parameters: "
+            f"the scaled regressor's condition number is {shown}, above "
+            f"{settings.max_condition:g}; least excited: {mixed}. Record a run of an "
+            "excitation trajectory (cochlea-excite) or raise --max-condition")
+    return cond
+
+
+def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | None = None,
+             settings: Settings = Settings()) -> Identification:
+    """OLS and WLS base parameters of ``model`` from ``logs``; validated on ``validate``, or
+    without it on the last ``settings.holdout`` of every log (each log's own tail)."""
+    n, n_b = model.nq, len(model.parameters.names)
+    if validate is None and not 0.0 < settings.holdout < 1.0:
+        raise CochleaError(f"--holdout must lie strictly between 0 and 1, got "
+                           f"{settings.holdout:g}")
+    if not settings.min_speed >= 0.0:
+        raise CochleaError(f"--min-speed must be a non-negative number (rad/s), got "
+                           f"{settings.min_speed:g}")
+    fit_parts, val_parts = [], []
+    for log in logs:
+        s = process(log, settings, n_b)
+        if validate is None:
+            cut = int(round(len(s.time) * (1.0 - settings.holdout)))
+            fit_parts.append(s.rows(slice(0, cut)))
+            val_parts.append(s.rows(slice(cut, None)))
+        else:
+            fit_parts.append(s)
+    if validate is not None:
+        val_parts = [process(log, settings, n_b) for log in validate]
+        held_out = "the validation logs (--validate)"
+    else:
+        held_out = f"the last {settings.holdout:.0%} of every log"
+    keep = np.concatenate([moving_rows(model, s, settings.min_speed) for s in fit_parts])
+    W = np.vstack([regressor(model, s) for s in fit_parts])[keep]
+    y = np.concatenate([s.tau.ravel() for s in fit_parts])[keep]
+    joint = np.tile(np.arange(n), len(keep) // n)[keep]
+    where = ", ".join(str(log.folder) for log in logs)
+    cond_scaled = _check_excited(model, W, settings, where)
+    cond = float(np.linalg.cond(W))
+    ols = least_squares(W, y, joint, n)
+    weights = joint_weights(W, y, joint, n, ols)
+    wls = least_squares(W, y, joint, n, weights)
+    W_val = np.vstack([regressor(model, s) for s in val_parts])
+    moving_val = np.concatenate([moving_rows(model, s, settings.min_speed)
+                                 for s in val_parts]).reshape(-1, n)
+    return Identification(model, ols, wls, weights, W, y, joint, cond, cond_scaled, val_parts,
+                          W_val, moving_val, len(y), len(keep) // n, held_out, settings)

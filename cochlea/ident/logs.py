@@ -1,0 +1,150 @@
+"""Run folders read back for identification: the positions, velocities and efforts of one unit.
+
+A run folder is what ``cochlea-run`` (simulated, emulated or real motors) or the embedded
+program (``build/cochlea-embedded``) leaves: ``log.csv`` with one row per control period, SI,
+columns named ``<unit>.<signal>.<joint>_<unit of measure>`` (``arm1.q.joint1_rad``,
+``mechanism.tau.slider.d1_N``). Columns are picked by name, never by position, so the
+pose columns the embedded program leaves out or the real-time timing columns it adds change
+nothing. Every problem with a log is one :class:`LogError` naming the file and what was
+expected, before anything is fitted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CochleaError
+from ..robots import ROBOTS, RobotModel
+
+#: Column suffix of each signal's SI unit, by joint type.
+SIGNAL_UNITS = {
+    "q": {"revolute": "rad", "prismatic": "m"},
+    "qd": {"revolute": "rad_s", "prismatic": "m_s"},
+    "tau": {"revolute": "Nm", "prismatic": "N"},
+}
+#: An optional column of measured motor current (A) per joint: fits the motor's line.
+CURRENT = "current"
+#: Largest log.csv read (bytes): an hour at 1 kHz of the serial system is about 1.5 GB;
+#: identification runs are minutes long.
+MAX_LOG_BYTES = 2 * 1024**3
+
+
+class LogError(CochleaError):
+    """A run folder that cannot be identified from: names the file and what was expected."""
+
+
+@dataclass(frozen=True)
+class RunLog:
+    """One unit's signals from one run folder, SI, one row per control period."""
+
+    folder: Path
+    file: Path
+    sha256: str
+    unit: str
+    time: np.ndarray  # (N,) s
+    q: np.ndarray  # (N, n) rad or m
+    qd: np.ndarray  # (N, n) rad/s or m/s, as logged (not used by default: see estimate)
+    tau: np.ndarray  # (N, n) N m or N, the commanded effort
+    current: np.ndarray | None  # (N, n) A, when the log carries it
+
+    @property
+    def rows(self) -> int:
+        return len(self.time)
+
+    @property
+    def rate_hz(self) -> float:
+        return float(1.0 / np.median(np.diff(self.time)))
+
+
+def column_names(model: RobotModel, unit: str) -> dict[str, list[str]]:
+    """The columns identification needs of ``unit``: per signal, one name per joint."""
+    return {signal: [f"{unit}.{signal}.{j.name}_{units[j.type]}" for j in model.joints]
+            for signal, units in SIGNAL_UNITS.items()}
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _other_robot(header: list[str], robot: str) -> str | None:
+    """The robot whose units name this log's columns, when it is not ``robot``."""
+    for name, adapter in ROBOTS.items():
+        if name == robot:
+            continue
+        units = adapter.layout(adapter.load(None), "joint").units
+        if any(col.split(".", 1)[0] in units for col in header):
+            return name
+    return None
+
+
+def _header(file: Path) -> list[str]:
+    try:
+        with open(file, encoding="utf-8") as f:
+            first = f.readline()
+    except FileNotFoundError:
+        raise LogError(f"{file}: no such file (a run folder holds the log.csv that "
+                       "cochlea-run or cochlea-embedded writes)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LogError(f"{file}: expected a readable UTF-8 CSV log, got {exc}") from None
+    header = [c.strip() for c in first.rstrip("\n").split(",")]
+    if not first.strip() or not header or header[0] != "time_s":
+        raise LogError(f"{file}: expected a CSV log whose first column is time_s, got "
+                       f"{first[:80].rstrip()!r}")
+    return header
+
+
+def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> RunLog:
+    """The signals of ``unit`` (an arm of the serial system, or ``mechanism``) in the run
+    folder ``folder`` (or a log.csv itself), refused with one :class:`LogError` when the
+    folder, the file or a column is missing, a value is not a number or not finite (the row
+    is named), time does not increase, or the log belongs to the other robot."""
+    folder = Path(folder)
+    file = folder / "log.csv" if folder.is_dir() else folder
+    if not folder.exists():
+        raise LogError(f"{folder}: no such run folder")
+    if file.is_file() and file.stat().st_size > MAX_LOG_BYTES:
+        raise LogError(f"{file}: expected a log of at most {MAX_LOG_BYTES // 1024**3} GiB; "
+                       "identify from shorter runs")
+    header = _header(file)
+    wanted = column_names(model, unit)
+    missing = [c for cols in wanted.values() for c in cols if c not in header]
+    if missing:
+        other = _other_robot(header, robot)
+        if other is not None:
+            raise LogError(f"{file}: this is a log of the {other} robot, not of the {robot} "
+                           f"robot (give --robot {other})")
+        units = sorted({c.split(".", 1)[0] for c in header[1:] if "." in c})
+        raise LogError(f"{file}: missing column {missing[0]!r} (expected q, qd and tau of "
+                       f"unit {unit!r}; the log's units: {', '.join(units) or 'none'})")
+    current = [f"{unit}.{CURRENT}.{j.name}_A" for j in model.joints]
+    has_current = all(c in header for c in current)
+    names = ["time_s"] + wanted["q"] + wanted["qd"] + wanted["tau"] + \
+        (current if has_current else [])
+    index = [header.index(c) for c in names]
+    try:
+        data = np.loadtxt(file, delimiter=",", skiprows=1, usecols=index, ndmin=2)
+    except ValueError as exc:
+        # numpy names the offending line ("... at row 12, column 3"): keep it, one line.
+        raise LogError(f"{file}: expected numbers in every selected column, "
+                       f"{str(exc).splitlines()[0]}") from None
+    bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
+    if bad.size:
+        row = int(bad[0])
+        col = names[int(np.flatnonzero(~np.isfinite(data[row]))[0])]
+        raise LogError(f"{file}: row {row + 1} of the data (line {row + 2}) holds a "
+                       f"non-finite value in {col} ({bad.size} such rows): drop them or "
+                       "re-record the run")
+    if len(data) < 2 or not (np.diff(data[:, 0]) > 0).all():
+        raise LogError(f"{file}: expected time_s strictly increasing over at least two rows")
+    n = model.nq
+    return RunLog(folder, file, _sha256(file), unit, data[:, 0], data[:, 1:1 + n],
+                  data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:1 + 3 * n],
+                  data[:, 1 + 3 * n:1 + 4 * n] if has_current else None)

@@ -1,0 +1,245 @@
+"""Identified parameters written back into a robot description, in the description's own keys.
+
+Base parameters are combinations of the full ones (``beta = from_full @ phi``), so a
+description can only take a full vector. Without a physically consistent fit it is the full
+vector closest to the description's nominal one that reproduces the identified base
+parameters exactly, closest in a metric relative to each parameter's size::
+
+    phi = phi_nom + S^2 A^T (A S^2 A^T)^-1 (beta - A phi_nom),   A = from_full,
+    S = diag(max(|phi_nom_i|, 1e-3 max |phi_nom| of the same SI unit))
+
+so a 3.4e-3 kg m^2 armature and a 4e-5 kg m^2 link inertia move by comparable fractions of
+themselves (the plain pseudo-inverse would move both by the same kg m^2). Parameters that
+never enter the dynamics (``A``'s zero columns: a planar arm's Ixx, Iyy) keep their values.
+
+The file is edited line by line: each value is replaced on its own line, by key, keeping the
+line's comment and every other line of the original; a comment naming the logs and the date
+goes on top. The result is loaded with the description's own validation before it replaces
+anything; a file that does not validate (a mass or an inertia about the centre of mass that
+the combination made non-physical) is refused with a pointer to ``--physical``.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import re
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CochleaError
+from ..robots import RobotModel, robot
+from ..robots.description import ACTUATOR_KEYS
+
+_HEADER = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.-]+)\s*\]\]?\s*(#.*)?$")
+_KEY = re.compile(r"^(\s*)([A-Za-z0-9_-]+)(\s*=\s*)(.*?)(\s*#.*)?$")
+_FIELD = {"armature": "Ia", "viscous": "Fv", "coulomb": "Fc"}
+
+
+class WriteBackError(CochleaError):
+    """The identified values cannot be written into the description."""
+
+
+def closest_full(model: RobotModel, beta: np.ndarray) -> np.ndarray:
+    """The full parameter vector nearest the nominal one (relative metric, see the module
+    docstring) whose base parameters are exactly ``beta``."""
+    A = model.parameters.from_full
+    full = model.full_parameters
+    nominal = np.asarray(full.nominal, float)
+    scale = np.abs(nominal).copy()
+    for unit in set(full.si_units):
+        same = np.array([u == unit for u in full.si_units])
+        floor = 1e-3 * max(np.abs(nominal[same]).max(), 1e-12)
+        scale[same] = np.maximum(scale[same], floor)
+    AS = A * scale
+    step = np.linalg.lstsq(AS, beta - A @ nominal, rcond=None)[0]  # min-norm in scaled space
+    return nominal + scale * step
+
+
+def _fmt(value: float) -> str:
+    return repr(float(value))
+
+
+def _values_serial(model: RobotModel, system, arm_name: str, phi: np.ndarray) -> dict:
+    """``{path: TOML value text}`` for the arm's links and joints."""
+    arm_index = [a.name for a in system.arms].index(arm_name)
+    arm = system.arms[arm_index]
+    names = list(model.full_parameters.names)
+    value = dict(zip(names, phi))
+    # Parameters that never enter the dynamics (a planar arm's mz, Ixx, Iyy, products): any
+    # value reproduces the identified base parameters, so keep them where the description
+    # has them about the centre of mass, not about the frame origin, which a moved centre
+    # of mass would turn non-physical.
+    free = {n for n, col in zip(names, model.parameters.from_full.T) if not col.any()}
+    entries = {"Ixx": (0, 0), "Iyy": (1, 1), "Izz": (2, 2), "Ixy": (0, 1), "Ixz": (0, 2),
+               "Iyz": (1, 2)}
+    out = {}
+    for i, link in enumerate(arm.links):
+        b = link.name
+        m = value[f"{b}.m"]
+        c = np.array([value[f"{b}.mx"], value[f"{b}.my"], value[f"{b}.mz"]]) / m
+        for k, axis in enumerate(("mx", "my", "mz")):
+            if f"{b}.{axis}" in free:
+                c[k] = link.com[k]
+        Io = np.array([[value[f"{b}.Ixx"], value[f"{b}.Ixy"], value[f"{b}.Ixz"]],
+                       [value[f"{b}.Ixy"], value[f"{b}.Iyy"], value[f"{b}.Iyz"]],
+                       [value[f"{b}.Ixz"], value[f"{b}.Iyz"], value[f"{b}.Izz"]]])
+        Ic = Io - m * (float(c @ c) * np.eye(3) - np.outer(c, c))
+        for key, (r, s) in entries.items():
+            if f"{b}.{key}" in free:
+                Ic[r, s] = Ic[s, r] = link.inertia_com[r, s]
+        # A free principal moment grows, if needed, so the three obey the triangle inequality
+        # (a rod whose identified Izz outgrew the nominal Iyy + Ixx).
+        for k in range(3):
+            key = ("Ixx", "Iyy", "Izz")[k]
+            others = [x for x in range(3) if x != k]
+            if f"{b}.{key}" in free:
+                for o in others:
+                    rest = [x for x in range(3) if x != o]
+                    deficit = Ic[o, o] - sum(Ic[x, x] for x in rest)
+                    if deficit > 0:
+                        Ic[k, k] += deficit * (1 + 1e-9)
+        base = ("arm", arm_index, "link", i)
+        out[base + ("mass_kg",)] = _fmt(m)
+        out[base + ("com_m",)] = "[" + ", ".join(_fmt(x) for x in c) + "]"
+        six = [Ic[0, 0], Ic[1, 1], Ic[2, 2], Ic[0, 1], Ic[0, 2], Ic[1, 2]]
+        out[base + ("inertia_com_kgm2",)] = "[" + ", ".join(_fmt(x) for x in six) + "]"
+        joint = model.joints[i]
+        for field, (key, _) in ACTUATOR_KEYS[joint.type].items():
+            name = f"{joint.name}.{_FIELD[field]}"
+            if name in value:
+                out[base + ("joint", key)] = _fmt(value[name])
+    return out
+
+
+def _values_parallel(model: RobotModel, system, phi: np.ndarray) -> dict:
+    value = dict(zip(model.full_parameters.names, phi))
+    out = {("slider", "mass_kg"): _fmt(value["slider.m"])}
+    for side in system.sides:
+        for body in side.bodies:  # body.name is "<side>.<link>"
+            m = value[f"{body.name}.m"]
+            c = np.array([value[f"{body.name}.mx"], value[f"{body.name}.my"]]) / m
+            izz = value[f"{body.name}.Izz"] - m * float(c @ c)
+            base = tuple(body.name.split("."))
+            out[base + ("mass_kg",)] = _fmt(m)
+            out[base + ("com_m",)] = "[" + ", ".join(_fmt(x) for x in c) + "]"
+            out[base + ("inertia_com_kgm2",)] = _fmt(izz)
+    for joint in model.joints:  # "left.th1", "slider.d1"
+        for field, (key, _) in ACTUATOR_KEYS[joint.type].items():
+            name = f"{joint.name}.{_FIELD[field]}"
+            if name in value:
+                out[tuple(joint.name.split(".")) + (key,)] = _fmt(value[name])
+    return out
+
+
+def key_lines(lines: list[str]) -> dict[tuple, int]:
+    """Where each ``key = value`` of a TOML text sits: ``{path: line index}``, the path with
+    the index of every array of tables (``("arm", 0, "link", 2, "joint", "armature_kgm2")``).
+    Inline tables and multi-line values are not entered (they are never edited here)."""
+    counts: dict[tuple, int] = {}
+    current: dict[str, int] = {}
+    table: tuple = ()
+    where: dict[tuple, int] = {}
+    for number, line in enumerate(lines):
+        header = _HEADER.match(line)
+        if header:
+            is_array = header.group(1) == "[["
+            parts = header.group(2).split(".")
+            path: list = []
+            for i, part in enumerate(parts):
+                path.append(part)
+                dotted = ".".join(parts[:i + 1])
+                if is_array and i == len(parts) - 1:
+                    key = tuple(path)
+                    counts[key] = counts.get(key, -1) + 1
+                    current[dotted] = counts[key]
+                    path.append(counts[key])
+                elif dotted in current:
+                    path.append(current[dotted])
+            table = tuple(path)
+            continue
+        match = _KEY.match(line)
+        if match and not line.lstrip().startswith("#"):
+            where[table + (match.group(2),)] = number
+    return where
+
+
+def edit(text: str, values: dict[tuple, str], source: Path) -> str:
+    """``text`` with each value of ``values`` replaced on its line, comments kept."""
+    lines = text.splitlines(keepends=True)
+    where = key_lines(lines)
+    for path, new in values.items():
+        if path not in where:
+            shown = ".".join(str(p) for p in path)
+            raise WriteBackError(f"{source}: cannot write the identified {shown}: the key is "
+                                 "not on a line of its own in the description (write it as "
+                                 "`key = value` under its table)")
+        number = where[path]
+        line = lines[number]
+        ending = line[len(line.rstrip("\r\n")):]
+        match = _KEY.match(line.rstrip("\r\n"))
+        indent, key, equals, old, comment = match.groups()
+        if '"' in old or "'" in old or "{" in old:
+            raise WriteBackError(f"{source}: line {number + 1}: expected a number or a list "
+                                 f"of numbers for {key}, got {old!r}")
+        lines[number] = f"{indent}{key}{equals}{new}{comment or ''}{ending}"
+    return "".join(lines)
+
+
+def target_path(description: Path, in_place: bool) -> Path:
+    """Where the identified description goes: ``<name>.identified.toml`` beside it, or the
+    file itself with ``--in-place``; an existing new file is refused (never overwritten)."""
+    if in_place:
+        return description
+    target = description.with_name(f"{description.stem}.identified{description.suffix}")
+    if target.exists():
+        raise WriteBackError(f"{target}: already exists; remove it, or give --in-place to "
+                             f"update {description} itself")
+    return target
+
+
+def check_writable(description: Path, in_place: bool) -> Path:
+    """Everything about ``--update-description`` that can be checked before fitting."""
+    if not description.is_file():
+        raise WriteBackError(f"{description}: --update-description expects an existing robot "
+                             "description TOML file")
+    return target_path(description, in_place)
+
+
+def write_back(model: RobotModel, robot_name: str, unit: str, description: Path,
+               phi: np.ndarray, logs: list[tuple[str, str]], in_place: bool = False,
+               how: str = "the full vector nearest the nominal one") -> Path:
+    """Write the full parameters ``phi`` of ``model`` into ``description`` (a new file beside
+    it unless ``in_place``), headed by a comment naming ``logs`` (folder, sha256) and the
+    date; validated by loading before it lands. Returns the file written."""
+    target = target_path(description, in_place)
+    adapter = robot(robot_name)
+    system = adapter.load(description)
+    values = (_values_serial(model, system, unit, phi) if robot_name == "serial"
+              else _values_parallel(model, system, phi))
+    text = description.read_text(encoding="utf-8")
+    edited = edit(text, values, description)
+    today = datetime.date.today().isoformat()
+    what = f" ({unit})" if robot_name == "serial" else ""
+    header = [f"# Dynamic parameters{what} identified by cochlea-identify on {today} ({how}),",
+              "# from the logs:"]
+    header += [f"#   {folder} (log.csv sha256 {digest})" for folder, digest in logs]
+    edited = "\n".join(header) + "\n" + edited
+    fd, temp = tempfile.mkstemp(prefix=".identified-", suffix=".toml", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(edited)
+        try:
+            adapter.load(Path(temp))
+        except CochleaError as exc:
+            message = str(exc).replace(temp, str(target))
+            raise WriteBackError(f"the identified values do not make a valid description: "
+                                 f"{message}; fit physically consistent parameters with "
+                                 "--physical") from None
+        os.replace(temp, target)
+    finally:
+        if os.path.exists(temp):
+            os.unlink(temp)
+    return target
