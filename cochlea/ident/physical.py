@@ -19,7 +19,9 @@ only produce consistent bodies, and :func:`scipy.optimize.least_squares` minimis
   ``(mx, my) = m (t1, t2)``, ``Izz = e^2d + m |t|^2``;
 * a body seen only through its mass (the slider): ``m = e^2a``;
 * an actuator's armature, viscous or Coulomb friction (``<joint>.Ia``, ``.Fv``, ``.Fc``):
-  ``s^2``, which can reach zero (a joint without that term) and never go below it.
+  ``scale e^2s``, never negative; a term the data want at or below zero ends at 1e-12 of its
+  prior value (see LOG_FLOOR), which is zero for any use of it. (A square ``s^2`` reaches zero
+  exactly but the solver halves ``s`` forever on the way, into subnormal numbers.)
 
 Every body is the sum of that parametrised body and a FLOOR body at the frame origin (mass
 :data:`MASS_FLOOR_KG`, inertia :data:`INERTIA_FLOOR_KGM2` about every axis): adding a
@@ -43,7 +45,15 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import ModelError
-from ..robots.description import MIN_INERTIA_KGM2, MIN_MASS_KG
+from ..robots.description import (
+    MAX_ARMATURE,
+    MAX_EFFORT,
+    MAX_INERTIA_KGM2,
+    MAX_LENGTH_M,
+    MAX_MASS_KG,
+    MIN_INERTIA_KGM2,
+    MIN_MASS_KG,
+)
 from ..robots.model import INERTIAL_NAMES
 
 #: The floor body added to every identified body (see the module's docstring): twice the
@@ -63,13 +73,24 @@ REGULARISATION = 1e-8
 RANK_TOLERANCE = 1e-9
 #: At most this many re-centred solves after the first (see physically_consistent_fit).
 MAX_PROXIMAL_ROUNDS = 8
+#: A round that moves no base parameter by more than this fraction of its typical size ends
+#: them.
+ROUND_TOLERANCE = 1e-10
+#: Each round's regulariser weight is this fraction of the previous one's: the rounds close
+#: the gap to the best consistent fit faster and faster.
+ROUND_SHRINK = 0.1
+#: Rounds stop when they improve the fit by less than this fraction of the ordinary
+#: least-squares residual (the noise): statistically the same fit.
+ROUND_SIGNIFICANCE = 1e-3
+#: Lowest value a logarithmic coordinate is let reach without resistance (see the fit).
+LOG_FLOOR = float(np.log(1e-6))
 #: The solver's tolerances (MINPACK's Levenberg-Marquardt: with exact data the base parameters
 #: match ordinary least squares to about 1e-7 of their size at 1e-15, to 1e-4 at 1e-12) and its
 #: budget of residual evaluations per solve: at an optimum on the boundary of the consistent
 #: set (a mass or friction the data push below zero) the coordinates creep toward minus
 #: infinity and only the budget ends the solve, with the cost already settled.
 TOL = 1e-15
-MAX_NFEV = 1000
+MAX_NFEV = 300
 
 
 @dataclass(frozen=True)
@@ -207,11 +228,48 @@ def consistency_violations(model, full) -> list[str]:
     return problems
 
 
+def beyond_description_bounds(model, full) -> list[str]:
+    """Where a consistent ``full`` exceeds what a description may say (a mass above
+    ``MAX_MASS_KG``, a centre of mass beyond ``MAX_LENGTH_M``, an inertia above
+    ``MAX_INERTIA_KGM2``, an actuator term above its joint type's limit): such a body is
+    real but absurd, and no description file could hold it. One line each."""
+    types = {j.name: j.type for j in model.joints}
+    top = {"Ia": MAX_ARMATURE, "Fv": MAX_EFFORT, "Fc": MAX_EFFORT}
+    problems = []
+    for owner, v in body_values(model, full).items():
+        if "mass_kg" not in v:
+            for kind, value in v.items():
+                limit = top[kind][types.get(owner, "revolute")]
+                if value > limit:
+                    problems.append(f"{owner}.{kind} = {value:.4g} above {limit:g}")
+            continue
+        if v["mass_kg"] > MAX_MASS_KG:
+            problems.append(f"{owner}: mass {v['mass_kg']:.4g} kg above {MAX_MASS_KG:g} kg")
+        if "com_m" in v and np.max(np.abs(v["com_m"])) > MAX_LENGTH_M:
+            problems.append(f"{owner}: centre of mass {np.max(np.abs(v['com_m'])):.4g} m from "
+                            f"the frame, beyond {MAX_LENGTH_M:g} m")
+        if "inertia_com_kgm2" in v and np.max(np.abs(v["inertia_com_kgm2"])) > MAX_INERTIA_KGM2:
+            problems.append(f"{owner}: inertia {np.max(np.abs(v['inertia_com_kgm2'])):.4g} "
+                            f"kg m^2 above {MAX_INERTIA_KGM2:g} kg m^2")
+    return problems
+
+
 # --------------------------------------------------------------------------------------------
 # The parametrisation theta -> phi (symbolic, for the exact Jacobian) and back (projection)
 # --------------------------------------------------------------------------------------------
 
 _THETA_SIZE = {"spatial": 10, "planar": 4, "mass": 1, "actuator": 1}
+#: Which of a block's coordinates are logarithms (of the free mass, of the Cholesky diagonal,
+#: of the planar inertia about the centre of mass, of an actuator term).
+_LOG_COORDINATES = {"spatial": (0, 1, 2, 3), "planar": (0, 3), "mass": (0,), "actuator": (0,)}
+
+
+def _log_indices(blocks: list[_Block]) -> np.ndarray:
+    indices, k = [], 0
+    for b in blocks:
+        indices.extend(k + j for j in _LOG_COORDINATES[b.kind])
+        k += _THETA_SIZE[b.kind]
+    return np.array(indices, dtype=int)
 
 
 def _body_scale(b: _Block, scale: np.ndarray) -> tuple[float, float]:
@@ -227,7 +285,7 @@ def _phi_symbolic(blocks: list[_Block], n_full: int, scale: np.ndarray
 
     Coordinates are relative to each body's typical mass m0 and radius r0 (so that the prior
     sits near theta = 0 and the solver sees columns of similar size): masses ``m0 e^2a``,
-    lengths (centre of mass, Cholesky factor) in units of r0, actuator terms ``scale s^2``."""
+    lengths (centre of mass, Cholesky factor) in units of r0, actuator terms ``scale e^2s``."""
     n_theta = sum(_THETA_SIZE[b.kind] for b in blocks)
     theta = ca.SX.sym("theta", n_theta)
     phi = [ca.SX(0)] * n_full
@@ -237,7 +295,7 @@ def _phi_symbolic(blocks: list[_Block], n_full: int, scale: np.ndarray
         k += _THETA_SIZE[b.kind]
         if b.kind == "actuator":
             (i,) = b.index.values()
-            phi[i] = scale[i] * t[0] ** 2
+            phi[i] = scale[i] * ca.exp(2 * t[0])
             continue
         m0, r0 = _body_scale(b, scale)
         if b.kind == "mass":
@@ -315,7 +373,7 @@ def _theta_of_phi(blocks: list[_Block], phi: np.ndarray, scale: np.ndarray) -> n
         p = {k: float(phi[i]) for k, i in b.index.items()}
         if b.kind == "actuator":
             (i,) = b.index.values()
-            theta.append(np.sqrt(max(phi[i] / scale[i], 1e-6)))
+            theta.append(0.5 * np.log(max(phi[i] / scale[i], 1e-6)))
             continue
         m0, r0 = _body_scale(b, scale)
         m_free = max(p["m"] - MASS_FLOOR_KG, 1e-3 * m0)
@@ -385,6 +443,10 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     vector the directions the data do not determine are pulled to (default: the model's
     nominal). Two starts, the prior and the ordinary least-squares estimate (each made
     consistent), are refined and the better kept: deterministic, no random start.
+
+    Raises :class:`~cochlea.errors.ModelError` for inputs of the wrong shape or with NaN, a
+    regressor that is all zero, and a result beyond the descriptions' bounds (a consistent
+    but absurd body, e.g. a 3 t link that noisy, poorly exciting data asked for).
     """
     W, tau, w, prior = _check_inputs(model, W, tau, weights, prior_full)
     from_full = np.asarray(model.parameters.from_full, float)
@@ -407,16 +469,31 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     rank = int(np.sum(s > RANK_TOLERANCE * s[0]))
     N = Vt[rank:].T  # (n_full, n_null)
     lam = REGULARISATION * s[0] ** 2
+    n_data = c.size
+    # Rows of the residual: the data, then the regulariser's (weight and centre change over
+    # the proximal rounds below, in place).
     G = np.vstack([R @ from_full, np.sqrt(lam) * (N.T / scale)])
     h = np.concatenate([c, np.sqrt(lam) * (N.T @ (prior / scale))])
 
     phi_of_theta, _ = _phi_symbolic(blocks, n_full, scale)
 
+    # Where the data push a body toward the boundary of the consistent set (a mass or an
+    # inertia they want below zero), its logarithmic coordinates would creep toward minus
+    # infinity, into subnormal numbers that make each iteration a thousand times slower. A
+    # one-sided penalty stops them at LOG_FLOOR (a free part 1e-12 of the body's typical
+    # size, far below the floor body): inactive, and without effect, anywhere above it.
+    logs = _log_indices(blocks)
+    hinge = np.sqrt(lam)
+
     def residual(theta):
-        return G @ np.asarray(phi_of_theta(theta)[0]).ravel() - h
+        data = G @ np.asarray(phi_of_theta(theta)[0]).ravel() - h
+        return np.concatenate([data, hinge * np.maximum(LOG_FLOOR - theta[logs], 0.0)])
 
     def jacobian(theta):
-        return G @ np.asarray(phi_of_theta(theta)[1])
+        below = np.zeros((logs.size, theta.size))
+        active = theta[logs] < LOG_FLOOR
+        below[np.flatnonzero(active), logs[active]] = -hinge
+        return np.vstack([G @ np.asarray(phi_of_theta(theta)[1]), below])
 
     # Start 2: the ordinary least-squares estimate, completed in the undetermined directions
     # from the prior (minimum scaled change), then made consistent.
@@ -445,20 +522,41 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     # again. Each round moves those directions only as far as the data ask, so the base
     # parameters converge to the best consistent fit instead of keeping a bias of order
     # REGULARISATION / (weak singular value)^2.
-    n_data = c.size
-    for _ in range(MAX_PROXIMAL_ROUNDS):
+    typical_base = np.abs(from_full) @ scale
+    phi_k = np.asarray(phi_of_theta(best.x)[0]).ravel()
+    # An improvement of the fit below this is noise: with noisy data it is a small fraction of
+    # the least-squares residual (further rounds would only let the undetermined directions
+    # drift for nothing), with exact data a relative 1e-6 of the round's own residual.
+    cost_ols = float(np.sum((A @ beta_ols - b) ** 2))
+    significant_noise = ROUND_SIGNIFICANCE * cost_ols
+    for k in range(1, MAX_PROXIMAL_ROUNDS + 1):
         data_before = float(np.sum(best.fun[:n_data] ** 2))
         if data_before <= 1e-30 * float(c @ c):
             break
-        phi_k = np.asarray(phi_of_theta(best.x)[0]).ravel()
-        h[n_data:] = np.sqrt(lam) * (N.T @ (phi_k / scale))
-        result = solve(best.x)
+        significant = max(significant_noise, 1e-6 * data_before)
+        weight = np.sqrt(lam * ROUND_SHRINK ** k)
+        G[n_data:] = weight * (N.T / scale)
+        h[n_data:] = weight * (N.T @ (phi_k / scale))
+        # From the same point made clear of the boundary: there, a coordinate that ran toward
+        # minus infinity has lost its gradient and the solver could not bring it back.
+        result = solve(_theta_of_phi(blocks, phi_k, scale))
         iterations += int(result.njev)
-        best = result
-        if float(np.sum(best.fun[:n_data] ** 2)) >= (1.0 - 1e-6) * data_before:
+        phi_next = np.asarray(phi_of_theta(result.x)[0]).ravel()
+        moved = np.max(np.abs(from_full @ (phi_next - phi_k)) / typical_base)
+        best, phi_k = result, phi_next
+        # Settled: the base parameters no longer move (an optimum inside the consistent set,
+        # reached), or the fit no longer improves (one on its boundary, crept toward).
+        if moved < ROUND_TOLERANCE or \
+                data_before - float(np.sum(best.fun[:n_data] ** 2)) <= significant:
             break
 
     full = np.asarray(phi_of_theta(best.x)[0]).ravel()
+    absurd = beyond_description_bounds(model, full)
+    if absurd:
+        raise ModelError(f"physically consistent fit: the data ask for a body no description "
+                         f"can hold ({absurd[0]}); the logs do not determine it: excite the "
+                         "robot more (longer, richer trajectories) or keep the ordinary "
+                         "least-squares estimate")
     beta = from_full @ full
     cost = float(np.sum((A @ beta - b) ** 2))
     return PhysicalFit(full=full, base=beta, cost=cost, iterations=iterations)
