@@ -34,6 +34,16 @@ spans the null space of the weighted regressor in full-parameter coordinates sca
 (each body's mass, mass x radius of gyration, mass x radius^2). Unidentifiable parameters
 (out-of-plane inertias of the planar arms, the split of a regrouped sum between bodies) stay
 at the prior unless consistency needs them to move; identified ones follow the data.
+
+Where they must move (a thin rod's inertia about its axis is not identified, yet bounds the
+identified one through the triangle inequality), the prior-centred optimum is biased. Proximal
+rounds remove the bias: the regulariser is re-centred on the last solution, its weight cut
+tenfold, and the solve restarted from that point made clear of the boundary (a coordinate run
+toward minus infinity has no gradient left). Rounds end when the base parameters stop moving or
+the fit improves by less than a thousandth of the least-squares residual (noise).
+
+Coordinates are relative to each body's prior mass and radius of gyration (theta = 0 is a body
+of the prior's size), so that the solver's columns have comparable sizes.
 """
 
 from __future__ import annotations
@@ -84,11 +94,11 @@ ROUND_SHRINK = 0.1
 ROUND_SIGNIFICANCE = 1e-3
 #: Lowest value a logarithmic coordinate is let reach without resistance (see the fit).
 LOG_FLOOR = float(np.log(1e-6))
-#: The solver's tolerances (MINPACK's Levenberg-Marquardt: with exact data the base parameters
-#: match ordinary least squares to about 1e-7 of their size at 1e-15, to 1e-4 at 1e-12) and its
-#: budget of residual evaluations per solve: at an optimum on the boundary of the consistent
-#: set (a mass or friction the data push below zero) the coordinates creep toward minus
-#: infinity and only the budget ends the solve, with the cost already settled.
+#: The solver's tolerances (MINPACK's Levenberg-Marquardt; looser ones, 1e-12, stop the rounds'
+#: solves early and leave 1e-4 of bias with exact data) and its budget of residual evaluations
+#: per solve: at an optimum on the boundary of the consistent set (a mass or friction the data
+#: push below zero) the coordinates creep toward minus infinity and only the budget ends the
+#: solve; the cost is then within 1e-3 of a solve twenty times longer (docs).
 TOL = 1e-15
 MAX_NFEV = 300
 
