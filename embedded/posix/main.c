@@ -502,6 +502,7 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
  * or a failed write ends the run with the log-failure rule (safe stop, exit 17). */
 #define RING_SECONDS 4.0
 #define WRITER_PAUSE_NS 20000000L
+#define WRITER_STACK_BYTES (256 * 1024)
 
 typedef struct {
     double *ring;        /* ring_rows x row_length: row k in slot k % ring_rows */
@@ -565,8 +566,11 @@ static void write_rows(run_log *log)
                                     ? done - written : log->ring_rows - first);
         int full = 0;
 #ifdef COCHLEA_TEST_HOOKS
-        if (log->stall_after >= 0 && written >= log->stall_after) {
-            return;
+        if (log->stall_after >= 0 && written + (long)count > log->stall_after) {
+            if (written >= log->stall_after) {
+                return;
+            }
+            count = (size_t)(log->stall_after - written);
         }
         if (log->fail_after >= 0 && written + (long)count >= log->fail_after) {
             count = (size_t)(log->fail_after - written);
@@ -1467,6 +1471,21 @@ static void normal_priority(void)
     (void)pthread_setschedparam(pthread_self(), SCHED_OTHER, &p);
 }
 
+/* The writer thread, with a small stack: locked memory (mlockall) makes the default 8 MiB
+ * resident, most of the program's, for a thread that only calls fwrite. */
+static int start_writer(pthread_t *thread, run_log *log)
+{
+    pthread_attr_t attr;
+    int failed;
+    if (pthread_attr_init(&attr) != 0) {
+        return -1;
+    }
+    (void)pthread_attr_setstacksize(&attr, WRITER_STACK_BYTES); /* else the default */
+    failed = pthread_create(thread, &attr, writer, log);
+    pthread_attr_destroy(&attr);
+    return failed;
+}
+
 /* Back to normal priority and unlocked memory; the writer flushes what is left and the log
  * file is closed (a failed close counts as a failed log). */
 static void leave_realtime(run_log *log, pthread_t writer_thread)
@@ -1539,9 +1558,31 @@ int main(int argc, char **argv)
     if (steps < 1) {
         return fail_usage("--duration %g s is shorter than one period (%g s)", duration, period);
     }
+    memset(&log, 0, sizeof log);
+    log.row_length = cochlea_loop_row_length(sc);
     if (!folder_is_empty(o.out)) {
         return fail_usage("--out %s exists and is not empty: choose a new folder (runs never "
                           "overwrite a log)", o.out);
+    }
+    { /* the disk must hold the whole log: refused now rather than a log-failure stop later */
+        const double need = (double)steps * (double)log.row_length * 8.0
+                            + (double)(steps + 1) * (double)csv_columns(sc) * CSV_VALUE_BYTES
+                            + (double)REPORT_MARGIN_BYTES;
+        double free_ = free_bytes(o.out);
+        char a[32], b[32];
+#ifdef COCHLEA_TEST_HOOKS
+        if (getenv("COCHLEA_TEST_FREE_BYTES")) {
+            free_ = atof(getenv("COCHLEA_TEST_FREE_BYTES"));
+        }
+#endif
+        if (free_ >= 0.0 && need > free_) {
+            size_text(a, sizeof a, need);
+            size_text(b, sizeof b, free_);
+            return fail_usage("--out %s: the run's log needs about %s (log.bin and log.csv, "
+                              "%ld periods) but only %s are free on that disk: free some "
+                              "space, choose another --out or a shorter --duration", o.out, a,
+                              steps, b);
+        }
     }
     { /* the bus budget, cochlea/dynamixel/budget.py's */
         const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + 21.0 * n;
@@ -1567,37 +1608,15 @@ int main(int argc, char **argv)
         return fail_usage("the scenario %s tracks %d coordinates, more than this program's 64",
                           sc->name, sc->nd);
     }
-    memset(&log, 0, sizeof log);
-    log.row_length = cochlea_loop_row_length(sc);
 #ifdef COCHLEA_TEST_HOOKS
     log.fail_after = getenv("COCHLEA_TEST_LOG_FAIL_AFTER")
                          ? atol(getenv("COCHLEA_TEST_LOG_FAIL_AFTER")) : -1;
     log.stall_after = getenv("COCHLEA_TEST_LOG_STALL_AFTER")
                           ? atol(getenv("COCHLEA_TEST_LOG_STALL_AFTER")) : -1;
 #endif
-    { /* the disk must hold the whole log: refused now rather than a log-failure stop later */
-        const double need = (double)steps * (double)log.row_length * 8.0
-                            + (double)(steps + 1) * (double)csv_columns(sc) * CSV_VALUE_BYTES
-                            + (double)REPORT_MARGIN_BYTES;
-        double free_ = free_bytes(o.out);
-        char a[32], b[32];
-#ifdef COCHLEA_TEST_HOOKS
-        if (getenv("COCHLEA_TEST_FREE_BYTES")) {
-            free_ = atof(getenv("COCHLEA_TEST_FREE_BYTES"));
-        }
-#endif
-        if (free_ >= 0.0 && need > free_) {
-            size_text(a, sizeof a, need);
-            size_text(b, sizeof b, free_);
-            return fail_usage("--out %s: the run's log needs about %s (log.bin and log.csv, "
-                              "%ld periods) but only %s are free on that disk: free some "
-                              "space, choose another --out or a shorter --duration", o.out, a,
-                              steps, b);
-        }
-    }
     /* The ring, touched now so that no period takes a page fault in it (mlockall, when
      * permitted, would too). A short run needs no more rows than it has. */
-    log.ring_rows = (long)ceil(RING_SECONDS / period);
+    log.ring_rows = (long)ceil(RING_SECONDS / period - 1e-9); /* 4 / 0.001 is 4000 */
     log.ring_rows = log.ring_rows < steps ? log.ring_rows : steps;
     log.ring = malloc(sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
     controller = malloc(sc->state_size);
@@ -1652,7 +1671,7 @@ int main(int argc, char **argv)
     /* Everything the run needs is ready before the motors' torque goes on, so the first period
      * follows it at once: the writer (started before the real-time priority, so it does not
      * inherit it), the locked memory and the priority. */
-    if (pthread_create(&writer_thread, 0, writer, &log) != 0) {
+    if (start_writer(&writer_thread, &log) != 0) {
         cochlea_posix_close(&port);
         return fail_usage("cannot start the log writer");
     }
