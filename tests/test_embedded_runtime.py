@@ -66,7 +66,7 @@ class CLimits(ctypes.Structure):
 
 
 RULES = ["none", "completed", "user-stop", "position-limit", "velocity-limit", "keep-out",
-         "non-finite", "estimate-bound", "watchdog", "terminated"]
+         "non-finite", "estimate-bound", "watchdog", "terminated", "log-failure"]
 
 
 def _compile(tmp: Path, robot: str) -> ctypes.CDLL:

@@ -295,13 +295,16 @@ static int slot_of(const cochlea_bridge *b, uint8_t id)
 static int sync_read(cochlea_bridge *b, double *q, double *qd)
 {
     const int64_t t0 = now(b);
-    const int64_t deadline = t0 + b->timeout_ns;
+    int64_t deadline;
     int pending = b->n, failure = -1, failure_id = -1, i;
     b->reads += 1;
     discard(b);
     if (b->suspect && !quiet(b, t0)) {
         return fail(b, COCHLEA_FAIL_LATE, -1);
     }
+    /* From the request, as the Python bridge: quiet() takes a whole timeout, and a deadline
+     * from t0 would fail every read after the first failed one. */
+    deadline = now(b) + b->timeout_ns;
     if (!send(b, b->read_frame, b->read_len)) {
         return fail(b, COCHLEA_FAIL_PORT, -1);
     }

@@ -27,6 +27,7 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     loop->realtime = realtime;
     loop->on_row = 0;
     loop->row_ctx = 0;
+    loop->log_ready = 0;
     loop->stop_request = COCHLEA_RULE_NONE;
     loop->rows = 0;
     loop->deadline_misses = 0;
@@ -133,6 +134,10 @@ static int periods(cochlea_loop *loop)
         if (loop->stop_request) {
             stop_here(&loop->stop, loop->stop_request, t);
             return loop->stop.rule;
+        }
+        if (loop->log_ready && !loop->log_ready(loop->row_ctx)) {
+            stop_here(&loop->stop, COCHLEA_LOG_FAILURE, t);
+            return COCHLEA_LOG_FAILURE;
         }
         io_start = now(loop);
         r = be->read(be->ctx, loop->q, loop->qd);

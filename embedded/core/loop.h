@@ -1,7 +1,8 @@
 /* cochlea embedded runtime: the control loop, cochlea/runtime/loop.py in C.
  *
  * Each period k (t = k h), at the absolute deadline t0 + k h:
- *   1. a stop request (the port's signal handler: user stop, terminate) ends the run;
+ *   1. a stop request (the port's signal handler: user stop, terminate) ends the run, and so
+ *      does a log that cannot take this period's row (the port's log_ready: log-failure);
  *   2. read the measurement; more than watchdog_errors consecutive failures end the run
  *      (a failed read leaves the last measurement and skips the state's checks);
  *   3. the supervisor checks the measured state: finite, position and velocity limits, then
@@ -61,6 +62,11 @@ typedef struct {
      * the period: copy the row and return (the POSIX port hands it to a writer thread). */
     void (*on_row)(void *ctx, const double *row, int row_length);
     void *row_ctx;
+    /* Optional, called with row_ctx at the start of every period, before anything is read or
+     * commanded: 0 when the log cannot take the period's row (its writer failed, or a ring it
+     * has not emptied is full), which ends the run with COCHLEA_LOG_FAILURE. Same rules as
+     * on_row: no blocking, no allocation. */
+    int (*log_ready)(void *ctx);
     /* Set from outside the loop (a signal handler): COCHLEA_USER_STOP or COCHLEA_TERMINATED. */
     volatile int stop_request;
     /* Results. */

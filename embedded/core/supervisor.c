@@ -7,8 +7,8 @@
 
 static const char *const RULE_NAMES[COCHLEA_RULE_COUNT] = {
     "none", "completed", "user-stop", "position-limit", "velocity-limit", "keep-out",
-    "non-finite", "estimate-bound", "watchdog", "terminated"};
-static const int EXIT_CODES[COCHLEA_RULE_COUNT] = {0, 0, 0, 10, 11, 12, 13, 14, 15, 16};
+    "non-finite", "estimate-bound", "watchdog", "terminated", "log-failure"};
+static const int EXIT_CODES[COCHLEA_RULE_COUNT] = {0, 0, 0, 10, 11, 12, 13, 14, 15, 16, 17};
 
 int cochlea_exit_code(int rule)
 {

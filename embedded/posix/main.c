@@ -28,6 +28,7 @@
 #include <string.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
+#include <sys/statvfs.h>
 #include <dirent.h>
 #include <fcntl.h>
 #include <time.h>
@@ -47,6 +48,10 @@
 
 #define EXIT_USER_ERROR 2
 #define EXIT_INTERRUPTED 130
+/* The disk's estimate (cochlea/apps/outputs.py's): bytes a log.csv value takes at most
+ * ("%.10g" and its comma), and room for log.columns.json and summary.json. */
+#define CSV_VALUE_BYTES 17
+#define REPORT_MARGIN_BYTES (1L << 20)
 #define MAX_WATCHDOG_MISSES 1000
 #define FIFO_PRIORITY 40
 /* The bus budget (cochlea/dynamixel/budget.py): 10 bit times a byte, a motor's turnaround,
@@ -96,7 +101,9 @@ static void usage(FILE *to)
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
             "  --baud B             the motors' baud rate (default 4000000)\n"
-            "  --duration S         seconds to run (default: the scenario's)\n"
+            "  --duration S         seconds to run (default: the scenario's; at most a day, and\n"
+            "                       as long as the disk holds log.bin and log.csv: checked\n"
+            "                       before the start; memory does not grow with it)\n"
             "  --rate HZ            the control rate (default: the scenario's)\n"
             "  --out DIR            a new or empty folder for log.bin, log.csv, summary.json\n"
             "  --watchdog-misses N  consecutive deadline misses tolerated (default 20)\n"
@@ -104,7 +111,8 @@ static void usage(FILE *to)
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
-            "14 estimate-bound,\n15 watchdog, 16 terminated, 130 interrupted before the start.\n");
+            "14 estimate-bound,\n15 watchdog, 16 terminated, 17 log-failure (the log could not be "
+            "written),\n130 interrupted before the start.\n");
 }
 
 static int parse_number(const char *text, double *value)
@@ -179,8 +187,10 @@ static int parse(int argc, char **argv, options *o)
             }
             o->baud = (long)v;
         } else if (strcmp(a, "--duration") == 0) {
-            /* At most a day: the run's log is held in memory whole (issue 13's ring is the
-             * Python loop's), and inf or 1e300 s would overflow the period count. */
+            /* At most a day, for sanity rather than memory (the log goes to disk through a
+             * fixed ring): a lab session is hours, a day at 1 kHz is tens of GB of log (the
+             * free-space check weighs the actual need), and inf or 1e300 s would overflow the
+             * period count. */
             if (!parse_number(value, &v) || !(v > 0 && v <= 86400.0)) {
                 return fail_usage("--duration must be positive and at most 86400 s, got %s",
                                   value);
@@ -255,6 +265,48 @@ static int folder_is_empty(const char *path)
     }
     closedir(d);
     return empty;
+}
+
+/* Bytes an unprivileged user may still write on the file system that holds, or would hold,
+ * path (its nearest existing ancestor); -1 when that cannot be known. */
+static double free_bytes(const char *path)
+{
+    char buf[4096];
+    struct statvfs fs;
+    size_t n = strlen(path);
+    if (n >= sizeof buf) {
+        return -1.0;
+    }
+    memcpy(buf, path, n + 1);
+    for (;;) {
+        if (statvfs(n ? buf : ".", &fs) == 0) { /* "." : a relative path's base */
+            return (double)fs.f_bavail * (double)fs.f_frsize;
+        }
+        if ((errno != ENOENT && errno != ENOTDIR) || n == 0) {
+            return -1.0;
+        }
+        const size_t before = n;
+        while (n > 1 && buf[n - 1] == '/') { /* "a/b/" -> "a/b" */
+            buf[--n] = '\0';
+        }
+        while (n > 0 && buf[n - 1] != '/') { /* "a/b" -> "a/", "/a" -> "/" */
+            buf[--n] = '\0';
+        }
+        if (n == before) {
+            return -1.0;
+        }
+    }
+}
+
+static void size_text(char *buf, size_t n, double bytes)
+{
+    static const char *const units[] = {"bytes", "KiB", "MiB", "GiB", "TiB"};
+    int u = 0;
+    while (bytes >= 1024.0 && u < 4) {
+        bytes /= 1024.0;
+        ++u;
+    }
+    snprintf(buf, n, u ? "%.1f %s" : "%.0f %s", bytes, units[u]);
 }
 
 static FILE *open_in(const char *folder, const char *name, const char *mode)
@@ -440,48 +492,111 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
     }
 }
 
-/* ---- the log: a whole-run buffer and a writer thread behind the loop ------------------------- */
+/* ---- the log: a ring between the loop and a writer thread ------------------------------------ */
+
+/* Rows travel from the loop to log.bin through a ring of RING_SECONDS of periods (Python's
+ * RING_SECONDS): the writer wakes every WRITER_PAUSE_NS and writes what the loop finished, so
+ * a disk that stalls for less than the ring loses nothing, and the memory is the ring's
+ * whatever the run's length. The loop never overwrites a row the writer has not written: at
+ * the start of each period log_ready() says whether the period's slot is free, and a full ring
+ * or a failed write ends the run with the log-failure rule (safe stop, exit 17). */
+#define RING_SECONDS 4.0
+#define WRITER_PAUSE_NS 20000000L
+#define WRITER_STACK_BYTES (256 * 1024)
 
 typedef struct {
-    double *rows;        /* steps x row_length, written by the loop */
+    double *ring;        /* ring_rows x row_length: row k in slot k % ring_rows */
     int row_length;
-    long capacity;
-    long done;           /* rows the loop has finished (atomic) */
+    long ring_rows;
+    long done;           /* rows the loop has finished (atomic; the loop's only) */
+    long written;        /* rows handed to log.bin (atomic; the writer's only) */
     int finished;        /* the loop has ended (atomic) */
+    int failed;          /* a write or the close failed (atomic); error is its errno */
+    int error;
+    int overrun;         /* a row came for a slot not yet written and was dropped (atomic) */
     FILE *file;
-    long written;
-    int failed;
+#ifdef COCHLEA_TEST_HOOKS
+    /* Test builds only (make ... CC="cc -DCOCHLEA_TEST_HOOKS"): the writer fails with ENOSPC
+     * once fail_after rows are in the file, or stops writing for good (a hung disk) once
+     * stall_after are; -1: never. */
+    long fail_after, stall_after;
+#endif
 } run_log;
 
+/* In the period (the loop's log_ready): two atomic loads, no lock, no syscall. */
+static int log_ready(void *ctx)
+{
+    run_log *log = (run_log *)ctx;
+    const long next = __atomic_load_n(&log->done, __ATOMIC_RELAXED);
+    return !__atomic_load_n(&log->failed, __ATOMIC_ACQUIRE)
+           && !__atomic_load_n(&log->overrun, __ATOMIC_RELAXED)
+           && next - __atomic_load_n(&log->written, __ATOMIC_ACQUIRE) < log->ring_rows;
+}
+
+/* In the period (the loop's on_row): one copy into the ring. */
 static void log_row(void *ctx, const double *row, int row_length)
 {
     run_log *log = (run_log *)ctx;
     const long k = __atomic_load_n(&log->done, __ATOMIC_RELAXED);
-    if (k < log->capacity) {
-        memcpy(log->rows + (size_t)k * (size_t)row_length, row,
-               (size_t)row_length * sizeof(double));
-        __atomic_store_n(&log->done, k + 1, __ATOMIC_RELEASE);
+    if (k - __atomic_load_n(&log->written, __ATOMIC_ACQUIRE) >= log->ring_rows) {
+        /* log_ready() rules this out; should it ever happen, drop rather than overwrite. */
+        __atomic_store_n(&log->overrun, 1, __ATOMIC_RELAXED);
+        return;
     }
+    memcpy(log->ring + (size_t)(k % log->ring_rows) * (size_t)row_length, row,
+           (size_t)row_length * sizeof(double));
+    __atomic_store_n(&log->done, k + 1, __ATOMIC_RELEASE);
 }
 
+static void log_failed(run_log *log, int error)
+{
+    log->error = error ? error : EIO;
+    __atomic_store_n(&log->failed, 1, __ATOMIC_RELEASE);
+}
+
+/* The writer's work: every finished row to the file, up to the ring's end and then from its
+ * start; `written` moves only past rows the file has taken. */
 static void write_rows(run_log *log)
 {
     const long done = __atomic_load_n(&log->done, __ATOMIC_ACQUIRE);
-    if (done > log->written && !log->failed) {
-        const size_t count = (size_t)(done - log->written);
-        if (fwrite(log->rows + (size_t)log->written * (size_t)log->row_length,
-                   sizeof(double) * (size_t)log->row_length, count, log->file) != count
-            || fflush(log->file) != 0) {
-            log->failed = 1;
+    long written = log->written;
+    while (written < done && !log->failed) {
+        const long first = written % log->ring_rows;
+        size_t count = (size_t)(done - written < log->ring_rows - first
+                                    ? done - written : log->ring_rows - first);
+        int full = 0;
+#ifdef COCHLEA_TEST_HOOKS
+        if (log->stall_after >= 0 && written + (long)count > log->stall_after) {
+            if (written >= log->stall_after) {
+                return;
+            }
+            count = (size_t)(log->stall_after - written);
         }
-        log->written = done;
+        if (log->fail_after >= 0 && written + (long)count >= log->fail_after) {
+            count = (size_t)(log->fail_after - written);
+            full = 1;
+        }
+#endif
+        errno = 0;
+        if ((count && fwrite(log->ring + (size_t)first * (size_t)log->row_length,
+                             sizeof(double) * (size_t)log->row_length, count, log->file) != count)
+            || fflush(log->file) != 0) {
+            log_failed(log, errno);
+            return;
+        }
+        written += (long)count;
+        __atomic_store_n(&log->written, written, __ATOMIC_RELEASE);
+        if (full) {
+            log_failed(log, ENOSPC);
+            return;
+        }
     }
 }
 
 static void *writer(void *arg)
 {
     run_log *log = (run_log *)arg;
-    const struct timespec pause = {0, 20000000}; /* 20 ms: a few rows per write */
+    const struct timespec pause = {0, WRITER_PAUSE_NS};
     while (!__atomic_load_n(&log->finished, __ATOMIC_ACQUIRE)) {
         write_rows(log);
         nanosleep(&pause, 0);
@@ -490,7 +605,71 @@ static void *writer(void *arg)
     return 0;
 }
 
-/* ---- statistics (numpy's, for the summary) ------------------------------------------------- */
+/* ---- statistics of log.bin read back in chunks (fixed memory) ------------------------------ */
+
+/* The timing columns' percentiles are numpy's (linear interpolation) of the finite values,
+ * found in two passes over log.bin: the first counts the values in a histogram of HIST_BINS
+ * logarithmic bins from HIST_LO to HIST_HI s (each bin 2.1e-4 wide relative to its values;
+ * one more bin below, one above), the second gathers the values of the bins that hold the
+ * order statistics wanted and selects them exactly. A bin of more than GATHER_MAX values (in
+ * all, over the bins wanted) is not gathered: its geometric centre stands for the value, within
+ * 1.1e-4 relative (at 1 kHz an hour puts a few thousand periods in the fullest bin). */
+#define HIST_BINS 65536
+#define HIST_LO 1e-9
+#define HIST_HI 1e3
+#define GATHER_MAX (1L << 19)
+#define PERCENTS 2
+#define TIMING_COLUMNS 3
+
+static const double percents[PERCENTS] = {50.0, 99.0};
+
+typedef struct {
+    double *values;  /* gathered (or 0) */
+    long count, cap;
+    int bin;
+} gathered;
+
+typedef struct {
+    int column;      /* in the row */
+    long first_row;  /* rows before it have no value (the first period has no wall period) */
+    long n;          /* finite values */
+    double sum, min, max, mean, m2;
+    uint32_t *bins;  /* HIST_BINS + 2 */
+    long rank[2 * PERCENTS];     /* order statistics wanted (-1: none) */
+    int slot[2 * PERCENTS];      /* their gathered bin */
+    long in_bin[2 * PERCENTS];   /* their rank inside it */
+    gathered bins_wanted[2 * PERCENTS];
+    int n_wanted;
+    double percentile[PERCENTS];
+} timing_column;
+
+static int hist_bin(double x)
+{
+    static double scale = 0.0;
+    double b;
+    if (scale == 0.0) {
+        scale = (double)HIST_BINS / log(HIST_HI / HIST_LO);
+    }
+    if (!(x >= HIST_LO)) {
+        return 0;
+    }
+    if (x >= HIST_HI) {
+        return HIST_BINS + 1;
+    }
+    b = floor(log(x / HIST_LO) * scale);
+    return 1 + (b < 0 ? 0 : b >= HIST_BINS ? HIST_BINS - 1 : (int)b);
+}
+
+static double bin_centre(const timing_column *c, int bin)
+{
+    if (bin == 0) {
+        return c->min;
+    }
+    if (bin == HIST_BINS + 1) {
+        return c->max;
+    }
+    return HIST_LO * exp(((double)bin - 0.5) * log(HIST_HI / HIST_LO) / (double)HIST_BINS);
+}
 
 static int compare(const void *a, const void *b)
 {
@@ -498,36 +677,102 @@ static int compare(const void *a, const void *b)
     return (x > y) - (x < y);
 }
 
-/* numpy.percentile with linear interpolation; NaN for no values. values is sorted in place. */
-static double percentile(double *values, long n, double p)
+/* numpy's "linear" virtual index of percentile p of n values, term for term. */
+static double virtual_index(long n, double p)
 {
-    double position, low;
-    long i;
-    if (n <= 0) {
-        return NAN;
-    }
-    qsort(values, (size_t)n, sizeof(double), compare);
-    position = p / 100.0 * (double)(n - 1);
-    low = floor(position);
-    i = (long)low;
-    if (i + 1 >= n) {
-        return values[n - 1];
-    }
-    return values[i] + (values[i + 1] - values[i]) * (position - low);
+    const double q = p / 100.0;
+    return (double)n * q + (1.0 + q * (1.0 - 1.0 - 1.0)) - 1.0;
 }
 
-/* The finite values of column c of rows [from, to) into out; their count. */
-static long column(const run_log *log, int c, long from, long to, double *out)
+/* After the first pass: the order statistics each percentile needs, their bins, and room to
+ * gather those bins' values within *budget. 0, or -1 when out of memory. */
+static int plan_percentiles(timing_column *c, long *budget)
 {
-    long k, m = 0;
-    for (k = from; k < to; ++k) {
-        const double v = log->rows[(size_t)k * (size_t)log->row_length + (size_t)c];
-        if (isfinite(v)) {
-            out[m++] = v;
+    int p, w, j;
+    c->n_wanted = 0;
+    for (p = 0; p < 2 * PERCENTS; ++p) {
+        c->rank[p] = -1;
+    }
+    if (c->n == 0) {
+        return 0;
+    }
+    for (p = 0; p < PERCENTS; ++p) {
+        const double v = virtual_index(c->n, percents[p]);
+        const long i = (long)floor(v);
+        c->rank[2 * p] = v >= (double)(c->n - 1) ? c->n - 1 : (i < 0 ? 0 : i);
+        c->rank[2 * p + 1] = v >= (double)(c->n - 1) ? c->n - 1 : (i < 0 ? 0 : i + 1);
+    }
+    for (j = 0; j < 2 * PERCENTS; ++j) {
+        long below = 0;
+        int bin = 0;
+        while (below + (long)c->bins[bin] <= c->rank[j]) {
+            below += (long)c->bins[bin++];
+        }
+        c->in_bin[j] = c->rank[j] - below;
+        for (w = 0; w < c->n_wanted && c->bins_wanted[w].bin != bin; ++w) {
+        }
+        if (w == c->n_wanted) {
+            gathered *g = &c->bins_wanted[c->n_wanted++];
+            g->bin = bin;
+            g->count = 0;
+            g->cap = (long)c->bins[bin];
+            g->values = 0;
+            if (g->cap <= *budget) {
+                g->values = malloc(sizeof(double) * (size_t)g->cap);
+                if (!g->values) {
+                    return -1;
+                }
+                *budget -= g->cap;
+            }
+        }
+        c->slot[j] = w;
+    }
+    return 0;
+}
+
+/* After the second pass: the percentiles, numpy's _lerp of the two order statistics. */
+static void finish_percentiles(timing_column *c)
+{
+    double order[2 * PERCENTS];
+    int p, j;
+    for (j = 0; j < c->n_wanted; ++j) {
+        gathered *g = &c->bins_wanted[j];
+        if (g->values) {
+            qsort(g->values, (size_t)g->count, sizeof(double), compare);
         }
     }
-    return m;
+    for (j = 0; j < 2 * PERCENTS; ++j) {
+        const gathered *g = c->n ? &c->bins_wanted[c->slot[j]] : 0;
+        order[j] = !g ? NAN
+                   : g->values && c->in_bin[j] < g->count ? g->values[c->in_bin[j]]
+                                                          : bin_centre(c, g->bin);
+    }
+    for (p = 0; p < PERCENTS; ++p) {
+        const double v = c->n ? virtual_index(c->n, percents[p]) : NAN;
+        const double gamma = v - floor(v);
+        const double a = order[2 * p], b = order[2 * p + 1], diff = b - a;
+        c->percentile[p] = !c->n ? NAN : gamma >= 0.5 ? b - diff * (1.0 - gamma)
+                                                     : a + diff * gamma;
+    }
+    for (j = 0; j < c->n_wanted; ++j) {
+        free(c->bins_wanted[j].values);
+        c->bins_wanted[j].values = 0;
+    }
 }
+
+/* What the report needs of the whole log, gathered row by row: the timing columns (wall
+ * period, compute, backend i/o), per tracked coordinate the tail's sum of squares, per joint
+ * the largest |tau|, per unit the largest |p_hat| and whether every one was finite, and the
+ * first and last rows. */
+typedef struct {
+    long rows, tail;
+    timing_column timing[TIMING_COLUMNS];
+    double tail_sq[COCHLEA_MAX_UNITS][COCHLEA_MAX_ERRORS];
+    double torque_max[COCHLEA_MAX_JOINTS];
+    double estimate_max[COCHLEA_MAX_UNITS];
+    int estimate_finite[COCHLEA_MAX_UNITS];
+    double first[COCHLEA_MAX_ROW], last[COCHLEA_MAX_ROW];
+} log_stats;
 
 /* ---- JSON ------------------------------------------------------------------------------------ */
 
@@ -650,22 +895,13 @@ static int unit_offset(const cochlea_scenario *sc, int u)
     return off;
 }
 
-/* log.csv: cochlea-run's columns (its pose columns aside), SI, one row per period. */
-static int write_csv(const char *out, const cochlea_scenario *sc, const run_log *log, long rows)
+/* log.csv's header: cochlea-run's columns (its pose columns aside), SI. */
+static void csv_header(FILE *f, const cochlea_scenario *sc)
 {
-    FILE *f = open_in(out, "log.csv", "w");
     static const char *const timing[] = {"start_lateness_s", "wall_period_s", "compute_s",
                                          "backend_io_s"};
-    double xd[64], xd_dot[64], xd_ddot[64];
     char buf[64];
     int u, i;
-    long k;
-    if (!f || sc->nd > 64) {
-        if (f) {
-            fclose(f);
-        }
-        return -1;
-    }
     fputs("time_s", f);
     for (u = 0; u < sc->n_units; ++u) {
         const cochlea_unit_info *t = &sc->units[u];
@@ -702,46 +938,224 @@ static int write_csv(const char *out, const cochlea_scenario *sc, const run_log 
         fprintf(f, ",%s", timing[i]);
     }
     fputc('\n', f);
-    for (k = 0; k < rows; ++k) {
-        const double *row = log->rows + (size_t)k * (size_t)log->row_length;
-        const int n = sc->nq;
-        if (sc->desired(row[0], xd, xd_dot, xd_ddot) != 0) {
-            for (i = 0; i < sc->nd; ++i) {
-                xd[i] = xd_dot[i] = NAN;
+}
+
+/* The number of values in a log.csv row (for the disk's estimate). */
+static long csv_columns(const cochlea_scenario *sc)
+{
+    long n = 1 + 4;
+    int u;
+    for (u = 0; u < sc->n_units; ++u) {
+        const cochlea_unit_info *t = &sc->units[u];
+        n += 4 * t->nq + 3 * t->nd + (t->ne - t->nd) + t->np;
+    }
+    return n;
+}
+
+/* One log.csv row from a log.bin row; the desired path is evaluated again at the row's time. */
+static void csv_row(FILE *f, const cochlea_scenario *sc, const double *row, int row_length)
+{
+    double xd[64], xd_dot[64], xd_ddot[64];
+    const int n = sc->nq;
+    int u, i;
+    if (sc->desired(row[0], xd, xd_dot, xd_ddot) != 0) {
+        for (i = 0; i < sc->nd; ++i) {
+            xd[i] = xd_dot[i] = NAN;
+        }
+    }
+    fprintf(f, "%.10g", row[0]);
+    for (u = 0; u < sc->n_units; ++u) {
+        const cochlea_unit_info *t = &sc->units[u];
+        const double *e = row + unit_offset(sc, u);
+        for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + t->q0 + i]);
+        for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + n + t->q0 + i]);
+        for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", xd[t->d0 + i]);
+        for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", xd_dot[t->d0 + i]);
+        for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", t->tracking_sign * e[i]);
+        for (i = t->nd; i < t->ne; ++i) fprintf(f, ",%.10g", e[i]);
+        for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + 2 * n + t->q0 + i]);
+        for (i = 0; i < t->np; ++i) fprintf(f, ",%.10g", e[t->ne + i]);
+    }
+    for (i = 0; i < 4; ++i) {
+        fprintf(f, ",%.10g", row[row_length - 4 + i]);
+    }
+    fputc('\n', f);
+}
+
+/* ---- reading log.bin back ------------------------------------------------------------------- */
+
+/* The first pass's work on row k: statistics that need one look at each value. */
+static void first_pass_row(log_stats *st, const cochlea_scenario *sc, const double *row, long k,
+                           int row_length)
+{
+    int u, i, c;
+    if (k == 0) {
+        memcpy(st->first, row, sizeof(double) * (size_t)row_length);
+    }
+    if (k == st->rows - 1) {
+        memcpy(st->last, row, sizeof(double) * (size_t)row_length);
+    }
+    for (c = 0; c < TIMING_COLUMNS; ++c) {
+        timing_column *t = &st->timing[c];
+        const double v = row[t->column];
+        if (k >= t->first_row && isfinite(v)) {
+            t->n += 1;
+            t->sum += v;
+            t->min = t->n == 1 || v < t->min ? v : t->min;
+            t->max = t->n == 1 || v > t->max ? v : t->max;
+            t->bins[hist_bin(v)] += 1;
+        }
+    }
+    for (i = 0; i < sc->nq; ++i) {
+        const double v = fabs(row[1 + 2 * sc->nq + i]);
+        const double max = st->torque_max[i];
+        st->torque_max[i] = (isnan(v) || isnan(max)) ? NAN : (v > max ? v : max);
+    }
+    for (u = 0; u < sc->n_units; ++u) {
+        const cochlea_unit_info *t = &sc->units[u];
+        const double *e = row + unit_offset(sc, u);
+        double s = 0.0;
+        if (k >= st->tail) {
+            for (i = 0; i < t->nd; ++i) {
+                st->tail_sq[u][i] += e[i] * e[i];
             }
         }
-        fprintf(f, "%.10g", row[0]);
-        for (u = 0; u < sc->n_units; ++u) {
-            const cochlea_unit_info *t = &sc->units[u];
-            const double *e = row + unit_offset(sc, u);
-            for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + t->q0 + i]);
-            for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + n + t->q0 + i]);
-            for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", xd[t->d0 + i]);
-            for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", xd_dot[t->d0 + i]);
-            for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", t->tracking_sign * e[i]);
-            for (i = t->nd; i < t->ne; ++i) fprintf(f, ",%.10g", e[i]);
-            for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + 2 * n + t->q0 + i]);
-            for (i = 0; i < t->np; ++i) fprintf(f, ",%.10g", e[t->ne + i]);
+        for (i = 0; i < t->np; ++i) {
+            s += e[t->ne + i] * e[t->ne + i];
         }
-        for (i = 0; i < 4; ++i) {
-            fprintf(f, ",%.10g", row[log->row_length - 4 + i]);
+        st->estimate_finite[u] = st->estimate_finite[u] && isfinite(s);
+        if (!(sqrt(s) <= st->estimate_max[u])) {
+            st->estimate_max[u] = sqrt(s);
         }
-        fputc('\n', f);
     }
-    return fclose(f);
+}
+
+/* The second pass's work on row k: the spread about the mean, and the values of the bins the
+ * percentiles are in. */
+static void second_pass_row(log_stats *st, const double *row, long k)
+{
+    int c, w;
+    for (c = 0; c < TIMING_COLUMNS; ++c) {
+        timing_column *t = &st->timing[c];
+        const double v = row[t->column];
+        if (k >= t->first_row && isfinite(v)) {
+            const int bin = hist_bin(v);
+            t->m2 += (v - t->mean) * (v - t->mean);
+            for (w = 0; w < t->n_wanted; ++w) {
+                gathered *g = &t->bins_wanted[w];
+                if (g->bin == bin && g->values && g->count < g->cap) {
+                    g->values[g->count++] = v;
+                }
+            }
+        }
+    }
+}
+
+/* Reads DIR/log.bin (rows of row_length) back through chunk (chunk_rows rows): the first pass
+ * writes log.csv (unless csv is 0) and gathers what needs one look, the second what needs the
+ * mean and the percentiles' bins. 0, or -1 with errno when log.bin cannot be read or memory
+ * is short. */
+static int read_back(const char *out, const cochlea_scenario *sc, int row_length, long rows,
+                     double *chunk, long chunk_rows, FILE *csv, log_stats *st)
+{
+    FILE *f;
+    long k, got, budget = GATHER_MAX;
+    int pass, c, u, i;
+#ifdef COCHLEA_TEST_HOOKS
+    if (getenv("COCHLEA_TEST_GATHER_MAX")) {
+        budget = atol(getenv("COCHLEA_TEST_GATHER_MAX"));
+    }
+#endif
+    st->rows = rows;
+    st->tail = (long)((double)rows * (1.0 - TAIL_FRACTION));
+    for (c = 0; c < TIMING_COLUMNS; ++c) {
+        timing_column *t = &st->timing[c];
+        t->column = row_length - 3 + c;
+        t->first_row = c == 0 ? 1 : 0;
+        t->n = 0;
+        t->sum = t->m2 = t->mean = 0.0;
+        t->min = t->max = NAN;
+        t->n_wanted = 0;
+        t->bins = 0;
+        for (i = 0; i < PERCENTS; ++i) {
+            t->percentile[i] = NAN;
+        }
+    }
+    for (u = 0; u < COCHLEA_MAX_UNITS; ++u) {
+        st->estimate_max[u] = 0.0;
+        st->estimate_finite[u] = 1;
+        for (i = 0; i < COCHLEA_MAX_ERRORS; ++i) {
+            st->tail_sq[u][i] = 0.0;
+        }
+    }
+    for (i = 0; i < COCHLEA_MAX_JOINTS; ++i) {
+        st->torque_max[i] = 0.0;
+    }
+    if (rows == 0) {
+        return 0;
+    }
+    for (c = 0; c < TIMING_COLUMNS; ++c) {
+        /* calloc: only the pages of bins that are used become resident */
+        st->timing[c].bins = calloc(HIST_BINS + 2, sizeof(uint32_t));
+        if (!st->timing[c].bins) {
+            return -1;
+        }
+    }
+    if (!(f = open_in(out, "log.bin", "rb"))) {
+        return -1;
+    }
+    for (pass = 0; pass < 2; ++pass) {
+        if (pass == 1) {
+            for (c = 0; c < TIMING_COLUMNS; ++c) {
+                timing_column *t = &st->timing[c];
+                t->mean = t->n ? t->sum / (double)t->n : NAN;
+                if (plan_percentiles(t, &budget) != 0) {
+                    fclose(f);
+                    return -1;
+                }
+            }
+            rewind(f);
+        }
+        for (k = 0; k < rows; k += got) {
+            const long want = rows - k < chunk_rows ? rows - k : chunk_rows;
+            long j;
+            got = (long)fread(chunk, sizeof(double) * (size_t)row_length, (size_t)want, f);
+            if (got != want) {
+                fclose(f);
+                errno = errno ? errno : EIO;
+                return -1;
+            }
+            for (j = 0; j < got; ++j) {
+                const double *row = chunk + (size_t)j * (size_t)row_length;
+                if (pass == 0) {
+                    first_pass_row(st, sc, row, k + j, row_length);
+                    if (csv) {
+                        csv_row(csv, sc, row, row_length);
+                    }
+                } else {
+                    second_pass_row(st, row, k + j);
+                }
+            }
+        }
+    }
+    fclose(f);
+    for (c = 0; c < TIMING_COLUMNS; ++c) {
+        finish_percentiles(&st->timing[c]);
+        free(st->timing[c].bins);
+        st->timing[c].bins = 0;
+    }
+    return 0;
 }
 
 /* summary.json's "units" entry of unit u; whether every tracked coordinate converged. */
-static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const run_log *log,
-                        long rows)
+static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_stats *st)
 {
     const cochlea_unit_info *t = &sc->units[u];
     const int off = unit_offset(sc, u);
-    const long tail = (long)((double)rows * (1.0 - TAIL_FRACTION));
+    const long rows = st->rows, tail = st->tail;
     int i, all = 1;
-    long k;
-    double max_norm = 0.0;
-    int finite = 1;
+    const double max_norm = st->estimate_max[u];
+    const int finite = st->estimate_finite[u];
     key(f, 4, t->name);
     fputs("{\n", f);
     key(f, 6, "tracked");
@@ -758,15 +1172,9 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const run_lo
                   "          \"converged\": false\n", f);
             all = 0;
         } else {
-            const double initial = fabs(log->rows[(size_t)off + (size_t)i]);
-            double sum = 0.0, rms;
+            const double initial = fabs(st->first[off + i]);
+            const double rms = sqrt(st->tail_sq[u][i] / (double)(rows - tail));
             int ok;
-            for (k = tail; k < rows; ++k) {
-                const double e = log->rows[(size_t)k * (size_t)log->row_length + (size_t)off
-                                           + (size_t)i];
-                sum += e * e;
-            }
-            rms = sqrt(sum / (double)(rows - tail));
             ok = isfinite(rms) && (rms <= CONVERGENCE_RATIO * initial || rms <= floor_);
             all = all && ok;
             key(f, 10, "initial_abs_error");
@@ -784,12 +1192,7 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const run_lo
     key(f, 6, "torque");
     fputs("{\n", f);
     for (i = 0; i < t->nq; ++i) {
-        double max = 0.0;
-        for (k = 0; k < rows; ++k) {
-            const double v = fabs(log->rows[(size_t)k * (size_t)log->row_length
-                                            + (size_t)(1 + 2 * sc->nq + t->q0 + i)]);
-            max = (isnan(v) || isnan(max)) ? NAN : (v > max ? v : max);
-        }
+        const double max = st->torque_max[t->q0 + i];
         key(f, 8, t->joint_names[i]);
         fputs("{\n", f);
         key(f, 10, "unit");
@@ -800,17 +1203,6 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const run_lo
         fprintf(f, "\n        }%s\n", i + 1 < t->nq ? "," : "");
     }
     fputs("      },\n", f);
-    for (k = 0; k < rows; ++k) {
-        const double *p = log->rows + (size_t)k * (size_t)log->row_length + (size_t)(off + t->ne);
-        double s = 0.0;
-        for (i = 0; i < t->np; ++i) {
-            s += p[i] * p[i];
-        }
-        finite = finite && isfinite(s);
-        if (!(sqrt(s) <= max_norm)) {
-            max_norm = sqrt(s);
-        }
-    }
     key(f, 6, "estimates");
     fputs("{\n", f);
     key(f, 8, "names");
@@ -840,8 +1232,7 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const run_lo
     if (rows == 0) {
         fputs("null", f);
     } else {
-        const double *p = log->rows + (size_t)(rows - 1) * (size_t)log->row_length
-                          + (size_t)(off + t->ne);
+        const double *p = st->last + off + t->ne;
         fputs("[", f);
         for (i = 0; i < t->np; ++i) {
             fputs(i ? ", " : "", f);
@@ -870,14 +1261,14 @@ typedef struct {
     double budget_bytes, wire_s, bus_s, cycle_s, timeout_s, watchdog_s;
 } run_facts;
 
-static void timing_summary(FILE *f, const cochlea_loop *loop, const run_log *log, long rows,
+static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *st,
                            const run_facts *facts, const cochlea_bridge *b, const options *o)
 {
-    const int L = log->row_length;
     const double h = loop->period_s;
-    double *scratch = malloc(sizeof(double) * (size_t)(rows > 0 ? rows : 1));
-    long m, k;
-    double sum = 0.0, sq = 0.0, max = NAN;
+    const timing_column *wall = &st->timing[0], *compute = &st->timing[1],
+                        *backend = &st->timing[2];
+    const long rows = st->rows;
+    long k;
     int i;
     fputs("{\n", f);
     key(f, 4, "unit");
@@ -886,54 +1277,40 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const run_log *log
     json_number(f, h);
     fputs(",\n", f);
     /* the wall period of every row but the first */
-    m = scratch ? column(log, L - 3, 1, rows, scratch) : 0;
-    for (k = 0; k < m; ++k) {
-        sum += scratch[k];
-        max = (k == 0 || scratch[k] > max) ? scratch[k] : max;
-    }
-    for (k = 0; k < m; ++k) {
-        sq += (scratch[k] - sum / (double)m) * (scratch[k] - sum / (double)m);
-    }
     key(f, 4, "period_mean");
-    json_number(f, m ? sum / (double)m : NAN);
+    json_number(f, wall->n ? wall->mean : NAN);
     fputs(",\n", f);
     key(f, 4, "period_std");
-    json_number(f, m ? sqrt(sq / (double)m) : NAN);
+    json_number(f, wall->n ? sqrt(wall->m2 / (double)wall->n) : NAN);
     fputs(",\n", f);
     key(f, 4, "period_p50");
-    json_number(f, percentile(scratch, m, 50));
+    json_number(f, wall->percentile[0]);
     fputs(",\n", f);
     key(f, 4, "period_p99");
-    json_number(f, percentile(scratch, m, 99));
+    json_number(f, wall->percentile[1]);
     fputs(",\n", f);
     key(f, 4, "period_max");
-    json_number(f, m ? max : NAN);
+    json_number(f, wall->n ? wall->max : NAN);
     fputs(",\n", f);
     key(f, 4, "deadline_misses");
     fprintf(f, "%u,\n", loop->deadline_misses);
     key(f, 4, "deadline_miss_fraction");
     json_number(f, (double)loop->deadline_misses / (double)(rows > 1 ? rows : 1));
     fputs(",\n", f);
-    m = scratch ? column(log, L - 2, 0, rows, scratch) : 0;
     key(f, 4, "compute_p50");
-    json_number(f, percentile(scratch, m, 50));
+    json_number(f, compute->percentile[0]);
     fputs(",\n", f);
     key(f, 4, "compute_p99");
-    json_number(f, percentile(scratch, m, 99));
+    json_number(f, compute->percentile[1]);
     fputs(",\n", f);
     key(f, 4, "compute_max");
-    json_number(f, m ? scratch[m - 1] : NAN);
+    json_number(f, compute->n ? compute->max : NAN);
     fputs(",\n", f);
-    m = scratch ? column(log, L - 1, 0, rows, scratch) : 0;
-    sum = 0.0;
-    for (k = 0; k < m; ++k) {
-        sum += scratch[k];
-    }
     key(f, 4, "backend_mean");
-    json_number(f, m ? sum / (double)m : NAN);
+    json_number(f, backend->n ? backend->mean : NAN);
     fputs(",\n", f);
     key(f, 4, "backend_p99");
-    json_number(f, percentile(scratch, m, 99));
+    json_number(f, backend->percentile[1]);
     fputs(",\n", f);
     key(f, 4, "scheduling");
     json_string(f, facts->scheduling);
@@ -984,13 +1361,13 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const run_log *log
     key(f, 6, "shutdown");
     json_string(f, facts->shutdown);
     fputs("\n    }\n  }", f);
-    free(scratch);
 }
 
-static int write_summary(const char *out, const cochlea_loop *loop, const run_log *log,
-                         long rows, const run_facts *facts, const cochlea_bridge *b,
-                         const options *o, int *converged_out)
+static int write_summary(const char *out, const cochlea_loop *loop, const log_stats *st,
+                         const run_facts *facts, const cochlea_bridge *b, const options *o,
+                         int *converged_out)
 {
+    const long rows = st->rows;
     const cochlea_scenario *sc = loop->scenario;
     FILE *f = open_in(out, "summary.json", "w");
     int u, converged = 1;
@@ -1048,7 +1425,7 @@ static int write_summary(const char *out, const cochlea_loop *loop, const run_lo
     fprintf(f, ",\n    \"exit_code\": %d\n  },\n", cochlea_exit_code(loop->stop.rule));
     fputs("  \"supervisor\": null,\n", f);
     key(f, 2, "timing");
-    timing_summary(f, loop, log, rows, facts, b, o);
+    timing_summary(f, loop, st, facts, b, o);
     fputs(",\n", f);
     key(f, 2, "wall_time_s");
     json_number(f, facts->wall_s);
@@ -1056,7 +1433,7 @@ static int write_summary(const char *out, const cochlea_loop *loop, const run_lo
     key(f, 2, "units");
     fputs("{\n", f);
     for (u = 0; u < sc->n_units; ++u) {
-        converged = unit_summary(f, sc, u, log, rows) && converged;
+        converged = unit_summary(f, sc, u, st) && converged;
     }
     fputs("  }\n}\n", f);
     converged = converged && loop->stop.rule == COCHLEA_COMPLETED;
@@ -1094,6 +1471,21 @@ static void normal_priority(void)
     (void)pthread_setschedparam(pthread_self(), SCHED_OTHER, &p);
 }
 
+/* The writer thread, with a small stack: locked memory (mlockall) makes the default 8 MiB
+ * resident, most of the program's, for a thread that only calls fwrite. */
+static int start_writer(pthread_t *thread, run_log *log)
+{
+    pthread_attr_t attr;
+    int failed;
+    if (pthread_attr_init(&attr) != 0) {
+        return -1;
+    }
+    (void)pthread_attr_setstacksize(&attr, WRITER_STACK_BYTES); /* else the default */
+    failed = pthread_create(thread, &attr, writer, log);
+    pthread_attr_destroy(&attr);
+    return failed;
+}
+
 /* Back to normal priority and unlocked memory; the writer flushes what is left and the log
  * file is closed (a failed close counts as a failed log). */
 static void leave_realtime(run_log *log, pthread_t writer_thread)
@@ -1102,9 +1494,29 @@ static void leave_realtime(run_log *log, pthread_t writer_thread)
     munlockall();
     __atomic_store_n(&log->finished, 1, __ATOMIC_RELEASE);
     pthread_join(writer_thread, 0);
-    if (fclose(log->file) != 0) {
-        log->failed = 1;
+    if (fclose(log->file) != 0 && !log->failed) {
+        log_failed(log, errno);
     }
+}
+
+/* The whole rows log.bin holds once closed (at most the loop's), with a partial last row (a
+ * write cut short by a full disk) cut off, so log.bin stays rows of row_length. */
+static long rows_kept(const char *out, const run_log *log, long logged)
+{
+    char path[4352];
+    struct stat st;
+    const off_t row_bytes = (off_t)sizeof(double) * (off_t)log->row_length;
+    long rows;
+    snprintf(path, sizeof path, "%s/log.bin", out);
+    if (stat(path, &st) != 0) {
+        return 0;
+    }
+    rows = (long)(st.st_size / row_bytes);
+    rows = rows < logged ? rows : logged;
+    if (st.st_size != (off_t)rows * row_bytes) {
+        (void)truncate(path, (off_t)rows * row_bytes);
+    }
+    return rows;
 }
 
 /* ---- main ----------------------------------------------------------------------------------- */
@@ -1146,9 +1558,31 @@ int main(int argc, char **argv)
     if (steps < 1) {
         return fail_usage("--duration %g s is shorter than one period (%g s)", duration, period);
     }
+    memset(&log, 0, sizeof log);
+    log.row_length = cochlea_loop_row_length(sc);
     if (!folder_is_empty(o.out)) {
         return fail_usage("--out %s exists and is not empty: choose a new folder (runs never "
                           "overwrite a log)", o.out);
+    }
+    { /* the disk must hold the whole log: refused now rather than a log-failure stop later */
+        const double need = (double)steps * (double)log.row_length * 8.0
+                            + (double)(steps + 1) * (double)csv_columns(sc) * CSV_VALUE_BYTES
+                            + (double)REPORT_MARGIN_BYTES;
+        double free_ = free_bytes(o.out);
+        char a[32], b[32];
+#ifdef COCHLEA_TEST_HOOKS
+        if (getenv("COCHLEA_TEST_FREE_BYTES")) {
+            free_ = atof(getenv("COCHLEA_TEST_FREE_BYTES"));
+        }
+#endif
+        if (free_ >= 0.0 && need > free_) {
+            size_text(a, sizeof a, need);
+            size_text(b, sizeof b, free_);
+            return fail_usage("--out %s: the run's log needs about %s (log.bin and log.csv, "
+                              "%ld periods) but only %s are free on that disk: free some "
+                              "space, choose another --out or a shorter --duration", o.out, a,
+                              steps, b);
+        }
     }
     { /* the bus budget, cochlea/dynamixel/budget.py's */
         const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + 21.0 * n;
@@ -1170,17 +1604,29 @@ int main(int argc, char **argv)
                     "latency does not, so periods will overrun now and then\n", text);
         }
     }
+    if (sc->nd > 64) {
+        return fail_usage("the scenario %s tracks %d coordinates, more than this program's 64",
+                          sc->name, sc->nd);
+    }
+#ifdef COCHLEA_TEST_HOOKS
+    log.fail_after = getenv("COCHLEA_TEST_LOG_FAIL_AFTER")
+                         ? atol(getenv("COCHLEA_TEST_LOG_FAIL_AFTER")) : -1;
+    log.stall_after = getenv("COCHLEA_TEST_LOG_STALL_AFTER")
+                          ? atol(getenv("COCHLEA_TEST_LOG_STALL_AFTER")) : -1;
+#endif
+    /* The ring, touched now so that no period takes a page fault in it (mlockall, when
+     * permitted, would too). A short run needs no more rows than it has. */
+    log.ring_rows = (long)ceil(RING_SECONDS / period - 1e-9); /* 4 / 0.001 is 4000 */
+    log.ring_rows = log.ring_rows < steps ? log.ring_rows : steps;
+    log.ring = malloc(sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
+    controller = malloc(sc->state_size);
+    if (!log.ring || !controller) {
+        return fail_usage("not enough memory for the log's ring (%g s of periods)",
+                          RING_SECONDS);
+    }
+    memset(log.ring, 0, sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
     if (make_folders(o.out) != 0) {
         return fail_usage("cannot create --out %s: %s", o.out, strerror(errno));
-    }
-    log.row_length = cochlea_loop_row_length(sc);
-    log.capacity = steps;
-    log.done = log.written = 0;
-    log.finished = log.failed = 0;
-    log.rows = malloc(sizeof(double) * (size_t)steps * (size_t)log.row_length);
-    controller = malloc(sc->state_size);
-    if (!log.rows || !controller) {
-        return fail_usage("not enough memory for a %g s log", duration);
     }
     if (write_columns(o.out, sc, log.row_length) != 0
         || !(log.file = open_in(o.out, "log.bin", "wb"))) {
@@ -1219,12 +1665,13 @@ int main(int argc, char **argv)
         return fail_usage("the loop refused the scenario (error %d)", loop_error);
     }
     the_loop.on_row = log_row;
+    the_loop.log_ready = log_ready;
     the_loop.row_ctx = &log;
 
     /* Everything the run needs is ready before the motors' torque goes on, so the first period
      * follows it at once: the writer (started before the real-time priority, so it does not
      * inherit it), the locked memory and the priority. */
-    if (pthread_create(&writer_thread, 0, writer, &log) != 0) {
+    if (start_writer(&writer_thread, &log) != 0) {
         cochlea_posix_close(&port);
         return fail_usage("cannot start the log writer");
     }
@@ -1254,12 +1701,39 @@ int main(int argc, char **argv)
     cochlea_posix_close(&port);
     facts.wall_s = (double)(ended - started) * 1e-9;
 
-    /* The reports, from the rows the loop logged. */
+    /* The reports, from the rows log.bin holds. */
     {
-        const long rows = __atomic_load_n(&log.done, __ATOMIC_ACQUIRE);
-        const double *last = rows ? log.rows + (size_t)(rows - 1) * (size_t)log.row_length : 0;
+        static log_stats stats;
+        const long logged = the_loop.rows;
+        const long kept = rows_kept(o.out, &log, logged);
+        int report_error = 0;
+        FILE *csv;
         size_t used;
-        stop_detail(facts.detail, sizeof facts.detail, &the_loop, last ? last : log.rows);
+        /* the loop's last row is the stop's own */
+        stop_detail(facts.detail, sizeof facts.detail, &the_loop, the_loop.row);
+        if (rule == COCHLEA_LOG_FAILURE || log.failed || log.overrun || kept < logged) {
+            /* A log lost at the end (the last flush, the close) is a log failure too, as in
+             * cochlea-run; the rule the run ended by, if another, is kept in the detail. */
+            char before[sizeof facts.detail], what[512];
+            snprintf(before, sizeof before, "%s", facts.detail);
+            if (log.failed) {
+                snprintf(what, sizeof what, "the log writer failed: %s (%s/log.bin)",
+                         strerror(log.error), o.out);
+            } else if (log.overrun || rule != COCHLEA_LOG_FAILURE) {
+                snprintf(what, sizeof what, "the log writer lost rows");
+            } else {
+                snprintf(what, sizeof what, "the log writer fell %ld periods (%g s) behind the "
+                         "loop", log.ring_rows, (double)log.ring_rows * period);
+            }
+            snprintf(facts.detail, sizeof facts.detail, "%s; log.bin holds the first %ld of %ld "
+                     "periods: free the disk or choose another --out", what, kept, logged);
+            if (rule != COCHLEA_LOG_FAILURE && rule != COCHLEA_COMPLETED) {
+                const size_t at = strlen(facts.detail);
+                snprintf(facts.detail + at, sizeof facts.detail - at, " (the run had ended by "
+                         "rule %s%s%s)", cochlea_rule_name(rule), before[0] ? ": " : "", before);
+            }
+            rule = the_loop.stop.rule = COCHLEA_LOG_FAILURE;
+        }
         if (bridge.last_failure < 0) {
             snprintf(facts.last_failure, sizeof facts.last_failure, "no failure");
         } else {
@@ -1351,13 +1825,34 @@ int main(int argc, char **argv)
                 }
             }
         }
-        if (write_summary(o.out, &the_loop, &log, rows, &facts, &bridge, &o, &converged) != 0
-            || write_csv(o.out, sc, &log, rows) != 0 || log.failed) {
-            fprintf(stderr, "cochlea-embedded: writing the log to %s failed: %s (log.bin keeps "
-                    "what was written)\n", o.out, strerror(errno));
+        /* log.csv as log.bin is read back; summary.json last, from what was read. */
+        errno = 0;
+        csv = open_in(o.out, "log.csv", "w");
+        if (!csv) {
+            report_error = errno;
+        } else {
+            csv_header(csv, sc);
         }
-        printf("  ran %.2f s in %.2f s (%.1fx real time)\n", (double)rows * period,
-               facts.wall_s, (double)rows * period / (facts.wall_s > 1e-9 ? facts.wall_s : 1e-9));
+        if (read_back(o.out, sc, log.row_length, kept, log.ring, log.ring_rows, csv, &stats)
+            != 0) {
+            report_error = report_error ? report_error : (errno ? errno : EIO);
+            (void)read_back(o.out, sc, log.row_length, 0, log.ring, log.ring_rows, 0, &stats);
+        }
+        if (csv && (ferror(csv) | fclose(csv)) != 0 && !report_error) {
+            report_error = errno ? errno : EIO;
+        }
+        errno = 0;
+        if (write_summary(o.out, &the_loop, &stats, &facts, &bridge, &o, &converged) != 0
+            && !report_error) {
+            report_error = errno ? errno : EIO;
+        }
+        if (report_error) {
+            fprintf(stderr, "cochlea-embedded: writing the report to %s failed: %s (log.bin "
+                    "keeps what was written)\n", o.out, strerror(report_error));
+        }
+        printf("  ran %.2f s in %.2f s (%.1fx real time)\n", (double)logged * period,
+               facts.wall_s,
+               (double)logged * period / (facts.wall_s > 1e-9 ? facts.wall_s : 1e-9));
         printf("  converged: %s\n  log: %s/log.csv\n  summary: %s/summary.json\n",
                converged ? "yes" : "no", o.out, o.out);
         printf("  bus: %.0f bytes per period, budget %.0f us; %u of %u reads good; shut-down: "
@@ -1367,7 +1862,7 @@ int main(int argc, char **argv)
                facts.scheduling, facts.memory);
         fflush(stdout);
     }
-    free(log.rows);
+    free(log.ring);
     free(controller);
     if (rule == COCHLEA_COMPLETED) {
         return 0;
@@ -1376,9 +1871,11 @@ int main(int argc, char **argv)
         fprintf(stderr, "cochlea-embedded: stopped by the user at t = %.3f s; zero effort "
                 "commanded, drives disabled, log complete\n", the_loop.stop.time_s);
     } else {
+        /* A failed log is the one stop whose log is not whole: the detail says how much is. */
         fprintf(stderr, "cochlea-embedded: stopped by rule %s at t = %.3f s: %s; zero effort "
-                "commanded, drives disabled, log complete\n", cochlea_rule_name(rule),
-                the_loop.stop.time_s, facts.detail);
+                "commanded, drives disabled, %s\n", cochlea_rule_name(rule),
+                the_loop.stop.time_s, facts.detail,
+                rule == COCHLEA_LOG_FAILURE ? "log kept up to the failure" : "log complete");
     }
     return cochlea_exit_code(rule);
 }
