@@ -115,6 +115,9 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
                         port, "--duration", str(duration), "--out", str(py_out), cwd=tmp_path)
     assert reference.returncode == 0, reference.stderr
 
+    # The report is written under temporary names and renamed: none is left behind.
+    assert sorted(p.name for p in c_out.iterdir()) == ["log.bin", "log.columns.json", "log.csv",
+                                                       "summary.json"]
     summary = json.loads((c_out / "summary.json").read_text())
     python = json.loads((py_out / "summary.json").read_text())
     # cochlea-run's schema: every key it writes, at every level the two share.
@@ -194,6 +197,7 @@ def test_a_wrong_bus_stops_before_anything_moves(tmp_path, program, options, mes
     assert done.returncode == 5, done.stderr
     assert "the backend could not start, nothing moved" in done.stderr and message in done.stderr
     assert " write " not in log.read_text()  # nothing was configured, let alone enabled
+    assert not (tmp_path / "c").exists()  # the start is undone: the identical retry can run
 
 
 def _interrupted_run(program: Path, tmp_path: Path, interrupt) -> tuple:
@@ -278,6 +282,20 @@ def test_bad_options_are_refused_with_a_message(tmp_path, program, args, code, t
     done = subprocess.run([str(program), *args], capture_output=True, text=True, timeout=30,
                           cwd=tmp_path)
     assert done.returncode == code and text in done.stderr, done.stderr
+    assert list(tmp_path.iterdir()) == []  # nothing left behind, not even an empty --out
+
+
+def test_a_failed_start_removes_only_what_it_created(tmp_path, program):
+    """The port does not open: the folders the run made go, with its log.bin and
+    log.columns.json; a folder the user made stays (empty), so the same command can run again."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for out in (tmp_path / "deep" / "er" / "run", mine):
+        done = embedded(program, "--scenario", "serial_task", "--port", "/dev/ttyUSB-none",
+                        "--out", str(out))
+        assert done.returncode == 5, done.stderr
+        assert [p.name for p in tmp_path.iterdir()] == ["mine"]
+    assert list(mine.iterdir()) == []
 
 
 def test_a_used_output_folder_is_refused(tmp_path, program):

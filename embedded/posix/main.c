@@ -227,6 +227,11 @@ static int parse(int argc, char **argv, options *o)
 
 /* ---- the output folder --------------------------------------------------------------------- */
 
+/* Where the outermost folder this run created ends in --out's text (0: none, --out existed):
+ * a start that fails removes what it made, so the identical retry is not refused for a
+ * folder that is "not empty". */
+static size_t out_created_from;
+
 static int make_folders(const char *path)
 {
     char buf[4096];
@@ -240,7 +245,11 @@ static int make_folders(const char *path)
         if (buf[i] == '/' || buf[i] == '\0') {
             const char keep = buf[i];
             buf[i] = '\0';
-            if (mkdir(buf, 0777) != 0 && errno != EEXIST) {
+            if (mkdir(buf, 0777) == 0) {
+                if (!out_created_from) {
+                    out_created_from = i;
+                }
+            } else if (errno != EEXIST) {
                 return -1;
             }
             buf[i] = keep;
@@ -314,6 +323,55 @@ static FILE *open_in(const char *folder, const char *name, const char *mode)
     char path[4352];
     snprintf(path, sizeof path, "%s/%s", folder, name);
     return fopen(path, mode);
+}
+
+/* Close a report file written under its temporary name ".NAME.tmp" and, if every byte
+ * reached the disk, rename it to NAME: a reader (or a crash) sees the whole file or none. */
+static int finish_atomic(FILE *f, const char *out, const char *name)
+{
+    char tmp[4352], final[4352];
+    int failed = ferror(f) != 0 || fflush(f) != 0 || fsync(fileno(f)) != 0;
+    int error = failed ? errno : 0;
+    if (fclose(f) != 0 && !failed) {
+        failed = 1;
+        error = errno;
+    }
+    snprintf(tmp, sizeof tmp, "%s/.%s.tmp", out, name);
+    snprintf(final, sizeof final, "%s/%s", out, name);
+    if (!failed && rename(tmp, final) != 0) {
+        failed = 1;
+        error = errno;
+    }
+    if (failed) {
+        unlink(tmp);
+        errno = error ? error : EIO;
+        return -1;
+    }
+    return 0;
+}
+
+/* Undo a start that failed before the first period: the two files it wrote (the folder was
+ * new or empty, so they are this run's) and the folders it created, innermost first. */
+static void undo_start(const char *out)
+{
+    char path[4352];
+    size_t i, n = strlen(out);
+    snprintf(path, sizeof path, "%s/log.bin", out);
+    unlink(path);
+    snprintf(path, sizeof path, "%s/log.columns.json", out);
+    unlink(path);
+    if (!out_created_from || n >= sizeof path) {
+        return;
+    }
+    memcpy(path, out, n + 1);
+    for (i = n; i >= out_created_from; --i) {
+        if (path[i] == '/' || path[i] == '\0') {
+            const char keep = path[i];
+            path[i] = '\0';
+            rmdir(path); /* only if empty: never what others put there */
+            path[i] = keep;
+        }
+    }
 }
 
 /* ---- names of things, as cochlea-run spells them -------------------------------------------- */
@@ -1369,7 +1427,7 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
 {
     const long rows = st->rows;
     const cochlea_scenario *sc = loop->scenario;
-    FILE *f = open_in(out, "summary.json", "w");
+    FILE *f = open_in(out, ".summary.json.tmp", "w");
     int u, converged = 1;
     long pos;
     if (!f) {
@@ -1441,7 +1499,7 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
         fputs("true, ", f); /* "false," and "true, " have the same length */
     }
     *converged_out = converged;
-    return fclose(f);
+    return finish_atomic(f, out, "summary.json");
 }
 
 /* ---- signals and real-time settings --------------------------------------------------------- */
@@ -1626,11 +1684,15 @@ int main(int argc, char **argv)
     }
     memset(log.ring, 0, sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
     if (make_folders(o.out) != 0) {
-        return fail_usage("cannot create --out %s: %s", o.out, strerror(errno));
+        const int error = errno;
+        undo_start(o.out);
+        return fail_usage("cannot create --out %s: %s", o.out, strerror(error));
     }
     if (write_columns(o.out, sc, log.row_length) != 0
         || !(log.file = open_in(o.out, "log.bin", "wb"))) {
-        return fail_usage("cannot write to %s: %s", o.out, strerror(errno));
+        const int error = errno;
+        undo_start(o.out);
+        return fail_usage("cannot write to %s: %s", o.out, strerror(error));
     }
 
     /* Signals first: a Ctrl-C during the start-up still ends in the safe stop. */
@@ -1647,12 +1709,14 @@ int main(int argc, char **argv)
     if (cochlea_posix_open(&port, o.port, o.baud) != 0) {
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: cannot "
                 "open the serial port %s: %s\n", o.port, strerror(errno));
+        undo_start(o.out);
         return COCHLEA_EXIT_BACKEND;
     }
     cochlea_posix_hal(&hal, &port);
     if (cochlea_bridge_init(&bridge, &hal, sc->drives, n,
                             (int64_t)nearbyint(facts.timeout_s * 1e9), WATCHDOG_S) != 0) {
         cochlea_posix_close(&port);
+        undo_start(o.out);
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
@@ -1662,6 +1726,7 @@ int main(int argc, char **argv)
                                    o.watchdog_misses, o.watchdog_errors, 1);
     if (loop_error != COCHLEA_LOOP_OK) {
         cochlea_posix_close(&port);
+        undo_start(o.out);
         return fail_usage("the loop refused the scenario (error %d)", loop_error);
     }
     the_loop.on_row = log_row;
@@ -1673,6 +1738,7 @@ int main(int argc, char **argv)
      * inherit it), the locked memory and the priority. */
     if (start_writer(&writer_thread, &log) != 0) {
         cochlea_posix_close(&port);
+        undo_start(o.out);
         return fail_usage("cannot start the log writer");
     }
     facts.memory = mlockall(MCL_CURRENT | MCL_FUTURE) == 0
@@ -1684,14 +1750,16 @@ int main(int argc, char **argv)
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: %s\n",
                 text);
         cochlea_posix_close(&port);
+        undo_start(o.out);
         return COCHLEA_EXIT_BACKEND;
     }
     if (interrupted) {
         cochlea_bridge_stop(&bridge);
         leave_realtime(&log, writer_thread);
         cochlea_posix_close(&port);
+        undo_start(o.out);
         fprintf(stderr, "cochlea-embedded: interrupted before the run started; drives "
-                "disabled\n");
+                "disabled, nothing moved\n");
         return EXIT_INTERRUPTED;
     }
     started = hal.now_ns(hal.ctx);
@@ -1827,7 +1895,7 @@ int main(int argc, char **argv)
         }
         /* log.csv as log.bin is read back; summary.json last, from what was read. */
         errno = 0;
-        csv = open_in(o.out, "log.csv", "w");
+        csv = open_in(o.out, ".log.csv.tmp", "w");
         if (!csv) {
             report_error = errno;
         } else {
@@ -1838,7 +1906,7 @@ int main(int argc, char **argv)
             report_error = report_error ? report_error : (errno ? errno : EIO);
             (void)read_back(o.out, sc, log.row_length, 0, log.ring, log.ring_rows, 0, &stats);
         }
-        if (csv && (ferror(csv) | fclose(csv)) != 0 && !report_error) {
+        if (csv && finish_atomic(csv, o.out, "log.csv") != 0 && !report_error) {
             report_error = errno ? errno : EIO;
         }
         errno = 0;
