@@ -38,6 +38,7 @@ LAYERS = {
     "sim": 4,
     "runtime": 5,
     "dynamixel": 6,
+    "sweep": 5,
     "apps": 7, "": 7,
 }
 
