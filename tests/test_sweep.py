@@ -285,12 +285,16 @@ def test_a_separate_scheduler_and_worker_give_the_same_rows(local_sweep, tmp_pat
                 p.wait()
 
 
-def test_an_unreachable_scheduler_is_one_line_exit_2(local_sweep, tmp_path, capsys):
-    spec_path, _ = local_sweep
+def test_an_unreachable_scheduler_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
+    from cochlea.sweep import execute
+
+    monkeypatch.setattr(execute, "CONNECT_TIMEOUT_S", 1)
+    spec_path = write_spec(tmp_path)
     code = cochlea_sweep.main([str(spec_path), "--out", str(tmp_path / "out"), "--scheduler",
                                f"tcp://127.0.0.1:{_free_port()}", "--progress", "off"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--scheduler" in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_killed_sweep_resumes_without_duplicates_or_gaps(local_sweep, tmp_path):

@@ -93,8 +93,8 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
     """Run every sample not yet in ``out``; returns what ran (``samples``, ``batches``,
     ``batch``, ``workers``, ``overhead_s``, ``wall_s``). An interrupt (KeyboardInterrupt) leaves
     every finished batch in ``out``."""
-    results.prepare(out, spec)
-    missing = deque(sorted(set(range(spec.total)) - results.done(out)))
+    resuming = results.check(out, spec)  # before any worker starts; nothing written yet
+    missing = deque(sorted(set(range(spec.total)) - (results.done(out) if resuming else set())))
     info = {"samples": len(missing), "batches": 0, "batch": batch, "workers": 0,
             "overhead_s": None, "wall_s": 0.0}
     if not missing:
@@ -103,6 +103,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
     client, cluster = _client(workers, scheduler)
     bar = None
     try:
+        results.prepare(out, spec)
         n_workers = len(client.scheduler_info()["workers"])
         info["workers"] = n_workers
         if warm is not None:

@@ -74,9 +74,9 @@ def read_manifest(out: Path) -> Manifest:
         raise SweepFolderError(f"{path}: unreadable sweep manifest ({exc})") from None
 
 
-def prepare(out: Path, spec: Spec) -> None:
-    """A new (or empty) folder becomes this spec's; an existing sweep folder must be this
-    spec's (same hash), else it is refused; half-written parts of a killed run are removed."""
+def check(out: Path, spec: Spec) -> bool:
+    """Whether ``out`` is this spec's sweep folder (to resume); False: new or empty. Any other
+    folder is refused. Writes nothing."""
     if out.exists() and not out.is_dir():
         raise SweepFolderError(f"--out {out}: expected a folder, got a file")
     if out.is_dir() and any(out.iterdir()):
@@ -88,7 +88,14 @@ def prepare(out: Path, spec: Spec) -> None:
             raise SweepFolderError(f"--out {out}: made by a different spec or scenario (hash "
                                    f"{manifest.digest[:12]}, this one {spec.digest[:12]}): give "
                                    "a new --out, or the spec that made it to resume")
-    else:
+        return True
+    return False
+
+
+def prepare(out: Path, spec: Spec) -> None:
+    """A new (or empty) folder becomes this spec's (:func:`check` first); half-written parts of
+    a killed run are removed."""
+    if not check(out, spec):
         out.mkdir(parents=True, exist_ok=True)
         write_manifest(out, spec)
     parts = out / PARTS
@@ -126,6 +133,8 @@ def read(out: Path) -> pa.Table:
 
 def done(out: Path) -> set[int]:
     """The samples already in the folder's part files."""
+    if not (out / PARTS).is_dir():
+        return set()
     files = sorted((out / PARTS).glob("part-*.parquet"))
     seen: set[int] = set()
     for f in files:
