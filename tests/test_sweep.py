@@ -199,9 +199,15 @@ def test_local_sweep_has_one_row_per_sample_and_a_report(local_sweep, capsys):
     rows = rows_of(out)
     assert [r["sample"] for r in rows] == list(range(8))
     spec = sweep_spec.load(spec_path)
+    # A grid of a number and a list: a list in every row, the same columns in every part.
+    assert [[r[f"gains.arm1.G_g[{j}]"] for j in range(3)] for r in rows] == \
+        [[2.0] * 3] * 4 + [[2.0, 2.0, 3.0]] * 4
+    assert {tuple(pq.read_schema(p).names) for p in (out / "parts").iterdir()} == \
+        {tuple(results.read(out).column_names)}
     for r in rows:
         for name, value in sampling.inputs(spec, r["sample"]).items():
-            assert results.flatten(name, value).items() <= r.items()
+            if name != "gains.arm1.G_g":
+                assert results.flatten(name, value).items() <= r.items()
         assert r["success"] == (r["converged"] and not r["diverged"] and r["stop_rule"] == "none")
         assert r["converged"] == (r["convergence_ratio"] <= 1)
         assert all(0 <= r[c] <= 1 for c in r if c.startswith("torque_ratio."))
