@@ -39,6 +39,7 @@ LAYERS = {
     "ident": 4,
     "runtime": 5,
     "dynamixel": 6,
+    "sweep": 5,
     "apps": 7, "": 7,
 }
 

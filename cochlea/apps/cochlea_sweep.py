@@ -1,0 +1,234 @@
+"""``cochlea-sweep``: a scenario run for thousands of perturbed plants and gains, on Dask.
+
+    cochlea-sweep SPEC.toml --out DIR [--workers N] [--scheduler ADDRESS] [--batch N]
+    cochlea-sweep replay DIR SAMPLE [--out FILE.toml]
+    cochlea-sweep report DIR
+
+The run resumes: the same command on the same DIR runs only the samples not yet there.
+Exit codes: 0 done; 2 the user's input is wrong (spec, folder, options; nothing ran);
+130 interrupted (every finished batch is kept: run the same command to resume).
+See docs/sweeps.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ..console import tolerate_closed_stdout
+from ..errors import EXIT_USER_ERROR, CochleaError
+from ..kernels import library as ckernels
+from ..runtime import build_supervisor, verdict
+from ..sim import load_scenario, simulate, unit_setups
+from ..sweep import execute, results, sampling
+from ..sweep import report as sweep_report
+from ..sweep import spec as sweep_spec
+from . import report
+
+EXIT_INTERRUPTED = 130
+_EFFORT_SLUG = {"N m": "Nm", "N": "N"}
+
+
+def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
+    """A sample's result columns from its run's summary (summary.json's numbers, as they are):
+    final RMS per coordinate, peak |effort| per joint and over its limit, the convergence
+    ratio (the largest final RMS over its threshold: converged is ratio <= 1), the estimate
+    bound, the supervisor's stop rule."""
+    row: dict = {"converged": bool(summary["converged"]),
+                 "diverged": bool(summary["diverged"])}
+    ratio, bound_hit = 0.0, False
+    for uname, u in summary["units"].items():
+        for coord, c in u["tracked"].items():
+            rms = c["final_rms_error"]
+            rms = math.nan if rms is None else rms
+            row[f"final_rms.{uname}.{coord}_{c['unit']}"] = rms
+            floor = max(report.CONVERGENCE_FLOOR[c["unit"]], c.get("measurement_resolution", 0.0))
+            initial = c["initial_abs_error"] or 0.0
+            threshold = max(report.CONVERGENCE_RATIO * initial, floor)
+            ratio = max(ratio, rms / threshold) if math.isfinite(rms) else math.inf
+        for joint, t in u["torque"].items():
+            row[f"peak_torque.{uname}.{joint}_{_EFFORT_SLUG[t['unit']]}"] = t["max_abs"]
+            row[f"torque_ratio.{uname}.{joint}"] = t["max_abs"] / limits[uname][joint]
+        bound_hit = bound_hit or not u["estimates"]["bounded"]
+    sup = summary["supervisor"]
+    row.update({"convergence_ratio": ratio, "estimate_bound_hit": bound_hit,
+                "stop_rule": sup["rule"], "stop_time_s": sup.get("time_s", math.nan),
+                "saturated_periods": int(sup["saturated_periods"])})
+    row["success"] = row["converged"] and not row["diverged"] and sup["rule"] == "none"
+    return row
+
+
+def evaluate(text: str) -> dict:
+    """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
+    computes for its summary.json, from the sample's scenario file."""
+    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
+        path = Path(tmp) / "sample.toml"
+        path.write_text(text, encoding="utf-8")
+        scenario = load_scenario(path)
+    setups = unit_setups(scenario)
+    start = time.perf_counter()
+    result = simulate(scenario, None, setups)
+    wall = time.perf_counter() - start
+    supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
+                                  kernels="c", substeps=scenario.plant_substeps)
+    result.supervisor = verdict(result, supervisor)
+    limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
+                                                           u.effort_limit)} for u in setups}
+    return measures(report.summary(result, wall), limits)
+
+
+def warm() -> None:
+    """Bind the C library in a worker process once, before its first batch."""
+    ckernels.load()
+
+
+def _check_sample(spec: sweep_spec.Spec) -> None:
+    """Before any worker starts: the first sample's scenario (and the extremes of each
+    uniform) through the scenario loader and the run's up-front checks."""
+    for i in sorted({0, spec.total - 1}):
+        text = sampling.scenario_text(spec, i)
+        with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
+            path = Path(tmp) / "sample.toml"
+            path.write_text(text, encoding="utf-8")
+            try:
+                unit_setups(load_scenario(path))
+            except CochleaError as exc:
+                raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: "
+                                   f"{str(exc).replace(str(path), 'sample.toml')}") from None
+
+
+def _sweep(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="cochlea-sweep",
+        description="Run a scenario for every sample of a sweep spec (perturbed plants, gain "
+                    "grids) on Dask workers; one Parquet row per sample in DIR/parts, a "
+                    "robustness report in DIR/summary.md. Other forms: `cochlea-sweep replay "
+                    "DIR SAMPLE [--out FILE]` and `cochlea-sweep report DIR`.",
+        epilog="The same command on the same DIR resumes an interrupted sweep. See "
+               "docs/sweeps.md.")
+    p.add_argument("spec", type=Path, metavar="SPEC.toml")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help=f"local worker processes (default: the cores, {os.cpu_count()})")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786, whose workers "
+                        "run the samples (instead of local processes)")
+    p.add_argument("--batch", type=int, metavar="N",
+                   help="samples per batch (default: measured, see docs/sweeps.md)")
+    p.add_argument("--progress", default="auto", choices=["auto", "on", "off"],
+                   help="progress bar on stderr (auto: when stderr is a terminal)")
+    args = p.parse_args(argv)
+    if args.workers is not None and not 1 <= args.workers <= 4096:
+        raise CochleaError(f"--workers must be between 1 and 4096, got {args.workers}")
+    if args.workers is not None and args.scheduler is not None:
+        raise CochleaError("--workers starts local workers; with --scheduler the scheduler's "
+                           "workers run the samples: give one or the other")
+    if args.batch is not None and args.batch < 1:
+        raise CochleaError(f"--batch must be a positive number of samples, got {args.batch}")
+    spec = sweep_spec.load(args.spec)
+    _check_sample(spec)
+    progress = args.progress == "on" or (args.progress == "auto" and sys.stderr.isatty())
+    try:
+        info = execute.run(spec, args.out, evaluate, workers=args.workers or os.cpu_count(),
+                           scheduler=args.scheduler, batch=args.batch, progress=progress,
+                           warm=warm, log=lambda m: print(f"cochlea-sweep: {m}", flush=True))
+    except KeyboardInterrupt:
+        finished = len(results.done(args.out)) if args.out.is_dir() else 0
+        print(f"cochlea-sweep: interrupted; {finished} of {spec.total} samples are in "
+              f"{args.out}: run the same command to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if info["samples"]:
+        print(f"cochlea-sweep: {info['samples']} samples in {info['wall_s']:.1f} s on "
+              f"{info['workers']} worker(s), {info['batches']} batches of up to "
+              f"{info['batch']}", flush=True)
+    else:
+        print(f"cochlea-sweep: all {spec.total} samples were already in {args.out}", flush=True)
+    print(f"cochlea-sweep: report {sweep_report.write(args.out)}", flush=True)
+    return 0
+
+
+def _replay(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="cochlea-sweep replay",
+                                description="Write the exact scenario of one sample: "
+                                            "cochlea-run --scenario FILE --realtime off "
+                                            "reproduces its row.")
+    p.add_argument("dir", type=Path, metavar="DIR")
+    p.add_argument("sample", type=int, metavar="SAMPLE")
+    p.add_argument("--out", type=Path, metavar="FILE.toml",
+                   help="where to write it (default: standard output)")
+    args = p.parse_args(argv)
+    spec = replay_spec(args.dir)
+    if not 0 <= args.sample < spec.total:
+        raise CochleaError(f"SAMPLE must be between 0 and {spec.total - 1} (the sweep in "
+                           f"{args.dir} has {spec.total}), got {args.sample}")
+    text = sampling.scenario_text(spec, args.sample)
+    if args.out is None:
+        sys.stdout.write(text)
+    else:
+        tmp = args.out.with_name(args.out.name + ".tmp")
+        try:
+            tmp.write_text(text, encoding="utf-8")
+            tmp.replace(args.out)
+        except OSError as exc:
+            raise CochleaError(f"--out {args.out}: cannot write ({exc.strerror})") from None
+        print(f"cochlea-sweep: sample {args.sample} -> {args.out}; run: cochlea-run --robot "
+              f"{spec.robot} --space {spec.space} --scenario {args.out} --realtime off")
+    return 0
+
+
+def replay_spec(folder: Path) -> sweep_spec.Spec:
+    """The spec of a sweep folder, from its manifest alone (the spec and the base scenario as
+    they were when the sweep started)."""
+    m = results.read_manifest(folder)
+    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
+        scenario = Path(tmp) / Path(m.scenario_path).name
+        scenario.write_text(m.scenario_text, encoding="utf-8")
+        spec_file = Path(tmp) / Path(m.spec_path).name
+        spec_file.write_text(m.spec_text, encoding="utf-8")
+        spec = sweep_spec.load(spec_file, scenario_file=scenario)
+    spec = dataclasses.replace(spec, path=Path(m.spec_path), scenario_path=Path(m.scenario_path))
+    if spec.digest != m.digest:
+        raise results.SweepFolderError(f"{folder}: its manifest does not match its hash")
+    return spec
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    tolerate_closed_stdout()
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def terminate(signum, frame):  # SIGTERM (a batch system's stop) is an interrupt too
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, terminate)
+    try:
+        if argv[:1] == ["replay"]:
+            return _replay(argv[1:])
+        if argv[:1] == ["report"]:
+            p = argparse.ArgumentParser(prog="cochlea-sweep report",
+                                        description="Write DIR/summary.md and the figures "
+                                                    "from the samples finished so far.")
+            p.add_argument("dir", type=Path, metavar="DIR")
+            args = p.parse_args(argv[1:])
+            print(f"cochlea-sweep: report {sweep_report.write(args.dir)}")
+            return 0
+        return _sweep(argv)
+    except CochleaError as exc:
+        print(f"cochlea-sweep: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("cochlea-sweep: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

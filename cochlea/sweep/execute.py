@@ -1,0 +1,162 @@
+"""Running a sweep's samples on Dask: a ``LocalCluster`` of worker processes (nothing to start)
+or the workers of an existing scheduler (``--scheduler tcp://HOST:8786``).
+
+Samples go to the workers in batches; each finished batch becomes one part file, written by
+this process (workers need no shared file system). The batch size comes from measurements: the
+first round runs one sample per worker, which gives a sample's cost ``c``; a no-op task's round
+trip plus one part file's write gives the overhead ``o`` of a batch. A batch of ``n`` samples
+costs ``o + n c``, so ``n >= o / (0.05 c)`` keeps scheduling under 5 % of the work; a batch
+also holds at least :data:`MIN_BATCH_S` of work (fewer, larger part files for a long sweep) and
+at most an even share of what is left (every worker busy to the end).
+
+Each worker process binds the C kernels once (``warm``, then the library's own per-process
+cache) and keeps the spec, which is sent once (``scatter``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..errors import CochleaError
+from . import results, sampling
+from .spec import Spec
+
+#: Scheduling (task round trip plus writing the part file) at most this fraction of the work.
+OVERHEAD_FRACTION = 0.05
+#: Work a batch holds at least (s of one worker), unless that leaves a worker idle at the end.
+MIN_BATCH_S = 2.0
+#: Batches in flight per worker: the next one is queued while one runs.
+IN_FLIGHT = 2
+#: Seconds to wait for a scheduler given by address, and for its first worker.
+CONNECT_TIMEOUT_S = 30
+
+
+def run_batch(spec: Spec, indices: list[int], evaluate: Callable[[str], dict]) -> list[dict]:
+    """One batch, on a worker: each sample's scenario built, run and measured."""
+    rows = []
+    for i in indices:
+        start = time.perf_counter()
+        g, k = sampling.grid_point(spec, i)
+        row = {"sample": i, "grid": g, "draw": k}
+        vectors = {e.name: e.rule.size for e in spec.entries if e.vector}
+        for name, value in sampling.inputs(spec, i).items():
+            # An entry whose values may be lists is a list in every row (a number is every
+            # component): the same columns whichever samples a batch holds.
+            if name in vectors and not isinstance(value, list):
+                value = [value] * vectors[name]
+            row.update(results.flatten(name, value))
+        row.update(evaluate(sampling.scenario_text(spec, i)))
+        row["wall_s"] = time.perf_counter() - start
+        rows.append(row)
+    return rows
+
+
+def _noop() -> None:
+    return None
+
+
+def batch_size(cost_s: float, overhead_s: float, remaining: int, workers: int) -> int:
+    """Samples per batch (see the module's docstring); ``cost_s``: one sample's run."""
+    cost_s = max(cost_s, 1e-6)
+    n = max(math.ceil(overhead_s / (OVERHEAD_FRACTION * cost_s)), math.ceil(MIN_BATCH_S / cost_s))
+    share = max(1, math.ceil(remaining / (IN_FLIGHT * workers)))
+    return max(1, min(n, share))
+
+
+def _client(workers: int | None, scheduler: str | None):
+    # distributed is imported here: it takes a second, which the spec's checks and the
+    # subcommands (replay, report) need not wait for.
+    from distributed import Client, LocalCluster  # noqa: PLC0415
+
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise CochleaError(f"--scheduler {scheduler}: cannot reach a Dask scheduler with "
+                               f"workers there ({exc}); start `dask scheduler` and `dask worker "
+                               f"{scheduler}`, or leave --scheduler out for local workers") \
+                from None
+        return client, None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int | None = None,
+        scheduler: str | None = None, batch: int | None = None, progress: bool = True,
+        warm: Callable[[], object] | None = None, log=None) -> dict:
+    """Run every sample not yet in ``out``; returns what ran (``samples``, ``batches``,
+    ``batch``, ``workers``, ``overhead_s``, ``wall_s``). An interrupt (KeyboardInterrupt) leaves
+    every finished batch in ``out``."""
+    resuming = results.check(out, spec)  # before any worker starts; nothing written yet
+    missing = deque(sorted(set(range(spec.total)) - (results.done(out) if resuming else set())))
+    info = {"samples": len(missing), "batches": 0, "batch": batch, "workers": 0,
+            "overhead_s": None, "wall_s": 0.0}
+    if not missing:
+        return info
+    start = time.perf_counter()
+    client, cluster = _client(workers, scheduler)
+    bar = None
+    try:
+        results.prepare(out, spec)
+        n_workers = len(client.scheduler_info()["workers"])
+        info["workers"] = n_workers
+        if warm is not None:
+            client.run(warm)
+        remote_spec = client.scatter(spec, broadcast=True)
+        trips = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            client.submit(_noop, pure=False).result()
+            trips.append(time.perf_counter() - t0)
+        overhead = statistics.median(trips)
+        if log:
+            log(f"{len(missing)} of {spec.total} samples to run on {n_workers} worker(s)")
+        bar = tqdm(total=spec.total, initial=spec.total - len(missing), unit="sample",
+                   file=sys.stderr, disable=not progress, smoothing=0.05, dynamic_ncols=True)
+        size = batch
+
+        def submit(n: int):
+            take = [missing.popleft() for _ in range(min(n, len(missing)))]
+            return client.submit(run_batch, remote_spec, take, evaluate, pure=False)
+
+        from distributed import as_completed  # noqa: PLC0415 (see _client)
+
+        # The first round measures: one sample per worker (unless --batch says otherwise).
+        pending = as_completed([submit(size or 1) for _ in range(n_workers) if missing])
+        in_flight = pending.count()
+        for future in pending:
+            rows = future.result()
+            t0 = time.perf_counter()
+            results.write_part(out, rows)
+            write_s = time.perf_counter() - t0
+            info["batches"] += 1
+            in_flight -= 1
+            bar.update(len(rows))
+            if size is None:
+                cost = statistics.median(r["wall_s"] for r in rows)
+                info["overhead_s"] = overhead + write_s
+                size = batch_size(cost, overhead + write_s, len(missing), n_workers)
+                info["batch"] = size
+            while missing and in_flight < IN_FLIGHT * n_workers:
+                share = max(1, math.ceil(len(missing) / (IN_FLIGHT * n_workers)))
+                pending.add(submit(min(size, share)))
+                in_flight += 1
+    finally:
+        if bar is not None:
+            bar.close()
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    info["wall_s"] = time.perf_counter() - start
+    return info
