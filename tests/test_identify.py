@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,31 +16,39 @@ import pytest
 
 import cochlea
 from cochlea.apps.cochlea_identify import main
-from cochlea.ident import writeback
+from cochlea.ident import estimate, writeback
+from cochlea.ident.logs import read_run
 from cochlea.resources import SCENARIOS_DIR
+from cochlea.robots import robot
 from cochlea.sim import load_scenario, unit_setups
+from cochlea.sim.setup import measurement_grids
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN = [sys.executable, "-m", "cochlea.apps.cochlea_run"]
 
 
-def fourier_leader(centre_deg, amplitude_deg, period_s, harmonics, seed):
-    """A finite Fourier series per joint that starts at its centre, as scenario formulas."""
+def fourier_leader(centre, amplitude, period_s, harmonics, seed, unit="deg"):
+    """A finite Fourier series per joint that starts at its centre, as scenario formulas in
+    ``unit``."""
     rng = np.random.default_rng(seed)
     w = 2 * math.pi / period_s
     out = []
-    for c, amp in zip(centre_deg, amplitude_deg):
+    for c, amp in zip(centre, amplitude):
         phase = rng.uniform(0, 2 * math.pi, harmonics)
         weight = rng.uniform(0.5, 1.0, harmonics) / np.arange(1, harmonics + 1)
         weight *= amp / weight.sum()
         terms = [f"{c:g}"] + [f"{a:.6g}*(sin({k + 1}*{w:.6g}*t + {p:.6g}) - {math.sin(p):.6g})"
                               for k, (a, p) in enumerate(zip(weight, phase))]
-        out.append(" + ".join(terms) + " deg")
+        out.append(" + ".join(terms) + f" {unit}")
     return out
 
 
 #: The perturbed plant: masses +-20 %, a 20 g payload, armature, viscous friction away from
-#: the description's 0.01 N m s/rad. The ideal plant: no stick-slip (see the module's notes).
+#: the description's 0.01 N m s/rad; the drives' current quantisation and one period of delay,
+#: the controller measuring on the encoder and velocity-register grids. No Coulomb friction:
+#: the scenario's Coulomb friction always sticks (its time-stepping holds a 1 ms step's dry
+#: friction of either sign wherever |qd| < |tau| dt / M, up to 0.25 rad/s here), which no
+#: smooth friction term predicts; see docs/identification.md for what that plant gives.
 SERIAL_PLANT = """
 [plant]
 plant = "ideal"
@@ -46,32 +56,104 @@ armature = true
 mass_scale = [1.2, 0.8, 1.15]
 payload_kg = 0.02
 viscous_friction_SI = [0.015, 0.008, 0.012]
+current_quantisation = true
+position_encoder = true
+velocity_register = true
+delay_periods = 1
 """
+#: The parallel mechanism's: its 13 bodies scaled by 0.8..1.2, a 50 g payload, viscous
+#: friction away from the description's (0.01 N m s/rad, 50 N s/m at the slider).
+PARALLEL_PLANT = SERIAL_PLANT.replace(
+    "[1.2, 0.8, 1.15]", "[1.2, 0.8, 1.1, 0.9, 1.15, 0.85, 1.2, 0.8, 1.1, 0.9, 1.15, 0.85, 1.0]"
+).replace("0.02", "0.05").replace("[0.015, 0.008, 0.012]", "[0.015, 0.008, 60.0, 0.012, 0.009]")
+#: Held-out NRMS bound (%), the issue's figure of merit.
+MAX_NRMS = 5.0
+#: Relative error bound on the well-excited base parameters, the issue's figure of merit.
+MAX_ERROR = 0.02
 
 
-def serial_scenario(tmp: Path, duration: float = 20.0) -> Path:
-    text = (SCENARIOS_DIR / "serial_joint_realistic.toml").read_text()
+def _excitation(base: str, lead: list[str], initial: tuple[str, str], duration: float,
+                plant: str, tmp: Path) -> Path:
+    text = (SCENARIOS_DIR / base).read_text()
     start = text.index("leader = [")
-    end = text.index("]", text.index('deg",\n]')) + 1
-    lead = fourier_leader([81.14, 71.02, 117.8], [25, 25, 25], 2.0, 3, seed=1)
+    end = text.index("]", start) + 1
     text = text[:start] + "leader = [\n" + "".join(f'  "{x}",\n' for x in lead) + "]" + \
         text[end:]
-    text = text.replace('initial_joint = ["73 deg", "83 deg", "110 deg"]',
-                        'initial_joint = ["81.14 deg", "71.02 deg", "117.8 deg"]')
-    text = text.replace("duration_s = 20.0", f"duration_s = {duration}")
-    text = text[:text.index("[plant]")] + SERIAL_PLANT
-    path = tmp / "serial_excite.toml"
+    text = text.replace(*initial)
+    text = re.sub(r"duration_s = [0-9.]+", f"duration_s = {duration}", text, count=1)
+    text = text[:text.index("[plant]")] + plant
+    path = tmp / f"excite_{base}"
     path.write_text(text)
     return path
+
+
+def serial_scenario(tmp: Path, duration: float = 16.0) -> Path:
+    lead = fourier_leader([81.14, 71.02, 117.8], [25, 25, 25], 2.0, 3, seed=1)
+    return _excitation("serial_joint_realistic.toml", lead,
+                       ('initial_joint = ["73 deg", "83 deg", "110 deg"]',
+                        'initial_joint = ["81.14 deg", "71.02 deg", "117.8 deg"]'),
+                       duration, SERIAL_PLANT, tmp)
+
+
+def parallel_scenario(tmp: Path, duration: float = 10.0) -> Path:
+    # th1, th2 (deg) and the slider d1 (m) of the left side; the right side follows by the
+    # mirror rule. 10 deg and 1 cm keep the mechanism inside its workspace.
+    lead = (fourier_leader([142.0, 32.25], [10, 10], 2.0, 3, seed=2)
+            + fourier_leader([0.07075], [0.01], 2.0, 3, seed=3, unit="m"))
+    return _excitation("parallel_joint_realistic.toml", lead,
+                       ('initial_joint = ["131.5 deg", "29 deg", "0.073 m"',
+                        'initial_joint = ["142 deg", "32.25 deg", "0.07075 m"'),
+                       duration, PARALLEL_PLANT, tmp)
+
+
+def measured(run: Path, scenario: Path, unit: str, out: Path, seed: int = 0) -> Path:
+    """A copy of the run folder whose positions are what the drives report: the simulated
+    log holds the plant's true state, so add half an encoder count of noise and round onto
+    the encoder grid (4096 counts a motor turn, through each joint's ratio and zero offset)."""
+    sc = load_scenario(scenario)
+    adapter = robot(sc.robot)
+    system = adapter.load(None)
+    quantum, offset = measurement_grids(adapter, system, replace(sc.plant, position_encoder=True))
+    units = adapter.layout(system, "joint").units
+    text = (run / "log.csv").read_text().splitlines()
+    header = text[0].split(",")
+    cols = [i for i, c in enumerate(header) if c.startswith(f"{unit}.q.")]
+    n = len(cols)
+    k = units.index(unit)
+    q_step, q_offset = quantum[k * n:(k + 1) * n, 0], offset[k * n:(k + 1) * n, 0]
+    assert (q_step > 0).all()
+    data = np.loadtxt(run / "log.csv", delimiter=",", skiprows=1, ndmin=2)
+    rng = np.random.default_rng(seed)
+    q = data[:, cols] + 0.5 * q_step * rng.standard_normal((len(data), n))
+    data[:, cols] = q_offset + q_step * np.round((q - q_offset) / q_step)
+    out.mkdir()
+    np.savetxt(out / "log.csv", data, delimiter=",", header=",".join(header), comments="",
+               fmt="%.17g")
+    return out
+
+
+def _simulate(robot_name: str, scenario: Path, out: Path) -> Path:
+    subprocess.run(RUN + ["--robot", robot_name, "--space", "joint", "--scenario", str(scenario),
+                          "--out", str(out), "--realtime", "off"],
+                   check=True, capture_output=True, cwd=ROOT)
+    return out
 
 
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("serial")
     scenario = serial_scenario(tmp)
-    subprocess.run(RUN + ["--robot", "serial", "--space", "joint", "--scenario", str(scenario),
-                          "--out", str(tmp / "run"), "--realtime", "off"],
-                   check=True, capture_output=True, cwd=ROOT)
+    _simulate("serial", scenario, tmp / "run")
+    measured(tmp / "run", scenario, "arm1", tmp / "measured")
+    return tmp, scenario
+
+
+@pytest.fixture(scope="module")
+def parallel_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("parallel")
+    scenario = parallel_scenario(tmp)
+    _simulate("parallel", scenario, tmp / "run")
+    measured(tmp / "run", scenario, "mechanism", tmp / "measured")
     return tmp, scenario
 
 
@@ -84,26 +166,72 @@ def true_base(model, scenario: Path, unit: str) -> np.ndarray:
     return model.parameters.from_full @ full
 
 
+def check_recovery(doc: dict, m, truth: np.ndarray, at_least: int) -> np.ndarray:
+    """The issue's figures of merit on a report: every well-excited base parameter within
+    MAX_ERROR of the truth, the held-out NRMS below MAX_NRMS. Well excited: three standard
+    errors below MAX_ERROR (an unbiased estimate is then within it but for 0.3 % of the
+    time), so the criterion comes from the fit's own statistics, not from the truth."""
+    wls = np.array([p["wls"] for p in doc["parameters"]])
+    rel = np.array([p["wls_relative_std_error_percent"] or np.inf for p in doc["parameters"]])
+    good = 3.0 * rel < 100.0 * MAX_ERROR
+    assert good.sum() >= at_least, dict(zip(m.parameters.names, rel))
+    err = np.abs(wls[good] - truth[good]) / np.abs(truth[good])
+    assert err.max() < MAX_ERROR, dict(zip(np.array(m.parameters.names)[good], err))
+    # The perturbation is visible: the description's nominal values are further away.
+    assert (np.abs(m.parameters.nominal - truth) > 0.05 * np.abs(truth))[good].any()
+    assert max(doc["prediction_nrms_percent"]["wls"]) < MAX_NRMS
+    return good
+
+
 def test_serial_excitation_recovers_the_perturbed_plant(serial_run, capsys):
     tmp, scenario = serial_run
     out = tmp / "ident.json"
-    assert main([str(tmp / "run"), "--robot", "serial", "--out", str(out)]) == 0
+    # No dry friction in this plant: every sample is fitted (--min-speed 0).
+    assert main([str(tmp / "measured"), "--robot", "serial", "--out", str(out),
+                 "--min-speed", "0"]) == 0
     doc = json.loads(out.read_text())
     m = cochlea.model("serial", parameterisation="base", actuators="all")
-    truth = true_base(m, scenario, "arm1")
-    wls = np.array([p["wls"] for p in doc["parameters"]])
-    rel = np.array([p["wls_relative_std_error_percent"] or np.inf for p in doc["parameters"]])
-    # Well excited: relative standard error below 1 %. Those must be within 2 % of the truth.
-    good = rel < 1.0
-    assert good.sum() >= 8  # armatures, viscous friction, the leading inertias
-    err = np.abs(wls[good] - truth[good]) / np.abs(truth[good])
-    assert err.max() < 0.02, dict(zip(np.array(m.parameters.names)[good], err))
-    # The perturbation is visible: the description's nominal values are further away.
-    assert (np.abs(m.parameters.nominal - truth) > 0.05 * np.abs(truth)).any()
-    assert max(doc["prediction_nrms_percent"]["wls"]) < 5.0
+    good = check_recovery(doc, m, true_base(m, scenario, "arm1"), at_least=7)
+    # The armatures and viscous frictions at least; the link inertias are 10-100 x smaller.
+    for name in ("joint2.Ia", "joint3.Ia", "joint1.Fv", "joint2.Fv", "joint3.Fv"):
+        assert good[m.parameters.meanings.index(name)], name
     assert (tmp / "ident_torques.png").stat().st_size > 0
     assert (tmp / "ident_parameters.png").stat().st_size > 0
     assert "held-out effort NRMS" in capsys.readouterr().out
+
+
+def test_parallel_filtering_is_what_makes_encoder_counts_usable(serial_run):
+    """Without the parallel filter the twice-differentiated encoder counts swamp the fit;
+    with it, the true (unquantised) log and the measured one give the same estimates."""
+    tmp, scenario = serial_run
+    m = cochlea.model("serial", parameterisation="base", actuators="all")
+    truth = true_base(m, scenario, "arm1")
+    measured_log = read_run(tmp / "measured", m, "serial", "arm1")
+    plain = estimate.identify(m, [measured_log], settings=estimate.Settings(
+        min_speed=0.0, parallel_cutoff_hz=None))
+    parallel = estimate.identify(m, [measured_log], settings=estimate.Settings(min_speed=0.0))
+    assert max(plain.prediction_nrms()) > 2 * max(parallel.prediction_nrms())
+    armature = m.parameters.meanings.index("joint2.Ia")
+    assert abs(plain.beta[armature] / truth[armature] - 1) > \
+        abs(parallel.beta[armature] / truth[armature] - 1)
+
+
+def test_parallel_excitation_recovers_the_perturbed_plant(parallel_run):
+    tmp, scenario = parallel_run
+    out = tmp / "ident.json"
+    # A hand-made three-harmonic excitation: the link-5 and link-7 first moments are hardly
+    # excited (scaled condition number ~2e4), hence --max-condition; cochlea-excite's designs
+    # do better. Its harmonics reach 1.5 Hz: the parallel filter at 2 Hz (at the default 3 Hz
+    # the encoder's errors-in-variables bias the left link-2/3 first moments by 4.3 %).
+    assert main([str(tmp / "measured"), "--robot", "parallel", "--out", str(out),
+                 "--min-speed", "0", "--max-condition", "1e5", "--no-figures",
+                 "--parallel-cutoff-hz", "2"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["unit"] == "mechanism"
+    m = cochlea.model("parallel", parameterisation="base", actuators="all")
+    good = check_recovery(doc, m, true_base(m, scenario, "mechanism"), at_least=7)
+    for name in ("slider.d1.Ia", "slider.d1.Fv"):
+        assert good[m.parameters.meanings.index(name)], name
 
 
 def _bad(args, capsys, out: Path):

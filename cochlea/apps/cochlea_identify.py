@@ -25,6 +25,20 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def _parallel_cutoff(text: str) -> float | None:
+    """``--parallel-cutoff-hz``: a frequency (Hz) or ``off``."""
+    if text.strip().lower() == "off":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise CochleaError(f"--parallel-cutoff-hz: expected a positive frequency in Hz or "
+                           f"'off', got {text!r}")
+    return value
+
+
 def _unit(args) -> str:
     adapter = robot(args.robot)
     system = adapter.load(args.description)
@@ -82,6 +96,8 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
                      "decimate": result.settings.decimate,
                      "min_speed_rad_s": result.settings.min_speed,
                      "effort_lag_periods": result.settings.effort_lag,
+                     "parallel_cutoff_hz": result.settings.parallel_cutoff_hz,
+                     "guard_s": result.settings.guard_s,
                      "holdout": result.settings.holdout,
                      "max_condition": result.settings.max_condition},
         "fit_rows": result.fit_rows, "fit_samples": result.fit_samples,
@@ -139,13 +155,17 @@ def run(args) -> int:
     if not (math.isfinite(args.effort_lag) and 0 <= args.effort_lag <= 10):
         raise CochleaError(f"--effort-lag must lie in [0, 10] control periods, got "
                            f"{args.effort_lag:g}")
+    parallel = _parallel_cutoff(args.parallel_cutoff_hz)
+    if not (math.isfinite(args.guard_s) and 0 <= args.guard_s <= 10):
+        raise CochleaError(f"--guard-s must lie in [0, 10] seconds, got {args.guard_s:g}")
     unit = _unit(args)
     m = model(args.robot, arm=unit if args.robot == "serial" else None,
               parameterisation="base", actuators="all", description=args.description)
     logs = [read_run(folder, m, args.robot, unit) for folder in args.logs]
     validate = [read_run(folder, m, args.robot, unit) for folder in (args.validate or [])]
     settings = estimate.Settings(args.cutoff_hz, args.decimate, args.holdout,
-                                 args.max_condition, args.min_speed, args.effort_lag)
+                                 args.max_condition, args.min_speed, args.effort_lag,
+                                 parallel, args.guard_s)
     result = estimate.identify(m, logs, validate or None, settings)
     physical = _physical(m, result) if args.physical else None
     doc = _report(args, m, unit, logs, validate, result, physical)
@@ -207,6 +227,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--effort-lag", type=float, default=estimate.DEFAULT_EFFORT_LAG,
                    help="control periods by which the logged effort lags the motion it "
                         f"causes (default {estimate.DEFAULT_EFFORT_LAG:g}: a held command)")
+    p.add_argument("--parallel-cutoff-hz", default=f"{estimate.DEFAULT_PARALLEL_CUTOFF_HZ:g}",
+                   metavar="F|off", help="low-pass of the regressor's columns and the "
+                   "efforts (parallel filtering): just above the excitation's highest "
+                   f"harmonic (default {estimate.DEFAULT_PARALLEL_CUTOFF_HZ:g} Hz; off: none)")
+    p.add_argument("--guard-s", type=float, default=estimate.DEFAULT_GUARD_S,
+                   help="with parallel filtering, leave out samples this close (s) to one "
+                        "where a joint moves slower than --min-speed (default "
+                        f"{estimate.DEFAULT_GUARD_S:g})")
     p.add_argument("--max-condition", type=float, default=estimate.DEFAULT_MAX_CONDITION,
                    help="largest condition number of the column-scaled regressor accepted "
                         f"(default {estimate.DEFAULT_MAX_CONDITION:g})")
