@@ -355,3 +355,32 @@ def test_key_lines_follow_arrays_of_tables():
     edited = writeback.edit("".join(lines), {("arm", 0, "link", 0, "mass_kg"): "9.5"},
                             Path("x.toml"))
     assert "  mass_kg = 9.5  # c\n" in edited
+
+
+def test_physical_fit_from_a_log_writes_back_a_description_that_loads(serial_run, tmp_path):
+    """--physical end to end: the consistent fit agrees with least squares where the data
+    are good, passes the description's own validation when written back, and the written
+    description's model has the consistent fit's base parameters."""
+    tmp, scenario = serial_run
+    description = tmp_path / "serial.toml"
+    description.write_text((ROOT / "cochlea/data/robots/serial.toml").read_text())
+    out = tmp_path / "ident.json"
+    assert main([str(tmp / "measured"), "--robot", "serial", "--out", str(out),
+                 "--min-speed", "0", "--no-figures", "--physical",
+                 "--update-description", str(description)]) == 0
+    doc = json.loads(out.read_text())
+    m = cochlea.model("serial", parameterisation="base", actuators="all")
+    physical = np.array([p["physical"] for p in doc["parameters"]])
+    wls = np.array([p["wls"] for p in doc["parameters"]])
+    rel = np.array([p["wls_relative_std_error_percent"] or np.inf for p in doc["parameters"]])
+    good = 3.0 * rel < 100.0 * MAX_ERROR
+    truth = true_base(m, scenario, "arm1")
+    # Where the data determine a parameter, the consistent fit is as good as least squares.
+    assert np.all(np.abs(physical[good] - truth[good]) / np.abs(truth[good]) < MAX_ERROR)
+    assert np.all(np.abs(physical[good] - wls[good]) / np.abs(wls[good]) < MAX_ERROR)
+    assert max(doc["physical"]["prediction_nrms_percent"]) < MAX_NRMS
+    written = tmp_path / "serial.identified.toml"
+    new = cochlea.model("serial", parameterisation="base", actuators="all",
+                        description=written)  # the description's own validation passes
+    assert np.allclose(new.parameters.nominal, physical, rtol=1e-6,
+                       atol=1e-9 * np.abs(physical).max())
