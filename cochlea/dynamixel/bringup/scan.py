@@ -21,7 +21,8 @@ HELP = "list every motor that answers, at every baud rate: model, firmware, mode
 #: The runtime's rate and the motors' factory rate first: where a motor most likely is.
 DEFAULT_BAUDS = [4_000_000, 57_600] + [b for b in BAUD_RATES.values()
                                         if b not in (4_000_000, 57_600)]
-#: A per-ID PING waits one try only: 253 IDs at 8 rates must stay a matter of seconds.
+#: A per-ID PING waits one try of the adapter's latency timer (16 ms by default) plus the wire
+#: time of the request and the reply: 253 IDs must stay a matter of seconds.
 PER_ID_TIMEOUT_S = 0.02
 
 
@@ -51,10 +52,14 @@ def _find(bus: Bus, ids: list[int], per_id: bool) -> tuple[dict[int, tuple[int, 
     else:
         note = ""
     found = {}
-    for motor_id in ids:
-        answer = bus.ping(motor_id, tries=1)
-        if answer is not None:
-            found[motor_id] = answer
+    timeout, bus.timeout_s = bus.timeout_s, PER_ID_TIMEOUT_S + 24 * 10.0 / bus.baud
+    try:
+        for motor_id in ids:
+            answer = bus.ping(motor_id, tries=1)
+            if answer is not None:
+                found[motor_id] = answer
+    finally:
+        bus.timeout_s = timeout
     return found, note
 
 
