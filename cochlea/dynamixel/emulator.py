@@ -26,6 +26,11 @@ motors ``ids`` or all), a hardware error on one motor (alert bit, torque off), a
 stops answering; and, from the start, motors missing from the bus or reporting another model
 number.
 
+For the bring-up tools (``cochlea-dxl``, see "Bring-up emulation" below): optionally each motor
+hears only instructions sent at the baud rate of its own Baud Rate register (``--check-baud``),
+as real motors do (read from the pseudo-terminal's line settings), and a register may ignore
+the writes it acknowledges (``--ignore-write ID:ADDRESS``), as a write that did not take.
+
 Everything the motors do is recorded in ``events`` (and ``--log FILE``): each item written (by
 WRITE or SYNC_WRITE), each read, ping and reboot, each refused instruction, each fault and
 watchdog trip, with its time.
@@ -38,6 +43,7 @@ one, whatever else the machine runs.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import gc
 import heapq
 import math
@@ -70,6 +76,7 @@ from .control_table import (
     ADDR_HARDWARE_ERROR,
     ADDR_TORQUE_ENABLE,
     ALERT_BIT,
+    BAUD_RATES,
     BROADCAST_ID,
     CRC_ERROR,
     CURRENT_MODE,
@@ -196,6 +203,7 @@ class VirtualMotor:
         self._put(self.items[8], baud_code)
         self.defaults = bytes(self.table)
         self.on_torque = None  # callback(motor) when the torque goes on
+        self.ignored: frozenset[int] = frozenset()  # addresses whose writes do not take
         self._key: tuple = ()
         self._state = (False, 0, 0.0)
 
@@ -295,7 +303,8 @@ class VirtualMotor:
             plan.append((it, value))
             p += it.size
         for it, value in plan:
-            self._apply(it, value)
+            if it.address not in self.ignored:
+                self._apply(it, value)
         return 0, [(it.address, value) for it, value in plan]
 
     #: Goal values (address) and the limit (address) that bounds each.
@@ -403,7 +412,8 @@ class VirtualChain:
     def __init__(self, robot: str, scenario: str | Path | None = None, *,
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
-                 max_events: int = 200_000, plant: str | None = None):
+                 max_events: int = 200_000, plant: str | None = None,
+                 check_baud: bool = False, ignore_writes=()):
         code = baud_code(baud)
         # plant: a preset of the scenario's [plant] table, e.g. "realistic": the motors' rotors
         # and gearbox friction move the joints (their counts are the motors' own already).
@@ -426,6 +436,7 @@ class VirtualChain:
             m.on_torque = self._on_torque
             m.answering = m.id not in self.faults.missing
         self._index()
+        self._bringup_options(check_baud, ignore_writes)
         setups = unit_setups(self.scenario)
         if plant_period_s is None:  # the simulation's RK4 step, one per plant period
             plant_period_s = self.scenario.period / self.scenario.plant_substeps
@@ -583,6 +594,7 @@ class VirtualChain:
         except OSError:
             return  # nobody has the other end open
         now = time.perf_counter()
+        self._read_line_baud()
         self._tick(now)  # the state a request sees is the state at its arrival (one sub-step)
         offset = 0
         while offset < len(data):
@@ -596,7 +608,7 @@ class VirtualChain:
                 elif code == proto.CRC_FAILURE:
                     self.counts["bad_instructions"] += 1
                     m = self.by_id.get(self._parser.id)
-                    if m is not None and m.answering:
+                    if m is not None and m.answering and self._hears(m):
                         self._event(now, "crc-error", m.id)
                         self._reply(now, self._parser.frame_len, [(m, CRC_ERROR, b"")], -1)
                 else:
@@ -678,7 +690,7 @@ class VirtualChain:
     # ---- instructions --------------------------------------------------------------------------
 
     def _contact(self, m: VirtualMotor, now: float) -> bool:
-        if not m.answering:
+        if not m.answering or not self._hears(m):
             return False
         m.last_contact = now
         return True
@@ -751,7 +763,7 @@ class VirtualChain:
         if error:
             self._event(now, "refused", m.id, address, f"{kind}: error {error}")
         for a, value in written:
-            self._event(now, kind, m.id, a, value)
+            self._event(now, "ignored-" + kind if a in m.ignored else kind, m.id, a, value)
             if a == 7:
                 self._index()
         return error
@@ -788,6 +800,45 @@ class VirtualChain:
             heapq.heappush(self._queue, (t, self._seq, packet))
             self.counts["replies"] += 1
         self._bus_free = t
+
+
+    # ---- Bring-up emulation (issue 15: cochlea-dxl scan, configure, reboot) ------------------
+
+    def _bringup_options(self, check_baud: bool, ignore_writes) -> None:
+        """``check_baud``: a motor hears only instructions sent at its Baud Rate register's
+        rate (a scan at another rate finds nothing, a baud change takes effect at once).
+        ``ignore_writes``: ``(id, address)`` pairs whose writes are acknowledged but do not
+        take (a verify pass must catch them)."""
+        self.check_baud = bool(check_baud)
+        self._line_baud: int | None = None  # the rate the host's port is set to, if known
+        chain = ", ".join(str(m.id) for m in self.motors)
+        for motor_id, address in ignore_writes:
+            m = self.by_id.get(motor_id)
+            if m is None:
+                raise CochleaError(f"--ignore-write {motor_id}:{address}: motor ID {motor_id} "
+                                   f"is not on this chain (its motors are {chain})")
+            it = m.items.get(address)
+            if it is None or not it.writable:
+                raise CochleaError(f"--ignore-write {motor_id}:{address}: expected the address "
+                                   f"of a writable item of the {m.spec.name}")
+            m.ignored = m.ignored | {address}
+
+    #: TCGETS2 (Linux): the line settings with the rate in bits per second, custom rates too.
+    _TCGETS2 = 0x802C542A
+
+    def _read_line_baud(self) -> None:
+        if not self.check_baud:
+            return
+        buf = bytearray(44)  # struct termios2: c_ospeed at offset 40
+        try:
+            fcntl.ioctl(self.master, self._TCGETS2, buf)
+            self._line_baud = int.from_bytes(buf[40:44], "little")
+        except OSError:
+            self._line_baud = None  # not Linux: every motor hears every rate
+
+    def _hears(self, m: VirtualMotor) -> bool:
+        return (not self.check_baud or self._line_baud is None
+                or BAUD_RATES.get(m.table[8]) == self._line_baud)
 
 
 # --------------------------------------------------------------------------------------------
@@ -889,6 +940,13 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--model-number", type=_id_number, action="append", default=[],
                    metavar="ID:NUMBER", help="motor ID reports another model number")
     f.add_argument("--seed", type=int, default=0, help="seed of the random faults")
+    b = p.add_argument_group("bring-up (cochlea-dxl)")
+    b.add_argument("--check-baud", action="store_true",
+                   help="a motor hears only instructions sent at the rate of its Baud Rate "
+                        "register, as real motors do (default: every rate)")
+    b.add_argument("--ignore-write", type=_id_number, action="append", default=[],
+                   metavar="ID:ADDRESS", help="motor ID acknowledges writes to the item at "
+                   "ADDRESS but keeps its value (a write that did not take; repeatable)")
     return p
 
 
@@ -926,7 +984,8 @@ def _main(args: argparse.Namespace) -> int:
                              plant_period_s=None if args.plant_period_ms is None
                              else args.plant_period_ms * 1e-3, log_path=args.log,
                              max_events=1000,  # the --log file keeps them all
-                             plant=args.plant)
+                             plant=args.plant, check_baud=args.check_baud,
+                             ignore_writes=args.ignore_write)
     except CochleaError as exc:
         print(f"cochlea-emulator: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR

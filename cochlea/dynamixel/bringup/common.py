@@ -1,0 +1,372 @@
+"""What the bring-up subcommands share: options, the description's motors, the serial port at a
+baud rate with unicast transactions (retries, failures that name the motor and what to check),
+and the registers the runtime relies on (:func:`runtime_settings`), which ``info`` compares
+and ``configure`` writes.
+
+Exit codes of ``cochlea-dxl`` (the dispatcher maps exceptions to them):
+
+* 0 done, everything as expected;
+* 1 the check found a difference (``info``: a register differs; ``configure``: a write did
+  not take; ``reboot``: a motor still in alert or not back; ``scan``: no motor answered);
+* 2 the user's input is wrong (an option, the description); nothing was written;
+* 5 the port does not open, or a motor of the description is missing, of another model or
+  does not answer (as ``cochlea-run``'s "the backend could not start").
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ...errors import CochleaError
+from ...robots import ROBOTS
+from ...runtime.backend import BackendError
+from ...runtime.supervisor import EXIT_BACKEND
+from .. import protocol as proto
+from ..control_table import (
+    ALERT_BIT,
+    BAUD_RATES,
+    BROADCAST_ID,
+    CURRENT_MODE,
+    MAX_ID,
+    MODELS,
+    MX64,
+    OPERATING_MODES,
+    Item,
+    ModelSpec,
+    baud_code,
+    describe_error,
+    describe_hardware_error,
+)
+from ..drives import JointDrive, joint_drives
+from ..port import SerialPort
+
+EXIT_OK = 0
+#: A check found a difference (see the module docstring).
+EXIT_DIFFERS = 1
+#: The port or the motors (cochlea-run's code for a backend that could not start).
+EXIT_BUS = EXIT_BACKEND
+
+#: The runtime's default rate (cochlea-run --baud), what info and configure talk at by default.
+DEFAULT_BAUD = 4_000_000
+#: How long one unicast request waits for its status packet: a USB adapter holds received
+#: bytes up to its latency timer (16 ms by default), so less would miss motors that answered.
+REPLY_TIMEOUT_S = 0.05
+RETRIES = 3
+#: Broadcast PING: motors answer in turn, each up to about 3 ms per ID later (the ROBOTIS SDK
+#: waits this long too), plus the adapter's latency timer.
+PING_SLOT_S = 3e-3
+ADAPTER_LATENCY_S = 0.016
+
+MODE_NAMES = {0: "current", 1: "velocity", 3: "position", 4: "extended position",
+              5: "current-based position", 16: "PWM"}
+assert set(MODE_NAMES) == set(OPERATING_MODES)
+
+
+class BusError(CochleaError):
+    """The port, or a motor on it, did not do what was asked (exit code 5)."""
+
+    exit_code = EXIT_BUS
+
+
+# ---- options -----------------------------------------------------------------------------------
+
+
+def baud_rate(text: str) -> int:
+    """argparse type: a Dynamixel baud rate."""
+    try:
+        value = int(text)
+        baud_code(value)
+    except (ValueError, CochleaError):
+        raise argparse.ArgumentTypeError(
+            f"expected a Dynamixel baud rate ({', '.join(str(b) for b in BAUD_RATES.values())}),"
+            f" got {text!r}") from None
+    return value
+
+
+def id_list(text: str) -> list[int]:
+    """argparse type: motor IDs like ``1,2,5-7``, each 0..252, at least one."""
+    ids: set[int] = set()
+    try:
+        for part in text.split(","):
+            part = part.strip()
+            if not part:
+                continue
+            first, sep, last = part.partition("-")
+            lo, hi = int(first), int(last) if sep else int(first)
+            if not 0 <= lo <= hi <= MAX_ID:
+                raise ValueError
+            ids.update(range(lo, hi + 1))
+    except ValueError:
+        ids = set()
+    if not ids:
+        raise argparse.ArgumentTypeError(f"expected motor IDs 0..{MAX_ID} like 1,2,5-7, got "
+                                         f"{text!r}")
+    return sorted(ids)
+
+
+def add_port(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--port", required=True, metavar="PATH",
+                        help="the serial port, e.g. /dev/ttyUSB0, or the pseudo-terminal "
+                             "cochlea-emulator prints")
+
+
+def add_baud(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--baud", type=baud_rate, default=DEFAULT_BAUD, metavar="B",
+                        help=f"the motors' present baud rate (default {DEFAULT_BAUD}, the "
+                             "runtime's; a new motor is at 57600)")
+
+
+def add_robot(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robot", required=True, choices=list(ROBOTS))
+    parser.add_argument("--description", type=Path, metavar="FILE",
+                        help="the robot description (default: the shipped one for ROBOT)")
+
+
+def load_drives(args: argparse.Namespace) -> list[JointDrive]:
+    """The description's motors; a bad description is the user's mistake (exit 2)."""
+    if args.description is not None and not args.description.is_file():
+        raise CochleaError(f"--description {args.description}: no such file; expected a robot "
+                           "description (TOML)")
+    try:
+        return joint_drives(args.robot, args.description)
+    except BackendError as exc:  # joint_drives reports a bad description as a BackendError
+        raise CochleaError(str(exc)) from None
+
+
+def who(motor_id: int, drive: JointDrive | None = None) -> str:
+    return f"ID {motor_id}" + (f" ({drive.name}, {drive.spec.name})" if drive else "")
+
+
+def value_text(item: Item, value: int, spec: ModelSpec = MX64) -> str:
+    """A register's value with its unit, e.g. ``250 (500 us)``."""
+    a = item.address
+    if a == 8:
+        return f"{value} ({BAUD_RATES[value]} baud)" if value in BAUD_RATES else str(value)
+    if a == 9:
+        return f"{value} ({value * 2} us)"
+    if a == 10:
+        return f"{value} ({'reverse' if value & 1 else 'normal'} direction)"
+    if a == 11:
+        return f"{value} ({MODE_NAMES.get(value, 'unknown')})"
+    if a in (38, 102, 126):
+        return f"{value} ({value * spec.current_unit_mA:.0f} mA)"
+    if a in (20, 48, 52, 116, 132):
+        return f"{value} ({value * 360 / 4096:.1f} deg)"
+    if a == 64:
+        return f"{value} ({'on' if value else 'off'})"
+    if a == 70:
+        return f"{value} ({describe_hardware_error(value)})"
+    if a == 98:
+        state = "tripped" if value < 0 else "off" if value == 0 else f"{value * 20} ms"
+        return f"{value} ({state})"
+    return str(value)
+
+
+# ---- the registers the runtime relies on ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Setting:
+    """A register as the runtime needs it. ``accept`` is what ``info`` also takes as fine
+    (None: only ``value``)."""
+
+    item: Item
+    value: int
+    why: str
+    accept: object = None  # callable(int) -> bool, or None
+
+    def acceptable(self, present: int) -> bool:
+        return present == self.value or (self.accept is not None and self.accept(present))
+
+
+def runtime_settings(drive: JointDrive) -> list[Setting]:
+    """What ``configure`` writes, in this order, and ``info`` expects (torque off first and
+    the baud rate last are the subcommands' own steps).
+
+    Homing Offset and Drive Mode are not among them: they shift and reverse Present Position,
+    and the description's ``zero_offset_deg`` and ``direction`` hold only with the values they
+    were calibrated with, whatever those are."""
+    spec = drive.spec
+    return [
+        Setting(spec.item("Bus Watchdog"), 0, "off at rest: the runtime sets its own at start "
+                "(0 also clears a tripped one)", accept=lambda v: v >= 0),
+        Setting(spec.item("Status Return Level"), 2, "every instruction answered: the runtime "
+                "confirms each write"),
+        Setting(spec.item("Operating Mode"), CURRENT_MODE, "the runtime commands currents"),
+        Setting(spec.item("Return Delay Time"), 0, "reply at once: the default 500 us per "
+                "motor does not fit a 1 kHz period"),
+        Setting(spec.item("Current Limit"), int(drive.current_limit_lsb),
+                "from the description's torque (force) limit through the fit"),
+    ]
+
+
+# ---- the bus -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Reply:
+    error: int  # the status packet's error byte (bit 7: hardware alert)
+    params: bytes
+
+
+class Bus:
+    """The serial port at one baud rate; unicast requests wait for their status packet."""
+
+    def __init__(self, path: str, baud: int, *, timeout_s: float = REPLY_TIMEOUT_S,
+                 retries: int = RETRIES):
+        self.path, self.baud = str(path), int(baud)
+        self.timeout_s, self.retries = timeout_s, retries
+        self.names: dict[int, JointDrive] = {}  # for messages: the description's joints
+        self._parser = proto.PacketParser(status=True)
+        self._port: SerialPort | None = None
+        self.open(baud)
+
+    def open(self, baud: int) -> None:
+        self.close()
+        try:
+            self._port = SerialPort(self.path, baud)
+        except BackendError as exc:
+            raise BusError(f"--port {self.path}: {exc}; expected a serial port (check the "
+                           "path, the adapter's cable and who else has it open)") from None
+        self.baud = int(baud)
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            port.close()
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def who(self, motor_id: int) -> str:
+        return who(motor_id, self.names.get(motor_id))
+
+    # ---- transactions --------------------------------------------------------------------------
+
+    def _send(self, frame: bytes) -> None:
+        port = self._port
+        port.discard_input()
+        self._parser.reset()
+        if not port.write(memoryview(frame), len(frame), time.perf_counter() + self.timeout_s):
+            raise BusError(f"the serial port {self.path} failed while writing: check the adapter")
+
+    def _packets(self, deadline: float):
+        """The good status packets that arrive before ``deadline``, as ``(id, error, params)``;
+        a corrupted one as ``(None, 0, b"")``."""
+        port, parser = self._port, self._parser
+        while True:
+            code = parser.parse()
+            if code == proto.OK:
+                yield parser.id, parser.error, parser.params()
+                continue
+            if code == proto.CRC_FAILURE:
+                yield None, 0, b""
+                continue
+            if code != proto.NEED_MORE:
+                continue
+            got = port.read_into(parser.space(), deadline)
+            if got < 0:
+                raise BusError(f"the serial port {self.path} failed while reading: check the "
+                               "adapter")
+            if got == 0:
+                return
+            parser.commit(got)
+
+    def request(self, frame: bytes, motor_id: int, tries: int | None = None) -> Reply | None:
+        """Send a unicast instruction until its status packet comes (``tries`` times); None
+        if it never did."""
+        for _ in range(tries or self.retries):
+            self._send(frame)
+            for packet_id, error, params in self._packets(time.perf_counter() + self.timeout_s):
+                if packet_id == motor_id:
+                    return Reply(error, params)
+        return None
+
+    def send(self, frame: bytes) -> None:
+        """An instruction no status packet answers (a broadcast, a motor at a lower Status
+        Return Level)."""
+        self._send(frame)
+
+    def _expect(self, reply: Reply | None, motor_id: int, what: str) -> Reply:
+        if reply is None:
+            raise BusError(f"{self.who(motor_id)} did not answer {what} on {self.path} at "
+                           f"{self.baud} baud ({self.retries} tries): check its power, cable, ID "
+                           "and baud rate (cochlea-dxl scan finds them)")
+        if reply.error & 0x7F:
+            raise BusError(f"{self.who(motor_id)} refused {what}: "
+                           f"{describe_error(reply.error & 0x7F)}")
+        return reply
+
+    def ping(self, motor_id: int, tries: int | None = None) -> tuple[int, int] | None:
+        """``(model number, firmware)`` of the motor, or None if it did not answer."""
+        reply = self.request(proto.ping(motor_id), motor_id, tries)
+        if reply is None or len(reply.params) < 3:
+            return None
+        return proto.from_le(reply.params[0:2], False), reply.params[2]
+
+    def read(self, motor_id: int, item: Item) -> int:
+        reply = self._expect(self.request(proto.read(motor_id, item.address, item.size),
+                                          motor_id),
+                             motor_id, f"READ {item.name} ({item.address})")
+        if len(reply.params) != item.size:
+            raise BusError(f"{self.who(motor_id)} answered READ {item.name} ({item.address}) "
+                           f"with {len(reply.params)} bytes, not {item.size}")
+        return proto.from_le(reply.params, item.signed)
+
+    def write(self, motor_id: int, item: Item, value: int, reply: bool = True) -> None:
+        frame = proto.write(motor_id, item.address, proto.le(value, item.size))
+        if not reply:
+            self.send(frame)
+            return
+        self._expect(self.request(frame, motor_id), motor_id,
+                     f"WRITE {item.name} ({item.address}) = {value}")
+
+    def alert(self, motor_id: int) -> bool:
+        """Whether the motor's status packets carry the hardware alert bit (a PING's)."""
+        reply = self.request(proto.ping(motor_id), motor_id)
+        return reply is not None and bool(reply.error & ALERT_BIT)
+
+    def broadcast_ping(self, highest_id: int = MAX_ID) -> tuple[dict[int, tuple[int, int]], int]:
+        """Every motor that answers a broadcast PING: ``({id: (model number, firmware)},
+        corrupted packets)``. Corrupted packets usually mean two motors share an ID."""
+        found: dict[int, tuple[int, int]] = {}
+        corrupted = 0
+        window = (ADAPTER_LATENCY_S + PING_SLOT_S * (highest_id + 1)
+                  + 14 * (highest_id + 1) * 10.0 / self.baud)
+        self._send(proto.ping(BROADCAST_ID))
+        for packet_id, _, params in self._packets(time.perf_counter() + window):
+            if packet_id is None:
+                corrupted += 1
+            elif len(params) >= 3:
+                found[packet_id] = (proto.from_le(params[0:2], False), params[2])
+        return found, corrupted
+
+
+def model_name(number: int) -> str:
+    for spec in MODELS.values():
+        if spec.number == number:
+            return spec.name
+    return f"model number {number}"
+
+
+def check_chain(bus: Bus, drives: list[JointDrive]) -> None:
+    """Every motor of the description answers PING and is the description's model; all the
+    problems in one message (exit 5), before anything is written."""
+    bus.names = {d.id: d for d in drives}
+    problems = []
+    for d in drives:
+        answer = bus.ping(d.id)
+        if answer is None:
+            problems.append(f"{bus.who(d.id)} did not answer PING")
+        elif answer[0] != d.spec.number:
+            problems.append(f"{bus.who(d.id)} is {model_name(answer[0])} ({answer[0]}), not "
+                            f"the {d.spec.name}'s {d.spec.number}")
+    if problems:
+        raise BusError("; ".join(problems) + f" (on {bus.path} at {bus.baud} baud): check the "
+                       "power, cables, IDs and --baud; cochlea-dxl scan lists what answers")
