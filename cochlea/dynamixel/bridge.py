@@ -13,7 +13,8 @@ shut-down, before anything moved:
 5. Current Limit from the description (see :func:`cochlea.dynamixel.drives.current_limit_lsb`);
 6. Goal Current 0 (the mode change reset it to the Current Limit);
 7. Bus Watchdog (default 100 ms): the motors stop by themselves if the loop stops talking;
-   then, for a robot with a slider, its homing record (:meth:`_check_homing`);
+   (for a robot with a slider its homing record is checked after 1., before any write:
+   :meth:`_check_homing`)
 8. SYNC_READ until the first good read; the joints must lie within their limits;
 9. Torque Enable 1.
 
@@ -136,6 +137,7 @@ class DynamixelBackend:
             raise BackendError(f"homing must be one of {', '.join(HOMING_MODES)}, got {homing!r}")
         self.homing, self.homing_record = homing, homing_record
         self.homing_report = "no slider"
+        self._homing_markers: list[tuple[JointDrive, int]] = []
         self._open_port = open_port
         self._port: SerialPort | None = None
         self._active = False
@@ -571,6 +573,7 @@ class DynamixelBackend:
                                 "description")
         if problems:
             raise BackendError("; ".join(problems))
+        self._check_homing()
         # 2.-7. Configure, torque off.
         self._write_all(ADDR_TORQUE_ENABLE, 1, [0] * n, "torque off")
         self._write_all(ADDR_BUS_WATCHDOG, 1, [0] * n, "clear the Bus Watchdog")
@@ -580,7 +583,7 @@ class DynamixelBackend:
                         "the current limit")
         self._write_all(ADDR_GOAL_CURRENT, 2, [0] * n, "goal current 0")
         self._write_all(ADDR_BUS_WATCHDOG, 1, [self.watchdog_lsb] * n, "the Bus Watchdog")
-        self._check_homing()
+        self._keep_homing_marker()
         # 8. The first good read; the joints within their limits.
         x = np.zeros(2 * n)
         self._active = True  # the read path checks it
@@ -607,6 +610,7 @@ class DynamixelBackend:
         refused, naming ``cochlea-dxl home``. The serial robot has no such joint."""
         from .bringup import home  # noqa: PLC0415 (home's command imports the bridge)
 
+        self._homing_markers = []
         sliders = [j for j, d in enumerate(self.drives) if d.type == "prismatic"]
         if not sliders:
             return
@@ -624,7 +628,18 @@ class DynamixelBackend:
                                    proto.read(d.id, home.MARKER_ADDRESS, 2))
             marker = proto.from_le(params, False) if len(params) == 2 else -1
             self._q_offset[j] = home.reference_offset(record, path, d, marker)
+            self._homing_markers.append((d, marker))
         self.homing_report = f"homed {record.get('date', '')} ({path})"
+
+    def _keep_homing_marker(self) -> None:
+        """Write the homing token back after the configuration: should a firmware reset its
+        gains on the Operating Mode write (the same value), the next start-up in this power
+        cycle still finds it. The turns themselves survive a write of current control."""
+        from .bringup import home  # noqa: PLC0415
+
+        for d, marker in self._homing_markers:
+            self._command(d, "restore the homing marker",
+                          proto.write(d.id, home.MARKER_ADDRESS, proto.le(marker, 2)))
 
     def _unwrap_and_check(self, q: np.ndarray) -> None:
         """A revolute joint's absolute encoder is single-turn after power-up: take the turn that
