@@ -15,6 +15,7 @@ import re
 import numpy as np
 import pytest
 
+from cochlea.dynamixel import homing
 from cochlea.dynamixel.bridge import DynamixelBackend
 from cochlea.dynamixel.bringup import calibrate, home
 from cochlea.dynamixel.control_table import RAD_PER_COUNT
@@ -269,4 +270,4 @@ def test_a_malformed_homing_record_is_refused(tmp_path, text, message):
     path = tmp_path / "r.json"
     path.write_text(text)
     with pytest.raises(BackendError, match=message):
-        home.load_record(path)
+        homing.load_record(path)

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from ..runtime.backend import BackendError
+from . import homing
 from . import protocol as proto
 from .budget import DEFAULT_ADAPTER_LATENCY_S, BusBudget, Verdict, bus_budget
 from .control_table import (
@@ -608,8 +609,6 @@ class DynamixelBackend:
         a homing record of this power cycle (:mod:`cochlea.dynamixel.bringup.home`): its
         position is then counted from the stop the homing found; without one the start-up is
         refused, naming ``cochlea-dxl home``. The serial robot has no such joint."""
-        from .bringup import home  # noqa: PLC0415 (home's command imports the bridge)
-
         self._homing_markers = []
         sliders = [j for j, d in enumerate(self.drives) if d.type == "prismatic"]
         if not sliders:
@@ -620,14 +619,14 @@ class DynamixelBackend:
                                   "a pseudo-terminal: the virtual chain") + ")")
             return
         path = Path(self.homing_record) if self.homing_record is not None \
-            else home.default_record(self.robot)
-        record = home.load_record(path)
+            else homing.default_record(self.robot)
+        record = homing.load_record(path)
         for j in sliders:
             d = self.drives[j]
             params = self._command(d, "READ the homing marker",
-                                   proto.read(d.id, home.MARKER_ADDRESS, 2))
+                                   proto.read(d.id, homing.MARKER_ADDRESS, 2))
             marker = proto.from_le(params, False) if len(params) == 2 else -1
-            self._q_offset[j] = home.reference_offset(record, path, d, marker)
+            self._q_offset[j] = homing.reference_offset(record, path, d, marker)
             self._homing_markers.append((d, marker))
         self.homing_report = f"homed {record.get('date', '')} ({path})"
 
@@ -635,11 +634,9 @@ class DynamixelBackend:
         """Write the homing token back after the configuration: should a firmware reset its
         gains on the Operating Mode write (the same value), the next start-up in this power
         cycle still finds it. The turns themselves survive a write of current control."""
-        from .bringup import home  # noqa: PLC0415
-
         for d, marker in self._homing_markers:
             self._command(d, "restore the homing marker",
-                          proto.write(d.id, home.MARKER_ADDRESS, proto.le(marker, 2)))
+                          proto.write(d.id, homing.MARKER_ADDRESS, proto.le(marker, 2)))
 
     def _unwrap_and_check(self, q: np.ndarray) -> None:
         """A revolute joint's absolute encoder is single-turn after power-up: take the turn that

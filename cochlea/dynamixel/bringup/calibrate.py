@@ -19,9 +19,12 @@ new description is the old text with only the two values of each calibrated moto
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import dataclasses
 import io
 import math
+import os
 import re
 import sys
 from datetime import datetime
@@ -29,10 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...apps.outputs import atomic_path
 from ...errors import CochleaError
 from ...robots import ROBOTS
-from ...robots.motor_fit import _X_TO_A, _Y_TO_NM
 from ...runtime.backend import BackendError
 from .. import protocol as proto
 from ..bridge import DynamixelBackend
@@ -47,7 +48,7 @@ from ..control_table import (
     RAD_PER_COUNT,
     baud_code,
 )
-from ..drives import JointDrive
+from ..drives import Fit, JointDrive
 from ..port import SerialPort
 
 NAME = "calibrate"
@@ -140,6 +141,28 @@ class Bus:
             except BackendError:
                 failed.append(f"ID {d.id} ({d.name})")
         return failed
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path):
+    """A temporary name beside ``path`` to write; renamed to ``path`` once written and synced,
+    removed on failure: a reader sees no file or the whole one (as cochlea.apps.outputs does,
+    one layer up)."""
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        yield tmp
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_atomic(path: Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def ask(prompt: str) -> str:
@@ -479,7 +502,9 @@ def _torque_fit(args: argparse.Namespace) -> int:
     with atomic_path(csv_path) as tmp:
         tmp.write_text(buffer.getvalue())
     x, y = d.motor.fit.x, d.motor.fit.y
-    a_d, b_d = a * _X_TO_A[x] / _Y_TO_NM[y], b / _Y_TO_NM[y]
+    # The description's units per SI unit, from the fit's own conversion (a = b = 1 there).
+    unit = Fit.from_description(dataclasses.replace(d.motor.fit, a=1.0, b=1.0))
+    a_d, b_d = a / unit.a, b / unit.b
     print(f"{d.name} (ID {d.id}): torque = {a:.4f} N m/A * I {b:+.4f} N m from {len(samples)} "
           f"samples (RMS residual {residual:.2e} N m); samples: {csv_path}")
     print(f"for the description: fit = {{ a = {a_d:.6g}, b = {b_d:.6g}, x = \"{x}\", "

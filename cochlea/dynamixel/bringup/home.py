@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import random
 import time
 from datetime import datetime
@@ -38,74 +37,17 @@ from ...errors import CochleaError
 from ...robots import ROBOTS
 from ...runtime.backend import BackendError
 from ..control_table import baud_code
+from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
+from .calibrate import Bus, write_atomic
 
 NAME = "home"
 HELP = ("home the parallel robot's slider on its lower hard stop and record it, so the runtime "
         "knows its position (until the next power cycle)")
 
-FORMAT = "cochlea-homing/1"
-#: Feedforward 2nd Gain: RAM (reset at power-on and by REBOOT), unused in current control.
-MARKER_ADDRESS = 88
-MARKER_RANGE = (1, 16383)  # its default is 0: a motor fresh from power-on never matches
 #: The slider has stopped when its position stays within this many counts over the dwell.
 STILL_COUNTS = 2
 #: The homing loop's period (s): slow enough for a pseudo-terminal, fast for a 5 mm/s move.
 LOOP_PERIOD_S = 0.01
-
-
-def default_record(robot: str) -> Path:
-    """Where ``home`` writes and the runtime looks: ``~/.cochlea/homing/ROBOT.json``."""
-    return Path.home() / ".cochlea" / "homing" / f"{robot}.json"
-
-
-# ---- the record the runtime checks --------------------------------------------------------------
-
-
-def load_record(path: Path) -> dict:
-    """The record at ``path``; a missing or malformed one is a BackendError naming what to do."""
-    try:
-        text = Path(path).read_text()
-    except FileNotFoundError:
-        raise BackendError(f"the slider is not homed: no homing record {path}; run cochlea-dxl "
-                           "home --robot parallel --port PORT first") from None
-    except OSError as exc:
-        raise BackendError(f"homing record {path}: cannot read it ({exc.strerror}); run "
-                           "cochlea-dxl home again") from None
-    try:
-        record = json.loads(text)
-        if record.get("format") != FORMAT:
-            raise ValueError
-        for key in ("motor_id", "raw_counts", "marker"):
-            if not isinstance(record[key], int) or isinstance(record[key], bool):
-                raise ValueError
-        for key in ("stop_m", "ratio_m_per_rad"):
-            if not math.isfinite(float(record[key])):
-                raise ValueError
-        if record["direction"] not in (1, -1):
-            raise ValueError
-    except (ValueError, KeyError, TypeError, AttributeError):
-        raise BackendError(f"homing record {path}: not a {FORMAT} record; run cochlea-dxl home "
-                           "again") from None
-    return record
-
-
-def reference_offset(record: dict, path: Path, drive, marker: int) -> float:
-    """The slider's ``q_offset`` (``q = q_per_count * counts + q_offset``) from a valid
-    ``record``, given the value the motor holds in :data:`MARKER_ADDRESS`; a BackendError
-    naming ``cochlea-dxl home`` when the record does not belong to this motor and power
-    cycle."""
-    if record["motor_id"] != drive.id or record["direction"] != drive.direction or \
-            abs(record["ratio_m_per_rad"] - drive.ratio) > 1e-12:
-        raise BackendError(f"homing record {path} was made for motor ID {record['motor_id']}, "
-                           f"direction {record['direction']:+d}, ratio "
-                           f"{record['ratio_m_per_rad']:g} m/rad; the description has ID "
-                           f"{drive.id}, {drive.direction:+d}, {drive.ratio:g}: run cochlea-dxl "
-                           "home again")
-    if marker != record["marker"]:
-        raise BackendError(f"the slider (ID {drive.id}) was power-cycled or rebooted since it "
-                           f"was homed ({record.get('date', 'date unknown')}): its encoder lost "
-                           "its turns; run cochlea-dxl home --robot parallel --port PORT again")
-    return float(record["stop_m"]) - drive.q_per_count * record["raw_counts"]
 
 
 # ---- the command --------------------------------------------------------------------------------
@@ -168,8 +110,6 @@ def run(args: argparse.Namespace) -> int:
         ADDR_TORQUE_ENABLE,
         CURRENT_MODE,
     )
-    from .calibrate import Bus  # noqa: PLC0415 (calibrate imports the bridge, which imports us)
-
     baud_code(args.baud)
     bus = Bus(args.robot, args.port, args.baud, args.description)
     sliders = [d for d in bus.drives if d.type == "prismatic"]
@@ -254,13 +194,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_record(path: Path, record: dict) -> None:
-    from ...apps.outputs import atomic_path  # noqa: PLC0415
-
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
-            tmp.write_text(json.dumps(record, indent=2) + "\n")
-        os.chmod(path, 0o644)
+        write_atomic(path, json.dumps(record, indent=2) + "\n")
     except OSError as exc:
         raise CochleaError(f"--record {path}: cannot write it ({exc.strerror or exc}); the "
                            "slider was homed but nothing records it: home again with another "
