@@ -257,7 +257,8 @@ def test_reboot_clears_a_hardware_alert(tmp_path, capsys):
     (["configure", "--robot", "serial"], "--port"),
     (["configure", "--robot", "serial", "--port", "/dev/null", "--baud-to", "9"],
      "--baud-to: expected a Dynamixel baud"),
-    (["calibrate"], "invalid choice"),
+    (["frobnicate"], "invalid choice"),
+    (["calibrate"], "the following arguments are required: --robot, --port"),
     ([], "SUBCOMMAND"),
 ])
 def test_bad_options_are_one_line_and_exit_2(capsys, argv, text):

@@ -15,10 +15,10 @@ import argparse
 import sys
 
 from ..console import tolerate_closed_stdout
-from ..dynamixel.bringup import configure, info, reboot, scan
+from ..dynamixel.bringup import calibrate, configure, home, info, reboot, scan
 from ..errors import EXIT_USER_ERROR, CochleaError
 
-SUBCOMMANDS = [scan, info, configure, reboot]
+SUBCOMMANDS = [scan, info, configure, reboot, calibrate, home]
 
 EXIT_INTERRUPTED = 130
 

@@ -13,6 +13,8 @@ shut-down, before anything moved:
 5. Current Limit from the description (see :func:`cochlea.dynamixel.drives.current_limit_lsb`);
 6. Goal Current 0 (the mode change reset it to the Current Limit);
 7. Bus Watchdog (default 100 ms): the motors stop by themselves if the loop stops talking;
+   (for a robot with a slider its homing record is checked after 1., before any write:
+   :meth:`_check_homing`)
 8. SYNC_READ until the first good read; the joints must lie within their limits;
 9. Torque Enable 1.
 
@@ -35,12 +37,14 @@ from __future__ import annotations
 
 import atexit
 import math
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from ..runtime.backend import BackendError
+from . import homing
 from . import protocol as proto
 from .budget import DEFAULT_ADAPTER_LATENCY_S, BusBudget, Verdict, bus_budget
 from .control_table import (
@@ -73,6 +77,11 @@ FAILURE_NAMES = ("timeout", "crc", "error-byte", "hardware-alert", "length", "po
 #: What ``DynamixelBackend._next_packet`` returns besides the parser's own codes (>= 0).
 _PORT_FAILED, _TIMED_OUT = -1, -2
 
+#: ``homing``: "auto" checks the slider's homing record on a real port and not on a
+#: pseudo-terminal (the emulator's slider starts where its scenario puts it, as if homed);
+#: "required" always checks it; "off" never does.
+HOMING_MODES = ("auto", "required", "off")
+
 _STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 _GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
 
@@ -100,7 +109,8 @@ class DynamixelBackend:
                  timeout_s: float | None = None, ramp_Nm: float = DEFAULT_RAMP_NM,
                  position_margin_rad: float = math.radians(2.0),
                  adapter_latency_s: float | None = None, retries: int = 3,
-                 open_port=SerialPort, system=None):
+                 open_port=SerialPort, system=None, homing: str = "auto",
+                 homing_record: str | Path | None = None):
         self.robot = robot
         self.port_path = str(port)
         baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
@@ -124,6 +134,11 @@ class DynamixelBackend:
         self.timeout_s = timeout_s if timeout_s is not None else self.budget.cycle_s + 3e-3
         self.position_margin = position_margin_rad
         self.retries = max(1, retries)
+        if homing not in HOMING_MODES:
+            raise BackendError(f"homing must be one of {', '.join(HOMING_MODES)}, got {homing!r}")
+        self.homing, self.homing_record = homing, homing_record
+        self.homing_report = "no slider"
+        self._homing_markers: list[tuple[JointDrive, int]] = []
         self._open_port = open_port
         self._port: SerialPort | None = None
         self._active = False
@@ -292,6 +307,7 @@ class DynamixelBackend:
             "unexpected_packets": self.unexpected_packets,
             "last_failure": self.describe_last_failure(),
             "low_latency": None if port is None else port.low_latency,
+            "homing": self.homing_report,
             "shutdown": self.shutdown_report,
         }
 
@@ -558,6 +574,7 @@ class DynamixelBackend:
                                 "description")
         if problems:
             raise BackendError("; ".join(problems))
+        self._check_homing()
         # 2.-7. Configure, torque off.
         self._write_all(ADDR_TORQUE_ENABLE, 1, [0] * n, "torque off")
         self._write_all(ADDR_BUS_WATCHDOG, 1, [0] * n, "clear the Bus Watchdog")
@@ -567,6 +584,7 @@ class DynamixelBackend:
                         "the current limit")
         self._write_all(ADDR_GOAL_CURRENT, 2, [0] * n, "goal current 0")
         self._write_all(ADDR_BUS_WATCHDOG, 1, [self.watchdog_lsb] * n, "the Bus Watchdog")
+        self._keep_homing_marker()
         # 8. The first good read; the joints within their limits.
         x = np.zeros(2 * n)
         self._active = True  # the read path checks it
@@ -583,6 +601,42 @@ class DynamixelBackend:
         self._unwrap_and_check(x[:n])
         # 9. Torque on.
         self._write_all(ADDR_TORQUE_ENABLE, 1, [1] * n, "torque on")
+
+    # ---- the slider's homing (issue 15) -------------------------------------------------------
+
+    def _check_homing(self) -> None:
+        """A joint whose encoder loses its turns at power-on (the parallel robot's slider) needs
+        a homing record of this power cycle (:mod:`cochlea.dynamixel.bringup.home`): its
+        position is then counted from the stop the homing found; without one the start-up is
+        refused, naming ``cochlea-dxl home``. The serial robot has no such joint."""
+        self._homing_markers = []
+        sliders = [j for j, d in enumerate(self.drives) if d.type == "prismatic"]
+        if not sliders:
+            return
+        virtual = os.path.realpath(self.port_path).startswith("/dev/pts/")
+        if self.homing == "off" or (self.homing == "auto" and virtual):
+            self.homing_report = ("not checked (" + ("homing off" if self.homing == "off" else
+                                  "a pseudo-terminal: the virtual chain") + ")")
+            return
+        path = Path(self.homing_record) if self.homing_record is not None \
+            else homing.default_record(self.robot)
+        record = homing.load_record(path)
+        for j in sliders:
+            d = self.drives[j]
+            params = self._command(d, "READ the homing marker",
+                                   proto.read(d.id, homing.MARKER_ADDRESS, 2))
+            marker = proto.from_le(params, False) if len(params) == 2 else -1
+            self._q_offset[j] = homing.reference_offset(record, path, d, marker)
+            self._homing_markers.append((d, marker))
+        self.homing_report = f"homed {record.get('date', '')} ({path})"
+
+    def _keep_homing_marker(self) -> None:
+        """Write the homing token back after the configuration: should a firmware reset its
+        gains on the Operating Mode write (the same value), the next start-up in this power
+        cycle still finds it. The turns themselves survive a write of current control."""
+        for d, marker in self._homing_markers:
+            self._command(d, "restore the homing marker",
+                          proto.write(d.id, homing.MARKER_ADDRESS, proto.le(marker, 2)))
 
     def _unwrap_and_check(self, q: np.ndarray) -> None:
         """A revolute joint's absolute encoder is single-turn after power-up: take the turn that

@@ -43,6 +43,7 @@ one, whatever else the machine runs.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fcntl
 import gc
 import heapq
@@ -78,6 +79,7 @@ from .control_table import (
     ALERT_BIT,
     BAUD_RATES,
     BROADCAST_ID,
+    COUNTS_PER_REV,
     CRC_ERROR,
     CURRENT_MODE,
     DATA_LENGTH,
@@ -187,6 +189,9 @@ def _open_log(path: Path):
 
 class VirtualMotor:
     """One motor: its control table and what it does with an instruction."""
+
+    #: Whole turns (in counts) the encoder lost at the last power cycle (see power_cycle).
+    turn_counts = 0
 
     def __init__(self, drive: JointDrive, baud_code: int, model_number: int | None = None):
         self.drive = drive
@@ -341,6 +346,9 @@ class VirtualMotor:
 class _Unit:
     """One plant (an arm, or the parallel mechanism) and its motors."""
 
+    #: ``(joint index, lowest coordinate)`` of each hard stop (see ``--hard-stop-m``).
+    stops: tuple[tuple[int, float], ...] = ()
+
     def __init__(self, setup, substeps: int, h: float, motors: list[VirtualMotor]):
         self.name = setup.name
         self.motors = motors
@@ -390,6 +398,8 @@ class _Unit:
             x[n:] = 0.0
             return False
         x[:] = nxt
+        if self.stops:
+            _hold_at_stops(self)
         return True
 
     def publish(self, tick_ms: int) -> None:
@@ -397,7 +407,7 @@ class _Unit:
         n, x = self.n, self.x
         lo, hi = _INT32
         for j, (m, (offset, per_count, per_lsb)) in enumerate(zip(self.motors, self._scales)):
-            pos = min(max(round((x[j] - offset) / per_count), lo), hi)
+            pos = min(max(round((x[j] - offset) / per_count) - m.turn_counts, lo), hi)
             vel = min(max(round(x[n + j] / per_lsb), lo), hi)
             m.set_present(m.state()[1], vel, pos, tick_ms)
 
@@ -413,7 +423,8 @@ class VirtualChain:
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
                  max_events: int = 200_000, plant: str | None = None,
-                 check_baud: bool = False, ignore_writes=()):
+                 check_baud: bool = False, ignore_writes=(),
+                 truth: Truth | None = None):
         code = baud_code(baud)
         # plant: a preset of the scenario's [plant] table, e.g. "realistic": the motors' rotors
         # and gearbox friction move the joints (their counts are the motors' own already).
@@ -423,7 +434,7 @@ class VirtualChain:
                                f"robot, not {robot}")
         self.robot = robot
         self.faults = faults or Faults()
-        self.drives = joint_drives(robot, system=self.scenario.system)
+        self.drives = true_drives(joint_drives(robot, system=self.scenario.system), truth)
         check_faults(self.faults, [d.id for d in self.drives])
         if plant_period_s is not None:
             lo, hi = PLANT_PERIOD_RANGE_S
@@ -448,6 +459,7 @@ class VirtualChain:
         if start != len(self.motors):
             raise CochleaError(f"the scenario's plant has {start} joints, its description "
                                f"{len(self.motors)} motors")
+        install_stops(self.units, truth)
         self.baud = baud
         self.byte_time = 10.0 / baud if wire_timing else 0.0
         self.wire_timing = wire_timing
@@ -840,6 +852,30 @@ class VirtualChain:
         return (not self.check_baud or self._line_baud is None
                 or BAUD_RATES.get(m.table[8]) == self._line_baud)
 
+    # ---- bring-up (issue 15): what a hand and the mains switch do ---------------------------
+
+    def move_joint(self, name: str, q: float) -> None:
+        """A hand moves joint ``name`` to ``q`` (rad or m, the plant's true coordinate), as
+        in a guided calibration with the torque off; its speed is left at zero."""
+        for u in self.units:
+            for j, m in enumerate(u.motors):
+                if m.drive.name == name:
+                    u.x[j], u.x[u.n + j] = q, 0.0
+                    return
+        raise KeyError(name)
+
+    def power_cycle(self) -> None:
+        """The motors' power off and on: RAM items back to their defaults (torque off, errors
+        and the Bus Watchdog cleared), and each encoder keeps only its angle within one turn,
+        as a real one does (Present Position in 0..4095 again)."""
+        for u in self.units:
+            for j, m in enumerate(u.motors):
+                offset, per_count, _ = u._scales[j]
+                counts = round((u.x[j] - offset) / per_count)
+                m.turn_counts = counts - counts % COUNTS_PER_REV
+                m.reboot()
+            u.publish(int((time.perf_counter() - self._t0) * 1000))
+
 
 # --------------------------------------------------------------------------------------------
 # Command line
@@ -947,6 +983,7 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--ignore-write", type=_id_number, action="append", default=[],
                    metavar="ID:ADDRESS", help="motor ID acknowledges writes to the item at "
                    "ADDRESS but keeps its value (a write that did not take; repeatable)")
+    add_truth_arguments(p)
     return p
 
 
@@ -985,7 +1022,7 @@ def _main(args: argparse.Namespace) -> int:
                              else args.plant_period_ms * 1e-3, log_path=args.log,
                              max_events=1000,  # the --log file keeps them all
                              plant=args.plant, check_baud=args.check_baud,
-                             ignore_writes=args.ignore_write)
+                             ignore_writes=args.ignore_write, truth=truth_from_args(args))
     except CochleaError as exc:
         print(f"cochlea-emulator: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
@@ -1034,6 +1071,110 @@ def _main(args: argparse.Namespace) -> int:
               "--log", file=sys.stderr)
         return EXIT_LOG_FAILED
     return 0
+
+
+# --------------------------------------------------------------------------------------------
+# Bring-up (issue 15): a chain whose motors are mounted otherwise than its description says,
+# and the slider's hard stop, so that cochlea-dxl calibrate and home can be tested
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Truth:
+    """How the virtual motors are really mounted, where the description only has placeholders:
+    ``offset_deg`` (ID -> the motor angle at joint zero, degrees) and ``direction`` (ID -> +1 or
+    -1) replace the description's ``zero_offset_deg`` and ``direction`` in the plant's mapping
+    (the counts the motors report and the torque their current gives); ``hard_stop_m`` puts a
+    hard stop under the prismatic joint (the slider): the plant cannot go below it (an
+    inelastic stop) while the motor pushes on at the current it was given."""
+
+    offset_deg: dict[int, float] = field(default_factory=dict)
+    direction: dict[int, int] = field(default_factory=dict)
+    hard_stop_m: float | None = None
+
+
+def true_drives(drives: list[JointDrive], truth: Truth | None) -> list[JointDrive]:
+    """The drives as ``truth`` mounts them (refusing IDs that are not on the chain)."""
+    if truth is None:
+        return drives
+    ids = [d.id for d in drives]
+    chain = ", ".join(str(i) for i in ids)
+    for option, named in (("--true-offset", truth.offset_deg), ("--true-direction",
+                                                                truth.direction)):
+        for motor_id in named:
+            if motor_id not in ids:
+                raise CochleaError(f"{option}: motor ID {motor_id} is not on this chain (its "
+                                   f"motors are {chain})")
+    for motor_id, deg in truth.offset_deg.items():
+        if not math.isfinite(deg):
+            raise CochleaError(f"--true-offset {motor_id}:{deg}: expected a finite angle in deg")
+    for motor_id, sign in truth.direction.items():
+        if sign not in (1, -1):
+            raise CochleaError(f"--true-direction {motor_id}:{sign}: expected +1 or -1")
+    out = []
+    for d in drives:
+        if d.id in truth.offset_deg or d.id in truth.direction:
+            d = dataclasses.replace(
+                d, zero_offset=math.radians(truth.offset_deg.get(d.id, math.degrees(
+                    d.zero_offset))), direction=truth.direction.get(d.id, d.direction))
+        out.append(d)
+    return out
+
+
+def install_stops(units: list[_Unit], truth: Truth | None) -> None:
+    """Put ``truth.hard_stop_m`` under every prismatic joint (one at least, else refused); a
+    joint that starts below it starts resting on it."""
+    if truth is None or truth.hard_stop_m is None:
+        return
+    low = truth.hard_stop_m
+    if not math.isfinite(low):
+        raise CochleaError(f"--hard-stop-m: expected a finite coordinate in m, got {low}")
+    found = False
+    for u in units:
+        stops = tuple((j, low) for j, m in enumerate(u.motors) if m.drive.type == "prismatic")
+        for j, _ in stops:
+            u.x[j] = max(u.x[j], low)
+        u.stops = stops
+        found = found or bool(stops)
+    if not found:
+        raise CochleaError("--hard-stop-m: this robot has no prismatic joint (the parallel "
+                           "robot's slider has one)")
+
+
+def _hold_at_stops(u: _Unit) -> None:
+    x = u.x
+    for j, low in u.stops:
+        if x[j] < low:
+            x[j] = low
+            x[u.n + j] = max(x[u.n + j], 0.0)
+
+
+def _id_value(kind):
+    def parse(text: str):
+        try:
+            motor_id, value = text.split(":")
+            return int(motor_id), kind(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected ID:VALUE, got {text!r}") from None
+    return parse
+
+
+def add_truth_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("mounting (to test calibration and homing)")
+    g.add_argument("--true-offset", type=_id_value(float), action="append", default=[],
+                   metavar="ID:DEG", help="motor ID's angle at joint zero really is DEG "
+                   "(the description's zero_offset_deg is a placeholder; repeatable)")
+    g.add_argument("--true-direction", type=_id_value(int), action="append", default=[],
+                   metavar="ID:SIGN", help="motor ID really turns with (1) or against (-1) "
+                   "its joint (repeatable)")
+    g.add_argument("--hard-stop-m", type=float, metavar="LOW", help="a hard stop under the "
+                   "slider at d1 = LOW m: the plant stops there, the motor pushes on")
+
+
+def truth_from_args(args: argparse.Namespace) -> Truth | None:
+    if not (args.true_offset or args.true_direction or args.hard_stop_m is not None):
+        return None
+    return Truth(dict(args.true_offset), dict(args.true_direction), args.hard_stop_m)
 
 
 if __name__ == "__main__":

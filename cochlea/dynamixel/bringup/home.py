@@ -1,0 +1,203 @@
+"""``cochlea-dxl home``: the slider's homing, and the record the runtime checks before it starts.
+
+The slider's motor has a single-turn absolute encoder on a multi-turn travel: its Present
+Position counts turns while it is powered, but after a power cycle (or a REBOOT) it starts
+again within one turn, so the joint coordinate is no longer known. Homing finds it again:
+
+1. torque off, current control, Bus Watchdog on; then a slow move towards the lower hard stop
+   under a velocity loop whose force never exceeds ``--force-N`` (a PI loop on the slider's
+   speed, ``--speed-mm-s``, in current control);
+2. the stop is where the slider has not moved (within ``STILL_COUNTS``) for ``--dwell-s``
+   while the loop pushes with its full force: the raw (multi-turn) position there is the
+   reference, the joint coordinate there is ``--stop-m`` (default the description's lower
+   limit);
+3. a random token is written into a RAM register the current-control mode does not use
+   (:data:`MARKER_ADDRESS`, Feedforward 2nd Gain): RAM returns to its defaults at power-on and
+   after a REBOOT, exactly when the turn count is lost;
+4. goal current 0 and torque off, whatever happened; then the record is written (JSON,
+   :func:`default_record`).
+
+The rule the runtime applies (:func:`reference_offset`): the record is valid while the motor
+still holds the token, i.e. it has not been power-cycled or rebooted since it was homed; then
+``d1 = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``, whatever the
+description's ``zero_offset_deg`` says.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import random
+import time
+from datetime import datetime
+from pathlib import Path
+
+from ...errors import CochleaError
+from ...robots import ROBOTS
+from ...runtime.backend import BackendError
+from ..control_table import baud_code
+from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
+from .calibrate import Bus, write_atomic
+
+NAME = "home"
+HELP = ("home the parallel robot's slider on its lower hard stop and record it, so the runtime "
+        "knows its position (until the next power cycle)")
+
+#: The slider has stopped when its position stays within this many counts over the dwell.
+STILL_COUNTS = 2
+#: The homing loop's period (s): slow enough for a pseudo-terminal, fast for a 5 mm/s move.
+LOOP_PERIOD_S = 0.01
+
+
+# ---- the command --------------------------------------------------------------------------------
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", required=True, choices=list(ROBOTS))
+    p.add_argument("--port", required=True, help="the serial port (or cochlea-emulator's "
+                   "pseudo-terminal)")
+    p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate "
+                   "(default 4000000)")
+    p.add_argument("--description", type=Path, metavar="FILE",
+                   help="the robot description (default: the shipped one)")
+    p.add_argument("--record", type=Path, metavar="FILE", help="where to write the homing "
+                   "record (default ~/.cochlea/homing/ROBOT.json, where the runtime looks; "
+                   "replaced at each homing)")
+    p.add_argument("--stop-m", type=float, metavar="M", help="the slider's coordinate at its "
+                   "lower hard stop (default: the description's lower limit)")
+    p.add_argument("--speed-mm-s", type=float, default=5.0, metavar="V",
+                   help="the approach speed (default 5 mm/s)")
+    p.add_argument("--force-N", type=float, default=10.0, metavar="F",
+                   help="the most force the motor may push with (default 10 N)")
+    p.add_argument("--dwell-s", type=float, default=0.3, metavar="S",
+                   help="how long the slider must stay still under the full force (default 0.3)")
+    p.add_argument("--timeout-s", type=float, metavar="S", help="give up after S seconds "
+                   "(default: twice the stroke at --speed-mm-s, plus 5 s)")
+
+
+def _check(args: argparse.Namespace, d) -> tuple[float, float, float]:
+    lo, hi = d.position_limits
+    for option, value in (("--speed-mm-s", args.speed_mm_s), ("--force-N", args.force_N),
+                          ("--dwell-s", args.dwell_s)):
+        if not (math.isfinite(value) and value > 0):
+            raise CochleaError(f"{option}: expected a finite number > 0, got {value}")
+    speed = args.speed_mm_s * 1e-3
+    if speed > 0.06:
+        raise CochleaError(f"--speed-mm-s {args.speed_mm_s}: expected at most 60 mm/s (the "
+                           "slider's velocity limit); homing is slow")
+    if args.force_N > d.effort_limit:
+        raise CochleaError(f"--force-N {args.force_N}: expected at most the slider's force "
+                           f"limit, {d.effort_limit:g} N")
+    stop = lo if args.stop_m is None else args.stop_m
+    if not (math.isfinite(stop) and lo - 0.05 <= stop <= hi):
+        raise CochleaError(f"--stop-m {args.stop_m}: expected a coordinate near the slider's "
+                           f"travel [{lo:g}, {hi:g}] m")
+    timeout = args.timeout_s
+    if timeout is None:
+        timeout = 2.0 * (hi - lo) / speed + 5.0
+    elif not (math.isfinite(timeout) and timeout > 0):
+        raise CochleaError(f"--timeout-s: expected a finite number > 0, got {timeout}")
+    return stop, speed, timeout
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..control_table import (  # noqa: PLC0415
+        ADDR_BUS_WATCHDOG,
+        ADDR_GOAL_CURRENT,
+        ADDR_OPERATING_MODE,
+        ADDR_PRESENT_VELOCITY,
+        ADDR_TORQUE_ENABLE,
+        CURRENT_MODE,
+    )
+    baud_code(args.baud)
+    bus = Bus(args.robot, args.port, args.baud, args.description)
+    sliders = [d for d in bus.drives if d.type == "prismatic"]
+    if not sliders:
+        raise CochleaError(f"--robot {args.robot}: it has no slider to home (the parallel "
+                           "robot has)")
+    d = sliders[0]
+    stop, speed, timeout = _check(args, d)
+    record_path = args.record if args.record is not None else default_record(args.robot)
+    if record_path.is_dir():
+        raise CochleaError(f"--record {record_path}: a folder; expected a file")
+    limit = abs(float(d.goal_current_lsb(args.force_N)))
+    marker = random.SystemRandom().randint(*MARKER_RANGE)
+    # Towards the stop: the joint's negative sense (the lower limit).
+    kp = 0.25 * args.force_N / speed  # N per m/s: a quarter of the force at rest
+    ki = args.force_N / (0.5 * speed)  # N per m: the full force after 0.5 s at rest
+    bus.open()
+    result = None
+    try:
+        bus.ping([d])
+        bus.write(d, ADDR_TORQUE_ENABLE, 1, 0)
+        bus.write(d, ADDR_BUS_WATCHDOG, 1, 0)
+        bus.write(d, ADDR_OPERATING_MODE, 1, CURRENT_MODE)
+        bus.write(d, ADDR_GOAL_CURRENT, 2, 0)
+        bus.write(d, ADDR_BUS_WATCHDOG, 1, 5)  # 100 ms: the motor stops if we do
+        start_counts = bus.position(d)
+        bus.write(d, ADDR_TORQUE_ENABLE, 1, 1)
+        print(f"homing {d.name} (ID {d.id}): down at {speed * 1e3:g} mm/s, at most "
+              f"{args.force_N:g} N", flush=True)
+        integral, window = 0.0, []
+        t0 = last = time.perf_counter()
+        stroke = d.position_limits[1] - d.position_limits[0] + 0.01
+        while True:
+            now = time.perf_counter()
+            if now - t0 > timeout:
+                raise BackendError(f"no hard stop found in {timeout:g} s: check that the "
+                                   "slider moves down, its direction in the description, and "
+                                   "--stop-m")
+            lsb = bus.read(d, ADDR_PRESENT_VELOCITY, 4)
+            counts = bus.position(d)
+            if abs((counts - start_counts) * d.q_per_count) > stroke:
+                raise BackendError(f"the slider travelled more than its stroke ({stroke:g} m) "
+                                   "without meeting a stop: check its direction and the stop")
+            v = float(d.qd(lsb))
+            error = -speed - v
+            dt = min(now - last, 0.1)
+            last = now
+            integral = min(max(integral + ki * error * dt, -args.force_N), args.force_N)
+            force = min(max(kp * error + integral, -args.force_N), args.force_N)
+            goal = int(min(max(float(d.goal_current_lsb(force)), -limit), limit))
+            bus.write(d, ADDR_GOAL_CURRENT, 2, goal)
+            window.append((now, counts, force <= -0.99 * args.force_N))
+            while window and window[0][0] < now - args.dwell_s:
+                window.pop(0)
+            positions = [c for _, c, _ in window]
+            if (now - t0 > args.dwell_s and window[-1][0] - window[0][0] >= 0.9 * args.dwell_s
+                    and max(positions) - min(positions) <= STILL_COUNTS
+                    and all(full for _, _, full in window)):
+                result = sorted(positions)[len(positions) // 2]
+                bus.write(d, MARKER_ADDRESS, 2, marker)
+                break
+            time.sleep(max(0.0, LOOP_PERIOD_S - (time.perf_counter() - now)))
+    finally:
+        failed = bus.torque_off([d])
+        try:
+            bus.write(d, ADDR_BUS_WATCHDOG, 1, 0)
+        except BackendError:
+            pass
+        bus.close()
+    record = {"format": FORMAT, "robot": args.robot, "joint": d.name, "motor_id": d.id,
+              "model": d.spec.name, "raw_counts": int(result), "stop_m": stop,
+              "direction": d.direction, "ratio_m_per_rad": d.ratio,
+              "marker_address": MARKER_ADDRESS, "marker": marker, "port": args.port,
+              "description": str(args.description) if args.description else "shipped",
+              "date": datetime.now().isoformat(timespec="seconds")}
+    _write_record(record_path, record)
+    print(f"homed: {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
+          f"{stop:g} m; record {record_path}"
+          + (f"; torque off NOT confirmed by {', '.join(failed)}" if failed else
+             "; torque off"))
+    return 0 if not failed else 1
+
+
+def _write_record(path: Path, record: dict) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, json.dumps(record, indent=2) + "\n")
+    except OSError as exc:
+        raise CochleaError(f"--record {path}: cannot write it ({exc.strerror or exc}); the "
+                           "slider was homed but nothing records it: home again with another "
+                           "--record") from None
