@@ -177,7 +177,7 @@ def _unit_summary(u: UnitLog, stats: _UnitStats) -> dict:
 
 
 def summary(result: SimulationResult, wall_time_s: float | None = None,
-            timing: dict | None = None) -> dict:
+            timing: dict | None = None, realtime: dict | None = None) -> dict:
     sc = result.scenario
     stats = [_UnitStats(result.periods) for _ in result.units]
     start = 0
@@ -209,6 +209,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "stop": result.stop,
         "supervisor": result.supervisor,
         "timing": timing,
+        # The loop thread's settings, asked for and obtained (real-time runs; see
+        # cochlea.runtime.loop.RealtimeOptions).
+        "realtime": realtime,
         "wall_time_s": wall_time_s,
         "units": units,
     }
@@ -325,7 +328,7 @@ def _desired_poses(u: UnitLog) -> np.ndarray:
 
 
 def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None,
-              timing: dict | None = None) -> dict:
+              timing: dict | None = None, realtime: dict | None = None) -> dict:
     """log.csv, the figures, then summary.json, each to a temporary name and renamed: a reader
     never sees half a file, and a summary.json without ``report_lost`` means the report is
     whole. A part that fails to write (a full disk) does not stop the others; then
@@ -338,7 +341,7 @@ def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = N
     except OSError as exc:
         lost.append("log.csv")
         causes.append(exc)
-    data = summary(result, wall_time_s, timing)
+    data = summary(result, wall_time_s, timing, realtime)
     try:
         data["figures"] = [str(p) for p in figures(result, out)] if result.periods > 1 else []
     except OSError as exc:
