@@ -287,3 +287,70 @@ def test_cli_records_the_settings_in_summary_json(tmp_path):
     timing = summary["timing"]
     assert timing["overrun_policy"] == OVERRUN_POLICY and "overruns" in timing
     assert timing["stall_limit"] == pytest.approx(0.5) and timing["lateness_limit"] == 0.5
+
+
+# ---- the convergence floor --------------------------------------------------------------------
+
+
+def _short_run(name="serial_joint", periods=300):
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    backend = SimBackend(setups, sc.period, sc.plant_substeps)
+    supervisor = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
+                        substeps=sc.plant_substeps)
+    assert loop.run().rule == "completed"
+    return sc, loop, loop.result(sc)
+
+
+def test_errors_below_one_encoder_count_are_converged_on_hardware():
+    """0.3 s is too short for the ratio rule: every joint's tail error is far above the
+    numeric floor. Counts coarser than those errors make them converged; finer ones do not."""
+    from cochlea.apps.report import CONVERGENCE_FLOOR, summary
+
+    sc, loop, result = _short_run()
+    plain = summary(result)
+    rms = {(u, c): v["final_rms_error"] for u, unit in plain["units"].items()
+           for c, v in unit["tracked"].items()}
+    assert not plain["converged"] and all(v > 1e-4 for v in rms.values())
+    for scale, expected in ((2.0, True), (0.5, False)):
+        quantum = {}
+        for u in result.units:
+            errors = np.array([rms[(u.name, c)] for c in u.tracked_names])
+            quantum[u.name] = -scale * errors  # a direction of -1 gives a negative count
+        data = summary(result, position_quantum=quantum)
+        assert data["converged"] is expected
+        for u in result.units:
+            unit = data["units"][u.name]
+            assert unit["position_quantum"]["source"] == "drives"
+            for c, j in zip(u.tracked_names, u.setup.controller_model.joints):
+                one_count = scale * rms[(u.name, c)]
+                entry = unit["tracked"][c]
+                assert entry["measurement_resolution"] == pytest.approx(one_count)
+                assert entry["convergence_floor"] == pytest.approx(
+                    max(CONVERGENCE_FLOOR["rad"], one_count))
+                assert unit["position_quantum"]["joints"][j.name]["value"] == \
+                    pytest.approx(one_count)
+                assert entry["converged"] is expected
+    # Without encoders the floor used is the numeric one, and it is recorded.
+    entry = plain["units"]["arm1"]["tracked"]["joint1"]
+    assert entry["convergence_floor"] == CONVERGENCE_FLOOR["rad"]
+    assert plain["units"]["arm1"]["position_quantum"] is None
+
+
+def test_a_task_space_floor_is_one_count_on_every_joint_through_the_kinematics():
+    from cochlea.apps.report import summary
+
+    sc, loop, result = _short_run("parallel_task", periods=200)
+    counts = np.full(5, 2 * np.pi / 4096)
+    counts[2] = 1e-5  # the slider: metres per count through its pinion
+    data = summary(result, position_quantum={"mechanism": counts})
+    unit = data["units"]["mechanism"]
+    u = result.units[0]
+    q = u.q[-1]
+    pose = np.array(u.setup.fk_world(q)).ravel()
+    moved = sum(np.abs(np.array(u.setup.fk_world(q + step)).ravel() - pose)
+                for step in np.diag(counts))
+    for i, c in enumerate(u.tracked_names):
+        assert unit["tracked"][c]["measurement_resolution"] == pytest.approx(moved[i])
+    assert unit["position_quantum"]["joints"]["slider.d1"]["unit"] == "m"

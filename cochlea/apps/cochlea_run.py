@@ -355,7 +355,12 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     timing = loop.timing_summary()
     if args.backend == "dynamixel":
         timing["bus"] = backend.summary()
-    data = report.write_all(result, out, wall, timing, realtime=loop.realtime_report)
+    quantum = None
+    if args.backend == "dynamixel":  # the motors' encoders set what "converged" can mean
+        quantum = {u.name: backend.position_quantum()[sl]
+                   for u, sl in zip(setups, loop.slices)}
+    data = report.write_all(result, out, wall, timing, realtime=loop.realtime_report,
+                            position_quantum=quantum)
     _report(data, out, wall)
     if args.backend == "dynamixel":
         bus = timing["bus"]

@@ -277,6 +277,11 @@ class DynamixelBackend:
         return (f"last failure {FAILURE_NAMES[self.last_failure]}"
                 + (f" from {self._who(self.drives[j])}" if j >= 0 else ""))
 
+    def position_quantum(self) -> np.ndarray:
+        """One encoder count of each joint (rad, or m for the slider through its pinion), in
+        the loop's joint order: what a run's convergence floor is measured against."""
+        return np.abs(self._q_per_count)
+
     def summary(self) -> dict:
         """Counters and settings for a run's summary (JSON-ready)."""
         port = self._port
