@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -354,3 +355,137 @@ def test_a_task_space_floor_is_one_count_on_every_joint_through_the_kinematics()
     for i, c in enumerate(u.tracked_names):
         assert unit["tracked"][c]["measurement_resolution"] == pytest.approx(moved[i])
     assert unit["position_quantum"]["joints"]["slider.d1"]["unit"] == "m"
+
+
+# ---- the Realtime-Tick check (the virtual chain) ------------------------------------------------
+
+
+def _tick_bridge(chain):
+    from cochlea.dynamixel.bridge import DynamixelBackend
+
+    # A generous read timeout: the emulator is a thread of this process on a shared machine.
+    return DynamixelBackend(chain.robot, chain.path, description=chain.scenario.description,
+                            timeout_s=0.05, realtime_tick=True)
+
+
+@pytest.mark.hil
+def test_a_repeated_status_packet_is_refused_by_its_realtime_tick():
+    from cochlea.dynamixel import bridge as br
+    from cochlea.dynamixel import protocol as proto
+    from cochlea.dynamixel.emulator import Faults, VirtualChain
+
+    faults = Faults(stale=(3, 5), delay_s=0.1)
+    with VirtualChain("serial", faults=faults) as chain:
+        backend = _tick_bridge(chain)
+        # The tick, in the same packet as the state: one SYNC_READ of 120..135.
+        assert backend._read_frame == proto.sync_read(120, 16, backend.ids)
+        backend.enable()
+        x, tau = np.zeros(12), np.zeros(6)
+        results = []
+        try:
+            end = time.perf_counter() + 0.6
+            while time.perf_counter() < end:
+                ok = backend.read(x)
+                results.append((ok, backend.last_failure, backend.last_failure_id))
+                backend.write(tau)
+                time.sleep(0.004)  # 250 Hz: each repeat is more than a tick after the original
+        finally:
+            backend.disable()
+        repeated = chain.counts["stale"]
+    assert repeated == 5  # the emulator repeated its packet five times, then answered afresh
+    stale = [i for i, (ok, kind, who) in enumerate(results) if not ok and kind == br.STALE]
+    assert 1 <= len(stale) <= repeated and all(results[i][2] == 3 for i in stale)
+    assert backend.failures[br.STALE] == len(stale)
+    assert any(ok for ok, _, _ in results[stale[-1] + 1:])  # fresh packets are good again
+    assert results[0][0] and "stale-packet" in backend.summary()["failures"]
+
+
+def test_the_tick_rule_on_synthetic_times():
+    """A tick that did not move is stale only when the request left more than 1.1 ms after a
+    reply that carried it had arrived: sooner, both may be the same millisecond."""
+    from cochlea.dynamixel import bridge as br
+    from cochlea.dynamixel.bridge import DynamixelBackend
+
+    backend = DynamixelBackend("serial", "/dev/null-not-opened", realtime_tick=True)
+    ticks = backend._tick
+    ticks[:] = [100, 200, 300, 400, 500, 32767]
+    assert backend._fresh(asked=0.0095, arrived=0.0100)
+    assert backend._fresh(asked=0.0108, arrived=0.0109)  # 0.8 ms on: may be the same ms
+    ticks[:] = [101, 201, 301, 401, 501, 0]  # all moved on, through the wrap at 32768
+    assert backend._fresh(asked=0.0111, arrived=0.0112)
+    ticks[:] = [102, 202, 301, 402, 502, 1]  # the third motor's did not
+    assert backend._fresh(asked=0.0120, arrived=0.0121)  # 0.8 ms after its reply came in
+    assert not backend._fresh(asked=0.0124, arrived=0.0125)  # 1.2 ms after: stale
+    assert backend.failures[br.STALE] == 1 and backend.last_failure_id == backend.ids[2]
+    assert "stale-packet (ID 3, arm1.link3)" in backend.describe_last_failure()
+    ticks[2] = 302
+    assert backend._fresh(asked=0.0130, arrived=0.0131)
+    # Without the option the bridge reads 126..135 alone, as before (and the C program does).
+    plain = DynamixelBackend("serial", "/dev/null-not-opened")
+    assert plain._tick is None and plain.budget.reply_bytes == 21
+    assert backend.budget.reply_bytes == 27 and backend.summary()["realtime_tick_check"]
+
+
+@pytest.mark.hil
+def test_a_healthy_chain_is_never_taken_for_stale():
+    from cochlea.dynamixel import bridge as br
+    from cochlea.dynamixel.emulator import VirtualChain
+
+    with VirtualChain("parallel") as chain:
+        backend = _tick_bridge(chain)
+        backend.enable()
+        x, tau = np.zeros(10), np.zeros(5)
+        good = 0
+        try:
+            for _ in range(300):  # back to back: as fast as the emulator answers
+                good += backend.read(x)
+                backend.write(tau)
+        finally:
+            backend.disable()
+    assert backend.failures[br.STALE] == 0 and good > 50
+
+
+def test_the_emulator_refuses_a_stale_fault_on_no_motor():
+    from cochlea.dynamixel.emulator import Faults, check_faults
+
+    with pytest.raises(CochleaError, match="--stale-replies: motor ID 9 is not on this chain"):
+        check_faults(Faults(stale=(9, -1)), [1, 2, 3])
+    with pytest.raises(CochleaError, match="expected a number of reads >= 1"):
+        check_faults(Faults(stale=(1, 0)), [1, 2, 3])
+
+
+@pytest.mark.hil
+def test_cli_stale_packets_end_in_the_watchdog_and_the_floor_knows_the_encoders(tmp_path):
+    """Over the virtual chain, as on a bench: cochlea-run reads the tick with the state, a
+    motor that keeps repeating its packet stops the run with the motor named, and the summary
+    judges convergence against the drives' encoder counts."""
+    from cochlea.dynamixel.control_table import RAD_PER_COUNT
+
+    log = tmp_path / "emulator.log"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot", "serial", "--scenario",
+         "serial_joint", "--log", str(log), "--stale-replies", "3", "--fault-delay", "0.5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        out = tmp_path / "hil"
+        done = _cli("--robot", "serial", "--space", "joint", "--backend", "dynamixel",
+                    "--port", port, "--duration", "3", "--out", str(out),
+                    "--watchdog-misses", "300", cwd=tmp_path)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert done.returncode == 15, done.stderr
+    assert ("consecutive backend read failures: last failure stale-packet from ID 3 "
+            "(arm1.link3, MX-64)") in done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    bus = summary["timing"]["bus"]
+    assert bus["realtime_tick_check"] is True and bus["failures"]["stale-packet"] >= 6
+    assert bus["bus_budget"]["bytes_per_period"] == (14 + 3 * 6) + (14 + 6) + 27 * 6
+    for unit in summary["units"].values():
+        assert unit["position_quantum"]["source"] == "drives"
+        for joint in unit["position_quantum"]["joints"].values():
+            assert joint["value"] == pytest.approx(RAD_PER_COUNT) and joint["unit"] == "rad"
+        for coordinate in unit["tracked"].values():
+            assert coordinate["convergence_floor"] >= RAD_PER_COUNT

@@ -395,9 +395,10 @@ def _dynamixel_backend(args, scenario):
     """The motors of the scenario's description on ``--port``; refused before anything moves
     when the bus cannot carry the loop's rate, with a warning when it only just can."""
     # Only a missing --baud means the default: --baud 0 is refused like any other bad rate.
+    # The Realtime Tick read with the state: a motor repeating a stale packet is a failed read.
     backend = DynamixelBackend(scenario.robot, args.port,
                                4_000_000 if args.baud is None else args.baud,
-                               system=scenario.system)
+                               system=scenario.system, realtime_tick=True)
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")
