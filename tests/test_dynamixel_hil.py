@@ -88,7 +88,8 @@ def test_each_scenario_converges_over_the_virtual_chain(tmp_path, robot, space):
     # The summary reports the bus and the loop's timing; the printout says them too.
     timing, bus = summary["timing"], summary["timing"]["bus"]
     n = 6 if robot == "serial" else 5
-    assert bus["bus_budget"]["bytes_per_period"] == (14 + 3 * n) + (14 + n) + 21 * n
+    # Each status packet: 11 bytes + 16 of data (120..135: Realtime Tick to Present Position).
+    assert bus["bus_budget"]["bytes_per_period"] == (14 + 3 * n) + (14 + n) + 27 * n
     assert bus["reads"] == summary["periods"] and bus["good_reads"] >= 0.98 * bus["reads"]
     assert 0 < timing["backend_mean"] < 0.01 and "deadline_miss_fraction" in timing
     assert timing["watchdog_misses_allowed"] == int(SHARED_MACHINE[1])
@@ -187,16 +188,16 @@ def test_a_wrong_bus_stops_the_run_before_anything_moves(tmp_path, options, mess
 
 
 def test_the_bus_budget_refuses_or_warns_with_the_numbers(tmp_path):
-    # 6 motors at 1 Mbaud: 1900 us of bus per 1000 us period. Nothing is opened.
+    # 6 motors at 1 Mbaud: 2260 us of bus per 1000 us period. Nothing is opened.
     done = run("--robot", "serial", "--space", "joint", "--backend", "dynamixel", "--port",
                "/dev/pts/999", "--baud", "1000000", "--out", str(tmp_path / "a"), cwd=tmp_path)
     assert done.returncode == 2 and "Traceback" not in done.stderr
-    assert "178 bytes per period" in done.stderr and "1900 us" in done.stderr
+    assert "214 bytes per period" in done.stderr and "2260 us" in done.stderr
     assert "the bus cannot meet the loop rate" in done.stderr
     # At 4 Mbaud behind a USB adapter (1 ms latency): a warning, then the missing port.
     done = run("--robot", "serial", "--space", "joint", "--backend", "dynamixel", "--port",
                "/dev/ttyUSB-none", "--out", str(tmp_path / "b"), cwd=tmp_path)
-    assert "warning: bus budget" in done.stderr and "1565 us" in done.stderr
+    assert "warning: bus budget" in done.stderr and "1655 us" in done.stderr
     assert done.returncode == 5 and "cannot open the serial port /dev/ttyUSB-none" in done.stderr
     # And the options go together.
     for args, text in [(["--backend", "dynamixel"], "needs --port"),

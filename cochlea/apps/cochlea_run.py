@@ -17,7 +17,9 @@ Exit codes (also in the README):
  12   safe stop: a tool entered the keep-out circle of radius R_m
  13   safe stop: a non-finite state, command or estimate
  14   safe stop: a parameter estimate's norm exceeded its bound
- 15   safe stop: watchdog, too many consecutive deadline misses or backend failures
+ 15   safe stop: watchdog: too many consecutive overruns, a stall, a loop too far behind its
+      deadlines (docs/runtime.md, "Real-time options and the overrun policy"), or too many
+      consecutive backend failures
  16   safe stop: terminated by SIGTERM
  17   safe stop: the log could not be written (full disk, I/O error, a writer too slow);
       log.bin holds the periods written before
@@ -41,11 +43,15 @@ from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..runtime import (
     EXIT_BACKEND,
+    FIFO_PRIORITY,
+    POLICIES,
     STOP_CODES,
     BackendError,
     RealTimeLoop,
+    RealtimeOptions,
     SimBackend,
     build_supervisor,
+    check_realtime_options,
     verdict,
     write_raw_columns,
 )
@@ -113,12 +119,45 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="control rate (default: the scenario's, 1000 Hz)")
     p.add_argument("--watchdog-misses", type=int, default=20, metavar="N",
-                   help="real time: consecutive missed periods before the watchdog's safe stop "
+                   help="real time: consecutive overrunning periods before the watchdog's "
+                        "safe stop; one period stuck for longer than N periods stops at once "
                         f"(default 20; at most {MAX_WATCHDOG_MISSES}). Raise it only on a loaded "
                         "machine where a missed period is harmless, e.g. the virtual chain")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
                    help="live one-line status while running (auto: when stderr is a terminal)")
+    rt = p.add_argument_group(
+        "real-time settings of the loop's thread (--realtime on; a setting the system refuses "
+        "is one warning, and the run goes on with what it got: summary.json's realtime entry "
+        "records both)")
+    rt.add_argument("--mlockall", choices=["on", "off"],
+                    help="on: lock the process's memory while the loop runs, so no page fault "
+                         "stalls a period (needs CAP_IPC_LOCK or a memlock limit; default off)")
+    rt.add_argument("--cpu", type=int, metavar="N",
+                    help="pin the loop's thread to CPU N, e.g. one isolated with isolcpus "
+                         "(default: leave it on the CPUs the process was given)")
+    rt.add_argument("--sched", choices=list(POLICIES),
+                    help="the loop's scheduling policy: fifo (default), rr or other (the "
+                         "normal time-shared one); fifo and rr need root, CAP_SYS_NICE or an "
+                         "rtprio limit")
+    rt.add_argument("--priority", type=int, metavar="N",
+                    help=f"--sched fifo or rr: the real-time priority, 1..99 (default "
+                         f"{FIFO_PRIORITY}: above normal processes, below the kernel's own "
+                         "threads at 50)")
     return p
+
+
+def _realtime_options(args: argparse.Namespace) -> RealtimeOptions:
+    """``--mlockall --cpu --sched --priority`` as the loop takes them; checked before anything
+    moves."""
+    given = [f"--{name}" for name in ("mlockall", "cpu", "sched", "priority")
+             if getattr(args, name) is not None]
+    if args.realtime == "off" and given:
+        raise CochleaError(f"{', '.join(given)} set the real-time loop's thread and go with "
+                           "--realtime on")
+    options = RealtimeOptions(mlockall=args.mlockall == "on", cpu=args.cpu,
+                              policy=args.sched or "fifo", priority=args.priority)
+    check_realtime_options(options)
+    return options
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,6 +258,7 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError("--port and --baud go with --backend dynamixel")
     if args.baud is not None:
         baud_code(args.baud)  # a rate the motors do not have, refused before the folder exists
+    _realtime_options(args)
     # --out is outputs.check_folder's (a leftover lock of a killed run is not "not empty").
 
 
@@ -289,7 +329,8 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
                                   substeps=substeps, watchdog_misses=args.watchdog_misses)
     loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
-                        kernels=args.kernels, substeps=substeps)
+                        kernels=args.kernels, substeps=substeps,
+                        options=_realtime_options(args), warn=_warn)
     write_raw_columns(run.folder.track(out / "log.columns.json"), loop)
     status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
     # From here a signal is the loop's safe stop (the loop installs the same handler for its
@@ -314,7 +355,12 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     timing = loop.timing_summary()
     if args.backend == "dynamixel":
         timing["bus"] = backend.summary()
-    data = report.write_all(result, out, wall, timing)
+    quantum = None
+    if args.backend == "dynamixel":  # the motors' encoders set what "converged" can mean
+        quantum = {u.name: backend.position_quantum()[sl]
+                   for u, sl in zip(setups, loop.slices)}
+    data = report.write_all(result, out, wall, timing, realtime=loop.realtime_report,
+                            position_quantum=quantum)
     _report(data, out, wall)
     if args.backend == "dynamixel":
         bus = timing["bus"]
@@ -327,8 +373,9 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     print(f"  timing: period p50 {timing['period_p50'] * 1e3:.3f} ms, p99 "
           f"{timing['period_p99'] * 1e3:.3f} ms, max {timing['period_max'] * 1e3:.3f} ms; "
           f"deadline misses {timing['deadline_misses']} "
-          f"({100 * timing['deadline_miss_fraction']:.2f} %); compute p99 "
-          f"{timing['compute_p99'] * 1e6:.0f} us")
+          f"({100 * timing['deadline_miss_fraction']:.2f} %), overruns {timing['overruns']}, "
+          f"lateness max {timing['lateness_max'] * 1e3:.3f} ms; compute p99 "
+          f"{timing['compute_p99'] * 1e6:.0f} us; {timing['scheduling']}")
     if stop.rule == "completed":
         return 0
     line = (f"cochlea-run: stopped by rule {stop.rule} at t = {stop.time:.3f} s: {stop.detail}"
@@ -340,13 +387,18 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
     return STOP_CODES[stop.rule]
 
 
+def _warn(text: str) -> None:
+    print(f"cochlea-run: warning: {text}", file=sys.stderr, flush=True)
+
+
 def _dynamixel_backend(args, scenario):
     """The motors of the scenario's description on ``--port``; refused before anything moves
     when the bus cannot carry the loop's rate, with a warning when it only just can."""
     # Only a missing --baud means the default: --baud 0 is refused like any other bad rate.
+    # The Realtime Tick read with the state: a motor repeating a stale packet is a failed read.
     backend = DynamixelBackend(scenario.robot, args.port,
                                4_000_000 if args.baud is None else args.baud,
-                               system=scenario.system)
+                               system=scenario.system, realtime_tick=True)
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")

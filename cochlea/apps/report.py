@@ -75,14 +75,21 @@ def write_csv(result: SimulationResult, path: Path) -> None:
             np.savetxt(f, columns(chunk)[1], delimiter=",", fmt="%.10g")
 
 
-def measurement_resolution(u: UnitLog) -> np.ndarray | None:
+def measurement_resolution(u: UnitLog, position_quantum: np.ndarray | None = None
+                           ) -> np.ndarray | None:
     """Per tracked coordinate, what one encoder count on every joint moves it at the run's
     last pose (rad or m): the joint's quantum in joint space, ``sum_j |fk(q + count_j) -
-    fk(q)|`` in task space. None when the plant measures positions without a grid."""
-    quantum = u.setup.quantum
-    if quantum is None or not len(u.q) or not np.any(quantum[:u.q.shape[1]] > 0):
-        return None
-    counts = quantum[:u.q.shape[1]]
+    fk(q)|`` in task space. The count is ``position_quantum`` (per joint, SI: the drives'
+    encoders of a hardware run) or else the plant's grid; None when neither has one."""
+    if position_quantum is None:
+        quantum = u.setup.quantum
+        if quantum is None or not len(u.q) or not np.any(quantum[:u.q.shape[1]] > 0):
+            return None
+        counts = quantum[:u.q.shape[1]]
+    else:
+        if not len(u.q):
+            return None
+        counts = np.abs(np.asarray(position_quantum, dtype=float))
     if u.setup.controller.space == "joint":
         return counts.copy()
     q = u.q[-1]
@@ -125,32 +132,38 @@ class _UnitStats:
             "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")})
 
 
-def unit_summary(u: UnitLog) -> dict:
+def unit_summary(u: UnitLog, position_quantum: np.ndarray | None = None) -> dict:
     """The summary of one unit's log held in memory."""
     stats = _UnitStats(len(u.q))
     stats.add(u, 0)
-    return _unit_summary(u, stats)
+    return _unit_summary(u, stats, position_quantum)
 
 
-def _unit_summary(u: UnitLog, stats: _UnitStats) -> dict:
-    """``u`` describes the unit (its rows are not read); ``stats`` holds every period's."""
-    resolution = measurement_resolution(stats.last) if stats.last is not None else None
+def _unit_summary(u: UnitLog, stats: _UnitStats,
+                  position_quantum: np.ndarray | None = None) -> dict:
+    """``u`` describes the unit (its rows are not read); ``stats`` holds every period's;
+    ``position_quantum`` the drives' encoder count per joint of a hardware run (SI)."""
+    resolution = measurement_resolution(stats.last, position_quantum) \
+        if stats.last is not None else None
     tracked = {}
     for i, (name, unit) in enumerate(zip(u.tracked_names, u.tracked_units)):
+        floor = CONVERGENCE_FLOOR[unit] if resolution is None else \
+            max(CONVERGENCE_FLOOR[unit], float(resolution[i]))
         if stats.initial is None:  # a run stopped before its first period
             tracked[name] = {"unit": unit, "initial_abs_error": None, "final_rms_error": None,
-                             "converged": False}
+                             "converged": False, "convergence_floor": floor}
             continue
         initial = float(stats.initial[i])
         final_rms = float(np.sqrt(stats.tail_sq[i] / stats.tail_n))
-        floor = CONVERGENCE_FLOOR[unit] if resolution is None else \
-            max(CONVERGENCE_FLOOR[unit], float(resolution[i]))
         tracked[name] = {
             "unit": unit,
             "initial_abs_error": initial,
             "final_rms_error": final_rms,
             "converged": bool(np.isfinite(final_rms) and (
                 final_rms <= CONVERGENCE_RATIO * initial or final_rms <= floor)),
+            # The floor this coordinate was judged on: the numeric one, or one encoder count
+            # on every joint where the positions are measured in counts.
+            "convergence_floor": floor,
         }
         if resolution is not None:
             tracked[name]["measurement_resolution"] = float(resolution[i])
@@ -162,6 +175,7 @@ def _unit_summary(u: UnitLog, stats: _UnitStats) -> dict:
     params = u.setup.controller_model.parameters
     return {
         "tracked": tracked,
+        "position_quantum": _position_quantum(u, position_quantum),
         "torque": torque,
         "estimates": {
             "names": list(params.names),
@@ -176,8 +190,25 @@ def _unit_summary(u: UnitLog, stats: _UnitStats) -> dict:
     }
 
 
+def _position_quantum(u: UnitLog, position_quantum: np.ndarray | None) -> dict | None:
+    """Per joint, the count its position is measured in (SI) and where it comes from."""
+    joints = [j.name for j in u.setup.controller_model.joints]
+    if position_quantum is not None:
+        source, values = "drives", np.abs(np.asarray(position_quantum, dtype=float))
+    elif u.setup.quantum is not None and np.any(u.setup.quantum[:len(joints)] > 0):
+        source, values = "plant", u.setup.quantum[:len(joints)]
+    else:
+        return None
+    return {"source": source,
+            "joints": {j: {"value": float(v), "unit": un}
+                       for j, v, un in zip(joints, values, u.setup.joint_units)}}
+
+
 def summary(result: SimulationResult, wall_time_s: float | None = None,
-            timing: dict | None = None) -> dict:
+            timing: dict | None = None, realtime: dict | None = None,
+            position_quantum: dict | None = None) -> dict:
+    """``position_quantum``: per unit name, its joints' encoder counts (SI) when the run
+    measured real drives (a hardware run); the convergence floor then knows them."""
     sc = result.scenario
     stats = [_UnitStats(result.periods) for _ in result.units]
     start = 0
@@ -185,7 +216,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         for s, u in zip(stats, chunk.units):
             s.add(u, start)
         start += chunk.periods
-    units = {u.name: _unit_summary(u, s) for u, s in zip(result.units, stats)}
+    quanta = position_quantum or {}
+    units = {u.name: _unit_summary(u, s, quanta.get(u.name))
+             for u, s in zip(result.units, stats)}
     converged = all(c["converged"] for s in units.values() for c in s["tracked"].values())
     return {
         "scenario": sc.name,
@@ -201,14 +234,18 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "convergence_rule": f"final RMS over the last {TAIL_FRACTION:.0%} <= "
                             f"{CONVERGENCE_RATIO:.0%} of the initial absolute error, or below "
                             + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items())
-                            + " (with encoder counts: below the coordinate's "
-                              "measurement_resolution, one count on every joint)",
+                            + " (with encoder counts, of the plant or of a hardware run's "
+                              "drives: below the coordinate's measurement_resolution, one "
+                              "count on every joint; each coordinate's convergence_floor)",
         "converged": bool(converged and not result.diverged and (
             result.stop is None or result.stop["rule"] == "completed")),
         "diverged": result.diverged,
         "stop": result.stop,
         "supervisor": result.supervisor,
         "timing": timing,
+        # The loop thread's settings, asked for and obtained (real-time runs; see
+        # cochlea.runtime.loop.RealtimeOptions).
+        "realtime": realtime,
         "wall_time_s": wall_time_s,
         "units": units,
     }
@@ -325,7 +362,8 @@ def _desired_poses(u: UnitLog) -> np.ndarray:
 
 
 def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None,
-              timing: dict | None = None) -> dict:
+              timing: dict | None = None, realtime: dict | None = None,
+              position_quantum: dict | None = None) -> dict:
     """log.csv, the figures, then summary.json, each to a temporary name and renamed: a reader
     never sees half a file, and a summary.json without ``report_lost`` means the report is
     whole. A part that fails to write (a full disk) does not stop the others; then
@@ -338,7 +376,7 @@ def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = N
     except OSError as exc:
         lost.append("log.csv")
         causes.append(exc)
-    data = summary(result, wall_time_s, timing)
+    data = summary(result, wall_time_s, timing, realtime, position_quantum)
     try:
         data["figures"] = [str(p) for p in figures(result, out)] if result.periods > 1 else []
     except OSError as exc:

@@ -19,9 +19,18 @@ shut-down, before anything moved:
 9. Torque Enable 1.
 
 Each period: :meth:`~DynamixelBackend.read` is one SYNC_READ of 126..135 (current, velocity,
-position), :meth:`~DynamixelBackend.write` one SYNC_WRITE of Goal Current. Both work in
-preallocated buffers and report failures (timeout, CRC, error byte, hardware alert, port) as a
-False return and counters, never as an exception.
+position; with ``realtime_tick``, 120..135: the Realtime Tick first), :meth:`~DynamixelBackend.
+write` one SYNC_WRITE of Goal Current. Both work in preallocated buffers and report failures
+(timeout, CRC, error byte, hardware alert, port, stale packet) as a False return and counters,
+never as an exception.
+
+With ``realtime_tick`` (``cochlea-run`` sets it) a stale status packet (a motor repeating old
+data) is refused by its Realtime Tick, the motor's millisecond counter: a tick equal to the one
+carried by a reply that had already arrived 1.1 ms (one tick and a tenth for the motor's clock)
+before this request cannot be fresh, whatever the host's or the bus's delays, so the read fails
+as ``stale-packet``. At 1 kHz a single repeated packet is within that bound and passes (it is
+one period old); two in a row are refused. The tick costs 6 bytes per motor and period
+(122..125 lie between it and the state; see :mod:`cochlea.dynamixel.budget`).
 
 Protocol 2.0 has no sequence numbers: a status packet later than the read timeout would pass
 for the next period's. So after a failed read the next one first waits until the line has been
@@ -58,6 +67,7 @@ from .control_table import (
     ALERT_BIT,
     CURRENT_MODE,
     MODELS_BY_NUMBER,
+    MX64,
     STATE_ADDRESS,
     STATE_LENGTH,
     WATCHDOG_UNIT_S,
@@ -69,10 +79,20 @@ from .drives import DEFAULT_RAMP_NM, JointDrive, joint_drives
 from .port import SerialPort, latency_timer_ms
 
 #: Failure kinds a period can report (index into ``DynamixelBackend.failures``).
-TIMEOUT, CRC, ERROR_BYTE, ALERT, LENGTH, PORT, LATE, NON_FINITE, NOT_ENABLED, INTERNAL = \
-    range(10)
+TIMEOUT, CRC, ERROR_BYTE, ALERT, LENGTH, PORT, LATE, NON_FINITE, NOT_ENABLED, INTERNAL, \
+    STALE = range(11)
 FAILURE_NAMES = ("timeout", "crc", "error-byte", "hardware-alert", "length", "port",
-                 "late-traffic", "non-finite-command", "not-enabled", "internal")
+                 "late-traffic", "non-finite-command", "not-enabled", "internal", "stale-packet")
+
+#: The per-period SYNC_READ with ``realtime_tick``: from Realtime Tick (120) to the end of the
+#: state (135). Moving, Moving Status and Present PWM (122..125) lie between and come along: one
+#: contiguous block, one packet per motor (6 bytes more per motor than 126..135 alone).
+TICK_ADDRESS = MX64.item("Realtime Tick").address
+TICK_READ_LENGTH = STATE_ADDRESS + STATE_LENGTH - TICK_ADDRESS
+#: The Realtime Tick counts milliseconds modulo 32768; a tick that has not moved across more
+#: than this (s, one tick and a tenth for the motor's clock) is a stale packet.
+TICK_S = 1e-3
+STALE_AFTER_S = 1.1 * TICK_S
 
 #: What ``DynamixelBackend._next_packet`` returns besides the parser's own codes (>= 0).
 _PORT_FAILED, _TIMED_OUT = -1, -2
@@ -83,6 +103,10 @@ _PORT_FAILED, _TIMED_OUT = -1, -2
 HOMING_MODES = ("auto", "required", "off")
 
 _STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+_TICK_STATE_DTYPE = np.dtype([("tick", "<u2"), ("moving", "u1"), ("moving_status", "u1"),
+                              ("pwm", "<i2"), ("current", "<i2"), ("velocity", "<i4"),
+                              ("position", "<i4")])
+assert _STATE_DTYPE.itemsize == STATE_LENGTH and _TICK_STATE_DTYPE.itemsize == TICK_READ_LENGTH
 _GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
 
 
@@ -99,7 +123,9 @@ class DynamixelBackend:
     waits for all status packets (default: the bus time plus 3 ms); ``ramp_Nm`` the fit's
     blending band (:mod:`cochlea.dynamixel.drives`); ``position_margin_rad`` how far outside its
     limits a joint may be at start-up; ``adapter_latency_s`` for the bus budget (default: the
-    adapter's latency timer from sysfs, 0 for a pseudo-terminal, else 1 ms).
+    adapter's latency timer from sysfs, 0 for a pseudo-terminal, else 1 ms); ``realtime_tick``
+    to read the Realtime Tick with the state and refuse stale packets (see the module
+    docstring).
     """
 
     name = "dynamixel"
@@ -110,7 +136,7 @@ class DynamixelBackend:
                  position_margin_rad: float = math.radians(2.0),
                  adapter_latency_s: float | None = None, retries: int = 3,
                  open_port=SerialPort, system=None, homing: str = "auto",
-                 homing_record: str | Path | None = None):
+                 homing_record: str | Path | None = None, realtime_tick: bool = False):
         self.robot = robot
         self.port_path = str(port)
         baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
@@ -130,7 +156,13 @@ class DynamixelBackend:
                 adapter_latency_s = 0.0
             else:
                 adapter_latency_s = DEFAULT_ADAPTER_LATENCY_S
-        self.budget: BusBudget = bus_budget(n, self.baud, adapter_latency_s=adapter_latency_s)
+        self.realtime_tick = bool(realtime_tick)
+        read_address, read_length, dtype = (
+            (TICK_ADDRESS, TICK_READ_LENGTH, _TICK_STATE_DTYPE) if self.realtime_tick
+            else (STATE_ADDRESS, STATE_LENGTH, _STATE_DTYPE))
+        self._read_length = read_length
+        self.budget: BusBudget = bus_budget(n, self.baud, adapter_latency_s=adapter_latency_s,
+                                            read_length=read_length)
         self.timeout_s = timeout_s if timeout_s is not None else self.budget.cycle_s + 3e-3
         self.position_margin = position_margin_rad
         self.retries = max(1, retries)
@@ -148,15 +180,20 @@ class DynamixelBackend:
 
         # ---- preallocated per-period state -----------------------------------------------------
         self._parser = proto.PacketParser(status=True)
-        self._read_frame = proto.sync_read(STATE_ADDRESS, STATE_LENGTH, self.ids)
+        self._read_frame = proto.sync_read(read_address, read_length, self.ids)
         self._read_view = memoryview(self._read_frame)
         self._write_frame = proto.sync_write_buffer(ADDR_GOAL_CURRENT, 2, self.ids)
         self._goal = np.frombuffer(self._write_frame.params, _GOAL_DTYPE, count=n,
                                    offset=4)["current"]
-        self._raw = bytearray(STATE_LENGTH * n)
+        self._raw = bytearray(read_length * n)
         self._raw_view = memoryview(self._raw)
-        state = np.frombuffer(self._raw, _STATE_DTYPE)
+        state = np.frombuffer(self._raw, dtype)
         self._cur, self._vel, self._pos = state["current"], state["velocity"], state["position"]
+        self._tick = state["tick"] if self.realtime_tick else None
+        # Per motor: the last Realtime Tick seen, and when the reply that first carried it had
+        # arrived (perf_counter s): the motor sampled it no later than that.
+        self._last_tick = [-1] * n
+        self._tick_seen = [0.0] * n
         self._slot_of = [-1] * 256
         for j, motor_id in enumerate(self.ids):
             self._slot_of[motor_id] = j
@@ -292,6 +329,11 @@ class DynamixelBackend:
         return (f"last failure {FAILURE_NAMES[self.last_failure]}"
                 + (f" from {self._who(self.drives[j])}" if j >= 0 else ""))
 
+    def position_quantum(self) -> np.ndarray:
+        """One encoder count of each joint (rad, or m for the slider through its pinion), in
+        the loop's joint order: what a run's convergence floor is measured against."""
+        return np.abs(self._q_per_count)
+
     def summary(self) -> dict:
         """Counters and settings for a run's summary (JSON-ready)."""
         port = self._port
@@ -301,6 +343,7 @@ class DynamixelBackend:
                            "wire_s": self.budget.wire_s, "bus_s": self.budget.bus_s,
                            "with_adapter_latency_s": self.budget.cycle_s},
             "read_timeout_s": self.timeout_s, "watchdog_s": self.watchdog_lsb * WATCHDOG_UNIT_S,
+            "realtime_tick_check": self.realtime_tick,
             "reads": self.reads, "good_reads": self.good_reads, "writes": self.writes,
             "failures": {name: c for name, c in zip(FAILURE_NAMES, self.failures) if c},
             "garbage_packets": self.garbage_packets,
@@ -359,11 +402,13 @@ class DynamixelBackend:
             return self._fail(LATE, -1)
         if self._alert_pending >= 0:
             return self._read_alert(port)
-        deadline = time.perf_counter() + self.timeout_s
+        asked = time.perf_counter()
+        deadline = asked + self.timeout_s
         if not port.write(self._read_view, len(self._read_frame), deadline):
             return self._fail(PORT, -1)
         slots, slot_of = self._slots, self._slot_of
         n = self.nq
+        length = self._read_length
         for j in range(n):
             slots[j] = 0
         pending = n
@@ -389,16 +434,16 @@ class DynamixelBackend:
                         self.alert_ids.add(parser.id)
                         self._alert_pending, self._alert_tries = parser.id, 0
                     failure, failure_id = ALERT, parser.id  # outranks every other cause
-                if parser.params_len != STATE_LENGTH or error & 0x7F:
+                if parser.params_len != length or error & 0x7F:
                     slots[j] = 2
                     if failure < 0:
-                        failure = LENGTH if parser.params_len != STATE_LENGTH else ERROR_BYTE
+                        failure = LENGTH if parser.params_len != length else ERROR_BYTE
                         failure_id = parser.id
                     continue
                 slots[j] = 1
                 start = parser.params_start
-                self._raw_view[j * STATE_LENGTH:(j + 1) * STATE_LENGTH] = \
-                    parser.view[start:start + STATE_LENGTH]
+                self._raw_view[j * length:(j + 1) * length] = \
+                    parser.view[start:start + length]
             elif code == proto.CRC_FAILURE:
                 if failure < 0:
                     failure, failure_id = CRC, parser.id
@@ -410,12 +455,29 @@ class DynamixelBackend:
                 self.garbage_packets += 1
         if failure >= 0:
             return self._fail(failure, failure_id)
+        if self.realtime_tick and not self._fresh(asked, time.perf_counter()):
+            return False
         q, qd = x[:n], x[n:]
         np.multiply(self._pos, self._q_per_count, out=q)
         np.add(q, self._q_offset, out=q)
         np.multiply(self._vel, self._qd_per_lsb, out=qd)
         np.multiply(self._cur, self._mA_per_lsb, out=self.present_current_mA)
         self.good_reads += 1
+        return True
+
+    def _fresh(self, asked: float, arrived: float) -> bool:
+        """The Realtime-Tick check of a read whose packets all came (``asked``: when the
+        request was sent; ``arrived``: when the last reply was in): False, a ``stale-packet``
+        failure, if a motor's tick has not moved since a reply that was in more than
+        STALE_AFTER_S before this request. No allocation: ints and floats only."""
+        last, seen, ticks = self._last_tick, self._tick_seen, self._tick
+        for j in range(self.nq):
+            tick = int(ticks[j])
+            if tick != last[j]:
+                last[j] = tick
+                seen[j] = arrived
+            elif asked - seen[j] > STALE_AFTER_S:
+                return self._fail(STALE, self.ids[j])
         return True
 
     def _next_packet(self, port: SerialPort, deadline: float) -> int:

@@ -23,8 +23,10 @@ when their last byte would have arrived.
 Faults (:class:`Faults`), all counted from the first Torque Enable 1 (the start of a run) plus
 ``delay_s``: dropped replies, corrupted CRCs, late replies (each with a probability, on the
 motors ``ids`` or all), a hardware error on one motor (alert bit, torque off), a motor that
-stops answering; and, from the start, motors missing from the bus or reporting another model
-number.
+stops answering, a motor that repeats a stale status packet (its last reply before the fault,
+Realtime Tick and all, for a number of reads or for good); and, from the start, motors missing
+from the bus or reporting another model number. The Realtime Tick (120) counts the
+milliseconds since the chain started, modulo 32768.
 
 For the bring-up tools (``cochlea-dxl``, see "Bring-up emulation" below): optionally each motor
 hears only instructions sent at the baud rate of its own Baud Rate register (``--check-baud``),
@@ -140,6 +142,9 @@ class Faults:
     model_number: dict[int, int] = field(default_factory=dict)  # ID -> reported model number
     delay_s: float = 0.0
     seed: int = 0
+    # (ID, reads): the motor answers its next ``reads`` reads (-1: all) with the data of its
+    # last reply before the fault, a stale packet (the Realtime Tick does not move).
+    stale: tuple[int, int] | None = None
 
 
 def check_faults(faults: Faults, ids: list[int]) -> None:
@@ -167,6 +172,11 @@ def check_faults(faults: Faults, ids: list[int]) -> None:
                 f"{b} ({n})" for b, n in HARDWARE_ERROR_BITS.items()))
     if faults.silent is not None:
         named.append(("--silent-motor", faults.silent))
+    if faults.stale is not None:
+        named.append(("--stale-replies", faults.stale[0]))
+        if faults.stale[1] == 0 or faults.stale[1] < -1:
+            raise CochleaError(f"--stale-replies {faults.stale[0]}:{faults.stale[1]}: expected "
+                               "a number of reads >= 1 (or none: every read from the fault on)")
     for option, motor_id in named:
         if motor_id not in ids:
             raise CochleaError(f"{option}: motor ID {motor_id} is not on this chain (its motors "
@@ -470,9 +480,11 @@ class VirtualChain:
         self.log_error: str | None = None  # why the event log stopped, if it failed
         self.counts = {"instructions": 0, "bad_instructions": 0, "replies": 0, "dropped": 0,
                        "corrupted": 0, "late": 0, "watchdog_trips": 0, "plant_overruns": 0,
-                       "plant_steps": 0}
+                       "plant_steps": 0, "stale": 0}
         self.run_start: float | None = None  # time of the first Torque Enable 1
         self._injected_hw = self._injected_silent = False
+        self._stale_left = -1 if self.faults.stale is None else self.faults.stale[1]
+        self._stale_last: tuple[int, bytes] | None = None  # (address, data) of the last reply
         self._parser = proto.PacketParser(status=False)
         self._queue: list = []  # (due, seq, bytes)
         self._seq = 0
@@ -752,7 +764,7 @@ class VirtualChain:
                 m = self.by_id.get(motor_id)
                 if m is not None and self._contact(m, now):
                     error, data = m.read(address, length)
-                    replies.append((m, error, data))
+                    replies.append((m, error, self._stale_reply(m, now, address, data)))
         elif inst == SYNC_WRITE and broadcast and len(params) >= 4:
             address, length = proto.from_le(params[0:2], False), proto.from_le(params[2:4], False)
             chunk = 1 + length
@@ -768,6 +780,25 @@ class VirtualChain:
                                 f"{INSTRUCTION_NAMES.get(inst, hex(inst))} not emulated")
                     replies.append((m, INSTRUCTION_ERROR, b""))
         self._reply(now, p.frame_len, replies, inst)
+
+    # ---- fault: stale status packets (--stale-replies) ------------------------------------
+
+    def _stale_reply(self, m: VirtualMotor, now: float, address: int, data: bytes) -> bytes:
+        """A SYNC_READ's data for motor ``m``: its last reply's again while the stale-packet
+        fault lasts (the same block read), else ``data``, remembered for that fault."""
+        f = self.faults
+        if f.stale is None or m.id != f.stale[0]:
+            return data
+        last = self._stale_last
+        if (not self._active(now) or self._stale_left == 0 or last is None
+                or last[0] != address or len(last[1]) != len(data)):
+            self._stale_last = (address, data)
+            return data
+        if self._stale_left > 0:
+            self._stale_left -= 1
+        self.counts["stale"] += 1
+        self._event(now, "fault", m.id, address, "stale reply repeated")
+        return last[1]
 
     def _write(self, m: VirtualMotor, params: bytes, now: float, kind: str) -> int:
         address = proto.from_le(params[0:2], False)
@@ -911,6 +942,14 @@ def _id_bit(text: str) -> tuple[int, int]:
     return result
 
 
+def _id_count(text: str) -> tuple[int, int]:
+    try:
+        motor_id, _, count = text.partition(":")
+        return int(motor_id), int(count) if count else -1
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ID[:N], got {text!r}") from None
+
+
 def _id_number(text: str) -> tuple[int, int]:
     try:
         motor_id, number = text.split(":")
@@ -969,6 +1008,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="motor ID latches a hardware error (bit of Hardware Error Status, "
                         "default 5 = overload): alert bit set, torque off")
     f.add_argument("--silent-motor", type=int, metavar="ID", help="motor ID stops answering")
+    f.add_argument("--stale-replies", type=_id_count, metavar="ID[:N]",
+                   help="motor ID repeats its last status packet before the fault (a stale "
+                        "packet: its Realtime Tick does not move) for its next N reads "
+                        "(default: every read)")
     f.add_argument("--fault-delay", type=float, default=0.0, metavar="S",
                    help="the faults above start S seconds after the first Torque Enable 1")
     f.add_argument("--missing-motor", type=int, action="append", default=[], metavar="ID",
@@ -992,7 +1035,7 @@ def faults_from_args(args: argparse.Namespace) -> Faults:
                   late_s=args.late_ms * 1e-3, ids=args.fault_ids,
                   hardware_error=args.hardware_error, silent=args.silent_motor,
                   missing=frozenset(args.missing_motor), model_number=dict(args.model_number),
-                  delay_s=args.fault_delay, seed=args.seed)
+                  delay_s=args.fault_delay, seed=args.seed, stale=args.stale_replies)
 
 
 def check_options(args: argparse.Namespace) -> None:

@@ -18,25 +18,30 @@ period, then finishes the log and reports the rule, its time and values.
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import gc
 import json
 import math
 import os
+import resource
 import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import CochleaError
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult, StreamedResult, UnitLog
 from ..sim.setup import UnitSetup
 from . import log_writer as _log_writer
 from .backend import Backend
 from .log_writer import LogWriter
-from .supervisor import Stop, Supervisor
+from .supervisor import OVERRUN_POLICY, OverrunWatch, Stop, Supervisor
 
 #: The loop sleeps until this long before each deadline, then spins: the OS wakes a sleeping
 #: thread late by up to a few hundred microseconds on a loaded machine.
@@ -226,24 +231,172 @@ def timing_of(source: RowSource, first: int, nominal_period: float) -> dict:
 #: real-time threads (Linux runs those at 50 and up).
 FIFO_PRIORITY = 40
 
+#: The scheduling policies ``--sched`` offers, by name.
+POLICIES = {"fifo": "SCHED_FIFO", "rr": "SCHED_RR", "other": "SCHED_OTHER"}
+_MCL_CURRENT, _MCL_FUTURE = 1, 2  # <sys/mman.h> on Linux
 
-def _realtime_priority() -> str:
-    """Run the calling thread under SCHED_FIFO if allowed (root or CAP_SYS_NICE), so other
-    processes cannot delay a period; the loop sleeps most of each period, and the kernel's
-    real-time throttling keeps 5 % of the CPU for everything else. Returns what was obtained."""
+
+@dataclass(frozen=True)
+class RealtimeOptions:
+    """How the loop's thread runs (``cochlea-run --mlockall --cpu --sched --priority``).
+
+    The defaults are what the loop always did: SCHED_FIFO 40 when permitted, the CPUs the
+    process was given, memory not locked. ``mlockall`` locks the process's pages for the loop
+    (no page fault can stall a period; unlocked again when the loop ends, before the report);
+    ``cpu`` pins the loop's thread to one core (the log writer and status threads stay free).
+    """
+
+    mlockall: bool = False
+    cpu: int | None = None
+    policy: str = "fifo"
+    priority: int | None = None  # fifo and rr: default FIFO_PRIORITY; other: none
+
+    @property
+    def level(self) -> int:
+        """The priority asked for: SCHED_OTHER's is 0."""
+        if self.policy == "other":
+            return 0
+        return FIFO_PRIORITY if self.priority is None else self.priority
+
+    def as_dict(self) -> dict:
+        return {"mlockall": self.mlockall, "cpu": self.cpu, "policy": self.policy,
+                "priority": self.level}
+
+
+def check_realtime_options(options: RealtimeOptions) -> None:
+    """The user's mistakes in ``options``, refused before anything moves (the option named)."""
+    if options.policy not in POLICIES:
+        raise CochleaError(f"--sched: expected one of {', '.join(POLICIES)}, got "
+                           f"{options.policy!r}")
+    if options.policy == "other":
+        if options.priority is not None:
+            raise CochleaError("--priority goes with --sched fifo or rr (SCHED_OTHER has no "
+                               "real-time priority)")
+    else:
+        lo, hi = _priority_range(options.policy)
+        if not lo <= options.level <= hi:
+            raise CochleaError(f"--priority must be between {lo} and {hi} for --sched "
+                               f"{options.policy}, got {options.level}")
+    if options.cpu is not None:
+        allowed = _allowed_cpus()
+        if allowed is not None and options.cpu not in allowed:
+            raise CochleaError(f"--cpu {options.cpu} is not a CPU this process may use: expected "
+                               f"one of {_cpu_list(allowed)}")
+
+
+def _priority_range(policy: str) -> tuple[int, int]:
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
-        return f"SCHED_FIFO {FIFO_PRIORITY}"
-    except (AttributeError, PermissionError, OSError):
-        return "normal (SCHED_FIFO not permitted)"
+        value = getattr(os, POLICIES[policy])
+        return os.sched_get_priority_min(value), os.sched_get_priority_max(value)
+    except (AttributeError, OSError):
+        return 1, 99  # Linux's range, where the OS cannot say
 
 
-def _normal_priority() -> None:
+def _allowed_cpus() -> set[int] | None:
     try:
-        if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (AttributeError, PermissionError, OSError):
-        pass
+        return set(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
+
+
+def _cpu_list(cpus) -> str:
+    return ", ".join(str(c) for c in sorted(cpus))
+
+
+def _policy_now() -> tuple[str, int]:
+    """The calling thread's scheduling policy (by ``POLICIES`` name) and priority."""
+    try:
+        value = os.sched_getscheduler(0)
+        priority = os.sched_getparam(0).sched_priority
+    except (AttributeError, OSError):
+        return "unknown", 0
+    names = {getattr(os, v, None): k for k, v in POLICIES.items()}
+    return names.get(value, f"policy {value}"), priority
+
+
+def _libc():
+    return ctypes.CDLL(None, use_errno=True)
+
+
+class _Applied:
+    """What :func:`apply_realtime` changed, to undo it when the loop ends."""
+
+    def __init__(self):
+        self.locked = False
+        self.affinity: set[int] | None = None
+        self.policy: tuple[int, int] | None = None
+
+    def undo(self) -> None:
+        if self.locked:
+            try:
+                _libc().munlockall()
+            except (AttributeError, OSError):
+                pass
+        if self.affinity is not None:
+            try:
+                os.sched_setaffinity(0, self.affinity)
+            except OSError:
+                pass
+        if self.policy is not None:
+            try:
+                os.sched_setscheduler(0, self.policy[0], os.sched_param(self.policy[1]))
+            except OSError:
+                pass
+
+
+def apply_realtime(options: RealtimeOptions) -> tuple[dict, list[str], _Applied]:
+    """Apply ``options`` to the calling thread (and ``mlockall`` to the process): ``(obtained,
+    problems, undo)``. A setting the OS refuses (no permission, a locked-memory limit) is a
+    problem, not an error: the run goes on with what it got, and ``obtained`` says what."""
+    problems = []
+    applied = _Applied()
+    if options.mlockall:
+        try:
+            if _libc().mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+                applied.locked = True
+            else:
+                error = ctypes.get_errno()
+                limit = ""
+                if error in (errno.ENOMEM, errno.EPERM):
+                    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+                    limit = "; RLIMIT_MEMLOCK is " + ("unlimited" if soft == resource.RLIM_INFINITY
+                                                      else f"{soft / 2**20:g} MiB")
+                problems.append(f"mlockall failed ({os.strerror(error)}{limit}: raise memlock "
+                                "in /etc/security/limits.conf or run with CAP_IPC_LOCK)")
+        except (AttributeError, OSError) as exc:
+            problems.append(f"mlockall not available ({exc})")
+    if options.cpu is not None:
+        before = _allowed_cpus()
+        try:
+            os.sched_setaffinity(0, {options.cpu})
+            applied.affinity = before
+        except (AttributeError, OSError) as exc:
+            problems.append(f"CPU affinity {options.cpu} refused ({exc})")
+    try:
+        previous = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+        value = getattr(os, POLICIES[options.policy])
+        if previous != (value, options.level):
+            os.sched_setscheduler(0, value, os.sched_param(options.level))
+            applied.policy = previous
+    except (AttributeError, PermissionError, OSError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        problems.append(f"{POLICIES[options.policy]} {options.level} not permitted "
+                        f"({reason}: run as root, with CAP_SYS_NICE or an rtprio limit)")
+    policy, priority = _policy_now()
+    cpus = _allowed_cpus()
+    obtained = {"mlockall": applied.locked,
+                "cpu": sorted(cpus) if cpus is not None else None,
+                "policy": policy, "priority": priority}
+    return obtained, problems, applied
+
+
+def _scheduling_text(options: RealtimeOptions, obtained: dict) -> str:
+    """The loop's scheduling in words (``timing.scheduling`` of ``summary.json``)."""
+    if obtained["policy"] in ("fifo", "rr"):
+        return f"{POLICIES[obtained['policy']]} {obtained['priority']}"
+    if options.policy != "other":
+        return f"normal ({POLICIES[options.policy]} not permitted)"
+    return "normal"
 
 
 class _Status(threading.Thread):
@@ -279,15 +432,27 @@ class RealTimeLoop:
 
     def __init__(self, setups: list[UnitSetup], backend: Backend, supervisor: Supervisor,
                  period: float, steps: int, realtime: bool = True, kernels: str = "c",
-                 substeps: int = 1):
+                 substeps: int = 1, options: RealtimeOptions | None = None,
+                 warn=None, clock=None, sleep=None):
         self.setups, self.backend, self.supervisor = setups, backend, supervisor
         self.h, self.steps, self.realtime = period, steps, realtime
         self.n = sum(u.controller_model.nq for u in setups)
         self.stop: Stop | None = None
         self.rows = 0
-        self.misses = 0
+        self.misses = 0  # overruns so far (the status line's count)
         self._signal: str | None = None
         self.scheduling = "normal"
+        #: ``--mlockall``, ``--cpu``, ``--sched``, ``--priority``: applied when the loop starts
+        #: (real time only); ``realtime_report`` says what was asked and obtained.
+        self.options = options or RealtimeOptions()
+        self.realtime_report: dict | None = None
+        self._warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr,
+                                                 flush=True))
+        # The loop's clock and sleep (ns, s); tests give a synthetic pair to place a stall
+        # exactly, whatever the machine's own timing.
+        self._clock = clock or time.perf_counter_ns
+        self._sleep = sleep or time.sleep
+        self.watch = OverrunWatch(int(round(period * 1e9)), supervisor.limits.watchdog_misses)
         self.log_path: Path | None = None
 
         # Per unit: the fused step through buffers, its slice of the joint vector, the desired
@@ -383,13 +548,15 @@ class RealTimeLoop:
         previous = {s: signal.signal(s, self.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         status_thread = _Status(self) if status else None
         self.misses = 0
+        applied = None
         try:
             self.backend.enable()
             if writer:
                 writer.start()
             if status_thread:
                 status_thread.start()
-            self.scheduling = _realtime_priority() if self.realtime else "normal"
+            if self.realtime:  # after the writer and status threads started: they stay normal
+                applied = self._apply_options()
             gc.disable()  # no collector pauses inside the loop
             # Hand the GIL back to the loop within 0.1 ms when it wakes (default: 5 ms), so the
             # writer and status threads cannot delay a period.
@@ -401,6 +568,8 @@ class RealTimeLoop:
                 sys.setswitchinterval(switch_interval)
         finally:
             gc.enable()
+            if applied is not None:  # unlocked and back to normal before the report
+                applied.undo()
             # The safe sequence, whatever happened: zero effort, drives off.
             try:
                 self.backend.write(self.zero)
@@ -417,11 +586,22 @@ class RealTimeLoop:
                 status_thread.close()
             for s, handler in previous.items():
                 signal.signal(s, handler)
-            _normal_priority()
         if writer and writer.error is not None and self.stop.rule != "log-failure":
             # The writer failed while the last rows were flushed, after the loop had stopped.
             self.stop = Stop("log-failure", self.stop.time, self._log_failure(writer))
         return self.stop
+
+    def _apply_options(self):
+        obtained, problems, applied = apply_realtime(self.options)
+        self.scheduling = _scheduling_text(self.options, obtained)
+        self.realtime_report = {"requested": self.options.as_dict(), "obtained": obtained,
+                                "problems": problems}
+        if problems:  # once, before the first period: the run goes on with what it got
+            self._warn("real-time settings not all obtained: " + "; ".join(problems)
+                       + f"; running {self.scheduling}, memory "
+                       + ("locked" if obtained["mlockall"] else "not locked")
+                       + f", CPUs {_cpu_list(obtained['cpu'] or [])}")
+        return applied
 
     def _log_failure(self, writer) -> str:
         if writer.error is not None:
@@ -450,7 +630,9 @@ class RealTimeLoop:
 
     def _loop(self, writer) -> Stop:
         h_ns = int(round(self.h * 1e9))
-        misses = errors = 0
+        errors = 0
+        watch = self.watch
+        watch.reset()
         sup, backend, x, tau, buf = (self.supervisor, self.backend, self.x, self.tau,
                                      self.buffer)
         ring = len(buf)
@@ -458,7 +640,7 @@ class RealTimeLoop:
         q_view, qd_view = x[:n], x[n:]
         row, row_x, row_tau, row_timing, units = self._views()
         estimates = [kern.outputs[1] for kern in self.kernels]
-        clock = time.perf_counter_ns
+        clock, sleep = self._clock, self._sleep
         if self.rows:  # a second run of the same loop starts from the first chunk again
             self._fill_desired(0)
         self.rows = 0
@@ -468,17 +650,22 @@ class RealTimeLoop:
             t = k * self.h
             j = k % DESIRED_CHUNK
             slot = k % ring
+            deadline = t0 + k * h_ns
             if self.realtime:
-                deadline = t0 + k * h_ns
                 while True:  # sleep until SPIN before the deadline, then spin
                     remaining = deadline - clock()
                     if remaining <= 0:
                         break
                     if remaining > SPIN_NS:
-                        time.sleep((remaining - SPIN_NS) * 1e-9)
+                        sleep((remaining - SPIN_NS) * 1e-9)
             start = clock()
             if self._signal:
                 return Stop(self._signal, t, "signal received")
+            if self.realtime:
+                # Too far behind to catch up: stop before this period commands anything.
+                late = watch.started(deadline, start)
+                if late:
+                    return Stop("watchdog", t, late)
             # The log must keep up: a failed writer, or one that has not yet written the row
             # this period would overwrite, stops the run before anything else is commanded.
             if writer is not None and (writer.error is not None or k - writer.written >= ring):
@@ -529,15 +716,12 @@ class RealTimeLoop:
             row_timing[3] = backend.last_io_time_s
             buf[slot] = row
             previous_start = start
-            if self.realtime and end - t0 > (k + 1) * h_ns:
-                misses += 1
-                self.misses += 1
-                if misses > sup.limits.watchdog_misses:
+            if self.realtime:
+                overrun = watch.finished(deadline, end)
+                self.misses = watch.overruns
+                if overrun:
                     self.rows = k + 1
-                    return Stop("watchdog", t, f"{misses} consecutive deadline misses "
-                                f"(last period took {(end - start) * 1e-6:.3f} ms of compute)")
-            else:
-                misses = 0
+                    return Stop("watchdog", t, overrun)
             self.rows = k + 1
             if writer:
                 writer.done_rows = k + 1
@@ -595,7 +779,13 @@ class RealTimeLoop:
                                                                           step))
 
     def timing_summary(self) -> dict:
+        watch = self.watch
         return {**timing_of(self.rows_source(), int(self.offsets[-2]), self.h),
+                "overruns": watch.overruns if self.realtime else 0,
+                "lateness_max": watch.worst_lateness_ns * 1e-9,
+                "overrun_policy": OVERRUN_POLICY,
+                "stall_limit": watch.stall_ns * 1e-9,
+                "lateness_limit": watch.max_lateness_ns * 1e-9,
                 "scheduling": self.scheduling,
                 "watchdog_misses_allowed": self.supervisor.limits.watchdog_misses}
 

@@ -56,7 +56,7 @@ class Limits:
     joint_names: tuple[str, ...]
     joint_units: tuple[str, ...]
     keep_out_radius: float | None = None  # m, task-space runs only
-    watchdog_misses: int = 20  # consecutive deadline misses
+    watchdog_misses: int = 20  # consecutive overruns; also a stall's length in periods
     watchdog_errors: int = 5  # consecutive backend failures
 
 
@@ -121,6 +121,73 @@ class Supervisor:
 
     def saturate(self, tau: np.ndarray) -> None:
         np.clip(tau, -self.limits.effort, self.limits.effort, out=tau)
+
+
+#: The least the loop may fall behind its absolute deadlines before the watchdog stops it (s);
+#: more when ``--watchdog-misses`` periods are longer (see :class:`OverrunWatch`).
+MAX_LATENESS_S = 0.1
+
+#: The overrun policy in one sentence, for ``summary.json`` (docs/runtime.md states it in full).
+OVERRUN_POLICY = (
+    "period k is due at t0 + k h; it overruns when its own work -- from its deadline or the "
+    "previous period's end, whichever is later, to its end -- takes longer than h; late periods "
+    "that catch up within h each are late, not overruns. The watchdog stops the run on "
+    "N consecutive overruns (--watchdog-misses N), on one period whose own work exceeds N "
+    "periods (a stall), or when a period starts more than max(N h, 0.1 s) late")
+
+
+class OverrunWatch:
+    """The deadline watchdog: a lateness-based overrun rule (the policy: ``OVERRUN_POLICY``).
+
+    Measured against absolute deadlines, a stall of one period followed by catch-up periods is
+    one overrun, not as many misses as the periods it delays: the catch-up periods run back to
+    back, each within a period, and the lateness falls. Three stops remain: ``misses``
+    overruns in a row (a loop slower than its rate), one period stuck for more than ``misses``
+    periods (a stall), and a lateness beyond ``max(misses periods, MAX_LATENESS_S)`` (overruns
+    that come faster than the loop catches up, never ``misses`` in a row). Times in integer
+    nanoseconds of one clock; nothing allocates unless a rule is broken."""
+
+    def __init__(self, period_ns: int, misses: int):
+        self.h = int(period_ns)
+        self.misses = int(misses)
+        self.stall_ns = self.misses * self.h
+        self.max_lateness_ns = max(self.stall_ns, int(round(MAX_LATENESS_S * 1e9)))
+        self.reset()
+
+    def reset(self) -> None:
+        self.consecutive = 0
+        self.overruns = 0  # periods whose own work overran, in the whole run
+        self.worst_lateness_ns = 0
+        self._previous_end: int | None = None
+
+    def started(self, deadline: int, start: int) -> str | None:
+        """Before a period does anything: its lateness against its deadline."""
+        lateness = start - deadline
+        if lateness > self.worst_lateness_ns:
+            self.worst_lateness_ns = lateness
+        if lateness > self.max_lateness_ns:
+            return (f"the loop fell {lateness * 1e-6:.1f} ms behind its deadlines (at most "
+                    f"{self.max_lateness_ns * 1e-6:g} ms: max({self.misses} periods, "
+                    f"{MAX_LATENESS_S * 1e3:g} ms)); it did not catch up")
+        return None
+
+    def finished(self, deadline: int, end: int) -> str | None:
+        """After a period's command was written: whether its own work overran."""
+        previous, self._previous_end = self._previous_end, end
+        begin = deadline if previous is None or previous < deadline else previous
+        own = end - begin
+        if own <= self.h:
+            self.consecutive = 0
+            return None
+        self.overruns += 1
+        self.consecutive += 1
+        if own > self.stall_ns:
+            return (f"the loop stalled: one period took {own * 1e-6:.1f} ms, more than "
+                    f"{self.misses} periods of {self.h * 1e-6:g} ms")
+        if self.consecutive > self.misses:
+            return (f"{self.consecutive} consecutive deadline misses: each period's own work "
+                    f"overran its {self.h * 1e-6:g} ms (the last took {own * 1e-6:.3f} ms)")
+        return None
 
 
 def _finite(v: np.ndarray) -> bool:
