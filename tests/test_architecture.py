@@ -36,6 +36,7 @@ LAYERS = {
     "control": 2,
     "kernels": 3,
     "sim": 4,
+    "ident": 4,
     "runtime": 5,
     "dynamixel": 6,
     "apps": 7, "": 7,

@@ -1,0 +1,1 @@
+"""Identification of the robots' dynamic parameters from their logs (issue 14)."""
