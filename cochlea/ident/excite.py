@@ -51,7 +51,7 @@ from ..sim.scenario import load as load_scenario
 TRACKING_SCENARIOS = {"serial": "serial_joint_realistic", "parallel": "parallel_joint_realistic"}
 #: Margins of the design inside the limits the result is checked against (m): the keep-out
 #: circle, the clearance between the arms and the rod's travel in its sleeve.
-KEEP_OUT_MARGIN = 0.005
+KEEP_OUT_MARGIN = 0.002
 CLEARANCE_MARGIN = 0.005
 SLEEVE_MARGIN = 0.005
 #: Each pantograph keeps |sin(th1 - th2)| above this: at 0 its links fold or stretch out and
@@ -523,16 +523,23 @@ class _Optimiser:
         return x, self._evaluate(x)[0], self.violation(x)
 
     def pull_back(self, x: np.ndarray) -> np.ndarray:
-        """``x`` with its harmonics shrunk towards the working pose until no aggregated
-        constraint is violated: SLSQP may stop a hair outside (its tolerance, its iteration
-        limit); the working pose itself is inside every limit."""
-        Z = np.asarray(x, float).reshape(self.n, self.nz).copy()
-        for _ in range(200):
-            if self.violation(Z.ravel()) == 0.0:
-                break
-            Z[:, 1:] *= 0.995
-            Z[:, 0] = 0.995 * Z[:, 0] + 0.005 * self.problem.centre
-        return Z.ravel()
+        """``x`` shrunk towards the working pose (``s = 0``, inside every limit) by the
+        largest factor ``s`` in [0, 1] that a bisection finds with no aggregated constraint
+        violated: SLSQP may stop outside (its tolerance, its iteration limit)."""
+        Z = np.asarray(x, float).reshape(self.n, self.nz)
+        rest = np.zeros_like(Z)
+        rest[:, 0] = self.problem.centre
+
+        def shrunk(factor):
+            return (rest + factor * (Z - rest)).ravel()
+
+        if self.violation(shrunk(1.0)) == 0.0:
+            return shrunk(1.0)
+        low, high = 0.0, 1.0
+        for _ in range(30):
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if self.violation(shrunk(middle)) == 0.0 else (low, middle)
+        return shrunk(low)
 
 
 def check_options(options: ExcitationOptions) -> None:
