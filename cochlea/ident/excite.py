@@ -524,22 +524,18 @@ class _Optimiser:
 
     def pull_back(self, x: np.ndarray) -> np.ndarray:
         """``x`` shrunk towards the working pose (``s = 0``, inside every limit) by the
-        largest factor ``s`` in [0, 1] that a bisection finds with no aggregated constraint
-        violated: SLSQP may stop outside (its tolerance, its iteration limit)."""
+        largest factor ``s`` on a grid of 1/200 steps from 1 down with no aggregated
+        constraint violated: SLSQP may stop just outside (its tolerance, its iteration limit).
+        A scan, not a bisection: along the way a link may pass closer to the keep-out circle,
+        so the feasible factors need not be one interval."""
         Z = np.asarray(x, float).reshape(self.n, self.nz)
         rest = np.zeros_like(Z)
         rest[:, 0] = self.problem.centre
-
-        def shrunk(factor):
-            return (rest + factor * (Z - rest)).ravel()
-
-        if self.violation(shrunk(1.0)) == 0.0:
-            return shrunk(1.0)
-        low, high = 0.0, 1.0
-        for _ in range(30):
-            middle = 0.5 * (low + high)
-            low, high = (middle, high) if self.violation(shrunk(middle)) == 0.0 else (low, middle)
-        return shrunk(low)
+        for factor in np.linspace(1.0, 0.0, 201):
+            candidate = (rest + factor * (Z - rest)).ravel()
+            if self.violation(candidate) == 0.0:
+                return candidate
+        return rest.ravel()
 
 
 def check_options(options: ExcitationOptions) -> None:
