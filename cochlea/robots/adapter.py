@@ -61,6 +61,9 @@ class ScenarioView(Protocol):
 
     def desired_leader(self) -> ca.Function: ...  # t -> (x, x_dot, x_ddot) of the leader
 
+    #: A unit's own joint path in t (SI), tracked instead of the leader's rule; None: the rule.
+    def unit_desired(self, name: str, t: ca.SX) -> ca.SX | None: ...
+
 
 @dataclass(frozen=True)
 class Layout:

@@ -80,6 +80,10 @@ class Unit:
     initial_velocity: np.ndarray | None  # SI per second (joint space)
     elbow: int | None  # IK branch (serial: sign of th2)
     gains: dict[str, np.ndarray]
+    #: The unit's own desired joint path (joint space only): tracked instead of what the
+    #: leader and the dual-arm / mirror rule would give it, e.g. one serial arm excited for
+    #: identification while the other holds still (``cochlea-excite``). None: the rule.
+    desired_joint: tuple[Quantity, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -163,6 +167,18 @@ class Scenario:
         xd = ca.jacobian(x, t)
         xdd = ca.jacobian(xd, t)
         return ca.Function("desired_leader", [t], [x, xd, xdd], ["t"], ["x", "x_dot", "x_ddot"])
+
+    def unit_desired(self, name: str, t: ca.SX) -> ca.SX | None:
+        """Unit ``name``'s own desired joint path (``desired_joint``) as an expression of the
+        symbol ``t`` (SI), the ``[desired] define`` names applied; None when the unit follows
+        the leader."""
+        unit = next(u for u in self.units if u.name == name)
+        if unit.desired_joint is None:
+            return None
+        definitions: dict[str, ca.SX] = {}
+        for key, text in self.definitions.items():
+            definitions[key] = parse(text, t, definitions)
+        return ca.vertcat(*[q.expression(t, definitions) for q in unit.desired_joint])
 
 
 def check_desired(sc: Scenario) -> None:
@@ -343,6 +359,11 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
             raise u.error("initial_joint", "exactly one of initial_joint or initial_task",
                           show_got=False)
         velocity_q = quantities(u, "initial_velocity", layout.joint, required=False)
+        own_q = quantities(u, "desired_joint", layout.joint, required=False,
+                           definitions=tuple(definitions))
+        if own_q is not None and space != "joint":
+            raise u.error("desired_joint", "no desired_joint in a task-space scenario (a "
+                          "unit's own joint path is for space = \"joint\")", show_got=False)
         elbow = u.get("elbow", "+1 or -1 (inverse-kinematics branch)", lambda v: v in (1, -1)
                       and not isinstance(v, bool), required=False)
         g = u.table("gains")
@@ -365,7 +386,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
             except ExpressionError as exc:
                 raise u.error(key, f"constant, finite values ({exc})", show_got=False) from None
         units.append(Unit(name, initial["initial_joint"], initial["initial_task"],
-                          initial["initial_velocity"], elbow, gains))
+                          initial["initial_velocity"], elbow, gains, own_q))
 
     plant = _plant(top.table("plant") if "plant" in top.data else None, layout, plant_preset)
     top.done()

@@ -122,7 +122,11 @@ class ParallelRobot(RobotAdapter):
 
         t = ca.SX.sym("t")
         lead, _, _ = sc.desired_leader()(t)
-        if sc.space == "joint":
+        own = sc.unit_desired(UNIT, t)
+        if own is not None:  # its own path for all five joints (joint space only)
+            desired_expr = own
+            _check_workspace(geometry, ca.Function("q_d", [t], [desired_expr]), sc)
+        elif sc.space == "joint":
             th1, th2, d1 = lead[0], lead[1], lead[2]
             B = geometry.base(system.left)
             lp = geometry.lp

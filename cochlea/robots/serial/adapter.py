@@ -124,7 +124,10 @@ class SerialRobot(RobotAdapter):
             q0 = _initial_joint(arm, unit)
             qd0 = (unit.initial_velocity if unit.initial_velocity is not None
                    else np.zeros(len(q0)))
-            if arm is leader_arm:
+            own = sc.unit_desired(arm.name, t)
+            if own is not None:  # its own joint path (joint space only): no rule applies
+                desired_expr = own
+            elif arm is leader_arm:
                 desired_expr = x_lead
             else:  # dual-arm rule: point reflection through the cochlea centre
                 pose = ca.vertcat(-lead_pose[0], -lead_pose[1], lead_pose[2] + np.pi)

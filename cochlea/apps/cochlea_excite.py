@@ -1,0 +1,174 @@
+"""``cochlea-excite``: design an excitation trajectory for identification and write it as a
+joint-space scenario ``cochlea-run`` tracks (docs/excitation.md). User mistakes, and requests
+no trajectory can satisfy, print one line and exit with EXIT_USER_ERROR; nothing is written
+then."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shlex
+import signal
+import stat
+import sys
+from pathlib import Path
+
+from ..errors import EXIT_USER_ERROR, CochleaError
+from ..ident.excite import ExcitationOptions, check_options, design, scenario_text
+from ..robots import ROBOTS
+from ..sim.scenario import load as load_scenario
+from ..sim.setup import unit_setups
+from . import outputs
+
+EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
+
+
+def _parser() -> argparse.ArgumentParser:
+    defaults = ExcitationOptions()
+    p = argparse.ArgumentParser(
+        prog="cochlea-excite",
+        description="Design an excitation trajectory for identifying a robot's dynamic "
+                    "parameters: a finite Fourier series per joint, optimised for the "
+                    "condition number of the stacked base regressor within the joints' "
+                    "position, velocity and torque limits and the robot's workspace, written "
+                    "as a joint-space scenario for cochlea-run.",
+        epilog="Example:\n"
+               "  cochlea-excite --robot serial --arm arm1 --out excite_arm1.toml\n"
+               "  cochlea-run --robot serial --space joint --scenario excite_arm1.toml "
+               "--realtime off --out runs/excite_arm1\n"
+               "See docs/excitation.md.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robot", required=True, choices=list(ROBOTS),
+                   help="serial: one 3R arm (the other holds still); parallel: the mechanism")
+    p.add_argument("--arm", help="serial: the arm to excite (default: arm1)")
+    p.add_argument("--out", required=True, type=Path, metavar="FILE.toml",
+                   help="the scenario to write (refused if it exists, unless --force)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --out file")
+    p.add_argument("--period", type=float, default=defaults.period, metavar="S",
+                   help=f"period of the fundamental, s (default {defaults.period:g})")
+    p.add_argument("--harmonics", type=int, default=defaults.harmonics, metavar="H",
+                   help=f"harmonics per joint, at least 2 (default {defaults.harmonics})")
+    p.add_argument("--amplitude-deg", type=float,
+                   default=math.degrees(defaults.amplitude_rad), metavar="DEG",
+                   help="revolute joints stay within this of their working pose (default "
+                        f"{math.degrees(defaults.amplitude_rad):g})")
+    p.add_argument("--amplitude-mm", type=float, default=defaults.amplitude_m * 1000,
+                   metavar="MM", help="prismatic joints (the slider) likewise (default "
+                                      f"{defaults.amplitude_m * 1000:g})")
+    p.add_argument("--periods", type=int, default=defaults.periods, metavar="N",
+                   help="the run's length in whole periods; it ends at rest where it began "
+                        f"(default {defaults.periods})")
+    p.add_argument("--seed", type=int, default=defaults.seed,
+                   help=f"seed of the optimiser's random starts (default {defaults.seed})")
+    p.add_argument("--starts", type=int, default=defaults.starts, metavar="N",
+                   help=f"random starts of the optimiser (default {defaults.starts})")
+    p.add_argument("--iterations", type=int, default=defaults.iterations, metavar="N",
+                   help=f"SLSQP iterations per start (default {defaults.iterations})")
+    p.add_argument("--limit-fraction", type=float, default=defaults.limit_fraction,
+                   metavar="F", help="velocity and nominal torque stay within this fraction "
+                                     f"of their limits (default {defaults.limit_fraction:g})")
+    p.add_argument("--clearance-mm", type=float, default=defaults.clearance * 1000,
+                   metavar="MM", help="serial: smallest distance between the excited arm and "
+                                      f"the other one (default {defaults.clearance * 1000:g})")
+    return p
+
+
+def check_out(path: Path, force: bool) -> None:
+    """Refuse an --out that cannot become the scenario file, before the optimisation."""
+    where = f"--out {path}"
+    if os.path.lexists(path):
+        try:
+            mode = os.stat(path).st_mode
+        except OSError as exc:
+            raise CochleaError(f"{where}: cannot use it ({exc.strerror}): name a new file") \
+                from None
+        if stat.S_ISDIR(mode):
+            raise CochleaError(f"{where} is a folder: name the scenario file, e.g. "
+                               f"{path / 'excite.toml'}")
+        if not stat.S_ISREG(mode):
+            raise CochleaError(f"{where} is not a regular file: name a new file")
+        if not force:
+            raise CochleaError(f"{where} exists: name a new file, or give --force to "
+                               "overwrite it")
+    parent = Path(os.path.abspath(path)).parent
+    if not parent.exists():
+        ancestor = parent
+        while not os.path.lexists(ancestor):
+            ancestor = ancestor.parent
+        if not ancestor.is_dir():
+            raise CochleaError(f"{where}: {ancestor} is a file, not a folder: name a file in "
+                               "a folder")
+        raise CochleaError(f"{where}: the folder {parent} does not exist: create it first")
+    if not parent.is_dir():
+        raise CochleaError(f"{where}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CochleaError(f"{where}: the folder {parent} is not writable")
+
+
+def _options(args: argparse.Namespace) -> ExcitationOptions:
+    return ExcitationOptions(
+        period=args.period, harmonics=args.harmonics,
+        amplitude_rad=math.radians(args.amplitude_deg), amplitude_m=args.amplitude_mm / 1000,
+        periods=args.periods, seed=args.seed, starts=args.starts, iterations=args.iterations,
+        limit_fraction=args.limit_fraction, clearance=args.clearance_mm / 1000)
+
+
+def _command(argv: list[str] | None) -> str:
+    words = sys.argv[1:] if argv is None else argv
+    return "cochlea-excite " + " ".join(shlex.quote(w) for w in words)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.robot == "parallel" and args.arm is not None:
+            raise CochleaError("--arm is for the serial system; the parallel mechanism is one "
+                               "robot")
+        options = _options(args)
+        check_options(options)
+        check_out(args.out, args.force)
+        result = design(args.robot, args.arm, options)
+        text = scenario_text(result, _command(argv))
+        with outputs.atomic_path(args.out) as tmp:
+            tmp.write_text(text)
+            # What cochlea-run will check before anything moves, checked before it is kept.
+            unit_setups(load_scenario(tmp))
+        print(f"cochlea-excite: {args.robot} {result.unit}: period {options.period:g} s, "
+              f"{options.harmonics} harmonics, {options.periods} periods -> {args.out}")
+        print(f"  condition number of the stacked base regressor: designed "
+              f"{result.condition:.4g} (columns scaled: {result.scaled_condition:.4g}); "
+              f"hand-picked sine of the same amplitude {result.sine_condition:.4g} (scaled: "
+              f"{result.sine_scaled_condition:.4g})")
+        print("  peak |velocity| / limit: "
+              + ", ".join(f"{v:.2f}" for v in result.peak_velocity)
+              + "; peak |nominal torque| / limit: "
+              + ", ".join(f"{v:.2f}" for v in result.peak_effort))
+        if result.keep_out_distance is not None:
+            print(f"  closest approach: {result.keep_out_distance * 1000:.1f} mm to the cochlea "
+                  f"centre, {result.clearance_distance * 1000:.1f} mm to the other arm")
+        print(f"  run it: cochlea-run --robot {args.robot} --space joint --scenario {args.out} "
+              "--realtime off")
+        sys.stdout.flush()
+    except CochleaError as exc:
+        print(f"cochlea-excite: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return EXIT_BROKEN_PIPE
+    except OSError as exc:
+        print(f"cochlea-excite: cannot write {exc.filename or args.out}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("cochlea-excite: interrupted; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
