@@ -384,3 +384,37 @@ def test_physical_fit_from_a_log_writes_back_a_description_that_loads(serial_run
                         description=written)  # the description's own validation passes
     assert np.allclose(new.parameters.nominal, physical, rtol=1e-6,
                        atol=1e-9 * np.abs(physical).max())
+
+
+@pytest.mark.hil
+def test_a_log_recorded_against_the_emulator_identifies_its_plant(tmp_path):
+    """The hardware-in-the-loop path: cochlea-run drives the virtual Dynamixel chain (whose
+    plant is the excitation scenario's perturbed one) over the bus in real time; its log holds
+    what the bridge measured (encoder counts, the velocity register) and the efforts it
+    commanded. The same pipeline identifies the perturbed plant from it."""
+    from tests.test_dynamixel_hil import emulator, run
+
+    scenario = serial_scenario(tmp_path, duration=8.0)
+    out = tmp_path / "run"
+    with emulator("serial", str(scenario), tmp_path / "emulator.log") as port:
+        done = run("--robot", "serial", "--space", "joint", "--scenario", str(scenario),
+                   "--backend", "dynamixel", "--port", port, "--out", str(out), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    report = tmp_path / "ident.json"
+    assert main([str(out), "--robot", "serial", "--out", str(report), "--min-speed", "0",
+                 "--no-figures"]) == 0
+    doc = json.loads(report.read_text())
+    # Over the bus the held-out prediction error measured 1.5-5.2 % on an idle machine (the
+    # simulation's 0.1-0.3 %): an effort acts later than the half-period hold --effort-lag
+    # assumes, and the real-time loop's jitter moves it further (docs/identification.md, "Over
+    # the bus"). Bounded here at twice the issue's 5 %, the parameters checked for direction:
+    # the fit is the perturbed plant's, not the description's.
+    assert max(doc["prediction_nrms_percent"]["wls"]) < 2 * MAX_NRMS
+    m = cochlea.model("serial", parameterisation="base", actuators="all")
+    truth = true_base(m, scenario, "arm1")
+    wls = np.array([p["wls"] for p in doc["parameters"]])
+    # The plant's viscous frictions (0.015, 0.008, 0.012 N m s/rad) against the description's
+    # 0.01: each estimate is nearer the plant's.
+    fv = [m.parameters.meanings.index(f"joint{j}.Fv") for j in (1, 2, 3)]
+    assert np.all(np.abs(wls[fv] - truth[fv]) < np.abs(wls[fv] - m.parameters.nominal[fv])), \
+        (wls[fv], truth[fv])
