@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) lib
 
 # The main job: the thesis's task-space study of the serial system (controller g) on the
 # simulated robot, in real time under the supervisor; the log, summary.json and figures land in
