@@ -102,6 +102,17 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
     return header, np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
 
 
+#: summary.json keys cochlea-run writes and the C program does not yet (issue 15, see
+#: docs/embedded.md "Not yet in the C program"): the real-time options, the overrun rule's
+#: numbers, the Realtime Tick check, the slider's homing check and the encoder-count
+#: convergence floor.
+PYTHON_ONLY = {"top": {"realtime"},
+               "timing": {"overruns", "lateness_max", "stall_limit", "lateness_limit",
+                          "overrun_policy"},
+               "bus": {"homing", "realtime_tick_check"},
+               "unit": {"position_quantum"}}
+
+
 @pytest.mark.parametrize("robot,space", STUDIES)
 def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, program, robot,
                                                                  space):
@@ -120,15 +131,17 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
                                                        "summary.json"]
     summary = json.loads((c_out / "summary.json").read_text())
     python = json.loads((py_out / "summary.json").read_text())
-    # cochlea-run's schema: every key it writes, at every level the two share.
-    assert set(python) <= set(summary)
-    assert set(python["timing"]) <= set(summary["timing"])
-    assert set(python["timing"]["bus"]) <= set(summary["timing"]["bus"])
+    # cochlea-run's schema: every key it writes, at every level the two share, but for what
+    # only cochlea-run has so far (issue 15's runtime hardening, not yet in the C loop).
+    assert set(python) - PYTHON_ONLY["top"] <= set(summary)
+    assert set(python["timing"]) - PYTHON_ONLY["timing"] <= set(summary["timing"])
+    assert set(python["timing"]["bus"]) - PYTHON_ONLY["bus"] <= set(summary["timing"]["bus"])
     for unit, entry in python["units"].items():
-        assert set(entry) == set(summary["units"][unit])
+        assert set(entry) - PYTHON_ONLY["unit"] == set(summary["units"][unit])
         assert set(entry["tracked"]) == set(summary["units"][unit]["tracked"])
         assert entry["estimates"]["names"] == summary["units"][unit]["estimates"]["names"]
-    assert summary["convergence_rule"] == python["convergence_rule"]
+    # The same rule, without cochlea-run's encoder-count floor (PYTHON_ONLY).
+    assert python["convergence_rule"].startswith(summary["convergence_rule"] + " (with encoder")
     assert summary["stop"] == {"rule": "completed", "time_s": pytest.approx(duration),
                                "detail": "", "exit_code": 0}
     assert summary["periods"] == python["periods"] == int(duration * 1000)
