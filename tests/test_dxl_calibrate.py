@@ -271,3 +271,21 @@ def test_a_malformed_homing_record_is_refused(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(BackendError, match=message):
         homing.load_record(path)
+
+
+@pytest.mark.hil
+def test_cochlea_run_refuses_an_unhomed_slider_when_asked_to_check(tmp_path):
+    """cochlea-run --homing required: the emulator's slider has no homing record here, so the
+    start is refused before any write (exit 5, naming cochlea-dxl home), and nothing is left."""
+    from tests.test_dynamixel_hil import emulator, run
+
+    log = tmp_path / "emulator.log"
+    out = tmp_path / "run"
+    with emulator("parallel", "parallel_joint", log) as port:
+        done = run("--robot", "parallel", "--space", "joint", "--backend", "dynamixel",
+                   "--port", port, "--duration", "1", "--out", str(out), "--homing",
+                   "required", "--homing-record", str(tmp_path / "none.json"), cwd=tmp_path)
+    assert done.returncode == 5, done.stderr
+    assert "cochlea-dxl home" in done.stderr and "Traceback" not in done.stderr
+    assert " write " not in log.read_text()  # refused before any write
+    assert not out.exists()

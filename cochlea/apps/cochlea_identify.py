@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib
 import json
 import math
 import sys
@@ -18,6 +17,7 @@ from pathlib import Path
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import estimate, writeback
 from ..ident.logs import read_run
+from ..ident.physical import physically_consistent_fit
 from ..robots import ROBOTS, model, robot
 
 
@@ -55,14 +55,6 @@ def _unit(args) -> str:
 
 
 def _physical(m, result: estimate.Identification):
-    # The physically consistent fit is its own module (cochlea.ident.physical), imported by
-    # name only when asked for: an installation without it still identifies.
-    try:
-        physically_consistent_fit = importlib.import_module(
-            "cochlea.ident.physical").physically_consistent_fit
-    except (ImportError, AttributeError):
-        raise CochleaError("--physical needs cochlea.ident.physical (the physically "
-                           "consistent fit), which this installation lacks") from None
     return physically_consistent_fit(m, result.W, result.y, result.weights,
                                      prior_full=m.full_parameters.nominal)
 

@@ -109,6 +109,13 @@ def _parser() -> argparse.ArgumentParser:
                         "pseudo-terminal cochlea-emulator prints")
     p.add_argument("--baud", type=int, metavar="B",
                    help="--backend dynamixel: the motors' baud rate (default 4000000)")
+    p.add_argument("--homing", default="auto", choices=["auto", "required"],
+                   help="--backend dynamixel, parallel robot: check the slider's homing record "
+                        "(cochlea-dxl home) on a real port and not on the emulator's "
+                        "pseudo-terminal (auto, default), or always (required)")
+    p.add_argument("--homing-record", metavar="FILE",
+                   help="--backend dynamixel: the homing record cochlea-dxl home wrote "
+                        "(default ~/.cochlea/homing/ROBOT.json)")
     p.add_argument("--realtime", default="on", choices=["on", "off"],
                    help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
                         "off: the as-fast-as-possible simulation")
@@ -398,7 +405,8 @@ def _dynamixel_backend(args, scenario):
     # The Realtime Tick read with the state: a motor repeating a stale packet is a failed read.
     backend = DynamixelBackend(scenario.robot, args.port,
                                4_000_000 if args.baud is None else args.baud,
-                               system=scenario.system, realtime_tick=True)
+                               system=scenario.system, realtime_tick=True,
+                               homing=args.homing, homing_record=args.homing_record)
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")

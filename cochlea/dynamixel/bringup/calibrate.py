@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import CochleaError
+from ...resources import ROBOTS_DIR
 from ...robots import ROBOTS
 from ...runtime.backend import BackendError
 from .. import protocol as proto
@@ -48,7 +49,7 @@ from ..control_table import (
     RAD_PER_COUNT,
     baud_code,
 )
-from ..drives import Fit, JointDrive
+from ..drives import Fit, JointDrive, joint_drives
 from ..port import SerialPort
 
 NAME = "calibrate"
@@ -319,8 +320,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _shipped(robot: str) -> Path:
-    from ...resources import ROBOTS_DIR  # noqa: PLC0415 (only for the shipped text)
-
     return ROBOTS_DIR / f"{robot}.toml"
 
 
@@ -408,8 +407,6 @@ def _write_checked(text: str, out: Path, robot: str, old: list[JointDrive],
                    results: dict[int, tuple[int, float]]) -> None:
     """Write ``text`` to ``out`` only once it loads back with exactly the new values and every
     other motor as it was."""
-    from ..drives import joint_drives  # noqa: PLC0415
-
     with atomic_path(out) as tmp:
         tmp.write_text(text)
         try:

@@ -36,7 +36,15 @@ from pathlib import Path
 from ...errors import CochleaError
 from ...robots import ROBOTS
 from ...runtime.backend import BackendError
-from ..control_table import baud_code
+from ..control_table import (
+    ADDR_BUS_WATCHDOG,
+    ADDR_GOAL_CURRENT,
+    ADDR_OPERATING_MODE,
+    ADDR_PRESENT_VELOCITY,
+    ADDR_TORQUE_ENABLE,
+    CURRENT_MODE,
+    baud_code,
+)
 from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
 from .calibrate import Bus, write_atomic
 
@@ -102,14 +110,6 @@ def _check(args: argparse.Namespace, d) -> tuple[float, float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..control_table import (  # noqa: PLC0415
-        ADDR_BUS_WATCHDOG,
-        ADDR_GOAL_CURRENT,
-        ADDR_OPERATING_MODE,
-        ADDR_PRESENT_VELOCITY,
-        ADDR_TORQUE_ENABLE,
-        CURRENT_MODE,
-    )
     baud_code(args.baud)
     bus = Bus(args.robot, args.port, args.baud, args.description)
     sliders = [d for d in bus.drives if d.type == "prismatic"]
