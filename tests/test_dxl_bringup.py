@@ -10,7 +10,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -19,24 +18,15 @@ from cochlea.apps.cochlea_dxl import main
 from cochlea.dynamixel.bringup.common import Bus, load_drives
 from cochlea.dynamixel.control_table import MX64, XM540_W270
 from cochlea.dynamixel.drives import joint_drives
+from tests.test_dynamixel_hil import emulator as hil_emulator
 
 hil = pytest.mark.hil
 
 
-@contextmanager
 def emulator(robot: str, log: Path, *options: str):
-    """``cochlea-emulator`` with real motors' baud behaviour; yields its pseudo-terminal."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot", robot, "--check-baud",
-         "--log", str(log), *options],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        path = proc.stdout.readline().strip()
-        assert path.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else path
-        yield path
-    finally:
-        proc.terminate()
-        proc.communicate(timeout=20)
+    """``cochlea-emulator`` (its default scenario) with real motors' baud behaviour; yields its
+    pseudo-terminal."""
+    return hil_emulator(robot, f"{robot}_joint", log, "--check-baud", *options)
 
 
 def dxl(capsys, *argv: str) -> tuple[int, str, str]:

@@ -220,7 +220,6 @@ def test_a_pseudo_terminal_needs_no_homing_by_default(no_gc):
     (["--robot", "parallel", "--reference", "left.th1=nan"], "expected a finite number"),
     (["--robot", "parallel", "--reference", "nojoint=1"], "expected JOINT=VALUE"),
     (["--robot", "serial", "--min-motion-deg", "-1"], "--min-motion-deg"),
-    (["--robot", "serial", "--baud", "12345"], "not a Dynamixel rate"),
     (["--robot", "serial", "--torque-fit"], "expected --joint NAME, --lever-m M and --csv"),
     (["--robot", "serial", "--lever-m", "0.1"], "belong to --torque-fit"),
 ])
@@ -229,6 +228,14 @@ def test_calibrate_refuses_bad_options(tmp_path, monkeypatch, argv, message):
     with pytest.raises(CochleaError, match=re.escape(message)):
         calibrate.run(parse(calibrate, "--port", "/dev/cochlea-no-such-port", *argv))
     assert not list(tmp_path.iterdir())  # nothing left behind
+
+
+@pytest.mark.parametrize("module", [calibrate, home], ids=["calibrate", "home"])
+def test_a_baud_the_motors_do_not_have_is_refused_as_an_option(module, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        parse(module, "--robot", "parallel", "--port", "/dev/cochlea-none", "--baud", "12345")
+    assert exit_.value.code == 2
+    assert "--baud: expected a Dynamixel baud rate" in capsys.readouterr().err
 
 
 def test_calibrate_never_overwrites(tmp_path):

@@ -34,7 +34,6 @@ import numpy as np
 
 from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
-from ...robots import ROBOTS
 from ...runtime.backend import BackendError
 from .. import protocol as proto
 from ..bridge import DynamixelBackend
@@ -51,6 +50,7 @@ from ..control_table import (
 )
 from ..drives import Fit, JointDrive, joint_drives
 from ..port import SerialPort
+from . import common
 
 NAME = "calibrate"
 HELP = ("measure zero_offset_deg and direction of each motor by hand (torque off) and write a "
@@ -179,13 +179,9 @@ def ask(prompt: str) -> str:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", required=True, choices=list(ROBOTS))
-    p.add_argument("--port", required=True, help="the serial port (or cochlea-emulator's "
-                   "pseudo-terminal)")
-    p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate "
-                   "(default 4000000)")
-    p.add_argument("--description", type=Path, metavar="FILE",
-                   help="the description to calibrate (default: the shipped one)")
+    common.add_robot(p)  # --robot, and --description: the description to calibrate
+    common.add_port(p)
+    common.add_baud(p)
     p.add_argument("--out", type=Path, metavar="FILE", help="the new description (default: "
                    "NAME.calibrated.toml beside --description, or in the current folder for "
                    "the shipped one); never overwritten")

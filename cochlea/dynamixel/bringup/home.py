@@ -34,7 +34,6 @@ from datetime import datetime
 from pathlib import Path
 
 from ...errors import CochleaError
-from ...robots import ROBOTS
 from ...runtime.backend import BackendError
 from ..control_table import (
     ADDR_BUS_WATCHDOG,
@@ -46,6 +45,7 @@ from ..control_table import (
     baud_code,
 )
 from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
+from . import common
 from .calibrate import Bus, write_atomic
 
 NAME = "home"
@@ -62,13 +62,9 @@ LOOP_PERIOD_S = 0.01
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", required=True, choices=list(ROBOTS))
-    p.add_argument("--port", required=True, help="the serial port (or cochlea-emulator's "
-                   "pseudo-terminal)")
-    p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate "
-                   "(default 4000000)")
-    p.add_argument("--description", type=Path, metavar="FILE",
-                   help="the robot description (default: the shipped one)")
+    common.add_robot(p)
+    common.add_port(p)
+    common.add_baud(p)
     p.add_argument("--record", type=Path, metavar="FILE", help="where to write the homing "
                    "record (default ~/.cochlea/homing/ROBOT.json, where the runtime looks; "
                    "replaced at each homing)")
