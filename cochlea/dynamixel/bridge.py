@@ -586,7 +586,21 @@ class DynamixelBackend:
     def _setup_timeout(self) -> float:
         return max(0.02, 4 * self.timeout_s)
 
-    def _command(self, d: JointDrive, what: str, frame: bytes) -> bytes:
+    # ---- confirmed instructions outside a run (the start-up, cochlea-dxl's bring-up) ---------
+
+    def open_bus(self) -> None:
+        """Open the port for :meth:`command` alone: no start-up, nothing written (the bring-up
+        tools' session; :meth:`close_bus` ends it)."""
+        self._port = self._open_port(self.port_path, self.baud)
+
+    def close_bus(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            port.close()
+
+    def command(self, d: JointDrive, what: str, frame: bytes) -> bytes:
+        """One instruction to motor ``d``, retried, its status checked; the reply's parameters.
+        Raises :class:`BackendError` naming the motor and what to check."""
         result, error, params = self._transact(frame, d.id, self._setup_timeout(), self.retries)
         if result == "timeout":
             raise BackendError(f"{self._who(d)} did not answer {what} on {self.port_path} at "
@@ -614,7 +628,7 @@ class DynamixelBackend:
 
     def _write_all(self, address: int, size: int, values, what: str) -> None:
         for d, value in zip(self.drives, values):
-            self._command(d, f"{what} (WRITE {address} = {value})",
+            self.command(d, f"{what} (WRITE {address} = {value})",
                           proto.write(d.id, address, proto.le(int(value), size)))
 
     def _startup(self) -> None:
@@ -623,7 +637,7 @@ class DynamixelBackend:
         problems = []
         for d in self.drives:
             try:
-                params = self._command(d, "PING", proto.ping(d.id))
+                params = self.command(d, "PING", proto.ping(d.id))
             except BackendError as exc:
                 problems.append(str(exc))
                 continue
@@ -685,7 +699,7 @@ class DynamixelBackend:
         record = homing.load_record(path)
         for j in sliders:
             d = self.drives[j]
-            params = self._command(d, "READ the homing marker",
+            params = self.command(d, "READ the homing marker",
                                    proto.read(d.id, homing.MARKER_ADDRESS, 2))
             marker = proto.from_le(params, False) if len(params) == 2 else -1
             self._q_offset[j] = homing.reference_offset(record, path, d, marker)
@@ -697,7 +711,7 @@ class DynamixelBackend:
         gains on the Operating Mode write (the same value), the next start-up in this power
         cycle still finds it. The turns themselves survive a write of current control."""
         for d, marker in self._homing_markers:
-            self._command(d, "restore the homing marker",
+            self.command(d, "restore the homing marker",
                           proto.write(d.id, homing.MARKER_ADDRESS, proto.le(marker, 2)))
 
     def _unwrap_and_check(self, q: np.ndarray) -> None:

@@ -49,7 +49,6 @@ from ..control_table import (
     baud_code,
 )
 from ..drives import Fit, JointDrive, joint_drives
-from ..port import SerialPort
 from . import common
 
 NAME = "calibrate"
@@ -89,20 +88,26 @@ class Bus:
         self.port, self.baud = port, baud
 
     def open(self) -> Bus:
-        self.backend._port = SerialPort(self.port, self.baud)
+        self.backend.open_bus()
         return self
 
     def close(self) -> None:
-        port, self.backend._port = self.backend._port, None
-        if port is not None:
-            port.close()
+        self.backend.close_bus()
+
+    def current_mode_at_rest(self, d: JointDrive) -> None:
+        """Torque off, no Bus Watchdog, current control, zero Goal Current: ``d`` ready to be
+        enabled without a jump (the mode and watchdog only take with the torque off)."""
+        self.write(d, ADDR_TORQUE_ENABLE, 1, 0)
+        self.write(d, ADDR_BUS_WATCHDOG, 1, 0)
+        self.write(d, ADDR_OPERATING_MODE, 1, CURRENT_MODE)
+        self.write(d, ADDR_GOAL_CURRENT, 2, 0)
 
     def ping(self, drives: list[JointDrive]) -> None:
         """Every motor there, of the model the description names, without a hardware alert."""
         problems = []
         for d in drives:
             try:
-                params = self.backend._command(d, "PING", proto.ping(d.id))
+                params = self.backend.command(d, "PING", proto.ping(d.id))
             except BackendError as exc:
                 problems.append(str(exc))
                 continue
@@ -115,14 +120,14 @@ class Bus:
             raise BackendError("; ".join(problems))
 
     def read(self, d: JointDrive, address: int, size: int, signed: bool = True) -> int:
-        params = self.backend._command(d, f"READ {address}", proto.read(d.id, address, size))
+        params = self.backend.command(d, f"READ {address}", proto.read(d.id, address, size))
         if len(params) != size:
             raise BackendError(f"ID {d.id} ({d.name}) answered READ {address} with "
                                f"{len(params)} bytes, not {size}")
         return proto.from_le(params, signed)
 
     def write(self, d: JointDrive, address: int, size: int, value: int) -> None:
-        self.backend._command(d, f"WRITE {address} = {value}",
+        self.backend.command(d, f"WRITE {address} = {value}",
                               proto.write(d.id, address, proto.le(int(value), size)))
 
     def position(self, d: JointDrive) -> int:
@@ -453,11 +458,8 @@ def _torque_fit(args: argparse.Namespace) -> int:
     bus.open()
     try:
         bus.ping([d])
-        bus.write(d, ADDR_TORQUE_ENABLE, 1, 0)
         # No Bus Watchdog: the current must hold while the user reads the scale.
-        bus.write(d, ADDR_BUS_WATCHDOG, 1, 0)
-        bus.write(d, ADDR_OPERATING_MODE, 1, CURRENT_MODE)
-        bus.write(d, ADDR_GOAL_CURRENT, 2, 0)
+        bus.current_mode_at_rest(d)
         ask(f"{d.name} (ID {d.id}): fix a lever of {lever:g} m on it pressing on a scale (the "
             "joint must not move); the motor will push with each current in turn. Enter:")
         bus.write(d, ADDR_TORQUE_ENABLE, 1, 1)

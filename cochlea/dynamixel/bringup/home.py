@@ -38,10 +38,8 @@ from ...runtime.backend import BackendError
 from ..control_table import (
     ADDR_BUS_WATCHDOG,
     ADDR_GOAL_CURRENT,
-    ADDR_OPERATING_MODE,
     ADDR_PRESENT_VELOCITY,
     ADDR_TORQUE_ENABLE,
-    CURRENT_MODE,
     baud_code,
 )
 from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
@@ -126,10 +124,7 @@ def run(args: argparse.Namespace) -> int:
     result = None
     try:
         bus.ping([d])
-        bus.write(d, ADDR_TORQUE_ENABLE, 1, 0)
-        bus.write(d, ADDR_BUS_WATCHDOG, 1, 0)
-        bus.write(d, ADDR_OPERATING_MODE, 1, CURRENT_MODE)
-        bus.write(d, ADDR_GOAL_CURRENT, 2, 0)
+        bus.current_mode_at_rest(d)
         bus.write(d, ADDR_BUS_WATCHDOG, 1, 5)  # 100 ms: the motor stops if we do
         start_counts = bus.position(d)
         bus.write(d, ADDR_TORQUE_ENABLE, 1, 1)
