@@ -281,3 +281,28 @@ def test_the_console_script_prints_no_traceback(tmp_path):
     assert done.returncode == 5 and done.stdout == ""
     assert done.stderr.startswith("cochlea-dxl info: --port ") and done.stderr.count("\n") == 1
     assert list(tmp_path.iterdir()) == []  # nothing left behind
+
+
+@hil
+@pytest.mark.parametrize("subcommand", ["home", "calibrate --torque-fit"])
+def test_what_turns_a_torque_on_refuses_a_motor_in_hardware_alert(tmp_path, capsys,
+                                                                  subcommand):
+    """home and the torque fit enable a motor: one in alert (torque held off until a reboot)
+    is refused before any write, naming the alert and cochlea-dxl reboot (exit 5)."""
+    slider = next(d for d in joint_drives("parallel") if d.type == "prismatic")
+    left = next(d for d in joint_drives("parallel") if d.type == "revolute")
+    target = slider if subcommand == "home" else left
+    log = tmp_path / "emu.log"
+    options = (["--record", str(tmp_path / "r.json")] if subcommand == "home" else
+               ["--joint", target.name, "--lever-m", "0.1", "--csv", str(tmp_path / "f.csv")])
+    with emulator("parallel", log, "--hardware-error", f"{target.id}:2") as port:
+        wait_for_alert(port, target.id)
+        code, _, err = dxl(capsys, *subcommand.split(), "--robot", "parallel", "--port", port,
+                           *options)
+    assert code == 5, err
+    assert (f"ID {target.id} ({target.name}, {target.spec.name}) is in hardware alert "
+            "(overheating)") in err
+    assert f"cochlea-dxl reboot --ids {target.id}" in err
+    assert not (tmp_path / "r.json").exists() and not (tmp_path / "f.csv").exists()
+    # Only the test's own Torque Enable 1 (to start the fault); the tool wrote nothing.
+    assert events(log, "write") == [(target.id, 64, "1")]

@@ -5,8 +5,9 @@ Each subcommand is a module of :mod:`cochlea.dynamixel.bringup` with ``NAME``, `
 
 Exit codes (see :mod:`cochlea.dynamixel.bringup.common` and docs/hardware.md): 0 done; 1 a
 check found a difference; 2 the user's input is wrong (one line, nothing written); 5 the port
-or a motor of the description (as ``cochlea-run``); 130 interrupted. No subcommand turns a
-motor's torque on.
+or a motor of the description (as ``cochlea-run``); 130 interrupted. Only ``home`` and
+``calibrate --torque-fit`` turn a motor's torque on, and they turn it off again whatever ends
+them (an error, Ctrl-C).
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ def parser() -> argparse.ArgumentParser:
                     "port and on cochlea-emulator's pseudo-terminal alike.",
         epilog="A new lab: scan, configure --dry-run, configure, info (docs/hardware.md). "
                "Exit codes: 0 done, 1 a difference found, 2 a wrong option or file, 5 the port "
-               "or a motor, 130 interrupted. No subcommand turns the torque on.")
+               "or a motor, 130 interrupted. Only home and calibrate --torque-fit turn a "
+               "torque on, and off again whatever ends them.")
     sub = p.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True,
                            parser_class=_Parser)
     for module in SUBCOMMANDS:
@@ -58,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {exc}", file=sys.stderr)
         return getattr(exc, "exit_code", EXIT_USER_ERROR)
     except KeyboardInterrupt:
-        print(f"{name}: interrupted (no subcommand turns the torque on)", file=sys.stderr)
+        print(f"{name}: interrupted (every torque is off)", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

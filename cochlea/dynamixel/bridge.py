@@ -586,17 +586,7 @@ class DynamixelBackend:
     def _setup_timeout(self) -> float:
         return max(0.02, 4 * self.timeout_s)
 
-    # ---- confirmed instructions outside a run (the start-up, cochlea-dxl's bring-up) ---------
-
-    def open_bus(self) -> None:
-        """Open the port for :meth:`command` alone: no start-up, nothing written (the bring-up
-        tools' session; :meth:`close_bus` ends it)."""
-        self._port = self._open_port(self.port_path, self.baud)
-
-    def close_bus(self) -> None:
-        port, self._port = self._port, None
-        if port is not None:
-            port.close()
+    # ---- confirmed instructions outside the periods (the start-up and the shut-down) ----------
 
     def command(self, d: JointDrive, what: str, frame: bytes) -> bytes:
         """One instruction to motor ``d``, retried, its status checked; the reply's parameters.

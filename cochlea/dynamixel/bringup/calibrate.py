@@ -34,17 +34,7 @@ import numpy as np
 
 from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
-from ...runtime.backend import BackendError
-from .. import protocol as proto
-from ..bridge import DynamixelBackend
 from ..control_table import (
-    ADDR_BUS_WATCHDOG,
-    ADDR_GOAL_CURRENT,
-    ADDR_OPERATING_MODE,
-    ADDR_PRESENT_CURRENT,
-    ADDR_PRESENT_POSITION,
-    ADDR_TORQUE_ENABLE,
-    CURRENT_MODE,
     RAD_PER_COUNT,
     baud_code,
 )
@@ -72,81 +62,6 @@ REFERENCE = {
 #: The positive sense of each kind of joint, as the user sees it.
 POSITIVE = {"serial": "counter-clockwise seen from above",
             "parallel": "counter-clockwise seen with +u to your right and v up; the slider up"}
-
-
-# ---- the bus ------------------------------------------------------------------------------------
-
-
-class Bus:
-    """The motors of a description on a port, one confirmed instruction at a time (the bridge's
-    start-up transactions: retries, and a one-line error naming the motor and what to check)."""
-
-    def __init__(self, robot: str, port: str, baud: int, description: str | Path | None):
-        self.backend = DynamixelBackend(robot, port, baud, description=description,
-                                        timeout_s=0.05)
-        self.drives: list[JointDrive] = self.backend.drives
-        self.port, self.baud = port, baud
-
-    def open(self) -> Bus:
-        self.backend.open_bus()
-        return self
-
-    def close(self) -> None:
-        self.backend.close_bus()
-
-    def current_mode_at_rest(self, d: JointDrive) -> None:
-        """Torque off, no Bus Watchdog, current control, zero Goal Current: ``d`` ready to be
-        enabled without a jump (the mode and watchdog only take with the torque off)."""
-        self.write(d, ADDR_TORQUE_ENABLE, 1, 0)
-        self.write(d, ADDR_BUS_WATCHDOG, 1, 0)
-        self.write(d, ADDR_OPERATING_MODE, 1, CURRENT_MODE)
-        self.write(d, ADDR_GOAL_CURRENT, 2, 0)
-
-    def ping(self, drives: list[JointDrive]) -> None:
-        """Every motor there, of the model the description names, without a hardware alert."""
-        problems = []
-        for d in drives:
-            try:
-                params = self.backend.command(d, "PING", proto.ping(d.id))
-            except BackendError as exc:
-                problems.append(str(exc))
-                continue
-            number = proto.from_le(params[0:2], False) if len(params) >= 2 else -1
-            if number != d.spec.number:
-                problems.append(f"ID {d.id} ({d.name}) is model number {number}, not the "
-                                f"{d.spec.name}'s {d.spec.number}: check the IDs and the "
-                                "description")
-        if problems:
-            raise BackendError("; ".join(problems))
-
-    def read(self, d: JointDrive, address: int, size: int, signed: bool = True) -> int:
-        params = self.backend.command(d, f"READ {address}", proto.read(d.id, address, size))
-        if len(params) != size:
-            raise BackendError(f"ID {d.id} ({d.name}) answered READ {address} with "
-                               f"{len(params)} bytes, not {size}")
-        return proto.from_le(params, signed)
-
-    def write(self, d: JointDrive, address: int, size: int, value: int) -> None:
-        self.backend.command(d, f"WRITE {address} = {value}",
-                              proto.write(d.id, address, proto.le(int(value), size)))
-
-    def position(self, d: JointDrive) -> int:
-        return self.read(d, ADDR_PRESENT_POSITION, 4)
-
-    def torque_off(self, drives: list[JointDrive]) -> list[str]:
-        """Goal Current 0 and Torque Enable 0 on each motor, whatever fails: the motors that
-        did not confirm it."""
-        failed = []
-        for d in drives:
-            try:
-                self.write(d, ADDR_GOAL_CURRENT, 2, 0)
-            except BackendError:
-                pass  # a refused goal (e.g. after a watchdog error) must not stop the torque off
-            try:
-                self.write(d, ADDR_TORQUE_ENABLE, 1, 0)
-            except BackendError:
-                failed.append(f"ID {d.id} ({d.name})")
-        return failed
 
 
 @contextlib.contextmanager
@@ -293,26 +208,25 @@ def run(args: argparse.Namespace) -> int:
         raise CochleaError("--joint, --lever-m and --csv belong to --torque-fit")
     _finite(args.min_motion_deg, "--min-motion-deg")
     out = _out_path(args)
-    bus = Bus(args.robot, args.port, args.baud, args.description)
-    chosen = _select(bus.drives, args.joints, "--joints")
+    drives = common.load_drives(args)
+    chosen = _select(drives, args.joints, "--joints")
     refs = _references(args, chosen)
     text = (args.description.read_text() if args.description is not None
             else _shipped(args.robot).read_text())
-    bus.open()
-    try:
-        bus.ping(bus.drives)
-        failed = bus.torque_off(bus.drives)
-        if failed:
-            raise BackendError(f"torque off not confirmed by {', '.join(failed)}: calibrate "
-                               "only with every motor free")
-        results = {d.id: _calibrate_joint(bus, d, refs[d.name], args) for d in chosen}
-    finally:
-        bus.torque_off(bus.drives)
-        bus.close()
+    with common.Bus(args.port, args.baud) as bus:
+        common.check_chain(bus, drives)  # nothing written yet: nothing to undo
+        try:
+            failed = bus.torque_off(drives)
+            if failed:
+                raise common.BusError(f"torque off not confirmed by {', '.join(failed)}: "
+                                      "calibrate only with every motor free")
+            results = {d.id: _calibrate_joint(bus, d, refs[d.name], args) for d in chosen}
+        finally:
+            bus.torque_off(drives)
     note = (f"calibrated {datetime.now().isoformat(timespec='seconds')} on {args.port} "
             "(cochlea-dxl calibrate)")
     new = edit_description(text, results, note, path=out)
-    _write_checked(new, out, args.robot, bus.drives, results)
+    _write_checked(new, out, args.robot, drives, results)
     for d in chosen:
         direction, offset = results[d.id]
         print(f"{d.name} (ID {d.id}): direction {direction:+d}, zero_offset_deg {offset:.4f}")
@@ -324,7 +238,7 @@ def _shipped(robot: str) -> Path:
     return ROBOTS_DIR / f"{robot}.toml"
 
 
-def _calibrate_joint(bus: Bus, d: JointDrive, ref: tuple, args) -> tuple[int, float]:
+def _calibrate_joint(bus: common.Bus, d: JointDrive, ref: tuple, args) -> tuple[int, float]:
     q_ref, how = ref
     unit = "deg" if d.type == "revolute" else "m"
     shown = math.degrees(q_ref) if d.type == "revolute" else q_ref
@@ -435,8 +349,8 @@ def _torque_fit(args: argparse.Namespace) -> int:
                            "--joints and --reference belong to the calibration of offsets")
     lever = _finite(args.lever_m, "--lever-m")
     csv_path = _new_file(args.csv, "--csv")
-    bus = Bus(args.robot, args.port, args.baud, args.description)
-    (d,) = _select(bus.drives, args.joint, "--joint")
+    drives = common.load_drives(args)
+    (d,) = _select(drives, args.joint, "--joint")
     if d.type != "revolute":
         raise CochleaError(f"--joint {d.name}: the torque fit is for a revolute joint's motor "
                            "(the lever on its output shaft)")
@@ -455,34 +369,12 @@ def _torque_fit(args: argparse.Namespace) -> int:
                                f"currents in (0, {limit_mA:.0f}] mA (the joint's Current "
                                "Limit), e.g. 200,400,600")
     samples = []
-    bus.open()
-    try:
-        bus.ping([d])
-        # No Bus Watchdog: the current must hold while the user reads the scale.
-        bus.current_mode_at_rest(d)
-        ask(f"{d.name} (ID {d.id}): fix a lever of {lever:g} m on it pressing on a scale (the "
-            "joint must not move); the motor will push with each current in turn. Enter:")
-        bus.write(d, ADDR_TORQUE_ENABLE, 1, 1)
-        for milliamps in currents:
-            lsb = int(round(milliamps / d.spec.current_unit_mA))
-            bus.write(d, ADDR_GOAL_CURRENT, 2, lsb)
-            answer = ask(f"{d.name}: {lsb * d.spec.current_unit_mA:.0f} mA; the force on the "
-                         "scale in N (q stops):")
-            if answer.lower() == "q":
-                break
-            try:
-                force = float(answer)
-            except ValueError:
-                force = math.nan
-            if not math.isfinite(force):
-                raise CochleaError(f"the force {answer!r}: expected a number of N; nothing "
-                                   "written")
-            present = bus.read(d, ADDR_PRESENT_CURRENT, 2) * d.spec.current_unit_mA
-            samples.append((lsb * d.spec.current_unit_mA, present, force, lever,
-                            force * lever))
-    finally:
-        bus.torque_off([d])
-        bus.close()
+    with common.Bus(args.port, args.baud) as bus:
+        common.check_chain(bus, [d], torque=True)  # nothing written yet: nothing to undo
+        try:
+            _push_and_measure(bus, d, lever, currents, samples)
+        finally:
+            bus.torque_off([d])
     if len(samples) < 2:
         raise CochleaError("the torque fit needs two samples or more: nothing written")
     amps = np.array([s[1] for s in samples]) * 1e-3  # the present current the motor measured
@@ -505,3 +397,30 @@ def _torque_fit(args: argparse.Namespace) -> int:
     print(f"for the description: fit = {{ a = {a_d:.6g}, b = {b_d:.6g}, x = \"{x}\", "
           f"y = \"{y}\" }}")
     return 0
+
+
+def _push_and_measure(bus: common.Bus, d: JointDrive, lever: float, currents: list[float],
+                      samples: list[tuple]) -> None:
+    """The torque fit's bench steps: each current held against the scale, the user's force
+    read; ``samples`` keeps what was measured even when the user stops early."""
+    # No Bus Watchdog: the current must hold while the user reads the scale.
+    bus.current_mode_at_rest(d)
+    ask(f"{d.name} (ID {d.id}): fix a lever of {lever:g} m on it pressing on a scale (the "
+        "joint must not move); the motor will push with each current in turn. Enter:")
+    bus.write(d.id, d.spec.item("Torque Enable"), 1)
+    for milliamps in currents:
+        lsb = int(round(milliamps / d.spec.current_unit_mA))
+        bus.write(d.id, d.spec.item("Goal Current"), lsb)
+        answer = ask(f"{d.name}: {lsb * d.spec.current_unit_mA:.0f} mA; the force on the "
+                     "scale in N (q stops):")
+        if answer.lower() == "q":
+            break
+        try:
+            force = float(answer)
+        except ValueError:
+            force = math.nan
+        if not math.isfinite(force):
+            raise CochleaError(f"the force {answer!r}: expected a number of N; nothing "
+                               "written")
+        present = bus.read(d.id, d.spec.item("Present Current")) * d.spec.current_unit_mA
+        samples.append((lsb * d.spec.current_unit_mA, present, force, lever, force * lever))

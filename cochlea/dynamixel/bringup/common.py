@@ -327,6 +327,32 @@ class Bus:
         self._expect(self.request(frame, motor_id), motor_id,
                      f"WRITE {item.name} ({item.address}) = {value}")
 
+    def position(self, d: JointDrive) -> int:
+        """The motor's Present Position (counts)."""
+        return self.read(d.id, d.spec.item("Present Position"))
+
+    def current_mode_at_rest(self, d: JointDrive) -> None:
+        """Torque off, no Bus Watchdog, current control, zero Goal Current: ``d`` ready to be
+        enabled without a jump (the mode and the watchdog only take with the torque off)."""
+        for name, value in (("Torque Enable", 0), ("Bus Watchdog", 0),
+                            ("Operating Mode", CURRENT_MODE), ("Goal Current", 0)):
+            self.write(d.id, d.spec.item(name), value)
+
+    def torque_off(self, drives: list[JointDrive]) -> list[str]:
+        """Goal Current 0 and Torque Enable 0 on each motor, whatever fails (a finally's
+        clean-up): the motors that did not confirm the torque off."""
+        failed = []
+        for d in drives:
+            try:
+                self.write(d.id, d.spec.item("Goal Current"), 0)
+            except BusError:
+                pass  # a refused goal (e.g. after a watchdog error) must not stop the torque off
+            try:
+                self.write(d.id, d.spec.item("Torque Enable"), 0)
+            except BusError:
+                failed.append(self.who(d.id))
+        return failed
+
     def alert(self, motor_id: int) -> bool:
         """Whether the motor's status packets carry the hardware alert bit (a PING's)."""
         reply = self.request(proto.ping(motor_id), motor_id)
@@ -355,11 +381,13 @@ def model_name(number: int) -> str:
     return f"model number {number}"
 
 
-def check_chain(bus: Bus, drives: list[JointDrive]) -> None:
+def check_chain(bus: Bus, drives: list[JointDrive], *, torque: bool = False) -> None:
     """Every motor of the description answers PING and is the description's model; all the
-    problems in one message (exit 5), before anything is written."""
+    problems in one message (exit 5), before anything is written. ``torque``: the caller will
+    enable a motor, so one in hardware alert (its torque held off until a reboot) is refused
+    here too, naming ``cochlea-dxl reboot``."""
     bus.names = {d.id: d for d in drives}
-    problems = []
+    problems, alerted = [], []
     for d in drives:
         answer = bus.ping(d.id)
         if answer is None:
@@ -367,6 +395,13 @@ def check_chain(bus: Bus, drives: list[JointDrive]) -> None:
         elif answer[0] != d.spec.number:
             problems.append(f"{bus.who(d.id)} is {model_name(answer[0])} ({answer[0]}), not "
                             f"the {d.spec.name}'s {d.spec.number}")
+        elif torque and bus.alert(d.id):
+            status = bus.read(d.id, d.spec.item("Hardware Error Status"))
+            alerted.append(f"{bus.who(d.id)} is in hardware alert "
+                           f"({describe_hardware_error(status)})")
     if problems:
         raise BusError("; ".join(problems) + f" (on {bus.path} at {bus.baud} baud): check the "
                        "power, cables, IDs and --baud; cochlea-dxl scan lists what answers")
+    if alerted:
+        raise BusError("; ".join(alerted) + ": remove the cause, then cochlea-dxl reboot --ids "
+                       + ",".join(str(d.id) for d in drives) + " before this step")

@@ -26,6 +26,7 @@ description's ``zero_offset_deg`` says.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import random
@@ -34,17 +35,11 @@ from datetime import datetime
 from pathlib import Path
 
 from ...errors import CochleaError
-from ...runtime.backend import BackendError
-from ..control_table import (
-    ADDR_BUS_WATCHDOG,
-    ADDR_GOAL_CURRENT,
-    ADDR_PRESENT_VELOCITY,
-    ADDR_TORQUE_ENABLE,
-    baud_code,
-)
+from ..control_table import Item, baud_code
+from ..drives import JointDrive
 from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
 from . import common
-from .calibrate import Bus, write_atomic
+from .calibrate import write_atomic
 
 NAME = "home"
 HELP = ("home the parallel robot's slider on its lower hard stop and record it, so the runtime "
@@ -105,8 +100,7 @@ def _check(args: argparse.Namespace, d) -> tuple[float, float, float]:
 
 def run(args: argparse.Namespace) -> int:
     baud_code(args.baud)
-    bus = Bus(args.robot, args.port, args.baud, args.description)
-    sliders = [d for d in bus.drives if d.type == "prismatic"]
+    sliders = [d for d in common.load_drives(args) if d.type == "prismatic"]
     if not sliders:
         raise CochleaError(f"--robot {args.robot}: it has no slider to home (the parallel "
                            "robot has)")
@@ -115,61 +109,15 @@ def run(args: argparse.Namespace) -> int:
     record_path = args.record if args.record is not None else default_record(args.robot)
     if record_path.is_dir():
         raise CochleaError(f"--record {record_path}: a folder; expected a file")
-    limit = abs(float(d.goal_current_lsb(args.force_N)))
     marker = random.SystemRandom().randint(*MARKER_RANGE)
-    # Towards the stop: the joint's negative sense (the lower limit).
-    kp = 0.25 * args.force_N / speed  # N per m/s: a quarter of the force at rest
-    ki = args.force_N / (0.5 * speed)  # N per m: the full force after 0.5 s at rest
-    bus.open()
-    result = None
-    try:
-        bus.ping([d])
-        bus.current_mode_at_rest(d)
-        bus.write(d, ADDR_BUS_WATCHDOG, 1, 5)  # 100 ms: the motor stops if we do
-        start_counts = bus.position(d)
-        bus.write(d, ADDR_TORQUE_ENABLE, 1, 1)
-        print(f"homing {d.name} (ID {d.id}): down at {speed * 1e3:g} mm/s, at most "
-              f"{args.force_N:g} N", flush=True)
-        integral, window = 0.0, []
-        t0 = last = time.perf_counter()
-        stroke = d.position_limits[1] - d.position_limits[0] + 0.01
-        while True:
-            now = time.perf_counter()
-            if now - t0 > timeout:
-                raise BackendError(f"no hard stop found in {timeout:g} s: check that the "
-                                   "slider moves down, its direction in the description, and "
-                                   "--stop-m")
-            lsb = bus.read(d, ADDR_PRESENT_VELOCITY, 4)
-            counts = bus.position(d)
-            if abs((counts - start_counts) * d.q_per_count) > stroke:
-                raise BackendError(f"the slider travelled more than its stroke ({stroke:g} m) "
-                                   "without meeting a stop: check its direction and the stop")
-            v = float(d.qd(lsb))
-            error = -speed - v
-            dt = min(now - last, 0.1)
-            last = now
-            integral = min(max(integral + ki * error * dt, -args.force_N), args.force_N)
-            force = min(max(kp * error + integral, -args.force_N), args.force_N)
-            goal = int(min(max(float(d.goal_current_lsb(force)), -limit), limit))
-            bus.write(d, ADDR_GOAL_CURRENT, 2, goal)
-            window.append((now, counts, force <= -0.99 * args.force_N))
-            while window and window[0][0] < now - args.dwell_s:
-                window.pop(0)
-            positions = [c for _, c, _ in window]
-            if (now - t0 > args.dwell_s and window[-1][0] - window[0][0] >= 0.9 * args.dwell_s
-                    and max(positions) - min(positions) <= STILL_COUNTS
-                    and all(full for _, _, full in window)):
-                result = sorted(positions)[len(positions) // 2]
-                bus.write(d, MARKER_ADDRESS, 2, marker)
-                break
-            time.sleep(max(0.0, LOOP_PERIOD_S - (time.perf_counter() - now)))
-    finally:
-        failed = bus.torque_off([d])
+    with common.Bus(args.port, args.baud) as bus:
+        common.check_chain(bus, [d], torque=True)  # nothing written yet: nothing to undo
         try:
-            bus.write(d, ADDR_BUS_WATCHDOG, 1, 0)
-        except BackendError:
-            pass
-        bus.close()
+            result = _seek_stop(bus, d, args, speed, timeout, marker)
+        finally:
+            failed = bus.torque_off([d])
+            with contextlib.suppress(common.BusError):
+                bus.write(d.id, d.spec.item("Bus Watchdog"), 0)
     record = {"format": FORMAT, "robot": args.robot, "joint": d.name, "motor_id": d.id,
               "model": d.spec.name, "raw_counts": int(result), "stop_m": stop,
               "direction": d.direction, "ratio_m_per_rad": d.ratio,
@@ -192,3 +140,56 @@ def _write_record(path: Path, record: dict) -> None:
         raise CochleaError(f"--record {path}: cannot write it ({exc.strerror or exc}); the "
                            "slider was homed but nothing records it: home again with another "
                            "--record") from None
+
+
+#: Where the homing leaves its marker (:mod:`..homing`): a RAM register current control ignores.
+MARKER_ITEM = Item("homing marker", MARKER_ADDRESS, 2, True, 0, *MARKER_RANGE)
+
+
+def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: float,
+               timeout: float, marker: int) -> int:
+    """Drive the slider down at ``speed`` (m/s) under a force limit until it rests on its
+    stop; leave ``marker`` in the motor and return the stop's raw position (counts)."""
+    limit = abs(float(d.goal_current_lsb(args.force_N)))
+    # Towards the stop: the joint's negative sense (the lower limit).
+    kp = 0.25 * args.force_N / speed  # N per m/s: a quarter of the force at rest
+    ki = args.force_N / (0.5 * speed)  # N per m: the full force after 0.5 s at rest
+    bus.current_mode_at_rest(d)
+    bus.write(d.id, d.spec.item("Bus Watchdog"), 5)  # 100 ms: the motor stops if we do
+    start_counts = bus.position(d)
+    bus.write(d.id, d.spec.item("Torque Enable"), 1)
+    print(f"homing {d.name} (ID {d.id}): down at {speed * 1e3:g} mm/s, at most "
+          f"{args.force_N:g} N", flush=True)
+    integral, window = 0.0, []
+    t0 = last = time.perf_counter()
+    stroke = d.position_limits[1] - d.position_limits[0] + 0.01
+    velocity, goal_current = d.spec.item("Present Velocity"), d.spec.item("Goal Current")
+    while True:
+        now = time.perf_counter()
+        if now - t0 > timeout:
+            raise common.BusError(f"no hard stop found in {timeout:g} s: check that the "
+                                  "slider moves down, its direction in the description, and "
+                                  "--stop-m")
+        lsb = bus.read(d.id, velocity)
+        counts = bus.position(d)
+        if abs((counts - start_counts) * d.q_per_count) > stroke:
+            raise common.BusError(f"the slider travelled more than its stroke ({stroke:g} m) "
+                                  "without meeting a stop: check its direction and the stop")
+        v = float(d.qd(lsb))
+        error = -speed - v
+        dt = min(now - last, 0.1)
+        last = now
+        integral = min(max(integral + ki * error * dt, -args.force_N), args.force_N)
+        force = min(max(kp * error + integral, -args.force_N), args.force_N)
+        goal = int(min(max(float(d.goal_current_lsb(force)), -limit), limit))
+        bus.write(d.id, goal_current, goal)
+        window.append((now, counts, force <= -0.99 * args.force_N))
+        while window and window[0][0] < now - args.dwell_s:
+            window.pop(0)
+        positions = [c for _, c, _ in window]
+        if (now - t0 > args.dwell_s and window[-1][0] - window[0][0] >= 0.9 * args.dwell_s
+                and max(positions) - min(positions) <= STILL_COUNTS
+                and all(full for _, _, full in window)):
+            bus.write(d.id, MARKER_ITEM, marker)
+            return sorted(positions)[len(positions) // 2]
+        time.sleep(max(0.0, LOOP_PERIOD_S - (time.perf_counter() - now)))
