@@ -337,3 +337,31 @@ def test_part_files_are_plain_parquet(local_sweep):
     table = pq.read_table(out / "parts")
     assert sorted(table["sample"].to_pylist()) == list(range(8))
     assert json.loads((out / "sweep.json").read_text())["total"] == 8
+
+
+def test_every_wilson_interval_holds_its_estimate():
+    """A robustness map's error bars are p - lo and hi - p: the interval must hold p exactly,
+    also where every sample or none succeeded (rounding once put hi a few ulps below 1 and
+    the 400-sample report failed on a negative error bar)."""
+    from cochlea.sweep.report import wilson
+
+    for n in range(1, 1201):
+        for s in {0, 1, n // 3, n // 2, n - 1, n}:
+            lo, hi = wilson(s, n)
+            assert 0.0 <= lo <= s / n <= hi <= 1.0, (s, n, lo, hi)
+    assert wilson(0, 0) == (0.0, 1.0)
+
+
+def test_a_report_that_fails_is_one_line_and_keeps_the_samples(tmp_path, monkeypatch, capsys):
+    """The samples are the result: a report that cannot be written (a full disk, a figure)
+    ends in one line naming the command that writes it again, exit 18, no traceback."""
+    from cochlea.sweep import report as sweep_report
+
+    def full_disk(out):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(sweep_report, "write", full_disk)
+    assert cochlea_sweep.main(["report", str(tmp_path)]) == cochlea_sweep.EXIT_REPORT_FAILED
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "No space left on device" in err
+    assert f"cochlea-sweep report {tmp_path}" in err

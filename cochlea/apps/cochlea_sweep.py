@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from ..console import tolerate_closed_stdout
-from ..errors import EXIT_USER_ERROR, CochleaError
+from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
 from ..sim import load_scenario, simulate, unit_setups
@@ -33,6 +33,8 @@ from ..sweep import spec as sweep_spec
 from . import report
 
 EXIT_INTERRUPTED = 130
+#: The samples are kept but the report failed (cochlea-run's code for a lost report part).
+EXIT_REPORT_FAILED = 18
 _EFFORT_SLUG = {"N m": "Nm", "N": "N"}
 
 
@@ -150,7 +152,20 @@ def _sweep(argv: list[str]) -> int:
               f"{info['batch']}", flush=True)
     else:
         print(f"cochlea-sweep: all {spec.total} samples were already in {args.out}", flush=True)
-    print(f"cochlea-sweep: report {sweep_report.write(args.out)}", flush=True)
+    return _report(args.out)
+
+
+def _report(out: Path) -> int:
+    """The report from the finished samples. The samples are the sweep's result and stay in
+    ``out/parts`` whatever happens here: a report that fails (a full disk, a figure that
+    cannot be drawn) is one line and :data:`EXIT_REPORT_FAILED`, not a traceback."""
+    try:
+        print(f"cochlea-sweep: report {sweep_report.write(out)}", flush=True)
+    except (OSError, ValueError, ArithmeticError, TypeError) as exc:
+        print(f"cochlea-sweep: the report could not be written ({type(exc).__name__}: "
+              f"{printable(str(exc))}); every finished sample is kept in {out}/parts: "
+              f"`cochlea-sweep report {out}` writes it again", file=sys.stderr)
+        return EXIT_REPORT_FAILED
     return 0
 
 
@@ -217,8 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                                                     "from the samples finished so far.")
             p.add_argument("dir", type=Path, metavar="DIR")
             args = p.parse_args(argv[1:])
-            print(f"cochlea-sweep: report {sweep_report.write(args.dir)}")
-            return 0
+            return _report(args.dir)
         return _sweep(argv)
     except CochleaError as exc:
         print(f"cochlea-sweep: {exc}", file=sys.stderr)
