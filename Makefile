@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness \
+.PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness robustness-maps \
         embedded embedded-size embedded-sim
 
 # The stamp is rebuilt when the package's metadata changes.
@@ -85,6 +85,11 @@ codegen: $(STAMP)
 # writes docs/robustness.md (about a minute).
 robustness: $(STAMP)
 	$(BIN)/python bench/robustness.py
+
+# The robustness maps (cochlea-sweep, 400 samples per controller and plant): writes
+# docs/robustness/NAME/ and docs/robustness_maps.md (a few minutes per map on two cores).
+robustness-maps: $(STAMP)
+	$(BIN)/python bench/robustness_maps.py
 
 # The benchmark: writes bench/results.md and bench/results.json (takes a few minutes).
 bench: $(STAMP) lib
