@@ -27,6 +27,7 @@ gains) to the same trials as one that was never stopped.
 from __future__ import annotations
 
 import csv
+import fcntl
 import hashlib
 import io
 import json
@@ -62,6 +63,8 @@ from .spec import Entry, Spec
 MANIFEST = "tune.json"
 MANIFEST_FORMAT = "cochlea-tune-folder/1"
 JOURNAL = "study.journal"
+#: Held (flock) by the search running in a folder: the kernel drops it when the process dies.
+LOCK = ".cochlea-tune.lock"
 SAMPLES = "samples"
 STUDY = "cochlea-tune"
 TRIALS_CSV = "trials.csv"
@@ -371,6 +374,27 @@ def prepare(out: Path, tune: Tune) -> None:
                 f.truncate(data.rfind(b"\n") + 1)
 
 
+def hold(out: Path) -> int:
+    """Lock ``out`` for this process (a second search on the same folder is refused). Holding
+    it, any lock Optuna's journal left is a killed run's: removed, or the next write would wait
+    for its grace period."""
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise TuneFolderError(f"--out {out}: another cochlea-tune is running on this folder; "
+                              "wait for it or give another --out") from None
+    (out / (JOURNAL + ".lock")).unlink(missing_ok=True)
+    return fd
+
+
+def release(out: Path, fd: int | None) -> None:
+    if fd is not None:
+        (out / LOCK).unlink(missing_ok=True)
+        os.close(fd)
+
+
 def rows_path(out: Path, key: int | str) -> Path:
     name = "nominal" if key == "nominal" else f"trial-{int(key):06d}"
     return out / SAMPLES / f"{name}.parquet"
@@ -510,18 +534,32 @@ def run(tune: Tune, out: Path, evaluate: Callable[[str], dict], *, workers: int 
     keeps every finished trial; the same call resumes."""
     s = tune.settings
     info = {"trials_run": 0, "workers": 0}
-    if check(out, tune):  # before any worker starts; nothing written yet
-        prepare(out, tune)
-        study = open_study(out, tune)
-        finished = {t.number for t in study.get_trials(deepcopy=False,
-                                                       states=(TrialState.COMPLETE,))}
-        if finished >= set(range(s.trials)) and read_rows(out, "nominal") is not None:
-            info.update(write_result(out, tune, study))  # nothing to run: no workers started
-            return info
+    lock: dict[str, int] = {}  # the folder's lock, once this process holds it
+    try:
+        if check(out, tune):  # before any worker starts; nothing written yet
+            lock["fd"] = hold(out)
+            prepare(out, tune)
+            study = open_study(out, tune)
+            finished = {t.number for t in study.get_trials(deepcopy=False,
+                                                           states=(TrialState.COMPLETE,))}
+            if finished >= set(range(s.trials)) and read_rows(out, "nominal") is not None:
+                info.update(write_result(out, tune, study))  # nothing to run: no workers
+                return info
+        return _run(tune, out, evaluate, workers, scheduler, progress, warm, log, info, lock)
+    finally:
+        release(out, lock.get("fd"))
+
+
+def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, log, info: dict,
+         lock: dict[str, int]) -> dict:
+    """:func:`run` once workers are needed: a new folder is written only once they are up."""
+    s = tune.settings
     client, cluster = _client(workers, scheduler)
     bar = None
     try:
         prepare(out, tune)
+        if "fd" not in lock:
+            lock["fd"] = hold(out)
         study = open_study(out, tune)
         n_workers = len(client.scheduler_info()["workers"])
         info["workers"] = n_workers
