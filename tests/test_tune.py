@@ -382,3 +382,10 @@ def test_a_folder_with_other_files_or_an_unreachable_scheduler_is_refused(tmp_pa
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--scheduler" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_example_spec_loads_as_documented():
+    example = Path(__file__).resolve().parent.parent / "examples" / "tune_serial_task.toml"
+    tune = tuning.load(example)
+    assert len(tune.distributions()) == 6 and all(d.log for d in tune.dims)
+    assert tune.size == 8 and tune.settings.trials == 40 and tune.settings.objective == "p95"
