@@ -389,3 +389,50 @@ def test_the_example_spec_loads_as_documented():
     tune = tuning.load(example)
     assert len(tune.distributions()) == 6 and all(d.log for d in tune.dims)
     assert tune.size == 8 and tune.settings.trials == 40 and tune.settings.objective == "p95"
+
+
+def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
+    """The choice among finished trials and the nominal, on verdicts made up for the purpose
+    (no runs): the feasible candidate of the smallest objective; none feasible, no tuned.toml."""
+    tune = tuning.load(write_spec(tmp_path, trials=3))
+    out = tmp_path / "out"
+    tuning.prepare(out, tune)
+    study = tuning.open_study(out, tune)
+    ask = tune.distributions()
+
+    def verdict(objective, feasible=True):
+        return {"objective": objective, "feasible": feasible,
+                "torque_limit_runs": 0 if feasible else 1, "stopped_runs": 0, "successes": 0,
+                "runs": 2, "median_ratio": objective, "worst_ratio": objective,
+                "max_torque_ratio": 0.5}
+
+    for n, v in enumerate([verdict(3.0), verdict(0.5, feasible=False), verdict(2.0)]):
+        assert study.ask(ask).number == n
+        tuning.tell(study, n, v)
+    nominal_rows = [_row(r) | {"sample": i} for i, r in enumerate((1.0, 1.5))]
+    tuning.write_rows(out, "nominal", nominal_rows)
+    result = tuning.write_result(out, tune, study)["result"]
+    assert result["best_trial"]["trial"] == 2  # trial 1 is lower but infeasible
+    assert result["chosen"]["trial"] == "nominal" and result["chosen"]["objective"] == 1.5
+    assert tuning.write_tuned(out, tune, result["chosen"]).exists()
+    assert "no trial beat them" in (out / tuning.TUNED).read_text()
+    data = tomllib.loads((out / tuning.TUNED).read_text())
+    assert {u["name"]: u["gains"]["G_g"] for u in data["unit"]} == \
+        {"arm1": [2.0, 2.0, 3.0], "arm2": [1.5, 1.0, 1.0]}  # the scenario's own
+    # Nothing feasible (every trial and the nominal at a torque limit): no tuned.toml, and a
+    # previous search's is not left to be taken for this one's.
+    other = tmp_path / "other"
+    tuning.prepare(other, tune)
+    study = tuning.open_study(other, tune)
+    for n in range(3):
+        study.ask(ask)
+        tuning.tell(study, n, verdict(1.0 + n, feasible=False))
+    tuning.write_rows(other, "nominal", [_row(1.0, torque=1.0) | {"sample": 0}])
+    result = tuning.write_result(other, tune, study)["result"]
+    assert result["chosen"] is None and result["best_trial"] is None
+    assert result["nominal"]["torque_limit_runs"] == 1
+    (other / tuning.TUNED).write_text("stale")
+    assert not tuning.write_tuned(other, tune, None).exists()
+    summary = cochlea_tune.write_report(other, tune, result).read_text()
+    assert "No candidate was feasible" in summary and "none feasible" in summary
+    assert (other / "history.png").stat().st_size > 0
