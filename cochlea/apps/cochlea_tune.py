@@ -86,7 +86,7 @@ def write_report(out: Path, tune: tuning.Tune, result: dict) -> Path:
              "threshold, the largest over the tracked coordinates: 1 is converged), lower is "
              "better; a candidate with a run at a torque limit or stopped (supervisor rule, "
              "divergence) is infeasible.", "",
-             f"{len(records)} of {s.trials} trials finished, "
+             f"{len(records)} trials finished ({s.trials} asked for), "
              f"{sum(1 for r in records if r['feasible'])} feasible (sampler seed {s.seed}).", ""]
     columns = [("objective", "objective"), ("feasible", "feasible"),
                ("successes", "runs converged"), ("median_ratio", "median convergence ratio"),
