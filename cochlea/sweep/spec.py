@@ -218,9 +218,12 @@ def _scenario_path(spec_path: Path, name: str) -> Path:
     return resolved
 
 
-def load(path: str | Path, scenario_file: Path | None = None) -> Spec:
+def load(path: str | Path, scenario_file: Path | None = None, *,
+         own_tables: tuple[str, ...] = ()) -> Spec:
     """Read and check a sweep spec; the scenario it names is loaded (and so checked) too.
-    ``scenario_file``: read the base scenario from there instead (a sweep folder's copy)."""
+    ``scenario_file``: read the base scenario from there instead (a sweep folder's copy).
+    ``own_tables``: top-level keys the caller reads and checks itself (cochlea-tune's
+    ``[tune]``); any other unknown key is refused."""
     path = Path(path)
     data = read_toml(path, "sweep spec")
     text = path.read_text(encoding="utf-8")
@@ -261,6 +264,7 @@ def load(path: str | Path, scenario_file: Path | None = None) -> Spec:
                                   show_got=False)
                 rule = KeyRule("float", 0.0, sc_mod.MAX_GAIN, True, len(gains[key]))
                 entries.append(_entry(u, key, rule, f"gains.{unit_name}.{key}"))
+    top.used.update(own_tables)
     top.done()
     spec = Spec(path, text, scenario_path, scenario_path.read_text(encoding="utf-8"),
                 base.robot, base.space, samples, seed, duration, tuple(entries))
