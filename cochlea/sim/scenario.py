@@ -10,6 +10,9 @@ the controller's nominal model. Every quantity with a dimension is written with 
 
 from __future__ import annotations
 
+import hashlib
+import os
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -23,7 +26,8 @@ from ..resources import SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
-from ..robots.description import Table, read_toml
+from ..robots.description import MAX_FILE_BYTES, Table, read_toml
+from ..robots.description import resolve_path as resolve_description
 from ..robots.model import ACTUATORS
 from .expressions import FUNCTIONS, ExpressionError, parse
 
@@ -209,6 +213,34 @@ def stressed(sc: Scenario, mass_scale: float, delay_periods: int = 2,
     return replace(sc, plant=plant)
 
 
+#: Descriptions a process keeps loaded (:func:`load_system`).
+SYSTEM_CACHE_SIZE = 8
+_SYSTEMS: OrderedDict[tuple, Any] = OrderedDict()
+
+
+def load_system(robot: str, description: str | Path):
+    """The robot's description (``robot(robot).load(description)``), read and validated once
+    per process for each file content: a sweep loads thousands of scenarios naming the same
+    file. The key holds the file's bytes' hash, so an edited file is read again; the systems
+    are frozen dataclasses, safe to share. Errors are the loader's own (nothing is cached)."""
+    adapter = robot_adapter(robot)
+    path = resolve_description(description if description is not None else robot)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
+    except (OSError, ValueError):
+        return adapter.load(description)  # the loader's error, naming the file
+    key = (robot, str(path), os.path.abspath(path), hashlib.sha256(raw).digest())
+    system = _SYSTEMS.get(key)
+    if system is None:
+        system = _SYSTEMS[key] = adapter.load(description)
+        while len(_SYSTEMS) > SYSTEM_CACHE_SIZE:
+            _SYSTEMS.popitem(last=False)
+    else:
+        _SYSTEMS.move_to_end(key)
+    return system
+
+
 def resolve(name_or_path: str | Path) -> Path:
     """A bare name (``"serial_task"``) is a shipped scenario; anything else a path."""
     return shipped(SCENARIOS_DIR, name_or_path)
@@ -299,7 +331,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     description = top.string("description", required=False, default=robot)
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
-    system = adapter.load(description)
+    system = load_system(robot, description)
     layout = adapter.layout(system, space)
 
     c = top.table("control")
