@@ -25,7 +25,6 @@ warning and the CasADi reference runs.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import warnings
 from collections import OrderedDict
@@ -116,7 +115,8 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
 #: Desired samples kept per process (:func:`desired_samples`): a 20 s run at 1 kHz is about
 #: 1.5 MB per unit; a sweep's worker meets one time grid per structure.
 DESIRED_CACHE_SIZE = 16
-_DESIRED: OrderedDict[tuple, tuple[object, tuple[np.ndarray, ...]]] = OrderedDict()
+_DESIRED: OrderedDict[tuple, tuple[object, np.ndarray, tuple[np.ndarray, ...]]] = \
+    OrderedDict()
 
 
 def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -127,11 +127,14 @@ def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     kept alive with them, so its id stays its own): the set-ups of one structure share it
     (:func:`cochlea.sim.setup.unit_setups`). The arrays are read-only, since every run of the
     structure reads them."""
-    key = (id(u.desired), len(time), hashlib.sha256(np.ascontiguousarray(time)).digest())
+    time = np.asarray(time, dtype=float)
+    key = (id(u.desired), len(time), float(time[0]) if len(time) else 0.0,
+           float(time[-1]) if len(time) else 0.0)
     hit = _DESIRED.get(key)
-    if hit is not None:
+    # The whole grid, bit for bit (not only its ends; -0.0 is not 0.0 to every formula).
+    if hit is not None and hit[1].tobytes() == time.tobytes():
         _DESIRED.move_to_end(key)
-        return hit[1]
+        return hit[2]
     n = len(time)
     t = ca.SX.sym("t")
     # Dense outputs: a constant coordinate's derivatives are structural zeros otherwise.
@@ -143,7 +146,9 @@ def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     samples = tuple(out.reshape(n, -1) for out in mapped.outputs)
     for a in samples:
         a.flags.writeable = False
-    _DESIRED[key] = (u.desired, samples)
+    grid = time.copy()
+    grid.flags.writeable = False
+    _DESIRED[key] = (u.desired, grid, samples)
     while len(_DESIRED) > DESIRED_CACHE_SIZE:
         _DESIRED.popitem(last=False)
     return samples
