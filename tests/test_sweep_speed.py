@@ -26,7 +26,10 @@ from cochlea.sweep import spec as sweep_spec
 STUDIES = {"serial_joint": ("arm1", "alpha", 4.0, 6.0),
            "serial_task": ("arm1", "G_g", 1.5, 2.5),
            "parallel_joint": ("mechanism", "G_f", 0.3, 0.4),
-           "parallel_task": ("mechanism", "K_p", 1.5, 2.5)}
+           "parallel_task": ("mechanism", "K_p", 1.5, 2.5),
+           # The realistic plant: armature, Coulomb friction, encoder and register grids,
+           # current quantisation, from the description's actuators.
+           "serial_joint_realistic": ("arm2", "K_e", 4.0, 6.0)}
 SPEC = """format = "cochlea-sweep/1"
 scenario = "{study}"
 samples = 3
