@@ -20,6 +20,8 @@ Python loop that repeats the call (tens of ns, the same for every path, the floo
 5. The embedded program build/cochlea-embedded against cochlea-emulator
    (bench/embedded_program.py): its loop's compute against cochlea-run's, the bus time of one
    period at 1-4 Mbaud with the emulator's wire timing, the deadline misses of 20 s.
+6. A sweep's samples per core (bench/sweep_bench.py's serial part, CPU time): each study's
+   full-length sample as a cochlea-sweep worker runs it, and where its time goes.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import embedded_bench  # noqa: E402
 import embedded_program  # noqa: E402
 import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
+import sweep_bench  # noqa: E402
 from numpy_law import NumpyStepE  # noqa: E402
 
 import cochlea  # noqa: E402
@@ -60,7 +63,8 @@ WORK = ROOT / "build" / "bench"
 CONTROLLERS = (("e", "serial_joint"), ("g", "serial_task"), ("f", "parallel_joint"),
                ("d", "parallel_task"))
 TARGETS = {"step_vs_floor": 2.0, "casadi_vs_step": 10.0, "serial_rtf": 1000.0,
-           "codegen_compile_s": 60.0, "realistic_rtf_ratio": 0.8, **embedded_bench.TARGETS}
+           "codegen_compile_s": 60.0, "realistic_rtf_ratio": 0.8,
+           "sweep_samples_per_s_core": 50.0, **embedded_bench.TARGETS}
 
 
 # --------------------------------------------------------------------------------------------
@@ -508,7 +512,34 @@ def markdown(results: dict) -> str:
         f"libcochlea.so {build['library_bytes'] / 1024:.0f} KiB", ""]
     out += embedded_bench.markdown(results["embedded_steps"], results["embedded_sims"], loops)
     out += ["", embedded_program.markdown(results["embedded_program"])]
+    out += sweep_markdown(results["sweep"])
     return "\n".join(out)
+
+
+def sweep_markdown(rows: list[dict]) -> list[str]:
+    """Section 6: samples per core against the target (the 20 s serial studies; the 10 s
+    parallel ones for comparison), and where a sample's CPU time goes."""
+    target = TARGETS["sweep_samples_per_s_core"]
+    out = ["", "## A sweep's samples per core (CPU time)", "",
+           "Each study's full-length sample as a `cochlea-sweep` worker runs it "
+           "(bench/sweep_bench.py: scenario file, set-ups from the worker's cache, C "
+           "simulation, supervisor verdict, summary), in process CPU time; *uncached*: the "
+           "set-ups built again for the sample. Target: at least "
+           f"{target:g} samples/s/core for the 20 s serial studies.", ""]
+    for r in rows:
+        if r["study"].startswith("serial"):
+            rate = r["per_s_core"]
+            verdict = "met" if rate >= target else f"missed by {target / rate:.2f}x"
+            out.append(f"- **{verdict}**: {r['study']} at {rate:.1f} samples/s/core "
+                       f"(target >= {target:g}).")
+    names = list(rows[0]["parts"])
+    out += ["", "| study | s | samples/s/core | CPU ms per sample | uncached ms | "
+            + " | ".join(names) + " |", "|---|---|---|---|---|" + "---|" * len(names)]
+    for r in rows:
+        out.append(f"| {r['study']} | {r['duration_s']:g} | {r['per_s_core']:.1f} | "
+                   f"{r['cpu_s'] * 1e3:.1f} | {r['uncached_cpu_s'] * 1e3:.0f} | "
+                   + " | ".join(f"{r['parts'][k] * 1e3:.2f}" for k in names) + " |")
+    return out
 
 
 def main() -> int:
@@ -527,6 +558,9 @@ def main() -> int:
     results["embedded_sims"] = embedded_bench.bench_embedded_sims()
     print("bench: the embedded program against the emulator (about 2 min)", flush=True)
     results["embedded_program"] = embedded_program.bench()
+    print("bench: a sweep's samples per core", flush=True)
+    with tempfile.TemporaryDirectory(prefix="cochlea-bench-") as tmp:
+        results["sweep"] = sweep_bench.serial(Path(tmp), samples=10)
     results["load_after"] = load_average()
     (OUT / "results.json").write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     (OUT / "results.md").write_text(markdown(results))

@@ -1,14 +1,17 @@
 """The sweep's figures of merit (docs/sweeps.md), a standalone script (not in ``make bench``:
-it starts Dask clusters and takes minutes):
+it starts Dask clusters and takes minutes; ``make bench`` runs its serial part, :func:`serial`):
 
-1. samples per second per core of each of the four thesis studies at full length (20 s),
-   serially in this process: scenario file, set-ups, C simulation, supervisor verdict and
-   summary per sample, as a sweep's worker does it (CPU time and wall time);
+1. samples per second per core of each of the four thesis studies at full length (20 s serial,
+   10 s parallel), serially in this process: scenario file, set-ups, C simulation, supervisor
+   verdict and summary per sample, as a sweep's worker does it, in CPU time (process time: on a
+   shared machine wall time measures the neighbours), with the set-ups from the worker's cache
+   (:func:`cochlea.sim.setup.unit_setups`) and, for comparison, built again for every sample;
+   then where a sample's CPU time goes;
 2. parallel efficiency of a sweep on a LocalCluster of 2 processes against 1;
 3. the same sweep through a separately started ``dask scheduler`` and two ``dask worker``
    processes (the lab-cluster path, end to end).
 
-    .venv/bin/python bench/sweep_bench.py [--samples N] [--duration S]
+    .venv/bin/python bench/sweep_bench.py [--samples N] [--duration S] [--serial-only]
 
 The machine's load average is printed with the numbers: on a shared machine the wall times
 (and so the efficiencies) say as much about the neighbours as about the sweep.
@@ -17,6 +20,7 @@ The machine's load average is printed with the numbers: on a shared machine the 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import shutil
 import signal
@@ -30,8 +34,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT)]
 
-from cochlea.apps import cochlea_sweep  # noqa: E402
-from cochlea.sweep import execute  # noqa: E402
+from cochlea.apps import cochlea_sweep, report  # noqa: E402
+from cochlea.runtime import build_supervisor, verdict  # noqa: E402
+from cochlea.sim import compiled, load_scenario, simulate, unit_setups  # noqa: E402
+from cochlea.sweep import execute, sampling  # noqa: E402
 from cochlea.sweep import spec as sweep_spec  # noqa: E402
 
 STUDIES = ("serial_joint", "serial_task", "parallel_joint", "parallel_task")
@@ -54,20 +60,100 @@ def spec_file(folder: Path, scenario: str, samples: int, duration: float | None)
     return path
 
 
-def serial(folder: Path, samples: int) -> None:
-    print("## Samples per second per core (serial, full-length studies)\n")
-    print("| study | samples | CPU s per sample | samples/s/core (CPU) | wall s per sample |")
-    print("| --- | --- | --- | --- | --- |")
+def _per_sample(spec, samples: int, cache: bool) -> tuple[float, float]:
+    """CPU and wall s per sample of ``samples`` samples through ``run_batch``, the structure's
+    first sample (a worker's one-off set-up) aside."""
+    evaluate = functools.partial(cochlea_sweep.evaluate, cache=cache)
+    execute.run_batch(spec, [0], evaluate)
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    execute.run_batch(spec, list(range(samples)), evaluate)
+    return (time.process_time() - cpu0) / samples, (time.perf_counter() - wall0) / samples
+
+
+def breakdown(spec, samples: int) -> dict[str, float]:
+    """Where a cached sample's CPU time goes (s per sample): ``evaluate``'s steps one by one,
+    the C closed loop (``run_c``, every unit) apart from the rest of ``simulate``."""
+    parts = dict.fromkeys(("scenario text", "scenario load", "set-ups", "C closed loop",
+                           "simulate (rest)", "supervisor verdict", "summary + row"), 0.0)
+    run_c = compiled.run_c
+    loop = [0.0]
+
+    def timed_run_c(*args, **kw):  # the units run on threads: each thread's own CPU time
+        t0 = time.thread_time()
+        try:
+            return run_c(*args, **kw)
+        finally:
+            loop[0] += time.thread_time() - t0
+
+    compiled.run_c = timed_run_c  # simulate_compiled looks it up at each call
+    try:
+        for i in range(samples):
+            clock = time.process_time()
+
+            def lap(name):
+                nonlocal clock
+                now = time.process_time()
+                parts[name] += now - clock
+                clock = now
+
+            text = sampling.scenario_text(spec, i)
+            lap("scenario text")
+            with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
+                path = Path(tmp) / "sample.toml"
+                path.write_text(text, encoding="utf-8")
+                sc = load_scenario(path)
+            lap("scenario load")
+            setups = unit_setups(sc)
+            lap("set-ups")
+            loop[0] = 0.0
+            result = simulate(sc, None, setups)
+            lap("simulate (rest)")
+            parts["simulate (rest)"] -= loop[0]
+            parts["C closed loop"] += loop[0]
+            supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+                                          kernels="c", substeps=sc.plant_substeps)
+            result.supervisor = verdict(result, supervisor)
+            lap("supervisor verdict")
+            limits = {u.name: {j.name: float(lim) for j, lim in
+                               zip(u.controller_model.joints, u.effort_limit)} for u in setups}
+            cochlea_sweep.measures(report.summary(result, 0.0), limits)
+            lap("summary + row")
+    finally:
+        compiled.run_c = run_c
+    return {k: v / samples for k, v in parts.items()}
+
+
+def serial(folder: Path, samples: int, uncached: int = 3) -> list[dict]:
+    """Samples per core of each study (rows, also printed as a Markdown table), then where
+    the time goes."""
+    print("## Samples per second per core (serial, full-length studies, CPU time)\n")
+    print("| study | s | samples | CPU s per sample | samples/s/core | set-ups built per sample: "
+          "CPU s | wall s per sample | load average |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     cochlea_sweep.warm()
+    rows = []
     for study in STUDIES:
         spec = sweep_spec.load(spec_file(folder, study, samples, None))
-        execute.run_batch(spec, [0], cochlea_sweep.evaluate)  # first-call costs aside
-        cpu0, wall0 = time.process_time(), time.perf_counter()
-        execute.run_batch(spec, list(range(samples)), cochlea_sweep.evaluate)
-        cpu = (time.process_time() - cpu0) / samples
-        wall = (time.perf_counter() - wall0) / samples
-        print(f"| {study} | {samples} | {cpu:.3f} | {1 / cpu:.2f} | {wall:.3f} |", flush=True)
+        load0 = os.getloadavg()[0]
+        cpu, wall = _per_sample(spec, samples, cache=True)
+        old, _ = _per_sample(spec, uncached, cache=False)
+        load1 = os.getloadavg()[0]
+        row = {"study": study, "duration_s": load_scenario(study).duration, "samples": samples,
+               "cpu_s": cpu, "per_s_core": 1 / cpu, "uncached_cpu_s": old, "wall_s": wall,
+               "load": (load0, load1), "parts": breakdown(spec, samples)}
+        rows.append(row)
+        print(f"| {study} | {row['duration_s']:g} | {samples} | {cpu:.4f} | {1 / cpu:.1f} | "
+              f"{old:.3f} | {wall:.4f} | {load0:.1f}-{load1:.1f} |", flush=True)
+    print("\n## Where a sample's CPU time goes (ms per sample)\n")
+    names = list(rows[0]["parts"])
+    print("| study | " + " | ".join(names) + " | total |")
+    print("| --- |" + " --- |" * (len(names) + 1))
+    for r in rows:
+        parts = r["parts"]
+        print(f"| {r['study']} | " + " | ".join(f"{parts[k] * 1e3:.2f}" for k in names)
+              + f" | {sum(parts.values()) * 1e3:.2f} |")
     print()
+    return rows
 
 
 def _sweep(spec: Path, out: Path, **kw) -> dict:
@@ -128,12 +214,14 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=5, help="per study, serial part (default 5)")
     p.add_argument("--sweep-samples", type=int, default=40, help="parallel part (default 40)")
     p.add_argument("--duration", type=float, default=5.0, help="parallel part: s (default 5)")
+    p.add_argument("--serial-only", action="store_true", help="samples per core only (no Dask)")
     args = p.parse_args()
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at start\n")
     with tempfile.TemporaryDirectory(prefix="sweep-bench-") as tmp:
         folder = Path(tmp)
         serial(folder, args.samples)
-        parallel(folder, args.sweep_samples, args.duration)
+        if not args.serial_only:
+            parallel(folder, args.sweep_samples, args.duration)
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")
 
 

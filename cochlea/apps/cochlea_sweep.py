@@ -67,14 +67,19 @@ def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
     return row
 
 
-def evaluate(text: str) -> dict:
+def evaluate(text: str, cache: bool = True) -> dict:
     """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
-    computes for its summary.json, from the sample's scenario file."""
+    computes for its summary.json, from the sample's scenario file.
+
+    ``cache``: the set-ups' symbolic part (models, controllers, checked desired path) comes
+    from the worker's cache when an earlier sample had the same structure
+    (:func:`cochlea.sim.setup.unit_setups`); ``False`` builds everything again, with the same
+    row, bit for bit."""
     with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
         path = Path(tmp) / "sample.toml"
         path.write_text(text, encoding="utf-8")
         scenario = load_scenario(path)
-    setups = unit_setups(scenario)
+    setups = unit_setups(scenario, cache=cache)
     start = time.perf_counter()
     result = simulate(scenario, None, setups)
     wall = time.perf_counter() - start

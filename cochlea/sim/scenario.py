@@ -10,7 +10,11 @@ the controller's nominal model. Every quantity with a dimension is written with 
 
 from __future__ import annotations
 
+import hashlib
+import os
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +27,8 @@ from ..resources import SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
-from ..robots.description import Table, read_toml
+from ..robots.description import MAX_FILE_BYTES, Table, read_toml
+from ..robots.description import resolve_path as resolve_description
 from ..robots.model import ACTUATORS
 from .expressions import FUNCTIONS, ExpressionError, parse
 
@@ -209,6 +214,34 @@ def stressed(sc: Scenario, mass_scale: float, delay_periods: int = 2,
     return replace(sc, plant=plant)
 
 
+#: Descriptions a process keeps loaded (:func:`load_system`).
+SYSTEM_CACHE_SIZE = 8
+_SYSTEMS: OrderedDict[tuple, Any] = OrderedDict()
+
+
+def load_system(robot: str, description: str | Path):
+    """The robot's description (``robot(robot).load(description)``), read and validated once
+    per process for each file content: a sweep loads thousands of scenarios naming the same
+    file. The key holds the file's bytes' hash, so an edited file is read again; the systems
+    are frozen dataclasses, safe to share. Errors are the loader's own (nothing is cached)."""
+    adapter = robot_adapter(robot)
+    path = resolve_description(description if description is not None else robot)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
+    except (OSError, ValueError):
+        return adapter.load(description)  # the loader's error, naming the file
+    key = (robot, str(path), os.path.abspath(path), hashlib.sha256(raw).digest())
+    system = _SYSTEMS.get(key)
+    if system is None:
+        system = _SYSTEMS[key] = adapter.load(description)
+        while len(_SYSTEMS) > SYSTEM_CACHE_SIZE:
+            _SYSTEMS.popitem(last=False)
+    else:
+        _SYSTEMS.move_to_end(key)
+    return system
+
+
 def resolve(name_or_path: str | Path) -> Path:
     """A bare name (``"serial_task"``) is a shipped scenario; anything else a path."""
     return shipped(SCENARIOS_DIR, name_or_path)
@@ -226,11 +259,36 @@ def _quantity(table: Table, key: str, text, kinds: tuple[str, ...] | None, index
     formula, unit = text.rsplit(None, 1)
     if unit not in UNITS or (kinds and UNITS[unit][0] != kinds[0]):
         raise table.error(where, expected, text)
+    reason = _formula_problem(formula, tuple(definitions))
+    if reason is not None:
+        raise table.error(where, f"a valid formula ({reason})", text) from None
+    return Quantity(formula, UNITS[unit][0], UNITS[unit][1])
+
+
+# A formula's verdict and a constant's value are functions of their text alone: a sweep loads
+# thousands of scenarios that differ in their plant and gains, not in their formulas.
+@lru_cache(maxsize=4096)
+def _formula_problem(formula: str, definitions: tuple[str, ...]) -> str | None:
+    """Why the parser refuses ``formula`` (the names ``definitions`` defined), or None."""
     try:
         parse(formula, ca.SX.sym("t"), {n: ca.SX(0) for n in definitions})
     except ExpressionError as exc:
-        raise table.error(where, f"a valid formula ({exc.reason})", text) from None
-    return Quantity(formula, UNITS[unit][0], UNITS[unit][1])
+        return exc.reason
+    return None
+
+
+@lru_cache(maxsize=256)
+def _definitions_problem(items: tuple[tuple[str, str], ...]) -> tuple[str, str, str] | None:
+    """``(name, formula, reason)`` of the first ``[desired] define`` the parser refuses (each
+    formula may use the names before it), or None."""
+    t = ca.SX.sym("t")
+    defs: dict[str, ca.SX] = {}
+    for name, text in items:
+        try:
+            defs[name] = parse(text, t, defs)
+        except ExpressionError as exc:
+            return name, text, exc.reason
+    return None
 
 
 def quantities(table: Table, key: str, kinds: tuple[str, ...], required: bool = True,
@@ -254,6 +312,22 @@ def constant_values(qs: tuple[Quantity, ...] | None) -> np.ndarray | None:
     """Values of quantities that must not depend on t (initial states), each finite."""
     if qs is None:
         return None
+    values = _constant_values(qs)
+    if isinstance(values, str):
+        raise ExpressionError(values)
+    return np.array(values)
+
+
+@lru_cache(maxsize=1024)
+def _constant_values(qs: tuple[Quantity, ...]) -> tuple[float, ...] | str:
+    """:func:`constant_values`'s values, or the message of its ExpressionError."""
+    try:
+        return tuple(_evaluate_constants(qs))
+    except ExpressionError as exc:
+        return str(exc)
+
+
+def _evaluate_constants(qs: tuple[Quantity, ...]) -> list[float]:
     t = ca.SX.sym("t")
     values = []
     for q in qs:
@@ -264,7 +338,7 @@ def constant_values(qs: tuple[Quantity, ...] | None) -> np.ndarray | None:
         if not np.isfinite(value):
             raise ExpressionError(f"{q.text!r} is {value}, not a finite number")
         values.append(value)
-    return np.array(values)
+    return values
 
 
 def _positive_list(table: Table, key: str, size: int) -> np.ndarray:
@@ -299,7 +373,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     description = top.string("description", required=False, default=robot)
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
-    system = adapter.load(description)
+    system = load_system(robot, description)
     layout = adapter.layout(system, space)
 
     c = top.table("control")
@@ -333,13 +407,10 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
                         and all(isinstance(x, str) for x in v.values())
                         and all(k.isidentifier() and k not in RESERVED_NAMES for k in v),
                         required=False, default={})
-    t = ca.SX.sym("t")
-    defs: dict[str, ca.SX] = {}
-    for name, text in definitions.items():
-        try:
-            defs[name] = parse(text, t, defs)
-        except ExpressionError as exc:
-            raise d.error(f"define.{name}", f"a valid formula ({exc.reason})", text) from None
+    problem = _definitions_problem(tuple(definitions.items()))
+    if problem is not None:
+        name, text, reason = problem
+        raise d.error(f"define.{name}", f"a valid formula ({reason})", text) from None
     leader = quantities(d, "leader", layout.leader, definitions=tuple(definitions))
     d.done()
 

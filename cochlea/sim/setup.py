@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -268,29 +270,102 @@ def check_start(sc: scenario_mod.Scenario, plan) -> None:
                                    "--duration")
 
 
-def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
+#: Distinct symbolic structures a process keeps (:func:`unit_setups`): each holds a few MB of
+#: CasADi graphs; a sweep's worker meets one, or one per structural key it sweeps.
+STRUCTURE_CACHE_SIZE = 8
+
+
+@dataclass(frozen=True)
+class _Structure:
+    """What :func:`unit_setups` builds and checks once per symbolic structure: the units' plans
+    (models, desired paths, initial states, already checked over the run) and controllers.
+    Everything in it is immutable (CasADi Functions) or never written (the plans' arrays)."""
+
+    system: Any  # kept alive: its id is part of the key
+    plans: tuple
+    controllers: tuple
+
+
+_STRUCTURES: OrderedDict[tuple, _Structure] = OrderedDict()
+
+
+def _array_key(a) -> tuple | None:
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return (a.dtype.str, a.shape, a.tobytes())
+
+
+def structure_key(sc: scenario_mod.Scenario, system) -> tuple:
+    """Everything of a scenario that the units' plans, controllers and up-front path checks
+    depend on: robot and description (the loaded object: :func:`cochlea.sim.scenario.
+    load_system` gives one per file content), space, run length and rate, parameterisation,
+    the controller's and the plant's actuators, variant, the desired trajectory and each unit's
+    initial state. Not in it: what only enters as numbers (masses, payload, friction, gains,
+    Gamma, the estimate bound and start, delay, noise, seeds, the measurement and drive grids,
+    the plant's RK4 sub-steps), which :func:`unit_setups` recomputes for every call."""
+    units = tuple((u.name, _array_key(u.initial_joint), _array_key(u.initial_task),
+                   _array_key(u.initial_velocity), u.elbow, u.desired_joint) for u in sc.units)
+    return (sc.robot, id(system), sc.space, float(sc.duration), float(sc.rate_hz),
+            sc.parameterisation, sc.controller_actuators, sc.plant_actuators, sc.variant,
+            sc.controller, sc.mirror, tuple(sc.definitions.items()), sc.leader, units)
+
+
+def clear_cache() -> None:
+    """Forget every cached structure (:func:`unit_setups`)."""
+    _STRUCTURES.clear()
+
+
+def _structure(sc: scenario_mod.Scenario, adapter, system) -> _Structure:
+    """Plans and controllers, every check of the desired path and initial state passed; the
+    checks run in the order they always did, so a bad scenario gets the same error."""
+    scenario_mod.check_desired(sc)
+    plans, controllers = [], []
+    for plan in adapter.unit_plans(system, sc):
+        check_start(sc, plan)
+        controllers.append(build(plan.controller_model, sc.controller, variant=sc.variant,
+                                 task_angles=plan.task_angles, task=plan.task))
+        plans.append(plan)
+    return _Structure(system, tuple(plans), tuple(controllers))
+
+
+def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario). Everything the run's duration (``sc.duration``) lets us check before
     anything moves is checked here: the leader's formulas finite, each unit's initial state
-    and desired path inside the workspace and the limits (the adapters' checks)."""
+    and desired path inside the workspace and the limits (the adapters' checks).
+
+    ``cache``: reuse the models, controllers and checked paths of an earlier call with the
+    same :func:`structure_key` in this process (the last :data:`STRUCTURE_CACHE_SIZE`), so a
+    perturbed sample of a sweep costs only its numbers; the setups are the same, bit for bit,
+    as with ``cache=False`` (which builds and checks everything again)."""
     adapter = robot(sc.robot)
-    system = sc.system if sc.system is not None else adapter.load(sc.description)
+    system = sc.system if sc.system is not None else scenario_mod.load_system(sc.robot,
+                                                                              sc.description)
     check_run_length(sc.duration, sc.rate_hz, "duration_s")
-    scenario_mod.check_desired(sc)
+    if not cache:
+        structure = _structure(sc, adapter, system)
+    else:
+        key = structure_key(sc, system)
+        structure = _STRUCTURES.get(key)
+        if structure is None:
+            structure = _STRUCTURES[key] = _structure(sc, adapter, system)
+            while len(_STRUCTURES) > STRUCTURE_CACHE_SIZE:
+                _STRUCTURES.popitem(last=False)
+        else:
+            _STRUCTURES.move_to_end(key)
     grids = measurement_grids(adapter, system, sc.plant)
     viscous, coulomb = plant_friction(adapter, system, sc.plant)
     drives = drive_grids(adapter, system, sc.plant)
     first_joint = 0  # the unit's first joint in the system
     setups = []
-    for plan, unit in zip(adapter.unit_plans(system, sc), sc.units, strict=True):
-        check_start(sc, plan)
+    for plan, controller, unit in zip(structure.plans, structure.controllers, sc.units,
+                                      strict=True):
         m = plan.controller_model
-        controller = build(m, sc.controller, variant=sc.variant, task_angles=plan.task_angles,
-                           task=plan.task)
         gains = np.concatenate([unit.gains[k] for k in controller.gain_names])
         n_p = len(m.param_names)
         bound = sc.estimate_bound * max(np.linalg.norm(m.p_nominal), 1e-12)
-        p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal
+        p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal.copy()
         plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
                                             plan.payload_points)
         quantum = offset = drive = None
@@ -301,11 +376,12 @@ def unit_setups(sc: scenario_mod.Scenario) -> list[UnitSetup]:
             limit = np.array([j.effort_limit for j in m.joints])
             drive = EffortGrid(drives[0][mine], drives[1][mine], limit)
         first_joint += m.nq
+        # The plan's initial state is shared by every set-up of its structure: a copy each.
         setups.append(UnitSetup(
-            plan.name, m, plan.plant_model, plant_params, controller, plan.desired, plan.x0,
-            gains, adaptation_gains(sc, m.p_nominal), bound, p_hat0, viscous[mine],
-            plan.joint_units, plan.task_names, plan.task_units, plan.task_angles, plan.fk_world,
-            tool_points=plan.tool_points, centre=plan.centre,
+            plan.name, m, plan.plant_model, plant_params, controller, plan.desired,
+            plan.x0.copy(), gains, adaptation_gains(sc, m.p_nominal), bound, p_hat0,
+            viscous[mine], plan.joint_units, plan.task_names, plan.task_units, plan.task_angles,
+            plan.fk_world, tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
             coulomb=None if coulomb is None else coulomb[mine],
             quantum=quantum, grid_offset=offset, effort_grid=drive))

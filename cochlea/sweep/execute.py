@@ -3,8 +3,10 @@ or the workers of an existing scheduler (``--scheduler tcp://HOST:8786``).
 
 Samples go to the workers in batches; each finished batch becomes one part file, written by
 this process (workers need no shared file system). The batch size comes from measurements: the
-first round runs one sample per worker, which gives a sample's cost ``c``; a no-op task's round
-trip plus one part file's write gives the overhead ``o`` of a batch. A batch of ``n`` samples
+first round runs one sample per worker, which gives a first estimate of a sample's cost ``c``
+(high: a worker's first sample builds the set-ups the later ones reuse), then ``c`` is the
+median of the samples finished so far; a no-op task's round trip plus one part file's write
+gives the overhead ``o`` of a batch. A batch of ``n`` samples
 costs ``o + n c``, so ``n >= o / (0.05 c)`` keeps scheduling under 5 % of the work; a batch
 also holds at least :data:`MIN_BATCH_S` of work (fewer, larger part files for a long sweep) and
 at most an even share of what is left (every worker busy to the end).
@@ -36,6 +38,8 @@ OVERHEAD_FRACTION = 0.05
 MIN_BATCH_S = 2.0
 #: Batches in flight per worker: the next one is queued while one runs.
 IN_FLIGHT = 2
+#: The batch size follows the median cost of the last this many samples.
+MEASURED_SAMPLES = 1000
 #: Seconds to wait for a scheduler given by address, and for its first worker.
 CONNECT_TIMEOUT_S = 30
 
@@ -125,6 +129,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
         bar = tqdm(total=spec.total, initial=spec.total - len(missing), unit="sample",
                    file=sys.stderr, disable=not progress, smoothing=0.05, dynamic_ncols=True)
         size = batch
+        costs: deque[float] = deque(maxlen=MEASURED_SAMPLES)  # the last samples' runs (s)
 
         def submit(n: int):
             take = [missing.popleft() for _ in range(min(n, len(missing)))]
@@ -143,11 +148,15 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
             info["batches"] += 1
             in_flight -= 1
             bar.update(len(rows))
-            if size is None:
-                cost = statistics.median(r["wall_s"] for r in rows)
+            costs.extend(r["wall_s"] for r in rows)
+            if batch is None:
+                # Measured again after every batch: a worker's first sample also builds the
+                # set-ups its later samples reuse (cochlea.sim.setup.unit_setups), so the first
+                # round overstates a sample's cost, by ten times for the thesis studies.
+                cost = statistics.median(costs)
                 info["overhead_s"] = overhead + write_s
                 size = batch_size(cost, overhead + write_s, len(missing), n_workers)
-                info["batch"] = size
+                info["batch"] = max(info["batch"] or 0, size)
             while missing and in_flight < IN_FLIGHT * n_workers:
                 share = max(1, math.ceil(len(missing) / (IN_FLIGHT * n_workers)))
                 pending.add(submit(min(size, share)))
