@@ -365,3 +365,26 @@ def test_a_report_that_fails_is_one_line_and_keeps_the_samples(tmp_path, monkeyp
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "No space left on device" in err
     assert f"cochlea-sweep report {tmp_path}" in err
+
+
+def test_a_second_sweep_on_a_running_folder_is_refused(local_sweep, tmp_path, capsys):
+    """Two sweeps on one folder would run the same missing samples and write each twice (it
+    happened: 650 rows for 400 samples). The running one holds a lock; the second is one line,
+    exit 2, and writes nothing; once the first is gone the same command resumes."""
+    spec_path, local_out = local_sweep
+    out = tmp_path / "out"
+    spec = sweep_spec.load(spec_path)
+    results.prepare(out, spec)
+    fd = results.hold(out)  # a sweep running on the folder (flock: any other open file waits)
+    try:
+        code = cochlea_sweep.main([str(spec_path), "--out", str(out), "--workers", "1",
+                                   "--progress", "off"])
+        assert code == 2
+        assert "another cochlea-sweep is running on this folder" in capsys.readouterr().err
+        assert not list((out / "parts").iterdir())
+    finally:
+        results.release(fd)
+    assert cochlea_sweep.main([str(spec_path), "--out", str(out), "--workers", "2",
+                               "--progress", "off"]) == 0
+    assert [r["sample"] for r in results.read(out).to_pylist()] == list(range(8))
+    assert rows_of(out) == rows_of(local_out)

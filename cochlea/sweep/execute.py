@@ -110,9 +110,12 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
         return info
     start = time.perf_counter()
     client, cluster = _client(workers, scheduler)
-    bar = None
+    bar, lock = None, None
     try:
         results.prepare(out, spec)
+        lock = results.hold(out)
+        # Whatever another run finished while this one started (it held the lock then).
+        missing = deque(sorted(set(range(spec.total)) - results.done(out)))
         n_workers = len(client.scheduler_info()["workers"])
         info["workers"] = n_workers
         if warm is not None:
@@ -167,5 +170,6 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
         client.close()
         if cluster is not None:
             cluster.close()
+        results.release(lock)
     info["wall_s"] = time.perf_counter() - start
     return info

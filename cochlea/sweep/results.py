@@ -7,6 +7,7 @@ command resumes it with the missing samples only.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from .spec import Spec
 
 MANIFEST = "sweep.json"
 PARTS = "parts"
+#: Held (flock) by the sweep running in a folder; the kernel drops it when the process dies.
+LOCK = ".cochlea-sweep.lock"
 MANIFEST_FORMAT = "cochlea-sweep-folder/1"
 
 
@@ -102,6 +105,26 @@ def prepare(out: Path, spec: Spec) -> None:
     parts.mkdir(exist_ok=True)
     for tmp in parts.glob("*.tmp"):
         tmp.unlink()
+
+
+def hold(out: Path) -> int:
+    """Lock ``out`` for this sweep: a second one on the same folder would run the same missing
+    samples and write them twice. The lock file stays (removing it would let a third process
+    lock a new file while a second still holds the old one)."""
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise SweepFolderError(f"--out {out}: another cochlea-sweep is running on this "
+                               "folder; wait for it (the same command then resumes what is "
+                               "left) or give another --out") from None
+    return fd
+
+
+def release(fd: int | None) -> None:
+    if fd is not None:
+        os.close(fd)
 
 
 def write_part(out: Path, rows: list[dict]) -> Path:
