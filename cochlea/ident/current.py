@@ -30,7 +30,8 @@ import numpy as np
 
 from ..errors import CochleaError
 from ..robots import RobotModel, robot
-from ..robots.motor_fit import _X_TO_A, _Y_TO_NM, DEFAULT_RAMP_NM
+from ..robots.description import MotorFit
+from ..robots.motor_fit import DEFAULT_RAMP_NM, Fit
 
 #: ``--fit-current`` keywords: ``auto`` fits the lines the description marks as placeholders
 #: (``source = "placeholder"``) when the logs carry the current; ``off`` fits none.
@@ -69,11 +70,19 @@ class Line:
 
     def in_description_units(self, a: float, b: float) -> tuple[float, float]:
         """``(a, b)`` from SI (N m/A, N m) into the description's fit units."""
-        return a * _X_TO_A[self.x] / _Y_TO_NM[self.y], b / _Y_TO_NM[self.y]
+        fa, fb = self.scale_to_description()
+        return a * fa, b * fb
 
     def scale_to_description(self) -> tuple[float, float]:
         """Factors taking an SI ``(a, b)`` (and its standard errors) to the description's."""
-        return _X_TO_A[self.x] / _Y_TO_NM[self.y], 1.0 / _Y_TO_NM[self.y]
+        si = _si_per_unit(self.x, self.y)
+        return 1.0 / si.a, 1.0 / si.b
+
+
+def _si_per_unit(x: str, y: str) -> Fit:
+    """The SI values of a fit ``y = 1 x + 1`` in units ``x``, ``y``: the conversion factors of
+    the slope and the offset, from the motor-fit module's own rule."""
+    return Fit.from_description(MotorFit(1.0, 1.0, x, y))
 
 
 def offset_shape(current: np.ndarray, knee: float) -> np.ndarray:
@@ -94,8 +103,8 @@ def drive_lines(robot_name: str, model: RobotModel, unit: str, description=None)
     lines = []
     for i, (j, mj) in enumerate(zip(mine, model.joints)):
         fit = j.motor.fit
-        a = fit.a * _Y_TO_NM[fit.y] / _X_TO_A[fit.x]
-        b = fit.b * _Y_TO_NM[fit.y]
+        si = _si_per_unit(fit.x, fit.y)
+        a, b = fit.a * si.a, fit.b * si.b
         lines.append(Line(i, mj.name, j.motor.id, abs(j.ratio), a, b, fit.x, fit.y,
                           fit.source))
     return lines
