@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..ident import current as current_fit
 from ..ident import estimate, writeback
 from ..ident.logs import read_run
 from ..ident.physical import physically_consistent_fit
@@ -102,6 +103,7 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
             "ols": [_finite(x) for x in result.prediction_nrms(result.ols.beta)],
             "wls_all_samples": [_finite(x) for x in result.prediction_nrms(moving=False)]},
         "residual_rms_wls": dict(zip(joints, map(float, result.wls.residual_rms))),
+        "current_fits": _line_report(result),
     }
     if physical is not None:
         doc["physical"] = {"full_names": list(m.full_parameters.names),
@@ -110,6 +112,27 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
                            "prediction_nrms_percent":
                                [_finite(x) for x in result.prediction_nrms(physical.base)]}
     return doc
+
+
+def _line_report(result: estimate.Identification) -> list[dict]:
+    """Each fitted current-to-torque line: SI at the motor and in the description's units."""
+    out = []
+    for k, ln in enumerate(result.lines):
+        fa, fb = ln.scale_to_description()
+        a, b = result.line_wls[k]
+        sa, sb = result.line_wls_std[k]
+        a0, b0 = ln.in_description_units(ln.a0, ln.b0)
+        out.append({
+            "joint": ln.name, "motor_id": ln.motor_id, "source_before": ln.source,
+            "si": {"a_Nm_per_A": float(a), "a_std_error": float(sa), "b_Nm": float(b),
+                   "b_std_error": float(sb),
+                   "a_ols": float(result.line_ols[k][0]), "b_ols": float(result.line_ols[k][1]),
+                   "knee_A": float(result.knees[ln.joint])},
+            "description_units": {"x": ln.x, "y": ln.y, "a": a * fa, "a_std_error": sa * fa,
+                                  "b": b * fb, "b_std_error": sb * fb,
+                                  "a_before": a0, "b_before": b0},
+            "a_relative_std_error_percent": _finite(100.0 * sa / abs(a)) if a else None})
+    return out
 
 
 def _print_table(doc: dict) -> None:
@@ -125,6 +148,12 @@ def _print_table(doc: dict) -> None:
               f"{p['wls']:>12.5g}  {p['wls_std_error']:>10.3g}  "
               f"{'inf' if rel is None else f'{rel:.3g}':>8}  {p['si_unit']}")
     pred = doc["prediction_nrms_percent"]
+    for line in doc["current_fits"]:
+        d = line["description_units"]
+        print(f"  current-to-torque fit of {line['joint']} (ID {line['motor_id']}): "
+              f"y = {d['a']:.5g} x + {d['b']:.5g} ({d['y']} over {d['x']}; std err "
+              f"{d['a_std_error']:.2g}, {d['b_std_error']:.2g}); was {d['a_before']:.5g} x + "
+              f"{d['b_before']:.5g} ({line['source_before'] or 'source not given'})")
     print(f"  held-out effort NRMS on {doc['held_out']} (moving samples), WLS: "
           + ", ".join(f"{j} {'inf' if v is None else f'{v:.2f}'} %"
                       for j, v in zip(pred["joints"], pred["wls"])))
@@ -153,12 +182,21 @@ def run(args) -> int:
     unit = _unit(args)
     m = model(args.robot, arm=unit if args.robot == "serial" else None,
               parameterisation="base", actuators="all", description=args.description)
+    drive_lines = current_fit.drive_lines(args.robot, m, unit, args.description)
+    # The option's names and the every-joint refusal need no log: checked before reading.
+    if args.fit_current.strip().lower() not in (current_fit.AUTO, current_fit.OFF):
+        current_fit.choose(args.fit_current, drive_lines, True, "")
     logs = [read_run(folder, m, args.robot, unit) for folder in args.logs]
     validate = [read_run(folder, m, args.robot, unit) for folder in (args.validate or [])]
+    everything = logs + validate
+    with_current = all(log.current is not None for log in everything)
+    lines = current_fit.choose(
+        args.fit_current, drive_lines, with_current,
+        ", ".join(str(log.folder) for log in everything if log.current is None))
     settings = estimate.Settings(args.cutoff_hz, args.decimate, args.holdout,
                                  args.max_condition, args.min_speed, args.effort_lag,
                                  parallel, args.guard_s)
-    result = estimate.identify(m, logs, validate or None, settings)
+    result = estimate.identify(m, logs, validate or None, settings, lines)
     physical = _physical(m, result) if args.physical else None
     doc = _report(args, m, unit, logs, validate, result, physical)
     written = []
@@ -170,7 +208,7 @@ def run(args) -> int:
             how = "WLS, the full vector nearest the nominal one"
         path = writeback.write_back(m, args.robot, unit, Path(args.update_description), phi,
                                     [(str(log.folder), log.sha256) for log in logs],
-                                    args.in_place, how)
+                                    args.in_place, how, result.lines, result.line_wls)
         doc["description_written"] = str(path)
         written.append(path)
     out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
@@ -230,6 +268,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-condition", type=float, default=estimate.DEFAULT_MAX_CONDITION,
                    help="largest condition number of the column-scaled regressor accepted "
                         f"(default {estimate.DEFAULT_MAX_CONDITION:g})")
+    p.add_argument("--fit-current", default=current_fit.AUTO, metavar="auto|off|JOINT,...",
+                   help="fit these joints' current-to-torque lines from the measured current "
+                        "the logs carry, with the base parameters (auto, the default: the "
+                        "joints whose fit the description marks source = \"placeholder\", "
+                        "when every log carries the current; off: none)")
     p.add_argument("--physical", action="store_true",
                    help="also fit physically consistent parameters (and write those back)")
     p.add_argument("--update-description", metavar="TOML",

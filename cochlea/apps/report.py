@@ -52,13 +52,15 @@ def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
         aux = u.setup.controller.error_names[1]
         names += [f"{u.name}.{aux}.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
         names += [f"{u.name}.tau.{j}_{_EFFORT_UNIT[un]}" for j, un in zip(joints, ju)]
+        if u.current is not None:  # measured by the drives (hardware runs only)
+            names += [f"{u.name}.current.{j}_A" for j in joints]
         params = u.setup.controller_model.parameters
         names += [f"{u.name}.p_hat.{p}_{_slug(un)}" for p, un in zip(params.names, params.si_units)]
         names += [f"{u.name}.pose.{c}_{un}" for c, un in zip(u.setup.task_names,
                                                               u.setup.task_units)]
         n_track = u.setup.controller.n_desired
         blocks += [u.q, u.qd, u.desired, u.desired_dot, u.tracking_error, u.errors[:, n_track:],
-                   u.tau, u.p_hat, u.x]
+                   u.tau] + ([] if u.current is None else [u.current]) + [u.p_hat, u.x]
     if result.timing:  # real-time runs: the timing of every period
         for name, values in result.timing.items():
             names.append(name)

@@ -216,6 +216,12 @@ class DynamixelBackend:
         self._finite = np.zeros(n, dtype=bool)
         #: Present Current of the last good read (mA) and the last Goal Current sent (LSB).
         self.present_current_mA = np.zeros(n)
+        #: The same current at the joint (A), signed so that a positive current drives the
+        #: joint positively (the loop logs it: Backend.joint_current_A).
+        self.joint_current_A = np.zeros(n)
+        self._joint_A_per_lsb = f([d.spec.current_unit_mA * 1e-3
+                                   * math.copysign(1.0, d.torque_per_effort)
+                                   for d in self.drives])
         self.goal_current_lsb = self._goal
 
         # ---- diagnostics -------------------------------------------------------------------------
@@ -462,6 +468,7 @@ class DynamixelBackend:
         np.add(q, self._q_offset, out=q)
         np.multiply(self._vel, self._qd_per_lsb, out=qd)
         np.multiply(self._cur, self._mA_per_lsb, out=self.present_current_mA)
+        np.multiply(self._cur, self._joint_A_per_lsb, out=self.joint_current_A)
         self.good_reads += 1
         return True
 

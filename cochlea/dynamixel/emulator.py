@@ -68,6 +68,7 @@ import numpy as np
 from ..console import tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
+from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
 from ..robots.plant import plant_step
 from ..sim import load_scenario, unit_setups
 from ..sim.scenario import PLANT_PRESETS
@@ -103,7 +104,7 @@ from .control_table import (
     Item,
     baud_code,
 )
-from .drives import JointDrive, joint_drives
+from .drives import DEFAULT_RAMP_NM, Fit, JointDrive, joint_drives
 
 #: The command's real-time priority: below cochlea-run's loop (40), above normal processes.
 EMULATOR_FIFO_PRIORITY = 30
@@ -1129,11 +1130,16 @@ class Truth:
     -1) replace the description's ``zero_offset_deg`` and ``direction`` in the plant's mapping
     (the counts the motors report and the torque their current gives); ``hard_stop_m`` puts a
     hard stop under the prismatic joint (the slider): the plant cannot go below it (an
-    inelastic stop) while the motor pushes on at the current it was given."""
+    inelastic stop) while the motor pushes on at the current it was given. ``fit`` (ID ->
+    ``(a, b)`` in the units of the description's fit of that motor, e.g. N cm per A and N cm)
+    replaces the description's current-to-torque line in the plant: the torque a current gives
+    follows it (same offset rule and ramp), while the bridge still commands through the
+    description's, as when a placeholder fit drives a real motor."""
 
     offset_deg: dict[int, float] = field(default_factory=dict)
     direction: dict[int, int] = field(default_factory=dict)
     hard_stop_m: float | None = None
+    fit: dict[int, tuple[float, float]] = field(default_factory=dict)
 
 
 def true_drives(drives: list[JointDrive], truth: Truth | None) -> list[JointDrive]:
@@ -1143,7 +1149,8 @@ def true_drives(drives: list[JointDrive], truth: Truth | None) -> list[JointDriv
     ids = [d.id for d in drives]
     chain = ", ".join(str(i) for i in ids)
     for option, named in (("--true-offset", truth.offset_deg), ("--true-direction",
-                                                                truth.direction)):
+                                                                truth.direction),
+                          ("--true-fit", truth.fit)):
         for motor_id in named:
             if motor_id not in ids:
                 raise CochleaError(f"{option}: motor ID {motor_id} is not on this chain (its "
@@ -1160,8 +1167,25 @@ def true_drives(drives: list[JointDrive], truth: Truth | None) -> list[JointDriv
             d = dataclasses.replace(
                 d, zero_offset=math.radians(truth.offset_deg.get(d.id, math.degrees(
                     d.zero_offset))), direction=truth.direction.get(d.id, d.direction))
+        if d.id in truth.fit:
+            d = dataclasses.replace(d, fit=_true_fit(d, *truth.fit[d.id]))
         out.append(d)
     return out
+
+
+def _true_fit(d: JointDrive, a: float, b: float) -> Fit:
+    """The drive's fit with ``a`` and ``b`` (in its description's units) replaced, checked
+    as the description loader checks a fit."""
+    shown = f"--true-fit {d.id}:{a:g},{b:g}"
+    fit = d.motor.fit
+    if not (math.isfinite(a) and MIN_FIT_SLOPE <= a <= MAX_FIT):
+        raise CochleaError(f"{shown}: expected a positive slope a in {MIN_FIT_SLOPE:g}.."
+                           f"{MAX_FIT:g} ({fit.y} per {fit.x}, the units of motor {d.id}'s "
+                           "fit)")
+    if not (math.isfinite(b) and abs(b) <= MAX_FIT):
+        raise CochleaError(f"{shown}: expected a finite offset b with |b| <= {MAX_FIT:g} "
+                           f"({fit.y}, the units of motor {d.id}'s fit)")
+    return Fit.from_description(dataclasses.replace(fit, a=a, b=b), DEFAULT_RAMP_NM)
 
 
 def install_stops(units: list[_Unit], truth: Truth | None) -> None:
@@ -1192,13 +1216,13 @@ def _hold_at_stops(u: _Unit) -> None:
             x[u.n + j] = max(x[u.n + j], 0.0)
 
 
-def _id_value(kind):
+def _id_value(kind, shape: str = "ID:VALUE"):
     def parse(text: str):
         try:
             motor_id, value = text.split(":")
             return int(motor_id), kind(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected ID:VALUE, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected {shape}, got {text!r}") from None
     return parse
 
 
@@ -1212,12 +1236,23 @@ def add_truth_arguments(p: argparse.ArgumentParser) -> None:
                    "its joint (repeatable)")
     g.add_argument("--hard-stop-m", type=float, metavar="LOW", help="a hard stop under the "
                    "slider at d1 = LOW m: the plant stops there, the motor pushes on")
+    g.add_argument("--true-fit", type=_id_value(_pair, "ID:A,B"), action="append", default=[],
+                   metavar="ID:A,B", help="motor ID's current-to-torque line really is "
+                   "y = A x + B, in the units of its fit in the description (the description's "
+                   "is a placeholder; repeatable)")
+
+
+def _pair(text: str) -> tuple[float, float]:
+    a, b = text.split(",")  # a ValueError: the ID:VALUE parser's message
+    return float(a), float(b)
 
 
 def truth_from_args(args: argparse.Namespace) -> Truth | None:
-    if not (args.true_offset or args.true_direction or args.hard_stop_m is not None):
+    if not (args.true_offset or args.true_direction or args.true_fit
+            or args.hard_stop_m is not None):
         return None
-    return Truth(dict(args.true_offset), dict(args.true_direction), args.hard_stop_m)
+    return Truth(dict(args.true_offset), dict(args.true_direction), args.hard_stop_m,
+                 dict(args.true_fit))
 
 
 if __name__ == "__main__":

@@ -32,18 +32,26 @@ The steps, as a robotics researcher runs them on a real arm (Gautier and Khalil;
    variance; the relative standard error is it over ``|beta|`` in %.
 6. **Validate** on data held out from the fit: the effort the estimate predicts against the
    one logged, per joint, as an NRMS error: ``RMS(tau - Y beta) / RMS(tau)`` in %.
+
+With motor current in the logs, joints whose current-to-torque line is unknown (a placeholder
+fit) are fitted with it (:mod:`cochlea.ident.current`): their logged effort is only what the
+placeholder line promised, so their rows become ``Y_j beta - a_j I_j - b_j s_j = 0`` and the
+measured current goes through the effort's lag (one period less: Present Current is read at
+the start of the period that follows the command), filter and parallel filter.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
+from scipy import optimize, signal
 
 from ..errors import CochleaError
 from ..robots import RobotModel
+from .current import CurrentFitError, Line, offset_shape
 from .logs import LogError, RunLog
 
 #: Butterworth order of the zero-phase filter (filtfilt doubles it).
@@ -80,6 +88,15 @@ DEFAULT_MIN_SPEED = 0.1
 PRISMATIC_SPEED_RATIO = 0.02
 #: Rows of the regressor evaluated per CasADi map call (bounds the memory of one call).
 CHUNK = 4096
+#: The knee of a fitted current-to-torque line is searched on a grid of this many currents,
+#: between those with these fractions of the fitted samples beyond them (a knee above
+#: nearly every current leaves a and b one slope; one below nearly every current, the offset
+#: one sign), and over this many sweeps when several lines are fitted.
+KNEE_GRID = 41
+KNEE_BEYOND_MIN, KNEE_BEYOND_MAX = 0.01, 0.95
+KNEE_SWEEPS = 2
+#: Relative tolerance of the knee's bounded search.
+KNEE_TOLERANCE = 1e-4
 #: The fit needs at least this many equations (a sample gives one per joint) per base
 #: parameter, after the ends are dropped and the log decimated.
 EQUATIONS_PER_PARAMETER = 10
@@ -128,10 +145,25 @@ class Samples:
     tau: np.ndarray
     Y: np.ndarray  # (N, n, n_b): tau[k] = Y[k] @ beta
     moving: np.ndarray  # (N,) bool: every joint moving, away from a stuck episode
+    #: With lines to fit: the measured current (A), (N, n), lagged and filtered as the
+    #: efforts are; ``shape_of(knees)`` the offset's shape s(I) for knees (A, per joint)
+    #: through the same lag and filters, and ``shape`` the one of the knees last chosen.
+    current: np.ndarray | None = None
+    shape_of: object = None
+    shape: np.ndarray | None = None
 
     def rows(self, part: slice) -> Samples:
+        def cut(x):
+            return None if x is None else x[part]
+
+        of = self.shape_of
         return Samples(self.time[part], self.q[part], self.qd[part], self.qdd[part],
-                       self.tau[part], self.Y[part], self.moving[part])
+                       self.tau[part], self.Y[part], self.moving[part], cut(self.current),
+                       None if of is None else (lambda knees: of(knees)[part]),
+                       cut(self.shape))
+
+    def with_knees(self, knees: np.ndarray) -> Samples:
+        return dataclasses.replace(self, shape=self.shape_of(knees))
 
 
 def _mapped_regressor(model: RobotModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
@@ -169,10 +201,12 @@ def _dilate(mask: np.ndarray, rows: int) -> np.ndarray:
     return np.convolve(mask.astype(float), kernel, mode="same") > 0.5
 
 
-def process(log: RunLog, settings: Settings, model: RobotModel) -> Samples:
+def process(log: RunLog, settings: Settings, model: RobotModel,
+            with_current: bool = False) -> Samples:
     """``log`` filtered, differentiated, its regressor stacked and parallel-filtered, its
     ends dropped and decimated: see the module docstring. Refuses a log too short for the
-    filters and the parameters (one line)."""
+    filters and the parameters (one line). ``with_current``: also the measured current and
+    the offset's shape (``Samples.shape_of``), for the lines."""
     n_parameters = len(model.parameters.names)
     rate = log.rate_hz
     dt = 1.0 / rate
@@ -204,6 +238,12 @@ def process(log: RunLog, settings: Settings, model: RobotModel) -> Samples:
     lagged = log.time - settings.effort_lag * dt
     tau = np.column_stack([np.interp(lagged, log.time, col) for col in log.tau.T])
     tau = signal.filtfilt(b, a, tau, axis=0)
+    raw = None
+    if with_current:
+        # Present Current is read at the start of the period after the command it measures:
+        # it stands one period later than the effort column.
+        later = log.time + (1.0 - settings.effort_lag) * dt
+        raw = np.column_stack([np.interp(later, log.time, col) for col in log.current.T])
     qd = np.gradient(q, dt, axis=0)
     qdd = np.gradient(qd, dt, axis=0)
     keep = slice(edge, log.rows - edge, step)
@@ -223,7 +263,21 @@ def process(log: RunLog, settings: Settings, model: RobotModel) -> Samples:
         # A stuck row spoils every filtered row its filter reaches: the guard band.
         stuck = _dilate(stuck, int(math.ceil(settings.guard_s * rate2)))
         time, q, qd, qdd, tau, Y, stuck = (x[keep2] for x in (time, q, qd, qdd, tau, Y, stuck))
-    return Samples(time, q, qd, qdd, tau, Y, ~stuck)
+    current = shape_of = None
+    if raw is not None:
+        def like_tau(series: np.ndarray) -> np.ndarray:
+            """``series`` (full rate) through the efforts' filters and decimations."""
+            out = signal.filtfilt(b, a, series, axis=0)[keep]
+            if parallel is not None:
+                out = signal.filtfilt(b2, a2, out, axis=0)[keep2]
+            return out
+
+        current = like_tau(raw)
+        # The shape is nonlinear in the current: taken at the full rate, before the filters
+        # (the equation a I + b s = Y beta holds at every instant, then filtered).
+        def shape_of(knees: np.ndarray) -> np.ndarray:
+            return like_tau(offset_shape(raw, knees))
+    return Samples(time, q, qd, qdd, tau, Y, ~stuck, current, shape_of)
 
 
 def regressor(model: RobotModel, samples: Samples) -> np.ndarray:
@@ -349,6 +403,17 @@ class Identification:
     fit_samples: int  # samples (before leaving out slow joints' rows)
     held_out: str  # how the validation data was chosen
     settings: Settings
+    #: The current-to-torque lines fitted with the base parameters (empty: none), their OLS
+    #: and WLS estimates and standard errors (SI: N m per A and N m at the motor), ``(L, 2)``
+    #: as ``[a, b]`` per line, and the knees (A) they were fitted with.
+    lines: tuple[Line, ...] = ()
+    line_ols: np.ndarray | None = None
+    line_ols_std: np.ndarray | None = None
+    line_wls: np.ndarray | None = None
+    line_wls_std: np.ndarray | None = None
+    knees: np.ndarray | None = None
+    wls_full: np.ndarray | None = None  # with lines: WLS of beta and the lines together
+    condition_with_lines: float | None = None  # column-scaled, with the lines' columns
 
     @property
     def beta(self) -> np.ndarray:
@@ -377,12 +442,17 @@ class Identification:
                     self.moving_validation if moving else None)
 
 
-def _check_excited(model: RobotModel, W: np.ndarray, settings: Settings, where: str) -> float:
+def _check_excited(model: RobotModel, W: np.ndarray, settings: Settings, where: str,
+                   lines: tuple[Line, ...] = ()) -> float:
     cond, v = scaled_condition(W)
     if cond > settings.max_condition:
-        names = model.parameters.names
+        names = list(model.parameters.names)
+        meanings = list(model.parameters.meanings)
+        for ln in lines:
+            names += [f"{ln.name}.a"]
+            meanings += [f"{ln.name} current-to-torque slope beyond its knee"]
         worst = np.argsort(-np.abs(v))[:3]
-        mixed = ", ".join(f"{names[i]} ({model.parameters.meanings[i]})" for i in worst
+        mixed = ", ".join(f"{names[i]} ({meanings[i]})" for i in worst
                           if abs(v[i]) > 0.1)
         shown = "inf (rank-deficient)" if math.isinf(cond) else f"{cond:.3g}"
         raise NotExcitedError(
@@ -394,19 +464,34 @@ def _check_excited(model: RobotModel, W: np.ndarray, settings: Settings, where: 
 
 
 def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | None = None,
-             settings: Settings = Settings()) -> Identification:
+             settings: Settings = Settings(), lines: tuple[Line, ...] | list[Line] = ()
+             ) -> Identification:
     """OLS and WLS base parameters of ``model`` from ``logs``; validated on ``validate``, or
-    without it on the last ``settings.holdout`` of every log (each log's own tail)."""
-    n = model.nq
+    without it on the last ``settings.holdout`` of every log (each log's own tail). With
+    ``lines``, also those joints' current-to-torque lines (:mod:`cochlea.ident.current`)."""
+    lines = tuple(lines)
     if validate is None and not 0.0 < settings.holdout < 1.0:
         raise CochleaError(f"--holdout must lie strictly between 0 and 1, got "
                            f"{settings.holdout:g}")
     if not settings.min_speed >= 0.0:
         raise CochleaError(f"--min-speed must be a non-negative number (rad/s), got "
                            f"{settings.min_speed:g}")
+    if lines:
+        without = [log for log in logs + list(validate or []) if log.current is None]
+        if without:
+            raise CurrentFitError(f"{without[0].file}: no measured current (columns "
+                                  "<unit>.current.<joint>_A) to fit the lines of "
+                                  + ", ".join(ln.name for ln in lines)
+                                  + ": every log must carry it (record over the bus), or give "
+                                  "--fit-current off")
+        if len(lines) == model.nq:
+            raise CurrentFitError("every joint's current-to-torque line would be fitted: the "
+                                  "torque's scale is not observable; calibrate one drive with "
+                                  "cochlea-dxl calibrate --torque-fit")
+    with_current = bool(lines)
     fit_parts, val_parts = [], []
     for log in logs:
-        s = process(log, settings, model)
+        s = process(log, settings, model, with_current)
         if validate is None:
             cut = int(round(len(s.time) * (1.0 - settings.holdout)))
             fit_parts.append(s.rows(slice(0, cut)))
@@ -414,22 +499,149 @@ def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | Non
         else:
             fit_parts.append(s)
     if validate is not None:
-        val_parts = [process(log, settings, model) for log in validate]
+        val_parts = [process(log, settings, model, with_current) for log in validate]
         held_out = "the validation logs (--validate)"
     else:
         held_out = f"the last {settings.holdout:.0%} of every log"
-    keep = np.concatenate([moving_rows(model, s) for s in fit_parts])
-    W = np.vstack([regressor(model, s) for s in fit_parts])[keep]
-    y = np.concatenate([s.tau.ravel() for s in fit_parts])[keep]
-    joint = np.tile(np.arange(n), len(keep) // n)[keep]
     where = ", ".join(str(log.folder) for log in logs)
-    cond_scaled = _check_excited(model, W, settings, where)
-    cond = float(np.linalg.cond(W))
+    if not lines:
+        return _identify(model, fit_parts, val_parts, settings, held_out, where, (), None)
+    # The knee of each line's offset moves with (a, b). For given knees the problem is
+    # linear; the knees are chosen by the fit's residual (with the joints' weights of the
+    # fit at the description's knees, so that every knee is judged alike), over knees with
+    # enough samples beyond them to tell a from b (inside the knee only the slope ramp /
+    # knee shows). Most samples of a gentle excitation lie inside it, so the placeholder's
+    # knee will not do: on the simulated arm it biased a by 5 % and b by 60 %.
+    knees = np.full(model.nq, np.inf)
+    for ln in lines:
+        knees[ln.joint] = ln.knee(ln.a0, ln.b0)
+    first = _identify(model, fit_parts, val_parts, settings, held_out, where, lines, knees)
+    weights = first.weights
+    magnitude = np.abs(np.concatenate([s.current for s in fit_parts]))
+    grids = {}
+    for ln in lines:
+        lo, hi = np.percentile(magnitude[:, ln.joint], [100 * (1 - KNEE_BEYOND_MAX),
+                                                          100 * (1 - KNEE_BEYOND_MIN)])
+        grids[ln.joint] = np.geomspace(max(lo, 1e-6), max(hi, 2e-6), KNEE_GRID)
+
+    def cost(trial: np.ndarray) -> float:
+        r = _identify(model, fit_parts, val_parts, settings, held_out, where, lines, trial,
+                      check=False, weights=weights)
+        return float(np.sum((r.weights * (r.y - r.W @ r.wls_full)) ** 2))
+
+    def at(joint: int, k: float) -> float:
+        trial = knees.copy()
+        trial[joint] = k
+        return cost(trial)
+
+    for _ in range(KNEE_SWEEPS if len(lines) > 1 else 1):
+        for ln in lines:
+            # The residual drops sharply at the true knee (a kink the data show): a grid to
+            # find its basin, then a bounded search between the grid's neighbours.
+            grid = grids[ln.joint]
+            costs = [at(ln.joint, k) for k in grid]
+            i = int(np.argmin(costs))
+            if i == len(grid) - 1:
+                raise NotExcitedError(
+                    f"{where}: the current of {ln.name} goes beyond the knee of its "
+                    f"current-to-torque line on too few samples to tell its slope from its "
+                    f"offset (the fit's residual still falls at {grid[-1]:.3g} A, exceeded by "
+                    f"{KNEE_BEYOND_MIN:.0%} of the samples): record an excitation with larger "
+                    f"accelerations (a shorter period), or leave its fit out (--fit-current)")
+            lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+            best = optimize.minimize_scalar(lambda k, j=ln.joint: at(j, k), bounds=(lo, hi),
+                                            method="bounded",
+                                            options={"xatol": KNEE_TOLERANCE * grid[i]})
+            knees[ln.joint] = best.x if best.fun <= costs[i] else grid[i]
+    return _identify(model, fit_parts, val_parts, settings, held_out, where, lines, knees)
+
+
+def _line_columns(parts: list[Samples], lines: tuple[Line, ...], n: int, knees: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The lines' columns of the stacked equations and their right-hand side, sample-major
+    like :func:`regressor`. At the knee the torque is the ramp (``a knee + b = ramp``, the
+    rule of :class:`~cochlea.robots.motor_fit.Fit`), so ``b = ramp - a knee`` and a fitted
+    joint's equation ``Y beta = (a I + b s) / r`` becomes ``Y beta - a (I - knee s) / r =
+    ramp s / r``: one column per line, ``-(I - knee s) / r`` on its joint's rows."""
+    current = np.concatenate([s.current.ravel() for s in parts])
+    shape = np.concatenate([s.shape.ravel() for s in parts])
+    joint = np.tile(np.arange(n), len(current) // n)
+    out = np.zeros((len(current), len(lines)))
+    rhs = np.zeros(len(current))
+    for k, ln in enumerate(lines):
+        on = joint == ln.joint
+        knee = knees[ln.joint]
+        out[on, k] = -(current[on] - knee * shape[on]) / ln.scale
+        rhs[on] = ln.ramp * shape[on] / ln.scale
+    return out, rhs
+
+
+def _with_line_efforts(s: Samples, lines: tuple[Line, ...], ab: np.ndarray) -> Samples:
+    """``s`` with the efforts of the fitted joints replaced by what their identified lines
+    give for the measured current (the logged ones only echo the placeholder line)."""
+    tau = s.tau.copy()
+    for (a, b), ln in zip(ab, lines):
+        tau[:, ln.joint] = (a * s.current[:, ln.joint] + b * s.shape[:, ln.joint]) / ln.scale
+    return dataclasses.replace(s, tau=tau)
+
+
+def _identify(model: RobotModel, fit_parts: list[Samples], val_parts: list[Samples],
+              settings: Settings, held_out: str, where: str, lines: tuple[Line, ...],
+              knees: np.ndarray | None, check: bool = True,
+              weights: np.ndarray | None = None) -> Identification:
+    n = model.nq
+    n_b = len(model.parameters.names)
+    if lines:
+        fit_parts = [s.with_knees(knees) for s in fit_parts]
+        val_parts = [s.with_knees(knees) for s in val_parts]
+    keep = np.concatenate([moving_rows(model, s) for s in fit_parts])
+    W = np.vstack([regressor(model, s) for s in fit_parts])
+    y = np.concatenate([s.tau.ravel() for s in fit_parts])
+    joint_all = np.tile(np.arange(n), len(keep) // n)
+    if lines:
+        columns, rhs = _line_columns(fit_parts, lines, n, knees)
+        W = np.hstack([W, columns])
+        fitted = np.isin(joint_all, [ln.joint for ln in lines])
+        y = np.where(fitted, rhs, y)  # a fitted joint's logged effort is not used
+    W, y, joint = W[keep], y[keep], joint_all[keep]
+    cond_scaled = _check_excited(model, W, settings, where, lines) if check else math.nan
+    cond = float(np.linalg.cond(W)) if check else math.nan
     ols = least_squares(W, y, joint, n)
-    weights = joint_weights(W, y, joint, n, ols)
+    if weights is None:
+        weights = joint_weights(W, y, joint, n, ols)
     wls = least_squares(W, y, joint, n, weights)
+    extra = {}
+    if lines:
+        k = np.array([knees[ln.joint] for ln in lines])
+        ramp = np.array([ln.ramp for ln in lines])
+
+        def ab(est: LeastSquares) -> tuple[np.ndarray, np.ndarray]:
+            a, sa = est.beta[n_b:], est.std_error[n_b:]
+            return (np.column_stack([a, ramp - a * k]), np.column_stack([sa, sa * k]))
+
+        (line_ols, line_ols_std), (line_wls, line_wls_std) = ab(ols), ab(wls)
+        extra = {"lines": lines, "knees": knees, "wls_full": wls.beta,
+                 "line_ols": line_ols, "line_ols_std": line_ols_std,
+                 "line_wls": line_wls, "line_wls_std": line_wls_std,
+                 "condition_with_lines": cond_scaled}
+        if not check:  # a step of the knees' search: the lines are all it needs
+            return Identification(model, ols, wls, weights, W, y, joint, cond, cond_scaled,
+                                  val_parts, np.zeros((0, n_b)), np.zeros((0, n), bool),
+                                  len(y), len(keep) // n, held_out, settings, **extra)
+        # From here on the fitted joints' efforts are their identified lines' torques, so
+        # the base parameters' consumers (validation, figures, --physical) see tau = Y beta.
+        ab = extra["line_wls"]
+        fit_parts = [_with_line_efforts(s, lines, ab) for s in fit_parts]
+        val_parts = [_with_line_efforts(s, lines, ab) for s in val_parts]
+        W = W[:, :n_b]
+        y = np.concatenate([s.tau.ravel() for s in fit_parts])[keep]
+        ols = LeastSquares(ols.beta[:n_b], ols.std_error[:n_b], ols.residual_rms)
+        wls = LeastSquares(wls.beta[:n_b], wls.std_error[:n_b], wls.residual_rms)
+        cond_scaled = scaled_condition(W)[0]
+        cond = float(np.linalg.cond(W))
     W_val = np.vstack([regressor(model, s) for s in val_parts])
     moving_val = np.concatenate([moving_rows(model, s)
                                  for s in val_parts]).reshape(-1, n)
     return Identification(model, ols, wls, weights, W, y, joint, cond, cond_scaled, val_parts,
-                          W_val, moving_val, len(y), len(keep) // n, held_out, settings)
+                          W_val, moving_val, len(y), len(keep) // n, held_out, settings,
+                          **extra)

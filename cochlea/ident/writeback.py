@@ -166,10 +166,43 @@ def key_lines(lines: list[str]) -> dict[tuple, int]:
     return where
 
 
-def edit(text: str, values: dict[tuple, str], source: Path) -> str:
-    """``text`` with each value of ``values`` replaced on its line, comments kept."""
+def fit_values(robot_name: str, unit: str, system, lines, ab: np.ndarray) -> dict[tuple, str]:
+    """``{path of the motor's fit: inline table}`` for identified current-to-torque lines
+    (:class:`cochlea.ident.current.Line`, ``ab`` their SI ``[a, b]``): in the description's
+    own units, marked ``source = "identified"``."""
+    out = {}
+    for ln, (a, b) in zip(lines, ab):
+        a_d, b_d = ln.in_description_units(a, b)
+        if robot_name == "serial":
+            arm = [x.name for x in system.arms].index(unit)
+            path = ("arm", arm, "link", ln.joint, "motor", "fit")
+        else:
+            path = tuple(ln.name.split(".")) + ("motor", "fit")
+        out[path] = (f'{{ a = {a_d:.6g}, b = {b_d:.6g}, x = "{ln.x}", y = "{ln.y}", '
+                     'source = "identified" }')
+    return out
+
+
+def edit(text: str, values: dict[tuple, str], source: Path,
+         tables: dict[tuple, str] | None = None) -> str:
+    """``text`` with each value of ``values`` replaced on its line, comments kept; each of
+    ``tables`` (an inline table such as a motor's ``fit``) replaces the whole inline table."""
     lines = text.splitlines(keepends=True)
     where = key_lines(lines)
+    for path, new in (tables or {}).items():
+        if path not in where:
+            shown = ".".join(str(p) for p in path)
+            raise WriteBackError(f"{source}: cannot write the identified {shown}: expected it "
+                                 "as `fit = { ... }` on a line of its own under its table")
+        number = where[path]
+        line = lines[number]
+        ending = line[len(line.rstrip("\r\n")):]
+        body = line.rstrip("\r\n")
+        start, stop = body.find("{"), body.find("}")
+        if start < 0 or stop < start:
+            raise WriteBackError(f"{source}: line {number + 1}: expected an inline table "
+                                 f"{{ a = ..., b = ..., x = ..., y = ... }}, got {body.strip()!r}")
+        lines[number] = body[:start] + new + body[stop + 1:] + ending
     for path, new in values.items():
         if path not in where:
             shown = ".".join(str(p) for p in path)
@@ -210,21 +243,28 @@ def check_writable(description: Path, in_place: bool) -> Path:
 
 def write_back(model: RobotModel, robot_name: str, unit: str, description: Path,
                phi: np.ndarray, logs: list[tuple[str, str]], in_place: bool = False,
-               how: str = "the full vector nearest the nominal one") -> Path:
+               how: str = "the full vector nearest the nominal one", lines=(),
+               line_ab: np.ndarray | None = None) -> Path:
     """Write the full parameters ``phi`` of ``model`` into ``description`` (a new file beside
     it unless ``in_place``), headed by a comment naming ``logs`` (folder, sha256) and the
-    date; validated by loading before it lands. Returns the file written."""
+    date; validated by loading before it lands. ``lines`` and ``line_ab``: identified
+    current-to-torque lines, written into their motors' fits. Returns the file written."""
     target = target_path(description, in_place)
     adapter = robot(robot_name)
     system = adapter.load(description)
     values = (_values_serial(model, system, unit, phi) if robot_name == "serial"
               else _values_parallel(model, system, phi))
     text = description.read_text(encoding="utf-8")
-    edited = edit(text, values, description)
+    fits = fit_values(robot_name, unit, system, lines, line_ab) if len(lines) else None
+    edited = edit(text, values, description, fits)
     today = datetime.date.today().isoformat()
     what = f" ({unit})" if robot_name == "serial" else ""
-    header = [f"# Dynamic parameters{what} identified by cochlea-identify on {today} ({how}),",
-              "# from the logs:"]
+    header = [f"# Dynamic parameters{what} identified by cochlea-identify on {today} ({how}),"]
+    if fits:
+        header += ["# and the current-to-torque fits of "
+                   + ", ".join(f"{ln.name} (ID {ln.motor_id})" for ln in lines)
+                   + " from the measured current (source = \"identified\"),"]
+    header += ["# from the logs:"]
     header += [f"#   {folder} (log.csv sha256 {digest})" for folder, digest in logs]
     edited = "\n".join(header) + "\n" + edited
     fd, temp = tempfile.mkstemp(prefix=".identified-", suffix=".toml", dir=target.parent)

@@ -31,6 +31,11 @@ FORMAT = "cochlea-robot/1"
 #: Quantities a motor's linear fit ``y = a x + b`` may relate (name_unit).
 FIT_INPUTS = ("current_A", "current_mA")
 FIT_OUTPUTS = ("torque_Ncm", "torque_Nm")
+#: Where a motor's fit comes from (optional key ``source``): ``placeholder`` (a guess to
+#: replace; ``cochlea-identify`` fits these from logs that carry the measured current),
+#: ``datasheet``, ``measured`` (on the bench, e.g. ``cochlea-dxl calibrate --torque-fit``) or
+#: ``identified`` (written back by ``cochlea-identify``).
+FIT_SOURCES = ("placeholder", "datasheet", "measured", "identified")
 
 #: Largest Dynamixel ID usable by a motor (253..255 are reserved by Protocol 2.0).
 MAX_MOTOR_ID = 252
@@ -67,6 +72,11 @@ class MotorFit:
     b: float
     x: str
     y: str
+    source: str | None = None  # one of FIT_SOURCES; None: not said (trusted)
+
+    @property
+    def placeholder(self) -> bool:
+        return self.source == "placeholder"
 
 
 @dataclass(frozen=True)
@@ -264,6 +274,7 @@ def read_motor(t: Table) -> Motor:
                     "(the fit's unit)"),
         x=f.string("x", FIT_INPUTS),
         y=f.string("y", FIT_OUTPUTS),
+        source=f.string("source", FIT_SOURCES, required=False),
     )
     f.done()
     direction = t.get("direction", "1 or -1 (the motor turns with the joint, or against it)",

@@ -19,6 +19,11 @@ Contract:
   never raise, must be idempotent, and must be safe to call at any time, also from a stop
   caused by the backend itself.
 * ``last_io_time_s`` is the time the last ``read`` plus ``write`` took (s), for the summary.
+* ``joint_current_A``: a backend whose drives measure their current holds an array of one
+  value per joint, allocated once and refreshed in place by every good ``read``: the motor
+  current in A, signed so that a positive current drives the joint positively (the drive's
+  ``direction`` and transmission applied). The loop copies it into the period's row. ``None``
+  (the simulated plant) when nothing is measured: the log's current columns are then NaN.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ class Backend(Protocol):
     name: str
     nq: int
     last_io_time_s: float
+    joint_current_A: np.ndarray | None
 
     def enable(self) -> None: ...
 

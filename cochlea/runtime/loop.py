@@ -55,6 +55,8 @@ RING_SECONDS = 4.0
 DESIRED_CHUNK = 100
 #: Rows read back from ``log.bin`` at a time (a few MB), for the timing and the report.
 READ_CHUNK = 1 << 13
+#: The timing columns of each row (s), after the controllers' blocks.
+TIMING_COLUMNS = ("start_lateness_s", "wall_period_s", "compute_s", "backend_io_s")
 
 
 # --------------------------------------------------------------------------------------------
@@ -480,13 +482,19 @@ class RealTimeLoop:
         self._chunk_times = np.arange(DESIRED_CHUNK, dtype=float)
         self._fill_desired(0)
 
-        # One row per period: t, x (all), tau (all), then per unit errors and p_hat, then timing.
+        # One row per period: t, x (all), tau (all), then per unit errors and p_hat, then timing
+        # (``offsets`` marks these blocks), then the measured current of every joint (A, NaN
+        # when the backend measures none), appended last so every earlier column keeps its
+        # place in logs read by position.
         widths = [1, 2 * self.n, self.n]
         for u in setups:
             widths += [u.controller.n_desired + u.controller_model.nq, u.controller.n_params]
-        widths += [4]
+        widths += [len(TIMING_COLUMNS)]
         self.offsets = np.concatenate([[0], np.cumsum(widths)])
-        self.width = int(self.offsets[-1])
+        self.current_at = int(self.offsets[-1])
+        self.width = self.current_at + self.n
+        #: The backend's measured joint currents, copied into each row (None: not measured).
+        self.measured_current = getattr(backend, "joint_current_A", None)
         self.buffer = np.full((0, self.width), np.nan)  # sized by run(): whole run or ring
         self.x = np.zeros(2 * self.n)
         self.tau = np.zeros(self.n)
@@ -626,7 +634,9 @@ class RealTimeLoop:
                           desired, row[int(off[3 + 2 * i]):int(off[3 + 2 * i]) + ne],
                           row[int(off[4 + 2 * i]):int(off[5 + 2 * i])]))
         timing = row[int(off[-2]):int(off[-1])]
-        return row, row[1:1 + 2 * n], row[1 + 2 * n:1 + 3 * n], timing, units
+        current = row[self.current_at:self.current_at + n]
+        current[:] = np.nan  # stays NaN unless the backend measures current
+        return row, row[1:1 + 2 * n], row[1 + 2 * n:1 + 3 * n], timing, current, units
 
     def _loop(self, writer) -> Stop:
         h_ns = int(round(self.h * 1e9))
@@ -638,7 +648,8 @@ class RealTimeLoop:
         ring = len(buf)
         n = self.n
         q_view, qd_view = x[:n], x[n:]
-        row, row_x, row_tau, row_timing, units = self._views()
+        row, row_x, row_tau, row_timing, row_current, units = self._views()
+        measured = self.measured_current
         estimates = [kern.outputs[1] for kern in self.kernels]
         clock, sleep = self._clock, self._sleep
         if self.rows:  # a second run of the same loop starts from the first chunk again
@@ -681,9 +692,11 @@ class RealTimeLoop:
                             + (f": {cause()}" if cause else ""))
             row[0] = t
             row_x[:] = x
+            if measured is not None:  # the last good read's, like x after a failed read
+                row_current[:] = measured
             stop = sup.check_state(t, x, q_view, qd_view) if ok else None
             if stop:  # nothing was commanded in this period
-                row[1 + 2 * n:] = np.nan
+                row[1 + 2 * n:self.current_at] = np.nan
                 buf[slot] = row
                 self.rows = k + 1
                 return stop
@@ -749,6 +762,10 @@ class RealTimeLoop:
             errors = buf[:, int(off[3 + 2 * i]):int(off[4 + 2 * i])]
             p_hat = buf[:, int(off[4 + 2 * i]):int(off[5 + 2 * i])]
             tau = buf[:, 1 + 2 * n + sl.start:1 + 2 * n + sl.stop]
+            # log.csv carries the current only when the run measured it: a simulated run's
+            # log keeps its columns.
+            current = None if self.measured_current is None else \
+                buf[:, self.current_at + sl.start:self.current_at + sl.stop]
             rows = len(buf)
             pose = np.array(u.fk_world.map(rows)(np.nan_to_num(q).T)).T if rows else \
                 np.zeros((0, len(u.task_names)))
@@ -759,7 +776,7 @@ class RealTimeLoop:
                 xd, xd_dot = (np.array(v).T.copy() for v in u.desired.map(rows)(t)[:2]) \
                     if rows else self.desired_samples(i, 0, 0)[:2]
             logs.append(UnitLog(u.name, scenario.space, q, qd, xd, xd_dot, errors, tau, p_hat,
-                                pose, u))
+                                pose, u, current))
         result = SimulationResult(scenario, index * self.h, logs)
         timing = buf[:, int(off[-2]):int(off[-1])]
         result.timing = {"start_lateness_s": timing[:, 0], "wall_period_s": timing[:, 1],
@@ -806,10 +823,12 @@ def raw_columns(loop: RealTimeLoop) -> list[str]:
         names += [f"{u.name}.{first}[{i}]_SI" for i in range(u.controller.n_desired)]
         names += [f"{u.name}.{second}[{i}]_SI" for i in range(u.controller_model.nq)]
         names += [f"{u.name}.p_hat.{p}_SI" for p in u.controller_model.param_names]
-    return names + ["start_lateness_s", "wall_period_s", "compute_s", "backend_io_s"]
+    names += list(TIMING_COLUMNS)
+    # The measured motor current, at the joint's sign (see Backend.joint_current_A).
+    return names + [f"current.{j}_A" for j in joints]
 
 
 def write_raw_columns(path: Path, loop: RealTimeLoop) -> None:
     """``log.columns.json``: how to read ``log.bin`` (float64 rows) if the run was killed."""
-    path.write_text(json.dumps({"dtype": "float64", "row_length": int(loop.offsets[-1]),
+    path.write_text(json.dumps({"dtype": "float64", "row_length": loop.width,
                                 "columns": raw_columns(loop)}, indent=1) + "\n")

@@ -35,6 +35,8 @@ class SimBackend:
     """
 
     name = "sim"
+    #: The simulated drives measure no current (the applied effort is logged as ``tau``).
+    joint_current_A = None
 
     def __init__(self, setups: list[UnitSetup], period: float, substeps: int,
                  kernels: str = "c", plant: Plant | None = None, steps: int | None = None):

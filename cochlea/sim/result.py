@@ -37,6 +37,9 @@ class UnitLog:
     p_hat: np.ndarray  # (N, n_p) estimate used in the period
     x: np.ndarray  # (N, m) tool / task pose of the true state
     setup: UnitSetup = field(repr=False)
+    #: (N, n) motor current measured by the drives (A, at the joint's sign); None when the run
+    #: measured none (simulated runs).
+    current: np.ndarray | None = None
 
     @property
     def tracking_error(self) -> np.ndarray:
@@ -80,7 +83,8 @@ class SimulationResult:
     def rows(self, start: int, stop: int, step: int = 1) -> SimulationResult:
         """Periods ``start:stop:step`` as a result of their own (views, no copies)."""
         part = slice(start, stop, step)
-        units = [dataclasses.replace(u, **{name: getattr(u, name)[part] for name in _ROW_FIELDS})
+        units = [dataclasses.replace(u, **{name: getattr(u, name)[part] for name in _ROW_FIELDS
+                                           + (("current",) if u.current is not None else ())})
                  for u in self.units]
         timing = None if self.timing is None else {k: v[part] for k, v in self.timing.items()}
         return dataclasses.replace(self, time=self.time[part], units=units, timing=timing)
