@@ -388,3 +388,18 @@ def test_a_second_sweep_on_a_running_folder_is_refused(local_sweep, tmp_path, ca
                                "--progress", "off"]) == 0
     assert [r["sample"] for r in results.read(out).to_pylist()] == list(range(8))
     assert rows_of(out) == rows_of(local_out)
+
+
+def test_replay_of_a_spec_named_after_its_scenario(tmp_path):
+    """docs/robustness/serial_task.toml sweeps serial_task.toml: replay rebuilt both files in
+    one temporary folder under their own names, so the spec overwrote the scenario and every
+    replay of such a sweep was refused."""
+    spec_path = tmp_path / "serial_task.toml"
+    spec_path.write_text(SPEC.format(samples=1, seed=3))
+    out = tmp_path / "out"
+    assert cochlea_sweep.main([str(spec_path), "--out", str(out), "--workers", "1",
+                               "--progress", "off"]) == 0
+    scenario = tmp_path / "sample1.toml"
+    assert cochlea_sweep.main(["replay", str(out), "1", "--out", str(scenario)]) == 0
+    assert "Sample 1 " in scenario.read_text()
+    assert 'format = "cochlea-scenario/1"' in scenario.read_text()

@@ -208,10 +208,13 @@ def replay_spec(folder: Path) -> sweep_spec.Spec:
     they were when the sweep started)."""
     m = results.read_manifest(folder)
     with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-        scenario = Path(tmp) / Path(m.scenario_path).name
-        scenario.write_text(m.scenario_text, encoding="utf-8")
-        spec_file = Path(tmp) / Path(m.spec_path).name
-        spec_file.write_text(m.spec_text, encoding="utf-8")
+        # Each in a folder of its own: a spec is often named after its scenario
+        # (docs/robustness/serial_task.toml sweeps serial_task.toml).
+        scenario = Path(tmp) / "scenario" / Path(m.scenario_path).name
+        spec_file = Path(tmp) / "spec" / Path(m.spec_path).name
+        for path, text in ((scenario, m.scenario_text), (spec_file, m.spec_text)):
+            path.parent.mkdir()
+            path.write_text(text, encoding="utf-8")
         spec = sweep_spec.load(spec_file, scenario_file=scenario)
     spec = dataclasses.replace(spec, path=Path(m.spec_path), scenario_path=Path(m.scenario_path))
     if spec.digest != m.digest:
