@@ -106,7 +106,8 @@ static void usage(FILE *to)
             "                       before the start; memory does not grow with it)\n"
             "  --rate HZ            the control rate (default: the scenario's)\n"
             "  --out DIR            a new or empty folder for log.bin, log.csv, summary.json\n"
-            "  --watchdog-misses N  consecutive deadline misses tolerated (default 20)\n"
+            "  --watchdog-misses N  consecutive overrunning periods tolerated; one period stuck\n"
+            "                       for longer than N periods stops at once (default 20)\n"
             "  --watchdog-errors N  consecutive failed reads tolerated (default 5)\n"
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
@@ -487,11 +488,21 @@ static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const dou
                  s->limit);
         break;
     case COCHLEA_WATCHDOG:
-        if (s->reason == 1) {
+        /* cochlea/runtime/supervisor.py's OverrunWatch words, to the digit */
+        if (s->reason == COCHLEA_WATCHDOG_READS) {
             snprintf(buf, n, "%d consecutive backend read failures", s->count);
+        } else if (s->reason == COCHLEA_WATCHDOG_LATE) {
+            snprintf(buf, n, "the loop fell %.1f ms behind its deadlines (at most %g ms: "
+                     "max(%d periods, %g ms)); it did not catch up", s->value * 1e3,
+                     s->limit * 1e3, loop->limits.watchdog_misses, COCHLEA_MAX_LATENESS_S * 1e3);
+        } else if (s->reason == COCHLEA_WATCHDOG_STALL) {
+            snprintf(buf, n, "the loop stalled: one period took %.1f ms, more than %d periods "
+                     "of %g ms", s->value * 1e3, loop->limits.watchdog_misses,
+                     loop->period_s * 1e3);
         } else {
-            snprintf(buf, n, "%d consecutive deadline misses (last period took %.3f ms of "
-                     "compute)", s->count, s->value * 1e3);
+            snprintf(buf, n, "%d consecutive deadline misses: each period's own work overran "
+                     "its %g ms (the last took %.3f ms)", s->count, loop->period_s * 1e3,
+                     s->value * 1e3);
         }
         break;
     default:
@@ -1370,6 +1381,20 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     key(f, 4, "backend_p99");
     json_number(f, backend->percentile[1]);
     fputs(",\n", f);
+    /* the overrun rule (loop.h), cochlea-run's keys */
+    fprintf(f, "    \"overruns\": %u,\n", loop->overruns);
+    key(f, 4, "lateness_max");
+    json_number(f, (double)loop->lateness_max_ns * 1e-9);
+    fputs(",\n", f);
+    key(f, 4, "overrun_policy");
+    json_string(f, COCHLEA_OVERRUN_POLICY);
+    fputs(",\n", f);
+    key(f, 4, "stall_limit");
+    json_number(f, (double)loop->stall_ns * 1e-9);
+    fputs(",\n", f);
+    key(f, 4, "lateness_limit");
+    json_number(f, (double)loop->lateness_limit_ns * 1e-9);
+    fputs(",\n", f);
     key(f, 4, "scheduling");
     json_string(f, facts->scheduling);
     fputs(",\n", f);
@@ -1926,8 +1951,9 @@ int main(int argc, char **argv)
         printf("  bus: %.0f bytes per period, budget %.0f us; %u of %u reads good; shut-down: "
                "%s\n", facts.budget_bytes, facts.bus_s * 1e6, bridge.good_reads, bridge.reads,
                facts.shutdown);
-        printf("  timing: deadline misses %u; %s; memory %s\n", the_loop.deadline_misses,
-               facts.scheduling, facts.memory);
+        printf("  timing: deadline misses %u, overruns %u, lateness max %.3f ms; %s; memory "
+               "%s\n", the_loop.deadline_misses, the_loop.overruns,
+               (double)the_loop.lateness_max_ns * 1e-6, facts.scheduling, facts.memory);
         fflush(stdout);
     }
     free(log.ring);
