@@ -103,11 +103,11 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
 
 
 #: summary.json keys cochlea-run writes and the C program does not yet (issue 15, see
-#: docs/embedded.md "Not yet in the C program"): the real-time options, the Realtime Tick
-#: check, the slider's homing check and the encoder-count convergence floor.
+#: docs/embedded.md "Not yet in the C program"): the real-time options, the slider's homing
+#: check and the encoder-count convergence floor.
 PYTHON_ONLY = {"top": {"realtime"},
                "timing": set(),
-               "bus": {"homing", "realtime_tick_check"},
+               "bus": {"homing"},
                "unit": {"position_quantum"}}
 
 
@@ -201,6 +201,28 @@ def test_every_fault_ends_in_the_safe_stop(tmp_path, program, name):
     assert STOP_CODES["watchdog"] == 15
     summary = assert_fault_stop(done, out, log, name)
     assert "consecutive backend read failures" in summary["stop"]["detail"]
+
+
+def test_a_motor_repeating_its_status_packet_is_refused_by_its_realtime_tick(tmp_path, program):
+    """Motor 3 repeats its last status packet from 0.3 s on: its Realtime Tick stops moving,
+    every read after the first repeat (within a tick and a tenth) fails as stale-packet, and
+    the read watchdog stops the run safely, naming the motor, as cochlea-run's would."""
+    done, out, log = on_emulator(program, tmp_path,
+                                 ("serial", "serial_joint", "--fault-delay", "0.3",
+                                  "--stale-replies", "3:-1"),
+                                 "--scenario", "serial_joint", "--duration", "3",
+                                 *SHARED_MACHINE, before=0.32)
+    assert done.returncode == STOP_CODES["watchdog"], done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    bus = summary["timing"]["bus"]
+    assert bus["realtime_tick_check"] is True
+    assert bus["failures"].get("stale-packet", 0) >= 6, bus
+    assert bus["last_failure"] == "stale-packet (ID 3, arm1.link3)"
+    assert summary["stop"]["detail"] == ("6 consecutive backend read failures: last failure "
+                                         "stale-packet from ID 3 (arm1.link3, MX-64)")
+    assert_log_complete(out, summary)
+    assert "torque off confirmed by all 6" in bus["shutdown"]
+    assert summary["stop"]["time_s"] < 2.0
 
 
 @pytest.mark.parametrize("options, message", [

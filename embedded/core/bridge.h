@@ -12,9 +12,15 @@
  *      the middle of each joint's limits, and refuse a joint outside its limits;
  *   9. Torque Enable 1.
  * Each period: cochlea_bridge_read is one SYNC_READ of Present Current, Velocity and Position
- * (126..135), cochlea_bridge_write one SYNC_WRITE of Goal Current. Failures (timeout, CRC,
- * error byte, hardware alert, length, port, late traffic, non-finite command) are a 0 return
- * and counters, never a stop of their own: the loop's watchdog decides.
+ * (126..135; with the Realtime Tick check, 120..135), cochlea_bridge_write one SYNC_WRITE of
+ * Goal Current. Failures (timeout, CRC, error byte, hardware alert, length, port, late
+ * traffic, non-finite command, stale packet) are a 0 return and counters, never a stop of
+ * their own: the loop's watchdog decides.
+ * The Realtime Tick check (cochlea_bridge_use_realtime_tick; the Python bridge's
+ * realtime_tick, which cochlea-run sets): a motor's millisecond counter, read with the state,
+ * that has not moved since a reply which had already arrived more than 1.1 ms (a tick and a
+ * tenth for the motor's clock) before this request is a stale packet (a motor repeating old
+ * data), and the read fails as stale-packet. It costs 6 bytes per motor and period.
  * Shut-down (cochlea_bridge_stop, also after a failed start-up and on every fault): SYNC_WRITE
  * Goal Current 0 and Torque Enable 0, each twice (no reply needed, so one dead motor cannot hold
  * up the others), then a READ of Torque Enable per motor to confirm.
@@ -34,12 +40,17 @@ extern "C" {
 /* Present Current (2) + Present Velocity (4) + Present Position (4) from address 126. */
 #define COCHLEA_STATE_ADDRESS 126
 #define COCHLEA_STATE_LENGTH 10
+/* With the Realtime Tick: Realtime Tick (120, 2), Moving, Moving Status, Present PWM
+ * (122..125, between it and the state), then the state: one contiguous block. */
+#define COCHLEA_TICK_ADDRESS 120
+#define COCHLEA_TICK_READ_LENGTH 16
+#define COCHLEA_STALE_AFTER_NS 1100000
 
 /* Failure kinds of a period (indices into cochlea_bridge.failures), the Python bridge's. */
 enum cochlea_failure {
     COCHLEA_FAIL_TIMEOUT = 0, COCHLEA_FAIL_CRC, COCHLEA_FAIL_ERROR_BYTE, COCHLEA_FAIL_ALERT,
     COCHLEA_FAIL_LENGTH, COCHLEA_FAIL_PORT, COCHLEA_FAIL_LATE, COCHLEA_FAIL_NON_FINITE,
-    COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_KINDS
+    COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_STALE, COCHLEA_FAIL_KINDS
 };
 const char *cochlea_failure_name(int kind);
 
@@ -82,6 +93,8 @@ typedef struct {
     uint8_t watchdog_lsb;       /* Bus Watchdog, 20 ms per LSB */
     double position_margin;     /* start-up: how far outside its limits a joint may read (SI) */
     int retries;
+    int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
+    int read_length;            /* bytes per motor of the period's SYNC_READ */
     /* State. */
     int active;                 /* between a successful start and the stop */
     int suspect;                /* a failed read: wait for a quiet line before the next */
@@ -103,7 +116,9 @@ typedef struct {
     size_t read_len;
     uint8_t write_frame[DXL_FRAME_SIZE(4 + 3 * COCHLEA_MAX_DRIVES)];
     uint8_t scratch[DXL_FRAME_SIZE(4 + 5 * COCHLEA_MAX_DRIVES)];
-    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_STATE_LENGTH];
+    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_TICK_READ_LENGTH];
+    int32_t last_tick[COCHLEA_MAX_DRIVES];        /* the last Realtime Tick seen, -1 none */
+    int64_t tick_seen_ns[COCHLEA_MAX_DRIVES];     /* when the reply first carrying it was in */
     uint8_t slots[COCHLEA_MAX_DRIVES];
 } cochlea_bridge;
 
@@ -111,6 +126,9 @@ typedef struct {
  * rounded up to whole 20 ms, within 20..2540 ms. */
 int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
                         int n, int64_t timeout_ns, double watchdog_s);
+/* Read the Realtime Tick with the state and refuse stale packets (before the start). 0, or -1
+ * when the frame does not fit. */
+int cochlea_bridge_use_realtime_tick(cochlea_bridge *b);
 /* Steps 1-9; 1 on success (torque on), else 0 with *report filled, after the safe stop. */
 int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report);
 /* One SYNC_READ into q[n], qd[n] (SI); 1, or 0 on a failure (counted). */

@@ -1427,6 +1427,7 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     fputs(",\n", f);
     key(f, 6, "watchdog_s");
     json_number(f, facts->watchdog_s);
+    fprintf(f, ",\n      \"realtime_tick_check\": %s", b->realtime_tick ? "true" : "false");
     fprintf(f, ",\n      \"reads\": %u,\n      \"good_reads\": %u,\n      \"writes\": %u,\n",
             b->reads, b->good_reads, b->writes);
     key(f, 6, "failures");
@@ -1668,7 +1669,8 @@ int main(int argc, char **argv)
         }
     }
     { /* the bus budget, cochlea/dynamixel/budget.py's */
-        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + 21.0 * n;
+        /* a status packet of 11 bytes and the Realtime Tick's 16-byte block per motor */
+        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + (11.0 + COCHLEA_TICK_READ_LENGTH) * n;
         facts.budget_bytes = bytes;
         facts.wire_s = bytes * BITS_PER_BYTE / (double)o.baud;
         facts.bus_s = facts.wire_s + n * TURNAROUND_S;
@@ -1745,6 +1747,11 @@ int main(int argc, char **argv)
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
+    if (cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* always, as cochlea-run */
+        cochlea_posix_close(&port);
+        undo_start(o.out);
+        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
+    }
     backend = cochlea_bridge_backend(&bridge);
     /* The controller before the motors: a configuration it refuses moves nothing. */
     loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, period, duration,
