@@ -103,9 +103,9 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
 
 
 #: summary.json keys cochlea-run writes and the C program does not yet (issue 15, see
-#: docs/embedded.md "Not yet in the C program"): the real-time options, the slider's homing
-#: check and the encoder-count convergence floor.
-PYTHON_ONLY = {"top": {"realtime"},
+#: docs/embedded.md "Not yet in the C program"): the slider's homing check and the
+#: encoder-count convergence floor.
+PYTHON_ONLY = {"top": set(),
                "timing": set(),
                "bus": {"homing"},
                "unit": {"position_quantum"}}
@@ -141,6 +141,11 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
     assert timing["stall_limit"] == pytest.approx(timing["watchdog_misses_allowed"] * 1e-3)
     assert timing["lateness_limit"] == pytest.approx(max(timing["stall_limit"], 0.1))
     assert timing["overruns"] <= timing["deadline_misses"]
+    # The real-time settings, recorded as cochlea-run records them.
+    for part in ("requested", "obtained"):
+        assert set(summary["realtime"][part]) == set(python["realtime"][part])
+    assert summary["realtime"]["requested"] == {"mlockall": True, "cpu": None,
+                                                "policy": "fifo", "priority": 40}
     for unit, entry in python["units"].items():
         assert set(entry) - PYTHON_ONLY["unit"] == set(summary["units"][unit])
         assert set(entry["tracked"]) == set(summary["units"][unit]["tracked"])
@@ -223,6 +228,29 @@ def test_a_motor_repeating_its_status_packet_is_refused_by_its_realtime_tick(tmp
     assert_log_complete(out, summary)
     assert "torque off confirmed by all 6" in bus["shutdown"]
     assert summary["stop"]["time_s"] < 2.0
+
+
+def test_real_time_settings_are_applied_recorded_and_a_refusal_is_one_warning(tmp_path, program):
+    cpu = max(os.sched_getaffinity(0))
+    done, out, _ = on_emulator(program, tmp_path, ("serial", "serial_joint"), "--scenario",
+                               "serial_joint", "--duration", "1", "--sched", "rr",
+                               "--priority", "30", "--mlockall", "off", "--cpu", str(cpu),
+                               *PATIENT)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    realtime = summary["realtime"]
+    assert realtime["requested"] == {"mlockall": False, "cpu": cpu, "policy": "rr",
+                                     "priority": 30}
+    obtained, problems = realtime["obtained"], realtime["problems"]
+    warnings = [line for line in done.stderr.splitlines() if "warning: real-time" in line]
+    assert len(warnings) == (1 if problems else 0)
+    # Pinned to one CPU unless refused; rr 30 unless refused; memory left unlocked as asked.
+    assert obtained["mlockall"] is False and summary["timing"]["memory"] == "not locked"
+    assert (obtained["cpu"] == [cpu]) != any("CPU affinity" in p for p in problems)
+    rr = (obtained["policy"], obtained["priority"]) == ("rr", 30)
+    assert rr != any("SCHED_RR 30 not permitted" in p for p in problems)
+    assert summary["timing"]["scheduling"] == ("SCHED_RR 30" if rr else
+                                               "normal (SCHED_RR not permitted)")
 
 
 @pytest.mark.parametrize("options, message", [
@@ -313,6 +341,19 @@ def test_sigint_is_the_users_stop(tmp_path, program):
       "0"], 2, "--watchdog-errors must be between 1 and"),
     (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--rate", "50000"], 2,
      "--rate must be between 1 and 20000 Hz"),
+    # cochlea-run's real-time options, refused as check_realtime_options refuses them.
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--sched", "other",
+      "--priority", "3"], 2, "--priority goes with --sched fifo or rr"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--priority", "0"], 2,
+     "--priority must be between 1 and 99 for --sched fifo, got 0"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--sched", "batch"], 2,
+     "--sched: expected one of fifo, rr, other"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--cpu", "4096"], 2,
+     "--cpu 4096 is not a CPU this process may use: expected one of"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--cpu", "-1"], 2,
+     "--cpu -1 is not a CPU this process may use"),
+    (["--scenario", "serial_task", "--port", "/dev/null", "--out", "X", "--mlockall", "yes"],
+     2, "--mlockall: expected on or off, got yes"),
     # 1 Mbaud carries 6 motors at 400 Hz (1900 us of bus per 2500 us): past the budget, to
     # the port (which is missing).
     (["--scenario", "serial_task", "--port", "/dev/ttyUSB-none", "--out", "X", "--baud",

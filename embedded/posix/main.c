@@ -27,6 +27,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/mman.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
 #include <sys/statvfs.h>
 #include <dirent.h>
@@ -78,6 +79,12 @@ typedef struct {
     double rate;     /* Hz; NaN: the scenario's */
     int watchdog_misses;
     int watchdog_errors;
+    /* The loop thread's real-time settings, cochlea-run's options (RealtimeOptions). */
+    int mlockall;         /* 1: lock memory while the loop runs (this program's default) */
+    int cpu;              /* pin the loop's thread to this CPU; -1: the CPUs given */
+    const char *sched;    /* "fifo", "rr" or "other" */
+    int priority_given;   /* --priority given */
+    int priority;         /* fifo and rr: 1..99 (default FIFO_PRIORITY); other: none */
 } options;
 
 static int fail_usage(const char *fmt, ...)
@@ -96,7 +103,8 @@ static void usage(FILE *to)
     fprintf(to,
             "usage: cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S]\n"
             "                        [--rate HZ] --out DIR [--watchdog-misses N]\n"
-            "                        [--watchdog-errors N] | --list\n"
+            "                        [--watchdog-errors N] [--mlockall on|off] [--cpu N]\n"
+            "                        [--sched fifo|rr|other] [--priority N] | --list\n"
             "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
@@ -109,6 +117,14 @@ static void usage(FILE *to)
             "  --watchdog-misses N  consecutive overrunning periods tolerated; one period stuck\n"
             "                       for longer than N periods stops at once (default 20)\n"
             "  --watchdog-errors N  consecutive failed reads tolerated (default 5)\n"
+            "  --mlockall on|off    lock the memory while the loop runs, so no page fault stalls\n"
+            "                       a period (default on; needs CAP_IPC_LOCK or a memlock limit)\n"
+            "  --cpu N              pin the loop's thread to CPU N (default: the CPUs given)\n"
+            "  --sched P            the loop's scheduling policy: fifo (default), rr or other\n"
+            "  --priority N         --sched fifo or rr: the real-time priority, 1..99 (default\n"
+            "                       40: above normal processes, below the kernel's threads)\n"
+            "  A real-time setting the system refuses is one warning and the run goes on with\n"
+            "  what it got; summary.json's realtime entry records both.\n"
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
@@ -135,6 +151,85 @@ static const cochlea_scenario *find_scenario(const char *name)
     return 0;
 }
 
+/* ---- real-time settings (cochlea/runtime/loop.py's RealtimeOptions and apply_realtime) ---- */
+
+/* The policy named by --sched ("fifo", "rr", "other"), or 0 for another name. */
+static const char *policy_of(const char *name)
+{
+    if (strcmp(name, "fifo") == 0) {
+        return "SCHED_FIFO";
+    }
+    if (strcmp(name, "rr") == 0) {
+        return "SCHED_RR";
+    }
+    return strcmp(name, "other") == 0 ? "SCHED_OTHER" : 0;
+}
+
+static int policy_value(const char *name)
+{
+    return strcmp(name, "fifo") == 0 ? SCHED_FIFO
+           : strcmp(name, "rr") == 0 ? SCHED_RR : SCHED_OTHER;
+}
+
+/* The priority asked for: SCHED_OTHER's is 0. */
+static int priority_level(const options *o)
+{
+    if (strcmp(o->sched, "other") == 0) {
+        return 0;
+    }
+    return o->priority;
+}
+
+/* The CPUs this process may use, "0, 1, 3", into buf. */
+static const char *cpu_list(char *buf, size_t n)
+{
+    cpu_set_t set;
+    size_t used = 0;
+    int c;
+    buf[0] = '\0';
+    if (sched_getaffinity(0, sizeof set, &set) != 0) {
+        snprintf(buf, n, "unknown");
+        return buf;
+    }
+    for (c = 0; c < CPU_SETSIZE && used < n; ++c) {
+        if (CPU_ISSET(c, &set)) {
+            used += (size_t)snprintf(buf + used, n - used, "%s%d", used ? ", " : "", c);
+        }
+    }
+    return buf;
+}
+
+/* The user's mistakes in the real-time options, refused before anything moves. */
+static int check_realtime_options(const options *o)
+{
+    if (strcmp(o->sched, "other") == 0) {
+        if (o->priority_given) {
+            return fail_usage("--priority goes with --sched fifo or rr (SCHED_OTHER has no "
+                              "real-time priority)");
+        }
+    } else {
+        /* Linux's range where the OS cannot say, as cochlea-run */
+        int lo = sched_get_priority_min(policy_value(o->sched));
+        int hi = sched_get_priority_max(policy_value(o->sched));
+        lo = lo < 0 ? 1 : lo;
+        hi = hi < 0 ? 99 : hi;
+        if (priority_level(o) < lo || priority_level(o) > hi) {
+            return fail_usage("--priority must be between %d and %d for --sched %s, got %d", lo,
+                              hi, o->sched, priority_level(o));
+        }
+    }
+    if (o->cpu >= 0) {
+        cpu_set_t set;
+        if (sched_getaffinity(0, sizeof set, &set) == 0
+            && (o->cpu >= CPU_SETSIZE || !CPU_ISSET(o->cpu, &set))) {
+            char list[512];
+            return fail_usage("--cpu %d is not a CPU this process may use: expected one of %s",
+                              o->cpu, cpu_list(list, sizeof list));
+        }
+    }
+    return 0;
+}
+
 static int parse(int argc, char **argv, options *o)
 {
     int i;
@@ -145,6 +240,11 @@ static int parse(int argc, char **argv, options *o)
     o->rate = NAN;
     o->watchdog_misses = 20;
     o->watchdog_errors = 5;
+    o->mlockall = 1;
+    o->cpu = -1;
+    o->sched = "fifo";
+    o->priority_given = 0;
+    o->priority = FIFO_PRIORITY;
     for (i = 1; i < argc; ++i) {
         const char *a = argv[i];
         const char *value = i + 1 < argc ? argv[i + 1] : 0;
@@ -214,6 +314,32 @@ static int parse(int argc, char **argv, options *o)
                                   MAX_WATCHDOG_MISSES, value);
             }
             o->watchdog_errors = (int)v;
+        } else if (strcmp(a, "--mlockall") == 0) {
+            if (strcmp(value, "on") != 0 && strcmp(value, "off") != 0) {
+                return fail_usage("--mlockall: expected on or off, got %s", value);
+            }
+            o->mlockall = strcmp(value, "on") == 0;
+        } else if (strcmp(a, "--cpu") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < -1e6 || v > 1e6) {
+                return fail_usage("--cpu must be a whole number, got %s", value);
+            }
+            o->cpu = (int)v;
+            if (o->cpu < 0) { /* -1 is "none" inside: a negative CPU is never one to use */
+                char list[512];
+                return fail_usage("--cpu %s is not a CPU this process may use: expected one of %s",
+                                  value, cpu_list(list, sizeof list));
+            }
+        } else if (strcmp(a, "--sched") == 0) {
+            if (!policy_of(value)) {
+                return fail_usage("--sched: expected one of fifo, rr, other, got '%s'", value);
+            }
+            o->sched = value;
+        } else if (strcmp(a, "--priority") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < -1e6 || v > 1e6) {
+                return fail_usage("--priority must be a whole number, got %s", value);
+            }
+            o->priority = (int)v;
+            o->priority_given = 1;
         } else {
             usage(stderr);
             return fail_usage("unknown option %s", a);
@@ -223,7 +349,7 @@ static int parse(int argc, char **argv, options *o)
         usage(stderr);
         return fail_usage("--scenario, --port and --out are needed");
     }
-    return 0;
+    return check_realtime_options(o);
 }
 
 /* ---- the output folder --------------------------------------------------------------------- */
@@ -1447,6 +1573,8 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     fputs("\n    }\n  }", f);
 }
 
+static void realtime_summary(FILE *f, const options *o); /* with the real-time settings */
+
 static int write_summary(const char *out, const cochlea_loop *loop, const log_stats *st,
                          const run_facts *facts, const cochlea_bridge *b, const options *o,
                          int *converged_out)
@@ -1511,6 +1639,10 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     key(f, 2, "timing");
     timing_summary(f, loop, st, facts, b, o);
     fputs(",\n", f);
+    /* The loop thread's settings, asked for and obtained (cochlea-run's RealtimeOptions). */
+    key(f, 2, "realtime");
+    realtime_summary(f, o);
+    fputs(",\n", f);
     key(f, 2, "wall_time_s");
     json_number(f, facts->wall_s);
     fputs(",\n", f);
@@ -1539,20 +1671,162 @@ static void on_signal(int signum)
     the_loop.stop_request = signum == SIGINT ? COCHLEA_USER_STOP : COCHLEA_TERMINATED;
 }
 
-static const char *realtime_priority(void)
+/* What apply_realtime asked for, obtained and changed (summary.json's "realtime"). */
+typedef struct {
+    int locked;                    /* mlockall succeeded */
+    int affinity_saved;            /* --cpu applied: the CPUs before, to restore */
+    cpu_set_t affinity_before;
+    int policy_changed;            /* the policy before, to restore */
+    int policy_before;
+    struct sched_param param_before;
+    int n_problems;
+    char problems[3][384];
+    const char *policy;            /* obtained: "fifo", "rr", "other" or "unknown" */
+    int priority;                  /* obtained */
+    char cpus[512];                /* obtained: "0, 1" */
+    char scheduling[96];           /* timing.scheduling */
+    const char *memory;            /* timing.memory */
+} realtime_facts;
+
+static realtime_facts rt;
+
+static void problem(const char *fmt, ...)
 {
-    struct sched_param p;
-    memset(&p, 0, sizeof p);
-    p.sched_priority = FIFO_PRIORITY;
-    return pthread_setschedparam(pthread_self(), SCHED_FIFO, &p) == 0
-               ? "SCHED_FIFO 40" : "normal (SCHED_FIFO not permitted)";
+    va_list args;
+    if (rt.n_problems >= 3) {
+        return;
+    }
+    va_start(args, fmt);
+    vsnprintf(rt.problems[rt.n_problems++], sizeof rt.problems[0], fmt, args);
+    va_end(args);
 }
 
-static void normal_priority(void)
+/* The options on the calling thread (and mlockall on the process), as cochlea-run's
+ * apply_realtime: a setting the OS refuses (no permission, a locked-memory limit) is a problem,
+ * not an error; the run goes on with what it got, and rt says what. */
+static void apply_realtime(const options *o)
 {
+    const int want = policy_value(o->sched), level = priority_level(o);
     struct sched_param p;
-    memset(&p, 0, sizeof p);
-    (void)pthread_setschedparam(pthread_self(), SCHED_OTHER, &p);
+    int policy, error;
+    memset(&rt, 0, sizeof rt);
+    if (o->mlockall) {
+        if (mlockall(MCL_CURRENT | MCL_FUTURE) == 0) {
+            rt.locked = 1;
+        } else {
+            char limit[96] = "";
+            error = errno;
+            if (error == ENOMEM || error == EPERM) {
+                struct rlimit r;
+                if (getrlimit(RLIMIT_MEMLOCK, &r) == 0) {
+                    if (r.rlim_cur == RLIM_INFINITY) {
+                        snprintf(limit, sizeof limit, "; RLIMIT_MEMLOCK is unlimited");
+                    } else {
+                        snprintf(limit, sizeof limit, "; RLIMIT_MEMLOCK is %g MiB",
+                                 (double)r.rlim_cur / 1048576.0);
+                    }
+                }
+            }
+            problem("mlockall failed (%s%s: raise memlock in /etc/security/limits.conf or run "
+                    "with CAP_IPC_LOCK)", strerror(error), limit);
+        }
+    }
+    if (o->cpu >= 0) {
+        cpu_set_t one;
+        const int saved = pthread_getaffinity_np(pthread_self(), sizeof rt.affinity_before,
+                                                 &rt.affinity_before) == 0;
+        CPU_ZERO(&one);
+        CPU_SET(o->cpu, &one);
+        error = pthread_setaffinity_np(pthread_self(), sizeof one, &one);
+        if (error != 0) {
+            problem("CPU affinity %d refused (%s)", o->cpu, strerror(error));
+        } else {
+            rt.affinity_saved = saved;
+        }
+    }
+    if (pthread_getschedparam(pthread_self(), &policy, &p) == 0) {
+        if (policy != want || p.sched_priority != level) {
+            struct sched_param asked;
+            memset(&asked, 0, sizeof asked);
+            asked.sched_priority = level;
+            error = pthread_setschedparam(pthread_self(), want, &asked);
+            if (error == 0) {
+                rt.policy_changed = 1;
+                rt.policy_before = policy;
+                rt.param_before = p;
+            } else {
+                problem("%s %d not permitted (%s: run as root, with CAP_SYS_NICE or an rtprio "
+                        "limit)", policy_of(o->sched), level, strerror(error));
+            }
+        }
+    }
+    rt.policy = "unknown";
+    if (pthread_getschedparam(pthread_self(), &policy, &p) == 0) {
+        rt.policy = policy == SCHED_FIFO ? "fifo" : policy == SCHED_RR ? "rr"
+                    : policy == SCHED_OTHER ? "other" : "unknown";
+        rt.priority = p.sched_priority;
+    }
+    cpu_list(rt.cpus, sizeof rt.cpus);
+    if (strcmp(rt.policy, "fifo") == 0 || strcmp(rt.policy, "rr") == 0) {
+        snprintf(rt.scheduling, sizeof rt.scheduling, "%s %d", policy_of(rt.policy),
+                 rt.priority);
+    } else if (strcmp(o->sched, "other") != 0) {
+        snprintf(rt.scheduling, sizeof rt.scheduling, "normal (%s not permitted)",
+                 policy_of(o->sched));
+    } else {
+        snprintf(rt.scheduling, sizeof rt.scheduling, "normal");
+    }
+    rt.memory = rt.locked ? "locked" : o->mlockall ? "not locked (mlockall not permitted)"
+                                                   : "not locked";
+    if (rt.n_problems) { /* once, before the start: the run goes on with what it got */
+        int i;
+        fputs("cochlea-embedded: warning: real-time settings not all obtained: ", stderr);
+        for (i = 0; i < rt.n_problems; ++i) {
+            fprintf(stderr, "%s%s", i ? "; " : "", rt.problems[i]);
+        }
+        fprintf(stderr, "; running %s, memory %s, CPUs %s\n", rt.scheduling,
+                rt.locked ? "locked" : "not locked", rt.cpus);
+    }
+}
+
+/* What apply_realtime changed, undone: the report runs as a normal thread. */
+static void undo_realtime(void)
+{
+    if (rt.policy_changed) {
+        (void)pthread_setschedparam(pthread_self(), rt.policy_before, &rt.param_before);
+        rt.policy_changed = 0;
+    }
+    if (rt.affinity_saved) {
+        (void)pthread_setaffinity_np(pthread_self(), sizeof rt.affinity_before,
+                                     &rt.affinity_before);
+        rt.affinity_saved = 0;
+    }
+    if (rt.locked) {
+        munlockall();
+    }
+}
+
+/* summary.json's "realtime": the loop thread's settings, asked for and obtained. */
+static void realtime_summary(FILE *f, const options *o)
+{
+    int i;
+    fputs("{\n    \"requested\": {\"mlockall\": ", f);
+    fputs(o->mlockall ? "true" : "false", f);
+    if (o->cpu >= 0) {
+        fprintf(f, ", \"cpu\": %d", o->cpu);
+    } else {
+        fputs(", \"cpu\": null", f);
+    }
+    fprintf(f, ", \"policy\": \"%s\", \"priority\": %d},\n", o->sched, priority_level(o));
+    fprintf(f, "    \"obtained\": {\"mlockall\": %s, \"cpu\": [%s], \"policy\": \"%s\", "
+            "\"priority\": %d},\n", rt.locked ? "true" : "false", rt.cpus, rt.policy,
+            rt.priority);
+    fputs("    \"problems\": [", f);
+    for (i = 0; i < rt.n_problems; ++i) {
+        fputs(i ? ", " : "", f);
+        json_string(f, rt.problems[i]);
+    }
+    fputs("]\n  }", f);
 }
 
 /* The writer thread, with a small stack: locked memory (mlockall) makes the default 8 MiB
@@ -1574,8 +1848,7 @@ static int start_writer(pthread_t *thread, run_log *log)
  * file is closed (a failed close counts as a failed log). */
 static void leave_realtime(run_log *log, pthread_t writer_thread)
 {
-    normal_priority();
-    munlockall();
+    undo_realtime();
     __atomic_store_n(&log->finished, 1, __ATOMIC_RELEASE);
     pthread_join(writer_thread, 0);
     if (fclose(log->file) != 0 && !log->failed) {
@@ -1773,9 +2046,9 @@ int main(int argc, char **argv)
         undo_start(o.out);
         return fail_usage("cannot start the log writer");
     }
-    facts.memory = mlockall(MCL_CURRENT | MCL_FUTURE) == 0
-                       ? "locked" : "not locked (mlockall not permitted)";
-    facts.scheduling = realtime_priority();
+    apply_realtime(&o);
+    facts.scheduling = rt.scheduling;
+    facts.memory = rt.memory;
     if (!cochlea_bridge_start(&bridge, &report)) {
         leave_realtime(&log, writer_thread);
         start_failure(text, sizeof text, &bridge, &report, &o);
