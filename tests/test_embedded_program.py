@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 
 from cochlea.apps.report import CONVERGENCE_FLOOR, CONVERGENCE_RATIO, TAIL_FRACTION
+from cochlea.dynamixel.drives import joint_drives
 from cochlea.runtime.supervisor import STOP_CODES
+from cochlea.sim import load_scenario, unit_setups
 from tests.test_dynamixel_hil import (
     FAULTS,
     FLOOR,
@@ -103,12 +105,31 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
 
 
 #: summary.json keys cochlea-run writes and the C program does not yet (issue 15, see
-#: docs/embedded.md "Not yet in the C program"): the slider's homing check and the
-#: encoder-count convergence floor.
+#: docs/embedded.md "Not yet in the C program"): the slider's homing check.
 PYTHON_ONLY = {"top": set(),
                "timing": set(),
                "bus": {"homing"},
-               "unit": {"position_quantum"}}
+               "unit": set()}
+
+
+def python_resolution(name: str, q: np.ndarray) -> dict:
+    """Per unit, cochlea-run's measurement_resolution at joint positions ``q`` (the loop's
+    order) with the drives' encoder counts: the count in joint space, one count on every joint
+    through the kinematics in task space."""
+    scenario = load_scenario(name)
+    counts = np.abs([d.q_per_count for d in joint_drives(scenario.robot)])
+    out, start = {}, 0
+    for u in unit_setups(scenario):
+        n = u.controller_model.nq
+        q_u, c_u = q[start:start + n], counts[start:start + n]
+        if u.controller.space == "joint":
+            out[u.name] = c_u
+        else:
+            pose = np.array(u.fk_world(q_u)).ravel()
+            out[u.name] = sum(np.abs(np.array(u.fk_world(q_u + step)).ravel() - pose)
+                              for step in np.diag(c_u))
+        start += n
+    return out
 
 
 @pytest.mark.parametrize("robot,space", STUDIES)
@@ -150,8 +171,12 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
         assert set(entry) - PYTHON_ONLY["unit"] == set(summary["units"][unit])
         assert set(entry["tracked"]) == set(summary["units"][unit]["tracked"])
         assert entry["estimates"]["names"] == summary["units"][unit]["estimates"]["names"]
-    # The same rule, without cochlea-run's encoder-count floor (PYTHON_ONLY).
-    assert python["convergence_rule"].startswith(summary["convergence_rule"] + " (with encoder")
+    # The same rule, with the encoder-count floor of the same drives.
+    assert summary["convergence_rule"] == python["convergence_rule"]
+    for unit, entry in python["units"].items():
+        assert summary["units"][unit]["position_quantum"] == entry["position_quantum"]
+        for coord, c in entry["tracked"].items():
+            assert set(summary["units"][unit]["tracked"][coord]) == set(c)
     assert summary["stop"] == {"rule": "completed", "time_s": pytest.approx(duration),
                                "detail": "", "exit_code": 0}
     assert summary["periods"] == python["periods"] == int(duration * 1000)
@@ -177,6 +202,13 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
         gap = np.abs(c_rows[:, c_head.index(h)] - py_rows[:, py_head.index(h)])
         assert gap.max() <= 2 * FLOOR[unit], (h, gap.max())
         assert np.sqrt(np.mean(gap ** 2)) <= FLOOR[unit], (h, np.sqrt(np.mean(gap ** 2)))
+    # One count on every joint at the run's last pose, as cochlea-run's report computes it.
+    resolution = python_resolution(name, c_rows[-1, [c_head.index(h) for h in shared]])
+    for unit, entry in summary["units"].items():
+        for i, c in enumerate(entry["tracked"].values()):
+            assert c["measurement_resolution"] == pytest.approx(resolution[unit][i], rel=1e-6)
+            assert c["convergence_floor"] == max(c["measurement_resolution"],
+                                                 CONVERGENCE_FLOOR[c["unit"]])
     # ... and it converges as cochlea-run's does: tracking within the HIL floor of the run.
     for unit, entry in summary["units"].items():
         for coord, c in entry["tracked"].items():
@@ -193,7 +225,7 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
             assert c["initial_abs_error"] == pytest.approx(abs(error[0]), rel=1e-9)
             assert c["final_rms_error"] == pytest.approx(np.sqrt(np.mean(tail ** 2)), rel=1e-6)
             assert c["converged"] == bool(c["final_rms_error"] <= max(
-                CONVERGENCE_RATIO * c["initial_abs_error"], CONVERGENCE_FLOOR[c["unit"]]))
+                CONVERGENCE_RATIO * c["initial_abs_error"], c["convergence_floor"]))
 
 
 @pytest.mark.parametrize("name", FAULTS)

@@ -62,13 +62,15 @@
 #define ADAPTER_LATENCY_S 1e-3
 #define TIMEOUT_MARGIN_S 3e-3
 #define WATCHDOG_S 0.1
-/* Convergence (cochlea/apps/report.py's rule without its encoder-count floor, which this
- * program does not compute: docs/embedded.md "Not yet in the C program"). */
+/* Convergence: cochlea/apps/report.py's rule, word for word, with its encoder-count floor
+ * (measurement_resolution: one count of the drives on every joint). */
 #define CONVERGENCE_RATIO 0.05
 #define TAIL_FRACTION 0.2
 #define CONVERGENCE_RULE                                                                      \
     "final RMS over the last 20% <= 5% of the initial absolute error, or below 1e-05 rad, "   \
-    "1e-06 m"
+    "1e-06 m (with encoder counts, of the plant or of a hardware run's drives: below the "     \
+    "coordinate's measurement_resolution, one count on every joint; each coordinate's "        \
+    "convergence_floor)"
 
 /* ---- options ------------------------------------------------------------------------------ */
 
@@ -1342,8 +1344,59 @@ static int read_back(const char *out, const cochlea_scenario *sc, int row_length
     return 0;
 }
 
-/* summary.json's "units" entry of unit u; whether every tracked coordinate converged. */
-static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_stats *st)
+/* Per tracked coordinate of unit u, what one encoder count on every joint moves it at the
+ * run's last pose (cochlea/apps/report.py's measurement_resolution): the joint's count in joint
+ * space; in task space sum_j |fk(q + count_j) - fk(q)|, the change of the tracking error (the
+ * first nd errors, desired - fk(q)) that the controller computes from a fresh state at the
+ * last row's time. 1 and res[nd] filled, or 0 when there is no last row (or no memory). */
+static int measurement_resolution(const cochlea_scenario *sc, int u, const log_stats *st,
+                                  double period, double *res)
+{
+    const cochlea_unit_info *t = &sc->units[u];
+    double q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
+    double base[COCHLEA_MAX_ERRORS], moved[COCHLEA_MAX_ERRORS];
+    void *state;
+    int i, j;
+    if (st->rows == 0) {
+        return 0;
+    }
+    if (strcmp(sc->space, "joint") == 0) {
+        for (i = 0; i < t->nd; ++i) {
+            res[i] = fabs(sc->drives[t->q0 + i].q_per_count);
+        }
+        return 1;
+    }
+    state = malloc(sc->state_size);
+    if (!state || sc->init(state, period) != 0) {
+        free(state);
+        return 0;
+    }
+    for (j = 0; j < sc->nq; ++j) {
+        q[j] = st->last[1 + j];
+        qd[j] = st->last[1 + sc->nq + j];
+    }
+    (void)sc->step(state, st->last[0], q, qd, tau, base);
+    for (i = 0; i < t->nd; ++i) {
+        res[i] = 0.0;
+    }
+    for (j = t->q0; j < t->q0 + t->nq; ++j) {
+        const double keep = q[j];
+        q[j] += fabs(sc->drives[j].q_per_count);
+        (void)sc->step(state, st->last[0], q, qd, tau, moved);
+        q[j] = keep;
+        for (i = 0; i < t->nd; ++i) {
+            res[i] += fabs(moved[t->e0 + i] - base[t->e0 + i]);
+        }
+    }
+    sc->terminate(state);
+    free(state);
+    return 1;
+}
+
+/* summary.json's "units" entry of unit u; whether every tracked coordinate converged. res: the
+ * unit's measurement_resolution, or 0 (the numeric floor alone). */
+static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_stats *st,
+                        const double *res)
 {
     const cochlea_unit_info *t = &sc->units[u];
     const int off = unit_offset(sc, u);
@@ -1356,7 +1409,8 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
     key(f, 6, "tracked");
     fputs("{\n", f);
     for (i = 0; i < t->nd; ++i) {
-        const double floor_ = strcmp(t->tracked_units[i], "rad") == 0 ? 1e-5 : 1e-6;
+        const double numeric = strcmp(t->tracked_units[i], "rad") == 0 ? 1e-5 : 1e-6;
+        const double floor_ = res && res[i] > numeric ? res[i] : numeric;
         key(f, 8, t->tracked_names[i]);
         fputs("{\n", f);
         key(f, 10, "unit");
@@ -1364,7 +1418,10 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
         fputs(",\n", f);
         if (rows == 0) {
             fputs("          \"initial_abs_error\": null,\n          \"final_rms_error\": null,\n"
-                  "          \"converged\": false\n", f);
+                  "          \"converged\": false,\n", f);
+            key(f, 10, "convergence_floor");
+            json_number(f, floor_);
+            fputs("\n", f);
             all = 0;
         } else {
             const double initial = fabs(st->first[off + i]);
@@ -1379,11 +1436,33 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
             json_number(f, rms);
             fputs(",\n", f);
             key(f, 10, "converged");
-            fputs(ok ? "true\n" : "false\n", f);
+            fputs(ok ? "true,\n" : "false,\n", f);
+            /* the floor it was judged on: the numeric one, or one count on every joint */
+            key(f, 10, "convergence_floor");
+            json_number(f, floor_);
+            if (res) {
+                fputs(",\n", f);
+                key(f, 10, "measurement_resolution");
+                json_number(f, res[i]);
+            }
+            fputs("\n", f);
         }
         fprintf(f, "        }%s\n", i + 1 < t->nd ? "," : "");
     }
     fputs("      },\n", f);
+    /* the count each joint's position is measured in: the drives' encoders */
+    key(f, 6, "position_quantum");
+    fputs("{\"source\": \"drives\", \"joints\": {", f);
+    for (i = 0; i < t->nq; ++i) {
+        fputs(i ? ", " : "", f);
+        json_string(f, t->joint_names[i]);
+        fputs(": {\"value\": ", f);
+        json_number(f, fabs(sc->drives[t->q0 + i].q_per_count));
+        fputs(", \"unit\": ", f);
+        json_string(f, t->joint_units[i]);
+        fputs("}", f);
+    }
+    fputs("}},\n", f);
     key(f, 6, "torque");
     fputs("{\n", f);
     for (i = 0; i < t->nq; ++i) {
@@ -1649,7 +1728,9 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     key(f, 2, "units");
     fputs("{\n", f);
     for (u = 0; u < sc->n_units; ++u) {
-        converged = unit_summary(f, sc, u, st) && converged;
+        double res[COCHLEA_MAX_ERRORS];
+        const int known = measurement_resolution(sc, u, st, loop->period_s, res);
+        converged = unit_summary(f, sc, u, st, known ? res : 0) && converged;
     }
     fputs("  }\n}\n", f);
     converged = converged && loop->stop.rule == COCHLEA_COMPLETED;
