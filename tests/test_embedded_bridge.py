@@ -60,7 +60,7 @@ class Report(ctypes.Structure):
 
 
 START_ERRORS = ["ok", "no-answer", "crc", "port", "alert", "refused", "wrong-model", "no-read",
-                "outside-limits", "bad-config"]
+                "outside-limits", "bad-config", "not-homed"]
 
 
 def build_probe(tmp: Path, robot: str, description: Path | None = None) -> Path:

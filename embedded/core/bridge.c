@@ -64,6 +64,9 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     b->retries = 3;
     b->realtime_tick = 0;
     b->read_length = COCHLEA_STATE_LENGTH;
+    b->homing_drive = -1;
+    b->homing_marker = 0;
+    b->homing_offset = 0.0;
     b->active = 0;
     b->suspect = 0;
     b->reads = b->good_reads = b->writes = 0;
@@ -84,6 +87,13 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     }
     dxl_parser_init(&b->parser, 1);
     return read_frame(b, COCHLEA_STATE_ADDRESS, COCHLEA_STATE_LENGTH);
+}
+
+void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset)
+{
+    b->homing_drive = drive >= 0 && drive < b->n ? drive : -1;
+    b->homing_marker = marker;
+    b->homing_offset = offset;
 }
 
 int cochlea_bridge_use_realtime_tick(cochlea_bridge *b)
@@ -546,6 +556,20 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
             return fail_start(r, COCHLEA_START_WRONG_MODEL, COCHLEA_STEP_PING, i, number);
         }
     }
+    if (b->homing_drive >= 0) { /* before any write: the slider still holds its homing */
+        const int h = b->homing_drive;
+        const int32_t len = dxl_read(b->scratch, sizeof b->scratch, b->drives[h].id,
+                                     COCHLEA_HOMING_MARKER_ADDRESS, 2);
+        int marker;
+        if (!command(b, COCHLEA_STEP_HOMING, h, b->scratch, len, r)) {
+            return 0;
+        }
+        marker = b->parser.params_len == 2 ? dxl_get_u16(b->parser.params) : -1;
+        if (marker != b->homing_marker) {
+            return fail_start(r, COCHLEA_START_NOT_HOMED, COCHLEA_STEP_HOMING, h, marker);
+        }
+        b->position_offset[h] = b->homing_offset;
+    }
     for (i = 0; i < b->n; ++i) {
         limits[i] = b->drives[i].current_limit_lsb;
     }
@@ -557,6 +581,18 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
         !write_all(b, COCHLEA_STEP_GOAL_ZERO, ADDR_GOAL_CURRENT, 2, 0, 0, r) ||
         !write_all(b, COCHLEA_STEP_WATCHDOG, ADDR_BUS_WATCHDOG, 1, 0, b->watchdog_lsb, r)) {
         return 0;
+    }
+    if (b->homing_drive >= 0) {
+        /* The token back after the configuration: should a firmware reset its gains on the
+         * Operating Mode write, the next start-up in this power cycle still finds it. */
+        uint8_t data[2];
+        int32_t len;
+        dxl_put_u16(data, b->homing_marker);
+        len = dxl_write(b->scratch, sizeof b->scratch, b->drives[b->homing_drive].id,
+                        COCHLEA_HOMING_MARKER_ADDRESS, data, 2);
+        if (!command(b, COCHLEA_STEP_HOMING, b->homing_drive, b->scratch, len, r)) {
+            return 0;
+        }
     }
     for (tries = 0; tries < 3 * b->retries && !read_ok; ++tries) { /* 8. the first good read */
         read_ok = sync_read(b, q, qd);

@@ -3,7 +3,8 @@
  * Start-up (cochlea_bridge_start), each step on every motor before the next, every write
  * confirmed by its status packet; a failure shuts down safely and reports which step and which
  * motor, before anything moved:
- *   1. PING every motor and check its model number (and the alert bit);
+ *   1. PING every motor and check its model number (and the alert bit); with a homing check
+ *      (cochlea_bridge_expect_homing), READ the slider's homing marker;
  *   2. Torque Enable 0, Bus Watchdog 0 (clears a watchdog error latched by an earlier run);
  *   3. Operating Mode 0 (current control);  4. Return Delay Time 0;
  *   5. Current Limit from the drive table;  6. Goal Current 0;
@@ -65,7 +66,9 @@ enum cochlea_start_error {
     COCHLEA_START_WRONG_MODEL,    /* detail: the model number it answered */
     COCHLEA_START_NO_READ,        /* no good SYNC_READ in 3 x retries tries */
     COCHLEA_START_OUTSIDE_LIMITS, /* a joint reads outside its limits (value: q, SI) */
-    COCHLEA_START_BAD_CONFIG      /* too many drives, a frame that does not fit */
+    COCHLEA_START_BAD_CONFIG,     /* too many drives, a frame that does not fit */
+    COCHLEA_START_NOT_HOMED       /* the slider's homing marker is not the record's (detail:
+                                   * the value it holds): power-cycled or rebooted since */
 };
 
 /* Start-up steps, for messages. */
@@ -73,8 +76,12 @@ enum cochlea_start_step {
     COCHLEA_STEP_PING = 1, COCHLEA_STEP_TORQUE_OFF, COCHLEA_STEP_WATCHDOG_CLEAR,
     COCHLEA_STEP_MODE, COCHLEA_STEP_RETURN_DELAY, COCHLEA_STEP_CURRENT_LIMIT,
     COCHLEA_STEP_GOAL_ZERO, COCHLEA_STEP_WATCHDOG, COCHLEA_STEP_FIRST_READ,
-    COCHLEA_STEP_LIMITS, COCHLEA_STEP_TORQUE_ON
+    COCHLEA_STEP_LIMITS, COCHLEA_STEP_TORQUE_ON, COCHLEA_STEP_HOMING
 };
+
+/* Feedforward 2nd Gain: RAM, unused in current control, 0 after power-on and REBOOT: the token
+ * cochlea-dxl home leaves there says the homing still holds (cochlea/dynamixel/homing.py). */
+#define COCHLEA_HOMING_MARKER_ADDRESS 88
 
 typedef struct {
     int error;        /* enum cochlea_start_error */
@@ -95,6 +102,9 @@ typedef struct {
     int retries;
     int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
     int read_length;            /* bytes per motor of the period's SYNC_READ */
+    int homing_drive;           /* the homed slider's drive index, -1: no homing check */
+    uint16_t homing_marker;     /* the token it must hold (the homing record's) */
+    double homing_offset;       /* its position offset from the record (m) */
     /* State. */
     int active;                 /* between a successful start and the stop */
     int suspect;                /* a failed read: wait for a quiet line before the next */
@@ -129,6 +139,12 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
 /* Read the Realtime Tick with the state and refuse stale packets (before the start). 0, or -1
  * when the frame does not fit. */
 int cochlea_bridge_use_realtime_tick(cochlea_bridge *b);
+/* The homing check of a joint whose encoder loses its turns at power-on (the parallel robot's
+ * slider), cochlea-run's: after the PINGs and before any write, drive must hold marker at
+ * COCHLEA_HOMING_MARKER_ADDRESS, else the start fails (COCHLEA_START_NOT_HOMED); its position
+ * is then q_per_count counts + offset (the homing record's stop), and the marker is written
+ * back after the configuration. Call before cochlea_bridge_start. */
+void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset);
 /* Steps 1-9; 1 on success (torque on), else 0 with *report filled, after the safe stop. */
 int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report);
 /* One SYNC_READ into q[n], qd[n] (SI); 1, or 0 on a failure (counted). */

@@ -34,6 +34,9 @@
 #include <fcntl.h>
 #include <time.h>
 #include <unistd.h>
+#include <ctype.h>
+#include <limits.h>
+#include <pwd.h>
 
 #include "bridge.h"
 #include "cochlea_rt.h"
@@ -87,6 +90,8 @@ typedef struct {
     const char *sched;    /* "fifo", "rr" or "other" */
     int priority_given;   /* --priority given */
     int priority;         /* fifo and rr: 1..99 (default FIFO_PRIORITY); other: none */
+    const char *homing;   /* "auto" or "required" (cochlea-run's --homing) */
+    const char *homing_record; /* the record cochlea-dxl home wrote; 0: the default */
 } options;
 
 static int fail_usage(const char *fmt, ...)
@@ -106,7 +111,8 @@ static void usage(FILE *to)
             "usage: cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S]\n"
             "                        [--rate HZ] --out DIR [--watchdog-misses N]\n"
             "                        [--watchdog-errors N] [--mlockall on|off] [--cpu N]\n"
-            "                        [--sched fifo|rr|other] [--priority N] | --list\n"
+            "                        [--sched fifo|rr|other] [--priority N]\n"
+            "                        [--homing auto|required] [--homing-record FILE] | --list\n"
             "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
@@ -127,6 +133,11 @@ static void usage(FILE *to)
             "                       40: above normal processes, below the kernel's threads)\n"
             "  A real-time setting the system refuses is one warning and the run goes on with\n"
             "  what it got; summary.json's realtime entry records both.\n"
+            "  --homing auto|required  parallel robot: check the slider's homing record\n"
+            "                       (cochlea-dxl home) on a real port and not on the\n"
+            "                       emulator's pseudo-terminal (auto, default), or always\n"
+            "  --homing-record FILE the record cochlea-dxl home wrote (default\n"
+            "                       ~/.cochlea/homing/ROBOT.json)\n"
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
@@ -247,6 +258,8 @@ static int parse(int argc, char **argv, options *o)
     o->sched = "fifo";
     o->priority_given = 0;
     o->priority = FIFO_PRIORITY;
+    o->homing = "auto";
+    o->homing_record = 0;
     for (i = 1; i < argc; ++i) {
         const char *a = argv[i];
         const char *value = i + 1 < argc ? argv[i + 1] : 0;
@@ -316,6 +329,13 @@ static int parse(int argc, char **argv, options *o)
                                   MAX_WATCHDOG_MISSES, value);
             }
             o->watchdog_errors = (int)v;
+        } else if (strcmp(a, "--homing") == 0) {
+            if (strcmp(value, "auto") != 0 && strcmp(value, "required") != 0) {
+                return fail_usage("--homing: expected auto or required, got %s", value);
+            }
+            o->homing = value;
+        } else if (strcmp(a, "--homing-record") == 0) {
+            o->homing_record = value;
         } else if (strcmp(a, "--mlockall") == 0) {
             if (strcmp(value, "on") != 0 && strcmp(value, "off") != 0) {
                 return fail_usage("--mlockall: expected on or off, got %s", value);
@@ -638,6 +658,171 @@ static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const dou
     }
 }
 
+/* ---- the slider's homing record (cochlea/dynamixel/homing.py) -------------------------------- */
+
+#define HOMING_FORMAT "cochlea-homing/1"
+
+/* What the homing check found before the start: summary.json's timing.bus.homing. */
+static struct {
+    char report[4608];       /* "no slider", "not checked (...)", "homed DATE (PATH)" */
+    char date[64];
+    const char *robot;
+    int drive;               /* the slider's drive index, -1: no check */
+    uint16_t marker;
+    double offset;
+} homing = {"no slider", "", "", -1, 0, 0.0};
+
+/* The raw text of "key"'s value in the record (a flat JSON object, as cochlea-dxl home writes
+ * it): a string with its quotes, or a number, true, false, null. 0 when the key is absent. */
+static const char *record_value(const char *text, const char *key, char *out, size_t n)
+{
+    char quoted[64];
+    const char *p = text;
+    snprintf(quoted, sizeof quoted, "\"%s\"", key);
+    while ((p = strstr(p, quoted)) != 0) {
+        const char *v = p + strlen(quoted);
+        size_t k = 0;
+        while (isspace((unsigned char)*v)) {
+            ++v;
+        }
+        if (*v != ':') {
+            p += 1;
+            continue;
+        }
+        ++v;
+        while (isspace((unsigned char)*v)) {
+            ++v;
+        }
+        if (*v == '"') {
+            out[k++] = *v++;
+            while (*v && *v != '"' && k + 2 < n) {
+                if (*v == '\\' && v[1]) {
+                    out[k++] = *v++;
+                }
+                out[k++] = *v++;
+            }
+            if (*v != '"') {
+                return 0;
+            }
+            out[k++] = '"';
+        } else {
+            while (*v && *v != ',' && *v != '}' && !isspace((unsigned char)*v) && k + 1 < n) {
+                out[k++] = *v++;
+            }
+        }
+        out[k] = '\0';
+        return k ? out : 0;
+    }
+    return 0;
+}
+
+/* A whole number (JSON's int, not a float or a bool). */
+static int record_int(const char *text, const char *key, long *value)
+{
+    char token[64], *end;
+    size_t i;
+    if (!record_value(text, key, token, sizeof token)) {
+        return 0;
+    }
+    for (i = token[0] == '-' ? 1 : 0; token[i]; ++i) {
+        if (!isdigit((unsigned char)token[i])) {
+            return 0;
+        }
+    }
+    errno = 0;
+    *value = strtol(token, &end, 10);
+    return errno == 0 && *end == '\0' && end != token;
+}
+
+static int record_number(const char *text, const char *key, double *value)
+{
+    char token[64];
+    return record_value(text, key, token, sizeof token) && parse_number(token, value);
+}
+
+/* The homing check as cochlea-run's bridge makes it, before the port opens: which slider, and
+ * the offset and token of its record; 0, or a message (exit 5: nothing moved) in msg. */
+static int check_homing(const options *o, const cochlea_scenario *sc, char *msg, size_t n)
+{
+    char path[4096], resolved[PATH_MAX];
+    static char text[65536];
+    const cochlea_drive *d = 0;
+    FILE *f;
+    size_t got;
+    long motor_id, raw_counts, marker, direction;
+    double stop_m, ratio;
+    char value[128];
+    int i, slider = -1;
+    homing.robot = sc->robot;
+    for (i = 0; i < sc->nq; ++i) {
+        if (!sc->drives[i].revolute) {
+            slider = i;
+            break;
+        }
+    }
+    if (slider < 0) {
+        return 0; /* "no slider" */
+    }
+    if (strcmp(o->homing, "auto") == 0 && realpath(o->port, resolved)
+        && strncmp(resolved, "/dev/pts/", 9) == 0) {
+        snprintf(homing.report, sizeof homing.report,
+                 "not checked (a pseudo-terminal: the virtual chain)");
+        return 0;
+    }
+    if (o->homing_record) {
+        snprintf(path, sizeof path, "%s", o->homing_record);
+    } else {
+        const char *home = getenv("HOME");
+        const struct passwd *pw = home ? 0 : getpwuid(getuid());
+        snprintf(path, sizeof path, "%s/.cochlea/homing/%s.json",
+                 home ? home : pw ? pw->pw_dir : ".", sc->robot);
+    }
+    f = fopen(path, "r");
+    if (!f) {
+        if (errno == ENOENT) {
+            snprintf(msg, n, "the slider is not homed: no homing record %s; run cochlea-dxl "
+                     "home --robot %s --port PORT first", path, sc->robot);
+        } else {
+            snprintf(msg, n, "homing record %s: cannot read it (%s); run cochlea-dxl home "
+                     "again", path, strerror(errno));
+        }
+        return -1;
+    }
+    got = fread(text, 1, sizeof text - 1, f);
+    fclose(f);
+    text[got] = '\0';
+    d = &sc->drives[slider];
+    if (!(record_value(text, "format", value, sizeof value)
+          && strcmp(value, "\"" HOMING_FORMAT "\"") == 0
+          && record_int(text, "motor_id", &motor_id) && record_int(text, "raw_counts", &raw_counts)
+          && record_int(text, "marker", &marker) && record_number(text, "stop_m", &stop_m)
+          && record_number(text, "ratio_m_per_rad", &ratio)
+          && record_int(text, "direction", &direction) && (direction == 1 || direction == -1)
+          && marker >= 0 && marker <= 65535)) {
+        snprintf(msg, n, "homing record %s: not a " HOMING_FORMAT " record; run cochlea-dxl "
+                 "home again", path);
+        return -1;
+    }
+    if (record_value(text, "date", value, sizeof value) && value[0] == '"') {
+        snprintf(homing.date, sizeof homing.date, "%.*s", (int)strlen(value) - 2, value + 1);
+    }
+    { /* the description's direction and pinion ratio, from the drive table's count */
+        const double per_rad = d->q_per_count * 4096.0 / (2.0 * 3.14159265358979323846);
+        const long dir = per_rad < 0 ? -1 : 1;
+        if (motor_id != d->id || direction != dir || fabs(ratio - fabs(per_rad)) > 1e-12) {
+            snprintf(msg, n, "homing record %s was made for motor ID %ld, direction %+ld, ratio "
+                     "%g m/rad; the description has ID %d, %+ld, %g: run cochlea-dxl home again",
+                     path, motor_id, direction, ratio, d->id, dir, fabs(per_rad));
+            return -1;
+        }
+    }
+    homing.drive = slider;
+    homing.marker = (uint16_t)marker;
+    homing.offset = stop_m - d->q_per_count * (double)raw_counts;
+    snprintf(homing.report, sizeof homing.report, "homed %s (%s)", homing.date, path);
+    return 0;
+}
+
 static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
                           const cochlea_start_report *r, const options *o)
 {
@@ -646,8 +831,8 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
         "Operating Mode 0 (WRITE 11 = 0)", "Return Delay Time 0 (WRITE 9 = 0)",
         "the Current Limit (WRITE 38)", "Goal Current 0 (WRITE 102 = 0)",
         "the Bus Watchdog (WRITE 98)", "the first SYNC_READ", "the joint limits",
-        "Torque Enable 1 (WRITE 64 = 1)"};
-    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_TORQUE_ON ? steps[r->step] : "?";
+        "Torque Enable 1 (WRITE 64 = 1)", "the homing marker (READ/WRITE 88)"};
+    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_HOMING ? steps[r->step] : "?";
     char name[160] = "the bus";
     char value[64];
     if (r->drive >= 0 && r->drive < b->n) {
@@ -683,6 +868,12 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
              b->drives[r->drive].revolute ? "rad" : "m");
         snprintf(buf, n, "%s reads %s, outside its limits: check zero_offset_deg and direction "
                  "in the description", name, value);
+        break;
+    case COCHLEA_START_NOT_HOMED:
+        snprintf(buf, n, "the slider (ID %d) was power-cycled or rebooted since it was homed "
+                 "(%s): its encoder lost its turns; run cochlea-dxl home --robot %s --port "
+                 "PORT again", b->drives[r->drive].id, homing.date[0] ? homing.date
+                 : "date unknown", homing.robot);
         break;
     default:
         snprintf(buf, n, "the drive table does not fit the bridge (%d drives)", b->n);
@@ -1647,6 +1838,9 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     key(f, 6, "last_failure");
     json_string(f, facts->last_failure);
     fputs(",\n      \"low_latency\": null,\n", f);
+    key(f, 6, "homing");
+    json_string(f, homing.report);
+    fputs(",\n", f);
     key(f, 6, "shutdown");
     json_string(f, facts->shutdown);
     fputs("\n    }\n  }", f);
@@ -2064,6 +2258,16 @@ int main(int argc, char **argv)
                           RING_SECONDS);
     }
     memset(log.ring, 0, sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
+    /* The slider's homing record, checked before anything is created or opened (the bridge
+     * checks its token after the PINGs, before any write). */
+    {
+        static char why[9000]; /* two paths of up to 4 KiB */
+        if (check_homing(&o, sc, why, sizeof why) != 0) {
+            fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: "
+                    "%s\n", why);
+            return COCHLEA_EXIT_BACKEND;
+        }
+    }
     if (make_folders(o.out) != 0) {
         const int error = errno;
         undo_start(o.out);
@@ -2101,6 +2305,9 @@ int main(int argc, char **argv)
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
+    if (homing.drive >= 0) {
+        cochlea_bridge_expect_homing(&bridge, homing.drive, homing.marker, homing.offset);
+    }
     if (cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* always, as cochlea-run */
         cochlea_posix_close(&port);
         undo_start(o.out);
