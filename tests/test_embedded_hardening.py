@@ -3,14 +3,20 @@ driven through ctypes on a synthetic clock, the same schedules of work and stall
 and ``RealTimeLoop`` alike -- one stall followed by catch-up periods is one overrun and the run
 completes, N + 1 overruns in a row stop it, one period stuck for longer than N periods stops it at
 once, and a loop that never overruns N times in a row but keeps falling behind stops on its
-lateness before that period commands anything.
+lateness before that period commands anything. The program itself (a test build that slows
+its reads) rides through one stall on cochlea-emulator and stops on N + 1 overruns in a row.
 
-The clock only advances by what a test injects (a period's work, the wait to a deadline, 1 us a
-reading), so each case is exact whatever the machine's own timing."""
+In the ctypes cases the loop's clock only advances by what a test injects (a period's work,
+the wait to a deadline, 1 us a reading), so each case is exact whatever the machine's own
+timing."""
 
 from __future__ import annotations
 
 import ctypes
+import json
+import os
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -187,3 +193,67 @@ def test_overruns_that_never_come_n_in_a_row_stop_on_the_lateness(lib):
     assert c["rows"] == loop.rows and c["time"] == pytest.approx(stop.time)
     assert c["value"] > 0.1 and c["limit"] == pytest.approx(0.1)
     assert len(commands) == c["rows"]  # nothing commanded in the period that started too late
+
+
+# ---- the rule in the program, on the emulator -------------------------------------------------
+
+HOOKED = ROOT / "build" / "test-hooks" / "cochlea-embedded"
+
+
+@pytest.fixture(scope="module")
+def hooked() -> Path:
+    """The test build of the program (test_embedded_long_runs.py's): the product's sources and
+    flags through the Makefile, with the hooks (here: slow reads)."""
+    cc = os.environ.get("CC", "cc")
+    done = subprocess.run(["make", "--no-print-directory", "BUILD=build/test-hooks",
+                           f"CC={cc} -DCOCHLEA_TEST_HOOKS", str(HOOKED.relative_to(ROOT))],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "warning" not in done.stderr
+    return HOOKED
+
+
+def slow_run(hooked: Path, tmp_path: Path, slow: str, *args: str):
+    """serial_joint for 2 s on a fresh emulator, the reads made slower by ``slow``
+    (COCHLEA_TEST_SLOW_READS); once more if the emulator lagged (test_embedded_program's
+    rule). The result and the summary."""
+    from tests.test_embedded_program import emulator, lagged
+
+    for attempt in range(2):
+        out = tmp_path / f"run{attempt}"
+        with emulator("serial", "serial_joint", tmp_path / f"emulator{attempt}.log") as port:
+            done = subprocess.run(
+                [str(hooked), "--scenario", "serial_joint", "--port", port, "--duration", "2",
+                 "--out", str(out), "--watchdog-misses", "20", "--watchdog-errors", "100",
+                 *args], capture_output=True, text=True, timeout=120,
+                env={**os.environ, "COCHLEA_TEST_SLOW_READS": slow})
+        if not lagged(out):
+            break
+    return done, json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.hil
+def test_the_program_rides_through_one_stall(tmp_path, hooked):
+    """Period 1000 takes 15 ms more (under the 20 periods of --watchdog-misses 20): the 14 or
+    more periods after it start late and catch up; the run completes."""
+    done, summary = slow_run(hooked, tmp_path, "1000:1:15")
+    assert done.returncode == 0, done.stderr
+    timing = summary["timing"]
+    assert summary["stop"]["rule"] == "completed"
+    assert timing["deadline_misses"] >= 14 and timing["lateness_max"] >= 0.014
+    assert 1 <= timing["overruns"] < timing["deadline_misses"]
+
+
+@pytest.mark.hil
+def test_the_program_stops_on_n_plus_one_overruns_in_a_row(tmp_path, hooked):
+    """From period 500 every read takes 1.5 ms more than the 1 ms period: the 21st overrun in
+    a row stops the run safely, by period 520 (earlier only if overruns came just before)."""
+    done, summary = slow_run(hooked, tmp_path, "500:-1:1.5")
+    assert done.returncode == 15, done.stderr
+    stop = summary["stop"]
+    assert stop["rule"] == "watchdog" and stop["detail"].startswith(
+        "21 consecutive deadline misses: each period's own work overran its 1 ms (the last "
+        "took "), stop
+    assert 0.45 < stop["time_s"] <= 0.5205
+    assert summary["timing"]["overruns"] >= 21
+    assert "torque off confirmed by all 6" in summary["timing"]["bus"]["shutdown"]

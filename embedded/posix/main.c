@@ -1,11 +1,14 @@
 /* cochlea-embedded: a scenario's controller on the Dynamixel motors, with no Python.
  *
  *   build/cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S] --out DIR
- *                          [--watchdog-misses N] [--watchdog-errors N] [--list]
+ *                          [--watchdog-misses N] [--watchdog-errors N] [--mlockall on|off]
+ *                          [--cpu N] [--sched fifo|rr|other] [--priority N]
+ *                          [--homing auto|required] [--homing-record FILE] [--list]
  *
  * The POSIX program around the portable core (embedded/core/): it opens the port (termios, any
  * Dynamixel baud rate up to 4.5 Mbaud), starts the motors as cochlea-run's bridge does, runs
- * the loop at absolute deadlines (clock_nanosleep) under SCHED_FIFO with its memory locked
+ * the loop at absolute deadlines (clock_nanosleep) with cochlea-run's overrun rule, under
+ * SCHED_FIFO 40 with its memory locked (or the --sched/--priority/--cpu/--mlockall asked for)
  * when the system permits, and streams every period's row to DIR/log.bin from a writer thread,
  * outside the period. After the run, whatever ended it: log.csv, log.columns.json and
  * summary.json, the same files and schema as cochlea-run's (figures aside), and the same exit
@@ -695,7 +698,7 @@ static const char *record_value(const char *text, const char *key, char *out, si
         }
         if (*v == '"') {
             out[k++] = *v++;
-            while (*v && *v != '"' && k + 2 < n) {
+            while (*v && *v != '"' && k + 4 < n) {
                 if (*v == '\\' && v[1]) {
                     out[k++] = *v++;
                 }
@@ -1959,6 +1962,7 @@ typedef struct {
     const char *policy;            /* obtained: "fifo", "rr", "other" or "unknown" */
     int priority;                  /* obtained */
     char cpus[512];                /* obtained: "0, 1" */
+    int cpus_known;                /* the OS said which (else null, as cochlea-run) */
     char scheduling[96];           /* timing.scheduling */
     const char *memory;            /* timing.memory */
 } realtime_facts;
@@ -2041,7 +2045,7 @@ static void apply_realtime(const options *o)
                     : policy == SCHED_OTHER ? "other" : "unknown";
         rt.priority = p.sched_priority;
     }
-    cpu_list(rt.cpus, sizeof rt.cpus);
+    rt.cpus_known = strcmp(cpu_list(rt.cpus, sizeof rt.cpus), "unknown") != 0;
     if (strcmp(rt.policy, "fifo") == 0 || strcmp(rt.policy, "rr") == 0) {
         snprintf(rt.scheduling, sizeof rt.scheduling, "%s %d", policy_of(rt.policy),
                  rt.priority);
@@ -2093,9 +2097,9 @@ static void realtime_summary(FILE *f, const options *o)
         fputs(", \"cpu\": null", f);
     }
     fprintf(f, ", \"policy\": \"%s\", \"priority\": %d},\n", o->sched, priority_level(o));
-    fprintf(f, "    \"obtained\": {\"mlockall\": %s, \"cpu\": [%s], \"policy\": \"%s\", "
-            "\"priority\": %d},\n", rt.locked ? "true" : "false", rt.cpus, rt.policy,
-            rt.priority);
+    fprintf(f, "    \"obtained\": {\"mlockall\": %s, \"cpu\": %s%s%s, \"policy\": \"%s\", "
+            "\"priority\": %d},\n", rt.locked ? "true" : "false", rt.cpus_known ? "[" : "",
+            rt.cpus_known ? rt.cpus : "null", rt.cpus_known ? "]" : "", rt.policy, rt.priority);
     fputs("    \"problems\": [", f);
     for (i = 0; i < rt.n_problems; ++i) {
         fputs(i ? ", " : "", f);
@@ -2150,6 +2154,32 @@ static long rows_kept(const char *out, const run_log *log, long logged)
     }
     return rows;
 }
+
+#ifdef COCHLEA_TEST_HOOKS
+/* Test builds only: COCHLEA_TEST_SLOW_READS="FIRST:COUNT:MS" makes the reads of periods
+ * FIRST..FIRST+COUNT-1 (COUNT -1: every one from FIRST on) take MS milliseconds more, so the
+ * overrun rule can be driven through the real program (a stall, or a loop slower than its
+ * rate). */
+static struct {
+    cochlea_backend inner;
+    long first, count, k;
+    double ms;
+} slow;
+
+static int slow_read(void *ctx, double *q, double *qd)
+{
+    const int ok = slow.inner.read(ctx, q, qd);
+    const long k = slow.k++;
+    if (k >= slow.first && (slow.count < 0 || k < slow.first + slow.count)) {
+        struct timespec t;
+        t.tv_sec = (time_t)(slow.ms / 1000.0);
+        t.tv_nsec = (long)((slow.ms - 1000.0 * (double)t.tv_sec) * 1e6);
+        while (nanosleep(&t, &t) != 0 && errno == EINTR) {
+        }
+    }
+    return ok;
+}
+#endif
 
 /* ---- main ----------------------------------------------------------------------------------- */
 
@@ -2314,6 +2344,15 @@ int main(int argc, char **argv)
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     backend = cochlea_bridge_backend(&bridge);
+#ifdef COCHLEA_TEST_HOOKS
+    if (getenv("COCHLEA_TEST_SLOW_READS")
+        && sscanf(getenv("COCHLEA_TEST_SLOW_READS"), "%ld:%ld:%lf", &slow.first, &slow.count,
+                  &slow.ms) == 3) {
+        slow.inner = backend;
+        slow.k = 0;
+        backend.read = slow_read;
+    }
+#endif
     /* The controller before the motors: a configuration it refuses moves nothing. */
     loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, period, duration,
                                    o.watchdog_misses, o.watchdog_errors, 1);
