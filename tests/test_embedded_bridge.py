@@ -44,6 +44,12 @@ int probe_stop(void) {{ return cochlea_bridge_stop(&bridge); }}
 int probe_goal(int i) {{ return bridge.goal[i]; }}
 unsigned probe_failures(int kind) {{ return bridge.failures[kind]; }}
 int probe_last_failure(void) {{ return bridge.last_failure; }}
+int probe_last_failure_id(void) {{ return bridge.last_failure_id; }}
+int probe_use_tick(void) {{ return cochlea_bridge_use_realtime_tick(&bridge); }}
+const unsigned char *probe_read_frame(size_t *n) {{
+    *n = bridge.read_len;
+    return bridge.read_frame;
+}}
 void probe_close(void) {{ cochlea_posix_close(&port); }}
 """
 
@@ -54,7 +60,7 @@ class Report(ctypes.Structure):
 
 
 START_ERRORS = ["ok", "no-answer", "crc", "port", "alert", "refused", "wrong-model", "no-read",
-                "outside-limits", "bad-config"]
+                "outside-limits", "bad-config", "not-homed"]
 
 
 def build_probe(tmp: Path, robot: str, description: Path | None = None) -> Path:
@@ -244,3 +250,40 @@ def test_dropped_replies_are_failures_not_stops(libs, tmp_path):
         p.c.probe_close()
     finally:
         chain.close()
+
+
+def test_a_repeated_status_packet_is_refused_by_its_realtime_tick(libs, tmp_path):
+    """As the Python bridge's test (test_runtime_hardening.py): motor 3 repeats its last status
+    packet five times from 0.1 s on; read at 250 Hz, each repeat is more than a tick after the
+    original, and the C bridge refuses it as a stale packet, then reads fresh packets again."""
+    from cochlea.dynamixel import protocol as proto
+
+    stale_kind = 9  # COCHLEA_FAIL_STALE: the Python bridge's name, "stale-packet"
+    with VirtualChain("serial", faults=Faults(stale=(3, 5), delay_s=0.1)) as chain:
+        p = probe_on(libs, tmp_path, "serial", chain)
+        assert p.c.probe_use_tick() == 0
+        # The tick in the same packet as the state: one SYNC_READ of 120..135, as Python's.
+        size = ctypes.c_size_t()
+        p.c.probe_read_frame.restype = ctypes.POINTER(ctypes.c_ubyte)
+        frame = p.c.probe_read_frame(ctypes.byref(size))
+        ids = [d.id for d in joint_drives("serial")]
+        assert bytes(frame[:size.value]) == proto.sync_read(120, 16, ids)
+        assert p.c.probe_start() == 1, p.start_error
+        results = []
+        try:
+            end = time.perf_counter() + 0.6
+            while time.perf_counter() < end:
+                ok = p.read()[0]
+                results.append((ok, p.c.probe_last_failure(), p.c.probe_last_failure_id()))
+                p.write(np.zeros(6))
+                time.sleep(0.004)
+        finally:
+            p.c.probe_stop()
+            p.c.probe_close()
+        repeated = chain.counts["stale"]
+    assert repeated == 5  # the emulator repeated its packet five times, then answered afresh
+    stale = [i for i, (ok, kind, _) in enumerate(results) if not ok and kind == stale_kind]
+    assert 1 <= len(stale) <= repeated and all(results[i][2] == 3 for i in stale)
+    assert p.c.probe_failures(stale_kind) == len(stale)
+    assert results[0][0] == 1
+    assert any(ok for ok, _, _ in results[stale[-1] + 1:])  # fresh packets are good again

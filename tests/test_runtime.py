@@ -249,7 +249,7 @@ def test_live_status_line_refreshes(tmp_path):
     # text mode reads the carriage returns as newlines
     lines = [part for part in stderr.splitlines() if part.startswith("t = ")]
     assert len(lines) >= 3  # refreshed a few times a second
-    assert "|e| = " in lines[-1] and "period p99 = " in lines[-1] and "misses = " in lines[-1]
+    assert "|e| = " in lines[-1] and "period p99 = " in lines[-1] and "overruns = " in lines[-1]
     assert lines[-1].startswith("t =   1.20 s")
 
 

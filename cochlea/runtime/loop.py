@@ -546,7 +546,7 @@ class RealTimeLoop:
             recent = recent[-2000:]
         p99 = float(np.percentile(recent, 99)) if k > 2 else float("nan")
         return (f"t = {t:6.2f} s  |e| = {np.abs(err).max():.2e}  period p99 = "
-                f"{p99 * 1e3:.3f} ms  misses = {self.misses}")
+                f"{p99 * 1e3:.3f} ms  overruns = {self.misses}")
 
     def run(self, log_path: Path | None = None, status: bool = False) -> Stop:
         self.log_path = log_path

@@ -14,7 +14,7 @@
 
 static const char *const FAILURE_NAMES[COCHLEA_FAIL_KINDS] = {
     "timeout", "crc", "error-byte", "hardware-alert", "length", "port", "late-traffic",
-    "non-finite-command", "not-enabled"};
+    "non-finite-command", "not-enabled", "stale-packet"};
 
 const char *cochlea_failure_name(int kind)
 {
@@ -22,6 +22,25 @@ const char *cochlea_failure_name(int kind)
 }
 
 enum { RESULT_OK, RESULT_TIMEOUT, RESULT_CRC, RESULT_PORT };
+
+/* The period's SYNC_READ of length bytes from address on every motor. */
+static int read_frame(cochlea_bridge *b, uint16_t address, int length)
+{
+    uint8_t ids[COCHLEA_MAX_DRIVES];
+    int32_t len;
+    int i;
+    for (i = 0; i < b->n; ++i) {
+        ids[i] = b->drives[i].id;
+    }
+    len = dxl_sync_read(b->read_frame, sizeof b->read_frame, address, (uint16_t)length, ids,
+                        (size_t)b->n);
+    if (len < 0) {
+        return -1;
+    }
+    b->read_len = (size_t)len;
+    b->read_length = length;
+    return 0;
+}
 
 int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
                         int n, int64_t timeout_ns, double watchdog_s)
@@ -43,6 +62,11 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     }
     b->position_margin = 2.0 * 3.14159265358979323846 / 180.0;
     b->retries = 3;
+    b->realtime_tick = 0;
+    b->read_length = COCHLEA_STATE_LENGTH;
+    b->homing_drive = -1;
+    b->homing_marker = 0;
+    b->homing_offset = 0.0;
     b->active = 0;
     b->suspect = 0;
     b->reads = b->good_reads = b->writes = 0;
@@ -58,22 +82,24 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
         b->position_offset[i] = drives[i].q_offset;
         b->present_current[i] = 0;
         b->goal[i] = 0;
+        b->last_tick[i] = -1;
+        b->tick_seen_ns[i] = 0;
     }
     dxl_parser_init(&b->parser, 1);
-    {
-        uint8_t ids[COCHLEA_MAX_DRIVES];
-        int32_t len;
-        for (i = 0; i < n; ++i) {
-            ids[i] = drives[i].id;
-        }
-        len = dxl_sync_read(b->read_frame, sizeof b->read_frame, COCHLEA_STATE_ADDRESS,
-                            COCHLEA_STATE_LENGTH, ids, (size_t)n);
-        if (len < 0) {
-            return -1;
-        }
-        b->read_len = (size_t)len;
-    }
-    return 0;
+    return read_frame(b, COCHLEA_STATE_ADDRESS, COCHLEA_STATE_LENGTH);
+}
+
+void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset)
+{
+    b->homing_drive = drive >= 0 && drive < b->n ? drive : -1;
+    b->homing_marker = marker;
+    b->homing_offset = offset;
+}
+
+int cochlea_bridge_use_realtime_tick(cochlea_bridge *b)
+{
+    b->realtime_tick = 1;
+    return read_frame(b, COCHLEA_TICK_ADDRESS, COCHLEA_TICK_READ_LENGTH);
 }
 
 /* ---- the wire ------------------------------------------------------------------------------ */
@@ -292,10 +318,31 @@ static int slot_of(const cochlea_bridge *b, uint8_t id)
     return -1;
 }
 
+/* The Realtime Tick check of a read whose packets all came (asked: when the request was
+ * sent; arrived: when the last reply was in): 0, a stale-packet failure, if a motor's tick has
+ * not moved since a reply that was in more than COCHLEA_STALE_AFTER_NS before this request.
+ * A tick that has not moved can only be a repeat: the motor sampled it no later than the
+ * reply that first carried it arrived, whatever the host's or the bus's delays. */
+static int fresh(cochlea_bridge *b, int64_t asked, int64_t arrived)
+{
+    int j;
+    for (j = 0; j < b->n; ++j) {
+        const int32_t tick = dxl_get_u16(b->raw + (size_t)j * (size_t)b->read_length);
+        if (tick != b->last_tick[j]) {
+            b->last_tick[j] = tick;
+            b->tick_seen_ns[j] = arrived;
+        } else if (asked - b->tick_seen_ns[j] > COCHLEA_STALE_AFTER_NS) {
+            return fail(b, COCHLEA_FAIL_STALE, b->drives[j].id);
+        }
+    }
+    return 1;
+}
+
 static int sync_read(cochlea_bridge *b, double *q, double *qd)
 {
     const int64_t t0 = now(b);
-    int64_t deadline;
+    const size_t length = (size_t)b->read_length;
+    int64_t deadline, asked;
     int pending = b->n, failure = -1, failure_id = -1, i;
     b->reads += 1;
     discard(b);
@@ -304,7 +351,8 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
     }
     /* From the request, as the Python bridge: quiet() takes a whole timeout, and a deadline
      * from t0 would fail every read after the first failed one. */
-    deadline = now(b) + b->timeout_ns;
+    asked = now(b);
+    deadline = asked + b->timeout_ns;
     if (!send(b, b->read_frame, b->read_len)) {
         return fail(b, COCHLEA_FAIL_PORT, -1);
     }
@@ -346,18 +394,18 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
                 failure = COCHLEA_FAIL_ALERT; /* outranks every other cause */
                 failure_id = b->parser.id;
             }
-            if (b->parser.params_len != COCHLEA_STATE_LENGTH || (error & 0x7F)) {
+            if (b->parser.params_len != length || (error & 0x7F)) {
                 b->slots[j] = 2;
                 if (failure < 0) {
-                    failure = b->parser.params_len != COCHLEA_STATE_LENGTH
+                    failure = b->parser.params_len != length
                                   ? COCHLEA_FAIL_LENGTH : COCHLEA_FAIL_ERROR_BYTE;
                     failure_id = b->parser.id;
                 }
                 continue;
             }
             b->slots[j] = 1;
-            for (k = 0; k < COCHLEA_STATE_LENGTH; ++k) {
-                b->raw[(size_t)j * COCHLEA_STATE_LENGTH + k] = b->parser.params[k];
+            for (k = 0; k < length; ++k) {
+                b->raw[(size_t)j * length + k] = b->parser.params[k];
             }
         } else if (code == DXL_CRC_FAILURE) {
             const int j = slot_of(b, b->parser.id);
@@ -376,8 +424,12 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
     if (failure >= 0) {
         return fail(b, failure, failure_id);
     }
+    if (b->realtime_tick && !fresh(b, asked, now(b))) {
+        return 0;
+    }
     for (i = 0; i < b->n; ++i) {
-        const uint8_t *raw = b->raw + (size_t)i * COCHLEA_STATE_LENGTH;
+        /* the state is the block's last COCHLEA_STATE_LENGTH bytes */
+        const uint8_t *raw = b->raw + (size_t)i * length + (length - COCHLEA_STATE_LENGTH);
         b->present_current[i] = dxl_get_i16(raw);
         qd[i] = cochlea_drive_velocity(&b->drives[i], dxl_get_i32(raw + 2));
         q[i] = cochlea_drive_position(&b->drives[i], dxl_get_i32(raw + 6),
@@ -504,6 +556,20 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
             return fail_start(r, COCHLEA_START_WRONG_MODEL, COCHLEA_STEP_PING, i, number);
         }
     }
+    if (b->homing_drive >= 0) { /* before any write: the slider still holds its homing */
+        const int h = b->homing_drive;
+        const int32_t len = dxl_read(b->scratch, sizeof b->scratch, b->drives[h].id,
+                                     COCHLEA_HOMING_MARKER_ADDRESS, 2);
+        int marker;
+        if (!command(b, COCHLEA_STEP_HOMING, h, b->scratch, len, r)) {
+            return 0;
+        }
+        marker = b->parser.params_len == 2 ? dxl_get_u16(b->parser.params) : -1;
+        if (marker != b->homing_marker) {
+            return fail_start(r, COCHLEA_START_NOT_HOMED, COCHLEA_STEP_HOMING, h, marker);
+        }
+        b->position_offset[h] = b->homing_offset;
+    }
     for (i = 0; i < b->n; ++i) {
         limits[i] = b->drives[i].current_limit_lsb;
     }
@@ -515,6 +581,18 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
         !write_all(b, COCHLEA_STEP_GOAL_ZERO, ADDR_GOAL_CURRENT, 2, 0, 0, r) ||
         !write_all(b, COCHLEA_STEP_WATCHDOG, ADDR_BUS_WATCHDOG, 1, 0, b->watchdog_lsb, r)) {
         return 0;
+    }
+    if (b->homing_drive >= 0) {
+        /* The token back after the configuration: should a firmware reset its gains on the
+         * Operating Mode write, the next start-up in this power cycle still finds it. */
+        uint8_t data[2];
+        int32_t len;
+        dxl_put_u16(data, b->homing_marker);
+        len = dxl_write(b->scratch, sizeof b->scratch, b->drives[b->homing_drive].id,
+                        COCHLEA_HOMING_MARKER_ADDRESS, data, 2);
+        if (!command(b, COCHLEA_STEP_HOMING, b->homing_drive, b->scratch, len, r)) {
+            return 0;
+        }
     }
     for (tries = 0; tries < 3 * b->retries && !read_ok; ++tries) { /* 8. the first good read */
         read_ok = sync_read(b, q, qd);

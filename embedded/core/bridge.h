@@ -3,7 +3,8 @@
  * Start-up (cochlea_bridge_start), each step on every motor before the next, every write
  * confirmed by its status packet; a failure shuts down safely and reports which step and which
  * motor, before anything moved:
- *   1. PING every motor and check its model number (and the alert bit);
+ *   1. PING every motor and check its model number (and the alert bit); with a homing check
+ *      (cochlea_bridge_expect_homing), READ the slider's homing marker;
  *   2. Torque Enable 0, Bus Watchdog 0 (clears a watchdog error latched by an earlier run);
  *   3. Operating Mode 0 (current control);  4. Return Delay Time 0;
  *   5. Current Limit from the drive table;  6. Goal Current 0;
@@ -12,9 +13,15 @@
  *      the middle of each joint's limits, and refuse a joint outside its limits;
  *   9. Torque Enable 1.
  * Each period: cochlea_bridge_read is one SYNC_READ of Present Current, Velocity and Position
- * (126..135), cochlea_bridge_write one SYNC_WRITE of Goal Current. Failures (timeout, CRC,
- * error byte, hardware alert, length, port, late traffic, non-finite command) are a 0 return
- * and counters, never a stop of their own: the loop's watchdog decides.
+ * (126..135; with the Realtime Tick check, 120..135), cochlea_bridge_write one SYNC_WRITE of
+ * Goal Current. Failures (timeout, CRC, error byte, hardware alert, length, port, late
+ * traffic, non-finite command, stale packet) are a 0 return and counters, never a stop of
+ * their own: the loop's watchdog decides.
+ * The Realtime Tick check (cochlea_bridge_use_realtime_tick; the Python bridge's
+ * realtime_tick, which cochlea-run sets): a motor's millisecond counter, read with the state,
+ * that has not moved since a reply which had already arrived more than 1.1 ms (a tick and a
+ * tenth for the motor's clock) before this request is a stale packet (a motor repeating old
+ * data), and the read fails as stale-packet. It costs 6 bytes per motor and period.
  * Shut-down (cochlea_bridge_stop, also after a failed start-up and on every fault): SYNC_WRITE
  * Goal Current 0 and Torque Enable 0, each twice (no reply needed, so one dead motor cannot hold
  * up the others), then a READ of Torque Enable per motor to confirm.
@@ -34,12 +41,17 @@ extern "C" {
 /* Present Current (2) + Present Velocity (4) + Present Position (4) from address 126. */
 #define COCHLEA_STATE_ADDRESS 126
 #define COCHLEA_STATE_LENGTH 10
+/* With the Realtime Tick: Realtime Tick (120, 2), Moving, Moving Status, Present PWM
+ * (122..125, between it and the state), then the state: one contiguous block. */
+#define COCHLEA_TICK_ADDRESS 120
+#define COCHLEA_TICK_READ_LENGTH 16
+#define COCHLEA_STALE_AFTER_NS 1100000
 
 /* Failure kinds of a period (indices into cochlea_bridge.failures), the Python bridge's. */
 enum cochlea_failure {
     COCHLEA_FAIL_TIMEOUT = 0, COCHLEA_FAIL_CRC, COCHLEA_FAIL_ERROR_BYTE, COCHLEA_FAIL_ALERT,
     COCHLEA_FAIL_LENGTH, COCHLEA_FAIL_PORT, COCHLEA_FAIL_LATE, COCHLEA_FAIL_NON_FINITE,
-    COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_KINDS
+    COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_STALE, COCHLEA_FAIL_KINDS
 };
 const char *cochlea_failure_name(int kind);
 
@@ -54,7 +66,9 @@ enum cochlea_start_error {
     COCHLEA_START_WRONG_MODEL,    /* detail: the model number it answered */
     COCHLEA_START_NO_READ,        /* no good SYNC_READ in 3 x retries tries */
     COCHLEA_START_OUTSIDE_LIMITS, /* a joint reads outside its limits (value: q, SI) */
-    COCHLEA_START_BAD_CONFIG      /* too many drives, a frame that does not fit */
+    COCHLEA_START_BAD_CONFIG,     /* too many drives, a frame that does not fit */
+    COCHLEA_START_NOT_HOMED       /* the slider's homing marker is not the record's (detail:
+                                   * the value it holds): power-cycled or rebooted since */
 };
 
 /* Start-up steps, for messages. */
@@ -62,8 +76,12 @@ enum cochlea_start_step {
     COCHLEA_STEP_PING = 1, COCHLEA_STEP_TORQUE_OFF, COCHLEA_STEP_WATCHDOG_CLEAR,
     COCHLEA_STEP_MODE, COCHLEA_STEP_RETURN_DELAY, COCHLEA_STEP_CURRENT_LIMIT,
     COCHLEA_STEP_GOAL_ZERO, COCHLEA_STEP_WATCHDOG, COCHLEA_STEP_FIRST_READ,
-    COCHLEA_STEP_LIMITS, COCHLEA_STEP_TORQUE_ON
+    COCHLEA_STEP_LIMITS, COCHLEA_STEP_TORQUE_ON, COCHLEA_STEP_HOMING
 };
+
+/* Feedforward 2nd Gain: RAM, unused in current control, 0 after power-on and REBOOT: the token
+ * cochlea-dxl home leaves there says the homing still holds (cochlea/dynamixel/homing.py). */
+#define COCHLEA_HOMING_MARKER_ADDRESS 88
 
 typedef struct {
     int error;        /* enum cochlea_start_error */
@@ -82,6 +100,11 @@ typedef struct {
     uint8_t watchdog_lsb;       /* Bus Watchdog, 20 ms per LSB */
     double position_margin;     /* start-up: how far outside its limits a joint may read (SI) */
     int retries;
+    int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
+    int read_length;            /* bytes per motor of the period's SYNC_READ */
+    int homing_drive;           /* the homed slider's drive index, -1: no homing check */
+    uint16_t homing_marker;     /* the token it must hold (the homing record's) */
+    double homing_offset;       /* its position offset from the record (m) */
     /* State. */
     int active;                 /* between a successful start and the stop */
     int suspect;                /* a failed read: wait for a quiet line before the next */
@@ -103,7 +126,9 @@ typedef struct {
     size_t read_len;
     uint8_t write_frame[DXL_FRAME_SIZE(4 + 3 * COCHLEA_MAX_DRIVES)];
     uint8_t scratch[DXL_FRAME_SIZE(4 + 5 * COCHLEA_MAX_DRIVES)];
-    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_STATE_LENGTH];
+    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_TICK_READ_LENGTH];
+    int32_t last_tick[COCHLEA_MAX_DRIVES];        /* the last Realtime Tick seen, -1 none */
+    int64_t tick_seen_ns[COCHLEA_MAX_DRIVES];     /* when the reply first carrying it was in */
     uint8_t slots[COCHLEA_MAX_DRIVES];
 } cochlea_bridge;
 
@@ -111,6 +136,15 @@ typedef struct {
  * rounded up to whole 20 ms, within 20..2540 ms. */
 int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
                         int n, int64_t timeout_ns, double watchdog_s);
+/* Read the Realtime Tick with the state and refuse stale packets (before the start). 0, or -1
+ * when the frame does not fit. */
+int cochlea_bridge_use_realtime_tick(cochlea_bridge *b);
+/* The homing check of a joint whose encoder loses its turns at power-on (the parallel robot's
+ * slider), cochlea-run's: after the PINGs and before any write, drive must hold marker at
+ * COCHLEA_HOMING_MARKER_ADDRESS, else the start fails (COCHLEA_START_NOT_HOMED); its position
+ * is then q_per_count counts + offset (the homing record's stop), and the marker is written
+ * back after the configuration. Call before cochlea_bridge_start. */
+void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset);
 /* Steps 1-9; 1 on success (torque on), else 0 with *report filled, after the safe stop. */
 int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report);
 /* One SYNC_READ into q[n], qd[n] (SI); 1, or 0 on a failure (counted). */

@@ -52,8 +52,9 @@ typedef struct {
     double limit;      /* the limit it broke (SI) */
     double point[2];   /* keep-out: the tool point and the circle's centre (m, world frame) */
     double centre[2];
-    int count;         /* watchdog: consecutive misses or failures */
-    int reason;        /* watchdog: 0 deadline misses, 1 backend read failures */
+    int count;         /* watchdog: consecutive overruns or failed reads */
+    int reason;        /* watchdog: 0 overruns, 1 backend read failures, 2 too late, 3 a stall
+                        * (loop.h's enum cochlea_watchdog_reason) */
 } cochlea_stop;
 
 /* ---- the hardware-abstraction layer ----------------------------------------------------- */
@@ -100,7 +101,7 @@ typedef struct {
     const double *velocity;        /* rad/s or m/s */
     const double *effort;          /* N m or N: every command is clipped to it */
     double keep_out_radius;        /* m; 0 or less: no keep-out rule (joint-space runs) */
-    int watchdog_misses;           /* consecutive deadline misses tolerated */
+    int watchdog_misses;           /* consecutive overruns tolerated (loop.h's overrun rule) */
     int watchdog_errors;           /* consecutive backend failures tolerated */
 } cochlea_limits;
 

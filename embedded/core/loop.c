@@ -31,6 +31,8 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     loop->stop_request = COCHLEA_RULE_NONE;
     loop->rows = 0;
     loop->deadline_misses = 0;
+    loop->overruns = 0;
+    loop->lateness_max_ns = 0;
     loop->stop.rule = COCHLEA_RULE_NONE;
     loop->shutdown_confirmed = -1;
     loop->t0_ns = loop->end_ns = 0;
@@ -52,6 +54,11 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     loop->steps = (long)nearbyint(periods);
     loop->period_s = h;
     loop->period_ns = (int64_t)nearbyint(h * 1e9);
+    loop->stall_ns = (int64_t)watchdog_misses * loop->period_ns;
+    loop->lateness_limit_ns = (int64_t)nearbyint(COCHLEA_MAX_LATENESS_S * 1e9);
+    if (loop->stall_ns > loop->lateness_limit_ns) {
+        loop->lateness_limit_ns = loop->stall_ns;
+    }
     loop->row_length = cochlea_loop_row_length(sc);
     loop->limits.n_joints = sc->nq;
     loop->limits.position_lo = sc->position_lo;
@@ -118,8 +125,8 @@ static int periods(cochlea_loop *loop)
     double *row = loop->row;
     double *row_tau = row + 1 + 2 * n;
     double *timing = row + loop->row_length - 4;
-    int64_t t0, start, previous_start, io_start, io_ns, end;
-    int errors = 0, misses = 0, u, i, r;
+    int64_t t0, start, previous_start, previous_end = 0, io_start, io_ns, end, deadline;
+    int errors = 0, consecutive = 0, u, i, r;
     long k;
 
     t0 = now(loop);
@@ -127,13 +134,27 @@ static int periods(cochlea_loop *loop)
     previous_start = t0;
     for (k = 0; k < loop->steps; ++k) {
         const double t = (double)k * h;
+        deadline = t0 + (int64_t)k * loop->period_ns;
         if (loop->realtime) {
-            loop->hal->wait_until_ns(loop->hal->ctx, t0 + (int64_t)k * loop->period_ns);
+            loop->hal->wait_until_ns(loop->hal->ctx, deadline);
         }
         start = now(loop);
         if (loop->stop_request) {
             stop_here(&loop->stop, loop->stop_request, t);
             return loop->stop.rule;
+        }
+        if (loop->realtime) { /* too far behind to catch up: stop before commanding anything */
+            const int64_t lateness = start - deadline;
+            if (lateness > loop->lateness_max_ns) {
+                loop->lateness_max_ns = lateness;
+            }
+            if (lateness > loop->lateness_limit_ns) {
+                stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
+                loop->stop.reason = COCHLEA_WATCHDOG_LATE;
+                loop->stop.value = (double)lateness * 1e-9;
+                loop->stop.limit = (double)loop->lateness_limit_ns * 1e-9;
+                return COCHLEA_WATCHDOG;
+            }
         }
         if (loop->log_ready && !loop->log_ready(loop->row_ctx)) {
             stop_here(&loop->stop, COCHLEA_LOG_FAILURE, t);
@@ -217,17 +238,37 @@ static int periods(cochlea_loop *loop)
         timing[3] = (double)io_ns * 1e-9;
         emit(loop);
         previous_start = start;
-        if (loop->realtime && end - t0 > (int64_t)(k + 1) * loop->period_ns) {
-            misses += 1;
-            loop->deadline_misses += 1;
-            if (misses > loop->limits.watchdog_misses) {
-                stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
-                loop->stop.count = misses;
-                loop->stop.value = timing[2];
-                return COCHLEA_WATCHDOG;
+        if (loop->realtime) {
+            /* The period's own work runs from its deadline, or from the previous period's end
+             * when that was later (a catch-up period): lateness inherited from a stall is not
+             * this period's overrun. */
+            const int64_t begin = (k > 0 && previous_end > deadline) ? previous_end : deadline;
+            const int64_t own = end - begin;
+            previous_end = end;
+            if (end - t0 > (int64_t)(k + 1) * loop->period_ns) {
+                loop->deadline_misses += 1; /* reported, not a rule */
             }
-        } else {
-            misses = 0;
+            if (own <= loop->period_ns) {
+                consecutive = 0;
+            } else {
+                loop->overruns += 1;
+                consecutive += 1;
+                if (own > loop->stall_ns) {
+                    stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
+                    loop->stop.reason = COCHLEA_WATCHDOG_STALL;
+                    loop->stop.count = consecutive;
+                    loop->stop.value = (double)own * 1e-9;
+                    loop->stop.limit = (double)loop->stall_ns * 1e-9;
+                    return COCHLEA_WATCHDOG;
+                }
+                if (consecutive > loop->limits.watchdog_misses) {
+                    stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
+                    loop->stop.reason = COCHLEA_WATCHDOG_OVERRUNS;
+                    loop->stop.count = consecutive;
+                    loop->stop.value = (double)own * 1e-9;
+                    return COCHLEA_WATCHDOG;
+                }
+            }
         }
     }
     stop_here(&loop->stop, COCHLEA_COMPLETED, (double)loop->steps * h);

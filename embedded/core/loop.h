@@ -10,7 +10,12 @@
  *   4. the generated controller computes the command and the next estimate;
  *   5. the supervisor checks them (finite; |p_hat| within its bound) and clips the command;
  *   6. write the command; the row of the period goes to the port's on_row callback;
- *   7. more than watchdog_misses consecutive deadline misses end the run.
+ *   7. the overrun rule (cochlea-run's OverrunWatch, COCHLEA_OVERRUN_POLICY): a period that
+ *      starts more than lateness_limit late ends the run before it reads anything; after the
+ *      write, a period whose own work (from its deadline or the previous period's end,
+ *      whichever is later) took more than a period is an overrun; more than watchdog_misses
+ *      overruns in a row, or one period whose own work exceeds watchdog_misses periods (a
+ *      stall), end the run. Catch-up periods after a stall run late but are no overruns.
  * Whatever ends the run, the backend's shutdown (zero effort, drives off) runs before
  * cochlea_loop_run returns: it is the only exit.
  *
@@ -35,6 +40,27 @@ extern "C" {
 #define COCHLEA_MAX_POINTS 8
 #define COCHLEA_MAX_ERRORS 64
 #define COCHLEA_MAX_ROW 512
+
+/* The least the loop may fall behind its absolute deadlines before the watchdog stops it (s);
+ * more when watchdog_misses periods are longer (cochlea/runtime/supervisor.py MAX_LATENESS_S). */
+#define COCHLEA_MAX_LATENESS_S 0.1
+
+/* The overrun policy in one sentence, word for word cochlea-run's OVERRUN_POLICY (summary.json's
+ * timing.overrun_policy; docs/runtime.md states it in full). */
+#define COCHLEA_OVERRUN_POLICY                                                                 \
+    "period k is due at t0 + k h; it overruns when its own work -- from its deadline or the "  \
+    "previous period's end, whichever is later, to its end -- takes longer than h; late "      \
+    "periods that catch up within h each are late, not overruns. The watchdog stops the run "  \
+    "on N consecutive overruns (--watchdog-misses N), on one period whose own work exceeds N " \
+    "periods (a stall), or when a period starts more than max(N h, 0.1 s) late"
+
+/* cochlea_stop.reason of a watchdog stop. */
+enum cochlea_watchdog_reason {
+    COCHLEA_WATCHDOG_OVERRUNS = 0, /* count consecutive overruns; value: the last one's own work */
+    COCHLEA_WATCHDOG_READS = 1,    /* count consecutive failed reads */
+    COCHLEA_WATCHDOG_LATE = 2,     /* value: the lateness of the period's start, limit: allowed */
+    COCHLEA_WATCHDOG_STALL = 3     /* value: the period's own work, limit: the stall limit (s) */
+};
 
 /* Why cochlea_loop_init refused: nothing was started. */
 enum cochlea_loop_error {
@@ -72,7 +98,11 @@ typedef struct {
     /* Results. */
     int row_length;
     long rows;                       /* periods logged */
-    uint32_t deadline_misses;        /* in the whole run */
+    uint32_t deadline_misses;        /* periods that ended after the next one was due */
+    uint32_t overruns;               /* periods whose own work overran (the overrun rule) */
+    int64_t lateness_max_ns;         /* the latest start against its deadline */
+    int64_t stall_ns;                /* watchdog_misses periods: one period's own work limit */
+    int64_t lateness_limit_ns;       /* max(stall_ns, COCHLEA_MAX_LATENESS_S) */
     cochlea_stop stop;               /* why it ended (stop.rule) */
     int shutdown_confirmed;          /* the backend's shutdown result */
     int64_t t0_ns, end_ns;           /* start of period 0 and the end of the run (hal time) */

@@ -1,11 +1,14 @@
 /* cochlea-embedded: a scenario's controller on the Dynamixel motors, with no Python.
  *
  *   build/cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S] --out DIR
- *                          [--watchdog-misses N] [--watchdog-errors N] [--list]
+ *                          [--watchdog-misses N] [--watchdog-errors N] [--mlockall on|off]
+ *                          [--cpu N] [--sched fifo|rr|other] [--priority N]
+ *                          [--homing auto|required] [--homing-record FILE] [--list]
  *
  * The POSIX program around the portable core (embedded/core/): it opens the port (termios, any
  * Dynamixel baud rate up to 4.5 Mbaud), starts the motors as cochlea-run's bridge does, runs
- * the loop at absolute deadlines (clock_nanosleep) under SCHED_FIFO with its memory locked
+ * the loop at absolute deadlines (clock_nanosleep) with cochlea-run's overrun rule, under
+ * SCHED_FIFO 40 with its memory locked (or the --sched/--priority/--cpu/--mlockall asked for)
  * when the system permits, and streams every period's row to DIR/log.bin from a writer thread,
  * outside the period. After the run, whatever ended it: log.csv, log.columns.json and
  * summary.json, the same files and schema as cochlea-run's (figures aside), and the same exit
@@ -27,12 +30,16 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/mman.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
 #include <sys/statvfs.h>
 #include <dirent.h>
 #include <fcntl.h>
 #include <time.h>
 #include <unistd.h>
+#include <ctype.h>
+#include <limits.h>
+#include <pwd.h>
 
 #include "bridge.h"
 #include "cochlea_rt.h"
@@ -61,13 +68,15 @@
 #define ADAPTER_LATENCY_S 1e-3
 #define TIMEOUT_MARGIN_S 3e-3
 #define WATCHDOG_S 0.1
-/* Convergence (cochlea/apps/report.py's rule without its encoder-count floor, which this
- * program does not compute: docs/embedded.md "Not yet in the C program"). */
+/* Convergence: cochlea/apps/report.py's rule, word for word, with its encoder-count floor
+ * (measurement_resolution: one count of the drives on every joint). */
 #define CONVERGENCE_RATIO 0.05
 #define TAIL_FRACTION 0.2
 #define CONVERGENCE_RULE                                                                      \
     "final RMS over the last 20% <= 5% of the initial absolute error, or below 1e-05 rad, "   \
-    "1e-06 m"
+    "1e-06 m (with encoder counts, of the plant or of a hardware run's drives: below the "     \
+    "coordinate's measurement_resolution, one count on every joint; each coordinate's "        \
+    "convergence_floor)"
 
 /* ---- options ------------------------------------------------------------------------------ */
 
@@ -78,6 +87,14 @@ typedef struct {
     double rate;     /* Hz; NaN: the scenario's */
     int watchdog_misses;
     int watchdog_errors;
+    /* The loop thread's real-time settings, cochlea-run's options (RealtimeOptions). */
+    int mlockall;         /* 1: lock memory while the loop runs (this program's default) */
+    int cpu;              /* pin the loop's thread to this CPU; -1: the CPUs given */
+    const char *sched;    /* "fifo", "rr" or "other" */
+    int priority_given;   /* --priority given */
+    int priority;         /* fifo and rr: 1..99 (default FIFO_PRIORITY); other: none */
+    const char *homing;   /* "auto" or "required" (cochlea-run's --homing) */
+    const char *homing_record; /* the record cochlea-dxl home wrote; 0: the default */
 } options;
 
 static int fail_usage(const char *fmt, ...)
@@ -96,7 +113,9 @@ static void usage(FILE *to)
     fprintf(to,
             "usage: cochlea-embedded --scenario NAME --port PATH [--baud B] [--duration S]\n"
             "                        [--rate HZ] --out DIR [--watchdog-misses N]\n"
-            "                        [--watchdog-errors N] | --list\n"
+            "                        [--watchdog-errors N] [--mlockall on|off] [--cpu N]\n"
+            "                        [--sched fifo|rr|other] [--priority N]\n"
+            "                        [--homing auto|required] [--homing-record FILE] | --list\n"
             "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
@@ -106,8 +125,22 @@ static void usage(FILE *to)
             "                       before the start; memory does not grow with it)\n"
             "  --rate HZ            the control rate (default: the scenario's)\n"
             "  --out DIR            a new or empty folder for log.bin, log.csv, summary.json\n"
-            "  --watchdog-misses N  consecutive deadline misses tolerated (default 20)\n"
+            "  --watchdog-misses N  consecutive overrunning periods tolerated; one period stuck\n"
+            "                       for longer than N periods stops at once (default 20)\n"
             "  --watchdog-errors N  consecutive failed reads tolerated (default 5)\n"
+            "  --mlockall on|off    lock the memory while the loop runs, so no page fault stalls\n"
+            "                       a period (default on; needs CAP_IPC_LOCK or a memlock limit)\n"
+            "  --cpu N              pin the loop's thread to CPU N (default: the CPUs given)\n"
+            "  --sched P            the loop's scheduling policy: fifo (default), rr or other\n"
+            "  --priority N         --sched fifo or rr: the real-time priority, 1..99 (default\n"
+            "                       40: above normal processes, below the kernel's threads)\n"
+            "  A real-time setting the system refuses is one warning and the run goes on with\n"
+            "  what it got; summary.json's realtime entry records both.\n"
+            "  --homing auto|required  parallel robot: check the slider's homing record\n"
+            "                       (cochlea-dxl home) on a real port and not on the\n"
+            "                       emulator's pseudo-terminal (auto, default), or always\n"
+            "  --homing-record FILE the record cochlea-dxl home wrote (default\n"
+            "                       ~/.cochlea/homing/ROBOT.json)\n"
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
@@ -134,6 +167,85 @@ static const cochlea_scenario *find_scenario(const char *name)
     return 0;
 }
 
+/* ---- real-time settings (cochlea/runtime/loop.py's RealtimeOptions and apply_realtime) ---- */
+
+/* The policy named by --sched ("fifo", "rr", "other"), or 0 for another name. */
+static const char *policy_of(const char *name)
+{
+    if (strcmp(name, "fifo") == 0) {
+        return "SCHED_FIFO";
+    }
+    if (strcmp(name, "rr") == 0) {
+        return "SCHED_RR";
+    }
+    return strcmp(name, "other") == 0 ? "SCHED_OTHER" : 0;
+}
+
+static int policy_value(const char *name)
+{
+    return strcmp(name, "fifo") == 0 ? SCHED_FIFO
+           : strcmp(name, "rr") == 0 ? SCHED_RR : SCHED_OTHER;
+}
+
+/* The priority asked for: SCHED_OTHER's is 0. */
+static int priority_level(const options *o)
+{
+    if (strcmp(o->sched, "other") == 0) {
+        return 0;
+    }
+    return o->priority;
+}
+
+/* The CPUs this process may use, "0, 1, 3", into buf. */
+static const char *cpu_list(char *buf, size_t n)
+{
+    cpu_set_t set;
+    size_t used = 0;
+    int c;
+    buf[0] = '\0';
+    if (sched_getaffinity(0, sizeof set, &set) != 0) {
+        snprintf(buf, n, "unknown");
+        return buf;
+    }
+    for (c = 0; c < CPU_SETSIZE && used < n; ++c) {
+        if (CPU_ISSET(c, &set)) {
+            used += (size_t)snprintf(buf + used, n - used, "%s%d", used ? ", " : "", c);
+        }
+    }
+    return buf;
+}
+
+/* The user's mistakes in the real-time options, refused before anything moves. */
+static int check_realtime_options(const options *o)
+{
+    if (strcmp(o->sched, "other") == 0) {
+        if (o->priority_given) {
+            return fail_usage("--priority goes with --sched fifo or rr (SCHED_OTHER has no "
+                              "real-time priority)");
+        }
+    } else {
+        /* Linux's range where the OS cannot say, as cochlea-run */
+        int lo = sched_get_priority_min(policy_value(o->sched));
+        int hi = sched_get_priority_max(policy_value(o->sched));
+        lo = lo < 0 ? 1 : lo;
+        hi = hi < 0 ? 99 : hi;
+        if (priority_level(o) < lo || priority_level(o) > hi) {
+            return fail_usage("--priority must be between %d and %d for --sched %s, got %d", lo,
+                              hi, o->sched, priority_level(o));
+        }
+    }
+    if (o->cpu >= 0) {
+        cpu_set_t set;
+        if (sched_getaffinity(0, sizeof set, &set) == 0
+            && (o->cpu >= CPU_SETSIZE || !CPU_ISSET(o->cpu, &set))) {
+            char list[512];
+            return fail_usage("--cpu %d is not a CPU this process may use: expected one of %s",
+                              o->cpu, cpu_list(list, sizeof list));
+        }
+    }
+    return 0;
+}
+
 static int parse(int argc, char **argv, options *o)
 {
     int i;
@@ -144,6 +256,13 @@ static int parse(int argc, char **argv, options *o)
     o->rate = NAN;
     o->watchdog_misses = 20;
     o->watchdog_errors = 5;
+    o->mlockall = 1;
+    o->cpu = -1;
+    o->sched = "fifo";
+    o->priority_given = 0;
+    o->priority = FIFO_PRIORITY;
+    o->homing = "auto";
+    o->homing_record = 0;
     for (i = 1; i < argc; ++i) {
         const char *a = argv[i];
         const char *value = i + 1 < argc ? argv[i + 1] : 0;
@@ -213,6 +332,39 @@ static int parse(int argc, char **argv, options *o)
                                   MAX_WATCHDOG_MISSES, value);
             }
             o->watchdog_errors = (int)v;
+        } else if (strcmp(a, "--homing") == 0) {
+            if (strcmp(value, "auto") != 0 && strcmp(value, "required") != 0) {
+                return fail_usage("--homing: expected auto or required, got %s", value);
+            }
+            o->homing = value;
+        } else if (strcmp(a, "--homing-record") == 0) {
+            o->homing_record = value;
+        } else if (strcmp(a, "--mlockall") == 0) {
+            if (strcmp(value, "on") != 0 && strcmp(value, "off") != 0) {
+                return fail_usage("--mlockall: expected on or off, got %s", value);
+            }
+            o->mlockall = strcmp(value, "on") == 0;
+        } else if (strcmp(a, "--cpu") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < -1e6 || v > 1e6) {
+                return fail_usage("--cpu must be a whole number, got %s", value);
+            }
+            o->cpu = (int)v;
+            if (o->cpu < 0) { /* -1 is "none" inside: a negative CPU is never one to use */
+                char list[512];
+                return fail_usage("--cpu %s is not a CPU this process may use: expected one of %s",
+                                  value, cpu_list(list, sizeof list));
+            }
+        } else if (strcmp(a, "--sched") == 0) {
+            if (!policy_of(value)) {
+                return fail_usage("--sched: expected one of fifo, rr, other, got '%s'", value);
+            }
+            o->sched = value;
+        } else if (strcmp(a, "--priority") == 0) {
+            if (!parse_number(value, &v) || v != floor(v) || v < -1e6 || v > 1e6) {
+                return fail_usage("--priority must be a whole number, got %s", value);
+            }
+            o->priority = (int)v;
+            o->priority_given = 1;
         } else {
             usage(stderr);
             return fail_usage("unknown option %s", a);
@@ -222,7 +374,7 @@ static int parse(int argc, char **argv, options *o)
         usage(stderr);
         return fail_usage("--scenario, --port and --out are needed");
     }
-    return 0;
+    return check_realtime_options(o);
 }
 
 /* ---- the output folder --------------------------------------------------------------------- */
@@ -487,16 +639,191 @@ static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const dou
                  s->limit);
         break;
     case COCHLEA_WATCHDOG:
-        if (s->reason == 1) {
+        /* cochlea/runtime/supervisor.py's OverrunWatch words, to the digit */
+        if (s->reason == COCHLEA_WATCHDOG_READS) {
             snprintf(buf, n, "%d consecutive backend read failures", s->count);
+        } else if (s->reason == COCHLEA_WATCHDOG_LATE) {
+            snprintf(buf, n, "the loop fell %.1f ms behind its deadlines (at most %g ms: "
+                     "max(%d periods, %g ms)); it did not catch up", s->value * 1e3,
+                     s->limit * 1e3, loop->limits.watchdog_misses, COCHLEA_MAX_LATENESS_S * 1e3);
+        } else if (s->reason == COCHLEA_WATCHDOG_STALL) {
+            snprintf(buf, n, "the loop stalled: one period took %.1f ms, more than %d periods "
+                     "of %g ms", s->value * 1e3, loop->limits.watchdog_misses,
+                     loop->period_s * 1e3);
         } else {
-            snprintf(buf, n, "%d consecutive deadline misses (last period took %.3f ms of "
-                     "compute)", s->count, s->value * 1e3);
+            snprintf(buf, n, "%d consecutive deadline misses: each period's own work overran "
+                     "its %g ms (the last took %.3f ms)", s->count, loop->period_s * 1e3,
+                     s->value * 1e3);
         }
         break;
     default:
         break;
     }
+}
+
+/* ---- the slider's homing record (cochlea/dynamixel/homing.py) -------------------------------- */
+
+#define HOMING_FORMAT "cochlea-homing/1"
+
+/* What the homing check found before the start: summary.json's timing.bus.homing. */
+static struct {
+    char report[4608];       /* "no slider", "not checked (...)", "homed DATE (PATH)" */
+    char date[64];
+    const char *robot;
+    int drive;               /* the slider's drive index, -1: no check */
+    uint16_t marker;
+    double offset;
+} homing = {"no slider", "", "", -1, 0, 0.0};
+
+/* The raw text of "key"'s value in the record (a flat JSON object, as cochlea-dxl home writes
+ * it): a string with its quotes, or a number, true, false, null. 0 when the key is absent. */
+static const char *record_value(const char *text, const char *key, char *out, size_t n)
+{
+    char quoted[64];
+    const char *p = text;
+    snprintf(quoted, sizeof quoted, "\"%s\"", key);
+    while ((p = strstr(p, quoted)) != 0) {
+        const char *v = p + strlen(quoted);
+        size_t k = 0;
+        while (isspace((unsigned char)*v)) {
+            ++v;
+        }
+        if (*v != ':') {
+            p += 1;
+            continue;
+        }
+        ++v;
+        while (isspace((unsigned char)*v)) {
+            ++v;
+        }
+        if (*v == '"') {
+            out[k++] = *v++;
+            while (*v && *v != '"' && k + 4 < n) {
+                if (*v == '\\' && v[1]) {
+                    out[k++] = *v++;
+                }
+                out[k++] = *v++;
+            }
+            if (*v != '"') {
+                return 0;
+            }
+            out[k++] = '"';
+        } else {
+            while (*v && *v != ',' && *v != '}' && !isspace((unsigned char)*v) && k + 1 < n) {
+                out[k++] = *v++;
+            }
+        }
+        out[k] = '\0';
+        return k ? out : 0;
+    }
+    return 0;
+}
+
+/* A whole number (JSON's int, not a float or a bool). */
+static int record_int(const char *text, const char *key, long *value)
+{
+    char token[64], *end;
+    size_t i;
+    if (!record_value(text, key, token, sizeof token)) {
+        return 0;
+    }
+    for (i = token[0] == '-' ? 1 : 0; token[i]; ++i) {
+        if (!isdigit((unsigned char)token[i])) {
+            return 0;
+        }
+    }
+    errno = 0;
+    *value = strtol(token, &end, 10);
+    return errno == 0 && *end == '\0' && end != token;
+}
+
+static int record_number(const char *text, const char *key, double *value)
+{
+    char token[64];
+    return record_value(text, key, token, sizeof token) && parse_number(token, value);
+}
+
+/* The homing check as cochlea-run's bridge makes it, before the port opens: which slider, and
+ * the offset and token of its record; 0, or a message (exit 5: nothing moved) in msg. */
+static int check_homing(const options *o, const cochlea_scenario *sc, char *msg, size_t n)
+{
+    char path[4096], resolved[PATH_MAX];
+    static char text[65536];
+    const cochlea_drive *d = 0;
+    FILE *f;
+    size_t got;
+    long motor_id, raw_counts, marker, direction;
+    double stop_m, ratio;
+    char value[128];
+    int i, slider = -1;
+    homing.robot = sc->robot;
+    for (i = 0; i < sc->nq; ++i) {
+        if (!sc->drives[i].revolute) {
+            slider = i;
+            break;
+        }
+    }
+    if (slider < 0) {
+        return 0; /* "no slider" */
+    }
+    if (strcmp(o->homing, "auto") == 0 && realpath(o->port, resolved)
+        && strncmp(resolved, "/dev/pts/", 9) == 0) {
+        snprintf(homing.report, sizeof homing.report,
+                 "not checked (a pseudo-terminal: the virtual chain)");
+        return 0;
+    }
+    if (o->homing_record) {
+        snprintf(path, sizeof path, "%s", o->homing_record);
+    } else {
+        const char *home = getenv("HOME");
+        const struct passwd *pw = home ? 0 : getpwuid(getuid());
+        snprintf(path, sizeof path, "%s/.cochlea/homing/%s.json",
+                 home ? home : pw ? pw->pw_dir : ".", sc->robot);
+    }
+    f = fopen(path, "r");
+    if (!f) {
+        if (errno == ENOENT) {
+            snprintf(msg, n, "the slider is not homed: no homing record %s; run cochlea-dxl "
+                     "home --robot %s --port PORT first", path, sc->robot);
+        } else {
+            snprintf(msg, n, "homing record %s: cannot read it (%s); run cochlea-dxl home "
+                     "again", path, strerror(errno));
+        }
+        return -1;
+    }
+    got = fread(text, 1, sizeof text - 1, f);
+    fclose(f);
+    text[got] = '\0';
+    d = &sc->drives[slider];
+    if (!(record_value(text, "format", value, sizeof value)
+          && strcmp(value, "\"" HOMING_FORMAT "\"") == 0
+          && record_int(text, "motor_id", &motor_id) && record_int(text, "raw_counts", &raw_counts)
+          && record_int(text, "marker", &marker) && record_number(text, "stop_m", &stop_m)
+          && record_number(text, "ratio_m_per_rad", &ratio)
+          && record_int(text, "direction", &direction) && (direction == 1 || direction == -1)
+          && marker >= 0 && marker <= 65535)) {
+        snprintf(msg, n, "homing record %s: not a " HOMING_FORMAT " record; run cochlea-dxl "
+                 "home again", path);
+        return -1;
+    }
+    if (record_value(text, "date", value, sizeof value) && value[0] == '"') {
+        snprintf(homing.date, sizeof homing.date, "%.*s", (int)strlen(value) - 2, value + 1);
+    }
+    { /* the description's direction and pinion ratio, from the drive table's count */
+        const double per_rad = d->q_per_count * 4096.0 / (2.0 * 3.14159265358979323846);
+        const long dir = per_rad < 0 ? -1 : 1;
+        if (motor_id != d->id || direction != dir || fabs(ratio - fabs(per_rad)) > 1e-12) {
+            snprintf(msg, n, "homing record %s was made for motor ID %ld, direction %+ld, ratio "
+                     "%g m/rad; the description has ID %d, %+ld, %g: run cochlea-dxl home again",
+                     path, motor_id, direction, ratio, d->id, dir, fabs(per_rad));
+            return -1;
+        }
+    }
+    homing.drive = slider;
+    homing.marker = (uint16_t)marker;
+    homing.offset = stop_m - d->q_per_count * (double)raw_counts;
+    snprintf(homing.report, sizeof homing.report, "homed %s (%s)", homing.date, path);
+    return 0;
 }
 
 static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
@@ -507,8 +834,8 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
         "Operating Mode 0 (WRITE 11 = 0)", "Return Delay Time 0 (WRITE 9 = 0)",
         "the Current Limit (WRITE 38)", "Goal Current 0 (WRITE 102 = 0)",
         "the Bus Watchdog (WRITE 98)", "the first SYNC_READ", "the joint limits",
-        "Torque Enable 1 (WRITE 64 = 1)"};
-    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_TORQUE_ON ? steps[r->step] : "?";
+        "Torque Enable 1 (WRITE 64 = 1)", "the homing marker (READ/WRITE 88)"};
+    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_HOMING ? steps[r->step] : "?";
     char name[160] = "the bus";
     char value[64];
     if (r->drive >= 0 && r->drive < b->n) {
@@ -544,6 +871,12 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
              b->drives[r->drive].revolute ? "rad" : "m");
         snprintf(buf, n, "%s reads %s, outside its limits: check zero_offset_deg and direction "
                  "in the description", name, value);
+        break;
+    case COCHLEA_START_NOT_HOMED:
+        snprintf(buf, n, "the slider (ID %d) was power-cycled or rebooted since it was homed "
+                 "(%s): its encoder lost its turns; run cochlea-dxl home --robot %s --port "
+                 "PORT again", b->drives[r->drive].id, homing.date[0] ? homing.date
+                 : "date unknown", homing.robot);
         break;
     default:
         snprintf(buf, n, "the drive table does not fit the bridge (%d drives)", b->n);
@@ -1205,8 +1538,59 @@ static int read_back(const char *out, const cochlea_scenario *sc, int row_length
     return 0;
 }
 
-/* summary.json's "units" entry of unit u; whether every tracked coordinate converged. */
-static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_stats *st)
+/* Per tracked coordinate of unit u, what one encoder count on every joint moves it at the
+ * run's last pose (cochlea/apps/report.py's measurement_resolution): the joint's count in joint
+ * space; in task space sum_j |fk(q + count_j) - fk(q)|, the change of the tracking error (the
+ * first nd errors, desired - fk(q)) that the controller computes from a fresh state at the
+ * last row's time. 1 and res[nd] filled, or 0 when there is no last row (or no memory). */
+static int measurement_resolution(const cochlea_scenario *sc, int u, const log_stats *st,
+                                  double period, double *res)
+{
+    const cochlea_unit_info *t = &sc->units[u];
+    double q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
+    double base[COCHLEA_MAX_ERRORS], moved[COCHLEA_MAX_ERRORS];
+    void *state;
+    int i, j;
+    if (st->rows == 0) {
+        return 0;
+    }
+    if (strcmp(sc->space, "joint") == 0) {
+        for (i = 0; i < t->nd; ++i) {
+            res[i] = fabs(sc->drives[t->q0 + i].q_per_count);
+        }
+        return 1;
+    }
+    state = malloc(sc->state_size);
+    if (!state || sc->init(state, period) != 0) {
+        free(state);
+        return 0;
+    }
+    for (j = 0; j < sc->nq; ++j) {
+        q[j] = st->last[1 + j];
+        qd[j] = st->last[1 + sc->nq + j];
+    }
+    (void)sc->step(state, st->last[0], q, qd, tau, base);
+    for (i = 0; i < t->nd; ++i) {
+        res[i] = 0.0;
+    }
+    for (j = t->q0; j < t->q0 + t->nq; ++j) {
+        const double keep = q[j];
+        q[j] += fabs(sc->drives[j].q_per_count);
+        (void)sc->step(state, st->last[0], q, qd, tau, moved);
+        q[j] = keep;
+        for (i = 0; i < t->nd; ++i) {
+            res[i] += fabs(moved[t->e0 + i] - base[t->e0 + i]);
+        }
+    }
+    sc->terminate(state);
+    free(state);
+    return 1;
+}
+
+/* summary.json's "units" entry of unit u; whether every tracked coordinate converged. res: the
+ * unit's measurement_resolution, or 0 (the numeric floor alone). */
+static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_stats *st,
+                        const double *res)
 {
     const cochlea_unit_info *t = &sc->units[u];
     const int off = unit_offset(sc, u);
@@ -1219,7 +1603,8 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
     key(f, 6, "tracked");
     fputs("{\n", f);
     for (i = 0; i < t->nd; ++i) {
-        const double floor_ = strcmp(t->tracked_units[i], "rad") == 0 ? 1e-5 : 1e-6;
+        const double numeric = strcmp(t->tracked_units[i], "rad") == 0 ? 1e-5 : 1e-6;
+        const double floor_ = res && res[i] > numeric ? res[i] : numeric;
         key(f, 8, t->tracked_names[i]);
         fputs("{\n", f);
         key(f, 10, "unit");
@@ -1227,7 +1612,10 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
         fputs(",\n", f);
         if (rows == 0) {
             fputs("          \"initial_abs_error\": null,\n          \"final_rms_error\": null,\n"
-                  "          \"converged\": false\n", f);
+                  "          \"converged\": false,\n", f);
+            key(f, 10, "convergence_floor");
+            json_number(f, floor_);
+            fputs("\n", f);
             all = 0;
         } else {
             const double initial = fabs(st->first[off + i]);
@@ -1242,11 +1630,33 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
             json_number(f, rms);
             fputs(",\n", f);
             key(f, 10, "converged");
-            fputs(ok ? "true\n" : "false\n", f);
+            fputs(ok ? "true,\n" : "false,\n", f);
+            /* the floor it was judged on: the numeric one, or one count on every joint */
+            key(f, 10, "convergence_floor");
+            json_number(f, floor_);
+            if (res) {
+                fputs(",\n", f);
+                key(f, 10, "measurement_resolution");
+                json_number(f, res[i]);
+            }
+            fputs("\n", f);
         }
         fprintf(f, "        }%s\n", i + 1 < t->nd ? "," : "");
     }
     fputs("      },\n", f);
+    /* the count each joint's position is measured in: the drives' encoders */
+    key(f, 6, "position_quantum");
+    fputs("{\"source\": \"drives\", \"joints\": {", f);
+    for (i = 0; i < t->nq; ++i) {
+        fputs(i ? ", " : "", f);
+        json_string(f, t->joint_names[i]);
+        fputs(": {\"value\": ", f);
+        json_number(f, fabs(sc->drives[t->q0 + i].q_per_count));
+        fputs(", \"unit\": ", f);
+        json_string(f, t->joint_units[i]);
+        fputs("}", f);
+    }
+    fputs("}},\n", f);
     key(f, 6, "torque");
     fputs("{\n", f);
     for (i = 0; i < t->nq; ++i) {
@@ -1370,6 +1780,20 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     key(f, 4, "backend_p99");
     json_number(f, backend->percentile[1]);
     fputs(",\n", f);
+    /* the overrun rule (loop.h), cochlea-run's keys */
+    fprintf(f, "    \"overruns\": %u,\n", loop->overruns);
+    key(f, 4, "lateness_max");
+    json_number(f, (double)loop->lateness_max_ns * 1e-9);
+    fputs(",\n", f);
+    key(f, 4, "overrun_policy");
+    json_string(f, COCHLEA_OVERRUN_POLICY);
+    fputs(",\n", f);
+    key(f, 4, "stall_limit");
+    json_number(f, (double)loop->stall_ns * 1e-9);
+    fputs(",\n", f);
+    key(f, 4, "lateness_limit");
+    json_number(f, (double)loop->lateness_limit_ns * 1e-9);
+    fputs(",\n", f);
     key(f, 4, "scheduling");
     json_string(f, facts->scheduling);
     fputs(",\n", f);
@@ -1402,6 +1826,7 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     fputs(",\n", f);
     key(f, 6, "watchdog_s");
     json_number(f, facts->watchdog_s);
+    fprintf(f, ",\n      \"realtime_tick_check\": %s", b->realtime_tick ? "true" : "false");
     fprintf(f, ",\n      \"reads\": %u,\n      \"good_reads\": %u,\n      \"writes\": %u,\n",
             b->reads, b->good_reads, b->writes);
     key(f, 6, "failures");
@@ -1416,10 +1841,15 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     key(f, 6, "last_failure");
     json_string(f, facts->last_failure);
     fputs(",\n      \"low_latency\": null,\n", f);
+    key(f, 6, "homing");
+    json_string(f, homing.report);
+    fputs(",\n", f);
     key(f, 6, "shutdown");
     json_string(f, facts->shutdown);
     fputs("\n    }\n  }", f);
 }
+
+static void realtime_summary(FILE *f, const options *o); /* with the real-time settings */
 
 static int write_summary(const char *out, const cochlea_loop *loop, const log_stats *st,
                          const run_facts *facts, const cochlea_bridge *b, const options *o,
@@ -1485,13 +1915,19 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     key(f, 2, "timing");
     timing_summary(f, loop, st, facts, b, o);
     fputs(",\n", f);
+    /* The loop thread's settings, asked for and obtained (cochlea-run's RealtimeOptions). */
+    key(f, 2, "realtime");
+    realtime_summary(f, o);
+    fputs(",\n", f);
     key(f, 2, "wall_time_s");
     json_number(f, facts->wall_s);
     fputs(",\n", f);
     key(f, 2, "units");
     fputs("{\n", f);
     for (u = 0; u < sc->n_units; ++u) {
-        converged = unit_summary(f, sc, u, st) && converged;
+        double res[COCHLEA_MAX_ERRORS];
+        const int known = measurement_resolution(sc, u, st, loop->period_s, res);
+        converged = unit_summary(f, sc, u, st, known ? res : 0) && converged;
     }
     fputs("  }\n}\n", f);
     converged = converged && loop->stop.rule == COCHLEA_COMPLETED;
@@ -1513,20 +1949,163 @@ static void on_signal(int signum)
     the_loop.stop_request = signum == SIGINT ? COCHLEA_USER_STOP : COCHLEA_TERMINATED;
 }
 
-static const char *realtime_priority(void)
+/* What apply_realtime asked for, obtained and changed (summary.json's "realtime"). */
+typedef struct {
+    int locked;                    /* mlockall succeeded */
+    int affinity_saved;            /* --cpu applied: the CPUs before, to restore */
+    cpu_set_t affinity_before;
+    int policy_changed;            /* the policy before, to restore */
+    int policy_before;
+    struct sched_param param_before;
+    int n_problems;
+    char problems[3][384];
+    const char *policy;            /* obtained: "fifo", "rr", "other" or "unknown" */
+    int priority;                  /* obtained */
+    char cpus[512];                /* obtained: "0, 1" */
+    int cpus_known;                /* the OS said which (else null, as cochlea-run) */
+    char scheduling[96];           /* timing.scheduling */
+    const char *memory;            /* timing.memory */
+} realtime_facts;
+
+static realtime_facts rt;
+
+static void problem(const char *fmt, ...)
 {
-    struct sched_param p;
-    memset(&p, 0, sizeof p);
-    p.sched_priority = FIFO_PRIORITY;
-    return pthread_setschedparam(pthread_self(), SCHED_FIFO, &p) == 0
-               ? "SCHED_FIFO 40" : "normal (SCHED_FIFO not permitted)";
+    va_list args;
+    if (rt.n_problems >= 3) {
+        return;
+    }
+    va_start(args, fmt);
+    vsnprintf(rt.problems[rt.n_problems++], sizeof rt.problems[0], fmt, args);
+    va_end(args);
 }
 
-static void normal_priority(void)
+/* The options on the calling thread (and mlockall on the process), as cochlea-run's
+ * apply_realtime: a setting the OS refuses (no permission, a locked-memory limit) is a problem,
+ * not an error; the run goes on with what it got, and rt says what. */
+static void apply_realtime(const options *o)
 {
+    const int want = policy_value(o->sched), level = priority_level(o);
     struct sched_param p;
-    memset(&p, 0, sizeof p);
-    (void)pthread_setschedparam(pthread_self(), SCHED_OTHER, &p);
+    int policy, error;
+    memset(&rt, 0, sizeof rt);
+    if (o->mlockall) {
+        if (mlockall(MCL_CURRENT | MCL_FUTURE) == 0) {
+            rt.locked = 1;
+        } else {
+            char limit[96] = "";
+            error = errno;
+            if (error == ENOMEM || error == EPERM) {
+                struct rlimit r;
+                if (getrlimit(RLIMIT_MEMLOCK, &r) == 0) {
+                    if (r.rlim_cur == RLIM_INFINITY) {
+                        snprintf(limit, sizeof limit, "; RLIMIT_MEMLOCK is unlimited");
+                    } else {
+                        snprintf(limit, sizeof limit, "; RLIMIT_MEMLOCK is %g MiB",
+                                 (double)r.rlim_cur / 1048576.0);
+                    }
+                }
+            }
+            problem("mlockall failed (%s%s: raise memlock in /etc/security/limits.conf or run "
+                    "with CAP_IPC_LOCK)", strerror(error), limit);
+        }
+    }
+    if (o->cpu >= 0) {
+        cpu_set_t one;
+        const int saved = pthread_getaffinity_np(pthread_self(), sizeof rt.affinity_before,
+                                                 &rt.affinity_before) == 0;
+        CPU_ZERO(&one);
+        CPU_SET(o->cpu, &one);
+        error = pthread_setaffinity_np(pthread_self(), sizeof one, &one);
+        if (error != 0) {
+            problem("CPU affinity %d refused (%s)", o->cpu, strerror(error));
+        } else {
+            rt.affinity_saved = saved;
+        }
+    }
+    if (pthread_getschedparam(pthread_self(), &policy, &p) == 0) {
+        if (policy != want || p.sched_priority != level) {
+            struct sched_param asked;
+            memset(&asked, 0, sizeof asked);
+            asked.sched_priority = level;
+            error = pthread_setschedparam(pthread_self(), want, &asked);
+            if (error == 0) {
+                rt.policy_changed = 1;
+                rt.policy_before = policy;
+                rt.param_before = p;
+            } else {
+                problem("%s %d not permitted (%s: run as root, with CAP_SYS_NICE or an rtprio "
+                        "limit)", policy_of(o->sched), level, strerror(error));
+            }
+        }
+    }
+    rt.policy = "unknown";
+    if (pthread_getschedparam(pthread_self(), &policy, &p) == 0) {
+        rt.policy = policy == SCHED_FIFO ? "fifo" : policy == SCHED_RR ? "rr"
+                    : policy == SCHED_OTHER ? "other" : "unknown";
+        rt.priority = p.sched_priority;
+    }
+    rt.cpus_known = strcmp(cpu_list(rt.cpus, sizeof rt.cpus), "unknown") != 0;
+    if (strcmp(rt.policy, "fifo") == 0 || strcmp(rt.policy, "rr") == 0) {
+        snprintf(rt.scheduling, sizeof rt.scheduling, "%s %d", policy_of(rt.policy),
+                 rt.priority);
+    } else if (strcmp(o->sched, "other") != 0) {
+        snprintf(rt.scheduling, sizeof rt.scheduling, "normal (%s not permitted)",
+                 policy_of(o->sched));
+    } else {
+        snprintf(rt.scheduling, sizeof rt.scheduling, "normal");
+    }
+    rt.memory = rt.locked ? "locked" : o->mlockall ? "not locked (mlockall not permitted)"
+                                                   : "not locked";
+    if (rt.n_problems) { /* once, before the start: the run goes on with what it got */
+        int i;
+        fputs("cochlea-embedded: warning: real-time settings not all obtained: ", stderr);
+        for (i = 0; i < rt.n_problems; ++i) {
+            fprintf(stderr, "%s%s", i ? "; " : "", rt.problems[i]);
+        }
+        fprintf(stderr, "; running %s, memory %s, CPUs %s\n", rt.scheduling,
+                rt.locked ? "locked" : "not locked", rt.cpus);
+    }
+}
+
+/* What apply_realtime changed, undone: the report runs as a normal thread. */
+static void undo_realtime(void)
+{
+    if (rt.policy_changed) {
+        (void)pthread_setschedparam(pthread_self(), rt.policy_before, &rt.param_before);
+        rt.policy_changed = 0;
+    }
+    if (rt.affinity_saved) {
+        (void)pthread_setaffinity_np(pthread_self(), sizeof rt.affinity_before,
+                                     &rt.affinity_before);
+        rt.affinity_saved = 0;
+    }
+    if (rt.locked) {
+        munlockall();
+    }
+}
+
+/* summary.json's "realtime": the loop thread's settings, asked for and obtained. */
+static void realtime_summary(FILE *f, const options *o)
+{
+    int i;
+    fputs("{\n    \"requested\": {\"mlockall\": ", f);
+    fputs(o->mlockall ? "true" : "false", f);
+    if (o->cpu >= 0) {
+        fprintf(f, ", \"cpu\": %d", o->cpu);
+    } else {
+        fputs(", \"cpu\": null", f);
+    }
+    fprintf(f, ", \"policy\": \"%s\", \"priority\": %d},\n", o->sched, priority_level(o));
+    fprintf(f, "    \"obtained\": {\"mlockall\": %s, \"cpu\": %s%s%s, \"policy\": \"%s\", "
+            "\"priority\": %d},\n", rt.locked ? "true" : "false", rt.cpus_known ? "[" : "",
+            rt.cpus_known ? rt.cpus : "null", rt.cpus_known ? "]" : "", rt.policy, rt.priority);
+    fputs("    \"problems\": [", f);
+    for (i = 0; i < rt.n_problems; ++i) {
+        fputs(i ? ", " : "", f);
+        json_string(f, rt.problems[i]);
+    }
+    fputs("]\n  }", f);
 }
 
 /* The writer thread, with a small stack: locked memory (mlockall) makes the default 8 MiB
@@ -1548,8 +2127,7 @@ static int start_writer(pthread_t *thread, run_log *log)
  * file is closed (a failed close counts as a failed log). */
 static void leave_realtime(run_log *log, pthread_t writer_thread)
 {
-    normal_priority();
-    munlockall();
+    undo_realtime();
     __atomic_store_n(&log->finished, 1, __ATOMIC_RELEASE);
     pthread_join(writer_thread, 0);
     if (fclose(log->file) != 0 && !log->failed) {
@@ -1576,6 +2154,32 @@ static long rows_kept(const char *out, const run_log *log, long logged)
     }
     return rows;
 }
+
+#ifdef COCHLEA_TEST_HOOKS
+/* Test builds only: COCHLEA_TEST_SLOW_READS="FIRST:COUNT:MS" makes the reads of periods
+ * FIRST..FIRST+COUNT-1 (COUNT -1: every one from FIRST on) take MS milliseconds more, so the
+ * overrun rule can be driven through the real program (a stall, or a loop slower than its
+ * rate). */
+static struct {
+    cochlea_backend inner;
+    long first, count, k;
+    double ms;
+} slow;
+
+static int slow_read(void *ctx, double *q, double *qd)
+{
+    const int ok = slow.inner.read(ctx, q, qd);
+    const long k = slow.k++;
+    if (k >= slow.first && (slow.count < 0 || k < slow.first + slow.count)) {
+        struct timespec t;
+        t.tv_sec = (time_t)(slow.ms / 1000.0);
+        t.tv_nsec = (long)((slow.ms - 1000.0 * (double)t.tv_sec) * 1e6);
+        while (nanosleep(&t, &t) != 0 && errno == EINTR) {
+        }
+    }
+    return ok;
+}
+#endif
 
 /* ---- main ----------------------------------------------------------------------------------- */
 
@@ -1643,7 +2247,8 @@ int main(int argc, char **argv)
         }
     }
     { /* the bus budget, cochlea/dynamixel/budget.py's */
-        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + 21.0 * n;
+        /* a status packet of 11 bytes and the Realtime Tick's 16-byte block per motor */
+        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + (11.0 + COCHLEA_TICK_READ_LENGTH) * n;
         facts.budget_bytes = bytes;
         facts.wire_s = bytes * BITS_PER_BYTE / (double)o.baud;
         facts.bus_s = facts.wire_s + n * TURNAROUND_S;
@@ -1683,6 +2288,16 @@ int main(int argc, char **argv)
                           RING_SECONDS);
     }
     memset(log.ring, 0, sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
+    /* The slider's homing record, checked before anything is created or opened (the bridge
+     * checks its token after the PINGs, before any write). */
+    {
+        static char why[9000]; /* two paths of up to 4 KiB */
+        if (check_homing(&o, sc, why, sizeof why) != 0) {
+            fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: "
+                    "%s\n", why);
+            return COCHLEA_EXIT_BACKEND;
+        }
+    }
     if (make_folders(o.out) != 0) {
         const int error = errno;
         undo_start(o.out);
@@ -1720,7 +2335,24 @@ int main(int argc, char **argv)
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
+    if (homing.drive >= 0) {
+        cochlea_bridge_expect_homing(&bridge, homing.drive, homing.marker, homing.offset);
+    }
+    if (cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* always, as cochlea-run */
+        cochlea_posix_close(&port);
+        undo_start(o.out);
+        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
+    }
     backend = cochlea_bridge_backend(&bridge);
+#ifdef COCHLEA_TEST_HOOKS
+    if (getenv("COCHLEA_TEST_SLOW_READS")
+        && sscanf(getenv("COCHLEA_TEST_SLOW_READS"), "%ld:%ld:%lf", &slow.first, &slow.count,
+                  &slow.ms) == 3) {
+        slow.inner = backend;
+        slow.k = 0;
+        backend.read = slow_read;
+    }
+#endif
     /* The controller before the motors: a configuration it refuses moves nothing. */
     loop_error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller, period, duration,
                                    o.watchdog_misses, o.watchdog_errors, 1);
@@ -1741,9 +2373,9 @@ int main(int argc, char **argv)
         undo_start(o.out);
         return fail_usage("cannot start the log writer");
     }
-    facts.memory = mlockall(MCL_CURRENT | MCL_FUTURE) == 0
-                       ? "locked" : "not locked (mlockall not permitted)";
-    facts.scheduling = realtime_priority();
+    apply_realtime(&o);
+    facts.scheduling = rt.scheduling;
+    facts.memory = rt.memory;
     if (!cochlea_bridge_start(&bridge, &report)) {
         leave_realtime(&log, writer_thread);
         start_failure(text, sizeof text, &bridge, &report, &o);
@@ -1926,8 +2558,9 @@ int main(int argc, char **argv)
         printf("  bus: %.0f bytes per period, budget %.0f us; %u of %u reads good; shut-down: "
                "%s\n", facts.budget_bytes, facts.bus_s * 1e6, bridge.good_reads, bridge.reads,
                facts.shutdown);
-        printf("  timing: deadline misses %u; %s; memory %s\n", the_loop.deadline_misses,
-               facts.scheduling, facts.memory);
+        printf("  timing: deadline misses %u, overruns %u, lateness max %.3f ms; %s; memory "
+               "%s\n", the_loop.deadline_misses, the_loop.overruns,
+               (double)the_loop.lateness_max_ns * 1e-6, facts.scheduling, facts.memory);
         fflush(stdout);
     }
     free(log.ring);
