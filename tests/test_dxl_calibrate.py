@@ -11,6 +11,7 @@ import gc
 import json
 import math
 import re
+import tomllib
 
 import numpy as np
 import pytest
@@ -141,11 +142,15 @@ def test_torque_fit_recovers_the_emulators_fit(tmp_path, monkeypatch, capsys, no
     finally:
         chain.close()
     assert code == 0 and len(samples.read_text().splitlines()) == 1 + 6
+    out = capsys.readouterr().out
     found = re.search(r"fit = \{ a = (\S+), b = (\S+), x = \"current_A\", y = \"torque_Ncm\"",
-                      capsys.readouterr().out)
+                      out)
     fit = motor.drive.motor.fit  # the description's: a = 122.3, b = -23.7 (N cm, A)
     assert float(found.group(1)) == pytest.approx(fit.a, rel=1e-6)
     assert float(found.group(2)) == pytest.approx(fit.b, abs=1e-4)
+    # The line pastes into a description as a measured fit (cochlea-identify then trusts it).
+    pasted = tomllib.loads(out.split("for the description: ")[1].splitlines()[0])
+    assert pasted["fit"]["source"] == "measured"
 
 
 # ---- homing --------------------------------------------------------------------------------------
