@@ -81,7 +81,8 @@ def evaluate(text: str, cache: bool = True) -> dict:
         scenario = load_scenario(path)
     setups = unit_setups(scenario, cache=cache)
     start = time.perf_counter()
-    result = simulate(scenario, None, setups)
+    # One worker per core: the arms one after the other, no thread pool a sample.
+    result = simulate(scenario, None, setups, threads=False)
     wall = time.perf_counter() - start
     supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
                                   kernels="c", substeps=scenario.plant_substeps)

@@ -30,7 +30,8 @@ def load_scenario(name_or_path: str | Path, plant_preset: str | None = None) -> 
 
 
 def simulate(sc: Scenario, duration: float | None = None,
-             setups: list[UnitSetup] | None = None, kernels: str = "c") -> SimulationResult:
+             setups: list[UnitSetup] | None = None, kernels: str = "c", *,
+             threads: bool = True) -> SimulationResult:
     """Run the scenario as fast as possible and return the log of every period.
 
     A unit whose state or estimate becomes non-finite stops the run: ``result.diverged`` names
@@ -38,13 +39,15 @@ def simulate(sc: Scenario, duration: float | None = None,
 
     ``kernels``: ``"c"`` (default) runs the generated C kernels (:mod:`cochlea.sim.compiled`;
     if they cannot run this scenario it warns and falls back), ``"casadi"`` the CasADi
-    reference (:mod:`cochlea.sim.reference`).
+    reference (:mod:`cochlea.sim.reference`). ``threads``: the C kernels run the units
+    (the serial system's two arms) on threads of their own; a sweep's worker, one process per
+    core, runs them one after the other (``False``), which spares it a thread pool a sample.
     """
     if kernels not in KERNELS:
         raise CochleaError(f"unknown kernels {kernels!r}; choose one of {', '.join(KERNELS)}")
     duration, setups = run_inputs(sc, duration, setups)
     if kernels == "c":
-        return simulate_compiled(sc, duration, setups, fallback=True)
+        return simulate_compiled(sc, duration, setups, fallback=True, threads=threads)
     return simulate_reference(sc, duration, setups)
 
 

@@ -231,14 +231,16 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
 
 
 def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup] | None = None,
-                      *, loop: str = "c", library=None, fallback: bool = False
-                      ) -> SimulationResult:
+                      *, loop: str = "c", library=None, fallback: bool = False,
+                      threads: bool = True) -> SimulationResult:
     """Run the scenario on the C kernels; the result equals ``simulate(kernels="casadi")``'s.
 
     ``loop``: ``"c"`` (every period in the generated C driver) or ``"python"`` (a Python loop
     over the ctypes kernels). ``library``: the ``.so`` to use (default: ``ckernels.load()``'s).
     ``fallback``: run the CasADi reference, with a :class:`CKernelsWarning`, when the C kernels
     cannot run this scenario, instead of raising :class:`CKernelsUnavailable`.
+    ``threads``: the units (the C loop releases the GIL) on a thread each; the same logs either
+    way, since the units do not interact.
     """
     if loop not in LOOPS:
         raise CochleaError(f"unknown loop {loop!r}; choose one of {', '.join(LOOPS)}")
@@ -275,7 +277,7 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
             if noise is not None and runs[-1].rows < steps:
                 rng.bit_generator.state = state
                 rng.standard_normal((runs[-1].rows, len(std)))
-    elif loop == "c" and len(setups) > 1:
+    elif loop == "c" and len(setups) > 1 and threads:
         with ThreadPoolExecutor(max_workers=len(setups)) as pool:
             runs = list(pool.map(lambda a: run(lib, a[0], a[1], h, delay, a[2], None),
                                  list(zip(plans, setups, desired))))
