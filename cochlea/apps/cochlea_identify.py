@@ -40,6 +40,20 @@ def _parallel_cutoff(text: str) -> float | None:
     return value
 
 
+def _max_bus(text: str) -> float | None:
+    """``--max-bus-periods``: a number of periods above 1, or ``off``."""
+    if text.strip().lower() == "off":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 1):
+        raise CochleaError(f"--max-bus-periods: expected a number of control periods of at "
+                           f"least 1 or 'off', got {text!r}")
+    return value
+
+
 def _effort_lag(text: str) -> float | str:
     """``--effort-lag``: control periods in [0, 10], or ``auto``."""
     if text.strip().lower() == estimate.AUTO:
@@ -105,6 +119,7 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
                      "effort_lag_periods": result.settings.effort_lag,
                      "effort_lag_option": args.effort_lag,
                      "sample_times_option": args.sample_times,
+                     "max_bus_periods": result.settings.max_bus_periods,
                      "parallel_cutoff_hz": result.settings.parallel_cutoff_hz,
                      "guard_s": result.settings.guard_s,
                      "holdout": result.settings.holdout,
@@ -141,7 +156,6 @@ def _timing_report(result: estimate.Identification, logs) -> dict:
     if search is not None:
         out["lag_search"] = {"lag_periods": search.lag,
                              "residual_rise_percent_at_quarter_period": search.rise_percent,
-                             "at_lower_bound": search.at_bound,
                              "grid_periods": [float(x) for x in search.grid],
                              "residual_rms_ratio": [float(x) for x in search.rms_ratio]}
     return out
@@ -190,8 +204,7 @@ def _print_table(doc: dict) -> None:
     if search is not None:
         text += (f" (auto: the residual's minimum; its RMS rises "
                  f"{search['residual_rise_percent_at_quarter_period']:.2g} % a quarter period "
-                 "either side" + (", at the search's lower end" if search["at_lower_bound"]
-                                  else "") + ")")
+                 "either side)")
     if placed:
         text += f"; {placed} of {len(timing['logs'])} log(s) at their logged sample times"
     print(text)
@@ -221,6 +234,7 @@ def run(args) -> int:
         raise CochleaError(f"--max-condition must be a finite number above 1, got "
                            f"{args.max_condition:g}")
     effort_lag = _effort_lag(args.effort_lag)
+    max_bus = _max_bus(args.max_bus_periods)
     parallel = _parallel_cutoff(args.parallel_cutoff_hz)
     if not (math.isfinite(args.guard_s) and 0 <= args.guard_s <= 10):
         raise CochleaError(f"--guard-s must lie in [0, 10] seconds, got {args.guard_s:g}")
@@ -240,7 +254,7 @@ def run(args) -> int:
         ", ".join(str(log.folder) for log in everything if log.current is None))
     settings = estimate.Settings(args.cutoff_hz, args.decimate, args.holdout,
                                  args.max_condition, args.min_speed, effort_lag,
-                                 parallel, args.guard_s, args.sample_times)
+                                 parallel, args.guard_s, args.sample_times, max_bus)
     result = estimate.identify(m, logs, validate or None, settings, lines)
     physical = _physical(m, result) if args.physical else None
     doc = _report(args, m, unit, logs, validate, result, physical)
@@ -311,6 +325,12 @@ def parser() -> argparse.ArgumentParser:
                         "columns record (logged) or on the nominal grid time_s (nominal); "
                         "auto (default): logged for logs recorded over the motors or the "
                         "emulator (they carry measured current), nominal otherwise")
+    p.add_argument("--max-bus-periods", default=f"{estimate.DEFAULT_MAX_BUS_PERIODS:g}",
+                   metavar="P|off",
+                   help="with logged sample times, leave out the samples near a period whose "
+                        "bus transfers took longer than P periods (the chain answered late: "
+                        "its timing is unknown) (default "
+                        f"{estimate.DEFAULT_MAX_BUS_PERIODS:g}; off: keep them)")
     p.add_argument("--parallel-cutoff-hz", default=f"{estimate.DEFAULT_PARALLEL_CUTOFF_HZ:g}",
                    metavar="F|off", help="low-pass of the regressor's columns and the "
                    "efforts (parallel filtering): just above the excitation's highest "

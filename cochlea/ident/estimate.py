@@ -6,7 +6,10 @@ The steps, as a robotics researcher runs them on a real arm (Gautier and Khalil;
    filter (``scipy.signal.filtfilt``, order :data:`FILTER_ORDER`, cut-off ``cutoff_hz``): the
    same filter on both sides keeps torque and motion in phase and equally attenuated.
    The efforts are first read ``effort_lag`` control periods earlier (default half a period:
-   each command is held over its period; see :data:`DEFAULT_EFFORT_LAG`).
+   each command is held over its period; see :data:`DEFAULT_EFFORT_LAG`; ``auto``:
+   :func:`estimate_lag`). A log recorded over a hardware backend is first placed at the
+   times its timing columns record (:data:`SAMPLE_TIMES`): positions interpolated back onto
+   the grid from their reads, each command held from its write.
 2. **Differentiate** the filtered positions twice (central differences) for velocity and
    acceleration. The logged velocity is not used: on the motors it is the Present Velocity
    register, 0.024 rad/s a count, coarser than what differentiating the 1.5 mrad encoder
@@ -85,6 +88,17 @@ LAG_AMBIGUOUS = 0.1
 #: current and the timing columns), nominal otherwise (a simulated plant steps on the grid).
 SAMPLE_TIMES = ("auto", "logged", "nominal")
 LOGGED, NOMINAL = "logged", "nominal"
+#: A period whose bus transfers (backend_io_s) took longer than this many periods means the
+#: chain answered late: it was held up itself (on the shared machine the emulator loses the
+#: processor for milliseconds and then catches up, or skips, plant time), so when it sampled
+#: the state and applied the commands around then is unknown. Measured over the emulated
+#: bus (five 8 s runs, bus time 0.3 ms typically, up to 4.8-8.2 ms): one run's stall in its
+#: held-out part left 8.2 % NRMS, 1.3 % with its samples left out; at 3 periods up to 95 %
+#: of the samples went on a loaded machine.
+DEFAULT_MAX_BUS_PERIODS = 5.0
+#: The reach of the parallel filter either side of a disturbance, in periods of its cut-off
+#: (0.2 s at 3 Hz): where its impulse response (order 4, forwards and backwards) has decayed.
+SLOW_GUARD_CYCLES = 0.6
 #: Default cut-off of the parallel filter (Hz) on the regressor's columns and the efforts:
 #: above an excitation's highest harmonic (a few Hz), and low enough that the encoder's
 #: quantisation (1.5 mrad a count), twice differentiated, averages out. Measured on the
@@ -143,6 +157,17 @@ class Settings:
     #: Samples within this many seconds of a stuck one are left out (with parallel filtering).
     guard_s: float = DEFAULT_GUARD_S
     sample_times: str = SAMPLE_TIMES[0]
+    #: With logged sample times, samples within the filters' reach (slow_guard_s) of a
+    #: period whose bus transfers took longer than this many periods are left out (None:
+    #: none).
+    max_bus_periods: float | None = DEFAULT_MAX_BUS_PERIODS
+
+    def slow_guard_s(self) -> float:
+        """How far (s) a period of unknown timing spoils the filtered samples: the parallel
+        filter's reach, :data:`SLOW_GUARD_CYCLES` of its cut-off, or ``guard_s`` without it."""
+        if self.parallel_cutoff_hz is None:
+            return self.guard_s
+        return max(self.guard_s, SLOW_GUARD_CYCLES / self.parallel_cutoff_hz)
 
     def decimation(self, rate_hz: float) -> int:
         if self.decimate is not None:
@@ -355,20 +380,27 @@ def prepare(log: RunLog, settings: Settings, model: RobotModel) -> Prepared:
         # they happened: the positions interpolated back onto the grid, the commands held
         # from their writes. A period without timing (a stop) is taken as on time.
         late = np.nan_to_num(log.timing[:, 0], nan=0.0)
-        work = log.timing[:, 1]
-        work = np.where(np.isfinite(work), work, np.nanmedian(work) if
-                        np.isfinite(work).any() else 0.0)
+        work, bus = (np.where(np.isfinite(x), x, np.nanmedian(x) if np.isfinite(x).any()
+                              else 0.0) for x in log.timing[:, 1:3].T)
         reads = np.maximum.accumulate(log.time + late)
         q = np.column_stack([np.interp(log.time, reads, col) for col in log.q.T])
         writes = np.maximum.accumulate(log.time + late + work)
     b, a = signal.butter(FILTER_ORDER, settings.cutoff_hz / nyquist)
     q = signal.filtfilt(b, a, q, axis=0)
+    # A chain that answers late was itself held up (another process had the processor, or
+    # the bus): when it sampled the state and applied the commands around then is unknown
+    # to the host, so the samples within the filters' reach of such a period are left out.
+    slow = np.zeros(log.rows, bool)
+    if logged and settings.max_bus_periods is not None:
+        slow = _dilate(bus > settings.max_bus_periods * dt,
+                       int(math.ceil(settings.slow_guard_s() * rate)))
     qd = np.gradient(q, dt, axis=0)
     qdd = np.gradient(qd, dt, axis=0)
     keep = slice(edge, log.rows - edge, step)
     time, q, qd, qdd = log.time[keep], q[keep], qd[keep], qdd[keep]
     Y = _mapped_regressor(model, q, qd, qdd)
     stuck = _stuck(model, qd, settings.min_speed)
+    slow = slow[keep]
     b2 = a2 = keep2 = None
     if parallel is not None:
         # Parallel filtering: the same low-pass on the regressor's columns and the efforts.
@@ -381,7 +413,9 @@ def prepare(log: RunLog, settings: Settings, model: RobotModel) -> Prepared:
         keep2 = slice(edge2, len(time) - edge2, step2)
         # A stuck row spoils every filtered row its filter reaches: the guard band.
         stuck = _dilate(stuck, int(math.ceil(settings.guard_s * rate2)))
-        time, q, qd, qdd, Y, stuck = (x[keep2] for x in (time, q, qd, qdd, Y, stuck))
+        time, q, qd, qdd, Y, stuck, slow = (x[keep2] for x in
+                                            (time, q, qd, qdd, Y, stuck, slow))
+    stuck = stuck | slow
     return Prepared(log, model, dt, logged, writes, time, q, qd, qdd, Y, ~stuck,
                     (b, a, keep, b2, a2, keep2))
 
@@ -400,7 +434,6 @@ class LagEstimate:
     #: How much the residual's RMS rises a quarter period either side of ``lag`` (%): a sharp
     #: minimum is a well-determined lag.
     rise_percent: float
-    at_bound: bool  # the best lag is 0: the search's lower end
 
 
 def timing_lag(log: RunLog) -> float | None:
@@ -412,7 +445,7 @@ def timing_lag(log: RunLog) -> float | None:
     rows = np.isfinite(log.timing).all(axis=1)
     if not rows.any():
         return None
-    return 0.5 + float(np.mean(log.timing[rows].sum(axis=1))) * log.rate_hz
+    return 0.5 + float(np.mean(log.timing[rows, :2].sum(axis=1))) * log.rate_hz
 
 
 def estimate_lag(model: RobotModel, prepared: list[Prepared], cuts: list[int],
@@ -424,8 +457,8 @@ def estimate_lag(model: RobotModel, prepared: list[Prepared], cuts: list[int],
     the log of their residual's mean square (the weighted fit's likelihood with one variance
     per joint: no joint's units dominate). A grid over :data:`LAG_GRID`, then a bounded
     search between the best point's neighbours. Refuses a flat curve (the lag does not show
-    in the data), a best lag at the grid's top, and two separated minima of about the same
-    depth."""
+    in the data), a best lag at either end of the grid, and two separated minima of about the
+    same depth."""
     n = model.nq
     W = np.vstack([p.Y[:cut].reshape(-1, p.Y.shape[2]) for p, cut in zip(prepared, cuts)])
     keep = np.concatenate([np.repeat(p.moving[:cut], n) for p, cut in zip(prepared, cuts)])
@@ -476,10 +509,16 @@ def estimate_lag(model: RobotModel, prepared: list[Prepared], cuts: list[int],
                                     options={"xatol": LAG_TOLERANCE})
     lag, at = (float(best.x), float(best.fun)) if best.fun <= costs[i] else \
         (float(grid[i]), float(costs[i]))
+    if lag < LAG_TOLERANCE:
+        # A causal log's efforts act after they are logged: a residual least at no lag at
+        # all (and rising towards it) says the columns are out of step.
+        raise LagError(f"{where}: --effort-lag auto: the fit's residual is least at 0 periods, "
+                       "the search's lower end: the logged efforts seem to act before they "
+                       "were commanded (columns out of step?); check the log or give "
+                       "--effort-lag")
     quarter = [cost(x) for x in (lag - 0.25, lag + 0.25) if x >= 0.0]
     rise = 100.0 * math.expm1((np.mean(quarter) - at) / 2.0)
-    return LagEstimate(lag, grid.copy(), np.exp((costs - at) / 2.0), float(rise),
-                       lag < LAG_TOLERANCE)
+    return LagEstimate(lag, grid.copy(), np.exp((costs - at) / 2.0), float(rise))
 
 def regressor(model: RobotModel, samples: Samples) -> np.ndarray:
     """The stacked base regressor ``(N n, n_b)``: rows of sample k are ``k n .. k n + n - 1``,

@@ -29,9 +29,10 @@ SIGNAL_UNITS = {
 #: An optional column of measured motor current (A) per joint: fits the motor's line.
 CURRENT = "current"
 #: The loop's timing columns (s) read when the log has them: when each period started
-#: relative to its deadline, and how long its read, compute and write took (see
-#: cochlea/runtime/loop.py). They place a real-time run's samples and commands in time.
-TIMING = ("start_lateness_s", "compute_s")
+#: relative to its deadline, how long its read, compute and write took, and how long the
+#: bus transfers among them took (see cochlea/runtime/loop.py). They place a real-time
+#: run's samples and commands in time.
+TIMING = ("start_lateness_s", "compute_s", "backend_io_s")
 #: Largest log.csv read (bytes): an hour at 1 kHz of the serial system is about 1.5 GB;
 #: identification runs are minutes long.
 MAX_LOG_BYTES = 2 * 1024**3
@@ -54,7 +55,7 @@ class RunLog:
     qd: np.ndarray  # (N, n) rad/s or m/s, as logged (not used by default: see estimate)
     tau: np.ndarray  # (N, n) N m or N, the commanded effort
     current: np.ndarray | None  # (N, n) A, when the log carries it
-    #: (N, 2) s: each period's start lateness and read-compute-write time (TIMING), when the
+    #: (N, 3) s: each period's start lateness, read-compute-write and bus time (TIMING), when the
     #: log carries them; NaN where the loop did not record them (a stopped period).
     timing: np.ndarray | None = None
 
