@@ -317,8 +317,9 @@ def parser() -> argparse.ArgumentParser:
                    metavar="P|auto",
                    help="control periods by which the logged effort lags the motion it "
                         f"causes (default {estimate.DEFAULT_EFFORT_LAG:g}: a held command; "
-                        "with logged sample times, the lag beyond the logged write plus half "
-                        "a period); auto: the lag that minimises the fit's residual")
+                        "with logged sample times each command is held from its logged write "
+                        "plus P - 0.5 periods); auto: the lag that minimises the fit's "
+                        "residual")
     p.add_argument("--sample-times", choices=estimate.SAMPLE_TIMES,
                    default=estimate.SAMPLE_TIMES[0],
                    help="place each period's state and command at the times the log's timing "
