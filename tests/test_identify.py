@@ -404,17 +404,131 @@ def test_a_log_recorded_against_the_emulator_identifies_its_plant(tmp_path):
     assert main([str(out), "--robot", "serial", "--out", str(report), "--min-speed", "0",
                  "--no-figures"]) == 0
     doc = json.loads(report.read_text())
-    # Over the bus the held-out prediction error measured 1.5-5.2 % on an idle machine (the
-    # simulation's 0.1-0.3 %): an effort acts later than the half-period hold --effort-lag
-    # assumes, and the real-time loop's jitter moves it further (docs/identification.md, "Over
-    # the bus"). Bounded here at twice the issue's 5 %, the parameters checked for direction:
-    # the fit is the perturbed plant's, not the description's.
-    assert max(doc["prediction_nrms_percent"]["wls"]) < 2 * MAX_NRMS
+    # The log carries measured current, so its samples and commands are placed at the times
+    # its timing columns record (--sample-times auto): late periods and the ones that catch
+    # up after them are crowded in wall time while time_s stays on the grid. On the nominal
+    # grid five runs gave 1-22 % held-out NRMS and viscous frictions 2-25 % off. With the
+    # logged times (and the samples near a chain that answered 5 periods late left out):
+    # NRMS 0.3-1.3 %, 4 parameters well excited in each 8 s run (joint3.Ia and the viscous
+    # frictions), all within 1.5 % of the plant's. Bounds: the issue's 5 % NRMS, at least 3
+    # well excited, within 3 % (half as much again as measured, for a loaded machine).
+    assert all(t["logged_times"] for t in doc["timing"]["logs"])
+    assert max(doc["prediction_nrms_percent"]["wls"]) < MAX_NRMS
     m = cochlea.model("serial", parameterisation="base", actuators="all")
     truth = true_base(m, scenario, "arm1")
     wls = np.array([p["wls"] for p in doc["parameters"]])
+    rel = np.array([p["wls_relative_std_error_percent"] or np.inf for p in doc["parameters"]])
+    good = 3.0 * rel < 100.0 * MAX_ERROR
+    assert good.sum() >= 3, dict(zip(m.parameters.meanings, rel))
+    err = np.abs(wls[good] - truth[good]) / np.abs(truth[good])
+    assert err.max() < 1.5 * MAX_ERROR, dict(zip(np.array(m.parameters.meanings)[good], err))
     # The plant's viscous frictions (0.015, 0.008, 0.012 N m s/rad) against the description's
     # 0.01: each estimate is nearer the plant's.
     fv = [m.parameters.meanings.index(f"joint{j}.Fv") for j in (1, 2, 3)]
     assert np.all(np.abs(wls[fv] - truth[fv]) < np.abs(wls[fv] - m.parameters.nominal[fv])), \
         (wls[fv], truth[fv])
+
+
+def test_a_held_command_averaged_over_a_period_is_the_interpolated_effort():
+    """On the nominal grid, holding each command from ``lag - 0.5`` periods after its row and
+    averaging over each sample's period is the linear interpolation ``lag`` periods back
+    (what --effort-lag always meant), for any lag."""
+    rng = np.random.default_rng(4)
+    dt = 1e-3
+    t = np.arange(200) * dt
+    values = rng.standard_normal((200, 2))
+    for lag in (0.0, 0.5, 0.8, 2.3):
+        got = estimate._held_mean(values, t + (lag - 0.5) * dt, t, dt)
+        want = np.column_stack([np.interp(t - lag * dt, t, v) for v in values.T])
+        inner = slice(4, -4)  # away from the ends, where the hold has no history
+        assert np.allclose(got[inner], want[inner], atol=1e-12)
+
+
+def _with_timing(src: Path, dst: Path, lateness: np.ndarray, compute: np.ndarray) -> Path:
+    """A copy of a run folder with the loop's timing columns (s) added, as a real-time run
+    writes them (a run as fast as possible has none)."""
+    header = (src / "log.csv").read_text().splitlines()[0].split(",")
+    assert "start_lateness_s" not in header
+    data = np.loadtxt(src / "log.csv", delimiter=",", skiprows=1)
+    timing = np.column_stack([lateness, np.full(len(data), 1e-3), compute, np.zeros(len(data))])
+    names = header + ["start_lateness_s", "wall_period_s", "compute_s", "backend_io_s"]
+    dst.mkdir()
+    np.savetxt(dst / "log.csv", np.column_stack([data, timing]), delimiter=",",
+               header=",".join(names), comments="", fmt="%.17g")
+    return dst
+
+
+def test_logged_sample_times_hold_each_command_from_its_write(serial_run, tmp_path):
+    """With --sample-times logged a command acts from the end of its period's work: a log
+    whose every period wrote 0.3 periods after its start identifies as the nominal grid does
+    with 0.3 periods more lag; with no lateness and no work, exactly as the nominal grid."""
+    tmp, _ = serial_run
+    m = cochlea.model("serial", parameterisation="base", actuators="all")
+    rows = len((tmp / "measured" / "log.csv").read_text().splitlines()) - 1
+    on_time = read_run(_with_timing(tmp / "measured", tmp_path / "a", np.zeros(rows),
+                                    np.zeros(rows)), m, "serial", "arm1")
+    slow = read_run(_with_timing(tmp / "measured", tmp_path / "b", np.zeros(rows),
+                                 np.full(rows, 0.3e-3)), m, "serial", "arm1")
+    fit = dict(min_speed=0.0)
+    logged = estimate.identify(m, [on_time], settings=estimate.Settings(
+        sample_times="logged", **fit))
+    nominal = estimate.identify(m, [on_time], settings=estimate.Settings(
+        sample_times="nominal", **fit))
+    assert logged.logged_times == [True] and nominal.logged_times == [False]
+    assert np.allclose(logged.beta, nominal.beta, rtol=1e-9, atol=1e-15)
+    late = estimate.identify(m, [slow], settings=estimate.Settings(sample_times="logged", **fit))
+    shifted = estimate.identify(m, [slow], settings=estimate.Settings(
+        sample_times="nominal", effort_lag=0.8, **fit))
+    assert np.allclose(late.beta, shifted.beta, rtol=1e-6, atol=1e-12)
+    assert not np.allclose(late.beta, logged.beta, rtol=1e-6, atol=1e-12)
+    # auto: a simulated run (no measured current) stays on the nominal grid.
+    assert estimate.identify(m, [slow], settings=estimate.Settings(**fit)).logged_times == \
+        [False]
+
+
+def test_effort_lag_auto_finds_the_held_commands_half_period(serial_run, tmp_path, capsys):
+    tmp, _ = serial_run
+    out = tmp_path / "ident.json"
+    assert main([str(tmp / "measured"), "--robot", "serial", "--out", str(out),
+                 "--min-speed", "0", "--no-figures", "--effort-lag", "auto"]) == 0
+    doc = json.loads(out.read_text())
+    search = doc["timing"]["lag_search"]
+    # The simulated plant holds each command over its period: half a period (measured
+    # 0.54, the residual's RMS rising 21 % a quarter period away).
+    assert 0.35 < search["lag_periods"] < 0.75, search
+    assert doc["settings"]["effort_lag_periods"] == search["lag_periods"]
+    assert search["residual_rise_percent_at_quarter_period"] > 5.0
+    assert min(search["residual_rms_ratio"]) >= 1.0 - 1e-9
+    assert max(doc["prediction_nrms_percent"]["wls"]) < MAX_NRMS
+    assert "auto: the residual's minimum" in capsys.readouterr().out
+
+
+def test_lag_and_timing_mistakes_are_refused_in_one_line(serial_run, tmp_path, capsys):
+    tmp, _ = serial_run
+    out = tmp_path / "ident.json"
+    base = [str(tmp / "measured"), "--robot", "serial", "--min-speed", "0"]
+    for bad in ("abc", "-1", "nan", "11"):
+        assert "--effort-lag" in _bad(base + ["--effort-lag", bad], capsys, out)
+    assert "--max-bus-periods" in _bad(base + ["--max-bus-periods", "0.5"], capsys, out)
+
+    # A run as fast as possible writes no timing columns.
+    err = _bad(base[:3] + ["--sample-times", "logged"], capsys, out)
+    assert "timing columns" in err and "--sample-times nominal" in err
+
+    def shifted(by):  # each row's efforts replaced by those `by` rows later
+        def edit(lines):
+            header = lines[0].rstrip("\n").split(",")
+            cols = [i for i, c in enumerate(header) if ".tau." in c]
+            rows = [x.rstrip("\n").split(",") for x in lines[1:]]
+            new = [list(r) for r in rows]
+            for k in range(len(rows)):
+                for i in cols:
+                    new[k][i] = rows[min(max(k + by, 0), len(rows) - 1)][i]
+            return lines[:1] + [",".join(r) + "\n" for r in new]
+        return edit
+    # Efforts that lag their motion by 5.5 periods (beyond the search), and efforts logged
+    # 4.5 periods before the motion they cause (a log's columns out of step).
+    for by, expected in ((5, "still falls at 3 periods"), (-5, "least at 0 periods")):
+        folder = _copy_log(tmp / "measured", tmp_path / f"shift{by}", shifted(by))
+        err = _bad([str(folder)] + base[1:] + ["--effort-lag", "auto"], capsys, out)
+        assert expected in err, err

@@ -40,6 +40,34 @@ def _parallel_cutoff(text: str) -> float | None:
     return value
 
 
+def _max_bus(text: str) -> float | None:
+    """``--max-bus-periods``: a number of periods above 1, or ``off``."""
+    if text.strip().lower() == "off":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 1):
+        raise CochleaError(f"--max-bus-periods: expected a number of control periods of at "
+                           f"least 1 or 'off', got {text!r}")
+    return value
+
+
+def _effort_lag(text: str) -> float | str:
+    """``--effort-lag``: control periods in [0, 10], or ``auto``."""
+    if text.strip().lower() == estimate.AUTO:
+        return estimate.AUTO
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 <= value <= 10):
+        raise CochleaError(f"--effort-lag: expected a number of control periods in [0, 10] or "
+                           f"'auto', got {text!r}")
+    return value
+
+
 def _unit(args) -> str:
     adapter = robot(args.robot)
     system = adapter.load(args.description)
@@ -89,6 +117,9 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
                      "decimate": result.settings.decimate,
                      "min_speed_rad_s": result.settings.min_speed,
                      "effort_lag_periods": result.settings.effort_lag,
+                     "effort_lag_option": args.effort_lag,
+                     "sample_times_option": args.sample_times,
+                     "max_bus_periods": result.settings.max_bus_periods,
                      "parallel_cutoff_hz": result.settings.parallel_cutoff_hz,
                      "guard_s": result.settings.guard_s,
                      "holdout": result.settings.holdout,
@@ -104,6 +135,7 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
             "wls_all_samples": [_finite(x) for x in result.prediction_nrms(moving=False)]},
         "residual_rms_wls": dict(zip(joints, map(float, result.wls.residual_rms))),
         "current_fits": _line_report(result),
+        "timing": _timing_report(result, logs + validate),
     }
     if physical is not None:
         doc["physical"] = {"full_names": list(m.full_parameters.names),
@@ -112,6 +144,21 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
                            "prediction_nrms_percent":
                                [_finite(x) for x in result.prediction_nrms(physical.base)]}
     return doc
+
+
+def _timing_report(result: estimate.Identification, logs) -> dict:
+    """How the logs were placed in time and, with --effort-lag auto, the lag search."""
+    out = {"logs": [{"folder": str(log.folder), "logged_times": logged,
+                     "timing_lag_periods": estimate.timing_lag(log)}
+                    for log, logged in zip(logs, result.logged_times)],
+           "effort_lag_periods": result.settings.effort_lag, "lag_search": None}
+    search = result.lag_search
+    if search is not None:
+        out["lag_search"] = {"lag_periods": search.lag,
+                             "residual_rise_percent_at_quarter_period": search.rise_percent,
+                             "grid_periods": [float(x) for x in search.grid],
+                             "residual_rms_ratio": [float(x) for x in search.rms_ratio]}
+    return out
 
 
 def _line_report(result: estimate.Identification) -> list[dict]:
@@ -148,6 +195,19 @@ def _print_table(doc: dict) -> None:
               f"{p['wls']:>12.5g}  {p['wls_std_error']:>10.3g}  "
               f"{'inf' if rel is None else f'{rel:.3g}':>8}  {p['si_unit']}")
     pred = doc["prediction_nrms_percent"]
+    timing = doc["timing"]
+    placed = sum(t["logged_times"] for t in timing["logs"])
+    text = (f"  effort lag {timing['effort_lag_periods']:.3g} periods"
+            + (" (each command held from its logged write plus the lag less half a period)"
+               if placed else " (on the nominal grid)"))
+    search = timing["lag_search"]
+    if search is not None:
+        text += (f" (auto: the residual's minimum; its RMS rises "
+                 f"{search['residual_rise_percent_at_quarter_period']:.2g} % a quarter period "
+                 "either side)")
+    if placed:
+        text += f"; {placed} of {len(timing['logs'])} log(s) at their logged sample times"
+    print(text)
     for line in doc["current_fits"]:
         d = line["description_units"]
         print(f"  current-to-torque fit of {line['joint']} (ID {line['motor_id']}): "
@@ -173,9 +233,8 @@ def run(args) -> int:
     if not (math.isfinite(args.max_condition) and args.max_condition > 1):
         raise CochleaError(f"--max-condition must be a finite number above 1, got "
                            f"{args.max_condition:g}")
-    if not (math.isfinite(args.effort_lag) and 0 <= args.effort_lag <= 10):
-        raise CochleaError(f"--effort-lag must lie in [0, 10] control periods, got "
-                           f"{args.effort_lag:g}")
+    effort_lag = _effort_lag(args.effort_lag)
+    max_bus = _max_bus(args.max_bus_periods)
     parallel = _parallel_cutoff(args.parallel_cutoff_hz)
     if not (math.isfinite(args.guard_s) and 0 <= args.guard_s <= 10):
         raise CochleaError(f"--guard-s must lie in [0, 10] seconds, got {args.guard_s:g}")
@@ -194,8 +253,8 @@ def run(args) -> int:
         args.fit_current, drive_lines, with_current,
         ", ".join(str(log.folder) for log in everything if log.current is None))
     settings = estimate.Settings(args.cutoff_hz, args.decimate, args.holdout,
-                                 args.max_condition, args.min_speed, args.effort_lag,
-                                 parallel, args.guard_s)
+                                 args.max_condition, args.min_speed, effort_lag,
+                                 parallel, args.guard_s, args.sample_times, max_bus)
     result = estimate.identify(m, logs, validate or None, settings, lines)
     physical = _physical(m, result) if args.physical else None
     doc = _report(args, m, unit, logs, validate, result, physical)
@@ -254,9 +313,25 @@ def parser() -> argparse.ArgumentParser:
                    help="leave out samples where a joint moves slower than this (rad/s; a "
                         "prismatic joint: times 0.02 m/rad) (default "
                         f"{estimate.DEFAULT_MIN_SPEED:g})")
-    p.add_argument("--effort-lag", type=float, default=estimate.DEFAULT_EFFORT_LAG,
+    p.add_argument("--effort-lag", default=f"{estimate.DEFAULT_EFFORT_LAG:g}",
+                   metavar="P|auto",
                    help="control periods by which the logged effort lags the motion it "
-                        f"causes (default {estimate.DEFAULT_EFFORT_LAG:g}: a held command)")
+                        f"causes (default {estimate.DEFAULT_EFFORT_LAG:g}: a held command; "
+                        "with logged sample times each command is held from its logged write "
+                        "plus P - 0.5 periods); auto: the lag that minimises the fit's "
+                        "residual")
+    p.add_argument("--sample-times", choices=estimate.SAMPLE_TIMES,
+                   default=estimate.SAMPLE_TIMES[0],
+                   help="place each period's state and command at the times the log's timing "
+                        "columns record (logged) or on the nominal grid time_s (nominal); "
+                        "auto (default): logged for logs recorded over the motors or the "
+                        "emulator (they carry measured current), nominal otherwise")
+    p.add_argument("--max-bus-periods", default=f"{estimate.DEFAULT_MAX_BUS_PERIODS:g}",
+                   metavar="P|off",
+                   help="with logged sample times, leave out the samples near a period whose "
+                        "bus transfers took longer than P periods (the chain answered late: "
+                        "its timing is unknown) (default "
+                        f"{estimate.DEFAULT_MAX_BUS_PERIODS:g}; off: keep them)")
     p.add_argument("--parallel-cutoff-hz", default=f"{estimate.DEFAULT_PARALLEL_CUTOFF_HZ:g}",
                    metavar="F|off", help="low-pass of the regressor's columns and the "
                    "efforts (parallel filtering): just above the excitation's highest "

@@ -6,7 +6,10 @@ The steps, as a robotics researcher runs them on a real arm (Gautier and Khalil;
    filter (``scipy.signal.filtfilt``, order :data:`FILTER_ORDER`, cut-off ``cutoff_hz``): the
    same filter on both sides keeps torque and motion in phase and equally attenuated.
    The efforts are first read ``effort_lag`` control periods earlier (default half a period:
-   each command is held over its period; see :data:`DEFAULT_EFFORT_LAG`).
+   each command is held over its period; see :data:`DEFAULT_EFFORT_LAG`; ``auto``:
+   :func:`estimate_lag`). A log recorded over a hardware backend is first placed at the
+   times its timing columns record (:data:`SAMPLE_TIMES`): positions interpolated back onto
+   the grid from their reads, each command held from its write.
 2. **Differentiate** the filtered positions twice (central differences) for velocity and
    acceleration. The logged velocity is not used: on the motors it is the Present Velocity
    register, 0.024 rad/s a count, coarser than what differentiating the 1.5 mrad encoder
@@ -52,7 +55,7 @@ from scipy import optimize, signal
 from ..errors import CochleaError
 from ..robots import RobotModel
 from .current import CurrentFitError, Line, offset_shape
-from .logs import LogError, RunLog
+from .logs import TIMING, LogError, RunLog
 
 #: Butterworth order of the zero-phase filter (filtfilt doubles it).
 FILTER_ORDER = 4
@@ -64,6 +67,38 @@ DEFAULT_CUTOFF_HZ = 20.0
 #: row's state was sampled. Measured on the simulated ideal plant: without the half period the
 #: armature and first-moment estimates are biased by 2-7 %, with it below 1 %.
 DEFAULT_EFFORT_LAG = 0.5
+#: ``--effort-lag auto``: the lag that minimises the fit's residual (:func:`estimate_lag`).
+AUTO = "auto"
+#: The lags searched by :func:`estimate_lag` (control periods): a grid, then a bounded
+#: search between the best point's neighbours to this tolerance. Three periods cover a
+#: held command (0.5), a write at the end of a slow period and a period of bus delay.
+LAG_GRID = np.arange(0.0, 3.0 + 1e-9, 0.25)
+LAG_TOLERANCE = 0.01
+#: The residual curve is refused as flat when its whole range over the grid changes the
+#: residual's RMS by less than this fraction (the lag is then not observable in the data),
+#: and as ambiguous when another local minimum further than :data:`LAG_SEPARATION` periods
+#: from the best lies within :data:`LAG_AMBIGUOUS` of the curve's range above it.
+LAG_FLAT = 1e-3
+LAG_SEPARATION = 0.5
+LAG_AMBIGUOUS = 0.1
+#: ``--sample-times``: where a log's samples and commands are placed in time. ``logged``: at
+#: the times its timing columns record (a period's start for the state it reads, the end of
+#: its work for the command it writes); ``nominal``: on the grid ``time_s``; ``auto`` (the
+#: default): logged for a log recorded over a hardware backend (one that carries measured
+#: current and the timing columns), nominal otherwise (a simulated plant steps on the grid).
+SAMPLE_TIMES = ("auto", "logged", "nominal")
+LOGGED, NOMINAL = "logged", "nominal"
+#: A period whose bus transfers (backend_io_s) took longer than this many periods means the
+#: chain answered late: it was held up itself (on the shared machine the emulator loses the
+#: processor for milliseconds and then catches up, or skips, plant time), so when it sampled
+#: the state and applied the commands around then is unknown. Measured over the emulated
+#: bus (five 8 s runs, bus time 0.3 ms typically, up to 4.8-8.2 ms): one run's stall in its
+#: held-out part left 8.2 % NRMS, 1.3 % with its samples left out; at 3 periods up to 95 %
+#: of the samples went on a loaded machine.
+DEFAULT_MAX_BUS_PERIODS = 5.0
+#: The reach of the parallel filter either side of a disturbance, in periods of its cut-off
+#: (0.2 s at 3 Hz): where its impulse response (order 4, forwards and backwards) has decayed.
+SLOW_GUARD_CYCLES = 0.6
 #: Default cut-off of the parallel filter (Hz) on the regressor's columns and the efforts:
 #: above an excitation's highest harmonic (a few Hz), and low enough that the encoder's
 #: quantisation (1.5 mrad a count), twice differentiated, averages out. Measured on the
@@ -115,11 +150,24 @@ class Settings:
     #: Rows of a joint moving slower than this (rad/s, and a fiftieth of it in m/s at a
     #: prismatic joint) are left out: see :func:`moving_rows`.
     min_speed: float = DEFAULT_MIN_SPEED
-    effort_lag: float = DEFAULT_EFFORT_LAG  # control periods
+    #: Control periods (a number), or AUTO: estimated from the data (estimate_lag).
+    effort_lag: float | str = DEFAULT_EFFORT_LAG
     #: The low-pass on the regressor's columns and the efforts (Hz), None: none.
     parallel_cutoff_hz: float | None = DEFAULT_PARALLEL_CUTOFF_HZ
     #: Samples within this many seconds of a stuck one are left out (with parallel filtering).
     guard_s: float = DEFAULT_GUARD_S
+    sample_times: str = SAMPLE_TIMES[0]
+    #: With logged sample times, samples within the filters' reach (slow_guard_s) of a
+    #: period whose bus transfers took longer than this many periods are left out (None:
+    #: none).
+    max_bus_periods: float | None = DEFAULT_MAX_BUS_PERIODS
+
+    def slow_guard_s(self) -> float:
+        """How far (s) a period of unknown timing spoils the filtered samples: the parallel
+        filter's reach, :data:`SLOW_GUARD_CYCLES` of its cut-off, or ``guard_s`` without it."""
+        if self.parallel_cutoff_hz is None:
+            return self.guard_s
+        return max(self.guard_s, SLOW_GUARD_CYCLES / self.parallel_cutoff_hz)
 
     def decimation(self, rate_hz: float) -> int:
         if self.decimate is not None:
@@ -201,12 +249,102 @@ def _dilate(mask: np.ndarray, rows: int) -> np.ndarray:
     return np.convolve(mask.astype(float), kernel, mode="same") > 0.5
 
 
+def sample_times(log: RunLog, settings: Settings) -> bool:
+    """Whether ``log``'s samples and commands are placed at the times its timing columns
+    record (True) or on the nominal grid ``time_s`` (False); see :data:`SAMPLE_TIMES`."""
+    choice = settings.sample_times
+    if choice == NOMINAL:
+        return False
+    if choice == LOGGED:
+        if log.timing is None:
+            raise LogError(f"{log.file}: --sample-times logged needs the loop's timing columns "
+                           f"{', '.join(TIMING)} (written by cochlea-run and cochlea-embedded); "
+                           "give --sample-times nominal")
+        return True
+    # auto: a log that carries measured current was recorded over a hardware backend (the
+    # motors or the emulator), whose periods start and write at the wall clock's times; a
+    # simulated run's plant steps on the nominal grid whatever its wall-clock timing.
+    return log.timing is not None and log.current is not None
+
+
+def _held_mean(values: np.ndarray, breaks: np.ndarray, time: np.ndarray, dt: float
+               ) -> np.ndarray:
+    """The mean over ``[t - dt/2, t + dt/2]`` of each ``t`` in ``time`` of the commands
+    ``values[k]`` (rows), each held from ``breaks[k]`` to ``breaks[k + 1]`` (the last for
+    ``dt``): the zero-order hold a drive applies, averaged over the period a state sample
+    stands for. With ``breaks = time + (lag - 0.5) dt`` on a uniform grid this is the linear
+    interpolation of ``values`` at ``t - lag dt``."""
+    edges = np.append(breaks, breaks[-1] + dt)
+    area = np.vstack([np.zeros((1, values.shape[1])),
+                      np.cumsum(np.diff(edges)[:, None] * values, axis=0)])
+    lo = np.column_stack([np.interp(time - dt / 2, edges, a) for a in area.T])
+    hi = np.column_stack([np.interp(time + dt / 2, edges, a) for a in area.T])
+    return (hi - lo) / dt
+
+
+@dataclass
+class Prepared:
+    """One log through the states' side of the pipeline (filter, differentiation, regressor,
+    parallel filter, decimation), which the effort lag does not touch; :meth:`samples` adds
+    the efforts (and currents) for a lag. The lag search re-lags the efforts only."""
+
+    log: RunLog
+    model: RobotModel
+    dt: float
+    logged: bool  # samples and commands at the logged times (sample_times)
+    writes: np.ndarray  # (N,) s: when each period's command went out (nominal: t)
+    time: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    Y: np.ndarray
+    moving: np.ndarray
+    filters: tuple  # (b, a, keep, b2, a2, keep2): the efforts' filters and decimations
+
+    def like_tau(self, series: np.ndarray) -> np.ndarray:
+        """``series`` (full rate) through the efforts' filters and decimations."""
+        b, a, keep, b2, a2, keep2 = self.filters
+        out = signal.filtfilt(b, a, series, axis=0)[keep]
+        if b2 is not None:
+            out = signal.filtfilt(b2, a2, out, axis=0)[keep2]
+        return out
+
+    def held(self, values: np.ndarray, lag: float) -> np.ndarray:
+        """Commands ``values`` (one row per period) as the motion saw them, at full rate: each
+        held from its write plus ``lag - 0.5`` periods (on the nominal grid: read ``lag``
+        periods earlier), averaged over each sample's period."""
+        return _held_mean(values, self.writes + (lag - 0.5) * self.dt, self.log.time, self.dt)
+
+    def samples(self, lag: float, with_current: bool = False) -> Samples:
+        tau = self.like_tau(self.held(self.log.tau, lag))
+        current = shape_of = None
+        if with_current:
+            # Present Current is read at the start of the period after the command it
+            # measures (it is that command's Goal Current): row k + 1 holds command k.
+            cur = self.log.current
+            command = np.vstack([cur[1:], cur[-1:]])
+            raw = self.held(command, lag)
+            current = self.like_tau(raw)
+
+            # The shape is nonlinear in the current: taken at the full rate, before the
+            # filters (the equation a I + b s = Y beta holds at every instant, then filtered).
+            def shape_of(knees: np.ndarray) -> np.ndarray:
+                return self.like_tau(offset_shape(raw, knees))
+        return Samples(self.time, self.q, self.qd, self.qdd, tau, self.Y, self.moving,
+                       current, shape_of)
+
+
 def process(log: RunLog, settings: Settings, model: RobotModel,
             with_current: bool = False) -> Samples:
     """``log`` filtered, differentiated, its regressor stacked and parallel-filtered, its
-    ends dropped and decimated: see the module docstring. Refuses a log too short for the
-    filters and the parameters (one line). ``with_current``: also the measured current and
-    the offset's shape (``Samples.shape_of``), for the lines."""
+    ends dropped and decimated, with a numeric ``settings.effort_lag``: see the module
+    docstring and :func:`prepare`."""
+    return prepare(log, settings, model).samples(float(settings.effort_lag), with_current)
+
+
+def prepare(log: RunLog, settings: Settings, model: RobotModel) -> Prepared:
+    """The states' side of :func:`process`. Refuses a log too short for the filters and the
+    parameters (one line)."""
     n_parameters = len(model.parameters.names)
     rate = log.rate_hz
     dt = 1.0 / rate
@@ -232,24 +370,38 @@ def process(log: RunLog, settings: Settings, model: RobotModel,
                        f"with --cutoff-hz {settings.cutoff_hz:g}"
                        + (f" and --parallel-cutoff-hz {parallel:g}" if parallel else "")
                        + ": record a longer excitation")
+    logged = sample_times(log, settings)
+    q, writes = log.q, log.time
+    if logged:
+        # A real-time period reads the state when it starts (its deadline plus its
+        # lateness) and writes its command when its work ends; a late period (the shared
+        # machine loses milliseconds at once) and the ones that catch up after it are
+        # crowded together in wall time while time_s stays on the grid. Placing them where
+        # they happened: the positions interpolated back onto the grid, the commands held
+        # from their writes. A period without timing (a stop) is taken as on time.
+        late = np.nan_to_num(log.timing[:, 0], nan=0.0)
+        work, bus = (np.where(np.isfinite(x), x, np.nanmedian(x) if np.isfinite(x).any()
+                              else 0.0) for x in log.timing[:, 1:3].T)
+        reads = np.maximum.accumulate(log.time + late)
+        q = np.column_stack([np.interp(log.time, reads, col) for col in log.q.T])
+        writes = np.maximum.accumulate(log.time + late + work)
     b, a = signal.butter(FILTER_ORDER, settings.cutoff_hz / nyquist)
-    q = signal.filtfilt(b, a, log.q, axis=0)
-    # The effort at each row's time: the logged commands read `effort_lag` periods earlier.
-    lagged = log.time - settings.effort_lag * dt
-    tau = np.column_stack([np.interp(lagged, log.time, col) for col in log.tau.T])
-    tau = signal.filtfilt(b, a, tau, axis=0)
-    raw = None
-    if with_current:
-        # Present Current is read at the start of the period after the command it measures:
-        # it stands one period later than the effort column.
-        later = log.time + (1.0 - settings.effort_lag) * dt
-        raw = np.column_stack([np.interp(later, log.time, col) for col in log.current.T])
+    q = signal.filtfilt(b, a, q, axis=0)
+    # A chain that answers late was itself held up (another process had the processor, or
+    # the bus): when it sampled the state and applied the commands around then is unknown
+    # to the host, so the samples within the filters' reach of such a period are left out.
+    slow = np.zeros(log.rows, bool)
+    if logged and settings.max_bus_periods is not None:
+        slow = _dilate(bus > settings.max_bus_periods * dt,
+                       int(math.ceil(settings.slow_guard_s() * rate)))
     qd = np.gradient(q, dt, axis=0)
     qdd = np.gradient(qd, dt, axis=0)
     keep = slice(edge, log.rows - edge, step)
-    time, q, qd, qdd, tau = log.time[keep], q[keep], qd[keep], qdd[keep], tau[keep]
+    time, q, qd, qdd = log.time[keep], q[keep], qd[keep], qdd[keep]
     Y = _mapped_regressor(model, q, qd, qdd)
     stuck = _stuck(model, qd, settings.min_speed)
+    slow = slow[keep]
+    b2 = a2 = keep2 = None
     if parallel is not None:
         # Parallel filtering: the same low-pass on the regressor's columns and the efforts.
         # tau = Y beta holds row by row, so it holds filtered as well, exactly, whatever the
@@ -258,27 +410,115 @@ def process(log: RunLog, settings: Settings, model: RobotModel,
         # controller's chatter that the double differentiation amplifies.
         b2, a2 = signal.butter(FILTER_ORDER, parallel / (rate2 / 2.0))
         Y = signal.filtfilt(b2, a2, Y, axis=0)
-        tau = signal.filtfilt(b2, a2, tau, axis=0)
         keep2 = slice(edge2, len(time) - edge2, step2)
         # A stuck row spoils every filtered row its filter reaches: the guard band.
         stuck = _dilate(stuck, int(math.ceil(settings.guard_s * rate2)))
-        time, q, qd, qdd, tau, Y, stuck = (x[keep2] for x in (time, q, qd, qdd, tau, Y, stuck))
-    current = shape_of = None
-    if raw is not None:
-        def like_tau(series: np.ndarray) -> np.ndarray:
-            """``series`` (full rate) through the efforts' filters and decimations."""
-            out = signal.filtfilt(b, a, series, axis=0)[keep]
-            if parallel is not None:
-                out = signal.filtfilt(b2, a2, out, axis=0)[keep2]
-            return out
+        time, q, qd, qdd, Y, stuck, slow = (x[keep2] for x in
+                                            (time, q, qd, qdd, Y, stuck, slow))
+    stuck = stuck | slow
+    return Prepared(log, model, dt, logged, writes, time, q, qd, qdd, Y, ~stuck,
+                    (b, a, keep, b2, a2, keep2))
 
-        current = like_tau(raw)
-        # The shape is nonlinear in the current: taken at the full rate, before the filters
-        # (the equation a I + b s = Y beta holds at every instant, then filtered).
-        def shape_of(knees: np.ndarray) -> np.ndarray:
-            return like_tau(offset_shape(raw, knees))
-    return Samples(time, q, qd, qdd, tau, Y, ~stuck, current, shape_of)
 
+class LagError(LogError):
+    """The effort's lag cannot be told from the logs (``--effort-lag auto``)."""
+
+
+@dataclass(frozen=True)
+class LagEstimate:
+    """What :func:`estimate_lag` found: the lag, the residual curve behind it, its sharpness."""
+
+    lag: float  # control periods
+    grid: np.ndarray  # lags searched (periods)
+    rms_ratio: np.ndarray  # the fit's residual RMS at each, over the one at ``lag``
+    #: How much the residual's RMS rises a quarter period either side of ``lag`` (%): a sharp
+    #: minimum is a well-determined lag.
+    rise_percent: float
+
+
+def timing_lag(log: RunLog) -> float | None:
+    """The mean lag (periods) the timing columns show on the nominal grid: half a period of
+    hold plus the mean of each period's lateness and read-compute-write time. None without
+    timing columns. A diagnostic: the logged times place each period on its own."""
+    if log.timing is None:
+        return None
+    rows = np.isfinite(log.timing).all(axis=1)
+    if not rows.any():
+        return None
+    return 0.5 + float(np.mean(log.timing[rows, :2].sum(axis=1))) * log.rate_hz
+
+
+def estimate_lag(model: RobotModel, prepared: list[Prepared], cuts: list[int],
+                 settings: Settings, where: str) -> LagEstimate:
+    """The effort lag (periods) that minimises the fit's residual on the fitted rows (the
+    first ``cuts[i]`` samples of each log). The regressor depends on the states only, so it
+    is stacked once; each candidate lag re-lags and re-filters the efforts and solves OLS,
+    then WLS with per-joint weights from it. The criterion is the mean over the joints of
+    the log of their residual's mean square (the weighted fit's likelihood with one variance
+    per joint: no joint's units dominate). A grid over :data:`LAG_GRID`, then a bounded
+    search between the best point's neighbours. Refuses a flat curve (the lag does not show
+    in the data), a best lag at either end of the grid, and two separated minima of about the
+    same depth."""
+    n = model.nq
+    W = np.vstack([p.Y[:cut].reshape(-1, p.Y.shape[2]) for p, cut in zip(prepared, cuts)])
+    keep = np.concatenate([np.repeat(p.moving[:cut], n) for p, cut in zip(prepared, cuts)])
+    joint = np.tile(np.arange(n), len(keep) // n)[keep]
+    W = W[keep]
+    # A robot that was not excited says so, not that its lag is flat.
+    _check_excited(model, W, settings, where)
+    pinv = np.linalg.pinv(W)
+
+    def cost(lag: float) -> float:
+        y = np.concatenate([p.like_tau(p.held(p.log.tau, lag))[:cut].ravel()
+                            for p, cut in zip(prepared, cuts)])[keep]
+        r = y - W @ (pinv @ y)
+        sigma = np.array([np.sqrt(np.mean(r[joint == j] ** 2)) for j in range(n)])
+        w = 1.0 / np.maximum(sigma, 1e-12 * max(sigma.max(), 1e-300))[joint]
+        beta = np.linalg.lstsq(W * w[:, None], y * w, rcond=None)[0]
+        r = y - W @ beta
+        ms = np.array([np.mean(r[joint == j] ** 2) for j in range(n)])
+        return float(np.mean(np.log(np.maximum(ms, 1e-300))))
+
+    grid = LAG_GRID
+    costs = np.array([cost(lag) for lag in grid])
+    i = int(np.argmin(costs))
+    span = float(costs.max() - costs.min())
+    # The criterion is a mean log mean square: a change d scales the residual's RMS by
+    # exp(d / 2).
+    if span < 2.0 * math.log1p(LAG_FLAT):
+        raise LagError(f"{where}: --effort-lag auto: the fit's residual hardly depends on the "
+                       f"lag (it changes by {100 * math.expm1(span / 2):.2g} % over "
+                       f"{grid[0]:g}..{grid[-1]:g} periods): give --effort-lag (0.5 for a "
+                       "command held over its period)")
+    if i == len(grid) - 1:
+        raise LagError(f"{where}: --effort-lag auto: the fit's residual still falls at "
+                       f"{grid[-1]:g} periods, the end of the search: the log's efforts lag "
+                       "more than a held command on a bus should; check the run's timing or "
+                       "give --effort-lag")
+    minima = [j for j in range(len(grid))
+              if (j == 0 or costs[j] <= costs[j - 1]) and
+              (j == len(grid) - 1 or costs[j] <= costs[j + 1])]
+    rivals = [j for j in minima if abs(grid[j] - grid[i]) > LAG_SEPARATION and
+              costs[j] - costs[i] < LAG_AMBIGUOUS * span]
+    if rivals:
+        raise LagError(f"{where}: --effort-lag auto: the fit's residual has minima of about "
+                       f"the same depth at {grid[i]:g} and {grid[rivals[0]]:g} periods: the "
+                       "lag is ambiguous in these logs; give --effort-lag")
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    best = optimize.minimize_scalar(cost, bounds=(lo, hi), method="bounded",
+                                    options={"xatol": LAG_TOLERANCE})
+    lag, at = (float(best.x), float(best.fun)) if best.fun <= costs[i] else \
+        (float(grid[i]), float(costs[i]))
+    if lag < LAG_TOLERANCE:
+        # A causal log's efforts act after they are logged: a residual least at no lag at
+        # all (and rising towards it) says the columns are out of step.
+        raise LagError(f"{where}: --effort-lag auto: the fit's residual is least at 0 periods, "
+                       "the search's lower end: the logged efforts seem to act before they "
+                       "were commanded (columns out of step?); check the log or give "
+                       "--effort-lag")
+    quarter = [cost(x) for x in (lag - 0.25, lag + 0.25) if x >= 0.0]
+    rise = 100.0 * math.expm1((np.mean(quarter) - at) / 2.0)
+    return LagEstimate(lag, grid.copy(), np.exp((costs - at) / 2.0), float(rise))
 
 def regressor(model: RobotModel, samples: Samples) -> np.ndarray:
     """The stacked base regressor ``(N n, n_b)``: rows of sample k are ``k n .. k n + n - 1``,
@@ -414,6 +654,10 @@ class Identification:
     knees: np.ndarray | None = None
     wls_full: np.ndarray | None = None  # with lines: WLS of beta and the lines together
     condition_with_lines: float | None = None  # column-scaled, with the lines' columns
+    #: With --effort-lag auto, the search that chose settings.effort_lag.
+    lag_search: LagEstimate | None = None
+    #: Per log (fitted, then validation): placed at its logged times (sample_times).
+    logged_times: list[bool] = dataclasses.field(default_factory=list)
 
     @property
     def beta(self) -> np.ndarray:
@@ -489,23 +733,35 @@ def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | Non
                                   "torque's scale is not observable; calibrate one drive with "
                                   "cochlea-dxl calibrate --torque-fit")
     with_current = bool(lines)
+    where = ", ".join(str(log.folder) for log in logs)
+    prepared = [prepare(log, settings, model) for log in logs]
+    prepared_val = [prepare(log, settings, model) for log in validate or []]
+    cuts = [len(p.time) if validate is not None else
+            int(round(len(p.time) * (1.0 - settings.holdout))) for p in prepared]
+    lag_search = None
+    if settings.effort_lag == AUTO:
+        # On the plain fit (every joint's logged effort), also with lines to fit: a
+        # placeholder line scales its joint's effort, it does not move it in time.
+        lag_search = estimate_lag(model, prepared, cuts, settings, where)
+        settings = dataclasses.replace(settings, effort_lag=lag_search.lag)
+    lag = float(settings.effort_lag)
     fit_parts, val_parts = [], []
-    for log in logs:
-        s = process(log, settings, model, with_current)
+    for p, cut in zip(prepared, cuts):
+        s = p.samples(lag, with_current)
+        fit_parts.append(s.rows(slice(0, cut)))
         if validate is None:
-            cut = int(round(len(s.time) * (1.0 - settings.holdout)))
-            fit_parts.append(s.rows(slice(0, cut)))
             val_parts.append(s.rows(slice(cut, None)))
-        else:
-            fit_parts.append(s)
     if validate is not None:
-        val_parts = [process(log, settings, model, with_current) for log in validate]
+        val_parts = [p.samples(lag, with_current) for p in prepared_val]
         held_out = "the validation logs (--validate)"
     else:
         held_out = f"the last {settings.holdout:.0%} of every log"
-    where = ", ".join(str(log.folder) for log in logs)
+    timing = {"lag_search": lag_search,
+              "logged_times": [p.logged for p in prepared + prepared_val]}
     if not lines:
-        return _identify(model, fit_parts, val_parts, settings, held_out, where, (), None)
+        return dataclasses.replace(
+            _identify(model, fit_parts, val_parts, settings, held_out, where, (), None),
+            **timing)
     # The knee of each line's offset moves with (a, b). For given knees the problem is
     # linear; the knees are chosen by the fit's residual (with the joints' weights of the
     # fit at the description's knees, so that every knee is judged alike), over knees with
@@ -553,7 +809,9 @@ def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | Non
                                             method="bounded",
                                             options={"xatol": KNEE_TOLERANCE * grid[i]})
             knees[ln.joint] = best.x if best.fun <= costs[i] else grid[i]
-    return _identify(model, fit_parts, val_parts, settings, held_out, where, lines, knees)
+    return dataclasses.replace(
+        _identify(model, fit_parts, val_parts, settings, held_out, where, lines, knees),
+        **timing)
 
 
 def _line_columns(parts: list[Samples], lines: tuple[Line, ...], n: int, knees: np.ndarray

@@ -44,7 +44,8 @@ def torque_figure(result: Identification, path: Path) -> Path:
 
 def parameter_figure(result: Identification, path: Path) -> Path:
     """Each base parameter's WLS estimate with its 95 % interval, over its nominal value
-    (parameters whose nominal value is zero are shown in their SI unit, marked)."""
+    (parameters whose nominal value is zero are shown in their SI unit, marked), then each
+    fitted current-to-torque line's slope and offset over the description's values."""
     plt = _pyplot()
     params = result.model.parameters
     nominal = params.nominal
@@ -52,6 +53,13 @@ def parameter_figure(result: Identification, path: Path) -> Path:
     est = result.wls.beta / scale
     half = 1.96 * result.wls.std_error / scale
     labels = [n if v != 0 else f"{n} (SI, nominal 0)" for n, v in zip(params.names, nominal)]
+    # Fitted current-to-torque lines: a and b over the description's values before the fit.
+    for k, ln in enumerate(result.lines):
+        for i, (was, what) in enumerate(((ln.a0, "a"), (ln.b0, "b"))):
+            size = was if was != 0 else 1.0  # signed: 1 is the description's value
+            est = np.append(est, result.line_wls[k][i] / size)
+            half = np.append(half, 1.96 * result.line_wls_std[k][i] / abs(size))
+            labels.append(f"{ln.name} current line {what} (over the description's)")
     fig, ax = plt.subplots(figsize=(9, 0.3 * len(labels) + 1.5))
     y = np.arange(len(labels))
     ax.errorbar(est, y, xerr=half, fmt="o", ms=3, capsize=2)
@@ -59,6 +67,8 @@ def parameter_figure(result: Identification, path: Path) -> Path:
     ax.set_yticks(y, labels, fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("estimate / nominal (95 % interval)")
+    if result.lines:
+        ax.axhline(len(params.names) - 0.5, color="grey", lw=0.5)
     ax.set_title(f"{result.model.name}: base parameters (WLS)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -28,6 +28,11 @@ SIGNAL_UNITS = {
 }
 #: An optional column of measured motor current (A) per joint: fits the motor's line.
 CURRENT = "current"
+#: The loop's timing columns (s) read when the log has them: when each period started
+#: relative to its deadline, how long its read, compute and write took, and how long the
+#: bus transfers among them took (see cochlea/runtime/loop.py). They place a real-time
+#: run's samples and commands in time.
+TIMING = ("start_lateness_s", "compute_s", "backend_io_s")
 #: Largest log.csv read (bytes): an hour at 1 kHz of the serial system is about 1.5 GB;
 #: identification runs are minutes long.
 MAX_LOG_BYTES = 2 * 1024**3
@@ -50,6 +55,9 @@ class RunLog:
     qd: np.ndarray  # (N, n) rad/s or m/s, as logged (not used by default: see estimate)
     tau: np.ndarray  # (N, n) N m or N, the commanded effort
     current: np.ndarray | None  # (N, n) A, when the log carries it
+    #: (N, 3) s: each period's start lateness, read-compute-write and bus time (TIMING), when the
+    #: log carries them; NaN where the loop did not record them (a stopped period).
+    timing: np.ndarray | None = None
 
     @property
     def rows(self) -> int:
@@ -129,6 +137,16 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
     names = ["time_s"] + wanted["q"] + wanted["qd"] + wanted["tau"] + \
         (current if has_current else [])
     index = [header.index(c) for c in names]
+    timing = None
+    if all(c in header for c in TIMING):
+        # Read apart from the signals: a stopped period leaves NaN here, which only means
+        # that its times are unknown (see estimate.sample_times), not a bad row.
+        try:
+            timing = np.loadtxt(file, delimiter=",", skiprows=1, ndmin=2,
+                                usecols=[header.index(c) for c in TIMING])
+        except ValueError as exc:
+            raise LogError(f"{file}: expected numbers in the timing columns "
+                           f"{', '.join(TIMING)}, {str(exc).splitlines()[0]}") from None
     try:
         data = np.loadtxt(file, delimiter=",", skiprows=1, usecols=index, ndmin=2)
     except ValueError as exc:
@@ -147,4 +165,4 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
     n = model.nq
     return RunLog(folder, file, _sha256(file), unit, data[:, 0], data[:, 1:1 + n],
                   data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:1 + 3 * n],
-                  data[:, 1 + 3 * n:1 + 4 * n] if has_current else None)
+                  data[:, 1 + 3 * n:1 + 4 * n] if has_current else None, timing)
