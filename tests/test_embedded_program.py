@@ -321,19 +321,13 @@ def _slider():
 
 
 def _hold_marker(port: str, marker: int) -> None:
-    """Leave ``marker`` in the emulator's slider as cochlea-dxl home leaves its token."""
-    from cochlea.dynamixel import protocol as proto
-    from cochlea.dynamixel.bridge import DynamixelBackend
-    from cochlea.dynamixel.homing import MARKER_ADDRESS
+    """Leave ``marker`` in the emulator's slider as cochlea-dxl home leaves its token (through
+    its bus: the bridge's open_bus/close_bus are gone, cochlea-dxl's subcommands share one)."""
+    from cochlea.dynamixel.bringup.common import Bus
+    from cochlea.dynamixel.bringup.home import MARKER_ITEM
 
-    bus = DynamixelBackend("parallel", port)
-    bus.open_bus()
-    try:
-        d = _slider()
-        bus.command(d, "the homing marker", proto.write(d.id, MARKER_ADDRESS,
-                                                         proto.le(marker, 2)))
-    finally:
-        bus.close_bus()
+    with Bus(port, 4_000_000) as bus:
+        bus.write(_slider().id, MARKER_ITEM, marker)
 
 
 def _record(path: Path, marker: int, shift_m: float) -> Path:
