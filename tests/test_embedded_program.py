@@ -119,6 +119,7 @@ def assert_current_is_the_goal_sent(robot: str, header: list[str], rows: np.ndar
     current_cols = [h for h in header if ".current." in h]
     drives = joint_drives(robot)
     assert len(tau_cols) == len(current_cols) == len(drives)
+    moving = 0
     for d, tau_col, i_col in zip(drives, tau_cols, current_cols):
         assert i_col == tau_col.replace(".tau.", ".current.").rsplit("_", 1)[0] + "_A"
         assert header.index(tau_col) < header.index(i_col)  # after the unit's efforts
@@ -130,7 +131,12 @@ def assert_current_is_the_goal_sent(robot: str, header: list[str], rows: np.ndar
         # all, see the previous period's command.
         same = np.isclose(logged[1:], expected[:-1], rtol=0, atol=1e-9)
         assert same.mean() > 0.8, (d.name, same.mean())
-        assert (logged[1:][same] != 0).sum() >= 10, d.name  # not a run of zeros
+        nonzero = int((logged[1:][same] != 0).sum())
+        assert nonzero > 0, d.name  # not a column of zeros
+        moving += nonzero
+    # Hundreds of periods of at least one LSB at the proximal joints, tens at the distal ones
+    # (measured on a 3 s serial_joint run: 20..786 per joint, 2459 in all).
+    assert moving >= 200, moving
 
 
 def python_resolution(name: str, q: np.ndarray) -> dict:
