@@ -77,6 +77,7 @@ int shim_run(const char *name, read_fn r, write_fn w, double duration, int misse
     hal.ctx = 0; hal.now_ns = now_ns; hal.wait_until_ns = wait_until_ns;
     backend.ctx = 0; backend.read = b_read; backend.write = b_write;
     backend.shutdown = b_shutdown;
+    backend.current = 0;
     code = cochlea_loop_init(&loop, cochlea_scenarios[i], &hal, &backend, storage, 0.0,
                              duration, misses, 5, 1);
     if (code != COCHLEA_LOOP_OK) return -code;

@@ -124,13 +124,19 @@ def log_rows(out: Path) -> np.ndarray:
     return np.fromfile(out / "log.bin").reshape(-1, length)
 
 
-def numpy_timing(rows: np.ndarray) -> dict:
+def log_columns(out: Path) -> list[str]:
+    return json.loads((out / "log.columns.json").read_text())["columns"]
+
+
+def numpy_timing(rows: np.ndarray, columns: list[str]) -> dict:
     """summary.json's timing numbers as numpy computes them from log.bin (finite values; the
-    first period has no wall period)."""
+    first period has no wall period); ``columns``: log.columns.json's names."""
     def finite(c):
         return c[np.isfinite(c)]
 
-    wall, compute, backend = finite(rows[1:, -3]), finite(rows[:, -2]), finite(rows[:, -1])
+    wall, compute, backend = (rows[:, columns.index(c)] for c in ("wall_period_s", "compute_s",
+                                                                  "backend_io_s"))
+    wall, compute, backend = finite(wall[1:]), finite(compute), finite(backend)
     return {"period_mean": wall.mean(), "period_std": wall.std(),
             "period_p50": np.percentile(wall, 50), "period_p99": np.percentile(wall, 99),
             "period_max": wall.max(), "compute_p50": np.percentile(compute, 50),
@@ -167,15 +173,24 @@ def test_the_report_read_back_from_log_bin_is_the_logs(short_and_long):
     for out, _ in short_and_long.values():
         summary = summary_of(out)
         assert_log_complete(out, summary)
-        rows = log_rows(out)
-        # The CSV is log.bin's rows, value for value (to its 10 significant digits).
+        rows, columns = log_rows(out), log_columns(out)
+        # The CSV is log.bin's rows, value for value (to its 10 significant digits): the
+        # timing and the measured current (named current.UNIT.JOINT_A in log.bin,
+        # UNIT.current.JOINT_A in log.csv).
         head, csv = read_csv(out / "log.csv")
         assert np.allclose(csv[:, 0], rows[:, 0], rtol=1e-9, atol=1e-12)
-        assert np.allclose(csv[:, -4:], rows[:, -4:], rtol=1e-9, atol=1e-15, equal_nan=True)
+        current = [c for c in columns if c.startswith("current.")]
+        assert len(current) == 6
+        pairs = [(c, c) for c in ("start_lateness_s", "wall_period_s", "compute_s",
+                                  "backend_io_s")]
+        pairs += [(c, "{}.current.{}".format(*c.split(".", 2)[1:])) for c in current]
+        for binary, text in pairs:
+            assert np.allclose(csv[:, head.index(text)], rows[:, columns.index(binary)],
+                               rtol=1e-9, atol=1e-15, equal_nan=True), binary
         # Mean, spread, maxima exactly up to summation order; the percentiles exactly, since
         # every bin they fall in was gathered whole.
         timing = summary["timing"]
-        for key, value in numpy_timing(rows).items():
+        for key, value in numpy_timing(rows, columns).items():
             assert timing[key] == pytest.approx(value, rel=1e-12), key
         # The convergence numbers are the CSV's, by cochlea-run's rule.
         for unit, entry in summary["units"].items():
@@ -205,7 +220,7 @@ def test_a_failed_write_stops_the_run_safely_and_keeps_the_log_up_to_it(hooked, 
     assert_log_complete(out, summary)  # log.csv and log.bin: the 1500 rows, whole
     rows = log_rows(out)
     assert np.array_equal(rows[:, 0], np.arange(1500) * 1e-3)
-    for key, value in numpy_timing(rows).items():
+    for key, value in numpy_timing(rows, log_columns(out)).items():
         assert summary["timing"][key] == pytest.approx(value, rel=BIN_RESOLUTION * 1.01), key
 
 

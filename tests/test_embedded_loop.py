@@ -44,6 +44,7 @@ static shutdown_fn sd;
 static row_fn rw;
 static cochlea_loop loop;
 static double storage[16384]; /* the controller's state: aligned for doubles */
+static double current[16];     /* the backend's measured current, filled by its read */
 
 static int b_read(void *c, double *q, double *qd) { (void)c; return rd(q, qd); }
 static int b_write(void *c, const double *tau) { (void)c; return wr(tau); }
@@ -66,8 +67,10 @@ int shim_row_length(int i) { return cochlea_loop_row_length(cochlea_scenarios[i]
 
 void shim_request_stop(int rule) { loop.stop_request = rule; }
 
+double *shim_current(void) { return current; }
+
 int shim_run(int i, read_fn r, write_fn w, shutdown_fn s, row_fn row, double duration,
-             int misses, int errors, double *stop)
+             int misses, int errors, int measured, double *stop)
 {
     cochlea_backend backend;
     int code;
@@ -75,6 +78,7 @@ int shim_run(int i, read_fn r, write_fn w, shutdown_fn s, row_fn row, double dur
     rd = r; wr = w; sd = s; rw = row;
     backend.ctx = 0; backend.read = b_read; backend.write = b_write;
     backend.shutdown = b_shutdown;
+    backend.current = measured ? current : 0;
     code = cochlea_loop_init(&loop, cochlea_scenarios[i], 0, &backend, storage, 0.0,
                              duration, misses, errors, 0);
     if (code != COCHLEA_LOOP_OK) return -code;
@@ -99,19 +103,31 @@ def lib():
     library = ctypes.CDLL(str(path))
     library.shim_index.argtypes = [ctypes.c_char_p]
     library.shim_run.argtypes = [ctypes.c_int, READ, WRITE, SHUTDOWN, ROW, ctypes.c_double,
-                                 ctypes.c_int, ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
+                                 ctypes.c_int, ctypes.c_int, ctypes.c_int,
+                                 ctypes.POINTER(ctypes.c_double)]
+    library.shim_current.restype = ctypes.POINTER(ctypes.c_double)
     library.shim_rule_name.restype = ctypes.c_char_p
     return library
 
 
-class Injected:
-    """A backend around ``SimBackend`` that changes what period ``at`` (and later) reads."""
+#: A's per N m of the stand-in drives that measure current (any factor that is not 1 will do).
+AMPS_PER_EFFORT = 0.37
 
-    def __init__(self, backend: SimBackend, at: int = -1, change=None, fail_from: int = -1):
+
+class Injected:
+    """A backend around ``SimBackend`` that changes what period ``at`` (and later) reads.
+    ``measured``: its drives measure current, as the Dynamixel bridge's do (the loop logs
+    ``joint_current_A``): each good read reports the effort last written times
+    AMPS_PER_EFFORT plus the period's index in mA, so every period's value is its own."""
+
+    def __init__(self, backend: SimBackend, at: int = -1, change=None, fail_from: int = -1,
+                 measured: bool = False):
         self.backend, self.at, self.change, self.fail_from = backend, at, change, fail_from
         self.k = 0
         self.last_io_time_s = 0.0
         self.shutdowns = 0
+        self.written = np.zeros(backend.nq)
+        self.joint_current_A = np.zeros(backend.nq) if measured else None
 
     def enable(self):
         self.backend.enable()
@@ -127,10 +143,14 @@ class Injected:
         ok = self.backend.read(x)
         if k == self.at and self.change is not None:
             self.change(x)
+        if ok and self.joint_current_A is not None:
+            self.joint_current_A[:] = AMPS_PER_EFFORT * self.written + 1e-3 * k
         return ok
 
     def write(self, tau: np.ndarray) -> bool:
-        return self.backend.write(tau)
+        ok = self.backend.write(tau)
+        self.written[:] = tau  # as applied (on the drives' grid, where the plant has one)
+        return ok
 
 
 def python_run(name: str, periods: int, **injection):
@@ -142,9 +162,8 @@ def python_run(name: str, periods: int, **injection):
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
                         substeps=sc.plant_substeps)
     stop = loop.run()
-    # The C loop's rows end with the timing: the measured-current block the Python loop
-    # appends (NaN with a simulated backend) is not in the C program yet.
-    return stop, loop.buffer[:loop.rows, :loop.current_at].copy(), backend
+    assert loop.current_at == loop.width - loop.n  # the measured current goes last
+    return stop, loop.buffer[:loop.rows].copy(), backend
 
 
 def c_run(lib, name: str, periods: int, **injection):
@@ -157,12 +176,16 @@ def c_run(lib, name: str, periods: int, **injection):
     x = np.zeros(2 * n)
     rows, written = [], []
 
+    current = np.ctypeslib.as_array(lib.shim_current(), (n,))
+
     def read(q, qd):
         x[:n] = np.ctypeslib.as_array(q, (n,))
         x[n:] = np.ctypeslib.as_array(qd, (n,))
         ok = backend.read(x)
         np.ctypeslib.as_array(q, (n,))[:] = x[:n]
         np.ctypeslib.as_array(qd, (n,))[:] = x[n:]
+        if ok and backend.joint_current_A is not None:  # the bridge's: good reads only
+            current[:] = backend.joint_current_A
         return int(ok)
 
     def write(tau):
@@ -183,7 +206,8 @@ def c_run(lib, name: str, periods: int, **injection):
     stop = (ctypes.c_double * 9)()
     index = lib.shim_index(name.encode())
     assert index >= 0
-    rule = lib.shim_run(index, *callbacks, periods * sc.period, 20, 5, stop)
+    rule = lib.shim_run(index, *callbacks, periods * sc.period, 20, 5,
+                        int(backend.joint_current_A is not None), stop)
     assert rule > 0, rule
     rows = np.array(rows)
     # The loop logs the command it wrote (as the Dynamixel bridge's run does); the simulated
@@ -197,15 +221,18 @@ def c_run(lib, name: str, periods: int, **injection):
     return rule, list(stop), rows, backend
 
 
-def assert_rows_equal(c_rows: np.ndarray, py_rows: np.ndarray):
-    """Every column but the four of timing; NaN where the other has NaN."""
+def assert_rows_equal(c_rows: np.ndarray, py_rows: np.ndarray, n: int):
+    """Every column but the four of timing (before the n of measured current); NaN where the
+    other has NaN; the timing NaN in the same rows."""
     assert c_rows.shape == py_rows.shape
-    a, b = c_rows[:, :-4], py_rows[:, :-4]
+    timing = np.arange(c_rows.shape[1] - n - 4, c_rows.shape[1] - n)
+    a, b = np.delete(c_rows, timing, axis=1), np.delete(py_rows, timing, axis=1)
     assert np.array_equal(np.isnan(a), np.isnan(b))
     finite = ~np.isnan(a)
     scale = np.maximum(1.0, np.abs(b))
     assert np.max(np.abs(a - b)[finite] / scale[finite], initial=0.0) < 1e-9
-    assert np.array_equal(np.isnan(c_rows[:, -4:]).all(axis=1), np.isnan(py_rows[:, -4:]).all(1))
+    assert np.array_equal(np.isnan(c_rows[:, timing]).all(axis=1),
+                          np.isnan(py_rows[:, timing]).all(axis=1))
 
 
 @pytest.mark.parametrize("name", ["serial_joint", "serial_task", "parallel_joint",
@@ -217,8 +244,33 @@ def test_the_c_loop_logs_the_python_loops_rows(lib, name):
     py_stop, py_rows, py_backend = python_run(name, periods)
     assert lib.shim_rule_name(rule).decode() == py_stop.rule == "completed"
     assert stop[0] == pytest.approx(py_stop.time) and stop[8] == periods
-    assert_rows_equal(c_rows, py_rows)
+    n = backend.backend.nq
+    assert_rows_equal(c_rows, py_rows, n)
+    assert np.isnan(c_rows[:, -n:]).all()  # a simulated robot measures no current
     assert backend.shutdowns == py_backend.shutdowns == 1
+
+
+def assert_current_logged(rows: np.ndarray, backend: Injected, good_reads: int):
+    """The current block of each row is what the read of its period reported, after the
+    timing: the effort written the period before (AMPS_PER_EFFORT) plus the index of the
+    period's read in mA; after the last good read, that read's."""
+    n = backend.backend.nq
+    tau, current = rows[:, 1 + 2 * n:1 + 3 * n], rows[:, -n:]
+    assert np.isfinite(current).all()
+    k = np.minimum(np.arange(len(rows)), good_reads - 1)
+    previous = np.vstack([np.zeros(n), tau[:-1]])[k]
+    assert np.allclose(current, AMPS_PER_EFFORT * previous + 1e-3 * k[:, None], rtol=0,
+                       atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+def test_a_backends_measured_current_is_logged_after_the_timing_as_python_does(lib, name):
+    periods = 300
+    rule, stop, c_rows, backend = c_run(lib, name, periods, measured=True)
+    py_stop, py_rows, _ = python_run(name, periods, measured=True)
+    assert lib.shim_rule_name(rule).decode() == py_stop.rule == "completed"
+    assert_rows_equal(c_rows, py_rows, backend.backend.nq)
+    assert_current_logged(c_rows, backend, periods)
 
 
 def _faults():
@@ -242,16 +294,22 @@ def _faults():
     }
 
 
+@pytest.mark.parametrize("measured", [False, True], ids=["no-current", "measured-current"])
 @pytest.mark.parametrize("expected", list(_faults()))
-def test_every_rule_stops_both_loops_alike(lib, expected):
+def test_every_rule_stops_both_loops_alike(lib, expected, measured):
+    """Also with drives that measure current: the stop's row keeps the last good read's
+    current (a state stop NaNs what follows the state up to it, a failed read repeats it)."""
     name, injection = _faults()[expected]
-    rule, stop, c_rows, backend = c_run(lib, name, 200, **injection)
-    py_stop, py_rows, py_backend = python_run(name, 200, **injection)
+    rule, stop, c_rows, backend = c_run(lib, name, 200, measured=measured, **injection)
+    py_stop, py_rows, py_backend = python_run(name, 200, measured=measured, **injection)
     assert py_stop.rule == expected
     assert lib.shim_rule_name(rule).decode() == expected
     assert lib.shim_exit_code(rule) == STOP_CODES[expected] == py_stop.code
     assert stop[0] == pytest.approx(py_stop.time)
-    assert_rows_equal(c_rows, py_rows)
+    assert_rows_equal(c_rows, py_rows, backend.backend.nq)
+    if measured:
+        fail_from = injection.get("fail_from", -1)
+        assert_current_logged(c_rows, backend, fail_from if fail_from >= 0 else len(c_rows))
     assert backend.shutdowns == py_backend.shutdowns == 1
     if expected == "position-limit":
         assert stop[1] == 4 and stop[4] == pytest.approx(2.9680597283903604)
@@ -286,7 +344,7 @@ def test_keep_out_stops_both_loops_alike(lib):
     py_stop, py_rows, _ = python_run("serial_task", 100, at=40, change=change)
     assert py_stop.rule == "keep-out" == lib.shim_rule_name(rule).decode()
     assert stop[0] == pytest.approx(py_stop.time) and stop[2] == 0  # arm1's tool, point 0
-    assert_rows_equal(c_rows, py_rows)
+    assert_rows_equal(c_rows, py_rows, 6)
 
 
 def test_a_stop_request_is_the_users_stop(lib):

@@ -110,6 +110,35 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
     return header, np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
 
 
+def assert_current_is_the_goal_sent(robot: str, header: list[str], rows: np.ndarray) -> None:
+    """The log's measured current (UNIT.current.JOINT_A, after each unit's efforts) is what
+    cochlea-emulator reports as Present Current in current control: the Goal Current sent for
+    the previous period's effort, times the LSB, at the joint's sign (tests/test_current_fit's
+    check of cochlea-run's log, here on any log with the drives in the loop's order)."""
+    tau_cols = [h for h in header if ".tau." in h]
+    current_cols = [h for h in header if ".current." in h]
+    drives = joint_drives(robot)
+    assert len(tau_cols) == len(current_cols) == len(drives)
+    moving = 0
+    for d, tau_col, i_col in zip(drives, tau_cols, current_cols):
+        assert i_col == tau_col.replace(".tau.", ".current.").rsplit("_", 1)[0] + "_A"
+        assert header.index(tau_col) < header.index(i_col)  # after the unit's efforts
+        tau, logged = rows[:, header.index(tau_col)], rows[:, header.index(i_col)]
+        assert np.isfinite(logged).all()
+        expected = np.sign(d.torque_per_effort) * d.goal_current_lsb(tau) * \
+            d.spec.current_unit_mA * 1e-3
+        # A read can overtake a late write (jitter on a shared machine): most periods, not
+        # all, see the previous period's command.
+        same = np.isclose(logged[1:], expected[:-1], rtol=0, atol=1e-9)
+        assert same.mean() > 0.8, (d.name, same.mean())
+        nonzero = int((logged[1:][same] != 0).sum())
+        assert nonzero > 0, d.name  # not a column of zeros
+        moving += nonzero
+    # Hundreds of periods of at least one LSB at the proximal joints, tens at the distal ones
+    # (measured on a 3 s serial_joint run: 20..786 per joint, 2459 in all).
+    assert moving >= 200, moving
+
+
 def python_resolution(name: str, q: np.ndarray) -> dict:
     """Per unit, cochlea-run's measurement_resolution at joint positions ``q`` (the loop's
     order) with the drives' encoder counts: the count in joint space, one count on every joint
@@ -188,12 +217,21 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
     tail = last_commands(c_log)[-4 * n:]
     assert tail == [("sync-write", a, v) for a, v in [(102, 0)] * n + [(64, 0)] * n] * 2
 
+    # The same log layout as cochlea-run's on the same emulator: log.bin's columns, the
+    # measured current's included, and log.csv's header but its pose columns (the C program
+    # has no forward kinematics for them); the current is the Goal Current sent.
+    assert json.loads((c_out / "log.columns.json").read_text()) == \
+        json.loads((py_out / "log.columns.json").read_text())
+    c_head, c_rows = read_csv(c_out / "log.csv")
+    py_head, py_rows = read_csv(py_out / "log.csv")
+    assert c_head == [h for h in py_head if ".pose." not in h]
+    assert any(".current." in h for h in c_head)
+    assert_current_is_the_goal_sent(robot, c_head, c_rows)
+
     # The logged joint trajectory is cochlea-run's, to the tolerance of a run over the motors:
     # FLOOR is what one run may stray from the ideal one (the distal links stick and slip by
     # several counts, differently each run), so two runs differ by up to twice that at an
     # instant, and by FLOOR in RMS.
-    c_head, c_rows = read_csv(c_out / "log.csv")
-    py_head, py_rows = read_csv(py_out / "log.csv")
     shared = [h for h in c_head if ".q." in h]
     assert shared and set(shared) <= set(py_head)
     for h in shared:
@@ -289,19 +327,13 @@ def _slider():
 
 
 def _hold_marker(port: str, marker: int) -> None:
-    """Leave ``marker`` in the emulator's slider as cochlea-dxl home leaves its token."""
-    from cochlea.dynamixel import protocol as proto
-    from cochlea.dynamixel.bridge import DynamixelBackend
-    from cochlea.dynamixel.homing import MARKER_ADDRESS
+    """Leave ``marker`` in the emulator's slider as cochlea-dxl home leaves its token (through
+    its bus: the bridge's open_bus/close_bus are gone, cochlea-dxl's subcommands share one)."""
+    from cochlea.dynamixel.bringup.common import Bus
+    from cochlea.dynamixel.bringup.home import MARKER_ITEM
 
-    bus = DynamixelBackend("parallel", port)
-    bus.open_bus()
-    try:
-        d = _slider()
-        bus.command(d, "the homing marker", proto.write(d.id, MARKER_ADDRESS,
-                                                         proto.le(marker, 2)))
-    finally:
-        bus.close_bus()
+    with Bus(port, 4_000_000) as bus:
+        bus.write(_slider().id, MARKER_ITEM, marker)
 
 
 def _record(path: Path, marker: int, shift_m: float) -> Path:
@@ -524,3 +556,25 @@ def test_a_used_output_folder_is_refused(tmp_path, program):
                     str(tmp_path / "used"))
     assert done.returncode == 2 and "is not empty" in done.stderr
     assert (tmp_path / "used" / "log.csv").read_text() == "keep me\n"
+
+
+def test_cochlea_identify_reads_the_programs_log_with_its_current(tmp_path, program):
+    """A log of the C program is one cochlea-identify reads (cochlea.ident.logs.read_run, as
+    for cochlea-run's), the measured current included: present, finite, the CSV's columns,
+    and the Goal Current the emulator was sent."""
+    import cochlea
+    from cochlea.ident.logs import read_run
+
+    done, out, _ = on_emulator(program, tmp_path, ("serial", "serial_joint"), "--scenario",
+                               "serial_joint", "--duration", "3", *PATIENT)
+    assert done.returncode == 0, done.stderr
+    model = cochlea.model("serial", parameterisation="base", actuators="all")
+    header, rows = read_csv(out / "log.csv")
+    for unit in ("arm1", "arm2"):
+        log = read_run(out, model, "serial", unit)
+        assert log.rows == len(rows) == 3000
+        assert log.current is not None and log.current.shape == (3000, 3)
+        assert np.isfinite(log.current).all() and np.abs(log.current).max() > 0
+        columns = [header.index(f"{unit}.current.{j.name}_A") for j in model.joints]
+        assert np.array_equal(log.current, rows[:, columns])
+    assert_current_is_the_goal_sent("serial", header, rows)

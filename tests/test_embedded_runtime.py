@@ -43,7 +43,7 @@ class Drive(ctypes.Structure):
                 ("model_number", ctypes.c_uint16), ("revolute", ctypes.c_int)] + [
         (f, ctypes.c_double) for f in ("q_per_count", "q_offset", "qd_per_lsb",
                                         "torque_per_effort", "inv_a", "inv_ramp", "i0",
-                                        "lsb_per_ampere")] + [
+                                        "lsb_per_ampere", "ampere_per_lsb")] + [
         ("current_limit_lsb", ctypes.c_int32)] + [
         (f, ctypes.c_double) for f in ("position_lo", "position_hi", "velocity_limit",
                                         "effort_limit")]
@@ -69,9 +69,9 @@ RULES = ["none", "completed", "user-stop", "position-limit", "velocity-limit", "
          "non-finite", "estimate-bound", "watchdog", "terminated", "log-failure"]
 
 
-def _compile(tmp: Path, robot: str) -> ctypes.CDLL:
+def _compile(tmp: Path, robot: str, description: Path | None = None) -> ctypes.CDLL:
     """The core and a shim over the drive table, as a port includes it (a header of its own)."""
-    (tmp / f"{robot}_drives.h").write_text(drives_header(robot))
+    (tmp / f"{robot}_drives.h").write_text(drives_header(robot, description))
     lib = build_library(f"core_{robot}", [CORE / "drives.c", CORE / "supervisor.c",
                                           ("shim.c", SHIM.format(robot=robot,
                                                                  upper=robot.upper()))],
@@ -87,6 +87,8 @@ def _compile(tmp: Path, robot: str) -> ctypes.CDLL:
     c.cochlea_drive_unwrap.argtypes = [ctypes.POINTER(Drive), ctypes.c_double, ctypes.c_double]
     c.cochlea_drive_goal_current.restype = ctypes.c_int16
     c.cochlea_drive_goal_current.argtypes = [ctypes.POINTER(Drive), ctypes.c_double]
+    c.cochlea_drive_current.restype = ctypes.c_double
+    c.cochlea_drive_current.argtypes = [ctypes.POINTER(Drive), ctypes.c_int16]
     c.cochlea_rule_name.restype = ctypes.c_char_p
     return c
 
@@ -156,6 +158,41 @@ def test_conversions_equal_the_bridges_bit_for_bit(built, rng):
                 assert offset == d.q_offset + 2 * np.pi * turns
             else:
                 assert offset == d.q_offset
+
+
+def test_the_measured_current_is_the_python_bridges_at_the_joints_sign(tmp_path, rng):
+    """Present Current (LSB) to the joint's current (A), as cochlea-run logs it: the Python
+    bridge's joint_current_A after a read of the same registers, bit for bit, on a description
+    where arm 1's second motor is mounted against its joint (direction -1), over the whole
+    int16 range of the register."""
+    from cochlea.dynamixel.bridge import DynamixelBackend
+    from tests.test_current_fit import _description_with, _shipped_fit
+    from tests.test_dynamixel_drives import ScriptedPort
+
+    old = "id = 2\n  " + _shipped_fit(122.3, -23.7) + "\n  direction = 1"
+    description = _description_with(tmp_path, old, old.replace("direction = 1",
+                                                                "direction = -1"))
+    c = _compile(tmp_path, "serial", description)
+    backend = DynamixelBackend("serial", "/dev/scripted", description=description)
+    port = ScriptedPort(backend)
+    backend._port, backend._active = port, True
+    assert [d.direction for d in backend.drives][:2] == [1, -1]
+    n = backend.nq
+    x = np.zeros(2 * n)
+    signs = set()
+    for trial in range(40):
+        amps = rng.integers(-2**15, 2**15, n)
+        if trial == 0:
+            amps[:] = [-2**15, 2**15 - 1, 0, 1, -1, 7]
+        port.registers = {i: (int(a), 0, 0) for i, a in zip(backend.ids, amps)}
+        assert backend.read(x)
+        for j in range(n):
+            value = c.cochlea_drive_current(ctypes.byref(c.table()[j]), int(amps[j]))
+            assert value == backend.joint_current_A[j], (j, amps[j])
+            if amps[j]:
+                signs.add((backend.drives[j].direction, bool(np.sign(value) == np.sign(amps[j]))))
+    # A motor mounted against its joint reports the opposite sign of the joint's current.
+    assert signs == {(1, True), (-1, False)}
 
 
 def _limits(c, n, keep_out=0.0):

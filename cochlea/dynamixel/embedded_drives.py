@@ -62,7 +62,8 @@ def drives_header(robot: str, description: str | Path | None = None, *, system=N
             f'"{d.name}"', str(d.id), str(d.spec.number), "1" if d.type == "revolute" else "0",
             _real(d.q_per_count), _real(d.q_offset), _real(d.qd_per_lsb),
             _real(d.torque_per_effort), _real(1.0 / d.fit.a), _real(1.0 / d.fit.ramp),
-            _real(d.fit.offset_current), _real(d.lsb_per_ampere), str(d.current_limit_lsb),
+            _real(d.fit.offset_current), _real(d.lsb_per_ampere),
+            _real(joint_ampere_per_lsb(d)), str(d.current_limit_lsb),
             _real(lo), _real(hi), _real(j.velocity_limit), _real(j.effort_limit),
         ]
         lines.append(f"    /* {d.name}: ID {d.id}, {d.spec.name} */")
@@ -79,6 +80,13 @@ def drives_header(robot: str, description: str | Path | None = None, *, system=N
                      + ", ".join(_real(v) for v in values) + "};")
     lines += ["", f"#endif /* {upper}_DRIVES_H */", ""]
     return "\n".join(lines)
+
+
+def joint_ampere_per_lsb(d: JointDrive) -> float:
+    """A per Present Current LSB at the joint's sign: the Python bridge's factor from the
+    register to ``joint_current_A`` (``cochlea/dynamixel/bridge.py``), the same expression so
+    the C program logs the same current bit for bit."""
+    return d.spec.current_unit_mA * 1e-3 * math.copysign(1.0, d.torque_per_effort)
 
 
 def supervised_joints(robot: str, system) -> list[JointInfo]:

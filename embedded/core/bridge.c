@@ -81,6 +81,7 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     for (i = 0; i < n; ++i) {
         b->position_offset[i] = drives[i].q_offset;
         b->present_current[i] = 0;
+        b->joint_current[i] = 0.0;
         b->goal[i] = 0;
         b->last_tick[i] = -1;
         b->tick_seen_ns[i] = 0;
@@ -431,6 +432,7 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
         /* the state is the block's last COCHLEA_STATE_LENGTH bytes */
         const uint8_t *raw = b->raw + (size_t)i * length + (length - COCHLEA_STATE_LENGTH);
         b->present_current[i] = dxl_get_i16(raw);
+        b->joint_current[i] = cochlea_drive_current(&b->drives[i], b->present_current[i]);
         qd[i] = cochlea_drive_velocity(&b->drives[i], dxl_get_i32(raw + 2));
         q[i] = cochlea_drive_position(&b->drives[i], dxl_get_i32(raw + 6),
                                       b->position_offset[i]);
@@ -658,5 +660,6 @@ cochlea_backend cochlea_bridge_backend(cochlea_bridge *b)
     backend.read = backend_read;
     backend.write = backend_write;
     backend.shutdown = backend_shutdown;
+    backend.current = b->joint_current;
     return backend;
 }

@@ -110,6 +110,7 @@ typedef struct {
     int suspect;                /* a failed read: wait for a quiet line before the next */
     double position_offset[COCHLEA_MAX_DRIVES];
     int16_t present_current[COCHLEA_MAX_DRIVES];  /* LSB, last good read */
+    double joint_current[COCHLEA_MAX_DRIVES];     /* the same in A at the joint's sign */
     int16_t goal[COCHLEA_MAX_DRIVES];             /* LSB, last written */
     /* Counters. */
     uint32_t reads, good_reads, writes, unexpected_packets, garbage_packets;  /* of the run */
@@ -154,7 +155,8 @@ int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd);
 int cochlea_bridge_write(cochlea_bridge *b, const double *tau);
 /* The safe shut-down; the number of motors that confirmed torque off. */
 int cochlea_bridge_stop(cochlea_bridge *b);
-/* The bridge as the loop's backend (read, write, and the safe shut-down as its shutdown). */
+/* The bridge as the loop's backend (read, write, the safe shut-down as its shutdown, and
+ * joint_current as its measured current). */
 cochlea_backend cochlea_bridge_backend(cochlea_bridge *b);
 
 #ifdef __cplusplus

@@ -89,6 +89,10 @@ typedef struct {
     int (*write)(void *ctx, const double *tau);
     /* The safe stop: zero effort, drives off. The number of drives that confirmed it. */
     int (*shutdown)(void *ctx);
+    /* The measured motor current of every joint (A, signed so that a positive current drives
+     * the joint positively), refreshed by every good read; the loop logs it after the timing.
+     * NULL when the backend measures no current: those columns are then NaN. */
+    const double *current;
 } cochlea_backend;
 
 /* ---- the supervisor ----------------------------------------------------------------------- */

@@ -15,6 +15,11 @@ double cochlea_drive_velocity(const cochlea_drive *d, int32_t velocity_lsb)
     return (double)velocity_lsb * d->qd_per_lsb;
 }
 
+double cochlea_drive_current(const cochlea_drive *d, int16_t present_lsb)
+{
+    return (double)present_lsb * d->ampere_per_lsb;
+}
+
 double cochlea_drive_unwrap(const cochlea_drive *d, double q, double position_offset)
 {
     const double two_pi = 2.0 * 3.14159265358979323846;

@@ -30,6 +30,8 @@ typedef struct {
     double inv_ramp;           /* 1 / ramp (per N m) */
     double i0;                 /* -b / a: the current the fit's offset takes (A) */
     double lsb_per_ampere;     /* current LSBs per A */
+    double ampere_per_lsb;     /* A per Present Current LSB at the joint's sign (the mounting's
+                                * direction applied): positive drives the joint positively */
     int32_t current_limit_lsb; /* Current Limit (address 38) this joint uses */
     double position_lo;        /* joint limits (rad or m) */
     double position_hi;
@@ -50,6 +52,9 @@ double cochlea_drive_unwrap(const cochlea_drive *d, double q, double position_of
  * half to even, within +-current_limit_lsb. A non-finite effort gives 0 (the caller reports
  * it). */
 int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort);
+/* The measured motor current (A) of a Present Current reading (LSB), at the joint's sign:
+ * what cochlea-run logs as current.<joint>_A (the Python bridge's joint_current_A). */
+double cochlea_drive_current(const cochlea_drive *d, int16_t present_lsb);
 
 #ifdef __cplusplus
 }

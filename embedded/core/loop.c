@@ -3,13 +3,20 @@
 
 #include <math.h>
 
-int cochlea_loop_row_length(const cochlea_scenario *sc)
+int cochlea_loop_timing_at(const cochlea_scenario *sc)
 {
-    int u, n = 1 + 3 * sc->nq + 4;
+    int u, n = 1 + 3 * sc->nq;
     for (u = 0; u < sc->n_units; ++u) {
         n += sc->units[u].ne + sc->units[u].np;
     }
     return n;
+}
+
+int cochlea_loop_row_length(const cochlea_scenario *sc)
+{
+    /* The current goes last, as in cochlea-run's rows: every earlier column keeps its place
+     * in logs read by position. */
+    return cochlea_loop_timing_at(sc) + COCHLEA_TIMING_COLUMNS + sc->nq;
 }
 
 int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const cochlea_hal *hal,
@@ -124,11 +131,15 @@ static int periods(cochlea_loop *loop)
     const double h = loop->period_s;
     double *row = loop->row;
     double *row_tau = row + 1 + 2 * n;
-    double *timing = row + loop->row_length - 4;
+    double *timing = row + cochlea_loop_timing_at(sc);
+    double *current = timing + COCHLEA_TIMING_COLUMNS;
     int64_t t0, start, previous_start, previous_end = 0, io_start, io_ns, end, deadline;
     int errors = 0, consecutive = 0, u, i, r;
     long k;
 
+    if (!be->current) { /* stays NaN: nothing measures it */
+        fill_nan(current, n);
+    }
     t0 = now(loop);
     loop->t0_ns = t0;
     previous_start = t0;
@@ -175,12 +186,17 @@ static int periods(cochlea_loop *loop)
             row[1 + i] = loop->q[i];
             row[1 + n + i] = loop->qd[i];
         }
+        if (be->current) { /* the last good read's, like q and qd after a failed read */
+            for (i = 0; i < n; ++i) {
+                current[i] = be->current[i];
+            }
+        }
         if (r && (cochlea_check_state(&loop->limits, t, loop->q, loop->qd, &loop->stop)
                   || (loop->limits.keep_out_radius > 0.0 && sc->n_points > 0
                       && sc->tool_points(loop->q, loop->points, loop->centres) == 0
                       && cochlea_check_keep_out(&loop->limits, t, sc->n_points, loop->points,
                                                 loop->centres, &loop->stop)))) {
-            fill_nan(row_tau, loop->row_length - (1 + 2 * n)); /* nothing was commanded */
+            fill_nan(row_tau, (int)(current - row_tau)); /* nothing was commanded */
             emit(loop);
             return loop->stop.rule;
         }
@@ -218,7 +234,7 @@ static int periods(cochlea_loop *loop)
             for (i = 0; i < n; ++i) {
                 row_tau[i] = loop->tau[i];
             }
-            fill_nan(timing, 4);
+            fill_nan(timing, COCHLEA_TIMING_COLUMNS);
             emit(loop);
             return loop->stop.rule;
         }

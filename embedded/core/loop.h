@@ -21,8 +21,10 @@
  *
  * The row of a period is cochlea-run's log.bin row: t, q[nq], qd[nq], tau[nq], per unit its
  * errors[ne] and the estimate used in the period[np], then start lateness, wall period,
- * compute and backend i/o time (s). A stop on the state logs the state and NaN after it; a stop
- * on the command logs the command as computed (never written) and NaN timing.
+ * compute and backend i/o time (s), then the measured motor current of every joint (A, at the
+ * joint's sign: the backend's last good read; NaN when it measures none). A stop on the state
+ * logs the state and NaN after it up to the current; a stop on the command logs the command as
+ * computed (never written) and NaN timing.
  * No allocation, no stdio: the caller owns every buffer.
  */
 #ifndef COCHLEA_LOOP_H
@@ -116,8 +118,13 @@ typedef struct {
     double row[COCHLEA_MAX_ROW];
 } cochlea_loop;
 
+/* The timing columns of a row (s), cochlea-run's TIMING_COLUMNS. */
+#define COCHLEA_TIMING_COLUMNS 4
+
 /* The length of a log row of the scenario (see above). */
 int cochlea_loop_row_length(const cochlea_scenario *sc);
+/* Where a row's timing columns start; the current's follow them. */
+int cochlea_loop_timing_at(const cochlea_scenario *sc);
 
 /* Configure the loop and initialise the controller (p_hat = p_hat0). period_s: the control
  * period (0: the scenario's; cochlea-run's --rate); duration_s: the run (rounded to whole

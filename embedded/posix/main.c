@@ -1268,8 +1268,14 @@ static int write_columns(const char *out, const cochlea_scenario *sc, int row_le
             COLUMN("%s.p_hat.%s_SI", unit->name, unit->param_names[i]);
         }
     }
-    for (i = 0; i < 4; ++i) {
+    for (i = 0; i < COCHLEA_TIMING_COLUMNS; ++i) {
         COLUMN("%s", timing[i]);
+    }
+    /* The drives' measured current, at the joint's sign (cochlea-run's current columns). */
+    for (u = 0; u < sc->n_units; ++u) {
+        for (i = 0; i < sc->units[u].nq; ++i) {
+            COLUMN("current.%s.%s_A", sc->units[u].name, sc->units[u].joint_names[i]);
+        }
     }
 #undef COLUMN
     fputs("\n ]\n}\n", f);
@@ -1320,6 +1326,9 @@ static void csv_header(FILE *f, const cochlea_scenario *sc)
             fprintf(f, ",%s.tau.%s_%s", t->name, t->joint_names[i],
                     effort_unit(t->joint_units[i]));
         }
+        for (i = 0; i < t->nq; ++i) { /* the drives measure it: cochlea-run's hardware runs */
+            fprintf(f, ",%s.current.%s_A", t->name, t->joint_names[i]);
+        }
         for (i = 0; i < t->np; ++i) {
             slug(buf, sizeof buf, t->param_units[i]);
             fprintf(f, ",%s.p_hat.%s_%s", t->name, t->param_names[i], buf);
@@ -1338,16 +1347,18 @@ static long csv_columns(const cochlea_scenario *sc)
     int u;
     for (u = 0; u < sc->n_units; ++u) {
         const cochlea_unit_info *t = &sc->units[u];
-        n += 4 * t->nq + 3 * t->nd + (t->ne - t->nd) + t->np;
+        n += 5 * t->nq + 3 * t->nd + (t->ne - t->nd) + t->np;
     }
     return n;
 }
 
 /* One log.csv row from a log.bin row; the desired path is evaluated again at the row's time. */
-static void csv_row(FILE *f, const cochlea_scenario *sc, const double *row, int row_length)
+static void csv_row(FILE *f, const cochlea_scenario *sc, const double *row)
 {
     double xd[64], xd_dot[64], xd_ddot[64];
     const int n = sc->nq;
+    const double *timing = row + cochlea_loop_timing_at(sc);
+    const double *current = timing + COCHLEA_TIMING_COLUMNS;
     int u, i;
     if (sc->desired(row[0], xd, xd_dot, xd_ddot) != 0) {
         for (i = 0; i < sc->nd; ++i) {
@@ -1365,10 +1376,11 @@ static void csv_row(FILE *f, const cochlea_scenario *sc, const double *row, int 
         for (i = 0; i < t->nd; ++i) fprintf(f, ",%.10g", t->tracking_sign * e[i]);
         for (i = t->nd; i < t->ne; ++i) fprintf(f, ",%.10g", e[i]);
         for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", row[1 + 2 * n + t->q0 + i]);
+        for (i = 0; i < t->nq; ++i) fprintf(f, ",%.10g", current[t->q0 + i]);
         for (i = 0; i < t->np; ++i) fprintf(f, ",%.10g", e[t->ne + i]);
     }
-    for (i = 0; i < 4; ++i) {
-        fprintf(f, ",%.10g", row[row_length - 4 + i]);
+    for (i = 0; i < COCHLEA_TIMING_COLUMNS; ++i) {
+        fprintf(f, ",%.10g", timing[i]);
     }
     fputc('\n', f);
 }
@@ -1461,7 +1473,7 @@ static int read_back(const char *out, const cochlea_scenario *sc, int row_length
     st->tail = (long)((double)rows * (1.0 - TAIL_FRACTION));
     for (c = 0; c < TIMING_COLUMNS; ++c) {
         timing_column *t = &st->timing[c];
-        t->column = row_length - 3 + c;
+        t->column = cochlea_loop_timing_at(sc) + 1 + c; /* wall period, compute, i/o */
         t->first_row = c == 0 ? 1 : 0;
         t->n = 0;
         t->sum = t->m2 = t->mean = 0.0;
@@ -1521,7 +1533,7 @@ static int read_back(const char *out, const cochlea_scenario *sc, int row_length
                 if (pass == 0) {
                     first_pass_row(st, sc, row, k + j, row_length);
                     if (csv) {
-                        csv_row(csv, sc, row, row_length);
+                        csv_row(csv, sc, row);
                     }
                 } else {
                     second_pass_row(st, row, k + j);
