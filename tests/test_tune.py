@@ -436,3 +436,23 @@ def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
     summary = cochlea_tune.write_report(other, tune, result).read_text()
     assert "No candidate was feasible" in summary and "none feasible" in summary
     assert (other / "history.png").stat().st_size > 0
+
+
+def test_a_second_search_on_a_running_folder_is_refused(local_tune, tmp_path, capsys):
+    """The running search holds the folder's lock: a second one is one line, exit 2, and
+    changes nothing in the folder (both would tell Optuna the same trials)."""
+    import shutil
+
+    spec, finished = local_tune
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    fd = tuning.hold(out)
+    try:
+        assert cochlea_tune.main([str(spec), "--out", str(out), "--workers", "1",
+                                  "--progress", "off"]) == 2
+    finally:
+        tuning.release(out, fd)
+    assert "another cochlea-tune is running on this folder" in capsys.readouterr().err
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before

@@ -76,7 +76,7 @@ def batch_size(cost_s: float, overhead_s: float, remaining: int, workers: int) -
     return max(1, min(n, share))
 
 
-def _client(workers: int | None, scheduler: str | None):
+def connect(workers: int | None, scheduler: str | None):
     # distributed is imported here: it takes a second, which the spec's checks and the
     # subcommands (replay, report) need not wait for.
     from distributed import Client, LocalCluster  # noqa: PLC0415
@@ -109,7 +109,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
     if not missing:
         return info
     start = time.perf_counter()
-    client, cluster = _client(workers, scheduler)
+    client, cluster = connect(workers, scheduler)
     bar, lock = None, None
     try:
         results.prepare(out, spec)
@@ -138,7 +138,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
             take = [missing.popleft() for _ in range(min(n, len(missing)))]
             return client.submit(run_batch, remote_spec, take, evaluate, pure=False)
 
-        from distributed import as_completed  # noqa: PLC0415 (see _client)
+        from distributed import as_completed  # noqa: PLC0415 (see connect)
 
         # The first round measures: one sample per worker (unless --batch says otherwise).
         pending = as_completed([submit(size or 1) for _ in range(n_workers) if missing])

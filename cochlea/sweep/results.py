@@ -107,18 +107,20 @@ def prepare(out: Path, spec: Spec) -> None:
         tmp.unlink()
 
 
-def hold(out: Path) -> int:
-    """Lock ``out`` for this sweep: a second one on the same folder would run the same missing
-    samples and write them twice. The lock file stays (removing it would let a third process
-    lock a new file while a second still holds the old one)."""
-    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+def hold(out: Path, lock: str = LOCK, program: str = "cochlea-sweep",
+         error: type[CochleaError] | None = None) -> int:
+    """Lock ``out`` for this process (``lock``, a file in it): a second sweep on the same folder
+    would run the same missing samples and write them twice (``cochlea-tune`` locks its folder
+    the same way). The lock file stays (removing it would let a third process lock a new file
+    while a second still holds the old one)."""
+    fd = os.open(out / lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         os.close(fd)
-        raise SweepFolderError(f"--out {out}: another cochlea-sweep is running on this "
-                               "folder; wait for it (the same command then resumes what is "
-                               "left) or give another --out") from None
+        raise (error or SweepFolderError)(
+            f"--out {out}: another {program} is running on this folder; wait for it (the same "
+            "command then resumes what is left) or give another --out") from None
     return fd
 
 

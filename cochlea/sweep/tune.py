@@ -27,11 +27,9 @@ gains) to the same trials as one that was never stopped.
 from __future__ import annotations
 
 import csv
-import fcntl
 import hashlib
 import io
 import json
-import logging
 import math
 import os
 import re
@@ -378,21 +376,13 @@ def hold(out: Path) -> int:
     """Lock ``out`` for this process (a second search on the same folder is refused). Holding
     it, any lock Optuna's journal left is a killed run's: removed, or the next write would wait
     for its grace period."""
-    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(fd)
-        raise TuneFolderError(f"--out {out}: another cochlea-tune is running on this folder; "
-                              "wait for it or give another --out") from None
+    fd = results.hold(out, LOCK, "cochlea-tune", TuneFolderError)
     (out / (JOURNAL + ".lock")).unlink(missing_ok=True)
     return fd
 
 
 def release(out: Path, fd: int | None) -> None:
-    if fd is not None:
-        (out / LOCK).unlink(missing_ok=True)
-        os.close(fd)
+    results.release(fd)
 
 
 def rows_path(out: Path, key: int | str) -> Path:
@@ -478,32 +468,12 @@ def best(records: list[dict]) -> dict | None:
 # --------------------------------------------------------------------------------------------
 
 
-def _client(workers: int | None, scheduler: str | None):
-    # As the sweep's (cochlea.sweep.execute): distributed is imported here, after the spec's
-    # checks, which need not wait the second it takes.
-    from distributed import Client, LocalCluster  # noqa: PLC0415
-
-    if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout=execute.CONNECT_TIMEOUT_S)
-            client.wait_for_workers(1, timeout=execute.CONNECT_TIMEOUT_S)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise CochleaError(f"--scheduler {scheduler}: cannot reach a Dask scheduler with "
-                               f"workers there ({exc}); start `dask scheduler` and `dask worker "
-                               f"{scheduler}`, or leave --scheduler out for local workers") \
-                from None
-        return client, None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
-    return Client(cluster), cluster
-
-
 def _evaluate(client, jobs: dict[Any, Spec], size: int, evaluate: Callable[[str], dict],
               n_workers: int, done: Callable[[Any, list[dict]], None],
               progress: Callable[[int], None]) -> None:
     """Every job's sample on the workers, in chunks that keep every worker busy; ``done(key,
     rows)`` as soon as a job's rows are all back."""
-    from distributed import as_completed  # noqa: PLC0415 (see _client)
+    from distributed import as_completed  # noqa: PLC0415 (see execute.connect)
 
     if not jobs:
         return
@@ -554,7 +524,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
          lock: dict[str, int]) -> dict:
     """:func:`run` once workers are needed: a new folder is written only once they are up."""
     s = tune.settings
-    client, cluster = _client(workers, scheduler)
+    client, cluster = execute.connect(workers, scheduler)
     bar = None
     try:
         prepare(out, tune)
