@@ -26,32 +26,29 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def _parallel_cutoff(text: str) -> float | None:
-    """``--parallel-cutoff-hz``: a frequency (Hz) or ``off``."""
+def _number_or_off(text: str, option: str, valid, expected: str) -> float | None:
+    """An option that takes a number or ``off`` (None)."""
     if text.strip().lower() == "off":
         return None
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise CochleaError(f"--parallel-cutoff-hz: expected a positive frequency in Hz or "
-                           f"'off', got {text!r}")
+    if not (math.isfinite(value) and valid(value)):
+        raise CochleaError(f"{option}: expected {expected} or 'off', got {text!r}")
     return value
+
+
+def _parallel_cutoff(text: str) -> float | None:
+    """``--parallel-cutoff-hz``: a frequency (Hz) or ``off``."""
+    return _number_or_off(text, "--parallel-cutoff-hz", lambda v: v > 0,
+                          "a positive frequency in Hz")
 
 
 def _max_bus(text: str) -> float | None:
     """``--max-bus-periods``: a number of periods above 1, or ``off``."""
-    if text.strip().lower() == "off":
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 1):
-        raise CochleaError(f"--max-bus-periods: expected a number of control periods of at "
-                           f"least 1 or 'off', got {text!r}")
-    return value
+    return _number_or_off(text, "--max-bus-periods", lambda v: v >= 1,
+                          "a number of control periods of at least 1")
 
 
 def _effort_lag(text: str) -> float | str:
