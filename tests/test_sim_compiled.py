@@ -137,7 +137,7 @@ def test_default_kernels_are_c(references, name, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no fallback to CasADi
         result = simulate(sc, DURATION, setups)
-    assert calls == [{"fallback": True}]
+    assert calls == [{"fallback": True, "threads": True}]
     assert_same_log(result, reference)
 
 

@@ -425,6 +425,23 @@ def sampler(tune: Tune, number: int) -> optuna.samplers.BaseSampler:
                                           constant_liar=True)
 
 
+def complete_params(study: optuna.Study, tune: Tune, number: int,
+                    distributions: dict[str, BaseDistribution]) -> None:
+    """The params of a trial a killed search left half-asked: Optuna's journal records an ask's
+    params one by one, so a kill between two leaves the trial without the rest. They are drawn
+    again as the first ask drew them (the trial's own seeded sampler, the same order, every
+    draw made, kept ones included, so the random stream is the same) and the missing ones
+    recorded. Optuna has no public call for either step: the sampler's own draw and the study's
+    storage are used directly."""
+    frozen = study.get_trials(deepcopy=False)[number]
+    draw = sampler(tune, number)
+    for name, distribution in distributions.items():
+        value = draw.sample_independent(study, frozen, name, distribution)
+        if name not in frozen.params:
+            study._storage.set_trial_param(frozen._trial_id, name,
+                                           distribution.to_internal_repr(value), distribution)
+
+
 def trial_records(study: optuna.Study, tune: Tune) -> list[dict]:
     """Every finished trial: number, objective, verdict, gains."""
     out = []
@@ -573,6 +590,10 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
             first = open_numbers[0] // s.parallel * s.parallel
             numbers = range(first, min(first + s.parallel, s.trials))
             for n in numbers:  # ask the round's missing trials before any of it is told
+                if n in states and states[n].state != TrialState.COMPLETE and \
+                        not set(distributions) <= set(states[n].params):
+                    complete_params(study, tune, n, distributions)
+                    states[n] = study.get_trials(deepcopy=False)[n]
                 if n not in states:
                     study.sampler = sampler(tune, n)
                     trial = study.ask(distributions)
