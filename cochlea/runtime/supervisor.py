@@ -310,10 +310,8 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor, q: np.nda
         # overflows, which the screen then settles).
         if not all(np.isfinite(a.sum()) for a in (q, qd, tau)):
             return False
-        if (q.min(axis=0) < L.position_lo).any() or (q.max(axis=0) > L.position_hi).any():
-            return False
-        # |qd| > v, row by row, is qd > v or -qd > v.
-        if (qd.max(axis=0) > L.velocity).any() or (-qd.min(axis=0) > L.velocity).any():
+        if not (_within(q, L.position_lo, L.position_hi)
+                and _within(qd, -L.velocity, L.velocity)):  # |qd| > v is qd outside [-v, v]
             return False
         for p, bound in zip(estimates, supervisor.bounds):
             largest = np.einsum("ij,ij->i", p, p).max(initial=0.0)
@@ -329,10 +327,21 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor, q: np.nda
                         cu, cv = s.centre
                     else:
                         cu, cv = 0.0, u.q[:, s.moving_centre_joint]
-                    nearest = np.hypot(u.x[:, iu] - cu, u.x[:, iv] - cv).min(initial=np.inf)
-                    if not nearest >= L.keep_out_radius + margin:
+                    # Squared, without hypot's cost; the relative slack covers its rounding.
+                    du, dv = u.x[:, iu] - cu, u.x[:, iv] - cv
+                    nearest = (du * du + dv * dv).min(initial=np.inf)
+                    if not nearest >= ((L.keep_out_radius + margin) * (1 + 1e-9)) ** 2:
                         return False
     return True
+
+
+def _within(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Every element of ``a`` (rows of columns) within its column's ``[lo, hi]``: the whole
+    array's extremes against the tightest bounds first (no temporaries; the common case where
+    every joint has the same limits), else column by column. A NaN fails both."""
+    if a.min() >= lo.max() and a.max() <= hi.min():
+        return True
+    return bool((a.min(axis=0) >= lo).all() and (a.max(axis=0) <= hi).all())
 
 
 #: How far outside the keep-out circle (m) a logged pose is still screened when the loop
@@ -384,8 +393,7 @@ def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
             for u in result.units]))
     with np.errstate(invalid="ignore"):
         # Most runs never reach a limit: the columns' extremes show it without a row count.
-        if (tau.max(axis=0, initial=-np.inf) < top).all() and \
-                (-tau.min(axis=0, initial=np.inf) < top).all():
+        if len(tau) == 0 or np.abs(tau).max() < top.min():  # NaN goes on to the count
             return 0
         return int(np.sum((np.abs(tau) >= top).any(axis=1)))
 
