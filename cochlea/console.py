@@ -98,3 +98,18 @@ def signals_held(signals=(signal.SIGINT, signal.SIGTERM)):
             signal.signal(s, signal.SIG_DFL if handler is None else handler)
         for signum in dict.fromkeys(arrived):  # each kind once, in order of arrival
             signal.raise_signal(signum)
+
+
+@contextlib.contextmanager
+def sigterm_interrupts():
+    """SIGTERM (a batch system's or a cluster's stop) raises KeyboardInterrupt, as Ctrl-C does,
+    for the section: the long-running programs that resume (cochlea-sweep, cochlea-tune) keep
+    what finished and say so either way. The previous handler comes back afterwards."""
+    def terminate(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -16,13 +16,12 @@ import argparse
 import dataclasses
 import math
 import os
-import signal
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from ..console import tolerate_closed_stdout
+from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
@@ -226,31 +225,24 @@ def replay_spec(folder: Path) -> sweep_spec.Spec:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     tolerate_closed_stdout()
-    previous = signal.getsignal(signal.SIGTERM)
-
-    def terminate(signum, frame):  # SIGTERM (a batch system's stop) is an interrupt too
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, terminate)
-    try:
-        if argv[:1] == ["replay"]:
-            return _replay(argv[1:])
-        if argv[:1] == ["report"]:
-            p = argparse.ArgumentParser(prog="cochlea-sweep report",
-                                        description="Write DIR/summary.md and the figures "
-                                                    "from the samples finished so far.")
-            p.add_argument("dir", type=Path, metavar="DIR")
-            args = p.parse_args(argv[1:])
-            return _report(args.dir)
-        return _sweep(argv)
-    except CochleaError as exc:
-        print(f"cochlea-sweep: {exc}", file=sys.stderr)
-        return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print("cochlea-sweep: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    with sigterm_interrupts():  # SIGTERM (a batch system's stop) is an interrupt too
+        try:
+            if argv[:1] == ["replay"]:
+                return _replay(argv[1:])
+            if argv[:1] == ["report"]:
+                p = argparse.ArgumentParser(prog="cochlea-sweep report",
+                                            description="Write DIR/summary.md and the figures "
+                                                        "from the samples finished so far.")
+                p.add_argument("dir", type=Path, metavar="DIR")
+                args = p.parse_args(argv[1:])
+                return _report(args.dir)
+            return _sweep(argv)
+        except CochleaError as exc:
+            print(f"cochlea-sweep: {exc}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        except KeyboardInterrupt:
+            print("cochlea-sweep: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

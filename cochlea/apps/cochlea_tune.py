@@ -18,14 +18,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import signal
 import sys
 import tempfile
 from pathlib import Path
 
 from matplotlib.figure import Figure
 
-from ..console import tolerate_closed_stdout
+from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..sim import load_scenario, unit_setups
 from ..sweep import sampling
@@ -230,22 +229,15 @@ def _tune(argv: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     tolerate_closed_stdout()
-    previous = signal.getsignal(signal.SIGTERM)
-
-    def terminate(signum, frame):  # SIGTERM (a batch system's stop) is an interrupt too
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, terminate)
-    try:
-        return _tune(argv)
-    except CochleaError as exc:
-        print(f"cochlea-tune: {exc}", file=sys.stderr)
-        return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print("cochlea-tune: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    with sigterm_interrupts():  # SIGTERM (a batch system's stop) is an interrupt too
+        try:
+            return _tune(argv)
+        except CochleaError as exc:
+            print(f"cochlea-tune: {exc}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        except KeyboardInterrupt:
+            print("cochlea-tune: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":
