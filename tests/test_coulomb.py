@@ -33,11 +33,16 @@ def step(arm):
 LOCKED = np.array([LEVEL[0], 1.0, 1.0])
 
 
+def dry(level):
+    """The plant's dry-friction input for plain Coulomb friction: static = Coulomb."""
+    return np.concatenate([level, level, np.full(len(level), 0.02)])
+
+
 def run(step, arm, x0, tau, periods, level=LEVEL):
     x = np.array(x0, float)
     states = [x]
     for _ in range(periods):
-        x = np.array(step(x, tau, arm.p_nominal, np.zeros(3), H, level)).ravel()
+        x = np.array(step(x, tau, arm.p_nominal, np.zeros(3), H, dry(level))).ravel()
         states.append(x)
     return np.array(states)
 
@@ -99,6 +104,7 @@ def test_scenario_coulomb_friction_reaches_the_plant():
     sc = dataclasses.replace(sc, plant=Plant(coulomb_friction=np.array([0.02, 0.015, 0.01])))
     setups = unit_setups(sc)
     assert np.array_equal(setups[0].coulomb, [0.02, 0.015, 0.01])
+    assert np.array_equal(setups[0].drive[:6], [0.02, 0.015, 0.01] * 2)  # static = Coulomb
     reference = simulate(sc, 0.2, setups, kernels="casadi")
     with warnings.catch_warnings():
         warnings.simplefilter("error", CKernelsWarning)  # the C kernels run it
@@ -132,8 +138,9 @@ def test_the_c_plant_step_equals_the_casadi_one(name):
         state[m.nq:] = speed * rng.standard_normal(m.nq)
         tau = tau_scale * level * rng.choice([-1.0, 1.0], m.nq)
         friction = np.full(m.nq, 1e-3)
-        want = np.array(f(state, tau, m.p_nominal, friction, H, level)).ravel()
-        got, = kernel.evaluate(state, tau, m.p_nominal, friction, H, level)
+        static = np.concatenate([level, 1.5 * level, np.full(m.nq, 0.02)])
+        want = np.array(f(state, tau, m.p_nominal, friction, H, static)).ravel()
+        got, = kernel.evaluate(state, tau, m.p_nominal, friction, H, static)
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
 
 

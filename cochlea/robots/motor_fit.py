@@ -122,3 +122,33 @@ def effort_grid(motor: Motor, ratio: float, effort_limit: float,
     limit = current_limit_lsb(motor, spec, fit, effort_limit, ratio)
     return (fit.a * amperes_per_lsb / scale,
             float(fit.torque(limit * amperes_per_lsb)) / scale)
+
+
+def bridge_compensates_friction(controller_actuators: str) -> bool:
+    """Whether the bridge adds the fit's offset current (``I0 * clip(tau / ramp, -1, 1)``, the
+    gearbox's Coulomb friction) to the controller's effort: yes unless the controller's model
+    carries the friction itself (``actuators == "all"``), so the friction is compensated once,
+    by the controller or by the bridge, never by both."""
+    return controller_actuators != "all"
+
+
+def drive_terms(motor: Motor, ratio: float, effort_limit: float,
+                ramp: float = DEFAULT_RAMP_NM) -> tuple[float, float, float, float]:
+    """A joint's drive as the simulated plant applies it, at the joint (N m or N):
+    ``(quantum, motor_saturation, offset, ramp)``.
+
+    * ``quantum``: one Goal Current LSB through the fit's slope, as :func:`effort_grid`;
+    * ``motor_saturation``: ``a I_lim / |ratio|``, the motor's torque at the Current Limit --
+      the torque before the gearbox's friction, which a plant that carries the friction
+      (``friction_from_description``) subtracts itself;
+    * ``offset`` and ``ramp``: the bridge's friction compensation,
+      ``a I0 = -b`` and the fit's ramp, each over ``|ratio|``: the motor torque the bridge's
+      current ``tau / a + I0 clip(tau / ramp, -1, 1)`` gives is
+      ``tau + offset * clip(tau / ramp, -1, 1)`` at the joint."""
+    spec = MODELS[motor.model]
+    fit = Fit.from_description(motor.fit, ramp)
+    amperes_per_lsb = spec.current_unit_mA * 1e-3
+    scale = abs(ratio)
+    limit = current_limit_lsb(motor, spec, fit, effort_limit, ratio)
+    return (fit.a * amperes_per_lsb / scale, fit.a * limit * amperes_per_lsb / scale,
+            fit.a * fit.offset_current / scale, fit.ramp / scale)

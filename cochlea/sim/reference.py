@@ -16,7 +16,6 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ..robots.plant import plant_step
 from .result import SimulationResult, UnitLog
 from .scenario import Scenario
 from .setup import UnitSetup, quantise
@@ -35,9 +34,14 @@ def _command(u: UnitSetup, h: float, t, x_meas, p_hat):
 
 
 def _plant(u: UnitSetup, h: float, substeps: int, x_true, tau):
-    step = plant_step(u.plant_model, substeps, coulomb=u.coulomb is not None)
-    extra = [] if u.coulomb is None else [ca.DM(u.coulomb)]
+    step = u.plant_function(substeps)
+    extra = [] if u.drive is None else [ca.DM(u.drive)]
     return step(x_true, tau, ca.DM(u.plant_params), ca.DM(u.friction), h, *extra)
+
+
+def _nx(u: UnitSetup) -> int:
+    """The plant's state size: ``[q, qd]``, or with the gearbox ``[q, qd, theta, theta_dot]``."""
+    return len(u.plant_x0)
 
 
 def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
@@ -49,7 +53,7 @@ def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
     use :func:`command_function` and :func:`plant_function` then, the rounding in numpy."""
     n = u.controller_model.nq
     t = ca.SX.sym("t")
-    x_true = ca.SX.sym("x_true", 2 * n)
+    x_true = ca.SX.sym("x_true", _nx(u))
     x_meas = ca.SX.sym("x_meas", 2 * n)
     p_hat = ca.SX.sym("p_hat", u.controller.n_params)
     tau, p_next, errors, xd, xd_dot = _command(u, h, t, x_meas, p_hat)
@@ -75,7 +79,7 @@ def command_function(u: UnitSetup, h: float) -> ca.Function:
 def plant_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
     """``(x_true, tau) -> x_true_next``: the plant's half of :func:`period_function`."""
     n = u.controller_model.nq
-    x_true = ca.SX.sym("x_true", 2 * n)
+    x_true = ca.SX.sym("x_true", _nx(u))
     tau = ca.SX.sym("tau", n)
     return ca.Function(f"plant_{u.name}", [x_true, tau], [_plant(u, h, substeps, x_true, tau)],
                        ["x_true", "tau"], ["x_true_next"])
@@ -116,14 +120,14 @@ def simulate_reference(sc: Scenario, duration: float,
         X = np.empty((steps, 2 * n))
         log = {k: np.empty((steps, s)) for k, s in
                [("tau", n), ("errors", ne), ("xd", nd), ("xd_dot", nd), ("p_hat", n_p)]}
-        x = u.x0.astype(float).copy()
+        x = u.plant_x0.astype(float)  # the plant's state; the log and measurement: [q, qd]
         p_hat = u.p_hat0.astype(float).copy()
         noise = np.concatenate([np.full(n, sc.plant.noise_q_std),
                                 np.full(n, sc.plant.noise_qd_std)])
         delay = sc.plant.delay_periods
         rows = steps
         for k in range(steps):
-            X[k] = x
+            X[k] = x[:2 * n]
             measured = X[max(k - delay, 0)]
             if noise.any():
                 measured = measured + noise * rng.standard_normal(2 * n)

@@ -34,15 +34,25 @@ from .expressions import FUNCTIONS, ExpressionError, parse
 
 FORMAT = "cochlea-scenario/1"
 #: ``[plant] plant = "<preset>"``: defaults for the plant's keys, each still settable.
-#: realistic: the geared Dynamixels as the description gives them -- armature, viscous and
-#: Coulomb friction -- measured on the encoder grid and in velocity-register counts, driven in
-#: whole Goal Current LSBs up to the Current Limit, one period of measurement delay.
+#: realistic: the geared Dynamixels as the description and the datasheets give them -- the
+#: rotor (armature) behind a gear with the datasheet's backlash, the encoder on the output side
+#: (``gearbox``), viscous and Coulomb friction with static friction 1.5x Coulomb (Stribeck) in
+#: the gearbox -- measured on the encoder grid and in velocity-register counts, driven through
+#: the bridge's current conversion (its offset current where the bridge adds it:
+#: ``bridge_offset = "auto"``) in whole Goal Current LSBs up to the Current Limit, one period of
+#: measurement delay. (Before the gearbox: rigid links with the armature, Coulomb friction
+#: without static friction, no bridge offset, and a Current Limit net of friction.)
 PLANT_PRESETS = {
     "ideal": {},
     "realistic": {"armature": True, "friction_from_description": True,
                   "position_encoder": True, "velocity_register": True,
-                  "current_quantisation": True, "delay_periods": 1},
+                  "current_quantisation": True, "delay_periods": 1, "gearbox": True,
+                  "static_friction_ratio": 1.5, "bridge_offset": "auto"},
 }
+#: ``[plant] bridge_offset``: whether the bridge adds the fit's offset current to the
+#: controller's effort; "auto": what the bridge does for the scenario's controller
+#: (:func:`cochlea.robots.motor_fit.bridge_compensates_friction`).
+BRIDGE_OFFSET = ("auto", True, False)
 UNITS = {"deg": ("angle", np.pi / 180.0), "rad": ("angle", 1.0), "m": ("length", 1.0),
          "mm": ("length", 1e-3)}
 
@@ -60,6 +70,10 @@ MAX_PAYLOAD_KG = 100.0
 MAX_FRICTION = 1e4  # N m (s/rad) or N (s/m)
 MAX_NOISE_Q, MAX_NOISE_QD = 1.0, 100.0  # rad or m; rad/s or m/s
 MAX_DELAY_PERIODS = 1000
+MAX_BACKLASH = 0.1  # rad (5.7 deg) or m, at the joint
+MAX_GEAR_STIFFNESS = 1e7  # N m/rad or N/m
+MAX_STATIC_FRICTION_RATIO = 10.0
+MAX_STRIBECK_VELOCITY = 100.0  # rad/s or m/s
 MAX_DEFINITIONS = 100
 #: Names a definition may not take: they already mean something in a formula.
 RESERVED_NAMES = frozenset({"t", "pi", *FUNCTIONS})
@@ -117,6 +131,23 @@ class Plant:
     #: Viscous and Coulomb friction from the description's actuators wherever the scenario
     #: gives no ``viscous_friction_SI`` / ``coulomb_friction_SI``.
     friction_from_description: bool = False
+    #: The geared drive (:func:`cochlea.robots.plant.gear_plant_step`): per joint a rotor (the
+    #: armature) coupled to the link through a gear with backlash, the encoder on the link.
+    gearbox: bool = False
+    #: Per joint (rad or m at the joint), the gear's full backlash, stiffness (N m/rad or N/m)
+    #: and damping (N m s/rad or N s/m); None: the motor model's datasheet figures and
+    #: estimates (:class:`cochlea.dynamixel.control_table.Gearbox`) through the joint's ratio.
+    backlash: np.ndarray | None = None
+    gear_stiffness: np.ndarray | None = None
+    gear_damping: np.ndarray | None = None
+    #: Static over Coulomb friction (breakaway level / sliding level), 1: plain Coulomb.
+    static_friction_ratio: float = 1.0
+    #: Per joint (rad/s or m/s), the Stribeck velocity; None: the motor model's, through the
+    #: joint's ratio.
+    stribeck_velocity: np.ndarray | None = None
+    #: Whether the bridge's offset current reaches the motors: "auto", True or False
+    #: (:data:`BRIDGE_OFFSET`).
+    bridge_offset: str | bool = False
 
 
 @dataclass(frozen=True)
@@ -159,8 +190,9 @@ class Scenario:
     @property
     def plant_actuators(self) -> str:
         """What the simulated plant's model carries of the drives: its friction is the plant
-        step's own input, so at most the armature."""
-        return "armature" if self.plant.armature else "none"
+        step's own input, so at most the armature; with the gearbox the armature is the
+        rotor's own coordinate, so the links' model is rigid."""
+        return "armature" if self.plant.armature and not self.plant.gearbox else "none"
 
     def desired_leader(self) -> ca.Function:
         """``t -> (x_d, x_d', x_d'')`` of the leader, derivatives exact (symbolic)."""
@@ -520,6 +552,43 @@ def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
         preset=preset,
         armature=flag("armature", "the description's armature in the plant"),
         friction_from_description=d["friction_from_description"],
+        gearbox=flag("gearbox", "the geared drive with backlash, the encoder on the output"),
+        backlash=p.vector("backlash_SI", layout.n_joint, "rad (revolute) or m (prismatic)",
+                          check=lambda v: all(0 <= x <= MAX_BACKLASH for x in v),
+                          what=f"(each the gear's full backlash at the joint, in [0, "
+                          f"{MAX_BACKLASH:g}])", required=False),
+        gear_stiffness=p.vector("gear_stiffness_SI", layout.n_joint,
+                                "N m/rad (revolute) or N/m (prismatic)",
+                                check=lambda v: all(0 < x <= MAX_GEAR_STIFFNESS for x in v),
+                                what=f"(each positive, at most {MAX_GEAR_STIFFNESS:g})",
+                                required=False),
+        gear_damping=p.vector("gear_damping_SI", layout.n_joint,
+                              "N m s/rad (revolute) or N s/m (prismatic)",
+                              check=lambda v: all(0 <= x <= MAX_FRICTION for x in v),
+                              what=f"(each in [0, {MAX_FRICTION:g}])", required=False),
+        static_friction_ratio=p.number(
+            "static_friction_ratio", f"a number in [1, {MAX_STATIC_FRICTION_RATIO:g}] (static "
+            "over Coulomb friction: breakaway level / sliding level)",
+            lambda v: 1 <= v <= MAX_STATIC_FRICTION_RATIO, required=False,
+            default=d["static_friction_ratio"]),
+        stribeck_velocity=p.vector("stribeck_velocity_SI", layout.n_joint,
+                                   "rad/s (revolute) or m/s (prismatic)",
+                                   check=lambda v: all(0 < x <= MAX_STRIBECK_VELOCITY
+                                                       for x in v),
+                                   what=f"(each positive, at most {MAX_STRIBECK_VELOCITY:g})",
+                                   required=False),
+        bridge_offset=p.get("bridge_offset", '"auto", true or false (whether the bridge adds '
+                            "the fit's offset current; auto: unless the controller models "
+                            "friction)", lambda v: isinstance(v, bool) or v == "auto",
+                            required=False, default=d["bridge_offset"]),
     )
+    if not plant.gearbox:
+        for key in ("backlash_SI", "gear_stiffness_SI", "gear_damping_SI"):
+            if key in p.data:
+                raise p.error(key, "no gear keys without the gearbox (set gearbox = true)",
+                              show_got=False)
+    elif not plant.armature:
+        raise p.error("gearbox", "the gearbox only with the rotor's inertia (armature = true)",
+                      plant.gearbox)
     p.done()
     return plant

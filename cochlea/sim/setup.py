@@ -17,36 +17,53 @@ import casadi as ca
 import numpy as np
 
 from ..control import Controller, build
-from ..dynamixel.control_table import RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB
+from ..dynamixel.control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB
 from ..errors import CochleaError
 from ..robots import robot
 from ..robots.adapter import sampled
 from ..robots.model import INERTIAL_NAMES, RobotModel
-from ..robots.motor_fit import effort_grid
+from ..robots.motor_fit import bridge_compensates_friction, drive_terms, effort_grid
+from ..robots.plant import gear_plant_step, plant_step
 from . import scenario as scenario_mod
 
 
 @dataclass
 class EffortGrid:
-    """What each joint's drive applies (scenario key ``current_quantisation``), per joint, in
-    N m (revolute) or N (prismatic). The bridge turns each command, already clipped to the
-    effort limit ``limit`` by the supervisor, into a whole number of Goal Current LSBs, and the
-    motor saturates at its Current Limit; the applied effort is ::
+    """What each joint's drive applies (scenario keys ``current_quantisation``,
+    ``bridge_offset``), per joint, in N m (revolute) or N (prismatic). The bridge turns each
+    command, already clipped to the effort limit ``limit`` by the supervisor, into a current:
+    with the bridge's offset ``tau / a + I0 clip(tau / ramp, -1, 1)``, so the motor torque is
+    ``tau + offset * clip(tau / ramp, -1, 1)``; then a whole number of Goal Current LSBs, and
+    the motor saturates at its Current Limit; the applied effort is ::
 
-        clip(quantum * round(tau / quantum), -bound, bound),   bound = min(saturation, limit)
+        u = tau + offset * clip(tau / ramp, -1, 1)                  (offset: zero without it)
+        clip(quantum * round(u / quantum), -bound, bound)       (a zero quantum: no rounding)
 
     rounded half to even (C's ``nearbyint``). ``quantum`` is one LSB through the fit's slope
-    and the joint's ratio, ``saturation`` the fit's effort at the Current Limit, offset included
-    (:func:`cochlea.robots.motor_fit.effort_grid`). Bounding by ``limit`` too keeps the
-    supervisor's promise where rounding would add up to half a quantum."""
+    and the joint's ratio, ``saturation`` the effort at the Current Limit
+    (:func:`cochlea.robots.motor_fit.effort_grid`: net of the fit's offset; the motor's torque
+    ``a I_lim`` where the plant carries the gearbox's friction itself,
+    :func:`cochlea.robots.motor_fit.drive_terms`). ``bound = min(saturation, limit)`` without
+    the offset: bounding by ``limit`` too keeps the supervisor's promise where rounding would
+    add up to half a quantum; with it ``bound = saturation``: the motor torque, friction
+    compensation included, may exceed the command's limit."""
 
     quantum: np.ndarray
     saturation: np.ndarray
     limit: np.ndarray
+    #: The bridge's friction compensation at the joint (N m or N) and its ramp, or None.
+    offset: np.ndarray | None = None
+    ramp: np.ndarray | None = None
 
     def __post_init__(self):
-        self.bound = np.minimum(self.saturation, self.limit)
+        if self.offset is None:
+            self.bound = np.minimum(self.saturation, self.limit)
+        else:
+            self.bound = np.asarray(self.saturation, float).copy()
+            self._scratch = np.empty_like(self.bound)
         self._lower = -self.bound
+        self._rounds = bool((np.asarray(self.quantum) > 0).all())
+        self._divisor = np.where(np.asarray(self.quantum) > 0, self.quantum, 1.0)
 
     @property
     def top(self) -> np.ndarray:
@@ -58,9 +75,20 @@ class EffortGrid:
         """The applied efforts of the commands ``tau`` (clipped to ``limit``) into ``out``
         (default: in place); no allocation, the C driver's floating-point operations."""
         out = tau if out is None else out
-        np.divide(tau, self.quantum, out=out)
-        np.rint(out, out=out)
-        np.multiply(out, self.quantum, out=out)
+        if self.offset is not None:  # the bridge's offset current, as the C driver adds it
+            s = self._scratch
+            np.divide(tau, self.ramp, out=s)
+            np.clip(s, -1.0, 1.0, out=s)
+            np.multiply(self.offset, s, out=s)
+            np.add(tau, s, out=out)
+            tau = out
+        if self._rounds:
+            np.divide(tau, self.quantum, out=out)
+            np.rint(out, out=out)
+            np.multiply(out, self.quantum, out=out)
+        else:
+            on_grid = self.quantum * np.rint(tau / self._divisor)
+            np.copyto(out, np.where(self.quantum > 0, on_grid, tau))
         np.clip(out, self._lower, self.bound, out=out)
         return out
 
@@ -101,9 +129,32 @@ class UnitSetup:
     #: Coulomb friction per joint (N m or N; the plant sticks and slips, see
     #: :func:`cochlea.robots.plant.plant_step`), or None: none.
     coulomb: np.ndarray | None = None
+    #: The plant step's last input, or None (the rigid plant without dry friction): the rigid
+    #: plant's ``dry`` = ``[Fc, Fs, vs]`` (3 n), the gear plant's ``drive`` (7 n, the rows of
+    #: :data:`cochlea.robots.plant.GEAR_DRIVE`).
+    drive: np.ndarray | None = None
+    #: The geared plant with backlash (:func:`cochlea.robots.plant.gear_plant_step`): its
+    #: state is ``[q, qd, theta, theta_dot]``; the measurement and the log are ``[q, qd]``.
+    gearbox: bool = False
     #: The drives' effort resolution and saturation (:class:`EffortGrid`), or None: every
     #: command clipped to the effort limit is applied as it is.
     effort_grid: EffortGrid | None = None
+
+    @property
+    def plant_x0(self) -> np.ndarray:
+        """The plant's initial state: ``x0``, and with the gearbox each rotor where its link
+        is (the teeth centred in the backlash), at its speed."""
+        if not self.gearbox:
+            return self.x0.copy()
+        n = len(self.x0) // 2
+        return np.concatenate([self.x0, self.x0[:n], self.x0[n:]])
+
+    def plant_function(self, substeps: int) -> ca.Function:
+        """The plant's step Function (inputs ``x, tau, p, friction, h`` and, with
+        :attr:`drive`, that last)."""
+        if self.gearbox:
+            return gear_plant_step(self.plant_model, substeps)
+        return plant_step(self.plant_model, substeps, coulomb=self.drive is not None)
 
     @property
     def effort_limit(self) -> np.ndarray:
@@ -189,6 +240,73 @@ def plant_friction(adapter, system, plant: scenario_mod.Plant
     return (np.zeros(len(joints)) if viscous is None else viscous), coulomb
 
 
+def _gearbox(j, what: str):
+    """The motor model's gearbox of joint ``j`` (``what`` names the value wanted)."""
+    gear = MODELS[j.motor.model].gearbox
+    if gear is None:
+        raise CochleaError(f"joint {j.name}: its motor model {j.motor.model} has no gearbox "
+                           f"data for the plant's {what}: give it in [plant]")
+    return gear
+
+
+def plant_drive(adapter, system, plant: scenario_mod.Plant, coulomb: np.ndarray | None
+                ) -> np.ndarray | None:
+    """For every joint of the whole system in the loop's order, the plant step's last input as
+    rows (``(rows, n_joints)``; None: the rigid plant without dry friction):
+
+    * the rigid plant with dry friction: ``[Fc, Fs, vs]``: the Coulomb levels, the static ones
+      (``static_friction_ratio`` times), the Stribeck velocities;
+    * the gear plant (``gearbox``): :data:`cochlea.robots.plant.GEAR_DRIVE`: the rotor's
+      inertia (the description's armature, required), the gear's backlash, stiffness and
+      damping (the scenario's, or the motor model's :class:`~cochlea.dynamixel.control_table.
+      Gearbox` through the joint's ratio: backlash times ``|ratio|``, stiffness and damping
+      over ``ratio^2``), then the dry friction's three rows (zero levels without friction).
+
+    Per-joint scenario values are one per joint of a unit, the same for every unit."""
+    joints = adapter.actuated_joints(system)
+    n = len(joints)
+
+    def tiled(given):
+        return np.tile(np.asarray(given, float), n // len(given))
+
+    if plant.stribeck_velocity is not None:
+        vs = tiled(plant.stribeck_velocity)
+    elif coulomb is not None or plant.gearbox:
+        vs = np.array([_gearbox(j, "Stribeck velocity").stribeck_velocity_rad_s * abs(j.ratio)
+                       for j in joints])
+    levels = np.zeros(n) if coulomb is None else coulomb
+    dry = [] if coulomb is None and not plant.gearbox else \
+        [levels, plant.static_friction_ratio * levels, vs]
+    if not plant.gearbox:
+        return None if coulomb is None else np.array(dry)
+    armature = np.array([j.actuator.armature or 0.0 for j in joints])
+    if not (armature > 0).all():
+        bad = joints[int(np.argmin(armature > 0))].name
+        raise CochleaError(f"joint {bad}: the gearbox plant needs the rotor's inertia: give the "
+                           "joint's armature in the description")
+
+    def gear(given, field, scale):
+        if given is not None:
+            return tiled(given)
+        return np.array([getattr(_gearbox(j, field), field) * scale(abs(j.ratio))
+                         for j in joints])
+
+    backlash = (tiled(plant.backlash) if plant.backlash is not None else
+                np.array([_gearbox(j, "backlash").backlash_rad * abs(j.ratio) for j in joints]))
+    stiffness = gear(plant.gear_stiffness, "stiffness_Nm_rad", lambda r: 1.0 / r ** 2)
+    damping = gear(plant.gear_damping, "damping_Nms_rad", lambda r: 1.0 / r ** 2)
+    return np.array([armature, backlash, stiffness, damping, *dry])
+
+
+def bridge_offset_applied(sc: scenario_mod.Scenario) -> bool:
+    """Whether the scenario's plant gets the bridge's offset current: its ``bridge_offset``,
+    "auto" resolved by :func:`cochlea.robots.motor_fit.bridge_compensates_friction` for the
+    scenario's controller."""
+    if sc.plant.bridge_offset == "auto":
+        return bridge_compensates_friction(sc.controller_actuators)
+    return bool(sc.plant.bridge_offset)
+
+
 def adaptation_gains(sc: scenario_mod.Scenario, p_nominal: np.ndarray) -> np.ndarray:
     """The diagonal of Gamma. "relative": ``adaptation_gain * max(|p_i|, 1e-3 max|p|)^2``, so
     an armature of 3e-3 kg m^2 and a slider's 18 kg both move by the same fraction of themselves
@@ -200,16 +318,31 @@ def adaptation_gains(sc: scenario_mod.Scenario, p_nominal: np.ndarray) -> np.nda
     return sc.adaptation_gain * np.maximum(size, 1e-3 * max(size.max(), 1e-300)) ** 2
 
 
-def drive_grids(adapter, system, plant: scenario_mod.Plant
-                ) -> tuple[np.ndarray, np.ndarray] | None:
+def drive_grids(adapter, system, plant: scenario_mod.Plant, offset: bool = False
+                ) -> tuple[np.ndarray, ...] | None:
     """For every joint of the whole system in the loop's order, ``(quantum, saturation)`` of
-    its drive's effort (N m or N, :func:`cochlea.robots.motor_fit.effort_grid`), or None when
-    the scenario's plant applies efforts as commanded."""
-    if not plant.current_quantisation:
+    its drive's effort (N m or N, :func:`cochlea.robots.motor_fit.effort_grid`), and with the
+    bridge's ``offset`` its offset and ramp too (:func:`cochlea.robots.motor_fit.drive_terms`),
+    or None when the scenario's plant applies efforts as commanded.
+
+    Without ``current_quantisation`` the quantum is zero and the saturation infinite. The
+    saturation is the fit's effort at the Current Limit net of its offset (the motor's torque
+    less the friction the offset stands for), or, where the plant carries the gearbox's
+    friction itself (``friction_from_description``), the motor's torque ``a I_lim``."""
+    if not (plant.current_quantisation or offset):
         return None
-    grids = [effort_grid(j.motor, j.ratio, j.effort_limit)
-             for j in adapter.actuated_joints(system)]
-    return np.array([g[0] for g in grids]), np.array([g[1] for g in grids])
+    joints = adapter.actuated_joints(system)
+    terms = np.array([drive_terms(j.motor, j.ratio, j.effort_limit) for j in joints]).T
+    quantum, motor_saturation, off, ramp = terms
+    if plant.current_quantisation:
+        saturation = (motor_saturation if plant.friction_from_description else
+                      np.array([effort_grid(j.motor, j.ratio, j.effort_limit)[1]
+                                for j in joints]))
+    else:
+        quantum, saturation = np.zeros(len(joints)), np.full(len(joints), np.inf)
+    if not offset:
+        return quantum, saturation
+    return quantum, saturation, off, ramp
 
 
 #: Periods of one as-fast simulation, which keeps every period in memory (about 1.2 kB each
@@ -356,7 +489,8 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
             _STRUCTURES.move_to_end(key)
     grids = measurement_grids(adapter, system, sc.plant)
     viscous, coulomb = plant_friction(adapter, system, sc.plant)
-    drives = drive_grids(adapter, system, sc.plant)
+    drive_rows = plant_drive(adapter, system, sc.plant, coulomb)
+    drives = drive_grids(adapter, system, sc.plant, bridge_offset_applied(sc))
     first_joint = 0  # the unit's first joint in the system
     setups = []
     for plan, controller, unit in zip(structure.plans, structure.controllers, sc.units,
@@ -374,7 +508,8 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
             quantum, offset = (grid[mine].T.ravel() for grid in grids)
         if drives is not None:
             limit = np.array([j.effort_limit for j in m.joints])
-            drive = EffortGrid(drives[0][mine], drives[1][mine], limit)
+            drive = EffortGrid(*(d[mine] for d in drives[:2]), limit,
+                               *(d[mine] for d in drives[2:]))
         first_joint += m.nq
         # The plan's initial state is shared by every set-up of its structure: a copy each.
         setups.append(UnitSetup(
@@ -384,6 +519,8 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
             plan.fk_world, tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
             coulomb=None if coulomb is None else coulomb[mine],
+            drive=None if drive_rows is None else drive_rows[:, mine].ravel(),
+            gearbox=sc.plant.gearbox,
             quantum=quantum, grid_offset=offset, effort_grid=drive))
     return setups
 
