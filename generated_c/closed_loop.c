@@ -38,12 +38,17 @@
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
@@ -52,12 +57,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -67,13 +74,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -101,6 +108,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -117,9 +130,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -135,12 +148,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
@@ -149,12 +167,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -164,13 +184,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -198,6 +218,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -214,9 +240,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -232,12 +258,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
@@ -246,12 +277,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -261,13 +294,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -295,6 +328,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -311,9 +350,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -329,12 +368,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
@@ -343,12 +387,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -358,13 +404,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -392,6 +438,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -408,9 +460,119 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm1_e_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_e_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm1_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_e_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_e_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -426,12 +588,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
@@ -440,12 +607,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -455,13 +624,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -489,6 +658,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -505,9 +680,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -523,12 +698,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
@@ -537,12 +717,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -552,13 +734,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -586,6 +768,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -602,9 +790,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -620,12 +808,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
@@ -634,12 +827,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -649,13 +844,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -683,6 +878,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -699,9 +900,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -717,12 +918,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
@@ -731,12 +937,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -746,13 +954,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -780,6 +988,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -796,9 +1010,119 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm1_g_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_g_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm1_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_g_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_g_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -814,12 +1138,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
@@ -828,12 +1157,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -843,13 +1174,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -877,6 +1208,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -893,9 +1230,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -911,12 +1248,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
@@ -925,12 +1267,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -940,13 +1284,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -974,6 +1318,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -990,9 +1340,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1008,12 +1358,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
@@ -1022,12 +1377,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -1037,13 +1394,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1071,6 +1428,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1087,9 +1450,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1105,12 +1468,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
@@ -1119,12 +1487,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -1134,13 +1504,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1168,6 +1538,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1184,9 +1560,119 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm1_g_thesis_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_g_thesis_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm1_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_g_thesis_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1202,12 +1688,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
@@ -1216,12 +1707,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -1231,13 +1724,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1265,6 +1758,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1281,9 +1780,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1299,12 +1798,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
@@ -1313,12 +1817,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -1328,13 +1834,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1362,6 +1868,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1378,9 +1890,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1396,12 +1908,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
@@ -1410,12 +1927,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -1425,13 +1944,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1459,6 +1978,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1475,9 +2000,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1493,12 +2018,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
@@ -1507,12 +2037,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -1522,13 +2054,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1556,6 +2088,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1572,9 +2110,119 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm1_e_actuated_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_e_actuated_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm1_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_e_actuated_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1590,12 +2238,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
@@ -1604,12 +2257,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -1619,13 +2274,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1653,6 +2308,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1669,9 +2330,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1687,12 +2348,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
@@ -1701,12 +2367,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -1716,13 +2384,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1750,6 +2418,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1766,9 +2440,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1784,12 +2458,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
@@ -1798,12 +2477,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -1813,13 +2494,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1847,6 +2528,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1863,9 +2550,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1881,12 +2568,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
@@ -1895,12 +2587,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -1910,13 +2604,13 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -1944,6 +2638,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -1960,9 +2660,119 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm1_g_actuated_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_g_actuated_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm1_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_g_actuated_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -1978,12 +2788,17 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
@@ -1992,12 +2807,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -2007,13 +2824,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2041,6 +2858,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2057,9 +2880,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2075,12 +2898,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
@@ -2089,12 +2917,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -2104,13 +2934,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2138,6 +2968,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2154,9 +2990,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2172,12 +3008,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
@@ -2186,12 +3027,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -2201,13 +3044,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2235,6 +3078,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2251,9 +3100,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2269,12 +3118,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
@@ -2283,12 +3137,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -2298,13 +3154,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2332,6 +3188,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2348,9 +3210,119 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm2_e_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_e_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm2_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_e_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_e_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2366,12 +3338,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
@@ -2380,12 +3357,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -2395,13 +3374,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2429,6 +3408,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2445,9 +3430,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2463,12 +3448,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
@@ -2477,12 +3467,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -2492,13 +3484,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2526,6 +3518,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2542,9 +3540,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2560,12 +3558,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
@@ -2574,12 +3577,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -2589,13 +3594,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2623,6 +3628,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2639,9 +3650,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2657,12 +3668,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
@@ -2671,12 +3687,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -2686,13 +3704,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2720,6 +3738,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2736,9 +3760,119 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm2_g_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm2_g_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm2_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
+  casadi_real* step_res[serial_arm2_g_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm2_g_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2754,12 +3888,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
@@ -2768,12 +3907,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -2783,13 +3924,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2817,6 +3958,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2833,9 +3980,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2851,12 +3998,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
@@ -2865,12 +4017,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -2880,13 +4034,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -2914,6 +4068,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -2930,9 +4090,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -2948,12 +4108,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
@@ -2962,12 +4127,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -2977,13 +4144,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3011,6 +4178,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -3027,9 +4200,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3045,12 +4218,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
@@ -3059,12 +4237,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 3, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -3074,13 +4254,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3108,6 +4288,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -3124,9 +4310,119 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm2_g_thesis_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm2_g_thesis_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm2_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
+  casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm2_g_thesis_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3142,12 +4438,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
@@ -3156,12 +4457,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -3171,13 +4474,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3205,6 +4508,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -3221,9 +4530,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3239,12 +4548,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
@@ -3253,12 +4567,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -3268,13 +4584,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3301,6 +4617,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -3318,9 +4640,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3336,12 +4658,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
@@ -3350,12 +4677,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -3365,13 +4694,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3398,6 +4727,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -3415,9 +4750,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3433,12 +4768,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
@@ -3447,12 +4787,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -3462,13 +4804,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3496,6 +4838,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -3512,9 +4860,119 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm2_e_actuated_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm1_e_actuated_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm2_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
+  casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm1_e_actuated_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3530,12 +4988,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
@@ -3544,12 +5007,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -3559,13 +5024,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3592,6 +5057,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -3609,9 +5080,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3627,12 +5098,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
@@ -3641,12 +5117,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -3656,13 +5134,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3689,6 +5167,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -3706,9 +5190,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3724,12 +5208,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
@@ -3738,12 +5227,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -3753,13 +5244,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3786,6 +5277,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -3803,9 +5300,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3821,12 +5318,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
@@ -3835,12 +5337,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 3, NX = 2 * 3, NP = 12, ND = 3, NE = 6, NPOSE = 3 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -3850,13 +5354,13 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3884,6 +5388,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -3900,9 +5410,119 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* serial_arm2_g_actuated_closed_loop_gear: n periods of the closed loop in C -- controller serial_arm2_g_actuated_step, plant serial_arm1_gear_plant_step,
+ * logged pose serial_arm2_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
+         NPOSE = 3 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
+  casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
+  const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
+  casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = serial_arm2_g_actuated_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -3918,12 +5538,17 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
@@ -3932,12 +5557,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -3947,13 +5574,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -3981,6 +5608,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -3997,9 +5630,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4015,12 +5648,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
@@ -4029,12 +5667,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -4044,13 +5684,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4078,6 +5718,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4094,9 +5740,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4112,12 +5758,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
@@ -4126,12 +5777,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -4141,13 +5794,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4175,6 +5828,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4191,9 +5850,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4209,12 +5868,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
@@ -4223,12 +5887,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -4238,13 +5904,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4272,6 +5938,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4288,9 +5960,119 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* parallel_f_closed_loop_gear: n periods of the closed loop in C -- controller parallel_f_step, plant parallel_gear_plant_step,
+ * logged pose parallel_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[parallel_f_step_SZ_ARG];
+  casadi_real* step_res[parallel_f_step_SZ_RES];
+  const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
+  casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = parallel_f_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4306,12 +6088,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
@@ -4320,12 +6107,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -4335,13 +6124,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4369,6 +6158,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4385,9 +6180,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4403,12 +6198,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
@@ -4417,12 +6217,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -4432,13 +6234,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4466,6 +6268,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4482,9 +6290,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4500,12 +6308,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
@@ -4514,12 +6327,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -4529,13 +6344,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4563,6 +6378,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4579,9 +6400,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4597,12 +6418,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
@@ -4611,12 +6437,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -4626,13 +6454,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4660,6 +6488,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4676,9 +6510,119 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* parallel_f_thesis_closed_loop_gear: n periods of the closed loop in C -- controller parallel_f_thesis_step, plant parallel_gear_plant_step,
+ * logged pose parallel_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
+  casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
+  const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
+  casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = parallel_f_thesis_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4694,12 +6638,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
@@ -4708,12 +6657,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -4723,13 +6674,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4757,6 +6708,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4773,9 +6730,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4791,12 +6748,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
@@ -4805,12 +6767,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -4820,13 +6784,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4854,6 +6818,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4870,9 +6840,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4888,12 +6858,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
@@ -4902,12 +6877,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -4917,13 +6894,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -4951,6 +6928,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -4967,9 +6950,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -4985,12 +6968,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
@@ -4999,12 +6987,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -5014,13 +7004,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5048,6 +7038,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5064,9 +7060,119 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* parallel_d_closed_loop_gear: n periods of the closed loop in C -- controller parallel_d_step, plant parallel_gear_plant_step,
+ * logged pose parallel_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[parallel_d_step_SZ_ARG];
+  casadi_real* step_res[parallel_d_step_SZ_RES];
+  const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
+  casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = parallel_d_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5082,12 +7188,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
@@ -5096,12 +7207,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -5111,13 +7224,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5145,6 +7258,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5161,9 +7280,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5179,12 +7298,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
@@ -5193,12 +7317,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -5208,13 +7334,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5242,6 +7368,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5258,9 +7390,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5276,12 +7408,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
@@ -5290,12 +7427,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -5305,13 +7444,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5339,6 +7478,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5355,9 +7500,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5373,12 +7518,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
@@ -5387,12 +7537,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 13, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -5402,13 +7554,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5436,6 +7588,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5452,9 +7610,119 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* parallel_d_thesis_closed_loop_gear: n periods of the closed loop in C -- controller parallel_d_thesis_step, plant parallel_gear_plant_step,
+ * logged pose parallel_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
+  casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
+  const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
+  casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = parallel_d_thesis_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5470,12 +7738,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
@@ -5484,12 +7757,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -5499,13 +7774,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5533,6 +7808,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5549,9 +7830,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5567,12 +7848,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
@@ -5581,12 +7867,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -5596,13 +7884,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5629,6 +7917,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -5646,9 +7940,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5664,12 +7958,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
@@ -5678,12 +7977,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -5693,13 +7994,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5726,6 +8027,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -5743,9 +8050,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5761,12 +8068,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
@@ -5775,12 +8087,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 5, NE = 10, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -5790,13 +8104,13 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5824,6 +8138,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -5840,9 +8160,119 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* parallel_f_actuated_closed_loop_gear: n periods of the closed loop in C -- controller parallel_f_actuated_step, plant parallel_gear_plant_step,
+ * logged pose parallel_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 5, NE = 10,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
+  casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
+  const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
+  casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = parallel_f_actuated_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5858,12 +8288,17 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
@@ -5872,12 +8307,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -5887,13 +8324,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -5920,6 +8357,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -5937,9 +8380,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -5955,12 +8398,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
@@ -5969,12 +8417,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -5984,13 +8434,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -6017,6 +8467,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -6034,9 +8490,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -6052,12 +8508,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
@@ -6066,12 +8527,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -6081,13 +8544,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  (void)coulomb;
+  (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -6114,6 +8577,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     if (effort_limit) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
     }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
@@ -6131,9 +8600,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;
@@ -6149,12 +8618,17 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
  * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with the Coulomb friction
- * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
- * dry friction ignores them). The run stops after period k when the next state or estimate is
- * not finite: *rows = k + 1 rows are written.
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
@@ -6163,12 +8637,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
-  enum { NQ = 5, NX = 2 * 5, NP = 28, ND = 6, NE = 11, NPOSE = 6 };
-  casadi_real x[NX], x_next[NX], meas[NX], p_hat[NP], p_next[NP];
+  enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -6178,13 +8654,13 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   casadi_int i, k;
   int flag;
   *rows = 0;
-  for (i = 0; i < NX; ++i) x[i] = x0[i];
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
-  plant_arg[5] = coulomb;
+  plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
@@ -6212,6 +8688,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
     }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
     if (effort_quantum) {
       casadi_real* tau_k = tau_log + k * NQ;
       for (i = 0; i < NQ; ++i) {
@@ -6228,9 +8710,119 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
-    for (i = 0; i < NX; ++i) x[i] = x_next[i];
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NX; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+  }
+  return 0;
+}
+
+/* parallel_d_actuated_closed_loop_gear: n periods of the closed loop in C -- controller parallel_d_actuated_step, plant parallel_gear_plant_step,
+ * logged pose parallel_fk_world. Generated by cochlea-codegen from
+ * cochlea/data/codegen/closed_loop.c.in.
+ *
+ * Period k (time k h): the state x_k is logged; the controller sees the measurement
+ * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
+ * and offset may be NULL: continuous measurements); it returns the torque, clipped to
+ * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
+ * effort_quantum is given, applied as the drives do: on the effort grid,
+ * with the bridge's offset where effort_offset is given (NULL: none),
+ * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
+ * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
+ * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
+ * period, and the next estimate; the plant integrates the period, with its 6th input drive
+ * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
+ * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
+ * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
+ * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
+ * rows are written.
+ * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
+ */
+CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
+    casadi_int n, casadi_int delay,
+    const casadi_real* x0, const casadi_real* p_hat0,
+    const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
+    const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
+    const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
+    const casadi_real* effort_limit, const casadi_real* effort_quantum,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+  enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 6, NE = 11,
+         NPOSE = 6 };
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
+  casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
+  const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
+  casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
+  const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
+  casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  casadi_int i, k;
+  int flag;
+  *rows = 0;
+  for (i = 0; i < NXP; ++i) x[i] = x0[i];
+  for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
+  step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
+  step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_res[1] = p_next;
+  plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
+  plant_arg[5] = drive;
+  plant_res[0] = x_next;
+  pose_arg[0] = x;
+  for (k = 0; k < n; ++k) {
+    casadi_real* x_k = x_log + k * NX;
+    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    for (i = 0; i < NX; ++i) x_k[i] = x[i];
+    if (noise) {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
+    } else {
+      for (i = 0; i < NX; ++i) meas[i] = seen[i];
+    }
+    if (quantum) {
+      for (i = 0; i < NX; ++i) {
+        if (quantum[i] > 0) {
+          meas[i] = offset[i] + quantum[i] * nearbyint((meas[i] - offset[i]) / quantum[i]);
+        }
+      }
+    }
+    for (i = 0; i < NP; ++i) p_hat_log[k * NP + i] = p_hat[i];
+    step_arg[2] = xd + k * ND; step_arg[3] = xd_dot + k * ND; step_arg[4] = xd_ddot + k * ND;
+    step_res[0] = tau_log + k * NQ; step_res[2] = errors_log + k * NE;
+    flag = parallel_d_actuated_step(step_arg, step_res, 0, 0, 0);
+    if (flag) return flag;
+    if (effort_limit) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) tau_k[i] = fmin(fmax(tau_k[i], -effort_limit[i]), effort_limit[i]);
+    }
+    if (effort_offset) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        tau_k[i] += effort_offset[i] * fmin(fmax(tau_k[i] / effort_ramp[i], -1.0), 1.0);
+      }
+    }
+    if (effort_quantum) {
+      casadi_real* tau_k = tau_log + k * NQ;
+      for (i = 0; i < NQ; ++i) {
+        if (effort_quantum[i] > 0) {
+          tau_k[i] = effort_quantum[i] * nearbyint(tau_k[i] / effort_quantum[i]);
+        }
+        tau_k[i] = fmin(fmax(tau_k[i], -effort_bound[i]), effort_bound[i]);
+      }
+    }
+    plant_arg[1] = tau_log + k * NQ;
+    flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
+    if (flag) return flag;
+    pose_res[0] = pose_log + k * NPOSE;
+    flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
+    if (flag) return flag;
+    *rows = k + 1;
+    for (i = 0; i < NXP; ++i) x[i] = x_next[i];
+    for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
     for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
   }
   return 0;

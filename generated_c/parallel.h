@@ -359,6 +359,24 @@ int parallel_armature_plant_step_coulomb_work_bytes(casadi_int *sz_arg, casadi_i
 #define parallel_armature_plant_step_coulomb_SZ_RES 1
 #define parallel_armature_plant_step_coulomb_SZ_IW 0
 #define parallel_armature_plant_step_coulomb_SZ_W 0
+int parallel_gear_plant_step(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem);
+int parallel_gear_plant_step_checkout(void);
+void parallel_gear_plant_step_release(int mem);
+void parallel_gear_plant_step_incref(void);
+void parallel_gear_plant_step_decref(void);
+casadi_int parallel_gear_plant_step_n_in(void);
+casadi_int parallel_gear_plant_step_n_out(void);
+casadi_real parallel_gear_plant_step_default_in(casadi_int i);
+const char* parallel_gear_plant_step_name_in(casadi_int i);
+const char* parallel_gear_plant_step_name_out(casadi_int i);
+const casadi_int* parallel_gear_plant_step_sparsity_in(casadi_int i);
+const casadi_int* parallel_gear_plant_step_sparsity_out(casadi_int i);
+int parallel_gear_plant_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
+int parallel_gear_plant_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
+#define parallel_gear_plant_step_SZ_ARG 6
+#define parallel_gear_plant_step_SZ_RES 1
+#define parallel_gear_plant_step_SZ_IW 0
+#define parallel_gear_plant_step_SZ_W 0
 void parallel_casadi_version(int* major, int* minor, int* patch);
 int parallel_casadi_int_size(void);
 int parallel_casadi_real_size(void);

@@ -279,3 +279,57 @@ def test_double_compensation_shows(tmp_path):
     once = simulate(sc, 0.3, kernels="casadi")
     twice = simulate(with_plant(sc, bridge_offset=True), 0.3, kernels="casadi")
     assert not np.allclose(once.units[0].q, twice.units[0].q, rtol=0, atol=1e-6)
+
+
+# --- The same plant in C, in the loops and in the sim backend --------------------------------
+
+
+REALISTIC = ["serial_joint_realistic", "serial_task_realistic", "parallel_joint_realistic",
+             "parallel_task_realistic"]
+
+
+@pytest.mark.parametrize("offset", ["auto", True], ids=["auto", "offset"])
+@pytest.mark.parametrize("name", REALISTIC)
+def test_the_c_loops_equal_casadi_on_the_geared_plant(name, offset):
+    """The realistic studies on the geared plant (with the bridge's offset forced, too): the C
+    driver and the Python loop over the C kernels give the CasADi reference's log."""
+    import warnings
+
+    from cochlea.kernels import library
+    from cochlea.sim import CKernelsWarning
+    from cochlea.sim.compiled import simulate_compiled, unit_kernels
+
+    sc = with_plant(load_scenario(name), bridge_offset=offset)
+    setups = unit_setups(sc)
+    assert unit_kernels(library.load(), setups[0], 1).closed_loop.endswith("_closed_loop_gear")
+    reference = simulate(sc, 0.6, setups, kernels="casadi")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CKernelsWarning)
+        for loop in ("c", "python"):
+            result = simulate_compiled(sc, 0.6, setups, loop=loop)
+            for a, b in zip(reference.units, result.units):
+                for key in ("q", "qd", "tau", "errors", "p_hat", "x"):
+                    np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=1e-12,
+                                               atol=1e-12, err_msg=f"{loop} {a.name}.{key}")
+
+
+def test_the_sim_backend_runs_the_geared_plant():
+    """The real-time loop back to back against SimBackend: the same commands as the as-fast
+    run, on the C gear plant, measuring the link's [q, qd]."""
+    from cochlea.runtime import RealTimeLoop, build_supervisor
+    from cochlea.runtime.sim_backend import SimBackend
+
+    sc = load_scenario("parallel_joint_realistic")
+    setups = unit_setups(sc)
+    periods = 300
+    backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
+    assert [f.kernel.name for f in backend._steps] == ["parallel_gear_plant_step"]
+    loop = RealTimeLoop(setups, backend, build_supervisor(setups, sc.space, None,
+                                                          substeps=sc.plant_substeps),
+                        sc.period, periods, realtime=False, substeps=sc.plant_substeps)
+    assert loop.run().rule == "completed"
+    looped, fast = loop.result(sc), simulate(sc, periods * sc.period, setups)
+    for a, b in zip(fast.units, looped.units):
+        for key in ("tau", "errors", "p_hat"):
+            np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=0, atol=1e-12,
+                                       err_msg=f"{a.name}.{key}")

@@ -51,8 +51,18 @@ def _inputs(kernel: codegen.Kernel, rng) -> list[np.ndarray]:
         name, size = f.name_in(i), f.size1_in(i) * f.size2_in(i)
         if name == "q":
             v = q
+        elif name == "x" and size == 4 * m.nq:  # the geared plant: link, then rotor
+            qd = rng.uniform(-1, 1, m.nq)
+            v = np.concatenate([q, qd, q + rng.uniform(-0.01, 0.01, m.nq),
+                                qd + rng.uniform(-0.1, 0.1, m.nq)])
         elif name == "x":
             v = np.concatenate([q, rng.uniform(-1, 1, m.nq)])
+        elif name == "drive":  # armature, backlash, stiffness, damping, Fc, Fs, vs
+            rows = [3.4e-3, 0.006, 1e3, 0.1, 0.1, 0.15, 0.02]
+            v = np.concatenate([np.full(m.nq, r) * rng.uniform(0.5, 1.5, m.nq) for r in rows])
+        elif name == "dry":  # Coulomb, static, Stribeck velocity
+            fc = rng.uniform(0.0, 0.05, m.nq)
+            v = np.concatenate([fc, 1.5 * fc, np.full(m.nq, 0.02)])
         elif name in ("p", "p_hat"):  # of the kernel's model: with its drives' terms, if any
             full = _model(kernel.robot, kernel.unit, "inertial", kernel.actuators)
             if size == len(full.p_nominal):  # full inertial: scale the whole robot (physical)

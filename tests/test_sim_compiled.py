@@ -70,15 +70,23 @@ def test_every_scenario_is_covered():
 
 @pytest.mark.parametrize("name", ["serial_task_realistic", "parallel_joint_realistic"])
 def test_the_realistic_studies_run_the_actuated_kernels(name):
-    """Controller with the drives modelled, plant with their armature and dry friction."""
+    """Controller with the drives modelled, plant with their rotors behind geared drives (the
+    gearbox with backlash and dry friction); without the gearbox, the rigid links with their
+    armature and dry friction."""
     sc = load_scenario(name)
     lib = ckernels.load()
     for u in unit_setups(sc):
         names = csim.unit_kernels(lib, u, sc.plant_substeps)
         assert names.step.endswith(f"_{sc.controller}_actuated_step")
+        assert names.plant.endswith("_gear_plant_step")
+        assert names.closed_loop.endswith("_actuated_closed_loop_gear")
+        assert lib.manifest["kernels"][names.step]["actuators"] == "all"
+        assert lib.manifest["closed_loops"][names.closed_loop]["nx"] == 4 * u.plant_model.nq
+    rigid = dataclasses.replace(sc, plant=dataclasses.replace(sc.plant, gearbox=False))
+    for u in unit_setups(rigid):
+        names = csim.unit_kernels(lib, u, sc.plant_substeps)
         assert names.plant.endswith("_armature_plant_step_coulomb")
         assert names.closed_loop.endswith("_actuated_closed_loop_armature_coulomb")
-        assert lib.manifest["kernels"][names.step]["actuators"] == "all"
         assert lib.manifest["kernels"][names.plant]["actuators"] == "armature"
 
 

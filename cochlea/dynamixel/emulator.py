@@ -69,7 +69,6 @@ from ..console import tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
-from ..robots.plant import plant_step
 from ..sim import load_scenario, unit_setups
 from ..sim.scenario import PLANT_PRESETS
 from . import protocol as proto
@@ -364,17 +363,20 @@ class _Unit:
         self.name = setup.name
         self.motors = motors
         self.n = n = len(motors)
-        self.x = np.asarray(setup.x0, float).copy()
-        # The plant step (x, tau, p, friction, h) -> x_next, called through CasADi's buffers
-        # (about 10 us instead of 60 us with numpy arguments).
-        step = plant_step(setup.plant_model, substeps, coulomb=setup.coulomb is not None)
+        # The plant's state: [q, qd], with the gearbox [q, qd, theta, theta_dot] (the encoder
+        # on the link: q and qd are what the motors report).
+        self.x = np.asarray(setup.plant_x0, float).copy()
+        self.gearbox = setup.gearbox
+        # The plant step (x, tau, p, friction, h[, drive]) -> x_next, called through CasADi's
+        # buffers (about 10 us instead of 60 us with numpy arguments).
+        step = setup.plant_function(substeps)
         self._buffer, self._call = step.buffer()
-        self._x, self._tau = np.zeros(2 * n), np.zeros(n)
-        self._next = np.zeros(2 * n)
+        self._x, self._tau = np.zeros(len(self.x)), np.zeros(n)
+        self._next = np.zeros(len(self.x))
         arguments = [self._x, self._tau, np.asarray(setup.plant_params, float).copy(),
                      np.asarray(setup.friction, float).copy(), np.array([h])]
-        if setup.coulomb is not None:  # dry friction: the motors' gearboxes stick and slip
-            arguments.append(np.asarray(setup.coulomb, float).copy())
+        if setup.drive is not None:  # dry friction (the gearboxes stick and slip), the gear
+            arguments.append(np.asarray(setup.drive, float).copy())
         self._arguments = arguments  # the buffers point into these arrays: keep them alive
         self._h = arguments[4]
         self._held = [True] * n
@@ -395,7 +397,8 @@ class _Unit:
             tau[j] = effort
             moving = moving or driving
         if not moving:
-            x[n:] = 0.0
+            x[n:2 * n] = 0.0
+            x[3 * n:] = 0.0  # the rotors' speeds, with the gearbox
             return True
         self._h[0] = h
         self._x[:] = x
@@ -405,8 +408,12 @@ class _Unit:
             if held[j]:
                 nxt[j] = x[j]
                 nxt[n + j] = 0.0
+                if self.gearbox:
+                    nxt[2 * n + j] = x[2 * n + j]
+                    nxt[3 * n + j] = 0.0
         if not math.isfinite(float(nxt.sum())):
-            x[n:] = 0.0
+            x[n:2 * n] = 0.0
+            x[3 * n:] = 0.0
             return False
         x[:] = nxt
         if self.stops:
@@ -556,7 +563,7 @@ class VirtualChain:
     def joint_state(self) -> np.ndarray:
         """``[q, qd]`` of all joints (SI), in the bridge's order."""
         q = np.concatenate([u.x[:u.n] for u in self.units])
-        qd = np.concatenate([u.x[u.n:] for u in self.units])
+        qd = np.concatenate([u.x[u.n:2 * u.n] for u in self.units])
         return np.concatenate([q, qd])
 
     def writes(self, kinds=("write", "sync-write")) -> list[tuple]:
@@ -893,6 +900,8 @@ class VirtualChain:
             for j, m in enumerate(u.motors):
                 if m.drive.name == name:
                     u.x[j], u.x[u.n + j] = q, 0.0
+                    if u.gearbox:  # the rotor with it, the teeth centred in the backlash
+                        u.x[2 * u.n + j], u.x[3 * u.n + j] = q, 0.0
                     return
         raise KeyError(name)
 

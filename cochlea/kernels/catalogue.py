@@ -24,7 +24,7 @@ from ..errors import CochleaError
 from ..resources import CODEGEN_DIR, checkout
 from ..robots import model
 from ..robots.model import ACTUATORS, RobotModel
-from ..robots.plant import plant_step
+from ..robots.plant import gear_plant_step, plant_step
 from .naming import closed_loop_name, computation_hash, controller_kernel_name, unit_prefix
 
 CONFIG = CODEGEN_DIR / "kernels.toml"
@@ -65,6 +65,10 @@ class RobotConfig:
     #: The controllers' models generated: "none" (every variant) and, for the corrected
     #: variant only, "all" (armature and friction estimated: the realistic studies).
     controller_actuators: tuple[str, ...] = ("none",)
+    #: Also the geared plant with backlash (``<prefix>_gear_plant_step``,
+    #: :func:`cochlea.robots.plant.gear_plant_step`: the realistic preset's) and, per
+    #: controller, a closed loop on it (``<group>_closed_loop_gear``).
+    plant_gear: bool = False
 
 
 @dataclass(frozen=True)
@@ -93,9 +97,9 @@ class CodegenConfig:
 _ROBOT_KEYS = {"name": str, "units": list, "kernels": list, "plant_substeps": int,
                "controller_parameterisation": str, "controllers": list, "variants": list,
                "task": list, "task_angles": list, "pose": str, "plant_coulomb": bool,
-               "plant_actuators": list, "controller_actuators": list}
+               "plant_actuators": list, "controller_actuators": list, "plant_gear": bool}
 #: Keys a [[robot]] table may leave out, and their defaults.
-_OPTIONAL = {"plant_actuators": ["none"], "controller_actuators": ["none"]}
+_OPTIONAL = {"plant_actuators": ["none"], "controller_actuators": ["none"], "plant_gear": False}
 
 
 def _fail(path: Path, key: str, expected: str, got: object) -> CodegenError:
@@ -151,7 +155,8 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
             table["plant_substeps"], table["controller_parameterisation"],
             tuple(table["controllers"]), tuple(table["variants"]), tuple(table["task"]),
             tuple(table["task_angles"]), table["pose"], table["plant_coulomb"],
-            tuple(table["plant_actuators"]), tuple(table["controller_actuators"])))
+            tuple(table["plant_actuators"]), tuple(table["controller_actuators"]),
+            table["plant_gear"]))
     if not robots:
         raise _fail(path, "robot", "at least one [[robot]] table", [])
     embedded = _embedded_config(path, data.get("embedded", {}))
@@ -229,10 +234,15 @@ class ClosedLoop:
     n_gains: int
     #: The C the driver calls: the symbols of its step, plant and pose kernels.
     calls: tuple[str, str, str] = ("", "", "")
-    #: Whether the plant has a Coulomb friction input (its 6th, ``coulomb``).
+    #: Whether the plant has a 6th input (the driver's ``drive``): the rigid plant's dry
+    #: friction (``dry``) or the gear plant's ``drive``.
     coulomb: bool = False
     #: The driver whose C runs this one: itself, or an earlier one making the same calls.
     symbol: str = ""
+    #: The plant's state size (``2 nq``, or ``4 nq`` with the gearbox) and its 6th input's.
+    nx: int = 0
+    n_drive: int = 0
+    gear: bool = False
 
     @property
     def is_alias(self) -> bool:
@@ -278,11 +288,14 @@ def _controller_kernels(robot: RobotConfig, ctrl_model: RobotModel, kind: str, v
                               prefix, kind, variant, cinfo.of(f), actuators=actuators))
     loops = []
     for plant_model, step in plants:
-        coulomb = "coulomb" in step.name_in()
+        gear = "drive" in step.name_in()
+        coulomb = gear or "dry" in step.name_in()
         loops.append(ClosedLoop(
-            closed_loop_name(group, plant_model, coulomb), f"{group}_step", step.name(),
-            pose.name(), c.nq, c.n_params, c.n_desired, c.n_desired + c.nq, pose.size1_out(0),
-            len(plant_model.param_names), sum(c.gain_sizes), coulomb=coulomb))
+            closed_loop_name(group, plant_model, coulomb and not gear, gear), f"{group}_step",
+            step.name(), pose.name(), c.nq, c.n_params, c.n_desired, c.n_desired + c.nq,
+            pose.size1_out(0), len(plant_model.param_names), sum(c.gain_sizes),
+            coulomb=coulomb, nx=step.size1_in(0),
+            n_drive=step.size1_in(5) if coulomb else c.nq, gear=gear))
     return loops
 
 
@@ -317,6 +330,12 @@ def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
                                           prefix, "plant", robot.name, prefix,
                                           si_units=_ArgumentUnits(plant_model).of(step),
                                           actuators=actuators))
+            if robot.plant_gear:  # the rigid links, each behind its rotor and gear
+                step = gear_plant_step(plant, robot.plant_substeps)
+                plants.append((plant, step))
+                kernels.append(Kernel(step.name(), export(step, step.name(), opts), step,
+                                      prefix, "plant", robot.name, prefix,
+                                      si_units=_ArgumentUnits(plant).of(step)))
             for actuators in robot.controller_actuators:
                 ctrl_model = model(robot.name, arm=unit, actuators=actuators,
                                    parameterisation=robot.controller_parameterisation)
@@ -408,6 +427,10 @@ class _ArgumentUnits:
             "x": f"[q; qd]: {self.q}; {self.qd}", "x_next": f"[q; qd]: {self.q}; {self.qd}",
             "p": self.params, "friction": f"viscous coefficients, {self.damping}",
             "coulomb": f"Coulomb friction levels, {self.tau}",
+            "dry": f"[Coulomb levels; static levels], {self.tau}; Stribeck velocities, "
+                   f"{self.qd}",
+            "drive": f"rows armature, backlash, gear stiffness, gear damping, Coulomb, static "
+                     f"friction, Stribeck velocity (SI per joint: {self.q} for the backlash)",
             "h": "s (control period)",
             "M": "kg m^2 (revolute pairs), kg (prismatic), kg m (mixed)",
             "C": "N m s/rad (revolute), N s/m (prismatic): C(q, qd) qd is a torque",

@@ -168,9 +168,10 @@ _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_real* x0, const casa
               "const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset, "
               "const casadi_real* gains, const casadi_real* Gamma, "
               "casadi_real bound, casadi_real h, const casadi_real* plant_p, "
-              "const casadi_real* friction, const casadi_real* coulomb, "
+              "const casadi_real* friction, const casadi_real* drive, "
               "const casadi_real* effort_limit, const casadi_real* effort_quantum, "
-              "const casadi_real* effort_bound, "
+              "const casadi_real* effort_bound, const casadi_real* effort_offset, "
+              "const casadi_real* effort_ramp, "
               "casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "
               "casadi_int* rows")
@@ -190,7 +191,8 @@ def _write_closed_loops(loops: list[ClosedLoop], kernels: list[Kernel], out: Pat
         parts.append("\n" + template.substitute(
             name=loop.name, step=step, plant=plant, pose=pose, nq=loop.nq,
             np=loop.n_params, nd=loop.n_desired, ne=loop.n_errors, npose=loop.n_pose,
-            coulomb_arg="plant_arg[5] = coulomb;" if loop.coulomb else "(void)coulomb;"))
+            nxp=loop.nx, n_drive=loop.n_drive,
+            coulomb_arg="plant_arg[5] = drive;" if loop.coulomb else "(void)drive;"))
     (out / "closed_loop.c").write_text("".join(parts))
     header = [_preamble("Closed-loop drivers (closed_loop.c); see README.md."),
               "#ifndef COCHLEA_CLOSED_LOOP_H\n#define COCHLEA_CLOSED_LOOP_H\n",
@@ -220,6 +222,7 @@ def _manifest(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLo
             "step": loop.step, "plant": loop.plant, "pose": loop.pose, "nq": loop.nq,
             "n_params": loop.n_params, "n_desired": loop.n_desired, "n_errors": loop.n_errors,
             "n_pose": loop.n_pose, "n_plant_params": loop.n_plant_params,
+            "nx": loop.nx, "n_drive": loop.n_drive,
             "n_gains": loop.n_gains,
         } for loop in loops},
     }

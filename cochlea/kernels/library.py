@@ -238,7 +238,7 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 11 + [ctypes.POINTER(_int)])
+                    + [pointer] * 13 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -348,6 +348,10 @@ class ClosedLoop:
         self.n_desired, self.n_errors, self.n_pose = (meta["n_desired"], meta["n_errors"],
                                                       meta["n_pose"])
         self.n_plant_params, self.n_gains = meta["n_plant_params"], meta["n_gains"]
+        #: The plant's state size (``2 nq``, or ``4 nq`` on the geared plant) and the size of
+        #: its 6th input (``drive``).
+        self.nx = meta.get("nx", 2 * self.nq)
+        self.n_drive = meta.get("n_drive", self.nq)
 
     def _array(self, label: str, value, shape: tuple[int, ...]) -> np.ndarray:
         array = np.ascontiguousarray(value, dtype=np.float64)
@@ -359,13 +363,16 @@ class ClosedLoop:
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
             offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
-            effort_bound=None) -> ClosedLoopLog:
+            effort_bound=None, effort_offset=None, effort_ramp=None) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call.
-        ``effort_quantum`` and ``effort_bound`` (nq each; the bound defaults to no bound) put
-        the applied efforts on the drives' grid (see generated_c/README.md)."""
+        ``x0`` is the plant's initial state (``nx``); ``coulomb`` its 6th input (``n_drive``
+        values: the dry friction's rows, or the gear plant's drive). ``effort_quantum`` and
+        ``effort_bound`` (nq each; the bound defaults to no bound) put the applied efforts on
+        the drives' grid, ``effort_offset`` and ``effort_ramp`` (nq each) add the bridge's
+        offset before it (see generated_c/README.md). The log holds ``[q, qd]``."""
         nq, nd = self.nq, self.n_desired
         ins = {
-            "x0": self._array("x0", x0, (2 * nq,)),
+            "x0": self._array("x0", x0, (self.nx,)),
             "p_hat0": self._array("p_hat0", p_hat0, (self.n_params,)),
             "xd": self._array("xd", xd, (n, nd)),
             "xd_dot": self._array("xd_dot", xd_dot, (n, nd)),
@@ -382,12 +389,15 @@ class ClosedLoop:
                                  (2 * nq,))
         if effort_limit is not None:
             effort_limit = self._array("effort_limit", effort_limit, (nq,))
-        if coulomb is not None:  # read by a driver whose plant has dry friction (*_coulomb)
-            coulomb = self._array("coulomb", coulomb, (nq,))
+        if coulomb is not None:  # read by a driver whose plant has a 6th input
+            coulomb = self._array("coulomb", coulomb, (self.n_drive,))
         if effort_quantum is not None:
             effort_quantum = self._array("effort_quantum", effort_quantum, (nq,))
             effort_bound = self._array("effort_bound", np.full(nq, np.inf) if effort_bound
                                        is None else effort_bound, (nq,))
+        if effort_offset is not None:
+            effort_offset = self._array("effort_offset", effort_offset, (nq,))
+            effort_ramp = self._array("effort_ramp", effort_ramp, (nq,))
         if delay < 0:
             raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
         log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
@@ -405,6 +415,8 @@ class ClosedLoop:
                         None if effort_limit is None else effort_limit.ctypes.data,
                         None if effort_quantum is None else effort_quantum.ctypes.data,
                         None if effort_quantum is None else effort_bound.ctypes.data,
+                        None if effort_offset is None else effort_offset.ctypes.data,
+                        None if effort_offset is None else effort_ramp.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
                         log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))
         if flag:

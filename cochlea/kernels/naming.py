@@ -18,8 +18,11 @@ from ..robots.model import ACTUATOR_SUFFIX, RobotModel
 #: 2: the closed-loop drivers take the measurement grid (quantum, offset) after the noise;
 #: 3: and the joints' effort limits after the friction;
 #: 4: and the Coulomb friction levels between them (drivers ``*_closed_loop_coulomb``);
-#: 5: and the drives' effort grid (quantum, bound) after the effort limits.
-MANIFEST_FORMAT = "cochlea-kernels/5"
+#: 5: and the drives' effort grid (quantum, bound) after the effort limits;
+#: 6: and the bridge's offset (effort_offset, effort_ramp) after them; the plant's state may be
+#: larger than the logged [q, qd] (``nx``, the gear plant's 4 nq) and its 6th input, ``drive``,
+#: has ``n_drive`` values (the dry-friction rows, or the gear plant's).
+MANIFEST_FORMAT = "cochlea-kernels/6"
 
 
 def source_hash(function: ca.Function) -> str:
@@ -41,9 +44,12 @@ def controller_kernel_name(prefix: str, kind: str, variant: str, part: str,
     return f"{prefix}_{kind}{suffix}{ACTUATOR_SUFFIX[actuators]}_{part}"
 
 
-def closed_loop_name(group: str, plant: RobotModel, coulomb: bool) -> str:
+def closed_loop_name(group: str, plant: RobotModel, coulomb: bool, gear: bool = False) -> str:
     """The driver of a controller's kernel group (``controller_kernel_name(...)`` without its
-    part) on a plant: ``<group>_closed_loop[_armature][_coulomb]``."""
+    part) on a plant: ``<group>_closed_loop[_armature][_coulomb]``, on the geared plant
+    ``<group>_closed_loop_gear``."""
+    if gear:
+        return f"{group}_closed_loop_gear"
     return (f"{group}_closed_loop{ACTUATOR_SUFFIX[plant.actuators]}"
             + ("_coulomb" if coulomb else ""))
 

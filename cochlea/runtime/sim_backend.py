@@ -51,9 +51,9 @@ class SimBackend:
             f.inputs[2][...] = u.plant_params
             f.inputs[3][...] = u.friction
             f.inputs[4][...] = period
-            if u.coulomb is not None:  # the plant with dry friction has it as a last input
-                f.inputs[5][...] = u.coulomb
-            f.inputs[0][...] = u.x0
+            if u.drive is not None:  # dry friction, or the gear's drive: a last input
+                f.inputs[5][...] = u.drive
+            f.inputs[0][...] = u.plant_x0  # with the gearbox [q, qd, theta, theta_dot]
             self._steps.append(f)
             self._grids.append(u.effort_grid)
             n = u.plant_model.nq
@@ -108,9 +108,9 @@ class SimBackend:
         ring = self.delay + 1
         now = self._history[self._reads % ring]
         for f, (n, q_span, qd_span) in zip(self._steps, self._spans):
-            state = f.inputs[0]
+            state = f.inputs[0]  # the encoder is on the link: [q, qd] of the plant's state
             now[q_span] = state[:n]
-            now[qd_span] = state[n:]
+            now[qd_span] = state[n:2 * n]
         x[:] = self._history[max(self._reads - self.delay, 0) % ring]
         self._reads += 1
         for noise, (n, q_span, qd_span) in zip(self._noise, self._spans):

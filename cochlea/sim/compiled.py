@@ -38,7 +38,6 @@ from ..errors import CochleaError
 from ..kernels import library as ckernels
 from ..kernels.bind import BufferedFunction, BufferedKernel
 from ..kernels.naming import closed_loop_name, controller_kernel_name, source_hash, unit_prefix
-from ..robots.plant import plant_step
 from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
 from .setup import MeasurementGrid, UnitSetup, run_inputs
@@ -75,10 +74,11 @@ def _hash(function) -> str:
     return _HASHES[id(function)][1]
 
 
-def _plant(model, substeps: int, coulomb: bool = False):
-    key = (id(model), substeps, coulomb)
+def _plant(u: UnitSetup, substeps: int):
+    """The unit's plant Function (:meth:`UnitSetup.plant_function`), built once per model."""
+    key = (id(u.plant_model), substeps, u.drive is not None, u.gearbox)
     if key not in _PLANTS:
-        _PLANTS[key] = (model, plant_step(model, substeps, coulomb))
+        _PLANTS[key] = (u.plant_model, u.plant_function(substeps))
     return _PLANTS[key][1]
 
 
@@ -88,9 +88,10 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
     c = u.controller
     group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "",
                                    u.controller_model.actuators)[:-1]
-    plant = _plant(u.plant_model, substeps, u.coulomb is not None)
+    plant = _plant(u, substeps)
     wanted = [(f"{group}_step", c.step, f"controller {c.kind} ({c.variant})"),
-              (plant.name(), plant, f"the plant with {substeps} RK4 sub-steps"),
+              (plant.name(), plant, f"the plant with {substeps} "
+               f"{'gear' if u.gearbox else 'RK4'} sub-steps"),
               (u.fk_world.name(), u.fk_world, "the logged pose")]
     for name, function, what in wanted:
         if name not in lib.manifest["kernels"]:
@@ -103,7 +104,8 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
                 f"the C kernel {name} in {lib.path} computes something else than {what} of "
                 f"unit {u.name} (a different description, parameterisation or option, or a "
                 "stale library): run cochlea-codegen and make lib, or use the CasADi kernels")
-    loop = closed_loop_name(group, u.plant_model, u.coulomb is not None)
+    loop = closed_loop_name(group, u.plant_model, u.drive is not None and not u.gearbox,
+                            u.gearbox)
     meta = lib.manifest["closed_loops"].get(loop)
     if meta is None or (meta["step"], meta["plant"], meta["pose"]) != \
             (f"{group}_step", plant.name(), u.fk_world.name()):
@@ -160,12 +162,14 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
     loop = lib.closed_loop(kernels.closed_loop)
     xd, xd_dot, xd_ddot = desired
     grid = u.effort_grid
-    return loop.run(len(xd), x0=u.x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot, xd_ddot=xd_ddot,
-                    gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h, plant_p=u.plant_params,
-                    friction=u.friction, noise=noise, delay=delay, quantum=u.quantum,
-                    offset=u.grid_offset, effort_limit=u.effort_limit, coulomb=u.coulomb,
-                    effort_quantum=None if grid is None else grid.quantum,
-                    effort_bound=None if grid is None else grid.bound)
+    return loop.run(len(xd), x0=u.plant_x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot,
+                    xd_ddot=xd_ddot, gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h,
+                    plant_p=u.plant_params, friction=u.friction, noise=noise, delay=delay,
+                    quantum=u.quantum, offset=u.grid_offset, effort_limit=u.effort_limit,
+                    coulomb=u.drive, effort_quantum=None if grid is None else grid.quantum,
+                    effort_bound=None if grid is None else grid.bound,
+                    effort_offset=None if grid is None else grid.offset,
+                    effort_ramp=None if grid is None else grid.ramp)
 
 
 def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -173,7 +177,7 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     """The same periods as the C driver, looping in Python over the ctypes kernels."""
     xd, xd_dot, xd_ddot = desired
     steps, n, n_p = len(xd), u.controller_model.nq, u.controller.n_params
-    x = np.array(u.x0, dtype=float)
+    x = np.array(u.plant_x0, dtype=float)  # the plant's state; logged and measured: [q, qd]
     p_hat = np.array(u.p_hat0, dtype=float)
     meas = np.empty(2 * n)
     step = lib.kernel(kernels.step, q=meas[:n], qd=meas[n:], p_hat=p_hat)
@@ -186,8 +190,8 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     plant["p"][:] = u.plant_params
     plant["friction"][:] = u.friction
     plant["h"][...] = h
-    if u.coulomb is not None:  # the plant with dry friction: its levels, a 6th input
-        plant["coulomb"][:] = u.coulomb
+    if u.drive is not None:  # the plant's 6th input: dry friction, or the gear's drive
+        plant.inputs[plant.signature.inputs[5].name][:] = u.drive
     b_xd, b_xd_dot, b_xd_ddot = step["xd"], step["xd_dot"], step["xd_ddot"]
     tau, p_next, errors = step["tau"], step["p_hat_next"], step["errors"]
     x_next, pose_out = plant["x_next"], pose.outputs[next(iter(pose.outputs))]
@@ -201,7 +205,7 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     grid = None if u.quantum is None else MeasurementGrid(u.quantum, u.grid_offset).apply
     isfinite = np.isfinite
     for k in range(steps):
-        X[k] = x
+        X[k] = x[:2 * n]
         seen = X[k - delay] if k >= delay else X[0]
         if noise is None:
             meas[:] = seen
@@ -320,6 +324,5 @@ def period_kernels(u: UnitSetup, substeps: int, source: str = "c"):
                     BufferedKernel(lib.kernel(names.pose)), "c")
         except CochleaError as exc:
             warnings.warn(f"{exc}; running on the CasADi kernels", CKernelsWarning, stacklevel=2)
-    return (BufferedFunction(u.controller.step), BufferedFunction(_plant(u.plant_model, substeps,
-                                                                   u.coulomb is not None)),
+    return (BufferedFunction(u.controller.step), BufferedFunction(_plant(u, substeps)),
             BufferedFunction(u.fk_world), "casadi")

@@ -87,20 +87,45 @@ def plant_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
 
 def _period(u: UnitSetup, h: float, substeps: int):
     """One period as a callable ``(t, x_true, x_meas, p_hat) -> (x_true_next, p_hat_next, tau,
-    errors, xd, xd_dot)`` (numpy arrays): the fused Function, or, with the drives' effort grid,
-    the controller, the rounding in numpy and the plant."""
-    if u.effort_grid is None:
+    errors, xd, xd_dot)`` (numpy arrays): the fused Function, or, with the drives' effort grid
+    or the gearbox, the controller, the rounding in numpy and the plant's own Function called
+    with the setup's numbers. The geared plant's stiff gear turns the last bit of a constant
+    folded into the fused graph into a different stick/slip or rounding decision within a few
+    hundred periods, so it runs the very Function the C kernel is generated from."""
+    if u.effort_grid is None and not u.gearbox:
         fused = period_function(u, h, substeps)
         return lambda *args: [np.array(v).ravel() for v in fused(*args)]
-    command, plant, grid = command_function(u, h), plant_function(u, h, substeps), u.effort_grid
+    command, grid = command_function(u, h), u.effort_grid
+    step = u.plant_function(substeps)
+    numbers = [u.plant_params, u.friction, h] + ([] if u.drive is None else [u.drive])
+    if u.gearbox:  # the controller's own Function too, called with the setup's numbers
+        command = _numeric_command(u, h)
 
     def period(t, x_true, x_meas, p_hat):
         tau, p_next, errors, xd, xd_dot = (np.array(v).ravel() for v in command(t, x_meas,
                                                                                  p_hat))
-        grid.apply(tau)
-        return [np.array(plant(x_true, tau)).ravel(), p_next, tau, errors, xd, xd_dot]
+        if grid is not None:
+            grid.apply(tau)
+        return [np.array(step(x_true, tau, *numbers)).ravel(), p_next, tau, errors, xd, xd_dot]
 
     return period
+
+
+def _numeric_command(u: UnitSetup, h: float):
+    """:func:`command_function`'s values from the desired Function and the controller's step
+    called with numbers (what the C loop runs, bit for bit), the command clipped in numpy."""
+    n = u.controller_model.nq
+    limit = u.effort_limit
+    gains, gamma, bound = ca.DM(u.gains), ca.DM(u.gamma), u.bound
+
+    def command(t, x_meas, p_hat):
+        xd, xd_dot, xd_ddot = (ca.densify(v) for v in u.desired(t))
+        tau, p_next, errors = u.controller.step(x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot,
+                                                p_hat, gains, gamma, bound, h)
+        tau = np.clip(np.array(tau).ravel(), -limit, limit)
+        return tau, p_next, errors, xd, xd_dot
+
+    return command
 
 
 def simulate_reference(sc: Scenario, duration: float,

@@ -41,7 +41,9 @@ typedef struct {
     const double *x0;         /* initial state [q, qd] */
     const double *plant_p;    /* the plant's parameters (SI) */
     const double *friction;   /* viscous friction per joint: N m s/rad or N s/m */
-    const double *coulomb;    /* Coulomb friction per joint: N m or N; NULL: none */
+    /* Dry friction, the plant's 6th input (3 nq): the Coulomb levels (N m or N), the static
+     * levels, the Stribeck velocities (rad/s or m/s); NULL: none */
+    const double *coulomb;
     /* Measurement grid, per entry of x (NULL: continuous): where quantum[i] > 0 the
      * controller sees offset[i] + quantum[i] * nearbyint((x[i] - offset[i]) / quantum[i]) */
     const double *quantum;
