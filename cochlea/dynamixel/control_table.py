@@ -112,17 +112,17 @@ class Gearbox:
 
     * ``stiffness_Nm_rad``: the gear train's torsional stiffness at the output. Chosen so that
       the engaged gear's resonance is far above the controllers' bandwidth (the realistic
-      studies' sliding loops close at 100-170 rad/s): at 1000 N m/rad the whole serial arm on
-      joint 1 (1.8e-3 kg m^2) rings against its rotor (3.4e-3) at about 920 rad/s (146 Hz),
-      link 3 (6e-6 kg m^2, the lightest load) at about 2 kHz; the MX-64's 6 N m stall torque
-      winds the train up by 0.34 deg, the order of its backlash. At 100 N m/rad (45 Hz on
-      joint 1) the realistic joint-space study loses joint 2 even without backlash; from
-      1000 up its closed loop is the rigid plant's. The XM540-W270's larger gears: twice as
+      studies' sliding loops close at 100-170 rad/s): at 1e4 N m/rad the whole serial arm on
+      joint 1 (1.8e-3 kg m^2) rings against its rotor (3.4e-3) at about 2900 rad/s (460 Hz),
+      link 3 (6e-6 kg m^2, the lightest load) at 6.5 kHz; the MX-64's 6 N m stall torque winds
+      the train up by 0.034 deg, a tenth of its backlash. The test of "far above": without
+      backlash every realistic study's closed loop is the rigid plant's (converged, the same
+      verdict); at 1e3 N m/rad the parallel task-space study already fails to converge, at 100
+      the serial joint-space study loses joint 2. The XM540-W270's larger gears: twice as
       stiff.
-    * ``damping_Nms_rad``: the gear mesh's damping: 0.1 N m s/rad, a damping ratio of 0.05 on
-      the slowest engaged mode (joint 1 of a serial arm; 0.65 for link 3), an assumed value
-      for a lubricated spur-gear mesh. At a tenth of it link 3 bounces between the flanks of
-      its backlash (restitution about 0.8) and never settles.
+    * ``damping_Nms_rad``: the gear mesh's damping: 0.35 N m s/rad, a damping ratio of 0.05 on
+      the slowest engaged mode (joint 1 of a serial arm; 0.7 on link 3's), an assumed value for
+      a lubricated spur-gear mesh.
     * ``stribeck_velocity_rad_s``: the output speed below which static friction rises above
       Coulomb (``Fc + (Fs - Fc) exp(-(v / vs)^2)``), 0.02 rad/s (1.1 deg/s, just under one
       velocity-register count of 0.024 rad/s): the smoothing velocity the controllers'
@@ -235,11 +235,11 @@ def _items(current_limit: int, velocity_limit: int, position_p: int,
 #: MX-64: gear ratio 200 : 1, backlash 20 arcmin (0.33 deg) (e-Manual, MX-64(2.0)).
 MX64 = ModelSpec("MX-64", 311, 41, 3.36, 1941,
                  _items(1941, 435, 850, acceleration_limit=True),
-                 Gearbox(200.0, 20.0, 1000.0, 0.1, 0.02))
+                 Gearbox(200.0, 20.0, 1.0e4, 0.35, 0.02))
 #: XM540-W270: gear ratio 272.5 : 1, backlash 15 arcmin (0.25 deg) (e-Manual, XM540-W270).
 XM540_W270 = ModelSpec("XM540-W270", 1120, 46, 2.69, 2047,
                        _items(2047, 128, 800, acceleration_limit=False),
-                       Gearbox(272.5, 15.0, 2000.0, 0.1, 0.02))
+                       Gearbox(272.5, 15.0, 2.0e4, 0.35, 0.02))
 
 #: The models by the name a description uses.
 MODELS = {MX64.name: MX64, XM540_W270.name: XM540_W270}

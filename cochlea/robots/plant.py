@@ -171,7 +171,10 @@ def gear_plant_step(plant: RobotModel, substeps: int) -> ca.Function:
     q, v, th, w = x[:n], x[n:2 * n], x[2 * n:3 * n], x[3 * n:]
     for _ in range(substeps * GEAR_SUBSTEPS):
         d = th - q
-        engaged = ca.fabs(d) >= beta / 2
+        # Engaged at the step's start or by its end at the current speeds: a gear that meets
+        # within the step works on it over the whole step, so the spring's energy at the end is
+        # the work done (deciding at the start alone skips that work and pumps energy in).
+        engaged = ca.fmax(ca.fabs(d), ca.fabs(d + dt * (w - v))) >= beta / 2
         K = engaged * (k * dt / 4 + c / 2)
         g0 = k * dead_zone(d, beta / 2) + K * (w - v)  # the step's mean gear torque: g0 + K u1
         level = stribeck_level(w, fc, fs, vs)
