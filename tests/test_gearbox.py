@@ -333,3 +333,16 @@ def test_the_sim_backend_runs_the_geared_plant():
         for key in ("tau", "errors", "p_hat"):
             np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=0, atol=1e-12,
                                        err_msg=f"{a.name}.{key}")
+
+
+def test_the_emulated_motor_gives_a_I_where_the_plant_carries_the_friction():
+    """The emulator's motors: the fit's net torque a I + b on a frictionless plant, the motor's
+    own torque a I where the plant subtracts the gearbox's friction (the realistic preset)."""
+    from cochlea.dynamixel.drives import joint_drives
+
+    drive = joint_drives("serial")[0]
+    lsb = 300.0
+    amps = lsb * drive.spec.current_unit_mA * 1e-3
+    assert drive.motor_effort(lsb) * drive.torque_per_effort == pytest.approx(drive.fit.a * amps)
+    assert drive.effort(lsb) * drive.torque_per_effort == pytest.approx(drive.fit.a * amps
+                                                                        + drive.fit.b)

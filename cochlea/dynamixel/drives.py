@@ -116,6 +116,13 @@ class JointDrive:
         torque = self.fit.torque(np.asarray(lsb, dtype=float) / self.lsb_per_ampere)
         return torque / self.torque_per_effort
 
+    def motor_effort(self, lsb):
+        """The motor's own torque at the joint (N m or N) for a current (LSB), ``a I``: before
+        the gearbox's friction, which the fit's offset ``b`` stands for. What a simulated plant
+        that carries that friction itself gets (:meth:`effort` is the fit's net torque)."""
+        torque = self.fit.a * np.asarray(lsb, dtype=float) / self.lsb_per_ampere
+        return torque / self.torque_per_effort
+
 
 def joint_drives(robot_name: str, description: str | Path | None = None,
                  ramp: float = DEFAULT_RAMP_NM, *, system=None) -> list[JointDrive]:

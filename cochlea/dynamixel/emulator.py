@@ -218,6 +218,10 @@ class VirtualMotor:
         self._put(self.items[8], baud_code)
         self.defaults = bytes(self.table)
         self.on_torque = None  # callback(motor) when the torque goes on
+        #: The joint effort a current gives: the fit's net torque (the ideal plant has no
+        #: friction), or, where the plant carries the gearbox's friction itself, the motor's
+        #: torque ``a I`` (set by the emulator from its scenario's plant).
+        self.motor_torque = False
         self.ignored: frozenset[int] = frozenset()  # addresses whose writes do not take
         self._key: tuple = ()
         self._state = (False, 0, 0.0)
@@ -256,7 +260,9 @@ class VirtualMotor:
             driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
                        and key[3] != 0xFF)
             current = proto.from_le(t[102:104], True) if driving else 0
-            self._key, self._state = key, (driving, current, float(self.drive.effort(current)))
+            effort = (self.drive.motor_effort if self.motor_torque else
+                      self.drive.effort)(current)
+            self._key, self._state = key, (driving, current, float(effort))
         return self._state
 
     @property
@@ -472,6 +478,8 @@ class VirtualChain:
         self.units, start = [], 0
         for s in setups:
             n = s.plant_model.nq
+            for m in self.motors[start:start + n]:  # the plant's friction is the fit's offset
+                m.motor_torque = s.coulomb is not None
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):
