@@ -131,12 +131,9 @@ def _kernel_source(lib: ckernels.Library, kernel: str) -> tuple[str, str]:
 
 
 def sim_scenario(name: str):
-    """The scenario ``name`` as the all-C simulation runs it: simulate.c has the rigid plant
-    only (state ``[q, qd]``, dry friction at the joint), not yet the realistic preset's gearbox
-    (backlash, static friction, the bridge's offset: issue 24), so those are left out."""
-    sc = load_scenario(name)
-    return dataclasses.replace(sc, plant=dataclasses.replace(
-        sc.plant, gearbox=False, static_friction_ratio=1.0, bridge_offset=False))
+    """The scenario ``name`` as the all-C simulation runs it: as ``simulate()`` does, the
+    realistic preset's geared plant included."""
+    return load_scenario(name)
 
 
 def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple[str, list[str]]:
@@ -158,7 +155,7 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
              "#ifndef SIM_SCENARIO_H", "#define SIM_SCENARIO_H", "",
              '#include "sim.h"', f'#include "{name}.h"']
     groups, body, table = [], [], []
-    n_pose, sizes = 0, []
+    n_pose, n_plant, sizes = 0, 0, []
     for u in setups:
         kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
         loop = lib.manifest["closed_loops"][kernels.closed_loop]
@@ -175,12 +172,14 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
                   f"{unit}_NE == {ne}"]
         prefix = f"sim_{u.name}"
         body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} */",
-                 _c_array(f"{prefix}_x0", u.x0),
+                 _c_array(f"{prefix}_x0", u.plant_x0),
                  _c_array(f"{prefix}_plant_p", u.plant_params),
                  _c_array(f"{prefix}_friction", u.friction)]
         fields = {"coulomb": u.drive, "quantum": u.quantum, "offset": u.grid_offset,
                   "effort_quantum": None if u.effort_grid is None else u.effort_grid.quantum,
-                  "effort_bound": None if u.effort_grid is None else u.effort_grid.bound}
+                  "effort_bound": None if u.effort_grid is None else u.effort_grid.bound,
+                  "effort_offset": None if u.effort_grid is None else u.effort_grid.offset,
+                  "effort_ramp": None if u.effort_grid is None else u.effort_grid.ramp}
         names = {}
         for key, value in fields.items():
             if value is None:
@@ -189,15 +188,18 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
                 body.append(_c_array(f"{prefix}_{key}", value))
                 names[key] = f"{prefix}_{key}"
         table.append(
-            f'    {{"{u.name}", {n}, {np_}, {nd}, {ne}, {loop["n_pose"]}, {plant}, '
-            f"{pose}, {prefix}_x0, {prefix}_plant_p, {prefix}_friction, {names['coulomb']}, "
-            f"{names['quantum']}, {names['offset']}, {names['effort_quantum']}, "
-            f"{names['effort_bound']}}},")
+            f'    {{"{u.name}", {n}, {len(u.plant_x0)}, {np_}, {nd}, {ne}, {loop["n_pose"]}, '
+            f"{plant}, {pose}, {prefix}_x0, {prefix}_plant_p, {prefix}_friction, "
+            f"{names['coulomb']}, {names['quantum']}, {names['offset']}, "
+            f"{names['effort_quantum']}, {names['effort_bound']}, {names['effort_offset']}, "
+            f"{names['effort_ramp']}}},")
+        n_plant += len(u.plant_x0)
     lines += [f'#include "{g}.h"' for g in groups]
     lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x"]
     for size in ("UNITS", "NQ", "NX", "ND", "NP", "NE"):
         lines.append(f"#define SIM_{size} {upper}_{size}")
     lines += [f"#define SIM_NPOSE {n_pose}",
+              f"#define SIM_NXP {n_plant} /* the plants' states */",
               f"#define SIM_PERIOD {sc.period!r} /* s */",
               f"#define SIM_DURATION {float(sc.duration)!r} /* s */",
               f"#define SIM_DELAY {int(sc.plant.delay_periods)} /* periods */",

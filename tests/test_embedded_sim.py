@@ -44,7 +44,7 @@ def library():
 
 
 def run_logged(name: str, precision: str, tmp_path: Path, duration: float = DURATION):
-    sc = eb.sim_scenario(name)  # the rigid plant: simulate.c has no gearbox yet
+    sc = eb.sim_scenario(name)
     setups = unit_setups(sc)
     log = tmp_path / f"{name}_{precision}.log"
     info = eb.run_simulation(eb.build_simulation(name, precision), duration, log)
@@ -68,7 +68,7 @@ def worst_relative(result, reference) -> dict[str, float]:
 def test_log_equals_the_simulation(name, tmp_path):
     """2 s of every study: states, desired trajectory, errors, applied efforts, estimates and
     poses equal ``simulate()``'s, period for period (ideal plant; realistic: delayed, encoder
-    grid, current grid, armature and Coulomb friction)."""
+    grid, current grid, the geared plant with backlash and static friction)."""
     result, info, sc, setups = run_logged(name, "double", tmp_path)
     reference = simulate(sc, duration=DURATION, setups=setups)
     assert info["status"] == "completed" and info["precision"] == "double"

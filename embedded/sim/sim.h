@@ -10,6 +10,7 @@
  *   SIM_UNITS, SIM_NQ, SIM_NX, SIM_ND, SIM_NP, SIM_NE
  *                       the controller's sizes (<SCENARIO>_UNITS, ...)
  *   SIM_NPOSE           logged pose coordinates, all units
+ *   SIM_NXP             the plants' states, all units (SIM_NX, or more with the gearbox)
  *   SIM_PERIOD          s: the control period (the plant integrates one period per call)
  *   SIM_DURATION        s: the scenario's duration
  *   SIM_DELAY           periods of measurement delay
@@ -29,20 +30,23 @@ typedef int (*sim_kernel)(const double **arg, double **res, long long int *iw, d
 /* One unit of the scenario: its plant, its start and how it is measured and driven. */
 typedef struct {
     const char *name;
-    int nq;    /* joints; the unit's state is x = [q, qd] (rad or m, rad/s or m/s) */
+    int nq;    /* joints; the measured and logged state is x = [q, qd] (rad or m, rad/s or m/s) */
+    int nxp;   /* the plant's state: 2 nq, or with the gearbox 4 nq ([q, qd, theta, theta_dot]:
+                  the encoder on the link, so x is its first 2 nq) */
     int np;    /* estimated parameters */
     int nd;    /* desired coordinates */
     int ne;    /* errors */
     int npose; /* logged pose coordinates (m, rad) */
-    /* x_next = plant(x, tau, p, friction, h[, coulomb]): the period, RK4 with the scenario's
-     * sub-steps */
+    /* x_next = plant(x, tau, p, friction, h[, coulomb]): the period (RK4 with the scenario's
+     * sub-steps, or the geared plant's linearly implicit steps) on the plant's state */
     sim_kernel plant;
     sim_kernel pose;          /* pose = fk_world(q) */
-    const double *x0;         /* initial state [q, qd] */
+    const double *x0;         /* the plant's initial state (nxp) */
     const double *plant_p;    /* the plant's parameters (SI) */
     const double *friction;   /* viscous friction per joint: N m s/rad or N s/m */
-    /* Dry friction, the plant's 6th input (3 nq): the Coulomb levels (N m or N), the static
-     * levels, the Stribeck velocities (rad/s or m/s); NULL: none */
+    /* The plant's 6th input: its dry friction (3 nq: the Coulomb levels, N m or N, the static
+     * levels, the Stribeck velocities, rad/s or m/s) or the geared plant's drive (7 nq:
+     * armature, backlash, stiffness, damping, Coulomb, static, Stribeck velocity); NULL: none */
     const double *coulomb;
     /* Measurement grid, per entry of x (NULL: continuous): where quantum[i] > 0 the
      * controller sees offset[i] + quantum[i] * nearbyint((x[i] - offset[i]) / quantum[i]) */
@@ -53,6 +57,10 @@ typedef struct {
      * within +-effort_bound[i] (N m or N) */
     const double *effort_quantum;
     const double *effort_bound;
+    /* The bridge's offset current, per joint (NULL: none), before the effort grid: the drive
+     * applies tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1) (N m or N) */
+    const double *effort_offset;
+    const double *effort_ramp;
 } sim_unit;
 
 #endif

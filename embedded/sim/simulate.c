@@ -62,6 +62,18 @@ static int all_finite(const double *v, int n)
     return 1;
 }
 
+/* Each unit's [q, qd] (the first 2 nq of its plant's state: the encoders are on the links)
+ * into x, unit after unit. */
+static void measured_state(const double *plant_x, double *x)
+{
+    int u, i = 0, j = 0;
+    for (u = 0; u < SIM_UNITS; ++u) {
+        memcpy(x + j, plant_x + i, (size_t)(2 * sim_units[u].nq) * sizeof(double));
+        i += sim_units[u].nxp;
+        j += 2 * sim_units[u].nq;
+    }
+}
+
 static int usage(void)
 {
     fprintf(stderr, "usage: simulate [--duration S] [--log FILE]   (scenario %s)\n", SIM_NAME);
@@ -75,7 +87,8 @@ int main(int argc, char **argv)
     static char log_buffer[1 << 20];
     const double start = now_s();
     const double h = SIM_PERIOD;
-    double duration = SIM_DURATION, x[SIM_NX], x_next[SIM_NX], tau[SIM_NQ], loop_start, end;
+    double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], loop_start, end;
+    double plant_x[SIM_NXP], plant_next[SIM_NXP]; /* the plants' states; x is their [q, qd] */
     sim_real measurement[SIM_NX], command[SIM_NQ], errors[SIM_NE];
     sim_real xd[SIM_ND], xd_dot[SIM_ND], xd_ddot[SIM_ND];
     SIM_C(_config) config;
@@ -83,7 +96,7 @@ int main(int argc, char **argv)
     const char *log_path = NULL, *status = "completed";
     FILE *log = NULL;
     long steps, k, rows = 0;
-    int i, u, code = 0;
+    int i, u, qi, code = 0;
 
     for (i = 1; i < argc; ++i) {
         if (strcmp(argv[i], "--duration") == 0 && i + 1 < argc) {
@@ -110,8 +123,9 @@ int main(int argc, char **argv)
             return 2;
         }
     }
-    for (u = 0, i = 0; u < SIM_UNITS; i += 2 * sim_units[u].nq, ++u)
-        memcpy(x + i, sim_units[u].x0, (size_t)(2 * sim_units[u].nq) * sizeof(double));
+    for (u = 0, i = 0; u < SIM_UNITS; i += sim_units[u].nxp, ++u)
+        memcpy(plant_x + i, sim_units[u].x0, (size_t)sim_units[u].nxp * sizeof(double));
+    measured_state(plant_x, x);
 
     loop_start = now_s();
     for (k = 0; k < steps; ++k) {
@@ -154,6 +168,8 @@ int main(int argc, char **argv)
             int j;
             for (j = 0; j < s->nq; ++j, ++i) {
                 double e = (double)command[i];
+                if (s->effort_offset)
+                    e += s->effort_offset[j] * fmin(fmax(e / s->effort_ramp[j], -1.0), 1.0);
                 if (s->effort_quantum) {
                     if (s->effort_quantum[j] > 0)
                         e = s->effort_quantum[j] * nearbyint(e / s->effort_quantum[j]);
@@ -164,24 +180,24 @@ int main(int argc, char **argv)
         }
 
         /* The plants, unit after unit */
-        for (u = 0, i = 0; u < SIM_UNITS; ++u) {
+        for (u = 0, i = 0, qi = 0; u < SIM_UNITS; ++u) {
             const sim_unit *s = &sim_units[u];
-            const double *arg[6]; /* a plant without dry friction reads the first 5 */
+            const double *arg[6]; /* a plant without a 6th input reads the first 5 */
             double *res[1];
-            const int qi = i / 2; /* the unit's first joint (x holds 2 nq entries per unit) */
-            arg[0] = x + i;
+            arg[0] = plant_x + i;
             arg[1] = tau + qi;
             arg[2] = s->plant_p;
             arg[3] = s->friction;
             arg[4] = &h;
             arg[5] = s->coulomb;
-            res[0] = x_next + i;
+            res[0] = plant_next + i;
             code = s->plant(arg, res, NULL, NULL, 0);
             if (code != 0) {
                 fprintf(stderr, "simulate: the plant of %s returned %d\n", s->name, code);
                 return 2;
             }
-            i += 2 * s->nq;
+            i += s->nxp;
+            qi += s->nq;
         }
 
         if (log) {
@@ -206,8 +222,9 @@ int main(int argc, char **argv)
             }
         }
         rows = k + 1;
-        memcpy(x, x_next, sizeof x);
-        if (!all_finite(x, SIM_NX) || !all_finite(state.p_hat, SIM_NP)) {
+        memcpy(plant_x, plant_next, sizeof plant_x);
+        measured_state(plant_x, x);
+        if (!all_finite(plant_x, SIM_NXP) || !all_finite(state.p_hat, SIM_NP)) {
             status = "diverged";
             break;
         }
