@@ -1,5 +1,7 @@
 """The reference closed loop in CasADi: controller sampled and held at the control rate, plant
-integrated with RK4 sub-steps, estimates integrated once per period.
+integrated with RK4 sub-steps (or, with the gearbox, the geared plant's linearly implicit
+steps: :func:`cochlea.robots.plant.gear_plant_step`; its state is the plant's own, the log and
+the measurement its ``[q, qd]``), estimates integrated once per period.
 
 The plant is the same symbolic model with its own parameters (the scenario may scale masses, add
 a tip payload and viscous friction); measurements may carry Gaussian noise and a delay of whole
