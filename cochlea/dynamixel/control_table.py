@@ -118,8 +118,8 @@ class Gearbox:
       the train up by 0.034 deg, a tenth of its backlash. The test of "far above": without
       backlash every realistic study's closed loop is the rigid plant's (converged, the same
       verdict); at 1e3 N m/rad (mesh damping 0.1) the parallel task-space study already fails to
-      converge, at 100 (0.01) the serial joint-space study loses joint 2. The XM540-W270's larger gears: twice as
-      stiff.
+      converge, at 100 (0.01) the serial joint-space study loses joint 2. The XM540-W270's
+      larger gears: twice as stiff.
     * ``damping_Nms_rad``: the gear mesh's damping: 0.35 N m s/rad, a damping ratio of 0.05 on
       the slowest engaged mode (joint 1 of a serial arm; 0.7 on link 3's), an assumed value for
       a lubricated spur-gear mesh.
