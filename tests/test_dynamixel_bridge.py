@@ -327,7 +327,7 @@ def test_the_realistic_plant_holds_a_joint_below_breakaway():
     with VirtualChain("serial", plant="realistic") as chain:
         unit = chain.scenario.system.arms[0].links
         coulomb = [link.joint.actuator.coulomb for link in unit] * 2
-        assert chain.scenario.plant.gearbox and all(m.motor_torque for m in chain.motors)
+        assert chain.scenario.plant.gearbox and all(m.slope_only for m in chain.motors)
         backend = connect(chain)
         backend.enable()
         try:

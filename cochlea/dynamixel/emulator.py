@@ -218,13 +218,13 @@ class VirtualMotor:
         self._put(self.items[8], baud_code)
         self.defaults = bytes(self.table)
         self.on_torque = None  # callback(motor) when the torque goes on
-        #: The joint effort a current gives: the fit's net torque (the ideal plant has no
-        #: friction), or, where the plant carries the gearbox's friction itself, the motor's
-        #: torque ``a I`` (set by the emulator from its scenario's plant).
-        self.motor_torque = False
         self.ignored: frozenset[int] = frozenset()  # addresses whose writes do not take
         self._key: tuple = ()
         self._state = (False, 0, 0.0)
+        #: The current gives the motor's own torque ``a I`` (a plant that models the gearbox's
+        #: friction, or a bridge that adds no offset current); otherwise the fit's torque, the
+        #: offset current taken off (see the module docstring).
+        self.slope_only = False
 
     # ---- registers -----------------------------------------------------------------------------
 
@@ -260,9 +260,8 @@ class VirtualMotor:
             driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
                        and key[3] != 0xFF)
             current = proto.from_le(t[102:104], True) if driving else 0
-            effort = (self.drive.motor_effort if self.motor_torque else
-                      self.drive.effort)(current)
-            self._key, self._state = key, (driving, current, float(effort))
+            effort = float(self.drive.effort(current, self.slope_only))
+            self._key, self._state = key, (driving, current, effort)
         return self._state
 
     @property
@@ -478,8 +477,11 @@ class VirtualChain:
         self.units, start = [], 0
         for s in setups:
             n = s.plant_model.nq
-            for m in self.motors[start:start + n]:  # the plant's friction is the fit's offset
-                m.motor_torque = s.coulomb is not None
+            # The plant's friction is the fit's offset: the motors give a I (this branch's
+            # bridge always adds the offset current; with a bridge that leaves it to a
+            # friction-compensating controller, slope_only holds for that controller too).
+            for m in self.motors[start:start + n]:
+                m.slope_only, m._key = s.coulomb is not None, ()
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):
