@@ -204,3 +204,34 @@ def test_the_bus_budget_refuses_or_warns_with_the_numbers(tmp_path):
                        (["--port", "/dev/ttyUSB0"], "go with --backend dynamixel")]:
         done = run("--robot", "serial", "--space", "joint", *args, cwd=tmp_path)
         assert done.returncode == 2 and text in done.stderr
+
+
+def _worst_ratio(summary: dict) -> float:
+    return max(c["final_rms_error"] / max(c["initial_abs_error"], 1e-12)
+               for u in summary["units"].values() for c in u["tracked"].values())
+
+
+def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
+    """Issue 24: the realistic controllers compensate the gearbox's friction themselves, and
+    the bridge used to add the fit's offset current (the same friction) on top. On the
+    realistic emulator, whose motors give ``a I`` and whose gearboxes lose the friction, the
+    run with the bridge's offset left out converges; the same run with both compensations
+    (the bridge's rule patched back to always compensating) tracks several times worse."""
+    summaries = {}
+    for case, patch in (("once", ""), ("twice", "r.bridge_compensates_friction = "
+                                               "lambda actuators: True; ")):
+        out, log = tmp_path / case, tmp_path / f"{case}.log"
+        with emulator("serial", "serial_joint_realistic", log) as port:
+            done = subprocess.run(
+                [sys.executable, "-c", "import sys; import cochlea.apps.cochlea_run as r; "
+                 f"{patch}sys.exit(r.main(sys.argv[1:]))", "--robot", "serial", "--space",
+                 "joint", "--scenario", "serial_joint_realistic", "--backend", "dynamixel",
+                 "--port", port, "--duration", "3", "--out", str(out), *SHARED_MACHINE],
+                cwd=tmp_path, capture_output=True, text=True, timeout=180)
+        assert done.returncode in (0, 1), done.stderr
+        summaries[case] = json.loads((out / "summary.json").read_text())
+    once, twice = summaries["once"], summaries["twice"]
+    assert once["timing"]["bus"]["friction_compensated_by"] == "controller"
+    assert twice["timing"]["bus"]["friction_compensated_by"] == "bridge"
+    assert once["stop"]["rule"] == "completed" and once["converged"], once["units"]
+    assert _worst_ratio(twice) > 3 * _worst_ratio(once)

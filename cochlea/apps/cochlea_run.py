@@ -41,6 +41,7 @@ from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
+from ..robots.motor_fit import bridge_compensates_friction
 from ..runtime import (
     EXIT_BACKEND,
     FIFO_PRIORITY,
@@ -406,7 +407,9 @@ def _dynamixel_backend(args, scenario):
     backend = DynamixelBackend(scenario.robot, args.port,
                                4_000_000 if args.baud is None else args.baud,
                                system=scenario.system, realtime_tick=True,
-                               homing=args.homing, homing_record=args.homing_record)
+                               homing=args.homing, homing_record=args.homing_record,
+                               offset_current=bridge_compensates_friction(
+                                   scenario.controller_actuators))
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")

@@ -125,7 +125,10 @@ class DynamixelBackend:
     limits a joint may be at start-up; ``adapter_latency_s`` for the bus budget (default: the
     adapter's latency timer from sysfs, 0 for a pseudo-terminal, else 1 ms); ``realtime_tick``
     to read the Realtime Tick with the state and refuse stale packets (see the module
-    docstring).
+    docstring); ``offset_current`` whether each command gets the fit's offset current, the
+    gearbox's friction (:func:`cochlea.robots.motor_fit.bridge_compensates_friction` decides it
+    from the controller: False when the controller compensates friction itself, so that it is
+    compensated once).
     """
 
     name = "dynamixel"
@@ -136,7 +139,8 @@ class DynamixelBackend:
                  position_margin_rad: float = math.radians(2.0),
                  adapter_latency_s: float | None = None, retries: int = 3,
                  open_port=SerialPort, system=None, homing: str = "auto",
-                 homing_record: str | Path | None = None, realtime_tick: bool = False):
+                 homing_record: str | Path | None = None, realtime_tick: bool = False,
+                 offset_current: bool = True):
         self.robot = robot
         self.port_path = str(port)
         baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
@@ -206,7 +210,9 @@ class DynamixelBackend:
         self._torque_per_effort = f([d.torque_per_effort for d in self.drives])
         self._inv_a = f([1.0 / d.fit.a for d in self.drives])
         self._inv_ramp = f([1.0 / d.fit.ramp for d in self.drives])
-        self._i0 = f([d.fit.offset_current for d in self.drives])
+        #: Whether the commands carry the fit's offset current (friction compensated here).
+        self.offset_current = bool(offset_current)
+        self._i0 = f([d.fit.offset_current * self.offset_current for d in self.drives])
         self._lsb_per_ampere = f([d.lsb_per_ampere for d in self.drives])
         self._limit = f([float(d.current_limit_lsb) for d in self.drives])
         self._neg_limit = -self._limit
@@ -350,6 +356,9 @@ class DynamixelBackend:
                            "with_adapter_latency_s": self.budget.cycle_s},
             "read_timeout_s": self.timeout_s, "watchdog_s": self.watchdog_lsb * WATCHDOG_UNIT_S,
             "realtime_tick_check": self.realtime_tick,
+            # Who compensates the gearbox's friction: the bridge's offset current, or the
+            # controller (then the commands carry the fit's slope alone).
+            "friction_compensated_by": "bridge" if self.offset_current else "controller",
             "reads": self.reads, "good_reads": self.good_reads, "writes": self.writes,
             "failures": {name: c for name, c in zip(FAILURE_NAMES, self.failures) if c},
             "garbage_packets": self.garbage_packets,

@@ -104,16 +104,22 @@ class JointDrive:
     def current_mA(self, lsb):
         return np.asarray(lsb, dtype=float) * self.spec.current_unit_mA
 
-    def goal_current_lsb(self, effort):
+    def goal_current_lsb(self, effort, offset_current: bool = True):
         """Goal Current (LSB) for a joint effort: the fit's inverse, rounded, within the
-        current limit."""
-        amps = self.fit.current(self.torque_per_effort * np.asarray(effort, dtype=float))
+        current limit; ``offset_current=False`` without the fit's offset (the bridge's option
+        when the controller compensates friction)."""
+        amps = self.fit.current(self.torque_per_effort * np.asarray(effort, dtype=float),
+                                offset_current)
         lim = self.current_limit_lsb
         return np.clip(np.rint(amps * self.lsb_per_ampere), -lim, lim)
 
-    def effort(self, lsb):
-        """Joint effort (N m or N) a current (LSB) produces through the fit."""
-        torque = self.fit.torque(np.asarray(lsb, dtype=float) / self.lsb_per_ampere)
+    def effort(self, lsb, friction_in_plant: bool = False):
+        """Joint effort (N m or N) a current (LSB) produces through the fit, the offset's
+        friction taken off. ``friction_in_plant``: the motor's own torque, ``a I`` (the slope
+        alone), for a plant that models the gearbox's friction itself (the fit's offset is that
+        friction: taking it off here too would count it twice)."""
+        amps = np.asarray(lsb, dtype=float) / self.lsb_per_ampere
+        torque = self.fit.a * amps if friction_in_plant else self.fit.torque(amps)
         return torque / self.torque_per_effort
 
 

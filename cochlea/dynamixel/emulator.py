@@ -10,7 +10,11 @@ The joints move in real time under the scenario's plant (the same parameters, fr
 initial state as the simulation): every ``plant_period_s`` (default the simulation's RK4 step,
 the scenario's period over its ``plant_substeps``; a request sees the state at its arrival) one
 RK4 step integrates the joint efforts that the motors' currents give through the fit
-(:class:`cochlea.dynamixel.drives.Fit`, the inverse of the bridge's torque-to-current map). A
+(:class:`cochlea.dynamixel.drives.Fit`, the inverse of the bridge's torque-to-current map); on
+a plant that models the gearbox's friction (the realistic preset's Coulomb friction, which is
+the fit's offset) the current gives the motor's own torque ``a I`` and the plant loses the
+friction, so a bridge that adds the offset current and a controller that compensates friction
+too push the joint twice as hard as its friction, as on the motors. A
 motor that is not driving (torque off, not
 in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
 200:1 servo does not back-drive. Present Position, Velocity and Current follow the plant.
@@ -222,6 +226,10 @@ class VirtualMotor:
         self.ignored: frozenset[int] = frozenset()  # addresses whose writes do not take
         self._key: tuple = ()
         self._state = (False, 0, 0.0)
+        #: The plant models the gearbox's friction (the realistic plant's Coulomb friction, the
+        #: fit's offset): the current gives the motor's own torque ``a I``, the plant loses the
+        #: friction. Otherwise the fit's torque, friction already taken off.
+        self.friction_in_plant = False
 
     # ---- registers -----------------------------------------------------------------------------
 
@@ -257,7 +265,8 @@ class VirtualMotor:
             driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
                        and key[3] != 0xFF)
             current = proto.from_le(t[102:104], True) if driving else 0
-            self._key, self._state = key, (driving, current, float(self.drive.effort(current)))
+            effort = float(self.drive.effort(current, self.friction_in_plant))
+            self._key, self._state = key, (driving, current, effort)
         return self._state
 
     @property
@@ -465,6 +474,8 @@ class VirtualChain:
         self.units, start = [], 0
         for s in setups:
             n = s.plant_model.nq
+            for m in self.motors[start:start + n]:
+                m.friction_in_plant, m._key = s.coulomb is not None, ()
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):

@@ -511,6 +511,10 @@ class EmbeddedScenario:
     period: float  # s
     duration: float  # s: the scenario's own duration
     keep_out_radius: float  # m; 0 for joint-space runs (no keep-out rule)
+    #: Whether the bridge adds the fit's offset current (it compensates the gearbox's friction)
+    #: or leaves it to the controller (:func:`cochlea.robots.motor_fit.
+    #: bridge_compensates_friction`).
+    bridge_offset_current: bool = True
 
 
 def _strings(values) -> str:
@@ -606,7 +610,8 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         f"    {sc.robot}_drives, {sc.robot}_position_lo, {sc.robot}_position_hi, "
         f"{sc.robot}_velocity, {sc.robot}_effort,",
         f"    sizeof({name}_state), (int)sizeof({R}), init, step, terminate, desired, estimate, "
-        "tool_points",
+        "tool_points,",
+        f"    {int(bool(sc.bridge_offset_current))}",
         "};\n"]
     return "\n".join(parts)
 

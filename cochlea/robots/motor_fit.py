@@ -72,9 +72,13 @@ class Fit:
         """``I0 = -b / a`` (A): the current the offset takes (positive for Table C.1)."""
         return -self.b / self.a
 
-    def current(self, torque):
-        """Current (A) for a motor torque (N m); works on numbers and arrays."""
+    def current(self, torque, offset: bool = True):
+        """Current (A) for a motor torque (N m); works on numbers and arrays. ``offset=False``:
+        the slope alone, ``tau / a``, when the controller compensates the friction the offset
+        stands for (:func:`bridge_compensates_friction`)."""
         t = np.asarray(torque, dtype=float)
+        if not offset:
+            return t / self.a
         return t / self.a + self.offset_current * np.clip(t / self.ramp, -1.0, 1.0)
 
     def torque(self, current):
@@ -84,6 +88,24 @@ class Fit:
         slope = 1.0 / (1.0 / self.a + self.offset_current / self.ramp)
         outer = np.sign(i) * (self.a * np.abs(i) + self.b)
         return np.where(np.abs(i) <= knee, slope * i, outer)
+
+
+#: What the controller's model carries of the drives (``[control] actuators``) when it
+#: estimates and compensates the joints' friction itself (:data:`cochlea.robots.model.ACTUATORS`).
+FRICTION_COMPENSATING_ACTUATORS = ("all",)
+
+
+def bridge_compensates_friction(controller_actuators: str) -> bool:
+    """Whether the bridge adds the fit's offset current ``I0 clip(tau / ramp, -1, 1)`` to every
+    command: the one place that decides who compensates the gearbox's friction.
+
+    The offset is the current the gearbox's Coulomb friction takes before the output moves (the
+    description's ``coulomb_friction_Nm`` is the same ``|b|``). A controller whose model carries
+    friction (``actuators = "all"``) already commands it, so the bridge must not add it again:
+    on the motors both together push every joint with twice its friction, which the realistic
+    studies turn into a velocity-limit stop within 20 ms (issue 24). Every other controller gets
+    the bridge's compensation, as on the thesis's robot. Friction is compensated once."""
+    return controller_actuators not in FRICTION_COMPENSATING_ACTUATORS
 
 
 def current_limit_lsb(motor: Motor, spec: ModelSpec, fit: Fit, effort_limit: float,

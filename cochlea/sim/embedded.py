@@ -21,6 +21,7 @@ from ..kernels.embedded import (
     scenario_source,
     scenario_table,
 )
+from ..robots.motor_fit import bridge_compensates_friction
 from .scenario import Scenario
 from .scenario import load as load_scenario
 from .setup import unit_setups
@@ -56,7 +57,8 @@ def embedded_scenario(sc: Scenario) -> EmbeddedScenario:
     radius = sc.system.keep_out_radius if sc.space == "task" else None
     return EmbeddedScenario(sc.name, sc.robot, sc.space, sc.controller, sc.variant,
                             sc.parameterisation, sc.period, float(sc.duration),
-                            float(radius) if radius is not None else 0.0)
+                            float(radius) if radius is not None else 0.0,
+                            bridge_compensates_friction(sc.controller_actuators))
 
 
 def write_embedded(config: CodegenConfig, folder: str | Path) -> list[Path]:

@@ -67,6 +67,7 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     b->homing_drive = -1;
     b->homing_marker = 0;
     b->homing_offset = 0.0;
+    b->offset_current = 1;
     b->active = 0;
     b->suspect = 0;
     b->reads = b->good_reads = b->writes = 0;
@@ -480,7 +481,7 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
         finite = finite && (tau[i] - tau[i]) == 0.0;
     }
     for (i = 0; i < b->n; ++i) { /* a NaN or infinite command: zero current, and report it */
-        b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i]) : 0;
+        b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i], b->offset_current) : 0;
     }
     len = goal_frame(b, ADDR_GOAL_CURRENT, 2, b->goal, 0);
     if (len < 0 || !send(b, b->write_frame, (size_t)len)) {

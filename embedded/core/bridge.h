@@ -105,6 +105,9 @@ typedef struct {
     int homing_drive;           /* the homed slider's drive index, -1: no homing check */
     uint16_t homing_marker;     /* the token it must hold (the homing record's) */
     double homing_offset;       /* its position offset from the record (m) */
+    int offset_current;         /* 1 (the default): each command gets the fit's offset current,
+                                 * the gearbox's friction; 0: the controller compensates it
+                                 * (the scenario's bridge_offset_current) */
     /* State. */
     int active;                 /* between a successful start and the stop */
     int suspect;                /* a failed read: wait for a quiet line before the next */

@@ -1839,6 +1839,8 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     key(f, 6, "watchdog_s");
     json_number(f, facts->watchdog_s);
     fprintf(f, ",\n      \"realtime_tick_check\": %s", b->realtime_tick ? "true" : "false");
+    fprintf(f, ",\n      \"friction_compensated_by\": \"%s\"",
+            b->offset_current ? "bridge" : "controller");
     fprintf(f, ",\n      \"reads\": %u,\n      \"good_reads\": %u,\n      \"writes\": %u,\n",
             b->reads, b->good_reads, b->writes);
     key(f, 6, "failures");
@@ -2347,6 +2349,8 @@ int main(int argc, char **argv)
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
+    /* Friction compensated once: by the bridge's offset current or by the controller. */
+    bridge.offset_current = sc->bridge_offset_current;
     if (homing.drive >= 0) {
         cochlea_bridge_expect_homing(&bridge, homing.drive, homing.marker, homing.offset);
     }
