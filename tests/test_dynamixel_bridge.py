@@ -321,12 +321,13 @@ def test_wire_timing_shows_the_bus_budget():
 def test_the_realistic_plant_holds_a_joint_below_breakaway():
     """``plant="realistic"`` (``cochlea-emulator --plant realistic``): the gearboxes' Coulomb
     friction from the description holds every joint against torques below it, and the rotors
-    add their armature; a torque past breakaway moves the joint."""
+    add their armature; a torque past breakaway moves the joint. The bridge leaves out the fit's
+    offset current (which compensates that friction), so the motors give what is commanded."""
     with VirtualChain("serial", plant="realistic") as chain:
         unit = chain.scenario.system.arms[0].links
         coulomb = [link.joint.actuator.coulomb for link in unit] * 2
         assert chain.scenario.plant_actuators == "armature"
-        backend = connect(chain)
+        backend = connect(chain, offset_current=False)
         backend.enable()
         try:
             def hold(tau, seconds=0.1):  # keep the bus busy: its watchdog would trip
@@ -344,6 +345,29 @@ def test_the_realistic_plant_holds_a_joint_below_breakaway():
             hold(above)
             moved = chain.joint_state()[:6] - start
             # Joint 1 slides (and its reaction drags the links it carries); arm 2 stays.
+            assert moved[0] > 1e-4 and np.all(moved[3:] == 0.0)
+        finally:
+            backend.disable()
+
+
+def test_the_bridges_offset_current_overcomes_the_realistic_gearbox():
+    """With the fit's offset current (the bridge's friction compensation, what a controller
+    without a friction model gets), half of a joint's breakaway torque commanded moves it on the
+    realistic emulator: the motor gives ``a I``, the offset's share is the friction the gearbox
+    takes, so the joint sees the command plus that much."""
+    with VirtualChain("serial", plant="realistic") as chain:
+        coulomb = [link.joint.actuator.coulomb for link in chain.scenario.system.arms[0].links]
+        backend = connect(chain)
+        assert backend.offset_current
+        backend.enable()
+        try:
+            start = chain.joint_state()[:6].copy()
+            tau = np.zeros(6)
+            tau[0] = 0.5 * coulomb[0]
+            for _ in range(50):
+                assert backend.write(tau)
+                time.sleep(0.002)
+            moved = chain.joint_state()[:6] - start
             assert moved[0] > 1e-4 and np.all(moved[3:] == 0.0)
         finally:
             backend.disable()

@@ -31,10 +31,25 @@ FLOOR = {"rad": 0.02, "m": 2e-3}
 assert FLOOR["rad"] > 13 * RAD_PER_COUNT
 
 
+#: Python run before a program's module (``python -c``): the bridge's friction rule patched so
+#: that the bridge always adds the fit's offset current and the emulator's motors always take
+#: it back off, whatever the controller: the pairing of every run before issue 24, for the
+#: tests whose subject needs the fit's offset on the wire (the current-to-torque line).
+ALWAYS_OFFSET = ("import cochlea.robots.motor_fit as fit; "
+                 "fit.bridge_compensates_friction = lambda actuators: True; ")
+
+
+def _module(name: str, prefix: str) -> list[str]:
+    if not prefix:
+        return [sys.executable, "-m", name]
+    return [sys.executable, "-c", f"{prefix}import runpy, sys; sys.argv[0] = {name!r}; "
+            f"runpy.run_module({name!r}, run_name='__main__', alter_sys=True)"]
+
+
 @contextmanager
-def emulator(robot: str, scenario: str, log: Path, *options: str):
+def emulator(robot: str, scenario: str, log: Path, *options: str, prefix: str = ""):
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot", robot, "--scenario",
+        [*_module("cochlea.dynamixel.emulator", prefix), "--robot", robot, "--scenario",
          scenario, "--log", str(log), *options],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -52,9 +67,9 @@ def emulator(robot: str, scenario: str, log: Path, *options: str):
 SHARED_MACHINE = ("--watchdog-misses", "300")
 
 
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+def run(*args: str, cwd: Path, prefix: str = "") -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "cochlea.apps.cochlea_run", *args,
+        [*_module("cochlea.apps.cochlea_run", prefix), *args,
          *(SHARED_MACHINE if "--port" in args else ())],
         cwd=cwd, capture_output=True, text=True, timeout=180)
 

@@ -113,13 +113,13 @@ class JointDrive:
         lim = self.current_limit_lsb
         return np.clip(np.rint(amps * self.lsb_per_ampere), -lim, lim)
 
-    def effort(self, lsb, friction_in_plant: bool = False):
+    def effort(self, lsb, slope_only: bool = False):
         """Joint effort (N m or N) a current (LSB) produces through the fit, the offset's
-        friction taken off. ``friction_in_plant``: the motor's own torque, ``a I`` (the slope
-        alone), for a plant that models the gearbox's friction itself (the fit's offset is that
-        friction: taking it off here too would count it twice)."""
+        friction taken off. ``slope_only``: the motor's own torque, ``a I``, for a plant that
+        models the gearbox's friction itself (the fit's offset is that friction: taking it off
+        here too would count it twice)."""
         amps = np.asarray(lsb, dtype=float) / self.lsb_per_ampere
-        torque = self.fit.a * amps if friction_in_plant else self.fit.torque(amps)
+        torque = self.fit.a * amps if slope_only else self.fit.torque(amps)
         return torque / self.torque_per_effort
 
 

@@ -9,12 +9,15 @@ Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return 
 The joints move in real time under the scenario's plant (the same parameters, friction and
 initial state as the simulation): every ``plant_period_s`` (default the simulation's RK4 step,
 the scenario's period over its ``plant_substeps``; a request sees the state at its arrival) one
-RK4 step integrates the joint efforts that the motors' currents give through the fit
-(:class:`cochlea.dynamixel.drives.Fit`, the inverse of the bridge's torque-to-current map); on
-a plant that models the gearbox's friction (the realistic preset's Coulomb friction, which is
-the fit's offset) the current gives the motor's own torque ``a I`` and the plant loses the
-friction, so a bridge that adds the offset current and a controller that compensates friction
-too push the joint twice as hard as its friction, as on the motors. A
+RK4 step integrates the joint efforts that the motors' currents give. On a plant that models
+the gearbox's friction (the realistic preset's Coulomb friction, which is the fit's offset) the
+current gives the motor's own torque ``a I`` and the plant loses the friction, as on the
+motors: a bridge that added the offset current for a controller that compensates friction too
+would push each joint with twice its friction. A plant without dry friction has nothing to take
+the offset, so there the motors undo the bridge's map for the scenario's controller
+(:class:`cochlea.dynamixel.drives.Fit`'s inverse when the bridge adds the offset, ``a I`` when
+it leaves it to the controller: :func:`cochlea.robots.motor_fit.bridge_compensates_friction`)
+and the plant receives the effort commanded, up to the current's quantisation. A
 motor that is not driving (torque off, not
 in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
 200:1 servo does not back-drive. Present Position, Velocity and Current follow the plant.
@@ -73,6 +76,7 @@ from ..console import tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
+from ..robots.motor_fit import bridge_compensates_friction
 from ..robots.plant import plant_step
 from ..sim import load_scenario, unit_setups
 from ..sim.scenario import PLANT_PRESETS
@@ -226,10 +230,10 @@ class VirtualMotor:
         self.ignored: frozenset[int] = frozenset()  # addresses whose writes do not take
         self._key: tuple = ()
         self._state = (False, 0, 0.0)
-        #: The plant models the gearbox's friction (the realistic plant's Coulomb friction, the
-        #: fit's offset): the current gives the motor's own torque ``a I``, the plant loses the
-        #: friction. Otherwise the fit's torque, friction already taken off.
-        self.friction_in_plant = False
+        #: The current gives the motor's own torque ``a I`` (a plant that models the gearbox's
+        #: friction, or a bridge that adds no offset current); otherwise the fit's torque, the
+        #: offset current taken off (see the module docstring).
+        self.slope_only = False
 
     # ---- registers -----------------------------------------------------------------------------
 
@@ -265,7 +269,7 @@ class VirtualMotor:
             driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
                        and key[3] != 0xFF)
             current = proto.from_le(t[102:104], True) if driving else 0
-            effort = float(self.drive.effort(current, self.friction_in_plant))
+            effort = float(self.drive.effort(current, self.slope_only))
             self._key, self._state = key, (driving, current, effort)
         return self._state
 
@@ -474,8 +478,10 @@ class VirtualChain:
         self.units, start = [], 0
         for s in setups:
             n = s.plant_model.nq
+            slope_only = s.coulomb is not None or not bridge_compensates_friction(
+                self.scenario.controller_actuators)
             for m in self.motors[start:start + n]:
-                m.friction_in_plant, m._key = s.coulomb is not None, ()
+                m.slope_only, m._key = slope_only, ()
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):
