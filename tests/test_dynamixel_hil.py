@@ -231,7 +231,9 @@ def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
     the bridge used to add the fit's offset current (the same friction) on top. On the
     realistic emulator, whose motors give ``a I`` and whose gearboxes lose the friction, the
     run with the bridge's offset left out converges; the same run with both compensations
-    (the bridge's rule patched back to always compensating) tracks several times worse."""
+    (the bridge's rule patched back to always compensating) either stops on a joint's speed
+    limit (seen at 16 ms, as the issue saw on the motors' model) or tracks several times
+    worse (3 s ended with arm 2's joint 2 at 1.28 of its initial error, against 0.11)."""
     summaries = {}
     for case, patch in (("once", ""), ("twice", "r.bridge_compensates_friction = "
                                                "lambda actuators: True; ")):
@@ -243,10 +245,11 @@ def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
                  "joint", "--scenario", "serial_joint_realistic", "--backend", "dynamixel",
                  "--port", port, "--duration", "3", "--out", str(out), *SHARED_MACHINE],
                 cwd=tmp_path, capture_output=True, text=True, timeout=180)
-        assert done.returncode in (0, 1), done.stderr
+        assert done.returncode in (0, 11), done.stderr  # completed, or the velocity limit
         summaries[case] = json.loads((out / "summary.json").read_text())
     once, twice = summaries["once"], summaries["twice"]
     assert once["timing"]["bus"]["friction_compensated_by"] == "controller"
     assert twice["timing"]["bus"]["friction_compensated_by"] == "bridge"
     assert once["stop"]["rule"] == "completed" and once["converged"], once["units"]
-    assert _worst_ratio(twice) > 3 * _worst_ratio(once)
+    assert twice["stop"]["rule"] == "velocity-limit" or \
+        _worst_ratio(twice) > 3 * _worst_ratio(once), (twice["stop"], twice["units"])
