@@ -253,3 +253,61 @@ def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
     assert once["stop"]["rule"] == "completed" and once["converged"], once["units"]
     assert twice["stop"]["rule"] == "velocity-limit" or \
         _worst_ratio(twice) > 3 * _worst_ratio(once), (twice["stop"], twice["units"])
+
+
+def documented_pairs() -> list[tuple[list[str], list[str]]]:
+    """Every ``cochlea-emulator ...`` line of the README and docs/ followed, in the same code
+    block, by ``cochlea-run ... --port /dev/pts/N`` lines: (emulator arguments, run arguments)
+    for each such run, comments stripped."""
+    import shlex
+    root = Path(__file__).resolve().parent.parent
+    pairs = []
+    for page in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        for block in page.read_text().split("```")[1::2]:
+            emulator_args = None
+            for line in block.splitlines():
+                if not line.startswith(("cochlea-emulator ", "cochlea-run ")):
+                    continue
+                words = shlex.split(line.split("#", 1)[0])
+                if words[:1] == ["cochlea-emulator"]:
+                    emulator_args = words[1:]
+                elif words[:1] == ["cochlea-run"] and "/dev/pts/N" in words:
+                    assert emulator_args is not None, (page, line)
+                    pairs.append((emulator_args, words[1:]))
+    return pairs
+
+
+def test_the_documented_examples_are_found():
+    pairs = documented_pairs()
+    assert len(pairs) >= 2
+    assert {run[run.index("--robot") + 1] for _, run in pairs} == {"serial", "parallel"}
+
+
+@pytest.mark.parametrize("emulator_args,run_args", documented_pairs(),
+                         ids=lambda a: "-".join(a[:4]) if isinstance(a, list) else str(a))
+def test_every_documented_example_over_the_virtual_chain_converges(tmp_path, emulator_args,
+                                                                   run_args):
+    """Issue 24: each documented hardware-in-the-loop example, as written (its whole duration),
+    completes and converges: no supervisor stop."""
+    out = tmp_path / "run"
+    robot = emulator_args[emulator_args.index("--robot") + 1]
+    options = emulator_args[emulator_args.index("--robot") + 2:]
+    scenario = (options[options.index("--scenario") + 1] if "--scenario" in options else None)
+    rest = [w for i, w in enumerate(options)
+            if "--scenario" not in (w, options[i - 1] if i else "")]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot", robot,
+         *(["--scenario", scenario] if scenario else []), "--log", str(tmp_path / "emu.log"),
+         *rest], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        args = [port if w == "/dev/pts/N" else w for w in run_args]
+        done = run(*args, "--out", str(out), cwd=tmp_path)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "completed" and summary["supervisor"] is None
+    assert summary["converged"], summary["units"]

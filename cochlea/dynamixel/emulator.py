@@ -436,6 +436,14 @@ class _Unit:
             m.set_present(m.state()[1], vel, pos, tick_ms)
 
 
+def default_scenario(robot: str, plant: str | None) -> str:
+    """The command's scenario without ``--scenario``: the realistic joint-space study, whose
+    plant is what the motors have (rotors, gearbox friction, counts), so that a controller
+    tried over the virtual chain meets the motors' dynamics, not the rigid links'; the thesis's
+    study (rigid links) with ``--plant ideal``."""
+    return f"{robot}_joint" if plant == "ideal" else f"{robot}_joint_realistic"
+
+
 class VirtualChain:
     """The motors of a scenario's robot on a pseudo-terminal (see the module docstring).
 
@@ -995,14 +1003,16 @@ def _parser() -> argparse.ArgumentParser:
                "--fault-delay.")
     p.add_argument("--robot", required=True, choices=list(ROBOTS))
     p.add_argument("--scenario", help="the scenario whose description, plant and initial state "
-                   "the chain takes (default: ROBOT_joint)")
+                   "the chain takes (default: ROBOT_joint_realistic, the geared motors; with "
+                   "--plant ideal, ROBOT_joint)")
     p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate, for "
                    "--wire-timing and their Baud Rate register (default 4000000)")
     p.add_argument("--wire-timing", action="store_true", help="bytes take the time the baud "
                    "rate gives them and each motor waits its Return Delay Time")
     p.add_argument("--plant", choices=list(PLANT_PRESETS),
-                   help="the plant's preset: ideal, the scenario's; realistic, the geared "
-                        "Dynamixels (armature, friction with sticking from the description)")
+                   help="the plant's preset (default: the scenario's own [plant]): ideal, the "
+                        "rigid links; realistic, the geared Dynamixels (armature, friction with "
+                        "sticking from the description)")
     p.add_argument("--plant-period-ms", type=float, metavar="MS",
                    help="the plant's RK4 step in real time (default: the scenario's, its "
                         "control period over its plant_substeps)")
@@ -1077,7 +1087,8 @@ def main(argv: list[str] | None = None) -> int:
 def _main(args: argparse.Namespace) -> int:
     try:
         check_options(args)
-        chain = VirtualChain(args.robot, args.scenario, baud=args.baud,
+        chain = VirtualChain(args.robot, args.scenario or default_scenario(args.robot, args.plant),
+                             baud=args.baud,
                              wire_timing=args.wire_timing, faults=faults_from_args(args),
                              plant_period_s=None if args.plant_period_ms is None
                              else args.plant_period_ms * 1e-3, log_path=args.log,
