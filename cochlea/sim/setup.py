@@ -104,6 +104,15 @@ class UnitSetup:
     #: The drives' effort resolution and saturation (:class:`EffortGrid`), or None: every
     #: command clipped to the effort limit is applied as it is.
     effort_grid: EffortGrid | None = None
+    #: The controller's robust options, its Functions' trailing inputs in the order of
+    #: :data:`cochlea.control.controllers.ROBUST_INPUTS` (dead zone, box, static friction), or
+    #: None: the neutral ones (:meth:`robust_inputs`).
+    robust: tuple[np.ndarray, ...] | None = None
+
+    @property
+    def robust_inputs(self) -> tuple[np.ndarray, ...]:
+        """The robust options every caller of the controller's step passes (SI)."""
+        return self.robust if self.robust is not None else self.controller.neutral()
 
     @property
     def effort_limit(self) -> np.ndarray:
