@@ -142,7 +142,8 @@ def step_inputs(u) -> list[np.ndarray]:
     xd, xd_dot, xd_ddot = (np.array(v, float).ravel() for v in u.desired(0.0))
     return [u.x0[:n].copy(), u.x0[n:].copy(), xd, xd_dot, xd_ddot,
             u.controller_model.p_nominal.astype(float), u.gains.astype(float),
-            u.gamma.astype(float), np.array(u.bound, float), np.array(1e-3)]
+            u.gamma.astype(float), np.array(u.bound, float), np.array(1e-3),
+            *(np.asarray(v, float) for v in u.robust_inputs)]
 
 
 def close(a, b) -> float:

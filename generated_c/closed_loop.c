@@ -44,6 +44,8 @@
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
@@ -52,6 +54,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -71,6 +74,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -141,6 +146,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
@@ -149,6 +156,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -168,6 +176,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -238,6 +248,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
@@ -246,6 +258,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -265,6 +278,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -335,6 +350,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
@@ -343,6 +360,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -362,6 +380,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -432,6 +452,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
@@ -440,6 +462,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -459,6 +482,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -529,6 +554,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
@@ -537,6 +564,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -556,6 +584,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -626,6 +656,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
@@ -634,6 +666,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -653,6 +686,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -723,6 +758,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
@@ -731,6 +768,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -750,6 +788,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -820,6 +860,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
@@ -828,6 +870,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -847,6 +890,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -917,6 +962,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
@@ -925,6 +972,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -944,6 +992,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -1014,6 +1064,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
@@ -1022,6 +1074,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1041,6 +1094,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -1111,6 +1166,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
@@ -1119,6 +1176,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1138,6 +1196,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -1208,6 +1268,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
@@ -1216,6 +1278,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1235,6 +1298,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -1305,6 +1370,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
@@ -1313,6 +1380,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1332,6 +1400,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -1402,6 +1472,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
@@ -1410,6 +1482,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1429,6 +1502,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -1499,6 +1574,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
@@ -1507,6 +1584,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1526,6 +1604,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -1596,6 +1676,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
@@ -1604,6 +1686,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1623,6 +1706,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -1693,6 +1778,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
@@ -1701,6 +1788,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1720,6 +1808,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -1790,6 +1880,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
@@ -1798,6 +1890,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1817,6 +1910,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -1887,6 +1982,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
@@ -1895,6 +1992,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -1914,6 +2012,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -1984,6 +2084,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
@@ -1992,6 +2094,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2011,6 +2114,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -2081,6 +2186,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
@@ -2089,6 +2196,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2108,6 +2216,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -2178,6 +2288,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
@@ -2186,6 +2298,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2205,6 +2318,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -2275,6 +2390,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
@@ -2283,6 +2400,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2302,6 +2420,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -2372,6 +2492,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
@@ -2380,6 +2502,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2399,6 +2522,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -2469,6 +2594,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
@@ -2477,6 +2604,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2496,6 +2624,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -2566,6 +2696,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
@@ -2574,6 +2706,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2593,6 +2726,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -2663,6 +2798,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
@@ -2671,6 +2808,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2690,6 +2828,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -2760,6 +2900,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
@@ -2768,6 +2910,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2787,6 +2930,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -2857,6 +3002,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
@@ -2865,6 +3012,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2884,6 +3032,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -2954,6 +3104,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
@@ -2962,6 +3114,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -2981,6 +3134,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -3051,6 +3206,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
@@ -3059,6 +3216,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3078,6 +3236,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -3148,6 +3308,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
@@ -3156,6 +3318,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3175,6 +3338,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -3245,6 +3410,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
@@ -3253,6 +3420,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3272,6 +3440,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -3342,6 +3512,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
@@ -3350,6 +3522,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3369,6 +3542,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -3439,6 +3614,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
@@ -3447,6 +3624,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3466,6 +3644,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -3536,6 +3716,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
@@ -3544,6 +3726,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3563,6 +3746,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -3633,6 +3818,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
@@ -3641,6 +3828,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3660,6 +3848,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -3730,6 +3920,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
@@ -3738,6 +3930,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3757,6 +3950,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -3827,6 +4022,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
@@ -3835,6 +4032,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3854,6 +4052,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -3924,6 +4124,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
@@ -3932,6 +4134,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -3951,6 +4154,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -4021,6 +4226,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
@@ -4029,6 +4236,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4048,6 +4256,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -4118,6 +4328,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
@@ -4126,6 +4338,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4145,6 +4358,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -4215,6 +4430,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
@@ -4223,6 +4440,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4242,6 +4460,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -4312,6 +4532,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
@@ -4320,6 +4542,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4339,6 +4562,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -4409,6 +4634,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
@@ -4417,6 +4644,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4436,6 +4664,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -4506,6 +4736,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
@@ -4514,6 +4746,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4533,6 +4766,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -4603,6 +4838,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
@@ -4611,6 +4848,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4630,6 +4868,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -4700,6 +4940,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
@@ -4708,6 +4950,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4727,6 +4970,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -4797,6 +5042,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
@@ -4805,6 +5052,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4824,6 +5072,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -4894,6 +5144,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
@@ -4902,6 +5154,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -4921,6 +5174,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -4991,6 +5246,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
@@ -4999,6 +5256,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5018,6 +5276,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -5088,6 +5348,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
@@ -5096,6 +5358,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5115,6 +5378,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -5185,6 +5450,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
@@ -5193,6 +5460,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5212,6 +5480,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -5282,6 +5552,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
@@ -5290,6 +5562,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5309,6 +5582,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -5379,6 +5654,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
@@ -5387,6 +5664,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5406,6 +5684,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -5476,6 +5756,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
@@ -5484,6 +5766,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5503,6 +5786,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -5573,6 +5858,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
@@ -5581,6 +5868,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5600,6 +5888,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -5670,6 +5960,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
@@ -5678,6 +5970,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5697,6 +5990,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -5767,6 +6062,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
@@ -5775,6 +6072,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5794,6 +6092,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -5864,6 +6164,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
@@ -5872,6 +6174,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5891,6 +6194,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -5961,6 +6266,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
@@ -5969,6 +6276,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -5988,6 +6296,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;
@@ -6058,6 +6368,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
@@ -6066,6 +6378,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -6085,6 +6398,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)coulomb;
@@ -6155,6 +6470,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * levels coulomb[i] when it has them (its 6th input; NULL reads as zero; a plant without
  * dry friction ignores them). The run stops after period k when the next state or estimate is
  * not finite: *rows = k + 1 rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
@@ -6163,6 +6480,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
@@ -6182,6 +6500,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = coulomb;

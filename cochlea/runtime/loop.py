@@ -472,6 +472,8 @@ class RealTimeLoop:
             k.inputs[7][...] = u.gamma
             k.inputs[8][...] = u.bound
             k.inputs[9][...] = period
+            for i, value in enumerate(u.robust_inputs, start=10):  # ROBUST_INPUTS
+                k.inputs[i][...] = value
             self.kernels.append(k)
             n = u.controller_model.nq
             self.slices.append(slice(start, start + n))

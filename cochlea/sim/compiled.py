@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..control.controllers import ROBUST_INPUTS
 from ..errors import CochleaError
 from ..kernels import library as ckernels
 from ..kernels.bind import BufferedFunction, BufferedKernel
@@ -165,7 +166,7 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
                     friction=u.friction, noise=noise, delay=delay, quantum=u.quantum,
                     offset=u.grid_offset, effort_limit=u.effort_limit, coulomb=u.coulomb,
                     effort_quantum=None if grid is None else grid.quantum,
-                    effort_bound=None if grid is None else grid.bound)
+                    effort_bound=None if grid is None else grid.bound, robust=u.robust_inputs)
 
 
 def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -183,6 +184,8 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     step["Gamma"][:] = u.gamma
     step["bound"][...] = u.bound
     step["h"][...] = h
+    for name, value in zip(ROBUST_INPUTS, u.robust_inputs):
+        step[name][:] = value
     plant["p"][:] = u.plant_params
     plant["friction"][:] = u.friction
     plant["h"][...] = h

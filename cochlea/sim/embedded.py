@@ -48,7 +48,8 @@ def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
             joint_names=tuple(j.name for j in u.controller_model.joints),
             param_units=tuple(u.controller_model.parameters.si_units),
             p_nominal=np.asarray(u.controller_model.p_nominal, float),
-            tracking_sign=-1 if c.kind == "g" else 1))
+            tracking_sign=-1 if c.kind == "g" else 1,
+            robust=tuple(np.asarray(v, float) for v in u.robust_inputs)))
     return units
 
 

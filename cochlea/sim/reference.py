@@ -29,7 +29,7 @@ def _command(u: UnitSetup, h: float, t, x_meas, p_hat):
     xd, xd_dot, xd_ddot = u.desired(t)
     tau, p_next, errors = u.controller.step(
         x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot, p_hat, ca.DM(u.gains), ca.DM(u.gamma),
-        u.bound, h)
+        u.bound, h, *[ca.DM(v) for v in u.robust_inputs])
     limit = ca.DM(u.effort_limit)
     return ca.fmin(ca.fmax(tau, -limit), limit), p_next, errors, xd, xd_dot
 

@@ -104,6 +104,15 @@ class UnitSetup:
     #: The drives' effort resolution and saturation (:class:`EffortGrid`), or None: every
     #: command clipped to the effort limit is applied as it is.
     effort_grid: EffortGrid | None = None
+    #: The controller's robust options, its Functions' trailing inputs in the order of
+    #: :data:`cochlea.control.controllers.ROBUST_INPUTS` (dead zone, box, static friction), or
+    #: None: the neutral ones (:meth:`robust_inputs`).
+    robust: tuple[np.ndarray, ...] | None = None
+
+    @property
+    def robust_inputs(self) -> tuple[np.ndarray, ...]:
+        """The robust options every caller of the controller's step passes (SI)."""
+        return self.robust if self.robust is not None else self.controller.neutral()
 
     @property
     def effort_limit(self) -> np.ndarray:
@@ -308,7 +317,8 @@ def structure_key(sc: scenario_mod.Scenario, system) -> tuple:
                    _array_key(u.initial_velocity), u.elbow, u.desired_joint) for u in sc.units)
     return (sc.robot, id(system), sc.space, float(sc.duration), float(sc.rate_hz),
             sc.parameterisation, sc.controller_actuators, sc.plant_actuators, sc.variant,
-            sc.controller, sc.mirror, tuple(sc.definitions.items()), sc.leader, units)
+            sc.controller, sc.mirror, tuple(sc.definitions.items()), sc.leader, units,
+            float(sc.robust.startup_ramp))
 
 
 def clear_cache() -> None:
@@ -322,6 +332,9 @@ def _structure(sc: scenario_mod.Scenario, adapter, system) -> _Structure:
     scenario_mod.check_desired(sc)
     plans, controllers = [], []
     for plan in adapter.unit_plans(system, sc):
+        if sc.robust.startup_ramp > 0:
+            plan = dataclasses.replace(plan, desired=startup_ramp(plan, sc.space,
+                                                                  sc.robust.startup_ramp))
         check_start(sc, plan)
         controllers.append(build(plan.controller_model, sc.controller, variant=sc.variant,
                                  task_angles=plan.task_angles, task=plan.task))
@@ -366,6 +379,9 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
         n_p = len(m.param_names)
         bound = sc.estimate_bound * max(np.linalg.norm(m.p_nominal), 1e-12)
         p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal.copy()
+        robust = robust_inputs(sc, m, controller, bound)
+        if robust is not None:  # the estimate starts in its box
+            p_hat0 = np.minimum(np.maximum(p_hat0, robust[1]), robust[2])
         plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
                                             plan.payload_points)
         quantum = offset = drive = None
@@ -384,8 +400,98 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
             plan.fk_world, tool_points=plan.tool_points, centre=plan.centre,
             moving_centre_joint=plan.moving_centre_joint,
             coulomb=None if coulomb is None else coulomb[mine],
-            quantum=quantum, grid_offset=offset, effort_grid=drive))
+            quantum=quantum, grid_offset=offset, effort_grid=drive, robust=robust))
     return setups
+
+
+#: Parameter kinds (the name's last part) physics keeps non-negative: masses, the inertias
+#: about the link frame's axes, armatures, viscous and Coulomb friction.
+NON_NEGATIVE = ("m", "Ixx", "Iyy", "Izz", "Ia", "Fv", "Fc")
+
+
+def estimate_box(sc: scenario_mod.Scenario, m: RobotModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(p_min, p_max)`` of ``[control] estimate_box_relative`` and ``estimate_sign``: each
+    estimate within ``p_i +- k max(|p_i|, 1e-3 max|p|)`` of its nominal value ``p_i``, and
+    with ``"physical"`` never below zero where the parameter is a mass, an inertia, an
+    armature or a friction (:data:`NON_NEGATIVE`); +-inf where neither applies."""
+    nominal = np.asarray(m.p_nominal, float)
+    n_p = len(nominal)
+    lower, upper = np.full(n_p, -np.inf), np.full(n_p, np.inf)
+    k = sc.robust.box_relative
+    if k is not None:
+        size = np.maximum(np.abs(nominal), 1e-3 * max(np.abs(nominal).max(), 1e-300))
+        lower, upper = nominal - k * size, nominal + k * size
+    if sc.robust.sign == "physical":
+        physical = np.array([name.rsplit(".", 1)[-1] in NON_NEGATIVE for name in m.param_names])
+        lower = np.where(physical, np.maximum(lower, 0.0), lower)
+    return lower, upper
+
+
+def robust_inputs(sc: scenario_mod.Scenario, m: RobotModel, controller: Controller,
+                  bound: float) -> tuple[np.ndarray, ...] | None:
+    """The controller's robust inputs (:data:`cochlea.control.controllers.ROBUST_INPUTS`) for
+    one unit of the scenario, or None when every option is off (the neutral inputs). A box
+    reaching outside the ball ``|p_hat| <= bound`` is refused: the step clips to the box last,
+    so such a box could carry the estimate past the bound the supervisor stops on."""
+    o = sc.robust
+    if (o.deadzone is None and o.box_relative is None and o.sign == "free"
+            and (o.static_ratio is None or not np.any(o.static_ratio > 1))):
+        return None
+    deadzone, _, _, excess, stribeck = controller.neutral()
+    if o.deadzone is not None:
+        deadzone = np.asarray(o.deadzone, float).copy()
+    lower, upper = estimate_box(sc, m)
+    far = np.maximum(np.abs(lower), np.abs(upper))
+    if o.box_relative is not None and np.linalg.norm(far) > bound * (1 + 1e-12):
+        raise CochleaError(
+            f"scenario {sc.path}: [control] estimate_box_relative = {o.box_relative:g} puts "
+            f"the box's far corner at |p| = {np.linalg.norm(far):.4g}, outside the projection "
+            f"ball |p_hat| <= {bound:.4g} (estimate_bound = {sc.estimate_bound:g} times "
+            "|p_nominal|): lower the box or raise estimate_bound")
+    if o.static_ratio is not None:
+        excess = np.asarray(o.static_ratio, float) - 1.0
+        stribeck = np.asarray(o.stribeck_velocity, float).copy()
+    return deadzone, lower, upper, excess, stribeck
+
+
+def quintic_blend(tau):
+    """``10 tau^3 - 15 tau^4 + 6 tau^5``: 0 to 1 over ``tau`` in [0, 1] with zero first and
+    second derivatives at both ends (C2), held at 1 after."""
+    tau = ca.fmin(ca.fmax(tau, 0), 1)
+    return tau ** 3 * (10 - 15 * tau + 6 * tau ** 2)
+
+
+def startup_ramp(plan, space: str, duration: float) -> ca.Function:
+    """``plan.desired`` blended from the unit's initial pose onto the planned path over
+    ``duration`` s (``[control] startup_ramp_s``): ``x_r = x_d + (1 - s(t / T)) (x_0 - x_d)``
+    with the quintic ``s`` (:func:`quintic_blend`), so ``x_r(0) = x_0`` with zero velocity and
+    acceleration, ``x_r = x_d`` exactly from ``T`` on, and velocity and acceleration
+    continuous and finite throughout (exact derivatives, symbolic). ``x_0`` is the initial
+    joint position, or in task space the initial task pose (each angle taken within half a
+    turn of the planned one at t = 0)."""
+    m = plan.controller_model
+    q0 = np.asarray(plan.x0[:m.nq], float)
+    if space == "joint":
+        start = q0
+    else:
+        fk = plan.task[0] if plan.task is not None else plan.fk_world
+        start = np.array(fk(q0), float).ravel()
+        planned = np.array(plan.desired(0.0)[0], float).ravel()
+        for i in plan.task_angles:
+            start[i] += 2 * np.pi * np.round((planned[i] - start[i]) / (2 * np.pi))
+    t = ca.SX.sym("t")
+    xd, xd_dot, xd_ddot = plan.desired(t)
+    s = quintic_blend(t / duration)
+    s_dot = ca.jacobian(s, t)
+    s_ddot = ca.jacobian(s_dot, t)
+    away = xd - ca.DM(start)
+    # x_r = s x_d + (1 - s) x_0, differentiated with the planned path's own derivatives.
+    x = xd - (1 - s) * away
+    x_dot = s * xd_dot + s_dot * away
+    x_ddot = s * xd_ddot + 2 * s_dot * xd_dot + s_ddot * away
+    f = plan.desired
+    return ca.Function(f"{f.name()}_ramped", [t], [x, x_dot, x_ddot], f.name_in(),
+                       f.name_out())
 
 
 def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.ndarray:
