@@ -395,6 +395,23 @@ def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.
     return np.where(quantum > 0, on_grid, values)
 
 
+def measurements(states: np.ndarray, delay: int, noise: np.ndarray | None = None,
+                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """What the controller saw in every period of a run, from the true states ``[q, qd]`` it
+    logged: row k is ``states[max(k - delay, 0)] + noise[k]``, on the measurement grid where
+    there is one; the same floating-point operations as the C driver (and
+    :class:`MeasurementGrid`). ``states`` itself when the plant measures exactly."""
+    if not delay and noise is None and quantum is None:
+        return states
+    seen = states[np.maximum(np.arange(len(states)) - delay, 0)] if delay else states.copy()
+    if noise is not None:
+        seen += noise[:len(states)]
+    if quantum is not None:
+        seen = quantise(seen, quantum, offset)
+    return seen
+
+
 class MeasurementGrid:
     """:func:`quantise` for one state vector at a time, in place and without allocating: what
     the per-period loops (the Python loop over the C kernels, the sim backend) run each period.
