@@ -1,22 +1,25 @@
 """Honest verdicts (issue 24, item 3): a simulated run logs the true and the measured state under
 distinct names, the as-fast and the real-time run of a study have the same columns and the same
 verdict, convergence is judged on the true error with the measured one beside it, a run whose
-supervisor verdict is a stop has not converged."""
+supervisor verdict is a stop has not converged, and a robot its drives cannot hold against
+gravity where it starts is refused before anything runs."""
 
 from __future__ import annotations
 
 import csv
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
 
 from cochlea.apps import cochlea_run, cochlea_sweep, report
-from cochlea.resources import SCENARIOS_DIR
+from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.runtime import STOP_CODES, RealTimeLoop, SimBackend, build_supervisor, verdict
 from cochlea.runtime.loop import TIMING_COLUMNS
-from cochlea.sim import load_scenario, simulate, unit_setups
+from cochlea.sim import GravityRefused, load_scenario, simulate, unit_setups
+from cochlea.sim.scenario import load_system
 
 
 def _with_plant(sc, **plant):
@@ -165,3 +168,97 @@ def test_a_sweep_row_agrees_with_the_summary_of_a_stopped_run(tmp_path):
     row = cochlea_sweep.evaluate(_delayed_scenario(tmp_path).read_text())
     assert row["stop_rule"] == "velocity-limit"
     assert row["converged"] is False and row["success"] is False
+
+
+# ---- gravity at the initial pose ----------------------------------------------------------
+
+
+def test_shipped_studies_are_held_against_gravity():
+    for name in ("serial_joint", "serial_task", "parallel_joint", "parallel_task"):
+        for preset in (None, "realistic"):
+            unit_setups(load_scenario(name, plant_preset=preset))  # refuses nothing
+    # The serial arms lie flat; the parallel mechanism's joints carry their links' weight.
+    sc = load_scenario("parallel_joint_realistic")
+    u = unit_setups(sc)[0]
+    gravity = np.abs(np.array(u.plant_model.G_p(u.x0[:5], u.plant_params)).ravel())
+    assert 1.0 < gravity[[0, 1, 3, 4]].min() and gravity.max() < 5.0
+
+
+def _numbers(message):
+    m = re.search(r"gravity needs ([\d.]+) N m on joint (\S+) at its initial position "
+                  r"\(([-\d.]+) deg\), more than the ([\d.]+) N m", message)
+    assert m, message
+    return float(m[1]), m[2], float(m[4])
+
+
+def test_a_payload_the_motors_cannot_hold_is_refused():
+    sc = _with_plant(load_scenario("parallel_joint"), payload_kg=2.0)
+    with pytest.raises(GravityRefused) as info:
+        unit_setups(sc)
+    torque, joint, limit = _numbers(str(info.value))
+    assert torque > limit == 2.5 and "effort limit" in str(info.value)
+    u = unit_setups(sc, gravity=False)[0]
+    names = [j.name for j in u.controller_model.joints]
+    gravity = np.array(u.plant_model.G_p(u.x0[:5], u.plant_params)).ravel()
+    assert torque == pytest.approx(abs(gravity[names.index(joint)]), rel=1e-3)
+    # mass_scale is the plant's too.
+    bodies = {name.rsplit(".", 1)[0] for name in u.plant_model.parameters.names
+              if name.rsplit(".", 1)[1] == "m"}
+    heavy = _with_plant(load_scenario("parallel_joint"), mass_scale=[3.0] * len(bodies))
+    with pytest.raises(GravityRefused):
+        unit_setups(heavy)
+
+
+def _weak_current(tmp_path):
+    """The parallel description with left.th2's motor at a 1 A Current Limit: through the fit
+    (1.1268 N m/A - 0.1996 N m) about 0.93 N m, below the 1.5 N m gravity asks there."""
+    text = (ROBOTS_DIR / "parallel.toml").read_text()
+    anchor = "id = 3\n"
+    assert text.count(anchor) == 1
+    path = tmp_path / "weak.toml"
+    path.write_text(text.replace(anchor, anchor + "  current_limit_mA = 1000.0\n"))
+    return path
+
+
+def test_a_current_limit_below_gravity_is_refused(tmp_path):
+    path = _weak_current(tmp_path)
+    sc = dataclasses.replace(load_scenario("parallel_joint_realistic"), description=str(path),
+                             system=load_system("parallel", str(path)))
+    with pytest.raises(GravityRefused) as info:
+        unit_setups(sc)
+    torque, joint, limit = _numbers(str(info.value))
+    assert joint == "left.th2" and limit < 1.0 < torque
+    assert "Current Limit (1000 mA)" in str(info.value)
+    # The ideal plant applies any effort up to the limit: it holds, in simulation ...
+    ideal = dataclasses.replace(load_scenario("parallel_joint"), description=str(path),
+                                system=load_system("parallel", str(path)))
+    unit_setups(ideal)
+    # ... but not on the motors, whose drives saturate at their Current Limit.
+    with pytest.raises(GravityRefused):
+        unit_setups(ideal, on_motors=True)
+
+
+def test_cochlea_run_refuses_it_before_anything_moves(tmp_path, capsys):
+    text = (SCENARIOS_DIR / "parallel_joint.toml").read_text() + "\n[plant]\npayload_kg = 2.0\n"
+    scenario = tmp_path / "heavy.toml"
+    scenario.write_text(text)
+    out = tmp_path / "run"
+    code = cochlea_run.main(["--robot", "parallel", "--space", "joint", "--scenario",
+                             str(scenario), "--realtime", "off", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists()
+    assert "gravity needs" in err and "N m on joint" in err and len(err.splitlines()) == 1
+
+
+def test_a_sweep_counts_a_sample_gravity_refuses(tmp_path):
+    text = (SCENARIOS_DIR / "parallel_joint.toml").read_text()
+    text = text.replace("duration_s = 10.0", "duration_s = 0.05")
+    ok = cochlea_sweep.evaluate(text)
+    refused = cochlea_sweep.evaluate(text + "\n[plant]\npayload_kg = 2.0\n")
+    assert set(refused) == set(ok)  # the same columns: one Parquet schema
+    assert refused["stop_rule"] == "gravity-refused"
+    assert refused["success"] is False and refused["converged"] is False
+    from cochlea.sweep import tune
+
+    verdict_ = tune.judge([ok, refused], "worst")
+    assert not verdict_["feasible"] and verdict_["stopped_runs"] == 1

@@ -279,7 +279,9 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
     if args.duration is not None:  # the up-front checks sample the run's actual duration
         scenario = dataclasses.replace(scenario, duration=args.duration)
-    setups = unit_setups(scenario)  # validates the whole run's path before anything moves
+    # Validates the whole run's path before anything moves, and that the drives hold the robot
+    # against gravity where it starts (on the motors: at their Current Limits).
+    setups = unit_setups(scenario, on_motors=args.backend == "dynamixel")
     periods = int(round(scenario.duration * scenario.rate_hz))
     target = args.out if args.out is not None else Path("runs")
     outputs.check_free_space(
