@@ -69,7 +69,7 @@ TARGETS = {"embedded_sim_serial_rtf": 2000.0}
 #: What the step timing replays: the first second of each scenario (periods).
 REPLAY_PERIODS = 1000
 #: Fields of a unit's log, compared with the simulation's.
-LOG_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x", "true_q",
+LOG_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose", "true_q",
               "true_qd", "true_x")
 
 

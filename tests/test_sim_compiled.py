@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
 #: The thesis's variants exist in C for the rigid-link controllers only.
 RIGID = [name for name in SCENARIOS if load_scenario(name).controller_actuators == "none"]
-FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
+FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose", "true_q",
+          "true_qd", "true_x")
 DURATION = 1.5  # s: short, to keep the suite fast (the benchmark runs full length)
 
 

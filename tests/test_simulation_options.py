@@ -84,7 +84,7 @@ def test_quantised_c_loop_equals_the_reference():
     reference = simulate(sc, 0.5, setups, kernels="casadi")
     compiled = simulate(sc, 0.5, setups, kernels="c")
     for a, b in zip(compiled.units, reference.units):
-        for key in ("q", "qd", "true_q", "true_qd", "x", "true_x", "tau", "errors", "p_hat"):
+        for key in ("q", "qd", "true_q", "true_qd", "pose", "true_x", "tau", "errors", "p_hat"):
             assert np.allclose(getattr(a, key), getattr(b, key), rtol=0, atol=1e-10), key
     slider = setups[0].quantum[2]  # m per count: through the pinion's radius
     assert slider == pytest.approx(2 * np.pi / 4096 * 0.02)

@@ -61,7 +61,7 @@ def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
         n_track = u.setup.controller.n_desired
         blocks += [u.q, u.qd, u.desired, u.desired_dot, u.measured_tracking_error,
                    u.errors[:, n_track:], u.tau] + ([] if u.current is None else [u.current]) \
-            + [u.p_hat, u.x]
+            + [u.p_hat, u.pose]
         if u.has_true_state:  # a simulated run: the plant's own state beside the measured one
             names += [f"{u.name}.true_q.{j}_{un}" for j, un in zip(joints, ju)]
             names += [f"{u.name}.true_qd.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
@@ -158,8 +158,8 @@ class _UnitStats:
         self.max_norm = np.maximum(self.max_norm, np.max(np.linalg.norm(u.p_hat, axis=1)))
         self.finite = self.finite and bool(np.isfinite(u.p_hat).all())
         self.last = dataclasses.replace(u, **{name: getattr(u, name)[-1:] for name in (
-            "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
-            + (("true_q", "true_qd", "true_x") if u.has_true_state else ())})
+            "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x", "true_q",
+            "true_qd", "true_x") if getattr(u, name) is not None})
 
 
 def unit_summary(u: UnitLog, position_quantum: np.ndarray | None = None) -> dict:
@@ -354,7 +354,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         if u.has_true_state:
             actual = u.true_q if u.space == "joint" else u.true_x
         else:
-            actual = u.q if u.space == "joint" else u.x
+            actual = u.q if u.space == "joint" else u.pose
         fig, axes = _grid(plt, len(u.tracked_names), f"{label_text}: {u.name}, desired vs actual")
         for i, (ax, name, unit) in enumerate(zip(axes, u.tracked_names, u.tracked_units)):
             d, shown = _display(u.desired[:, i], unit)
@@ -403,7 +403,7 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         for label, (iu, iv) in u.setup.tool_points:
             name = u.name if len(u.setup.tool_points) == 1 else f"{u.name} {label}"
             ax.plot(desired[:, iu], desired[:, iv], "--", lw=1, label=f"{name} desired")
-            pose = u.true_x if u.has_true_state else u.x
+            pose = u.true_x if u.has_true_state else u.pose
             ax.plot(pose[:, iu], pose[:, iv], lw=1.2, label=f"{name} actual")
             ax.plot(pose[0, iu], pose[0, iv], "o", ms=4, color=ax.lines[-1].get_color())
             if radius is None:

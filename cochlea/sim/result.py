@@ -44,7 +44,9 @@ class UnitLog:
     errors: np.ndarray  # (N, 2 blocks) controller error signals (of the measured state)
     tau: np.ndarray  # (N, n) commanded torque / force
     p_hat: np.ndarray  # (N, n_p) estimate used in the period
-    x: np.ndarray  # (N, m) tool / task pose of the measured joint positions
+    #: (N, m) tool / task pose of the measured joint positions; None until asked for when a
+    #: simulated run measured something else than the true state (see :attr:`pose`).
+    x: np.ndarray | None
     setup: UnitSetup = field(repr=False)
     #: (N, n) motor current measured by the drives (A, at the joint's sign); None when the run
     #: measured none (simulated runs).
@@ -58,6 +60,17 @@ class UnitLog:
     @property
     def has_true_state(self) -> bool:
         return self.true_q is not None
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The pose of the measured joint positions (``x``), computed from ``q`` the first
+        time it is asked for when the run did not log it (an as-fast run that measured
+        through a delay, noise or a grid: a sweep judging its samples seldom needs it)."""
+        if self.x is None:
+            rows = len(self.q)
+            self.x = np.array(self.setup.fk_world.map(rows)(self.q.T)).T if rows else \
+                np.zeros((0, len(self.setup.task_names)))
+        return self.x
 
     @property
     def measured_tracking_error(self) -> np.ndarray:
@@ -104,14 +117,10 @@ def simulated_log(u: UnitSetup, space: str, states: np.ndarray, measured: np.nda
                   errors: np.ndarray, tau: np.ndarray, p_hat: np.ndarray) -> UnitLog:
     """A simulated unit's log: ``states`` the plant's true ``[q, qd]`` of every period and
     ``pose`` its pose, ``measured`` what the controller saw (the same array when the plant
-    measures exactly: no delay, noise or grid), whose pose is computed here."""
+    measures exactly: no delay, noise or grid), whose pose is computed when first asked for
+    (:attr:`UnitLog.pose`)."""
     n = u.controller_model.nq
-    if measured is states:
-        seen_pose = pose
-    elif len(measured):
-        seen_pose = np.array(u.fk_world.map(len(measured))(measured[:, :n].T)).T
-    else:
-        seen_pose = np.zeros((0, pose.shape[1]))
+    seen_pose = pose if measured is states else None
     return UnitLog(u.name, space, measured[:, :n], measured[:, n:], desired, desired_dot, errors,
                    tau, p_hat, seen_pose, u, true_q=states[:, :n], true_qd=states[:, n:],
                    true_x=pose)
