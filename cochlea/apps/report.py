@@ -288,10 +288,11 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
                             + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items())
                             + " (with encoder counts, of the plant or of a hardware run's "
                               "drives: below the coordinate's measurement_resolution, one "
-                              "count on every joint; each coordinate's convergence_floor); "
-                              "converged overall only if every coordinate converged, nothing "
-                              "diverged and no supervisor rule stopped the run (real time) or "
-                              "would have (as fast as possible: supervisor)",
+                              "count on every joint; each coordinate's convergence_floor), "
+                              "on the tracking error judged_error names; converged overall "
+                              "only if every coordinate converged, nothing diverged and no "
+                              "supervisor rule stopped the run (real time) or would have (as "
+                              "fast as possible: supervisor)",
         # Which tracking error the coordinates' initial_abs_error, final_rms_error and
         # converged are of: "true" (the plant's state, a simulated run) or "measured" (a
         # hardware run); the measured one is beside it as measured_* in every case.

@@ -492,15 +492,16 @@ class RealTimeLoop:
         widths += [len(TIMING_COLUMNS)]
         self.offsets = np.concatenate([[0], np.cumsum(widths)])
         self.current_at = int(self.offsets[-1])
-        # Then the plant's true state [q (all), qd (all)] where the backend knows it (the
-        # simulated robot; NaN on the motors), appended last for the same reason.
-        self.true_at = self.current_at + self.n
-        self.width = self.true_at + 2 * self.n
         #: The backend's measured joint currents, copied into each row (None: not measured).
         self.measured_current = getattr(backend, "joint_current_A", None)
         #: The plant's true state at each read, copied into each row (None: not known, as on
         #: the motors; see Backend.true_state).
         self.true_state = getattr(backend, "true_state", None)
+        # Then, only where the backend knows it (the simulated robot), the plant's true state
+        # [q (all), qd (all)], appended last for the same reason: a run on the motors keeps
+        # the rows the embedded runtime writes too.
+        self.true_at = self.current_at + self.n
+        self.width = self.true_at + (0 if self.true_state is None else 2 * self.n)
         self.buffer = np.full((0, self.width), np.nan)  # sized by run(): whole run or ring
         self.x = np.zeros(2 * self.n)
         self.tau = np.zeros(self.n)
@@ -642,8 +643,7 @@ class RealTimeLoop:
         timing = row[int(off[-2]):int(off[-1])]
         current = row[self.current_at:self.current_at + n]
         current[:] = np.nan  # stays NaN unless the backend measures current
-        true = row[self.true_at:self.true_at + 2 * n]
-        true[:] = np.nan  # stays NaN unless the backend knows the true state
+        true = row[self.true_at:self.width]  # empty unless the backend knows the true state
         return row, row[1:1 + 2 * n], row[1 + 2 * n:1 + 3 * n], timing, current, true, units
 
     def _loop(self, writer) -> Stop:
@@ -846,7 +846,9 @@ def raw_columns(loop: RealTimeLoop) -> list[str]:
     names += list(TIMING_COLUMNS)
     # The measured motor current, at the joint's sign (see Backend.joint_current_A).
     names += [f"current.{j}_A" for j in joints]
-    # The plant's true state (see Backend.true_state; NaN where the backend has none).
+    if loop.true_state is None:  # the motors: what they measure only
+        return names
+    # The plant's true state (see Backend.true_state): the simulated robot's.
     names += [f"true_q.{j}_{un}" for j, un in zip(joints, units)]
     return names + [f"true_qd.{j}_{rate[un]}" for j, un in zip(joints, units)]
 
