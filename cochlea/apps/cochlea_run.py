@@ -420,14 +420,18 @@ def _dynamixel_backend(args, scenario):
 def _report(data: dict, out: Path, wall: float) -> None:
     print(f"  ran {data['duration_s']:.2f} s in {wall:.2f} s "
           f"({data['duration_s'] / max(wall, 1e-9):.1f}x real time)")
+    true = data["judged_error"] == "true"
     for name, unit in data["units"].items():
         for coord, c in unit["tracked"].items():
             if c["initial_abs_error"] is None:
                 continue
+            # Judged on the true error where the run has it; the measured one beside it.
+            seen = f" (measured {c['measured_final_rms_error']:.3e})" if true else ""
             print(f"  {name}.{coord}: initial |e| {c['initial_abs_error']:.3e} {c['unit']}, "
-                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}"
+                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}{seen}"
                   f"{'' if c['converged'] else '  NOT CONVERGED'}")
-    print(f"  converged: {'yes' if data['converged'] else 'no'}")
+    print(f"  converged: {'yes' if data['converged'] else 'no'} (judged on the "
+          f"{data['judged_error']} error)")
     print(f"  log: {out / 'log.csv'}\n  summary: {out / 'summary.json'}")
     for figure in data["figures"]:
         print(f"  figure: {figure}")

@@ -314,8 +314,11 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
                 source = ("its drive's Current Limit" + (f" ({current:g} mA)" if current
                                                           else "") + " through the motor's fit, "
                           f"below the effort limit {limit[j]:.4g} {unit}")
+                remedy = "raise the joint's Current Limit (current_limit_mA)"
             else:
                 source = "its effort limit"
+                remedy = ("raise the joint's " + ("torque_limit_Nm" if joint.type == "revolute"
+                                                  else "force_limit_N") + " if the motor can")
             position = (f"{math.degrees(q0[j]):.4g} deg" if joint.type == "revolute"
                         else f"{q0[j]:.4g} m")
             raise GravityRefused(
@@ -323,8 +326,7 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
                 f"joint {joint.name} at its initial position ({position}), more than the "
                 f"{can[j]:.4g} {unit} its drive can give ({source}): the motor cannot hold the "
                 "robot there and it would sag the moment torque is enabled; lower [plant] "
-                "payload_kg or mass_scale, start from another pose, or raise the joint's "
-                "Current Limit (current_limit_mA)")
+                f"payload_kg or mass_scale, start from another pose, or {remedy}")
 
 
 #: Distinct symbolic structures a process keeps (:func:`unit_setups`): each holds a few MB of
