@@ -163,6 +163,43 @@ def test_a_run_its_supervisor_stops_has_not_converged(tmp_path):
     assert rt_summary["converged"] is False
 
 
+@pytest.mark.realtime
+@pytest.mark.parametrize("study, code", [("delayed", STOP_CODES["velocity-limit"]),
+                                         ("serial_task_realistic", 0)])
+def test_cochlea_run_as_fast_and_in_real_time_agree(tmp_path, study, code):
+    """The two run kinds of cochlea-run on the simulated robot, 0.3 s of a study: the same
+    exit code, verdict and log columns (but the real-time run's timing)."""
+    if study == "delayed":
+        scenario, space = _delayed_scenario(tmp_path), "joint"
+    else:
+        scenario, space = SCENARIOS_DIR / f"{study}.toml", "task"
+    common = ["--robot", "serial", "--space", space, "--scenario", str(scenario),
+              "--duration", "0.3"]
+    fast = cochlea_run.main(common + ["--realtime", "off", "--out", str(tmp_path / "fast")])
+    rt = cochlea_run.main(common + ["--out", str(tmp_path / "rt"), "--sched", "other",
+                                    "--watchdog-misses", "500", "--status", "off"])
+    assert fast == rt == code
+    a = json.loads((tmp_path / "fast" / "summary.json").read_text())
+    b = json.loads((tmp_path / "rt" / "summary.json").read_text())
+    assert a["converged"] == b["converged"] and a["judged_error"] == b["judged_error"] == "true"
+    if code:
+        assert a["converged"] is False
+        assert (a["supervisor"]["rule"], a["supervisor"]["time_s"]) == \
+            (b["stop"]["rule"], b["stop"]["time_s"])
+    else:
+        assert a["supervisor"]["rule"] == "none" and b["stop"]["rule"] == "completed"
+        for unit, entry in a["units"].items():
+            for coord, c in entry["tracked"].items():
+                r = b["units"][unit]["tracked"][coord]
+                assert r["final_rms_error"] == pytest.approx(c["final_rms_error"], rel=1e-9)
+                assert r["measured_final_rms_error"] == \
+                    pytest.approx(c["measured_final_rms_error"], rel=1e-9)
+    fast_head, _ = _csv(tmp_path / "fast" / "log.csv")
+    rt_head, _ = _csv(tmp_path / "rt" / "log.csv")
+    assert [c for c in rt_head if c not in TIMING_COLUMNS] == fast_head
+    assert "arm1.true_error.x_m" in fast_head or "arm1.true_error.joint1_rad" in fast_head
+
+
 def test_a_sweep_row_agrees_with_the_summary_of_a_stopped_run(tmp_path):
     """cochlea-sweep's row of the same scenario: not converged, not a success, the rule."""
     row = cochlea_sweep.evaluate(_delayed_scenario(tmp_path).read_text())
