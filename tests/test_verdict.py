@@ -299,3 +299,29 @@ def test_a_sweep_counts_a_sample_gravity_refuses(tmp_path):
 
     verdict_ = tune.judge([ok, refused], "worst")
     assert not verdict_["feasible"] and verdict_["stopped_runs"] == 1
+
+
+def test_a_sweep_with_refused_samples_runs_them_all_and_writes_one_table(tmp_path):
+    """A spec whose payload the mechanism cannot always hold: checked up front without
+    refusing the sweep, every sample gets its row (the refused ones counted as such), and the
+    rows make one Parquet table."""
+    from cochlea.sweep import execute, results
+    from cochlea.sweep import spec as sweep_spec
+
+    path = tmp_path / "spec.toml"
+    path.write_text('format = "cochlea-sweep/1"\nscenario = "parallel_joint"\nsamples = 6\n'
+                    'seed = 3\nduration_s = 0.05\n\n[perturb]\n'
+                    'payload_kg = {choice = [0.0, 2.0]}\n')
+    spec = sweep_spec.load(path)
+    cochlea_sweep._check_sample(spec)  # the first and last samples: no refusal of the sweep
+    rows = execute.run_batch(spec, list(range(spec.total)), cochlea_sweep.evaluate)
+    refused = [r for r in rows if r["stop_rule"] == "gravity-refused"]
+    assert 0 < len(refused) < len(rows)
+    assert all(r["plant.payload_kg"] == 2.0 and not r["success"] for r in refused)
+    assert all(r["plant.payload_kg"] == 0.0 for r in rows if r not in refused)
+    assert len({tuple(sorted(r)) for r in rows}) == 1  # the same columns
+    (tmp_path / "out" / results.PARTS).mkdir(parents=True)
+    results.write_part(tmp_path / "out", rows)
+    table = results.read(tmp_path / "out")
+    assert table.num_rows == len(rows)
+    assert table["stop_rule"].to_pylist().count("gravity-refused") == len(refused)
