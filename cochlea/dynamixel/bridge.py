@@ -138,6 +138,8 @@ class DynamixelBackend:
     """
 
     name = "dynamixel"
+    #: The motors know only what they measure: no true state (Backend.true_state).
+    true_state = None
 
     def __init__(self, robot: str, port: str, baud: int = 4_000_000, *,
                  description: str | Path | None = None, watchdog_s: float = 0.1,

@@ -17,7 +17,7 @@ import casadi as ca
 import numpy as np
 
 from ..robots.plant import plant_step
-from .result import SimulationResult, UnitLog
+from .result import SimulationResult, simulated_log, truncate
 from .scenario import Scenario
 from .setup import UnitSetup, quantise
 
@@ -113,13 +113,16 @@ def simulate_reference(sc: Scenario, duration: float,
         n, n_p = u.controller_model.nq, u.controller.n_params
         nd, ne = u.controller.n_desired, u.controller.n_desired + n
         period = _period(u, h, sc.plant_substeps)
+        noise = np.concatenate([np.full(n, sc.plant.noise_q_std),
+                                np.full(n, sc.plant.noise_qd_std)])
         X = np.empty((steps, 2 * n))
+        # What the controller saw in each period (the true state when it measures exactly).
+        exact = not (sc.plant.delay_periods or noise.any() or u.quantum is not None)
+        seen = X if exact else np.empty((steps, 2 * n))
         log = {k: np.empty((steps, s)) for k, s in
                [("tau", n), ("errors", ne), ("xd", nd), ("xd_dot", nd), ("p_hat", n_p)]}
         x = u.x0.astype(float).copy()
         p_hat = u.p_hat0.astype(float).copy()
-        noise = np.concatenate([np.full(n, sc.plant.noise_q_std),
-                                np.full(n, sc.plant.noise_qd_std)])
         delay = sc.plant.delay_periods
         rows = steps
         for k in range(steps):
@@ -129,6 +132,8 @@ def simulate_reference(sc: Scenario, duration: float,
                 measured = measured + noise * rng.standard_normal(2 * n)
             if u.quantum is not None:  # as the motors report it: encoder and velocity counts
                 measured = quantise(measured, u.quantum, u.grid_offset)
+            if not exact:
+                seen[k] = measured
             log["p_hat"][k] = p_hat
             x, p_hat, log["tau"][k], log["errors"][k], log["xd"][k], log["xd_dot"][k] = \
                 period(time[k], x, measured, p_hat)
@@ -137,13 +142,12 @@ def simulate_reference(sc: Scenario, duration: float,
                 rows = k + 1
                 break
         X = X[:rows]
+        seen = X if exact else seen[:rows]
         log = {key: value[:rows] for key, value in log.items()}
         pose = np.array(u.fk_world.map(rows)(X[:, :n].T)).T
-        logs.append(UnitLog(u.name, sc.space, X[:, :n], X[:, n:], log["xd"], log["xd_dot"],
-                            log["errors"], log["tau"], log["p_hat"], pose, u))
+        logs.append(simulated_log(u, sc.space, X, seen, pose, log["xd"], log["xd_dot"],
+                                  log["errors"], log["tau"], log["p_hat"]))
     rows = min(len(u.q) for u in logs)
     if rows < steps:  # every unit's log ends where the first one diverged
-        for u in logs:
-            for key in ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x"):
-                setattr(u, key, getattr(u, key)[:rows])
+        truncate(logs, rows)
     return SimulationResult(sc, time[:rows], logs, diverged)

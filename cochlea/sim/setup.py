@@ -279,6 +279,65 @@ def check_start(sc: scenario_mod.Scenario, plan) -> None:
                                    "--duration")
 
 
+class GravityRefused(CochleaError):
+    """Gravity at a unit's initial pose needs more effort than a joint's drive can give: the
+    motor cannot hold the robot there (it would sag the moment torque is enabled). A sweep or a
+    tuning search counts such a sample as refused (:data:`GRAVITY_RULE`), not as an error."""
+
+
+#: The name a sweep's row gives a sample refused by :class:`GravityRefused` (its stop rule).
+GRAVITY_RULE = "gravity-refused"
+
+
+def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
+                  saturation: np.ndarray | None = None, actuated: list | None = None) -> None:
+    """Refuse (:class:`GravityRefused`) a run whose plant needs, against gravity at a unit's
+    initial joint position, more effort on a joint than its drive can give: the joint's
+    effort limit (the supervisor clips every command there) and, where the plant or the
+    drives saturate at their Current Limit, that saturation through the fit (the unit's
+    ``effort_grid``, or ``saturation``: per joint of the system in the loop's order, the real
+    drives' of a hardware run). ``G`` is the plant's (masses scaled, payload added), so the
+    scenario's ``mass_scale`` and ``payload_kg`` count. ``actuated``: the system's actuated
+    joints (the adapter's), whose motors the message names."""
+    first = 0
+    for u in setups:
+        m = u.controller_model
+        q0 = u.x0[:m.nq]
+        gravity = np.abs(np.array(u.plant_model.G_p(q0, u.plant_params), float).ravel())
+        limit = u.effort_limit
+        drive = None
+        if u.effort_grid is not None:
+            drive = u.effort_grid.saturation
+        if saturation is not None:
+            mine = np.asarray(saturation, float)[first:first + m.nq]
+            drive = mine if drive is None else np.minimum(drive, mine)
+        first += m.nq
+        can = limit if drive is None else np.minimum(limit, drive)
+        for j, joint in enumerate(m.joints):
+            if gravity[j] <= can[j] * (1 + 1e-9):
+                continue
+            unit = "N m" if joint.type == "revolute" else "N"
+            if drive is not None and drive[j] < limit[j]:
+                motor = actuated[first - m.nq + j].motor if actuated is not None else None
+                current = motor.current_limit_mA if motor is not None else None
+                source = ("its drive's Current Limit" + (f" ({current:g} mA)" if current
+                                                          else "") + " through the motor's fit, "
+                          f"below the effort limit {limit[j]:.4g} {unit}")
+                remedy = "raise the joint's Current Limit (current_limit_mA)"
+            else:
+                source = "its effort limit"
+                remedy = ("raise the joint's " + ("torque_limit_Nm" if joint.type == "revolute"
+                                                  else "force_limit_N") + " if the motor can")
+            position = (f"{math.degrees(q0[j]):.4g} deg" if joint.type == "revolute"
+                        else f"{q0[j]:.4g} m")
+            raise GravityRefused(
+                f"scenario {sc.path}: unit {u.name}: gravity needs {gravity[j]:.4g} {unit} on "
+                f"joint {joint.name} at its initial position ({position}), more than the "
+                f"{can[j]:.4g} {unit} its drive can give ({source}): the motor cannot hold the "
+                "robot there and it would sag the moment torque is enabled; lower [plant] "
+                f"payload_kg or mass_scale, start from another pose, or {remedy}")
+
+
 #: Distinct symbolic structures a process keeps (:func:`unit_setups`): each holds a few MB of
 #: CasADi graphs; a sweep's worker meets one, or one per structural key it sweeps.
 STRUCTURE_CACHE_SIZE = 8
@@ -342,11 +401,15 @@ def _structure(sc: scenario_mod.Scenario, adapter, system) -> _Structure:
     return _Structure(system, tuple(plans), tuple(controllers))
 
 
-def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup]:
+def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool = True,
+                on_motors: bool = False) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario). Everything the run's duration (``sc.duration``) lets us check before
     anything moves is checked here: the leader's formulas finite, each unit's initial state
-    and desired path inside the workspace and the limits (the adapters' checks).
+    and desired path inside the workspace and the limits (the adapters' checks), and, unless
+    ``gravity`` is False, that every joint's drive can hold the plant against gravity at the
+    initial pose (:func:`check_gravity`; ``on_motors``: the efforts go through real drives, a
+    hardware run, which saturate at their Current Limit whatever the scenario's plant says).
 
     ``cache``: reuse the models, controllers and checked paths of an earlier call with the
     same :func:`structure_key` in this process (the last :data:`STRUCTURE_CACHE_SIZE`), so a
@@ -401,6 +464,12 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
             moving_centre_joint=plan.moving_centre_joint,
             coulomb=None if coulomb is None else coulomb[mine],
             quantum=quantum, grid_offset=offset, effort_grid=drive, robust=robust))
+    if gravity:
+        real = None
+        if on_motors:  # the motors' own Current Limits, whatever the simulated plant applies
+            real = drive_grids(adapter, system, dataclasses.replace(
+                sc.plant, current_quantisation=True))[1]
+        check_gravity(sc, setups, real, adapter.actuated_joints(system))
     return setups
 
 
@@ -499,6 +568,23 @@ def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.
     positive (round half to even, as C's ``nearbyint``), unchanged elsewhere."""
     on_grid = offset + quantum * np.rint((values - offset) / np.where(quantum > 0, quantum, 1.0))
     return np.where(quantum > 0, on_grid, values)
+
+
+def measurements(states: np.ndarray, delay: int, noise: np.ndarray | None = None,
+                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """What the controller saw in every period of a run, from the true states ``[q, qd]`` it
+    logged: row k is ``states[max(k - delay, 0)] + noise[k]``, on the measurement grid where
+    there is one; the same floating-point operations as the C driver (and
+    :class:`MeasurementGrid`). ``states`` itself when the plant measures exactly."""
+    if not delay and noise is None and quantum is None:
+        return states
+    seen = states[np.maximum(np.arange(len(states)) - delay, 0)] if delay else states.copy()
+    if noise is not None:
+        seen += noise[:len(states)]
+    if quantum is not None:
+        seen = quantise(seen, quantum, offset)
+    return seen
 
 
 class MeasurementGrid:
