@@ -71,7 +71,10 @@ def test_a_simulated_run_logs_no_current_in_log_csv_and_nan_in_log_bin(tmp_path)
     # One per joint, after the timing columns, at the joint's name and in A.
     assert [names[i] for i in current] == [f"current.arm{a}.joint{j}_A" for a in (1, 2)
                                            for j in (1, 2, 3)]
-    assert current[0] == names.index("backend_io_s") + 1 == len(names) - 6
+    assert current[0] == names.index("backend_io_s") + 1
+    # Then the simulated plant's true state (a simulated run only), 12 columns.
+    assert all(c.startswith(("true_q.", "true_qd.")) for c in names[current[-1] + 1:])
+    assert len(names) - current[-1] - 1 == 12
     rows = np.fromfile(out / "log.bin").reshape(-1, columns["row_length"])
     assert len(rows) == 200 and np.isnan(rows[:, current]).all()
     assert np.isfinite(rows[:, names.index("backend_io_s")]).all()

@@ -429,7 +429,7 @@ def test_every_option_runs_the_same_in_the_embedded_controller(everything, tmp_p
         seen = []
         for u, grid in zip(logs, grids):
             j = max(k - delay, 0)
-            seen.append(grid.apply(np.concatenate([u.q[j], u.qd[j]])))
+            seen.append(grid.apply(np.concatenate([u.true_q[j], u.true_qd[j]])))
         assert c.step(t, np.concatenate(seen)) == 0
         command = np.array(c.command, dtype=float)
         start = 0

@@ -292,9 +292,11 @@ def _box_update(p_dot, p_hat, p_min, p_max):
     face removed: the parameter-wise projection, the Gamma-metric one for a diagonal Gamma."""
     out = []
     for i in range(p_dot.shape[0]):
-        blocked = ca.logic_or(ca.logic_and(p_hat[i] >= p_max[i], p_dot[i] > 0),
-                              ca.logic_and(p_hat[i] <= p_min[i], p_dot[i] < 0))
-        out.append(ca.if_else(blocked, 0, p_dot[i]))
+        # "Free" written without a negation: CasADi turns if_else(c, 0, x) into a C `!` on a
+        # real, which the embedded float build refuses (-Wfloat-conversion).
+        free = ca.logic_and(ca.logic_or(p_hat[i] < p_max[i], p_dot[i] <= 0),
+                            ca.logic_or(p_hat[i] > p_min[i], p_dot[i] >= 0))
+        out.append(ca.if_else(free, p_dot[i], 0))
     return ca.vertcat(*out)
 
 
