@@ -49,8 +49,8 @@ if str(ROOT) not in sys.path:
 from cochlea.kernels import library as ckernels
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
-from cochlea.sim.result import SimulationResult, UnitLog
-from cochlea.sim.setup import MeasurementGrid
+from cochlea.sim.result import SimulationResult, simulated_log
+from cochlea.sim.setup import measurements
 
 GENERATED = ROOT / "generated_c"
 EMBEDDED = GENERATED / "embedded"
@@ -70,7 +70,8 @@ TARGETS = {"embedded_sim_serial_rtf": 2000.0}
 #: What the step timing replays: the first second of each scenario (periods).
 REPLAY_PERIODS = 1000
 #: Fields of a unit's log, compared with the simulation's.
-LOG_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
+LOG_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose", "true_q",
+              "true_qd", "true_x")
 
 
 def compiler() -> str:
@@ -281,9 +282,12 @@ def read_log(path: Path, info: dict, sc, setups) -> SimulationResult:
                            ("xd_dot", size["nd"])):
             part[key] = blocks[key][:, at[key]:at[key] + width]
             at[key] += width
+        # The program logs the plant's true state and pose; what its controller measured is
+        # that state delayed and on the grids (the realistic studies have no noise).
         x = part["x"]
-        logs.append(UnitLog(u.name, sc.space, x[:, :n], x[:, n:], part["xd"], part["xd_dot"],
-                            part["errors"], part["tau"], part["p_hat"], part["pose"], u))
+        seen = measurements(x, sc.plant.delay_periods, None, u.quantum, u.grid_offset)
+        logs.append(simulated_log(u, sc.space, x, seen, part["pose"], part["xd"],
+                                  part["xd_dot"], part["errors"], part["tau"], part["p_hat"]))
     diverged = {}
     if info["status"] == "diverged":
         diverged = {u.name: float(blocks["t"][-1, 0]) for u in setups}
@@ -332,15 +336,8 @@ def recorded_measurements(name: str, periods: int = REPLAY_PERIODS):
     sc = sim_scenario(name)
     setups = unit_setups(sc)
     result = simulate(sc, duration=periods * sc.period, setups=setups)
-    delay = sc.plant.delay_periods
-    seen = []
-    for u in result.units:
-        x = np.hstack([u.q, u.qd])
-        x = np.vstack([np.repeat(x[:1], delay, axis=0), x[:len(x) - delay]]) if delay else x
-        if u.setup.quantum is not None:
-            grid = MeasurementGrid(u.setup.quantum, u.setup.grid_offset)
-            x = np.array([grid.apply(row.copy()) for row in x])
-        seen.append(x)
+    # The log's measured state: what the controller saw (delayed, on the grids).
+    seen = [np.hstack([u.q, u.qd]) for u in result.units]
     return (result.time.copy(), np.ascontiguousarray(np.hstack(seen)),
             np.hstack([u.tau for u in result.units]), setups)
 

@@ -16,7 +16,7 @@ import numpy as np
 
 
 class NumpyStepE:
-    """``step(q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, h)`` of controller e
+    """``step(q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, h, *robust)`` of controller e
     (corrected variant) on one planar arm of a serial description."""
 
     def __init__(self, arm, gravity_base):
@@ -81,7 +81,10 @@ class NumpyStepE:
             Gs.append(G)
         return Ms, Cs, Gs
 
-    def __call__(self, q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, h):
+    def __call__(self, q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, h,
+                 deadzone=0.0, p_min=-np.inf, p_max=np.inf, static_excess=None,
+                 stribeck_velocity=None):
+        # The rigid links carry no friction: the static-friction shape has nothing to act on.
         n = self.n
         alpha, G_e, K_e = gains[:n], gains[n:2 * n], gains[2 * n:3 * n]
         e = xd - q
@@ -92,11 +95,14 @@ class NumpyStepE:
         Ms, Cs, Gs = self._per_link(q, qd)
         Y = np.column_stack([M @ qdd_r + C @ qd_r + G for M, C, G in zip(Ms, Cs, Gs)])
         tau = Y @ p_hat + K_e * e + G_e * r
-        raw = Gamma * (Y.T @ r)
+        s = r - np.clip(r, -deadzone, deadzone)  # the adaptation's dead zone
+        raw = Gamma * (Y.T @ s)
         outward = p_hat @ raw
         metric = max(p_hat @ (Gamma * p_hat), 1e-300)
         if p_hat @ p_hat >= (1 - 1e-9) * bound ** 2 and outward > 0:
             raw = raw - Gamma * p_hat * (outward / metric)
+        raw = np.where(((p_hat >= p_max) & (raw > 0)) | ((p_hat <= p_min) & (raw < 0)), 0.0, raw)
         p_next = p_hat + h * raw
         p_next = p_next * min(1.0, bound / max(np.linalg.norm(p_next), 1e-300))
+        p_next = np.minimum(np.maximum(p_next, p_min), p_max)
         return tau, p_next, np.concatenate([e, r])

@@ -142,7 +142,8 @@ def step_inputs(u) -> list[np.ndarray]:
     xd, xd_dot, xd_ddot = (np.array(v, float).ravel() for v in u.desired(0.0))
     return [u.x0[:n].copy(), u.x0[n:].copy(), xd, xd_dot, xd_ddot,
             u.controller_model.p_nominal.astype(float), u.gains.astype(float),
-            u.gamma.astype(float), np.array(u.bound, float), np.array(1e-3)]
+            u.gamma.astype(float), np.array(u.bound, float), np.array(1e-3),
+            *(np.asarray(v, float) for v in u.robust_inputs)]
 
 
 def close(a, b) -> float:
@@ -223,7 +224,9 @@ def bench_steps(lib: ckernels.Library, floor_path: Path, harness: Path) -> list[
 def max_log_difference(a, b) -> float:
     worst = 0.0
     for u, r in zip(a.units, b.units):
-        for key in ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x"):
+        # "pose": the measured state's, computed where the run did not log it.
+        for key in ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose",
+                    "true_q", "true_qd", "true_x"):
             x, y = getattr(u, key), getattr(r, key)
             worst = max(worst, float(np.max(np.abs(x - y))) if x.size else 0.0)
     return worst

@@ -49,6 +49,8 @@
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
@@ -57,6 +59,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -78,6 +81,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -159,6 +164,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
@@ -167,6 +174,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -188,6 +196,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -269,6 +279,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
@@ -277,6 +289,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -298,6 +311,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -379,6 +394,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
@@ -387,6 +404,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -408,6 +426,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -489,6 +509,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
@@ -497,6 +519,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -518,6 +541,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -599,6 +624,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
@@ -607,6 +634,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -628,6 +656,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -709,6 +739,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
@@ -717,6 +749,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -738,6 +771,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -819,6 +854,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
@@ -827,6 +864,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -848,6 +886,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -929,6 +969,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
@@ -937,6 +979,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -958,6 +1001,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -1039,6 +1084,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
@@ -1047,6 +1094,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1068,6 +1116,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -1149,6 +1199,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
@@ -1157,6 +1209,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1178,6 +1231,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -1259,6 +1314,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
@@ -1267,6 +1324,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1288,6 +1346,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -1369,6 +1429,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
@@ -1377,6 +1439,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1398,6 +1461,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -1479,6 +1544,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
@@ -1487,6 +1554,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1508,6 +1576,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -1589,6 +1659,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
@@ -1597,6 +1669,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1618,6 +1691,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -1699,6 +1774,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
@@ -1707,6 +1784,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1728,6 +1806,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -1809,6 +1889,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
@@ -1817,6 +1899,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1838,6 +1921,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -1919,6 +2004,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
@@ -1927,6 +2014,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -1948,6 +2036,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -2029,6 +2119,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
@@ -2037,6 +2129,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2058,6 +2151,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -2139,6 +2234,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
@@ -2147,6 +2244,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2168,6 +2266,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -2249,6 +2349,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
@@ -2257,6 +2359,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2278,6 +2381,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -2359,6 +2464,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
@@ -2367,6 +2474,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2388,6 +2496,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -2469,6 +2579,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
@@ -2477,6 +2589,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2498,6 +2611,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -2579,6 +2694,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
@@ -2587,6 +2704,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2608,6 +2726,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -2689,6 +2809,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
@@ -2697,6 +2819,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2718,6 +2841,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -2799,6 +2924,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
@@ -2807,6 +2934,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2828,6 +2956,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -2909,6 +3039,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
@@ -2917,6 +3049,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -2938,6 +3071,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -3019,6 +3154,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
@@ -3027,6 +3164,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3048,6 +3186,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -3129,6 +3269,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
@@ -3137,6 +3279,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3158,6 +3301,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -3239,6 +3384,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
@@ -3247,6 +3394,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3268,6 +3416,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -3349,6 +3499,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
@@ -3357,6 +3509,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3378,6 +3531,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -3459,6 +3614,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
@@ -3467,6 +3624,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3488,6 +3646,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -3569,6 +3729,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
@@ -3577,6 +3739,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3598,6 +3761,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -3679,6 +3844,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
@@ -3687,6 +3854,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3708,6 +3876,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -3789,6 +3959,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
@@ -3797,6 +3969,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3818,6 +3991,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -3899,6 +4074,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
@@ -3907,6 +4084,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -3928,6 +4106,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -4009,6 +4189,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
@@ -4017,6 +4199,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4038,6 +4221,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -4119,6 +4304,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
@@ -4127,6 +4314,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4148,6 +4336,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -4229,6 +4419,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
@@ -4237,6 +4429,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4258,6 +4451,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -4339,6 +4534,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
@@ -4347,6 +4544,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4368,6 +4566,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -4449,6 +4649,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
@@ -4457,6 +4659,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4478,6 +4681,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -4559,6 +4764,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
@@ -4567,6 +4774,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4588,6 +4796,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -4669,6 +4879,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
@@ -4677,6 +4889,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4698,6 +4911,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -4779,6 +4994,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
@@ -4787,6 +5004,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4808,6 +5026,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -4889,6 +5109,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
@@ -4897,6 +5119,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -4918,6 +5141,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -4999,6 +5224,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
@@ -5007,6 +5234,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5028,6 +5256,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -5109,6 +5339,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
@@ -5117,6 +5349,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5138,6 +5371,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -5219,6 +5454,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
@@ -5227,6 +5464,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5248,6 +5486,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -5329,6 +5569,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
@@ -5337,6 +5579,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5358,6 +5601,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -5439,6 +5684,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
@@ -5447,6 +5694,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5468,6 +5716,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -5549,6 +5799,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
@@ -5557,6 +5809,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5578,6 +5831,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -5659,6 +5914,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
@@ -5667,6 +5924,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5688,6 +5946,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -5769,6 +6029,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
@@ -5777,6 +6039,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5798,6 +6061,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -5879,6 +6144,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
@@ -5887,6 +6154,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -5908,6 +6176,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -5989,6 +6259,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
@@ -5997,6 +6269,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6018,6 +6291,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -6099,6 +6374,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
@@ -6107,6 +6384,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6128,6 +6406,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -6209,6 +6489,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
@@ -6217,6 +6499,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6238,6 +6521,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -6319,6 +6604,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
@@ -6327,6 +6614,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6348,6 +6636,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -6429,6 +6719,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
@@ -6437,6 +6729,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6458,6 +6751,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -6539,6 +6834,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
@@ -6547,6 +6844,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6568,6 +6866,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -6649,6 +6949,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
@@ -6657,6 +6959,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6678,6 +6981,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -6759,6 +7064,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
@@ -6767,6 +7074,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6788,6 +7096,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -6869,6 +7179,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
@@ -6877,6 +7189,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -6898,6 +7211,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -6979,6 +7294,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
@@ -6987,6 +7304,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7008,6 +7326,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -7089,6 +7409,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
@@ -7097,6 +7419,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7118,6 +7441,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -7199,6 +7524,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
@@ -7207,6 +7534,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7228,6 +7556,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -7309,6 +7639,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
@@ -7317,6 +7649,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7338,6 +7671,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -7419,6 +7754,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
@@ -7427,6 +7764,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7448,6 +7786,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -7529,6 +7869,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
@@ -7537,6 +7879,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7558,6 +7901,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -7639,6 +7984,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
@@ -7647,6 +7994,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7668,6 +8016,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -7749,6 +8099,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
@@ -7757,6 +8109,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7778,6 +8131,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -7859,6 +8214,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
@@ -7867,6 +8224,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7888,6 +8246,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -7969,6 +8329,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
@@ -7977,6 +8339,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -7998,6 +8361,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -8079,6 +8444,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
@@ -8087,6 +8454,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8108,6 +8476,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -8189,6 +8559,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
@@ -8197,6 +8569,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8218,6 +8591,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -8299,6 +8674,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
@@ -8307,6 +8684,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8328,6 +8706,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -8409,6 +8789,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
@@ -8417,6 +8799,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8438,6 +8821,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -8519,6 +8904,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
@@ -8527,6 +8914,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8548,6 +8936,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   (void)drive;
@@ -8629,6 +9019,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
@@ -8637,6 +9029,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8658,6 +9051,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;
@@ -8739,6 +9134,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
+ * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
@@ -8747,6 +9144,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
@@ -8768,6 +9166,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
   for (i = 0; i < NP; ++i) p_hat[i] = p_hat0[i];
   step_arg[0] = meas; step_arg[1] = meas + NQ; step_arg[5] = p_hat;
   step_arg[6] = gains; step_arg[7] = Gamma; step_arg[8] = &bound; step_arg[9] = &h;
+  step_arg[10] = robust; step_arg[11] = robust + NQ; step_arg[12] = robust + NQ + NP;
+  step_arg[13] = robust + NQ + 2 * NP; step_arg[14] = robust + 2 * NQ + 2 * NP;
   step_res[1] = p_next;
   plant_arg[0] = x; plant_arg[2] = plant_p; plant_arg[3] = friction; plant_arg[4] = &h;
   plant_arg[5] = drive;

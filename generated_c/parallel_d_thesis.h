@@ -31,7 +31,7 @@ const casadi_int* parallel_d_thesis_Y_sparsity_in(casadi_int i);
 const casadi_int* parallel_d_thesis_Y_sparsity_out(casadi_int i);
 int parallel_d_thesis_Y_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int parallel_d_thesis_Y_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define parallel_d_thesis_Y_SZ_ARG 6
+#define parallel_d_thesis_Y_SZ_ARG 8
 #define parallel_d_thesis_Y_SZ_RES 1
 #define parallel_d_thesis_Y_SZ_IW 0
 #define parallel_d_thesis_Y_SZ_W 0
@@ -49,7 +49,7 @@ const casadi_int* parallel_d_thesis_law_sparsity_in(casadi_int i);
 const casadi_int* parallel_d_thesis_law_sparsity_out(casadi_int i);
 int parallel_d_thesis_law_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int parallel_d_thesis_law_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define parallel_d_thesis_law_SZ_ARG 9
+#define parallel_d_thesis_law_SZ_ARG 14
 #define parallel_d_thesis_law_SZ_RES 3
 #define parallel_d_thesis_law_SZ_IW 0
 #define parallel_d_thesis_law_SZ_W 0
@@ -67,7 +67,7 @@ const casadi_int* parallel_d_thesis_update_sparsity_in(casadi_int i);
 const casadi_int* parallel_d_thesis_update_sparsity_out(casadi_int i);
 int parallel_d_thesis_update_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int parallel_d_thesis_update_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define parallel_d_thesis_update_SZ_ARG 9
+#define parallel_d_thesis_update_SZ_ARG 14
 #define parallel_d_thesis_update_SZ_RES 1
 #define parallel_d_thesis_update_SZ_IW 0
 #define parallel_d_thesis_update_SZ_W 0
@@ -85,7 +85,7 @@ const casadi_int* parallel_d_thesis_step_sparsity_in(casadi_int i);
 const casadi_int* parallel_d_thesis_step_sparsity_out(casadi_int i);
 int parallel_d_thesis_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int parallel_d_thesis_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define parallel_d_thesis_step_SZ_ARG 10
+#define parallel_d_thesis_step_SZ_ARG 15
 #define parallel_d_thesis_step_SZ_RES 3
 #define parallel_d_thesis_step_SZ_IW 0
 #define parallel_d_thesis_step_SZ_W 0

@@ -54,8 +54,6 @@ extern "C" {
   #endif
 #endif
 
-casadi_real casadi_sq(casadi_real x) { return x*x;}
-
 casadi_real casadi_fmax(casadi_real x, casadi_real y) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
@@ -74,6 +72,8 @@ casadi_real casadi_fmin(casadi_real x, casadi_real y) {
 #endif
 }
 
+casadi_real casadi_sq(casadi_real x) { return x*x;}
+
 /* Configuration this file was compiled with */
 CASADI_SYMBOL_EXPORT void serial_arm1_g_thesis_casadi_version(int* major, int* minor, int* patch) {
   *major = 3;
@@ -88,7 +88,7 @@ static const casadi_int casadi_s1[3] = {9, 1, 1};
 static const casadi_int casadi_s2[3] = {1, 1, 1};
 static const casadi_int casadi_s3[3] = {6, 1, 1};
 
-/* serial_arm1_g_thesis_law:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound)->(tau[3],p_hat_dot[3],errors[6]) */
+/* serial_arm1_g_thesis_law:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound,deadzone[3],p_min[3],p_max[3],static_excess[3],stribeck_velocity[3])->(tau[3],p_hat_dot[3],errors[6]) */
 static int casadi_f0(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {
   (void)iw; (void)w; (void)mem;
   casadi_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
@@ -1316,72 +1316,117 @@ static int casadi_f0(const casadi_real** arg, casadi_real** res, casadi_int* iw,
   a62=(a62*a20);
   a04=(a04-a62);
   if (res[0]!=0) res[0][2]=a04;
-  a04=arg[7]? arg[7][0] : 0;
-  a00=(a00*a60);
-  a00=(a04*a00);
-  a62=9.9999999900000003e-01;
-  a78=arg[8]? arg[8][0] : 0;
-  a78=casadi_sq(a78);
-  a62=(a62*a78);
-  a78=casadi_sq(a22);
-  a37=casadi_sq(a45);
-  a78=(a78+a37);
-  a37=casadi_sq(a02);
-  a78=(a78+a37);
-  a62=(a62<=a78);
-  a78=0.;
-  a37=(a22*a00);
-  a15=arg[7]? arg[7][1] : 0;
-  a52=(a52*a60);
-  a79=(a79*a24);
+  a04=arg[11]? arg[11][0] : 0;
+  a04=(a22<a04);
+  a62=arg[7]? arg[7][0] : 0;
+  a78=arg[9]? arg[9][0] : 0;
+  a37=(-a78);
+  a37=casadi_fmax(a60,a37);
+  a37=casadi_fmin(a37,a78);
+  a37=(a60-a37);
+  a00=(a00*a37);
+  a00=(a62*a00);
+  a78=9.9999999900000003e-01;
+  a15=arg[8]? arg[8][0] : 0;
+  a15=casadi_sq(a15);
+  a78=(a78*a15);
+  a15=casadi_sq(a22);
+  a36=casadi_sq(a45);
+  a15=(a15+a36);
+  a36=casadi_sq(a02);
+  a15=(a15+a36);
+  a78=(a78<=a15);
+  a15=0.;
+  a36=(a22*a00);
+  a23=arg[7]? arg[7][1] : 0;
+  a52=(a52*a37);
+  a65=arg[9]? arg[9][1] : 0;
+  a12=(-a65);
+  a12=casadi_fmax(a24,a12);
+  a12=casadi_fmin(a12,a65);
+  a12=(a24-a12);
+  a79=(a79*a12);
   a52=(a52+a79);
-  a52=(a15*a52);
+  a52=(a23*a52);
   a79=(a45*a52);
-  a37=(a37+a79);
+  a36=(a36+a79);
   a79=arg[7]? arg[7][2] : 0;
-  a33=(a33*a60);
-  a76=(a76*a24);
+  a33=(a33*a37);
+  a76=(a76*a12);
   a33=(a33+a76);
-  a30=(a30*a20);
+  a76=arg[9]? arg[9][2] : 0;
+  a12=(-a76);
+  a12=casadi_fmax(a20,a12);
+  a12=casadi_fmin(a12,a76);
+  a12=(a20-a12);
+  a30=(a30*a12);
   a33=(a33+a30);
   a33=(a79*a33);
   a30=(a02*a33);
-  a37=(a37+a30);
-  a30=(-a37);
-  a78=(a78<a30);
-  a62=(a62&&a78);
-  a78=(a04*a22);
-  a04=(a04*a22);
-  a22=(a22*a04);
-  a04=(a15*a45);
-  a04=(a45*a04);
-  a22=(a22+a04);
-  a04=(a79*a02);
-  a04=(a02*a04);
-  a22=(a22+a04);
-  a04=1.0000000000000000e-300;
-  a22=casadi_fmax(a22,a04);
-  a37=(a37/a22);
-  a78=(a78*a37);
-  a78=(-a78);
-  a78=(a62?a78:0);
-  a00=(a00+a78);
+  a36=(a36+a30);
+  a30=(-a36);
+  a30=(a15<a30);
+  a78=(a78&&a30);
+  a30=(a62*a22);
+  a62=(a62*a22);
+  a62=(a22*a62);
+  a12=(a23*a45);
+  a12=(a45*a12);
+  a62=(a62+a12);
+  a12=(a79*a02);
+  a12=(a02*a12);
+  a62=(a62+a12);
+  a12=1.0000000000000000e-300;
+  a62=casadi_fmax(a62,a12);
+  a36=(a36/a62);
+  a30=(a30*a36);
+  a30=(-a30);
+  a30=(a78?a30:0);
+  a00=(a00+a30);
   a00=(-a00);
-  if (res[1]!=0) res[1][0]=a00;
-  a15=(a15*a45);
-  a15=(a15*a37);
-  a15=(-a15);
-  a15=(a62?a15:0);
-  a52=(a52+a15);
+  a30=(a00<=a15);
+  a04=(a04||a30);
+  a30=arg[10]? arg[10][0] : 0;
+  a30=(a30<a22);
+  a22=(a15<=a00);
+  a30=(a30||a22);
+  a04=(a04&&a30);
+  a04=(a04?a00:0);
+  if (res[1]!=0) res[1][0]=a04;
+  a04=arg[11]? arg[11][1] : 0;
+  a04=(a45<a04);
+  a23=(a23*a45);
+  a23=(a23*a36);
+  a23=(-a23);
+  a23=(a78?a23:0);
+  a52=(a52+a23);
   a52=(-a52);
-  if (res[1]!=0) res[1][1]=a52;
+  a23=(a52<=a15);
+  a04=(a04||a23);
+  a23=arg[10]? arg[10][1] : 0;
+  a23=(a23<a45);
+  a45=(a15<=a52);
+  a23=(a23||a45);
+  a04=(a04&&a23);
+  a04=(a04?a52:0);
+  if (res[1]!=0) res[1][1]=a04;
+  a04=arg[11]? arg[11][2] : 0;
+  a04=(a02<a04);
   a79=(a79*a02);
-  a79=(a79*a37);
+  a79=(a79*a36);
   a79=(-a79);
-  a62=(a62?a79:0);
-  a33=(a33+a62);
+  a78=(a78?a79:0);
+  a33=(a33+a78);
   a33=(-a33);
-  if (res[1]!=0) res[1][2]=a33;
+  a78=(a33<=a15);
+  a04=(a04||a78);
+  a78=arg[10]? arg[10][2] : 0;
+  a78=(a78<a02);
+  a15=(a15<=a33);
+  a78=(a78||a15);
+  a04=(a04&&a78);
+  a04=(a04?a33:0);
+  if (res[1]!=0) res[1][2]=a04;
   if (res[2]!=0) res[2][0]=a03;
   if (res[2]!=0) res[2][1]=a29;
   if (res[2]!=0) res[2][2]=a11;
@@ -1409,7 +1454,7 @@ CASADI_SYMBOL_EXPORT void serial_arm1_g_thesis_law_incref(void) {
 CASADI_SYMBOL_EXPORT void serial_arm1_g_thesis_law_decref(void) {
 }
 
-CASADI_SYMBOL_EXPORT casadi_int serial_arm1_g_thesis_law_n_in(void) { return 9;}
+CASADI_SYMBOL_EXPORT casadi_int serial_arm1_g_thesis_law_n_in(void) { return 14;}
 
 CASADI_SYMBOL_EXPORT casadi_int serial_arm1_g_thesis_law_n_out(void) { return 3;}
 
@@ -1430,6 +1475,11 @@ CASADI_SYMBOL_EXPORT const char* serial_arm1_g_thesis_law_name_in(casadi_int i) 
     case 6: return "gains";
     case 7: return "Gamma";
     case 8: return "bound";
+    case 9: return "deadzone";
+    case 10: return "p_min";
+    case 11: return "p_max";
+    case 12: return "static_excess";
+    case 13: return "stribeck_velocity";
     default: return 0;
   }
 }
@@ -1454,6 +1504,11 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm1_g_thesis_law_sparsity_in(casa
     case 6: return casadi_s1;
     case 7: return casadi_s0;
     case 8: return casadi_s2;
+    case 9: return casadi_s0;
+    case 10: return casadi_s0;
+    case 11: return casadi_s0;
+    case 12: return casadi_s0;
+    case 13: return casadi_s0;
     default: return 0;
   }
 }
@@ -1468,7 +1523,7 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm1_g_thesis_law_sparsity_out(cas
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_law_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 9;
+  if (sz_arg) *sz_arg = 14;
   if (sz_res) *sz_res = 3;
   if (sz_iw) *sz_iw = 0;
   if (sz_w) *sz_w = 0;
@@ -1476,14 +1531,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_law_work(casadi_int *sz_arg, casad
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_law_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 9*sizeof(const casadi_real*);
+  if (sz_arg) *sz_arg = 14*sizeof(const casadi_real*);
   if (sz_res) *sz_res = 3*sizeof(casadi_real*);
   if (sz_iw) *sz_iw = 0*sizeof(casadi_int);
   if (sz_w) *sz_w = 0*sizeof(casadi_real);
   return 0;
 }
 
-/* serial_arm1_g_thesis_step:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound,h)->(tau[3],p_hat_next[3],errors[6]) */
+/* serial_arm1_g_thesis_step:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound,h,deadzone[3],p_min[3],p_max[3],static_excess[3],stribeck_velocity[3])->(tau[3],p_hat_next[3],errors[6]) */
 static int casadi_f1(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {
   (void)iw; (void)w; (void)mem;
   casadi_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
@@ -2711,87 +2766,144 @@ static int casadi_f1(const casadi_real** arg, casadi_real** res, casadi_int* iw,
   a62=(a62*a20);
   a04=(a04-a62);
   if (res[0]!=0) res[0][2]=a04;
-  a04=arg[9]? arg[9][0] : 0;
-  a62=arg[7]? arg[7][0] : 0;
-  a00=(a00*a60);
-  a00=(a62*a00);
-  a84=9.9999999900000003e-01;
-  a37=arg[8]? arg[8][0] : 0;
-  a15=casadi_sq(a37);
-  a84=(a84*a15);
-  a15=casadi_sq(a22);
-  a36=casadi_sq(a45);
-  a15=(a15+a36);
-  a36=casadi_sq(a02);
-  a15=(a15+a36);
-  a84=(a84<=a15);
-  a15=0.;
-  a36=(a22*a00);
-  a23=arg[7]? arg[7][1] : 0;
-  a52=(a52*a60);
-  a79=(a79*a24);
+  a04=arg[12]? arg[12][0] : 0;
+  a62=(a22<a04);
+  a84=arg[7]? arg[7][0] : 0;
+  a37=arg[10]? arg[10][0] : 0;
+  a15=(-a37);
+  a15=casadi_fmax(a60,a15);
+  a15=casadi_fmin(a15,a37);
+  a15=(a60-a15);
+  a00=(a00*a15);
+  a00=(a84*a00);
+  a37=9.9999999900000003e-01;
+  a36=arg[8]? arg[8][0] : 0;
+  a23=casadi_sq(a36);
+  a37=(a37*a23);
+  a23=casadi_sq(a22);
+  a65=casadi_sq(a45);
+  a23=(a23+a65);
+  a65=casadi_sq(a02);
+  a23=(a23+a65);
+  a37=(a37<=a23);
+  a23=0.;
+  a65=(a22*a00);
+  a12=arg[7]? arg[7][1] : 0;
+  a52=(a52*a15);
+  a19=arg[10]? arg[10][1] : 0;
+  a68=(-a19);
+  a68=casadi_fmax(a24,a68);
+  a68=casadi_fmin(a68,a19);
+  a68=(a24-a68);
+  a79=(a79*a68);
   a52=(a52+a79);
-  a52=(a23*a52);
+  a52=(a12*a52);
   a79=(a45*a52);
-  a36=(a36+a79);
+  a65=(a65+a79);
   a79=arg[7]? arg[7][2] : 0;
-  a34=(a34*a60);
-  a33=(a33*a24);
+  a34=(a34*a15);
+  a33=(a33*a68);
   a34=(a34+a33);
-  a30=(a30*a20);
+  a33=arg[10]? arg[10][2] : 0;
+  a68=(-a33);
+  a68=casadi_fmax(a20,a68);
+  a68=casadi_fmin(a68,a33);
+  a68=(a20-a68);
+  a30=(a30*a68);
   a34=(a34+a30);
   a34=(a79*a34);
   a30=(a02*a34);
-  a36=(a36+a30);
-  a30=(-a36);
-  a15=(a15<a30);
-  a84=(a84&&a15);
-  a15=(a62*a22);
-  a62=(a62*a22);
-  a62=(a22*a62);
-  a30=(a23*a45);
-  a30=(a45*a30);
+  a65=(a65+a30);
+  a30=(-a65);
+  a30=(a23<a30);
+  a37=(a37&&a30);
+  a30=(a84*a22);
+  a84=(a84*a22);
+  a84=(a22*a84);
+  a68=(a12*a45);
+  a68=(a45*a68);
+  a84=(a84+a68);
+  a68=(a79*a02);
+  a68=(a02*a68);
+  a84=(a84+a68);
+  a68=1.0000000000000000e-300;
+  a84=casadi_fmax(a84,a68);
+  a65=(a65/a84);
+  a30=(a30*a65);
+  a30=(-a30);
+  a30=(a37?a30:0);
+  a00=(a00+a30);
+  a30=(-a00);
+  a84=(a30<=a23);
+  a62=(a62||a84);
+  a84=arg[11]? arg[11][0] : 0;
+  a33=(a84<a22);
+  a30=(a23<=a30);
+  a33=(a33||a30);
+  a62=(a62&&a33);
+  a33=arg[9]? arg[9][0] : 0;
+  a00=(a33*a00);
+  a00=(-a00);
+  a62=(a62?a00:0);
+  a22=(a22+a62);
+  a62=casadi_sq(a22);
+  a00=arg[12]? arg[12][1] : 0;
+  a30=(a45<a00);
+  a12=(a12*a45);
+  a12=(a12*a65);
+  a12=(-a12);
+  a12=(a37?a12:0);
+  a52=(a52+a12);
+  a12=(-a52);
+  a15=(a12<=a23);
+  a30=(a30||a15);
+  a15=arg[11]? arg[11][1] : 0;
+  a19=(a15<a45);
+  a12=(a23<=a12);
+  a19=(a19||a12);
+  a30=(a30&&a19);
+  a52=(a33*a52);
+  a52=(-a52);
+  a30=(a30?a52:0);
+  a45=(a45+a30);
+  a30=casadi_sq(a45);
   a62=(a62+a30);
-  a30=(a79*a02);
-  a30=(a02*a30);
-  a62=(a62+a30);
-  a30=1.0000000000000000e-300;
-  a62=casadi_fmax(a62,a30);
-  a36=(a36/a62);
-  a15=(a15*a36);
-  a15=(-a15);
-  a15=(a84?a15:0);
-  a00=(a00+a15);
-  a00=(a04*a00);
-  a22=(a22-a00);
-  a00=casadi_sq(a22);
-  a23=(a23*a45);
-  a23=(a23*a36);
-  a23=(-a23);
-  a23=(a84?a23:0);
-  a52=(a52+a23);
-  a52=(a04*a52);
-  a45=(a45-a52);
-  a52=casadi_sq(a45);
-  a00=(a00+a52);
+  a30=arg[12]? arg[12][2] : 0;
+  a52=(a02<a30);
   a79=(a79*a02);
-  a79=(a79*a36);
+  a79=(a79*a65);
   a79=(-a79);
-  a84=(a84?a79:0);
-  a34=(a34+a84);
-  a04=(a04*a34);
-  a02=(a02-a04);
-  a04=casadi_sq(a02);
-  a00=(a00+a04);
-  a00=sqrt(a00);
-  a00=casadi_fmax(a00,a30);
-  a37=(a37/a00);
-  a05=casadi_fmin(a05,a37);
+  a37=(a37?a79:0);
+  a34=(a34+a37);
+  a37=(-a34);
+  a79=(a37<=a23);
+  a52=(a52||a79);
+  a79=arg[11]? arg[11][2] : 0;
+  a65=(a79<a02);
+  a23=(a23<=a37);
+  a65=(a65||a23);
+  a52=(a52&&a65);
+  a33=(a33*a34);
+  a33=(-a33);
+  a52=(a52?a33:0);
+  a02=(a02+a52);
+  a52=casadi_sq(a02);
+  a62=(a62+a52);
+  a62=sqrt(a62);
+  a62=casadi_fmax(a62,a68);
+  a36=(a36/a62);
+  a05=casadi_fmin(a05,a36);
   a22=(a22*a05);
+  a22=casadi_fmax(a22,a84);
+  a22=casadi_fmin(a22,a04);
   if (res[1]!=0) res[1][0]=a22;
   a45=(a45*a05);
+  a45=casadi_fmax(a45,a15);
+  a45=casadi_fmin(a45,a00);
   if (res[1]!=0) res[1][1]=a45;
   a02=(a02*a05);
+  a02=casadi_fmax(a02,a79);
+  a02=casadi_fmin(a02,a30);
   if (res[1]!=0) res[1][2]=a02;
   if (res[2]!=0) res[2][0]=a03;
   if (res[2]!=0) res[2][1]=a29;
@@ -2820,7 +2932,7 @@ CASADI_SYMBOL_EXPORT void serial_arm1_g_thesis_step_incref(void) {
 CASADI_SYMBOL_EXPORT void serial_arm1_g_thesis_step_decref(void) {
 }
 
-CASADI_SYMBOL_EXPORT casadi_int serial_arm1_g_thesis_step_n_in(void) { return 10;}
+CASADI_SYMBOL_EXPORT casadi_int serial_arm1_g_thesis_step_n_in(void) { return 15;}
 
 CASADI_SYMBOL_EXPORT casadi_int serial_arm1_g_thesis_step_n_out(void) { return 3;}
 
@@ -2842,6 +2954,11 @@ CASADI_SYMBOL_EXPORT const char* serial_arm1_g_thesis_step_name_in(casadi_int i)
     case 7: return "Gamma";
     case 8: return "bound";
     case 9: return "h";
+    case 10: return "deadzone";
+    case 11: return "p_min";
+    case 12: return "p_max";
+    case 13: return "static_excess";
+    case 14: return "stribeck_velocity";
     default: return 0;
   }
 }
@@ -2867,6 +2984,11 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm1_g_thesis_step_sparsity_in(cas
     case 7: return casadi_s0;
     case 8: return casadi_s2;
     case 9: return casadi_s2;
+    case 10: return casadi_s0;
+    case 11: return casadi_s0;
+    case 12: return casadi_s0;
+    case 13: return casadi_s0;
+    case 14: return casadi_s0;
     default: return 0;
   }
 }
@@ -2881,7 +3003,7 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm1_g_thesis_step_sparsity_out(ca
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 10;
+  if (sz_arg) *sz_arg = 15;
   if (sz_res) *sz_res = 3;
   if (sz_iw) *sz_iw = 0;
   if (sz_w) *sz_w = 0;
@@ -2889,7 +3011,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_step_work(casadi_int *sz_arg, casa
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 10*sizeof(const casadi_real*);
+  if (sz_arg) *sz_arg = 15*sizeof(const casadi_real*);
   if (sz_res) *sz_res = 3*sizeof(casadi_real*);
   if (sz_iw) *sz_iw = 0*sizeof(casadi_int);
   if (sz_w) *sz_w = 0*sizeof(casadi_real);

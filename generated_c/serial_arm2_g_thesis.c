@@ -54,8 +54,6 @@ extern "C" {
   #endif
 #endif
 
-casadi_real casadi_sq(casadi_real x) { return x*x;}
-
 casadi_real casadi_fmax(casadi_real x, casadi_real y) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
@@ -74,6 +72,8 @@ casadi_real casadi_fmin(casadi_real x, casadi_real y) {
 #endif
 }
 
+casadi_real casadi_sq(casadi_real x) { return x*x;}
+
 /* Configuration this file was compiled with */
 CASADI_SYMBOL_EXPORT void serial_arm2_g_thesis_casadi_version(int* major, int* minor, int* patch) {
   *major = 3;
@@ -88,7 +88,7 @@ static const casadi_int casadi_s1[3] = {9, 1, 1};
 static const casadi_int casadi_s2[3] = {1, 1, 1};
 static const casadi_int casadi_s3[3] = {6, 1, 1};
 
-/* serial_arm2_g_thesis_law:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound)->(tau[3],p_hat_dot[3],errors[6]) */
+/* serial_arm2_g_thesis_law:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound,deadzone[3],p_min[3],p_max[3],static_excess[3],stribeck_velocity[3])->(tau[3],p_hat_dot[3],errors[6]) */
 static int casadi_f0(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {
   (void)iw; (void)w; (void)mem;
   casadi_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
@@ -1315,72 +1315,117 @@ static int casadi_f0(const casadi_real** arg, casadi_real** res, casadi_int* iw,
   a63=(a63*a20);
   a04=(a04-a63);
   if (res[0]!=0) res[0][2]=a04;
-  a04=arg[7]? arg[7][0] : 0;
-  a00=(a00*a61);
-  a00=(a04*a00);
-  a63=9.9999999900000003e-01;
-  a78=arg[8]? arg[8][0] : 0;
-  a78=casadi_sq(a78);
-  a63=(a63*a78);
-  a78=casadi_sq(a23);
-  a38=casadi_sq(a46);
-  a78=(a78+a38);
-  a38=casadi_sq(a02);
-  a78=(a78+a38);
-  a63=(a63<=a78);
-  a78=0.;
-  a38=(a23*a00);
-  a15=arg[7]? arg[7][1] : 0;
-  a53=(a53*a61);
-  a79=(a79*a25);
+  a04=arg[11]? arg[11][0] : 0;
+  a04=(a23<a04);
+  a63=arg[7]? arg[7][0] : 0;
+  a78=arg[9]? arg[9][0] : 0;
+  a38=(-a78);
+  a38=casadi_fmax(a61,a38);
+  a38=casadi_fmin(a38,a78);
+  a38=(a61-a38);
+  a00=(a00*a38);
+  a00=(a63*a00);
+  a78=9.9999999900000003e-01;
+  a15=arg[8]? arg[8][0] : 0;
+  a15=casadi_sq(a15);
+  a78=(a78*a15);
+  a15=casadi_sq(a23);
+  a37=casadi_sq(a46);
+  a15=(a15+a37);
+  a37=casadi_sq(a02);
+  a15=(a15+a37);
+  a78=(a78<=a15);
+  a15=0.;
+  a37=(a23*a00);
+  a24=arg[7]? arg[7][1] : 0;
+  a53=(a53*a38);
+  a66=arg[9]? arg[9][1] : 0;
+  a12=(-a66);
+  a12=casadi_fmax(a25,a12);
+  a12=casadi_fmin(a12,a66);
+  a12=(a25-a12);
+  a79=(a79*a12);
   a53=(a53+a79);
-  a53=(a15*a53);
+  a53=(a24*a53);
   a79=(a46*a53);
-  a38=(a38+a79);
+  a37=(a37+a79);
   a79=arg[7]? arg[7][2] : 0;
-  a34=(a34*a61);
-  a76=(a76*a25);
+  a34=(a34*a38);
+  a76=(a76*a12);
   a34=(a34+a76);
-  a31=(a31*a20);
+  a76=arg[9]? arg[9][2] : 0;
+  a12=(-a76);
+  a12=casadi_fmax(a20,a12);
+  a12=casadi_fmin(a12,a76);
+  a12=(a20-a12);
+  a31=(a31*a12);
   a34=(a34+a31);
   a34=(a79*a34);
   a31=(a02*a34);
-  a38=(a38+a31);
-  a31=(-a38);
-  a78=(a78<a31);
-  a63=(a63&&a78);
-  a78=(a04*a23);
-  a04=(a04*a23);
-  a23=(a23*a04);
-  a04=(a15*a46);
-  a04=(a46*a04);
-  a23=(a23+a04);
-  a04=(a79*a02);
-  a04=(a02*a04);
-  a23=(a23+a04);
-  a04=1.0000000000000000e-300;
-  a23=casadi_fmax(a23,a04);
-  a38=(a38/a23);
-  a78=(a78*a38);
-  a78=(-a78);
-  a78=(a63?a78:0);
-  a00=(a00+a78);
+  a37=(a37+a31);
+  a31=(-a37);
+  a31=(a15<a31);
+  a78=(a78&&a31);
+  a31=(a63*a23);
+  a63=(a63*a23);
+  a63=(a23*a63);
+  a12=(a24*a46);
+  a12=(a46*a12);
+  a63=(a63+a12);
+  a12=(a79*a02);
+  a12=(a02*a12);
+  a63=(a63+a12);
+  a12=1.0000000000000000e-300;
+  a63=casadi_fmax(a63,a12);
+  a37=(a37/a63);
+  a31=(a31*a37);
+  a31=(-a31);
+  a31=(a78?a31:0);
+  a00=(a00+a31);
   a00=(-a00);
-  if (res[1]!=0) res[1][0]=a00;
-  a15=(a15*a46);
-  a15=(a15*a38);
-  a15=(-a15);
-  a15=(a63?a15:0);
-  a53=(a53+a15);
+  a31=(a00<=a15);
+  a04=(a04||a31);
+  a31=arg[10]? arg[10][0] : 0;
+  a31=(a31<a23);
+  a23=(a15<=a00);
+  a31=(a31||a23);
+  a04=(a04&&a31);
+  a04=(a04?a00:0);
+  if (res[1]!=0) res[1][0]=a04;
+  a04=arg[11]? arg[11][1] : 0;
+  a04=(a46<a04);
+  a24=(a24*a46);
+  a24=(a24*a37);
+  a24=(-a24);
+  a24=(a78?a24:0);
+  a53=(a53+a24);
   a53=(-a53);
-  if (res[1]!=0) res[1][1]=a53;
+  a24=(a53<=a15);
+  a04=(a04||a24);
+  a24=arg[10]? arg[10][1] : 0;
+  a24=(a24<a46);
+  a46=(a15<=a53);
+  a24=(a24||a46);
+  a04=(a04&&a24);
+  a04=(a04?a53:0);
+  if (res[1]!=0) res[1][1]=a04;
+  a04=arg[11]? arg[11][2] : 0;
+  a04=(a02<a04);
   a79=(a79*a02);
-  a79=(a79*a38);
+  a79=(a79*a37);
   a79=(-a79);
-  a63=(a63?a79:0);
-  a34=(a34+a63);
+  a78=(a78?a79:0);
+  a34=(a34+a78);
   a34=(-a34);
-  if (res[1]!=0) res[1][2]=a34;
+  a78=(a34<=a15);
+  a04=(a04||a78);
+  a78=arg[10]? arg[10][2] : 0;
+  a78=(a78<a02);
+  a15=(a15<=a34);
+  a78=(a78||a15);
+  a04=(a04&&a78);
+  a04=(a04?a34:0);
+  if (res[1]!=0) res[1][2]=a04;
   if (res[2]!=0) res[2][0]=a09;
   if (res[2]!=0) res[2][1]=a03;
   if (res[2]!=0) res[2][2]=a11;
@@ -1408,7 +1453,7 @@ CASADI_SYMBOL_EXPORT void serial_arm2_g_thesis_law_incref(void) {
 CASADI_SYMBOL_EXPORT void serial_arm2_g_thesis_law_decref(void) {
 }
 
-CASADI_SYMBOL_EXPORT casadi_int serial_arm2_g_thesis_law_n_in(void) { return 9;}
+CASADI_SYMBOL_EXPORT casadi_int serial_arm2_g_thesis_law_n_in(void) { return 14;}
 
 CASADI_SYMBOL_EXPORT casadi_int serial_arm2_g_thesis_law_n_out(void) { return 3;}
 
@@ -1429,6 +1474,11 @@ CASADI_SYMBOL_EXPORT const char* serial_arm2_g_thesis_law_name_in(casadi_int i) 
     case 6: return "gains";
     case 7: return "Gamma";
     case 8: return "bound";
+    case 9: return "deadzone";
+    case 10: return "p_min";
+    case 11: return "p_max";
+    case 12: return "static_excess";
+    case 13: return "stribeck_velocity";
     default: return 0;
   }
 }
@@ -1453,6 +1503,11 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm2_g_thesis_law_sparsity_in(casa
     case 6: return casadi_s1;
     case 7: return casadi_s0;
     case 8: return casadi_s2;
+    case 9: return casadi_s0;
+    case 10: return casadi_s0;
+    case 11: return casadi_s0;
+    case 12: return casadi_s0;
+    case 13: return casadi_s0;
     default: return 0;
   }
 }
@@ -1467,7 +1522,7 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm2_g_thesis_law_sparsity_out(cas
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_law_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 9;
+  if (sz_arg) *sz_arg = 14;
   if (sz_res) *sz_res = 3;
   if (sz_iw) *sz_iw = 0;
   if (sz_w) *sz_w = 0;
@@ -1475,14 +1530,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_law_work(casadi_int *sz_arg, casad
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_law_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 9*sizeof(const casadi_real*);
+  if (sz_arg) *sz_arg = 14*sizeof(const casadi_real*);
   if (sz_res) *sz_res = 3*sizeof(casadi_real*);
   if (sz_iw) *sz_iw = 0*sizeof(casadi_int);
   if (sz_w) *sz_w = 0*sizeof(casadi_real);
   return 0;
 }
 
-/* serial_arm2_g_thesis_step:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound,h)->(tau[3],p_hat_next[3],errors[6]) */
+/* serial_arm2_g_thesis_step:(q[3],qd[3],xd[3],xd_dot[3],xd_ddot[3],p_hat[3],gains[9],Gamma[3],bound,h,deadzone[3],p_min[3],p_max[3],static_excess[3],stribeck_velocity[3])->(tau[3],p_hat_next[3],errors[6]) */
 static int casadi_f1(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {
   (void)iw; (void)w; (void)mem;
   casadi_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
@@ -2709,87 +2764,144 @@ static int casadi_f1(const casadi_real** arg, casadi_real** res, casadi_int* iw,
   a63=(a63*a20);
   a04=(a04-a63);
   if (res[0]!=0) res[0][2]=a04;
-  a04=arg[9]? arg[9][0] : 0;
-  a63=arg[7]? arg[7][0] : 0;
-  a00=(a00*a61);
-  a00=(a63*a00);
-  a84=9.9999999900000003e-01;
-  a38=arg[8]? arg[8][0] : 0;
-  a15=casadi_sq(a38);
-  a84=(a84*a15);
-  a15=casadi_sq(a23);
-  a37=casadi_sq(a46);
-  a15=(a15+a37);
-  a37=casadi_sq(a02);
-  a15=(a15+a37);
-  a84=(a84<=a15);
-  a15=0.;
-  a37=(a23*a00);
-  a24=arg[7]? arg[7][1] : 0;
-  a53=(a53*a61);
-  a79=(a79*a25);
+  a04=arg[12]? arg[12][0] : 0;
+  a63=(a23<a04);
+  a84=arg[7]? arg[7][0] : 0;
+  a38=arg[10]? arg[10][0] : 0;
+  a15=(-a38);
+  a15=casadi_fmax(a61,a15);
+  a15=casadi_fmin(a15,a38);
+  a15=(a61-a15);
+  a00=(a00*a15);
+  a00=(a84*a00);
+  a38=9.9999999900000003e-01;
+  a37=arg[8]? arg[8][0] : 0;
+  a24=casadi_sq(a37);
+  a38=(a38*a24);
+  a24=casadi_sq(a23);
+  a66=casadi_sq(a46);
+  a24=(a24+a66);
+  a66=casadi_sq(a02);
+  a24=(a24+a66);
+  a38=(a38<=a24);
+  a24=0.;
+  a66=(a23*a00);
+  a12=arg[7]? arg[7][1] : 0;
+  a53=(a53*a15);
+  a22=arg[10]? arg[10][1] : 0;
+  a69=(-a22);
+  a69=casadi_fmax(a25,a69);
+  a69=casadi_fmin(a69,a22);
+  a69=(a25-a69);
+  a79=(a79*a69);
   a53=(a53+a79);
-  a53=(a24*a53);
+  a53=(a12*a53);
   a79=(a46*a53);
-  a37=(a37+a79);
+  a66=(a66+a79);
   a79=arg[7]? arg[7][2] : 0;
-  a35=(a35*a61);
-  a34=(a34*a25);
+  a35=(a35*a15);
+  a34=(a34*a69);
   a35=(a35+a34);
-  a31=(a31*a20);
+  a34=arg[10]? arg[10][2] : 0;
+  a69=(-a34);
+  a69=casadi_fmax(a20,a69);
+  a69=casadi_fmin(a69,a34);
+  a69=(a20-a69);
+  a31=(a31*a69);
   a35=(a35+a31);
   a35=(a79*a35);
   a31=(a02*a35);
-  a37=(a37+a31);
-  a31=(-a37);
-  a15=(a15<a31);
-  a84=(a84&&a15);
-  a15=(a63*a23);
-  a63=(a63*a23);
-  a63=(a23*a63);
-  a31=(a24*a46);
-  a31=(a46*a31);
+  a66=(a66+a31);
+  a31=(-a66);
+  a31=(a24<a31);
+  a38=(a38&&a31);
+  a31=(a84*a23);
+  a84=(a84*a23);
+  a84=(a23*a84);
+  a69=(a12*a46);
+  a69=(a46*a69);
+  a84=(a84+a69);
+  a69=(a79*a02);
+  a69=(a02*a69);
+  a84=(a84+a69);
+  a69=1.0000000000000000e-300;
+  a84=casadi_fmax(a84,a69);
+  a66=(a66/a84);
+  a31=(a31*a66);
+  a31=(-a31);
+  a31=(a38?a31:0);
+  a00=(a00+a31);
+  a31=(-a00);
+  a84=(a31<=a24);
+  a63=(a63||a84);
+  a84=arg[11]? arg[11][0] : 0;
+  a34=(a84<a23);
+  a31=(a24<=a31);
+  a34=(a34||a31);
+  a63=(a63&&a34);
+  a34=arg[9]? arg[9][0] : 0;
+  a00=(a34*a00);
+  a00=(-a00);
+  a63=(a63?a00:0);
+  a23=(a23+a63);
+  a63=casadi_sq(a23);
+  a00=arg[12]? arg[12][1] : 0;
+  a31=(a46<a00);
+  a12=(a12*a46);
+  a12=(a12*a66);
+  a12=(-a12);
+  a12=(a38?a12:0);
+  a53=(a53+a12);
+  a12=(-a53);
+  a15=(a12<=a24);
+  a31=(a31||a15);
+  a15=arg[11]? arg[11][1] : 0;
+  a22=(a15<a46);
+  a12=(a24<=a12);
+  a22=(a22||a12);
+  a31=(a31&&a22);
+  a53=(a34*a53);
+  a53=(-a53);
+  a31=(a31?a53:0);
+  a46=(a46+a31);
+  a31=casadi_sq(a46);
   a63=(a63+a31);
-  a31=(a79*a02);
-  a31=(a02*a31);
-  a63=(a63+a31);
-  a31=1.0000000000000000e-300;
-  a63=casadi_fmax(a63,a31);
-  a37=(a37/a63);
-  a15=(a15*a37);
-  a15=(-a15);
-  a15=(a84?a15:0);
-  a00=(a00+a15);
-  a00=(a04*a00);
-  a23=(a23-a00);
-  a00=casadi_sq(a23);
-  a24=(a24*a46);
-  a24=(a24*a37);
-  a24=(-a24);
-  a24=(a84?a24:0);
-  a53=(a53+a24);
-  a53=(a04*a53);
-  a46=(a46-a53);
-  a53=casadi_sq(a46);
-  a00=(a00+a53);
+  a31=arg[12]? arg[12][2] : 0;
+  a53=(a02<a31);
   a79=(a79*a02);
-  a79=(a79*a37);
+  a79=(a79*a66);
   a79=(-a79);
-  a84=(a84?a79:0);
-  a35=(a35+a84);
-  a04=(a04*a35);
-  a02=(a02-a04);
-  a04=casadi_sq(a02);
-  a00=(a00+a04);
-  a00=sqrt(a00);
-  a00=casadi_fmax(a00,a31);
-  a38=(a38/a00);
-  a05=casadi_fmin(a05,a38);
+  a38=(a38?a79:0);
+  a35=(a35+a38);
+  a38=(-a35);
+  a79=(a38<=a24);
+  a53=(a53||a79);
+  a79=arg[11]? arg[11][2] : 0;
+  a66=(a79<a02);
+  a24=(a24<=a38);
+  a66=(a66||a24);
+  a53=(a53&&a66);
+  a34=(a34*a35);
+  a34=(-a34);
+  a53=(a53?a34:0);
+  a02=(a02+a53);
+  a53=casadi_sq(a02);
+  a63=(a63+a53);
+  a63=sqrt(a63);
+  a63=casadi_fmax(a63,a69);
+  a37=(a37/a63);
+  a05=casadi_fmin(a05,a37);
   a23=(a23*a05);
+  a23=casadi_fmax(a23,a84);
+  a23=casadi_fmin(a23,a04);
   if (res[1]!=0) res[1][0]=a23;
   a46=(a46*a05);
+  a46=casadi_fmax(a46,a15);
+  a46=casadi_fmin(a46,a00);
   if (res[1]!=0) res[1][1]=a46;
   a02=(a02*a05);
+  a02=casadi_fmax(a02,a79);
+  a02=casadi_fmin(a02,a31);
   if (res[1]!=0) res[1][2]=a02;
   if (res[2]!=0) res[2][0]=a09;
   if (res[2]!=0) res[2][1]=a03;
@@ -2818,7 +2930,7 @@ CASADI_SYMBOL_EXPORT void serial_arm2_g_thesis_step_incref(void) {
 CASADI_SYMBOL_EXPORT void serial_arm2_g_thesis_step_decref(void) {
 }
 
-CASADI_SYMBOL_EXPORT casadi_int serial_arm2_g_thesis_step_n_in(void) { return 10;}
+CASADI_SYMBOL_EXPORT casadi_int serial_arm2_g_thesis_step_n_in(void) { return 15;}
 
 CASADI_SYMBOL_EXPORT casadi_int serial_arm2_g_thesis_step_n_out(void) { return 3;}
 
@@ -2840,6 +2952,11 @@ CASADI_SYMBOL_EXPORT const char* serial_arm2_g_thesis_step_name_in(casadi_int i)
     case 7: return "Gamma";
     case 8: return "bound";
     case 9: return "h";
+    case 10: return "deadzone";
+    case 11: return "p_min";
+    case 12: return "p_max";
+    case 13: return "static_excess";
+    case 14: return "stribeck_velocity";
     default: return 0;
   }
 }
@@ -2865,6 +2982,11 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm2_g_thesis_step_sparsity_in(cas
     case 7: return casadi_s0;
     case 8: return casadi_s2;
     case 9: return casadi_s2;
+    case 10: return casadi_s0;
+    case 11: return casadi_s0;
+    case 12: return casadi_s0;
+    case 13: return casadi_s0;
+    case 14: return casadi_s0;
     default: return 0;
   }
 }
@@ -2879,7 +3001,7 @@ CASADI_SYMBOL_EXPORT const casadi_int* serial_arm2_g_thesis_step_sparsity_out(ca
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 10;
+  if (sz_arg) *sz_arg = 15;
   if (sz_res) *sz_res = 3;
   if (sz_iw) *sz_iw = 0;
   if (sz_w) *sz_w = 0;
@@ -2887,7 +3009,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_step_work(casadi_int *sz_arg, casa
 }
 
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w) {
-  if (sz_arg) *sz_arg = 10*sizeof(const casadi_real*);
+  if (sz_arg) *sz_arg = 15*sizeof(const casadi_real*);
   if (sz_res) *sz_res = 3*sizeof(casadi_real*);
   if (sz_iw) *sz_iw = 0*sizeof(casadi_int);
   if (sz_w) *sz_w = 0*sizeof(casadi_real);

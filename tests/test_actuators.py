@@ -102,8 +102,9 @@ def test_every_controller_regressor_factors_friction(kind, rng):
         xd_dot, xd_ddot = (rng.uniform(-0.1, 0.1, c.n_desired) for _ in range(2))
         gains = rng.uniform(0.1, 5.0, sum(c.gain_sizes))
         p = m.p_nominal * rng.uniform(0.2, 3.0, c.n_params)
-        Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, gains).reshape(m.nq, c.n_params)
-        f = ev(c.auxiliary, q, qd, xd, xd_dot, xd_ddot, gains, p)
+        Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, gains,
+               *c.neutral()[3:]).reshape(m.nq, c.n_params)
+        f = ev(c.auxiliary, q, qd, xd, xd_dot, xd_ddot, gains, p, *c.neutral()[3:])
         assert np.abs(Y @ p - f).max() <= 1e-10 * max(1.0, np.abs(f).max())
         # The friction columns are there and see the reference velocity, not the measured one.
         friction = np.array([n.endswith((".Fv", ".Fc")) for n in m.param_names])

@@ -39,8 +39,8 @@ def test_regressor_factors_its_expression(serial_models, kind, variant, par, rng
         args = _random_inputs(rng, c)
         gains = rng.uniform(0.1, 5.0, sum(c.gain_sizes))
         p = model.p_nominal * rng.uniform(0.2, 3.0, c.n_params)
-        Y = ev(c.regressor, *args, gains).reshape(c.nq, c.n_params)
-        f = ev(c.auxiliary, *args, gains, p)
+        Y = ev(c.regressor, *args, gains, *c.neutral()[3:]).reshape(c.nq, c.n_params)
+        f = ev(c.auxiliary, *args, gains, p, *c.neutral()[3:])
         assert np.abs(Y @ p - f).max() <= 1e-11 * max(1.0, np.abs(f).max())
 
 
@@ -53,13 +53,14 @@ def test_law_e_is_the_thesis_law(serial_models, rng):
     K_e = np.array([1.0, 0.5, 0.01])
     p_hat = model.p_nominal * 0.7
     tau, p_dot, errors = c.law(q, qd, xd, xd_dot, xd_ddot, p_hat, np.r_[alpha, G_e, K_e],
-                               np.ones(3), 1e9)
+                               np.ones(3), 1e9, *c.neutral())
     e, e_dot = xd - q, xd_dot - qd
     r = e_dot + alpha * e
     M, C = ev(model.M_p, q, p_hat), ev(model.C_p, q, qd, p_hat)
     expected = M @ (xd_ddot + alpha * e_dot) + C @ (qd + r) + K_e * e + G_e * r
     assert np.allclose(np.array(tau).ravel(), expected, rtol=1e-12, atol=1e-15)
-    Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, np.r_[alpha, G_e, K_e]).reshape(3, 3)
+    Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, np.r_[alpha, G_e, K_e],
+           *c.neutral()[3:]).reshape(3, 3)
     assert np.allclose(np.array(p_dot).ravel(), Y.T @ r, rtol=1e-12)
     assert np.allclose(np.array(errors).ravel(), np.r_[e, r])
 
@@ -72,8 +73,8 @@ def test_variant_g_differs_by_the_backstepping_cross_term(serial_models, rng):
     K_c = np.array([1.0, 0.5, 0.01])
     gains = np.r_[2.0, 2.0, 3.0, 0.06, 0.06, 0.007, K_c]
     common = (model.p_nominal, gains, np.ones(3), 1e9)
-    tau_c, _, errors = corrected.law(*args, *common)
-    tau_t, _, _ = thesis.law(*args, *common)
+    tau_c, _, errors = corrected.law(*args, *common, *corrected.neutral())
+    tau_t, _, _ = thesis.law(*args, *common, *thesis.neutral())
     e_g = np.array(errors).ravel()[:3]
     J = ev(model.J_world, args[0])
     assert np.allclose(np.array(tau_c - tau_t).ravel(), -J.T @ (K_c * e_g), rtol=1e-10,
@@ -90,9 +91,10 @@ def test_projection_keeps_estimates_in_the_ball(serial_models, rng):
         direction = rng.standard_normal(3)
         p_hat = bound * direction / np.linalg.norm(direction)  # on the boundary
         gains = np.r_[5.0, 4.0, 3.0, 0.05, 0.04, 0.003, 1.0, 1.0, 1.0]
-        _, p_dot, _ = c.law(*args, p_hat, gains, np.array([1.0, 2.0, 0.5]), bound)
+        _, p_dot, _ = c.law(*args, p_hat, gains, np.array([1.0, 2.0, 0.5]), bound,
+                            *c.neutral())
         assert float(np.dot(p_hat, np.array(p_dot).ravel())) <= 1e-15
-        _, p_next, _ = c.step(*args, p_hat, gains, np.ones(3), bound, 10.0)
+        _, p_next, _ = c.step(*args, p_hat, gains, np.ones(3), bound, 10.0, *c.neutral())
         assert np.linalg.norm(np.array(p_next).ravel()) <= bound * (1 + 1e-12)
 
 
@@ -118,6 +120,7 @@ def test_parallel_regressor_factors_its_expression(parallel_models, kind, varian
         xd_dot, xd_ddot = (rng.uniform(-0.1, 0.1, c.n_desired) for _ in range(2))
         gains = rng.uniform(0.1, 5.0, sum(c.gain_sizes))
         p = model.p_nominal * rng.uniform(0.2, 3.0, c.n_params)
-        Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, gains).reshape(5, c.n_params)
-        f = ev(c.auxiliary, q, qd, xd, xd_dot, xd_ddot, gains, p)
+        Y = ev(c.regressor, q, qd, xd, xd_dot, xd_ddot, gains,
+               *c.neutral()[3:]).reshape(5, c.n_params)
+        f = ev(c.auxiliary, q, qd, xd, xd_dot, xd_ddot, gains, p, *c.neutral()[3:])
         assert np.abs(Y @ p - f).max() <= 1e-10 * max(1.0, np.abs(f).max())

@@ -71,7 +71,10 @@ def test_a_simulated_run_logs_no_current_in_log_csv_and_nan_in_log_bin(tmp_path)
     # One per joint, after the timing columns, at the joint's name and in A.
     assert [names[i] for i in current] == [f"current.arm{a}.joint{j}_A" for a in (1, 2)
                                            for j in (1, 2, 3)]
-    assert current[0] == names.index("backend_io_s") + 1 == len(names) - 6
+    assert current[0] == names.index("backend_io_s") + 1
+    # Then the simulated plant's true state (a simulated run only), 12 columns.
+    assert all(c.startswith(("true_q.", "true_qd.")) for c in names[current[-1] + 1:])
+    assert len(names) - current[-1] - 1 == 12
     rows = np.fromfile(out / "log.bin").reshape(-1, columns["row_length"])
     assert len(rows) == 200 and np.isnan(rows[:, current]).all()
     assert np.isfinite(rows[:, names.index("backend_io_s")]).all()
@@ -293,7 +296,7 @@ def test_a_line_is_recovered_from_a_log_recorded_against_the_emulator(tmp_path):
     The bridge logs the Present Current; cochlea-identify places the log's samples and
     commands at their logged times (--sample-times auto) and fits the line with the base
     parameters."""
-    from tests.test_dynamixel_hil import emulator, run
+    from tests.test_dynamixel_hil import ALWAYS_OFFSET, emulator, run
     from tests.test_identify import SERIAL_PLANT, _excitation, fourier_leader
 
     description = _description_with(tmp_path, _shipped_fit(*TRUE_FIT),
@@ -309,10 +312,16 @@ def test_a_line_is_recovered_from_a_log_recorded_against_the_emulator(tmp_path):
     scenario.write_text(text.replace('space = "joint"\n',
                                      f'space = "joint"\ndescription = "{description}"\n', 1))
     out = tmp_path / "run"
+    # The line's offset b reaches the wire only where the bridge adds the offset current and
+    # the motors take their true one off: the pairing of the thesis's controllers. This
+    # excitation's controller compensates friction itself, so the bridge would command the
+    # slope alone (issue 24) and a frictionless plant would never show b: the rule is patched
+    # in both processes.
     with emulator("serial", str(scenario), tmp_path / "emulator.log",
-                  "--true-fit", "1:98,-12") as port:
+                  "--true-fit", "1:98,-12", prefix=ALWAYS_OFFSET) as port:
         done = run("--robot", "serial", "--space", "joint", "--scenario", str(scenario),
-                   "--backend", "dynamixel", "--port", port, "--out", str(out), cwd=tmp_path)
+                   "--backend", "dynamixel", "--port", port, "--out", str(out), cwd=tmp_path,
+                   prefix=ALWAYS_OFFSET)
     assert done.returncode == 0, done.stderr
     report = tmp_path / "ident.json"
     assert main([str(out), "--robot", "serial", "--description", str(description), "--out",

@@ -82,22 +82,35 @@ def test_start_up_sequence_in_order(live):
     assert sorted(e[2] for e in events if e[1] == "ping") == backend.ids
     writes = [(e[2], e[3], e[4]) for e in events if e[1] == "write"]
     limits = {d.id: d.current_limit_lsb for d in backend.drives}
-    steps = [(64, 0), (98, 0), (11, 0), (9, 0), (38, None), (102, 0), (98, 5), (64, 1)]
+    steps = [(64, 0), (98, 0), (11, 0), (9, 0), (38, None), (102, 0), (98, 5)]
     for motor_id in backend.ids:
         mine = [(a, v) for i, a, v in writes if i == motor_id]
         assert mine == [(a, limits[motor_id] if v is None else v) for a, v in steps]
     # Step by step over all motors: each step done on every motor before the next.
     assert [(a, v) for _, a, v in writes][::6] == [(a, v if v is not None else limits[1])
                                                     for a, v in steps]
-    # Torque on only after a good read of the state, which came after the watchdog.
-    first_on = next(i for i, e in enumerate(events) if e[1] == "write" and e[3:] == (64, 1))
+    # A good read of the state after the watchdog; the torque still off.
     last_watchdog = max(i for i, e in enumerate(events) if e[1] == "write"
                         and e[3:] == (98, 5))
-    reads = [i for i, e in enumerate(events) if e[1] == "sync-read"]
-    assert any(last_watchdog < i < first_on for i in reads)
+    assert any(i > last_watchdog for i, e in enumerate(events) if e[1] == "sync-read")
     for m in chain.motors:
-        assert m.torque_on and m.table[11] == 0 and m.table[9] == 0
+        assert not m.torque_on and m.table[11] == 0 and m.table[9] == 0
         assert m.get(38) == limits[m.id] and m.get(102) == 0 and m.get(98) == 5
+    # A zero command leaves the torque off; the first nonzero one is written, then the torque
+    # goes on, motor by motor, each confirmed: no motor is powered at zero current waiting.
+    assert backend.write(np.zeros(6))
+    assert not any(m.torque_on for m in chain.motors)
+    tau = np.array([0.02, -0.01, 0.0, 0.03, -0.002, 0.001])
+    assert backend.write(tau)
+    events = list(chain.events)
+    goal = max(i for i, e in enumerate(events) if e[1] == "sync-write" and e[3] == 102)
+    ons = [i for i, e in enumerate(events) if e[1] == "write" and e[3:] == (64, 1)]
+    assert len(ons) == 6 and min(ons) > goal
+    for m, lsb in zip(chain.motors, backend.goal_current_lsb):
+        assert m.torque_on and m.get(102) == lsb
+    # Later commands are the SYNC_WRITE alone.
+    assert backend.write(tau)
+    assert len([e for e in chain.events if e[1] == "write" and e[3:] == (64, 1)]) == 6
 
 
 def test_reads_and_writes_go_through_the_plant(live):
@@ -222,6 +235,9 @@ def _run(backend: DynamixelBackend, seconds: float) -> tuple[list[bool], set]:
     """Read and write for a while; the results and the failures seen (kind, motor ID)."""
     x, tau = np.zeros(backend.nq * 2), np.zeros(backend.nq)
     results, seen = [], set()
+    # One small command first: the torque comes on with the first nonzero one (start-up step
+    # 9), and the emulator's faults count from there.
+    assert backend.read(x) and backend.write(np.full(backend.nq, 0.01))
     end = time.perf_counter() + seconds
     while time.perf_counter() < end:
         ok = backend.read(x)  # raises nothing, whatever happens
@@ -320,15 +336,15 @@ def test_wire_timing_shows_the_bus_budget():
 
 def test_the_realistic_plant_holds_a_joint_below_breakaway():
     """``plant="realistic"`` (``cochlea-emulator --plant realistic``): the gearboxes' friction
-    from the description (static 1.5x Coulomb) holds every joint against motor torques below
-    breakaway; the motors give ``a I`` and the bridge adds the fit's offset current, the
-    Coulomb level, so a command holds below half the Coulomb level and moves past it; the
-    rotors sit behind their gears."""
+    from the description (static 1.5x Coulomb) holds every joint against torques below
+    breakaway, the rotors behind their gears; a torque past breakaway moves the joint. The
+    bridge leaves out the fit's offset current (which compensates that friction), so the motors
+    give what is commanded."""
     with VirtualChain("serial", plant="realistic") as chain:
         unit = chain.scenario.system.arms[0].links
         coulomb = [link.joint.actuator.coulomb for link in unit] * 2
         assert chain.scenario.plant.gearbox and all(m.slope_only for m in chain.motors)
-        backend = connect(chain)
+        backend = connect(chain, offset_current=False)
         backend.enable()
         try:
             def hold(tau, seconds=0.1):  # keep the bus busy: its watchdog would trip
@@ -337,7 +353,7 @@ def test_the_realistic_plant_holds_a_joint_below_breakaway():
                     time.sleep(0.002)
 
             start = chain.joint_state()[:6].copy()
-            below = 0.25 * np.array(coulomb)  # + the bridge's offset: 1.25x, below 1.5x
+            below = 0.5 * np.array(coulomb)  # a third of each joint's breakaway
             below[1::2] *= -1
             hold(below)
             assert np.array_equal(chain.joint_state()[:6], start)  # stuck, exactly
@@ -349,3 +365,49 @@ def test_the_realistic_plant_holds_a_joint_below_breakaway():
             assert moved[0] > 1e-4 and np.all(moved[3:] == 0.0)
         finally:
             backend.disable()
+
+
+def test_the_bridges_offset_current_overcomes_the_realistic_gearbox():
+    """With the fit's offset current (the bridge's friction compensation, what a controller
+    without a friction model gets), half of a joint's breakaway torque commanded moves it on the
+    realistic emulator: the motor gives ``a I``, the offset's share is the Coulomb friction the
+    gearbox takes, so the joint sees the command plus that much: 0.75 + 1 of the Coulomb level,
+    past its static 1.5."""
+    with VirtualChain("serial", plant="realistic") as chain:
+        coulomb = [link.joint.actuator.coulomb for link in chain.scenario.system.arms[0].links]
+        backend = connect(chain)
+        assert backend.offset_current
+        backend.enable()
+        try:
+            start = chain.joint_state()[:6].copy()
+            tau = np.zeros(6)
+            tau[0] = 0.75 * coulomb[0]  # half of the breakaway, 1.5x Coulomb
+            for _ in range(50):
+                assert backend.write(tau)
+                time.sleep(0.002)
+            moved = chain.joint_state()[:6] - start
+            assert moved[0] > 1e-4 and np.all(moved[3:] == 0.0)
+        finally:
+            backend.disable()
+
+
+def test_a_torque_that_does_not_come_on_stops_the_run(serial_chain):
+    """Start-up step 9 at the first nonzero command: a motor that does not confirm its Torque
+    Enable fails that write, and every read after it fails as not-enabled, naming the motor,
+    so the loop's read watchdog stops the run instead of running on unpowered motors."""
+    chain = serial_chain
+    backend = connect(chain, retries=1)
+    backend.enable()
+    try:
+        x = np.zeros(12)
+        assert backend.read(x)
+        chain.motors[2].answering = False  # ID 3 goes silent before the first command
+        assert not backend.write(np.full(6, 0.01))
+        assert backend.torque_on_error is not None and "ID 3" in backend.torque_on_error
+        for _ in range(6):
+            assert not backend.read(x)
+            assert (backend.last_failure, backend.last_failure_id) == (br.NOT_ENABLED, 3)
+        assert backend.failure_detail().startswith("the torque did not come on: ID 3")
+    finally:
+        backend.disable()
+    assert not any(m.torque_on for m in chain.motors if m.id != 3)

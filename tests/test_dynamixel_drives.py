@@ -146,8 +146,8 @@ class ScriptedPort:
         pass
 
 
-def _scripted(robot: str):
-    backend = DynamixelBackend(robot, "/dev/scripted")
+def _scripted(robot: str, **options):
+    backend = DynamixelBackend(robot, "/dev/scripted", **options)
     port = ScriptedPort(backend)
     backend._port, backend._active = port, True
     return backend, port
@@ -206,3 +206,48 @@ def test_bus_budget_numbers():
     assert verdict.level == "warn" and "1565 us" in verdict.message
     assert bus_budget(6, 4_000_000, adapter_latency_s=0.0).check(1000).level == "ok"
     assert bus_budget(5, 4_000_000).total_bytes == 29 + 19 + 5 * 21
+
+
+@pytest.mark.parametrize("robot", ["serial", "parallel"])
+def test_without_the_offset_current_the_bridge_commands_the_slope_alone(robot, rng):
+    """A controller that compensates friction gets a bridge that does not (issue 24): the
+    Goal Current is tau / a, with none of the fit's offset current on top."""
+    backend, port = _scripted(robot, offset_current=False)
+    assert not backend.offset_current
+    n = backend.nq
+    limits = np.array([d.effort_limit for d in backend.drives])
+    for _ in range(20):
+        tau = rng.uniform(-0.3, 0.3, n) * limits
+        assert backend.write(tau)
+        slope = [np.clip(np.rint(d.torque_per_effort * t / d.fit.a * d.lsb_per_ampere),
+                         -d.current_limit_lsb, d.current_limit_lsb)
+                 for d, t in zip(backend.drives, tau)]
+        assert list(backend.goal_current_lsb) == slope
+        with_offset = [d.goal_current_lsb(t) for d, t in zip(backend.drives, tau)]
+        # Outside the blending band and below the Current Limit every command differs from
+        # the bridge's with the offset by the offset current (0.14-0.22 A on the MX-64s).
+        for d, t, a, b in zip(backend.drives, tau, slope, with_offset):
+            if abs(t * d.torque_per_effort) >= d.fit.ramp and abs(b) < d.current_limit_lsb:
+                assert abs(b - a) == pytest.approx(d.fit.offset_current * d.lsb_per_ampere,
+                                                   abs=1)
+
+
+def test_friction_is_compensated_once():
+    """One rule decides it: the bridge adds the offset current unless the controller's model
+    carries friction (and so compensates it)."""
+    from cochlea.robots.model import ACTUATORS
+    from cochlea.robots.motor_fit import bridge_compensates_friction
+    from cochlea.sim import load_scenario
+    assert set(ACTUATORS) == {"none", "armature", "all"}
+    assert bridge_compensates_friction("none") and bridge_compensates_friction("armature")
+    assert not bridge_compensates_friction("all")
+    # The shipped studies: the thesis's rigid controllers get the bridge's compensation, the
+    # realistic ones (friction in their model) compensate it themselves.
+    # The embedded program's scenarios carry the same decision to its C bridge.
+    from cochlea.sim.embedded import embedded_scenario
+    for name in ("serial_joint", "serial_task", "parallel_joint", "parallel_task"):
+        assert bridge_compensates_friction(load_scenario(name).controller_actuators)
+        assert embedded_scenario(load_scenario(name)).bridge_offset_current
+        realistic = load_scenario(f"{name}_realistic")
+        assert not bridge_compensates_friction(realistic.controller_actuators)
+        assert not embedded_scenario(realistic).bridge_offset_current

@@ -236,3 +236,16 @@ def test_the_emulator_survives_random_instructions(parallel_chain, frame, addres
     for m in chain.motors:  # back to the factory state (a random write may change an ID)
         m.table[:] = m.defaults
     chain._index()
+
+
+def test_the_commands_default_plant_is_the_realistic_one():
+    """Issue 24: ``cochlea-emulator --robot R`` emulates the geared motors (the realistic
+    joint-space study's plant); ``--plant ideal`` the thesis's rigid links."""
+    from cochlea.dynamixel.emulator import default_scenario
+    from cochlea.sim import load_scenario
+    for robot in ("serial", "parallel"):
+        for plant, preset in ((None, "realistic"), ("realistic", "realistic"),
+                              ("ideal", "ideal")):
+            sc = load_scenario(default_scenario(robot, plant), plant_preset=plant)
+            assert sc.robot == robot and sc.plant.preset == preset
+            assert sc.plant.armature == (preset == "realistic")

@@ -137,11 +137,12 @@ def test_start_read_write_stop_as_the_python_bridge(libs, tmp_path, robot):
         drives = joint_drives(robot)
         limits = {d.id: d.current_limit_lsb for d in drives}
         writes = [(e[2], e[3], e[4]) for e in chain.events if e[1] == "write"]
-        steps = [(64, 0), (98, 0), (11, 0), (9, 0), (38, None), (102, 0), (98, 5), (64, 1)]
+        steps = [(64, 0), (98, 0), (11, 0), (9, 0), (38, None), (102, 0), (98, 5)]
         for d in drives:
             mine = [(a, v) for i, a, v in writes if i == d.id]
             assert mine == [(a, limits[d.id] if v is None else v) for a, v in steps]
-        assert all(m.torque_on for m in chain.motors)
+        # Torque on with the first nonzero command, not at the start (as the Python bridge).
+        assert not any(m.torque_on for m in chain.motors)
         # A read is the chain's state to one encoder count and one velocity LSB (the joints
         # move under gravity meanwhile: the state before and after the read bracket it).
         before = chain.joint_state()
@@ -156,9 +157,15 @@ def test_start_read_write_stop_as_the_python_bridge(libs, tmp_path, robot):
         assert np.all((x >= lo - 1.01 * resolution) & (x <= hi + 1.01 * resolution))
         # A write sets every Goal Current to the bridge's conversion of the effort.
         tau = np.linspace(-0.4, 0.4, n) * np.array([d.effort_limit for d in drives])
+        assert p.write(np.zeros(n)) == 1
+        assert not any(m.torque_on for m in chain.motors)
         assert p.write(tau) == 1
         expected = [int(d.goal_current_lsb(t)) for d, t in zip(drives, tau)]
         assert [p.c.probe_goal(i) for i in range(n)] == expected
+        events = list(chain.events)
+        goal = max(i for i, e in enumerate(events) if e[1] == "sync-write" and e[3] == 102)
+        ons = [i for i, e in enumerate(events) if e[1] == "write" and e[3:] == (64, 1)]
+        assert len(ons) == n and min(ons) > goal and all(m.torque_on for m in chain.motors)
         deadline = 100
         while [m.get(102) for m in chain.motors] != expected and deadline:
             p.read()  # a transaction gives the emulator's thread time to apply the write
@@ -241,6 +248,8 @@ def test_dropped_replies_are_failures_not_stops(libs, tmp_path):
         p = probe_on(libs, tmp_path, "serial", chain)
         assert p.c.probe_start() == 1
         assert p.read()[0] == 1
+        # The torque comes on with the first nonzero command; the faults count from there.
+        assert p.write(np.full(6, 0.01)) == 1
         time.sleep(0.3)
         ok, _, _ = p.read()
         assert ok == 0 and p.c.probe_last_failure() == 0  # timeout
@@ -270,6 +279,7 @@ def test_a_repeated_status_packet_is_refused_by_its_realtime_tick(libs, tmp_path
         assert bytes(frame[:size.value]) == proto.sync_read(120, 16, ids)
         assert p.c.probe_start() == 1, p.start_error
         results = []
+        assert p.read()[0] == 1 and p.write(np.full(6, 0.01)) == 1  # torque on, faults start
         try:
             end = time.perf_counter() + 0.6
             while time.perf_counter() < end:

@@ -256,8 +256,10 @@ def _replay(c: Embedded, name: str, duration: float):
         seen = []
         for u, grid in zip(logs, grids):
             j = k - delay if k >= delay else 0
-            x = np.concatenate([u.q[j], u.qd[j]])  # the true state [q, qd], as the log has it
+            x = np.concatenate([u.true_q[j], u.true_qd[j]])  # the plant's state, logged
             seen.append(grid.apply(x) if grid is not None else x)
+            # ... delayed and on the grid: what the log says the controller measured.
+            assert np.array_equal(seen[-1], np.concatenate([u.q[k], u.qd[k]]))
         assert c.step(float(result.time[k]), _measurement(seen)) == 0
         command = np.array(c.command, dtype=float)
         start = 0

@@ -183,6 +183,9 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
     assert set(python["timing"]) <= set(summary["timing"])
     assert set(python["timing"]["bus"]) <= set(summary["timing"]["bus"])
     assert summary["timing"]["bus"]["homing"] == python["timing"]["bus"]["homing"]
+    # Friction compensated once, decided by the same rule (issue 24).
+    assert summary["timing"]["bus"]["friction_compensated_by"] == \
+        python["timing"]["bus"]["friction_compensated_by"]
     # The same overrun rule, its limits from --watchdog-misses as cochlea-run's; an overrun
     # ends after the next deadline, so it is a deadline miss too (not the other way round).
     timing = summary["timing"]

@@ -86,7 +86,8 @@ def _compile(tmp: Path, robot: str, description: Path | None = None) -> ctypes.C
     c.cochlea_drive_unwrap.restype = ctypes.c_double
     c.cochlea_drive_unwrap.argtypes = [ctypes.POINTER(Drive), ctypes.c_double, ctypes.c_double]
     c.cochlea_drive_goal_current.restype = ctypes.c_int16
-    c.cochlea_drive_goal_current.argtypes = [ctypes.POINTER(Drive), ctypes.c_double]
+    c.cochlea_drive_goal_current.argtypes = [ctypes.POINTER(Drive), ctypes.c_double,
+                                             ctypes.c_int]
     c.cochlea_drive_current.restype = ctypes.c_double
     c.cochlea_drive_current.argtypes = [ctypes.POINTER(Drive), ctypes.c_int16]
     c.cochlea_rule_name.restype = ctypes.c_char_p
@@ -146,9 +147,13 @@ def test_conversions_equal_the_bridges_bit_for_bit(built, rng):
         efforts = np.concatenate([rng.uniform(-1.5, 1.5, 400) * d.effort_limit,
                                   rng.uniform(-0.05, 0.05, 200), [0.0, -0.0]])
         for e in efforts:
-            assert c.cochlea_drive_goal_current(row, float(e)) == int(d.goal_current_lsb(e))
+            assert c.cochlea_drive_goal_current(row, float(e), 1) == int(d.goal_current_lsb(e))
+            # Without the offset (the controller compensates friction): the slope alone.
+            assert c.cochlea_drive_goal_current(row, float(e), 0) == int(
+                d.goal_current_lsb(e, offset_current=False))
         for bad in (float("nan"), float("inf"), -float("inf")):
-            assert c.cochlea_drive_goal_current(row, bad) == 0
+            assert c.cochlea_drive_goal_current(row, bad, 1) == 0
+            assert c.cochlea_drive_goal_current(row, bad, 0) == 0
         # The start-up unwrap: the turn nearest the middle of the limits (the bridge's rule).
         lo, hi = d.position_limits
         for q in rng.uniform(-12, 12, 100):

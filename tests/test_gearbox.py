@@ -308,7 +308,7 @@ def test_the_c_loops_equal_casadi_on_the_geared_plant(name, offset):
         for loop in ("c", "python"):
             result = simulate_compiled(sc, 0.6, setups, loop=loop)
             for a, b in zip(reference.units, result.units):
-                for key in ("q", "qd", "tau", "errors", "p_hat", "x"):
+                for key in ("q", "qd", "tau", "errors", "p_hat", "true_q", "true_qd"):
                     np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=1e-12,
                                                atol=1e-12, err_msg=f"{loop} {a.name}.{key}")
 

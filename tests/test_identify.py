@@ -107,9 +107,10 @@ def parallel_scenario(tmp: Path, duration: float = 10.0) -> Path:
 
 
 def measured(run: Path, scenario: Path, unit: str, out: Path, seed: int = 0) -> Path:
-    """A copy of the run folder whose positions are what the drives report: the simulated
-    log holds the plant's true state, so add half an encoder count of noise and round onto
-    the encoder grid (4096 counts a motor turn, through each joint's ratio and zero offset)."""
+    """A copy of the run folder whose positions are what the drives report, without the
+    scenario's delay: the plant's true positions (the simulated log's true_q), half an encoder
+    count of noise added and rounded onto the encoder grid (4096 counts a motor turn, through
+    each joint's ratio and zero offset), in place of the log's measured q."""
     sc = load_scenario(scenario)
     adapter = robot(sc.robot)
     system = adapter.load(None)
@@ -118,13 +119,15 @@ def measured(run: Path, scenario: Path, unit: str, out: Path, seed: int = 0) -> 
     text = (run / "log.csv").read_text().splitlines()
     header = text[0].split(",")
     cols = [i for i, c in enumerate(header) if c.startswith(f"{unit}.q.")]
+    true = [i for i, c in enumerate(header) if c.startswith(f"{unit}.true_q.")]
     n = len(cols)
+    assert len(true) == n
     k = units.index(unit)
     q_step, q_offset = quantum[k * n:(k + 1) * n, 0], offset[k * n:(k + 1) * n, 0]
     assert (q_step > 0).all()
     data = np.loadtxt(run / "log.csv", delimiter=",", skiprows=1, ndmin=2)
     rng = np.random.default_rng(seed)
-    q = data[:, cols] + 0.5 * q_step * rng.standard_normal((len(data), n))
+    q = data[:, true] + 0.5 * q_step * rng.standard_normal((len(data), n))
     data[:, cols] = q_offset + q_step * np.round((q - q_offset) / q_step)
     out.mkdir()
     np.savetxt(out / "log.csv", data, delimiter=",", header=",".join(header), comments="",

@@ -256,6 +256,8 @@ def test_the_benchmarks_numpy_law_is_the_c_step(lib, rng):
             args = [rng.uniform(-3, 3, 3), rng.uniform(-1, 1, 3), rng.uniform(-3, 3, 3),
                     rng.uniform(-1, 1, 3), rng.uniform(-1, 1, 3), rng.uniform(0, 0.2, 3),
                     rng.uniform(0.5, 5, n_gains), rng.uniform(0.5, 2, 3),
-                    np.array(0.3 if i % 2 else 10.0), np.array(1e-3)]  # projection on / off
+                    np.array(0.3 if i % 2 else 10.0), np.array(1e-3),  # projection on / off
+                    np.zeros(3), np.full(3, -np.inf), np.full(3, np.inf), np.zeros(3),
+                    np.ones(3)]  # the robust options, neutral
             for got, want in zip(law(*args), step.evaluate(*args)):
                 assert np.max(np.abs(got - want)) <= 1e-12 * max(1, np.max(np.abs(want)))

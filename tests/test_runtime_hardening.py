@@ -381,6 +381,8 @@ def test_a_repeated_status_packet_is_refused_by_its_realtime_tick():
         assert backend._read_frame == proto.sync_read(120, 16, backend.ids)
         backend.enable()
         x, tau = np.zeros(12), np.zeros(6)
+        # The torque comes on with the first nonzero command; the faults count from there.
+        assert backend.read(x) and backend.write(np.full(6, 0.01))
         results = []
         try:
             end = time.perf_counter() + 0.6

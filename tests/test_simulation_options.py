@@ -21,17 +21,23 @@ def test_delay_feeds_the_controller_the_state_of_earlier_periods():
     delay = 3
     u = _joint_run(Plant(delay_periods=delay))
     e_logged = u.errors[:, :3]  # th_d(t_k) - th_measured(k)
-    assert np.allclose(e_logged[delay:], u.desired[delay:] - u.q[:-delay], atol=1e-15)
-    assert np.allclose(e_logged[:delay], u.desired[:delay] - u.q[0], atol=1e-15)
+    assert np.allclose(e_logged[delay:], u.desired[delay:] - u.true_q[:-delay], atol=1e-15)
+    assert np.allclose(e_logged[:delay], u.desired[:delay] - u.true_q[0], atol=1e-15)
+    # The log's measured state is what the controller saw: the true state delay periods ago.
+    assert np.array_equal(u.q[delay:], u.true_q[:-delay])
+    assert np.array_equal(u.qd[:delay], np.tile(u.true_qd[0], (delay, 1)))
+    assert np.allclose(e_logged, u.desired - u.q, rtol=0, atol=1e-15)
 
 
 def test_noise_is_added_to_the_measurement_with_the_given_spread():
     std = 1e-3
     u = _joint_run(Plant(noise_q_std=std, seed=7))
-    noise = (u.desired - u.q) - u.errors[:, :3]  # measured minus true
+    noise = (u.desired - u.true_q) - u.errors[:, :3]  # measured minus true
     assert abs(noise.std() - std) < 0.1 * std and abs(noise.mean()) < 0.1 * std
+    assert np.allclose(u.q - u.true_q, noise, rtol=0, atol=1e-15)  # the log's measurement
     again = _joint_run(Plant(noise_q_std=std, seed=7))
-    assert np.array_equal(again.q, u.q)  # seeded: a run reproduces
+    assert np.array_equal(again.true_q, u.true_q)  # seeded: a run reproduces
+    assert np.array_equal(again.q, u.q)
 
 
 def test_viscous_friction_takes_energy_out_of_the_plant():
@@ -65,7 +71,8 @@ def test_quantised_measurements_lie_on_the_encoder_grid(kernels):
         seen = u.desired - u.errors[:, :n]  # rad: what the controller was given
         counts = seen / RAD_PER_COUNT
         assert np.allclose(counts, np.rint(counts), rtol=0, atol=1e-6)
-        continuous = u.q / RAD_PER_COUNT  # the true joints are not on the grid
+        assert np.allclose(u.q, seen, rtol=0, atol=1e-15)  # the log's measured positions
+        continuous = u.true_q / RAD_PER_COUNT  # the true joints are not on the grid
         assert not np.allclose(continuous, np.rint(continuous), rtol=0, atol=1e-6)
 
 
@@ -77,7 +84,7 @@ def test_quantised_c_loop_equals_the_reference():
     reference = simulate(sc, 0.5, setups, kernels="casadi")
     compiled = simulate(sc, 0.5, setups, kernels="c")
     for a, b in zip(compiled.units, reference.units):
-        for key in ("q", "qd", "tau", "errors", "p_hat"):
+        for key in ("q", "qd", "true_q", "true_qd", "pose", "true_x", "tau", "errors", "p_hat"):
             assert np.allclose(getattr(a, key), getattr(b, key), rtol=0, atol=1e-10), key
     slider = setups[0].quantum[2]  # m per count: through the pinion's radius
     assert slider == pytest.approx(2 * np.pi / 4096 * 0.02)

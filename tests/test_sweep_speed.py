@@ -62,7 +62,8 @@ def _spec(folder, study: str) -> sweep_spec.Spec:
 
 
 def _logs(result) -> list:
-    keys = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
+    keys = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose", "true_q",
+            "true_qd", "true_x")
     return [result.time, result.diverged] + [getattr(u, k) for u in result.units for k in keys]
 
 

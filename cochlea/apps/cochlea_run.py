@@ -41,6 +41,7 @@ from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
+from ..robots.motor_fit import bridge_compensates_friction
 from ..runtime import (
     EXIT_BACKEND,
     FIFO_PRIORITY,
@@ -279,7 +280,9 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
     if args.duration is not None:  # the up-front checks sample the run's actual duration
         scenario = dataclasses.replace(scenario, duration=args.duration)
-    setups = unit_setups(scenario)  # validates the whole run's path before anything moves
+    # Validates the whole run's path before anything moves, and that the drives hold the robot
+    # against gravity where it starts (on the motors: at their Current Limits).
+    setups = unit_setups(scenario, on_motors=args.backend == "dynamixel")
     periods = int(round(scenario.duration * scenario.rate_hz))
     target = args.out if args.out is not None else Path("runs")
     outputs.check_free_space(
@@ -406,7 +409,9 @@ def _dynamixel_backend(args, scenario):
     backend = DynamixelBackend(scenario.robot, args.port,
                                4_000_000 if args.baud is None else args.baud,
                                system=scenario.system, realtime_tick=True,
-                               homing=args.homing, homing_record=args.homing_record)
+                               homing=args.homing, homing_record=args.homing_record,
+                               offset_current=bridge_compensates_friction(
+                                   scenario.controller_actuators))
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")
@@ -418,14 +423,18 @@ def _dynamixel_backend(args, scenario):
 def _report(data: dict, out: Path, wall: float) -> None:
     print(f"  ran {data['duration_s']:.2f} s in {wall:.2f} s "
           f"({data['duration_s'] / max(wall, 1e-9):.1f}x real time)")
+    true = data["judged_error"] == "true"
     for name, unit in data["units"].items():
         for coord, c in unit["tracked"].items():
             if c["initial_abs_error"] is None:
                 continue
+            # Judged on the true error where the run has it; the measured one beside it.
+            seen = f" (measured {c['measured_final_rms_error']:.3e})" if true else ""
             print(f"  {name}.{coord}: initial |e| {c['initial_abs_error']:.3e} {c['unit']}, "
-                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}"
+                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}{seen}"
                   f"{'' if c['converged'] else '  NOT CONVERGED'}")
-    print(f"  converged: {'yes' if data['converged'] else 'no'}")
+    print(f"  converged: {'yes' if data['converged'] else 'no'} (judged on the "
+          f"{data['judged_error']} error)")
     print(f"  log: {out / 'log.csv'}\n  summary: {out / 'summary.json'}")
     for figure in data["figures"]:
         print(f"  figure: {figure}")

@@ -25,7 +25,8 @@ from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
-from ..sim import load_scenario, simulate, unit_setups
+from ..sim import GravityRefused, load_scenario, simulate, unit_setups
+from ..sim.setup import GRAVITY_RULE
 from ..sweep import execute, results, sampling
 from ..sweep import report as sweep_report
 from ..sweep import spec as sweep_spec
@@ -66,6 +67,26 @@ def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
     return row
 
 
+def refused(setups) -> dict:
+    """The row of a sample refused before it ran (:class:`~cochlea.sim.GravityRefused`: its
+    drives cannot hold the robot where it starts): the columns of a run of the same setups,
+    nothing measured (NaN), stopped by :data:`~cochlea.sim.setup.GRAVITY_RULE`, no success."""
+    row: dict = {"converged": False, "diverged": False}
+    for u in setups:
+        joint_space = u.controller.space == "joint"
+        tracked = zip([j.name for j in u.controller_model.joints] if joint_space
+                      else u.task_names, u.joint_units if joint_space else u.task_units)
+        for coord, unit in tracked:
+            row[f"final_rms.{u.name}.{coord}_{unit}"] = math.nan
+        for j, unit in zip(u.controller_model.joints, u.joint_units):
+            row[f"peak_torque.{u.name}.{j.name}_{'Nm' if unit == 'rad' else 'N'}"] = math.nan
+            row[f"torque_ratio.{u.name}.{j.name}"] = math.nan
+    row.update({"convergence_ratio": math.inf, "estimate_bound_hit": False,
+                "stop_rule": GRAVITY_RULE, "stop_time_s": 0.0, "saturated_periods": 0,
+                "success": False})
+    return row
+
+
 def evaluate(text: str, cache: bool = True) -> dict:
     """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
     computes for its summary.json, from the sample's scenario file.
@@ -78,7 +99,10 @@ def evaluate(text: str, cache: bool = True) -> dict:
         path = Path(tmp) / "sample.toml"
         path.write_text(text, encoding="utf-8")
         scenario = load_scenario(path)
-    setups = unit_setups(scenario, cache=cache)
+    try:
+        setups = unit_setups(scenario, cache=cache)
+    except GravityRefused:  # a sample the robot cannot start: counted, not an error
+        return refused(unit_setups(scenario, cache=cache, gravity=False))
     start = time.perf_counter()
     # One worker per core: the arms one after the other, no thread pool a sample.
     result = simulate(scenario, None, setups, threads=False)
@@ -106,6 +130,8 @@ def _check_sample(spec: sweep_spec.Spec) -> None:
             path.write_text(text, encoding="utf-8")
             try:
                 unit_setups(load_scenario(path))
+            except GravityRefused:
+                pass  # a perturbation the robot cannot start with: that sample's row says so
             except CochleaError as exc:
                 raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: "
                                    f"{str(exc).replace(str(path), 'sample.toml')}") from None

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 
 from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
-from ..sim import load_scenario, unit_setups
+from ..sim import GravityRefused, load_scenario, unit_setups
 from ..sweep import sampling
 from ..sweep import tune as tuning
 from . import cochlea_sweep
@@ -52,6 +52,8 @@ def check_corners(tune: tuning.Tune) -> None:
                 path.write_text(text, encoding="utf-8")
                 try:
                     unit_setups(load_scenario(path))
+                except GravityRefused:
+                    pass  # that sample's row counts it as refused: the candidate infeasible
                 except CochleaError as exc:
                     raise CochleaError(f"{tune.spec.path}: sample {i}'s scenario with the gains "
                                        f"at the {'low' if gains is lows else 'high'} end of "

@@ -160,8 +160,13 @@ def log_bytes(setups, periods: int, realtime: bool) -> int:
     csv = 1 + (4 if realtime else 0)
     for u in setups:
         nq, nd, n_p = u.controller_model.nq, u.controller.n_desired, u.controller.n_params
-        raw += 3 * nq + nd + nq + n_p
+        # log.bin: q, qd, tau, the errors, p_hat, the current, the true q and qd (simulated
+        # robot: an estimate on the high side for the motors).
+        raw += 3 * nq + nd + nq + n_p + nq + 2 * nq
+        # log.csv: as log.bin's, the desired and its rate, the pose; then (a simulated run)
+        # the true q, qd, pose and error.
         csv += 2 * nq + 3 * nd + 2 * nq + n_p + len(u.task_names)
+        csv += 2 * nq + len(u.task_names) + nd
     total = periods * csv * CSV_VALUE_BYTES
     if realtime:
         total += periods * raw * 8

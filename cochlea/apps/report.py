@@ -59,8 +59,17 @@ def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
         names += [f"{u.name}.pose.{c}_{un}" for c, un in zip(u.setup.task_names,
                                                               u.setup.task_units)]
         n_track = u.setup.controller.n_desired
-        blocks += [u.q, u.qd, u.desired, u.desired_dot, u.tracking_error, u.errors[:, n_track:],
-                   u.tau] + ([] if u.current is None else [u.current]) + [u.p_hat, u.x]
+        blocks += [u.q, u.qd, u.desired, u.desired_dot, u.measured_tracking_error,
+                   u.errors[:, n_track:], u.tau] + ([] if u.current is None else [u.current]) \
+            + [u.p_hat, u.pose]
+        if u.has_true_state:  # a simulated run: the plant's own state beside the measured one
+            names += [f"{u.name}.true_q.{j}_{un}" for j, un in zip(joints, ju)]
+            names += [f"{u.name}.true_qd.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
+            names += [f"{u.name}.true_pose.{c}_{un}" for c, un in zip(u.setup.task_names,
+                                                                       u.setup.task_units)]
+            names += [f"{u.name}.true_error.{c}_{un}"
+                      for c, un in zip(u.tracked_names, u.tracked_units)]
+            blocks += [u.true_q, u.true_qd, u.true_x, u.true_tracking_error]
     if result.timing:  # real-time runs: the timing of every period
         for name, values in result.timing.items():
             names.append(name)
@@ -101,22 +110,15 @@ def measurement_resolution(u: UnitLog, position_quantum: np.ndarray | None = Non
     return np.sum(moved, axis=0)
 
 
-class _UnitStats:
-    """What a unit's summary needs from every period, gathered a chunk at a time."""
+class _ErrorStats:
+    """One tracking error's initial absolute value and the sum of its squares over the tail."""
 
-    def __init__(self, periods: int):
-        self.tail_start = int(periods * (1 - TAIL_FRACTION))
+    def __init__(self, tail_start: int):
+        self.tail_start = tail_start
         self.initial = None  # |e| of the first period
         self.tail_sq = self.tail_n = 0
-        self.tau_max = None
-        self.max_norm = np.zeros(())
-        self.finite = True
-        self.last = None  # the last period, as a one-row UnitLog
 
-    def add(self, u: UnitLog, start: int) -> None:
-        if not len(u.q):
-            return
-        e = u.tracking_error
+    def add(self, e: np.ndarray, start: int) -> None:
         if self.initial is None:
             self.initial = np.abs(e[0])
         first = max(self.tail_start - start, 0)
@@ -125,13 +127,39 @@ class _UnitStats:
             self.tail_sq = self.tail_sq + np.array([np.sum(e[first:, i] ** 2)
                                                     for i in range(e.shape[1])])
             self.tail_n += len(e) - first
+
+    def final_rms(self, i: int) -> float:
+        return float(np.sqrt(self.tail_sq[i] / self.tail_n))
+
+
+class _UnitStats:
+    """What a unit's summary needs from every period, gathered a chunk at a time: the error
+    the run is judged on (the true one where the run knows the true state) and the error the
+    controller measured."""
+
+    def __init__(self, periods: int):
+        tail_start = int(periods * (1 - TAIL_FRACTION))
+        self.judged = _ErrorStats(tail_start)
+        self.measured = _ErrorStats(tail_start)
+        self.tau_max = None
+        self.max_norm = np.zeros(())
+        self.finite = True
+        self.last = None  # the last period, as a one-row UnitLog
+
+    def add(self, u: UnitLog, start: int) -> None:
+        if not len(u.q):
+            return
+        measured = u.measured_tracking_error
+        self.measured.add(measured, start)
+        self.judged.add(u.true_tracking_error if u.has_true_state else measured, start)
         peaks = np.array([np.max(np.abs(u.tau[:, i]), initial=0.0)
                           for i in range(u.tau.shape[1])])
         self.tau_max = peaks if self.tau_max is None else np.maximum(self.tau_max, peaks)
         self.max_norm = np.maximum(self.max_norm, np.max(np.linalg.norm(u.p_hat, axis=1)))
         self.finite = self.finite and bool(np.isfinite(u.p_hat).all())
         self.last = dataclasses.replace(u, **{name: getattr(u, name)[-1:] for name in (
-            "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")})
+            "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x", "true_q",
+            "true_qd", "true_x") if getattr(u, name) is not None})
 
 
 def unit_summary(u: UnitLog, position_quantum: np.ndarray | None = None) -> dict:
@@ -149,23 +177,39 @@ def _unit_summary(u: UnitLog, stats: _UnitStats,
         if stats.last is not None else None
     tracked = {}
     for i, (name, unit) in enumerate(zip(u.tracked_names, u.tracked_units)):
+        # The same floor for the true and the measured error: where the positions are measured
+        # in encoder counts, a controller that sees counts cannot hold the true state closer
+        # than about a count either, though the true state itself is not on the grid.
         floor = CONVERGENCE_FLOOR[unit] if resolution is None else \
             max(CONVERGENCE_FLOOR[unit], float(resolution[i]))
-        if stats.initial is None:  # a run stopped before its first period
+        if stats.judged.initial is None:  # a run stopped before its first period
             tracked[name] = {"unit": unit, "initial_abs_error": None, "final_rms_error": None,
-                             "converged": False, "convergence_floor": floor}
+                             "converged": False, "convergence_floor": floor,
+                             "measured_initial_abs_error": None,
+                             "measured_final_rms_error": None, "measured_converged": False}
             continue
-        initial = float(stats.initial[i])
-        final_rms = float(np.sqrt(stats.tail_sq[i] / stats.tail_n))
+
+        def judge(errors: _ErrorStats, i=i, floor=floor) -> tuple[float, float, bool]:
+            initial, final_rms = float(errors.initial[i]), errors.final_rms(i)
+            return initial, final_rms, bool(np.isfinite(final_rms) and (
+                final_rms <= CONVERGENCE_RATIO * initial or final_rms <= floor))
+
+        initial, final_rms, converged = judge(stats.judged)
+        m_initial, m_final_rms, m_converged = judge(stats.measured)
         tracked[name] = {
             "unit": unit,
+            # Judged: of the true state where the run has it (summary's judged_error).
             "initial_abs_error": initial,
             "final_rms_error": final_rms,
-            "converged": bool(np.isfinite(final_rms) and (
-                final_rms <= CONVERGENCE_RATIO * initial or final_rms <= floor)),
+            "converged": converged,
             # The floor this coordinate was judged on: the numeric one, or one encoder count
             # on every joint where the positions are measured in counts.
             "convergence_floor": floor,
+            # The error the controller computed from what it measured (delayed, noisy, on the
+            # grids), judged by the same rule; the same numbers on hardware.
+            "measured_initial_abs_error": m_initial,
+            "measured_final_rms_error": m_final_rms,
+            "measured_converged": m_converged,
         }
         if resolution is not None:
             tracked[name]["measurement_resolution"] = float(resolution[i])
@@ -222,6 +266,12 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
     units = {u.name: _unit_summary(u, s, quanta.get(u.name))
              for u, s in zip(result.units, stats)}
     converged = all(c["converged"] for s in units.values() for c in s["tracked"].values())
+    # The true state where every unit's log has it (simulation), else what was measured.
+    truth = bool(result.units) and all(u.has_true_state for u in result.units)
+    # Stopped: a real-time run by its supervisor (or the user, a fault), an as-fast run by
+    # the rule its supervisor's after-the-fact verdict would have stopped a real run on.
+    stopped = (result.stop is not None and result.stop["rule"] != "completed") or \
+        (result.supervisor is not None and result.supervisor.get("rule", "none") != "none")
     return {
         "scenario": sc.name,
         "scenario_file": str(sc.path),
@@ -238,9 +288,20 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
                             + ", ".join(f"{v:g} {k}" for k, v in CONVERGENCE_FLOOR.items())
                             + " (with encoder counts, of the plant or of a hardware run's "
                               "drives: below the coordinate's measurement_resolution, one "
-                              "count on every joint; each coordinate's convergence_floor)",
-        "converged": bool(converged and not result.diverged and (
-            result.stop is None or result.stop["rule"] == "completed")),
+                              "count on every joint; each coordinate's convergence_floor), "
+                              "on the tracking error judged_error names; converged overall "
+                              "only if every coordinate converged, nothing diverged and no "
+                              "supervisor rule stopped the run (real time) or would have (as "
+                              "fast as possible: supervisor)",
+        # Which tracking error the coordinates' initial_abs_error, final_rms_error and
+        # converged are of: "true" (the plant's state, a simulated run) or "measured" (a
+        # hardware run); the measured one is beside it as measured_* in every case.
+        "judged_error": "true" if truth else "measured",
+        "logged_state": ("true and measured: log.csv's true_q, true_qd, true_pose, "
+                         "true_error beside the measured q, qd, pose, error") if truth else
+                        ("measured only: a hardware run knows the robot only through its "
+                         "encoders and velocity registers (q, qd, pose, error)"),
+        "converged": bool(converged and not result.diverged and not stopped),
         "diverged": result.diverged,
         "stop": result.stop,
         "supervisor": result.supervisor,
@@ -290,7 +351,11 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         paths.append(path)
 
     for u in result.units:
-        actual = u.q if u.space == "joint" else u.x
+        # The plant's true state where the run has it (as the error the run is judged on).
+        if u.has_true_state:
+            actual = u.true_q if u.space == "joint" else u.true_x
+        else:
+            actual = u.q if u.space == "joint" else u.pose
         fig, axes = _grid(plt, len(u.tracked_names), f"{label_text}: {u.name}, desired vs actual")
         for i, (ax, name, unit) in enumerate(zip(axes, u.tracked_names, u.tracked_units)):
             d, shown = _display(u.desired[:, i], unit)
@@ -339,8 +404,9 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
         for label, (iu, iv) in u.setup.tool_points:
             name = u.name if len(u.setup.tool_points) == 1 else f"{u.name} {label}"
             ax.plot(desired[:, iu], desired[:, iv], "--", lw=1, label=f"{name} desired")
-            ax.plot(u.x[:, iu], u.x[:, iv], lw=1.2, label=f"{name} actual")
-            ax.plot(u.x[0, iu], u.x[0, iv], "o", ms=4, color=ax.lines[-1].get_color())
+            pose = u.true_x if u.has_true_state else u.pose
+            ax.plot(pose[:, iu], pose[:, iv], lw=1.2, label=f"{name} actual")
+            ax.plot(pose[0, iu], pose[0, iv], "o", ms=4, color=ax.lines[-1].get_color())
             if radius is None:
                 radius = float(np.hypot(*(desired[0, [iu, iv]] - centre)))
     circle = plt.Circle(centre, radius, fill=False, color="0.5", lw=0.8, ls=":",

@@ -40,6 +40,20 @@ Adaptation: ``p^' = Gamma Y' s`` with a diagonal gain ``Gamma`` (ones reproduce 
 projected onto the ball ``|p^| <= bound``: at the boundary the outward component is removed,
 which keeps every Lyapunov argument (the true parameters lie inside the ball) and bounds the
 estimates. The discrete ``step`` integrates one period with explicit Euler and clips to the ball.
+
+Robust options (docs/controllers.md, "Robust adaptation"), trailing inputs of every Function;
+their neutral values reproduce the law above bit for bit:
+
+* ``deadzone`` (per joint, the signal's unit: rad/s or m/s; 0: none): the adaptation sees the
+  continuous dead zone of its signal, ``s - clip(s, -deadzone, deadzone)`` (zero inside the
+  band, continuous, no switch);
+* ``p_min``, ``p_max`` (per parameter; -inf, inf: none): a box each estimate stays in, by
+  parameter-wise projection of ``p^'`` (a component pushing out of its face is removed) and a
+  clip after the Euler step, after the ball's;
+* ``static_excess``, ``stribeck_velocity`` (per joint: ``F_s / F_c - 1``, dimensionless, 0:
+  none; and rad/s or m/s): each Coulomb column of the regressor, ``tanh(v / v_s)``, becomes the
+  Stribeck curve with a known static-to-Coulomb ratio, ``tanh(v / v_s) (1 + static_excess
+  exp(-(v / stribeck_velocity)^2))``, still linear in the estimated Coulomb level.
 """
 
 from __future__ import annotations
@@ -47,24 +61,34 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import casadi as ca
+import numpy as np
 
 from ..errors import ModelError
-from ..robots.model import RobotModel
+from ..robots.model import COULOMB, COULOMB_SMOOTHING, RobotModel
 from .gains import CONTROLLERS, KINDS
 
 VARIANTS = ("corrected", "thesis")
+#: The robust options' inputs, after ``bound`` in ``law`` and after ``h`` in ``step``; the
+#: last two (the static-friction shape) also follow ``gains`` (``p``) in ``regressor``
+#: (``auxiliary``).
+ROBUST_INPUTS = ("deadzone", "p_min", "p_max", "static_excess", "stribeck_velocity")
 
 
 @dataclass(frozen=True)
 class Controller:
     """A controller built on one model. All Functions take SI values.
 
-    ``law(q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound) -> (tau, p_hat_dot, errors)``
-    ``step(q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, h) -> (tau, p_hat_next,
+    ``law(q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, *robust) -> (tau, p_hat_dot,
     errors)``
-    ``regressor(q, qd, xd, xd_dot, xd_ddot, gains) -> Y`` (n x n_params)
-    ``auxiliary(q, qd, xd, xd_dot, xd_ddot, gains, p) -> f``: the expression the regressor
-    factors, built from ``M_p, C_p, G_p`` directly, so ``Y p == f`` can be checked.
+    ``step(q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, h, *robust) -> (tau,
+    p_hat_next, errors)``
+    ``regressor(q, qd, xd, xd_dot, xd_ddot, gains, *friction) -> Y`` (n x n_params)
+    ``auxiliary(q, qd, xd, xd_dot, xd_ddot, gains, p, *friction) -> f``: the expression the
+    regressor factors, built from ``M_p, C_p, G_p`` directly, so ``Y p == f`` can be checked.
+
+    ``robust`` is ``(deadzone, p_min, p_max, static_excess, stribeck_velocity)`` and
+    ``friction`` its last two (:data:`ROBUST_INPUTS`); :meth:`neutral` gives the values that
+    leave the law as it was.
 
     ``xd`` is the desired joint position (joint space) or task pose (task space).
     ``gains`` stacks the diagonal gains in the order of ``gain_names``.
@@ -87,6 +111,14 @@ class Controller:
     @property
     def n_desired(self) -> int:
         return self.nq if self.space == "joint" else self.n_task
+
+    def neutral(self) -> tuple[np.ndarray, ...]:
+        """The robust inputs (:data:`ROBUST_INPUTS`) that leave the law as without them: no
+        dead zone, an unbounded box, no static friction above Coulomb (the Stribeck velocity
+        is then unused; one keeps it finite)."""
+        n, n_p = self.nq, self.n_params
+        return (np.zeros(n), np.full(n_p, -np.inf), np.full(n_p, np.inf), np.zeros(n),
+                np.ones(n))
 
 
 def _wrap(angle):
@@ -125,12 +157,28 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
     xd, xd_dot, xd_ddot = ca.SX.sym("xd", nd), ca.SX.sym("xd_dot", nd), ca.SX.sym("xd_ddot", nd)
     p_hat, p = ca.SX.sym("p_hat", n_p), ca.SX.sym("p", n_p)
     Gamma, bound, h = ca.SX.sym("Gamma", n_p), ca.SX.sym("bound"), ca.SX.sym("h")
+    deadzone = ca.SX.sym("deadzone", n)
+    p_min, p_max = ca.SX.sym("p_min", n_p), ca.SX.sym("p_max", n_p)
+    static_excess = ca.SX.sym("static_excess", n)
+    stribeck_velocity = ca.SX.sym("stribeck_velocity", n)
+    coulomb = _coulomb_columns(model)
 
     M, C, G = model.M_p(q, p), model.C_p(q, qd, p), model.G_p(q, p)
     # The joints' friction where the model estimates it (zero otherwise), at each law's
-    # reference velocity as in the model's regressor.
+    # reference velocity as in the model's regressor, with the Stribeck excess of the static
+    # friction option on each Coulomb term.
     def F(velocity):
-        return model.friction_p(velocity, p)
+        extra = ca.SX.zeros(n)
+        for j, i, v_s in coulomb:
+            extra[i] = extra[i] + p[j] * ca.tanh(velocity[i] / v_s) * (
+                _stribeck(velocity[i], static_excess[i], stribeck_velocity[i]) - 1)
+        return model.friction_p(velocity, p) + extra
+
+    def shaped(Y, velocity):
+        """``Y`` with each Coulomb column on the Stribeck curve (unchanged with no excess)."""
+        for j, i, _ in coulomb:
+            Y[:, j] = Y[:, j] * _stribeck(velocity[i], static_excess[i], stribeck_velocity[i])
+        return Y
 
     if kind in ("e", "f"):
         gains = ca.SX.sym("gains", 3 * n)
@@ -139,7 +187,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         e_dot = xd_dot - qd
         r = e_dot + alpha * e
         qd_r, qdd_r = xd_dot + alpha * e, xd_ddot + alpha * e_dot
-        Y = model.Y(q, qd, qd_r, qdd_r)
+        Y = shaped(model.Y(q, qd, qd_r, qdd_r), qd_r)
         f_aux = M @ qdd_r + C @ (qd + r) + G + F(qd_r)
         known = K_e * e if (kind == "e" or variant == "corrected") else ca.SX.zeros(n)
         tau = Y @ p_hat + known + G_s * r
@@ -154,7 +202,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         tau_v = ca.solve(J, xd_dot - G_g * e_g)
         tau_v_dot = _total_derivative(tau_v, q, qd, xd, xd_dot, xd_ddot)
         e_v = qd - tau_v
-        Y = -model.Y(q, qd, tau_v, tau_v_dot)
+        Y = shaped(-model.Y(q, qd, tau_v, tau_v_dot), tau_v)
         f_aux = -(M @ tau_v_dot + C @ tau_v + G + F(tau_v))
         tau = -Y @ p_hat - G_a * e_v
         if variant == "corrected":
@@ -177,7 +225,7 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         x_Nd = A @ (xd_dot + k_sign * K_p * e_p)
         x_Nd_dot = _total_derivative(x_Nd, q, qd, xd, xd_dot, xd_ddot)
         e_d = x_Nd - qd
-        Y = model.Y(q, qd, x_Nd, x_Nd_dot)
+        Y = shaped(model.Y(q, qd, x_Nd, x_Nd_dot), x_Nd)
         f_aux = M @ x_Nd_dot + C @ x_Nd + G + F(x_Nd)
         g_sign = 1 if variant == "corrected" else -1
         tau = Y @ p_hat + g_sign * G_d * e_d
@@ -185,22 +233,30 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
         errors = ca.vertcat(e_p, e_d)
         error_names = ("e_p", "e_d")
 
+    # The continuous dead zone (exactly the signal when the width is zero).
+    signal = signal - ca.fmin(ca.fmax(signal, -deadzone), deadzone)
     p_hat_dot = _projected_update(Y.T @ signal, p_hat, Gamma, bound)
+    p_hat_dot = _box_update(p_hat_dot, p_hat, p_min, p_max)
     p_next = p_hat + h * p_hat_dot
     norm = ca.norm_2(p_next)
     p_next = p_next * ca.fmin(1, bound / ca.fmax(norm, 1e-300))
+    p_next = ca.fmin(ca.fmax(p_next, p_min), p_max)
 
     prefix = f"{model.name.replace('/', '_')}_{kind}"
     ins = [q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound]
     in_names = ["q", "qd", "xd", "xd_dot", "xd_ddot", "p_hat", "gains", "Gamma", "bound"]
-    law = ca.Function(f"{prefix}_law", ins, [tau, p_hat_dot, errors], in_names,
-                      ["tau", "p_hat_dot", "errors"])
-    step = ca.Function(f"{prefix}_step", ins + [h], [tau, p_next, errors], in_names + ["h"],
-                       ["tau", "p_hat_next", "errors"])
+    friction = [static_excess, stribeck_velocity]
+    robust = [deadzone, p_min, p_max] + friction
+    law = ca.Function(f"{prefix}_law", ins + robust, [tau, p_hat_dot, errors],
+                      in_names + list(ROBUST_INPUTS), ["tau", "p_hat_dot", "errors"])
+    step = ca.Function(f"{prefix}_step", ins + [h] + robust, [tau, p_next, errors],
+                       in_names + ["h"] + list(ROBUST_INPUTS), ["tau", "p_hat_next", "errors"])
     sig = [q, qd, xd, xd_dot, xd_ddot, gains]
     sig_names = ["q", "qd", "xd", "xd_dot", "xd_ddot", "gains"]
-    regressor = ca.Function(f"{prefix}_Y", sig, [Y], sig_names, ["Y"])
-    auxiliary = ca.Function(f"{prefix}_f", sig + [p], [f_aux], sig_names + ["p"], ["f"])
+    regressor = ca.Function(f"{prefix}_Y", sig + friction, [Y], sig_names
+                            + list(ROBUST_INPUTS[3:]), ["Y"])
+    auxiliary = ca.Function(f"{prefix}_f", sig + [p] + friction, [f_aux],
+                            sig_names + ["p"] + list(ROBUST_INPUTS[3:]), ["f"])
     gain_sizes = tuple(spec.size(name, n, m) for name in spec.names)
     return Controller(kind, variant, space, n, m, n_p, spec.names, gain_sizes, error_names,
                       law, step, regressor, auxiliary)
@@ -210,6 +266,38 @@ def _task_error(difference, angles):
     parts = [(_wrap(difference[i]) if i in angles else difference[i])
              for i in range(difference.shape[0])]
     return ca.vertcat(*parts)
+
+
+def _coulomb_columns(model: RobotModel) -> list[tuple[int, int, float]]:
+    """``(parameter index, joint index, v_s)`` of each estimated Coulomb level
+    (``<joint>.Fc``, its column ``tanh(v / v_s)`` in the joint's row of ``Y``)."""
+    joints = {j.name: (i, j.type) for i, j in enumerate(model.joints)}
+    out = []
+    for k, name in enumerate(model.param_names):
+        owner, _, kind = name.rpartition(".")
+        if kind == COULOMB and owner in joints:
+            i, jtype = joints[owner]
+            out.append((k, i, COULOMB_SMOOTHING[jtype]))
+    return out
+
+
+def _stribeck(v, excess, v_st):
+    """``1 + excess exp(-(v / v_st)^2)``: the Stribeck curve over the Coulomb level (exactly 1
+    with no excess; finite for a zero ``v_st``)."""
+    return 1 + excess * ca.exp(-(v * v) / ca.fmax(v_st * v_st, 1e-300))
+
+
+def _box_update(p_dot, p_hat, p_min, p_max):
+    """``p_dot`` with each component that pushes its estimate out of ``[p_min, p_max]`` at a
+    face removed: the parameter-wise projection, the Gamma-metric one for a diagonal Gamma."""
+    out = []
+    for i in range(p_dot.shape[0]):
+        # "Free" written without a negation: CasADi turns if_else(c, 0, x) into a C `!` on a
+        # real, which the embedded float build refuses (-Wfloat-conversion).
+        free = ca.logic_and(ca.logic_or(p_hat[i] < p_max[i], p_dot[i] <= 0),
+                            ca.logic_or(p_hat[i] > p_min[i], p_dot[i] >= 0))
+        out.append(ca.if_else(free, p_dot[i], 0))
+    return ca.vertcat(*out)
 
 
 def _projected_update(y, p_hat, Gamma, bound):

@@ -16,11 +16,17 @@ shut-down, before anything moved:
    (for a robot with a slider its homing record is checked after 1., before any write:
    :meth:`_check_homing`)
 8. SYNC_READ until the first good read; the joints must lie within their limits;
-9. Torque Enable 1.
+9. Torque Enable 1, deferred to the first nonzero command (:meth:`~DynamixelBackend.write`):
+   its Goal Current is written first, then Torque Enable 1 on every motor, each confirmed. A
+   motor is never powered at zero current while the loop gets ready (thread starts, memory
+   locking: milliseconds, tens under load), during which the parallel robot's slider fell
+   freely on the emulator (a velocity-limit stop at t = 0 under load).
 
 Each period: :meth:`~DynamixelBackend.read` is one SYNC_READ of 126..135 (current, velocity,
 position; with ``realtime_tick``, 120..135: the Realtime Tick first), :meth:`~DynamixelBackend.
-write` one SYNC_WRITE of Goal Current. Both work in preallocated buffers and report failures
+write` one SYNC_WRITE of Goal Current (the first nonzero one followed by the torque's WRITEs,
+step 9; a torque that does not come on fails every read after it as ``not-enabled``, so the
+loop's read watchdog stops the run). Both work in preallocated buffers and report failures
 (timeout, CRC, error byte, hardware alert, port, stale packet) as a False return and counters,
 never as an exception.
 
@@ -125,10 +131,15 @@ class DynamixelBackend:
     limits a joint may be at start-up; ``adapter_latency_s`` for the bus budget (default: the
     adapter's latency timer from sysfs, 0 for a pseudo-terminal, else 1 ms); ``realtime_tick``
     to read the Realtime Tick with the state and refuse stale packets (see the module
-    docstring).
+    docstring); ``offset_current`` whether each command gets the fit's offset current, the
+    gearbox's friction (:func:`cochlea.robots.motor_fit.bridge_compensates_friction` decides it
+    from the controller: False when the controller compensates friction itself, so that it is
+    compensated once).
     """
 
     name = "dynamixel"
+    #: The motors know only what they measure: no true state (Backend.true_state).
+    true_state = None
 
     def __init__(self, robot: str, port: str, baud: int = 4_000_000, *,
                  description: str | Path | None = None, watchdog_s: float = 0.1,
@@ -136,7 +147,8 @@ class DynamixelBackend:
                  position_margin_rad: float = math.radians(2.0),
                  adapter_latency_s: float | None = None, retries: int = 3,
                  open_port=SerialPort, system=None, homing: str = "auto",
-                 homing_record: str | Path | None = None, realtime_tick: bool = False):
+                 homing_record: str | Path | None = None, realtime_tick: bool = False,
+                 offset_current: bool = True):
         self.robot = robot
         self.port_path = str(port)
         baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
@@ -174,6 +186,11 @@ class DynamixelBackend:
         self._open_port = open_port
         self._port: SerialPort | None = None
         self._active = False
+        #: Torque Enable 1 is still to be written (start-up step 9, at the first nonzero
+        #: command); why it failed, if it did (every read fails as not-enabled then).
+        self._torque_pending = False
+        self.torque_on_error: str | None = None
+        self._torque_failed_id = -1
         self._suspect = False  # the last read failed: wait for a quiet line first
         self.last_io_time_s = 0.0
         self._read_time = 0.0
@@ -206,7 +223,9 @@ class DynamixelBackend:
         self._torque_per_effort = f([d.torque_per_effort for d in self.drives])
         self._inv_a = f([1.0 / d.fit.a for d in self.drives])
         self._inv_ramp = f([1.0 / d.fit.ramp for d in self.drives])
-        self._i0 = f([d.fit.offset_current for d in self.drives])
+        #: Whether the commands carry the fit's offset current (friction compensated here).
+        self.offset_current = bool(offset_current)
+        self._i0 = f([d.fit.offset_current * self.offset_current for d in self.drives])
         self._lsb_per_ampere = f([d.lsb_per_ampere for d in self.drives])
         self._limit = f([float(d.current_limit_lsb) for d in self.drives])
         self._neg_limit = -self._limit
@@ -319,7 +338,10 @@ class DynamixelBackend:
     def failure_detail(self) -> str:
         """Why the reads failed, for the loop's stop line: the motor and its hardware error
         when one raised its alert (the bits decoded, e.g. ``ID 3 (arm1.link3, MX-64): hardware
-        error (overload)``), else the last failure and its motor."""
+        error (overload)``), the torque that did not come on, else the last failure and its
+        motor."""
+        if self.torque_on_error is not None:
+            return f"the torque did not come on: {self.torque_on_error}"
         if self.alert_ids:
             notes = []
             for motor_id in sorted(self.alert_ids):
@@ -350,6 +372,9 @@ class DynamixelBackend:
                            "with_adapter_latency_s": self.budget.cycle_s},
             "read_timeout_s": self.timeout_s, "watchdog_s": self.watchdog_lsb * WATCHDOG_UNIT_S,
             "realtime_tick_check": self.realtime_tick,
+            # Who compensates the gearbox's friction: the bridge's offset current, or the
+            # controller (then the commands carry the fit's slope alone).
+            "friction_compensated_by": "bridge" if self.offset_current else "controller",
             "reads": self.reads, "good_reads": self.good_reads, "writes": self.writes,
             "failures": {name: c for name, c in zip(FAILURE_NAMES, self.failures) if c},
             "garbage_packets": self.garbage_packets,
@@ -401,6 +426,8 @@ class DynamixelBackend:
         port = self._port
         if not self._active or port is None:
             return self._fail(NOT_ENABLED, -1)
+        if self.torque_on_error is not None:
+            return self._fail(NOT_ENABLED, self._torque_failed_id)
         parser = self._parser
         port.discard_input()
         parser.reset()
@@ -552,7 +579,26 @@ class DynamixelBackend:
         length = frame.encode()
         if not port.write(frame.view, length, t0 + self.timeout_s):
             return self._fail(PORT, -1)
-        return True if finite else self._fail(NON_FINITE, -1)
+        if not finite:
+            return self._fail(NON_FINITE, -1)
+        if self._torque_pending and self._goal.any():
+            return self._torque_on()
+        return True
+
+    def _torque_on(self) -> bool:
+        """Start-up step 9 at the first nonzero command, its Goal Current already written:
+        Torque Enable 1 on every motor, each confirmed. A refusal is a failed write, and every
+        read after it fails (``not-enabled``), so the loop stops safely within its read
+        watchdog instead of running a controller on unpowered motors."""
+        self._torque_pending = False
+        for d in self.drives:
+            try:
+                self.command(d, f"torque on (WRITE {ADDR_TORQUE_ENABLE} = 1)",
+                             proto.write(d.id, ADDR_TORQUE_ENABLE, proto.le(1, 1)))
+            except BackendError as exc:
+                self.torque_on_error, self._torque_failed_id = str(exc), d.id
+                return self._fail(NOT_ENABLED, d.id)
+        return True
 
     # ---- start-up and shut-down -----------------------------------------------------------------
 
@@ -672,8 +718,8 @@ class DynamixelBackend:
         finally:
             self._active = False
         self._unwrap_and_check(x[:n])
-        # 9. Torque on.
-        self._write_all(ADDR_TORQUE_ENABLE, 1, [1] * n, "torque on")
+        # 9. Torque on: with the first nonzero command (_sync_write), after its Goal Current.
+        self._torque_pending, self.torque_on_error = True, None
 
     # ---- the slider's homing (issue 15) -------------------------------------------------------
 

@@ -9,8 +9,15 @@ Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return 
 The joints move in real time under the scenario's plant (the same parameters, friction and
 initial state as the simulation): every ``plant_period_s`` (default the simulation's RK4 step,
 the scenario's period over its ``plant_substeps``; a request sees the state at its arrival) one
-RK4 step integrates the joint efforts that the motors' currents give through the fit
-(:class:`cochlea.dynamixel.drives.Fit`, the inverse of the bridge's torque-to-current map). A
+RK4 step integrates the joint efforts that the motors' currents give. On a plant that models
+the gearbox's friction (the realistic preset's Coulomb friction, which is the fit's offset) the
+current gives the motor's own torque ``a I`` and the plant loses the friction, as on the
+motors: a bridge that added the offset current for a controller that compensates friction too
+would push each joint with twice its friction. A plant without dry friction has nothing to take
+the offset, so there the motors undo the bridge's map for the scenario's controller
+(:class:`cochlea.dynamixel.drives.Fit`'s inverse when the bridge adds the offset, ``a I`` when
+it leaves it to the controller: :func:`cochlea.robots.motor_fit.bridge_compensates_friction`)
+and the plant receives the effort commanded, up to the current's quantisation. A
 motor that is not driving (torque off, not
 in current control, a hardware error, a tripped watchdog) holds its joint: the gearbox of a
 200:1 servo does not back-drive. Present Position, Velocity and Current follow the plant.
@@ -69,6 +76,7 @@ from ..console import tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS
 from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
+from ..robots.motor_fit import bridge_compensates_friction
 from ..sim import load_scenario, unit_setups
 from ..sim.scenario import PLANT_PRESETS
 from . import protocol as proto
@@ -435,6 +443,14 @@ class _Unit:
             m.set_present(m.state()[1], vel, pos, tick_ms)
 
 
+def default_scenario(robot: str, plant: str | None) -> str:
+    """The command's scenario without ``--scenario``: the realistic joint-space study, whose
+    plant is what the motors have (rotors, gearbox friction, counts), so that a controller
+    tried over the virtual chain meets the motors' dynamics, not the rigid links'; the thesis's
+    study (rigid links) with ``--plant ideal``."""
+    return f"{robot}_joint" if plant == "ideal" else f"{robot}_joint_realistic"
+
+
 class VirtualChain:
     """The motors of a scenario's robot on a pseudo-terminal (see the module docstring).
 
@@ -477,11 +493,10 @@ class VirtualChain:
         self.units, start = [], 0
         for s in setups:
             n = s.plant_model.nq
-            # The plant's friction is the fit's offset: the motors give a I (this branch's
-            # bridge always adds the offset current; with a bridge that leaves it to a
-            # friction-compensating controller, slope_only holds for that controller too).
+            slope_only = s.coulomb is not None or not bridge_compensates_friction(
+                self.scenario.controller_actuators)
             for m in self.motors[start:start + n]:
-                m.slope_only, m._key = s.coulomb is not None, ()
+                m.slope_only, m._key = slope_only, ()
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):
@@ -997,14 +1012,16 @@ def _parser() -> argparse.ArgumentParser:
                "--fault-delay.")
     p.add_argument("--robot", required=True, choices=list(ROBOTS))
     p.add_argument("--scenario", help="the scenario whose description, plant and initial state "
-                   "the chain takes (default: ROBOT_joint)")
+                   "the chain takes (default: ROBOT_joint_realistic, the geared motors; with "
+                   "--plant ideal, ROBOT_joint)")
     p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate, for "
                    "--wire-timing and their Baud Rate register (default 4000000)")
     p.add_argument("--wire-timing", action="store_true", help="bytes take the time the baud "
                    "rate gives them and each motor waits its Return Delay Time")
     p.add_argument("--plant", choices=list(PLANT_PRESETS),
-                   help="the plant's preset: ideal, the scenario's; realistic, the geared "
-                        "Dynamixels (armature, friction with sticking from the description)")
+                   help="the plant's preset (default: the scenario's own [plant]): ideal, the "
+                        "rigid links; realistic, the geared Dynamixels (armature, friction with "
+                        "sticking from the description)")
     p.add_argument("--plant-period-ms", type=float, metavar="MS",
                    help="the plant's RK4 step in real time (default: the scenario's, its "
                         "control period over its plant_substeps)")
@@ -1079,7 +1096,8 @@ def main(argv: list[str] | None = None) -> int:
 def _main(args: argparse.Namespace) -> int:
     try:
         check_options(args)
-        chain = VirtualChain(args.robot, args.scenario, baud=args.baud,
+        chain = VirtualChain(args.robot, args.scenario or default_scenario(args.robot, args.plant),
+                             baud=args.baud,
                              wire_timing=args.wire_timing, faults=faults_from_args(args),
                              plant_period_s=None if args.plant_period_ms is None
                              else args.plant_period_ms * 1e-3, log_path=args.log,

@@ -447,6 +447,13 @@ class _ArgumentUnits:
                 "p_hat_next": self.params, "p_hat_dot": "parameter units per s",
                 "gains": self._gains(), "Gamma": "adaptation gain per parameter (diagonal)",
                 "bound": "projection radius of |p_hat|, parameter units",
+                "deadzone": f"dead-zone width of the adaptation's signal per joint, {self.qd} "
+                            "(0: none)",
+                "p_min": "lower face of each estimate's box, parameter units (-inf: none)",
+                "p_max": "upper face of each estimate's box, parameter units (inf: none)",
+                "static_excess": "static over Coulomb friction minus 1 per joint, "
+                                 "dimensionless (0: none)",
+                "stribeck_velocity": f"Stribeck velocity per joint, {self.qd}",
                 "errors": self._errors(), "Y": f"regressor: {self.tau} per parameter unit",
             })
         return {name: table.get(name, "") for name in list(f.name_in()) + list(f.name_out())}

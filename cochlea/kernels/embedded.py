@@ -11,9 +11,12 @@ precisions:
   law's division guards (``1e-300``) become ``FLT_MIN``;
 * otherwise ``double`` everywhere.
 
-The estimate ``p_hat`` is kept, integrated (explicit Euler) and projected onto the ball
-``|p_hat| <= bound`` in double in both builds, exactly as the fused ``step`` of
-:mod:`cochlea.control.controllers` does; the law gives ``p_hat_dot`` in the working precision.
+The estimate ``p_hat`` is kept, integrated (explicit Euler), projected onto the ball
+``|p_hat| <= bound`` and clipped to its box ``[p_min, p_max]`` in double in both builds, exactly
+as the fused ``step`` of :mod:`cochlea.control.controllers` does; the law gives ``p_hat_dot`` in
+the working precision (its dead zone, box projection and static-friction shape included: the
+robust options are the configuration's ``deadzone``, ``p_min``, ``p_max``, ``static_excess``,
+``stribeck_velocity``).
 
 This module writes C from plain data (:class:`EmbeddedUnit`: the CasADi Functions and the
 numbers); :mod:`cochlea.sim.embedded` makes that data from a scenario. Generation is
@@ -45,7 +48,7 @@ class EmbeddedUnit:
 
     name: str  # "arm1", "mechanism": a C identifier
     desired: ca.Function  # t -> (xd, xd_dot, xd_ddot)
-    law: ca.Function  # (q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound) -> (tau, ...)
+    law: ca.Function  # (q, qd, xd, xd_dot, xd_ddot, p_hat, gains, Gamma, bound, *robust) -> ...
     joint_units: tuple[str, ...]  # "rad" | "m" per joint
     gain_names: tuple[str, ...]
     gain_sizes: tuple[int, ...]
@@ -75,6 +78,15 @@ class EmbeddedUnit:
     p_nominal: np.ndarray | None = None
     #: +1: the first error block is desired - actual; -1: actual - desired (controller g).
     tracking_sign: int = 1
+    #: The law's robust options (``cochlea.control.controllers.ROBUST_INPUTS``: deadzone[nq],
+    #: p_min[np], p_max[np], static_excess[nq], stribeck_velocity[nq]); None: neutral.
+    robust: tuple[np.ndarray, ...] | None = None
+
+    def robust_values(self) -> tuple[np.ndarray, ...]:
+        if self.robust is not None:
+            return self.robust
+        return (np.zeros(self.nq), np.full(self.n_params, -np.inf),
+                np.full(self.n_params, np.inf), np.zeros(self.nq), np.ones(self.nq))
 
     @property
     def nq(self) -> int:
@@ -263,6 +275,14 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
         f"  double p_hat0[{N}_NP];        /* initial estimate */",
         f"  double effort_limit[{N}_NQ];  /* per joint, |command| <= limit (N m or N) */",
         "  double h;                     /* s: control period (the Euler step of p_hat) */",
+        "  /* Robust options (docs/controllers.md): the adaptation's dead zone per joint (rad/s",
+        "   * or m/s, 0: none), each estimate's box (+-HUGE_VAL: none), the static friction",
+        "   * over Coulomb minus 1 (0: none) and the Stribeck velocity per joint (rad/s, m/s). */",
+        f"  double deadzone[{N}_NQ];",
+        f"  double p_min[{N}_NP];",
+        f"  double p_max[{N}_NP];",
+        f"  double static_excess[{N}_NQ];",
+        f"  double stribeck_velocity[{N}_NQ];",
         f"}} {name}_config;\n",
         "/* The controller's state; the caller owns it (no allocation anywhere). */",
         "typedef struct {",
@@ -273,19 +293,24 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
         f"  {name}_real gamma[{N}_NP];",
         f"  {name}_real bound_real[{N}_UNITS];",
         f"  {name}_real effort_limit[{N}_NQ];",
+        f"  double p_min[{N}_NP], p_max[{N}_NP];",
+        f"  {name}_real deadzone_real[{N}_NQ], p_min_real[{N}_NP], p_max_real[{N}_NP];",
+        f"  {name}_real static_excess[{N}_NQ], stribeck_velocity[{N}_NQ];",
         "  unsigned long steps;          /* periods run since init */",
         "  int ready;                    /* 1 between init and terminate */",
         f"}} {name}_state;\n",
         "/* The scenario's configuration: gains, Gamma, bound, p_hat0, effort limits, period. */",
         f"void {name}_default_config({name}_config *c);\n",
         "/* Copy the configuration into the state and set p_hat = p_hat0. Returns 0, or -1 if a",
-        " * value is unusable (h or a bound not positive, a limit negative, not finite). */",
+        " * value is unusable (h or a bound not positive, a limit negative, not finite; a dead",
+        " * zone, static excess or Stribeck velocity negative or not finite; p_min > p_max). */",
         f"int {name}_init({name}_state *s, const {name}_config *c);\n",
         "/* One control period at time t (s since the start of the trajectory):",
         " * measurement[NX]: per unit, joint positions then velocities (rad, m, rad/s, m/s);",
         " * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;",
         " * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.",
-        " * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound), in double.",
+        " * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound, then clipped",
+        " * to its box [p_min, p_max]), in double.",
         " * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the",
         " * next estimate is not (the state is then left unchanged, command_out as computed). */",
         f"int {name}_step({name}_state *s, double t, const {name}_real measurement[{N}_NX],",
@@ -361,6 +386,20 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         "    if (!(c->effort_limit[i] >= 0.0)) return -1;",
         f"    s->effort_limit[i] = ({R})c->effort_limit[i];",
         "  }",
+        f"  for (i = 0; i < {N}_NQ; ++i) {{",
+        "    if (!(c->deadzone[i] >= 0.0 && c->deadzone[i] < HUGE_VAL)) return -1;",
+        "    if (!(c->static_excess[i] >= 0.0 && c->static_excess[i] < HUGE_VAL)) return -1;",
+        "    if (!(c->stribeck_velocity[i] >= 0.0 && c->stribeck_velocity[i] < HUGE_VAL)) "
+        "return -1;",
+        f"    s->deadzone_real[i] = ({R})c->deadzone[i];",
+        f"    s->static_excess[i] = ({R})c->static_excess[i];",
+        f"    s->stribeck_velocity[i] = ({R})c->stribeck_velocity[i];",
+        "  }",
+        f"  for (i = 0; i < {N}_NP; ++i) {{",
+        "    if (!(c->p_min[i] <= c->p_max[i])) return -1;",
+        "    s->p_min[i] = c->p_min[i]; s->p_max[i] = c->p_max[i];",
+        f"    s->p_min_real[i] = ({R})c->p_min[i]; s->p_max_real[i] = ({R})c->p_max[i];",
+        "  }",
         "  s->steps = 0;",
         "  s->ready = 1;",
         "  return 0;",
@@ -384,7 +423,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             f"  {R} xd[{N}_ND], xd_dot[{N}_ND], xd_ddot[{N}_ND];",
             f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
             f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
-            f"  const {R}* arg[9];",
+            f"  const {R}* arg[14];",
             f"  {R}* res[3];",
             "  int i;",
             "  if (!s->ready) return -1;",
@@ -397,6 +436,9 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             f"  arg[2] = xd + {o.d}; arg[3] = xd_dot + {o.d}; arg[4] = xd_ddot + {o.d};",
             f"  arg[5] = p_hat + {o.p}; arg[6] = s->gains + {o.g}; arg[7] = s->gamma + {o.p};",
             f"  arg[8] = s->bound_real + {k};",
+            f"  arg[9] = s->deadzone_real + {o.q}; arg[10] = s->p_min_real + {o.p}; "
+            f"arg[11] = s->p_max_real + {o.p};",
+            f"  arg[12] = s->static_excess + {o.q}; arg[13] = s->stribeck_velocity + {o.q};",
             f"  res[0] = command_out + {o.q}; res[1] = p_hat_dot + {o.p}; "
             f"res[2] = errors_out + {o.e};",
             f"  if ({name}_{u.name}_law(arg, res)) return -1;",
@@ -421,7 +463,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         "s->effort_limit[i]);"]
     for k, (u, o) in enumerate(zip(units, off)):
         step += [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) "
-                 f"s->p_hat[i] = next[i] * scale[{k}];"]
+                 f"s->p_hat[i] = fmin(fmax(next[i] * scale[{k}], s->p_min[i]), s->p_max[i]);"]
     step += ["  s->steps += 1;", "  return 0;", "}\n"]
     parts.append("\n".join(step))
     parts.append(_tool_points(name, units, off))
@@ -468,6 +510,16 @@ def _default_config(name: str, period: float, units: list[EmbeddedUnit]) -> str:
                 i += 1
     for k, u in enumerate(units):
         lines.append(f"  c->bound[{k}] = {_double(u.bound)};  /* {u.name} */")
+    for index, key in enumerate(("deadzone", "p_min", "p_max", "static_excess",
+                                 "stribeck_velocity")):
+        i = 0
+        for u in units:
+            lines.append(f"  /* {u.name}: {key} */")
+            for value in np.ravel(u.robust_values()[index]):
+                text = (_double(value) if np.isfinite(value) or key not in ("p_min", "p_max")
+                        else ("HUGE_VAL" if value > 0 else "-HUGE_VAL"))
+                lines.append(f"  c->{key}[{i}] = {text};")
+                i += 1
     lines += [f"  c->h = {_double(period)};", "}\n"]
     return "\n".join(lines)
 
@@ -480,7 +532,7 @@ def embedded_sources(name: str, title: str, period: float, units: list[EmbeddedU
     options = {"cse": True} if options is None else dict(options)
     functions = []
     for u in units:
-        if u.law.n_in() != 9 or u.law.n_out() != 3 or u.desired.n_in() != 1:
+        if u.law.n_in() != 14 or u.law.n_out() != 3 or u.desired.n_in() != 1:
             raise CodegenError(f"unit {u.name}: unexpected law or desired signature")
         functions.append(export(u.desired, f"{name}_{u.name}_desired", options))
         functions.append(export(u.law, f"{name}_{u.name}_law", options))
@@ -511,6 +563,10 @@ class EmbeddedScenario:
     period: float  # s
     duration: float  # s: the scenario's own duration
     keep_out_radius: float  # m; 0 for joint-space runs (no keep-out rule)
+    #: Whether the bridge adds the fit's offset current (it compensates the gearbox's friction)
+    #: or leaves it to the controller (:func:`cochlea.robots.motor_fit.
+    #: bridge_compensates_friction`).
+    bridge_offset_current: bool = True
 
 
 def _strings(values) -> str:
@@ -606,7 +662,8 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         f"    {sc.robot}_drives, {sc.robot}_position_lo, {sc.robot}_position_hi, "
         f"{sc.robot}_velocity, {sc.robot}_effort,",
         f"    sizeof({name}_state), (int)sizeof({R}), init, step, terminate, desired, estimate, "
-        "tool_points",
+        "tool_points,",
+        f"    {int(bool(sc.bridge_offset_current))}",
         "};\n"]
     return "\n".join(parts)
 

@@ -238,7 +238,7 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 13 + [ctypes.POINTER(_int)])
+                    + [pointer] * 14 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -363,14 +363,22 @@ class ClosedLoop:
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
             offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
-            effort_bound=None, effort_offset=None, effort_ramp=None) -> ClosedLoopLog:
+            effort_bound=None, effort_offset=None, effort_ramp=None,
+            robust=None) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call.
         ``x0`` is the plant's initial state (``nx``); ``coulomb`` its 6th input (``n_drive``
         values: the dry friction's rows, or the gear plant's drive). ``effort_quantum`` and
         ``effort_bound`` (nq each; the bound defaults to no bound) put the applied efforts on
         the drives' grid, ``effort_offset`` and ``effort_ramp`` (nq each) add the bridge's
-        offset before it (see generated_c/README.md). The log holds ``[q, qd]``."""
+        offset before it (see generated_c/README.md). The log holds ``[q, qd]``. ``robust``:
+        the controller's robust options (:data:`cochlea.control.controllers.ROBUST_INPUTS`, in
+        that order; default: the neutral ones)."""
         nq, nd = self.nq, self.n_desired
+        if robust is None:
+            robust = (np.zeros(nq), np.full(self.n_params, -np.inf),
+                      np.full(self.n_params, np.inf), np.zeros(nq), np.ones(nq))
+        robust = self._array("robust", np.concatenate([np.ravel(r) for r in robust]),
+                             (3 * nq + 2 * self.n_params,))
         ins = {
             "x0": self._array("x0", x0, (self.nx,)),
             "p_hat0": self._array("p_hat0", p_hat0, (self.n_params,)),
@@ -410,7 +418,8 @@ class ClosedLoop:
                         None if quantum is None else quantum.ctypes.data,
                         None if quantum is None else offset.ctypes.data,
                         ins["gains"].ctypes.data, ins["Gamma"].ctypes.data, float(bound),
-                        float(h), ins["plant_p"].ctypes.data, ins["friction"].ctypes.data,
+                        float(h), robust.ctypes.data, ins["plant_p"].ctypes.data,
+                        ins["friction"].ctypes.data,
                         None if coulomb is None else coulomb.ctypes.data,
                         None if effort_limit is None else effort_limit.ctypes.data,
                         None if effort_quantum is None else effort_quantum.ctypes.data,

@@ -85,6 +85,7 @@ int NAME_closed_loop(casadi_int n, casadi_int delay,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
+    const casadi_real* robust,
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound,
@@ -94,7 +95,10 @@ int NAME_closed_loop(casadi_int n, casadi_int delay,
 
 Runs `n` periods of length `h` (s). All arrays are row-major with one row per period and are
 the caller's (the function allocates nothing): `gains` stacks the controller's diagonal gains
-(the `gains` input of its step), `plant_p` the plant's full inertial parameters; inputs
+(the `gains` input of its step), `robust` its robust options packed in the order of the
+step's trailing inputs (`deadzone[nq], p_min[np], p_max[np], static_excess[nq],
+stribeck_velocity[nq]`; zeros, -inf, inf, zeros, ones: none; never NULL), `plant_p` the plant's
+full inertial parameters; inputs
 `xd, xd_dot, xd_ddot` (n x nd, the desired samples at `t = k h`), `noise` (n x 2nq, added to
 the measurement; NULL for none), `quantum` and `offset` (2nq each: the measurement grid, e.g.
 encoder counts; NULL for continuous measurements); outputs

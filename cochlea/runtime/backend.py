@@ -24,6 +24,12 @@ Contract:
   current in A, signed so that a positive current drives the joint positively (the drive's
   ``direction`` and transmission applied). The loop copies it into the period's row. ``None``
   (the simulated plant) when nothing is measured: the log's current columns are then NaN.
+* ``true_state``: a backend that knows the plant's true state (the simulated robot) holds an
+  array ``[q, qd]`` (2 nq), allocated once and refreshed by every ``read`` with the state the
+  plant is in at that read, before any delay, noise or measurement grid: what ``read`` reports
+  is the measurement. The loop logs both (``true_q``/``true_qd`` beside ``q``/``qd``), and the
+  run is judged on the true tracking error. Absent or ``None`` on the motors, which know only
+  what they measure.
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ class Backend(Protocol):
     nq: int
     last_io_time_s: float
     joint_current_A: np.ndarray | None
+    true_state: np.ndarray | None
 
     def enable(self) -> None: ...
 

@@ -472,6 +472,8 @@ class RealTimeLoop:
             k.inputs[7][...] = u.gamma
             k.inputs[8][...] = u.bound
             k.inputs[9][...] = period
+            for i, value in enumerate(u.robust_inputs, start=10):  # ROBUST_INPUTS
+                k.inputs[i][...] = value
             self.kernels.append(k)
             n = u.controller_model.nq
             self.slices.append(slice(start, start + n))
@@ -492,9 +494,16 @@ class RealTimeLoop:
         widths += [len(TIMING_COLUMNS)]
         self.offsets = np.concatenate([[0], np.cumsum(widths)])
         self.current_at = int(self.offsets[-1])
-        self.width = self.current_at + self.n
         #: The backend's measured joint currents, copied into each row (None: not measured).
         self.measured_current = getattr(backend, "joint_current_A", None)
+        #: The plant's true state at each read, copied into each row (None: not known, as on
+        #: the motors; see Backend.true_state).
+        self.true_state = getattr(backend, "true_state", None)
+        # Then, only where the backend knows it (the simulated robot), the plant's true state
+        # [q (all), qd (all)], appended last for the same reason: a run on the motors keeps
+        # the rows the embedded runtime writes too.
+        self.true_at = self.current_at + self.n
+        self.width = self.true_at + (0 if self.true_state is None else 2 * self.n)
         self.buffer = np.full((0, self.width), np.nan)  # sized by run(): whole run or ring
         self.x = np.zeros(2 * self.n)
         self.tau = np.zeros(self.n)
@@ -636,7 +645,8 @@ class RealTimeLoop:
         timing = row[int(off[-2]):int(off[-1])]
         current = row[self.current_at:self.current_at + n]
         current[:] = np.nan  # stays NaN unless the backend measures current
-        return row, row[1:1 + 2 * n], row[1 + 2 * n:1 + 3 * n], timing, current, units
+        true = row[self.true_at:self.width]  # empty unless the backend knows the true state
+        return row, row[1:1 + 2 * n], row[1 + 2 * n:1 + 3 * n], timing, current, true, units
 
     def _loop(self, writer) -> Stop:
         h_ns = int(round(self.h * 1e9))
@@ -648,8 +658,8 @@ class RealTimeLoop:
         ring = len(buf)
         n = self.n
         q_view, qd_view = x[:n], x[n:]
-        row, row_x, row_tau, row_timing, row_current, units = self._views()
-        measured = self.measured_current
+        row, row_x, row_tau, row_timing, row_current, row_true, units = self._views()
+        measured, true_state = self.measured_current, self.true_state
         estimates = [kern.outputs[1] for kern in self.kernels]
         clock, sleep = self._clock, self._sleep
         if self.rows:  # a second run of the same loop starts from the first chunk again
@@ -694,6 +704,8 @@ class RealTimeLoop:
             row_x[:] = x
             if measured is not None:  # the last good read's, like x after a failed read
                 row_current[:] = measured
+            if true_state is not None:  # the plant's state at this read (simulated robot)
+                row_true[:] = true_state
             stop = sup.check_state(t, x, q_view, qd_view) if ok else None
             if stop:  # nothing was commanded in this period
                 row[1 + 2 * n:self.current_at] = np.nan
@@ -767,8 +779,18 @@ class RealTimeLoop:
             current = None if self.measured_current is None else \
                 buf[:, self.current_at + sl.start:self.current_at + sl.stop]
             rows = len(buf)
-            pose = np.array(u.fk_world.map(rows)(np.nan_to_num(q).T)).T if rows else \
-                np.zeros((0, len(u.task_names)))
+
+            def pose_of(joints, u=u, rows=rows):
+                return np.array(u.fk_world.map(rows)(np.nan_to_num(joints).T)).T if rows else \
+                    np.zeros((0, len(u.task_names)))
+
+            pose = pose_of(q)
+            true_q = true_qd = true_x = None
+            if self.true_state is not None:  # the simulated robot's true state, as logged
+                at = self.true_at
+                true_q = buf[:, at + sl.start:at + sl.stop]
+                true_qd = buf[:, at + n + sl.start:at + n + sl.stop]
+                true_x = pose_of(true_q)
             if step == 1:
                 xd, xd_dot, _ = self.desired_samples(i, start, start + rows)
             else:
@@ -776,7 +798,7 @@ class RealTimeLoop:
                 xd, xd_dot = (np.array(v).T.copy() for v in u.desired.map(rows)(t)[:2]) \
                     if rows else self.desired_samples(i, 0, 0)[:2]
             logs.append(UnitLog(u.name, scenario.space, q, qd, xd, xd_dot, errors, tau, p_hat,
-                                pose, u, current))
+                                pose, u, current, true_q, true_qd, true_x))
         result = SimulationResult(scenario, index * self.h, logs)
         timing = buf[:, int(off[-2]):int(off[-1])]
         result.timing = {"start_lateness_s": timing[:, 0], "wall_period_s": timing[:, 1],
@@ -825,7 +847,12 @@ def raw_columns(loop: RealTimeLoop) -> list[str]:
         names += [f"{u.name}.p_hat.{p}_SI" for p in u.controller_model.param_names]
     names += list(TIMING_COLUMNS)
     # The measured motor current, at the joint's sign (see Backend.joint_current_A).
-    return names + [f"current.{j}_A" for j in joints]
+    names += [f"current.{j}_A" for j in joints]
+    if loop.true_state is None:  # the motors: what they measure only
+        return names
+    # The plant's true state (see Backend.true_state): the simulated robot's.
+    names += [f"true_q.{j}_{un}" for j, un in zip(joints, units)]
+    return names + [f"true_qd.{j}_{rate[un]}" for j, un in zip(joints, units)]
 
 
 def write_raw_columns(path: Path, loop: RealTimeLoop) -> None:

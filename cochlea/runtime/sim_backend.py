@@ -71,6 +71,9 @@ class SimBackend:
         nx = 2 * self.nq
         self.delay = plant.delay_periods
         self._history = np.empty((self.delay + 1, nx))  # true states, a ring of delay + 1
+        #: The plant's true state at the last read (Backend.true_state), before the delay, the
+        #: noise and the grid: the loop logs it beside the measurement.
+        self.true_state = np.zeros(nx)
         self._reads = 0
         # Unit by unit, as the as-fast run draws them: 2n normals per period and unit.
         self._noise = []  # per unit: (generator, std [q..., qd...], buffer) or None
@@ -111,6 +114,7 @@ class SimBackend:
             state = f.inputs[0]  # the encoder is on the link: [q, qd] of the plant's state
             now[q_span] = state[:n]
             now[qd_span] = state[n:2 * n]
+        self.true_state[:] = now
         x[:] = self._history[max(self._reads - self.delay, 0) % ring]
         self._reads += 1
         for noise, (n, q_span, qd_span) in zip(self._noise, self._spans):

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult
-from ..sim.setup import UnitSetup, quantise
+from ..sim.setup import UnitSetup
 
 # Exit codes of a stopped run (README lists them).
 EXIT_OK = 0
@@ -246,10 +246,11 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
     Period k is checked as the loop checks it: the state it measures at its start (positions,
     velocities, keep-out circle, finite), then the command and the estimate it produces for
     period k + 1. The loop sees the robot through its measurement, so the state checked is the
-    one the loop would read: the logged true state ``delay_periods`` earlier, on the encoder
-    and velocity-register grids where the plant has them (:func:`measured_states`). The rows are
-    screened at once with numpy; the first flagged row is then passed through the supervisor
-    itself, so the rule and its message are the loop's own.
+    one the loop would read: the logged measured state, what the controller saw (delayed,
+    noisy, on the encoder and velocity-register grids where the plant has them;
+    :func:`measured_states`). The rows are screened at once with numpy; the first flagged row
+    is then passed through the supervisor itself, so the rule and its message are the loop's
+    own.
     """
     logs = result.units
     rows = len(result.time)
@@ -267,10 +268,10 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
         flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
         flagged |= (np.abs(qd) > L.velocity).any(axis=1)
         if L.keep_out_radius is not None:
-            # Screened on the logged pose, which lags the measured one by the delay and differs
-            # from it by a fraction of a count: flagged with a margin, confirmed exactly below.
-            lag = result.scenario.plant.delay_periods
-            margin = _KEEP_OUT_SCREEN if _measures_on_grid(logs) else 0.0
+            # Screened on the logged pose of the measured state, which the supervisor's own
+            # kernel may compute a last bit differently: flagged with a margin, confirmed
+            # exactly below.
+            margin = _KEEP_OUT_SCREEN
             for u in logs:
                 s = u.setup
                 for _, (iu, iv) in s.tool_points:
@@ -278,9 +279,9 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
                         cu, cv = s.centre
                     else:
                         cu, cv = 0.0, u.q[:, s.moving_centre_joint]
-                    near = np.hypot(u.x[:, iu] - cu, u.x[:, iv] - cv) < \
+                    pose = u.pose  # computed now if the run did not log it
+                    flagged |= np.hypot(pose[:, iu] - cu, pose[:, iv] - cv) < \
                         L.keep_out_radius + margin
-                    flagged |= _delayed(near, lag)
         flagged |= ~np.isfinite(tau).all(axis=1)
         for p, bound in zip(estimates, supervisor.bounds):
             square = np.einsum("ij,ij->i", p, p)
@@ -318,17 +319,25 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor, q: np.nda
             if not largest <= (bound * (1 + 1e-9)) ** 2:  # NaN fails too
                 return False
         if L.keep_out_radius is not None:
-            # No logged pose near the circle at all: none near in the delayed rows either.
-            margin = _KEEP_OUT_SCREEN if _measures_on_grid(result.units) else 0.0
+            # No pose near the circle at all: the screen flags none. The pose of the measured
+            # state where the run has it; else (an as-fast run measured through a delay or a
+            # grid, not yet computed) the true pose, with a margin no grid rounding crosses: each
+            # measured state is a delayed true one, a fraction of a count away. With noise,
+            # the measured pose itself.
+            noisy = result.scenario.plant.noise_q_std > 0
             for u in result.units:
                 s = u.setup
+                if u.x is None and u.has_true_state and not noisy:
+                    pose, joints, margin = u.true_x, u.true_q, _GRID_SCREEN
+                else:
+                    pose, joints, margin = u.pose, u.q, _KEEP_OUT_SCREEN
                 for _, (iu, iv) in s.tool_points:
                     if s.moving_centre_joint is None:
                         cu, cv = s.centre
                     else:
-                        cu, cv = 0.0, u.q[:, s.moving_centre_joint]
+                        cu, cv = 0.0, joints[:, s.moving_centre_joint]
                     # Squared, without hypot's cost; the relative slack covers its rounding.
-                    du, dv = u.x[:, iu] - cu, u.x[:, iv] - cv
+                    du, dv = pose[:, iu] - cu, pose[:, iv] - cv
                     nearest = (du * du + dv * dv).min(initial=np.inf)
                     if not nearest >= ((L.keep_out_radius + margin) * (1 + 1e-9)) ** 2:
                         return False
@@ -344,39 +353,20 @@ def _within(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     return bool((a.min(axis=0) >= lo).all() and (a.max(axis=0) <= hi).all())
 
 
-#: How far outside the keep-out circle (m) a logged pose is still screened when the loop
-#: measures on encoder grids: a few counts of any joint move a tool by far less.
-_KEEP_OUT_SCREEN = 0.005
-
-
-def _measures_on_grid(logs) -> bool:
-    return any(u.setup.quantum is not None for u in logs)
-
-
-def _delayed(rows: np.ndarray, lag: int) -> np.ndarray:
-    """Row k of the result is row ``max(k - lag, 0)`` of ``rows``: what a loop that measures
-    ``lag`` periods late sees in period k."""
-    if lag == 0 or len(rows) == 0:
-        return rows
-    index = np.maximum(np.arange(len(rows)) - lag, 0)
-    return rows[index]
+#: How far outside the keep-out circle (m) a logged pose is still screened: the logged pose
+#: of the measured state and the supervisor's own pose kernel (C or CasADi) agree but for
+#: round-off; the screen only needs to be that much wider.
+_KEEP_OUT_SCREEN = 1e-9
+#: How far outside the circle (m) the whole-run gate keeps a true pose when the measured one
+#: was not computed: a few encoder counts of any joint move a tool by far less.
+_GRID_SCREEN = 0.005
 
 
 def measured_states(result: SimulationResult) -> tuple[np.ndarray, np.ndarray]:
     """``(q, qd)`` of every period as the loop measures them (all units side by side, SI): the
-    logged true state ``delay_periods`` earlier (the first state before the first measurement
-    arrives), on each unit's measurement grid. Measurement noise, drawn inside the run, is not
-    reproduced: a noisy scenario is judged on its noise-free measurement."""
-    lag = result.scenario.plant.delay_periods
-    qs, qds = [], []
-    for u in result.units:
-        x = _delayed(np.hstack([u.q, u.qd]), lag)
-        if u.setup.quantum is not None:
-            x = quantise(x, u.setup.quantum, u.setup.grid_offset)
-        n = u.q.shape[1]
-        qs.append(x[:, :n])
-        qds.append(x[:, n:])
-    return np.hstack(qs), np.hstack(qds)
+    logged measured state, what the controller saw (the true state ``delay_periods`` earlier,
+    plus the run's own measurement noise, on each unit's measurement grid)."""
+    return (np.hstack([u.q for u in result.units]), np.hstack([u.qd for u in result.units]))
 
 
 def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:

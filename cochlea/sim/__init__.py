@@ -16,7 +16,7 @@ from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
 from .scenario import Scenario
 from .scenario import load as _load
-from .setup import UnitSetup, perturbed_parameters, run_inputs, unit_setups
+from .setup import GravityRefused, UnitSetup, perturbed_parameters, run_inputs, unit_setups
 
 #: Which kernels ``simulate`` runs: the generated C (default) or the CasADi reference.
 KERNELS = ("c", "casadi")
@@ -52,5 +52,5 @@ def simulate(sc: Scenario, duration: float | None = None,
 
 
 __all__ = ["KERNELS", "load_scenario", "simulate", "simulate_compiled", "simulate_reference",
-           "SimulationResult", "UnitLog", "UnitSetup", "Scenario", "unit_setups",
+           "SimulationResult", "UnitLog", "UnitSetup", "Scenario", "unit_setups", "GravityRefused",
            "perturbed_parameters", "CKernelsUnavailable", "CKernelsWarning"]

@@ -34,13 +34,14 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..control.controllers import ROBUST_INPUTS
 from ..errors import CochleaError
 from ..kernels import library as ckernels
 from ..kernels.bind import BufferedFunction, BufferedKernel
 from ..kernels.naming import closed_loop_name, controller_kernel_name, source_hash, unit_prefix
 from .reference import simulate_reference
-from .result import SimulationResult, UnitLog
-from .setup import MeasurementGrid, UnitSetup, run_inputs
+from .result import SimulationResult, simulated_log, truncate
+from .setup import MeasurementGrid, UnitSetup, measurements, run_inputs
 
 LOOPS = ("c", "python")
 
@@ -169,7 +170,8 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
                     coulomb=u.drive, effort_quantum=None if grid is None else grid.quantum,
                     effort_bound=None if grid is None else grid.bound,
                     effort_offset=None if grid is None else grid.offset,
-                    effort_ramp=None if grid is None else grid.ramp)
+                    effort_ramp=None if grid is None else grid.ramp,
+                    robust=u.robust_inputs)
 
 
 def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -187,6 +189,8 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     step["Gamma"][:] = u.gamma
     step["bound"][...] = u.bound
     step["h"][...] = h
+    for name, value in zip(ROBUST_INPUTS, u.robust_inputs):
+        step[name][:] = value
     plant["p"][:] = u.plant_params
     plant["friction"][:] = u.friction
     plant["h"][...] = h
@@ -268,15 +272,16 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     noisy = [np.concatenate([np.full(u.controller_model.nq, sc.plant.noise_q_std),
                              np.full(u.controller_model.nq, sc.plant.noise_qd_std)])
              for u in setups]
+    noises = [None] * len(setups)  # each unit's measurement noise, kept for its log
     if any(std.any() for std in noisy):
         # The reference draws 2n normals per period, unit after unit, until a unit stops.
         rng = np.random.default_rng(sc.plant.seed)
         runs = []
-        for u, plan, d, std in zip(setups, plans, desired, noisy):
+        for i, (u, plan, d, std) in enumerate(zip(setups, plans, desired, noisy)):
             noise = None
             if std.any():
                 state = rng.bit_generator.state
-                noise = std * rng.standard_normal((steps, len(std)))
+                noise = noises[i] = std * rng.standard_normal((steps, len(std)))
             runs.append(run(lib, plan, u, h, delay, d, noise))
             if noise is not None and runs[-1].rows < steps:
                 rng.bit_generator.state = state
@@ -289,18 +294,18 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
         runs = [run(lib, p, u, h, delay, d, None) for p, u, d in zip(plans, setups, desired)]
 
     logs, diverged = [], {}
-    for u, d, r in zip(setups, desired, runs):
-        n, rows = u.controller_model.nq, r.rows
+    for u, d, r, noise in zip(setups, desired, runs, noises):
+        rows = r.rows
         if rows < steps:
             diverged[u.name] = float(time[rows - 1])
         X = r.x[:rows]
-        logs.append(UnitLog(u.name, sc.space, X[:, :n], X[:, n:], d[0][:rows], d[1][:rows],
-                            r.errors[:rows], r.tau[:rows], r.p_hat[:rows], r.pose[:rows], u))
+        # What the controller saw, from the true states as the driver measured them.
+        seen = measurements(X, delay, noise, u.quantum, u.grid_offset)
+        logs.append(simulated_log(u, sc.space, X, seen, r.pose[:rows], d[0][:rows],
+                                  d[1][:rows], r.errors[:rows], r.tau[:rows], r.p_hat[:rows]))
     rows = min(len(u.q) for u in logs)
     if rows < steps:  # every unit's log ends where the first one diverged (as the reference)
-        for u in logs:
-            for key in ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x"):
-                setattr(u, key, getattr(u, key)[:rows])
+        truncate(logs, rows)
     return SimulationResult(sc, time[:rows], logs, diverged)
 
 

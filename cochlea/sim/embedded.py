@@ -21,6 +21,7 @@ from ..kernels.embedded import (
     scenario_source,
     scenario_table,
 )
+from ..robots.motor_fit import bridge_compensates_friction
 from .scenario import Scenario
 from .scenario import load as load_scenario
 from .setup import unit_setups
@@ -47,7 +48,8 @@ def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
             joint_names=tuple(j.name for j in u.controller_model.joints),
             param_units=tuple(u.controller_model.parameters.si_units),
             p_nominal=np.asarray(u.controller_model.p_nominal, float),
-            tracking_sign=-1 if c.kind == "g" else 1))
+            tracking_sign=-1 if c.kind == "g" else 1,
+            robust=tuple(np.asarray(v, float) for v in u.robust_inputs)))
     return units
 
 
@@ -56,7 +58,8 @@ def embedded_scenario(sc: Scenario) -> EmbeddedScenario:
     radius = sc.system.keep_out_radius if sc.space == "task" else None
     return EmbeddedScenario(sc.name, sc.robot, sc.space, sc.controller, sc.variant,
                             sc.parameterisation, sc.period, float(sc.duration),
-                            float(radius) if radius is not None else 0.0)
+                            float(radius) if radius is not None else 0.0,
+                            bridge_compensates_friction(sc.controller_actuators))
 
 
 def write_embedded(config: CodegenConfig, folder: str | Path) -> list[Path]:

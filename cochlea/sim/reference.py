@@ -18,7 +18,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .result import SimulationResult, UnitLog
+from .result import SimulationResult, simulated_log, truncate
 from .scenario import Scenario
 from .setup import UnitSetup, quantise
 
@@ -30,7 +30,7 @@ def _command(u: UnitSetup, h: float, t, x_meas, p_hat):
     xd, xd_dot, xd_ddot = u.desired(t)
     tau, p_next, errors = u.controller.step(
         x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot, p_hat, ca.DM(u.gains), ca.DM(u.gamma),
-        u.bound, h)
+        u.bound, h, *[ca.DM(v) for v in u.robust_inputs])
     limit = ca.DM(u.effort_limit)
     return ca.fmin(ca.fmax(tau, -limit), limit), p_next, errors, xd, xd_dot
 
@@ -119,11 +119,12 @@ def _numeric_command(u: UnitSetup, h: float):
     n = u.controller_model.nq
     limit = u.effort_limit
     gains, gamma, bound = ca.DM(u.gains), ca.DM(u.gamma), u.bound
+    robust = [ca.DM(v) for v in u.robust_inputs]
 
     def command(t, x_meas, p_hat):
         xd, xd_dot, xd_ddot = (ca.densify(v) for v in u.desired(t))
         tau, p_next, errors = u.controller.step(x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot,
-                                                p_hat, gains, gamma, bound, h)
+                                                p_hat, gains, gamma, bound, h, *robust)
         tau = np.clip(np.array(tau).ravel(), -limit, limit)
         return tau, p_next, errors, xd, xd_dot
 
@@ -144,13 +145,16 @@ def simulate_reference(sc: Scenario, duration: float,
         n, n_p = u.controller_model.nq, u.controller.n_params
         nd, ne = u.controller.n_desired, u.controller.n_desired + n
         period = _period(u, h, sc.plant_substeps)
+        noise = np.concatenate([np.full(n, sc.plant.noise_q_std),
+                                np.full(n, sc.plant.noise_qd_std)])
         X = np.empty((steps, 2 * n))
+        # What the controller saw in each period (the true state when it measures exactly).
+        exact = not (sc.plant.delay_periods or noise.any() or u.quantum is not None)
+        seen = X if exact else np.empty((steps, 2 * n))
         log = {k: np.empty((steps, s)) for k, s in
                [("tau", n), ("errors", ne), ("xd", nd), ("xd_dot", nd), ("p_hat", n_p)]}
         x = u.plant_x0.astype(float)  # the plant's state; the log and measurement: [q, qd]
         p_hat = u.p_hat0.astype(float).copy()
-        noise = np.concatenate([np.full(n, sc.plant.noise_q_std),
-                                np.full(n, sc.plant.noise_qd_std)])
         delay = sc.plant.delay_periods
         rows = steps
         for k in range(steps):
@@ -160,6 +164,8 @@ def simulate_reference(sc: Scenario, duration: float,
                 measured = measured + noise * rng.standard_normal(2 * n)
             if u.quantum is not None:  # as the motors report it: encoder and velocity counts
                 measured = quantise(measured, u.quantum, u.grid_offset)
+            if not exact:
+                seen[k] = measured
             log["p_hat"][k] = p_hat
             x, p_hat, log["tau"][k], log["errors"][k], log["xd"][k], log["xd_dot"][k] = \
                 period(time[k], x, measured, p_hat)
@@ -168,13 +174,12 @@ def simulate_reference(sc: Scenario, duration: float,
                 rows = k + 1
                 break
         X = X[:rows]
+        seen = X if exact else seen[:rows]
         log = {key: value[:rows] for key, value in log.items()}
         pose = np.array(u.fk_world.map(rows)(X[:, :n].T)).T
-        logs.append(UnitLog(u.name, sc.space, X[:, :n], X[:, n:], log["xd"], log["xd_dot"],
-                            log["errors"], log["tau"], log["p_hat"], pose, u))
+        logs.append(simulated_log(u, sc.space, X, seen, pose, log["xd"], log["xd_dot"],
+                                  log["errors"], log["tau"], log["p_hat"]))
     rows = min(len(u.q) for u in logs)
     if rows < steps:  # every unit's log ends where the first one diverged
-        for u in logs:
-            for key in ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x"):
-                setattr(u, key, getattr(u, key)[:rows])
+        truncate(logs, rows)
     return SimulationResult(sc, time[:rows], logs, diverged)

@@ -1,5 +1,12 @@
 """What a run leaves in memory: one log per controlled unit, one row per control period (SI).
 
+Every log holds the *measured* state, what the controller saw (``q``, ``qd`` and the pose
+``x`` through them: delayed, noisy, on the encoder and velocity-register grids where the plant
+has them), as a hardware run has it; a simulated run (as fast as possible, or the real-time
+loop on the sim backend) also holds the plant's *true* state (``true_q``, ``true_qd``,
+``true_x``), which a hardware run does not know (None). The tracking error a run is judged on
+(:attr:`UnitLog.tracking_error`) is the true one where the run has it.
+
 The as-fast simulation (CasADi or C) and the real-time loop both return a
 :class:`SimulationResult`; the report, the CSV and the figures read only this, a chunk of
 periods at a time (:meth:`SimulationResult.chunks`), so a long run streamed to disk
@@ -20,6 +27,8 @@ from .setup import UnitSetup
 #: Periods per chunk when a result is read in pieces (a few MB of rows).
 CHUNK_ROWS = 1 << 13
 _ROW_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x")
+#: The true state's fields, None in a run that does not know it (hardware).
+_TRUE_FIELDS = ("true_q", "true_qd", "true_x")
 
 
 @dataclass
@@ -28,26 +37,69 @@ class UnitLog:
 
     name: str
     space: str
-    q: np.ndarray  # (N, n) true joint positions at the start of each period
-    qd: np.ndarray
+    q: np.ndarray  # (N, n) measured joint positions: what the controller saw in each period
+    qd: np.ndarray  # (N, n) measured joint velocities
     desired: np.ndarray  # (N, nd) desired sample (joint or task space)
     desired_dot: np.ndarray
-    errors: np.ndarray  # (N, 2 blocks) controller error signals
+    errors: np.ndarray  # (N, 2 blocks) controller error signals (of the measured state)
     tau: np.ndarray  # (N, n) commanded torque / force
     p_hat: np.ndarray  # (N, n_p) estimate used in the period
-    x: np.ndarray  # (N, m) tool / task pose of the true state
+    #: (N, m) tool / task pose of the measured joint positions; None until asked for when a
+    #: simulated run measured something else than the true state (see :attr:`pose`).
+    x: np.ndarray | None
     setup: UnitSetup = field(repr=False)
     #: (N, n) motor current measured by the drives (A, at the joint's sign); None when the run
     #: measured none (simulated runs).
     current: np.ndarray | None = None
+    #: The plant's true state at the start of each period and its pose, (N, n), (N, n), (N, m);
+    #: None when the run does not know it (a hardware run).
+    true_q: np.ndarray | None = None
+    true_qd: np.ndarray | None = None
+    true_x: np.ndarray | None = None
 
     @property
-    def tracking_error(self) -> np.ndarray:
-        """Desired minus actual on the tracked coordinates (angles wrapped), SI."""
+    def has_true_state(self) -> bool:
+        return self.true_q is not None
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The pose of the measured joint positions (``x``), computed from ``q`` the first
+        time it is asked for when the run did not log it (an as-fast run that measured
+        through a delay, noise or a grid: a sweep judging its samples seldom needs it)."""
+        if self.x is None:
+            rows = len(self.q)
+            self.x = np.array(self.setup.fk_world.map(rows)(self.q.T)).T if rows else \
+                np.zeros((0, len(self.setup.task_names)))
+        return self.x
+
+    @property
+    def measured_tracking_error(self) -> np.ndarray:
+        """Desired minus measured on the tracked coordinates (angles wrapped), SI: the error
+        the controller computed from what it saw."""
         n = self.setup.controller.n_desired
         block = self.errors[:, :n]
         # g defines e_g = x - x_d; report every controller as desired - actual.
         return -block if self.setup.controller.kind == "g" else block
+
+    @property
+    def true_tracking_error(self) -> np.ndarray | None:
+        """Desired minus the plant's true state on the tracked coordinates (task angles
+        wrapped to (-pi, pi] as the controllers wrap them), SI; None without a true state."""
+        if self.true_q is None:
+            return None
+        actual = self.true_q if self.space == "joint" else self.true_x
+        e = self.desired - actual
+        if self.space == "task":
+            for i in self.setup.task_angles:
+                e[:, i] = np.arctan2(np.sin(e[:, i]), np.cos(e[:, i]))
+        return e
+
+    @property
+    def tracking_error(self) -> np.ndarray:
+        """The error a run is judged on: :attr:`true_tracking_error` where the run knows the
+        true state (simulation), else :attr:`measured_tracking_error` (hardware)."""
+        true = self.true_tracking_error
+        return self.measured_tracking_error if true is None else true
 
     @property
     def tracked_names(self) -> tuple[str, ...]:
@@ -58,6 +110,29 @@ class UnitLog:
     @property
     def tracked_units(self) -> tuple[str, ...]:
         return self.setup.joint_units if self.space == "joint" else self.setup.task_units
+
+
+def simulated_log(u: UnitSetup, space: str, states: np.ndarray, measured: np.ndarray,
+                  pose: np.ndarray, desired: np.ndarray, desired_dot: np.ndarray,
+                  errors: np.ndarray, tau: np.ndarray, p_hat: np.ndarray) -> UnitLog:
+    """A simulated unit's log: ``states`` the plant's true ``[q, qd]`` of every period and
+    ``pose`` its pose, ``measured`` what the controller saw (the same array when the plant
+    measures exactly: no delay, noise or grid), whose pose is computed when first asked for
+    (:attr:`UnitLog.pose`)."""
+    n = u.controller_model.nq
+    seen_pose = pose if measured is states else None
+    return UnitLog(u.name, space, measured[:, :n], measured[:, n:], desired, desired_dot, errors,
+                   tau, p_hat, seen_pose, u, true_q=states[:, :n], true_qd=states[:, n:],
+                   true_x=pose)
+
+
+def truncate(logs: list[UnitLog], rows: int) -> None:
+    """Every log cut to its first ``rows`` periods (a run that diverged: every unit's log ends
+    where the first one diverged)."""
+    for u in logs:
+        for key in _ROW_FIELDS + _TRUE_FIELDS + ("current",):
+            if getattr(u, key) is not None:
+                setattr(u, key, getattr(u, key)[:rows])
 
 
 @dataclass
@@ -84,7 +159,8 @@ class SimulationResult:
         """Periods ``start:stop:step`` as a result of their own (views, no copies)."""
         part = slice(start, stop, step)
         units = [dataclasses.replace(u, **{name: getattr(u, name)[part] for name in _ROW_FIELDS
-                                           + (("current",) if u.current is not None else ())})
+                                           + _TRUE_FIELDS + ("current",)
+                                           if getattr(u, name) is not None})
                  for u in self.units]
         timing = None if self.timing is None else {k: v[part] for k, v in self.timing.items()}
         return dataclasses.replace(self, time=self.time[part], units=units, timing=timing)

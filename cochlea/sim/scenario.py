@@ -150,6 +150,39 @@ class Plant:
     bridge_offset: str | bool = False
 
 
+#: Bounds of the robust-adaptation keys of ``[control]`` (:class:`RobustOptions`).
+MAX_DEADZONE = 100.0  # rad/s or m/s
+MAX_STATIC_RATIO = 10.0  # static over Coulomb friction
+MAX_STRIBECK_VELOCITY = 100.0  # rad/s or m/s
+MAX_RAMP_S = 3600.0
+#: The Stribeck velocity a joint's static friction fades over when the scenario gives none:
+#: about 4 counts of the MX-64's velocity register at a revolute joint; at the slider, the
+#: same motor speed through its 20 mm pinion.
+STRIBECK_VELOCITY = {"angle": 0.1, "length": 0.002}
+
+
+@dataclass(frozen=True)
+class RobustOptions:
+    """The controller's robust-adaptation options (``[control]``; docs/controllers.md, "Robust
+    adaptation"). The defaults leave the thesis's law as it is."""
+
+    #: Per joint of a unit (every unit alike): the width of the adaptation's dead zone on its
+    #: signal (r, e_v or e_d), rad/s or m/s. None: no dead zone.
+    deadzone: np.ndarray | None = None
+    #: Each estimate within ``p_nominal +- box_relative * max(|p_nominal|, 1e-3 max|p_nominal|)``;
+    #: None: no box beyond the ball.
+    box_relative: float | None = None
+    #: "physical": masses, inertias, armatures and frictions never below zero; "free": any sign.
+    sign: str = "free"
+    #: Per joint: static over Coulomb friction (>= 1) compensated on the Stribeck curve; None:
+    #: Coulomb only.
+    static_ratio: np.ndarray | None = None
+    #: Per joint: the Stribeck velocity the static excess fades over (rad/s or m/s).
+    stribeck_velocity: np.ndarray | None = None
+    #: s: the desired path blended from the initial pose onto the planned one (quintic); 0: none.
+    startup_ramp: float = 0.0
+
+
 @dataclass(frozen=True)
 class Scenario:
     path: Path
@@ -178,6 +211,8 @@ class Scenario:
     plant: Plant = field(default_factory=Plant)
     #: The robot's description, loaded once with the scenario (SerialSystem or ParallelSystem).
     system: Any = field(default=None, repr=False, compare=False)
+    #: The controller's robust-adaptation options (``[control]``).
+    robust: RobustOptions = field(default_factory=RobustOptions)
 
     @property
     def controller(self) -> str:
@@ -428,6 +463,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
                      "|p_nominal|)", lambda v: 0 < v <= MAX_GAIN, required=False, default=10.0)
     mirror = c.string("mirror", ("desired",), required=False, default="desired")
     controller_actuators = c.string("actuators", ACTUATORS, required=False, default="none")
+    robust = _robust(c, layout, controller_actuators)
     c.done()
     _check_run_length(top, duration, rate)
 
@@ -496,7 +532,38 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     return Scenario(path, path.stem, robot, space, description, duration, rate, substeps,
                     variant, parameterisation, adaptation_gain, adaptation, initial_estimate,
                     bound, mirror,
-                    controller_actuators, dict(definitions), leader, tuple(units), plant, system)
+                    controller_actuators, dict(definitions), leader, tuple(units), plant, system,
+                    robust=robust)
+
+
+def _robust(c: Table, layout, actuators: str) -> RobustOptions:
+    """The robust-adaptation keys of ``[control]`` (:class:`RobustOptions`)."""
+    n = layout.n_joint
+    velocity = "rad/s (revolute) or m/s (prismatic)"
+    deadzone = c.vector("adaptation_deadzone_SI", n, velocity, required=False,
+                        check=lambda v: all(0 <= x <= MAX_DEADZONE for x in v),
+                        what=f"(one per joint of a unit, each in [0, {MAX_DEADZONE:g}])")
+    box = c.number("estimate_box_relative", f"a positive number up to {MAX_GAIN:g} (each "
+                   "estimate within its nominal value +- this many times its size)",
+                   lambda v: 0 < v <= MAX_GAIN, required=False)
+    sign = c.string("estimate_sign", ("free", "physical"), required=False, default="free")
+    ratio = c.vector("static_friction_ratio", n, "(dimensionless: static over Coulomb "
+                     "friction)", required=False,
+                     check=lambda v: all(1 <= x <= MAX_STATIC_RATIO for x in v),
+                     what=f"(one per joint of a unit, each in [1, {MAX_STATIC_RATIO:g}])")
+    stribeck = c.vector("stribeck_velocity_SI", n, velocity, required=False,
+                        check=lambda v: all(0 < x <= MAX_STRIBECK_VELOCITY for x in v),
+                        what="(one per joint of a unit, each positive, at most "
+                        f"{MAX_STRIBECK_VELOCITY:g})")
+    if ratio is not None and np.any(ratio > 1) and actuators != "all":
+        raise c.error("static_friction_ratio", 'ones, or [control] actuators = "all" (the '
+                      "static friction shapes the Coulomb friction the controller's model "
+                      "estimates; this one has none)", ratio.tolist())
+    if stribeck is None and ratio is not None:
+        stribeck = np.array([STRIBECK_VELOCITY[kind] for kind in layout.joint])
+    ramp = c.number("startup_ramp_s", f"a number in [0, {MAX_RAMP_S:g}] (s)",
+                    lambda v: 0 <= v <= MAX_RAMP_S, required=False, default=0.0)
+    return RobustOptions(deadzone, box, sign, ratio, stribeck, ramp)
 
 
 def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:

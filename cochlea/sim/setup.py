@@ -139,6 +139,15 @@ class UnitSetup:
     #: The drives' effort resolution and saturation (:class:`EffortGrid`), or None: every
     #: command clipped to the effort limit is applied as it is.
     effort_grid: EffortGrid | None = None
+    #: The controller's robust options, its Functions' trailing inputs in the order of
+    #: :data:`cochlea.control.controllers.ROBUST_INPUTS` (dead zone, box, static friction), or
+    #: None: the neutral ones (:meth:`robust_inputs`).
+    robust: tuple[np.ndarray, ...] | None = None
+
+    @property
+    def robust_inputs(self) -> tuple[np.ndarray, ...]:
+        """The robust options every caller of the controller's step passes (SI)."""
+        return self.robust if self.robust is not None else self.controller.neutral()
 
     @property
     def plant_x0(self) -> np.ndarray:
@@ -403,6 +412,65 @@ def check_start(sc: scenario_mod.Scenario, plan) -> None:
                                    "--duration")
 
 
+class GravityRefused(CochleaError):
+    """Gravity at a unit's initial pose needs more effort than a joint's drive can give: the
+    motor cannot hold the robot there (it would sag the moment torque is enabled). A sweep or a
+    tuning search counts such a sample as refused (:data:`GRAVITY_RULE`), not as an error."""
+
+
+#: The name a sweep's row gives a sample refused by :class:`GravityRefused` (its stop rule).
+GRAVITY_RULE = "gravity-refused"
+
+
+def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
+                  saturation: np.ndarray | None = None, actuated: list | None = None) -> None:
+    """Refuse (:class:`GravityRefused`) a run whose plant needs, against gravity at a unit's
+    initial joint position, more effort on a joint than its drive can give: the joint's
+    effort limit (the supervisor clips every command there) and, where the plant or the
+    drives saturate at their Current Limit, that saturation through the fit (the unit's
+    ``effort_grid``, or ``saturation``: per joint of the system in the loop's order, the real
+    drives' of a hardware run). ``G`` is the plant's (masses scaled, payload added), so the
+    scenario's ``mass_scale`` and ``payload_kg`` count. ``actuated``: the system's actuated
+    joints (the adapter's), whose motors the message names."""
+    first = 0
+    for u in setups:
+        m = u.controller_model
+        q0 = u.x0[:m.nq]
+        gravity = np.abs(np.array(u.plant_model.G_p(q0, u.plant_params), float).ravel())
+        limit = u.effort_limit
+        drive = None
+        if u.effort_grid is not None:
+            drive = u.effort_grid.saturation
+        if saturation is not None:
+            mine = np.asarray(saturation, float)[first:first + m.nq]
+            drive = mine if drive is None else np.minimum(drive, mine)
+        first += m.nq
+        can = limit if drive is None else np.minimum(limit, drive)
+        for j, joint in enumerate(m.joints):
+            if gravity[j] <= can[j] * (1 + 1e-9):
+                continue
+            unit = "N m" if joint.type == "revolute" else "N"
+            if drive is not None and drive[j] < limit[j]:
+                motor = actuated[first - m.nq + j].motor if actuated is not None else None
+                current = motor.current_limit_mA if motor is not None else None
+                source = ("its drive's Current Limit" + (f" ({current:g} mA)" if current
+                                                          else "") + " through the motor's fit, "
+                          f"below the effort limit {limit[j]:.4g} {unit}")
+                remedy = "raise the joint's Current Limit (current_limit_mA)"
+            else:
+                source = "its effort limit"
+                remedy = ("raise the joint's " + ("torque_limit_Nm" if joint.type == "revolute"
+                                                  else "force_limit_N") + " if the motor can")
+            position = (f"{math.degrees(q0[j]):.4g} deg" if joint.type == "revolute"
+                        else f"{q0[j]:.4g} m")
+            raise GravityRefused(
+                f"scenario {sc.path}: unit {u.name}: gravity needs {gravity[j]:.4g} {unit} on "
+                f"joint {joint.name} at its initial position ({position}), more than the "
+                f"{can[j]:.4g} {unit} its drive can give ({source}): the motor cannot hold the "
+                "robot there and it would sag the moment torque is enabled; lower [plant] "
+                f"payload_kg or mass_scale, start from another pose, or {remedy}")
+
+
 #: Distinct symbolic structures a process keeps (:func:`unit_setups`): each holds a few MB of
 #: CasADi graphs; a sweep's worker meets one, or one per structural key it sweeps.
 STRUCTURE_CACHE_SIZE = 8
@@ -441,7 +509,8 @@ def structure_key(sc: scenario_mod.Scenario, system) -> tuple:
                    _array_key(u.initial_velocity), u.elbow, u.desired_joint) for u in sc.units)
     return (sc.robot, id(system), sc.space, float(sc.duration), float(sc.rate_hz),
             sc.parameterisation, sc.controller_actuators, sc.plant_actuators, sc.variant,
-            sc.controller, sc.mirror, tuple(sc.definitions.items()), sc.leader, units)
+            sc.controller, sc.mirror, tuple(sc.definitions.items()), sc.leader, units,
+            float(sc.robust.startup_ramp))
 
 
 def clear_cache() -> None:
@@ -455,6 +524,9 @@ def _structure(sc: scenario_mod.Scenario, adapter, system) -> _Structure:
     scenario_mod.check_desired(sc)
     plans, controllers = [], []
     for plan in adapter.unit_plans(system, sc):
+        if sc.robust.startup_ramp > 0:
+            plan = dataclasses.replace(plan, desired=startup_ramp(plan, sc.space,
+                                                                  sc.robust.startup_ramp))
         check_start(sc, plan)
         controllers.append(build(plan.controller_model, sc.controller, variant=sc.variant,
                                  task_angles=plan.task_angles, task=plan.task))
@@ -462,11 +534,15 @@ def _structure(sc: scenario_mod.Scenario, adapter, system) -> _Structure:
     return _Structure(system, tuple(plans), tuple(controllers))
 
 
-def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup]:
+def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool = True,
+                on_motors: bool = False) -> list[UnitSetup]:
     """Every controlled unit of the scenario, ready to run (the description read once, with
     the scenario). Everything the run's duration (``sc.duration``) lets us check before
     anything moves is checked here: the leader's formulas finite, each unit's initial state
-    and desired path inside the workspace and the limits (the adapters' checks).
+    and desired path inside the workspace and the limits (the adapters' checks), and, unless
+    ``gravity`` is False, that every joint's drive can hold the plant against gravity at the
+    initial pose (:func:`check_gravity`; ``on_motors``: the efforts go through real drives, a
+    hardware run, which saturate at their Current Limit whatever the scenario's plant says).
 
     ``cache``: reuse the models, controllers and checked paths of an earlier call with the
     same :func:`structure_key` in this process (the last :data:`STRUCTURE_CACHE_SIZE`), so a
@@ -500,6 +576,9 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
         n_p = len(m.param_names)
         bound = sc.estimate_bound * max(np.linalg.norm(m.p_nominal), 1e-12)
         p_hat0 = np.zeros(n_p) if sc.initial_estimate == "zero" else m.p_nominal.copy()
+        robust = robust_inputs(sc, m, controller, bound)
+        if robust is not None:  # the estimate starts in its box
+            p_hat0 = np.minimum(np.maximum(p_hat0, robust[1]), robust[2])
         plant_params = perturbed_parameters(plan.plant_model.parameters, sc.plant,
                                             plan.payload_points)
         quantum = offset = drive = None
@@ -521,8 +600,104 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True) -> list[UnitSetup
             coulomb=None if coulomb is None else coulomb[mine],
             drive=None if drive_rows is None else drive_rows[:, mine].ravel(),
             gearbox=sc.plant.gearbox,
-            quantum=quantum, grid_offset=offset, effort_grid=drive))
+            quantum=quantum, grid_offset=offset, effort_grid=drive, robust=robust))
+    if gravity:
+        real = None
+        if on_motors:  # the motors' own Current Limits, whatever the simulated plant applies
+            real = drive_grids(adapter, system, dataclasses.replace(
+                sc.plant, current_quantisation=True))[1]
+        check_gravity(sc, setups, real, adapter.actuated_joints(system))
     return setups
+
+
+#: Parameter kinds (the name's last part) physics keeps non-negative: masses, the inertias
+#: about the link frame's axes, armatures, viscous and Coulomb friction.
+NON_NEGATIVE = ("m", "Ixx", "Iyy", "Izz", "Ia", "Fv", "Fc")
+
+
+def estimate_box(sc: scenario_mod.Scenario, m: RobotModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(p_min, p_max)`` of ``[control] estimate_box_relative`` and ``estimate_sign``: each
+    estimate within ``p_i +- k max(|p_i|, 1e-3 max|p|)`` of its nominal value ``p_i``, and
+    with ``"physical"`` never below zero where the parameter is a mass, an inertia, an
+    armature or a friction (:data:`NON_NEGATIVE`); +-inf where neither applies."""
+    nominal = np.asarray(m.p_nominal, float)
+    n_p = len(nominal)
+    lower, upper = np.full(n_p, -np.inf), np.full(n_p, np.inf)
+    k = sc.robust.box_relative
+    if k is not None:
+        size = np.maximum(np.abs(nominal), 1e-3 * max(np.abs(nominal).max(), 1e-300))
+        lower, upper = nominal - k * size, nominal + k * size
+    if sc.robust.sign == "physical":
+        physical = np.array([name.rsplit(".", 1)[-1] in NON_NEGATIVE for name in m.param_names])
+        lower = np.where(physical, np.maximum(lower, 0.0), lower)
+    return lower, upper
+
+
+def robust_inputs(sc: scenario_mod.Scenario, m: RobotModel, controller: Controller,
+                  bound: float) -> tuple[np.ndarray, ...] | None:
+    """The controller's robust inputs (:data:`cochlea.control.controllers.ROBUST_INPUTS`) for
+    one unit of the scenario, or None when every option is off (the neutral inputs). A box
+    reaching outside the ball ``|p_hat| <= bound`` is refused: the step clips to the box last,
+    so such a box could carry the estimate past the bound the supervisor stops on."""
+    o = sc.robust
+    if (o.deadzone is None and o.box_relative is None and o.sign == "free"
+            and (o.static_ratio is None or not np.any(o.static_ratio > 1))):
+        return None
+    deadzone, _, _, excess, stribeck = controller.neutral()
+    if o.deadzone is not None:
+        deadzone = np.asarray(o.deadzone, float).copy()
+    lower, upper = estimate_box(sc, m)
+    far = np.maximum(np.abs(lower), np.abs(upper))
+    if o.box_relative is not None and np.linalg.norm(far) > bound * (1 + 1e-12):
+        raise CochleaError(
+            f"scenario {sc.path}: [control] estimate_box_relative = {o.box_relative:g} puts "
+            f"the box's far corner at |p| = {np.linalg.norm(far):.4g}, outside the projection "
+            f"ball |p_hat| <= {bound:.4g} (estimate_bound = {sc.estimate_bound:g} times "
+            "|p_nominal|): lower the box or raise estimate_bound")
+    if o.static_ratio is not None:
+        excess = np.asarray(o.static_ratio, float) - 1.0
+        stribeck = np.asarray(o.stribeck_velocity, float).copy()
+    return deadzone, lower, upper, excess, stribeck
+
+
+def quintic_blend(tau):
+    """``10 tau^3 - 15 tau^4 + 6 tau^5``: 0 to 1 over ``tau`` in [0, 1] with zero first and
+    second derivatives at both ends (C2), held at 1 after."""
+    tau = ca.fmin(ca.fmax(tau, 0), 1)
+    return tau ** 3 * (10 - 15 * tau + 6 * tau ** 2)
+
+
+def startup_ramp(plan, space: str, duration: float) -> ca.Function:
+    """``plan.desired`` blended from the unit's initial pose onto the planned path over
+    ``duration`` s (``[control] startup_ramp_s``): ``x_r = x_d + (1 - s(t / T)) (x_0 - x_d)``
+    with the quintic ``s`` (:func:`quintic_blend`), so ``x_r(0) = x_0`` with zero velocity and
+    acceleration, ``x_r = x_d`` exactly from ``T`` on, and velocity and acceleration
+    continuous and finite throughout (exact derivatives, symbolic). ``x_0`` is the initial
+    joint position, or in task space the initial task pose (each angle taken within half a
+    turn of the planned one at t = 0)."""
+    m = plan.controller_model
+    q0 = np.asarray(plan.x0[:m.nq], float)
+    if space == "joint":
+        start = q0
+    else:
+        fk = plan.task[0] if plan.task is not None else plan.fk_world
+        start = np.array(fk(q0), float).ravel()
+        planned = np.array(plan.desired(0.0)[0], float).ravel()
+        for i in plan.task_angles:
+            start[i] += 2 * np.pi * np.round((planned[i] - start[i]) / (2 * np.pi))
+    t = ca.SX.sym("t")
+    xd, xd_dot, xd_ddot = plan.desired(t)
+    s = quintic_blend(t / duration)
+    s_dot = ca.jacobian(s, t)
+    s_ddot = ca.jacobian(s_dot, t)
+    away = xd - ca.DM(start)
+    # x_r = s x_d + (1 - s) x_0, differentiated with the planned path's own derivatives.
+    x = xd - (1 - s) * away
+    x_dot = s * xd_dot + s_dot * away
+    x_ddot = s * xd_ddot + 2 * s_dot * xd_dot + s_ddot * away
+    f = plan.desired
+    return ca.Function(f"{f.name()}_ramped", [t], [x, x_dot, x_ddot], f.name_in(),
+                       f.name_out())
 
 
 def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.ndarray:
@@ -530,6 +705,23 @@ def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.
     positive (round half to even, as C's ``nearbyint``), unchanged elsewhere."""
     on_grid = offset + quantum * np.rint((values - offset) / np.where(quantum > 0, quantum, 1.0))
     return np.where(quantum > 0, on_grid, values)
+
+
+def measurements(states: np.ndarray, delay: int, noise: np.ndarray | None = None,
+                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """What the controller saw in every period of a run, from the true states ``[q, qd]`` it
+    logged: row k is ``states[max(k - delay, 0)] + noise[k]``, on the measurement grid where
+    there is one; the same floating-point operations as the C driver (and
+    :class:`MeasurementGrid`). ``states`` itself when the plant measures exactly."""
+    if not delay and noise is None and quantum is None:
+        return states
+    seen = states[np.maximum(np.arange(len(states)) - delay, 0)] if delay else states.copy()
+    if noise is not None:
+        seen += noise[:len(states)]
+    if quantum is not None:
+        seen = quantise(seen, quantum, offset)
+    return seen
 
 
 class MeasurementGrid:

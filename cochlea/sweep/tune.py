@@ -297,8 +297,10 @@ def judge(rows: list[dict], objective: str) -> dict:
     or a stop rule, a divergence or a non-finite error."""
     ratio = np.array([r["convergence_ratio"] for r in rows], float)
     ratio = np.where(np.isfinite(ratio), ratio, np.inf)
-    torque = np.array([max((v for k, v in r.items() if k.startswith("torque_ratio.")),
-                           default=0.0) for r in rows], float)
+    # A sample refused before it ran (gravity above a drive's limit) has no torque (NaN); its
+    # stop rule makes the candidate infeasible.
+    torque = np.array([max((v for k, v in r.items() if k.startswith("torque_ratio.")
+                            and not math.isnan(v)), default=0.0) for r in rows], float)
     stopped = [r["stop_rule"] != "none" or bool(r["diverged"]) or not math.isfinite(x)
                for r, x in zip(rows, ratio)]
     value = reduce(ratio, objective)

@@ -67,6 +67,9 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     b->homing_drive = -1;
     b->homing_marker = 0;
     b->homing_offset = 0.0;
+    b->offset_current = 1;
+    b->torque_pending = 0;
+    b->torque_failed_id = -1;
     b->active = 0;
     b->suspect = 0;
     b->reads = b->good_reads = b->writes = 0;
@@ -446,6 +449,9 @@ int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd)
     if (!b->active) {
         return fail(b, COCHLEA_FAIL_NOT_ENABLED, -1);
     }
+    if (b->torque_failed_id >= 0) { /* the torque did not come on: stop the run safely */
+        return fail(b, COCHLEA_FAIL_NOT_ENABLED, b->torque_failed_id);
+    }
     return sync_read(b, q, qd);
 }
 
@@ -480,13 +486,30 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
         finite = finite && (tau[i] - tau[i]) == 0.0;
     }
     for (i = 0; i < b->n; ++i) { /* a NaN or infinite command: zero current, and report it */
-        b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i]) : 0;
+        b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i], b->offset_current) : 0;
     }
     len = goal_frame(b, ADDR_GOAL_CURRENT, 2, b->goal, 0);
     if (len < 0 || !send(b, b->write_frame, (size_t)len)) {
         return fail(b, COCHLEA_FAIL_PORT, -1);
     }
-    return finite ? 1 : fail(b, COCHLEA_FAIL_NON_FINITE, -1);
+    if (!finite) {
+        return fail(b, COCHLEA_FAIL_NON_FINITE, -1);
+    }
+    if (b->torque_pending) { /* start-up step 9, with the first nonzero command */
+        int any = 0;
+        for (i = 0; i < b->n; ++i) {
+            any = any || b->goal[i] != 0;
+        }
+        if (any) {
+            cochlea_start_report r;
+            b->torque_pending = 0;
+            if (!write_all(b, COCHLEA_STEP_TORQUE_ON, ADDR_TORQUE_ENABLE, 1, 0, 1, &r)) {
+                b->torque_failed_id = r.drive >= 0 ? b->drives[r.drive].id : 254;
+                return fail(b, COCHLEA_FAIL_NOT_ENABLED, b->torque_failed_id);
+            }
+        }
+    }
+    return 1;
 }
 
 /* ---- start-up and shut-down ----------------------------------------------------------------- */
@@ -613,7 +636,11 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
             return fail_start(r, COCHLEA_START_OUTSIDE_LIMITS, COCHLEA_STEP_LIMITS, i, 0);
         }
     }
-    return write_all(b, COCHLEA_STEP_TORQUE_ON, ADDR_TORQUE_ENABLE, 1, 0, 1, r);
+    /* 9. Torque on: with the first nonzero command (cochlea_bridge_write), after its Goal
+     * Current, so that no motor is powered at zero current while the loop gets ready. */
+    b->torque_pending = 1;
+    b->torque_failed_id = -1;
+    return 1;
 }
 
 int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report)

@@ -11,7 +11,11 @@
  *   7. Bus Watchdog: the motors stop by themselves if the loop stops talking;
  *   8. SYNC_READ until the first good read; unwrap the single-turn encoders to the turn nearest
  *      the middle of each joint's limits, and refuse a joint outside its limits;
- *   9. Torque Enable 1.
+ *   9. Torque Enable 1, deferred to the first nonzero command (cochlea_bridge_write): its Goal
+ *      Current first, then Torque Enable 1 on every motor, each confirmed, so that no motor is
+ *      powered at zero current while the loop gets ready (the parallel robot's slider fell
+ *      meanwhile on the emulator). A refusal fails that write and every read after it
+ *      (not-enabled), so the loop's read watchdog stops the run.
  * Each period: cochlea_bridge_read is one SYNC_READ of Present Current, Velocity and Position
  * (126..135; with the Realtime Tick check, 120..135), cochlea_bridge_write one SYNC_WRITE of
  * Goal Current. Failures (timeout, CRC, error byte, hardware alert, length, port, late
@@ -105,8 +109,13 @@ typedef struct {
     int homing_drive;           /* the homed slider's drive index, -1: no homing check */
     uint16_t homing_marker;     /* the token it must hold (the homing record's) */
     double homing_offset;       /* its position offset from the record (m) */
+    int offset_current;         /* 1 (the default): each command gets the fit's offset current,
+                                 * the gearbox's friction; 0: the controller compensates it
+                                 * (the scenario's bridge_offset_current) */
     /* State. */
     int active;                 /* between a successful start and the stop */
+    int torque_pending;         /* Torque Enable 1 still to come, with the first nonzero command */
+    int torque_failed_id;       /* the motor that refused it (every read then fails), or -1 */
     int suspect;                /* a failed read: wait for a quiet line before the next */
     double position_offset[COCHLEA_MAX_DRIVES];
     int16_t present_current[COCHLEA_MAX_DRIVES];  /* LSB, last good read */
@@ -146,7 +155,8 @@ int cochlea_bridge_use_realtime_tick(cochlea_bridge *b);
  * is then q_per_count counts + offset (the homing record's stop), and the marker is written
  * back after the configuration. Call before cochlea_bridge_start. */
 void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset);
-/* Steps 1-9; 1 on success (torque on), else 0 with *report filled, after the safe stop. */
+/* Steps 1-8, step 9 armed for the first nonzero command; 1 on success, else 0 with *report
+ * filled, after the safe stop. */
 int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report);
 /* One SYNC_READ into q[n], qd[n] (SI); 1, or 0 on a failure (counted). */
 int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd);

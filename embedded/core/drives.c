@@ -32,7 +32,7 @@ double cochlea_drive_unwrap(const cochlea_drive *d, double q, double position_of
     return position_offset + two_pi * turns;
 }
 
-int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort)
+int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort, int offset_current)
 {
     const double torque = effort * d->torque_per_effort;
     const double limit = (double)d->current_limit_lsb;
@@ -42,7 +42,7 @@ int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort)
     }
     blend = torque * d->inv_ramp;
     blend = blend < -1.0 ? -1.0 : (blend > 1.0 ? 1.0 : blend);
-    blend = blend * d->i0;
+    blend = offset_current ? blend * d->i0 : 0.0;
     amps = torque * d->inv_a + blend;
     amps = nearbyint(amps * d->lsb_per_ampere);
     amps = amps < -limit ? -limit : (amps > limit ? limit : amps);

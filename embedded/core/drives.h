@@ -49,9 +49,11 @@ double cochlea_drive_velocity(const cochlea_drive *d, int32_t velocity_lsb);
 double cochlea_drive_unwrap(const cochlea_drive *d, double q, double position_offset);
 /* Goal Current (LSB) for a joint effort: the fit's inverse
  * I = tau_m / a + I0 clip(tau_m / ramp, -1, 1), tau_m = torque_per_effort effort, rounded
- * half to even, within +-current_limit_lsb. A non-finite effort gives 0 (the caller reports
- * it). */
-int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort);
+ * half to even, within +-current_limit_lsb. offset_current 0 leaves out the offset term I0
+ * (the gearbox's friction), for a controller that compensates friction itself: friction is
+ * compensated once (cochlea.robots.motor_fit.bridge_compensates_friction). A non-finite
+ * effort gives 0 (the caller reports it). */
+int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort, int offset_current);
 /* The measured motor current (A) of a Present Current reading (LSB), at the joint's sign:
  * what cochlea-run logs as current.<joint>_A (the Python bridge's joint_current_A). */
 double cochlea_drive_current(const cochlea_drive *d, int16_t present_lsb);

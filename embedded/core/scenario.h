@@ -65,6 +65,10 @@ typedef struct {
     const double *(*estimate)(const void *state);
     /* The keep-out tool points at q[nq]: (u, v) of each point and of its circle's centre. */
     int (*tool_points)(const double *q, double *points, double *centres);
+    /* 1: the bridge adds the fit's offset current to every command (it compensates the
+     * gearbox's friction); 0: the controller's model carries friction and compensates it, so
+     * the bridge must not (cochlea.robots.motor_fit.bridge_compensates_friction). */
+    int bridge_offset_current;
 } cochlea_scenario;
 
 #ifdef __cplusplus

@@ -76,7 +76,14 @@
     "final RMS over the last 20% <= 5% of the initial absolute error, or below 1e-05 rad, "   \
     "1e-06 m (with encoder counts, of the plant or of a hardware run's drives: below the "     \
     "coordinate's measurement_resolution, one count on every joint; each coordinate's "        \
-    "convergence_floor)"
+    "convergence_floor), on the tracking error judged_error names; converged overall only if " \
+    "every coordinate converged, nothing diverged and no supervisor rule stopped the run (real " \
+    "time) or would have (as fast as possible: supervisor)"
+/* On the motors the program knows only what it measures: judged_error and logged_state say so,
+ * and each coordinate's measured_* numbers are its judged ones, as cochlea-run writes them. */
+#define LOGGED_STATE                                                                          \
+    "measured only: a hardware run knows the robot only through its encoders and velocity "    \
+    "registers (q, qd, pose, error)"
 
 /* ---- options ------------------------------------------------------------------------------ */
 
@@ -1627,7 +1634,9 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
                   "          \"converged\": false,\n", f);
             key(f, 10, "convergence_floor");
             json_number(f, floor_);
-            fputs("\n", f);
+            fputs(",\n          \"measured_initial_abs_error\": null,\n"
+                  "          \"measured_final_rms_error\": null,\n"
+                  "          \"measured_converged\": false\n", f);
             all = 0;
         } else {
             const double initial = fabs(st->first[off + i]);
@@ -1646,6 +1655,16 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
             /* the floor it was judged on: the numeric one, or one count on every joint */
             key(f, 10, "convergence_floor");
             json_number(f, floor_);
+            fputs(",\n", f);
+            /* the error the controller measured: on the motors, the one judged */
+            key(f, 10, "measured_initial_abs_error");
+            json_number(f, initial);
+            fputs(",\n", f);
+            key(f, 10, "measured_final_rms_error");
+            json_number(f, rms);
+            fputs(",\n", f);
+            key(f, 10, "measured_converged");
+            fputs(ok ? "true" : "false", f);
             if (res) {
                 fputs(",\n", f);
                 key(f, 10, "measurement_resolution");
@@ -1839,6 +1858,8 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     key(f, 6, "watchdog_s");
     json_number(f, facts->watchdog_s);
     fprintf(f, ",\n      \"realtime_tick_check\": %s", b->realtime_tick ? "true" : "false");
+    fprintf(f, ",\n      \"friction_compensated_by\": \"%s\"",
+            b->offset_current ? "bridge" : "controller");
     fprintf(f, ",\n      \"reads\": %u,\n      \"good_reads\": %u,\n      \"writes\": %u,\n",
             b->reads, b->good_reads, b->writes);
     key(f, 6, "failures");
@@ -1906,6 +1927,12 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     fprintf(f, ",\n  \"periods\": %ld,\n", rows);
     key(f, 2, "convergence_rule");
     json_string(f, CONVERGENCE_RULE);
+    fputs(",\n", f);
+    key(f, 2, "judged_error");
+    json_string(f, "measured");
+    fputs(",\n", f);
+    key(f, 2, "logged_state");
+    json_string(f, LOGGED_STATE);
     fputs(",\n", f);
     /* "converged" needs the units: written last-but-known, so leave room and come back. */
     key(f, 2, "converged");
@@ -2347,6 +2374,8 @@ int main(int argc, char **argv)
         return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
+    /* Friction compensated once: by the bridge's offset current or by the controller. */
+    bridge.offset_current = sc->bridge_offset_current;
     if (homing.drive >= 0) {
         cochlea_bridge_expect_homing(&bridge, homing.drive, homing.marker, homing.offset);
     }

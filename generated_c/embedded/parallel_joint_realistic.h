@@ -62,6 +62,14 @@ typedef struct {
   double p_hat0[PARALLEL_JOINT_REALISTIC_NP];        /* initial estimate */
   double effort_limit[PARALLEL_JOINT_REALISTIC_NQ];  /* per joint, |command| <= limit (N m or N) */
   double h;                     /* s: control period (the Euler step of p_hat) */
+  /* Robust options (docs/controllers.md): the adaptation's dead zone per joint (rad/s
+   * or m/s, 0: none), each estimate's box (+-HUGE_VAL: none), the static friction
+   * over Coulomb minus 1 (0: none) and the Stribeck velocity per joint (rad/s, m/s). */
+  double deadzone[PARALLEL_JOINT_REALISTIC_NQ];
+  double p_min[PARALLEL_JOINT_REALISTIC_NP];
+  double p_max[PARALLEL_JOINT_REALISTIC_NP];
+  double static_excess[PARALLEL_JOINT_REALISTIC_NQ];
+  double stribeck_velocity[PARALLEL_JOINT_REALISTIC_NQ];
 } parallel_joint_realistic_config;
 
 /* The controller's state; the caller owns it (no allocation anywhere). */
@@ -73,6 +81,9 @@ typedef struct {
   parallel_joint_realistic_real gamma[PARALLEL_JOINT_REALISTIC_NP];
   parallel_joint_realistic_real bound_real[PARALLEL_JOINT_REALISTIC_UNITS];
   parallel_joint_realistic_real effort_limit[PARALLEL_JOINT_REALISTIC_NQ];
+  double p_min[PARALLEL_JOINT_REALISTIC_NP], p_max[PARALLEL_JOINT_REALISTIC_NP];
+  parallel_joint_realistic_real deadzone_real[PARALLEL_JOINT_REALISTIC_NQ], p_min_real[PARALLEL_JOINT_REALISTIC_NP], p_max_real[PARALLEL_JOINT_REALISTIC_NP];
+  parallel_joint_realistic_real static_excess[PARALLEL_JOINT_REALISTIC_NQ], stribeck_velocity[PARALLEL_JOINT_REALISTIC_NQ];
   unsigned long steps;          /* periods run since init */
   int ready;                    /* 1 between init and terminate */
 } parallel_joint_realistic_state;
@@ -81,14 +92,16 @@ typedef struct {
 void parallel_joint_realistic_default_config(parallel_joint_realistic_config *c);
 
 /* Copy the configuration into the state and set p_hat = p_hat0. Returns 0, or -1 if a
- * value is unusable (h or a bound not positive, a limit negative, not finite). */
+ * value is unusable (h or a bound not positive, a limit negative, not finite; a dead
+ * zone, static excess or Stribeck velocity negative or not finite; p_min > p_max). */
 int parallel_joint_realistic_init(parallel_joint_realistic_state *s, const parallel_joint_realistic_config *c);
 
 /* One control period at time t (s since the start of the trajectory):
  * measurement[NX]: per unit, joint positions then velocities (rad, m, rad/s, m/s);
  * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;
  * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.
- * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound), in double.
+ * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound, then clipped
+ * to its box [p_min, p_max]), in double.
  * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the
  * next estimate is not (the state is then left unchanged, command_out as computed). */
 int parallel_joint_realistic_step(parallel_joint_realistic_state *s, double t, const parallel_joint_realistic_real measurement[PARALLEL_JOINT_REALISTIC_NX],

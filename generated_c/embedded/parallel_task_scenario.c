@@ -75,5 +75,6 @@ const cochlea_scenario parallel_task_scenario = {
     0.001, 10.0, 0.06,
     PARALLEL_TASK_UNITS, units, PARALLEL_TASK_NQ, PARALLEL_TASK_ND, PARALLEL_TASK_NP, PARALLEL_TASK_NE, PARALLEL_TASK_NPOINTS,
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
-    sizeof(parallel_task_state), (int)sizeof(parallel_task_real), init, step, terminate, desired, estimate, tool_points
+    sizeof(parallel_task_state), (int)sizeof(parallel_task_real), init, step, terminate, desired, estimate, tool_points,
+    1
 };

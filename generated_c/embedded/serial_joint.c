@@ -98,7 +98,7 @@ static int serial_joint_arm1_desired(const serial_joint_real** arg, serial_joint
   return 0;
 }
 
-/* arm1: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1]) -> (tau[3], p_hat_dot[3], errors[6]) */
+/* arm1: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1], deadzone[3], p_min[3], p_max[3], static_excess[3], stribeck_velocity[3]) -> (tau[3], p_hat_dot[3], errors[6]) */
 static int serial_joint_arm1_law(const serial_joint_real** arg, serial_joint_real** res) {
   serial_joint_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
   serial_joint_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
@@ -466,62 +466,107 @@ static int serial_joint_arm1_law(const serial_joint_real** arg, serial_joint_rea
   a03=(a03*a60);
   a58=(a58+a03);
   if (res[0]!=0) res[0][2]=a58;
-  a58=arg[7]? arg[7][0] : 0;
-  a00=(a00*a05);
-  a00=(a58*a00);
-  a03=CR(9.9999999900000003e-01);
-  a57=arg[8]? arg[8][0] : 0;
-  a57=CSQ(a57);
-  a03=(a03*a57);
-  a57=CSQ(a06);
-  a23=CSQ(a30);
-  a57=(a57+a23);
-  a23=CSQ(a35);
-  a57=(a57+a23);
-  a03=(a03<=a57);
-  a57=CR(0.);
-  a23=(a06*a00);
-  a04=arg[7]? arg[7][1] : 0;
-  a18=(a18*a05);
-  a14=(a14*a25);
+  a58=arg[11]? arg[11][0] : 0;
+  a58=(a06<a58);
+  a03=arg[7]? arg[7][0] : 0;
+  a57=arg[9]? arg[9][0] : 0;
+  a23=(-a57);
+  a23=CM(fmax)(a05,a23);
+  a23=CM(fmin)(a23,a57);
+  a23=(a05-a23);
+  a00=(a00*a23);
+  a00=(a03*a00);
+  a57=CR(9.9999999900000003e-01);
+  a04=arg[8]? arg[8][0] : 0;
+  a04=CSQ(a04);
+  a57=(a57*a04);
+  a04=CSQ(a06);
+  a53=CSQ(a30);
+  a04=(a04+a53);
+  a53=CSQ(a35);
+  a04=(a04+a53);
+  a57=(a57<=a04);
+  a04=CR(0.);
+  a53=(a06*a00);
+  a27=arg[7]? arg[7][1] : 0;
+  a18=(a18*a23);
+  a65=arg[9]? arg[9][1] : 0;
+  a47=(-a65);
+  a47=CM(fmax)(a25,a47);
+  a47=CM(fmin)(a47,a65);
+  a47=(a25-a47);
+  a14=(a14*a47);
   a18=(a18+a14);
-  a18=(a04*a18);
+  a18=(a27*a18);
   a14=(a30*a18);
-  a23=(a23+a14);
+  a53=(a53+a14);
   a14=arg[7]? arg[7][2] : 0;
-  a44=(a44*a05);
-  a41=(a41*a25);
+  a44=(a44*a23);
+  a41=(a41*a47);
   a44=(a44+a41);
-  a01=(a01*a60);
+  a41=arg[9]? arg[9][2] : 0;
+  a47=(-a41);
+  a47=CM(fmax)(a60,a47);
+  a47=CM(fmin)(a47,a41);
+  a47=(a60-a47);
+  a01=(a01*a47);
   a44=(a44+a01);
   a44=(a14*a44);
   a01=(a35*a44);
-  a23=(a23+a01);
-  a57=(a57<a23);
-  a03=(a03!=CR(0.)&&a57!=CR(0.));
-  a58=(a58*a06);
-  a06=(a06*a58);
-  a04=(a04*a30);
-  a30=(a30*a04);
-  a06=(a06+a30);
+  a53=(a53+a01);
+  a01=(a04<a53);
+  a57=(a57!=CR(0.)&&a01!=CR(0.));
+  a03=(a03*a06);
+  a01=(a06*a03);
+  a27=(a27*a30);
+  a47=(a30*a27);
+  a01=(a01+a47);
   a14=(a14*a35);
-  a35=(a35*a14);
-  a06=(a06+a35);
-  a35=CTINY(1.0000000000000000e-300);
-  a06=CM(fmax)(a06,a35);
-  a23=(a23/a06);
-  a58=(a58*a23);
-  a58=(a03!=CR(0.)?a58:0);
-  a00=(a00-a58);
-  if (res[1]!=0) res[1][0]=a00;
-  a04=(a04*a23);
-  a04=(a03!=CR(0.)?a04:0);
-  a18=(a18-a04);
-  if (res[1]!=0) res[1][1]=a18;
-  a14=(a14*a23);
-  a03=(a03!=CR(0.)?a14:0);
-  a44=(a44-a03);
-  if (res[1]!=0) res[1][2]=a44;
+  a47=(a35*a14);
+  a01=(a01+a47);
+  a47=CTINY(1.0000000000000000e-300);
+  a01=CM(fmax)(a01,a47);
+  a53=(a53/a01);
+  a03=(a03*a53);
+  a03=(a57!=CR(0.)?a03:0);
+  a00=(a00-a03);
+  a03=(a00<=a04);
+  a58=(a58!=CR(0.)||a03!=CR(0.));
+  a03=arg[10]? arg[10][0] : 0;
+  a03=(a03<a06);
+  a06=(a04<=a00);
+  a03=(a03!=CR(0.)||a06!=CR(0.));
+  a58=(a58!=CR(0.)&&a03!=CR(0.));
+  a58=(a58!=CR(0.)?a00:0);
+  if (res[1]!=0) res[1][0]=a58;
+  a58=arg[11]? arg[11][1] : 0;
+  a58=(a30<a58);
+  a27=(a27*a53);
+  a27=(a57!=CR(0.)?a27:0);
+  a18=(a18-a27);
+  a27=(a18<=a04);
+  a58=(a58!=CR(0.)||a27!=CR(0.));
+  a27=arg[10]? arg[10][1] : 0;
+  a27=(a27<a30);
+  a30=(a04<=a18);
+  a27=(a27!=CR(0.)||a30!=CR(0.));
+  a58=(a58!=CR(0.)&&a27!=CR(0.));
+  a58=(a58!=CR(0.)?a18:0);
+  if (res[1]!=0) res[1][1]=a58;
+  a58=arg[11]? arg[11][2] : 0;
+  a58=(a35<a58);
+  a14=(a14*a53);
+  a57=(a57!=CR(0.)?a14:0);
+  a44=(a44-a57);
+  a57=(a44<=a04);
+  a58=(a58!=CR(0.)||a57!=CR(0.));
+  a57=arg[10]? arg[10][2] : 0;
+  a57=(a57<a35);
+  a04=(a04<=a44);
+  a57=(a57!=CR(0.)||a04!=CR(0.));
+  a58=(a58!=CR(0.)&&a57!=CR(0.));
+  a58=(a58!=CR(0.)?a44:0);
+  if (res[1]!=0) res[1][2]=a58;
   if (res[2]!=0) res[2][0]=a26;
   if (res[2]!=0) res[2][1]=a20;
   if (res[2]!=0) res[2][2]=a38;
@@ -1011,7 +1056,7 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   return 0;
 }
 
-/* arm2: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1]) -> (tau[3], p_hat_dot[3], errors[6]) */
+/* arm2: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1], deadzone[3], p_min[3], p_max[3], static_excess[3], stribeck_velocity[3]) -> (tau[3], p_hat_dot[3], errors[6]) */
 static int serial_joint_arm2_law(const serial_joint_real** arg, serial_joint_real** res) {
   serial_joint_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
   serial_joint_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
@@ -1379,62 +1424,107 @@ static int serial_joint_arm2_law(const serial_joint_real** arg, serial_joint_rea
   a03=(a03*a60);
   a58=(a58+a03);
   if (res[0]!=0) res[0][2]=a58;
-  a58=arg[7]? arg[7][0] : 0;
-  a00=(a00*a05);
-  a00=(a58*a00);
-  a03=CR(9.9999999900000003e-01);
-  a57=arg[8]? arg[8][0] : 0;
-  a57=CSQ(a57);
-  a03=(a03*a57);
-  a57=CSQ(a06);
-  a23=CSQ(a30);
-  a57=(a57+a23);
-  a23=CSQ(a35);
-  a57=(a57+a23);
-  a03=(a03<=a57);
-  a57=CR(0.);
-  a23=(a06*a00);
-  a04=arg[7]? arg[7][1] : 0;
-  a18=(a18*a05);
-  a14=(a14*a25);
+  a58=arg[11]? arg[11][0] : 0;
+  a58=(a06<a58);
+  a03=arg[7]? arg[7][0] : 0;
+  a57=arg[9]? arg[9][0] : 0;
+  a23=(-a57);
+  a23=CM(fmax)(a05,a23);
+  a23=CM(fmin)(a23,a57);
+  a23=(a05-a23);
+  a00=(a00*a23);
+  a00=(a03*a00);
+  a57=CR(9.9999999900000003e-01);
+  a04=arg[8]? arg[8][0] : 0;
+  a04=CSQ(a04);
+  a57=(a57*a04);
+  a04=CSQ(a06);
+  a53=CSQ(a30);
+  a04=(a04+a53);
+  a53=CSQ(a35);
+  a04=(a04+a53);
+  a57=(a57<=a04);
+  a04=CR(0.);
+  a53=(a06*a00);
+  a27=arg[7]? arg[7][1] : 0;
+  a18=(a18*a23);
+  a65=arg[9]? arg[9][1] : 0;
+  a47=(-a65);
+  a47=CM(fmax)(a25,a47);
+  a47=CM(fmin)(a47,a65);
+  a47=(a25-a47);
+  a14=(a14*a47);
   a18=(a18+a14);
-  a18=(a04*a18);
+  a18=(a27*a18);
   a14=(a30*a18);
-  a23=(a23+a14);
+  a53=(a53+a14);
   a14=arg[7]? arg[7][2] : 0;
-  a44=(a44*a05);
-  a41=(a41*a25);
+  a44=(a44*a23);
+  a41=(a41*a47);
   a44=(a44+a41);
-  a01=(a01*a60);
+  a41=arg[9]? arg[9][2] : 0;
+  a47=(-a41);
+  a47=CM(fmax)(a60,a47);
+  a47=CM(fmin)(a47,a41);
+  a47=(a60-a47);
+  a01=(a01*a47);
   a44=(a44+a01);
   a44=(a14*a44);
   a01=(a35*a44);
-  a23=(a23+a01);
-  a57=(a57<a23);
-  a03=(a03!=CR(0.)&&a57!=CR(0.));
-  a58=(a58*a06);
-  a06=(a06*a58);
-  a04=(a04*a30);
-  a30=(a30*a04);
-  a06=(a06+a30);
+  a53=(a53+a01);
+  a01=(a04<a53);
+  a57=(a57!=CR(0.)&&a01!=CR(0.));
+  a03=(a03*a06);
+  a01=(a06*a03);
+  a27=(a27*a30);
+  a47=(a30*a27);
+  a01=(a01+a47);
   a14=(a14*a35);
-  a35=(a35*a14);
-  a06=(a06+a35);
-  a35=CTINY(1.0000000000000000e-300);
-  a06=CM(fmax)(a06,a35);
-  a23=(a23/a06);
-  a58=(a58*a23);
-  a58=(a03!=CR(0.)?a58:0);
-  a00=(a00-a58);
-  if (res[1]!=0) res[1][0]=a00;
-  a04=(a04*a23);
-  a04=(a03!=CR(0.)?a04:0);
-  a18=(a18-a04);
-  if (res[1]!=0) res[1][1]=a18;
-  a14=(a14*a23);
-  a03=(a03!=CR(0.)?a14:0);
-  a44=(a44-a03);
-  if (res[1]!=0) res[1][2]=a44;
+  a47=(a35*a14);
+  a01=(a01+a47);
+  a47=CTINY(1.0000000000000000e-300);
+  a01=CM(fmax)(a01,a47);
+  a53=(a53/a01);
+  a03=(a03*a53);
+  a03=(a57!=CR(0.)?a03:0);
+  a00=(a00-a03);
+  a03=(a00<=a04);
+  a58=(a58!=CR(0.)||a03!=CR(0.));
+  a03=arg[10]? arg[10][0] : 0;
+  a03=(a03<a06);
+  a06=(a04<=a00);
+  a03=(a03!=CR(0.)||a06!=CR(0.));
+  a58=(a58!=CR(0.)&&a03!=CR(0.));
+  a58=(a58!=CR(0.)?a00:0);
+  if (res[1]!=0) res[1][0]=a58;
+  a58=arg[11]? arg[11][1] : 0;
+  a58=(a30<a58);
+  a27=(a27*a53);
+  a27=(a57!=CR(0.)?a27:0);
+  a18=(a18-a27);
+  a27=(a18<=a04);
+  a58=(a58!=CR(0.)||a27!=CR(0.));
+  a27=arg[10]? arg[10][1] : 0;
+  a27=(a27<a30);
+  a30=(a04<=a18);
+  a27=(a27!=CR(0.)||a30!=CR(0.));
+  a58=(a58!=CR(0.)&&a27!=CR(0.));
+  a58=(a58!=CR(0.)?a18:0);
+  if (res[1]!=0) res[1][1]=a58;
+  a58=arg[11]? arg[11][2] : 0;
+  a58=(a35<a58);
+  a14=(a14*a53);
+  a57=(a57!=CR(0.)?a14:0);
+  a44=(a44-a57);
+  a57=(a44<=a04);
+  a58=(a58!=CR(0.)||a57!=CR(0.));
+  a57=arg[10]? arg[10][2] : 0;
+  a57=(a57<a35);
+  a04=(a04<=a44);
+  a57=(a57!=CR(0.)||a04!=CR(0.));
+  a58=(a58!=CR(0.)&&a57!=CR(0.));
+  a58=(a58!=CR(0.)?a44:0);
+  if (res[1]!=0) res[1][2]=a58;
   if (res[2]!=0) res[2][0]=a26;
   if (res[2]!=0) res[2][1]=a20;
   if (res[2]!=0) res[2][2]=a38;
@@ -1547,6 +1637,46 @@ void serial_joint_default_config(serial_joint_config *c) {
   c->effort_limit[5] = 2.5;
   c->bound[0] = 1.2405940875241992;  /* arm1 */
   c->bound[1] = 1.2405940875241992;  /* arm2 */
+  /* arm1: deadzone */
+  c->deadzone[0] = 0.0;
+  c->deadzone[1] = 0.0;
+  c->deadzone[2] = 0.0;
+  /* arm2: deadzone */
+  c->deadzone[3] = 0.0;
+  c->deadzone[4] = 0.0;
+  c->deadzone[5] = 0.0;
+  /* arm1: p_min */
+  c->p_min[0] = -HUGE_VAL;
+  c->p_min[1] = -HUGE_VAL;
+  c->p_min[2] = -HUGE_VAL;
+  /* arm2: p_min */
+  c->p_min[3] = -HUGE_VAL;
+  c->p_min[4] = -HUGE_VAL;
+  c->p_min[5] = -HUGE_VAL;
+  /* arm1: p_max */
+  c->p_max[0] = HUGE_VAL;
+  c->p_max[1] = HUGE_VAL;
+  c->p_max[2] = HUGE_VAL;
+  /* arm2: p_max */
+  c->p_max[3] = HUGE_VAL;
+  c->p_max[4] = HUGE_VAL;
+  c->p_max[5] = HUGE_VAL;
+  /* arm1: static_excess */
+  c->static_excess[0] = 0.0;
+  c->static_excess[1] = 0.0;
+  c->static_excess[2] = 0.0;
+  /* arm2: static_excess */
+  c->static_excess[3] = 0.0;
+  c->static_excess[4] = 0.0;
+  c->static_excess[5] = 0.0;
+  /* arm1: stribeck_velocity */
+  c->stribeck_velocity[0] = 1.0;
+  c->stribeck_velocity[1] = 1.0;
+  c->stribeck_velocity[2] = 1.0;
+  /* arm2: stribeck_velocity */
+  c->stribeck_velocity[3] = 1.0;
+  c->stribeck_velocity[4] = 1.0;
+  c->stribeck_velocity[5] = 1.0;
   c->h = 0.001;
 }
 
@@ -1569,6 +1699,19 @@ int serial_joint_init(serial_joint_state *s, const serial_joint_config *c) {
   for (i = 0; i < SERIAL_JOINT_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
     s->effort_limit[i] = (serial_joint_real)c->effort_limit[i];
+  }
+  for (i = 0; i < SERIAL_JOINT_NQ; ++i) {
+    if (!(c->deadzone[i] >= 0.0 && c->deadzone[i] < HUGE_VAL)) return -1;
+    if (!(c->static_excess[i] >= 0.0 && c->static_excess[i] < HUGE_VAL)) return -1;
+    if (!(c->stribeck_velocity[i] >= 0.0 && c->stribeck_velocity[i] < HUGE_VAL)) return -1;
+    s->deadzone_real[i] = (serial_joint_real)c->deadzone[i];
+    s->static_excess[i] = (serial_joint_real)c->static_excess[i];
+    s->stribeck_velocity[i] = (serial_joint_real)c->stribeck_velocity[i];
+  }
+  for (i = 0; i < SERIAL_JOINT_NP; ++i) {
+    if (!(c->p_min[i] <= c->p_max[i])) return -1;
+    s->p_min[i] = c->p_min[i]; s->p_max[i] = c->p_max[i];
+    s->p_min_real[i] = (serial_joint_real)c->p_min[i]; s->p_max_real[i] = (serial_joint_real)c->p_max[i];
   }
   s->steps = 0;
   s->ready = 1;
@@ -1597,7 +1740,7 @@ int serial_joint_step(serial_joint_state *s, double t, const serial_joint_real m
   serial_joint_real xd[SERIAL_JOINT_ND], xd_dot[SERIAL_JOINT_ND], xd_ddot[SERIAL_JOINT_ND];
   serial_joint_real p_hat[SERIAL_JOINT_NP], p_hat_dot[SERIAL_JOINT_NP];
   double next[SERIAL_JOINT_NP], scale[SERIAL_JOINT_UNITS], norm2;
-  const serial_joint_real* arg[9];
+  const serial_joint_real* arg[14];
   serial_joint_real* res[3];
   int i;
   if (!s->ready) return -1;
@@ -1608,6 +1751,8 @@ int serial_joint_step(serial_joint_state *s, double t, const serial_joint_real m
   arg[2] = xd + 0; arg[3] = xd_dot + 0; arg[4] = xd_ddot + 0;
   arg[5] = p_hat + 0; arg[6] = s->gains + 0; arg[7] = s->gamma + 0;
   arg[8] = s->bound_real + 0;
+  arg[9] = s->deadzone_real + 0; arg[10] = s->p_min_real + 0; arg[11] = s->p_max_real + 0;
+  arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (serial_joint_arm1_law(arg, res)) return -1;
   /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
@@ -1622,6 +1767,8 @@ int serial_joint_step(serial_joint_state *s, double t, const serial_joint_real m
   arg[2] = xd + 3; arg[3] = xd_dot + 3; arg[4] = xd_ddot + 3;
   arg[5] = p_hat + 3; arg[6] = s->gains + 9; arg[7] = s->gamma + 3;
   arg[8] = s->bound_real + 1;
+  arg[9] = s->deadzone_real + 3; arg[10] = s->p_min_real + 3; arg[11] = s->p_max_real + 3;
+  arg[12] = s->static_excess + 3; arg[13] = s->stribeck_velocity + 3;
   res[0] = command_out + 3; res[1] = p_hat_dot + 3; res[2] = errors_out + 6;
   if (serial_joint_arm2_law(arg, res)) return -1;
   /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
@@ -1641,8 +1788,8 @@ int serial_joint_step(serial_joint_state *s, double t, const serial_joint_real m
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < SERIAL_JOINT_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
-  for (i = 0; i < 3; ++i) s->p_hat[i] = next[i] * scale[0];
-  for (i = 3; i < 6; ++i) s->p_hat[i] = next[i] * scale[1];
+  for (i = 0; i < 3; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[0], s->p_min[i]), s->p_max[i]);
+  for (i = 3; i < 6; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[1], s->p_min[i]), s->p_max[i]);
   s->steps += 1;
   return 0;
 }

@@ -85,6 +85,14 @@ typedef struct {
   double p_hat0[SERIAL_JOINT_REALISTIC_NP];        /* initial estimate */
   double effort_limit[SERIAL_JOINT_REALISTIC_NQ];  /* per joint, |command| <= limit (N m or N) */
   double h;                     /* s: control period (the Euler step of p_hat) */
+  /* Robust options (docs/controllers.md): the adaptation's dead zone per joint (rad/s
+   * or m/s, 0: none), each estimate's box (+-HUGE_VAL: none), the static friction
+   * over Coulomb minus 1 (0: none) and the Stribeck velocity per joint (rad/s, m/s). */
+  double deadzone[SERIAL_JOINT_REALISTIC_NQ];
+  double p_min[SERIAL_JOINT_REALISTIC_NP];
+  double p_max[SERIAL_JOINT_REALISTIC_NP];
+  double static_excess[SERIAL_JOINT_REALISTIC_NQ];
+  double stribeck_velocity[SERIAL_JOINT_REALISTIC_NQ];
 } serial_joint_realistic_config;
 
 /* The controller's state; the caller owns it (no allocation anywhere). */
@@ -96,6 +104,9 @@ typedef struct {
   serial_joint_realistic_real gamma[SERIAL_JOINT_REALISTIC_NP];
   serial_joint_realistic_real bound_real[SERIAL_JOINT_REALISTIC_UNITS];
   serial_joint_realistic_real effort_limit[SERIAL_JOINT_REALISTIC_NQ];
+  double p_min[SERIAL_JOINT_REALISTIC_NP], p_max[SERIAL_JOINT_REALISTIC_NP];
+  serial_joint_realistic_real deadzone_real[SERIAL_JOINT_REALISTIC_NQ], p_min_real[SERIAL_JOINT_REALISTIC_NP], p_max_real[SERIAL_JOINT_REALISTIC_NP];
+  serial_joint_realistic_real static_excess[SERIAL_JOINT_REALISTIC_NQ], stribeck_velocity[SERIAL_JOINT_REALISTIC_NQ];
   unsigned long steps;          /* periods run since init */
   int ready;                    /* 1 between init and terminate */
 } serial_joint_realistic_state;
@@ -104,14 +115,16 @@ typedef struct {
 void serial_joint_realistic_default_config(serial_joint_realistic_config *c);
 
 /* Copy the configuration into the state and set p_hat = p_hat0. Returns 0, or -1 if a
- * value is unusable (h or a bound not positive, a limit negative, not finite). */
+ * value is unusable (h or a bound not positive, a limit negative, not finite; a dead
+ * zone, static excess or Stribeck velocity negative or not finite; p_min > p_max). */
 int serial_joint_realistic_init(serial_joint_realistic_state *s, const serial_joint_realistic_config *c);
 
 /* One control period at time t (s since the start of the trajectory):
  * measurement[NX]: per unit, joint positions then velocities (rad, m, rad/s, m/s);
  * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;
  * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.
- * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound), in double.
+ * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound, then clipped
+ * to its box [p_min, p_max]), in double.
  * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the
  * next estimate is not (the state is then left unchanged, command_out as computed). */
 int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX],

@@ -75,7 +75,7 @@ static int serial_task_arm1_desired(const serial_task_real** arg, serial_task_re
   return 0;
 }
 
-/* arm1: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1]) -> (tau[3], p_hat_dot[3], errors[6]) */
+/* arm1: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1], deadzone[3], p_min[3], p_max[3], static_excess[3], stribeck_velocity[3]) -> (tau[3], p_hat_dot[3], errors[6]) */
 static int serial_task_arm1_law(const serial_task_real** arg, serial_task_real** res) {
   serial_task_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
   serial_task_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
@@ -999,69 +999,114 @@ static int serial_task_arm1_law(const serial_task_real** arg, serial_task_real**
   a21=(a21+a42);
   a12=(a12-a21);
   if (res[0]!=0) res[0][2]=a12;
-  a12=arg[7]? arg[7][0] : 0;
-  a00=(a00*a15);
-  a00=(a12*a00);
-  a21=CR(9.9999999900000003e-01);
-  a42=arg[8]? arg[8][0] : 0;
-  a42=CSQ(a42);
-  a21=(a21*a42);
-  a42=CSQ(a61);
-  a23=CSQ(a81);
-  a42=(a42+a23);
-  a23=CSQ(a76);
-  a42=(a42+a23);
-  a21=(a21<=a42);
-  a42=CR(0.);
-  a23=(a61*a00);
-  a31=arg[7]? arg[7][1] : 0;
-  a74=(a74*a15);
-  a72=(a72*a11);
+  a12=arg[11]? arg[11][0] : 0;
+  a12=(a61<a12);
+  a21=arg[7]? arg[7][0] : 0;
+  a42=arg[9]? arg[9][0] : 0;
+  a23=(-a42);
+  a23=CM(fmax)(a15,a23);
+  a23=CM(fmin)(a23,a42);
+  a23=(a15-a23);
+  a00=(a00*a23);
+  a00=(a21*a00);
+  a42=CR(9.9999999900000003e-01);
+  a31=arg[8]? arg[8][0] : 0;
+  a31=CSQ(a31);
+  a42=(a42*a31);
+  a31=CSQ(a61);
+  a86=CSQ(a81);
+  a31=(a31+a86);
+  a86=CSQ(a76);
+  a31=(a31+a86);
+  a42=(a42<=a31);
+  a31=CR(0.);
+  a86=(a61*a00);
+  a47=arg[7]? arg[7][1] : 0;
+  a74=(a74*a23);
+  a45=arg[9]? arg[9][1] : 0;
+  a78=(-a45);
+  a78=CM(fmax)(a11,a78);
+  a78=CM(fmin)(a78,a45);
+  a78=(a11-a78);
+  a72=(a72*a78);
   a74=(a74+a72);
-  a74=(a31*a74);
+  a74=(a47*a74);
   a72=(a81*a74);
-  a23=(a23+a72);
+  a86=(a86+a72);
   a72=arg[7]? arg[7][2] : 0;
-  a62=(a62*a15);
-  a79=(a79*a11);
+  a62=(a62*a23);
+  a79=(a79*a78);
   a62=(a62+a79);
-  a46=(a46*a38);
+  a79=arg[9]? arg[9][2] : 0;
+  a78=(-a79);
+  a78=CM(fmax)(a38,a78);
+  a78=CM(fmin)(a78,a79);
+  a78=(a38-a78);
+  a46=(a46*a78);
   a62=(a62+a46);
   a62=(a72*a62);
   a46=(a76*a62);
-  a23=(a23+a46);
-  a46=(-a23);
-  a42=(a42<a46);
-  a21=(a21!=CR(0.)&&a42!=CR(0.));
-  a12=(a12*a61);
-  a61=(a61*a12);
-  a31=(a31*a81);
-  a81=(a81*a31);
-  a61=(a61+a81);
+  a86=(a86+a46);
+  a46=(-a86);
+  a46=(a31<a46);
+  a42=(a42!=CR(0.)&&a46!=CR(0.));
+  a21=(a21*a61);
+  a46=(a61*a21);
+  a47=(a47*a81);
+  a78=(a81*a47);
+  a46=(a46+a78);
   a72=(a72*a76);
-  a76=(a76*a72);
-  a61=(a61+a76);
-  a76=CTINY(1.0000000000000000e-300);
-  a61=CM(fmax)(a61,a76);
-  a23=(a23/a61);
-  a12=(a12*a23);
-  a12=(-a12);
-  a12=(a21!=CR(0.)?a12:0);
-  a00=(a00+a12);
+  a78=(a76*a72);
+  a46=(a46+a78);
+  a78=CTINY(1.0000000000000000e-300);
+  a46=CM(fmax)(a46,a78);
+  a86=(a86/a46);
+  a21=(a21*a86);
+  a21=(-a21);
+  a21=(a42!=CR(0.)?a21:0);
+  a00=(a00+a21);
   a00=(-a00);
-  if (res[1]!=0) res[1][0]=a00;
-  a31=(a31*a23);
-  a31=(-a31);
-  a31=(a21!=CR(0.)?a31:0);
-  a74=(a74+a31);
+  a21=(a00<=a31);
+  a12=(a12!=CR(0.)||a21!=CR(0.));
+  a21=arg[10]? arg[10][0] : 0;
+  a21=(a21<a61);
+  a61=(a31<=a00);
+  a21=(a21!=CR(0.)||a61!=CR(0.));
+  a12=(a12!=CR(0.)&&a21!=CR(0.));
+  a12=(a12!=CR(0.)?a00:0);
+  if (res[1]!=0) res[1][0]=a12;
+  a12=arg[11]? arg[11][1] : 0;
+  a12=(a81<a12);
+  a47=(a47*a86);
+  a47=(-a47);
+  a47=(a42!=CR(0.)?a47:0);
+  a74=(a74+a47);
   a74=(-a74);
-  if (res[1]!=0) res[1][1]=a74;
-  a72=(a72*a23);
+  a47=(a74<=a31);
+  a12=(a12!=CR(0.)||a47!=CR(0.));
+  a47=arg[10]? arg[10][1] : 0;
+  a47=(a47<a81);
+  a81=(a31<=a74);
+  a47=(a47!=CR(0.)||a81!=CR(0.));
+  a12=(a12!=CR(0.)&&a47!=CR(0.));
+  a12=(a12!=CR(0.)?a74:0);
+  if (res[1]!=0) res[1][1]=a12;
+  a12=arg[11]? arg[11][2] : 0;
+  a12=(a76<a12);
+  a72=(a72*a86);
   a72=(-a72);
-  a21=(a21!=CR(0.)?a72:0);
-  a62=(a62+a21);
+  a42=(a42!=CR(0.)?a72:0);
+  a62=(a62+a42);
   a62=(-a62);
-  if (res[1]!=0) res[1][2]=a62;
+  a42=(a62<=a31);
+  a12=(a12!=CR(0.)||a42!=CR(0.));
+  a42=arg[10]? arg[10][2] : 0;
+  a42=(a42<a76);
+  a31=(a31<=a62);
+  a42=(a42!=CR(0.)||a31!=CR(0.));
+  a12=(a12!=CR(0.)&&a42!=CR(0.));
+  a12=(a12!=CR(0.)?a62:0);
+  if (res[1]!=0) res[1][2]=a12;
   if (res[2]!=0) res[2][0]=a03;
   if (res[2]!=0) res[2][1]=a53;
   if (res[2]!=0) res[2][2]=a18;
@@ -1188,7 +1233,7 @@ static int serial_task_arm2_desired(const serial_task_real** arg, serial_task_re
   return 0;
 }
 
-/* arm2: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1]) -> (tau[3], p_hat_dot[3], errors[6]) */
+/* arm2: law (q[3], qd[3], xd[3], xd_dot[3], xd_ddot[3], p_hat[3], gains[9], Gamma[3], bound[1], deadzone[3], p_min[3], p_max[3], static_excess[3], stribeck_velocity[3]) -> (tau[3], p_hat_dot[3], errors[6]) */
 static int serial_task_arm2_law(const serial_task_real** arg, serial_task_real** res) {
   serial_task_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
   serial_task_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
@@ -2111,69 +2156,114 @@ static int serial_task_arm2_law(const serial_task_real** arg, serial_task_real**
   a21=(a21+a43);
   a12=(a12-a21);
   if (res[0]!=0) res[0][2]=a12;
-  a12=arg[7]? arg[7][0] : 0;
-  a00=(a00*a15);
-  a00=(a12*a00);
-  a21=CR(9.9999999900000003e-01);
-  a43=arg[8]? arg[8][0] : 0;
-  a43=CSQ(a43);
-  a21=(a21*a43);
-  a43=CSQ(a61);
-  a23=CSQ(a81);
-  a43=(a43+a23);
-  a23=CSQ(a76);
-  a43=(a43+a23);
-  a21=(a21<=a43);
-  a43=CR(0.);
-  a23=(a61*a00);
-  a32=arg[7]? arg[7][1] : 0;
-  a74=(a74*a15);
-  a72=(a72*a11);
+  a12=arg[11]? arg[11][0] : 0;
+  a12=(a61<a12);
+  a21=arg[7]? arg[7][0] : 0;
+  a43=arg[9]? arg[9][0] : 0;
+  a23=(-a43);
+  a23=CM(fmax)(a15,a23);
+  a23=CM(fmin)(a23,a43);
+  a23=(a15-a23);
+  a00=(a00*a23);
+  a00=(a21*a00);
+  a43=CR(9.9999999900000003e-01);
+  a32=arg[8]? arg[8][0] : 0;
+  a32=CSQ(a32);
+  a43=(a43*a32);
+  a32=CSQ(a61);
+  a86=CSQ(a81);
+  a32=(a32+a86);
+  a86=CSQ(a76);
+  a32=(a32+a86);
+  a43=(a43<=a32);
+  a32=CR(0.);
+  a86=(a61*a00);
+  a48=arg[7]? arg[7][1] : 0;
+  a74=(a74*a23);
+  a46=arg[9]? arg[9][1] : 0;
+  a78=(-a46);
+  a78=CM(fmax)(a11,a78);
+  a78=CM(fmin)(a78,a46);
+  a78=(a11-a78);
+  a72=(a72*a78);
   a74=(a74+a72);
-  a74=(a32*a74);
+  a74=(a48*a74);
   a72=(a81*a74);
-  a23=(a23+a72);
+  a86=(a86+a72);
   a72=arg[7]? arg[7][2] : 0;
-  a62=(a62*a15);
-  a79=(a79*a11);
+  a62=(a62*a23);
+  a79=(a79*a78);
   a62=(a62+a79);
-  a47=(a47*a39);
+  a79=arg[9]? arg[9][2] : 0;
+  a78=(-a79);
+  a78=CM(fmax)(a39,a78);
+  a78=CM(fmin)(a78,a79);
+  a78=(a39-a78);
+  a47=(a47*a78);
   a62=(a62+a47);
   a62=(a72*a62);
   a47=(a76*a62);
-  a23=(a23+a47);
-  a47=(-a23);
-  a43=(a43<a47);
-  a21=(a21!=CR(0.)&&a43!=CR(0.));
-  a12=(a12*a61);
-  a61=(a61*a12);
-  a32=(a32*a81);
-  a81=(a81*a32);
-  a61=(a61+a81);
+  a86=(a86+a47);
+  a47=(-a86);
+  a47=(a32<a47);
+  a43=(a43!=CR(0.)&&a47!=CR(0.));
+  a21=(a21*a61);
+  a47=(a61*a21);
+  a48=(a48*a81);
+  a78=(a81*a48);
+  a47=(a47+a78);
   a72=(a72*a76);
-  a76=(a76*a72);
-  a61=(a61+a76);
-  a76=CTINY(1.0000000000000000e-300);
-  a61=CM(fmax)(a61,a76);
-  a23=(a23/a61);
-  a12=(a12*a23);
-  a12=(-a12);
-  a12=(a21!=CR(0.)?a12:0);
-  a00=(a00+a12);
+  a78=(a76*a72);
+  a47=(a47+a78);
+  a78=CTINY(1.0000000000000000e-300);
+  a47=CM(fmax)(a47,a78);
+  a86=(a86/a47);
+  a21=(a21*a86);
+  a21=(-a21);
+  a21=(a43!=CR(0.)?a21:0);
+  a00=(a00+a21);
   a00=(-a00);
-  if (res[1]!=0) res[1][0]=a00;
-  a32=(a32*a23);
-  a32=(-a32);
-  a32=(a21!=CR(0.)?a32:0);
-  a74=(a74+a32);
+  a21=(a00<=a32);
+  a12=(a12!=CR(0.)||a21!=CR(0.));
+  a21=arg[10]? arg[10][0] : 0;
+  a21=(a21<a61);
+  a61=(a32<=a00);
+  a21=(a21!=CR(0.)||a61!=CR(0.));
+  a12=(a12!=CR(0.)&&a21!=CR(0.));
+  a12=(a12!=CR(0.)?a00:0);
+  if (res[1]!=0) res[1][0]=a12;
+  a12=arg[11]? arg[11][1] : 0;
+  a12=(a81<a12);
+  a48=(a48*a86);
+  a48=(-a48);
+  a48=(a43!=CR(0.)?a48:0);
+  a74=(a74+a48);
   a74=(-a74);
-  if (res[1]!=0) res[1][1]=a74;
-  a72=(a72*a23);
+  a48=(a74<=a32);
+  a12=(a12!=CR(0.)||a48!=CR(0.));
+  a48=arg[10]? arg[10][1] : 0;
+  a48=(a48<a81);
+  a81=(a32<=a74);
+  a48=(a48!=CR(0.)||a81!=CR(0.));
+  a12=(a12!=CR(0.)&&a48!=CR(0.));
+  a12=(a12!=CR(0.)?a74:0);
+  if (res[1]!=0) res[1][1]=a12;
+  a12=arg[11]? arg[11][2] : 0;
+  a12=(a76<a12);
+  a72=(a72*a86);
   a72=(-a72);
-  a21=(a21!=CR(0.)?a72:0);
-  a62=(a62+a21);
+  a43=(a43!=CR(0.)?a72:0);
+  a62=(a62+a43);
   a62=(-a62);
-  if (res[1]!=0) res[1][2]=a62;
+  a43=(a62<=a32);
+  a12=(a12!=CR(0.)||a43!=CR(0.));
+  a43=arg[10]? arg[10][2] : 0;
+  a43=(a43<a76);
+  a32=(a32<=a62);
+  a43=(a43!=CR(0.)||a32!=CR(0.));
+  a12=(a12!=CR(0.)&&a43!=CR(0.));
+  a12=(a12!=CR(0.)?a62:0);
+  if (res[1]!=0) res[1][2]=a12;
   if (res[2]!=0) res[2][0]=a09;
   if (res[2]!=0) res[2][1]=a03;
   if (res[2]!=0) res[2][2]=a18;
@@ -2286,6 +2376,46 @@ void serial_task_default_config(serial_task_config *c) {
   c->effort_limit[5] = 2.5;
   c->bound[0] = 1.2405940875241992;  /* arm1 */
   c->bound[1] = 1.2405940875241992;  /* arm2 */
+  /* arm1: deadzone */
+  c->deadzone[0] = 0.0;
+  c->deadzone[1] = 0.0;
+  c->deadzone[2] = 0.0;
+  /* arm2: deadzone */
+  c->deadzone[3] = 0.0;
+  c->deadzone[4] = 0.0;
+  c->deadzone[5] = 0.0;
+  /* arm1: p_min */
+  c->p_min[0] = -HUGE_VAL;
+  c->p_min[1] = -HUGE_VAL;
+  c->p_min[2] = -HUGE_VAL;
+  /* arm2: p_min */
+  c->p_min[3] = -HUGE_VAL;
+  c->p_min[4] = -HUGE_VAL;
+  c->p_min[5] = -HUGE_VAL;
+  /* arm1: p_max */
+  c->p_max[0] = HUGE_VAL;
+  c->p_max[1] = HUGE_VAL;
+  c->p_max[2] = HUGE_VAL;
+  /* arm2: p_max */
+  c->p_max[3] = HUGE_VAL;
+  c->p_max[4] = HUGE_VAL;
+  c->p_max[5] = HUGE_VAL;
+  /* arm1: static_excess */
+  c->static_excess[0] = 0.0;
+  c->static_excess[1] = 0.0;
+  c->static_excess[2] = 0.0;
+  /* arm2: static_excess */
+  c->static_excess[3] = 0.0;
+  c->static_excess[4] = 0.0;
+  c->static_excess[5] = 0.0;
+  /* arm1: stribeck_velocity */
+  c->stribeck_velocity[0] = 1.0;
+  c->stribeck_velocity[1] = 1.0;
+  c->stribeck_velocity[2] = 1.0;
+  /* arm2: stribeck_velocity */
+  c->stribeck_velocity[3] = 1.0;
+  c->stribeck_velocity[4] = 1.0;
+  c->stribeck_velocity[5] = 1.0;
   c->h = 0.001;
 }
 
@@ -2308,6 +2438,19 @@ int serial_task_init(serial_task_state *s, const serial_task_config *c) {
   for (i = 0; i < SERIAL_TASK_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
     s->effort_limit[i] = (serial_task_real)c->effort_limit[i];
+  }
+  for (i = 0; i < SERIAL_TASK_NQ; ++i) {
+    if (!(c->deadzone[i] >= 0.0 && c->deadzone[i] < HUGE_VAL)) return -1;
+    if (!(c->static_excess[i] >= 0.0 && c->static_excess[i] < HUGE_VAL)) return -1;
+    if (!(c->stribeck_velocity[i] >= 0.0 && c->stribeck_velocity[i] < HUGE_VAL)) return -1;
+    s->deadzone_real[i] = (serial_task_real)c->deadzone[i];
+    s->static_excess[i] = (serial_task_real)c->static_excess[i];
+    s->stribeck_velocity[i] = (serial_task_real)c->stribeck_velocity[i];
+  }
+  for (i = 0; i < SERIAL_TASK_NP; ++i) {
+    if (!(c->p_min[i] <= c->p_max[i])) return -1;
+    s->p_min[i] = c->p_min[i]; s->p_max[i] = c->p_max[i];
+    s->p_min_real[i] = (serial_task_real)c->p_min[i]; s->p_max_real[i] = (serial_task_real)c->p_max[i];
   }
   s->steps = 0;
   s->ready = 1;
@@ -2336,7 +2479,7 @@ int serial_task_step(serial_task_state *s, double t, const serial_task_real meas
   serial_task_real xd[SERIAL_TASK_ND], xd_dot[SERIAL_TASK_ND], xd_ddot[SERIAL_TASK_ND];
   serial_task_real p_hat[SERIAL_TASK_NP], p_hat_dot[SERIAL_TASK_NP];
   double next[SERIAL_TASK_NP], scale[SERIAL_TASK_UNITS], norm2;
-  const serial_task_real* arg[9];
+  const serial_task_real* arg[14];
   serial_task_real* res[3];
   int i;
   if (!s->ready) return -1;
@@ -2347,6 +2490,8 @@ int serial_task_step(serial_task_state *s, double t, const serial_task_real meas
   arg[2] = xd + 0; arg[3] = xd_dot + 0; arg[4] = xd_ddot + 0;
   arg[5] = p_hat + 0; arg[6] = s->gains + 0; arg[7] = s->gamma + 0;
   arg[8] = s->bound_real + 0;
+  arg[9] = s->deadzone_real + 0; arg[10] = s->p_min_real + 0; arg[11] = s->p_max_real + 0;
+  arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (serial_task_arm1_law(arg, res)) return -1;
   /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
@@ -2361,6 +2506,8 @@ int serial_task_step(serial_task_state *s, double t, const serial_task_real meas
   arg[2] = xd + 3; arg[3] = xd_dot + 3; arg[4] = xd_ddot + 3;
   arg[5] = p_hat + 3; arg[6] = s->gains + 9; arg[7] = s->gamma + 3;
   arg[8] = s->bound_real + 1;
+  arg[9] = s->deadzone_real + 3; arg[10] = s->p_min_real + 3; arg[11] = s->p_max_real + 3;
+  arg[12] = s->static_excess + 3; arg[13] = s->stribeck_velocity + 3;
   res[0] = command_out + 3; res[1] = p_hat_dot + 3; res[2] = errors_out + 6;
   if (serial_task_arm2_law(arg, res)) return -1;
   /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
@@ -2380,8 +2527,8 @@ int serial_task_step(serial_task_state *s, double t, const serial_task_real meas
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < SERIAL_TASK_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
-  for (i = 0; i < 3; ++i) s->p_hat[i] = next[i] * scale[0];
-  for (i = 3; i < 6; ++i) s->p_hat[i] = next[i] * scale[1];
+  for (i = 0; i < 3; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[0], s->p_min[i]), s->p_max[i]);
+  for (i = 3; i < 6; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[1], s->p_min[i]), s->p_max[i]);
   s->steps += 1;
   return 0;
 }

@@ -89,5 +89,6 @@ const cochlea_scenario serial_task_scenario = {
     0.001, 20.0, 0.02,
     SERIAL_TASK_UNITS, units, SERIAL_TASK_NQ, SERIAL_TASK_ND, SERIAL_TASK_NP, SERIAL_TASK_NE, SERIAL_TASK_NPOINTS,
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
-    sizeof(serial_task_state), (int)sizeof(serial_task_real), init, step, terminate, desired, estimate, tool_points
+    sizeof(serial_task_state), (int)sizeof(serial_task_real), init, step, terminate, desired, estimate, tool_points,
+    1
 };
