@@ -52,7 +52,8 @@ def oscillation_counts(result, sc) -> float:
         count = np.array([abs(j.ratio) * RAD_PER_COUNT for j in joints[first:first + n]])
         first += n
         half = window // 2
-        tail = u.q[int(0.8 * len(u.q)) - half:]
+        q = u.q if getattr(u, "true_q", None) is None else u.true_q  # the true positions
+        tail = q[int(0.8 * len(q)) - half:]
         kernel = np.ones(window) / window
         for i in range(n):
             smooth = np.convolve(tail[:, i], kernel, mode="valid")
