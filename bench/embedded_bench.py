@@ -27,7 +27,6 @@ plant's parameters, the initial state, the grids -- once, at build time.
 from __future__ import annotations
 
 import ctypes
-import dataclasses
 import gc
 import hashlib
 import json
