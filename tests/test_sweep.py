@@ -19,6 +19,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from cochlea.apps import cochlea_run, cochlea_sweep
+from cochlea.errors import DescriptionError
 from cochlea.resources import SCENARIOS_DIR
 from cochlea.sweep import results, sampling
 from cochlea.sweep import spec as sweep_spec
@@ -403,3 +404,25 @@ def test_replay_of_a_spec_named_after_its_scenario(tmp_path):
     assert cochlea_sweep.main(["replay", str(out), "1", "--out", str(scenario)]) == 0
     assert "Sample 1 " in scenario.read_text()
     assert 'format = "cochlea-scenario/1"' in scenario.read_text()
+
+
+def test_a_map_over_the_gearbox_varies_backlash_and_static_friction(tmp_path):
+    """Issue 24's robustness map: the gearbox's keys vary like any other [plant] key, a number
+    standing for every joint, and each sample's scenario loads with them."""
+    from cochlea.sim import load_scenario
+    text = ('format = "cochlea-sweep/1"\nscenario = "serial_joint_realistic"\nsamples = 1\n'
+            'seed = 1\nduration_s = 0.1\n[perturb]\n'
+            'backlash_SI = {grid = [0.0, 0.0087]}\n'
+            'static_friction_ratio = {grid = [1.0, 2.0]}\n')
+    spec = sweep_spec.load(write_spec(tmp_path, text=text))
+    seen = set()
+    for i in range(4):
+        path = tmp_path / f"sample{i}.toml"
+        path.write_text(sampling.scenario_text(spec, i))
+        plant = load_scenario(path).plant
+        assert plant.gearbox and len(set(plant.backlash)) == 1
+        seen.add((float(plant.backlash[0]), plant.static_friction_ratio))
+    assert seen == {(0.0, 1.0), (0.0, 2.0), (0.0087, 1.0), (0.0087, 2.0)}
+    bad = text.replace("2.0]}", "0.5]}")  # static below Coulomb
+    with pytest.raises(DescriptionError, match="static_friction_ratio"):
+        sweep_spec.load(write_spec(tmp_path, text=bad))

@@ -100,6 +100,15 @@ def plant_rules(n_bodies: int, n_joint: int) -> dict[str, KeyRule]:
         "velocity_register": KeyRule("bool"),
         "current_quantisation": KeyRule("bool"),
         "armature": KeyRule("bool"),
+        # The gearbox (issue 24): backlash (rad or m at each joint), the gear's stiffness and
+        # damping, static over Coulomb friction and its Stribeck velocity.
+        "gearbox": KeyRule("bool"),
+        "backlash_SI": KeyRule("float", 0.0, sc_mod.MAX_BACKLASH, size=n_joint),
+        "gear_stiffness_SI": KeyRule("float", 0.0, sc_mod.MAX_GEAR_STIFFNESS, True, n_joint),
+        "gear_damping_SI": KeyRule("float", 0.0, sc_mod.MAX_FRICTION, size=n_joint),
+        "static_friction_ratio": KeyRule("float", 1.0, sc_mod.MAX_STATIC_FRICTION_RATIO),
+        "stribeck_velocity_SI": KeyRule("float", 0.0, sc_mod.MAX_STRIBECK_VELOCITY, True,
+                                        n_joint),
     }
 
 
