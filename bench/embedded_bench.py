@@ -148,6 +148,11 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
     setups = unit_setups(sc)
     if sc.plant.noise_q_std or sc.plant.noise_qd_std:
         raise RuntimeError(f"{name}: simulate.c has no measurement noise")
+    for key in ("delay_jitter_periods", "encoder_noise_counts"):
+        if getattr(sc.plant, key):
+            raise RuntimeError(f"{name}: simulate.c has no [plant] {key} (it is drawn from the "
+                               "scenario's seed in Python; the all-C simulation has no generator "
+                               "of numpy's streams): set it to 0 for the all-C simulation")
     upper = name.upper()
     lines = [f"/* Scenario {name} for embedded/sim/simulate.c (see embedded/sim/sim.h).",
              " * Written by bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit. "
@@ -179,7 +184,8 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
                   "effort_quantum": None if u.effort_grid is None else u.effort_grid.quantum,
                   "effort_bound": None if u.effort_grid is None else u.effort_grid.bound,
                   "effort_offset": None if u.effort_grid is None else u.effort_grid.offset,
-                  "effort_ramp": None if u.effort_grid is None else u.effort_grid.ramp}
+                  "effort_ramp": None if u.effort_grid is None else u.effort_grid.ramp,
+                  "torque_scale": u.torque_scale}
         names = {}
         for key, value in fields.items():
             if value is None:
@@ -192,7 +198,7 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
             f"{plant}, {pose}, {prefix}_x0, {prefix}_plant_p, {prefix}_friction, "
             f"{names['coulomb']}, {names['quantum']}, {names['offset']}, "
             f"{names['effort_quantum']}, {names['effort_bound']}, {names['effort_offset']}, "
-            f"{names['effort_ramp']}}},")
+            f"{names['effort_ramp']}, {names['torque_scale']}}},")
         n_plant += len(u.plant_x0)
     lines += [f'#include "{g}.h"' for g in groups]
     lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x"]

@@ -125,3 +125,36 @@ def test_zero_duration_runs_no_period(tmp_path):
     info = eb.run_simulation(eb.build_simulation("serial_joint"), 0.0, log)
     assert info["status"] == "completed" and info["rows"] == 0 and log.stat().st_size == 0
     assert json.loads(json.dumps(info)) == info
+
+
+def _disturbed(name, **changes):
+    import dataclasses
+
+    sc = load_scenario(name)
+    return dataclasses.replace(sc, plant=dataclasses.replace(sc.plant, **changes))
+
+
+def test_the_torque_constant_error_runs_in_c(tmp_path, monkeypatch):
+    """[plant] torque_constant_error in the all-C simulation: the plant gets (1 + e) times the
+    applied effort, as in simulate() (a build of its own, outside build/embedded-sim)."""
+    import numpy as np
+
+    name = "parallel_joint_realistic"
+    sc = _disturbed(name, torque_constant_error=np.array([0.05, -0.05, 0.05, -0.05, 0.05]))
+    monkeypatch.setattr(eb, "sim_scenario", lambda _: sc)
+    monkeypatch.setattr(eb, "BUILD", tmp_path / "build")
+    result, info, _, setups = run_logged(name, "double", tmp_path, 0.5)
+    assert setups[0].torque_scale is not None and info["status"] == "completed"
+    worst = worst_relative(result, simulate(sc, duration=0.5, setups=setups))
+    assert max(worst.values()) <= TOLERANCE, worst
+    nominal = simulate(load_scenario(name), duration=0.5)
+    assert np.abs(result.units[0].true_q - nominal.units[0].true_q).max() > 1e-9
+
+
+@pytest.mark.parametrize("key", ["delay_jitter_periods", "encoder_noise_counts"])
+def test_the_drawn_disturbances_are_refused_with_a_clear_message(key, monkeypatch, tmp_path):
+    sc = _disturbed("serial_joint_realistic", **{key: 1})
+    monkeypatch.setattr(eb, "sim_scenario", lambda _: sc)
+    monkeypatch.setattr(eb, "BUILD", tmp_path / "build")
+    with pytest.raises(RuntimeError, match=f"no \\[plant\\] {key}"):
+        eb.build_simulation("serial_joint_realistic")

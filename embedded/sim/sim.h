@@ -61,6 +61,9 @@ typedef struct {
      * applies tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1) (N m or N) */
     const double *effort_offset;
     const double *effort_ramp;
+    /* The motor's torque-constant error, per joint (NULL: none): the plant integrates
+     * torque_scale[i] (1 + e) times the applied effort, which the log keeps */
+    const double *torque_scale;
 } sim_unit;
 
 #endif

@@ -16,7 +16,10 @@
  *      supervisor clips them, the errors, and advances the estimate one period;
  *   4. each drive applies its command on its effort grid, if any; the applied effort is logged
  *      and held over the period;
- *   5. each unit's plant integrates the period: x_{k+1}.
+ *   5. each unit's plant integrates the period under the applied effort, times the motors'
+ *      torque-constant error (1 + e) where the unit has one: x_{k+1}.
+ * (The jittering delay and the encoder noise in counts are drawn from the seed in Python:
+ * bench/embedded_bench.py refuses a scenario with them, as it refuses Gaussian noise.)
  * The run stops after period k when a state or the estimate is no longer finite ("diverged",
  * k + 1 rows), or before it when the step refuses a non-finite output ("step-failed", k rows).
  *
@@ -87,7 +90,7 @@ int main(int argc, char **argv)
     static char log_buffer[1 << 20];
     const double start = now_s();
     const double h = SIM_PERIOD;
-    double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], loop_start, end;
+    double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], torque[SIM_NQ], loop_start, end;
     double plant_x[SIM_NXP], plant_next[SIM_NXP]; /* the plants' states; x is their [q, qd] */
     sim_real measurement[SIM_NX], command[SIM_NQ], errors[SIM_NE];
     sim_real xd[SIM_ND], xd_dot[SIM_ND], xd_ddot[SIM_ND];
@@ -176,6 +179,7 @@ int main(int argc, char **argv)
                     e = fmin(fmax(e, -s->effort_bound[j]), s->effort_bound[j]);
                 }
                 tau[i] = e;
+                torque[i] = s->torque_scale ? s->torque_scale[j] * e : e;
             }
         }
 
@@ -185,7 +189,7 @@ int main(int argc, char **argv)
             const double *arg[6]; /* a plant without a 6th input reads the first 5 */
             double *res[1];
             arg[0] = plant_x + i;
-            arg[1] = tau + qi;
+            arg[1] = torque + qi;
             arg[2] = s->plant_p;
             arg[3] = s->friction;
             arg[4] = &h;
