@@ -95,7 +95,7 @@ def test_the_keys_read_as_written(tmp_path):
     sc = load_scenario(scenario_with(tmp_path, "parallel_joint_realistic", [
         "torque_constant_error = [0.05, -0.05, 0.0, 0.1, -0.5]"]))
     np.testing.assert_array_equal(sc.plant.torque_constant_error, [0.05, -0.05, 0, 0.1, -0.5])
-    np.testing.assert_array_equal(unit_setups(sc)[0].torque_scale,
+    np.testing.assert_array_equal(unit_setups(sc, gravity=False)[0].torque_scale,
                                   [1.05, 0.95, 1.0, 1.1, 0.5])
 
 
@@ -278,3 +278,15 @@ def test_the_c_loops_equal_casadi_with_everything_at_once(name):
                                                atol=1e-12, err_msg=f"{loop} {a.name}.{key}")
     u = reference.units[0]
     assert not np.array_equal(u.q, u.true_q)
+
+
+def test_a_weaker_motor_that_cannot_hold_gravity_is_refused():
+    """The gravity check before a run counts the torque-constant error: parallel_joint's
+    heaviest-loaded joint needs 0.6 of its effort limit at the start; with e = -0.45 its motor
+    gives 0.55 of it, and the run is refused; with e = -0.35 it still holds."""
+    from cochlea.sim import GravityRefused
+
+    sc = load_scenario("parallel_joint")
+    unit_setups(with_plant(sc, torque_constant_error=-0.35))
+    with pytest.raises(GravityRefused, match="torque_constant_error"):
+        unit_setups(with_plant(sc, torque_constant_error=-0.45))

@@ -434,8 +434,10 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
     drives saturate at their Current Limit, that saturation through the fit (the unit's
     ``effort_grid``, or ``saturation``: per joint of the system in the loop's order, the real
     drives' of a hardware run). ``G`` is the plant's (masses scaled, payload added), so the
-    scenario's ``mass_scale`` and ``payload_kg`` count. ``actuated``: the system's actuated
-    joints (the adapter's), whose motors the message names."""
+    scenario's ``mass_scale`` and ``payload_kg`` count, and so does its
+    ``torque_constant_error`` (the simulated motors give ``1 + e`` times the applied effort;
+    not with ``saturation``, real drives). ``actuated``: the system's actuated joints (the
+    adapter's), whose motors the message names."""
     first = 0
     for u in setups:
         m = u.controller_model
@@ -450,6 +452,9 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
             drive = mine if drive is None else np.minimum(drive, mine)
         first += m.nq
         can = limit if drive is None else np.minimum(limit, drive)
+        weaker = saturation is None and u.torque_scale is not None
+        if weaker:  # the simulated motors give 1 + e times the applied effort
+            can = can * u.torque_scale
         for j, joint in enumerate(m.joints):
             if gravity[j] <= can[j] * (1 + 1e-9):
                 continue
@@ -467,6 +472,10 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
                                                   else "force_limit_N") + " if the motor can")
             position = (f"{math.degrees(q0[j]):.4g} deg" if joint.type == "revolute"
                         else f"{q0[j]:.4g} m")
+            if weaker:
+                source += (f", times the plant's 1 + torque_constant_error = "
+                           f"{u.torque_scale[j]:g}")
+                remedy += ", or raise [plant] torque_constant_error"
             raise GravityRefused(
                 f"scenario {sc.path}: unit {u.name}: gravity needs {gravity[j]:.4g} {unit} on "
                 f"joint {joint.name} at its initial position ({position}), more than the "
