@@ -43,6 +43,10 @@ FORMAT = "cochlea-scenario/1"
 #: ``bridge_offset = "auto"``) in whole Goal Current LSBs up to the Current Limit, one period of
 #: measurement delay. (Before the gearbox: rigid links with the armature, Coulomb friction
 #: without static friction, no bridge offset, and a Current Limit net of friction.)
+#: Issue 24's "everything at once" case adds, in a study's own ``[plant]`` table (the preset
+#: leaves them off): ``delay_jitter_periods = 2`` (with ``delay_periods = 1``: 1..3 periods
+#: old), ``encoder_noise_counts = 1`` (+-1 count) and ``torque_constant_error = 0.05`` (5 %);
+#: docs/robustness.md, "The disturbances of the everything-at-once case".
 PLANT_PRESETS = {
     "ideal": {},
     "realistic": {"armature": True, "friction_from_description": True,
