@@ -290,3 +290,29 @@ def test_a_weaker_motor_that_cannot_hold_gravity_is_refused():
     unit_setups(with_plant(sc, torque_constant_error=-0.35))
     with pytest.raises(GravityRefused, match="torque_constant_error"):
         unit_setups(with_plant(sc, torque_constant_error=-0.45))
+
+
+def test_a_sweep_varies_the_disturbances(tmp_path):
+    """cochlea-sweep may vary the three keys (the loader's bounds); each sample's scenario
+    file loads with them."""
+    from cochlea.sweep import sampling
+    from cochlea.sweep import spec as sweep_spec
+
+    path = tmp_path / "spec.toml"
+    path.write_text('format = "cochlea-sweep/1"\nscenario = "serial_joint_realistic"\n'
+                    "samples = 3\nseed = 4\nduration_s = 0.2\n\n[perturb]\n"
+                    "delay_jitter_periods = {choice = [0, 2]}\n"
+                    "encoder_noise_counts = {choice = [1]}\n"
+                    "torque_constant_error = {uniform = [-0.05, 0.05]}\n")
+    spec = sweep_spec.load(path)
+    for i in range(3):
+        sample = tmp_path / f"sample{i}.toml"
+        sample.write_text(sampling.scenario_text(spec, i))
+        plant = load_scenario(sample).plant
+        assert plant.encoder_noise_counts == 1 and plant.delay_jitter_periods in (0, 2)
+        e = plant.torque_constant_error
+        assert e.shape == (3,) and np.all(np.abs(e) <= 0.05) and len(set(e)) == 1
+    bad = tmp_path / "bad.toml"
+    bad.write_text(path.read_text().replace("[-0.05, 0.05]", "[-0.05, 0.7]"))
+    with pytest.raises(DescriptionError, match="torque_constant_error"):
+        sweep_spec.load(bad)

@@ -100,6 +100,10 @@ def plant_rules(n_bodies: int, n_joint: int) -> dict[str, KeyRule]:
         "velocity_register": KeyRule("bool"),
         "current_quantisation": KeyRule("bool"),
         "armature": KeyRule("bool"),
+        "delay_jitter_periods": KeyRule("int", 0, sc_mod.MAX_DELAY_PERIODS),
+        "encoder_noise_counts": KeyRule("int", 0, sc_mod.MAX_ENCODER_NOISE_COUNTS),
+        "torque_constant_error": KeyRule("float", -sc_mod.MAX_TORQUE_CONSTANT_ERROR,
+                                         sc_mod.MAX_TORQUE_CONSTANT_ERROR, size=n_joint),
     }
 
 
