@@ -316,3 +316,24 @@ def test_a_sweep_varies_the_disturbances(tmp_path):
     bad.write_text(path.read_text().replace("[-0.05, 0.05]", "[-0.05, 0.7]"))
     with pytest.raises(DescriptionError, match="torque_constant_error"):
         sweep_spec.load(bad)
+
+
+def test_the_emulated_motors_have_the_torque_constant_error(tmp_path):
+    """cochlea-emulator on a scenario with torque_constant_error: each virtual motor gives
+    1 + e times the torque its current gives without it (Present Current unchanged)."""
+    from cochlea.dynamixel.control_table import CURRENT_MODE
+    from cochlea.dynamixel.emulator import VirtualChain
+
+    path = scenario_with(tmp_path, "serial_joint_realistic",
+                         ["torque_constant_error = [0.05, -0.05, 0.1]"])
+    chain = VirtualChain("serial", path)
+    plain = VirtualChain("serial", load_scenario("serial_joint_realistic").path)
+    assert [m.torque_scale for m in chain.motors] == [1.05, 0.95, 1.1] * 2
+    assert {m.torque_scale for m in plain.motors} == {1.0}
+    for m, p in zip(chain.motors, plain.motors):
+        for motor in (m, p):  # torque on, current mode, a Goal Current of 300 LSB
+            motor.table[64], motor.table[11] = 1, CURRENT_MODE
+            motor.table[102:104] = (300).to_bytes(2, "little", signed=True)
+            motor._key = ()
+        assert m.state()[:2] == p.state()[:2] == (True, 300)
+        assert m.state()[2] == pytest.approx(m.torque_scale * p.state()[2], rel=1e-15)
