@@ -8,7 +8,9 @@ unit:
   Function mapped over the time grid (the trajectory formulas are scenario-specific, the kernels
   are not);
 * measurement noise, if the scenario has any, is drawn up front from the scenario's seed in the
-  reference's order and passed as an array; a measurement delay is read from the state log;
+  reference's order and passed as an array, whole encoder counts of noise (their own stream)
+  added to it; a measurement delay is read from the state log, per period where it jitters
+  (:func:`cochlea.sim.setup.delay_ages`, the driver's ``delays``);
 * then either the generated driver ``<unit>_<kind>[_thesis]_closed_loop`` runs every period in C
   (``loop="c"``, the default; the units of a scenario run on parallel threads, since ctypes
   releases the GIL), or a Python loop calls the fused ``step``, ``plant_step`` and ``fk_world``

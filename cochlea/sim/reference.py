@@ -4,13 +4,15 @@ steps: :func:`cochlea.robots.plant.gear_plant_step`; its state is the plant's ow
 the measurement its ``[q, qd]``), estimates integrated once per period.
 
 The plant is the same symbolic model with its own parameters (the scenario may scale masses, add
-a tip payload and viscous friction); measurements may carry Gaussian noise and a delay of whole
-periods, measurements and applied efforts may sit on the motors' grids. Everything that can be
-is fused into one CasADi Function per unit and period; the Python loop only adds noise, delays
-measurements, rounds what CasADi cannot round exactly (measurements, and with current
-quantisation the commands, between the controller's Function and the plant's) and stores the
-log. The generated C kernels
-(:mod:`cochlea.sim.compiled`) are checked against this loop.
+a tip payload and viscous friction); measurements may carry Gaussian noise, whole encoder counts
+of noise and a delay of whole periods, fixed or jittering; measurements and applied efforts may
+sit on the motors' grids, and the motors may give another torque than their fit assumes (the
+plant gets ``UnitSetup.torque_scale`` times the applied effort, the log the applied effort).
+Everything that can be is fused into one CasADi Function per unit and period; the Python loop
+only adds noise, delays measurements, rounds what CasADi cannot round exactly (measurements,
+and with current quantisation the commands, between the controller's Function and the
+plant's), scales the applied efforts by the torque-constant error and stores the log. The
+generated C kernels (:mod:`cochlea.sim.compiled`) are checked against this loop.
 """
 
 from __future__ import annotations
