@@ -49,7 +49,14 @@ from cochlea.kernels import library as ckernels
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.result import SimulationResult, simulated_log
-from cochlea.sim.setup import measurements
+from cochlea.sim.setup import (
+    ENCODER_STREAM,
+    JITTER_STREAM,
+    delay_ages,
+    disturbance_rng,
+    encoder_noise,
+    measurements,
+)
 
 GENERATED = ROOT / "generated_c"
 EMBEDDED = GENERATED / "embedded"
@@ -136,6 +143,25 @@ def sim_scenario(name: str):
     return load_scenario(name)
 
 
+def _stream_seeds(plant) -> list[str]:
+    """``sim_jitter_seed`` and ``sim_encoder_seed`` where the plant draws them: each stream's
+    numpy PCG64 as it starts (:func:`cochlea.sim.setup.disturbance_rng`), state and increment
+    as high and low 64 bits (embedded/sim/sim.h)."""
+    lines = []
+    for key, stream, label in (("delay_jitter_periods", JITTER_STREAM, "jitter"),
+                               ("encoder_noise_counts", ENCODER_STREAM, "encoder")):
+        if not getattr(plant, key):
+            continue
+        state = disturbance_rng(plant, stream).bit_generator.state
+        assert state["bit_generator"] == "PCG64", state
+        words = []
+        for value in (state["state"]["state"], state["state"]["inc"]):
+            words += [value >> 64, value & (2 ** 64 - 1)]
+        lines.append(f"static const uint64_t sim_{label}_seed[4] = {{"
+                     + ", ".join(f"0x{w:016X}ULL" for w in words) + "};")
+    return lines
+
+
 def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple[str, list[str]]:
     """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, and the groups of
     generated_c/ its plant and pose kernels are in.
@@ -179,7 +205,8 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
                   "effort_quantum": None if u.effort_grid is None else u.effort_grid.quantum,
                   "effort_bound": None if u.effort_grid is None else u.effort_grid.bound,
                   "effort_offset": None if u.effort_grid is None else u.effort_grid.offset,
-                  "effort_ramp": None if u.effort_grid is None else u.effort_grid.ramp}
+                  "effort_ramp": None if u.effort_grid is None else u.effort_grid.ramp,
+                  "torque_scale": u.torque_scale}
         names = {}
         for key, value in fields.items():
             if value is None:
@@ -192,7 +219,7 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
             f"{plant}, {pose}, {prefix}_x0, {prefix}_plant_p, {prefix}_friction, "
             f"{names['coulomb']}, {names['quantum']}, {names['offset']}, "
             f"{names['effort_quantum']}, {names['effort_bound']}, {names['effort_offset']}, "
-            f"{names['effort_ramp']}}},")
+            f"{names['effort_ramp']}, {names['torque_scale']}}},")
         n_plant += len(u.plant_x0)
     lines += [f'#include "{g}.h"' for g in groups]
     lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x"]
@@ -203,6 +230,9 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
               f"#define SIM_PERIOD {sc.period!r} /* s */",
               f"#define SIM_DURATION {float(sc.duration)!r} /* s */",
               f"#define SIM_DELAY {int(sc.plant.delay_periods)} /* periods */",
+              f"#define SIM_JITTER {int(sc.plant.delay_jitter_periods)} /* periods */",
+              f"#define SIM_ENCODER_COUNTS {int(sc.plant.encoder_noise_counts)} /* counts */",
+              *_stream_seeds(sc.plant),
               "",
               "/* The controller's sizes are the setups' (a negative array size otherwise). */",
               f"typedef char sim_sizes_agree[({' && '.join(sizes)} && {upper}_UNITS == "
@@ -272,6 +302,9 @@ def read_log(path: Path, info: dict, sc, setups) -> SimulationResult:
         blocks[key] = data[:, start:start + width]
         start += width
     logs, at = [], dict.fromkeys(("x", "p_hat", "tau", "errors", "pose", "xd", "xd_dot"), 0)
+    ages = delay_ages(sc.plant, len(data))
+    delay = sc.plant.delay_periods if ages is None else ages
+    counts = encoder_noise(sc.plant, len(data), setups)
     for u, size in zip(setups, info["unit_sizes"], strict=True):
         assert size["name"] == u.name
         n = size["nq"]
@@ -282,9 +315,12 @@ def read_log(path: Path, info: dict, sc, setups) -> SimulationResult:
             part[key] = blocks[key][:, at[key]:at[key] + width]
             at[key] += width
         # The program logs the plant's true state and pose; what its controller measured is
-        # that state delayed and on the grids (the realistic studies have no noise).
+        # that state delayed (each period's jitter drawn again), its encoder counts of noise
+        # added, and on the grids (the program refuses Gaussian noise).
         x = part["x"]
-        seen = measurements(x, sc.plant.delay_periods, None, u.quantum, u.grid_offset)
+        seen = measurements(x, delay, None if counts[len(logs)] is None else
+                            np.hstack([counts[len(logs)], np.zeros_like(counts[len(logs)])]),
+                            u.quantum, u.grid_offset)
         logs.append(simulated_log(u, sc.space, x, seen, part["pose"], part["xd"],
                                   part["xd_dot"], part["errors"], part["tau"], part["p_hat"]))
     diverged = {}

@@ -33,7 +33,8 @@
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -42,8 +43,9 @@
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -54,7 +56,7 @@
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -63,11 +65,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -90,7 +93,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -129,6 +133,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -148,7 +156,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -157,8 +166,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -169,7 +179,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -178,11 +188,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -205,7 +216,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -244,6 +256,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -263,7 +279,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -272,8 +289,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -284,7 +302,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -293,11 +311,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -320,7 +339,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -359,6 +379,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -378,7 +402,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -387,8 +412,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -399,7 +425,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -408,11 +434,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -435,7 +462,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -474,6 +502,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -493,7 +525,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -502,8 +535,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -514,7 +548,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -523,11 +557,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -550,7 +585,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -589,6 +625,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -608,7 +648,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -617,8 +658,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -629,7 +671,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -638,11 +680,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -665,7 +708,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -704,6 +748,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -723,7 +771,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -732,8 +781,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -744,7 +794,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -753,11 +803,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -780,7 +831,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -819,6 +871,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -838,7 +894,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -847,8 +904,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -859,7 +917,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -868,11 +926,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -895,7 +954,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -934,6 +994,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -953,7 +1017,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -962,8 +1027,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -974,7 +1040,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -983,11 +1049,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -1010,7 +1077,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1049,6 +1117,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1068,7 +1140,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1077,8 +1150,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1089,7 +1163,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1098,11 +1172,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -1125,7 +1200,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1164,6 +1240,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1183,7 +1263,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1192,8 +1273,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1204,7 +1286,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1213,11 +1295,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -1240,7 +1323,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1279,6 +1363,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1298,7 +1386,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1307,8 +1396,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1319,7 +1409,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1328,11 +1418,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -1355,7 +1446,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1394,6 +1486,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1413,7 +1509,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1422,8 +1519,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1434,7 +1532,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1443,11 +1541,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -1470,7 +1569,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1509,6 +1609,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1528,7 +1632,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1537,8 +1642,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1549,7 +1655,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1558,11 +1664,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -1585,7 +1692,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1624,6 +1732,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1643,7 +1755,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1652,8 +1765,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1664,7 +1778,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1673,11 +1787,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -1700,7 +1815,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1739,6 +1855,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1758,7 +1878,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1767,8 +1888,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1779,7 +1901,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1788,11 +1910,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -1815,7 +1938,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1854,6 +1978,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1873,7 +2001,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1882,8 +2011,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -1894,7 +2024,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -1903,11 +2033,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -1930,7 +2061,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -1969,6 +2101,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -1988,7 +2124,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -1997,8 +2134,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2009,7 +2147,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2018,11 +2156,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -2045,7 +2184,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2084,6 +2224,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2103,7 +2247,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2112,8 +2257,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2124,7 +2270,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2133,11 +2279,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -2160,7 +2307,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2199,6 +2347,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2218,7 +2370,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2227,8 +2380,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2239,7 +2393,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2248,11 +2402,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -2275,7 +2430,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2314,6 +2470,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2333,7 +2493,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2342,8 +2503,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2354,7 +2516,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2363,11 +2525,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -2390,7 +2553,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2429,6 +2593,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2448,7 +2616,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2457,8 +2626,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2469,7 +2639,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2478,11 +2648,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -2505,7 +2676,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2544,6 +2716,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2563,7 +2739,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2572,8 +2749,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2584,7 +2762,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2593,11 +2771,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -2620,7 +2799,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2659,6 +2839,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2678,7 +2862,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2687,8 +2872,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2699,7 +2885,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2708,11 +2894,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -2735,7 +2922,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2774,6 +2962,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2793,7 +2985,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2802,8 +2995,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2814,7 +3008,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2823,11 +3017,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -2850,7 +3045,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -2889,6 +3085,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -2908,7 +3108,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -2917,8 +3118,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -2929,7 +3131,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -2938,11 +3140,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -2965,7 +3168,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3004,6 +3208,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3023,7 +3231,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3032,8 +3241,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3044,7 +3254,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3053,11 +3263,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -3080,7 +3291,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3119,6 +3331,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3138,7 +3354,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3147,8 +3364,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3159,7 +3377,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3168,11 +3386,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -3195,7 +3414,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3234,6 +3454,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3253,7 +3477,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3262,8 +3487,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3274,7 +3500,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3283,11 +3509,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -3310,7 +3537,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3349,6 +3577,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3368,7 +3600,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3377,8 +3610,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3389,7 +3623,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3398,11 +3632,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -3425,7 +3660,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3464,6 +3700,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3483,7 +3723,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3492,8 +3733,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3504,7 +3746,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3513,11 +3755,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -3540,7 +3783,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3579,6 +3823,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3598,7 +3846,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3607,8 +3856,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3619,7 +3869,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3628,11 +3878,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -3655,7 +3906,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3694,6 +3946,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3713,7 +3969,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3722,8 +3979,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3734,7 +3992,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3743,11 +4001,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -3770,7 +4029,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3809,6 +4069,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3828,7 +4092,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3837,8 +4102,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3849,7 +4115,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3858,11 +4124,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -3885,7 +4152,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -3924,6 +4192,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -3943,7 +4215,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -3952,8 +4225,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -3964,7 +4238,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -3973,11 +4247,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -4000,7 +4275,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4039,6 +4315,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4058,7 +4338,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4067,8 +4348,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4079,7 +4361,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4088,11 +4370,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -4115,7 +4398,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4154,6 +4438,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4173,7 +4461,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4182,8 +4471,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4194,7 +4484,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4203,11 +4493,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -4230,7 +4521,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4269,6 +4561,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4288,7 +4584,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4297,8 +4594,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4309,7 +4607,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4318,11 +4616,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -4345,7 +4644,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4384,6 +4684,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4403,7 +4707,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4412,8 +4717,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4424,7 +4730,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4433,11 +4739,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -4460,7 +4767,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4499,6 +4807,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4518,7 +4830,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4527,8 +4840,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4539,7 +4853,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4548,11 +4862,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -4575,7 +4890,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4614,6 +4930,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4633,7 +4953,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4642,8 +4963,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4654,7 +4976,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4663,11 +4985,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -4690,7 +5013,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4729,6 +5053,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4748,7 +5076,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4757,8 +5086,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4769,7 +5099,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4778,11 +5108,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -4805,7 +5136,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4844,6 +5176,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4863,7 +5199,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4872,8 +5209,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4884,7 +5222,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -4893,11 +5231,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -4920,7 +5259,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -4959,6 +5299,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -4978,7 +5322,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -4987,8 +5332,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -4999,7 +5345,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5008,11 +5354,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -5035,7 +5382,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5074,6 +5422,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5093,7 +5445,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5102,8 +5455,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5114,7 +5468,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5123,11 +5477,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -5150,7 +5505,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5189,6 +5545,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5208,7 +5568,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5217,8 +5578,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5229,7 +5591,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5238,11 +5600,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_SZ_ARG];
@@ -5265,7 +5628,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5304,6 +5668,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5323,7 +5691,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5332,8 +5701,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5344,7 +5714,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5353,11 +5723,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_plant_step_coulomb_SZ_ARG];
@@ -5380,7 +5751,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5419,6 +5791,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5438,7 +5814,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5447,8 +5824,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (3 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5459,7 +5837,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5468,11 +5846,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_SZ_ARG];
@@ -5495,7 +5874,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5534,6 +5914,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5553,7 +5937,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5562,8 +5947,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (9 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 6 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5574,7 +5960,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5583,11 +5969,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_armature_plant_step_coulomb_SZ_ARG];
@@ -5610,7 +5997,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5649,6 +6037,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5668,7 +6060,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5677,8 +6070,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (21 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 12 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5689,7 +6083,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5698,11 +6092,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
          NPOSE = 3 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
   const casadi_real* plant_arg[serial_arm1_gear_plant_step_SZ_ARG];
@@ -5725,7 +6120,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5764,6 +6160,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = serial_arm1_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5783,7 +6183,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5792,8 +6193,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5804,7 +6206,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5813,11 +6215,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -5840,7 +6243,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5879,6 +6283,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -5898,7 +6306,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -5907,8 +6316,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -5919,7 +6329,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -5928,11 +6338,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -5955,7 +6366,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -5994,6 +6406,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6013,7 +6429,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6022,8 +6439,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6034,7 +6452,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6043,11 +6461,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -6070,7 +6489,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6109,6 +6529,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6128,7 +6552,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6137,8 +6562,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6149,7 +6575,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6158,11 +6584,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -6185,7 +6612,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6224,6 +6652,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6243,7 +6675,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6252,8 +6685,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6264,7 +6698,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6273,11 +6707,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
   const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
@@ -6300,7 +6735,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6339,6 +6775,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6358,7 +6798,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6367,8 +6808,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6379,7 +6821,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6388,11 +6830,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -6415,7 +6858,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6454,6 +6898,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6473,7 +6921,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6482,8 +6931,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6494,7 +6944,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6503,11 +6953,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -6530,7 +6981,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6569,6 +7021,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6588,7 +7044,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6597,8 +7054,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6609,7 +7067,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6618,11 +7076,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -6645,7 +7104,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6684,6 +7144,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6703,7 +7167,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6712,8 +7177,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6724,7 +7190,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6733,11 +7199,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -6760,7 +7227,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6799,6 +7267,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6818,7 +7290,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6827,8 +7300,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6839,7 +7313,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6848,11 +7322,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
@@ -6875,7 +7350,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -6914,6 +7390,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -6933,7 +7413,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -6942,8 +7423,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -6954,7 +7436,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -6963,11 +7445,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -6990,7 +7473,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7029,6 +7513,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7048,7 +7536,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7057,8 +7546,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7069,7 +7559,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7078,11 +7568,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -7105,7 +7596,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7144,6 +7636,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7163,7 +7659,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7172,8 +7669,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7184,7 +7682,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7193,11 +7691,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -7220,7 +7719,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7259,6 +7759,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7278,7 +7782,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7287,8 +7792,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7299,7 +7805,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7308,11 +7814,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -7335,7 +7842,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7374,6 +7882,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7393,7 +7905,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7402,8 +7915,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7414,7 +7928,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7423,11 +7937,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
   const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
@@ -7450,7 +7965,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7489,6 +8005,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7508,7 +8028,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7517,8 +8038,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7529,7 +8051,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7538,11 +8060,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -7565,7 +8088,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7604,6 +8128,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7623,7 +8151,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7632,8 +8161,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7644,7 +8174,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7653,11 +8183,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -7680,7 +8211,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7719,6 +8251,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7738,7 +8274,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7747,8 +8284,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7759,7 +8297,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7768,11 +8306,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -7795,7 +8334,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7834,6 +8374,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7853,7 +8397,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7862,8 +8407,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7874,7 +8420,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7883,11 +8429,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -7910,7 +8457,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -7949,6 +8497,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -7968,7 +8520,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -7977,8 +8530,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -7989,7 +8543,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -7998,11 +8552,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
   const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
@@ -8025,7 +8580,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8064,6 +8620,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8083,7 +8643,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8092,8 +8653,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8104,7 +8666,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8113,11 +8675,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -8140,7 +8703,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8179,6 +8743,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8198,7 +8766,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8207,8 +8776,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8219,7 +8789,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8228,11 +8798,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -8255,7 +8826,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8294,6 +8866,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8313,7 +8889,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8322,8 +8899,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8334,7 +8912,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8343,11 +8921,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -8370,7 +8949,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8409,6 +8989,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8428,7 +9012,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8437,8 +9022,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8449,7 +9035,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8458,11 +9044,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -8485,7 +9072,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8524,6 +9112,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8543,7 +9135,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8552,8 +9145,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8564,7 +9158,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8573,11 +9167,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 5, NE = 10,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
@@ -8600,7 +9195,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8639,6 +9235,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8658,7 +9258,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8667,8 +9268,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8679,7 +9281,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8688,11 +9290,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_SZ_ARG];
@@ -8715,7 +9318,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8754,6 +9358,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8773,7 +9381,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8782,8 +9391,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8794,7 +9404,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8803,11 +9413,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_plant_step_coulomb_SZ_ARG];
@@ -8830,7 +9441,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8869,6 +9481,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -8888,7 +9504,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -8897,8 +9514,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (5 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -8909,7 +9527,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -8918,11 +9536,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_SZ_ARG];
@@ -8945,7 +9564,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -8984,6 +9604,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -9003,7 +9627,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -9012,8 +9637,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (15 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 10 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -9024,7 +9650,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -9033,11 +9659,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_armature_plant_step_coulomb_SZ_ARG];
@@ -9060,7 +9687,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -9099,6 +9727,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_armature_plant_step_coulomb(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;
@@ -9118,7 +9750,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * cochlea/data/codegen/closed_loop.c.in.
  *
  * Period k (time k h): the state x_k is logged; the controller sees the measurement
- * x_log[max(k - delay, 0)] + noise[k] (noise may be NULL), put on the measurement grid where
+ * x_log[max(k - d_k, 0)] + noise[k] (noise may be NULL), d_k = delays[k] (per period, the
+ * jittering delay) or, where delays is NULL, delay; put on the measurement grid where
  * quantum[i] > 0: offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i]) (quantum
  * and offset may be NULL: continuous measurements); it returns the torque, clipped to
  * +-effort_limit (may be NULL: no limit) as the runtime's supervisor clips it, then, where
@@ -9127,8 +9760,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1), then
  * effort_quantum[i] * nearbyint(tau / effort_quantum[i]) where effort_quantum[i] > 0, within
  * +-effort_bound[i] (both NULL: as commanded); the applied torque is logged and held over the
- * period, and the next estimate; the plant integrates the period, with its 6th input drive
- * when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
+ * period, and the next estimate; the plant integrates the period under the applied torque
+ * times torque_scale[i] (the motor's torque-constant error, 1 + e; NULL: 1), with its 6th
+ * input drive when it has one (35 values: the rigid plant's dry friction [Coulomb, static,
  * Stribeck velocity] or the gear plant's drive rows; NULL reads as zero; a plant without one
  * ignores it). The plant's state has NXP = 20 values, x0 among them (with the gearbox
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
@@ -9139,7 +9773,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
-    casadi_int n, casadi_int delay,
+    casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
@@ -9148,11 +9782,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
     const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
-    const casadi_real* effort_ramp, casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 6, NE = 11,
          NPOSE = 6 };
-  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP];
+  casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
   const casadi_real* plant_arg[parallel_gear_plant_step_SZ_ARG];
@@ -9175,7 +9810,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
   pose_arg[0] = x;
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
-    const casadi_real* seen = x_log + (k >= delay ? k - delay : 0) * NX;
+    const casadi_int d_k = delays ? delays[k] : delay;
+    const casadi_real* seen = x_log + (k >= d_k ? k - d_k : 0) * NX;
     for (i = 0; i < NX; ++i) x_k[i] = x[i];
     if (noise) {
       for (i = 0; i < NX; ++i) meas[i] = seen[i] + noise[k * NX + i];
@@ -9214,6 +9850,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
       }
     }
     plant_arg[1] = tau_log + k * NQ;
+    if (torque_scale) {
+      for (i = 0; i < NQ; ++i) torque[i] = torque_scale[i] * tau_log[k * NQ + i];
+      plant_arg[1] = torque;
+    }
     flag = parallel_gear_plant_step(plant_arg, plant_res, 0, 0, 0);
     if (flag) return flag;
     pose_res[0] = pose_log + k * NPOSE;

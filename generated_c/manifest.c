@@ -1364,7 +1364,7 @@ static const char manifest[] =
   "   \"symbol\": \"serial_arm2_g_thesis_closed_loop_gear\"\n"
   "  }\n"
   " },\n"
-  " \"format\": \"cochlea-kernels/6\",\n"
+  " \"format\": \"cochlea-kernels/7\",\n"
   " \"kernels\": {\n"
   "  \"parallel_A\": {\n"
   "   \"actuators\": \"none\",\n"

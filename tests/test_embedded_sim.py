@@ -125,3 +125,34 @@ def test_zero_duration_runs_no_period(tmp_path):
     info = eb.run_simulation(eb.build_simulation("serial_joint"), 0.0, log)
     assert info["status"] == "completed" and info["rows"] == 0 and log.stat().st_size == 0
     assert json.loads(json.dumps(info)) == info
+
+
+def _disturbed(name, **changes):
+    import dataclasses
+
+    sc = load_scenario(name)
+    return dataclasses.replace(sc, plant=dataclasses.replace(sc.plant, **changes))
+
+
+@pytest.mark.parametrize("name", ["serial_joint_realistic", "parallel_task_realistic"])
+def test_issue_24s_disturbances_run_in_c(name, tmp_path, monkeypatch):
+    """[plant] delay_jitter_periods, encoder_noise_counts and torque_constant_error in the
+    all-C simulation, issue 24's values: the jitter and the counts drawn from the seed's
+    streams as numpy draws them (PCG64 in C), the plant given 1 + e times the applied effort;
+    the log equals simulate()'s (a build of its own, outside build/embedded-sim)."""
+    import numpy as np
+
+    nq = 3 if name.startswith("serial") else 5
+    sc = _disturbed(name, delay_jitter_periods=2, encoder_noise_counts=1, seed=7,
+                    torque_constant_error=np.linspace(-0.05, 0.05, nq))
+    monkeypatch.setattr(eb, "sim_scenario", lambda _: sc)
+    monkeypatch.setattr(eb, "BUILD", tmp_path / "build")
+    result, info, _, setups = run_logged(name, "double", tmp_path, 0.5)
+    assert setups[0].torque_scale is not None and info["rows"] == 500
+    reference = simulate(sc, duration=0.5, setups=setups)
+    worst = worst_relative(result, reference)
+    assert max(worst.values()) <= TOLERANCE, worst
+    nominal = simulate(load_scenario(name), duration=0.5)
+    assert np.abs(result.units[0].true_q - nominal.units[0].true_q).max() > 1e-9
+    u = reference.units[0]
+    assert not np.array_equal(u.q, u.true_q)

@@ -184,14 +184,17 @@ def test_coulomb_friction_runs_in_c(name, loop):
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_every_plant_option_at_once_matches(name, loop):
-    """Dry friction, both measurement grids, current quantisation, delay and noise together:
-    the C loops give the reference's log (and the applied efforts sit on the effort grid)."""
+    """Dry friction, both measurement grids, current quantisation, delay and noise together,
+    with the delay jittering, whole encoder counts of noise and a torque-constant error: the C
+    loops give the reference's log (and the applied efforts sit on the effort grid)."""
     sc = load_scenario(name)
     n = 3 if sc.robot == "serial" else 5
     sc = dataclasses.replace(sc, plant=Plant(
         coulomb_friction=np.full(n, 0.01), viscous_friction=np.full(n, 1e-3),
         position_encoder=True, velocity_register=True, current_quantisation=True,
         delay_periods=2, noise_q_std=1e-4, noise_qd_std=1e-3, seed=5,
+        delay_jitter_periods=1, encoder_noise_counts=1,
+        torque_constant_error=np.linspace(-0.05, 0.05, n),
         armature=sc.plant.armature))  # the realistic gains are for a plant with its rotors
     setups = unit_setups(sc)
     reference = simulate(sc, 0.5, setups, kernels="casadi")
@@ -210,6 +213,10 @@ MEASURED = {
     "everything": dict(position_encoder=True, velocity_register=True, delay_periods=2,
                        noise_q_std=1e-4, noise_qd_std=1e-3, seed=9, current_quantisation=True,
                        coulomb=0.01),
+    "disturbances": dict(position_encoder=True, velocity_register=True, delay_periods=1,
+                         delay_jitter_periods=2, encoder_noise_counts=1, noise_q_std=1e-4,
+                         noise_qd_std=1e-3, seed=9, current_quantisation=True, coulomb=0.01,
+                         torque_constant_error=0.05),
 }
 
 
@@ -218,16 +225,18 @@ MEASURED = {
 def test_the_sim_backend_measures_as_the_as_fast_run(name, options):
     """The real-time loop (run back to back) against SimBackend over N periods sees, commands
     and estimates exactly what the as-fast run does; both logs hold the measurement (the true
-    state `delay` periods before, noisy, put on the grid) as q and qd, and the plant's state as
-    true_q and true_qd."""
+    state `delay` periods before, or each period's jittering delay, noisy, put on the grid) as
+    q and qd, and the plant's state as true_q and true_qd."""
     from cochlea.runtime import RealTimeLoop, build_supervisor
     from cochlea.runtime.sim_backend import SimBackend
-    from cochlea.sim.setup import quantise
+    from cochlea.sim.setup import delay_ages, quantise
 
     sc = load_scenario(name)
     n = 3 if sc.robot == "serial" else 5
     plant = dict(MEASURED[options])
     coulomb = plant.pop("coulomb", None)
+    if "torque_constant_error" in plant:
+        plant["torque_constant_error"] = np.full(n, plant["torque_constant_error"])
     sc = dataclasses.replace(sc, plant=Plant(**plant, coulomb_friction=None if coulomb is None
                                              else np.full(n, coulomb)))
     setups = unit_setups(sc)
@@ -239,31 +248,36 @@ def test_the_sim_backend_measures_as_the_as_fast_run(name, options):
     assert loop.run().rule == "completed"
     looped = loop.result(sc)
     fast = simulate(sc, periods * sc.period, setups)
-    delay = sc.plant.delay_periods
+    ages = delay_ages(sc.plant, periods)
+    delay = sc.plant.delay_periods if ages is None else ages
     for a, b in zip(fast.units, looped.units):
         for key in ("tau", "errors", "p_hat", "desired"):
             np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=0, atol=1e-12,
                                        err_msg=f"{a.name}.{key}")
         state = np.hstack([a.true_q, a.true_qd])
         np.testing.assert_allclose(np.hstack([b.true_q, b.true_qd]), state, rtol=0, atol=1e-12)
-        true = np.vstack([state[:1].repeat(delay, axis=0), state[:-delay]])
+        true = state[np.maximum(np.arange(periods) - delay, 0)]
         seen = np.hstack([b.q, b.qd])
-        if not sc.plant.noise_q_std:
+        if not sc.plant.noise_q_std and not sc.plant.encoder_noise_counts:
             np.testing.assert_array_equal(seen, quantise(true, a.setup.quantum,
                                                          a.setup.grid_offset))
         else:  # noisy, then on the grid: within the noise of the delayed true state
-            assert np.abs(seen - true)[:, :n].max() < 10 * sc.plant.noise_q_std + 1e-3
+            counts = sc.plant.encoder_noise_counts * a.setup.quantum[:n].max()
+            assert np.abs(seen - true)[:, :n].max() < 10 * sc.plant.noise_q_std + 1e-3 + counts
         assert not np.array_equal(seen, state)  # the log holds what was measured
         # ... and so does the as-fast log, value for value (the noise replayed).
         np.testing.assert_allclose(np.hstack([a.q, a.qd]), seen, rtol=0, atol=1e-12)
 
 
-def test_the_sim_backend_reads_and_writes_without_growing_memory():
+@pytest.mark.parametrize("options", ["everything", "disturbances"])
+def test_the_sim_backend_reads_and_writes_without_growing_memory(options):
     from cochlea.runtime.sim_backend import SimBackend
 
     sc = load_scenario("serial_joint")
-    sc = dataclasses.replace(sc, plant=Plant(**{k: v for k, v in MEASURED["everything"].items()
-                                                if k != "coulomb"}))
+    plant = {k: v for k, v in MEASURED[options].items() if k != "coulomb"}
+    if "torque_constant_error" in plant:
+        plant["torque_constant_error"] = np.full(3, plant["torque_constant_error"])
+    sc = dataclasses.replace(sc, plant=Plant(**plant))
     setups = unit_setups(sc)
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=6000)
     backend.enable()

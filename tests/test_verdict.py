@@ -64,6 +64,9 @@ def _csv(path):
     ("serial_joint_realistic", {"noise_q_std": 1e-3, "noise_qd_std": 1e-2, "seed": 4}),
     ("parallel_task_realistic", {"delay_periods": 2}),
     ("serial_task", {}),
+    # issue 24's disturbances: delay 1..3 periods, +-1 count, a 5 % torque-constant error
+    ("parallel_joint_realistic", {"delay_jitter_periods": 2, "encoder_noise_counts": 1,
+                                  "torque_constant_error": np.full(5, 0.05), "seed": 2}),
 ])
 def test_as_fast_and_real_time_runs_log_the_same_columns_and_agree(tmp_path, name, plant):
     """The same study as fast as possible and in the loop on the simulated robot: the same

@@ -233,6 +233,8 @@ class VirtualMotor:
         #: friction, or a bridge that adds no offset current); otherwise the fit's torque, the
         #: offset current taken off (see the module docstring).
         self.slope_only = False
+        #: The motor's torque over what its fit says (``1 + [plant] torque_constant_error``).
+        self.torque_scale = 1.0
 
     # ---- registers -----------------------------------------------------------------------------
 
@@ -268,7 +270,7 @@ class VirtualMotor:
             driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
                        and key[3] != 0xFF)
             current = proto.from_le(t[102:104], True) if driving else 0
-            effort = float(self.drive.effort(current, self.slope_only))
+            effort = self.torque_scale * float(self.drive.effort(current, self.slope_only))
             self._key, self._state = key, (driving, current, effort)
         return self._state
 
@@ -495,8 +497,10 @@ class VirtualChain:
             n = s.plant_model.nq
             slope_only = s.coulomb is not None or not bridge_compensates_friction(
                 self.scenario.controller_actuators)
-            for m in self.motors[start:start + n]:
+            for j, m in enumerate(self.motors[start:start + n]):
                 m.slope_only, m._key = slope_only, ()
+                if s.torque_scale is not None:  # the plant's torque-constant error
+                    m.torque_scale = float(s.torque_scale[j])
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):

@@ -163,7 +163,8 @@ _EXPORT = """#ifndef CASADI_SYMBOL_EXPORT
 #endif
 """
 
-_LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_real* x0, const casadi_real* p_hat0, "
+_LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_int* delays, "
+              "const casadi_real* x0, const casadi_real* p_hat0, "
               "const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot, "
               "const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset, "
               "const casadi_real* gains, const casadi_real* Gamma, "
@@ -172,7 +173,7 @@ _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_real* x0, const casa
               "const casadi_real* friction, const casadi_real* drive, "
               "const casadi_real* effort_limit, const casadi_real* effort_quantum, "
               "const casadi_real* effort_bound, const casadi_real* effort_offset, "
-              "const casadi_real* effort_ramp, "
+              "const casadi_real* effort_ramp, const casadi_real* torque_scale, "
               "casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "
               "casadi_int* rows")

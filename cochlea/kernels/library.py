@@ -237,8 +237,8 @@ class Library:
             raise LibraryError(f"{self.path} has no closed loop {name!r}; it has "
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
-        argtypes = ([_int, _int] + [pointer] * 10 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 14 + [ctypes.POINTER(_int)])
+        argtypes = ([_int, _int] + [pointer] * 11 + [ctypes.c_double, ctypes.c_double]
+                    + [pointer] * 15 + [ctypes.POINTER(_int)])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -364,7 +364,7 @@ class ClosedLoop:
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
             offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
             effort_bound=None, effort_offset=None, effort_ramp=None,
-            robust=None) -> ClosedLoopLog:
+            robust=None, delays=None, torque_scale=None) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call.
         ``x0`` is the plant's initial state (``nx``); ``coulomb`` its 6th input (``n_drive``
         values: the dry friction's rows, or the gear plant's drive). ``effort_quantum`` and
@@ -372,7 +372,10 @@ class ClosedLoop:
         the drives' grid, ``effort_offset`` and ``effort_ramp`` (nq each) add the bridge's
         offset before it (see generated_c/README.md). The log holds ``[q, qd]``. ``robust``:
         the controller's robust options (:data:`cochlea.control.controllers.ROBUST_INPUTS`, in
-        that order; default: the neutral ones)."""
+        that order; default: the neutral ones). ``delays`` (n whole periods, each >= 0): each
+        period's own delay, instead of ``delay`` (the jittering delay). ``torque_scale`` (nq):
+        the plant gets the applied efforts times it (the motors' torque-constant error); the
+        log keeps the applied efforts."""
         nq, nd = self.nq, self.n_desired
         if robust is None:
             robust = (np.zeros(nq), np.full(self.n_params, -np.inf),
@@ -406,13 +409,20 @@ class ClosedLoop:
         if effort_offset is not None:
             effort_offset = self._array("effort_offset", effort_offset, (nq,))
             effort_ramp = self._array("effort_ramp", effort_ramp, (nq,))
+        if torque_scale is not None:
+            torque_scale = self._array("torque_scale", torque_scale, (nq,))
         if delay < 0:
             raise KernelError(f"{self.name}: the delay must be >= 0 periods, got {delay}")
+        if delays is not None:
+            delays = np.ascontiguousarray(delays, dtype=np.int64)
+            if delays.shape != (n,) or (n and delays.min() < 0):
+                raise KernelError(f"{self.name}: delays must be {n} whole periods, each >= 0")
         log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
                             np.empty((n, nq)), np.empty((n, self.n_errors)),
                             np.empty((n, self.n_pose)))
         rows = _int(0)
-        flag = self._fn(n, delay, ins["x0"].ctypes.data, ins["p_hat0"].ctypes.data,
+        flag = self._fn(n, delay, None if delays is None else delays.ctypes.data,
+                        ins["x0"].ctypes.data, ins["p_hat0"].ctypes.data,
                         ins["xd"].ctypes.data, ins["xd_dot"].ctypes.data,
                         ins["xd_ddot"].ctypes.data, None if noise is None else noise.ctypes.data,
                         None if quantum is None else quantum.ctypes.data,
@@ -426,6 +436,7 @@ class ClosedLoop:
                         None if effort_quantum is None else effort_bound.ctypes.data,
                         None if effort_offset is None else effort_offset.ctypes.data,
                         None if effort_offset is None else effort_ramp.ctypes.data,
+                        None if torque_scale is None else torque_scale.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
                         log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))
         if flag:

@@ -22,7 +22,9 @@ from ..robots.model import ACTUATOR_SUFFIX, RobotModel
 #: 6: and the bridge's offset (effort_offset, effort_ramp) after them; the plant's state may be
 #: larger than the logged [q, qd] (``nx``, the gear plant's 4 nq) and its 6th input, ``drive``,
 #: has ``n_drive`` values (the dry-friction rows, or the gear plant's).
-MANIFEST_FORMAT = "cochlea-kernels/6"
+#: 7: and the per-period delays (after delay; NULL: the scalar) and the torque scale (after
+#: effort_ramp; NULL: 1), the jittering delay and the motor's torque-constant error.
+MANIFEST_FORMAT = "cochlea-kernels/7"
 
 
 def source_hash(function: ca.Function) -> str:

@@ -11,7 +11,14 @@ import numpy as np
 from ..errors import CochleaError
 from ..sim.compiled import period_kernels
 from ..sim.scenario import Plant
-from ..sim.setup import MeasurementGrid, UnitSetup
+from ..sim.setup import (
+    ENCODER_STREAM,
+    JITTER_STREAM,
+    MeasurementGrid,
+    UnitSetup,
+    disturbance_rng,
+    uniform_integers,
+)
 
 #: Normals drawn at a time while skipping the earlier units' noise (bounded memory).
 _SKIP_CHUNK = 1 << 16
@@ -24,14 +31,18 @@ class SimBackend:
     scenario's RK4 sub-steps, the same kernel as the as-fast-as-possible simulation.
 
     ``read`` reports the state as the as-fast run's controller sees it (period ``k`` is the
-    ``k``-th read): the true state ``plant.delay_periods`` reads ago (the initial state before
-    that), plus the plant's Gaussian noise, then on the units' measurement grid (encoder and
-    velocity counts, ``UnitSetup.quantum``). The noise is the as-fast run's, number for number:
-    drawn from ``plant.seed``, unit after unit, each unit's ``steps`` periods in turn, so
-    ``steps`` (the run's periods) is needed when there is noise; past them the draws go on.
-    ``write`` applies the drives' effort grid (``UnitSetup.effort_grid``). Without ``plant``
-    there is no delay and no noise; the grids come with the setups. ``read`` and ``write``
-    allocate nothing.
+    ``k``-th read): the true state ``plant.delay_periods`` reads ago (plus, with
+    ``delay_jitter_periods``, that read's jitter; the initial state before that), plus the
+    plant's Gaussian noise and its whole encoder counts of noise (``encoder_noise_counts``),
+    then on the units' measurement grid (encoder and velocity counts, ``UnitSetup.quantum``).
+    The noise is the as-fast run's, number for number: drawn from ``plant.seed``, unit after
+    unit, each unit's ``steps`` periods in turn, so ``steps`` (the run's periods) is needed
+    when there is noise; past them the draws go on. The jitter and the encoder counts have
+    their own streams of the seed, drawn one read at a time as the as-fast run draws them up
+    front (:func:`cochlea.sim.setup.delay_ages`, :func:`cochlea.sim.setup.encoder_noise`).
+    ``write`` applies the drives' effort grid (``UnitSetup.effort_grid``) and gives the plant
+    the applied effort times the unit's ``torque_scale``. Without ``plant`` there is no delay
+    and no noise; the grids come with the setups. ``read`` and ``write`` allocate nothing.
     """
 
     name = "sim"
@@ -70,7 +81,20 @@ class SimBackend:
         noise streams, the measurement grid in the system's layout."""
         nx = 2 * self.nq
         self.delay = plant.delay_periods
-        self._history = np.empty((self.delay + 1, nx))  # true states, a ring of delay + 1
+        self.jitter = plant.delay_jitter_periods
+        # True states, a ring of the oldest delay + 1.
+        self._history = np.empty((self.delay + self.jitter + 1, nx))
+        self._jitter = None  # (generator, one draw) of the jittering delay
+        if self.jitter:
+            self._jitter = (disturbance_rng(plant, JITTER_STREAM), np.empty(1))
+        # Whole encoder counts of position noise: (generator, one row of the system's joints,
+        # per unit its joints' counts times their encoder quantum).
+        self._counts = None
+        if plant.encoder_noise_counts:
+            self._counts = (disturbance_rng(plant, ENCODER_STREAM), np.empty(self.nq),
+                            plant.encoder_noise_counts,
+                            [(u.quantum[:n], np.empty(n))
+                             for u, (n, _, _) in zip(self.units, self._spans)])
         #: The plant's true state at the last read (Backend.true_state), before the delay, the
         #: noise and the grid: the loop logs it beside the measurement.
         self.true_state = np.zeros(nx)
@@ -108,21 +132,39 @@ class SimBackend:
 
     def read(self, x: np.ndarray) -> bool:
         t0 = time.perf_counter()
-        ring = self.delay + 1
+        ring = len(self._history)
         now = self._history[self._reads % ring]
         for f, (n, q_span, qd_span) in zip(self._steps, self._spans):
             state = f.inputs[0]  # the encoder is on the link: [q, qd] of the plant's state
             now[q_span] = state[:n]
             now[qd_span] = state[n:2 * n]
         self.true_state[:] = now
-        x[:] = self._history[max(self._reads - self.delay, 0) % ring]
+        age = self.delay
+        if self._jitter is not None:
+            rng, draw = self._jitter
+            rng.random(out=draw)
+            age += int(uniform_integers(draw, 0, self.jitter)[0])
+        x[:] = self._history[max(self._reads - age, 0) % ring]
         self._reads += 1
-        for noise, (n, q_span, qd_span) in zip(self._noise, self._spans):
-            rng, std, draw = noise
-            rng.standard_normal(out=draw)
-            np.multiply(std, draw, out=draw)
-            x[q_span] += draw[:n]
-            x[qd_span] += draw[n:]
+        if self._counts is not None:  # this read's counts, every joint of the system
+            rng, row, counts, units = self._counts
+            rng.random(out=row)
+            uniform_integers(row, -counts, counts)
+            for (quantum, counted), (_, q_span, _) in zip(units, self._spans):
+                np.multiply(row[q_span], quantum, out=counted)
+        for i, (n, q_span, qd_span) in enumerate(self._spans):
+            # As the as-fast run's noise array: the Gaussian draw plus the counts, then added.
+            counted = None if self._counts is None else self._counts[3][i][1]
+            if self._noise:
+                rng, std, draw = self._noise[i]
+                rng.standard_normal(out=draw)
+                np.multiply(std, draw, out=draw)
+                if counted is not None:
+                    draw[:n] += counted
+                x[q_span] += draw[:n]
+                x[qd_span] += draw[n:]
+            elif counted is not None:
+                x[q_span] += counted
         if self._grid is not None:  # in encoder and velocity counts, as the C driver
             self._grid.apply(x)
         self._read_time = time.perf_counter() - t0
@@ -134,13 +176,16 @@ class SimBackend:
         saturated, as the as-fast run applies them, and written back into ``tau`` so the loop
         logs them."""
         t0 = time.perf_counter()
-        for f, (_, q_span, _), grid in zip(self._steps, self._spans, self._grids):
+        for f, (_, q_span, _), grid, u in zip(self._steps, self._spans, self._grids,
+                                              self.units):
             applied = f.inputs[1]
             if self.enabled:
                 applied[:] = tau[q_span]
                 if grid is not None:
                     grid.apply(applied)
                     tau[q_span] = applied
+                if u.torque_scale is not None:  # the motor's torque-constant error
+                    np.multiply(u.torque_scale, applied, out=applied)
             else:
                 applied[:] = 0.0
             f()

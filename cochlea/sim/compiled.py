@@ -8,7 +8,9 @@ unit:
   Function mapped over the time grid (the trajectory formulas are scenario-specific, the kernels
   are not);
 * measurement noise, if the scenario has any, is drawn up front from the scenario's seed in the
-  reference's order and passed as an array; a measurement delay is read from the state log;
+  reference's order and passed as an array, whole encoder counts of noise (their own stream)
+  added to it; a measurement delay is read from the state log, per period where it jitters
+  (:func:`cochlea.sim.setup.delay_ages`, the driver's ``delays``);
 * then either the generated driver ``<unit>_<kind>[_thesis]_closed_loop`` runs every period in C
   (``loop="c"``, the default; the units of a scenario run on parallel threads, since ctypes
   releases the GIL), or a Python loop calls the fused ``step``, ``plant_step`` and ``fk_world``
@@ -41,7 +43,7 @@ from ..kernels.bind import BufferedFunction, BufferedKernel
 from ..kernels.naming import closed_loop_name, controller_kernel_name, source_hash, unit_prefix
 from .reference import simulate_reference
 from .result import SimulationResult, simulated_log, truncate
-from .setup import MeasurementGrid, UnitSetup, measurements, run_inputs
+from .setup import MeasurementGrid, UnitSetup, delay_ages, encoder_noise, measurements, run_inputs
 
 LOOPS = ("c", "python")
 
@@ -157,25 +159,28 @@ def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     return samples
 
 
-def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, delay: int,
+def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, delay,
            desired, noise) -> ckernels.ClosedLoopLog:
-    """A unit's whole run in its generated driver, every plant option of the setup passed."""
+    """A unit's whole run in its generated driver, every plant option of the setup passed.
+    ``delay``: whole periods, or each period's (:func:`cochlea.sim.setup.delay_ages`)."""
     loop = lib.closed_loop(kernels.closed_loop)
     xd, xd_dot, xd_ddot = desired
     grid = u.effort_grid
+    jitter = np.ndim(delay) > 0
     return loop.run(len(xd), x0=u.plant_x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot,
                     xd_ddot=xd_ddot, gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h,
-                    plant_p=u.plant_params, friction=u.friction, noise=noise, delay=delay,
+                    plant_p=u.plant_params, friction=u.friction, noise=noise,
+                    delay=0 if jitter else delay, delays=delay if jitter else None,
                     quantum=u.quantum, offset=u.grid_offset, effort_limit=u.effort_limit,
                     coulomb=u.drive, effort_quantum=None if grid is None else grid.quantum,
                     effort_bound=None if grid is None else grid.bound,
                     effort_offset=None if grid is None else grid.offset,
                     effort_ramp=None if grid is None else grid.ramp,
-                    robust=u.robust_inputs)
+                    robust=u.robust_inputs, torque_scale=u.torque_scale)
 
 
 def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
-                delay: int, desired, noise) -> ckernels.ClosedLoopLog:
+                delay, desired, noise) -> ckernels.ClosedLoopLog:
     """The same periods as the C driver, looping in Python over the ctypes kernels."""
     xd, xd_dot, xd_ddot = desired
     steps, n, n_p = len(xd), u.controller_model.nq, u.controller.n_params
@@ -183,7 +188,9 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     p_hat = np.array(u.p_hat0, dtype=float)
     meas = np.empty(2 * n)
     step = lib.kernel(kernels.step, q=meas[:n], qd=meas[n:], p_hat=p_hat)
-    plant = lib.kernel(kernels.plant, x=x, tau=step["tau"])
+    scale = u.torque_scale  # the motor's torque over the applied effort, or None
+    torque = step["tau"] if scale is None else np.empty(n)
+    plant = lib.kernel(kernels.plant, x=x, tau=torque)
     pose = lib.kernel(kernels.pose, q=x[:n])
     step["gains"][:] = u.gains
     step["Gamma"][:] = u.gamma
@@ -208,9 +215,11 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
     drive = None if u.effort_grid is None else u.effort_grid.apply
     grid = None if u.quantum is None else MeasurementGrid(u.quantum, u.grid_offset).apply
     isfinite = np.isfinite
+    ages = np.broadcast_to(np.asarray(delay), (steps,))
     for k in range(steps):
         X[k] = x[:2 * n]
-        seen = X[k - delay] if k >= delay else X[0]
+        age = ages[k]
+        seen = X[k - age] if k >= age else X[0]
         if noise is None:
             meas[:] = seen
         else:
@@ -225,6 +234,8 @@ def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: flo
         np.clip(tau, -limit, limit, out=tau)  # as the supervisor clips every command
         if drive is not None:  # as the drives apply it: whole current LSBs, saturated
             drive(tau)
+        if scale is not None:  # the motor's torque-constant error
+            np.multiply(scale, tau, out=torque)
         if failed or call_plant() or call_pose():
             raise ckernels.KernelError(f"a kernel of unit {u.name} returned a nonzero code")
         TAU[k] = tau
@@ -266,32 +277,42 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     h = sc.period
     steps = int(round(duration / h))
     time = np.arange(steps) * h
-    delay = sc.plant.delay_periods
+    ages = delay_ages(sc.plant, steps)  # each period's delay where it jitters
+    delay = sc.plant.delay_periods if ages is None else ages
     run = run_c if loop == "c" else run_python
     desired = [desired_samples(u, time) for u in setups]
     noisy = [np.concatenate([np.full(u.controller_model.nq, sc.plant.noise_q_std),
                              np.full(u.controller_model.nq, sc.plant.noise_qd_std)])
              for u in setups]
-    noises = [None] * len(setups)  # each unit's measurement noise, kept for its log
+    # Each unit's measurement noise, kept for its log: whole encoder counts (their own stream,
+    # drawn up front) added to the Gaussian draws, as the reference adds them.
+    noises = encoder_noise(sc.plant, steps, setups)
+    for i, (u, counts) in enumerate(zip(setups, noises)):
+        if counts is not None:
+            noises[i] = np.zeros((steps, 2 * u.controller_model.nq))
+            noises[i][:, :u.controller_model.nq] += counts
     if any(std.any() for std in noisy):
         # The reference draws 2n normals per period, unit after unit, until a unit stops.
         rng = np.random.default_rng(sc.plant.seed)
         runs = []
         for i, (u, plan, d, std) in enumerate(zip(setups, plans, desired, noisy)):
-            noise = None
             if std.any():
                 state = rng.bit_generator.state
-                noise = noises[i] = std * rng.standard_normal((steps, len(std)))
-            runs.append(run(lib, plan, u, h, delay, d, noise))
-            if noise is not None and runs[-1].rows < steps:
+                gauss = std * rng.standard_normal((steps, len(std)))
+                if noises[i] is not None:
+                    gauss[:, :u.controller_model.nq] += noises[i][:, :u.controller_model.nq]
+                noises[i] = gauss
+            runs.append(run(lib, plan, u, h, delay, d, noises[i]))
+            if std.any() and runs[-1].rows < steps:
                 rng.bit_generator.state = state
                 rng.standard_normal((runs[-1].rows, len(std)))
     elif loop == "c" and len(setups) > 1 and threads:
         with ThreadPoolExecutor(max_workers=len(setups)) as pool:
-            runs = list(pool.map(lambda a: run(lib, a[0], a[1], h, delay, a[2], None),
-                                 list(zip(plans, setups, desired))))
+            runs = list(pool.map(lambda a: run(lib, a[0], a[1], h, delay, a[2], a[3]),
+                                 list(zip(plans, setups, desired, noises))))
     else:
-        runs = [run(lib, p, u, h, delay, d, None) for p, u, d in zip(plans, setups, desired)]
+        runs = [run(lib, p, u, h, delay, d, noise)
+                for p, u, d, noise in zip(plans, setups, desired, noises)]
 
     logs, diverged = [], {}
     for u, d, r, noise in zip(setups, desired, runs, noises):

@@ -4,13 +4,15 @@ steps: :func:`cochlea.robots.plant.gear_plant_step`; its state is the plant's ow
 the measurement its ``[q, qd]``), estimates integrated once per period.
 
 The plant is the same symbolic model with its own parameters (the scenario may scale masses, add
-a tip payload and viscous friction); measurements may carry Gaussian noise and a delay of whole
-periods, measurements and applied efforts may sit on the motors' grids. Everything that can be
-is fused into one CasADi Function per unit and period; the Python loop only adds noise, delays
-measurements, rounds what CasADi cannot round exactly (measurements, and with current
-quantisation the commands, between the controller's Function and the plant's) and stores the
-log. The generated C kernels
-(:mod:`cochlea.sim.compiled`) are checked against this loop.
+a tip payload and viscous friction); measurements may carry Gaussian noise, whole encoder counts
+of noise and a delay of whole periods, fixed or jittering; measurements and applied efforts may
+sit on the motors' grids, and the motors may give another torque than their fit assumes (the
+plant gets ``UnitSetup.torque_scale`` times the applied effort, the log the applied effort).
+Everything that can be is fused into one CasADi Function per unit and period; the Python loop
+only adds noise, delays measurements, rounds what CasADi cannot round exactly (measurements,
+and with current quantisation the commands, between the controller's Function and the
+plant's), scales the applied efforts by the torque-constant error and stores the log. The
+generated C kernels (:mod:`cochlea.sim.compiled`) are checked against this loop.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 
 from .result import SimulationResult, simulated_log, truncate
 from .scenario import Scenario
-from .setup import UnitSetup, quantise
+from .setup import UnitSetup, delay_ages, encoder_noise, quantise
 
 
 def _command(u: UnitSetup, h: float, t, x_meas, p_hat):
@@ -94,10 +96,10 @@ def _period(u: UnitSetup, h: float, substeps: int):
     with the setup's numbers. The geared plant's stiff gear turns the last bit of a constant
     folded into the fused graph into a different stick/slip or rounding decision within a few
     hundred periods, so it runs the very Function the C kernel is generated from."""
-    if u.effort_grid is None and not u.gearbox:
+    if u.effort_grid is None and not u.gearbox and u.torque_scale is None:
         fused = period_function(u, h, substeps)
         return lambda *args: [np.array(v).ravel() for v in fused(*args)]
-    command, grid = command_function(u, h), u.effort_grid
+    command, grid, scale = command_function(u, h), u.effort_grid, u.torque_scale
     step = u.plant_function(substeps)
     numbers = [u.plant_params, u.friction, h] + ([] if u.drive is None else [u.drive])
     if u.gearbox:  # the controller's own Function too, called with the setup's numbers
@@ -108,7 +110,10 @@ def _period(u: UnitSetup, h: float, substeps: int):
                                                                                  p_hat))
         if grid is not None:
             grid.apply(tau)
-        return [np.array(step(x_true, tau, *numbers)).ravel(), p_next, tau, errors, xd, xd_dot]
+        # The motor's torque: the applied effort times its torque-constant error (logged: tau).
+        applied = tau if scale is None else np.multiply(tau, scale)
+        return [np.array(step(x_true, applied, *numbers)).ravel(), p_next, tau, errors, xd,
+                xd_dot]
 
     return period
 
@@ -139,9 +144,11 @@ def simulate_reference(sc: Scenario, duration: float,
     steps = int(round(duration / h))
     time = np.arange(steps) * h
     rng = np.random.default_rng(sc.plant.seed)
+    ages = delay_ages(sc.plant, steps)  # None: every period delay_periods old
+    counts = encoder_noise(sc.plant, steps, setups)
     logs = []
     diverged: dict[str, float] = {}
-    for u in setups:
+    for u, encoder in zip(setups, counts):
         n, n_p = u.controller_model.nq, u.controller.n_params
         nd, ne = u.controller.n_desired, u.controller.n_desired + n
         period = _period(u, h, sc.plant_substeps)
@@ -149,7 +156,8 @@ def simulate_reference(sc: Scenario, duration: float,
                                 np.full(n, sc.plant.noise_qd_std)])
         X = np.empty((steps, 2 * n))
         # What the controller saw in each period (the true state when it measures exactly).
-        exact = not (sc.plant.delay_periods or noise.any() or u.quantum is not None)
+        exact = not (sc.plant.delay_periods or ages is not None or noise.any()
+                     or u.quantum is not None)
         seen = X if exact else np.empty((steps, 2 * n))
         log = {k: np.empty((steps, s)) for k, s in
                [("tau", n), ("errors", ne), ("xd", nd), ("xd_dot", nd), ("p_hat", n_p)]}
@@ -159,9 +167,13 @@ def simulate_reference(sc: Scenario, duration: float,
         rows = steps
         for k in range(steps):
             X[k] = x[:2 * n]
-            measured = X[max(k - delay, 0)]
-            if noise.any():
-                measured = measured + noise * rng.standard_normal(2 * n)
+            measured = X[max(k - (delay if ages is None else ages[k]), 0)]
+            if noise.any() or encoder is not None:
+                # As the C loop's noise array: the Gaussian draw, then whole encoder counts.
+                drawn = noise * rng.standard_normal(2 * n) if noise.any() else np.zeros(2 * n)
+                if encoder is not None:
+                    drawn[:n] += encoder[k]
+                measured = measured + drawn
             if u.quantum is not None:  # as the motors report it: encoder and velocity counts
                 measured = quantise(measured, u.quantum, u.grid_offset)
             if not exact:

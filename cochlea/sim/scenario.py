@@ -11,6 +11,7 @@ the controller's nominal model. Every quantity with a dimension is written with 
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
@@ -42,6 +43,10 @@ FORMAT = "cochlea-scenario/1"
 #: ``bridge_offset = "auto"``) in whole Goal Current LSBs up to the Current Limit, one period of
 #: measurement delay. (Before the gearbox: rigid links with the armature, Coulomb friction
 #: without static friction, no bridge offset, and a Current Limit net of friction.)
+#: Issue 24's "everything at once" case adds, in a study's own ``[plant]`` table (the preset
+#: leaves them off): ``delay_jitter_periods = 2`` (with ``delay_periods = 1``: 1..3 periods
+#: old), ``encoder_noise_counts = 1`` (+-1 count) and ``torque_constant_error = 0.05`` (5 %);
+#: docs/robustness.md, "The disturbances of the everything-at-once case".
 PLANT_PRESETS = {
     "ideal": {},
     "realistic": {"armature": True, "friction_from_description": True,
@@ -70,6 +75,10 @@ MAX_PAYLOAD_KG = 100.0
 MAX_FRICTION = 1e4  # N m (s/rad) or N (s/m)
 MAX_NOISE_Q, MAX_NOISE_QD = 1.0, 100.0  # rad or m; rad/s or m/s
 MAX_DELAY_PERIODS = 1000
+#: ``encoder_noise_counts``: whole encoder counts of noise (4096 per motor turn).
+MAX_ENCODER_NOISE_COUNTS = 1000
+#: ``torque_constant_error``: the motor's torque over the fit's, 1 + e with |e| at most this.
+MAX_TORQUE_CONSTANT_ERROR = 0.5
 MAX_BACKLASH = 0.1  # rad (5.7 deg) or m, at the joint
 MAX_GEAR_STIFFNESS = 1e7  # N m/rad or N/m
 MAX_STATIC_FRICTION_RATIO = 10.0
@@ -148,6 +157,19 @@ class Plant:
     #: Whether the bridge's offset current reaches the motors: "auto", True or False
     #: (:data:`BRIDGE_OFFSET`).
     bridge_offset: str | bool = False
+    #: Whole periods the delay jitters by: each period's measurement is ``delay_periods + j``
+    #: periods old, ``j`` uniform in 0..this, drawn from ``seed`` (its own stream:
+    #: :func:`cochlea.sim.setup.delay_ages`); 0: a fixed delay.
+    delay_jitter_periods: int = 0
+    #: Whole encoder counts of position noise: each joint's measured position off by an integer
+    #: uniform in -N..N counts of its encoder, per period, from ``seed`` (its own stream:
+    #: :func:`cochlea.sim.setup.encoder_noise`); only with ``position_encoder``. 0: none.
+    encoder_noise_counts: int = 0
+    #: Per joint of a unit (every unit alike), the motor's torque constant error ``e``
+    #: (dimensionless): the motor gives ``1 + e`` times the effort the bridge's fit assumes,
+    #: applied after the drive's rounding and saturation (the Current Limit bounds the
+    #: current, so the torque at saturation scales too); None: none.
+    torque_constant_error: np.ndarray | None = None
 
 
 #: Bounds of the robust-adaptation keys of ``[control]`` (:class:`RobustOptions`).
@@ -566,6 +588,23 @@ def _robust(c: Table, layout, actuators: str) -> RobustOptions:
     return RobustOptions(deadzone, box, sign, ratio, stribeck, ramp)
 
 
+def _torque_constant_error(p: Table, n: int, default) -> np.ndarray | None:
+    """``[plant] torque_constant_error``: one number for every joint or one per joint of a
+    unit, each within +-:data:`MAX_TORQUE_CONSTANT_ERROR`; a per-joint array or None."""
+    bound = MAX_TORQUE_CONSTANT_ERROR
+    value = p.get("torque_constant_error", f"a number in [-{bound:g}, {bound:g}] or a list of "
+                  f"{n} such numbers, one per joint of a unit (dimensionless: the motor gives "
+                  "1 + e times the fit's torque)",
+                  lambda v: all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                and math.isfinite(x) and abs(x) <= bound
+                                for x in (v if isinstance(v, list) else [v]))
+                  and (not isinstance(v, list) or len(v) == n),
+                  required=False, default=default)
+    if value is None:
+        return None
+    return np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy()
+
+
 def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
     """The ``[plant]`` table: a preset's defaults (:data:`PLANT_PRESETS`), then its keys."""
     if preset_override is not None and preset_override not in PLANT_PRESETS:
@@ -648,7 +687,27 @@ def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
                             "the fit's offset current; auto: unless the controller models "
                             "friction)", lambda v: isinstance(v, bool) or v == "auto",
                             required=False, default=d["bridge_offset"]),
+        delay_jitter_periods=p.get(
+            "delay_jitter_periods", f"an integer in 0..{MAX_DELAY_PERIODS} (whole periods the "
+            "measurement's delay jitters above delay_periods)",
+            lambda v: isinstance(v, int) and not isinstance(v, bool)
+            and 0 <= v <= MAX_DELAY_PERIODS, required=False, default=d["delay_jitter_periods"]),
+        encoder_noise_counts=p.get(
+            "encoder_noise_counts", f"an integer in 0..{MAX_ENCODER_NOISE_COUNTS} (whole "
+            "encoder counts of position noise, uniform in -N..N)",
+            lambda v: isinstance(v, int) and not isinstance(v, bool)
+            and 0 <= v <= MAX_ENCODER_NOISE_COUNTS, required=False,
+            default=d["encoder_noise_counts"]),
+        torque_constant_error=_torque_constant_error(p, layout.n_joint,
+                                                     d["torque_constant_error"]),
     )
+    if plant.delay_periods + plant.delay_jitter_periods > MAX_DELAY_PERIODS:
+        raise p.error("delay_jitter_periods", f"delay_periods + delay_jitter_periods at most "
+                      f"{MAX_DELAY_PERIODS}", plant.delay_jitter_periods)
+    if plant.encoder_noise_counts and not plant.position_encoder:
+        raise p.error("encoder_noise_counts", "0 without the encoder grid (the noise is in "
+                      "whole encoder counts: set position_encoder = true)",
+                      plant.encoder_noise_counts)
     if not plant.gearbox:
         for key in ("backlash_SI", "gear_stiffness_SI", "gear_damping_SI"):
             if key in p.data:

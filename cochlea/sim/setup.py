@@ -143,6 +143,10 @@ class UnitSetup:
     #: :data:`cochlea.control.controllers.ROBUST_INPUTS` (dead zone, box, static friction), or
     #: None: the neutral ones (:meth:`robust_inputs`).
     robust: tuple[np.ndarray, ...] | None = None
+    #: Per joint, the motor's torque over what the bridge's fit assumes (``1 +
+    #: torque_constant_error``), or None: exactly the fit's. The plant gets the applied effort
+    #: (after the drive's rounding and saturation) times it; the log keeps the applied effort.
+    torque_scale: np.ndarray | None = None
 
     @property
     def robust_inputs(self) -> tuple[np.ndarray, ...]:
@@ -430,8 +434,10 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
     drives saturate at their Current Limit, that saturation through the fit (the unit's
     ``effort_grid``, or ``saturation``: per joint of the system in the loop's order, the real
     drives' of a hardware run). ``G`` is the plant's (masses scaled, payload added), so the
-    scenario's ``mass_scale`` and ``payload_kg`` count. ``actuated``: the system's actuated
-    joints (the adapter's), whose motors the message names."""
+    scenario's ``mass_scale`` and ``payload_kg`` count, and so does its
+    ``torque_constant_error`` (the simulated motors give ``1 + e`` times the applied effort;
+    not with ``saturation``, real drives). ``actuated``: the system's actuated joints (the
+    adapter's), whose motors the message names."""
     first = 0
     for u in setups:
         m = u.controller_model
@@ -446,6 +452,9 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
             drive = mine if drive is None else np.minimum(drive, mine)
         first += m.nq
         can = limit if drive is None else np.minimum(limit, drive)
+        weaker = saturation is None and u.torque_scale is not None
+        if weaker:  # the simulated motors give 1 + e times the applied effort
+            can = can * u.torque_scale
         for j, joint in enumerate(m.joints):
             if gravity[j] <= can[j] * (1 + 1e-9):
                 continue
@@ -463,6 +472,10 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
                                                   else "force_limit_N") + " if the motor can")
             position = (f"{math.degrees(q0[j]):.4g} deg" if joint.type == "revolute"
                         else f"{q0[j]:.4g} m")
+            if weaker:
+                source += (f", times the plant's 1 + torque_constant_error = "
+                           f"{u.torque_scale[j]:g}")
+                remedy += ", or raise [plant] torque_constant_error"
             raise GravityRefused(
                 f"scenario {sc.path}: unit {u.name}: gravity needs {gravity[j]:.4g} {unit} on "
                 f"joint {joint.name} at its initial position ({position}), more than the "
@@ -600,7 +613,8 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool 
             coulomb=None if coulomb is None else coulomb[mine],
             drive=None if drive_rows is None else drive_rows[:, mine].ravel(),
             gearbox=sc.plant.gearbox,
-            quantum=quantum, grid_offset=offset, effort_grid=drive, robust=robust))
+            quantum=quantum, grid_offset=offset, effort_grid=drive, robust=robust,
+            torque_scale=torque_scale(sc.plant, m.nq)))
     if gravity:
         real = None
         if on_motors:  # the motors' own Current Limits, whatever the simulated plant applies
@@ -700,6 +714,73 @@ def startup_ramp(plan, space: str, duration: float) -> ca.Function:
                        f.name_out())
 
 
+def torque_scale(plant: scenario_mod.Plant, n: int) -> np.ndarray | None:
+    """Per joint of a unit, ``1 + torque_constant_error`` (every unit alike), or None where the
+    scenario gives no error (or only zeros: the plant gets the applied effort as it is)."""
+    e = plant.torque_constant_error
+    if e is None or not np.any(e):
+        return None
+    return 1.0 + np.broadcast_to(np.asarray(e, float), (n,))
+
+
+#: Streams of the scenario's ``seed`` beside the Gaussian noise's (``default_rng(seed)``):
+#: each disturbance draws from its own, so adding one leaves every other's numbers as they were.
+JITTER_STREAM, ENCODER_STREAM = 1, 2
+
+
+def disturbance_rng(plant: scenario_mod.Plant, stream: int) -> np.random.Generator:
+    """The generator of one disturbance's stream (:data:`JITTER_STREAM`,
+    :data:`ENCODER_STREAM`) of the scenario's seed."""
+    return np.random.default_rng([plant.seed, stream])
+
+
+def uniform_integers(u: np.ndarray, low: int, high: int) -> np.ndarray:
+    """Uniform doubles in [0, 1) turned, in place, into integers ``low..high`` (as floats):
+    ``low + min(floor(u (high - low + 1)), high - low)``. Drawn as doubles (one 64-bit output
+    each), so a run drawn up front and the sim backend drawing period by period get the same
+    numbers."""
+    count = high - low + 1
+    np.multiply(u, count, out=u)
+    np.floor(u, out=u)
+    np.minimum(u, count - 1, out=u)
+    np.add(u, low, out=u)
+    return u
+
+
+def delay_ages(plant: scenario_mod.Plant, steps: int) -> np.ndarray | None:
+    """Per period of a run, how many periods old the measurement is: ``delay_periods + j_k``
+    with ``j_k`` uniform in ``0..delay_jitter_periods`` (one draw per period for the whole
+    system, which is read at once), from the seed's :data:`JITTER_STREAM`; None without
+    jitter (every period ``delay_periods`` old). Period k measures the state of period
+    ``max(k - age_k, 0)``: never older than the log."""
+    jitter = plant.delay_jitter_periods
+    if not jitter:
+        return None
+    j = uniform_integers(disturbance_rng(plant, JITTER_STREAM).random(steps), 0, jitter)
+    return plant.delay_periods + j.astype(np.int64)
+
+
+def encoder_noise(plant: scenario_mod.Plant, steps: int, setups: list[UnitSetup]
+                  ) -> list[np.ndarray | None]:
+    """Per unit, ``(steps, n)``: each joint's position noise in whole encoder counts (uniform
+    in ``-encoder_noise_counts..encoder_noise_counts``, per joint of the whole system and
+    period, row by row, from the seed's :data:`ENCODER_STREAM`) times its encoder's quantum
+    (``UnitSetup.quantum``); Nones without it. Added to the measured positions before the
+    encoder grid: a whole number of quanta, so the measurement stays on the grid."""
+    counts = plant.encoder_noise_counts
+    if not counts:
+        return [None] * len(setups)
+    total = sum(u.controller_model.nq for u in setups)
+    draws = uniform_integers(disturbance_rng(plant, ENCODER_STREAM).random((steps, total)),
+                             -counts, counts)
+    noise, first = [], 0
+    for u in setups:
+        n = u.controller_model.nq
+        noise.append(draws[:, first:first + n] * u.quantum[:n])
+        first += n
+    return noise
+
+
 def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """``values`` (one state, or rows of states) on their measurement grid where the quantum is
     positive (round half to even, as C's ``nearbyint``), unchanged elsewhere."""
@@ -707,16 +788,21 @@ def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.
     return np.where(quantum > 0, on_grid, values)
 
 
-def measurements(states: np.ndarray, delay: int, noise: np.ndarray | None = None,
+def measurements(states: np.ndarray, delay, noise: np.ndarray | None = None,
                  quantum: np.ndarray | None = None, offset: np.ndarray | None = None
                  ) -> np.ndarray:
     """What the controller saw in every period of a run, from the true states ``[q, qd]`` it
     logged: row k is ``states[max(k - delay, 0)] + noise[k]``, on the measurement grid where
     there is one; the same floating-point operations as the C driver (and
-    :class:`MeasurementGrid`). ``states`` itself when the plant measures exactly."""
-    if not delay and noise is None and quantum is None:
+    :class:`MeasurementGrid`). ``delay``: whole periods, or per period (:func:`delay_ages`).
+    ``states`` itself when the plant measures exactly."""
+    jitter = np.ndim(delay) > 0
+    if not jitter and not delay and noise is None and quantum is None:
         return states
-    seen = states[np.maximum(np.arange(len(states)) - delay, 0)] if delay else states.copy()
+    if jitter:
+        delay = np.asarray(delay)[:len(states)]
+    seen = (states[np.maximum(np.arange(len(states)) - delay, 0)] if jitter or delay
+            else states.copy())
     if noise is not None:
         seen += noise[:len(states)]
     if quantum is not None:

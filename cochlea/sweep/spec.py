@@ -109,6 +109,11 @@ def plant_rules(n_bodies: int, n_joint: int) -> dict[str, KeyRule]:
         "static_friction_ratio": KeyRule("float", 1.0, sc_mod.MAX_STATIC_FRICTION_RATIO),
         "stribeck_velocity_SI": KeyRule("float", 0.0, sc_mod.MAX_STRIBECK_VELOCITY, True,
                                         n_joint),
+        # Issue 24's other disturbances: delay jitter, encoder noise in counts, Kt error.
+        "delay_jitter_periods": KeyRule("int", 0, sc_mod.MAX_DELAY_PERIODS),
+        "encoder_noise_counts": KeyRule("int", 0, sc_mod.MAX_ENCODER_NOISE_COUNTS),
+        "torque_constant_error": KeyRule("float", -sc_mod.MAX_TORQUE_CONSTANT_ERROR,
+                                         sc_mod.MAX_TORQUE_CONSTANT_ERROR, size=n_joint),
     }
 
 

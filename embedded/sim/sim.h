@@ -14,6 +14,14 @@
  *   SIM_PERIOD          s: the control period (the plant integrates one period per call)
  *   SIM_DURATION        s: the scenario's duration
  *   SIM_DELAY           periods of measurement delay
+ *   SIM_JITTER          whole periods the delay jitters above SIM_DELAY ([plant]
+ *                       delay_jitter_periods; 0: none), and then sim_jitter_seed
+ *   SIM_ENCODER_COUNTS  whole encoder counts of position noise ([plant] encoder_noise_counts;
+ *                       0: none), and then sim_encoder_seed
+ *   sim_jitter_seed[4], sim_encoder_seed[4]
+ *                       the numpy PCG64 generator of each stream of the scenario's seed
+ *                       (cochlea.sim.setup.disturbance_rng) as it starts: state and increment,
+ *                       each as its high and low 64 bits
  *   sim_units[SIM_UNITS] one sim_unit per unit, in the controller's order
  *
  * Units: SI throughout (rad, m, rad/s, m/s, N m, N, s). */
@@ -21,6 +29,7 @@
 #define COCHLEA_SIM_H
 
 #include <stddef.h>
+#include <stdint.h>
 
 /* A generated kernel (CasADi's calling convention); the plant and pose kernels need no work
  * memory (iw and w are NULL). */
@@ -61,6 +70,9 @@ typedef struct {
      * applies tau + effort_offset[i] * clip(tau / effort_ramp[i], -1, 1) (N m or N) */
     const double *effort_offset;
     const double *effort_ramp;
+    /* The motor's torque-constant error, per joint (NULL: none): the plant integrates
+     * torque_scale[i] (1 + e) times the applied effort, which the log keeps */
+    const double *torque_scale;
 } sim_unit;
 
 #endif

@@ -10,13 +10,21 @@
  *
  * Period k, at t = k h (h = SIM_PERIOD, s), as cochlea.sim.simulate runs it:
  *   1. the state x_k of every unit is logged, and the estimate the controller holds;
- *   2. the controller measures x_{k - delay} (x_0 before that) of every unit, put on the
- *      unit's measurement grid, if any;
+ *   2. the controller measures x_{k - delay} (x_0 before that; the delay plus the period's
+ *      jitter, if any) of every unit, its positions off by whole encoder counts, if any, put
+ *      on the unit's measurement grid, if any;
  *   3. <scenario>_step returns the commands (N m, N), clipped to the effort limits as the
  *      supervisor clips them, the errors, and advances the estimate one period;
  *   4. each drive applies its command on its effort grid, if any; the applied effort is logged
  *      and held over the period;
- *   5. each unit's plant integrates the period: x_{k+1}.
+ *   5. each unit's plant integrates the period under the applied effort, times the motors'
+ *      torque-constant error (1 + e) where the unit has one: x_{k+1}.
+ * The delay's jitter (SIM_JITTER) and the encoder counts of noise (SIM_ENCODER_COUNTS) are
+ * drawn as cochlea.sim.setup draws them: numpy's PCG64 from each stream's starting state
+ * (sim.h), one double per period for the jitter and one per joint and period for the counts,
+ * turned into whole numbers as cochlea.sim.setup.uniform_integers does; the counts times each
+ * joint's encoder quantum are added to the measured positions before the grid. (Gaussian
+ * noise is not simulated: bench/embedded_bench.py refuses a scenario with it.)
  * The run stops after period k when a state or the estimate is no longer finite ("diverged",
  * k + 1 rows), or before it when the step refuses a non-finite output ("step-failed", k rows).
  *
@@ -32,6 +40,7 @@
 #include "sim_scenario.h"
 
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -74,6 +83,48 @@ static void measured_state(const double *plant_x, double *x)
     }
 }
 
+#if SIM_JITTER > 0 || SIM_ENCODER_COUNTS > 0
+/* numpy's PCG64 (128-bit LCG, XSL-RR output), as np.random.default_rng draws */
+__extension__ typedef unsigned __int128 sim_u128;
+
+static sim_u128 sim_u128_of(uint64_t high, uint64_t low)
+{
+    return ((sim_u128)high << 64) | (sim_u128)low;
+}
+
+typedef struct {
+    sim_u128 state, inc;
+} sim_pcg64;
+
+static void sim_pcg64_start(sim_pcg64 *g, const uint64_t seed[4])
+{
+    g->state = sim_u128_of(seed[0], seed[1]);
+    g->inc = sim_u128_of(seed[2], seed[3]);
+}
+
+/* One step, then the output of the new state (numpy's pcg64_next64) */
+static uint64_t sim_pcg64_next(sim_pcg64 *g)
+{
+    const sim_u128 multiplier = sim_u128_of(0x2360ED051FC65DA4ULL, 0x4385DF649FCCF645ULL);
+    uint64_t x;
+    unsigned r;
+    g->state = g->state * multiplier + g->inc;
+    x = (uint64_t)(g->state >> 64) ^ (uint64_t)g->state;
+    r = (unsigned)(g->state >> 122);
+    return (x >> r) | (x << ((64u - r) & 63u));
+}
+
+/* Generator.random(): a double in [0, 1), then cochlea.sim.setup.uniform_integers */
+static double sim_integer(sim_pcg64 *g, int low, int high)
+{
+    const double u = (double)(sim_pcg64_next(g) >> 11) * (1.0 / 9007199254740992.0);
+    const double count = (double)(high - low + 1);
+    return fmin(floor(u * count), count - 1.0) + (double)low;
+}
+#endif
+
+#define SIM_RING (SIM_DELAY + SIM_JITTER + 1) /* periods of true states kept */
+
 static int usage(void)
 {
     fprintf(stderr, "usage: simulate [--duration S] [--log FILE]   (scenario %s)\n", SIM_NAME);
@@ -82,12 +133,12 @@ static int usage(void)
 
 int main(int argc, char **argv)
 {
-    static double history[SIM_DELAY + 1][SIM_NX]; /* x of the last delay + 1 periods */
+    static double history[SIM_RING][SIM_NX]; /* x of the last SIM_RING periods */
     static double row[SIM_COLUMNS];
     static char log_buffer[1 << 20];
     const double start = now_s();
     const double h = SIM_PERIOD;
-    double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], loop_start, end;
+    double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], torque[SIM_NQ], loop_start, end;
     double plant_x[SIM_NXP], plant_next[SIM_NXP]; /* the plants' states; x is their [q, qd] */
     sim_real measurement[SIM_NX], command[SIM_NQ], errors[SIM_NE];
     sim_real xd[SIM_ND], xd_dot[SIM_ND], xd_ddot[SIM_ND];
@@ -97,6 +148,13 @@ int main(int argc, char **argv)
     FILE *log = NULL;
     long steps, k, rows = 0;
     int i, u, qi, code = 0;
+#if SIM_JITTER > 0
+    sim_pcg64 jitter;
+#endif
+#if SIM_ENCODER_COUNTS > 0
+    sim_pcg64 encoder;
+    double counts[SIM_NQ]; /* this period's encoder counts of noise, joint after joint */
+#endif
 
     for (i = 1; i < argc; ++i) {
         if (strcmp(argv[i], "--duration") == 0 && i + 1 < argc) {
@@ -127,13 +185,29 @@ int main(int argc, char **argv)
         memcpy(plant_x + i, sim_units[u].x0, (size_t)sim_units[u].nxp * sizeof(double));
     measured_state(plant_x, x);
 
+#if SIM_JITTER > 0
+    sim_pcg64_start(&jitter, sim_jitter_seed);
+#endif
+#if SIM_ENCODER_COUNTS > 0
+    sim_pcg64_start(&encoder, sim_encoder_seed);
+#endif
     loop_start = now_s();
     for (k = 0; k < steps; ++k) {
         const double t = (double)k * h; /* as the simulation's time grid, arange(N) * h */
-        const double *seen = history[k >= SIM_DELAY ? (k - SIM_DELAY) % (SIM_DELAY + 1) : 0];
-        double *slot = history[k % (SIM_DELAY + 1)];
+        long age = SIM_DELAY; /* periods: how old this period's measurement is */
+        const double *seen;
+        double *slot = history[k % SIM_RING];
         const double *p_hat = state.p_hat; /* the estimate used in this period */
         double *r = row;
+
+#if SIM_JITTER > 0
+        age += (long)sim_integer(&jitter, 0, SIM_JITTER);
+#endif
+        seen = history[k >= age ? (k - age) % SIM_RING : 0];
+#if SIM_ENCODER_COUNTS > 0
+        for (i = 0; i < SIM_NQ; ++i)
+            counts[i] = sim_integer(&encoder, -SIM_ENCODER_COUNTS, SIM_ENCODER_COUNTS);
+#endif
 
         for (i = 0; i < SIM_NX; ++i) slot[i] = x[i];
         if (log) {
@@ -142,12 +216,15 @@ int main(int argc, char **argv)
             for (i = 0; i < SIM_NP; ++i) *r++ = p_hat[i];
         }
 
-        /* The measurement, on each unit's grid */
-        for (u = 0, i = 0; u < SIM_UNITS; ++u) {
+        /* The measurement, its encoder counts of noise, on each unit's grid */
+        for (u = 0, i = 0, qi = 0; u < SIM_UNITS; qi += sim_units[u].nq, ++u) {
             const sim_unit *s = &sim_units[u];
             int j;
             for (j = 0; j < 2 * s->nq; ++j, ++i) {
                 double m = seen[i];
+#if SIM_ENCODER_COUNTS > 0
+                if (j < s->nq) m += counts[qi + j] * s->quantum[j];
+#endif
                 if (s->quantum && s->quantum[j] > 0) {
                     const double q = s->quantum[j], o = s->offset[j];
                     m = o + q * nearbyint((m - o) / q);
@@ -176,6 +253,7 @@ int main(int argc, char **argv)
                     e = fmin(fmax(e, -s->effort_bound[j]), s->effort_bound[j]);
                 }
                 tau[i] = e;
+                torque[i] = s->torque_scale ? s->torque_scale[j] * e : e;
             }
         }
 
@@ -185,7 +263,7 @@ int main(int argc, char **argv)
             const double *arg[6]; /* a plant without a 6th input reads the first 5 */
             double *res[1];
             arg[0] = plant_x + i;
-            arg[1] = tau + qi;
+            arg[1] = torque + qi;
             arg[2] = s->plant_p;
             arg[3] = s->friction;
             arg[4] = &h;
