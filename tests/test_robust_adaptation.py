@@ -505,7 +505,7 @@ def test_a_box_outside_the_ball_is_refused(tmp_path):
 
 
 def test_options_off_are_the_neutral_inputs():
-    for name in ("serial_joint", "serial_task_realistic", "parallel_task_realistic"):
+    for name in ("serial_joint", "serial_task_realistic", "parallel_task"):
         for u in unit_setups(load_scenario(name)):
             assert u.robust is None
             neutral = u.controller.neutral()
