@@ -134,6 +134,11 @@ def test_scenario_loads_and_tracks_without_a_stop(tmp_path, capsys, robot, extra
         _without_gearbox(out)
     sc = load_scenario(out)
     assert sc.robot == robot and sc.space == "joint" and sc.plant.preset == "realistic"
+    # The study's robust-adaptation options come with its gains (the parallel one boxes its
+    # estimates).
+    study = load_scenario(f"{robot}_joint_realistic")
+    assert (sc.robust.box_relative, sc.robust.sign, sc.robust.startup_ramp) == \
+        (study.robust.box_relative, study.robust.sign, study.robust.startup_ramp)
     setups = unit_setups(sc)
     # The initial state is the path's start, at rest: no jump at t = 0.
     for u in setups:

@@ -22,6 +22,9 @@ from cochlea.sim.scenario import stressed
 from cochlea.sim.setup import adaptation_gains
 
 STUDIES = ("serial_joint", "serial_task", "parallel_joint", "parallel_task")
+#: The studies whose controllers do not survive the geared preset yet (issue 24, item 2):
+#: tested on the preset as it was before the gearbox.
+SERIAL_BEFORE_GEARBOX = ("serial_joint", "serial_task")
 
 
 def test_the_preset_sets_every_key_and_each_key_still_overrides(tmp_path):
@@ -113,13 +116,15 @@ def test_each_study_converges_on_the_realistic_plant(study, stress):
     measurements a last-bit difference can put one sample on the other side of a grid point,
     so each run is judged on its own.
 
-    The realistic preset as it was before the gearbox (issue 24): rigid links with the
+    The parallel studies run on the shipped preset, gearbox included. The serial ones run on
+    the realistic preset as it was before the gearbox (issue 24): rigid links with the
     armature, Coulomb friction without static friction, no bridge offset; on the geared plant
-    the uncompensated controllers do not all converge (docs/robustness.md, "The gearbox")."""
+    their controllers do not converge yet (docs/robustness.md, "The gearbox")."""
     sc = load_scenario(f"{study}_realistic")
     assert sc.plant.preset == "realistic" and sc.controller_actuators == "all"
-    sc = dataclasses.replace(sc, plant=dataclasses.replace(
-        sc.plant, gearbox=False, static_friction_ratio=1.0, bridge_offset=False))
+    if study in SERIAL_BEFORE_GEARBOX:
+        sc = dataclasses.replace(sc, plant=dataclasses.replace(
+            sc.plant, gearbox=False, static_friction_ratio=1.0, bridge_offset=False))
     if stress != "nominal":
         sc = stressed(sc, float(stress))
     for kernels in ("casadi", "c"):

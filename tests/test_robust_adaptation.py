@@ -319,12 +319,24 @@ def test_ramp_starts_at_the_initial_pose_at_rest_and_reaches_the_plan(tmp_path, 
             assert np.allclose((hi[1] - lo[1]) / (2 * h), mid[2], rtol=1e-5, atol=1e-6)
 
 
+#: The realistic preset as it was before the gearbox (issue 24): the serial arms' realistic
+#: controller does not survive the MX-64's backlash yet (docs/robustness.md, "The gearbox":
+#: the link rattles in its band and the supervisor stops it), so the tests below that need
+#: a serial study to run its length without a stop simulate without the gearbox. What they
+#: test (the ramp's start-up, the options' equality in C, CasADi and the loops) does not
+#: depend on it.
+BEFORE_GEARBOX = "gearbox = false\nstatic_friction_ratio = 1.0\nbridge_offset = false"
+
+
 def test_the_ramp_removes_the_start_up_velocity_stop(tmp_path):
     """Issue 24: the realistic joint-space study with 3 periods of delay stops on the velocity
-    limit in its first 20 ms; ramped in over 0.5 s it does not."""
+    limit in its first 20 ms; ramped in over 0.5 s it does not, and its peak speed stays under
+    a third of the limit (on the preset before the gearbox: on the geared plant the rattling
+    of the links in their backlash sets the peak, see above)."""
     def peak_and_stop(control):
         sc = load_scenario(_scenario(tmp_path, "serial_joint_realistic", control,
-                                     "delay_periods = 3", file=f"v{len(control)}.toml"))
+                                     "delay_periods = 3\n" + BEFORE_GEARBOX,
+                                     file=f"v{len(control)}.toml"))
         setups = unit_setups(sc)
         result = simulate(sc, 0.6, setups)
         supervisor = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
@@ -350,7 +362,8 @@ EVERYTHING = ('adaptation_deadzone_SI = [0.004, 0.004, 0.008]\nestimate_box_rela
 
 @pytest.fixture
 def everything(tmp_path):
-    return load_scenario(_scenario(tmp_path, "serial_task_realistic", EVERYTHING))
+    return load_scenario(_scenario(tmp_path, "serial_task_realistic", EVERYTHING,
+                                   BEFORE_GEARBOX))
 
 
 def test_every_option_runs_the_same_in_c_and_casadi(everything):
@@ -371,7 +384,7 @@ def test_every_option_runs_the_same_in_the_real_time_loop(tmp_path):
     as-fast run does, period for period. Without measurement delay: with it the sim backend
     and the as-fast run already differ on the shipped realistic studies (issue 24, item 3)."""
     everything = load_scenario(_scenario(tmp_path, "serial_task_realistic", EVERYTHING,
-                                         "delay_periods = 0"))
+                                         "delay_periods = 0\n" + BEFORE_GEARBOX))
     setups = unit_setups(everything)
     backend = SimBackend(setups, everything.period, everything.plant_substeps)
     supervisor = build_supervisor(setups, everything.space, None,
@@ -505,7 +518,7 @@ def test_a_box_outside_the_ball_is_refused(tmp_path):
 
 
 def test_options_off_are_the_neutral_inputs():
-    for name in ("serial_joint", "serial_task_realistic", "parallel_task_realistic"):
+    for name in ("serial_joint", "serial_task_realistic", "parallel_task"):
         for u in unit_setups(load_scenario(name)):
             assert u.robust is None
             neutral = u.controller.neutral()

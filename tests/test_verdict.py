@@ -21,6 +21,14 @@ from cochlea.runtime.loop import TIMING_COLUMNS
 from cochlea.sim import GravityRefused, load_scenario, simulate, unit_setups
 from cochlea.sim.scenario import load_system
 
+#: The realistic preset as it was before the gearbox (issue 24): the serial arms' realistic
+#: controllers do not survive the MX-64's backlash yet (docs/robustness.md, "The gearbox": the
+#: links rattle in their band, the supervisor stops the run within 30 ms), so the tests below
+#: that need a serial realistic study to run its length, or to converge, simulate without it.
+#: What they test (the verdict) does not depend on the plant.
+BEFORE_GEARBOX = {"gearbox": False, "static_friction_ratio": 1.0, "bridge_offset": False}
+BEFORE_GEARBOX_LINES = "gearbox = false\nstatic_friction_ratio = 1.0\nbridge_offset = false\n"
+
 
 def _with_plant(sc, **plant):
     return dataclasses.replace(sc, plant=dataclasses.replace(sc.plant, **plant))
@@ -61,7 +69,8 @@ def _csv(path):
 
 
 @pytest.mark.parametrize("name, plant", [
-    ("serial_joint_realistic", {"noise_q_std": 1e-3, "noise_qd_std": 1e-2, "seed": 4}),
+    ("serial_joint_realistic", {"noise_q_std": 1e-3, "noise_qd_std": 1e-2, "seed": 4,
+                                **BEFORE_GEARBOX}),
     ("parallel_task_realistic", {"delay_periods": 2}),
     ("serial_task", {}),
     # issue 24's disturbances: delay 1..3 periods, +-1 count, a 5 % torque-constant error
@@ -111,7 +120,8 @@ def test_the_error_judged_is_the_true_one_with_the_measured_one_beside_it(tmp_pa
     """With about a count of encoder noise, arm 2 of controller e converges (the plant's true
     error) while the error it measures would say it did not: the summary judges the true one,
     reports the measured one beside it, and says which it judged; log.csv holds both."""
-    sc = _with_plant(load_scenario("serial_joint_realistic"), noise_q_std=2e-3, seed=3)
+    sc = _with_plant(load_scenario("serial_joint_realistic"), noise_q_std=2e-3, seed=3,
+                     **BEFORE_GEARBOX)
     result, summary = _as_fast(sc, None, tmp_path)
     assert summary["judged_error"] == "true"
     assert summary["converged"] and summary["supervisor"]["rule"] == "none"
@@ -141,7 +151,8 @@ def _delayed_scenario(tmp_path, delay=3):
     assert text.count('plant = "realistic"\n') == 1
     path = tmp_path / "serial_joint_delayed.toml"
     path.write_text(text.replace('plant = "realistic"\n',
-                                 f'plant = "realistic"\ndelay_periods = {delay}\n'))
+                                 f'plant = "realistic"\ndelay_periods = {delay}\n'
+                                 + BEFORE_GEARBOX_LINES))
     return path
 
 
@@ -175,7 +186,8 @@ def test_cochlea_run_as_fast_and_in_real_time_agree(tmp_path, study, code):
     if study == "delayed":
         scenario, space = _delayed_scenario(tmp_path), "joint"
     else:
-        scenario, space = SCENARIOS_DIR / f"{study}.toml", "task"
+        scenario, space = tmp_path / f"{study}.toml", "task"
+        scenario.write_text((SCENARIOS_DIR / f"{study}.toml").read_text() + BEFORE_GEARBOX_LINES)
     common = ["--robot", "serial", "--space", space, "--scenario", str(scenario),
               "--duration", "0.3"]
     fast = cochlea_run.main(common + ["--realtime", "off", "--out", str(tmp_path / "fast")])

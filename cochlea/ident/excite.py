@@ -672,6 +672,23 @@ def _number_list(values) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
+def _robust_lines(robust) -> list[str]:
+    """The study's robust-adaptation keys of ``[control]`` that it sets (none: no line)."""
+    lines = []
+    if robust.deadzone is not None:
+        lines.append(f"adaptation_deadzone_SI = {_number_list(robust.deadzone)}")
+    if robust.box_relative is not None:
+        lines.append(f"estimate_box_relative = {float(robust.box_relative)!r}")
+    if robust.sign != "free":
+        lines.append(f'estimate_sign = "{robust.sign}"')
+    if robust.static_ratio is not None:
+        lines.append(f"static_friction_ratio = {_number_list(robust.static_ratio)}")
+        lines.append(f"stribeck_velocity_SI = {_number_list(robust.stribeck_velocity)}")
+    if robust.startup_ramp:
+        lines.append(f"startup_ramp_s = {float(robust.startup_ramp)!r}")
+    return lines
+
+
 def scenario_text(result: Design, command: str) -> str:
     """The joint-space scenario that tracks the design (``cochlea-run --scenario``): the
     control settings and gains of the robot's joint-space study for the realistic plant,
@@ -744,6 +761,7 @@ def scenario_text(result: Design, command: str) -> str:
         f'initial_estimate = "{study.initial_estimate}"',
         f'actuators = "{study.controller_actuators}"',
         f"estimate_bound = {study.estimate_bound!r}",
+        *_robust_lines(study.robust),
         "",
         "[desired]",
         "leader = [",
