@@ -1,10 +1,15 @@
-"""Issue 24, item 2: each shipped realistic study converges on the realistic preset with
+"""Issue 24, item 2: a shipped realistic study converges on the realistic preset with
 everything a geared MX-64 and the bus bring, all at once, over three times its length: the
 datasheet's backlash (0.33 deg on every MX-64 joint, the XM540-W270's 0.25 deg on the slider),
 static friction 1.5x Coulomb, delay jittering between 1 and 3 periods, +-1 count of encoder
 noise, a 5 % torque-constant error (weaker and stronger) and the bridge's current conversion.
 Judged as cochlea-run judges a run: every tracked coordinate within its convergence rule on the
-true error, and no supervisor stop."""
+true error, and no supervisor stop.
+
+The parallel studies do (f, d). The serial ones (e, g) do not yet: their flat links carry no
+load through the gear, so inside the 0.33 deg band (3.75 counts) nothing holds them and they
+bounce from tooth to tooth, above the one-count floor (docs/robustness.md, "The serial studies:
+not converged"). For them this file holds the verdict to the truth: not converged."""
 
 from __future__ import annotations
 
@@ -18,8 +23,8 @@ from cochlea.dynamixel.control_table import MODELS
 from cochlea.robots import robot
 from cochlea.sim import load_scenario, simulate
 
-STUDIES = ["serial_joint_realistic", "serial_task_realistic", "parallel_joint_realistic",
-           "parallel_task_realistic"]
+SURVIVING = ["parallel_joint_realistic", "parallel_task_realistic"]
+NOT_YET = ["serial_joint_realistic", "serial_task_realistic"]
 
 
 def everything(name: str, torque_error: float):
@@ -45,8 +50,8 @@ def test_the_preset_has_the_datasheets_backlash():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("torque_error", [0.05, -0.05])
-@pytest.mark.parametrize("name", STUDIES)
-def test_each_realistic_study_survives_the_gearbox_all_at_once(name, torque_error):
+@pytest.mark.parametrize("name", SURVIVING)
+def test_each_parallel_realistic_study_survives_the_gearbox_all_at_once(name, torque_error):
     sc = everything(name, torque_error)
     result = simulate(sc, duration=3 * sc.duration, kernels="c")
     verdict = summary(result)
@@ -56,3 +61,18 @@ def test_each_realistic_study_survives_the_gearbox_all_at_once(name, torque_erro
     bad = {(u, c): v for u, s in verdict["units"].items() for c, v in s["tracked"].items()
            if not v["converged"]}
     assert not bad and verdict["converged"], bad
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", NOT_YET)
+def test_a_serial_study_the_backlash_defeats_is_not_called_converged(name):
+    """Issue 24's honest verdict on the case it is about: over the study's own length, the
+    serial arms bounce inside their gears' band, and the summary says so (some coordinate
+    above its floor, converged false), judged on the true error."""
+    sc = everything(name, 0.05)
+    verdict = summary(simulate(sc, kernels="c"))
+    assert verdict["judged_error"] == "true"
+    floors = [c["final_rms_error"] / c["convergence_floor"]
+              for u in verdict["units"].values() for c in u["tracked"].values()]
+    assert not verdict["converged"]
+    assert verdict["supervisor"] is not None or max(floors) > 1.0
