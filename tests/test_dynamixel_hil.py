@@ -233,16 +233,22 @@ def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
     run with the bridge's offset left out converges; the same run with both compensations
     (the bridge's rule patched back to always compensating) either stops on a joint's speed
     limit (seen at 16 ms, as the issue saw on the motors' model) or tracks several times
-    worse (3 s ended with arm 2's joint 2 at 1.28 of its initial error, against 0.11)."""
+    worse (3 s ended with arm 2's joint 2 at 1.28 of its initial error, against 0.11). The
+    realistic preset without its gearbox (backlash and static friction, which the serial
+    controllers do not survive yet: docs/robustness.md), so the friction is the one effect."""
+    from cochlea.resources import SCENARIOS_DIR
+    scenario = tmp_path / "serial_joint_realistic_rigid.toml"
+    scenario.write_text((SCENARIOS_DIR / "serial_joint_realistic.toml").read_text()
+                        + "gearbox = false\nstatic_friction_ratio = 1.0\n")
     summaries = {}
     for case, patch in (("once", ""), ("twice", "r.bridge_compensates_friction = "
                                                "lambda actuators: True; ")):
         out, log = tmp_path / case, tmp_path / f"{case}.log"
-        with emulator("serial", "serial_joint_realistic", log) as port:
+        with emulator("serial", str(scenario), log) as port:
             done = subprocess.run(
                 [sys.executable, "-c", "import sys; import cochlea.apps.cochlea_run as r; "
                  f"{patch}sys.exit(r.main(sys.argv[1:]))", "--robot", "serial", "--space",
-                 "joint", "--scenario", "serial_joint_realistic", "--backend", "dynamixel",
+                 "joint", "--scenario", str(scenario), "--backend", "dynamixel",
                  "--port", port, "--duration", "3", "--out", str(out), *SHARED_MACHINE],
                 cwd=tmp_path, capture_output=True, text=True, timeout=180)
         assert done.returncode in (0, 11), done.stderr  # completed, or the velocity limit
@@ -280,7 +286,11 @@ def documented_pairs() -> list[tuple[list[str], list[str]]]:
 def test_the_documented_examples_are_found():
     pairs = documented_pairs()
     assert len(pairs) >= 2
-    assert {run[run.index("--robot") + 1] for _, run in pairs} == {"serial", "parallel"}
+    spaces = {(run[run.index("--robot") + 1], run[run.index("--space") + 1])
+              for _, run in pairs}
+    # Both of the parallel robot's controllers; the serial arms do not survive the geared
+    # emulator yet, and docs/dynamixel.md says so instead of showing a pair that fails.
+    assert spaces == {("parallel", "joint"), ("parallel", "task")}
 
 
 @pytest.mark.parametrize("emulator_args,run_args", documented_pairs(),
