@@ -413,7 +413,7 @@ def test_a_map_over_the_gearbox_varies_backlash_and_static_friction(tmp_path):
     text = ('format = "cochlea-sweep/1"\nscenario = "serial_joint_realistic"\nsamples = 1\n'
             'seed = 1\nduration_s = 0.1\n[perturb]\n'
             'backlash_SI = {grid = [0.0, 0.0087]}\n'
-            'static_friction_ratio = {grid = [1.0, 2.0]}\n')
+            'static_friction_ratio = {grid = [1, 2.0]}\n')
     spec = sweep_spec.load(write_spec(tmp_path, text=text))
     seen = set()
     for i in range(4):
@@ -423,6 +423,10 @@ def test_a_map_over_the_gearbox_varies_backlash_and_static_friction(tmp_path):
         assert plant.gearbox and len(set(plant.backlash)) == 1
         seen.add((float(plant.backlash[0]), plant.static_friction_ratio))
     assert seen == {(0.0, 1.0), (0.0, 2.0), (0.0087, 1.0), (0.0087, 2.0)}
+    # A float key's integers are floats in the rows (one column type for Parquet).
+    assert sampling.inputs(spec, 0)["plant.backlash_SI"] == 0.0
+    assert isinstance(sampling.inputs(spec, 0)["plant.backlash_SI"], float)
+    assert isinstance(sampling.inputs(spec, 0)["plant.static_friction_ratio"], float)
     bad = text.replace("2.0]}", "0.5]}")  # static below Coulomb
     with pytest.raises(DescriptionError, match="static_friction_ratio"):
         sweep_spec.load(write_spec(tmp_path, text=bad))

@@ -77,6 +77,15 @@ class KeyRule:
         low = v > self.lo if self.lo_open else v >= self.lo
         return bool(low and v <= self.hi)
 
+    def normal(self, v: Any) -> Any:
+        """``v`` (already checked) with a float key's integers as floats: ``0`` and ``0.0``
+        are the same value, and a column of the rows must have one type (Parquet refuses to
+        merge int64 with double: a grid of backlash lists written ``[0, 0, ...]`` and
+        ``[0.0017, ...]`` failed the report)."""
+        if self.kind != "float":
+            return v
+        return [float(x) for x in v] if isinstance(v, list) else float(v)
+
     def value_ok(self, v: Any) -> bool:
         if self.size is not None and isinstance(v, list):
             return len(v) == self.size and all(self.scalar_ok(x) for x in v)
@@ -176,7 +185,7 @@ def _entry(t: Table, key: str, rule: KeyRule, name: str) -> Entry:
     if not isinstance(value, dict):
         if not rule.value_ok(value):
             raise DescriptionError(t.path, where, expected, value)
-        return Entry(name, rule, "fixed", (value,))
+        return Entry(name, rule, "fixed", (rule.normal(value),))
     kinds = [d for d in DISTRIBUTIONS if d in value]
     unknown = sorted(set(value) - set(DISTRIBUTIONS) - {"each"})
     if unknown or len(kinds) != 1:
@@ -198,7 +207,7 @@ def _entry(t: Table, key: str, rule: KeyRule, name: str) -> Entry:
         for i, v in enumerate(args):
             if not rule.value_ok(v):
                 raise DescriptionError(t.path, f"{at}[{i}]", rule.text(), v)
-        return Entry(name, rule, kind, tuple(args))
+        return Entry(name, rule, kind, tuple(rule.normal(v) for v in args))
     if rule.kind in ("bool", "preset"):
         raise DescriptionError(t.path, at, f"choice or grid ({rule.text()}): {kind} needs a "
                                "number", args)
