@@ -93,8 +93,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="scenario TOML (default: the thesis's study for ROBOT and SPACE)")
     p.add_argument("--plant", choices=list(PLANT_PRESETS),
                    help="the simulated robot: ideal, the rigid links as the scenario says; "
-                        "realistic, the geared Dynamixels (armature, friction with sticking, "
-                        "encoder and velocity-register counts, 1 period of delay). Without "
+                        "realistic, the geared Dynamixels (rotors behind gears with the "
+                        "datasheets' backlash, static and Coulomb friction, the bridge's current "
+                        "conversion and Current Limit, encoder and velocity-register counts, 1 "
+                        "period of delay). Without "
                         "--scenario, realistic runs the study tuned for it "
                         "(ROBOT_SPACE_realistic.toml); with one, it sets that scenario's plant")
     p.add_argument("--duration", type=float, metavar="S",
