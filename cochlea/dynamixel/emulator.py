@@ -229,10 +229,7 @@ class VirtualMotor:
         self.ignored: frozenset[int] = frozenset()  # addresses whose writes do not take
         self._key: tuple = ()
         self._state = (False, 0, 0.0)
-        #: The current gives the motor's own torque ``a I`` (a plant that models the gearbox's
-        #: friction, or a bridge that adds no offset current); otherwise the fit's torque, the
-        #: offset current taken off (see the module docstring).
-        self.slope_only = False
+        self._slope_only = False
         #: The motor's torque over what its fit says (``1 + [plant] torque_constant_error``).
         self.torque_scale = 1.0
 
@@ -273,6 +270,18 @@ class VirtualMotor:
             effort = self.torque_scale * float(self.drive.effort(current, self.slope_only))
             self._key, self._state = key, (driving, current, effort)
         return self._state
+
+    @property
+    def slope_only(self) -> bool:
+        """The current gives the motor's own torque ``a I`` (a plant that models the gearbox's
+        friction, or a bridge that adds no offset current); otherwise the fit's torque, the
+        offset current taken off (see the module docstring)."""
+        return self._slope_only
+
+    @slope_only.setter
+    def slope_only(self, value: bool) -> None:
+        self._slope_only = bool(value)
+        self._key = ()  # the effort cached by state() came from the other rule
 
     @property
     def driving(self) -> bool:
@@ -498,9 +507,9 @@ class VirtualChain:
             slope_only = s.coulomb is not None or not bridge_compensates_friction(
                 self.scenario.controller_actuators)
             for j, m in enumerate(self.motors[start:start + n]):
-                m.slope_only, m._key = slope_only, ()
                 if s.torque_scale is not None:  # the plant's torque-constant error
                     m.torque_scale = float(s.torque_scale[j])
+                m.slope_only = slope_only  # last: its setter drops the cached effort
             self.units.append(_Unit(s, 1, plant_period_s, self.motors[start:start + n]))
             start += n
         if start != len(self.motors):
