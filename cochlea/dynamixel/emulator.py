@@ -377,6 +377,35 @@ class VirtualMotor:
             self.on_torque(self)
 
 
+def _bind_plant(step, arguments: list[np.ndarray], result: np.ndarray):
+    """``(call, source, owner)``: a call that runs ``step`` on ``arguments`` into ``result`` in place.
+
+    The generated C kernel of the same Function when the library has it (same source hash):
+    the geared parallel plant costs about 260 us per step in CasADi's virtual machine, and a
+    request, a write and the 1 ms tick each take a step, so a busy machine left the chain's
+    replies later than the bridge's read timeout (CI: six timeouts in a row). Else CasADi's
+    own buffers (about 10 us instead of 60 us with numpy arguments for the small plants).
+    ``owner`` holds what the call points into: keep it as long as the call."""
+    from ..kernels import library as ckernels
+    from ..kernels.naming import source_hash
+    name = step.name()
+    try:
+        lib = ckernels.load()
+        if name in lib.manifest["kernels"] and lib.source_hash(name) == source_hash(step):
+            # A kernel's 1x1 argument is a 0-d buffer: the same memory, viewed so.
+            kernel = lib.kernel(name, **{step.name_in(i): a.reshape(()) if a.size == 1 else a
+                                         for i, a in enumerate(arguments)},
+                                **{step.name_out(0): result})
+            return kernel.call, "c", kernel
+    except CochleaError:
+        pass
+    buffer, call = step.buffer()
+    for i, a in enumerate(arguments):
+        buffer.set_arg(i, memoryview(a))
+    buffer.set_res(0, memoryview(result))
+    return call, "casadi", buffer
+
+
 class _Unit:
     """One plant (an arm, or the parallel mechanism) and its motors."""
 
@@ -391,10 +420,8 @@ class _Unit:
         # on the link: q and qd are what the motors report).
         self.x = np.asarray(setup.plant_x0, float).copy()
         self.gearbox = setup.gearbox
-        # The plant step (x, tau, p, friction, h[, drive]) -> x_next, called through CasADi's
-        # buffers (about 10 us instead of 60 us with numpy arguments).
+        # The plant step (x, tau, p, friction, h[, drive]) -> x_next.
         step = setup.plant_function(substeps)
-        self._buffer, self._call = step.buffer()
         self._x, self._tau = np.zeros(len(self.x)), np.zeros(n)
         self._next = np.zeros(len(self.x))
         arguments = [self._x, self._tau, np.asarray(setup.plant_params, float).copy(),
@@ -406,9 +433,8 @@ class _Unit:
         self._held = [True] * n
         self._scales = [(m.drive.q_offset, m.drive.q_per_count, m.drive.qd_per_lsb)
                         for m in motors]
-        for i, a in enumerate(arguments):
-            self._buffer.set_arg(i, memoryview(a))
-        self._buffer.set_res(0, memoryview(self._next))
+        self._call, self.plant_source, self._plant_owner = _bind_plant(step, arguments,
+                                                                       self._next)
 
     def advance(self, h: float) -> bool:
         """One RK4 step of ``h`` seconds; False if the plant went non-finite (state kept)."""
@@ -516,6 +542,10 @@ class VirtualChain:
             raise CochleaError(f"the scenario's plant has {start} joints, its description "
                                f"{len(self.motors)} motors")
         install_stops(self.units, truth)
+        #: Where the plant's step runs: the generated C kernels, or CasADi (no library built,
+        #: or one generated from another description).
+        self.plant_source = ("the C kernels" if all(u.plant_source == "c" for u in self.units)
+                             else "CasADi")
         self.baud = baud
         self.byte_time = 10.0 / baud if wire_timing else 0.0
         self.wire_timing = wire_timing
@@ -1146,8 +1176,8 @@ def _main(args: argparse.Namespace) -> int:
     print(path, flush=True)
     ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)
     print(f"cochlea-emulator: {args.robot} robot, scenario {chain.scenario.name}, motors {ids}; "
-          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}; "
-          "Ctrl-C stops", flush=True)
+          f"{args.baud} baud, wire timing {'on' if args.wire_timing else 'off'}, {priority}, "
+          f"plant on {chain.plant_source}; Ctrl-C stops", flush=True)
     # As in the real-time loop: no collector pauses while serving (what the chain makes per
     # request is freed by reference counting; the set-up's objects are frozen out of the way).
     gc.collect()

@@ -5552,12 +5552,12 @@ static int parallel_task_realistic_mechanism_fk(const parallel_task_realistic_re
 
 void parallel_task_realistic_default_config(parallel_task_realistic_config *c) {
   /* mechanism: gains */
-  c->gains[0] = 10.0;
-  c->gains[1] = 10.0;
-  c->gains[2] = 10.0;
-  c->gains[3] = 10.0;
-  c->gains[4] = 10.0;
-  c->gains[5] = 10.0;
+  c->gains[0] = 20.0;
+  c->gains[1] = 20.0;
+  c->gains[2] = 20.0;
+  c->gains[3] = 20.0;
+  c->gains[4] = 20.0;
+  c->gains[5] = 20.0;
   c->gains[6] = 1.2;
   c->gains[7] = 1.2;
   c->gains[8] = 60.0;
