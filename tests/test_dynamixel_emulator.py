@@ -11,6 +11,7 @@ import select
 import time
 from datetime import timedelta
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -18,6 +19,7 @@ from hypothesis import strategies as st
 from cochlea.dynamixel import control_table as ct
 from cochlea.dynamixel import protocol as proto
 from cochlea.dynamixel.emulator import VirtualChain, main
+from cochlea.sim import unit_setups
 
 # The virtual chain on a pseudo-terminal, in real time.
 pytestmark = pytest.mark.hil
@@ -258,8 +260,6 @@ def test_the_plant_runs_on_the_c_kernels_and_steps_as_its_function(scenario):
     simulation uses (the geared parallel plant costs about 260 us per step in CasADi, 18 us in
     C: on a busy machine the slow one made the chain's replies miss the bridge's read
     timeout). One step from a moving state agrees with the Function's."""
-    import numpy as np
-    from cochlea.sim import unit_setups
     chain = VirtualChain(scenario.split("_")[0], scenario)
     assert chain.plant_source == "the C kernels"
     rng = np.random.default_rng(3)
@@ -280,8 +280,8 @@ def test_without_the_library_the_plant_runs_on_casadi(tmp_path, monkeypatch):
     chain = VirtualChain("serial", "serial_joint")
     assert chain.plant_source == "CasADi"
     assert {u.plant_source for u in chain.units} == {"casadi"}
-    q0 = chain.units[0].x.copy()
     u = chain.units[0]
+    q0 = u.x.copy()
     u._x[:], u._tau[:] = q0, 0.2
     u._call()
     assert u._next[u.n:2 * u.n].any()  # a torque accelerated the joints

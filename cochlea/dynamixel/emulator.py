@@ -74,6 +74,8 @@ import numpy as np
 
 from ..console import tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..kernels import library as ckernels
+from ..kernels.naming import source_hash
 from ..robots import ROBOTS
 from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
 from ..robots.motor_fit import bridge_compensates_friction
@@ -378,7 +380,7 @@ class VirtualMotor:
 
 
 def _bind_plant(step, arguments: list[np.ndarray], result: np.ndarray):
-    """``(call, source, owner)``: a call that runs ``step`` on ``arguments`` into ``result`` in place.
+    """``(call, source, owner)``: a call running ``step`` on ``arguments`` into ``result``.
 
     The generated C kernel of the same Function when the library has it (same source hash):
     the geared parallel plant costs about 260 us per step in CasADi's virtual machine, and a
@@ -386,8 +388,6 @@ def _bind_plant(step, arguments: list[np.ndarray], result: np.ndarray):
     replies later than the bridge's read timeout (CI: six timeouts in a row). Else CasADi's
     own buffers (about 10 us instead of 60 us with numpy arguments for the small plants).
     ``owner`` holds what the call points into: keep it as long as the call."""
-    from ..kernels import library as ckernels
-    from ..kernels.naming import source_hash
     name = step.name()
     try:
         lib = ckernels.load()
