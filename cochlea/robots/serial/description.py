@@ -54,6 +54,9 @@ class Joint:
     effort_limit: float  # N m or N
     #: What the joint's drive adds to the rigid link: armature and friction.
     actuator: Actuator = Actuator()
+    #: The joint's own name (optional key ``name``, e.g. carried over from a URDF); None: the
+    #: model names it after its link (``link2`` -> ``joint2``).
+    name: str | None = None
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,7 @@ def _physical_inertia(six: list[float]) -> bool:
 
 
 def _read_joint(t: Table, parent_length: float) -> Joint:
+    name = t.name("name", required=False)
     jtype = t.string("type", ("revolute", "prismatic"))
     axis = t.vector("axis", 3, "the joint frame",
                     check=lambda v: all(abs(x) <= 1e3 for x in v) and np.linalg.norm(v) > 1e-9,
@@ -161,7 +165,8 @@ def _read_joint(t: Table, parent_length: float) -> Joint:
     lo, hi, velocity, effort = read_limits(t, jtype)
     actuator = read_actuator(t, jtype)
     t.done()
-    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, actuator)
+    return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, actuator,
+                 name)
 
 
 def _read_link(t: Table, parent_length: float) -> Link:

@@ -75,7 +75,8 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
                   "J_world": ca.jacobian(fk_world, q)}
 
     joints = tuple(
-        JointInfo(link.name.replace("link", "joint", 1) if link.name.startswith("link")
+        JointInfo(link.joint.name if link.joint.name is not None
+                  else link.name.replace("link", "joint", 1) if link.name.startswith("link")
                   else f"{link.name}_joint",
                   link.joint.type, link.joint.position_limits, link.joint.velocity_limit,
                   link.joint.effort_limit)
