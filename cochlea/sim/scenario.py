@@ -448,6 +448,18 @@ def _check_run_length(top: Table, duration: float, rate: float) -> None:
                         "into several runs", duration)
 
 
+def _beside(scenario: Path, description: str) -> str:
+    """A relative description path names a file beside the scenario when there is one there
+    (``cochlea-urdf import --scenario-out`` writes it so); otherwise, as before, a path from
+    the working directory. A bare name is a shipped description."""
+    path = resolve_description(description)
+    if not path.is_absolute():
+        beside = scenario.parent / path
+        if beside.is_file():
+            return str(beside)
+    return description
+
+
 def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     """Load a scenario and the robot description it names; the robot's adapter tells the
     kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`).
@@ -459,7 +471,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     robot = top.string("robot", tuple(ROBOTS))
     space = top.string("space", ("joint", "task"))
-    description = top.string("description", required=False, default=robot)
+    description = _beside(path, top.string("description", required=False, default=robot))
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
     system = load_system(robot, description)
