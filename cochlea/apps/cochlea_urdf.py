@@ -46,6 +46,12 @@ def _relative(target: Path, start: Path) -> str:
 def _import(args: argparse.Namespace) -> None:
     result = import_urdf(args.urdf, base=args.base, tip=args.tip, motors=args.motor,
                          ids=args.ids)
+    prismatic = [link.joint.name for link in result.chain if link.joint.type == "prismatic"]
+    if args.scenario_out is not None and prismatic:
+        raise CochleaError(f"--scenario-out: joint {prismatic[0]!r} is prismatic, and a run "
+                           "needs a motor on every joint, which a serial description drives "
+                           "only through a revolute joint; import without --scenario-out for "
+                           "the model alone")
     for snap in result.snaps:
         print(f"snapped: {snap}")
     for note in result.notes:

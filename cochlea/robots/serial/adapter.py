@@ -104,7 +104,8 @@ class SerialRobot(RobotAdapter):
 
     def layout(self, system: SerialSystem, space: str) -> Layout:
         n = len(system.arms[0].links)
-        kinds = ("angle",) * n
+        kinds = tuple("length" if link.joint.type == "prismatic" else "angle"
+                      for link in system.arms[0].links)
         task = ("length", "length", "angle")
         return Layout(leader=kinds if space == "joint" else task, joint=kinds, task=task,
                       units=tuple(a.name for a in system.arms), n_joint=n, n_task=3,

@@ -116,7 +116,7 @@ def _within(bound: float):
     return lambda v: all(abs(x) <= bound for x in v)
 
 
-def _rpy_matrix(rpy: np.ndarray) -> np.ndarray:
+def rpy_matrix(rpy: np.ndarray) -> np.ndarray:
     """Fixed-axis roll-pitch-yaw (rad) to a rotation matrix, R = Rz(yaw) Ry(pitch) Rx(roll)."""
     r, p, y = rpy
     cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), \
@@ -232,4 +232,4 @@ def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
 
 def joint_rotation(joint: Joint) -> np.ndarray:
     """Rotation of the joint frame in the parent frame, from ``origin_rpy``."""
-    return _rpy_matrix(joint.origin_rpy)
+    return rpy_matrix(joint.origin_rpy)

@@ -28,15 +28,17 @@ from pathlib import Path
 import numpy as np
 
 from ...dynamixel.control_table import MODELS as MOTOR_SPECS
-from ...errors import _MISSING, CochleaError, DescriptionError
+from ...errors import CochleaError, DescriptionError
 from ..description import MAX_MOTOR_ID, NAME_PATTERN
-from .description import Arm, SerialSystem, _rpy_matrix, load_serial
+from .description import Arm, SerialSystem, load_serial, rpy_matrix
 from .model import build_model
 
 #: A file angle this close to a multiple of pi/12 (15 deg) is snapped to it.
 SNAP_TOLERANCE_RAD = 1e-5
 #: Largest URDF read (meshes are referenced, not inlined: real URDFs are well below this).
 MAX_URDF_BYTES = 16 * 1024 * 1024
+#: Any number of a URDF beyond this is a mistake (SI units: no robot has a 1000 km link).
+MAX_VALUE = 1e6
 #: A continuous joint has no position limits; the description needs some: +-this many deg.
 CONTINUOUS_LIMIT_DEG = 360.0
 #: The motor a joint gets when ``--motor`` names none.
@@ -135,9 +137,10 @@ def _numbers(path, element, attr: str, size: int, where: str, default=None) -> n
         values = [float(v) for v in text.split()]
     except ValueError:
         values = []
-    if len(values) != size or not all(math.isfinite(v) for v in values):
+    if len(values) != size or not all(math.isfinite(v) and abs(v) <= MAX_VALUE
+                                      for v in values):
         raise _fail(path, f"{where}: {attr}={text[:80]!r}: expected {size} finite "
-                    f"number{'s' if size > 1 else ''}")
+                    f"number{'s' if size > 1 else ''} within +-{MAX_VALUE:g}")
     return np.array(values, dtype=float)
 
 
@@ -191,7 +194,7 @@ def _inertial(path, link, snaps: list[str]) -> Inertial | None:
     I = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
     if any(six):  # all zero: a point mass (a tool frame's token mass), physical in the limit
         _check_inertia(path, where, I)
-    R = _rpy_matrix(rpy)
+    R = rpy_matrix(rpy)
     return Inertial(mass, xyz, R @ I @ R.T)
 
 
@@ -214,7 +217,7 @@ def _limits(path, joint_el, name: str, jtype: str):
     if jtype == "continuous":
         b = math.radians(CONTINUOUS_LIMIT_DEG)
         return -b, b, velocity, effort
-    lower, upper = value("lower"), value("upper")
+    lower, upper = value("lower", False), value("upper", False)
     if lower is None or upper is None or not lower < upper:
         raise _fail(path, f"{where}: position limits lower={lower}, upper={upper}: both needed, "
                     "lower < upper")
@@ -446,7 +449,7 @@ def extract_chain(path, urdf: Urdf, base: str | None = None,
                     notes.append(f"left out: joint {j.name!r} and what it carries (it branches "
                                  f"off the chain at link {name!r}); its mass is not in the model")
                     continue
-                Rj = Rn @ _rpy_matrix(j.rpy)
+                Rj = Rn @ rpy_matrix(j.rpy)
                 pj = pn + Rn @ j.xyz
                 if urdf.links[j.child] is not None:
                     owner.append(_moved(urdf.links[j.child], Rj, pj))
@@ -456,7 +459,7 @@ def extract_chain(path, urdf: Urdf, base: str | None = None,
     base_bodies: list = []
     attach(base_bodies, base, np.eye(3), np.zeros(3), [])
     for j in joints:
-        Rj = R_acc @ _rpy_matrix(j.rpy)
+        Rj = R_acc @ rpy_matrix(j.rpy)
         pj = p_acc + R_acc @ j.xyz
         if j.type == "fixed":
             R_acc, p_acc = Rj, pj
@@ -710,8 +713,7 @@ def load_text(text: str, source: Path) -> SerialSystem:
             return load_serial(path)
         except DescriptionError as exc:
             raise _fail(source, "the imported chain is not a valid cochlea description: "
-                        f"{exc.key}: expected {exc.expected}"
-                        + ("" if exc.got is _MISSING else f", got {exc.got!r}"[:200])) from None
+                        + str(exc)[len(exc.path) + 2:]) from None
 
 
 # --------------------------------------------------------------------------------------------
