@@ -185,6 +185,22 @@ def test_so101_is_snapped_then_exported_exactly(tmp_path, rng):
     assert 1e-7 < _against_pinocchio(ours, SO101, rng, n=5) < 1e-4
 
 
+@needs_erd
+def test_snapping_keeps_the_base_parameters_of_the_true_arm(tmp_path, monkeypatch):
+    """Why snap: SO-101's 1.5708 for pi/2 adds two base parameters (36 -> 38), which
+    identification would refuse as rank-deficient; snapped, the count is the UR5's 36."""
+    import cochlea.robots.serial.urdf as urdf
+
+    def count() -> int:
+        path = _imported(tmp_path, SO101)
+        return len(cochlea.model("serial", description=path, parameterisation="base")
+                   .param_names)
+
+    assert count() == 36
+    monkeypatch.setattr(urdf, "SNAP_TOLERANCE_RAD", 0.0)
+    assert count() == 38
+
+
 # --------------------------------------------------------------------------------------------
 # Round trip
 # --------------------------------------------------------------------------------------------
