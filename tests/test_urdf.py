@@ -312,6 +312,14 @@ def _run_bad(tmp_path: Path, capsys, args: list[str]) -> str:
     return lines[0]
 
 
+def main_line(tmp_path: Path, capsys, args: list[str]) -> str:
+    code = main(["import", *args])
+    captured = capsys.readouterr()
+    assert code == EXIT_USER_ERROR, captured
+    assert len(captured.err.strip().splitlines()) == 1
+    return captured.err
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_what_cannot_be_a_serial_chain_is_one_line(tmp_path, capsys, case):
     edit, expected = BAD[case]
@@ -335,6 +343,7 @@ def test_option_mistakes_are_one_line(tmp_path, capsys):
     assert "no joint 'elbow'" in _run_bad(tmp_path, capsys, [arm4, "--motor", "elbow=MX-64"])
     assert "4 joints" in _run_bad(tmp_path, capsys, [arm4, "--ids", "1,2,3"])
     assert "distinct" in _run_bad(tmp_path, capsys, [arm4, "--ids", "1,1,2,3"])
+    assert "ending in .toml" in main_line(tmp_path, capsys, [arm4, "--out", "robot"])
     assert "no such link" in _run_bad(tmp_path, capsys, [arm4, "--tip", "hand"])
     assert "not below" in _run_bad(tmp_path, capsys, [arm4, "--base", "slider", "--tip",
                                                       "upper"])

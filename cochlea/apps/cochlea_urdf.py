@@ -44,6 +44,8 @@ def _relative(target: Path, start: Path) -> str:
 
 
 def _import(args: argparse.Namespace) -> None:
+    if args.out.suffix != ".toml":  # a bare name means a shipped description to the loaders
+        raise CochleaError(f"--out {args.out}: a description file name ending in .toml")
     result = import_urdf(args.urdf, base=args.base, tip=args.tip, motors=args.motor,
                          ids=args.ids)
     prismatic = [link.joint.name for link in result.chain if link.joint.type == "prismatic"]
