@@ -211,6 +211,8 @@ class Scenario:
     name: str
     robot: str
     space: str
+    #: A shipped description's bare name ("serial"), or the path of a file; a relative path
+    #: in the file is relative to the scenario's folder, and is held here joined with it.
     description: str
     duration: float  # s
     rate_hz: float
@@ -460,6 +462,11 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     robot = top.string("robot", tuple(ROBOTS))
     space = top.string("space", ("joint", "task"))
     description = top.string("description", required=False, default=robot)
+    named = Path(description)
+    if (named.suffix == ".toml" or named.parent != Path(".")) and not named.is_absolute():
+        # A file of the user's, relative to the scenario that names it (not to the working
+        # directory); a bare name is a shipped description, an absolute path stays as it is.
+        description = str(path.parent / named)
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
     system = load_system(robot, description)
