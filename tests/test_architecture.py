@@ -154,3 +154,140 @@ def test_the_checks_catch_what_they_are_for(monkeypatch, bad, message):
               "private": test_no_private_name_crosses_a_module}
     with pytest.raises((AssertionError, pytest.fail.Exception)):
         checks[message]()
+
+
+# ---- One place knows a robot (issue 25, item 6) ------------------------------------------------
+#
+# Everything specific to a kind of robot lives in cochlea/robots/<kind>/ and is reached through
+# its adapter (cochlea.robots.robot(name), cochlea/robots/adapter.py; docs/extending.md).
+# Outside cochlea/robots/ no module compares a value with a shipped robot's name, kind, arm or
+# unit, keys a table by one, or imports cochlea.robots.serial / cochlea.robots.parallel.
+
+ROBOTS_DATA = PACKAGE / "data" / "robots"
+
+
+def robot_names() -> set[str]:
+    """The names that identify a shipped robot: each description's system name and kind and
+    its arms' names (cochlea/data/robots/*.toml), and the units the registry's adapters name
+    ("mechanism")."""
+    import tomllib
+
+    from cochlea.robots import ROBOTS
+
+    names = set(ROBOTS)
+    for path in sorted(ROBOTS_DATA.glob("*.toml")):
+        data = tomllib.loads(path.read_text())
+        names |= {data["system"]["name"], data["system"].get("kind", data["system"]["name"])}
+        names |= {arm["name"] for arm in data.get("arm", [])}
+    for adapter in ROBOTS.values():
+        names |= set(adapter.layout(adapter.load(None), "joint").units)
+    return names
+
+
+#: Where a robot's name may still appear outside cochlea/robots/, each with its reason:
+#: ``(module, line's text fragment)`` for a name, ``(module, imported module)`` for an import.
+#: Keep it short: a new entry needs a reason that is not about robot identity.
+ALLOWED_NAMES: dict[tuple[str, str], str] = {}
+ALLOWED_IMPORTS: dict[tuple[str, str], str] = {
+    # The package's public facade (cochlea/__init__.py) has exported ``cochlea.load_serial``
+    # since 0.1.0: a re-export for users, not a decision about a robot.
+    ("", "robots.serial"): "public API: cochlea.load_serial",
+}
+KIND_PACKAGES = ("robots.serial", "robots.parallel")
+
+
+def _strings(node: ast.AST, names: set[str]) -> list[str]:
+    return [n.value for n in ast.walk(node) if isinstance(n, ast.Constant)
+            and isinstance(n.value, str) and n.value in names]
+
+
+def name_uses(tree: ast.AST, names: set[str]) -> list[tuple[int, str, str]]:
+    """``(line, what, name)`` of each comparison (==, !=, in, is, match/case) with a string
+    naming a robot, and of each table keyed or indexed by one, in ``tree``."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            found += [(node.lineno, "comparison", s) for s in _strings(node, names)]
+        elif isinstance(node, ast.match_case):
+            found += [(node.pattern.lineno, "case", s) for s in _strings(node.pattern, names)]
+        elif isinstance(node, ast.Dict):
+            found += [(k.lineno, "table key", s) for k in node.keys if k is not None
+                      for s in _strings(k, names) if isinstance(k, ast.Constant)]
+        elif isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant):
+            found += [(node.lineno, "index", s) for s in _strings(node.slice, names)]
+    return found
+
+
+def robot_name_uses(package: Path = PACKAGE) -> list[str]:
+    """Every use of a robot's name outside ``package/robots/`` not in :data:`ALLOWED_NAMES`."""
+    names = robot_names()
+    bad = []
+    for path in sorted(package.rglob("*.py")):
+        relative = path.relative_to(package)
+        if relative.parts[0] == "robots":
+            continue
+        module = ".".join(relative.with_suffix("").parts).removesuffix("__init__").rstrip(".")
+        lines = path.read_text().splitlines()
+        for line, what, name in name_uses(ast.parse(path.read_text(), str(path)), names):
+            text = lines[line - 1]
+            if any(m == module and fragment in text for m, fragment in ALLOWED_NAMES):
+                continue
+            bad.append(f"cochlea/{relative}:{line}: {what} with {name!r}: {text.strip()}")
+    return bad
+
+
+def robot_kind_imports(graph: dict | None = None) -> list[str]:
+    """Every import of a robot kind's package outside cochlea/robots/ not in
+    :data:`ALLOWED_IMPORTS`."""
+    bad = []
+    for module, edges in (GRAPH if graph is None else graph).items():
+        if module == "robots" or module.startswith("robots."):
+            continue
+        for target, name, line in edges:
+            full = f"{target}.{name}" if name else target
+            for kind in KIND_PACKAGES:
+                if (full == kind or full.startswith(kind + ".") or target == kind
+                        or target.startswith(kind + ".")) \
+                        and (module, kind) not in ALLOWED_IMPORTS:
+                    bad.append(f"cochlea.{module}:{line} imports cochlea.{full}")
+    return bad
+
+
+def test_no_robot_name_outside_the_robots_layer():
+    bad = robot_name_uses()
+    assert not bad, ("a robot's name compared or used as a key outside cochlea/robots/ (ask its "
+                     "adapter instead, docs/extending.md):\n" + "\n".join(bad))
+
+
+def test_no_robot_kind_imported_outside_the_robots_layer():
+    bad = robot_kind_imports()
+    assert not bad, ("a robot kind's internals imported outside cochlea/robots/ (ask its "
+                     "adapter, cochlea.robots.robot(name), instead):\n" + "\n".join(bad))
+
+
+def test_the_names_are_the_shipped_robots():
+    assert {"serial", "parallel", "arm1", "arm2", "mechanism"} <= robot_names()
+
+
+@pytest.mark.parametrize("source", [
+    'if robot == "serial":\n    pass\n',
+    'ok = args.robot != "parallel"\n',
+    'ok = unit in ("arm1", "arm2")\n',
+    'match robot:\n    case "parallel":\n        pass\n',
+    'TABLE = {"serial": 1}\n',
+    'x = TABLE["parallel"]\n',
+])
+def test_the_name_check_catches_what_it_is_for(source):
+    """Each form of a name's use is found (so a green run means something)."""
+    assert name_uses(ast.parse(source), robot_names())
+
+
+def test_plain_uses_of_a_name_pass():
+    assert not name_uses(ast.parse('robot("serial")\nprint("serial arms")\n'), robot_names())
+
+
+@pytest.mark.parametrize("edge", [("robots.serial.chain", None, 1), ("robots.parallel", "X", 1),
+                                  ("robots.serial", None, 1)])
+def test_the_import_check_catches_what_it_is_for(edge):
+    assert robot_kind_imports({"ident.excite": [edge]})
+    assert not robot_kind_imports({"robots.x": [edge]})

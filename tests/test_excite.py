@@ -17,6 +17,7 @@ from cochlea.apps import cochlea_excite
 from cochlea.errors import EXIT_USER_ERROR, CochleaError, DescriptionError
 from cochlea.ident import excite
 from cochlea.robots import robot as robot_adapter
+from cochlea.robots.serial import excitation as serial_excitation
 from cochlea.sim import load_scenario, simulate, unit_setups
 
 FAST = excite.ExcitationOptions(period=4.0, harmonics=3, starts=1, iterations=25, periods=1)
@@ -53,9 +54,9 @@ def test_design_inside_every_limit(designs, case):
     if robot == "serial":
         system = robot_adapter("serial").load(None)
         arms = {a.name: a for a in system.arms}
-        points = excite._arm_segments(arms[arm])
+        points = serial_excitation.arm_segments(arms[arm])
         other = [a for a in arms if a != arm][0]
-        held = np.array(excite._arm_segments(arms[other])(result.held[other]))
+        held = np.array(serial_excitation.arm_segments(arms[other])(result.held[other]))
         # The tool from the model's own kinematics: the segments end where fk_world says.
         tool = np.array(model.fk_world(q[:, 0])).ravel()[:2]
         assert np.allclose(np.array(points(q[:, 0]))[:, -1], tool)
@@ -67,7 +68,7 @@ def test_design_inside_every_limit(designs, case):
                 u = np.clip(-a @ (b - a) / ((b - a) @ (b - a)), 0, 1)
                 assert np.linalg.norm(a + u * (b - a)) >= system.keep_out_radius
                 for r in range(3):
-                    gap = excite.segment_distance(a, b, held[:, r], held[:, r + 1])
+                    gap = serial_excitation.segment_distance(a, b, held[:, r], held[:, r + 1])
                     assert gap >= FAST.clearance
     else:
         geometry = model.geometry
@@ -76,8 +77,8 @@ def test_design_inside_every_limit(designs, case):
 
 
 def test_segment_distance_sees_crossing():
-    assert excite.segment_distance([0, 0], [1, 1], [0, 1], [1, 0]) == 0.0
-    assert math.isclose(excite.segment_distance([0, 0], [1, 0], [0, 1], [1, 1]), 1.0,
+    assert serial_excitation.segment_distance([0, 0], [1, 1], [0, 1], [1, 0]) == 0.0
+    assert math.isclose(serial_excitation.segment_distance([0, 0], [1, 0], [0, 1], [1, 1]), 1.0,
                         rel_tol=1e-9)
 
 

@@ -95,3 +95,34 @@ def test_command_line_reports_unreachable_target_with_exit_2(tmp_path):
 
 def test_unreachable_is_a_user_error():
     assert issubclass(UnreachableTarget, CochleaError)
+
+
+def test_a_relative_description_is_relative_to_the_scenario(tmp_path, monkeypatch):
+    """issue 25 papercut: a scenario's relative ``description`` names a file beside the
+    scenario, whatever the working directory; an absolute path is unchanged."""
+    from cochlea.resources import ROBOTS_DIR
+
+    folder = tmp_path / "study"
+    (folder / "robots").mkdir(parents=True)
+    marked = (ROBOTS_DIR / "serial.toml").read_text().replace("keep_out_radius_m = 0.02",
+                                                              "keep_out_radius_m = 0.017")
+    (folder / "robots" / "mine.toml").write_text(marked)
+    (folder / "s.toml").write_text(JOINT.replace('space = "joint"\n',
+                                                 'space = "joint"\ndescription = '
+                                                 '"robots/mine.toml"\n', 1))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    sc = load_scenario(folder / "s.toml")
+    assert sc.system.keep_out_radius == 0.017
+    assert sc.description == str(folder / "robots" / "mine.toml")
+    assert len(unit_setups(sc)) == 2  # the setups load the same file again
+    absolute = folder / "robots" / "mine.toml"
+    (folder / "t.toml").write_text(JOINT.replace('space = "joint"\n',
+                                                 f'space = "joint"\ndescription = "{absolute}"\n',
+                                                 1))
+    assert load_scenario(folder / "t.toml").description == str(absolute)
+    # A bare name is still a shipped description.
+    (folder / "u.toml").write_text(JOINT.replace('space = "joint"\n',
+                                                 'space = "joint"\ndescription = "serial"\n', 1))
+    assert load_scenario(folder / "u.toml").system.keep_out_radius == 0.02

@@ -341,3 +341,34 @@ def test_a_sweep_with_refused_samples_runs_them_all_and_writes_one_table(tmp_pat
     table = results.read(tmp_path / "out")
     assert table.num_rows == len(rows)
     assert table["stop_rule"].to_pylist().count("gravity-refused") == len(refused)
+
+
+def test_a_coordinate_that_starts_on_target_is_judged_by_its_floor():
+    """issue 25 papercut ("joints that start at zero error are reported as not converged"): a
+    coordinate whose initial error is exactly 0 converged if its final RMS stays within the
+    floor, and did not if it drifts above it; the sweep's ratio agrees. (The rule was already
+    so: this holds it.)"""
+    sc = load_scenario("serial_joint")
+    u = simulate(sc, 0.05, unit_setups(sc)).units[0]
+    n = len(u.q)
+    floor = report.CONVERGENCE_FLOOR["rad"]
+    E = np.zeros((n, 3))
+    E[:, 0] = 0.1 * np.exp(-np.arange(n) / 5.0)  # an ordinary converging joint
+    E[1:, 1] = 0.5 * floor  # starts on target, stays within the floor
+    E[1:, 2] = 10 * floor  # starts on target, drifts above it
+    errors = u.errors.copy()
+    errors[:, :3] = E
+    logged = dataclasses.replace(u, errors=errors, true_q=u.desired - E)
+    tracked = report.unit_summary(logged)["tracked"]
+    names = list(tracked)
+    assert [tracked[k]["initial_abs_error"] for k in names[1:]] == [0.0, 0.0]
+    assert [tracked[k]["converged"] for k in names] == [True, True, False]
+    assert [tracked[k]["measured_converged"] for k in names] == [True, True, False]
+    exactly = dataclasses.replace(u, errors=u.errors * 0.0, true_q=u.desired.copy())
+    assert all(c["converged"] for c in report.unit_summary(exactly)["tracked"].values())
+    summary = {"converged": False, "diverged": False,
+               "supervisor": {"rule": "none", "saturated_periods": 0},
+               "units": {"arm1": {"tracked": tracked, "torque": {},
+                                  "estimates": {"bounded": True}}}}
+    ratio = cochlea_sweep.measures(summary, {"arm1": {}})["convergence_ratio"]
+    assert ratio == pytest.approx(10.0, rel=1e-9)  # the drifting one, ten times its floor

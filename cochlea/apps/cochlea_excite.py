@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident.excite import ExcitationOptions, check_options, design, scenario_text
-from ..robots import ROBOTS
+from ..robots import ROBOTS, robot
 from ..sim.scenario import load as load_scenario
 from ..sim.setup import unit_setups
 from . import outputs
@@ -124,9 +124,8 @@ def _command(argv: list[str] | None) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        if args.robot == "parallel" and args.arm is not None:
-            raise CochleaError("--arm is for the serial system; the parallel mechanism is one "
-                               "robot")
+        adapter = robot(args.robot)
+        adapter.unit(adapter.load(None), args.arm)  # --arm refused where it names no unit
         options = _options(args)
         check_options(options)
         check_out(args.out, args.force)

@@ -67,17 +67,7 @@ def _effort_lag(text: str) -> float | str:
 
 def _unit(args) -> str:
     adapter = robot(args.robot)
-    system = adapter.load(args.description)
-    units = adapter.layout(system, "joint").units
-    if args.robot != "serial":
-        if args.arm is not None:
-            raise CochleaError("--arm is for the serial system; the parallel mechanism is one "
-                               "robot")
-        return units[0]
-    arm = args.arm or units[0]
-    if arm not in units:
-        raise CochleaError(f"--arm {arm!r}: no such arm; the arms are {', '.join(units)}")
-    return arm
+    return adapter.unit(adapter.load(args.description), args.arm)
 
 
 def _physical(m, result: estimate.Identification):
@@ -236,8 +226,9 @@ def run(args) -> int:
     if not (math.isfinite(args.guard_s) and 0 <= args.guard_s <= 10):
         raise CochleaError(f"--guard-s must lie in [0, 10] seconds, got {args.guard_s:g}")
     unit = _unit(args)
-    m = model(args.robot, arm=unit if args.robot == "serial" else None,
-              parameterisation="base", actuators="all", description=args.description)
+    # A robot of one unit ignores ``arm``.
+    m = model(args.robot, arm=unit, parameterisation="base", actuators="all",
+              description=args.description)
     drive_lines = current_fit.drive_lines(args.robot, m, unit, args.description)
     # The option's names and the every-joint refusal need no log: checked before reading.
     if args.fit_current.strip().lower() not in (current_fit.AUTO, current_fit.OFF):

@@ -8,102 +8,17 @@ import argparse
 import os
 import sys
 
-import numpy as np
-
 from ..console import EXIT_BROKEN_PIPE, stdout_was_closed, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
-from ..robots import ROBOTS, model
-from ..robots.parallel import SCENARIO_START
-from ..robots.serial import load_serial
+from ..robots import ROBOTS, robot
 
 
-def _print_serial_summary(args: argparse.Namespace) -> None:
-    if args.at is not None:
-        raise CochleaError("--at is for the parallel mechanism; give the serial arm's joint "
-                           "angles with --at-deg")
-    system = load_serial(args.description or args.robot)
-    arm_names = [args.arm] if args.arm else [a.name for a in system.arms]
-    for arm_name in arm_names:
-        arm = model(args.robot, arm=arm_name, parameterisation=args.parameterisation,
-                    method=args.method or "newton-euler", description=args.description)
-        print(arm.describe())
-        if args.at_deg is not None:
-            if len(args.at_deg) != arm.nq:
-                raise CochleaError(f"--at-deg needs {arm.nq} joint angles (deg), got "
-                                   f"{len(args.at_deg)}")
-            q = np.radians(args.at_deg)
-        else:
-            q = np.zeros(arm.nq)
-        x, y, phi = np.array(arm.fk_world(q)).ravel()
-        np.set_printoptions(precision=6, suppress=False)
-        print(f"  at q = {np.degrees(q).round(3).tolist()} deg:")
-        print(f"    tool in the cochlea frame: x = {x:.6f} m, y = {y:.6f} m, "
-              f"phi = {np.degrees(phi):.3f} deg")
-        print("    M(q) [kg m^2] =")
-        for row in np.array(arm.M(q)):
-            print("      " + "  ".join(f"{v: .6e}" for v in row))
-        print("    G(q) [N m] = " + "  ".join(f"{v: .3e}" for v in np.array(arm.G(q)).ravel()))
-        print()
-
-
-def _print_parallel_summary(args: argparse.Namespace) -> None:
-    if args.arm is not None:
-        raise CochleaError("--arm is for the serial system; the parallel mechanism is one robot")
-    if args.at_deg is not None:
-        raise CochleaError("--at-deg is for the serial arms; give the parallel mechanism's "
-                           "th1 th2 d1 th1' th2' (deg, deg, m, deg, deg) with --at")
-    if args.method == "newton-euler":
-        raise CochleaError("the parallel mechanism is a closed chain: its model comes from the "
-                           "Lagrange method only (--method lagrange, the default for it)")
-    robot = model("parallel", parameterisation=args.parameterisation, method="lagrange",
-                  description=args.description)
-    system = robot.geometry.system
-    print(robot.describe())
-    print(f"  geometry: l_p = {system.link_length:g} m, d2 = {system.base_offset:g} m, "
-          f"d3 = {system.rod_length:g} m, {system.min_pivot_distance:g} m <= |C - S| <= d3; "
-          f"gravity (u, v) = {system.gravity.tolist()} m/s^2")
-    for joint in system.joints:
-        fit = joint.motor.fit
-        line = (f"  motor {joint.name}: {joint.motor.model} ID {joint.motor.id}, "
-                f"{fit.y} = {fit.a:g} * {fit.x} {'-' if fit.b < 0 else '+'} {abs(fit.b):g}")
-        if joint.transmission is not None:
-            t = joint.transmission
-            line += (f"; {t.kind.replace('_', ' ')} {t.size:g} m: torque = force * "
-                     f"{t.ratio:.6g} m")
-        print(line)
-    if args.at is not None:
-        if len(args.at) != robot.nq:
-            raise CochleaError(f"--at needs {robot.nq} values th1 th2 d1 th1' th2' (deg, deg, "
-                               f"m, deg, deg), got {len(args.at)}")
-        q = np.array(args.at, float)
-        q[[0, 1, 3, 4]] = np.radians(q[[0, 1, 3, 4]])
-        where = "at"
-    else:
-        q = SCENARIO_START
-        where = "at the joint-space scenario's start (thesis 3.67, right side mirrored),"
-    x = np.array(robot.fk(q)).ravel()
-    shown = [round(float(np.degrees(q[0])), 3), round(float(np.degrees(q[1])), 3),
-             float(q[2]), round(float(np.degrees(q[3])), 3), round(float(np.degrees(q[4])), 3)]
-    print(f"  {where} q = {shown} (deg, deg, m, deg, deg):")
-    print(f"    left  end effector C  = ({x[0]:.6f}, {x[1]:.6f}) m, phi  = "
-          f"{np.degrees(x[2]):.3f} deg")
-    print(f"    right end effector C' = ({x[3]:.6f}, {x[4]:.6f}) m, phi' = "
-          f"{np.degrees(x[5]):.3f} deg")
-    problems = robot.geometry.violations(q)
-    print("    outside the workspace: " + "; ".join(problems) if problems else
-          "    inside the workspace")
-    print("    M(q) [kg m^2, kg m, kg] =")
-    for row in np.array(robot.M(q)):
-        print("      " + "  ".join(f"{v: .6e}" for v in row))
-    print("    G(q) [N m, N m, N, N m, N m] = "
-          + "  ".join(f"{v: .4e}" for v in np.array(robot.G(q)).ravel()))
+def _print_summary(args: argparse.Namespace) -> None:
+    adapter = robot(args.robot)
+    adapter.print_summary(adapter.load(args.description), args)
 
 
 EXIT_INTERRUPTED = 130
-
-
-#: What ``cochlea-model`` prints for each robot (every robot of :data:`cochlea.robots.ROBOTS`).
-SUMMARIES = {"serial": _print_serial_summary, "parallel": _print_parallel_summary}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     tolerate_closed_stdout()
     try:
-        SUMMARIES[args.robot](args)
+        _print_summary(args)
         sys.stdout.flush()  # what is still buffered fails here, not in the interpreter's exit
     except CochleaError as exc:
         print(f"cochlea-model: {exc}", file=sys.stderr)

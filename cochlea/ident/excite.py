@@ -39,27 +39,18 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..errors import CochleaError
+from ..robots import ROBOTS, ExcitationGeometry
 from ..robots import model as build_model
 from ..robots import robot as robot_adapter
-from ..robots.parallel.geometry import SCENARIO_START
-from ..robots.serial.chain import link_poses, tool_point
 from ..sim.scenario import load as load_scenario
 
-#: The joint-space studies tuned for the realistic plant: their control settings and gains
-#: track the excitation too (docs/excitation.md), and the serial study's initial joint angles
-#: are the arms' working poses.
-TRACKING_SCENARIOS = {"serial": "serial_joint_realistic", "parallel": "parallel_joint_realistic"}
-#: Margins of the design inside the limits the result is checked against (m): the keep-out
-#: circle, the clearance between the arms and the rod's travel in its sleeve.
-KEEP_OUT_MARGIN = 0.002
-CLEARANCE_MARGIN = 0.005
-SLEEVE_MARGIN = 0.005
-#: Each pantograph keeps |sin(th1 - th2)| above this: at 0 its links fold or stretch out and
-#: the end point loses a direction of motion.
-MIN_BRANCH_SINE = 0.3
-#: Sharpness (1/m) of the soft minimum over the arms' segment distances: it undershoots the
-#: true minimum by at most log(count) / SOFTMIN_SHARPNESS (~4 mm), on the safe side.
-SOFTMIN_SHARPNESS = 1000.0
+#: The joint-space studies tuned for the realistic plant (each robot's
+#: ``excitation_study``): their control settings and gains track the excitation too
+#: (docs/excitation.md), and their initial joint angles are the units' working poses unless
+#: the robot's excitation geometry says otherwise. The robot's own geometry (keep-out circle,
+#: the other arm, the mechanism's sleeves and branches) is its adapter's
+#: ``excitation_geometry`` (cochlea/robots/<kind>/excitation.py).
+TRACKING_SCENARIOS = {name: r.excitation_study for name, r in ROBOTS.items()}
 #: Sharpness of the soft minimum of each normalised constraint over the samples (its values
 #: are fractions of the limit's range): it undershoots the true minimum by at most
 #: log(samples) / 400 (1.5 % of the range at 400 samples), on the safe side.
@@ -176,55 +167,6 @@ class Design:
 
 
 # --------------------------------------------------------------------------------------------
-# Geometry the constraints need
-# --------------------------------------------------------------------------------------------
-
-
-def _arm_segments(arm) -> ca.Function:
-    """``q -> 2 x 4`` points of an arm in the world (cochlea) frame: its base, the joints
-    2..n and the tool; consecutive points bound its links."""
-    q = ca.SX.sym("q", len(arm.links))
-    poses = link_poses(arm, q)
-    points = [p for _, p in poses] + [tool_point(arm, q)[0]]
-    yaw = arm.base_yaw
-    R = ca.DM([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-    base = ca.DM(arm.base_xyz[:2])
-    world = [base + R @ p[:2] for p in points]
-    return ca.Function(f"{arm.name}_points", [q], [ca.horzcat(*world)])
-
-
-def _point_segment(p, a, b):
-    """Distance from point p to segment [a, b] (2-vectors; CasADi or numpy)."""
-    ab = b - a
-    length2 = ab[0] ** 2 + ab[1] ** 2
-    s = ((p[0] - a[0]) * ab[0] + (p[1] - a[1]) * ab[1]) / length2
-    s = ca.fmin(ca.fmax(s, 0.0), 1.0)
-    dx, dy = p[0] - a[0] - s * ab[0], p[1] - a[1] - s * ab[1]
-    return ca.sqrt(dx ** 2 + dy ** 2 + 1e-12)
-
-
-def segment_distance(a1, b1, a2, b2) -> float:
-    """Distance between two segments of the plane (numbers): zero when they cross."""
-    a1, b1, a2, b2 = (np.asarray(v, float) for v in (a1, b1, a2, b2))
-
-    def cross(o, p, r):
-        return (p[0] - o[0]) * (r[1] - o[1]) - (p[1] - o[1]) * (r[0] - o[0])
-
-    d1, d2 = cross(a2, b2, a1), cross(a2, b2, b1)
-    d3, d4 = cross(a1, b1, a2), cross(a1, b1, b2)
-    if d1 * d2 < 0 and d3 * d4 < 0:
-        return 0.0
-    return float(min(_point_segment(a1, a2, b2), _point_segment(b1, a2, b2),
-                     _point_segment(a2, a1, b1), _point_segment(b2, a1, b1)))
-
-
-def _softmin(values, sharpness: float):
-    """A smooth lower bound of min(values) (a CasADi column), within log(len)/sharpness."""
-    m = ca.mmin(values)
-    return m - ca.log(ca.sum1(ca.exp(-sharpness * (values - m)))) / sharpness
-
-
-# --------------------------------------------------------------------------------------------
 # The problem of one robot
 # --------------------------------------------------------------------------------------------
 
@@ -238,12 +180,14 @@ class _Problem:
     amplitude: np.ndarray
     low: np.ndarray  # the band inside the position limits, SI
     high: np.ndarray
-    #: ``q (n,) -> constraint values (>= 0 when satisfied)``: the robot's own geometry.
-    extra: ca.Function | None = None
-    #: ``q (n,) -> (keep-out distance, clearance)`` for the final check (serial), or
-    #: ``q -> list of problems`` (parallel).
-    check_pose: object = None
+    #: The robot's own geometry: its constraints (``q (n,) -> values``, >= 0 when satisfied)
+    #: and the final check's.
+    geometry: ExcitationGeometry
     held: dict = field(default_factory=dict)
+
+    @property
+    def extra(self) -> ca.Function:
+        return self.geometry.constraints
 
 
 def _band(model, centre: np.ndarray, amplitude: np.ndarray, unit: str) -> tuple:
@@ -271,111 +215,24 @@ def _amplitudes(model, options: ExcitationOptions) -> np.ndarray:
                      for j in model.joints])
 
 
-def _serial_problem(arm_name: str | None, options: ExcitationOptions) -> _Problem:
-    adapter = robot_adapter("serial")
-    system = adapter.load(None)
-    names = [a.name for a in system.arms]
-    arm_name = arm_name or names[0]
-    if arm_name not in names:
-        raise CochleaError(f"--arm {arm_name!r}: the serial system's arms are "
-                           + ", ".join(names))
-    study = load_scenario(TRACKING_SCENARIOS["serial"])
-    poses = {u.name: np.asarray(u.initial_joint, float) for u in study.units}
-    model = build_model("serial", arm=arm_name, parameterisation="base", actuators="all")
-    amplitude = _amplitudes(model, options)
-    centre = poses[arm_name]
-    low, high = _band(model, centre, amplitude, arm_name)
-    arms = {a.name: a for a in system.arms}
-    points = _arm_segments(arms[arm_name])
-    held = {name: poses[name] for name in names if name != arm_name}
-    held_points = [np.array(_arm_segments(arms[n])(q)) for n, q in held.items()]
-    keep_out = system.keep_out_radius
-
-    q_sym = ca.SX.sym("q", model.nq)
-    pts = points(q_sym)
-    origin = ca.DM([0.0, 0.0])
-    # Every link outside the keep-out circle, not only the tool (the rods pass the head).
-    values = [(_point_segment(origin, pts[:, s], pts[:, s + 1]) - keep_out - KEEP_OUT_MARGIN)
-              / max(keep_out, 1e-3) for s in range(3)]
-    if held_points:
-        distances = []
-        for other in held_points:
-            for s in range(3):
-                for r in range(3):
-                    a1, b1 = pts[:, s], pts[:, s + 1]
-                    a2, b2 = ca.DM(other[:, r]), ca.DM(other[:, r + 1])
-                    distances += [_point_segment(a1, a2, b2), _point_segment(b1, a2, b2),
-                                  _point_segment(a2, a1, b1), _point_segment(b2, a1, b1)]
-        gap = _softmin(ca.vertcat(*distances), SOFTMIN_SHARPNESS)
-        values.append((gap - options.clearance - CLEARANCE_MARGIN) / 0.01)
-    extra = ca.Function("serial_geometry", [q_sym], [ca.vertcat(*values)])
-
-    def check_pose(q):
-        pts = np.array(points(q))
-        keep = min(float(_point_segment(np.zeros(2), pts[:, s], pts[:, s + 1]))
-                   for s in range(3))
-        gap = min((segment_distance(pts[:, s], pts[:, s + 1], other[:, r], other[:, r + 1])
-                   for other in held_points for s in range(3) for r in range(3)),
-                  default=math.inf)
-        return keep, gap
-
-    problem = _Problem("serial", arm_name, model, centre, amplitude, low, high, extra,
-                       check_pose, held)
-    keep, gap = check_pose(centre)
-    if keep < keep_out + KEEP_OUT_MARGIN or gap < options.clearance + CLEARANCE_MARGIN:
-        raise CochleaError(
-            f"{arm_name}'s working pose is {keep * 1000:.1f} mm from the cochlea centre and "
-            f"{gap * 1000:.1f} mm from the other arm: the excitation needs "
-            f"{(keep_out + KEEP_OUT_MARGIN) * 1000:.1f} mm and --clearance-mm "
-            f"{options.clearance * 1000:g} + {CLEARANCE_MARGIN * 1000:g} mm (lower it)")
-    return problem
-
-
-def _parallel_problem(options: ExcitationOptions) -> _Problem:
-    model = build_model("parallel", parameterisation="base", actuators="all")
-    geometry = model.geometry
-    system = geometry.system
-    centre = np.asarray(SCENARIO_START, float)
-    amplitude = _amplitudes(model, options)
-    low, high = _band(model, centre, amplitude, "the mechanism")
-    branches = geometry.branches(centre)
-    lp, d2, d3 = geometry.lp, geometry.d2, geometry.d3
-    r_min = system.min_pivot_distance
-
-    q_sym = ca.SX.sym("q", model.nq)
-    values = []
-    for (i, j), sign, branch in (((0, 1), 1.0, branches[0]), ((3, 4), -1.0, branches[1])):
-        th1, th2, d1 = q_sym[i], q_sym[j], q_sym[2]
-        cu = sign * d2 + lp * (ca.cos(th1) + ca.cos(th2))
-        cv = lp * (ca.sin(th1) + ca.sin(th2))
-        r = ca.sqrt(cu ** 2 + (cv - d1) ** 2)
-        values += [(r - r_min - SLEEVE_MARGIN) / r_min, (d3 - SLEEVE_MARGIN - r) / r_min,
-                   branch * ca.sin(th1 - th2) - MIN_BRANCH_SINE]
-    extra = ca.Function("parallel_geometry", [q_sym], [ca.vertcat(*values)])
-
-    def check_pose(q):
-        problems = geometry.violations(q)
-        if tuple(geometry.branches(q)) != tuple(branches):
-            problems.append("a pantograph changed branch")
-        return problems
-
-    problem = _Problem("parallel", "mechanism", model, centre, amplitude, low, high, extra,
-                       check_pose)
-    if check_pose(centre):
-        raise CochleaError("the parallel mechanism's working pose is outside its workspace: "
-                           + "; ".join(check_pose(centre)))
-    return problem
-
-
 def _problem(robot: str, arm: str | None, options: ExcitationOptions) -> _Problem:
-    if robot == "serial":
-        return _serial_problem(arm, options)
-    if robot == "parallel":
-        if arm is not None:
-            raise CochleaError("--arm is for the serial system; the parallel mechanism is one "
-                               "robot")
-        return _parallel_problem(options)
-    raise CochleaError(f"unknown robot {robot!r}; choose serial or parallel")
+    """The problem of ``robot``'s unit ``arm`` (None: the first; the others hold still at
+    their working poses): its model, band and geometry (the robot's adapter)."""
+    adapter = robot_adapter(robot)
+    system = adapter.load(None)
+    unit = adapter.unit(system, arm)
+    study = load_scenario(adapter.excitation_study)
+    poses = {u.name: np.asarray(u.initial_joint, float) for u in study.units}
+    model = build_model(robot, arm=unit, parameterisation="base", actuators="all")
+    amplitude = _amplitudes(model, options)
+    held = {name: poses[name] for name in adapter.layout(system, "joint").units
+            if name != unit}
+    geometry = adapter.excitation_geometry(system, unit, poses[unit], held, options.clearance)
+    centre = geometry.working_pose
+    low, high = _band(model, centre, amplitude, geometry.label)
+    problem = _Problem(robot, unit, model, centre, amplitude, low, high, geometry, held)
+    geometry.check_start()
+    return problem
 
 
 # --------------------------------------------------------------------------------------------
@@ -642,21 +499,10 @@ def verify(problem: _Problem, result: Design) -> None:
             problems.append(f"joint {j.name} exceeds its velocity limit")
         if result.peak_effort[i] > 1.0:
             problems.append(f"joint {j.name} exceeds its effort limit")
-    if problem.robot == "serial":
-        poses = [problem.check_pose(q[:, k]) for k in range(q.shape[1])]
-        result.keep_out_distance = min(p[0] for p in poses)
-        result.clearance_distance = min(p[1] for p in poses)
-        system = robot_adapter("serial").load(None)
-        if result.keep_out_distance < system.keep_out_radius:
-            problems.append("a link enters the keep-out circle")
-        if result.clearance_distance < options.clearance:
-            problems.append("the arm comes closer to the other arm than --clearance-mm")
-    else:
-        for k in range(q.shape[1]):
-            found = problem.check_pose(q[:, k])
-            if found:
-                problems.append(f"at t = {times[k]:.3f} s: " + "; ".join(found))
-                break
+    found, distances = problem.geometry.check_path(q, times)
+    problems += found
+    result.keep_out_distance = distances.get("keep_out_distance")
+    result.clearance_distance = distances.get("clearance_distance")
     if problems:
         raise CochleaError(f"the designed excitation of {problem.unit} fails the 1 kHz check "
                            f"({'; '.join(problems)}): use more --harmonics samples' margin by "
@@ -696,8 +542,8 @@ def scenario_text(result: Design, command: str) -> str:
     their working pose), the initial state the path's start, at rest."""
     options = result.options
     study = load_scenario(TRACKING_SCENARIOS[result.robot])
-    model = build_model(result.robot, arm=None if result.robot == "parallel" else result.unit,
-                        parameterisation="base", actuators="all")
+    model = build_model(result.robot, arm=result.unit, parameterisation="base",
+                        actuators="all")
     kinds = ["rad" if j.type == "revolute" else "m" for j in model.joints]
     start = result.series.evaluate([0.0])[0][:, 0]
     paths = {}
@@ -709,7 +555,8 @@ def scenario_text(result: Design, command: str) -> str:
             pose = result.held[unit.name]
             paths[unit.name] = ([f"{float(v)!r} {kind}" for v, kind in zip(pose, kinds)], pose)
     first = paths[study.units[0].name][0]
-    leader = first if result.robot == "serial" else first[:3]
+    adapter = robot_adapter(result.robot)
+    leader = first[:len(adapter.layout(adapter.load(None), "joint").leader)]
     w = 2 * math.pi / options.period
     held = "; ".join(f"{name} holds still at its working pose" for name in result.held)
     lines = [

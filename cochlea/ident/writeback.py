@@ -31,11 +31,9 @@ import numpy as np
 
 from ..errors import CochleaError
 from ..robots import RobotModel, robot
-from ..robots.description import ACTUATOR_KEYS
 
 _HEADER = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.-]+)\s*\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"^(\s*)([A-Za-z0-9_-]+)(\s*=\s*)(.*?)(\s*#.*)?$")
-_FIELD = {"armature": "Ia", "viscous": "Fv", "coulomb": "Fc"}
 
 
 class WriteBackError(CochleaError):
@@ -56,82 +54,6 @@ def closest_full(model: RobotModel, beta: np.ndarray) -> np.ndarray:
     AS = A * scale
     step = np.linalg.lstsq(AS, beta - A @ nominal, rcond=None)[0]  # min-norm in scaled space
     return nominal + scale * step
-
-
-def _fmt(value: float) -> str:
-    return repr(float(value))
-
-
-def _values_serial(model: RobotModel, system, arm_name: str, phi: np.ndarray) -> dict:
-    """``{path: TOML value text}`` for the arm's links and joints."""
-    arm_index = [a.name for a in system.arms].index(arm_name)
-    arm = system.arms[arm_index]
-    names = list(model.full_parameters.names)
-    value = dict(zip(names, phi))
-    # Parameters that never enter the dynamics (a planar arm's mz, Ixx, Iyy, products): any
-    # value reproduces the identified base parameters, so keep them where the description
-    # has them about the centre of mass, not about the frame origin, which a moved centre
-    # of mass would turn non-physical.
-    free = {n for n, col in zip(names, model.parameters.from_full.T) if not col.any()}
-    entries = {"Ixx": (0, 0), "Iyy": (1, 1), "Izz": (2, 2), "Ixy": (0, 1), "Ixz": (0, 2),
-               "Iyz": (1, 2)}
-    out = {}
-    for i, link in enumerate(arm.links):
-        b = link.name
-        m = value[f"{b}.m"]
-        c = np.array([value[f"{b}.mx"], value[f"{b}.my"], value[f"{b}.mz"]]) / m
-        for k, axis in enumerate(("mx", "my", "mz")):
-            if f"{b}.{axis}" in free:
-                c[k] = link.com[k]
-        Io = np.array([[value[f"{b}.Ixx"], value[f"{b}.Ixy"], value[f"{b}.Ixz"]],
-                       [value[f"{b}.Ixy"], value[f"{b}.Iyy"], value[f"{b}.Iyz"]],
-                       [value[f"{b}.Ixz"], value[f"{b}.Iyz"], value[f"{b}.Izz"]]])
-        Ic = Io - m * (float(c @ c) * np.eye(3) - np.outer(c, c))
-        for key, (r, s) in entries.items():
-            if f"{b}.{key}" in free:
-                Ic[r, s] = Ic[s, r] = link.inertia_com[r, s]
-        # A free principal moment grows, if needed, so the three obey the triangle inequality
-        # (a rod whose identified Izz outgrew the nominal Iyy + Ixx).
-        for k in range(3):
-            key = ("Ixx", "Iyy", "Izz")[k]
-            others = [x for x in range(3) if x != k]
-            if f"{b}.{key}" in free:
-                for o in others:
-                    rest = [x for x in range(3) if x != o]
-                    deficit = Ic[o, o] - sum(Ic[x, x] for x in rest)
-                    if deficit > 0:
-                        Ic[k, k] += deficit * (1 + 1e-9)
-        base = ("arm", arm_index, "link", i)
-        out[base + ("mass_kg",)] = _fmt(m)
-        out[base + ("com_m",)] = "[" + ", ".join(_fmt(x) for x in c) + "]"
-        six = [Ic[0, 0], Ic[1, 1], Ic[2, 2], Ic[0, 1], Ic[0, 2], Ic[1, 2]]
-        out[base + ("inertia_com_kgm2",)] = "[" + ", ".join(_fmt(x) for x in six) + "]"
-        joint = model.joints[i]
-        for field, (key, _) in ACTUATOR_KEYS[joint.type].items():
-            name = f"{joint.name}.{_FIELD[field]}"
-            if name in value:
-                out[base + ("joint", key)] = _fmt(value[name])
-    return out
-
-
-def _values_parallel(model: RobotModel, system, phi: np.ndarray) -> dict:
-    value = dict(zip(model.full_parameters.names, phi))
-    out = {("slider", "mass_kg"): _fmt(value["slider.m"])}
-    for side in system.sides:
-        for body in side.bodies:  # body.name is "<side>.<link>"
-            m = value[f"{body.name}.m"]
-            c = np.array([value[f"{body.name}.mx"], value[f"{body.name}.my"]]) / m
-            izz = value[f"{body.name}.Izz"] - m * float(c @ c)
-            base = tuple(body.name.split("."))
-            out[base + ("mass_kg",)] = _fmt(m)
-            out[base + ("com_m",)] = "[" + ", ".join(_fmt(x) for x in c) + "]"
-            out[base + ("inertia_com_kgm2",)] = _fmt(izz)
-    for joint in model.joints:  # "left.th1", "slider.d1"
-        for field, (key, _) in ACTUATOR_KEYS[joint.type].items():
-            name = f"{joint.name}.{_FIELD[field]}"
-            if name in value:
-                out[tuple(joint.name.split(".")) + (key,)] = _fmt(value[name])
-    return out
 
 
 def key_lines(lines: list[str]) -> dict[tuple, int]:
@@ -169,15 +91,13 @@ def key_lines(lines: list[str]) -> dict[tuple, int]:
 def fit_values(robot_name: str, unit: str, system, lines, ab: np.ndarray) -> dict[tuple, str]:
     """``{path of the motor's fit: inline table}`` for identified current-to-torque lines
     (:class:`cochlea.ident.current.Line`, ``ab`` their SI ``[a, b]``): in the description's
-    own units, marked ``source = "identified"``."""
+    own units, marked ``source = "identified"``; where each fit sits is the robot's
+    adapter's ``fit_key``."""
+    adapter = robot(robot_name)
     out = {}
     for ln, (a, b) in zip(lines, ab):
         a_d, b_d = ln.in_description_units(a, b)
-        if robot_name == "serial":
-            arm = [x.name for x in system.arms].index(unit)
-            path = ("arm", arm, "link", ln.joint, "motor", "fit")
-        else:
-            path = tuple(ln.name.split(".")) + ("motor", "fit")
+        path = adapter.fit_key(system, unit, ln.joint, ln.name)
         out[path] = (f'{{ a = {a_d:.6g}, b = {b_d:.6g}, x = "{ln.x}", y = "{ln.y}", '
                      'source = "identified" }')
     return out
@@ -252,13 +172,12 @@ def write_back(model: RobotModel, robot_name: str, unit: str, description: Path,
     target = target_path(description, in_place)
     adapter = robot(robot_name)
     system = adapter.load(description)
-    values = (_values_serial(model, system, unit, phi) if robot_name == "serial"
-              else _values_parallel(model, system, phi))
+    values = adapter.identified_values(model, system, unit, phi)
     text = description.read_text(encoding="utf-8")
     fits = fit_values(robot_name, unit, system, lines, line_ab) if len(lines) else None
     edited = edit(text, values, description, fits)
     today = datetime.date.today().isoformat()
-    what = f" ({unit})" if robot_name == "serial" else ""
+    what = f" ({unit})" if adapter.units_are_arms else ""
     header = [f"# Dynamic parameters{what} identified by cochlea-identify on {today} ({how}),"]
     if fits:
         header += ["# and the current-to-torque fits of "

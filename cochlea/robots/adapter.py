@@ -11,7 +11,22 @@ robot's name:
 * ``unit_plans(system, scenario)``: each controlled unit's models, initial state and desired
   trajectory for a scenario (:class:`UnitPlan`); the simulation adds controller and gains;
 * ``actuated_joints(system)``: every joint with its motor, in the loop's order;
-* ``system.keep_out_radius``: the supervisor's keep-out circle (m).
+* ``system.keep_out_radius``: the supervisor's keep-out circle (m);
+* ``unit(system, arm)``: the unit a command's ``--arm`` names (``units_are_arms``: whether
+  a robot's units are chosen that way at all);
+* ``working_pose(system)``: a documented pose inside the workspace (``cochlea-model``'s
+  default, the figures');
+* ``excitation_study`` and ``excitation_geometry(...)``: what ``cochlea-excite`` needs of the
+  robot beyond its model and limits (:class:`ExcitationGeometry`);
+* ``identified_values(...)`` and ``fit_key(...)``: where identified values go in the
+  robot's description (``cochlea-identify --update-description``);
+* ``calibration_reference``, ``positive_direction``: ``cochlea-dxl calibrate``'s prompts;
+* ``print_summary(system, args)`` and ``draw(system, q, path, title)``: ``cochlea-model``'s
+  text and the robot's figure.
+
+Code outside :mod:`cochlea.robots` asks these instead of comparing a robot's name or importing
+:mod:`cochlea.robots.serial` or :mod:`cochlea.robots.parallel` (``tests/test_architecture.py``
+refuses both; docs/extending.md).
 
 A *unit* is one controlled robot unit: an arm of the serial system, or the whole parallel
 mechanism. (Physical units are called SI units everywhere.)
@@ -20,7 +35,7 @@ mechanism. (Physical units are called SI units everywhere.)
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -160,6 +175,27 @@ def desired_function(name: str, expr_t: ca.SX, t: ca.SX) -> ca.Function:
                        ["t"], ["x", "x_dot", "x_ddot"])
 
 
+@dataclass
+class ExcitationGeometry:
+    """What an excitation of one unit must respect of the robot's own geometry, beyond its
+    joint, velocity and effort limits (``cochlea-excite``, :mod:`cochlea.ident.excite`), SI."""
+
+    #: The band's centre: the pose the excited unit works around.
+    working_pose: np.ndarray
+    #: How messages name the unit ("arm1", "the mechanism").
+    label: str
+    #: ``q -> values``, each >= 0 where the pose is allowed (normalised to about 1).
+    constraints: ca.Function = field(repr=False)
+    #: Raises :class:`~cochlea.errors.CochleaError` when the working pose itself is not
+    #: allowed (the design's margins included).
+    check_start: Callable[[], None] = field(repr=False)
+    #: ``(q (n, N), times (N,)) -> (problems, distances)`` over the 1 kHz check: the problems
+    #: found (empty: none) and the closest approaches the robot reports (name -> m; the serial
+    #: arms: ``keep_out_distance``, ``clearance_distance``).
+    check_path: Callable[[np.ndarray, np.ndarray], tuple[list[str], dict[str, float]]] = \
+        field(repr=False)
+
+
 class RobotAdapter:
     """The interface; :mod:`cochlea.robots.serial` and :mod:`cochlea.robots.parallel`
     implement it."""
@@ -167,6 +203,18 @@ class RobotAdapter:
     name: str
     #: The default ``method`` of :meth:`model`.
     method: str = "newton-euler"
+    #: Whether the system's units are arms chosen by name (``model(system, arm)``, the
+    #: commands' ``--arm``); False: one unit, and ``arm`` is ignored.
+    units_are_arms: bool = False
+    #: The joint-space scenario whose control settings and gains track an excitation (and
+    #: whose initial joint positions are the units' working poses, where :meth:`working_pose`
+    #: does not say otherwise).
+    excitation_study: str = ""
+    #: ``cochlea-dxl calibrate``'s reference pose: joint name (or ``"*"``: every other joint)
+    #: -> (joint coordinate, SI; how to set it by hand).
+    calibration_reference: dict[str, tuple[float, str]] = {}
+    #: The positive sense of the robot's joints, as the user sees them.
+    positive_direction: str = ""
 
     def load(self, description: str | Path | None = None) -> Any:
         raise NotImplementedError
@@ -183,3 +231,41 @@ class RobotAdapter:
 
     def actuated_joints(self, system: Any) -> list[ActuatedJoint]:
         raise NotImplementedError
+
+    def unit(self, system: Any, arm: str | None) -> str:
+        """The unit a command's ``--arm`` names (None: the first); a
+        :class:`~cochlea.errors.CochleaError` for an arm the robot does not have."""
+        raise NotImplementedError
+
+    def working_pose(self, system: Any) -> np.ndarray | None:
+        """A documented joint position inside the workspace (SI), or None: all zero."""
+        return None
+
+    def excitation_geometry(self, system: Any, unit: str, study_pose: np.ndarray,
+                            held: dict[str, np.ndarray], clearance: float
+                            ) -> ExcitationGeometry:
+        """The geometry an excitation of ``unit`` must respect; ``study_pose``: its initial
+        joint position in :attr:`excitation_study`, ``held``: the other units and the pose
+        each holds, ``clearance``: the distance (m) to keep from them."""
+        raise NotImplementedError
+
+    def identified_values(self, model: RobotModel, system: Any, unit: str,
+                          phi: np.ndarray) -> dict[tuple, str]:
+        """``{key path in the description's TOML: value text}`` for the full parameters
+        ``phi`` of ``unit``'s ``model`` (``cochlea.ident.writeback.key_lines``' paths)."""
+        raise NotImplementedError
+
+    def fit_key(self, system: Any, unit: str, joint: int, name: str) -> tuple:
+        """The key path of the current-to-torque ``fit`` of ``unit``'s joint ``joint`` (its
+        index in the model; ``name``: its name in the system, ``"arm1.link2"``,
+        ``"left.th1"``)."""
+        raise NotImplementedError
+
+    def print_summary(self, system: Any, args: Any) -> None:
+        """``cochlea-model``'s text for the robot (``args``: its parsed options)."""
+        raise NotImplementedError
+
+    def draw(self, system: Any, q: np.ndarray | None = None, path: str | Path | None = None,
+             title: str | None = None):
+        """A matplotlib Figure of the robot at ``q`` (default :meth:`working_pose`)."""
+        raise NotImplementedError(f"no figure of the {self.name} robot")

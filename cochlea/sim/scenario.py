@@ -211,6 +211,8 @@ class Scenario:
     name: str
     robot: str
     space: str
+    #: A shipped description's bare name ("serial"), or the path of a file; a relative path
+    #: in the file is relative to the scenario's folder, and is held here joined with it.
     description: str
     duration: float  # s
     rate_hz: float
@@ -448,18 +450,6 @@ def _check_run_length(top: Table, duration: float, rate: float) -> None:
                         "into several runs", duration)
 
 
-def _beside(scenario: Path, description: str) -> str:
-    """A relative description path names a file beside the scenario when there is one there
-    (``cochlea-urdf import --scenario-out`` writes it so); otherwise, as before, a path from
-    the working directory. A bare name is a shipped description."""
-    path = resolve_description(description)
-    if not path.is_absolute():
-        beside = scenario.parent / path
-        if beside.is_file():
-            return str(beside)
-    return description
-
-
 def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     """Load a scenario and the robot description it names; the robot's adapter tells the
     kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`).
@@ -471,7 +461,12 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     robot = top.string("robot", tuple(ROBOTS))
     space = top.string("space", ("joint", "task"))
-    description = _beside(path, top.string("description", required=False, default=robot))
+    description = top.string("description", required=False, default=robot)
+    named = Path(description)
+    if (named.suffix == ".toml" or named.parent != Path(".")) and not named.is_absolute():
+        # A file of the user's, relative to the scenario that names it (not to the working
+        # directory); a bare name is a shipped description, an absolute path stays as it is.
+        description = str(path.parent / named)
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
     system = load_system(robot, description)

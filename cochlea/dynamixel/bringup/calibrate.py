@@ -34,6 +34,7 @@ import numpy as np
 
 from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
+from ...robots import ROBOTS
 from ..control_table import (
     RAD_PER_COUNT,
     baud_code,
@@ -46,22 +47,11 @@ HELP = ("measure zero_offset_deg and direction of each motor by hand (torque off
         "new description; --torque-fit: fit a motor's current-to-torque line")
 
 #: Each robot's reference pose (joint coordinate, SI) and how to set it by hand: a pose a lab
-#: can set with a ruler or a set square, inside the joint limits.
-REFERENCE = {
-    "serial": {"*": (0.0, "links aligned: link 1 along its base's x axis (base_yaw_deg), every "
-                     "other link in line with the one before it (the arm straight)")},
-    "parallel": {
-        "left.th1": (math.pi / 2, "link 1 pointing straight up (+v)"),
-        "left.th2": (0.0, "link 4 horizontal, pointing away from the slider (+u)"),
-        "right.th1": (math.pi / 2, "link 1' pointing straight up (+v)"),
-        "right.th2": (math.pi, "link 4' horizontal, pointing away from the slider (-u)"),
-        "slider.d1": (0.0, "the slider on its lower stop, d1 = 0 (its pivot at the bases' "
-                      "height)"),
-    },
-}
-#: The positive sense of each kind of joint, as the user sees it.
-POSITIVE = {"serial": "counter-clockwise seen from above",
-            "parallel": "counter-clockwise seen with +u to your right and v up; the slider up"}
+#: can set with a ruler or a set square, inside the joint limits (the adapter's
+#: ``calibration_reference``; ``"*"``: every joint not named).
+REFERENCE = {name: r.calibration_reference for name, r in ROBOTS.items()}
+#: The positive sense of each kind of joint, as the user sees it (``positive_direction``).
+POSITIVE = {name: r.positive_direction for name, r in ROBOTS.items()}
 
 
 @contextlib.contextmanager

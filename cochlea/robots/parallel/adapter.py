@@ -17,9 +17,10 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ...errors import KinematicsError
+from ...errors import CochleaError, KinematicsError
 from ..adapter import (
     ActuatedJoint,
+    ExcitationGeometry,
     Layout,
     RobotAdapter,
     ScenarioView,
@@ -29,7 +30,9 @@ from ..adapter import (
     sampled,
 )
 from ..model import RobotModel
+from . import excitation, figure, identified, summary
 from .description import ParallelSystem, load_parallel
+from .geometry import SCENARIO_START, ParallelGeometry
 from .model import build_model
 
 UNIT = "mechanism"
@@ -94,6 +97,17 @@ TASK_ANGLES = (2, 5)
 class ParallelRobot(RobotAdapter):
     name = "parallel"
     method = "lagrange"
+    excitation_study = "parallel_joint_realistic"
+    calibration_reference = {
+        "left.th1": (math.pi / 2, "link 1 pointing straight up (+v)"),
+        "left.th2": (0.0, "link 4 horizontal, pointing away from the slider (+u)"),
+        "right.th1": (math.pi / 2, "link 1' pointing straight up (+v)"),
+        "right.th2": (math.pi, "link 4' horizontal, pointing away from the slider (-u)"),
+        "slider.d1": (0.0, "the slider on its lower stop, d1 = 0 (its pivot at the bases' "
+                      "height)"),
+    }
+    positive_direction = ("counter-clockwise seen with +u to your right and v up; the slider "
+                          "up")
 
     def load(self, description: str | Path | None = None) -> ParallelSystem:
         return load_parallel(description if description is not None else self.name)
@@ -162,6 +176,37 @@ class ParallelRobot(RobotAdapter):
         return [ActuatedJoint(j.name, j.type, tuple(j.position_limits), j.effort_limit, j.motor,
                               j.transmission.ratio if j.transmission else 1.0, j.actuator)
                 for j in system.joints]
+
+    def unit(self, system: ParallelSystem, arm: str | None) -> str:
+        if arm is not None:
+            raise CochleaError("--arm is for the serial system; the parallel mechanism is one "
+                               "robot")
+        return UNIT
+
+    def working_pose(self, system: ParallelSystem) -> np.ndarray:
+        """The joint-space scenario's start (thesis 3.67, right side mirrored)."""
+        return np.asarray(SCENARIO_START, float).copy()
+
+    def excitation_geometry(self, system: ParallelSystem, unit: str, study_pose: np.ndarray,
+                            held: dict[str, np.ndarray], clearance: float
+                            ) -> ExcitationGeometry:
+        # The mechanism works around SCENARIO_START, not the study's initial pose; nothing
+        # else holds still beside it (one unit), so ``held`` and ``clearance`` do not apply.
+        return excitation.excitation_geometry(ParallelGeometry(system))
+
+    def identified_values(self, model: RobotModel, system: ParallelSystem, unit: str,
+                          phi: np.ndarray) -> dict[tuple, str]:
+        return identified.identified_values(model, system, phi)
+
+    def fit_key(self, system: ParallelSystem, unit: str, joint: int, name: str) -> tuple:
+        return identified.fit_key(name)
+
+    def print_summary(self, system: ParallelSystem, args) -> None:
+        summary.print_summary(self, system, args)
+
+    def draw(self, system: ParallelSystem, q=None, path: str | Path | None = None,
+             title: str | None = None):
+        return figure.draw(system, q, path, title)
 
 
 ROBOT = ParallelRobot()

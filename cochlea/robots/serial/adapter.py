@@ -10,9 +10,10 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ...errors import DescriptionError
+from ...errors import CochleaError, DescriptionError
 from ..adapter import (
     ActuatedJoint,
+    ExcitationGeometry,
     Layout,
     RobotAdapter,
     ScenarioView,
@@ -22,6 +23,7 @@ from ..adapter import (
     sampled,
 )
 from ..model import RobotModel
+from . import excitation, identified, summary
 from .description import Arm, SerialSystem, load_serial
 from .ik import UnreachableTarget, elbow_cosine, ik, ik_symbolic, world_to_base
 from .model import build_model
@@ -93,6 +95,12 @@ def _initial_joint(arm: Arm, unit: UnitStart) -> np.ndarray:
 class SerialRobot(RobotAdapter):
     name = "serial"
     method = "newton-euler"
+    units_are_arms = True
+    excitation_study = "serial_joint_realistic"
+    calibration_reference = {
+        "*": (0.0, "links aligned: link 1 along its base's x axis (base_yaw_deg), every "
+                   "other link in line with the one before it (the arm straight)")}
+    positive_direction = "counter-clockwise seen from above"
 
     def load(self, description: str | Path | None = None) -> SerialSystem:
         return load_serial(description if description is not None else self.name)
@@ -180,6 +188,28 @@ class SerialRobot(RobotAdapter):
                                             tuple(j.position_limits), j.effort_limit,
                                             link.motor, 1.0, j.actuator))
         return joints
+
+    def unit(self, system: SerialSystem, arm: str | None) -> str:
+        units = [a.name for a in system.arms]
+        arm = arm or units[0]
+        if arm not in units:
+            raise CochleaError(f"--arm {arm!r}: no such arm; the arms are {', '.join(units)}")
+        return arm
+
+    def excitation_geometry(self, system: SerialSystem, unit: str, study_pose: np.ndarray,
+                            held: dict[str, np.ndarray], clearance: float
+                            ) -> ExcitationGeometry:
+        return excitation.excitation_geometry(system, unit, study_pose, held, clearance)
+
+    def identified_values(self, model: RobotModel, system: SerialSystem, unit: str,
+                          phi: np.ndarray) -> dict[tuple, str]:
+        return identified.identified_values(model, system, unit, phi)
+
+    def fit_key(self, system: SerialSystem, unit: str, joint: int, name: str) -> tuple:
+        return identified.fit_key(system, unit, joint)
+
+    def print_summary(self, system: SerialSystem, args) -> None:
+        summary.print_summary(self, system, args)
 
 
 ROBOT = SerialRobot()
