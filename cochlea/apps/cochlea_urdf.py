@@ -16,8 +16,7 @@ import sys
 from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
-from ..robots.serial import load_serial
-from ..robots.serial.urdf import export_urdf, import_urdf, starter_scenario
+from ..robots.urdf import export_urdf, import_urdf, load_chain, starter_scenario
 
 
 def _ids(text: str) -> list[int]:
@@ -64,14 +63,14 @@ def _import(args: argparse.Namespace) -> None:
           + ", ".join(link.joint.name or link.name for link in arm.links) + ")")
     if args.scenario_out is not None:
         scenario = args.scenario_out
-        system = load_serial(args.out)
+        system = load_chain(args.out)
         _write(scenario, starter_scenario(system, _relative(args.out, scenario.parent)))
         print(f"wrote {scenario}: run it with cochlea-run --robot serial --space joint "
               f"--scenario {scenario}")
 
 
 def _export(args: argparse.Namespace) -> None:
-    system = load_serial(args.description)
+    system = load_chain(args.description)
     arm = system.arm(args.arm) if args.arm else system.arms[0]
     _write(args.out, export_urdf(system, arm))
     print(f"wrote {args.out}: arm {arm.name!r}, {len(arm.links)} joints")
