@@ -1,16 +1,22 @@
-"""Builds the C kernels into the wheel, so an installed cochlea runs on them as a checkout does.
+"""Builds the C kernels and the shipped data into the wheel, so an installed cochlea runs as a
+checkout does.
 
 Everything else about the package is declared in pyproject.toml. A regular (non-editable) build
-compiles ``generated_c/*.c`` -- committed, warning-free C99 -- into ``cochlea/lib/libcochlea.so``
-with the C compiler ``$CC`` (default ``cc``), the same flags as ``make lib``. Without a compiler
-the wheel is built without the library and cochlea runs on its CasADi kernels (with a warning).
-An editable install compiles nothing: a checkout uses ``build/libcochlea.so`` from ``make lib``.
+copies the top-level ``models/`` (robot descriptions, scenarios, example robots) and ``codegen/``
+(the generator's configuration and template) into ``cochlea/data/`` of the build tree, never of
+the source tree, and compiles ``generated_c/*.c`` -- committed, warning-free C99 -- into
+``cochlea/lib/libcochlea.so`` with the C compiler ``$CC`` (default ``cc``), the same flags as
+``make lib``. Without a compiler the wheel is built without the library and cochlea runs on its
+CasADi kernels (with a warning). An editable install copies and compiles nothing: a checkout
+reads ``models/`` and ``codegen/`` where they are (``cochlea.resources.data_root``) and uses
+``build/libcochlea.so`` from ``make lib``.
 """
 
 from __future__ import annotations
 
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -23,6 +29,8 @@ from setuptools.command.build_py import build_py
 
 ROOT = Path(__file__).resolve().parent
 FLAGS = ["-std=c99", "-fPIC", "-O2", "-Wall", "-Wextra", "-Werror"]
+#: Top-level folders the wheel carries as ``cochlea/data/<name>/``.
+DATA_FOLDERS = ("models", "codegen")
 
 
 class BuildWithKernels(build_py):
@@ -30,6 +38,11 @@ class BuildWithKernels(build_py):
         super().run()
         if getattr(self, "editable_mode", False):
             return
+        for name in DATA_FOLDERS:
+            target = Path(self.build_lib) / "cochlea" / "data" / name
+            shutil.rmtree(target, ignore_errors=True)
+            shutil.copytree(ROOT / name, target,
+                            ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
         sources = sorted((ROOT / "generated_c").glob("*.c"))
         if not sources:
             self.warn("generated_c/ is missing: the wheel has no C kernels")

@@ -1,9 +1,12 @@
-"""Files that ship inside the package: robot descriptions, scenarios, code-generation templates.
+"""Files that ship with the package: robot descriptions, scenarios, code-generation templates.
 
-They are found through :mod:`importlib.resources`, so an installed wheel finds them as well as a
-checkout does: ``data/robots/*.toml`` (the descriptions), ``data/scenarios/*.toml`` (the thesis's
-simulation studies) and ``data/codegen/`` (what ``cochlea-codegen`` generates, and the
-closed-loop driver's template).
+In the repository they are at the top level, as the design lays it out: ``models/robots/*.toml``
+(the descriptions), ``models/scenarios/*.toml`` (the thesis's simulation studies),
+``models/examples/`` (example user robots and their starter scenarios) and ``codegen/`` (what
+``cochlea-codegen`` generates, and the closed-loop driver's template). A wheel carries the same
+two folders inside the package, as ``cochlea/data/models/`` and ``cochlea/data/codegen/``
+(``setup.py`` copies them there at build time). :func:`data_root` says which of the two a run
+uses, so a checkout (or an editable install) and an installed wheel find them alike.
 
 The checkout itself (``checkout()``) holds what is not shipped: ``generated_c/`` and the
 ``build/`` folder with ``libcochlea.so``.
@@ -14,10 +17,27 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-#: Folder of the package's data files.
-DATA = Path(str(resources.files("cochlea") / "data"))
-ROBOTS_DIR = DATA / "robots"
-SCENARIOS_DIR = DATA / "scenarios"
+
+def checkout() -> Path | None:
+    """The repository the package runs from (an editable install), or None when installed:
+    the folder above the package, if it holds ``generated_c/``."""
+    root = Path(__file__).resolve().parent.parent
+    return root if (root / "generated_c").is_dir() else None
+
+
+def data_root() -> Path:
+    """The folder that holds ``models/`` and ``codegen/``: the checkout's top level when run from
+    one, else the installed package's ``data/`` folder (where the wheel carries them)."""
+    root = checkout()
+    return root if root is not None else Path(str(resources.files("cochlea") / "data"))
+
+
+DATA = data_root()
+MODELS_DIR = DATA / "models"
+ROBOTS_DIR = MODELS_DIR / "robots"
+SCENARIOS_DIR = MODELS_DIR / "scenarios"
+#: Example user robots (descriptions in the shipped format) and their starter scenarios.
+EXAMPLES_DIR = MODELS_DIR / "examples"
 CODEGEN_DIR = DATA / "codegen"
 #: Where a wheel carries the compiled C kernels (``setup.py`` builds them from generated_c/).
 PACKAGED_LIBRARY = Path(str(resources.files("cochlea") / "lib" / "libcochlea.so"))
@@ -30,10 +50,3 @@ def shipped(folder: Path, name_or_path: str | Path) -> Path:
     if candidate.suffix != ".toml" and candidate.parent == Path("."):
         return folder / f"{candidate}.toml"
     return candidate
-
-
-def checkout() -> Path | None:
-    """The repository the package runs from (an editable install), or None when installed:
-    the folder above the package, if it holds ``generated_c/``."""
-    root = Path(__file__).resolve().parent.parent
-    return root if (root / "generated_c").is_dir() else None

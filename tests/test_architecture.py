@@ -163,12 +163,12 @@ def test_the_checks_catch_what_they_are_for(monkeypatch, bad, message):
 # Outside cochlea/robots/ no module compares a value with a shipped robot's name, kind, arm or
 # unit, keys a table by one, or imports cochlea.robots.serial / cochlea.robots.parallel.
 
-ROBOTS_DATA = PACKAGE / "data" / "robots"
+ROBOTS_DATA = PACKAGE.parent / "models" / "robots"
 
 
 def robot_names() -> set[str]:
     """The names that identify a shipped robot: each description's system name and kind and
-    its arms' names (cochlea/data/robots/*.toml), and the units the registry's adapters name
+    its arms' names (models/robots/*.toml), and the units the registry's adapters name
     ("mechanism")."""
     import tomllib
 

@@ -38,7 +38,7 @@ needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler")
 
 
 def test_every_shipped_scenario_is_listed():
-    shipped = {p.stem for p in (ROOT / "cochlea" / "data" / "scenarios").glob("*.toml")}
+    shipped = {p.stem for p in (ROOT / "models" / "scenarios").glob("*.toml")}
     assert set(SCENARIOS) == shipped
 
 

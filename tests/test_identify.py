@@ -302,7 +302,7 @@ def test_bad_logs_are_refused_in_one_line(serial_run, tmp_path, capsys):
 
 
 def test_write_back_reproduces_the_base_parameters(tmp_path, capsys):
-    original = (ROOT / "cochlea/data/robots/serial.toml").read_text()
+    original = (ROOT / "models/robots/serial.toml").read_text()
     description = tmp_path / "serial.toml"
     description.write_text(original)
     m = cochlea.model("serial", parameterisation="base", actuators="all")
@@ -338,7 +338,7 @@ def test_write_back_reproduces_the_base_parameters(tmp_path, capsys):
 
 def test_write_back_refuses_an_existing_target_before_fitting(tmp_path, capsys):
     description = tmp_path / "serial.toml"
-    description.write_text((ROOT / "cochlea/data/robots/serial.toml").read_text())
+    description.write_text((ROOT / "models/robots/serial.toml").read_text())
     (tmp_path / "serial.identified.toml").write_text("taken")
     err = _bad([str(tmp_path / "nowhere"), "--robot", "serial", "--update-description",
                 str(description)], capsys, tmp_path / "ident.json")
@@ -366,7 +366,7 @@ def test_physical_fit_from_a_log_writes_back_a_description_that_loads(serial_run
     description's model has the consistent fit's base parameters."""
     tmp, scenario = serial_run
     description = tmp_path / "serial.toml"
-    description.write_text((ROOT / "cochlea/data/robots/serial.toml").read_text())
+    description.write_text((ROOT / "models/robots/serial.toml").read_text())
     out = tmp_path / "ident.json"
     assert main([str(tmp / "measured"), "--robot", "serial", "--out", str(out),
                  "--min-speed", "0", "--no-figures", "--physical",
