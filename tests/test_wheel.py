@@ -74,13 +74,18 @@ def test_the_wheel_holds_the_data_and_the_library(installed):
                    "print(cochlea.__file__); print(r.checkout())\n"
                    "print(sorted(p.name for p in r.ROBOTS_DIR.iterdir()))\n"
                    "print(sorted(p.name for p in r.SCENARIOS_DIR.iterdir()))\n"
+                   "print(sorted(p.name for p in r.EXAMPLES_DIR.iterdir()))\n"
+                   "print(sorted(p.name for p in r.CODEGEN_DIR.iterdir()))\n"
                    "print(library.load().path)")
     assert located.returncode == 0, located.stderr
-    package, checkout, robots, scenarios, lib = located.stdout.splitlines()
+    package, checkout, robots, scenarios, examples, codegen, lib = located.stdout.splitlines()
     assert str(installed[0].parent) in package and str(ROOT) not in package
     assert checkout == "None"
     assert robots == "['parallel.toml', 'serial.toml']"
     assert "serial_task.toml" in scenarios and "parallel_joint.toml" in scenarios
+    # models/ and codegen/ of the checkout, carried as cochlea/data/ (setup.py)
+    assert "planar2_xm540.toml" in examples
+    assert codegen == "['closed_loop.c.in', 'kernels.toml']"
     assert lib.startswith(str(installed[0].parent)) and lib.endswith("cochlea/lib/libcochlea.so")
 
 
