@@ -76,7 +76,7 @@ $(BUILD)/cochlea-embedded-float: $(EMB_DEPS)
 	@mkdir -p $(@D)
 	$(CC) $(EMB_FLAGS) -DCOCHLEA_FLOAT $(EMB_SRC) -o $@ -lm
 
-# Regenerate generated_c/ from cochlea/data/robots/ and cochlea/data/codegen/kernels.toml
+# Regenerate generated_c/ from models/robots/ and codegen/kernels.toml
 # (then commit it).
 codegen: $(STAMP)
 	$(BIN)/cochlea-codegen

@@ -104,7 +104,7 @@ def main() -> int:
         "sticking from the descriptions, positions in encoder counts, velocities in "
         "velocity-register counts, efforts in whole current LSBs up to the Current Limit, "
         "one period of measurement delay. The realistic studies "
-        "(`cochlea/data/scenarios/*_realistic.toml`) carry the actuators in the controller's "
+        "(`models/scenarios/*_realistic.toml`) carry the actuators in the controller's "
         "model, relative adaptation gains and re-tuned gains; their headers say why.",
         "",
         "The *1 period delay* rows put the printed gains on the ideal plant measured one period "

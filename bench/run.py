@@ -11,7 +11,7 @@ Python loop that repeats the call (tens of ns, the same for every path, the floo
    through ctypes the same way (the floor), the kernel alone timed in C (bench/time_kernel.c);
    for controller e a NumPy implementation of the same law (bench/numpy_law.py) and, for the
    serial arm, Pinocchio's rnea called from Python. Every path's outputs are checked equal.
-2. Closed-loop simulation of every scenario in cochlea/data/scenarios/, full length, as a
+2. Closed-loop simulation of every scenario in models/scenarios/, full length, as a
    real-time factor: the CasADi reference, the Python loop over ctypes kernels, the all-in-C
    driver (end to end, and the driver calls alone).
 3. Generation and compile time of all kernels (clean, into a scratch folder), generated size.

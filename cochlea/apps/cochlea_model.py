@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="serial: newton-euler (default) or lagrange; the parallel "
                              "mechanism's model is Lagrangian only")
     parser.add_argument("--description", help="a robot description TOML instead of the shipped "
-                        "one (cochlea/data/robots/)")
+                        "one (models/robots/)")
     parser.add_argument("--at-deg", nargs="+", type=float, metavar="DEG",
                         help="serial: joint angles in degrees at which to evaluate M, G and "
                              "the tool pose (default: all zero)")

@@ -81,7 +81,7 @@ def _parser() -> argparse.ArgumentParser:
                "  cochlea-run --robot serial --space task          # the thesis study, real time\n"
                "  cochlea-run --robot parallel --space joint --realtime off --out runs/f\n"
                "Without --scenario the thesis's study for the robot and space is used "
-               "(cochlea/data/scenarios/ROBOT_SPACE.toml). Ctrl-C stops safely (zero effort, "
+               "(models/scenarios/ROBOT_SPACE.toml). Ctrl-C stops safely (zero effort, "
                "drives off) and keeps the log. Exit codes: see README.md.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

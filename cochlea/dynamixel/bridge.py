@@ -118,7 +118,7 @@ _GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
 
 class DynamixelBackend:
     """The motors of ``robot`` (``"serial"`` or ``"parallel"``) as described in
-    ``description`` (default: the shipped ``cochlea/data/robots/ROBOT.toml``; or ``system``,
+    ``description`` (default: the shipped ``models/robots/ROBOT.toml``; or ``system``,
     the description already loaded), on the serial port ``port``.
 
     Joint order: serial, arm 1's joints then arm 2's; parallel, th1, th2, d1, th1', th2'.

@@ -45,7 +45,7 @@ def model(name: str = "serial", *, arm: str | None = None, parameterisation: str
         ``"newton-euler"`` (recursive, default) or ``"lagrange"`` (from the energies; the
         cross-check). The parallel mechanism's closed chain has one model, from its energies.
     description:
-        A TOML description to use instead of the shipped ``cochlea/data/robots/<name>.toml``.
+        A TOML description to use instead of the shipped ``models/robots/<name>.toml``.
     actuators:
         What the model carries of the joints' drives, as the description gives them:
         ``"none"`` (default: the thesis's rigid links), ``"armature"`` (reflected rotor

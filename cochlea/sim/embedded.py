@@ -1,5 +1,5 @@
 """The scenarios' embedded controllers: what ``cochlea-codegen`` writes to
-``generated_c/embedded/`` (the ``[embedded]`` table of ``cochlea/data/codegen/kernels.toml``).
+``generated_c/embedded/`` (the ``[embedded]`` table of ``codegen/kernels.toml``).
 
 Each scenario's units (:func:`~cochlea.sim.setup.unit_setups`: the same desired trajectory,
 controller, gains, adaptation gain, projection bound, initial estimate and effort limits as the

@@ -1,6 +1,6 @@
 """The parallel mechanism's description: two pantographs sharing a vertical slider.
 
-Read from a TOML file with ``kind = "parallel"`` (the shipped one: ``cochlea/data/robots/
+Read from a TOML file with ``kind = "parallel"`` (the shipped one: ``models/robots/
 parallel.toml``); the geometry and coordinates are explained in
 :mod:`cochlea.robots.parallel.model`.
 """
