@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="cochlea-codegen",
         description="Regenerate the C kernels (generated_c/) from the robot descriptions in "
-                    "cochlea/data/robots/ and the configuration cochlea/data/codegen/kernels.toml, "
+                    "models/robots/ and the configuration codegen/kernels.toml, "
                     "and the scenarios' embedded controllers (generated_c/embedded/).",
         epilog="Then `make lib` builds build/libcochlea.so (no Python needed).")
     parser.add_argument("--config", type=Path, default=CONFIG, help="generator configuration")

@@ -1,6 +1,6 @@
 """What ``cochlea-codegen`` generates: the configuration, and the kernels it asks for.
 
-Stage 1, ``cochlea/data/codegen/kernels.toml`` (:func:`load_config`) says which model Functions
+Stage 1, ``codegen/kernels.toml`` (:func:`load_config`) says which model Functions
 to export per robot unit, which controllers and variants, and with which CasADi options.
 Stage 2 (:func:`collect`) builds those CasADi Functions from the robot descriptions and names
 each kernel; a kernel that computes exactly what an earlier one does (the thesis variant of
@@ -44,7 +44,7 @@ class CodegenError(CochleaError):
 
 @dataclass(frozen=True)
 class RobotConfig:
-    """What to generate for one robot of ``cochlea/data/robots/`` (a ``[[robot]]`` table)."""
+    """What to generate for one robot of ``models/robots/`` (a ``[[robot]]`` table)."""
 
     name: str  # "serial" | "parallel"
     units: tuple[str, ...]  # serial arms; empty for the parallel mechanism
@@ -77,13 +77,13 @@ class EmbeddedConfig:
     ``<output>/<folder>/<scenario>.{h,c}`` (:mod:`cochlea.kernels.embedded`)."""
 
     folder: str = "embedded"
-    scenarios: tuple[str, ...] = ()  # shipped scenario names (cochlea/data/scenarios/)
+    scenarios: tuple[str, ...] = ()  # shipped scenario names (models/scenarios/)
     function: dict = field(default_factory=lambda: {"cse": True})  # casadi.Function options
 
 
 @dataclass(frozen=True)
 class CodegenConfig:
-    """The generator's whole configuration, from ``cochlea/data/codegen/kernels.toml``."""
+    """The generator's whole configuration, from ``codegen/kernels.toml``."""
 
     path: Path
     output: Path

@@ -2,9 +2,9 @@
 
 The four stages of the fast path, one module each (describe -> generate -> build -> load):
 
-1. ``cochlea/data/codegen/kernels.toml`` says which kernels to export and with which CasADi options
+1. ``codegen/kernels.toml`` says which kernels to export and with which CasADi options
    (:class:`CodegenConfig`, read by :func:`load_config`);
-2. this module builds the CasADi Functions from the descriptions in ``cochlea/data/robots/``
+2. this module builds the CasADi Functions from the descriptions in ``models/robots/``
    and writes C
    with ``casadi.CodeGenerator`` (:func:`generate`);
 3. the Makefile compiles ``generated_c/*.c`` into ``build/libcochlea.so`` (no Python needed);
@@ -25,7 +25,7 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
 * ``closed_loop.c``: ``<unit>_<kind>[_thesis|_actuated]_closed_loop[_armature][_coulomb]``, N
   periods of controller, estimate update and plant (``_armature``: with the drives' rotor
   inertia; ``_coulomb``: with dry friction) in C (from the template
-  ``cochlea/data/codegen/closed_loop.c.in``);
+  ``codegen/closed_loop.c.in``);
 * ``embedded/<scenario>.{h,c}`` (the ``[embedded]`` table, when ``cochlea-codegen`` passes
   :func:`cochlea.sim.embedded.write_embedded`): each listed scenario's whole controller (desired
   trajectory, law, estimate update) for an embedded target, float or double at compile time

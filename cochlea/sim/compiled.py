@@ -20,7 +20,7 @@ unit:
 Before anything runs, every kernel a unit needs is looked up in the library's manifest and its
 source hash compared with the Function the setup really uses (controller step, plant step with
 the scenario's RK4 sub-steps, pose): a missing library, a scenario outside what
-``cochlea/data/codegen/kernels.toml`` generates, or a stale library raises
+``codegen/kernels.toml`` generates, or a stale library raises
 :class:`CKernelsUnavailable`; with ``fallback=True`` (what ``simulate`` does) that becomes a
 warning and the CasADi reference runs.
 """
@@ -100,7 +100,7 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
         if name not in lib.manifest["kernels"]:
             raise CKernelsUnavailable(
                 f"{lib.path} has no kernel {name} ({what} of unit {u.name}): add it to "
-                "cochlea/data/codegen/kernels.toml, run cochlea-codegen and make lib, or use "
+                "codegen/kernels.toml, run cochlea-codegen and make lib, or use "
                 "the CasADi kernels")
         if lib.source_hash(name) != _hash(function):
             raise CKernelsUnavailable(

@@ -1,4 +1,4 @@
-"""Simulation scenarios: load a TOML file (a shipped one from ``cochlea/data/scenarios/``) and
+"""Simulation scenarios: load a TOML file (a shipped one from ``models/scenarios/``) and
 validate it.
 
 A scenario names the robot and the space, the duration, the control settings, the leader's

@@ -1,6 +1,6 @@
 """The serial system's description: planar (or general) serial arms in one world frame.
 
-Read from a TOML file with ``kind = "serial"`` (the shipped one: ``cochlea/data/robots/
+Read from a TOML file with ``kind = "serial"`` (the shipped one: ``models/robots/
 serial.toml``); see :mod:`cochlea.robots.description` for what every description shares.
 """
 
