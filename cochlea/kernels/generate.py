@@ -75,7 +75,7 @@ from .catalogue import (
 from .naming import MANIFEST_FORMAT, source_hash
 from .readme import readme
 
-__all__ = ["CONFIG", "CodegenError", "load_config", "generate", "check"]
+__all__ = ["CONFIG", "CodegenError", "load_config", "generate", "check", "write_kernels"]
 
 # --------------------------------------------------------------------------------------------
 # Writing the files
@@ -251,6 +251,15 @@ def generate(config: CodegenConfig | None = None, out: str | Path | None = None,
     config = config or load_config()
     out = Path(out) if out is not None else config.output
     kernels, loops = collect(config)
+    return write_kernels(config, kernels, loops, out, embedded)
+
+
+def write_kernels(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLoop],
+                  out: Path, embedded: EmbeddedWriter | None = None) -> list[Path]:
+    """Write ``kernels`` and ``loops`` (from :func:`~cochlea.kernels.catalogue.collect` or
+    :func:`~cochlea.kernels.catalogue.collect_units`) into ``out``, all or nothing (see
+    :func:`generate`), with ``config``'s CasADi options and library name."""
+    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
     try:
