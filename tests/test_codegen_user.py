@@ -1,0 +1,169 @@
+"""A user's robot on C kernels (issue 25, item 4): ``cochlea-codegen --scenario FILE --out DIR``
+generates and compiles the kernels of a robot cochlea does not ship (a 2-DoF arm imported from
+a URDF with ``cochlea-urdf import``), the as-fast run on them gives the CasADi run's log, a
+library that lacks or mismatches a kernel is refused in one line under ``--kernels c``, and
+every run states the kernels it used (console and summary.json)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+
+import numpy as np
+import pytest
+
+from cochlea.apps import cochlea_codegen, cochlea_run, cochlea_urdf
+from cochlea.errors import EXIT_USER_ERROR
+from cochlea.kernels.library import ENVIRONMENT, library_path
+from cochlea.sim import CKernelsUnavailable, load_scenario, simulate, unit_setups
+
+#: Two revolute joints about parallel axes, XM540 motors (cochlea-urdf import's default).
+ARM2_URDF = """<?xml version="1.0"?>
+<robot name="arm2dof">
+  <link name="base"/>
+  <link name="upper">
+    <inertial><origin xyz="0.12 0 0"/><mass value="0.5"/>
+      <inertia ixx="0.0004" iyy="0.003" izz="0.003" ixy="0" ixz="0" iyz="0"/></inertial>
+  </link>
+  <link name="fore">
+    <inertial><origin xyz="0.1 0 0"/><mass value="0.3"/>
+      <inertia ixx="0.0002" iyy="0.0015" izz="0.0015" ixy="0" ixz="0" iyz="0"/></inertial>
+  </link>
+  <joint name="shoulder" type="revolute">
+    <parent link="base"/><child link="upper"/><origin xyz="0 0 0.05"/><axis xyz="0 0 1"/>
+    <limit lower="-2.5" upper="2.5" velocity="3" effort="8"/>
+  </joint>
+  <joint name="elbow" type="revolute">
+    <parent link="upper"/><child link="fore"/><origin xyz="0.25 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-2.5" upper="2.5" velocity="3" effort="8"/>
+  </joint>
+</robot>
+"""
+FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose", "true_q",
+          "true_qd", "true_x")
+
+
+def assert_same_log(result, reference, tol=1e-10):
+    assert np.array_equal(result.time, reference.time)
+    assert result.diverged == reference.diverged
+    for u, r in zip(result.units, reference.units, strict=True):
+        for key in FIELDS:
+            np.testing.assert_allclose(getattr(u, key), getattr(r, key), rtol=tol, atol=tol,
+                                       err_msg=f"{u.name}.{key}")
+
+
+@pytest.fixture(scope="module")
+def user(tmp_path_factory):
+    """The user's three commands: import the URDF (description and starter scenario),
+    generate and compile the kernels; ``(scenario path, kernels folder)``."""
+    folder = tmp_path_factory.mktemp("user")
+    urdf = folder / "arm2.urdf"
+    urdf.write_text(ARM2_URDF, encoding="utf-8")
+    assert cochlea_urdf.main(["import", str(urdf), "--out", str(folder / "robot.toml"),
+                              "--scenario-out", str(folder / "starter.toml")]) == 0
+    kernels = folder / "kernels"
+    assert cochlea_codegen.main(["--scenario", str(folder / "starter.toml"),
+                                 "--out", str(kernels)]) == 0
+    return folder / "starter.toml", kernels
+
+
+def test_the_folder_holds_the_c_its_manifest_and_the_library(user):
+    scenario, kernels = user
+    names = {p.name for p in kernels.iterdir()}
+    assert {"manifest.c", "closed_loop.c", "cochlea.h", "README.md", "libcochlea.so"} <= names
+    assert library_path(kernels) == kernels / "libcochlea.so"
+    # Deterministic: generating again gives the same files, byte for byte.
+    assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
+                                 "--check"]) == 0
+
+
+@pytest.mark.parametrize("coulomb", [False, True])
+def test_the_c_run_gives_the_casadi_log(user, coulomb):
+    """The as-fast run on the user's C kernels equals the CasADi reference (as the shipped
+    robots' do, tests/test_sim_compiled.py); with Coulomb friction, on the sibling plant step
+    the generator adds for it."""
+    scenario, kernels = user
+    sc = load_scenario(scenario)
+    if coulomb:
+        sc = dataclasses.replace(sc, plant=dataclasses.replace(
+            sc.plant, coulomb_friction=np.full(2, 0.02)))
+    setups = unit_setups(sc)
+    result = simulate(sc, 1.0, setups, kernels="c", library=kernels)
+    assert result.kernels == {"used": "c", "requested": "c",
+                              "library": str((kernels / "libcochlea.so").resolve()),
+                              "fallback_reason": None}
+    reference = simulate(sc, 1.0, setups, kernels="casadi")
+    assert reference.kernels["used"] == "casadi"
+    assert_same_log(result, reference)
+
+
+#: The shipped library has no kernel of the user's robot (or is not built in this checkout).
+NOT_THERE = "has no kernel .*cochlea-codegen --scenario|does not exist"
+
+
+def test_a_library_without_or_with_other_kernels_is_refused(user):
+    scenario, kernels = user
+    sc = load_scenario(scenario)
+    setups = unit_setups(sc)
+    with pytest.raises(CKernelsUnavailable, match=NOT_THERE):
+        simulate(sc, 0.01, setups, kernels="c")  # the shipped library: no such robot
+    # Another parameterisation: the same names, another computation (source hashes differ).
+    mass = dataclasses.replace(sc, parameterisation="mass")
+    with pytest.raises(CKernelsUnavailable, match="computes something else"):
+        simulate(mass, 0.01, unit_setups(mass), kernels="c", library=kernels)
+    with pytest.warns(UserWarning, match="CasADi kernels"):  # auto: falls back, and says so
+        fallback = simulate(mass, 0.01, unit_setups(mass), library=kernels)
+    assert fallback.kernels["used"] == "casadi" and fallback.kernels["requested"] == "auto"
+    assert "computes something else" in fallback.kernels["fallback_reason"]
+
+
+def _run(tmp_path, capsys, scenario, *options):
+    out = tmp_path / "run"
+    code = cochlea_run.main(["--robot", "serial", "--space", "joint", "--scenario",
+                             str(scenario), "--realtime", "off", "--duration", "0.2",
+                             "--out", str(out), *options])
+    return code, out, capsys.readouterr()
+
+
+def test_a_run_states_its_kernels(user, tmp_path, capsys):
+    scenario, kernels = user
+    environment = os.environ.get(ENVIRONMENT)
+    code, out, io = _run(tmp_path / "c", capsys, scenario, "--kernels", "c", "--library",
+                         str(kernels))
+    assert code == 0, io.err
+    assert f"cochlea-run: kernels: C kernels from {(kernels / 'libcochlea.so').resolve()}" \
+        in io.out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kernels"]["used"] == "c"
+    assert os.environ.get(ENVIRONMENT) == environment  # the run put $COCHLEA_LIB back
+
+    # auto, and the shipped library has no kernel of this robot: CasADi, said on the console
+    # and in summary.json with the reason.
+    code, out, io = _run(tmp_path / "auto", capsys, scenario)
+    assert code == 0, io.err
+    assert "cochlea-run: kernels: CasADi (the C kernels cannot run this scenario: " in io.out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kernels"]["used"] == "casadi"
+    assert re.search(NOT_THERE, summary["kernels"]["fallback_reason"])
+
+    # c, and the library lacks them: one line, exit 2, no folder.
+    code, out, io = _run(tmp_path / "refused", capsys, scenario, "--kernels", "c")
+    assert code == EXIT_USER_ERROR
+    assert io.err.startswith("cochlea-run: --kernels c: ") and io.err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_codegen_option_mistakes_are_one_line(user, tmp_path, capsys):
+    scenario, _ = user
+    assert cochlea_codegen.main(["--scenario", str(scenario)]) == EXIT_USER_ERROR
+    assert "--scenario needs --out DIR" in capsys.readouterr().err
+    assert cochlea_codegen.main(["--description", str(scenario.parent / "robot.toml"),
+                                 "--out", str(tmp_path / "k")]) == EXIT_USER_ERROR
+    assert "go with --scenario" in capsys.readouterr().err
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    assert cochlea_codegen.main(["--scenario", str(scenario), "--out",
+                                 str(tmp_path / "mine")]) == EXIT_USER_ERROR
+    assert "did not generate" in capsys.readouterr().err
