@@ -10,6 +10,8 @@ import dataclasses
 import json
 import os
 import re
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,6 +43,7 @@ ARM2_URDF = """<?xml version="1.0"?>
   </joint>
 </robot>
 """
+ROOT = Path(__file__).resolve().parent.parent
 FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "pose", "true_q",
           "true_qd", "true_x")
 
@@ -167,3 +170,23 @@ def test_codegen_option_mistakes_are_one_line(user, tmp_path, capsys):
     assert cochlea_codegen.main(["--scenario", str(scenario), "--out",
                                  str(tmp_path / "mine")]) == EXIT_USER_ERROR
     assert "did not generate" in capsys.readouterr().err
+
+
+def test_the_embedded_program_builds_for_the_users_scenario(user, tmp_path):
+    """``--embedded``: the scenario's embedded controller and the robot's drive table in
+    DIR/embedded/, and ``make GEN=DIR`` links them into the embedded program, which lists the
+    user's scenario (docs/codegen.md; running it needs motors or cochlea-emulator)."""
+    scenario, _ = user
+    out = tmp_path / "kernels"
+    assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(out), "--embedded",
+                                 "--no-build"]) == 0
+    assert sorted(p.name for p in (out / "embedded").iterdir()) == [
+        "scenarios.c", "scenarios.h", "serial_drives.h", "starter.c", "starter.h",
+        "starter_scenario.c"]
+    drives = (out / "embedded" / "serial_drives.h").read_text()
+    assert "#define SERIAL_N_DRIVES 2" in drives and "XM540-W270" in drives  # the user's arm
+    program = tmp_path / "build" / "cochlea-embedded"
+    subprocess.run(["make", "-s", f"GEN={out}", f"BUILD={tmp_path / 'build'}", str(program)],
+                   cwd=ROOT, check=True, capture_output=True)
+    listed = subprocess.run([str(program), "--list"], capture_output=True, text=True, check=True)
+    assert listed.stdout.startswith("starter (serial robot, joint space, controller e)")

@@ -13,14 +13,14 @@ import time
 from pathlib import Path
 
 from ..console import tolerate_closed_stdout
-from ..dynamixel.embedded_drives import write_drive_tables
+from ..dynamixel.embedded_drives import drives_header, write_drive_tables
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.build import compile_library
 from ..kernels.catalogue import CodegenConfig, collect_units
 from ..kernels.generate import CONFIG, check, generate, load_config, write_kernels
 from ..sim import load_scenario, unit_setups
 from ..sim.compiled import scenario_units
-from ..sim.embedded import write_embedded
+from ..sim.embedded import scenario_sources, write_embedded
 from ..sim.scenario import PLANT_PRESETS, load_system
 from .outputs import check_folder
 
@@ -78,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
     user.add_argument("--plant", action="append", choices=list(PLANT_PRESETS),
                       help="--scenario: also the plant of this preset (as cochlea-run --plant "
                            "sets it; repeat for several; default: the scenario's own)")
+    user.add_argument("--embedded", action="store_true",
+                      help="--scenario: also the scenario's embedded controller and its "
+                           "robot's drive table in --out/embedded/ (then `make embedded "
+                           "GEN=DIR BUILD=DIR/build`: docs/codegen.md)")
     user.add_argument("--no-build", action="store_true",
                       help="--scenario: write the C only (compile it later with cc, as "
                            "`make lib` does)")
@@ -85,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     tolerate_closed_stdout()
     try:
         if args.scenario is not None or args.description is not None or args.plant \
-                or args.no_build:
+                or args.no_build or args.embedded:
             return _user(args)
         config = _load_config(args.config)
         if args.check:
@@ -137,10 +141,34 @@ def scenario_kernels(scenario: Path, description: Path | None = None,
     return config, kernels, loops
 
 
+def write_scenario_embedded(scenario: Path, description: Path | None, config: CodegenConfig,
+                            folder: Path) -> list[Path]:
+    """``folder`` (``DIR/embedded``): the scenario's embedded controller, the table of
+    scenarios holding it, and its robot's drive table from its description, what
+    ``make embedded GEN=DIR`` compiles into the embedded program (the folder's other files
+    are removed)."""
+    sc = load_scenario(scenario)
+    if description is not None:
+        sc = dataclasses.replace(sc, description=str(description),
+                                 system=load_system(sc.robot, str(description)))
+    files = scenario_sources(sc, config.embedded.function)
+    files[f"{sc.robot}_drives.h"] = drives_header(sc.robot, system=sc.system)
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.iterdir():
+        if old.is_file():
+            old.unlink()
+    written = []
+    for name, text in sorted(files.items()):
+        (folder / name).write_text(text)
+        written.append(folder / name)
+    return written
+
+
 def _user(args) -> int:
     """``--scenario FILE --out DIR``: generate (and compile) a user's kernels."""
     if args.scenario is None:
-        raise CochleaError("--description, --plant and --no-build go with --scenario FILE")
+        raise CochleaError("--description, --plant, --embedded and --no-build go with "
+                           "--scenario FILE")
     if args.out is None:
         raise CochleaError("--scenario needs --out DIR: the folder for the C kernels and "
                            "their libcochlea.so")
@@ -173,6 +201,9 @@ def _user(args) -> int:
     except OSError as exc:
         raise CochleaError(f"cannot write {out} ({exc.strerror or exc}); it is as it was: "
                            "free some space and run cochlea-codegen again") from None
+    if args.embedded:
+        paths += write_scenario_embedded(args.scenario, args.description, config,
+                                         out / config.embedded.folder)
     generated = time.perf_counter() - start
     size = sum(p.stat().st_size for p in paths)
     print(f"cochlea-codegen: {len(kernels)} kernels and {len(loops)} closed loops of "
