@@ -68,7 +68,7 @@ def user(tmp_path_factory):
                               "--scenario-out", str(folder / "starter.toml")]) == 0
     kernels = folder / "kernels"
     assert cochlea_codegen.main(["--scenario", str(folder / "starter.toml"),
-                                 "--out", str(kernels)]) == 0
+                                 "--out", str(kernels), "--embedded"]) == 0
     return folder / "starter.toml", kernels
 
 
@@ -80,6 +80,11 @@ def test_the_folder_holds_the_c_its_manifest_and_the_library(user):
     # Deterministic: generating again gives the same files, byte for byte.
     assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
                                  "--check"]) == 0
+    header = (kernels / "cochlea.h").read_text()
+    (kernels / "cochlea.h").write_text("/* edited */\n")
+    assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
+                                 "--check"]) == 1
+    (kernels / "cochlea.h").write_text(header)
 
 
 @pytest.mark.parametrize("coulomb", [False, True])
@@ -176,10 +181,7 @@ def test_the_embedded_program_builds_for_the_users_scenario(user, tmp_path):
     """``--embedded``: the scenario's embedded controller and the robot's drive table in
     DIR/embedded/, and ``make GEN=DIR`` links them into the embedded program, which lists the
     user's scenario (docs/codegen.md; running it needs motors or cochlea-emulator)."""
-    scenario, _ = user
-    out = tmp_path / "kernels"
-    assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(out), "--embedded",
-                                 "--no-build"]) == 0
+    _, out = user
     assert sorted(p.name for p in (out / "embedded").iterdir()) == [
         "scenarios.c", "scenarios.h", "serial_drives.h", "starter.c", "starter.h",
         "starter_scenario.c"]
@@ -190,3 +192,25 @@ def test_the_embedded_program_builds_for_the_users_scenario(user, tmp_path):
                    cwd=ROOT, check=True, capture_output=True)
     listed = subprocess.run([str(program), "--list"], capture_output=True, text=True, check=True)
     assert listed.stdout.startswith("starter (serial robot, joint space, controller e)")
+
+
+def test_the_all_in_c_simulation_gives_the_simulations_log(user, tmp_path):
+    """The all-in-C simulation (embedded/sim/simulate.c) of the user's scenario: its embedded
+    controller and plant kernels in one program, the log simulate()'s to 1e-9 (relative to
+    each value's peak, as tests/test_embedded_sim.py holds the shipped scenarios)."""
+    from bench import embedded_bench as eb
+    from cochlea.kernels import library as ckernels
+
+    scenario, out = user
+    sc = load_scenario(scenario)
+    setups = unit_setups(sc)
+    binary = eb.build_simulation(scenario, "double", ckernels.load(out), out)
+    assert binary == out / "embedded-sim" / "starter" / "double" / "simulate"
+    log = tmp_path / "log.bin"
+    info = eb.run_simulation(binary, 1.0, log)
+    result = eb.read_log(log, info, sc, setups)
+    reference = simulate(sc, 1.0, setups, kernels="c", library=out)
+    for u, r in zip(result.units, reference.units, strict=True):
+        for key in eb.LOG_FIELDS:
+            a, b = getattr(u, key), getattr(r, key)
+            assert np.max(np.abs(a - b)) <= 1e-9 * max(1.0, np.max(np.abs(b))), key
