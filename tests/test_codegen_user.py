@@ -214,3 +214,27 @@ def test_the_all_in_c_simulation_gives_the_simulations_log(user, tmp_path):
         for key in eb.LOG_FIELDS:
             a, b = getattr(u, key), getattr(r, key)
             assert np.max(np.abs(a - b)) <= 1e-9 * max(1.0, np.max(np.abs(b))), key
+
+
+def test_a_sweep_runs_on_the_users_kernels_or_refuses_before_any_worker(user, tmp_path,
+                                                                          capsys, monkeypatch):
+    from cochlea.apps import cochlea_sweep
+    from cochlea.sweep import sampling
+    from cochlea.sweep import spec as sweep_spec
+
+    scenario, kernels = user
+    spec = tmp_path / "sweep.toml"
+    spec.write_text(f'format = "cochlea-sweep/1"\nscenario = "{scenario}"\nsamples = 2\n'
+                    "seed = 1\nduration_s = 0.5\n[perturb]\nmass_scale = {uniform = [0.9, 1.1]}\n")
+    out = tmp_path / "sweep"
+    assert cochlea_sweep.main([str(spec), "--out", str(out), "--kernels", "c", "--library",
+                               str(tmp_path / "missing")]) == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    assert err.startswith("cochlea-sweep: --kernels c: ") and err.count("\n") == 1
+    assert not out.exists()  # decided before any worker started or any file was written
+    # What a worker runs for a sample, on the user's library (the environment as it was after).
+    monkeypatch.setenv(ENVIRONMENT, os.environ.get(ENVIRONMENT, ""))
+    text = sampling.scenario_text(sweep_spec.load(spec), 1)
+    row = cochlea_sweep.evaluate(text, kernels="c", library=str(kernels / "libcochlea.so"))
+    assert not row["diverged"] and row["stop_rule"] == "none", row  # 0.5 s: not converged yet
+    assert all(np.isfinite(v) for k, v in row.items() if k.startswith("final_rms."))
