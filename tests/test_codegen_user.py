@@ -66,9 +66,15 @@ def user(tmp_path_factory):
     urdf.write_text(ARM2_URDF, encoding="utf-8")
     assert cochlea_urdf.main(["import", str(urdf), "--out", str(folder / "robot.toml"),
                               "--scenario-out", str(folder / "starter.toml")]) == 0
+    # The realistic plant needs the drives' rotor inertia, which a URDF does not carry.
+    robot = folder / "robot.toml"
+    robot.write_text(robot.read_text(encoding="utf-8").replace(
+        "  torque_limit_Nm = 8.0\n", "  torque_limit_Nm = 8.0\n  armature_kgm2 = 0.01\n"),
+        encoding="utf-8")
     kernels = folder / "kernels"
     assert cochlea_codegen.main(["--scenario", str(folder / "starter.toml"),
-                                 "--out", str(kernels), "--embedded"]) == 0
+                                 "--out", str(kernels), "--embedded", "--plant", "ideal",
+                                 "--plant", "realistic"]) == 0
     return folder / "starter.toml", kernels
 
 
@@ -79,22 +85,23 @@ def test_the_folder_holds_the_c_its_manifest_and_the_library(user):
     assert library_path(kernels) == kernels / "libcochlea.so"
     # Deterministic: generating again gives the same files, byte for byte.
     assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
-                                 "--check"]) == 0
+                                 "--plant", "ideal", "--plant", "realistic", "--check"]) == 0
     header = (kernels / "cochlea.h").read_text()
     (kernels / "cochlea.h").write_text("/* edited */\n")
     assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
-                                 "--check"]) == 1
+                                 "--plant", "ideal", "--plant", "realistic", "--check"]) == 1
     (kernels / "cochlea.h").write_text(header)
 
 
-@pytest.mark.parametrize("coulomb", [False, True])
-def test_the_c_run_gives_the_casadi_log(user, coulomb):
+@pytest.mark.parametrize("plant", ["ideal", "coulomb", "realistic"])
+def test_the_c_run_gives_the_casadi_log(user, plant):
     """The as-fast run on the user's C kernels equals the CasADi reference (as the shipped
     robots' do, tests/test_sim_compiled.py); with Coulomb friction, on the sibling plant step
-    the generator adds for it."""
+    the generator adds for it; with the realistic preset (``--plant realistic``: the geared
+    plant, the drives' grids, a period of delay), on its geared plant step."""
     scenario, kernels = user
-    sc = load_scenario(scenario)
-    if coulomb:
+    sc = load_scenario(scenario, plant_preset="realistic" if plant == "realistic" else None)
+    if plant == "coulomb":
         sc = dataclasses.replace(sc, plant=dataclasses.replace(
             sc.plant, coulomb_friction=np.full(2, 0.02)))
     setups = unit_setups(sc)
