@@ -91,6 +91,9 @@ def test_the_folder_holds_the_c_its_manifest_and_the_library(user):
     assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
                                  "--plant", "ideal", "--plant", "realistic", "--check"]) == 1
     (kernels / "cochlea.h").write_text(header)
+    assert cochlea_codegen.main(["--scenario", str(scenario), "--out", str(kernels),
+                                 "--plant", "ideal", "--plant", "realistic", "--embedded",
+                                 "--check"]) == 0
 
 
 @pytest.mark.parametrize("plant", ["ideal", "coulomb", "realistic"])

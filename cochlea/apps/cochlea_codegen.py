@@ -185,11 +185,17 @@ def _user(args) -> int:
     config, kernels, loops = scenario_kernels(args.scenario, args.description, args.plant)
     if args.check:
         with tempfile.TemporaryDirectory(prefix="cochlea-codegen-") as tmp:
-            fresh = {p.name for p in write_kernels(config, kernels, loops, Path(tmp))}
-            have = {p.name for p in out.glob("*") if p.is_file() and p.suffix != ".so"} \
-                if out.is_dir() else set()
+            tmp = Path(tmp)
+            written = write_kernels(config, kernels, loops, tmp)
+            if args.embedded:  # and the embedded folder, compared as embedded/<file>
+                written += write_scenario_embedded(args.scenario, args.description, config,
+                                                   tmp / config.embedded.folder)
+            fresh = {str(p.relative_to(tmp)) for p in written}
+            folders = [out] + ([out / config.embedded.folder] if args.embedded else [])
+            have = {str(p.relative_to(out)) for f in folders if f.is_dir() for p in f.iterdir()
+                    if p.is_file() and p.suffix != ".so"}
             differ = sorted((fresh ^ have) | {n for n in fresh & have if not filecmp.cmp(
-                Path(tmp) / n, out / n, shallow=False)})
+                tmp / n, out / n, shallow=False)})
         if differ:
             print(f"cochlea-codegen: {out} is stale for {args.scenario}; these files differ: "
                   + ", ".join(differ), file=sys.stderr)
