@@ -435,6 +435,10 @@ def collect_units(units: list[UnitSpec], opts: dict, where: str
                 loops.append(loop)
     if not loops:
         raise CodegenError(f"{where}: the scenario has no unit to generate kernels for")
+    # One file per kernel: a spatial chain's kernels are large (UR5's controller parts are
+    # hundreds of KiB of C each), and separate files compile on every core at once.
+    for k in kernels:
+        k.group = k.name
     _share_bodies(kernels, loops)
     return kernels, loops
 
