@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
 .PHONY: demo test test-fast lint install clean realtime-check lib codegen bench robustness robustness-maps \
-        embedded embedded-size embedded-sim
+        embedded embedded-size embedded-sim bench-user
 
 # The stamp is rebuilt when the package's metadata changes.
 $(STAMP): pyproject.toml
@@ -94,6 +94,12 @@ robustness-maps: $(STAMP)
 # The benchmark: writes bench/results.md and bench/results.json (takes a few minutes).
 bench: $(STAMP) lib
 	$(BIN)/python bench/run.py
+
+# A user's robot on C kernels (UR5 and a 4-DoF arm imported from URDFs): generation +
+# compilation time and the as-fast run on C against CasADi and against the shipped serial study,
+# in one run -> bench/user_robot.json (about 2 minutes). See docs/codegen.md.
+bench-user: $(STAMP)
+	$(BIN)/python bench/user_robot.py
 
 # The embedded core's code size and worst stack per entry point, cross-compiled for a
 # Cortex-M4F and aarch64 Linux with zig cc (the ziglang wheel) and for the host: writes the

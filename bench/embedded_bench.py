@@ -123,23 +123,24 @@ def _c_array(name: str, values) -> str:
     return f"static const double {name}[{len(values)}] = {{{', '.join(values)}}};"
 
 
-def _kernel_source(lib: ckernels.Library, kernel: str) -> tuple[str, str]:
-    """The C function a library kernel runs and the group (``generated_c/<group>.c``) that
-    defines it."""
+def _kernel_source(lib: ckernels.Library, kernel: str,
+                   generated: Path = GENERATED) -> tuple[str, str]:
+    """The C function a library kernel runs and the group (``generated_c/<group>.c``, or
+    ``generated``'s) that defines it."""
     symbol = lib.symbol(kernel)
     entry = lib.manifest["kernels"][symbol]
     if entry["work"]["iw"] or entry["work"]["w"]:
         raise RuntimeError(f"{symbol} needs work memory: simulate.c passes none")
     group = entry["group"]
-    header = (GENERATED / f"{group}.h").read_text()
+    header = (generated / f"{group}.h").read_text()
     if f"int {symbol}(const casadi_real** arg" not in header:
         raise RuntimeError(f"{symbol} is not declared in generated_c/{group}.h")
     return symbol, group
 
 
-def sim_scenario(name: str):
-    """The scenario ``name`` as the all-C simulation runs it: as ``simulate()`` does, the
-    realistic preset's geared plant included."""
+def sim_scenario(name: str | Path):
+    """The scenario ``name`` (or a scenario file) as the all-C simulation runs it: as
+    ``simulate()`` does, the realistic preset's geared plant included."""
     return load_scenario(name)
 
 
@@ -162,7 +163,8 @@ def _stream_seeds(plant) -> list[str]:
     return lines
 
 
-def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple[str, list[str]]:
+def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
+                        generated: Path = GENERATED) -> tuple[str, list[str]]:
     """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, and the groups of
     generated_c/ its plant and pose kernels are in.
 
@@ -171,6 +173,7 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
     (initial state, plant parameters, friction, grids), written as literals that round-trip."""
     lib = lib or ckernels.load()
     sc = sim_scenario(name)
+    name = sc.name
     setups = unit_setups(sc)
     if sc.plant.noise_q_std or sc.plant.noise_qd_std:
         raise RuntimeError(f"{name}: simulate.c has no measurement noise")
@@ -185,8 +188,8 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
     for u in setups:
         kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
         loop = lib.manifest["closed_loops"][kernels.closed_loop]
-        plant, plant_group = _kernel_source(lib, kernels.plant)
-        pose, pose_group = _kernel_source(lib, kernels.pose)
+        plant, plant_group = _kernel_source(lib, kernels.plant, generated)
+        pose, pose_group = _kernel_source(lib, kernels.pose, generated)
         for g in (plant_group, pose_group):
             if g not in groups:
                 groups.append(g)
@@ -243,14 +246,21 @@ def sim_scenario_header(name: str, lib: ckernels.Library | None = None) -> tuple
     return "\n".join(lines), groups
 
 
-def build_simulation(name: str, precision: str = "double",
-                     lib: ckernels.Library | None = None) -> Path:
+def build_simulation(name: str | Path, precision: str = "double",
+                     lib: ckernels.Library | None = None, generated: Path = GENERATED) -> Path:
     """The all-in-C simulation of scenario ``name``: ``build/embedded-sim/<name>/<precision>/
-    simulate`` (rebuilt when its scenario header, a source or the flags change)."""
+    simulate`` (rebuilt when its scenario header, a source or the flags change).
+
+    A user's scenario (docs/codegen.md): ``name`` its file, ``generated`` the folder
+    ``cochlea-codegen --scenario FILE --out DIR --embedded`` wrote (its plant kernels and
+    ``embedded/``), ``lib`` its library; the program is ``DIR/embedded-sim/<scenario>/
+    <precision>/simulate``."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision: one of {PRECISIONS}")
-    header, groups = sim_scenario_header(name, lib)
-    folder = BUILD / name / precision
+    header, groups = sim_scenario_header(name, lib, generated)
+    name = sim_scenario(name).name
+    embedded = generated / "embedded"
+    folder = (BUILD if generated == GENERATED else generated / "embedded-sim") / name / precision
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "sim_scenario.h"
     if not path.exists() or path.read_text() != header:
@@ -258,10 +268,10 @@ def build_simulation(name: str, precision: str = "double",
         partial.write_text(header)
         os.replace(partial, path)
     flags = CFLAGS + (FLOAT_FLAGS if precision == "float" else ())
-    include = (SIM_SOURCE, EMBEDDED, GENERATED)
+    include = (SIM_SOURCE, embedded, generated)
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
-        jobs = [pool.submit(_object, GENERATED / f"{g}.c", CFLAGS) for g in groups]
-        jobs.append(pool.submit(_object, EMBEDDED / f"{name}.c", flags))
+        jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS) for g in groups]
+        jobs.append(pool.submit(_object, embedded / f"{name}.c", flags))
         jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
                                 (folder, *include)))
         objects = [j.result() for j in jobs]
@@ -640,8 +650,17 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     build = sub.add_parser("build", help="build the all-in-C simulations into build/embedded-sim/")
     build.add_argument("scenarios", nargs="*", default=list(SCENARIOS))
+    build.add_argument("--kernels", type=Path, metavar="DIR",
+                       help="a user's scenario (each SCENARIO a file): the folder "
+                            "cochlea-codegen --scenario FILE --out DIR --embedded wrote")
     sub.add_parser("bench", help="run only these rows; write build/embedded-bench.json")
     args = parser.parse_args(argv)
+    if args.command == "build" and args.kernels is not None:
+        lib = ckernels.load(args.kernels)
+        for name in args.scenarios:
+            for p in PRECISIONS:
+                print(build_simulation(Path(name), p, lib, args.kernels))
+        return 0
     lib = ckernels.load()
     if args.command == "build":
         for name in args.scenarios:

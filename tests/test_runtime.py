@@ -212,7 +212,8 @@ def test_defaults_pick_the_thesis_study_and_a_new_folder(tmp_path):
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
     assert "parallel_joint (controller f, corrected variant), sim backend, real time at " \
-           "1000 Hz, c kernels -> runs/parallel_joint_" in stdout
+           "1000 Hz -> runs/parallel_joint_" in stdout
+    assert "cochlea-run: kernels: C kernels from " in stdout  # the shipped library: no fallback
     (folder,) = (tmp_path / "runs").iterdir()
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["stop"]["rule"] == "completed" and summary["periods"] == 300

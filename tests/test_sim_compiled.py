@@ -146,7 +146,8 @@ def test_default_kernels_are_c(references, name, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no fallback to CasADi
         result = simulate(sc, DURATION, setups)
-    assert calls == [{"fallback": True, "threads": True}]
+    assert calls == [{"fallback": True, "threads": True, "library": None}]
+    assert result.kernels["used"] == "c" and result.kernels["requested"] == "auto"
     assert_same_log(result, reference)
 
 

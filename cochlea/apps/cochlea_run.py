@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import signal
 import sys
 import time
@@ -40,6 +41,7 @@ from ..console import signals_held, tolerate_closed_stdout
 from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..kernels.library import ENVIRONMENT
 from ..robots import ROBOTS
 from ..robots.motor_fit import bridge_compensates_friction
 from ..runtime import (
@@ -56,7 +58,7 @@ from ..runtime import (
     verdict,
     write_raw_columns,
 )
-from ..sim import KERNELS, load_scenario, simulate, unit_setups
+from ..sim import KERNELS, choose_kernels, load_scenario, simulate, unit_setups
 from ..sim.scenario import MAX_PERIODS, MAX_RATE_HZ, MIN_RATE_HZ, PLANT_PRESETS
 from ..sim.setup import MAX_FAST_PERIODS, check_run_length
 from . import outputs, report
@@ -122,10 +124,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", default="on", choices=["on", "off"],
                    help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
                         "off: the as-fast-as-possible simulation")
-    p.add_argument("--kernels", default="c", choices=list(KERNELS),
-                   help="c: the generated C kernels (default; falls back to casadi with a "
-                        "warning when build/libcochlea.so is missing or stale); casadi: the "
-                        "reference")
+    p.add_argument("--kernels", default="auto", choices=list(KERNELS),
+                   help="auto: the generated C kernels when the library has this scenario's "
+                        "(default), else casadi, saying so on the console and in summary.json; "
+                        "c: the C kernels, or exit 2 when the library lacks or mismatches one; "
+                        "casadi: the reference")
+    p.add_argument("--library", metavar="PATH",
+                   help="the C kernels' library: a .so, or the folder cochlea-codegen "
+                        "--scenario FILE --out DIR wrote (default: $COCHLEA_LIB, else the "
+                        "shipped build/libcochlea.so)")
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="control rate (default: the scenario's, 1000 Hz)")
     p.add_argument("--watchdog-misses", type=int, default=20, metavar="N",
@@ -232,7 +239,20 @@ class _Run:
                 self.folder = outputs.claim_new(Path("runs"), default)
         return self.folder.path
 
+    def use_library(self, path: str) -> None:
+        """Point ``$COCHLEA_LIB`` at ``path`` for this run (every layer loads the default
+        library); :meth:`close` puts it back."""
+        if not hasattr(self, "_environment"):
+            self._environment = os.environ.get(ENVIRONMENT)
+        os.environ[ENVIRONMENT] = path
+
     def close(self) -> None:
+        if hasattr(self, "_environment"):  # the caller's $COCHLEA_LIB, as it was
+            if self._environment is None:
+                os.environ.pop(ENVIRONMENT, None)
+            else:
+                os.environ[ENVIRONMENT] = self._environment
+            del self._environment
         if self.folder is None:
             return
         if self.kept:
@@ -268,6 +288,8 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError("--port and --baud go with --backend dynamixel")
     if args.baud is not None:
         baud_code(args.baud)  # a rate the motors do not have, refused before the folder exists
+    if args.library is not None and args.kernels == "casadi":
+        raise CochleaError("--library names C kernels and goes with --kernels auto or c")
     _realtime_options(args)
     # --out is outputs.check_folder's (a leftover lock of a killed run is not "not empty").
 
@@ -285,6 +307,11 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
     # Validates the whole run's path before anything moves, and that the drives hold the robot
     # against gravity where it starts (on the motors: at their Current Limits).
     setups = unit_setups(scenario, on_motors=args.backend == "dynamixel")
+    # Which kernels, decided once and checked (names and source hashes) before anything runs:
+    # --kernels c refuses here; auto falls back here, and says so below and in summary.json.
+    choice = choose_kernels(setups, scenario.plant_substeps, args.kernels, args.library)
+    if choice.used == "c":  # every part of the run (loop, plant, supervisor) loads this one
+        run.use_library(choice.library)
     periods = int(round(scenario.duration * scenario.rate_hz))
     target = args.out if args.out is not None else Path("runs")
     outputs.check_free_space(
@@ -297,11 +324,14 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
     run.simulating = args.realtime == "off"
     mode = "real time" if args.realtime == "on" else "as fast as possible"
     print(f"cochlea-run: {scenario.name} (controller {scenario.controller}, {scenario.variant} "
-          f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz, "
-          f"{args.kernels} kernels -> {out}", flush=True)
+          f"variant), {args.backend} backend, {mode} at {scenario.rate_hz:g} Hz -> {out}",
+          flush=True)
+    print(f"cochlea-run: kernels: {choice.line()}", flush=True)
+    args.kernels = choice.used  # "c" (checked above) or "casadi": no fallback left to take
     if args.realtime == "off":
         start = time.perf_counter()
         result = simulate(scenario, args.duration, setups, kernels=args.kernels)
+        result.kernels = choice.summary()
         wall = time.perf_counter() - start
         run.shield.defer()  # from here the report is written whatever the user presses
         run.simulating, run.kept = False, True
@@ -323,10 +353,10 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
         if result.diverged:
             return EXIT_DIVERGED
         return STOP_CODES[rule["rule"]] if rule["rule"] != "none" else 0
-    return _run_realtime(args, scenario, setups, run)
+    return _run_realtime(args, scenario, setups, run, choice)
 
 
-def _run_realtime(args, scenario, setups, run: _Run) -> int:
+def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
     out = run.folder.path
     keep_out = scenario.system.keep_out_radius
     duration = scenario.duration if args.duration is None else args.duration
@@ -362,6 +392,10 @@ def _run_realtime(args, scenario, setups, run: _Run) -> int:
         run.kept = run.kept or (out / "log.bin").exists()
     wall = time.perf_counter() - start
     result = loop.result(scenario)
+    result.kernels = choice.summary()
+    if loop.kernel_source != choice.used:  # checked above, so never expected: said if so
+        result.kernels.update(used=loop.kernel_source, fallback_reason="the real-time loop "
+                              "could not bind the C kernels checked before the run")
     result.stop = {"rule": stop.rule, "time_s": stop.time, "detail": stop.detail,
                    "exit_code": stop.code}
     timing = loop.timing_summary()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
 import os
 import sys
@@ -25,7 +26,7 @@ from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
-from ..sim import GravityRefused, load_scenario, simulate, unit_setups
+from ..sim import KERNELS, GravityRefused, choose_kernels, load_scenario, simulate, unit_setups
 from ..sim.setup import GRAVITY_RULE
 from ..sweep import execute, results, sampling
 from ..sweep import report as sweep_report
@@ -87,14 +88,18 @@ def refused(setups) -> dict:
     return row
 
 
-def evaluate(text: str, cache: bool = True) -> dict:
+def evaluate(text: str, cache: bool = True, kernels: str = "auto",
+             library: str | None = None) -> dict:
     """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
     computes for its summary.json, from the sample's scenario file.
 
     ``cache``: the set-ups' symbolic part (models, controllers, checked desired path) comes
     from the worker's cache when an earlier sample had the same structure
     (:func:`cochlea.sim.setup.unit_setups`); ``False`` builds everything again, with the same
-    row, bit for bit."""
+    row, bit for bit. ``kernels``, ``library``: as :func:`cochlea.sim.simulate` takes them
+    (the library also every other kernel's on this worker: ``$COCHLEA_LIB``)."""
+    if library is not None:
+        os.environ[ckernels.ENVIRONMENT] = library
     with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
         path = Path(tmp) / "sample.toml"
         path.write_text(text, encoding="utf-8")
@@ -105,10 +110,11 @@ def evaluate(text: str, cache: bool = True) -> dict:
         return refused(unit_setups(scenario, cache=cache, gravity=False))
     start = time.perf_counter()
     # One worker per core: the arms one after the other, no thread pool a sample.
-    result = simulate(scenario, None, setups, threads=False)
+    result = simulate(scenario, None, setups, kernels, threads=False, library=library)
     wall = time.perf_counter() - start
     supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
-                                  kernels="c", substeps=scenario.plant_substeps)
+                                  kernels="casadi" if kernels == "casadi" else "c",
+                                  substeps=scenario.plant_substeps)
     result.supervisor = verdict(result, supervisor)
     limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
                                                            u.effort_limit)} for u in setups}
@@ -118,6 +124,19 @@ def evaluate(text: str, cache: bool = True) -> dict:
 def warm() -> None:
     """Bind the C library in a worker process once, before its first batch."""
     ckernels.load()
+
+
+def _choose_kernels(spec: sweep_spec.Spec, kernels: str, library: str | None):
+    """The kernels of the sweep, decided on its first sample before any worker starts
+    (:func:`cochlea.sim.choose_kernels`): ``--kernels c`` refuses here, ``auto`` says here
+    that it falls back."""
+    text = sampling.scenario_text(spec, 0)
+    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
+        path = Path(tmp) / "sample.toml"
+        path.write_text(text, encoding="utf-8")
+        scenario = load_scenario(path)
+        setups = unit_setups(scenario, gravity=False)
+    return choose_kernels(setups, scenario.plant_substeps, kernels, library)
 
 
 def _check_sample(spec: sweep_spec.Spec) -> None:
@@ -157,6 +176,13 @@ def _sweep(argv: list[str]) -> int:
                    help="samples per batch (default: measured, see docs/sweeps.md)")
     p.add_argument("--progress", default="auto", choices=["auto", "on", "off"],
                    help="progress bar on stderr (auto: when stderr is a terminal)")
+    p.add_argument("--kernels", default="auto", choices=list(KERNELS),
+                   help="as cochlea-run's: auto (default) the C kernels when the library has "
+                        "the scenario's, else casadi, saying so; c: those or exit 2; casadi")
+    p.add_argument("--library", metavar="PATH",
+                   help="the C kernels' library: a .so or the folder cochlea-codegen "
+                        "--scenario FILE --out DIR wrote (default: $COCHLEA_LIB, else the "
+                        "shipped one); with --scheduler, a path every worker can read")
     args = p.parse_args(argv)
     if args.workers is not None and not 1 <= args.workers <= 4096:
         raise CochleaError(f"--workers must be between 1 and 4096, got {args.workers}")
@@ -167,9 +193,12 @@ def _sweep(argv: list[str]) -> int:
         raise CochleaError(f"--batch must be a positive number of samples, got {args.batch}")
     spec = sweep_spec.load(args.spec)
     _check_sample(spec)
+    choice = _choose_kernels(spec, args.kernels, args.library)
+    print(f"cochlea-sweep: kernels: {choice.line()}", flush=True)
+    evaluate_sample = functools.partial(evaluate, kernels=choice.used, library=choice.library)
     progress = args.progress == "on" or (args.progress == "auto" and sys.stderr.isatty())
     try:
-        info = execute.run(spec, args.out, evaluate, workers=args.workers or os.cpu_count(),
+        info = execute.run(spec, args.out, evaluate_sample, workers=args.workers or os.cpu_count(),
                            scheduler=args.scheduler, batch=args.batch, progress=progress,
                            warm=warm, log=lambda m: print(f"cochlea-sweep: {m}", flush=True))
     except KeyboardInterrupt:

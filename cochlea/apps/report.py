@@ -280,6 +280,8 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "controller": sc.controller,
         "variant": sc.variant,
         "parameterisation": sc.parameterisation,
+        # Which kernels ran: "c" with the library's path, or "casadi" (and why not C).
+        "kernels": result.kernels,
         "rate_Hz": sc.rate_hz,
         "duration_s": float(result.periods / sc.rate_hz),
         "periods": int(result.periods),

@@ -278,13 +278,22 @@ def _controller_kernels(robot: RobotConfig, ctrl_model: RobotModel, kind: str, v
                         prefix: str, pose: ca.Function, plants: list, opts: dict,
                         kernels: list[Kernel]) -> list[ClosedLoop]:
     """Append one controller's kernels; its closed loops, one per plant step."""
-    actuators = ctrl_model.actuators
     c = controller_for(robot, ctrl_model, kind, variant)
+    return _controller_group(robot.name, ctrl_model, c, prefix, pose, plants, opts, kernels)
+
+
+def _controller_group(robot: str, ctrl_model: RobotModel, c: Controller, prefix: str,
+                      pose: ca.Function, plants: list, opts: dict,
+                      kernels: list[Kernel]) -> list[ClosedLoop]:
+    """Append the kernels of controller ``c`` (built on ``ctrl_model``); its closed loops, one
+    per plant step."""
+    actuators = ctrl_model.actuators
+    kind, variant = c.kind, c.variant
     group = controller_kernel_name(prefix, kind, variant, "", actuators)[:-1]
     cinfo = _ArgumentUnits(ctrl_model, c)
     for part, f in _controller_parts(c).items():
         name = controller_kernel_name(prefix, kind, variant, part, actuators)
-        kernels.append(Kernel(name, export(f, name, opts), f, group, "controller", robot.name,
+        kernels.append(Kernel(name, export(f, name, opts), f, group, "controller", robot,
                               prefix, kind, variant, cinfo.of(f), actuators=actuators))
     loops = []
     for plant_model, step in plants:
@@ -350,6 +359,86 @@ def collect(config: CodegenConfig) -> tuple[list[Kernel], list[ClosedLoop]]:
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
         raise CodegenError(f"{config.path}: kernels generated twice: {', '.join(duplicates)}")
+    _share_bodies(kernels, loops)
+    return kernels, loops
+
+
+#: The model Functions generated for a user's scenario besides what its run calls (cheap
+#: ones: the dynamics' terms and the kinematics; the run's own pose is ``fk_world``).
+UNIT_MODEL_KERNELS = ("M", "C", "G", "fk", "J", "fk_world", "J_world")
+
+
+@dataclass(frozen=True)
+class UnitSpec:
+    """One controlled unit of a user's scenario, as the simulation builds it: what its run
+    calls (controller, plant steps, logged pose), so the generated kernels' source hashes are
+    those the run checks (:func:`cochlea.sim.compiled.unit_kernels`)."""
+
+    robot: str  # the adapter's name ("serial", "parallel")
+    controller_model: RobotModel
+    controller: Controller
+    pose: ca.Function  # the logged pose (the setup's ``fk_world``)
+    plant_model: RobotModel  # full inertial parameterisation, rigid links
+    #: ``(plant model, step Function)`` per plant the runs may use.
+    plants: tuple[tuple[RobotModel, ca.Function], ...]
+
+
+def collect_units(units: list[UnitSpec], opts: dict, where: str
+                  ) -> tuple[list[Kernel], list[ClosedLoop]]:
+    """The kernels and closed loops of a user's scenario (``where``: its path, for messages):
+    per unit the model kernels :data:`UNIT_MODEL_KERNELS`, every plant step, the controller's
+    parts and a closed loop per plant. A kernel asked twice (two plant presets share a step)
+    is generated once; the same name for another computation is refused."""
+    kernels: list[Kernel] = []
+    loops: list[ClosedLoop] = []
+    seen: dict[str, str] = {}
+
+    def fresh(name: str, function: ca.Function) -> bool:
+        digest = computation_hash(function)
+        if name in seen:
+            if seen[name] != digest:
+                raise CodegenError(f"{where}: two different computations are both named {name}")
+            return False
+        seen[name] = digest
+        return True
+
+    for u in units:
+        prefix = unit_prefix(u.controller_model)
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix):
+            raise CodegenError(f"{where}: unit {u.controller_model.name!r} gives the C prefix "
+                               f"{prefix!r}, not a C identifier: rename the system or arm in "
+                               "the description (letters, digits, underscores)")
+        info = _ArgumentUnits(u.plant_model)
+        for key in UNIT_MODEL_KERNELS:
+            f = u.pose if key == "fk_world" else u.plant_model.functions.get(key)
+            if f is None or not fresh(f.name(), f):
+                continue
+            kernels.append(Kernel(f.name(), export(f, f.name(), opts), f, prefix, "model",
+                                  u.robot, prefix, si_units=info.of(f)))
+        plants = []
+        for plant_model, step in u.plants:
+            plants.append((plant_model, step))
+            if fresh(step.name(), step):
+                kernels.append(Kernel(step.name(), export(step, step.name(), opts), step,
+                                      prefix, "plant", u.robot, prefix,
+                                      si_units=_ArgumentUnits(plant_model).of(step),
+                                      actuators=plant_model.actuators))
+        c = u.controller
+        group: list[Kernel] = []
+        unit_loops = _controller_group(u.robot, u.controller_model, c, prefix, u.pose,
+                                       plants, opts, group)
+        for k in group:
+            if fresh(k.name, k.function):
+                kernels.append(k)
+        for loop in unit_loops:
+            if loop.name not in {known.name for known in loops}:
+                loops.append(loop)
+    if not loops:
+        raise CodegenError(f"{where}: the scenario has no unit to generate kernels for")
+    # One file per kernel: a spatial chain's kernels are large (UR5's controller parts are
+    # hundreds of KiB of C each), and separate files compile on every core at once.
+    for k in kernels:
+        k.group = k.name
     _share_bodies(kernels, loops)
     return kernels, loops
 

@@ -102,11 +102,18 @@ def default_library() -> Path:
     return root / "build" / "libcochlea.so" if root is not None else PACKAGED_LIBRARY
 
 
+#: The library's file name in a folder ``cochlea-codegen --out DIR`` wrote and compiled.
+LIBRARY_NAME = "libcochlea.so"
+
+
 def library_path(path: str | Path | None = None) -> Path:
-    """The library to load: ``path``, else ``$COCHLEA_LIB``, else :func:`default_library`."""
-    if path is not None:
-        return Path(path)
-    return Path(os.environ[ENVIRONMENT]) if os.environ.get(ENVIRONMENT) else default_library()
+    """The library to load: ``path``, else ``$COCHLEA_LIB``, else :func:`default_library`.
+    A folder (what ``cochlea-codegen --scenario ... --out DIR`` wrote) means its
+    ``libcochlea.so``."""
+    if path is None:
+        path = os.environ.get(ENVIRONMENT) or default_library()
+    path = Path(path)
+    return path / LIBRARY_NAME if path.is_dir() else path
 
 
 @functools.cache

@@ -2,7 +2,7 @@
 kernels -- the generated C (default) or the CasADi reference they are checked against.
 
     from cochlea.sim import load_scenario, simulate
-    result = simulate(load_scenario("serial_task"))             # C kernels
+    result = simulate(load_scenario("serial_task"))             # C kernels (auto)
     reference = simulate(load_scenario("serial_task"), kernels="casadi")
 """
 
@@ -11,15 +11,24 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import CochleaError
-from .compiled import CKernelsUnavailable, CKernelsWarning, simulate_compiled
+from .compiled import (
+    KERNEL_CHOICES,
+    CKernelsUnavailable,
+    CKernelsWarning,
+    KernelChoice,
+    choose_kernels,
+    simulate_compiled,
+)
 from .reference import simulate_reference
 from .result import SimulationResult, UnitLog
 from .scenario import Scenario
 from .scenario import load as _load
 from .setup import GravityRefused, UnitSetup, perturbed_parameters, run_inputs, unit_setups
 
-#: Which kernels ``simulate`` runs: the generated C (default) or the CasADi reference.
-KERNELS = ("c", "casadi")
+#: Which kernels ``simulate`` runs: "auto" (default: the generated C when the library has this
+#: scenario's kernels, else the CasADi reference with a :class:`CKernelsWarning`), "c" (the C
+#: kernels or :class:`CKernelsUnavailable`) or "casadi" (the reference).
+KERNELS = KERNEL_CHOICES
 
 
 def load_scenario(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
@@ -30,27 +39,35 @@ def load_scenario(name_or_path: str | Path, plant_preset: str | None = None) -> 
 
 
 def simulate(sc: Scenario, duration: float | None = None,
-             setups: list[UnitSetup] | None = None, kernels: str = "c", *,
-             threads: bool = True) -> SimulationResult:
+             setups: list[UnitSetup] | None = None, kernels: str = "auto", *,
+             threads: bool = True, library: str | Path | None = None) -> SimulationResult:
     """Run the scenario as fast as possible and return the log of every period.
 
     A unit whose state or estimate becomes non-finite stops the run: ``result.diverged`` names
     it with the time, and the log keeps every period up to that one.
 
-    ``kernels``: ``"c"`` (default) runs the generated C kernels (:mod:`cochlea.sim.compiled`;
-    if they cannot run this scenario it warns and falls back), ``"casadi"`` the CasADi
-    reference (:mod:`cochlea.sim.reference`). ``threads``: the C kernels run the units
+    ``kernels``: ``"auto"`` (default) runs the generated C kernels (:mod:`cochlea.sim.compiled`)
+    and, if they cannot run this scenario, warns (:class:`CKernelsWarning`) and falls back to
+    the CasADi reference (:mod:`cochlea.sim.reference`); ``"c"`` runs the C kernels or raises
+    :class:`CKernelsUnavailable`; ``"casadi"`` runs the reference. ``result.kernels`` says
+    which ran (and why not C). ``library``: the C library (a ``.so`` or the folder
+    ``cochlea-codegen --scenario ... --out DIR`` wrote; default ``$COCHLEA_LIB``, else the
+    shipped one). ``threads``: the C kernels run the units
     (the serial system's two arms) on threads of their own; a sweep's worker, one process per
     core, runs them one after the other (``False``), which spares it a thread pool a sample.
     """
     if kernels not in KERNELS:
         raise CochleaError(f"unknown kernels {kernels!r}; choose one of {', '.join(KERNELS)}")
     duration, setups = run_inputs(sc, duration, setups)
-    if kernels == "c":
-        return simulate_compiled(sc, duration, setups, fallback=True, threads=threads)
-    return simulate_reference(sc, duration, setups)
+    if kernels != "casadi":
+        return simulate_compiled(sc, duration, setups, fallback=kernels == "auto",
+                                 threads=threads, library=library)
+    result = simulate_reference(sc, duration, setups)
+    result.kernels = KernelChoice("casadi", "casadi").summary()
+    return result
 
 
 __all__ = ["KERNELS", "load_scenario", "simulate", "simulate_compiled", "simulate_reference",
            "SimulationResult", "UnitLog", "UnitSetup", "Scenario", "unit_setups", "GravityRefused",
-           "perturbed_parameters", "CKernelsUnavailable", "CKernelsWarning"]
+           "perturbed_parameters", "CKernelsUnavailable", "CKernelsWarning", "KernelChoice",
+           "choose_kernels"]

@@ -40,10 +40,20 @@ from ..control.controllers import ROBUST_INPUTS
 from ..errors import CochleaError
 from ..kernels import library as ckernels
 from ..kernels.bind import BufferedFunction, BufferedKernel
+from ..kernels.catalogue import UnitSpec
 from ..kernels.naming import closed_loop_name, controller_kernel_name, source_hash, unit_prefix
+from ..robots.plant import gear_plant_step, plant_step
 from .reference import simulate_reference
 from .result import SimulationResult, simulated_log, truncate
-from .setup import MeasurementGrid, UnitSetup, delay_ages, encoder_noise, measurements, run_inputs
+from .setup import (
+    MeasurementGrid,
+    UnitSetup,
+    delay_ages,
+    encoder_noise,
+    measurements,
+    run_inputs,
+    unit_setups,
+)
 
 LOOPS = ("c", "python")
 
@@ -99,14 +109,16 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
     for name, function, what in wanted:
         if name not in lib.manifest["kernels"]:
             raise CKernelsUnavailable(
-                f"{lib.path} has no kernel {name} ({what} of unit {u.name}): add it to "
-                "codegen/kernels.toml, run cochlea-codegen and make lib, or use "
-                "the CasADi kernels")
+                f"{lib.path} has no kernel {name} ({what} of unit {u.name}): generate this "
+                "scenario's with cochlea-codegen --scenario FILE --out DIR and run on "
+                "--library DIR (a shipped robot: add it to codegen/kernels.toml, "
+                "run cochlea-codegen and make lib), or use the CasADi kernels")
         if lib.source_hash(name) != _hash(function):
             raise CKernelsUnavailable(
                 f"the C kernel {name} in {lib.path} computes something else than {what} of "
                 f"unit {u.name} (a different description, parameterisation or option, or a "
-                "stale library): run cochlea-codegen and make lib, or use the CasADi kernels")
+                "stale library): run cochlea-codegen (--scenario FILE --out DIR for your "
+                "own robot) and make lib, or use the CasADi kernels")
     loop = closed_loop_name(group, u.plant_model, u.drive is not None and not u.gearbox,
                             u.gearbox)
     meta = lib.manifest["closed_loops"].get(loop)
@@ -272,7 +284,9 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
             raise CKernelsUnavailable(str(exc)) from exc
         warnings.warn(f"{exc}. Simulating on the CasADi kernels instead.", CKernelsWarning,
                       stacklevel=3)
-        return simulate_reference(sc, duration, setups)
+        result = simulate_reference(sc, duration, setups)
+        result.kernels = KernelChoice("casadi", "auto", reason=str(exc)).summary()
+        return result
 
     h = sc.period
     steps = int(round(duration / h))
@@ -327,7 +341,9 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     rows = min(len(u.q) for u in logs)
     if rows < steps:  # every unit's log ends where the first one diverged (as the reference)
         truncate(logs, rows)
-    return SimulationResult(sc, time[:rows], logs, diverged)
+    return SimulationResult(sc, time[:rows], logs, diverged,
+                            kernels=KernelChoice("c", "auto" if fallback else "c",
+                                                 str(lib.path)).summary())
 
 
 #: Where a unit's kernels come from: the generated C library or CasADi.
@@ -352,3 +368,88 @@ def period_kernels(u: UnitSetup, substeps: int, source: str = "c"):
             warnings.warn(f"{exc}; running on the CasADi kernels", CKernelsWarning, stacklevel=2)
     return (BufferedFunction(u.controller.step), BufferedFunction(_plant(u, substeps)),
             BufferedFunction(u.fk_world), "casadi")
+
+
+# --------------------------------------------------------------------------------------------
+# Which kernels a run uses, decided once, before it starts
+# --------------------------------------------------------------------------------------------
+
+#: What a run may ask for: "auto" (the C kernels when the library has this scenario's, else
+#: CasADi, saying so), "c" (the C kernels or a refusal) and "casadi" (the reference).
+KERNEL_CHOICES = ("auto", "c", "casadi")
+
+
+@dataclass(frozen=True)
+class KernelChoice:
+    """The kernels a run uses: ``used`` ("c" or "casadi"), what was ``requested``, the
+    ``library`` the C kernels come from, and why the C kernels could not run it (``reason``:
+    set when "auto" fell back)."""
+
+    used: str
+    requested: str
+    library: str | None = None
+    reason: str | None = None
+
+    def summary(self) -> dict:
+        """The ``kernels`` entry of summary.json."""
+        return {"used": self.used, "requested": self.requested, "library": self.library,
+                "fallback_reason": self.reason}
+
+    def line(self) -> str:
+        """One line for the console: which kernels, from where, and why not C."""
+        if self.used == "c":
+            return f"C kernels from {self.library}"
+        if self.reason is None:
+            return "CasADi (asked for)"
+        return f"CasADi (the C kernels cannot run this scenario: {self.reason})"
+
+
+def choose_kernels(setups: list[UnitSetup], substeps: int, kernels: str = "auto",
+                   library=None) -> KernelChoice:
+    """Decide, before anything runs, which kernels run ``setups``: the library (``library``,
+    else ``$COCHLEA_LIB``, else the shipped one; a folder ``cochlea-codegen --out`` wrote
+    names its ``libcochlea.so``) is loaded and every unit's kernels checked against the
+    Functions the setups use (:func:`unit_kernels`: names and source hashes).
+
+    ``kernels="c"``: a library that lacks or mismatches a kernel raises
+    :class:`CKernelsUnavailable` (one line, naming the kernel); ``"auto"``: that falls back to
+    CasADi, the reason kept in the choice; ``"casadi"``: the reference, nothing checked."""
+    if kernels not in KERNEL_CHOICES:
+        raise CochleaError(f"unknown kernels {kernels!r}; choose one of "
+                           + ", ".join(KERNEL_CHOICES))
+    if kernels == "casadi":
+        return KernelChoice("casadi", "casadi")
+    try:
+        lib = ckernels.load(library)
+        for u in setups:
+            unit_kernels(lib, u, substeps)
+    except CochleaError as exc:
+        if kernels == "c":
+            raise CKernelsUnavailable(f"--kernels c: {exc}") from None
+        return KernelChoice("casadi", "auto", reason=str(exc))
+    return KernelChoice("c", kernels, str(lib.path))
+
+
+# --------------------------------------------------------------------------------------------
+# What a user's scenario needs generated (cochlea-codegen --scenario)
+# --------------------------------------------------------------------------------------------
+
+
+def scenario_units(sc, setups: list[UnitSetup] | None = None) -> list[UnitSpec]:
+    """What to generate for scenario ``sc`` (:func:`cochlea.kernels.catalogue.collect_units`):
+    per unit the Functions its run checks -- the controller, the logged pose, the plant step the
+    scenario's ``[plant]`` needs -- and that plant's sibling with or without dry friction (so a
+    sweep that turns the scenario's Coulomb friction on or off stays on C). The geared plant
+    (``gearbox``, the realistic preset) has one step, friction included."""
+    setups = setups if setups is not None else unit_setups(sc, gravity=False)
+    units = []
+    for u in setups:
+        if u.gearbox:
+            plants = ((u.plant_model, gear_plant_step(u.plant_model, sc.plant_substeps)),)
+        else:
+            plants = tuple((u.plant_model, plant_step(u.plant_model, sc.plant_substeps,
+                                                      coulomb=coulomb))
+                           for coulomb in (False, True))
+        units.append(UnitSpec(sc.robot, u.controller_model, u.controller, u.fk_world,
+                              u.plant_model, plants))
+    return units

@@ -9,10 +9,12 @@ simulation) become :class:`~cochlea.kernels.embedded.EmbeddedUnit` data, and
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import CochleaError
 from ..kernels.catalogue import CodegenConfig, law_units
 from ..kernels.embedded import (
     EmbeddedScenario,
@@ -26,7 +28,7 @@ from .scenario import Scenario
 from .scenario import load as load_scenario
 from .setup import unit_setups
 
-__all__ = ["embedded_scenario", "embedded_units", "write_embedded"]
+__all__ = ["embedded_scenario", "embedded_units", "write_embedded", "scenario_sources"]
 
 
 def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
@@ -60,6 +62,26 @@ def embedded_scenario(sc: Scenario) -> EmbeddedScenario:
                             sc.parameterisation, sc.period, float(sc.duration),
                             float(radius) if radius is not None else 0.0,
                             bridge_compensates_friction(sc.controller_actuators))
+
+
+def scenario_sources(sc: Scenario, function: dict) -> dict[str, str]:
+    """The embedded controller of one loaded scenario (a user's file too) and the table of
+    scenarios holding it alone: file name -> text (``<name>.h``, ``<name>.c``,
+    ``<name>_scenario.c``, ``scenarios.h``, ``scenarios.c``). The robot's drive table
+    (``<robot>_drives.h``) is the caller's (:mod:`cochlea.dynamixel.embedded_drives`)."""
+    name = sc.name
+    if not re.fullmatch(r"[a-z][a-z0-9_]*", name):
+        raise CochleaError(f"{sc.path}: the embedded controller is named after the scenario "
+                           f"file, and {name!r} is not a C identifier in lower case: rename "
+                           "the file (letters, digits, underscores)")
+    title = (f"the embedded controller of scenario {name} ({sc.robot} robot, "
+             f"{sc.space} space, controller {sc.controller})")
+    units = embedded_units(sc)
+    header, source = embedded_sources(name, title, sc.period, units, function)
+    table_h, table_c = scenario_table([name])
+    return {f"{name}.h": header, f"{name}.c": source,
+            f"{name}_scenario.c": scenario_source(embedded_scenario(sc), units),
+            "scenarios.h": table_h, "scenarios.c": table_c}
 
 
 def write_embedded(config: CodegenConfig, folder: str | Path) -> list[Path]:

@@ -147,6 +147,10 @@ class SimulationResult:
     #: As-fast runs: the rule a real run's supervisor would have stopped on, if any (see
     #: :func:`cochlea.runtime.supervisor.verdict`).
     supervisor: dict | None = None
+    #: The kernels the run actually used (:class:`cochlea.sim.compiled.KernelChoice`'s
+    #: ``summary()``: ``used`` "c" with its ``library``, or "casadi" with the ``reason`` when
+    #: C was asked for and could not run it), or None where nobody recorded it.
+    kernels: dict | None = None
 
     def unit(self, name: str) -> UnitLog:
         return next(u for u in self.units if u.name == name)

@@ -1919,6 +1919,10 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     fputs(",\n", f);
     key(f, 2, "program");
     fputs("\"cochlea-embedded (" PRECISION ")\",\n", f);
+    /* cochlea-run's statement of the kernels it ran: here, always the C compiled in. */
+    key(f, 2, "kernels");
+    fputs("{\"used\": \"c\", \"requested\": \"c\", \"library\": \"compiled in: "
+          "cochlea-embedded (" PRECISION ")\", \"fallback_reason\": null},\n", f);
     key(f, 2, "rate_Hz");
     json_number(f, 1.0 / loop->period_s);
     fputs(",\n", f);
