@@ -241,6 +241,18 @@ class RobotAdapter:
         """A documented joint position inside the workspace (SI), or None: all zero."""
         return None
 
+    def excitation_pose(self, system: Any, unit: str) -> np.ndarray:
+        """The joint pose an excitation of ``unit`` works around when the description is not
+        the one :attr:`excitation_study` was made for (a user's robot): the description's own
+        where it gives one, else the middle of each joint's position limits (SI)."""
+        described = getattr(system, "described_pose", None)  # a description's optional key
+        pose = described(unit, "working") if described is not None else None
+        if pose is not None:
+            return np.array(pose, float)
+        model = self.model(system, unit)
+        return np.array([0.5 * (j.position_limits[0] + j.position_limits[1])
+                         for j in model.joints])
+
     def excitation_geometry(self, system: Any, unit: str, study_pose: np.ndarray,
                             held: dict[str, np.ndarray], clearance: float
                             ) -> ExcitationGeometry:

@@ -1,0 +1,131 @@
+"""Everything after the model on a user robot (issue 25 item 5): the tools on a description
+the package does not ship, tests/data/planar2.toml (a planar 2R arm on XM540-W270s, one arm,
+its base at the world origin, asymmetric joint limits) and its scenario planar2_joint.toml."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cochlea.apps import cochlea_excite, cochlea_identify
+from cochlea.errors import CochleaError, DescriptionError
+from cochlea.ident import excite
+from cochlea.robots import robot
+from cochlea.sim import load_scenario
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = Path(__file__).resolve().parent / "data"
+DESCRIPTION = DATA / "planar2.toml"
+SCENARIO = DATA / "planar2_joint.toml"
+RUN = [sys.executable, "-m", "cochlea.apps.cochlea_run"]
+FAST = excite.ExcitationOptions(period=4.0, harmonics=3, starts=2, iterations=60, periods=4)
+
+#: The perturbed plant of the identification: masses +20 % / -15 %, a 50 g payload, armature,
+#: viscous friction away from the description's 0.05 N m s/rad, the drives' current
+#: quantisation, encoder and velocity grids and one period of delay (as tests/test_identify.py
+#: does for the shipped arms; no Coulomb friction, see there).
+PLANT = """[plant]
+plant = "ideal"
+armature = true
+mass_scale = [1.2, 0.85]
+payload_kg = 0.05
+viscous_friction_SI = [0.07, 0.035]
+current_quantisation = true
+position_encoder = true
+velocity_register = true
+delay_periods = 1
+"""
+
+
+def _with_keys(tmp: Path, extra_arm: str = "", extra_top: str = "") -> Path:
+    """A copy of the user description with optional keys added (beside it in ``tmp``)."""
+    text = DESCRIPTION.read_text()
+    text = text.replace('base_yaw_deg = 0.0\n', 'base_yaw_deg = 0.0\n' + extra_arm, 1)
+    path = tmp / "planar2.toml"
+    path.write_text(text + extra_top)
+    return path
+
+
+def test_excitation_defaults_to_the_middle_of_the_limits():
+    result = excite.design("serial", None, FAST, description=DESCRIPTION)
+    system = robot("serial").load(DESCRIPTION)
+    limits = np.array([link.joint.position_limits for link in system.arms[0].links])
+    assert np.allclose(result.working_pose, limits.mean(axis=1))  # [30, 10] deg
+    assert result.unit == "arm" and result.held == {}
+    times = np.arange(int(FAST.period * 1000) + 1) / 1000.0
+    q, qd, _ = result.series.evaluate(times)
+    vmax = np.array([link.joint.velocity_limit for link in system.arms[0].links])
+    assert (np.abs(qd).max(axis=1) <= vmax).all()
+    assert (np.abs(q - result.working_pose[:, None]).max(axis=1)
+            <= FAST.amplitude_rad * (1 + 1e-3)).all()
+    # No keep-out key and the base inside the keep-out circle: no circle, no other arm.
+    assert result.keep_out_distance is None and result.clearance_distance is None
+    assert result.condition < 1e3
+
+
+def test_working_pose_and_keep_out_volumes_come_from_the_description(tmp_path):
+    # A sphere of 4 cm at 0.32 m along 50 deg: the tool passes near it around the working
+    # pose (40, 0) deg (tool at 0.35 m along 40 deg) and must keep out.
+    c = [0.32 * math.cos(math.radians(52)), 0.32 * math.sin(math.radians(52)), 0.0]
+    path = _with_keys(tmp_path, "working_pose_deg = [40.0, 0.0]\n",
+                      f'\n[[keep_out]]\nname = "post"\ncentre_m = {c}\nradius_m = 0.04\n')
+    system = robot("serial").load(path)
+    assert np.allclose(np.degrees(system.arms[0].working_pose), [40.0, 0.0])
+    assert system.keep_out_volumes[0].name == "post"
+    result = excite.design("serial", None, FAST, description=path)
+    assert np.allclose(np.degrees(result.working_pose), [40.0, 0.0])
+    assert 0.0 <= result.keep_out_volume_distance < 0.05  # it works close to the post
+    # A working pose inside the volume is refused in one clear line.
+    (tmp_path / "inside").mkdir()
+    inside = _with_keys(tmp_path / "inside", "working_pose_deg = [52.0, 0.0]\n",
+                        f'\n[[keep_out]]\nname = "post"\ncentre_m = {c}\nradius_m = 0.04\n')
+    with pytest.raises(CochleaError, match="keep-out volume post"):
+        excite.design("serial", None, FAST, description=inside)
+
+
+@pytest.mark.parametrize("extra_arm, extra_top, key", [
+    ("working_pose_deg = [160.0, 0.0]\n", "", "arm[0].working_pose_deg[0]"),
+    ("working_pose_deg = [10.0]\n", "", "arm[0].working_pose_deg"),
+    ("", "\n[[keep_out]]\ncentre_m = [0.1, 0.0]\nradius_m = 0.02\n", "keep_out[0].centre_m"),
+    ("", "\n[[keep_out]]\ncentre_m = [0.1, 0.0, 0.0]\nradius_m = -1\n", "keep_out[0].radius_m"),
+])
+def test_bad_optional_keys_are_refused(tmp_path, extra_arm, extra_top, key):
+    with pytest.raises(DescriptionError, match=key.replace("[", r"\[").replace("]", r"\]")):
+        robot("serial").load(_with_keys(tmp_path, extra_arm, extra_top))
+
+
+def test_excite_then_identify_a_perturbed_plant(tmp_path, capsys):
+    """cochlea-excite --description, the scenario run on a perturbed simulated plant of the
+    user robot, cochlea-identify predicting the held-out torques within 5 %."""
+    out = tmp_path / "excite.toml"
+    assert cochlea_excite.main(["--robot", "serial", "--description", str(DESCRIPTION),
+                                "--out", str(out), "--period", "4", "--harmonics", "3",
+                                "--starts", "2", "--iterations", "60"]) == 0
+    printed = capsys.readouterr().out
+    assert "-> " in printed and "cochlea-run" in printed
+    sc = load_scenario(out)  # its description resolves against the scenario's folder
+    assert sc.system.path.resolve() == DESCRIPTION.resolve()
+    text = out.read_text()
+    perturbed = tmp_path / "perturbed.toml"
+    perturbed.write_text(text[:text.index("[plant]")] + PLANT)
+    subprocess.run(RUN + ["--robot", "serial", "--space", "joint", "--scenario", str(perturbed),
+                          "--out", str(tmp_path / "run"), "--realtime", "off"],
+                   check=True, capture_output=True, cwd=ROOT)
+    report = tmp_path / "ident.json"
+    assert cochlea_identify.main([str(tmp_path / "run"), "--robot", "serial", "--description",
+                                  str(DESCRIPTION), "--out", str(report), "--min-speed", "0",
+                                  "--no-figures"]) == 0
+    doc = json.loads(report.read_text())
+    assert max(doc["prediction_nrms_percent"]["wls"]) < 5.0
+    # The viscous frictions (0.07, 0.035, the description says 0.05) are recovered.
+    m = robot("serial").model(robot("serial").load(DESCRIPTION), "arm", "base", actuators="all")
+    fv = [p["wls"] for name, p in zip(m.parameters.meanings, doc["parameters"])
+          if name.endswith(".Fv")]
+    assert fv == pytest.approx([0.07, 0.035], rel=0.02)
+
