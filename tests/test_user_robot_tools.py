@@ -129,3 +129,84 @@ def test_excite_then_identify_a_perturbed_plant(tmp_path, capsys):
           if name.endswith(".Fv")]
     assert fv == pytest.approx([0.07, 0.035], rel=0.02)
 
+
+# --------------------------------------------------------------------------------------------
+# The virtual chain, a sweep and a tune: no change was needed for these (issue 25 item 5)
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.hil
+def test_joint_space_run_over_the_virtual_chain(tmp_path):
+    """cochlea-emulator takes the user robot's motors from the scenario's description;
+    cochlea-run --backend dynamixel tracks the scenario over the pseudo-terminal."""
+    log, out = tmp_path / "emulator.log", tmp_path / "hil"
+    proc = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
+                             "serial", "--scenario", str(SCENARIO), "--log", str(log)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        assert "XM540-W270" in proc.stdout.readline()
+        done = subprocess.run(RUN + ["--robot", "serial", "--space", "joint", "--scenario",
+                                     str(SCENARIO), "--backend", "dynamixel", "--port", port,
+                                     "--duration", "3", "--out", str(out),
+                                     "--watchdog-misses", "300"],
+                              capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "completed"
+    assert "torque off confirmed by all 2" in summary["timing"]["bus"]["shutdown"]
+    for name, tracked in summary["units"]["arm"]["tracked"].items():
+        # From 2 deg off to within the simulation's tracking plus a few encoder counts.
+        assert tracked["final_rms_error"] < 0.1 * tracked["initial_abs_error"], (name, tracked)
+
+
+def _spec(folder: Path, extra: str) -> Path:
+    for f in (DESCRIPTION, SCENARIO):
+        (folder / f.name).write_text(f.read_text())
+    path = folder / "spec.toml"
+    path.write_text(f'''format = "cochlea-sweep/1"
+scenario = "{SCENARIO.name}"
+samples = 2
+seed = 7
+duration_s = 0.4
+
+[perturb]
+mass_scale = {{uniform = [0.8, 1.2]}}
+payload_kg = {{uniform = [0.0, 0.05]}}
+{extra}''')
+    return path
+
+
+def test_a_small_sweep_of_the_user_scenario(tmp_path, monkeypatch):
+    from cochlea.apps import cochlea_sweep
+    from cochlea.sweep import results
+
+    spec = _spec(tmp_path, "\n[gains.arm]\nG_e = {grid = [[0.5, 0.3], [1.0, 0.6]]}\n")
+    monkeypatch.chdir(ROOT)  # the spec's scenario resolves against the spec, not here
+    out = tmp_path / "out"
+    assert cochlea_sweep.main([str(spec), "--out", str(out), "--workers", "1",
+                               "--progress", "off"]) == 0
+    rows = results.read(out).to_pylist()
+    assert len(rows) == 4  # 2 draws x 2 grid points
+    # Every run to its end (no supervisor stop), none diverging.
+    assert all(r["stop_rule"] == "none" and not r["diverged"] for r in rows), rows
+
+
+def test_a_small_tune_of_the_user_scenario(tmp_path, monkeypatch):
+    from cochlea.apps import cochlea_tune
+
+    spec = _spec(tmp_path, "\n[gains.arm]\nG_e = {uniform = [0.2, 2.0], each = true}\n\n"
+                           "[tune]\ntrials = 3\nparallel_candidates = 1\nstartup_trials = 2\n")
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "out"
+    assert cochlea_tune.main([str(spec), "--out", str(out), "--workers", "1",
+                              "--progress", "off"]) == 0
+    tuned = load_scenario(out / "tuned.toml")  # runs the user's description
+    assert tuned.system.path.resolve() == (tmp_path / DESCRIPTION.name).resolve()
+    with open(out / "trials.csv") as f:
+        trials = f.read().splitlines()[1:]
+    assert len(trials) == 3 and all(",True," in t for t in trials)  # each feasible
