@@ -210,3 +210,79 @@ def test_a_small_tune_of_the_user_scenario(tmp_path, monkeypatch):
     with open(out / "trials.csv") as f:
         trials = f.read().splitlines()[1:]
     assert len(trials) == 3 and all(",True," in t for t in trials)  # each feasible
+
+
+# --------------------------------------------------------------------------------------------
+# cochlea-dxl calibrate: reference pose and positive sense from the description
+# --------------------------------------------------------------------------------------------
+
+
+def test_calibration_defaults_for_a_user_robot(tmp_path):
+    adapter = robot("serial")
+    system = adapter.load(DESCRIPTION)
+    assert not adapter.is_shipped(system) and adapter.is_shipped(adapter.load(None))
+    refs = adapter.calibration_references(system, shipped=False)
+    assert {n: q for n, (q, _) in refs.items()} == {"arm.upper": 0.0, "arm.fore": 0.0}
+    assert "right-hand rule" in adapter.calibration_positive(system, "arm.upper", False)
+    # A joint whose limits exclude zero: the middle of its limits.
+    moved = _with_keys(tmp_path)
+    moved.write_text(moved.read_text().replace("[-90.0, 150.0]", "[20.0, 150.0]"))
+    refs = adapter.calibration_references(adapter.load(moved), shipped=False)
+    assert refs["arm.upper"][0] == pytest.approx(math.radians(85.0))
+    # The shipped arms keep their documented pose and sense.
+    shipped = adapter.load(None)
+    assert adapter.calibration_references(shipped)["arm1.link1"] == \
+        adapter.calibration_reference["*"]
+    assert adapter.calibration_positive(shipped, "arm1.link1") == adapter.positive_direction
+
+
+@pytest.mark.hil
+def test_calibrate_a_user_robot_over_the_emulator(tmp_path, monkeypatch):
+    """cochlea-dxl calibrate on the emulated chain of the user robot (its scenario names the
+    description): the description's calibration_pose_deg and positive_direction are the
+    prompts', and the injected offsets and directions are recovered."""
+    import gc
+
+    from cochlea.dynamixel.bringup import calibrate
+    from cochlea.dynamixel.control_table import RAD_PER_COUNT
+    from cochlea.dynamixel.drives import joint_drives
+    from cochlea.dynamixel.emulator import Truth, VirtualChain
+
+    description = _with_keys(tmp_path, 'calibration_pose_deg = [90.0, -45.0]\n'
+                                       'positive_direction = "counter-clockwise seen from '
+                                       'above the table"\n')
+    scenario = tmp_path / SCENARIO.name
+    scenario.write_text(SCENARIO.read_text())
+    true_offset, true_direction = {1: 57.0, 2: -130.5}, {2: -1}
+    refs = {"arm.upper": math.radians(90.0), "arm.fore": math.radians(-45.0)}
+    gc.collect()
+    gc.disable()  # the emulator is a thread of this process
+    chain = VirtualChain("serial", scenario, truth=Truth(true_offset, true_direction)).start()
+    prompts = []
+
+    def ask(prompt):
+        prompts.append(prompt)
+        name = prompt.split(" ")[0].rstrip(":")
+        chain.move_joint(name, refs[name] + (0.0 if "reference pose" in prompt else 0.2))
+        return ""
+
+    monkeypatch.setattr(calibrate, "ask", ask)
+    parser = __import__("argparse").ArgumentParser()
+    calibrate.add_arguments(parser)
+    out = tmp_path / "calibrated.toml"
+    try:
+        code = calibrate.run(parser.parse_args(["--robot", "serial", "--port", chain.path,
+                                                "--description", str(description),
+                                                "--out", str(out)]))
+    finally:
+        chain.close()
+        gc.enable()
+    assert code == 0 and len(prompts) == 4
+    assert "calibration_pose_deg" in prompts[0] and "(arm.upper = 90 deg)" in prompts[0]
+    assert "above the table" in prompts[1]
+    for d in joint_drives("serial", out):
+        assert d.direction == true_direction.get(d.id, 1), d.name
+        error = (math.degrees(d.zero_offset) - true_offset[d.id] + 180.0) % 360.0 - 180.0
+        assert abs(error) <= math.degrees(RAD_PER_COUNT), (d.name, error)
+    # The calibrated copy keeps the optional keys and still loads as the user robot.
+    assert robot("serial").load(out).arms[0].calibration_pose is not None

@@ -239,19 +239,21 @@ def tracking_study(robot: str, system, tracking: str | Path | None = None):
     """``(scenario, how to name it)``: the joint-space scenario whose control settings and
     gains track the excitation:
     ``tracking`` where given (it must run the same description); else the robot's
-    :attr:`excitation_study` when the description is the one it was made for; else (a
+    :attr:`excitation_study` when the description is the one it was made for (or a copy:
+    ``is_shipped``); else (a
     user's robot) the gentle starter scenario ``cochlea-urdf`` writes for the description
     (controller e, gains scaled to the arm's inertia)."""
     adapter = robot_adapter(robot)
     if tracking is not None:
         study = load_scenario(tracking)
-        if study.robot != robot or not _same_file(study.system.path, system.path):
+        if study.robot != robot or not (_same_file(study.system.path, system.path)
+                                        or study.system.name == system.name):
             raise CochleaError(f"--scenario {tracking}: it runs {study.robot} "
                                f"{study.system.path}, not {robot} {system.path}: the tracking "
                                "scenario must run the excited description")
         return study, study.path.name
     study = load_scenario(adapter.excitation_study)
-    if _same_file(study.system.path, system.path):
+    if adapter.is_shipped(system):
         return study, study.path.name
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "tracking.toml"
@@ -272,7 +274,7 @@ def _problem(robot: str, arm: str | None, options: ExcitationOptions,
     unit = adapter.unit(system, arm)
     study, label = tracking_study(robot, system, tracking)
     units = adapter.layout(system, "joint").units
-    if _same_file(load_scenario(adapter.excitation_study).system.path, system.path):
+    if adapter.is_shipped(system):
         poses = {u.name: np.asarray(u.initial_joint, float) for u in study.units}
     else:
         poses = {name: adapter.excitation_pose(system, name) for name in units}

@@ -122,6 +122,11 @@ class SerialSystem:
         arm = self.arm(unit)
         return arm.working_pose if which == "working" else arm.calibration_pose
 
+    def described_positive(self, joint: str) -> str | None:
+        """The ``positive_direction`` text of the arm of ``joint`` ("arm1.link2"), or None."""
+        unit = joint.partition(".")[0]
+        return next((a.positive_direction for a in self.arms if a.name == unit), None)
+
     def arm(self, name: str) -> Arm:
         for arm in self.arms:
             if arm.name == name:
