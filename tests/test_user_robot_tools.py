@@ -89,6 +89,22 @@ def test_working_pose_and_keep_out_volumes_come_from_the_description(tmp_path):
         excite.design("serial", None, FAST, description=inside)
 
 
+def test_without_armature_the_excitation_runs_on_the_ideal_plant(tmp_path):
+    """A description with no armature (an imported URDF's) cannot have the geared plant:
+    the written scenario asks for the rigid links, and loads."""
+    path = _with_keys(tmp_path)
+    path.write_text(path.read_text().replace("  armature_kgm2 = 0.02\n", ""))
+    out = tmp_path / "excite.toml"
+    assert cochlea_excite.main(["--robot", "serial", "--description", str(path), "--out",
+                                str(out), "--period", "4", "--harmonics", "3", "--starts", "1",
+                                "--iterations", "30", "--periods", "1"]) == 0
+    assert 'plant = "ideal"' in out.read_text()
+    assert load_scenario(out).system.path.resolve() == path.resolve()
+    text = excite.scenario_text(excite.design("serial", None, FAST, description=DESCRIPTION),
+                                "test")
+    assert 'plant = "realistic"' in text  # the 2R arm has its armature
+
+
 @pytest.mark.parametrize("extra_arm, extra_top, key", [
     ("working_pose_deg = [160.0, 0.0]\n", "", "arm[0].working_pose_deg[0]"),
     ("working_pose_deg = [10.0]\n", "", "arm[0].working_pose_deg"),

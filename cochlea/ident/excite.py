@@ -691,6 +691,10 @@ def scenario_text(result: Design, command: str, description_ref: str | None = No
                   "desired_joint = [", *[f'  "{text}",' for text in texts], "]",
                   "gains = { " + ", ".join(f"{k} = {_number_list(v)}"
                                            for k, v in unit.gains.items()) + " }"]
-    lines += ["", "[plant]", 'plant = "realistic"  # cochlea-run --plant ideal for the rigid '
-              "links; ignored on the motors", ""]
+    if all(j.actuator.armature is not None for j in adapter.actuated_joints(system)):
+        lines += ["", "[plant]", 'plant = "realistic"  # cochlea-run --plant ideal for the '
+                  "rigid links; ignored on the motors", ""]
+    else:  # the geared plant needs each joint's armature, which the description lacks
+        lines += ["", "[plant]", 'plant = "ideal"  # the description gives no armature_kgm2 '
+                  "for every joint, which the realistic plant needs; ignored on the motors", ""]
     return "\n".join(lines)
