@@ -105,6 +105,21 @@ def test_without_armature_the_excitation_runs_on_the_ideal_plant(tmp_path):
     assert 'plant = "realistic"' in text  # the 2R arm has its armature
 
 
+def test_tracking_scenario_mistakes_are_refused(tmp_path):
+    # A scenario of another description.
+    with pytest.raises(CochleaError, match="must run the excited description"):
+        excite.design("serial", None, FAST, description=DESCRIPTION, tracking="serial_joint")
+    # Two arms and no --scenario: the starter moves one arm only.
+    text = DESCRIPTION.read_text()
+    second = text[text.index("[[arm]]"):].replace('name = "arm"', 'name = "other"', 1)
+    second = second.replace("id = 1", "id = 3").replace("id = 2", "id = 4")
+    second = second.replace("base_xyz_m = [0.0, 0.0, 0.0]", "base_xyz_m = [0.6, 0.0, 0.0]")
+    two = tmp_path / "two.toml"
+    two.write_text(text + "\n" + second)
+    with pytest.raises(CochleaError, match="give --scenario"):
+        excite.design("serial", None, FAST, description=two)
+
+
 @pytest.mark.parametrize("extra_arm, extra_top, key", [
     ("working_pose_deg = [160.0, 0.0]\n", "", "arm[0].working_pose_deg[0]"),
     ("working_pose_deg = [10.0]\n", "", "arm[0].working_pose_deg"),

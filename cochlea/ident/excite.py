@@ -255,6 +255,11 @@ def tracking_study(robot: str, system, tracking: str | Path | None = None):
     study = load_scenario(adapter.excitation_study)
     if adapter.is_shipped(system):
         return study, study.path.name
+    units = adapter.layout(system, "joint").units
+    if not adapter.units_are_arms or len(units) != 1:  # the starter moves one serial arm
+        raise CochleaError(f"{system.path}: give --scenario, a joint-space scenario of this "
+                           "description whose settings and gains track the excitation (the "
+                           "default, cochlea-urdf's starter, is for a single serial arm)")
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "tracking.toml"
         path.write_text(starter_scenario(system, str(Path(system.path).resolve())))
