@@ -159,6 +159,16 @@ def test_excite_then_identify_a_perturbed_plant(tmp_path, capsys):
     fv = [p["wls"] for name, p in zip(m.parameters.meanings, doc["parameters"])
           if name.endswith(".Fv")]
     assert fv == pytest.approx([0.07, 0.035], rel=0.02)
+    # The physically consistent fit written back into a copy of the user's description.
+    copy = tmp_path / "planar2.toml"
+    copy.write_text(DESCRIPTION.read_text())
+    assert cochlea_identify.main([str(tmp_path / "run"), "--robot", "serial", "--description",
+                                  str(copy), "--out", str(tmp_path / "ident2.json"),
+                                  "--min-speed", "0", "--no-figures", "--physical",
+                                  "--update-description", str(copy)]) == 0
+    written = robot("serial").load(tmp_path / "planar2.identified.toml").arms[0].links
+    assert [link.joint.actuator.viscous for link in written] == \
+        pytest.approx([0.07, 0.035], rel=0.02)
 
 
 # --------------------------------------------------------------------------------------------

@@ -38,6 +38,7 @@ def _parser() -> argparse.ArgumentParser:
                "  cochlea-excite --robot serial --arm arm1 --out excite_arm1.toml\n"
                "  cochlea-run --robot serial --space joint --scenario excite_arm1.toml "
                "--realtime off --out runs/excite_arm1\n"
+               "  cochlea-excite --robot serial --description robot.toml --out excite.toml\n"
                "See docs/excitation.md.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
