@@ -38,12 +38,22 @@ def _parser() -> argparse.ArgumentParser:
                "  cochlea-excite --robot serial --arm arm1 --out excite_arm1.toml\n"
                "  cochlea-run --robot serial --space joint --scenario excite_arm1.toml "
                "--realtime off --out runs/excite_arm1\n"
+               "  cochlea-excite --robot serial --description robot.toml --out excite.toml\n"
                "See docs/excitation.md.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--robot", required=True, choices=list(ROBOTS),
                    help="serial: one 3R arm (the other holds still); parallel: the mechanism")
-    p.add_argument("--arm", help="serial: the arm to excite (default: arm1)")
+    p.add_argument("--arm", help="serial: the arm to excite (default: the first)")
+    p.add_argument("--description", metavar="ROBOT.toml",
+                   help="the robot description to excite (default: the shipped one): its "
+                        "joint limits, optional working_pose_deg and [[keep_out]] volumes "
+                        "(docs/excitation.md)")
+    p.add_argument("--scenario", metavar="S.toml",
+                   help="the joint-space scenario of the same description whose control "
+                        "settings and gains track the excitation (default: the robot's "
+                        "excitation study for the shipped description, the cochlea-urdf "
+                        "starter's gains for another)")
     p.add_argument("--out", required=True, type=Path, metavar="FILE.toml",
                    help="the scenario to write (refused if it exists, unless --force)")
     p.add_argument("--force", action="store_true", help="overwrite an existing --out file")
@@ -116,6 +126,21 @@ def _options(args: argparse.Namespace) -> ExcitationOptions:
         limit_fraction=args.limit_fraction, clearance=args.clearance_mm / 1000)
 
 
+def _description_ref(args: argparse.Namespace) -> str | None:
+    """The written scenario's ``description`` key: None for the shipped one; a file's path
+    relative to the scenario's folder (scenarios resolve it there), else absolute."""
+    if args.description is None:
+        return None
+    path = Path(args.description)
+    if path.suffix != ".toml" and not path.exists():
+        return args.description  # a shipped name
+    folder = Path(os.path.abspath(args.out)).parent
+    try:
+        return os.path.relpath(os.path.abspath(path), folder)
+    except ValueError:  # another drive
+        return os.path.abspath(path)
+
+
 def _command(argv: list[str] | None) -> str:
     words = sys.argv[1:] if argv is None else argv
     return "cochlea-excite " + " ".join(shlex.quote(w) for w in words)
@@ -125,12 +150,13 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         adapter = robot(args.robot)
-        adapter.unit(adapter.load(None), args.arm)  # --arm refused where it names no unit
+        # --arm refused where it names no unit
+        adapter.unit(adapter.load(args.description), args.arm)
         options = _options(args)
         check_options(options)
         check_out(args.out, args.force)
-        result = design(args.robot, args.arm, options)
-        text = scenario_text(result, _command(argv))
+        result = design(args.robot, args.arm, options, args.description, args.scenario)
+        text = scenario_text(result, _command(argv), _description_ref(args))
         with outputs.atomic_path(args.out) as tmp:
             tmp.write_text(text)
             # What cochlea-run will check before anything moves, checked before it is kept.
@@ -145,9 +171,12 @@ def main(argv: list[str] | None = None) -> int:
               + ", ".join(f"{v:.2f}" for v in result.peak_velocity)
               + "; peak |nominal torque| / limit: "
               + ", ".join(f"{v:.2f}" for v in result.peak_effort))
-        if result.keep_out_distance is not None:
-            print(f"  closest approach: {result.keep_out_distance * 1000:.1f} mm to the cochlea "
-                  f"centre, {result.clearance_distance * 1000:.1f} mm to the other arm")
+        approach = [f"{v * 1000:.1f} mm to {what}" for v, what in (
+            (result.keep_out_distance, "the cochlea centre"),
+            (result.clearance_distance, "the other arm"),
+            (result.keep_out_volume_distance, "the keep-out volumes")) if v is not None]
+        if approach:
+            print("  closest approach: " + ", ".join(approach))
         print(f"  run it: cochlea-run --robot {args.robot} --space joint --scenario {args.out} "
               "--realtime off")
         sys.stdout.flush()

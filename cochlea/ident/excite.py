@@ -31,8 +31,11 @@ from ``numpy.random.default_rng(seed)``: the same options give the same trajecto
 
 from __future__ import annotations
 
+import json
 import math
+import tempfile
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -40,8 +43,9 @@ from scipy.optimize import minimize
 
 from ..errors import CochleaError
 from ..robots import ROBOTS, ExcitationGeometry
-from ..robots import model as build_model
+from ..robots import model as build_model  # noqa: F401  (the shipped robots' model, by name)
 from ..robots import robot as robot_adapter
+from ..robots.urdf import starter_scenario
 from ..sim.scenario import load as load_scenario
 
 #: The joint-space studies tuned for the realistic plant (each robot's
@@ -164,6 +168,12 @@ class Design:
     clearance_distance: float | None = None
     #: Other units and the pose each holds (SI): the serial system's other arm.
     held: dict[str, np.ndarray] = field(default_factory=dict)
+    #: The description excited (None: the robot's shipped one) and the tracking scenario.
+    description: str | Path | None = None
+    study: object = field(default=None, repr=False)
+    study_label: str = ""
+    #: Smallest distance (m) of the excited links to the description's keep-out volumes.
+    keep_out_volume_distance: float | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -184,6 +194,9 @@ class _Problem:
     #: and the final check's.
     geometry: ExcitationGeometry
     held: dict = field(default_factory=dict)
+    description: str | Path | None = None  # None: the robot's shipped description
+    study: object = None  # the tracking scenario (tracking_study)
+    study_label: str = ""
 
     @property
     def extra(self) -> ca.Function:
@@ -215,22 +228,69 @@ def _amplitudes(model, options: ExcitationOptions) -> np.ndarray:
                      for j in model.joints])
 
 
-def _problem(robot: str, arm: str | None, options: ExcitationOptions) -> _Problem:
-    """The problem of ``robot``'s unit ``arm`` (None: the first; the others hold still at
-    their working poses): its model, band and geometry (the robot's adapter)."""
+def _same_file(a, b) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except (OSError, TypeError):
+        return False
+
+
+def tracking_study(robot: str, system, tracking: str | Path | None = None):
+    """``(scenario, how to name it)``: the joint-space scenario whose control settings and
+    gains track the excitation:
+    ``tracking`` where given (it must run the same description); else the robot's
+    :attr:`excitation_study` when the description is the one it was made for (or a copy:
+    ``is_shipped``); else (a
+    user's robot) the gentle starter scenario ``cochlea-urdf`` writes for the description
+    (controller e, gains scaled to the arm's inertia)."""
     adapter = robot_adapter(robot)
-    system = adapter.load(None)
-    unit = adapter.unit(system, arm)
+    if tracking is not None:
+        study = load_scenario(tracking)
+        if study.robot != robot or not (_same_file(study.system.path, system.path)
+                                        or study.system.name == system.name):
+            raise CochleaError(f"--scenario {tracking}: it runs {study.robot} "
+                               f"{study.system.path}, not {robot} {system.path}: the tracking "
+                               "scenario must run the excited description")
+        return study, study.path.name
     study = load_scenario(adapter.excitation_study)
-    poses = {u.name: np.asarray(u.initial_joint, float) for u in study.units}
-    model = build_model(robot, arm=unit, parameterisation="base", actuators="all")
+    if adapter.is_shipped(system):
+        return study, study.path.name
+    units = adapter.layout(system, "joint").units
+    if not adapter.units_are_arms or len(units) != 1:  # the starter moves one serial arm
+        raise CochleaError(f"{system.path}: give --scenario, a joint-space scenario of this "
+                           "description whose settings and gains track the excitation (the "
+                           "default, cochlea-urdf's starter, is for a single serial arm)")
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "tracking.toml"
+        path.write_text(starter_scenario(system, str(Path(system.path).resolve())))
+        return load_scenario(path), "the starter scenario cochlea-urdf writes for it"
+
+
+def _problem(robot: str, arm: str | None, options: ExcitationOptions,
+             description: str | Path | None = None,
+             tracking: str | Path | None = None) -> _Problem:
+    """The problem of ``robot``'s unit ``arm`` (None: the first; the others hold still at
+    their working poses): its model, band and geometry (the robot's adapter). The working
+    poses: those of the robot's excitation study for the description it was made for, else
+    the adapter's :meth:`~cochlea.robots.adapter.RobotAdapter.excitation_pose` (the
+    description's ``working_pose_deg``, or the middle of the joint limits)."""
+    adapter = robot_adapter(robot)
+    system = adapter.load(description)
+    unit = adapter.unit(system, arm)
+    study, label = tracking_study(robot, system, tracking)
+    units = adapter.layout(system, "joint").units
+    if adapter.is_shipped(system):
+        poses = {u.name: np.asarray(u.initial_joint, float) for u in study.units}
+    else:
+        poses = {name: adapter.excitation_pose(system, name) for name in units}
+    model = adapter.model(system, unit, parameterisation="base", actuators="all")
     amplitude = _amplitudes(model, options)
-    held = {name: poses[name] for name in adapter.layout(system, "joint").units
-            if name != unit}
+    held = {name: poses[name] for name in units if name != unit}
     geometry = adapter.excitation_geometry(system, unit, poses[unit], held, options.clearance)
     centre = geometry.working_pose
     low, high = _band(model, centre, amplitude, geometry.label)
-    problem = _Problem(robot, unit, model, centre, amplitude, low, high, geometry, held)
+    problem = _Problem(robot, unit, model, centre, amplitude, low, high, geometry, held,
+                       description, study, label)
     geometry.check_start()
     return problem
 
@@ -429,13 +489,14 @@ def check_options(options: ExcitationOptions) -> None:
 
 
 def design(robot: str, arm: str | None = None,
-           options: ExcitationOptions | None = None) -> Design:
+           options: ExcitationOptions | None = None, description: str | Path | None = None,
+           tracking: str | Path | None = None) -> Design:
     """The excitation of ``robot`` (for the serial system one ``arm``, default the first; the
     other holds still): see the module docstring. Raises :class:`CochleaError` for options no
     excitation can have, and when no start of the optimiser ends inside the limits."""
     options = options or ExcitationOptions()
     check_options(options)
-    problem = _problem(robot, arm, options)
+    problem = _problem(robot, arm, options, description, tracking)
     opt = _Optimiser(problem, options)
     rng = np.random.default_rng(options.seed)
     best = None
@@ -457,7 +518,9 @@ def design(robot: str, arm: str | None = None,
     sine = hand_picked_sine(problem.centre, problem.amplitude, options.period)
     sine_cond, sine_scaled = conditions(m, *sine.evaluate(times))
     result = Design(robot, problem.unit, series, options, problem.centre, problem.amplitude,
-                    cond, scaled, sine_cond, sine_scaled, held=problem.held)
+                    cond, scaled, sine_cond, sine_scaled, held=problem.held,
+                    description=description, study=problem.study,
+                    study_label=problem.study_label)
     verify(problem, result)
     return result
 
@@ -503,6 +566,7 @@ def verify(problem: _Problem, result: Design) -> None:
     problems += found
     result.keep_out_distance = distances.get("keep_out_distance")
     result.clearance_distance = distances.get("clearance_distance")
+    result.keep_out_volume_distance = distances.get("keep_out_volume_distance")
     if problems:
         raise CochleaError(f"the designed excitation of {problem.unit} fails the 1 kHz check "
                            f"({'; '.join(problems)}): use more --harmonics samples' margin by "
@@ -535,15 +599,17 @@ def _robust_lines(robust) -> list[str]:
     return lines
 
 
-def scenario_text(result: Design, command: str) -> str:
+def scenario_text(result: Design, command: str, description_ref: str | None = None) -> str:
     """The joint-space scenario that tracks the design (``cochlea-run --scenario``): the
     control settings and gains of the robot's joint-space study for the realistic plant,
     every unit's own ``desired_joint`` (the excited one the series, the others holding
-    their working pose), the initial state the path's start, at rest."""
+    their working pose), the initial state the path's start, at rest. ``description_ref``:
+    the scenario's ``description`` key (a user's description; None: none, the shipped one)."""
     options = result.options
-    study = load_scenario(TRACKING_SCENARIOS[result.robot])
-    model = build_model(result.robot, arm=result.unit, parameterisation="base",
-                        actuators="all")
+    study = result.study or load_scenario(TRACKING_SCENARIOS[result.robot])
+    adapter = robot_adapter(result.robot)
+    system = adapter.load(result.description)
+    model = adapter.model(system, result.unit, parameterisation="base", actuators="all")
     kinds = ["rad" if j.type == "revolute" else "m" for j in model.joints]
     start = result.series.evaluate([0.0])[0][:, 0]
     paths = {}
@@ -555,10 +621,10 @@ def scenario_text(result: Design, command: str) -> str:
             pose = result.held[unit.name]
             paths[unit.name] = ([f"{float(v)!r} {kind}" for v, kind in zip(pose, kinds)], pose)
     first = paths[study.units[0].name][0]
-    adapter = robot_adapter(result.robot)
-    leader = first[:len(adapter.layout(adapter.load(None), "joint").leader)]
+    leader = first[:len(adapter.layout(system, "joint").leader)]
     w = 2 * math.pi / options.period
     held = "; ".join(f"{name} holds still at its working pose" for name in result.held)
+    study_name = result.study_label or study.path.name
     lines = [
         f"# Excitation for identification of the {result.robot} robot's {result.unit} (issue 14),",
         "# made by cochlea-excite (docs/excitation.md):",
@@ -584,17 +650,24 @@ def scenario_text(result: Design, command: str) -> str:
         + ", ".join(f"{v:.2f}" for v in result.peak_velocity)
         + "; peak |nominal torque| / limit: " + ", ".join(f"{v:.2f}" for v in result.peak_effort),
     ]
-    if result.keep_out_distance is not None:
+    if result.keep_out_distance is not None and result.clearance_distance is not None:
         lines.append(f"# Closest approach of {result.unit}'s links: "
                      f"{result.keep_out_distance * 1000:.1f} mm to the cochlea centre, "
                      f"{result.clearance_distance * 1000:.1f} mm to the other arm.")
+    else:
+        lines += [f"# Closest approach of {result.unit}'s links: {v * 1000:.1f} mm to {what}."
+                  for v, what in ((result.keep_out_distance, "the cochlea centre"),
+                                  (result.clearance_distance, "the other arms"),
+                                  (result.keep_out_volume_distance,
+                                   "the description's keep-out volumes")) if v is not None]
     lines += [
-        f"# Control: the settings and gains of {study.path.name} (controller "
+        f"# Control: the settings and gains of {study_name} (controller "
         f"{study.controller}).",
         "# Every unit tracks its own desired_joint; the leader repeats the first unit's path.",
         "",
         'format = "cochlea-scenario/1"',
         f'robot = "{result.robot}"',
+        *([f"description = {json.dumps(description_ref)}"] if description_ref else []),
         'space = "joint"',
         f"duration_s = {options.periods * options.period!r}",
         "",
@@ -623,6 +696,10 @@ def scenario_text(result: Design, command: str) -> str:
                   "desired_joint = [", *[f'  "{text}",' for text in texts], "]",
                   "gains = { " + ", ".join(f"{k} = {_number_list(v)}"
                                            for k, v in unit.gains.items()) + " }"]
-    lines += ["", "[plant]", 'plant = "realistic"  # cochlea-run --plant ideal for the rigid '
-              "links; ignored on the motors", ""]
+    if all(j.actuator.armature is not None for j in adapter.actuated_joints(system)):
+        lines += ["", "[plant]", 'plant = "realistic"  # cochlea-run --plant ideal for the '
+                  "rigid links; ignored on the motors", ""]
+    else:  # the geared plant needs each joint's armature, which the description lacks
+        lines += ["", "[plant]", 'plant = "ideal"  # the description gives no armature_kgm2 '
+                  "for every joint, which the realistic plant needs; ignored on the motors", ""]
     return "\n".join(lines)

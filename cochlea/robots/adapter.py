@@ -241,6 +241,70 @@ class RobotAdapter:
         """A documented joint position inside the workspace (SI), or None: all zero."""
         return None
 
+    def is_shipped(self, system: Any) -> bool:
+        """Whether ``system`` is the robot's shipped description or an edited copy of it (the
+        same ``[system] name``, e.g. one ``cochlea-dxl calibrate`` or ``cochlea-identify``
+        wrote): the robot's documented poses (:attr:`excitation_study`,
+        :attr:`calibration_reference`) are for it, a user's robot gets the defaults."""
+        return system.name == self.load(None).name
+
+    def calibration_references(self, system: Any, shipped: bool = True
+                               ) -> dict[str, tuple[float, str]]:
+        """``cochlea-dxl calibrate``'s reference pose of every actuated joint: joint name ->
+        (joint coordinate, SI; how to set it by hand). A unit whose description gives
+        ``calibration_pose_deg`` takes it; otherwise :attr:`calibration_reference` for the
+        description the robot ships (``shipped``), and for a user's description each joint's
+        zero as the description defines it (the middle of its limits where zero is outside
+        them)."""
+        joints = self.actuated_joints(system)
+        table = self.calibration_reference
+        refs: dict[str, tuple[float, str]] = {}
+        for j in joints:
+            lo, hi = j.position_limits
+            if shipped and (j.name in table or "*" in table):
+                refs[j.name] = table.get(j.name, table.get("*"))
+            elif lo <= 0.0 <= hi:
+                refs[j.name] = (0.0, "its zero as the description defines it (the joint's "
+                                     "frame at q = 0, from origin_xyz_m / origin_rpy_deg)")
+            else:
+                refs[j.name] = (0.5 * (lo + hi), "the middle of its limits (zero is outside "
+                                                 "them)")
+        described = getattr(system, "described_pose", None)
+        for unit in (self.layout(system, "joint").units if described is not None else ()):
+            pose = described(unit, "calibration")
+            if pose is None:
+                continue
+            names = [j.name for j in joints if j.name.startswith(f"{unit}.")]
+            for name, q in zip(names, pose, strict=True):
+                refs[name] = (float(q), "the description's calibration_pose_deg")
+        return refs
+
+    def calibration_positive(self, system: Any, joint: str, shipped: bool = True) -> str:
+        """The positive sense of ``joint`` (an actuated joint's name) as the user sees it: the
+        description's ``positive_direction`` of its unit where given, else
+        :attr:`positive_direction` for the shipped description, else the right-hand rule
+        about the joint's axis."""
+        described = getattr(system, "described_positive", None)
+        text = described(joint) if described is not None else None
+        if text:
+            return text
+        if shipped and self.positive_direction:
+            return self.positive_direction
+        return ("by the right-hand rule about the joint's axis in the description: thumb "
+                "along the axis, the fingers curl positive")
+
+    def excitation_pose(self, system: Any, unit: str) -> np.ndarray:
+        """The joint pose an excitation of ``unit`` works around when the description is not
+        the one :attr:`excitation_study` was made for (a user's robot): the description's own
+        where it gives one, else the middle of each joint's position limits (SI)."""
+        described = getattr(system, "described_pose", None)  # a description's optional key
+        pose = described(unit, "working") if described is not None else None
+        if pose is not None:
+            return np.array(pose, float)
+        model = self.model(system, unit)
+        return np.array([0.5 * (j.position_limits[0] + j.position_limits[1])
+                         for j in model.joints])
+
     def excitation_geometry(self, system: Any, unit: str, study_pose: np.ndarray,
                             held: dict[str, np.ndarray], clearance: float
                             ) -> ExcitationGeometry:

@@ -35,6 +35,7 @@ import numpy as np
 from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
 from ...robots import ROBOTS
+from ...robots import robot as robot_adapter
 from ..control_table import (
     RAD_PER_COUNT,
     baud_code,
@@ -48,7 +49,10 @@ HELP = ("measure zero_offset_deg and direction of each motor by hand (torque off
 
 #: Each robot's reference pose (joint coordinate, SI) and how to set it by hand: a pose a lab
 #: can set with a ruler or a set square, inside the joint limits (the adapter's
-#: ``calibration_reference``; ``"*"``: every joint not named).
+#: ``calibration_reference``; ``"*"``: every joint not named). A description may give its own
+#: (``calibration_pose_deg``, ``positive_direction`` of an arm); a user's description that
+#: gives none gets the adapter's defaults (:meth:`~cochlea.robots.adapter.RobotAdapter.
+#: calibration_references`).
 REFERENCE = {name: r.calibration_reference for name, r in ROBOTS.items()}
 #: The positive sense of each kind of joint, as the user sees it (``positive_direction``).
 POSITIVE = {name: r.positive_direction for name, r in ROBOTS.items()}
@@ -164,9 +168,12 @@ def _select(drives: list[JointDrive], names: str | None, option: str) -> list[Jo
 
 
 def _references(args: argparse.Namespace, drives: list[JointDrive]) -> dict[str, tuple]:
-    """Joint name -> (q_ref in SI, how to set it): the documented pose or --reference's."""
-    table = REFERENCE[args.robot]
-    refs = {d.name: table.get(d.name, table.get("*")) for d in drives}
+    """Joint name -> (q_ref in SI, how to set it): the description's or the robot's
+    documented pose, or --reference's."""
+    adapter = robot_adapter(args.robot)
+    system = adapter.load(args.description)
+    every = adapter.calibration_references(system, _is_shipped(args))
+    refs = {d.name: every[d.name] for d in drives}
     by_name = {d.name: d for d in drives}
     for text in args.reference:
         name, sep, value = text.partition("=")
@@ -228,6 +235,19 @@ def _shipped(robot: str) -> Path:
     return ROBOTS_DIR / f"{robot}.toml"
 
 
+def _is_shipped(args: argparse.Namespace) -> bool:
+    """Whether the calibrated description is the robot's shipped one or a copy of it (its
+    documented reference pose and positive sense apply)."""
+    adapter = robot_adapter(args.robot)
+    return adapter.is_shipped(adapter.load(args.description))
+
+
+def _positive(args: argparse.Namespace, joint: str) -> str:
+    adapter = robot_adapter(args.robot)
+    return adapter.calibration_positive(adapter.load(args.description), joint,
+                                        _is_shipped(args))
+
+
 def _calibrate_joint(bus: common.Bus, d: JointDrive, ref: tuple, args) -> tuple[int, float]:
     q_ref, how = ref
     unit = "deg" if d.type == "revolute" else "m"
@@ -240,7 +260,7 @@ def _calibrate_joint(bus: common.Bus, d: JointDrive, ref: tuple, args) -> tuple[
     need = args.min_motion_deg / math.degrees(RAD_PER_COUNT)
     for _ in range(3):
         answer = ask(f"{d.name}: now move it a little in its positive sense ("
-                     f"{POSITIVE[args.robot]}), at least {args.min_motion_deg:g} deg at the "
+                     f"{_positive(args, d.name)}), at least {args.min_motion_deg:g} deg at the "
                      "motor, and hold it; Enter (q quits):")
         if answer.lower() == "q":
             raise CochleaError("calibration stopped by the user: nothing written")

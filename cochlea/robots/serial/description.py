@@ -80,11 +80,27 @@ class Arm:
     base_xyz: np.ndarray  # m, base origin in the world frame
     base_yaw: float  # rad, rotation of the base frame about world z
     links: tuple[Link, ...]
+    #: Optional keys for the tools (issue 25): the pose an excitation works around
+    #: (``working_pose_deg``, rad here), ``cochlea-dxl calibrate``'s reference pose
+    #: (``calibration_pose_deg``) and the joints' positive sense as the user sees it
+    #: (``positive_direction``). None: the tools' defaults (docs/excitation.md, docs/hardware.md).
+    working_pose: np.ndarray | None = None
+    calibration_pose: np.ndarray | None = None
+    positive_direction: str | None = None
 
     @property
     def base_rotation(self) -> np.ndarray:
         c, s = math.cos(self.base_yaw), math.sin(self.base_yaw)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class KeepOut:
+    """A sphere no link may enter (world frame, SI): ``[[keep_out]]`` of a description."""
+
+    name: str
+    centre: np.ndarray  # m
+    radius: float  # m
 
 
 @dataclass(frozen=True)
@@ -96,6 +112,20 @@ class SerialSystem:
     gravity: np.ndarray  # m/s^2, in the world frame
     arms: tuple[Arm, ...]
     keep_out_radius: float = 0.0  # m, R_m: the tools stay this far from the cochlea centre
+    #: Optional ``[[keep_out]]`` spheres (world frame) no link of an excitation may enter;
+    #: None: the key is absent (the keep-out circle applies, docs/excitation.md).
+    keep_out_volumes: tuple[KeepOut, ...] | None = None
+
+    def described_pose(self, unit: str, which: str) -> np.ndarray | None:
+        """The optional pose of arm ``unit`` its description gives: ``which`` "working"
+        (``working_pose_deg``) or "calibration" (``calibration_pose_deg``); SI, or None."""
+        arm = self.arm(unit)
+        return arm.working_pose if which == "working" else arm.calibration_pose
+
+    def described_positive(self, joint: str) -> str | None:
+        """The ``positive_direction`` text of the arm of ``joint`` ("arm1.link2"), or None."""
+        unit = joint.partition(".")[0]
+        return next((a.positive_direction for a in self.arms if a.name == unit), None)
 
     def arm(self, name: str) -> Arm:
         for arm in self.arms:
@@ -202,13 +232,52 @@ def _read_arm(t: Table) -> Arm:
         link = _read_link(lt, parent_length)
         links.append(link)
         parent_length = link.length
+    poses = [_read_pose(t, key, links) for key in ("working_pose_deg", "calibration_pose_deg")]
+    positive = t.get("positive_direction", "a short text (how the joints turn positive, as "
+                     "the user sees them)", lambda v: isinstance(v, str) and 0 < len(v) <= 200,
+                     required=False)
     t.done()
     names = [link.name for link in links]
     for i, n in enumerate(names):
         if n in names[:i]:
             raise DescriptionError(t.path, f"{t.where}.link[{i}].name",
                                    "a link name unique within the arm", n)
-    return Arm(name, base_xyz, base_yaw, tuple(links))
+    return Arm(name, base_xyz, base_yaw, tuple(links), poses[0], poses[1], positive)
+
+
+def _read_pose(t: Table, key: str, links: list[Link]) -> np.ndarray | None:
+    """An optional joint pose of the arm (deg for revolute joints, m for prismatic ones),
+    inside every joint's position limits; SI."""
+    if key not in t.data:
+        t.used.add(key)
+        return None
+    raw = t.vector(key, len(links), "deg (m for a prismatic joint)",
+                   check=lambda v: all(abs(x) <= MAX_ANGLE_DEG for x in v),
+                   what=f"one value per link, each within +-{MAX_ANGLE_DEG:g}")
+    pose = np.array([math.radians(v) if link.joint.type == "revolute" else v
+                     for v, link in zip(raw, links)])
+    for j, (v, link) in enumerate(zip(pose, links)):
+        lo, hi = link.joint.position_limits
+        if not lo <= v <= hi:
+            raise DescriptionError(t.path, f"{t.key(key)}[{j}]", f"a position inside joint "
+                                   f"{link.name}'s limits", float(raw[j]))
+    return pose
+
+
+def _read_keep_out(top: Table) -> tuple[KeepOut, ...] | None:
+    if "keep_out" not in top.data:
+        top.used.add("keep_out")
+        return None
+    volumes = []
+    for i, t in enumerate(top.tables("keep_out", "spheres no link may enter")):
+        name = t.name("name", required=False) or f"keep_out[{i}]"
+        centre = t.vector("centre_m", 3, "m", check=_within(MAX_LENGTH_M),
+                          what=f"in the world frame, each within +-{MAX_LENGTH_M:g} m")
+        radius = t.bounded("radius_m", "a positive number (m)", lambda v: v > 0, 0,
+                           MAX_LENGTH_M, "m")
+        t.done()
+        volumes.append(KeepOut(name, centre, radius))
+    return tuple(volumes)
 
 
 def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
@@ -217,6 +286,7 @@ def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
     top, name, gravity, keep_out = open_description(
         path, "serial", 3, "in the world frame", "the cochlea centre that the tools")
     arms = tuple(_read_arm(a) for a in top.tables("arm", "one per serial arm"))
+    volumes = _read_keep_out(top)
     top.done()
 
     arm_names = [a.name for a in arms]
@@ -227,7 +297,7 @@ def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
                                    link.motor)
                                   for i, arm in enumerate(arms)
                                   for j, link in enumerate(arm.links)])
-    return SerialSystem(name, path, gravity, arms, keep_out)
+    return SerialSystem(name, path, gravity, arms, keep_out, volumes)
 
 
 def joint_rotation(joint: Joint) -> np.ndarray:
