@@ -80,9 +80,25 @@ class Arm:
     base_xyz: np.ndarray  # m, base origin in the world frame
     base_yaw: float  # rad, rotation of the base frame about world z
     links: tuple[Link, ...]
+    #: rad: the base frame's roll and pitch (``base_rpy_deg``; fixed-axis, R = Rz(yaw)
+    #: Ry(pitch) Rx(roll)); zero for a base that only turns about the world z axis.
+    base_roll: float = 0.0
+    base_pitch: float = 0.0
+
+    @property
+    def base_rpy(self) -> np.ndarray:
+        """rad: the base frame's fixed-axis roll, pitch and yaw in the world frame."""
+        return np.array([self.base_roll, self.base_pitch, self.base_yaw])
+
+    @property
+    def base_is_level(self) -> bool:
+        """True when the base frame only turns about the world z axis (no roll, no pitch)."""
+        return self.base_roll == 0.0 and self.base_pitch == 0.0
 
     @property
     def base_rotation(self) -> np.ndarray:
+        if not self.base_is_level:
+            return rpy_matrix(self.base_rpy)
         c, s = math.cos(self.base_yaw), math.sin(self.base_yaw)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -194,8 +210,18 @@ def _read_arm(t: Table) -> Arm:
     name = t.name("name")
     base_xyz = t.vector("base_xyz_m", 3, "m", check=_within(MAX_LENGTH_M),
                         what=f"in the world (cochlea) frame, each within +-{MAX_LENGTH_M:g} m")
-    base_yaw = math.radians(t.bounded("base_yaw_deg", "a number (deg)", lambda v: True,
-                                      -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg"))
+    roll = pitch = 0.0
+    if "base_rpy_deg" in t.data:  # the full base rotation; base_yaw_deg is its shorthand
+        if "base_yaw_deg" in t.data:
+            raise t.error("base_yaw_deg", "one of base_yaw_deg or base_rpy_deg (base_yaw_deg "
+                          "is the shorthand of base_rpy_deg = [0, 0, yaw])", show_got=False)
+        rpy = t.vector("base_rpy_deg", 3, "deg", check=_within(MAX_ANGLE_DEG),
+                       what="(fixed-axis roll, pitch, yaw of the base frame in the world frame, "
+                       f"each within +-{MAX_ANGLE_DEG:g} deg)")
+        roll, pitch, base_yaw = (math.radians(float(v)) for v in rpy)
+    else:
+        base_yaw = math.radians(t.bounded("base_yaw_deg", "a number (deg)", lambda v: True,
+                                          -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg"))
     links = []
     parent_length = 0.0  # the first joint sits at the base origin unless told otherwise
     for lt in t.tables("link", "the links from base to tip"):
@@ -208,7 +234,7 @@ def _read_arm(t: Table) -> Arm:
         if n in names[:i]:
             raise DescriptionError(t.path, f"{t.where}.link[{i}].name",
                                    "a link name unique within the arm", n)
-    return Arm(name, base_xyz, base_yaw, tuple(links))
+    return Arm(name, base_xyz, base_yaw, tuple(links), roll, pitch)
 
 
 def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:

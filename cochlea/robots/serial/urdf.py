@@ -746,7 +746,7 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
     ET.SubElement(fixed, "parent", link=world)
     ET.SubElement(fixed, "child", link=base)
     ET.SubElement(fixed, "origin", xyz=_attr_vec(arm.base_xyz),
-                  rpy=_attr_vec([0.0, 0.0, arm.base_yaw]))
+                  rpy=_attr_vec(arm.base_rpy))
     parent = base
     for link, jname in zip(arm.links, names, strict=True):
         el = ET.SubElement(root, "link", name=link.name)
