@@ -132,18 +132,18 @@ def joint_limits(arm: Arm) -> tuple[np.ndarray, np.ndarray]:
 def _levenberg_marquardt(residual, target, q, lo, hi, iterations=IK_ITERATIONS):
     """Damped least squares from ``q``, each step projected into the limits; returns
     ``(q, |e|)``."""
-    e, J = (np.array(v, float) for v in residual(q, target))
+    e, J, _ = (np.array(v, float) for v in residual(q, target))
     e = e.ravel()
     cost = float(e @ e)
     lam = 1e-3
     for _ in range(iterations):
         if cost < IK_TOLERANCE ** 2:
             break
-        JJt = J @ J.T
-        step = J.T @ np.linalg.solve(JJt + lam * (np.trace(JJt) / len(e) + 1e-12)
-                                     * np.eye(len(e)), e)
+        JtJ = J.T @ J
+        step = np.linalg.solve(JtJ + lam * (np.trace(JtJ) / len(q) + 1e-12) * np.eye(len(q)),
+                               J.T @ e)
         q_new = np.clip(q - step, lo, hi)
-        e_new, J_new = (np.array(v, float) for v in residual(q_new, target))
+        e_new, J_new, _ = (np.array(v, float) for v in residual(q_new, target))
         e_new = e_new.ravel()
         cost_new = float(e_new @ e_new)
         if cost_new < cost:
@@ -211,7 +211,7 @@ def solve_ik(arm: Arm, space, target, seeds=(), elbow: int | None = None,
             f"{space.task!r}, world frame) is out of reach{branch} within the joint limits "
             f"(the closest of {len(starts)} starts is {best:.3g} away)")
     q = min(found, key=lambda x: float(np.linalg.norm(x - reference)))
-    _, J = residual(q, target)
+    _, _, J = residual(q, target)
     s = np.linalg.svd(np.array(J, float), compute_uv=False)
     if s[-1] < SINGULAR_RATIO * max(s[0], 1e-300):
         raise SingularTarget(
@@ -237,7 +237,7 @@ def follow_path(arm: Arm, space, targets: np.ndarray, times: np.ndarray, q0: np.
                 q_new = solve_ik(arm, space, targets[:, k], seeds=(q,), residual=residual)
             except KinematicsError as exc:
                 raise type(exc)(f"at t = {times[k]:.3f} s: {exc}") from None
-        _, J = residual(q_new, targets[:, k])
+        _, _, J = residual(q_new, targets[:, k])
         s = np.linalg.svd(np.array(J, float), compute_uv=False)
         if s[-1] < SINGULAR_RATIO * max(s[0], 1e-300):
             raise SingularTarget(

@@ -6,6 +6,7 @@
  planar         x, y (m)                        x - x_d
  planar_yaw     x, y (m), phi (rad, about z)    x - x_d, phi's wrapped to (-pi, pi]
  position       x, y, z (m)                     x - x_d
+ position_yaw   x, y, z (m), phi (rad)          x - x_d, phi's wrapped to (-pi, pi]
  pose           x, y, z (m), roll, pitch,       position: p - p_d; orientation:
                 yaw (rad, fixed-axis)           e_o = vee(R_d' R - R' R_d) / 2
 =============  ==============================  =====================================
@@ -40,11 +41,12 @@ from ..model import RobotModel
 from .chain import is_planar, tool_point
 from .description import Arm
 
-TASKS = ("planar", "planar_yaw", "position", "pose")
+TASKS = ("planar", "planar_yaw", "position", "position_yaw", "pose")
 DEFAULT_TASK = "planar_yaw"
 _NAMES = {"planar": ("x", "y"), "planar_yaw": ("x", "y", "phi"), "position": ("x", "y", "z"),
-          "pose": ("x", "y", "z", "roll", "pitch", "yaw")}
-_ANGLES = {"planar": (), "planar_yaw": (2,), "position": (), "pose": (3, 4, 5)}
+          "position_yaw": ("x", "y", "z", "phi"), "pose": ("x", "y", "z", "roll", "pitch", "yaw")}
+_ANGLES = {"planar": (), "planar_yaw": (2,), "position": (), "position_yaw": (3,),
+           "pose": (3, 4, 5)}
 #: rad: the largest initial orientation error a ``pose`` run may start with (below the 90 deg
 #: where the error's Jacobian is singular, with a margin).
 MAX_ORIENTATION_ERROR = math.radians(80.0)
@@ -75,22 +77,31 @@ class TaskSpace:
     error: ca.Function | None = field(default=None, repr=False)
     #: True when ``fk`` and ``J`` are the model's own ``fk_world`` and ``J_world``.
     model_pose: bool = False
+    #: ``q -> (p, R)``: the tool point and rotation in the world frame (``pose`` only).
+    _tool: ca.Function | None = field(default=None, repr=False)
 
     @property
     def size(self) -> int:
         return len(self.names)
 
     def residual(self) -> ca.Function:
-        """``(q, x_d) -> (e, de/dq)``: what inverse kinematics drives to zero (angles wrapped)."""
+        """``(q, x_d) -> (r, dr/dq, de/dq)``: what inverse kinematics drives to zero (angles
+        wrapped), its Jacobian, and the Jacobian of the controller's error ``e`` (square for
+        controller g: its singular values tell a singular target). For ``pose``, ``r`` is the
+        position error and ``R_d' R - I`` (zero only at the target; ``e``'s orientation part
+        ``sin(theta) u`` also vanishes at theta = 180 deg)."""
         n = self.fk.size1_in(0)
         q, xd = ca.SX.sym("q", n), ca.SX.sym("xd", self.size)
         if self.error is not None:
             e = self.error(q, xd)
+            p, R = self._tool(q)
+            r = ca.vertcat(p - xd[0:3], ca.vec(rpy_sx(xd[3:6]).T @ R - ca.DM.eye(3)))
         else:
             d = self.fk(q) - xd
-            e = ca.vertcat(*[ca.atan2(ca.sin(d[i]), ca.cos(d[i])) if i in self.angles else d[i]
-                             for i in range(self.size)])
-        return ca.Function(f"{self.fk.name()}_residual", [q, xd], [e, ca.jacobian(e, q)])
+            e = r = ca.vertcat(*[ca.atan2(ca.sin(d[i]), ca.cos(d[i])) if i in self.angles
+                                 else d[i] for i in range(self.size)])
+        return ca.Function(f"{self.fk.name()}_residual", [q, xd],
+                           [r, ca.jacobian(r, q), ca.jacobian(e, q)])
 
 
 def rpy_sx(rpy) -> ca.SX:
@@ -139,7 +150,7 @@ def task_space(arm: Arm, task: str, model: RobotModel | None = None) -> TaskSpac
     error = None
     if task == "planar":
         x = p[0:2]
-    elif task == "planar_yaw":
+    elif task in ("planar_yaw", "position_yaw"):
         if is_planar(arm) and arm.base_is_level:  # unwrapped, as the model's
             phi = ca.SX(arm.base_yaw + sum(float(link.joint.origin_rpy[2])
                                            for link in arm.links))
@@ -148,7 +159,7 @@ def task_space(arm: Arm, task: str, model: RobotModel | None = None) -> TaskSpac
                     phi = phi + float(np.sign(link.joint.axis[2])) * q[i]
         else:
             phi = ca.atan2(R[1, 0], R[0, 0])
-        x = ca.vertcat(p[0], p[1], phi)
+        x = ca.vertcat(p[0], p[1], phi) if task == "planar_yaw" else ca.vertcat(p, phi)
     elif task == "position":
         x = p
     else:
@@ -158,7 +169,8 @@ def task_space(arm: Arm, task: str, model: RobotModel | None = None) -> TaskSpac
         error = ca.Function(f"{arm.name}_{task}_error", [q, xd], [e], ["q", "xd"], ["e"])
     fk = ca.Function(f"{arm.name}_{task}_fk", [q], [x], ["q"], ["x"])
     J = ca.Function(f"{arm.name}_{task}_J", [q], [ca.jacobian(x, q)], ["q"], ["J"])
-    return TaskSpace(task, names, units, angles, fk, J, error)
+    tool = ca.Function(f"{arm.name}_tool", [q], [p, R]) if error is not None else None
+    return TaskSpace(task, names, units, angles, fk, J, error, _tool=tool)
 
 
 def mirrored(task: str, pose) -> ca.SX:
@@ -171,5 +183,7 @@ def mirrored(task: str, pose) -> ca.SX:
         return ca.vertcat(-pose[0], -pose[1], pose[2] + np.pi)
     if task == "position":
         return ca.vertcat(-pose[0], -pose[1], pose[2])
+    if task == "position_yaw":
+        return ca.vertcat(-pose[0], -pose[1], pose[2], pose[3] + np.pi)
     return ca.vertcat(-pose[0], -pose[1], pose[2], pose[3], pose[4], pose[5] + np.pi)
 
