@@ -320,3 +320,37 @@ def test_base_rpy_and_its_yaw_shorthand(tmp_path):
                                  "base_yaw_deg = 90.0\nbase_rpy_deg = [0.0, 0.0, 90.0]"))
     with pytest.raises(CochleaError, match="one of base_yaw_deg or base_rpy_deg"):
         load_serial(both)
+
+
+def test_cochlea_run_refuses_an_unreachable_path_in_one_line_with_exit_2(tmp_path, capsys):
+    from cochlea.apps.cochlea_run import main
+
+    far = ["0.03*cos(0.5*t) m", "0.15 + 0.2*t m"]
+    path = _scenario(tmp_path, PLANAR2, "planar", far, 'initial_task = ["0.04 m", "0.16 m"]',
+                     "{ G_g = [5.0, 5.0], G_a = [0.5, 0.5] }")
+    code = main(["--robot", "serial", "--space", "task", "--scenario", str(path),
+                 "--realtime", "off", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "out of reach" in err and "Traceback" not in err
+    assert len([line for line in err.splitlines() if line.strip()]) == 1
+
+
+def test_controller_e_runs_a_user_arm_from_a_task_space_initial_pose(tmp_path):
+    """Joint space on the 4-DoF arm: the initial joint position from an initial (x, y, z,
+    heading) by the numeric solver, then e tracks a joint path."""
+    arm = load_serial(SPATIAL4).arms[0]
+    x = np.array(task_space(arm, "position_yaw").fk([0.3, -0.6, 1.2, 0.8]), float).ravel()
+    initial = ", ".join(f'"{v!r} m"' for v in x[:3].tolist()) + f', "{float(x[3])!r} rad"'
+    path = _scenario(
+        tmp_path, SPATIAL4, "position_yaw",
+        ["0.3 + 0.1*sin(t) rad", "-0.6 rad", "1.2 - 0.1*sin(t) rad", "0.8 rad"],
+        f"initial_task = [{initial}]",
+        "{ alpha = [5.0, 5.0, 5.0, 5.0], G_e = [0.5, 0.5, 0.2, 0.02] }",
+        duration=2.0, space="joint")
+    sc = load_scenario(path)
+    (setup,) = unit_setups(sc, cache=False)
+    np.testing.assert_allclose(setup.x0[:4], [0.3, -0.6, 1.2, 0.8], atol=1e-8)
+    result = simulate(sc, kernels="casadi")
+    assert not result.diverged
+    assert np.abs(result.units[0].tracking_error[-200:]).max() < 1e-3
