@@ -16,6 +16,8 @@ import pytest
 from cochlea.errors import CochleaError, KinematicsError
 from cochlea.robots import robot
 from cochlea.robots.serial import load_serial
+from cochlea.robots.serial.chain import tool_offset
+from cochlea.robots.serial.description import rpy_matrix
 from cochlea.robots.serial.ik import (
     SingularTarget,
     TaskSizeError,
@@ -59,8 +61,9 @@ def _pinocchio_tool(system, arm, q):
     axes: linear, angular), by Pinocchio from the description's numbers."""
     model = pinocchio_arm(system, arm)
     last = model.njoints - 1
-    frame = model.addFrame(pin.Frame("tool", last, 0, pin.SE3(np.eye(3), np.array(
-        [arm.links[-1].length, 0.0, 0.0])), pin.FrameType.OP_FRAME))
+    R_tool = np.eye(3) if arm.tool_rpy is None else rpy_matrix(arm.tool_rpy)
+    frame = model.addFrame(pin.Frame("tool", last, 0, pin.SE3(R_tool, tool_offset(arm)),
+                                     pin.FrameType.OP_FRAME))
     data = model.createData()
     pin.computeJointJacobians(model, data, q)
     pin.updateFramePlacements(model, data)
@@ -83,13 +86,26 @@ def test_task_names_are_the_documented_ones():
     assert TASKS == ("planar", "planar_yaw", "position", "position_yaw", "pose")
 
 
-@pytest.mark.parametrize("which", ["planar2", "spatial4", "ur5"])
-def test_tool_coordinates_and_jacobians_agree_with_pinocchio(which, ur5_file, rng):
+@pytest.fixture(scope="module")
+def tooled_file(tmp_path_factory) -> Path:
+    """The 4-DoF arm with a tool offset and a turned tool frame."""
+    out = tmp_path_factory.mktemp("tool") / "tooled.toml"
+    out.write_text(SPATIAL4.read_text().replace(
+        'base_rpy_deg = [3.0, -2.0, 80.0]\n', 'base_rpy_deg = [3.0, -2.0, 80.0]\n'
+        'tool_xyz_m = [0.03, 0.01, -0.02]\ntool_rpy_deg = [10.0, -20.0, 30.0]\n'))
+    return out
+
+
+@pytest.mark.parametrize("which", ["planar2", "spatial4", "tooled", "ur5"])
+def test_tool_coordinates_and_jacobians_agree_with_pinocchio(which, ur5_file, tooled_file,
+                                                             rng):
     if which == "ur5" and UR5 is None:
         pytest.skip("example-robot-data is not installed")
-    path = {"planar2": PLANAR2, "spatial4": SPATIAL4, "ur5": ur5_file}[which]
+    path = {"planar2": PLANAR2, "spatial4": SPATIAL4, "tooled": tooled_file,
+            "ur5": ur5_file}[which]
     system = load_serial(path)
     arm = system.arms[0]
+    assert (arm.tool_rpy is not None) == (which == "tooled")
     spaces = {t: task_space(arm, t) for t in TASKS}
     for _ in range(20):
         q = _random_q(arm, rng)

@@ -29,6 +29,7 @@ from ..adapter import (
 )
 from ..model import RobotModel
 from . import excitation, identified, summary
+from .chain import tool_offset
 from .description import Arm, SerialSystem, load_serial
 from .ik import (
     UnreachableTarget,
@@ -260,7 +261,7 @@ class SerialRobot(RobotAdapter):
             plans.append(UnitPlan(
                 arm.name, m, self.model(system, arm, "inertial", actuators=sc.plant_actuators),
                 desired_function(arm.name, desired_expr, t), np.concatenate([q0, qd0]),
-                {tool.name: np.array([tool.length, 0.0, 0.0])},
+                {tool.name: tool_offset(arm)},
                 space.names, space.units, space.angles, space.fk, task=pose_task))
         return plans
 

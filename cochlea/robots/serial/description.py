@@ -84,6 +84,11 @@ class Arm:
     #: Ry(pitch) Rx(roll)); zero for a base that only turns about the world z axis.
     base_roll: float = 0.0
     base_pitch: float = 0.0
+    #: m: the tool point in the last link's frame (``tool_xyz_m``); None: ``[length_m, 0, 0]``.
+    tool_xyz: np.ndarray | None = None
+    #: rad: the tool frame's fixed-axis roll, pitch, yaw in the last link's frame
+    #: (``tool_rpy_deg``); None: the last link's frame itself.
+    tool_rpy: np.ndarray | None = None
 
     @property
     def base_rpy(self) -> np.ndarray:
@@ -222,6 +227,13 @@ def _read_arm(t: Table) -> Arm:
     else:
         base_yaw = math.radians(t.bounded("base_yaw_deg", "a number (deg)", lambda v: True,
                                           -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg"))
+    tool_xyz = t.vector("tool_xyz_m", 3, "m", check=_within(MAX_LENGTH_M), required=False,
+                        what="(the tool point in the last link's frame; default [length_m of "
+                        f"the last link, 0, 0]), each within +-{MAX_LENGTH_M:g} m")
+    tool_rpy = t.vector("tool_rpy_deg", 3, "deg", check=_within(MAX_ANGLE_DEG), required=False,
+                        what="(fixed-axis roll, pitch, yaw of the tool frame in the last link's "
+                        f"frame), each within +-{MAX_ANGLE_DEG:g} deg")
+    tool_rpy = None if tool_rpy is None else np.radians(tool_rpy)
     links = []
     parent_length = 0.0  # the first joint sits at the base origin unless told otherwise
     for lt in t.tables("link", "the links from base to tip"):
@@ -234,7 +246,7 @@ def _read_arm(t: Table) -> Arm:
         if n in names[:i]:
             raise DescriptionError(t.path, f"{t.where}.link[{i}].name",
                                    "a link name unique within the arm", n)
-    return Arm(name, base_xyz, base_yaw, tuple(links), roll, pitch)
+    return Arm(name, base_xyz, base_yaw, tuple(links), roll, pitch, tool_xyz, tool_rpy)
 
 
 def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:

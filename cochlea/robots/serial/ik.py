@@ -24,7 +24,7 @@ class UnreachableTarget(KinematicsError):
 
 def planar_3r_lengths(arm: Arm) -> tuple[float, float, float]:
     """Link lengths of a planar 3R arm; refuses chains the closed form does not describe."""
-    ok = len(arm.links) == 3
+    ok = len(arm.links) == 3 and arm.tool_xyz is None and arm.tool_rpy is None
     for i, link in enumerate(arm.links if ok else ()):
         j = link.joint
         parent_length = arm.links[i - 1].length if i else 0.0

@@ -25,7 +25,8 @@ The desired orientation is given in the scenario as fixed-axis roll, pitch, yaw
 (``R_d = Rz(yaw) Ry(pitch) Rx(roll)``); the logged pose is the tool's roll, pitch, yaw
 (``atan2`` forms, exact away from pitch = +-90 deg).
 
-The tool point is the last link's ``[length_m, 0, 0]``, its frame the last link's frame.
+The tool point is the arm's ``tool_xyz_m`` in the last link's frame (default ``[length_m, 0,
+0]``), the tool frame the last link's turned by ``tool_rpy_deg`` (default: none).
 """
 
 from __future__ import annotations
@@ -153,7 +154,8 @@ def task_space(arm: Arm, task: str, model: RobotModel | None = None) -> TaskSpac
     elif task in ("planar_yaw", "position_yaw"):
         if is_planar(arm) and arm.base_is_level:  # unwrapped, as the model's
             phi = ca.SX(arm.base_yaw + sum(float(link.joint.origin_rpy[2])
-                                           for link in arm.links))
+                                           for link in arm.links)
+                        + (float(arm.tool_rpy[2]) if arm.tool_rpy is not None else 0.0))
             for i, link in enumerate(arm.links):
                 if link.joint.type == "revolute":
                     phi = phi + float(np.sign(link.joint.axis[2])) * q[i]
