@@ -370,3 +370,27 @@ def test_controller_e_runs_a_user_arm_from_a_task_space_initial_pose(tmp_path):
     result = simulate(sc, kernels="casadi")
     assert not result.diverged
     assert np.abs(result.units[0].tracking_error[-200:]).max() < 1e-3
+
+
+def test_a_user_dual_arm_system_mirrors_the_leader_in_the_planar_task(tmp_path):
+    """Two copies of the 2-DoF arm facing each other across the cochlea centre: the second
+    tracks the leader's desired point reflected through the centre, by controller g."""
+    text = PLANAR2.read_text()
+    second = text[text.index("[[arm]]"):]
+    for old, new in (('name = "arm"', 'name = "arm2"'), ("[0.0, -0.15, 0.0]", "[0.0, 0.15, 0.0]"),
+                     ("base_yaw_deg = 90.0", "base_yaw_deg = -90.0"), ("id = 1\n", "id = 3\n"),
+                     ("id = 2\n", "id = 4\n")):
+        second = second.replace(old, new)
+    (tmp_path / "dual.toml").write_text(text + "\n" + second)
+    gains = "{ G_g = [5.0, 5.0], G_a = [0.5, 0.5] }"
+    path = _scenario(tmp_path, tmp_path / "dual.toml", "planar",
+                     ["0.03*cos(0.5*t) m", "0.1 + 0.03*sin(0.5*t) m"],
+                     'initial_task = ["0.04 m", "0.11 m"]', gains)
+    path.write_text(path.read_text() + f'\n[[unit]]\nname = "arm2"\ninitial_task = '
+                    f'["-0.04 m", "-0.09 m"]\ngains = {gains}\n')
+    result = simulate(load_scenario(path), kernels="casadi")
+    lead, follow = result.units
+    np.testing.assert_allclose(follow.desired, -lead.desired, atol=1e-15)
+    for unit in result.units:
+        final = np.abs(unit.tracking_error[-300:]).max(axis=0)
+        assert np.all(final < 0.01 * np.abs(unit.tracking_error[0])), (unit.setup.name, final)
