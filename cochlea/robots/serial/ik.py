@@ -224,19 +224,26 @@ def solve_ik(arm: Arm, space, target, seeds=(), elbow: int | None = None,
 def follow_path(arm: Arm, space, targets: np.ndarray, times: np.ndarray, q0: np.ndarray
                 ) -> np.ndarray:
     """Joint positions along sampled task targets (``(m, N)``), each solved from the one
-    before (continuation from ``q0``), ``(n, N)``; :class:`UnreachableTarget` names the
-    first time no solution within the limits is found."""
+    before (continuation from ``q0``: the configuration the arm moves through), ``(n, N)``.
+    :class:`UnreachableTarget` names the first time the continued solution is lost: out of
+    reach within the limits, or (the message says so) reachable only on another branch, which
+    the arm cannot jump to; :class:`SingularTarget` the first singular configuration."""
     residual = space.residual()
     lo, hi = joint_limits(arm)
     q = np.asarray(q0, float)
     out = np.empty((len(q), targets.shape[1]))
     for k in range(targets.shape[1]):
-        q_new, r = _levenberg_marquardt(residual, targets[:, k], q, lo, hi, iterations=50)
+        q_new, r = _levenberg_marquardt(residual, targets[:, k], q, lo, hi)
         if r >= 1e-8:
             try:
-                q_new = solve_ik(arm, space, targets[:, k], seeds=(q,), residual=residual)
+                solve_ik(arm, space, targets[:, k], seeds=(q,), residual=residual)
             except KinematicsError as exc:
                 raise type(exc)(f"at t = {times[k]:.3f} s: {exc}") from None
+            raise UnreachableTarget(
+                f"arm {arm.name!r}: at t = {times[k]:.3f} s the task target "
+                f"{_describe(space, targets[:, k])} (task {space.task!r}) is reached only on "
+                "another branch than the arm's configuration so far (the joints it moves "
+                "through reach a limit or a singularity first)")
         _, _, J = residual(q_new, targets[:, k])
         s = np.linalg.svd(np.array(J, float), compute_uv=False)
         if s[-1] < SINGULAR_RATIO * max(s[0], 1e-300):
