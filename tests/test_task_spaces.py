@@ -149,8 +149,10 @@ def test_inverse_kinematics_round_trips(k, ur5_file, rng):
     path, task = cases[k]
     arm = load_serial(path).arms[0]
     space = task_space(arm, task)
-    if len(arm.links) < space.size:
-        pytest.skip("a deficient arm for this task")
+    if len(arm.links) < space.size:  # the 2-DoF arm in (x, y, phi)
+        with pytest.raises(TaskSizeError, match=r"deficient arm"):
+            solve_ik(arm, space, np.zeros(space.size))
+        return
     for _ in range(5):
         q = _random_q(arm, rng)
         target = np.array(space.fk(q), float).ravel()
@@ -394,3 +396,23 @@ def test_a_user_dual_arm_system_mirrors_the_leader_in_the_planar_task(tmp_path):
     for unit in result.units:
         final = np.abs(unit.tracking_error[-300:]).max(axis=0)
         assert np.all(final < 0.01 * np.abs(unit.tracking_error[0])), (unit.setup.name, final)
+
+
+@needs_ur5
+def test_a_full_pose_run_starting_beyond_80_degrees_is_refused(tmp_path, ur5_file):
+    """The orientation error sin(theta) u loses rank at 90 deg and vanishes again at 180 deg:
+    a run that starts 120 deg away is refused before it moves."""
+    arm = load_serial(ur5_file).arms[0]
+    q_ref = np.array([0.3, -1.2, 1.4, -1.8, -1.5, 0.4])
+    x = np.array(task_space(arm, "pose").fk(q_ref), float).ravel().tolist()
+    deg = np.degrees(x[3:]).tolist()
+    initial = ", ".join(f'"{float(v)!r} rad"' for v in q_ref)
+    path = _scenario(
+        tmp_path, ur5_file, "pose",
+        [f"{x[0]!r} m", f"{x[1]!r} m", f"{x[2]!r} m", f"{deg[0] + 120.0!r} deg",
+         f"{deg[1]!r} deg", f"{deg[2]!r} deg"],
+        f"initial_joint = [{initial}]",
+        "{ G_g = [5.0, 5.0, 5.0, 5.0, 5.0, 5.0], G_a = [20.0, 20.0, 10.0, 2.0, 2.0, 2.0] }")
+    with pytest.raises(UnreachableTarget, match=r"initial orientation is 120\.0 deg from the "
+                       r"desired one"):
+        unit_setups(load_scenario(path), cache=False)
