@@ -416,3 +416,22 @@ def test_a_full_pose_run_starting_beyond_80_degrees_is_refused(tmp_path, ur5_fil
     with pytest.raises(UnreachableTarget, match=r"initial orientation is 120\.0 deg from the "
                        r"desired one"):
         unit_setups(load_scenario(path), cache=False)
+
+
+def test_urdf_export_writes_the_tool_frame(tmp_path, tooled_file):
+    """cochlea-urdf export adds a massless fixed frame ``tool``: Pinocchio's pose of it is
+    the task space's full pose."""
+    from cochlea.robots.serial.urdf import export_urdf
+
+    system = load_serial(tooled_file)
+    arm = system.arms[0]
+    urdf = tmp_path / "tooled.urdf"
+    urdf.write_text(export_urdf(system), encoding="utf-8")
+    model = pin.buildModelFromUrdf(str(urdf))
+    data = model.createData()
+    q = np.array([0.2, -0.3, 0.5, 0.7])
+    pin.framesForwardKinematics(model, data, q)
+    tool = data.oMf[model.getFrameId("tool")]
+    x = np.array(task_space(arm, "pose").fk(q), float).ravel()
+    np.testing.assert_allclose(tool.translation, x[:3], atol=1e-12)
+    np.testing.assert_allclose(tool.rotation, rpy_matrix(x[3:]), atol=1e-12)
