@@ -138,7 +138,10 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
 
     Task-space controllers use ``task = (fk, J)`` (default: the model's ``fk_world`` and
     ``J_world``); the task coordinates listed in ``task_angles`` are angles whose error wraps
-    to (-pi, pi].
+    to (-pi, pi]. ``task = (fk, J, error)``: controller g drives ``e_g = error(q, x_d)``
+    instead of ``fk(q) - x_d`` (a full pose's orientation error), with ``J = de_g/dq`` and the
+    feedforward ``-de_g/dx_d x_d'`` in place of ``x_d'``, so ``e_g' = J e_v - G_g e_g`` as
+    before. Controller g needs a square ``J`` (as many joints as task coordinates).
     """
     if kind not in KINDS:
         raise ModelError(f"unknown controller {kind!r}; choose one of {', '.join(KINDS)}")
@@ -149,8 +152,14 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
     space = spec.space
     n = model.nq
     n_p = len(model.param_names)
-    fk_f, J_f = task if task is not None else (model.fk_world, model.J_world)
+    fk_f, J_f, error_f = ((*task, None)[:3] if task is not None
+                          else (model.fk_world, model.J_world, None))
     m = fk_f.size1_out(0) if space == "task" else n
+    if kind == "g" and m != n:
+        raise ModelError(f"controller g needs a square task Jacobian: {model.name} has {n} "
+                         f"joints and the task {m} coordinates")
+    if error_f is not None and kind != "g":
+        raise ModelError(f"controller {kind} takes no task error function (only g does)")
     nd = n if space == "joint" else m
 
     q, qd = ca.SX.sym("q", n), ca.SX.sym("qd", n)
@@ -197,9 +206,14 @@ def build(model: RobotModel, kind: str, *, variant: str = "corrected",
     elif kind == "g":
         gains = ca.SX.sym("gains", 2 * m + n)
         G_g, G_a, K_c = gains[:m], gains[m:m + n], gains[m + n:]
-        x, J = fk_f(q), J_f(q)
-        e_g = _task_error(x - xd, task_angles)
-        tau_v = ca.solve(J, xd_dot - G_g * e_g)
+        if error_f is None:
+            x, J = fk_f(q), J_f(q)
+            e_g = _task_error(x - xd, task_angles)
+            tau_v = ca.solve(J, xd_dot - G_g * e_g)
+        else:  # e_g(q, x_d): e_g' = J q' - v_d with J = de_g/dq, v_d = -de_g/dx_d x_d'
+            e_g = error_f(q, xd)
+            J = ca.jacobian(e_g, q)
+            tau_v = ca.solve(J, -ca.jacobian(e_g, xd) @ xd_dot - G_g * e_g)
         tau_v_dot = _total_derivative(tau_v, q, qd, xd, xd_dot, xd_ddot)
         e_v = qd - tau_v
         Y = shaped(-model.Y(q, qd, tau_v, tau_v_dot), tau_v)

@@ -76,6 +76,11 @@ class ScenarioView(Protocol):
 
     def desired_leader(self) -> ca.Function: ...  # t -> (x, x_dot, x_ddot) of the leader
 
+    #: The task coordinates (``[control] task``) where the robot offers a choice
+    #: (:attr:`RobotAdapter.task_spaces`); read with ``getattr(sc, "task", None)``, None: the
+    #: robot's default.
+    task: str | None
+
     #: A unit's own joint path in t (SI), tracked instead of the leader's rule; None: the rule.
     def unit_desired(self, name: str, t: ca.SX) -> ca.SX | None: ...
 
@@ -111,7 +116,9 @@ class UnitPlan:
     task_angles: tuple[int, ...]  # task coordinates whose error wraps to (-pi, pi]
     fk_world: ca.Function = field(repr=False)
     #: ``(fk, J)`` of the task-space controllers; None: the model's ``fk_world``, ``J_world``.
-    task: tuple[ca.Function, ca.Function] | None = field(default=None, repr=False)
+    #: A third Function, ``(q, x_d) -> e``, replaces the error ``fk(q) - x_d`` of controller g
+    #: (a serial arm's full pose: :mod:`cochlea.robots.serial.task`).
+    task: tuple[ca.Function, ...] | None = field(default=None, repr=False)
     #: Tool points drawn in the path figure: label -> indices of (u, v) in the task pose.
     tool_points: tuple[tuple[str, tuple[int, int]], ...] = (("tool", (0, 1)),)
     #: Centre of the cochlea-centred circle in the path figure (m, world frame).
@@ -215,6 +222,11 @@ class RobotAdapter:
     calibration_reference: dict[str, tuple[float, str]] = {}
     #: The positive sense of the robot's joints, as the user sees them.
     positive_direction: str = ""
+    #: The task spaces a scenario may choose (``[control] task``); empty: the robot has one,
+    #: and the key is refused.
+    task_spaces: tuple[str, ...] = ()
+    #: The task space of a scenario that does not choose one (when :attr:`task_spaces`).
+    default_task: str | None = None
 
     def load(self, description: str | Path | None = None) -> Any:
         raise NotImplementedError
@@ -223,7 +235,9 @@ class RobotAdapter:
               method: str | None = None, actuators: str = "none") -> RobotModel:
         raise NotImplementedError
 
-    def layout(self, system: Any, space: str) -> Layout:
+    def layout(self, system: Any, space: str, task: str | None = None) -> Layout:
+        """``task``: one of :attr:`task_spaces` (None: the default); only robots that offer a
+        choice take it."""
         raise NotImplementedError
 
     def unit_plans(self, system: Any, scenario: ScenarioView) -> list[UnitPlan]:

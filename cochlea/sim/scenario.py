@@ -237,6 +237,10 @@ class Scenario:
     system: Any = field(default=None, repr=False, compare=False)
     #: The controller's robust-adaptation options (``[control]``).
     robust: RobustOptions = field(default_factory=RobustOptions)
+    #: ``[control] task``: the tool coordinates of a robot that offers a choice (a serial
+    #: arm: "planar", "planar_yaw" (the default), "position", "pose"; docs/models.md, "Task
+    #: spaces"); None for a robot with one task space.
+    task: str | None = None
 
     @property
     def controller(self) -> str:
@@ -470,9 +474,14 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
     system = load_system(robot, description)
-    layout = adapter.layout(system, space)
 
     c = top.table("control")
+    task = None
+    if adapter.task_spaces:  # the tool coordinates, where the robot offers a choice
+        task = c.string("task", adapter.task_spaces, required=False,
+                        default=adapter.default_task)
+    layout = (adapter.layout(system, space) if task is None
+              else adapter.layout(system, space, task=task))
     rate = c.number("rate_Hz", f"a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] (Hz)",
                     lambda v: MIN_RATE_HZ <= v <= MAX_RATE_HZ, required=False, default=1000.0)
     substeps = c.get("plant_substeps", f"an integer in 1..{MAX_PLANT_SUBSTEPS} (RK4 steps per "
@@ -562,7 +571,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
                     variant, parameterisation, adaptation_gain, adaptation, initial_estimate,
                     bound, mirror,
                     controller_actuators, dict(definitions), leader, tuple(units), plant, system,
-                    robust=robust)
+                    robust=robust, task=task)
 
 
 def _robust(c: Table, layout, actuators: str) -> RobustOptions:

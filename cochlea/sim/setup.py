@@ -523,7 +523,7 @@ def structure_key(sc: scenario_mod.Scenario, system) -> tuple:
     return (sc.robot, id(system), sc.space, float(sc.duration), float(sc.rate_hz),
             sc.parameterisation, sc.controller_actuators, sc.plant_actuators, sc.variant,
             sc.controller, sc.mirror, tuple(sc.definitions.items()), sc.leader, units,
-            float(sc.robust.startup_ramp))
+            float(sc.robust.startup_ramp), sc.task)
 
 
 def clear_cache() -> None:

@@ -1,7 +1,12 @@
-"""The serial system in scenarios: two planar 3R arms, the first the leader, the second
-following it by the dual-arm rule (point reflection through the cochlea centre, facing the
-leader); joint-space followers track the mirrored pose through closed-form IK on an explicit
-elbow branch."""
+"""The serial system in scenarios: serial arms, the first the leader, the others following it
+by the dual-arm rule (point reflection through the cochlea centre, facing the leader).
+
+The task coordinates are the scenario's ``[control] task`` (:mod:`.task`; default
+``planar_yaw``). Planar 3R arms on a level base tracking ``planar_yaw`` (the shipped system,
+the thesis's studies) use the closed-form inverse kinematics on an explicit elbow branch, and
+joint-space followers track the mirrored pose through it; any other arm or task uses the
+numeric solver (:func:`.ik.solve_ik`) for the initial state and to check the desired path,
+and a joint-space follower of the leader needs the closed form."""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ...errors import CochleaError, DescriptionError
+from ...errors import CochleaError, DescriptionError, KinematicsError, ModelError
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
@@ -24,9 +29,31 @@ from ..adapter import (
 )
 from ..model import RobotModel
 from . import excitation, identified, summary
+from .chain import tool_offset
 from .description import Arm, SerialSystem, load_serial
-from .ik import UnreachableTarget, elbow_cosine, ik, ik_symbolic, world_to_base
+from .ik import (
+    UnreachableTarget,
+    check_sizes,
+    elbow_cosine,
+    follow_path,
+    ik,
+    ik_symbolic,
+    planar_3r_lengths,
+    solve_ik,
+    world_to_base,
+)
 from .model import build_model
+from .task import (
+    DEFAULT_TASK,
+    MAX_ORIENTATION_ERROR,
+    TASKS,
+    TaskSpace,
+    mirrored,
+    task_kinds,
+    task_space,
+    tool_world,
+)
+from .task import rpy_sx as _rpy_sx
 
 TASK_NAMES = ("x", "y", "phi")
 TASK_UNITS = ("m", "m", "rad")
@@ -92,8 +119,72 @@ def _initial_joint(arm: Arm, unit: UnitStart) -> np.ndarray:
     return q0
 
 
+def _closed_form(arm: Arm) -> bool:
+    """Whether the arm is a planar 3R on a level base (the closed-form inverse kinematics)."""
+    try:
+        planar_3r_lengths(arm)
+    except ModelError:
+        return False
+    return arm.base_is_level
+
+
+def _numeric_initial(arm: Arm, space: TaskSpace, unit: UnitStart) -> np.ndarray:
+    """The initial joint position of a task-space initial pose, by the numeric solver from
+    the middle of the joint limits (``elbow``: on that sign of the second joint)."""
+    return solve_ik(arm, space, unit.initial_task, elbow=unit.elbow)
+
+
+def _check_task_path(arm: Arm, space: TaskSpace, pose_t: ca.SX, t: ca.SX, sc: ScenarioView,
+                     q0: np.ndarray, keep_out: float) -> None:
+    """Refuse, before anything moves, a task-space desired path that the supervisor would
+    stop or the controller cannot track: its tool inside the keep-out circle (every period),
+    or a pose out of reach within the joint limits or singular (inverse kinematics from the
+    initial joint position along :data:`PATH_SAMPLES` evenly spaced times), or (``pose``) an
+    initial orientation error beyond :data:`~.task.MAX_ORIENTATION_ERROR`."""
+    radius = ca.Function("radius", [t], [ca.norm_2(pose_t[0:2])])
+    for times, (r,) in sampled(radius, sc.duration, sc.period):
+        inside = np.flatnonzero(~(r.ravel() >= keep_out))
+        if inside.size:
+            k = inside[0]
+            raise UnreachableTarget(
+                f"scenario {_where(sc)}: {arm.name}'s desired tool path passes "
+                f"{r.ravel()[k] * 1000:.1f} mm from the cochlea centre at t = {times[k]:.3f} s, "
+                f"inside the keep-out radius {keep_out * 1000:.1f} mm: the supervisor would "
+                "stop the run there; change the trajectory or shorten --duration")
+    f = ca.Function("pose", [t], [pose_t])
+    times = np.linspace(0.0, sc.duration, min(PATH_SAMPLES, int(sc.duration / sc.period) + 1))
+    targets = np.array(f.map(len(times))(times.reshape(1, -1)), float)
+    if space.task == "pose":
+        _, R = tool_world(arm, ca.DM(q0))
+        R_d = _rpy_sx(ca.DM(targets[3:6, 0]))
+        cos = (float(ca.evalf(ca.trace(R_d.T @ ca.evalf(R)))) - 1.0) / 2.0
+        angle = np.arccos(np.clip(cos, -1.0, 1.0))
+        if angle > MAX_ORIENTATION_ERROR:
+            raise UnreachableTarget(
+                f"scenario {_where(sc)}: {arm.name}'s initial orientation is "
+                f"{np.degrees(angle):.1f} deg from the desired one at t = 0, more than "
+                f"{np.degrees(MAX_ORIENTATION_ERROR):.0f} deg (the orientation error's Jacobian "
+                "is singular at 90 deg): start nearer the desired pose")
+    try:
+        q_start = solve_ik(arm, space, targets[:, 0], seeds=(q0,))
+    except KinematicsError as exc:
+        raise type(exc)(f"scenario {_where(sc)}: {arm.name}'s desired path at t = 0: {exc}"
+                        ) from None
+    try:
+        follow_path(arm, space, targets, times, q_start)
+    except KinematicsError as exc:
+        raise type(exc)(f"scenario {_where(sc)}: {arm.name}'s desired path: {exc}") from None
+
+
+#: Times at which a task-space path is solved by the numeric inverse kinematics (evenly
+#: spaced over the run, at most one a period).
+PATH_SAMPLES = 2001
+
+
 class SerialRobot(RobotAdapter):
     name = "serial"
+    task_spaces = TASKS
+    default_task = DEFAULT_TASK
     method = "newton-euler"
     units_are_arms = True
     excitation_study = "serial_joint_realistic"
@@ -110,16 +201,72 @@ class SerialRobot(RobotAdapter):
               actuators: str = "none") -> RobotModel:
         return build_model(system, arm, parameterisation, method or self.method, actuators)
 
-    def layout(self, system: SerialSystem, space: str) -> Layout:
+    def layout(self, system: SerialSystem, space: str, task: str | None = None) -> Layout:
         n = len(system.arms[0].links)
         kinds = tuple("length" if link.joint.type == "prismatic" else "angle"
                       for link in system.arms[0].links)
-        task = ("length", "length", "angle")
+        task = task_kinds(task or DEFAULT_TASK)
         return Layout(leader=kinds if space == "joint" else task, joint=kinds, task=task,
-                      units=tuple(a.name for a in system.arms), n_joint=n, n_task=3,
+                      units=tuple(a.name for a in system.arms), n_joint=n, n_task=len(task),
                       n_bodies=n)
 
     def unit_plans(self, system: SerialSystem, sc: ScenarioView) -> list[UnitPlan]:
+        task = getattr(sc, "task", None) or DEFAULT_TASK
+        if task == DEFAULT_TASK and all(_closed_form(a) for a in system.arms):
+            return self._closed_form_plans(system, sc)
+        return self._numeric_plans(system, sc, task)
+
+    def _numeric_plans(self, system: SerialSystem, sc: ScenarioView, task: str
+                       ) -> list[UnitPlan]:
+        """Any chain, any task space: numeric inverse kinematics for the initial state and the
+        desired path's checks; a joint-space follower of the leader is refused (it needs the
+        closed form)."""
+        t = ca.SX.sym("t")
+        x_lead, _, _ = sc.desired_leader()(t)
+        models = {a.name: self.model(system, a, sc.parameterisation,
+                                     actuators=sc.controller_actuators) for a in system.arms}
+        spaces = {a.name: task_space(a, task, models[a.name]) for a in system.arms}
+        leader_arm = system.arms[0]
+        lead_pose = x_lead if sc.space == "task" else spaces[leader_arm.name].fk(x_lead)
+        plans = []
+        for arm, unit in zip(system.arms, sc.units, strict=True):
+            m, space = models[arm.name], spaces[arm.name]
+            if sc.space == "task":
+                check_sizes(arm, space, square=True)
+            q0 = (unit.initial_joint if unit.initial_joint is not None
+                  else _numeric_initial(arm, space, unit))
+            qd0 = (unit.initial_velocity if unit.initial_velocity is not None
+                   else np.zeros(len(q0)))
+            own = sc.unit_desired(arm.name, t)
+            if own is not None:
+                desired_expr = own
+            elif arm is leader_arm:
+                desired_expr = x_lead
+            elif sc.space == "task":
+                desired_expr = mirrored(task, lead_pose)
+            else:
+                raise KinematicsError(
+                    f"scenario {_where(sc)}: {arm.name} would follow the leader in joint space "
+                    "through inverse kinematics along the whole path, which cochlea has in "
+                    f"closed form only for a planar 3R arm on a level base with task "
+                    f"{DEFAULT_TASK!r} (this is task {task!r}, {len(arm.links)} joints): give "
+                    "the unit its own desired_joint, or run in task space")
+            if sc.space == "task":
+                _check_task_path(arm, space, desired_expr, t, sc, q0, system.keep_out_radius)
+            else:
+                _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc, None)
+            tool = arm.links[-1]
+            pose_task = None if space.model_pose else (
+                (space.fk, space.J) if space.error is None else (space.fk, space.J, space.error))
+            plans.append(UnitPlan(
+                arm.name, m, self.model(system, arm, "inertial", actuators=sc.plant_actuators),
+                desired_function(arm.name, desired_expr, t), np.concatenate([q0, qd0]),
+                {tool.name: tool_offset(arm)},
+                space.names, space.units, space.angles, space.fk, task=pose_task))
+        return plans
+
+    def _closed_form_plans(self, system: SerialSystem, sc: ScenarioView) -> list[UnitPlan]:
+        """Planar 3R arms on a level base, task ``planar_yaw``: the thesis's system."""
         t = ca.SX.sym("t")
         x_lead, _, _ = sc.desired_leader()(t)
         models = {a.name: self.model(system, a, sc.parameterisation,

@@ -19,7 +19,7 @@ import numpy as np
 from ..lagrange import time_derivative
 from ..model import INERTIAL_NAMES
 from ..spatial import axis_angle, vee
-from .description import Arm, Joint, Link, joint_rotation
+from .description import Arm, Joint, Link, joint_rotation, rpy_matrix
 
 N_INERTIAL = len(INERTIAL_NAMES)
 
@@ -64,10 +64,24 @@ def link_poses(arm: Arm, q: ca.SX) -> list[tuple[ca.SX, ca.SX]]:
     return poses
 
 
+def tool_offset(arm: Arm) -> np.ndarray:
+    """The tool point in the last link's frame (m): ``tool_xyz_m``, else ``[length, 0, 0]``."""
+    if arm.tool_xyz is not None:
+        return np.asarray(arm.tool_xyz, float)
+    return np.array([arm.links[-1].length, 0.0, 0.0])
+
+
 def tool_point(arm: Arm, q: ca.SX) -> tuple[ca.SX, ca.SX]:
-    """Position (base frame) of the tool point ``[length, 0, 0]`` of the last link, and its R."""
+    """Position (base frame) of the tool point (:func:`tool_offset`) and the tool frame's R:
+    the last link's, turned by ``tool_rpy_deg`` where the arm gives it."""
     R, p = link_poses(arm, q)[-1]
-    return p + R @ ca.DM([arm.links[-1].length, 0.0, 0.0]), R
+    if arm.tool_xyz is None:
+        p = p + R @ ca.DM([arm.links[-1].length, 0.0, 0.0])
+    else:
+        p = p + R @ ca.DM(arm.tool_xyz)
+    if arm.tool_rpy is not None:
+        R = R @ ca.DM(rpy_matrix(arm.tool_rpy))
+    return p, R
 
 
 def is_planar(arm: Arm) -> bool:
@@ -76,6 +90,9 @@ def is_planar(arm: Arm) -> bool:
     Then the tool's planar orientation is the unwrapped sum of the joint angles instead of an
     atan2 that jumps at +-180 deg.
     """
+    if arm.tool_rpy is not None and (abs(arm.tool_rpy[0]) > 1e-12
+                                     or abs(arm.tool_rpy[1]) > 1e-12):
+        return False
     for link in arm.links:
         j = link.joint
         if abs(j.origin_rpy[0]) > 1e-12 or abs(j.origin_rpy[1]) > 1e-12:
@@ -88,7 +105,8 @@ def is_planar(arm: Arm) -> bool:
 def planar_orientation(arm: Arm, q: ca.SX) -> ca.SX:
     """Tool orientation about base z (rad): unwrapped for planar chains, else from atan2."""
     if is_planar(arm):
-        phi = ca.SX(sum(float(l.joint.origin_rpy[2]) for l in arm.links))
+        phi = ca.SX(sum(float(l.joint.origin_rpy[2]) for l in arm.links)
+                    + (float(arm.tool_rpy[2]) if arm.tool_rpy is not None else 0.0))
         for i, link in enumerate(arm.links):
             if link.joint.type == "revolute":
                 phi = phi + float(np.sign(link.joint.axis[2])) * q[i]

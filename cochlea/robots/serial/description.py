@@ -80,6 +80,15 @@ class Arm:
     base_xyz: np.ndarray  # m, base origin in the world frame
     base_yaw: float  # rad, rotation of the base frame about world z
     links: tuple[Link, ...]
+    #: rad: the base frame's roll and pitch (``base_rpy_deg``; fixed-axis, R = Rz(yaw)
+    #: Ry(pitch) Rx(roll)); zero for a base that only turns about the world z axis.
+    base_roll: float = 0.0
+    base_pitch: float = 0.0
+    #: m: the tool point in the last link's frame (``tool_xyz_m``); None: ``[length_m, 0, 0]``.
+    tool_xyz: np.ndarray | None = None
+    #: rad: the tool frame's fixed-axis roll, pitch, yaw in the last link's frame
+    #: (``tool_rpy_deg``); None: the last link's frame itself.
+    tool_rpy: np.ndarray | None = None
     #: Optional keys for the tools (issue 25): the pose an excitation works around
     #: (``working_pose_deg``, rad here), ``cochlea-dxl calibrate``'s reference pose
     #: (``calibration_pose_deg``) and the joints' positive sense as the user sees it
@@ -89,7 +98,19 @@ class Arm:
     positive_direction: str | None = None
 
     @property
+    def base_rpy(self) -> np.ndarray:
+        """rad: the base frame's fixed-axis roll, pitch and yaw in the world frame."""
+        return np.array([self.base_roll, self.base_pitch, self.base_yaw])
+
+    @property
+    def base_is_level(self) -> bool:
+        """True when the base frame only turns about the world z axis (no roll, no pitch)."""
+        return self.base_roll == 0.0 and self.base_pitch == 0.0
+
+    @property
     def base_rotation(self) -> np.ndarray:
+        if not self.base_is_level:
+            return rpy_matrix(self.base_rpy)
         c, s = math.cos(self.base_yaw), math.sin(self.base_yaw)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -224,8 +245,25 @@ def _read_arm(t: Table) -> Arm:
     name = t.name("name")
     base_xyz = t.vector("base_xyz_m", 3, "m", check=_within(MAX_LENGTH_M),
                         what=f"in the world (cochlea) frame, each within +-{MAX_LENGTH_M:g} m")
-    base_yaw = math.radians(t.bounded("base_yaw_deg", "a number (deg)", lambda v: True,
-                                      -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg"))
+    roll = pitch = 0.0
+    if "base_rpy_deg" in t.data:  # the full base rotation; base_yaw_deg is its shorthand
+        if "base_yaw_deg" in t.data:
+            raise t.error("base_yaw_deg", "one of base_yaw_deg or base_rpy_deg (base_yaw_deg "
+                          "is the shorthand of base_rpy_deg = [0, 0, yaw])", show_got=False)
+        rpy = t.vector("base_rpy_deg", 3, "deg", check=_within(MAX_ANGLE_DEG),
+                       what="(fixed-axis roll, pitch, yaw of the base frame in the world frame, "
+                       f"each within +-{MAX_ANGLE_DEG:g} deg)")
+        roll, pitch, base_yaw = (math.radians(float(v)) for v in rpy)
+    else:
+        base_yaw = math.radians(t.bounded("base_yaw_deg", "a number (deg)", lambda v: True,
+                                          -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg"))
+    tool_xyz = t.vector("tool_xyz_m", 3, "m", check=_within(MAX_LENGTH_M), required=False,
+                        what="(the tool point in the last link's frame; default [length_m of "
+                        f"the last link, 0, 0]), each within +-{MAX_LENGTH_M:g} m")
+    tool_rpy = t.vector("tool_rpy_deg", 3, "deg", check=_within(MAX_ANGLE_DEG), required=False,
+                        what="(fixed-axis roll, pitch, yaw of the tool frame in the last link's "
+                        f"frame), each within +-{MAX_ANGLE_DEG:g} deg")
+    tool_rpy = None if tool_rpy is None else np.radians(tool_rpy)
     links = []
     parent_length = 0.0  # the first joint sits at the base origin unless told otherwise
     for lt in t.tables("link", "the links from base to tip"):
@@ -242,7 +280,8 @@ def _read_arm(t: Table) -> Arm:
         if n in names[:i]:
             raise DescriptionError(t.path, f"{t.where}.link[{i}].name",
                                    "a link name unique within the arm", n)
-    return Arm(name, base_xyz, base_yaw, tuple(links), poses[0], poses[1], positive)
+    return Arm(name, base_xyz, base_yaw, tuple(links), roll, pitch, tool_xyz, tool_rpy,
+               working_pose=poses[0], calibration_pose=poses[1], positive_direction=positive)
 
 
 def _read_pose(t: Table, key: str, links: list[Link]) -> np.ndarray | None:

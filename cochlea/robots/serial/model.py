@@ -66,11 +66,17 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
         C = christoffel_coriolis(M, q, qd)
         tau = M @ qdd + C @ qd + G
 
-    tip, _ = tool_point(arm, q)
+    tip, R_tip = tool_point(arm, q)
     fk = ca.vertcat(tip[0], tip[1], planar_orientation(arm, q))
-    Rb = rot_z(arm.base_yaw)
-    tip_world = ca.DM(arm.base_xyz[:2]) + Rb[:2, :2] @ tip[:2]
-    fk_world = ca.vertcat(tip_world, fk[2] + arm.base_yaw)
+    if arm.base_is_level:
+        Rb = rot_z(arm.base_yaw)
+        tip_world = ca.DM(arm.base_xyz[:2]) + Rb[:2, :2] @ tip[:2]
+        fk_world = ca.vertcat(tip_world, fk[2] + arm.base_yaw)
+    else:  # a rolled or pitched base: the tool's heading from its world rotation
+        Rb = ca.DM(arm.base_rotation)
+        tip_world = ca.DM(arm.base_xyz) + Rb @ tip
+        R_world = Rb @ R_tip
+        fk_world = ca.vertcat(tip_world[0], tip_world[1], ca.atan2(R_world[1, 0], R_world[0, 0]))
     kinematics = {"fk": fk, "J": ca.jacobian(fk, q), "fk_world": fk_world,
                   "J_world": ca.jacobian(fk_world, q)}
 

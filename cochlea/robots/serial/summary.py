@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import CochleaError
+from .chain import is_planar
 from .description import SerialSystem
+from .task import task_space
 
 
 def print_summary(adapter, system: SerialSystem, args) -> None:
@@ -31,6 +33,12 @@ def print_summary(adapter, system: SerialSystem, args) -> None:
         print(f"  at q = {np.degrees(q).round(3).tolist()} deg:")
         print(f"    tool in the cochlea frame: x = {x:.6f} m, y = {y:.6f} m, "
               f"phi = {np.degrees(phi):.3f} deg")
+        unit = system.arm(arm_name)
+        if not (is_planar(unit) and unit.base_is_level):  # a spatial arm: its whole tool pose
+            pose = np.array(task_space(unit, "pose").fk(q)).ravel()
+            print(f"    tool pose: x, y, z = {pose[0]:.6f}, {pose[1]:.6f}, {pose[2]:.6f} m, "
+                  "roll, pitch, yaw = " + ", ".join(f"{np.degrees(v):.3f}" for v in pose[3:])
+                  + " deg")
         print("    M(q) [kg m^2] =")
         for row in np.array(arm.M(q)):
             print("      " + "  ".join(f"{v: .6e}" for v in row))

@@ -30,6 +30,7 @@ import numpy as np
 from ...dynamixel.control_table import MODELS as MOTOR_SPECS
 from ...errors import CochleaError, DescriptionError
 from ..description import MAX_MOTOR_ID, NAME_PATTERN
+from .chain import tool_offset
 from .description import Arm, SerialSystem, load_serial, rpy_matrix
 from .model import build_model
 
@@ -746,7 +747,7 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
     ET.SubElement(fixed, "parent", link=world)
     ET.SubElement(fixed, "child", link=base)
     ET.SubElement(fixed, "origin", xyz=_attr_vec(arm.base_xyz),
-                  rpy=_attr_vec([0.0, 0.0, arm.base_yaw]))
+                  rpy=_attr_vec(arm.base_rpy))
     parent = base
     for link, jname in zip(arm.links, names, strict=True):
         el = ET.SubElement(root, "link", name=link.name)
@@ -771,6 +772,17 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
             ET.SubElement(je, "dynamics", damping=repr(float(a.viscous or 0.0)),
                           friction=repr(float(a.coulomb or 0.0)))
         parent = link.name
+    if arm.tool_xyz is not None or arm.tool_rpy is not None:  # the tool frame, massless
+        taken = {link.name for link in arm.links} | {world, base}
+        name = "tool"
+        while name in taken:
+            name += "_frame"
+        tool = ET.SubElement(root, "joint", name=f"{name}_fixed", type="fixed")
+        ET.SubElement(root, "link", name=name)
+        ET.SubElement(tool, "parent", link=parent)
+        ET.SubElement(tool, "child", link=name)
+        ET.SubElement(tool, "origin", xyz=_attr_vec(tool_offset(arm)),
+                      rpy=_attr_vec(arm.tool_rpy if arm.tool_rpy is not None else np.zeros(3)))
     ET.indent(root)
     return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, "unicode") + "\n"
 
