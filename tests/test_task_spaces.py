@@ -14,6 +14,7 @@ import pinocchio as pin
 import pytest
 
 from cochlea.errors import CochleaError, KinematicsError
+from cochlea.resources import SCENARIOS_DIR
 from cochlea.robots import robot
 from cochlea.robots.serial import load_serial
 from cochlea.robots.serial.chain import tool_offset
@@ -309,8 +310,8 @@ def test_the_task_key_is_checked_and_only_serial_robots_take_it(tmp_path):
                      '["0 rad", "1 rad"]', "{ G_g = [5.0, 5.0], G_a = [0.5, 0.5] }")
     with pytest.raises(CochleaError, match=re.escape("control.task")):
         load_scenario(path)
-    text = (Path(__file__).parent.parent / "cochlea" / "data" / "scenarios"
-            / "parallel_task.toml").read_text().replace("[control]", '[control]\ntask = "pose"')
+    text = (SCENARIOS_DIR / "parallel_task.toml").read_text().replace(
+        "[control]", '[control]\ntask = "pose"')
     bad = tmp_path / "parallel.toml"
     bad.write_text(text)
     with pytest.raises(CochleaError, match="task"):
