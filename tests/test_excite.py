@@ -16,6 +16,7 @@ import pytest
 from cochlea.apps import cochlea_excite
 from cochlea.errors import EXIT_USER_ERROR, CochleaError, DescriptionError
 from cochlea.ident import excite
+from cochlea.robots import model as build_model
 from cochlea.robots import robot as robot_adapter
 from cochlea.robots.serial import excitation as serial_excitation
 from cochlea.sim import load_scenario, simulate, unit_setups
@@ -38,7 +39,7 @@ def _fine(result):
 def test_design_inside_every_limit(designs, case):
     robot, arm = case
     result = designs[case]
-    model = excite.build_model(robot, arm=arm, parameterisation="base", actuators="all")
+    model = build_model(robot, arm=arm, parameterisation="base", actuators="all")
     times, (q, qd, qdd) = _fine(result)
     # At rest at t = 0 and after each period: the run starts and ends without a jump.
     for t in (0.0, result.options.period):

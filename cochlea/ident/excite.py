@@ -43,7 +43,6 @@ from scipy.optimize import minimize
 
 from ..errors import CochleaError
 from ..robots import ROBOTS, ExcitationGeometry
-from ..robots import model as build_model  # noqa: F401  (the shipped robots' model, by name)
 from ..robots import robot as robot_adapter
 from ..robots.urdf import starter_scenario
 from ..sim.scenario import load as load_scenario
