@@ -9,7 +9,14 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import ModelError
-from .adapter import ActuatedJoint, ExcitationGeometry, Layout, RobotAdapter, UnitPlan
+from .adapter import (
+    ActuatedJoint,
+    ExcitationGeometry,
+    Layout,
+    LinkFrames,
+    RobotAdapter,
+    UnitPlan,
+)
 from .model import RobotModel
 from .parallel import ROBOT as _PARALLEL_ROBOT
 from .serial import ROBOT as _SERIAL_ROBOT
@@ -57,4 +64,4 @@ def model(name: str = "serial", *, arm: str | None = None, parameterisation: str
 
 
 __all__ = ["ROBOTS", "robot", "model", "RobotModel", "RobotAdapter", "Layout", "UnitPlan",
-           "ActuatedJoint", "ExcitationGeometry"]
+           "ActuatedJoint", "ExcitationGeometry", "LinkFrames"]

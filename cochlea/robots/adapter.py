@@ -146,6 +146,25 @@ class ActuatedJoint:
     actuator: Actuator = Actuator()  # the drive's armature and friction at the joint
 
 
+@dataclass(frozen=True)
+class LinkFrames:
+    """Every body frame of one unit, as a function of its joint position (SI): frame ``i`` is
+    named ``names[i]`` and posed in frame ``parents[i]`` (``"world"``: the cochlea-centred
+    frame, or an earlier frame of the list). ``function(q)`` gives a ``12 x len(names)``
+    matrix, one column per frame: its rotation matrix (9 entries, column-major) then its
+    translation (m). What ``cochlea-mcap`` publishes on ``/tf`` (docs/logs.md)."""
+
+    names: tuple[str, ...]
+    parents: tuple[str, ...]
+    function: ca.Function = field(repr=False)
+
+
+def frames_function(name: str, q: ca.SX, poses: list[tuple[ca.SX, ca.SX]]) -> ca.Function:
+    """The ``q -> 12 x k`` Function of :class:`LinkFrames` from ``(R, p)`` expressions."""
+    columns = [ca.vertcat(ca.reshape(R, 9, 1), p) for R, p in poses]
+    return ca.Function(f"frames_{name}", [q], [ca.horzcat(*columns)])
+
+
 #: The up-front checks of a desired path sample it at every control period up to this many
 #: samples; a longer run is sampled at this many evenly spaced times (the supervisor still
 #: watches every period). About 10 us a sample: at most ~2 s before a run starts.
@@ -245,6 +264,11 @@ class RobotAdapter:
 
     def actuated_joints(self, system: Any) -> list[ActuatedJoint]:
         raise NotImplementedError
+
+    def link_frames(self, system: Any, unit: str) -> LinkFrames:
+        """Every body frame of ``unit`` (its links, and its tool where it has one) as a
+        function of the unit's joint position: :class:`LinkFrames`."""
+        raise NotImplementedError(f"no link frames of the {self.name} robot")
 
     def unit(self, system: Any, arm: str | None) -> str:
         """The unit a command's ``--arm`` names (None: the first); a

@@ -22,11 +22,13 @@ from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
     Layout,
+    LinkFrames,
     RobotAdapter,
     ScenarioView,
     UnitPlan,
     UnitStart,
     desired_function,
+    frames_function,
     sampled,
 )
 from ..model import RobotModel
@@ -176,6 +178,34 @@ class ParallelRobot(RobotAdapter):
         return [ActuatedJoint(j.name, j.type, tuple(j.position_limits), j.effort_limit, j.motor,
                               j.transmission.ratio if j.transmission else 1.0, j.actuator)
                 for j in system.joints]
+
+    def link_frames(self, system: ParallelSystem, unit: str) -> LinkFrames:
+        """Every body in the world frame (the mechanism's plane is its x-y plane: u -> x,
+        v -> y): ``mechanism/slider`` at S = (0, d1), and per side ``mechanism/SIDE/linkN`` at
+        the body frames of the model's energies (links 1 and 4 at B, 2 at A1, 3 at A4, 5 at C,
+        7 at S; each turned about z by its angle)."""
+        q = ca.SX.sym("q", 5)
+        lp = system.link_length
+
+        def planar(origin, angle):
+            c, s = ca.cos(angle), ca.sin(angle)
+            R = ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
+            return R, ca.vertcat(origin[0], origin[1], 0)
+
+        S = ca.vertcat(0, q[2])
+        names, poses = [f"{UNIT}/slider"], [planar(S, 0)]
+        for side, (th1, th2) in zip(system.sides, ((q[0], q[1]), (q[3], q[4]))):
+            e = lambda a: ca.vertcat(ca.cos(a), ca.sin(a))  # noqa: E731
+            B = ca.DM([side.sign * system.base_offset, 0.0])
+            A1, A4 = B + lp * e(th1), B + lp * e(th2)
+            C = A1 + lp * e(th2)
+            phi = ca.atan2(C[1] - S[1], C[0] - S[0])
+            for body, origin, angle in (("link1", B, th1), ("link4", B, th2), ("link2", A1, th2),
+                                        ("link3", A4, th1), ("link5", C, phi),
+                                        ("link7", S, phi)):
+                names.append(f"{UNIT}/{side.name}/{body}")
+                poses.append(planar(origin, angle))
+        return LinkFrames(tuple(names), ("world",) * len(names), frames_function(UNIT, q, poses))
 
     def unit(self, system: ParallelSystem, arm: str | None) -> str:
         if arm is not None:

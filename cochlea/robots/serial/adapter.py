@@ -20,17 +20,19 @@ from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
     Layout,
+    LinkFrames,
     RobotAdapter,
     ScenarioView,
     UnitPlan,
     UnitStart,
     desired_function,
+    frames_function,
     sampled,
 )
 from ..model import RobotModel
 from . import excitation, identified, summary
-from .chain import tool_offset
-from .description import Arm, SerialSystem, load_serial
+from .chain import joint_transform, tool_offset
+from .description import Arm, SerialSystem, load_serial, rpy_matrix
 from .ik import (
     UnreachableTarget,
     check_sizes,
@@ -335,6 +337,24 @@ class SerialRobot(RobotAdapter):
                                             tuple(j.position_limits), j.effort_limit,
                                             link.motor, 1.0, j.actuator))
         return joints
+
+    def link_frames(self, system: SerialSystem, unit: str) -> LinkFrames:
+        """``UNIT/base`` in the world (the arm's base pose), each link ``UNIT/LINK`` in the one
+        before it (its joint's transform), and ``UNIT/tool`` in the last link (the tool point
+        and ``tool_rpy_deg``)."""
+        arm = system.arm(unit)
+        q = ca.SX.sym("q", len(arm.links))
+        names, parents = [f"{unit}/base"], ["world"]
+        poses = [(ca.SX(ca.DM(arm.base_rotation)), ca.SX(ca.DM(arm.base_xyz)))]
+        for i, link in enumerate(arm.links):
+            poses.append(joint_transform(link.joint, q[i]))
+            names.append(f"{unit}/{link.name}")
+            parents.append(names[-2])
+        tool_R = np.eye(3) if arm.tool_rpy is None else rpy_matrix(arm.tool_rpy)
+        poses.append((ca.SX(ca.DM(tool_R)), ca.SX(ca.DM(tool_offset(arm)))))
+        names.append(f"{unit}/tool")
+        parents.append(names[-2])
+        return LinkFrames(tuple(names), tuple(parents), frames_function(unit, q, poses))
 
     def unit(self, system: SerialSystem, arm: str | None) -> str:
         units = [a.name for a in system.arms]

@@ -1,0 +1,197 @@
+"""A run folder as ``cochlea-mcap`` reads it: ``summary.json`` (which robot, which scenario,
+how many periods, how the run stopped) and ``log.csv`` (one row per period), checked before
+anything is written, then read a chunk of rows at a time (a run of hours does not fit in
+memory as one array).
+
+``log.csv``'s columns (docs/logs.md): ``time_s``, then per unit ``UNIT.GROUP.ELEMENT_UNIT``
+(``arm1.q.joint1_rad``, ``mechanism.p_hat.left.link1.m_kg``), then run-level columns without a
+unit prefix (``start_lateness_s``, ...). Any folder ``cochlea-run`` (sim, real time,
+Dynamixel) or the embedded C program leaves is read alike.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import stat
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CochleaError
+from ..robots import RobotAdapter, robot
+from ..sim.scenario import load as load_scenario
+
+#: Rows read (and exported) at a time.
+CHUNK_ROWS = 8192
+#: The joint position groups and the units their elements end with.
+JOINT_UNITS = ("_rad", "_m")
+
+
+class RunFolderError(CochleaError):
+    """The folder is not a run cochlea-mcap can read, or its log is damaged."""
+
+
+@dataclass
+class Group:
+    """The columns of one group of a unit (``q``, ``tau``, ``p_hat``, ...): their indices in
+    a row and their element names with units (``joint1_rad``)."""
+
+    name: str
+    columns: list[int] = field(default_factory=list)
+    elements: list[str] = field(default_factory=list)
+
+
+@dataclass
+class UnitColumns:
+    name: str
+    groups: dict[str, Group]
+
+    def joints(self) -> list[str]:
+        """The joints' names: ``q``'s elements without their unit (``joint1``)."""
+        return [strip_unit(e, JOINT_UNITS) for e in self.groups["q"].elements]
+
+
+@dataclass
+class RunLog:
+    folder: Path
+    summary: dict
+    adapter: RobotAdapter
+    system: object
+    header: list[str]
+    units: list[UnitColumns]
+    run_level: Group  # columns of no unit (timing of a real-time run)
+
+    @property
+    def csv(self) -> Path:
+        return self.folder / "log.csv"
+
+    def chunks(self):
+        """``log.csv``'s rows, :data:`CHUNK_ROWS` at a time, as float64 arrays; a row that is
+        not the header's number of numbers, a time that is not finite or does not increase, or
+        fewer rows than ``summary.json``'s ``periods`` raise :class:`RunFolderError`."""
+        width, last_time, count = len(self.header), -math.inf, 0
+        expected = self.summary.get("periods")
+        try:
+            f = open(self.csv, encoding="utf-8", errors="strict")
+        except OSError as exc:
+            raise RunFolderError(f"{self.csv}: cannot read it ({exc.strerror})") from None
+        with f:
+            f.readline()
+            while True:
+                first_line = count + 2  # the file's line number of the chunk's first row
+                try:
+                    rows = np.loadtxt(f, delimiter=",", max_rows=CHUNK_ROWS, ndmin=2,
+                                      dtype=np.float64)
+                except (ValueError, UnicodeDecodeError) as exc:
+                    raise RunFolderError(
+                        f"{self.csv} is damaged: a row from line {first_line} on is not "
+                        f"{width} numbers ({exc}): export an undamaged copy of the run"
+                    ) from None
+                if rows.size == 0:
+                    break
+                if rows.shape[1] != width:
+                    raise RunFolderError(f"{self.csv} is damaged: rows from line {first_line} "
+                                         f"have {rows.shape[1]} values, the header {width}")
+                times = rows[:, 0]
+                steps = np.diff(np.concatenate([[last_time], times]))
+                if not np.all(np.isfinite(times)) or not np.all(steps > 0):
+                    bad = int(np.argmax(~np.isfinite(times) | ~(steps > 0)))
+                    raise RunFolderError(
+                        f"{self.csv} is damaged: line {first_line + bad}: time_s = "
+                        f"{times[bad]!r} is not finite or not after the row before")
+                last_time = float(times[-1])
+                count += len(rows)
+                yield rows
+                if len(rows) < CHUNK_ROWS:
+                    break
+        if isinstance(expected, int) and count != expected:
+            raise RunFolderError(f"{self.csv} is truncated or damaged: it holds {count} rows "
+                                 f"but summary.json says the run logged {expected} periods")
+        if count == 0:
+            raise RunFolderError(f"{self.csv} holds no period: nothing to export")
+
+
+def strip_unit(element: str, units: tuple[str, ...]) -> str:
+    for unit in units:
+        if element.endswith(unit):
+            return element[: -len(unit)]
+    return element
+
+
+def _is_regular(path: Path) -> str | None:
+    """None if ``path`` is a regular file, else what it is."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "missing"
+    except OSError as exc:
+        return f"unreadable ({exc.strerror})"
+    return None if stat.S_ISREG(mode) else "not a regular file"
+
+
+def open_run(folder: Path) -> RunLog:
+    """Check ``folder`` is a run folder and read its summary and log header; nothing else."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        what = "missing" if not os.path.lexists(folder) else "not a folder"
+        raise RunFolderError(f"RUN_DIR {folder} is {what}: name a run's output folder (one "
+                             "holding summary.json and log.csv)")
+    summary_path, csv_path = folder / "summary.json", folder / "log.csv"
+    for path in (summary_path, csv_path):
+        problem = _is_regular(path)
+        if problem is not None:
+            hint = (" (log.bin holds the raw log of a run whose report was lost; this command "
+                    "exports finished runs)") if (folder / "log.bin").exists() else ""
+            raise RunFolderError(f"{folder} is not a finished run: {path.name} is {problem}"
+                                 f"{hint}")
+    try:
+        summary = json.loads(summary_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise RunFolderError(f"{summary_path} is damaged: not JSON ({exc})") from None
+    if not isinstance(summary, dict) or not isinstance(summary.get("robot"), str) \
+            or not isinstance(summary.get("scenario_file"), str):
+        raise RunFolderError(f"{summary_path} is not a run's summary: it has no robot and "
+                             "scenario_file")
+    adapter = robot(summary["robot"])
+    try:
+        scenario = load_scenario(summary["scenario_file"])
+    except CochleaError as exc:
+        raise RunFolderError(f"{summary_path}: its scenario_file, which names the run's robot "
+                             f"description, cannot be loaded: {exc}") from None
+    if scenario.robot != adapter.name:
+        raise RunFolderError(f"{summary_path}: its scenario {summary['scenario_file']} is for "
+                             f"the {scenario.robot} robot, not the run's {adapter.name}")
+    try:
+        with open(csv_path, encoding="utf-8") as f:
+            header = f.readline().rstrip("\r\n").split(",")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RunFolderError(f"{csv_path} is damaged: cannot read its header ({exc})") from None
+    if header[0] != "time_s" or len(set(header)) != len(header):
+        raise RunFolderError(f"{csv_path} is damaged: its header does not start with time_s "
+                             "or repeats a column")
+    names = adapter.layout(scenario.system, "joint").units
+    units = {name: UnitColumns(name, {}) for name in names}
+    run_level = Group("run")
+    for index, column in enumerate(header[1:], start=1):
+        unit, _, rest = column.partition(".")
+        if unit in units and "." in rest:
+            group, _, element = rest.partition(".")
+            g = units[unit].groups.setdefault(group, Group(group))
+            g.columns.append(index)
+            g.elements.append(element)
+        else:
+            run_level.columns.append(index)
+            run_level.elements.append(column)
+    for unit in units.values():
+        n = int(adapter.link_frames(scenario.system, unit.name).function.size1_in(0))
+        for group in ("q", "qd", "tau"):
+            found = len(unit.groups[group].columns) if group in unit.groups else 0
+            if found != n:
+                raise RunFolderError(f"{csv_path} is not this run's log: unit {unit.name} of "
+                                     f"the {adapter.name} robot has {n} joints but the log "
+                                     f"has {found} {unit.name}.{group} columns")
+    return RunLog(folder, summary, adapter, scenario.system, header, list(units.values()),
+                  run_level)
