@@ -24,6 +24,8 @@ from ..errors import CochleaError
 from ..robots import RobotAdapter, robot
 from ..sim.scenario import load as load_scenario
 
+#: How the embedded C program's summary.json names its scenario_file.
+COMPILED_IN = "compiled in: "
 #: Rows read (and exported) at a time.
 CHUNK_ROWS = 8192
 #: The joint position groups and the units their elements end with.
@@ -156,8 +158,13 @@ def open_run(folder: Path) -> RunLog:
         raise RunFolderError(f"{summary_path} is not a run's summary: it has no robot and "
                              "scenario_file")
     adapter = robot(summary["robot"])
+    source = summary["scenario_file"]
+    if source.startswith(COMPILED_IN) and isinstance(summary.get("scenario"), str):
+        # The embedded program's scenarios are the shipped ones (kernels.toml's [embedded]),
+        # compiled in: the shipped scenario of that name has the run's description.
+        source = summary["scenario"]
     try:
-        scenario = load_scenario(summary["scenario_file"])
+        scenario = load_scenario(source)
     except CochleaError as exc:
         raise RunFolderError(f"{summary_path}: its scenario_file, which names the run's robot "
                              f"description, cannot be loaded: {exc}") from None

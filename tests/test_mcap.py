@@ -1,0 +1,496 @@
+"""cochlea-mcap: a run folder's log as MCAP of standard ROS 2 messages (docs/logs.md).
+
+Each exported file is read back with the ``mcap`` reader and the ROS 2 (CDR) decoder of
+``mcap-ros2-support``, message by message, and compared with the run's ``log.csv`` (every
+sample, to 1e-12), its ``summary.json`` and the robot's forward kinematics; each class of bad
+input is one line, exit code 2, and nothing under the output's name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from cochlea.apps.cochlea_mcap import main
+from cochlea.errors import EXIT_USER_ERROR
+from cochlea.export.ros2_msgs import DEFINITIONS, dependencies, schema_text
+from cochlea.export.to_mcap import quaternions
+from cochlea.robots import robot
+
+ROOT = Path(__file__).resolve().parent.parent
+TOL = 1e-12
+
+
+def cochlea_run(out: Path, *args: str) -> Path:
+    done = subprocess.run(
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", *args, "--out", str(out),
+         "--status", "off"], capture_output=True, text=True, timeout=300, cwd=out.parent)
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, Path]:
+    """Short runs of each kind a folder comes from: a real-time run on the sim backend (log.bin,
+    timing columns, true state, task space), and as-fast runs (supervisor verdict, no timing)
+    of the parallel mechanism in joint space and the serial arms in joint space."""
+    base = tmp_path_factory.mktemp("runs")
+    return {
+        "serial_task_rt": cochlea_run(base / "serial_task_rt", "--robot", "serial", "--space",
+                                      "task", "--duration", "0.3", "--watchdog-misses", "500"),
+        "parallel_joint_fast": cochlea_run(base / "parallel_joint_fast", "--robot", "parallel",
+                                           "--space", "joint", "--duration", "0.3",
+                                           "--realtime", "off"),
+        "serial_joint_fast": cochlea_run(base / "serial_joint_fast", "--robot", "serial",
+                                         "--space", "joint", "--duration", "0.25",
+                                         "--realtime", "off"),
+    }
+
+
+def read_mcap(path: Path) -> dict[str, list]:
+    """topic -> [(log_time ns, publish_time ns, schema name, decoded message)] in file order,
+    with the file's profile and the channels' encodings checked."""
+    topics = defaultdict(list)
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        header = reader.get_header()
+        assert header.profile == "ros2"
+        for schema, channel, message, decoded in reader.iter_decoded_messages(
+                log_time_order=False):
+            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
+            topics[channel.topic].append((message.log_time, message.publish_time, schema.name,
+                                          decoded))
+    return topics
+
+
+def read_log(folder: Path) -> tuple[list[str], np.ndarray]:
+    with open(folder / "log.csv") as f:
+        header = f.readline().strip().split(",")
+    return header, np.loadtxt(folder / "log.csv", delimiter=",", skiprows=1, ndmin=2)
+
+
+def columns(header: list[str], prefix: str) -> list[int]:
+    return [i for i, h in enumerate(header) if h.startswith(prefix)]
+
+
+def export(folder: Path, tmp_path: Path, name: str = "out.mcap") -> dict[str, list]:
+    out = tmp_path / name
+    assert main([str(folder), "--out", str(out)]) == 0
+    return read_mcap(out)
+
+
+@pytest.fixture(scope="module")
+def exported(runs, tmp_path_factory) -> dict[str, dict[str, list]]:
+    out = tmp_path_factory.mktemp("mcap")
+    return {name: export(folder, out, f"{name}.mcap") for name, folder in runs.items()}
+
+
+# ---- every sample, every topic -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["serial_task_rt", "parallel_joint_fast", "serial_joint_fast"])
+def test_joint_states_are_the_log_sample_for_sample(runs, exported, name):
+    header, rows = read_log(runs[name])
+    topics = exported[name]
+    ns = np.rint(rows[:, 0] * 1e9).astype(np.int64)
+    summary = json.loads((runs[name] / "summary.json").read_text())
+    units = robot(summary["robot"]).layout(robot(summary["robot"]).load(None), "joint").units
+    for unit in units:
+        tau = columns(header, f"{unit}.tau.")
+        kinds = [("joint_states", "q", "qd", tau), ("true/joint_states", "true_q", "true_qd",
+                                                     tau)]
+        if summary["space"] == "joint":
+            kinds.append(("desired/joint_states", "desired", "desired_dot", []))
+        else:
+            assert f"/{unit}/desired/joint_states" not in topics  # task space: tool poses
+        for topic, pos, vel, eff in kinds:
+            messages = topics[f"/{unit}/{topic}"]
+            assert len(messages) == len(rows), topic
+            p, v = columns(header, f"{unit}.{pos}."), columns(header, f"{unit}.{vel}.")
+            assert p and v
+            names = [header[i].split(".", 2)[2].rsplit("_", 1)[0] for i in p]
+            for k, (log_time, publish_time, schema, msg) in enumerate(messages):
+                assert schema == "sensor_msgs/msg/JointState"
+                assert log_time == publish_time == ns[k]
+                assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == ns[k]
+                assert list(msg.name) == names
+                np.testing.assert_allclose(msg.position, rows[k, p], rtol=0, atol=TOL)
+                np.testing.assert_allclose(msg.velocity, rows[k, v], rtol=0, atol=TOL)
+                np.testing.assert_allclose(msg.effort, rows[k, eff], rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("name", ["serial_task_rt", "parallel_joint_fast"])
+def test_every_column_group_is_a_labelled_array(runs, exported, name):
+    """Each unit's column groups (estimates, efforts, errors, ...) and the run-level timing are
+    Float64MultiArrays whose layout names each element with its unit; together they carry
+    every column of the log."""
+    header, rows = read_log(runs[name])
+    topics = exported[name]
+    covered = {0}
+    groups = defaultdict(list)
+    for i, h in enumerate(header[1:], start=1):
+        parts = h.split(".", 2)
+        key = f"/{parts[0]}/{parts[1]}" if len(parts) == 3 else "/run/timing"
+        groups[key].append(i)
+    for topic, idx in groups.items():
+        messages = topics[topic]
+        assert len(messages) == len(rows), topic
+        labels = [header[i].split(".", 2)[2] if topic != "/run/timing" else header[i]
+                  for i in idx]
+        for k, (log_time, _, schema, msg) in enumerate(messages):
+            assert schema == "std_msgs/msg/Float64MultiArray"
+            assert log_time == round(rows[k, 0] * 1e9)
+            (dim,) = msg.layout.dim
+            assert dim.label.split(",") == labels and dim.size == dim.stride == len(idx)
+            np.testing.assert_allclose(msg.data, rows[k, idx], rtol=0, atol=TOL)
+        covered |= set(idx)
+    assert covered == set(range(len(header)))
+    assert ("/run/timing" in topics) == (name == "serial_task_rt")  # real time only
+
+
+def test_message_counts_and_nothing_else(runs, exported):
+    """Every topic has one message per period, except /rosout (start, stop or verdict, end)."""
+    for name, topics in exported.items():
+        _, rows = read_log(runs[name])
+        for topic, messages in topics.items():
+            if topic == "/rosout":
+                assert len(messages) == 3, name
+            else:
+                assert len(messages) == len(rows), (name, topic)
+
+
+def test_tool_poses_are_the_logged_poses(runs, exported):
+    header, rows = read_log(runs["serial_task_rt"])
+    topics = exported["serial_task_rt"]
+    for unit in ("arm1", "arm2"):
+        for label, group in (("actual", "pose"), ("true", "true_pose"), ("desired", "desired")):
+            x, y, phi = (header.index(f"{unit}.{group}.{c}") for c in ("x_m", "y_m", "phi_rad"))
+            messages = topics[f"/{unit}/tool_pose/{label}"]
+            assert len(messages) == len(rows)
+            for k, (_, _, schema, msg) in enumerate(messages):
+                assert schema == "geometry_msgs/msg/PoseStamped"
+                assert msg.header.frame_id == "world"
+                p, o = msg.pose.position, msg.pose.orientation
+                np.testing.assert_allclose([p.x, p.y, p.z], [rows[k, x], rows[k, y], 0.0],
+                                           rtol=0, atol=TOL)
+                assert abs(np.arctan2(2 * o.w * o.z, 1 - 2 * o.z**2)
+                           - np.angle(np.exp(1j * rows[k, phi]))) < 1e-9
+    # The parallel mechanism's two end effectors, C (tool1) and C' (tool2).
+    header, rows = read_log(runs["parallel_joint_fast"])
+    topics = exported["parallel_joint_fast"]
+    for tool, first in (("tool1", "C_u_m"), ("tool2", "C'_u_m")):
+        i = header.index(f"mechanism.pose.{first}")
+        msg = topics[f"/mechanism/{tool}_pose/actual"][-1][3]
+        np.testing.assert_allclose([msg.pose.position.x, msg.pose.position.y],
+                                   rows[-1, [i, i + 1]], rtol=0, atol=TOL)
+    assert "/mechanism/tool1_pose/desired" not in topics  # joint space: the joints' path
+
+
+def compose(transforms: list, frame: str) -> np.ndarray:
+    """The 4x4 pose of ``frame`` in the world from one TFMessage."""
+    by_child = {t.child_frame_id: t for t in transforms}
+    T = np.eye(4)
+    while frame != "world":
+        t = by_child[frame]
+        r, p = t.transform.rotation, t.transform.translation
+        x, y, z, w = r.x, r.y, r.z, r.w
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        A = np.eye(4)
+        A[:3, :3], A[:3, 3] = R, [p.x, p.y, p.z]
+        T = A @ T
+        frame = t.header.frame_id
+    return T
+
+
+@pytest.mark.parametrize("name", ["serial_task_rt", "parallel_joint_fast"])
+def test_tf_is_the_models_forward_kinematics(runs, exported, name):
+    """At a few samples the tool frames composed from /tf are where the robot model's
+    ``fk_world`` puts the tools at the logged q (position and heading), and every unit's
+    frames are there."""
+    header, rows = read_log(runs[name])
+    summary = json.loads((runs[name] / "summary.json").read_text())
+    adapter = robot(summary["robot"])
+    system = adapter.load(None)
+    messages = exported[name]["/tf"]
+    assert len(messages) == len(rows)
+    for k in (0, len(rows) // 2, len(rows) - 1):
+        log_time, _, schema, msg = messages[k]
+        assert schema == "tf2_msgs/msg/TFMessage" and log_time == round(rows[k, 0] * 1e9)
+        for unit in adapter.layout(system, "joint").units:
+            frames = adapter.link_frames(system, unit)
+            assert {t.child_frame_id for t in msg.transforms} >= set(frames.names)
+            q = rows[k, columns(header, f"{unit}.q.")]
+            fk = np.array(adapter.model(system, unit).fk_world(q)).ravel()
+            # The tool frames: a serial arm's UNIT/tool; the mechanism's link5 (C and C').
+            tools = [n for n in frames.names if n.endswith("/tool") or n.endswith("/link5")]
+            assert len(tools) == len(fk) // 3
+            for i, frame in enumerate(tools):
+                T = compose(msg.transforms, frame)
+                np.testing.assert_allclose(T[:2, 3], fk[3 * i:3 * i + 2], rtol=0, atol=1e-12)
+                heading = np.arctan2(T[1, 0], T[0, 0])
+                assert abs(np.angle(np.exp(1j * (heading - fk[3 * i + 2])))) < 1e-9
+                for t in msg.transforms:
+                    assert t.header.stamp.sec * 10**9 + t.header.stamp.nanosec == log_time
+
+
+def test_quaternions_of_rotations(rng):
+    """All four branches of the matrix-to-quaternion conversion (rotations by angles near 0,
+    and near pi about each axis) give back the matrix."""
+    axes = rng.normal(size=(400, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([rng.uniform(-np.pi, np.pi, 200), np.pi - rng.uniform(0, 1e-3, 200)])
+    axes[200:203] = np.eye(3)
+    K = np.zeros((400, 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
+    K -= K.transpose(0, 2, 1)
+    s, c = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
+    R = np.eye(3) + s * K + (1 - c) * K @ K
+    q = quaternions(R)
+    x, y, z, w = q.T
+    back = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+                    axis=1).reshape(-1, 3, 3)
+    np.testing.assert_allclose(back, R, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+    assert np.all(w >= 0)
+
+
+def test_events_say_how_the_run_ended(runs, exported):
+    topics = exported["serial_task_rt"]
+    summary = json.loads((runs["serial_task_rt"] / "summary.json").read_text())
+    logs = [m for _, _, _, m in topics["/rosout"]]
+    assert "run started" in logs[0].msg and logs[0].level == 20
+    stop = summary["stop"]
+    assert f"stop: rule {stop['rule']}" in logs[1].msg
+    assert logs[1].stamp.sec * 10**9 + logs[1].stamp.nanosec == round(stop["time_s"] * 1e9) \
+        or stop["time_s"] * 1e9 > topics["/tf"][-1][0]  # a stop after the last row: at it
+    fast = [m for _, _, _, m in exported["parallel_joint_fast"]["/rosout"]]
+    assert "supervisor verdict" in fast[1].msg and "saturated periods" in fast[1].msg
+
+
+def test_schemas_are_the_standard_definitions():
+    """Each type's schema text lists its dependencies once each (rosbag2's concatenation), and
+    the fields are those of the standard messages (a subset checked by name)."""
+    text = schema_text("sensor_msgs/JointState")
+    assert text.splitlines()[:5] == ["std_msgs/Header header", "string[] name",
+                                     "float64[] position", "float64[] velocity",
+                                     "float64[] effort"]
+    assert dependencies("tf2_msgs/TFMessage") == [
+        "geometry_msgs/TransformStamped", "std_msgs/Header", "builtin_interfaces/Time",
+        "geometry_msgs/Transform", "geometry_msgs/Vector3", "geometry_msgs/Quaternion"]
+    for name in DEFINITIONS:
+        body = schema_text(name)
+        assert body.count("MSG: ") == len(dependencies(name))
+        for dep in dependencies(name):
+            assert f"MSG: {dep}\n" in body
+
+
+# ---- bad input ---------------------------------------------------------------------------------
+
+
+def refused(capsys, *argv: str) -> str:
+    code = main(list(argv))
+    err = capsys.readouterr().err
+    assert code == EXIT_USER_ERROR, err
+    assert err.count("\n") == 1 and err.startswith("cochlea-mcap: ") and "Traceback" not in err
+    return err
+
+
+def no_output(folder: Path) -> None:
+    """Nothing of an export left in ``folder``: no MCAP and no hidden temporary file."""
+    left = [p.name for p in folder.iterdir() if p.suffix == ".mcap" or ".tmp" in p.name]
+    assert not left, left
+
+
+def copy_run(runs, tmp_path: Path, name: str = "serial_task_rt") -> Path:
+    return Path(shutil.copytree(runs[name], tmp_path / "run"))
+
+
+def test_not_a_run(capsys, tmp_path, runs):
+    assert "is missing" in refused(capsys, str(tmp_path / "nothing"))
+    (tmp_path / "file").write_text("x")
+    assert "not a folder" in refused(capsys, str(tmp_path / "file"))
+    (tmp_path / "empty").mkdir()
+    assert "summary.json is missing" in refused(capsys, str(tmp_path / "empty"))
+    run = copy_run(runs, tmp_path)
+    (run / "log.csv").unlink()  # a run whose report was lost: log.bin only
+    assert "log.bin holds the raw log" in refused(capsys, str(run))
+    no_output(run)
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("cut_mid_row", "is damaged"),
+    ("cut_at_row", "truncated"),
+    ("not_a_number", "is damaged"),
+    ("time_backwards", "not after the row before"),
+    ("header", "header"),
+    ("summary_json", "not JSON"),
+    ("summary_robot", "no robot"),
+    ("missing_columns", "is not this run's log"),
+])
+def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damage, message):
+    run = copy_run(runs, tmp_path)
+    csv = run / "log.csv"
+    lines = csv.read_text().splitlines(keepends=True)
+    if damage == "cut_mid_row":
+        csv.write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2])
+    elif damage == "cut_at_row":
+        csv.write_text("".join(lines[:-5]))
+    elif damage == "not_a_number":
+        cells = lines[100].split(",")
+        cells[3] = "0.1x"
+        lines[100] = ",".join(cells)
+        csv.write_text("".join(lines))
+    elif damage == "time_backwards":
+        lines[150], lines[151] = lines[151], lines[150]
+        csv.write_text("".join(lines))
+    elif damage == "header":
+        csv.write_text("t," + "".join(lines)[len("time_s,"):])
+    elif damage == "summary_json":
+        (run / "summary.json").write_text((run / "summary.json").read_text()[:100])
+    elif damage == "summary_robot":
+        (run / "summary.json").write_text("{}")
+    elif damage == "missing_columns":
+        cells = [line.rstrip("\n").split(",") for line in lines]
+        drop = cells[0].index("arm2.tau.joint3_Nm")
+        csv.write_text("".join(",".join(c[:drop] + c[drop + 1:]) + "\n" for c in cells))
+    # An earlier export stays as it was when a new one fails.
+    previous = run / "log.mcap"
+    previous.write_bytes(b"previous export")
+    assert message in refused(capsys, str(run))
+    assert previous.read_bytes() == b"previous export"
+    previous.unlink()
+    no_output(run)
+
+
+def test_bad_outputs(capsys, tmp_path, runs):
+    run = copy_run(runs, tmp_path)
+    (tmp_path / "folder.mcap").mkdir()
+    assert "not a regular file" in refused(capsys, str(run), "--out", str(tmp_path / "folder.mcap"))
+    assert "not a regular file" in refused(capsys, str(run), "--out", "/dev/null")
+    os.mkfifo(tmp_path / "pipe.mcap")
+    assert "not a regular file" in refused(capsys, str(run), "--out", str(tmp_path / "pipe.mcap"))
+    (tmp_path / "afile").write_text("x")
+    assert "does not exist" in refused(capsys, str(run), "--out",
+                                       str(tmp_path / "afile" / "x.mcap"))
+    assert "does not exist" in refused(capsys, str(run), "--out",
+                                       str(tmp_path / "no" / "x.mcap"))
+    os.symlink(tmp_path / "nowhere", tmp_path / "dangling.mcap")
+    assert "cannot use it" in refused(capsys, str(run), "--out",
+                                      str(tmp_path / "dangling.mcap"))
+    no_output(run)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "afile", "dangling.mcap", "folder.mcap", "pipe.mcap", "run"]
+
+
+def test_unwritable_output_folder(capsys, tmp_path, runs):
+    """A folder no one may create files in (/proc: even root cannot) and, for a user, a folder
+    without write permission."""
+    run = copy_run(runs, tmp_path)
+    err = refused(capsys, str(run), "--out", "/proc/cochlea-test.mcap")
+    assert "not writable" in err or "cannot write it" in err
+    assert not os.path.lexists("/proc/cochlea-test.mcap")
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    if os.geteuid() != 0:  # root writes any folder whatever its mode
+        assert "not writable" in refused(capsys, str(run), "--out", str(locked / "x.mcap"))
+    assert not list(locked.iterdir())
+
+
+def test_write_failure_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
+    """A write that fails part way (a full disk: ENOSPC) is one line, and neither the output
+    nor its temporary file is left."""
+    import cochlea.export.to_mcap as to_mcap
+
+    run = copy_run(runs, tmp_path)
+    real = to_mcap.Exporter.write
+    calls = {"n": 0}
+
+    def failing(self, *args):
+        calls["n"] += 1
+        if calls["n"] == 2000:
+            raise OSError(28, "No space left on device")
+        return real(self, *args)
+
+    monkeypatch.setattr(to_mcap.Exporter, "write", failing)
+    assert "No space left on device" in refused(capsys, str(run))
+    no_output(run)
+
+
+def test_existing_output_file_is_replaced_whole(tmp_path, runs):
+    run = copy_run(runs, tmp_path, "parallel_joint_fast")
+    out = run / "log.mcap"
+    out.write_bytes(b"old")
+    assert main([str(run)]) == 0  # the default output
+    assert len(read_mcap(out)["/tf"]) == len(read_log(run)[1])
+    no_output_left = [p.name for p in run.iterdir() if ".tmp" in p.name]
+    assert not no_output_left
+
+
+def test_command_line(tmp_path, runs):
+    """The installed command's module: the default output, a one-line report, exit 0; and a
+    bad input from the shell, exit 2 without a traceback."""
+    run = copy_run(runs, tmp_path, "serial_joint_fast")
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_mcap", str(run)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"cochlea-mcap: wrote {run / 'log.mcap'}: ")
+    assert (run / "log.mcap").is_file()
+    bad = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_mcap", str(tmp_path)],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1
+    assert "Traceback" not in bad.stderr
+
+
+# ---- folders of the hardware paths (the virtual Dynamixel chain) -------------------------------
+
+
+@pytest.mark.hil
+def test_embedded_program_and_dynamixel_runs_export(tmp_path):
+    """The embedded C program's folder (no pose columns, its own summary) and cochlea-run's on
+    the virtual chain (measured state only, currents) export like the others: joint states of
+    every row, /tf on each, no true-state topic where the log has no true state."""
+    from tests.test_dynamixel_hil import run as cochlea_run_dxl
+    from tests.test_embedded_program import PATIENT, on_emulator
+    from tests.test_embedded_program import emulator as settled_emulator
+
+    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result, c_out, _ = on_emulator(ROOT / "build" / "cochlea-embedded", tmp_path,
+                                   ("serial", "serial_joint"), "--scenario", "serial_joint",
+                                   "--duration", "0.3", *PATIENT)
+    assert result.returncode == 0, result.stderr
+    py_out = tmp_path / "py"
+    with settled_emulator("serial", "serial_joint", tmp_path / "py.log") as port:
+        ran = cochlea_run_dxl("--robot", "serial", "--space", "joint", "--backend", "dynamixel",
+                              "--port", port, "--duration", "0.3", "--out", str(py_out),
+                              cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    for folder in (c_out, py_out):
+        topics = export(folder, tmp_path, f"{folder.name}.mcap")
+        header, rows = read_log(folder)
+        for unit in ("arm1", "arm2"):
+            messages = topics[f"/{unit}/joint_states"]
+            assert len(messages) == len(rows)
+            q, tau = columns(header, f"{unit}.q."), columns(header, f"{unit}.tau.")
+            for k, (log_time, _, _, msg) in enumerate(messages):
+                assert log_time == round(rows[k, 0] * 1e9)
+                np.testing.assert_allclose(msg.position, rows[k, q], rtol=0, atol=TOL)
+                np.testing.assert_allclose(msg.effort, rows[k, tau], rtol=0, atol=TOL)
+            assert f"/{unit}/true/joint_states" not in topics
+            assert len(topics[f"/{unit}/current"]) == len(rows)
+        assert len(topics["/tf"]) == len(rows)
