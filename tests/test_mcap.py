@@ -245,6 +245,26 @@ def test_tf_is_the_models_forward_kinematics(runs, exported, name):
                     assert t.header.stamp.sec * 10**9 + t.header.stamp.nanosec == log_time
 
 
+@pytest.mark.parametrize("chunk", [37, 100])
+def test_chunked_reading_gives_the_same_messages(runs, exported, tmp_path, monkeypatch, chunk):
+    """Long logs are read a chunk of rows at a time: with chunks that split the 300 rows
+    unevenly (37) or evenly (100, then an empty read), every message is the same as read in
+    one chunk."""
+    import warnings
+
+    import cochlea.export.run_log as run_log
+
+    monkeypatch.setattr(run_log, "CHUNK_ROWS", chunk)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "empty input" warning at a chunk's end either
+        topics = export(runs["serial_task_rt"], tmp_path)
+    whole = exported["serial_task_rt"]
+    assert topics.keys() == whole.keys()
+    for topic, messages in whole.items():
+        assert [(a, b, c, repr(d)) for a, b, c, d in topics[topic]] == \
+            [(a, b, c, repr(d)) for a, b, c, d in messages], topic
+
+
 def test_quaternions_of_rotations(rng):
     """All four branches of the matrix-to-quaternion conversion (rotations by angles near 0,
     and near pi about each axis) give back the matrix."""

@@ -15,6 +15,7 @@ import json
 import math
 import os
 import stat
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -85,8 +86,10 @@ class RunLog:
             while True:
                 first_line = count + 2  # the file's line number of the chunk's first row
                 try:
-                    rows = np.loadtxt(f, delimiter=",", max_rows=CHUNK_ROWS, ndmin=2,
-                                      dtype=np.float64)
+                    with warnings.catch_warnings():  # the end of a log that fills its chunks
+                        warnings.filterwarnings("ignore", "loadtxt: input contained no data")
+                        rows = np.loadtxt(f, delimiter=",", max_rows=CHUNK_ROWS, ndmin=2,
+                                          dtype=np.float64)
                 except (ValueError, UnicodeDecodeError) as exc:
                     raise RunFolderError(
                         f"{self.csv} is damaged: a row from line {first_line} on is not "
