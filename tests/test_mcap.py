@@ -450,6 +450,47 @@ def test_write_failure_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     no_output(run)
 
 
+def test_interrupt_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
+    """Ctrl-C part way: exit 130, one line, neither the output nor its temporary file."""
+    import cochlea.export.to_mcap as to_mcap
+
+    run = copy_run(runs, tmp_path)
+    real = to_mcap.Exporter.write
+    calls = {"n": 0}
+
+    def interrupted(self, *args):
+        calls["n"] += 1
+        if calls["n"] == 1500:
+            raise KeyboardInterrupt
+        return real(self, *args)
+
+    monkeypatch.setattr(to_mcap.Exporter, "write", interrupted)
+    assert main([str(run)]) == 130
+    err = capsys.readouterr().err
+    assert err == "cochlea-mcap: interrupted; nothing written\n"
+    no_output(run)
+
+
+def test_non_finite_rows_have_no_transforms(tmp_path, runs):
+    """A row whose measured q is not finite (a run stopped by the rule non-finite) keeps its
+    joint states (NaN as logged) but has no /tf message; every other row has one."""
+    run = copy_run(runs, tmp_path, "parallel_joint_fast")
+    csv = run / "log.csv"
+    lines = csv.read_text().splitlines(keepends=True)
+    column = lines[0].split(",").index("mechanism.q.left.th2_rad")
+    cells = lines[120].split(",")
+    cells[column] = "nan"
+    lines[120] = ",".join(cells)
+    csv.write_text("".join(lines))
+    header, rows = read_log(run)
+    topics = export(run, tmp_path)
+    bad_ns = round(rows[119, 0] * 1e9)
+    assert len(topics["/tf"]) == len(rows) - 1
+    assert bad_ns not in {t for t, _, _, _ in topics["/tf"]}
+    states = topics["/mechanism/joint_states"]
+    assert len(states) == len(rows) and np.isnan(states[119][3].position[1])
+
+
 def test_existing_output_file_is_replaced_whole(tmp_path, runs):
     run = copy_run(runs, tmp_path, "parallel_joint_fast")
     out = run / "log.mcap"
