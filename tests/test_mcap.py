@@ -193,7 +193,19 @@ def test_tool_poses_are_the_logged_poses(runs, exported):
         msg = topics[f"/mechanism/{tool}_pose/actual"][-1][3]
         np.testing.assert_allclose([msg.pose.position.x, msg.pose.position.y],
                                    rows[-1, [i, i + 1]], rtol=0, atol=TOL)
-    assert "/mechanism/tool1_pose/desired" not in topics  # joint space: the joints' path
+    # Joint space: the desired tool poses are the model's fk_world at the desired joints.
+    adapter = robot("parallel")
+    fk = adapter.model(adapter.load(None), "mechanism").fk_world
+    desired = columns(header, "mechanism.desired.")
+    for k in (0, 150, len(rows) - 1):
+        pose = np.array(fk(rows[k, desired])).ravel()
+        for i, tool in enumerate(("tool1", "tool2")):
+            msg = topics[f"/mechanism/{tool}_pose/desired"][k][3]
+            np.testing.assert_allclose([msg.pose.position.x, msg.pose.position.y],
+                                       pose[3 * i:3 * i + 2], rtol=0, atol=1e-15)
+            o = msg.pose.orientation
+            assert abs(np.angle(np.exp(1j * (2 * np.arctan2(o.z, o.w) - pose[3 * i + 2])))) \
+                < 1e-12
 
 
 def compose(transforms: list, frame: str) -> np.ndarray:
@@ -554,4 +566,14 @@ def test_embedded_program_and_dynamixel_runs_export(tmp_path):
                 np.testing.assert_allclose(msg.effort, rows[k, tau], rtol=0, atol=TOL)
             assert f"/{unit}/true/joint_states" not in topics
             assert len(topics[f"/{unit}/current"]) == len(rows)
+            # cochlea-run logs the pose; the embedded program does not, and the actual tool
+            # pose is then fk_world at q.
+            fk = robot("serial").model(robot("serial").load(None), unit).fk_world
+            pose = columns(header, f"{unit}.pose.")
+            assert len(pose) == (0 if folder == c_out else 3)
+            for k in (0, len(rows) - 1):
+                msg = topics[f"/{unit}/tool_pose/actual"][k][3]
+                expected = rows[k, pose[:2]] if pose else np.array(fk(rows[k, q])).ravel()[:2]
+                np.testing.assert_allclose([msg.pose.position.x, msg.pose.position.y],
+                                           expected, rtol=0, atol=TOL)
         assert len(topics["/tf"]) == len(rows)

@@ -10,7 +10,9 @@ in nanoseconds:
 * ``/tf`` (``tf2_msgs/msg/TFMessage``): every body frame of every unit at the measured joint
   position, by the robot's forward kinematics (``RobotAdapter.link_frames``);
 * ``/UNIT/tool_pose/actual|true|desired`` (``geometry_msgs/msg/PoseStamped``): the planar tool
-  poses of the log's ``pose``, ``true_pose`` and (task-space runs) ``desired`` columns;
+  poses of the log's ``pose``, ``true_pose`` and (task-space runs) ``desired`` columns; the
+  model's ``fk_world`` at the desired joints in joint space, and at ``q`` for a log without
+  ``pose`` (the embedded program's);
 * ``/UNIT/GROUP`` (``std_msgs/msg/Float64MultiArray``) for every column group of the log
   (``p_hat``, ``tau``, ``error``, ...), its layout's one dimension labelled with the
   elements' names and units; ``/run/timing`` the run-level columns of a real-time run;
@@ -115,6 +117,7 @@ class Exporter:
         self.counts: dict[str, int] = {}
         self.frames = {u.name: run.adapter.link_frames(run.system, u.name) for u in run.units}
         self._maps = {}
+        self._fk = {}
 
     def schema(self, name: str):
         if name not in self.schemas:
@@ -142,17 +145,48 @@ class Exporter:
                         "desired_dot", None))
         return out
 
-    def poses(self, unit: UnitColumns) -> list[tuple[str, tuple[int, int, int]]]:
+    def poses(self, unit: UnitColumns) -> list[tuple[str, tuple]]:
+        """``(topic, source)`` of a unit's tool poses: ``source`` the ``(x, y, angle)`` columns
+        of a logged pose, or ``("fk", group, i)``: tool ``i`` of the robot model's
+        ``fk_world`` at the joints of ``group`` (the desired pose of a joint-space run; the
+        actual pose of a log without ``pose`` columns, the embedded program's)."""
         g = unit.groups
+        joints = g["q"].elements
+        n_tools = int(self.fk_world(unit.name).size1_out(0)) // 3
         out = []
-        sources = [("actual", g.get("pose")), ("true", g.get("true_pose"))]
-        if "pose" in g and "desired" in g and g["desired"].elements == g["pose"].elements:
-            sources.append(("desired", g["desired"]))
-        for label, group in sources:
-            triples = planar_poses(group)
-            for i, triple in enumerate(triples or ()):
+        sources = [("actual", planar_poses(g.get("pose")) or
+                    [("fk", "q", i) for i in range(n_tools)]),
+                   ("true", planar_poses(g.get("true_pose")))]
+        desired = g.get("desired")
+        if desired is not None and "pose" in g and desired.elements == g["pose"].elements:
+            sources.append(("desired", planar_poses(desired)))
+        elif desired is not None and desired.elements == joints:
+            sources.append(("desired", [("fk", "desired", i) for i in range(n_tools)]))
+        for label, triples in sources:
+            for i, source in enumerate(triples or ()):
                 tool = "tool_pose" if len(triples) == 1 else f"tool{i + 1}_pose"
-                out.append((topic_name(unit.name, tool, label), triple))
+                out.append((topic_name(unit.name, tool, label), source))
+        return out
+
+    def fk_world(self, unit: str):
+        """The unit's tool poses in the world, ``q -> (x, y, phi) per tool`` (the model's)."""
+        if unit not in self._fk:
+            self._fk[unit] = self.run.adapter.model(self.run.system, unit).fk_world
+        return self._fk[unit]
+
+    def pose_values(self, unit: UnitColumns, sources: list, rows: np.ndarray) -> list:
+        """Per pose topic of ``unit``, the chunk's ``(n, 3)`` x (m), y (m), angle (rad)."""
+        computed, out = {}, []
+        for _, source in sources:
+            if source[0] == "fk":
+                _, group, i = source
+                if group not in computed:
+                    q = rows[:, unit.groups[group].columns]
+                    computed[group] = np.array(
+                        self.fk_world(unit.name).map(len(rows))(q.T)).T
+                out.append(computed[group][:, 3 * i:3 * i + 3])
+            else:
+                out.append(rows[:, list(source)])
         return out
 
     def export(self) -> dict[str, int]:
@@ -174,6 +208,7 @@ class Exporter:
                 first_ns = int(ns_all[0])
                 self.events_at_start(first_ns)
             tf = self.transforms(rows)
+            pose_values = {u.name: self.pose_values(u, poses[u.name], rows) for u in run.units}
             for k, row in enumerate(rows):
                 ns = int(ns_all[k])
                 header = {"stamp": stamp(ns), "frame_id": WORLD}
@@ -187,12 +222,12 @@ class Exporter:
                             "position": row[g[pos].columns].tolist(),
                             "velocity": row[g[vel].columns].tolist(),
                             "effort": row[g[eff].columns].tolist() if eff else []}, ns)
-                    for topic, (ix, iy, ia) in poses[unit.name]:
+                    for (topic, _), values in zip(poses[unit.name], pose_values[unit.name]):
+                        x, y, angle = values[k].tolist()
                         self.write(topic, "geometry_msgs/PoseStamped", {
                             "header": header, "pose": {
-                                "position": {"x": float(row[ix]), "y": float(row[iy]),
-                                             "z": 0.0},
-                                "orientation": yaw_quaternion(float(row[ia]))}}, ns)
+                                "position": {"x": x, "y": y, "z": 0.0},
+                                "orientation": yaw_quaternion(angle)}}, ns)
                 for topic, group in arrays:
                     label = ",".join(group.elements)
                     self.write(topic, "std_msgs/Float64MultiArray", {
