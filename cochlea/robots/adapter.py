@@ -23,6 +23,8 @@ robot's name:
 * ``calibration_reference``, ``positive_direction``: ``cochlea-dxl calibrate``'s prompts;
 * ``print_summary(system, args)`` and ``draw(system, q, path, title)``: ``cochlea-model``'s
   text and the robot's figure.
+* ``link_frames(system, unit)``: every body frame of a unit as a function of its joints
+  (:class:`LinkFrames`; ``cochlea-mcap``'s ``/tf``).
 
 Code outside :mod:`cochlea.robots` asks these instead of comparing a robot's name or importing
 :mod:`cochlea.robots.serial` or :mod:`cochlea.robots.parallel` (``tests/test_architecture.py``
