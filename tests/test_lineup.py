@@ -9,8 +9,9 @@ not from the data files:
   https://emanual.robotis.com/docs/en/dxl/x/xm430-w350/#control-table, XL330-M288
   https://emanual.robotis.com/docs/en/dxl/x/xl330-m288/#control-table, XC330-T288
   https://emanual.robotis.com/docs/en/dxl/x/xc330-t288/#control-table, XH430-V350
-  https://emanual.robotis.com/docs/en/dxl/x/xh430-v350/#control-table (the same addresses
-  and sizes on all four pages), MX-64(2.0) (/work/shared/reference/dynamixel.md).
+  https://emanual.robotis.com/docs/en/dxl/x/xh430-v350/#control-table, XM430-W210, XH430-W210,
+  XH430-W350, XM540-W150, XH540-W270, XH540-V270 (the same addresses and sizes on all these
+  pages), MX-64(2.0) (/work/shared/reference/dynamixel.md).
 * P series: PH54-200-S500-R https://emanual.robotis.com/docs/en/dxl/p/ph54-200-s500-r/,
   PH42-020-S300-R https://emanual.robotis.com/docs/en/dxl/p/ph42-020-s300-r/, PM54-060-S250-R
   https://emanual.robotis.com/docs/en/dxl/p/pm54-060-s250-r/ (the same addresses).
@@ -66,11 +67,12 @@ EMANUAL_MODELS = {
     "PM54-060-S250-R": (2120, 1.0, 7980),
     "XL330-M077": (1190, None, None), "XC330-M181": (1230, None, None),
     "XC330-M288": (1240, None, None), "XC330-T181": (1210, None, None),
-    "XM430-W210": (1030, None, None), "XH430-W210": (1010, None, None),
-    "XH430-W350": (1000, None, None), "XH430-V210": (1050, None, None),
-    "XM540-W150": (1130, None, None), "XH540-W150": (1110, None, None),
-    "XH540-W270": (1100, None, None), "XH540-V150": (1150, None, None),
-    "XH540-V270": (1140, None, None), "XW430-T200": (1280, None, None),
+    "XM430-W210": (1030, 2.69, 1193), "XH430-W350": (1000, 2.69, 648),
+    "XM540-W150": (1130, 2.69, 2047), "XH540-W270": (1100, 2.69, 2047),
+    "XH540-V270": (1140, 2.69, 2047),
+    "XH430-W210": (1010, None, 648), "XH430-V210": (1050, None, None),
+    "XH540-W150": (1110, None, None), "XH540-V150": (1150, None, None),
+    "XW430-T200": (1280, None, None),
     "XW430-T333": (1270, None, None), "XW540-T140": (1180, None, None),
     "XW540-T260": (1170, None, None), "MX-106": (321, None, None),
     "PH54-100-S500-R": (2010, 1.0, None), "PM54-040-S250-R": (2110, 1.0, None),
@@ -179,9 +181,13 @@ def test_a_model_without_current_control_is_refused(tmp_path, model):
 
 
 def test_a_model_whose_current_data_is_unsourced_is_refused(tmp_path):
-    with pytest.raises(DescriptionError, match=r"the XM430-W210's current_unit_mA and "
+    with pytest.raises(DescriptionError, match=r"the XH430-V210's current_unit_mA and "
                        r"current_limit_max are not sourced yet"):
-        load_scenario(_user_robot(tmp_path, "XM430-W210"))
+        load_scenario(_user_robot(tmp_path, "XH430-V210"))
+    with pytest.raises(DescriptionError, match=r"the XH430-W210's current_unit_mA is not "
+                       r"sourced yet \(cochlea/dynamixel/models/x430.toml\): add it from "
+                       r"https://emanual.robotis.com/docs/en/dxl/x/xh430-w210/"):
+        load_scenario(_user_robot(tmp_path, "XH430-W210"))
 
 
 def test_a_current_limit_above_the_model_s_is_refused(tmp_path):

@@ -228,8 +228,9 @@ class ModelSpec:
         missing = [f for f in ("current_unit_mA", "current_limit_max")
                    if getattr(self, f) is None]
         if missing:
-            return (f"the {self.name}'s {' and '.join(missing)} are not sourced yet "
-                    f"(cochlea/dynamixel/models/{self.source_file}): add them from {self.url}")
+            are, them = ("are", "them") if len(missing) > 1 else ("is", "it")
+            return (f"the {self.name}'s {' and '.join(missing)} {are} not sourced yet "
+                    f"(cochlea/dynamixel/models/{self.source_file}): add {them} from {self.url}")
         return None
 
     def baud_problem(self, baud: int) -> str | None:
