@@ -10,8 +10,8 @@ not from the data files:
   https://emanual.robotis.com/docs/en/dxl/x/xl330-m288/#control-table, XC330-T288
   https://emanual.robotis.com/docs/en/dxl/x/xc330-t288/#control-table, XH430-V350
   https://emanual.robotis.com/docs/en/dxl/x/xh430-v350/#control-table, XM430-W210, XH430-W210,
-  XH430-W350, XM540-W150, XH540-W270, XH540-V270 (the same addresses and sizes on all these
-  pages), MX-64(2.0) (/work/shared/reference/dynamixel.md).
+  XH430-W350, XM540-W150, XH540-W270, XH540-V270, XL330-M077, XC330-M181, XC330-M288,
+  XC330-T181 (the same addresses and sizes on all these pages), MX-64(2.0) (/work/shared/reference/dynamixel.md).
 * P series: PH54-200-S500-R https://emanual.robotis.com/docs/en/dxl/p/ph54-200-s500-r/,
   PH42-020-S300-R https://emanual.robotis.com/docs/en/dxl/p/ph42-020-s300-r/, PM54-060-S250-R
   https://emanual.robotis.com/docs/en/dxl/p/pm54-060-s250-r/ (the same addresses).
@@ -65,8 +65,8 @@ EMANUAL_MODELS = {
     "XL330-M288": (1200, 1.0, 1750), "XC330-T288": (1220, 1.0, 910),
     "PH54-200-S500-R": (2020, 1.0, 22740), "PH42-020-S300-R": (2000, 1.0, 4500),
     "PM54-060-S250-R": (2120, 1.0, 7980),
-    "XL330-M077": (1190, None, None), "XC330-M181": (1230, None, None),
-    "XC330-M288": (1240, None, None), "XC330-T181": (1210, None, None),
+    "XL330-M077": (1190, 1.0, 1750), "XC330-M181": (1230, 1.0, 2352),
+    "XC330-M288": (1240, 1.0, 2352), "XC330-T181": (1210, 1.0, 910),
     "XM430-W210": (1030, 2.69, 1193), "XH430-W350": (1000, 2.69, 648),
     "XM540-W150": (1130, 2.69, 2047), "XH540-W270": (1100, 2.69, 2047),
     "XH540-V270": (1140, 2.69, 2047),
