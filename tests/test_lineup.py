@@ -11,7 +11,8 @@ not from the data files:
   https://emanual.robotis.com/docs/en/dxl/x/xc330-t288/#control-table, XH430-V350
   https://emanual.robotis.com/docs/en/dxl/x/xh430-v350/#control-table, XM430-W210, XH430-W210,
   XH430-W350, XM540-W150, XH540-W270, XH540-V270, XL330-M077, XC330-M181, XC330-M288,
-  XC330-T181 (the same addresses and sizes on all these pages), MX-64(2.0) (/work/shared/reference/dynamixel.md).
+  XC330-T181 (the same addresses and sizes on all these pages), MX-64(2.0)
+  (/work/shared/reference/dynamixel.md).
 * P series: PH54-200-S500-R https://emanual.robotis.com/docs/en/dxl/p/ph54-200-s500-r/,
   PH42-020-S300-R https://emanual.robotis.com/docs/en/dxl/p/ph42-020-s300-r/, PM54-060-S250-R
   https://emanual.robotis.com/docs/en/dxl/p/pm54-060-s250-r/ (the same addresses).
