@@ -11,8 +11,8 @@ not from the data files:
   https://emanual.robotis.com/docs/en/dxl/x/xc330-t288/#control-table, XH430-V350
   https://emanual.robotis.com/docs/en/dxl/x/xh430-v350/#control-table, XM430-W210, XH430-W210,
   XH430-W350, XM540-W150, XH540-W270, XH540-V270, XL330-M077, XC330-M181, XC330-M288,
-  XC330-T181 (the same addresses and sizes on all these pages), MX-64(2.0)
-  (/work/shared/reference/dynamixel.md).
+  XC330-T181, XW540-T140, MX-106(2.0) (the same addresses and sizes on all these pages),
+  MX-64(2.0) (/work/shared/reference/dynamixel.md).
 * P series: PH54-200-S500-R https://emanual.robotis.com/docs/en/dxl/p/ph54-200-s500-r/,
   PH42-020-S300-R https://emanual.robotis.com/docs/en/dxl/p/ph42-020-s300-r/, PM54-060-S250-R
   https://emanual.robotis.com/docs/en/dxl/p/pm54-060-s250-r/ (the same addresses).
@@ -74,8 +74,8 @@ EMANUAL_MODELS = {
     "XH430-W210": (1010, None, 648), "XH430-V210": (1050, None, None),
     "XH540-W150": (1110, None, None), "XH540-V150": (1150, None, None),
     "XW430-T200": (1280, None, None),
-    "XW430-T333": (1270, None, None), "XW540-T140": (1180, None, None),
-    "XW540-T260": (1170, None, None), "MX-106": (321, None, None),
+    "XW430-T333": (1270, None, None), "XW540-T140": (1180, 2.69, 2047),
+    "XW540-T260": (1170, None, None), "MX-106": (321, 3.36, 2047),
     "PH54-100-S500-R": (2010, 1.0, None), "PM54-040-S250-R": (2110, 1.0, None),
     "PM42-010-S260-R": (2100, 1.0, None),
     # Without Current Control mode (item 2 refuses them in a description).
