@@ -106,8 +106,7 @@ def test_every_model_at_its_e_manual_addresses(name):
     assert spec.url.startswith("https://emanual.robotis.com/docs/en/dxl/")
     # Unsourced values are None and named, never filled in.
     for field in ct.SOURCED_FIELDS:
-        assert (getattr(spec, field) is None) == (field in spec.unsourced) or (
-            field == "baud_rates"), field
+        assert (getattr(spec, field) is None) == (field in spec.unsourced), field
 
 
 def test_units_per_layout():

@@ -298,7 +298,7 @@ def _read_toml(name: str, text: bytes) -> dict:
 _ITEM_KEYS = {"name", "address", "size", "access", "default", "min", "max", "signed", "unit",
               "only_if"}
 _LAYOUT_KEYS = {"layout", "url", "counts_per_rev", "velocity_unit_rpm", "emulator_firmware",
-                "baud_rates", "fallback", "unsourced", "item"}
+                "fallback", "unsourced", "item"}
 
 
 def _layout(name: str, data: dict) -> dict:
@@ -317,9 +317,6 @@ def _layout(name: str, data: dict) -> dict:
     if "velocity_unit_rpm" in data:
         _check(_is_num(data["velocity_unit_rpm"]) and data["velocity_unit_rpm"] > 0,
                f"{name}: velocity_unit_rpm", "a positive number", data["velocity_unit_rpm"])
-    if "baud_rates" in data:
-        ok, expected = _field_ok("baud_rates", data["baud_rates"])
-        _check(ok, f"{name}: baud_rates", expected, data["baud_rates"])
     raw = data.get("item")
     _check(isinstance(raw, list) and bool(raw) and all(isinstance(i, dict) for i in raw),
            f"{name}: item", "one or more [[item]] tables", raw)
@@ -449,8 +446,7 @@ def _model(file: str, family: str, layout: dict, k: int, m: object) -> ModelSpec
     firmware = m.get("emulator_firmware", layout.get("emulator_firmware", 0))
     _check(_is_int(firmware) and 0 <= firmware < 256, f"{where}.emulator_firmware",
            "an integer in 0..255", firmware)
-    baud = fields.get("baud_rates") or (None if "baud_rates" in unsourced
-                                        else layout.get("baud_rates"))
+    baud = fields["baud_rates"]
     unit = fields["current_unit_mA"]
     return ModelSpec(
         name, number, firmware, None if unit is None else float(unit),
