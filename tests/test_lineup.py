@@ -207,9 +207,14 @@ def test_a_baud_rate_the_model_does_not_take_is_refused(tmp_path):
     assert str(info.value) == ("ID 1 (arm.upper, XL330-M288): the XL330-M288 does not support "
                                "4500000 baud (it takes 9600, 57600, 115200, 1000000, 2000000, "
                                "3000000, 4000000)")
+    from cochlea.dynamixel.bridge import DynamixelBackend
     from cochlea.dynamixel.emulator import VirtualChain
     with pytest.raises(CochleaError, match="does not support 4500000 baud"):
         VirtualChain("serial", tmp_path / "planar2_joint.toml", baud=4_500_000)
+    # The bridge refuses before it opens the port (this path does not exist).
+    with pytest.raises(BackendError, match="ID 1 .*does not support 4500000 baud"):
+        DynamixelBackend("serial", str(tmp_path / "no-port"), baud=4_500_000,
+                         description=str(tmp_path / "planar2.toml"))
 
 
 def test_a_p_series_motor_loads_but_no_x_addressed_component_takes_it(tmp_path):
