@@ -2,8 +2,8 @@
 
 Modules, one concept each:
 
-* :mod:`~cochlea.dynamixel.control_table` -- the two motor models' control tables (MX-64(2.0),
-  XM540-W270): addresses, sizes, access, ranges, units;
+* :mod:`~cochlea.dynamixel.control_table` -- the motor models (the lineup's data files in
+  ``models/``) and their control tables: addresses, sizes, access, ranges, units;
 * :mod:`~cochlea.dynamixel.protocol` -- Protocol 2.0 frames: CRC-16, byte stuffing, instruction
   builders and a streaming packet parser that reports every failure as a value;
 * :mod:`~cochlea.dynamixel.drives` -- joint <-> motor conversions and the torque/current fit;

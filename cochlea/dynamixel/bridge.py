@@ -81,7 +81,7 @@ from .control_table import (
     describe_error,
     describe_hardware_error,
 )
-from .drives import DEFAULT_RAMP_NM, JointDrive, joint_drives
+from .drives import DEFAULT_RAMP_NM, JointDrive, check_baud, joint_drives
 from .port import SerialPort, latency_timer_ms
 
 #: Failure kinds a period can report (index into ``DynamixelBackend.failures``).
@@ -155,6 +155,7 @@ class DynamixelBackend:
         self.baud = int(baud)
         self.drives: list[JointDrive] = joint_drives(robot, description, ramp_Nm,
                                                     system=system)
+        check_baud(self.drives, self.baud)  # a rate one of the models does not take
         self.nq = n = len(self.drives)
         self.ids = [d.id for d in self.drives]
         if not 0.02 <= watchdog_s <= 127 * WATCHDOG_UNIT_S:

@@ -1,9 +1,12 @@
-"""Control tables of the two motor models the robots use, in Protocol 2.0 (ROBOTIS e-Manual).
+"""The Dynamixel motor models and their control tables, Protocol 2.0 (ROBOTIS e-Manual).
 
-Both MX-64(2.0) and XM540-W270 share the addresses below; they differ in model number, the
-current unit and a few limits. Items at addresses below 64 live in EEPROM and accept writes only
-while Torque Enable (64) is 0. Multi-byte items are little-endian; ``signed`` items are two's
-complement.
+The models are data (``cochlea/dynamixel/models/*.toml``, docs/dynamixel.md "Models"): one
+file per family with each model's number, units, limits, baud rates and datasheet figures (a
+value no source gave is listed as unsourced, never guessed), and one file per control-table
+layout with each item's address, size, access, range and unit. The X series and MX(2.0) share
+one layout (the addresses below); the P series has another. Items at addresses below 64 live
+in EEPROM and accept writes only while Torque Enable (64) is 0. Multi-byte items are
+little-endian; ``signed`` items are two's complement.
 
 Only the items the bridge and the emulator use, plus their neighbours in the documented table,
 are listed; indirect addresses and the external ports are left out.
@@ -13,7 +16,10 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
+import tomllib
 from dataclasses import dataclass
+from importlib import resources
 
 from ..errors import CochleaError
 
@@ -141,26 +147,70 @@ class Gearbox:
         return math.radians(self.backlash_arcmin / 60.0)
 
 
+#: Every field a model's entry in a family file carries (``cochlea/dynamixel/models/*.toml``),
+#: given or listed in the entry's ``unsourced`` (no source found: never an invented value).
+SOURCED_FIELDS = ("current_unit_mA", "current_limit_max", "baud_rates", "fast_sync_read",
+                  "firmware_from", "gear_ratio", "backlash_arcmin", "stall_torque_Nm",
+                  "stall_current_A", "stall_voltage_V")
+#: ... and per layout, the fields its table needs (a missing one: the layout's fallback).
+LAYOUT_FIELDS = {"x": ("velocity_limit", "position_p_gain", "acceleration_limit"),
+                 "p": ("velocity_limit", "position_limit", "counts_per_rev"),
+                 "xl320": ()}
+#: The layout the bridge, the emulator and the embedded drive tables speak (X addresses).
+BRIDGE_LAYOUT = "x"
+
+
 @dataclass(frozen=True)
 class ModelSpec:
-    """One motor model: its number, units and control table."""
+    """One motor model: its number, units and control table, read from the data files of
+    ``cochlea/dynamixel/models`` (docs/dynamixel.md, "Models"). A value no source gave is
+    None and its name is in ``unsourced``."""
 
     name: str
     number: int  # Model Number (0)
     firmware: int  # Firmware Version (6) the emulator reports
-    current_unit_mA: float  # Goal/Present Current per LSB
-    current_limit_max: int  # largest Current Limit (38), LSB
+    current_unit_mA: float | None  # Goal/Present Current per LSB
+    current_limit_max: int | None  # largest Current Limit (38), LSB
     items: tuple[Item, ...]
     #: The gearbox (:class:`Gearbox`): datasheet figures and labelled estimates.
     gearbox: Gearbox | None = None
+    family: str = ""
+    layout: str = "x"
+    url: str = ""
+    current_control: bool = True
+    #: Baud rates (bit/s) the model accepts; None: not sourced (no check possible).
+    baud_rates: tuple[int, ...] | None = None
+    fast_sync_read: bool | None = None
+    #: The first firmware version with what the bridge needs (Bus Watchdog (98)).
+    firmware_from: int | None = None
+    counts_per_rev: int | None = COUNTS_PER_REV
+    velocity_unit_rpm: float | None = VELOCITY_UNIT_RPM
+    gear_ratio: float | None = None
+    backlash_arcmin: float | None = None
+    stall_torque_Nm: float | None = None
+    stall_current_A: float | None = None
+    stall_voltage_V: float | None = None
+    source_file: str = ""
+    unsourced: tuple[str, ...] = ()
 
     @property
-    def max_current_mA(self) -> float:
+    def max_current_mA(self) -> float | None:
+        if self.current_limit_max is None or self.current_unit_mA is None:
+            return None
         return self.current_limit_max * self.current_unit_mA
 
     @property
     def table_size(self) -> int:
         return max(i.address + i.size for i in self.items)
+
+    @property
+    def rad_per_count(self) -> float | None:
+        return None if self.counts_per_rev is None else 2.0 * math.pi / self.counts_per_rev
+
+    @property
+    def rad_s_per_velocity_lsb(self) -> float | None:
+        return (None if self.velocity_unit_rpm is None
+                else self.velocity_unit_rpm * 2.0 * math.pi / 60.0)
 
     def item(self, name: str) -> Item:
         for it in self.items:
@@ -168,82 +218,312 @@ class ModelSpec:
                 return it
         raise KeyError(name)
 
+    # -- what the toolkit refuses up front ------------------------------------------------
 
-def _items(current_limit: int, velocity_limit: int, position_p: int,
-           acceleration_limit: bool) -> tuple[Item, ...]:
-    R, W = False, True
-    items = [
-        Item("Model Number", 0, 2, R, 0),
-        Item("Model Information", 2, 4, R, 0),
-        Item("Firmware Version", 6, 1, R, 0),
-        Item("ID", 7, 1, W, 1, 0, MAX_ID),
-        Item("Baud Rate", 8, 1, W, 1, 0, 7),
-        Item("Return Delay Time", 9, 1, W, 250, 0, 254),
-        Item("Drive Mode", 10, 1, W, 0, 0, 5),
-        Item("Operating Mode", 11, 1, W, POSITION_MODE, 0, 16),
-        Item("Secondary ID", 12, 1, W, 255, 0, 255),
-        Item("Protocol Type", 13, 1, W, 2, 1, 2),
-        Item("Homing Offset", 20, 4, W, 0, -1_044_479, 1_044_479, True),
-        Item("Moving Threshold", 24, 4, W, 10, 0, 1023),
-        Item("Temperature Limit", 31, 1, W, 80, 0, 100),
-        Item("Max Voltage Limit", 32, 2, W, 160, 95, 160),
-        Item("Min Voltage Limit", 34, 2, W, 95, 95, 160),
-        Item("PWM Limit", 36, 2, W, 885, 0, 885),
-        Item("Current Limit", 38, 2, W, current_limit, 0, current_limit),
-        Item("Velocity Limit", 44, 4, W, velocity_limit, 0, 1023),
-        Item("Max Position Limit", 48, 4, W, 4095, 0, 4095),
-        Item("Min Position Limit", 52, 4, W, 0, 0, 4095),
-        Item("Shutdown", 63, 1, W, 52, 0, 255),
-        Item("Torque Enable", 64, 1, W, 0, 0, 1),
-        Item("LED", 65, 1, W, 0, 0, 1),
-        Item("Status Return Level", 68, 1, W, 2, 0, 2),
-        Item("Registered Instruction", 69, 1, R, 0),
-        Item("Hardware Error Status", 70, 1, R, 0),
-        Item("Velocity I Gain", 76, 2, W, 1920, 0, 16383),
-        Item("Velocity P Gain", 78, 2, W, 100, 0, 16383),
-        Item("Position D Gain", 80, 2, W, 0, 0, 16383),
-        Item("Position I Gain", 82, 2, W, 0, 0, 16383),
-        Item("Position P Gain", 84, 2, W, position_p, 0, 16383),
-        Item("Feedforward 2nd Gain", 88, 2, W, 0, 0, 16383),
-        Item("Feedforward 1st Gain", 90, 2, W, 0, 0, 16383),
-        # Bus Watchdog reads -1 after it tripped; only 0..127 can be written.
-        Item("Bus Watchdog", 98, 1, W, 0, 0, 127, True),
-        # Goal values are bounded by their limits at write time (see the emulator).
-        Item("Goal PWM", 100, 2, W, 0, -885, 885, True),
-        Item("Goal Current", 102, 2, W, current_limit, -current_limit, current_limit, True),
-        Item("Goal Velocity", 104, 4, W, 0, -1023, 1023, True),
-        Item("Profile Acceleration", 108, 4, W, 0, 0, 32767),
-        Item("Profile Velocity", 112, 4, W, 0, 0, 32767),
-        Item("Goal Position", 116, 4, W, 0, -1_048_575, 1_048_575, True),
-        Item("Realtime Tick", 120, 2, R, 0),
-        Item("Moving", 122, 1, R, 0),
-        Item("Moving Status", 123, 1, R, 0),
-        Item("Present PWM", 124, 2, R, 0, signed=True),
-        Item("Present Current", 126, 2, R, 0, signed=True),
-        Item("Present Velocity", 128, 4, R, 0, signed=True),
-        Item("Present Position", 132, 4, R, 0, signed=True),
-        Item("Velocity Trajectory", 136, 4, R, 0, signed=True),
-        Item("Position Trajectory", 140, 4, R, 0, signed=True),
-        Item("Present Input Voltage", 144, 2, R, 120),
-        Item("Present Temperature", 146, 1, R, 30),
-    ]
-    if acceleration_limit:
-        items.append(Item("Acceleration Limit", 40, 4, W, 32767, 0, 32767))
-    return tuple(sorted(items, key=lambda i: i.address))
+    def current_control_problem(self) -> str | None:
+        """Why this model cannot drive a current-controlled joint, or None: no Current
+        Control mode, or its current unit / largest Current Limit not sourced."""
+        if not self.current_control:
+            return f"the {self.name} has no Current Control mode (e-Manual: {self.url})"
+        missing = [f for f in ("current_unit_mA", "current_limit_max")
+                   if getattr(self, f) is None]
+        if missing:
+            are, them = ("are", "them") if len(missing) > 1 else ("is", "it")
+            return (f"the {self.name}'s {' and '.join(missing)} {are} not sourced yet "
+                    f"(cochlea/dynamixel/models/{self.source_file}): add {them} from {self.url}")
+        return None
+
+    def baud_problem(self, baud: int) -> str | None:
+        """Why the model cannot talk at ``baud`` (bit/s), or None."""
+        if self.baud_rates is not None and baud not in self.baud_rates:
+            return (f"the {self.name} does not support {baud} baud (it takes "
+                    + ", ".join(str(b) for b in self.baud_rates) + ")")
+        return None
+
+    def require_layout(self, component: str, layout: str = BRIDGE_LAYOUT) -> None:
+        """Refuse, in one line, a model whose control table is not ``layout`` in
+        ``component`` (which would send it another table's addresses)."""
+        if self.layout != layout:
+            raise CochleaError(
+                f"{self.name}: not supported by {component} yet: its control table "
+                f"({self.layout} layout, Goal Current at {self._address('Goal Current')}) "
+                f"is not the X series' one it speaks")
+
+    def _address(self, name: str) -> str:
+        try:
+            return str(self.item(name).address)
+        except KeyError:
+            return "none"
 
 
-#: MX-64: gear ratio 200 : 1, backlash 20 arcmin (0.33 deg) (e-Manual, MX-64(2.0)).
-MX64 = ModelSpec("MX-64", 311, 41, 3.36, 1941,
-                 _items(1941, 435, 850, acceleration_limit=True),
-                 Gearbox(200.0, 20.0, 1.0e4, 0.35, 0.02))
-#: XM540-W270: gear ratio 272.5 : 1, backlash 15 arcmin (0.25 deg) (e-Manual, XM540-W270).
-XM540_W270 = ModelSpec("XM540-W270", 1120, 46, 2.69, 2047,
-                       _items(2047, 128, 800, acceleration_limit=False),
-                       Gearbox(272.5, 15.0, 2.0e4, 0.35, 0.02))
+class ModelDataError(CochleaError):
+    """A file of ``cochlea/dynamixel/models`` is unreadable or malformed (an installation
+    problem, not the user's input): names the file, the entry and what was expected."""
 
-#: The models by the name a description uses.
-MODELS = {MX64.name: MX64, XM540_W270.name: XM540_W270}
+
+#: Exit code of a program whose installed motor data (``cochlea/dynamixel/models``) is broken.
+EXIT_MODEL_DATA = 78
+
+#: The package folder holding the data files.
+MODELS_PACKAGE = "cochlea.dynamixel.models"
+
+_TABLE_FIELDS = {"current_limit_max", "velocity_limit", "position_p_gain", "position_limit"}
+
+
+def _check(cond: bool, where: str, expected: str, got: object = None) -> None:
+    if not cond:
+        shown = repr(got)
+        if len(shown) > 80:
+            shown = shown[:77] + "..."
+        raise ModelDataError(f"{where}: expected {expected}, got {shown}")
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _read_toml(name: str, text: bytes) -> dict:
+    try:
+        return tomllib.loads(text.decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ModelDataError(f"{name}: not a valid UTF-8 TOML file "
+                             f"({str(exc).splitlines()[0] if str(exc) else 'unreadable'})"
+                             ) from None
+
+
+_ITEM_KEYS = {"name", "address", "size", "access", "default", "min", "max", "signed", "unit",
+              "only_if"}
+_LAYOUT_KEYS = {"layout", "url", "counts_per_rev", "velocity_unit_rpm", "emulator_firmware",
+                "fallback", "unsourced", "item"}
+
+
+def _layout(name: str, data: dict) -> dict:
+    """A layout file: its items (values may name a model field) and its defaults."""
+    unknown = sorted(set(data) - _LAYOUT_KEYS)
+    _check(not unknown, f"{name}: {unknown[0] if unknown else ''}", "no such key (known: "
+           + ", ".join(sorted(_LAYOUT_KEYS)) + ")")
+    _check(isinstance(data.get("layout"), str), f"{name}: layout", "a layout name",
+           data.get("layout"))
+    _check(isinstance(data.get("url"), str) and data["url"].startswith("https://"),
+           f"{name}: url", "the e-Manual page (https://...)", data.get("url"))
+    for f in ("counts_per_rev", "emulator_firmware"):
+        if f in data:
+            _check(_is_int(data[f]) and data[f] >= 0, f"{name}: {f}", "an integer >= 0",
+                   data[f])
+    if "velocity_unit_rpm" in data:
+        _check(_is_num(data["velocity_unit_rpm"]) and data["velocity_unit_rpm"] > 0,
+               f"{name}: velocity_unit_rpm", "a positive number", data["velocity_unit_rpm"])
+    raw = data.get("item")
+    _check(isinstance(raw, list) and bool(raw) and all(isinstance(i, dict) for i in raw),
+           f"{name}: item", "one or more [[item]] tables", raw)
+    seen: set[str] = set()
+    for k, it in enumerate(raw):
+        where = f"{name}: item[{k}]"
+        unknown = sorted(set(it) - _ITEM_KEYS)
+        _check(not unknown, f"{where}.{unknown[0] if unknown else ''}", "no such key (known: "
+               + ", ".join(sorted(_ITEM_KEYS)) + ")")
+        _check(isinstance(it.get("name"), str) and it["name"] not in seen, f"{where}.name",
+               "a name no other item uses", it.get("name"))
+        seen.add(it["name"])
+        where = f"{name}: item {it['name']}"
+        _check(_is_int(it.get("address")) and 0 <= it["address"] < 1024, f"{where}.address",
+               "an integer in 0..1023", it.get("address"))
+        _check(it.get("size") in (1, 2, 4), f"{where}.size", "1, 2 or 4 (bytes)", it.get("size"))
+        _check(it.get("access") in ("R", "RW"), f"{where}.access", "'R' or 'RW'",
+               it.get("access"))
+        _check(isinstance(it.get("unit"), str) and it["unit"] != "", f"{where}.unit",
+               "a unit (text, '-' for none)", it.get("unit"))
+        _check(("min" in it) == ("max" in it), f"{where}", "min and max together")
+        for key in ("default", "min", "max"):
+            if key in it or key == "default":
+                v = it.get(key)
+                _check(_is_int(v) or (isinstance(v, str) and v.lstrip("-") in _TABLE_FIELDS),
+                       f"{where}.{key}", "an integer or a model field ("
+                       + ", ".join(sorted(_TABLE_FIELDS)) + ")", v)
+        if "signed" in it:
+            _check(isinstance(it["signed"], bool), f"{where}.signed", "true or false",
+                   it["signed"])
+    return data
+
+
+_MODEL_KEYS = (set(SOURCED_FIELDS) | {f for fs in LAYOUT_FIELDS.values() for f in fs}
+               | {"name", "number", "url", "current_control", "unsourced",
+                  "emulator_firmware", "gearbox_estimates"})
+
+
+def _field_ok(field: str, v) -> tuple[bool, str]:
+    if field in ("current_unit_mA", "gear_ratio", "backlash_arcmin", "stall_torque_Nm",
+                 "stall_current_A", "stall_voltage_V"):
+        return _is_num(v) and v > 0, "a positive number"
+    if field in ("current_limit_max", "velocity_limit", "position_p_gain", "position_limit",
+                 "counts_per_rev", "firmware_from"):
+        return _is_int(v) and 0 < v < 2**31, "a positive integer"
+    if field in ("fast_sync_read", "acceleration_limit"):
+        return isinstance(v, bool), "true or false"
+    if field == "baud_rates":
+        return (isinstance(v, list) and bool(v) and all(_is_int(b) and b in BAUD_RATES.values()
+                                                        for b in v),
+                "a list of Dynamixel baud rates ("
+                + ", ".join(str(b) for b in BAUD_RATES.values()) + ")")
+    return False, "a known field"
+
+
+def _resolve(value, fields: dict) -> int:
+    if isinstance(value, str):
+        sign = -1 if value.startswith("-") else 1
+        return sign * int(fields[value.lstrip("-")])
+    return int(value)
+
+
+def _model(file: str, family: str, layout: dict, k: int, m: object) -> ModelSpec:
+    where = f"{file}: model[{k}]"
+    _check(isinstance(m, dict), where, "a [[model]] table", m)
+    unknown = sorted(set(m) - _MODEL_KEYS)
+    _check(not unknown, f"{where}.{unknown[0] if unknown else ''}", "no such key (known: "
+           + ", ".join(sorted(_MODEL_KEYS)) + ")")
+    name = m.get("name")
+    _check(isinstance(name, str) and name != "", f"{where}.name", "a model name", name)
+    where = f"{file}: model {name}"
+    number = m.get("number")
+    _check(_is_int(number) and 0 <= number < 65536, f"{where}.number",
+           "a Model Number (0..65535)", number)
+    _check(isinstance(m.get("url"), str) and m["url"].startswith("https://"), f"{where}.url",
+           "the e-Manual page (https://...)", m.get("url"))
+    _check(isinstance(m.get("current_control"), bool), f"{where}.current_control",
+           "true or false", m.get("current_control"))
+    unsourced = m.get("unsourced", [])
+    _check(isinstance(unsourced, list) and all(isinstance(u, str) for u in unsourced),
+           f"{where}.unsourced", "a list of field names", unsourced)
+    lay = layout["layout"]
+    wanted = SOURCED_FIELDS + LAYOUT_FIELDS.get(lay, ())
+    for u in unsourced:
+        _check(u in wanted, f"{where}.unsourced", "field names among " + ", ".join(wanted), u)
+    fields: dict = {}
+    for f in wanted:
+        given, listed = f in m, f in unsourced
+        _check(given != listed, f"{where}.{f}",
+               "a value or the name in unsourced, not both" if given else
+               "a value (or the name in unsourced: no source found)",
+               m.get(f) if given else None)
+        if given:
+            ok, expected = _field_ok(f, m[f])
+            _check(ok, f"{where}.{f}", expected, m[f])
+        fields[f] = m.get(f)
+    # The layout's units where the model's own are not per model (X: 4096 counts, 0.229 rpm).
+    for f in ("counts_per_rev", "velocity_unit_rpm"):
+        if fields.get(f) is None and f not in unsourced:
+            fields[f] = layout.get(f)
+    # The table: the model's values, the layout's fallback where it gives none (those items'
+    # defaults are then not the model's: the emulator's only).
+    table = dict(layout.get("fallback", {}))
+    table.update({f: v for f, v in fields.items() if v is not None})
+    for f in _TABLE_FIELDS:
+        table.setdefault(f, 0)  # e.g. no Current Limit sourced: the table is for lookup only
+    items = []
+    for it in layout["item"]:
+        if "only_if" in it and not table.get(it["only_if"]):
+            continue
+        items.append(Item(it["name"], it["address"], it["size"], it["access"] == "RW",
+                          _resolve(it["default"], table), _resolve(it.get("min", 0), table),
+                          _resolve(it.get("max", 0), table), bool(it.get("signed", False))))
+    items.sort(key=lambda i: i.address)
+    gearbox = None
+    est = m.get("gearbox_estimates")
+    if est is not None:
+        _check(isinstance(est, dict) and set(est) == {"stiffness_Nm_rad", "damping_Nms_rad",
+                                                      "stribeck_velocity_rad_s"}
+               and all(_is_num(v) and v > 0 for v in est.values())
+               and fields["gear_ratio"] is not None and fields["backlash_arcmin"] is not None,
+               f"{where}.gearbox_estimates", "stiffness_Nm_rad, damping_Nms_rad and "
+               "stribeck_velocity_rad_s (positive), with gear_ratio and backlash_arcmin", est)
+        gearbox = Gearbox(float(fields["gear_ratio"]), float(fields["backlash_arcmin"]),
+                          float(est["stiffness_Nm_rad"]), float(est["damping_Nms_rad"]),
+                          float(est["stribeck_velocity_rad_s"]))
+    firmware = m.get("emulator_firmware", layout.get("emulator_firmware", 0))
+    _check(_is_int(firmware) and 0 <= firmware < 256, f"{where}.emulator_firmware",
+           "an integer in 0..255", firmware)
+    baud = fields["baud_rates"]
+    unit = fields["current_unit_mA"]
+    return ModelSpec(
+        name, number, firmware, None if unit is None else float(unit),
+        fields["current_limit_max"], tuple(items), gearbox, family=family, layout=lay,
+        url=m["url"], current_control=m["current_control"],
+        baud_rates=None if baud is None else tuple(baud),
+        fast_sync_read=fields["fast_sync_read"], firmware_from=fields["firmware_from"],
+        counts_per_rev=fields.get("counts_per_rev"),
+        velocity_unit_rpm=fields.get("velocity_unit_rpm"),
+        gear_ratio=fields["gear_ratio"], backlash_arcmin=fields["backlash_arcmin"],
+        stall_torque_Nm=fields["stall_torque_Nm"], stall_current_A=fields["stall_current_A"],
+        stall_voltage_V=fields["stall_voltage_V"], source_file=file,
+        unsourced=tuple(unsourced))
+
+
+def load_models(files: dict[str, bytes] | None = None) -> dict[str, ModelSpec]:
+    """Every model of the data files, by the name a description uses: ``files`` maps a file
+    name to its bytes (default: the package's ``cochlea/dynamixel/models/*.toml``, read
+    through :mod:`importlib.resources`). ``layout_*.toml`` are control-table layouts, the
+    rest family files. Any problem is one :class:`ModelDataError` naming the file and the
+    entry."""
+    if files is None:
+        folder = resources.files(MODELS_PACKAGE)
+        files = {p.name: p.read_bytes() for p in folder.iterdir() if p.name.endswith(".toml")}
+    layouts = {}
+    for fname in sorted(f for f in files if f.startswith("layout_")):
+        data = _layout(fname, _read_toml(fname, files[fname]))
+        _check(data["layout"] not in layouts, f"{fname}: layout", "a layout no other file "
+               "defines", data["layout"])
+        layouts[data["layout"]] = data
+    models: dict[str, ModelSpec] = {}
+    numbers: dict[int, str] = {}
+    for fname in sorted(f for f in files if not f.startswith("layout_")):
+        data = _read_toml(fname, files[fname])
+        unknown = sorted(set(data) - {"family", "layout", "model"})
+        _check(not unknown, f"{fname}: {unknown[0] if unknown else ''}",
+               "no such key (known: family, layout, model)")
+        family = data.get("family")
+        _check(isinstance(family, str) and family != "", f"{fname}: family", "a family name",
+               family)
+        _check(data.get("layout") in layouts, f"{fname}: layout",
+               "one of " + ", ".join(sorted(layouts)), data.get("layout"))
+        entries = data.get("model")
+        _check(isinstance(entries, list) and bool(entries), f"{fname}: model",
+               "one or more [[model]] tables", entries)
+        for k, m in enumerate(entries):
+            spec = _model(fname, family, layouts[data["layout"]], k, m)
+            _check(spec.name not in models, f"{fname}: model {spec.name}",
+                   "a name no other entry uses", spec.name)
+            _check(spec.number not in numbers, f"{fname}: model {spec.name}.number",
+                   f"a number no other model uses (also {numbers.get(spec.number)})",
+                   spec.number)
+            models[spec.name] = spec
+            numbers[spec.number] = spec.name
+    # The robots' two models first (every "one of ..." list starts with them), then the rest.
+    first = [n for n in ("MX-64", "XM540-W270") if n in models]
+    return {n: models[n] for n in first + [n for n in models if n not in first]}
+
+
+def _load_or_exit() -> dict[str, ModelSpec]:
+    """:func:`load_models`, or one line on stderr and exit :data:`EXIT_MODEL_DATA` (the
+    installation is broken: nothing can run)."""
+    try:
+        return load_models()
+    except ModelDataError as exc:
+        print(f"cochlea: broken motor data in cochlea/dynamixel/models: {exc}",
+              file=sys.stderr)
+        raise SystemExit(EXIT_MODEL_DATA) from None
+
+
+#: The models by the name a description uses (MX-64 and XM540-W270 first).
+MODELS = _load_or_exit()
 MODELS_BY_NUMBER = {m.number: m for m in MODELS.values()}
+#: The two models the shipped robots use (MX-64(2.0): gear 200 : 1, backlash 20 arcmin;
+#: XM540-W270: 272.5 : 1, 15 arcmin; e-Manual).
+MX64 = MODELS["MX-64"]
+XM540_W270 = MODELS["XM540-W270"]
 
 # Addresses the bridge uses.
 ADDR_MODEL_NUMBER = 0

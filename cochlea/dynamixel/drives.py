@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DescriptionError, ModelError
+from ..errors import CochleaError, DescriptionError, ModelError
 from ..robots import robot
 from ..robots.description import Motor
 from ..robots.motor_fit import DEFAULT_RAMP_NM, Fit, MotorFitError, current_limit_lsb
@@ -138,6 +138,10 @@ def joint_drives(robot_name: str, description: str | Path | None = None,
     drives = []
     for j in joints:
         spec = MODELS[j.motor.model]
+        try:  # the bridge, the emulator and the embedded tables speak the X series' addresses
+            spec.require_layout("the Dynamixel bridge, emulator and embedded drive tables")
+        except CochleaError as exc:
+            raise BackendError(f"joint {j.name}: {exc}") from None
         try:
             fit = Fit.from_description(j.motor.fit, ramp)
         except MotorFitError as exc:
@@ -147,3 +151,12 @@ def joint_drives(robot_name: str, description: str | Path | None = None,
                                  j.effort_limit,
                                  current_limit_lsb(j.motor, spec, fit, j.effort_limit, j.ratio)))
     return drives
+
+
+def check_baud(drives: list[JointDrive], baud: int) -> None:
+    """Refuse, in one line naming the motor, a baud rate (bit/s) a model of ``drives`` does
+    not support (its data: ``cochlea/dynamixel/models``), before any port is opened."""
+    for d in drives:
+        problem = d.spec.baud_problem(int(baud))
+        if problem:
+            raise BackendError(f"ID {d.id} ({d.name}, {d.spec.name}): {problem}")

@@ -114,6 +114,7 @@ from .control_table import (
     baud_code,
 )
 from .drives import DEFAULT_RAMP_NM, Fit, JointDrive, joint_drives
+from .drives import check_baud as check_model_baud
 
 #: The command's real-time priority: below cochlea-run's loop (40), above normal processes.
 EMULATOR_FIFO_PRIORITY = 30
@@ -511,6 +512,7 @@ class VirtualChain:
         self.robot = robot
         self.faults = faults or Faults()
         self.drives = true_drives(joint_drives(robot, system=self.scenario.system), truth)
+        check_model_baud(self.drives, baud)  # a rate one of the models does not take
         check_faults(self.faults, [d.id for d in self.drives])
         if plant_period_s is not None:
             lo, hi = PLANT_PERIOD_RANGE_S

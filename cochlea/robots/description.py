@@ -263,6 +263,11 @@ def read_actuator(t: Table, jtype: str) -> Actuator:
 
 def read_motor(t: Table) -> Motor:
     model = t.string("model", tuple(MOTOR_SPECS))
+    # Every joint is driven in Current Control mode: a model without it, or whose current unit
+    # and largest Current Limit no source gave yet, is refused here, by name.
+    problem = MOTOR_SPECS[model].current_control_problem()
+    if problem:
+        raise t.error("model", f"a model a current-controlled joint can use: {problem}", model)
     motor_id = t.get("id", f"an integer Dynamixel ID in 0..{MAX_MOTOR_ID}",
                      lambda v: isinstance(v, int) and not isinstance(v, bool)
                      and 0 <= v <= MAX_MOTOR_ID)

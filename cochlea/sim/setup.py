@@ -224,8 +224,14 @@ def measurement_grids(adapter, system, plant: scenario_mod.Plant
         return None
     joints = adapter.actuated_joints(system)
     scale = np.array([abs(j.ratio) for j in joints])  # joint travel per motor radian
-    quantum = np.column_stack([scale * RAD_PER_COUNT * plant.position_encoder,
-                               scale * RAD_S_PER_VELOCITY_LSB * plant.velocity_register])
+    # Each motor model's own units (X series: 4096 counts, 0.229 rpm; control_table.MODELS).
+    units = [MODELS[j.motor.model] for j in joints]
+    per_count = np.array([RAD_PER_COUNT if m.rad_per_count is None else m.rad_per_count
+                          for m in units])
+    per_lsb = np.array([RAD_S_PER_VELOCITY_LSB if m.rad_s_per_velocity_lsb is None
+                        else m.rad_s_per_velocity_lsb for m in units])
+    quantum = np.column_stack([scale * per_count * plant.position_encoder,
+                               scale * per_lsb * plant.velocity_register])
     # q = direction * ratio * (theta - zero_offset): the position grid is shifted.
     offset = np.column_stack([[-j.motor.direction * j.ratio * j.motor.zero_offset
                                for j in joints], np.zeros(len(joints))])

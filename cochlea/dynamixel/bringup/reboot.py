@@ -46,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
                 missing.append(str(motor_id))
             else:
                 models[motor_id] = MODELS_BY_NUMBER.get(answer[0], MX64)
+                models[motor_id].require_layout("cochlea-dxl reboot")  # X addresses only
         if missing:
             raise BusError(f"ID {', '.join(missing)} did not answer PING on {args.port} at "
                            f"{args.baud} baud: nothing rebooted (cochlea-dxl scan lists what "

@@ -66,7 +66,11 @@ def _find(bus: Bus, ids: list[int], per_id: bool) -> tuple[dict[int, tuple[int, 
 def _row(bus: Bus, motor_id: int, model: int, firmware: int) -> list[str]:
     spec = MODELS_BY_NUMBER.get(model, MX64)  # X and MX(2.0) share these addresses
     cells = []
-    for name in ("Operating Mode", "Torque Enable", "Hardware Error Status"):
+    names = ("Operating Mode", "Torque Enable", "Hardware Error Status")
+    if spec.layout != "x":  # another table (P series, XL320): never read at X addresses
+        cells = [f"not read ({spec.layout} layout: not supported by cochlea-dxl yet)"] * 3
+        names = ()
+    for name in names:
         item = spec.item(name)
         try:
             value = bus.read(motor_id, item)

@@ -45,10 +45,14 @@ CONTINUOUS_LIMIT_DEG = 360.0
 #: The motor a joint gets when ``--motor`` names none.
 DEFAULT_MOTOR = "XM540-W270"
 #: Datasheet figures for a placeholder torque fit (ROBOTIS e-Manual, each model's
-#: specifications, at 12 V): stall torque (N m) and stall current (A). Their ratio is the
-#: torque constant the placeholder fit ``torque_Ncm = a * current_A`` uses (b = 0): an upper
-#: bound of the real slope (the thesis's MX-64 fits are 95-122 N cm/A, this gives 146).
-DATASHEET_STALL = {"MX-64": (6.0, 4.1), "XM540-W270": (10.6, 4.4)}
+#: specifications, at its nominal voltage: cochlea/dynamixel/models): stall torque (N m) and
+#: stall current (A), for every model a description can use (current control, current unit
+#: and limit sourced) whose stall figures are sourced. Their ratio is the torque constant the
+#: placeholder fit ``torque_Ncm = a * current_A`` uses (b = 0): an upper bound of the real
+#: slope (the thesis's MX-64 fits are 95-122 N cm/A, this gives 146).
+DATASHEET_STALL = {m.name: (m.stall_torque_Nm, m.stall_current_A) for m in MOTOR_SPECS.values()
+                   if m.current_control_problem() is None and m.stall_torque_Nm is not None
+                   and m.stall_current_A is not None}
 
 _STEP = math.pi / 12
 _MOVING = ("revolute", "continuous", "prismatic")
@@ -577,8 +581,9 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
         "#   direction = 1 and zero_offset_deg = 0 are placeholders (cochlea-dxl calibrate).",
         "# * each fit is a PLACEHOLDER (source = \"placeholder\"): torque_Ncm = a * current_A "
         "with a the",
-        "#   datasheet's stall torque over stall current at 12 V (ROBOTIS e-Manual): "
-        + "; ".join(f"{m} {DATASHEET_STALL[m][0]:g} N m / {DATASHEET_STALL[m][1]:g} A = "
+        "#   datasheet's stall torque over stall current (ROBOTIS e-Manual): "
+        + "; ".join(f"{m} {DATASHEET_STALL[m][0]:g} N m / {DATASHEET_STALL[m][1]:g} A at "
+                    f"{MOTOR_SPECS[m].stall_voltage_V:g} V = "
                     f"{f['a']:g} N cm/A" for m, f in fits) + ".",
         "#   Fit it on the robot (cochlea-dxl calibrate --torque-fit, or cochlea-identify).",
         "# * keep_out_radius_m = 0.01 is a placeholder (it only matters to task-space runs).",
@@ -656,7 +661,7 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
 def assign_motors(path, chain: list[ChainLink], motor_options: list[str] | None,
                   ids: list[int] | None) -> tuple[list[str], list[int]]:
     """Each joint's motor model (``MODEL`` for all, ``JOINT=MODEL`` for one) and ID."""
-    known = ", ".join(sorted(MOTOR_SPECS))
+    known = ", ".join(sorted(DATASHEET_STALL))
     default, per_joint = DEFAULT_MOTOR, {}
     joint_names = [link.joint.name for link in chain]
     for option in motor_options or []:
