@@ -6,7 +6,8 @@ One test per class of defect:
 * a hardware alert mid-move (``home``, ``calibrate --torque-fit``): the move stops at once
   (goal current 0, torque off on every motor), nothing is reported as done, nothing written,
   exit 3, one line naming the motor, its error bits in words and the reboot of that motor only;
-* a motor that stops answering or answers garbled packets mid-move: the same, exit 4;
+* a motor that stops answering, answers garbled packets or stale ones (its Realtime Tick
+  frozen) mid-move: the same, exit 4;
 * an output path that cannot be written (missing folder, a folder that is a file, a read-only
   folder, a FIFO, a device, a folder, a symbolic link): refused before the port is even opened
   (exit 2), never replaced, nothing left behind;
@@ -29,6 +30,8 @@ import pytest
 from cochlea.apps import cochlea_dxl
 from cochlea.dynamixel.bringup import calibrate, common
 from cochlea.dynamixel.drives import joint_drives
+from cochlea.dynamixel.emulator import Faults, check_faults
+from cochlea.errors import CochleaError
 from cochlea.resources import ROBOTS_DIR
 from tests.test_dxl_bringup import dxl, emulator, wait_for_alert
 
@@ -127,7 +130,10 @@ def test_an_alert_mid_move_stops_the_torque_fit_without_a_csv(tmp_path, capsys, 
 @pytest.mark.parametrize("fault, says", [
     (["--silent-motor", str(SLIDER.id)], "stopped answering"),
     (["--corrupt-crc", "1", "--fault-ids", str(SLIDER.id)], "a garbled packet (CRC)"),
-], ids=["silent", "garbled"])
+    # Its last answer again and again: the slider looks still, which the old loop took for
+    # the stop; its Realtime Tick does not move.
+    (["--stale-replies", str(SLIDER.id), "--stale-unicast"], "answered a stale packet"),
+], ids=["silent", "garbled", "stale"])
 def test_a_motor_lost_mid_move_stops_home_without_a_record(tmp_path, capsys, fault, says):
     log, record = tmp_path / "emu.log", tmp_path / "r.json"
     with emulator("parallel", log, *fault, "--fault-delay", "0.5") as port:
@@ -141,6 +147,12 @@ def test_a_motor_lost_mid_move_stops_home_without_a_record(tmp_path, capsys, fau
         assert f"NOT confirmed by ID {SLIDER.id}" in err
     only(tmp_path, "emu.log")
     assert_stopped_after_fault(log, SLIDER.id)
+
+
+def test_stale_unicast_needs_the_stale_fault_it_extends():
+    with pytest.raises(CochleaError, match="--stale-unicast: expected --stale-replies"):
+        check_faults(Faults(stale_unicast=True), PARALLEL_IDS)
+    check_faults(Faults(stale=(SLIDER.id, -1), stale_unicast=True), PARALLEL_IDS)
 
 
 # ---- outputs checked before anything moves ---------------------------------------------------

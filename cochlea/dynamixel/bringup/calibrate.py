@@ -439,5 +439,5 @@ def _push_and_measure(bus: common.Bus, d: JointDrive, lever: float, currents: li
         if not math.isfinite(force):
             raise CochleaError(f"the force {answer!r}: expected a number of N; nothing "
                                "written")
-        present = bus.read(d.id, d.spec.item("Present Current")) * d.spec.current_unit_mA
+        present = bus.present(d)[0] * d.spec.current_unit_mA  # its Realtime Tick checked
         samples.append((lsb * d.spec.current_unit_mA, present, force, lever, force * lever))

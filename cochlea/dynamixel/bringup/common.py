@@ -30,6 +30,7 @@ import argparse
 import contextlib
 import os
 import stat
+import struct
 import tempfile
 import time
 from dataclasses import dataclass
@@ -70,6 +71,12 @@ EXIT_LOST = 4
 
 #: The runtime's default rate (cochlea-run --baud), what info and configure talk at by default.
 DEFAULT_BAUD = 4_000_000
+#: One READ of 120..135: Realtime Tick (ms, modulo 32768), Moving, Moving Status, Present PWM,
+#: Present Current, Present Velocity, Present Position (the same on the MX(2.0) and X series).
+PRESENT_ADDRESS, PRESENT = 120, struct.Struct("<H4xhii")
+TICK_MODULO_MS = 32768
+#: A motor whose Realtime Tick did not move over more than this (s) answered a stale packet.
+STALE_AFTER_S = 0.003
 #: How long one unicast request waits for its status packet: a USB adapter holds received
 #: bytes up to its latency timer (16 ms by default), so less would miss motors that answered.
 REPLY_TIMEOUT_S = 0.05
@@ -308,6 +315,7 @@ class Bus:
         #: While :func:`motion` moves or configures motors: what it does (for messages); every
         #: status packet is then checked (alert bit, ID, CRC, length; see :meth:`request`).
         self.watching: str | None = None
+        self._ticks: dict[int, tuple[int, float]] = {}  # id -> last Realtime Tick, when read
         self._parser = proto.PacketParser(status=True)
         self._port: SerialPort | None = None
         self.open(baud)
@@ -430,6 +438,32 @@ class Bus:
         self._expect(self.request(frame, motor_id), motor_id,
                      f"WRITE {item.name} ({item.address}) = {value}")
 
+    def present(self, d: JointDrive) -> tuple[int, int, int]:
+        """``(Present Current LSB, Present Velocity LSB, Present Position counts)`` of ``d`` in
+        one READ with its Realtime Tick. While watched, a tick that did not move since the
+        motor's last such read (more than :data:`STALE_AFTER_S` before) is a stale packet: the
+        motor repeats an old answer (:class:`MotorLost`)."""
+        what = f"READ Present state ({PRESENT_ADDRESS}..{PRESENT_ADDRESS + PRESENT.size - 1})"
+        reply = self._expect(self.request(proto.read(d.id, PRESENT_ADDRESS, PRESENT.size), d.id),
+                             d.id, what)
+        if len(reply.params) != PRESENT.size:
+            text = (f"{self.who(d.id)} answered {what} with a stale or garbled packet of "
+                    f"{len(reply.params)} bytes, not {PRESENT.size}")
+            raise MotorLost(text, d.id) if self.watching is not None else BusError(text)
+        tick, current, velocity, position = PRESENT.unpack(reply.params)
+        now = time.perf_counter()
+        if self.watching is not None:
+            last = self._ticks.get(d.id)
+            if last is not None and last[0] == tick:
+                elapsed_ms = (now - last[1]) * 1e3
+                wrapped = elapsed_ms % TICK_MODULO_MS  # a whole wrap of the tick is no proof
+                if (elapsed_ms > STALE_AFTER_S * 1e3 and
+                        STALE_AFTER_S * 1e3 < wrapped < TICK_MODULO_MS - STALE_AFTER_S * 1e3):
+                    raise MotorLost(f"{self.who(d.id)} answered a stale packet (its Realtime "
+                                    f"Tick stayed at {tick} ms over {elapsed_ms:.0f} ms)", d.id)
+            self._ticks[d.id] = (tick, now)
+        return current, velocity, position
+
     def position(self, d: JointDrive) -> int:
         """The motor's Present Position (counts)."""
         return self.read(d.id, d.spec.item("Present Position"))
@@ -525,6 +559,7 @@ def motion(bus: Bus, moved: list[JointDrive], every: list[JointDrive], what: str
     motor(s), the alert's bits in words and the ``reboot`` of those motors only. The caller
     writes its outputs only after this returned."""
     bus.watching = what
+    bus._ticks.clear()
     try:
         yield
         for d in moved:

@@ -180,15 +180,14 @@ def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: 
     integral, window = 0.0, []
     t0 = last = time.perf_counter()
     stroke = d.position_limits[1] - d.position_limits[0] + 0.01
-    velocity, goal_current = d.spec.item("Present Velocity"), d.spec.item("Goal Current")
+    goal_current = d.spec.item("Goal Current")
     while True:
         now = time.perf_counter()
         if now - t0 > timeout:
             raise common.BusError(f"no hard stop found in {timeout:g} s: check that the "
                                   "slider moves down, its direction in the description, and "
                                   "--stop-m")
-        lsb = bus.read(d.id, velocity)
-        counts = bus.position(d)
+        _, lsb, counts = bus.present(d)  # one READ, its Realtime Tick checked for staleness
         if abs((counts - start_counts) * d.q_per_count) > stroke:
             raise common.BusError(f"the slider travelled more than its stroke ({stroke:g} m) "
                                   "without meeting a stop: check its direction and the stop")
