@@ -22,6 +22,7 @@ import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -258,6 +259,33 @@ def test_a_signal_during_a_move_stops_it_without_a_record(tmp_path, signum):
             and t > on}
     assert offs == set(PARALLEL_IDS)  # torque off on every motor after the last one on
     assert cochlea_dxl.EXIT_INTERRUPTED == 130
+
+
+def test_a_signal_during_the_clean_up_waits_until_every_torque_is_off():
+    """A signal that arrives while the stop turns the torques off is held until they all are,
+    then stops the command (its exit code) instead of cutting the clean-up short."""
+    drives = joint_drives("parallel")
+
+    class Bus:  # the clean-up's side of common.Bus
+        watching = None
+        _ticks: dict = {}
+        off: list[int] = []
+
+        def torque_off(self, every):
+            for d in every:
+                if d is every[0]:  # the signal comes as the first motor is turned off
+                    signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+                    time.sleep(0.01)
+                self.off.append(d.id)
+            return []
+
+    bus = Bus()
+    with cochlea_dxl._stop_signals():
+        with pytest.raises(cochlea_dxl.Interrupted) as stop:
+            with common.motion(bus, [], drives, "a test"):
+                raise common.MotorLost("ID 1 stopped answering", 1)
+    assert stop.value.signum == signal.SIGTERM
+    assert bus.off == [d.id for d in drives]
 
 
 # ---- the reboot advice ---------------------------------------------------------------------

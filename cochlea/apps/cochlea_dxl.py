@@ -22,14 +22,14 @@ import sys
 import threading
 
 from ..console import tolerate_closed_stdout
-from ..dynamixel.bringup import calibrate, configure, home, info, reboot, scan
+from ..dynamixel.bringup import calibrate, common, configure, home, info, reboot, scan
 from ..errors import EXIT_USER_ERROR, CochleaError
 
 SUBCOMMANDS = [scan, info, configure, reboot, calibrate, home]
 
 EXIT_INTERRUPTED = 128 + signal.SIGINT  # 130
 #: The signals that stop a command the safe way (torque off, nothing written), exit 128 + N.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+STOP_SIGNALS = common.STOP_SIGNALS
 
 
 class Interrupted(BaseException):

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import stat
 import struct
 import tempfile
@@ -567,11 +568,13 @@ def motion(bus: Bus, moved: list[JointDrive], every: list[JointDrive], what: str
             bus.write(d.id, d.spec.item("Torque Enable"), 0)
     except MotionStopped as exc:
         bus.watching = None
-        failed = bus.torque_off(every)
+        with _signals_held():
+            failed = bus.torque_off(every)
         raise _stopped(bus, exc, every, what, failed) from None
     except BaseException as exc:
         bus.watching = None
-        failed = bus.torque_off(every)
+        with _signals_held():
+            failed = bus.torque_off(every)
         if failed and type(exc) is BusError:
             raise BusError(f"{exc}; torque off NOT confirmed by {', '.join(failed)}") from None
         if failed and not isinstance(exc, Exception):  # a signal: cochlea_dxl says it
@@ -579,6 +582,21 @@ def motion(bus: Bus, moved: list[JointDrive], every: list[JointDrive], what: str
         raise
     finally:
         bus.watching = None
+
+
+#: The signals that stop a command (cochlea_dxl turns them into an exception).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """The stop signals held back while the torque goes off, so that one arriving then cannot
+    cut the torque off short; delivered (raised) once it is done."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _stopped(bus: Bus, exc: MotionStopped, every: list[JointDrive], what: str,
