@@ -5,9 +5,9 @@ One test per class of defect:
 
 * a hardware alert mid-move (``home``, ``calibrate --torque-fit``): the move stops at once
   (goal current 0, torque off on every motor), nothing is reported as done, nothing written,
-  exit 3, one line naming the motor, its error bits in words and the reboot of that motor only;
+  exit 6, one line naming the motor, its error bits in words and the reboot of that motor only;
 * a motor that stops answering, answers garbled packets or stale ones (its Realtime Tick
-  frozen) mid-move: the same, exit 4;
+  frozen) mid-move: the same, exit 7;
 * an output path that cannot be written (missing folder, a folder that is a file, a read-only
   folder, a FIFO, a device, a folder, a symbolic link): refused before the port is even opened
   (exit 2), never replaced, nothing left behind;
@@ -57,15 +57,19 @@ def timeline(log: Path) -> list[tuple[float, str, int, int, str]]:
 
 
 def assert_stopped_after_fault(log: Path, moved: int) -> None:
-    """After the emulator's fault: no goal but 0 written, every motor of the chain sent Torque
-    Enable 0 (the moved one within STOP_WITHIN_S) and nothing turned on again."""
+    """After the emulator's fault: nothing turned on, at most the one goal already on its way
+    when the fault came (before the first torque off), every motor of the chain sent Torque
+    Enable 0 (the moved one within STOP_WITHIN_S)."""
     rows = timeline(log)
     fault = next(t for t, kind, *_ in rows if kind == "fault")
     after = [(t, i, a, v) for t, kind, i, a, v in rows if kind == "write" and t >= fault]
-    assert all(v == "0" for _, _, a, v in after if a in (64, 102)), after
+    assert not any(a == 64 and v != "0" for _, _, a, v in after), after
     torque_off = {i for _, i, a, v in after if a == 64 and v == "0"}
     silent = {i for t, kind, i, _, v in rows if kind == "fault" and "stops answering" in v}
     assert torque_off | silent == set(PARALLEL_IDS)
+    first_off = min(t for t, _, a, v in after if a == 64 and v == "0")
+    goals = [t for t, _, a, v in after if a == 102 and v != "0"]
+    assert len(goals) <= 1 and all(t < first_off for t in goals), after
     first = min((t for t, i, a, _ in after if a == 64 and i == moved), default=None)
     if moved not in silent:
         assert first is not None and first - fault < STOP_WITHIN_S, (fault, first)
@@ -88,7 +92,7 @@ def test_an_alert_mid_move_stops_home_without_a_record(tmp_path, capsys):
                   "0.5") as port:
         code, out, err = dxl(capsys, "home", "--robot", "parallel", "--port", port, "--record",
                              str(record), "--timeout-s", "30")
-    assert code == common.EXIT_ALERT == 3, err
+    assert code == common.EXIT_ALERT == 6, err
     assert err.count("\n") == 1 and "homed" not in out
     assert err.startswith("cochlea-dxl home: hardware alert during the homing of slider.d1: "
                           f"ID {SLIDER.id} (slider.d1, {SLIDER.spec.name}): 32 (overload); "
@@ -115,7 +119,7 @@ def test_an_alert_mid_move_stops_the_torque_fit_without_a_csv(tmp_path, capsys, 
         code, out, err = dxl(capsys, "calibrate", "--torque-fit", "--robot", "parallel",
                              "--port", port, "--joint", LEFT.name, "--lever-m", "0.1",
                              "--csv", str(samples))
-    assert code == 3, err
+    assert code == common.EXIT_ALERT, err
     assert err.count("\n") == 1 and "fit =" not in out
     assert (f"hardware alert during the torque fit of {LEFT.name}: ID {LEFT.id} ({LEFT.name}, "
             f"{LEFT.spec.name}): 4 (overheating); stopped") in err
@@ -140,7 +144,7 @@ def test_a_motor_lost_mid_move_stops_home_without_a_record(tmp_path, capsys, fau
     with emulator("parallel", log, *fault, "--fault-delay", "0.5") as port:
         code, out, err = dxl(capsys, "home", "--robot", "parallel", "--port", port, "--record",
                              str(record), "--timeout-s", "30")
-    assert code == common.EXIT_LOST == 4, err
+    assert code == common.EXIT_LOST == 7, err
     assert err.count("\n") == 1 and "homed" not in out
     assert f"ID {SLIDER.id} (slider.d1, {SLIDER.spec.name})" in err and says in err
     assert "during the homing of slider.d1: stopped" in err and "nothing written" in err

@@ -5,12 +5,12 @@ Each subcommand is a module of :mod:`cochlea.dynamixel.bringup` with ``NAME``, `
 
 Exit codes (see :mod:`cochlea.dynamixel.bringup.common` and docs/hardware.md): 0 done; 1 a
 check found a difference; 2 the user's input is wrong (one line, nothing written, nothing
-moved: an output path that cannot be written included); 3 a motor went into hardware alert
-during a move or a configuration; 4 a motor stopped answering (or answered garbled or stale
-packets) during one; 5 the port or a motor of the description (as ``cochlea-run``); 128 + the
-signal's number when SIGHUP (129), SIGINT (130) or SIGTERM (143) stopped it. Only ``home`` and
-``calibrate --torque-fit`` turn a motor's torque on, and they turn it off again whatever ends
-them (an error, an alert, a signal); nothing is then written.
+moved: an output path that cannot be written included); 5 the port or a motor of the
+description (as ``cochlea-run``); 6 a motor went into hardware alert during a move or a
+configuration; 7 a motor stopped answering (or answered garbled or stale packets) during one;
+128 + the signal's number when SIGHUP (129), SIGINT (130) or SIGTERM (143) stopped it. Only
+``home`` and ``calibrate --torque-fit`` turn a motor's torque on, and they turn it off again
+whatever ends them (an error, an alert, a signal); nothing is then written.
 """
 
 from __future__ import annotations
@@ -78,8 +78,8 @@ def parser() -> argparse.ArgumentParser:
                     "port and on cochlea-emulator's pseudo-terminal alike.",
         epilog="A new lab: scan, configure --dry-run, configure, info (docs/hardware.md). "
                "Exit codes: 0 done, 1 a difference found, 2 a wrong option or file (an "
-               "output that cannot be written: checked before anything moves), 3 a hardware "
-               "alert during a move, 4 a motor lost during a move, 5 the port or a motor, "
+               "output that cannot be written: checked before anything moves), 5 the port or "
+               "a motor, 6 a hardware alert during a move, 7 a motor lost during a move, "
                "128+N stopped by signal N (129 SIGHUP, 130 SIGINT, 143 SIGTERM). Only home "
                "and calibrate --torque-fit turn a torque on, and off again whatever ends them.")
     sub = p.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True,

@@ -11,15 +11,15 @@ Exit codes of ``cochlea-dxl`` (the dispatcher maps exceptions to them):
 * 2 the user's input is wrong (an option, the description, an output path that cannot be
   written: a missing folder, a folder that is a file, a read-only folder, an existing path that
   is not a regular file); nothing was written and nothing moved;
-* 3 a motor went into hardware alert while the command moved or configured the motors: the move
+* 5 the port does not open, or a motor of the description is missing, of another model or
+  does not answer (as ``cochlea-run``'s "the backend could not start");
+* 6 a motor went into hardware alert while the command moved or configured the motors: the move
   was stopped (goal current 0, torque off on every motor that answers), nothing reported as
   done, nothing written; the message names the motor(s), the error bits and the ``reboot`` of
   those motors only (:class:`HardwareAlert`);
-* 4 a motor stopped answering, or answered with a garbled (CRC) or stale packet (another ID's,
-  a wrong length), while the command moved or configured the motors: stopped the same way
-  (:class:`MotorLost`);
-* 5 the port does not open, or a motor of the description is missing, of another model or
-  does not answer (as ``cochlea-run``'s "the backend could not start");
+* 7 a motor stopped answering, or answered with a garbled (CRC) or stale packet (another ID's,
+  a wrong length, a Realtime Tick that did not move), while the command moved or configured
+  the motors: stopped the same way (:class:`MotorLost`);
 * 128 + the signal's number (129 SIGHUP, 130 SIGINT, 143 SIGTERM): interrupted; a move was
   stopped the same way, nothing written (:mod:`cochlea.apps.cochlea_dxl`).
 """
@@ -66,9 +66,9 @@ EXIT_DIFFERS = 1
 #: The port or the motors (cochlea-run's code for a backend that could not start).
 EXIT_BUS = EXIT_BACKEND
 #: A motor went into hardware alert during a move or a configuration (see the docstring).
-EXIT_ALERT = 3
+EXIT_ALERT = 6
 #: A motor stopped answering, or answered garbled or stale packets, during a move.
-EXIT_LOST = 4
+EXIT_LOST = 7
 
 #: The runtime's default rate (cochlea-run --baud), what info and configure talk at by default.
 DEFAULT_BAUD = 4_000_000
@@ -108,14 +108,14 @@ class MotionStopped(BusError):
 
 
 class HardwareAlert(MotionStopped):
-    """A status packet carried the hardware alert bit during a move (exit code 3)."""
+    """A status packet carried the hardware alert bit during a move (exit code 6)."""
 
     exit_code = EXIT_ALERT
 
 
 class MotorLost(MotionStopped):
     """A motor stopped answering, or answered a garbled or stale packet, during a move (exit
-    code 4)."""
+    code 7)."""
 
     exit_code = EXIT_LOST
 

@@ -9,7 +9,7 @@
 3. The writes, each confirmed by its status packet (a motor at Status Return Level below 2
    does not answer a WRITE: that one register is written unconfirmed and read back).
    Every status packet is watched: a hardware alert, a motor that stops answering or answers
-   a garbled or stale packet stops the writes (torque off on every motor; exit 3 or 4).
+   a garbled or stale packet stops the writes (torque off on every motor; exit 6 or 7).
 4. The verify pass reads every register back: one that did not take is exit 1, naming the
    motor and the register.
 5. ``--baud-to``: the Baud Rate of every motor, the port reopened at the new rate, and the
@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"configure: dry run: {len(writes) + len(bauds)} writes listed, nothing "
                   "written")
             return common.EXIT_OK
-        # Every status packet watched: an alert or a lost motor stops the writes (exit 3/4).
+        # Every status packet watched: an alert or a lost motor stops the writes (exit 6/7).
         with common.motion(bus, [], drives, "configure"):
             for w in writes:
                 bus.write(w.drive.id, w.item, w.value, reply=w.confirmed)
