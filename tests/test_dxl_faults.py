@@ -292,6 +292,22 @@ def test_a_signal_during_the_clean_up_waits_until_every_torque_is_off():
     assert bus.off == [d.id for d in drives]
 
 
+def test_a_signal_while_the_outputs_are_written_cannot_leave_them_unreported():
+    """Once the move is over and the torque off, the record is written and "homed" printed
+    with the stop signals ignored: no record left under "nothing written". A signal before
+    and after still stops the command."""
+    main = threading.main_thread().ident
+    with cochlea_dxl._stop_signals():
+        with common.finishing():
+            signal.pthread_kill(main, signal.SIGTERM)
+            time.sleep(0.01)
+            written = True
+        assert written
+        with pytest.raises(cochlea_dxl.Interrupted):
+            signal.pthread_kill(main, signal.SIGHUP)
+            time.sleep(0.01)
+
+
 # ---- the reboot advice ---------------------------------------------------------------------
 
 

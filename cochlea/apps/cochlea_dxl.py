@@ -106,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         failed = getattr(exc, "unconfirmed", None)
         torque = (f"torque off NOT confirmed by {', '.join(failed)}" if failed else
                   "every torque is off")
-        print(f"{name}: interrupted by {signal.Signals(signum).name} ({torque}); nothing "
-              "done, nothing written", file=sys.stderr)
+        with contextlib.suppress(OSError):  # SIGHUP: the terminal may be gone
+            print(f"{name}: interrupted by {signal.Signals(signum).name} ({torque}); nothing "
+                  "done, nothing written", file=sys.stderr)
         return 128 + signum
 
 

@@ -228,11 +228,13 @@ def run(args: argparse.Namespace) -> int:
     # Again: the path may have changed while the user calibrated (never replace a non-file).
     common.check_output(out, "--in-place --description" if args.in_place else "--out",
                         new=not args.in_place, then="")
-    _write_checked(new, out, args.robot, drives, results)
-    for d in chosen:
-        direction, offset = results[d.id]
-        print(f"{d.name} (ID {d.id}): direction {direction:+d}, zero_offset_deg {offset:.4f}")
-    print(f"written: {out}")
+    with common.finishing():  # a signal now would not stop the file half-reported
+        _write_checked(new, out, args.robot, drives, results)
+        for d in chosen:
+            direction, offset = results[d.id]
+            print(f"{d.name} (ID {d.id}): direction {direction:+d}, zero_offset_deg "
+                  f"{offset:.4f}")
+        print(f"written: {out}", flush=True)
     return 0
 
 
@@ -402,17 +404,18 @@ def _torque_fit(args: argparse.Namespace) -> int:
     writer.writerow(["goal_current_mA", "present_current_mA", "force_N", "lever_m",
                      "torque_Nm"])
     writer.writerows(samples)
-    with atomic_path(csv_path) as tmp:
-        tmp.write_text(buffer.getvalue())
-    x, y = d.motor.fit.x, d.motor.fit.y
-    # The description's units per SI unit, from the fit's own conversion (a = b = 1 there).
-    unit = Fit.from_description(dataclasses.replace(d.motor.fit, a=1.0, b=1.0))
-    a_d, b_d = a / unit.a, b / unit.b
-    print(f"{d.name} (ID {d.id}): torque = {a:.4f} N m/A * I {b:+.4f} N m from {len(samples)} "
-          f"samples (RMS residual {residual:.2e} N m); samples: {csv_path}")
-    # source = "measured": cochlea-identify then trusts this line (it fits only placeholders).
-    print(f"for the description: fit = {{ a = {a_d:.6g}, b = {b_d:.6g}, x = \"{x}\", "
-          f"y = \"{y}\", source = \"measured\" }}")
+    with common.finishing():  # a signal now would not stop the CSV half-reported
+        with atomic_path(csv_path) as tmp:
+            tmp.write_text(buffer.getvalue())
+        x, y = d.motor.fit.x, d.motor.fit.y
+        # The description's units per SI unit, from the fit's own conversion (a = b = 1 there).
+        unit = Fit.from_description(dataclasses.replace(d.motor.fit, a=1.0, b=1.0))
+        a_d, b_d = a / unit.a, b / unit.b
+        print(f"{d.name} (ID {d.id}): torque = {a:.4f} N m/A * I {b:+.4f} N m from {len(samples)} "
+              f"samples (RMS residual {residual:.2e} N m); samples: {csv_path}")
+        # source = "measured": cochlea-identify then trusts this line (it fits only placeholders).
+        print(f"for the description: fit = {{ a = {a_d:.6g}, b = {b_d:.6g}, x = \"{x}\", "
+              f"y = \"{y}\", source = \"measured\" }}")
     return 0
 
 

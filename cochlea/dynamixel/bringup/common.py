@@ -33,6 +33,7 @@ import signal
 import stat
 import struct
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -597,6 +598,23 @@ def _signals_held():
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+@contextlib.contextmanager
+def finishing():
+    """After the move, every torque off: the outputs are written and the result printed with
+    the stop signals ignored (a few milliseconds), so that a signal cannot leave a record
+    written under a message that says nothing was. One before this still stops the command
+    with nothing written."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _stopped(bus: Bus, exc: MotionStopped, every: list[JointDrive], what: str,

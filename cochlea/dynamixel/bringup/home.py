@@ -129,9 +129,10 @@ def run(args: argparse.Namespace) -> int:
               "marker_address": MARKER_ADDRESS, "marker": marker, "port": args.port,
               "description": str(args.description) if args.description else "shipped",
               "date": datetime.now().isoformat(timespec="seconds")}
-    _write_record(record_path, record)
-    print(f"homed: {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
-          f"{stop:g} m; record {record_path}; torque off")
+    with common.finishing():  # a signal now would not stop the record half-reported
+        _write_record(record_path, record)
+        print(f"homed: {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
+              f"{stop:g} m; record {record_path}; torque off", flush=True)
     return 0
 
 
