@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ...console import signals_held
 from ...errors import CochleaError
 from ...robots import ROBOTS
 from ...runtime.backend import BackendError
@@ -589,15 +590,11 @@ def motion(bus: Bus, moved: list[JointDrive], every: list[JointDrive], what: str
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-@contextlib.contextmanager
 def _signals_held():
     """The stop signals held back while the torque goes off, so that one arriving then cannot
-    cut the torque off short; delivered (raised) once it is done."""
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+    cut the torque off short; raised once it is done (:func:`cochlea.console.signals_held`:
+    Python-level handlers, which cover numpy's threads too, not a thread's signal mask)."""
+    return signals_held(STOP_SIGNALS)
 
 
 @contextlib.contextmanager
