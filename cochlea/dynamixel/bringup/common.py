@@ -444,9 +444,11 @@ class Bus:
     def present(self, d: JointDrive) -> tuple[int, int, int]:
         """``(Present Current LSB, Present Velocity LSB, Present Position counts)`` of ``d`` in
         one READ with its Realtime Tick. While watched, a tick that did not move since the
-        motor's last such read (more than :data:`STALE_AFTER_S` before) is a stale packet: the
-        motor repeats an old answer (:class:`MotorLost`)."""
+        motor's last such read (its answer received more than :data:`STALE_AFTER_S` before
+        this request left) is a stale packet: the motor repeats an old answer
+        (:class:`MotorLost`)."""
         what = f"READ Present state ({PRESENT_ADDRESS}..{PRESENT_ADDRESS + PRESENT.size - 1})"
+        sent = time.perf_counter()
         reply = self._expect(self.request(proto.read(d.id, PRESENT_ADDRESS, PRESENT.size), d.id),
                              d.id, what)
         if len(reply.params) != PRESENT.size:
@@ -454,17 +456,19 @@ class Bus:
                     f"{len(reply.params)} bytes, not {PRESENT.size}")
             raise MotorLost(text, d.id) if self.watching is not None else BusError(text)
         tick, current, velocity, position = PRESENT.unpack(reply.params)
-        now = time.perf_counter()
         if self.watching is not None:
+            # The motor sampled the last tick before its answer came (last[1]) and this one
+            # after this request left (sent): more than STALE_AFTER_S between those two and
+            # a tick that did not move is a stale answer, however late either answer came.
             last = self._ticks.get(d.id)
             if last is not None and last[0] == tick:
-                elapsed_ms = (now - last[1]) * 1e3
+                elapsed_ms = (sent - last[1]) * 1e3
                 wrapped = elapsed_ms % TICK_MODULO_MS  # a whole wrap of the tick is no proof
                 if (elapsed_ms > STALE_AFTER_S * 1e3 and
                         STALE_AFTER_S * 1e3 < wrapped < TICK_MODULO_MS - STALE_AFTER_S * 1e3):
                     raise MotorLost(f"{self.who(d.id)} answered a stale packet (its Realtime "
                                     f"Tick stayed at {tick} ms over {elapsed_ms:.0f} ms)", d.id)
-            self._ticks[d.id] = (tick, now)
+            self._ticks[d.id] = (tick, time.perf_counter())
         return current, velocity, position
 
     def position(self, d: JointDrive) -> int:
