@@ -168,6 +168,7 @@ def test_home_finds_the_hard_stop_and_the_bridge_checks_the_record(tmp_path, no_
                          truth=Truth(offset_deg={1: 100.0}, hard_stop_m=stop)).start()
     slider = next(m for m in chain.motors if m.drive.type == "prismatic")
     record = tmp_path / "homing" / "parallel.json"
+    record.parent.mkdir()  # a --record's folder must exist (checked before anything moves)
     try:
         chain.move_joint("slider.d1", 0.03)
         # Unhomed: refused on a real port's rule, naming the command that homes it.

@@ -156,6 +156,9 @@ class Faults:
     # (ID, reads): the motor answers its next ``reads`` reads (-1: all) with the data of its
     # last reply before the fault, a stale packet (the Realtime Tick does not move).
     stale: tuple[int, int] | None = None
+    # The stale packets answer the motor's unicast READs too (the bring-up tools'), not only
+    # its part of a SYNC_READ (the runtime's).
+    stale_unicast: bool = False
 
 
 def check_faults(faults: Faults, ids: list[int]) -> None:
@@ -188,6 +191,9 @@ def check_faults(faults: Faults, ids: list[int]) -> None:
         if faults.stale[1] == 0 or faults.stale[1] < -1:
             raise CochleaError(f"--stale-replies {faults.stale[0]}:{faults.stale[1]}: expected "
                                "a number of reads >= 1 (or none: every read from the fault on)")
+    if faults.stale_unicast and faults.stale is None:
+        raise CochleaError("--stale-unicast: expected --stale-replies ID[:N] too (it names the "
+                           "motor)")
     for option, motor_id in named:
         if motor_id not in ids:
             raise CochleaError(f"{option}: motor ID {motor_id} is not on this chain (its motors "
@@ -820,6 +826,8 @@ class VirtualChain:
                         proto.from_le(params[2:4], False)
                     error, data = m.read(address, length)
                     self._event(now, "read", m.id, address, length)
+                    if self.faults.stale_unicast and not error:
+                        data = self._stale_reply(m, now, address, data)
                     replies.append((m, error, data))
         elif inst == WRITE:
             for m in targets:
@@ -1094,6 +1102,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="motor ID repeats its last status packet before the fault (a stale "
                         "packet: its Realtime Tick does not move) for its next N reads "
                         "(default: every read)")
+    f.add_argument("--stale-unicast", action="store_true",
+                   help="the stale packets of --stale-replies answer that motor's READs too "
+                        "(cochlea-dxl's), not only its part of a SYNC_READ (the runtime's)")
     f.add_argument("--fault-delay", type=float, default=0.0, metavar="S",
                    help="the faults above start S seconds after the first Torque Enable 1")
     f.add_argument("--missing-motor", type=int, action="append", default=[], metavar="ID",
@@ -1117,7 +1128,8 @@ def faults_from_args(args: argparse.Namespace) -> Faults:
                   late_s=args.late_ms * 1e-3, ids=args.fault_ids,
                   hardware_error=args.hardware_error, silent=args.silent_motor,
                   missing=frozenset(args.missing_motor), model_number=dict(args.model_number),
-                  delay_s=args.fault_delay, seed=args.seed, stale=args.stale_replies)
+                  delay_s=args.fault_delay, seed=args.seed, stale=args.stale_replies,
+                  stale_unicast=args.stale_unicast)
 
 
 def check_options(args: argparse.Namespace) -> None:

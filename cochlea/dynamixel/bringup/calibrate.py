@@ -127,12 +127,9 @@ def _finite(value: float, option: str, low: float = 0.0) -> float:
 
 
 def _new_file(path: Path, option: str) -> Path:
-    if path.exists() or path.is_symlink():
-        raise CochleaError(f"{option} {path}: already exists; expected a new file (cochlea-dxl "
-                           "never overwrites one)")
-    if not path.parent.is_dir():
-        raise CochleaError(f"{option} {path}: its folder {path.parent} does not exist")
-    return path
+    """A new file the command may write: refused (exit 2) before anything moves if it exists,
+    or its folder is missing, not a folder or not writable (:func:`common.check_output`)."""
+    return common.check_output(path, option, new=True)
 
 
 def _out_path(args: argparse.Namespace) -> Path:
@@ -144,7 +141,8 @@ def _out_path(args: argparse.Namespace) -> Path:
             raise CochleaError("--in-place and --out: expected one of them")
         if not args.description.is_file():
             raise CochleaError(f"--description {args.description}: not a file")
-        return args.description
+        # Replaced by a rename in its folder: that folder must take a new file.
+        return common.check_output(args.description, "--in-place --description")
     if args.out is not None:
         return _new_file(args.out, "--out")
     source = args.description if args.description is not None else Path(f"{args.robot}.toml")
@@ -211,23 +209,32 @@ def run(args: argparse.Namespace) -> int:
     text = (args.description.read_text() if args.description is not None
             else _shipped(args.robot).read_text())
     with common.Bus(args.port, args.baud) as bus:
-        common.check_chain(bus, drives)  # nothing written yet: nothing to undo
+        # No motor in alert (docs/hardware.md); nothing written yet: nothing to undo.
+        common.check_chain(bus, drives, torque=True)
+        bus.names = {d.id: d for d in drives}
         try:
             failed = bus.torque_off(drives)
             if failed:
                 raise common.BusError(f"torque off not confirmed by {', '.join(failed)}: "
                                       "calibrate only with every motor free")
-            results = {d.id: _calibrate_joint(bus, d, refs[d.name], args) for d in chosen}
+            # Every status packet watched: an alert, a lost or garbled motor stops it.
+            with common.motion(bus, [], drives, "the calibration"):
+                results = {d.id: _calibrate_joint(bus, d, refs[d.name], args) for d in chosen}
         finally:
             bus.torque_off(drives)
     note = (f"calibrated {datetime.now().isoformat(timespec='seconds')} on {args.port} "
             "(cochlea-dxl calibrate)")
     new = edit_description(text, results, note, path=out)
-    _write_checked(new, out, args.robot, drives, results)
-    for d in chosen:
-        direction, offset = results[d.id]
-        print(f"{d.name} (ID {d.id}): direction {direction:+d}, zero_offset_deg {offset:.4f}")
-    print(f"written: {out}")
+    # Again: the path may have changed while the user calibrated (never replace a non-file).
+    common.check_output(out, "--in-place --description" if args.in_place else "--out",
+                        new=not args.in_place, then="")
+    with common.finishing():  # a signal now would not stop the file half-reported
+        _write_checked(new, out, args.robot, drives, results)
+        for d in chosen:
+            direction, offset = results[d.id]
+            print(f"{d.name} (ID {d.id}): direction {direction:+d}, zero_offset_deg "
+                  f"{offset:.4f}")
+        print(f"written: {out}", flush=True)
     return 0
 
 
@@ -381,10 +388,11 @@ def _torque_fit(args: argparse.Namespace) -> int:
     samples = []
     with common.Bus(args.port, args.baud) as bus:
         common.check_chain(bus, [d], torque=True)  # nothing written yet: nothing to undo
-        try:
+        bus.names = {x.id: x for x in drives}
+        # Every status packet watched; any stop: torque off on every motor, no CSV.
+        with common.motion(bus, [d], drives, f"the torque fit of {d.name}"):
             _push_and_measure(bus, d, lever, currents, samples)
-        finally:
-            bus.torque_off([d])
+    common.check_output(csv_path, "--csv", new=True, then="")  # again: it may have changed
     if len(samples) < 2:
         raise CochleaError("the torque fit needs two samples or more: nothing written")
     amps = np.array([s[1] for s in samples]) * 1e-3  # the present current the motor measured
@@ -396,17 +404,18 @@ def _torque_fit(args: argparse.Namespace) -> int:
     writer.writerow(["goal_current_mA", "present_current_mA", "force_N", "lever_m",
                      "torque_Nm"])
     writer.writerows(samples)
-    with atomic_path(csv_path) as tmp:
-        tmp.write_text(buffer.getvalue())
-    x, y = d.motor.fit.x, d.motor.fit.y
-    # The description's units per SI unit, from the fit's own conversion (a = b = 1 there).
-    unit = Fit.from_description(dataclasses.replace(d.motor.fit, a=1.0, b=1.0))
-    a_d, b_d = a / unit.a, b / unit.b
-    print(f"{d.name} (ID {d.id}): torque = {a:.4f} N m/A * I {b:+.4f} N m from {len(samples)} "
-          f"samples (RMS residual {residual:.2e} N m); samples: {csv_path}")
-    # source = "measured": cochlea-identify then trusts this line (it fits only placeholders).
-    print(f"for the description: fit = {{ a = {a_d:.6g}, b = {b_d:.6g}, x = \"{x}\", "
-          f"y = \"{y}\", source = \"measured\" }}")
+    with common.finishing():  # a signal now would not stop the CSV half-reported
+        with atomic_path(csv_path) as tmp:
+            tmp.write_text(buffer.getvalue())
+        x, y = d.motor.fit.x, d.motor.fit.y
+        # The description's units per SI unit, from the fit's own conversion (a = b = 1 there).
+        unit = Fit.from_description(dataclasses.replace(d.motor.fit, a=1.0, b=1.0))
+        a_d, b_d = a / unit.a, b / unit.b
+        print(f"{d.name} (ID {d.id}): torque = {a:.4f} N m/A * I {b:+.4f} N m from {len(samples)} "
+              f"samples (RMS residual {residual:.2e} N m); samples: {csv_path}")
+        # source = "measured": cochlea-identify then trusts this line (it fits only placeholders).
+        print(f"for the description: fit = {{ a = {a_d:.6g}, b = {b_d:.6g}, x = \"{x}\", "
+              f"y = \"{y}\", source = \"measured\" }}")
     return 0
 
 
@@ -433,5 +442,5 @@ def _push_and_measure(bus: common.Bus, d: JointDrive, lever: float, currents: li
         if not math.isfinite(force):
             raise CochleaError(f"the force {answer!r}: expected a number of N; nothing "
                                "written")
-        present = bus.read(d.id, d.spec.item("Present Current")) * d.spec.current_unit_mA
+        present = bus.present(d)[0] * d.spec.current_unit_mA  # its Realtime Tick checked
         samples.append((lsb * d.spec.current_unit_mA, present, force, lever, force * lever))

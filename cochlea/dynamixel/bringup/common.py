@@ -8,18 +8,37 @@ Exit codes of ``cochlea-dxl`` (the dispatcher maps exceptions to them):
 * 0 done, everything as expected;
 * 1 the check found a difference (``info``: a register differs; ``configure``: a write did
   not take; ``reboot``: a motor still in alert or not back; ``scan``: no motor answered);
-* 2 the user's input is wrong (an option, the description); nothing was written;
+* 2 the user's input is wrong (an option, the description, an output path that cannot be
+  written: a missing folder, a folder that is a file, a read-only folder, an existing path that
+  is not a regular file); nothing was written and nothing moved;
 * 5 the port does not open, or a motor of the description is missing, of another model or
-  does not answer (as ``cochlea-run``'s "the backend could not start").
+  does not answer (as ``cochlea-run``'s "the backend could not start");
+* 6 a motor went into hardware alert while the command moved or configured the motors: the move
+  was stopped (goal current 0, torque off on every motor that answers), nothing reported as
+  done, nothing written; the message names the motor(s), the error bits and the ``reboot`` of
+  those motors only (:class:`HardwareAlert`);
+* 7 a motor stopped answering, or answered with a garbled (CRC) or stale packet (another ID's,
+  a wrong length, a Realtime Tick that did not move), while the command moved or configured
+  the motors: stopped the same way (:class:`MotorLost`);
+* 128 + the signal's number (129 SIGHUP, 130 SIGINT, 143 SIGTERM): interrupted; a move was
+  stopped the same way, nothing written (:mod:`cochlea.apps.cochlea_dxl`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
+import stat
+import struct
+import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ...console import signals_held
 from ...errors import CochleaError
 from ...robots import ROBOTS
 from ...runtime.backend import BackendError
@@ -48,9 +67,19 @@ EXIT_OK = 0
 EXIT_DIFFERS = 1
 #: The port or the motors (cochlea-run's code for a backend that could not start).
 EXIT_BUS = EXIT_BACKEND
+#: A motor went into hardware alert during a move or a configuration (see the docstring).
+EXIT_ALERT = 6
+#: A motor stopped answering, or answered garbled or stale packets, during a move.
+EXIT_LOST = 7
 
 #: The runtime's default rate (cochlea-run --baud), what info and configure talk at by default.
 DEFAULT_BAUD = 4_000_000
+#: One READ of 120..135: Realtime Tick (ms, modulo 32768), Moving, Moving Status, Present PWM,
+#: Present Current, Present Velocity, Present Position (the same on the MX(2.0) and X series).
+PRESENT_ADDRESS, PRESENT = 120, struct.Struct("<H4xhii")
+TICK_MODULO_MS = 32768
+#: A motor whose Realtime Tick did not move over more than this (s) answered a stale packet.
+STALE_AFTER_S = 0.003
 #: How long one unicast request waits for its status packet: a USB adapter holds received
 #: bytes up to its latency timer (16 ms by default), so less would miss motors that answered.
 REPLY_TIMEOUT_S = 0.05
@@ -69,6 +98,28 @@ class BusError(CochleaError):
     """The port, or a motor on it, did not do what was asked (exit code 5)."""
 
     exit_code = EXIT_BUS
+
+
+class MotionStopped(BusError):
+    """A motor went wrong while the command moved or configured the motors (:func:`motion`
+    stopped them); ``motor_id`` is the motor whose packet showed it."""
+
+    def __init__(self, message: str, motor_id: int | None = None):
+        super().__init__(message)
+        self.motor_id = motor_id
+
+
+class HardwareAlert(MotionStopped):
+    """A status packet carried the hardware alert bit during a move (exit code 6)."""
+
+    exit_code = EXIT_ALERT
+
+
+class MotorLost(MotionStopped):
+    """A motor stopped answering, or answered a garbled or stale packet, during a move (exit
+    code 7)."""
+
+    exit_code = EXIT_LOST
 
 
 # ---- options -----------------------------------------------------------------------------------
@@ -134,6 +185,50 @@ def load_drives(args: argparse.Namespace) -> list[JointDrive]:
         return joint_drives(args.robot, args.description)
     except BackendError as exc:  # joint_drives reports a bad description as a BackendError
         raise CochleaError(str(exc)) from None
+
+
+def check_output(path: Path, option: str, *, new: bool = False,
+                 then: str = "; nothing moved") -> Path:
+    """Refuse, before anything moves (exit 2), an output path the command could not write in
+    the end: its folder missing, not a folder or not writable (tried: a temporary file is
+    created there and removed), or the path itself existing as anything but a regular file (a
+    folder, a FIFO, a device, a socket, a symbolic link), which is never replaced. ``new``:
+    an existing file is refused too (the command never overwrites it). The file is then
+    written atomically beside it (:func:`~cochlea.dynamixel.bringup.calibrate.atomic_path`)."""
+    path = Path(path)
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:
+        raise CochleaError(f"{option} {path}: cannot look at it ({exc.strerror}); expected a "
+                           f"file in a writable folder{then}") from None
+    if mode is not None:
+        if not stat.S_ISREG(mode):
+            kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
+                    else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+                    else "a symbolic link" if stat.S_ISLNK(mode) else "a socket"
+                    if stat.S_ISSOCK(mode) else "not a regular file")
+            raise CochleaError(f"{option} {path}: exists and is {kind}; expected a regular "
+                               f"file (never replaced){then}")
+        if new:
+            raise CochleaError(f"{option} {path}: already exists; expected a new file "
+                               "(cochlea-dxl never overwrites one)")
+    folder = path.parent
+    if not folder.exists():
+        raise CochleaError(f"{option} {path}: its folder {folder} does not exist; expected an "
+                           f"existing folder{then}")
+    if not folder.is_dir():
+        raise CochleaError(f"{option} {path}: {folder} is not a folder; expected a file in a "
+                           f"folder{then}")
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".probe")
+    except OSError as exc:
+        raise CochleaError(f"{option} {path}: cannot write in its folder {folder} "
+                           f"({exc.strerror or exc}); expected a writable folder{then}") from None
+    os.close(fd)
+    os.unlink(probe)
+    return path
 
 
 def who(motor_id: int, drive: JointDrive | None = None) -> str:
@@ -220,6 +315,10 @@ class Bus:
         self.path, self.baud = str(path), int(baud)
         self.timeout_s, self.retries = timeout_s, retries
         self.names: dict[int, JointDrive] = {}  # for messages: the description's joints
+        #: While :func:`motion` moves or configures motors: what it does (for messages); every
+        #: status packet is then checked (alert bit, ID, CRC, length; see :meth:`request`).
+        self.watching: str | None = None
+        self._ticks: dict[int, tuple[int, float]] = {}  # id -> last Realtime Tick, when read
         self._parser = proto.PacketParser(status=True)
         self._port: SerialPort | None = None
         self.open(baud)
@@ -281,11 +380,22 @@ class Bus:
     def request(self, frame: bytes, motor_id: int, tries: int | None = None) -> Reply | None:
         """Send a unicast instruction until its status packet comes (``tries`` times); None
         if it never did."""
+        watched = self.watching is not None
         for _ in range(tries or self.retries):
             self._send(frame)
             for packet_id, error, params in self._packets(time.perf_counter() + self.timeout_s):
                 if packet_id == motor_id:
+                    if watched and error & ALERT_BIT:
+                        raise HardwareAlert(f"{self.who(motor_id)} answered with the hardware "
+                                            "alert bit", motor_id)
                     return Reply(error, params)
+                if watched:  # during a move, no packet but the motor's own answer will do
+                    raise MotorLost(f"{self.who(motor_id)} was answered by "
+                                    + ("a garbled packet (CRC)" if packet_id is None else
+                                       f"a stale packet of ID {packet_id}"), motor_id)
+        if watched:
+            raise MotorLost(f"{self.who(motor_id)} stopped answering "
+                            f"({tries or self.retries} tries)", motor_id)
         return None
 
     def send(self, frame: bytes) -> None:
@@ -315,6 +425,10 @@ class Bus:
                                           motor_id),
                              motor_id, f"READ {item.name} ({item.address})")
         if len(reply.params) != item.size:
+            if self.watching is not None:
+                raise MotorLost(f"{self.who(motor_id)} answered READ {item.name} "
+                                f"({item.address}) with a stale or garbled packet of "
+                                f"{len(reply.params)} bytes, not {item.size}", motor_id)
             raise BusError(f"{self.who(motor_id)} answered READ {item.name} ({item.address}) "
                            f"with {len(reply.params)} bytes, not {item.size}")
         return proto.from_le(reply.params, item.signed)
@@ -326,6 +440,36 @@ class Bus:
             return
         self._expect(self.request(frame, motor_id), motor_id,
                      f"WRITE {item.name} ({item.address}) = {value}")
+
+    def present(self, d: JointDrive) -> tuple[int, int, int]:
+        """``(Present Current LSB, Present Velocity LSB, Present Position counts)`` of ``d`` in
+        one READ with its Realtime Tick. While watched, a tick that did not move since the
+        motor's last such read (its answer received more than :data:`STALE_AFTER_S` before
+        this request left) is a stale packet: the motor repeats an old answer
+        (:class:`MotorLost`)."""
+        what = f"READ Present state ({PRESENT_ADDRESS}..{PRESENT_ADDRESS + PRESENT.size - 1})"
+        sent = time.perf_counter()
+        reply = self._expect(self.request(proto.read(d.id, PRESENT_ADDRESS, PRESENT.size), d.id),
+                             d.id, what)
+        if len(reply.params) != PRESENT.size:
+            text = (f"{self.who(d.id)} answered {what} with a stale or garbled packet of "
+                    f"{len(reply.params)} bytes, not {PRESENT.size}")
+            raise MotorLost(text, d.id) if self.watching is not None else BusError(text)
+        tick, current, velocity, position = PRESENT.unpack(reply.params)
+        if self.watching is not None:
+            # The motor sampled the last tick before its answer came (last[1]) and this one
+            # after this request left (sent): more than STALE_AFTER_S between those two and
+            # a tick that did not move is a stale answer, however late either answer came.
+            last = self._ticks.get(d.id)
+            if last is not None and last[0] == tick:
+                elapsed_ms = (sent - last[1]) * 1e3
+                wrapped = elapsed_ms % TICK_MODULO_MS  # a whole wrap of the tick is no proof
+                if (elapsed_ms > STALE_AFTER_S * 1e3 and
+                        STALE_AFTER_S * 1e3 < wrapped < TICK_MODULO_MS - STALE_AFTER_S * 1e3):
+                    raise MotorLost(f"{self.who(d.id)} answered a stale packet (its Realtime "
+                                    f"Tick stayed at {tick} ms over {elapsed_ms:.0f} ms)", d.id)
+            self._ticks[d.id] = (tick, time.perf_counter())
+        return current, velocity, position
 
     def position(self, d: JointDrive) -> int:
         """The motor's Present Position (counts)."""
@@ -397,11 +541,106 @@ def check_chain(bus: Bus, drives: list[JointDrive], *, torque: bool = False) -> 
                             f"the {d.spec.name}'s {d.spec.number}")
         elif torque and bus.alert(d.id):
             status = bus.read(d.id, d.spec.item("Hardware Error Status"))
-            alerted.append(f"{bus.who(d.id)} is in hardware alert "
-                           f"({describe_hardware_error(status)})")
+            alerted.append((d.id, f"{bus.who(d.id)} is in hardware alert "
+                                  f"({describe_hardware_error(status)})"))
     if problems:
         raise BusError("; ".join(problems) + f" (on {bus.path} at {bus.baud} baud): check the "
                        "power, cables, IDs and --baud; cochlea-dxl scan lists what answers")
     if alerted:
-        raise BusError("; ".join(alerted) + ": remove the cause, then cochlea-dxl reboot --ids "
-                       + ",".join(str(d.id) for d in drives) + " before this step")
+        raise BusError("; ".join(text for _, text in alerted) + ": remove the cause, then "
+                       "cochlea-dxl reboot --ids " + ",".join(str(i) for i, _ in alerted)
+                       + f" --port {bus.path} --baud {bus.baud} before this step")
+
+
+# ---- a move, watched ----------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def motion(bus: Bus, moved: list[JointDrive], every: list[JointDrive], what: str):
+    """Move or configure ``moved`` in the body, every status packet watched
+    (:attr:`Bus.watching`): the hardware alert bit raises :class:`HardwareAlert`, no answer, a
+    garbled or stale packet :class:`MotorLost`. At the body's end goal current 0 and torque
+    off on ``moved``, still watched (an alert on those answers counts too). Whatever stops the
+    body (those, any error, a signal): goal current 0 and torque off on ``every`` motor that
+    answers, then the exception again; a :class:`MotionStopped` as one line naming the
+    motor(s), the alert's bits in words and the ``reboot`` of those motors only. The caller
+    writes its outputs only after this returned."""
+    bus.watching = what
+    bus._ticks.clear()
+    try:
+        yield
+        for d in moved:
+            bus.write(d.id, d.spec.item("Goal Current"), 0)
+            bus.write(d.id, d.spec.item("Torque Enable"), 0)
+    except MotionStopped as exc:
+        bus.watching = None
+        with _signals_held():
+            failed = bus.torque_off(every)
+        raise _stopped(bus, exc, every, what, failed) from None
+    except BaseException as exc:
+        bus.watching = None
+        with _signals_held():
+            failed = bus.torque_off(every)
+        if failed and type(exc) is BusError:
+            raise BusError(f"{exc}; torque off NOT confirmed by {', '.join(failed)}") from None
+        if failed and not isinstance(exc, Exception):  # a signal: cochlea_dxl says it
+            exc.unconfirmed = failed
+        raise
+    finally:
+        bus.watching = None
+
+
+#: The signals that stop a command (cochlea_dxl turns them into an exception).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _signals_held():
+    """The stop signals held back while the torque goes off, so that one arriving then cannot
+    cut the torque off short; raised once it is done (:func:`cochlea.console.signals_held`:
+    Python-level handlers, which cover numpy's threads too, not a thread's signal mask)."""
+    return signals_held(STOP_SIGNALS)
+
+
+@contextlib.contextmanager
+def finishing():
+    """After the move, every torque off: the outputs are written and the result printed with
+    the stop signals ignored (a few milliseconds), so that a signal cannot leave a record
+    written under a message that says nothing was. One before this still stops the command
+    with nothing written."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _stopped(bus: Bus, exc: MotionStopped, every: list[JointDrive], what: str,
+             failed: list[str]) -> MotionStopped:
+    torque = ("goal current 0 and torque off on every motor" if not failed else
+              f"goal current 0 and torque off, NOT confirmed by {', '.join(failed)}")
+    if not isinstance(exc, HardwareAlert):
+        return MotorLost(f"{exc} during {what}: stopped, {torque}; nothing done, nothing "
+                         "written: check its power, cable and the bus, then run again",
+                         exc.motor_id)
+    alerted = []
+    for d in every:  # the alert is latched until a reboot: ask every motor
+        if d.id == exc.motor_id or bus.alert(d.id):
+            try:
+                status = value_text(d.spec.item("Hardware Error Status"),
+                                    bus.read(d.id, d.spec.item("Hardware Error Status")),
+                                    d.spec)
+            except BusError:
+                status = "Hardware Error Status unread"
+            alerted.append((d.id, f"{bus.who(d.id)}: {status}"))
+    if not any(i == exc.motor_id for i, _ in alerted):
+        alerted.insert(0, (exc.motor_id, f"{bus.who(exc.motor_id)}: alert bit set"))
+    return HardwareAlert(f"hardware alert during {what}: "
+                         + "; ".join(text for _, text in alerted)
+                         + f"; stopped: {torque}; nothing done, nothing written: remove the "
+                         "cause (load, temperature, supply voltage), then cochlea-dxl reboot "
+                         "--ids " + ",".join(str(i) for i, _ in alerted)
+                         + f" --port {bus.path} --baud {bus.baud}", exc.motor_id)

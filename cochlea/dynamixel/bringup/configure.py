@@ -8,6 +8,8 @@
    chain already configured gets no write at all ("already configured").
 3. The writes, each confirmed by its status packet (a motor at Status Return Level below 2
    does not answer a WRITE: that one register is written unconfirmed and read back).
+   Every status packet is watched: a hardware alert, a motor that stops answering or answers
+   a garbled or stale packet stops the writes (torque off on every motor; exit 6 or 7).
 4. The verify pass reads every register back: one that did not take is exit 1, naming the
    motor and the register.
 5. ``--baud-to``: the Baud Rate of every motor, the port reopened at the new rate, and the
@@ -69,8 +71,8 @@ def _plan(bus: Bus, drives: list[JointDrive], baud_to: int | None) -> tuple[list
         spec = d.spec
         status = bus.read(d.id, spec.item("Hardware Error Status"))
         if status:
-            alerts.append(f"{bus.who(d.id)}: "
-                          f"{common.value_text(spec.item('Hardware Error Status'), status)}")
+            alerts.append((d.id, f"{bus.who(d.id)}: "
+                          f"{common.value_text(spec.item('Hardware Error Status'), status)}"))
             continue
         torque = spec.item("Torque Enable")
         if bus.read(d.id, torque):
@@ -89,9 +91,9 @@ def _plan(bus: Bus, drives: list[JointDrive], baud_to: int | None) -> tuple[list
                 bauds.append(Write(d, item, present, baud_code(baud_to),
                                    f"the bus at {baud_to} baud, changed last"))
     if alerts:
-        raise BusError("; ".join(alerts) + ": remove the cause, then cochlea-dxl reboot "
-                       f"--port {bus.path} --ids {','.join(str(d.id) for d in drives)}; nothing "
-                       "was written")
+        raise BusError("; ".join(text for _, text in alerts) + ": remove the cause, then "
+                       "cochlea-dxl reboot --ids " + ",".join(str(i) for i, _ in alerts)
+                       + f" --port {bus.path} --baud {bus.baud}; nothing was written")
     return writes, bauds
 
 
@@ -130,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"configure: dry run: {len(writes) + len(bauds)} writes listed, nothing "
                   "written")
             return common.EXIT_OK
-        for w in writes:
-            bus.write(w.drive.id, w.item, w.value, reply=w.confirmed)
+        # Every status packet watched: an alert or a lost motor stops the writes (exit 6/7).
+        with common.motion(bus, [], drives, "configure"):
+            for w in writes:
+                bus.write(w.drive.id, w.item, w.value, reply=w.confirmed)
         wrong = _verify(bus, drives, None)
         if wrong:
             return _failed(wrong, bus)

@@ -15,7 +15,11 @@ again within one turn, so the joint coordinate is no longer known. Homing finds 
    (:data:`MARKER_ADDRESS`, Feedforward 2nd Gain): RAM returns to its defaults at power-on and
    after a REBOOT, exactly when the turn count is lost;
 4. goal current 0 and torque off, whatever happened; then the record is written (JSON,
-   :func:`default_record`).
+   :func:`default_record`), atomically, to a path checked writable before anything moved.
+
+Every status packet of the move is watched (:func:`common.motion`): a hardware alert, a motor
+that stops answering or answers a garbled or stale packet, a signal stop the move at once
+(goal current 0, torque off on every motor that answers), and nothing is recorded.
 
 The rule the runtime applies (:func:`reference_offset`): the record is valid while the motor
 still holds the token, i.e. it has not been power-cycled or rebooted since it was homed; then
@@ -100,22 +104,23 @@ def _check(args: argparse.Namespace, d) -> tuple[float, float, float]:
 
 def run(args: argparse.Namespace) -> int:
     baud_code(args.baud)
-    sliders = [d for d in common.load_drives(args) if d.type == "prismatic"]
+    drives = common.load_drives(args)
+    sliders = [d for d in drives if d.type == "prismatic"]
     if not sliders:
         raise CochleaError(f"--robot {args.robot}: it has no slider to home (the parallel "
                            "robot has)")
     d = sliders[0]
     stop, speed, timeout = _check(args, d)
-    record_path = args.record if args.record is not None else default_record(args.robot)
-    if record_path.is_dir():
-        raise CochleaError(f"--record {record_path}: a folder; expected a file")
+    record_path = _record_path(args)  # before anything moves: a move is 10 s or more
     marker = random.SystemRandom().randint(*MARKER_RANGE)
     with common.Bus(args.port, args.baud) as bus:
         common.check_chain(bus, [d], torque=True)  # nothing written yet: nothing to undo
+        bus.names = {x.id: x for x in drives}
         try:
-            result = _seek_stop(bus, d, args, speed, timeout, marker)
+            # Every status packet watched; any stop: torque off on every motor, no record.
+            with common.motion(bus, [d], drives, f"the homing of {d.name}"):
+                result = _seek_stop(bus, d, args, speed, timeout, marker)
         finally:
-            failed = bus.torque_off([d])
             with contextlib.suppress(common.BusError):
                 bus.write(d.id, d.spec.item("Bus Watchdog"), 0)
     record = {"format": FORMAT, "robot": args.robot, "joint": d.name, "motor_id": d.id,
@@ -124,22 +129,35 @@ def run(args: argparse.Namespace) -> int:
               "marker_address": MARKER_ADDRESS, "marker": marker, "port": args.port,
               "description": str(args.description) if args.description else "shipped",
               "date": datetime.now().isoformat(timespec="seconds")}
-    _write_record(record_path, record)
-    print(f"homed: {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
-          f"{stop:g} m; record {record_path}"
-          + (f"; torque off NOT confirmed by {', '.join(failed)}" if failed else
-             "; torque off"))
-    return 0 if not failed else 1
+    with common.finishing():  # a signal now would not stop the record half-reported
+        _write_record(record_path, record)
+        print(f"homed: {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
+              f"{stop:g} m; record {record_path}; torque off", flush=True)
+    return 0
+
+
+def _record_path(args: argparse.Namespace) -> Path:
+    """Where the record goes, checked writable (:func:`common.check_output`) before anything
+    moves; the default's folder (~/.cochlea/homing) is created, a --record's must exist."""
+    if args.record is not None:
+        return common.check_output(args.record, "--record")
+    path = default_record(args.robot)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CochleaError(f"--record (default) {path}: cannot create its folder "
+                           f"({exc.strerror or exc}); give --record FILE; nothing moved") from None
+    return common.check_output(path, "--record (default)")
 
 
 def _write_record(path: Path, record: dict) -> None:
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        common.check_output(path, "--record", then="")  # again: it may have changed meanwhile
         write_atomic(path, json.dumps(record, indent=2) + "\n")
-    except OSError as exc:
-        raise CochleaError(f"--record {path}: cannot write it ({exc.strerror or exc}); the "
-                           "slider was homed but nothing records it: home again with another "
-                           "--record") from None
+    except (OSError, CochleaError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise CochleaError(f"--record {path}: cannot write it ({why}); the slider was homed "
+                           "but nothing records it: home again with another --record") from None
 
 
 #: Where the homing leaves its marker (:mod:`..homing`): a RAM register current control ignores.
@@ -163,15 +181,14 @@ def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: 
     integral, window = 0.0, []
     t0 = last = time.perf_counter()
     stroke = d.position_limits[1] - d.position_limits[0] + 0.01
-    velocity, goal_current = d.spec.item("Present Velocity"), d.spec.item("Goal Current")
+    goal_current = d.spec.item("Goal Current")
     while True:
         now = time.perf_counter()
         if now - t0 > timeout:
             raise common.BusError(f"no hard stop found in {timeout:g} s: check that the "
                                   "slider moves down, its direction in the description, and "
                                   "--stop-m")
-        lsb = bus.read(d.id, velocity)
-        counts = bus.position(d)
+        _, lsb, counts = bus.present(d)  # one READ, its Realtime Tick checked for staleness
         if abs((counts - start_counts) * d.q_per_count) > stroke:
             raise common.BusError(f"the slider travelled more than its stroke ({stroke:g} m) "
                                   "without meeting a stop: check its direction and the stop")

@@ -33,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     drives = common.load_drives(args)
     differences = 0
+    alerted: list[str] = []
     with Bus(args.port, args.baud) as bus:
         common.check_chain(bus, drives)
         for d in drives:
@@ -58,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
                 rows.append((name, str(item.address), common.value_text(item, value, spec),
                              what, "" if value == 0 else "DIFFERS"))
                 differences += value != 0
+                if name == "Hardware Error Status" and value:
+                    alerted.append(str(d.id))
             for name in RECORD:
                 item = spec.item(name)
                 value = bus.read(d.id, item)
@@ -72,7 +75,10 @@ def run(args: argparse.Namespace) -> int:
     if differences:
         print(f"info: {differences} register{'s differ' if differences != 1 else ' differs'} "
               f"from what the runtime expects (marked DIFFERS): cochlea-dxl configure writes "
-              "them; a hardware error needs cochlea-dxl reboot")
+              "them"
+              + (f"; the hardware alert of ID {', '.join(alerted)} needs cochlea-dxl reboot "
+                 f"--ids {','.join(alerted)} --port {args.port} --baud {args.baud}"
+                 if alerted else ""))
         return common.EXIT_DIFFERS
     print(f"info: all {len(drives)} motors as the description and the runtime expect")
     return common.EXIT_OK
