@@ -20,8 +20,7 @@ import pytest
 
 import cochlea
 from cochlea.apps import cochlea_excite, cochlea_identify
-from cochlea.apps.cochlea_identify import (EXIT_DUPLICATE_LOG, EXIT_OUTPUT_REFUSED,
-                                           EXIT_WRITE_FAILED)
+from cochlea.apps.cochlea_identify import EXIT_DUPLICATE_LOG, EXIT_OUTPUT_REFUSED, EXIT_WRITE_FAILED
 from cochlea.errors import EXIT_USER_ERROR
 
 ROOT = Path(__file__).resolve().parent.parent

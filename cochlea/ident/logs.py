@@ -108,8 +108,8 @@ def _check_file(file: Path) -> None:
     except OSError as exc:
         raise LogError(f"{file}: cannot read it ({exc.strerror})") from None
     if not stat.S_ISREG(info.st_mode):
-        raise LogError(f"{file}: expected a regular file holding a CSV log, got "
-                       f"{'a folder' if stat.S_ISDIR(info.st_mode) else 'a pipe, device or socket'}")
+        kind = "a folder" if stat.S_ISDIR(info.st_mode) else "a pipe, device or socket"
+        raise LogError(f"{file}: expected a regular file holding a CSV log, got {kind}")
     if info.st_size > MAX_LOG_BYTES:
         raise LogError(f"{file}: expected a log of at most {MAX_LOG_BYTES // 1024**3} GiB; "
                        "identify from shorter runs")
