@@ -1,7 +1,8 @@
 """``cochlea-excite``: design an excitation trajectory for identification and write it as a
 joint-space scenario ``cochlea-run`` tracks (docs/excitation.md). User mistakes, and requests
-no trajectory can satisfy, print one line and exit with EXIT_USER_ERROR; nothing is written
-then."""
+no trajectory can satisfy, print one line and exit with EXIT_USER_ERROR; an --out that cannot
+take the file, and a write that fails, have their own codes (docs/excitation.md, "Limits,
+files and exit codes"); nothing is written then."""
 
 from __future__ import annotations
 

@@ -2,7 +2,10 @@
 figures and (optionally) the values written back into a description.
 
 User mistakes -- a bad option, a missing or bad log, a robot that was not excited -- print one
-line and exit with EXIT_USER_ERROR, before any output file exists.
+line and exit with EXIT_USER_ERROR, before any output file exists; the same log given twice,
+an output that cannot take its file, and a write that fails (full disk, read-only) have their
+own codes (docs/identification.md, "Files and exit codes"). Outputs are checked before the
+logs are read and written all together, atomically, after the fit (cochlea.ident.files).
 """
 
 from __future__ import annotations

@@ -165,13 +165,17 @@ class Staged:
         return self
 
     def __exit__(self, kind, exc, tb) -> None:
+        failure = self._failure(exc) if isinstance(exc, OSError) else None
         self.discard()
-        if isinstance(exc, OSError):
-            raise self._failure(exc) from None
+        if failure is not None:
+            raise failure from None
 
     def _failure(self, exc: OSError) -> WriteFailed:
+        # A write on an open file names none: the file being written is the last one staged.
         name = exc.filename
         target = next((t for tmp, t in self._files if str(tmp) == str(name)), name)
+        if target is None and self._files:
+            target = self._files[-1][1]
         return WriteFailed(f"cannot write {target or 'the outputs'} "
                            f"({exc.strerror or exc}): nothing was written; every previous "
                            "output is kept as it was")
