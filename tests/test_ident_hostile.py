@@ -11,6 +11,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,8 @@ import cochlea
 from cochlea.apps import cochlea_excite, cochlea_identify
 from cochlea.apps.cochlea_identify import EXIT_DUPLICATE_LOG, EXIT_OUTPUT_REFUSED, EXIT_WRITE_FAILED
 from cochlea.errors import EXIT_USER_ERROR
+from cochlea.ident import files
+from cochlea.ident.cli import EXIT_TERMINATED, Terminated, sigterm_unwinds
 
 ROOT = Path(__file__).resolve().parent.parent
 FIT = ["--robot", "serial", "--min-speed", "0", "--effort-lag", "0"]
@@ -347,3 +350,20 @@ def test_a_report_lands_whole_with_the_previous_mode(log, tmp_path, capsys):
     assert (out.stat().st_mode & 0o777) == 0o640
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "ident.json", "ident_parameters.png", "ident_torques.png"]
+
+
+def test_an_interrupted_write_leaves_no_temporary_file(tmp_path):
+    """SIGTERM (or Ctrl-C) while the outputs are staged: the temporary files go, the previous
+    outputs stay, and the program ends with the shell's code for the signal."""
+    report = tmp_path / "ident.json"
+    report.write_text("previous")
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated), sigterm_unwinds(), files.Staged() as stage:
+        stage.write_text(report, "new")
+        stage.write_text(tmp_path / "figure.png", "half")
+        os.kill(os.getpid(), signal.SIGTERM)
+        stage.commit()  # not reached
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ident.json"]
+    assert report.read_text() == "previous"
+    assert signal.getsignal(signal.SIGTERM) == before  # the previous handler is back
+    assert EXIT_TERMINATED == 143

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import files
-from ..ident.cli import OneLineParser
+from ..ident.cli import EXIT_TERMINATED, OneLineParser, Terminated, sigterm_unwinds
 from ..ident.excite import ExcitationOptions, check_options, design, scenario_text
 from ..robots import ROBOTS, robot
 from ..sim.scenario import load as load_scenario
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         text = scenario_text(result, _command(argv), _description_ref(args))
         # Written under a temporary name beside --out, renamed when complete and checked: a
         # full disk or an I/O error leaves no partial file and the previous one as it was.
-        with files.Staged() as stage:
+        with sigterm_unwinds(), files.Staged() as stage:
             stage.write_text(args.out, text)
             # What cochlea-run will check before anything moves, checked before it is kept.
             unit_setups(load_scenario(stage.path_of(args.out)))
@@ -194,9 +194,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cochlea-excite: cannot read {exc.filename}: {exc.strerror or exc}; nothing "
               "written", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print("cochlea-excite: interrupted; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        print(f"cochlea-excite: {'terminated' if terminated else 'interrupted'}; nothing "
+              "written", file=sys.stderr)
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     return 0
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import current as current_fit
 from ..ident import estimate, files, writeback
-from ..ident.cli import OneLineParser
+from ..ident.cli import EXIT_TERMINATED, OneLineParser, Terminated, sigterm_unwinds
 from ..ident.logs import read_run
 from ..ident.physical import physically_consistent_fit
 from ..robots import ROBOTS, model, robot
@@ -421,15 +421,17 @@ def main(argv: list[str] | None = None) -> int:
         print("cochlea-identify: --in-place needs --update-description", file=sys.stderr)
         return EXIT_USER_ERROR
     try:
-        return run(args)
+        with sigterm_unwinds():
+            return run(args)
     except CochleaError as exc:
         print(f"cochlea-identify: {exc}", file=sys.stderr)
         return exit_code(exc)
     except BrokenPipeError:
         return 0
-    except KeyboardInterrupt:
-        print("cochlea-identify: interrupted; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        print("cochlea-identify: " + ("terminated" if isinstance(exc, Terminated) else
+                                      "interrupted") + "; nothing written", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":
