@@ -254,6 +254,23 @@ def test_excite_hostile_numbers_refused_up_front(tmp_path, capsys, argv, names):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("argv,names", [
+    (["--decimate", str(10**30)], "--decimate"), (["--decimate", "0"], "--decimate"),
+    (["--cutoff-hz", "1e-300"], "--cutoff-hz"), (["--cutoff-hz", "inf"], "--cutoff-hz"),
+    (["--parallel-cutoff-hz", "1e-300"], "--parallel-cutoff-hz"),
+    (["--holdout", "1e-300"], "--holdout"), (["--holdout", "nan"], "--holdout"),
+    (["--guard-s", "inf"], "--guard-s"), (["--max-condition", "inf"], "--max-condition"),
+])
+def test_identify_hostile_numbers_refused_before_the_logs(tmp_path, capsys, argv, names):
+    # The log does not exist: the numbers are refused first, before anything is read.
+    out = tmp_path / "ident.json"
+    err = _refused(capsys, cochlea_identify.main,
+                   [str(tmp_path / "nowhere"), *FIT, "--out", str(out), *argv],
+                   EXIT_USER_ERROR)
+    assert names in err and len(err) < 300, err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_identify_malformed_option_is_one_line(log, tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         cochlea_identify.main([str(log), *FIT, "--decimate", "1e400"])

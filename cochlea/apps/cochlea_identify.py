@@ -58,8 +58,9 @@ def _number_or_off(text: str, option: str, valid, expected: str) -> float | None
 
 def _parallel_cutoff(text: str) -> float | None:
     """``--parallel-cutoff-hz``: a frequency (Hz) or ``off``."""
-    return _number_or_off(text, "--parallel-cutoff-hz", lambda v: v > 0,
-                          "a positive frequency in Hz")
+    return _number_or_off(text, "--parallel-cutoff-hz",
+                          lambda v: v >= estimate.MIN_PARALLEL_CUTOFF_HZ,
+                          f"a frequency of at least {estimate.MIN_PARALLEL_CUTOFF_HZ:g} Hz")
 
 
 def _max_bus(text: str) -> float | None:
@@ -262,9 +263,18 @@ def run(args) -> int:
         target = writeback.check_writable(Path(args.update_description), args.in_place,
                                           inputs=tuple(files.log_file(f) for f in
                                                        args.logs + (args.validate or [])))
-    if args.decimate is not None and args.decimate < 1:
-        raise CochleaError(f"--decimate must be a whole number of at least 1, got "
-                           f"{args.decimate}")
+    if args.decimate is not None and not 1 <= args.decimate <= estimate.MAX_DECIMATE:
+        raise CochleaError(f"--decimate must be a whole number from 1 to "
+                           f"{estimate.MAX_DECIMATE}, got {args.decimate}")
+    if not (math.isfinite(args.cutoff_hz) and args.cutoff_hz >= estimate.MIN_CUTOFF_HZ):
+        raise CochleaError(f"--cutoff-hz must be a frequency of at least "
+                           f"{estimate.MIN_CUTOFF_HZ:g} Hz (and below the log's Nyquist "
+                           f"frequency), got {args.cutoff_hz:g}")
+    if not args.validate and not (estimate.MIN_HOLDOUT <= args.holdout
+                                  <= estimate.MAX_HOLDOUT):
+        raise CochleaError(f"--holdout must lie between {estimate.MIN_HOLDOUT:g} and "
+                           f"{estimate.MAX_HOLDOUT:g} (a fraction of each log), got "
+                           f"{args.holdout:g}")
     if not (math.isfinite(args.max_condition) and args.max_condition > 1):
         raise CochleaError(f"--max-condition must be a finite number above 1, got "
                            f"{args.max_condition:g}")
