@@ -187,7 +187,7 @@ def test_existing_out_needs_force(tmp_path, capsys):
     out = tmp_path / "x.toml"
     out.write_text("keep me")
     code, _ = _write(tmp_path, "x.toml", "--robot", "serial")
-    assert code == EXIT_USER_ERROR and out.read_text() == "keep me"
+    assert code == cochlea_excite.EXIT_OUTPUT_REFUSED and out.read_text() == "keep me"
     assert "--force" in capsys.readouterr().err
 
 
@@ -231,14 +231,14 @@ def test_bad_options_one_line_exit_2(tmp_path, capsys, argv, names):
 
 
 @pytest.mark.parametrize("where", ["under_file", "folder", "missing_folder"])
-def test_bad_out_one_line_exit_2(tmp_path, capsys, where):
+def test_bad_out_one_line_exit_5(tmp_path, capsys, where):
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     out = {"under_file": blocker / "x.toml", "folder": tmp_path,
            "missing_folder": tmp_path / "nope" / "x.toml"}[where]
     code = cochlea_excite.main(["--robot", "serial", "--out", str(out)])
     err = capsys.readouterr().err
-    assert code == EXIT_USER_ERROR and err.count("\n") == 1 and "--out" in err
+    assert code == cochlea_excite.EXIT_OUTPUT_REFUSED and err.count("\n") == 1 and "--out" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import cochlea
-from cochlea.apps.cochlea_identify import main
+from cochlea.apps.cochlea_identify import EXIT_OUTPUT_REFUSED, main
 from cochlea.ident import estimate, writeback
 from cochlea.ident.logs import read_run
 from cochlea.resources import SCENARIOS_DIR
@@ -237,8 +237,8 @@ def test_parallel_excitation_recovers_the_perturbed_plant(parallel_run):
         assert good[m.parameters.meanings.index(name)], name
 
 
-def _bad(args, capsys, out: Path):
-    assert main(args + ["--out", str(out)]) == 2
+def _bad(args, capsys, out: Path, code: int = 2):
+    assert main(args + ["--out", str(out)]) == code
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("cochlea-identify: ")
     assert not out.exists() and not list(out.parent.glob("ident*.png"))
@@ -341,7 +341,8 @@ def test_write_back_refuses_an_existing_target_before_fitting(tmp_path, capsys):
     description.write_text((ROOT / "models/robots/serial.toml").read_text())
     (tmp_path / "serial.identified.toml").write_text("taken")
     err = _bad([str(tmp_path / "nowhere"), "--robot", "serial", "--update-description",
-                str(description)], capsys, tmp_path / "ident.json")
+                str(description)], capsys, tmp_path / "ident.json",
+               code=EXIT_OUTPUT_REFUSED)
     assert "already exists" in err
     assert (tmp_path / "serial.identified.toml").read_text() == "taken"
 

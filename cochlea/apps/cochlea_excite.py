@@ -1,7 +1,8 @@
 """``cochlea-excite``: design an excitation trajectory for identification and write it as a
 joint-space scenario ``cochlea-run`` tracks (docs/excitation.md). User mistakes, and requests
-no trajectory can satisfy, print one line and exit with EXIT_USER_ERROR; nothing is written
-then."""
+no trajectory can satisfy, print one line and exit with EXIT_USER_ERROR; an --out that cannot
+take the file, and a write that fails, have their own codes (docs/excitation.md, "Limits,
+files and exit codes"); nothing is written then."""
 
 from __future__ import annotations
 
@@ -15,19 +16,27 @@ import sys
 from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..ident import files
+from ..ident.cli import EXIT_TERMINATED, OneLineParser, Terminated, sigterm_unwinds
 from ..ident.excite import ExcitationOptions, check_options, design, scenario_text
 from ..robots import ROBOTS, robot
 from ..sim.scenario import load as load_scenario
 from ..sim.setup import unit_setups
-from . import outputs
 
+#: Exit codes (docs/excitation.md, "Exit codes"); EXIT_USER_ERROR (2): a wrong option or
+#: number, limits nothing fits.
+#: --out refused before anything runs (a folder, FIFO, device, symbolic link, a path under a
+#: file, a read-only folder, an input, an existing file without --force).
+EXIT_OUTPUT_REFUSED = 5
+#: Writing the scenario failed (full disk, I/O error): no partial file, the previous kept.
+EXIT_WRITE_FAILED = 6
 EXIT_INTERRUPTED = 130
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 
 
 def _parser() -> argparse.ArgumentParser:
     defaults = ExcitationOptions()
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="cochlea-excite",
         description="Design an excitation trajectory for identifying a robot's dynamic "
                     "parameters: a finite Fourier series per joint, optimised for the "
@@ -86,36 +95,21 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def check_out(path: Path, force: bool) -> None:
-    """Refuse an --out that cannot become the scenario file, before the optimisation."""
+def check_out(path: Path, force: bool, inputs: tuple[Path, ...] = ()) -> None:
+    """Refuse an --out that cannot become the scenario file, before the optimisation: a
+    folder, a FIFO, a device, a symbolic link, a path under a file, a folder this process
+    cannot write (a read-only file system), one of the inputs (the description, the tracking
+    scenario), or an existing file without --force."""
     where = f"--out {path}"
     if os.path.lexists(path):
-        try:
-            mode = os.stat(path).st_mode
-        except OSError as exc:
-            raise CochleaError(f"{where}: cannot use it ({exc.strerror}): name a new file") \
-                from None
+        mode = os.lstat(path).st_mode
         if stat.S_ISDIR(mode):
-            raise CochleaError(f"{where} is a folder: name the scenario file, e.g. "
-                               f"{path / 'excite.toml'}")
-        if not stat.S_ISREG(mode):
-            raise CochleaError(f"{where} is not a regular file: name a new file")
-        if not force:
-            raise CochleaError(f"{where} exists: name a new file, or give --force to "
-                               "overwrite it")
-    parent = Path(os.path.abspath(path)).parent
-    if not parent.exists():
-        ancestor = parent
-        while not os.path.lexists(ancestor):
-            ancestor = ancestor.parent
-        if not ancestor.is_dir():
-            raise CochleaError(f"{where}: {ancestor} is a file, not a folder: name a file in "
-                               "a folder")
-        raise CochleaError(f"{where}: the folder {parent} does not exist: create it first")
-    if not parent.is_dir():
-        raise CochleaError(f"{where}: {parent} is not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise CochleaError(f"{where}: the folder {parent} is not writable")
+            raise files.OutputRefused(f"{where} is a folder: name the scenario file, e.g. "
+                                      f"{path / 'excite.toml'}")
+        if not stat.S_ISLNK(mode) and stat.S_ISREG(mode) and not force:
+            raise files.OutputRefused(f"{where} exists: name a new file, or give --force to "
+                                      "overwrite it")
+    files.check_output(path, "--out", inputs=inputs)
 
 
 def _options(args: argparse.Namespace) -> ExcitationOptions:
@@ -154,13 +148,17 @@ def main(argv: list[str] | None = None) -> int:
         adapter.unit(adapter.load(args.description), args.arm)
         options = _options(args)
         check_options(options)
-        check_out(args.out, args.force)
+        inputs = tuple(Path(p) for p in (args.description, args.scenario) if p)
+        check_out(args.out, args.force, inputs)
         result = design(args.robot, args.arm, options, args.description, args.scenario)
         text = scenario_text(result, _command(argv), _description_ref(args))
-        with outputs.atomic_path(args.out) as tmp:
-            tmp.write_text(text)
+        # Written under a temporary name beside --out, renamed when complete and checked: a
+        # full disk or an I/O error leaves no partial file and the previous one as it was.
+        with sigterm_unwinds(), files.Staged() as stage:
+            stage.write_text(args.out, text)
             # What cochlea-run will check before anything moves, checked before it is kept.
-            unit_setups(load_scenario(tmp))
+            unit_setups(load_scenario(stage.path_of(args.out)))
+            stage.commit()
         print(f"cochlea-excite: {args.robot} {result.unit}: period {options.period:g} s, "
               f"{options.harmonics} harmonics, {options.periods} periods -> {args.out}")
         print(f"  condition number of the stacked base regressor: designed "
@@ -182,19 +180,25 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.flush()
     except CochleaError as exc:
         print(f"cochlea-excite: {exc}", file=sys.stderr)
+        if isinstance(exc, files.OutputRefused):
+            return EXIT_OUTPUT_REFUSED
+        if isinstance(exc, files.WriteFailed):
+            return EXIT_WRITE_FAILED
         return EXIT_USER_ERROR
     except BrokenPipeError:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         os.close(devnull)
         return EXIT_BROKEN_PIPE
-    except OSError as exc:
-        print(f"cochlea-excite: cannot write {exc.filename or args.out}: "
-              f"{exc.strerror or exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("cochlea-excite: interrupted; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except OSError as exc:  # not while writing (that is WriteFailed): reading an input
+        print(f"cochlea-excite: cannot read {exc.filename}: {exc.strerror or exc}; nothing "
+              "written", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        print(f"cochlea-excite: {'terminated' if terminated else 'interrupted'}; nothing "
+              "written", file=sys.stderr)
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     return 0
 
 

@@ -2,7 +2,10 @@
 figures and (optionally) the values written back into a description.
 
 User mistakes -- a bad option, a missing or bad log, a robot that was not excited -- print one
-line and exit with EXIT_USER_ERROR, before any output file exists.
+line and exit with EXIT_USER_ERROR, before any output file exists; the same log given twice,
+an output that cannot take its file, and a write that fails (full disk, read-only) have their
+own codes (docs/identification.md, "Files and exit codes"). Outputs are checked before the
+logs are read and written all together, atomically, after the fit (cochlea.ident.files).
 """
 
 from __future__ import annotations
@@ -11,15 +14,29 @@ import argparse
 import datetime
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import current as current_fit
-from ..ident import estimate, writeback
+from ..ident import estimate, files, writeback
+from ..ident.cli import EXIT_TERMINATED, OneLineParser, Terminated, sigterm_unwinds
 from ..ident.logs import read_run
 from ..ident.physical import physically_consistent_fit
 from ..robots import ROBOTS, model, robot
+
+#: Exit codes (docs/identification.md, "Exit codes"). EXIT_USER_ERROR (2): a wrong option,
+#: description or log (unreadable, damaged, cut short, columns or units not the
+#: description's, empty, non-finite, too short, not excited).
+#: The same log given twice (a copy or a link), or a validation log that is a fitted one.
+EXIT_DUPLICATE_LOG = 4
+#: An output (--out, its figures, the write-back target) refused before anything was read.
+EXIT_OUTPUT_REFUSED = 5
+#: Writing the outputs failed (full disk, read-only file system, I/O error): nothing partial
+#: is left and every previous output is kept.
+EXIT_WRITE_FAILED = 6
+EXIT_INTERRUPTED = 130
 
 
 def _finite(x: float) -> float | None:
@@ -41,8 +58,9 @@ def _number_or_off(text: str, option: str, valid, expected: str) -> float | None
 
 def _parallel_cutoff(text: str) -> float | None:
     """``--parallel-cutoff-hz``: a frequency (Hz) or ``off``."""
-    return _number_or_off(text, "--parallel-cutoff-hz", lambda v: v > 0,
-                          "a positive frequency in Hz")
+    return _number_or_off(text, "--parallel-cutoff-hz",
+                          lambda v: v >= estimate.MIN_PARALLEL_CUTOFF_HZ,
+                          f"a frequency of at least {estimate.MIN_PARALLEL_CUTOFF_HZ:g} Hz")
 
 
 def _max_bus(text: str) -> float | None:
@@ -206,17 +224,57 @@ def _print_table(doc: dict) -> None:
                       for j, v in zip(pred["joints"], pred["wls"])))
 
 
+def _outputs(args, out: Path, inputs: tuple[Path, ...]) -> list[tuple[Path, str]]:
+    """Every file the run will write, with the option that names it: checked before the fit."""
+    files_ = [(out, "--out")]
+    if not args.no_figures:
+        stem = out.with_suffix("")
+        files_ += [(Path(f"{stem}_torques.png"), "--out (its figure)"),
+                   (Path(f"{stem}_parameters.png"), "--out (its figure)")]
+    if args.update_description:
+        target = writeback.target_path(Path(args.update_description), args.in_place) \
+            if args.in_place else Path(args.update_description).with_name(
+                f"{Path(args.update_description).stem}.identified"
+                f"{Path(args.update_description).suffix}")
+        files_.append((target, "--update-description"))
+    seen: dict[str, str] = {}
+    for path, option in files_:
+        key = os.path.abspath(path)
+        if key in seen:
+            raise files.OutputRefused(f"{option} {path}: the same file as {seen[key]}'s: "
+                                      "name another --out")
+        seen[key] = option
+    for path, option in files_:
+        if option != "--update-description":  # checked by writeback.check_writable
+            files.check_output(path, option, inputs=inputs)
+    return files_
+
+
 def run(args) -> int:
     # Every check that needs no fit, before anything is read at length or written.
     out = Path(args.out)
-    if out.is_dir() or not out.parent.is_dir():
-        raise CochleaError(f"--out {out}: expected a file name in an existing folder")
+    descriptions = (Path(args.description),) if args.description else ()
+    if args.update_description:
+        descriptions += (Path(args.update_description),)
+    inputs = tuple(files.log_file(f) for f in args.logs + (args.validate or [])) + descriptions
+    _outputs(args, out, inputs)
     target = None
     if args.update_description:
-        target = writeback.check_writable(Path(args.update_description), args.in_place)
-    if args.decimate is not None and args.decimate < 1:
-        raise CochleaError(f"--decimate must be a whole number of at least 1, got "
-                           f"{args.decimate}")
+        target = writeback.check_writable(Path(args.update_description), args.in_place,
+                                          inputs=tuple(files.log_file(f) for f in
+                                                       args.logs + (args.validate or [])))
+    if args.decimate is not None and not 1 <= args.decimate <= estimate.MAX_DECIMATE:
+        raise CochleaError(f"--decimate must be a whole number from 1 to "
+                           f"{estimate.MAX_DECIMATE}, got {args.decimate}")
+    if not (math.isfinite(args.cutoff_hz) and args.cutoff_hz >= estimate.MIN_CUTOFF_HZ):
+        raise CochleaError(f"--cutoff-hz must be a frequency of at least "
+                           f"{estimate.MIN_CUTOFF_HZ:g} Hz (and below the log's Nyquist "
+                           f"frequency), got {args.cutoff_hz:g}")
+    if not args.validate and not (estimate.MIN_HOLDOUT <= args.holdout
+                                  <= estimate.MAX_HOLDOUT):
+        raise CochleaError(f"--holdout must lie between {estimate.MIN_HOLDOUT:g} and "
+                           f"{estimate.MAX_HOLDOUT:g} (a fraction of each log), got "
+                           f"{args.holdout:g}")
     if not (math.isfinite(args.max_condition) and args.max_condition > 1):
         raise CochleaError(f"--max-condition must be a finite number above 1, got "
                            f"{args.max_condition:g}")
@@ -233,6 +291,8 @@ def run(args) -> int:
     # The option's names and the every-joint refusal need no log: checked before reading.
     if args.fit_current.strip().lower() not in (current_fit.AUTO, current_fit.OFF):
         current_fit.choose(args.fit_current, drive_lines, True, "")
+    # The same log twice (a copy, a link) is refused before any log is parsed.
+    files.check_distinct_logs(args.logs, args.validate or [])
     logs = [read_run(folder, m, args.robot, unit) for folder in args.logs]
     validate = [read_run(folder, m, args.robot, unit) for folder in (args.validate or [])]
     everything = logs + validate
@@ -247,32 +307,39 @@ def run(args) -> int:
     physical = _physical(m, result) if args.physical else None
     doc = _report(args, m, unit, logs, validate, result, physical)
     written = []
-    if target is not None:
-        if physical is not None:
-            phi, how = physical.full, "physically consistent fit"
-        else:
-            phi = writeback.closest_full(m, result.beta)
-            how = "WLS, the full vector nearest the nominal one"
-        path = writeback.write_back(m, args.robot, unit, Path(args.update_description), phi,
-                                    [(str(log.folder), log.sha256) for log in logs],
-                                    args.in_place, how, result.lines, result.line_wls)
-        doc["description_written"] = str(path)
-        written.append(path)
-    out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    if not args.no_figures:
-        from ..ident import figures  # noqa: PLC0415 (matplotlib only when drawing)
+    # Every output is written under a temporary name beside its target and renamed only when
+    # all are complete: a full disk or an I/O error leaves the previous files as they were.
+    with files.Staged() as stage:
+        if target is not None:
+            if physical is not None:
+                phi, how = physical.full, "physically consistent fit"
+            else:
+                phi = writeback.closest_full(m, result.beta)
+                how = "WLS, the full vector nearest the nominal one"
+            path = writeback.write_back(m, args.robot, unit, Path(args.update_description),
+                                        phi, [(str(log.folder), log.sha256) for log in logs],
+                                        args.in_place, how, result.lines, result.line_wls,
+                                        stage=stage)
+            doc["description_written"] = str(path)
+            written.append(path)
+        if not args.no_figures:
+            from ..ident import figures  # noqa: PLC0415 (matplotlib only when drawing)
 
-        stem = out.with_suffix("")
-        doc["figures"] = [str(figures.torque_figure(result, Path(f"{stem}_torques.png"))),
-                          str(figures.parameter_figure(result, Path(f"{stem}_parameters.png")))]
-        out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+            stem = out.with_suffix("")
+            torques = Path(f"{stem}_torques.png")
+            parameters = Path(f"{stem}_parameters.png")
+            figures.torque_figure(result, stage.path(torques))
+            figures.parameter_figure(result, stage.path(parameters))
+            doc["figures"] = [str(torques), str(parameters)]
+        stage.write_text(out, json.dumps(doc, indent=2) + "\n")
+        stage.commit()
     _print_table(doc)
     print(f"  wrote {out}" + "".join(f", {p}" for p in written + doc.get("figures", [])))
     return 0
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="cochlea-identify",
         description="Identify a robot's base dynamic parameters (inertial, armature, viscous "
                     "and Coulomb friction) from the logs of its runs (cochlea-run, "
@@ -347,18 +414,34 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def exit_code(exc: CochleaError) -> int:
+    """The documented exit code of a refusal (docs/identification.md, "Exit codes")."""
+    if isinstance(exc, files.DuplicateLog):
+        return EXIT_DUPLICATE_LOG
+    if isinstance(exc, files.OutputRefused):
+        return EXIT_OUTPUT_REFUSED
+    if isinstance(exc, files.WriteFailed):
+        return EXIT_WRITE_FAILED
+    return EXIT_USER_ERROR
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if args.in_place and not args.update_description:
         print("cochlea-identify: --in-place needs --update-description", file=sys.stderr)
         return EXIT_USER_ERROR
     try:
-        return run(args)
+        with sigterm_unwinds():
+            return run(args)
     except CochleaError as exc:
         print(f"cochlea-identify: {exc}", file=sys.stderr)
-        return EXIT_USER_ERROR
+        return exit_code(exc)
     except BrokenPipeError:
         return 0
+    except KeyboardInterrupt as exc:
+        print("cochlea-identify: " + ("terminated" if isinstance(exc, Terminated) else
+                                      "interrupted") + "; nothing written", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -135,6 +135,14 @@ KNEE_TOLERANCE = 1e-4
 #: The fit needs at least this many equations (a sample gives one per joint) per base
 #: parameter, after the ends are dropped and the log decimated.
 EQUATIONS_PER_PARAMETER = 10
+#: Bounds of the options, refused up front (docs/identification.md, "Files and exit codes"):
+#: a held-out part of at least 5 % (below it the validation may hold no moving sample) and at
+#: most 95 %; decimation by at most 1000; cut-offs of at least 0.1 Hz (states) and 0.01 Hz
+#: (parallel filtering; an excitation of 600 s periods has its 20th harmonic at 0.033 Hz).
+MIN_HOLDOUT, MAX_HOLDOUT = 0.05, 0.95
+MAX_DECIMATE = 1000
+MIN_CUTOFF_HZ = 0.1
+MIN_PARALLEL_CUTOFF_HZ = 0.01
 
 
 class NotExcitedError(LogError):
@@ -714,9 +722,9 @@ def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | Non
     without it on the last ``settings.holdout`` of every log (each log's own tail). With
     ``lines``, also those joints' current-to-torque lines (:mod:`cochlea.ident.current`)."""
     lines = tuple(lines)
-    if validate is None and not 0.0 < settings.holdout < 1.0:
-        raise CochleaError(f"--holdout must lie strictly between 0 and 1, got "
-                           f"{settings.holdout:g}")
+    if validate is None and not MIN_HOLDOUT <= settings.holdout <= MAX_HOLDOUT:
+        raise CochleaError(f"--holdout must lie between {MIN_HOLDOUT:g} and {MAX_HOLDOUT:g} "
+                           f"(a fraction of each log), got {settings.holdout:g}")
     if not settings.min_speed >= 0.0:
         raise CochleaError(f"--min-speed must be a non-negative number (rad/s), got "
                            f"{settings.min_speed:g}")

@@ -12,6 +12,9 @@ expected, before anything is fitted.
 from __future__ import annotations
 
 import hashlib
+import os
+import stat
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,6 +96,41 @@ def _other_robot(header: list[str], robot: str) -> str | None:
     return None
 
 
+def _check_file(file: Path) -> None:
+    """A regular file of reasonable size ending in a whole line: a FIFO or a device (which
+    would block or never end), an empty file and a log cut short (a full disk, a copy
+    interrupted) are refused before anything is parsed."""
+    try:
+        info = os.stat(file)
+    except FileNotFoundError:
+        raise LogError(f"{file}: no such file (a run folder holds the log.csv that "
+                       "cochlea-run or cochlea-embedded writes)") from None
+    except OSError as exc:
+        raise LogError(f"{file}: cannot read it ({exc.strerror})") from None
+    if not stat.S_ISREG(info.st_mode):
+        kind = "a folder" if stat.S_ISDIR(info.st_mode) else "a pipe, device or socket"
+        raise LogError(f"{file}: expected a regular file holding a CSV log, got {kind}")
+    if info.st_size > MAX_LOG_BYTES:
+        raise LogError(f"{file}: expected a log of at most {MAX_LOG_BYTES // 1024**3} GiB; "
+                       "identify from shorter runs")
+    if info.st_size == 0:
+        raise LogError(f"{file}: the file is empty: expected a CSV log (a header naming the "
+                       "columns, then one row per control period)")
+    try:
+        with open(file, "rb") as f:
+            head = f.read(4096)
+            f.seek(-1, os.SEEK_END)
+            last = f.read(1)
+    except OSError as exc:
+        raise LogError(f"{file}: cannot read it ({exc.strerror})") from None
+    if b"\0" in head:
+        raise LogError(f"{file}: expected a text CSV log, got binary data (a NUL byte in its "
+                       "first 4 KiB; log.bin is read by cochlea's runtime, not here)")
+    if last != b"\n":
+        raise LogError(f"{file}: the last line is cut short (no line end after it): expected "
+                       "a complete log; the run or its copy was interrupted")
+
+
 def _header(file: Path) -> list[str]:
     try:
         with open(file, encoding="utf-8") as f:
@@ -118,10 +156,12 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
     file = folder / "log.csv" if folder.is_dir() else folder
     if not folder.exists():
         raise LogError(f"{folder}: no such run folder")
-    if file.is_file() and file.stat().st_size > MAX_LOG_BYTES:
-        raise LogError(f"{file}: expected a log of at most {MAX_LOG_BYTES // 1024**3} GiB; "
-                       "identify from shorter runs")
+    _check_file(file)
     header = _header(file)
+    twice = sorted({c for c in header if header.count(c) > 1})
+    if twice:
+        raise LogError(f"{file}: column {twice[0]!r} appears {header.count(twice[0])} times in "
+                       "the header: expected each column once (a damaged or hand-edited log)")
     wanted = column_names(model, unit)
     missing = [c for cols in wanted.values() for c in cols if c not in header]
     if missing:
@@ -129,6 +169,16 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
         if other is not None:
             raise LogError(f"{file}: this is a log of the {other} robot, not of the {robot} "
                            f"robot (give --robot {other})")
+        other_unit = [c for c in header
+                      if any(c.startswith(f"{unit}.{signal}.{j.name}_") and
+                             c not in wanted[signal]
+                             for signal in SIGNAL_UNITS for j in model.joints
+                             if missing[0].startswith(f"{unit}.{signal}.{j.name}_"))]
+        if other_unit:
+            raise LogError(f"{file}: column {other_unit[0]!r} where {missing[0]!r} was expected "
+                           "(the signal in another unit or of another joint type than the "
+                           "description's: identification reads SI columns of the "
+                           "description's joints)")
         units = sorted({c.split(".", 1)[0] for c in header[1:] if "." in c})
         raise LogError(f"{file}: missing column {missing[0]!r} (expected q, qd and tau of "
                        f"unit {unit!r}; the log's units: {', '.join(units) or 'none'})")
@@ -142,13 +192,17 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
         # Read apart from the signals: a stopped period leaves NaN here, which only means
         # that its times are unknown (see estimate.sample_times), not a bad row.
         try:
-            timing = np.loadtxt(file, delimiter=",", skiprows=1, ndmin=2,
-                                usecols=[header.index(c) for c in TIMING])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                timing = np.loadtxt(file, delimiter=",", skiprows=1, ndmin=2,
+                                    usecols=[header.index(c) for c in TIMING])
         except ValueError as exc:
             raise LogError(f"{file}: expected numbers in the timing columns "
                            f"{', '.join(TIMING)}, {str(exc).splitlines()[0]}") from None
     try:
-        data = np.loadtxt(file, delimiter=",", skiprows=1, usecols=index, ndmin=2)
+        with warnings.catch_warnings():  # an empty body is refused below, in one line
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(file, delimiter=",", skiprows=1, usecols=index, ndmin=2)
     except ValueError as exc:
         # numpy names the offending line ("... at row 12, column 3"): keep it, one line.
         raise LogError(f"{file}: expected numbers in every selected column, "
@@ -160,7 +214,10 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
         raise LogError(f"{file}: row {row + 1} of the data (line {row + 2}) holds a "
                        f"non-finite value in {col} ({bad.size} such rows): drop them or "
                        "re-record the run")
-    if len(data) < 2 or not (np.diff(data[:, 0]) > 0).all():
+    if len(data) < 2:
+        raise LogError(f"{file}: expected at least two rows of data under the header, got "
+                       f"{len(data)}")
+    if not (np.diff(data[:, 0]) > 0).all():
         raise LogError(f"{file}: expected time_s strictly increasing over at least two rows")
     n = model.nq
     return RunLog(folder, file, _sha256(file), unit, data[:, 0], data[:, 1:1 + n],

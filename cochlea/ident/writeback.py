@@ -24,13 +24,13 @@ from __future__ import annotations
 import datetime
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CochleaError
 from ..robots import RobotModel, robot
+from . import files
 
 _HEADER = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.-]+)\s*\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"^(\s*)([A-Za-z0-9_-]+)(\s*=\s*)(.*?)(\s*#.*)?$")
@@ -38,6 +38,10 @@ _KEY = re.compile(r"^(\s*)([A-Za-z0-9_-]+)(\s*=\s*)(.*?)(\s*#.*)?$")
 
 class WriteBackError(CochleaError):
     """The identified values cannot be written into the description."""
+
+
+class TargetExists(WriteBackError, files.OutputRefused):
+    """The new description's name is taken: refused before fitting, never overwritten."""
 
 
 def closest_full(model: RobotModel, beta: np.ndarray) -> np.ndarray:
@@ -148,27 +152,38 @@ def target_path(description: Path, in_place: bool) -> Path:
         return description
     target = description.with_name(f"{description.stem}.identified{description.suffix}")
     if target.exists():
-        raise WriteBackError(f"{target}: already exists; remove it, or give --in-place to "
+        raise TargetExists(f"{target}: already exists; remove it, or give --in-place to "
                              f"update {description} itself")
     return target
 
 
-def check_writable(description: Path, in_place: bool) -> Path:
-    """Everything about ``--update-description`` that can be checked before fitting."""
+def check_writable(description: Path, in_place: bool, inputs: tuple[Path, ...] = ()) -> Path:
+    """Everything about ``--update-description`` that can be checked before fitting: the
+    description a regular file, the target a new name (or, ``in_place``, the description
+    itself, not a symbolic link) in a folder this process may write, and no log."""
     if not description.is_file():
         raise WriteBackError(f"{description}: --update-description expects an existing robot "
                              "description TOML file")
-    return target_path(description, in_place)
+    target = target_path(description, in_place)
+    if in_place and description.is_symlink():
+        raise files.OutputRefused(f"--update-description {description} --in-place: the "
+                                  "description is a symbolic link (a link is never replaced): "
+                                  "name the file it points to, or leave out --in-place")
+    files.check_output(target, "--update-description" + (" --in-place" if in_place else ""),
+                       inputs=inputs, replace=in_place)
+    return target
 
 
 def write_back(model: RobotModel, robot_name: str, unit: str, description: Path,
                phi: np.ndarray, logs: list[tuple[str, str]], in_place: bool = False,
                how: str = "the full vector nearest the nominal one", lines=(),
-               line_ab: np.ndarray | None = None) -> Path:
+               line_ab: np.ndarray | None = None, stage: files.Staged | None = None) -> Path:
     """Write the full parameters ``phi`` of ``model`` into ``description`` (a new file beside
     it unless ``in_place``), headed by a comment naming ``logs`` (folder, sha256) and the
     date; validated by loading before it lands. ``lines`` and ``line_ab``: identified
-    current-to-torque lines, written into their motors' fits. Returns the file written."""
+    current-to-torque lines, written into their motors' fits. Returns the file written; with
+    ``stage``, the file is only staged (written and validated under a temporary name beside
+    the target) and lands when the stage is committed."""
     target = target_path(description, in_place)
     adapter = robot(robot_name)
     system = adapter.load(description)
@@ -186,19 +201,24 @@ def write_back(model: RobotModel, robot_name: str, unit: str, description: Path,
     header += ["# from the logs:"]
     header += [f"#   {folder} (log.csv sha256 {digest})" for folder, digest in logs]
     edited = "\n".join(header) + "\n" + edited
-    fd, temp = tempfile.mkstemp(prefix=".identified-", suffix=".toml", dir=target.parent)
+    own = stage is None
+    stage = files.Staged() if own else stage
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
+        temp = stage.path(target)
+        with open(temp, "w", encoding="utf-8") as f:
             f.write(edited)
+            f.flush()
+            os.fsync(f.fileno())
         try:
-            adapter.load(Path(temp))
+            adapter.load(temp)
         except CochleaError as exc:
-            message = str(exc).replace(temp, str(target))
+            message = str(exc).replace(str(temp), str(target))
             raise WriteBackError(f"the identified values do not make a valid description: "
                                  f"{message}; fit physically consistent parameters with "
                                  "--physical") from None
-        os.replace(temp, target)
+        if own:
+            stage.commit()
     finally:
-        if os.path.exists(temp):
-            os.unlink(temp)
+        if own:
+            stage.discard()
     return target
