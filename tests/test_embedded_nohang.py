@@ -287,3 +287,178 @@ def test_each_read_ends_at_its_deadline_whatever_the_line_delivers(nohang, line)
     # the safe stop: its quiet line and two confirmations per motor, each at most 10 ms
     assert int(stop["elapsed_ns"]) <= 2 * TIMEOUT_NS + 2 * 2 * STOP_NS + 64 * READ_STEP_NS, stop
     assert stop["confirmed"] == "0"
+
+
+# --------------------------------------------------------------------------------------------
+# No fast-math build
+# --------------------------------------------------------------------------------------------
+
+FAST_MATH = {"-ffast-math": "do not build with -ffast-math",
+             "-ffinite-math-only": "do not build with -ffinite-math-only"}
+
+
+def fast_math_sources() -> list[Path]:
+    """Every core file, a whole generated scenario (controller and its runtime table) and the
+    library's closed loop: everything with a NaN check."""
+    return [*sorted(CORE.glob("*.c")), GENERATED / "serial_task.c",
+            GENERATED / "serial_task_scenario.c", ROOT / "generated_c" / "closed_loop.c"]
+
+
+@pytest.mark.parametrize("flag", sorted(FAST_MATH))
+def test_a_build_that_would_fold_the_nan_checks_is_refused(flag, tmp_path):
+    for source in fast_math_sources():
+        for precision in ([], ["-DCOCHLEA_FLOAT"]):
+            done = subprocess.run(
+                [compiler(), *WARNINGS, "-O2", flag, *precision, f"-I{CORE}",
+                 f"-I{GENERATED}", f"-I{ROOT / 'generated_c'}", "-c", str(source), "-o",
+                 str(tmp_path / "x.o")], capture_output=True, text=True)
+            assert done.returncode != 0, f"{source.name} {flag} {precision}: compiled"
+            assert FAST_MATH[flag] in done.stderr, done.stderr[-2000:]
+            assert "NaN and infinity checks" in done.stderr
+            assert not (tmp_path / "x.o").exists()
+
+
+def test_the_same_sources_compile_without_it(tmp_path):
+    """The refusal is the flag's, not the sources': the same commands without it succeed."""
+    for source in fast_math_sources():
+        done = subprocess.run(
+            [compiler(), *WARNINGS, "-O2", f"-I{CORE}", f"-I{GENERATED}",
+             f"-I{ROOT / 'generated_c'}", "-c", str(source), "-o", str(tmp_path / "x.o")],
+            capture_output=True, text=True)
+        assert done.returncode == 0, f"{source.name}: {done.stderr[-2000:]}"
+
+
+FINITE = r"""
+#include <stdio.h>
+#include "cochlea_rt.h"
+
+int main(void)
+{
+    volatile double zero = 0.0;
+    const double nan = zero / zero, inf = 1.0 / zero;
+    const double values[] = {0.0, -0.0, 1.0, -2.5, 1e-310, 1.7976931348623157e308, nan, -nan,
+                             inf, -inf};
+    const double lo[1] = {-1.0}, hi[1] = {1.0}, vel[1] = {1.0}, eff[1] = {1.0};
+    cochlea_limits limits = {1, lo, hi, vel, eff, 0.0, 1, 1};
+    const double p[1] = {0.5};
+    const double *estimates[1] = {p};
+    const int n_params[1] = {1};
+    const double bound[1] = {1.0};
+    cochlea_stop stop;
+    size_t i;
+    for (i = 0; i < sizeof values / sizeof values[0]; ++i) {
+        const double tau[1] = {values[i]};
+        printf("%d %d\n", cochlea_finite(values[i]),
+               cochlea_check_command(&limits, 0.0, tau, 1, estimates, n_params, bound, &stop));
+    }
+    return 0;
+}
+"""
+
+
+def test_the_finiteness_test_reads_the_bits(tmp_path):
+    """cochlea_finite on every class of double; the supervisor refuses NaN, infinite and
+    unsquarable commands (the Python supervisor's rule) and passes the others."""
+    source = tmp_path / "finite.c"
+    source.write_text(FINITE)
+    program = tmp_path / "finite"
+    done = subprocess.run([compiler(), *WARNINGS, "-O2", f"-I{CORE}", str(source),
+                           str(CORE / "supervisor.c"), "-lm", "-o", str(program)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    rows = [tuple(map(int, line.split()))
+            for line in subprocess.run([str(program)], capture_output=True, text=True,
+                                       timeout=30).stdout.splitlines()]
+    finite = [r[0] for r in rows]
+    refused = [r[1] for r in rows]
+    assert finite == [1, 1, 1, 1, 1, 1, 0, 0, 0, 0]
+    # the largest double squares to infinity: non-finite to the supervisor, as in Python
+    assert refused == [0, 0, 0, 0, 0, 1, 1, 1, 1, 1]
+
+
+# --------------------------------------------------------------------------------------------
+# No staircase in the float build
+# --------------------------------------------------------------------------------------------
+
+STAIRCASE = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include "loop.h"
+#include "serial_joint.h"
+
+/* the loop carries its period count in 64 bits */
+typedef char steps_are_int64[sizeof(((cochlea_loop *)0)->steps) == 8 ? 1 : -1];
+typedef char rows_are_int64[sizeof(((cochlea_loop *)0)->rows) == 8 ? 1 : -1];
+
+int main(int argc, char **argv)
+{
+    static cochlea_loop loop;
+    int64_t k0, k;
+    long n;
+    if (argc != 3) {
+        return 2;
+    }
+    k0 = (int64_t)strtoll(argv[1], NULL, 10);
+    n = strtol(argv[2], NULL, 10);
+    loop.period_s = SERIAL_JOINT_PERIOD;
+    for (k = k0; k < k0 + n; ++k) {
+        const double t = cochlea_loop_time(&loop, k);  /* the loop's own t of period k */
+        serial_joint_real xd[SERIAL_JOINT_ND], xd_dot[SERIAL_JOINT_ND], xd_ddot[SERIAL_JOINT_ND];
+        int i;
+        if (serial_joint_desired(t, xd, xd_dot, xd_ddot) != 0) {
+            return 3;
+        }
+        printf("%a", t);
+        for (i = 0; i < SERIAL_JOINT_ND; ++i) {
+            printf(" %a %a %a", (double)xd[i], (double)xd_dot[i], (double)xd_ddot[i]);
+        }
+        printf("\n");
+    }
+    return 0;
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def staircase(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("staircase")
+    source = folder / "staircase.c"
+    source.write_text(STAIRCASE)
+    programs = {}
+    for precision, flags in (("double", []), ("float", ["-DCOCHLEA_FLOAT"])):
+        program = folder / f"staircase-{precision}"
+        done = subprocess.run(
+            [compiler(), *WARNINGS, "-O2", *flags, f"-I{CORE}", f"-I{GENERATED}", str(source),
+             str(CORE / "loop.c"), str(CORE / "supervisor.c"), str(GENERATED / "serial_joint.c"),
+             "-lm", "-o",
+             str(program)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-3000:]
+        programs[precision] = program
+    return programs
+
+
+def samples(program: Path, k0: int, n: int):
+    import numpy as np
+    out = subprocess.run([str(program), str(k0), str(n)], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    rows = np.array([[float.fromhex(x) for x in line.split()]
+                     for line in out.stdout.splitlines()])
+    return rows[:, 0], rows[:, 1:]
+
+
+@pytest.mark.parametrize("k0", [2**31 - 500, 2**40 - 500, 86_400_000])
+def test_the_float_build_has_no_staircase_at_any_run_length(staircase, k0):
+    """999 consecutive 1 ms periods around 2^31 and 2^40 periods (24.9 days, 34.8 years) and
+    from one day: every period a new time and a new desired sample, each the double
+    build's rounded to float."""
+    import numpy as np
+    n = 999
+    t, single = samples(staircase["float"], k0, n)
+    t_double, double = samples(staircase["double"], k0, n)
+    assert np.array_equal(t, t_double)
+    assert np.all(np.diff(t) > 0)  # the loop's t resolves every period
+    assert np.allclose(np.diff(t), 1e-3, rtol=1e-3, atol=0)
+    repeats = int(np.sum(np.all(single[1:] == single[:-1], axis=1)))
+    assert repeats == 0, f"{repeats} of {n - 1} periods repeat the previous desired sample"
+    assert np.array_equal(single, double.astype(np.float32).astype(np.float64))

@@ -15,8 +15,7 @@
  * would then reach the motors. Such a build is refused here rather than shipped. */
 #if defined(__FAST_MATH__)
 #error "cochlea: do not build with -ffast-math: it lets the compiler delete the supervisor's NaN and infinity checks (a NaN command would reach the motors); build without it (-O2 is enough)"
-#endif
-#if defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
 #error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the supervisor's NaN and infinity checks (a NaN command would reach the motors); build without it"
 #endif
 

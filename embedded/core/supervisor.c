@@ -36,17 +36,17 @@ static void stop_at(cochlea_stop *stop, int rule, double t)
 }
 
 /* Finite as the Python supervisor judges it: the sum of squares is finite (so a value whose
- * square overflows counts as non-finite too, as there). x - x is 0 only for finite x. */
+ * square overflows counts as non-finite too, as there). */
 static int all_finite(const double *v, int n, double *square)
 {
     double s = 0.0;
-    int i, finite = 1;
-    for (i = 0; i < n; ++i) { /* on the bits: no compiler assumption can fold it away */
-        finite = finite && cochlea_finite(v[i]);
+    int i;
+    for (i = 0; i < n; ++i) {
         s += v[i] * v[i];
     }
     *square = s;
-    return finite;
+    /* on the bits (cochlea_fp.h): no compiler assumption can fold it away */
+    return cochlea_finite(s);
 }
 
 int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
