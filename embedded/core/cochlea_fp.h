@@ -1,7 +1,8 @@
 /* cochlea embedded runtime: the floating-point rules every core file (and the generated
  * controller) relies on, and a finiteness test no optimisation can remove.
  *
- * Included by cochlea_rt.h, dxl.h and drives.h, so every .c file of embedded/core sees it.
+ * Included by cochlea_rt.h and drives.h, so every .c file of embedded/core that computes in
+ * floating point sees it (dxl.c, the codec, has no floating point and stays standalone).
  * Portable C99: <stdint.h> only.
  */
 #ifndef COCHLEA_FP_H

@@ -19,8 +19,6 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#include "cochlea_fp.h" /* refuses -ffast-math */
-
 #ifdef __cplusplus
 extern "C" {
 #endif
