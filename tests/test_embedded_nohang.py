@@ -141,24 +141,13 @@ static long serial_read(void *ctx, uint8_t *data, size_t n, int64_t timeout_ns)
 
 static void discard(void *ctx) { (void)ctx; }
 
-static const cochlea_drive DRIVES[2] = {
-    {"arm1.link1", 1, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
-     0.92, 20.0, 0.14, 297.6, 0.00336, 731, -2.96, 2.96, 6.0, 2.5},
-    {"arm1.link2", 2, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
-     0.81, 20.0, 0.19, 297.6, 0.00336, 667, -2.96, 2.96, 6.0, 2.5},
-};
-
-int main(int argc, char **argv)
+/* The line of mode, and the HAL over it; 0, or nonzero on a bad mode. */
+static int setup(fake *fp, cochlea_hal *hal, const char *mode)
 {
-    static fake f;
-    static cochlea_bridge b;
-    cochlea_hal hal;
+    fake f;
     size_t i;
-    if (argc != 3) {
-        return 2;
-    }
     memset(&f, 0, sizeof f);
-    f.mode = argv[1];
+    f.mode = mode;
     f.seed = 12345u;
     f.step = 2500;
     f.t = 1000000000LL;
@@ -185,13 +174,32 @@ int main(int argc, char **argv)
     } else {
         f.stream_len = 1;
     }
-    hal.ctx = &f;
-    hal.serial_write = serial_write;
-    hal.serial_read = serial_read;
-    hal.serial_discard_input = discard;
-    hal.rs485_direction = NULL;
-    hal.now_ns = now_ns;
-    hal.wait_until_ns = wait_until_ns;
+    *fp = f;
+    hal->ctx = fp;
+    hal->serial_write = serial_write;
+    hal->serial_read = serial_read;
+    hal->serial_discard_input = discard;
+    hal->rs485_direction = NULL;
+    hal->now_ns = now_ns;
+    hal->wait_until_ns = wait_until_ns;
+    return 0;
+}
+/* MAIN */
+static const cochlea_drive DRIVES[2] = {
+    {"arm1.link1", 1, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
+     0.92, 20.0, 0.14, 297.6, 0.00336, 731, -2.96, 2.96, 6.0, 2.5},
+    {"arm1.link2", 2, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
+     0.81, 20.0, 0.19, 297.6, 0.00336, 667, -2.96, 2.96, 6.0, 2.5},
+};
+
+int main(int argc, char **argv)
+{
+    static fake f;
+    static cochlea_bridge b;
+    cochlea_hal hal;
+    if (argc != 3 || setup(&f, &hal, argv[1]) != 0) {
+        return 2;
+    }
     if (cochlea_bridge_init(&b, &hal, DRIVES, 2, 5000000LL, 0.1) != 0) {
         return 4;
     }
@@ -238,11 +246,11 @@ def nohang(tmp_path_factory) -> Path:
     return program
 
 
-def run(program: Path, line: str, what: str) -> list[dict[str, str]]:
+def run(program: Path, line: str, what: str | None) -> list[dict[str, str]]:
     began = time.monotonic()
     try:
-        done = subprocess.run([str(program), line, what], capture_output=True, text=True,
-                              timeout=WALL_S)
+        done = subprocess.run([str(program), line, *([what] if what else [])],
+                              capture_output=True, text=True, timeout=WALL_S)
     except subprocess.TimeoutExpired:
         pytest.fail(f"{what} on a {line!r} line still running after {WALL_S} s of wall time")
     wall = time.monotonic() - began
@@ -287,6 +295,76 @@ def test_each_read_ends_at_its_deadline_whatever_the_line_delivers(nohang, line)
     # the safe stop: its quiet line and two confirmations per motor, each at most 10 ms
     assert int(stop["elapsed_ns"]) <= 2 * TIMEOUT_NS + 2 * 2 * STOP_NS + 64 * READ_STEP_NS, stop
     assert stop["confirmed"] == "0"
+
+
+LOOP = HARNESS.split("/* MAIN */")[0] + r"""
+#include "loop.h"
+#include "serial_joint.h"
+
+extern const cochlea_scenario serial_joint_scenario;
+
+int main(int argc, char **argv)
+{
+    static fake f;
+    static cochlea_bridge b;
+    static cochlea_loop loop;
+    static serial_joint_state controller;
+    const cochlea_scenario *sc = &serial_joint_scenario;
+    cochlea_hal hal;
+    cochlea_backend backend;
+    int64_t t0;
+    int rule;
+    if (argc != 2 || setup(&f, &hal, argv[1]) != 0) {
+        return 2;
+    }
+    if (cochlea_bridge_init(&b, &hal, sc->drives, sc->nq, 5000000LL, 0.1) != 0) {
+        return 4;
+    }
+    b.active = 1;  /* as after a good start */
+    backend = cochlea_bridge_backend(&b);
+    /* 10 s at 1 kHz, the watchdog's defaults: 20 overruns, 5 failed reads; real time on the
+     * fake clock */
+    if (cochlea_loop_init(&loop, sc, &hal, &backend, &controller, 0.0, 10.0, 20, 5, 1)
+        != COCHLEA_LOOP_OK) {
+        return 5;
+    }
+    t0 = f.t;
+    rule = cochlea_loop_run(&loop);
+    printf("loop rule=%d exit=%d reason=%d rows=%lld elapsed_ns=%lld\n", rule,
+           cochlea_exit_code(rule), loop.stop.reason, (long long)loop.rows,
+           (long long)(f.t - t0));
+    return 0;
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def nohang_loop(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("nohang_loop")
+    source = folder / "nohang_loop.c"
+    source.write_text(LOOP)
+    program = folder / "nohang_loop"
+    done = subprocess.run(
+        [compiler(), *WARNINGS, "-O2", f"-I{CORE}", f"-I{GENERATED}", str(source),
+         *(str(CORE / f) for f in ("bridge.c", "dxl.c", "drives.c", "loop.c", "supervisor.c")),
+         str(GENERATED / "serial_joint.c"), str(GENERATED / "serial_joint_scenario.c"), "-lm",
+         "-o", str(program)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return program
+
+
+@pytest.mark.parametrize("line", ["byte", "dense", "stranger", "slow"])
+def test_the_loops_watchdog_stops_a_run_on_a_babbling_line(nohang_loop, line):
+    """The whole loop over the bridge: the reads fail within their deadlines, so the watchdog
+    (failed reads, or the lateness they cause) ends the run through the safe stop, exit 15,
+    in a fraction of a second of fake time."""
+    (row,) = run(nohang_loop, line, None)
+    assert row["exit"] == "15", row  # COCHLEA_WATCHDOG
+    # at most 6 failed reads of 3 timeouts each, and the safe stop: its quiet line and two
+    # 10 ms confirmations per motor (6)
+    budget = 6 * (3 * TIMEOUT_NS + 8 * READ_STEP_NS) + 2 * TIMEOUT_NS + 6 * 2 * STOP_NS \
+        + 6 * MS
+    assert int(row["elapsed_ns"]) <= budget, row
 
 
 # --------------------------------------------------------------------------------------------
