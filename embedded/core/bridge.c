@@ -142,17 +142,24 @@ static int past(const cochlea_bridge *b, int64_t deadline)
 }
 
 /* Bytes into the parser until deadline: the count, 0 at the deadline, -1 on a port error.
- * Once the deadline has passed it reads nothing and returns 0, whatever the line holds: a
- * line that always has a byte ready (babble, noise, a stuck transmitter) cannot keep a wait
- * alive past its deadline. Every wait of the bridge ends through here or past(). */
-static long receive(cochlea_bridge *b, int64_t deadline)
+ * Once the deadline has passed it takes one last look, without waiting, at what has already
+ * arrived (a reply that came in time but was not yet read), the first time (*drained 0);
+ * after that it reads nothing and returns 0, whatever the line holds: a line that always has
+ * a byte ready (babble, noise, a stuck transmitter) cannot keep a wait alive past its
+ * deadline. Every wait of the bridge ends through here or past(); each starts with
+ * *drained = 0. */
+static long receive(cochlea_bridge *b, int64_t deadline, int *drained)
 {
     size_t room;
     uint8_t *space = dxl_parser_space(&b->parser, &room);
-    const int64_t left = deadline - now(b);
+    int64_t left = deadline - now(b);
     long got;
     if (left <= 0) {
-        return 0;
+        if (*drained) {
+            return 0;
+        }
+        *drained = 1;
+        left = 0;
     }
     if (room == 0) { /* full of garbage: start over rather than stall */
         dxl_parser_reset(&b->parser);
@@ -172,6 +179,7 @@ static int transact(cochlea_bridge *b, const uint8_t *frame, size_t len, uint8_t
     int result = RESULT_TIMEOUT, attempt;
     for (attempt = 0; attempt < tries; ++attempt) {
         const int64_t deadline = now(b) + timeout;
+        int drained = 0;
         discard(b);
         if (!send(b, frame, len)) {
             return RESULT_PORT;
@@ -186,13 +194,13 @@ static int transact(cochlea_bridge *b, const uint8_t *frame, size_t len, uint8_t
             if (code == DXL_CRC_FAILURE) {
                 result = RESULT_CRC;
             }
-            if (code != DXL_NEED_MORE) { /* not our reply: parsing garbage ends at the deadline too */
+            if (code != DXL_NEED_MORE) { /* not our reply: ends at the deadline too */
                 if (past(b, deadline)) {
                     break;
                 }
                 continue;
             }
-            got = receive(b, deadline);
+            got = receive(b, deadline, &drained);
             if (got < 0) {
                 return RESULT_PORT;
             }
@@ -299,8 +307,9 @@ static int quiet(cochlea_bridge *b, int64_t t0)
 {
     const int64_t give_up = t0 + 2 * b->timeout_ns;
     int64_t quiet_until = t0 + b->timeout_ns;
+    int drained = 0;
     for (;;) {
-        const long got = receive(b, quiet_until < give_up ? quiet_until : give_up);
+        const long got = receive(b, quiet_until < give_up ? quiet_until : give_up, &drained);
         const int64_t t = now(b);
         dxl_parser_reset(&b->parser);
         if (got < 0) {
@@ -367,7 +376,7 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
     const int64_t t0 = now(b);
     const size_t length = (size_t)b->read_length;
     int64_t deadline, asked;
-    int pending = b->n, failure = -1, failure_id = -1, i;
+    int pending = b->n, failure = -1, failure_id = -1, i, drained = 0;
     b->reads += 1;
     discard(b);
     if (b->suspect && !quiet(b, t0)) {
@@ -386,7 +395,7 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
     while (pending) {
         const int code = dxl_parser_parse(&b->parser);
         if (code == DXL_NEED_MORE) {
-            const long got = receive(b, deadline);
+            const long got = receive(b, deadline, &drained);
             if (got > 0) {
                 continue;
             }

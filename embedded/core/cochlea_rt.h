@@ -96,9 +96,9 @@ typedef struct {
     /* Send n bytes; the number sent (all of them, or an error). Returns when they are
      * transmitted (above). */
     long (*serial_write)(void *ctx, const uint8_t *data, size_t n);
-    /* Receive up to n bytes, waiting at most timeout_ns (> 0) for them to start arriving;
-     * the number received (0: timeout, never more than n). Must not block longer than the
-     * timeout; it may return early with fewer bytes. */
+    /* Receive up to n bytes, waiting at most timeout_ns for them to start arriving (0: only
+     * what has already arrived, no wait); the number received (0: timeout, never more than
+     * n). Must not block longer than the timeout; it may return early with fewer bytes. */
     long (*serial_read)(void *ctx, uint8_t *data, size_t n, int64_t timeout_ns);
     /* Drop whatever the port has received and not yet read (may be NULL). */
     void (*serial_discard_input)(void *ctx);
