@@ -11,6 +11,11 @@ precisions:
   law's division guards (``1e-300``) become ``FLT_MIN``;
 * otherwise ``double`` everywhere.
 
+The desired trajectory is evaluated in double in both builds and only its outputs are rounded
+to the working precision (``_in_double``): a float time staircases (from one day on its spacing
+is 7.8 ms). Every ``.c`` refuses ``-ffast-math`` and ``-ffinite-math-only`` with an ``#error``
+(they would delete the NaN checks) and tests finiteness on the bits (``CFINITE``).
+
 The estimate ``p_hat`` is kept, integrated (explicit Euler), projected onto the ball
 ``|p_hat| <= bound`` and clipped to its box ``[p_min, p_max]`` in double in both builds, exactly
 as the fused ``step`` of :mod:`cochlea.control.controllers` does; the law gives ``p_hat_dot`` in
