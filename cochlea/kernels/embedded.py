@@ -336,14 +336,18 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
     return "\n".join(lines)
 
 
-_PRECISION = """/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let the
- * compiler delete those checks, and a NaN command would reach the motors. */
-#if defined(__FAST_MATH__)
-#error "cochlea: do not build with -ffast-math: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it (-O2 is enough)"
-#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
-#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it"
-#endif
-
+#: Why a fast-math build is refused, in the #error of every generated .c (one C line each).
+_WHY = ("it lets the compiler delete the controller's NaN and infinity checks "
+        "(a NaN command would reach the motors)")
+_FAST_MATH = (
+    "/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let"
+    " the\n * compiler delete those checks, and a NaN command would reach the motors. */\n"
+    "#if defined(__FAST_MATH__)\n"
+    f'#error "cochlea: do not build with -ffast-math: {_WHY}; build without it (-O2 is enough)"\n'
+    "#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__\n"
+    f'#error "cochlea: do not build with -ffinite-math-only: {_WHY}; build without it"\n'
+    "#endif\n")
+_PRECISION = _FAST_MATH + """
 #ifdef COCHLEA_FLOAT
 #define CR(x) x##f             /* a literal in the working precision */
 #define CM(fn) fn##f           /* a libm function in the working precision */
