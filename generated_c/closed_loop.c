@@ -55,6 +55,16 @@
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -178,6 +188,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -301,6 +321,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -424,6 +454,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -547,6 +587,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -670,6 +720,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -793,6 +853,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -916,6 +986,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1039,6 +1119,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1162,6 +1252,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1285,6 +1385,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1408,6 +1518,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1531,6 +1651,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1654,6 +1784,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1777,6 +1917,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -1900,6 +2050,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2023,6 +2183,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2146,6 +2316,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2269,6 +2449,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2392,6 +2582,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2515,6 +2715,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2638,6 +2848,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2761,6 +2981,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -2884,6 +3114,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3007,6 +3247,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3130,6 +3380,16 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3253,6 +3513,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3376,6 +3646,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3499,6 +3779,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3622,6 +3912,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3745,6 +4045,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3868,6 +4178,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -3991,6 +4311,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4114,6 +4444,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4237,6 +4577,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4360,6 +4710,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4483,6 +4843,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4606,6 +4976,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4729,6 +5109,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4852,6 +5242,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -4975,6 +5375,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5098,6 +5508,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5221,6 +5641,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5344,6 +5774,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5467,6 +5907,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5590,6 +6040,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5713,6 +6173,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5836,6 +6306,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -5959,6 +6439,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6082,6 +6572,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6205,6 +6705,16 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6328,6 +6838,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6451,6 +6971,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6574,6 +7104,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6697,6 +7237,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6820,6 +7370,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -6943,6 +7503,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7066,6 +7636,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7189,6 +7769,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7312,6 +7902,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7435,6 +8035,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7558,6 +8168,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7681,6 +8301,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7804,6 +8434,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -7927,6 +8567,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8050,6 +8700,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8173,6 +8833,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8296,6 +8966,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8419,6 +9099,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8542,6 +9232,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8665,6 +9365,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8788,6 +9498,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -8911,6 +9631,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9034,6 +9764,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9157,6 +9897,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9280,6 +10030,16 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9403,6 +10163,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9526,6 +10296,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9649,6 +10429,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
@@ -9772,6 +10562,16 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
  */
+#ifndef COCHLEA_CLOSED_LOOP_FINITE_MATH
+#define COCHLEA_CLOSED_LOOP_FINITE_MATH
+/* The run stops on a non-finite state or estimate (isfinite below); -ffast-math or
+ * -ffinite-math-only would let the compiler delete that test. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the closed loop's NaN and infinity checks; build without it"
+#endif
+#endif
 CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
     casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,

@@ -76,7 +76,8 @@ def test_the_core_compiles_freestanding_and_calls_only_libm(build, target, preci
     elves = [size.Elf.read(o) for o in built.objects]
     undefined = set().union(*(e.undefined() for e in elves))
     if precision == "float":  # the working precision's family, besides the estimate's update
-        assert {"sinf", "cosf"} <= undefined and not {"sin", "cos"} & undefined
+        # and the desired trajectory (in double: a float time would staircase, issue 28)
+        assert {"sinf", "cosf"} <= undefined
     else:
         assert {"sin", "cos"} <= undefined and not {"sinf", "cosf"} & undefined
     spec = size.TARGETS[target]

@@ -11,6 +11,11 @@ precisions:
   law's division guards (``1e-300``) become ``FLT_MIN``;
 * otherwise ``double`` everywhere.
 
+The desired trajectory is evaluated in double in both builds and only its outputs are rounded
+to the working precision (``_in_double``): a float time staircases (from one day on its spacing
+is 7.8 ms). Every ``.c`` refuses ``-ffast-math`` and ``-ffinite-math-only`` with an ``#error``
+(they would delete the NaN checks) and tests finiteness on the bits (``CFINITE``).
+
 The estimate ``p_hat`` is kept, integrated (explicit Euler), projected onto the ball
 ``|p_hat| <= bound`` and clipped to its box ``[p_min, p_max]`` in double in both builds, exactly
 as the fused ``step`` of :mod:`cochlea.control.controllers` does; the law gives ``p_hat_dot`` in
@@ -331,7 +336,19 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
     return "\n".join(lines)
 
 
-_PRECISION = """#ifdef COCHLEA_FLOAT
+#: Why a fast-math build is refused, in the #error of every generated .c (one C line each).
+_WHY = ("it lets the compiler delete the controller's NaN and infinity checks "
+        "(a NaN command would reach the motors)")
+_FAST_MATH = (
+    "/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let"
+    " the\n * compiler delete those checks, and a NaN command would reach the motors. */\n"
+    "#if defined(__FAST_MATH__)\n"
+    f'#error "cochlea: do not build with -ffast-math: {_WHY}; build without it (-O2 is enough)"\n'
+    "#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__\n"
+    f'#error "cochlea: do not build with -ffinite-math-only: {_WHY}; build without it"\n'
+    "#endif\n")
+_PRECISION = _FAST_MATH + """
+#ifdef COCHLEA_FLOAT
 #define CR(x) x##f             /* a literal in the working precision */
 #define CM(fn) fn##f           /* a libm function in the working precision */
 #define CTINY(x) FLT_MIN       /* a division guard (1e-300 in double) */
@@ -340,7 +357,26 @@ _PRECISION = """#ifdef COCHLEA_FLOAT
 #define CM(fn) fn
 #define CTINY(x) x
 #endif
+
+/* 1 if x is neither NaN nor infinite, decided on its IEEE 754 bits (a float converts to
+ * double exactly, NaN and infinities included). */
+static int CFINITE(double x) {
+  union { double d; uint64_t u; } bits;
+  bits.d = x;
+  return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
+}
 """
+
+
+def _in_double(body: str, real: str) -> str:
+    """A body in double whatever the working precision: the desired trajectory's. Its input
+    is the time, which float cannot carry (from 86 400 s its spacing is 7.8 ms: the samples
+    would staircase), so the trajectory is evaluated in double and only its outputs are
+    rounded to the working precision."""
+    body = body.replace(real, "double")
+    body = re.sub(r"\bCM\((\w+)\)\(", r"\1(", body)
+    body = re.sub(r"\b(?:CR|CTINY)\(([^()]*)\)", r"\1", body)
+    return body.replace("CSQ(", "CSQD(")
 
 
 def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, str],
@@ -348,9 +384,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
     N = name.upper()
     R = f"{name}_real"
     off = _offsets(units)
-    parts = [_preamble(f"{name}: {title}"),
-             f'#include "{name}.h"\n#include <float.h>\n#include <math.h>\n', _PRECISION,
-             f"static {R} CSQ({R} x) {{ return x * x; }}\n"]
+    functions = []
     for u in units:
         for kind in ("desired", "law", "fk"):
             if kind == "fk" and not u.n_points:
@@ -359,9 +393,17 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             f = {"desired": u.desired, "law": u.law, "fk": u.fk}[kind]
             sig = ", ".join(f"{f.name_in(i)}[{f.size1_in(i)}]" for i in range(f.n_in()))
             res = ", ".join(f"{f.name_out(i)}[{f.size1_out(i)}]" for i in range(f.n_out()))
-            parts.append(f"/* {u.name}: {kind} ({sig}) -> ({res}) */\n"
-                         f"static int {fname}(const {R}** arg, {R}** res) {{\n"
-                         f"{bodies[fname]}\n}}\n")
+            T = "double" if kind == "desired" else R  # desired: in double (_in_double)
+            body = _in_double(bodies[fname], R) if kind == "desired" else bodies[fname]
+            functions.append(f"/* {u.name}: {kind} ({sig}) -> ({res}) */\n"
+                             f"static int {fname}(const {T}** arg, {T}** res) {{\n"
+                             f"{body}\n}}\n")
+    text = "".join(functions)
+    helpers = ([f"static {R} CSQ({R} x) {{ return x * x; }}\n"] if "CSQ(" in text else []) + (
+        ["static double CSQD(double x) { return x * x; }\n"] if "CSQD(" in text else [])
+    parts = [_preamble(f"{name}: {title}"),
+             f'#include "{name}.h"\n#include <float.h>\n#include <math.h>\n'
+             '#include <stdint.h>\n', _PRECISION, *helpers, *functions]
     parts.append(config)
     # init
     checks = [f"  for (i = 0; i < {N}_UNITS; ++i) {{",
@@ -379,7 +421,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         f"  for (i = 0; i < {N}_NP; ++i) {{",
         "    s->gamma[i] = (" + R + ")c->gamma[i];",
         "    s->p_hat[i] = 1.0 * c->p_hat0[i];",
-        "    if (!(s->p_hat[i] - s->p_hat[i] == 0.0)) return -1;",
+        "    if (!CFINITE(s->p_hat[i])) return -1;",
         "  }",
         *checks,
         f"  for (i = 0; i < {N}_NQ; ++i) {{",
@@ -408,14 +450,26 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
     # desired
     desired = [f"int {name}_desired(double t, {R} xd[{N}_ND], {R} xd_dot[{N}_ND],",
                f"    {R} xd_ddot[{N}_ND]) {{",
-               f"  const {R} time = ({R})t;",
-               f"  const {R}* arg[1];",
-               f"  {R}* res[3];",
-               "  arg[0] = &time;"]
+               "  /* In double in both builds: a float time staircases (7.8 ms steps from one"
+               " day on). */",
+               "#ifdef COCHLEA_FLOAT",
+               f"  double x[{N}_ND], x_dot[{N}_ND], x_ddot[{N}_ND];",
+               "  int i;",
+               "#else",
+               "  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;",
+               "#endif",
+               "  const double* arg[1];",
+               "  double* res[3];",
+               "  arg[0] = &t;"]
     for u, o in zip(units, off):
-        desired += [f"  res[0] = xd + {o.d}; res[1] = xd_dot + {o.d}; res[2] = xd_ddot + {o.d};",
+        desired += [f"  res[0] = x + {o.d}; res[1] = x_dot + {o.d}; res[2] = x_ddot + {o.d};",
                     f"  if ({name}_{u.name}_desired(arg, res)) return -1;"]
-    desired += ["  return 0;", "}\n"]
+    desired += ["#ifdef COCHLEA_FLOAT",
+                f"  for (i = 0; i < {N}_ND; ++i) {{",
+                f"    xd[i] = ({R})x[i]; xd_dot[i] = ({R})x_dot[i]; xd_ddot[i] = ({R})x_ddot[i];",
+                "  }",
+                "#endif",
+                "  return 0;", "}\n"]
     parts.append("\n".join(desired))
     # step
     step = [f"int {name}_step({name}_state *s, double t, const {R} measurement[{N}_NX],",
@@ -450,13 +504,13 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             "  }",
             f"  scale[{k}] = fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));"]
     step += [
-        "  /* Every output finite, or nothing changes (p_hat - p_hat is NaN for NaN and inf) */",
+        "  /* Every output finite, or nothing changes (CFINITE: on the bits) */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
-        "    if (!(command_out[i] - command_out[i] == CR(0.))) return 1;",
+        "    if (!CFINITE((double)command_out[i])) return 1;",
         f"  for (i = 0; i < {N}_NE; ++i)",
-        "    if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;",
+        "    if (!CFINITE((double)errors_out[i])) return 1;",
         f"  for (i = 0; i < {N}_NP; ++i)",
-        "    if (!(next[i] - next[i] == 0.0)) return 2;",
+        "    if (!CFINITE(next[i])) return 2;",
         "  /* the supervisor's clip: |command| <= effort limit */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
         "    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), "

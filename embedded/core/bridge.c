@@ -135,14 +135,30 @@ static void discard(cochlea_bridge *b)
     dxl_parser_reset(&b->parser);
 }
 
-/* Bytes into the parser until deadline: the count, 0 at the deadline, -1 on a port error. */
-static long receive(cochlea_bridge *b, int64_t deadline)
+/* 1 once deadline has passed. */
+static int past(const cochlea_bridge *b, int64_t deadline)
+{
+    return now(b) - deadline >= 0;
+}
+
+/* Bytes into the parser until deadline: the count, 0 at the deadline, -1 on a port error.
+ * Once the deadline has passed it takes one last look, without waiting, at what has already
+ * arrived (a reply that came in time but was not yet read), the first time (*drained 0);
+ * after that it reads nothing and returns 0, whatever the line holds: a line that always has
+ * a byte ready (babble, noise, a stuck transmitter) cannot keep a wait alive past its
+ * deadline. Every wait of the bridge ends through here or past(); each starts with
+ * *drained = 0. */
+static long receive(cochlea_bridge *b, int64_t deadline, int *drained)
 {
     size_t room;
     uint8_t *space = dxl_parser_space(&b->parser, &room);
     int64_t left = deadline - now(b);
     long got;
-    if (left < 0) {
+    if (left <= 0) {
+        if (*drained) {
+            return 0;
+        }
+        *drained = 1;
         left = 0;
     }
     if (room == 0) { /* full of garbage: start over rather than stall */
@@ -151,9 +167,9 @@ static long receive(cochlea_bridge *b, int64_t deadline)
     }
     got = b->hal->serial_read(b->hal->ctx, space, room, left);
     if (got > 0) {
-        dxl_parser_commit(&b->parser, (size_t)got);
+        dxl_parser_commit(&b->parser, (size_t)got); /* clamped to the room */
     }
-    return got;
+    return got < 0 ? -1 : got;
 }
 
 /* A unicast instruction and its status packet. */
@@ -163,6 +179,7 @@ static int transact(cochlea_bridge *b, const uint8_t *frame, size_t len, uint8_t
     int result = RESULT_TIMEOUT, attempt;
     for (attempt = 0; attempt < tries; ++attempt) {
         const int64_t deadline = now(b) + timeout;
+        int drained = 0;
         discard(b);
         if (!send(b, frame, len)) {
             return RESULT_PORT;
@@ -170,21 +187,20 @@ static int transact(cochlea_bridge *b, const uint8_t *frame, size_t len, uint8_t
         for (;;) {
             const int code = dxl_parser_parse(&b->parser);
             long got;
-            if (code == DXL_OK) {
-                if (b->parser.id == id) {
-                    *error = b->parser.error;
-                    return RESULT_OK;
-                }
-                continue;
+            if (code == DXL_OK && b->parser.id == id) {
+                *error = b->parser.error;
+                return RESULT_OK;
             }
             if (code == DXL_CRC_FAILURE) {
                 result = RESULT_CRC;
+            }
+            if (code != DXL_NEED_MORE) { /* not our reply: ends at the deadline too */
+                if (past(b, deadline)) {
+                    break;
+                }
                 continue;
             }
-            if (code != DXL_NEED_MORE) {
-                continue;
-            }
-            got = receive(b, deadline);
+            got = receive(b, deadline, &drained);
             if (got < 0) {
                 return RESULT_PORT;
             }
@@ -291,8 +307,9 @@ static int quiet(cochlea_bridge *b, int64_t t0)
 {
     const int64_t give_up = t0 + 2 * b->timeout_ns;
     int64_t quiet_until = t0 + b->timeout_ns;
+    int drained = 0;
     for (;;) {
-        const long got = receive(b, quiet_until < give_up ? quiet_until : give_up);
+        const long got = receive(b, quiet_until < give_up ? quiet_until : give_up, &drained);
         const int64_t t = now(b);
         dxl_parser_reset(&b->parser);
         if (got < 0) {
@@ -342,12 +359,24 @@ static int fresh(cochlea_bridge *b, int64_t asked, int64_t arrived)
     return 1;
 }
 
+/* The ID of the first motor whose reply has not come, else -1. */
+static int missing(const cochlea_bridge *b)
+{
+    int i;
+    for (i = 0; i < b->n; ++i) {
+        if (b->slots[i] == 0) {
+            return b->drives[i].id;
+        }
+    }
+    return -1;
+}
+
 static int sync_read(cochlea_bridge *b, double *q, double *qd)
 {
     const int64_t t0 = now(b);
     const size_t length = (size_t)b->read_length;
     int64_t deadline, asked;
-    int pending = b->n, failure = -1, failure_id = -1, i;
+    int pending = b->n, failure = -1, failure_id = -1, i, drained = 0;
     b->reads += 1;
     discard(b);
     if (b->suspect && !quiet(b, t0)) {
@@ -366,7 +395,7 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
     while (pending) {
         const int code = dxl_parser_parse(&b->parser);
         if (code == DXL_NEED_MORE) {
-            const long got = receive(b, deadline);
+            const long got = receive(b, deadline, &drained);
             if (got > 0) {
                 continue;
             }
@@ -375,12 +404,7 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
             }
             if (failure < 0) {
                 failure = COCHLEA_FAIL_TIMEOUT;
-                for (i = 0; i < b->n; ++i) {
-                    if (b->slots[i] == 0) {
-                        failure_id = b->drives[i].id;
-                        break;
-                    }
-                }
+                failure_id = missing(b);
             }
             break;
         }
@@ -390,6 +414,10 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
             size_t k;
             if (j < 0 || b->slots[j]) {
                 b->unexpected_packets += 1;
+                if (past(b, deadline)) { /* a flood of packets for no one */
+                    return fail(b, failure >= 0 ? failure : COCHLEA_FAIL_TIMEOUT,
+                                failure >= 0 ? failure_id : missing(b));
+                }
                 continue;
             }
             --pending;
@@ -423,6 +451,10 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
             }
         } else {
             b->garbage_packets += 1;
+        }
+        if (pending && code != DXL_OK && past(b, deadline)) {
+            return fail(b, failure >= 0 ? failure : COCHLEA_FAIL_TIMEOUT,
+                        failure >= 0 ? failure_id : missing(b));
         }
     }
     if (failure >= 0) {
@@ -483,7 +515,7 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
     }
     b->writes += 1;
     for (i = 0; i < b->n; ++i) {
-        finite = finite && (tau[i] - tau[i]) == 0.0;
+        finite = finite && cochlea_finite(tau[i]);
     }
     for (i = 0; i < b->n; ++i) { /* a NaN or infinite command: zero current, and report it */
         b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i], b->offset_current) : 0;

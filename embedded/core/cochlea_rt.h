@@ -11,6 +11,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "cochlea_fp.h" /* refuses -ffast-math; cochlea_finite() */
+
 #ifdef __cplusplus
 extern "C" {
 #endif
@@ -60,20 +62,51 @@ typedef struct {
 /* ---- the hardware-abstraction layer ----------------------------------------------------- */
 
 /* Everything a port implements. The core calls nothing else that touches hardware or time.
- * Callbacks return a negative number on an error of the port itself. */
+ * Callbacks return a negative number on an error of the port itself.
+ *
+ * The contract (the core's deadlines rest on it):
+ * - Context. The core calls every callback from the loop's own context (the thread or main
+ *   loop that runs cochlea_bridge_* and cochlea_loop_run), never from an interrupt, and never
+ *   two at once. None of them may be called by the port from an interrupt either. The only
+ *   thing an interrupt or signal handler may do is store COCHLEA_USER_STOP or
+ *   COCHLEA_TERMINATED in cochlea_loop.stop_request (a volatile int: one aligned store).
+ *   A UART interrupt fills the port's own ring buffer; serial_read copies out of it.
+ * - Every callback returns in bounded time: serial_read within its timeout (plus the copy),
+ *   serial_write within the time its bytes take on the wire plus a bounded margin (give up
+ *   with -1 on an adapter that stops taking them), wait_until_ns at its deadline. The core
+ *   bounds each of its waits by now_ns() alone, whatever the line delivers (bridge.c), so a
+ *   callback that blocks longer is the one thing it cannot end.
+ * - serial_write returns after the last byte has left the transmitter (the shift register,
+ *   not a FIFO) when the port switches an RS-485 transceiver with rs485_direction: the
+ *   direction goes back to receive right after it returns, and an early return would cut
+ *   the frame's end. With an adapter that switches by itself (rs485_direction NULL) it may
+ *   return once the adapter has the bytes (the POSIX port: the kernel's queue; it does not
+ *   tcdrain, which has no timeout).
+ * - now_ns is a 64-bit monotonic count of nanoseconds that never wraps and never goes back.
+ *   A port on a wrapping hardware timer (a 32-bit counter at 1 MHz wraps every 71.6 min, a
+ *   16-bit one in ms) must extend it to 64 bits: count the wraps (the overflow interrupt, or
+ *   a comparison with the last reading at least once per wrap period) and combine them with
+ *   the counter so that a reading taken across a wrap is never off by a whole wrap.
+ * - Memory the core is handed (the scenario's controller state of state_size bytes, the
+ *   cochlea_bridge and cochlea_loop structs) must be aligned for double (8 bytes): the
+ *   generated code loads doubles from the state, and a Cortex-M faults on an unaligned
+ *   double load (LDRD/VLDR). Static storage of a struct, or a union with a double, is. */
 typedef struct {
     void *ctx;
-    /* Send n bytes; the number sent (all of them, or an error). */
+    /* Send n bytes; the number sent (all of them, or an error). Returns when they are
+     * transmitted (above). */
     long (*serial_write)(void *ctx, const uint8_t *data, size_t n);
-    /* Receive up to n bytes, waiting at most timeout_ns for them to start arriving; the
-     * number received (0: timeout). Must not block longer than the timeout. */
+    /* Receive up to n bytes, waiting at most timeout_ns for them to start arriving (0: only
+     * what has already arrived, no wait); the number received (0: timeout, never more than
+     * n). Must not block longer than the timeout; it may return early with fewer bytes. */
     long (*serial_read)(void *ctx, uint8_t *data, size_t n, int64_t timeout_ns);
     /* Drop whatever the port has received and not yet read (may be NULL). */
     void (*serial_discard_input)(void *ctx);
     /* Switch an RS-485 transceiver to transmit (1) or receive (0); NULL when the adapter
      * switches by itself (U2D2, USB-RS485 with automatic direction). */
     void (*rs485_direction)(void *ctx, int transmit);
-    /* Monotonic time (ns) and a wait until an absolute monotonic time. */
+    /* Monotonic time (ns, 64-bit, never wrapping: above) and a wait until an absolute
+     * monotonic time (returns at once for a time already past). */
     int64_t (*now_ns)(void *ctx);
     void (*wait_until_ns)(void *ctx, int64_t deadline_ns);
 } cochlea_hal;

@@ -37,7 +37,7 @@ int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort, int of
     const double torque = effort * d->torque_per_effort;
     const double limit = (double)d->current_limit_lsb;
     double blend, amps;
-    if (!((torque - torque) == 0.0)) {
+    if (!cochlea_finite(torque)) {
         return 0;
     }
     blend = torque * d->inv_ramp;

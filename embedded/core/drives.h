@@ -11,6 +11,8 @@
 
 #include <stdint.h>
 
+#include "cochlea_fp.h" /* refuses -ffast-math */
+
 #ifdef __cplusplus
 extern "C" {
 #endif

@@ -49,7 +49,8 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
         return COCHLEA_LOOP_TOO_BIG;
     }
     periods = duration_s / h;
-    if (!(h >= 5e-5 && h <= 1.0 && periods >= 0.5 && periods < 2.0e9)) { /* and NaN */
+    /* Up to 4e9 s: the deadlines k period_ns stay far inside int64 (4e18 ns). */
+    if (!(h >= 5e-5 && h <= 1.0 && periods >= 0.5 && duration_s <= 4.0e9)) { /* and NaN */
         return COCHLEA_LOOP_BAD_DURATION;
     }
     if (watchdog_misses < 1 || watchdog_errors < 1) {
@@ -58,7 +59,7 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     if (realtime && (hal == 0 || hal->now_ns == 0 || hal->wait_until_ns == 0)) {
         return COCHLEA_LOOP_NO_CLOCK;
     }
-    loop->steps = (long)nearbyint(periods);
+    loop->steps = (int64_t)nearbyint(periods);
     loop->period_s = h;
     loop->period_ns = (int64_t)nearbyint(h * 1e9);
     loop->stall_ns = (int64_t)watchdog_misses * loop->period_ns;
@@ -87,6 +88,11 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
         loop->q[i] = loop->qd[i] = loop->tau[i] = 0.0;
     }
     return COCHLEA_LOOP_OK;
+}
+
+double cochlea_loop_time(const cochlea_loop *loop, int64_t k)
+{
+    return (double)k * loop->period_s;
 }
 
 static int64_t now(const cochlea_loop *loop)
@@ -128,14 +134,13 @@ static int periods(cochlea_loop *loop)
     const cochlea_scenario *sc = loop->scenario;
     const cochlea_backend *be = &loop->backend;
     const int n = sc->nq;
-    const double h = loop->period_s;
     double *row = loop->row;
     double *row_tau = row + 1 + 2 * n;
     double *timing = row + cochlea_loop_timing_at(sc);
     double *current = timing + COCHLEA_TIMING_COLUMNS;
     int64_t t0, start, previous_start, previous_end = 0, io_start, io_ns, end, deadline;
     int errors = 0, consecutive = 0, u, i, r;
-    long k;
+    int64_t k;
 
     if (!be->current) { /* stays NaN: nothing measures it */
         fill_nan(current, n);
@@ -144,8 +149,11 @@ static int periods(cochlea_loop *loop)
     loop->t0_ns = t0;
     previous_start = t0;
     for (k = 0; k < loop->steps; ++k) {
-        const double t = (double)k * h;
-        deadline = t0 + (int64_t)k * loop->period_ns;
+        /* Time is the period count k (int64: no rounding, no wrap); t is formed here, in
+         * double, for what needs it. A float t would staircase: from 86 400 s its spacing
+         * is 7.8 ms. */
+        const double t = cochlea_loop_time(loop, k);
+        deadline = t0 + k * loop->period_ns;
         if (loop->realtime) {
             loop->hal->wait_until_ns(loop->hal->ctx, deadline);
         }
@@ -287,7 +295,7 @@ static int periods(cochlea_loop *loop)
             }
         }
     }
-    stop_here(&loop->stop, COCHLEA_COMPLETED, (double)loop->steps * h);
+    stop_here(&loop->stop, COCHLEA_COMPLETED, cochlea_loop_time(loop, loop->steps));
     return COCHLEA_COMPLETED;
 }
 

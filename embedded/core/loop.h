@@ -69,7 +69,7 @@ enum cochlea_loop_error {
     COCHLEA_LOOP_OK = 0,
     COCHLEA_LOOP_TOO_BIG,        /* the scenario does not fit the loop's buffers */
     COCHLEA_LOOP_BAD_DURATION,   /* a period outside 50 us..1 s, or a duration not finite,
-                                  * under half a period or over 2e9 periods */
+                                  * under half a period or over 4e9 s */
     COCHLEA_LOOP_BAD_WATCHDOG,   /* a watchdog count below 1 */
     COCHLEA_LOOP_BAD_CONTROLLER, /* the controller's init refused its configuration */
     COCHLEA_LOOP_NO_CLOCK        /* a real-time loop without now_ns and wait_until_ns */
@@ -84,7 +84,7 @@ typedef struct {
     cochlea_limits limits;           /* from the scenario, with the watchdog's counts */
     double period_s;                 /* the control period (s) */
     int64_t period_ns;
-    long steps;
+    int64_t steps;                   /* periods to run; period k starts at t = k period_s */
     int realtime;                    /* 0: periods back to back, no waiting (tests) */
     /* Called at the end of every period with its row (row_length values). It runs inside
      * the period: copy the row and return (the POSIX port hands it to a writer thread). */
@@ -99,7 +99,7 @@ typedef struct {
     volatile int stop_request;
     /* Results. */
     int row_length;
-    long rows;                       /* periods logged */
+    int64_t rows;                    /* periods logged */
     uint32_t deadline_misses;        /* periods that ended after the next one was due */
     uint32_t overruns;               /* periods whose own work overran (the overrun rule) */
     int64_t lateness_max_ns;         /* the latest start against its deadline */
@@ -135,6 +135,11 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
                       const cochlea_backend *backend, void *controller, double period_s,
                       double duration_s, int watchdog_misses, int watchdog_errors,
                       int realtime);
+
+/* The time of period k (s): k period_s, formed in double from the int64 period count the
+ * loop carries, so that it resolves every period at any run length the loop accepts (at
+ * 2^40 periods of 1 ms its spacing is 2.4e-7 s). */
+double cochlea_loop_time(const cochlea_loop *loop, int64_t k);
 
 /* Run every period until the end or a rule; then the backend's shutdown. The rule
  * (enum cochlea_rule); loop->stop says where, cochlea_exit_code() the process's exit code. */

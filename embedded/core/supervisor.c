@@ -36,7 +36,7 @@ static void stop_at(cochlea_stop *stop, int rule, double t)
 }
 
 /* Finite as the Python supervisor judges it: the sum of squares is finite (so a value whose
- * square overflows counts as non-finite too, as there). x - x is 0 only for finite x. */
+ * square overflows counts as non-finite too, as there). */
 static int all_finite(const double *v, int n, double *square)
 {
     double s = 0.0;
@@ -45,7 +45,8 @@ static int all_finite(const double *v, int n, double *square)
         s += v[i] * v[i];
     }
     *square = s;
-    return (s - s) == 0.0;
+    /* on the bits (cochlea_fp.h): no compiler assumption can fold it away */
+    return cochlea_finite(s);
 }
 
 int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
@@ -59,7 +60,7 @@ int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
     if (!finite) {
         stop_at(stop, COCHLEA_NON_FINITE, t);
         for (j = 0; j < n; ++j) {
-            if (!((q[j] - q[j]) == 0.0) || !((qd[j] - qd[j]) == 0.0)) {
+            if (!cochlea_finite(q[j]) || !cochlea_finite(qd[j])) {
                 stop->joint = j;
                 break;
             }

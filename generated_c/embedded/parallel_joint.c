@@ -4,6 +4,15 @@
 #include "parallel_joint.h"
 #include <float.h>
 #include <math.h>
+#include <stdint.h>
+
+/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let the
+ * compiler delete those checks, and a NaN command would reach the motors. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it (-O2 is enough)"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it"
+#endif
 
 #ifdef COCHLEA_FLOAT
 #define CR(x) x##f             /* a literal in the working precision */
@@ -15,68 +24,78 @@
 #define CTINY(x) x
 #endif
 
+/* 1 if x is neither NaN nor infinite, decided on its IEEE 754 bits (a float converts to
+ * double exactly, NaN and infinities included). */
+static int CFINITE(double x) {
+  union { double d; uint64_t u; } bits;
+  bits.d = x;
+  return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
+}
+
 static parallel_joint_real CSQ(parallel_joint_real x) { return x * x; }
 
+static double CSQD(double x) { return x * x; }
+
 /* mechanism: desired (t[1]) -> (x[5], x_dot[5], x_ddot[5]) */
-static int parallel_joint_mechanism_desired(const parallel_joint_real** arg, parallel_joint_real** res) {
-  parallel_joint_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
-  parallel_joint_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
-  parallel_joint_real a24, a25, a26, a27, a28, a29, a30, a31, a32, a33, a34, a35;
-  parallel_joint_real a36, a37, a38, a39, a40;
-  a00=CR(1.7453292519943295e-02);
-  a01=CR(3.9206000000000002e-01);
+static int parallel_joint_mechanism_desired(const double** arg, double** res) {
+  double a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
+  double a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
+  double a24, a25, a26, a27, a28, a29, a30, a31, a32, a33, a34, a35;
+  double a36, a37, a38, a39, a40;
+  a00=1.7453292519943295e-02;
+  a01=3.9206000000000002e-01;
   a02=arg[0]? arg[0][0] : 0;
-  a03=CR(5.);
-  a04=CM(fmin)(a02,a03);
-  a05=CSQ(a04);
+  a03=5.;
+  a04=fmin(a02,a03);
+  a05=CSQD(a04);
   a06=(a04*a05);
   a07=(a01*a06);
-  a08=CR(2.9415000000000000e+00);
+  a08=2.9415000000000000e+00;
   a09=(a08*a05);
   a07=(a07-a09);
-  a09=CR(142.);
+  a09=142.;
   a07=(a07+a09);
   a07=(a00*a07);
   if (res[0]!=0) res[0][0]=a07;
-  a09=CR(3.5999999999999997e-02);
+  a09=3.5999999999999997e-02;
   a10=(a09*a06);
-  a11=CR(2.2550000000000001e-01);
+  a11=2.2550000000000001e-01;
   a12=(a11*a05);
   a10=(a10-a12);
-  a12=CR(3.2250000000000000e+01);
+  a12=3.2250000000000000e+01;
   a10=(a10+a12);
   a10=(a00*a10);
   if (res[0]!=0) res[0][1]=a10;
-  a12=-CR(1.9500000000000000e-04);
+  a12=-1.9500000000000000e-04;
   a06=(a12*a06);
-  a13=CR(1.5000000000000000e-03);
+  a13=1.5000000000000000e-03;
   a14=(a13*a05);
   a06=(a06+a14);
-  a14=CR(7.0749999999999993e-02);
+  a14=7.0749999999999993e-02;
   a06=(a06+a14);
   if (res[0]!=0) res[0][2]=a06;
-  a06=CR(1.0000000000000001e-01);
-  a14=CM(sin)(a07);
-  a15=CM(sin)(a10);
+  a06=1.0000000000000001e-01;
+  a14=sin(a07);
+  a15=sin(a10);
   a16=(a14+a15);
   a17=(a06*a16);
-  a18=CR(1.2000000000000000e-01);
-  a07=CM(cos)(a07);
-  a10=CM(cos)(a10);
+  a18=1.2000000000000000e-01;
+  a07=cos(a07);
+  a10=cos(a10);
   a19=(a07+a10);
   a19=(a06*a19);
   a18=(a18+a19);
-  a19=-CR(1.2000000000000000e-01);
+  a19=-1.2000000000000000e-01;
   a18=(a18+a19);
   a19=(-a18);
-  a19=CM(atan2)(a17,a19);
-  a20=CSQ(a18);
-  a21=CSQ(a17);
+  a19=atan2(a17,a19);
+  a20=CSQD(a18);
+  a21=CSQD(a17);
   a22=(a20+a21);
-  a22=CM(sqrt)(a22);
-  a23=CR(2.0000000000000001e-01);
+  a22=sqrt(a22);
+  a23=2.0000000000000001e-01;
   a24=(a22/a23);
-  a25=CM(acos)(a24);
+  a25=acos(a24);
   a26=(a19-a25);
   if (res[0]!=0) res[0][3]=a26;
   a19=(a19+a25);
@@ -86,7 +105,7 @@ static int parallel_joint_mechanism_desired(const parallel_joint_real** arg, par
   a02=(a19+a02);
   a19=(a19/a02);
   a05=(a05*a19);
-  a02=(CR(2.)*a04);
+  a02=(2.*a04);
   a02=(a02*a19);
   a25=(a04*a02);
   a05=(a05+a25);
@@ -118,18 +137,18 @@ static int parallel_joint_mechanism_desired(const parallel_joint_real** arg, par
   a33=(a06*a33);
   a34=(a17*a33);
   a30=(a30+a34);
-  a34=-CR(1.);
-  a35=CR(1.);
-  a36=CSQ(a24);
+  a34=-1.;
+  a35=1.;
+  a36=CSQD(a24);
   a35=(a35-a36);
-  a35=CM(sqrt)(a35);
+  a35=sqrt(a35);
   a34=(a34/a35);
   a16=(a23*a16);
   a36=(a16*a29);
-  a18=(CR(2.)*a18);
+  a18=(2.*a18);
   a37=(a18*a33);
   a36=(a36-a37);
-  a22=(CR(2.)*a22);
+  a22=(2.*a22);
   a37=(a36/a22);
   a38=(a03*a37);
   a39=(a34*a38);
@@ -140,7 +159,7 @@ static int parallel_joint_mechanism_desired(const parallel_joint_real** arg, par
   if (res[1]!=0) res[1][4]=a39;
   a39=(a19*a02);
   a02=(a02*a19);
-  a30=(CR(2.)*a19);
+  a30=(2.*a19);
   a19=(a19*a30);
   a04=(a04*a19);
   a02=(a02+a04);
@@ -191,9 +210,9 @@ static int parallel_joint_mechanism_desired(const parallel_joint_real** arg, par
   a32=(a32+a17);
   a10=(a10+a32);
   a32=(a34/a35);
-  a24=(CR(2.)*a24);
+  a24=(2.*a24);
   a24=(a24*a38);
-  a35=(CR(2.)*a35);
+  a35=(2.*a35);
   a24=(a24/a35);
   a32=(a32*a24);
   a38=(a38*a32);
@@ -202,14 +221,14 @@ static int parallel_joint_mechanism_desired(const parallel_joint_real** arg, par
   a16=(a16*a07);
   a29=(a29+a16);
   a16=(-a33);
-  a16=(CR(2.)*a16);
+  a16=(2.*a16);
   a33=(a33*a16);
   a18=(a18*a06);
   a33=(a33+a18);
   a29=(a29-a33);
   a29=(a29/a22);
   a22=(a37/a22);
-  a37=(CR(2.)*a37);
+  a37=(2.*a37);
   a22=(a22*a37);
   a29=(a29-a22);
   a03=(a03*a29);
@@ -2283,7 +2302,7 @@ int parallel_joint_init(parallel_joint_state *s, const parallel_joint_config *c)
   for (i = 0; i < PARALLEL_JOINT_NP; ++i) {
     s->gamma[i] = (parallel_joint_real)c->gamma[i];
     s->p_hat[i] = 1.0 * c->p_hat0[i];
-    if (!(s->p_hat[i] - s->p_hat[i] == 0.0)) return -1;
+    if (!CFINITE(s->p_hat[i])) return -1;
   }
   for (i = 0; i < PARALLEL_JOINT_UNITS; ++i) {
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
@@ -2318,12 +2337,23 @@ void parallel_joint_terminate(parallel_joint_state *s) {
 
 int parallel_joint_desired(double t, parallel_joint_real xd[PARALLEL_JOINT_ND], parallel_joint_real xd_dot[PARALLEL_JOINT_ND],
     parallel_joint_real xd_ddot[PARALLEL_JOINT_ND]) {
-  const parallel_joint_real time = (parallel_joint_real)t;
-  const parallel_joint_real* arg[1];
-  parallel_joint_real* res[3];
-  arg[0] = &time;
-  res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+  /* In double in both builds: a float time staircases (7.8 ms steps from one day on). */
+#ifdef COCHLEA_FLOAT
+  double x[PARALLEL_JOINT_ND], x_dot[PARALLEL_JOINT_ND], x_ddot[PARALLEL_JOINT_ND];
+  int i;
+#else
+  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;
+#endif
+  const double* arg[1];
+  double* res[3];
+  arg[0] = &t;
+  res[0] = x + 0; res[1] = x_dot + 0; res[2] = x_ddot + 0;
   if (parallel_joint_mechanism_desired(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+  for (i = 0; i < PARALLEL_JOINT_ND; ++i) {
+    xd[i] = (parallel_joint_real)x[i]; xd_dot[i] = (parallel_joint_real)x_dot[i]; xd_ddot[i] = (parallel_joint_real)x_ddot[i];
+  }
+#endif
   return 0;
 }
 
@@ -2354,13 +2384,13 @@ int parallel_joint_step(parallel_joint_state *s, double t, const parallel_joint_
     norm2 += next[i] * next[i];
   }
   scale[0] = fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
-  /* Every output finite, or nothing changes (p_hat - p_hat is NaN for NaN and inf) */
+  /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < PARALLEL_JOINT_NQ; ++i)
-    if (!(command_out[i] - command_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)command_out[i])) return 1;
   for (i = 0; i < PARALLEL_JOINT_NE; ++i)
-    if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < PARALLEL_JOINT_NP; ++i)
-    if (!(next[i] - next[i] == 0.0)) return 2;
+    if (!CFINITE(next[i])) return 2;
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < PARALLEL_JOINT_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);

@@ -4,6 +4,15 @@
 #include "parallel_task_realistic.h"
 #include <float.h>
 #include <math.h>
+#include <stdint.h>
+
+/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let the
+ * compiler delete those checks, and a NaN command would reach the motors. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it (-O2 is enough)"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it"
+#endif
 
 #ifdef COCHLEA_FLOAT
 #define CR(x) x##f             /* a literal in the working precision */
@@ -15,45 +24,55 @@
 #define CTINY(x) x
 #endif
 
+/* 1 if x is neither NaN nor infinite, decided on its IEEE 754 bits (a float converts to
+ * double exactly, NaN and infinities included). */
+static int CFINITE(double x) {
+  union { double d; uint64_t u; } bits;
+  bits.d = x;
+  return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
+}
+
 static parallel_task_realistic_real CSQ(parallel_task_realistic_real x) { return x * x; }
 
+static double CSQD(double x) { return x * x; }
+
 /* mechanism: desired (t[1]) -> (x[6], x_dot[6], x_ddot[6]) */
-static int parallel_task_realistic_mechanism_desired(const parallel_task_realistic_real** arg, parallel_task_realistic_real** res) {
-  parallel_task_realistic_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10;
-  a00=-CR(5.4699999999999996e-04);
+static int parallel_task_realistic_mechanism_desired(const double** arg, double** res) {
+  double a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10;
+  a00=-5.4699999999999996e-04;
   a01=arg[0]? arg[0][0] : 0;
-  a02=CR(5.);
-  a03=CM(fmin)(a01,a02);
-  a04=CSQ(a03);
+  a02=5.;
+  a03=fmin(a01,a02);
+  a04=CSQD(a03);
   a05=(a03*a04);
   a06=(a00*a05);
-  a07=CR(4.1000000000000003e-03);
+  a07=4.1000000000000003e-03;
   a08=(a07*a04);
   a06=(a06+a08);
-  a08=CR(1.2580000000000000e-01);
+  a08=1.2580000000000000e-01;
   a06=(a06+a08);
   if (res[0]!=0) res[0][0]=a06;
-  a08=-CR(3.8800000000000000e-04);
+  a08=-3.8800000000000000e-04;
   a05=(a08*a05);
-  a09=CR(2.8999999999999998e-03);
+  a09=2.8999999999999998e-03;
   a10=(a09*a04);
   a05=(a05+a10);
-  a10=CR(1.1470000000000000e-01);
+  a10=1.1470000000000000e-01;
   a05=(a05+a10);
   if (res[0]!=0) res[0][1]=a05;
-  a10=CR(3.3597588100890846e-01);
+  a10=3.3597588100890846e-01;
   if (res[0]!=0) res[0][2]=a10;
   a06=(-a06);
   if (res[0]!=0) res[0][3]=a06;
   if (res[0]!=0) res[0][4]=a05;
-  a05=CR(2.8056167725808847e+00);
+  a05=2.8056167725808847e+00;
   if (res[0]!=0) res[0][5]=a05;
   a05=(a01<=a02);
   a02=(a02<=a01);
   a02=(a05+a02);
   a05=(a05/a02);
   a04=(a04*a05);
-  a02=(CR(2.)*a03);
+  a02=(2.*a03);
   a02=(a02*a05);
   a01=(a03*a02);
   a04=(a04+a01);
@@ -65,7 +84,7 @@ static int parallel_task_realistic_mechanism_desired(const parallel_task_realist
   a06=(a09*a02);
   a04=(a04+a06);
   if (res[1]!=0) res[1][1]=a04;
-  a06=CR(0.);
+  a06=0.;
   if (res[1]!=0) res[1][2]=a06;
   a01=(-a01);
   if (res[1]!=0) res[1][3]=a01;
@@ -73,7 +92,7 @@ static int parallel_task_realistic_mechanism_desired(const parallel_task_realist
   if (res[1]!=0) res[1][5]=a06;
   a04=(a05*a02);
   a02=(a02*a05);
-  a01=(CR(2.)*a05);
+  a01=(2.*a05);
   a05=(a05*a01);
   a03=(a03*a05);
   a02=(a02+a03);
@@ -5716,7 +5735,7 @@ int parallel_task_realistic_init(parallel_task_realistic_state *s, const paralle
   for (i = 0; i < PARALLEL_TASK_REALISTIC_NP; ++i) {
     s->gamma[i] = (parallel_task_realistic_real)c->gamma[i];
     s->p_hat[i] = 1.0 * c->p_hat0[i];
-    if (!(s->p_hat[i] - s->p_hat[i] == 0.0)) return -1;
+    if (!CFINITE(s->p_hat[i])) return -1;
   }
   for (i = 0; i < PARALLEL_TASK_REALISTIC_UNITS; ++i) {
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
@@ -5751,12 +5770,23 @@ void parallel_task_realistic_terminate(parallel_task_realistic_state *s) {
 
 int parallel_task_realistic_desired(double t, parallel_task_realistic_real xd[PARALLEL_TASK_REALISTIC_ND], parallel_task_realistic_real xd_dot[PARALLEL_TASK_REALISTIC_ND],
     parallel_task_realistic_real xd_ddot[PARALLEL_TASK_REALISTIC_ND]) {
-  const parallel_task_realistic_real time = (parallel_task_realistic_real)t;
-  const parallel_task_realistic_real* arg[1];
-  parallel_task_realistic_real* res[3];
-  arg[0] = &time;
-  res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+  /* In double in both builds: a float time staircases (7.8 ms steps from one day on). */
+#ifdef COCHLEA_FLOAT
+  double x[PARALLEL_TASK_REALISTIC_ND], x_dot[PARALLEL_TASK_REALISTIC_ND], x_ddot[PARALLEL_TASK_REALISTIC_ND];
+  int i;
+#else
+  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;
+#endif
+  const double* arg[1];
+  double* res[3];
+  arg[0] = &t;
+  res[0] = x + 0; res[1] = x_dot + 0; res[2] = x_ddot + 0;
   if (parallel_task_realistic_mechanism_desired(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+  for (i = 0; i < PARALLEL_TASK_REALISTIC_ND; ++i) {
+    xd[i] = (parallel_task_realistic_real)x[i]; xd_dot[i] = (parallel_task_realistic_real)x_dot[i]; xd_ddot[i] = (parallel_task_realistic_real)x_ddot[i];
+  }
+#endif
   return 0;
 }
 
@@ -5787,13 +5817,13 @@ int parallel_task_realistic_step(parallel_task_realistic_state *s, double t, con
     norm2 += next[i] * next[i];
   }
   scale[0] = fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
-  /* Every output finite, or nothing changes (p_hat - p_hat is NaN for NaN and inf) */
+  /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < PARALLEL_TASK_REALISTIC_NQ; ++i)
-    if (!(command_out[i] - command_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)command_out[i])) return 1;
   for (i = 0; i < PARALLEL_TASK_REALISTIC_NE; ++i)
-    if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < PARALLEL_TASK_REALISTIC_NP; ++i)
-    if (!(next[i] - next[i] == 0.0)) return 2;
+    if (!CFINITE(next[i])) return 2;
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < PARALLEL_TASK_REALISTIC_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);

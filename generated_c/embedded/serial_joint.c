@@ -4,6 +4,15 @@
 #include "serial_joint.h"
 #include <float.h>
 #include <math.h>
+#include <stdint.h>
+
+/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let the
+ * compiler delete those checks, and a NaN command would reach the motors. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it (-O2 is enough)"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it"
+#endif
 
 #ifdef COCHLEA_FLOAT
 #define CR(x) x##f             /* a literal in the working precision */
@@ -15,82 +24,92 @@
 #define CTINY(x) x
 #endif
 
+/* 1 if x is neither NaN nor infinite, decided on its IEEE 754 bits (a float converts to
+ * double exactly, NaN and infinities included). */
+static int CFINITE(double x) {
+  union { double d; uint64_t u; } bits;
+  bits.d = x;
+  return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
+}
+
 static serial_joint_real CSQ(serial_joint_real x) { return x * x; }
 
+static double CSQD(double x) { return x * x; }
+
 /* arm1: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
-static int serial_joint_arm1_desired(const serial_joint_real** arg, serial_joint_real** res) {
-  serial_joint_real a0, a1, a2, a3, a4;
-  a0=CR(1.7453292519943295e-02);
-  a1=CR(8.1140000000000001e+01);
-  a2=CR(3.0070000000000001e+00);
-  a3=CR(6.3200000000000001e-01);
+static int serial_joint_arm1_desired(const double** arg, double** res) {
+  double a0, a1, a2, a3, a4;
+  a0=1.7453292519943295e-02;
+  a1=8.1140000000000001e+01;
+  a2=3.0070000000000001e+00;
+  a3=6.3200000000000001e-01;
   a4=arg[0]? arg[0][0] : 0;
   a3=(a3*a4);
-  a4=CM(cos)(a3);
+  a4=cos(a3);
   a2=(a2*a4);
   a1=(a1-a2);
-  a2=CR(1.2900000000000000e-01);
-  a3=CM(sin)(a3);
+  a2=1.2900000000000000e-01;
+  a3=sin(a3);
   a2=(a2*a3);
   a1=(a1-a2);
   a1=(a0*a1);
   if (res[0]!=0) res[0][0]=a1;
-  a1=CR(7.1019999999999996e+01);
-  a2=CR(7.0819999999999999e+00);
+  a1=7.1019999999999996e+01;
+  a2=7.0819999999999999e+00;
   a2=(a2*a4);
   a1=(a1-a2);
-  a2=CR(9.5659999999999995e-02);
+  a2=9.5659999999999995e-02;
   a2=(a2*a3);
   a1=(a1+a2);
   a1=(a0*a1);
   if (res[0]!=0) res[0][1]=a1;
-  a1=CR(1.1780000000000000e+02);
-  a2=CR(4.0739999999999998e+00);
+  a1=1.1780000000000000e+02;
+  a2=4.0739999999999998e+00;
   a2=(a2*a4);
   a1=(a1-a2);
-  a2=CR(3.0050000000000000e-02);
+  a2=3.0050000000000000e-02;
   a2=(a2*a3);
   a1=(a1+a2);
   a1=(a0*a1);
   if (res[0]!=0) res[0][2]=a1;
-  a1=CR(1.9004240000000001e+00);
+  a1=1.9004240000000001e+00;
   a1=(a1*a3);
-  a2=CR(8.1528000000000003e-02);
+  a2=8.1528000000000003e-02;
   a2=(a2*a4);
   a1=(a1-a2);
   a1=(a0*a1);
   if (res[1]!=0) res[1][0]=a1;
-  a1=CR(4.4758240000000002e+00);
+  a1=4.4758240000000002e+00;
   a1=(a1*a3);
-  a2=CR(6.0457119999999996e-02);
+  a2=6.0457119999999996e-02;
   a2=(a2*a4);
   a1=(a1+a2);
   a1=(a0*a1);
   if (res[1]!=0) res[1][1]=a1;
-  a1=CR(2.5747679999999997e+00);
+  a1=2.5747679999999997e+00;
   a1=(a1*a3);
-  a2=CR(1.8991600000000001e-02);
+  a2=1.8991600000000001e-02;
   a2=(a2*a4);
   a1=(a1+a2);
   a1=(a0*a1);
   if (res[1]!=0) res[1][2]=a1;
-  a1=CR(1.2010679680000000e+00);
+  a1=1.2010679680000000e+00;
   a1=(a1*a4);
-  a2=CR(5.1525696000000003e-02);
+  a2=5.1525696000000003e-02;
   a2=(a2*a3);
   a1=(a1+a2);
   a1=(a0*a1);
   if (res[2]!=0) res[2][0]=a1;
-  a1=CR(2.8287207680000002e+00);
+  a1=2.8287207680000002e+00;
   a1=(a1*a4);
-  a2=CR(3.8208899839999998e-02);
+  a2=3.8208899839999998e-02;
   a2=(a2*a3);
   a1=(a1-a2);
   a1=(a0*a1);
   if (res[2]!=0) res[2][1]=a1;
-  a1=CR(1.6272533759999999e+00);
+  a1=1.6272533759999999e+00;
   a1=(a1*a4);
-  a4=CR(1.2002691200000000e-02);
+  a4=1.2002691200000000e-02;
   a4=(a4*a3);
   a1=(a1-a4);
   a0=(a0*a1);
@@ -634,85 +653,85 @@ static int serial_joint_arm1_fk(const serial_joint_real** arg, serial_joint_real
 }
 
 /* arm2: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
-static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint_real** res) {
-  serial_joint_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
-  serial_joint_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
-  serial_joint_real a24, a25, a26, a27, a28, a29, a30, a31, a32, a33, a34, a35;
-  serial_joint_real a36, a37, a38, a39, a40, a41, a42, a43, a44, a45, a46, a47;
-  serial_joint_real a48, a49, a50, a51, a52, a53, a54, a55, a56, a57, a58, a59;
-  serial_joint_real a60, a61, a62, a63, a64, a65, a66;
-  a00=-CR(1.2800000000000000e-01);
-  a01=CR(1.0500000000000000e-01);
-  a02=CR(1.7453292519943295e-02);
-  a03=CR(8.1140000000000001e+01);
-  a04=CR(3.0070000000000001e+00);
-  a05=CR(6.3200000000000001e-01);
+static int serial_joint_arm2_desired(const double** arg, double** res) {
+  double a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
+  double a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
+  double a24, a25, a26, a27, a28, a29, a30, a31, a32, a33, a34, a35;
+  double a36, a37, a38, a39, a40, a41, a42, a43, a44, a45, a46, a47;
+  double a48, a49, a50, a51, a52, a53, a54, a55, a56, a57, a58, a59;
+  double a60, a61, a62, a63, a64, a65, a66;
+  a00=-1.2800000000000000e-01;
+  a01=1.0500000000000000e-01;
+  a02=1.7453292519943295e-02;
+  a03=8.1140000000000001e+01;
+  a04=3.0070000000000001e+00;
+  a05=6.3200000000000001e-01;
   a06=arg[0]? arg[0][0] : 0;
   a05=(a05*a06);
-  a06=CM(cos)(a05);
+  a06=cos(a05);
   a04=(a04*a06);
   a03=(a03-a04);
-  a04=CR(1.2900000000000000e-01);
-  a05=CM(sin)(a05);
+  a04=1.2900000000000000e-01;
+  a05=sin(a05);
   a04=(a04*a05);
   a03=(a03-a04);
   a03=(a02*a03);
-  a04=CM(sin)(a03);
+  a04=sin(a03);
   a07=(a01*a04);
-  a08=CR(1.);
-  a09=CR(7.1019999999999996e+01);
-  a10=CR(7.0819999999999999e+00);
+  a08=1.;
+  a09=7.1019999999999996e+01;
+  a10=7.0819999999999999e+00;
   a10=(a10*a06);
   a09=(a09-a10);
-  a10=CR(9.5659999999999995e-02);
+  a10=9.5659999999999995e-02;
   a10=(a10*a05);
   a09=(a09+a10);
   a09=(a02*a09);
-  a10=CM(cos)(a09);
+  a10=cos(a09);
   a11=(a08-a10);
   a11=(a08-a11);
   a12=(a04*a11);
-  a13=CM(cos)(a03);
+  a13=cos(a03);
   a14=(a08-a13);
   a14=(a08-a14);
-  a15=CM(sin)(a09);
+  a15=sin(a09);
   a16=(a14*a15);
   a17=(a12+a16);
   a18=(a01*a17);
   a07=(a07+a18);
-  a18=CR(4.0000000000000001e-02);
-  a19=CR(1.1780000000000000e+02);
-  a20=CR(4.0739999999999998e+00);
+  a18=4.0000000000000001e-02;
+  a19=1.1780000000000000e+02;
+  a20=4.0739999999999998e+00;
   a20=(a20*a06);
   a19=(a19-a20);
-  a20=CR(3.0050000000000000e-02);
+  a20=3.0050000000000000e-02;
   a20=(a20*a05);
   a19=(a19+a20);
   a19=(a02*a19);
-  a20=CM(cos)(a19);
+  a20=cos(a19);
   a21=(a08-a20);
   a21=(a08-a21);
   a22=(a17*a21);
   a23=(a14*a11);
   a24=(a04*a15);
   a23=(a23-a24);
-  a24=CM(sin)(a19);
+  a24=sin(a19);
   a25=(a23*a24);
   a22=(a22+a25);
   a22=(a18*a22);
   a07=(a07+a22);
   a00=(a00+a07);
-  a07=-CR(1.0500000000000000e-01);
+  a07=-1.0500000000000000e-01;
   a00=(a00+a07);
   a03=(a03+a09);
   a03=(a03+a19);
-  a19=CR(3.1415926535897931e+00);
+  a19=3.1415926535897931e+00;
   a03=(a03+a19);
-  a19=CM(sin)(a03);
+  a19=sin(a03);
   a09=(a18*a19);
   a00=(a00+a09);
   a09=(-a00);
-  a22=CR(1.0100000000000001e-01);
+  a22=1.0100000000000001e-01;
   a25=(a01*a14);
   a26=(a01*a23);
   a25=(a25+a26);
@@ -724,49 +743,49 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a25=(a25+a26);
   a22=(a22+a25);
   a22=(a22+a07);
-  a07=CM(cos)(a03);
+  a07=cos(a03);
   a25=(a18*a07);
   a22=(a22+a25);
   a25=(-a22);
-  a09=CM(atan2)(a09,a25);
-  a25=CSQ(a22);
-  a26=CSQ(a00);
+  a09=atan2(a09,a25);
+  a25=CSQD(a22);
+  a26=CSQD(a00);
   a12=(a25+a26);
-  a27=CR(1.1024999999999998e-02);
+  a27=1.1024999999999998e-02;
   a12=(a12-a27);
   a12=(a12-a27);
-  a27=CR(2.2049999999999997e-02);
+  a27=2.2049999999999997e-02;
   a12=(a12/a27);
-  a27=CM(acos)(a12);
+  a27=acos(a12);
   a28=(-a27);
-  a29=CM(sin)(a28);
+  a29=sin(a28);
   a30=(a01*a29);
-  a31=CM(cos)(a27);
+  a31=cos(a27);
   a32=(a01*a31);
   a32=(a01+a32);
-  a33=CM(atan2)(a30,a32);
+  a33=atan2(a30,a32);
   a09=(a09-a33);
   if (res[0]!=0) res[0][0]=a09;
   if (res[0]!=0) res[0][1]=a28;
   a03=(a03-a09);
   a03=(a03+a27);
-  a09=-CR(6.2831853071795862e+00);
+  a09=-6.2831853071795862e+00;
   a03=(a03+a09);
   if (res[0]!=0) res[0][2]=a03;
   a26=(a26+a25);
   a25=(a22/a26);
-  a03=CR(1.9004240000000001e+00);
+  a03=1.9004240000000001e+00;
   a03=(a03*a05);
-  a09=CR(8.1528000000000003e-02);
+  a09=8.1528000000000003e-02;
   a09=(a09*a06);
   a03=(a03-a09);
   a03=(a02*a03);
   a09=(a13*a03);
   a28=(a01*a09);
   a33=(a11*a09);
-  a34=CR(4.4758240000000002e+00);
+  a34=4.4758240000000002e+00;
   a34=(a34*a05);
-  a35=CR(6.0457119999999996e-02);
+  a35=6.0457119999999996e-02;
   a35=(a35*a06);
   a34=(a34+a35);
   a34=(a02*a34);
@@ -782,9 +801,9 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a40=(a01*a39);
   a28=(a28+a40);
   a40=(a21*a39);
-  a41=CR(2.5747679999999997e+00);
+  a41=2.5747679999999997e+00;
   a41=(a41*a05);
-  a42=CR(1.8991600000000001e-02);
+  a42=1.8991600000000001e-02;
   a42=(a42*a06);
   a41=(a41+a42);
   a41=(a02*a41);
@@ -830,20 +849,20 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a48=(a48+a33);
   a33=(a47*a48);
   a46=(a46+a33);
-  a33=CSQ(a30);
-  a50=CSQ(a32);
+  a33=CSQD(a30);
+  a50=CSQD(a32);
   a33=(a33+a50);
   a30=(a30/a33);
-  a27=CM(sin)(a27);
-  a50=-CR(1.);
-  a51=CSQ(a12);
+  a27=sin(a27);
+  a50=-1.;
+  a51=CSQD(a12);
   a08=(a08-a51);
-  a08=CM(sqrt)(a08);
+  a08=sqrt(a08);
   a50=(a50/a08);
-  a51=CR(4.5351473922902500e+01);
-  a00=(CR(2.)*a00);
+  a51=4.5351473922902500e+01;
+  a00=(2.*a00);
   a52=(a00*a28);
-  a22=(CR(2.)*a22);
+  a22=(2.*a22);
   a53=(a22*a48);
   a52=(a52-a53);
   a53=(a51*a52);
@@ -863,9 +882,9 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a46=(a40-a46);
   a46=(a46+a54);
   if (res[1]!=0) res[1][2]=a46;
-  a46=CR(1.2010679680000000e+00);
+  a46=1.2010679680000000e+00;
   a46=(a46*a06);
-  a57=CR(5.1525696000000003e-02);
+  a57=5.1525696000000003e-02;
   a57=(a57*a05);
   a46=(a46+a57);
   a46=(a02*a46);
@@ -878,9 +897,9 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a61=(a61-a62);
   a62=(a35*a09);
   a63=(a34*a36);
-  a64=CR(2.8287207680000002e+00);
+  a64=2.8287207680000002e+00;
   a64=(a64*a06);
-  a65=CR(3.8208899839999998e-02);
+  a65=3.8208899839999998e-02;
   a65=(a65*a05);
   a64=(a64-a65);
   a64=(a02*a64);
@@ -910,9 +929,9 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a62=(a62-a65);
   a39=(a42*a39);
   a65=(a41*a43);
-  a66=CR(1.6272533759999999e+00);
+  a66=1.6272533759999999e+00;
   a66=(a66*a06);
-  a06=CR(1.2002691200000000e-02);
+  a06=1.2002691200000000e-02;
   a06=(a06*a05);
   a66=(a66-a06);
   a02=(a02*a66);
@@ -998,10 +1017,10 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a49=(a49+a47);
   a07=(a07+a49);
   a49=(a30/a33);
-  a47=CR(2.0999999999999999e-01);
+  a47=2.0999999999999999e-01;
   a47=(a47*a29);
   a47=(a47*a60);
-  a32=(CR(2.)*a32);
+  a32=(2.*a32);
   a32=(a32*a56);
   a47=(a47+a32);
   a49=(a49*a47);
@@ -1010,18 +1029,18 @@ static int serial_joint_arm2_desired(const serial_joint_real** arg, serial_joint
   a49=(a56*a49);
   a59=(a54*a59);
   a32=(a50/a08);
-  a12=(CR(2.)*a12);
+  a12=(2.*a12);
   a12=(a12*a53);
-  a08=(CR(2.)*a08);
+  a08=(2.*a08);
   a12=(a12/a08);
   a32=(a32*a12);
   a53=(a53*a32);
-  a32=(CR(2.)*a28);
+  a32=(2.*a28);
   a28=(a28*a32);
   a00=(a00*a57);
   a28=(a28+a00);
   a00=(-a48);
-  a00=(CR(2.)*a00);
+  a00=(2.*a00);
   a48=(a48*a00);
   a22=(a22*a03);
   a48=(a48+a22);
@@ -1689,7 +1708,7 @@ int serial_joint_init(serial_joint_state *s, const serial_joint_config *c) {
   for (i = 0; i < SERIAL_JOINT_NP; ++i) {
     s->gamma[i] = (serial_joint_real)c->gamma[i];
     s->p_hat[i] = 1.0 * c->p_hat0[i];
-    if (!(s->p_hat[i] - s->p_hat[i] == 0.0)) return -1;
+    if (!CFINITE(s->p_hat[i])) return -1;
   }
   for (i = 0; i < SERIAL_JOINT_UNITS; ++i) {
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
@@ -1724,14 +1743,25 @@ void serial_joint_terminate(serial_joint_state *s) {
 
 int serial_joint_desired(double t, serial_joint_real xd[SERIAL_JOINT_ND], serial_joint_real xd_dot[SERIAL_JOINT_ND],
     serial_joint_real xd_ddot[SERIAL_JOINT_ND]) {
-  const serial_joint_real time = (serial_joint_real)t;
-  const serial_joint_real* arg[1];
-  serial_joint_real* res[3];
-  arg[0] = &time;
-  res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+  /* In double in both builds: a float time staircases (7.8 ms steps from one day on). */
+#ifdef COCHLEA_FLOAT
+  double x[SERIAL_JOINT_ND], x_dot[SERIAL_JOINT_ND], x_ddot[SERIAL_JOINT_ND];
+  int i;
+#else
+  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;
+#endif
+  const double* arg[1];
+  double* res[3];
+  arg[0] = &t;
+  res[0] = x + 0; res[1] = x_dot + 0; res[2] = x_ddot + 0;
   if (serial_joint_arm1_desired(arg, res)) return -1;
-  res[0] = xd + 3; res[1] = xd_dot + 3; res[2] = xd_ddot + 3;
+  res[0] = x + 3; res[1] = x_dot + 3; res[2] = x_ddot + 3;
   if (serial_joint_arm2_desired(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+  for (i = 0; i < SERIAL_JOINT_ND; ++i) {
+    xd[i] = (serial_joint_real)x[i]; xd_dot[i] = (serial_joint_real)x_dot[i]; xd_ddot[i] = (serial_joint_real)x_ddot[i];
+  }
+#endif
   return 0;
 }
 
@@ -1778,13 +1808,13 @@ int serial_joint_step(serial_joint_state *s, double t, const serial_joint_real m
     norm2 += next[i] * next[i];
   }
   scale[1] = fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
-  /* Every output finite, or nothing changes (p_hat - p_hat is NaN for NaN and inf) */
+  /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < SERIAL_JOINT_NQ; ++i)
-    if (!(command_out[i] - command_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)command_out[i])) return 1;
   for (i = 0; i < SERIAL_JOINT_NE; ++i)
-    if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < SERIAL_JOINT_NP; ++i)
-    if (!(next[i] - next[i] == 0.0)) return 2;
+    if (!CFINITE(next[i])) return 2;
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < SERIAL_JOINT_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);

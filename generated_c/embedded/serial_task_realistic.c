@@ -4,6 +4,15 @@
 #include "serial_task_realistic.h"
 #include <float.h>
 #include <math.h>
+#include <stdint.h>
+
+/* The step refuses a NaN or infinite output; -ffast-math or -ffinite-math-only would let the
+ * compiler delete those checks, and a NaN command would reach the motors. */
+#if defined(__FAST_MATH__)
+#error "cochlea: do not build with -ffast-math: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it (-O2 is enough)"
+#elif defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+#error "cochlea: do not build with -ffinite-math-only: it lets the compiler delete the controller's NaN and infinity checks (a NaN command would reach the motors); build without it"
+#endif
 
 #ifdef COCHLEA_FLOAT
 #define CR(x) x##f             /* a literal in the working precision */
@@ -15,35 +24,43 @@
 #define CTINY(x) x
 #endif
 
+/* 1 if x is neither NaN nor infinite, decided on its IEEE 754 bits (a float converts to
+ * double exactly, NaN and infinities included). */
+static int CFINITE(double x) {
+  union { double d; uint64_t u; } bits;
+  bits.d = x;
+  return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
+}
+
 static serial_task_realistic_real CSQ(serial_task_realistic_real x) { return x * x; }
 
 /* arm1: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
-static int serial_task_realistic_arm1_desired(const serial_task_realistic_real** arg, serial_task_realistic_real** res) {
-  serial_task_realistic_real a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
-  a0=CR(2.9999999999999999e-02);
-  a1=CR(2.6250000000000001e-01);
-  a2=CR(2.5869999999999999e-01);
-  a3=CR(6.2849999999999995e-01);
+static int serial_task_realistic_arm1_desired(const double** arg, double** res) {
+  double a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
+  a0=2.9999999999999999e-02;
+  a1=2.6250000000000001e-01;
+  a2=2.5869999999999999e-01;
+  a3=6.2849999999999995e-01;
   a4=arg[0]? arg[0][0] : 0;
   a3=(a3*a4);
-  a4=CM(cos)(a3);
+  a4=cos(a3);
   a2=(a2*a4);
   a1=(a1-a2);
-  a2=CR(2.3000000000000001e-04);
-  a3=CM(sin)(a3);
+  a2=2.3000000000000001e-04;
+  a3=sin(a3);
   a2=(a2*a3);
   a1=(a1-a2);
-  a2=CM(cos)(a1);
+  a2=cos(a1);
   a5=(a0*a2);
   if (res[0]!=0) res[0][0]=a5;
-  a1=CM(sin)(a1);
+  a1=sin(a1);
   a5=(a0*a1);
   if (res[0]!=0) res[0][1]=a5;
-  a5=-CR(1.5707963267948966e+00);
+  a5=-1.5707963267948966e+00;
   if (res[0]!=0) res[0][2]=a5;
-  a5=CR(1.6259294999999999e-01);
+  a5=1.6259294999999999e-01;
   a5=(a5*a3);
-  a6=CR(1.4455499999999999e-04);
+  a6=1.4455499999999999e-04;
   a6=(a6*a4);
   a5=(a5-a6);
   a6=(a1*a5);
@@ -53,12 +70,12 @@ static int serial_task_realistic_arm1_desired(const serial_task_realistic_real**
   a7=(a2*a5);
   a8=(a0*a7);
   if (res[1]!=0) res[1][1]=a8;
-  a8=CR(0.);
+  a8=0.;
   if (res[1]!=0) res[1][2]=a8;
   a7=(a5*a7);
-  a9=CR(1.0218966907499999e-01);
+  a9=1.0218966907499999e-01;
   a9=(a9*a4);
-  a4=CR(9.0852817499999990e-05);
+  a4=9.0852817499999990e-05;
   a4=(a4*a3);
   a9=(a9+a4);
   a1=(a1*a9);
@@ -1474,34 +1491,34 @@ static int serial_task_realistic_arm1_fk(const serial_task_realistic_real** arg,
 }
 
 /* arm2: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
-static int serial_task_realistic_arm2_desired(const serial_task_realistic_real** arg, serial_task_realistic_real** res) {
-  serial_task_realistic_real a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
-  a0=CR(2.9999999999999999e-02);
-  a1=CR(2.6250000000000001e-01);
-  a2=CR(2.5869999999999999e-01);
-  a3=CR(6.2849999999999995e-01);
+static int serial_task_realistic_arm2_desired(const double** arg, double** res) {
+  double a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
+  a0=2.9999999999999999e-02;
+  a1=2.6250000000000001e-01;
+  a2=2.5869999999999999e-01;
+  a3=6.2849999999999995e-01;
   a4=arg[0]? arg[0][0] : 0;
   a3=(a3*a4);
-  a4=CM(cos)(a3);
+  a4=cos(a3);
   a2=(a2*a4);
   a1=(a1-a2);
-  a2=CR(2.3000000000000001e-04);
-  a3=CM(sin)(a3);
+  a2=2.3000000000000001e-04;
+  a3=sin(a3);
   a2=(a2*a3);
   a1=(a1-a2);
-  a2=CM(cos)(a1);
+  a2=cos(a1);
   a5=(a0*a2);
   a5=(-a5);
   if (res[0]!=0) res[0][0]=a5;
-  a1=CM(sin)(a1);
+  a1=sin(a1);
   a5=(a0*a1);
   a5=(-a5);
   if (res[0]!=0) res[0][1]=a5;
-  a5=CR(1.5707963267948966e+00);
+  a5=1.5707963267948966e+00;
   if (res[0]!=0) res[0][2]=a5;
-  a5=CR(1.6259294999999999e-01);
+  a5=1.6259294999999999e-01;
   a5=(a5*a3);
-  a6=CR(1.4455499999999999e-04);
+  a6=1.4455499999999999e-04;
   a6=(a6*a4);
   a5=(a5-a6);
   a6=(a1*a5);
@@ -1511,12 +1528,12 @@ static int serial_task_realistic_arm2_desired(const serial_task_realistic_real**
   a8=(a0*a7);
   a8=(-a8);
   if (res[1]!=0) res[1][1]=a8;
-  a8=CR(0.);
+  a8=0.;
   if (res[1]!=0) res[1][2]=a8;
   a7=(a5*a7);
-  a9=CR(1.0218966907499999e-01);
+  a9=1.0218966907499999e-01;
   a9=(a9*a4);
-  a4=CR(9.0852817499999990e-05);
+  a4=9.0852817499999990e-05;
   a4=(a4*a3);
   a9=(a9+a4);
   a1=(a1*a9);
@@ -3100,7 +3117,7 @@ int serial_task_realistic_init(serial_task_realistic_state *s, const serial_task
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i) {
     s->gamma[i] = (serial_task_realistic_real)c->gamma[i];
     s->p_hat[i] = 1.0 * c->p_hat0[i];
-    if (!(s->p_hat[i] - s->p_hat[i] == 0.0)) return -1;
+    if (!CFINITE(s->p_hat[i])) return -1;
   }
   for (i = 0; i < SERIAL_TASK_REALISTIC_UNITS; ++i) {
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
@@ -3135,14 +3152,25 @@ void serial_task_realistic_terminate(serial_task_realistic_state *s) {
 
 int serial_task_realistic_desired(double t, serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND], serial_task_realistic_real xd_dot[SERIAL_TASK_REALISTIC_ND],
     serial_task_realistic_real xd_ddot[SERIAL_TASK_REALISTIC_ND]) {
-  const serial_task_realistic_real time = (serial_task_realistic_real)t;
-  const serial_task_realistic_real* arg[1];
-  serial_task_realistic_real* res[3];
-  arg[0] = &time;
-  res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+  /* In double in both builds: a float time staircases (7.8 ms steps from one day on). */
+#ifdef COCHLEA_FLOAT
+  double x[SERIAL_TASK_REALISTIC_ND], x_dot[SERIAL_TASK_REALISTIC_ND], x_ddot[SERIAL_TASK_REALISTIC_ND];
+  int i;
+#else
+  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;
+#endif
+  const double* arg[1];
+  double* res[3];
+  arg[0] = &t;
+  res[0] = x + 0; res[1] = x_dot + 0; res[2] = x_ddot + 0;
   if (serial_task_realistic_arm1_desired(arg, res)) return -1;
-  res[0] = xd + 3; res[1] = xd_dot + 3; res[2] = xd_ddot + 3;
+  res[0] = x + 3; res[1] = x_dot + 3; res[2] = x_ddot + 3;
   if (serial_task_realistic_arm2_desired(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+  for (i = 0; i < SERIAL_TASK_REALISTIC_ND; ++i) {
+    xd[i] = (serial_task_realistic_real)x[i]; xd_dot[i] = (serial_task_realistic_real)x_dot[i]; xd_ddot[i] = (serial_task_realistic_real)x_ddot[i];
+  }
+#endif
   return 0;
 }
 
@@ -3189,13 +3217,13 @@ int serial_task_realistic_step(serial_task_realistic_state *s, double t, const s
     norm2 += next[i] * next[i];
   }
   scale[1] = fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
-  /* Every output finite, or nothing changes (p_hat - p_hat is NaN for NaN and inf) */
+  /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i)
-    if (!(command_out[i] - command_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)command_out[i])) return 1;
   for (i = 0; i < SERIAL_TASK_REALISTIC_NE; ++i)
-    if (!(errors_out[i] - errors_out[i] == CR(0.))) return 1;
+    if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i)
-    if (!(next[i] - next[i] == 0.0)) return 2;
+    if (!CFINITE(next[i])) return 2;
   /* the supervisor's clip: |command| <= effort limit */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i)
     command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
