@@ -40,8 +40,10 @@ COMPLETED, POSITION_LIMIT = 1, 3
 
 def qemu_command(machine: str, elf: Path, out: Path) -> list[str]:
     """The emulator's command line: no display, no monitor, no UART; the semihosting console
-    (SYS_WRITE0) into ``out``, the firmware's SYS_EXIT status as QEMU's exit status."""
+    (SYS_WRITE0) into ``out``, the firmware's SYS_EXIT status as QEMU's exit status; one
+    nanosecond of virtual time per instruction (-icount shift=0: the C line counts them)."""
     return ["qemu-system-arm", "-M", f"mps2-{machine}", "-cpu", MACHINES[machine],
+            "-icount", "shift=0",
             "-nographic", "-monitor", "none", "-serial", "none",
             "-chardev", f"file,id=semihost,path={out}",
             "-semihosting-config", "enable=on,target=native,chardev=semihost",
@@ -90,6 +92,8 @@ def parse(text: str) -> dict:
             out["goal"].append([int16(h) for h in fields[1 + nq:]])
         elif kind == "P":
             out["p_hat"] = np.array([real(h) for h in fields])
+        elif kind == "C":
+            out["ticks"] = tuple(int(h, 16) for h in fields)
         elif kind == "E":
             out["end"] = (int(fields[0], 16), int(fields[1], 16))
         else:
@@ -148,6 +152,10 @@ def test_firmware_on_cortex_m_matches_the_host(firmware, scenario, machine, prec
         assert np.abs(got["goal"] - want["goal"]).max() <= 1  # one LSB of rounding at most
     # The goal currents move: the comparison is not of a run of zeros.
     assert len(np.unique(want["goal"])) > 3
+    # The instruction count: the calibration and the periods counted (the host has no count).
+    assert want["ticks"] == (0, 0, 0, 0)
+    calibration, instructions, ticks, longest = got["ticks"]
+    assert calibration > 0 and instructions == 2 << 20 and 0 < longest <= ticks
 
 
 @pytest.mark.slow

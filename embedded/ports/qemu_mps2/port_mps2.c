@@ -4,6 +4,7 @@
  * (the extended form, with the status) at the end. Run it with
  *   qemu-system-arm -M mps2-an386 -cpu cortex-m4 -nographic -monitor none -serial none \
  *       -semihosting-config enable=on,target=native -kernel replay.elf
+ * Add -icount shift=0 for an instruction count (replay.c's C line).
  * A fault prints one line ("F <vector>") and exits with status 3. */
 #include <stdint.h>
 
@@ -42,6 +43,33 @@ void port_exit(int status)
     }
 }
 
+/* ---- ticks: SysTick on the processor clock -------------------------------------------- */
+
+#define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
+#define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
+#define SYST_CVR (*(volatile uint32_t *)0xE000E018u)
+
+static void ticks_start(void)
+{
+    SYST_RVR = 0xffffffu;
+    SYST_CVR = 0;
+    SYST_CSR = 5u; /* enabled, the processor clock, no interrupt */
+}
+
+uint32_t port_ticks(void)
+{
+    return (0u - SYST_CVR) & 0xffffffu; /* SysTick counts down */
+}
+
+/* 2 n instructions (subs, bne) and the counter's reads around them. */
+uint32_t port_calibrate(uint32_t *instructions)
+{
+    uint32_t n = 1u << 20, start = port_ticks();
+    __asm__ volatile("1: subs %0, %0, #1\n\tbne 1b" : "+r"(n) : : "cc");
+    *instructions = 2u << 20;
+    return (port_ticks() - start) & 0xffffffu;
+}
+
 /* ---- startup ---------------------------------------------------------------------------- */
 
 extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack;
@@ -69,6 +97,7 @@ void Reset_Handler(void)
     for (i = 0; i < n; ++i) {
         __init_array_start[i]();
     }
+    ticks_start();
     port_exit(replay_main());
 }
 

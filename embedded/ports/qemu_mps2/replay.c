@@ -14,6 +14,12 @@
  *   R <k> <tau[0..nq) as the 16 hex digits of each IEEE double (N m, N)> <goal current[0..nq)
  *     as the 4 hex digits of each int16 (the drive's LSB)>
  *   P <the final estimate p_hat[0..np) as 16 hex digits each>
+ *   C <calibration ticks> <calibration instructions> <ticks of all periods> <ticks of the
+ *     longest period>: the port's tick counter (port_ticks) from each period's read to its
+ *     write (the supervisor, the controller, the clip: not the printing). On the mps2 port
+ *     under `qemu-system-arm -icount shift=0` a tick is a fixed number of instructions, which
+ *     the calibration (a loop of known length) measures: instructions per period =
+ *     ticks / periods * calibration instructions / calibration ticks. The host port: zeros.
  *   E <rule (enum cochlea_rule)> <rows>
  * then the port ends with status 0 when the loop ran every period (rule "completed"), 1 when
  * a rule stopped it, 2 when the loop refused its configuration.
@@ -40,9 +46,16 @@ extern const cochlea_scenario REPLAY_SC;
 /* The port: print one line (no newline in it) and end the program with a status. */
 void port_line(const char *text);
 void port_exit(int status);
+/* A free-running 24-bit tick counter, counting up (0 where the port has none), and the ticks
+ * of a loop of *instructions instructions (the port sets it). */
+uint32_t port_ticks(void);
+uint32_t port_calibrate(uint32_t *instructions);
 
 typedef struct {
     long k;                          /* the period the next read measures */
+    uint32_t read_tick;              /* port_ticks() at the period's read */
+    uint64_t ticks;                  /* the periods' ticks, read to write, added up */
+    uint32_t longest;                /* the longest period's */
     const cochlea_scenario *sc;
     char line[1024]; /* the longest: P and 17 characters per parameter */
 } replay;
@@ -86,6 +99,7 @@ static int replay_read(void *ctx, double *q, double *qd)
     replay *r = (replay *)ctx;
     int j;
     long k = r->k < INPUT_STEPS ? r->k : INPUT_STEPS - 1;
+    r->read_tick = port_ticks();
     for (j = 0; j < INPUT_NQ; ++j) {
         q[j] = input_q[k][j];
         qd[j] = input_qd[k][j];
@@ -98,6 +112,9 @@ static int replay_write(void *ctx, const double *tau)
     replay *r = (replay *)ctx;
     char *at = r->line;
     int j, n = r->sc->nq;
+    uint32_t ticks = (port_ticks() - r->read_tick) & 0xffffffu;
+    r->ticks += ticks;
+    r->longest = ticks > r->longest ? ticks : r->longest;
     at = put_str(at, "R");
     at = put_hex(at, (uint64_t)r->k, 4);
     for (j = 0; j < n; ++j) {
@@ -127,7 +144,10 @@ int replay_main(void)
     char *at;
     const double *p;
     int j, rule;
+    uint32_t calibration_instructions = 0, calibration_ticks;
     r->k = 0;
+    r->ticks = 0;
+    r->longest = 0;
     r->sc = sc;
     if (sc->nq != INPUT_NQ || sc->state_size > sizeof controller || sc->np > 56) {
         port_line("E inputs or state do not fit the scenario");
@@ -144,6 +164,7 @@ int replay_main(void)
     at = put_hex(at, (uint64_t)INPUT_STEPS, 4);
     *at = '\0';
     port_line(r->line);
+    calibration_ticks = port_calibrate(&calibration_instructions);
     /* Back to back (not real time), no clock: the timing columns are 0. */
     if (cochlea_loop_init(&the_loop, sc, 0, &backend, controller, sc->period_s,
                           INPUT_STEPS * sc->period_s, 10, 3, 0) != COCHLEA_LOOP_OK) {
@@ -156,6 +177,13 @@ int replay_main(void)
     for (j = 0; j < sc->np; ++j) {
         at = put_hex(at, bits(p[j]), 16);
     }
+    *at = '\0';
+    port_line(r->line);
+    at = put_str(r->line, "C");
+    at = put_hex(at, calibration_ticks, 8);
+    at = put_hex(at, calibration_instructions, 8);
+    at = put_hex(at, r->ticks, 16);
+    at = put_hex(at, r->longest, 8);
     *at = '\0';
     port_line(r->line);
     at = put_str(r->line, "E");
