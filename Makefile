@@ -120,3 +120,51 @@ realtime-check: $(STAMP) lib
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
+
+# The controller on emulated Cortex-M cores (docs/embedded.md, "Cortex-M under QEMU"): the
+# replay firmware of embedded/ports/qemu_mps2/ (the period loop of a scenario on canned
+# measurements, each period's command and goal currents printed in hex) for QEMU's mps2-an386
+# (Cortex-M4F) and mps2-an500 (Cortex-M7), in double and in float, and the same replay built
+# for the host to compare with: build/qemu/<an386|an500|host>-<double|float>/<scenario>[.elf].
+# embedded/ports/ensure_tools.sh installs arm-none-eabi-gcc, newlib and qemu-system-arm when
+# they are missing (as root, with apt). QEMU_INPUTS: the folder of the inputs_<scenario>.h
+# headers (the canned measurements; record_inputs.py). tests/test_embedded_qemu.py runs them.
+QEMU_DIR       := embedded/ports/qemu_mps2
+QEMU_SCENARIOS ?= serial_task parallel_task_realistic
+QEMU_INPUTS    ?= $(QEMU_DIR)
+ARM_CC         ?= arm-none-eabi-gcc
+HOST_CC        ?= cc
+QEMU_CFLAGS    := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -Iembedded/core \
+                  -I$(GEN)/embedded -I$(QEMU_INPUTS) -I$(QEMU_DIR)
+QEMU_CPU_an386 := -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16
+QEMU_CPU_an500 := -mcpu=cortex-m7 -mthumb -mfloat-abi=hard -mfpu=fpv5-d16
+QEMU_LDFLAGS   := -T $(QEMU_DIR)/mps2.ld -nostartfiles --specs=nano.specs --specs=nosys.specs \
+                  -Wl,--gc-sections
+QEMU_PREC_double :=
+QEMU_PREC_float  := -DCOCHLEA_FLOAT
+QEMU_CORE      := $(sort $(wildcard embedded/core/*.c))
+QEMU_DEPS       = $(QEMU_CORE) $(wildcard embedded/core/*.h $(QEMU_DIR)/*.c $(QEMU_DIR)/*.h) \
+                  $(QEMU_DIR)/mps2.ld $(GEN)/embedded/$(1).c $(GEN)/embedded/$(1).h \
+                  $(GEN)/embedded/$(1)_scenario.c $(QEMU_INPUTS)/inputs_$(1).h
+QEMU_SOURCES    = $(QEMU_CORE) $(GEN)/embedded/$(1).c $(GEN)/embedded/$(1)_scenario.c \
+                  $(QEMU_DIR)/replay.c -DREPLAY_SCENARIO=$(1) '-DREPLAY_INPUTS=<inputs_$(1).h>'
+
+define QEMU_RULES
+$(BUILD)/qemu/an386-$(2)/$(1).elf $(BUILD)/qemu/an500-$(2)/$(1).elf: $(BUILD)/qemu/%-$(2)/$(1).elf: $(call QEMU_DEPS,$(1))
+	@mkdir -p $$(@D)
+	$(ARM_CC) $(QEMU_CFLAGS) $$(QEMU_CPU_$$*) $(QEMU_PREC_$(2)) $(call QEMU_SOURCES,$(1)) \
+	    $(QEMU_DIR)/port_mps2.c $(QEMU_LDFLAGS) -o $$@.partial -lm && mv $$@.partial $$@
+$(BUILD)/qemu/host-$(2)/$(1): $(call QEMU_DEPS,$(1))
+	@mkdir -p $$(@D)
+	$(HOST_CC) $(QEMU_CFLAGS) $(QEMU_PREC_$(2)) $(call QEMU_SOURCES,$(1)) \
+	    $(QEMU_DIR)/port_host.c -o $$@.partial -lm && mv $$@.partial $$@
+endef
+$(foreach s,$(QEMU_SCENARIOS),$(foreach p,double float,$(eval $(call QEMU_RULES,$(s),$(p)))))
+QEMU_OUT := $(foreach s,$(QEMU_SCENARIOS),$(foreach p,double float,\
+              $(BUILD)/qemu/an386-$(p)/$(s).elf $(BUILD)/qemu/an500-$(p)/$(s).elf \
+              $(BUILD)/qemu/host-$(p)/$(s)))
+
+.PHONY: qemu-firmware
+qemu-firmware:
+	@bash embedded/ports/ensure_tools.sh
+	@$(MAKE) --no-print-directory -j$(JOBS) $(QEMU_OUT)
