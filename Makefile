@@ -25,7 +25,11 @@ demo: $(STAMP) lib
 	$(BIN)/cochlea-run --robot serial --space task
 
 # Everything: the linter, then every test (slow, real-time and hardware-in-the-loop included).
+# First the Cortex-M toolchain and QEMU of tests/test_embedded_qemu.py (Debian packages, installed
+# only when missing and when it can: as root with apt); if they cannot be, those tests fail and
+# say which tool is missing and how to install it.
 test: $(STAMP) lib lint
+	-@bash embedded/ports/ensure_tools.sh
 	$(BIN)/python -m pytest
 
 # The quick loop while editing: every test but those marked slow, realtime or hil (< 1 min).
