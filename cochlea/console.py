@@ -23,6 +23,7 @@ import errno
 import os
 import signal
 import sys
+from multiprocessing import resource_tracker
 
 #: Exit code when the reader of the output went away: 128 + SIGPIPE, as the shell reports a
 #: program that signal ended (``yes | head -1`` under ``set -o pipefail``).
@@ -132,10 +133,6 @@ def _start_resource_tracker_deaf_to_hangups() -> None:
     hang-up, which goes to the whole process group, would kill it, leak what it tracks and
     print its tracebacks. Started here with SIGHUP ignored (a disposition that exec keeps), it
     outlives the hang-up and cleans up as the program ends. Nothing if it already runs."""
-    try:
-        from multiprocessing import resource_tracker
-    except ImportError:  # not POSIX: no tracker, no SIGHUP
-        return
     try:
         previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
     except ValueError:  # not the main thread
