@@ -23,6 +23,7 @@ import pytest
 from cochlea import console
 from cochlea.apps import cochlea_sweep, outputs
 from cochlea.dynamixel import protocol as proto
+from cochlea.dynamixel.drives import joint_drives
 from cochlea.runtime.supervisor import SIGNAL_STOPS, STOP_CODES
 from cochlea.sweep import results
 from tests.test_dynamixel_hil import assert_log_complete, last_commands
@@ -338,3 +339,32 @@ def test_a_sweep_hung_up_says_so_and_resumes(tmp_path):
     assert samples == list(range(8))
     for name, data in kept.items():  # finished batches are never rewritten
         assert (out / "parts" / name).read_bytes() == data
+
+
+# ---- cochlea-dxl: a torque on while homing ---------------------------------------------------
+
+
+@pytest.mark.hil
+def test_cochlea_dxl_home_hung_up_turns_the_torque_off(tmp_path):
+    """``cochlea-dxl home`` pushes the slider onto its stop with its torque on and, asked to
+    dwell there for a minute, keeps pushing: a hang-up meanwhile ends it as Ctrl-C does,
+    torque off (before the fix: killed with the torque on)."""
+    slider = next(d for d in joint_drives("parallel") if d.type == "prismatic")
+    log, record = tmp_path / "emulator.log", tmp_path / "parallel.json"
+    with started_emulator("parallel", "parallel_joint", log, "--hard-stop-m", "0.01") as port:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cochlea.apps.cochlea_dxl", "home", "--robot", "parallel",
+             "--port", port, "--record", str(record), "--stop-m", "0.01", "--dwell-s", "60"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(6)  # its imports, the checks, then the torque on and the slow approach
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGHUP)
+        _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "interrupted (every torque is off)" in stderr and "Traceback" not in stderr
+    torque = [int(e[4].split("=")[1]) for e in (line.split() for line in
+                                               log.read_text().splitlines())
+              if e[1] in ("write", "sync-write") and e[2] == f"id={slider.id}"
+              and e[3] == "address=64"]
+    assert 1 in torque and torque[-1] == 0, torque  # on while homing, off at the end
+    assert not record.exists()

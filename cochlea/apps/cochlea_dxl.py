@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..console import tolerate_closed_stdout
+from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..dynamixel.bringup import calibrate, configure, home, info, reboot, scan
 from ..errors import EXIT_USER_ERROR, CochleaError
 
@@ -39,8 +39,8 @@ def parser() -> argparse.ArgumentParser:
                     "port and on cochlea-emulator's pseudo-terminal alike.",
         epilog="A new lab: scan, configure --dry-run, configure, info (docs/hardware.md). "
                "Exit codes: 0 done, 1 a difference found, 2 a wrong option or file, 5 the port "
-               "or a motor, 130 interrupted. Only home and calibrate --torque-fit turn a "
-               "torque on, and off again whatever ends them.")
+               "or a motor, 130 interrupted (Ctrl-C, SIGTERM, SIGHUP). Only home and "
+               "calibrate --torque-fit turn a torque on, and off again whatever ends them.")
     sub = p.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True,
                            parser_class=_Parser)
     for module in SUBCOMMANDS:
@@ -55,7 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     tolerate_closed_stdout()
     name = f"cochlea-dxl {args.subcommand}"
     try:
-        return args._run(args)
+        # SIGTERM and a hang-up (SIGHUP) end a subcommand as Ctrl-C does: its torques off.
+        with sigterm_interrupts():
+            return args._run(args)
     except CochleaError as exc:
         print(f"{name}: {exc}", file=sys.stderr)
         return getattr(exc, "exit_code", EXIT_USER_ERROR)
