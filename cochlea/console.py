@@ -2,29 +2,49 @@
 crash, and critical sections that an interrupt cannot cut in two.
 
 ``cochlea-run ... | head -1`` closes the pipe after the first line; the next ``print`` raises
-BrokenPipeError, which would end a run mid-motion or before its report. Every command-line
-program calls :func:`tolerate_closed_stdout` first: from then on a write to a closed pipe sends
-the rest of the output to /dev/null and the program goes on (a run finishes, stops its motors
-and keeps its log). :func:`stdout_was_closed` tells the few programs whose only product is their
-output (``cochlea-model``) to exit with the shell's code for SIGPIPE instead.
+BrokenPipeError, which would end a run mid-motion or before its report. A terminal or SSH
+session that closes (a hang-up, SIGHUP) does the same to both standard output and standard
+error: a write then fails with EIO (a pseudo-terminal whose other end is gone) or EPIPE (ssh's
+pipes). Every command-line program calls :func:`tolerate_closed_stdout` first: from then on a
+write to a closed pipe or terminal sends the rest of that stream to /dev/null and the program
+goes on (a run finishes, stops its motors and keeps its log). :func:`stdout_was_closed` tells
+the few programs whose only product is their output (``cochlea-model``) to exit with the
+shell's code for SIGPIPE instead.
+
+:data:`STOP_SIGNALS` are the signals every program treats as a request to stop: SIGINT
+(Ctrl-C), SIGTERM (``kill``, a batch system) and SIGHUP (the terminal or session closed: a
+hang-up is a stop like SIGTERM, never a death without the safe stop).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import signal
 import sys
+from multiprocessing import resource_tracker
 
 #: Exit code when the reader of the output went away: 128 + SIGPIPE, as the shell reports a
 #: program that signal ended (``yes | head -1`` under ``set -o pipefail``).
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 
+#: The signals that ask a program to stop (module docstring): SIGHUP is handled like SIGTERM.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+#: A write to a stream whose reader went away: a closed pipe (EPIPE), a terminal that hung up
+#: (EIO).
+_GONE = (errno.EPIPE, errno.EIO)
+
+
+def _reader_gone(exc: OSError) -> bool:
+    return isinstance(exc, BrokenPipeError) or exc.errno in _GONE
+
 
 class _ClosedPipeTolerantStream:
-    """Delegates to the real stream; a BrokenPipeError on write or flush points the file
-    descriptor at /dev/null (so the interpreter's own flush at exit succeeds too) and is
-    swallowed."""
+    """Delegates to the real stream; a write or flush that finds the reader gone (EPIPE, or EIO
+    from a terminal that hung up) points the file descriptor at /dev/null (so the interpreter's
+    own flush at exit succeeds too) and is swallowed; any other error is raised."""
 
     def __init__(self, stream):
         self._stream = stream
@@ -44,7 +64,9 @@ class _ClosedPipeTolerantStream:
             return len(text)
         try:
             return self._stream.write(text)
-        except BrokenPipeError:
+        except OSError as exc:
+            if not _reader_gone(exc):
+                raise
             self._divert()
             return len(text)
 
@@ -53,7 +75,9 @@ class _ClosedPipeTolerantStream:
             return
         try:
             self._stream.flush()
-        except BrokenPipeError:
+        except OSError as exc:
+            if not _reader_gone(exc):
+                raise
             self._divert()
 
     def __getattr__(self, name):
@@ -61,9 +85,12 @@ class _ClosedPipeTolerantStream:
 
 
 def tolerate_closed_stdout() -> None:
-    """Make ``sys.stdout`` survive a reader that went away (idempotent)."""
+    """Make ``sys.stdout`` and ``sys.stderr`` survive a reader that went away: a closed pipe or
+    a terminal that hung up (idempotent)."""
     if not isinstance(sys.stdout, _ClosedPipeTolerantStream) and sys.stdout is not None:
         sys.stdout = _ClosedPipeTolerantStream(sys.stdout)
+    if not isinstance(sys.stderr, _ClosedPipeTolerantStream) and sys.stderr is not None:
+        sys.stderr = _ClosedPipeTolerantStream(sys.stderr)
 
 
 def stdout_was_closed() -> bool:
@@ -73,7 +100,7 @@ def stdout_was_closed() -> bool:
 
 
 @contextlib.contextmanager
-def signals_held(signals=(signal.SIGINT, signal.SIGTERM)):
+def signals_held(signals=STOP_SIGNALS):
     """Hold ``signals`` off for a few steps that must happen together (create a folder and
     record it for clean-up; rename a set of files into place): one that arrives meanwhile is
     recorded and raised again as the section ends, so the program's own handler runs after the
@@ -100,16 +127,37 @@ def signals_held(signals=(signal.SIGINT, signal.SIGTERM)):
             signal.raise_signal(signum)
 
 
+def _start_resource_tracker_deaf_to_hangups() -> None:
+    """multiprocessing's resource tracker (the process that removes the semaphores of a
+    sweep's or a tune's worker pool) ignores SIGINT and SIGTERM but not SIGHUP: a terminal's
+    hang-up, which goes to the whole process group, would kill it, leak what it tracks and
+    print its tracebacks. Started here with SIGHUP ignored (a disposition that exec keeps), it
+    outlives the hang-up and cleans up as the program ends. Nothing if it already runs."""
+    try:
+        previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    except ValueError:  # not the main thread
+        return
+    try:
+        resource_tracker.ensure_running()
+    except OSError:  # no tracker: the pool starts its own as before
+        pass
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
 @contextlib.contextmanager
 def sigterm_interrupts():
-    """SIGTERM (a batch system's or a cluster's stop) raises KeyboardInterrupt, as Ctrl-C does,
-    for the section: the long-running programs that resume (cochlea-sweep, cochlea-tune) keep
-    what finished and say so either way. The previous handler comes back afterwards."""
+    """SIGTERM (a batch system's or a cluster's stop) and SIGHUP (the terminal or session
+    closed) raise KeyboardInterrupt, as Ctrl-C does, for the section: the long-running programs
+    that resume (cochlea-sweep, cochlea-tune) keep what finished and say so either way. The
+    previous handlers come back afterwards."""
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, terminate)
+    _start_resource_tracker_deaf_to_hangups()
+    previous = {s: signal.signal(s, terminate) for s in (signal.SIGTERM, signal.SIGHUP)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)

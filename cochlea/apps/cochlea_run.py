@@ -20,9 +20,15 @@ Exit codes (also in the README):
  15   safe stop: watchdog: too many consecutive overruns, a stall, a loop too far behind its
       deadlines (docs/runtime.md, "Real-time options and the overrun policy"), or too many
       consecutive backend failures
- 16   safe stop: terminated by SIGTERM
+ 16   safe stop: terminated by SIGTERM, or by SIGHUP (a hang-up: the terminal or SSH session
+      closed; summary.json's stop detail names it)
  17   safe stop: the log could not be written (full disk, I/O error, a writer too slow);
       log.bin holds the periods written before
+ 18   the run happened but part of its report (log.csv, figures, summary.json) is lost
+ 129  hung up (SIGHUP) before the run started (or during ``--realtime off``); nothing moved
+ 130  interrupted (SIGINT) before the run started (or during ``--realtime off``); nothing moved
+ 143  terminated (SIGTERM) before the run started (or during ``--realtime off``); nothing
+      moved
 ====  ======================================================================================
 """
 
@@ -66,6 +72,7 @@ from . import outputs, report
 EXIT_DIVERGED = 3
 EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
 EXIT_TERMINATED = 143  # ... and for SIGTERM
+EXIT_HUNG_UP = 129  # ... and for SIGHUP (a hang-up)
 #: The run happened but part of its report (log.csv, figures, summary.json) is lost.
 EXIT_REPORT_FAILED = 18
 #: Half a second at 1 kHz: beyond that the loop is not controlling the motors at all.
@@ -196,20 +203,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cochlea-run: {exc}", file=sys.stderr)
         return EXIT_REPORT_FAILED
     except KeyboardInterrupt as exc:  # only ever raised before anything ran (see _Run)
-        terminated = getattr(exc, "signum", signal.SIGINT) == signal.SIGTERM
-        what = "terminated" if terminated else "interrupted"
+        signum = getattr(exc, "signum", signal.SIGINT)
+        what, code = {signal.SIGTERM: ("terminated", EXIT_TERMINATED),
+                      signal.SIGHUP: ("hung up (SIGHUP)", EXIT_HUNG_UP)}.get(
+                          signum, ("interrupted", EXIT_INTERRUPTED))
         if run.simulating:
             print(f"cochlea-run: {what} during the as-fast simulation; nothing written (a "
                   "simulation: nothing moved)", file=sys.stderr)
         else:
             print(f"cochlea-run: {what} before the run started; nothing moved",
                   file=sys.stderr)
-        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+        return code
     finally:
         run.close()
         if argv is None:
             # The program itself: it is about to exit with the run's own code, which a late
-            # Ctrl-C must not turn into a KeyboardInterrupt's traceback or a SIGTERM's 143.
+            # Ctrl-C must not turn into a KeyboardInterrupt's traceback, nor a SIGTERM or a
+            # hang-up into death by the signal.
             run.shield.ignore()
         else:
             run.shield.restore()  # called from Python (the tests): give the handlers back
@@ -386,8 +396,8 @@ def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
     try:
         stop = loop.run(out / "log.bin", status=status)
     finally:
-        # The loop hands SIGINT and SIGTERM back to the shield as it returns: from now on they
-        # are acknowledged, not obeyed, until the report is written.
+        # The loop hands SIGINT, SIGTERM and SIGHUP back to the shield as it returns: from now
+        # on they are acknowledged, not obeyed, until the report is written.
         run.shield.defer()
         run.kept = run.kept or (out / "log.bin").exists()
     wall = time.perf_counter() - start

@@ -29,6 +29,7 @@ import signal
 import stat
 from pathlib import Path
 
+from ..console import STOP_SIGNALS
 from ..errors import CochleaError, printable
 
 #: The lock file of a claimed folder (removed when the run ends).
@@ -382,7 +383,8 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 
 class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM while a run was prepared: nothing moved; ``signum`` says which."""
+    """SIGINT, SIGTERM or SIGHUP while a run was prepared: nothing moved; ``signum`` says
+    which."""
 
     def __init__(self, signum: int):
         super().__init__(signum)
@@ -390,7 +392,8 @@ class Interrupted(KeyboardInterrupt):
 
 
 class SignalShield:
-    """SIGINT and SIGTERM for the life of a run, in three phases:
+    """SIGINT, SIGTERM and SIGHUP (a hang-up, handled as SIGTERM) for the life of a run, in
+    three phases:
 
     - ``prepare()``: a signal raises :class:`Interrupted` (the start is undone, nothing moved);
     - ``forward(handler)``: a signal goes to ``handler`` (the loop's own safe stop);
@@ -399,7 +402,7 @@ class SignalShield:
     - ``ignore()``: all is written and the program exits with the run's own code.
     """
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = STOP_SIGNALS
 
     def __init__(self, program: str):
         self.program = program

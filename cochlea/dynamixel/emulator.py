@@ -72,7 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..console import tolerate_closed_stdout
+from ..console import STOP_SIGNALS, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels import library as ckernels
 from ..kernels.naming import source_hash
@@ -1175,9 +1175,11 @@ def _main(args: argparse.Namespace) -> int:
     def stop(signum, frame):  # noqa: ARG001
         chain._stop.set()
 
-    # Before anything is printed: whoever reads the path may signal at once.
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
+    # Before anything is printed: whoever reads the path may signal at once. A hang-up (SIGHUP:
+    # the terminal or session that started it closed) stops serving like SIGTERM: the --log is
+    # flushed and closed, not lost with the process.
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, stop)
     try:
         path = chain.open()
     except OSError as exc:

@@ -41,7 +41,7 @@ from ..sim.setup import UnitSetup
 from . import log_writer as _log_writer
 from .backend import Backend
 from .log_writer import LogWriter
-from .supervisor import OVERRUN_POLICY, OverrunWatch, Stop, Supervisor
+from .supervisor import OVERRUN_POLICY, SIGNAL_STOPS, OverrunWatch, Stop, Supervisor
 
 #: The loop sleeps until this long before each deadline, then spins: the OS wakes a sleeping
 #: thread late by up to a few hundred microseconds on a loaded machine.
@@ -404,17 +404,25 @@ def _scheduling_text(options: RealtimeOptions, obtained: dict) -> str:
 class _Status(threading.Thread):
     """A one-line live status, refreshed a few times a second from the loop's counters."""
 
-    def __init__(self, loop: RealTimeLoop, interval: float = 0.25, stream=sys.stderr):
+    def __init__(self, loop: RealTimeLoop, interval: float = 0.25, stream=None):
         super().__init__(name="cochlea-status", daemon=True)
-        self.loop, self.interval, self.stream = loop, interval, stream
+        # sys.stderr as it is now (the program's closed-terminal-tolerant stream), not as it
+        # was when this module was imported.
+        self.stream = sys.stderr if stream is None else stream
+        self.loop, self.interval = loop, interval
         self.finished = threading.Event()
 
     def run(self) -> None:
-        while not self.finished.wait(self.interval):
-            self.stream.write("\r" + self.loop.status_line() + " " * 4)
+        try:
+            while not self.finished.wait(self.interval):
+                self.stream.write("\r" + self.loop.status_line() + " " * 4)
+                self.stream.flush()
+            self.stream.write("\r" + self.loop.status_line() + "\n")
             self.stream.flush()
-        self.stream.write("\r" + self.loop.status_line() + "\n")
-        self.stream.flush()
+        except OSError:
+            # The terminal is gone (a hang-up: EIO): the status has no reader; the loop, its
+            # safe stop and its log go on without it.
+            self.finished.wait()
 
     def close(self) -> None:
         self.finished.set()
@@ -442,7 +450,7 @@ class RealTimeLoop:
         self.stop: Stop | None = None
         self.rows = 0
         self.misses = 0  # overruns so far (the status line's count)
-        self._signal: str | None = None
+        self._signal: tuple[str, str] | None = None  # (rule, detail) of SIGNAL_STOPS
         self.scheduling = "normal"
         #: ``--mlockall``, ``--cpu``, ``--sched``, ``--priority``: applied when the loop starts
         #: (real time only); ``realtime_report`` says what was asked and obtained.
@@ -538,9 +546,11 @@ class RealTimeLoop:
     # ---- the loop ----------------------------------------------------------------------------
 
     def on_signal(self, signum, frame) -> None:  # noqa: ARG002
-        """SIGINT or SIGTERM: the loop's safe stop at its next period (public: cochlea-run
-        forwards the signals here while the motors start, before the loop installs it)."""
-        self._signal = "user-stop" if signum == signal.SIGINT else "terminated"
+        """SIGINT, SIGTERM or SIGHUP (a hang-up): the loop's safe stop at its next period
+        (public: cochlea-run forwards the signals here while the motors start, before the loop
+        installs it). The first signal names the stop."""
+        if self._signal is None:
+            self._signal = SIGNAL_STOPS.get(signum, SIGNAL_STOPS[signal.SIGTERM])
 
     def status_line(self) -> str:
         k = self.rows
@@ -562,7 +572,7 @@ class RealTimeLoop:
         self.buffer = self._allocate(log_path)
         # Opened before anything moves: a log that cannot be written stops nothing.
         writer = LogWriter(self.buffer, log_path) if log_path else None
-        previous = {s: signal.signal(s, self.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        previous = {s: signal.signal(s, self.on_signal) for s in SIGNAL_STOPS}
         status_thread = _Status(self) if status else None
         self.misses = 0
         applied = None
@@ -681,7 +691,8 @@ class RealTimeLoop:
                         sleep((remaining - SPIN_NS) * 1e-9)
             start = clock()
             if self._signal:
-                return Stop(self._signal, t, "signal received")
+                rule, detail = self._signal
+                return Stop(rule, t, detail)
             if self.realtime:
                 # Too far behind to catch up: stop before this period commands anything.
                 late = watch.started(deadline, start)

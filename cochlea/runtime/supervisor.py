@@ -9,6 +9,7 @@ same period. The checks allocate nothing unless a rule is broken.
 from __future__ import annotations
 
 import math
+import signal
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,8 +30,18 @@ STOP_CODES = {
     "non-finite": 13,
     "estimate-bound": 14,
     "watchdog": 15,
-    "terminated": 16,  # SIGTERM
+    "terminated": 16,  # SIGTERM, or SIGHUP (a hang-up: the terminal or session closed)
     "log-failure": 17,  # the log writer failed (full disk) or fell a whole ring behind
+}
+
+#: The stop a signal asks for: its rule (so its exit code) and the detail summary.json and the
+#: stop line give. A hang-up (SIGHUP: the terminal or SSH session that started the run closed)
+#: is SIGTERM's safe stop and exit code 16, its detail naming the hang-up; the embedded
+#: program (embedded/posix/main.c) words the three the same.
+SIGNAL_STOPS = {
+    signal.SIGINT: ("user-stop", "SIGINT received (Ctrl-C)"),
+    signal.SIGTERM: ("terminated", "SIGTERM received"),
+    signal.SIGHUP: ("terminated", "SIGHUP received: the terminal or session hung up"),
 }
 
 

@@ -31,7 +31,7 @@ enum cochlea_rule {
     COCHLEA_NON_FINITE,         /* exit 13 */
     COCHLEA_ESTIMATE_BOUND,     /* exit 14 */
     COCHLEA_WATCHDOG,           /* exit 15 */
-    COCHLEA_TERMINATED,         /* SIGTERM: exit 16 */
+    COCHLEA_TERMINATED,         /* SIGTERM, or SIGHUP (a hang-up): exit 16 */
     COCHLEA_LOG_FAILURE,        /* the port's log failed or fell a whole ring behind: exit 17 */
     COCHLEA_RULE_COUNT
 };

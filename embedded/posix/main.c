@@ -13,7 +13,10 @@
  * outside the period. After the run, whatever ended it: log.csv, log.columns.json and
  * summary.json, the same files and schema as cochlea-run's (figures aside), and the same exit
  * codes: 0 completed or user stop (SIGINT), 2 a wrong option, 5 the motors could not be
- * started (nothing moved), 10..16 the supervisor's rules, 130 interrupted before the start.
+ * started (nothing moved), 10..17 the supervisor's rules (16: SIGTERM, or SIGHUP: a hang-up of
+ * the terminal or session is SIGTERM's safe stop), and before the start (nothing moved) the
+ * shell's code of the signal: 130 SIGINT, 143 SIGTERM, 129 SIGHUP. SIGPIPE is ignored: a
+ * closed standard output (a pipe, a terminal that hung up) fails its writes, never the run.
  * Every scenario cochlea-codegen generated is linked in; --list prints them.
  * Units: SI inside and in every file (rad, m, rad/s, m/s, N m, N, s); degrees only in messages.
  */
@@ -54,7 +57,10 @@
 #endif
 
 #define EXIT_USER_ERROR 2
-#define EXIT_INTERRUPTED 130
+/* Before the start (nothing moved): the shell's code of the signal, as cochlea-run's. */
+#define EXIT_INTERRUPTED 130 /* SIGINT */
+#define EXIT_TERMINATED 143  /* SIGTERM */
+#define EXIT_HUNG_UP 129     /* SIGHUP */
 /* The disk's estimate (cochlea/apps/outputs.py's): bytes a log.csv value takes at most
  * ("%.10g" and its comma), and room for log.columns.json and summary.json. */
 #define CSV_VALUE_BYTES 17
@@ -151,8 +157,9 @@ static void usage(FILE *to)
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
-            "14 estimate-bound,\n15 watchdog, 16 terminated, 17 log-failure (the log could not be "
-            "written),\n130 interrupted before the start.\n");
+            "14 estimate-bound,\n15 watchdog, 16 terminated (SIGTERM, or SIGHUP: a hang-up), "
+            "17 log-failure (the log\ncould not be written); before the start, nothing moved: "
+            "130 SIGINT, 143 SIGTERM,\n129 SIGHUP.\n");
 }
 
 static int parse_number(const char *text, double *value)
@@ -586,6 +593,9 @@ static void vector_text(char *buf, size_t n, const double *v, int count)
     }
 }
 
+/* The first stop signal received (0: none); set by on_signal. */
+static volatile sig_atomic_t interrupted;
+
 /* The supervisor's message for a stop, as cochlea/runtime/supervisor.py words it. */
 static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const double *row)
 {
@@ -596,8 +606,11 @@ static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const dou
     buf[0] = '\0';
     switch (s->rule) {
     case COCHLEA_USER_STOP:
-    case COCHLEA_TERMINATED:
-        snprintf(buf, n, "signal received");
+    case COCHLEA_TERMINATED: /* supervisor.py's SIGNAL_STOPS */
+        snprintf(buf, n, "%s", interrupted == SIGINT ? "SIGINT received (Ctrl-C)"
+                 : interrupted == SIGTERM ? "SIGTERM received"
+                 : interrupted == SIGHUP ? "SIGHUP received: the terminal or session hung up"
+                 : "signal received");
         break;
     case COCHLEA_POSITION_LIMIT:
         unit = joint_of(sc, s->joint, name, sizeof name);
@@ -1984,12 +1997,15 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
 /* ---- signals and real-time settings --------------------------------------------------------- */
 
 static cochlea_loop the_loop;
-static volatile sig_atomic_t interrupted;
 
+/* SIGINT: the user's stop; SIGTERM and SIGHUP (a hang-up): terminated. The first one names
+ * the stop. */
 static void on_signal(int signum)
 {
-    interrupted = signum;
-    the_loop.stop_request = signum == SIGINT ? COCHLEA_USER_STOP : COCHLEA_TERMINATED;
+    if (!interrupted) {
+        interrupted = signum;
+        the_loop.stop_request = signum == SIGINT ? COCHLEA_USER_STOP : COCHLEA_TERMINATED;
+    }
 }
 
 /* What apply_realtime asked for, obtained and changed (summary.json's "realtime"). */
@@ -2359,6 +2375,11 @@ int main(int argc, char **argv)
     sigemptyset(&action.sa_mask);
     sigaction(SIGINT, &action, 0);
     sigaction(SIGTERM, &action, 0);
+    sigaction(SIGHUP, &action, 0);
+    /* A reader that went away (a closed pipe, ssh's end of a closed session) fails a write
+     * with EPIPE instead of killing the program between the motors' start and their stop. */
+    action.sa_handler = SIG_IGN;
+    sigaction(SIGPIPE, &action, 0);
 
     printf("cochlea-embedded: %s (controller %s, %s variant), Dynamixel motors on %s, real time "
            "at %g Hz, %s precision -> %s\n", sc->name, sc->controller, sc->variant, o.port,
@@ -2435,9 +2456,11 @@ int main(int argc, char **argv)
         leave_realtime(&log, writer_thread);
         cochlea_posix_close(&port);
         undo_start(o.out);
-        fprintf(stderr, "cochlea-embedded: interrupted before the run started; drives "
-                "disabled, nothing moved\n");
-        return EXIT_INTERRUPTED;
+        fprintf(stderr, "cochlea-embedded: %s before the run started; drives disabled, "
+                "nothing moved\n", interrupted == SIGTERM ? "terminated"
+                : interrupted == SIGHUP ? "hung up (SIGHUP)" : "interrupted");
+        return interrupted == SIGTERM ? EXIT_TERMINATED
+               : interrupted == SIGHUP ? EXIT_HUNG_UP : EXIT_INTERRUPTED;
     }
     started = hal.now_ns(hal.ctx);
     rule = cochlea_loop_run(&the_loop); /* ends with the motors' safe stop, always */
@@ -2451,7 +2474,7 @@ int main(int argc, char **argv)
         static log_stats stats;
         const long logged = the_loop.rows;
         const long kept = rows_kept(o.out, &log, logged);
-        int report_error = 0;
+        int report_error = 0, csv_written = 0, summary_written = 0;
         FILE *csv;
         size_t used;
         /* the loop's last row is the stop's own */
@@ -2582,24 +2605,50 @@ int main(int argc, char **argv)
             != 0) {
             report_error = report_error ? report_error : (errno ? errno : EIO);
             (void)read_back(o.out, sc, log.row_length, 0, log.ring, log.ring_rows, 0, &stats);
+            if (csv) { /* part of log.csv: removed, never renamed into place as if whole */
+                char tmp[4352];
+                fclose(csv);
+                csv = 0;
+                snprintf(tmp, sizeof tmp, "%s/.log.csv.tmp", o.out);
+                unlink(tmp);
+            }
         }
-        if (csv && finish_atomic(csv, o.out, "log.csv") != 0 && !report_error) {
-            report_error = errno ? errno : EIO;
+        if (csv) {
+            if (finish_atomic(csv, o.out, "log.csv") == 0) {
+                csv_written = 1;
+            } else if (!report_error) {
+                report_error = errno ? errno : EIO;
+            }
         }
         errno = 0;
-        if (write_summary(o.out, &the_loop, &stats, &facts, &bridge, &o, &converged) != 0
-            && !report_error) {
+        if (write_summary(o.out, &the_loop, &stats, &facts, &bridge, &o, &converged) == 0) {
+            summary_written = 1;
+        } else if (!report_error) {
             report_error = errno ? errno : EIO;
         }
         if (report_error) {
             fprintf(stderr, "cochlea-embedded: writing the report to %s failed: %s (log.bin "
-                    "keeps what was written)\n", o.out, strerror(report_error));
+                    "keeps what was written; %s)\n", o.out, strerror(report_error),
+                    csv_written ? (summary_written ? "log.csv and summary.json written"
+                                   : "log.csv written, summary.json not")
+                    : summary_written ? "summary.json written, log.csv not"
+                    : "neither log.csv nor summary.json was written");
         }
         printf("  ran %.2f s in %.2f s (%.1fx real time)\n", (double)logged * period,
                facts.wall_s,
                (double)logged * period / (facts.wall_s > 1e-9 ? facts.wall_s : 1e-9));
-        printf("  converged: %s\n  log: %s/log.csv\n  summary: %s/summary.json\n",
-               converged ? "yes" : "no", o.out, o.out);
+        /* Only the files that were written are named. */
+        printf("  converged: %s\n", converged ? "yes" : "no");
+        if (csv_written) {
+            printf("  log: %s/log.csv\n", o.out);
+        } else {
+            printf("  log: log.csv not written (log.bin keeps the rows written)\n");
+        }
+        if (summary_written) {
+            printf("  summary: %s/summary.json\n", o.out);
+        } else {
+            printf("  summary: summary.json not written\n");
+        }
         printf("  bus: %.0f bytes per period, budget %.0f us; %u of %u reads good; shut-down: "
                "%s\n", facts.budget_bytes, facts.bus_s * 1e6, bridge.good_reads, bridge.reads,
                facts.shutdown);
