@@ -361,7 +361,7 @@ def test_cochlea_dxl_home_hung_up_turns_the_torque_off(tmp_path):
         proc.send_signal(signal.SIGHUP)
         _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 129, stderr  # 128 + SIGHUP (docs/hardware.md)
-    assert "interrupted (every torque is off)" in stderr and "Traceback" not in stderr
+    assert "interrupted by SIGHUP (every torque is off)" in stderr and "Traceback" not in stderr
     torque = [int(e[4].split("=")[1]) for e in (line.split() for line in
                                                log.read_text().splitlines())
               if e[1] in ("write", "sync-write") and e[2] == f"id={slider.id}"
