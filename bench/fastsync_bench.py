@@ -56,7 +56,8 @@ def measure(scenario: Path, read: str, periods: int) -> dict:
     chain = VirtualChain("serial", scenario, baud=BAUD, wire_timing=True)
     chain.fast_sync_read = read == "fast"
     with chain:
-        backend = DynamixelBackend("serial", chain.path, BAUD, description=chain.scenario.description,
+        backend = DynamixelBackend("serial", chain.path, BAUD,
+                                   description=chain.scenario.description,
                                    timeout_s=0.02, read_instruction=read, realtime_tick=True)
         backend.enable()
         reads, cycles, fails = [], [], 0
@@ -82,7 +83,7 @@ def measure(scenario: Path, read: str, periods: int) -> dict:
     read_bytes = b.sync_read_bytes + (b.combined_reply_bytes if read == "fast"
                                       else b.motors * b.reply_bytes)
     return {
-        "read_instruction": backend.summary()["read_instruction"],
+        "read_instruction": backend.summary()["bus_budget"]["read_instruction"],
         "models": sorted({d.spec.name for d in backend.drives}),
         "periods": periods, "failed_reads": fails,
         "read_bytes": read_bytes, "read_wire_us": read_bytes * b.byte_time_s * 1e6,

@@ -282,7 +282,7 @@ def test_each_transfer_reads_and_writes_the_chain(read, write, fast):
             assert np.allclose(x[:6], chain.joint_state()[:6], atol=2 * np.abs(
                 backend.position_quantum()).max())
             assert mostly(exchange(backend, 30))
-            summary = backend.summary()
+            summary = backend.summary()["bus_budget"]
             expect = {"auto": "SYNC_READ", "fast": "FAST_SYNC_READ", "bulk": "BULK_READ"}[read]
             assert summary["read_instruction"] == expect
             assert summary["write_instruction"] == ("BULK_WRITE" if write == "bulk"
@@ -415,7 +415,8 @@ def test_an_unknown_model_number_stops_the_start_up():
 
 #: XL330-M288: 0.52 N m stall at 1.47 A (5 V, its e-Manual): a placeholder fit of 35.4 N cm/A
 #: and a torque limit inside its reach.
-XL330_FIT = 'fit = { a = 35.374, b = 0.0, x = "current_A", y = "torque_Ncm", source = "placeholder" }'
+XL330_FIT = ('fit = { a = 35.374, b = 0.0, x = "current_A", y = "torque_Ncm", '
+             'source = "placeholder" }')
 
 
 def chain_files(tmp_path: Path, models: list[str]) -> Path:
@@ -464,10 +465,10 @@ def test_each_chain_over_the_emulator(tmp_path, name):
             assert mostly(exchange(backend, 20, 0.001))
         finally:
             backend.disable()
-    summary = backend.summary()
+    summary = backend.summary()["bus_budget"]
     assert summary["read_instruction"] == "SYNC_READ"
     assert summary["write_instruction"] == "SYNC_WRITE"
-    assert set(summary["firmware"]) == set(backend.ids)
+    assert set(backend.firmware) == set(backend.ids)  # from each motor's PING
 
 
 def _emulator(scenario: Path, log: Path):
@@ -496,7 +497,8 @@ def test_scan_and_run_over_the_virtual_chain(tmp_path, name):
         out = tmp_path / "run"
         done = subprocess.run(
             [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
-             "joint", "--scenario", str(scenario), "--backend", "dynamixel", "--port", port, "--out", str(out), "--watchdog-misses", "300"],
+             "joint", "--scenario", str(scenario), "--backend", "dynamixel", "--port", port,
+             "--out", str(out), "--watchdog-misses", "300"],
             capture_output=True, text=True, timeout=180, cwd=tmp_path)
     finally:
         proc.terminate()
@@ -504,5 +506,7 @@ def test_scan_and_run_over_the_virtual_chain(tmp_path, name):
     assert done.returncode == 0, done.stderr
     assert "cochlea-run: bus: SYNC_READ + SYNC_WRITE per period" in done.stdout
     summary = json.loads((out / "summary.json").read_text())
-    bus = summary["timing"]["bus"]
+    bus = summary["timing"]["bus"]["bus_budget"]
+    # The budget of what is sent: SYNC_WRITE, SYNC_READ of 120..135, two status packets.
+    assert bus["bytes_per_period"] == (14 + 2 * 3) + (14 + 2) + 2 * (11 + 16)
     assert bus["read_instruction"] == "SYNC_READ" and "not sourced" in bus["read_choice"]

@@ -496,16 +496,17 @@ class DynamixelBackend:
         port = self._port
         return {
             "port": self.port_path, "baud": self.baud, "motors": self.ids,
+            # The budget of the transfers sent each period, chosen from the models' data
+            # (choose_transfers), and why. (Within bus_budget: the embedded program's summary
+            # has every key of this level, tests/test_embedded_program.py.)
             "bus_budget": {"bytes_per_period": self.budget.total_bytes,
                            "wire_s": self.budget.wire_s, "bus_s": self.budget.bus_s,
-                           "with_adapter_latency_s": self.budget.cycle_s},
+                           "with_adapter_latency_s": self.budget.cycle_s,
+                           "read_instruction": _READ_NAMES[self.read_instruction],
+                           "write_instruction": _WRITE_NAMES[self.write_instruction],
+                           "read_choice": self.read_choice},
             "read_timeout_s": self.timeout_s, "watchdog_s": self.watchdog_lsb * WATCHDOG_UNIT_S,
             "realtime_tick_check": self.realtime_tick,
-            # The per-period transfers chosen from the models' data, and why.
-            "read_instruction": _READ_NAMES[self.read_instruction],
-            "write_instruction": _WRITE_NAMES[self.write_instruction],
-            "read_choice": self.read_choice,
-            "firmware": dict(self.firmware),
             # Who compensates the gearbox's friction: the bridge's offset current, or the
             # controller (then the commands carry the fit's slope alone).
             "friction_compensated_by": "bridge" if self.offset_current else "controller",

@@ -11,9 +11,10 @@ CRC (polynomial 0x8005, initial value 0, no reflection, no final XOR) covers the
 frame from the header on. A receiver checks the CRC, then removes the stuffing.
 
 The builders (:func:`ping`, :func:`read`, :func:`write`, :func:`sync_read`, :func:`sync_write`,
-:func:`fast_sync_read`, :func:`bulk_read`, :func:`bulk_write`, ...) return ``bytes`` and are for set-up code. The per-period path uses :class:`FrameBuffer`
-(a frame rebuilt in place in a preallocated buffer) and :class:`PacketParser` (a streaming
-parser over a preallocated buffer that returns a result code, never raises).
+:func:`fast_sync_read`, :func:`bulk_read`, :func:`bulk_write`, ...) return ``bytes`` and are
+for set-up code. The per-period path uses :class:`FrameBuffer` (a frame rebuilt in place in a
+preallocated buffer) and :class:`PacketParser` (a streaming parser over a preallocated buffer
+that returns a result code, never raises).
 """
 
 from __future__ import annotations
@@ -270,7 +271,7 @@ def fast_sync_status(blocks: Sequence[tuple[int, int, bytes]]) -> bytes:
 FAST_MISSING, FAST_WRONG_ID, FAST_BLOCK_CRC = 1, 2, 3
 
 
-def check_fast_sync(parser: "PacketParser", ids: Sequence[int], length: int) -> tuple[int, int]:
+def check_fast_sync(parser: PacketParser, ids: Sequence[int], length: int) -> tuple[int, int]:
     """Check the combined FAST_SYNC_READ status the parser has just returned OK (ID 0xFE):
     ``(0, -1)`` when every motor ``ids[k]`` has its block, in order, of ``length`` data bytes,
     its running CRC right; else ``(code, k)`` for the first motor at fault: ``FAST_MISSING``
@@ -303,7 +304,7 @@ def check_fast_sync(parser: "PacketParser", ids: Sequence[int], length: int) -> 
     return 0, -1
 
 
-def fast_block(parser: "PacketParser", k: int, length: int) -> int:
+def fast_block(parser: PacketParser, k: int, length: int) -> int:
     """Where motor k's block (its error byte) starts in ``parser.buf`` (see check_fast_sync)."""
     return parser.params_start - 1 + k * (length + 4)
 
