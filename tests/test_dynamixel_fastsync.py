@@ -510,3 +510,54 @@ def test_scan_and_run_over_the_virtual_chain(tmp_path, name):
     # The budget of what is sent: SYNC_WRITE, SYNC_READ of 120..135, two status packets.
     assert bus["bytes_per_period"] == (14 + 2 * 3) + (14 + 2) + 2 * (11 + 16)
     assert bus["read_instruction"] == "SYNC_READ" and "not sourced" in bus["read_choice"]
+
+
+class _FixedReply:
+    """A port that accepts every write and answers every read with one prebuilt reply."""
+
+    low_latency = None
+
+    def __init__(self, reply: bytes):
+        self.view = memoryview(reply)
+
+    def write(self, view, n, deadline):
+        return True
+
+    def read_into(self, target, deadline):
+        target[:len(self.view)] = self.view
+        return len(self.view)
+
+    def discard_input(self):
+        pass
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("read,write", [("fast", "sync"), ("bulk", "bulk")])
+def test_the_fast_and_bulk_periods_allocate_nothing_and_convert_right(read, write):
+    """The FAST_SYNC_READ / BULK_WRITE periods make no buffer, list or array (as the
+    SYNC_READ one, tests/test_dynamixel_drives.py), and convert the registers as it does."""
+    from tests.conftest import assert_periods_allocate_nothing
+
+    backend = DynamixelBackend("serial", "/dev/scripted", read_instruction=read,
+                               write_instruction=write)
+    rng = np.random.default_rng(5)
+    regs = {i: (int(rng.integers(-2000, 2000)), int(rng.integers(-500, 500)),
+                int(rng.integers(-10**6, 10**6))) for i in backend.ids}
+    data = {i: proto.le(c, 2) + proto.le(v, 4) + proto.le(p, 4) for i, (c, v, p) in regs.items()}
+    reply = (proto.fast_sync_status([(i, 0, data[i]) for i in backend.ids]) if read == "fast"
+             else b"".join(proto.status(i, 0, data[i]) for i in backend.ids))
+    backend._port, backend._active = _FixedReply(reply), True
+    x = np.zeros(12)
+    assert backend.read(x)
+    for j, d in enumerate(backend.drives):
+        c, v, p = regs[d.id]
+        assert x[j] == pytest.approx(float(d.q(p)))
+        assert x[6 + j] == pytest.approx(float(d.qd(v)))
+    tau = rng.uniform(-0.1, 0.1, 6)
+    assert backend.write(tau)
+    assert list(backend.goal_current_lsb) == [d.goal_current_lsb(t)
+                                              for d, t in zip(backend.drives, tau)]
+    assert_periods_allocate_nothing(backend, x, tau)
+    backend._active, backend._port = False, None
