@@ -561,3 +561,32 @@ def test_the_fast_and_bulk_periods_allocate_nothing_and_convert_right(read, writ
                                               for d, t in zip(backend.drives, tau)]
     assert_periods_allocate_nothing(backend, x, tau)
     backend._active, backend._port = False, None
+
+
+def test_an_unknown_model_number_through_scan_and_run(tmp_path):
+    """``cochlea-dxl scan`` lists the motor as unknown, ``cochlea-run`` stops before anything
+    moves with one line (exit 5) and writes nothing."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot", "serial",
+         "--model-number", "2:9999", "--log", str(tmp_path / "emu.log")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        scan = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_dxl", "scan",
+                               "--port", port, "--baud", "4000000", "--ids", "0-8"],
+                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        out = tmp_path / "run"
+        done = subprocess.run(
+            [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+             "joint", "--backend", "dynamixel", "--port", port, "--duration", "0.5",
+             "--out", str(out)], capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert scan.returncode == 0 and "unknown (9999)" in scan.stdout, scan.stdout + scan.stderr
+    assert done.returncode == 5, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr
+    assert "nothing moved" in lines[0] and "ID 2" in lines[0] and "9999" in lines[0]
+    assert not out.exists()
