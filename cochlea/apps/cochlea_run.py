@@ -463,6 +463,10 @@ def _dynamixel_backend(args, scenario):
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")
     if verdict.level == "warn":
         print(f"cochlea-run: warning: {verdict.message}", file=sys.stderr, flush=True)
+    transfers = backend.summary()["bus_budget"]
+    print(f"cochlea-run: bus: {transfers['read_instruction']} + "
+          f"{transfers['write_instruction']} per period ({transfers['read_choice']})",
+          flush=True)
     return backend
 
 

@@ -22,6 +22,12 @@ shut-down, before anything moved:
    locking: milliseconds, tens under load), during which the parallel robot's slider fell
    freely on the emulator (a velocity-limit stop at t = 0 under load).
 
+The per-period transfers come from the models' data (:func:`choose_transfers`, summary
+``read_instruction`` / ``write_instruction``): FAST_SYNC_READ (one combined status packet)
+when every model answers it, BULK_READ / BULK_WRITE when a mixed chain's models place the
+items at different addresses, SYNC_READ / SYNC_WRITE otherwise. The rest of this text says
+SYNC_READ for any of them.
+
 Each period: :meth:`~DynamixelBackend.read` is one SYNC_READ of 126..135 (current, velocity,
 position; with ``realtime_tick``, 120..135: the Realtime Tick first), :meth:`~DynamixelBackend.
 write` one SYNC_WRITE of Goal Current (the first nonzero one followed by the torque's WRITEs,
@@ -114,6 +120,82 @@ _TICK_STATE_DTYPE = np.dtype([("tick", "<u2"), ("moving", "u1"), ("moving_status
                               ("position", "<i4")])
 assert _STATE_DTYPE.itemsize == STATE_LENGTH and _TICK_STATE_DTYPE.itemsize == TICK_READ_LENGTH
 _GOAL_DTYPE = np.dtype([("id", "u1"), ("current", "<i2")])
+#: One BULK_WRITE entry: ID, address (2), length (2), Goal Current (2).
+_BULK_GOAL_DTYPE = np.dtype([("id", "u1"), ("address", "<u2"), ("length", "<u2"),
+                             ("current", "<i2")])
+
+
+#: ``read_instruction``: "auto" chooses from the data (:func:`choose_transfers`).
+READ_INSTRUCTIONS = ("auto", "sync", "fast", "bulk")
+WRITE_INSTRUCTIONS = ("auto", "sync", "bulk")
+_READ_NAMES = {"sync": "SYNC_READ", "fast": "FAST_SYNC_READ", "bulk": "BULK_READ"}
+_WRITE_NAMES = {"sync": "SYNC_WRITE", "bulk": "BULK_WRITE"}
+#: The items each period reads, in the order of the state block, and the one it writes.
+STATE_ITEMS = ("Present Current", "Present Velocity", "Present Position")
+TICK_ITEMS = ("Realtime Tick",) + STATE_ITEMS
+
+
+def _block(spec, items: tuple[str, ...]) -> tuple[int, int, tuple[int, ...]]:
+    """``(address, length, offsets)`` of the contiguous block holding ``items`` in ``spec``'s
+    control table (offsets of each item from the block's start; its size is in the tuple
+    too, so two models agree only if addresses, sizes and offsets all do)."""
+    found = [spec.item(name) for name in items]
+    start = min(it.address for it in found)
+    end = max(it.address + it.size for it in found)
+    return start, end - start, tuple((it.address - start, it.size) for it in found)
+
+
+def choose_transfers(specs, items: tuple[str, ...] = STATE_ITEMS,
+                     goal_item: str = "Goal Current") -> tuple[str, str, str]:
+    """The per-period read and write of a chain of motors of these models (their data:
+    ``cochlea/dynamixel/models``): ``(read, write, why)``.
+
+    * read: "bulk" (BULK_READ, per-motor address and length) when the motors' blocks of
+      ``items`` lie at different addresses; "fast" (FAST_SYNC_READ) when they all lie at the
+      same address and every model's data says it answers FAST_SYNC_READ
+      (``fast_sync_read = true``); "sync" (SYNC_READ) otherwise -- an unsourced
+      ``fast_sync_read`` counts as no;
+    * write: "sync" (SYNC_WRITE) when every model's ``goal_item`` has one address and size,
+      "bulk" (BULK_WRITE) otherwise.
+
+    Raises :class:`BackendError` for a chain no transfer can read into one state layout (the
+    items' sizes or order within the block differ): the parse would misread them."""
+    specs = list(specs)
+    blocks = []
+    for spec in specs:
+        try:
+            blocks.append(_block(spec, items))
+        except KeyError as exc:
+            raise BackendError(f"the {spec.name} has no {exc.args[0]} item: the bridge "
+                               "cannot read it") from None
+    if len({(length, offsets) for _, length, offsets in blocks}) > 1:
+        raise BackendError("the motors' control tables place " + ", ".join(items)
+                           + " differently within the block (" + "; ".join(
+                               f"{sp.name}: {b[2]}" for sp, b in zip(specs, blocks))
+                           + "): no single read layout fits them")
+    goals = set()
+    for spec in specs:
+        try:
+            it = spec.item(goal_item)
+        except KeyError:
+            raise BackendError(f"the {spec.name} has no {goal_item} item") from None
+        if it.size != 2:
+            raise BackendError(f"the {spec.name}'s {goal_item} is {it.size} bytes, not 2")
+        goals.add(it.address)
+    write = "sync" if len(goals) == 1 else "bulk"
+    if len({b[0] for b in blocks}) > 1:
+        return "bulk", write, ("the motors read " + ", ".join(items) + " at different "
+                               "addresses: BULK_READ")
+    unsure = sorted({sp.name for sp in specs if sp.fast_sync_read is None})
+    no = sorted({sp.name for sp in specs if sp.fast_sync_read is False})
+    if not unsure and not no:
+        return "fast", write, "every model answers FAST_SYNC_READ (its data)"
+    why = []
+    if no:
+        why.append(", ".join(no) + " without FAST_SYNC_READ")
+    if unsure:
+        why.append(", ".join(unsure) + ": FAST_SYNC_READ support not sourced")
+    return "sync", write, "SYNC_READ (" + "; ".join(why) + ")"
 
 
 class DynamixelBackend:
@@ -148,7 +230,8 @@ class DynamixelBackend:
                  adapter_latency_s: float | None = None, retries: int = 3,
                  open_port=SerialPort, system=None, homing: str = "auto",
                  homing_record: str | Path | None = None, realtime_tick: bool = False,
-                 offset_current: bool = True):
+                 offset_current: bool = True, read_instruction: str = "auto",
+                 write_instruction: str = "auto"):
         self.robot = robot
         self.port_path = str(port)
         baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
@@ -174,8 +257,33 @@ class DynamixelBackend:
             (TICK_ADDRESS, TICK_READ_LENGTH, _TICK_STATE_DTYPE) if self.realtime_tick
             else (STATE_ADDRESS, STATE_LENGTH, _STATE_DTYPE))
         self._read_length = read_length
+        # The per-period transfers, from the models' data (a mixed chain whose items lie at
+        # different addresses: BULK_READ / BULK_WRITE; FAST_SYNC_READ where every model has it).
+        if read_instruction not in READ_INSTRUCTIONS:
+            raise BackendError(f"read_instruction must be one of {', '.join(READ_INSTRUCTIONS)}"
+                               f", got {read_instruction!r}")
+        if write_instruction not in WRITE_INSTRUCTIONS:
+            raise BackendError(f"write_instruction must be one of "
+                               f"{', '.join(WRITE_INSTRUCTIONS)}, got {write_instruction!r}")
+        items = TICK_ITEMS if self.realtime_tick else STATE_ITEMS
+        auto_read, auto_write, why = choose_transfers([d.spec for d in self.drives], items)
+        self.read_instruction = auto_read if read_instruction == "auto" else read_instruction
+        self.write_instruction = auto_write if write_instruction == "auto" \
+            else write_instruction
+        if read_instruction != "auto" and read_instruction != auto_read:
+            why = f"{_READ_NAMES[self.read_instruction]} (asked; the data: {why})"
+        if auto_read == "bulk" and self.read_instruction != "bulk":
+            raise BackendError(f"{_READ_NAMES[self.read_instruction]} cannot read this chain: "
+                               + why)
+        if auto_write == "bulk" and self.write_instruction != "bulk":
+            raise BackendError("SYNC_WRITE cannot write this chain's Goal Current: the models "
+                               "place it at different addresses")
+        self.read_choice = why
+        self._reads = [(d.id, *_block(d.spec, items)[:2]) for d in self.drives]
         self.budget: BusBudget = bus_budget(n, self.baud, adapter_latency_s=adapter_latency_s,
-                                            read_length=read_length)
+                                            read_length=read_length,
+                                            read_instruction=self.read_instruction,
+                                            write_instruction=self.write_instruction)
         self.timeout_s = timeout_s if timeout_s is not None else self.budget.cycle_s + 3e-3
         self.position_margin = position_margin_rad
         self.retries = max(1, retries)
@@ -198,11 +306,22 @@ class DynamixelBackend:
 
         # ---- preallocated per-period state -----------------------------------------------------
         self._parser = proto.PacketParser(status=True)
-        self._read_frame = proto.sync_read(read_address, read_length, self.ids)
+        if self.read_instruction == "bulk":
+            self._read_frame = proto.bulk_read(self._reads)
+        elif self.read_instruction == "fast":
+            self._read_frame = proto.fast_sync_read(read_address, read_length, self.ids)
+        else:
+            self._read_frame = proto.sync_read(read_address, read_length, self.ids)
         self._read_view = memoryview(self._read_frame)
-        self._write_frame = proto.sync_write_buffer(ADDR_GOAL_CURRENT, 2, self.ids)
-        self._goal = np.frombuffer(self._write_frame.params, _GOAL_DTYPE, count=n,
-                                   offset=4)["current"]
+        if self.write_instruction == "bulk":
+            self._write_frame, _ = proto.bulk_write_buffer(
+                [(d.id, d.spec.item("Goal Current").address, 2) for d in self.drives])
+            self._goal = np.frombuffer(self._write_frame.params, _BULK_GOAL_DTYPE,
+                                       count=n)["current"]
+        else:
+            self._write_frame = proto.sync_write_buffer(ADDR_GOAL_CURRENT, 2, self.ids)
+            self._goal = np.frombuffer(self._write_frame.params, _GOAL_DTYPE, count=n,
+                                       offset=4)["current"]
         self._raw = bytearray(read_length * n)
         self._raw_view = memoryview(self._raw)
         state = np.frombuffer(self._raw, dtype)
@@ -262,9 +381,18 @@ class DynamixelBackend:
         self._alert_tries = 0
         self._alert_frames = {i: proto.read(i, ADDR_HARDWARE_ERROR, 1) for i in self.ids}
         self.shutdown_report = "not started"
-        self._zero_frame = proto.sync_write(ADDR_GOAL_CURRENT, 2, [(i, b"\0\0") for i in self.ids])
-        self._torque_off_frame = proto.sync_write(ADDR_TORQUE_ENABLE, 1,
-                                                  [(i, b"\0") for i in self.ids])
+        #: Firmware Version of each motor, from its PING reply at start-up.
+        self.firmware: dict[int, int] = {}
+        if self.write_instruction == "bulk":
+            self._zero_frame = proto.bulk_write(
+                [(d.id, d.spec.item("Goal Current").address, b"\0\0") for d in self.drives])
+            self._torque_off_frame = proto.bulk_write(
+                [(d.id, d.spec.item("Torque Enable").address, b"\0") for d in self.drives])
+        else:
+            self._zero_frame = proto.sync_write(ADDR_GOAL_CURRENT, 2,
+                                                [(i, b"\0\0") for i in self.ids])
+            self._torque_off_frame = proto.sync_write(ADDR_TORQUE_ENABLE, 1,
+                                                      [(i, b"\0") for i in self.ids])
 
     # ---- the Backend interface ------------------------------------------------------------------
 
@@ -368,9 +496,15 @@ class DynamixelBackend:
         port = self._port
         return {
             "port": self.port_path, "baud": self.baud, "motors": self.ids,
+            # The budget of the transfers sent each period, chosen from the models' data
+            # (choose_transfers), and why. (Within bus_budget: the embedded program's summary
+            # has every key of this level, tests/test_embedded_program.py.)
             "bus_budget": {"bytes_per_period": self.budget.total_bytes,
                            "wire_s": self.budget.wire_s, "bus_s": self.budget.bus_s,
-                           "with_adapter_latency_s": self.budget.cycle_s},
+                           "with_adapter_latency_s": self.budget.cycle_s,
+                           "read_instruction": _READ_NAMES[self.read_instruction],
+                           "write_instruction": _WRITE_NAMES[self.write_instruction],
+                           "read_choice": self.read_choice},
             "read_timeout_s": self.timeout_s, "watchdog_s": self.watchdog_lsb * WATCHDOG_UNIT_S,
             "realtime_tick_check": self.realtime_tick,
             # Who compensates the gearbox's friction: the bridge's offset current, or the
@@ -440,6 +574,11 @@ class DynamixelBackend:
         deadline = asked + self.timeout_s
         if not port.write(self._read_view, len(self._read_frame), deadline):
             return self._fail(PORT, -1)
+        if self.read_instruction == "fast":
+            ok = self._fast_sync_read(port, deadline)
+            if not ok:
+                return False
+            return self._finish_read(x, asked)
         slots, slot_of = self._slots, self._slot_of
         n = self.nq
         length = self._read_length
@@ -489,6 +628,11 @@ class DynamixelBackend:
                 self.garbage_packets += 1
         if failure >= 0:
             return self._fail(failure, failure_id)
+        return self._finish_read(x, asked)
+
+    def _finish_read(self, x: np.ndarray, asked: float) -> bool:
+        """Every motor's block is in ``_raw``: the stale-packet check, then the state."""
+        n = self.nq
         if self.realtime_tick and not self._fresh(asked, time.perf_counter()):
             return False
         q, qd = x[:n], x[n:]
@@ -499,6 +643,66 @@ class DynamixelBackend:
         np.multiply(self._cur, self._joint_A_per_lsb, out=self.joint_current_A)
         self.good_reads += 1
         return True
+
+    def _fast_sync_read(self, port: SerialPort, deadline: float) -> bool:
+        """The reply to a FAST_SYNC_READ: one combined status packet (ID 0xFE) holding every
+        motor's block (:func:`cochlea.dynamixel.protocol.check_fast_sync`), copied into
+        ``_raw``. Its faults go through the same counters and failure kinds as SYNC_READ's: a
+        motor missing from the packet ``length`` (that motor), a CRC that fails (the packet's:
+        ``crc``, the motor unknown; a block's running CRC: ``crc``, that motor), another ID
+        where a block belongs (``length``), an error byte or the alert bit in a block
+        (``error-byte``, ``hardware-alert``), a motor answering alone with an error (a model or
+        firmware without FAST_SYNC_READ: ``error-byte``), nothing in time (``timeout``)."""
+        parser = self._parser
+        length = self._read_length
+        ids = self.ids
+        while True:
+            code = self._next_packet(port, deadline)
+            if code == _PORT_FAILED:
+                return self._fail(PORT, -1)
+            if code == _TIMED_OUT:
+                return self._fail(TIMEOUT, ids[0])
+            if code == proto.CRC_FAILURE:
+                return self._fail(CRC, parser.id if self._slot_of[parser.id] >= 0 else -1)
+            if code != proto.OK:
+                self.garbage_packets += 1
+                continue
+            if parser.id != proto.BROADCAST_ID:
+                if self._slot_of[parser.id] < 0:
+                    self.unexpected_packets += 1
+                    continue
+                # A motor answering on its own: it refused the instruction (or its alert).
+                if parser.error & ALERT_BIT:
+                    return self._alert(parser.id)
+                return self._fail(ERROR_BYTE if parser.error & 0x7F else LENGTH, parser.id)
+            break
+        result, k = proto.check_fast_sync(parser, ids, length)
+        if result == proto.FAST_BLOCK_CRC:
+            return self._fail(CRC, ids[k])
+        if result:
+            return self._fail(LENGTH, ids[k])
+        buf, raw = parser.view, self._raw_view
+        failure, failure_id = -1, -1
+        for j in range(self.nq):
+            at = proto.fast_block(parser, j, length)
+            error = buf[at]
+            if error & ALERT_BIT:
+                if ids[j] not in self.alert_ids:
+                    self.alert_ids.add(ids[j])
+                    self._alert_pending, self._alert_tries = ids[j], 0
+                failure, failure_id = ALERT, ids[j]
+            elif error & 0x7F and failure < 0:
+                failure, failure_id = ERROR_BYTE, ids[j]
+            raw[j * length:(j + 1) * length] = buf[at + 2:at + 2 + length]
+        if failure >= 0:
+            return self._fail(failure, failure_id)
+        return True
+
+    def _alert(self, motor_id: int) -> bool:
+        if motor_id not in self.alert_ids:
+            self.alert_ids.add(motor_id)
+            self._alert_pending, self._alert_tries = motor_id, 0
+        return self._fail(ALERT, motor_id)
 
     def _fresh(self, asked: float, arrived: float) -> bool:
         """The Realtime-Tick check of a read whose packets all came (``asked``: when the
@@ -686,6 +890,8 @@ class DynamixelBackend:
                 problems.append(str(exc))
                 continue
             number = proto.from_le(params[0:2], False) if len(params) >= 2 else -1
+            if len(params) >= 3:
+                self.firmware[d.id] = params[2]
             if number != d.spec.number:
                 other = MODELS_BY_NUMBER.get(number)
                 problems.append(f"{self._who(d)} is model number {number}"
@@ -713,7 +919,8 @@ class DynamixelBackend:
                 if self.read(x):
                     break
             else:
-                raise BackendError(f"no good SYNC_READ of the motors' state on {self.port_path} "
+                raise BackendError(f"no good {_READ_NAMES[self.read_instruction]} of the "
+                                   f"motors' state on {self.port_path} "
                                    f"in {3 * self.retries} tries (last failure: "
                                    f"{self.describe_last_failure()})")
         finally:

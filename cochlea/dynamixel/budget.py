@@ -19,6 +19,20 @@ Time (2 us per LSB; the bridge sets 0) plus its own turnaround, which the e-Manu
 so one read transaction costs up to that much more. Byte stuffing can add a byte now and then;
 it is not counted.
 
+The transfers actually sent (``read_instruction``, ``write_instruction``: docs/dynamixel.md
+"Mixed chains and Fast Sync Read"):
+
+* ``sync``: SYNC_READ as above, one status packet per motor, each after its own wait;
+* ``fast``: FAST_SYNC_READ (0x8A), the same ``14 + n`` byte request, one combined status
+  packet of ``8 + n (L + 4)`` bytes (header 7, 0x55, per motor ERR, ID, L data bytes and a
+  CRC, the last motor's CRC the packet's): 6 motors, L = 16: 128 bytes instead of 6 x 27 =
+  162, and one wait (return delay + turnaround) instead of 6 -- the motors are counted as
+  sending their blocks back to back, an assumption (the e-Manual gives no gap figure);
+* ``bulk``: BULK_READ (0x92), ``10 + 5 n`` bytes (per motor ID, address 2, length 2), one
+  status packet per motor as for SYNC_READ;
+* writes: SYNC_WRITE ``14 + n (1 + W)``, or BULK_WRITE (0x93) ``10 + n (5 + W)`` (per motor ID,
+  address 2, length 2, W data bytes).
+
 For 6 motors (178 bytes): 1.78 ms of wire at 1 Mbaud, 0.89 ms at 2 Mbaud, 0.45 ms at 4 Mbaud,
 plus 0.12 ms of turnaround: a strict 1 kHz cycle fits only at 4 Mbaud and only without the
 adapter's latency, hence "marginal".
@@ -56,11 +70,22 @@ class BusBudget:
     adapter_latency_s: float
     sync_write_bytes: int
     sync_read_bytes: int
-    reply_bytes: int  # one status packet
+    reply_bytes: int  # one status packet (sync, bulk); the combined one's share (fast)
+    read_instruction: str = "sync"  # "sync" | "fast" | "bulk"
+    write_instruction: str = "sync"  # "sync" | "bulk"
+    #: The one combined status packet of a FAST_SYNC_READ (0 otherwise).
+    combined_reply_bytes: int = 0
 
     @property
     def total_bytes(self) -> int:
-        return self.sync_write_bytes + self.sync_read_bytes + self.motors * self.reply_bytes
+        replies = (self.combined_reply_bytes if self.read_instruction == "fast"
+                   else self.motors * self.reply_bytes)
+        return self.sync_write_bytes + self.sync_read_bytes + replies
+
+    @property
+    def replies(self) -> int:
+        """Status packets per period (each after a return delay and a turnaround)."""
+        return 1 if self.read_instruction == "fast" else self.motors
 
     @property
     def byte_time_s(self) -> float:
@@ -73,7 +98,7 @@ class BusBudget:
     @property
     def waits_s(self) -> float:
         """Return delays and turnarounds of all status packets."""
-        return self.motors * (self.return_delay_s + self.turnaround_s)
+        return self.replies * (self.return_delay_s + self.turnaround_s)
 
     @property
     def bus_s(self) -> float:
@@ -86,9 +111,15 @@ class BusBudget:
         return self.bus_s + self.adapter_latency_s
 
     def describe(self) -> str:
+        write = "SYNC_WRITE" if self.write_instruction == "sync" else "BULK_WRITE"
+        read = {"sync": "SYNC_READ", "fast": "FAST_SYNC_READ", "bulk": "BULK_READ"}[
+            self.read_instruction]
+        replies = (f"one combined status packet of {self.combined_reply_bytes}"
+                   if self.read_instruction == "fast"
+                   else f"{self.motors} status packets x {self.reply_bytes}")
         return (f"{self.motors} motors at {self.baud} baud: {self.total_bytes} bytes per period "
-                f"(SYNC_WRITE {self.sync_write_bytes}, SYNC_READ {self.sync_read_bytes}, "
-                f"{self.motors} status packets x {self.reply_bytes}) = "
+                f"({write} {self.sync_write_bytes}, {read} {self.sync_read_bytes}, "
+                f"{replies}) = "
                 f"{self.wire_s * 1e6:.0f} us on the wire + {self.waits_s * 1e6:.0f} us of "
                 f"return delay and turnaround = {self.bus_s * 1e6:.0f} us; with the adapter's "
                 f"{self.adapter_latency_s * 1e3:g} ms latency {self.cycle_s * 1e6:.0f} us")
@@ -112,10 +143,19 @@ class BusBudget:
 def bus_budget(motors: int, baud: int, *, return_delay_s: float = 0.0,
                turnaround_s: float = DEFAULT_TURNAROUND_S,
                adapter_latency_s: float = DEFAULT_ADAPTER_LATENCY_S,
-               read_length: int = STATE_LENGTH, write_length: int = 2) -> BusBudget:
-    """The budget of one period: one SYNC_WRITE of ``write_length`` bytes per motor, one
-    SYNC_READ of ``read_length`` bytes per motor."""
+               read_length: int = STATE_LENGTH, write_length: int = 2,
+               read_instruction: str = "sync", write_instruction: str = "sync") -> BusBudget:
+    """The budget of one period: one write of ``write_length`` bytes per motor
+    (``write_instruction`` "sync" or "bulk"), one read of ``read_length`` bytes per motor
+    (``read_instruction`` "sync", "fast" or "bulk"; see the module docstring)."""
     if motors < 1 or baud <= 0:
         raise ValueError(f"need at least one motor and a positive baud rate, got {motors}, {baud}")
+    if read_instruction not in ("sync", "fast", "bulk") or write_instruction not in ("sync",
+                                                                                     "bulk"):
+        raise ValueError(f"unknown transfer {read_instruction!r} / {write_instruction!r}")
+    write = (14 + motors * (1 + write_length) if write_instruction == "sync"
+             else 10 + motors * (5 + write_length))
+    request = 10 + 5 * motors if read_instruction == "bulk" else 14 + motors
     return BusBudget(motors, baud, return_delay_s, turnaround_s, adapter_latency_s,
-                     14 + motors * (1 + write_length), 14 + motors, 11 + read_length)
+                     write, request, 11 + read_length, read_instruction, write_instruction,
+                     8 + motors * (read_length + 4) if read_instruction == "fast" else 0)

@@ -1,7 +1,8 @@
 """``cochlea-emulator``: a virtual Dynamixel chain on a pseudo-terminal, driven by the plant model.
 
 The motors of a scenario's robot description answer Protocol 2.0 on a pseudo-terminal (PING,
-READ, WRITE, REBOOT, SYNC_READ, SYNC_WRITE; other instructions get an Instruction Error) with
+READ, WRITE, REBOOT, SYNC_READ, SYNC_WRITE, BULK_READ, BULK_WRITE and FAST_SYNC_READ where the
+model supports it; other instructions get an Instruction Error) with
 the control tables of :mod:`cochlea.dynamixel.control_table`: EEPROM items locked while the
 torque is on, range and limit checks, Goal Current reset to the Current Limit when the
 Operating Mode changes, the Bus Watchdog, the hardware alert bit, Status Return Level.
@@ -91,12 +92,15 @@ from .control_table import (
     ALERT_BIT,
     BAUD_RATES,
     BROADCAST_ID,
+    BULK_READ,
+    BULK_WRITE,
     COUNTS_PER_REV,
     CRC_ERROR,
     CURRENT_MODE,
     DATA_LENGTH,
     DATA_LIMIT,
     DATA_RANGE,
+    FAST_SYNC_READ,
     HARDWARE_ERROR_BITS,
     INSTRUCTION_ERROR,
     INSTRUCTION_NAMES,
@@ -502,6 +506,11 @@ class VirtualChain:
     foreground; :attr:`path` is the pseudo-terminal to open.
     """
 
+    #: Which motors answer FAST_SYNC_READ (0x8A): None, as their model's data says
+    #: (``fast_sync_read`` true; unsourced or false: an Instruction Error); True or False, every
+    #: motor or none (a firmware the data does not describe: set on the chain before start()).
+    fast_sync_read: bool | None = None
+
     def __init__(self, robot: str, scenario: str | Path | None = None, *,
                  baud: int = 4_000_000, wire_timing: bool = False, faults: Faults | None = None,
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
@@ -851,6 +860,29 @@ class VirtualChain:
                 if m is not None and self._contact(m, now):
                     error, data = m.read(address, length)
                     replies.append((m, error, self._stale_reply(m, now, address, data)))
+        elif inst == FAST_SYNC_READ and broadcast and len(params) >= 4:
+            self._fast_sync_read(now, params, p.frame_len)
+            return
+        elif inst == BULK_READ and broadcast and len(params) >= 5 and len(params) % 5 == 0:
+            self._event(now, "bulk-read", BROADCAST_ID)
+            for k in range(0, len(params), 5):
+                m = self.by_id.get(params[k])
+                if m is not None and self._contact(m, now):
+                    address = proto.from_le(params[k + 1:k + 3], False)
+                    length = proto.from_le(params[k + 3:k + 5], False)
+                    error, data = m.read(address, length)
+                    replies.append((m, error, self._stale_reply(m, now, address, data)))
+        elif inst == BULK_WRITE and broadcast and len(params) >= 5:
+            k = 0
+            while k + 5 <= len(params):
+                length = proto.from_le(params[k + 3:k + 5], False)
+                if k + 5 + length > len(params):
+                    break  # a truncated entry: the rest is not applied
+                m = self.by_id.get(params[k])
+                if m is not None and self._contact(m, now):
+                    self._write(m, params[k + 1:k + 3] + params[k + 5:k + 5 + length], now,
+                                "bulk-write")
+                k += 5 + length
         elif inst == SYNC_WRITE and broadcast and len(params) >= 4:
             address, length = proto.from_le(params[0:2], False), proto.from_le(params[2:4], False)
             chunk = 1 + length
@@ -866,6 +898,66 @@ class VirtualChain:
                                 f"{INSTRUCTION_NAMES.get(inst, hex(inst))} not emulated")
                     replies.append((m, INSTRUCTION_ERROR, b""))
         self._reply(now, p.frame_len, replies, inst)
+
+    def _answers_fast_sync(self, m: VirtualMotor) -> bool:
+        if self.fast_sync_read is not None:
+            return bool(self.fast_sync_read)
+        return m.spec.fast_sync_read is True
+
+    def _fast_sync_read(self, now: float, params: bytes, request_len: int) -> None:
+        """FAST_SYNC_READ (0x8A): the motors listed answer with one combined status packet
+        (:func:`cochlea.dynamixel.protocol.fast_sync_status`). A motor whose model (or
+        firmware) lacks the instruction answers its own status packet with an Instruction
+        Error instead, and the combined packet is not sent (the chain of replies is broken).
+        A dropped reply (fault) leaves its block out; a corrupted one flips its CRC bytes
+        (the packet's own CRC then fails too, as on a wire)."""
+        address, length = proto.from_le(params[0:2], False), proto.from_le(params[2:4], False)
+        self._event(now, "fast-sync-read", BROADCAST_ID, address, length)
+        listed = [self.by_id.get(i) for i in params[4:]]
+        here = [m for m in listed if m is not None and self._contact(m, now)]
+        refused = [m for m in here if not self._answers_fast_sync(m)]
+        if refused:
+            for m in refused:
+                self._event(now, "refused", m.id, -1, "FAST_SYNC_READ not supported by the "
+                            f"{m.spec.name} (firmware {m.spec.firmware})")
+            self._reply(now, request_len, [(m, INSTRUCTION_ERROR, b"") for m in refused],
+                        FAST_SYNC_READ)
+            return
+        f = self.faults
+        active = self._active(now)
+        blocks, corrupt = [], []
+        for m in here:
+            if m.table[68] == 0:  # Status Return Level 0: PING only
+                continue
+            error, data = m.read(address, length)
+            data = self._stale_reply(m, now, address, data)
+            if m.hardware_error:
+                error |= ALERT_BIT
+            hit = active and (f.ids is None or m.id in f.ids)
+            if hit and f.drop and self._rng.random() < f.drop:
+                self.counts["dropped"] += 1
+                self._event(now, "fault", m.id, -1, "reply dropped")
+                continue
+            if hit and f.crc and self._rng.random() < f.crc:
+                corrupt.append(len(blocks))
+                self.counts["corrupted"] += 1
+                self._event(now, "fault", m.id, -1, "CRC corrupted")
+            blocks.append((m.id, error, data))
+        if not blocks:
+            return
+        packet = bytearray(proto.fast_sync_status(blocks))
+        for k in corrupt:  # the block's CRC bytes (the last block's is the packet's)
+            at = (proto.PREFIX + 1 + (k + 1) * (length + 4) - 2
+                  if k < len(blocks) - 1 else len(packet) - 2)
+            packet[min(at, len(packet) - 2)] ^= 0xFF
+        t = max(now, self._bus_free) + request_len * self.byte_time
+        if self.wire_timing:
+            t += here[0].return_delay_s
+        t += len(packet) * self.byte_time
+        self._seq += 1
+        heapq.heappush(self._queue, (t, self._seq, bytes(packet)))
+        self.counts["replies"] += 1
+        self._bus_free = t
 
     # ---- fault: stale status packets (--stale-replies) ------------------------------------
 
@@ -904,7 +996,8 @@ class VirtualChain:
         active = self._active(now)
         for m, error, data in replies:
             level = m.table[68]  # Status Return Level: 0 PING only, 1 + READ, 2 all
-            if not (inst == PING or level == 2 or (level == 1 and inst in (READ, SYNC_READ))):
+            if not (inst == PING or level == 2
+                    or (level == 1 and inst in (READ, SYNC_READ, BULK_READ, FAST_SYNC_READ))):
                 continue
             if m.hardware_error:
                 error |= ALERT_BIT

@@ -11,9 +11,10 @@ CRC (polynomial 0x8005, initial value 0, no reflection, no final XOR) covers the
 frame from the header on. A receiver checks the CRC, then removes the stuffing.
 
 The builders (:func:`ping`, :func:`read`, :func:`write`, :func:`sync_read`, :func:`sync_write`,
-...) return ``bytes`` and are for set-up code. The per-period path uses :class:`FrameBuffer`
-(a frame rebuilt in place in a preallocated buffer) and :class:`PacketParser` (a streaming
-parser over a preallocated buffer that returns a result code, never raises).
+:func:`fast_sync_read`, :func:`bulk_read`, :func:`bulk_write`, ...) return ``bytes`` and are
+for set-up code. The per-period path uses :class:`FrameBuffer` (a frame rebuilt in place in a
+preallocated buffer) and :class:`PacketParser` (a streaming parser over a preallocated buffer
+that returns a result code, never raises).
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ from collections.abc import Iterable, Sequence
 
 from .control_table import (
     BROADCAST_ID,
+    BULK_READ,
+    BULK_WRITE,
+    FAST_SYNC_READ,
     MAX_ID,
     PING,
     READ,
@@ -179,6 +183,132 @@ def sync_read(address: int, length: int, ids: Iterable[int]) -> bytes:
     return instruction(BROADCAST_ID, SYNC_READ, le(address, 2) + le(length, 2) + bytes(ids))
 
 
+def fast_sync_read(address: int, length: int, ids: Iterable[int]) -> bytes:
+    """FAST_SYNC_READ (0x8A): the SYNC_READ request with another instruction code; the motors
+    answer with one combined status packet (:func:`fast_sync_status`, :func:`split_fast_sync`)."""
+    return instruction(BROADCAST_ID, FAST_SYNC_READ,
+                       le(address, 2) + le(length, 2) + bytes(ids))
+
+
+def bulk_read(reads: Sequence[tuple[int, int, int]]) -> bytes:
+    """BULK_READ (0x92): ``reads`` is one ``(id, address, length)`` per motor; each motor
+    answers with its own status packet, in list order."""
+    params = bytearray()
+    for motor_id, address, length in reads:
+        params.append(motor_id)
+        params += le(address, 2) + le(length, 2)
+    return instruction(BROADCAST_ID, BULK_READ, params)
+
+
+def bulk_write(writes: Sequence[tuple[int, int, bytes]]) -> bytes:
+    """BULK_WRITE (0x93): ``writes`` is one ``(id, address, data)`` per motor (no reply)."""
+    params = bytearray()
+    for motor_id, address, data in writes:
+        params.append(motor_id)
+        params += le(address, 2) + le(len(data), 2) + bytes(data)
+    return instruction(BROADCAST_ID, BULK_WRITE, params)
+
+
+def bulk_write_buffer(writes: Sequence[tuple[int, int, int]]) -> tuple[FrameBuffer, list[int]]:
+    """A BULK_WRITE frame rebuilt in place each period: ``writes`` is one ``(id, address,
+    length)`` per motor; returns the buffer and, per motor, where its data start in
+    ``params``."""
+    params = bytearray()
+    starts = []
+    for motor_id, address, length in writes:
+        params.append(motor_id)
+        params += le(address, 2) + le(length, 2)
+        starts.append(len(params))
+        params += bytes(length)
+    return FrameBuffer(BROADCAST_ID, BULK_WRITE, params), starts
+
+
+def fast_sync_status(blocks: Sequence[tuple[int, int, bytes]]) -> bytes:
+    """The combined status packet of a FAST_SYNC_READ (what the motors send together):
+    ``blocks`` is one ``(id, error, data)`` per answering motor, in request order.
+
+    One header with ID 0xFE and instruction 0x55; then per motor ``ERR ID DATA CRC``, where
+    each motor's CRC is that of the packet from its header up to the end of its own data (a
+    running CRC: each motor appends its block to what the previous ones sent); the last
+    motor's CRC is the packet's own. LEN counts from the instruction to that last CRC. The
+    stuffing is applied to the whole body, as in every packet; the intermediate CRCs here are
+    computed over the stuffed bytes sent so far."""
+    if not blocks:
+        raise ValueError("a FAST_SYNC_READ status needs at least one motor")
+    body = bytearray([STATUS])
+    marks = []  # end (in body) of each motor's data, before its CRC
+    for k, (motor_id, error, data) in enumerate(blocks):
+        body += bytes([error, motor_id]) + bytes(data)
+        marks.append(len(body))
+        if k < len(blocks) - 1:
+            body += b"\0\0"  # this motor's CRC, filled in below
+    # Stuff the body, then fill the running CRCs over the stuffed stream.
+    out = bytearray(HEADER) + bytes([BROADCAST_ID, 0, 0])
+    length = 0
+    stuffed = bytearray()
+    last1 = last2 = 0
+    crc_slots = []
+    for i, x in enumerate(body):
+        stuffed.append(x)
+        if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
+            stuffed.append(0xFD)
+        last2, last1 = last1, x
+        if i + 1 in marks[:-1]:
+            crc_slots.append(len(stuffed))
+    length = len(stuffed) + 2
+    out[5], out[6] = length & 0xFF, length >> 8
+    frame = out + stuffed
+    for slot in crc_slots:
+        at = PREFIX + slot
+        crc = crc16(frame, 0, at)
+        frame[at], frame[at + 1] = crc & 0xFF, crc >> 8
+    crc = crc16(frame)
+    frame += bytes([crc & 0xFF, crc >> 8])
+    return bytes(frame)
+
+
+#: What :func:`check_fast_sync` reports besides OK (a motor's block and where it went wrong).
+FAST_MISSING, FAST_WRONG_ID, FAST_BLOCK_CRC = 1, 2, 3
+
+
+def check_fast_sync(parser: PacketParser, ids: Sequence[int], length: int) -> tuple[int, int]:
+    """Check the combined FAST_SYNC_READ status the parser has just returned OK (ID 0xFE):
+    ``(0, -1)`` when every motor ``ids[k]`` has its block, in order, of ``length`` data bytes,
+    its running CRC right; else ``(code, k)`` for the first motor at fault: ``FAST_MISSING``
+    (the packet holds fewer blocks than motors asked), ``FAST_WRONG_ID`` (another ID where its
+    block should be), ``FAST_BLOCK_CRC`` (its running CRC does not match). Motor k's error
+    byte is ``parser.buf[fast_block(parser, k, length)]``, its ID one byte later, its data two.
+
+    The running CRCs are checked over the header and the unstuffed body (the parser removed
+    the stuffing): the bytes on the wire unless a ``FF FF FD`` was stuffed, in which case
+    only the packet's own CRC (already checked by the parser) is relied on."""
+    b = parser.buf
+    block = length + 4
+    n = len(ids)
+    present = (parser.params_len + 3) // block if parser.params_len + 3 >= block else 0
+    whole = parser.params_len + 3 == present * block
+    frame = parser.params_start - 2 - PREFIX  # where the frame starts in the buffer
+    stuffed = parser.frame_len != PREFIX + 2 + parser.params_len + 2
+    for k in range(min(n, present)):
+        at = parser.params_start - 1 + k * block
+        if b[at + 1] != ids[k]:
+            return FAST_WRONG_ID, k
+        if k < n - 1 and k < present - 1 and not stuffed:
+            crc_at = at + 2 + length
+            if crc16(b, frame, crc_at) != (b[crc_at] | (b[crc_at + 1] << 8)):
+                return FAST_BLOCK_CRC, k
+    if present < n:
+        return FAST_MISSING, present
+    if present > n or not whole:
+        return FAST_WRONG_ID, min(present, n) - 1
+    return 0, -1
+
+
+def fast_block(parser: PacketParser, k: int, length: int) -> int:
+    """Where motor k's block (its error byte) starts in ``parser.buf`` (see check_fast_sync)."""
+    return parser.params_start - 1 + k * (length + 4)
+
+
 def sync_write(address: int, length: int, data: Sequence[tuple[int, bytes]]) -> bytes:
     """``data``: one ``(id, bytes)`` per motor, each ``length`` bytes long."""
     params = bytearray(le(address, 2) + le(length, 2))
@@ -317,7 +447,8 @@ class PacketParser:
         packet_id = b[s + 4]
         length = b[s + 5] | (b[s + 6] << 8)
         if self.status:
-            if packet_id > MAX_ID:
+            # 0xFE: the one combined status packet of a FAST_SYNC_READ.
+            if packet_id > MAX_ID and packet_id != BROADCAST_ID:
                 self.start = s + 1
                 self.dropped += 1
                 return BAD_ID
