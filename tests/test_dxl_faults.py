@@ -325,3 +325,25 @@ def test_the_reboot_advice_names_only_the_motors_in_alert(tmp_path, capsys):
         code, out, _ = dxl(capsys, "info", "--robot", "serial", "--port", port)
         assert code == 1 and f"reboot --ids 3 --port {port}" in out
     assert not (tmp_path / "c.toml").exists()
+
+
+@hil
+def test_a_goal_refused_after_the_bus_watchdog_expired_says_so(tmp_path):
+    """A motor whose Bus Watchdog expired refuses every goal with a Data Range Error (the
+    e-Manual's rule, which the emulator follows): the one line names the watchdog, the cause a
+    user can act on, not only the error bit (seen when a loaded machine stalled ``home``)."""
+    with emulator("parallel", tmp_path / "emu.log") as port:
+        bus = common.Bus(port, 4_000_000)
+        try:
+            spec = SLIDER.spec
+            bus.write(SLIDER.id, spec.item("Bus Watchdog"), 1)  # 20 ms
+            bus.write(SLIDER.id, spec.item("Torque Enable"), 1)
+            bus.write(SLIDER.id, spec.item("Goal Current"), 0)
+            time.sleep(0.2)  # no contact for ten watchdog periods: it expires
+            with pytest.raises(common.BusError) as caught:
+                bus.write(SLIDER.id, spec.item("Goal Current"), -10)
+        finally:
+            bus.write(SLIDER.id, SLIDER.spec.item("Torque Enable"), 0)
+            bus.close()
+    message = str(caught.value)
+    assert "Data Range Error" in message and "Bus Watchdog expired" in message, message

@@ -49,6 +49,7 @@ from ..control_table import (
     BAUD_RATES,
     BROADCAST_ID,
     CURRENT_MODE,
+    DATA_RANGE,
     MAX_ID,
     MODELS,
     MX64,
@@ -438,8 +439,15 @@ class Bus:
         if not reply:
             self.send(frame)
             return
-        self._expect(self.request(frame, motor_id), motor_id,
-                     f"WRITE {item.name} ({item.address}) = {value}")
+        what = f"WRITE {item.name} ({item.address}) = {value}"
+        reply = self.request(frame, motor_id)
+        if reply is not None and reply.error & 0x7F == DATA_RANGE and item.name.startswith("Goal "):
+            # A motor whose Bus Watchdog expired refuses every goal with a Data Range Error
+            # until the watchdog is cleared: name that cause, not only the bit.
+            raise BusError(f"{self.who(motor_id)} refused {what}: {describe_error(DATA_RANGE)}: "
+                           "its Bus Watchdog expired (this command stalled past it), so it "
+                           "holds its torque off")
+        self._expect(reply, motor_id, what)
 
     def present(self, d: JointDrive) -> tuple[int, int, int]:
         """``(Present Current LSB, Present Velocity LSB, Present Position counts)`` of ``d`` in
