@@ -264,7 +264,9 @@ def write_new(path: Path, text: str, option: str = "--out") -> None:
                                        "replay writes a new file only: name another")
     parent = path.parent
     if not parent.is_dir():
-        raise results.SweepFolderError(f"{where}: cannot create it, {parent} is not a folder")
+        raise results.SweepFolderError(
+            f"{where}: cannot create it, {parent} "
+            + ("is not a folder" if os.path.lexists(parent) else "does not exist"))
     tmp = None
     try:
         fd, name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")

@@ -174,8 +174,6 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
         in_flight = pending.count()
         for future in pending:
             rows = batch_rows(future, out)
-            if created:
-                created = []  # a sample is written: the folder is the sweep's now
             t0 = time.perf_counter()
             try:
                 results.write_part(out, rows)
@@ -183,6 +181,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
                 raise results.WriteFailed(f"{exc}; every finished batch is kept in {out}: "
                                           "free some space and run the same command to "
                                           "resume") from None
+            created = []  # a batch is written: the folder is the sweep's now
             write_s = time.perf_counter() - t0
             info["batches"] += 1
             in_flight -= 1
