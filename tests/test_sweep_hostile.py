@@ -121,9 +121,9 @@ def test_a_refused_second_sweep_leaves_the_running_ones_files_and_lock(swept, tm
     spec_path, _ = swept
     out = tmp_path / "out"
     spec = sweep_spec.load(spec_path)
-    fd, _ = results.claim(out)  # the first run: holds the lock ...
+    results.prepare(out, spec)
+    fd = results.hold(out)  # the first run: holds the lock ...
     try:
-        results.prepare(out, spec)
         in_flight = out / results.PARTS / "part-000000000-000000000.parquet.tmp"
         in_flight.write_bytes(b"half a batch")  # ... and is writing a batch
         before = tree(out)
