@@ -178,14 +178,14 @@ def test_a_folder_of_another_spec_or_other_files_is_refused(local_sweep, tmp_pat
     _, out = local_sweep
     other = write_spec(tmp_path, seed=8)
     before = sorted(p.name for p in (out / "parts").iterdir())
-    assert cochlea_sweep.main([str(other), "--out", str(out), "--progress", "off"]) == 2
+    assert cochlea_sweep.main([str(other), "--out", str(out), "--progress", "off"]) == 3
     err = capsys.readouterr().err
     assert "different spec" in err and err.count("\n") == 1
     assert sorted(p.name for p in (out / "parts").iterdir()) == before
     busy = tmp_path / "busy"
     busy.mkdir()
     (busy / "notes.txt").write_text("mine")
-    assert cochlea_sweep.main([str(other), "--out", str(busy), "--progress", "off"]) == 2
+    assert cochlea_sweep.main([str(other), "--out", str(busy), "--progress", "off"]) == 3
     assert "other files" in capsys.readouterr().err
     assert sorted(p.name for p in busy.iterdir()) == ["notes.txt"]
 
@@ -380,7 +380,7 @@ def test_a_second_sweep_on_a_running_folder_is_refused(local_sweep, tmp_path, ca
     try:
         code = cochlea_sweep.main([str(spec_path), "--out", str(out), "--workers", "1",
                                    "--progress", "off"])
-        assert code == 2
+        assert code == 4
         assert "another cochlea-sweep is running on this folder" in capsys.readouterr().err
         assert not list((out / "parts").iterdir())
     finally:

@@ -209,12 +209,12 @@ def test_the_same_command_again_runs_nothing_and_another_spec_is_refused(local_t
     assert "all already in" in capsys.readouterr().out
     assert {p.name: p.read_bytes() for p in (out / tuning.SAMPLES).iterdir()} == before
     for args in (["--seed", "8"], ["--objective", "worst"]):
-        assert cochlea_tune.main([str(spec_path), "--out", str(out), *args]) == 2
+        assert cochlea_tune.main([str(spec_path), "--out", str(out), *args]) == 3
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "different spec" in err
     other = write_spec(tmp_path)
     other.write_text(other.read_text().replace("seed = 7", "seed = 9"))
-    assert cochlea_tune.main([str(other), "--out", str(out)]) == 2
+    assert cochlea_tune.main([str(other), "--out", str(out)]) == 3
     assert "different spec" in capsys.readouterr().err
     assert {p.name: p.read_bytes() for p in (out / tuning.SAMPLES).iterdir()} == before
 
@@ -373,7 +373,7 @@ def test_a_folder_with_other_files_or_an_unreachable_scheduler_is_refused(tmp_pa
     busy = tmp_path / "busy"
     busy.mkdir()
     (busy / "notes.txt").write_text("mine")
-    assert cochlea_tune.main([str(spec), "--out", str(busy)]) == 2
+    assert cochlea_tune.main([str(spec), "--out", str(busy)]) == 3
     assert "other files" in capsys.readouterr().err
     assert sorted(p.name for p in busy.iterdir()) == ["notes.txt"]
     monkeypatch.setattr(execute, "CONNECT_TIMEOUT_S", 1)
@@ -450,7 +450,7 @@ def test_a_second_search_on_a_running_folder_is_refused(local_tune, tmp_path, ca
     fd = tuning.hold(out)
     try:
         assert cochlea_tune.main([str(spec), "--out", str(out), "--workers", "1",
-                                  "--progress", "off"]) == 2
+                                  "--progress", "off"]) == 4
     finally:
         tuning.release(out, fd)
     assert "another cochlea-tune is running on this folder" in capsys.readouterr().err

@@ -5,9 +5,10 @@
     cochlea-sweep report DIR
 
 The run resumes: the same command on the same DIR runs only the samples not yet there.
-Exit codes: 0 done; 2 the user's input is wrong (spec, folder, options; nothing ran);
-130 interrupted (every finished batch is kept: run the same command to resume).
-See docs/sweeps.md.
+Exit codes (the table in docs/sweeps.md): 0 done; 2 the spec or an option is wrong; 3 --out
+cannot be used; 4 --out is in use by another run; 5 the folder's files are damaged; 6 a write
+failed while running (a full disk); 7 a sample failed on a worker; 18 the report could not be
+written; 130 interrupted (every finished batch is kept: run the same command to resume).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import time
 from pathlib import Path
 
 from ..console import sigterm_interrupts, tolerate_closed_stdout
-from ..errors import EXIT_USER_ERROR, CochleaError, printable
+from ..errors import CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
 from ..sim import KERNELS, GravityRefused, choose_kernels, load_scenario, simulate, unit_setups
@@ -221,7 +222,7 @@ def _report(out: Path) -> int:
     cannot be drawn) is one line and :data:`EXIT_REPORT_FAILED`, not a traceback."""
     try:
         print(f"cochlea-sweep: report {sweep_report.write(out)}", flush=True)
-    except (OSError, ValueError, ArithmeticError, TypeError) as exc:
+    except (OSError, ValueError, ArithmeticError, TypeError, results.WriteFailed) as exc:
         print(f"cochlea-sweep: the report could not be written ({type(exc).__name__}: "
               f"{printable(str(exc))}); every finished sample is kept in {out}/parts: "
               f"`cochlea-sweep report {out}` writes it again", file=sys.stderr)
@@ -247,15 +248,44 @@ def _replay(argv: list[str]) -> int:
     if args.out is None:
         sys.stdout.write(text)
     else:
-        tmp = args.out.with_name(args.out.name + ".tmp")
-        try:
-            tmp.write_text(text, encoding="utf-8")
-            tmp.replace(args.out)
-        except OSError as exc:
-            raise CochleaError(f"--out {args.out}: cannot write ({exc.strerror})") from None
+        write_new(args.out, text)
         print(f"cochlea-sweep: sample {args.sample} -> {args.out}; run: cochlea-run --robot "
               f"{spec.robot} --space {spec.space} --scenario {args.out} --realtime off")
     return 0
+
+
+def write_new(path: Path, text: str, option: str = "--out") -> None:
+    """``text`` into a new file ``path``, whole or not at all; an existing path of any kind (a
+    file, a FIFO, a device, a link, a folder) is refused and left as it is."""
+    where = f"{option} {path}"
+    if os.path.lexists(path):
+        mode = os.lstat(path).st_mode
+        raise results.SweepFolderError(f"{where} already exists ({results._kind(mode)}): "
+                                       "replay writes a new file only: name another")
+    parent = path.parent
+    if not parent.is_dir():
+        raise results.SweepFolderError(
+            f"{where}: cannot create it, {parent} "
+            + ("is not a folder" if os.path.lexists(parent) else "does not exist"))
+    tmp = None
+    try:
+        fd, name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
+        tmp = Path(name)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.link(tmp, path)  # fails if something appeared there meanwhile: nothing replaced
+    except FileExistsError:
+        raise results.SweepFolderError(f"{where} appeared while it was written: name another"
+                                       ) from None
+    except OSError as exc:
+        raise results.WriteFailed(f"{where}: cannot write it ({exc.strerror or exc})"
+                                  ) from None
+    finally:
+        if tmp is not None:
+            results.remove_ours(tmp)
 
 
 def replay_spec(folder: Path) -> sweep_spec.Spec:
@@ -270,10 +300,17 @@ def replay_spec(folder: Path) -> sweep_spec.Spec:
         for path, text in ((scenario, m.scenario_text), (spec_file, m.spec_text)):
             path.parent.mkdir()
             path.write_text(text, encoding="utf-8")
-        spec = sweep_spec.load(spec_file, scenario_file=scenario)
+        try:
+            spec = sweep_spec.load(spec_file, scenario_file=scenario)
+        except CochleaError as exc:
+            shown = str(exc).replace(str(spec_file), "spec_text").replace(str(scenario),
+                                                                         "scenario_text")
+            raise results.FolderDamaged(f"{folder / results.MANIFEST}: damaged sweep "
+                                        f"manifest: {shown}") from None
     spec = dataclasses.replace(spec, path=Path(m.spec_path), scenario_path=Path(m.scenario_path))
-    if spec.digest != m.digest:
-        raise results.SweepFolderError(f"{folder}: its manifest does not match its hash")
+    if spec.digest != m.digest or spec.total != m.total:
+        raise results.FolderDamaged(f"{folder / results.MANIFEST}: damaged sweep manifest: its "
+                                    "texts do not match its hash")
     return spec
 
 
@@ -294,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
             return _sweep(argv)
         except CochleaError as exc:
             print(f"cochlea-sweep: {exc}", file=sys.stderr)
-            return EXIT_USER_ERROR
+            return results.exit_code(exc)
         except KeyboardInterrupt:
             print("cochlea-sweep: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED

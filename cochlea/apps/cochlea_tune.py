@@ -8,14 +8,17 @@ same draws for every candidate; the objective is a percentile (default p95), the
 mean of the runs' convergence ratios, and a candidate with a run at a torque limit or stopped by
 a supervisor rule is infeasible. DIR gets trials.csv, tuned.toml (the base scenario with the
 best gains), summary.md and history.png. The same command on the same DIR resumes.
-Exit codes: 0 done; 1 done, but no candidate (the nominal gains included) was feasible, so no
-tuned.toml; 2 the user's input is wrong (nothing ran, nothing written); 130 interrupted (every
-finished trial is kept). See docs/sweeps.md.
+Exit codes (the table in docs/sweeps.md): 0 done; 1 done, but no candidate (the nominal gains
+included) was feasible, so no tuned.toml; 2 the spec or an option is wrong; 3 --out cannot be
+used; 4 --out is in use by another run; 5 the folder's files are damaged; 6 a write failed
+while running (a full disk); 7 a sample failed on a worker; 130 interrupted (every finished
+trial is kept).
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import os
 import sys
@@ -25,9 +28,9 @@ from pathlib import Path
 from matplotlib.figure import Figure
 
 from ..console import sigterm_interrupts, tolerate_closed_stdout
-from ..errors import EXIT_USER_ERROR, CochleaError
+from ..errors import CochleaError
 from ..sim import GravityRefused, load_scenario, unit_setups
-from ..sweep import sampling
+from ..sweep import results, sampling
 from ..sweep import tune as tuning
 from . import cochlea_sweep
 
@@ -127,7 +130,7 @@ def write_report(out: Path, tune: tuning.Tune, result: dict) -> Path:
               "(one row per run, the columns of cochlea-sweep's)."]
     _history(out / "history.png", records, nominal, s.objective)
     summary = out / "summary.md"
-    summary.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    tuning.write_atomic(summary, ("\n".join(lines) + "\n").encode("utf-8"))
     return summary
 
 
@@ -158,7 +161,9 @@ def _history(path: Path, records: list[dict], nominal: dict | None, objective: s
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    sink = io.BytesIO()
+    fig.savefig(sink, dpi=110, format="png")
+    tuning.write_atomic(path, sink.getvalue())
 
 
 def _tune(argv: list[str]) -> int:
@@ -212,10 +217,19 @@ def _tune(argv: list[str]) -> int:
         print(f"cochlea-tune: interrupted; the finished trials are in {args.out}: run the same "
               "command to resume", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as exc:  # the journal (Optuna's writes) on a full disk, say
+        raise results.WriteFailed(f"--out {args.out}: a write failed ({exc.strerror or exc}); "
+                                  "every finished trial is kept: free some space and run the "
+                                  "same command to resume") from None
     result = info["result"]
     chosen = result["chosen"]
-    tuned = tuning.write_tuned(args.out, tune, chosen)
-    summary = write_report(args.out, tune, result)
+    try:
+        tuned = tuning.write_tuned(args.out, tune, chosen)
+        summary = write_report(args.out, tune, result)
+    except OSError as exc:
+        raise results.WriteFailed(f"--out {args.out}: the report could not be written "
+                                  f"({exc.strerror or exc}); every trial is kept: free some "
+                                  "space and run the same command") from None
     nominal = result["nominal"]
     ran = (f"{info['trials_run']} run now on {info['workers']} worker(s)" if info["workers"]
            else f"all already in {args.out}")
@@ -236,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
             return _tune(argv)
         except CochleaError as exc:
             print(f"cochlea-tune: {exc}", file=sys.stderr)
-            return EXIT_USER_ERROR
+            return results.exit_code(exc)
         except KeyboardInterrupt:
             print("cochlea-tune: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED

@@ -64,6 +64,21 @@ def run_batch(spec: Spec, indices: list[int], evaluate: Callable[[str], dict]) -
     return rows
 
 
+def batch_rows(future, out: Path) -> list[dict]:
+    """A finished batch's rows; a batch that raised on its worker is one line
+    (:class:`~cochlea.sweep.results.SampleFailed`)."""
+    try:
+        return future.result()
+    except CochleaError as exc:
+        raise results.SampleFailed(f"a sample was refused on a worker ({exc}); the finished "
+                                   f"batches are kept in {out}") from None
+    except Exception as exc:  # noqa: BLE001 (whatever a worker raised: one line, not a trace)
+        text = str(exc).splitlines()[0] if str(exc) else ""
+        raise results.SampleFailed(f"a sample failed on a worker ({type(exc).__name__}: "
+                                   f"{text[:300]}); the finished batches are kept in {out}: "
+                                   "run the same command to resume") from None
+
+
 def _noop() -> None:
     return None
 
@@ -103,17 +118,31 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
     ``batch``, ``workers``, ``overhead_s``, ``wall_s``). An interrupt (KeyboardInterrupt) leaves
     every finished batch in ``out``."""
     resuming = results.check(out, spec)  # before any worker starts; nothing written yet
-    missing = deque(sorted(set(range(spec.total)) - (results.done(out) if resuming else set())))
+    lock, created = None, []
+    if resuming:  # another run's folder in use is refused here, before anything changes
+        lock = results.hold(out)
+    try:
+        missing = deque(sorted(set(range(spec.total)) - (results.done(out) if resuming
+                                                         else set())))
+    except BaseException:
+        results.release(lock)
+        raise
     info = {"samples": len(missing), "batches": 0, "batch": batch, "workers": 0,
             "overhead_s": None, "wall_s": 0.0}
     if not missing:
+        results.release(lock)
         return info
     start = time.perf_counter()
-    client, cluster = connect(workers, scheduler)
-    bar, lock = None, None
     try:
+        client, cluster = connect(workers, scheduler)
+    except BaseException:
+        results.release(lock)
+        raise
+    bar = None
+    try:
+        if lock is None:
+            lock, created = results.claim(out)  # the lock first: then the folder is written
         results.prepare(out, spec)
-        lock = results.hold(out)
         # Whatever another run finished while this one started (it held the lock then).
         missing = deque(sorted(set(range(spec.total)) - results.done(out)))
         n_workers = len(client.scheduler_info()["workers"])
@@ -144,9 +173,15 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
         pending = as_completed([submit(size or 1) for _ in range(n_workers) if missing])
         in_flight = pending.count()
         for future in pending:
-            rows = future.result()
+            rows = batch_rows(future, out)
             t0 = time.perf_counter()
-            results.write_part(out, rows)
+            try:
+                results.write_part(out, rows)
+            except results.WriteFailed as exc:
+                raise results.WriteFailed(f"{exc}; every finished batch is kept in {out}: "
+                                          "free some space and run the same command to "
+                                          "resume") from None
+            created = []  # a batch is written: the folder is the sweep's now
             write_s = time.perf_counter() - t0
             info["batches"] += 1
             in_flight -= 1
@@ -164,6 +199,10 @@ def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int 
                 share = max(1, math.ceil(len(missing) / (IN_FLIGHT * n_workers)))
                 pending.add(submit(min(size, share)))
                 in_flight += 1
+    except BaseException:
+        # A new folder that got no sample (refused, interrupted, a write failed) is removed.
+        results.discard(out, created)
+        raise
     finally:
         if bar is not None:
             bar.close()

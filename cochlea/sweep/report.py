@@ -10,6 +10,7 @@ fraction of its limit; the worst samples are listed with the commands that repla
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 
@@ -82,6 +83,13 @@ def _badness(table: pa.Table) -> np.ndarray:
     return np.where(ok, 0.0, 1.0) * 1e300 + np.minimum(ratio, 1e299)
 
 
+def _save(fig, path: Path) -> None:
+    """A figure as PNG, whole or not at all (:func:`cochlea.sweep.results.write_atomic`)."""
+    sink = io.BytesIO()
+    fig.savefig(sink, dpi=100, format="png")
+    results.write_atomic(path, sink.getvalue())
+
+
 def write(out: Path) -> Path:
     """summary.md and the figures from every finished sample in ``out``."""
     import matplotlib
@@ -98,7 +106,7 @@ def write(out: Path) -> Path:
     if n == 0:
         lines.append("No sample has finished yet.")
         path = out / "summary.md"
-        path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        results.write_atomic(path, ("\n".join(lines) + "\n").encode("utf-8"))
         return path
     success = np.array(table["success"].to_pylist(), bool)
     lo, hi = wilson(int(success.sum()), n)
@@ -146,7 +154,7 @@ def write(out: Path) -> Path:
             ax.set_visible(False)
         fig.suptitle("Robustness map (95 % Wilson intervals)")
         fig.tight_layout()
-        fig.savefig(out / "robustness_map.png", dpi=100)
+        _save(fig, out / "robustness_map.png")
         plt.close(fig)
         figures.append("robustness_map.png")
 
@@ -169,7 +177,7 @@ def write(out: Path) -> Path:
     axes[1].legend(fontsize=7)
     fig.suptitle("Distributions over the samples")
     fig.tight_layout()
-    fig.savefig(out / "distributions.png", dpi=100)
+    _save(fig, out / "distributions.png")
     plt.close(fig)
     figures.append("distributions.png")
     lines += ["## Distributions", "", "Final RMS error per coordinate (last 20 % of the run) "
@@ -195,7 +203,5 @@ def write(out: Path) -> Path:
         lines.append(f"| {samples[j]} | {'yes' if success[j] else 'no'} | {ratio[j]:.3g} | "
                      f"{rules[j]} | `{command}` |")
     path = out / "summary.md"
-    tmp = path.with_name("summary.md.tmp")
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    results.write_atomic(path, ("\n".join(lines) + "\n").encode("utf-8"))
     return path

@@ -7,9 +7,13 @@ command resumes it with the missing samples only.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import fcntl
 import json
 import os
+import stat
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,8 +31,183 @@ LOCK = ".cochlea-sweep.lock"
 MANIFEST_FORMAT = "cochlea-sweep-folder/1"
 
 
+# Exit codes of cochlea-sweep and cochlea-tune (docs/sweeps.md has the table). 0 done; tune's
+# 1 (no feasible candidate), 18 (report failed) and 130 (interrupted) are the commands' own.
+#: The spec or an option is wrong (cochlea.errors.EXIT_USER_ERROR): nothing ran or was written.
+EXIT_SPEC = 2
+#: ``--out`` cannot be used (not a folder, under a file, not writable, other files, another
+#: spec's folder; replay: the file exists): nothing ran or was written.
+EXIT_OUT = 3
+#: ``--out`` is in use by another run of cochlea-sweep or cochlea-tune: nothing changed.
+EXIT_BUSY = 4
+#: The folder's own files are damaged (sweep.json, tune.json, the journal, a part file).
+EXIT_DAMAGED = 5
+#: A write failed while running (a full disk, an I/O error): every finished batch or trial is
+#: kept, the unfinished file removed; the same command resumes once there is room.
+EXIT_WRITE = 6
+#: A sample failed on a worker (not a refusal the checks could see): the finished batches are
+#: kept.
+EXIT_SAMPLE = 7
+
+
 class SweepFolderError(CochleaError):
     """A sweep folder that cannot be used (another spec's, not a sweep's, unreadable)."""
+
+    exit_code = EXIT_OUT
+
+
+class FolderBusy(SweepFolderError):
+    """Another run holds the folder's lock."""
+
+    exit_code = EXIT_BUSY
+
+
+class FolderDamaged(SweepFolderError):
+    """A file the folder's run wrote cannot be read back."""
+
+    exit_code = EXIT_DAMAGED
+
+
+class WriteFailed(CochleaError):
+    """A file of the run could not be written (a full disk, an I/O error)."""
+
+    exit_code = EXIT_WRITE
+
+
+class SampleFailed(CochleaError):
+    """A sample raised on a worker."""
+
+    exit_code = EXIT_SAMPLE
+
+
+def exit_code(exc: CochleaError) -> int:
+    """The exit code of a refusal (:data:`EXIT_SPEC` unless the error says otherwise)."""
+    return getattr(exc, "exit_code", EXIT_SPEC)
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISREG, "a file"), (stat.S_ISLNK, "a symbolic link"),
+                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISDIR, "a folder")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_out(out: Path, option: str = "--out") -> None:
+    """Refuse ``out`` as an output folder unless it is a folder we may write or can be made
+    one (its nearest existing ancestor a writable folder). Writes nothing."""
+    out = Path(out)
+    where = f"{option} {out}"
+    if os.path.lexists(out):
+        try:
+            mode = os.stat(out).st_mode
+        except OSError as exc:  # a dangling link, a loop of them, a path under a file
+            raise SweepFolderError(f"{where}: cannot use it ({exc.strerror}): name a new or "
+                                   "empty folder") from None
+        if not stat.S_ISDIR(mode):
+            raise SweepFolderError(f"{where} is {_kind(mode)}, not a folder: name a new or "
+                                   "empty folder")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise SweepFolderError(f"{where}: the folder is not writable (permissions or a "
+                                   "read-only file system): name a folder you may write")
+        return
+    base = Path(os.path.abspath(out))
+    while not os.path.lexists(base):
+        base = base.parent
+    try:
+        mode = os.stat(base).st_mode
+    except OSError as exc:
+        raise SweepFolderError(f"{where}: cannot create it under {base} ({exc.strerror})"
+                               ) from None
+    if not stat.S_ISDIR(mode):
+        raise SweepFolderError(f"{where}: cannot create it, {base} is {_kind(mode)}, not a "
+                               "folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise SweepFolderError(f"{where}: cannot create it, {base} is not writable "
+                               "(permissions or a read-only file system): name a folder you "
+                               "may write")
+
+
+def make_folder(out: Path, option: str = "--out") -> list[Path]:
+    """Create ``out`` and its missing parents; return those this call created, outermost
+    first (:func:`remove_folders` undoes it)."""
+    missing = []
+    path = Path(os.path.abspath(out))
+    while not os.path.lexists(path):
+        missing.append(path)
+        path = path.parent
+    created: list[Path] = []
+    for folder in reversed(missing):
+        try:
+            folder.mkdir()
+        except FileExistsError:
+            continue  # another run made it meanwhile: not ours to remove
+        except OSError as exc:
+            remove_folders(created)
+            raise SweepFolderError(f"{option} {out}: cannot create {folder} ({exc.strerror})"
+                                   ) from None
+        created.append(folder)
+    return created
+
+
+def remove_folders(created: list[Path]) -> None:
+    """Remove the folders :func:`make_folder` created, innermost first, only while empty."""
+    for folder in reversed(created):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def remove_ours(path: Path) -> None:
+    """Unlink ``path`` only if it is a regular file (never a link, FIFO, device, folder)."""
+    with contextlib.suppress(OSError):
+        if stat.S_ISREG(os.lstat(path).st_mode):
+            os.unlink(path)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """``data`` into ``path`` whole or not at all: written to a new temporary file next to it
+    (created exclusively: nothing there is opened or followed), flushed, and renamed over
+    ``path`` only when ``path`` is absent or a regular file. A failure (a full disk) removes
+    the temporary file and raises :class:`WriteFailed`."""
+    path = Path(path)
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:
+        raise WriteFailed(f"{path}: cannot write it ({exc.strerror})") from None
+    if mode is not None and not stat.S_ISREG(mode):
+        raise WriteFailed(f"{path} is {_kind(mode)}, not a file this run wrote: it is left as "
+                          "it is; move it away and run the same command again")
+    tmp = None
+    try:
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        tmp = Path(name)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except OSError as exc:
+        if tmp is not None:
+            remove_ours(tmp)
+        raise WriteFailed(f"{path}: cannot write it ({exc.strerror or exc})") from None
+
+
+def is_temporary(path: Path) -> bool:
+    """A temporary file of :func:`write_atomic` (or an older run's ``NAME.tmp``)."""
+    return path.name.endswith(".tmp")
+
+
+def clean_temporary(folder: Path) -> None:
+    """Remove the temporary files a killed run left in ``folder`` (regular files only)."""
+    with contextlib.suppress(OSError):
+        for p in folder.iterdir():
+            if is_temporary(p):
+                remove_ours(p)
 
 
 def flatten(name: str, value: Any) -> dict[str, Any]:
@@ -55,35 +234,49 @@ def write_manifest(out: Path, spec: Spec) -> None:
             "robot": spec.robot, "space": spec.space, "spec_path": str(spec.path.resolve()),
             "scenario_path": str(spec.scenario_path), "spec_text": spec.text,
             "scenario_text": spec.scenario_text}
-    tmp = out / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, out / MANIFEST)
-    (out / "spec.toml").write_text(spec.text, encoding="utf-8")
+    write_atomic(out / "spec.toml", spec.text.encode("utf-8"))
+    # The manifest last: a folder with it is a whole sweep folder.
+    write_atomic(out / MANIFEST, (json.dumps(data, indent=1) + "\n").encode("utf-8"))
 
 
 def read_manifest(out: Path) -> Manifest:
     path = out / MANIFEST
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
-        if data.get("format") != MANIFEST_FORMAT:
-            raise ValueError(data.get("format"))
-        return Manifest(data["digest"], int(data["total"]), data["robot"], data["space"],
-                        data["spec_text"], data["scenario_text"], data["scenario_path"],
-                        data["spec_path"])
     except FileNotFoundError:
         raise SweepFolderError(f"{out}: not a sweep folder (no {MANIFEST}): give the --out "
                                "of a cochlea-sweep run") from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SweepFolderError(f"{path}: unreadable sweep manifest ({exc})") from None
+    except (OSError, ValueError) as exc:
+        raise FolderDamaged(f"{path}: unreadable sweep manifest "
+                            f"({getattr(exc, 'strerror', None) or exc})") from None
+    if not isinstance(data, dict):
+        raise FolderDamaged(f"{path}: damaged sweep manifest: expected a JSON object, got "
+                            f"{type(data).__name__}")
+    if data.get("format") != MANIFEST_FORMAT:
+        raise FolderDamaged(f"{path}: damaged sweep manifest: format: expected "
+                            f"{MANIFEST_FORMAT!r}, got {data.get('format')!r}")
+    fields = {"digest": "a string", "robot": "a string", "space": "a string",
+              "spec_text": "a string", "scenario_text": "a string",
+              "scenario_path": "a file path", "spec_path": "a file path"}
+    for key, what in fields.items():
+        value = data.get(key)
+        if not isinstance(value, str) or (what == "a file path" and not Path(value).name):
+            raise FolderDamaged(f"{path}: damaged sweep manifest: {key}: expected {what}, got "
+                                f"{value!r:.80}")
+    total = data.get("total")
+    if not isinstance(total, int) or isinstance(total, bool) or total < 1:
+        raise FolderDamaged(f"{path}: damaged sweep manifest: total: expected a positive "
+                            f"integer, got {total!r:.80}")
+    return Manifest(data["digest"], total, data["robot"], data["space"], data["spec_text"],
+                    data["scenario_text"], data["scenario_path"], data["spec_path"])
 
 
 def check(out: Path, spec: Spec) -> bool:
     """Whether ``out`` is this spec's sweep folder (to resume); False: new or empty. Any other
     folder is refused. Writes nothing."""
-    if out.exists() and not out.is_dir():
-        raise SweepFolderError(f"--out {out}: expected a folder, got a file")
-    if out.is_dir() and any(out.iterdir()):
-        if not (out / MANIFEST).exists():
+    check_out(out)
+    if out.is_dir() and any(p.name != LOCK for p in out.iterdir()):
+        if not os.path.lexists(out / MANIFEST):
             raise SweepFolderError(f"--out {out}: expected a new or empty folder, or a sweep "
                                    "folder to resume; it holds other files")
         manifest = read_manifest(out)
@@ -95,16 +288,49 @@ def check(out: Path, spec: Spec) -> bool:
     return False
 
 
+def claim(out: Path, lock: str = LOCK, program: str = "cochlea-sweep",
+          error: type[CochleaError] | None = None) -> tuple[int, list[Path]]:
+    """Create ``out`` if it is missing and lock it (:func:`hold`): the lock is held before
+    anything in the folder is written or removed. Returns the lock and the folders created
+    (removed again when the lock is refused)."""
+    created = make_folder(out)
+    try:
+        return hold(out, lock, program, error), created
+    except CochleaError:
+        if created:
+            remove_ours(out / lock)
+        remove_folders(created)
+        raise
+
+
 def prepare(out: Path, spec: Spec) -> None:
-    """A new (or empty) folder becomes this spec's (:func:`check` first); half-written parts of
-    a killed run are removed."""
+    """With the folder's lock held (:func:`claim`): a new (or empty) folder becomes this
+    spec's (:func:`check` first); half-written parts of a killed run are removed."""
     if not check(out, spec):
-        out.mkdir(parents=True, exist_ok=True)
+        make_folder(out)  # made by claim() already; a caller without the lock needs it too
         write_manifest(out, spec)
     parts = out / PARTS
-    parts.mkdir(exist_ok=True)
-    for tmp in parts.glob("*.tmp"):
-        tmp.unlink()
+    try:
+        parts.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise WriteFailed(f"{parts}: cannot create it ({exc.strerror})") from None
+    if not parts.is_dir() or parts.is_symlink():
+        raise FolderDamaged(f"{parts}: expected the sweep's folder of part files, got "
+                            "something else: move it away and run the same command again")
+    clean_temporary(parts)
+
+
+def discard(out: Path, created: list[Path], lock: str = LOCK) -> None:
+    """Undo :func:`claim` and :func:`prepare` of a new folder that ran nothing: what this run
+    wrote there is removed, then the folders it created (only while empty)."""
+    if not created:
+        return
+    for name in (MANIFEST, "spec.toml", lock):
+        remove_ours(out / name)
+    clean_temporary(out)
+    with contextlib.suppress(OSError):
+        (out / PARTS).rmdir()
+    remove_folders(created)
 
 
 def hold(out: Path, lock: str = LOCK, program: str = "cochlea-sweep",
@@ -113,12 +339,23 @@ def hold(out: Path, lock: str = LOCK, program: str = "cochlea-sweep",
     would run the same missing samples and write them twice (``cochlea-tune`` locks its folder
     the same way). The lock file stays (removing it would let a third process lock a new file
     while a second still holds the old one)."""
-    fd = os.open(out / lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fd = os.open(out / lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o644)
+    except OSError as exc:
+        raise (error or SweepFolderError)(f"--out {out}: cannot write its lock file {lock} "
+                                          f"({exc.strerror})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise (error or SweepFolderError)(f"--out {out}: its lock file {lock} is not a "
+                                          "regular file: move it away")
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except OSError as exc:
         os.close(fd)
-        raise (error or SweepFolderError)(
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise (error or SweepFolderError)(f"--out {out}: cannot lock it ({exc.strerror})"
+                                              ) from None
+        raise FolderBusy(
             f"--out {out}: another {program} is running on this folder; wait for it (the same "
             "command then resumes what is left) or give another --out") from None
     return fd
@@ -134,11 +371,9 @@ def write_part(out: Path, rows: list[dict]) -> Path:
     samples = [r["sample"] for r in rows]
     name = f"part-{min(samples):09d}-{max(samples):09d}.parquet"
     final = out / PARTS / name
-    tmp = final.with_name(name + ".tmp")
-    pq.write_table(pa.Table.from_pylist(rows), tmp)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, final)
+    sink = pa.BufferOutputStream()
+    pq.write_table(pa.Table.from_pylist(rows), sink)
+    write_atomic(final, sink.getvalue().to_pybytes())
     return final
 
 
@@ -150,7 +385,7 @@ def read(out: Path) -> pa.Table:
     try:
         tables = [pq.read_table(f) for f in files]
     except (OSError, pa.ArrowException) as exc:
-        raise SweepFolderError(f"{out / PARTS}: a part file cannot be read ({exc}); remove it "
+        raise FolderDamaged(f"{out / PARTS}: a part file cannot be read ({exc}); remove it "
                                "and resume to run its samples again") from None
     table = pa.concat_tables(tables, promote_options="default")
     return table.sort_by("sample")
@@ -166,6 +401,6 @@ def done(out: Path) -> set[int]:
         try:
             seen.update(pq.read_table(f, columns=["sample"])["sample"].to_pylist())
         except (OSError, pa.ArrowException) as exc:
-            raise SweepFolderError(f"{f}: unreadable part file ({exc}); remove it and resume "
+            raise FolderDamaged(f"{f}: unreadable part file ({exc}); remove it and resume "
                                    "to run its samples again") from None
     return seen

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,10 +37,15 @@ from ..robots import robot as robot_adapter
 from ..robots.description import Table, read_toml
 from ..sim import load_scenario
 from ..sim import scenario as sc_mod
+from ..sim.setup import MAX_FAST_PERIODS
 
 FORMAT = "cochlea-sweep/1"
-#: Samples one sweep may hold (grid points times draws): a row each in memory for the report.
-MAX_SAMPLES = 100_000_000
+#: Samples one sweep may hold (grid points times draws): a row each in memory for the report
+#: and the bookkeeping of which are done (about 1 GB at this size); refused up front beyond.
+MAX_SAMPLES = 1_000_000
+#: A normal's draws must land in the key's range at least this often (it is truncated there
+#: by rejection, :data:`cochlea.sweep.sampling.MAX_REJECTIONS` draws at most): checked up front.
+MIN_NORMAL_ACCEPTANCE = 0.01
 DISTRIBUTIONS = ("uniform", "normal", "choice", "grid")
 
 
@@ -60,10 +66,20 @@ class KeyRule:
         if self.kind == "preset":
             return "one of " + ", ".join(repr(p) for p in sc_mod.PLANT_PRESETS)
         what = "an integer" if self.kind == "int" else "a number"
-        interval = f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]"
+        interval = self.interval()
         if self.size is None:
             return f"{what} in {interval}"
         return f"{what} in {interval} (every component), or a list of {self.size} of them"
+
+    def interval(self) -> str:
+        """The valid range of a number key, e.g. ``(0, 10]``."""
+        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]"
+
+    def acceptance(self, mu: float, sigma: float) -> float:
+        """The probability that a draw of normal(mu, sigma) is in the key's range."""
+        def cdf(x: float) -> float:
+            return 0.5 * math.erfc(-(x - mu) / (sigma * math.sqrt(2.0)))
+        return max(0.0, cdf(self.hi) - cdf(self.lo))
 
     def scalar_ok(self, v: Any) -> bool:
         if self.kind == "bool":
@@ -213,9 +229,10 @@ def _entry(t: Table, key: str, rule: KeyRule, name: str) -> Entry:
                                "number", args)
     number = rule.kind == "int" and kind == "uniform"
     if not (isinstance(args, list) and len(args) == 2
-            and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)
+            and all(isinstance(a, (int, float)) and not isinstance(a, bool)
+                    and math.isfinite(a) for a in args)
             and (not number or all(isinstance(a, int) for a in args))):
-        raise DescriptionError(t.path, at, "two " + ("integers" if number else "numbers")
+        raise DescriptionError(t.path, at, "two finite " + ("integers" if number else "numbers")
                                + (" [lo, hi]" if kind == "uniform" else " [mu, sigma]"), args)
     a, b = args
     if kind == "uniform":
@@ -228,8 +245,15 @@ def _entry(t: Table, key: str, rule: KeyRule, name: str) -> Entry:
         if rule.kind == "int":
             raise DescriptionError(t.path, at, "uniform, choice or grid (an integer key)", args)
         if not (b > 0 and rule.scalar_ok(a)):
-            raise DescriptionError(t.path, at, f"[mu, sigma] with sigma > 0 and mu "
-                                   f"{rule.text().split(' (')[0].replace('a number ', '')}",
+            raise DescriptionError(t.path, at, f"[mu, sigma] with sigma > 0 and mu in "
+                                   f"{rule.interval()} (the key's range)", args)
+        # each = true redraws the whole vector until every component is in range.
+        p = rule.acceptance(float(a), float(b)) ** (rule.size if each else 1)
+        if not p >= MIN_NORMAL_ACCEPTANCE:
+            raise DescriptionError(t.path, at, f"[mu, sigma] whose draws fall in the key's "
+                                   f"range {rule.interval()} at least "
+                                   f"{MIN_NORMAL_ACCEPTANCE:.0%} of the time (the normal is "
+                                   f"truncated there; this one: {p:.2g}): a smaller sigma",
                                    args)
     return Entry(name, rule, kind, (a, b), each)
 
@@ -254,7 +278,7 @@ def load(path: str | Path, scenario_file: Path | None = None, *,
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     name = top.string("scenario")
     samples = top.get("samples", f"a positive integer (draws per grid point, at most "
-                      f"{MAX_SAMPLES:,} in all)", lambda v: isinstance(v, int)
+                      f"{MAX_SAMPLES:,} samples in all)", lambda v: isinstance(v, int)
                       and not isinstance(v, bool) and 0 < v <= MAX_SAMPLES)
     seed = top.get("seed", "a non-negative integer below 2**63", lambda v: isinstance(v, int)
                    and not isinstance(v, bool) and 0 <= v < 2**63)
@@ -262,6 +286,19 @@ def load(path: str | Path, scenario_file: Path | None = None, *,
                           required=False)
     scenario_path = scenario_file or _scenario_path(path, name)
     base = load_scenario(scenario_path)
+    # The workers run as fast as they can, every period in memory: their own bound, checked
+    # here (else every sample fails on its worker after the folder is made).
+    length = duration if duration is not None else base.duration
+    periods = length * base.rate_hz
+    if not periods <= MAX_FAST_PERIODS:
+        where = "duration_s" if duration is not None else "scenario"
+        raise top.error(where, f"a run of at most {MAX_FAST_PERIODS:,} control periods "
+                        f"({MAX_FAST_PERIODS / base.rate_hz:g} s at the scenario's "
+                        f"{base.rate_hz:g} Hz: a sweep's runs keep every period in memory)"
+                        + ("" if duration is not None else
+                           f"; the scenario's duration_s is {base.duration:g} s: give a "
+                           "shorter duration_s in the spec"),
+                        length if duration is not None else name)
     layout = robot_adapter(base.robot).layout(base.system, base.space)
     rules = plant_rules(layout.n_bodies, layout.n_joint)
     entries = []

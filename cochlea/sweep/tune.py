@@ -26,6 +26,7 @@ gains) to the same trials as one that was never stopped.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -82,8 +83,8 @@ OBJECTIVE_TEXT = ('"pNN" (the NN-th percentile of the sample, 0 < NN <= 100, e.g
                   '"worst" or "mean"')
 
 
-class TuneFolderError(CochleaError):
-    """An output folder that cannot be used (another search's, not a search's, unreadable)."""
+class TuneFolderError(results.SweepFolderError):
+    """An output folder that cannot be used (another search's, not a search's)."""
 
 
 def objective_ok(text: Any) -> bool:
@@ -136,7 +137,10 @@ class Dim:
         if e.kind == "uniform":
             return float(params[e.name])
         if self._categorical_by_index():
-            return e.args[int(params[e.name])]
+            value = e.args[int(params[e.name])]
+            # A choice mixing numbers and vectors: a number is every component (the same
+            # columns for every trial, in trials.csv as in the rows).
+            return value if isinstance(value, list) else [value] * e.rule.size
         return params[e.name]
 
     def corners(self) -> tuple[Any, Any]:
@@ -317,32 +321,31 @@ def judge(rows: list[dict], objective: str) -> dict:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """Whole or not at all, never over a path that is not a regular file
+    (:func:`cochlea.sweep.results.write_atomic`)."""
+    results.write_atomic(path, data)
 
 
 def check(out: Path, tune: Tune) -> bool:
     """Whether ``out`` is this search's folder (to resume); False: new or empty. Any other
     folder is refused. Writes nothing."""
-    if out.exists() and not out.is_dir():
-        raise TuneFolderError(f"--out {out}: expected a folder, got a file")
-    if not (out.is_dir() and any(out.iterdir())):
+    results.check_out(out)
+    if not (out.is_dir() and any(p.name != LOCK for p in out.iterdir())):
         return False
     path = out / MANIFEST
-    if not path.exists():
+    if not os.path.lexists(path):
         raise TuneFolderError(f"--out {out}: expected a new or empty folder, or a cochlea-tune "
                               "folder to resume; it holds other files")
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
-        if manifest.get("format") != MANIFEST_FORMAT:
-            raise ValueError(manifest.get("format"))
+        if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
+            raise ValueError(f"format: expected {MANIFEST_FORMAT!r}")
         digest = manifest["digest"]
+        if not isinstance(digest, str):
+            raise ValueError(f"digest: expected a string, got {digest!r:.80}")
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise TuneFolderError(f"{path}: unreadable manifest ({exc})") from None
+        raise results.FolderDamaged(f"{path}: damaged cochlea-tune manifest "
+                                    f"({getattr(exc, 'strerror', None) or exc})") from None
     if digest != tune.digest:
         raise TuneFolderError(f"--out {out}: made by a different spec, scenario, objective or "
                               f"seed (hash {digest[:12]}, this one {tune.digest[:12]}): give a "
@@ -354,20 +357,31 @@ def prepare(out: Path, tune: Tune) -> None:
     """A new folder becomes this search's (:func:`check` first); what a killed run was writing
     is removed (``*.tmp``, a journal line cut short)."""
     if not check(out, tune):
-        out.mkdir(parents=True, exist_ok=True)
+        results.make_folder(out)  # made by results.claim already; a caller without it too
         s = tune.settings
         manifest = {"format": MANIFEST_FORMAT, "digest": tune.digest, "robot": tune.spec.robot,
                     "space": tune.spec.space, "spec_path": str(tune.spec.path.resolve()),
                     "scenario_path": str(tune.spec.scenario_path), "objective": s.objective,
                     "seed": s.seed, "spec_text": tune.spec.text,
                     "scenario_text": tune.spec.scenario_text}
+        write_atomic(out / "spec.toml", tune.spec.text.encode("utf-8"))
+        # The manifest last: a folder with it is a whole search folder.
         write_atomic(out / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
-        (out / "spec.toml").write_text(tune.spec.text, encoding="utf-8")
-    (out / SAMPLES).mkdir(exist_ok=True)
-    for tmp in [*out.glob("*.tmp"), *(out / SAMPLES).glob("*.tmp")]:
-        tmp.unlink()
+    samples = out / SAMPLES
+    try:
+        samples.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise results.WriteFailed(f"{samples}: cannot create it ({exc.strerror})") from None
+    if samples.is_symlink() or not samples.is_dir():
+        raise results.FolderDamaged(f"{samples}: expected the search's folder of runs, got "
+                                    "something else: move it away and run the same command")
+    results.clean_temporary(out)
+    results.clean_temporary(samples)
     journal = out / JOURNAL
-    if journal.exists():
+    if os.path.lexists(journal):
+        if journal.is_symlink() or not journal.is_file():
+            raise results.FolderDamaged(f"{journal}: expected the search's journal (a file), "
+                                        "got something else: move it away")
         data = journal.read_bytes()
         if data and not data.endswith(b"\n"):  # a write cut by a kill: never acknowledged
             with open(journal, "r+b") as f:
@@ -379,7 +393,7 @@ def hold(out: Path) -> int:
     it, any lock Optuna's journal left is a killed run's: removed, or the next write would wait
     for its grace period."""
     fd = results.hold(out, LOCK, "cochlea-tune", TuneFolderError)
-    (out / (JOURNAL + ".lock")).unlink(missing_ok=True)
+    results.remove_ours(out / (JOURNAL + ".lock"))
     return fd
 
 
@@ -409,10 +423,23 @@ def read_rows(out: Path, key: int | str) -> list[dict] | None:
 
 
 def open_study(out: Path, tune: Tune) -> optuna.Study:
+    """The folder's study, read from its journal; a damaged journal (a line that is not one of
+    Optuna's records) is :class:`~cochlea.sweep.results.FolderDamaged`."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # the report says what matters
-    storage = JournalStorage(JournalFileBackend(str(out / JOURNAL)))
-    return optuna.create_study(study_name=STUDY, storage=storage, direction="minimize",
-                               load_if_exists=True, sampler=sampler(tune, 0))
+    journal = out / JOURNAL
+    try:
+        storage = JournalStorage(JournalFileBackend(str(journal)))
+        study = optuna.create_study(study_name=STUDY, storage=storage, direction="minimize",
+                                    load_if_exists=True, sampler=sampler(tune, 0))
+        study.get_trials(deepcopy=False)  # every line read now, not mid-search
+    except OSError as exc:
+        raise results.WriteFailed(f"{journal}: cannot read or write it ({exc.strerror or exc})"
+                                  ) from None
+    except (ValueError, KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise results.FolderDamaged(f"{journal}: damaged journal ({type(exc).__name__}: "
+                                    f"{str(exc)[:200]}): a line was changed; move the folder "
+                                    "away and start a new search") from None
+    return study
 
 
 def sampler(tune: Tune, number: int) -> optuna.samplers.BaseSampler:
@@ -460,19 +487,19 @@ def write_trials_csv(out: Path, tune: Tune, records: list[dict]) -> None:
                "successes", "runs", "median_ratio", "worst_ratio", "max_torque_ratio"]
     sink = io.StringIO()
     writer = csv.writer(sink, lineterminator="\n")
-    gain_columns = None
+    flats = []
+    gain_columns: dict[str, None] = {}  # every trial's, in order (a choice may mix shapes)
     for r in records:
         flat: dict[str, Any] = {}
         for name, value in r["gains"].items():
             flat.update(results.flatten(name, value))
-        if gain_columns is None:
-            gain_columns = list(flat)
-            writer.writerow(columns + gain_columns)
+        flats.append(flat)
+        gain_columns.update(dict.fromkeys(flat))
+    writer.writerow(columns + list(gain_columns))
+    for r, flat in zip(records, flats):
         writer.writerow([repr(r[c]) if isinstance(r[c], float) else r[c] for c in columns]
-                        + [repr(flat[c]) if isinstance(flat[c], float) else flat[c]
+                        + [repr(flat[c]) if isinstance(flat.get(c), float) else flat.get(c, "")
                            for c in gain_columns])
-    if gain_columns is None:
-        writer.writerow(columns)
     write_atomic(out / TRIALS_CSV, sink.getvalue().encode())
 
 
@@ -489,7 +516,7 @@ def best(records: list[dict]) -> dict | None:
 
 def _evaluate(client, jobs: dict[Any, Spec], size: int, evaluate: Callable[[str], dict],
               n_workers: int, done: Callable[[Any, list[dict]], None],
-              progress: Callable[[int], None]) -> None:
+              progress: Callable[[int], None], out: Path = Path(".")) -> None:
     """Every job's sample on the workers, in chunks that keep every worker busy; ``done(key,
     rows)`` as soon as a job's rows are all back."""
     from distributed import as_completed  # noqa: PLC0415 (see execute.connect)
@@ -508,7 +535,7 @@ def _evaluate(client, jobs: dict[Any, Spec], size: int, evaluate: Callable[[str]
     got: dict[Any, list[dict]] = {key: [] for key in jobs}
     for future in as_completed(list(keys)):
         key = keys[future]
-        rows = future.result()
+        rows = execute.batch_rows(future, out)
         got[key] += rows
         progress(len(rows))
         if len(got[key]) == size:
@@ -545,10 +572,11 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
     s = tune.settings
     client, cluster = execute.connect(workers, scheduler)
     bar = None
+    created: list[Path] = []
     try:
+        if "fd" not in lock:  # the lock first: then the folder is written
+            lock["fd"], created = results.claim(out, LOCK, "cochlea-tune", TuneFolderError)
         prepare(out, tune)
-        if "fd" not in lock:
-            lock["fd"] = hold(out)
         study = open_study(out, tune)
         n_workers = len(client.scheduler_info()["workers"])
         info["workers"] = n_workers
@@ -619,12 +647,21 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
                     bar.update(tune.size)
                     continue
                 jobs[n] = tune.candidate(tune.gains(states[n].params))
-            _evaluate(client, jobs, tune.size, evaluate, n_workers, finish, bar.update)
+            _evaluate(client, jobs, tune.size, evaluate, n_workers, finish, bar.update, out)
         if not nominal_rows:
             nominal_rows = read_rows(out, "nominal")
         if nominal_rows is None:  # the trials were all done before: only the nominal runs
             _evaluate(client, {"nominal": tune.sample}, tune.size, evaluate, n_workers,
-                      lambda key, rows: write_rows(out, key, rows), bar.update)
+                      lambda key, rows: write_rows(out, key, rows), bar.update, out)
+    except BaseException:
+        if created and not any((out / SAMPLES).glob("*.parquet")):
+            # A new folder that got no run: removed, as if the command had not run.
+            for name in (JOURNAL, JOURNAL + ".lock", TRIALS_CSV, MANIFEST, "spec.toml"):
+                results.remove_ours(out / name)
+            with contextlib.suppress(OSError):
+                (out / SAMPLES).rmdir()
+            results.discard(out, created, LOCK)
+        raise
     finally:
         if bar is not None:
             bar.close()
@@ -714,7 +751,7 @@ def write_tuned(out: Path, tune: Tune, chosen: dict | None) -> Path:
     shorter search's result is not this one's)."""
     path = out / TUNED
     if chosen is None:
-        path.unlink(missing_ok=True)
+        results.remove_ours(path)
         return path
     which = ("the nominal gains: no trial beat them" if chosen["trial"] == "nominal"
              else f"trial {chosen['trial']}")

@@ -1,0 +1,432 @@
+"""cochlea-sweep and cochlea-tune against hostile inputs and faults (issue 26), a test per
+class: one run never breaks another; nothing a user owns (a FIFO, a device, a link, a folder)
+is replaced or removed; every bad input or fault is one line with its own documented exit code
+(docs/sweeps.md), with nothing written outside the output folder and no partial file; inputs the
+workers would refuse are refused up front, before a folder is made.
+
+The full and read-only disks are a private small tmpfs in a mount namespace (``unshare -m``,
+as root): a test that cannot make one fails saying so."""
+
+from __future__ import annotations
+
+import csv
+import fcntl
+import json
+import os
+import shutil
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cochlea.apps import cochlea_sweep, cochlea_tune
+from cochlea.sweep import results
+from cochlea.sweep import spec as sweep_spec
+from cochlea.sweep import tune as tuning
+
+SPEC = """format = "cochlea-sweep/1"
+scenario = "serial_task"
+samples = 2
+seed = 7
+duration_s = 0.1
+
+[perturb]
+mass_scale = {{uniform = [0.9, 1.1]}}
+{extra}
+"""
+#: A tune spec whose searched gain mixes a number and a vector (the number is every component).
+TUNE = SPEC.format(extra="""
+[gains.arm1]
+G_g = {choice = [2.0, [2.0, 2.0, 3.0]]}
+
+[tune]
+trials = 3
+seed = 10                  # proposes the number, the vector, the number
+parallel_candidates = 3
+startup_trials = 3
+""")
+RUN = ["--workers", "1", "--progress", "off"]
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[1]),
+                                                    os.environ.get("PYTHONPATH", "")])}
+
+
+def write(folder: Path, text: str, name: str = "spec.toml") -> Path:
+    path = folder / name
+    path.write_text(text)
+    return path
+
+
+def one_line(err: str, program: str = "cochlea-sweep") -> str:
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{program}: "), err
+    return lines[0]
+
+
+def tree(folder: Path) -> dict[str, object]:
+    """Every path under ``folder`` with its kind and, for a file, its bytes."""
+    out: dict[str, object] = {}
+    for p in sorted(folder.rglob("*")):
+        mode = os.lstat(p).st_mode
+        out[str(p.relative_to(folder))] = (p.read_bytes() if stat.S_ISREG(mode)
+                                           else stat.S_IFMT(mode))
+    return out
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("swept")
+    spec = write(folder, SPEC.format(extra=""))
+    out = folder / "out"
+    assert cochlea_sweep.main([str(spec), "--out", str(out), *RUN]) == 0
+    return spec, out
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory) -> tuple[Path, Path]:
+    """A finished search whose choice mixes a number and a vector: it used to end in a
+    KeyError writing trials.csv, and every resume in the same one."""
+    folder = tmp_path_factory.mktemp("tuned")
+    spec = write(folder, TUNE)
+    out = folder / "out"
+    assert cochlea_tune.main([str(spec), "--out", str(out), *RUN]) == 0
+    return spec, out
+
+
+def test_a_choice_mixing_a_number_and_a_vector_tunes_and_resumes(tuned, capsys):
+    spec, out = tuned
+    with open(out / tuning.TRIALS_CSV) as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 3
+    for r in rows:  # a number is every component: three columns, all filled
+        values = [r[f"gains.arm1.G_g[{j}]"] for j in range(3)]
+        assert all(values), r
+        assert values in (["2.0"] * 3, ["2.0", "2.0", "3.0"]), values
+    assert len({tuple(r[f"gains.arm1.G_g[{j}]"] for j in range(3)) for r in rows}) == 2
+    before = (out / tuning.TRIALS_CSV).read_bytes()
+    capsys.readouterr()
+    assert cochlea_tune.main([str(spec), "--out", str(out), *RUN]) == 0  # the resume too
+    assert (out / tuning.TRIALS_CSV).read_bytes() == before
+
+
+# --------------------------------------------------------------------------------------------
+# One run never breaks another
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_refused_second_sweep_leaves_the_running_ones_files_and_lock(swept, tmp_path,
+                                                                      capsys):
+    spec_path, _ = swept
+    out = tmp_path / "out"
+    spec = sweep_spec.load(spec_path)
+    results.prepare(out, spec)
+    fd = results.hold(out)  # the first run: holds the lock ...
+    try:
+        in_flight = out / results.PARTS / "part-000000000-000000000.parquet.tmp"
+        in_flight.write_bytes(b"half a batch")  # ... and is writing a batch
+        before = tree(out)
+        code = cochlea_sweep.main([str(spec_path), "--out", str(out), *RUN])
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_BUSY and "another cochlea-sweep" in line
+        assert tree(out) == before  # its batch in flight included
+        probe = os.open(out / results.LOCK, os.O_RDONLY)
+        try:  # the first run still holds its lock
+            with pytest.raises(BlockingIOError):
+                fcntl.flock(probe, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        finally:
+            os.close(probe)
+    finally:
+        results.release(fd)
+
+
+def test_a_refused_second_search_leaves_the_running_ones_files(tuned, tmp_path, capsys):
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    fd = tuning.hold(out)
+    try:
+        (out / tuning.SAMPLES / ".trial-000009.parquet.x.tmp").write_bytes(b"in flight")
+        (out / (tuning.JOURNAL + ".lock")).write_text("optuna's")
+        before = tree(out)
+        code = cochlea_tune.main([str(spec), "--out", str(out), "--trials", "5", *RUN])
+        line = one_line(capsys.readouterr().err, "cochlea-tune")
+        assert code == results.EXIT_BUSY and "another cochlea-tune" in line
+        assert tree(out) == before
+    finally:
+        tuning.release(out, fd)
+
+
+# --------------------------------------------------------------------------------------------
+# Nothing that is not ours is replaced or removed
+# --------------------------------------------------------------------------------------------
+
+
+def _not_ours(folder: Path) -> dict[str, Path]:
+    folder.mkdir()
+    fifo = folder / "fifo"
+    os.mkfifo(fifo)
+    device = folder / "null"
+    os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))  # as root, as CI runs
+    target = folder / "target.toml"
+    target.write_text("mine")
+    link = folder / "link.toml"
+    link.symlink_to(target)
+    sub = folder / "sub"
+    sub.mkdir()
+    return {"a FIFO": fifo, "a character device": device, "a symbolic link": link,
+            "a folder": sub, "a file": target}
+
+
+def test_replay_out_never_replaces_what_is_there(swept, tmp_path, capsys):
+    _, out = swept
+    paths = _not_ours(tmp_path / "mine")
+    before = tree(tmp_path / "mine")
+    for kind, path in paths.items():
+        code = cochlea_sweep.main(["replay", str(out), "1", "--out", str(path)])
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_OUT, (kind, line)
+        assert str(path) in line and kind in line, line
+    assert tree(tmp_path / "mine") == before
+    new = tmp_path / "mine" / "new.toml"
+    assert cochlea_sweep.main(["replay", str(out), "1", "--out", str(new)]) == 0
+    assert new.read_text() == cochlea_sweep.sampling.scenario_text(
+        cochlea_sweep.replay_spec(out), 1)
+    assert sorted(tree(tmp_path / "mine")) == sorted([*before, "new.toml"])  # no temporary
+
+
+def test_a_resume_removes_only_its_own_temporary_files(swept, tmp_path):
+    spec, finished = swept
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    parts = out / results.PARTS
+    os.mkfifo(parts / "fifo.tmp")
+    (parts / "folder.tmp").mkdir()
+    (parts / "link.tmp").symlink_to(tmp_path / "elsewhere")
+    (parts / "stale.parquet.tmp").write_bytes(b"a killed run's")  # ours: removed
+    fd, created = results.claim(out)  # what a resuming cochlea-sweep does, before its workers
+    try:
+        results.prepare(out, sweep_spec.load(spec))
+    finally:
+        results.release(fd)
+    assert created == []
+    names = {p.name for p in parts.iterdir()}
+    assert {"fifo.tmp", "folder.tmp", "link.tmp"} <= names and "stale.parquet.tmp" not in names
+    assert stat.S_ISFIFO(os.lstat(parts / "fifo.tmp").st_mode)
+    assert results.done(out) == {0, 1}
+
+
+def test_a_search_never_writes_over_a_path_that_is_not_its_file(tuned, tmp_path, capsys):
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    (out / tuning.TRIALS_CSV).unlink()
+    os.mkfifo(out / tuning.TRIALS_CSV)  # opened for writing, it would hang the search
+    os.mkfifo(out / "trials.csv.tmp")
+    code = cochlea_tune.main([str(spec), "--out", str(out), *RUN])
+    line = one_line(capsys.readouterr().err, "cochlea-tune")
+    assert code == results.EXIT_WRITE and "trials.csv is a FIFO" in line, line
+    assert stat.S_ISFIFO(os.lstat(out / tuning.TRIALS_CSV).st_mode)
+    assert stat.S_ISFIFO(os.lstat(out / "trials.csv.tmp").st_mode)
+
+
+# --------------------------------------------------------------------------------------------
+# Refused up front, in one line, before a folder is made
+# --------------------------------------------------------------------------------------------
+
+UP_FRONT = {
+    # case: (edit of the spec, what the line names)
+    "infinite sigma": ("mass_scale = {uniform = [0.9, 1.1]}", "mass_scale = {normal = [1.0, inf]}",
+                       "perturb.mass_scale.normal"),
+    "huge sigma": ("mass_scale = {uniform = [0.9, 1.1]}", "mass_scale = {normal = [1.0, 1e300]}",
+                   "perturb.mass_scale.normal"),
+    "sigma the range never holds": ("mass_scale = {uniform = [0.9, 1.1]}",
+                                    "mass_scale = {normal = [99.9, 1e4]}", "(0, 100]"),
+    "a mean outside the range keeps the range": ("mass_scale = {uniform = [0.9, 1.1]}",
+                                                 "mass_scale = {normal = [-1.0, 0.1]}",
+                                                 "mu in (0, 100]"),
+    "a duration the workers refuse": ("duration_s = 0.1", "duration_s = 4000.0",
+                                      "3,600,000 control periods"),
+    "too many samples": ("samples = 2", "samples = 100000000", "at most 1,000,000"),
+    "too many samples over a grid": ("samples = 2", "samples = 500000", "at most 1,000,000"),
+}
+GRID = "G_g = {grid = [1.0, 2.0, 3.0]}"
+
+
+@pytest.mark.parametrize("case", sorted(UP_FRONT))
+@pytest.mark.parametrize("program", ["sweep", "tune"])
+def test_an_input_the_workers_would_refuse_is_refused_up_front(case, program, tmp_path,
+                                                               capsys):
+    old, new, named = UP_FRONT[case]
+    text = TUNE if program == "tune" else SPEC.format(extra="")
+    assert old in text
+    text = text.replace(old, new, 1)
+    if "grid" in case:  # 500,000 draws at each of 3 grid points
+        text = (text.replace("G_g = {choice = [2.0, [2.0, 2.0, 3.0]]}", GRID)
+                if program == "tune" else text + f"\n[gains.arm1]\n{GRID}\n")
+    spec = write(tmp_path, text)
+    out = tmp_path / "out"
+    main = cochlea_sweep.main if program == "sweep" else cochlea_tune.main
+    code = main([str(spec), "--out", str(out), *RUN])
+    line = one_line(capsys.readouterr().err, f"cochlea-{program}")
+    assert code == results.EXIT_SPEC and named in line and str(spec) in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.toml"]
+
+
+@pytest.mark.parametrize("program", ["sweep", "tune"])
+def test_an_out_under_a_file_is_named_for_what_it_is(program, tmp_path, capsys):
+    spec = write(tmp_path, TUNE if program == "tune" else SPEC.format(extra=""))
+    blocker = tmp_path / "notes.txt"
+    blocker.write_text("mine")
+    main = cochlea_sweep.main if program == "sweep" else cochlea_tune.main
+    for out in (blocker / "out", blocker / "a" / "b", blocker):
+        code = main([str(spec), "--out", str(out), *RUN])
+        line = one_line(capsys.readouterr().err, f"cochlea-{program}")
+        assert code == results.EXIT_OUT, line
+        assert "is a file, not a folder" in line and "not empty" not in line, line
+    assert blocker.read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "spec.toml"]
+
+
+def test_a_sample_that_fails_on_a_worker_is_one_line_and_leaves_no_folder(tmp_path, capsys,
+                                                                          monkeypatch):
+    # Whatever a worker raises (here: the evaluation is given arguments it does not take,
+    # inside the worker) ends as one line; the new folder that got no sample is removed.
+    monkeypatch.setattr(cochlea_sweep, "evaluate", int)
+    spec = write(tmp_path, SPEC.format(extra=""))
+    out = tmp_path / "out"
+    code = cochlea_sweep.main([str(spec), "--out", str(out), *RUN])
+    line = one_line(capsys.readouterr().err)
+    assert code == results.EXIT_SAMPLE and "failed on a worker (TypeError" in line, line
+    assert not out.exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Damaged folders
+# --------------------------------------------------------------------------------------------
+
+DAMAGED = {
+    "not JSON": b'{"format": "cochlea-sweep-folder/1", "dig',
+    "not UTF-8": b"\xff\xfe\x00garbage",
+    "a list": b"[1, 2]",
+    "null": b"null",
+    "a number as the spec": None,  # spec_text = 5
+    "an empty scenario path": None,  # scenario_path = ""
+    "a spec that no longer loads": None,  # spec_text with samples = 0
+    "a folder": None,
+}
+
+
+@pytest.mark.parametrize("case", sorted(DAMAGED))
+def test_a_damaged_sweep_json_is_one_line(case, swept, tmp_path, capsys):
+    spec, finished = swept
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    manifest = out / results.MANIFEST
+    data = json.loads(manifest.read_text())
+    if case == "a folder":
+        manifest.unlink()
+        manifest.mkdir()
+    elif DAMAGED[case] is not None:
+        manifest.write_bytes(DAMAGED[case])
+    else:
+        if case == "a number as the spec":
+            data["spec_text"] = 5
+        elif case == "an empty scenario path":
+            data["scenario_path"] = ""
+        else:
+            data["spec_text"] = data["spec_text"].replace("samples = 2", "samples = 0")
+        manifest.write_text(json.dumps(data))
+    before = tree(out)
+    commands = [["replay", str(out), "0"]]
+    if case != "a spec that no longer loads":  # report and resume do not load the texts
+        commands += [["report", str(out)], [str(spec), "--out", str(out), *RUN]]
+    for argv in commands:
+        code = cochlea_sweep.main(argv)
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_DAMAGED, (argv[0], line)
+        assert str(manifest) in line, line
+    assert tree(out) == before
+
+
+def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    journal = out / tuning.JOURNAL
+    lines = journal.read_bytes().splitlines(keepends=True)
+    lines[2] = b'{"op_code": 5, "worker_id": \n'
+    journal.write_bytes(b"".join(lines))
+    before = tree(out)
+    code = cochlea_tune.main([str(spec), "--out", str(out), "--trials", "5", *RUN])
+    line = one_line(capsys.readouterr().err, "cochlea-tune")
+    assert code == results.EXIT_DAMAGED and str(journal) in line, line
+    assert tree(out) == before
+
+
+# --------------------------------------------------------------------------------------------
+# Full and read-only disks: a private tmpfs in a mount namespace
+# --------------------------------------------------------------------------------------------
+
+CHECK = """
+import sys, pathlib, pyarrow.parquet as pq
+root = pathlib.Path(sys.argv[1])
+for p in sorted(root.rglob("*")):
+    print("PATH", p.relative_to(root))
+    if p.suffix == ".parquet":
+        pq.read_table(p)  # whole, or this fails
+"""
+
+
+def in_tmpfs(tmp_path: Path, command: list[str], *, size_kb: int = 200, free_kb: int | None = None,
+             read_only: bool = False) -> tuple[int, str, list[str]]:
+    """``command`` (with ``{DISK}`` for the mount point) on a private tmpfs of ``size_kb``,
+    filled to ``free_kb`` free; returns its exit code, its stderr and the paths on the disk
+    after it (each Parquet file read back whole)."""
+    if shutil.which("unshare") is None or subprocess.run(
+            ["unshare", "-m", "true"], capture_output=True).returncode != 0:
+        pytest.fail("unshare -m is not available here (run as root on Linux): the full and "
+                    "read-only disk cases cannot be made", pytrace=False)
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    fill = "" if free_kb is None else (
+        f"head -c {(size_kb - free_kb) * 1024} /dev/zero > {disk}/fill && ")
+    mount_opts = f"size={size_kb}k" + (",ro" if read_only else "")
+    cmd = " ".join(f"'{c}'" for c in command).replace("{DISK}", str(disk))
+    check = tmp_path / "check.py"
+    check.write_text(CHECK)
+    script = (f"mount -t tmpfs -o size={size_kb}k tmpfs {disk} && {fill}"
+              + (f"mount -o remount,{mount_opts} {disk} && " if read_only else "")
+              + f"{cmd}; rc=$?; {sys.executable} {check} {disk} || exit 99; exit $rc")
+    done = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True,
+                          text=True, env=ENV, timeout=300)
+    paths = [ln[5:] for ln in done.stdout.splitlines() if ln.startswith("PATH ")]
+    assert done.returncode != 99, done.stderr
+    return done.returncode, done.stderr, paths
+
+
+def _bin(program: str) -> list[str]:
+    return [sys.executable, "-m", f"cochlea.apps.cochlea_{program}"]
+
+
+@pytest.mark.parametrize("program", ["sweep", "tune"])
+def test_a_read_only_disk_is_one_line(program, tmp_path):
+    spec = write(tmp_path, TUNE if program == "tune" else SPEC.format(extra=""))
+    code, err, paths = in_tmpfs(tmp_path, [*_bin(program), str(spec), "--out", "{DISK}/out",
+                                           *RUN], read_only=True)
+    line = one_line(err, f"cochlea-{program}")
+    assert code == results.EXIT_OUT and "read-only" in line, line
+    assert paths == []
+
+
+@pytest.mark.parametrize("program", ["sweep", "tune"])
+def test_a_full_disk_is_one_line_and_leaves_no_partial_file(program, tmp_path):
+    # Room for the folder's manifest and spec, not for a batch of samples (about 10 kB).
+    spec = write(tmp_path, TUNE if program == "tune" else SPEC.format(extra=""))
+    code, err, paths = in_tmpfs(tmp_path, [*_bin(program), str(spec), "--out", "{DISK}/out",
+                                           *RUN], free_kb=12)
+    line = one_line(err, f"cochlea-{program}")
+    assert code == results.EXIT_WRITE and "No space left on device" in line, line
+    assert not [p for p in paths if p.endswith(".tmp") or ".tmp" in Path(p).name], paths
+    assert [p for p in paths if p.endswith(".parquet")] == []  # none half-written as whole
