@@ -274,6 +274,26 @@ def test_a_folder_that_never_becomes_a_run(capsys, tmp_path):
     assert "not a finished run" in refused(capsys, 2, "replay", str(tmp_path))
 
 
+@pytest.mark.parametrize("columns, message", [
+    ("{not json", "not a real-time run's column list"),
+    ('{"dtype": "float32", "row_length": 1, "columns": ["time_s"]}',
+     "not a real-time run's column list"),
+    ('{"dtype": "float64", "row_length": 2, "columns": ["time_s", "q.arm1.joint1_rad"]}',
+     "not this robot's log"),
+])
+def test_a_damaged_or_foreign_log(capsys, tmp_path, columns, message):
+    """log.columns.json that is not JSON, not float64 rows, or not the named robot's."""
+    (tmp_path / "log.columns.json").write_text(columns)
+    assert message in refused(capsys, 2, "follow", str(tmp_path), "--scenario", "serial_joint")
+
+
+def test_an_unknown_scenario(capsys, tmp_path):
+    (tmp_path / "log.columns.json").write_text(
+        '{"dtype": "float64", "row_length": 1, "columns": ["time_s"]}')
+    assert "--scenario" in refused(capsys, 2, "follow", str(tmp_path), "--scenario",
+                                   str(tmp_path / "none.toml"))
+
+
 @pytest.mark.parametrize("command", ["follow", "replay"])
 @pytest.mark.parametrize("rate", ["0", "-5", "nan", "inf", "fast", "1e9"])
 def test_bad_rate(capsys, tmp_path, command, rate):
