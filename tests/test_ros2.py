@@ -29,9 +29,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from cochlea.apps import cochlea_ros2
-from cochlea.export.run_log import open_run
+from cochlea.export.run_log import Group, UnitColumns, open_run
 from cochlea.ros2 import node as ros_node
-from cochlea.ros2.source import Described, RawTail, raw_units
+from cochlea.ros2.source import Described, RawTail, describe_scenario, raw_units, robot_description
 
 RATE_HZ = cochlea_ros2.DEFAULT_RATE_HZ  # what cochlea-run --ros2 asks for
 
@@ -248,6 +248,33 @@ def test_a_stalled_subscriber_or_a_dead_bridge_changes_nothing(tmp_path, domain)
         stalled.close()
     assert killed, "the bridge was never seen running"
     assert verdict(tmp_path / "with") == verdict(without)
+
+
+@pytest.mark.parametrize("scenario", ["serial_task", "parallel_joint"])
+def test_robot_description_is_a_tree_of_the_tf_frames(scenario):
+    """The URDF: a tree rooted at world (each other link the child of exactly one joint, every
+    parent a link), whose links are every frame of every unit; a serial arm's joints named as
+    on /joint_states, with cochlea-urdf export's axes and limits."""
+    adapter, system = describe_scenario(scenario)
+    units = []
+    for name in adapter.layout(system, "joint").units:
+        joints = [j.name for j in adapter.model(system, name).joints]
+        units.append(UnitColumns(name, {"q": Group("q", list(range(len(joints))),
+                                                   [f"{j}_rad" for j in joints])}))
+    described = Described(adapter, system, units)
+    urdf = ET.fromstring(robot_description(described))
+    links = [e.get("name") for e in urdf.findall("link")]
+    assert len(set(links)) == len(links)
+    children = [j.find("child").get("link") for j in urdf.findall("joint")]
+    assert sorted(children) == sorted(set(links) - {"world"})
+    assert {j.find("parent").get("link") for j in urdf.findall("joint")} <= set(links)
+    frames = {f for unit in units for f in adapter.link_frames(system, unit.name).names}
+    assert set(links) == frames | {"world"}
+    if adapter.name == "serial":
+        moving = {j.get("name"): j for j in urdf.findall("joint") if j.get("type") == "revolute"}
+        assert set(described.joint_names()) == set(moving)
+        assert all(j.find("limit") is not None and j.find("axis") is not None
+                   for j in moving.values())
 
 
 # ---- bad input: one line, its exit code ---------------------------------------------------
