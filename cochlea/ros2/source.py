@@ -178,9 +178,13 @@ def robot_description(described: Described) -> str:
     have = {"world"}
     for unit in described.units:
         rest = _rest_poses(adapter, system, unit.name)
-        if adapter.name == "serial":
+        # A description of arms (a serial chain per unit) has cochlea-urdf export's URDF; a
+        # closed chain has none (asked of the description, not of the robot's name).
+        tree = None
+        if callable(getattr(system, "arm", None)):
             arm = system.arm(unit.name)
             tree = ET.fromstring(export_urdf(system, arm))
+        if tree is not None:
             links = [e.get("name") for e in tree.findall("link")]
             chain = [rest[0][0]] + [f"{unit.name}/{link.name}" for link in arm.links]
             rename = {links[1]: chain[0]}  # the arm's base link
@@ -201,7 +205,7 @@ def robot_description(described: Described) -> str:
                 child.set("link", rename[child.get("link")])
                 e.set("name", f"{unit.name}/{e.get('name')}")
                 root.append(e)
-        kind = "fixed" if adapter.name == "serial" else "floating"
+        kind = "fixed" if tree is not None else "floating"
         for name, parent, xyz, rpy in rest:
             if name in have:
                 continue
