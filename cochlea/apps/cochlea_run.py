@@ -38,6 +38,7 @@ import argparse
 import dataclasses
 import os
 import signal
+import subprocess
 import sys
 import time
 from datetime import datetime
@@ -147,6 +148,11 @@ def _parser() -> argparse.ArgumentParser:
                         "safe stop; one period stuck for longer than N periods stops at once "
                         f"(default 20; at most {MAX_WATCHDOG_MISSES}). Raise it only on a loaded "
                         "machine where a missed period is harmless, e.g. the virtual chain")
+    p.add_argument("--ros2", action="store_true",
+                   help="real time: also start cochlea-ros2 follow on the run's folder, a "
+                        "process of its own that publishes /joint_states, /tf and "
+                        "/robot_description from log.bin at 50 Hz; the run never waits on it "
+                        "(docs/logs.md, Live on ROS 2)")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
                    help="live one-line status while running (auto: when stderr is a terminal)")
     rt = p.add_argument_group(
@@ -298,6 +304,9 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError("--port and --baud go with --backend dynamixel")
     if args.baud is not None:
         baud_code(args.baud)  # a rate the motors do not have, refused before the folder exists
+    if args.ros2 and args.realtime == "off":
+        raise CochleaError("--ros2 follows a real-time run's log.bin as it is written; after "
+                           "an as-fast run, publish it with cochlea-ros2 replay RUN_DIR")
     if args.library is not None and args.kernels == "casadi":
         raise CochleaError("--library names C kernels and goes with --kernels auto or c")
     _realtime_options(args)
@@ -384,6 +393,8 @@ def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
                         kernels=args.kernels, substeps=substeps,
                         options=_realtime_options(args), warn=_warn)
     write_raw_columns(run.folder.track(out / "log.columns.json"), loop)
+    if args.ros2:  # a child of its own, never waited on: its death changes nothing here
+        _start_ros2(out, scenario)
     status = args.status == "on" or (args.status == "auto" and sys.stderr.isatty())
     # From here a signal is the loop's safe stop (the loop installs the same handler for its
     # periods): one arriving while the motors start stops the loop before its first command.
@@ -441,6 +452,23 @@ def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
     kept = "log kept up to the failure" if stop.rule == "log-failure" else "log complete"
     print(f"{line}; zero effort commanded, drives disabled, {kept}", file=sys.stderr)
     return STOP_CODES[stop.rule]
+
+
+#: The bridge started by --ros2, kept only so Python does not warn of a child still running.
+_CHILDREN: list = []
+
+
+def _start_ros2(out: Path, scenario) -> None:
+    """``cochlea-ros2 follow`` on ``out`` in a session of its own (a Ctrl-C meant for the run
+    is not its), its output on this stderr; a bridge that cannot start is a warning."""
+    try:
+        _CHILDREN.append(subprocess.Popen(
+            [sys.executable, "-m", "cochlea.apps.cochlea_ros2", "follow", str(out),
+             "--scenario", str(scenario.path)],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True,
+            close_fds=True))
+    except OSError as exc:
+        _warn(f"--ros2: cannot start cochlea-ros2 ({exc.strerror or exc}); the run goes on")
 
 
 def _warn(text: str) -> None:

@@ -1,0 +1,342 @@
+"""cochlea-ros2 and cochlea-run --ros2: a run on ROS 2 topics from a process of its own
+(docs/logs.md, "Live on ROS 2").
+
+A subscriber in this test (rclpy, a random ROS_DOMAIN_ID per test, discovery on this machine
+only) receives what the bridge publishes during a real-time run and compares it with the run's
+``log.csv``; a subscriber that never spins and a bridge killed mid-run leave the run's summary
+as a run without the bridge; each class of bad input is one line with its exit code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+from cochlea.apps import cochlea_ros2
+from cochlea.export.run_log import Group, UnitColumns, open_run
+from cochlea.ros2 import node as ros_node
+from cochlea.ros2.source import Described, RawTail, describe_scenario, raw_units, robot_description
+
+RATE_HZ = cochlea_ros2.DEFAULT_RATE_HZ  # what cochlea-run --ros2 asks for
+
+
+@pytest.fixture
+def domain(monkeypatch) -> int:
+    """A ROS domain of this test's own, for it and the processes it starts."""
+    value = random.randint(1, 101)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(value))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    return value
+
+
+class Listener:
+    """A node of its own context, spinning in a thread, keeping what it receives (the receipt
+    time with each /joint_states message)."""
+
+    def __init__(self, domain: int, spin: bool = True):
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node("cochlea_test_listener", context=self.context)
+        self.states: list[tuple[float, JointState]] = []
+        self.descriptions: list[str] = []
+        live = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node.create_subscription(
+            JointState, "/joint_states", lambda m: self.states.append((time.monotonic(), m)),
+            live)
+        self.node.create_subscription(String, "/robot_description",
+                                      lambda m: self.descriptions.append(m.data), latched)
+        self.executor = None
+        if spin:  # a stalled subscriber: subscribed, never reading
+            self.executor = SingleThreadedExecutor(context=self.context)
+            self.executor.add_node(self.node)
+            self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+            self.thread.start()
+
+    def close(self) -> None:
+        if self.executor is not None:
+            self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def cochlea_run(out: Path, *args: str, during=None, duration: float = 4
+                ) -> subprocess.CompletedProcess:
+    """A real-time run of the serial arms on the sim backend; ``during(process)`` is called
+    while it runs."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+         "joint", "--duration", str(duration), "--watchdog-misses", "500", "--status", "off",
+         "--out", str(out), *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=out.parent)
+    if during is not None:
+        during(process)
+    stdout, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr
+    return subprocess.CompletedProcess(process.args, 0, stdout, stderr)
+
+
+def read_log(folder: Path) -> tuple[list[str], np.ndarray]:
+    with open(folder / "log.csv") as f:
+        header = f.readline().strip().split(",")
+    return header, np.loadtxt(folder / "log.csv", delimiter=",", skiprows=1, ndmin=2)
+
+
+def column(header: list[str], name: str, group: str) -> int:
+    unit, joint = name.split("/")
+    found = [i for i, c in enumerate(header) if c.startswith(f"{unit}.{group}.{joint}_")]
+    assert len(found) == 1, (name, group, found)
+    return found[0]
+
+
+@pytest.mark.realtime
+def test_a_run_on_ros2_is_its_log(tmp_path, domain):
+    """/joint_states at the configured rate, every message a row of log.csv (names, position,
+    velocity, effort to log.csv's 10 digits; stamps spaced as the rows' time_s);
+    /robot_description a URDF of every /tf frame and /joint_states joint, to a subscriber
+    that comes after it was published; /tf where tf2_msgs is installed, said otherwise."""
+    listener = Listener(domain)
+    late_descriptions = []
+
+    def join_late(process):
+        """A second subscriber, once the bridge has published (so after its description)."""
+        end = time.monotonic() + 20
+        while not listener.states and time.monotonic() < end:
+            time.sleep(0.05)
+        late = Listener(domain)
+        try:
+            while not late.descriptions and time.monotonic() < end:
+                time.sleep(0.05)
+            late_descriptions.extend(late.descriptions)
+        finally:
+            late.close()
+
+    try:
+        # communicate() returns once the bridge, which shares the run's stderr, has ended too.
+        done = cochlea_run(tmp_path / "run", "--ros2", during=join_late, duration=6)
+    finally:
+        listener.close()
+    folder = tmp_path / "run"
+    header, rows = read_log(folder)
+    states = listener.states
+    # The bridge starts (imports, description; at nice 10) in 2 to 4 s of the 6 s run on a
+    # loaded machine: at least a second of messages.
+    assert len(states) > RATE_HZ, (f"{len(states)} /joint_states messages in a 6 s run: "
+                                       f"{done.stderr}")
+    # Rate: as received, over the messages of the run (the follower starts up to ~2 s late).
+    received = np.array([t for t, _ in states])
+    rate = (len(received) - 1) / (received[-1] - received[0])
+    assert abs(rate - RATE_HZ) < 0.2 * RATE_HZ, f"received at {rate:.1f} Hz"
+    # Values: each message is one row of log.csv; the first one found by value, the others by
+    # their stamps' distance from it (the row's time_s).
+    names = list(states[0][1].name)
+    assert names == [f"arm{a}/joint{j}" for a in (1, 2) for j in (1, 2, 3)]
+    cols = {g: [column(header, n, g) for n in names] for g in ("q", "qd", "tau")}
+
+    def ns(m: JointState) -> int:
+        return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+    first = states[0][1]
+    k0 = int(np.argmin(np.abs(rows[:, cols["q"]] - np.array(first.position)).sum(axis=1)))
+    times = rows[:, 0]
+    for _, m in states:
+        t = times[k0] + (ns(m) - ns(first)) * 1e-9
+        k = int(np.argmin(np.abs(times - t)))
+        assert abs(times[k] - t) < 1e-6, f"a stamp at {t} s is no row's time_s"
+        assert list(m.name) == names
+        for group, values in (("q", m.position), ("qd", m.velocity), ("tau", m.effort)):
+            np.testing.assert_allclose(values, rows[k, cols[group]], rtol=1e-9, atol=1e-12,
+                                       err_msg=f"{group} at t = {times[k]} s")
+    # The description: a URDF whose links are every frame the bridge poses on /tf, whose
+    # joints include every /joint_states name; delivered to the late subscriber too.
+    assert listener.descriptions and late_descriptions == listener.descriptions[:1]
+    urdf = ET.fromstring(listener.descriptions[0])
+    links = {e.get("name") for e in urdf.findall("link")}
+    joints = {e.get("name") for e in urdf.findall("joint")}
+    run = open_run(folder)
+    for unit in run.units:
+        frames = run.adapter.link_frames(run.system, unit.name)
+        assert set(frames.names) <= links and set(frames.parents) <= links
+    assert set(names) <= joints
+    if ros_node.TFMessage is None:
+        assert "no /tf" in done.stderr
+    else:  # pragma: no cover - a ROS installation with tf2_msgs
+        assert "no /tf" not in done.stderr
+
+
+@pytest.mark.realtime
+def test_frames_of_log_bin_are_those_of_log_csv(tmp_path, domain):
+    """The follower's columns of log.bin (log.columns.json's names) give every frame as
+    cochlea-mcap computes it from log.csv, row for row."""
+    cochlea_run(tmp_path / "run")
+    folder = tmp_path / "run"
+    run = open_run(folder)
+    tail = RawTail(folder)
+    raw = Described(run.adapter, run.system, raw_units(run.adapter, run.system, tail.names,
+                                                       tail.bin))
+    csv = Described(run.adapter, run.system, run.units)
+    picked = range(0, 4000, 397)
+    rows_csv = next(run.chunks())[list(picked)]
+    rows_raw = np.vstack([tail.row(k) for k in picked])
+    np.testing.assert_allclose(rows_raw[:, 0], rows_csv[:, 0], atol=1e-12)
+    for a, b in zip(raw.transforms(rows_raw), csv.transforms(rows_csv)):
+        assert [f[:2] for f in a] == [f[:2] for f in b] and a
+        np.testing.assert_allclose([f[2] + f[3] for f in a], [f[2] + f[3] for f in b],
+                                   atol=1e-8)
+    assert raw.joint_names() == csv.joint_names()
+
+
+def verdict(folder: Path) -> dict:
+    """summary.json without what depends on the wall clock (timing, wall time)."""
+    summary = json.loads((folder / "summary.json").read_text())
+    for key in ("timing", "wall_time_s"):
+        summary.pop(key)
+    return summary
+
+
+def follower_pids(folder: Path) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmd = (entry / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"cochlea.apps.cochlea_ros2" in cmd and str(folder).encode() in cmd:
+                found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.realtime
+def test_a_stalled_subscriber_or_a_dead_bridge_changes_nothing(tmp_path, domain):
+    """A subscriber that never spins, and the bridge killed mid-run: the run's summary (every
+    verdict, stop, error, estimate) is that of a run without the bridge."""
+    without = tmp_path / "without"
+    cochlea_run(without)
+    stalled = Listener(domain, spin=False)
+    killed = []
+
+    def kill_the_bridge(process):
+        end = time.monotonic() + 20
+        while time.monotonic() < end and not killed:
+            for pid in follower_pids(tmp_path / "with"):
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+            time.sleep(0.2)
+
+    try:
+        cochlea_run(tmp_path / "with", "--ros2", during=kill_the_bridge)
+    finally:
+        stalled.close()
+    assert killed, "the bridge was never seen running"
+    assert verdict(tmp_path / "with") == verdict(without)
+
+
+@pytest.mark.parametrize("scenario", ["serial_task", "parallel_joint"])
+def test_robot_description_is_a_tree_of_the_tf_frames(scenario):
+    """The URDF: a tree rooted at world (each other link the child of exactly one joint, every
+    parent a link), whose links are every frame of every unit; a serial arm's joints named as
+    on /joint_states, with cochlea-urdf export's axes and limits."""
+    adapter, system = describe_scenario(scenario)
+    units = []
+    for name in adapter.layout(system, "joint").units:
+        joints = [j.name for j in adapter.model(system, name).joints]
+        units.append(UnitColumns(name, {"q": Group("q", list(range(len(joints))),
+                                                   [f"{j}_rad" for j in joints])}))
+    described = Described(adapter, system, units)
+    urdf = ET.fromstring(robot_description(described))
+    links = [e.get("name") for e in urdf.findall("link")]
+    assert len(set(links)) == len(links)
+    children = [j.find("child").get("link") for j in urdf.findall("joint")]
+    assert sorted(children) == sorted(set(links) - {"world"})
+    assert {j.find("parent").get("link") for j in urdf.findall("joint")} <= set(links)
+    frames = {f for unit in units for f in adapter.link_frames(system, unit.name).names}
+    assert set(links) == frames | {"world"}
+    if adapter.name == "serial":
+        moving = {j.get("name"): j for j in urdf.findall("joint") if j.get("type") == "revolute"}
+        assert set(described.joint_names()) == set(moving)
+        assert all(j.find("limit") is not None and j.find("axis") is not None
+                   for j in moving.values())
+
+
+# ---- bad input: one line, its exit code ---------------------------------------------------
+
+def refused(capsys, code: int, *argv: str) -> str:
+    assert cochlea_ros2.main(list(argv)) == code
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cochlea-ros2: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize("command", ["follow", "replay"])
+def test_not_a_run_folder(capsys, tmp_path, command):
+    assert "missing" in refused(capsys, 2, command, str(tmp_path / "nothing"))
+    (tmp_path / "file").write_text("x")
+    assert "not a folder" in refused(capsys, 2, command, str(tmp_path / "file"))
+
+
+def test_a_folder_that_never_becomes_a_run(capsys, tmp_path):
+    assert "no log.columns.json" in refused(capsys, 3, "follow", str(tmp_path), "--wait",
+                                             "0.2")
+    assert "not a finished run" in refused(capsys, 2, "replay", str(tmp_path))
+
+
+@pytest.mark.parametrize("columns, message", [
+    ("{not json", "not a real-time run's column list"),
+    ('{"dtype": "float32", "row_length": 1, "columns": ["time_s"]}',
+     "not a real-time run's column list"),
+    ('{"dtype": "float64", "row_length": 2, "columns": ["time_s", "q.arm1.joint1_rad"]}',
+     "not this robot's log"),
+])
+def test_a_damaged_or_foreign_log(capsys, tmp_path, columns, message):
+    """log.columns.json that is not JSON, not float64 rows, or not the named robot's."""
+    (tmp_path / "log.columns.json").write_text(columns)
+    assert message in refused(capsys, 2, "follow", str(tmp_path), "--scenario", "serial_joint")
+
+
+def test_an_unknown_scenario(capsys, tmp_path):
+    (tmp_path / "log.columns.json").write_text(
+        '{"dtype": "float64", "row_length": 1, "columns": ["time_s"]}')
+    assert "--scenario" in refused(capsys, 2, "follow", str(tmp_path), "--scenario",
+                                   str(tmp_path / "none.toml"))
+
+
+@pytest.mark.parametrize("command", ["follow", "replay"])
+@pytest.mark.parametrize("rate", ["0", "-5", "nan", "inf", "fast", "1e9"])
+def test_bad_rate(capsys, tmp_path, command, rate):
+    assert "--rate" in refused(capsys, 2, command, str(tmp_path), "--rate", rate)
+
+
+@pytest.mark.parametrize("option", ["--wait", "--idle"])
+def test_bad_wait(capsys, tmp_path, option):
+    assert option in refused(capsys, 2, "follow", str(tmp_path), option, "-1")
+
+
+def test_ros2_is_for_real_time_runs(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+         "joint", "--realtime", "off", "--ros2", "--out", str(tmp_path / "run")],
+        capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.strip().count("\n") == 0 and "cochlea-ros2 replay" in done.stderr
+    assert not (tmp_path / "run").exists()
