@@ -235,7 +235,10 @@ static int period(cochlea_loop *loop)
                 cell += unit->np;
             }
         }
-        r = sc->step(loop->controller, t, loop->q, loop->qd, loop->tau, loop->errors);
+        r = sc->step_period ? sc->step_period(loop->controller, k, loop->q, loop->qd, loop->tau,
+                                              loop->errors)
+                            : sc->step(loop->controller, t, loop->q, loop->qd, loop->tau,
+                                       loop->errors);
         { /* errors, unit after unit, between tau and the estimate */
             double *cell = row_tau + n;
             for (u = 0; u < sc->n_units; ++u) {
