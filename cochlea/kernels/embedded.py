@@ -11,13 +11,18 @@ precisions:
   law's division guards (``1e-300``) become ``FLT_MIN``;
 * otherwise ``double`` everywhere.
 
-The desired trajectory is evaluated in double in both builds and only its outputs are rounded
-to the working precision (``_in_double``): a float time staircases (from one day on its spacing
-is 7.8 ms). Every ``.c`` refuses ``-ffast-math`` and ``-ffinite-math-only`` with an ``#error``
-(they would delete the NaN checks) and tests finiteness on the bits (``CFINITE``).
+``<name>_desired(t)`` evaluates the trajectory in double in both builds and rounds only its
+outputs (``_in_double``): a float time staircases (from one day on its spacing is 7.8 ms). The
+loop's entry, ``<name>_step_period(k)``, takes the int64 period count instead: the double build
+forms t = (double)k h (the loop's t, bit for bit), the float build evaluates the trajectory from
+k without double through its time atoms (:func:`time_atoms`: phases in Q0.64 turns, time
+thresholds as period counts found at init; docs/embedded.md, "The float build"). Every ``.c``
+refuses ``-ffast-math`` and ``-ffinite-math-only`` with an ``#error`` (they would delete the NaN
+checks) and tests finiteness on the bits (``CFINITE``).
 
 The estimate ``p_hat`` is kept, integrated (explicit Euler), projected onto the ball
-``|p_hat| <= bound`` and clipped to its box ``[p_min, p_max]`` in double in both builds, exactly
+``|p_hat| <= bound`` (the square root and division only when the bound is crossed: the same
+bits) and clipped to its box ``[p_min, p_max]`` by comparison, in double in both builds, exactly
 as the fused ``step`` of :mod:`cochlea.control.controllers` does; the law gives ``p_hat_dot`` in
 the working precision (its dead zone, box projection and static-friction shape included: the
 robust options are the configuration's ``deadzone``, ``p_min``, ``p_max``, ``static_excess``,

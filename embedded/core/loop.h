@@ -17,7 +17,8 @@
  *      overruns in a row, or one period whose own work exceeds watchdog_misses periods (a
  *      stall), end the run. Catch-up periods after a stall run late but are no overruns.
  * Whatever ends the run, the backend's shutdown (zero effort, drives off) runs before
- * cochlea_loop_run returns: it is the only exit.
+ * cochlea_loop_run returns: it is the only exit (cochlea_loop_end, for a port that runs the
+ * periods itself: below).
  *
  * The row of a period is cochlea-run's log.bin row: t, q[nq], qd[nq], tau[nq], per unit its
  * errors[ne] and the estimate used in the period[np], then start lateness, wall period,
