@@ -11,13 +11,18 @@ precisions:
   law's division guards (``1e-300``) become ``FLT_MIN``;
 * otherwise ``double`` everywhere.
 
-The desired trajectory is evaluated in double in both builds and only its outputs are rounded
-to the working precision (``_in_double``): a float time staircases (from one day on its spacing
-is 7.8 ms). Every ``.c`` refuses ``-ffast-math`` and ``-ffinite-math-only`` with an ``#error``
-(they would delete the NaN checks) and tests finiteness on the bits (``CFINITE``).
+``<name>_desired(t)`` evaluates the trajectory in double in both builds and rounds only its
+outputs (``_in_double``): a float time staircases (from one day on its spacing is 7.8 ms). The
+loop's entry, ``<name>_step_period(k)``, takes the int64 period count instead: the double build
+forms t = (double)k h (the loop's t, bit for bit), the float build evaluates the trajectory from
+k without double through its time atoms (:func:`time_atoms`: phases in Q0.64 turns, time
+thresholds as period counts found at init; docs/embedded.md, "The float build"). Every ``.c``
+refuses ``-ffast-math`` and ``-ffinite-math-only`` with an ``#error`` (they would delete the NaN
+checks) and tests finiteness on the bits (``CFINITE``).
 
 The estimate ``p_hat`` is kept, integrated (explicit Euler), projected onto the ball
-``|p_hat| <= bound`` and clipped to its box ``[p_min, p_max]`` in double in both builds, exactly
+``|p_hat| <= bound`` (the square root and division only when the bound is crossed: the same
+bits) and clipped to its box ``[p_min, p_max]`` by comparison, in double in both builds, exactly
 as the fused ``step`` of :mod:`cochlea.control.controllers` does; the law gives ``p_hat_dot`` in
 the working precision (its dead zone, box projection and static-friction shape included: the
 robust options are the configuration's ``deadzone``, ``p_min``, ``p_max``, ``static_excess``,
@@ -30,6 +35,7 @@ deterministic: no timestamps, no paths.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 
@@ -116,6 +122,134 @@ class EmbeddedUnit:
     @property
     def n_points(self) -> int:
         return len(self.tool_points) if self.fk is not None else 0
+
+
+# --------------------------------------------------------------------------------------------
+# The float build's time: the trajectory as a function of time atoms
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TimeAtom:
+    """One way the desired trajectory uses its time t, which the float build evaluates from
+    the int64 period count k without forming t (docs/embedded.md, "The float build"):
+
+    * ``phase``: ``w t`` (``value`` = w, rad/s) whose only uses are sin and cos: the phase in
+      [-pi, pi) from ``k`` times the phase per period in 64-bit integer turns;
+    * ``min``: ``fmin(t, c)`` (``value`` = c, s): ``k h`` in float while ``k h < c``, else c;
+    * ``le``, ``lt``, ``ge``, ``gt``: ``t <= c``, ``t < c``, ``c <= t``, ``c < t`` (1 or 0):
+      ``k`` against the last period of the double build's ``(double)k h`` on that side of c,
+      found once at init, so that each decision is the double build's."""
+
+    kind: str
+    value: float
+
+
+_COMPARE = {(ca.OP_LE, 0): "le", (ca.OP_LE, 1): "ge", (ca.OP_LT, 0): "lt", (ca.OP_LT, 1): "gt"}
+
+
+def _atom_of(e: ca.SX, parents: set[int]) -> TimeAtom | None:
+    """The atom of a node that has t as a dependency, or None when it is no atom."""
+    if e.n_dep() != 2:
+        return None
+    a, b = e.dep(0), e.dep(1)
+    if a.is_symbolic() == b.is_symbolic():  # t with t, or t with a non-constant
+        return None
+    i, other = (0, b) if a.is_symbolic() else (1, a)
+    if not other.is_constant():
+        return None
+    c = float(other)
+    if not np.isfinite(c):
+        return None
+    op = e.op()
+    if op == ca.OP_MUL:
+        return TimeAtom("phase", c) if parents <= {ca.OP_SIN, ca.OP_COS} and c != 0 else None
+    if op == ca.OP_FMIN:
+        return TimeAtom("min", c)
+    kind = _COMPARE.get((op, i))
+    return TimeAtom(kind, c) if kind else None
+
+
+def _atom_value(atom: TimeAtom, t: float) -> float:
+    """What an atom is at time t, as the float build forms it (in double: the self-check)."""
+    c = atom.value
+    return {"phase": lambda: math.remainder(c * t, 2 * math.pi), "min": lambda: min(t, c),
+            "le": lambda: float(t <= c), "lt": lambda: float(t < c),
+            "ge": lambda: float(c <= t), "gt": lambda: float(c < t)}[atom.kind]()
+
+
+def time_atoms(desired: ca.Function) -> tuple[ca.Function, tuple[TimeAtom, ...]] | None:
+    """``(g, atoms)``: the desired trajectory as ``g(atoms) -> (x, x_dot, x_ddot)``, every use
+    of t replaced by a :class:`TimeAtom`; None when t is used in any other way (the float
+    build then evaluates that unit's trajectory in double, as before). Checked against the
+    trajectory at a few times before it is returned."""
+    if not desired.is_a("SXFunction") or desired.n_in() != 1 or desired.size1_in(0) != 1:
+        return None
+    t = desired.sx_in(0)
+    outs = desired.call([t])
+    nodes: dict[int, ca.SX] = {}
+    parents: dict[int, set[int]] = {}
+    order: list[int] = []  # post-order: every node after its dependencies
+    done: set[int] = set()
+    stack = [(o[i], False) for o in outs for i in range(o.numel())]
+    if any(e.is_symbolic() for e, _ in stack):
+        return None  # t itself is an output
+    while stack:
+        e, expanded = stack.pop()
+        h = e.element_hash()
+        if expanded:
+            if h not in done:
+                done.add(h)
+                order.append(h)
+            continue
+        if h in nodes:
+            continue
+        nodes[h] = e
+        stack.append((e, True))
+        for i in range(e.n_dep()):
+            d = e.dep(i)
+            parents.setdefault(d.element_hash(), set()).add(e.op())
+            stack.append((d, False))
+    atoms: list[TimeAtom] = []
+    symbols: dict[TimeAtom, ca.SX] = {}
+    new: dict[int, ca.SX] = {}
+    for h in order:
+        e = nodes[h]
+        if e.n_dep() == 0:
+            new[h] = e
+            continue
+        if any(e.dep(i).is_symbolic() for i in range(e.n_dep())):
+            atom = _atom_of(e, parents.get(h, set()))
+            if atom is None:
+                return None
+            if atom not in symbols:
+                symbols[atom] = ca.SX.sym(f"atom{len(atoms)}")
+                atoms.append(atom)
+            new[h] = symbols[atom]
+            continue
+        deps = [new[e.dep(i).element_hash()] for i in range(e.n_dep())]
+        if len(deps) == 1:
+            new[h] = ca.SX.unary(e.op(), deps[0])
+        elif len(deps) == 2:
+            new[h] = ca.SX.binary(e.op(), deps[0], deps[1])
+        else:
+            return None
+    if not atoms:
+        return None
+    rebuilt = [ca.reshape(ca.vertcat(*[new[o[i].element_hash()] for i in range(o.numel())]),
+                          o.size1(), o.size2()) for o in outs]
+    if any(ca.depends_on(r, t) for r in rebuilt):
+        return None
+    x = ca.vertcat(*[symbols[a] for a in atoms])
+    g = ca.Function(desired.name() + "_atoms", [x], rebuilt, ["atoms"], desired.name_out())
+    for time in (0.0, 0.37, 4.999, 5.0, 7.3, 86_400.123):
+        want = [np.array(v, float) for v in desired(time)]
+        got = [np.array(v, float) for v in g([_atom_value(a, time) for a in atoms])]
+        for w, v in zip(want, got):
+            if not np.allclose(v, w, rtol=1e-9, atol=1e-9 * (1 + np.abs(w).max())):
+                raise CodegenError(f"{desired.name()}: its time atoms do not reproduce it at "
+                                   f"t = {time} s")
+    return g, tuple(atoms)
 
 
 # --------------------------------------------------------------------------------------------
@@ -216,7 +350,12 @@ def _offsets(units: list[EmbeddedUnit]) -> list[_Offsets]:
     return out
 
 
-def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> str:
+def _n_atoms(atoms: list[tuple[TimeAtom, ...] | None]) -> int:
+    return sum(len(a) for a in atoms if a)
+
+
+def _header(name: str, title: str, period: float, units: list[EmbeddedUnit],
+            atoms: list[tuple[TimeAtom, ...] | None]) -> str:
     N = name.upper()
     off = _offsets(units)
     nq = sum(u.nq for u in units)
@@ -231,6 +370,7 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
                          "keep-out tool points of all units (<name>_tool_points)")}
     lines = [_preamble(f"{name}: {title}"),
              f"#ifndef {N}_H\n#define {N}_H\n",
+             "#include <stdint.h>\n",
              "#ifdef __cplusplus\nextern \"C\" {\n#endif\n",
              "/* The working precision: float when COCHLEA_FLOAT is defined, double otherwise.\n"
              " * The estimate p_hat and the configuration are double in both builds. */",
@@ -301,6 +441,14 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
         f"  double p_min[{N}_NP], p_max[{N}_NP];",
         f"  {name}_real deadzone_real[{N}_NQ], p_min_real[{N}_NP], p_max_real[{N}_NP];",
         f"  {name}_real static_excess[{N}_NQ], stribeck_velocity[{N}_NQ];",
+        "  /* The float build's time (docs/embedded.md, \"The float build\"): per time atom of",
+        "   * the trajectory, the phase per period in turns (Q0.64) or the last period k on one",
+        "   * side of its time; the period in the working precision. */",
+        f"  uint64_t atom_turns[{max(_n_atoms(atoms), 1)}];",
+        f"  int64_t atom_last[{max(_n_atoms(atoms), 1)}];",
+        f"  {name}_real h_real;",
+        "  /* per unit: |p_hat|^2 at or under this is inside the ball (no projection) */",
+        f"  double bound2_inside[{N}_UNITS];",
         "  unsigned long steps;          /* periods run since init */",
         "  int ready;                    /* 1 between init and terminate */",
         f"}} {name}_state;\n",
@@ -320,12 +468,24 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit]) -> 
         " * next estimate is not (the state is then left unchanged, command_out as computed). */",
         f"int {name}_step({name}_state *s, double t, const {name}_real measurement[{N}_NX],",
         f"    {name}_real command_out[{N}_NQ], {name}_real errors_out[{N}_NE]);\n",
+        "/* The same at period k of the run (t = k h, h the configuration's period): the loop's",
+        " * entry. In double t is formed as (double)k * h, so it is step's at that t bit for",
+        " * bit; in float the trajectory is evaluated from k without double (its time atoms,",
+        " * docs/embedded.md). -1 also for k < 0. */",
+        f"int {name}_step_period({name}_state *s, int64_t k,",
+        f"    const {name}_real measurement[{N}_NX], {name}_real command_out[{N}_NQ],",
+        f"    {name}_real errors_out[{N}_NE]);\n",
         "/* Ends the run: the state must be initialised again before the next step. */",
         f"void {name}_terminate({name}_state *s);\n",
         "/* The desired trajectory of every unit at time t (s): position, velocity and",
         " * acceleration, exact derivatives, unit after unit (ND each). Returns 0. */",
         f"int {name}_desired(double t, {name}_real xd[{N}_ND], {name}_real xd_dot[{N}_ND],",
         f"    {name}_real xd_ddot[{N}_ND]);\n",
+        "/* The same at period k (t = k h, h of the initialised state s): in double the above at",
+        " * (double)k * h; in float from the integer k (no double, no staircase at any k).",
+        " * Returns 0, or -1 for k < 0. */",
+        f"int {name}_desired_period(const {name}_state *s, int64_t k, {name}_real xd[{N}_ND],",
+        f"    {name}_real xd_dot[{N}_ND], {name}_real xd_ddot[{N}_ND]);\n",
         "/* The keep-out rule's tool points at joint positions q[NQ] (all units, rad or m): per",
         " * point its (u, v) and its circle's centre (m, world frame), point after point in the",
         " * order of the units. Returns 0. */",
@@ -379,8 +539,55 @@ def _in_double(body: str, real: str) -> str:
     return body.replace("CSQ(", "CSQD(")
 
 
+#: The helpers of the time atoms and the clamps (in the generated .c that use them).
+_CTURNS = """
+/* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
+ * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
+ * fraction's error is under a unit of 2^-64 and k periods of it under k 2^-64 turns. */
+static uint64_t CTURNS(double w, double h) {
+  double x = w * h / 6.283185307179586;
+  x -= floor(x);
+  x *= 18446744073709551616.0; /* 2^64, exact */
+  return x >= 18446744073709551616.0 ? 0u : (uint64_t)x;
+}
+"""
+_CLAST = """
+/* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
+ * the double build's own t and comparison, so that an integer test of k decides as it
+ * does. At init, in double. */
+static int64_t CLAST(double c, double h, int or_equal) {
+  double k0 = floor(c / h);
+  int64_t k;
+  if (!(k0 < 4.0e15)) k0 = 4.0e15;
+  if (k0 < -1.0) k0 = -1.0;
+  k = (int64_t)k0;
+  while (k >= 0 && (or_equal ? (double)k * h > c : (double)k * h >= c)) --k;
+  while (or_equal ? (double)(k + 1) * h <= c : (double)(k + 1) * h < c) ++k;
+  return k;
+}
+"""
+_CLAMPD = """
+/* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
+ * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
+static double CCLAMPD(double x, double lo, double hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+"""
+
+#: The float build's phase of a time atom (C, in #ifdef COCHLEA_FLOAT).
+_PHASE = """
+/* A phase in turns (Q0.64) as an angle in [-pi, pi) rad, in float: its top 32 bits as a
+ * signed count of 2^-32 turns (integer arithmetic only). */
+static float CPHASE(uint64_t turns) {
+  const uint32_t hi = (uint32_t)(turns >> 32);
+  const int32_t v = hi >= 0x80000000u ? -(int32_t)(0xFFFFFFFFu - hi) - 1 : (int32_t)hi;
+  return (float)v * 1.46291807926715968e-09f; /* 2 pi / 2^32 */
+}
+"""
+
+
 def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, str],
-            config: str) -> str:
+            config: str, atoms: list[tuple[TimeAtom, ...] | None]) -> str:
     N = name.upper()
     R = f"{name}_real"
     off = _offsets(units)
@@ -398,18 +605,54 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             functions.append(f"/* {u.name}: {kind} ({sig}) -> ({res}) */\n"
                              f"static int {fname}(const {T}** arg, {T}** res) {{\n"
                              f"{body}\n}}\n")
+    all_atoms = all(a is not None for a in atoms)
+    kinds = [a for unit_atoms in atoms for a in unit_atoms or ()]
+    if all_atoms:
+        functions.append("#ifdef COCHLEA_FLOAT\n"
+                         + (_PHASE if any(a.kind == "phase" for a in kinds) else ""))
+        for u, unit_atoms in zip(units, atoms):
+            fname = f"{name}_{u.name}_desired_atoms"
+            what = ", ".join(f"{a.kind} {a.value!r}" for a in unit_atoms)
+            functions.append(f"/* {u.name}: desired of its time atoms ({what}) -> "
+                             f"(x, x_dot, x_ddot), in the working precision */\n"
+                             f"static int {fname}(const {R}** arg, {R}** res) {{\n"
+                             f"{bodies[fname]}\n}}\n")
+        functions.append("#endif /* COCHLEA_FLOAT */\n")
     text = "".join(functions)
     helpers = ([f"static {R} CSQ({R} x) {{ return x * x; }}\n"] if "CSQ(" in text else []) + (
         ["static double CSQD(double x) { return x * x; }\n"] if "CSQD(" in text else [])
+    helpers += ([_CTURNS] if any(a.kind == "phase" for a in kinds) else []) + (
+        [_CLAST] if any(a.kind != "phase" for a in kinds) else []) + [_CLAMPD]
+    helpers.append(f"static {R} CCLAMP({R} x, {R} lo, {R} hi) {{\n"
+                   "  return x < lo ? lo : (x > hi ? hi : x);\n}\n")
     parts = [_preamble(f"{name}: {title}"),
              f'#include "{name}.h"\n#include <float.h>\n#include <math.h>\n'
              '#include <stdint.h>\n', _PRECISION, *helpers, *functions]
     parts.append(config)
     # init
+    atom_lines = ["  s->h_real = (" + R + ")c->h;"]
+    j = 0
+    for unit_atoms in atoms:
+        for a in unit_atoms or ():
+            c = _double(a.value)
+            turns = f"CTURNS({c}, c->h)" if a.kind == "phase" else "0u"
+            last = {"phase": "0", "min": f"CLAST({c}, c->h, 0)", "le": f"CLAST({c}, c->h, 1)",
+                    "lt": f"CLAST({c}, c->h, 0)", "ge": f"CLAST({c}, c->h, 0)",
+                    "gt": f"CLAST({c}, c->h, 1)"}[a.kind]
+            atom_lines.append(f"  s->atom_turns[{j}] = {turns}; s->atom_last[{j}] = {last};"
+                              f"  /* {a.kind} {a.value!r} */")
+            if a.kind == "min":  # k h formed from k as an int32 while under c
+                atom_lines.append(f"  if (s->atom_last[{j}] >= 2147483647) return -1;")
+            j += 1
+    if not j:
+        atom_lines.append("  s->atom_turns[0] = 0u; s->atom_last[0] = 0;")
     checks = [f"  for (i = 0; i < {N}_UNITS; ++i) {{",
               "    if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;",
               "    s->bound[i] = c->bound[i];",
               f"    s->bound_real[i] = ({R})c->bound[i];",
+              "    /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the",
+              "     * projection's scale is exactly 1 */",
+              "    s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);",
               "  }"]
     parts.append("\n".join([
         f"int {name}_init({name}_state *s, const {name}_config *c) {{",
@@ -417,6 +660,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         "  s->ready = 0;",
         "  if (!(c->h > 0.0 && c->h < HUGE_VAL)) return -1;",
         "  s->h = c->h;",
+        *atom_lines,
         f"  for (i = 0; i < {N}_NG; ++i) s->gains[i] = ({R})c->gains[i];",
         f"  for (i = 0; i < {N}_NP; ++i) {{",
         "    s->gamma[i] = (" + R + ")c->gamma[i];",
@@ -471,17 +715,56 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
                 "#endif",
                 "  return 0;", "}\n"]
     parts.append("\n".join(desired))
-    # step
-    step = [f"int {name}_step({name}_state *s, double t, const {R} measurement[{N}_NX],",
-            f"    {R} command_out[{N}_NQ], {R} errors_out[{N}_NE]) {{",
-            f"  {R} xd[{N}_ND], xd_dot[{N}_ND], xd_ddot[{N}_ND];",
+    # desired at period k
+    dp = [f"int {name}_desired_period(const {name}_state *s, int64_t k, {R} xd[{N}_ND],",
+          f"    {R} xd_dot[{N}_ND], {R} xd_ddot[{N}_ND]) {{",
+          "  if (k < 0) return -1;"]
+    if all_atoms:
+        dp += ["#ifdef COCHLEA_FLOAT",
+               "  {",
+               "    /* The time atoms from k: integers and float only, no t (a float t would",
+               "     * staircase; docs/embedded.md, \"The float build\") */",
+               f"    {R} atoms[{_n_atoms(atoms)}];",
+               f"    const {R}* arg[1];",
+               f"    {R}* res[3];"]
+        j = 0
+        for unit_atoms in atoms:
+            for at in unit_atoms:
+                c = f"CR({_double(at.value)})"
+                value = {
+                    "phase": f"CPHASE((uint64_t)k * s->atom_turns[{j}])",
+                    "min": f"k <= s->atom_last[{j}] ? ({R})(int32_t)k * s->h_real : {c}",
+                    "le": f"k <= s->atom_last[{j}] ? CR(1.) : CR(0.)",
+                    "lt": f"k <= s->atom_last[{j}] ? CR(1.) : CR(0.)",
+                    "ge": f"k > s->atom_last[{j}] ? CR(1.) : CR(0.)",
+                    "gt": f"k > s->atom_last[{j}] ? CR(1.) : CR(0.)"}[at.kind]
+                t_of = {"phase": f"{at.value!r} t", "min": f"fmin(t, {at.value!r})",
+                        "le": f"t <= {at.value!r}", "lt": f"t < {at.value!r}",
+                        "ge": f"{at.value!r} <= t", "gt": f"{at.value!r} < t"}[at.kind]
+                dp.append(f"    atoms[{j}] = {value};  /* {t_of} */")
+                j += 1
+        j = 0
+        for u, o, unit_atoms in zip(units, off, atoms):
+            dp += [f"    arg[0] = atoms + {j};",
+                   f"    res[0] = xd + {o.d}; res[1] = xd_dot + {o.d}; res[2] = xd_ddot + {o.d};",
+                   f"    if ({name}_{u.name}_desired_atoms(arg, res)) return -1;"]
+            j += len(unit_atoms)
+        dp += ["  }", "  return 0;", "#else"]
+    dp += ["  return " + name + "_desired((double)k * s->h, xd, xd_dot, xd_ddot);"]
+    if all_atoms:
+        dp.append("#endif")
+    dp.append("}\n")
+    parts.append("\n".join(dp))
+    # step: the desired given, then the entries at t and at period k
+    step = [f"static int {name}_step_desired({name}_state *s, const {R} xd[{N}_ND],",
+            f"    const {R} xd_dot[{N}_ND], const {R} xd_ddot[{N}_ND],",
+            f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
+            f"{R} errors_out[{N}_NE]) {{",
             f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
             f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
             f"  const {R}* arg[14];",
             f"  {R}* res[3];",
             "  int i;",
-            "  if (!s->ready) return -1;",
-            f"  if ({name}_desired(t, xd, xd_dot, xd_ddot)) return -1;",
             f"  for (i = 0; i < {N}_NP; ++i) p_hat[i] = ({R})s->p_hat[i];"]
     for k, (u, o) in enumerate(zip(units, off)):
         step += [
@@ -496,13 +779,15 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             f"  res[0] = command_out + {o.q}; res[1] = p_hat_dot + {o.p}; "
             f"res[2] = errors_out + {o.e};",
             f"  if ({name}_{u.name}_law(arg, res)) return -1;",
-            "  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */",
+            "  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the",
+            "   * scale is 1 inside it, so the square root and the division only when crossed */",
             "  norm2 = 0.0;",
             f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
             "    next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];",
             "    norm2 += next[i] * next[i];",
             "  }",
-            f"  scale[{k}] = fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));"]
+            f"  scale[{k}] = norm2 <= s->bound2_inside[{k}] ? 1.0"
+            f" : fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));"]
     step += [
         "  /* Every output finite, or nothing changes (CFINITE: on the bits) */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
@@ -511,14 +796,30 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         "    if (!CFINITE((double)errors_out[i])) return 1;",
         f"  for (i = 0; i < {N}_NP; ++i)",
         "    if (!CFINITE(next[i])) return 2;",
-        "  /* the supervisor's clip: |command| <= effort limit */",
+        "  /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
-        "    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), "
-        "s->effort_limit[i]);"]
+        "    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);"]
     for k, (u, o) in enumerate(zip(units, off)):
         step += [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) "
-                 f"s->p_hat[i] = fmin(fmax(next[i] * scale[{k}], s->p_min[i]), s->p_max[i]);"]
-    step += ["  s->steps += 1;", "  return 0;", "}\n"]
+                 f"s->p_hat[i] = CCLAMPD(next[i] * scale[{k}], s->p_min[i], s->p_max[i]);"]
+    step += ["  s->steps += 1;", "  return 0;", "}\n",
+             f"int {name}_step({name}_state *s, double t, const {R} measurement[{N}_NX],",
+             f"    {R} command_out[{N}_NQ], {R} errors_out[{N}_NE]) {{",
+             f"  {R} xd[{N}_ND], xd_dot[{N}_ND], xd_ddot[{N}_ND];",
+             "  if (!s->ready) return -1;",
+             f"  if ({name}_desired(t, xd, xd_dot, xd_ddot)) return -1;",
+             f"  return {name}_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, "
+             "errors_out);",
+             "}\n",
+             f"int {name}_step_period({name}_state *s, int64_t k,",
+             f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
+             f"{R} errors_out[{N}_NE]) {{",
+             f"  {R} xd[{N}_ND], xd_dot[{N}_ND], xd_ddot[{N}_ND];",
+             "  if (!s->ready) return -1;",
+             f"  if ({name}_desired_period(s, k, xd, xd_dot, xd_ddot)) return -1;",
+             f"  return {name}_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, "
+             "errors_out);",
+             "}\n"]
     parts.append("\n".join(step))
     parts.append(_tool_points(name, units, off))
     return "\n".join(parts)
@@ -585,17 +886,22 @@ def embedded_sources(name: str, title: str, period: float, units: list[EmbeddedU
         raise CodegenError(f"{name!r} is not a C identifier for an embedded controller")
     options = {"cse": True} if options is None else dict(options)
     functions = []
+    atoms: list[tuple[TimeAtom, ...] | None] = []
     for u in units:
         if u.law.n_in() != 14 or u.law.n_out() != 3 or u.desired.n_in() != 1:
             raise CodegenError(f"unit {u.name}: unexpected law or desired signature")
         functions.append(export(u.desired, f"{name}_{u.name}_desired", options))
+        found = time_atoms(u.desired)
+        atoms.append(None if found is None else found[1])
+        if found is not None:
+            functions.append(export(found[0], f"{name}_{u.name}_desired_atoms", options))
         functions.append(export(u.law, f"{name}_{u.name}_law", options))
         if u.n_points:
             functions.append(export(u.fk, f"{name}_{u.name}_fk", options))
     bodies = _bodies(functions, f"{name}_real")
     config = _default_config(name, period, units)
-    return (_header(name, title, period, units),
-            _source(name, title, units, bodies, config))
+    return (_header(name, title, period, units, atoms),
+            _source(name, title, units, bodies, config, atoms))
 
 
 # --------------------------------------------------------------------------------------------
@@ -685,6 +991,14 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         f"  for (i = 0; i < {N}_NE; ++i) errors[i] = (double)e[i];",
         "  return r;",
         "}\n",
+        "static int step_period(void *state, int64_t k, const double *q, const double *qd,",
+        "                       double *command, double *errors) {",
+        *to_real,
+        f"  r = {name}_step_period(({name}_state *)state, k, x, u, e);",
+        f"  for (i = 0; i < {N}_NQ; ++i) command[i] = (double)u[i];",
+        f"  for (i = 0; i < {N}_NE; ++i) errors[i] = (double)e[i];",
+        "  return r;",
+        "}\n",
         f"static void terminate(void *state) {{ {name}_terminate(({name}_state *)state); }}\n",
         "static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {",
         f"  {R} a[{N}_ND], b[{N}_ND], c[{N}_ND];",
@@ -717,7 +1031,7 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         f"{sc.robot}_velocity, {sc.robot}_effort,",
         f"    sizeof({name}_state), (int)sizeof({R}), init, step, terminate, desired, estimate, "
         "tool_points,",
-        f"    {int(bool(sc.bridge_offset_current))}",
+        f"    {int(bool(sc.bridge_offset_current))}, step_period",
         "};\n"]
     return "\n".join(parts)
 

@@ -69,7 +69,9 @@ typedef struct {
  *   loop that runs cochlea_bridge_* and cochlea_loop_run), never from an interrupt, and never
  *   two at once. None of them may be called by the port from an interrupt either. The only
  *   thing an interrupt or signal handler may do is store COCHLEA_USER_STOP or
- *   COCHLEA_TERMINATED in cochlea_loop.stop_request (a volatile int: one aligned store).
+ *   COCHLEA_TERMINATED in cochlea_loop.stop_request (a volatile int: one aligned store),
+ *   and, from the period timer's interrupt, call cochlea_loop_tick (loop.h: counts a tick
+ *   that finds a period still running).
  *   A UART interrupt fills the port's own ring buffer; serial_read copies out of it.
  * - Every callback returns in bounded time: serial_read within its timeout (plus the copy),
  *   serial_write within the time its bytes take on the wire plus a bounded margin (give up

@@ -35,6 +35,11 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     loop->on_row = 0;
     loop->row_ctx = 0;
     loop->log_ready = 0;
+    loop->kick_watchdog = 0;
+    loop->watchdog_ctx = 0;
+    loop->tick_overruns = 0;
+    loop->in_period = 0;
+    loop->k = 0;
     loop->stop_request = COCHLEA_RULE_NONE;
     loop->rows = 0;
     loop->deadline_misses = 0;
@@ -128,8 +133,24 @@ static void stop_here(cochlea_stop *stop, int rule, double t)
     stop->reason = 0;
 }
 
-/* Every period; the rule that ended them (the shutdown is the caller's). */
-static int periods(cochlea_loop *loop)
+int cochlea_loop_begin(cochlea_loop *loop)
+{
+    if (!loop->backend.current) { /* stays NaN: nothing measures it */
+        fill_nan(loop->row + cochlea_loop_timing_at(loop->scenario) + COCHLEA_TIMING_COLUMNS,
+                 loop->scenario->nq);
+    }
+    loop->k = 0;
+    loop->read_errors = 0;
+    loop->consecutive_overruns = 0;
+    loop->previous_end_ns = 0;
+    loop->in_period = 0;
+    loop->t0_ns = now(loop);
+    loop->previous_start_ns = loop->t0_ns;
+    return COCHLEA_RULE_NONE;
+}
+
+/* The period's rule: recorded in loop->stop (stop_here) by the caller of period(). */
+static int period(cochlea_loop *loop)
 {
     const cochlea_scenario *sc = loop->scenario;
     const cochlea_backend *be = &loop->backend;
@@ -138,17 +159,10 @@ static int periods(cochlea_loop *loop)
     double *row_tau = row + 1 + 2 * n;
     double *timing = row + cochlea_loop_timing_at(sc);
     double *current = timing + COCHLEA_TIMING_COLUMNS;
-    int64_t t0, start, previous_start, previous_end = 0, io_start, io_ns, end, deadline;
-    int errors = 0, consecutive = 0, u, i, r;
-    int64_t k;
-
-    if (!be->current) { /* stays NaN: nothing measures it */
-        fill_nan(current, n);
-    }
-    t0 = now(loop);
-    loop->t0_ns = t0;
-    previous_start = t0;
-    for (k = 0; k < loop->steps; ++k) {
+    const int64_t t0 = loop->t0_ns, k = loop->k;
+    int64_t start, io_start, io_ns, end, deadline;
+    int u, i, r;
+    {
         /* Time is the period count k (int64: no rounding, no wrap); t is formed here, in
          * double, for what needs it. A float t would staircase: from 86 400 s its spacing
          * is 7.8 ms. */
@@ -157,6 +171,7 @@ static int periods(cochlea_loop *loop)
         if (loop->realtime) {
             loop->hal->wait_until_ns(loop->hal->ctx, deadline);
         }
+        loop->in_period = 1; /* from here a tick of the port's timer finds the period late */
         start = now(loop);
         if (loop->stop_request) {
             stop_here(&loop->stop, loop->stop_request, t);
@@ -182,10 +197,10 @@ static int periods(cochlea_loop *loop)
         io_start = now(loop);
         r = be->read(be->ctx, loop->q, loop->qd);
         io_ns = now(loop) - io_start;
-        errors = r ? 0 : errors + 1;
-        if (errors > loop->limits.watchdog_errors) {
+        loop->read_errors = r ? 0 : loop->read_errors + 1;
+        if (loop->read_errors > loop->limits.watchdog_errors) {
             stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
-            loop->stop.count = errors;
+            loop->stop.count = loop->read_errors;
             loop->stop.reason = 1;
             return COCHLEA_WATCHDOG;
         }
@@ -220,7 +235,10 @@ static int periods(cochlea_loop *loop)
                 cell += unit->np;
             }
         }
-        r = sc->step(loop->controller, t, loop->q, loop->qd, loop->tau, loop->errors);
+        r = sc->step_period ? sc->step_period(loop->controller, k, loop->q, loop->qd, loop->tau,
+                                              loop->errors)
+                            : sc->step(loop->controller, t, loop->q, loop->qd, loop->tau,
+                                       loop->errors);
         { /* errors, unit after unit, between tau and the estimate */
             double *cell = row_tau + n;
             for (u = 0; u < sc->n_units; ++u) {
@@ -249,7 +267,7 @@ static int periods(cochlea_loop *loop)
         cochlea_saturate(&loop->limits, loop->tau); /* the controller clipped it already */
         io_start = now(loop);
         if (!be->write(be->ctx, loop->tau)) {
-            errors += 1;
+            loop->read_errors += 1;
         }
         io_ns += now(loop) - io_start;
         for (i = 0; i < n; ++i) {
@@ -257,53 +275,90 @@ static int periods(cochlea_loop *loop)
         }
         end = now(loop);
         timing[0] = (double)(start - t0) * 1e-9 - t;
-        timing[1] = (double)(start - previous_start) * 1e-9;
+        timing[1] = (double)(start - loop->previous_start_ns) * 1e-9;
         timing[2] = (double)(end - start) * 1e-9;
         timing[3] = (double)io_ns * 1e-9;
         emit(loop);
-        previous_start = start;
+        loop->previous_start_ns = start;
         if (loop->realtime) {
             /* The period's own work runs from its deadline, or from the previous period's end
              * when that was later (a catch-up period): lateness inherited from a stall is not
              * this period's overrun. */
-            const int64_t begin = (k > 0 && previous_end > deadline) ? previous_end : deadline;
+            const int64_t begin = (k > 0 && loop->previous_end_ns > deadline) ? loop->previous_end_ns : deadline;
             const int64_t own = end - begin;
-            previous_end = end;
+            loop->previous_end_ns = end;
             if (end - t0 > (int64_t)(k + 1) * loop->period_ns) {
                 loop->deadline_misses += 1; /* reported, not a rule */
             }
             if (own <= loop->period_ns) {
-                consecutive = 0;
+                loop->consecutive_overruns = 0;
             } else {
                 loop->overruns += 1;
-                consecutive += 1;
+                loop->consecutive_overruns += 1;
                 if (own > loop->stall_ns) {
                     stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
                     loop->stop.reason = COCHLEA_WATCHDOG_STALL;
-                    loop->stop.count = consecutive;
+                    loop->stop.count = loop->consecutive_overruns;
                     loop->stop.value = (double)own * 1e-9;
                     loop->stop.limit = (double)loop->stall_ns * 1e-9;
                     return COCHLEA_WATCHDOG;
                 }
-                if (consecutive > loop->limits.watchdog_misses) {
+                if (loop->consecutive_overruns > loop->limits.watchdog_misses) {
                     stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
                     loop->stop.reason = COCHLEA_WATCHDOG_OVERRUNS;
-                    loop->stop.count = consecutive;
+                    loop->stop.count = loop->consecutive_overruns;
                     loop->stop.value = (double)own * 1e-9;
                     return COCHLEA_WATCHDOG;
                 }
             }
         }
     }
-    stop_here(&loop->stop, COCHLEA_COMPLETED, cochlea_loop_time(loop, loop->steps));
-    return COCHLEA_COMPLETED;
+    return COCHLEA_RULE_NONE;
 }
 
-int cochlea_loop_run(cochlea_loop *loop)
+int cochlea_loop_period(cochlea_loop *loop)
 {
-    const int rule = periods(loop);
+    int rule;
+    if (loop->stop.rule != COCHLEA_RULE_NONE) { /* the run has ended: nothing more */
+        return loop->stop.rule;
+    }
+    if (loop->k >= loop->steps) {
+        stop_here(&loop->stop, COCHLEA_COMPLETED, cochlea_loop_time(loop, loop->steps));
+        return COCHLEA_COMPLETED;
+    }
+    rule = period(loop);
+    if (rule == COCHLEA_RULE_NONE) {
+        loop->k += 1;
+        if (loop->kick_watchdog) { /* a whole period done: the hardware watchdog may wait */
+            loop->kick_watchdog(loop->watchdog_ctx);
+        }
+    }
+    loop->in_period = 0;
+    return rule;
+}
+
+void cochlea_loop_tick(cochlea_loop *loop)
+{
+    if (loop->in_period) {
+        loop->tick_overruns += 1;
+    }
+}
+
+int cochlea_loop_end(cochlea_loop *loop)
+{
     loop->end_ns = now(loop);
     loop->shutdown_confirmed = loop->backend.shutdown(loop->backend.ctx);
     loop->scenario->terminate(loop->controller);
+    return loop->stop.rule;
+}
+
+
+int cochlea_loop_run(cochlea_loop *loop)
+{
+    int rule = cochlea_loop_begin(loop);
+    while (rule == COCHLEA_RULE_NONE) {
+        rule = cochlea_loop_period(loop);
+    }
+    (void)cochlea_loop_end(loop);
     return rule;
 }

@@ -17,7 +17,8 @@
  *      overruns in a row, or one period whose own work exceeds watchdog_misses periods (a
  *      stall), end the run. Catch-up periods after a stall run late but are no overruns.
  * Whatever ends the run, the backend's shutdown (zero effort, drives off) runs before
- * cochlea_loop_run returns: it is the only exit.
+ * cochlea_loop_run returns: it is the only exit (cochlea_loop_end, for a port that runs the
+ * periods itself: below).
  *
  * The row of a period is cochlea-run's log.bin row: t, q[nq], qd[nq], tau[nq], per unit its
  * errors[ne] and the estimate used in the period[np], then start lateness, wall period,
@@ -95,6 +96,15 @@ typedef struct {
      * has not emptied is full), which ends the run with COCHLEA_LOG_FAILURE. Same rules as
      * on_row: no blocking, no allocation. */
     int (*log_ready)(void *ctx);
+    /* Optional (0 by cochlea_loop_init; the port sets it after): kicks the hardware watchdog.
+     * Called with watchdog_ctx once at the end of every period that completed (its command
+     * written, its row out), from the loop's context; never after a rule has ended the run,
+     * so a watchdog with a timeout of a few periods resets a core whose loop stopped calling
+     * cochlea_loop_period. Same rules as on_row: no blocking, no allocation. A field of the
+     * loop rather than of cochlea_hal so that a port that fills its HAL field by field
+     * cannot leave it uninitialised. */
+    void (*kick_watchdog)(void *ctx);
+    void *watchdog_ctx;
     /* Set from outside the loop (a signal handler): COCHLEA_USER_STOP or COCHLEA_TERMINATED. */
     volatile int stop_request;
     /* Results. */
@@ -108,6 +118,16 @@ typedef struct {
     cochlea_stop stop;               /* why it ended (stop.rule) */
     int shutdown_confirmed;          /* the backend's shutdown result */
     int64_t t0_ns, end_ns;           /* start of period 0 and the end of the run (hal time) */
+    /* Ticks of the port's period timer that found a period still running
+     * (cochlea_loop_tick): the period overran its tick, whatever the loop's own clock says.
+     * Reported (summary.json's timing.tick_overruns), not a rule. */
+    volatile uint32_t tick_overruns;
+    /* Between cochlea_loop_begin and cochlea_loop_end. */
+    int64_t k;                       /* the next period */
+    volatile int in_period;          /* 1 while cochlea_loop_period runs */
+    int read_errors;                 /* consecutive failed reads (and writes) */
+    int consecutive_overruns;
+    int64_t previous_start_ns, previous_end_ns;
     /* Scratch. */
     double q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
     double errors[COCHLEA_MAX_ERRORS];
@@ -141,8 +161,32 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
  * 2^40 periods of 1 ms its spacing is 2.4e-7 s). */
 double cochlea_loop_time(const cochlea_loop *loop, int64_t k);
 
+/* The run in three parts, for a port whose timer interrupt or RTOS task runs one period at
+ * each tick (docs/embedded.md, "One period at a time"):
+ *   cochlea_loop_begin   once, right before period 0's tick: t0 (period 0's deadline) is now;
+ *   cochlea_loop_period  once per tick, from the loop's context (a task, or the main loop the
+ *                        tick wakes; not from the interrupt itself: the HAL contract), until it
+ *                        returns a rule; with realtime it first waits for the period's deadline
+ *                        t0 + k h (returns at once when the tick came on time); every later
+ *                        call returns the same rule and does nothing;
+ *   cochlea_loop_end     once, after a rule (or to abandon the run): the backend's shutdown
+ *                        (zero effort, drives off) and the controller's terminate. A port must
+ *                        call it on every path out, as cochlea_loop_run does.
+ * The rows, the rules and the stop are those of cochlea_loop_run bit for bit (it is the three
+ * in a row). COCHLEA_RULE_NONE while the run goes on, else the rule (enum cochlea_rule). */
+int cochlea_loop_begin(cochlea_loop *loop);
+int cochlea_loop_period(cochlea_loop *loop);
+int cochlea_loop_end(cochlea_loop *loop);
+
+/* For the port's period timer interrupt, at every tick: a period still running
+ * (cochlea_loop_period not yet returned) counts one tick overrun (loop->tick_overruns). It
+ * reads one volatile int and increments one volatile counter that nothing else writes: the
+ * one core function an interrupt may call (cochlea_rt.h's contract). */
+void cochlea_loop_tick(cochlea_loop *loop);
+
 /* Run every period until the end or a rule; then the backend's shutdown. The rule
- * (enum cochlea_rule); loop->stop says where, cochlea_exit_code() the process's exit code. */
+ * (enum cochlea_rule); loop->stop says where, cochlea_exit_code() the process's exit code.
+ * cochlea_loop_begin, cochlea_loop_period until a rule, cochlea_loop_end. */
 int cochlea_loop_run(cochlea_loop *loop);
 
 #ifdef __cplusplus

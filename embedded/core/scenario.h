@@ -11,6 +11,7 @@
 #define COCHLEA_SCENARIO_H
 
 #include <stddef.h>
+#include <stdint.h>
 
 #include "drives.h"
 
@@ -69,6 +70,12 @@ typedef struct {
      * gearbox's friction); 0: the controller's model carries friction and compensates it, so
      * the bridge must not (cochlea.robots.motor_fit.bridge_compensates_friction). */
     int bridge_offset_current;
+    /* The loop's period k (t = k period_s): step at the period count instead of its time,
+     * the loop's entry. The double build forms t = (double)k period_s exactly as the loop
+     * does (the same command bit for bit); the float build evaluates the trajectory from k
+     * without double (docs/embedded.md, "The float build"). NULL: the loop calls step. */
+    int (*step_period)(void *state, int64_t k, const double *q, const double *qd,
+                       double *command, double *errors);
 } cochlea_scenario;
 
 #ifdef __cplusplus

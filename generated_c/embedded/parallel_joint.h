@@ -4,6 +4,8 @@
 #ifndef PARALLEL_JOINT_H
 #define PARALLEL_JOINT_H
 
+#include <stdint.h>
+
 #ifdef __cplusplus
 extern "C" {
 #endif
@@ -84,6 +86,14 @@ typedef struct {
   double p_min[PARALLEL_JOINT_NP], p_max[PARALLEL_JOINT_NP];
   parallel_joint_real deadzone_real[PARALLEL_JOINT_NQ], p_min_real[PARALLEL_JOINT_NP], p_max_real[PARALLEL_JOINT_NP];
   parallel_joint_real static_excess[PARALLEL_JOINT_NQ], stribeck_velocity[PARALLEL_JOINT_NQ];
+  /* The float build's time (docs/embedded.md, "The float build"): per time atom of
+   * the trajectory, the phase per period in turns (Q0.64) or the last period k on one
+   * side of its time; the period in the working precision. */
+  uint64_t atom_turns[3];
+  int64_t atom_last[3];
+  parallel_joint_real h_real;
+  /* per unit: |p_hat|^2 at or under this is inside the ball (no projection) */
+  double bound2_inside[PARALLEL_JOINT_UNITS];
   unsigned long steps;          /* periods run since init */
   int ready;                    /* 1 between init and terminate */
 } parallel_joint_state;
@@ -107,6 +117,14 @@ int parallel_joint_init(parallel_joint_state *s, const parallel_joint_config *c)
 int parallel_joint_step(parallel_joint_state *s, double t, const parallel_joint_real measurement[PARALLEL_JOINT_NX],
     parallel_joint_real command_out[PARALLEL_JOINT_NQ], parallel_joint_real errors_out[PARALLEL_JOINT_NE]);
 
+/* The same at period k of the run (t = k h, h the configuration's period): the loop's
+ * entry. In double t is formed as (double)k * h, so it is step's at that t bit for
+ * bit; in float the trajectory is evaluated from k without double (its time atoms,
+ * docs/embedded.md). -1 also for k < 0. */
+int parallel_joint_step_period(parallel_joint_state *s, int64_t k,
+    const parallel_joint_real measurement[PARALLEL_JOINT_NX], parallel_joint_real command_out[PARALLEL_JOINT_NQ],
+    parallel_joint_real errors_out[PARALLEL_JOINT_NE]);
+
 /* Ends the run: the state must be initialised again before the next step. */
 void parallel_joint_terminate(parallel_joint_state *s);
 
@@ -114,6 +132,12 @@ void parallel_joint_terminate(parallel_joint_state *s);
  * acceleration, exact derivatives, unit after unit (ND each). Returns 0. */
 int parallel_joint_desired(double t, parallel_joint_real xd[PARALLEL_JOINT_ND], parallel_joint_real xd_dot[PARALLEL_JOINT_ND],
     parallel_joint_real xd_ddot[PARALLEL_JOINT_ND]);
+
+/* The same at period k (t = k h, h of the initialised state s): in double the above at
+ * (double)k * h; in float from the integer k (no double, no staircase at any k).
+ * Returns 0, or -1 for k < 0. */
+int parallel_joint_desired_period(const parallel_joint_state *s, int64_t k, parallel_joint_real xd[PARALLEL_JOINT_ND],
+    parallel_joint_real xd_dot[PARALLEL_JOINT_ND], parallel_joint_real xd_ddot[PARALLEL_JOINT_ND]);
 
 /* The keep-out rule's tool points at joint positions q[NQ] (all units, rad or m): per
  * point its (u, v) and its circle's centre (m, world frame), point after point in the

@@ -36,6 +36,32 @@ static parallel_joint_realistic_real CSQ(parallel_joint_realistic_real x) { retu
 
 static double CSQD(double x) { return x * x; }
 
+
+/* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
+ * the double build's own t and comparison, so that an integer test of k decides as it
+ * does. At init, in double. */
+static int64_t CLAST(double c, double h, int or_equal) {
+  double k0 = floor(c / h);
+  int64_t k;
+  if (!(k0 < 4.0e15)) k0 = 4.0e15;
+  if (k0 < -1.0) k0 = -1.0;
+  k = (int64_t)k0;
+  while (k >= 0 && (or_equal ? (double)k * h > c : (double)k * h >= c)) --k;
+  while (or_equal ? (double)(k + 1) * h <= c : (double)(k + 1) * h < c) ++k;
+  return k;
+}
+
+
+/* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
+ * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
+static double CCLAMPD(double x, double lo, double hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
+static parallel_joint_realistic_real CCLAMP(parallel_joint_realistic_real x, parallel_joint_realistic_real lo, parallel_joint_realistic_real hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
 /* mechanism: desired (t[1]) -> (x[5], x_dot[5], x_ddot[5]) */
 static int parallel_joint_realistic_mechanism_desired(const double** arg, double** res) {
   double a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
@@ -2667,6 +2693,215 @@ static int parallel_joint_realistic_mechanism_fk(const parallel_joint_realistic_
   return 0;
 }
 
+#ifdef COCHLEA_FLOAT
+
+/* mechanism: desired of its time atoms (ge 5.0, le 5.0, min 5.0) -> (x, x_dot, x_ddot), in the working precision */
+static int parallel_joint_realistic_mechanism_desired_atoms(const parallel_joint_realistic_real** arg, parallel_joint_realistic_real** res) {
+  parallel_joint_realistic_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
+  parallel_joint_realistic_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
+  parallel_joint_realistic_real a24, a25, a26, a27, a28, a29, a30, a31, a32, a33, a34, a35;
+  parallel_joint_realistic_real a36, a37, a38, a39, a40;
+  a00=CR(1.7453292519943295e-02);
+  a01=CR(3.9206000000000002e-01);
+  a02=arg[0]? arg[0][2] : 0;
+  a03=CSQ(a02);
+  a04=(a02*a03);
+  a05=(a01*a04);
+  a06=CR(2.9415000000000000e+00);
+  a07=(a06*a03);
+  a05=(a05-a07);
+  a07=CR(142.);
+  a05=(a05+a07);
+  a05=(a00*a05);
+  if (res[0]!=0) res[0][0]=a05;
+  a07=CR(3.5999999999999997e-02);
+  a08=(a07*a04);
+  a09=CR(2.2550000000000001e-01);
+  a10=(a09*a03);
+  a08=(a08-a10);
+  a10=CR(3.2250000000000000e+01);
+  a08=(a08+a10);
+  a08=(a00*a08);
+  if (res[0]!=0) res[0][1]=a08;
+  a10=-CR(1.9500000000000000e-04);
+  a04=(a10*a04);
+  a11=CR(1.5000000000000000e-03);
+  a12=(a11*a03);
+  a04=(a04+a12);
+  a12=CR(7.0749999999999993e-02);
+  a04=(a04+a12);
+  if (res[0]!=0) res[0][2]=a04;
+  a04=CR(1.0000000000000001e-01);
+  a12=CM(sin)(a05);
+  a13=CM(sin)(a08);
+  a14=(a12+a13);
+  a15=(a04*a14);
+  a16=CR(1.2000000000000000e-01);
+  a05=CM(cos)(a05);
+  a08=CM(cos)(a08);
+  a17=(a05+a08);
+  a17=(a04*a17);
+  a16=(a16+a17);
+  a17=-CR(1.2000000000000000e-01);
+  a16=(a16+a17);
+  a17=(-a16);
+  a17=CM(atan2)(a15,a17);
+  a18=CSQ(a16);
+  a19=CSQ(a15);
+  a20=(a18+a19);
+  a20=CM(sqrt)(a20);
+  a21=CR(2.0000000000000001e-01);
+  a22=(a20/a21);
+  a23=CM(acos)(a22);
+  a24=(a17-a23);
+  if (res[0]!=0) res[0][3]=a24;
+  a17=(a17+a23);
+  if (res[0]!=0) res[0][4]=a17;
+  a17=arg[0]? arg[0][1] : 0;
+  a23=arg[0]? arg[0][0] : 0;
+  a23=(a17+a23);
+  a17=(a17/a23);
+  a03=(a03*a17);
+  a23=(CR(2.)*a02);
+  a23=(a23*a17);
+  a24=(a02*a23);
+  a03=(a03+a24);
+  a24=(a01*a03);
+  a25=(a06*a23);
+  a24=(a24-a25);
+  a24=(a00*a24);
+  if (res[1]!=0) res[1][0]=a24;
+  a25=(a07*a03);
+  a26=(a09*a23);
+  a25=(a25-a26);
+  a25=(a00*a25);
+  if (res[1]!=0) res[1][1]=a25;
+  a03=(a10*a03);
+  a26=(a11*a23);
+  a03=(a03+a26);
+  if (res[1]!=0) res[1][2]=a03;
+  a19=(a19+a18);
+  a18=(a16/a19);
+  a03=(a05*a24);
+  a26=(a08*a25);
+  a27=(a03+a26);
+  a28=(a04*a27);
+  a29=(a18*a28);
+  a15=(a15/a19);
+  a30=(a12*a24);
+  a31=(a13*a25);
+  a32=(a30+a31);
+  a32=(a04*a32);
+  a33=(a15*a32);
+  a29=(a29+a33);
+  a33=-CR(1.);
+  a34=CR(1.);
+  a35=CSQ(a22);
+  a34=(a34-a35);
+  a34=CM(sqrt)(a34);
+  a33=(a33/a34);
+  a35=CR(5.);
+  a14=(a21*a14);
+  a36=(a14*a28);
+  a16=(CR(2.)*a16);
+  a37=(a16*a32);
+  a36=(a36-a37);
+  a20=(CR(2.)*a20);
+  a37=(a36/a20);
+  a38=(a35*a37);
+  a39=(a33*a38);
+  a40=(a29+a39);
+  a40=(-a40);
+  if (res[1]!=0) res[1][3]=a40;
+  a39=(a39-a29);
+  if (res[1]!=0) res[1][4]=a39;
+  a39=(a17*a23);
+  a23=(a23*a17);
+  a29=(CR(2.)*a17);
+  a17=(a17*a29);
+  a02=(a02*a17);
+  a23=(a23+a02);
+  a39=(a39+a23);
+  a01=(a01*a39);
+  a06=(a06*a17);
+  a01=(a01-a06);
+  a01=(a00*a01);
+  if (res[2]!=0) res[2][0]=a01;
+  a07=(a07*a39);
+  a09=(a09*a17);
+  a07=(a07-a09);
+  a00=(a00*a07);
+  if (res[2]!=0) res[2][1]=a00;
+  a10=(a10*a39);
+  a11=(a11*a17);
+  a10=(a10+a11);
+  if (res[2]!=0) res[2][2]=a10;
+  a05=(a05*a01);
+  a30=(a24*a30);
+  a05=(a05-a30);
+  a08=(a08*a00);
+  a31=(a25*a31);
+  a08=(a08-a31);
+  a05=(a05+a08);
+  a05=(a04*a05);
+  a08=(a18*a05);
+  a31=(a32/a19);
+  a18=(a18/a19);
+  a18=(a18*a36);
+  a31=(a31+a18);
+  a31=(a28*a31);
+  a08=(a08-a31);
+  a31=(a28/a19);
+  a19=(a15/a19);
+  a19=(a19*a36);
+  a31=(a31-a19);
+  a31=(a32*a31);
+  a24=(a24*a03);
+  a12=(a12*a01);
+  a24=(a24+a12);
+  a25=(a25*a26);
+  a13=(a13*a00);
+  a25=(a25+a13);
+  a24=(a24+a25);
+  a04=(a04*a24);
+  a15=(a15*a04);
+  a31=(a31+a15);
+  a08=(a08+a31);
+  a31=(a33/a34);
+  a22=(CR(2.)*a22);
+  a22=(a22*a38);
+  a34=(CR(2.)*a34);
+  a22=(a22/a34);
+  a31=(a31*a22);
+  a38=(a38*a31);
+  a21=(a21*a27);
+  a28=(a28*a21);
+  a14=(a14*a05);
+  a28=(a28+a14);
+  a14=(-a32);
+  a14=(CR(2.)*a14);
+  a32=(a32*a14);
+  a16=(a16*a04);
+  a32=(a32+a16);
+  a28=(a28-a32);
+  a28=(a28/a20);
+  a20=(a37/a20);
+  a37=(CR(2.)*a37);
+  a20=(a20*a37);
+  a28=(a28-a20);
+  a35=(a35*a28);
+  a33=(a33*a35);
+  a38=(a38+a33);
+  a33=(a08+a38);
+  a33=(-a33);
+  if (res[2]!=0) res[2][3]=a33;
+  a38=(a38-a08);
+  if (res[2]!=0) res[2][4]=a38;
+  return 0;
+}
+
+#endif /* COCHLEA_FLOAT */
+
 void parallel_joint_realistic_default_config(parallel_joint_realistic_config *c) {
   /* mechanism: gains */
   c->gains[0] = 15.0;
@@ -2833,6 +3068,11 @@ int parallel_joint_realistic_init(parallel_joint_realistic_state *s, const paral
   s->ready = 0;
   if (!(c->h > 0.0 && c->h < HUGE_VAL)) return -1;
   s->h = c->h;
+  s->h_real = (parallel_joint_realistic_real)c->h;
+  s->atom_turns[0] = 0u; s->atom_last[0] = CLAST(5.0, c->h, 0);  /* ge 5.0 */
+  s->atom_turns[1] = 0u; s->atom_last[1] = CLAST(5.0, c->h, 1);  /* le 5.0 */
+  s->atom_turns[2] = 0u; s->atom_last[2] = CLAST(5.0, c->h, 0);  /* min 5.0 */
+  if (s->atom_last[2] >= 2147483647) return -1;
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NG; ++i) s->gains[i] = (parallel_joint_realistic_real)c->gains[i];
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NP; ++i) {
     s->gamma[i] = (parallel_joint_realistic_real)c->gamma[i];
@@ -2843,6 +3083,9 @@ int parallel_joint_realistic_init(parallel_joint_realistic_state *s, const paral
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
     s->bound[i] = c->bound[i];
     s->bound_real[i] = (parallel_joint_realistic_real)c->bound[i];
+    /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the
+     * projection's scale is exactly 1 */
+    s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);
   }
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
@@ -2892,16 +3135,37 @@ int parallel_joint_realistic_desired(double t, parallel_joint_realistic_real xd[
   return 0;
 }
 
-int parallel_joint_realistic_step(parallel_joint_realistic_state *s, double t, const parallel_joint_realistic_real measurement[PARALLEL_JOINT_REALISTIC_NX],
-    parallel_joint_realistic_real command_out[PARALLEL_JOINT_REALISTIC_NQ], parallel_joint_realistic_real errors_out[PARALLEL_JOINT_REALISTIC_NE]) {
-  parallel_joint_realistic_real xd[PARALLEL_JOINT_REALISTIC_ND], xd_dot[PARALLEL_JOINT_REALISTIC_ND], xd_ddot[PARALLEL_JOINT_REALISTIC_ND];
+int parallel_joint_realistic_desired_period(const parallel_joint_realistic_state *s, int64_t k, parallel_joint_realistic_real xd[PARALLEL_JOINT_REALISTIC_ND],
+    parallel_joint_realistic_real xd_dot[PARALLEL_JOINT_REALISTIC_ND], parallel_joint_realistic_real xd_ddot[PARALLEL_JOINT_REALISTIC_ND]) {
+  if (k < 0) return -1;
+#ifdef COCHLEA_FLOAT
+  {
+    /* The time atoms from k: integers and float only, no t (a float t would
+     * staircase; docs/embedded.md, "The float build") */
+    parallel_joint_realistic_real atoms[3];
+    const parallel_joint_realistic_real* arg[1];
+    parallel_joint_realistic_real* res[3];
+    atoms[0] = k > s->atom_last[0] ? CR(1.) : CR(0.);  /* 5.0 <= t */
+    atoms[1] = k <= s->atom_last[1] ? CR(1.) : CR(0.);  /* t <= 5.0 */
+    atoms[2] = k <= s->atom_last[2] ? (parallel_joint_realistic_real)(int32_t)k * s->h_real : CR(5.0);  /* fmin(t, 5.0) */
+    arg[0] = atoms + 0;
+    res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+    if (parallel_joint_realistic_mechanism_desired_atoms(arg, res)) return -1;
+  }
+  return 0;
+#else
+  return parallel_joint_realistic_desired((double)k * s->h, xd, xd_dot, xd_ddot);
+#endif
+}
+
+static int parallel_joint_realistic_step_desired(parallel_joint_realistic_state *s, const parallel_joint_realistic_real xd[PARALLEL_JOINT_REALISTIC_ND],
+    const parallel_joint_realistic_real xd_dot[PARALLEL_JOINT_REALISTIC_ND], const parallel_joint_realistic_real xd_ddot[PARALLEL_JOINT_REALISTIC_ND],
+    const parallel_joint_realistic_real measurement[PARALLEL_JOINT_REALISTIC_NX], parallel_joint_realistic_real command_out[PARALLEL_JOINT_REALISTIC_NQ], parallel_joint_realistic_real errors_out[PARALLEL_JOINT_REALISTIC_NE]) {
   parallel_joint_realistic_real p_hat[PARALLEL_JOINT_REALISTIC_NP], p_hat_dot[PARALLEL_JOINT_REALISTIC_NP];
   double next[PARALLEL_JOINT_REALISTIC_NP], scale[PARALLEL_JOINT_REALISTIC_UNITS], norm2;
   const parallel_joint_realistic_real* arg[14];
   parallel_joint_realistic_real* res[3];
   int i;
-  if (!s->ready) return -1;
-  if (parallel_joint_realistic_desired(t, xd, xd_dot, xd_ddot)) return -1;
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NP; ++i) p_hat[i] = (parallel_joint_realistic_real)s->p_hat[i];
   /* mechanism */
   arg[0] = measurement + 0; arg[1] = measurement + 5;
@@ -2912,13 +3176,14 @@ int parallel_joint_realistic_step(parallel_joint_realistic_state *s, double t, c
   arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (parallel_joint_realistic_mechanism_law(arg, res)) return -1;
-  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
+  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+   * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
   for (i = 0; i < 28; ++i) {
     next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
     norm2 += next[i] * next[i];
   }
-  scale[0] = fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
+  scale[0] = norm2 <= s->bound2_inside[0] ? 1.0 : fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
   /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NQ; ++i)
     if (!CFINITE((double)command_out[i])) return 1;
@@ -2926,12 +3191,28 @@ int parallel_joint_realistic_step(parallel_joint_realistic_state *s, double t, c
     if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NP; ++i)
     if (!CFINITE(next[i])) return 2;
-  /* the supervisor's clip: |command| <= effort limit */
+  /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */
   for (i = 0; i < PARALLEL_JOINT_REALISTIC_NQ; ++i)
-    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
-  for (i = 0; i < 28; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[0], s->p_min[i]), s->p_max[i]);
+    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);
+  for (i = 0; i < 28; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[0], s->p_min[i], s->p_max[i]);
   s->steps += 1;
   return 0;
+}
+
+int parallel_joint_realistic_step(parallel_joint_realistic_state *s, double t, const parallel_joint_realistic_real measurement[PARALLEL_JOINT_REALISTIC_NX],
+    parallel_joint_realistic_real command_out[PARALLEL_JOINT_REALISTIC_NQ], parallel_joint_realistic_real errors_out[PARALLEL_JOINT_REALISTIC_NE]) {
+  parallel_joint_realistic_real xd[PARALLEL_JOINT_REALISTIC_ND], xd_dot[PARALLEL_JOINT_REALISTIC_ND], xd_ddot[PARALLEL_JOINT_REALISTIC_ND];
+  if (!s->ready) return -1;
+  if (parallel_joint_realistic_desired(t, xd, xd_dot, xd_ddot)) return -1;
+  return parallel_joint_realistic_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
+}
+
+int parallel_joint_realistic_step_period(parallel_joint_realistic_state *s, int64_t k,
+    const parallel_joint_realistic_real measurement[PARALLEL_JOINT_REALISTIC_NX], parallel_joint_realistic_real command_out[PARALLEL_JOINT_REALISTIC_NQ], parallel_joint_realistic_real errors_out[PARALLEL_JOINT_REALISTIC_NE]) {
+  parallel_joint_realistic_real xd[PARALLEL_JOINT_REALISTIC_ND], xd_dot[PARALLEL_JOINT_REALISTIC_ND], xd_ddot[PARALLEL_JOINT_REALISTIC_ND];
+  if (!s->ready) return -1;
+  if (parallel_joint_realistic_desired_period(s, k, xd, xd_dot, xd_ddot)) return -1;
+  return parallel_joint_realistic_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
 }
 
 int parallel_joint_realistic_tool_points(const parallel_joint_realistic_real q[PARALLEL_JOINT_REALISTIC_NQ], parallel_joint_realistic_real points[2 * PARALLEL_JOINT_REALISTIC_NPOINTS + 1],

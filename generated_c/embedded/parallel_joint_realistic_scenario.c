@@ -43,6 +43,20 @@ static int step(void *state, double t, const double *q, const double *qd, double
   return r;
 }
 
+static int step_period(void *state, int64_t k, const double *q, const double *qd,
+                       double *command, double *errors) {
+  parallel_joint_realistic_real x[PARALLEL_JOINT_REALISTIC_NX], u[PARALLEL_JOINT_REALISTIC_NQ], e[PARALLEL_JOINT_REALISTIC_NE];
+  int i, r;
+  for (i = 0; i < 5; ++i) {
+    x[0 + i] = (parallel_joint_realistic_real)q[0 + i];
+    x[5 + i] = (parallel_joint_realistic_real)qd[0 + i];
+  }
+  r = parallel_joint_realistic_step_period((parallel_joint_realistic_state *)state, k, x, u, e);
+  for (i = 0; i < PARALLEL_JOINT_REALISTIC_NQ; ++i) command[i] = (double)u[i];
+  for (i = 0; i < PARALLEL_JOINT_REALISTIC_NE; ++i) errors[i] = (double)e[i];
+  return r;
+}
+
 static void terminate(void *state) { parallel_joint_realistic_terminate((parallel_joint_realistic_state *)state); }
 
 static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {
@@ -76,5 +90,5 @@ const cochlea_scenario parallel_joint_realistic_scenario = {
     PARALLEL_JOINT_REALISTIC_UNITS, units, PARALLEL_JOINT_REALISTIC_NQ, PARALLEL_JOINT_REALISTIC_ND, PARALLEL_JOINT_REALISTIC_NP, PARALLEL_JOINT_REALISTIC_NE, PARALLEL_JOINT_REALISTIC_NPOINTS,
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_joint_realistic_state), (int)sizeof(parallel_joint_realistic_real), init, step, terminate, desired, estimate, tool_points,
-    0
+    0, step_period
 };

@@ -43,6 +43,20 @@ static int step(void *state, double t, const double *q, const double *qd, double
   return r;
 }
 
+static int step_period(void *state, int64_t k, const double *q, const double *qd,
+                       double *command, double *errors) {
+  parallel_joint_real x[PARALLEL_JOINT_NX], u[PARALLEL_JOINT_NQ], e[PARALLEL_JOINT_NE];
+  int i, r;
+  for (i = 0; i < 5; ++i) {
+    x[0 + i] = (parallel_joint_real)q[0 + i];
+    x[5 + i] = (parallel_joint_real)qd[0 + i];
+  }
+  r = parallel_joint_step_period((parallel_joint_state *)state, k, x, u, e);
+  for (i = 0; i < PARALLEL_JOINT_NQ; ++i) command[i] = (double)u[i];
+  for (i = 0; i < PARALLEL_JOINT_NE; ++i) errors[i] = (double)e[i];
+  return r;
+}
+
 static void terminate(void *state) { parallel_joint_terminate((parallel_joint_state *)state); }
 
 static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {
@@ -76,5 +90,5 @@ const cochlea_scenario parallel_joint_scenario = {
     PARALLEL_JOINT_UNITS, units, PARALLEL_JOINT_NQ, PARALLEL_JOINT_ND, PARALLEL_JOINT_NP, PARALLEL_JOINT_NE, PARALLEL_JOINT_NPOINTS,
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_joint_state), (int)sizeof(parallel_joint_real), init, step, terminate, desired, estimate, tool_points,
-    1
+    1, step_period
 };

@@ -36,6 +36,32 @@ static parallel_task_real CSQ(parallel_task_real x) { return x * x; }
 
 static double CSQD(double x) { return x * x; }
 
+
+/* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
+ * the double build's own t and comparison, so that an integer test of k decides as it
+ * does. At init, in double. */
+static int64_t CLAST(double c, double h, int or_equal) {
+  double k0 = floor(c / h);
+  int64_t k;
+  if (!(k0 < 4.0e15)) k0 = 4.0e15;
+  if (k0 < -1.0) k0 = -1.0;
+  k = (int64_t)k0;
+  while (k >= 0 && (or_equal ? (double)k * h > c : (double)k * h >= c)) --k;
+  while (or_equal ? (double)(k + 1) * h <= c : (double)(k + 1) * h < c) ++k;
+  return k;
+}
+
+
+/* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
+ * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
+static double CCLAMPD(double x, double lo, double hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
+static parallel_task_real CCLAMP(parallel_task_real x, parallel_task_real lo, parallel_task_real hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
 /* mechanism: desired (t[1]) -> (x[6], x_dot[6], x_ddot[6]) */
 static int parallel_task_mechanism_desired(const double** arg, double** res) {
   double a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10;
@@ -5096,6 +5122,85 @@ static int parallel_task_mechanism_fk(const parallel_task_real** arg, parallel_t
   return 0;
 }
 
+#ifdef COCHLEA_FLOAT
+
+/* mechanism: desired of its time atoms (ge 5.0, le 5.0, min 5.0) -> (x, x_dot, x_ddot), in the working precision */
+static int parallel_task_mechanism_desired_atoms(const parallel_task_real** arg, parallel_task_real** res) {
+  parallel_task_real a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
+  a0=-CR(5.4699999999999996e-04);
+  a1=arg[0]? arg[0][2] : 0;
+  a2=CSQ(a1);
+  a3=(a1*a2);
+  a4=(a0*a3);
+  a5=CR(4.1000000000000003e-03);
+  a6=(a5*a2);
+  a4=(a4+a6);
+  a6=CR(1.2580000000000000e-01);
+  a4=(a4+a6);
+  if (res[0]!=0) res[0][0]=a4;
+  a6=-CR(3.8800000000000000e-04);
+  a3=(a6*a3);
+  a7=CR(2.8999999999999998e-03);
+  a8=(a7*a2);
+  a3=(a3+a8);
+  a8=CR(1.1470000000000000e-01);
+  a3=(a3+a8);
+  if (res[0]!=0) res[0][1]=a3;
+  a8=CR(3.3597588100890846e-01);
+  if (res[0]!=0) res[0][2]=a8;
+  a4=(-a4);
+  if (res[0]!=0) res[0][3]=a4;
+  if (res[0]!=0) res[0][4]=a3;
+  a3=CR(2.8056167725808847e+00);
+  if (res[0]!=0) res[0][5]=a3;
+  a3=arg[0]? arg[0][1] : 0;
+  a4=arg[0]? arg[0][0] : 0;
+  a4=(a3+a4);
+  a3=(a3/a4);
+  a2=(a2*a3);
+  a4=(CR(2.)*a1);
+  a4=(a4*a3);
+  a8=(a1*a4);
+  a2=(a2+a8);
+  a8=(a0*a2);
+  a9=(a5*a4);
+  a8=(a8+a9);
+  if (res[1]!=0) res[1][0]=a8;
+  a2=(a6*a2);
+  a9=(a7*a4);
+  a2=(a2+a9);
+  if (res[1]!=0) res[1][1]=a2;
+  a9=CR(0.);
+  if (res[1]!=0) res[1][2]=a9;
+  a8=(-a8);
+  if (res[1]!=0) res[1][3]=a8;
+  if (res[1]!=0) res[1][4]=a2;
+  if (res[1]!=0) res[1][5]=a9;
+  a2=(a3*a4);
+  a4=(a4*a3);
+  a8=(CR(2.)*a3);
+  a3=(a3*a8);
+  a1=(a1*a3);
+  a4=(a4+a1);
+  a2=(a2+a4);
+  a0=(a0*a2);
+  a5=(a5*a3);
+  a0=(a0+a5);
+  if (res[2]!=0) res[2][0]=a0;
+  a6=(a6*a2);
+  a7=(a7*a3);
+  a6=(a6+a7);
+  if (res[2]!=0) res[2][1]=a6;
+  if (res[2]!=0) res[2][2]=a9;
+  a0=(-a0);
+  if (res[2]!=0) res[2][3]=a0;
+  if (res[2]!=0) res[2][4]=a6;
+  if (res[2]!=0) res[2][5]=a9;
+  return 0;
+}
+
+#endif /* COCHLEA_FLOAT */
+
 void parallel_task_default_config(parallel_task_config *c) {
   /* mechanism: gains */
   c->gains[0] = 2.0;
@@ -5198,6 +5303,11 @@ int parallel_task_init(parallel_task_state *s, const parallel_task_config *c) {
   s->ready = 0;
   if (!(c->h > 0.0 && c->h < HUGE_VAL)) return -1;
   s->h = c->h;
+  s->h_real = (parallel_task_real)c->h;
+  s->atom_turns[0] = 0u; s->atom_last[0] = CLAST(5.0, c->h, 0);  /* ge 5.0 */
+  s->atom_turns[1] = 0u; s->atom_last[1] = CLAST(5.0, c->h, 1);  /* le 5.0 */
+  s->atom_turns[2] = 0u; s->atom_last[2] = CLAST(5.0, c->h, 0);  /* min 5.0 */
+  if (s->atom_last[2] >= 2147483647) return -1;
   for (i = 0; i < PARALLEL_TASK_NG; ++i) s->gains[i] = (parallel_task_real)c->gains[i];
   for (i = 0; i < PARALLEL_TASK_NP; ++i) {
     s->gamma[i] = (parallel_task_real)c->gamma[i];
@@ -5208,6 +5318,9 @@ int parallel_task_init(parallel_task_state *s, const parallel_task_config *c) {
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
     s->bound[i] = c->bound[i];
     s->bound_real[i] = (parallel_task_real)c->bound[i];
+    /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the
+     * projection's scale is exactly 1 */
+    s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);
   }
   for (i = 0; i < PARALLEL_TASK_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
@@ -5257,16 +5370,37 @@ int parallel_task_desired(double t, parallel_task_real xd[PARALLEL_TASK_ND], par
   return 0;
 }
 
-int parallel_task_step(parallel_task_state *s, double t, const parallel_task_real measurement[PARALLEL_TASK_NX],
-    parallel_task_real command_out[PARALLEL_TASK_NQ], parallel_task_real errors_out[PARALLEL_TASK_NE]) {
-  parallel_task_real xd[PARALLEL_TASK_ND], xd_dot[PARALLEL_TASK_ND], xd_ddot[PARALLEL_TASK_ND];
+int parallel_task_desired_period(const parallel_task_state *s, int64_t k, parallel_task_real xd[PARALLEL_TASK_ND],
+    parallel_task_real xd_dot[PARALLEL_TASK_ND], parallel_task_real xd_ddot[PARALLEL_TASK_ND]) {
+  if (k < 0) return -1;
+#ifdef COCHLEA_FLOAT
+  {
+    /* The time atoms from k: integers and float only, no t (a float t would
+     * staircase; docs/embedded.md, "The float build") */
+    parallel_task_real atoms[3];
+    const parallel_task_real* arg[1];
+    parallel_task_real* res[3];
+    atoms[0] = k > s->atom_last[0] ? CR(1.) : CR(0.);  /* 5.0 <= t */
+    atoms[1] = k <= s->atom_last[1] ? CR(1.) : CR(0.);  /* t <= 5.0 */
+    atoms[2] = k <= s->atom_last[2] ? (parallel_task_real)(int32_t)k * s->h_real : CR(5.0);  /* fmin(t, 5.0) */
+    arg[0] = atoms + 0;
+    res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+    if (parallel_task_mechanism_desired_atoms(arg, res)) return -1;
+  }
+  return 0;
+#else
+  return parallel_task_desired((double)k * s->h, xd, xd_dot, xd_ddot);
+#endif
+}
+
+static int parallel_task_step_desired(parallel_task_state *s, const parallel_task_real xd[PARALLEL_TASK_ND],
+    const parallel_task_real xd_dot[PARALLEL_TASK_ND], const parallel_task_real xd_ddot[PARALLEL_TASK_ND],
+    const parallel_task_real measurement[PARALLEL_TASK_NX], parallel_task_real command_out[PARALLEL_TASK_NQ], parallel_task_real errors_out[PARALLEL_TASK_NE]) {
   parallel_task_real p_hat[PARALLEL_TASK_NP], p_hat_dot[PARALLEL_TASK_NP];
   double next[PARALLEL_TASK_NP], scale[PARALLEL_TASK_UNITS], norm2;
   const parallel_task_real* arg[14];
   parallel_task_real* res[3];
   int i;
-  if (!s->ready) return -1;
-  if (parallel_task_desired(t, xd, xd_dot, xd_ddot)) return -1;
   for (i = 0; i < PARALLEL_TASK_NP; ++i) p_hat[i] = (parallel_task_real)s->p_hat[i];
   /* mechanism */
   arg[0] = measurement + 0; arg[1] = measurement + 5;
@@ -5277,13 +5411,14 @@ int parallel_task_step(parallel_task_state *s, double t, const parallel_task_rea
   arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (parallel_task_mechanism_law(arg, res)) return -1;
-  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
+  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+   * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
   for (i = 0; i < 13; ++i) {
     next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
     norm2 += next[i] * next[i];
   }
-  scale[0] = fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
+  scale[0] = norm2 <= s->bound2_inside[0] ? 1.0 : fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
   /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < PARALLEL_TASK_NQ; ++i)
     if (!CFINITE((double)command_out[i])) return 1;
@@ -5291,12 +5426,28 @@ int parallel_task_step(parallel_task_state *s, double t, const parallel_task_rea
     if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < PARALLEL_TASK_NP; ++i)
     if (!CFINITE(next[i])) return 2;
-  /* the supervisor's clip: |command| <= effort limit */
+  /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */
   for (i = 0; i < PARALLEL_TASK_NQ; ++i)
-    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
-  for (i = 0; i < 13; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[0], s->p_min[i]), s->p_max[i]);
+    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);
+  for (i = 0; i < 13; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[0], s->p_min[i], s->p_max[i]);
   s->steps += 1;
   return 0;
+}
+
+int parallel_task_step(parallel_task_state *s, double t, const parallel_task_real measurement[PARALLEL_TASK_NX],
+    parallel_task_real command_out[PARALLEL_TASK_NQ], parallel_task_real errors_out[PARALLEL_TASK_NE]) {
+  parallel_task_real xd[PARALLEL_TASK_ND], xd_dot[PARALLEL_TASK_ND], xd_ddot[PARALLEL_TASK_ND];
+  if (!s->ready) return -1;
+  if (parallel_task_desired(t, xd, xd_dot, xd_ddot)) return -1;
+  return parallel_task_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
+}
+
+int parallel_task_step_period(parallel_task_state *s, int64_t k,
+    const parallel_task_real measurement[PARALLEL_TASK_NX], parallel_task_real command_out[PARALLEL_TASK_NQ], parallel_task_real errors_out[PARALLEL_TASK_NE]) {
+  parallel_task_real xd[PARALLEL_TASK_ND], xd_dot[PARALLEL_TASK_ND], xd_ddot[PARALLEL_TASK_ND];
+  if (!s->ready) return -1;
+  if (parallel_task_desired_period(s, k, xd, xd_dot, xd_ddot)) return -1;
+  return parallel_task_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
 }
 
 int parallel_task_tool_points(const parallel_task_real q[PARALLEL_TASK_NQ], parallel_task_real points[2 * PARALLEL_TASK_NPOINTS + 1],

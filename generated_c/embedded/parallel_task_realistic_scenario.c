@@ -43,6 +43,20 @@ static int step(void *state, double t, const double *q, const double *qd, double
   return r;
 }
 
+static int step_period(void *state, int64_t k, const double *q, const double *qd,
+                       double *command, double *errors) {
+  parallel_task_realistic_real x[PARALLEL_TASK_REALISTIC_NX], u[PARALLEL_TASK_REALISTIC_NQ], e[PARALLEL_TASK_REALISTIC_NE];
+  int i, r;
+  for (i = 0; i < 5; ++i) {
+    x[0 + i] = (parallel_task_realistic_real)q[0 + i];
+    x[5 + i] = (parallel_task_realistic_real)qd[0 + i];
+  }
+  r = parallel_task_realistic_step_period((parallel_task_realistic_state *)state, k, x, u, e);
+  for (i = 0; i < PARALLEL_TASK_REALISTIC_NQ; ++i) command[i] = (double)u[i];
+  for (i = 0; i < PARALLEL_TASK_REALISTIC_NE; ++i) errors[i] = (double)e[i];
+  return r;
+}
+
 static void terminate(void *state) { parallel_task_realistic_terminate((parallel_task_realistic_state *)state); }
 
 static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {
@@ -76,5 +90,5 @@ const cochlea_scenario parallel_task_realistic_scenario = {
     PARALLEL_TASK_REALISTIC_UNITS, units, PARALLEL_TASK_REALISTIC_NQ, PARALLEL_TASK_REALISTIC_ND, PARALLEL_TASK_REALISTIC_NP, PARALLEL_TASK_REALISTIC_NE, PARALLEL_TASK_REALISTIC_NPOINTS,
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_task_realistic_state), (int)sizeof(parallel_task_realistic_real), init, step, terminate, desired, estimate, tool_points,
-    0
+    0, step_period
 };

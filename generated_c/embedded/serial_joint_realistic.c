@@ -36,6 +36,28 @@ static serial_joint_realistic_real CSQ(serial_joint_realistic_real x) { return x
 
 static double CSQD(double x) { return x * x; }
 
+
+/* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
+ * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
+ * fraction's error is under a unit of 2^-64 and k periods of it under k 2^-64 turns. */
+static uint64_t CTURNS(double w, double h) {
+  double x = w * h / 6.283185307179586;
+  x -= floor(x);
+  x *= 18446744073709551616.0; /* 2^64, exact */
+  return x >= 18446744073709551616.0 ? 0u : (uint64_t)x;
+}
+
+
+/* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
+ * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
+static double CCLAMPD(double x, double lo, double hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
+static serial_joint_realistic_real CCLAMP(serial_joint_realistic_real x, serial_joint_realistic_real lo, serial_joint_realistic_real hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
 /* arm1: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
 static int serial_joint_realistic_arm1_desired(const double** arg, double** res) {
   double a0, a1, a2, a3, a4;
@@ -2173,6 +2195,518 @@ static int serial_joint_realistic_arm2_fk(const serial_joint_realistic_real** ar
   return 0;
 }
 
+#ifdef COCHLEA_FLOAT
+
+/* A phase in turns (Q0.64) as an angle in [-pi, pi) rad, in float: its top 32 bits as a
+ * signed count of 2^-32 turns (integer arithmetic only). */
+static float CPHASE(uint64_t turns) {
+  const uint32_t hi = (uint32_t)(turns >> 32);
+  const int32_t v = hi >= 0x80000000u ? -(int32_t)(0xFFFFFFFFu - hi) - 1 : (int32_t)hi;
+  return (float)v * 1.46291807926715968e-09f; /* 2 pi / 2^32 */
+}
+
+/* arm1: desired of its time atoms (phase 0.632) -> (x, x_dot, x_ddot), in the working precision */
+static int serial_joint_realistic_arm1_desired_atoms(const serial_joint_realistic_real** arg, serial_joint_realistic_real** res) {
+  serial_joint_realistic_real a0, a1, a2, a3, a4;
+  a0=CR(1.7453292519943295e-02);
+  a1=CR(8.1140000000000001e+01);
+  a2=CR(3.0070000000000001e+00);
+  a3=arg[0]? arg[0][0] : 0;
+  a4=CM(cos)(a3);
+  a2=(a2*a4);
+  a1=(a1-a2);
+  a2=CR(1.2900000000000000e-01);
+  a3=CM(sin)(a3);
+  a2=(a2*a3);
+  a1=(a1-a2);
+  a1=(a0*a1);
+  if (res[0]!=0) res[0][0]=a1;
+  a1=CR(7.1019999999999996e+01);
+  a2=CR(7.0819999999999999e+00);
+  a2=(a2*a4);
+  a1=(a1-a2);
+  a2=CR(9.5659999999999995e-02);
+  a2=(a2*a3);
+  a1=(a1+a2);
+  a1=(a0*a1);
+  if (res[0]!=0) res[0][1]=a1;
+  a1=CR(1.1780000000000000e+02);
+  a2=CR(4.0739999999999998e+00);
+  a2=(a2*a4);
+  a1=(a1-a2);
+  a2=CR(3.0050000000000000e-02);
+  a2=(a2*a3);
+  a1=(a1+a2);
+  a1=(a0*a1);
+  if (res[0]!=0) res[0][2]=a1;
+  a1=CR(1.9004240000000001e+00);
+  a1=(a1*a3);
+  a2=CR(8.1528000000000003e-02);
+  a2=(a2*a4);
+  a1=(a1-a2);
+  a1=(a0*a1);
+  if (res[1]!=0) res[1][0]=a1;
+  a1=CR(4.4758240000000002e+00);
+  a1=(a1*a3);
+  a2=CR(6.0457119999999996e-02);
+  a2=(a2*a4);
+  a1=(a1+a2);
+  a1=(a0*a1);
+  if (res[1]!=0) res[1][1]=a1;
+  a1=CR(2.5747679999999997e+00);
+  a1=(a1*a3);
+  a2=CR(1.8991600000000001e-02);
+  a2=(a2*a4);
+  a1=(a1+a2);
+  a1=(a0*a1);
+  if (res[1]!=0) res[1][2]=a1;
+  a1=CR(1.2010679680000000e+00);
+  a1=(a1*a4);
+  a2=CR(5.1525696000000003e-02);
+  a2=(a2*a3);
+  a1=(a1+a2);
+  a1=(a0*a1);
+  if (res[2]!=0) res[2][0]=a1;
+  a1=CR(2.8287207680000002e+00);
+  a1=(a1*a4);
+  a2=CR(3.8208899839999998e-02);
+  a2=(a2*a3);
+  a1=(a1-a2);
+  a1=(a0*a1);
+  if (res[2]!=0) res[2][1]=a1;
+  a1=CR(1.6272533759999999e+00);
+  a1=(a1*a4);
+  a4=CR(1.2002691200000000e-02);
+  a4=(a4*a3);
+  a1=(a1-a4);
+  a0=(a0*a1);
+  if (res[2]!=0) res[2][2]=a0;
+  return 0;
+}
+
+/* arm2: desired of its time atoms (phase 0.632) -> (x, x_dot, x_ddot), in the working precision */
+static int serial_joint_realistic_arm2_desired_atoms(const serial_joint_realistic_real** arg, serial_joint_realistic_real** res) {
+  serial_joint_realistic_real a00, a01, a02, a03, a04, a05, a06, a07, a08, a09, a10, a11;
+  serial_joint_realistic_real a12, a13, a14, a15, a16, a17, a18, a19, a20, a21, a22, a23;
+  serial_joint_realistic_real a24, a25, a26, a27, a28, a29, a30, a31, a32, a33, a34, a35;
+  serial_joint_realistic_real a36, a37, a38, a39, a40, a41, a42, a43, a44, a45, a46, a47;
+  serial_joint_realistic_real a48, a49, a50, a51, a52, a53, a54, a55, a56, a57, a58, a59;
+  serial_joint_realistic_real a60, a61, a62, a63, a64, a65, a66;
+  a00=-CR(1.2800000000000000e-01);
+  a01=CR(1.0500000000000000e-01);
+  a02=CR(1.7453292519943295e-02);
+  a03=CR(8.1140000000000001e+01);
+  a04=CR(3.0070000000000001e+00);
+  a05=arg[0]? arg[0][0] : 0;
+  a06=CM(cos)(a05);
+  a04=(a04*a06);
+  a03=(a03-a04);
+  a04=CR(1.2900000000000000e-01);
+  a05=CM(sin)(a05);
+  a04=(a04*a05);
+  a03=(a03-a04);
+  a03=(a02*a03);
+  a04=CM(sin)(a03);
+  a07=(a01*a04);
+  a08=CR(1.);
+  a09=CR(7.1019999999999996e+01);
+  a10=CR(7.0819999999999999e+00);
+  a10=(a10*a06);
+  a09=(a09-a10);
+  a10=CR(9.5659999999999995e-02);
+  a10=(a10*a05);
+  a09=(a09+a10);
+  a09=(a02*a09);
+  a10=CM(cos)(a09);
+  a11=(a08-a10);
+  a11=(a08-a11);
+  a12=(a04*a11);
+  a13=CM(cos)(a03);
+  a14=(a08-a13);
+  a14=(a08-a14);
+  a15=CM(sin)(a09);
+  a16=(a14*a15);
+  a17=(a12+a16);
+  a18=(a01*a17);
+  a07=(a07+a18);
+  a18=CR(4.0000000000000001e-02);
+  a19=CR(1.1780000000000000e+02);
+  a20=CR(4.0739999999999998e+00);
+  a20=(a20*a06);
+  a19=(a19-a20);
+  a20=CR(3.0050000000000000e-02);
+  a20=(a20*a05);
+  a19=(a19+a20);
+  a19=(a02*a19);
+  a20=CM(cos)(a19);
+  a21=(a08-a20);
+  a21=(a08-a21);
+  a22=(a17*a21);
+  a23=(a14*a11);
+  a24=(a04*a15);
+  a23=(a23-a24);
+  a24=CM(sin)(a19);
+  a25=(a23*a24);
+  a22=(a22+a25);
+  a22=(a18*a22);
+  a07=(a07+a22);
+  a00=(a00+a07);
+  a07=-CR(1.0500000000000000e-01);
+  a00=(a00+a07);
+  a03=(a03+a09);
+  a03=(a03+a19);
+  a19=CR(3.1415926535897931e+00);
+  a03=(a03+a19);
+  a19=CM(sin)(a03);
+  a09=(a18*a19);
+  a00=(a00+a09);
+  a09=(-a00);
+  a22=CR(1.0100000000000001e-01);
+  a25=(a01*a14);
+  a26=(a01*a23);
+  a25=(a25+a26);
+  a26=(a23*a21);
+  a16=(a16+a12);
+  a12=(a16*a24);
+  a26=(a26-a12);
+  a26=(a18*a26);
+  a25=(a25+a26);
+  a22=(a22+a25);
+  a22=(a22+a07);
+  a07=CM(cos)(a03);
+  a25=(a18*a07);
+  a22=(a22+a25);
+  a25=(-a22);
+  a09=CM(atan2)(a09,a25);
+  a25=CSQ(a22);
+  a26=CSQ(a00);
+  a12=(a25+a26);
+  a27=CR(1.1024999999999998e-02);
+  a12=(a12-a27);
+  a12=(a12-a27);
+  a27=CR(2.2049999999999997e-02);
+  a12=(a12/a27);
+  a27=CM(acos)(a12);
+  a28=(-a27);
+  a29=CM(sin)(a28);
+  a30=(a01*a29);
+  a31=CM(cos)(a27);
+  a32=(a01*a31);
+  a32=(a01+a32);
+  a33=CM(atan2)(a30,a32);
+  a09=(a09-a33);
+  if (res[0]!=0) res[0][0]=a09;
+  if (res[0]!=0) res[0][1]=a28;
+  a03=(a03-a09);
+  a03=(a03+a27);
+  a09=-CR(6.2831853071795862e+00);
+  a03=(a03+a09);
+  if (res[0]!=0) res[0][2]=a03;
+  a26=(a26+a25);
+  a25=(a22/a26);
+  a03=CR(1.9004240000000001e+00);
+  a03=(a03*a05);
+  a09=CR(8.1528000000000003e-02);
+  a09=(a09*a06);
+  a03=(a03-a09);
+  a03=(a02*a03);
+  a09=(a13*a03);
+  a28=(a01*a09);
+  a33=(a11*a09);
+  a34=CR(4.4758240000000002e+00);
+  a34=(a34*a05);
+  a35=CR(6.0457119999999996e-02);
+  a35=(a35*a06);
+  a34=(a34+a35);
+  a34=(a02*a34);
+  a35=(a15*a34);
+  a36=(a04*a35);
+  a33=(a33-a36);
+  a36=(a10*a34);
+  a37=(a14*a36);
+  a38=(a04*a03);
+  a39=(a15*a38);
+  a37=(a37-a39);
+  a39=(a33+a37);
+  a40=(a01*a39);
+  a28=(a28+a40);
+  a40=(a21*a39);
+  a41=CR(2.5747679999999997e+00);
+  a41=(a41*a05);
+  a42=CR(1.8991600000000001e-02);
+  a42=(a42*a06);
+  a41=(a41+a42);
+  a41=(a02*a41);
+  a42=(a24*a41);
+  a43=(a17*a42);
+  a40=(a40-a43);
+  a43=(a20*a41);
+  a44=(a23*a43);
+  a45=(a11*a38);
+  a46=(a14*a35);
+  a45=(a45+a46);
+  a46=(a15*a09);
+  a47=(a04*a36);
+  a46=(a46+a47);
+  a45=(a45+a46);
+  a46=(a24*a45);
+  a44=(a44-a46);
+  a40=(a40+a44);
+  a40=(a18*a40);
+  a28=(a28+a40);
+  a40=(a03+a34);
+  a40=(a40+a41);
+  a44=(a07*a40);
+  a46=(a18*a44);
+  a28=(a28+a46);
+  a46=(a25*a28);
+  a47=(a00/a26);
+  a48=(a01*a38);
+  a49=(a01*a45);
+  a48=(a48+a49);
+  a49=(a21*a45);
+  a50=(a23*a42);
+  a49=(a49+a50);
+  a37=(a37+a33);
+  a33=(a24*a37);
+  a50=(a16*a43);
+  a33=(a33+a50);
+  a49=(a49+a33);
+  a49=(a18*a49);
+  a48=(a48+a49);
+  a49=(a19*a40);
+  a33=(a18*a49);
+  a48=(a48+a33);
+  a33=(a47*a48);
+  a46=(a46+a33);
+  a33=CSQ(a30);
+  a50=CSQ(a32);
+  a33=(a33+a50);
+  a30=(a30/a33);
+  a27=CM(sin)(a27);
+  a50=-CR(1.);
+  a51=CSQ(a12);
+  a08=(a08-a51);
+  a08=CM(sqrt)(a08);
+  a50=(a50/a08);
+  a51=CR(4.5351473922902500e+01);
+  a00=(CR(2.)*a00);
+  a52=(a00*a28);
+  a22=(CR(2.)*a22);
+  a53=(a22*a48);
+  a52=(a52-a53);
+  a53=(a51*a52);
+  a54=(a50*a53);
+  a55=(a27*a54);
+  a56=(a01*a55);
+  a57=(a30*a56);
+  a58=(a32/a33);
+  a59=(a31*a54);
+  a60=(a01*a59);
+  a61=(a58*a60);
+  a57=(a57-a61);
+  a46=(a46-a57);
+  if (res[1]!=0) res[1][0]=a46;
+  a57=(-a54);
+  if (res[1]!=0) res[1][1]=a57;
+  a46=(a40-a46);
+  a46=(a46+a54);
+  if (res[1]!=0) res[1][2]=a46;
+  a46=CR(1.2010679680000000e+00);
+  a46=(a46*a06);
+  a57=CR(5.1525696000000003e-02);
+  a57=(a57*a05);
+  a46=(a46+a57);
+  a46=(a02*a46);
+  a13=(a13*a46);
+  a57=(a03*a38);
+  a13=(a13-a57);
+  a57=(a01*a13);
+  a61=(a11*a13);
+  a62=(a09*a35);
+  a61=(a61-a62);
+  a62=(a35*a09);
+  a63=(a34*a36);
+  a64=CR(2.8287207680000002e+00);
+  a64=(a64*a06);
+  a65=CR(3.8208899839999998e-02);
+  a65=(a65*a05);
+  a64=(a64-a65);
+  a64=(a02*a64);
+  a65=(a15*a64);
+  a63=(a63+a65);
+  a65=(a04*a63);
+  a62=(a62+a65);
+  a61=(a61-a62);
+  a10=(a10*a64);
+  a34=(a34*a35);
+  a10=(a10-a34);
+  a34=(a14*a10);
+  a62=(a36*a38);
+  a34=(a34-a62);
+  a62=(a38*a36);
+  a03=(a03*a09);
+  a65=(a04*a46);
+  a03=(a03+a65);
+  a65=(a15*a03);
+  a62=(a62+a65);
+  a34=(a34-a62);
+  a62=(a61+a34);
+  a65=(a01*a62);
+  a57=(a57+a65);
+  a62=(a21*a62);
+  a65=(a39*a42);
+  a62=(a62-a65);
+  a39=(a42*a39);
+  a65=(a41*a43);
+  a66=CR(1.6272533759999999e+00);
+  a66=(a66*a06);
+  a06=CR(1.2002691200000000e-02);
+  a06=(a06*a05);
+  a66=(a66-a06);
+  a02=(a02*a66);
+  a66=(a24*a02);
+  a65=(a65+a66);
+  a17=(a17*a65);
+  a39=(a39+a17);
+  a62=(a62-a39);
+  a20=(a20*a02);
+  a41=(a41*a42);
+  a20=(a20-a41);
+  a41=(a23*a20);
+  a39=(a43*a45);
+  a41=(a41-a39);
+  a39=(a45*a43);
+  a11=(a11*a03);
+  a17=(a38*a35);
+  a11=(a11-a17);
+  a14=(a14*a63);
+  a35=(a35*a38);
+  a14=(a14-a35);
+  a11=(a11+a14);
+  a14=(a09*a36);
+  a15=(a15*a13);
+  a14=(a14+a15);
+  a36=(a36*a09);
+  a04=(a04*a10);
+  a36=(a36+a04);
+  a14=(a14+a36);
+  a11=(a11+a14);
+  a14=(a24*a11);
+  a39=(a39+a14);
+  a41=(a41-a39);
+  a62=(a62+a41);
+  a62=(a18*a62);
+  a57=(a57+a62);
+  a46=(a46+a64);
+  a46=(a46+a02);
+  a07=(a07*a46);
+  a49=(a40*a49);
+  a07=(a07-a49);
+  a07=(a18*a07);
+  a57=(a57+a07);
+  a07=(a25*a57);
+  a49=(a48/a26);
+  a25=(a25/a26);
+  a25=(a25*a52);
+  a49=(a49+a25);
+  a49=(a28*a49);
+  a07=(a07-a49);
+  a49=(a28/a26);
+  a26=(a47/a26);
+  a26=(a26*a52);
+  a49=(a49-a26);
+  a49=(a48*a49);
+  a03=(a01*a03);
+  a26=(a01*a11);
+  a03=(a03+a26);
+  a21=(a21*a11);
+  a11=(a45*a42);
+  a21=(a21-a11);
+  a23=(a23*a65);
+  a42=(a42*a45);
+  a23=(a23-a42);
+  a21=(a21+a23);
+  a23=(a37*a43);
+  a34=(a34+a61);
+  a24=(a24*a34);
+  a23=(a23+a24);
+  a43=(a43*a37);
+  a16=(a16*a20);
+  a43=(a43+a16);
+  a23=(a23+a43);
+  a21=(a21+a23);
+  a21=(a18*a21);
+  a03=(a03+a21);
+  a40=(a40*a44);
+  a19=(a19*a46);
+  a40=(a40+a19);
+  a18=(a18*a40);
+  a03=(a03+a18);
+  a47=(a47*a03);
+  a49=(a49+a47);
+  a07=(a07+a49);
+  a49=(a30/a33);
+  a47=CR(2.0999999999999999e-01);
+  a47=(a47*a29);
+  a47=(a47*a60);
+  a32=(CR(2.)*a32);
+  a32=(a32*a56);
+  a47=(a47+a32);
+  a49=(a49*a47);
+  a32=(a60/a33);
+  a49=(a49-a32);
+  a49=(a56*a49);
+  a59=(a54*a59);
+  a32=(a50/a08);
+  a12=(CR(2.)*a12);
+  a12=(a12*a53);
+  a08=(CR(2.)*a08);
+  a12=(a12/a08);
+  a32=(a32*a12);
+  a53=(a53*a32);
+  a32=(CR(2.)*a28);
+  a28=(a28*a32);
+  a00=(a00*a57);
+  a28=(a28+a00);
+  a00=(-a48);
+  a00=(CR(2.)*a00);
+  a48=(a48*a00);
+  a22=(a22*a03);
+  a48=(a48+a22);
+  a28=(a28-a48);
+  a51=(a51*a28);
+  a50=(a50*a51);
+  a53=(a53+a50);
+  a27=(a27*a53);
+  a59=(a59+a27);
+  a59=(a01*a59);
+  a30=(a30*a59);
+  a49=(a49+a30);
+  a30=(a58/a33);
+  a30=(a30*a47);
+  a56=(a56/a33);
+  a30=(a30-a56);
+  a60=(a60*a30);
+  a31=(a31*a53);
+  a54=(a54*a55);
+  a31=(a31-a54);
+  a01=(a01*a31);
+  a58=(a58*a01);
+  a60=(a60+a58);
+  a49=(a49-a60);
+  a07=(a07-a49);
+  if (res[2]!=0) res[2][0]=a07;
+  a49=(-a53);
+  if (res[2]!=0) res[2][1]=a49;
+  a46=(a46-a07);
+  a46=(a46+a53);
+  if (res[2]!=0) res[2][2]=a46;
+  return 0;
+}
+
+#endif /* COCHLEA_FLOAT */
+
 void serial_joint_realistic_default_config(serial_joint_realistic_config *c) {
   /* arm1: gains */
   c->gains[0] = 10.0;
@@ -2340,6 +2874,9 @@ int serial_joint_realistic_init(serial_joint_realistic_state *s, const serial_jo
   s->ready = 0;
   if (!(c->h > 0.0 && c->h < HUGE_VAL)) return -1;
   s->h = c->h;
+  s->h_real = (serial_joint_realistic_real)c->h;
+  s->atom_turns[0] = CTURNS(0.632, c->h); s->atom_last[0] = 0;  /* phase 0.632 */
+  s->atom_turns[1] = CTURNS(0.632, c->h); s->atom_last[1] = 0;  /* phase 0.632 */
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NG; ++i) s->gains[i] = (serial_joint_realistic_real)c->gains[i];
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NP; ++i) {
     s->gamma[i] = (serial_joint_realistic_real)c->gamma[i];
@@ -2350,6 +2887,9 @@ int serial_joint_realistic_init(serial_joint_realistic_state *s, const serial_jo
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
     s->bound[i] = c->bound[i];
     s->bound_real[i] = (serial_joint_realistic_real)c->bound[i];
+    /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the
+     * projection's scale is exactly 1 */
+    s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);
   }
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
@@ -2401,16 +2941,39 @@ int serial_joint_realistic_desired(double t, serial_joint_realistic_real xd[SERI
   return 0;
 }
 
-int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX],
-    serial_joint_realistic_real command_out[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real errors_out[SERIAL_JOINT_REALISTIC_NE]) {
-  serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND], xd_dot[SERIAL_JOINT_REALISTIC_ND], xd_ddot[SERIAL_JOINT_REALISTIC_ND];
+int serial_joint_realistic_desired_period(const serial_joint_realistic_state *s, int64_t k, serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND],
+    serial_joint_realistic_real xd_dot[SERIAL_JOINT_REALISTIC_ND], serial_joint_realistic_real xd_ddot[SERIAL_JOINT_REALISTIC_ND]) {
+  if (k < 0) return -1;
+#ifdef COCHLEA_FLOAT
+  {
+    /* The time atoms from k: integers and float only, no t (a float t would
+     * staircase; docs/embedded.md, "The float build") */
+    serial_joint_realistic_real atoms[2];
+    const serial_joint_realistic_real* arg[1];
+    serial_joint_realistic_real* res[3];
+    atoms[0] = CPHASE((uint64_t)k * s->atom_turns[0]);  /* 0.632 t */
+    atoms[1] = CPHASE((uint64_t)k * s->atom_turns[1]);  /* 0.632 t */
+    arg[0] = atoms + 0;
+    res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+    if (serial_joint_realistic_arm1_desired_atoms(arg, res)) return -1;
+    arg[0] = atoms + 1;
+    res[0] = xd + 3; res[1] = xd_dot + 3; res[2] = xd_ddot + 3;
+    if (serial_joint_realistic_arm2_desired_atoms(arg, res)) return -1;
+  }
+  return 0;
+#else
+  return serial_joint_realistic_desired((double)k * s->h, xd, xd_dot, xd_ddot);
+#endif
+}
+
+static int serial_joint_realistic_step_desired(serial_joint_realistic_state *s, const serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND],
+    const serial_joint_realistic_real xd_dot[SERIAL_JOINT_REALISTIC_ND], const serial_joint_realistic_real xd_ddot[SERIAL_JOINT_REALISTIC_ND],
+    const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX], serial_joint_realistic_real command_out[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real errors_out[SERIAL_JOINT_REALISTIC_NE]) {
   serial_joint_realistic_real p_hat[SERIAL_JOINT_REALISTIC_NP], p_hat_dot[SERIAL_JOINT_REALISTIC_NP];
   double next[SERIAL_JOINT_REALISTIC_NP], scale[SERIAL_JOINT_REALISTIC_UNITS], norm2;
   const serial_joint_realistic_real* arg[14];
   serial_joint_realistic_real* res[3];
   int i;
-  if (!s->ready) return -1;
-  if (serial_joint_realistic_desired(t, xd, xd_dot, xd_ddot)) return -1;
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NP; ++i) p_hat[i] = (serial_joint_realistic_real)s->p_hat[i];
   /* arm1 */
   arg[0] = measurement + 0; arg[1] = measurement + 3;
@@ -2421,13 +2984,14 @@ int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const
   arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (serial_joint_realistic_arm1_law(arg, res)) return -1;
-  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
+  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+   * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
   for (i = 0; i < 12; ++i) {
     next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
     norm2 += next[i] * next[i];
   }
-  scale[0] = fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
+  scale[0] = norm2 <= s->bound2_inside[0] ? 1.0 : fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
   /* arm2 */
   arg[0] = measurement + 6; arg[1] = measurement + 9;
   arg[2] = xd + 3; arg[3] = xd_dot + 3; arg[4] = xd_ddot + 3;
@@ -2437,13 +3001,14 @@ int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const
   arg[12] = s->static_excess + 3; arg[13] = s->stribeck_velocity + 3;
   res[0] = command_out + 3; res[1] = p_hat_dot + 12; res[2] = errors_out + 6;
   if (serial_joint_realistic_arm2_law(arg, res)) return -1;
-  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
+  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+   * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
   for (i = 12; i < 24; ++i) {
     next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
     norm2 += next[i] * next[i];
   }
-  scale[1] = fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
+  scale[1] = norm2 <= s->bound2_inside[1] ? 1.0 : fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
   /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i)
     if (!CFINITE((double)command_out[i])) return 1;
@@ -2451,13 +3016,29 @@ int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const
     if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NP; ++i)
     if (!CFINITE(next[i])) return 2;
-  /* the supervisor's clip: |command| <= effort limit */
+  /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */
   for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i)
-    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
-  for (i = 0; i < 12; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[0], s->p_min[i]), s->p_max[i]);
-  for (i = 12; i < 24; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[1], s->p_min[i]), s->p_max[i]);
+    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);
+  for (i = 0; i < 12; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[0], s->p_min[i], s->p_max[i]);
+  for (i = 12; i < 24; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[1], s->p_min[i], s->p_max[i]);
   s->steps += 1;
   return 0;
+}
+
+int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX],
+    serial_joint_realistic_real command_out[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real errors_out[SERIAL_JOINT_REALISTIC_NE]) {
+  serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND], xd_dot[SERIAL_JOINT_REALISTIC_ND], xd_ddot[SERIAL_JOINT_REALISTIC_ND];
+  if (!s->ready) return -1;
+  if (serial_joint_realistic_desired(t, xd, xd_dot, xd_ddot)) return -1;
+  return serial_joint_realistic_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
+}
+
+int serial_joint_realistic_step_period(serial_joint_realistic_state *s, int64_t k,
+    const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX], serial_joint_realistic_real command_out[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real errors_out[SERIAL_JOINT_REALISTIC_NE]) {
+  serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND], xd_dot[SERIAL_JOINT_REALISTIC_ND], xd_ddot[SERIAL_JOINT_REALISTIC_ND];
+  if (!s->ready) return -1;
+  if (serial_joint_realistic_desired_period(s, k, xd, xd_dot, xd_ddot)) return -1;
+  return serial_joint_realistic_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
 }
 
 int serial_joint_realistic_tool_points(const serial_joint_realistic_real q[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real points[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1],

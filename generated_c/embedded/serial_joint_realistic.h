@@ -4,6 +4,8 @@
 #ifndef SERIAL_JOINT_REALISTIC_H
 #define SERIAL_JOINT_REALISTIC_H
 
+#include <stdint.h>
+
 #ifdef __cplusplus
 extern "C" {
 #endif
@@ -107,6 +109,14 @@ typedef struct {
   double p_min[SERIAL_JOINT_REALISTIC_NP], p_max[SERIAL_JOINT_REALISTIC_NP];
   serial_joint_realistic_real deadzone_real[SERIAL_JOINT_REALISTIC_NQ], p_min_real[SERIAL_JOINT_REALISTIC_NP], p_max_real[SERIAL_JOINT_REALISTIC_NP];
   serial_joint_realistic_real static_excess[SERIAL_JOINT_REALISTIC_NQ], stribeck_velocity[SERIAL_JOINT_REALISTIC_NQ];
+  /* The float build's time (docs/embedded.md, "The float build"): per time atom of
+   * the trajectory, the phase per period in turns (Q0.64) or the last period k on one
+   * side of its time; the period in the working precision. */
+  uint64_t atom_turns[2];
+  int64_t atom_last[2];
+  serial_joint_realistic_real h_real;
+  /* per unit: |p_hat|^2 at or under this is inside the ball (no projection) */
+  double bound2_inside[SERIAL_JOINT_REALISTIC_UNITS];
   unsigned long steps;          /* periods run since init */
   int ready;                    /* 1 between init and terminate */
 } serial_joint_realistic_state;
@@ -130,6 +140,14 @@ int serial_joint_realistic_init(serial_joint_realistic_state *s, const serial_jo
 int serial_joint_realistic_step(serial_joint_realistic_state *s, double t, const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX],
     serial_joint_realistic_real command_out[SERIAL_JOINT_REALISTIC_NQ], serial_joint_realistic_real errors_out[SERIAL_JOINT_REALISTIC_NE]);
 
+/* The same at period k of the run (t = k h, h the configuration's period): the loop's
+ * entry. In double t is formed as (double)k * h, so it is step's at that t bit for
+ * bit; in float the trajectory is evaluated from k without double (its time atoms,
+ * docs/embedded.md). -1 also for k < 0. */
+int serial_joint_realistic_step_period(serial_joint_realistic_state *s, int64_t k,
+    const serial_joint_realistic_real measurement[SERIAL_JOINT_REALISTIC_NX], serial_joint_realistic_real command_out[SERIAL_JOINT_REALISTIC_NQ],
+    serial_joint_realistic_real errors_out[SERIAL_JOINT_REALISTIC_NE]);
+
 /* Ends the run: the state must be initialised again before the next step. */
 void serial_joint_realistic_terminate(serial_joint_realistic_state *s);
 
@@ -137,6 +155,12 @@ void serial_joint_realistic_terminate(serial_joint_realistic_state *s);
  * acceleration, exact derivatives, unit after unit (ND each). Returns 0. */
 int serial_joint_realistic_desired(double t, serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND], serial_joint_realistic_real xd_dot[SERIAL_JOINT_REALISTIC_ND],
     serial_joint_realistic_real xd_ddot[SERIAL_JOINT_REALISTIC_ND]);
+
+/* The same at period k (t = k h, h of the initialised state s): in double the above at
+ * (double)k * h; in float from the integer k (no double, no staircase at any k).
+ * Returns 0, or -1 for k < 0. */
+int serial_joint_realistic_desired_period(const serial_joint_realistic_state *s, int64_t k, serial_joint_realistic_real xd[SERIAL_JOINT_REALISTIC_ND],
+    serial_joint_realistic_real xd_dot[SERIAL_JOINT_REALISTIC_ND], serial_joint_realistic_real xd_ddot[SERIAL_JOINT_REALISTIC_ND]);
 
 /* The keep-out rule's tool points at joint positions q[NQ] (all units, rad or m): per
  * point its (u, v) and its circle's centre (m, world frame), point after point in the

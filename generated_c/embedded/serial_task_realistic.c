@@ -34,6 +34,28 @@ static int CFINITE(double x) {
 
 static serial_task_realistic_real CSQ(serial_task_realistic_real x) { return x * x; }
 
+
+/* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
+ * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
+ * fraction's error is under a unit of 2^-64 and k periods of it under k 2^-64 turns. */
+static uint64_t CTURNS(double w, double h) {
+  double x = w * h / 6.283185307179586;
+  x -= floor(x);
+  x *= 18446744073709551616.0; /* 2^64, exact */
+  return x >= 18446744073709551616.0 ? 0u : (uint64_t)x;
+}
+
+
+/* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
+ * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
+static double CCLAMPD(double x, double lo, double hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
+static serial_task_realistic_real CCLAMP(serial_task_realistic_real x, serial_task_realistic_real lo, serial_task_realistic_real hi) {
+  return x < lo ? lo : (x > hi ? hi : x);
+}
+
 /* arm1: desired (t[1]) -> (x[3], x_dot[3], x_ddot[3]) */
 static int serial_task_realistic_arm1_desired(const double** arg, double** res) {
   double a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
@@ -2946,6 +2968,132 @@ static int serial_task_realistic_arm2_fk(const serial_task_realistic_real** arg,
   return 0;
 }
 
+#ifdef COCHLEA_FLOAT
+
+/* A phase in turns (Q0.64) as an angle in [-pi, pi) rad, in float: its top 32 bits as a
+ * signed count of 2^-32 turns (integer arithmetic only). */
+static float CPHASE(uint64_t turns) {
+  const uint32_t hi = (uint32_t)(turns >> 32);
+  const int32_t v = hi >= 0x80000000u ? -(int32_t)(0xFFFFFFFFu - hi) - 1 : (int32_t)hi;
+  return (float)v * 1.46291807926715968e-09f; /* 2 pi / 2^32 */
+}
+
+/* arm1: desired of its time atoms (phase 0.6285) -> (x, x_dot, x_ddot), in the working precision */
+static int serial_task_realistic_arm1_desired_atoms(const serial_task_realistic_real** arg, serial_task_realistic_real** res) {
+  serial_task_realistic_real a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
+  a0=CR(2.9999999999999999e-02);
+  a1=CR(2.6250000000000001e-01);
+  a2=CR(2.5869999999999999e-01);
+  a3=arg[0]? arg[0][0] : 0;
+  a4=CM(cos)(a3);
+  a2=(a2*a4);
+  a1=(a1-a2);
+  a2=CR(2.3000000000000001e-04);
+  a3=CM(sin)(a3);
+  a2=(a2*a3);
+  a1=(a1-a2);
+  a2=CM(cos)(a1);
+  a5=(a0*a2);
+  if (res[0]!=0) res[0][0]=a5;
+  a1=CM(sin)(a1);
+  a5=(a0*a1);
+  if (res[0]!=0) res[0][1]=a5;
+  a5=-CR(1.5707963267948966e+00);
+  if (res[0]!=0) res[0][2]=a5;
+  a5=CR(1.6259294999999999e-01);
+  a5=(a5*a3);
+  a6=CR(1.4455499999999999e-04);
+  a6=(a6*a4);
+  a5=(a5-a6);
+  a6=(a1*a5);
+  a7=(a0*a6);
+  a7=(-a7);
+  if (res[1]!=0) res[1][0]=a7;
+  a7=(a2*a5);
+  a8=(a0*a7);
+  if (res[1]!=0) res[1][1]=a8;
+  a8=CR(0.);
+  if (res[1]!=0) res[1][2]=a8;
+  a7=(a5*a7);
+  a9=CR(1.0218966907499999e-01);
+  a9=(a9*a4);
+  a4=CR(9.0852817499999990e-05);
+  a4=(a4*a3);
+  a9=(a9+a4);
+  a1=(a1*a9);
+  a7=(a7+a1);
+  a7=(a0*a7);
+  a7=(-a7);
+  if (res[2]!=0) res[2][0]=a7;
+  a2=(a2*a9);
+  a5=(a5*a6);
+  a2=(a2-a5);
+  a0=(a0*a2);
+  if (res[2]!=0) res[2][1]=a0;
+  if (res[2]!=0) res[2][2]=a8;
+  return 0;
+}
+
+/* arm2: desired of its time atoms (phase 0.6285) -> (x, x_dot, x_ddot), in the working precision */
+static int serial_task_realistic_arm2_desired_atoms(const serial_task_realistic_real** arg, serial_task_realistic_real** res) {
+  serial_task_realistic_real a0, a1, a2, a3, a4, a5, a6, a7, a8, a9;
+  a0=CR(2.9999999999999999e-02);
+  a1=CR(2.6250000000000001e-01);
+  a2=CR(2.5869999999999999e-01);
+  a3=arg[0]? arg[0][0] : 0;
+  a4=CM(cos)(a3);
+  a2=(a2*a4);
+  a1=(a1-a2);
+  a2=CR(2.3000000000000001e-04);
+  a3=CM(sin)(a3);
+  a2=(a2*a3);
+  a1=(a1-a2);
+  a2=CM(cos)(a1);
+  a5=(a0*a2);
+  a5=(-a5);
+  if (res[0]!=0) res[0][0]=a5;
+  a1=CM(sin)(a1);
+  a5=(a0*a1);
+  a5=(-a5);
+  if (res[0]!=0) res[0][1]=a5;
+  a5=CR(1.5707963267948966e+00);
+  if (res[0]!=0) res[0][2]=a5;
+  a5=CR(1.6259294999999999e-01);
+  a5=(a5*a3);
+  a6=CR(1.4455499999999999e-04);
+  a6=(a6*a4);
+  a5=(a5-a6);
+  a6=(a1*a5);
+  a7=(a0*a6);
+  if (res[1]!=0) res[1][0]=a7;
+  a7=(a2*a5);
+  a8=(a0*a7);
+  a8=(-a8);
+  if (res[1]!=0) res[1][1]=a8;
+  a8=CR(0.);
+  if (res[1]!=0) res[1][2]=a8;
+  a7=(a5*a7);
+  a9=CR(1.0218966907499999e-01);
+  a9=(a9*a4);
+  a4=CR(9.0852817499999990e-05);
+  a4=(a4*a3);
+  a9=(a9+a4);
+  a1=(a1*a9);
+  a7=(a7+a1);
+  a7=(a0*a7);
+  if (res[2]!=0) res[2][0]=a7;
+  a2=(a2*a9);
+  a5=(a5*a6);
+  a2=(a2-a5);
+  a0=(a0*a2);
+  a0=(-a0);
+  if (res[2]!=0) res[2][1]=a0;
+  if (res[2]!=0) res[2][2]=a8;
+  return 0;
+}
+
+#endif /* COCHLEA_FLOAT */
+
 void serial_task_realistic_default_config(serial_task_realistic_config *c) {
   /* arm1: gains */
   c->gains[0] = 20.0;
@@ -3113,6 +3261,9 @@ int serial_task_realistic_init(serial_task_realistic_state *s, const serial_task
   s->ready = 0;
   if (!(c->h > 0.0 && c->h < HUGE_VAL)) return -1;
   s->h = c->h;
+  s->h_real = (serial_task_realistic_real)c->h;
+  s->atom_turns[0] = CTURNS(0.6285, c->h); s->atom_last[0] = 0;  /* phase 0.6285 */
+  s->atom_turns[1] = CTURNS(0.6285, c->h); s->atom_last[1] = 0;  /* phase 0.6285 */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NG; ++i) s->gains[i] = (serial_task_realistic_real)c->gains[i];
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i) {
     s->gamma[i] = (serial_task_realistic_real)c->gamma[i];
@@ -3123,6 +3274,9 @@ int serial_task_realistic_init(serial_task_realistic_state *s, const serial_task
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
     s->bound[i] = c->bound[i];
     s->bound_real[i] = (serial_task_realistic_real)c->bound[i];
+    /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the
+     * projection's scale is exactly 1 */
+    s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);
   }
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
@@ -3174,16 +3328,39 @@ int serial_task_realistic_desired(double t, serial_task_realistic_real xd[SERIAL
   return 0;
 }
 
-int serial_task_realistic_step(serial_task_realistic_state *s, double t, const serial_task_realistic_real measurement[SERIAL_TASK_REALISTIC_NX],
-    serial_task_realistic_real command_out[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real errors_out[SERIAL_TASK_REALISTIC_NE]) {
-  serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND], xd_dot[SERIAL_TASK_REALISTIC_ND], xd_ddot[SERIAL_TASK_REALISTIC_ND];
+int serial_task_realistic_desired_period(const serial_task_realistic_state *s, int64_t k, serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND],
+    serial_task_realistic_real xd_dot[SERIAL_TASK_REALISTIC_ND], serial_task_realistic_real xd_ddot[SERIAL_TASK_REALISTIC_ND]) {
+  if (k < 0) return -1;
+#ifdef COCHLEA_FLOAT
+  {
+    /* The time atoms from k: integers and float only, no t (a float t would
+     * staircase; docs/embedded.md, "The float build") */
+    serial_task_realistic_real atoms[2];
+    const serial_task_realistic_real* arg[1];
+    serial_task_realistic_real* res[3];
+    atoms[0] = CPHASE((uint64_t)k * s->atom_turns[0]);  /* 0.6285 t */
+    atoms[1] = CPHASE((uint64_t)k * s->atom_turns[1]);  /* 0.6285 t */
+    arg[0] = atoms + 0;
+    res[0] = xd + 0; res[1] = xd_dot + 0; res[2] = xd_ddot + 0;
+    if (serial_task_realistic_arm1_desired_atoms(arg, res)) return -1;
+    arg[0] = atoms + 1;
+    res[0] = xd + 3; res[1] = xd_dot + 3; res[2] = xd_ddot + 3;
+    if (serial_task_realistic_arm2_desired_atoms(arg, res)) return -1;
+  }
+  return 0;
+#else
+  return serial_task_realistic_desired((double)k * s->h, xd, xd_dot, xd_ddot);
+#endif
+}
+
+static int serial_task_realistic_step_desired(serial_task_realistic_state *s, const serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND],
+    const serial_task_realistic_real xd_dot[SERIAL_TASK_REALISTIC_ND], const serial_task_realistic_real xd_ddot[SERIAL_TASK_REALISTIC_ND],
+    const serial_task_realistic_real measurement[SERIAL_TASK_REALISTIC_NX], serial_task_realistic_real command_out[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real errors_out[SERIAL_TASK_REALISTIC_NE]) {
   serial_task_realistic_real p_hat[SERIAL_TASK_REALISTIC_NP], p_hat_dot[SERIAL_TASK_REALISTIC_NP];
   double next[SERIAL_TASK_REALISTIC_NP], scale[SERIAL_TASK_REALISTIC_UNITS], norm2;
   const serial_task_realistic_real* arg[14];
   serial_task_realistic_real* res[3];
   int i;
-  if (!s->ready) return -1;
-  if (serial_task_realistic_desired(t, xd, xd_dot, xd_ddot)) return -1;
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i) p_hat[i] = (serial_task_realistic_real)s->p_hat[i];
   /* arm1 */
   arg[0] = measurement + 0; arg[1] = measurement + 3;
@@ -3194,13 +3371,14 @@ int serial_task_realistic_step(serial_task_realistic_state *s, double t, const s
   arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (serial_task_realistic_arm1_law(arg, res)) return -1;
-  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
+  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+   * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
   for (i = 0; i < 12; ++i) {
     next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
     norm2 += next[i] * next[i];
   }
-  scale[0] = fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
+  scale[0] = norm2 <= s->bound2_inside[0] ? 1.0 : fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
   /* arm2 */
   arg[0] = measurement + 6; arg[1] = measurement + 9;
   arg[2] = xd + 3; arg[3] = xd_dot + 3; arg[4] = xd_ddot + 3;
@@ -3210,13 +3388,14 @@ int serial_task_realistic_step(serial_task_realistic_state *s, double t, const s
   arg[12] = s->static_excess + 3; arg[13] = s->stribeck_velocity + 3;
   res[0] = command_out + 3; res[1] = p_hat_dot + 12; res[2] = errors_out + 6;
   if (serial_task_realistic_arm2_law(arg, res)) return -1;
-  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double) */
+  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+   * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
   for (i = 12; i < 24; ++i) {
     next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
     norm2 += next[i] * next[i];
   }
-  scale[1] = fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
+  scale[1] = norm2 <= s->bound2_inside[1] ? 1.0 : fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
   /* Every output finite, or nothing changes (CFINITE: on the bits) */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i)
     if (!CFINITE((double)command_out[i])) return 1;
@@ -3224,13 +3403,29 @@ int serial_task_realistic_step(serial_task_realistic_state *s, double t, const s
     if (!CFINITE((double)errors_out[i])) return 1;
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i)
     if (!CFINITE(next[i])) return 2;
-  /* the supervisor's clip: |command| <= effort limit */
+  /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i)
-    command_out[i] = CM(fmin)(CM(fmax)(command_out[i], -s->effort_limit[i]), s->effort_limit[i]);
-  for (i = 0; i < 12; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[0], s->p_min[i]), s->p_max[i]);
-  for (i = 12; i < 24; ++i) s->p_hat[i] = fmin(fmax(next[i] * scale[1], s->p_min[i]), s->p_max[i]);
+    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);
+  for (i = 0; i < 12; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[0], s->p_min[i], s->p_max[i]);
+  for (i = 12; i < 24; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[1], s->p_min[i], s->p_max[i]);
   s->steps += 1;
   return 0;
+}
+
+int serial_task_realistic_step(serial_task_realistic_state *s, double t, const serial_task_realistic_real measurement[SERIAL_TASK_REALISTIC_NX],
+    serial_task_realistic_real command_out[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real errors_out[SERIAL_TASK_REALISTIC_NE]) {
+  serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND], xd_dot[SERIAL_TASK_REALISTIC_ND], xd_ddot[SERIAL_TASK_REALISTIC_ND];
+  if (!s->ready) return -1;
+  if (serial_task_realistic_desired(t, xd, xd_dot, xd_ddot)) return -1;
+  return serial_task_realistic_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
+}
+
+int serial_task_realistic_step_period(serial_task_realistic_state *s, int64_t k,
+    const serial_task_realistic_real measurement[SERIAL_TASK_REALISTIC_NX], serial_task_realistic_real command_out[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real errors_out[SERIAL_TASK_REALISTIC_NE]) {
+  serial_task_realistic_real xd[SERIAL_TASK_REALISTIC_ND], xd_dot[SERIAL_TASK_REALISTIC_ND], xd_ddot[SERIAL_TASK_REALISTIC_ND];
+  if (!s->ready) return -1;
+  if (serial_task_realistic_desired_period(s, k, xd, xd_dot, xd_ddot)) return -1;
+  return serial_task_realistic_step_desired(s, xd, xd_dot, xd_ddot, measurement, command_out, errors_out);
 }
 
 int serial_task_realistic_tool_points(const serial_task_realistic_real q[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real points[2 * SERIAL_TASK_REALISTIC_NPOINTS + 1],

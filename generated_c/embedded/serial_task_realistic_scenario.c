@@ -57,6 +57,24 @@ static int step(void *state, double t, const double *q, const double *qd, double
   return r;
 }
 
+static int step_period(void *state, int64_t k, const double *q, const double *qd,
+                       double *command, double *errors) {
+  serial_task_realistic_real x[SERIAL_TASK_REALISTIC_NX], u[SERIAL_TASK_REALISTIC_NQ], e[SERIAL_TASK_REALISTIC_NE];
+  int i, r;
+  for (i = 0; i < 3; ++i) {
+    x[0 + i] = (serial_task_realistic_real)q[0 + i];
+    x[3 + i] = (serial_task_realistic_real)qd[0 + i];
+  }
+  for (i = 0; i < 3; ++i) {
+    x[6 + i] = (serial_task_realistic_real)q[3 + i];
+    x[9 + i] = (serial_task_realistic_real)qd[3 + i];
+  }
+  r = serial_task_realistic_step_period((serial_task_realistic_state *)state, k, x, u, e);
+  for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i) command[i] = (double)u[i];
+  for (i = 0; i < SERIAL_TASK_REALISTIC_NE; ++i) errors[i] = (double)e[i];
+  return r;
+}
+
 static void terminate(void *state) { serial_task_realistic_terminate((serial_task_realistic_state *)state); }
 
 static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {
@@ -90,5 +108,5 @@ const cochlea_scenario serial_task_realistic_scenario = {
     SERIAL_TASK_REALISTIC_UNITS, units, SERIAL_TASK_REALISTIC_NQ, SERIAL_TASK_REALISTIC_ND, SERIAL_TASK_REALISTIC_NP, SERIAL_TASK_REALISTIC_NE, SERIAL_TASK_REALISTIC_NPOINTS,
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
     sizeof(serial_task_realistic_state), (int)sizeof(serial_task_realistic_real), init, step, terminate, desired, estimate, tool_points,
-    0
+    0, step_period
 };
