@@ -172,12 +172,11 @@ def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, k
 
     M, C, G, ID, F_fr = (at_p(M_full), at_p(C_full), at_p(G_full), at_p(tau_full),
                          at_p(F_full))
-    # Forward dynamics: M qdd = tau - bias, with the bias taken from the inverse dynamics at
-    # qdd = 0. For a serial chain that is the Newton-Euler recursion, about half the operations
-    # of C qd + G from Christoffel symbols (256 against 447 for the 3R arm): the plant step,
-    # hence every simulation, runs on it. For a Lagrangian model it is C qd + G itself.
-    # A serial chain gives its articulated-body algorithm instead (``forward``, O(n), no
-    # matrix solve: cochlea/robots/serial/aba.py).
+    # Forward dynamics, which the plant step, hence every simulation, runs on: the model's own
+    # ``forward`` where it gives one (a Newton-Euler serial chain: the articulated-body
+    # algorithm, O(n), no matrix solve, cochlea/robots/serial/aba.py), else M qdd = tau - bias
+    # with the bias taken from the inverse dynamics at qdd = 0 (for a Lagrangian model, C qd + G
+    # itself).
     if forward is None:
         bias = ca.substitute(ID, qdd, ca.SX.zeros(n))
         FD = ca.solve(M, tau - bias)

@@ -22,8 +22,13 @@ from __future__ import annotations
 
 import casadi as ca
 
-from .chain import N_INERTIAL, _unpack, armature_indices, joint_transform
+from .chain import N_INERTIAL, armature_indices, joint_transform
 from .description import Arm
+
+
+def _inertial(phi) -> tuple:
+    """A link's ten parameters as ``(m, h, I)``: mass, first moment, inertia about the origin."""
+    return phi[0], phi[1:4], _sym3([phi[4], phi[7], phi[8], phi[5], phi[9], phi[6]])
 
 
 def _sym3(entries) -> ca.SX:
@@ -73,7 +78,7 @@ def aba(arm: Arm, q, qd, tau, phi, gravity_base) -> ca.SX:
             v = v_in + z * qd[i]
             c_w = ca.SX.zeros(3)
             c_v = ca.cross(w, z * qd[i])
-        m, h, I = _unpack(phi[N_INERTIAL * i: N_INERTIAL * (i + 1)])
+        m, h, I = _inertial(phi[N_INERTIAL * i: N_INERTIAL * (i + 1)])
         H = ca.vertcat(ca.horzcat(0, -h[2], h[1]), ca.horzcat(h[2], 0, -h[0]),
                        ca.horzcat(-h[1], h[0], 0))
         # Spatial inertia about the origin: [I  hx; hx' m 1] ([hx] = skew(h)).
