@@ -10,7 +10,9 @@ kernels"), measured in one run, as ratios (this machine is shared: absolute figu
    slider made revolute) on their C kernels against CasADi, and their real-time factor per
    joint (real-time factor x joints) against the shipped serial study's on its C kernels
    (serial_joint: two 3-joint arms), each the median of several full-length runs (target:
-   >= 80 % of the shipped arms' per joint).
+   >= 80 % of the shipped arms' per joint); also with every unit on one thread (``simulate(...,
+   threads=False)``): the shipped study's two arms otherwise run on a thread each, two cores
+   for its 6 joints against one for a single arm's.
 
     .venv/bin/python bench/user_robot.py [--duration S] [--out bench/user_robot.json]
 
@@ -77,13 +79,19 @@ def generated(scenario: Path, out: Path) -> dict:
 
 
 def run_speed(sc, duration: float, library=None) -> dict:
+    """The as-fast run on C (the units on a thread each, as ``simulate`` runs them, and one
+    after the other on one thread: the shipped study's two arms otherwise share two cores)
+    and on CasADi."""
     setups = unit_setups(sc)
     joints = sum(u.controller_model.nq for u in setups)
     c = wall(lambda: simulate(sc, duration, setups, kernels="c", library=library), 5)
+    one = wall(lambda: simulate(sc, duration, setups, kernels="c", library=library,
+                                threads=False), 5)
     casadi = wall(lambda: simulate(sc, duration, setups, kernels="casadi"), 1)
-    return {"joints": joints, "duration_s": duration, "c_s": c, "casadi_s": casadi,
-            "rtf_c": duration / c, "rtf_casadi": duration / casadi,
+    return {"joints": joints, "duration_s": duration, "c_s": c, "c_one_thread_s": one,
+            "casadi_s": casadi, "rtf_c": duration / c, "rtf_casadi": duration / casadi,
             "rtf_per_joint_c": joints * duration / c,
+            "rtf_per_joint_c_one_thread": joints * duration / one,
             "rtf_per_joint_casadi": joints * duration / casadi, "c_over_casadi": casadi / c}
 
 
@@ -109,20 +117,24 @@ def main() -> int:
             speed = run_speed(load_scenario(scenario), args.duration, tmp / name / "kernels")
             speed["per_joint_vs_shipped"] = (speed["rtf_per_joint_c"]
                                              / shipped["rtf_per_joint_c"])
+            speed["per_joint_vs_shipped_one_thread"] = (
+                speed["rtf_per_joint_c_one_thread"] / shipped["rtf_per_joint_c_one_thread"])
             results[name]["run"] = speed
     args.out.write_text(json.dumps(results, indent=1) + "\n")
     print("\n| robot | joints | generate + compile (s) | RTF on C | RTF on CasADi | C / CasADi "
-          "| RTF x joints on C, vs the shipped serial arms |")
-    print("|---|---|---|---|---|---|---|")
+          "| RTF x joints on C, vs the shipped serial arms | the same, one thread |")
+    print("|---|---|---|---|---|---|---|---|")
     s = results["serial_joint"]
     print(f"| serial_joint (shipped) | {s['joints']} | -- | {s['rtf_c']:.0f} | "
           f"{s['rtf_casadi']:.1f} | {s['c_over_casadi']:.0f}x | {s['rtf_per_joint_c']:.0f} "
-          "(100 %) |")
+          f"(100 %) | {s['rtf_per_joint_c_one_thread']:.0f} (100 %) |")
     for name in ("arm4", "ur5"):
         r, g = results[name]["run"], results[name]["codegen"]
         print(f"| {name} (user) | {r['joints']} | {g['generate_s']:.1f} + {g['compile_s']:.1f} "
               f"| {r['rtf_c']:.0f} | {r['rtf_casadi']:.1f} | {r['c_over_casadi']:.0f}x | "
-              f"{r['rtf_per_joint_c']:.0f} ({100 * r['per_joint_vs_shipped']:.0f} %) |")
+              f"{r['rtf_per_joint_c']:.0f} ({100 * r['per_joint_vs_shipped']:.0f} %) | "
+              f"{r['rtf_per_joint_c_one_thread']:.0f} "
+              f"({100 * r['per_joint_vs_shipped_one_thread']:.0f} %) |")
     print(f"\nload average {results['load_average'][0]:.2f}; written {args.out}")
     return 0
 

@@ -154,9 +154,13 @@ class RobotModel:
 
 
 def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, kinematics,
-               parameterisation: Parameterisation, F_full) -> dict[str, ca.Function]:
+               parameterisation: Parameterisation, F_full,
+               forward=None, regressand=None) -> dict[str, ca.Function]:
     """Turn full-parameter expressions into the model's Functions (``F_full``: the joints'
-    friction torque, already part of ``tau_full``)."""
+    friction torque, already part of ``tau_full``; ``forward``: None, or the model's own
+    exact forward dynamics ``forward(q, qd, tau) -> qdd`` in ``phi``, without friction;
+    ``regressand``: None, or ``M qdd_r + C(q, qd) qd_r + G`` (the Christoffel ``C``) computed
+    another exact way, ``regressand(q, qd, qd_r, qdd_r)`` in ``phi``)."""
     n = q.shape[0]
     tau = ca.SX.sym("tau", n)
     qd_r = ca.SX.sym("qd_r", n)
@@ -168,17 +172,25 @@ def _functions(prefix: str, q, qd, qdd, phi, M_full, C_full, G_full, tau_full, k
 
     M, C, G, ID, F_fr = (at_p(M_full), at_p(C_full), at_p(G_full), at_p(tau_full),
                          at_p(F_full))
-    # Forward dynamics: M qdd = tau - bias, with the bias taken from the inverse dynamics at
-    # qdd = 0. For a serial chain that is the Newton-Euler recursion, about half the operations
-    # of C qd + G from Christoffel symbols (256 against 447 for the 3R arm): the plant step,
-    # hence every simulation, runs on it. For a Lagrangian model it is C qd + G itself.
-    bias = ca.substitute(ID, qdd, ca.SX.zeros(n))
-    FD = ca.solve(M, tau - bias)
+    # Forward dynamics, which the plant step, hence every simulation, runs on: the model's own
+    # ``forward`` where it gives one (a Newton-Euler serial chain: the articulated-body
+    # algorithm, O(n), no matrix solve, cochlea/robots/serial/aba.py), else M qdd = tau - bias
+    # with the bias taken from the inverse dynamics at qdd = 0 (for a Lagrangian model, C qd + G
+    # itself).
+    if forward is None:
+        bias = ca.substitute(ID, qdd, ca.SX.zeros(n))
+        FD = ca.solve(M, tau - bias)
+    else:
+        FD = at_p(forward(q, qd, tau - F_full))
     # Friction at the reference velocity, not the measured one: the controllers then
     # compensate it ahead of a reversal instead of sticking there, the velocity quantisation
     # does not switch it, and the mismatch F(qd_r) - F(qd) only dissipates (F is monotone and
     # the sliding error is qd_r - qd), so every Lyapunov argument still holds.
-    Y = ca.jacobian(M @ qdd_r + C @ qd_r + G + ca.substitute(F_fr, qd, qd_r), p)
+    if regressand is None:
+        f_r = M @ qdd_r + C @ qd_r + G
+    else:
+        f_r = at_p(regressand(q, qd, qd_r, qdd_r))
+    Y = ca.jacobian(f_r + ca.substitute(F_fr, qd, qd_r), p)
 
     F = ca.Function
     out = {
@@ -208,7 +220,7 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
                    bodies: list[tuple[str, slice]], parameterisation: str, method: str,
                    source: Path | None,
                    friction: list[tuple[float | None, float | None]] | None = None,
-                   actuators: str = "none") -> RobotModel:
+                   actuators: str = "none", forward=None, regressand=None) -> RobotModel:
     """Build a :class:`RobotModel` from expressions in the full inertial parameters ``phi``.
 
     ``M, C, G, tau`` are the mass matrix, Christoffel Coriolis matrix, gravity vector and
@@ -218,6 +230,13 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
 
     ``friction``: per joint, its (viscous, Coulomb) friction or None each; every declared one
     becomes an estimated parameter (:func:`with_friction`) and its torque joins ``tau``.
+
+    ``forward``: None (the forward dynamics solve ``M qdd = tau - bias``), or a callable
+    ``forward(q, qd, tau) -> qdd`` in ``phi``, the same dynamics without friction computed
+    another exact way (a serial chain's articulated-body algorithm); ``regressand``: None
+    (the regressor ``Y`` differentiates ``M qdd_r + C qd_r + G``), or a callable
+    ``(q, qd, qd_r, qdd_r) -> M qdd_r + C(q, qd) qd_r + G`` in ``phi`` (the Christoffel ``C``,
+    without friction) computed another exact way (a serial chain's two Newton-Euler passes).
     """
     n = q.shape[0]
     full, bodies, phi, F_full = with_friction(full, bodies, phi, qd, joints, friction)
@@ -231,7 +250,8 @@ def assemble_model(name: str, prefix: str, *, joints: tuple[JointInfo, ...], q, 
         full_functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, {}, full, F_full)
         chosen = params_mod.base(full_functions["Y"], full.names, full.nominal, full.si_units,
                                  [n, n, n, n])
-    functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen, F_full)
+    functions = _functions(prefix, q, qd, qdd, phi, M, C, G, tau, kinematics, chosen, F_full,
+                           forward, regressand)
     return RobotModel(name, joints, chosen, method, functions, full, source,
                       actuators=actuators)
 

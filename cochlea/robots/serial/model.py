@@ -18,6 +18,7 @@ from ..model import (
     with_armatures,
 )
 from ..spatial import rot_z
+from .aba import aba
 from .chain import (
     energies,
     inertial_parameters,
@@ -53,7 +54,18 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
     phi = ca.SX.sym("phi", n_parameters(arm))
     g_base = arm.base_rotation.T @ system.gravity
 
+    forward = regressand = None
     if method == "newton-euler":
+        # The forward dynamics by the articulated-body algorithm (O(n), exact; a symbolic
+        # solve of a spatial 6x6 mass matrix expands to several times the operations).
+        def forward(q_, qd_, tau_):
+            return aba(arm, q_, qd_, tau_, phi, g_base)
+        # The regressor's M qdd_r + C(qd) qd_r + G with the Christoffel C, by two Newton-Euler
+        # passes: C(qd) qd_r is a symmetric bilinear form B(qd, qd_r) with B(v, v) = h(v),
+        # the velocity terms, so B(a, b) = h((a + b) / 2) - h((a - b) / 2) (polarisation).
+        def regressand(q_, qd_, qd_r_, qdd_r_):
+            return (rnea(arm, q_, (qd_ + qd_r_) / 2, qdd_r_, phi, g_base)
+                    - rnea(arm, q_, (qd_ - qd_r_) / 2, ca.SX.zeros(n), phi, np.zeros(3)))
         tau = rnea(arm, q, qd, qdd, phi, g_base)
         M = ca.jacobian(rnea(arm, q, ca.SX.zeros(n), qdd, phi, np.zeros(3)), qdd)
         M = 0.5 * (M + M.T)  # symmetric by construction, not only up to rounding
@@ -97,5 +109,6 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
                           joints=joints, q=q, qd=qd, qdd=qdd, phi=phi, M=M, C=C, G=G, tau=tau,
                           kinematics=kinematics, full=full, bodies=blocks,
                           parameterisation=parameterisation, method=method, source=system.path,
-                          friction=friction, actuators=actuators)
+                          friction=friction, actuators=actuators, forward=forward,
+                          regressand=regressand)
 
