@@ -6,13 +6,16 @@ What is proved where (so nothing is duplicated):
 
 | proof | planar2 | spatial4 | UR5 |
 |---|---|---|---|
-| model against Pinocchio | test_pinocchio_oracle / test_task_spaces | test_task_spaces | test_urdf |
-| task-space run converges (CasADi) | test_task_spaces | test_task_spaces | test_task_spaces |
-| joint-space run on C kernels | test_codegen_user (imported 2R) | here | here (slow) |
-| task-space kernels = CasADi (1e-12), C run = CasADi run (1e-9) | here | here | here (slow) |
-| virtual chain (emulator + cochlea-run --backend dynamixel) | test_user_robot_tools | here (hil) | -- |
-| excitation + identification within 5 % on a perturbed plant | test_user_robot_tools | here (slow) | -- |
-| small sweep | test_user_robot_tools | here | -- |
+| model against Pinocchio: dynamics | here | here | test_urdf |
+| model against Pinocchio: tool pose, Jacobians | test_task_spaces | test_task_spaces | test_task_spaces |
+| joint-space run on C kernels = CasADi, converges | here | here | here (slow) |
+| task-space kernels = CasADi (1e-12), C run = CasADi run (1e-9), converges | here (planar) | here (position_yaw; position on its first 3 joints) | here (pose, slow) |
+| virtual chain (emulator + cochlea-run --backend dynamixel) | test_user_robot_tools | here (hil) | here (hil) |
+| excitation + identification within 5 % on a perturbed plant | test_user_robot_tools | here (slow) | here (slow) |
+| small sweep | test_user_robot_tools | here | here |
+
+The 6-DoF arm is the UR5, not the SO-101: see docs/extending.md ("A Dynamixel arm of your
+own") for why the SO-101's identification on a perturbed plant fails without armature.
 """
 
 from __future__ import annotations
@@ -425,12 +428,15 @@ def test_user_arm_dynamics_match_pinocchio(description, rng):
         assert gravity > 0.1
 
 
-def test_spatial4_joint_space_run_on_c_kernels(tmp_path):
+@pytest.mark.parametrize("scenario, motor", [(DATA / "planar2_joint.toml", "XM540-W270"),
+                                             (SPATIAL4_JOINT, "XM430-W350")],
+                         ids=["planar2", "spatial4"])
+def test_user_arm_joint_space_run_on_c_kernels(tmp_path, scenario, motor):
     """cochlea-codegen --scenario on the joint-space study: the C run converges and gives the
     CasADi run's log."""
-    sc = load_scenario(SPATIAL4_JOINT)
-    assert [link.motor.model for link in sc.system.arms[0].links] == ["XM430-W350"] * 4
-    kernels = _generated(tmp_path, SPATIAL4_JOINT)
+    sc = load_scenario(scenario)
+    assert {link.motor.model for link in sc.system.arms[0].links} == {motor}
+    kernels = _generated(tmp_path, scenario)
     setups = unit_setups(sc)
     result = simulate(sc, None, setups, kernels="c", library=kernels)
     assert result.kernels["used"] == "c", result.kernels
@@ -469,15 +475,23 @@ def test_spatial4_joint_space_run_over_the_virtual_chain(tmp_path):
         assert tracked["final_rms_error"] < 0.2 * tracked["initial_abs_error"], (name, tracked)
 
 
-def test_a_small_sweep_of_spatial4(tmp_path, monkeypatch):
+@pytest.mark.parametrize("arm", ["spatial4", pytest.param("ur5", marks=needs_ur5)])
+def test_a_small_sweep_of_a_user_arm(arm, tmp_path, monkeypatch, request):
+    """Three perturbed draws of the arm's joint-space study (spatial4_joint.toml, the UR5's
+    imported starter), every run to its end."""
     from cochlea.apps import cochlea_sweep
     from cochlea.sweep import results
 
-    for f in (SPATIAL4, SPATIAL4_JOINT):
-        (tmp_path / f.name).write_text(f.read_text())
+    if arm == "spatial4":
+        for f in (SPATIAL4, SPATIAL4_JOINT):
+            (tmp_path / f.name).write_text(f.read_text())
+        scenario = SPATIAL4_JOINT.name
+    else:
+        description, starter = request.getfixturevalue("ur5_joint")
+        scenario = str(starter)
     spec = tmp_path / "spec.toml"
     spec.write_text(f'''format = "cochlea-sweep/1"
-scenario = "{SPATIAL4_JOINT.name}"
+scenario = "{scenario}"
 samples = 3
 seed = 11
 duration_s = 0.4
@@ -550,3 +564,110 @@ def test_spatial4_excite_then_identify_a_perturbed_plant(tmp_path):
     fv = [p["wls"] for name, p in zip(m.parameters.meanings, doc["parameters"])
           if name.endswith(".Fv")]
     assert fv == pytest.approx([0.02, 0.03, 0.015, 0.01], rel=0.05)
+
+
+# --------------------------------------------------------------------------------------------
+# The proof matrix: the 6-DoF UR5 imported from example-robot-data (slow: its kernels and
+# excitation take minutes). Gravity off: its imported XM540s could not hold it.
+# --------------------------------------------------------------------------------------------
+
+#: UR5's perturbed plant (as spatial4's, with a payload sized for it).
+UR5_PLANT = """[plant]
+plant = "ideal"
+mass_scale = [1.2, 0.85, 1.1, 0.9, 1.15, 0.9]
+payload_kg = 0.2
+viscous_friction_SI = [0.02, 0.03, 0.015, 0.01, 0.012, 0.008]
+current_quantisation = true
+position_encoder = true
+velocity_register = true
+delay_periods = 1
+"""
+
+
+@pytest.fixture(scope="module")
+def ur5_joint(tmp_path_factory) -> tuple[Path, Path]:
+    """``cochlea-urdf import`` of the UR5 with its starter scenario; gravity off and a viscous
+    friction estimate declared per joint (the URDF's are zero, so none is imported)."""
+    from cochlea.apps.cochlea_urdf import main
+
+    folder = tmp_path_factory.mktemp("ur5_joint")
+    description, starter = folder / "ur5.toml", folder / "starter.toml"
+    assert main(["import", str(UR5), "--out", str(description), "--scenario-out",
+                 str(starter)]) == 0
+    text = description.read_text().replace("gravity_m_s2 = [0.0, 0.0, -9.81]",
+                                           "gravity_m_s2 = [0.0, 0.0, 0.0]")
+    description.write_text(text.replace("  torque_limit_Nm = ",
+                                        "  viscous_friction_Nms_rad = 0.01\n  torque_limit_Nm = "))
+    assert load_serial(description).arms[0].links[5].joint.actuator.viscous == 0.01
+    return description, starter
+
+
+@pytest.mark.slow
+@needs_ur5
+def test_ur5_joint_space_run_on_c_kernels(ur5_joint, tmp_path):
+    _, starter = ur5_joint
+    sc = load_scenario(starter)
+    kernels = _generated(tmp_path, starter)
+    setups = unit_setups(sc)
+    result = simulate(sc, 3.0, setups, kernels="c", library=kernels)
+    assert result.kernels["used"] == "c", result.kernels
+    _assert_same_log(result, simulate(sc, 3.0, setups, kernels="casadi"), 1e-9)
+    assert not result.diverged
+    e = result.units[0].tracking_error
+    final, first = np.abs(e[-len(e) // 10:]).max(axis=0), np.abs(e[0])
+    assert np.all(final < 0.05 * first), (final, first)
+
+
+@pytest.mark.slow
+@needs_ur5
+def test_ur5_excite_then_identify_a_perturbed_plant(ur5_joint, tmp_path):
+    from cochlea.apps import cochlea_excite, cochlea_identify
+
+    description, starter = ur5_joint
+    out = tmp_path / "excite.toml"
+    assert cochlea_excite.main(["--robot", "serial", "--description", str(description),
+                                "--scenario", str(starter), "--out", str(out),
+                                "--period", "4", "--harmonics", "3", "--starts", "2",
+                                "--iterations", "60"]) == 0
+    text = out.read_text()
+    perturbed = tmp_path / "perturbed.toml"
+    perturbed.write_text(text[:text.index("[plant]")] + UR5_PLANT)
+    subprocess.run(RUN + ["--robot", "serial", "--space", "joint", "--scenario", str(perturbed),
+                          "--out", str(tmp_path / "run"), "--realtime", "off"],
+                   check=True, capture_output=True, cwd=ROOT)
+    report = tmp_path / "ident.json"
+    assert cochlea_identify.main([str(tmp_path / "run"), "--robot", "serial", "--description",
+                                  str(description), "--out", str(report), "--min-speed", "0",
+                                  "--no-figures"]) == 0
+    doc = json.loads(report.read_text())
+    assert max(doc["prediction_nrms_percent"]["wls"]) < 5.0, doc["prediction_nrms_percent"]
+
+
+@pytest.mark.hil
+@needs_ur5
+def test_ur5_joint_space_run_over_the_virtual_chain(ur5_joint, tmp_path):
+    """Six emulated XM540-W270s from the imported description; the starter tracked over the
+    pseudo-terminal."""
+    _, starter = ur5_joint
+    log, out = tmp_path / "emulator.log", tmp_path / "hil"
+    proc = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
+                             "serial", "--scenario", str(starter), "--log", str(log)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/"), proc.stderr.read() if proc.poll() is not None else port
+        assert "XM540-W270" in proc.stdout.readline()
+        done = subprocess.run(RUN + ["--robot", "serial", "--space", "joint", "--scenario",
+                                     str(starter), "--backend", "dynamixel", "--port", port,
+                                     "--duration", "3", "--out", str(out),
+                                     "--watchdog-misses", "300"],
+                              capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "completed"
+    assert "torque off confirmed by all 6" in summary["timing"]["bus"]["shutdown"]
+    for name, tracked in summary["units"]["arm"]["tracked"].items():
+        assert tracked["final_rms_error"] < 0.2 * tracked["initial_abs_error"], (name, tracked)
