@@ -4,15 +4,19 @@
 
 What is proved where (so nothing is duplicated):
 
-| proof | planar2 | spatial4 | UR5 |
-|---|---|---|---|
-| model against Pinocchio: dynamics | here | here | test_urdf |
-| model against Pinocchio: tool pose, Jacobians | test_task_spaces | test_task_spaces | test_task_spaces |
-| joint-space run on C kernels = CasADi, converges | here | here | here (slow) |
-| task-space kernels = CasADi (1e-12), C run = CasADi run (1e-9), converges | here (planar) | here (position_yaw; position on its first 3 joints) | here (pose, slow) |
-| virtual chain (emulator + cochlea-run --backend dynamixel) | test_user_robot_tools | here (hil) | here (hil) |
-| excitation + identification within 5 % on a perturbed plant | test_user_robot_tools | here (slow) | here (slow) |
-| small sweep | test_user_robot_tools | here | here |
+(planar2 | spatial4 | UR5; "here" is this file)
+
+- model against Pinocchio, dynamics: here | here | test_urdf; tool pose and Jacobians:
+  test_task_spaces for all three;
+- joint-space run on C kernels, equal to CasADi and converging: here | here | here (slow);
+- task-space kernels equal to CasADi (1e-12), the C run to the CasADi run (1e-9), converging:
+  here, planar | here, position_yaw (and position on its first three joints) | here, pose
+  (slow);
+- virtual chain (emulator + cochlea-run --backend dynamixel): test_user_robot_tools | here
+  (hil) | here (hil);
+- excitation + identification within 5 % on a perturbed plant: test_user_robot_tools | here
+  (slow) | here (slow);
+- small sweep: test_user_robot_tools | here | here.
 
 The 6-DoF arm is the UR5, not the SO-101: see docs/extending.md ("A Dynamixel arm of your
 own") for why the SO-101's identification on a perturbed plant fails without armature.
@@ -169,27 +173,27 @@ def _inputs(f, s, rng) -> list[np.ndarray]:
     for i in range(f.n_in()):
         name, size = f.name_in(i), f.numel_in(i)
         v = {
-            "q": lambda: q,
-            "x": lambda: np.concatenate([q, rng.uniform(-1, 1, nq)]),
-            "p": lambda: s.plant_params * rng.uniform(0.8, 1.2, size),
-            "p_hat": lambda: s.p_hat0 * rng.uniform(0.8, 1.2, size),
-            "p_min": lambda: -3 * np.abs(s.p_hat0) - 1,
-            "p_max": lambda: 3 * np.abs(s.p_hat0) + 1,
-            "xd": lambda: xd + rng.uniform(-0.01, 0.01, size),
-            "xd_dot": lambda: xd_dot + rng.uniform(-0.05, 0.05, size),
-            "xd_ddot": lambda: xd_ddot + rng.uniform(-0.05, 0.05, size),
-            "gains": lambda: s.gains * rng.uniform(0.5, 2.0, size),
-            "Gamma": lambda: s.gamma * rng.uniform(0.5, 2.0, size),
-            "bound": lambda: np.array([rng.choice([0.3, 10.0])]),  # projection on / off
-            "h": lambda: np.array([1e-3]),
-            "deadzone": lambda: rng.uniform(0, 1e-3, size),
-            "static_excess": lambda: rng.uniform(0, 0.05, size),
-            "stribeck_velocity": lambda: np.full(size, 0.02),
-            "dry": lambda: np.concatenate([fc := rng.uniform(0, 0.05, nq), 1.5 * fc,
+            "q": lambda n: q,
+            "x": lambda n: np.concatenate([q, rng.uniform(-1, 1, nq)]),
+            "p": lambda n: s.plant_params * rng.uniform(0.8, 1.2, n),
+            "p_hat": lambda n: s.p_hat0 * rng.uniform(0.8, 1.2, n),
+            "p_min": lambda n: -3 * np.abs(s.p_hat0) - 1,
+            "p_max": lambda n: 3 * np.abs(s.p_hat0) + 1,
+            "xd": lambda n: xd + rng.uniform(-0.01, 0.01, n),
+            "xd_dot": lambda n: xd_dot + rng.uniform(-0.05, 0.05, n),
+            "xd_ddot": lambda n: xd_ddot + rng.uniform(-0.05, 0.05, n),
+            "gains": lambda n: s.gains * rng.uniform(0.5, 2.0, n),
+            "Gamma": lambda n: s.gamma * rng.uniform(0.5, 2.0, n),
+            "bound": lambda n: np.array([rng.choice([0.3, 10.0])]),  # projection on / off
+            "h": lambda n: np.array([1e-3]),
+            "deadzone": lambda n: rng.uniform(0, 1e-3, n),
+            "static_excess": lambda n: rng.uniform(0, 0.05, n),
+            "stribeck_velocity": lambda n: np.full(n, 0.02),
+            "dry": lambda n: np.concatenate([fc := rng.uniform(0, 0.05, nq), 1.5 * fc,
                                            np.full(nq, 0.02)]),
-            "tau": lambda: rng.uniform(-0.5, 0.5, size),
-            "friction": lambda: rng.uniform(0, 0.05, size),
-        }.get(name, lambda: rng.uniform(-1, 1, size))()
+            "tau": lambda n: rng.uniform(-0.5, 0.5, n),
+            "friction": lambda n: rng.uniform(0, 0.05, n),
+        }.get(name, lambda n: rng.uniform(-1, 1, n))(size)
         assert np.size(v) == size, (f.name(), name)
         values.append(np.asarray(v, float).reshape(-1))
     return values
@@ -537,7 +541,8 @@ def test_spatial4_excite_then_identify_a_perturbed_plant(tmp_path):
     # 72 % held-out NRMS there. A user declares an estimate, as planar2.toml does.
     description = tmp_path / "spatial4.toml"
     description.write_text(SPATIAL4.read_text().replace(
-        "  torque_limit_Nm = 4.0\n", "  torque_limit_Nm = 4.0\n  viscous_friction_Nms_rad = 0.01\n"))
+        "  torque_limit_Nm = 4.0\n",
+        "  torque_limit_Nm = 4.0\n  viscous_friction_Nms_rad = 0.01\n"))
     (tmp_path / SPATIAL4_JOINT.name).write_text(SPATIAL4_JOINT.read_text())
     out = tmp_path / "excite.toml"
     assert cochlea_excite.main(["--robot", "serial", "--description", str(description),
