@@ -356,9 +356,11 @@ def resolve_path(name_or_path: str | Path) -> Path:
 
 
 def open_description(path: Path, kind: str, gravity_size: int, gravity_frame: str,
-                     keep_out_around: str) -> tuple[Table, str, np.ndarray, float]:
+                     keep_out_around: str, keep_out_required: bool = True
+                     ) -> tuple[Table, str, np.ndarray, float | None]:
     """The part every description shares: ``format`` and the ``[system]`` table (name, kind,
-    gravity, the keep-out radius R_m). Returns the top-level table for the rest."""
+    gravity, the keep-out radius R_m; None when absent and ``keep_out_required`` is False).
+    Returns the top-level table for the rest."""
     top = Table(path, read_toml(path), "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     system = top.table("system")
@@ -369,7 +371,7 @@ def open_description(path: Path, kind: str, gravity_size: int, gravity_frame: st
                             what=f"{gravity_frame}, of magnitude at most {MAX_GRAVITY_M_S2:g}")
     keep_out = system.bounded("keep_out_radius_m", f"a positive number (m): R_m, the radius "
                               f"around {keep_out_around} must not enter", lambda v: v > 0, 0,
-                              MAX_LENGTH_M, "m")
+                              MAX_LENGTH_M, "m", required=keep_out_required)
     system.done()
     return top, name, gravity, keep_out
 

@@ -137,14 +137,14 @@ def _numeric_initial(arm: Arm, space: TaskSpace, unit: UnitStart) -> np.ndarray:
 
 
 def _check_task_path(arm: Arm, space: TaskSpace, pose_t: ca.SX, t: ca.SX, sc: ScenarioView,
-                     q0: np.ndarray, keep_out: float) -> None:
+                     q0: np.ndarray, keep_out: float | None) -> None:
     """Refuse, before anything moves, a task-space desired path that the supervisor would
     stop or the controller cannot track: its tool inside the keep-out circle (every period),
     or a pose out of reach within the joint limits or singular (inverse kinematics from the
     initial joint position along :data:`PATH_SAMPLES` evenly spaced times), or (``pose``) an
     initial orientation error beyond :data:`~.task.MAX_ORIENTATION_ERROR`."""
     radius = ca.Function("radius", [t], [ca.norm_2(pose_t[0:2])])
-    for times, (r,) in sampled(radius, sc.duration, sc.period):
+    for times, (r,) in sampled(radius, sc.duration, sc.period) if keep_out is not None else ():
         inside = np.flatnonzero(~(r.ravel() >= keep_out))
         if inside.size:
             k = inside[0]

@@ -132,7 +132,9 @@ class SerialSystem:
     path: Path
     gravity: np.ndarray  # m/s^2, in the world frame
     arms: tuple[Arm, ...]
-    keep_out_radius: float = 0.0  # m, R_m: the tools stay this far from the cochlea centre
+    #: m, R_m: the tools stay this far from the cochlea centre (the world origin) in task-space
+    #: runs; None: ``keep_out_radius_m`` is absent, no keep-out circle (a user's arm).
+    keep_out_radius: float | None = None
     #: Optional ``[[keep_out]]`` spheres (world frame) no link of an excitation may enter;
     #: None: the key is absent (the keep-out circle applies, docs/excitation.md).
     keep_out_volumes: tuple[KeepOut, ...] | None = None
@@ -323,7 +325,8 @@ def load_serial(name_or_path: str | Path = "serial") -> SerialSystem:
     """Load and validate a description of serial arms (``kind = "serial"``)."""
     path = resolve_path(name_or_path)
     top, name, gravity, keep_out = open_description(
-        path, "serial", 3, "in the world frame", "the cochlea centre that the tools")
+        path, "serial", 3, "in the world frame", "the cochlea centre that the tools",
+        keep_out_required=False)
     arms = tuple(_read_arm(a) for a in top.tables("arm", "one per serial arm"))
     volumes = _read_keep_out(top)
     top.done()

@@ -84,8 +84,9 @@ def excitation_geometry(system: SerialSystem, arm_name: str, study_pose: np.ndar
     held_points = [np.array(arm_segments(arms[n])(q)) for n, q in held.items()]
     volumes = system.keep_out_volumes
     if volumes is None:  # the keep-out circle around the origin, where the base is outside it
-        keep_out = system.keep_out_radius
-        circle = float(np.hypot(*arm.base_xyz[:2])) >= keep_out
+        keep_out = system.keep_out_radius or 0.0  # none in the description: no circle
+        circle = (system.keep_out_radius is not None
+                  and float(np.hypot(*arm.base_xyz[:2])) >= keep_out)
         spheres = []
     else:
         keep_out, circle = 0.0, False

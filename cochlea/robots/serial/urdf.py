@@ -420,9 +420,31 @@ def _path(path, urdf: Urdf, base: str, tip: str | None, children, parent_of) -> 
         link = moving[0].child
 
 
+@dataclass
+class Frames:
+    """The arm's base pose (the fixed joints from ``--base`` to the first moving joint) and
+    its tool frame (the fixed joints after the last moving joint, to ``--tip`` or to the one
+    massless leaf link fixed to the last moving link), each as ``(R, p)`` in its parent's
+    frame; ``tool`` None: none found (the tool point is the last link's origin)."""
+
+    base: tuple[np.ndarray, np.ndarray]
+    tool: tuple[np.ndarray, np.ndarray] | None = None
+    tool_link: str | None = None
+
+
+def _default_tool(urdf: Urdf, last: str, children) -> UJoint | None:
+    """The fixed joint to the one massless leaf link fixed to ``last``, if it is the only link
+    fixed to it (a tool frame as URDFs write one, e.g. ``tool0``); otherwise None."""
+    fixed = [j for j in children[last] if j.type == "fixed"]
+    if len(fixed) == 1 and urdf.links[fixed[0].child] is None and not children[fixed[0].child]:
+        return fixed[0]
+    return None
+
+
 def extract_chain(path, urdf: Urdf, base: str | None = None,
-                  tip: str | None = None) -> tuple[list[ChainLink], list[str]]:
-    """The moving links from ``base`` to ``tip`` and notes of what was merged or left out."""
+                  tip: str | None = None) -> tuple[list[ChainLink], list[str], Frames]:
+    """The moving links from ``base`` to ``tip``, notes of what was merged or left out, and
+    the base and tool frames (:class:`Frames`)."""
     root, children, parent_of = _tree(path, urdf)
     for option, link in (("--base", base), ("--tip", tip)):
         if link is not None and link not in urdf.links:
@@ -463,7 +485,11 @@ def extract_chain(path, urdf: Urdf, base: str | None = None,
 
     base_bodies: list = []
     attach(base_bodies, base, np.eye(3), np.zeros(3), [])
+    base_frame = None
     for j in joints:
+        if j.type != "fixed" and base_frame is None:
+            # The fixed joints before the first moving one place the arm's base.
+            base_frame, R_acc, p_acc = (R_acc, p_acc), np.eye(3), np.zeros(3)
         Rj = R_acc @ rpy_matrix(j.rpy)
         pj = p_acc + R_acc @ j.xyz
         if j.type == "fixed":
@@ -483,6 +509,13 @@ def extract_chain(path, urdf: Urdf, base: str | None = None,
         link.body = _combine([link.body, *extra])
         chain.append(link)
         R_acc, p_acc = np.eye(3), np.zeros(3)
+    frames = Frames(base_frame)
+    if joints[-1].type == "fixed":  # --tip names a link fixed below the last moving one
+        frames.tool, frames.tool_link = (R_acc, p_acc), joints[-1].child
+    elif tip is None and (leaf := _default_tool(urdf, joints[-1].child, children)) is not None:
+        frames.tool, frames.tool_link = (rpy_matrix(leaf.rpy), leaf.xyz.copy()), leaf.child
+    if frames.tool is not None:
+        notes.append(f"the tool frame is link {frames.tool_link!r} (tool_xyz_m, tool_rpy_deg)")
     for link in chain:
         if link.body is None:
             raise _fail(path, f"link {link.name!r} (moved by joint {link.joint.name!r}) has no "
@@ -491,7 +524,7 @@ def extract_chain(path, urdf: Urdf, base: str | None = None,
         if link.merged:
             notes.append(f"merged into link {link.name!r} (fixed joints): "
                          + ", ".join(repr(n) for n in link.merged))
-    return chain, notes
+    return chain, notes, frames
 
 
 # --------------------------------------------------------------------------------------------
@@ -546,8 +579,30 @@ def _vec(v) -> str:
     return "[" + ", ".join(_f(x) for x in v) + "]"
 
 
+def _frame_lines(frames: Frames | None) -> list[str]:
+    """The arm's base pose and tool frame keys: ``base_yaw_deg`` for a level base (turned
+    about z only), else ``base_rpy_deg``; ``tool_xyz_m`` (and ``tool_rpy_deg`` if turned)."""
+    if frames is None:
+        return ["base_xyz_m = [0.0, 0.0, 0.0]", "base_yaw_deg = 0.0"]
+    R, p = frames.base
+    rpy = [_deg(a) for a in rpy_of(R)]
+    lines = [f"base_xyz_m = {_vec(p)}"]
+    if rpy[0] == 0.0 and rpy[1] == 0.0:
+        lines.append(f"base_yaw_deg = {_f(rpy[2])}")
+    else:
+        lines.append(f"base_rpy_deg = {_vec(rpy)}")
+    if frames.tool is not None:
+        R, p = frames.tool
+        lines.append(f"tool_xyz_m = {_vec(p)}")
+        rpy = [_deg(a) for a in rpy_of(R)]
+        if any(a != 0.0 for a in rpy):
+            lines.append(f"tool_rpy_deg = {_vec(rpy)}")
+    return lines
+
+
 def description_text(chain: list[ChainLink], source: Path, robot_name: str,
-                     motors: list[str], ids: list[int], notes: list[str]) -> str:
+                     motors: list[str], ids: list[int], notes: list[str],
+                     frames: Frames | None = None) -> str:
     """The description (``cochlea-robot/1``, one arm) of an extracted chain."""
     used_links: set[str] = set()
     used_joints: set[str] = set()
@@ -602,8 +657,7 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
         "",
         "[[arm]]",
         'name = "arm"',
-        "base_xyz_m = [0.0, 0.0, 0.0]",
-        "base_yaw_deg = 0.0",
+        *_frame_lines(frames),
     ]
     for link, motor, motor_id in zip(chain, motors, ids, strict=True):
         j, body = link.joint, link.body
@@ -700,11 +754,11 @@ def import_urdf(path: str | Path, base: str | None = None, tip: str | None = Non
     """The description text of the chain of a URDF file, with the snaps and notes."""
     path = Path(path)
     urdf = read_urdf(path)
-    chain, notes = extract_chain(path, urdf, base, tip)
+    chain, notes, frames = extract_chain(path, urdf, base, tip)
     motor_models, motor_ids = assign_motors(path, chain, motors, ids)
     notes = urdf.notes + notes
     text = description_text(chain, path, urdf.name, motor_models, motor_ids,
-                            notes + urdf.snaps)
+                            notes + urdf.snaps, frames)
     system = load_text(text, path)
     return Imported(text, chain, urdf.snaps, notes, system)
 
@@ -777,7 +831,9 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
             ET.SubElement(je, "dynamics", damping=repr(float(a.viscous or 0.0)),
                           friction=repr(float(a.coulomb or 0.0)))
         parent = link.name
-    if arm.tool_xyz is not None or arm.tool_rpy is not None:  # the tool frame, massless
+    # The tool frame, massless: a tool_xyz_m/tool_rpy_deg, or the last link's length_m (the
+    # tool point at its end), else import would put the tool point at the last joint.
+    if arm.tool_xyz is not None or arm.tool_rpy is not None or np.any(tool_offset(arm) != 0):
         taken = {link.name for link in arm.links} | {world, base}
         name = "tool"
         while name in taken:
