@@ -23,12 +23,14 @@ import numpy as np
 from ..errors import CochleaError
 from ..robots import ROBOTS, RobotModel
 
-#: Column suffix of each signal's SI unit, by joint type.
+#: Column suffix of each signal's SI unit, by joint type (cochlea.log_schema, version 2).
 SIGNAL_UNITS = {
     "q": {"revolute": "rad", "prismatic": "m"},
     "qd": {"revolute": "rad_s", "prismatic": "m_s"},
-    "tau": {"revolute": "Nm", "prismatic": "N"},
+    "tau": {"revolute": "N_m", "prismatic": "N"},
 }
+#: Logs written before the schema had a version (1) named N m ``Nm``: still read.
+LEGACY_UNITS = {**SIGNAL_UNITS, "tau": {"revolute": "Nm", "prismatic": "N"}}
 #: An optional column of measured motor current (A) per joint: fits the motor's line.
 CURRENT = "current"
 #: The loop's timing columns (s) read when the log has them: when each period started
@@ -71,10 +73,12 @@ class RunLog:
         return float(1.0 / np.median(np.diff(self.time)))
 
 
-def column_names(model: RobotModel, unit: str) -> dict[str, list[str]]:
-    """The columns identification needs of ``unit``: per signal, one name per joint."""
+def column_names(model: RobotModel, unit: str, legacy: bool = False
+                 ) -> dict[str, list[str]]:
+    """The columns identification needs of ``unit``: per signal, one name per joint
+    (``legacy``: as logs of schema version 1 name them)."""
     return {signal: [f"{unit}.{signal}.{j.name}_{units[j.type]}" for j in model.joints]
-            for signal, units in SIGNAL_UNITS.items()}
+            for signal, units in (LEGACY_UNITS if legacy else SIGNAL_UNITS).items()}
 
 
 def _sha256(path: Path) -> str:
@@ -164,6 +168,9 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
                        "the header: expected each column once (a damaged or hand-edited log)")
     wanted = column_names(model, unit)
     missing = [c for cols in wanted.values() for c in cols if c not in header]
+    old = column_names(model, unit, legacy=True)
+    if missing and all(c in header for cols in old.values() for c in cols):
+        wanted, missing = old, []  # a log of schema version 1 (efforts in "Nm")
     if missing:
         other = _other_robot(header, robot)
         if other is not None:

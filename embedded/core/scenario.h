@@ -69,6 +69,14 @@ typedef struct {
      * gearbox's friction); 0: the controller's model carries friction and compensates it, so
      * the bridge must not (cochlea.robots.motor_fit.bridge_compensates_friction). */
     int bridge_offset_current;
+    /* The run's log columns, named by the one schema of every log (cochlea/log_schema.py,
+     * docs/logs.md): log.csv's header (n_log_columns names) and log.bin's columns
+     * (n_raw_columns names, one per value of a row), and the schema's version. */
+    int schema_version;
+    int n_log_columns;
+    const char *const *log_columns;
+    int n_raw_columns;
+    const char *const *raw_columns;
 } cochlea_scenario;
 
 #ifdef __cplusplus
