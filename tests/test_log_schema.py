@@ -125,7 +125,7 @@ def test_units_are_written_as_documented():
     assert log_schema.unit_suffix("N m s/rad") == "N_m_s_rad"
     assert log_schema.unit_suffix("kg") == "kg"
     assert log_schema.unit_suffix("") == "SI"
-    for robot, adapter in ROBOTS.items():  # every shipped parameterisation's unit is known
+    for robot in ROBOTS:  # every shipped parameterisation's unit is known
         for space in ("joint", "task"):
             for u in unit_setups(load_scenario(f"{robot}_{space}")):
                 for unit in u.controller_model.parameters.si_units:
@@ -272,3 +272,28 @@ def test_readers_read_this_version_and_the_one_before(tmp_path, robot, space):
     for new_unit, old_unit in zip(*results):
         for a, b in zip(new_unit, old_unit):
             np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("version", [log_schema.SCHEMA_VERSION + 1, 0, "2", True])
+def test_a_log_of_an_unknown_schema_version_is_refused_in_one_line(tmp_path, version):
+    out = tmp_path / "run"
+    done = cochlea_run("--robot", "serial", "--space", "joint", "--duration", "0.05",
+                       "--realtime", "off", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    summary["schema_version"] = version
+    (out / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(run_log.RunFolderError, match="schema_version"):
+        run_log.open_run(out)
+    with pytest.raises(ident_logs.LogError, match="schema_version"):
+        ident_logs.read_run(out, cochlea.model("serial"), "serial", "arm1")
+    mcap = tmp_path / "x.mcap"
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_mcap", str(out),
+                           "--out", str(mcap)], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "schema_version" in done.stderr and not mcap.exists()
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_identify", str(out),
+                           "--robot", "serial", "--out", str(tmp_path / "i.json")],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "schema_version" in done.stderr and not (tmp_path / "i.json").exists()
