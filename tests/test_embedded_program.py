@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import time
@@ -121,7 +122,8 @@ def assert_current_is_the_goal_sent(robot: str, header: list[str], rows: np.ndar
     assert len(tau_cols) == len(current_cols) == len(drives)
     moving = 0
     for d, tau_col, i_col in zip(drives, tau_cols, current_cols):
-        assert i_col == tau_col.replace(".tau.", ".current.").rsplit("_", 1)[0] + "_A"
+        joint_col = re.sub(r"_(N_m|N)$", "", tau_col)  # the effort's unit (N m, N) off
+        assert i_col == joint_col.replace(".tau.", ".current.") + "_A"
         assert header.index(tau_col) < header.index(i_col)  # after the unit's efforts
         tau, logged = rows[:, header.index(tau_col)], rows[:, header.index(i_col)]
         assert np.isfinite(logged).all()

@@ -263,11 +263,11 @@ def test_bad_logs_are_refused_in_one_line(serial_run, tmp_path, capsys):
 
     def drop_tau(lines):
         header = lines[0].rstrip("\n").split(",")
-        k = header.index("arm1.tau.joint2_Nm")
+        k = header.index("arm1.tau.joint2_N_m")
         return [",".join(c for i, c in enumerate(x.rstrip("\n").split(",")) if i != k) + "\n"
                 for x in lines]
     err = _bad([str(_copy_log(run, tmp_path / "cols", drop_tau))] + serial, capsys, out)
-    assert "arm1.tau.joint2_Nm" in err
+    assert "arm1.tau.joint2_N_m" in err
 
     err = _bad([str(_copy_log(run, tmp_path / "short", lambda x: x[:400]))] + serial, capsys,
                out)

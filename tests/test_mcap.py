@@ -397,7 +397,7 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
         (run / "summary.json").write_text("{}")
     elif damage == "missing_columns":
         cells = [line.rstrip("\n").split(",") for line in lines]
-        drop = cells[0].index("arm2.tau.joint3_Nm")
+        drop = cells[0].index("arm2.tau.joint3_N_m")
         csv.write_text("".join(",".join(c[:drop] + c[drop + 1:]) + "\n" for c in cells))
     # An earlier export stays as it was when a new one fails.
     previous = run / "log.mcap"

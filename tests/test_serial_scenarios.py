@@ -123,10 +123,10 @@ def test_run_writes_log_summary_and_figures(tmp_path):
     assert str(out) in result.stdout
     header = (out / "log.csv").read_text().splitlines()[0].split(",")
     assert header[0] == "time_s"
-    assert "arm1.q.joint1_rad" in header and "arm2.tau.joint3_Nm" in header
+    assert "arm1.q.joint1_rad" in header and "arm2.tau.joint3_N_m" in header
     assert "arm1.p_hat.link2.m_kg" in header and "arm1.error.joint1_rad" in header
-    assert all(col.rsplit("_", 1)[-1] in {"s", "rad", "m", "Nm", "N", "kg"} or
-               col.endswith(("_rad_s", "_m_s")) for col in header), header
+    assert all(col.rsplit("_", 1)[-1] in {"s", "rad", "m", "N", "kg"} or
+               col.endswith(("_rad_s", "_m_s", "_N_m")) for col in header), header
     data = np.loadtxt(out / "log.csv", delimiter=",", skiprows=1)
     assert data.shape == (1500, len(header))
     summary = json.loads((out / "summary.json").read_text())

@@ -161,8 +161,8 @@ def log_bytes(setups, periods: int, realtime: bool) -> int:
     csv = 1 + (4 if realtime else 0)
     for u in setups:
         nq, nd, n_p = u.controller_model.nq, u.controller.n_desired, u.controller.n_params
-        # log.bin: q, qd, tau, the errors, p_hat, the current, the true q and qd (simulated
-        # robot: an estimate on the high side for the motors).
+        # log.bin: q, qd, tau, the errors, p_hat, the current (drives that measure it), the
+        # true q and qd (simulated robot): both counted, an estimate on the high side.
         raw += 3 * nq + nd + nq + n_p + nq + 2 * nq
         # log.csv: as log.bin's, the desired and its rate, the pose; then (a simulated run)
         # the true q, qd, pose and error.

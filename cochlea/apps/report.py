@@ -1,7 +1,8 @@
 """What a run leaves behind: the CSV log, ``summary.json`` and the figures.
 
 The log has one row per control period; every column name ends in its unit (``_s``, ``_rad``,
-``_m``, ``_rad_s``, ``_m_s``, ``_Nm``, ``_N`` or the parameter's unit). Figures show angles in
+``_m``, ``_rad_s``, ``_m_s``, ``_N_m``, ``_N``, ``_A`` or the parameter's unit:
+:mod:`cochlea.log_schema`). Figures show angles in
 degrees (an edge of the program) with the unit on every axis.
 """
 
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..log_schema import SCHEMA_VERSION, TIMING_COLUMNS, LogUnit, run_columns
 from ..sim.result import SimulationResult, UnitLog
 from .outputs import ReportError, atomic_path, write_text_atomic
 
@@ -27,54 +29,32 @@ TAIL_FRACTION = 0.2
 #: Periods the figures plot at most (a long run is decimated evenly; a short one is whole).
 FIGURE_POINTS = 5_000
 
-_RATE_UNIT = {"rad": "rad_s", "m": "m_s"}
 _EFFORT_UNIT = {"rad": "Nm", "m": "N"}
 _UNIT_TEXT = {"rad": "rad", "m": "m", "Nm": "N m", "N": "N"}
 
 
-def _slug(unit: str) -> str:
-    return unit.replace(" ", "").replace("^", "")
-
-
 def columns(result: SimulationResult) -> tuple[list[str], np.ndarray]:
-    """Column names (with units) and the data matrix of the log."""
-    names = ["time_s"]
+    """Column names (with units, :func:`cochlea.log_schema.run_columns`: the one schema of
+    every log) and the data matrix of the log."""
+    units = [LogUnit.of_setup(u.setup, u.space) for u in result.units]
+    current = any(u.current is not None for u in result.units)
+    truth = any(u.has_true_state for u in result.units)
+    names = run_columns(units, timing=bool(result.timing), current=current,
+                        true_state=truth)
     blocks = [result.time[:, None]]
     for u in result.units:
-        joints = [j.name for j in u.setup.controller_model.joints]
-        ju = u.setup.joint_units
-        names += [f"{u.name}.q.{j}_{un}" for j, un in zip(joints, ju)]
-        names += [f"{u.name}.qd.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
-        names += [f"{u.name}.desired.{c}_{un}" for c, un in zip(u.tracked_names, u.tracked_units)]
-        names += [f"{u.name}.desired_dot.{c}_{_RATE_UNIT[un]}"
-                  for c, un in zip(u.tracked_names, u.tracked_units)]
-        names += [f"{u.name}.error.{c}_{un}" for c, un in zip(u.tracked_names, u.tracked_units)]
-        aux = u.setup.controller.error_names[1]
-        names += [f"{u.name}.{aux}.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
-        names += [f"{u.name}.tau.{j}_{_EFFORT_UNIT[un]}" for j, un in zip(joints, ju)]
-        if u.current is not None:  # measured by the drives (hardware runs only)
-            names += [f"{u.name}.current.{j}_A" for j in joints]
-        params = u.setup.controller_model.parameters
-        names += [f"{u.name}.p_hat.{p}_{_slug(un)}" for p, un in zip(params.names, params.si_units)]
-        names += [f"{u.name}.pose.{c}_{un}" for c, un in zip(u.setup.task_names,
-                                                              u.setup.task_units)]
         n_track = u.setup.controller.n_desired
         blocks += [u.q, u.qd, u.desired, u.desired_dot, u.measured_tracking_error,
                    u.errors[:, n_track:], u.tau] + ([] if u.current is None else [u.current]) \
             + [u.p_hat, u.pose]
         if u.has_true_state:  # a simulated run: the plant's own state beside the measured one
-            names += [f"{u.name}.true_q.{j}_{un}" for j, un in zip(joints, ju)]
-            names += [f"{u.name}.true_qd.{j}_{_RATE_UNIT[un]}" for j, un in zip(joints, ju)]
-            names += [f"{u.name}.true_pose.{c}_{un}" for c, un in zip(u.setup.task_names,
-                                                                       u.setup.task_units)]
-            names += [f"{u.name}.true_error.{c}_{un}"
-                      for c, un in zip(u.tracked_names, u.tracked_units)]
             blocks += [u.true_q, u.true_qd, u.true_x, u.true_tracking_error]
     if result.timing:  # real-time runs: the timing of every period
-        for name, values in result.timing.items():
-            names.append(name)
-            blocks.append(values[:, None])
-    return names, np.hstack(blocks)
+        blocks += [result.timing[name][:, None] for name in TIMING_COLUMNS]
+    data = np.hstack(blocks)
+    if data.shape[1] != len(names):
+        raise AssertionError(f"log.csv: {data.shape[1]} values a row, {len(names)} names")
+    return names, data
 
 
 def write_csv(result: SimulationResult, path: Path) -> None:
@@ -273,6 +253,8 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
     stopped = (result.stop is not None and result.stop["rule"] != "completed") or \
         (result.supervisor is not None and result.supervisor.get("rule", "none") != "none")
     return {
+        # The column names of log.csv and log.columns.json (cochlea.log_schema).
+        "schema_version": SCHEMA_VERSION,
         "scenario": sc.name,
         "scenario_file": str(sc.path),
         "robot": sc.robot,

@@ -3,7 +3,8 @@ how many periods, how the run stopped) and ``log.csv`` (one row per period), che
 anything is written, then read a chunk of rows at a time (a run of hours does not fit in
 memory as one array).
 
-``log.csv``'s columns (docs/logs.md): ``time_s``, then per unit ``UNIT.GROUP.ELEMENT_UNIT``
+``log.csv``'s columns (docs/logs.md, :mod:`cochlea.log_schema`; logs of schema version 1, before
+``schema_version`` was written, read alike): ``time_s``, then per unit ``UNIT.GROUP.ELEMENT_UNIT``
 (``arm1.q.joint1_rad``, ``mechanism.p_hat.left.link1.m_kg``), then run-level columns without a
 unit prefix (``start_lateness_s``, ...). Any folder ``cochlea-run`` (sim, real time,
 Dynamixel) or the embedded C program leaves is read alike.
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CochleaError
+from ..log_schema import SCHEMA_VERSION
 from ..robots import RobotAdapter, robot
 from ..sim.scenario import load as load_scenario
 
@@ -160,6 +162,12 @@ def open_run(folder: Path) -> RunLog:
             or not isinstance(summary.get("scenario_file"), str):
         raise RunFolderError(f"{summary_path} is not a run's summary: it has no robot and "
                              "scenario_file")
+    version = summary.get("schema_version", 1)  # a log without one is of version 1
+    if not isinstance(version, int) or isinstance(version, bool) or \
+            not 1 <= version <= SCHEMA_VERSION:
+        raise RunFolderError(f"{summary_path}: its log's schema_version is {version!r}; this "
+                             f"cochlea reads versions 1 to {SCHEMA_VERSION} (docs/logs.md): "
+                             "export it with the cochlea that wrote it")
     adapter = robot(summary["robot"])
     source = summary["scenario_file"]
     if source.startswith(COMPILED_IN) and isinstance(summary.get("scenario"), str):

@@ -3,15 +3,17 @@
 A run folder is what ``cochlea-run`` (simulated, emulated or real motors) or the embedded
 program (``build/cochlea-embedded``) leaves: ``log.csv`` with one row per control period, SI,
 columns named ``<unit>.<signal>.<joint>_<unit of measure>`` (``arm1.q.joint1_rad``,
-``mechanism.tau.slider.d1_N``). Columns are picked by name, never by position, so the
-pose columns the embedded program leaves out or the real-time timing columns it adds change
-nothing. Every problem with a log is one :class:`LogError` naming the file and what was
-expected, before anything is fitted.
+``mechanism.tau.slider.d1_N``: docs/logs.md, :mod:`cochlea.log_schema`; a log of schema version
+1, whose efforts end in ``Nm``, is read too; a newer version is refused). Columns are picked by
+name, never by position, so the pose columns the embedded program leaves out or the real-time
+timing columns it adds change nothing. Every problem with a log is one :class:`LogError` naming
+the file and what was expected, before anything is fitted.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import stat
 import warnings
@@ -21,14 +23,17 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CochleaError
+from ..log_schema import SCHEMA_VERSION
 from ..robots import ROBOTS, RobotModel
 
-#: Column suffix of each signal's SI unit, by joint type.
+#: Column suffix of each signal's SI unit, by joint type (cochlea.log_schema, version 2).
 SIGNAL_UNITS = {
     "q": {"revolute": "rad", "prismatic": "m"},
     "qd": {"revolute": "rad_s", "prismatic": "m_s"},
-    "tau": {"revolute": "Nm", "prismatic": "N"},
+    "tau": {"revolute": "N_m", "prismatic": "N"},
 }
+#: Logs written before the schema had a version (1) named N m ``Nm``: still read.
+LEGACY_UNITS = {**SIGNAL_UNITS, "tau": {"revolute": "Nm", "prismatic": "N"}}
 #: An optional column of measured motor current (A) per joint: fits the motor's line.
 CURRENT = "current"
 #: The loop's timing columns (s) read when the log has them: when each period started
@@ -71,10 +76,12 @@ class RunLog:
         return float(1.0 / np.median(np.diff(self.time)))
 
 
-def column_names(model: RobotModel, unit: str) -> dict[str, list[str]]:
-    """The columns identification needs of ``unit``: per signal, one name per joint."""
+def column_names(model: RobotModel, unit: str, legacy: bool = False
+                 ) -> dict[str, list[str]]:
+    """The columns identification needs of ``unit``: per signal, one name per joint
+    (``legacy``: as logs of schema version 1 name them)."""
     return {signal: [f"{unit}.{signal}.{j.name}_{units[j.type]}" for j in model.joints]
-            for signal, units in SIGNAL_UNITS.items()}
+            for signal, units in (LEGACY_UNITS if legacy else SIGNAL_UNITS).items()}
 
 
 def _sha256(path: Path) -> str:
@@ -147,6 +154,21 @@ def _header(file: Path) -> list[str]:
     return header
 
 
+def _check_version(summary: Path) -> None:
+    """Refuse a log of a newer schema than this cochlea reads (its names may mean something
+    else); a folder without summary.json, or a summary without ``schema_version`` (version 1),
+    is read."""
+    try:
+        version = json.loads(summary.read_text(encoding="utf-8")).get("schema_version", 1)
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return  # the log itself is checked column by column
+    if not isinstance(version, int) or isinstance(version, bool) or \
+            not 1 <= version <= SCHEMA_VERSION:
+        raise LogError(f"{summary}: its log's schema_version is {version!r}; this cochlea "
+                       f"reads versions 1 to {SCHEMA_VERSION} (docs/logs.md): identify it "
+                       "with the cochlea that wrote it")
+
+
 def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> RunLog:
     """The signals of ``unit`` (an arm of the serial system, or ``mechanism``) in the run
     folder ``folder`` (or a log.csv itself), refused with one :class:`LogError` when the
@@ -157,6 +179,7 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
     if not folder.exists():
         raise LogError(f"{folder}: no such run folder")
     _check_file(file)
+    _check_version(file.parent / "summary.json")
     header = _header(file)
     twice = sorted({c for c in header if header.count(c) > 1})
     if twice:
@@ -164,6 +187,9 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
                        "the header: expected each column once (a damaged or hand-edited log)")
     wanted = column_names(model, unit)
     missing = [c for cols in wanted.values() for c in cols if c not in header]
+    old = column_names(model, unit, legacy=True)
+    if missing and all(c in header for cols in old.values() for c in cols):
+        wanted, missing = old, []  # a log of schema version 1 (efforts in "Nm")
     if missing:
         other = _other_robot(header, robot)
         if other is not None:

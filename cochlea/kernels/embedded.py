@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from .. import log_schema
 from .catalogue import CodegenError, export
 
 __all__ = ["EmbeddedUnit", "embedded_sources", "MATH_FUNCTIONS"]
@@ -934,6 +935,20 @@ def _strings(values) -> str:
                            for v in values) + "}"
 
 
+def _string_lines(values) -> str:
+    """A C initializer of strings, one a line."""
+    return "{\n" + ",\n".join("    " + _strings([v])[1:-1] for v in values) + "\n}"
+
+
+def log_columns(units: list[EmbeddedUnit]) -> tuple[list[str], list[str]]:
+    """The embedded program's log.csv header and log.bin columns: the one schema's
+    (:mod:`cochlea.log_schema`): the drives measure current, there is no pose and no true
+    state, and the timing columns are there."""
+    lu = [log_schema.LogUnit.of_embedded(u) for u in units]
+    return (log_schema.run_columns(lu, timing=True, current=True, pose=False),
+            log_schema.raw_columns(lu, current=True, true_state=False))
+
+
 def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
     """``<name>_scenario.c``: the scenario as a ``cochlea_scenario`` (``embedded/core/
     scenario.h``), its controller behind the runtime's double-precision interface."""
@@ -970,6 +985,13 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
             f"{p}points}},")
     parts.append(f"static const cochlea_unit_info units[{N}_UNITS] = {{\n"
                  + "\n".join(infos) + "\n};\n")
+    log_cols, raw_cols = log_columns(units)
+    parts += [f"/* The log's columns (cochlea/log_schema.py, version {log_schema.SCHEMA_VERSION})"
+              " */",
+              f"static const char *const log_columns[{len(log_cols)}] = "
+              + _string_lines(log_cols) + ";",
+              f"static const char *const raw_columns[{len(raw_cols)}] = "
+              + _string_lines(raw_cols) + ";\n"]
     to_real = [f"  {R} x[{N}_NX], u[{N}_NQ], e[{N}_NE];", "  int i, r;"]
     for u, o in zip(units, off):
         to_real += [f"  for (i = 0; i < {u.nq}; ++i) {{",
@@ -1031,7 +1053,9 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         f"{sc.robot}_velocity, {sc.robot}_effort,",
         f"    sizeof({name}_state), (int)sizeof({R}), init, step, terminate, desired, estimate, "
         "tool_points,",
-        f"    {int(bool(sc.bridge_offset_current))}, step_period",
+        f"    {int(bool(sc.bridge_offset_current))}, step_period,",
+        f"    {log_schema.SCHEMA_VERSION}, {len(log_cols)}, log_columns, {len(raw_cols)}, "
+        "raw_columns",
         "};\n"]
     return "\n".join(parts)
 

@@ -23,7 +23,7 @@ Contract:
   value per joint, allocated once and refreshed in place by every good ``read``: the motor
   current in A, signed so that a positive current drives the joint positively (the drive's
   ``direction`` and transmission applied). The loop copies it into the period's row. ``None``
-  (the simulated plant) when nothing is measured: the log's current columns are then NaN.
+  (the simulated plant) when nothing is measured: the logs then have no current columns.
 * ``true_state``: a backend that knows the plant's true state (the simulated robot) holds an
   array ``[q, qd]`` (2 nq), allocated once and refreshed by every ``read`` with the state the
   plant is in at that read, before any delay, noise or measurement grid: what ``read`` reports

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import log_schema
 from ..errors import CochleaError
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult, StreamedResult, UnitLog
@@ -56,7 +57,7 @@ DESIRED_CHUNK = 100
 #: Rows read back from ``log.bin`` at a time (a few MB), for the timing and the report.
 READ_CHUNK = 1 << 13
 #: The timing columns of each row (s), after the controllers' blocks.
-TIMING_COLUMNS = ("start_lateness_s", "wall_period_s", "compute_s", "backend_io_s")
+TIMING_COLUMNS = log_schema.TIMING_COLUMNS
 
 
 # --------------------------------------------------------------------------------------------
@@ -493,8 +494,8 @@ class RealTimeLoop:
         self._fill_desired(0)
 
         # One row per period: t, x (all), tau (all), then per unit errors and p_hat, then timing
-        # (``offsets`` marks these blocks), then the measured current of every joint (A, NaN
-        # when the backend measures none), appended last so every earlier column keeps its
+        # (``offsets`` marks these blocks), then the measured current of every joint (A,
+        # only when the backend measures it), appended last so every earlier column keeps its
         # place in logs read by position.
         widths = [1, 2 * self.n, self.n]
         for u in setups:
@@ -510,7 +511,9 @@ class RealTimeLoop:
         # Then, only where the backend knows it (the simulated robot), the plant's true state
         # [q (all), qd (all)], appended last for the same reason: a run on the motors keeps
         # the rows the embedded runtime writes too.
-        self.true_at = self.current_at + self.n
+        # The current block is there only when the drives measure it (log.csv's current
+        # columns likewise: one schema, cochlea.log_schema).
+        self.true_at = self.current_at + (0 if self.measured_current is None else self.n)
         self.width = self.true_at + (0 if self.true_state is None else 2 * self.n)
         self.buffer = np.full((0, self.width), np.nan)  # sized by run(): whole run or ring
         self.x = np.zeros(2 * self.n)
@@ -841,32 +844,18 @@ class RealTimeLoop:
 
 
 def raw_columns(loop: RealTimeLoop) -> list[str]:
-    """Names (with units) of the columns of ``log.bin``, the raw period buffer."""
-    joints, units = [], []
-    for u in loop.setups:
-        joints += [f"{u.name}.{j.name}" for j in u.controller_model.joints]
-        units += list(u.joint_units)
-    rate = {"rad": "rad_s", "m": "m_s"}
-    effort = {"rad": "Nm", "m": "N"}
-    names = ["time_s"] + [f"q.{j}_{un}" for j, un in zip(joints, units)]
-    names += [f"qd.{j}_{rate[un]}" for j, un in zip(joints, units)]
-    names += [f"tau.{j}_{effort[un]}" for j, un in zip(joints, units)]
-    for u in loop.setups:
-        first, second = u.controller.error_names
-        names += [f"{u.name}.{first}[{i}]_SI" for i in range(u.controller.n_desired)]
-        names += [f"{u.name}.{second}[{i}]_SI" for i in range(u.controller_model.nq)]
-        names += [f"{u.name}.p_hat.{p}_SI" for p in u.controller_model.param_names]
-    names += list(TIMING_COLUMNS)
-    # The measured motor current, at the joint's sign (see Backend.joint_current_A).
-    names += [f"current.{j}_A" for j in joints]
-    if loop.true_state is None:  # the motors: what they measure only
-        return names
-    # The plant's true state (see Backend.true_state): the simulated robot's.
-    names += [f"true_q.{j}_{un}" for j, un in zip(joints, units)]
-    return names + [f"true_qd.{j}_{rate[un]}" for j, un in zip(joints, units)]
+    """Names (with units) of the columns of ``log.bin``, the raw period buffer: the one
+    schema's (:func:`cochlea.log_schema.raw_columns`)."""
+    return log_schema.raw_columns([log_schema.LogUnit.of_setup(u, u.controller.space)
+                                   for u in loop.setups],
+                                  current=loop.measured_current is not None,
+                                  true_state=loop.true_state is not None)
 
 
 def write_raw_columns(path: Path, loop: RealTimeLoop) -> None:
     """``log.columns.json``: how to read ``log.bin`` (float64 rows) if the run was killed."""
-    path.write_text(json.dumps({"dtype": "float64", "row_length": loop.width,
-                                "columns": raw_columns(loop)}, indent=1) + "\n")
+    document = log_schema.columns_document(
+        [log_schema.LogUnit.of_setup(u, u.controller.space) for u in loop.setups],
+        current=loop.measured_current is not None, true_state=loop.true_state is not None,
+        row_length=loop.width)
+    path.write_text(json.dumps(document, indent=1) + "\n")

@@ -76,6 +76,14 @@ typedef struct {
      * without double (docs/embedded.md, "The float build"). NULL: the loop calls step. */
     int (*step_period)(void *state, int64_t k, const double *q, const double *qd,
                        double *command, double *errors);
+    /* The run's log columns, named by the one schema of every log (cochlea/log_schema.py,
+     * docs/logs.md): log.csv's header (n_log_columns names) and log.bin's columns
+     * (n_raw_columns names, one per value of a row), and the schema's version. */
+    int schema_version;
+    int n_log_columns;
+    const char *const *log_columns;
+    int n_raw_columns;
+    const char *const *raw_columns;
 } cochlea_scenario;
 
 #ifdef __cplusplus

@@ -1223,81 +1223,28 @@ static void key(FILE *f, int indent, const char *name)
 
 /* ---- the run's files --------------------------------------------------------------------- */
 
-static const char *rate_unit(const char *unit) { return strcmp(unit, "rad") == 0 ? "rad_s" : "m_s"; }
-static const char *effort_unit(const char *unit) { return strcmp(unit, "rad") == 0 ? "Nm" : "N"; }
-
-static void slug(char *buf, size_t n, const char *unit)
-{
-    size_t k = 0;
-    for (; *unit && k + 1 < n; ++unit) {
-        if (*unit != ' ' && *unit != '^') {
-            buf[k++] = *unit;
-        }
-    }
-    buf[k] = '\0';
-}
-
-/* log.columns.json: how to read log.bin, cochlea-run's raw columns. */
+/* log.columns.json: how to read log.bin, cochlea-run's raw columns. The names are the
+ * scenario's, generated from the one schema of every log (cochlea/log_schema.py). */
 static int write_columns(const char *out, const cochlea_scenario *sc, int row_length)
 {
-    FILE *f = open_in(out, "log.columns.json", "w");
-    int u, i, first = 1;
-    char name[256];
-    static const char *const timing[] = {"start_lateness_s", "wall_period_s", "compute_s",
-                                         "backend_io_s"};
+    FILE *f;
+    int i;
+    if (sc->n_raw_columns != row_length) {
+        fprintf(stderr, "cochlea-embedded: the scenario names %d log.bin columns but a row "
+                "holds %d values: regenerate generated_c/ (cochlea-codegen)\n",
+                sc->n_raw_columns, row_length);
+        return -1;
+    }
+    f = open_in(out, "log.columns.json", "w");
     if (!f) {
         return -1;
     }
-    fprintf(f, "{\n \"dtype\": \"float64\",\n \"row_length\": %d,\n \"columns\": [\n",
-            row_length);
-#define COLUMN(...)                                   \
-    do {                                              \
-        snprintf(name, sizeof name, __VA_ARGS__);     \
-        fputs(first ? "  " : ",\n  ", f);             \
-        json_string(f, name);                         \
-        first = 0;                                    \
-    } while (0)
-    COLUMN("time_s");
-    for (u = 0; u < sc->n_units; ++u) {
-        for (i = 0; i < sc->units[u].nq; ++i) {
-            COLUMN("q.%s.%s_%s", sc->units[u].name, sc->units[u].joint_names[i],
-                   sc->units[u].joint_units[i]);
-        }
+    fprintf(f, "{\n \"schema_version\": %d,\n \"dtype\": \"float64\",\n \"row_length\": %d,\n"
+            " \"columns\": [\n", sc->schema_version, row_length);
+    for (i = 0; i < sc->n_raw_columns; ++i) {
+        fputs(i ? ",\n  " : "  ", f);
+        json_string(f, sc->raw_columns[i]);
     }
-    for (u = 0; u < sc->n_units; ++u) {
-        for (i = 0; i < sc->units[u].nq; ++i) {
-            COLUMN("qd.%s.%s_%s", sc->units[u].name, sc->units[u].joint_names[i],
-                   rate_unit(sc->units[u].joint_units[i]));
-        }
-    }
-    for (u = 0; u < sc->n_units; ++u) {
-        for (i = 0; i < sc->units[u].nq; ++i) {
-            COLUMN("tau.%s.%s_%s", sc->units[u].name, sc->units[u].joint_names[i],
-                   effort_unit(sc->units[u].joint_units[i]));
-        }
-    }
-    for (u = 0; u < sc->n_units; ++u) {
-        const cochlea_unit_info *unit = &sc->units[u];
-        for (i = 0; i < unit->nd; ++i) {
-            COLUMN("%s.%s[%d]_SI", unit->name, unit->error_names[0], i);
-        }
-        for (i = 0; i < unit->ne - unit->nd; ++i) {
-            COLUMN("%s.%s[%d]_SI", unit->name, unit->error_names[1], i);
-        }
-        for (i = 0; i < unit->np; ++i) {
-            COLUMN("%s.p_hat.%s_SI", unit->name, unit->param_names[i]);
-        }
-    }
-    for (i = 0; i < COCHLEA_TIMING_COLUMNS; ++i) {
-        COLUMN("%s", timing[i]);
-    }
-    /* The drives' measured current, at the joint's sign (cochlea-run's current columns). */
-    for (u = 0; u < sc->n_units; ++u) {
-        for (i = 0; i < sc->units[u].nq; ++i) {
-            COLUMN("current.%s.%s_A", sc->units[u].name, sc->units[u].joint_names[i]);
-        }
-    }
-#undef COLUMN
     fputs("\n ]\n}\n", f);
     return fclose(f);
 }
@@ -1312,50 +1259,16 @@ static int unit_offset(const cochlea_scenario *sc, int u)
     return off;
 }
 
-/* log.csv's header: cochlea-run's columns (its pose columns aside), SI. */
+/* log.csv's header: cochlea-run's columns (its pose columns aside), SI: the scenario's,
+ * generated from the one schema of every log (cochlea/log_schema.py). */
 static void csv_header(FILE *f, const cochlea_scenario *sc)
 {
-    static const char *const timing[] = {"start_lateness_s", "wall_period_s", "compute_s",
-                                         "backend_io_s"};
-    char buf[64];
-    int u, i;
-    fputs("time_s", f);
-    for (u = 0; u < sc->n_units; ++u) {
-        const cochlea_unit_info *t = &sc->units[u];
-        for (i = 0; i < t->nq; ++i) {
-            fprintf(f, ",%s.q.%s_%s", t->name, t->joint_names[i], t->joint_units[i]);
+    int i;
+    for (i = 0; i < sc->n_log_columns; ++i) {
+        if (i) {
+            fputc(',', f);
         }
-        for (i = 0; i < t->nq; ++i) {
-            fprintf(f, ",%s.qd.%s_%s", t->name, t->joint_names[i], rate_unit(t->joint_units[i]));
-        }
-        for (i = 0; i < t->nd; ++i) {
-            fprintf(f, ",%s.desired.%s_%s", t->name, t->tracked_names[i], t->tracked_units[i]);
-        }
-        for (i = 0; i < t->nd; ++i) {
-            fprintf(f, ",%s.desired_dot.%s_%s", t->name, t->tracked_names[i],
-                    rate_unit(t->tracked_units[i]));
-        }
-        for (i = 0; i < t->nd; ++i) {
-            fprintf(f, ",%s.error.%s_%s", t->name, t->tracked_names[i], t->tracked_units[i]);
-        }
-        for (i = 0; i < t->nq; ++i) {
-            fprintf(f, ",%s.%s.%s_%s", t->name, t->error_names[1], t->joint_names[i],
-                    rate_unit(t->joint_units[i]));
-        }
-        for (i = 0; i < t->nq; ++i) {
-            fprintf(f, ",%s.tau.%s_%s", t->name, t->joint_names[i],
-                    effort_unit(t->joint_units[i]));
-        }
-        for (i = 0; i < t->nq; ++i) { /* the drives measure it: cochlea-run's hardware runs */
-            fprintf(f, ",%s.current.%s_A", t->name, t->joint_names[i]);
-        }
-        for (i = 0; i < t->np; ++i) {
-            slug(buf, sizeof buf, t->param_units[i]);
-            fprintf(f, ",%s.p_hat.%s_%s", t->name, t->param_names[i], buf);
-        }
-    }
-    for (i = 0; i < 4; ++i) {
-        fprintf(f, ",%s", timing[i]);
+        fputs(sc->log_columns[i], f);
     }
     fputc('\n', f);
 }
@@ -1363,13 +1276,7 @@ static void csv_header(FILE *f, const cochlea_scenario *sc)
 /* The number of values in a log.csv row (for the disk's estimate). */
 static long csv_columns(const cochlea_scenario *sc)
 {
-    long n = 1 + 4;
-    int u;
-    for (u = 0; u < sc->n_units; ++u) {
-        const cochlea_unit_info *t = &sc->units[u];
-        n += 5 * t->nq + 3 * t->nd + (t->ne - t->nd) + t->np;
-    }
-    return n;
+    return sc->n_log_columns;
 }
 
 /* One log.csv row from a log.bin row; the desired path is evaluated again at the row's time. */
@@ -1910,6 +1817,8 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
         return -1;
     }
     fputs("{\n", f);
+    key(f, 2, "schema_version"); /* the log's column names: cochlea/log_schema.py */
+    fprintf(f, "%d,\n", sc->schema_version);
     key(f, 2, "scenario");
     json_string(f, sc->name);
     fputs(",\n", f);
