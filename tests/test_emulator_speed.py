@@ -1,0 +1,100 @@
+"""The virtual chain's per-period work stays small (issue 30, item 2): a period's status
+packets reach the pseudo-terminal in one system call, with the same bytes in the same order,
+and packets due at different times (wire timing) still go each at its own time. Not timed:
+the system calls are counted, so the tests hold on a loaded machine
+(``bench/emulator_speed.py`` measures the time)."""
+
+from __future__ import annotations
+
+import os
+import select
+import time
+import tty
+
+import pytest
+
+from cochlea.dynamixel import protocol as proto
+from cochlea.dynamixel.emulator import VirtualChain
+
+
+@pytest.fixture
+def chain():
+    chain = VirtualChain("serial", "serial_joint")  # served by hand: no thread
+    chain.open()
+    fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(fd)
+    chain.client = fd
+    yield chain
+    os.close(fd)
+    chain.close()
+
+
+def serve(chain: VirtualChain, frame: bytes, now: float | None = None) -> None:
+    """``frame`` written by the host, then one pass of the chain's loop (read, answer)."""
+    os.write(chain.client, frame)
+    assert select.select([chain.master], [], [], 5.0)[0], "the request did not arrive"
+    chain._receive()
+    chain._flush(time.perf_counter() if now is None else now)
+
+
+def take(fd: int, n: int) -> bytes:
+    got = b""
+    while len(got) < n and select.select([fd], [], [], 5.0)[0]:
+        got += os.read(fd, 4096)
+    return got
+
+
+def counting_writes(monkeypatch, chain) -> list[int]:
+    """The sizes of the chain's writes to its pseudo-terminal, from now on."""
+    sizes: list[int] = []
+    real = os.write
+
+    def write(fd, data):
+        if fd == chain.master:
+            sizes.append(len(data))
+        return real(fd, data)
+
+    monkeypatch.setattr(os, "write", write)
+    return sizes
+
+
+def expected_statuses(chain: VirtualChain, address: int, length: int) -> bytes:
+    return b"".join(proto.status(m.id, 0, bytes(m.table[address:address + length]))
+                    for m in chain.motors)
+
+
+def test_a_sync_reads_replies_go_in_one_system_call(chain, monkeypatch):
+    """Six motors answer a SYNC_READ: one write of their six status packets, in list order,
+    each as the motor builds it alone (the loop reads them as before)."""
+    ids = [m.id for m in chain.motors]
+    sizes = counting_writes(monkeypatch, chain)
+    serve(chain, proto.sync_read(120, 16, ids), now=float("inf"))
+    expected = expected_statuses(chain, 120, 16)
+    assert sizes == [len(expected)]
+    assert take(chain.client, len(expected)) == expected
+    # A broadcast PING: every motor's reply, in ID order, in one write too.
+    sizes.clear()
+    serve(chain, proto.ping(0xFE), now=float("inf"))
+    pings = b"".join(proto.status(m.id, 0, bytes(m.table[0:2]) + bytes(m.table[6:7]))
+                     for m in sorted(chain.motors, key=lambda m: m.id))
+    assert sizes == [len(pings)]
+    assert take(chain.client, len(pings)) == pings
+
+
+def test_packets_due_at_different_times_still_go_at_their_own_time(chain, monkeypatch):
+    """With the wire's timing each status packet is due when its last byte would have
+    arrived: a flush at the first one's time writes that one only, the rest follow."""
+    chain.wire_timing, chain.byte_time = True, 10.0 / 57600  # 174 us a byte
+    ids = [m.id for m in chain.motors]
+    sizes = counting_writes(monkeypatch, chain)
+    os.write(chain.client, proto.sync_read(120, 16, ids))
+    assert select.select([chain.master], [], [], 5.0)[0]
+    chain._receive()
+    due = sorted(t for t, _, _ in chain._queue)
+    assert len(due) == len(ids) and due[0] < due[1]
+    chain._flush(due[0])
+    one = len(proto.status(ids[0], 0, bytes(16)))
+    assert sizes == [one]
+    chain._flush(due[-1])
+    assert len(sizes) == 2 and sum(sizes) == len(ids) * one  # the other five at once
+    assert take(chain.client, len(ids) * one) == expected_statuses(chain, 120, 16)
