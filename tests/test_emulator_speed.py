@@ -98,3 +98,41 @@ def test_packets_due_at_different_times_still_go_at_their_own_time(chain, monkey
     chain._flush(due[-1])
     assert len(sizes) == 2 and sum(sizes) == len(ids) * one  # the other five at once
     assert take(chain.client, len(ids) * one) == expected_statuses(chain, 120, 16)
+
+
+def test_a_request_takes_one_plant_step_not_two(monkeypatch):
+    """Serving a request integrates the plant up to its arrival (one step), and nothing more
+    until the next request or the next update is due: the loop used to take another step,
+    publish the motors' registers and check their watchdogs right after each request, for no
+    reader (a third of the chain's work per period)."""
+    chain = VirtualChain("serial", "serial_joint", plant_period_s=0.05)  # next update: 50 ms
+    chain.open()
+    fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(fd)
+    order: list[str] = []
+    real_select, real_tick = select.select, chain._tick
+
+    def counted_select(r, w, x, timeout=None):
+        order.append("select")
+        if len(order) > 1:  # the first pass is over: stop the loop
+            chain._stop.set()
+            return [], [], []
+        return real_select(r, w, x, 5.0)  # the request below
+
+    def counted_tick(now):
+        order.append("tick")
+        real_tick(now)
+
+    monkeypatch.setattr(select, "select", counted_select)
+    monkeypatch.setattr(chain, "_tick", counted_tick)
+    try:
+        os.write(fd, proto.sync_read(132, 4, [m.id for m in chain.motors]))
+        chain.serve(duration=10)
+        monkeypatch.undo()
+        assert take(fd, 6 * 15) == b"".join(proto.status(m.id, 0, bytes(m.table[132:136]))
+                                            for m in chain.motors)
+    finally:
+        os.close(fd)
+        chain.close()
+    # select (the request), its step to the arrival, then straight back to select
+    assert order[:3] == ["select", "tick", "select"], order
