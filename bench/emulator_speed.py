@@ -25,7 +25,7 @@ and its data) exported with ``git archive`` into the output folder; the loops ar
 tree's. Nothing is written outside ``--out`` (default: a new temporary folder, printed). Run
 by hand, not a test:
 ``python bench/emulator_speed.py --out /tmp/emuspeed`` (numbers in docs/dynamixel.md, "Does
-the emulator keep up").
+the virtual chain keep up").
 
 Exit codes: 0 measured; 2 a bad option (one line); 3 a run could not be made (one line).
 """
@@ -92,15 +92,8 @@ for k in range(periods + 200):
         times.append(d)
         cpus.append(cpu)
 os.read, os.write = real_read, real_write
-times.sort()
-cpus.sort()
-print(json.dumps({"median_us": times[len(times) // 2] * 1e6,
-                  "cpu_median_us": cpus[len(cpus) // 2] * 1e6,
-                  "p90_us": times[int(0.9 * len(times))] * 1e6,
-                  "p99_us": times[int(0.99 * len(times))] * 1e6,
-                  "reads_per_period": calls["read"] / periods,
-                  "writes_per_period": calls["write"] / periods}))
-
+print(json.dumps({"times": times, "cpus": cpus, "reads": calls["read"],
+                  "writes": calls["write"], "periods": periods}))
 """
 
 
@@ -180,6 +173,15 @@ def export(rev: str, folder: Path) -> Path:
     return folder
 
 
+def micro_stats(raw: dict) -> dict:
+    times, cpus = sorted(raw["times"]), sorted(raw["cpus"])
+    n = len(times)
+    return {"median_us": times[n // 2] * 1e6, "cpu_median_us": cpus[n // 2] * 1e6,
+            "p90_us": times[int(0.9 * n)] * 1e6, "p99_us": times[int(0.99 * n)] * 1e6,
+            "reads_per_period": raw["reads"] / raw["periods"],
+            "writes_per_period": raw["writes"] / raw["periods"], "periods": n}
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system processor time of process ``pid`` so far (Linux /proc), seconds."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -250,7 +252,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=20.0, help="seconds per HIL run (20)")
     p.add_argument("--hogs", type=int, default=os.cpu_count() or 2,
                    help="busy processes beside the runs (default: one per core)")
-    p.add_argument("--periods", type=int, default=3000, help="micro: periods timed (3000)")
+    p.add_argument("--periods", type=int, default=3000,
+                   help="micro: periods timed per version (3000)")
+    p.add_argument("--rounds", type=int, default=4,
+                   help="micro: the versions take this many turns each (4)")
     p.add_argument("--loops", default="python,c", help="python, c or both (python,c)")
     p.add_argument("--program", type=Path, default=ROOT / "build" / "cochlea-embedded",
                    help="the C program (default build/cochlea-embedded)")
@@ -258,9 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     loops = [x for x in args.loops.split(",") if x]
     if not 0 < args.duration <= 600 or args.hogs < 0 or args.periods < 10 or \
+            not 1 <= args.rounds <= 100 or \
             not set(loops) <= {"python", "c"}:
         print("emulator_speed: expected --duration in (0, 600] s, --hogs >= 0, --periods >= 10, "
-              "--loops of python,c", file=sys.stderr)
+              "--rounds 1..100, --loops of python,c", file=sys.stderr)
         return 2
     if "c" in loops and not args.program.is_file():
         print(f"emulator_speed: {args.program} is not built (make embedded), or --loops python",
@@ -274,8 +280,18 @@ def main(argv: list[str] | None = None) -> int:
         trees = {"baseline": export(args.baseline, out / "baseline"), "this": ROOT}
         results = {name: {"micro": {}, "hil": {}} for name in trees}
         for robot in ("serial", "parallel"):
-            for name, tree in trees.items():
-                results[name]["micro"][robot] = r = micro(tree, robot, args.periods)
+            # The versions take turns, in alternating order, so a change of the machine's load
+            # (other processes come and go) hits both alike; the samples are pooled.
+            raw = {name: {"times": [], "cpus": [], "reads": 0, "writes": 0, "periods": 0}
+                   for name in trees}
+            names = list(trees)
+            for k in range(args.rounds):
+                for name in names if k % 2 == 0 else names[::-1]:
+                    got = micro(trees[name], robot, max(args.periods // args.rounds, 10))
+                    for key in raw[name]:
+                        raw[name][key] += got[key]
+            for name in trees:
+                results[name]["micro"][robot] = r = micro_stats(raw[name])
                 print(f"micro {name:8s} {robot:8s} median {r['median_us']:7.1f} us (CPU "
                       f"{r['cpu_median_us']:6.1f} us)  p90 "
                       f"{r['p90_us']:7.1f} us  p99 {r['p99_us']:7.1f} us  syscalls/period "
