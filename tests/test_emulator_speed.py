@@ -107,7 +107,7 @@ def test_a_request_takes_one_plant_step_not_two(monkeypatch):
     """Serving a request integrates the plant up to its arrival (one step), and nothing more
     until the next request or the next update is due: the loop used to take another step,
     publish the motors' registers and check their watchdogs right after each request, for no
-    reader (a third of the chain's work per period)."""
+    reader."""
     chain = VirtualChain("serial", "serial_joint", plant_period_s=0.05)  # next update: 50 ms
     chain.open()
     fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)

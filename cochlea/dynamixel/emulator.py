@@ -700,8 +700,8 @@ class VirtualChain:
                 now = time.perf_counter()
                 if now < self._next_step and not (self._queue and self._queue[0][0] <= now):
                     # Nothing due: the next request, or the next 1 ms update, integrates on.
-                    # (A step here took a plant step, the publication and the watchdog's
-                    # check per request, for no reader: a third of the chain's work.)
+                    # (A tick here cost a plant step, the publication and the watchdog's
+                    # check per request, for no reader.)
                     continue
             self._tick(time.perf_counter())
             self._flush(time.perf_counter())
