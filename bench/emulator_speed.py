@@ -163,12 +163,12 @@ def pty_floor(periods: int, request: int = 20 + 29, reply: int = 6 * 27) -> dict
 def export(rev: str, folder: Path) -> Path:
     """``rev``'s package, as a checkout (``cochlea/``, ``models/``, ``codegen/``,
     ``generated_c/``: the package finds its data beside it), under ``folder`` (PYTHONPATH)."""
-    folder.mkdir(parents=True, exist_ok=True)
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "cochlea", "models",
                               "codegen", "generated_c"], capture_output=True)
     if archive.returncode != 0:
         raise RuntimeError(f"--baseline {rev}: git archive failed: "
                            f"{archive.stderr.decode().strip()}")
+    folder.mkdir(parents=True, exist_ok=True)
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive.stdout, check=True)
     return folder
 
@@ -246,8 +246,13 @@ def hil(tree: Path, loop: str, out: Path, duration: float, program: Path) -> dic
             "failures": bus.get("failures", {})}
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2, as every other bad option
+        self.exit(2, f"emulator_speed: {message}\n")
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = _Parser(description=__doc__.split("\n\n")[0])
     p.add_argument("--baseline", default="main", help="git revision to compare with (main)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per HIL run (20)")
     p.add_argument("--hogs", type=int, default=os.cpu_count() or 2,
@@ -272,8 +277,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"emulator_speed: {args.program} is not built (make embedded), or --loops python",
               file=sys.stderr)
         return 2
-    out = args.out or Path(tempfile.mkdtemp(prefix="emulator_speed_"))
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out = args.out or Path(tempfile.mkdtemp(prefix="emulator_speed_"))
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"emulator_speed: --out {args.out}: cannot make the folder ({exc.strerror or exc})",
+              file=sys.stderr)
+        return 2
     print(f"output in {out}", flush=True)
     trees = {}
     try:
