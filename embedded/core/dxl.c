@@ -468,7 +468,9 @@ int dxl_parser_parse(dxl_parser *p)
     packet_id = p->buf[s + 4];
     length = (size_t)p->buf[s + 5] | ((size_t)p->buf[s + 6] << 8);
     if (p->status_mode) {
-        if (packet_id > DXL_MAX_ID) {
+        /* 0xFE: Fast Sync Read's one combined status packet (the Python parser takes it
+         * too); a bridge that did not ask for it drops it as another ID's reply. */
+        if (packet_id > DXL_MAX_ID && packet_id != DXL_BROADCAST_ID) {
             return drop_one(p, s, DXL_BAD_ID);
         }
         shortest = SHORTEST_STATUS;
