@@ -254,6 +254,7 @@ def robot_kind_imports(graph: dict | None = None) -> list[str]:
     return bad
 
 
+@pytest.mark.slow
 def test_no_robot_name_outside_the_robots_layer():
     bad = robot_name_uses()
     assert not bad, ("a robot's name compared or used as a key outside cochlea/robots/ (ask its "

@@ -78,6 +78,7 @@ def user(tmp_path_factory):
     return folder / "starter.toml", kernels
 
 
+@pytest.mark.slow
 def test_the_folder_holds_the_c_its_manifest_and_the_library(user):
     scenario, kernels = user
     names = {p.name for p in kernels.iterdir()}
@@ -97,6 +98,7 @@ def test_the_folder_holds_the_c_its_manifest_and_the_library(user):
 
 
 @pytest.mark.parametrize("plant", ["ideal", "coulomb", "realistic"])
+@pytest.mark.slow
 def test_the_c_run_gives_the_casadi_log(user, plant):
     """The as-fast run on the user's C kernels equals the CasADi reference (as the shipped
     robots' do, tests/test_sim_compiled.py); with Coulomb friction, on the sibling plant step
@@ -121,6 +123,7 @@ def test_the_c_run_gives_the_casadi_log(user, plant):
 NOT_THERE = "has no kernel .*cochlea-codegen --scenario|does not exist"
 
 
+@pytest.mark.slow
 def test_a_library_without_or_with_other_kernels_is_refused(user):
     scenario, kernels = user
     sc = load_scenario(scenario)
@@ -145,6 +148,7 @@ def _run(tmp_path, capsys, scenario, *options):
     return code, out, capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_a_run_states_its_kernels(user, tmp_path, capsys):
     scenario, kernels = user
     environment = os.environ.get(ENVIRONMENT)
@@ -173,6 +177,7 @@ def test_a_run_states_its_kernels(user, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_codegen_option_mistakes_are_one_line(user, tmp_path, capsys):
     scenario, _ = user
     assert cochlea_codegen.main(["--scenario", str(scenario)]) == EXIT_USER_ERROR
@@ -187,6 +192,7 @@ def test_codegen_option_mistakes_are_one_line(user, tmp_path, capsys):
     assert "did not generate" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_embedded_program_builds_for_the_users_scenario(user, tmp_path):
     """``--embedded``: the scenario's embedded controller and the robot's drive table in
     DIR/embedded/, and ``make GEN=DIR`` links them into the embedded program, which lists the
@@ -204,6 +210,7 @@ def test_the_embedded_program_builds_for_the_users_scenario(user, tmp_path):
     assert listed.stdout.startswith("starter (serial robot, joint space, controller e)")
 
 
+@pytest.mark.slow
 def test_the_all_in_c_simulation_gives_the_simulations_log(user, tmp_path):
     """The all-in-C simulation (embedded/sim/simulate.c) of the user's scenario: its embedded
     controller and plant kernels in one program, the log simulate()'s to 1e-9 (relative to
@@ -226,6 +233,7 @@ def test_the_all_in_c_simulation_gives_the_simulations_log(user, tmp_path):
             assert np.max(np.abs(a - b)) <= 1e-9 * max(1.0, np.max(np.abs(b))), key
 
 
+@pytest.mark.slow
 def test_a_sweep_runs_on_the_users_kernels_or_refuses_before_any_worker(user, tmp_path,
                                                                           capsys, monkeypatch):
     from cochlea.apps import cochlea_sweep

@@ -59,6 +59,7 @@ def _header(path: Path) -> list[str]:
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_simulated_run_logs_no_current_in_log_csv_nor_in_log_bin(tmp_path):
     """The sim backend measures no current: neither file has the columns (one schema for
     every log, docs/logs.md; log.bin had NaN ones before schema version 2)."""
@@ -149,6 +150,7 @@ def test_the_emulators_true_fit_replaces_the_line_and_is_checked():
             true_drives(drives, Truth(fit=bad))
 
 
+@pytest.mark.slow
 def test_the_emulator_refuses_a_malformed_true_fit_in_one_line():
     done = subprocess.run([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
                            "serial", "--true-fit", "1:100"], capture_output=True, text=True,
@@ -213,6 +215,7 @@ def current_run(tmp_path_factory):
     return tmp, description
 
 
+@pytest.mark.slow
 def test_a_placeholder_line_is_recovered_from_the_measured_current(current_run, capsys):
     tmp, description = current_run
     report = tmp / "ident.json"
@@ -262,6 +265,7 @@ def _refused(args: list[str], capsys, out: Path, *expected: str) -> None:
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_fitting_every_joints_line_is_refused(current_run, capsys):
     tmp, _ = current_run
     every = tmp / "every.toml"
@@ -274,6 +278,7 @@ def test_fitting_every_joints_line_is_refused(current_run, capsys):
                  "not observable", "cochlea-dxl calibrate --torque-fit")
 
 
+@pytest.mark.slow
 def test_a_named_joint_needs_the_current_in_every_log(current_run, capsys):
     tmp, description = current_run
     _refused([str(tmp / "measured"), "--robot", "serial", "--fit-current", "joint2"], capsys,

@@ -100,6 +100,7 @@ def test_apply_rounds_half_to_even_and_bounds():
 
 @pytest.mark.parametrize("kernels", ["casadi", "c"])
 @pytest.mark.parametrize("name", ["serial_joint", "parallel_task"])
+@pytest.mark.slow
 def test_applied_efforts_lie_on_the_effort_grid(name, kernels):
     sc, setups = _quantised(name)
     result = simulate(sc, DURATION, setups, kernels=kernels)
@@ -117,6 +118,7 @@ def test_applied_efforts_lie_on_the_effort_grid(name, kernels):
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+@pytest.mark.slow
 def test_c_loops_apply_what_the_reference_applies(name, loop):
     sc, setups = _quantised(name)
     reference = simulate(sc, DURATION, setups, kernels="casadi")
@@ -144,6 +146,7 @@ def weak_current(tmp_path_factory):
     return dataclasses.replace(sc, description=str(path), system=load_serial(path))
 
 
+@pytest.mark.slow
 def test_a_command_above_the_current_limit_is_saturated_and_counted(weak_current):
     plain = simulate(weak_current, DURATION, kernels="casadi")
     sc = dataclasses.replace(weak_current, plant=Plant(current_quantisation=True))

@@ -24,6 +24,7 @@ def test_every_docs_topic_exists():
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+@pytest.mark.slow
 def test_python_examples_run(page):
     """Each page's blocks run in order in one namespace, as a reader would type them."""
     blocks = re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)

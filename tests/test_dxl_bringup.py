@@ -274,6 +274,7 @@ def test_a_bad_description_is_exit_2_and_a_missing_port_exit_5(tmp_path, capsys)
         assert f"--port {tmp_path / 'ttyUSB9'}: cannot open the serial port" in err
 
 
+@pytest.mark.slow
 def test_the_console_script_prints_no_traceback(tmp_path):
     done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_dxl", "info", "--robot",
                            "serial", "--port", str(tmp_path / "none")],

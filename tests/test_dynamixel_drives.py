@@ -175,6 +175,7 @@ def test_the_per_period_conversions_match_the_scalar_ones(robot, rng):
             assert backend.present_current_mA[j] == pytest.approx(float(d.current_mA(c)))
 
 
+@pytest.mark.slow
 def test_the_per_period_path_does_not_grow_memory(rng):
     """No buffer, list or array is made per period: the allocated blocks stay put."""
     from cochlea.dynamixel import protocol as proto

@@ -345,6 +345,7 @@ def _fails(backend: DynamixelBackend, periods: int = 40) -> tuple[list[bool], st
     # the last block's CRC: the packet's own
     (Faults(crc=1.0, ids=frozenset({6}), delay_s=0.05), "crc", -1),
 ])
+@pytest.mark.slow
 def test_a_bad_fast_sync_reply_is_a_failed_read(faults, kind, motor):
     """Each bad reply fails the period (False, a failure kind and the motor where known),
     through the same counters the SYNC_READ faults use; no exception reaches the loop."""
@@ -364,6 +365,7 @@ def test_a_bad_fast_sync_reply_is_a_failed_read(faults, kind, motor):
     assert last.startswith(kind) and (motor < 0 or f"ID {motor}" in last)
 
 
+@pytest.mark.slow
 def test_a_wrong_running_crc_names_its_motor(monkeypatch):
     """A motor that appends a wrong CRC after its block while the packet's own CRC is right:
     the read fails as ``crc`` naming that motor."""
@@ -390,6 +392,7 @@ def test_a_wrong_running_crc_names_its_motor(monkeypatch):
             backend.disable()
 
 
+@pytest.mark.slow
 def test_fast_sync_read_on_a_model_without_it_stops_the_start_up():
     chain = VirtualChain("serial")  # MX-64s: the data says no FAST_SYNC_READ
     with chain:
@@ -482,6 +485,7 @@ def _emulator(scenario: Path, log: Path):
 
 
 @pytest.mark.parametrize("name", ["xm430", "mixed"])
+@pytest.mark.slow
 def test_scan_and_run_over_the_virtual_chain(tmp_path, name):
     """``cochlea-dxl scan`` finds each model of the chain; a short ``cochlea-run --backend
     dynamixel`` over it completes with the read instruction in its summary."""
@@ -535,6 +539,7 @@ class _FixedReply:
 
 
 @pytest.mark.parametrize("read,write", [("fast", "sync"), ("bulk", "bulk")])
+@pytest.mark.slow
 def test_the_fast_and_bulk_periods_allocate_nothing_and_convert_right(read, write):
     """The FAST_SYNC_READ / BULK_WRITE periods make no buffer, list or array (as the
     SYNC_READ one, tests/test_dynamixel_drives.py), and convert the registers as it does."""
@@ -563,6 +568,7 @@ def test_the_fast_and_bulk_periods_allocate_nothing_and_convert_right(read, writ
     backend._active, backend._port = False, None
 
 
+@pytest.mark.slow
 def test_an_unknown_model_number_through_scan_and_run(tmp_path):
     """``cochlea-dxl scan`` lists the motor as unknown, ``cochlea-run`` stops before anything
     moves with one line (exit 5) and writes nothing."""

@@ -115,6 +115,7 @@ def test_the_bridges_per_period_frames_are_byte_identical(oracle):
 @given(motor_id=st.integers(0, 252), address=st.integers(0, 700),
        data=st.binary(min_size=1, max_size=8),
        ids=st.lists(st.integers(0, 252), min_size=1, max_size=8, unique=True))
+@pytest.mark.slow
 def test_random_frames_match_the_sdk(motor_id, address, data, ids):
     port, ph = CapturePort(), sdk.PacketHandler(2.0)
     ph.writeTxOnly(port, motor_id, address, len(data), list(data))
@@ -152,6 +153,7 @@ def emulator():
     assert "stopped" in out
 
 
+@pytest.mark.slow
 def test_the_sdk_pings_reads_and_sync_writes_the_emulator(emulator):
     port = sdk.PortHandler(emulator)
     assert port.openPort()

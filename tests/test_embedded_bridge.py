@@ -129,6 +129,7 @@ def probe_on(libs, tmp_path, robot, chain) -> Probe:
 
 
 @pytest.mark.parametrize("robot", ["serial", "parallel"])
+@pytest.mark.slow
 def test_start_read_write_stop_as_the_python_bridge(libs, tmp_path, robot):
     chain = VirtualChain(robot).start()
     try:
@@ -189,6 +190,7 @@ def test_start_read_write_stop_as_the_python_bridge(libs, tmp_path, robot):
     (Faults(missing=frozenset({3})), "no-answer", 1, None),
     (Faults(model_number={2: 1020}), "wrong-model", 1, 1020),
 ])
+@pytest.mark.slow
 def test_start_up_faults_stop_before_anything_moves(libs, tmp_path, faults, error, step, detail):
     chain = VirtualChain("serial", faults=faults).start()
     try:
@@ -207,6 +209,7 @@ def test_start_up_faults_stop_before_anything_moves(libs, tmp_path, faults, erro
         chain.close()
 
 
+@pytest.mark.slow
 def test_a_joint_outside_its_limits_is_refused_at_start(tmp_path):
     """As the Python bridge's test: arm1.link1 is at 73 deg; a table whose motor zero is at
     -107 deg reads 180 deg, outside +-170 deg whichever turn it takes; at -120 deg it reads
@@ -239,6 +242,7 @@ def test_a_joint_outside_its_limits_is_refused_at_start(tmp_path):
         chain.close()
 
 
+@pytest.mark.slow
 def test_dropped_replies_are_failures_not_stops(libs, tmp_path):
     """Motor 4 stops answering 0.2 s after the start: each read fails (a timeout, counted),
     the bridge does not stop by itself, and the shut-down still reaches every motor."""
@@ -261,6 +265,7 @@ def test_dropped_replies_are_failures_not_stops(libs, tmp_path):
         chain.close()
 
 
+@pytest.mark.slow
 def test_a_repeated_status_packet_is_refused_by_its_realtime_tick(libs, tmp_path):
     """As the Python bridge's test (test_runtime_hardening.py): motor 3 repeats its last status
     packet five times from 0.1 s on; read at 250 Hz, each repeat is more than a tick after the

@@ -336,6 +336,7 @@ print("no report")
 """
 
 
+@pytest.mark.slow
 def test_the_sanitizer_setup_sees_a_one_byte_overread(asan_lib):
     """Without this, a silent fuzz could mean ASan was never loaded."""
     done = run_sanitized(["-c", OVERREAD, str(asan_lib)])

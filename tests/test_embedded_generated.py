@@ -42,6 +42,7 @@ def test_every_shipped_scenario_is_listed():
     assert set(SCENARIOS) == shipped
 
 
+@pytest.mark.slow
 def test_embedded_folder_is_fresh(tmp_path):
     """Regenerating gives generated_c/embedded/ byte for byte (run cochlea-codegen if not)."""
     write_embedded_folder(CONFIG, tmp_path)  # what cochlea-codegen writes there
@@ -74,6 +75,7 @@ def _undefined(obj: Path) -> set[str]:
 @needs_cc
 @pytest.mark.parametrize("precision", ["double", "float"])
 @pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.slow
 def test_compiles_freestanding_and_links_only_libm(name, precision, tmp_path):
     flags = STRICT + (FLOAT if precision == "float" else [])
     source = EMBEDDED / f"{name}.c"
@@ -194,6 +196,7 @@ def _measurement(xs: list[np.ndarray]) -> np.ndarray:
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.slow
 def test_default_config_is_the_scenarios(built, name):
     c = Embedded(name, built[name, "double"])
     sc = load_scenario(name)
@@ -215,6 +218,7 @@ def test_default_config_is_the_scenarios(built, name):
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.slow
 def test_desired_trajectory_equals_casadi(built, name):
     c = Embedded(name, built[name, "double"])
     sc = load_scenario(name)
@@ -277,6 +281,7 @@ def _replay(c: Embedded, name: str, duration: float):
 
 
 @pytest.mark.parametrize("name", THESIS)
+@pytest.mark.slow
 def test_step_equals_the_simulation(built, name):
     """The thesis's four studies on the ideal plant, 2000 periods: the commands, the estimates
     and the errors of the simulation (its controller's step, the supervisor's clip)."""
@@ -286,6 +291,7 @@ def test_step_equals_the_simulation(built, name):
 
 
 @pytest.mark.parametrize("name", [n for n in SCENARIOS if n not in THESIS])
+@pytest.mark.slow
 def test_step_equals_the_realistic_simulation(built, name):
     """The realistic studies: the measurement delayed and on the encoder grid as the simulation
     measures it, the command clipped, then applied on the drives' current grid."""
@@ -320,6 +326,7 @@ def _closed_loop(c: Embedded, name: str, steps: int):
 
 
 @pytest.mark.parametrize("name", THESIS)
+@pytest.mark.slow
 def test_float_build_follows_the_double_build(built, name):
     steps = 2000
     tau_d, p_d = _closed_loop(Embedded(name, built[name, "double"]), name, steps)

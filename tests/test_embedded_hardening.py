@@ -141,6 +141,7 @@ def c_timed_run(lib, work, periods=200, misses=10, name="serial_joint"):
     return rule, dict(zip(keys, out)), commands
 
 
+@pytest.mark.slow
 def test_the_policy_is_cochlea_runs_word_for_word(lib):
     assert lib.policy().decode() == OVERRUN_POLICY
 

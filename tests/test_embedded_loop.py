@@ -243,6 +243,7 @@ def assert_rows_equal(c_rows: np.ndarray, py_rows: np.ndarray, n: int):
 @pytest.mark.parametrize("name", ["serial_joint", "serial_task", "parallel_joint",
                                   "parallel_task", "serial_task_realistic",
                                   "parallel_task_realistic"])
+@pytest.mark.slow
 def test_the_c_loop_logs_the_python_loops_rows(lib, name):
     """400 periods, or up to the same stop: on the realistic preset's geared plant (issue 24)
     the serial arms' realistic controller meets the MX-64's backlash and the supervisor stops

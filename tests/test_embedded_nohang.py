@@ -288,6 +288,7 @@ def run(program: Path, line: str, what: str | None) -> list[dict[str, str]]:
 
 
 @pytest.mark.parametrize("line", LINES)
+@pytest.mark.slow
 def test_start_up_ends_at_its_deadlines_whatever_the_line_delivers(nohang, line):
     (row,) = run(nohang, line, "start")
     assert row["ok"] == "0"
@@ -302,6 +303,7 @@ def test_start_up_ends_at_its_deadlines_whatever_the_line_delivers(nohang, line)
 
 
 @pytest.mark.parametrize("line", LINES)
+@pytest.mark.slow
 def test_each_read_ends_at_its_deadline_whatever_the_line_delivers(nohang, line):
     rows = run(nohang, line, "read")
     reads = [r for r in rows if r["kind"] == "read"]
@@ -378,6 +380,7 @@ def nohang_loop(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("line", ["byte", "dense", "stranger", "slow"])
+@pytest.mark.slow
 def test_the_loops_watchdog_stops_a_run_on_a_babbling_line(nohang_loop, line):
     """The whole loop over the bridge: the reads fail within their deadlines, so the watchdog
     (failed reads, or the lateness they cause) ends the run through the safe stop, exit 15,
@@ -391,6 +394,7 @@ def test_the_loops_watchdog_stops_a_run_on_a_babbling_line(nohang_loop, line):
     assert int(row["elapsed_ns"]) <= budget, row
 
 
+@pytest.mark.slow
 def test_a_reply_in_before_the_deadline_still_counts(nohang):
     """The deadline bounds the wait, not the bytes: replies that came in time but were read
     only after it (the host was busy when the wait ended) are taken, with one last look that
@@ -422,6 +426,7 @@ def fast_math_sources() -> list[Path]:
 
 
 @pytest.mark.parametrize("flag", sorted(FAST_MATH))
+@pytest.mark.slow
 def test_a_build_that_would_fold_the_nan_checks_is_refused(flag, tmp_path):
     for source in fast_math_sources():
         for precision in ([], ["-DCOCHLEA_FLOAT"]):
@@ -435,6 +440,7 @@ def test_a_build_that_would_fold_the_nan_checks_is_refused(flag, tmp_path):
             assert not (tmp_path / "x.o").exists()
 
 
+@pytest.mark.slow
 def test_the_same_sources_compile_without_it(tmp_path):
     """The refusal is the flag's, not the sources': the same commands without it succeed."""
     for source in fast_math_sources():
@@ -565,6 +571,7 @@ def samples(program: Path, k0: int, n: int):
 
 
 @pytest.mark.parametrize("k0", [2**31 - 500, 2**40 - 500, 86_400_000])
+@pytest.mark.slow
 def test_the_float_build_has_no_staircase_at_any_run_length(staircase, k0):
     """999 consecutive 1 ms periods around 2^31 and 2^40 periods (24.9 days, 34.8 years) and
     from one day: every period a new time and a new desired sample, each the double

@@ -68,6 +68,7 @@ def test_the_core_is_every_c_file_but_the_ports():
 
 
 @pytest.mark.parametrize("target, precision", PARAMS)
+@pytest.mark.slow
 def test_the_core_compiles_freestanding_and_calls_only_libm(build, target, precision):
     """Warnings as errors, none let through (GCC and clang); the objects together call
     nothing but libm and, on the Cortex-M4F, the ARM run-time ABI's floating-point helpers."""
@@ -92,6 +93,7 @@ def test_the_core_compiles_freestanding_and_calls_only_libm(build, target, preci
 
 @needs_zig
 @pytest.mark.parametrize("precision", ["float", "double"])
+@pytest.mark.slow
 def test_the_cortex_m4f_objects_are_thumb2_with_hard_float(build, precision):
     """Thumb-2 code for an M-profile core, the hard-float ABI (float arguments in VFP
     registers), a single-precision FPU, and in float no software single-precision helper."""
@@ -121,6 +123,7 @@ def test_the_cortex_m4f_objects_are_thumb2_with_hard_float(build, precision):
 
 @pytest.mark.skipif(not (shutil.which("nm") and shutil.which("size")), reason="no binutils")
 @pytest.mark.parametrize("target, precision", PARAMS)
+@pytest.mark.slow
 def test_the_elf_reader_agrees_with_binutils(build, target, precision):
     """Undefined symbols as ``nm -u`` lists them, text/data/bss as ``size`` sums them (for the
     objects the host's binutils can read)."""
@@ -221,6 +224,7 @@ def test_the_stack_report_adds_callee_frames(tmp_path):
 
 
 @needs_cc
+@pytest.mark.slow
 def test_the_size_report_measures_the_host(tmp_path):
     """bench/embedded_size.py on the host: every object has content, every entry point a stack,
     the scenario steps a frame; its section replaces only what lies between the markers."""

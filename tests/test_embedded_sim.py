@@ -65,6 +65,7 @@ def worst_relative(result, reference) -> dict[str, float]:
 
 
 @pytest.mark.parametrize("name", eb.SCENARIOS)
+@pytest.mark.slow
 def test_log_equals_the_simulation(name, tmp_path):
     """2 s of every study: states, desired trajectory, errors, applied efforts, estimates and
     poses equal ``simulate()``'s, period for period (ideal plant; realistic: delayed, encoder
@@ -79,6 +80,7 @@ def test_log_equals_the_simulation(name, tmp_path):
 
 
 @pytest.mark.parametrize("name", eb.THESIS)
+@pytest.mark.slow
 def test_float_build_follows_the_simulation(name, tmp_path):
     """The float controller in the same loop: efforts within 1e-5 of the run's peak effort, as
     the float build's own test holds it (tests/test_embedded_generated.py), and the joints
@@ -102,6 +104,7 @@ def test_full_length_without_a_log():
     assert 0 < info["loop_s"] <= info["main_s"]
 
 
+@pytest.mark.slow
 def test_needs_neither_python_nor_casadi():
     """The program links the C library and libm only."""
     binary = eb.build_simulation("parallel_task_realistic")
@@ -135,6 +138,7 @@ def _disturbed(name, **changes):
 
 
 @pytest.mark.parametrize("name", ["serial_joint_realistic", "parallel_task_realistic"])
+@pytest.mark.slow
 def test_issue_24s_disturbances_run_in_c(name, tmp_path, monkeypatch):
     """[plant] delay_jitter_periods, encoder_noise_counts and torque_constant_error in the
     all-C simulation, issue 24's values: the jitter and the counts drawn from the seed's

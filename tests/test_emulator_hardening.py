@@ -92,6 +92,7 @@ def test_the_library_checks_what_the_command_checks():
         VirtualChain("serial", plant_period_s=0.0)
 
 
+@pytest.mark.slow
 def test_a_log_that_cannot_be_written_is_refused_and_nothing_is_left(tmp_path, capsys):
     plain = tmp_path / "plain"
     plain.write_text("")
@@ -213,6 +214,7 @@ def test_the_bridge_refuses_them_as_the_user_s_mistake_before_the_port(baud):
 
 
 @pytest.mark.parametrize("baud", ["0", "-5", "12345"])
+@pytest.mark.slow
 def test_cochlea_run_refuses_them_in_one_line(tmp_path, baud):
     done = subprocess.run(
         [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
@@ -236,6 +238,7 @@ def program() -> Path:
 
 
 @pytest.mark.parametrize("baud", [*BAD_BAUDS, "nan", "4e6x", "115200.5"])
+@pytest.mark.slow
 def test_the_c_program_refuses_them_in_one_line(tmp_path, program, baud):
     out = tmp_path / "run"
     done = subprocess.run([str(program), "--scenario", "serial_joint", "--port",
@@ -306,6 +309,7 @@ def _closed_pipe() -> int:
 
 
 @pytest.mark.parametrize("argv", [["serial"], ["parallel"], ["serial", "--arm", "arm2"]])
+@pytest.mark.slow
 def test_cochlea_model_ends_quietly_when_its_reader_goes_away(argv):
     w = _closed_pipe()
     try:
@@ -316,6 +320,7 @@ def test_cochlea_model_ends_quietly_when_its_reader_goes_away(argv):
     assert done.stderr == "" and done.returncode == 128 + signal.SIGPIPE
 
 
+@pytest.mark.slow
 def test_cochlea_model_through_head_prints_its_first_line_only():
     done = subprocess.run(f"{sys.executable} -u -m cochlea.apps.cochlea_model parallel | head -1",
                           shell=True, capture_output=True, text=True, timeout=120)
@@ -323,6 +328,7 @@ def test_cochlea_model_through_head_prints_its_first_line_only():
     assert done.stderr == ""
 
 
+@pytest.mark.slow
 def test_cochlea_model_on_a_full_disk_says_so_in_one_line():
     with open("/dev/full", "w") as full:
         done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_model"], stdout=full,

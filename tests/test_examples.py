@@ -39,6 +39,7 @@ def test_each_example_scenario_loads(path):
     assert scenario.robot == "serial"
 
 
+@pytest.mark.slow
 def test_the_planar_arm_starter_converges(tmp_path, monkeypatch):
     """A short run of the 2-DoF arm's starter, from another working directory (the scenario
     names its description relative to itself)."""

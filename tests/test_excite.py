@@ -36,6 +36,7 @@ def _fine(result):
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c[1] or c[0])
+@pytest.mark.slow
 def test_design_inside_every_limit(designs, case):
     robot, arm = case
     result = designs[case]
@@ -84,6 +85,7 @@ def test_segment_distance_sees_crossing():
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c[1] or c[0])
+@pytest.mark.slow
 def test_condition_beats_hand_picked_sine(designs, case):
     result = designs[case]
     assert np.isfinite(result.condition) and result.condition < 1e5
@@ -91,6 +93,7 @@ def test_condition_beats_hand_picked_sine(designs, case):
     assert result.scaled_condition < result.sine_scaled_condition / 100
 
 
+@pytest.mark.slow
 def test_gradients_match_finite_differences():
     problem = excite._problem("serial", "arm1", FAST)
     opt = excite._Optimiser(problem, FAST)
@@ -125,6 +128,7 @@ def _without_gearbox(path):
 
 
 @pytest.mark.parametrize("robot,extra", [("serial", ["--arm", "arm2"]), ("parallel", [])])
+@pytest.mark.slow
 def test_scenario_loads_and_tracks_without_a_stop(tmp_path, capsys, robot, extra):
     code, out = _write(tmp_path, f"{robot}.toml", "--robot", robot, *extra)
     assert code == 0
@@ -160,6 +164,7 @@ def test_scenario_loads_and_tracks_without_a_stop(tmp_path, capsys, robot, extra
         assert (error * scale < 0.02).all()  # well under a degree / 2 mm once running
 
 
+@pytest.mark.slow
 def test_cli_run_ends_without_a_stop(tmp_path):
     code, out = _write(tmp_path, "arm1.toml", "--robot", "serial")
     assert code == 0
@@ -172,6 +177,7 @@ def test_cli_run_ends_without_a_stop(tmp_path):
     assert (tmp_path / "run" / "log.csv").exists()
 
 
+@pytest.mark.slow
 def test_same_seed_same_file_other_seed_other_file(tmp_path):
     files = []
     for name, seed in (("a.toml", "7"), ("b.toml", "7"), ("c.toml", "8")):
@@ -242,6 +248,7 @@ def test_bad_out_one_line_exit_5(tmp_path, capsys, where):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 
+@pytest.mark.slow
 def test_infeasible_limits_clear_error():
     # Torques within 1e-4 of their limits: the parallel mechanism's gravity alone needs more.
     options = excite.ExcitationOptions(period=4.0, harmonics=2, starts=1, iterations=5,
@@ -250,6 +257,7 @@ def test_infeasible_limits_clear_error():
         excite.design("parallel", None, options)
 
 
+@pytest.mark.slow
 def test_cli_process_exit_2_no_traceback(tmp_path):
     run = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_excite", "--robot",
                           "serial", "--harmonics", "0", "--out", str(tmp_path / "x.toml")],

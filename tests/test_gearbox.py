@@ -94,6 +94,7 @@ def energy(arm, x, d, n=3):
     return 0.5 * v @ np.array(arm.M(q)) @ v + 0.5 * ia * w @ w + 0.5 * k * dz @ dz
 
 
+@pytest.mark.slow
 def test_the_engaged_gear_only_dissipates(gear, arm):
     """No motor torque, no friction: the links and rotors start engaged and moving against each
     other; the energy (kinetic + the gear's spring) never grows (to 1e-7 of it per period: the
@@ -194,6 +195,7 @@ def test_gear_keys_need_the_gearbox(tmp_path):
         load_scenario(path)
 
 
+@pytest.mark.slow
 def test_the_realistic_preset_has_the_datasheets_gearbox():
     """0.33 deg on every MX-64 joint, the XM540-W270's 0.25 deg through the slider's pinion;
     static friction 1.5x Coulomb; the bridge's offset as the bridge would add it."""
@@ -272,6 +274,7 @@ def test_current_saturation_is_the_motors_torque_once_the_plant_has_the_friction
     assert offset.apply(np.full(3, 10.0))[0] == pytest.approx(offset.saturation[0])
 
 
+@pytest.mark.slow
 def test_double_compensation_shows(tmp_path):
     """A friction-compensating controller (actuators = "all") on a plant that also gets the
     bridge's offset: the efforts the motors apply differ from the commands by the offset."""
@@ -290,6 +293,7 @@ REALISTIC = ["serial_joint_realistic", "serial_task_realistic", "parallel_joint_
 
 @pytest.mark.parametrize("offset", ["auto", True], ids=["auto", "offset"])
 @pytest.mark.parametrize("name", REALISTIC)
+@pytest.mark.slow
 def test_the_c_loops_equal_casadi_on_the_geared_plant(name, offset):
     """The realistic studies on the geared plant (with the bridge's offset forced, too): the C
     driver and the Python loop over the C kernels give the CasADi reference's log."""
@@ -313,6 +317,7 @@ def test_the_c_loops_equal_casadi_on_the_geared_plant(name, offset):
                                                atol=1e-12, err_msg=f"{loop} {a.name}.{key}")
 
 
+@pytest.mark.slow
 def test_the_sim_backend_runs_the_geared_plant():
     """The real-time loop back to back against SimBackend: the same commands as the as-fast
     run, on the C gear plant, measuring the link's [q, qd]."""

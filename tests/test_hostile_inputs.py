@@ -286,6 +286,7 @@ def test_serial_follower_joint_limits_are_checked(tmp_path):
     ["--duration", "inf"],
     ["--scenario", "LATIN1"],
 ])
+@pytest.mark.slow
 def test_entry_point_refuses_without_traceback(tmp_path, argv):
     latin1 = tmp_path / "latin1.toml"
     latin1.write_bytes(("# caf\xe9\n" + SERIAL_JOINT).encode("latin-1"))

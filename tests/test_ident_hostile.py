@@ -81,6 +81,7 @@ def _refused(capsys, main, argv, code, program="cochlea-identify") -> str:
 # ---- the same log twice ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_same_log_twice_is_refused_whatever_its_name(log, tmp_path, capsys):
     copy = tmp_path / "copy"
     shutil.copytree(log, copy)
@@ -193,6 +194,7 @@ def _cell(lines: list[str], row: int, column: int, value: str) -> bytes:
     return "".join(lines[:row] + [",".join(cells) + "\n"] + lines[row + 1:]).encode()
 
 
+@pytest.mark.slow
 def test_damaged_logs_are_refused_in_one_line_naming_the_file(log, tmp_path, capsys):
     text = (log / "log.csv").read_text()
     lines = text.splitlines(keepends=True)
@@ -297,6 +299,7 @@ def _need_root():
                     "does)")
 
 
+@pytest.mark.slow
 def test_full_disk_leaves_the_previous_outputs_and_no_partial_file(log, tmp_path):
     _need_root()
     disk = tmp_path / "disk"
@@ -331,6 +334,7 @@ def test_full_disk_leaves_the_previous_outputs_and_no_partial_file(log, tmp_path
     assert out[-4:] == ["previous", "previous", "previous", "same"], run.stdout
 
 
+@pytest.mark.slow
 def test_read_only_outputs_are_refused_before_the_fit(log, tmp_path):
     _need_root()
     disk = tmp_path / "ro"
@@ -356,6 +360,7 @@ def test_read_only_outputs_are_refused_before_the_fit(log, tmp_path):
     assert not (tmp_path / "ident.json").exists()  # the report never written without its write-back
 
 
+@pytest.mark.slow
 def test_a_report_lands_whole_with_the_previous_mode(log, tmp_path, capsys):
     out = tmp_path / "ident.json"
     out.write_text("previous")

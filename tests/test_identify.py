@@ -186,6 +186,7 @@ def check_recovery(doc: dict, m, truth: np.ndarray, at_least: int) -> np.ndarray
     return good
 
 
+@pytest.mark.slow
 def test_serial_excitation_recovers_the_perturbed_plant(serial_run, capsys):
     tmp, scenario = serial_run
     out = tmp / "ident.json"
@@ -203,6 +204,7 @@ def test_serial_excitation_recovers_the_perturbed_plant(serial_run, capsys):
     assert "held-out effort NRMS" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_parallel_filtering_is_what_makes_encoder_counts_usable(serial_run):
     """Without the parallel filter the twice-differentiated encoder counts swamp the fit;
     with it, the true (unquantised) log and the measured one give the same estimates."""
@@ -219,6 +221,7 @@ def test_parallel_filtering_is_what_makes_encoder_counts_usable(serial_run):
         abs(parallel.beta[armature] / truth[armature] - 1)
 
 
+@pytest.mark.slow
 def test_parallel_excitation_recovers_the_perturbed_plant(parallel_run):
     tmp, scenario = parallel_run
     out = tmp / "ident.json"
@@ -252,6 +255,7 @@ def _copy_log(src: Path, dst: Path, edit) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_bad_logs_are_refused_in_one_line(serial_run, tmp_path, capsys):
     tmp, _ = serial_run
     run = tmp / "run"
@@ -361,6 +365,7 @@ def test_key_lines_follow_arrays_of_tables():
     assert "  mass_kg = 9.5  # c\n" in edited
 
 
+@pytest.mark.slow
 def test_physical_fit_from_a_log_writes_back_a_description_that_loads(serial_run, tmp_path):
     """--physical end to end: the consistent fit agrees with least squares where the data
     are good, passes the description's own validation when written back, and the written
@@ -462,6 +467,7 @@ def _with_timing(src: Path, dst: Path, lateness: np.ndarray, compute: np.ndarray
     return dst
 
 
+@pytest.mark.slow
 def test_logged_sample_times_hold_each_command_from_its_write(serial_run, tmp_path):
     """With --sample-times logged a command acts from the end of its period's work: a log
     whose every period wrote 0.3 periods after its start identifies as the nominal grid does
@@ -490,6 +496,7 @@ def test_logged_sample_times_hold_each_command_from_its_write(serial_run, tmp_pa
         [False]
 
 
+@pytest.mark.slow
 def test_effort_lag_auto_finds_the_held_commands_half_period(serial_run, tmp_path, capsys):
     tmp, _ = serial_run
     out = tmp_path / "ident.json"
@@ -507,6 +514,7 @@ def test_effort_lag_auto_finds_the_held_commands_half_period(serial_run, tmp_pat
     assert "auto: the residual's minimum" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_lag_and_timing_mistakes_are_refused_in_one_line(serial_run, tmp_path, capsys):
     tmp, _ = serial_run
     out = tmp_path / "ident.json"

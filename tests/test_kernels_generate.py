@@ -35,6 +35,7 @@ def regenerated(tmp_path_factory, config):
     return out
 
 
+@pytest.mark.slow
 def test_generated_c_is_fresh(regenerated):
     """The CI check: regenerating from models/ and codegen/ gives generated_c/ byte for byte.
     If this fails, run `cochlea-codegen` (or `make codegen`) and commit generated_c/."""
@@ -47,12 +48,14 @@ def test_generated_c_is_fresh(regenerated):
     assert not stale, f"generated_c/ is stale ({', '.join(stale)}): run cochlea-codegen"
 
 
+@pytest.mark.slow
 def test_generation_is_deterministic(regenerated, config, tmp_path):
     codegen.generate(config, tmp_path)
     for path in (p for p in regenerated.iterdir() if p.is_file()):
         assert path.read_bytes() == (tmp_path / path.name).read_bytes(), path.name
 
 
+@pytest.mark.slow
 def test_check_mode_reports_a_stale_folder(config, tmp_path):
     stale = tmp_path / "generated_c"
     shutil.copytree(GENERATED, stale)
@@ -205,6 +208,7 @@ def _normalised_body(path, names) -> str:
     return re.sub(r"\bNAME\w*", "NAME", text)
 
 
+@pytest.mark.slow
 def test_no_committed_file_repeats_another_up_to_names():
     manifest = _manifest_json()
     names = set(manifest["kernels"]) | set(manifest["closed_loops"])
@@ -217,6 +221,7 @@ def test_no_committed_file_repeats_another_up_to_names():
         bodies[body] = path.name
 
 
+@pytest.mark.slow
 def test_aliases_run_an_emitted_kernel_that_computes_the_same(config):
     """Every alias names a kernel that has C of its own, with its signature; and the
     computations really are equal (the generator's identity, recomputed here on CasADi)."""

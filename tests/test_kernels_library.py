@@ -91,6 +91,7 @@ def _inputs(kernel: codegen.Kernel, rng) -> list[np.ndarray]:
     return values
 
 
+@pytest.mark.slow
 def test_every_kernel_equals_its_casadi_function(lib, kernels, rng):
     """All generated kernels at 20 random points each: relative error <= 1e-12."""
     assert set(lib.names) == {k.name for k in kernels}
@@ -109,6 +110,7 @@ def test_every_kernel_equals_its_casadi_function(lib, kernels, rng):
                 assert np.max(np.abs(g - e), initial=0.0) <= 1e-12 * scale, (k.name, a.name)
 
 
+@pytest.mark.slow
 def test_aliases_keep_their_names_signatures_and_hashes(lib, kernels):
     """A kernel that runs another's C (serial_arm2_e_thesis_step runs serial_arm1_e_step) is
     bound, described and checked for staleness under its own name, as before bodies were

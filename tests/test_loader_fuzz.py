@@ -153,6 +153,7 @@ def _load_or_refuse(loader, path: Path) -> None:
 
 
 @pytest.mark.parametrize("robot", ["serial", "parallel"])
+@pytest.mark.slow
 def test_description_loader_refuses_or_loads(robot, tmp_path):
     target = tmp_path / f"{robot}.toml"
 
@@ -167,6 +168,7 @@ def test_description_loader_refuses_or_loads(robot, tmp_path):
 
 @pytest.mark.parametrize("pair", [("serial_joint", "serial_task"),
                                   ("parallel_joint_realistic", "parallel_task")])
+@pytest.mark.slow
 def test_scenario_loader_refuses_or_loads(pair, tmp_path):
     target = tmp_path / "scenario.toml"
 

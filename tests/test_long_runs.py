@@ -150,6 +150,7 @@ def test_a_writer_a_ring_behind_stops_a_realtime_run(tmp_path, small_chunks, mon
     assert np.array_equal(backend.commands[-1], np.zeros(loop.n))
 
 
+@pytest.mark.slow
 def test_an_as_fast_run_waits_for_a_slow_writer_but_not_for_a_hung_one(tmp_path, small_chunks,
                                                                       monkeypatch):
     write = LogWriter._write
@@ -179,6 +180,7 @@ def test_a_log_that_cannot_be_created_is_refused_before_anything_moves(tmp_path)
 
 
 @pytest.mark.parametrize("seed", range(6))
+@pytest.mark.slow
 def test_chunked_percentiles_equal_numpys(monkeypatch, seed):
     # Few bins and a small exact threshold, so every case narrows over several passes.
     monkeypatch.setattr(loop_module, "_BINS", 8)
@@ -216,6 +218,7 @@ def _peak_mb(seconds: float, tmp_path: Path) -> float:
     return case["after_report_MB"]
 
 
+@pytest.mark.slow
 def test_memory_is_flat_in_the_runs_length(tmp_path):
     """Ten times the periods, the same peak: the loop, its log, the summary and the figures
     read back from it take memory bounded by the ring and the chunks (the whole-run buffer of

@@ -99,6 +99,7 @@ def exported(runs, tmp_path_factory) -> dict[str, dict[str, list]]:
 
 
 @pytest.mark.parametrize("name", ["serial_task_rt", "parallel_joint_fast", "serial_joint_fast"])
+@pytest.mark.slow
 def test_joint_states_are_the_log_sample_for_sample(runs, exported, name):
     header, rows = read_log(runs[name])
     topics = exported[name]
@@ -130,6 +131,7 @@ def test_joint_states_are_the_log_sample_for_sample(runs, exported, name):
 
 
 @pytest.mark.parametrize("name", ["serial_task_rt", "parallel_joint_fast"])
+@pytest.mark.slow
 def test_every_column_group_is_a_labelled_array(runs, exported, name):
     """Each unit's column groups (estimates, efforts, errors, ...) and the run-level timing are
     Float64MultiArrays whose layout names each element with its unit; together they carry
@@ -158,6 +160,7 @@ def test_every_column_group_is_a_labelled_array(runs, exported, name):
     assert ("/run/timing" in topics) == (name == "serial_task_rt")  # real time only
 
 
+@pytest.mark.slow
 def test_message_counts_and_nothing_else(runs, exported):
     """Every topic has one message per period, except /rosout (start, stop or verdict, end)."""
     for name, topics in exported.items():
@@ -169,6 +172,7 @@ def test_message_counts_and_nothing_else(runs, exported):
                 assert len(messages) == len(rows), (name, topic)
 
 
+@pytest.mark.slow
 def test_tool_poses_are_the_logged_poses(runs, exported):
     header, rows = read_log(runs["serial_task_rt"])
     topics = exported["serial_task_rt"]
@@ -227,6 +231,7 @@ def compose(transforms: list, frame: str) -> np.ndarray:
 
 
 @pytest.mark.parametrize("name", ["serial_task_rt", "parallel_joint_fast"])
+@pytest.mark.slow
 def test_tf_is_the_models_forward_kinematics(runs, exported, name):
     """At a few samples the tool frames composed from /tf are where the robot model's
     ``fk_world`` puts the tools at the logged q (position and heading), and every unit's
@@ -258,6 +263,7 @@ def test_tf_is_the_models_forward_kinematics(runs, exported, name):
 
 
 @pytest.mark.parametrize("chunk", [37, 100])
+@pytest.mark.slow
 def test_chunked_reading_gives_the_same_messages(runs, exported, tmp_path, monkeypatch, chunk):
     """Long logs are read a chunk of rows at a time: with chunks that split the 300 rows
     unevenly (37) or evenly (100, then an empty read), every message is the same as read in
@@ -300,6 +306,7 @@ def test_quaternions_of_rotations(rng):
     assert np.all(w >= 0)
 
 
+@pytest.mark.slow
 def test_events_say_how_the_run_ended(runs, exported):
     topics = exported["serial_task_rt"]
     summary = json.loads((runs["serial_task_rt"] / "summary.json").read_text())
@@ -351,6 +358,7 @@ def copy_run(runs, tmp_path: Path, name: str = "serial_task_rt") -> Path:
     return Path(shutil.copytree(runs[name], tmp_path / "run"))
 
 
+@pytest.mark.slow
 def test_not_a_run(capsys, tmp_path, runs):
     assert "is missing" in refused(capsys, str(tmp_path / "nothing"))
     (tmp_path / "file").write_text("x")
@@ -373,6 +381,7 @@ def test_not_a_run(capsys, tmp_path, runs):
     ("summary_robot", "no robot"),
     ("missing_columns", "is not this run's log"),
 ])
+@pytest.mark.slow
 def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damage, message):
     run = copy_run(runs, tmp_path)
     csv = run / "log.csv"
@@ -408,6 +417,7 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
     no_output(run)
 
 
+@pytest.mark.slow
 def test_bad_outputs(capsys, tmp_path, runs):
     run = copy_run(runs, tmp_path)
     (tmp_path / "folder.mcap").mkdir()
@@ -428,6 +438,7 @@ def test_bad_outputs(capsys, tmp_path, runs):
         "afile", "dangling.mcap", "folder.mcap", "pipe.mcap", "run"]
 
 
+@pytest.mark.slow
 def test_unwritable_output_folder(capsys, tmp_path, runs):
     """A folder no one may create files in (/proc: even root cannot) and, for a user, a folder
     without write permission."""
@@ -442,6 +453,7 @@ def test_unwritable_output_folder(capsys, tmp_path, runs):
     assert not list(locked.iterdir())
 
 
+@pytest.mark.slow
 def test_write_failure_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     """A write that fails part way (a full disk: ENOSPC) is one line, and neither the output
     nor its temporary file is left."""
@@ -462,6 +474,7 @@ def test_write_failure_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     no_output(run)
 
 
+@pytest.mark.slow
 def test_interrupt_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     """Ctrl-C part way: exit 130, one line, neither the output nor its temporary file."""
     import cochlea.export.to_mcap as to_mcap
@@ -483,6 +496,7 @@ def test_interrupt_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     no_output(run)
 
 
+@pytest.mark.slow
 def test_non_finite_rows_have_no_transforms(tmp_path, runs):
     """A row whose measured q is not finite (a run stopped by the rule non-finite) keeps its
     joint states (NaN as logged) but has no /tf message; every other row has one."""
@@ -503,6 +517,7 @@ def test_non_finite_rows_have_no_transforms(tmp_path, runs):
     assert len(states) == len(rows) and np.isnan(states[119][3].position[1])
 
 
+@pytest.mark.slow
 def test_existing_output_file_is_replaced_whole(tmp_path, runs):
     run = copy_run(runs, tmp_path, "parallel_joint_fast")
     out = run / "log.mcap"
@@ -513,6 +528,7 @@ def test_existing_output_file_is_replaced_whole(tmp_path, runs):
     assert not no_output_left
 
 
+@pytest.mark.slow
 def test_command_line(tmp_path, runs):
     """The installed command's module: the default output, a one-line report, exit 0; and a
     bad input from the shell, exit 2 without a traceback."""

@@ -98,6 +98,7 @@ def test_codegen_refuses_bad_paths_before_generating(tmp_path, capsys):
                                     f"cochlea-codegen: --config {config}")
 
 
+@pytest.mark.slow
 def test_run_refuses_a_log_that_will_not_fit_on_the_disk(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     need = {}
@@ -130,6 +131,7 @@ def _full_disk(*args, **kwargs):
     ("write_text_atomic", ["summary.json"]),
     ("both", ["log.csv", "summary.json"]),
 ])
+@pytest.mark.slow
 def test_a_report_that_cannot_be_written_says_what_was_lost(tmp_path, capsys, monkeypatch,
                                                              broken, lost):
     for name in (["write_csv", "write_text_atomic"] if broken == "both" else [broken]):
@@ -217,6 +219,7 @@ def _assert_report_whole(out: Path, periods: int | None = None):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.slow
 def test_interrupts_during_the_report_are_acknowledged_not_obeyed(tmp_path, signum):
     out = tmp_path / "run"
     proc = _start([*SERIAL_FAST, "--duration", "20", "--out", str(out)], tmp_path)
@@ -231,6 +234,7 @@ def test_interrupts_during_the_report_are_acknowledged_not_obeyed(tmp_path, sign
 
 
 @pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+@pytest.mark.slow
 def test_an_interrupted_simulation_leaves_nothing_and_says_so(tmp_path, signum, code):
     out = tmp_path / "deep" / "run"
     # The CasADi reference (about 7x real time): the C kernels would finish 200 s in under a
@@ -325,6 +329,7 @@ def test_default_folders_started_in_the_same_second_are_distinct(tmp_path):
     assert all(not any(f.path.iterdir()) for f in names)  # the lock files are gone again
 
 
+@pytest.mark.slow
 def test_simultaneous_runs_each_get_their_own_folder_and_summary(tmp_path):
     procs = [_start([*SERIAL_FAST, "--duration", "0.1"], tmp_path) for _ in range(3)]
     for proc in procs:
@@ -346,6 +351,7 @@ time.sleep(600)
 """
 
 
+@pytest.mark.slow
 def test_an_out_in_use_is_refused_and_freed_when_its_run_dies(tmp_path, capsys):
     out = tmp_path / "shared"
     holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(out)],
@@ -367,6 +373,7 @@ def test_an_out_in_use_is_refused_and_freed_when_its_run_dies(tmp_path, capsys):
     assert _tree(out) == []
 
 
+@pytest.mark.slow
 def test_an_out_that_already_holds_a_run_is_refused_even_unlocked(tmp_path, capsys):
     out = tmp_path / "run"
     assert cochlea_run.main([*SERIAL_FAST, "--duration", "0.1", "--out", str(out)]) == 0
@@ -380,6 +387,7 @@ def test_an_out_that_already_holds_a_run_is_refused_even_unlocked(tmp_path, caps
 
 
 @pytest.mark.parametrize("existing", [False, True])
+@pytest.mark.slow
 def test_a_start_that_fails_removes_what_it_created(tmp_path, existing):
     """The backend cannot start (no such port): the folders made for the run go again (a
     folder the user made stays, empty), so the identical retry fails the same way, not with
@@ -405,6 +413,7 @@ def test_a_start_that_fails_removes_what_it_created(tmp_path, existing):
 
 @pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"),
                                      KeyboardInterrupt()], ids=["full disk", "Ctrl-C"])
+@pytest.mark.slow
 def test_codegen_that_fails_midway_leaves_the_old_files_whole(tmp_path, capsys, monkeypatch,
                                                               failure):
     import shutil
@@ -477,6 +486,7 @@ def _closed_pipe() -> int:
     return w
 
 
+@pytest.mark.slow
 def test_run_whose_reader_went_away_still_runs_and_reports(tmp_path):
     out = tmp_path / "run"
     w = _closed_pipe()
@@ -492,6 +502,7 @@ def test_run_whose_reader_went_away_still_runs_and_reports(tmp_path):
     assert rows == 200  # every period of 0.2 s at 1 kHz
 
 
+@pytest.mark.slow
 def test_run_through_head_prints_its_first_line_and_keeps_its_log(tmp_path):
     out = tmp_path / "run"
     done = subprocess.run(" ".join([*RUN, *SERIAL_FAST, "--duration", "0.2", "--out", str(out)])
@@ -502,6 +513,7 @@ def test_run_through_head_prints_its_first_line_and_keeps_its_log(tmp_path):
     assert (out / "summary.json").is_file()
 
 
+@pytest.mark.slow
 def test_codegen_check_whose_reader_went_away_exits_with_its_verdict(tmp_path):
     w = _closed_pipe()
     try:

@@ -53,6 +53,7 @@ def test_cli_serial_unchanged(capsys):
     assert out.startswith("model 'serial/arm1': 3 joints, newton-euler dynamics")
 
 
+@pytest.mark.slow
 def test_figure_is_written(tmp_path):
     import matplotlib.pyplot as plt
 

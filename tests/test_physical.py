@@ -193,6 +193,7 @@ def write_description(model, full, path):
 # ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_exact_data_give_the_least_squares_base_and_a_consistent_body(model, rng):
     W = stacked_regressor(model, rng)
     phi_true = perturbed_plant(model, rng)
@@ -212,6 +213,7 @@ def test_exact_data_give_the_least_squares_base_and_a_consistent_body(model, rng
     assert_physical(model, fit.full)
 
 
+@pytest.mark.slow
 def test_the_fit_loads_as_a_description_and_means_the_same_parameters(model, rng, tmp_path):
     """The description's own validation accepts the result, and the model built from it has
     exactly the fitted full parameters: the keys mean what body_values says."""
@@ -277,6 +279,7 @@ def impossible_index(model, leading: str) -> int:
 
 
 @pytest.mark.parametrize("which", (0, 1), ids=("inertial", "friction"))
+@pytest.mark.slow
 def test_an_impossible_optimum_gives_a_consistent_fit_with_a_larger_residual(model, rng, which):
     robot = "serial" if model.name.startswith("serial") else "parallel"
     index = impossible_index(model, IMPOSSIBLE[robot][which])
@@ -296,6 +299,7 @@ def test_an_impossible_optimum_gives_a_consistent_fit_with_a_larger_residual(mod
     assert fit.cost == pytest.approx(float(np.sum((W @ fit.base - tau) ** 2)), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_heavy_noise_on_few_rows_with_weights_stays_consistent(model, rng):
     """20 states (60 or 100 rows for 15 or 38 parameters), noise of half the torques' spread:
     the least-squares optimum has negative armatures or frictions."""
@@ -319,6 +323,7 @@ def test_heavy_noise_on_few_rows_with_weights_stays_consistent(model, rng):
                                      rel=1e-12)
 
 
+@pytest.mark.slow
 def test_rows_with_zero_weight_do_not_count(rng):
     model = cochlea.model("serial", parameterisation="base", actuators="all")
     W = stacked_regressor(model, rng, samples=40)
@@ -345,6 +350,7 @@ def test_a_body_beyond_what_a_description_can_hold_is_refused(rng):
         physically_consistent_fit(model, W, W @ beta)
 
 
+@pytest.mark.slow
 def test_the_fit_is_deterministic(model, rng):
     """Noisy data on few rows (the least-squares optimum inconsistent, several rounds): two
     fits of the same data agree to the last bit."""

@@ -99,6 +99,7 @@ def test_the_keys_read_as_written(tmp_path):
                                   [1.05, 0.95, 1.0, 1.1, 0.5])
 
 
+@pytest.mark.slow
 def test_default_off_and_the_realistic_preset_unchanged():
     """Every shipped study loads with the three off; the realistic preset does not set them
     (the realistic studies set them in their own files)."""
@@ -114,6 +115,7 @@ def test_default_off_and_the_realistic_preset_unchanged():
 
 
 @pytest.mark.parametrize("kernels", ["c", "casadi"])
+@pytest.mark.slow
 def test_zero_disturbances_give_todays_log_bit_for_bit(kernels):
     sc = load_scenario("serial_joint_realistic")
     today = simulate(sc, 0.3, kernels=kernels)
@@ -141,6 +143,7 @@ def _ages(unit, rows_from=4):
 
 
 @pytest.mark.parametrize("kernels", ["c", "casadi"])
+@pytest.mark.slow
 def test_the_delay_jitters_between_whole_periods(kernels):
     """delay_periods 1, delay_jitter_periods 2: each period measures the state 1, 2 or 3
     periods old, about a third each, as drawn from the seed (the same draws in every unit:
@@ -181,6 +184,7 @@ def test_the_jitter_leaves_the_gaussian_noise_as_it_was():
 
 @pytest.mark.parametrize("counts", [1, 2])
 @pytest.mark.parametrize("kernels", ["c", "casadi"])
+@pytest.mark.slow
 def test_encoder_noise_is_whole_counts_on_the_grid(kernels, counts):
     """encoder_noise_counts N: each joint's measured position is the encoder's reading of its
     true position off by an integer in -N..N counts, every value about equally often,
@@ -260,6 +264,7 @@ def test_the_torque_at_the_current_limit_scales_too(kernels):
 
 
 @pytest.mark.parametrize("name", REALISTIC)
+@pytest.mark.slow
 def test_the_c_loops_equal_casadi_with_everything_at_once(name):
     """The realistic studies on the geared plant with issue 24's values (delay 1..3 periods,
     +-1 count, 5 % torque-constant error) and Gaussian noise on top: the C driver and the

@@ -27,6 +27,7 @@ STUDIES = ("serial_joint", "serial_task", "parallel_joint", "parallel_task")
 SERIAL_BEFORE_GEARBOX = ("serial_joint", "serial_task")
 
 
+@pytest.mark.slow
 def test_the_preset_sets_every_key_and_each_key_still_overrides(tmp_path):
     sc = load_scenario("serial_task", plant_preset="realistic")
     plant = sc.plant
@@ -150,6 +151,7 @@ def test_the_thesis_gains_do_not_track_on_the_realistic_plant():
     assert converged.count(False) >= 4, converged
 
 
+@pytest.mark.slow
 def test_cochlea_run_plant_realistic_runs_the_study_tuned_for_it(tmp_path):
     out = tmp_path / "run"
     done = subprocess.run(

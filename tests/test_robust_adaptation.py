@@ -165,6 +165,7 @@ def test_box_projection_removes_only_outward_components(actuated, rng):
             assert (p_hat - p) @ (removed / Gamma) >= 0
 
 
+@pytest.mark.slow
 def test_every_estimate_stays_in_its_box_over_a_run_that_leaves_it(tmp_path):
     """The realistic joint-space study: in 3 s arm 1's joint-2 Coulomb estimate falls by a third
     and its armature rises by a fifth; with a +-10 % box every estimate stays in it."""
@@ -287,6 +288,7 @@ def test_quintic_blend_is_c2():
 
 @pytest.mark.parametrize("name", ["serial_joint_realistic", "serial_task", "parallel_joint",
                                   "parallel_task_realistic"])
+@pytest.mark.slow
 def test_ramp_starts_at_the_initial_pose_at_rest_and_reaches_the_plan(tmp_path, name):
     ramp = 0.5
     planned = unit_setups(load_scenario(name))
@@ -328,6 +330,7 @@ def test_ramp_starts_at_the_initial_pose_at_rest_and_reaches_the_plan(tmp_path, 
 BEFORE_GEARBOX = "gearbox = false\nstatic_friction_ratio = 1.0\nbridge_offset = false"
 
 
+@pytest.mark.slow
 def test_the_ramp_removes_the_start_up_velocity_stop(tmp_path):
     """Issue 24: the realistic joint-space study with 3 periods of delay stops on the velocity
     limit in its first 20 ms; ramped in over 0.5 s it does not, and its peak speed stays under
@@ -366,6 +369,7 @@ def everything(tmp_path):
                                    BEFORE_GEARBOX))
 
 
+@pytest.mark.slow
 def test_every_option_runs_the_same_in_c_and_casadi(everything):
     from cochlea.sim.compiled import simulate_compiled
     ref = simulate(everything, 0.8, kernels="casadi")
@@ -379,6 +383,7 @@ def test_every_option_runs_the_same_in_c_and_casadi(everything):
     assert any(np.any(np.all(np.diff(u.p_hat, axis=0) == 0, axis=1)) for u in ref.units)
 
 
+@pytest.mark.slow
 def test_every_option_runs_the_same_in_the_real_time_loop(tmp_path):
     """The real-time loop (sim backend, not paced) runs the options and the ramp as the
     as-fast run does, period for period. Without measurement delay: with it the sim backend
@@ -405,6 +410,7 @@ CC = shutil.which("gcc") or shutil.which("cc")
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")
+@pytest.mark.slow
 def test_every_option_runs_the_same_in_the_embedded_controller(everything, tmp_path):
     """The scenario's embedded controller (generated as cochlea-codegen does), replayed on what
     the CasADi simulation measured: its desired path (the ramp, computed in C), commands and

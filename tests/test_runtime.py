@@ -223,6 +223,7 @@ def test_defaults_pick_the_thesis_study_and_a_new_folder(tmp_path):
     assert summary["timing"]["watchdog_misses_allowed"] == 20
 
 
+@pytest.mark.slow
 def test_wrong_combinations_fail_before_anything_moves(tmp_path):
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "log.csv").write_text("x")
@@ -321,6 +322,7 @@ def test_as_fast_run_of_a_safe_scenario_reports_no_rule():
     assert verdict(result, sup)["saturated_periods"] > 0
 
 
+@pytest.mark.slow
 def test_cli_as_fast_run_exits_with_the_rule_a_real_run_would_stop_on(tmp_path):
     from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 
@@ -344,6 +346,7 @@ def test_cli_as_fast_run_exits_with_the_rule_a_real_run_would_stop_on(tmp_path):
     assert summary["supervisor"]["exit_code"] == 11 and summary["periods"] == 1000
 
 
+@pytest.mark.slow
 def test_as_fast_run_clips_commands_as_the_loop_does(tmp_path):
     """Torque limits low enough to bind: the as-fast run (C and CasADi) applies the same
     clipped commands as the loop against the simulated robot, period for period."""

@@ -257,6 +257,7 @@ def _cli(*args, cwd):
                           capture_output=True, text=True, timeout=180)
 
 
+@pytest.mark.slow
 def test_cli_refuses_wrong_options_before_anything_moves(tmp_path):
     for args, message in [
         (["--sched", "other", "--priority", "3"], "--priority goes with --sched fifo or rr"),

@@ -79,6 +79,7 @@ def test_unreachable_follower_trajectory_fails_before_the_run(tmp_path):
         unit_setups(load_scenario(path))
 
 
+@pytest.mark.slow
 def test_command_line_reports_unreachable_target_with_exit_2(tmp_path):
     path = tmp_path / "far.toml"
     path.write_text(TASK.replace('["0.028 m", "0.01 m", "-103 deg"]',

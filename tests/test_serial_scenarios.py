@@ -32,6 +32,7 @@ def thesis_runs():
 
 
 @pytest.mark.parametrize("name", ["serial_joint", "serial_task"])
+@pytest.mark.slow
 def test_thesis_study_converges(thesis_runs, name):
     """Every tracked coordinate: final RMS (last 20 %) <= 5 % of the initial error."""
     data, failures = converged(thesis_runs[name])
@@ -44,6 +45,7 @@ def test_thesis_study_converges(thesis_runs, name):
 
 
 @pytest.mark.parametrize("name", ["serial_joint", "serial_task"])
+@pytest.mark.slow
 def test_converges_with_heavier_plant_and_payload(name):
     """Plant masses 30 % above nominal and a 20 g payload at each tool point."""
     sc = load_scenario(name)

@@ -70,6 +70,7 @@ def test_every_scenario_is_covered():
 
 
 @pytest.mark.parametrize("name", ["serial_task_realistic", "parallel_joint_realistic"])
+@pytest.mark.slow
 def test_the_realistic_studies_run_the_actuated_kernels(name):
     """Controller with the drives modelled, plant with their rotors behind geared drives (the
     gearbox with backlash and dry friction); without the gearbox, the rigid links with their
@@ -106,6 +107,7 @@ def test_controllers_outside_the_catalogue_fall_back_to_casadi_with_a_warning():
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.slow
 def test_c_kernels_give_the_reference_log(references, name, loop):
     sc, setups, reference = references[name]
     result = csim.simulate_compiled(sc, DURATION, setups, loop=loop)  # no fallback: C or fail
@@ -115,6 +117,7 @@ def test_c_kernels_give_the_reference_log(references, name, loop):
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", RIGID)
+@pytest.mark.slow
 def test_thesis_variants_run_on_the_c_kernels(name, loop):
     """The printed thesis's laws by name, though the C of a law that computes what the corrected
     one does is that law's (serial_arm*_e_thesis_step and its driver are aliases): the source
@@ -137,6 +140,7 @@ def test_thesis_variants_run_on_the_c_kernels(name, loop):
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.slow
 def test_default_kernels_are_c(references, name, monkeypatch):
     sc, setups, reference = references[name]
     calls = []
@@ -184,6 +188,7 @@ def test_coulomb_friction_runs_in_c(name, loop):
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.slow
 def test_every_plant_option_at_once_matches(name, loop):
     """Dry friction, both measurement grids, current quantisation, delay and noise together,
     with the delay jittering, whole encoder counts of noise and a torque-constant error: the C
@@ -271,6 +276,7 @@ def test_the_sim_backend_measures_as_the_as_fast_run(name, options):
 
 
 @pytest.mark.parametrize("options", ["everything", "disturbances"])
+@pytest.mark.slow
 def test_the_sim_backend_reads_and_writes_without_growing_memory(options):
     from cochlea.runtime.sim_backend import SimBackend
 
@@ -286,6 +292,7 @@ def test_the_sim_backend_reads_and_writes_without_growing_memory(options):
 
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
+@pytest.mark.slow
 def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
     """Arm 2's printed G_a diverges within 0.1 s once its torques are not clipped (a
     description with no effective torque limit): same rows, same time, and the noise of the
@@ -312,6 +319,7 @@ def test_divergence_stops_both_kernels_at_the_same_period(loop, tmp_path):
         assert_same_log(result, reference, rows=tame)
 
 
+@pytest.mark.slow
 def test_unavailable_kernels_fall_back_with_a_warning(tmp_path):
     sc = load_scenario("serial_joint")
     base = dataclasses.replace(sc, parameterisation="base", adaptation_gain=1e-4)
@@ -339,6 +347,7 @@ def test_bad_kernels_and_loop_are_user_errors():
         csim.simulate_compiled(sc, 0.01, loop="rust")
 
 
+@pytest.mark.slow
 def test_desired_samples_are_the_desired_function(references):
     sc, setups, _ = references["serial_task"]
     time = np.arange(50) * sc.period

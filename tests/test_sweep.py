@@ -174,6 +174,7 @@ def test_a_bad_spec_is_one_line_exit_2_and_leaves_nothing(case, tmp_path, capsys
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_folder_of_another_spec_or_other_files_is_refused(local_sweep, tmp_path, capsys):
     _, out = local_sweep
     other = write_spec(tmp_path, seed=8)
@@ -195,6 +196,7 @@ def test_a_folder_of_another_spec_or_other_files_is_refused(local_sweep, tmp_pat
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_local_sweep_has_one_row_per_sample_and_a_report(local_sweep, capsys):
     spec_path, out = local_sweep
     rows = rows_of(out)
@@ -222,6 +224,7 @@ def test_local_sweep_has_one_row_per_sample_and_a_report(local_sweep, capsys):
     assert sorted((out / "parts").iterdir()) == parts
 
 
+@pytest.mark.slow
 def test_replay_reproduces_a_row_exactly(local_sweep, tmp_path):
     _, out = local_sweep
     row = next(r for r in rows_of(out) if r["sample"] == 5)
@@ -250,6 +253,7 @@ def test_replay_reproduces_a_row_exactly(local_sweep, tmp_path):
     assert "Sample 5 " in scenario.read_text()
 
 
+@pytest.mark.slow
 def test_replay_of_a_sample_out_of_range_is_refused(local_sweep, capsys):
     _, out = local_sweep
     assert cochlea_sweep.main(["replay", str(out), "8"]) == 2
@@ -263,6 +267,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_a_separate_scheduler_and_worker_give_the_same_rows(local_sweep, tmp_path):
     spec_path, local_out = local_sweep
     port = _free_port()
@@ -292,6 +297,7 @@ def test_a_separate_scheduler_and_worker_give_the_same_rows(local_sweep, tmp_pat
                 p.wait()
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
     from cochlea.sweep import execute
 
@@ -304,6 +310,7 @@ def test_an_unreachable_scheduler_is_one_line_exit_2(tmp_path, capsys, monkeypat
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_a_killed_sweep_resumes_without_duplicates_or_gaps(local_sweep, tmp_path):
     spec_path, local_out = local_sweep
     out = tmp_path / "out"
@@ -333,6 +340,7 @@ def test_a_killed_sweep_resumes_without_duplicates_or_gaps(local_sweep, tmp_path
     assert not list((out / "parts").glob("*.tmp"))
 
 
+@pytest.mark.slow
 def test_part_files_are_plain_parquet(local_sweep):
     _, out = local_sweep
     table = pq.read_table(out / "parts")
@@ -368,6 +376,7 @@ def test_a_report_that_fails_is_one_line_and_keeps_the_samples(tmp_path, monkeyp
     assert f"cochlea-sweep report {tmp_path}" in err
 
 
+@pytest.mark.slow
 def test_a_second_sweep_on_a_running_folder_is_refused(local_sweep, tmp_path, capsys):
     """Two sweeps on one folder would run the same missing samples and write each twice (it
     happened: 650 rows for 400 samples). The running one holds a lock; the second is one line,
@@ -391,6 +400,7 @@ def test_a_second_sweep_on_a_running_folder_is_refused(local_sweep, tmp_path, ca
     assert rows_of(out) == rows_of(local_out)
 
 
+@pytest.mark.slow
 def test_replay_of_a_spec_named_after_its_scenario(tmp_path):
     """docs/robustness/serial_task.toml sweeps serial_task.toml: replay rebuilt both files in
     one temporary folder under their own names, so the spec overwrote the scenario and every

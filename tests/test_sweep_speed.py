@@ -76,6 +76,7 @@ def _assert_same_logs(a, b) -> None:
 
 
 @pytest.mark.parametrize("study", sorted(STUDIES))
+@pytest.mark.slow
 def test_a_row_through_the_cache_equals_the_row_built_from_scratch(study, tmp_path):
     spec = _spec(tmp_path, study)
     texts = [sampling.scenario_text(spec, i) for i in range(spec.total)]
@@ -91,6 +92,7 @@ def test_a_row_through_the_cache_equals_the_row_built_from_scratch(study, tmp_pa
 
 
 @pytest.mark.parametrize("study", sorted(STUDIES))
+@pytest.mark.slow
 def test_simulate_on_cached_setups_equals_fresh_setups(study):
     base = dataclasses.replace(load_scenario(study), duration=0.25)
     sc = stressed(base, 1.2, delay_periods=1, payload_kg=0.02)

@@ -143,6 +143,7 @@ def test_tool_coordinates_and_jacobians_agree_with_pinocchio(which, ur5_file, to
 
 
 @pytest.mark.parametrize("k", range(6))
+@pytest.mark.slow
 def test_inverse_kinematics_round_trips(k, ur5_file, rng):
     cases = _arms(ur5_file if UR5 is not None else None)
     if k >= len(cases):
@@ -221,6 +222,7 @@ def _final_error(result) -> np.ndarray:
     return np.abs(e[-len(e) // 10:]).max(axis=0), np.abs(e[0])
 
 
+@pytest.mark.slow
 def test_planar_two_joint_arm_tracks_a_circle_with_controller_g():
     sc = load_scenario(DATA / "planar2_task.toml")
     assert sc.task == "planar" and sc.controller == "g"
@@ -230,6 +232,7 @@ def test_planar_two_joint_arm_tracks_a_circle_with_controller_g():
     assert np.all(first > 5e-3) and np.all(final < 0.02 * first), (final, first)
 
 
+@pytest.mark.slow
 def test_spatial_four_joint_arm_tracks_position_and_heading(tmp_path):
     arm = load_serial(SPATIAL4).arms[0]
     space = task_space(arm, "position_yaw")
@@ -248,6 +251,7 @@ def test_spatial_four_joint_arm_tracks_position_and_heading(tmp_path):
 
 
 @needs_ur5
+@pytest.mark.slow
 def test_ur5_tracks_a_full_pose_with_controller_g(tmp_path, ur5_file):
     arm = load_serial(ur5_file).arms[0]
     space = task_space(arm, "pose")
@@ -284,6 +288,7 @@ def test_a_task_the_jacobian_is_not_square_for_is_refused(tmp_path, ur5_file):
             unit_setups(load_scenario(path), cache=False)
 
 
+@pytest.mark.slow
 def test_an_initial_task_pose_is_solved_numerically_and_an_unreachable_one_refused(tmp_path):
     gains = "{ G_g = [5.0, 5.0], G_a = [0.5, 0.5] }"
     leader = ["0.03*cos(0.5*t) m", "0.15 + 0.03*sin(0.5*t) m"]
@@ -355,6 +360,7 @@ def test_cochlea_run_refuses_an_unreachable_path_in_one_line_with_exit_2(tmp_pat
     assert len([line for line in err.splitlines() if line.strip()]) == 1
 
 
+@pytest.mark.slow
 def test_controller_e_runs_a_user_arm_from_a_task_space_initial_pose(tmp_path):
     """Joint space on the 4-DoF arm: the initial joint position from an initial (x, y, z,
     heading) by the numeric solver, then e tracks a joint path."""
@@ -375,6 +381,7 @@ def test_controller_e_runs_a_user_arm_from_a_task_space_initial_pose(tmp_path):
     assert np.abs(result.units[0].tracking_error[-200:]).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_a_user_dual_arm_system_mirrors_the_leader_in_the_planar_task(tmp_path):
     """Two copies of the 2-DoF arm facing each other across the cochlea centre: the second
     tracks the leader's desired point reflected through the centre, by controller g."""

@@ -142,6 +142,7 @@ def test_search_space_scales_and_the_sample_is_the_same_for_every_candidate(tmp_
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_local_tune_does_at_least_as_well_as_the_nominal_gains(local_tune):
     spec_path, out = local_tune
     tune = tuning.load(spec_path)
@@ -175,6 +176,7 @@ def test_a_local_tune_does_at_least_as_well_as_the_nominal_gains(local_tune):
     assert all(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials())
 
 
+@pytest.mark.slow
 def test_tuned_scenario_runs_with_cochlea_run_and_holds_the_chosen_gains(local_tune, tmp_path):
     spec_path, out = local_tune
     tune = tuning.load(spec_path)
@@ -201,6 +203,7 @@ def test_tuned_scenario_runs_with_cochlea_run_and_holds_the_chosen_gains(local_t
         assert comparable(rows[0]) == comparable(stored)
 
 
+@pytest.mark.slow
 def test_the_same_command_again_runs_nothing_and_another_spec_is_refused(local_tune, tmp_path,
                                                                          capsys):
     spec_path, out = local_tune
@@ -219,6 +222,7 @@ def test_the_same_command_again_runs_nothing_and_another_spec_is_refused(local_t
     assert {p.name: p.read_bytes() for p in (out / tuning.SAMPLES).iterdir()} == before
 
 
+@pytest.mark.slow
 def test_a_killed_tune_resumes_to_the_same_trials(local_tune, tmp_path):
     spec_path, local_out = local_tune
     out = tmp_path / "out"
@@ -258,6 +262,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_a_separate_scheduler_and_worker_give_the_same_trials(local_tune, tmp_path):
     spec_path, local_out = local_tune
     port = _free_port()
@@ -367,6 +372,7 @@ def test_a_bad_option_is_one_line_exit_2_and_leaves_nothing(case, tmp_path, caps
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_folder_with_other_files_or_an_unreachable_scheduler_is_refused(tmp_path, capsys,
                                                                           monkeypatch):
     spec = write_spec(tmp_path)
@@ -438,6 +444,7 @@ def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
     assert (other / "history.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_a_second_search_on_a_running_folder_is_refused(local_tune, tmp_path, capsys):
     """The running search holds the folder's lock: a second one is one line, exit 2, and
     changes nothing in the folder (both would tell Optuna the same trials)."""

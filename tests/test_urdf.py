@@ -388,6 +388,7 @@ def test_the_header_says_what_is_an_estimate(tmp_path):
 @settings(max_examples=150, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(st.data())
+@pytest.mark.slow
 def test_fuzzed_urdfs_give_a_description_or_a_clear_error(tmp_path, data):
     """Random cuts, insertions and replacements of the fixture, and random bytes: a
     description or a UrdfError, never a traceback."""
@@ -429,6 +430,7 @@ def test_fuzzed_urdfs_give_a_description_or_a_clear_error(tmp_path, data):
 
 
 @pytest.mark.parametrize("source", ["fixture", "ur5"])
+@pytest.mark.slow
 def test_the_starter_scenario_converges(tmp_path, source, monkeypatch):
     """import -> the starter scenario -> a short simulation that converges, the description
     found beside the scenario from another working directory."""

@@ -52,6 +52,7 @@ def _with_keys(tmp: Path, extra_arm: str = "", extra_top: str = "") -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_excitation_defaults_to_the_middle_of_the_limits():
     result = excite.design("serial", None, FAST, description=DESCRIPTION)
     system = robot("serial").load(DESCRIPTION)
@@ -69,6 +70,7 @@ def test_excitation_defaults_to_the_middle_of_the_limits():
     assert result.condition < 1e3
 
 
+@pytest.mark.slow
 def test_working_pose_and_keep_out_volumes_come_from_the_description(tmp_path):
     # A sphere of 4 cm at 0.32 m along 50 deg: the tool passes near it around the working
     # pose (40, 0) deg (tool at 0.35 m along 40 deg) and must keep out.
@@ -89,6 +91,7 @@ def test_working_pose_and_keep_out_volumes_come_from_the_description(tmp_path):
         excite.design("serial", None, FAST, description=inside)
 
 
+@pytest.mark.slow
 def test_without_armature_the_excitation_runs_on_the_ideal_plant(tmp_path):
     """A description with no armature (an imported URDF's) cannot have the geared plant:
     the written scenario asks for the rigid links, and loads."""
@@ -131,6 +134,7 @@ def test_bad_optional_keys_are_refused(tmp_path, extra_arm, extra_top, key):
         robot("serial").load(_with_keys(tmp_path, extra_arm, extra_top))
 
 
+@pytest.mark.slow
 def test_excite_then_identify_a_perturbed_plant(tmp_path, capsys):
     """cochlea-excite --description, the scenario run on a perturbed simulated plant of the
     user robot, cochlea-identify predicting the held-out torques within 5 %."""
@@ -222,6 +226,7 @@ payload_kg = {{uniform = [0.0, 0.05]}}
     return path
 
 
+@pytest.mark.slow
 def test_a_small_sweep_of_the_user_scenario(tmp_path, monkeypatch):
     from cochlea.apps import cochlea_sweep
     from cochlea.sweep import results
@@ -237,6 +242,7 @@ def test_a_small_sweep_of_the_user_scenario(tmp_path, monkeypatch):
     assert all(r["stop_rule"] == "none" and not r["diverged"] for r in rows), rows
 
 
+@pytest.mark.slow
 def test_a_small_tune_of_the_user_scenario(tmp_path, monkeypatch):
     from cochlea.apps import cochlea_tune
 

@@ -77,6 +77,7 @@ def _csv(path):
     ("parallel_joint_realistic", {"delay_jitter_periods": 2, "encoder_noise_counts": 1,
                                   "torque_constant_error": np.full(5, 0.05), "seed": 2}),
 ])
+@pytest.mark.slow
 def test_as_fast_and_real_time_runs_log_the_same_columns_and_agree(tmp_path, name, plant):
     """The same study as fast as possible and in the loop on the simulated robot: the same
     columns with the same meaning (q, qd, pose, error: what the controller measured; true_q,
@@ -116,6 +117,7 @@ def test_as_fast_and_real_time_runs_log_the_same_columns_and_agree(tmp_path, nam
                 (c["converged"], c["measured_converged"])
 
 
+@pytest.mark.slow
 def test_the_error_judged_is_the_true_one_with_the_measured_one_beside_it(tmp_path):
     """With about a count of encoder noise, arm 2 of controller e converges (the plant's true
     error) while the error it measures would say it did not: the summary judges the true one,
@@ -156,6 +158,7 @@ def _delayed_scenario(tmp_path, delay=3):
     return path
 
 
+@pytest.mark.slow
 def test_a_run_its_supervisor_stops_has_not_converged(tmp_path):
     """Controller e measured 3 periods late: at start-up a joint passes its speed limit (a real
     run stops at 16 ms), then the as-fast run goes on and every error converges. converged is
@@ -215,6 +218,7 @@ def test_cochlea_run_as_fast_and_in_real_time_agree(tmp_path, study, code):
     assert "arm1.true_error.x_m" in fast_head or "arm1.true_error.joint1_rad" in fast_head
 
 
+@pytest.mark.slow
 def test_a_sweep_row_agrees_with_the_summary_of_a_stopped_run(tmp_path):
     """cochlea-sweep's row of the same scenario: not converged, not a success, the rule."""
     row = cochlea_sweep.evaluate(_delayed_scenario(tmp_path).read_text())
@@ -225,6 +229,7 @@ def test_a_sweep_row_agrees_with_the_summary_of_a_stopped_run(tmp_path):
 # ---- gravity at the initial pose ----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_shipped_studies_are_held_against_gravity():
     for name in ("serial_joint", "serial_task", "parallel_joint", "parallel_task"):
         for preset in (None, "realistic"):

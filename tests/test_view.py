@@ -123,6 +123,7 @@ def log_rows(folder: Path) -> tuple[list[str], np.ndarray]:
 
 
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint", "imported_arm"])
+@pytest.mark.slow
 def test_frames_are_the_models_forward_kinematics(runs, replays, name):
     """Every kept row is a row of the log, about 50 per second; the tool's frame and the actual
     tool path are the model's ``fk_world`` at that row's ``q``; a joint-space run's desired
@@ -174,6 +175,7 @@ def test_frames_are_the_models_forward_kinematics(runs, replays, name):
         assert np.abs(lengths - lengths[:, :1]).max() < 1e-6
 
 
+@pytest.mark.slow
 def test_keep_out_and_stop_come_from_the_description_and_summary(runs, replays, tmp_path):
     """The keep-out circle is the description's ``keep_out_radius_m`` (the mechanism's
     follows its slider d1); a supervisor's stop in summary.json is marked, a clean run has
@@ -225,6 +227,7 @@ class Server:
 
 
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint", "imported_arm"])
+@pytest.mark.slow
 def test_the_browser_draws_the_replay_and_the_robot_moves(runs, replays, browser, name,
                                                           tmp_path):
     server = Server(runs[name])
@@ -251,6 +254,7 @@ def test_the_browser_draws_the_replay_and_the_robot_moves(runs, replays, browser
     assert changed.sum() > 50, "the robot's region is the same at both times"
 
 
+@pytest.mark.slow
 def test_the_stop_is_shown_on_the_page(runs, browser, tmp_path):
     stopped = tmp_path / "stopped"
     shutil.copytree(runs["parallel_joint"], stopped)
@@ -274,6 +278,7 @@ def one_line(capsys) -> str:
     return err
 
 
+@pytest.mark.slow
 def test_bad_input_is_one_line_and_its_exit_code(runs, tmp_path, capsys):
     good = runs["serial_task"]
     page = tmp_path / "page.html"
@@ -316,6 +321,7 @@ def test_bad_input_is_one_line_and_its_exit_code(runs, tmp_path, capsys):
                                                          "truncated"]
 
 
+@pytest.mark.slow
 def test_html_out_writes_a_self_contained_page(runs, replays, tmp_path, capsys):
     page = tmp_path / "replay.html"
     page.write_text("old")
@@ -327,6 +333,7 @@ def test_html_out_writes_a_self_contained_page(runs, replays, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["replay.html"]
 
 
+@pytest.mark.slow
 def test_a_long_run_is_kept_at_a_lower_rate(runs, monkeypatch):
     """The page's frames are capped (MAX_FRAMES): a run longer than the cap at 50 Hz is kept
     at the rate that fits, first and last rows included."""
@@ -340,6 +347,7 @@ def test_a_long_run_is_kept_at_a_lower_rate(runs, monkeypatch):
     assert capped["times"][-1] == rows[-1, 0]
 
 
+@pytest.mark.slow
 def test_a_row_whose_q_is_not_finite_is_not_drawn(runs, tmp_path):
     """A run stopped by the rule non-finite logs NaN joints: that row has no frames and no
     actual tool point, and the page (strict JSON) is still written."""
