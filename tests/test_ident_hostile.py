@@ -24,7 +24,7 @@ from cochlea.apps import cochlea_excite, cochlea_identify
 from cochlea.apps.cochlea_identify import EXIT_DUPLICATE_LOG, EXIT_OUTPUT_REFUSED, EXIT_WRITE_FAILED
 from cochlea.errors import EXIT_USER_ERROR
 from cochlea.ident import files
-from cochlea.ident.cli import EXIT_TERMINATED, Terminated, sigterm_unwinds
+from cochlea.ident.cli import EXIT_TERMINATED, Terminated, exit_code, sigterm_unwinds
 
 ROOT = Path(__file__).resolve().parent.parent
 FIT = ["--robot", "serial", "--min-speed", "0", "--effort-lag", "0"]
@@ -389,3 +389,19 @@ def test_an_interrupted_write_leaves_no_temporary_file(tmp_path):
     assert report.read_text() == "previous"
     assert signal.getsignal(signal.SIGTERM) == before  # the previous handler is back
     assert EXIT_TERMINATED == 143
+
+
+def test_a_hang_up_during_a_write_unwinds_like_sigterm(tmp_path):
+    """SIGHUP (the terminal or SSH session closed) is a stop like SIGTERM, not a death that
+    leaves staged temporary files: the same unwinding, and the shell's code 128 + 1."""
+    report = tmp_path / "ident.json"
+    report.write_text("previous")
+    before = signal.getsignal(signal.SIGHUP)
+    with pytest.raises(Terminated) as caught, sigterm_unwinds(), files.Staged() as stage:
+        stage.write_text(report, "new")
+        os.kill(os.getpid(), signal.SIGHUP)
+        stage.commit()  # not reached
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ident.json"]
+    assert report.read_text() == "previous"
+    assert signal.getsignal(signal.SIGHUP) == before
+    assert exit_code(caught.value) == 129

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import files
-from ..ident.cli import EXIT_TERMINATED, OneLineParser, Terminated, sigterm_unwinds
+from ..ident.cli import OneLineParser, Terminated, exit_code, sigterm_unwinds
 from ..ident.excite import ExcitationOptions, check_options, design, scenario_text
 from ..robots import ROBOTS, robot
 from ..sim.scenario import load as load_scenario
@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         terminated = isinstance(exc, Terminated)
         print(f"cochlea-excite: {'terminated' if terminated else 'interrupted'}; nothing "
               "written", file=sys.stderr)
-        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+        return exit_code(exc) if terminated else EXIT_INTERRUPTED
     return 0
 
 

@@ -21,7 +21,8 @@ from pathlib import Path
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import current as current_fit
 from ..ident import estimate, files, writeback
-from ..ident.cli import EXIT_TERMINATED, OneLineParser, Terminated, sigterm_unwinds
+from ..ident.cli import OneLineParser, Terminated, sigterm_unwinds
+from ..ident.cli import exit_code as terminated_code
 from ..ident.logs import read_run
 from ..ident.physical import physically_consistent_fit
 from ..robots import ROBOTS, model, robot
@@ -441,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         print("cochlea-identify: " + ("terminated" if isinstance(exc, Terminated) else
                                       "interrupted") + "; nothing written", file=sys.stderr)
-        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+        return terminated_code(exc) if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -20,18 +20,32 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the program is, like Ctrl-C: staged files are removed on the way
-    out (cochlea.ident.files.Staged) and the program exits with EXIT_TERMINATED."""
+    """SIGTERM or SIGHUP (a hang-up: the terminal or session closed), raised where the program
+    is, like Ctrl-C: staged files are removed on the way out (cochlea.ident.files.Staged) and
+    the program exits with :func:`exit_code`."""
+
+    @property
+    def signum(self) -> int:
+        return self.args[0] if self.args else signal.SIGTERM
 
 
-#: The shell's code for SIGTERM.
+#: The shell's code for SIGTERM (129 for SIGHUP: :func:`exit_code`).
 EXIT_TERMINATED = 128 + signal.SIGTERM
+
+#: The stops other than Ctrl-C (which Python raises as KeyboardInterrupt itself).
+_UNWINDING = (signal.SIGTERM, signal.SIGHUP)
+
+
+def exit_code(exc: Terminated) -> int:
+    """The shell's code for the signal that ended the program: 128 + its number."""
+    return 128 + int(exc.signum)
 
 
 @contextlib.contextmanager
 def sigterm_unwinds():
-    """SIGTERM raises :class:`Terminated` for the life of the block (in the main thread; the
-    previous handler is restored), so no temporary file outlives a terminated write."""
+    """SIGTERM and SIGHUP raise :class:`Terminated` for the life of the block (in the main
+    thread; the previous handlers are restored), so no temporary file outlives a terminated or
+    hung-up write."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -39,8 +53,9 @@ def sigterm_unwinds():
     def _raise(signum, frame):
         raise Terminated(signum)
 
-    previous = signal.signal(signal.SIGTERM, _raise)
+    previous = {s: signal.signal(s, _raise) for s in _UNWINDING}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
