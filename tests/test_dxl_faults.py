@@ -34,7 +34,7 @@ from cochlea.dynamixel.drives import joint_drives
 from cochlea.dynamixel.emulator import Faults, check_faults
 from cochlea.errors import CochleaError
 from cochlea.resources import ROBOTS_DIR
-from tests.test_dxl_bringup import dxl, emulator, wait_for_alert
+from tests.test_dxl_bringup import dxl, emulator, scanned, wait_for_alert
 
 hil = pytest.mark.hil
 
@@ -347,3 +347,28 @@ def test_a_goal_refused_after_the_bus_watchdog_expired_says_so(tmp_path):
             bus.close()
     message = str(caught.value)
     assert "Data Range Error" in message and "Bus Watchdog expired" in message, message
+
+
+@hil
+def test_a_stop_during_the_baud_writes_leaves_every_motor_at_the_new_rate(tmp_path, capsys,
+                                                                          monkeypatch):
+    """``configure --baud-to``: a SIGTERM (or Ctrl-C, a hang-up) that comes between two
+    motors' Baud Rate writes waits until every motor has its new rate, so the chain is never
+    left at two rates that no single ``--baud`` reaches."""
+    real_write, sent = common.Bus.write, []
+
+    def write(bus, motor_id, item, value, reply=True):
+        if item.name == "Baud Rate" and not sent:
+            sent.append(motor_id)
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives before the other motors' writes
+        return real_write(bus, motor_id, item, value, reply)
+
+    monkeypatch.setattr(common.Bus, "write", write)
+    with emulator("parallel", tmp_path / "emu.log", "--baud", "57600") as port:
+        code, _, err = dxl(capsys, "configure", "--robot", "parallel", "--port", port,
+                           "--baud", "57600", "--baud-to", "4000000")
+        assert sent and code == 128 + signal.SIGTERM, err
+        monkeypatch.setattr(common.Bus, "write", real_write)
+        code, out, _ = dxl(capsys, "scan", "--port", port, "--baud", "57600", "--baud",
+                           "4000000", "--ids", "1-8")
+    assert {b for b, _, _ in scanned(out)} == {4_000_000} and len(scanned(out)) == 5, out

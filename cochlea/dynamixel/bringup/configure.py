@@ -24,6 +24,7 @@ import argparse
 import sys
 from dataclasses import dataclass
 
+from ...console import signals_held
 from ..control_table import Item, baud_code
 from ..drives import JointDrive
 from . import common
@@ -140,8 +141,12 @@ def run(args: argparse.Namespace) -> int:
         if wrong:
             return _failed(wrong, bus)
         if bauds:
-            for w in bauds:
-                bus.write(w.drive.id, w.item, w.value)  # answered at the old rate
+            # All or none: a stop (Ctrl-C, SIGTERM, a hang-up) that comes between two motors'
+            # writes would leave the chain at two rates, which no single --baud then reaches;
+            # it waits the few milliseconds until every motor has its new rate.
+            with signals_held():
+                for w in bauds:
+                    bus.write(w.drive.id, w.item, w.value)  # answered at the old rate
             bus.open(baud_to)
             try:
                 common.check_chain(bus, drives)
