@@ -26,7 +26,7 @@ from ..robots.urdf import export_urdf  # the public face of the serial kind's UR
 from ..sim.scenario import load as load_scenario
 
 #: The raw log's groups the bridge needs, and the unit suffixes of their elements.
-RAW_GROUPS = {"q": JOINT_UNITS, "qd": ("_rad_s", "_m_s"), "tau": ("_Nm", "_N")}
+RAW_GROUPS = {"q": JOINT_UNITS, "qd": ("_rad_s", "_m_s"), "tau": ("_N_m", "_Nm", "_N")}
 
 
 @dataclass
@@ -73,18 +73,21 @@ def describe_scenario(scenario_name: str) -> tuple[object, object]:
 
 def raw_units(adapter, system, names: list[str], where: Path) -> list[UnitColumns]:
     """Per unit, the ``q``, ``qd``, ``tau`` columns of ``log.bin`` from ``log.columns.json``'s
-    names (``q.UNIT.JOINT_rad``, ...)."""
+    names: ``UNIT.GROUP.JOINT_UNIT`` (``arm1.q.joint1_rad``, the one schema of every log,
+    docs/logs.md), or a version-1 log's ``GROUP.UNIT.JOINT_UNIT``."""
     units = []
     for unit in adapter.layout(system, "joint").units:
         n = int(adapter.link_frames(system, unit).function.size1_in(0))
         groups = {}
         for group, suffixes in RAW_GROUPS.items():
             g = Group(group)
-            prefix = f"{group}.{unit}."
-            for index, name in enumerate(names):
-                if name.startswith(prefix) and name.endswith(suffixes):
-                    g.columns.append(index)
-                    g.elements.append(name[len(prefix):])
+            for prefix in (f"{unit}.{group}.", f"{group}.{unit}."):  # version 2, then 1
+                for index, name in enumerate(names):
+                    if name.startswith(prefix) and name.endswith(suffixes):
+                        g.columns.append(index)
+                        g.elements.append(name[len(prefix):])
+                if g.columns:
+                    break
             if len(g.columns) != n:
                 raise RunFolderError(f"{where} is not this robot's log: unit {unit} has {n} "
                                      f"joints but the log has {len(g.columns)} {group} columns")
