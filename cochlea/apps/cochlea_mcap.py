@@ -12,35 +12,21 @@ the same folder and renamed once complete, an existing file being replaced only 
 from __future__ import annotations
 
 import argparse
-import os
-import stat
 import sys
 from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..export.to_mcap import Exporter
-from .outputs import atomic_path
+from .outputs import atomic_path, check_output_file
 
 PROG = "cochlea-mcap"
 
 
 def check_output(path: Path) -> None:
-    """Refuse an output that exists and is not a regular file, or whose folder we cannot
-    write; creates nothing."""
-    if os.path.lexists(path):
-        try:
-            mode = os.stat(path).st_mode
-        except OSError as exc:
-            raise CochleaError(f"--out {path}: cannot use it ({exc.strerror})") from None
-        if not stat.S_ISREG(mode):
-            raise CochleaError(f"--out {path} exists and is not a regular file: name a new "
-                               "file or an existing .mcap file to replace")
-    folder = path.parent
-    if not folder.is_dir():
-        raise CochleaError(f"--out {path}: the folder {folder} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise CochleaError(f"--out {path}: the folder {folder} is not writable")
+    """Refuse an output that exists and is not a regular file, or whose folder is missing or
+    not writable; creates nothing."""
+    check_output_file(path, "--out", ".mcap")
 
 
 def export(run_dir: Path, out: Path | None = None) -> tuple[Path, dict[str, int]]:

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import http.server
-import os
-import stat
 import sys
 import webbrowser
 from pathlib import Path
@@ -27,7 +25,7 @@ from pathlib import Path
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..view import DEFAULT_RATE_HZ, build_replay, render_page
-from .outputs import atomic_path
+from .outputs import atomic_path, check_output_file
 
 PROG = "cochlea-view"
 EXIT_PORT = 3
@@ -45,19 +43,7 @@ class PortError(CochleaError):
 def check_output(path: Path) -> None:
     """Refuse an output that exists and is not a regular file, or whose folder is missing or
     not writable; creates nothing."""
-    if os.path.lexists(path):
-        try:
-            mode = os.stat(path).st_mode
-        except OSError as exc:
-            raise OutputError(f"--html-out {path}: cannot use it ({exc.strerror})") from None
-        if not stat.S_ISREG(mode):
-            raise OutputError(f"--html-out {path} exists and is not a regular file: name a new "
-                              "file or an existing .html file to replace")
-    folder = path.parent
-    if not folder.is_dir():
-        raise OutputError(f"--html-out {path}: the folder {folder} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"--html-out {path}: the folder {folder} is not writable")
+    check_output_file(path, "--html-out", ".html", OutputError)
 
 
 def page_of(run_dir: Path, rate_hz: float = DEFAULT_RATE_HZ) -> tuple[str, dict]:

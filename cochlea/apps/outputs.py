@@ -346,6 +346,25 @@ def claim_new(parent: Path, name: str, option: str = "--out") -> OutputFolder:
 # --------------------------------------------------------------------------------------------
 
 
+def check_output_file(path: Path, option: str, suffix: str,
+                      error: type[CochleaError] = CochleaError) -> None:
+    """Refuse an output file that exists and is not a regular file, or whose folder is missing
+    or not writable; creates nothing (cochlea-mcap's ``--out``, cochlea-view's ``--html-out``)."""
+    if os.path.lexists(path):
+        try:
+            mode = os.stat(path).st_mode
+        except OSError as exc:
+            raise error(f"{option} {path}: cannot use it ({exc.strerror})") from None
+        if not stat.S_ISREG(mode):
+            raise error(f"{option} {path} exists and is not a regular file: name a new "
+                        f"file or an existing {suffix} file to replace")
+    folder = path.parent
+    if not folder.is_dir():
+        raise error(f"{option} {path}: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise error(f"{option} {path}: the folder {folder} is not writable")
+
+
 def temporary_name(path: Path) -> Path:
     """A hidden name next to ``path`` (same folder, so same disk: the rename is atomic), with
     ``path``'s suffix kept (matplotlib picks the format by it)."""
