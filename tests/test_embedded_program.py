@@ -28,8 +28,9 @@ from tests.test_dynamixel_hil import (
     SHARED_MACHINE,
     assert_fault_stop,
     assert_log_complete,
+    lagged,
     last_commands,
-    run,
+    run_on_emulator,
 )
 from tests.test_dynamixel_hil import emulator as started_emulator
 
@@ -64,27 +65,6 @@ def program() -> Path:
     assert done.returncode == 0, done.stderr[-3000:]
     assert "warning" not in done.stderr
     return PROGRAM
-
-
-def lagged(out: Path, before: float = float("inf")) -> bool:
-    """Whether a run stopped on the read watchdog before ``before`` s: on this shared machine
-    the emulator (a Python process integrating the plant) now and then falls tens of
-    milliseconds behind, six reads time out and the program rightly stops. Seen in a few runs
-    of a hundred on a quiet machine, more under load; the runs that are not about failed
-    reads tolerate more of them (PATIENT), and a fault run stopped so before its fault is
-    repeated once, on a fresh emulator; a second one fails the test. The same lag can end a
-    run on the velocity limit instead: reads time out while the emulator is behind, then it
-    integrates the plant over the lost time at once and the next reads show a joint catching
-    up faster than its limit (seen under a load average above 10 on 2 cores); a velocity-limit
-    stop of a run whose reads timed out counts as lagged too."""
-    try:
-        summary = json.loads((out / "summary.json").read_text())
-        stop, failures = summary["stop"], summary["timing"]["bus"]["failures"]
-    except (OSError, ValueError, KeyError):
-        return False
-    behind = (stop["rule"] == "watchdog" and "read failures" in stop["detail"]) or \
-        (stop["rule"] == "velocity-limit" and failures.get("timeout", 0) > 0)
-    return behind and stop["time_s"] < before
 
 
 def on_emulator(program: Path, tmp_path: Path, emulator_args: tuple, *args: str,
@@ -165,13 +145,12 @@ def python_resolution(name: str, q: np.ndarray) -> dict:
 def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, program, robot,
                                                                  space):
     name, duration = f"{robot}_{space}", 5.0
-    py_out = tmp_path / "py"
+    (tmp_path / "py").mkdir()
     done, c_out, c_log = on_emulator(program, tmp_path, (robot, name), "--scenario", name,
                                      "--duration", str(duration), *PATIENT)
     assert done.returncode == 0, done.stderr
-    with emulator(robot, name, tmp_path / "py.log") as port:
-        reference = run("--robot", robot, "--space", space, "--backend", "dynamixel", "--port",
-                        port, "--duration", str(duration), "--out", str(py_out), cwd=tmp_path)
+    reference, py_out, _ = run_on_emulator(robot, name, tmp_path / "py", "--robot", robot,
+                                           "--space", space, "--duration", str(duration))
     assert reference.returncode == 0, reference.stderr
 
     # The report is written under temporary names and renamed: none is left behind.
