@@ -121,8 +121,9 @@ class Injected:
     AMPS_PER_EFFORT plus the period's index in mA, so every period's value is its own."""
 
     def __init__(self, backend: SimBackend, at: int = -1, change=None, fail_from: int = -1,
-                 measured: bool = False):
+                 measured: bool = False, fail_first: int = 0):
         self.backend, self.at, self.change, self.fail_from = backend, at, change, fail_from
+        self.fail_first = fail_first  # the first reads fail, before anything is measured
         self.k = 0
         self.last_io_time_s = 0.0
         self.shutdowns = 0
@@ -138,7 +139,7 @@ class Injected:
 
     def read(self, x: np.ndarray) -> bool:
         k, self.k = self.k, self.k + 1
-        if 0 <= self.fail_from <= k:
+        if 0 <= self.fail_from <= k or k < self.fail_first:
             return False
         ok = self.backend.read(x)
         if k == self.at and self.change is not None:
@@ -328,6 +329,22 @@ def test_every_rule_stops_both_loops_alike(lib, expected, measured):
         assert stop[1] == 1 and stop[4] == -7.0 and stop[5] == 6.0
     if expected == "watchdog":
         assert stop[6] == 6 and stop[7] == 1  # six failed reads in a row
+
+
+@pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+def test_nothing_is_commanded_before_the_first_good_read_in_either_loop(lib, name):
+    """The first three reads fail: both loops write zero effort, step no controller and log NaN
+    for the state and the errors until the first good read, then run alike (a controller
+    computed on the zeros the loops started with once commanded the slider's full force)."""
+    failed = 3
+    rule, stop, c_rows, backend = c_run(lib, name, 60, fail_first=failed)
+    py_stop, py_rows, _ = python_run(name, 60, fail_first=failed)
+    assert lib.shim_rule_name(rule).decode() == py_stop.rule == "completed"
+    n = backend.backend.nq
+    assert_rows_equal(c_rows, py_rows, n)
+    state, tau = c_rows[:, 1:1 + 2 * n], c_rows[:, 1 + 2 * n:1 + 3 * n]
+    assert np.isnan(state[:failed]).all() and np.isfinite(state[failed:]).all()
+    assert not tau[:failed].any() and tau[failed].any()
 
 
 def test_keep_out_stops_both_loops_alike(lib):

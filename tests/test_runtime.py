@@ -147,6 +147,44 @@ def test_watchdog_on_backend_failures():
     assert f"{limit + 1} consecutive backend read failures" in stop.detail
 
 
+class FirstReadsFail(RecordingBackend):
+    """The first ``at`` reads fail before anything is measured (x untouched), as a hardware
+    backend's first SYNC_READ of a run can time out."""
+
+    def read(self, x):
+        self.k += 1
+        return False if self.k <= self.at else SimBackend.read(self, x)
+
+
+@pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+def test_nothing_is_commanded_before_the_first_good_read(name):
+    """A controller computed on a state never measured (the zeros the loop started with) once
+    commanded the slider's full force in period 0: until the first good read the loop writes
+    zero effort, steps no controller and logs NaN for the state and the errors."""
+    from cochlea.apps.report import unit_summary
+
+    failed = 3
+    sc, loop, backend = make_loop(name, at=failed, seconds=0.05, backend_cls=FirstReadsFail)
+    stop = loop.run()
+    assert stop.rule == "completed" and loop.rows == 50
+    commands = np.array(backend.commands)
+    assert not commands[:failed].any() and commands[failed].any()
+    n = loop.n
+    rows = loop.buffer[:loop.rows]
+    state = rows[:, 1:1 + 2 * n]
+    assert np.isnan(state[:failed]).all() and np.isfinite(state[failed:]).all()
+    assert not rows[:failed, 1 + 2 * n:1 + 3 * n].any()
+    result = loop.result(sc)
+    for u, setup in zip(result.units, loop.setups):
+        # The first period with a measured state used the initial estimate: nothing stepped.
+        assert np.array_equal(u.p_hat[failed], setup.p_hat0)
+        assert np.isnan(u.errors[:failed]).all() and np.isfinite(u.errors[failed:]).all()
+        # The report's initial error is the first measured period's.
+        for entry, e0 in zip(unit_summary(u)["tracked"].values(),
+                             np.abs(u.measured_tracking_error[failed])):
+            assert entry["measured_initial_abs_error"] == pytest.approx(e0)
+
+
 class SlowBackend(RecordingBackend):
     def read(self, x):
         if self.k >= 50:

@@ -100,7 +100,12 @@ class _ErrorStats:
 
     def add(self, e: np.ndarray, start: int) -> None:
         if self.initial is None:
-            self.initial = np.abs(e[0])
+            # The first period with a measured state: a run whose first reads failed logs NaN
+            # until its first good read (the loop commands nothing before it).
+            rows = np.flatnonzero(np.isfinite(e).all(axis=1))
+            if not len(rows):
+                return
+            self.initial = np.abs(e[rows[0]])
         first = max(self.tail_start - start, 0)
         if first < len(e):
             # Column by column, as np.mean sums a column: a one-chunk run's numbers are exact.

@@ -678,6 +678,12 @@ class RealTimeLoop:
         if self.rows:  # a second run of the same loop starts from the first chunk again
             self._fill_desired(0)
         self.rows = 0
+        # Nothing measured yet: a failed first read leaves NaN here, never a state the robot is
+        # not in (zeros computed a full-effort command on the slider once), and the loop
+        # commands zero effort until its first good read (see the period below).
+        x[:] = np.nan
+        measured_once = False
+        nan_errors = [np.full(len(kern.outputs[2]), np.nan) for kern in self.kernels]
         t0 = clock()
         previous_start = t0
         for k in range(self.steps):
@@ -726,7 +732,16 @@ class RealTimeLoop:
                 buf[slot] = row
                 self.rows = k + 1
                 return stop
-            for kern, kin, q_u, qd_u, tau_u, (xd, xd_dot, xd_ddot), row_err, row_p in units:
+            measured_once = measured_once or ok
+            if not measured_once:
+                # No state measured yet: command nothing (zero effort keeps the drives' Bus
+                # Watchdog fed and their torque off), step no controller, count the failure.
+                tau[:] = 0.0
+                for (_, kin, *_, row_err, row_p), nan in zip(units, nan_errors):
+                    row_err[:] = nan
+                    row_p[:] = kin[5]
+            for kern, kin, q_u, qd_u, tau_u, (xd, xd_dot, xd_ddot), row_err, row_p in (
+                    units if measured_once else ()):
                 kin[0][:] = q_u
                 kin[1][:] = qd_u
                 kin[2][:] = xd[j]

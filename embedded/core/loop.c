@@ -141,6 +141,11 @@ int cochlea_loop_begin(cochlea_loop *loop)
     }
     loop->k = 0;
     loop->read_errors = 0;
+    /* Nothing measured yet: a failed first read leaves NaN in q and qd, never a state the
+     * robot is not in, and the period commands zero effort until the first good read. */
+    loop->measured = 0;
+    fill_nan(loop->q, loop->scenario->nq);
+    fill_nan(loop->qd, loop->scenario->nq);
     loop->consecutive_overruns = 0;
     loop->previous_end_ns = 0;
     loop->in_period = 0;
@@ -235,10 +240,21 @@ static int period(cochlea_loop *loop)
                 cell += unit->np;
             }
         }
-        r = sc->step_period ? sc->step_period(loop->controller, k, loop->q, loop->qd, loop->tau,
-                                              loop->errors)
-                            : sc->step(loop->controller, t, loop->q, loop->qd, loop->tau,
-                                       loop->errors);
+        loop->measured = loop->measured || r;
+        if (!loop->measured) {
+            /* No state measured yet: command nothing (zero effort keeps the drives' Bus
+             * Watchdog fed and their torque off) and step no controller. */
+            for (i = 0; i < n; ++i) {
+                loop->tau[i] = 0.0;
+            }
+            fill_nan(loop->errors, sc->ne);
+            r = 0;
+        } else {
+            r = sc->step_period ? sc->step_period(loop->controller, k, loop->q, loop->qd,
+                                                  loop->tau, loop->errors)
+                                : sc->step(loop->controller, t, loop->q, loop->qd, loop->tau,
+                                           loop->errors);
+        }
         { /* errors, unit after unit, between tau and the estimate */
             double *cell = row_tau + n;
             for (u = 0; u < sc->n_units; ++u) {

@@ -126,6 +126,7 @@ typedef struct {
     int64_t k;                       /* the next period */
     volatile int in_period;          /* 1 while cochlea_loop_period runs */
     int read_errors;                 /* consecutive failed reads (and writes) */
+    int measured;                    /* 1 from the run's first good read */
     int consecutive_overruns;
     int64_t previous_start_ns, previous_end_ns;
     /* Scratch. */
