@@ -102,6 +102,21 @@ def test_quintic_meets_every_point_and_is_c2_and_holds_the_last(serial):
         assert np.allclose(q, P[-1, i]) and not qd.any() and not qdd.any()
 
 
+def test_the_loops_sampler_is_the_paths_exact_derivatives(serial):
+    """The run samples each unit through :func:`D.sampler` (derivatives written out); the
+    scenario's checks see the expression differentiated by CasADi: the same numbers."""
+    _, prepared, x0 = serial
+    times, P, V, A = good(x0, np.array([0.0, 0.13, 0.5, 0.61, 1.0]))
+    tr = D.from_message(message(prepared.names, times, P, V, A), TOPIC)
+    paths = D.splines(tr, D.check_numbers(tr, prepared.names), np.concatenate([x0, 0 * x0]))
+    fast = D.sampler("arm2", paths[3:])
+    t = ca.SX.sym("t")
+    exact = desired_function("arm2", ca.vertcat(*[p.expression(t) for p in paths[3:]]), t)
+    grid = np.concatenate([np.linspace(0, 1.2, 1201), np.random.default_rng(1).uniform(0, 1, 50)])
+    for a, b in zip(fast.map(len(grid))(grid[None, :]), exact.map(len(grid))(grid[None, :])):
+        assert np.allclose(np.array(a), np.array(b), rtol=1e-12, atol=1e-9)
+
+
 def test_positions_only_is_a_c2_spline_at_rest_and_a_late_first_point_starts_at_x0(serial):
     _, prepared, x0 = serial
     times = np.array([0.2, 0.5, 0.9, 1.4])

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from ..errors import CochleaError
-from ..robots.adapter import desired_function, sample_times
+from ..robots.adapter import sample_times
 from ..runtime.supervisor import build_supervisor
 from ..sim.setup import check_run_length, unit_setups
 
@@ -202,6 +202,45 @@ class JointSpline:
         for j in range(5, 0, -1):
             value = row[j] + s * value
         return value
+
+
+def sampler(name: str, paths: list[JointSpline]) -> ca.Function:
+    """``t -> (x, x_dot, x_ddot)`` of a unit's joints (as :func:`cochlea.robots.adapter.
+    desired_function` gives a scenario's), the derivatives written out from the polynomials
+    instead of differentiated through the segment look-up: two look-ups a sample for the whole
+    unit (the segment, then every joint's coefficients), so the loop's chunk of desired
+    samples costs what a scenario formula's does. Equal to the expression's exact derivatives
+    (``tests/test_ros2_desired.py``)."""
+    starts = paths[0].starts
+    count = len(starts)
+    t = ca.SX.sym("t")
+    index = ca.interpolant(f"{name}_segment", "linear", [[*starts, starts[-1] + 1.0]],
+                           [float(i) for i in range(count + 1)])
+    k = ca.floor(ca.fmin(ca.fmax(index(t), 0.0), count - 1))
+    rows = [[s, *(c for p in paths for c in p.coefs[i])] for i, s in enumerate(starts)]
+    if count == 1:
+        rows.append(rows[0])
+    table = ca.interpolant(f"{name}_coefficients", "linear",
+                           [[float(i) for i in range(len(rows))]],
+                           np.array(rows, float).ravel().tolist())
+    row = table(k)
+    s = t - row[0]
+    x, xd, xdd = [], [], []
+    for j in range(len(paths)):
+        c = [row[1 + 6 * j + i] for i in range(6)]
+        value, rate, curve = c[5], 5 * c[5], 20 * c[5]
+        for i in range(4, -1, -1):
+            value = c[i] + s * value
+        for i in range(4, 0, -1):
+            rate = i * c[i] + s * rate
+        for i in range(4, 1, -1):
+            curve = i * (i - 1) * c[i] + s * curve
+        x.append(value)
+        xd.append(rate)
+        xdd.append(curve)
+    return ca.Function(f"desired_{name}", [t], [ca.vertcat(*x), ca.vertcat(*xd),
+                                                 ca.vertcat(*xdd)],
+                       ["t"], ["x", "x_dot", "x_ddot"])
 
 
 def _segments(times, p, v, a) -> tuple[list[float], list[list[float]]]:
@@ -436,12 +475,10 @@ def _check_periods(tr, paths, setups, supervisor, run_s, period, names) -> None:
     """Every period of the run on the interpolated path: the supervisor's rules, and the effort
     the plant needs to follow it (its inverse dynamics) within each joint's effort limit and
     drive (the description gives no acceleration limit: this is what bounds acceleration)."""
-    t = ca.SX.sym("t")
     functions, first = [], 0
     for u in setups:
         m = u.controller_model.nq
-        expr = ca.vertcat(*[p.expression(t) for p in paths[first:first + m]])
-        functions.append(desired_function(u.name, expr, t))
+        functions.append(sampler(u.name, paths[first:first + m]))
         first += m
     n = first
     units = [un for u in setups for un in u.joint_units]
@@ -476,11 +513,16 @@ def _check_periods(tr, paths, setups, supervisor, run_s, period, names) -> None:
 
 def checked_setups(scenario, prepared: Desired, on_motors: bool = False):
     """The run's setups (:func:`cochlea.sim.setup.unit_setups`: the simulation layer's checks
-    of a scenario's desired path), a refusal there worded as the topic's."""
+    of a scenario's desired path), a refusal there worded as the topic's; each unit's
+    ``desired`` then its :func:`sampler` (the same path, sampled at a scenario formula's
+    cost)."""
     try:
-        return unit_setups(scenario, on_motors=on_motors)
+        setups = unit_setups(scenario, on_motors=on_motors)
     except CochleaError as exc:
         raise refused(prepared.topic, str(exc)) from None
+    for u, unit in zip(setups, scenario.units, strict=True):
+        u.desired = sampler(u.name, list(unit.desired_joint))
+    return setups
 
 
 @dataclass
