@@ -274,6 +274,25 @@ def test_the_interpolated_path_is_checked_between_the_points(serial):
              ["at t = 0.001 s: effort: arm1/joint1 needs", "more than the 2.5 N m"])
 
 
+@pytest.mark.slow
+def test_the_scenario_checks_of_a_desired_path_run_on_it():
+    """What only the simulation layer checks (here the mechanism's workspace) refuses the
+    topic's path as it refuses a scenario's, in one line with exit 9."""
+    sc = load_scenario("parallel_joint")
+    prepared = D.prepare(sc, TOPIC, 5.0)
+    assert prepared.names[2] == "mechanism/slider.d1"
+    x0 = prepared.setups[0].x0[:5]
+    P = np.tile(x0, (3, 1))
+    P[1, 3] += 0.8  # right.th1, inside its limits; the right side's end out of reach
+    run_sc, _ = D.take(prepared, sc, None, 1000.0, message(prepared.names, [0.0, 3.0, 6.0], P))
+    with pytest.raises(D.TopicError) as info:
+        D.checked_setups(run_sc, prepared)
+    text = str(info.value)
+    assert info.value.code == D.EXIT_REFUSED and "\n" not in text
+    assert "trajectory refused, nothing moved: " in text
+    assert "the desired configuration leaves the workspace at t = " in text
+
+
 def test_a_last_point_that_moves_is_not_held_and_a_run_needs_a_period(serial):
     _, prepared, x0 = serial
     times, P, V, A = good(x0, np.arange(16) * 0.1)  # ends moving (t = 1.5 s)
