@@ -327,6 +327,7 @@ def test_bad_options_are_exit_2(capsys, tmp_path, options, expected):
 @pytest.mark.parametrize("args, expected", [
     (["--space", "task", "--desired-topic", TOPIC], "goes with --space joint"),
     (["--space", "joint", "--desired-topic", "not a topic"], "a ROS 2 topic name"),
+    (["--space", "joint", "--desired-timeout", "5"], "--desired-timeout goes with --desired-topic"),
 ])
 def test_a_task_space_run_or_a_bad_topic_name_is_exit_2(capsys, tmp_path, args, expected):
     code = cochlea_run.main(["--robot", "serial", *args, "--out", str(tmp_path / "run")])

@@ -164,7 +164,7 @@ def _parser() -> argparse.ArgumentParser:
                         "JointTrajectory on this ROS 2 topic, check it as a scenario's path and "
                         "follow it instead of the scenario's (docs/logs.md, A desired trajectory "
                         "from ROS 2)")
-    p.add_argument("--desired-timeout", type=float, default=ros2_desired.DEFAULT_TIMEOUT_S,
+    p.add_argument("--desired-timeout", type=float,
                    metavar="S", help="--desired-topic: seconds to wait for the message "
                    f"(default {ros2_desired.DEFAULT_TIMEOUT_S:g}; exit 8 without one)")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
@@ -341,6 +341,8 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
     if args.desired_topic is not None:  # waits for the trajectory, checks it (exit 4, 8, 9)
         topic = ros2_desired.from_topic(args, scenario)
         scenario, run.desired_source = topic.scenario, topic.source
+    elif args.desired_timeout is not None:
+        raise CochleaError("--desired-timeout goes with --desired-topic TOPIC")
     if args.rate is not None:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
     if args.duration is not None:  # the up-front checks sample the run's actual duration

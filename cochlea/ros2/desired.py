@@ -546,7 +546,8 @@ def from_topic(args, scenario) -> FromTopic:
         raise CochleaError("--desired-topic goes with --backend sim: the first point is checked "
                            "against the measured initial state, which on the motors is read "
                            "only once the run starts")
-    timeout = check_timeout(args.desired_timeout)
+    timeout = check_timeout(DEFAULT_TIMEOUT_S if args.desired_timeout is None
+                            else args.desired_timeout)
     prepared = prepare(scenario, args.desired_topic, timeout)
     print(f"cochlea-run: waiting up to {timeout:g} s for a {MESSAGE_TYPE} on "
           f"{prepared.topic} (joints {', '.join(prepared.names)})", flush=True)
