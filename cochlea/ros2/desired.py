@@ -6,11 +6,11 @@ Before anything moves, ``cochlea-run`` waits (``--desired-timeout``) for one
 then runs it exactly as a scenario's own ``desired_joint`` path: every unit's path becomes a
 CasADi expression in ``t`` (:class:`JointSpline`), so the simulation layer's own checks of a
 scenario's desired path (:func:`cochlea.sim.setup.unit_setups`: finite at every period, the
-adapters' joint limits and workspace, the initial state, gravity) run on it, and the loop
-precomputes its samples as it does a scenario's. Before that, the run's own supervisor rules
-(:func:`cochlea.runtime.supervisor.build_supervisor`, with the keep-out circle) are applied to
-every point and to every period of the interpolated path, and the nominal effort the path
-needs to every period (docs/logs.md, "A desired trajectory from ROS 2").
+adapters' joint limits and workspace) run on it, and the loop precomputes its samples as it
+does a scenario's (through :func:`sampler`, at a formula's cost). Before that, the run's own
+supervisor rules (:func:`cochlea.runtime.supervisor.build_supervisor`, with the keep-out
+circle) are applied to every point and to every period of the interpolated path, and so is
+the effort the plant needs to follow it (docs/logs.md, "A desired trajectory from ROS 2").
 
 Nothing here imports ROS until :func:`receive` is called: the checks are plain numbers
 (:class:`Trajectory`), tested without a ROS graph.
