@@ -10,7 +10,12 @@ Exit codes (also in the README):
  2    the user's input is wrong (options, scenario, description, unreachable target); nothing
       moved
  3    ``--realtime off``: the simulation diverged (the log up to that period is written)
+ 4    ``--desired-topic``: ROS 2 (rclpy, trajectory_msgs) is not installed; nothing moved
  5    the backend could not start (port, motors); nothing moved
+ 8    ``--desired-topic``: no trajectory on the topic within ``--desired-timeout``; nothing
+      moved
+ 9    ``--desired-topic``: the trajectory failed a check (the line names the point or time and
+      the rule); nothing moved
  10   safe stop: a joint left its position limits (10-14 also for ``--realtime off``: the rule
       a real run would have stopped on; the as-fast run went on, its log is complete)
  11   safe stop: a joint exceeded its velocity limit
@@ -51,6 +56,7 @@ from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.library import ENVIRONMENT
 from ..robots import ROBOTS
 from ..robots.motor_fit import bridge_compensates_friction
+from ..ros2 import desired as ros2_desired
 from ..runtime import (
     EXIT_BACKEND,
     FIFO_PRIORITY,
@@ -153,6 +159,14 @@ def _parser() -> argparse.ArgumentParser:
                         "process of its own that publishes /joint_states, /tf and "
                         "/robot_description from log.bin at 50 Hz; the run never waits on it "
                         "(docs/logs.md, Live on ROS 2)")
+    p.add_argument("--desired-topic", metavar="TOPIC",
+                   help="--space joint, --backend sim: wait for one trajectory_msgs/"
+                        "JointTrajectory on this ROS 2 topic, check it as a scenario's path and "
+                        "follow it instead of the scenario's (docs/logs.md, A desired trajectory "
+                        "from ROS 2)")
+    p.add_argument("--desired-timeout", type=float,
+                   metavar="S", help="--desired-topic: seconds to wait for the message "
+                   f"(default {ros2_desired.DEFAULT_TIMEOUT_S:g}; exit 8 without one)")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
                    help="live one-line status while running (auto: when stderr is a terminal)")
     rt = p.add_argument_group(
@@ -202,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     except BackendError as exc:
         print(f"cochlea-run: the backend could not start, nothing moved: {exc}", file=sys.stderr)
         return EXIT_BACKEND
+    except ros2_desired.TopicError as exc:
+        print(f"cochlea-run: {exc}", file=sys.stderr)
+        return exc.code
     except CochleaError as exc:
         print(f"cochlea-run: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
@@ -244,6 +261,7 @@ class _Run:
         self.shield = outputs.SignalShield("cochlea-run")
         self.kept = False
         self.simulating = False
+        self.desired_source: dict | None = None  # --desired-topic: summary.json's record
 
     def claim(self, default: str) -> Path:
         # Held off until the folder is recorded here: an interrupt meanwhile would leave the
@@ -319,13 +337,20 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
     study = f"{args.robot}_{args.space}" + ("_realistic" if args.plant == "realistic" else "")
     scenario = load_scenario(args.scenario or study, plant_preset=args.plant)
     _validate(args, scenario)
+    topic = None
+    if args.desired_topic is not None:  # waits for the trajectory, checks it (exit 4, 8, 9)
+        topic = ros2_desired.from_topic(args, scenario)
+        scenario, run.desired_source = topic.scenario, topic.source
+    elif args.desired_timeout is not None:
+        raise CochleaError("--desired-timeout goes with --desired-topic TOPIC")
     if args.rate is not None:
         scenario = dataclasses.replace(scenario, rate_hz=args.rate)
     if args.duration is not None:  # the up-front checks sample the run's actual duration
         scenario = dataclasses.replace(scenario, duration=args.duration)
     # Validates the whole run's path before anything moves, and that the drives hold the robot
     # against gravity where it starts (on the motors: at their Current Limits).
-    setups = unit_setups(scenario, on_motors=args.backend == "dynamixel")
+    setups = unit_setups(scenario, on_motors=args.backend == "dynamixel") if topic is None \
+        else topic.setups()
     # Which kernels, decided once and checked (names and source hashes) before anything runs:
     # --kernels c refuses here; auto falls back here, and says so below and in summary.json.
     choice = choose_kernels(setups, scenario.plant_substeps, args.kernels, args.library)
@@ -351,6 +376,7 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
         start = time.perf_counter()
         result = simulate(scenario, args.duration, setups, kernels=args.kernels)
         result.kernels = choice.summary()
+        result.desired_source = run.desired_source
         wall = time.perf_counter() - start
         run.shield.defer()  # from here the report is written whatever the user presses
         run.simulating, run.kept = False, True
@@ -414,6 +440,7 @@ def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
     wall = time.perf_counter() - start
     result = loop.result(scenario)
     result.kernels = choice.summary()
+    result.desired_source = run.desired_source
     if loop.kernel_source != choice.used:  # checked above, so never expected: said if so
         result.kernels.update(used=loop.kernel_source, fallback_reason="the real-time loop "
                               "could not bind the C kernels checked before the run")

@@ -300,6 +300,8 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "realtime": realtime,
         "wall_time_s": wall_time_s,
         "units": units,
+        # Only where the desired path is not the scenario's formulas (--desired-topic).
+        **({"desired_source": result.desired_source} if result.desired_source else {}),
     }
 
 

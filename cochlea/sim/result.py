@@ -151,6 +151,9 @@ class SimulationResult:
     #: ``summary()``: ``used`` "c" with its ``library``, or "casadi" with the ``reason`` when
     #: C was asked for and could not run it), or None where nobody recorded it.
     kernels: dict | None = None
+    #: Where the desired path came from when not the scenario's formulas (``cochlea-run
+    #: --desired-topic``: the topic, the message's stamp and points), else None.
+    desired_source: dict | None = None
 
     def unit(self, name: str) -> UnitLog:
         return next(u for u in self.units if u.name == name)
