@@ -190,6 +190,20 @@ def test_the_prismatic_arm_matches_pinocchio(rng):
         lifted * 9.81, rel=1e-12)
 
 
+def test_cochlea_model_takes_metres_at_a_prismatic_joint(capsys):
+    """--at-deg is deg at a revolute joint and m at a prismatic one (as the description's
+    poses), and the printout says each unit and the transmission."""
+    assert cochlea_model.main(["serial", "--description", str(PRISMATIC3), "--at-deg", "10",
+                               "0.05", "-20"]) == 0
+    out = capsys.readouterr().out
+    assert "at q = [10 deg, 0.05 m, -20 deg]:" in out
+    assert "transmission carriage: lead screw 0.02 m: 0.0031831 m per motor rad" in out
+    assert "G(q) [N m; N at a prismatic joint] =  0.000e+00   3.924e+00" in out
+    # The carriage 0.05 m up from 0.1 m: the forearm's tool (0.15 m, pitched -20 deg) higher.
+    z = 0.1 + 0.05 + 0.15 * math.sin(math.radians(20.0))
+    assert f"{z:.6f} m" in out
+
+
 @pytest.mark.slow
 def test_the_prismatic_study_converges_in_simulation():
     from cochlea.apps import report
