@@ -4,7 +4,9 @@
 base link to a tip link, merges the links that fixed joints attach into the moving link they
 hang from (masses and centres of mass combined, inertias by the parallel-axis theorem, a fixed
 joint's transform folded into the next moving joint's origin) and writes the description text
-(``cochlea-robot/1``, one arm). :func:`export_urdf` writes one arm of a description as a URDF.
+(``cochlea-robot/1``, one arm), a prismatic joint's transmission from the file's
+``<transmission>`` (its ``mechanicalReduction``) or the ``--transmission`` option.
+:func:`export_urdf` writes one arm of a description as a URDF.
 :func:`starter_scenario` writes a gentle joint-space scenario for an imported arm.
 
 Angles of the file (joint and inertial ``rpy``) within :data:`SNAP_TOLERANCE_RAD` of a multiple
@@ -691,7 +693,7 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
     ]
     for link, drive in zip(chain, drives, strict=True):
         if drive.transmission is not None:
-            lines.append(f"# * joint {link.joint.name!r}'s transmission: {drive.source}; "
+            lines.append(f"# * the transmission of joint {link.joint.name!r}: {drive.source}; "
                          "its sign is the motor's direction.")
     if keep_out_radius is None:
         lines += ["# No keep_out_radius_m: no keep-out circle around the world origin "
