@@ -349,12 +349,20 @@ def test_option_mistakes_are_one_line(tmp_path, capsys):
                                                       "upper"])
 
 
-def test_a_starter_scenario_needs_revolute_joints(tmp_path, capsys):
-    """A run needs a motor on every joint, and serial descriptions drive revolute joints only
-    (robots/serial/adapter.py, actuated_joints): refused before anything is written."""
-    line = _run_bad(tmp_path, capsys, [str(ARM4), "--scenario-out", str(tmp_path / "s.toml")])
-    assert "joint 'extend' is prismatic" in line
-    assert not (tmp_path / "s.toml").exists()
+def test_a_starter_scenario_drives_a_prismatic_joint(tmp_path, capsys):
+    """The fixture's prismatic joint has a <transmission>: the starter is written, moves it in
+    metres, and its plan has a motor on every joint (the carriage's m/rad from the URDF)."""
+    from cochlea.dynamixel.drives import joint_drives
+    from cochlea.sim import load_scenario
+
+    out, starter = tmp_path / "robot.toml", tmp_path / "s.toml"
+    assert main(["import", str(ARM4), "--out", str(out), "--scenario-out", str(starter)]) == 0
+    scenario = load_scenario(starter)
+    assert scenario.system.path == out
+    assert "0.01*sin" in starter.read_text() and " m\"" in starter.read_text()
+    drives = {d.name: d for d in joint_drives("serial", out)}
+    assert drives["arm.slider"].type == "prismatic"
+    assert drives["arm.slider"].ratio == pytest.approx(0.01, rel=1e-15)
 
 
 def test_tip_picks_one_path_through_a_branch(tmp_path, capsys):
@@ -437,7 +445,7 @@ def test_the_starter_scenario_converges(tmp_path, source, monkeypatch):
     from cochlea.apps import report
     from cochlea.sim import load_scenario, simulate
 
-    if source == "fixture":  # a run drives revolute joints only: the slider becomes one
+    if source == "fixture":  # the slider made revolute: a run of the revolute joints' starter
         urdf = tmp_path / "arm4r.urdf"
         urdf.write_text(ARM4.read_text(encoding="utf-8").replace(
             'name="extend" type="prismatic"', 'name="extend" type="revolute"'), encoding="utf-8")

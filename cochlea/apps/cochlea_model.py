@@ -39,8 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--description", help="a robot description TOML instead of the shipped "
                         "one (models/robots/)")
     parser.add_argument("--at-deg", nargs="+", type=float, metavar="DEG",
-                        help="serial: joint angles in degrees at which to evaluate M, G and "
-                             "the tool pose (default: all zero)")
+                        help="serial: joint angles in degrees (metres for a prismatic joint) "
+                             "at which to evaluate M, G and the tool pose (default: all zero)")
     parser.add_argument("--at", nargs=5, type=float, metavar="X",
                         help="parallel: th1 th2 d1 th1' th2' in deg, deg, m, deg, deg (default: "
                              "the joint-space scenario's start)")

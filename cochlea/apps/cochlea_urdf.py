@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots.urdf import export_urdf, import_urdf, load_chain, starter_scenario
+from . import outputs
 
 
 def _ids(text: str) -> list[int]:
@@ -27,9 +28,16 @@ def _ids(text: str) -> list[int]:
             from None
 
 
+def _check(path: Path, option: str, suffix: str) -> None:
+    """Before anything is written: an output whose folder is missing or not writable, or that
+    exists as anything but a regular file, is refused (one line, exit 2)."""
+    outputs.check_output_file(path, option, suffix)
+
+
 def _write(path: Path, text: str) -> None:
+    """Atomically: a reader (or a crash) sees the old file or the whole new one."""
     try:
-        path.write_text(text, encoding="utf-8")
+        outputs.write_text_atomic(path, text)
     except OSError as exc:
         raise CochleaError(f"cannot write {path}: {exc.strerror or exc}") from None
 
@@ -45,14 +53,12 @@ def _relative(target: Path, start: Path) -> str:
 def _import(args: argparse.Namespace) -> None:
     if args.out.suffix != ".toml":  # a bare name means a shipped description to the loaders
         raise CochleaError(f"--out {args.out}: a description file name ending in .toml")
+    _check(args.out, "--out", ".toml")
+    if args.scenario_out is not None:
+        _check(args.scenario_out, "--scenario-out", ".toml")
     result = import_urdf(args.urdf, base=args.base, tip=args.tip, motors=args.motor,
-                         ids=args.ids)
-    prismatic = [link.joint.name for link in result.chain if link.joint.type == "prismatic"]
-    if args.scenario_out is not None and prismatic:
-        raise CochleaError(f"--scenario-out: joint {prismatic[0]!r} is prismatic, and a run "
-                           "needs a motor on every joint, which a serial description drives "
-                           "only through a revolute joint; import without --scenario-out for "
-                           "the model alone")
+                         ids=args.ids, transmissions=args.transmission,
+                         keep_out_radius=args.keep_out_radius_m)
     for snap in result.snaps:
         print(f"snapped: {snap}")
     for note in result.notes:
@@ -72,6 +78,7 @@ def _import(args: argparse.Namespace) -> None:
 def _export(args: argparse.Namespace) -> None:
     system = load_chain(args.description)
     arm = system.arm(args.arm) if args.arm else system.arms[0]
+    _check(args.out, "--out", ".urdf")
     _write(args.out, export_urdf(system, arm))
     print(f"wrote {args.out}: arm {arm.name!r}, {len(arm.links)} joints")
 
@@ -94,6 +101,14 @@ def main(argv: list[str] | None = None) -> int:
                           "the URDF joint name); repeatable; default XM540-W270")
     imp.add_argument("--ids", type=_ids, metavar="1,2,..",
                      help="the motors' Dynamixel IDs from base to tip (default: 1..n)")
+    imp.add_argument("--transmission", action="append", metavar="JOINT=KIND:SIZE",
+                     help="a prismatic joint's transmission (required where the URDF has no "
+                          "<transmission> with a mechanicalReduction for it): KIND lead_screw "
+                          "(SIZE: the lead, m per motor turn), pinion or belt (SIZE: the pitch "
+                          "radius, m), ratio (SIZE: m per motor rad); repeatable")
+    imp.add_argument("--keep-out-radius-m", type=float, metavar="R",
+                     help="write keep_out_radius_m = R (m), the keep-out circle around the "
+                          "world origin (default: none written, no keep-out circle)")
     imp.add_argument("--scenario-out", type=Path, metavar="FILE",
                      help="also write a gentle joint-space starter scenario for cochlea-run")
     exp = sub.add_parser("export", help="description -> URDF")

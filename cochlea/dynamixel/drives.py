@@ -6,15 +6,22 @@ Per joint (SI on the joint side: rad or m, rad/s or m/s, N m or N):
   deg per count). ``zero_offset_deg`` in the description is the motor angle at which the joint
   coordinate is zero, ``direction`` (+1 or -1) whether they turn the same way, and ``ratio`` the
   joint travel per motor radian (1 for a revolute joint: the motor's output shaft is the joint;
-  for the slider the transmission's m/rad, e.g. the pinion radius)::
+  for a prismatic joint its transmission's m/rad, > 0: a pinion's or belt pulley's pitch
+  radius, a lead screw's lead over 2 pi; the parallel robot's slider and a serial arm's
+  prismatic joint alike, ``[...transmission]`` in the description)::
 
       q = direction * ratio * (theta - zero_offset)
 
 * **Velocity.** ``qd = direction * ratio * v * 0.229 rpm`` (Present Velocity, 0.229 rpm/LSB).
 * **Current.** ``I = lsb * unit`` with 3.36 mA/LSB (MX-64(2.0)) or 2.69 mA/LSB (XM540-W270).
 * **Effort.** The motor torque is ``tau_m = direction * ratio * effort`` (the same power
-  ``effort * qd = tau_m * theta_dot``); for the slider this is ``force * radius``, the
-  transmission of the description.
+  ``effort * qd = tau_m * theta_dot``, an ideal transmission); at a prismatic joint the effort
+  is a force (N) and ``tau_m`` is ``force * ratio`` (N m): a 20 mm pinion turns 100 N into
+  2 N m, a 20 mm lead screw into 0.32 N m.
+
+Every conversion is one multiplication (and its inverse) by ``direction * ratio`` and the
+motor's unit: position and velocity round to the motor's counts and LSBs, nothing else is
+approximated (tests/test_user_prismatic.py round-trips them).
 
 The fit (thesis Table C.1) maps current to torque: :class:`~cochlea.robots.motor_fit.Fit`, with
 the rule for the offset and the ramp, lives with the robots (:mod:`cochlea.robots.motor_fit`,
@@ -42,13 +49,13 @@ __all__ = ["DEFAULT_RAMP_NM", "Fit", "JointDrive", "current_limit_lsb", "joint_d
 class JointDrive:
     """One joint and the motor driving it, with every conversion between them."""
 
-    name: str  # e.g. "arm1.link2", "slider.d1"
+    name: str  # e.g. "arm1.link2", "slider.d1", "arm.carriage"
     type: str  # "revolute" | "prismatic"
     motor: Motor
     spec: ModelSpec
     direction: int  # +1 | -1
     zero_offset: float  # rad, motor angle at joint zero
-    ratio: float  # joint travel per motor radian (1 for revolute, m/rad for the slider)
+    ratio: float  # joint travel per motor radian (1 for revolute, m/rad for prismatic)
     fit: Fit
     position_limits: tuple[float, float]
     effort_limit: float  # N m or N

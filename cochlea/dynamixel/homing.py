@@ -34,7 +34,7 @@ def load_record(path: Path) -> dict:
         text = Path(path).read_text()
     except FileNotFoundError:
         raise BackendError(f"the slider is not homed: no homing record {path}; run cochlea-dxl "
-                           "home --robot parallel --port PORT first") from None
+                           "home --robot ROBOT [--description FILE] --port PORT first") from None
     except OSError as exc:
         raise BackendError(f"homing record {path}: cannot read it ({exc.strerror}); run "
                            "cochlea-dxl home again") from None
@@ -56,6 +56,13 @@ def load_record(path: Path) -> dict:
     return record
 
 
+def _options(record: dict) -> str:
+    """The ``--robot`` (and ``--description``) a record was made with, as options."""
+    described = record.get("description")
+    return (f" --robot {record.get('robot', 'ROBOT')}"
+            + (f" --description {described}" if described and described != "shipped" else ""))
+
+
 def reference_offset(record: dict, path: Path, drive, marker: int) -> float:
     """The slider's ``q_offset`` (``q = q_per_count * counts + q_offset``) from a valid
     ``record``, given the value the motor holds in :data:`MARKER_ADDRESS`; a BackendError
@@ -71,5 +78,6 @@ def reference_offset(record: dict, path: Path, drive, marker: int) -> float:
     if marker != record["marker"]:
         raise BackendError(f"the slider (ID {drive.id}) was power-cycled or rebooted since it "
                            f"was homed ({record.get('date', 'date unknown')}): its encoder lost "
-                           "its turns; run cochlea-dxl home --robot parallel --port PORT again")
+                           f"its turns; run cochlea-dxl home{_options(record)} --port PORT "
+                           "again")
     return float(record["stop_m"]) - drive.q_per_count * record["raw_counts"]

@@ -261,6 +261,51 @@ def read_actuator(t: Table, jtype: str) -> Actuator:
     return Actuator(**values)
 
 
+#: Kinds of transmission between a motor and a prismatic joint, and the key of their size:
+#: a pinion on a rack or a belt on a pulley (the pitch radius, m: m of travel per motor rad),
+#: a lead screw (its lead, m of travel per motor revolution), or any mechanism given by its
+#: ratio (m of travel per motor radian; what a URDF's ``mechanicalReduction`` gives).
+TRANSMISSIONS = {"pinion": "radius_m", "belt": "radius_m", "lead_screw": "lead_m",
+                 "ratio": "m_per_rad"}
+#: The sizes a transmission may have (m): a lead of 0.1 mm per turn or a radius of 0.1 mm
+#: is below any real screw or pulley, one metre above any; beyond them it is a typo or a unit
+#: mistake (mm written as m) that would scale every position the motor reports.
+TRANSMISSION_RANGE_M = (1e-4, 1.0)
+
+
+@dataclass(frozen=True)
+class Transmission:
+    """How a motor moves a prismatic joint, ideal (lossless, no backlash): ``kind`` (one of
+    :data:`TRANSMISSIONS`) and ``size``: m, a pinion's or pulley's pitch radius, or a lead
+    screw's lead (travel per motor revolution); m/rad for ``ratio``. Its sign is the motor's
+    ``direction``."""
+
+    kind: str
+    size: float  # m (m/rad for "ratio")
+
+    @property
+    def ratio(self) -> float:
+        """Joint travel per motor angle, m/rad (> 0)."""
+        return self.size / (2.0 * math.pi) if self.kind == "lead_screw" else self.size
+
+
+def read_transmission(t: Table) -> Transmission:
+    """A prismatic joint's ``[...transmission]`` table: ``kind`` and its size key
+    (:data:`TRANSMISSIONS`), a finite number within :data:`TRANSMISSION_RANGE_M`."""
+    kind = t.string("kind", tuple(TRANSMISSIONS))
+    lo, hi = TRANSMISSION_RANGE_M
+    if kind == "lead_screw":
+        what = "a positive number (m, the screw's lead: joint travel per motor revolution)"
+    elif kind == "ratio":
+        what = "a positive number (m/rad: joint travel per motor radian)"
+    else:
+        what = f"a positive number (m, the {'pinion' if kind == 'pinion' else 'pulley'}'s " \
+               "pitch radius: joint travel per motor radian)"
+    size = t.bounded(TRANSMISSIONS[kind], what, lambda v: v > 0, lo, hi, "m")
+    t.done()
+    return Transmission(kind, size)
+
+
 def read_motor(t: Table) -> Motor:
     model = t.string("model", tuple(MOTOR_SPECS))
     # Every joint is driven in Current Control mode: a model without it, or whose current unit

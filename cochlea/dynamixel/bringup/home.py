@@ -108,7 +108,11 @@ def run(args: argparse.Namespace) -> int:
     sliders = [d for d in drives if d.type == "prismatic"]
     if not sliders:
         raise CochleaError(f"--robot {args.robot}: it has no slider to home (the parallel "
-                           "robot has)")
+                           "robot has; a serial arm has one where a joint is prismatic)")
+    if len(sliders) > 1:  # one record per robot, and the bridge checks it on every slider
+        raise CochleaError(f"--robot {args.robot}: {len(sliders)} prismatic joints ("
+                           + ", ".join(d.name for d in sliders) + "); cochlea-dxl home and "
+                           "its record hold one: a robot with more cannot be homed yet")
     d = sliders[0]
     stop, speed, timeout = _check(args, d)
     record_path = _record_path(args)  # before anything moves: a move is 10 s or more

@@ -15,7 +15,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ...errors import CochleaError, DescriptionError, KinematicsError, ModelError
+from ...errors import CochleaError, KinematicsError, ModelError
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
@@ -328,14 +328,12 @@ class SerialRobot(RobotAdapter):
         for arm in system.arms:
             for link in arm.links:
                 j = link.joint
-                if j.type != "revolute":
-                    raise DescriptionError(
-                        system.path, f"{arm.name}.{link.name}.joint.type",
-                        "revolute: a motor drives a serial arm's prismatic joint only through "
-                        "a transmission, which serial descriptions do not have", j.type)
+                # m/rad through the transmission (the loader requires one on a prismatic
+                # joint); a revolute joint is the motor's output shaft.
+                ratio = j.transmission.ratio if j.transmission is not None else 1.0
                 joints.append(ActuatedJoint(f"{arm.name}.{link.name}", j.type,
                                             tuple(j.position_limits), j.effort_limit,
-                                            link.motor, 1.0, j.actuator))
+                                            link.motor, ratio, j.actuator))
         return joints
 
     def link_frames(self, system: SerialSystem, unit: str) -> LinkFrames:

@@ -23,11 +23,13 @@ from ..description import (
     Actuator,
     Motor,
     Table,
+    Transmission,
     check_unique_motor_ids,
     open_description,
     read_actuator,
     read_limits,
     read_motor,
+    read_transmission,
     resolve_path,
 )
 
@@ -57,6 +59,10 @@ class Joint:
     #: The joint's own name (optional key ``name``, e.g. carried over from a URDF); None: the
     #: model names it after its link (``link2`` -> ``joint2``).
     name: str | None = None
+    #: How the link's motor moves a prismatic joint (``[arm.link.joint.transmission]``,
+    #: required there: a pinion, belt or lead screw); None for a revolute joint, which the
+    #: motor's output shaft turns directly.
+    transmission: Transmission | None = None
 
 
 @dataclass(frozen=True)
@@ -217,9 +223,21 @@ def _read_joint(t: Table, parent_length: float) -> Joint:
 
     lo, hi, velocity, effort = read_limits(t, jtype)
     actuator = read_actuator(t, jtype)
+    transmission = None
+    if jtype == "prismatic":  # the motor's radians to the joint's metres: never guessed
+        if "transmission" not in t.data:
+            raise t.error("transmission", "a table (the key is missing): a prismatic joint's "
+                          "motor moves it through a transmission, e.g. { kind = "
+                          "\"lead_screw\", lead_m = 0.008 } or { kind = \"pinion\", radius_m "
+                          "= 0.02 } (docs/extending.md)", show_got=False)
+        transmission = read_transmission(t.table("transmission"))
+    elif "transmission" in t.data:
+        raise t.error("transmission", "no transmission on a revolute joint (its motor's output "
+                      "shaft turns it directly; only a prismatic joint has one)",
+                      show_got=False)
     t.done()
     return Joint(jtype, axis, origin_xyz, origin_rpy, (lo, hi), velocity, effort, actuator,
-                 name)
+                 name, transmission)
 
 
 def _read_link(t: Table, parent_length: float) -> Link:

@@ -4,7 +4,9 @@
 base link to a tip link, merges the links that fixed joints attach into the moving link they
 hang from (masses and centres of mass combined, inertias by the parallel-axis theorem, a fixed
 joint's transform folded into the next moving joint's origin) and writes the description text
-(``cochlea-robot/1``, one arm). :func:`export_urdf` writes one arm of a description as a URDF.
+(``cochlea-robot/1``, one arm), a prismatic joint's transmission from the file's
+``<transmission>`` (its ``mechanicalReduction``) or the ``--transmission`` option.
+:func:`export_urdf` writes one arm of a description as a URDF.
 :func:`starter_scenario` writes a gentle joint-space scenario for an imported arm.
 
 Angles of the file (joint and inertial ``rpy``) within :data:`SNAP_TOLERANCE_RAD` of a multiple
@@ -29,7 +31,14 @@ import numpy as np
 
 from ...dynamixel.control_table import MODELS as MOTOR_SPECS
 from ...errors import CochleaError, DescriptionError
-from ..description import MAX_MOTOR_ID, NAME_PATTERN
+from ..description import (
+    MAX_LENGTH_M,
+    MAX_MOTOR_ID,
+    NAME_PATTERN,
+    TRANSMISSION_RANGE_M,
+    TRANSMISSIONS,
+    Transmission,
+)
 from .chain import tool_offset
 from .description import Arm, SerialSystem, load_serial, rpy_matrix
 from .model import build_model
@@ -96,6 +105,9 @@ class Urdf:
     joints: dict[str, UJoint]
     snaps: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: joint name -> the ``mechanicalReduction`` of its ``<transmission>`` (motor rad per
+    #: joint unit: rad/rad, or rad/m at a prismatic joint), where the file gives one.
+    reductions: dict[str, float] = field(default_factory=dict)
 
 
 def _fail(path, message: str) -> UrdfError:
@@ -312,7 +324,39 @@ def read_urdf(path: str | Path) -> Urdf:
                              f"+-{CONTINUOUS_LIMIT_DEG:g} deg")
         joints[name] = UJoint(name, jtype, ends[0], ends[1], xyz, rpy, axis, limits,
                               damping, friction)
-    return Urdf(root.get("name") or path.stem, links, joints, snaps, notes)
+    reductions = _transmissions(path, root, joints, notes)
+    return Urdf(root.get("name") or path.stem, links, joints, snaps, notes, reductions)
+
+
+def _transmissions(path, root, joints: dict[str, UJoint], notes: list[str]) -> dict[str, float]:
+    """Each joint's ``mechanicalReduction`` from the file's ``<transmission>`` elements
+    (ros_control's ``<actuator><mechanicalReduction>``, or the older form directly under
+    ``<transmission>``): the motor's angle per unit of joint travel. A transmission of several
+    joints (a differential) is left out, with a note."""
+    out: dict[str, float] = {}
+    for el in root.findall("transmission"):
+        name = el.get("name") or "(unnamed)"
+        names = [j.get("name") for j in el.findall("joint")]
+        if len(names) != 1:
+            notes.append(f"transmission {name!r} couples {len(names)} joints: left out (a "
+                         "serial arm's motor drives one joint)")
+            continue
+        joint = names[0]
+        if joint not in joints:
+            raise _fail(path, f"transmission {name!r}: its joint {joint!r} is not defined")
+        found = el.findall("actuator/mechanicalReduction") + el.findall("mechanicalReduction")
+        if not found:
+            continue
+        try:
+            value = float((found[0].text or "").strip())
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value != 0.0 and abs(value) <= MAX_VALUE):
+            raise _fail(path, f"transmission {name!r}: mechanicalReduction "
+                        f"{(found[0].text or '').strip()[:40]!r}: expected a finite number, "
+                        f"not zero, within +-{MAX_VALUE:g}")
+        out[joint] = value
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -602,8 +646,13 @@ def _frame_lines(frames: Frames | None) -> list[str]:
 
 def description_text(chain: list[ChainLink], source: Path, robot_name: str,
                      motors: list[str], ids: list[int], notes: list[str],
-                     frames: Frames | None = None) -> str:
-    """The description (``cochlea-robot/1``, one arm) of an extracted chain."""
+                     frames: Frames | None = None,
+                     drives: list[JointTransmission] | None = None,
+                     keep_out_radius: float | None = None) -> str:
+    """The description (``cochlea-robot/1``, one arm) of an extracted chain: ``drives`` each
+    joint's transmission (None: a revolute chain's, none anywhere), ``keep_out_radius`` (m)
+    the ``keep_out_radius_m`` to write (None: none, no keep-out circle)."""
+    drives = drives if drives is not None else [JointTransmission() for _ in chain]
     used_links: set[str] = set()
     used_joints: set[str] = set()
     fits = sorted({m: motor_fit(m) for m in motors}.items())
@@ -641,8 +690,18 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
                     f"{MOTOR_SPECS[m].stall_voltage_V:g} V = "
                     f"{f['a']:g} N cm/A" for m, f in fits) + ".",
         "#   Fit it on the robot (cochlea-dxl calibrate --torque-fit, or cochlea-identify).",
-        "# * keep_out_radius_m = 0.01 is a placeholder (it only matters to task-space runs).",
     ]
+    for link, drive in zip(chain, drives, strict=True):
+        if drive.transmission is not None:
+            lines.append(f"# * the transmission of joint {link.joint.name!r}: {drive.source}; "
+                         "its sign is the motor's direction.")
+    if keep_out_radius is None:
+        lines += ["# No keep_out_radius_m: no keep-out circle around the world origin "
+                  "(cochlea-urdf import", "# --keep-out-radius-m R writes one where a head "
+                  "is near)."]
+    else:
+        lines.append(f"# keep_out_radius_m = {keep_out_radius!r} m: from cochlea-urdf import "
+                     "--keep-out-radius-m.")
     if notes:
         lines += ["#", "# Import notes:"] + [f"# * {n}" for n in notes]
     lines += [
@@ -653,13 +712,13 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
         f'name = "{clean_name(robot_name, set(), "robot")}"',
         'kind = "serial"',
         "gravity_m_s2 = [0.0, 0.0, -9.81]",
-        "keep_out_radius_m = 0.01",
+        *([] if keep_out_radius is None else [f"keep_out_radius_m = {keep_out_radius!r}"]),
         "",
         "[[arm]]",
         'name = "arm"',
         *_frame_lines(frames),
     ]
-    for link, motor, motor_id in zip(chain, motors, ids, strict=True):
+    for link, motor, motor_id, drive in zip(chain, motors, ids, drives, strict=True):
         j, body = link.joint, link.body
         I = body.inertia
         six = [I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]
@@ -698,7 +757,13 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
                 lines.append(f"  viscous_friction_Ns_m = {_f(j.damping)}")
             if j.friction > 0:
                 lines.append(f"  coulomb_friction_N = {_f(j.friction)}")
+            t = drive.transmission
+            lines.append(f'  transmission = {{ kind = "{t.kind}", {TRANSMISSIONS[t.kind]} = '
+                         f"{_f(t.size)} }}")
         fit = motor_fit(motor)
+        direction = ("  direction = -1           # the URDF's mechanicalReduction is negative; "
+                     "calibrate on the robot" if drive.direction < 0 else
+                     "  direction = 1            # placeholder: calibrate on the robot")
         lines += [
             "",
             "  [arm.link.motor]",
@@ -706,10 +771,83 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
             f"  id = {motor_id}",
             f'  fit = {{ a = {fit["a"]!r}, b = 0.0, x = "current_A", y = "torque_Ncm", '
             'source = "placeholder" }',
-            "  direction = 1            # placeholder: calibrate on the robot",
+            direction,
             "  zero_offset_deg = 0.0    # placeholder: calibrate on the robot",
         ]
     return "\n".join(lines) + "\n"
+
+
+@dataclass
+class JointTransmission:
+    """What drives one joint of the chain besides its motor: the prismatic joint's
+    :class:`~cochlea.robots.description.Transmission` (None at a revolute joint), the motor's
+    direction it implies (-1 for a negative ``mechanicalReduction``) and where it came from."""
+
+    transmission: Transmission | None = None
+    direction: int = 1
+    source: str = ""
+
+
+def assign_transmissions(path, urdf: Urdf, chain: list[ChainLink],
+                         options: list[str] | None) -> tuple[list[JointTransmission], list[str]]:
+    """Each joint's transmission: ``--transmission JOINT=KIND:SIZE`` (SIZE in m, m/rad for
+    ``ratio``) first, else the URDF's ``mechanicalReduction`` R of a prismatic joint (motor
+    rad per m: a ``ratio`` of 1/|R| m/rad, the motor's direction the sign of R). A prismatic
+    joint with neither is refused: its motor's radians cannot be turned into metres. Returns
+    the transmissions and notes (a revolute joint's reduction that is not carried)."""
+    by_name = {link.joint.name: link for link in chain}
+    given: dict[str, Transmission] = {}
+    kinds = ", ".join(TRANSMISSIONS)
+    for option in options or []:
+        joint, sep, rest = option.partition("=")
+        kind, colon, size_text = rest.partition(":")
+        if not sep or not colon:
+            raise UrdfError(f"--transmission {option!r}: expected JOINT=KIND:SIZE, e.g. "
+                            "extend=lead_screw:0.008 (m of travel per motor turn)")
+        link = by_name.get(joint)
+        if link is None:
+            raise UrdfError(f"--transmission {option!r}: the chain has no joint {joint!r}; its "
+                            "joints: " + ", ".join(by_name))
+        if link.joint.type != "prismatic":
+            raise UrdfError(f"--transmission {option!r}: joint {joint!r} is {link.joint.type}: "
+                            "only a prismatic joint has a transmission (a revolute joint is "
+                            "its motor's output shaft)")
+        if kind not in TRANSMISSIONS:
+            raise UrdfError(f"--transmission {option!r}: unknown kind {kind!r}; known: {kinds}")
+        try:
+            size = float(size_text)
+        except ValueError:
+            size = math.nan
+        lo, hi = TRANSMISSION_RANGE_M
+        if not lo <= size <= hi:  # NaN fails too
+            unit = "m/rad" if kind == "ratio" else "m"
+            raise UrdfError(f"--transmission {option!r}: expected SIZE a number in "
+                            f"[{lo:g}, {hi:g}] {unit} ({TRANSMISSIONS[kind]})")
+        given[joint] = Transmission(kind, size)
+    out, notes = [], []
+    for link in chain:
+        name, reduction = link.joint.name, urdf.reductions.get(link.joint.name)
+        if link.joint.type != "prismatic":
+            if reduction is not None and reduction != 1.0:
+                notes.append(f"joint {name!r}: the URDF's mechanicalReduction {reduction:g} is "
+                             "not carried (a revolute joint is its motor's output shaft)")
+            out.append(JointTransmission())
+        elif name in given:
+            t = given[name]
+            out.append(JointTransmission(t, 1, f"--transmission {t.kind} "
+                                         f"{TRANSMISSIONS[t.kind]} = {t.size:g}"))
+        elif reduction is not None:
+            out.append(JointTransmission(Transmission("ratio", 1.0 / abs(reduction)),
+                                         1 if reduction > 0 else -1,
+                                         f"the URDF's mechanicalReduction {reduction:g} rad/m, "
+                                         f"1/|R| = {1.0 / abs(reduction):.6g} m/rad"))
+        else:
+            raise UrdfError(f"{path}: joint {name!r} is prismatic and the URDF gives no "
+                            "<transmission> with a mechanicalReduction for it: give it with "
+                            f"--transmission {name}=lead_screw:LEAD_M (m per motor turn), "
+                            f"{name}=pinion:RADIUS_M or {name}=belt:RADIUS_M (m), or "
+                            f"{name}=ratio:M_PER_RAD")
+    return out, notes
 
 
 def assign_motors(path, chain: list[ChainLink], motor_options: list[str] | None,
@@ -750,15 +888,23 @@ class Imported:
 
 
 def import_urdf(path: str | Path, base: str | None = None, tip: str | None = None,
-                motors: list[str] | None = None, ids: list[int] | None = None) -> Imported:
-    """The description text of the chain of a URDF file, with the snaps and notes."""
+                motors: list[str] | None = None, ids: list[int] | None = None,
+                transmissions: list[str] | None = None,
+                keep_out_radius: float | None = None) -> Imported:
+    """The description text of the chain of a URDF file, with the snaps and notes.
+    ``transmissions``: ``JOINT=KIND:SIZE`` options (:func:`assign_transmissions`);
+    ``keep_out_radius`` (m): the ``keep_out_radius_m`` to write, None for none."""
     path = Path(path)
+    if keep_out_radius is not None and not 0.0 < keep_out_radius <= MAX_LENGTH_M:
+        raise UrdfError(f"--keep-out-radius-m {keep_out_radius}: expected a positive number "
+                        f"of metres, at most {MAX_LENGTH_M:g}")
     urdf = read_urdf(path)
     chain, notes, frames = extract_chain(path, urdf, base, tip)
     motor_models, motor_ids = assign_motors(path, chain, motors, ids)
-    notes = urdf.notes + notes
+    drives, drive_notes = assign_transmissions(path, urdf, chain, transmissions)
+    notes = urdf.notes + notes + drive_notes
     text = description_text(chain, path, urdf.name, motor_models, motor_ids,
-                            notes + urdf.snaps, frames)
+                            notes + urdf.snaps, frames, drives, keep_out_radius)
     system = load_text(text, path)
     return Imported(text, chain, urdf.snaps, notes, system)
 
@@ -797,8 +943,9 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
     root = ET.Element("robot", name=f"{system.name}_{arm.name}")
     root.append(ET.Comment(
         f" written by cochlea-urdf export from {system.path.name}, arm {arm.name!r}. Not in "
-        "a URDF, so not here: the motors (model, ID, fit, direction, offset), the armature, "
-        "gravity (a URDF assumes -z; the description's is "
+        "a URDF, so not here: the motors (model, ID, fit, offset), the armature, "
+        "a prismatic joint's kind of transmission (its <transmission> has the ratio only, "
+        "signed by the motor's direction), gravity (a URDF assumes -z; the description's is "
         f"{np.asarray(system.gravity).tolist()} m/s^2) and the keep-out radius. "))
     ET.SubElement(root, "link", name=world)
     ET.SubElement(root, "link", name=base)
@@ -808,6 +955,7 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
     ET.SubElement(fixed, "origin", xyz=_attr_vec(arm.base_xyz),
                   rpy=_attr_vec(arm.base_rpy))
     parent = base
+    transmissions: list[tuple[str, float]] = []
     for link, jname in zip(arm.links, names, strict=True):
         el = ET.SubElement(root, "link", name=link.name)
         inertial = ET.SubElement(el, "inertial")
@@ -830,7 +978,16 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
         if a.viscous or a.coulomb:
             ET.SubElement(je, "dynamics", damping=repr(float(a.viscous or 0.0)),
                           friction=repr(float(a.coulomb or 0.0)))
+        if j.transmission is not None:  # motor rad per m, signed by the motor's direction
+            transmissions.append((jname, link.motor.direction / j.transmission.ratio))
         parent = link.name
+    for jname, reduction in transmissions:  # ros_control's form, after the joints
+        tr = ET.SubElement(root, "transmission", name=f"{jname}_transmission")
+        ET.SubElement(tr, "type").text = "transmission_interface/SimpleTransmission"
+        ET.SubElement(ET.SubElement(tr, "joint", name=jname), "hardwareInterface").text = \
+            "hardware_interface/EffortJointInterface"
+        ET.SubElement(ET.SubElement(tr, "actuator", name=f"{jname}_motor"),
+                      "mechanicalReduction").text = repr(float(reduction))
     # The tool frame, massless: a tool_xyz_m/tool_rpy_deg, or the last link's length_m (the
     # tool point at its end), else import would put the tool point at the last joint.
     if arm.tool_xyz is not None or arm.tool_rpy is not None or np.any(tool_offset(arm) != 0):
