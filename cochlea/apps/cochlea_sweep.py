@@ -23,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from .. import files
 from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import CochleaError, printable
 from ..kernels import library as ckernels
@@ -267,25 +268,14 @@ def write_new(path: Path, text: str, option: str = "--out") -> None:
         raise results.SweepFolderError(
             f"{where}: cannot create it, {parent} "
             + ("is not a folder" if os.path.lexists(parent) else "does not exist"))
-    tmp = None
     try:
-        fd, name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
-        tmp = Path(name)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.link(tmp, path)  # fails if something appeared there meanwhile: nothing replaced
+        files.write_atomic(path, text, replace=False)  # linked: nothing there is replaced
     except FileExistsError:
         raise results.SweepFolderError(f"{where} appeared while it was written: name another"
                                        ) from None
     except OSError as exc:
         raise results.WriteFailed(f"{where}: cannot write it ({exc.strerror or exc})"
                                   ) from None
-    finally:
-        if tmp is not None:
-            results.remove_ours(tmp)
 
 
 def replay_spec(folder: Path) -> sweep_spec.Spec:

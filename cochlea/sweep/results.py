@@ -13,7 +13,6 @@ import fcntl
 import json
 import os
 import stat
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from .. import files
 from ..errors import CochleaError
 from .spec import Spec
 
@@ -86,13 +86,13 @@ def exit_code(exc: CochleaError) -> int:
 
 
 def _kind(mode: int) -> str:
-    for test, name in ((stat.S_ISREG, "a file"), (stat.S_ISLNK, "a symbolic link"),
-                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
-                       (stat.S_ISDIR, "a folder")):
-        if test(mode):
-            return name
-    return "not a regular file"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    if stat.S_ISCHR(mode):
+        return "a character device"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    return files.kind(mode)
 
 
 def check_out(out: Path, option: str = "--out") -> None:
@@ -100,34 +100,22 @@ def check_out(out: Path, option: str = "--out") -> None:
     one (its nearest existing ancestor a writable folder). Writes nothing."""
     out = Path(out)
     where = f"{option} {out}"
-    if os.path.lexists(out):
-        try:
-            mode = os.stat(out).st_mode
-        except OSError as exc:  # a dangling link, a loop of them, a path under a file
-            raise SweepFolderError(f"{where}: cannot use it ({exc.strerror}): name a new or "
-                                   "empty folder") from None
-        if not stat.S_ISDIR(mode):
-            raise SweepFolderError(f"{where} is {_kind(mode)}, not a folder: name a new or "
-                                   "empty folder")
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise SweepFolderError(f"{where}: the folder is not writable (permissions or a "
-                                   "read-only file system): name a folder you may write")
+    p = files.folder_problem(out)
+    if p is None:
         return
-    base = Path(os.path.abspath(out))
-    while not os.path.lexists(base):
-        base = base.parent
-    try:
-        mode = os.stat(base).st_mode
-    except OSError as exc:
-        raise SweepFolderError(f"{where}: cannot create it under {base} ({exc.strerror})"
-                               ) from None
-    if not stat.S_ISDIR(mode):
-        raise SweepFolderError(f"{where}: cannot create it, {base} is {_kind(mode)}, not a "
-                               "folder")
-    if not os.access(base, os.W_OK | os.X_OK):
-        raise SweepFolderError(f"{where}: cannot create it, {base} is not writable "
-                               "(permissions or a read-only file system): name a folder you "
-                               "may write")
+    raise SweepFolderError({
+        "unusable": f"{where}: cannot use it ({p.reason}): name a new or empty folder",
+        "not_folder": f"{where} is {_kind(p.mode or 0)}, not a folder: name a new or empty "
+                      "folder",
+        "not_writable": f"{where}: the folder is not writable (permissions or a read-only "
+                        "file system): name a folder you may write",
+        "ancestor_unusable": f"{where}: cannot create it under {p.path} ({p.reason})",
+        "ancestor_not_folder": f"{where}: cannot create it, {p.path} is {_kind(p.mode or 0)}, "
+                               "not a folder",
+        "ancestor_not_writable": f"{where}: cannot create it, {p.path} is not writable "
+                                 "(permissions or a read-only file system): name a folder "
+                                 "you may write",
+    }[p.code])
 
 
 def make_folder(out: Path, option: str = "--out") -> list[Path]:
@@ -161,16 +149,13 @@ def remove_folders(created: list[Path]) -> None:
 
 def remove_ours(path: Path) -> None:
     """Unlink ``path`` only if it is a regular file (never a link, FIFO, device, folder)."""
-    with contextlib.suppress(OSError):
-        if stat.S_ISREG(os.lstat(path).st_mode):
-            os.unlink(path)
+    files.remove_regular(path)
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """``data`` into ``path`` whole or not at all: written to a new temporary file next to it
-    (created exclusively: nothing there is opened or followed), flushed, and renamed over
-    ``path`` only when ``path`` is absent or a regular file. A failure (a full disk) removes
-    the temporary file and raises :class:`WriteFailed`."""
+    """``data`` into ``path`` whole or not at all (:func:`cochlea.files.write_atomic`), renamed
+    over ``path`` only when ``path`` is absent or a regular file. A failure (a full disk)
+    removes the temporary file and raises :class:`WriteFailed`."""
     path = Path(path)
     try:
         mode = os.lstat(path).st_mode
@@ -181,33 +166,20 @@ def write_atomic(path: Path, data: bytes) -> None:
     if mode is not None and not stat.S_ISREG(mode):
         raise WriteFailed(f"{path} is {_kind(mode)}, not a file this run wrote: it is left as "
                           "it is; move it away and run the same command again")
-    tmp = None
     try:
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        tmp = Path(name)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        files.write_atomic(path, data, only_files=True)
     except OSError as exc:
-        if tmp is not None:
-            remove_ours(tmp)
         raise WriteFailed(f"{path}: cannot write it ({exc.strerror or exc})") from None
 
 
 def is_temporary(path: Path) -> bool:
     """A temporary file of :func:`write_atomic` (or an older run's ``NAME.tmp``)."""
-    return path.name.endswith(".tmp")
+    return files.is_temporary(path)
 
 
 def clean_temporary(folder: Path) -> None:
     """Remove the temporary files a killed run left in ``folder`` (regular files only)."""
-    with contextlib.suppress(OSError):
-        for p in folder.iterdir():
-            if is_temporary(p):
-                remove_ours(p)
+    files.clean_temporary(folder)
 
 
 def flatten(name: str, value: Any) -> dict[str, Any]:
