@@ -215,13 +215,16 @@ def default_mode(path: Path | None = None) -> int:
     return 0o666 & ~mask
 
 
-def temporary(path: Path) -> Path:
-    """Create a new empty temporary file beside ``path`` (``.STEM.XXXXXXXX.tmpSUFFIX``, created
-    exclusively: nothing there is opened or followed) with the mode ``path`` will have, and
-    return its name. An OSError names ``path`` as its filename."""
+def temporary(path: Path, keep_suffix: bool = True) -> Path:
+    """Create a new empty temporary file beside ``path`` (``.STEM.XXXXXXXX.tmpSUFFIX``; without
+    ``keep_suffix`` ``.NAME.XXXXXXXX.tmp``, which no ``*.SUFFIX`` glob of the folder matches),
+    created exclusively (nothing there is opened or followed), with the mode ``path`` will
+    have, and return its name. An OSError names ``path`` as its filename."""
     path = Path(path)
+    prefix, suffix = ((f".{path.stem}.", f"{TMP_MARK}{path.suffix}") if keep_suffix
+                      else (f".{path.name}.", TMP_MARK))
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{TMP_MARK}{path.suffix}",
+        fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix,
                                     dir=path.parent if str(path.parent) else ".")
     except OSError as exc:
         exc.filename = str(path)
@@ -300,16 +303,19 @@ def refuse_non_regular(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path: Path, *, replace: bool = True, only_files: bool = False):
+def atomic_path(path: Path, *, replace: bool = True, only_files: bool = False,
+                keep_suffix: bool = True):
     """Yield a new temporary path beside ``path`` to write (closed, empty); when the block ends
     it is synced and renamed to ``path`` (``replace``; else linked, only if ``path`` is still
     free); when the block raises (an error, a signal that unwinds) it is removed and ``path``
     is as it was. ``only_files``: refuse (OSError) a ``path`` that exists and is not a regular
-    file, before anything is written."""
+    file, before anything is written. ``keep_suffix``: the temporary name ends with
+    ``path``'s suffix (matplotlib picks a figure's format by it); without it, with ``.tmp``
+    (a folder whose ``*.parquet`` must all be whole, :func:`temporary`)."""
     path = Path(path)
     if only_files:
         refuse_non_regular(path)
-    tmp = temporary(path)
+    tmp = temporary(path, keep_suffix)
     try:
         yield tmp
         publish(tmp, path, replace=replace)
@@ -319,10 +325,11 @@ def atomic_path(path: Path, *, replace: bool = True, only_files: bool = False):
 
 
 def write_atomic(path: Path, data: bytes | str, *, replace: bool = True,
-                 only_files: bool = False) -> None:
+                 only_files: bool = False, keep_suffix: bool = True) -> None:
     """``data`` (text is written as UTF-8) into ``path``, whole or not at all
     (:func:`atomic_path`)."""
-    with atomic_path(path, replace=replace, only_files=only_files) as tmp:
+    with atomic_path(path, replace=replace, only_files=only_files,
+                     keep_suffix=keep_suffix) as tmp:
         with open(tmp, "wb") as f:
             f.write(data.encode("utf-8") if isinstance(data, str) else data)
 

@@ -136,6 +136,11 @@ def test_a_write_is_whole_keeps_the_suffix_and_the_mode(tmp_path):
         assert target.read_bytes() == b"old"  # nothing visible before the block ends
         tmp.write_bytes(b"new")
     assert target.read_bytes() == b"new" and (target.stat().st_mode & 0o777) == 0o640
+    with files.atomic_path(tmp_path / "part.parquet", keep_suffix=False) as tmp:
+        # A folder whose *.parquet must all be whole: no glob of the suffix sees the write.
+        assert not list(tmp_path.glob("*.parquet")) and files.is_temporary(tmp)
+        tmp.write_bytes(b"whole")
+    (tmp_path / "part.parquet").unlink()
     files.write_atomic(tmp_path / "new.txt", "text é")
     assert (tmp_path / "new.txt").read_text(encoding="utf-8") == "text é"
     assert listing(tmp_path) == ["figure.png", "new.txt"]

@@ -269,7 +269,8 @@ def write_new(path: Path, text: str, option: str = "--out") -> None:
             f"{where}: cannot create it, {parent} "
             + ("is not a folder" if os.path.lexists(parent) else "does not exist"))
     try:
-        files.write_atomic(path, text, replace=False)  # linked: nothing there is replaced
+        # Linked, not renamed: nothing that appeared there meanwhile is replaced.
+        files.write_atomic(path, text, replace=False, keep_suffix=False)
     except FileExistsError:
         raise results.SweepFolderError(f"{where} appeared while it was written: name another"
                                        ) from None

@@ -167,7 +167,8 @@ def write_atomic(path: Path, data: bytes) -> None:
         raise WriteFailed(f"{path} is {_kind(mode)}, not a file this run wrote: it is left as "
                           "it is; move it away and run the same command again")
     try:
-        files.write_atomic(path, data, only_files=True)
+        # NAME.XXXXXXXX.tmp: every *.parquet in parts/ is a whole batch, whoever globs it.
+        files.write_atomic(path, data, only_files=True, keep_suffix=False)
     except OSError as exc:
         raise WriteFailed(f"{path}: cannot write it ({exc.strerror or exc})") from None
 
