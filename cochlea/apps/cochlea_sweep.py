@@ -38,7 +38,8 @@ from . import report
 EXIT_INTERRUPTED = 130
 #: The samples are kept but the report failed (cochlea-run's code for a lost report part).
 EXIT_REPORT_FAILED = 18
-_EFFORT_SLUG = {"N m": "Nm", "N": "N"}
+#: summary.json's effort unit -> the joint's position unit (which names the column's unit).
+_POSITION_UNIT = {"N m": "rad", "N": "m"}
 
 
 def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
@@ -53,14 +54,14 @@ def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
         for coord, c in u["tracked"].items():
             rms = c["final_rms_error"]
             rms = math.nan if rms is None else rms
-            row[f"final_rms.{uname}.{coord}_{c['unit']}"] = rms
+            row[results.rms_column(uname, coord, c["unit"])] = rms
             floor = max(report.CONVERGENCE_FLOOR[c["unit"]], c.get("measurement_resolution", 0.0))
             initial = c["initial_abs_error"] or 0.0
             threshold = max(report.CONVERGENCE_RATIO * initial, floor)
             ratio = max(ratio, rms / threshold) if math.isfinite(rms) else math.inf
         for joint, t in u["torque"].items():
-            row[f"peak_torque.{uname}.{joint}_{_EFFORT_SLUG[t['unit']]}"] = t["max_abs"]
-            row[f"torque_ratio.{uname}.{joint}"] = t["max_abs"] / limits[uname][joint]
+            row[results.peak_column(uname, joint, _POSITION_UNIT[t["unit"]])] = t["max_abs"]
+            row[results.ratio_column(uname, joint)] = t["max_abs"] / limits[uname][joint]
         bound_hit = bound_hit or not u["estimates"]["bounded"]
     sup = summary["supervisor"]
     row.update({"convergence_ratio": ratio, "estimate_bound_hit": bound_hit,
@@ -80,10 +81,10 @@ def refused(setups) -> dict:
         tracked = zip([j.name for j in u.controller_model.joints] if joint_space
                       else u.task_names, u.joint_units if joint_space else u.task_units)
         for coord, unit in tracked:
-            row[f"final_rms.{u.name}.{coord}_{unit}"] = math.nan
+            row[results.rms_column(u.name, coord, unit)] = math.nan
         for j, unit in zip(u.controller_model.joints, u.joint_units):
-            row[f"peak_torque.{u.name}.{j.name}_{'Nm' if unit == 'rad' else 'N'}"] = math.nan
-            row[f"torque_ratio.{u.name}.{j.name}"] = math.nan
+            row[results.peak_column(u.name, j.name, unit)] = math.nan
+            row[results.ratio_column(u.name, j.name)] = math.nan
     row.update({"convergence_ratio": math.inf, "estimate_bound_hit": False,
                 "stop_rule": GRAVITY_RULE, "stop_time_s": 0.0, "saturated_periods": 0,
                 "success": False})

@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 
 from .. import files
 from ..errors import CochleaError
+from ..log_schema import EFFORT_UNIT
 from .spec import Spec
 
 MANIFEST = "sweep.json"
@@ -190,6 +191,77 @@ def flatten(name: str, value: Any) -> dict[str, Any]:
     return {name: value}
 
 
+# --------------------------------------------------------------------------------------------
+# The result columns: the one log schema's UNIT.GROUP.ELEMENT_UNIT (docs/logs.md)
+# --------------------------------------------------------------------------------------------
+
+#: The per-sample result groups (docs/sweeps.md, "Columns of a row"): final RMS of the true
+#: tracking error per tracked coordinate (rad, m), peak applied |effort| per joint (N m, N),
+#: and that peak over the joint's limit (dimensionless, ``_1``).
+RMS, PEAK, RATIO = "final_rms", "peak_torque", "torque_ratio"
+GROUPS = (RMS, PEAK, RATIO)
+
+
+def rms_column(unit: str, coord: str, position_unit: str) -> str:
+    """``arm1.final_rms.x_m``: a tracked coordinate's final RMS (``position_unit`` rad | m)."""
+    return f"{unit}.{RMS}.{coord}_{position_unit}"
+
+
+def peak_column(unit: str, joint: str, position_unit: str) -> str:
+    """``arm1.peak_torque.joint1_N_m``, ``mechanism.peak_torque.slider.d1_N``: a joint's peak
+    |effort| (its position unit, rad | m, decides N m or N)."""
+    return f"{unit}.{PEAK}.{joint}_{EFFORT_UNIT[position_unit]}"
+
+
+def ratio_column(unit: str, joint: str) -> str:
+    """``arm1.torque_ratio.joint1_1``: a joint's peak |effort| over its limit."""
+    return f"{unit}.{RATIO}.{joint}_1"
+
+
+def group(column: str) -> str | None:
+    """The result group of a column named by :func:`rms_column` & co., else None (an input,
+    ``success``, ...). Unit names hold no dot, so the group is the second dotted part."""
+    parts = column.split(".", 2)
+    return parts[1] if len(parts) == 3 and parts[1] in GROUPS else None
+
+
+def columns(names, wanted: str) -> list[str]:
+    """The columns of one result group among ``names``, in their order."""
+    return [c for c in names if group(c) == wanted]
+
+
+def label(column: str) -> str:
+    """A result column without its group: ``arm1.x_m`` for ``arm1.final_rms.x_m``."""
+    unit, _, rest = column.split(".", 2)
+    return f"{unit}.{rest}"
+
+
+def legacy_name(column: str) -> str | None:
+    """The schema's name of a column that a sweep of cochlea 0.x wrote before the columns
+    followed the log schema (``final_rms.UNIT.COORD_UNIT``, ``peak_torque.UNIT.JOINT_Nm`` or
+    ``_N``, ``torque_ratio.UNIT.JOINT``), else None."""
+    old, dot, rest = column.partition(".")
+    if not dot or old not in GROUPS or "." not in rest:
+        return None
+    unit, _, element = rest.partition(".")
+    if old == RATIO:
+        return f"{unit}.{RATIO}.{element}_1"
+    if old == PEAK and element.endswith("_Nm"):
+        element = element[:-len("_Nm")] + "_N_m"
+    return f"{unit}.{old}.{element}"
+
+
+def upgrade(table: pa.Table) -> pa.Table:
+    """``table`` with a legacy part file's result columns renamed to the schema's (a folder
+    written by an older cochlea-sweep or cochlea-tune is read as a new one); a table whose
+    columns already follow the schema is returned as it is."""
+    names = table.column_names
+    if any(group(c) for c in names):
+        return table
+    renamed = [legacy_name(c) or c for c in names]
+    return table if renamed == names else table.rename_columns(renamed)
+
+
 @dataclass
 class Manifest:
     digest: str
@@ -356,7 +428,7 @@ def read(out: Path) -> pa.Table:
     if not files:
         return pa.table({"sample": pa.array([], pa.int64())})
     try:
-        tables = [pq.read_table(f) for f in files]
+        tables = [upgrade(pq.read_table(f)) for f in files]
     except (OSError, pa.ArrowException) as exc:
         raise FolderDamaged(f"{out / PARTS}: a part file cannot be read ({exc}); remove it "
                                "and resume to run its samples again") from None
