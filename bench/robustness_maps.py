@@ -26,6 +26,8 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from cochlea.sweep import results
+
 ROOT = Path(__file__).resolve().parents[1]
 SPECS = ROOT / "docs" / "robustness"
 RUNS = ROOT / "runs"
@@ -53,9 +55,7 @@ def publish(name: str, out: Path) -> dict:
             manifest[key] = str(path.relative_to(ROOT))
     (target / "sweep.json").write_text(json.dumps(manifest, indent=1) + "\n")
     shutil.copy(out / "spec.toml", target / "spec.toml")
-    table = pa.concat_tables([pq.read_table(f) for f in sorted((out / "parts")
-                                                                .glob("part-*.parquet"))],
-                             promote_options="default").sort_by("sample")
+    table = results.read(out)  # every part, the result columns by the log schema
     samples = table["sample"].to_pylist()
     assert samples == list(range(manifest["total"])), f"{out}: the sweep is not complete"
     pq.write_table(table, target / "parts" / f"part-{0:09d}-{samples[-1]:09d}.parquet")
@@ -70,8 +70,8 @@ def row(name: str, manifest: dict, table: pa.Table) -> dict:
 
     success = np.array(table["success"].to_pylist(), bool)
     ratio = np.array(table["convergence_ratio"].to_pylist(), float)
-    torque = max(max(table[c].to_pylist()) for c in table.column_names
-                 if c.startswith("torque_ratio."))
+    torque = max(max(table[c].to_pylist())
+                 for c in results.columns(table.column_names, results.RATIO))
     lo, hi = wilson(int(success.sum()), len(success))
     return {"name": name, "robot": manifest["robot"], "space": manifest["space"],
             "samples": len(success), "success": int(success.sum()), "lo": lo, "hi": hi,
@@ -111,7 +111,7 @@ def main() -> int:
         elif (SPECS / name / "sweep.json").exists():
             folder = SPECS / name
             rows.append(row(name, json.loads((folder / "sweep.json").read_text()),
-                            pq.read_table(folder / "parts")))
+                            results.read(folder)))
     index(rows)
     return 0
 

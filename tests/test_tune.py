@@ -87,8 +87,8 @@ def local_tune(tmp_path_factory):
 
 
 def _row(ratio, torque=0.5, rule="none", diverged=False):
-    return {"convergence_ratio": ratio, "torque_ratio.arm1.q1": torque,
-            "torque_ratio.arm1.q2": 0.1, "stop_rule": rule, "diverged": diverged,
+    return {"convergence_ratio": ratio, "arm1.torque_ratio.q1_1": torque,
+            "arm1.torque_ratio.q2_1": 0.1, "stop_rule": rule, "diverged": diverged,
             "success": ratio <= 1}
 
 

@@ -23,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from .. import files
 from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import CochleaError, printable
 from ..kernels import library as ckernels
@@ -37,7 +38,8 @@ from . import report
 EXIT_INTERRUPTED = 130
 #: The samples are kept but the report failed (cochlea-run's code for a lost report part).
 EXIT_REPORT_FAILED = 18
-_EFFORT_SLUG = {"N m": "Nm", "N": "N"}
+#: summary.json's effort unit -> the joint's position unit (which names the column's unit).
+_POSITION_UNIT = {"N m": "rad", "N": "m"}
 
 
 def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
@@ -52,14 +54,14 @@ def measures(summary: dict, limits: dict[str, dict[str, float]]) -> dict:
         for coord, c in u["tracked"].items():
             rms = c["final_rms_error"]
             rms = math.nan if rms is None else rms
-            row[f"final_rms.{uname}.{coord}_{c['unit']}"] = rms
+            row[results.rms_column(uname, coord, c["unit"])] = rms
             floor = max(report.CONVERGENCE_FLOOR[c["unit"]], c.get("measurement_resolution", 0.0))
             initial = c["initial_abs_error"] or 0.0
             threshold = max(report.CONVERGENCE_RATIO * initial, floor)
             ratio = max(ratio, rms / threshold) if math.isfinite(rms) else math.inf
         for joint, t in u["torque"].items():
-            row[f"peak_torque.{uname}.{joint}_{_EFFORT_SLUG[t['unit']]}"] = t["max_abs"]
-            row[f"torque_ratio.{uname}.{joint}"] = t["max_abs"] / limits[uname][joint]
+            row[results.peak_column(uname, joint, _POSITION_UNIT[t["unit"]])] = t["max_abs"]
+            row[results.ratio_column(uname, joint)] = t["max_abs"] / limits[uname][joint]
         bound_hit = bound_hit or not u["estimates"]["bounded"]
     sup = summary["supervisor"]
     row.update({"convergence_ratio": ratio, "estimate_bound_hit": bound_hit,
@@ -79,10 +81,10 @@ def refused(setups) -> dict:
         tracked = zip([j.name for j in u.controller_model.joints] if joint_space
                       else u.task_names, u.joint_units if joint_space else u.task_units)
         for coord, unit in tracked:
-            row[f"final_rms.{u.name}.{coord}_{unit}"] = math.nan
+            row[results.rms_column(u.name, coord, unit)] = math.nan
         for j, unit in zip(u.controller_model.joints, u.joint_units):
-            row[f"peak_torque.{u.name}.{j.name}_{'Nm' if unit == 'rad' else 'N'}"] = math.nan
-            row[f"torque_ratio.{u.name}.{j.name}"] = math.nan
+            row[results.peak_column(u.name, j.name, unit)] = math.nan
+            row[results.ratio_column(u.name, j.name)] = math.nan
     row.update({"convergence_ratio": math.inf, "estimate_bound_hit": False,
                 "stop_rule": GRAVITY_RULE, "stop_time_s": 0.0, "saturated_periods": 0,
                 "success": False})
@@ -267,25 +269,15 @@ def write_new(path: Path, text: str, option: str = "--out") -> None:
         raise results.SweepFolderError(
             f"{where}: cannot create it, {parent} "
             + ("is not a folder" if os.path.lexists(parent) else "does not exist"))
-    tmp = None
     try:
-        fd, name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
-        tmp = Path(name)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.link(tmp, path)  # fails if something appeared there meanwhile: nothing replaced
+        # Linked, not renamed: nothing that appeared there meanwhile is replaced.
+        files.write_atomic(path, text, replace=False, keep_suffix=False)
     except FileExistsError:
         raise results.SweepFolderError(f"{where} appeared while it was written: name another"
                                        ) from None
     except OSError as exc:
         raise results.WriteFailed(f"{where}: cannot write it ({exc.strerror or exc})"
                                   ) from None
-    finally:
-        if tmp is not None:
-            results.remove_ours(tmp)
 
 
 def replay_spec(folder: Path) -> sweep_spec.Spec:

@@ -15,7 +15,8 @@ The rules (docs/runtime.md, "Output folders"):
 - A start that fails before the run removes what it created, so the identical retry works; once
   the run has produced a log nothing is ever removed.
 - Files are written to a temporary name in the same folder and renamed (``os.replace``), so a
-  reader (or a second interrupt, or a full disk) never leaves a half file under the real name.
+  reader (or a second interrupt, or a full disk) never leaves a half file under the real name
+  (:mod:`cochlea.files`, which every tool's output checks and writes share).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import signal
 import stat
 from pathlib import Path
 
+from .. import files
 from ..console import STOP_SIGNALS
 from ..errors import CochleaError, printable
 
@@ -70,23 +72,8 @@ class ReportError(Exception):
 
 
 def _kind(mode: int) -> str:
-    if stat.S_ISREG(mode):
-        return "a file"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "a device"
-    if stat.S_ISFIFO(mode):
-        return "a pipe"
-    if stat.S_ISSOCK(mode):
-        return "a socket"
-    return "not a folder"
+    return "not a folder" if stat.S_ISDIR(mode) else files.kind(mode).replace(" (FIFO)", "")
 
-
-def _existing_ancestor(path: Path) -> Path:
-    """The nearest part of ``path`` (itself included) that exists."""
-    path = Path(os.path.abspath(path))
-    while not os.path.lexists(path):
-        path = path.parent
-    return path
 
 
 def _lock_owner(folder: Path) -> str | None:
@@ -109,49 +96,46 @@ def check_folder(path: Path, option: str = "--out", *, empty: bool = True,
     """Refuse ``path`` as an output folder unless it is, or can become, a folder we may write
     (and, with ``empty``, one that holds nothing but the names in ``allow``). Creates nothing."""
     where = f"{option} {path}"
-    if os.path.lexists(path):
-        try:
-            mode = os.stat(path).st_mode
-        except OSError as exc:  # a dangling symbolic link, a loop of them, no permission
-            raise CochleaError(f"{where}: cannot use it ({exc.strerror}): name a new or empty "
-                               "folder") from None
-        if not stat.S_ISDIR(mode):
-            raise CochleaError(f"{where} is {_kind(mode)}, not a folder: name a new or empty "
-                               "folder")
-        if not os.access(path, os.W_OK | os.X_OK):
-            raise CochleaError(f"{where}: the folder is not writable: name a folder you may "
-                               "write")
-        owner = _lock_owner(Path(path))
-        if owner is not None:
-            raise CochleaError(f"{where} is in use by another run (pid {owner}): wait for it "
-                               "to end or choose another folder")
-        if empty:
-            try:
-                # A lock file nobody holds is a run killed before it wrote anything.
-                others = [p.name for p in Path(path).iterdir()
-                          if p.name not in allow and p.name != LOCK_NAME]
-            except OSError as exc:
-                raise CochleaError(f"{where}: cannot list the folder ({exc.strerror})") from None
-            if others:
-                raise CochleaError(f"{where} exists and is not empty: choose a new folder "
-                                   "(runs never overwrite a log)")
+    problem = files.folder_problem(path)
+    if problem is not None:
+        raise CochleaError(_folder_message(where, problem))
+    if not os.path.lexists(path):
         return
-    base = _existing_ancestor(path)
-    try:
-        mode = os.stat(base).st_mode
-    except OSError as exc:
-        raise CochleaError(f"{where}: cannot create it under {base} ({exc.strerror})") from None
-    if not stat.S_ISDIR(mode):
-        raise CochleaError(f"{where}: cannot create it, {base} is {_kind(mode)}, not a folder")
-    if not os.access(base, os.W_OK | os.X_OK):
-        raise CochleaError(f"{where}: cannot create it, {base} is not writable: name a folder "
-                           "you may write")
+    owner = _lock_owner(Path(path))
+    if owner is not None:
+        raise CochleaError(f"{where} is in use by another run (pid {owner}): wait for it "
+                           "to end or choose another folder")
+    if empty:
+        try:
+            # A lock file nobody holds is a run killed before it wrote anything.
+            others = [p.name for p in Path(path).iterdir()
+                      if p.name not in allow and p.name != LOCK_NAME]
+        except OSError as exc:
+            raise CochleaError(f"{where}: cannot list the folder ({exc.strerror})") from None
+        if others:
+            raise CochleaError(f"{where} exists and is not empty: choose a new folder "
+                               "(runs never overwrite a log)")
+
+
+def _folder_message(where: str, p: files.Problem) -> str:
+    """cochlea-run's words for a :class:`cochlea.files.Problem` of an output folder."""
+    return {
+        "unusable": f"{where}: cannot use it ({p.reason}): name a new or empty folder",
+        "not_folder": f"{where} is {_kind(p.mode or 0)}, not a folder: name "
+                      "a new or empty folder",
+        "not_writable": f"{where}: the folder is not writable: name a folder you may write",
+        "ancestor_unusable": f"{where}: cannot create it under {p.path} ({p.reason})",
+        "ancestor_not_folder": f"{where}: cannot create it, {p.path} is "
+                               f"{_kind(p.mode or 0)}, not a folder",
+        "ancestor_not_writable": f"{where}: cannot create it, {p.path} is not writable: name "
+                                 "a folder you may write",
+    }[p.code]
 
 
 def free_bytes(path: Path) -> int:
     """Bytes an unprivileged user may still write on the disk that holds (or would hold)
     ``path``."""
-    return shutil.disk_usage(_existing_ancestor(path)).free
+    return shutil.disk_usage(files.existing_ancestor(path)).free
 
 
 def log_bytes(setups, periods: int, realtime: bool) -> int:
@@ -349,51 +333,29 @@ def claim_new(parent: Path, name: str, option: str = "--out") -> OutputFolder:
 def check_output_file(path: Path, option: str, suffix: str,
                       error: type[CochleaError] = CochleaError) -> None:
     """Refuse an output file that exists and is not a regular file, or whose folder is missing
-    or not writable; creates nothing (cochlea-mcap's ``--out``, cochlea-view's ``--html-out``)."""
-    if os.path.lexists(path):
-        try:
-            mode = os.stat(path).st_mode
-        except OSError as exc:
-            raise error(f"{option} {path}: cannot use it ({exc.strerror})") from None
-        if not stat.S_ISREG(mode):
-            raise error(f"{option} {path} exists and is not a regular file: name a new "
-                        f"file or an existing {suffix} file to replace")
-    folder = path.parent
-    if not folder.is_dir():
-        raise error(f"{option} {path}: the folder {folder} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise error(f"{option} {path}: the folder {folder} is not writable")
+    or cannot be written in (probed: :func:`cochlea.files.file_problem`); creates nothing
+    (cochlea-mcap's ``--out``, cochlea-view's ``--html-out``)."""
+    p = files.file_problem(path)
+    if p is None:
+        return
+    folder = Path(path).parent
+    raise error({
+        "unusable": f"{option} {path}: cannot use it ({p.reason})",
+        "not_regular": f"{option} {path} exists and is not a regular file: name a new file or "
+                       f"an existing {suffix} file to replace",
+        "under_file": f"{option} {path}: the folder {folder} does not exist",
+        "folder_missing": f"{option} {path}: the folder {folder} does not exist",
+        "folder_not_folder": f"{option} {path}: the folder {folder} does not exist",
+        "folder_not_writable": f"{option} {path}: the folder {folder} is not writable",
+    }[p.code])
 
 
-def temporary_name(path: Path) -> Path:
-    """A hidden name next to ``path`` (same folder, so same disk: the rename is atomic), with
-    ``path``'s suffix kept (matplotlib picks the format by it)."""
-    path = Path(path)
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-
-
-@contextlib.contextmanager
-def atomic_path(path: Path):
-    """Yield a temporary path to write; on success it is synced and renamed to ``path``, on
-    failure removed. A reader sees the old file or the whole new one, never a part."""
-    tmp = temporary_name(path)
-    try:
-        yield tmp
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
+#: A temporary file beside its target, renamed over it once whole (cochlea.files).
+atomic_path = files.atomic_path
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
+    files.write_atomic(path, text)
 
 
 # --------------------------------------------------------------------------------------------

@@ -104,6 +104,40 @@ def planar_poses(group: Group | None) -> list[tuple[int, int, int]] | None:
     return triples
 
 
+def frame_transforms(units: list[UnitColumns], frames: dict, rows: np.ndarray,
+               maps: dict | None = None) -> list[list]:
+    """Per row, ``(child, parent, translation, quaternion)`` of every frame of every unit at
+    the measured ``q`` (``frames``: each unit's ``adapter.link_frames``); an empty list (no
+    ``/tf`` message) for a row where a unit's ``q`` is not finite (a run stopped by the rule
+    non-finite). ``maps`` caches the frames' functions mapped over a number of rows (CasADi
+    ``map``), per unit and row count, between calls. cochlea-mcap's ``/tf`` and the ROS 2
+    bridge's (cochlea.ros2.source) are this one computation."""
+    maps = {} if maps is None else maps
+    n = len(rows)
+    finite = np.ones(n, bool)
+    per_unit = []
+    for unit in units:
+        unit_frames = frames[unit.name]
+        q = rows[:, unit.groups["q"].columns]
+        finite &= np.isfinite(q).all(axis=1)
+        if n not in maps.setdefault(unit.name, {}):
+            maps[unit.name][n] = unit_frames.function.map(n)
+        k = len(unit_frames.names)
+        # map(n) puts row r's 12 x k block at columns r k .. r k + k - 1.
+        values = np.array(maps[unit.name][n](q.T)).reshape(12, n, k)
+        # Each rotation's 9 entries are column-major: entry 3 c + r is R[r, c].
+        R = values[:9].reshape(3, 3, n, k).transpose(2, 3, 1, 0)
+        p = values[9:].transpose(1, 2, 0)
+        per_unit.append((unit_frames, p, quaternions(R)))
+    out = []
+    for r in range(n):
+        out.append([] if not finite[r] else [
+            (child, parent, p[r, f].tolist(), quat[r, f].tolist())
+            for unit_frames, p, quat in per_unit
+            for f, (child, parent) in enumerate(zip(unit_frames.names, unit_frames.parents))])
+    return out
+
+
 class Exporter:
     """Writes one run's messages to an open binary file."""
 
@@ -249,32 +283,8 @@ class Exporter:
         return dict(self.counts)
 
     def transforms(self, rows: np.ndarray) -> list[list]:
-        """Per row, ``(child, parent, translation, quaternion)`` of every frame of every unit at
-        the measured ``q``; an empty list (no ``/tf`` message) for a row where a unit's ``q``
-        is not finite (a run stopped by the rule non-finite)."""
-        n = len(rows)
-        finite = np.ones(n, bool)
-        units = []
-        for unit in self.run.units:
-            frames = self.frames[unit.name]
-            q = rows[:, unit.groups["q"].columns]
-            finite &= np.isfinite(q).all(axis=1)
-            if n not in self._maps.setdefault(unit.name, {}):
-                self._maps[unit.name][n] = frames.function.map(n)
-            k = len(frames.names)
-            # map(n) puts row r's 12 x k block at columns r k .. r k + k - 1.
-            values = np.array(self._maps[unit.name][n](q.T)).reshape(12, n, k)
-            # Each rotation's 9 entries are column-major: entry 3 c + r is R[r, c].
-            R = values[:9].reshape(3, 3, n, k).transpose(2, 3, 1, 0)
-            p = values[9:].transpose(1, 2, 0)
-            units.append((frames, p, quaternions(R)))
-        out = []
-        for r in range(n):
-            out.append([] if not finite[r] else [
-                (child, parent, p[r, f].tolist(), quat[r, f].tolist())
-                for frames, p, quat in units
-                for f, (child, parent) in enumerate(zip(frames.names, frames.parents))])
-        return out
+        """Per row, every frame of every unit at the measured ``q`` (:func:`frame_transforms`)."""
+        return frame_transforms(self.run.units, self.frames, rows, self._maps)
 
     # ---- events ------------------------------------------------------------------------------
 

@@ -18,13 +18,12 @@ runs (issue 26).
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import stat
-import tempfile
 from pathlib import Path
 
+from .. import files
 from ..errors import CochleaError
 
 
@@ -42,15 +41,7 @@ class WriteFailed(CochleaError):
 
 
 def _kind(mode: int) -> str:
-    if stat.S_ISDIR(mode):
-        return "a folder"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "a device"
-    if stat.S_ISFIFO(mode):
-        return "a pipe (FIFO)"
-    if stat.S_ISSOCK(mode):
-        return "a socket"
-    return "not a regular file"
+    return files.kind(mode)
 
 
 def sha256(path: Path) -> str:
@@ -96,73 +87,49 @@ def check_distinct_logs(fit: list[str | Path], validate: list[str | Path]) -> No
                 seen[digest] = str(folder)
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
 def probe_folder(folder: Path, where: str) -> None:
     """Create and remove a temporary file in ``folder``: refuses a folder this process cannot
     write in (read-only file system, no permission), whatever ``os.access`` says for root."""
-    try:
-        fd, name = tempfile.mkstemp(prefix=".cochlea-probe-", dir=folder)
-    except OSError as exc:
-        raise OutputRefused(f"{where}: cannot write in the folder {folder} "
-                            f"({exc.strerror}): name a file in a folder you may write") from None
-    os.close(fd)
-    with contextlib.suppress(OSError):
-        os.unlink(name)
+    reason = files.probe(folder)
+    if reason is not None:
+        raise OutputRefused(f"{where}: cannot write in the folder {folder} ({reason}): name a "
+                            "file in a folder you may write")
 
 
 def check_output(path: Path, option: str, inputs: tuple[Path, ...] = (),
                  replace: bool = True) -> None:
     """Refuse ``path`` as an output file unless it is a new name or (with ``replace``) an
-    existing regular file, in an existing folder this process may write, and names none of
-    ``inputs``. Creates nothing (the probe's file is removed)."""
+    existing regular file, in an existing folder this process may write (probed), and names
+    none of ``inputs`` (:func:`cochlea.files.file_problem`). Creates nothing."""
     where = f"{option} {path}"
-    if os.path.lexists(path):
-        mode = os.lstat(path).st_mode
-        if stat.S_ISLNK(mode):
-            raise OutputRefused(f"{where} is a symbolic link: name a new file (a link is never "
-                                "replaced, nor the file it points to)")
-        if not stat.S_ISREG(mode):
-            raise OutputRefused(f"{where} is {_kind(mode)}: expected a new file name or an "
-                                "existing regular file")
-        if not replace:
-            raise OutputRefused(f"{where} exists: name a new file")
-        for source in inputs:
-            if _same_file(path, source):
-                raise OutputRefused(f"{where} is the input {source}: name a new file (an "
-                                    "input is never overwritten)")
-        if os.stat(path).st_nlink > 1:
-            raise OutputRefused(f"{where} has other hard links: name a new file (replacing "
-                                "it would part it from them)")
-    parent = Path(os.path.abspath(path)).parent
-    if not os.path.lexists(parent):
-        ancestor = parent
-        while not os.path.lexists(ancestor):
-            ancestor = ancestor.parent
-        if not os.path.isdir(ancestor):
-            raise OutputRefused(f"{where}: {ancestor} is a file, not a folder: name a file in "
-                                "a folder")
-        raise OutputRefused(f"{where}: the folder {parent} does not exist: create it first")
-    if not os.path.isdir(parent):
-        raise OutputRefused(f"{where}: {parent} is not a folder: name a file in a folder")
-    probe_folder(parent, where)
+    p = files.file_problem(path, replace=replace, links=False, inputs=inputs,
+                           hard_links=False)
+    if p is None:
+        return
+    raise OutputRefused({
+        "unusable": f"{where}: cannot use it ({p.reason})",
+        "symlink": f"{where} is a symbolic link: name a new file (a link is never replaced, "
+                   "nor the file it points to)",
+        "not_regular": f"{where} is {_kind(p.mode or 0)}: expected a new file name or an "
+                       "existing regular file",
+        "exists": f"{where} exists: name a new file",
+        "is_input": f"{where} is the input {p.path}: name a new file (an input is never "
+                    "overwritten)",
+        "hard_links": f"{where} has other hard links: name a new file (replacing it would "
+                      "part it from them)",
+        "under_file": f"{where}: {p.path} is a file, not a folder: name a file in a folder",
+        "folder_missing": f"{where}: the folder {p.path} does not exist: create it first",
+        "folder_not_folder": f"{where}: {p.path} is not a folder: name a file in a folder",
+        "folder_not_writable": f"{where}: cannot write in the folder {p.path} ({p.reason}): "
+                               "name a file in a folder you may write",
+    }[p.code])
 
 
-class Staged:
+class Staged(files.Staged):
     """Outputs written to temporary names in their own folders, renamed over their targets
-    together by :meth:`commit`; on failure (or without a commit) every temporary file is
-    removed and every target is as it was."""
-
-    def __init__(self):
-        self._files: list[tuple[Path, Path]] = []  # (temporary, target)
-
-    def __enter__(self) -> Staged:
-        return self
+    together by :meth:`commit` (:class:`cochlea.files.Staged`); on failure (or without a
+    commit) every temporary file is removed and every target is as it was, and an OSError
+    becomes :class:`WriteFailed` naming the output it was writing."""
 
     def __exit__(self, kind, exc, tb) -> None:
         failure = self._failure(exc) if isinstance(exc, OSError) else None
@@ -171,62 +138,7 @@ class Staged:
             raise failure from None
 
     def _failure(self, exc: OSError) -> WriteFailed:
-        # A write on an open file names none: the file being written is the last one staged.
-        name = exc.filename
-        target = next((t for tmp, t in self._files if str(tmp) == str(name)), name)
-        if target is None and self._files:
-            target = self._files[-1][1]
+        target = self.target_of(exc.filename)
         return WriteFailed(f"cannot write {target or 'the outputs'} "
                            f"({exc.strerror or exc}): nothing was written; every previous "
                            "output is kept as it was")
-
-    def path(self, target: Path) -> Path:
-        """A new temporary file beside ``target`` (same folder, same suffix: matplotlib picks
-        the format by it) to write; :meth:`commit` renames it to ``target``."""
-        target = Path(target)
-        try:
-            fd, name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}",
-                                        dir=target.parent if str(target.parent) else ".")
-        except OSError as exc:
-            exc.filename = str(target)
-            raise
-        os.close(fd)
-        self._files.append((Path(name), target))
-        # mkstemp's 0600 would tighten the file: the previous file's mode, or the umask's.
-        try:
-            mode = stat.S_IMODE(os.stat(target).st_mode)
-        except OSError:
-            mask = os.umask(0)
-            os.umask(mask)
-            mode = 0o666 & ~mask
-        os.chmod(name, mode)
-        return Path(name)
-
-    def path_of(self, target: Path) -> Path:
-        """The temporary file staged for ``target``."""
-        return next(tmp for tmp, t in self._files if t == Path(target))
-
-    def write_text(self, target: Path, text: str) -> None:
-        tmp = self.path(target)
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-
-    def commit(self) -> None:
-        """Sync every temporary file, then rename each over its target."""
-        for tmp, _ in self._files:
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        for tmp, target in self._files:
-            os.replace(tmp, target)
-        self._files = []
-
-    def discard(self) -> None:
-        for tmp, _ in self._files:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-        self._files = []

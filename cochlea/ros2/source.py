@@ -3,7 +3,7 @@ its log writer appends it (``follow``), or a finished run's ``log.csv`` (``repla
 :mod:`cochlea.export.run_log`). Both give float64 rows and, per unit, the column indices of
 ``q``, ``qd`` and ``tau`` (:class:`~cochlea.export.run_log.UnitColumns`), so the frames are
 computed by the same code ``cochlea-mcap`` uses
-(:meth:`cochlea.export.to_mcap.Exporter.transforms`).
+(:func:`cochlea.export.to_mcap.frame_transforms`).
 """
 
 from __future__ import annotations
@@ -14,13 +14,12 @@ import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
 from ..errors import CochleaError
 from ..export.run_log import JOINT_UNITS, Group, RunFolderError, UnitColumns
-from ..export.to_mcap import Exporter
+from ..export.to_mcap import frame_transforms
 from ..robots import robot
 from ..robots.urdf import export_urdf  # the public face of the serial kind's URDF
 from ..sim.scenario import load as load_scenario
@@ -47,10 +46,9 @@ class Described:
 
     def transforms(self, rows: np.ndarray) -> list[list]:
         """Per row, ``(child, parent, translation, quaternion)`` of every frame: cochlea-mcap's
-        own computation (:meth:`Exporter.transforms`), on these columns."""
+        own computation (:func:`cochlea.export.to_mcap.frame_transforms`), on these columns."""
         frames = {u.name: self.adapter.link_frames(self.system, u.name) for u in self.units}
-        view = SimpleNamespace(run=SimpleNamespace(units=self.units), frames=frames, _maps={})
-        return Exporter.transforms(view, rows)
+        return frame_transforms(self.units, frames, rows)
 
 
 def check_rate(rate: float) -> float:

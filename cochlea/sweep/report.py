@@ -158,21 +158,21 @@ def write(out: Path) -> Path:
         plt.close(fig)
         figures.append("robustness_map.png")
 
-    rms = [c for c in table.column_names if c.startswith("final_rms.")]
-    torque = [c for c in table.column_names if c.startswith("torque_ratio.")]
+    rms = results.columns(table.column_names, results.RMS)
+    torque = results.columns(table.column_names, results.RATIO)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for name in rms:
         v = np.array(table[name].to_pylist(), float)
         v = v[np.isfinite(v) & (v > 0)]
         if len(v):
-            axes[0].hist(np.log10(v), bins=30, histtype="step", label=name[len("final_rms."):])
+            axes[0].hist(np.log10(v), bins=30, histtype="step", label=results.label(name))
     axes[0].set_xlabel("log10 final RMS error [rad or m]")
     axes[0].set_ylabel("samples")
     axes[0].legend(fontsize=7)
     for name in torque:
         v = np.array(table[name].to_pylist(), float)
         axes[1].hist(v[np.isfinite(v)], bins=30, histtype="step",
-                     label=name[len("torque_ratio."):])
+                     label=results.label(name))
     axes[1].set_xlabel("peak |effort| / limit")
     axes[1].legend(fontsize=7)
     fig.suptitle("Distributions over the samples")

@@ -13,7 +13,6 @@ import fcntl
 import json
 import os
 import stat
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,9 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from .. import files
 from ..errors import CochleaError
+from ..log_schema import EFFORT_UNIT
 from .spec import Spec
 
 MANIFEST = "sweep.json"
@@ -86,13 +87,13 @@ def exit_code(exc: CochleaError) -> int:
 
 
 def _kind(mode: int) -> str:
-    for test, name in ((stat.S_ISREG, "a file"), (stat.S_ISLNK, "a symbolic link"),
-                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
-                       (stat.S_ISDIR, "a folder")):
-        if test(mode):
-            return name
-    return "not a regular file"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    if stat.S_ISCHR(mode):
+        return "a character device"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    return files.kind(mode)
 
 
 def check_out(out: Path, option: str = "--out") -> None:
@@ -100,34 +101,22 @@ def check_out(out: Path, option: str = "--out") -> None:
     one (its nearest existing ancestor a writable folder). Writes nothing."""
     out = Path(out)
     where = f"{option} {out}"
-    if os.path.lexists(out):
-        try:
-            mode = os.stat(out).st_mode
-        except OSError as exc:  # a dangling link, a loop of them, a path under a file
-            raise SweepFolderError(f"{where}: cannot use it ({exc.strerror}): name a new or "
-                                   "empty folder") from None
-        if not stat.S_ISDIR(mode):
-            raise SweepFolderError(f"{where} is {_kind(mode)}, not a folder: name a new or "
-                                   "empty folder")
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise SweepFolderError(f"{where}: the folder is not writable (permissions or a "
-                                   "read-only file system): name a folder you may write")
+    p = files.folder_problem(out)
+    if p is None:
         return
-    base = Path(os.path.abspath(out))
-    while not os.path.lexists(base):
-        base = base.parent
-    try:
-        mode = os.stat(base).st_mode
-    except OSError as exc:
-        raise SweepFolderError(f"{where}: cannot create it under {base} ({exc.strerror})"
-                               ) from None
-    if not stat.S_ISDIR(mode):
-        raise SweepFolderError(f"{where}: cannot create it, {base} is {_kind(mode)}, not a "
-                               "folder")
-    if not os.access(base, os.W_OK | os.X_OK):
-        raise SweepFolderError(f"{where}: cannot create it, {base} is not writable "
-                               "(permissions or a read-only file system): name a folder you "
-                               "may write")
+    raise SweepFolderError({
+        "unusable": f"{where}: cannot use it ({p.reason}): name a new or empty folder",
+        "not_folder": f"{where} is {_kind(p.mode or 0)}, not a folder: name a new or empty "
+                      "folder",
+        "not_writable": f"{where}: the folder is not writable (permissions or a read-only "
+                        "file system): name a folder you may write",
+        "ancestor_unusable": f"{where}: cannot create it under {p.path} ({p.reason})",
+        "ancestor_not_folder": f"{where}: cannot create it, {p.path} is {_kind(p.mode or 0)}, "
+                               "not a folder",
+        "ancestor_not_writable": f"{where}: cannot create it, {p.path} is not writable "
+                                 "(permissions or a read-only file system): name a folder "
+                                 "you may write",
+    }[p.code])
 
 
 def make_folder(out: Path, option: str = "--out") -> list[Path]:
@@ -161,16 +150,13 @@ def remove_folders(created: list[Path]) -> None:
 
 def remove_ours(path: Path) -> None:
     """Unlink ``path`` only if it is a regular file (never a link, FIFO, device, folder)."""
-    with contextlib.suppress(OSError):
-        if stat.S_ISREG(os.lstat(path).st_mode):
-            os.unlink(path)
+    files.remove_regular(path)
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """``data`` into ``path`` whole or not at all: written to a new temporary file next to it
-    (created exclusively: nothing there is opened or followed), flushed, and renamed over
-    ``path`` only when ``path`` is absent or a regular file. A failure (a full disk) removes
-    the temporary file and raises :class:`WriteFailed`."""
+    """``data`` into ``path`` whole or not at all (:func:`cochlea.files.write_atomic`), renamed
+    over ``path`` only when ``path`` is absent or a regular file. A failure (a full disk)
+    removes the temporary file and raises :class:`WriteFailed`."""
     path = Path(path)
     try:
         mode = os.lstat(path).st_mode
@@ -181,33 +167,21 @@ def write_atomic(path: Path, data: bytes) -> None:
     if mode is not None and not stat.S_ISREG(mode):
         raise WriteFailed(f"{path} is {_kind(mode)}, not a file this run wrote: it is left as "
                           "it is; move it away and run the same command again")
-    tmp = None
     try:
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        tmp = Path(name)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        # NAME.XXXXXXXX.tmp: every *.parquet in parts/ is a whole batch, whoever globs it.
+        files.write_atomic(path, data, only_files=True, keep_suffix=False)
     except OSError as exc:
-        if tmp is not None:
-            remove_ours(tmp)
         raise WriteFailed(f"{path}: cannot write it ({exc.strerror or exc})") from None
 
 
 def is_temporary(path: Path) -> bool:
     """A temporary file of :func:`write_atomic` (or an older run's ``NAME.tmp``)."""
-    return path.name.endswith(".tmp")
+    return files.is_temporary(path)
 
 
 def clean_temporary(folder: Path) -> None:
     """Remove the temporary files a killed run left in ``folder`` (regular files only)."""
-    with contextlib.suppress(OSError):
-        for p in folder.iterdir():
-            if is_temporary(p):
-                remove_ours(p)
+    files.clean_temporary(folder)
 
 
 def flatten(name: str, value: Any) -> dict[str, Any]:
@@ -215,6 +189,77 @@ def flatten(name: str, value: Any) -> dict[str, Any]:
     if isinstance(value, list):
         return {f"{name}[{j}]": v for j, v in enumerate(value)}
     return {name: value}
+
+
+# --------------------------------------------------------------------------------------------
+# The result columns: the one log schema's UNIT.GROUP.ELEMENT_UNIT (docs/logs.md)
+# --------------------------------------------------------------------------------------------
+
+#: The per-sample result groups (docs/sweeps.md, "Columns of a row"): final RMS of the true
+#: tracking error per tracked coordinate (rad, m), peak applied |effort| per joint (N m, N),
+#: and that peak over the joint's limit (dimensionless, ``_1``).
+RMS, PEAK, RATIO = "final_rms", "peak_torque", "torque_ratio"
+GROUPS = (RMS, PEAK, RATIO)
+
+
+def rms_column(unit: str, coord: str, position_unit: str) -> str:
+    """``arm1.final_rms.x_m``: a tracked coordinate's final RMS (``position_unit`` rad | m)."""
+    return f"{unit}.{RMS}.{coord}_{position_unit}"
+
+
+def peak_column(unit: str, joint: str, position_unit: str) -> str:
+    """``arm1.peak_torque.joint1_N_m``, ``mechanism.peak_torque.slider.d1_N``: a joint's peak
+    |effort| (its position unit, rad | m, decides N m or N)."""
+    return f"{unit}.{PEAK}.{joint}_{EFFORT_UNIT[position_unit]}"
+
+
+def ratio_column(unit: str, joint: str) -> str:
+    """``arm1.torque_ratio.joint1_1``: a joint's peak |effort| over its limit."""
+    return f"{unit}.{RATIO}.{joint}_1"
+
+
+def group(column: str) -> str | None:
+    """The result group of a column named by :func:`rms_column` & co., else None (an input,
+    ``success``, ...). Unit names hold no dot, so the group is the second dotted part."""
+    parts = column.split(".", 2)
+    return parts[1] if len(parts) == 3 and parts[1] in GROUPS else None
+
+
+def columns(names, wanted: str) -> list[str]:
+    """The columns of one result group among ``names``, in their order."""
+    return [c for c in names if group(c) == wanted]
+
+
+def label(column: str) -> str:
+    """A result column without its group: ``arm1.x_m`` for ``arm1.final_rms.x_m``."""
+    unit, _, rest = column.split(".", 2)
+    return f"{unit}.{rest}"
+
+
+def legacy_name(column: str) -> str | None:
+    """The schema's name of a column that a sweep of cochlea 0.x wrote before the columns
+    followed the log schema (``final_rms.UNIT.COORD_UNIT``, ``peak_torque.UNIT.JOINT_Nm`` or
+    ``_N``, ``torque_ratio.UNIT.JOINT``), else None."""
+    old, dot, rest = column.partition(".")
+    if not dot or old not in GROUPS or "." not in rest:
+        return None
+    unit, _, element = rest.partition(".")
+    if old == RATIO:
+        return f"{unit}.{RATIO}.{element}_1"
+    if old == PEAK and element.endswith("_Nm"):
+        element = element[:-len("_Nm")] + "_N_m"
+    return f"{unit}.{old}.{element}"
+
+
+def upgrade(table: pa.Table) -> pa.Table:
+    """``table`` with a legacy part file's result columns renamed to the schema's (a folder
+    written by an older cochlea-sweep or cochlea-tune is read as a new one); a table whose
+    columns already follow the schema is returned as it is."""
+    names = table.column_names
+    if any(group(c) for c in names):
+        return table
+    renamed = [legacy_name(c) or c for c in names]
+    return table if renamed == names else table.rename_columns(renamed)
 
 
 @dataclass
@@ -383,7 +428,7 @@ def read(out: Path) -> pa.Table:
     if not files:
         return pa.table({"sample": pa.array([], pa.int64())})
     try:
-        tables = [pq.read_table(f) for f in files]
+        tables = [upgrade(pq.read_table(f)) for f in files]
     except (OSError, pa.ArrowException) as exc:
         raise FolderDamaged(f"{out / PARTS}: a part file cannot be read ({exc}); remove it "
                                "and resume to run its samples again") from None

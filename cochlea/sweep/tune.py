@@ -303,7 +303,7 @@ def judge(rows: list[dict], objective: str) -> dict:
     ratio = np.where(np.isfinite(ratio), ratio, np.inf)
     # A sample refused before it ran (gravity above a drive's limit) has no torque (NaN); its
     # stop rule makes the candidate infeasible.
-    torque = np.array([max((v for k, v in r.items() if k.startswith("torque_ratio.")
+    torque = np.array([max((v for k, v in r.items() if results.group(k) == results.RATIO
                             and not math.isnan(v)), default=0.0) for r in rows], float)
     stopped = [r["stop_rule"] != "none" or bool(r["diverged"]) or not math.isfinite(x)
                for r, x in zip(rows, ratio)]
@@ -417,7 +417,7 @@ def read_rows(out: Path, key: int | str) -> list[dict] | None:
     if not path.exists():
         return None
     try:
-        return pq.read_table(path).to_pylist()
+        return results.upgrade(pq.read_table(path)).to_pylist()
     except (OSError, pa.ArrowException):
         return None  # unreadable: its runs are simply run again
 

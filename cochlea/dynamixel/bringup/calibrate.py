@@ -19,12 +19,10 @@ new description is the old text with only the two values of each calibrated moto
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import dataclasses
 import io
 import math
-import os
 import re
 import sys
 from datetime import datetime
@@ -32,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ... import files
 from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
 from ...robots import ROBOTS
@@ -58,21 +57,9 @@ REFERENCE = {name: r.calibration_reference for name, r in ROBOTS.items()}
 POSITIVE = {name: r.positive_direction for name, r in ROBOTS.items()}
 
 
-@contextlib.contextmanager
-def atomic_path(path: Path):
-    """A temporary name beside ``path`` to write; renamed to ``path`` once written and synced,
-    removed on failure: a reader sees no file or the whole one (as cochlea.apps.outputs does,
-    one layer up)."""
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    try:
-        yield tmp
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
+#: A temporary name beside the file to write, renamed to it once written and synced, removed
+#: on failure: a reader sees no file or the whole one (cochlea.files).
+atomic_path = files.atomic_path
 
 
 def write_atomic(path: Path, text: str) -> None:

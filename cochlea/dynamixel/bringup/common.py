@@ -28,16 +28,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import signal
 import stat
 import struct
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ... import files
 from ...console import signals_held
 from ...errors import CochleaError
 from ...robots import ROBOTS
@@ -195,41 +194,31 @@ def check_output(path: Path, option: str, *, new: bool = False,
     created there and removed), or the path itself existing as anything but a regular file (a
     folder, a FIFO, a device, a socket, a symbolic link), which is never replaced. ``new``:
     an existing file is refused too (the command never overwrites it). The file is then
-    written atomically beside it (:func:`~cochlea.dynamixel.bringup.calibrate.atomic_path`)."""
+    written atomically beside it (:func:`cochlea.files.atomic_path`)."""
     path = Path(path)
-    try:
-        mode = os.lstat(path).st_mode
-    except FileNotFoundError:
-        mode = None
-    except OSError as exc:
-        raise CochleaError(f"{option} {path}: cannot look at it ({exc.strerror}); expected a "
-                           f"file in a writable folder{then}") from None
-    if mode is not None:
-        if not stat.S_ISREG(mode):
-            kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
-                    else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
-                    else "a symbolic link" if stat.S_ISLNK(mode) else "a socket"
-                    if stat.S_ISSOCK(mode) else "not a regular file")
-            raise CochleaError(f"{option} {path}: exists and is {kind}; expected a regular "
-                               f"file (never replaced){then}")
-        if new:
-            raise CochleaError(f"{option} {path}: already exists; expected a new file "
-                               "(cochlea-dxl never overwrites one)")
+    p = files.file_problem(path, replace=not new, links=False)
+    if p is None:
+        return path
     folder = path.parent
-    if not folder.exists():
-        raise CochleaError(f"{option} {path}: its folder {folder} does not exist; expected an "
-                           f"existing folder{then}")
-    if not folder.is_dir():
-        raise CochleaError(f"{option} {path}: {folder} is not a folder; expected a file in a "
-                           f"folder{then}")
-    try:
-        fd, probe = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".probe")
-    except OSError as exc:
-        raise CochleaError(f"{option} {path}: cannot write in its folder {folder} "
-                           f"({exc.strerror or exc}); expected a writable folder{then}") from None
-    os.close(fd)
-    os.unlink(probe)
-    return path
+    kind = "a FIFO" if p.code == "not_regular" and stat.S_ISFIFO(p.mode or 0) else p.kind
+    raise CochleaError({
+        "unusable": f"{option} {path}: cannot look at it ({p.reason}); expected a file in a "
+                    f"writable folder{then}",
+        "symlink": f"{option} {path}: exists and is a symbolic link; expected a regular file "
+                   f"(never replaced){then}",
+        "not_regular": f"{option} {path}: exists and is {kind}; expected a regular file "
+                       f"(never replaced){then}",
+        "exists": f"{option} {path}: already exists; expected a new file (cochlea-dxl never "
+                  "overwrites one)",
+        "under_file": f"{option} {path}: its folder {folder} does not exist; expected an "
+                      f"existing folder{then}",
+        "folder_missing": f"{option} {path}: its folder {folder} does not exist; expected an "
+                          f"existing folder{then}",
+        "folder_not_folder": f"{option} {path}: {folder} is not a folder; expected a file in "
+                             f"a folder{then}",
+        "folder_not_writable": f"{option} {path}: cannot write in its folder {folder} "
+                               f"({p.reason}); expected a writable folder{then}",
+    }[p.code])
 
 
 def who(motor_id: int, drive: JointDrive | None = None) -> str:
