@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gc
 import math
+import re
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from cochlea.dynamixel.bridge import DynamixelBackend
 from cochlea.dynamixel.emulator import Faults, VirtualChain
 from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.runtime.backend import BackendError
+from cochlea.sim import unit_setups
 
 # The bridge against the virtual chain on a pseudo-terminal, in real time.
 pytestmark = pytest.mark.hil
@@ -207,6 +209,40 @@ def test_start_up_refuses_a_joint_outside_its_limits(serial_chain, tmp_path):
     assert backend.read(x)
     backend.disable()
     assert x[0] == pytest.approx(math.radians(193 - 360), abs=math.radians(0.1))
+
+
+@pytest.mark.parametrize("joint, shift, unit", [(4, math.radians(6.0), "deg"),
+                                                (1, -math.radians(40.0), "deg")])
+def test_start_up_refuses_a_robot_away_from_the_scenarios_initial_pose(serial_chain, joint,
+                                                                       shift, unit):
+    """The chain stands at serial_joint's initial pose; a bridge told the run starts elsewhere
+    (by more than the 5 deg tolerance, on any joint) refuses before the torque comes on,
+    naming the joint and both angles; within the tolerance it starts."""
+    chain = serial_chain
+    start = np.concatenate([u.x0[:3] for u in unit_setups(chain.scenario)])
+    away = start.copy()
+    away[joint] += shift
+    backend = connect(chain, expected_start=away)
+    name = backend.drives[joint].name
+    with pytest.raises(BackendError, match=rf"not at the scenario's initial pose: "
+                                           rf"{re.escape(name)} \(ID {joint + 1}\) is at "
+                                           rf"{math.degrees(start[joint]):.1f} deg, the scenario "
+                                           rf"starts it at {math.degrees(away[joint]):.1f} deg"):
+        backend.enable()
+    assert not backend.enabled and not any(m.torque_on for m in chain.motors)
+    assert not any(e[1] == "write" and e[3:] == (64, 1) for e in chain.events)
+    near = start.copy()
+    near[joint] += math.copysign(math.radians(4.0), shift)
+    backend = connect(chain, expected_start=near)
+    backend.enable()
+    backend.disable()
+    # A wider tolerance accepts the first pose; a non-physical one is refused at once.
+    backend = connect(chain, expected_start=away, start_tolerance=(math.radians(50), 5e-3))
+    backend.enable()
+    backend.disable()
+    for bad in [(0.0, 5e-3), (math.nan, 5e-3), (math.radians(5), -1.0)]:
+        with pytest.raises(BackendError, match="start tolerance must be positive"):
+            connect(chain, expected_start=start, start_tolerance=bad)
 
 
 def test_direction_and_zero_offset_map_joint_to_motor(tmp_path):

@@ -196,6 +196,21 @@ def test_each_scenario_converges_over_the_virtual_chain(tmp_path, robot, space):
             assert hil["final_rms_error"] <= bound, (u.name, name, hil, sim)
 
 
+def test_a_robot_away_from_the_scenarios_start_is_refused_before_anything_moves(tmp_path):
+    """serial_task's controller on a chain standing at serial_joint's initial pose (four joints
+    10-30 deg away): exit code 5 naming each joint, no output folder, nothing enabled."""
+    log = tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log) as port:
+        done = run("--robot", "serial", "--space", "task", "--backend", "dynamixel", "--port",
+                   port, "--duration", "1", "--out", str(tmp_path / "run"), cwd=tmp_path)
+    assert done.returncode == 5, done.stderr
+    assert "the backend could not start, nothing moved: the robot is not at the scenario's " \
+           "initial pose: arm1.link1 (ID 1) is at 73.0 deg, the scenario starts it at " \
+           "83.5 deg" in done.stderr and "(tolerance 5 deg, 5 mm)" in done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "run").exists()
+    assert not [c for c in last_commands(log) if c[1] == 64 and c[2] == 1]
+
+
 FAULTS = {
     "dropped replies": (["--drop-replies", "1", "--fault-ids", "3"], "timeout"),
     "corrupted CRC": (["--corrupt-crc", "1", "--fault-ids", "3"], "crc"),

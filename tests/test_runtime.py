@@ -273,7 +273,11 @@ def test_wrong_combinations_fail_before_anything_moves(tmp_path):
         (["--robot", "serial", "--space", "task", "--watchdog-misses", "0"],
          "--watchdog-misses must be between 1 and 500"),
         (["--robot", "serial", "--space", "task", "--watchdog-misses", "100000"],
-         "--watchdog-misses must be between 1 and 500")]:
+         "--watchdog-misses must be between 1 and 500"),
+        *[(["--robot", "serial", "--space", "task", "--backend", "dynamixel", "--port",
+            "/dev/null", option, value], f"{option} must be a positive number")
+          for option in ("--start-tolerance-deg", "--start-tolerance-mm")
+          for value in ("nan", "0", "-3", "inf")]]:
         proc = _cli(args, tmp_path)
         _, stderr = proc.communicate(timeout=60)
         assert proc.returncode == 2 and message in stderr and "Traceback" not in stderr

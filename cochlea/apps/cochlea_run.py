@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import signal
 import subprocess
@@ -48,6 +49,8 @@ import sys
 import time
 from datetime import datetime
 from pathlib import Path
+
+import numpy as np
 
 from ..console import signals_held, tolerate_closed_stdout
 from ..dynamixel.bridge import DynamixelBackend
@@ -132,6 +135,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="--backend dynamixel, parallel robot: check the slider's homing record "
                         "(cochlea-dxl home) on a real port and not on the emulator's "
                         "pseudo-terminal (auto, default), or always (required)")
+    p.add_argument("--start-tolerance-deg", type=float, default=5.0, metavar="DEG",
+                   help="--backend dynamixel: how far a revolute joint may stand from the "
+                        "scenario's initial pose at the start (default 5 deg); farther is "
+                        "refused before the torque comes on (exit code 5)")
+    p.add_argument("--start-tolerance-mm", type=float, default=5.0, metavar="MM",
+                   help="--backend dynamixel: the same for a prismatic joint (default 5 mm)")
     p.add_argument("--homing-record", metavar="FILE",
                    help="--backend dynamixel: the homing record cochlea-dxl home wrote "
                         "(default ~/.cochlea/homing/ROBOT.json)")
@@ -322,6 +331,11 @@ def _validate(args: argparse.Namespace, scenario) -> None:
         raise CochleaError("--port and --baud go with --backend dynamixel")
     if args.baud is not None:
         baud_code(args.baud)  # a rate the motors do not have, refused before the folder exists
+    for name in ("start_tolerance_deg", "start_tolerance_mm"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):  # NaN, inf, zero or negative
+            raise CochleaError(f"--{name.replace('_', '-')} must be a positive number, got "
+                               f"{value}")
     if args.ros2 and args.realtime == "off":
         raise CochleaError("--ros2 follows a real-time run's log.bin as it is written; after "
                            "an as-fast run, publish it with cochlea-ros2 replay RUN_DIR")
@@ -408,7 +422,7 @@ def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
     steps = int(round(duration * scenario.rate_hz))
     substeps = scenario.plant_substeps
     if args.backend == "dynamixel":
-        backend = _dynamixel_backend(args, scenario)
+        backend = _dynamixel_backend(args, scenario, setups)
     else:
         # Measured (delay, noise, grids) and driven (effort grid) as the as-fast run is.
         backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels,
@@ -502,9 +516,11 @@ def _warn(text: str) -> None:
     print(f"cochlea-run: warning: {text}", file=sys.stderr, flush=True)
 
 
-def _dynamixel_backend(args, scenario):
+def _dynamixel_backend(args, scenario, setups):
     """The motors of the scenario's description on ``--port``; refused before anything moves
-    when the bus cannot carry the loop's rate, with a warning when it only just can."""
+    when the bus cannot carry the loop's rate, with a warning when it only just can, and (at
+    start-up) when the robot does not stand at the scenario's initial pose."""
+    start = np.concatenate([u.x0[:u.controller_model.nq] for u in setups])
     # Only a missing --baud means the default: --baud 0 is refused like any other bad rate.
     # The Realtime Tick read with the state: a motor repeating a stale packet is a failed read.
     backend = DynamixelBackend(scenario.robot, args.port,
@@ -512,7 +528,10 @@ def _dynamixel_backend(args, scenario):
                                system=scenario.system, realtime_tick=True,
                                homing=args.homing, homing_record=args.homing_record,
                                offset_current=bridge_compensates_friction(
-                                   scenario.controller_actuators))
+                                   scenario.controller_actuators),
+                               expected_start=start,
+                               start_tolerance=(math.radians(args.start_tolerance_deg),
+                                                args.start_tolerance_mm * 1e-3))
     verdict = backend.check_rate(scenario.rate_hz)
     if verdict.level == "refuse":
         raise CochleaError(f"{verdict.message} (--rate sets a lower one)")

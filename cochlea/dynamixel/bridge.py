@@ -198,6 +198,11 @@ def choose_transfers(specs, items: tuple[str, ...] = STATE_ITEMS,
     return "sync", write, "SYNC_READ (" + "; ".join(why) + ")"
 
 
+#: How far (rad for a revolute joint, m for a prismatic one) a joint may stand from the
+#: scenario's initial pose when the run starts (cochlea-run --start-tolerance-deg/-mm).
+START_TOLERANCE = (math.radians(5.0), 5e-3)
+
+
 class DynamixelBackend:
     """The motors of ``robot`` (``"serial"`` or ``"parallel"``) as described in
     ``description`` (default: the shipped ``models/robots/ROBOT.toml``; or ``system``,
@@ -231,7 +236,8 @@ class DynamixelBackend:
                  open_port=SerialPort, system=None, homing: str = "auto",
                  homing_record: str | Path | None = None, realtime_tick: bool = False,
                  offset_current: bool = True, read_instruction: str = "auto",
-                 write_instruction: str = "auto"):
+                 write_instruction: str = "auto", expected_start=None,
+                 start_tolerance: tuple[float, float] = START_TOLERANCE):
         self.robot = robot
         self.port_path = str(port)
         baud_code(baud)  # a rate the motors do not have is the user's mistake, before the port
@@ -286,6 +292,15 @@ class DynamixelBackend:
                                             write_instruction=self.write_instruction)
         self.timeout_s = timeout_s if timeout_s is not None else self.budget.cycle_s + 3e-3
         self.position_margin = position_margin_rad
+        self.expected_start = None if expected_start is None else \
+            np.asarray(expected_start, float).ravel()
+        if self.expected_start is not None and self.expected_start.shape != (n,):
+            raise BackendError(f"the expected start pose has {self.expected_start.size} "
+                               f"joints, the description {n}")
+        self.start_tolerance = tuple(float(v) for v in start_tolerance)
+        if not all(math.isfinite(v) and v > 0 for v in self.start_tolerance):
+            raise BackendError(f"the start tolerance must be positive, got "
+                               f"{start_tolerance}")
         self.retries = max(1, retries)
         if homing not in HOMING_MODES:
             raise BackendError(f"homing must be one of {', '.join(HOMING_MODES)}, got {homing!r}")
@@ -985,6 +1000,35 @@ class DynamixelBackend:
         if problems:
             raise BackendError("; ".join(problems) + ": check zero_offset_deg and direction in "
                                "the description, or move the joint by hand with the power off")
+        self._check_start(q)
+
+    def _check_start(self, q: np.ndarray) -> None:
+        """The run's controller and its desired path start from the scenario's initial pose:
+        a robot standing elsewhere would meet an initial error the study never had (a jump
+        towards the path at the gains' full authority, maybe through the keep-out region), so
+        a joint farther from it than the tolerance is refused before the torque comes on."""
+        if self.expected_start is None:
+            return
+        problems = []
+        for j, d in enumerate(self.drives):
+            revolute = d.type == "revolute"
+            tolerance = self.start_tolerance[0 if revolute else 1]
+            if abs(q[j] - self.expected_start[j]) <= tolerance:
+                continue
+            if revolute:
+                problems.append(f"{d.name} (ID {d.id}) is at {math.degrees(q[j]):.1f} deg, "
+                                f"the scenario starts it at "
+                                f"{math.degrees(self.expected_start[j]):.1f} deg")
+            else:
+                problems.append(f"{d.name} (ID {d.id}) is at {q[j] * 1e3:.1f} mm, the "
+                                f"scenario starts it at {self.expected_start[j] * 1e3:.1f} mm")
+        if problems:
+            rad, m = self.start_tolerance
+            raise BackendError(
+                "the robot is not at the scenario's initial pose: " + "; ".join(problems)
+                + f" (tolerance {math.degrees(rad):g} deg, {m * 1e3:g} mm): move the joints "
+                "there by hand with the power off, or run a scenario whose initial state is "
+                "where the robot stands (--start-tolerance-deg, --start-tolerance-mm widen it)")
 
     def _shutdown(self, port: SerialPort) -> str:
         deadline = time.perf_counter() + 0.05
