@@ -1,8 +1,8 @@
 /* cochlea on an STM32F405/407: one scenario's real-time loop over the Dynamixel bus.
  *
- * At reset: the clocks (hal_stm32f4.c), the console (USART2), the bus (USART1, its receive
- * interrupt), SysTick at the loop's period. Then, as build/cochlea-embedded does: the
- * controller and the loop first (a refused configuration moves nothing), the bridge's
+ * At reset: the clocks (hal_stm32f4.c), TIM2 as the 64-bit clock, the console (USART2), the
+ * bus (USART1, its receive interrupt), SysTick at the loop's period. Then, as
+ * build/cochlea-embedded does: the controller and the loop first (a refused configuration moves nothing), the bridge's
  * start-up (PING and model check, configuration, Bus Watchdog, first read; the torque with the
  * first nonzero command), and the periods: SysTick's interrupt (cochlea_loop_tick) wakes the
  * core from WFI and the main context runs cochlea_loop_period; the independent watchdog is

@@ -162,10 +162,6 @@ void SysTick_Handler(void)
     }
 }
 
-#ifndef STM32_NO_WFI
-#define STM32_NO_WFI 0
-#endif
-
 /* Sleep (WFI) only when an interrupt is due by the deadline: the next period tick (a period
  * after the last one) comes before it. Else return and let the caller poll, so a wait outlasts
  * its deadline by no more than a poll (on silicon: SysTick reloads in hardware, exactly).
@@ -174,7 +170,7 @@ void SysTick_Handler(void)
 static void sleep_before(int64_t deadline_ns, volatile uint32_t *head, uint32_t seen)
 {
     const uint32_t primask = irq_save();
-    if (!STM32_NO_WFI && tick_ns != 0 && tick_ns + tick_period_ns <= deadline_ns
+    if (tick_ns != 0 && tick_ns + tick_period_ns <= deadline_ns
         && (head == 0 || *head == seen) && !(SCB_ICSR & SCB_ICSR_PENDSTSET)) {
         __asm__ volatile("dsb\n\twfi" ::: "memory");
     }
@@ -240,9 +236,9 @@ void stm32f4_bus_init(stm32f4_uart *u, uint32_t baud)
 static long bus_write(void *ctx, const uint8_t *data, size_t n)
 {
     stm32f4_uart *u = (stm32f4_uart *)ctx;
-    /* The bytes' wire time (10 bits each) twice over, and 1 ms. */
+    /* The bytes' wire time (10 bits each) twice over, and 1 ms (integers: no soft double). */
     const int64_t deadline = stm32f4_now_ns() + 1000000
-                             + (int64_t)(20.0e9 * (double)n / (double)u->baud);
+                             + (int64_t)((uint64_t)n * 20000000000u / u->baud);
     size_t i;
     for (i = 0; i < n; ++i) {
         while (!(USART_SR(USART1_BASE) & USART_SR_TXE)) {
@@ -339,8 +335,8 @@ void stm32f4_console_init(void)
 
 void stm32f4_console_write(const char *text)
 {
-    /* At most 100 us a byte (11.5 bit times at 115200 baud is 87 us); a console that does not
-     * drain loses the rest of the line, never the loop. */
+    /* A bounded count of polls a byte (about 1 ms at 168 MHz; a byte takes 87 us at 115200
+     * baud): a console that does not drain loses characters, never hangs the firmware. */
     for (; *text; ++text) {
         uint32_t polls;
         for (polls = 0; polls < STM32_SYSCLK_HZ / 10000u; ++polls) {

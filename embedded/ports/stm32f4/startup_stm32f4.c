@@ -81,17 +81,40 @@ void Default_Handler(void)
 
 typedef void (*vector)(void);
 
+/* The core's exceptions, then every external interrupt: the bus's receive (37, USART1) and
+ * Default_Handler (a fault line) for the others, which the firmware never enables. */
 __attribute__((section(".isr_vector"), used)) const vector vectors[16 + IRQ_COUNT] = {
-    [0] = (vector)(uintptr_t)&_estack,
-    [1] = Reset_Handler,
-    [2] = Fault_Handler,   /* NMI */
-    [3] = Fault_Handler,   /* HardFault */
-    [4] = Fault_Handler,   /* MemManage */
-    [5] = Fault_Handler,   /* BusFault */
-    [6] = Fault_Handler,   /* UsageFault */
-    [11] = Default_Handler, /* SVCall */
-    [12] = Default_Handler, /* DebugMonitor */
-    [14] = Default_Handler, /* PendSV */
-    [15] = SysTick_Handler,
-    [16 + IRQ_USART1] = USART1_IRQHandler,
+    (vector)(uintptr_t)&_estack, Reset_Handler,
+    Fault_Handler,   /* NMI */
+    Fault_Handler,   /* HardFault */
+    Fault_Handler,   /* MemManage */
+    Fault_Handler,   /* BusFault */
+    Fault_Handler,   /* UsageFault */
+    0, 0, 0, 0,      /* reserved */
+    Default_Handler, /* SVCall */
+    Default_Handler, /* DebugMonitor */
+    0,               /* reserved */
+    Default_Handler, /* PendSV */
+    SysTick_Handler,
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 0-3 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 4-7 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 8-11 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 12-15 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 16-19 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 20-23 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 24-27 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 28-31 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 32-35 */
+    Default_Handler, USART1_IRQHandler, Default_Handler, Default_Handler, /* 36-39 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 40-43 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 44-47 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 48-51 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 52-55 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 56-59 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 60-63 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 64-67 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 68-71 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 72-75 */
+    Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 76-79 */
+    Default_Handler, Default_Handler, /* 80-81 */
 };
