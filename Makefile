@@ -229,6 +229,9 @@ $(BUILD)/stm32f4/config.txt: stm32-config-check
 .PHONY: stm32-firmware stm32-config-check
 stm32-config-check:
 stm32-firmware:
+	$(if $(wildcard $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c),,$(error stm32-firmware: unknown \
+	    scenario STM32_SCENARIO=$(STM32_SCENARIO); one of: $(patsubst \
+	    $(GEN)/embedded/%_scenario.c,%,$(wildcard $(GEN)/embedded/*_scenario.c))))
 	@bash embedded/ports/ensure_tools.sh
 	@$(MAKE) --no-print-directory $(BUILD)/stm32f4/float/cochlea-stm32f4.elf \
 	    $(BUILD)/stm32f4/double/cochlea-stm32f4.elf

@@ -50,8 +50,6 @@ from cochlea.dynamixel.drives import joint_drives
 from tests.test_dynamixel_hil import emulator
 from tests.test_embedded_qemu import ensure_tools
 
-pytestmark = pytest.mark.hil
-
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIO = "serial_joint"
 PERIODS = 300
@@ -133,6 +131,7 @@ def value(event: list[str], key: str) -> str:
     return next(f.split("=", 1)[1] for f in event[2:] if f.startswith(key + "="))
 
 
+@pytest.mark.hil
 @pytest.mark.parametrize("precision", ["float", "double"])
 def test_serial_joint_runs_to_its_end_and_stops_safely_on_netduinoplus2(firmware, tmp_path,
                                                                          precision):
@@ -207,6 +206,7 @@ def test_serial_joint_runs_to_its_end_and_stops_safely_on_netduinoplus2(firmware
         assert 0 < int(end["tick_overruns"]) <= run_s / PERIOD_S + 1
 
 
+@pytest.mark.slow
 def test_the_firmware_fits_the_stm32f405(firmware):
     """1 MB of flash, 128 KB of SRAM (the stack grows down from its top into what .data and
     .bss leave): each build's image, with 32 KB at least left for the stack."""
@@ -224,6 +224,7 @@ def test_the_firmware_fits_the_stm32f405(firmware):
         assert re.search(r"^08000000 [TtRr] vectors$", nm, re.M), precision
 
 
+@pytest.mark.hil
 def test_a_live_plant_at_qemus_pace_ends_in_a_rule_and_the_safe_stop(firmware, tmp_path):
     """The emulator's plant as it is (the motors turn their current into torque): at QEMU's
     ~10 ms a period the 1 kHz controller drives it unstable, and the supervisor stops the run
@@ -249,6 +250,7 @@ def test_a_live_plant_at_qemus_pace_ends_in_a_rule_and_the_safe_stop(firmware, t
     assert writes[-4 * n:] == ([(GOAL_CURRENT, 0)] * n + [(TORQUE_ENABLE, 0)] * n) * 2
 
 
+@pytest.mark.hil
 def test_a_missing_motor_stops_the_start_before_anything_moves(firmware, tmp_path):
     """Motor 3 absent: the start-up's PING fails on it (step 1, drive index 2), the firmware
     says so in one line and ends with cochlea-run's exit code 5, no period runs, and no motor
@@ -266,3 +268,45 @@ def test_a_missing_motor_stops_the_start_before_anything_moves(firmware, tmp_pat
     writes = [(int(value(e, "address")), int(value(e, "value"))) for e in events
               if e[1] == "sync-write"]
     assert (TORQUE_ENABLE, 0) in writes
+
+
+@pytest.mark.slow
+def test_a_slider_is_refused_before_the_bus_starts(tmp_path):
+    """parallel_joint (its slider's encoder loses its turns at power-on, and the firmware does
+    not carry the homing record's check): one refusal line, exit 5, nothing on the bus."""
+    ensure_tools()
+    build = tmp_path / "build"
+    run = subprocess.run(["make", "--no-print-directory", "-s", "stm32-firmware",
+                          f"BUILD={build}", "STM32_SCENARIO=parallel_joint"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    console, bus = tmp_path / "console.txt", tmp_path / "bus.bin"
+    qemu = subprocess.Popen(
+        ["qemu-system-arm", "-M", "netduinoplus2", "-nographic", "-monitor", "none",
+         "-serial", f"file:{bus}", "-serial", f"file:{console}",
+         "-kernel", str(build / "stm32f4" / "float" / "cochlea-stm32f4.elf")],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        start = time.monotonic()
+        while time.monotonic() - start < 30 and not (
+                console.exists() and ended(console.read_bytes().decode())):
+            time.sleep(0.05)
+    finally:
+        qemu.terminate()
+        qemu.wait(timeout=20)
+    lines = console_lines(console.read_bytes().decode())
+    assert len(lines) == 3 and lines[1].startswith("refused what=homing: "), lines
+    end = fields(lines[2])
+    assert (end["rule"], end["exit"], end["rows"]) == ("none", "5", "0")
+    assert bus.read_bytes() == b""
+
+
+def test_an_unknown_scenario_is_one_line_from_make(tmp_path):
+    run = subprocess.run(["make", "--no-print-directory", "stm32-firmware",
+                          f"BUILD={tmp_path / 'build'}", "STM32_SCENARIO=no_such_scenario"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "unknown scenario STM32_SCENARIO=no_such_scenario" in lines[0]
+    assert "serial_joint" in lines[0] and run.stdout == ""
+    assert not (tmp_path / "build").exists()

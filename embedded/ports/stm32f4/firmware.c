@@ -18,7 +18,8 @@
  * The console's lines (115200 8N1, key=value; docs/embedded.md, "STM32F4 port"):
  *   cochlea-stm32f4 scenario=S precision=float|double clock=pll|unmodelled|no-hse|no-pll
  *       baud=B timer_hz=F period_ns=P periods=N
- *   start ok | start failed error=E step=S drive=D detail=X | refused what=...
+ *   start ok | start failed error=E step=S drive=D detail=X
+ *       | refused what=clock|watchdog-reset|homing|configuration|loop ...
  *   end rule=NAME exit=C rows=N kicks=K tick_overruns=T deadline_misses=M overruns=O
  *       lateness_max_ns=L run_ns=R reads=N good_reads=G rx_overflows=V
  *       failures=none|KIND:COUNT,... confirmed_off=A/B stack_bytes=S stop_joint=J
@@ -234,6 +235,19 @@ int main(void)
                       "power-cycle to run again; nothing moved"));
         end_line(COCHLEA_RULE_NONE, 0);
         park();
+    }
+    {
+        /* A slider's encoder loses its turns at power-on: without the homing record's check
+         * (cochlea-run's --homing, not carried by this firmware) it must not move. */
+        int j;
+        for (j = 0; j < sc->nq; ++j) {
+            if (!sc->drives[j].revolute) {
+                say(put(line, "refused what=homing: a prismatic joint needs the homing record's "
+                              "check, which this firmware does not carry; nothing moved"));
+                end_line(COCHLEA_RULE_NONE, 0);
+                park();
+            }
+        }
     }
     stm32f4_bus_init(&bus, STM32_BAUD);
     stm32f4_hal(&hal, &bus, STM32_RS485);
