@@ -200,6 +200,10 @@ def test_serial_joint_runs_to_its_end_and_stops_safely_on_netduinoplus2(firmware
     reads = [float(e[0]) for e in events if e[1] == "sync-read"]
     span = float(events[-1][0]) - reads[1]
     assert abs(run_s - span) <= 0.03 * span + 0.05, (run_s, span)
+    # The wrap of TIM2's 32 bits (the clock's 2^32 counts, from STM32_TIMER_START) fell
+    # inside the run: period 0 started before it and the run ended after it.
+    wrap_ns = 2**32 * 10**9 // TIMER_HZ
+    assert int(end["t0_ns"]) < wrap_ns < int(end["t0_ns"]) + int(end["run_ns"]), end
     assert run_s <= wall
     assert int(end["deadline_misses"]) <= PERIODS
     if int(end["overruns"]) > 0:

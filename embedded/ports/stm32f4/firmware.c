@@ -21,7 +21,7 @@
  *   start ok | start failed error=E step=S drive=D detail=X
  *       | refused what=clock|watchdog-reset|homing|configuration|loop ...
  *   end rule=NAME exit=C rows=N kicks=K tick_overruns=T deadline_misses=M overruns=O
- *       lateness_max_ns=L run_ns=R reads=N good_reads=G rx_overflows=V
+ *       lateness_max_ns=L t0_ns=T run_ns=R reads=N good_reads=G rx_overflows=V
  *       failures=none|KIND:COUNT,... confirmed_off=A/B stack_bytes=S stop_joint=J
  *       stop_value_u=V stop_limit_u=L (the stop's joint, value and limit in micro-SI units)
  * An end line is always the last; after it the core parks (WFI), the motors off. */
@@ -170,6 +170,7 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "deadline_misses", the_loop.deadline_misses);
     at = put_kv(at, "overruns", the_loop.overruns);
     at = put_kv(at, "lateness_max_ns", the_loop.lateness_max_ns);
+    at = put_kv(at, "t0_ns", the_loop.t0_ns);
     at = put_kv(at, "run_ns", run_ns);
     at = put_kv(at, "reads", bridge.reads);
     at = put_kv(at, "good_reads", bridge.good_reads);
