@@ -10,8 +10,8 @@ What QEMU cannot give, and so what is not asserted:
 
 - **Real time.** QEMU's STM32 USART holds one received byte at a time: each byte waits for
   the firmware to read the one before it and for QEMU's main loop to fetch the next from the
-  pseudo-terminal. A period's SYNC_READ (6 status packets, 162 bytes) took 8-10 ms here
-  (tens of ms when the machine is loaded), against 1 ms on a board at 4 Mbaud. So every
+  pseudo-terminal. A period's SYNC_READ (6 status packets, 162 bytes) took 5-60 ms here
+  (at a load average of 7-12 on 2 cores), against 0.5 ms on a board at 4 Mbaud. So every
   period overruns its tick, and the test's build tolerates it (watchdog counts of 100 000,
   read timeout 100 ms, the motors' Bus Watchdog at its 2.54 s maximum).
 - **Control.** A 1 kHz controller whose periods come every ~10 ms drives the emulator's rigid
