@@ -172,3 +172,66 @@ QEMU_OUT := $(foreach s,$(QEMU_SCENARIOS),$(foreach p,double float,\
 qemu-firmware:
 	@bash embedded/ports/ensure_tools.sh
 	@$(MAKE) --no-print-directory -j$(JOBS) $(QEMU_OUT)
+
+# The STM32F4 board port (embedded/ports/stm32f4/, docs/embedded.md "STM32F4 port"): one
+# scenario's real-time loop over the Dynamixel bus on USART1, register level, for an
+# STM32F405/407 (Cortex-M4F, 168 MHz), float (the FPU's precision) and double:
+# build/stm32f4/<float|double>/cochlea-stm32f4.elf (and .bin). It also runs on QEMU's
+# netduinoplus2 machine (tests/test_embedded_stm32.py). Compiled in: STM32_SCENARIO,
+# STM32_DURATION (s, 0: the scenario's), STM32_WATCHDOG_MISSES, STM32_WATCHDOG_ERRORS,
+# STM32_BAUD, STM32_READ_TIMEOUT_US (a period's SYNC_READ reply), STM32_RATE (Hz, 0: the
+# scenario's; cochlea-run's --rate), STM32_BUS_WATCHDOG_MS (the motors' Bus Watchdog, 20..2540),
+# STM32_TIMER_HZ (TIM2's clock: 84 MHz on a board, 1000000000 under QEMU, whose model counts at
+# 1 GHz), STM32_TIMER_START (TIM2's first count: a test puts a wrap inside the run).
+STM32_DIR              := embedded/ports/stm32f4
+STM32_SCENARIO         ?= serial_joint
+STM32_DURATION         ?= 0
+STM32_WATCHDOG_MISSES  ?= 20
+STM32_WATCHDOG_ERRORS  ?= 5
+STM32_BAUD             ?= 4000000
+STM32_READ_TIMEOUT_US  ?= 5000
+STM32_RATE             ?= 0
+STM32_BUS_WATCHDOG_MS  ?= 100
+STM32_TIMER_HZ         ?= 84000000
+STM32_TIMER_START      ?= 0
+STM32_CPU      := -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16
+STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
+                  -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(STM32_DIR) \
+                  -DSTM32_SCENARIO=$(STM32_SCENARIO) -DSTM32_DURATION_S=$(STM32_DURATION) \
+                  -DSTM32_WATCHDOG_MISSES=$(STM32_WATCHDOG_MISSES) \
+                  -DSTM32_WATCHDOG_ERRORS=$(STM32_WATCHDOG_ERRORS) -DSTM32_BAUD=$(STM32_BAUD)u \
+                  -DSTM32_READ_TIMEOUT_NS=$(STM32_READ_TIMEOUT_US)000 -DSTM32_RATE_HZ=$(STM32_RATE) \
+                  -DSTM32_BUS_WATCHDOG_MS=$(STM32_BUS_WATCHDOG_MS) -DSTM32_TIMER_HZ=$(STM32_TIMER_HZ)u \
+                  -DSTM32_TIMER_START=$(STM32_TIMER_START)u
+STM32_LDFLAGS  := -T $(STM32_DIR)/stm32f405.ld -nostartfiles --specs=nano.specs \
+                  --specs=nosys.specs -Wl,--gc-sections
+STM32_SOURCES  := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(STM32_SCENARIO).c \
+                  $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c $(sort $(wildcard $(STM32_DIR)/*.c))
+STM32_DEPS     := $(STM32_SOURCES) $(wildcard embedded/core/*.h $(STM32_DIR)/*.h) \
+                  $(STM32_DIR)/stm32f405.ld $(GEN)/embedded/$(STM32_SCENARIO).h Makefile
+# The compiled-in settings: a change rebuilds (the file changes only when they do).
+STM32_CONFIG   := $(STM32_CFLAGS) $(STM32_CPU) $(ARM_CC)
+STM32_DEPS     += $(BUILD)/stm32f4/config.txt
+STM32_PREC_double :=
+STM32_PREC_float  := -DCOCHLEA_FLOAT
+
+$(BUILD)/stm32f4/%/cochlea-stm32f4.elf: $(STM32_DEPS)
+	@mkdir -p $(@D)
+	$(ARM_CC) $(STM32_CFLAGS) $(STM32_CPU) $(STM32_PREC_$*) $(STM32_SOURCES) $(STM32_LDFLAGS) \
+	    -Wl,-Map,$(@D)/cochlea-stm32f4.map -o $@.partial -lm
+	arm-none-eabi-objcopy -O binary $@.partial $(@D)/cochlea-stm32f4.bin
+	mv $@.partial $@
+
+$(BUILD)/stm32f4/config.txt: stm32-config-check
+	@mkdir -p $(@D)
+	@echo '$(STM32_CONFIG)' | cmp -s - $@ || echo '$(STM32_CONFIG)' > $@
+
+.PHONY: stm32-firmware stm32-config-check
+stm32-config-check:
+stm32-firmware:
+	$(if $(wildcard $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c),,$(error stm32-firmware: unknown \
+	    scenario STM32_SCENARIO=$(STM32_SCENARIO); one of: $(patsubst \
+	    $(GEN)/embedded/%_scenario.c,%,$(wildcard $(GEN)/embedded/*_scenario.c))))
+	@bash embedded/ports/ensure_tools.sh
+	@$(MAKE) --no-print-directory $(BUILD)/stm32f4/float/cochlea-stm32f4.elf \
+	    $(BUILD)/stm32f4/double/cochlea-stm32f4.elf
