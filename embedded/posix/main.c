@@ -1733,6 +1733,10 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     fputs(",\n", f);
     /* the overrun rule (loop.h), cochlea-run's keys */
     fprintf(f, "    \"overruns\": %u,\n", loop->overruns);
+    /* issue 28: periods still running at a tick of the port's period timer
+     * (cochlea_loop_tick); this program's periods wait on the clock, not on a timer
+     * interrupt, so nothing ticks here and it stays 0 (a board port's timer counts it) */
+    fprintf(f, "    \"tick_overruns\": %u,\n", (unsigned)loop->tick_overruns);
     key(f, 4, "lateness_max");
     json_number(f, (double)loop->lateness_max_ns * 1e-9);
     fputs(",\n", f);
@@ -1771,6 +1775,12 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     json_number(f, facts->bus_s);
     fputs(", \"with_adapter_latency_s\": ", f);
     json_number(f, facts->cycle_s);
+    /* the transfers sent, chosen from the models' data by cochlea-run's rule */
+    fputs(", \"read_instruction\": ", f);
+    json_string(f, b->bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ"
+                                                                  : "SYNC_READ");
+    fputs(", \"write_instruction\": \"SYNC_WRITE\", \"read_choice\": ", f);
+    json_string(f, b->bus->read_choice);
     fputs("},\n", f);
     key(f, 6, "read_timeout_s");
     json_number(f, facts->timeout_s);
@@ -2214,12 +2224,27 @@ int main(int argc, char **argv)
                               steps, b);
         }
     }
-    { /* the bus budget, cochlea/dynamixel/budget.py's */
-        /* a status packet of 11 bytes and the Realtime Tick's 16-byte block per motor */
-        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + (11.0 + COCHLEA_TICK_READ_LENGTH) * n;
+    /* The bridge reads its addresses, sizes and transfers from the drive table (the model
+     * data): a table it cannot drive is refused here, before anything opens. It keeps &hal,
+     * filled once the port is open. */
+    if (cochlea_bridge_init(&bridge, &hal, sc->drives, n, 0, WATCHDOG_S) != 0 ||
+        cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* the tick always, as cochlea-run */
+        return fail_usage("the drive table of %s does not fit the bridge: %s", sc->name,
+                          bridge.config_problem ? bridge.config_problem : "its read frame "
+                          "does not fit");
+    }
+    { /* the bus budget, cochlea/dynamixel/budget.py's, of the transfers the bridge sends */
+        /* SYNC_WRITE of Goal Current; the read's request; then a status packet of 11 bytes
+         * and the block (Realtime Tick .. Present Position) per motor, or FAST_SYNC_READ's
+         * one combined packet of 8 bytes and ERR ID block CRC per motor, after one return
+         * delay and turnaround instead of n */
+        const double block = (double)bridge.read_length;
+        const int fast = bridge.bus->read_instruction == DXL_FAST_SYNC_READ;
+        const double replies = fast ? 8.0 + (block + 4.0) * n : (11.0 + block) * n;
+        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + replies;
         facts.budget_bytes = bytes;
         facts.wire_s = bytes * BITS_PER_BYTE / (double)o.baud;
-        facts.bus_s = facts.wire_s + n * TURNAROUND_S;
+        facts.bus_s = facts.wire_s + (fast ? 1 : n) * TURNAROUND_S;
         facts.cycle_s = facts.bus_s + ADAPTER_LATENCY_S;
         facts.timeout_s = facts.cycle_s + TIMEOUT_MARGIN_S;
         snprintf(text, sizeof text,
@@ -2293,6 +2318,9 @@ int main(int argc, char **argv)
     printf("cochlea-embedded: %s (controller %s, %s variant), Dynamixel motors on %s, real time "
            "at %g Hz, %s precision -> %s\n", sc->name, sc->controller, sc->variant, o.port,
            1.0 / period, PRECISION, o.out);
+    printf("cochlea-embedded: bus: %s + SYNC_WRITE per period (%s)\n",
+           bridge.bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ" : "SYNC_READ",
+           bridge.bus->read_choice);
     fflush(stdout);
     if (cochlea_posix_open(&port, o.port, o.baud) != 0) {
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: cannot "
@@ -2301,22 +2329,12 @@ int main(int argc, char **argv)
         return COCHLEA_EXIT_BACKEND;
     }
     cochlea_posix_hal(&hal, &port);
-    if (cochlea_bridge_init(&bridge, &hal, sc->drives, n,
-                            (int64_t)nearbyint(facts.timeout_s * 1e9), WATCHDOG_S) != 0) {
-        cochlea_posix_close(&port);
-        undo_start(o.out);
-        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
-    }
+    bridge.timeout_ns = (int64_t)nearbyint(facts.timeout_s * 1e9);
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
     /* Friction compensated once: by the bridge's offset current or by the controller. */
     bridge.offset_current = sc->bridge_offset_current;
     if (homing.drive >= 0) {
         cochlea_bridge_expect_homing(&bridge, homing.drive, homing.marker, homing.offset);
-    }
-    if (cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* always, as cochlea-run */
-        cochlea_posix_close(&port);
-        undo_start(o.out);
-        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     backend = cochlea_bridge_backend(&bridge);
 #ifdef COCHLEA_TEST_HOOKS
