@@ -849,17 +849,43 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
 static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
                           const cochlea_start_report *r, const options *o)
 {
+    /* each step, and the item it writes (its address is the motor's, from its table) */
     static const char *const steps[] = {
-        "", "PING", "Torque Enable 0 (WRITE 64 = 0)", "Bus Watchdog 0 (WRITE 98 = 0)",
-        "Operating Mode 0 (WRITE 11 = 0)", "Return Delay Time 0 (WRITE 9 = 0)",
-        "the Current Limit (WRITE 38)", "Goal Current 0 (WRITE 102 = 0)",
-        "the Bus Watchdog (WRITE 98)", "the first SYNC_READ", "the joint limits",
-        "Torque Enable 1 (WRITE 64 = 1)", "the homing marker (READ/WRITE 88)"};
-    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_HOMING ? steps[r->step] : "?";
+        "", "PING", "Torque Enable 0 (WRITE %d = 0)", "Bus Watchdog 0 (WRITE %d = 0)",
+        "Operating Mode %d (WRITE %d)", "Return Delay Time 0 (WRITE %d = 0)",
+        "the Current Limit (WRITE %d)", "Goal Current 0 (WRITE %d = 0)",
+        "the Bus Watchdog (WRITE %d)", "the first %s", "the joint limits",
+        "Torque Enable 1 (WRITE %d = 1)", "the homing marker (READ/WRITE %d)"};
+    static const int items[] = {
+        -1, -1, DXL_ITEM_TORQUE_ENABLE, DXL_ITEM_BUS_WATCHDOG, DXL_ITEM_OPERATING_MODE,
+        DXL_ITEM_RETURN_DELAY, DXL_ITEM_CURRENT_LIMIT, DXL_ITEM_GOAL_CURRENT,
+        DXL_ITEM_BUS_WATCHDOG, -1, -1, DXL_ITEM_TORQUE_ENABLE, DXL_ITEM_HOMING_MARKER};
+    const char *read_name = b->bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ"
+                                                                            : "SYNC_READ";
+    char what[96] = "?";
     char name[160] = "the bus";
     char value[64];
+    char id_text[32] = "";
+    const int drive = r->drive >= 0 && r->drive < b->n ? r->drive : 0;
+    if (r->step >= 1 && r->step <= COCHLEA_STEP_HOMING) {
+        const int item = items[r->step];
+        const int address = item >= 0 ? b->bus->tables[drive].item[item].address : 0;
+        if (r->step == COCHLEA_STEP_MODE) {
+            snprintf(what, sizeof what, steps[r->step], b->bus->tables[drive].current_mode,
+                     address);
+        } else if (r->step == COCHLEA_STEP_FIRST_READ) {
+            snprintf(what, sizeof what, steps[r->step], read_name);
+        } else if (item >= 0) {
+            snprintf(what, sizeof what, steps[r->step], address);
+        } else {
+            snprintf(what, sizeof what, "%s", steps[r->step]);
+        }
+    }
     if (r->drive >= 0 && r->drive < b->n) {
         who(name, sizeof name, &b->drives[r->drive]);
+    }
+    if (b->last_failure_id >= 0) {
+        snprintf(id_text, sizeof id_text, " (ID %d)", b->last_failure_id);
     }
     switch (r->error) {
     case COCHLEA_START_NO_ANSWER:
@@ -883,8 +909,8 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
                  b->drives[r->drive].model_number, model_name(b->drives[r->drive].model_number));
         break;
     case COCHLEA_START_NO_READ:
-        snprintf(buf, n, "no good SYNC_READ of the motors' state on %s (last failure: %s)",
-                 o->port, cochlea_failure_name(r->detail));
+        snprintf(buf, n, "no good %s of the motors' state on %s (last failure: %s%s)",
+                 read_name, o->port, cochlea_failure_name(r->detail), id_text);
         break;
     case COCHLEA_START_OUTSIDE_LIMITS:
         show(value, sizeof value, r->value,
