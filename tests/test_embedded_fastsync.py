@@ -240,6 +240,24 @@ def test_what_the_c_bridge_cannot_drive_is_refused_in_one_line(tmp_path):
             str(info.value)
 
 
+def test_cochlea_codegen_refuses_the_table_before_writing_anything(tmp_path, capsys):
+    """``cochlea-codegen --scenario --embedded`` with a P-series motor: one line, exit 2, no
+    file written (it used to write the kernels first, then refuse the drive table)."""
+    from cochlea.apps import cochlea_codegen
+    from cochlea.errors import EXIT_USER_ERROR
+
+    description = tmp_path / "p.toml"
+    description.write_text(ARM.read_text().replace('model = "XM540-W270"',
+                                                   'model = "PH54-200-S500-R"', 1))
+    out = tmp_path / "out"
+    assert cochlea_codegen.main(["--scenario", str(ARM_SCENARIO), "--description",
+                                 str(description), "--embedded", "--no-build", "--out",
+                                 str(out)]) == EXIT_USER_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "PH54-200-S500-R: not supported" in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
 # ---- the C bridge's read against the Python bridge's, on the same bytes ------------------------
 
 LINE = r"""
