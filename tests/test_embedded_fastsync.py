@@ -334,15 +334,16 @@ const uint8_t *line_sent(size_t *n) { *n = L.sent_len; return L.sent; }
 int line_instruction(void) { return b.bus->read_instruction; }
 const char *line_choice(void) { return b.bus->read_choice; }
 int line_read_length(void) { return b.read_length; }
+const char *line_problem(void) { return b.config_problem; }
 """
 
 
 class ScriptedLine:
     """The C bridge of a drive table over the scripted line (ctypes)."""
 
-    def __init__(self, tmp: Path, drives, description: Path | None):
-        (tmp / "serial_drives.h").write_text(drives_header("serial", description,
-                                                           drives=drives))
+    def __init__(self, tmp: Path, drives, description: Path | None, header: str | None = None):
+        (tmp / "serial_drives.h").write_text(header or drives_header("serial", description,
+                                                                     drives=drives))
         lib = build_library("fastsync_line", [CORE / "dxl.c", CORE / "drives.c",
                                               CORE / "bridge.c", ("line.c", LINE)],
                             include=[CORE, tmp])
@@ -352,7 +353,10 @@ class ScriptedLine:
         self.c.line_read_state.argtypes = [ctypes.c_char_p, ctypes.c_size_t, dp, dp]
         self.c.line_sent.restype = ctypes.POINTER(ctypes.c_uint8)
         self.c.line_choice.restype = ctypes.c_char_p
-        assert self.c.line_init() == 0
+        self.c.line_problem.restype = ctypes.c_char_p
+        self.init = self.c.line_init()
+        if header is None:
+            assert self.init == 0
 
     def read(self, reply: bytes):
         q, qd = np.zeros(self.n), np.zeros(self.n)
@@ -642,3 +646,26 @@ def test_the_mx64_chain_states_its_sync_read_as_cochlea_run(shipped_program, tmp
     assert summary["timing"]["tick_overruns"] == 0
     events = log.read_text()
     assert " sync-read " in events and "fast-sync-read" not in events
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("edit,why", [
+    # motor 2's Present Position 256 further on: the block differs (it would need BULK_READ)
+    (("{132, 4}}, 0},\n};", "{388, 4}}, 0},\n};"), "BULK_READ"),
+    # motor 2's Goal Current elsewhere: BULK_WRITE
+    (("{98, 1}, {102, 2}, {88, 2}, {120, 2}, {126, 2}, {128, 4}, {132, 4}}, 0},\n};",
+      "{98, 1}, {358, 2}, {88, 2}, {120, 2}, {126, 2}, {128, 4}, {132, 4}}, 0},\n};"),
+     "BULK_WRITE"),
+    # a drive of another chain (here: of none)
+    (("&serial_bus}", "0}"), "not of one chain")])
+def test_the_c_bridge_refuses_a_table_it_cannot_drive(tmp_path, edit, why):
+    """A drive table written by hand (the generator refuses these first): cochlea_bridge_init
+    returns -1 and says why in one line, before any byte is sent."""
+    header = drives_header("serial", ARM, drives=fast_drives())
+    assert edit[0] in header
+    header = header[::-1].replace(edit[0][::-1], edit[1][::-1], 1)[::-1]  # the last one
+    line = ScriptedLine(tmp_path, fast_drives(), ARM, header=header)
+    assert line.init == -1
+    problem = line.c.line_problem().decode()
+    assert why in problem and "\n" not in problem
+    assert line.sent() == b""
