@@ -186,7 +186,7 @@ static int setup(fake *fp, cochlea_hal *hal, const char *mode)
         }
         f.stream_len = (size_t)len;
     } else if (!strcmp(f.mode, "ontime")) { /* both motors' replies to the SYNC_READ */
-        const uint8_t state[COCHLEA_STATE_LENGTH] = {0};
+        const uint8_t state[10] = {0}; /* Present Current .. Position (the MX-64's) */
         const int32_t one = dxl_status(f.stream, sizeof f.stream, 1, 0, state, sizeof state);
         const int32_t two = one > 0 ? dxl_status(f.stream + one, sizeof f.stream - (size_t)one,
                                                  2, 0, state, sizeof state) : -1;
@@ -209,11 +209,16 @@ static int setup(fake *fp, cochlea_hal *hal, const char *mode)
     return 0;
 }
 /* MAIN */
+/* Two MX-64s: their control-table items as the generated drive tables give them. */
+#define MX64_ITEMS {{9, 1}, {11, 1}, {38, 2}, {64, 1}, {70, 1}, {98, 1}, {102, 2}, {88, 2}, \
+                    {120, 2}, {126, 2}, {128, 4}, {132, 4}}
+static const dxl_table TABLES[2] = {{"MX-64", MX64_ITEMS, 0}, {"MX-64", MX64_ITEMS, 0}};
+static const dxl_bus BUS = {DXL_SYNC_READ, DXL_SYNC_WRITE, "SYNC_READ", 2, TABLES};
 static const cochlea_drive DRIVES[2] = {
     {"arm1.link1", 1, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
-     0.92, 20.0, 0.14, 297.6, 0.00336, 731, -2.96, 2.96, 6.0, 2.5},
+     0.92, 20.0, 0.14, 297.6, 0.00336, 731, -2.96, 2.96, 6.0, 2.5, &BUS},
     {"arm1.link2", 2, 311, 1, 0.0015339807878856412, 0.0, 0.023980823922402087, 1.0,
-     0.81, 20.0, 0.19, 297.6, 0.00336, 667, -2.96, 2.96, 6.0, 2.5},
+     0.81, 20.0, 0.19, 297.6, 0.00336, 667, -2.96, 2.96, 6.0, 2.5, &BUS},
 };
 
 int main(int argc, char **argv)

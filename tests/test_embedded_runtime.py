@@ -46,7 +46,7 @@ class Drive(ctypes.Structure):
                                         "lsb_per_ampere", "ampere_per_lsb")] + [
         ("current_limit_lsb", ctypes.c_int32)] + [
         (f, ctypes.c_double) for f in ("position_lo", "position_hi", "velocity_limit",
-                                        "effort_limit")]
+                                        "effort_limit")] + [("bus", ctypes.c_void_p)]
 
 
 class Stop(ctypes.Structure):

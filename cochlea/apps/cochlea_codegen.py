@@ -141,6 +141,13 @@ def scenario_kernels(scenario: Path, description: Path | None = None,
     return config, kernels, loops
 
 
+def _embedded_drives(scenario: Path, description: Path | None) -> str:
+    """The drive table of the scenario's robot, or its refusal in one line (CochleaError)."""
+    sc = load_scenario(scenario)
+    system = sc.system if description is None else load_system(sc.robot, str(description))
+    return drives_header(sc.robot, system=system)
+
+
 def write_scenario_embedded(scenario: Path, description: Path | None, config: CodegenConfig,
                             folder: Path) -> list[Path]:
     """``folder`` (``DIR/embedded``): the scenario's embedded controller, the table of
@@ -182,6 +189,8 @@ def _user(args) -> int:
     if not args.check:
         _check_out(out, "--out")
     start = time.perf_counter()
+    if args.embedded and not args.check:  # a chain the embedded bridge cannot drive: refused
+        _embedded_drives(args.scenario, args.description)  # before any file is written
     config, kernels, loops = scenario_kernels(args.scenario, args.description, args.plant)
     if args.check:
         with tempfile.TemporaryDirectory(prefix="cochlea-codegen-") as tmp:

@@ -3,7 +3,14 @@
 One :c:type:`cochlea_drive` (``embedded/core/drives.h``) per joint of the whole system in the
 loop's order, from the robot description through the same :class:`~cochlea.dynamixel.drives.
 JointDrive` the Python bridge uses, every constant printed to 17 significant digits so the C
-conversions equal the bridge's bit for bit; and the supervisor's limit arrays.
+conversions equal the bridge's bit for bit; the supervisor's limit arrays; and the chain's bus
+(``dxl_bus``, ``embedded/core/dxl.h``): each motor's control-table items (address and size,
+from the model data, ``cochlea/dynamixel/models``) and the per-period transfers, chosen by the
+Python bridge's own rule (:func:`cochlea.dynamixel.bridge.choose_transfers`, with the Realtime
+Tick the C program always reads). A chain the C bridge cannot drive is refused here, in one
+line: a model whose control table is not the bridge's (:func:`~cochlea.dynamixel.drives.
+joint_drives`), or a chain whose models place the period's items at different addresses (the
+C bridge has no BULK_READ / BULK_WRITE).
 """
 
 from __future__ import annotations
@@ -15,7 +22,22 @@ from pathlib import Path
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.model import JointInfo
+from ..runtime.backend import BackendError
+from .bridge import TICK_ITEMS, choose_transfers
+from .control_table import CURRENT_MODE
 from .drives import JointDrive, joint_drives
+
+#: The items of ``dxl_table`` (``embedded/core/dxl.h``, enum dxl_item_name), in its order: the
+#: model data's item names. The bridge needs every one but the homing marker (a slider's).
+BUS_ITEMS = ("Return Delay Time", "Operating Mode", "Current Limit", "Torque Enable",
+             "Hardware Error Status", "Bus Watchdog", "Goal Current", "Feedforward 2nd Gain",
+             "Realtime Tick", "Present Current", "Present Velocity", "Present Position")
+OPTIONAL_ITEMS = ("Feedforward 2nd Gain",)
+#: The names ``cochlea-run`` writes (``read_instruction``) of the reads the C bridge sends.
+_READ_NAMES = {"sync": "SYNC_READ", "fast": "FAST_SYNC_READ"}
+#: ``dxl.h``'s code of each instruction choose_transfers can name.
+_C_INSTRUCTIONS = {"SYNC_READ": "DXL_SYNC_READ", "FAST_SYNC_READ": "DXL_FAST_SYNC_READ",
+                   "SYNC_WRITE": "DXL_SYNC_WRITE"}
 
 
 def _real(value: float) -> str:
@@ -31,6 +53,52 @@ def _identifier(name: str) -> str:
     return ident if ident[:1].isalpha() else f"robot_{ident}"
 
 
+def _c_string(text: str) -> str:
+    """``text`` as a C string literal: printable ASCII as is, the rest as octal escapes."""
+    out = []
+    for byte in text.encode():
+        ch = chr(byte)
+        if ch in ('"', "\\"):
+            out.append("\\" + ch)
+        elif 32 <= byte < 127:
+            out.append(ch)
+        else:
+            out.append(f"\\{byte:03o}")
+    return '"' + "".join(out) + '"'
+
+
+def bus_choice(drives: list[JointDrive]) -> tuple[str, str, str]:
+    """The C bridge's per-period transfers for ``drives``: ``(read, write, why)`` with read
+    ``"SYNC_READ"`` or ``"FAST_SYNC_READ"``, write ``"SYNC_WRITE"``, and why the text
+    ``cochlea-run`` writes as ``read_choice``: :func:`choose_transfers` over the models' data
+    with the items the C program reads (the Realtime Tick first). A chain that needs BULK_READ
+    or BULK_WRITE raises :class:`BackendError` in one line: the C bridge does not send them."""
+    read, write, why = choose_transfers([d.spec for d in drives], TICK_ITEMS)
+    if read == "bulk" or write == "bulk":
+        models = ", ".join(sorted({d.spec.name for d in drives}))
+        raise BackendError(
+            f"the embedded bridge cannot drive this chain ({models}): "
+            + (why if read == "bulk" else "the models place Goal Current at different "
+               "addresses") + "; it sends SYNC_READ / FAST_SYNC_READ and SYNC_WRITE only "
+            "(the Python bridge, cochlea-run --backend dynamixel, sends BULK_READ / BULK_WRITE)")
+    return _READ_NAMES[read], "SYNC_WRITE", why
+
+
+def _table_row(d: JointDrive) -> str:
+    cells = []
+    for name in BUS_ITEMS:
+        try:
+            it = d.spec.item(name)
+        except KeyError:
+            if name not in OPTIONAL_ITEMS:
+                raise BackendError(f"joint {d.name}: the {d.spec.name} has no {name} item: the "
+                                   "embedded bridge cannot drive it") from None
+            cells.append("{0xFFFF, 0}")
+            continue
+        cells.append(f"{{{it.address}, {it.size}}}")
+    return f'{{{_c_string(d.spec.name)}, {{{", ".join(cells)}}}, {CURRENT_MODE}}}'
+
+
 def drives_header(robot: str, description: str | Path | None = None, *, system=None,
                   drives: list[JointDrive] | None = None) -> str:
     """The text of ``<robot>_drives.h`` for the robot's description."""
@@ -40,6 +108,7 @@ def drives_header(robot: str, description: str | Path | None = None, *, system=N
     joints = supervised_joints(robot, system)
     if len(joints) != len(drives):
         raise ValueError(f"{robot}: {len(drives)} drives for {len(joints)} joints")
+    read, write, why = bus_choice(drives)
     prefix = _identifier(robot)
     upper = prefix.upper()
     lines = [
@@ -51,8 +120,24 @@ def drives_header(robot: str, description: str | Path | None = None, *, system=N
         f"#define {upper}_DRIVES_H",
         "",
         '#include "drives.h"',
+        '#include "dxl.h"',
         "",
         f"#define {upper}_N_DRIVES {len(drives)}",
+        "",
+        "/* Each motor's control-table items (address, size) in dxl.h's order, from the model",
+        " * data; then the chain's per-period transfers, chosen from the same data by the",
+        " * Python bridge's rule (cochlea.dynamixel.bridge.choose_transfers). */",
+        f"static const dxl_table {prefix}_tables[{upper}_N_DRIVES] = {{",
+    ]
+    for d in drives:
+        lines.append(f"    /* {d.name}: ID {d.id}, {d.spec.name} */")
+        lines.append("    " + _table_row(d) + ",")
+    lines += [
+        "};",
+        f"static const dxl_bus {prefix}_bus = {{{_C_INSTRUCTIONS[read]}, "
+        f"{_C_INSTRUCTIONS[write]},",
+        f"    {_c_string(why)},",
+        f"    {upper}_N_DRIVES, {prefix}_tables}};",
         "",
         f"static const cochlea_drive {prefix}_drives[{upper}_N_DRIVES] = {{",
     ]
@@ -65,6 +150,7 @@ def drives_header(robot: str, description: str | Path | None = None, *, system=N
             _real(d.fit.offset_current), _real(d.lsb_per_ampere),
             _real(joint_ampere_per_lsb(d)), str(d.current_limit_lsb),
             _real(lo), _real(hi), _real(j.velocity_limit), _real(j.effort_limit),
+            f"&{prefix}_bus",
         ]
         lines.append(f"    /* {d.name}: ID {d.id}, {d.spec.name} */")
         lines.append("    {" + ", ".join(fields) + "},")

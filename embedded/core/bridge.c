@@ -1,14 +1,18 @@
 /* cochlea embedded runtime: the Dynamixel bridge (see bridge.h). */
 #include "bridge.h"
 
-#define ADDR_RETURN_DELAY 9
-#define ADDR_OPERATING_MODE 11
-#define ADDR_CURRENT_LIMIT 38
-#define ADDR_TORQUE_ENABLE 64
-#define ADDR_HARDWARE_ERROR 70
-#define ADDR_BUS_WATCHDOG 98
-#define ADDR_GOAL_CURRENT 102
-#define CURRENT_MODE 0
+/* The items the bridge reads and writes. Each ADDR_x names an item of a motor's control table
+ * (an index into its dxl_table, dxl.h), not an address: every address and size comes from the
+ * model data through the generated drive table (<robot>_drives.h), so nothing here assumes
+ * one series' layout. */
+#define ADDR_RETURN_DELAY DXL_ITEM_RETURN_DELAY
+#define ADDR_OPERATING_MODE DXL_ITEM_OPERATING_MODE
+#define ADDR_CURRENT_LIMIT DXL_ITEM_CURRENT_LIMIT
+#define ADDR_TORQUE_ENABLE DXL_ITEM_TORQUE_ENABLE
+#define ADDR_HARDWARE_ERROR DXL_ITEM_HARDWARE_ERROR
+#define ADDR_BUS_WATCHDOG DXL_ITEM_BUS_WATCHDOG
+#define ADDR_GOAL_CURRENT DXL_ITEM_GOAL_CURRENT
+#define ADDR_HOMING_MARKER DXL_ITEM_HOMING_MARKER
 #define ALERT_BIT 0x80
 #define MS 1000000LL
 
@@ -23,22 +27,123 @@ const char *cochlea_failure_name(int kind)
 
 enum { RESULT_OK, RESULT_TIMEOUT, RESULT_CRC, RESULT_PORT };
 
-/* The period's SYNC_READ of length bytes from address on every motor. */
-static int read_frame(cochlea_bridge *b, uint16_t address, int length)
+/* Motor i's item (its address and size, from its model's data). */
+static const dxl_item *item_of(const cochlea_bridge *b, int i, int item)
 {
-    uint8_t ids[COCHLEA_MAX_DRIVES];
-    int32_t len;
+    return &b->bus->tables[i].item[item];
+}
+
+/* 0 when every motor has item at one address and size (a SYNC_WRITE can carry it), else -1. */
+static int same_item(const cochlea_bridge *b, int item)
+{
     int i;
+    const dxl_item *first = item_of(b, 0, item);
+    if (first->size == 0) {
+        return -1;
+    }
+    for (i = 1; i < b->n; ++i) {
+        const dxl_item *it = item_of(b, i, item);
+        if (it->address != first->address || it->size != first->size) {
+            return -1;
+        }
+    }
+    return 0;
+}
+
+/* The block of each period's read: from the Realtime Tick (with the tick check) or from
+ * Present Current, to the end of Present Position, at the same address, length and offsets
+ * on every motor (else -1: a mixed chain the C bridge cannot read), and its request, a
+ * SYNC_READ or a FAST_SYNC_READ as the bus says. */
+static int read_frame(cochlea_bridge *b, int tick)
+{
+    static const int items[4] = {DXL_ITEM_REALTIME_TICK, DXL_ITEM_PRESENT_CURRENT,
+                                 DXL_ITEM_PRESENT_VELOCITY, DXL_ITEM_PRESENT_POSITION};
+    uint8_t ids[COCHLEA_MAX_DRIVES];
+    unsigned start = 0, end = 0;
+    int32_t len;
+    int i, k;
     for (i = 0; i < b->n; ++i) {
+        unsigned lo = 0xFFFFu, hi = 0;
+        for (k = tick ? 0 : 1; k < 4; ++k) {
+            const dxl_item *it = item_of(b, i, items[k]);
+            if (it->size == 0 || it->address == DXL_NO_ADDRESS) {
+                return -1;
+            }
+            lo = it->address < lo ? it->address : lo;
+            hi = it->address + it->size > hi ? it->address + it->size : hi;
+        }
+        if (i == 0) {
+            start = lo;
+            end = hi;
+        } else if (lo != start || hi != end) {
+            return -1;
+        }
+        for (k = 0; k < 4; ++k) {
+            const dxl_item *it = item_of(b, i, items[k]);
+            const int at = (int)it->address - (int)start;
+            if (i == 0) {
+                b->read_at[k] = at;
+                b->read_size[k] = it->size;
+            } else if ((k > 0 || tick) && (at != b->read_at[k] || it->size != b->read_size[k])) {
+                return -1;
+            }
+        }
         ids[i] = b->drives[i].id;
     }
-    len = dxl_sync_read(b->read_frame, sizeof b->read_frame, address, (uint16_t)length, ids,
-                        (size_t)b->n);
+    if (end - start > COCHLEA_MAX_READ_LENGTH || b->read_size[1] > 2) {
+        return -1;
+    }
+    if (b->bus->read_instruction == DXL_FAST_SYNC_READ) {
+        len = dxl_fast_sync_read(b->read_frame, sizeof b->read_frame, (uint16_t)start,
+                                 (uint16_t)(end - start), ids, (size_t)b->n);
+    } else if (b->bus->read_instruction == DXL_SYNC_READ) {
+        len = dxl_sync_read(b->read_frame, sizeof b->read_frame, (uint16_t)start,
+                            (uint16_t)(end - start), ids, (size_t)b->n);
+    } else {
+        return -1;
+    }
     if (len < 0) {
         return -1;
     }
     b->read_len = (size_t)len;
-    b->read_length = length;
+    b->read_address = (uint16_t)start;
+    b->read_length = (int)(end - start);
+    b->realtime_tick = tick;
+    return 0;
+}
+
+/* Why the drive table does not fit the bridge (for cochlea_bridge_init's -1), or NULL. */
+static const char *check_tables(cochlea_bridge *b)
+{
+    static const int written[] = {DXL_ITEM_RETURN_DELAY, DXL_ITEM_OPERATING_MODE,
+                                  DXL_ITEM_CURRENT_LIMIT, DXL_ITEM_TORQUE_ENABLE,
+                                  DXL_ITEM_HARDWARE_ERROR, DXL_ITEM_BUS_WATCHDOG,
+                                  DXL_ITEM_GOAL_CURRENT};
+    int i, k;
+    if (b->bus == 0 || b->bus->tables == 0 || b->bus->n_tables != b->n) {
+        return "the drive table has no bus (regenerate it with cochlea-codegen)";
+    }
+    for (i = 0; i < b->n; ++i) {
+        if (b->drives[i].bus != b->bus) {
+            return "the drives are not of one chain (their bus differs)";
+        }
+        for (k = 0; k < (int)(sizeof written / sizeof written[0]); ++k) {
+            const dxl_item *it = item_of(b, i, written[k]);
+            if (it->size != 1 && it->size != 2 && it->size != 4) {
+                return "a motor's control table lacks an item the bridge writes";
+            }
+        }
+    }
+    if (b->bus->write_instruction != DXL_SYNC_WRITE || same_item(b, DXL_ITEM_GOAL_CURRENT) ||
+        same_item(b, DXL_ITEM_TORQUE_ENABLE) || item_of(b, 0, DXL_ITEM_GOAL_CURRENT)->size != 2) {
+        return "the motors place Goal Current or Torque Enable at different addresses (a "
+               "mixed chain: the C bridge sends SYNC_WRITE only, not BULK_WRITE)";
+    }
+    if (read_frame(b, 0) != 0 || read_frame(b, 1) != 0) {
+        return "the motors place Present Current .. Present Position (and the Realtime Tick) "
+               "differently (a mixed chain: the C bridge sends SYNC_READ or FAST_SYNC_READ "
+               "only, not BULK_READ)";
+    }
     return 0;
 }
 
@@ -47,6 +152,7 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
 {
     int i;
     double lsb;
+    b->config_problem = "too many drives for the bridge";
     if (n < 1 || n > COCHLEA_MAX_DRIVES) {
         return -1;
     }
@@ -62,8 +168,7 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     }
     b->position_margin = 2.0 * 3.14159265358979323846 / 180.0;
     b->retries = 3;
-    b->realtime_tick = 0;
-    b->read_length = COCHLEA_STATE_LENGTH;
+    b->bus = drives[0].bus;
     b->homing_drive = -1;
     b->homing_marker = 0;
     b->homing_offset = 0.0;
@@ -90,7 +195,11 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
         b->tick_seen_ns[i] = 0;
     }
     dxl_parser_init(&b->parser, 1);
-    return read_frame(b, COCHLEA_STATE_ADDRESS, COCHLEA_STATE_LENGTH);
+    b->config_problem = check_tables(b);
+    if (b->config_problem) {
+        return -1;
+    }
+    return read_frame(b, 0);
 }
 
 void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset)
@@ -102,8 +211,7 @@ void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker,
 
 int cochlea_bridge_use_realtime_tick(cochlea_bridge *b)
 {
-    b->realtime_tick = 1;
-    return read_frame(b, COCHLEA_TICK_ADDRESS, COCHLEA_TICK_READ_LENGTH);
+    return read_frame(b, 1);
 }
 
 /* ---- the wire ------------------------------------------------------------------------------ */
@@ -250,11 +358,12 @@ static int command(cochlea_bridge *b, int step, int i, const uint8_t *frame, int
     }
     if (error & ALERT_BIT) {
         int status = -1;
+        const dxl_item *it = item_of(b, i, ADDR_HARDWARE_ERROR);
         const int32_t n = dxl_read(b->scratch, sizeof b->scratch, b->drives[i].id,
-                                   ADDR_HARDWARE_ERROR, 1);
+                                   it->address, it->size);
         uint8_t ignored;
         if (n > 0 && transact(b, b->scratch, (size_t)n, b->drives[i].id, setup_timeout(b), 1,
-                              &ignored) == RESULT_OK && b->parser.params_len == 1) {
+                              &ignored) == RESULT_OK && b->parser.params_len == it->size) {
             status = b->parser.params[0];
         }
         return fail_start(r, COCHLEA_START_ALERT, step, i, status);
@@ -265,21 +374,36 @@ static int command(cochlea_bridge *b, int step, int i, const uint8_t *frame, int
     return 1;
 }
 
-static int write_all(cochlea_bridge *b, int step, uint16_t address, int size,
-                     const int32_t *values, int32_t same, cochlea_start_report *r)
+/* An item's value in the item's own size, little-endian. */
+static void put_value(uint8_t *data, int size, int32_t v)
+{
+    if (size == 1) {
+        data[0] = (uint8_t)v;
+    } else if (size == 2) {
+        dxl_put_u16(data, (uint16_t)(int16_t)v);
+    } else {
+        dxl_put_u32(data, (uint32_t)v);
+    }
+}
+
+/* The start-up's WRITE of item (ADDR_x) to every motor, each at the address and in the size
+ * of its own table, confirmed. size is what the caller's values are meant for: a table whose
+ * item has another size is a bad configuration (the value might not fit), never a guess. */
+static int write_all(cochlea_bridge *b, int step, int item, int size, const int32_t *values,
+                     int32_t same, cochlea_start_report *r)
 {
     int i;
     for (i = 0; i < b->n; ++i) {
         uint8_t data[4];
+        const dxl_item *it = item_of(b, i, item);
         const int32_t v = values ? values[i] : same;
         int32_t len;
-        if (size == 1) {
-            data[0] = (uint8_t)v;
-        } else {
-            dxl_put_u16(data, (uint16_t)(int16_t)v);
+        if (it->size != size) {
+            return fail_start(r, COCHLEA_START_BAD_CONFIG, step, i, 0);
         }
-        len = dxl_write(b->scratch, sizeof b->scratch, b->drives[i].id, address, data,
-                        (uint16_t)size);
+        put_value(data, it->size, v);
+        len = dxl_write(b->scratch, sizeof b->scratch, b->drives[i].id, it->address, data,
+                        it->size);
         if (!command(b, step, i, b->scratch, len, r)) {
             return 0;
         }
@@ -339,6 +463,18 @@ static int slot_of(const cochlea_bridge *b, uint8_t id)
     return -1;
 }
 
+/* A register of size bytes (1, 2, 4), little-endian, as stored and as two's complement. */
+static uint32_t get_unsigned(const uint8_t *p, int size)
+{
+    return size == 1 ? p[0] : size == 2 ? dxl_get_u16(p) : dxl_get_u32(p);
+}
+
+static int32_t get_signed(const uint8_t *p, int size)
+{
+    return size == 1 ? (int32_t)p[0] - (p[0] >= 0x80u ? 256 : 0)
+           : size == 2 ? (int32_t)dxl_get_i16(p) : dxl_get_i32(p);
+}
+
 /* The Realtime Tick check of a read whose packets all came (asked: when the request was
  * sent; arrived: when the last reply was in): 0, a stale-packet failure, if a motor's tick has
  * not moved since a reply that was in more than COCHLEA_STALE_AFTER_NS before this request.
@@ -348,7 +484,8 @@ static int fresh(cochlea_bridge *b, int64_t asked, int64_t arrived)
 {
     int j;
     for (j = 0; j < b->n; ++j) {
-        const int32_t tick = dxl_get_u16(b->raw + (size_t)j * (size_t)b->read_length);
+        const int32_t tick = (int32_t)get_unsigned(
+            b->raw + (size_t)j * (size_t)b->read_length + b->read_at[0], b->read_size[0]);
         if (tick != b->last_tick[j]) {
             b->last_tick[j] = tick;
             b->tick_seen_ns[j] = arrived;
@@ -371,24 +508,12 @@ static int missing(const cochlea_bridge *b)
     return -1;
 }
 
-static int sync_read(cochlea_bridge *b, double *q, double *qd)
+/* The status packets of a SYNC_READ, one per motor, into b->raw: 1, or 0 on a failure
+ * (counted). */
+static int collect_sync(cochlea_bridge *b, int64_t deadline)
 {
-    const int64_t t0 = now(b);
     const size_t length = (size_t)b->read_length;
-    int64_t deadline, asked;
     int pending = b->n, failure = -1, failure_id = -1, i, drained = 0;
-    b->reads += 1;
-    discard(b);
-    if (b->suspect && !quiet(b, t0)) {
-        return fail(b, COCHLEA_FAIL_LATE, -1);
-    }
-    /* From the request, as the Python bridge: quiet() takes a whole timeout, and a deadline
-     * from t0 would fail every read after the first failed one. */
-    asked = now(b);
-    deadline = asked + b->timeout_ns;
-    if (!send(b, b->read_frame, b->read_len)) {
-        return fail(b, COCHLEA_FAIL_PORT, -1);
-    }
     for (i = 0; i < b->n; ++i) {
         b->slots[i] = 0;
     }
@@ -460,16 +585,131 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
     if (failure >= 0) {
         return fail(b, failure, failure_id);
     }
+    return 1;
+}
+
+/* The reply to a FAST_SYNC_READ: one combined status packet (ID 0xFE) holding every motor's
+ * block, checked by dxl_fast_sync_check and copied into b->raw: 1, or 0 on a failure,
+ * through the same counters and kinds as the SYNC_READ's (the Python bridge's
+ * _fast_sync_read, case for case): nothing whole in time timeout (the first motor); a
+ * packet whose CRC fails crc (its motor when the ID is one of ours, else unknown: -1); a
+ * motor missing from the packet, another ID where its block belongs, or a short or overlong
+ * packet length (that motor); a block's running CRC wrong crc (that motor); the alert bit in
+ * a block hardware-alert (that motor; it outranks an error byte), an error byte error-byte; a
+ * motor answering alone (a model or firmware without FAST_SYNC_READ refuses it with an
+ * Instruction Error) error-byte, or its alert. Other motors' packets and garbage are counted
+ * and skipped until the deadline. */
+static int collect_fast(cochlea_bridge *b, int64_t deadline)
+{
+    const size_t length = (size_t)b->read_length;
+    uint8_t ids[COCHLEA_MAX_DRIVES];
+    int drained = 0, failure = -1, failure_id = -1, i;
+    size_t at = 0;
+    int check;
+    for (;;) {
+        const int code = dxl_parser_parse(&b->parser);
+        if (code == DXL_NEED_MORE) {
+            const long got = receive(b, deadline, &drained);
+            if (got > 0) {
+                continue;
+            }
+            if (got < 0) {
+                return fail(b, COCHLEA_FAIL_PORT, -1);
+            }
+            return fail(b, COCHLEA_FAIL_TIMEOUT, b->drives[0].id);
+        }
+        if (code == DXL_CRC_FAILURE) {
+            return fail(b, COCHLEA_FAIL_CRC,
+                        slot_of(b, b->parser.id) >= 0 ? b->parser.id : -1);
+        }
+        if (code == DXL_OK && b->parser.id == DXL_BROADCAST_ID) {
+            break;
+        }
+        if (code == DXL_OK && slot_of(b, b->parser.id) >= 0) {
+            /* a motor answering on its own: it refused the instruction (or its alert) */
+            if (b->parser.error & ALERT_BIT) {
+                b->alert_id = b->parser.id;
+                return fail(b, COCHLEA_FAIL_ALERT, b->parser.id);
+            }
+            return fail(b, (b->parser.error & 0x7F) ? COCHLEA_FAIL_ERROR_BYTE
+                                                     : COCHLEA_FAIL_LENGTH, b->parser.id);
+        }
+        if (code == DXL_OK) {
+            b->unexpected_packets += 1;
+        } else {
+            b->garbage_packets += 1;
+        }
+        if (past(b, deadline)) { /* a flood of packets or garbage: no reply in time */
+            return fail(b, COCHLEA_FAIL_TIMEOUT, b->drives[0].id);
+        }
+    }
+    for (i = 0; i < b->n; ++i) {
+        ids[i] = b->drives[i].id;
+    }
+    check = dxl_fast_sync_check(&b->parser, ids, (size_t)b->n, length, &at);
+    if (check == DXL_FAST_BLOCK_CRC) {
+        return fail(b, COCHLEA_FAIL_CRC, ids[at]);
+    }
+    if (check != DXL_FAST_OK) {
+        return fail(b, COCHLEA_FAIL_LENGTH, ids[at < (size_t)b->n ? at : 0]);
+    }
+    for (i = 0; i < b->n; ++i) {
+        const uint8_t *block = dxl_fast_block(&b->parser, (size_t)i, length);
+        const uint8_t error = block[0];
+        size_t k;
+        if (error & ALERT_BIT) {
+            b->alert_id = ids[i];
+            failure = COCHLEA_FAIL_ALERT;
+            failure_id = ids[i];
+        } else if ((error & 0x7F) && failure < 0) {
+            failure = COCHLEA_FAIL_ERROR_BYTE;
+            failure_id = ids[i];
+        }
+        for (k = 0; k < length; ++k) {
+            b->raw[(size_t)i * length + k] = block[2 + k];
+        }
+    }
+    if (failure >= 0) {
+        return fail(b, failure, failure_id);
+    }
+    return 1;
+}
+
+/* The period's read (SYNC_READ or FAST_SYNC_READ, as the bus says) into q, qd (SI). */
+static int sync_read(cochlea_bridge *b, double *q, double *qd)
+{
+    const int64_t t0 = now(b);
+    const size_t length = (size_t)b->read_length;
+    int64_t deadline, asked;
+    int i;
+    b->reads += 1;
+    discard(b);
+    if (b->suspect && !quiet(b, t0)) {
+        return fail(b, COCHLEA_FAIL_LATE, -1);
+    }
+    /* From the request, as the Python bridge: quiet() takes a whole timeout, and a deadline
+     * from t0 would fail every read after the first failed one. */
+    asked = now(b);
+    deadline = asked + b->timeout_ns;
+    if (!send(b, b->read_frame, b->read_len)) {
+        return fail(b, COCHLEA_FAIL_PORT, -1);
+    }
+    if (!(b->bus->read_instruction == DXL_FAST_SYNC_READ ? collect_fast(b, deadline)
+                                                          : collect_sync(b, deadline))) {
+        return 0;
+    }
     if (b->realtime_tick && !fresh(b, asked, now(b))) {
         return 0;
     }
     for (i = 0; i < b->n; ++i) {
-        /* the state is the block's last COCHLEA_STATE_LENGTH bytes */
-        const uint8_t *raw = b->raw + (size_t)i * length + (length - COCHLEA_STATE_LENGTH);
-        b->present_current[i] = dxl_get_i16(raw);
+        /* each item where the model data put it within the block */
+        const uint8_t *raw = b->raw + (size_t)i * length;
+        b->present_current[i] = (int16_t)get_signed(raw + b->read_at[1], b->read_size[1]);
         b->joint_current[i] = cochlea_drive_current(&b->drives[i], b->present_current[i]);
-        qd[i] = cochlea_drive_velocity(&b->drives[i], dxl_get_i32(raw + 2));
-        q[i] = cochlea_drive_position(&b->drives[i], dxl_get_i32(raw + 6),
+        qd[i] = cochlea_drive_velocity(&b->drives[i],
+                                       get_signed(raw + b->read_at[2], b->read_size[2]));
+        q[i] = cochlea_drive_position(&b->drives[i],
+                                      get_signed(raw + b->read_at[3], b->read_size[3]),
                                       b->position_offset[i]);
     }
     b->good_reads += 1;
@@ -487,23 +727,25 @@ int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd)
     return sync_read(b, q, qd);
 }
 
-static int32_t goal_frame(cochlea_bridge *b, uint16_t address, int size, const int16_t *values,
+/* A SYNC_WRITE of item (ADDR_x, at one address on every motor: cochlea_bridge_init checked
+ * it) of size bytes: values[i] per motor, or same to all. DXL_E_ARG when the table's item has
+ * another size. */
+static int32_t goal_frame(cochlea_bridge *b, int item, int size, const int16_t *values,
                           int32_t same)
 {
     uint8_t ids[COCHLEA_MAX_DRIVES];
-    uint8_t data[2 * COCHLEA_MAX_DRIVES];
+    uint8_t data[4 * COCHLEA_MAX_DRIVES];
+    const dxl_item *it = item_of(b, 0, item);
     int i;
-    for (i = 0; i < b->n; ++i) {
-        const int32_t v = values ? values[i] : same;
-        ids[i] = b->drives[i].id;
-        if (size == 1) {
-            data[i] = (uint8_t)v;
-        } else {
-            dxl_put_u16(data + 2 * i, (uint16_t)(int16_t)v);
-        }
+    if (it->size != size) {
+        return DXL_E_ARG;
     }
-    return dxl_sync_write(b->write_frame, sizeof b->write_frame, address, (uint16_t)size, ids,
-                          data, (size_t)b->n);
+    for (i = 0; i < b->n; ++i) {
+        ids[i] = b->drives[i].id;
+        put_value(data + (size_t)size * (size_t)i, size, values ? values[i] : same);
+    }
+    return dxl_sync_write(b->write_frame, sizeof b->write_frame, it->address, (uint16_t)size,
+                          ids, data, (size_t)b->n);
 }
 
 int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
@@ -569,11 +811,12 @@ int cochlea_bridge_stop(cochlea_bridge *b)
     for (i = 0; i < b->n; ++i) {
         uint8_t error = 0;
         b->off_confirmed[i] = 0;
+        const dxl_item *it = item_of(b, i, ADDR_TORQUE_ENABLE);
         const int32_t len = dxl_read(b->scratch, sizeof b->scratch, b->drives[i].id,
-                                     ADDR_TORQUE_ENABLE, 1);
+                                     it->address, it->size);
         const int64_t timeout = b->timeout_ns > 10 * MS ? b->timeout_ns : 10 * MS;
         if (len > 0 && transact(b, b->scratch, (size_t)len, b->drives[i].id, timeout, 2,
-                                &error) == RESULT_OK && b->parser.params_len == 1 &&
+                                &error) == RESULT_OK && b->parser.params_len == it->size &&
             b->parser.params[0] == 0) {
             ++confirmed;
             b->off_confirmed[i] = 1;
@@ -583,9 +826,10 @@ int cochlea_bridge_stop(cochlea_bridge *b)
         }
     }
     b->alert_status = -1;
-    if (b->alert_id >= 0) { /* what the alert was, for the report */
+    if (b->alert_id >= 0 && slot_of(b, (uint8_t)b->alert_id) >= 0) { /* what the alert was */
+        const dxl_item *it = item_of(b, slot_of(b, (uint8_t)b->alert_id), ADDR_HARDWARE_ERROR);
         const int32_t len = dxl_read(b->scratch, sizeof b->scratch, (uint8_t)b->alert_id,
-                                     ADDR_HARDWARE_ERROR, 1);
+                                     it->address, it->size);
         uint8_t error = 0;
         if (len > 0 && transact(b, b->scratch, (size_t)len, (uint8_t)b->alert_id,
                                 b->timeout_ns > 10 * MS ? b->timeout_ns : 10 * MS, 1,
@@ -599,7 +843,7 @@ int cochlea_bridge_stop(cochlea_bridge *b)
 
 static int start(cochlea_bridge *b, cochlea_start_report *r)
 {
-    int32_t limits[COCHLEA_MAX_DRIVES];
+    int32_t limits[COCHLEA_MAX_DRIVES], modes[COCHLEA_MAX_DRIVES];
     double q[COCHLEA_MAX_DRIVES], qd[COCHLEA_MAX_DRIVES];
     int i, tries, read_ok = 0;
     for (i = 0; i < b->n; ++i) { /* 1. every motor there, of the model the table names */
@@ -615,8 +859,10 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
     }
     if (b->homing_drive >= 0) { /* before any write: the slider still holds its homing */
         const int h = b->homing_drive;
-        const int32_t len = dxl_read(b->scratch, sizeof b->scratch, b->drives[h].id,
-                                     COCHLEA_HOMING_MARKER_ADDRESS, 2);
+        const dxl_item *it = item_of(b, h, ADDR_HOMING_MARKER);
+        const int32_t len = it->size == 2 ? dxl_read(b->scratch, sizeof b->scratch,
+                                                     b->drives[h].id, it->address, 2)
+                                          : DXL_E_ARG; /* no such item: a bad configuration */
         int marker;
         if (!command(b, COCHLEA_STEP_HOMING, h, b->scratch, len, r)) {
             return 0;
@@ -629,10 +875,11 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
     }
     for (i = 0; i < b->n; ++i) {
         limits[i] = b->drives[i].current_limit_lsb;
+        modes[i] = b->bus->tables[i].current_mode;
     }
     if (!write_all(b, COCHLEA_STEP_TORQUE_OFF, ADDR_TORQUE_ENABLE, 1, 0, 0, r) ||
         !write_all(b, COCHLEA_STEP_WATCHDOG_CLEAR, ADDR_BUS_WATCHDOG, 1, 0, 0, r) ||
-        !write_all(b, COCHLEA_STEP_MODE, ADDR_OPERATING_MODE, 1, 0, CURRENT_MODE, r) ||
+        !write_all(b, COCHLEA_STEP_MODE, ADDR_OPERATING_MODE, 1, modes, 0, r) ||
         !write_all(b, COCHLEA_STEP_RETURN_DELAY, ADDR_RETURN_DELAY, 1, 0, 0, r) ||
         !write_all(b, COCHLEA_STEP_CURRENT_LIMIT, ADDR_CURRENT_LIMIT, 2, limits, 0, r) ||
         !write_all(b, COCHLEA_STEP_GOAL_ZERO, ADDR_GOAL_CURRENT, 2, 0, 0, r) ||
@@ -646,7 +893,7 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
         int32_t len;
         dxl_put_u16(data, b->homing_marker);
         len = dxl_write(b->scratch, sizeof b->scratch, b->drives[b->homing_drive].id,
-                        COCHLEA_HOMING_MARKER_ADDRESS, data, 2);
+                        item_of(b, b->homing_drive, ADDR_HOMING_MARKER)->address, data, 2);
         if (!command(b, COCHLEA_STEP_HOMING, b->homing_drive, b->scratch, len, r)) {
             return 0;
         }

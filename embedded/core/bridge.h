@@ -16,9 +16,13 @@
  *      powered at zero current while the loop gets ready (the parallel robot's slider fell
  *      meanwhile on the emulator). A refusal fails that write and every read after it
  *      (not-enabled), so the loop's read watchdog stops the run.
- * Each period: cochlea_bridge_read is one SYNC_READ of Present Current, Velocity and Position
- * (126..135; with the Realtime Tick check, 120..135), cochlea_bridge_write one SYNC_WRITE of
- * Goal Current. Failures (timeout, CRC, error byte, hardware alert, length, port, late
+ * Each period: cochlea_bridge_read is one read of Present Current, Velocity and Position
+ * (with the Realtime Tick check, from the Realtime Tick: on the X series 126..135 and
+ * 120..135), cochlea_bridge_write one SYNC_WRITE of Goal Current. The read is a FAST_SYNC_READ
+ * (one combined status packet) when every motor's model data says it answers it, a SYNC_READ
+ * otherwise: the generator's choice (dxl_bus), by the Python bridge's rule. Every address and
+ * size comes from the generated drive table's control tables (the model data), none from
+ * this code. Failures (timeout, CRC, error byte, hardware alert, length, port, late
  * traffic, non-finite command, stale packet) are a 0 return and counters, never a stop of
  * their own: the loop's watchdog decides.
  * The Realtime Tick check (cochlea_bridge_use_realtime_tick; the Python bridge's
@@ -42,13 +46,9 @@ extern "C" {
 #endif
 
 #define COCHLEA_MAX_DRIVES 16
-/* Present Current (2) + Present Velocity (4) + Present Position (4) from address 126. */
-#define COCHLEA_STATE_ADDRESS 126
-#define COCHLEA_STATE_LENGTH 10
-/* With the Realtime Tick: Realtime Tick (120, 2), Moving, Moving Status, Present PWM
- * (122..125, between it and the state), then the state: one contiguous block. */
-#define COCHLEA_TICK_ADDRESS 120
-#define COCHLEA_TICK_READ_LENGTH 16
+/* The longest block a period may read per motor (bytes): the X series' Realtime Tick ..
+ * Present Position is 16. */
+#define COCHLEA_MAX_READ_LENGTH 32
 #define COCHLEA_STALE_AFTER_NS 1100000
 
 /* Failure kinds of a period (indices into cochlea_bridge.failures), the Python bridge's. */
@@ -83,10 +83,6 @@ enum cochlea_start_step {
     COCHLEA_STEP_LIMITS, COCHLEA_STEP_TORQUE_ON, COCHLEA_STEP_HOMING
 };
 
-/* Feedforward 2nd Gain: RAM, unused in current control, 0 after power-on and REBOOT: the token
- * cochlea-dxl home leaves there says the homing still holds (cochlea/dynamixel/homing.py). */
-#define COCHLEA_HOMING_MARKER_ADDRESS 88
-
 typedef struct {
     int error;        /* enum cochlea_start_error */
     int step;         /* enum cochlea_start_step */
@@ -100,12 +96,18 @@ typedef struct {
     const cochlea_hal *hal;
     const cochlea_drive *drives;
     int n;
+    const dxl_bus *bus;         /* the drives' bus: transfers and control tables (dxl.h) */
+    const char *config_problem; /* why cochlea_bridge_init refused the drive table, or NULL */
     int64_t timeout_ns;         /* a period's transaction: the bus budget plus margin */
     uint8_t watchdog_lsb;       /* Bus Watchdog, 20 ms per LSB */
     double position_margin;     /* start-up: how far outside its limits a joint may read (SI) */
     int retries;
     int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
-    int read_length;            /* bytes per motor of the period's SYNC_READ */
+    int read_length;            /* bytes per motor of the period's read */
+    uint16_t read_address;      /* where that block starts (every motor's the same) */
+    int read_at[4];             /* offsets in it of the Realtime Tick, Present Current,
+                                 * Velocity, Position (the tick's only with realtime_tick) */
+    uint8_t read_size[4];       /* and their sizes (bytes), from the model data */
     int homing_drive;           /* the homed slider's drive index, -1: no homing check */
     uint16_t homing_marker;     /* the token it must hold (the homing record's) */
     double homing_offset;       /* its position offset from the record (m) */
@@ -136,14 +138,17 @@ typedef struct {
     size_t read_len;
     uint8_t write_frame[DXL_FRAME_SIZE(4 + 3 * COCHLEA_MAX_DRIVES)];
     uint8_t scratch[DXL_FRAME_SIZE(4 + 5 * COCHLEA_MAX_DRIVES)];
-    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_TICK_READ_LENGTH];
+    uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_MAX_READ_LENGTH];
     int32_t last_tick[COCHLEA_MAX_DRIVES];        /* the last Realtime Tick seen, -1 none */
     int64_t tick_seen_ns[COCHLEA_MAX_DRIVES];     /* when the reply first carrying it was in */
     uint8_t slots[COCHLEA_MAX_DRIVES];
 } cochlea_bridge;
 
-/* 0, or -1 when the drive table does not fit (n > COCHLEA_MAX_DRIVES). watchdog_s is
- * rounded up to whole 20 ms, within 20..2540 ms. */
+/* 0, or -1 when the drive table does not fit the bridge (b->config_problem says why, one
+ * line): more than COCHLEA_MAX_DRIVES drives, no bus, a motor without an item the bridge
+ * writes, or a chain whose models place the period's items at different addresses (a mixed
+ * chain: the C bridge has no BULK_READ / BULK_WRITE; the generator refuses it first).
+ * watchdog_s is rounded up to whole 20 ms, within 20..2540 ms. */
 int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
                         int n, int64_t timeout_ns, double watchdog_s);
 /* Read the Realtime Tick with the state and refuse stale packets (before the start). 0, or -1
@@ -151,9 +156,11 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
 int cochlea_bridge_use_realtime_tick(cochlea_bridge *b);
 /* The homing check of a joint whose encoder loses its turns at power-on (the parallel robot's
  * slider), cochlea-run's: after the PINGs and before any write, drive must hold marker at
- * COCHLEA_HOMING_MARKER_ADDRESS, else the start fails (COCHLEA_START_NOT_HOMED); its position
+ * its homing-marker item, else the start fails (COCHLEA_START_NOT_HOMED); its position
  * is then q_per_count counts + offset (the homing record's stop), and the marker is written
- * back after the configuration. Call before cochlea_bridge_start. */
+ * back after the configuration. The marker's item is the drive's Feedforward 2nd Gain (RAM,
+ * unused in current control, 0 after power-on and REBOOT: cochlea/dynamixel/homing.py), at
+ * the address of its model's table. Call before cochlea_bridge_start. */
 void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker, double offset);
 /* Steps 1-8, step 9 armed for the first nonzero command; 1 on success, else 0 with *report
  * filled, after the safe stop. */

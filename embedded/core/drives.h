@@ -17,6 +17,8 @@
 extern "C" {
 #endif
 
+struct dxl_bus; /* dxl.h: the chain's transfers and each motor's control-table items */
+
 /* One joint and its motor. The conversion constants are the Python bridge's own values
  * (generated, printed to 17 digits), so C and Python give the same counts bit for bit. */
 typedef struct {
@@ -39,6 +41,8 @@ typedef struct {
     double position_hi;
     double velocity_limit;     /* rad/s or m/s */
     double effort_limit;       /* N m or N */
+    const struct dxl_bus *bus; /* the chain's bus (the same for every drive of the table):
+                                * where the bridge reads and writes, from the model data */
 } cochlea_drive;
 
 /* q = q_per_count counts + position_offset, with position_offset the drive's q_offset plus

@@ -225,6 +225,20 @@ int32_t dxl_sync_read(uint8_t *out, size_t cap, uint16_t address, uint16_t lengt
     return finish(&e);
 }
 
+int32_t dxl_fast_sync_read(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
+                           const uint8_t *ids, size_t n_ids)
+{
+    encoder e;
+    if ((ids == NULL && n_ids != 0) || (out == NULL && cap != 0)) {
+        return DXL_E_ARG;
+    }
+    begin(&e, out, cap, DXL_BROADCAST_ID, DXL_FAST_SYNC_READ);
+    param_u16(&e, address);
+    param_u16(&e, length);
+    params(&e, ids, n_ids);
+    return finish(&e);
+}
+
 int32_t dxl_sync_write(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
                        const uint8_t *ids, const uint8_t *data, size_t n_ids)
 {
@@ -522,4 +536,57 @@ int dxl_parser_parse(dxl_parser *p)
         p->params_len = body_end - (body + 1);
     }
     return DXL_OK;
+}
+
+/* ------------------------------------------------------------------------------------------
+ * FAST_SYNC_READ's combined status packet
+ * ------------------------------------------------------------------------------------------ */
+
+const uint8_t *dxl_fast_block(const dxl_parser *p, size_t k, size_t length)
+{
+    /* the first block's error byte is the packet's own error byte, just before params */
+    return p->params - 1 + k * (length + 4);
+}
+
+int dxl_fast_sync_check(const dxl_parser *p, const uint8_t *ids, size_t n_ids, size_t length,
+                        size_t *at)
+{
+    const size_t block = length + 4;
+    const size_t body = p->params_len + 3; /* error byte .. the last CRC */
+    const size_t params_at = (size_t)(p->params - p->buf);
+    size_t present, k;
+    int whole, stuffed;
+    size_t frame;
+    *at = 0;
+    if (params_at < 2 + DXL_PREFIX || params_at + p->params_len > DXL_PARSER_CAPACITY) {
+        return DXL_FAST_WRONG_ID; /* not a packet this parser returned */
+    }
+    frame = params_at - 2 - DXL_PREFIX;
+    present = body >= block ? body / block : 0;
+    whole = body == present * block;
+    stuffed = p->frame_len != DXL_PREFIX + 2 + p->params_len + 2;
+    for (k = 0; k < n_ids && k < present; ++k) {
+        const size_t b = params_at - 1 + k * block;
+        if (p->buf[b + 1] != ids[k]) {
+            *at = k;
+            return DXL_FAST_WRONG_ID;
+        }
+        if (k + 1 < n_ids && k + 1 < present && !stuffed) {
+            const size_t crc_at = b + 2 + length;
+            if (frame_crc(p, frame, crc_at)
+                != (uint16_t)((unsigned)p->buf[crc_at] | (unsigned)p->buf[crc_at + 1] << 8)) {
+                *at = k;
+                return DXL_FAST_BLOCK_CRC;
+            }
+        }
+    }
+    if (present < n_ids) {
+        *at = present;
+        return DXL_FAST_MISSING;
+    }
+    if (present > n_ids || !whole) {
+        *at = n_ids > 0 ? n_ids - 1 : 0; /* present >= n_ids here */
+        return DXL_FAST_WRONG_ID;
+    }
+    return DXL_FAST_OK;
 }

@@ -49,6 +49,7 @@ extern "C" {
 #define DXL_SYNC_WRITE 0x83
 #define DXL_BULK_READ 0x92
 #define DXL_BULK_WRITE 0x93
+#define DXL_FAST_SYNC_READ 0x8A
 
 /* Builder errors (negative, so they never look like a frame length). */
 #define DXL_E_SPACE (-1) /* the frame does not fit in the caller's buffer */
@@ -89,6 +90,10 @@ int32_t dxl_reboot(uint8_t *out, size_t cap, uint8_t id);
 /* To the broadcast ID: read length bytes at address from each of ids[0..n_ids). */
 int32_t dxl_sync_read(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
                       const uint8_t *ids, size_t n_ids);
+/* FAST_SYNC_READ (0x8A): the SYNC_READ request with another instruction code; the motors
+ * answer with one combined status packet (see dxl_fast_sync_check). */
+int32_t dxl_fast_sync_read(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
+                           const uint8_t *ids, size_t n_ids);
 /* To the broadcast ID: data holds n_ids blocks of length bytes, block k for ids[k]. */
 int32_t dxl_sync_write(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
                        const uint8_t *ids, const uint8_t *data, size_t n_ids);
@@ -140,6 +145,78 @@ void dxl_parser_commit(dxl_parser *p, size_t n);
 size_t dxl_parser_feed(dxl_parser *p, const uint8_t *data, size_t n);
 /* One step of parsing: a DXL_* result code. */
 int dxl_parser_parse(dxl_parser *p);
+
+/*
+ * The combined status packet of a FAST_SYNC_READ (protocol.py's fast_sync_status, the format
+ * the official SDK's GroupSyncRead.fastSyncRead parses): one header with ID 0xFE and 0x55,
+ * then per motor ERR ID DATA[length] CRC, where each motor's CRC is the running CRC of the
+ * packet from its header to the end of that motor's data and the last motor's CRC is the
+ * packet's own. The parser returns it as one DXL_OK packet with id DXL_BROADCAST_ID; then
+ * dxl_fast_sync_check says whether it holds every motor ids[0..n) in order, length data bytes
+ * each, every running CRC right: DXL_FAST_OK, or the first motor at fault (*at, an index
+ * into ids) with DXL_FAST_MISSING (fewer blocks than motors), DXL_FAST_WRONG_ID (another ID
+ * where its block belongs, more blocks than asked, or a length that is no whole number of
+ * blocks) or DXL_FAST_BLOCK_CRC (its running CRC is wrong). The running CRCs are checked over
+ * the unstuffed bytes: when the body needed stuffing only the packet's own CRC (checked by
+ * the parser) is relied on, as check_fast_sync does. dxl_fast_block gives motor k's block:
+ * its error byte, then its ID, then its data.
+ */
+#define DXL_FAST_OK 0
+#define DXL_FAST_MISSING 1
+#define DXL_FAST_WRONG_ID 2
+#define DXL_FAST_BLOCK_CRC 3
+int dxl_fast_sync_check(const dxl_parser *p, const uint8_t *ids, size_t n_ids, size_t length,
+                        size_t *at);
+const uint8_t *dxl_fast_block(const dxl_parser *p, size_t k, size_t length);
+
+/*
+ * Where a motor keeps what the bridge reads and writes: its control table's items, generated
+ * from the model data (cochlea/dynamixel/models, through cochlea/dynamixel/embedded_drives.py
+ * into generated_c/embedded/<robot>_drives.h), so that no code assumes one series' addresses.
+ * An item a model does not have is {DXL_NO_ADDRESS, 0}.
+ */
+enum dxl_item_name {
+    DXL_ITEM_RETURN_DELAY = 0,   /* Return Delay Time */
+    DXL_ITEM_OPERATING_MODE,     /* Operating Mode */
+    DXL_ITEM_CURRENT_LIMIT,      /* Current Limit */
+    DXL_ITEM_TORQUE_ENABLE,      /* Torque Enable */
+    DXL_ITEM_HARDWARE_ERROR,     /* Hardware Error Status */
+    DXL_ITEM_BUS_WATCHDOG,       /* Bus Watchdog */
+    DXL_ITEM_GOAL_CURRENT,       /* Goal Current */
+    DXL_ITEM_HOMING_MARKER,      /* Feedforward 2nd Gain: the slider's homing token */
+    DXL_ITEM_REALTIME_TICK,      /* Realtime Tick */
+    DXL_ITEM_PRESENT_CURRENT,    /* Present Current */
+    DXL_ITEM_PRESENT_VELOCITY,   /* Present Velocity */
+    DXL_ITEM_PRESENT_POSITION,   /* Present Position */
+    DXL_N_ITEMS
+};
+#define DXL_NO_ADDRESS 0xFFFFu
+
+typedef struct {
+    uint16_t address;
+    uint8_t size; /* bytes: 1, 2 or 4; 0 when the model has no such item */
+} dxl_item;
+
+/* One motor's items (indexed by enum dxl_item_name) and the Operating Mode value of current
+ * control. */
+typedef struct {
+    const char *model;  /* the model's name, e.g. "MX-64" */
+    dxl_item item[DXL_N_ITEMS];
+    uint8_t current_mode;
+} dxl_table;
+
+/* A chain's transfers, chosen by the generator from the models' data with the Python bridge's
+ * rule (cochlea.dynamixel.bridge.choose_transfers): the per-period read (DXL_SYNC_READ, or
+ * DXL_FAST_SYNC_READ when every model's data says it answers it) and write (DXL_SYNC_WRITE),
+ * why (the same text cochlea-run writes as read_choice), and each drive's table in the drive
+ * table's order. */
+typedef struct dxl_bus {
+    uint8_t read_instruction;
+    uint8_t write_instruction;
+    const char *read_choice;
+    int n_tables;
+    const dxl_table *tables;
+} dxl_bus;
 
 #ifdef __cplusplus
 }

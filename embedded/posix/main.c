@@ -849,17 +849,43 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
 static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
                           const cochlea_start_report *r, const options *o)
 {
+    /* each step, and the item it writes (its address is the motor's, from its table) */
     static const char *const steps[] = {
-        "", "PING", "Torque Enable 0 (WRITE 64 = 0)", "Bus Watchdog 0 (WRITE 98 = 0)",
-        "Operating Mode 0 (WRITE 11 = 0)", "Return Delay Time 0 (WRITE 9 = 0)",
-        "the Current Limit (WRITE 38)", "Goal Current 0 (WRITE 102 = 0)",
-        "the Bus Watchdog (WRITE 98)", "the first SYNC_READ", "the joint limits",
-        "Torque Enable 1 (WRITE 64 = 1)", "the homing marker (READ/WRITE 88)"};
-    const char *what = r->step >= 1 && r->step <= COCHLEA_STEP_HOMING ? steps[r->step] : "?";
+        "", "PING", "Torque Enable 0 (WRITE %d = 0)", "Bus Watchdog 0 (WRITE %d = 0)",
+        "Operating Mode %d (WRITE %d)", "Return Delay Time 0 (WRITE %d = 0)",
+        "the Current Limit (WRITE %d)", "Goal Current 0 (WRITE %d = 0)",
+        "the Bus Watchdog (WRITE %d)", "the first %s", "the joint limits",
+        "Torque Enable 1 (WRITE %d = 1)", "the homing marker (READ/WRITE %d)"};
+    static const int items[] = {
+        -1, -1, DXL_ITEM_TORQUE_ENABLE, DXL_ITEM_BUS_WATCHDOG, DXL_ITEM_OPERATING_MODE,
+        DXL_ITEM_RETURN_DELAY, DXL_ITEM_CURRENT_LIMIT, DXL_ITEM_GOAL_CURRENT,
+        DXL_ITEM_BUS_WATCHDOG, -1, -1, DXL_ITEM_TORQUE_ENABLE, DXL_ITEM_HOMING_MARKER};
+    const char *read_name = b->bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ"
+                                                                            : "SYNC_READ";
+    char what[96] = "?";
     char name[160] = "the bus";
     char value[64];
+    char id_text[32] = "";
+    const int drive = r->drive >= 0 && r->drive < b->n ? r->drive : 0;
+    if (r->step >= 1 && r->step <= COCHLEA_STEP_HOMING) {
+        const int item = items[r->step];
+        const int address = item >= 0 ? b->bus->tables[drive].item[item].address : 0;
+        if (r->step == COCHLEA_STEP_MODE) {
+            snprintf(what, sizeof what, steps[r->step], b->bus->tables[drive].current_mode,
+                     address);
+        } else if (r->step == COCHLEA_STEP_FIRST_READ) {
+            snprintf(what, sizeof what, steps[r->step], read_name);
+        } else if (item >= 0) {
+            snprintf(what, sizeof what, steps[r->step], address);
+        } else {
+            snprintf(what, sizeof what, "%s", steps[r->step]);
+        }
+    }
     if (r->drive >= 0 && r->drive < b->n) {
         who(name, sizeof name, &b->drives[r->drive]);
+    }
+    if (b->last_failure_id >= 0) {
+        snprintf(id_text, sizeof id_text, " (ID %d)", b->last_failure_id);
     }
     switch (r->error) {
     case COCHLEA_START_NO_ANSWER:
@@ -883,8 +909,8 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
                  b->drives[r->drive].model_number, model_name(b->drives[r->drive].model_number));
         break;
     case COCHLEA_START_NO_READ:
-        snprintf(buf, n, "no good SYNC_READ of the motors' state on %s (last failure: %s)",
-                 o->port, cochlea_failure_name(r->detail));
+        snprintf(buf, n, "no good %s of the motors' state on %s (last failure: %s%s)",
+                 read_name, o->port, cochlea_failure_name(r->detail), id_text);
         break;
     case COCHLEA_START_OUTSIDE_LIMITS:
         show(value, sizeof value, r->value,
@@ -1733,6 +1759,10 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     fputs(",\n", f);
     /* the overrun rule (loop.h), cochlea-run's keys */
     fprintf(f, "    \"overruns\": %u,\n", loop->overruns);
+    /* issue 28: periods still running at a tick of the port's period timer
+     * (cochlea_loop_tick); this program's periods wait on the clock, not on a timer
+     * interrupt, so nothing ticks here and it stays 0 (a board port's timer counts it) */
+    fprintf(f, "    \"tick_overruns\": %u,\n", (unsigned)loop->tick_overruns);
     key(f, 4, "lateness_max");
     json_number(f, (double)loop->lateness_max_ns * 1e-9);
     fputs(",\n", f);
@@ -1771,6 +1801,12 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     json_number(f, facts->bus_s);
     fputs(", \"with_adapter_latency_s\": ", f);
     json_number(f, facts->cycle_s);
+    /* the transfers sent, chosen from the models' data by cochlea-run's rule */
+    fputs(", \"read_instruction\": ", f);
+    json_string(f, b->bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ"
+                                                                  : "SYNC_READ");
+    fputs(", \"write_instruction\": \"SYNC_WRITE\", \"read_choice\": ", f);
+    json_string(f, b->bus->read_choice);
     fputs("},\n", f);
     key(f, 6, "read_timeout_s");
     json_number(f, facts->timeout_s);
@@ -2214,12 +2250,27 @@ int main(int argc, char **argv)
                               steps, b);
         }
     }
-    { /* the bus budget, cochlea/dynamixel/budget.py's */
-        /* a status packet of 11 bytes and the Realtime Tick's 16-byte block per motor */
-        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + (11.0 + COCHLEA_TICK_READ_LENGTH) * n;
+    /* The bridge reads its addresses, sizes and transfers from the drive table (the model
+     * data): a table it cannot drive is refused here, before anything opens. It keeps &hal,
+     * filled once the port is open. */
+    if (cochlea_bridge_init(&bridge, &hal, sc->drives, n, 0, WATCHDOG_S) != 0 ||
+        cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* the tick always, as cochlea-run */
+        return fail_usage("the drive table of %s does not fit the bridge: %s", sc->name,
+                          bridge.config_problem ? bridge.config_problem : "its read frame "
+                          "does not fit");
+    }
+    { /* the bus budget, cochlea/dynamixel/budget.py's, of the transfers the bridge sends */
+        /* SYNC_WRITE of Goal Current; the read's request; then a status packet of 11 bytes
+         * and the block (Realtime Tick .. Present Position) per motor, or FAST_SYNC_READ's
+         * one combined packet of 8 bytes and ERR ID block CRC per motor, after one return
+         * delay and turnaround instead of n */
+        const double block = (double)bridge.read_length;
+        const int fast = bridge.bus->read_instruction == DXL_FAST_SYNC_READ;
+        const double replies = fast ? 8.0 + (block + 4.0) * n : (11.0 + block) * n;
+        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + replies;
         facts.budget_bytes = bytes;
         facts.wire_s = bytes * BITS_PER_BYTE / (double)o.baud;
-        facts.bus_s = facts.wire_s + n * TURNAROUND_S;
+        facts.bus_s = facts.wire_s + (fast ? 1 : n) * TURNAROUND_S;
         facts.cycle_s = facts.bus_s + ADAPTER_LATENCY_S;
         facts.timeout_s = facts.cycle_s + TIMEOUT_MARGIN_S;
         snprintf(text, sizeof text,
@@ -2293,6 +2344,9 @@ int main(int argc, char **argv)
     printf("cochlea-embedded: %s (controller %s, %s variant), Dynamixel motors on %s, real time "
            "at %g Hz, %s precision -> %s\n", sc->name, sc->controller, sc->variant, o.port,
            1.0 / period, PRECISION, o.out);
+    printf("cochlea-embedded: bus: %s + SYNC_WRITE per period (%s)\n",
+           bridge.bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ" : "SYNC_READ",
+           bridge.bus->read_choice);
     fflush(stdout);
     if (cochlea_posix_open(&port, o.port, o.baud) != 0) {
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: cannot "
@@ -2301,22 +2355,12 @@ int main(int argc, char **argv)
         return COCHLEA_EXIT_BACKEND;
     }
     cochlea_posix_hal(&hal, &port);
-    if (cochlea_bridge_init(&bridge, &hal, sc->drives, n,
-                            (int64_t)nearbyint(facts.timeout_s * 1e9), WATCHDOG_S) != 0) {
-        cochlea_posix_close(&port);
-        undo_start(o.out);
-        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
-    }
+    bridge.timeout_ns = (int64_t)nearbyint(facts.timeout_s * 1e9);
     facts.watchdog_s = bridge.watchdog_lsb * 0.02;
     /* Friction compensated once: by the bridge's offset current or by the controller. */
     bridge.offset_current = sc->bridge_offset_current;
     if (homing.drive >= 0) {
         cochlea_bridge_expect_homing(&bridge, homing.drive, homing.marker, homing.offset);
-    }
-    if (cochlea_bridge_use_realtime_tick(&bridge) != 0) { /* always, as cochlea-run */
-        cochlea_posix_close(&port);
-        undo_start(o.out);
-        return fail_usage("the drive table of %s does not fit the bridge", sc->name);
     }
     backend = cochlea_bridge_backend(&bridge);
 #ifdef COCHLEA_TEST_HOOKS
