@@ -1209,6 +1209,8 @@ typedef struct {
     double estimate_max[COCHLEA_MAX_UNITS];
     int estimate_finite[COCHLEA_MAX_UNITS];
     double first[COCHLEA_MAX_ROW], last[COCHLEA_MAX_ROW];
+    int have_first; /* first: the first row with a measured state (a failed first read
+                     * logs NaN until the first good one, as cochlea-run's report) */
 } log_stats;
 
 /* ---- JSON ------------------------------------------------------------------------------------ */
@@ -1345,8 +1347,13 @@ static void first_pass_row(log_stats *st, const cochlea_scenario *sc, const doub
                            int row_length)
 {
     int u, i, c;
-    if (k == 0) {
-        memcpy(st->first, row, sizeof(double) * (size_t)row_length);
+    if (!st->have_first) {
+        for (i = 0; i < sc->nq && isfinite(row[1 + i]); ++i) {
+        }
+        if (i == sc->nq) {
+            memcpy(st->first, row, sizeof(double) * (size_t)row_length);
+            st->have_first = 1;
+        }
     }
     if (k == st->rows - 1) {
         memcpy(st->last, row, sizeof(double) * (size_t)row_length);
@@ -1423,6 +1430,7 @@ static int read_back(const char *out, const cochlea_scenario *sc, int row_length
     }
 #endif
     st->rows = rows;
+    st->have_first = 0;
     st->tail = (long)((double)rows * (1.0 - TAIL_FRACTION));
     for (c = 0; c < TIMING_COLUMNS; ++c) {
         timing_column *t = &st->timing[c];
@@ -1575,7 +1583,7 @@ static int unit_summary(FILE *f, const cochlea_scenario *sc, int u, const log_st
         key(f, 10, "unit");
         json_string(f, t->tracked_units[i]);
         fputs(",\n", f);
-        if (rows == 0) {
+        if (rows == 0 || !st->have_first) {
             fputs("          \"initial_abs_error\": null,\n          \"final_rms_error\": null,\n"
                   "          \"converged\": false,\n", f);
             key(f, 10, "convergence_floor");
