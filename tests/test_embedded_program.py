@@ -422,6 +422,30 @@ def test_a_wrong_bus_stops_before_anything_moves(tmp_path, program, options, mes
     assert not (tmp_path / "c").exists()  # the start is undone: the identical retry can run
 
 
+def test_a_robot_away_from_the_scenarios_start_stops_before_anything_moves(tmp_path, program):
+    """serial_task's controller on a chain standing at serial_joint's initial pose: exit 5
+    naming the first joint away (arm1.link1: 73 deg, the scenario's 83.5 deg), as cochlea-run
+    refuses it (which names every joint away); the torque never on; a non-physical tolerance
+    refused as a usage error."""
+    log = tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log) as port:
+        done = embedded(program, "--scenario", "serial_task", "--port", port, "--duration",
+                        "1", "--out", str(tmp_path / "c"))
+    assert done.returncode == 5, done.stderr
+    assert re.search(r"the backend could not start, nothing moved: the robot is not at the "
+                     r"scenario's initial pose: ID 1 \(arm1\.link1, MX-64\) is at 73\.0\d deg, "
+                     r"the scenario starts it at 83\.5\d deg \(tolerance 5 deg, 5 mm\)",
+                     done.stderr), done.stderr
+    assert not [e for e in log.read_text().splitlines()
+                if " write " in e and e.split()[3:] == ["address=64", "value=1"]]
+    assert not (tmp_path / "c").exists()
+    for bad in ("nan", "0", "-1", "inf"):
+        done = embedded(program, "--scenario", "serial_task", "--port", "/dev/null",
+                        "--out", str(tmp_path / "c"), "--start-tolerance-deg", bad)
+        assert done.returncode == 2 and "--start-tolerance-deg must be a positive number" \
+            in done.stderr, done.stderr
+
+
 def _interrupted_run(program: Path, tmp_path: Path, interrupt) -> tuple:
     """serial_joint on a fresh emulator, ``interrupt(proc, log)`` 1.5 s after the start (the
     motors' start-up, then about a second of running); once more if it lagged before that."""

@@ -928,6 +928,9 @@ class EmbeddedScenario:
     #: or leaves it to the controller (:func:`cochlea.robots.motor_fit.
     #: bridge_compensates_friction`).
     bridge_offset_current: bool = True
+    #: The joints' positions where the scenario starts (rad, m; the loop's order): the bridge
+    #: refuses a robot standing farther from them than its tolerance.
+    initial_q: tuple[float, ...] = ()
 
 
 def _strings(values) -> str:
@@ -986,6 +989,11 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
     parts.append(f"static const cochlea_unit_info units[{N}_UNITS] = {{\n"
                  + "\n".join(infos) + "\n};\n")
     log_cols, raw_cols = log_columns(units)
+    if sc.initial_q:
+        parts.append(f"/* Where the scenario starts the joints (rad, m): the start-up refuses "
+                     "a robot farther away. */\n"
+                     f"static const double initial_q[{N}_NQ] = "
+                     "{" + ", ".join(_double(v) for v in sc.initial_q) + "};\n")
     parts += [f"/* The log's columns (cochlea/log_schema.py, version {log_schema.SCHEMA_VERSION})"
               " */",
               f"static const char *const log_columns[{len(log_cols)}] = "
@@ -1055,7 +1063,8 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         "tool_points,",
         f"    {int(bool(sc.bridge_offset_current))}, step_period,",
         f"    {log_schema.SCHEMA_VERSION}, {len(log_cols)}, log_columns, {len(raw_cols)}, "
-        "raw_columns",
+        "raw_columns,",
+        f"    {'initial_q' if sc.initial_q else '0'}",
         "};\n"]
     return "\n".join(parts)
 

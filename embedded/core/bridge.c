@@ -167,6 +167,9 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
         b->watchdog_lsb = (uint8_t)(b->watchdog_lsb + 1);
     }
     b->position_margin = 2.0 * 3.14159265358979323846 / 180.0;
+    b->expected_start = 0;
+    b->start_tolerance[0] = 5.0 * 3.14159265358979323846 / 180.0;
+    b->start_tolerance[1] = 5e-3;
     b->retries = 3;
     b->bus = drives[0].bus;
     b->homing_drive = -1;
@@ -915,6 +918,18 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
             return fail_start(r, COCHLEA_START_OUTSIDE_LIMITS, COCHLEA_STEP_LIMITS, i, 0);
         }
     }
+    /* The controller and its path start from the scenario's initial pose: a robot standing
+     * elsewhere would meet an initial error the study never had, at the gains' full
+     * authority. Refused before the torque comes on (cochlea-run's _check_start). */
+    for (i = 0; b->expected_start && i < b->n; ++i) {
+        const double tolerance = b->start_tolerance[b->drives[i].revolute ? 0 : 1];
+        const double away = q[i] - b->expected_start[i];
+        if (!(away <= tolerance && -away <= tolerance)) { /* NaN too */
+            r->value = q[i];
+            r->expected = b->expected_start[i];
+            return fail_start(r, COCHLEA_START_AWAY_FROM_START, COCHLEA_STEP_LIMITS, i, 0);
+        }
+    }
     /* 9. Torque on: with the first nonzero command (cochlea_bridge_write), after its Goal
      * Current, so that no motor is powered at zero current while the loop gets ready. */
     b->torque_pending = 1;
@@ -928,7 +943,7 @@ int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report)
     report->step = 0;
     report->drive = -1;
     report->detail = 0;
-    report->value = 0.0;
+    report->value = report->expected = 0.0;
     if (start(b, report)) {
         int k;
         /* The counters cover the run from here; the start-up's reads are kept apart. */

@@ -71,8 +71,10 @@ enum cochlea_start_error {
     COCHLEA_START_NO_READ,        /* no good SYNC_READ in 3 x retries tries */
     COCHLEA_START_OUTSIDE_LIMITS, /* a joint reads outside its limits (value: q, SI) */
     COCHLEA_START_BAD_CONFIG,     /* too many drives, a frame that does not fit */
-    COCHLEA_START_NOT_HOMED       /* the slider's homing marker is not the record's (detail:
+    COCHLEA_START_NOT_HOMED,      /* the slider's homing marker is not the record's (detail:
                                    * the value it holds): power-cycled or rebooted since */
+    COCHLEA_START_AWAY_FROM_START /* a joint stands farther from the scenario's initial pose
+                                   * than the tolerance (value: q, expected: the pose's, SI) */
 };
 
 /* Start-up steps, for messages. */
@@ -88,7 +90,9 @@ typedef struct {
     int step;         /* enum cochlea_start_step */
     int drive;        /* index into the drive table, or -1 */
     int detail;       /* model number, error byte, Hardware Error Status, failure kind */
-    double value;     /* the joint's position (SI) for COCHLEA_START_OUTSIDE_LIMITS */
+    double value;     /* the joint's position (SI) for COCHLEA_START_OUTSIDE_LIMITS and
+                       * COCHLEA_START_AWAY_FROM_START */
+    double expected;  /* the scenario's initial position of that joint (SI), for the latter */
 } cochlea_start_report;
 
 typedef struct {
@@ -101,6 +105,10 @@ typedef struct {
     int64_t timeout_ns;         /* a period's transaction: the bus budget plus margin */
     uint8_t watchdog_lsb;       /* Bus Watchdog, 20 ms per LSB */
     double position_margin;     /* start-up: how far outside its limits a joint may read (SI) */
+    const double *expected_start; /* start-up: where the scenario starts the joints (n, SI),
+                                   * or NULL (cochlea_bridge_init): no check */
+    double start_tolerance[2];  /* how far from it a revolute (rad), a prismatic joint (m) may
+                                 * stand: 5 deg, 5 mm by default */
     int retries;
     int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
     int read_length;            /* bytes per motor of the period's read */

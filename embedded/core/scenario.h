@@ -84,6 +84,10 @@ typedef struct {
     const char *const *log_columns;
     int n_raw_columns;
     const char *const *raw_columns;
+    /* Where the scenario starts the joints (nq, rad or m, the loop's order), or NULL: the
+     * bridge's start-up refuses a robot standing farther from it than its tolerance
+     * (cochlea_bridge.expected_start). */
+    const double *initial_q;
 } cochlea_scenario;
 
 #ifdef __cplusplus

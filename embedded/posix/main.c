@@ -4,6 +4,7 @@
  *                          [--watchdog-misses N] [--watchdog-errors N] [--mlockall on|off]
  *                          [--cpu N] [--sched fifo|rr|other] [--priority N]
  *                          [--homing auto|required] [--homing-record FILE] [--list]
+ *                          [--start-tolerance-deg DEG] [--start-tolerance-mm MM]
  *
  * The POSIX program around the portable core (embedded/core/): it opens the port (termios, any
  * Dynamixel baud rate up to 4.5 Mbaud), starts the motors as cochlea-run's bridge does, runs
@@ -108,6 +109,7 @@ typedef struct {
     int priority;         /* fifo and rr: 1..99 (default FIFO_PRIORITY); other: none */
     const char *homing;   /* "auto" or "required" (cochlea-run's --homing) */
     const char *homing_record; /* the record cochlea-dxl home wrote; 0: the default */
+    double start_tolerance_deg, start_tolerance_mm; /* cochlea-run's: 5 deg, 5 mm */
 } options;
 
 static int fail_usage(const char *fmt, ...)
@@ -128,7 +130,8 @@ static void usage(FILE *to)
             "                        [--rate HZ] --out DIR [--watchdog-misses N]\n"
             "                        [--watchdog-errors N] [--mlockall on|off] [--cpu N]\n"
             "                        [--sched fifo|rr|other] [--priority N]\n"
-            "                        [--homing auto|required] [--homing-record FILE] | --list\n"
+            "                        [--homing auto|required] [--homing-record FILE]\n"
+            "                        [--start-tolerance-deg DEG] [--start-tolerance-mm MM] | --list\n"
             "Runs a generated scenario's controller on the Dynamixel motors of PATH (real ones,\n"
             "or the pseudo-terminal cochlea-emulator prints) in real time, " PRECISION
             " precision.\n"
@@ -141,6 +144,10 @@ static void usage(FILE *to)
             "  --watchdog-misses N  consecutive overrunning periods tolerated; one period stuck\n"
             "                       for longer than N periods stops at once (default 20)\n"
             "  --watchdog-errors N  consecutive failed reads tolerated (default 5)\n"
+            "  --start-tolerance-deg DEG, --start-tolerance-mm MM\n"
+            "                       how far a revolute (prismatic) joint may stand from the\n"
+            "                       scenario's initial pose at the start (default 5 deg, 5 mm);\n"
+            "                       farther is refused before the torque comes on (exit 5)\n"
             "  --mlockall on|off    lock the memory while the loop runs, so no page fault stalls\n"
             "                       a period (default on; needs CAP_IPC_LOCK or a memlock limit)\n"
             "  --cpu N              pin the loop's thread to CPU N (default: the CPUs given)\n"
@@ -276,6 +283,8 @@ static int parse(int argc, char **argv, options *o)
     o->priority_given = 0;
     o->priority = FIFO_PRIORITY;
     o->homing = "auto";
+    o->start_tolerance_deg = 5.0;
+    o->start_tolerance_mm = 5.0;
     o->homing_record = 0;
     for (i = 1; i < argc; ++i) {
         const char *a = argv[i];
@@ -346,6 +355,14 @@ static int parse(int argc, char **argv, options *o)
                                   MAX_WATCHDOG_MISSES, value);
             }
             o->watchdog_errors = (int)v;
+        } else if (strcmp(a, "--start-tolerance-deg") == 0
+                   || strcmp(a, "--start-tolerance-mm") == 0) {
+            /* NaN, inf, zero and negative refused, as cochlea-run refuses them. */
+            if (!parse_number(value, &v) || !(v > 0 && v < 1e300)) {
+                return fail_usage("%s must be a positive number, got %s", a, value);
+            }
+            *(strcmp(a, "--start-tolerance-deg") == 0 ? &o->start_tolerance_deg
+                                                       : &o->start_tolerance_mm) = v;
         } else if (strcmp(a, "--homing") == 0) {
             if (strcmp(value, "auto") != 0 && strcmp(value, "required") != 0) {
                 return fail_usage("--homing: expected auto or required, got %s", value);
@@ -918,6 +935,17 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
         snprintf(buf, n, "%s reads %s, outside its limits: check zero_offset_deg and direction "
                  "in the description", name, value);
         break;
+    case COCHLEA_START_AWAY_FROM_START: {
+        char expected[48];
+        show(value, sizeof value, r->value, b->drives[r->drive].revolute ? "rad" : "m");
+        show(expected, sizeof expected, r->expected, b->drives[r->drive].revolute ? "rad" : "m");
+        snprintf(buf, n, "the robot is not at the scenario's initial pose: %s is at %s, the "
+                 "scenario starts it at %s (tolerance %g deg, %g mm): move the joints there by "
+                 "hand with the power off, or run a scenario whose initial state is where the "
+                 "robot stands (--start-tolerance-deg, --start-tolerance-mm widen it)", name,
+                 value, expected, o->start_tolerance_deg, o->start_tolerance_mm);
+        break;
+    }
     case COCHLEA_START_NOT_HOMED:
         snprintf(buf, n, "the slider (ID %d) was power-cycled or rebooted since it was homed "
                  "(%s): its encoder lost its turns; run cochlea-dxl home --robot %s --port "
@@ -2403,6 +2431,9 @@ int main(int argc, char **argv)
     apply_realtime(&o);
     facts.scheduling = rt.scheduling;
     facts.memory = rt.memory;
+    bridge.expected_start = sc->initial_q;
+    bridge.start_tolerance[0] = o.start_tolerance_deg * M_PI / 180.0;
+    bridge.start_tolerance[1] = o.start_tolerance_mm * 1e-3;
     if (!cochlea_bridge_start(&bridge, &report)) {
         leave_realtime(&log, writer_thread);
         start_failure(text, sizeof text, &bridge, &report, &o);

@@ -22,6 +22,9 @@ static const cochlea_unit_info units[PARALLEL_JOINT_REALISTIC_UNITS] = {
     {"mechanism", "f (corrected), joint space", 5, 5, 28, 10, 0, 0, 0, 0, mechanism_tracked, mechanism_tracked_units, mechanism_joints, mechanism_joint_units, mechanism_params, mechanism_param_units, mechanism_nominal, 533.4109423549539, {"e", "r"}, 1, 2, mechanism_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[PARALLEL_JOINT_REALISTIC_NQ] = {2.2951079663725436, 0.5061454830783556, 0.073, 0.7504915783575618, 2.6179938779914944};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[73] = {
     "time_s",
@@ -233,5 +236,6 @@ const cochlea_scenario parallel_joint_realistic_scenario = {
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_joint_realistic_state), (int)sizeof(parallel_joint_realistic_real), init, step, terminate, desired, estimate, tool_points,
     0, step_period,
-    2, 73, log_columns, 63, raw_columns
+    2, 73, log_columns, 63, raw_columns,
+    initial_q
 };

@@ -22,6 +22,9 @@ static const cochlea_unit_info units[PARALLEL_JOINT_UNITS] = {
     {"mechanism", "f (corrected), joint space", 5, 5, 13, 10, 0, 0, 0, 0, mechanism_tracked, mechanism_tracked_units, mechanism_joints, mechanism_joint_units, mechanism_params, mechanism_param_units, mechanism_nominal, 16.6837885385784, {"e", "r"}, 1, 2, mechanism_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[PARALLEL_JOINT_NQ] = {2.2951079663725436, 0.5061454830783556, 0.073, 0.7504915783575618, 2.6179938779914944};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[58] = {
     "time_s",
@@ -203,5 +206,6 @@ const cochlea_scenario parallel_joint_scenario = {
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_joint_state), (int)sizeof(parallel_joint_real), init, step, terminate, desired, estimate, tool_points,
     1, step_period,
-    2, 58, log_columns, 48, raw_columns
+    2, 58, log_columns, 48, raw_columns,
+    initial_q
 };

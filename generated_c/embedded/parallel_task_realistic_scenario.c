@@ -22,6 +22,9 @@ static const cochlea_unit_info units[PARALLEL_TASK_REALISTIC_UNITS] = {
     {"mechanism", "d (corrected), task space", 5, 6, 28, 11, 0, 0, 0, 0, mechanism_tracked, mechanism_tracked_units, mechanism_joints, mechanism_joint_units, mechanism_params, mechanism_param_units, mechanism_nominal, 533.4109423549539, {"e_p", "e_d"}, 1, 2, mechanism_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[PARALLEL_TASK_REALISTIC_NQ] = {2.1881305797209354, 0.40560586956199796, 0.06464400288029082, 0.700713070651799, 2.6349583549019933};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[76] = {
     "time_s",
@@ -237,5 +240,6 @@ const cochlea_scenario parallel_task_realistic_scenario = {
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_task_realistic_state), (int)sizeof(parallel_task_realistic_real), init, step, terminate, desired, estimate, tool_points,
     0, step_period,
-    2, 76, log_columns, 64, raw_columns
+    2, 76, log_columns, 64, raw_columns,
+    initial_q
 };

@@ -22,6 +22,9 @@ static const cochlea_unit_info units[PARALLEL_TASK_UNITS] = {
     {"mechanism", "d (corrected), task space", 5, 6, 13, 11, 0, 0, 0, 0, mechanism_tracked, mechanism_tracked_units, mechanism_joints, mechanism_joint_units, mechanism_params, mechanism_param_units, mechanism_nominal, 16.6837885385784, {"e_p", "e_d"}, 1, 2, mechanism_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[PARALLEL_TASK_NQ] = {2.1881305797209354, 0.40560586956199796, 0.06464400288029082, 0.700713070651799, 2.6349583549019933};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[61] = {
     "time_s",
@@ -207,5 +210,6 @@ const cochlea_scenario parallel_task_scenario = {
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_task_state), (int)sizeof(parallel_task_real), init, step, terminate, desired, estimate, tool_points,
     1, step_period,
-    2, 61, log_columns, 49, raw_columns
+    2, 61, log_columns, 49, raw_columns,
+    initial_q
 };

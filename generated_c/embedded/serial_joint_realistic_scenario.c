@@ -32,6 +32,9 @@ static const cochlea_unit_info units[SERIAL_JOINT_REALISTIC_UNITS] = {
     {"arm2", "e (corrected), joint space", 3, 3, 12, 6, 3, 3, 12, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 3.8998514958905806, {"e", "r"}, 1, 1, arm2_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[SERIAL_JOINT_REALISTIC_NQ] = {1.2740903539558606, 1.4486232791552935, 1.9198621771937625, 1.9198621771937625, -2.234021442552742, 1.7453292519943295};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[77] = {
     "time_s",
@@ -257,5 +260,6 @@ const cochlea_scenario serial_joint_realistic_scenario = {
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
     sizeof(serial_joint_realistic_state), (int)sizeof(serial_joint_realistic_real), init, step, terminate, desired, estimate, tool_points,
     0, step_period,
-    2, 77, log_columns, 65, raw_columns
+    2, 77, log_columns, 65, raw_columns,
+    initial_q
 };

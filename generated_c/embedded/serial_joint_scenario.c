@@ -32,6 +32,9 @@ static const cochlea_unit_info units[SERIAL_JOINT_UNITS] = {
     {"arm2", "e (corrected), joint space", 3, 3, 3, 6, 3, 3, 3, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 1.2405940875241992, {"e", "r"}, 1, 1, arm2_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[SERIAL_JOINT_NQ] = {1.2740903539558606, 1.4486232791552935, 1.9198621771937625, 1.9198621771937625, -2.234021442552742, 1.7453292519943295};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[59] = {
     "time_s",
@@ -221,5 +224,6 @@ const cochlea_scenario serial_joint_scenario = {
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
     sizeof(serial_joint_state), (int)sizeof(serial_joint_real), init, step, terminate, desired, estimate, tool_points,
     1, step_period,
-    2, 59, log_columns, 47, raw_columns
+    2, 59, log_columns, 47, raw_columns,
+    initial_q
 };

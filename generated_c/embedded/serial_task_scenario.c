@@ -32,6 +32,9 @@ static const cochlea_unit_info units[SERIAL_TASK_UNITS] = {
     {"arm2", "g (corrected), task space", 3, 3, 3, 6, 3, 3, 3, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 1.2405940875241992, {"e_g", "e_v"}, -1, 1, arm2_points},
 };
 
+/* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
+static const double initial_q[SERIAL_TASK_NQ] = {1.458034900300584, 0.919544075394078, 2.107917201930765, 1.8415722836327681, -2.1846416618274422, 1.9487722900294573};
+
 /* The log's columns (cochlea/log_schema.py, version 2) */
 static const char *const log_columns[59] = {
     "time_s",
@@ -221,5 +224,6 @@ const cochlea_scenario serial_task_scenario = {
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
     sizeof(serial_task_state), (int)sizeof(serial_task_real), init, step, terminate, desired, estimate, tool_points,
     1, step_period,
-    2, 59, log_columns, 47, raw_columns
+    2, 59, log_columns, 47, raw_columns,
+    initial_q
 };
