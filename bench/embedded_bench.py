@@ -586,10 +586,21 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
     return lines
 
 
-def markdown(steps: list[dict], sims: list[dict], loops: list[dict] | None = None) -> list[str]:
+def markdown(steps: list[dict] | None, sims: list[dict] | None,
+             loops: list[dict] | None = None, not_run: dict[str, str] | None = None
+             ) -> list[str]:
     """The section of results.md. ``loops``: bench/run.py's closed-loop rows, for the
-    real-time factor of ``simulate()``'s all-in-C path on the same scenario."""
-    out = ["## Embedded controller: the step in double and in float", "",
+    real-time factor of ``simulate()``'s all-in-C path on the same scenario. ``steps`` or
+    ``sims`` None: those rows were not measured, ``not_run`` (bench/run.py's) says why."""
+    not_run = not_run or {}
+
+    def why(section: str) -> list[str]:
+        return [f"Not measured in this run: {not_run.get(section, 'no rows')}.", ""]
+
+    out = ["## Embedded controller: the step in double and in float", ""]
+    if steps is None:
+        out += why("embedded_steps")
+    out += [] if steps is None else [
            "Each scenario's generated controller (`generated_c/embedded/<scenario>.c`, -O2) "
            "built twice, as is and with `-DCOCHLEA_FLOAT`, both loaded into the benchmark's "
            "process and timed turn about in C (bench/time_embedded_step.c) on what the "
@@ -605,14 +616,16 @@ def markdown(steps: list[dict], sims: list[dict], loops: list[dict] | None = Non
            "| scenario | units | double (ns) | float (ns) | float / double | Python loop (us) | "
            "Python / double | check | float |",
            "|---|---|---|---|---|---|---|---|---|"]
-    for r in steps:
+    for r in steps or []:
         out.append(f"| {r['scenario']} | {r['units']} | {r['double_ns']:.0f} | "
                    f"{r['float_ns']:.0f} | {r['float_over_double']:.2f} | "
                    f"{r['python_period_s'] * 1e6:.1f} | {r['python_over_double']:.0f} | "
                    f"{r['check_double']:.1e} | {r['float_vs_double']:.1e} |")
     c_rtf = {r["scenario"]: r["rtf_c"] for r in loops or []}
-    out += ["", "## All-in-C simulation (embedded/sim, real-time factor)", "",
-            "`embedded/sim/simulate.c` built per scenario (-O2): the embedded controller, which "
+    out += ["", "## All-in-C simulation (embedded/sim, real-time factor)", ""]
+    if sims is None:
+        return out + why("embedded_sims")
+    out += ["`embedded/sim/simulate.c` built per scenario (-O2): the embedded controller, which "
             "evaluates its desired trajectory in C each period, and each unit's generated plant "
             "kernel (RK4, the scenario's sub-steps), with the scenario's measurement delay and "
             "grids; no Python, no CasADi. Full scenario length; wall time from starting the "

@@ -3,6 +3,9 @@ loop's own compute per period against the Python loop's on the same scenario and
 bus time of one period at 1-4 Mbaud with the emulator's wire timing, and the deadline misses of
 a 20 s run. Every number comes from the runs' own log.bin (per-period timing columns, s), so
 the rows of one table are taken in one bench run on the same machine.
+
+A row that cannot be measured (the program refuses the run, or it stops early on every
+attempt) says why in its place; the other rows are still taken.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cochlea.dynamixel.bridge import TICK_READ_LENGTH
 from cochlea.dynamixel.budget import bus_budget
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -24,6 +28,15 @@ PROGRAM = ROOT / "build" / "cochlea-embedded"
 #: cochlea-emulator serves at full pace a moment after it prints its port (see
 #: tests/test_embedded_program.py).
 SETTLE_S = 2.0
+#: The exit code of a refused option or run (EXIT_USER_ERROR of embedded/posix/main.c,
+#: cochlea-run's too): the run cannot happen as asked, so it is not repeated.
+EXIT_REFUSED = 2
+#: The heading of this part of results.md.
+TITLE = "## The embedded program (build/cochlea-embedded) against cochlea-emulator"
+
+
+class NotRun(RuntimeError):
+    """A row that could not be measured; the message says why (one line)."""
 
 
 def build() -> Path:
@@ -70,9 +83,16 @@ def _stats(values: np.ndarray) -> dict:
 ATTEMPTS = 3
 
 
+def _last_line(text: str) -> str:
+    lines = text.strip().splitlines()
+    return lines[-1] if lines else "(nothing on stderr)"
+
+
 def _attempts(what: str, emulator_args: tuple, command) -> dict:
     """``command(port, attempt)`` on a fresh emulator until it completes (exit 0): its
-    summary. The failures before it are kept in the result (``failed_attempts``)."""
+    summary. The failures before it are kept in the result (``failed_attempts``). A refusal
+    (exit 2: the program will not run as asked, e.g. the bus cannot carry the rate) is not
+    the emulator's lag and is not repeated. Raises :class:`NotRun` saying why."""
     failures = []
     for attempt in range(ATTEMPTS):
         with emulator(*emulator_args) as port:
@@ -82,8 +102,11 @@ def _attempts(what: str, emulator_args: tuple, command) -> dict:
             summary["failed_attempts"] = failures
             summary["out"] = str(out)
             return summary
+        if done.returncode == EXIT_REFUSED:
+            raise NotRun(f"{what} refused the run: {_last_line(done.stderr)}")
         failures.append(f"exit {done.returncode}: {done.stderr.strip()[-300:]}")
-    raise RuntimeError(f"{what} failed {ATTEMPTS} times: {failures}")
+    raise NotRun(f"{what} stopped early {ATTEMPTS} times (last: "
+                 f"{_last_line(failures[-1])})")
 
 
 def run_c(scenario: str, emulator_args: tuple, out: Path, seconds: float, *options: str
@@ -118,9 +141,13 @@ def loop_compute(studies=(("serial", "task"), ("parallel", "task")), seconds: fl
     with tempfile.TemporaryDirectory() as tmp:
         for robot, space in studies:
             name = f"{robot}_{space}"
-            runs = {"c": run_c(name, (robot, name), Path(tmp) / f"c-{name}", seconds,
-                               "--watchdog-misses", "300"),
-                    "py": run_python(robot, space, Path(tmp) / f"py-{name}", seconds)}
+            try:
+                runs = {"c": run_c(name, (robot, name), Path(tmp) / f"c-{name}", seconds,
+                                   "--watchdog-misses", "300"),
+                        "py": run_python(robot, space, Path(tmp) / f"py-{name}", seconds)}
+            except NotRun as why:
+                rows.append({"scenario": name, "not_run": str(why)})
+                continue
             own = {}
             for who, summary in runs.items():
                 t = timing(Path(summary["out"]))
@@ -136,9 +163,12 @@ def loop_compute(studies=(("serial", "task"), ("parallel", "task")), seconds: fl
 
 
 def carried_rate(motors: int, baud: int, rates=(1000, 500, 400, 250, 200, 100)) -> int:
-    """The highest control rate (Hz) whose period holds the bus time of one period
-    (cochlea/dynamixel/budget.py; the adapter's latency aside, as the emulator has none)."""
-    budget = bus_budget(motors, baud)
+    """The highest control rate (Hz) whose period holds the bus time of one period as the
+    program counts it (cochlea/dynamixel/budget.py with the program's read: the Realtime
+    Tick's block of TICK_READ_LENGTH bytes per motor, measured current included; the adapter's
+    latency aside, as the emulator has none). The program refuses a rate the bus cannot carry,
+    so a budget of the 10-byte state read alone picked 500 Hz at 1 Mbaud, which it refused."""
+    budget = bus_budget(motors, baud, read_length=TICK_READ_LENGTH)
     return next(r for r in rates if budget.bus_s <= 1.0 / r)
 
 
@@ -151,10 +181,14 @@ def wire_times(bauds=(1_000_000, 2_000_000, 3_000_000, 4_000_000), seconds: floa
     with tempfile.TemporaryDirectory() as tmp:
         for baud in bauds:
             rate = carried_rate(6, baud)
-            summary = run_c("serial_joint", ("serial", "serial_joint", "--wire-timing",
-                                             "--baud", str(baud)),
-                            Path(tmp) / f"w{baud}", seconds, "--baud", str(baud), "--rate",
-                            str(rate), "--watchdog-misses", "300")
+            try:
+                summary = run_c("serial_joint", ("serial", "serial_joint", "--wire-timing",
+                                                 "--baud", str(baud)),
+                                Path(tmp) / f"w{baud}", seconds, "--baud", str(baud),
+                                "--rate", str(rate), "--watchdog-misses", "300")
+            except NotRun as why:
+                rows.append({"baud": baud, "rate_Hz": rate, "not_run": str(why)})
+                continue
             t = timing(Path(summary["out"]))
             budget = summary["timing"]["bus"]["bus_budget"]
             rows.append({"baud": baud, "rate_Hz": rate, "unit": "s",
@@ -169,8 +203,11 @@ def wire_times(bauds=(1_000_000, 2_000_000, 3_000_000, 4_000_000), seconds: floa
 def deadline_misses(seconds: float = 20.0) -> dict:
     """The C program's serial task study for 20 s at 4 Mbaud: its missed deadlines and period."""
     with tempfile.TemporaryDirectory() as tmp:
-        summary = run_c("serial_task", ("serial", "serial_task"), Path(tmp) / "m", seconds,
-                        "--watchdog-misses", "1000")
+        try:
+            summary = run_c("serial_task", ("serial", "serial_task"), Path(tmp) / "m", seconds,
+                            "--watchdog-misses", "1000")
+        except NotRun as why:
+            return {"scenario": "serial_task", "seconds": seconds, "not_run": str(why)}
     t = summary["timing"]
     return {"scenario": "serial_task", "seconds": seconds, "periods": summary["periods"],
             "deadline_misses": t["deadline_misses"],
@@ -191,12 +228,15 @@ def us(seconds: float) -> str:
 
 
 def markdown(results: dict) -> str:
-    lines = ["## The embedded program (build/cochlea-embedded) against cochlea-emulator", "",
+    lines = [TITLE, "",
              "The loop's own work per period (its compute less the bus transaction), C against "
              "Python on the same scenario, each against a fresh emulator (5 s):", "",
              "| scenario | C p50 | C p99 | C max | Python p50 | Python p99 | Python max | "
              "Python / C (p50) |", "|---|---|---|---|---|---|---|---|"]
     for r in results["loop_compute"]:
+        if "not_run" in r:
+            lines.append(f"| {r['scenario']} | not measured: {r['not_run']} |")
+            continue
         c, p = r["c_loop"], r["python_loop"]
         lines.append(f"| {r['scenario']} | {us(c['p50'])} | {us(c['p99'])} | {us(c['max'])} | "
                      f"{us(p['p50'])} | {us(p['p99'])} | {us(p['max'])} | "
@@ -206,19 +246,27 @@ def markdown(results: dict) -> str:
               "| baud | rate | bus i/o p50 | p99 | max | budget (wire + turnaround) | good reads |",
               "|---|---|---|---|---|---|---|"]
     for r in results["wire"]:
+        if "not_run" in r:
+            lines.append(f"| {r['baud'] / 1e6:g} M | {r['rate_Hz']} Hz | not measured: "
+                         f"{r['not_run']} |")
+            continue
         b = r["bus_io"]
         lines.append(f"| {r['baud'] / 1e6:g} M | {r['rate_Hz']} Hz | {us(b['p50'])} | "
                      f"{us(b['p99'])} | {us(b['max'])} | {us(r['budget_bus_s'])} | "
                      f"{r['good_reads']} of {r['reads']} |")
-    repeated = sum(r["repeated_runs"] for r in results["loop_compute"]) \
-        + sum(r["repeated_runs"] for r in results["wire"]) \
-        + results["deadline_misses"]["repeated_runs"]
     m = results["deadline_misses"]
-    lines += ["", f"Deadline misses of the C program over {m['seconds']:g} s ({m['scenario']}, "
-              f"4 Mbaud, {m['scheduling']}, memory {m['memory']}): {m['deadline_misses']} of "
-              f"{m['periods']} periods ({100 * m['deadline_miss_fraction']:.2f} %); period p99 "
-              f"{m['period_p99_s'] * 1e3:.3f} ms, max {m['period_max_s'] * 1e3:.3f} ms.", "",
-              f"Runs repeated because one stopped early (the emulator's lag, see "
+    repeated = sum(r.get("repeated_runs", 0) for r in results["loop_compute"]) \
+        + sum(r.get("repeated_runs", 0) for r in results["wire"]) + m.get("repeated_runs", 0)
+    if "not_run" in m:
+        lines += ["", f"Deadline misses of the C program over {m['seconds']:g} s "
+                  f"({m['scenario']}): not measured: {m['not_run']}."]
+    else:
+        lines += ["", f"Deadline misses of the C program over {m['seconds']:g} s "
+                  f"({m['scenario']}, 4 Mbaud, {m['scheduling']}, memory {m['memory']}): "
+                  f"{m['deadline_misses']} of {m['periods']} periods "
+                  f"({100 * m['deadline_miss_fraction']:.2f} %); period p99 "
+                  f"{m['period_p99_s'] * 1e3:.3f} ms, max {m['period_max_s'] * 1e3:.3f} ms."]
+    lines += ["", f"Runs repeated because one stopped early (the emulator's lag, see "
               f"bench/embedded_program.py): {repeated}.", ""]
     return "\n".join(lines)
 

@@ -22,10 +22,22 @@ Python loop that repeats the call (tens of ns, the same for every path, the floo
    period at 1-4 Mbaud with the emulator's wire timing, the deadline misses of 20 s.
 6. A sweep's samples per core (bench/sweep_bench.py's serial part, CPU time): each study's
    full-length sample as a cochlea-sweep worker runs it, and where its time goes.
+
+A section that cannot run (a tool missing, a program that refuses, a run that fails) does not
+end the benchmark: its section in results.md says why ("not measured in this run: ..."),
+results.json holds the reason under ``not_run``, and the other sections still run.
+
+``python bench/run.py`` runs every section and writes bench/results.md and results.json;
+``--only SECTION [SECTION ...] --out DIR`` runs the sections named (of :data:`SECTIONS`) and
+writes DIR/results.md and DIR/results.json (a partial run never replaces bench/'s files).
+Exit codes: 0 the results were written (every section measured or saying why not); 2 a bad
+option (one line on stderr).
 """
 
 from __future__ import annotations
 
+import argparse
+import functools
 import gc
 import itertools
 import json
@@ -370,7 +382,10 @@ def us(seconds: float) -> str:
     return f"{seconds * 1e6:.3f}" if seconds < 1e-5 else f"{seconds * 1e6:.1f}"
 
 
-def verdicts(steps: list[dict], loops: list[dict], build: dict) -> list[str]:
+def verdicts(steps: list[dict] | None, loops: list[dict] | None, build: dict | None
+             ) -> list[str]:
+    """The target lines of the sections that ran (None: a section that did not)."""
+    steps, loops = steps or [], loops or []
     lines = []
     for r in steps:
         ratio, target = r["step_vs_floor"], TARGETS["step_vs_floor"]
@@ -421,7 +436,7 @@ def verdicts(steps: list[dict], loops: list[dict], build: dict) -> list[str]:
     # (simulate()'s all-in-C, the C driver). The Python + ctypes loop is a comparison, and the
     # realistic studies run a larger controller: both are reported in the table below.
     target = TARGETS["realistic_rtf_ratio"]
-    for r in realistic_ratios(loops):
+    for r in realistic_ratios(loops) if loops else []:
         if not r["case"].endswith(REALISTIC_PLANT):
             continue
         worst_key, worst_name = min(RTF_PATHS[1:], key=lambda p: r[p[0]])
@@ -430,17 +445,26 @@ def verdicts(steps: list[dict], loops: list[dict], build: dict) -> list[str]:
         lines.append(f"- **{verdict}**: {r['case']} keeps {ratio:.0%} of {r['ideal']}'s "
                      f"real-time factor on its slower C path ({worst_name}; target >= "
                      f"{target:.0%}).")
-    total, target = build["total_s"], TARGETS["codegen_compile_s"]
-    verdict = "met" if total < target else f"missed by {total / target:.2f}x"
-    lines.append(f"- **{verdict}**: generation {build['generate_s']:.1f} s + compilation "
-                 f"{build['compile_s']:.1f} s = {total:.1f} s on {build['jobs']} cores "
-                 f"(target < {target:g} s).")
+    if build is not None:
+        total, target = build["total_s"], TARGETS["codegen_compile_s"]
+        verdict = "met" if total < target else f"missed by {total / target:.2f}x"
+        lines.append(f"- **{verdict}**: generation {build['generate_s']:.1f} s + compilation "
+                     f"{build['compile_s']:.1f} s = {total:.1f} s on {build['jobs']} cores "
+                     f"(target < {target:g} s).")
     return lines
 
 
+def not_measured(results: dict, *sections: str) -> list[str]:
+    """The lines of a section that did not run: why (one paragraph), or [] if it ran."""
+    reasons = [results.get("not_run", {}).get(s) for s in sections]
+    reasons = [r for r in reasons if r]
+    return [f"Not measured in this run: {'; '.join(reasons)}.", ""] if reasons else []
+
+
 def markdown(results: dict) -> str:
-    m, steps, loops, build = (results["machine"], results["steps"], results["closed_loops"],
-                              results["build"])
+    m = results["machine"]
+    steps, loops, build = (results.get("steps"), results.get("closed_loops"),
+                           results.get("build"))
     out = ["# Benchmark results", "",
            f"Written by `make bench` (bench/run.py) on {m['date']}: {m['cpu']}, {m['cores']} "
            f"cores, {m['system']}; Python {m['python']}, CasADi {m['casadi']}, NumPy "
@@ -450,8 +474,13 @@ def markdown(results: dict) -> str:
            "the run (other work on the machine slows every path alike).", "",
            "## Targets", ""]
     out += verdicts(steps, loops, build)
-    out += embedded_bench.verdicts(results["embedded_steps"], results["embedded_sims"])
-    out += ["", "## Per call of the fused step (us)", "",
+    out += embedded_bench.verdicts(results.get("embedded_steps") or [],
+                                   results.get("embedded_sims") or [])
+    for section, reason in results.get("not_run", {}).items():
+        out.append(f"- **not measured**: {SECTIONS[section]}: {reason}")
+    out += ["", "## Per call of the fused step (us)", ""]
+    out += not_measured(results, "steps")
+    out += [] if steps is None else [
             "At the thesis scenario's initial state, corrected variant. *ctypes*: "
             "`kernel()` of `cochlea.kernels.library` (return code checked); *bare*: the prepared "
             "ctypes call alone; *floor*: an empty C function with the same signature called the "
@@ -463,7 +492,7 @@ def markdown(results: dict) -> str:
             "| kernel | ops | C alone | floor | ctypes | bare | buffer | CasADi | NumPy | rnea "
             "| ctypes / floor | CasADi / ctypes |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in steps:
+    for r in steps or []:
         out.append(
             f"| `{r['kernel']}` | {r['operations']} | {us(r['c_alone_s'])} | {us(r['floor_s'])} "
             f"| {us(r['ctypes_s'])} | {us(r['ctypes_bare_s'])} | {us(r['casadi_buffer_s'])} | "
@@ -471,10 +500,13 @@ def markdown(results: dict) -> str:
             f"{us(r['numpy_s']) if 'numpy_s' in r else '-'} | "
             f"{us(r['pinocchio_rnea_s']) if 'pinocchio_rnea_s' in r else '-'} | "
             f"{r['step_vs_floor']:.2f} | {r['casadi_vs_step']:.0f} |")
-    checks = [v for r in steps for k, v in r.items() if k.startswith("check_")]
-    out += ["", f"Every path's outputs agree with the CasADi Function to {max(checks):.1e} "
-                "(relative to max(1, |value|)).", "",
-            "## Closed-loop simulation (real-time factor: simulated s per wall s)", "",
+    checks = [v for r in steps or [] for k, v in r.items() if k.startswith("check_")]
+    if checks:
+        out += ["", f"Every path's outputs agree with the CasADi Function to {max(checks):.1e} "
+                    "(relative to max(1, |value|))."]
+    out += ["", "## Closed-loop simulation (real-time factor: simulated s per wall s)", ""]
+    out += not_measured(results, "closed_loops")
+    out += [] if loops is None else [
             "Full scenario length. *CasADi*: `simulate(kernels=\"casadi\")`, the reference; "
             "*Python + ctypes*: a Python loop over the step, plant and pose kernels "
             "(`simulate_compiled(loop=\"python\")`); *all-in-C*: `simulate()` (the default: the "
@@ -483,12 +515,38 @@ def markdown(results: dict) -> str:
             "difference of any logged value from the CasADi reference.", "",
             "| scenario | s | units | CasADi | Python + ctypes | all-in-C | C driver | "
             "max diff (ctypes / C) |", "|---|---|---|---|---|---|---|---|"]
-    for r in loops:
+    for r in loops or []:
         out.append(f"| {r['scenario']} | {r['duration_s']:g} | {r['units']} | "
                    f"{r['rtf_casadi']:.0f}x | {r['rtf_python_ctypes']:.0f}x | "
                    f"{r['rtf_c']:.0f}x | {r['rtf_c_driver']:.0f}x | "
                    f"{r['max_diff_python_ctypes']:.1e} / {r['max_diff_c']:.1e} |")
-    out += ["", "The realistic plant's cost: each real-time factor over the same on the ideal "
+    if loops is not None:
+        out += loops_markdown(loops)
+    out += ["", "## Generation and compilation", ""]
+    out += not_measured(results, "build")
+    if build is not None:
+        out += [
+            f"- `cochlea-codegen` (clean, Python start-up included): {build['generate_s']:.1f} s",
+            f"- `make lib` (clean, -j{build['jobs']}): {build['compile_s']:.1f} s",
+            f"- total: {build['total_s']:.1f} s; regenerated files identical to generated_c/: "
+            f"{'yes' if build['regenerated_identical'] else 'NO'}",
+            f"- generated_c/: {build['files']} files, {build['c_and_h_files']} C sources and "
+            f"headers, {build['c_and_h_bytes'] / 1024:.0f} KiB, {build['c_and_h_lines']} lines; "
+            f"libcochlea.so {build['library_bytes'] / 1024:.0f} KiB", ""]
+    out += embedded_bench.markdown(results.get("embedded_steps"), results.get("embedded_sims"),
+                                   loops, results.get("not_run", {}))
+    out += [""]
+    if results.get("embedded_program") is not None:
+        out += [embedded_program.markdown(results["embedded_program"])]
+    else:
+        out += [embedded_program.TITLE, "", *not_measured(results, "embedded_program")]
+    out += sweep_markdown(results.get("sweep"), not_measured(results, "sweep"))
+    return "\n".join(out)
+
+
+def loops_markdown(loops: list[dict]) -> list[str]:
+    """The realistic plant's ratios and the per-period kernel costs of the closed loops."""
+    out = ["", "The realistic plant's cost: each real-time factor over the same on the ideal "
             "plant (the thesis study). *(realistic plant)*: the thesis study's controller on "
             "the realistic plant (armature, sticking friction, encoder and register grids, "
             "current quantisation, one period of delay); *_realistic*: the realistic study "
@@ -504,25 +562,17 @@ def markdown(results: dict) -> str:
                    + " |")
     out += ["", "Per unit and period, in C: " + "; ".join(
         f"{r['scenario']}: plant {us(r['plant_kernel_c_s'])} us ({r['plant_operations']} ops), "
-        f"step {us(r['step_kernel_c_s'])} us" for r in loops) + ".", "",
-        "## Generation and compilation", "",
-        f"- `cochlea-codegen` (clean, Python start-up included): {build['generate_s']:.1f} s",
-        f"- `make lib` (clean, -j{build['jobs']}): {build['compile_s']:.1f} s",
-        f"- total: {build['total_s']:.1f} s; regenerated files identical to generated_c/: "
-        f"{'yes' if build['regenerated_identical'] else 'NO'}",
-        f"- generated_c/: {build['files']} files, {build['c_and_h_files']} C sources and "
-        f"headers, {build['c_and_h_bytes'] / 1024:.0f} KiB, {build['c_and_h_lines']} lines; "
-        f"libcochlea.so {build['library_bytes'] / 1024:.0f} KiB", ""]
-    out += embedded_bench.markdown(results["embedded_steps"], results["embedded_sims"], loops)
-    out += ["", embedded_program.markdown(results["embedded_program"])]
-    out += sweep_markdown(results["sweep"])
-    return "\n".join(out)
+        f"step {us(r['step_kernel_c_s'])} us" for r in loops) + "."]
+    return out
 
 
-def sweep_markdown(rows: list[dict]) -> list[str]:
+def sweep_markdown(rows: list[dict] | None, reason: list[str] = ()) -> list[str]:
     """Section 6: samples per core against the target (the 20 s serial studies; the 10 s
-    parallel ones for comparison), and where a sample's CPU time goes."""
+    parallel ones for comparison), and where a sample's CPU time goes. ``rows`` None: the
+    section did not run, ``reason`` says why."""
     target = TARGETS["sweep_samples_per_s_core"]
+    if rows is None:
+        return ["", "## A sweep's samples per core (CPU time)", "", *reason]
     out = ["", "## A sweep's samples per core (CPU time)", "",
            "Each study's full-length sample as a `cochlea-sweep` worker runs it "
            "(bench/sweep_bench.py: scenario file, set-ups from the worker's cache, C "
@@ -545,29 +595,95 @@ def sweep_markdown(rows: list[dict]) -> list[str]:
     return out
 
 
-def main() -> int:
-    lib = ckernels.load()
-    floor, harness = compile_helpers()
-    results = {"machine": machine(), "targets": TARGETS, "load_before": load_average()}
-    print("bench: generation and compilation", flush=True)
-    results["build"] = bench_build()
-    print("bench: per call of the fused steps", flush=True)
-    results["steps"] = bench_steps(lib, floor, harness)
-    print("bench: closed-loop simulation", flush=True)
-    results["closed_loops"] = bench_closed_loops(lib, harness)
-    print("bench: the embedded step in double and float", flush=True)
-    results["embedded_steps"] = embedded_bench.bench_embedded_steps()
-    print("bench: the all-in-C simulation (embedded/sim)", flush=True)
-    results["embedded_sims"] = embedded_bench.bench_embedded_sims()
-    print("bench: the embedded program against the emulator (about 2 min)", flush=True)
-    results["embedded_program"] = embedded_program.bench()
-    print("bench: a sweep's samples per core", flush=True)
-    with tempfile.TemporaryDirectory(prefix="cochlea-bench-") as tmp:
-        results["sweep"] = sweep_bench.serial(Path(tmp), samples=10)
+#: The sections of results.md, in the order they run: name -> what they measure.
+SECTIONS = {
+    "build": "generation and compilation",
+    "steps": "per call of the fused steps",
+    "closed_loops": "closed-loop simulation",
+    "embedded_steps": "the embedded step in double and float",
+    "embedded_sims": "the all-in-C simulation (embedded/sim)",
+    "embedded_program": "the embedded program against the emulator (about 2 min)",
+    "sweep": "a sweep's samples per core",
+}
+
+
+def reason(error: BaseException) -> str:
+    """One line saying why a section could not run (a failed command's last stderr line)."""
+    text = f"{type(error).__name__}: {error}"
+    stderr = getattr(error, "stderr", None)
+    if isinstance(stderr, bytes):
+        stderr = stderr.decode(errors="replace")
+    if stderr and stderr.strip():
+        text += f" ({stderr.strip().splitlines()[-1]})"
+    return " ".join(text.split())[:600]
+
+
+def run_sections(names) -> dict:
+    """Run the sections ``names`` (of :data:`SECTIONS`); one that fails is recorded under
+    ``not_run`` with its reason and the next one runs."""
+    lib = functools.cache(ckernels.load)
+    helpers = functools.cache(compile_helpers)
+    plan = {
+        "build": bench_build,
+        "steps": lambda: bench_steps(lib(), *helpers()),
+        "closed_loops": lambda: bench_closed_loops(lib(), helpers()[1]),
+        "embedded_steps": embedded_bench.bench_embedded_steps,
+        "embedded_sims": embedded_bench.bench_embedded_sims,
+        "embedded_program": embedded_program.bench,
+        "sweep": sweep_section,
+    }
+    results = {"machine": machine(), "targets": TARGETS, "load_before": load_average(),
+               "not_run": {}}
+    for name in SECTIONS:
+        if name not in names:
+            results["not_run"][name] = "not chosen (--only)"
+            continue
+        print(f"bench: {SECTIONS[name]}", flush=True)
+        try:
+            results[name] = plan[name]()
+        except Exception as error:  # noqa: BLE001 -- said in the section, the rest runs
+            results["not_run"][name] = reason(error)
+            print(f"bench: {SECTIONS[name]}: not measured: {results['not_run'][name]}",
+                  file=sys.stderr, flush=True)
     results["load_after"] = load_average()
-    (OUT / "results.json").write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
-    (OUT / "results.md").write_text(markdown(results))
-    print(f"bench: wrote {OUT / 'results.md'} and {OUT / 'results.json'}")
+    return results
+
+
+def sweep_section() -> list[dict]:
+    with tempfile.TemporaryDirectory(prefix="cochlea-bench-") as tmp:
+        return sweep_bench.serial(Path(tmp), samples=10)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="make bench: the fast path measured")
+    parser.add_argument("--only", nargs="+", metavar="SECTION",
+                        help=f"run only these sections (of {', '.join(SECTIONS)}); needs --out")
+    parser.add_argument("--out", type=Path, metavar="DIR",
+                        help="write results.md and results.json here (default: bench/)")
+    args = parser.parse_args(argv)
+    unknown = sorted(set(args.only or ()) - set(SECTIONS))
+    if unknown:
+        print(f"bench/run.py: error: --only: unknown section {', '.join(unknown)} (one of "
+              f"{', '.join(SECTIONS)})", file=sys.stderr)
+        return 2
+    if args.only and args.out is None:
+        print("bench/run.py: error: --only needs --out DIR (a partial run does not replace "
+              "bench/results.md)", file=sys.stderr)
+        return 2
+    out = args.out or OUT
+    if not out.is_dir():
+        print(f"bench/run.py: error: --out {out}: not a folder", file=sys.stderr)
+        return 2
+    results = run_sections(args.only or SECTIONS)
+    # Each file whole or not at all: written beside, then renamed over the old one.
+    for name, text in (("results.json", json.dumps(results, indent=1, sort_keys=True) + "\n"),
+                       ("results.md", markdown(results))):
+        partial = out / f".{name}.{os.getpid()}"
+        partial.write_text(text)
+        os.replace(partial, out / name)
+    missing = {k: v for k, v in results["not_run"].items() if v != "not chosen (--only)"}
+    print(f"bench: wrote {out / 'results.md'} and {out / 'results.json'}"
+          + (f"; not measured: {', '.join(missing)} (the sections say why)" if missing else ""))
     return 0
 
 

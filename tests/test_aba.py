@@ -125,6 +125,7 @@ def test_aba_carries_the_armatures(which, arms, rng):
 
 @pytest.mark.parametrize("which", ["planar2", "arm4", "ur5", "general", "shipped"])
 @pytest.mark.parametrize("actuators", ["none", "all"])
+@pytest.mark.slow
 def test_the_models_functions_are_the_replaced_forms(which, actuators, arms, rng):
     """The built model (any parameterisation's ``p``, friction when it carries it): its
     forward dynamics solves its own ``M`` and inverse dynamics, and its regressor ``Y`` gives
@@ -153,6 +154,7 @@ def test_the_models_functions_are_the_replaced_forms(which, actuators, arms, rng
 
 
 @pytest.mark.parametrize("which", ["arm4", "ur5"])
+@pytest.mark.slow
 def test_the_replacements_are_cheaper(which, arms):
     """Fewer SX operations than the forms they replace: the forward dynamics (in symbolic
     inertial parameters, as the plant step takes them) and the regressor."""

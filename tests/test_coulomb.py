@@ -97,6 +97,7 @@ def test_without_coulomb_the_plant_is_the_one_generated():
     assert plant_step(m, 1, coulomb=True).name() == "serial_arm1_plant_step_coulomb"
 
 
+@pytest.mark.slow
 def test_scenario_coulomb_friction_reaches_the_plant():
     """The scenario key reaches the plant, and simulate() runs it in C (no fallback): the log
     equals the CasADi reference's."""
@@ -144,6 +145,7 @@ def test_the_c_plant_step_equals_the_casadi_one(name):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_the_real_time_sim_backend_runs_the_c_plant():
     from cochlea.runtime.sim_backend import SimBackend
     from cochlea.sim.compiled import period_kernels

@@ -168,6 +168,7 @@ def test_a_command_above_the_current_limit_is_saturated_and_counted(weak_current
         assert verdict(result, sup)["saturated_periods"] >= held
 
 
+@pytest.mark.slow
 def test_a_command_clipped_to_the_effort_limit_is_still_counted(tmp_path):
     """A 2 mN m torque limit, below one current LSB on every joint: the command clipped to it
     rounds to one LSB or none, bounded by the limit; those periods count as saturated."""
@@ -189,6 +190,7 @@ def test_a_command_clipped_to_the_effort_limit_is_still_counted(tmp_path):
 # ---- the real-time sim backend -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_sim_backend_applies_and_logs_the_same_efforts(weak_current):
     """The loop against the simulated robot: the backend rounds and saturates the commands the
     supervisor let through, writes back what it applied, and the run equals the as-fast one."""

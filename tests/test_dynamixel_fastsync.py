@@ -451,6 +451,7 @@ CHAINS = {"xm430": ["XM430-W350", "XM430-W350"], "xl330": ["XL330-M288", "XL330-
 
 
 @pytest.mark.parametrize("name", list(CHAINS))
+@pytest.mark.slow
 def test_each_chain_over_the_emulator(tmp_path, name):
     """Each family and the mixed chains: the bridge chooses SYNC_READ / SYNC_WRITE (one
     layout; FAST_SYNC_READ not sourced for these models) and reads the state right."""

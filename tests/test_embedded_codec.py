@@ -57,6 +57,7 @@ def run_sanitized(args: list[str], timeout: float = 120) -> subprocess.Completed
 # --------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("opt", ["-O0", "-O2", "-Os", "-O3"])
+@pytest.mark.slow
 def test_compiles_freestanding_without_warnings_or_libc(tmp_path, opt):
     """No libc at all: not even the memcpy/memset a compiler may emit for a copy loop."""
     obj = tmp_path / "dxl.o"
@@ -313,6 +314,7 @@ def test_space_commit_and_reset(lib):
     assert p.parse() == proto.NEED_MORE and p.pending == 0
 
 
+@pytest.mark.slow
 def test_a_small_lockstep_fuzz(lib):
     """The sanitizer fuzz's lock-step run, small and in process, for ``make test-fast``."""
     rng = np.random.default_rng(12)

@@ -318,6 +318,7 @@ def desired_samples(program, k0: int, n: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("k0", [0, 86_400_000, 2**31 - 500, 2**40 - 500])
+@pytest.mark.slow
 def test_float_desired_from_the_period_count_has_no_staircase(desired_programs, k0):
     """serial_joint's sinusoid at 999 consecutive 1 ms periods from 0, one day, 2^31 and 2^40
     periods (24.9 days, 34.8 years): every period a new sample in float, and within
@@ -334,6 +335,7 @@ def test_float_desired_from_the_period_count_has_no_staircase(desired_programs, 
     assert err <= DESIRED_BOUND, f"float desired off the double build's by {err:.3g}"
 
 
+@pytest.mark.slow
 def test_float_desired_switches_at_the_double_builds_period(desired_programs):
     """parallel_task's move ends at t = 5 s (fmin(t, 5), t <= 5, 5 <= t): the float build
     switches at the same period as the double build and stays within DESIRED_BOUND, also
@@ -437,6 +439,7 @@ def m4f_elf(tmp_path_factory):
 
 
 @pytest.mark.parametrize("scenario", ["serial_task", "parallel_task_realistic"])
+@pytest.mark.slow
 def test_float_desired_calls_no_software_double(m4f_elf, scenario):
     """The float build's trajectory at period k (<name>_desired_period, what the loop's
     period runs) reaches no __aeabi_d* routine on a Cortex-M4F (it reached sin and cos in
@@ -448,6 +451,7 @@ def test_float_desired_calls_no_software_double(m4f_elf, scenario):
 
 
 @pytest.mark.parametrize("scenario", ["serial_task", "parallel_task_realistic"])
+@pytest.mark.slow
 def test_software_double_left_in_the_float_period_is_listed(m4f_elf, scenario, capsys):
     """What the whole float period (cochlea_loop_period, the scenario's step_period and
     tool_points, the drive's goal current) still reaches in software double is printed, and

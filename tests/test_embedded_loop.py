@@ -276,6 +276,7 @@ def assert_current_logged(rows: np.ndarray, backend: Injected, good_reads: int):
 
 
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+@pytest.mark.slow
 def test_a_backends_measured_current_is_logged_after_the_timing_as_python_does(lib, name):
     periods = 300
     rule, stop, c_rows, backend = c_run(lib, name, periods, measured=True)

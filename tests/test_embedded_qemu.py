@@ -222,6 +222,7 @@ def test_ensure_tools_finds_the_installed_tools():
     (["no_such_scenario"], "unknown scenario"),
     (["serial_task", "--periods", "0"], "outside 1..5000"),
 ])
+@pytest.mark.slow
 def test_record_inputs_refuses_bad_input(tmp_path, args, message):
     out = tmp_path / "inputs.h"
     run = subprocess.run([sys.executable, str(QEMU_DIR / "record_inputs.py"), *args,

@@ -99,6 +99,7 @@ def built(request, tmp_path_factory):
     return request.param, _compile(tmp_path_factory.mktemp(request.param), request.param)
 
 
+@pytest.mark.slow
 def test_the_core_compiles_freestanding_and_needs_only_libm(tmp_path):
     """Codec, drives, supervisor and bridge: C99, freestanding, warning-free; together they
     call nothing outside themselves but libm."""
@@ -116,6 +117,7 @@ def test_the_core_compiles_freestanding_and_needs_only_libm(tmp_path):
     assert {"cochlea_bridge_start", "cochlea_check_state", "dxl_parser_parse"} <= defined
 
 
+@pytest.mark.slow
 def test_the_drive_tables_are_the_bridges(built):
     robot, c = built
     drives = joint_drives(robot)
@@ -165,6 +167,7 @@ def test_conversions_equal_the_bridges_bit_for_bit(built, rng):
                 assert offset == d.q_offset
 
 
+@pytest.mark.slow
 def test_the_measured_current_is_the_python_bridges_at_the_joints_sign(tmp_path, rng):
     """Present Current (LSB) to the joint's current (A), as cochlea-run logs it: the Python
     bridge's joint_current_A after a read of the same registers, bit for bit, on a description

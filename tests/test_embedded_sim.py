@@ -94,6 +94,7 @@ def test_float_build_follows_the_simulation(name, tmp_path):
         assert np.max(np.abs(u.q - r.q)) <= 1e-5
 
 
+@pytest.mark.slow
 def test_full_length_without_a_log():
     """The scenario's own duration by default; without a log nothing is written."""
     sc = load_scenario("serial_task")

@@ -150,6 +150,7 @@ def bitwise_crc16(data: bytes, crc: int = 0) -> int:
     return crc
 
 
+@pytest.mark.slow
 @settings(max_examples=400, database=None, derandomize=True)
 @given(data=st.binary(max_size=64), start=st.integers(0, 64), stop=st.integers(0, 64),
        crc=st.integers(0, 0xFFFF))

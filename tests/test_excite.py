@@ -289,6 +289,7 @@ def _scenario(tmp_path, unit_extra: str, space: str = "joint") -> str:
     return base
 
 
+@pytest.mark.slow
 def test_desired_joint_overrides_the_dual_arm_rule(tmp_path):
     path = _scenario(tmp_path, 'desired_joint = ["110 deg", "-128 + 5*sin(t) deg", '
                                '"100 deg"]')

@@ -224,6 +224,7 @@ def with_plant(sc, **changes):
     return dataclasses.replace(sc, plant=dataclasses.replace(sc.plant, **changes))
 
 
+@pytest.mark.slow
 def test_the_bridge_offset_follows_the_rule():
     """auto: no offset for the realistic studies (their controllers carry friction), the offset
     for a controller on the rigid links; true/false force it."""

@@ -242,6 +242,7 @@ SHRINKING = SERIAL_TASK.replace('"0.03*cos(a1) m", "0.03*sin(a1) m"',
                                 '"(0.03 - 0.001*t)*cos(a1) m", "(0.03 - 0.001*t)*sin(a1) m"')
 
 
+@pytest.mark.slow
 def test_the_path_check_samples_the_run_not_the_scenario(refused, tmp_path):
     """Arm 1's joint 1 limited to 83 deg: its path (3.19) stays below until t = 3.6 s."""
     robot = SERIAL_ROBOT.replace("position_limits_deg = [-170.0, 170.0]",
@@ -259,6 +260,7 @@ def test_the_path_check_samples_the_run_not_the_scenario(refused, tmp_path):
     unit_setups(dataclasses.replace(load_scenario(long), duration=3.0))
 
 
+@pytest.mark.slow
 def test_serial_task_path_is_checked_against_the_keep_out_circle(refused, tmp_path):
     path = write(tmp_path, "shrink.toml", SHRINKING)
     line = refused("--scenario", path, space="task")
@@ -300,6 +302,7 @@ def test_entry_point_refuses_without_traceback(tmp_path, argv):
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.slow
 def test_parallel_task_path_is_checked_against_the_keep_out_circle(refused, tmp_path):
     """The end effectors keep out of the circle around the slider point S = (0, d1) at every
     period, like the serial arms' tools: here C_u drifts inward, 5 mm/s, and the path crosses a

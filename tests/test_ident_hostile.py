@@ -106,6 +106,7 @@ def test_the_same_log_twice_is_refused_whatever_its_name(log, tmp_path, capsys):
 # ---- outputs refused before anything is read ------------------------------------------------
 
 
+@pytest.mark.slow
 def test_outputs_that_cannot_take_the_file_are_refused_and_left_alone(log, tmp_path, capsys):
     victim = tmp_path / "victim.txt"
     victim.write_text("keep me")

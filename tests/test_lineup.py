@@ -287,6 +287,7 @@ def test_the_shipped_data_loads_the_same_as_the_package(tmp_path):
     assert ct.load_models(_files()).keys() == ct.MODELS.keys()
 
 
+@pytest.mark.slow
 def test_an_installation_with_a_broken_data_file_exits_with_one_line(tmp_path):
     """The package copied, one data file corrupted: any program that imports the control
     tables prints one line and exits EXIT_MODEL_DATA, no traceback."""

@@ -120,6 +120,7 @@ def test_the_schema_names_only_documented_groups_and_units(robot, space):
             assert any(".current." in c for c in csv + raw) == current
 
 
+@pytest.mark.slow
 def test_units_are_written_as_documented():
     assert log_schema.unit_suffix("kg m^2") == "kg_m2"
     assert log_schema.unit_suffix("N m s/rad") == "N_m_s_rad"
@@ -138,6 +139,7 @@ def test_units_are_written_as_documented():
 
 
 @pytest.mark.parametrize("robot,space", STUDIES)
+@pytest.mark.slow
 def test_an_as_fast_run_writes_the_schema(tmp_path, robot, space):
     out = tmp_path / "run"
     done = cochlea_run("--robot", robot, "--space", space, "--duration", "0.05",
@@ -152,6 +154,7 @@ def test_an_as_fast_run_writes_the_schema(tmp_path, robot, space):
 
 
 @pytest.mark.parametrize("robot,space", STUDIES)
+@pytest.mark.slow
 def test_a_sim_backend_run_writes_the_schema_in_both_files(tmp_path, robot, space):
     out = tmp_path / "run"
     done = cochlea_run("--robot", robot, "--space", space, "--duration", "0.1",
@@ -248,6 +251,7 @@ def as_version_1(folder: Path, out: Path) -> Path:
 
 
 @pytest.mark.parametrize("robot,space", STUDIES)
+@pytest.mark.slow
 def test_readers_read_this_version_and_the_one_before(tmp_path, robot, space):
     out = tmp_path / "run"
     done = cochlea_run("--robot", robot, "--space", space, "--duration", "0.05",
@@ -275,6 +279,7 @@ def test_readers_read_this_version_and_the_one_before(tmp_path, robot, space):
 
 
 @pytest.mark.parametrize("version", [log_schema.SCHEMA_VERSION + 1, 0, "2", True])
+@pytest.mark.slow
 def test_a_log_of_an_unknown_schema_version_is_refused_in_one_line(tmp_path, version):
     out = tmp_path / "run"
     done = cochlea_run("--robot", "serial", "--space", "joint", "--duration", "0.05",

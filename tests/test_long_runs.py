@@ -47,6 +47,7 @@ def _old_timing(rows: np.ndarray, first: int, h: float) -> dict:
 
 
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+@pytest.mark.slow
 def test_streamed_log_and_report_equal_the_in_memory_ones(tmp_path, small_chunks, name):
     sc, kept, _ = make_loop(name, seconds=0.6)
     assert kept.run().rule == "completed"  # no log file: every period kept in memory
@@ -83,6 +84,7 @@ def test_streamed_log_and_report_equal_the_in_memory_ones(tmp_path, small_chunks
         assert got[key] == pytest.approx(value, rel=1e-12, abs=1e-15), key
 
 
+@pytest.mark.slow
 def test_figures_of_a_long_run_plot_a_bounded_sample(tmp_path, small_chunks, monkeypatch):
     sc, loop, _ = make_loop("serial_joint", seconds=0.3)
     loop.run(tmp_path / "log.bin")

@@ -53,6 +53,7 @@ def test_converges_with_heavier_plant_and_payload(name):
     assert setup.plant_params[names.index("slider.m")] == pytest.approx(1.3 * 0.136)
 
 
+@pytest.mark.slow
 def test_errata_3_4_thesis_signs_of_d_diverge():
     """The printed -G_d e_d and -K_p e_p (3.82, Appendix D) feed the error back positively."""
     sc = load_scenario("parallel_task")
@@ -61,6 +62,7 @@ def test_errata_3_4_thesis_signs_of_d_diverge():
     assert not simulate(sc, duration=1.0).diverged  # and converges: test_thesis_study_converges
 
 
+@pytest.mark.slow
 def test_errata_5_6_f_without_the_known_term_keeps_the_cross_term():
     """Corrected f (+e in the law): dV/dt = -e'alpha e - r'G_f r along the simulation; the
     thesis's f keeps e'r, which its analysis can only dominate with gains above 1/2."""

@@ -338,6 +338,7 @@ def test_rows_with_zero_weight_do_not_count(rng):
                                atol=1e-9 * np.max(np.abs(clean.base)))
 
 
+@pytest.mark.slow
 def test_a_body_beyond_what_a_description_can_hold_is_refused(rng):
     """Data asking for 5 t of slider and rods: consistent, but no description may say it;
     one error naming the body, not a result the write-back could not save."""

@@ -164,6 +164,7 @@ def test_the_delay_jitters_between_whole_periods(kernels):
     assert not np.array_equal(other, drawn)  # from the seed
 
 
+@pytest.mark.slow
 def test_the_jitter_leaves_the_gaussian_noise_as_it_was():
     """The jitter has its own stream of the seed: a noisy run's noise is the same numbers with
     and without it (measured minus the true state it measured)."""
@@ -239,6 +240,7 @@ def test_the_plant_gets_the_torque_constant_error(kernels):
 
 
 @pytest.mark.parametrize("kernels", ["c", "casadi"])
+@pytest.mark.slow
 def test_the_torque_at_the_current_limit_scales_too(kernels):
     """With the drives' rounding and saturation (current_quantisation): the log holds the
     applied effort on the effort grid, up to the largest the drive gives; the plant gets
@@ -323,6 +325,7 @@ def test_a_sweep_varies_the_disturbances(tmp_path):
         sweep_spec.load(bad)
 
 
+@pytest.mark.slow
 def test_the_emulated_motors_have_the_torque_constant_error(tmp_path):
     """cochlea-emulator on a scenario with torque_constant_error: each virtual motor gives
     1 + e times the torque its current gives without it (Present Current unchanged)."""

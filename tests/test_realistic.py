@@ -83,6 +83,7 @@ def test_relative_adaptation_moves_every_estimate_by_the_same_fraction():
     assert np.array_equal(adaptation_gains(load_scenario("parallel_joint"), p), np.ones(len(p)))
 
 
+@pytest.mark.slow
 def test_the_convergence_floor_is_one_encoder_count():
     sc = load_scenario("serial_task_realistic")
     result = simulate(sc, 0.05, kernels="casadi")
@@ -166,6 +167,7 @@ def test_cochlea_run_plant_realistic_runs_the_study_tuned_for_it(tmp_path):
     assert "measurement_resolution" in summary["units"]["mechanism"]["tracked"]["C_u"]
 
 
+@pytest.mark.slow
 def test_the_armature_makes_the_printed_task_space_gains_stable_under_delay():
     """g's printed gains, measured one period late: on the rigid arms a real run stops on the
     velocity limit within a fraction of a second; with the MX-64 armature in the plant it runs

@@ -237,6 +237,7 @@ def test_static_friction_regressor_factors_its_expression(robot_name, kind, rng)
         assert np.abs(Y - Y0).max() > 0
 
 
+@pytest.mark.slow
 def test_static_friction_compensation_is_continuous_at_zero_velocity(actuated):
     """Controller e at zero tracking error: the compensation follows the reference velocity
     through zero without a jump, peaks near F_s = (1 + excess) F_c, and is F_c far from it."""
@@ -509,6 +510,7 @@ def test_bad_robust_keys_name_the_key(tmp_path, line, key):
         load_scenario(_scenario(tmp_path, "serial_joint_realistic", line))
 
 
+@pytest.mark.slow
 def test_static_friction_needs_the_friction_in_the_controllers_model(tmp_path):
     with pytest.raises(DescriptionError, match='static_friction_ratio.*actuators = "all"'):
         load_scenario(_scenario(tmp_path, "serial_joint", "static_friction_ratio = [1.5, 1, 1]"))
@@ -516,6 +518,7 @@ def test_static_friction_needs_the_friction_in_the_controllers_model(tmp_path):
     assert unit_setups(sc)[0].robust is None  # ones: no static friction, the neutral inputs
 
 
+@pytest.mark.slow
 def test_a_box_outside_the_ball_is_refused(tmp_path):
     sc = load_scenario(_scenario(tmp_path, "serial_joint_realistic",
                                  "estimate_box_relative = 20.0"))
@@ -523,6 +526,7 @@ def test_a_box_outside_the_ball_is_refused(tmp_path):
         unit_setups(sc)
 
 
+@pytest.mark.slow
 def test_options_off_are_the_neutral_inputs():
     for name in ("serial_joint", "serial_task_realistic", "parallel_task"):
         for u in unit_setups(load_scenario(name)):

@@ -332,6 +332,7 @@ def test_bad_wait(capsys, tmp_path, option):
     assert option in refused(capsys, 2, "follow", str(tmp_path), option, "-1")
 
 
+@pytest.mark.slow
 def test_ros2_is_for_real_time_runs(tmp_path):
     done = subprocess.run(
         [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",

@@ -417,6 +417,7 @@ def test_as_fast_run_clips_commands_as_the_loop_does(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["serial_task", "parallel_task_realistic"])
+@pytest.mark.slow
 def test_the_whole_run_gate_gives_the_screens_verdict(name, monkeypatch):
     """first_violation skips its row-by-row screen when whole-run reductions show that no row
     can be flagged. Whatever one sample breaks (a NaN, a position, a velocity, an effort, an

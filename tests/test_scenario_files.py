@@ -98,6 +98,7 @@ def test_unreachable_is_a_user_error():
     assert issubclass(UnreachableTarget, CochleaError)
 
 
+@pytest.mark.slow
 def test_a_relative_description_is_relative_to_the_scenario(tmp_path, monkeypatch):
     """issue 25 papercut: a scenario's relative ``description`` names a file beside the
     scenario, whatever the working directory; an absolute path is unchanged."""

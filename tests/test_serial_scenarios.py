@@ -143,6 +143,7 @@ def test_run_writes_log_summary_and_figures(tmp_path):
         assert (out / f"{name}.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_run_refuses_mismatched_options(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "cochlea.apps.cochlea_run",

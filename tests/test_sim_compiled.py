@@ -92,6 +92,7 @@ def test_the_realistic_studies_run_the_actuated_kernels(name):
         assert lib.manifest["kernels"][names.plant]["actuators"] == "armature"
 
 
+@pytest.mark.slow
 def test_controllers_outside_the_catalogue_fall_back_to_casadi_with_a_warning():
     """The thesis's law with the drives modelled, and a model with the armature alone, are not
     generated: they run on CasADi, with a warning naming the missing kernel."""
@@ -169,6 +170,7 @@ def test_noise_delay_and_friction_match(loop):
 
 @pytest.mark.parametrize("loop", csim.LOOPS)
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint"])
+@pytest.mark.slow
 def test_coulomb_friction_runs_in_c(name, loop):
     """A plant with dry friction runs on ``<unit>_plant_step_coulomb`` and its driver
     ``*_closed_loop_coulomb``, not on the CasADi fallback, and gives the reference's log."""
@@ -333,6 +335,7 @@ def test_unavailable_kernels_fall_back_with_a_warning(tmp_path):
         csim.simulate_compiled(sc, 0.05, library=tmp_path / "missing.so")
 
 
+@pytest.mark.slow
 def test_other_rk4_substeps_are_not_generated():
     sc = dataclasses.replace(load_scenario("serial_joint"), plant_substeps=2)
     with pytest.raises(csim.CKernelsUnavailable, match="2 RK4 sub-steps"):

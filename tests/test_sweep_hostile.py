@@ -95,6 +95,7 @@ def tuned(tmp_path_factory) -> tuple[Path, Path]:
     return spec, out
 
 
+@pytest.mark.slow
 def test_a_choice_mixing_a_number_and_a_vector_tunes_and_resumes(tuned, capsys):
     spec, out = tuned
     with open(out / tuning.TRIALS_CSV) as f:
@@ -116,6 +117,7 @@ def test_a_choice_mixing_a_number_and_a_vector_tunes_and_resumes(tuned, capsys):
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_refused_second_sweep_leaves_the_running_ones_files_and_lock(swept, tmp_path,
                                                                       capsys):
     spec_path, _ = swept
@@ -141,6 +143,7 @@ def test_a_refused_second_sweep_leaves_the_running_ones_files_and_lock(swept, tm
         results.release(fd)
 
 
+@pytest.mark.slow
 def test_a_refused_second_search_leaves_the_running_ones_files(tuned, tmp_path, capsys):
     spec, finished = tuned
     out = tmp_path / "out"
@@ -179,6 +182,7 @@ def _not_ours(folder: Path) -> dict[str, Path]:
             "a folder": sub, "a file": target}
 
 
+@pytest.mark.slow
 def test_replay_out_never_replaces_what_is_there(swept, tmp_path, capsys):
     _, out = swept
     paths = _not_ours(tmp_path / "mine")
@@ -196,6 +200,7 @@ def test_replay_out_never_replaces_what_is_there(swept, tmp_path, capsys):
     assert sorted(tree(tmp_path / "mine")) == sorted([*before, "new.toml"])  # no temporary
 
 
+@pytest.mark.slow
 def test_a_resume_removes_only_its_own_temporary_files(swept, tmp_path):
     spec, finished = swept
     out = tmp_path / "out"
@@ -217,6 +222,7 @@ def test_a_resume_removes_only_its_own_temporary_files(swept, tmp_path):
     assert results.done(out) == {0, 1}
 
 
+@pytest.mark.slow
 def test_a_search_never_writes_over_a_path_that_is_not_its_file(tuned, tmp_path, capsys):
     spec, finished = tuned
     out = tmp_path / "out"
@@ -289,6 +295,7 @@ def test_an_out_under_a_file_is_named_for_what_it_is(program, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "spec.toml"]
 
 
+@pytest.mark.slow
 def test_a_sample_that_fails_on_a_worker_is_one_line_and_leaves_no_folder(tmp_path, capsys,
                                                                           monkeypatch):
     # Whatever a worker raises (here: the evaluation is given arguments it does not take,
@@ -319,6 +326,7 @@ DAMAGED = {
 
 
 @pytest.mark.parametrize("case", sorted(DAMAGED))
+@pytest.mark.slow
 def test_a_damaged_sweep_json_is_one_line(case, swept, tmp_path, capsys):
     spec, finished = swept
     out = tmp_path / "out"
@@ -350,6 +358,7 @@ def test_a_damaged_sweep_json_is_one_line(case, swept, tmp_path, capsys):
     assert tree(out) == before
 
 
+@pytest.mark.slow
 def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     spec, finished = tuned
     out = tmp_path / "out"
@@ -411,6 +420,7 @@ def _bin(program: str) -> list[str]:
 
 
 @pytest.mark.parametrize("program", ["sweep", "tune"])
+@pytest.mark.slow
 def test_a_read_only_disk_is_one_line(program, tmp_path):
     spec = write(tmp_path, TUNE if program == "tune" else SPEC.format(extra=""))
     code, err, paths = in_tmpfs(tmp_path, [*_bin(program), str(spec), "--out", "{DISK}/out",
@@ -421,6 +431,7 @@ def test_a_read_only_disk_is_one_line(program, tmp_path):
 
 
 @pytest.mark.parametrize("program", ["sweep", "tune"])
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_and_leaves_no_partial_file(program, tmp_path):
     # Room for the folder's manifest and spec, not for a batch of samples (about 10 kB).
     spec = write(tmp_path, TUNE if program == "tune" else SPEC.format(extra=""))

@@ -128,6 +128,7 @@ def test_a_setup_written_in_place_does_not_reach_the_next_sample():
         result.units[0].desired[0, 0] = 0.0
 
 
+@pytest.mark.slow
 def test_the_path_is_checked_once_per_structure(monkeypatch):
     base = dataclasses.replace(load_scenario("serial_task"), duration=0.2)
     adapter = type(robot("serial"))
@@ -149,6 +150,7 @@ def test_the_path_is_checked_once_per_structure(monkeypatch):
     assert calls == [0.2, 0.3, 0.2]
 
 
+@pytest.mark.slow
 def test_a_refused_path_is_refused_every_time():
     sc = dataclasses.replace(load_scenario("serial_task"), duration=0.2)
     # A leader circle of 0.5 m: out of the arms' reach.
@@ -162,6 +164,7 @@ def test_a_refused_path_is_refused_every_time():
     unit_setups(sc)  # and the good one is still fine
 
 
+@pytest.mark.slow
 def test_an_edited_description_is_read_again(tmp_path):
     description = tmp_path / "serial.toml"
     original = (ROBOTS_DIR / "serial.toml").read_text()

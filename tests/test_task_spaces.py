@@ -165,6 +165,7 @@ def test_inverse_kinematics_round_trips(k, ur5_file, rng):
         assert np.all(lo <= q_ik) and np.all(q_ik <= hi)
 
 
+@pytest.mark.slow
 def test_numeric_inverse_kinematics_finds_the_closed_forms_branch():
     """The shipped planar 3R arm: the numeric solver seeded on a branch gives the closed form's
     answer on it."""
@@ -177,6 +178,7 @@ def test_numeric_inverse_kinematics_finds_the_closed_forms_branch():
     np.testing.assert_allclose(solve_ik(arm, space, pose, elbow=elbow), q_closed, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_unreachable_and_singular_targets_are_refused_in_one_line():
     arm = load_serial(PLANAR2).arms[0]
     space = task_space(arm, "planar")
@@ -275,6 +277,7 @@ def test_ur5_tracks_a_full_pose_with_controller_g(tmp_path, ur5_file):
 
 
 @needs_ur5
+@pytest.mark.slow
 def test_a_task_the_jacobian_is_not_square_for_is_refused(tmp_path, ur5_file):
     """Controller g on the 6-joint UR5 in (x, y, z): a redundant arm, refused in one line
     naming the sizes; the default task (planar + yaw) likewise."""
@@ -323,6 +326,7 @@ def test_the_task_key_is_checked_and_only_serial_robots_take_it(tmp_path):
         load_scenario(bad)
 
 
+@pytest.mark.slow
 def test_the_shipped_studies_keep_their_default_task():
     for name in ("serial_task", "serial_joint"):
         sc = load_scenario(name)
@@ -346,6 +350,7 @@ def test_base_rpy_and_its_yaw_shorthand(tmp_path):
         load_serial(both)
 
 
+@pytest.mark.slow
 def test_cochlea_run_refuses_an_unreachable_path_in_one_line_with_exit_2(tmp_path, capsys):
     from cochlea.apps.cochlea_run import main
 
@@ -407,6 +412,7 @@ def test_a_user_dual_arm_system_mirrors_the_leader_in_the_planar_task(tmp_path):
 
 
 @needs_ur5
+@pytest.mark.slow
 def test_a_full_pose_run_starting_beyond_80_degrees_is_refused(tmp_path, ur5_file):
     """The orientation error sin(theta) u loses rank at 90 deg and vanishes again at 180 deg:
     a run that starts 120 deg away is refused before it moves."""

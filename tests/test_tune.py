@@ -397,6 +397,7 @@ def test_the_example_spec_loads_as_documented():
     assert tune.size == 8 and tune.settings.trials == 40 and tune.settings.objective == "p95"
 
 
+@pytest.mark.slow
 def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
     """The choice among finished trials and the nominal, on verdicts made up for the purpose
     (no runs): the feasible candidate of the smallest objective; none feasible, no tuned.toml."""

@@ -170,6 +170,7 @@ def test_an_angle_beyond_the_tolerance_is_not_snapped(tmp_path):
 
 
 @needs_erd
+@pytest.mark.slow
 def test_so101_is_snapped_then_exported_exactly(tmp_path, rng):
     """SO-101 writes pi/2 as 1.5708 (3.7e-6 rad off): snapped and reported; the snapped model
     agrees with Pinocchio reading our export of it."""
@@ -186,6 +187,7 @@ def test_so101_is_snapped_then_exported_exactly(tmp_path, rng):
 
 
 @needs_erd
+@pytest.mark.slow
 def test_snapping_keeps_the_base_parameters_of_the_true_arm(tmp_path, monkeypatch):
     """Why snap: SO-101's 1.5708 for pi/2 adds two base parameters (36 -> 38), which
     identification would refuse as rank-deficient; snapped, the count is the UR5's 36."""
@@ -217,6 +219,7 @@ def _same_dynamics(a, b, rng, n=30):
 
 
 @pytest.mark.parametrize("source", ["fixture", "ur5", "shipped"])
+@pytest.mark.slow
 def test_import_of_export_round_trips(tmp_path, rng, source):
     if source == "ur5" and UR5 is None:
         pytest.skip("example-robot-data is not installed")

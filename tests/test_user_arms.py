@@ -199,6 +199,7 @@ def _inputs(f, s, rng) -> list[np.ndarray]:
     return values
 
 
+@pytest.mark.slow
 def test_task_space_kernels_equal_their_casadi_functions(task_kernels, rng):
     """Every kernel of the task-space scenario (model, task coordinates, plant steps, the
     controller's parts) at 20 random points: relative error <= 1e-12."""
@@ -236,6 +237,7 @@ def _assert_same_log(result, reference, tol):
                                        err_msg=f"{u.name}.{key}")
 
 
+@pytest.mark.slow
 def test_task_space_run_on_c_kernels_converges_and_equals_casadi(task_kernels):
     task, scenario, kernels = task_kernels
     sc = load_scenario(scenario)
@@ -265,6 +267,7 @@ def _without_keep_out(folder: Path, source: Path) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_a_description_without_keep_out_radius_has_no_keep_out(tmp_path):
     """``keep_out_radius_m`` is optional: absent, no keep-out circle, neither in a task-space
     run's checks and supervisor nor in an excitation."""
@@ -435,6 +438,7 @@ def test_user_arm_dynamics_match_pinocchio(description, rng):
 @pytest.mark.parametrize("scenario, motor", [(DATA / "planar2_joint.toml", "XM540-W270"),
                                              (SPATIAL4_JOINT, "XM430-W350")],
                          ids=["planar2", "spatial4"])
+@pytest.mark.slow
 def test_user_arm_joint_space_run_on_c_kernels(tmp_path, scenario, motor):
     """cochlea-codegen --scenario on the joint-space study: the C run converges and gives the
     CasADi run's log."""
@@ -480,6 +484,7 @@ def test_spatial4_joint_space_run_over_the_virtual_chain(tmp_path):
 
 
 @pytest.mark.parametrize("arm", ["spatial4", pytest.param("ur5", marks=needs_ur5)])
+@pytest.mark.slow
 def test_a_small_sweep_of_a_user_arm(arm, tmp_path, monkeypatch, request):
     """Three perturbed draws of the arm's joint-space study (spatial4_joint.toml, the UR5's
     imported starter), every run to its end."""

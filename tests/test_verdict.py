@@ -278,6 +278,7 @@ def _weak_current(tmp_path):
     return path
 
 
+@pytest.mark.slow
 def test_a_current_limit_below_gravity_is_refused(tmp_path):
     path = _weak_current(tmp_path)
     sc = dataclasses.replace(load_scenario("parallel_joint_realistic"), description=str(path),
@@ -348,6 +349,7 @@ def test_a_sweep_with_refused_samples_runs_them_all_and_writes_one_table(tmp_pat
     assert table["stop_rule"].to_pylist().count("gravity-refused") == len(refused)
 
 
+@pytest.mark.slow
 def test_a_coordinate_that_starts_on_target_is_judged_by_its_floor():
     """issue 25 papercut ("joints that start at zero error are reported as not converged"): a
     coordinate whose initial error is exactly 0 converged if its final RMS stays within the
