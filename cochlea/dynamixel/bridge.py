@@ -397,23 +397,14 @@ class DynamixelBackend:
                                                       [(i, b"\0") for i in self.ids])
         # Start-up step 9's two transactions, made once: Torque Enable 1 to every motor (no
         # reply), then a read of Torque Enable from every motor, at the item's address and size
-        # in each model's data (SYNC_WRITE / SYNC_READ; BULK_* when the models place it apart).
-        torque = [(d.id, d.spec.item("Torque Enable")) for d in self.drives]
-        if len({(it.address, it.size) for _, it in torque}) == 1:
-            it = torque[0][1]
-            self._torque_on_frame = proto.sync_write(it.address, it.size,
-                                                     [(i, proto.le(1, it.size)) for i in self.ids])
-            self._torque_check_frame = proto.sync_read(it.address, it.size, self.ids)
-            self._torque_on_what = (f"torque on (SYNC_WRITE {it.address} = 1, read back by "
-                                    "SYNC_READ)")
-        else:
-            self._torque_on_frame = proto.bulk_write([(i, it.address, proto.le(1, it.size))
-                                                      for i, it in torque])
-            self._torque_check_frame = proto.bulk_read([(i, it.address, it.size)
-                                                        for i, it in torque])
-            self._torque_on_what = ("torque on (BULK_WRITE of Torque Enable 1, read back by "
-                                    "BULK_READ)")
-        self._torque_sizes = [it.size for _, it in torque]
+        # in the models' data (the same on every motor: joint_drives refuses a model whose
+        # control table is not the X series' layout).
+        it = self.drives[0].spec.item("Torque Enable")
+        self._torque_on_frame = proto.sync_write(it.address, it.size,
+                                                 [(i, proto.le(1, it.size)) for i in self.ids])
+        self._torque_check_frame = proto.sync_read(it.address, it.size, self.ids)
+        self._torque_on_what = f"torque on (SYNC_WRITE {it.address} = 1, read back by SYNC_READ)"
+        self._torque_size = it.size
 
     # ---- the Backend interface ------------------------------------------------------------------
 
@@ -858,7 +849,8 @@ class DynamixelBackend:
                 elif time.perf_counter() >= deadline:
                     break  # a flood of packets nobody asked for ends at the deadline too
         problems, first = [], -1
-        for d, g, size in zip(self.drives, got, self._torque_sizes):
+        size = self._torque_size
+        for d, g in zip(self.drives, got):
             who = self._who(d)
             if g is None:
                 problem = (f"{who} did not answer {what} on {self.port_path} at {self.baud} "
