@@ -75,6 +75,28 @@ def live(serial_chain):
     backend.disable()
 
 
+#: Start-up step 9 on the wire after the first nonzero Goal Current: two transactions, one
+#: SYNC_WRITE of Torque Enable 1 to every motor, then one SYNC_READ of Torque Enable (1 byte)
+#: confirming each; not a confirmed WRITE per motor (six round trips, during which the first
+#: Goal Current was held: 2.3 ms idle, 5-8 ms and more under load).
+TORQUE_ON_TRAFFIC = [("sync-write", i, 64, 1) for i in range(1, 7)] + [("sync-read", 254, 64, 1)]
+
+
+def torque_on_traffic(chain: VirtualChain) -> list[tuple]:
+    """``(kind, id, address, value)`` of what the motors heard after the Goal Current that
+    preceded the first Torque Enable 1, up to the first instruction about another item (the
+    next period's read, or the shut-down's Goal Current 0): the torque-on's transactions."""
+    events = [tuple(e[1:]) for e in chain.events if e[1] not in ("fault", "watchdog")]
+    first_on = next(i for i, e in enumerate(events) if e[2:] == (64, 1))
+    goal = max(i for i, e in enumerate(events[:first_on]) if e[2] == 102)
+    traffic = []
+    for e in events[goal + 1:]:
+        if e[2] != 64:
+            break
+        traffic.append(e)
+    return traffic
+
+
 def test_start_up_sequence_in_order(live):
     chain, backend = live
     events = list(chain.events)
@@ -99,20 +121,17 @@ def test_start_up_sequence_in_order(live):
         assert not m.torque_on and m.table[11] == 0 and m.table[9] == 0
         assert m.get(38) == limits[m.id] and m.get(102) == 0 and m.get(98) == 5
     # A zero command leaves the torque off; the first nonzero one is written, then the torque
-    # goes on, motor by motor, each confirmed: no motor is powered at zero current waiting.
+    # goes on: no motor is powered at zero current waiting.
     assert backend.write(np.zeros(6))
     assert not any(m.torque_on for m in chain.motors)
     tau = np.array([0.02, -0.01, 0.0, 0.03, -0.002, 0.001])
     assert backend.write(tau)
-    events = list(chain.events)
-    goal = max(i for i, e in enumerate(events) if e[1] == "sync-write" and e[3] == 102)
-    ons = [i for i, e in enumerate(events) if e[1] == "write" and e[3:] == (64, 1)]
-    assert len(ons) == 6 and min(ons) > goal
     for m, lsb in zip(chain.motors, backend.goal_current_lsb):
         assert m.torque_on and m.get(102) == lsb
+    assert torque_on_traffic(chain) == TORQUE_ON_TRAFFIC
     # Later commands are the SYNC_WRITE alone.
     assert backend.write(tau)
-    assert len([e for e in chain.events if e[1] == "write" and e[3:] == (64, 1)]) == 6
+    assert [e[1:] for e in chain.events if e[3:] == (64, 1)] == TORQUE_ON_TRAFFIC
 
 
 def test_reads_and_writes_go_through_the_plant(live):
@@ -199,7 +218,7 @@ def test_start_up_refuses_a_joint_outside_its_limits(serial_chain, tmp_path):
                                            r"zero_offset_deg and direction"):
         backend.enable()
     assert not any(m.torque_on for m in chain.motors)
-    assert not any(e[1] == "write" and e[3:] == (64, 1) for e in chain.events)
+    assert not any(e[1] in ("write", "sync-write") and e[3:] == (64, 1) for e in chain.events)
     # 193 deg is taken as -167 deg (single-turn encoder): inside the limits, accepted.
     wrong.write_text((ROBOTS_DIR / "serial.toml").read_text().replace(
         "zero_offset_deg = 0.0", "zero_offset_deg = -120.0", 1))
@@ -427,23 +446,90 @@ def test_the_bridges_offset_current_overcomes_the_realistic_gearbox():
             backend.disable()
 
 
-def test_a_torque_that_does_not_come_on_stops_the_run(serial_chain):
+#: Motor 3 at the torque-on, each a class of refusal: the write does not take (it reads back 0,
+#: as ``cochlea-emulator --ignore-write 3:64``), it stops answering the moment its torque came
+#: on, or it raises its alert then (overload: its torque goes off). What the refusal says after
+#: "ID 3 (arm1.link3, MX-64) ".
+TORQUE_ON_FAULTS = {
+    "ignores the write": "reads Torque Enable 0 after torque on (SYNC_WRITE 64 = 1, read back by "
+                         "SYNC_READ): the write did not take",
+    "stops answering": "did not answer torque on (SYNC_WRITE 64 = 1, read back by SYNC_READ)",
+    "raises its alert": "reports a hardware error (overload): remove the cause and reboot",
+}
+
+
+def torque_on_chain(fault: str | None) -> VirtualChain:
+    """The serial chain, started, with motor 3's TORQUE_ON_FAULTS ``fault`` (None: none). The
+    last two come from a hook on the motor's Torque Enable 1, so they strike between the
+    torque-on's SYNC_WRITE and its SYNC_READ whatever the timing (the emulator's own
+    ``--silent-motor`` and ``--hardware-error`` strike at its next tick, which may come after a
+    SYNC_READ sent right behind the SYNC_WRITE)."""
+    chain = VirtualChain("serial", ignore_writes=[(3, 64)] if fault == "ignores the write"
+                         else ())
+    motor = chain.by_id[3]
+    chained = motor.on_torque
+
+    def strike(m) -> None:
+        chained(m)
+        if fault == "stops answering":
+            m.answering = False
+        elif fault == "raises its alert":
+            m.latch_hardware_error(5)
+
+    motor.on_torque = strike
+    return chain.start()
+
+
+def expected_torque_on_traffic(fault: str | None, tries: int) -> list[tuple]:
+    """TORQUE_ON_TRAFFIC with motor 3's fault: its write acknowledged but not applied, and the
+    SYNC_READ asked ``tries`` times in all while a reply is missing."""
+    ons = [("ignored-sync-write" if fault == "ignores the write" and i == 3 else "sync-write",
+            i, 64, 1) for i in range(1, 7)]
+    return ons + [("sync-read", 254, 64, 1)] * (tries if fault == "stops answering" else 1)
+
+
+@pytest.mark.parametrize("fault", TORQUE_ON_FAULTS)
+def test_a_torque_that_does_not_come_on_stops_the_run(fault):
     """Start-up step 9 at the first nonzero command: a motor that does not confirm its Torque
-    Enable fails that write, and every read after it fails as not-enabled, naming the motor,
-    so the loop's read watchdog stops the run instead of running on unpowered motors."""
-    chain = serial_chain
-    backend = connect(chain, retries=1)
-    backend.enable()
+    Enable (reads back 0, does not answer, answers with its alert) fails that write, and every
+    read after it fails as not-enabled, naming the motor, without a byte on the bus, so the
+    loop's read watchdog stops the run instead of running on unpowered motors; on the wire,
+    the torque-on's two transactions (the SYNC_READ asked again only for a missing reply), and
+    the shut-down then reaches every motor that hears the bus."""
+    chain = torque_on_chain(fault)
     try:
-        x = np.zeros(12)
-        assert backend.read(x)
-        chain.motors[2].answering = False  # ID 3 goes silent before the first command
-        assert not backend.write(np.full(6, 0.01))
-        assert backend.torque_on_error is not None and "ID 3" in backend.torque_on_error
-        for _ in range(6):
-            assert not backend.read(x)
-            assert (backend.last_failure, backend.last_failure_id) == (br.NOT_ENABLED, 3)
-        assert backend.failure_detail().startswith("the torque did not come on: ID 3")
+        backend = connect(chain, retries=2)
+        backend.enable()
+        try:
+            x = np.zeros(12)
+            assert backend.read(x)
+            assert not backend.write(np.full(6, 0.01))
+            assert backend.torque_on_error.startswith(
+                "ID 3 (arm1.link3, MX-64) " + TORQUE_ON_FAULTS[fault]), backend.torque_on_error
+            heard = len(chain.events)
+            for _ in range(6):
+                assert not backend.read(x)
+                assert (backend.last_failure, backend.last_failure_id) == (br.NOT_ENABLED, 3)
+            assert len(chain.events) == heard
+            assert backend.failure_detail() == ("the torque did not come on: "
+                                                + backend.torque_on_error)
+        finally:
+            backend.disable()
+        assert torque_on_traffic(chain) == expected_torque_on_traffic(fault, 2)
+        assert not any(m.torque_on for m in chain.motors if m.id != 3)
+        if fault == "stops answering":  # its torque came on; its Bus Watchdog stops it
+            assert "not confirmed by ID 3 (arm1.link3, MX-64)" in backend.shutdown_report
+            for _ in range(100):
+                if any(e[1] == "watchdog" and e[2] == 3 for e in chain.events):
+                    break
+                time.sleep(0.01)
+            assert not chain.by_id[3].driving
+        else:
+            assert not chain.by_id[3].torque_on
+            assert "torque off confirmed by all 6" in backend.shutdown_report
+        if fault == "raises its alert":
+            assert "ID 3 (arm1.link3, MX-64): hardware error (overload)" in \
+                backend.shutdown_report
     finally:
-        backend.disable()
-    assert not any(m.torque_on for m in chain.motors if m.id != 3)
+        chain.close()
+

@@ -77,8 +77,9 @@ def run(*args: str, cwd: Path, prefix: str = "") -> subprocess.CompletedProcess:
 #: A current held this many periods or more (one period's wall time, in periods) is more than
 #: the thesis's rigid serial plant takes: its distal link (about 6e-6 kg m^2, no rotor) has
 #: h G / M = 1.2 of damping margin, and issue 24 measured 3 periods of delay turning the start-up
-#: transient of serial_task into a velocity-limit stop. A quiet machine's slowest period is the
-#: first (the torque comes on in it, one confirmed write per motor): about 2.3 periods.
+#: transient of serial_task into a velocity-limit stop. A quiet machine's slowest period was the
+#: first (the torque came on in it, one confirmed write per motor): about 2.3 periods; it is now
+#: one SYNC_WRITE and one SYNC_READ (docs/dynamixel.md, start-up step 9).
 HELD_PERIODS = 3.0
 
 

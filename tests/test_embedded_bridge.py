@@ -19,6 +19,12 @@ from cochlea.dynamixel.embedded_drives import drives_header
 from cochlea.dynamixel.emulator import Faults, VirtualChain
 
 from .embedded_build import build_library
+from .test_dynamixel_bridge import (
+    TORQUE_ON_FAULTS,
+    expected_torque_on_traffic,
+    torque_on_chain,
+    torque_on_traffic,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 CORE, POSIX = ROOT / "embedded" / "core", ROOT / "embedded" / "posix"
@@ -163,10 +169,10 @@ def test_start_read_write_stop_as_the_python_bridge(libs, tmp_path, robot):
         assert p.write(tau) == 1
         expected = [int(d.goal_current_lsb(t)) for d, t in zip(drives, tau)]
         assert [p.c.probe_goal(i) for i in range(n)] == expected
-        events = list(chain.events)
-        goal = max(i for i, e in enumerate(events) if e[1] == "sync-write" and e[3] == 102)
-        ons = [i for i, e in enumerate(events) if e[1] == "write" and e[3:] == (64, 1)]
-        assert len(ons) == n and min(ons) > goal and all(m.torque_on for m in chain.motors)
+        # Its two transactions, after the Goal Current: as the Python bridge's.
+        assert torque_on_traffic(chain) == [("sync-write", d.id, 64, 1) for d in drives] + [
+            ("sync-read", 254, 64, 1)]
+        assert all(m.torque_on for m in chain.motors)
         deadline = 100
         while [m.get(102) for m in chain.motors] != expected and deadline:
             p.read()  # a transaction gives the emulator's thread time to apply the write
@@ -203,7 +209,8 @@ def test_start_up_faults_stop_before_anything_moves(libs, tmp_path, faults, erro
         if detail is not None:
             assert p.report.detail == detail
         assert not any(m.torque_on for m in chain.motors)
-        assert not any(e[1] == "write" and e[3:] == (64, 1) for e in chain.events)
+        assert not any(e[1] in ("write", "sync-write") and e[3:] == (64, 1)
+                       for e in chain.events)
         p.c.probe_close()
     finally:
         chain.close()
@@ -302,3 +309,59 @@ def test_a_repeated_status_packet_is_refused_by_its_realtime_tick(libs, tmp_path
     assert p.c.probe_failures(stale_kind) == len(stale)
     assert results[0][0] == 1
     assert any(ok for ok, _, _ in results[stale[-1] + 1:])  # fresh packets are good again
+
+
+NOT_ENABLED = 8  # COCHLEA_FAIL_NOT_ENABLED: the Python bridge's "not-enabled"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fault", [None, *TORQUE_ON_FAULTS])
+def test_the_torque_on_is_the_python_bridges_on_the_wire(libs, tmp_path, fault):
+    """Start-up step 9 in C, against the Python bridge on a chain with the same fault of motor 3
+    (TORQUE_ON_FAULTS, or none): the emulator's event log from the first nonzero Goal Current
+    to the next instruction about another item is the same for both (one SYNC_WRITE of Torque
+    Enable 1 to every motor, one SYNC_READ of Torque Enable, asked again while a reply is
+    missing); a motor that does not confirm fails that write and every read after it as
+    not-enabled, naming it, nothing sent; the stop reaches every motor that hears the bus."""
+    from cochlea.dynamixel.bridge import DynamixelBackend
+
+    tau = np.full(6, 0.01)
+    traffic = {}
+    for side in ("python", "c"):
+        chain = torque_on_chain(fault)
+        try:
+            if side == "python":  # the C bridge's timeout (setup: 4 x 50 ms) and 3 tries
+                backend = DynamixelBackend("serial", chain.path, timeout_s=0.05, retries=3,
+                                           description=chain.scenario.description)
+                backend.enable()
+                try:
+                    assert backend.read(np.zeros(12))
+                    assert backend.write(tau) is (fault is None)
+                finally:
+                    backend.disable()
+            else:
+                p = probe_on(libs, tmp_path, "serial", chain)
+                assert p.c.probe_start() == 1, p.start_error
+                assert p.read()[0] == 1
+                if fault is None:
+                    assert p.write(tau) == 1
+                    assert all(m.torque_on for m in chain.motors)
+                    assert p.read()[0] == 1
+                else:
+                    assert p.write(tau) == 0
+                    failure = (p.c.probe_last_failure(), p.c.probe_last_failure_id())
+                    assert failure == (NOT_ENABLED, 3)
+                    heard = len(chain.events)
+                    for _ in range(6):
+                        assert p.read()[0] == 0
+                        failure = (p.c.probe_last_failure(), p.c.probe_last_failure_id())
+                        assert failure == (NOT_ENABLED, 3)
+                    assert len(chain.events) == heard
+                silent = fault == "stops answering"
+                assert p.c.probe_stop() == 6 - silent
+                assert not any(m.torque_on for m in chain.motors if m.id != 3 or not silent)
+                p.c.probe_close()
+            traffic[side] = torque_on_traffic(chain)
+        finally:
+            chain.close()
+    assert traffic["c"] == traffic["python"] == expected_torque_on_traffic(fault, 3)

@@ -30,6 +30,7 @@ from tests.test_dynamixel_hil import (
     assert_log_complete,
     lagged,
     last_commands,
+    run,
     run_on_emulator,
 )
 from tests.test_dynamixel_hil import emulator as started_emulator
@@ -399,12 +400,69 @@ def test_a_homed_slider_is_counted_from_its_record(tmp_path, program):
             assert bus["homing"] == "not checked (a pseudo-terminal: the virtual chain)"
         else:
             assert bus["homing"] == f"homed 2026-11-23T10:00:00 ({tmp_path / 'homed.json'})"
-            writes = [e for e in log.read_text().splitlines() if " write " in e]
-            assert writes[-1].split()[3:] == ["address=64", "value=1"]  # torque on, last
-            # The token written back after the configuration, before the five torque-ons.
-            assert writes[-6].split()[2:] == [f"id={_slider().id}", "address=88", "value=1234"]
+            events = log.read_text().splitlines()
+            writes = [i for i, e in enumerate(events) if " write " in e]
+            # The token written back after the configuration, the last unicast write; the
+            # torque comes on after it (one SYNC_WRITE to the five motors).
+            assert events[writes[-1]].split()[2:] == [f"id={_slider().id}", "address=88",
+                                                      "value=1234"]
+            ons = [i for i, e in enumerate(events)
+                   if e.split()[1:2] == ["sync-write"] and e.split()[3:] == ["address=64",
+                                                                            "value=1"]]
+            assert len(ons) == 5 and min(ons) > writes[-1]
     quantum = abs(_slider().q_per_count)
     assert abs(first["required"] - first["auto"] - shift) <= 2 * quantum
+
+
+def torque_on_window(log: Path) -> list[list[str]]:
+    """``[kind, id=, address=, value=]`` of the instructions in an emulator's log after the
+    Goal Current that preceded the first Torque Enable 1, up to the first one about another
+    item: start-up step 9's transactions."""
+    rows = [line.split()[1:] for line in log.read_text().splitlines()]
+    rows = [r for r in rows if r[0] not in ("fault", "watchdog")]
+    first_on = next(i for i, r in enumerate(rows) if r[2:] == ["address=64", "value=1"])
+    goal = max(i for i, r in enumerate(rows[:first_on]) if r[2] == "address=102")
+    window = []
+    for r in rows[goal + 1:]:
+        if r[2] != "address=64":
+            break
+        window.append(r)
+    return window
+
+
+def test_a_torque_that_does_not_take_stops_both_programs_alike(tmp_path, program):
+    """``cochlea-emulator --ignore-write 3:64``: motor 3 acknowledges its Torque Enable 1 and
+    stays unpowered (it reads back 0). cochlea-run and the C program refuse it at the first
+    nonzero command (start-up step 9) the same way: the read watchdog's stop (exit 15) on
+    not-enabled reads naming motor 3, torque off confirmed by every motor; and the emulator's
+    logs of the two hold the same torque-on: one SYNC_WRITE of Torque Enable 1 to the six
+    motors, one SYNC_READ of Torque Enable, nothing else in between."""
+    windows = {}
+    for side in ("cochlea-run", "c"):
+        out, log = tmp_path / side, tmp_path / f"{side}.log"
+        with emulator("serial", "serial_joint", log, "--ignore-write", "3:64") as port:
+            if side == "c":
+                done = embedded(program, "--scenario", "serial_joint", "--port", port,
+                                "--duration", "3", "--out", str(out), *SHARED_MACHINE)
+            else:
+                done = run("--robot", "serial", "--space", "joint", "--backend", "dynamixel",
+                           "--port", port, "--duration", "3", "--out", str(out), cwd=tmp_path)
+        assert done.returncode == 15, done.stderr
+        assert "stopped by rule watchdog" in done.stderr and "Traceback" not in done.stderr
+        summary = json.loads((out / "summary.json").read_text())
+        bus = summary["timing"]["bus"]
+        assert summary["stop"]["time_s"] < 0.05, summary["stop"]
+        assert bus["failures"]["not-enabled"] >= 6 and set(bus["failures"]) == {"not-enabled"}
+        assert bus["last_failure"].startswith("not-enabled (ID 3, "), bus["last_failure"]
+        assert bus["shutdown"].endswith("torque off confirmed by all 6"), bus["shutdown"]
+        if side == "cochlea-run":
+            assert ("consecutive backend read failures: the torque did not come on: ID 3 "
+                    "(arm1.link3, MX-64) reads Torque Enable 0") in summary["stop"]["detail"]
+        windows[side] = torque_on_window(log)
+    ons = [["ignored-sync-write" if i == 3 else "sync-write", f"id={i}", "address=64",
+            "value=1"] for i in range(1, 7)]
+    assert windows["c"] == windows["cochlea-run"] == ons + [["sync-read", "id=254",
+                                                             "address=64", "value=1"]]
 
 
 @pytest.mark.parametrize("options, message", [

@@ -17,7 +17,9 @@ shut-down, before anything moved:
    :meth:`_check_homing`)
 8. SYNC_READ until the first good read; the joints must lie within their limits;
 9. Torque Enable 1, deferred to the first nonzero command (:meth:`~DynamixelBackend.write`):
-   its Goal Current is written first, then Torque Enable 1 on every motor, each confirmed. A
+   its Goal Current is written first, then one SYNC_WRITE of Torque Enable 1 to every motor
+   and one SYNC_READ of Torque Enable confirming each (two transactions, not a round trip per
+   motor: the first Goal Current is not held for milliseconds before the second command). A
    motor is never powered at zero current while the loop gets ready (thread starts, memory
    locking: milliseconds, tens under load), during which the parallel robot's slider fell
    freely on the emulator (a velocity-limit stop at t = 0 under load).
@@ -30,11 +32,11 @@ SYNC_READ for any of them.
 
 Each period: :meth:`~DynamixelBackend.read` is one SYNC_READ of 126..135 (current, velocity,
 position; with ``realtime_tick``, 120..135: the Realtime Tick first), :meth:`~DynamixelBackend.
-write` one SYNC_WRITE of Goal Current (the first nonzero one followed by the torque's WRITEs,
-step 9; a torque that does not come on fails every read after it as ``not-enabled``, so the
-loop's read watchdog stops the run). Both work in preallocated buffers and report failures
-(timeout, CRC, error byte, hardware alert, port, stale packet) as a False return and counters,
-never as an exception.
+write` one SYNC_WRITE of Goal Current (the first nonzero one followed by the torque's
+SYNC_WRITE and its confirming SYNC_READ, step 9; a torque that does not come on fails every
+read after it as ``not-enabled``, so the loop's read watchdog stops the run). Both work in
+preallocated buffers and report failures (timeout, CRC, error byte, hardware alert, port,
+stale packet) as a False return and counters, never as an exception.
 
 With ``realtime_tick`` (``cochlea-run`` sets it) a stale status packet (a motor repeating old
 data) is refused by its Realtime Tick, the motor's millisecond counter: a tick equal to the one
@@ -408,6 +410,16 @@ class DynamixelBackend:
                                                 [(i, b"\0\0") for i in self.ids])
             self._torque_off_frame = proto.sync_write(ADDR_TORQUE_ENABLE, 1,
                                                       [(i, b"\0") for i in self.ids])
+        # Start-up step 9's two transactions, made once: Torque Enable 1 to every motor (no
+        # reply), then a read of Torque Enable from every motor, at the item's address and size
+        # in the models' data (the same on every motor: joint_drives refuses a model whose
+        # control table is not the X series' layout).
+        it = self.drives[0].spec.item("Torque Enable")
+        self._torque_on_frame = proto.sync_write(it.address, it.size,
+                                                 [(i, proto.le(1, it.size)) for i in self.ids])
+        self._torque_check_frame = proto.sync_read(it.address, it.size, self.ids)
+        self._torque_on_what = f"torque on (SYNC_WRITE {it.address} = 1, read back by SYNC_READ)"
+        self._torque_size = it.size
 
     # ---- the Backend interface ------------------------------------------------------------------
 
@@ -806,19 +818,83 @@ class DynamixelBackend:
         return True
 
     def _torque_on(self) -> bool:
-        """Start-up step 9 at the first nonzero command, its Goal Current already written:
-        Torque Enable 1 on every motor, each confirmed. A refusal is a failed write, and every
-        read after it fails (``not-enabled``), so the loop stops safely within its read
-        watchdog instead of running a controller on unpowered motors."""
+        """Start-up step 9 at the first nonzero command, its Goal Current already written: two
+        transactions, one SYNC_WRITE of Torque Enable 1 to every motor, then one SYNC_READ of
+        Torque Enable confirming each (asked again, up to ``retries`` times in all, only while a
+        reply is missing or corrupted: a reply lost on the wire). A motor that does not answer,
+        answers with an error or its alert, or reads back anything but 1 is a refusal: a failed
+        write, and every read after it fails (``not-enabled``), so the loop stops safely within
+        its read watchdog instead of running a controller on unpowered motors.
+
+        (It was one confirmed WRITE per motor: six round trips, 2.3 ms idle and 5-8 ms under
+        load, during which the first Goal Current was held on the motors already powered.)"""
         self._torque_pending = False
-        for d in self.drives:
-            try:
-                self.command(d, f"torque on (WRITE {ADDR_TORQUE_ENABLE} = 1)",
-                             proto.write(d.id, ADDR_TORQUE_ENABLE, proto.le(1, 1)))
-            except BackendError as exc:
-                self.torque_on_error, self._torque_failed_id = str(exc), d.id
-                return self._fail(NOT_ENABLED, d.id)
+        port, parser, slot_of = self._port, self._parser, self._slot_of
+        what, timeout = self._torque_on_what, self._setup_timeout()
+        frame = self._torque_on_frame
+        if not port.write(memoryview(frame), len(frame), time.perf_counter() + timeout):
+            return self._refuse_torque(-1, f"the serial port {self.port_path} failed during "
+                                           f"{what}")
+        # Per motor: None (no reply yet), "crc" (only corrupted ones), or (error, parameters).
+        got: list = [None] * self.nq
+        frame, tries = self._torque_check_frame, 0
+        while tries < self.retries and any(g is None or g == "crc" for g in got):
+            tries += 1
+            port.discard_input()
+            parser.reset()
+            deadline = time.perf_counter() + timeout
+            if not port.write(memoryview(frame), len(frame), deadline):
+                return self._refuse_torque(-1, f"the serial port {self.port_path} failed "
+                                               f"during {what}")
+            pending = sum(1 for g in got if g is None or g == "crc")
+            while pending:
+                code = self._next_packet(port, deadline)
+                if code == _PORT_FAILED:
+                    return self._refuse_torque(-1, f"the serial port {self.port_path} failed "
+                                                   f"during {what}")
+                if code == _TIMED_OUT:
+                    break
+                j = slot_of[parser.id]
+                if code == proto.OK and j >= 0 and (got[j] is None or got[j] == "crc"):
+                    got[j] = (parser.error, parser.params())
+                    pending -= 1
+                elif code == proto.CRC_FAILURE and j >= 0 and got[j] is None:
+                    got[j] = "crc"
+                    pending -= 1
+                elif time.perf_counter() >= deadline:
+                    break  # a flood of packets nobody asked for ends at the deadline too
+        problems, first = [], -1
+        size = self._torque_size
+        for d, g in zip(self.drives, got):
+            who = self._who(d)
+            if g is None:
+                problem = (f"{who} did not answer {what} on {self.port_path} at {self.baud} "
+                           f"baud ({tries} tries): check its power, cable, ID and baud rate")
+            elif g == "crc":
+                problem = (f"{who} answered {what} with corrupted packets (CRC) {tries} times: "
+                           "check the cable and the baud rate")
+            elif g[0] & ALERT_BIT:
+                problem = (f"{who} reports a hardware error ({self._hardware_error_text(d)}): "
+                           "remove the cause and reboot the motor (power cycle) before a run")
+            elif g[0] & 0x7F:
+                problem = f"{who} refused {what}: {describe_error(g[0])}"
+            elif len(g[1]) != size or proto.from_le(g[1], False) != 1:
+                value = proto.from_le(g[1], False) if len(g[1]) == size else f"{len(g[1])} bytes"
+                problem = (f"{who} reads Torque Enable {value} after {what}: the write did not "
+                           "take (check the motor's Hardware Error Status and Bus Watchdog)")
+            else:
+                continue
+            problems.append(problem)
+            first = d.id if first < 0 else first
+        if problems:
+            return self._refuse_torque(first, "; ".join(problems))
         return True
+
+    def _refuse_torque(self, motor_id: int, why: str) -> bool:
+        """The torque did not come on: this write fails, and every read after it
+        (``not-enabled``, naming ``motor_id``; -1 when the port failed)."""
+        self.torque_on_error, self._torque_failed_id = why, motor_id
+        return self._fail(NOT_ENABLED, motor_id)
 
     # ---- start-up and shut-down -----------------------------------------------------------------
 

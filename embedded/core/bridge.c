@@ -751,6 +751,79 @@ static int32_t goal_frame(cochlea_bridge *b, int item, int size, const int16_t *
                           ids, data, (size_t)b->n);
 }
 
+/* Start-up step 9 at the first nonzero command, its Goal Current already sent: two
+ * transactions, one SYNC_WRITE of Torque Enable 1 to every motor, then one SYNC_READ of Torque
+ * Enable confirming each (asked again, up to b->retries times in all, only while a reply is
+ * missing or corrupted), as the Python bridge's _torque_on, the same bytes on the wire. The ID
+ * of the first motor (drive order) that did not answer, answered with an error or its alert,
+ * or reads back anything but 1; 254 when the port failed; -1 when every motor confirmed. */
+static int torque_on(cochlea_bridge *b)
+{
+    uint8_t ids[COCHLEA_MAX_DRIVES], got[COCHLEA_MAX_DRIVES], error[COCHLEA_MAX_DRIVES];
+    int value[COCHLEA_MAX_DRIVES];
+    int i, tries;
+    int32_t len = goal_frame(b, ADDR_TORQUE_ENABLE, 1, 0, 1);
+    if (len < 0 || !send(b, b->write_frame, (size_t)len)) {
+        return 254;
+    }
+    for (i = 0; i < b->n; ++i) {
+        ids[i] = b->drives[i].id;
+        got[i] = 0; /* 0 no reply yet, 2 only corrupted ones, 1 answered */
+        error[i] = 0;
+        value[i] = -1;
+    }
+    len = dxl_sync_read(b->scratch, sizeof b->scratch, ADDR_TORQUE_ENABLE, 1, ids, (size_t)b->n);
+    if (len < 0) {
+        return 254;
+    }
+    for (tries = 0; tries < b->retries; ++tries) {
+        const int64_t deadline = now(b) + setup_timeout(b);
+        int pending = 0, drained = 0;
+        for (i = 0; i < b->n; ++i) {
+            pending += got[i] != 1;
+        }
+        if (!pending) {
+            break;
+        }
+        discard(b);
+        if (!send(b, b->scratch, (size_t)len)) {
+            return 254;
+        }
+        while (pending) {
+            const int code = dxl_parser_parse(&b->parser);
+            int j;
+            if (code == DXL_NEED_MORE) {
+                const long n = receive(b, deadline, &drained);
+                if (n < 0) {
+                    return 254;
+                }
+                if (n == 0) {
+                    break;
+                }
+                continue;
+            }
+            j = slot_of(b, b->parser.id);
+            if (code == DXL_OK && j >= 0 && got[j] != 1) {
+                got[j] = 1;
+                error[j] = b->parser.error;
+                value[j] = b->parser.params_len == 1 ? b->parser.params[0] : -1;
+                --pending;
+            } else if (code == DXL_CRC_FAILURE && j >= 0 && got[j] == 0) {
+                got[j] = 2;
+                --pending;
+            } else if (past(b, deadline)) { /* a flood of packets for no one */
+                break;
+            }
+        }
+    }
+    for (i = 0; i < b->n; ++i) {
+        if (got[i] != 1 || error[i] != 0 || value[i] != 1) {
+            return b->drives[i].id;
+        }
+    }
+    return -1;
+}
+
 int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
 {
     int i, finite = 1;
@@ -778,10 +851,9 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
             any = any || b->goal[i] != 0;
         }
         if (any) {
-            cochlea_start_report r;
             b->torque_pending = 0;
-            if (!write_all(b, COCHLEA_STEP_TORQUE_ON, ADDR_TORQUE_ENABLE, 1, 0, 1, &r)) {
-                b->torque_failed_id = r.drive >= 0 ? b->drives[r.drive].id : 254;
+            b->torque_failed_id = torque_on(b);
+            if (b->torque_failed_id >= 0) {
                 return fail(b, COCHLEA_FAIL_NOT_ENABLED, b->torque_failed_id);
             }
         }

@@ -12,8 +12,9 @@
  *   8. SYNC_READ until the first good read; unwrap the single-turn encoders to the turn nearest
  *      the middle of each joint's limits, and refuse a joint outside its limits;
  *   9. Torque Enable 1, deferred to the first nonzero command (cochlea_bridge_write): its Goal
- *      Current first, then Torque Enable 1 on every motor, each confirmed, so that no motor is
- *      powered at zero current while the loop gets ready (the parallel robot's slider fell
+ *      Current first, then one SYNC_WRITE of Torque Enable 1 to every motor and one SYNC_READ
+ *      of Torque Enable confirming each, so that no motor is powered at zero current while the
+ *      loop gets ready (the parallel robot's slider fell
  *      meanwhile on the emulator). A refusal fails that write and every read after it
  *      (not-enabled), so the loop's read watchdog stops the run.
  * Each period: cochlea_bridge_read is one read of Present Current, Velocity and Position
