@@ -772,7 +772,13 @@ static int torque_on(cochlea_bridge *b)
         error[i] = 0;
         value[i] = -1;
     }
-    len = dxl_sync_read(b->scratch, sizeof b->scratch, ADDR_TORQUE_ENABLE, 1, ids, (size_t)b->n);
+    { /* the item's address and size from the drives' table (every motor's the same: a mixed
+       * layout is refused by cochlea_bridge_init) */
+        const dxl_item *it = item_of(b, 0, ADDR_TORQUE_ENABLE);
+        len = it->size == 1 ? dxl_sync_read(b->scratch, sizeof b->scratch, it->address, 1, ids,
+                                            (size_t)b->n)
+                            : DXL_E_ARG;
+    }
     if (len < 0) {
         return 254;
     }
