@@ -172,10 +172,17 @@ def test_serial_joint_runs_to_its_end_and_stops_safely_on_netduinoplus2(firmware
     for address in (TORQUE_ENABLE, 11, 9, 38, GOAL_CURRENT, BUS_WATCHDOG):  # mode, delay, limit
         assert {i for i, a, _ in config if a == address} == set(ids), address
     assert [(i, v) for i, a, v in config if a == BUS_WATCHDOG][-n:] == [(i, 127) for i in ids]
-    # The torque went on once, with the first nonzero command, on every motor.
-    assert [i for i, a, v in config if (a, v) == (TORQUE_ENABLE, 1)] == ids
-    # One SYNC_READ at the start-up, then one per period.
-    assert kinds.count("sync-read") == PERIODS + 1
+    # The torque went on once, with the first nonzero command, on every motor: one SYNC_WRITE
+    # of Torque Enable 1 (start-up step 9), never a write of its own.
+    assert not [i for i, a, v in config if (a, v) == (TORQUE_ENABLE, 1)]
+    sync = [(int(value(e, "id")), int(value(e, "address")), int(value(e, "value")))
+            for e in events if e[1] == "sync-write"]
+    assert [i for i, a, v in sync if (a, v) == (TORQUE_ENABLE, 1)] == ids
+    # One SYNC_READ at the start-up, one confirming the torque-on (Torque Enable, 1 byte),
+    # then one per period.
+    reads = [(int(value(e, "address")), int(value(e, "value"))) for e in events
+             if e[1] == "sync-read"]
+    assert len(reads) == PERIODS + 2 and reads.count((TORQUE_ENABLE, 1)) == 1
     # The safe stop: zero current then torque off on every motor, twice, then each motor read
     # back (Torque Enable) to confirm it.
     writes = [(int(value(e, "address")), int(value(e, "value"))) for e in events
