@@ -262,7 +262,7 @@ def write_new(path: Path, text: str, option: str = "--out") -> None:
     where = f"{option} {path}"
     if os.path.lexists(path):
         mode = os.lstat(path).st_mode
-        raise results.SweepFolderError(f"{where} already exists ({results._kind(mode)}): "
+        raise results.SweepFolderError(f"{where} already exists ({results.kind_words(mode)}): "
                                        "replay writes a new file only: name another")
     parent = path.parent
     if not parent.is_dir():

@@ -86,7 +86,9 @@ def exit_code(exc: CochleaError) -> int:
     return getattr(exc, "exit_code", EXIT_SPEC)
 
 
-def _kind(mode: int) -> str:
+def kind_words(mode: int) -> str:
+    """What a path of this ``st_mode`` is, in words for a message (cochlea-sweep's and
+    cochlea-tune's wording: device kinds named)."""
     if stat.S_ISFIFO(mode):
         return "a FIFO"
     if stat.S_ISCHR(mode):
@@ -106,12 +108,12 @@ def check_out(out: Path, option: str = "--out") -> None:
         return
     raise SweepFolderError({
         "unusable": f"{where}: cannot use it ({p.reason}): name a new or empty folder",
-        "not_folder": f"{where} is {_kind(p.mode or 0)}, not a folder: name a new or empty "
+        "not_folder": f"{where} is {kind_words(p.mode or 0)}, not a folder: name a new or empty "
                       "folder",
         "not_writable": f"{where}: the folder is not writable (permissions or a read-only "
                         "file system): name a folder you may write",
         "ancestor_unusable": f"{where}: cannot create it under {p.path} ({p.reason})",
-        "ancestor_not_folder": f"{where}: cannot create it, {p.path} is {_kind(p.mode or 0)}, "
+        "ancestor_not_folder": f"{where}: cannot create it, {p.path} is {kind_words(p.mode or 0)}, "
                                "not a folder",
         "ancestor_not_writable": f"{where}: cannot create it, {p.path} is not writable "
                                  "(permissions or a read-only file system): name a folder "
@@ -165,7 +167,7 @@ def write_atomic(path: Path, data: bytes) -> None:
     except OSError as exc:
         raise WriteFailed(f"{path}: cannot write it ({exc.strerror})") from None
     if mode is not None and not stat.S_ISREG(mode):
-        raise WriteFailed(f"{path} is {_kind(mode)}, not a file this run wrote: it is left as "
+        raise WriteFailed(f"{path} is {kind_words(mode)}, not a file this run wrote: it is left as "
                           "it is; move it away and run the same command again")
     try:
         # NAME.XXXXXXXX.tmp: every *.parquet in parts/ is a whole batch, whoever globs it.
