@@ -421,7 +421,7 @@ def python_period_cost(name: str, periods: int = 2000) -> float:
     sc = load_scenario(name)
     setups = unit_setups(sc)
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius,
                                   substeps=sc.plant_substeps)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
                         substeps=sc.plant_substeps)

@@ -133,7 +133,7 @@ def run(study: str, changes: dict, factor: float, settings: str = "shipped") -> 
         gains = np.asarray(chosen["gains"][study], float)
         setups = [dataclasses.replace(u, gains=gains) for u in setups]
     result = simulate(sc, duration, setups)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius)
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius)
     rule = verdict(result, supervisor)
     tracked = [t for u in result.units for t in unit_summary(u)["tracked"].values()]
     # (With a start-up ramp the initial error is rounding, ~1e-16: no ratio to speak of.)

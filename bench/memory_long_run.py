@@ -42,7 +42,7 @@ def case(scenario: str, duration: float, report: bool, out: Path,
     setups = unit_setups(sc)
     steps = int(round(duration * sc.rate_hz))
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=steps)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius,
                                   substeps=sc.plant_substeps, watchdog_misses=500)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, steps, realtime=False,
                         substeps=sc.plant_substeps)

@@ -52,7 +52,7 @@ def converged_in_c(sc) -> str:
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a fallback to CasADi would not be a C run
         result = simulate(sc, None, setups, kernels="c")
-    rule = verdict(result, build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    rule = verdict(result, build_supervisor(setups, sc.system.keep_out_radius,
                                             kernels="c"))
     tracked = [t["converged"] for u in result.units
                for t in unit_summary(u)["tracked"].values()]
@@ -62,7 +62,7 @@ def converged_in_c(sc) -> str:
 def row(sc) -> list[str]:
     setups = unit_setups(sc)
     result = simulate(sc, None, setups, kernels="casadi")
-    rule = verdict(result, build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    rule = verdict(result, build_supervisor(setups, sc.system.keep_out_radius,
                                             kernels="casadi"))
     tracked, ratios, peaks = [], [], []
     for u in result.units:

@@ -110,7 +110,7 @@ def breakdown(spec, samples: int) -> dict[str, float]:
             lap("simulate (rest)")
             parts["simulate (rest)"] -= loop[0]
             parts["C closed loop"] += loop[0]
-            supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+            supervisor = build_supervisor(setups, sc.system.keep_out_radius,
                                           kernels="c", substeps=sc.plant_substeps)
             result.supervisor = verdict(result, supervisor)
             lap("supervisor verdict")

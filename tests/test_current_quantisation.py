@@ -157,7 +157,7 @@ def test_a_command_above_the_current_limit_is_saturated_and_counted(weak_current
     assert grid.saturation[1] == pytest.approx(expected, rel=1e-12)
     assert grid.bound[1] == grid.saturation[1] < 0.1 < grid.limit[1]
     assert np.abs(plain.units[0].tau[:, 1]).max() > grid.bound[1]  # the controller asks more
-    sup = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    sup = build_supervisor(setups, None, substeps=sc.plant_substeps)
     assert verdict(plain, sup)["saturated_periods"] == 0  # nothing reaches 2.5 N m
     for kernels in ("casadi", "c"):
         result = simulate(sc, DURATION, setups, kernels=kernels)
@@ -179,7 +179,7 @@ def test_a_command_clipped_to_the_effort_limit_is_still_counted(tmp_path):
     sc = dataclasses.replace(sc, description=str(weak), system=load_serial(weak),
                              plant=Plant(current_quantisation=True))
     setups = unit_setups(sc)
-    sup = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    sup = build_supervisor(setups, None, substeps=sc.plant_substeps)
     result = simulate(sc, 0.3, setups)
     for u in result.units:
         grid = u.setup.effort_grid
@@ -196,7 +196,7 @@ def test_the_sim_backend_applies_and_logs_the_same_efforts(weak_current):
     supervisor let through, writes back what it applied, and the run equals the as-fast one."""
     sc = dataclasses.replace(weak_current, plant=Plant(current_quantisation=True))
     setups = unit_setups(sc)
-    sup = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    sup = build_supervisor(setups, None, substeps=sc.plant_substeps)
     periods = 300
     loop = RealTimeLoop(setups, SimBackend(setups, sc.period, sc.plant_substeps), sup,
                         sc.period, periods, realtime=False, substeps=sc.plant_substeps)

@@ -159,7 +159,7 @@ def python_run(name: str, periods: int, **injection):
     setups = unit_setups(sc)
     backend = Injected(SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant,
                                   steps=periods), **injection)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius)
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
                         substeps=sc.plant_substeps)
     stop = loop.run()
@@ -348,11 +348,13 @@ def test_nothing_is_commanded_before_the_first_good_read_in_either_loop(lib, nam
     assert not tau[:failed].any() and tau[failed].any()
 
 
-def test_keep_out_stops_both_loops_alike(lib):
-    """Arm 1's tool put on the cochlea centre by a measurement that reaches into the circle."""
-    sc = load_scenario("serial_task")
+@pytest.mark.parametrize("name", ["serial_task", "serial_joint"])
+def test_keep_out_stops_both_loops_alike(lib, name):
+    """Arm 1's tool put on the cochlea centre by a measurement that reaches into the circle:
+    a joint-space run stops there as a task-space one does."""
+    sc = load_scenario(name)
     setups = unit_setups(sc)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius)
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius)
     rng = np.random.default_rng(7)
     inside = None
     n = 6
@@ -369,8 +371,8 @@ def test_keep_out_stops_both_loops_alike(lib):
         x[:n] = inside
         x[n:] = 0.0
 
-    rule, stop, c_rows, _ = c_run(lib, "serial_task", 100, at=40, change=change)
-    py_stop, py_rows, _ = python_run("serial_task", 100, at=40, change=change)
+    rule, stop, c_rows, _ = c_run(lib, name, 100, at=40, change=change)
+    py_stop, py_rows, _ = python_run(name, 100, at=40, change=change)
     assert py_stop.rule == "keep-out" == lib.shim_rule_name(rule).decode()
     assert stop[0] == pytest.approx(py_stop.time) and stop[2] == 0  # arm1's tool, point 0
     assert_rows_equal(c_rows, py_rows, 6)

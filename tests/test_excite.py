@@ -158,7 +158,7 @@ def test_scenario_loads_and_tracks_without_a_stop(tmp_path, capsys, robot, extra
     result = simulate(sc, 2.0, setups)
     assert not result.diverged
     from cochlea.runtime import build_supervisor, verdict
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius,
                                   substeps=sc.plant_substeps)
     assert verdict(result, supervisor)["rule"] == "none"
     for unit in result.units:

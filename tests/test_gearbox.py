@@ -330,7 +330,7 @@ def test_the_sim_backend_runs_the_geared_plant():
     periods = 300
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
     assert [f.kernel.name for f in backend._steps] == ["parallel_gear_plant_step"]
-    loop = RealTimeLoop(setups, backend, build_supervisor(setups, sc.space, None,
+    loop = RealTimeLoop(setups, backend, build_supervisor(setups, None,
                                                           substeps=sc.plant_substeps),
                         sc.period, periods, realtime=False, substeps=sc.plant_substeps)
     assert loop.run().rule == "completed"

@@ -51,7 +51,7 @@ def judged(sc, factor: float = 3.0):
     happened)."""
     setups = unit_setups(sc)
     result = simulate(sc, duration=factor * sc.duration, setups=setups, kernels="c")
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius, kernels="c",
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius, kernels="c",
                                   substeps=sc.plant_substeps)
     result.supervisor = verdict(result, supervisor)
     return result, summary(result)

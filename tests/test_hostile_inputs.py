@@ -268,6 +268,36 @@ def test_serial_task_path_is_checked_against_the_keep_out_circle(refused, tmp_pa
     unit_setups(dataclasses.replace(load_scenario(path), duration=5.0))  # 25 mm: allowed
 
 
+@pytest.mark.slow
+def test_serial_joint_path_is_checked_against_the_keep_out_circle(refused, tmp_path):
+    """A joint-space run keeps the tools out of the circle as a task-space one does: the
+    thesis's joint-space path (3.19) passes 27.5 mm from the cochlea centre, so a 30 mm circle
+    refuses it before anything moves, and the shipped 20 mm one lets it run."""
+    assert "keep_out_radius_m = 0.02" in SERIAL_ROBOT
+    scenario = with_robot(tmp_path, SERIAL_ROBOT.replace("keep_out_radius_m = 0.02",
+                                                         "keep_out_radius_m = 0.03"))
+    line = refused("--scenario", scenario)
+    assert "desired tool path passes" in line and "inside the keep-out radius 30.0 mm" in line
+    assert "arm1" in line
+    unit_setups(load_scenario(with_robot(tmp_path, SERIAL_ROBOT)))
+
+
+@pytest.mark.slow
+def test_parallel_joint_path_is_checked_against_the_keep_out_circle(refused, tmp_path):
+    """The parallel mechanism's joint-space path: its end effectors stay at least 133 mm from
+    the slider point S (the shipped circle is 60 mm); a 140 mm circle refuses it."""
+    robot = (ROBOTS_DIR / "parallel.toml").read_text()
+    assert "keep_out_radius_m = 0.06" in robot
+    robot = write(tmp_path, "parallel.toml",
+                  robot.replace("keep_out_radius_m = 0.06", "keep_out_radius_m = 0.14"))
+    scenario = (SCENARIOS_DIR / "parallel_joint.toml").read_text().replace(
+        'format = "cochlea-scenario/1"', f'format = "cochlea-scenario/1"\ndescription = "{robot}"')
+    path = write(tmp_path, "near.toml", scenario)
+    line = refused("--scenario", path, robot="parallel", space="joint")
+    assert "desired joint path takes an end effector" in line and "slider point S" in line
+    assert "inside the keep-out radius 140.0 mm" in line
+
+
 def test_serial_follower_joint_limits_are_checked(tmp_path):
     """Arm 2 follows arm 1 through inverse kinematics: a limit its own joints leave is found
     before the run too (here its joint 3, starting at 100 deg, is limited to 105 deg; its

@@ -105,7 +105,7 @@ def _run(sc, kernels="casadi"):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the C run must not fall back to CasADi
         result = simulate(sc, None, setups, kernels=kernels)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius, kernels="casadi")
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius, kernels="casadi")
     return result, verdict(result, supervisor)
 
 

@@ -343,7 +343,7 @@ def test_the_ramp_removes_the_start_up_velocity_stop(tmp_path):
                                      file=f"v{len(control)}.toml"))
         setups = unit_setups(sc)
         result = simulate(sc, 0.6, setups)
-        supervisor = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+        supervisor = build_supervisor(setups, None, substeps=sc.plant_substeps)
         from cochlea.runtime.supervisor import verdict
         peak = max(np.max(np.abs(u.qd) / [j.velocity_limit for j in s.controller_model.joints])
                    for u, s in zip(result.units, setups))
@@ -393,7 +393,7 @@ def test_every_option_runs_the_same_in_the_real_time_loop(tmp_path):
                                          "delay_periods = 0\n" + BEFORE_GEARBOX))
     setups = unit_setups(everything)
     backend = SimBackend(setups, everything.period, everything.plant_substeps)
-    supervisor = build_supervisor(setups, everything.space, None,
+    supervisor = build_supervisor(setups, None,
                                   substeps=everything.plant_substeps)
     loop = RealTimeLoop(setups, backend, supervisor, everything.period, 400, realtime=False,
                         substeps=everything.plant_substeps)

@@ -49,7 +49,7 @@ def make_loop(name="serial_task", fault=None, at=5, seconds=0.2, realtime=False,
     sc = load_scenario(name)
     setups = unit_setups(sc)
     backend = backend_cls(setups, sc.period, sc.plant_substeps, fault=fault, at=at)
-    supervisor = build_supervisor(setups, sc.space, keep_out, substeps=sc.plant_substeps)
+    supervisor = build_supervisor(setups, keep_out, substeps=sc.plant_substeps)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, int(seconds / sc.period),
                         realtime=realtime, substeps=sc.plant_substeps)
     assert loop.kernel_source == "c"  # the generated kernels, not the fallback
@@ -336,7 +336,7 @@ def test_as_fast_run_reports_the_rule_the_loop_stops_on(name, keep_out, velocity
     sc = load_scenario(name, plant_preset=preset)
     setups = unit_setups(sc)
     seconds = 0.5
-    sup = _tight(build_supervisor(setups, sc.space, keep_out, substeps=sc.plant_substeps),
+    sup = _tight(build_supervisor(setups, keep_out, substeps=sc.plant_substeps),
                  velocity)
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant,
                          steps=int(seconds / sc.period))
@@ -346,7 +346,7 @@ def test_as_fast_run_reports_the_rule_the_loop_stops_on(name, keep_out, velocity
     assert stop.rule in ("velocity-limit", "keep-out") and stop.time > 0.005, stop  # mid-run
     fast = simulate(sc, duration=seconds, setups=unit_setups(sc))
     verdict = first_violation(fast, _tight(build_supervisor(
-        [u.setup for u in fast.units], sc.space, keep_out, substeps=sc.plant_substeps),
+        [u.setup for u in fast.units], keep_out, substeps=sc.plant_substeps),
         velocity))
     assert verdict is not None
     assert (verdict.rule, verdict.time, verdict.detail) == (stop.rule, stop.time, stop.detail)
@@ -357,8 +357,7 @@ def test_as_fast_run_of_a_safe_scenario_reports_no_rule():
 
     sc = load_scenario("serial_task")
     result = simulate(sc, duration=1.0)
-    sup = build_supervisor([u.setup for u in result.units], sc.space,
-                           sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius, substeps=sc.plant_substeps)
     assert verdict(result, sup) == {"rule": "none", "saturated_periods": 0}
     sup.limits.effort[:] = 1e-4  # N m: every command above it would be clipped
     assert verdict(result, sup)["saturated_periods"] > 0
@@ -402,7 +401,7 @@ def test_as_fast_run_clips_commands_as_the_loop_does(tmp_path):
     sc = load_scenario("serial_joint")
     sc = dataclasses.replace(sc, description=str(weak), system=load_serial(weak))
     setups = unit_setups(sc)
-    sup = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    sup = build_supervisor(setups, None, substeps=sc.plant_substeps)
     loop = RealTimeLoop(setups, SimBackend(setups, sc.period, sc.plant_substeps), sup,
                         sc.period, 300, realtime=False, substeps=sc.plant_substeps)
     assert loop.run().rule == "completed"
@@ -426,8 +425,7 @@ def test_the_whole_run_gate_gives_the_screens_verdict(name, monkeypatch):
 
     sc = load_scenario(name)
     result = simulate(sc, duration=0.3)
-    sup = build_supervisor([u.setup for u in result.units], sc.space,
-                           sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius, substeps=sc.plant_substeps)
     q, qd = sv.measured_states(result)
     tau = np.hstack([u.tau for u in result.units])
     estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in result.units]

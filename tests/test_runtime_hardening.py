@@ -79,7 +79,7 @@ def timed_loop(work, periods=200, misses=10, name="serial_joint", options=None, 
     setups = unit_setups(sc)
     synthetic = SyntheticClock()
     backend = TimedBackend(setups, sc.period, sc.plant_substeps, synthetic, work)
-    supervisor = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps,
+    supervisor = build_supervisor(setups, None, substeps=sc.plant_substeps,
                                   watchdog_misses=misses)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=True,
                         substeps=sc.plant_substeps, clock=synthetic.clock,
@@ -193,7 +193,7 @@ def test_options_are_applied_in_the_loop_recorded_and_undone():
     synthetic = SyntheticClock()
     backend = ObservingBackend(setups, sc.period, sc.plant_substeps, synthetic,
                                lambda k: 0.2 * MS)
-    supervisor = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    supervisor = build_supervisor(setups, None, substeps=sc.plant_substeps)
     warnings = []
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, 20, realtime=True,
                         substeps=sc.plant_substeps, clock=synthetic.clock,
@@ -298,7 +298,7 @@ def _short_run(name="serial_joint", periods=300):
     sc = load_scenario(name)
     setups = unit_setups(sc)
     backend = SimBackend(setups, sc.period, sc.plant_substeps)
-    supervisor = build_supervisor(setups, sc.space, None, substeps=sc.plant_substeps)
+    supervisor = build_supervisor(setups, None, substeps=sc.plant_substeps)
     loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
                         substeps=sc.plant_substeps)
     assert loop.run().rule == "completed"

@@ -82,8 +82,7 @@ def test_printed_arm2_task_gain_diverges_at_1kHz():
     arm2 = sc.units[1]
     printed = dataclasses.replace(arm2, gains={**arm2.gains, "G_a": np.array([0.1, 0.05, 1.0])})
     result = simulate(dataclasses.replace(sc, units=(sc.units[0], printed)), duration=0.5)
-    supervisor = build_supervisor([u.setup for u in result.units], sc.space,
-                                  sc.system.keep_out_radius)
+    supervisor = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius)
     judged = verdict(result, supervisor)
     assert judged["rule"] == "velocity-limit" and judged["time_s"] < 0.1
     assert "arm2.joint3" in judged["detail"] and judged["saturated_periods"] > 400

@@ -250,7 +250,7 @@ def test_the_sim_backend_measures_as_the_as_fast_run(name, options):
     setups = unit_setups(sc)
     periods = 400
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
-    loop = RealTimeLoop(setups, backend, build_supervisor(setups, sc.space, None,
+    loop = RealTimeLoop(setups, backend, build_supervisor(setups, None,
                                                           substeps=sc.plant_substeps),
                         sc.period, periods, realtime=False, substeps=sc.plant_substeps)
     assert loop.run().rule == "completed"

@@ -291,7 +291,7 @@ def test_a_description_without_keep_out_radius_has_no_keep_out(tmp_path):
     sc = load_scenario(tmp_path / "planar2_task.toml")
     assert sc.system.keep_out_radius is None
     setups = unit_setups(sc)
-    supervisor = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    supervisor = build_supervisor(setups, sc.system.keep_out_radius,
                                   kernels="casadi")
     assert supervisor.limits.keep_out_radius is None
     result = simulate(sc, 1.0, setups, kernels="casadi")

@@ -38,7 +38,7 @@ def _as_fast(sc, seconds, out):
     """What ``cochlea-run --realtime off`` leaves: the simulation, its verdict, the report."""
     setups = unit_setups(sc)
     result = simulate(sc, seconds, setups)
-    sup = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    sup = build_supervisor(setups, sc.system.keep_out_radius,
                            substeps=sc.plant_substeps)
     result.supervisor = verdict(result, sup)
     return result, report.write_all(result, out, 0.0)
@@ -49,7 +49,7 @@ def _real_time(sc, seconds, out):
     setups = unit_setups(sc)
     steps = int(round(seconds / sc.period))
     backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=steps)
-    sup = build_supervisor(setups, sc.space, sc.system.keep_out_radius,
+    sup = build_supervisor(setups, sc.system.keep_out_radius,
                            substeps=sc.plant_substeps)
     loop = RealTimeLoop(setups, backend, sup, sc.period, steps, realtime=False,
                         substeps=sc.plant_substeps)

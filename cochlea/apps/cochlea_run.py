@@ -395,7 +395,7 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
         run.shield.defer()  # from here the report is written whatever the user presses
         run.simulating, run.kept = False, True
         # The as-fast run does not stop, but it answers to the same rules as a real one.
-        supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
+        supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
                                       kernels=args.kernels, substeps=scenario.plant_substeps)
         result.supervisor = verdict(result, supervisor)
         data = report.write_all(result, out, wall)
@@ -427,7 +427,7 @@ def _run_realtime(args, scenario, setups, run: _Run, choice) -> int:
         # Measured (delay, noise, grids) and driven (effort grid) as the as-fast run is.
         backend = SimBackend(setups, scenario.period, substeps, kernels=args.kernels,
                              plant=scenario.plant, steps=steps)
-    supervisor = build_supervisor(setups, scenario.space, keep_out, kernels=args.kernels,
+    supervisor = build_supervisor(setups, keep_out, kernels=args.kernels,
                                   substeps=substeps, watchdog_misses=args.watchdog_misses)
     loop = RealTimeLoop(setups, backend, supervisor, scenario.period, steps, realtime=True,
                         kernels=args.kernels, substeps=substeps,

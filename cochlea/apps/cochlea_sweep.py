@@ -115,7 +115,7 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
     # One worker per core: the arms one after the other, no thread pool a sample.
     result = simulate(scenario, None, setups, kernels, threads=False, library=library)
     wall = time.perf_counter() - start
-    supervisor = build_supervisor(setups, scenario.space, scenario.system.keep_out_radius,
+    supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
                                   kernels="casadi" if kernels == "casadi" else "c",
                                   substeps=scenario.plant_substeps)
     result.supervisor = verdict(result, supervisor)

@@ -923,7 +923,7 @@ class EmbeddedScenario:
     parameterisation: str
     period: float  # s
     duration: float  # s: the scenario's own duration
-    keep_out_radius: float  # m; 0 for joint-space runs (no keep-out rule)
+    keep_out_radius: float  # m; 0: no circle described (no keep-out rule), any space
     #: Whether the bridge adds the fit's offset current (it compensates the gearbox's friction)
     #: or leaves it to the controller (:func:`cochlea.robots.motor_fit.
     #: bridge_compensates_friction`).

@@ -422,7 +422,7 @@ def take(prepared: Desired, scenario, duration: float | None, rate_hz: float, ms
                           f"{unit} from the measured initial state {x0[i] * scale:.4g} {unit} "
                           f"(at most {START_TOLERANCE[j.type] * scale:g} {unit})")
     # Every point under the run's own supervisor rules, the keep-out circle included.
-    supervisor = build_supervisor(setups, "task", scenario.system.keep_out_radius,
+    supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
                                   kernels="casadi")
     n = len(joints)
     for k in range(len(tr.times)):

@@ -66,7 +66,7 @@ class Limits:
     effort: np.ndarray
     joint_names: tuple[str, ...]
     joint_units: tuple[str, ...]
-    keep_out_radius: float | None = None  # m, task-space runs only
+    keep_out_radius: float | None = None  # m; None: no keep-out circle
     watchdog_misses: int = 20  # consecutive overruns; also a stall's length in periods
     watchdog_errors: int = 5  # consecutive backend failures
 
@@ -214,12 +214,13 @@ def _show(value: float, unit: str) -> str:
     return f"{math.degrees(value):.2f} deg" if unit == "rad" else f"{value:.4f} m"
 
 
-def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float | None,
+def build_supervisor(setups: list[UnitSetup], keep_out_radius: float | None,
                      watchdog_misses: int = 20, watchdog_errors: int = 5,
                      kernels: str = "c", substeps: int = 1) -> Supervisor:
-    """Limits from the descriptions of every unit's joints; the keep-out circle for task-space
-    runs around each unit's centre (serial: the cochlea centre; parallel: the slider pivot S,
-    which moves with d1) for each of its tool points."""
+    """Limits from the descriptions of every unit's joints; the keep-out circle (None: none)
+    around each unit's centre (serial: the cochlea centre; parallel: the slider pivot S, which
+    moves with d1) for each of its tool points, in joint-space runs as in task-space ones: the
+    circle protects what is around the centre whatever coordinates the controller tracks."""
     joints = [j for u in setups for j in u.controller_model.joints]
     limits = Limits(
         position_lo=np.array([j.position_limits[0] for j in joints]),
@@ -228,7 +229,7 @@ def build_supervisor(setups: list[UnitSetup], space: str, keep_out_radius: float
         effort=np.array([j.effort_limit for j in joints]),
         joint_names=tuple(f"{u.name}.{j.name}" for u in setups for j in u.controller_model.joints),
         joint_units=tuple(un for u in setups for un in u.joint_units),
-        keep_out_radius=keep_out_radius if space == "task" else None,
+        keep_out_radius=keep_out_radius,
         watchdog_misses=watchdog_misses, watchdog_errors=watchdog_errors)
     fks, slices, start = [], [], 0
     for u in setups:

@@ -57,7 +57,7 @@ def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
 
 def embedded_scenario(sc: Scenario) -> EmbeddedScenario:
     """The scenario's facts the embedded runtime carries (names, period, keep-out radius)."""
-    radius = sc.system.keep_out_radius if sc.space == "task" else None
+    radius = sc.system.keep_out_radius  # every run: the circle does not depend on the space
     start = tuple(float(v) for u in unit_setups(sc) for v in u.x0[:u.controller_model.nq])
     return EmbeddedScenario(sc.name, sc.robot, sc.space, sc.controller, sc.variant,
                             sc.parameterisation, sc.period, float(sc.duration),

@@ -139,7 +139,7 @@ typedef struct {
     const double *position_hi;
     const double *velocity;        /* rad/s or m/s */
     const double *effort;          /* N m or N: every command is clipped to it */
-    double keep_out_radius;        /* m; 0 or less: no keep-out rule (joint-space runs) */
+    double keep_out_radius;        /* m; 0 or less: no keep-out rule (no circle described) */
     int watchdog_misses;           /* consecutive overruns tolerated (loop.h's overrun rule) */
     int watchdog_errors;           /* consecutive backend failures tolerated */
 } cochlea_limits;

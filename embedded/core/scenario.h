@@ -43,7 +43,7 @@ typedef struct {
     const char *name, *robot, *space, *controller, *variant, *parameterisation;
     double period_s;                    /* the control period */
     double duration_s;                  /* the scenario's own run length */
-    double keep_out_radius;             /* m; 0: no keep-out rule (joint-space runs) */
+    double keep_out_radius;             /* m; 0: no keep-out rule (no circle described) */
     int n_units;
     const cochlea_unit_info *units;
     int nq, nd, np, ne, n_points;       /* sizes of the whole scenario */

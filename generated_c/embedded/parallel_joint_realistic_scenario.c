@@ -231,7 +231,7 @@ static int tool_points(const double *q, double *points, double *centres) {
 
 const cochlea_scenario parallel_joint_realistic_scenario = {
     "parallel_joint_realistic", "parallel", "joint", "f", "corrected", "mass",
-    0.001, 10.0, 0.0,
+    0.001, 10.0, 0.06,
     PARALLEL_JOINT_REALISTIC_UNITS, units, PARALLEL_JOINT_REALISTIC_NQ, PARALLEL_JOINT_REALISTIC_ND, PARALLEL_JOINT_REALISTIC_NP, PARALLEL_JOINT_REALISTIC_NE, PARALLEL_JOINT_REALISTIC_NPOINTS,
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_joint_realistic_state), (int)sizeof(parallel_joint_realistic_real), init, step, terminate, desired, estimate, tool_points,

@@ -201,7 +201,7 @@ static int tool_points(const double *q, double *points, double *centres) {
 
 const cochlea_scenario parallel_joint_scenario = {
     "parallel_joint", "parallel", "joint", "f", "corrected", "mass",
-    0.001, 10.0, 0.0,
+    0.001, 10.0, 0.06,
     PARALLEL_JOINT_UNITS, units, PARALLEL_JOINT_NQ, PARALLEL_JOINT_ND, PARALLEL_JOINT_NP, PARALLEL_JOINT_NE, PARALLEL_JOINT_NPOINTS,
     parallel_drives, parallel_position_lo, parallel_position_hi, parallel_velocity, parallel_effort,
     sizeof(parallel_joint_state), (int)sizeof(parallel_joint_real), init, step, terminate, desired, estimate, tool_points,

@@ -255,7 +255,7 @@ static int tool_points(const double *q, double *points, double *centres) {
 
 const cochlea_scenario serial_joint_realistic_scenario = {
     "serial_joint_realistic", "serial", "joint", "e", "corrected", "mass",
-    0.001, 20.0, 0.0,
+    0.001, 20.0, 0.02,
     SERIAL_JOINT_REALISTIC_UNITS, units, SERIAL_JOINT_REALISTIC_NQ, SERIAL_JOINT_REALISTIC_ND, SERIAL_JOINT_REALISTIC_NP, SERIAL_JOINT_REALISTIC_NE, SERIAL_JOINT_REALISTIC_NPOINTS,
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
     sizeof(serial_joint_realistic_state), (int)sizeof(serial_joint_realistic_real), init, step, terminate, desired, estimate, tool_points,

@@ -219,7 +219,7 @@ static int tool_points(const double *q, double *points, double *centres) {
 
 const cochlea_scenario serial_joint_scenario = {
     "serial_joint", "serial", "joint", "e", "corrected", "mass",
-    0.001, 20.0, 0.0,
+    0.001, 20.0, 0.02,
     SERIAL_JOINT_UNITS, units, SERIAL_JOINT_NQ, SERIAL_JOINT_ND, SERIAL_JOINT_NP, SERIAL_JOINT_NE, SERIAL_JOINT_NPOINTS,
     serial_drives, serial_position_lo, serial_position_hi, serial_velocity, serial_effort,
     sizeof(serial_joint_state), (int)sizeof(serial_joint_real), init, step, terminate, desired, estimate, tool_points,

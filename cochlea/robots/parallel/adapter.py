@@ -74,6 +74,28 @@ def _check_keep_out(lead: ca.SX, t: ca.SX, radius: float, sc: ScenarioView) -> N
                 "the run there; change the trajectory or shorten --duration")
 
 
+def _check_joint_keep_out(fk_world: ca.Function, q_t: ca.SX, t: ca.SX, radius: float,
+                          sc: ScenarioView) -> None:
+    """Refuse a joint-space path that takes an end effector (C or C', the pose's (0, 1) and
+    (3, 4)) inside the keep-out circle around the slider point S = (0, d1) of the same
+    desired configuration, at any period of the run: the supervisor would stop it there, in
+    joint space as in task space."""
+    pose = fk_world(q_t)
+    S = ca.vertcat(0, q_t[2])
+    distance = ca.Function("distance", [t], [ca.fmin(ca.norm_2(pose[0:2] - S),
+                                                      ca.norm_2(pose[3:5] - S))])
+    for times, (r,) in sampled(distance, sc.duration, sc.period):
+        inside = np.flatnonzero(~(r.ravel() >= radius))
+        if inside.size:
+            k = inside[0]
+            raise KinematicsError(
+                f"scenario {getattr(sc, 'path', sc.name)}: the desired joint path takes an end "
+                f"effector {r.ravel()[k] * 1000:.1f} mm from the slider point S at t = "
+                f"{times[k]:.3f} s, inside the keep-out radius {radius * 1000:.1f} mm: the "
+                "supervisor would stop the run there; change the trajectory or shorten "
+                "--duration")
+
+
 def _initial_joint(geometry, unit: UnitStart) -> np.ndarray:
     if unit.initial_joint is not None:
         q0 = unit.initial_joint
@@ -163,6 +185,9 @@ class ParallelRobot(RobotAdapter):
             for time in _sample_times(sc):  # consistent and inside the workspace at every sample
                 geometry.ik(np.array(x_of_t(time)).ravel())
             _check_keep_out(lead, t, system.keep_out_radius, sc)
+        if sc.space == "joint" and system.keep_out_radius:
+            _check_joint_keep_out(ctrl_model.fk_world, desired_expr, t, system.keep_out_radius,
+                                  sc)
         desired = desired_function(UNIT, desired_expr, t)
         x_start = np.array(desired(0.0)[0]).ravel()
         d1_0 = float(x_start[2]) if sc.space == "joint" else \

@@ -82,8 +82,9 @@ def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView) -
 def _check_path(arm: Arm, q_t: ca.SX, tool_t: ca.SX, t: ca.SX, sc: ScenarioView,
                 keep_out: float | None) -> None:
     """Refuse a desired path the supervisor would stop, before anything moves: a joint beyond
-    its position limits, or (``keep_out``, task space) the tool inside the keep-out circle
-    around the cochlea centre, at any sampled time of the run."""
+    its position limits, or (``keep_out``: the description's radius, None for none; joint and
+    task space alike) the tool inside the keep-out circle around the cochlea centre, at any
+    sampled time of the run."""
     lo = np.array([link.joint.position_limits[0] for link in arm.links])[:, None]
     hi = np.array([link.joint.position_limits[1] for link in arm.links])[:, None]
     path = ca.Function("path", [t], [q_t, ca.norm_2(tool_t[0:2])])
@@ -256,7 +257,8 @@ class SerialRobot(RobotAdapter):
             if sc.space == "task":
                 _check_task_path(arm, space, desired_expr, t, sc, q0, system.keep_out_radius)
             else:
-                _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc, None)
+                _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc,
+                            system.keep_out_radius)
             tool = arm.links[-1]
             pose_task = None if space.model_pose else (
                 (space.fk, space.J) if space.error is None else (space.fk, space.J, space.error))
@@ -314,7 +316,8 @@ class SerialRobot(RobotAdapter):
                 _check_path(arm, ik_symbolic(arm, pose_base, elbow, offsets), desired_expr, t,
                             sc, system.keep_out_radius)
             else:
-                _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc, None)
+                _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc,
+                            system.keep_out_radius)
             tool = arm.links[-1]
             plans.append(UnitPlan(
                 arm.name, m, self.model(system, arm, "inertial", actuators=sc.plant_actuators),
