@@ -101,6 +101,16 @@ LOG_FLOOR = float(np.log(1e-6))
 #: solve; the cost is then within 1e-3 of a solve twenty times longer (docs).
 TOL = 1e-15
 MAX_NFEV = 300
+#: Trailing coordinates with an all-zero Jacobian column handed to the solver after theta.
+#: SciPy's MINPACK (its C translation, measured with 1.17.1) reads one element past the end of
+#: the Jacobian when its pivoted QR (qrfac) recomputes the norm of the column stored last:
+#: whatever the heap holds there entered the pivoting and the step, so two fits of the same data
+#: could land on different optima (valgrind: "invalid read ... 0 bytes after a block", the
+#: Jacobian's; glibc's MALLOC_PERTURB_ changes the result without the pad). A zero column has
+#: norm zero, is never pivoted away from the last place and never has its norm recomputed, so
+#: the read never happens; its step is always zero (MINPACK treats it as a rank-deficient
+#: direction), and the solve is a function of the data alone.
+MINPACK_PAD = 1
 
 
 @dataclass(frozen=True)
@@ -533,13 +543,23 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     x_change = np.linalg.lstsq(from_full * scale, beta_ols - from_full @ prior, rcond=None)[0]
     phi_ols = prior + scale * x_change
 
+    # The solver sees one coordinate more than theta, whose Jacobian column is zero (see
+    # MINPACK_PAD): its step is always zero, and it keeps the solve to the bit whatever the
+    # process's memory holds.
+    pad_column = np.zeros((G.shape[0] + logs.size, MINPACK_PAD))
+
     def solve(theta0):
         # An overflowing trial step (exp of a large coordinate) is an infinite cost the trust
         # region rejects and shrinks from: not worth a warning.
         with np.errstate(over="ignore", invalid="ignore"):
-            return least_squares(residual, theta0, jac=jacobian, method="lm", x_scale="jac",
-                                 ftol=TOL, xtol=TOL, gtol=TOL,
-                                 max_nfev=MAX_NFEV)
+            result = least_squares(lambda t: residual(t[:-MINPACK_PAD]),
+                                   np.concatenate([theta0, np.zeros(MINPACK_PAD)]),
+                                   jac=lambda t: np.hstack([jacobian(t[:-MINPACK_PAD]),
+                                                            pad_column]),
+                                   method="lm", x_scale="jac", ftol=TOL, xtol=TOL, gtol=TOL,
+                                   max_nfev=MAX_NFEV)
+        result.x = result.x[:-MINPACK_PAD]
+        return result
 
     best = None
     for start in (prior, phi_ols):
