@@ -299,28 +299,6 @@ def _body_scale(b: _Block, scale: np.ndarray) -> tuple[float, float]:
     return m0, r0
 
 
-#: ``_phi_symbolic``'s Functions by their inputs' content (the last few).
-_PHI_CACHE: dict[tuple, tuple[ca.Function, int]] = {}
-PHI_CACHE_SIZE = 16
-
-
-def _phi_symbolic_cached(blocks: list[_Block], n_full: int, scale: np.ndarray
-                         ) -> tuple[ca.Function, int]:
-    """:func:`_phi_symbolic`, built once per content of its inputs in a process. A graph
-    built anew can order the operands of its commutative nodes by where the expressions
-    happen to sit in memory, and on noisy, weakly exciting data that last bit moved the fit
-    (two fits of the same data in one process disagreed, about one run in eight): the same
-    Function for the same inputs makes a repeated fit repeat to the bit."""
-    key = (tuple((b.owner, b.kind, tuple(sorted(b.index.items()))) for b in blocks), n_full,
-           np.asarray(scale, float).tobytes())
-    hit = _PHI_CACHE.get(key)
-    if hit is None:
-        hit = _PHI_CACHE[key] = _phi_symbolic(blocks, n_full, scale)
-        while len(_PHI_CACHE) > PHI_CACHE_SIZE:
-            _PHI_CACHE.pop(next(iter(_PHI_CACHE)))
-    return hit
-
-
 def _phi_symbolic(blocks: list[_Block], n_full: int, scale: np.ndarray
                   ) -> tuple[ca.Function, int]:
     """``phi(theta)`` and its Jacobian as one CasADi Function ``theta -> (phi, dphi/dtheta)``.
@@ -517,7 +495,7 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     G = np.vstack([R @ from_full, np.sqrt(lam) * (N.T / scale)])
     h = np.concatenate([c, np.sqrt(lam) * (N.T @ (prior / scale))])
 
-    phi_of_theta, _ = _phi_symbolic_cached(blocks, n_full, scale)
+    phi_of_theta, _ = _phi_symbolic(blocks, n_full, scale)
 
     # Where the data push a body toward the boundary of the consistent set (a mass or an
     # inertia they want below zero), its logarithmic coordinates would creep toward minus
