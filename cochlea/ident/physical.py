@@ -101,6 +101,16 @@ LOG_FLOOR = float(np.log(1e-6))
 #: solve; the cost is then within 1e-3 of a solve twenty times longer (docs).
 TOL = 1e-15
 MAX_NFEV = 300
+#: Trailing coordinates with an all-zero Jacobian column handed to the solver after theta.
+#: SciPy's MINPACK (its C translation, measured with 1.17.1) reads one element past the end of
+#: the Jacobian when its pivoted QR (qrfac) recomputes the norm of the column stored last:
+#: whatever the heap holds there entered the pivoting and the step, so two fits of the same data
+#: could land on different optima (valgrind: "invalid read ... 0 bytes after a block", the
+#: Jacobian's; glibc's MALLOC_PERTURB_ changes the result without the pad). A zero column has
+#: norm zero, is never pivoted away from the last place and never has its norm recomputed, so
+#: the read never happens; its step is always zero (MINPACK treats it as a rank-deficient
+#: direction), and the solve is a function of the data alone.
+MINPACK_PAD = 1
 
 
 @dataclass(frozen=True)
@@ -287,28 +297,6 @@ def _body_scale(b: _Block, scale: np.ndarray) -> tuple[float, float]:
     m0 = float(scale[b.index["m"]])
     r0 = float(scale[b.index["mx"]]) / m0 if "mx" in b.index else 1.0
     return m0, r0
-
-
-#: ``_phi_symbolic``'s Functions by their inputs' content (the last few).
-_PHI_CACHE: dict[tuple, tuple[ca.Function, int]] = {}
-PHI_CACHE_SIZE = 16
-
-
-def _phi_symbolic_cached(blocks: list[_Block], n_full: int, scale: np.ndarray
-                         ) -> tuple[ca.Function, int]:
-    """:func:`_phi_symbolic`, built once per content of its inputs in a process. A graph
-    built anew can order the operands of its commutative nodes by where the expressions
-    happen to sit in memory, and on noisy, weakly exciting data that last bit moved the fit
-    (two fits of the same data in one process disagreed, about one run in eight): the same
-    Function for the same inputs makes a repeated fit repeat to the bit."""
-    key = (tuple((b.owner, b.kind, tuple(sorted(b.index.items()))) for b in blocks), n_full,
-           np.asarray(scale, float).tobytes())
-    hit = _PHI_CACHE.get(key)
-    if hit is None:
-        hit = _PHI_CACHE[key] = _phi_symbolic(blocks, n_full, scale)
-        while len(_PHI_CACHE) > PHI_CACHE_SIZE:
-            _PHI_CACHE.pop(next(iter(_PHI_CACHE)))
-    return hit
 
 
 def _phi_symbolic(blocks: list[_Block], n_full: int, scale: np.ndarray
@@ -507,7 +495,7 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     G = np.vstack([R @ from_full, np.sqrt(lam) * (N.T / scale)])
     h = np.concatenate([c, np.sqrt(lam) * (N.T @ (prior / scale))])
 
-    phi_of_theta, _ = _phi_symbolic_cached(blocks, n_full, scale)
+    phi_of_theta, _ = _phi_symbolic(blocks, n_full, scale)
 
     # Where the data push a body toward the boundary of the consistent set (a mass or an
     # inertia they want below zero), its logarithmic coordinates would creep toward minus
@@ -533,13 +521,23 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     x_change = np.linalg.lstsq(from_full * scale, beta_ols - from_full @ prior, rcond=None)[0]
     phi_ols = prior + scale * x_change
 
+    # The solver sees one coordinate more than theta, whose Jacobian column is zero (see
+    # MINPACK_PAD): its step is always zero, and it keeps the solve to the bit whatever the
+    # process's memory holds.
+    pad_column = np.zeros((G.shape[0] + logs.size, MINPACK_PAD))
+
     def solve(theta0):
         # An overflowing trial step (exp of a large coordinate) is an infinite cost the trust
         # region rejects and shrinks from: not worth a warning.
         with np.errstate(over="ignore", invalid="ignore"):
-            return least_squares(residual, theta0, jac=jacobian, method="lm", x_scale="jac",
-                                 ftol=TOL, xtol=TOL, gtol=TOL,
-                                 max_nfev=MAX_NFEV)
+            result = least_squares(lambda t: residual(t[:-MINPACK_PAD]),
+                                   np.concatenate([theta0, np.zeros(MINPACK_PAD)]),
+                                   jac=lambda t: np.hstack([jacobian(t[:-MINPACK_PAD]),
+                                                            pad_column]),
+                                   method="lm", x_scale="jac", ftol=TOL, xtol=TOL, gtol=TOL,
+                                   max_nfev=MAX_NFEV)
+        result.x = result.x[:-MINPACK_PAD]
+        return result
 
     best = None
     for start in (prior, phi_ols):
