@@ -20,15 +20,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
 
+from cochlea.dynamixel import bridge as br
 from cochlea.dynamixel import protocol as proto
 from cochlea.dynamixel.bridge import DynamixelBackend
-from cochlea.dynamixel.control_table import ALERT_BIT, MODELS
+from cochlea.dynamixel.control_table import ALERT_BIT
 from cochlea.dynamixel.drives import joint_drives
 from cochlea.runtime.backend import BackendError
 
@@ -40,8 +41,9 @@ class TableBus:
     table per ID, filled from the drives' model data) and that records every frame sent.
 
     It answers PING, READ, WRITE, SYNC_READ, SYNC_WRITE, BULK_READ, BULK_WRITE and
-    FAST_SYNC_READ. ``alert``: IDs whose replies carry the hardware alert bit (their Hardware
-    Error Status reads ``overload``)."""
+    FAST_SYNC_READ; each state read finds every Realtime Tick one further (never a stale
+    packet, however slow the machine). ``alert``: IDs whose replies carry the hardware alert
+    bit (their Hardware Error Status reads ``overload``)."""
 
     def __init__(self, drives):
         self.drives = {d.id: d for d in drives}
@@ -74,6 +76,10 @@ class TableBus:
         self.parser.reset()
         self.parser.feed(frame)
         assert self.parser.parse() == proto.OK, frame.hex(" ")
+        if self.parser.instruction in (proto.SYNC_READ, proto.FAST_SYNC_READ, proto.BULK_READ):
+            # A millisecond or more since the last read, on every motor's clock: fresh data.
+            for i in self.tables:
+                self.put(i, "Realtime Tick", (self.get(i, "Realtime Tick") + 1) % 32768)
         self._answer(self.parser.id, self.parser.instruction, self.parser.params())
         return True
 
@@ -158,14 +164,12 @@ def run(robot: str, drives=None, **options) -> tuple[DynamixelBackend, TableBus]
     """A bridge on a :class:`TableBus` through one whole run: start-up, a zero command, a
     nonzero one (the torque comes on), a read, a hardware alert on the second motor (the
     failed read, the period that reads its Hardware Error Status), the shut-down."""
-    if drives is None:
-        drives = joint_drives(robot)
+    drives = joint_drives(robot) if drives is None else drives
     bus = TableBus(drives)
-    backend = DynamixelBackend(robot, "/dev/null", 4_000_000, open_port=lambda p, b: bus,
-                               adapter_latency_s=0.0, timeout_s=0.01, homing="off",
-                               **options)
-    if drives is not None:
-        assert [d.spec for d in backend.drives] == [d.spec for d in drives]
+    with mock.patch.object(br, "joint_drives", lambda *args, **kwargs: list(drives)):
+        backend = DynamixelBackend(robot, "/dev/null", 4_000_000, open_port=lambda p, b: bus,
+                                   adapter_latency_s=0.0, timeout_s=0.01, homing="off",
+                                   **options)
     n = backend.nq
     x = np.zeros(2 * n)
     backend.enable()
@@ -197,6 +201,122 @@ def frames():
 def test_the_shipped_robots_frames_are_the_ones_recorded_before(frames, name):
     golden = json.loads(GOLDEN.read_text())
     assert frames[name] == golden[name]
+
+
+# ---- the addresses come from the data ------------------------------------------------------
+
+#: Every item the start-up, the torque-on, the alert path and the shut-down write or read.
+ITEMS = ("Torque Enable", "Bus Watchdog", "Operating Mode", "Return Delay Time",
+         "Current Limit", "Goal Current", "Hardware Error Status")
+SHIFT = 400  # an address no X-layout item uses (the table is 1024 bytes)
+
+
+def moved(drives, name: str, which=None):
+    """``drives`` whose models (a test-only copy of each: ``MODEL*``) have item ``name``
+    SHIFT bytes further on; ``which``: the motor indices moved (default all)."""
+    out = []
+    for k, d in enumerate(drives):
+        if which is None or k in which:
+            items = tuple(dataclasses.replace(it, address=it.address + SHIFT)
+                          if it.name == name else it for it in d.spec.items)
+            d = dataclasses.replace(d, spec=dataclasses.replace(d.spec, name=d.spec.name + "*",
+                                                                items=items))
+        out.append(d)
+    return out
+
+
+def relocated(frame: bytes, old: int, new: int, ids) -> bytes:
+    """``frame`` with the item at ``old`` addressed at ``new`` for the motors ``ids``: what
+    the bridge must send when the data move it."""
+    parser = proto.PacketParser(status=False)
+    parser.feed(frame)
+    assert parser.parse() == proto.OK
+    motor_id, inst, p = parser.id, parser.instruction, bytearray(parser.params())
+    at = lambda k: p[k] | (p[k + 1] << 8)  # noqa: E731
+    if inst in (proto.READ, proto.WRITE) and motor_id in ids and at(0) == old:
+        p[0:2] = proto.le(new, 2)
+    elif inst in (proto.SYNC_READ, proto.SYNC_WRITE, proto.FAST_SYNC_READ) and at(0) == old:
+        p[0:2] = proto.le(new, 2)
+    elif inst == proto.BULK_WRITE:
+        k = 0
+        while k < len(p):
+            if p[k] in ids and at(k + 1) == old:
+                p[k + 1:k + 3] = proto.le(new, 2)
+            k += 5 + at(k + 3)
+    else:
+        return frame
+    return proto.instruction(motor_id, inst, bytes(p))
+
+
+@pytest.mark.parametrize("name", ITEMS)
+@pytest.mark.parametrize("run_name", ["serial", "serial-tick-bulk"])
+def test_an_item_moved_in_the_data_moves_in_every_frame(name, run_name):
+    """A test-only model with one item SHIFT bytes further on: every frame that addressed it
+    now addresses it there, every other frame is unchanged (the golden run's)."""
+    robot, options = RUNS[run_name]
+    drives = joint_drives(robot)
+    old = drives[0].spec.item(name).address
+    _, bus = run(robot, moved(drives, name), **options)
+    golden = [bytes.fromhex(f) for f in json.loads(GOLDEN.read_text())[run_name]]
+    ids = {d.id for d in drives}
+    expected = [relocated(f, old, old + SHIFT, ids) for f in golden]
+    assert expected != golden  # the item is addressed somewhere
+    assert bus.sent == expected
+
+
+@pytest.mark.parametrize("name", ["Operating Mode", "Return Delay Time", "Current Limit",
+                                  "Hardware Error Status"])
+def test_a_unicast_item_is_each_motors_own(name):
+    """An item the bridge only writes or reads motor by motor, moved on one motor's model:
+    that motor's frames address it there, the others' where their own data put it."""
+    drives = joint_drives("serial")
+    old = drives[0].spec.item(name).address
+    _, bus = run("serial", moved(drives, name, which={2}))
+    golden = [bytes.fromhex(f) for f in json.loads(GOLDEN.read_text())["serial"]]
+    assert bus.sent == [relocated(f, old, old + SHIFT, {drives[2].id}) for f in golden]
+
+
+@pytest.mark.parametrize("name, write", [("Torque Enable", "auto"), ("Torque Enable", "bulk"),
+                                         ("Goal Current", "sync")])
+def test_a_sync_write_item_placed_differently_is_refused_in_one_line(name, write):
+    """Torque Enable goes on by one SYNC_WRITE to all motors, whatever carries Goal Current
+    (and off by one, with SYNC_WRITE); Goal Current by SYNC_WRITE unless BULK_WRITE: a chain
+    whose models place the item differently cannot be written so, and is refused before the
+    port is opened, naming the item (and, for Torque Enable, where each model has it)."""
+    drives = moved(joint_drives("serial"), name, which={2})
+    opened = []
+    with mock.patch.object(br, "joint_drives", lambda *args, **kwargs: drives), \
+            pytest.raises(BackendError) as caught:
+        DynamixelBackend("serial", "/dev/null", write_instruction=write,
+                         open_port=lambda p, b: opened.append(p))
+    message = str(caught.value)
+    assert "\n" not in message and not opened and name in message
+    if name == "Torque Enable":
+        assert "MX-64: address 64, 1 byte" in message
+        assert "MX-64*: address 464, 1 byte" in message
+
+
+def test_a_value_its_item_cannot_hold_is_refused_before_the_port_opens():
+    """The Bus Watchdog's range in a test-only model's data (0..3, 20 ms steps): a 100 ms
+    watchdog (5) does not fit it, and nothing is sent; a 1-byte Current Limit cannot hold
+    the MX-64's 2-byte limit."""
+    drives = joint_drives("serial")
+    for name, change in (("Bus Watchdog", {"hi": 3}), ("Current Limit", {"size": 1})):
+        small = [dataclasses.replace(d, spec=dataclasses.replace(d.spec, items=tuple(
+            dataclasses.replace(it, **change) if it.name == name else it
+            for it in d.spec.items))) for d in drives]
+        opened = []
+        with mock.patch.object(br, "joint_drives", return_value=small), \
+                pytest.raises(BackendError, match=f"{name} = [0-9]+ does not fit"):
+            DynamixelBackend("serial", "/dev/null",
+                             open_port=lambda p, b, seen=opened: seen.append(p))
+        assert not opened
+
+
+def test_the_bridge_writes_with_no_x_series_constant():
+    """The bridge's source names no ADDR_* constant (they stay in control_table for the
+    emulator): its addresses are the data's."""
+    assert "ADDR_" not in Path(br.__file__).read_text()
 
 
 if __name__ == "__main__":  # rewrite the golden frames (only on purpose: they prove a refactor)
