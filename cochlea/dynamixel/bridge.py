@@ -24,6 +24,15 @@ shut-down, before anything moved:
    locking: milliseconds, tens under load), during which the parallel robot's slider fell
    freely on the emulator (a velocity-limit stop at t = 0 under load).
 
+Every address and size the bridge writes or reads comes from the drives' model data
+(``cochlea/dynamixel/models``, each model's control-table items), none from the X series'
+constants: a confirmed WRITE or READ to one motor uses that motor's item; a frame that is one
+SYNC_WRITE or SYNC_READ for all motors (the torque-on, the shut-down's) the item they all
+share, a chain whose models place it differently being refused in one line
+(:func:`~cochlea.dynamixel.drives.shared_item`); and every value written is checked against
+its item's size and range before the port is opened
+(:func:`~cochlea.dynamixel.drives.encode_item`).
+
 The per-period transfers come from the models' data (:func:`choose_transfers`, summary
 ``read_instruction`` / ``write_instruction``): FAST_SYNC_READ (one combined status packet)
 when every model answers it, BULK_READ / BULK_WRITE when a mixed chain's models place the
@@ -71,13 +80,6 @@ from . import homing
 from . import protocol as proto
 from .budget import DEFAULT_ADAPTER_LATENCY_S, BusBudget, Verdict, bus_budget
 from .control_table import (
-    ADDR_BUS_WATCHDOG,
-    ADDR_CURRENT_LIMIT,
-    ADDR_GOAL_CURRENT,
-    ADDR_HARDWARE_ERROR,
-    ADDR_OPERATING_MODE,
-    ADDR_RETURN_DELAY,
-    ADDR_TORQUE_ENABLE,
     ALERT_BIT,
     CURRENT_MODE,
     MODELS_BY_NUMBER,
@@ -89,7 +91,15 @@ from .control_table import (
     describe_error,
     describe_hardware_error,
 )
-from .drives import DEFAULT_RAMP_NM, JointDrive, check_baud, joint_drives
+from .drives import (
+    DEFAULT_RAMP_NM,
+    JointDrive,
+    check_baud,
+    drive_item,
+    encode_item,
+    joint_drives,
+    shared_item,
+)
 from .port import SerialPort, latency_timer_ms
 
 #: Failure kinds a period can report (index into ``DynamixelBackend.failures``).
@@ -145,6 +155,23 @@ def _block(spec, items: tuple[str, ...]) -> tuple[int, int, tuple[int, ...]]:
     start = min(it.address for it in found)
     end = max(it.address + it.size for it in found)
     return start, end - start, tuple((it.address - start, it.size) for it in found)
+
+
+#: The field of the state's record each item of the per-period block fills.
+_STATE_FIELDS = {"Realtime Tick": "tick", "Present Current": "current",
+                 "Present Velocity": "velocity", "Present Position": "position"}
+
+
+def _check_state_layout(spec, items: tuple[str, ...], dtype: np.dtype) -> None:
+    """Refuse, in one line, a model whose block of ``items`` is not laid out as the bridge's
+    state record ``dtype`` parses it (offsets and sizes in bytes, the block's length)."""
+    _, length, offsets = _block(spec, items)
+    want = tuple((dtype.fields[_STATE_FIELDS[name]][1],
+                  dtype.fields[_STATE_FIELDS[name]][0].itemsize) for name in items)
+    if length != dtype.itemsize or offsets != want:
+        raise BackendError(f"the {spec.name}'s {', '.join(items)} lie at {offsets} (offset, "
+                           f"bytes) in a {length}-byte block: the bridge parses {want} in "
+                           f"{dtype.itemsize} bytes")
 
 
 def choose_transfers(specs, items: tuple[str, ...] = STATE_ITEMS,
@@ -261,10 +288,6 @@ class DynamixelBackend:
             else:
                 adapter_latency_s = DEFAULT_ADAPTER_LATENCY_S
         self.realtime_tick = bool(realtime_tick)
-        read_address, read_length, dtype = (
-            (TICK_ADDRESS, TICK_READ_LENGTH, _TICK_STATE_DTYPE) if self.realtime_tick
-            else (STATE_ADDRESS, STATE_LENGTH, _STATE_DTYPE))
-        self._read_length = read_length
         # The per-period transfers, from the models' data (a mixed chain whose items lie at
         # different addresses: BULK_READ / BULK_WRITE; FAST_SYNC_READ where every model has it).
         if read_instruction not in READ_INSTRUCTIONS:
@@ -274,6 +297,7 @@ class DynamixelBackend:
             raise BackendError(f"write_instruction must be one of "
                                f"{', '.join(WRITE_INSTRUCTIONS)}, got {write_instruction!r}")
         items = TICK_ITEMS if self.realtime_tick else STATE_ITEMS
+        dtype = _TICK_STATE_DTYPE if self.realtime_tick else _STATE_DTYPE
         auto_read, auto_write, why = choose_transfers([d.spec for d in self.drives], items)
         self.read_instruction = auto_read if read_instruction == "auto" else read_instruction
         self.write_instruction = auto_write if write_instruction == "auto" \
@@ -287,7 +311,13 @@ class DynamixelBackend:
             raise BackendError("SYNC_WRITE cannot write this chain's Goal Current: the models "
                                "place it at different addresses")
         self.read_choice = why
+        # Each motor's block of the state items, at its address in its model's data (one
+        # address for all unless BULK_READ: choose_transfers), parsed into ``dtype``.
         self._reads = [(d.id, *_block(d.spec, items)[:2]) for d in self.drives]
+        for d in self.drives:
+            _check_state_layout(d.spec, items, dtype)
+        read_address, read_length = self._reads[0][1:]
+        self._read_length = read_length
         self.budget: BusBudget = bus_budget(n, self.baud, adapter_latency_s=adapter_latency_s,
                                             read_length=read_length,
                                             read_instruction=self.read_instruction,
@@ -330,13 +360,20 @@ class DynamixelBackend:
         else:
             self._read_frame = proto.sync_read(read_address, read_length, self.ids)
         self._read_view = memoryview(self._read_frame)
+        # Every address and size written or read below is the drives' model data's
+        # (cochlea/dynamixel/models); a frame that is one SYNC_WRITE or SYNC_READ for all
+        # motors takes the item they all share (shared_item: a chain whose models place it
+        # differently is refused here, in one line). Goal Current is 2 bytes on every model
+        # (choose_transfers checks it): the preallocated frames below carry an int16.
+        goal = [drive_item(d, "Goal Current") for d in self.drives]
         if self.write_instruction == "bulk":
             self._write_frame, _ = proto.bulk_write_buffer(
-                [(d.id, d.spec.item("Goal Current").address, 2) for d in self.drives])
+                [(d.id, it.address, it.size) for d, it in zip(self.drives, goal)])
             self._goal = np.frombuffer(self._write_frame.params, _BULK_GOAL_DTYPE,
                                        count=n)["current"]
         else:
-            self._write_frame = proto.sync_write_buffer(ADDR_GOAL_CURRENT, 2, self.ids)
+            it = shared_item(self.drives, "Goal Current")
+            self._write_frame = proto.sync_write_buffer(it.address, it.size, self.ids)
             self._goal = np.frombuffer(self._write_frame.params, _GOAL_DTYPE, count=n,
                                        offset=4)["current"]
         self._raw = bytearray(read_length * n)
@@ -396,30 +433,65 @@ class DynamixelBackend:
         self.alert_status: dict[int, int] = {}
         self._alert_pending = -1  # the motor whose status is still to be read, or -1
         self._alert_tries = 0
-        self._alert_frames = {i: proto.read(i, ADDR_HARDWARE_ERROR, 1) for i in self.ids}
+        #: Per motor: the READ of its Hardware Error Status, and the item's size (bytes).
+        self._alert_frames = {}
+        for d in self.drives:
+            it = drive_item(d, "Hardware Error Status")
+            self._alert_frames[d.id] = (proto.read(d.id, it.address, it.size), it.size)
         self.shutdown_report = "not started"
         #: Firmware Version of each motor, from its PING reply at start-up.
         self.firmware: dict[int, int] = {}
+        torque = [drive_item(d, "Torque Enable") for d in self.drives]
         if self.write_instruction == "bulk":
             self._zero_frame = proto.bulk_write(
-                [(d.id, d.spec.item("Goal Current").address, b"\0\0") for d in self.drives])
+                [(d.id, it.address, encode_item(d, it, 0)) for d, it in zip(self.drives, goal)])
             self._torque_off_frame = proto.bulk_write(
-                [(d.id, d.spec.item("Torque Enable").address, b"\0") for d in self.drives])
+                [(d.id, it.address, encode_item(d, it, 0))
+                 for d, it in zip(self.drives, torque)])
         else:
-            self._zero_frame = proto.sync_write(ADDR_GOAL_CURRENT, 2,
-                                                [(i, b"\0\0") for i in self.ids])
-            self._torque_off_frame = proto.sync_write(ADDR_TORQUE_ENABLE, 1,
-                                                      [(i, b"\0") for i in self.ids])
+            self._zero_frame = self._sync_write_all("Goal Current", 0)
+            self._torque_off_frame = self._sync_write_all("Torque Enable", 0)
+        #: The shut-down's confirming READ of Torque Enable, per motor: (frame, its 0).
+        self._torque_off_checks = [(proto.read(d.id, it.address, it.size),
+                                    encode_item(d, it, 0)) for d, it in zip(self.drives, torque)]
         # Start-up step 9's two transactions, made once: Torque Enable 1 to every motor (no
         # reply), then a read of Torque Enable from every motor, at the item's address and size
-        # in the models' data (the same on every motor: joint_drives refuses a model whose
-        # control table is not the X series' layout).
-        it = self.drives[0].spec.item("Torque Enable")
-        self._torque_on_frame = proto.sync_write(it.address, it.size,
-                                                 [(i, proto.le(1, it.size)) for i in self.ids])
+        # in the models' data (one for all: shared_item; joint_drives admits one layout).
+        self._torque_on_frame = self._sync_write_all("Torque Enable", 1)
+        it = shared_item(self.drives, "Torque Enable")
         self._torque_check_frame = proto.sync_read(it.address, it.size, self.ids)
         self._torque_on_what = f"torque on (SYNC_WRITE {it.address} = 1, read back by SYNC_READ)"
         self._torque_size = it.size
+        #: Start-up steps 2.-7.: (what, one confirmed WRITE per motor), each motor's item at
+        #: its own address and size, every value checked against its item here, before the
+        #: port is opened.
+        mode = [CURRENT_MODE] * n
+        self._setup_writes = [
+            self._writes("Torque Enable", [0] * n, "torque off"),
+            self._writes("Bus Watchdog", [0] * n, "clear the Bus Watchdog"),
+            self._writes("Operating Mode", mode, "current control mode"),
+            self._writes("Return Delay Time", [0] * n, "return delay 0"),
+            self._writes("Current Limit", [d.current_limit_lsb for d in self.drives],
+                         "the current limit"),
+            self._writes("Goal Current", [0] * n, "goal current 0"),
+            self._writes("Bus Watchdog", [self.watchdog_lsb] * n, "the Bus Watchdog"),
+        ]
+
+    def _sync_write_all(self, name: str, value: int) -> bytes:
+        """One SYNC_WRITE of ``value`` to item ``name`` of every motor (the item they share)."""
+        it = shared_item(self.drives, name)
+        return proto.sync_write(it.address, it.size,
+                                [(d.id, encode_item(d, it, value)) for d in self.drives])
+
+    def _writes(self, name: str, values, what: str) -> list[tuple[JointDrive, str, bytes]]:
+        """A confirmed WRITE of ``values`` (one per motor) to item ``name``:
+        ``(drive, what it does, frame)`` per motor, at the item's address in its model."""
+        out = []
+        for d, value in zip(self.drives, values):
+            it = drive_item(d, name)
+            out.append((d, f"{what} (WRITE {it.address} = {value})",
+                        proto.write(d.id, it.address, encode_item(d, it, int(value)))))
+        return out
 
     # ---- the Backend interface ------------------------------------------------------------------
 
@@ -771,7 +843,7 @@ class DynamixelBackend:
         if self._alert_tries >= 3:
             self._alert_pending = -1  # give up; the shut-down report reads it once more
         parser = self._parser
-        frame = self._alert_frames[motor_id]
+        frame, size = self._alert_frames[motor_id]
         deadline = time.perf_counter() + self.timeout_s
         if not port.write(memoryview(frame), len(frame), deadline):
             return self._fail(PORT, -1)
@@ -781,8 +853,10 @@ class DynamixelBackend:
                 return self._fail(PORT, -1)
             if code == _TIMED_OUT:
                 break
-            if code == proto.OK and parser.id == motor_id and parser.params_len == 1:
-                self.alert_status[motor_id] = parser.view[parser.params_start]
+            if code == proto.OK and parser.id == motor_id and parser.params_len == size:
+                start = parser.params_start
+                self.alert_status[motor_id] = proto.from_le(
+                    parser.view[start:start + size], False)
                 self._alert_pending = -1
                 break
         return self._fail(ALERT, motor_id)
@@ -959,16 +1033,11 @@ class DynamixelBackend:
         return params
 
     def _hardware_error_text(self, d: JointDrive) -> str:
-        result, _, params = self._transact(proto.read(d.id, ADDR_HARDWARE_ERROR, 1), d.id,
-                                           self._setup_timeout(), 1)
-        if result != "ok" or len(params) != 1:
+        frame, size = self._alert_frames[d.id]
+        result, _, params = self._transact(frame, d.id, self._setup_timeout(), 1)
+        if result != "ok" or len(params) != size:
             return "Hardware Error Status unreadable"
-        return describe_hardware_error(params[0])
-
-    def _write_all(self, address: int, size: int, values, what: str) -> None:
-        for d, value in zip(self.drives, values):
-            self.command(d, f"{what} (WRITE {address} = {value})",
-                          proto.write(d.id, address, proto.le(int(value), size)))
+        return describe_hardware_error(proto.from_le(params, False))
 
     def _startup(self) -> None:
         n = self.nq
@@ -992,15 +1061,10 @@ class DynamixelBackend:
         if problems:
             raise BackendError("; ".join(problems))
         self._check_homing()
-        # 2.-7. Configure, torque off.
-        self._write_all(ADDR_TORQUE_ENABLE, 1, [0] * n, "torque off")
-        self._write_all(ADDR_BUS_WATCHDOG, 1, [0] * n, "clear the Bus Watchdog")
-        self._write_all(ADDR_OPERATING_MODE, 1, [CURRENT_MODE] * n, "current control mode")
-        self._write_all(ADDR_RETURN_DELAY, 1, [0] * n, "return delay 0")
-        self._write_all(ADDR_CURRENT_LIMIT, 2, [d.current_limit_lsb for d in self.drives],
-                        "the current limit")
-        self._write_all(ADDR_GOAL_CURRENT, 2, [0] * n, "goal current 0")
-        self._write_all(ADDR_BUS_WATCHDOG, 1, [self.watchdog_lsb] * n, "the Bus Watchdog")
+        # 2.-7. Configure, torque off: each step on every motor before the next.
+        for step in self._setup_writes:
+            for d, what, frame in step:
+                self.command(d, what, frame)
         self._keep_homing_marker()
         # 8. The first good read; the joints within their limits.
         x = np.zeros(2 * n)
@@ -1113,10 +1177,9 @@ class DynamixelBackend:
         self._port = port  # for the confirming reads only
         try:
             unconfirmed = []
-            for d in self.drives:
-                result, error, params = self._transact(
-                    proto.read(d.id, ADDR_TORQUE_ENABLE, 1), d.id, max(0.01, self.timeout_s), 2)
-                if result != "ok" or params != b"\0":
+            for d, (frame, off) in zip(self.drives, self._torque_off_checks):
+                result, error, params = self._transact(frame, d.id, max(0.01, self.timeout_s), 2)
+                if result != "ok" or params != off:
                     unconfirmed.append(d)
                 elif error & ALERT_BIT:
                     self.alert_ids.add(d.id)

@@ -525,7 +525,8 @@ MODELS_BY_NUMBER = {m.number: m for m in MODELS.values()}
 MX64 = MODELS["MX-64"]
 XM540_W270 = MODELS["XM540-W270"]
 
-# Addresses the bridge uses.
+# The X layout's addresses (layout_x.toml), for the emulator's X-series motors. The bridges
+# take every address from each model's items instead (ModelSpec.item).
 ADDR_MODEL_NUMBER = 0
 ADDR_RETURN_DELAY = 9
 ADDR_OPERATING_MODE = 11

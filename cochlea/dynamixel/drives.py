@@ -40,9 +40,11 @@ from ..robots import robot
 from ..robots.description import Motor
 from ..robots.motor_fit import DEFAULT_RAMP_NM, Fit, MotorFitError, current_limit_lsb
 from ..runtime.backend import BackendError
-from .control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB, ModelSpec
+from .control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB, Item, ModelSpec
+from .protocol import le
 
-__all__ = ["DEFAULT_RAMP_NM", "Fit", "JointDrive", "current_limit_lsb", "joint_drives"]
+__all__ = ["DEFAULT_RAMP_NM", "Fit", "JointDrive", "current_limit_lsb", "drive_item",
+           "encode_item", "joint_drives", "shared_item"]
 
 
 @dataclass(frozen=True)
@@ -167,3 +169,45 @@ def check_baud(drives: list[JointDrive], baud: int) -> None:
         problem = d.spec.baud_problem(int(baud))
         if problem:
             raise BackendError(f"ID {d.id} ({d.name}, {d.spec.name}): {problem}")
+
+
+# ---- the control-table items of the drives' models (their data: cochlea/dynamixel/models) -------
+
+def drive_item(d: JointDrive, name: str, who: str = "the bridge") -> Item:
+    """Item ``name`` of the model driving ``d`` (address and size from its data); a model
+    without it is refused in one line naming the joint and ``who`` cannot drive it."""
+    try:
+        return d.spec.item(name)
+    except KeyError:
+        raise BackendError(f"joint {d.name}: the {d.spec.name} has no {name} item: {who} "
+                           "cannot drive it") from None
+
+
+def shared_item(drives: list[JointDrive], name: str, who: str = "the bridge") -> Item:
+    """Item ``name`` where every motor of ``drives`` has it: one address and one size, what a
+    single SYNC_WRITE or SYNC_READ of it to all of them needs. A chain whose models place it
+    differently is refused in one line naming them (``joint_drives`` admits one layout
+    only, so no shipped chain is)."""
+    items = [drive_item(d, name, who) for d in drives]
+    if len({(it.address, it.size) for it in items}) > 1:
+        places = sorted({f"{d.spec.name}: address {it.address}, {it.size} byte"
+                         + ("s" if it.size > 1 else "") for d, it in zip(drives, items)})
+        raise BackendError(f"{who} cannot send one SYNC_WRITE/SYNC_READ of {name} to this "
+                           f"chain: its models place it differently ({'; '.join(places)})")
+    return items[0]
+
+
+def encode_item(d: JointDrive, it: Item, value: int) -> bytes:
+    """``value`` as the bytes of item ``it`` of ``d``'s model (little-endian, ``it.size``
+    bytes). A value the item cannot hold (outside its size, or outside the range its data
+    says a write accepts) is refused in one line: it would be truncated, or refused by the
+    motor mid-start-up."""
+    bits = 8 * it.size
+    lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if it.signed else (0, (1 << bits) - 1)
+    if it.writable:
+        lo, hi = max(lo, it.lo), min(hi, it.hi)
+    if not lo <= int(value) <= hi:
+        raise BackendError(f"joint {d.name} (ID {d.id}): {it.name} = {value} does not fit the "
+                           f"{d.spec.name}'s item ({it.address}, {it.size} bytes, "
+                           f"{lo}..{hi})")
+    return le(int(value), it.size)

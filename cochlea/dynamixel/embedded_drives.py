@@ -25,7 +25,7 @@ from ..robots.model import JointInfo
 from ..runtime.backend import BackendError
 from .bridge import TICK_ITEMS, choose_transfers
 from .control_table import CURRENT_MODE
-from .drives import JointDrive, joint_drives
+from .drives import JointDrive, drive_item, joint_drives
 
 #: The items of ``dxl_table`` (``embedded/core/dxl.h``, enum dxl_item_name), in its order: the
 #: model data's item names. The bridge needs every one but the homing marker (a slider's).
@@ -87,14 +87,10 @@ def bus_choice(drives: list[JointDrive]) -> tuple[str, str, str]:
 def _table_row(d: JointDrive) -> str:
     cells = []
     for name in BUS_ITEMS:
-        try:
-            it = d.spec.item(name)
-        except KeyError:
-            if name not in OPTIONAL_ITEMS:
-                raise BackendError(f"joint {d.name}: the {d.spec.name} has no {name} item: the "
-                                   "embedded bridge cannot drive it") from None
+        if name in OPTIONAL_ITEMS and name not in {it.name for it in d.spec.items}:
             cells.append("{0xFFFF, 0}")
             continue
+        it = drive_item(d, name, "the embedded bridge")  # the Python bridge's lookup
         cells.append(f"{{{it.address}, {it.size}}}")
     return f'{{{_c_string(d.spec.name)}, {{{", ".join(cells)}}}, {CURRENT_MODE}}}'
 
