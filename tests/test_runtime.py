@@ -357,7 +357,8 @@ def test_as_fast_run_of_a_safe_scenario_reports_no_rule():
 
     sc = load_scenario("serial_task")
     result = simulate(sc, duration=1.0)
-    sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius,
+                           substeps=sc.plant_substeps)
     assert verdict(result, sup) == {"rule": "none", "saturated_periods": 0}
     sup.limits.effort[:] = 1e-4  # N m: every command above it would be clipped
     assert verdict(result, sup)["saturated_periods"] > 0
@@ -425,7 +426,8 @@ def test_the_whole_run_gate_gives_the_screens_verdict(name, monkeypatch):
 
     sc = load_scenario(name)
     result = simulate(sc, duration=0.3)
-    sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius,
+                           substeps=sc.plant_substeps)
     q, qd = sv.measured_states(result)
     tau = np.hstack([u.tau for u in result.units])
     estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in result.units]
