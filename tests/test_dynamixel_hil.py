@@ -320,7 +320,9 @@ def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
     limit (seen at 16 ms, as the issue saw on the motors' model) or tracks several times
     worse (3 s ended with arm 2's joint 2 at 1.28 of its initial error, against 0.11). The
     realistic preset without its gearbox (backlash and static friction, which the serial
-    controllers do not survive yet: docs/robustness.md), so the friction is the one effect."""
+    controllers do not survive yet: docs/robustness.md), so the friction is the one effect.
+    The run that must complete is repeated once when it stopped for the machine's lag
+    (:func:`lagged`: a session-12 run under load stopped on the velocity limit)."""
     from cochlea.resources import SCENARIOS_DIR
     scenario = tmp_path / "serial_joint_realistic_rigid.toml"
     scenario.write_text((SCENARIOS_DIR / "serial_joint_realistic.toml").read_text()
@@ -328,14 +330,17 @@ def test_friction_is_compensated_once_over_the_virtual_chain(tmp_path):
     summaries = {}
     for case, patch in (("once", ""), ("twice", "r.bridge_compensates_friction = "
                                                "lambda actuators: True; ")):
-        out, log = tmp_path / case, tmp_path / f"{case}.log"
-        with emulator("serial", str(scenario), log) as port:
-            done = subprocess.run(
-                [sys.executable, "-c", "import sys; import cochlea.apps.cochlea_run as r; "
-                 f"{patch}sys.exit(r.main(sys.argv[1:]))", "--robot", "serial", "--space",
-                 "joint", "--scenario", str(scenario), "--backend", "dynamixel",
-                 "--port", port, "--duration", "3", "--out", str(out), *SHARED_MACHINE],
-                cwd=tmp_path, capture_output=True, text=True, timeout=180)
+        for attempt in range(2):  # the run that must complete is repeated once if it lagged
+            out, log = tmp_path / f"{case}{attempt}", tmp_path / f"{case}{attempt}.log"
+            with emulator("serial", str(scenario), log) as port:
+                done = subprocess.run(
+                    [sys.executable, "-c", "import sys; import cochlea.apps.cochlea_run as r; "
+                     f"{patch}sys.exit(r.main(sys.argv[1:]))", "--robot", "serial", "--space",
+                     "joint", "--scenario", str(scenario), "--backend", "dynamixel",
+                     "--port", port, "--duration", "3", "--out", str(out), *SHARED_MACHINE],
+                    cwd=tmp_path, capture_output=True, text=True, timeout=180)
+            if case == "twice" or not lagged(out):
+                break
         assert done.returncode in (0, 11), done.stderr  # completed, or the velocity limit
         summaries[case] = json.loads((out / "summary.json").read_text())
     once, twice = summaries["once"], summaries["twice"]
