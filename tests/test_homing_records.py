@@ -7,8 +7,12 @@ description, and a joint whose motor lost its marker, are refused in one line.""
 from __future__ import annotations
 
 import argparse
+import csv
 import gc
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +33,7 @@ ONE_STUDY = DATA / "prismatic3_joint.toml"
 TWO = DATA / "prismatic3_two.toml"  # two: the carriage (ID 2) and the forearm (ID 3)
 TWO_STUDY = DATA / "prismatic3_two_joint.toml"
 STOP_M = 0.03  # the emulator's hard stop, under every prismatic joint
+RUN = [sys.executable, "-m", "cochlea.apps.cochlea_run"]
 #: The homing options of these tests: quicker than the defaults, within both joints' limits.
 FAST = ("--speed-mm-s", "8", "--force-N", "20")
 
@@ -273,3 +278,53 @@ def test_a_record_that_does_not_fit_the_description_is_refused(tmp_path, case, m
             homing.reference_offset(entry, loaded, path, d, 4321)
     assert message in str(caught.value) and "cochlea-dxl home" in str(caught.value)
     assert "\n" not in str(caught.value)
+
+
+# ---- cochlea-run finds the description's record ------------------------------------------------
+
+
+@pytest.mark.hil
+def test_cochlea_run_starts_the_homed_arm_from_the_scenarios_description(home_dir, tmp_path,
+                                                                        no_gc):
+    """cochlea-run --backend dynamixel --homing required, no --homing-record: the record is
+    looked up from the scenario's description (the user's, not serial.json), both joints are
+    counted from their stops (their motors 500 and -700 deg off the description's zero), and
+    the study runs from the pose a hand put the arm in."""
+    chain = VirtualChain("serial", TWO_STUDY, truth=Truth(offset_deg={2: 500.0, 3: -700.0},
+                                                          hard_stop_m=STOP_M)).start()
+    out = tmp_path / "run"
+    try:
+        # Not homed yet: refused, naming the command for this description.
+        text = _refused(_bridge(chain, TWO))
+        assert text == ("the robot's prismatic joints are not homed: no homing record "
+                        f"{homing.default_record('serial', TWO)}; run cochlea-dxl home --robot "
+                        f"serial --description {TWO.resolve()} --port PORT first")
+        # Without --stop-m each joint's stop is its lower limit (0 m for both); these stops
+        # are at 30 mm, so home again with their true coordinates, once per joint.
+        assert home.run(parse("--robot", "serial", "--description", str(TWO), "--port",
+                              chain.path, *FAST)) == 0
+        saved = json.loads(homing.default_record("serial", TWO).read_text())
+        assert [e["stop_m"] for e in saved["joints"]] == [0.0, 0.0]
+        chain.move_joint("arm.carriage", 0.04)
+        assert home.run(parse("--robot", "serial", "--description", str(TWO), "--port",
+                              chain.path, "--stop-m", str(STOP_M), "--stop-m", str(STOP_M),
+                              *FAST)) == 0
+        chain.move_joint("arm.carriage", 0.0395)  # the scenario's initial pose, by hand
+        chain.move_joint("arm.forearm", 0.0355)
+        done = subprocess.run(RUN + ["--robot", "serial", "--space", "joint", "--scenario",
+                                     str(TWO_STUDY), "--backend", "dynamixel", "--port",
+                                     chain.path, "--duration", "1", "--out", str(out),
+                                     "--homing", "required", "--watchdog-misses", "300"],
+                              capture_output=True, text=True, timeout=180, cwd=tmp_path,
+                              env={**os.environ, "HOME": str(home_dir)})
+    finally:
+        chain.close()
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timing"]["bus"]["homing"].endswith(
+        f"({homing.default_record('serial', TWO)})")
+    assert summary["timing"]["bus"]["homing"].startswith("homed ")
+    with open(out / "log.csv", newline="") as f:
+        first = next(csv.DictReader(f))
+    assert abs(float(first["arm.q.carriage_joint_m"]) - 0.0395) < 1e-3
+    assert abs(float(first["arm.q.forearm_joint_m"]) - 0.0355) < 1e-3

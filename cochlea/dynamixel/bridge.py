@@ -1108,7 +1108,7 @@ class DynamixelBackend:
             return
         path = Path(self.homing_record) if self.homing_record is not None \
             else homing.default_record(self.robot, self.description)
-        record = homing.load_record(path)
+        record = homing.load_record(path, self.robot, self.description)
         entries = homing.check_record(record, path, self.robot, self.description,
                                       [self.drives[j] for j in sliders])
         offsets = []

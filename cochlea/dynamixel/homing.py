@@ -87,15 +87,18 @@ def _check_entry(entry) -> None:
         raise ValueError
 
 
-def load_record(path: Path) -> dict:
+def load_record(path: Path, robot: str | None = None,
+                description: str | Path | None = None) -> dict:
     """The record at ``path`` as a ``cochlea-homing/2`` dict (a ``/1`` one turned into one
-    entry, ``legacy`` True); a missing or malformed one is a BackendError naming what to do."""
+    entry, ``legacy`` True); a missing or malformed one is a BackendError naming what to do
+    (the ``cochlea-dxl home`` of ``robot`` and ``description`` when given)."""
     try:
         text = Path(path).read_text()
     except FileNotFoundError:
+        command = "cochlea-dxl home --robot ROBOT [--description FILE] --port PORT" \
+            if robot is None else _home_command(robot, description_id(robot, description))
         raise BackendError(f"the robot's prismatic joints are not homed: no homing record "
-                           f"{path}; run cochlea-dxl home --robot ROBOT [--description FILE] "
-                           "--port PORT first") from None
+                           f"{path}; run {command} first") from None
     except OSError as exc:
         raise BackendError(f"homing record {path}: cannot read it ({exc.strerror}); run "
                            "cochlea-dxl home again") from None
