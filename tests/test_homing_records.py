@@ -22,7 +22,7 @@ from cochlea.dynamixel import homing
 from cochlea.dynamixel.bridge import DynamixelBackend
 from cochlea.dynamixel.bringup import home
 from cochlea.dynamixel.drives import joint_drives
-from cochlea.dynamixel.emulator import Truth, VirtualChain
+from cochlea.dynamixel.emulator import Faults, Truth, VirtualChain
 from cochlea.resources import ROBOTS_DIR
 from cochlea.runtime.backend import BackendError
 
@@ -206,6 +206,36 @@ def test_a_record_of_another_description_is_refused_naming_both(home_dir, tmp_pa
             bridge.disable()
     finally:
         chain.close()
+
+
+@pytest.mark.hil
+def test_a_fault_on_the_second_joint_stops_everything_and_records_nothing(home_dir, capsys,
+                                                                          no_gc):
+    """The carriage homed, then the forearm's motor goes into hardware alert while it is being
+    homed: the move stops at once with the torque off on every motor, the command says so in
+    one line (exit 6), and no record is written, not even the carriage's entry."""
+    from cochlea.apps import cochlea_dxl
+
+    # Overload (bit 5) on the forearm's motor 3 s after the first torque on: after the
+    # carriage's homing (9.5 mm at 8 mm/s, then the dwell), within the forearm's (20 mm).
+    chain = VirtualChain("serial", TWO_STUDY, truth=Truth(hard_stop_m=STOP_M),
+                         faults=Faults(hardware_error=(3, 5), delay_s=3.0)).start()
+    try:
+        chain.move_joint("arm.forearm", 0.05)
+        code = cochlea_dxl.main(["home", "--robot", "serial", "--description", str(TWO),
+                                 "--port", chain.path, "--stop-m", str(STOP_M), "--stop-m",
+                                 str(STOP_M), *FAST])
+        out, err = capsys.readouterr()
+        assert not any(m.torque_on for m in chain.motors)
+    finally:
+        chain.close()
+    assert code == 6, err
+    assert out.count("arm.carriage (ID 2) on its stop") == 1 and "homed" not in out
+    assert err.count("\n") == 1
+    assert err.startswith("cochlea-dxl home: hardware alert during the homing of arm.forearm: "
+                          "ID 3 (arm.forearm, XM430-W350): 32 (overload); stopped: goal current "
+                          "0 and torque off on every motor;"), err
+    assert not homing.default_record("serial", TWO).exists()
 
 
 # ---- the records' rules, without a chain ----------------------------------------------------
