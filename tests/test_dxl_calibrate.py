@@ -285,6 +285,11 @@ def test_an_unparsable_option_exits_2():
     ('{"format": "cochlea-homing/2", "description": "shipped", "joints": [{"joint": "a", '
      '"motor_id": 1, "raw_counts": 0, "marker": 1, "stop_m": 0, "ratio_m_per_rad": 0.02, '
      '"direction": true}]}', "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/2", "description": "shipped", "joints": [{"joint": "a", '
+     '"motor_id": 1, "raw_counts": 0, "marker": 1, "stop_m": 0, "ratio_m_per_rad": "0.02", '
+     '"direction": 1}]}', "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/1", "motor_id": 1, "raw_counts": 0, "marker": 1, '
+     '"stop_m": NaN, "ratio_m_per_rad": 0.02, "direction": 1}', "not a cochlea-homing/2 record"),
 ])
 def test_a_malformed_homing_record_is_refused(tmp_path, text, message):
     path = tmp_path / "r.json"

@@ -80,8 +80,9 @@ def _check_entry(entry) -> None:
     for key in _ENTRY_INTS:
         if not isinstance(entry[key], int) or isinstance(entry[key], bool):
             raise ValueError
-    for key in _ENTRY_FLOATS:
-        if isinstance(entry[key], bool) or not math.isfinite(float(entry[key])):
+    for key in _ENTRY_FLOATS:  # a number: "0.02" (a string) would fail later, in arithmetic
+        if not isinstance(entry[key], (int, float)) or isinstance(entry[key], bool) or \
+                not math.isfinite(entry[key]):
             raise ValueError
     if entry["direction"] not in (1, -1) or isinstance(entry["direction"], bool):
         raise ValueError
