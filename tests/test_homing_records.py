@@ -13,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -358,3 +359,73 @@ def test_cochlea_run_starts_the_homed_arm_from_the_scenarios_description(home_di
         first = next(csv.DictReader(f))
     assert abs(float(first["arm.q.carriage_joint_m"]) - 0.0395) < 1e-3
     assert abs(float(first["arm.q.forearm_joint_m"]) - 0.0355) < 1e-3
+
+
+# ---- the embedded C program (cochlea-codegen --embedded of a user's scenario) -------------------
+
+
+def _embedded_program(tmp: Path, scenario: Path) -> Path:
+    """``build/cochlea-embedded`` of a user's scenario, as a user builds it."""
+    from tests.test_embedded_program import ROOT
+
+    gen, build = tmp / "gen", tmp / "build"
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_codegen", "--scenario",
+                           str(scenario), "--embedded", "--no-build", "--out", str(gen)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    program = build / "cochlea-embedded"
+    done = subprocess.run(["make", "-s", f"GEN={gen}", f"BUILD={build}", str(program)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return program
+
+
+@pytest.mark.slow
+def test_the_embedded_program_refuses_two_prismatic_joints_on_a_checked_start(tmp_path):
+    """Its bridge counts one joint from a homing: a robot with two is refused in one line,
+    before the port opens, naming cochlea-run (the other joint would otherwise run on the
+    description's zero_offset_deg)."""
+    program = _embedded_program(tmp_path, TWO_STUDY)
+    done = subprocess.run([str(program), "--scenario", "prismatic3_two_joint", "--port",
+                           "/dev/ttyUSB-none", "--out", str(tmp_path / "run"), "--homing",
+                           "required"], capture_output=True, text=True, timeout=60)
+    errors = [line for line in done.stderr.splitlines() if ": warning: " not in line]
+    assert done.returncode == 5 and errors == [
+        "cochlea-embedded: the backend could not start, nothing moved: the robot has 2 "
+        "prismatic joints and this program checks the homing of one: run it with cochlea-run "
+        "--backend dynamixel, which checks each"], done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.hil
+def test_the_embedded_program_counts_a_user_joint_from_the_record_home_writes(
+        home_dir, tmp_path, no_gc):
+    """The one-carriage arm's embedded program reads the cochlea-homing/2 record
+    cochlea-dxl home wrote for its description (given by path: the program does not know its
+    description) and starts with the carriage counted from its stop, its motor 500 deg off."""
+    from tests.test_embedded_program import EMULATOR_SETTLE_S, PATIENT
+
+    program = _embedded_program(tmp_path, ONE_STUDY)
+    chain = VirtualChain("serial", ONE_STUDY, truth=Truth(offset_deg={2: 500.0},
+                                                          hard_stop_m=STOP_M)).start()
+    out = tmp_path / "run"
+    try:
+        assert home.run(parse("--robot", "serial", "--description", str(ONE), "--port",
+                              chain.path, "--stop-m", str(STOP_M), *FAST)) == 0
+        record = homing.default_record("serial", ONE)
+        chain.move_joint("arm.carriage", 0.0395)  # the scenario's initial pose, by hand
+        time.sleep(min(EMULATOR_SETTLE_S, 0.5))
+        done = subprocess.run([str(program), "--scenario", "prismatic3_joint", "--port",
+                               chain.path, "--duration", "0.3", "--out", str(out), *PATIENT,
+                               "--homing", "required", "--homing-record", str(record)],
+                              capture_output=True, text=True, timeout=120)
+    finally:
+        chain.close()
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timing"]["bus"]["homing"].startswith("homed ")
+    assert summary["timing"]["bus"]["homing"].endswith(f"({record})")
+    with open(out / "log.csv", newline="") as f:
+        first = next(csv.DictReader(f))
+    assert abs(float(first["arm.q.carriage_joint_m"]) - 0.0395) < 1e-3
