@@ -98,7 +98,7 @@ def _check(args: argparse.Namespace, d, stop_m: float | None) -> tuple[float, fl
         raise CochleaError(f"--speed-mm-s {args.speed_mm_s}: expected at most 60 mm/s (the "
                            "slider's velocity limit); homing is slow")
     if args.force_N > d.effort_limit:
-        raise CochleaError(f"--force-N {args.force_N}: expected at most the slider's force "
+        raise CochleaError(f"--force-N {args.force_N}: expected at most {d.name}'s force "
                            f"limit, {d.effort_limit:g} N")
     stop = lo if stop_m is None else stop_m
     if not (math.isfinite(stop) and lo - 0.05 <= stop <= hi):
