@@ -181,9 +181,11 @@ def test_home_finds_the_hard_stop_and_the_bridge_checks_the_record(tmp_path, no_
                               str(record), "--stop-m", str(stop), "--speed-mm-s", "20"))
         assert code == 0 and not slider.torque_on  # torque off at the end
         saved = json.loads(record.read_text())
+        assert saved["format"] == "cochlea-homing/2" and saved["description"] == "shipped"
+        (entry,) = saved["joints"]  # the parallel robot has one prismatic joint
         # The raw position at the stop, as the truly mounted motor counts it.
-        assert abs(saved["raw_counts"] - float(slider.drive.counts(stop))) <= 2
-        assert saved["stop_m"] == stop and saved["motor_id"] == slider.id
+        assert abs(entry["raw_counts"] - float(slider.drive.counts(stop))) <= 2
+        assert entry["stop_m"] == stop and entry["motor_id"] == slider.id
 
         # Homed: the bridge starts and counts the slider from the stop, whatever the
         # description's (wrong) zero_offset_deg.
@@ -276,8 +278,18 @@ def test_an_unparsable_option_exits_2():
 
 
 @pytest.mark.parametrize("text, message", [
-    ("{", "not a cochlea-homing/1 record"),
-    ('{"format": "cochlea-homing/1", "motor_id": 1}', "not a cochlea-homing/1 record"),
+    ("{", "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/1", "motor_id": 1}', "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/2", "description": "shipped", "joints": []}',
+     "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/2", "description": "shipped", "joints": [{"joint": "a", '
+     '"motor_id": 1, "raw_counts": 0, "marker": 1, "stop_m": 0, "ratio_m_per_rad": 0.02, '
+     '"direction": true}]}', "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/2", "description": "shipped", "joints": [{"joint": "a", '
+     '"motor_id": 1, "raw_counts": 0, "marker": 1, "stop_m": 0, "ratio_m_per_rad": "0.02", '
+     '"direction": 1}]}', "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/1", "motor_id": 1, "raw_counts": 0, "marker": 1, '
+     '"stop_m": NaN, "ratio_m_per_rad": 0.02, "direction": 1}', "not a cochlea-homing/2 record"),
 ])
 def test_a_malformed_homing_record_is_refused(tmp_path, text, message):
     path = tmp_path / "r.json"

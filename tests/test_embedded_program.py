@@ -321,17 +321,20 @@ def _hold_marker(port: str, marker: int) -> None:
         bus.write(_slider().id, MARKER_ITEM, marker)
 
 
-def _record(path: Path, marker: int, shift_m: float) -> Path:
+def _record(path: Path, marker: int, shift_m: float, *, legacy: bool = False) -> Path:
     """A homing record of the emulator's slider whose stop puts it ``shift_m`` beyond where the
-    description's zero_offset_deg counts it."""
-    from cochlea.dynamixel.homing import FORMAT
+    description's zero_offset_deg counts it: as cochlea-dxl home writes it (cochlea-homing/2,
+    one entry), or ``legacy``, as it did before issue 25 (cochlea-homing/1, flat)."""
+    from cochlea.dynamixel.homing import FORMAT, FORMAT_1
 
     d = _slider()
-    path.write_text(json.dumps({"format": FORMAT, "robot": "parallel", "joint": d.name,
-                                "motor_id": d.id, "model": d.spec.name, "raw_counts": 0,
-                                "stop_m": d.q_offset + shift_m, "direction": d.direction,
-                                "ratio_m_per_rad": d.ratio, "marker_address": 88,
-                                "marker": marker, "date": "2026-11-23T10:00:00"}, indent=2))
+    entry = {"joint": d.name, "motor_id": d.id, "model": d.spec.name, "raw_counts": 0,
+             "stop_m": d.q_offset + shift_m, "direction": d.direction,
+             "ratio_m_per_rad": d.ratio, "marker_address": 88, "marker": marker}
+    top = {"robot": "parallel", "description": "shipped", "date": "2026-11-23T10:00:00"}
+    record = {"format": FORMAT_1, **top, **entry} if legacy else \
+        {"format": FORMAT, **top, "port": "/dev/ttyUSB0", "joints": [entry]}
+    path.write_text(json.dumps(record, indent=2))
     return path
 
 
@@ -340,7 +343,7 @@ def test_an_unhomed_slider_is_refused_before_any_write(tmp_path, program):
     whose token the motor no longer holds (power-cycled since), the start is refused before
     any write (exit 5, naming cochlea-dxl home) and nothing is left behind."""
     for case, record in (("none", tmp_path / "none.json"),
-                         ("stale", _record(tmp_path / "stale.json", 4321, 0.0))):
+                         ("stale", _record(tmp_path / "stale.json", 4321, 0.0, legacy=True))):
         log, out = tmp_path / f"{case}.log", tmp_path / case
         with emulator("parallel", "parallel_joint", log) as port:
             done = embedded(program, "--scenario", "parallel_joint", "--port", port,
@@ -358,10 +361,15 @@ def test_an_unhomed_slider_is_refused_before_any_write(tmp_path, program):
 
 
 @pytest.mark.parametrize("text, message", [
-    ("{", "not a cochlea-homing/1 record; run cochlea-dxl home again"),
-    ('{"format": "cochlea-homing/1", "motor_id": 1}', "not a cochlea-homing/1 record"),
+    ("{", "not a cochlea-homing/2 record (nor a cochlea-homing/1 one); run cochlea-dxl home "
+          "again"),
+    ('{"format": "cochlea-homing/1", "motor_id": 1}', "not a cochlea-homing/2 record"),
+    ('{"format": "cochlea-homing/2", "robot": "parallel", "joints": [{"motor_id": 3}, '
+     '{"motor_id": 4}]}', "holds 2 joints; this robot has one prismatic joint"),
+    ('{"format": "cochlea-homing/2", "robot": "serial", "joints": [{"motor_id": 3}]}',
+     "was made for the serial robot, not the parallel one"),
     ('{"format": "cochlea-homing/1", "motor_id": 1.5, "raw_counts": 0, "marker": 1, '
-     '"stop_m": 0, "ratio_m_per_rad": 0.02, "direction": 1}', "not a cochlea-homing/1 record"),
+     '"stop_m": 0, "ratio_m_per_rad": 0.02, "direction": 1}', "not a cochlea-homing/2 record"),
     ('{"format": "cochlea-homing/1", "motor_id": 7, "raw_counts": 0, "marker": 1, '
      '"stop_m": 0, "ratio_m_per_rad": 0.02, "direction": 1}', "was made for motor ID 7"),
 ])

@@ -339,8 +339,10 @@ def test_home_finds_the_carriages_stop(tmp_path, no_gc):
                               str(stop), "--speed-mm-s", "10", "--force-N", "20"))
         assert code == 0 and not any(m.torque_on for m in chain.motors)
         saved = json.loads(record.read_text())
-        assert saved["joint"] == "arm.carriage" and saved["motor_id"] == 2
-        assert saved["ratio_m_per_rad"] == pytest.approx(LEAD / (2 * math.pi), rel=1e-15)
+        assert saved["description"] == str(PRISMATIC3.resolve())
+        (entry,) = saved["joints"]
+        assert entry["joint"] == "arm.carriage" and entry["motor_id"] == 2
+        assert entry["ratio_m_per_rad"] == pytest.approx(LEAD / (2 * math.pi), rel=1e-15)
         bridge = DynamixelBackend("serial", chain.path, description=PRISMATIC3,
                                   timeout_s=0.05, homing="required", homing_record=record)
         bridge.enable()
@@ -355,23 +357,17 @@ def test_home_finds_the_carriages_stop(tmp_path, no_gc):
         chain.close()
 
 
-def test_home_refuses_two_prismatic_joints_in_one_line(tmp_path):
-    """One homing record holds one joint: a description with two prismatic joints is refused
-    before any port is opened."""
+def test_home_wants_one_stop_per_prismatic_joint_in_one_line(tmp_path):
+    """Two prismatic joints are homed in turn (tests/test_homing_records.py); a --stop-m given
+    once for both is refused in one line before any port is opened."""
     from cochlea.dynamixel.bringup import home
     from cochlea.errors import CochleaError
 
-    old = ('  type = "revolute"\n  axis = [0.0, 1.0, 0.0]\n  origin_xyz_m = [0.05, 0.0, 0.0]\n'
-           '  position_limits_deg = [-80.0, 80.0]\n  velocity_limit_rad_s = 4.0\n'
-           '  torque_limit_Nm = 1.5\n  armature_kgm2 = 0.0125   # estimate, see the header\n')
-    new = ('  type = "prismatic"\n  axis = [1.0, 0.0, 0.0]\n  origin_xyz_m = [0.05, 0.0, 0.0]\n'
-           '  position_limits_m = [0.0, 0.05]\n  velocity_limit_m_s = 0.01\n'
-           '  force_limit_N = 50.0\n  transmission = { kind = "belt", radius_m = 0.01 }\n')
-    path = _variant(tmp_path, old, new)
-    with pytest.raises(CochleaError, match=r"2 prismatic joints \(arm\.carriage, "
-                       r"arm\.forearm\).*cannot be homed yet") as caught:
+    path = DATA / "prismatic3_two.toml"
+    with pytest.raises(CochleaError, match=r"--stop-m: given 1 time\(s\) for 2 prismatic "
+                       r"joint\(s\) \(arm\.carriage, arm\.forearm\)") as caught:
         home.run(parse(home, "--robot", "serial", "--description", str(path), "--port",
-                       str(tmp_path / "no-such-port")))
+                       str(tmp_path / "no-such-port"), "--stop-m", "0.03"))
     assert "\n" not in str(caught.value)
 
 

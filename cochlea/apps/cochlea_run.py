@@ -132,9 +132,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=int, metavar="B",
                    help="--backend dynamixel: the motors' baud rate (default 4000000)")
     p.add_argument("--homing", default="auto", choices=["auto", "required"],
-                   help="--backend dynamixel, parallel robot: check the slider's homing record "
-                        "(cochlea-dxl home) on a real port and not on the emulator's "
-                        "pseudo-terminal (auto, default), or always (required)")
+                   help="--backend dynamixel, a robot with prismatic joints: check their "
+                        "homing record (cochlea-dxl home) on a real port and not on the "
+                        "emulator's pseudo-terminal (auto, default), or always (required)")
     p.add_argument("--start-tolerance-deg", type=float, default=5.0, metavar="DEG",
                    help="--backend dynamixel: how far a revolute joint may stand from the "
                         "scenario's initial pose at the start (default 5 deg); farther is "
@@ -143,7 +143,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="--backend dynamixel: the same for a prismatic joint (default 5 mm)")
     p.add_argument("--homing-record", metavar="FILE",
                    help="--backend dynamixel: the homing record cochlea-dxl home wrote "
-                        "(default ~/.cochlea/homing/ROBOT.json)")
+                        "(default ~/.cochlea/homing/ROBOT.json for the shipped description, "
+                        "ROBOT-STEM-HASH.json for a user's; it must be the description's)")
     p.add_argument("--realtime", default="on", choices=["on", "off"],
                    help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
                         "off: the as-fast-as-possible simulation")
@@ -525,7 +526,8 @@ def _dynamixel_backend(args, scenario, setups):
     # The Realtime Tick read with the state: a motor repeating a stale packet is a failed read.
     backend = DynamixelBackend(scenario.robot, args.port,
                                4_000_000 if args.baud is None else args.baud,
-                               system=scenario.system, realtime_tick=True,
+                               description=scenario.description, system=scenario.system,
+                               realtime_tick=True,
                                homing=args.homing, homing_record=args.homing_record,
                                offset_current=bridge_compensates_friction(
                                    scenario.controller_actuators),

@@ -337,6 +337,9 @@ class DynamixelBackend:
         if homing not in HOMING_MODES:
             raise BackendError(f"homing must be one of {', '.join(HOMING_MODES)}, got {homing!r}")
         self.homing, self.homing_record = homing, homing_record
+        #: Which description the homing record must have been made for (the path given, or
+        #: the shipped one; ``system`` alone is taken for the shipped one).
+        self.description = description
         self.homing_report = "no slider"
         self._homing_markers: list[tuple[JointDrive, int]] = []
         self._open_port = open_port
@@ -1087,10 +1090,13 @@ class DynamixelBackend:
     # ---- the slider's homing (issue 15) -------------------------------------------------------
 
     def _check_homing(self) -> None:
-        """A joint whose encoder loses its turns at power-on (the parallel robot's slider) needs
-        a homing record of this power cycle (:mod:`cochlea.dynamixel.bringup.home`): its
-        position is then counted from the stop the homing found; without one the start-up is
-        refused, naming ``cochlea-dxl home``. The serial robot has no such joint."""
+        """A joint whose encoder loses its turns at power-on (every prismatic joint: the
+        parallel robot's slider, a user arm's carriages) needs a homing record of this power
+        cycle (:mod:`cochlea.dynamixel.bringup.home`), made for this description and holding
+        an entry per such joint; each joint is then counted from the stop its homing found,
+        valid while its motor holds its marker. Without one, or with any entry invalid, the
+        start-up is refused in one line naming ``cochlea-dxl home``. The serial robot has no
+        such joint."""
         self._homing_markers = []
         sliders = [j for j, d in enumerate(self.drives) if d.type == "prismatic"]
         if not sliders:
@@ -1101,16 +1107,21 @@ class DynamixelBackend:
                                   "a pseudo-terminal: the virtual chain") + ")")
             return
         path = Path(self.homing_record) if self.homing_record is not None \
-            else homing.default_record(self.robot)
-        record = homing.load_record(path)
-        for j in sliders:
+            else homing.default_record(self.robot, self.description)
+        record = homing.load_record(path, self.robot, self.description)
+        entries = homing.check_record(record, path, self.robot, self.description,
+                                      [self.drives[j] for j in sliders])
+        offsets = []
+        for j, entry in zip(sliders, entries):
             d = self.drives[j]
             params = self.command(d, "READ the homing marker",
                                    proto.read(d.id, homing.MARKER_ADDRESS, 2))
             marker = proto.from_le(params, False) if len(params) == 2 else -1
-            self._q_offset[j] = homing.reference_offset(record, path, d, marker)
+            offsets.append((j, homing.reference_offset(entry, record, path, d, marker)))
             self._homing_markers.append((d, marker))
-        self.homing_report = f"homed {record.get('date', '')} ({path})"
+        for j, offset in offsets:  # all or none: every entry valid before any offset is used
+            self._q_offset[j] = offset
+        self.homing_report = f"homed {record.get('date') or ''} ({path})"
 
     def _keep_homing_marker(self) -> None:
         """Write the homing token back after the configuration: should a firmware reset its

@@ -1,83 +1,182 @@
-"""The slider's homing record and the rule that says whether it still holds (issue 15).
+"""The homing record of a robot's prismatic joints and the rule that says whether it still holds
+(issues 15 and 25).
 
 ``cochlea-dxl home`` (:mod:`cochlea.dynamixel.bringup.home`) writes the record; the bridge's
-start-up (:meth:`cochlea.dynamixel.bridge.DynamixelBackend._check_homing`) applies the rule: the
-record is valid while the motor still holds the random token written into
+start-up (:meth:`cochlea.dynamixel.bridge.DynamixelBackend._check_homing`) applies the rule to
+each homed joint: its entry is valid while its motor still holds the random token written into
 :data:`MARKER_ADDRESS` when it was homed. That register is RAM, unused in current control, and
 returns to its default (0) at power-on and after a REBOOT, exactly when the single-turn encoder
-loses its turn count. A valid record counts the slider from the stop:
-``d1 = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``.
+loses its turn count. A valid entry counts the joint from its stop:
+``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``.
+
+One record per robot description (:func:`default_record`): ``~/.cochlea/homing/ROBOT.json``
+for the shipped description of the kind ROBOT (``serial``, ``parallel``), as before, and
+``~/.cochlea/homing/ROBOT-STEM-HASH.json`` for a user's description, STEM its file name without
+``.toml`` and HASH the first 8 hex digits of the SHA-256 of its resolved path: the record
+follows the file (editing a gain keeps it; a moved or copied file is homed again). The record
+names its description (:func:`description_id`) and the runtime refuses a record made for
+another one, whatever path it was given.
+
+Format ``cochlea-homing/2``: the robot, the description, the date, the port and ``joints``, one
+entry per prismatic joint (name, motor ID and model, ``raw_counts``, ``stop_m``, ``direction``,
+``ratio_m_per_rad``, ``marker_address``, ``marker``). A ``cochlea-homing/1`` record (one joint,
+from before issue 25) is still read for the shipped description it was made for (the parallel
+robot's slider); one made for a user's description is refused: run ``cochlea-dxl home`` again.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import re
 from pathlib import Path
 
+from ..resources import ROBOTS_DIR, shipped
 from ..runtime.backend import BackendError
 
-FORMAT = "cochlea-homing/1"
+FORMAT = "cochlea-homing/2"
+#: One joint, flat (issue 15): still read for a shipped description.
+FORMAT_1 = "cochlea-homing/1"
 #: Feedforward 2nd Gain: RAM (reset at power-on and by REBOOT), unused in current control.
 MARKER_ADDRESS = 88
 MARKER_RANGE = (1, 16383)  # its default is 0: a motor fresh from power-on never matches
+#: The description of a record made for the shipped ``models/robots/ROBOT.toml``.
+SHIPPED = "shipped"
+_ENTRY_INTS = ("motor_id", "raw_counts", "marker")
+_ENTRY_FLOATS = ("stop_m", "ratio_m_per_rad")
 
 
-def default_record(robot: str) -> Path:
-    """Where ``home`` writes and the runtime looks: ``~/.cochlea/homing/ROBOT.json``."""
-    return Path.home() / ".cochlea" / "homing" / f"{robot}.json"
+def description_id(robot: str, description: str | Path | None) -> str:
+    """What a record says it was made for: :data:`SHIPPED` for the shipped description of the
+    kind ``robot`` (None, its bare name, or its file), else the description's resolved path."""
+    path = shipped(ROBOTS_DIR, description if description is not None else robot)
+    resolved = Path(path).expanduser().resolve()
+    if resolved == (ROBOTS_DIR / f"{robot}.toml").resolve():
+        return SHIPPED
+    return str(resolved)
 
 
-def load_record(path: Path) -> dict:
-    """The record at ``path``; a missing or malformed one is a BackendError naming what to do."""
+def default_record(robot: str, description: str | Path | None = None) -> Path:
+    """Where ``home`` writes and the runtime looks: ``~/.cochlea/homing/ROBOT.json`` for the
+    shipped description, ``~/.cochlea/homing/ROBOT-STEM-HASH.json`` for a user's (STEM its
+    file name, HASH 8 hex digits of the SHA-256 of its resolved path)."""
+    folder = Path.home() / ".cochlea" / "homing"
+    which = description_id(robot, description)
+    if which == SHIPPED:
+        return folder / f"{robot}.json"
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(which).stem)[:40] or "description"
+    digest = hashlib.sha256(which.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    return folder / f"{robot}-{stem}-{digest}.json"
+
+
+def _home_command(robot: str, description: str) -> str:
+    return ("cochlea-dxl home --robot " + robot
+            + ("" if description == SHIPPED else f" --description {description}")
+            + " --port PORT")
+
+
+def _check_entry(entry) -> None:
+    for key in _ENTRY_INTS:
+        if not isinstance(entry[key], int) or isinstance(entry[key], bool):
+            raise ValueError
+    for key in _ENTRY_FLOATS:  # a number: "0.02" (a string) would fail later, in arithmetic
+        if not isinstance(entry[key], (int, float)) or isinstance(entry[key], bool) or \
+                not math.isfinite(entry[key]):
+            raise ValueError
+    if entry["direction"] not in (1, -1) or isinstance(entry["direction"], bool):
+        raise ValueError
+
+
+def load_record(path: Path, robot: str | None = None,
+                description: str | Path | None = None) -> dict:
+    """The record at ``path`` as a ``cochlea-homing/2`` dict (a ``/1`` one turned into one
+    entry, ``legacy`` True); a missing or malformed one is a BackendError naming what to do
+    (the ``cochlea-dxl home`` of ``robot`` and ``description`` when given)."""
     try:
         text = Path(path).read_text()
     except FileNotFoundError:
-        raise BackendError(f"the slider is not homed: no homing record {path}; run cochlea-dxl "
-                           "home --robot ROBOT [--description FILE] --port PORT first") from None
+        command = "cochlea-dxl home --robot ROBOT [--description FILE] --port PORT" \
+            if robot is None else _home_command(robot, description_id(robot, description))
+        raise BackendError(f"the robot's prismatic joints are not homed: no homing record "
+                           f"{path}; run {command} first") from None
     except OSError as exc:
         raise BackendError(f"homing record {path}: cannot read it ({exc.strerror}); run "
                            "cochlea-dxl home again") from None
     try:
         record = json.loads(text)
-        if record.get("format") != FORMAT:
+        if not isinstance(record, dict):
             raise ValueError
-        for key in ("motor_id", "raw_counts", "marker"):
-            if not isinstance(record[key], int) or isinstance(record[key], bool):
+        if record.get("format") == FORMAT_1:
+            _check_entry(record)
+            entry = {k: record[k] for k in record if k not in ("format", "robot", "description",
+                                                              "date", "port")}
+            record = {"format": FORMAT, "legacy": True, "robot": record.get("robot"),
+                      "description": record.get("description", SHIPPED),
+                      "date": record.get("date"), "joints": [entry]}
+        elif record.get("format") == FORMAT:
+            if not isinstance(record["description"], str) or \
+                    not isinstance(record["joints"], list) or not record["joints"]:
                 raise ValueError
-        for key in ("stop_m", "ratio_m_per_rad"):
-            if not math.isfinite(float(record[key])):
-                raise ValueError
-        if record["direction"] not in (1, -1):
+            for entry in record["joints"]:
+                _check_entry(entry)
+                if not isinstance(entry["joint"], str):
+                    raise ValueError
+        else:
             raise ValueError
-    except (ValueError, KeyError, TypeError, AttributeError):
-        raise BackendError(f"homing record {path}: not a {FORMAT} record; run cochlea-dxl home "
-                           "again") from None
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        raise BackendError(f"homing record {path}: not a {FORMAT} record (nor a {FORMAT_1} "
+                           "one); run cochlea-dxl home again") from None
     return record
 
 
-def _options(record: dict) -> str:
-    """The ``--robot`` (and ``--description``) a record was made with, as options."""
-    described = record.get("description")
-    return (f" --robot {record.get('robot', 'ROBOT')}"
-            + (f" --description {described}" if described and described != "shipped" else ""))
+def check_record(record: dict, path: Path, robot: str, description: str | Path | None,
+                 drives) -> list[dict]:
+    """The entry of each of ``drives`` (the prismatic joints, in order) in a loaded
+    ``record``; a BackendError in one line when the record was made for another robot or
+    description, or holds other joints."""
+    made_for = record.get("description")
+    ours = description_id(robot, description)
+    if record.get("robot") not in (None, robot):
+        raise BackendError(f"homing record {path} was made for the {record['robot']} robot, "
+                           f"not the {robot} one: run {_home_command(robot, ours)} again")
+    if record.get("legacy"):
+        if ours != SHIPPED or made_for not in (None, SHIPPED):
+            raise BackendError(f"homing record {path} is a {FORMAT_1} record (from an older "
+                               "cochlea) of a user's description, which it does not identify: "
+                               f"run {_home_command(robot, ours)} again")
+    elif made_for != ours:
+        raise BackendError(f"homing record {path} was made for the description {made_for}, "
+                           f"not {ours}: run {_home_command(robot, ours)} again")
+    entries = {e.get("joint"): e for e in record["joints"]}
+    if record.get("legacy") and len(drives) == 1:  # /1 records named the joint, or did not
+        entries = {drives[0].name: record["joints"][0]}
+    names = [d.name for d in drives]
+    if sorted(entries) != sorted(names):
+        raise BackendError(f"homing record {path} holds the joints "
+                           f"{', '.join(sorted(map(str, entries)))}; the description's prismatic "
+                           f"joints are {', '.join(names)}: run {_home_command(robot, ours)} "
+                           "again")
+    return [entries[n] for n in names]
 
 
-def reference_offset(record: dict, path: Path, drive, marker: int) -> float:
-    """The slider's ``q_offset`` (``q = q_per_count * counts + q_offset``) from a valid
-    ``record``, given the value the motor holds in :data:`MARKER_ADDRESS`; a BackendError
-    naming ``cochlea-dxl home`` when the record does not belong to this motor and power
-    cycle."""
-    if record["motor_id"] != drive.id or record["direction"] != drive.direction or \
-            abs(record["ratio_m_per_rad"] - drive.ratio) > 1e-12:
-        raise BackendError(f"homing record {path} was made for motor ID {record['motor_id']}, "
-                           f"direction {record['direction']:+d}, ratio "
-                           f"{record['ratio_m_per_rad']:g} m/rad; the description has ID "
+def reference_offset(entry: dict, record: dict, path: Path, drive, marker: int) -> float:
+    """The joint's ``q_offset`` (``q = q_per_count * counts + q_offset``) from its valid
+    ``entry`` of ``record``, given the value its motor holds in :data:`MARKER_ADDRESS`; a
+    BackendError naming ``cochlea-dxl home`` when the entry does not belong to this motor and
+    power cycle."""
+    if entry["motor_id"] != drive.id or entry["direction"] != drive.direction or \
+            abs(entry["ratio_m_per_rad"] - drive.ratio) > 1e-12:
+        raise BackendError(f"homing record {path} was made for {drive.name} on motor ID "
+                           f"{entry['motor_id']}, direction {entry['direction']:+d}, ratio "
+                           f"{entry['ratio_m_per_rad']:g} m/rad; the description has ID "
                            f"{drive.id}, {drive.direction:+d}, {drive.ratio:g}: run cochlea-dxl "
                            "home again")
-    if marker != record["marker"]:
-        raise BackendError(f"the slider (ID {drive.id}) was power-cycled or rebooted since it "
-                           f"was homed ({record.get('date', 'date unknown')}): its encoder lost "
-                           f"its turns; run cochlea-dxl home{_options(record)} --port PORT "
-                           "again")
-    return float(record["stop_m"]) - drive.q_per_count * record["raw_counts"]
+    if marker != entry["marker"]:
+        described = record.get("description") or SHIPPED
+        robot = record.get("robot") or "ROBOT"
+        raise BackendError(f"{drive.name} (ID {drive.id}) was power-cycled or rebooted (or "
+                           "homed again, for another record) since it was homed "
+                           f"({record.get('date') or 'date unknown'}): the record no longer "
+                           f"counts its turns; run {_home_command(robot, described)} again")
+    return float(entry["stop_m"]) - drive.q_per_count * entry["raw_counts"]

@@ -156,11 +156,12 @@ static void usage(FILE *to)
             "                       40: above normal processes, below the kernel's threads)\n"
             "  A real-time setting the system refuses is one warning and the run goes on with\n"
             "  what it got; summary.json's realtime entry records both.\n"
-            "  --homing auto|required  parallel robot: check the slider's homing record\n"
-            "                       (cochlea-dxl home) on a real port and not on the\n"
-            "                       emulator's pseudo-terminal (auto, default), or always\n"
+            "  --homing auto|required  a prismatic joint (the parallel robot's slider): check\n"
+            "                       its homing record (cochlea-dxl home) on a real port and not\n"
+            "                       on the emulator's pseudo-terminal (auto, default), or always\n"
             "  --homing-record FILE the record cochlea-dxl home wrote (default\n"
-            "                       ~/.cochlea/homing/ROBOT.json)\n"
+            "                       ~/.cochlea/homing/ROBOT.json, the shipped description's;\n"
+            "                       a user's description: the path cochlea-dxl home printed)\n"
             "  --list               the scenarios linked into this program\n"
             "Exit codes: 0 completed or stopped by the user, 2 wrong option, 5 motors not "
             "started,\n10 position-limit, 11 velocity-limit, 12 keep-out, 13 non-finite, "
@@ -700,7 +701,11 @@ static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const dou
 
 /* ---- the slider's homing record (cochlea/dynamixel/homing.py) -------------------------------- */
 
-#define HOMING_FORMAT "cochlea-homing/1"
+/* What cochlea-dxl home writes: one entry per prismatic joint in "joints"; the flat one-joint
+ * records of before issue 25 are still read. This program homes one joint (its bridge checks
+ * one marker): a record of one entry, whose keys then occur once each. */
+#define HOMING_FORMAT "cochlea-homing/2"
+#define HOMING_FORMAT_1 "cochlea-homing/1"
 
 /* What the homing check found before the start: summary.json's timing.bus.homing. */
 static struct {
@@ -757,6 +762,24 @@ static const char *record_value(const char *text, const char *key, char *out, si
 }
 
 /* A whole number (JSON's int, not a float or a bool). */
+/* How many times "key" occurs as a key (followed by a colon) in the record. */
+static int record_count(const char *text, const char *key)
+{
+    char quoted[64];
+    const char *p = text;
+    int count = 0;
+    snprintf(quoted, sizeof quoted, "\"%s\"", key);
+    while ((p = strstr(p, quoted)) != 0) {
+        const char *v = p + strlen(quoted);
+        while (isspace((unsigned char)*v)) {
+            ++v;
+        }
+        count += *v == ':';
+        p += 1;
+    }
+    return count;
+}
+
 static int record_int(const char *text, const char *key, long *value)
 {
     char token[64], *end;
@@ -792,12 +815,12 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
     long motor_id, raw_counts, marker, direction;
     double stop_m, ratio;
     char value[128];
-    int i, slider = -1;
+    int i, slider = -1, sliders = 0, v2;
     homing.robot = sc->robot;
     for (i = 0; i < sc->nq; ++i) {
         if (!sc->drives[i].revolute) {
-            slider = i;
-            break;
+            slider = slider < 0 ? i : slider;
+            ++sliders;
         }
     }
     if (slider < 0) {
@@ -808,6 +831,12 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
         snprintf(homing.report, sizeof homing.report,
                  "not checked (a pseudo-terminal: the virtual chain)");
         return 0;
+    }
+    if (sliders > 1) { /* its bridge counts one joint from a homing: the others would not be */
+        snprintf(msg, n, "the robot has %d prismatic joints and this program checks the homing "
+                 "of one: run it with cochlea-run --backend dynamixel, which checks each",
+                 sliders);
+        return -1;
     }
     if (o->homing_record) {
         snprintf(path, sizeof path, "%s", o->homing_record);
@@ -832,15 +861,33 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
     fclose(f);
     text[got] = '\0';
     d = &sc->drives[slider];
-    if (!(record_value(text, "format", value, sizeof value)
-          && strcmp(value, "\"" HOMING_FORMAT "\"") == 0
+    v2 = record_value(text, "format", value, sizeof value)
+         && strcmp(value, "\"" HOMING_FORMAT "\"") == 0;
+    if (v2 && record_count(text, "motor_id") != 1) {
+        snprintf(msg, n, "homing record %s holds %d joints; this robot has one prismatic joint: "
+                 "run cochlea-dxl home --robot %s --port PORT again", path,
+                 record_count(text, "motor_id"), sc->robot);
+        return -1;
+    }
+    if (record_value(text, "robot", value, sizeof value)
+        && (value[0] != '"' || strlen(value) != strlen(sc->robot) + 2
+            || strncmp(value + 1, sc->robot, strlen(sc->robot)) != 0)) {
+        const int quoted = value[0] == '"' && strlen(value) >= 2;
+        snprintf(msg, n, "homing record %s was made for the %.*s robot, not the %s one: run "
+                 "cochlea-dxl home --robot %s --port PORT again", path,
+                 (int)strlen(value) - (quoted ? 2 : 0), value + (quoted ? 1 : 0), sc->robot,
+                 sc->robot);
+        return -1;
+    }
+    if (!((v2 || (record_value(text, "format", value, sizeof value)
+                  && strcmp(value, "\"" HOMING_FORMAT_1 "\"") == 0))
           && record_int(text, "motor_id", &motor_id) && record_int(text, "raw_counts", &raw_counts)
           && record_int(text, "marker", &marker) && record_number(text, "stop_m", &stop_m)
           && record_number(text, "ratio_m_per_rad", &ratio)
           && record_int(text, "direction", &direction) && (direction == 1 || direction == -1)
           && marker >= 0 && marker <= 65535)) {
-        snprintf(msg, n, "homing record %s: not a " HOMING_FORMAT " record; run cochlea-dxl "
-                 "home again", path);
+        snprintf(msg, n, "homing record %s: not a " HOMING_FORMAT " record (nor a "
+                 HOMING_FORMAT_1 " one); run cochlea-dxl home again", path);
         return -1;
     }
     if (record_value(text, "date", value, sizeof value) && value[0] == '"') {

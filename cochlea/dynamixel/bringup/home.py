@@ -1,6 +1,7 @@
-"""``cochlea-dxl home``: the slider's homing, and the record the runtime checks before it starts.
+"""``cochlea-dxl home``: the homing of a robot's prismatic joints (the parallel robot's slider, a
+user arm's carriages), and the record the runtime checks before it starts.
 
-The slider's motor has a single-turn absolute encoder on a multi-turn travel: its Present
+A slider's motor has a single-turn absolute encoder on a multi-turn travel: its Present
 Position counts turns while it is powered, but after a power cycle (or a REBOOT) it starts
 again within one turn, so the joint coordinate is no longer known. Homing finds it again:
 
@@ -14,17 +15,22 @@ again within one turn, so the joint coordinate is no longer known. Homing finds 
 3. a random token is written into a RAM register the current-control mode does not use
    (:data:`MARKER_ADDRESS`, Feedforward 2nd Gain): RAM returns to its defaults at power-on and
    after a REBOOT, exactly when the turn count is lost;
-4. goal current 0 and torque off, whatever happened; then the record is written (JSON,
-   :func:`default_record`), atomically, to a path checked writable before anything moved.
+4. goal current 0 and torque off, whatever happened.
+
+With several prismatic joints, each is homed in turn, in the description's order, by steps 1-4
+(a joint already homed rests torque-off on its lower stop meanwhile). Then one record holds one
+entry per joint (JSON, :mod:`cochlea.dynamixel.homing`, at :func:`default_record`: one file per
+robot description), written atomically to a path checked writable before anything moved.
 
 Every status packet of the move is watched (:func:`common.motion`): a hardware alert, a motor
 that stops answering or answers a garbled or stale packet, a signal stop the move at once
-(goal current 0, torque off on every motor that answers), and nothing is recorded.
+(goal current 0, torque off on every motor that answers), and nothing is recorded, not even the
+joints already homed.
 
-The rule the runtime applies (:func:`reference_offset`): the record is valid while the motor
-still holds the token, i.e. it has not been power-cycled or rebooted since it was homed; then
-``d1 = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``, whatever the
-description's ``zero_offset_deg`` says.
+The rule the runtime applies to each joint (:func:`reference_offset`): its entry is valid
+while its motor still holds the token, i.e. it has not been power-cycled or rebooted since it
+was homed; then ``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``,
+whatever the description's ``zero_offset_deg`` says.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from datetime import datetime
 from pathlib import Path
 
 from ...errors import CochleaError
+from .. import homing
 from ..control_table import Item, baud_code
 from ..drives import JointDrive
 from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
@@ -46,8 +53,8 @@ from . import common
 from .calibrate import write_atomic
 
 NAME = "home"
-HELP = ("home the parallel robot's slider on its lower hard stop and record it, so the runtime "
-        "knows its position (until the next power cycle)")
+HELP = ("home every prismatic joint (the parallel robot's slider) on its lower hard stop and "
+        "record it, so the runtime knows its position (until the next power cycle)")
 
 #: The slider has stopped when its position stays within this many counts over the dwell.
 STILL_COUNTS = 2
@@ -63,10 +70,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_port(p)
     common.add_baud(p)
     p.add_argument("--record", type=Path, metavar="FILE", help="where to write the homing "
-                   "record (default ~/.cochlea/homing/ROBOT.json, where the runtime looks; "
-                   "replaced at each homing)")
-    p.add_argument("--stop-m", type=float, metavar="M", help="the slider's coordinate at its "
-                   "lower hard stop (default: the description's lower limit)")
+                   "record (default ~/.cochlea/homing/ROBOT.json for the shipped description, "
+                   "ROBOT-STEM-HASH.json for a user's, where the runtime looks; replaced at "
+                   "each homing)")
+    p.add_argument("--stop-m", type=float, action="append", metavar="M", help="the "
+                   "prismatic joint's coordinate at its lower hard stop (default: the "
+                   "description's lower limit); with several prismatic joints, once per joint "
+                   "in the description's order")
     p.add_argument("--speed-mm-s", type=float, default=5.0, metavar="V",
                    help="the approach speed (default 5 mm/s)")
     p.add_argument("--force-N", type=float, default=10.0, metavar="F",
@@ -77,7 +87,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(default: twice the stroke at --speed-mm-s, plus 5 s)")
 
 
-def _check(args: argparse.Namespace, d) -> tuple[float, float, float]:
+def _check(args: argparse.Namespace, d, stop_m: float | None) -> tuple[float, float, float]:
     lo, hi = d.position_limits
     for option, value in (("--speed-mm-s", args.speed_mm_s), ("--force-N", args.force_N),
                           ("--dwell-s", args.dwell_s)):
@@ -88,12 +98,12 @@ def _check(args: argparse.Namespace, d) -> tuple[float, float, float]:
         raise CochleaError(f"--speed-mm-s {args.speed_mm_s}: expected at most 60 mm/s (the "
                            "slider's velocity limit); homing is slow")
     if args.force_N > d.effort_limit:
-        raise CochleaError(f"--force-N {args.force_N}: expected at most the slider's force "
+        raise CochleaError(f"--force-N {args.force_N}: expected at most {d.name}'s force "
                            f"limit, {d.effort_limit:g} N")
-    stop = lo if args.stop_m is None else args.stop_m
+    stop = lo if stop_m is None else stop_m
     if not (math.isfinite(stop) and lo - 0.05 <= stop <= hi):
-        raise CochleaError(f"--stop-m {args.stop_m}: expected a coordinate near the slider's "
-                           f"travel [{lo:g}, {hi:g}] m")
+        raise CochleaError(f"--stop-m {stop_m}: expected a coordinate near {d.name}'s travel "
+                           f"[{lo:g}, {hi:g}] m")
     timeout = args.timeout_s
     if timeout is None:
         timeout = 2.0 * (hi - lo) / speed + 5.0
@@ -109,34 +119,46 @@ def run(args: argparse.Namespace) -> int:
     if not sliders:
         raise CochleaError(f"--robot {args.robot}: it has no slider to home (the parallel "
                            "robot has; a serial arm has one where a joint is prismatic)")
-    if len(sliders) > 1:  # one record per robot, and the bridge checks it on every slider
-        raise CochleaError(f"--robot {args.robot}: {len(sliders)} prismatic joints ("
-                           + ", ".join(d.name for d in sliders) + "); cochlea-dxl home and "
-                           "its record hold one: a robot with more cannot be homed yet")
-    d = sliders[0]
-    stop, speed, timeout = _check(args, d)
+    stops = args.stop_m if args.stop_m is not None else [None] * len(sliders)
+    if len(stops) != len(sliders):
+        raise CochleaError(f"--stop-m: given {len(stops)} time(s) for {len(sliders)} prismatic "
+                           "joint(s) (" + ", ".join(d.name for d in sliders) + "): give it once "
+                           "per joint, in that order, or leave it out (each joint's lower limit)")
+    # Every joint's options checked before the port opens.
+    checked = [(d, *_check(args, d, stop)) for d, stop in zip(sliders, stops)]
     record_path = _record_path(args)  # before anything moves: a move is 10 s or more
-    marker = random.SystemRandom().randint(*MARKER_RANGE)
+    made_for = homing.description_id(args.robot, args.description)
+    tokens = random.SystemRandom()
+    entries = []
     with common.Bus(args.port, args.baud) as bus:
-        common.check_chain(bus, [d], torque=True)  # nothing written yet: nothing to undo
+        common.check_chain(bus, sliders, torque=True)  # nothing written yet
         bus.names = {x.id: x for x in drives}
-        try:
-            # Every status packet watched; any stop: torque off on every motor, no record.
-            with common.motion(bus, [d], drives, f"the homing of {d.name}"):
-                result = _seek_stop(bus, d, args, speed, timeout, marker)
-        finally:
-            with contextlib.suppress(common.BusError):
-                bus.write(d.id, d.spec.item("Bus Watchdog"), 0)
-    record = {"format": FORMAT, "robot": args.robot, "joint": d.name, "motor_id": d.id,
-              "model": d.spec.name, "raw_counts": int(result), "stop_m": stop,
-              "direction": d.direction, "ratio_m_per_rad": d.ratio,
-              "marker_address": MARKER_ADDRESS, "marker": marker, "port": args.port,
-              "description": str(args.description) if args.description else "shipped",
-              "date": datetime.now().isoformat(timespec="seconds")}
+        # One joint after the other, each with its own watched, force-limited move; any stop:
+        # torque off on every motor and no record at all (an older one no longer matches the
+        # markers of the joints already homed, so the runtime refuses it).
+        for d, stop, speed, timeout in checked:
+            marker = tokens.randint(*MARKER_RANGE)
+            try:
+                with common.motion(bus, [d], drives, f"the homing of {d.name}"):
+                    result = _seek_stop(bus, d, args, speed, timeout, marker)
+            finally:
+                with contextlib.suppress(common.BusError):
+                    bus.write(d.id, d.spec.item("Bus Watchdog"), 0)
+            entries.append({"joint": d.name, "motor_id": d.id, "model": d.spec.name,
+                            "raw_counts": int(result), "stop_m": stop,
+                            "direction": d.direction, "ratio_m_per_rad": d.ratio,
+                            "marker_address": MARKER_ADDRESS, "marker": marker})
+            if len(checked) > 1:
+                print(f"  {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
+                      f"{stop:g} m; torque off", flush=True)
+    record = {"format": FORMAT, "robot": args.robot, "description": made_for,
+              "port": args.port, "date": datetime.now().isoformat(timespec="seconds"),
+              "joints": entries}
     with common.finishing():  # a signal now would not stop the record half-reported
         _write_record(record_path, record)
-        print(f"homed: {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
-              f"{stop:g} m; record {record_path}; torque off", flush=True)
+        said = "; ".join(f"{e['joint']} (ID {e['motor_id']}) on its stop at raw position "
+                         f"{e['raw_counts']} counts = {e['stop_m']:g} m" for e in entries)
+        print(f"homed: {said}; record {record_path}; torque off", flush=True)
     return 0
 
 
@@ -145,7 +167,7 @@ def _record_path(args: argparse.Namespace) -> Path:
     moves; the default's folder (~/.cochlea/homing) is created, a --record's must exist."""
     if args.record is not None:
         return common.check_output(args.record, "--record")
-    path = default_record(args.robot)
+    path = default_record(args.robot, args.description)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
