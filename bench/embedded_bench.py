@@ -27,6 +27,7 @@ plant's parameters, the initial state, the grids -- once, at build time.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import gc
 import hashlib
 import json
@@ -413,19 +414,30 @@ def python_period_cost(name: str, periods: int = 2000) -> float:
     """The Python real-time loop's controller work per period (s, median): ``RealTimeLoop`` as
     fast as possible on the sim backend, each period's compute time less the backend's read and
     write (what is left: the supervisor's checks, every unit's step through ctypes, the
-    copies)."""
+    copies); a geared study that stops early is timed on its preset before the gearbox (the
+    same controller, supervisor and copies)."""
     from cochlea.runtime.loop import RealTimeLoop
     from cochlea.runtime.sim_backend import SimBackend
     from cochlea.runtime.supervisor import build_supervisor
 
     sc = load_scenario(name)
-    setups = unit_setups(sc)
-    backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant, steps=periods)
-    supervisor = build_supervisor(setups, sc.system.keep_out_radius,
-                                  substeps=sc.plant_substeps)
-    loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
-                        substeps=sc.plant_substeps)
-    stop = loop.run()
+    for attempt in range(2):
+        setups = unit_setups(sc)
+        backend = SimBackend(setups, sc.period, sc.plant_substeps, plant=sc.plant,
+                             steps=periods)
+        supervisor = build_supervisor(setups, sc.system.keep_out_radius,
+                                      substeps=sc.plant_substeps)
+        loop = RealTimeLoop(setups, backend, supervisor, sc.period, periods, realtime=False,
+                            substeps=sc.plant_substeps)
+        stop = loop.run()
+        if stop.rule == "completed" or not sc.plant.gearbox or attempt:
+            break
+        # The serial realistic studies stop on the velocity limit within 30 ms on the geared
+        # plant (docs/robustness.md): the controller's work per period is the same on the
+        # preset before the gearbox, where they run their length (the backend's I/O, the only
+        # part the plant changes, is subtracted anyway).
+        sc = dataclasses.replace(sc, plant=dataclasses.replace(
+            sc.plant, gearbox=False, static_friction_ratio=1.0))
     if stop.rule != "completed" or loop.kernel_source != "c":
         raise RuntimeError(f"{name}: the Python loop stopped ({stop.rule}) or ran "
                            f"{loop.kernel_source} kernels")

@@ -64,7 +64,7 @@ from numpy_law import NumpyStepE  # noqa: E402
 import cochlea  # noqa: E402
 from cochlea.kernels import library as ckernels
 from cochlea.resources import SCENARIOS_DIR  # noqa: E402
-from cochlea.robots.plant import plant_step
+from cochlea.robots.plant import GEAR_SUBSTEPS
 from cochlea.robots.serial import load_serial  # noqa: E402
 from cochlea.sim import compiled as csim  # noqa: E402
 from cochlea.sim import load_scenario, simulate, unit_setups  # noqa: E402
@@ -285,9 +285,13 @@ def bench_closed_loops(lib: ckernels.Library, harness: Path) -> list[dict]:
         t_driver, _ = wall(driver_only, 21)
         # Per period and unit: the plant and step kernels alone, in C.
         k0, u0 = prepared[0][:2]
-        plant_args = [u0.x0, np.zeros(u0.controller_model.nq), u0.plant_params, u0.friction,
-                      np.array(sc.period)]
-        if u0.coulomb is not None:
+        # The plant's own state and trailing input: with the gearbox ``[q, qd, theta,
+        # theta_dot]`` and the drive's rows, else ``[q, qd]`` and the Coulomb levels if any.
+        plant_args = [u0.plant_x0, np.zeros(u0.controller_model.nq), u0.plant_params,
+                      u0.friction, np.array(sc.period)]
+        if u0.drive is not None:
+            plant_args.append(u0.drive)
+        elif u0.coulomb is not None:
             plant_args.append(u0.coulomb)
         row.update({
             "casadi_s": t_ref, "python_ctypes_s": t_py, "c_s": t_c, "c_driver_s": t_driver,
@@ -297,8 +301,8 @@ def bench_closed_loops(lib: ckernels.Library, harness: Path) -> list[dict]:
             "max_diff_c": max_log_difference(c_loop, reference),
             "plant_kernel_c_s": time_in_c(harness, lib, k0.plant, plant_args, 51, 500),
             "step_kernel_c_s": time_in_c(harness, lib, k0.step, step_inputs(u0), 51, 2000),
-            "plant_operations": plant_step(u0.plant_model, sc.plant_substeps,
-                                           u0.coulomb is not None).n_instructions(),
+            "plant_operations": u0.plant_function(sc.plant_substeps).n_instructions(),
+            "gearbox": bool(u0.gearbox),
             "forward_dynamics_operations":
                 u0.plant_model.forward_dynamics_p.n_instructions(),
             "plant_substeps": sc.plant_substeps,
@@ -308,6 +312,15 @@ def bench_closed_loops(lib: ckernels.Library, harness: Path) -> list[dict]:
               f"{row['rtf_python_ctypes']:.0f}x, all-in-C {row['rtf_c']:.0f}x (driver alone "
               f"{row['rtf_c_driver']:.0f}x) real time", flush=True)
     return rows
+
+
+def plant_integration(row: dict) -> str:
+    """How the row's plant integrates one period, in words."""
+    k = row["plant_substeps"]
+    if row.get("gearbox"):
+        return (f"{k * GEAR_SUBSTEPS} linearly implicit sub-steps of the geared plant, each an "
+                "n x n linear solve")
+    return f"{k} RK4 sub-steps = {4 * k} forward-dynamics evaluations"
 
 
 RTF_PATHS = (("rtf_python_ctypes", "Python + ctypes"), ("rtf_c", "all-in-C"),
@@ -423,8 +436,8 @@ def verdicts(steps: list[dict] | None, loops: list[dict] | None, build: dict | N
             f"time end to end ({r['rtf_c_driver']:.0f}x for the C driver calls alone, the "
             f"{r['units']} arms one after the other; target >= {target:g}x). Why: each arm "
             f"and period costs the plant step, {us(r['plant_kernel_c_s'])} us in C "
-            f"({r['plant_substeps']} RK4 sub-steps = {4 * r['plant_substeps']} forward-dynamics "
-            f"evaluations, {r['plant_operations']} operations), plus the controller step, "
+            f"({plant_integration(r)}, {r['plant_operations']} operations), plus the "
+            "controller step, "
             f"{us(r['step_kernel_c_s'])} us: {us(per_unit)} us per arm and period, so "
             f"{r['units']} arms cap one core at about {1e-3 / (r['units'] * per_unit):.0f}x. "
             "The driver adds nothing measurable; simulate() runs the arms on parallel threads, "
