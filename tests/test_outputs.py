@@ -522,3 +522,24 @@ def test_codegen_check_whose_reader_went_away_exits_with_its_verdict(tmp_path):
     finally:
         os.close(w)
     assert done.returncode == 0 and done.stderr == "", done.stderr
+
+
+@pytest.mark.parametrize("next_phase", ["defer", "forward"])
+def test_a_signal_a_library_swallowed_while_preparing_still_stops_the_run(next_phase):
+    """A SIGTERM during the as-fast simulation once ended in exit 0 (CI, session 12): the
+    shield's exception was raised inside a library that runs Python's signal handlers itself
+    and swallowed it. The shield remembers the signal and raises it again before the next
+    phase, so the run still ends as interrupted."""
+    shield = outputs.SignalShield("test")
+    shield.install()
+    try:
+        try:  # the library: runs the handler, swallows what it raises
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        except outputs.Interrupted:
+            pass
+        with pytest.raises(outputs.Interrupted) as caught:
+            shield.defer() if next_phase == "defer" else shield.forward(lambda *a: None)
+        assert caught.value.signum == signal.SIGTERM
+    finally:
+        shield.restore()

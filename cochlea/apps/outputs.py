@@ -388,6 +388,9 @@ class SignalShield:
     def __init__(self, program: str):
         self.program = program
         self.received: list[int] = []
+        #: Signals that arrived while preparing (each raised :class:`Interrupted` where it
+        #: landed; see :meth:`_raise_pending`).
+        self._pending: list[int] = []
         self._mode: object = "prepare"
         self._previous: dict | None = None
 
@@ -403,10 +406,21 @@ class SignalShield:
         self._mode = "prepare"
 
     def forward(self, handler) -> None:
+        self._raise_pending()
         self._mode = handler
 
     def defer(self) -> None:
+        self._raise_pending()
         self._mode = "defer"
+
+    def _raise_pending(self) -> None:
+        """A signal that arrived while preparing raised :class:`Interrupted` where it landed,
+        but a library that runs Python's signal handlers itself may swallow that exception
+        (CasADi checks for Ctrl-C inside its evaluations: a SIGTERM during the as-fast
+        simulation was once lost so, and the run completed with exit 0). It is raised again
+        here, before the next phase begins."""
+        if self._pending:
+            raise Interrupted(self._pending[0])
 
     def ignore(self) -> None:
         """Everything is written and the program exits: a signal changes nothing now. SIG_IGN,
@@ -419,6 +433,7 @@ class SignalShield:
     def _handle(self, signum, frame) -> None:
         mode = self._mode
         if mode == "prepare":
+            self._pending.append(signum)
             raise Interrupted(signum)
         if mode == "ignore":
             return
