@@ -331,6 +331,42 @@ def test_what_cannot_be_a_serial_chain_is_one_line(tmp_path, capsys, case):
     assert expected in _run_bad(tmp_path, capsys, [str(bad)])
 
 
+def test_names_casadi_cannot_take_become_names_it_can(tmp_path):
+    """URDF names with a hyphen, a space, an accent, a doubled or trailing underscore (all
+    legal in URDF) become description names the model builds with: they name CasADi and C
+    functions (``robot_arm_M_p``). Before, a hyphen reached CasADi and stopped the build with
+    its own traceback."""
+    text = ARM4.read_text(encoding="utf-8")
+    for old, new in [('"arm4"', '"so-101 bras articul\u00e9"'), ('"shoulder"', '"shoulder-link"'),
+                     ('"upper"', '"upper__arm_"'), ('"pan"', '"pan joint"'),
+                     ('"lift"', '"_lift-2"')]:
+        assert old in text
+        text = text.replace(old, new)
+    urdf = tmp_path / "names.urdf"
+    urdf.write_text(text, encoding="utf-8")
+    ours = cochlea.model("serial", description=_imported(tmp_path, urdf))
+    system = load_serial(tmp_path / "robot.toml")
+    assert system.name == "so_101_bras_articul"
+    links = system.arms[0].links
+    assert [link.name for link in links] == ["shoulder_link", "upper_arm", "slider", "wrist"]
+    assert [link.joint.name for link in links] == ["pan_joint", "lift_2", "extend", "roll"]
+    assert np.linalg.eigvalsh(ev(ours.M, np.zeros(4))).min() > 0
+
+
+@pytest.mark.parametrize("name", ["my-arm", "arm__1", "arm_", "1arm", "a" * 65])
+def test_a_description_name_casadi_cannot_take_is_one_line(tmp_path, name):
+    """Written by hand, such a name is refused when the description loads, naming the key and
+    the rule, before any model is built."""
+    text = _imported(tmp_path, ARM4).read_text(encoding="utf-8")
+    assert '\nname = "arm4"' in text
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace('\nname = "arm4"', f'\nname = "{name}"'), encoding="utf-8")
+    with pytest.raises(cochlea.errors.DescriptionError) as err:
+        load_serial(bad)
+    assert "system.name" in str(err.value) and "single underscores" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
 def test_file_level_mistakes_are_one_line(tmp_path, capsys):
     assert "no such file" in _run_bad(tmp_path, capsys, [str(tmp_path / "missing.urdf")])
     assert "a folder" in _run_bad(tmp_path, capsys, [str(tmp_path)])

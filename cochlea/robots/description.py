@@ -55,9 +55,14 @@ MAX_EFFORT = {"revolute": 1000.0, "prismatic": 10000.0}  # N m, N
 MAX_ARMATURE = {"revolute": 1000.0, "prismatic": 10000.0}  # kg m^2, kg
 MAX_FIT = 1e6  # |a| and |b| of a motor's fit
 MIN_FIT_SLOPE = 1e-6
-#: Names of systems, arms and links: they become column names, parameter names
-#: (``link2.Izz``) and file names (``arm1_tracking.png``).
-NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,63}")
+#: Names of systems, arms, links and joints: they become column names, parameter names
+#: (``link2.Izz``), file names (``arm1_tracking.png``) and the names of CasADi Functions and
+#: generated C functions (``robot_arm1_M_p``), joined with ``_``. CasADi accepts a letter, then
+#: letters, digits and single underscores; a ``-``, a doubled or trailing ``_`` would make the
+#: joined name invalid (the model's build stopped with CasADi's own error), so none is a name.
+NAME_PATTERN = re.compile(r"(?=.{1,64}$)[A-Za-z](?:_?[A-Za-z0-9])*")
+NAME_RULE = ("a name of at most 64 letters, digits and single underscores, starting with a "
+             "letter and not ending with _ (it names C and CasADi functions)")
 
 
 @dataclass(frozen=True)
@@ -149,9 +154,8 @@ class Table:
 
     def name(self, name: str, **kw) -> str:
         """A name that can become a column, a parameter's prefix and part of a file name."""
-        return self.get(name, "a name of at most 64 letters, digits, _ or -, starting with a "
-                        "letter", lambda v: isinstance(v, str) and NAME_PATTERN.fullmatch(v)
-                        is not None, **kw)
+        return self.get(name, NAME_RULE, lambda v: isinstance(v, str)
+                        and NAME_PATTERN.fullmatch(v) is not None, **kw)
 
     def bounded(self, name: str, expected: str, check, lo: float, hi: float, unit: str,
                 **kw) -> float | None:

@@ -594,16 +594,22 @@ def _deg(angle: float) -> float:
 
 
 def clean_name(name: str, used: set[str], prefix: str) -> str:
-    """``name`` as a description name (letters, digits, _ and -, starting with a letter, at
-    most 64), unique among ``used``."""
-    out = re.sub(r"[^A-Za-z0-9_-]", "_", name)[:60]
+    """``name`` as a description name (:data:`NAME_PATTERN`: letters, digits and single
+    underscores, starting with a letter, at most 64), unique among ``used``. Every other
+    character becomes ``_``, runs of ``_`` one, and a leading or trailing ``_`` goes: URDF
+    names such as ``base-link`` or ``bras articul\u00e9`` are common, CasADi names are not."""
+    def tidy(text: str) -> str:
+        return re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9]", "_", text)).strip("_")
+
+    out = tidy(name)[:56]
     if not out or not out[0].isalpha():
-        out = (prefix + "_" + out)[:60]
+        out = tidy(f"{prefix}_{out}")[:56]
+    out = out.rstrip("_")
     candidate, k = out, 2
     while candidate in used:
         candidate = f"{out}_{k}"
         k += 1
-    assert NAME_PATTERN.fullmatch(candidate)
+    assert NAME_PATTERN.fullmatch(candidate), candidate
     used.add(candidate)
     return candidate
 
