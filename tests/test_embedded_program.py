@@ -315,10 +315,10 @@ def _hold_marker(port: str, marker: int) -> None:
     """Leave ``marker`` in the emulator's slider as cochlea-dxl home leaves its token (through
     its bus: the bridge's open_bus/close_bus are gone, cochlea-dxl's subcommands share one)."""
     from cochlea.dynamixel.bringup.common import Bus
-    from cochlea.dynamixel.bringup.home import MARKER_ITEM
+    from cochlea.dynamixel.homing import marker_item
 
     with Bus(port, 4_000_000) as bus:
-        bus.write(_slider().id, MARKER_ITEM, marker)
+        bus.write(_slider().id, marker_item(_slider()), marker)
 
 
 def _record(path: Path, marker: int, shift_m: float, *, legacy: bool = False) -> Path:

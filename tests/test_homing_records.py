@@ -429,3 +429,38 @@ def test_the_embedded_program_counts_a_user_joint_from_the_record_home_writes(
     with open(out / "log.csv", newline="") as f:
         first = next(csv.DictReader(f))
     assert abs(float(first["arm.q.carriage_joint_m"]) - 0.0395) < 1e-3
+
+
+# ---- the token's register, from the models' data ---------------------------------------------
+
+
+def test_the_tokens_register_is_each_models_own(tmp_path):
+    """The homing token lives in each model's Feedforward 2nd Gain, at the address its data
+    gives (88 on the X series and MX(2.0), 536 on the P series), not at a constant; a model
+    whose register cannot hold a token, and a record that kept the token at another address,
+    are refused in one line."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from cochlea.dynamixel.control_table import MODELS
+
+    for model, address in [("XM430-W350", 88), ("MX-64", 88), ("PH54-200-S500-R", 536)]:
+        drive = SimpleNamespace(name="arm.carriage", spec=MODELS[model])
+        assert homing.marker_item(drive).address == address
+    narrow = replace(MODELS["XM430-W350"].item("Feedforward 2nd Gain"), size=1, hi=255)
+    spec = SimpleNamespace(name="XM430-W350", item=lambda name: narrow)
+    with pytest.raises(BackendError, match=r"^joint arm\.carriage: the XM430-W350's "
+                       r"Feedforward 2nd Gain \(address 88, 1 bytes, 0\.\.255\) cannot hold"):
+        homing.marker_item(SimpleNamespace(name="arm.carriage", spec=spec))
+
+    carriage = next(d for d in joint_drives("serial", ONE) if d.type == "prismatic")
+    path = _write(tmp_path / "moved.json", {
+        "format": homing.FORMAT, "robot": "serial", "description": str(ONE.resolve()),
+        "joints": [_entry(carriage, marker_address=536)]})
+    record = homing.load_record(path)
+    (entry,) = homing.check_record(record, path, "serial", ONE, [carriage])
+    with pytest.raises(BackendError) as caught:
+        homing.reference_offset(entry, record, path, carriage, 4321)
+    assert str(caught.value) == (
+        f"homing record {path} keeps arm.carriage's token at address 536; the XM430-W350 "
+        "keeps it at 88 (Feedforward 2nd Gain): run cochlea-dxl home again")

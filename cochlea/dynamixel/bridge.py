@@ -1114,8 +1114,8 @@ class DynamixelBackend:
         offsets = []
         for j, entry in zip(sliders, entries):
             d = self.drives[j]
-            params = self.command(d, "READ the homing marker",
-                                   proto.read(d.id, homing.MARKER_ADDRESS, 2))
+            it = homing.marker_item(d)
+            params = self.command(d, "READ the homing marker", proto.read(d.id, it.address, 2))
             marker = proto.from_le(params, False) if len(params) == 2 else -1
             offsets.append((j, homing.reference_offset(entry, record, path, d, marker)))
             self._homing_markers.append((d, marker))
@@ -1129,7 +1129,8 @@ class DynamixelBackend:
         cycle still finds it. The turns themselves survive a write of current control."""
         for d, marker in self._homing_markers:
             self.command(d, "restore the homing marker",
-                          proto.write(d.id, homing.MARKER_ADDRESS, proto.le(marker, 2)))
+                          proto.write(d.id, homing.marker_item(d).address,
+                                      proto.le(marker, 2)))
 
     def _unwrap_and_check(self, q: np.ndarray) -> None:
         """A revolute joint's absolute encoder is single-turn after power-up: take the turn that

@@ -4,9 +4,10 @@
 ``cochlea-dxl home`` (:mod:`cochlea.dynamixel.bringup.home`) writes the record; the bridge's
 start-up (:meth:`cochlea.dynamixel.bridge.DynamixelBackend._check_homing`) applies the rule to
 each homed joint: its entry is valid while its motor still holds the random token written into
-:data:`MARKER_ADDRESS` when it was homed. That register is RAM, unused in current control, and
-returns to its default (0) at power-on and after a REBOOT, exactly when the single-turn encoder
-loses its turn count. A valid entry counts the joint from its stop:
+:data:`MARKER_ITEM_NAME` (:func:`marker_item`: its address from the motor model's data) when it
+was homed. That register is RAM, unused in current control, and returns to its default (0) at
+power-on and after a REBOOT, exactly when the single-turn encoder loses its turn count. A
+valid entry counts the joint from its stop:
 ``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``.
 
 One record per robot description (:func:`default_record`): ``~/.cochlea/homing/ROBOT.json``
@@ -34,12 +35,16 @@ from pathlib import Path
 
 from ..resources import ROBOTS_DIR, shipped
 from ..runtime.backend import BackendError
+from .control_table import Item
+from .drives import drive_item
 
 FORMAT = "cochlea-homing/2"
 #: One joint, flat (issue 15): still read for a shipped description.
 FORMAT_1 = "cochlea-homing/1"
-#: Feedforward 2nd Gain: RAM (reset at power-on and by REBOOT), unused in current control.
-MARKER_ADDRESS = 88
+#: The register that holds the homing token, by name: each model's address and size come from
+#: its data (88 on the X series and MX(2.0), 536 on the P series). Feedforward 2nd Gain: RAM
+#: (reset to 0 at power-on and by REBOOT), unused in current control.
+MARKER_ITEM_NAME = "Feedforward 2nd Gain"
 MARKER_RANGE = (1, 16383)  # its default is 0: a motor fresh from power-on never matches
 #: The description of a record made for the shipped ``models/robots/ROBOT.toml``.
 SHIPPED = "shipped"
@@ -160,9 +165,22 @@ def check_record(record: dict, path: Path, robot: str, description: str | Path |
     return [entries[n] for n in names]
 
 
+def marker_item(drive) -> Item:
+    """The homing token's register of ``drive``'s motor model (:data:`MARKER_ITEM_NAME`, its
+    address and size from the model's data), refused in one line where the model has no such
+    two-byte RAM register that holds :data:`MARKER_RANGE`."""
+    it = drive_item(drive, MARKER_ITEM_NAME, "cochlea-dxl home and the bridge's homing check")
+    if it.size != 2 or not it.writable or it.lo > MARKER_RANGE[0] or it.hi < MARKER_RANGE[1]:
+        raise BackendError(f"joint {drive.name}: the {drive.spec.name}'s {MARKER_ITEM_NAME} "
+                           f"(address {it.address}, {it.size} bytes, {it.lo}..{it.hi}) cannot "
+                           f"hold a homing token ({MARKER_RANGE[0]}..{MARKER_RANGE[1]}, 2 "
+                           "bytes, writable)")
+    return it
+
+
 def reference_offset(entry: dict, record: dict, path: Path, drive, marker: int) -> float:
     """The joint's ``q_offset`` (``q = q_per_count * counts + q_offset``) from its valid
-    ``entry`` of ``record``, given the value its motor holds in :data:`MARKER_ADDRESS`; a
+    ``entry`` of ``record``, given the value its motor holds in its :func:`marker_item`; a
     BackendError naming ``cochlea-dxl home`` when the entry does not belong to this motor and
     power cycle."""
     if entry["motor_id"] != drive.id or entry["direction"] != drive.direction or \
@@ -172,6 +190,11 @@ def reference_offset(entry: dict, record: dict, path: Path, drive, marker: int) 
                            f"{entry['ratio_m_per_rad']:g} m/rad; the description has ID "
                            f"{drive.id}, {drive.direction:+d}, {drive.ratio:g}: run cochlea-dxl "
                            "home again")
+    kept_at = marker_item(drive).address
+    if entry.get("marker_address", kept_at) != kept_at:
+        raise BackendError(f"homing record {path} keeps {drive.name}'s token at address "
+                           f"{entry['marker_address']}; the {drive.spec.name} keeps it at "
+                           f"{kept_at} ({MARKER_ITEM_NAME}): run cochlea-dxl home again")
     if marker != entry["marker"]:
         described = record.get("description") or SHIPPED
         robot = record.get("robot") or "ROBOT"

@@ -13,8 +13,9 @@ again within one turn, so the joint coordinate is no longer known. Homing finds 
    reference, the joint coordinate there is ``--stop-m`` (default the description's lower
    limit);
 3. a random token is written into a RAM register the current-control mode does not use
-   (:data:`MARKER_ADDRESS`, Feedforward 2nd Gain): RAM returns to its defaults at power-on and
-   after a REBOOT, exactly when the turn count is lost;
+   (:data:`~..homing.MARKER_ITEM_NAME`, Feedforward 2nd Gain, its address from the model's
+   data): RAM returns to its defaults at power-on and after a REBOOT, exactly when the turn
+   count is lost;
 4. goal current 0 and torque off, whatever happened.
 
 With several prismatic joints, each is homed in turn, in the description's order, by steps 1-4
@@ -46,9 +47,9 @@ from pathlib import Path
 
 from ...errors import CochleaError
 from .. import homing
-from ..control_table import Item, baud_code
+from ..control_table import baud_code
 from ..drives import JointDrive
-from ..homing import FORMAT, MARKER_ADDRESS, MARKER_RANGE, default_record
+from ..homing import FORMAT, MARKER_RANGE, default_record, marker_item
 from . import common
 from .calibrate import write_atomic
 
@@ -147,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
             entries.append({"joint": d.name, "motor_id": d.id, "model": d.spec.name,
                             "raw_counts": int(result), "stop_m": stop,
                             "direction": d.direction, "ratio_m_per_rad": d.ratio,
-                            "marker_address": MARKER_ADDRESS, "marker": marker})
+                            "marker_address": marker_item(d).address, "marker": marker})
             if len(checked) > 1:
                 print(f"  {d.name} (ID {d.id}) on its stop at raw position {result} counts = "
                       f"{stop:g} m; torque off", flush=True)
@@ -184,10 +185,6 @@ def _write_record(path: Path, record: dict) -> None:
         why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         raise CochleaError(f"--record {path}: cannot write it ({why}); the slider was homed "
                            "but nothing records it: home again with another --record") from None
-
-
-#: Where the homing leaves its marker (:mod:`..homing`): a RAM register current control ignores.
-MARKER_ITEM = Item("homing marker", MARKER_ADDRESS, 2, True, 0, *MARKER_RANGE)
 
 
 def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: float,
@@ -233,6 +230,6 @@ def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: 
         if (now - t0 > args.dwell_s and window[-1][0] - window[0][0] >= 0.9 * args.dwell_s
                 and max(positions) - min(positions) <= STILL_COUNTS
                 and all(full for _, _, full in window)):
-            bus.write(d.id, MARKER_ITEM, marker)
+            bus.write(d.id, marker_item(d), marker)
             return sorted(positions)[len(positions) // 2]
         time.sleep(max(0.0, LOOP_PERIOD_S - (time.perf_counter() - now)))
