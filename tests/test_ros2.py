@@ -5,6 +5,9 @@ A subscriber in this test (rclpy, a random ROS_DOMAIN_ID per test, discovery on 
 only) receives what the bridge publishes during a real-time run and compares it with the run's
 ``log.csv``; a subscriber that never spins and a bridge killed mid-run leave the run's summary
 as a run without the bridge; each class of bad input is one line with its exit code.
+
+``/tf`` needs ``tf2_msgs``, which ``make test`` builds (``cochlea.ros2.tf2_msgs_build``: no
+wheel on the package index); without it the /tf tests fail, in one line that says so.
 """
 
 from __future__ import annotations
@@ -29,8 +32,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from cochlea.apps import cochlea_ros2
+from cochlea.export.ros2_msgs import schema_text
 from cochlea.export.run_log import Group, UnitColumns, open_run
 from cochlea.ros2 import node as ros_node
+from cochlea.ros2 import tf2_msgs_build
 from cochlea.ros2.source import Described, RawTail, describe_scenario, raw_units, robot_description
 
 RATE_HZ = cochlea_ros2.DEFAULT_RATE_HZ  # what cochlea-run --ros2 asks for
@@ -46,11 +51,20 @@ def domain(monkeypatch) -> int:
     return value
 
 
+def tf_message():
+    """tf2_msgs/msg/TFMessage, or this test failed in one line (not skipped: make test builds
+    it, so its absence is a failure of that build)."""
+    if ros_node.TFMessage is None:
+        pytest.fail("tf2_msgs is not installed, so /tf is not tested: make test builds it "
+                    "(python -m cochlea.ros2.tf2_msgs_build says why it failed)", pytrace=False)
+    return ros_node.TFMessage
+
+
 class Listener:
     """A node of its own context, spinning in a thread, keeping what it receives (the receipt
-    time with each /joint_states message)."""
+    time with each /joint_states and /tf message)."""
 
-    def __init__(self, domain: int, spin: bool = True):
+    def __init__(self, domain: int, spin: bool = True, tf=None):
         self.context = rclpy.context.Context()
         rclpy.init(context=self.context, domain_id=domain)
         self.node = rclpy.create_node("cochlea_test_listener", context=self.context)
@@ -64,6 +78,10 @@ class Listener:
             live)
         self.node.create_subscription(String, "/robot_description",
                                       lambda m: self.descriptions.append(m.data), latched)
+        self.tf: list[tuple[float, object]] = []
+        if tf is not None:
+            self.node.create_subscription(
+                tf, "/tf", lambda m: self.tf.append((time.monotonic(), m)), live)
         self.executor = None
         if spin:  # a stalled subscriber: subscribed, never reading
             self.executor = SingleThreadedExecutor(context=self.context)
@@ -176,10 +194,113 @@ def test_a_run_on_ros2_is_its_log(tmp_path, domain):
         frames = run.adapter.link_frames(run.system, unit.name)
         assert set(frames.names) <= links and set(frames.parents) <= links
     assert set(names) <= joints
-    if ros_node.TFMessage is None:
+    if ros_node.TFMessage is None:  # pragma: no cover - make test builds tf2_msgs
         assert "no /tf" in done.stderr
-    else:  # pragma: no cover - a ROS installation with tf2_msgs
+    else:
         assert "no /tf" not in done.stderr
+
+
+def stamp_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+@pytest.mark.realtime
+def test_a_run_on_ros2_has_every_frame_on_tf(tmp_path, domain):
+    """/tf during a run, at the configured rate: each message every frame of every unit
+    (parent, child) at one row of log.csv, stamped as that row on /joint_states, its
+    translations (m) and rotations those cochlea-mcap computes from the row; the publisher as a
+    ROS installation sees it: tf2_msgs/msg/TFMessage with Jazzy's type hash."""
+    listener = Listener(domain, tf=tf_message())
+    endpoints = []
+
+    def discover(process):
+        """The bridge's /tf publisher as discovery shows it (DDS type name and type hash)."""
+        end = time.monotonic() + 20
+        while not listener.tf and time.monotonic() < end:
+            time.sleep(0.05)
+        endpoints.extend(listener.node.get_publishers_info_by_topic("/tf"))
+
+    try:
+        done = cochlea_run(tmp_path / "run", "--ros2", during=discover, duration=6)
+    finally:
+        listener.close()
+    assert "no /tf" not in done.stderr
+    assert [(e.topic_type, str(e.topic_type_hash)) for e in endpoints] == [
+        ("tf2_msgs/msg/TFMessage", tf2_msgs_build.JAZZY_HASH)]
+    messages = listener.tf
+    assert len(messages) > RATE_HZ, f"{len(messages)} /tf messages in a 6 s run: {done.stderr}"
+    received = np.array([t for t, _ in messages])
+    rate = (len(received) - 1) / (received[-1] - received[0])
+    assert abs(rate - RATE_HZ) < 0.2 * RATE_HZ, f"/tf received at {rate:.1f} Hz"
+    # The row of each message: its stamp's distance from the first /joint_states message, whose
+    # row is found by value (as in test_a_run_on_ros2_is_its_log).
+    folder = tmp_path / "run"
+    header, rows = read_log(folder)
+    first = listener.states[0][1]
+    q_cols = [column(header, n, "q") for n in first.name]
+    k0 = int(np.argmin(np.abs(rows[:, q_cols] - np.array(first.position)).sum(axis=1)))
+    times = rows[:, 0]
+    picked = []
+    for _, m in messages:
+        stamps = {stamp_ns(t.header.stamp) for t in m.transforms}
+        assert len(stamps) == 1, "one /tf message, one stamp"
+        t = times[k0] + (stamps.pop() - stamp_ns(first.header.stamp)) * 1e-9
+        k = int(np.argmin(np.abs(times - t)))
+        assert abs(times[k] - t) < 1e-6, f"a /tf stamp at {t} s is no row's time_s"
+        picked.append(k)
+    run = open_run(folder)
+    expected = Described(run.adapter, run.system, run.units).transforms(rows[picked])
+    frames = {f for unit in run.units
+              for f in run.adapter.link_frames(run.system, unit.name).names}
+    for (_, m), want in zip(messages, expected):
+        got = [(t.child_frame_id, t.header.frame_id) for t in m.transforms]
+        assert got == [f[:2] for f in want] and frames <= {child for child, _ in got}
+        values = [[t.transform.translation.x, t.transform.translation.y,
+                   t.transform.translation.z, t.transform.rotation.x, t.transform.rotation.y,
+                   t.transform.rotation.z, t.transform.rotation.w] for t in m.transforms]
+        # The bridge reads log.bin's float64, log.csv has 10 digits.
+        np.testing.assert_allclose(values, [list(f[2]) + list(f[3]) for f in want], atol=1e-8)
+
+
+def test_tf2_msgs_is_tfmessage_on_the_wire():
+    """The built TFMessage's CDR (rclpy through Fast DDS's type support) and cochlea-mcap's own
+    encoding of the standard definition (mcap_ros2, no ROS) decode into each other, field for
+    field."""
+    from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    TFMessage = tf_message()
+    TransformStamped = ros_node.TransformStamped
+    text = schema_text("tf2_msgs/TFMessage")
+    encode = serialize_dynamic("tf2_msgs/msg/TFMessage", text)["tf2_msgs/msg/TFMessage"]
+    decode = generate_dynamic("tf2_msgs/msg/TFMessage", text)["tf2_msgs/msg/TFMessage"]
+    fields = []
+    message = TFMessage()
+    for i, (parent, child) in enumerate([("world", "arm1/base"), ("arm1/base", "arm1/link1"),
+                                         ("arm1/link1", "arm1/tool")]):
+        p, q = (0.1 * i, -2.5, 1e-3 * i), (0.5, -0.5 * i, 0.25, 0.75)
+        t = TransformStamped()
+        t.header.stamp.sec, t.header.stamp.nanosec = 1_700_000_000 + i, 123_456_789 - i
+        t.header.frame_id, t.child_frame_id = parent, child
+        (t.transform.translation.x, t.transform.translation.y,
+         t.transform.translation.z) = p
+        (t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+         t.transform.rotation.w) = q
+        message.transforms.append(t)
+        fields.append({"header": {"stamp": {"sec": 1_700_000_000 + i,
+                                            "nanosec": 123_456_789 - i}, "frame_id": parent},
+                       "child_frame_id": child,
+                       "transform": {"translation": dict(zip("xyz", p)),
+                                     "rotation": dict(zip("xyzw", q))}})
+    assert deserialize_message(encode({"transforms": fields}), TFMessage) == message
+    decoded = decode(serialize_message(message))
+    assert [(t.header.stamp.sec, t.header.stamp.nanosec, t.header.frame_id, t.child_frame_id,
+             t.transform.translation.x, t.transform.translation.y, t.transform.translation.z,
+             t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+             t.transform.rotation.w) for t in decoded.transforms] == [
+        (f["header"]["stamp"]["sec"], f["header"]["stamp"]["nanosec"], f["header"]["frame_id"],
+         f["child_frame_id"], *f["transform"]["translation"].values(),
+         *f["transform"]["rotation"].values()) for f in fields]
 
 
 @pytest.mark.realtime

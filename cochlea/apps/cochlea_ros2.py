@@ -162,9 +162,9 @@ def follow(args) -> int:
 def _publisher(ros, described):
     publisher = Publisher(ros, described, robot_description(described))
     if publisher.tf_pub is None:
-        print(f"{PROG}: warning: tf2_msgs is not installed (it is not on the package index "
-              "for Jazzy): /joint_states and /robot_description only, no /tf",
-              file=sys.stderr, flush=True)
+        print(f"{PROG}: warning: tf2_msgs is not installed (no wheel on the package index: "
+              "python -m cochlea.ros2.tf2_msgs_build builds it): /joint_states and "
+              "/robot_description only, no /tf", file=sys.stderr, flush=True)
     return publisher
 
 

@@ -5,7 +5,8 @@ Topics: ``/joint_states`` (``sensor_msgs/msg/JointState``: names ``UNIT/JOINT``,
 ``q`` in rad or m, velocity ``qd`` in rad/s or m/s, effort ``tau`` in N m or N),
 ``/robot_description`` (``std_msgs/msg/String``, transient local, depth 1: a subscriber that
 comes later still gets it) and ``/tf`` (``tf2_msgs/msg/TFMessage``) when the ``tf2_msgs``
-package is importable (it is not on the package index for Jazzy: a full ROS install has it).
+package is importable (no wheel on the package index: ``python -m cochlea.ros2.tf2_msgs_build``
+builds it, and a full ROS install has it).
 Publishers are best effort, depth 1 (except ``/robot_description``): a subscriber that stalls
 never makes the bridge wait, let alone the run.
 """
@@ -35,7 +36,7 @@ try:  # the optional extra ``ros`` (pip install cochlea[ros])
     from std_msgs.msg import String
 except ImportError as exc:  # pragma: no cover - the test extra installs it
     rclpy, MISSING = None, str(exc)
-try:  # tf2_msgs: no wheel on the package index; a ROS installation has it
+try:  # tf2_msgs: no wheel on the package index; tf2_msgs_build or a ROS installation
     from geometry_msgs.msg import TransformStamped
     from tf2_msgs.msg import TFMessage
 except ImportError:
