@@ -120,6 +120,29 @@ def test_the_follower_desired_is_the_rule_on_the_leaders_measured_pose(tmp_path,
     np.testing.assert_array_equal(nominal.units[0].desired, lead.desired)
 
 
+@pytest.mark.slow
+def test_the_startup_ramp_blends_from_arm2s_start_onto_the_rule(tmp_path):
+    """``startup_ramp_s = 1``: arm 2's desired starts at its initial joints at rest and is the
+    rule on arm 1's measured pose from 1 s on, as a nominal path is blended."""
+    sc = variant(tmp_path, "serial_joint")
+    sc.path.write_text(sc.path.read_text().replace("[control]\n",
+                                                   "[control]\nstartup_ramp_s = 1.0\n", 1))
+    sc = load_scenario(sc.path)
+    result = simulate(sc, 1.5, kernels="casadi")
+    lead, follower = result.units
+    np.testing.assert_allclose(follower.desired[0], follower.setup.x0[:3], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(follower.desired_dot[0], 0.0, rtol=0, atol=1e-15)
+    after = slice(1001, None)
+    pose, velocity = rule_of(lead, lead.q[after], lead.qd[after])
+    m2 = follower.setup.controller_model
+    got = np.array(m2.fk_world.map(len(pose))(follower.desired[after].T)).T
+    np.testing.assert_allclose(got[:, :2], pose[:, :2], rtol=0, atol=1e-12)
+    during = np.abs(np.diff(follower.desired[:1001], axis=0)).max()
+    assert during < 2e-3  # no jump while it blends (rad per period, on the ideal plant)
+    got_c = csim.simulate_compiled(sc, 1.5, loop="c")
+    np.testing.assert_allclose(got_c.units[1].desired, follower.desired, rtol=0, atol=1e-12)
+
+
 # --------------------------------------------------------------------------------------------
 # (2) a leader exactly on its path gives mirror = "desired"
 # --------------------------------------------------------------------------------------------
