@@ -472,3 +472,14 @@ def test_a_task_space_leader_pushed_away_stops_the_run(tmp_path):
     assert 4.5 < reference.mirror_stop["time_s"] < 5.5
     rule = verdict(got, build_supervisor(setups, sc.system.keep_out_radius))
     assert rule["rule"] == "mirror-reach"
+
+
+@pytest.mark.slow
+def test_a_sweep_sample_counts_the_stop(tmp_path):
+    """``cochlea-sweep`` runs its samples through ``simulate()``: a pushed leader's sample
+    records the rule and its time, and is not a success."""
+    from cochlea.apps.cochlea_sweep import evaluate
+
+    row = evaluate(pushed(tmp_path).path.read_text())
+    assert row["stop_rule"] == "mirror-reach" and abs(row["stop_time_s"] - 3.576) < 1e-9
+    assert row["success"] is False
