@@ -10,6 +10,8 @@ robot's name:
 * ``layout(system, space)``: what a scenario of this robot is made of (:class:`Layout`);
 * ``unit_plans(system, scenario)``: each controlled unit's models, initial state and desired
   trajectory for a scenario (:class:`UnitPlan`); the simulation adds controller and gains;
+  ``mirror_modes``: what a scenario's ``[control] mirror`` may be, and with ``"measured"`` a
+  follower's plan says how it follows its leader's measured state (:class:`FollowPlan`);
 * ``actuated_joints(system)``: every joint with its motor, in the loop's order;
 * ``system.keep_out_radius``: the supervisor's keep-out circle (m);
 * ``unit(system, arm)``: the unit a command's ``--arm`` names (``units_are_arms``: whether
