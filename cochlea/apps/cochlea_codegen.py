@@ -20,7 +20,7 @@ from ..kernels.catalogue import CodegenConfig, collect_units
 from ..kernels.generate import CONFIG, check, generate, load_config, write_kernels
 from ..sim import load_scenario, unit_setups
 from ..sim.compiled import scenario_units
-from ..sim.embedded import scenario_sources, write_embedded
+from ..sim.embedded import check_embeddable, scenario_sources, write_embedded
 from ..sim.scenario import PLANT_PRESETS, load_system
 from .outputs import check_folder
 
@@ -144,6 +144,7 @@ def scenario_kernels(scenario: Path, description: Path | None = None,
 def _embedded_drives(scenario: Path, description: Path | None) -> str:
     """The drive table of the scenario's robot, or its refusal in one line (CochleaError)."""
     sc = load_scenario(scenario)
+    check_embeddable(sc)
     system = sc.system if description is None else load_system(sc.robot, str(description))
     return drives_header(sc.robot, system=system)
 

@@ -30,6 +30,9 @@ Exit codes (also in the README):
  17   safe stop: the log could not be written (full disk, I/O error, a writer too slow);
       log.bin holds the periods written before
  18   the run happened but part of its report (log.csv, figures, summary.json) is lost
+ 19   safe stop: ``mirror = "measured"``: a follower's desired pose, the dual-arm rule on its
+      leader's measured pose, is out of its reach or not finite (also for ``--realtime off``,
+      whose run ends there)
  129  hung up (SIGHUP) before the run started (or during ``--realtime off``); nothing moved
  130  interrupted (SIGINT) before the run started (or during ``--realtime off``); nothing moved
  143  terminated (SIGTERM) before the run started (or during ``--realtime off``); nothing
@@ -76,7 +79,7 @@ from ..runtime import (
 )
 from ..sim import KERNELS, choose_kernels, load_scenario, simulate, unit_setups
 from ..sim.scenario import MAX_PERIODS, MAX_RATE_HZ, MIN_RATE_HZ, PLANT_PRESETS
-from ..sim.setup import MAX_FAST_PERIODS, check_run_length
+from ..sim.setup import MAX_FAST_PERIODS, MIRROR_RULE, check_run_length
 from . import outputs, report
 
 EXIT_DIVERGED = 3
@@ -407,9 +410,12 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
                       file=sys.stderr)
         rule = result.supervisor
         if rule["rule"] != "none":
+            # A follower without a desired pose cannot go on: the as-fast run ends there too.
+            went = ("the as-fast run ended there too, log kept up to there"
+                    if result.mirror_stop is not None and rule["rule"] == MIRROR_RULE
+                    else "the as-fast run went on")
             print(f"cochlea-run: a real run would have been stopped by rule {rule['rule']} at "
-                  f"t = {rule['time_s']:.3f} s: {rule['detail']} (the as-fast run went on)",
-                  file=sys.stderr)
+                  f"t = {rule['time_s']:.3f} s: {rule['detail']} ({went})", file=sys.stderr)
         if result.diverged:
             return EXIT_DIVERGED
         return STOP_CODES[rule["rule"]] if rule["rule"] != "none" else 0

@@ -267,6 +267,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         "controller": sc.controller,
         "variant": sc.variant,
         "parameterisation": sc.parameterisation,
+        # What a following unit's rule is applied to: its leader's "desired" or "measured"
+        # pose ([control] mirror; docs/controllers.md, "The dual-arm rule").
+        "mirror": sc.mirror,
         # Which kernels ran: "c" with the library's path, or "casadi" (and why not C).
         "kernels": result.kernels,
         "rate_Hz": sc.rate_hz,

@@ -10,6 +10,8 @@ robot's name:
 * ``layout(system, space)``: what a scenario of this robot is made of (:class:`Layout`);
 * ``unit_plans(system, scenario)``: each controlled unit's models, initial state and desired
   trajectory for a scenario (:class:`UnitPlan`); the simulation adds controller and gains;
+  ``mirror_modes``: what a scenario's ``[control] mirror`` may be, and with ``"measured"`` a
+  follower's plan says how it follows its leader's measured state (:class:`FollowPlan`);
 * ``actuated_joints(system)``: every joint with its motor, in the loop's order;
 * ``system.keep_out_radius``: the supervisor's keep-out circle (m);
 * ``unit(system, arm)``: the unit a command's ``--arm`` names (``units_are_arms``: whether
@@ -86,6 +88,10 @@ class ScenarioView(Protocol):
     #: A unit's own joint path in t (SI), tracked instead of the leader's rule; None: the rule.
     def unit_desired(self, name: str, t: ca.SX) -> ca.SX | None: ...
 
+    #: What a following unit's rule is applied to (:attr:`RobotAdapter.mirror_modes`):
+    #: "desired" (the leader's desired pose) or "measured" (its measured pose, each period).
+    mirror: str
+
 
 @dataclass(frozen=True)
 class Layout:
@@ -100,6 +106,27 @@ class Layout:
     n_joint: int
     n_task: int
     n_bodies: int  # per unit: one mass-scale factor each
+
+
+@dataclass(frozen=True)
+class FollowPlan:
+    """A unit whose desired trajectory is a rule applied, each period, to another unit's
+    *measured* state (``mirror = "measured"``), SI.
+
+    ``step(x_lead, a_lead) -> (x, x_dot, x_ddot, margin)``: ``x_lead`` the leader's measured
+    ``[q, qd]`` (what its controller sees in the same period), ``a_lead`` the leader's desired
+    tool acceleration (world frame; no acceleration is measured); the outputs are the
+    follower's desired position, velocity and acceleration in its controller's space, and
+    ``margin``, >= 0 where the rule's pose is within the follower's reach (a NaN or a negative
+    margin: out of reach, the run's safe stop). ``lead_acceleration(x, x_dot, x_ddot) ->
+    a_lead``: that acceleration from the leader's desired trajectory in its controller's
+    space."""
+
+    leader: int  # the leader's index among the plans (an earlier unit)
+    step: ca.Function = field(repr=False)
+    lead_acceleration: ca.Function = field(repr=False)
+    #: What a negative margin means, for the stop's line ("its elbow within 10 deg of ...").
+    reach: str = "out of its reach"
 
 
 @dataclass
@@ -128,6 +155,9 @@ class UnitPlan:
     #: Index of the joint whose value moves the keep-out centre along v (the parallel
     #: mechanism's slider: S = (0, d1)), or None for a fixed centre at ``centre``.
     moving_centre_joint: int | None = None
+    #: ``mirror = "measured"``: how the unit follows its leader's measured state; ``desired``
+    #: is then the nominal path (the rule on the leader's desired), checked before a run.
+    follow: FollowPlan | None = None
 
     @property
     def joint_units(self) -> tuple[str, ...]:
@@ -248,6 +278,9 @@ class RobotAdapter:
     task_spaces: tuple[str, ...] = ()
     #: The task space of a scenario that does not choose one (when :attr:`task_spaces`).
     default_task: str | None = None
+    #: The values of a scenario's ``[control] mirror`` (the first the default): what a
+    #: following unit's rule is applied to, its leader's "desired" or "measured" pose.
+    mirror_modes: tuple[str, ...] = ("desired",)
 
     def load(self, description: str | Path | None = None) -> Any:
         raise NotImplementedError

@@ -36,9 +36,10 @@ import numpy as np
 
 from .. import log_schema
 from ..errors import CochleaError
+from ..kernels.bind import BufferedFunction
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult, StreamedResult, UnitLog
-from ..sim.setup import UnitSetup
+from ..sim.setup import MIRROR_RULE, UnitSetup
 from . import log_writer as _log_writer
 from .backend import Backend
 from .log_writer import LogWriter
@@ -470,6 +471,9 @@ class RealTimeLoop:
         # samples of the current chunk of periods, and the column layout of the log.
         self.kernels, self.slices, self.desired = [], [], []
         self._desired_maps = []
+        # mirror = "measured": per follower (unit index), its rule's step through buffers, the
+        # chunk of its time-only inputs and their map (cochlea.sim.setup.Follow).
+        self._follows: list[tuple] = []
         self.kernel_source = "c"
         start = 0
         for u in setups:
@@ -489,7 +493,14 @@ class RealTimeLoop:
             start += n
             nd = u.controller.n_desired
             self.desired.append(tuple(np.zeros((DESIRED_CHUNK, nd)) for _ in range(3)))
-            self._desired_maps.append(u.desired.map(DESIRED_CHUNK))
+            if u.follow is None:
+                self._desired_maps.append(u.desired.map(DESIRED_CHUNK))
+            else:  # its desired rows are the rule's, each period: the time-only part ahead
+                self._desired_maps.append(None)
+                w = np.zeros((DESIRED_CHUNK, u.follow.timed.size1_out(0)))
+                self._follows.append((len(self.kernels) - 1, u.follow,
+                                      BufferedFunction(u.follow.step), w,
+                                      u.follow.timed.map(DESIRED_CHUNK)))
         self._chunk_times = np.arange(DESIRED_CHUNK, dtype=float)
         self._fill_desired(0)
 
@@ -533,8 +544,10 @@ class RealTimeLoop:
         k0 = chunk * DESIRED_CHUNK
         t = (k0 + self._chunk_times) * self.h
         for f, arrays in zip(self._desired_maps, self.desired):
-            for target, value in zip(arrays, f(t)):
+            for target, value in zip(arrays, f(t) if f is not None else ()):
                 target[...] = np.asarray(value).T
+        for _, _, _, w, timed in self._follows:
+            w[...] = np.asarray(timed(t)).T
 
     def desired_samples(self, unit: int, start: int, stop: int) -> tuple[np.ndarray, ...]:
         """``(xd, xd_dot, xd_ddot)`` of periods ``start..stop - 1`` for the report: the same
@@ -543,8 +556,23 @@ class RealTimeLoop:
         if not len(t):
             nd = self.setups[unit].controller.n_desired
             return tuple(np.zeros((0, nd)) for _ in range(3))
+        if self.setups[unit].follow is not None:
+            return self._followed(unit, self.rows_source().read(start, stop), t)
         return tuple(np.array(v).T.copy()
                      for v in self.setups[unit].desired.map(len(t))(t))
+
+    def _followed(self, unit: int, rows: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
+        """A follower's desired samples at logged ``rows`` (times ``t``): its rule on the
+        leader's logged measured state, what the period computed (NaN where it failed: the
+        safe stop's row, or a row whose state was never measured)."""
+        follow = self.setups[unit].follow
+        lead, n = self.slices[follow.leader], self.n
+        seen = np.hstack([rows[:, 1 + lead.start:1 + lead.stop],
+                          rows[:, 1 + n + lead.start:1 + n + lead.stop]])
+        out, bad = follow.evaluate(seen, t)
+        for o in out[:3]:
+            o[bad] = np.nan
+        return tuple(out[:3])
 
     # ---- the loop ----------------------------------------------------------------------------
 
@@ -733,6 +761,23 @@ class RealTimeLoop:
                 self.rows = k + 1
                 return stop
             measured_once = measured_once or ok
+            for i, follow, step, w, _ in (self._follows if measured_once else ()):
+                # The rule on the leader's fresh measurement, into this period's desired row.
+                lead = self.slices[follow.leader]
+                x_lead = step.inputs[0]
+                half = len(x_lead) // 2
+                x_lead[:half] = x[lead]
+                x_lead[half:] = x[n + lead.start:n + lead.stop]
+                step.inputs[1][:] = w[j]
+                step()
+                if not follow.ok(step.outputs):  # nothing commanded in this period
+                    row[1 + 2 * n:self.current_at] = np.nan
+                    buf[slot] = row
+                    self.rows = k + 1
+                    failure = follow.failure(k, t, x_lead.copy(), step.outputs)
+                    return Stop(MIRROR_RULE, t, failure.detail)
+                for target, value in zip(self.desired[i], step.outputs):
+                    target[j] = value
             if not measured_once:
                 # No state measured yet: command nothing (zero effort keeps the drives' Bus
                 # Watchdog fed and their torque off), step no controller, count the failure.
@@ -820,8 +865,9 @@ class RealTimeLoop:
                 true_q = buf[:, at + sl.start:at + sl.stop]
                 true_qd = buf[:, at + n + sl.start:at + n + sl.stop]
                 true_x = pose_of(true_q)
-            if step == 1:
-                xd, xd_dot, _ = self.desired_samples(i, start, start + rows)
+            if step == 1 or u.follow is not None:
+                xd, xd_dot, _ = (self.desired_samples(i, start, start + rows) if step == 1 else
+                                 self._followed(i, buf, index * self.h))
             else:
                 t = index * self.h
                 xd, xd_dot = (np.array(v).T.copy() for v in u.desired.map(rows)(t)[:2]) \

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult
-from ..sim.setup import UnitSetup
+from ..sim.setup import MIRROR_RULE, UnitSetup
 
 # Exit codes of a stopped run (README lists them).
 EXIT_OK = 0
@@ -32,6 +32,9 @@ STOP_CODES = {
     "watchdog": 15,
     "terminated": 16,  # SIGTERM, or SIGHUP (a hang-up: the terminal or session closed)
     "log-failure": 17,  # the log writer failed (full disk) or fell a whole ring behind
+    # mirror = "measured": a follower's rule gave a pose out of its reach, or not finite (18 is
+    # cochlea-run's lost report)
+    MIRROR_RULE: 19,
 }
 
 #: The stop a signal asks for: its rule (so its exit code) and the detail summary.json and the
@@ -404,6 +407,9 @@ def verdict(result: SimulationResult, supervisor: Supervisor) -> dict:
     """``summary.json``'s ``supervisor`` entry of an as-fast run: the first rule a real run
     would have stopped on (``"none"``: it would have run to the end) and the clipped periods."""
     stop = first_violation(result, supervisor)
+    mirror = result.mirror_stop  # the logs end before it: any rule above came first
+    if stop is None and mirror is not None:
+        stop = Stop(mirror["rule"], mirror["time_s"], mirror["detail"])
     entry = {"rule": "none"} if stop is None else {
         "rule": stop.rule, "time_s": stop.time, "detail": stop.detail, "exit_code": stop.code}
     return {**entry, "saturated_periods": saturated_periods(result, supervisor)}

@@ -51,6 +51,7 @@ from .setup import (
     delay_ages,
     encoder_noise,
     measurements,
+    mirror_stop,
     run_inputs,
     unit_setups,
 )
@@ -294,6 +295,8 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     ages = delay_ages(sc.plant, steps)  # each period's delay where it jitters
     delay = sc.plant.delay_periods if ages is None else ages
     run = run_c if loop == "c" else run_python
+    if any(u.follow is not None for u in setups):  # mirror = "measured": one after the other
+        return _simulate_following(sc, setups, lib, plans, run, time, delay, fallback)
     desired = [desired_samples(u, time) for u in setups]
     noisy = [np.concatenate([np.full(u.controller_model.nq, sc.plant.noise_q_std),
                              np.full(u.controller_model.nq, sc.plant.noise_qd_std)])
@@ -344,6 +347,56 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
     return SimulationResult(sc, time[:rows], logs, diverged,
                             kernels=KernelChoice("c", "auto" if fallback else "c",
                                                  str(lib.path)).summary())
+
+
+def _simulate_following(sc, setups: list[UnitSetup], lib, plans, run, time: np.ndarray, delay,
+                        fallback: bool) -> SimulationResult:
+    """:func:`simulate_compiled` with a follower (``mirror = "measured"``): the units run one
+    after the other, the leader first, so that a follower's desired samples come from what its
+    leader's controller saw in each period (:meth:`cochlea.sim.setup.Follow.samples`, as the
+    reference computes them); its run ends at the period its rule fails, the safe stop
+    (``result.mirror_stop``). Noise is drawn as the reference draws it, unit after unit."""
+    steps = len(time)
+    rng = np.random.default_rng(sc.plant.seed)
+    counts = encoder_noise(sc.plant, steps, setups)
+    logs, seen_by, diverged, stopped = [], [], {}, None
+    for u, plan, encoder in zip(setups, plans, counts):
+        n = u.controller_model.nq
+        if u.follow is None:
+            desired = desired_samples(u, time)
+        else:
+            desired, failure = u.follow.samples(seen_by[u.follow.leader], time)
+            if failure is not None and (stopped is None or failure.row < stopped.row):
+                stopped = failure
+        rows = len(desired[0])
+        std = np.concatenate([np.full(n, sc.plant.noise_q_std), np.full(n, sc.plant.noise_qd_std)])
+        noise = None
+        if std.any() or encoder is not None:
+            noise = np.zeros((rows, 2 * n))
+            if std.any():  # the reference's draws: 2n normals a period, up to where it stops
+                state = rng.bit_generator.state
+                noise = std * rng.standard_normal((rows, 2 * n))
+            if encoder is not None:
+                noise[:, :n] += encoder[:rows]
+        ages = delay if np.ndim(delay) == 0 else delay[:rows]
+        r = run(lib, plan, u, sc.period, ages, desired, noise)
+        if std.any() and r.rows < rows:
+            rng.bit_generator.state = state
+            rng.standard_normal((r.rows, 2 * n))
+        if r.rows < rows:
+            diverged[u.name] = float(time[r.rows - 1])
+        X = r.x[:r.rows]
+        seen = measurements(X, ages, noise, u.quantum, u.grid_offset)
+        seen_by.append(seen)
+        logs.append(simulated_log(u, sc.space, X, seen, r.pose[:r.rows], desired[0][:r.rows],
+                                  desired[1][:r.rows], r.errors[:r.rows], r.tau[:r.rows],
+                                  r.p_hat[:r.rows]))
+    rows = min(len(u.q) for u in logs)
+    if rows < steps:
+        truncate(logs, rows)
+    choice = KernelChoice("c", "auto" if fallback else "c", str(lib.path))
+    return SimulationResult(sc, time[:rows], logs, diverged,
+                            mirror_stop=mirror_stop(stopped, rows), kernels=choice.summary())
 
 
 #: Where a unit's kernels come from: the generated C library or CasADi.

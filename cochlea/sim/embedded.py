@@ -28,11 +28,25 @@ from .scenario import Scenario
 from .scenario import load as load_scenario
 from .setup import unit_setups
 
-__all__ = ["embedded_scenario", "embedded_units", "write_embedded", "scenario_sources"]
+__all__ = ["check_embeddable", "embedded_scenario", "embedded_units", "write_embedded",
+           "scenario_sources"]
+
+
+def check_embeddable(sc: Scenario) -> None:
+    """Refuse, in one line, what the embedded controller cannot run: a follower of its
+    leader's measured pose (``mirror = "measured"``: its C loop takes every unit's desired
+    path as a function of t, ``embedded/core/loop.c``)."""
+    if sc.mirror == "measured":
+        raise CochleaError(
+            f"scenario {sc.path}: mirror = \"measured\" is not supported by the embedded "
+            "program and the all-C simulation (their desired paths are functions of t): use "
+            "mirror = \"desired\" there, or run it with cochlea-run (docs/controllers.md, "
+            "\"The dual-arm rule\")")
 
 
 def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
     """Every controlled unit of the scenario, as its embedded controller runs it."""
+    check_embeddable(sc)
     units = []
     for u in unit_setups(sc):
         c = u.controller
@@ -57,6 +71,7 @@ def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
 
 def embedded_scenario(sc: Scenario) -> EmbeddedScenario:
     """The scenario's facts the embedded runtime carries (names, period, keep-out radius)."""
+    check_embeddable(sc)
     radius = sc.system.keep_out_radius  # every run: the circle does not depend on the space
     start = tuple(float(v) for u in unit_setups(sc) for v in u.x0[:u.controller_model.nq])
     return EmbeddedScenario(sc.name, sc.robot, sc.space, sc.controller, sc.variant,

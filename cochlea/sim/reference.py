@@ -22,14 +22,35 @@ import numpy as np
 
 from .result import SimulationResult, simulated_log, truncate
 from .scenario import Scenario
-from .setup import UnitSetup, delay_ages, encoder_noise, quantise
+from .setup import (
+    MirrorFailure,
+    UnitSetup,
+    delay_ages,
+    encoder_noise,
+    mirror_stop,
+    quantise,
+)
+
+#: The names of a follower's desired inputs (the outputs' ``xd``, ``xd_dot`` are taken).
+_GIVEN_NAMES = ["xd_in", "xd_dot_in", "xd_ddot_in"]
 
 
-def _command(u: UnitSetup, h: float, t, x_meas, p_hat):
+def _given(u: UnitSetup) -> list:
+    """The desired samples as inputs of a follower's period Functions (``mirror =
+    "measured"``: computed from its leader's measured state, :meth:`Follow.samples`); none for
+    a unit whose ``desired`` is a function of t."""
+    if u.follow is None:
+        return []
+    nd = u.controller.n_desired
+    return [ca.SX.sym(k, nd) for k in ("xd", "xd_dot", "xd_ddot")]
+
+
+def _command(u: UnitSetup, h: float, t, x_meas, p_hat, given=()):
     """The controller's period on symbols: ``(tau, p_hat_next, errors, xd, xd_dot)``, ``tau``
-    clipped to the joints' effort limits as the supervisor clips every command."""
+    clipped to the joints' effort limits as the supervisor clips every command. ``given``:
+    the desired samples as symbols (a follower's, :func:`_given`), else ``u.desired(t)``."""
     n = u.controller_model.nq
-    xd, xd_dot, xd_ddot = u.desired(t)
+    xd, xd_dot, xd_ddot = given if len(given) else u.desired(t)
     tau, p_next, errors = u.controller.step(
         x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot, p_hat, ca.DM(u.gains), ca.DM(u.gamma),
         u.bound, h, *[ca.DM(v) for v in u.robust_inputs])
@@ -60,11 +81,12 @@ def period_function(u: UnitSetup, h: float, substeps: int) -> ca.Function:
     x_true = ca.SX.sym("x_true", _nx(u))
     x_meas = ca.SX.sym("x_meas", 2 * n)
     p_hat = ca.SX.sym("p_hat", u.controller.n_params)
-    tau, p_next, errors, xd, xd_dot = _command(u, h, t, x_meas, p_hat)
+    given = _given(u)
+    tau, p_next, errors, xd, xd_dot = _command(u, h, t, x_meas, p_hat, given)
     x_next = _plant(u, h, substeps, x_true, tau)
-    return ca.Function(f"period_{u.name}", [t, x_true, x_meas, p_hat],
+    return ca.Function(f"period_{u.name}", [t, x_true, x_meas, p_hat, *given],
                        [x_next, p_next, tau, errors, xd, xd_dot],
-                       ["t", "x_true", "x_meas", "p_hat"],
+                       ["t", "x_true", "x_meas", "p_hat"] + _GIVEN_NAMES[:len(given)],
                        ["x_true_next", "p_hat_next", "tau", "errors", "xd", "xd_dot"])
 
 
@@ -75,8 +97,10 @@ def command_function(u: UnitSetup, h: float) -> ca.Function:
     t = ca.SX.sym("t")
     x_meas = ca.SX.sym("x_meas", 2 * n)
     p_hat = ca.SX.sym("p_hat", u.controller.n_params)
-    return ca.Function(f"command_{u.name}", [t, x_meas, p_hat],
-                       list(_command(u, h, t, x_meas, p_hat)), ["t", "x_meas", "p_hat"],
+    given = _given(u)
+    return ca.Function(f"command_{u.name}", [t, x_meas, p_hat, *given],
+                       list(_command(u, h, t, x_meas, p_hat, given)),
+                       ["t", "x_meas", "p_hat"] + _GIVEN_NAMES[:len(given)],
                        ["tau", "p_hat_next", "errors", "xd", "xd_dot"])
 
 
@@ -105,9 +129,9 @@ def _period(u: UnitSetup, h: float, substeps: int):
     if u.gearbox:  # the controller's own Function too, called with the setup's numbers
         command = _numeric_command(u, h)
 
-    def period(t, x_true, x_meas, p_hat):
+    def period(t, x_true, x_meas, p_hat, *given):
         tau, p_next, errors, xd, xd_dot = (np.array(v).ravel() for v in command(t, x_meas,
-                                                                                 p_hat))
+                                                                                 p_hat, *given))
         if grid is not None:
             grid.apply(tau)
         # The motor's torque: the applied effort times its torque-constant error (logged: tau).
@@ -126,8 +150,8 @@ def _numeric_command(u: UnitSetup, h: float):
     gains, gamma, bound = ca.DM(u.gains), ca.DM(u.gamma), u.bound
     robust = [ca.DM(v) for v in u.robust_inputs]
 
-    def command(t, x_meas, p_hat):
-        xd, xd_dot, xd_ddot = (ca.densify(v) for v in u.desired(t))
+    def command(t, x_meas, p_hat, *given):
+        xd, xd_dot, xd_ddot = given if given else (ca.densify(v) for v in u.desired(t))
         tau, p_next, errors = u.controller.step(x_meas[:n], x_meas[n:], xd, xd_dot, xd_ddot,
                                                 p_hat, gains, gamma, bound, h, *robust)
         tau = np.clip(np.array(tau).ravel(), -limit, limit)
@@ -148,8 +172,16 @@ def simulate_reference(sc: Scenario, duration: float,
     counts = encoder_noise(sc.plant, steps, setups)
     logs = []
     diverged: dict[str, float] = {}
+    stopped: MirrorFailure | None = None
+    seen_by: list[np.ndarray] = []  # per unit, what its controller saw in each period
     for u, encoder in zip(setups, counts):
         n, n_p = u.controller_model.nq, u.controller.n_params
+        given, rows = None, steps
+        if u.follow is not None:  # its desired from the leader's measured states (run first)
+            given, failure = u.follow.samples(seen_by[u.follow.leader], time)
+            rows = len(given[0])
+            if failure is not None and (stopped is None or failure.row < stopped.row):
+                stopped = failure
         nd, ne = u.controller.n_desired, u.controller.n_desired + n
         period = _period(u, h, sc.plant_substeps)
         noise = np.concatenate([np.full(n, sc.plant.noise_q_std),
@@ -164,8 +196,8 @@ def simulate_reference(sc: Scenario, duration: float,
         x = u.plant_x0.astype(float)  # the plant's state; the log and measurement: [q, qd]
         p_hat = u.p_hat0.astype(float).copy()
         delay = sc.plant.delay_periods
-        rows = steps
-        for k in range(steps):
+        follower_rows, rows = rows, steps
+        for k in range(follower_rows):
             X[k] = x[:2 * n]
             measured = X[max(k - (delay if ages is None else ages[k]), 0)]
             if noise.any() or encoder is not None:
@@ -179,19 +211,23 @@ def simulate_reference(sc: Scenario, duration: float,
             if not exact:
                 seen[k] = measured
             log["p_hat"][k] = p_hat
+            extra = () if given is None else (given[0][k], given[1][k], given[2][k])
             x, p_hat, log["tau"][k], log["errors"][k], log["xd"][k], log["xd_dot"][k] = \
-                period(time[k], x, measured, p_hat)
+                period(time[k], x, measured, p_hat, *extra)
             if not (np.isfinite(x).all() and np.isfinite(p_hat).all()):
                 diverged[u.name] = float(time[k])  # keep the log up to and including row k
                 rows = k + 1
                 break
+        rows = min(rows, follower_rows)
         X = X[:rows]
         seen = X if exact else seen[:rows]
+        seen_by.append(seen)
         log = {key: value[:rows] for key, value in log.items()}
         pose = np.array(u.fk_world.map(rows)(X[:, :n].T)).T
         logs.append(simulated_log(u, sc.space, X, seen, pose, log["xd"], log["xd_dot"],
                                   log["errors"], log["tau"], log["p_hat"]))
     rows = min(len(u.q) for u in logs)
-    if rows < steps:  # every unit's log ends where the first one diverged
+    if rows < steps:  # every unit's log ends where the first one diverged (or stopped)
         truncate(logs, rows)
-    return SimulationResult(sc, time[:rows], logs, diverged)
+    return SimulationResult(sc, time[:rows], logs, diverged,
+                            mirror_stop=mirror_stop(stopped, rows))

@@ -154,6 +154,10 @@ class SimulationResult:
     #: Where the desired path came from when not the scenario's formulas (``cochlea-run
     #: --desired-topic``: the topic, the message's stamp and points), else None.
     desired_source: dict | None = None
+    #: As-fast runs with ``mirror = "measured"``: the safe stop a follower's rule made (its
+    #: pose out of reach or not finite; ``rule``, ``time_s``, ``detail``): the logs end just
+    #: before that period, as a real run's would; None: none.
+    mirror_stop: dict | None = None
 
     def unit(self, name: str) -> UnitLog:
         return next(u for u in self.units if u.name == name)
@@ -203,4 +207,5 @@ class StreamedResult(SimulationResult):
         stop = min(stop, self._periods)
         part = self._read(start, max(start, stop), step)
         part.stop, part.diverged, part.supervisor = self.stop, self.diverged, self.supervisor
+        part.mirror_stop = self.mirror_stop
         return part

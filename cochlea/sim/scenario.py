@@ -226,7 +226,10 @@ class Scenario:
     adaptation: str
     initial_estimate: str  # "zero" | "nominal"
     estimate_bound: float  # relative to |p_nominal|
-    mirror: str  # "desired"
+    #: The dual-arm rule's source (robots with one: ``RobotAdapter.mirror_modes``): "desired",
+    #: the leader's desired pose, a smooth function of t; "measured", the leader's measured
+    #: pose, period by period (docs/controllers.md, "The dual-arm rule").
+    mirror: str
     #: What the controller's model carries of the drives (:data:`cochlea.robots.model.ACTUATORS`)
     controller_actuators: str
     definitions: dict[str, str]
@@ -499,7 +502,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
                                 default="zero")
     bound = c.number("estimate_bound", f"a positive number up to {MAX_GAIN:g} (times "
                      "|p_nominal|)", lambda v: 0 < v <= MAX_GAIN, required=False, default=10.0)
-    mirror = c.string("mirror", ("desired",), required=False, default="desired")
+    mirror = c.string("mirror", adapter.mirror_modes, required=False, default="desired")
     controller_actuators = c.string("actuators", ACTUATORS, required=False, default="none")
     robust = _robust(c, layout, controller_actuators)
     c.done()

@@ -93,6 +93,126 @@ class EffortGrid:
         return out
 
 
+#: The rule of a following unit failed (``mirror = "measured"``): the stop rule's name.
+MIRROR_RULE = "mirror-reach"
+
+
+@dataclass(frozen=True)
+class MirrorFailure:
+    """The first period whose rule's pose is out of the follower's reach or not finite: the
+    run's safe stop (:data:`MIRROR_RULE`), at ``row``'s time ``time`` (s)."""
+
+    row: int
+    time: float
+    detail: str
+
+
+@dataclass(frozen=True)
+class Follow:
+    """``mirror = "measured"``: a unit whose desired trajectory is the dual-arm rule applied,
+    each period, to unit ``leader``'s measured state (:class:`cochlea.robots.adapter.
+    FollowPlan`, with the scenario's startup ramp). What depends on time only is evaluated
+    ahead, in chunks: ``timed(t) -> w = [a_lead (3), s, s_dot, s_ddot]``, the leader's desired
+    tool acceleration and the ramp's blend (1, 0, 0 without a ramp); in the period,
+    ``step(x_lead, w) -> (x, x_dot, x_ddot, margin)`` (dense outputs) from the leader's
+    measured ``[q, qd]``; a NaN or a negative margin is out of reach (:meth:`failure`)."""
+
+    leader: int
+    leader_name: str
+    name: str
+    timed: ca.Function = field(repr=False)
+    step: ca.Function = field(repr=False)
+    reach: str = "out of its reach"  # what a negative margin means (FollowPlan.reach)
+
+    def ok(self, outputs) -> bool:
+        """Whether one period's ``step`` outputs (numpy arrays) may be tracked: all finite,
+        the margin not negative. Allocates nothing."""
+        for v in outputs[:3]:
+            if not math.isfinite(float(v @ v)):
+                return False
+        return float(outputs[3][0]) >= 0.0
+
+    def failure(self, row: int, time: float, x_lead: np.ndarray, outputs) -> MirrorFailure:
+        """The safe stop's line for period ``row``, whose ``step`` outputs were not
+        :meth:`ok`: the arm, the pose it was to take, and why."""
+        n = len(x_lead) // 2
+        margin = float(np.asarray(outputs[3]).ravel()[0])
+        why = f"{self.reach} (margin {margin:.4g})" if margin < 0 else "not finite"
+        return MirrorFailure(row, time, (
+            f"{self.name}'s desired pose, the dual-arm rule on {self.leader_name}'s measured "
+            f"pose (q = [{', '.join(f'{np.degrees(v):.2f}' for v in x_lead[:n])}] deg), is "
+            f"{why}: {self.name} cannot follow it"))
+
+    def evaluate(self, seen: np.ndarray, time: np.ndarray) -> tuple[list[np.ndarray],
+                                                                     np.ndarray]:
+        """``step``'s four outputs at every row of ``seen`` and ``time`` (each ``(N, size)``)
+        and, per row, whether it fails (not :meth:`ok`)."""
+        rows = min(len(seen), len(time))
+        if rows == 0:
+            sizes = [self.step.size1_out(i) for i in range(4)]
+            return [np.zeros((0, k)) for k in sizes], np.zeros(0, bool)
+        w = self.timed.map(rows)(np.asarray(time[:rows], float).reshape(1, -1))
+        out = [np.array(v, float).T for v in self.step.map(rows)(seen[:rows].T, w)]
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(out[0]).all(axis=1) | ~np.isfinite(out[1]).all(axis=1) | \
+                ~np.isfinite(out[2]).all(axis=1) | ~(out[3][:, 0] >= 0.0)
+        return out, bad
+
+    def samples(self, seen: np.ndarray, time: np.ndarray
+                ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], MirrorFailure | None]:
+        """The follower's ``(x, x_dot, x_ddot)`` (each ``(N, nd)``) at the rows of the
+        leader's measured states ``seen`` (``(N, 2 n)``, what its controller saw) and times
+        ``time``, up to the first period that fails, and that failure (None: none)."""
+        out, bad = self.evaluate(seen, time)
+        rows = len(bad)
+        first = int(np.argmax(bad)) if bad.any() else rows
+        failure = None
+        if first < rows:
+            failure = self.failure(first, float(time[first]), seen[first],
+                                   [o[first] for o in out])
+        return tuple(o[:first] for o in out[:3]), failure
+
+
+def mirror_stop(failure: MirrorFailure | None, rows: int) -> dict | None:
+    """An as-fast run's ``mirror_stop`` (:class:`~cochlea.sim.result.SimulationResult`): the
+    safe stop a follower's failed rule makes at row ``rows`` (its logs end just before it),
+    or None."""
+    if failure is None or failure.row > rows:
+        return None
+    return {"rule": MIRROR_RULE, "time_s": failure.time, "detail": failure.detail}
+
+
+def follow_setup(plan, leader_plan, space: str, ramp: float, start: np.ndarray | None
+                 ) -> Follow:
+    """The :class:`Follow` of ``plan`` (its ``follow``) after its leader's plan
+    ``leader_plan`` (its ``desired`` with the scenario's startup ramp, if any); ``ramp``:
+    ``startup_ramp_s`` (0: none), ``start``: the follower's pose the ramp starts from
+    (:func:`ramp_start`)."""
+    f = plan.follow
+    t = ca.SX.sym("t")
+    a_lead = f.lead_acceleration(*leader_plan.desired(t))
+    if ramp > 0:
+        s = quintic_blend(t / ramp)
+        s_dot = ca.jacobian(s, t)
+        blend = [s, s_dot, ca.jacobian(s_dot, t)]
+    else:
+        blend = [ca.SX(1.0), ca.SX(0.0), ca.SX(0.0)]
+    timed = ca.Function(f"timed_{plan.name}", [t], [ca.densify(ca.vertcat(a_lead, *blend))],
+                        ["t"], ["w"])
+    x_lead = ca.SX.sym("x_lead", f.step.size1_in(0))
+    w = ca.SX.sym("w", 6)
+    x, x_dot, x_ddot, margin = f.step(x_lead, w[0:3])
+    if ramp > 0:  # as startup_ramp blends the nominal path: x_r = s x + (1 - s) x_0
+        s, s_dot, s_ddot = w[3], w[4], w[5]
+        away = x - ca.DM(start)
+        x, x_dot, x_ddot = (x - (1 - s) * away, s * x_dot + s_dot * away,
+                            s * x_ddot + 2 * s_dot * x_dot + s_ddot * away)
+    step = ca.Function(f"follow_{plan.name}", [x_lead, w],
+                       [ca.densify(v) for v in (x, x_dot, x_ddot, margin)],
+                       ["x_lead", "w"], ["x", "x_dot", "x_ddot", "margin"])
+    return Follow(f.leader, leader_plan.name, plan.name, timed, step, f.reach)
+
+
 @dataclass
 class UnitSetup:
     """Everything one controlled unit needs, in SI."""
@@ -147,6 +267,10 @@ class UnitSetup:
     #: torque_constant_error``), or None: exactly the fit's. The plant gets the applied effort
     #: (after the drive's rounding and saturation) times it; the log keeps the applied effort.
     torque_scale: np.ndarray | None = None
+    #: ``mirror = "measured"``: the unit's desired trajectory comes from its leader's measured
+    #: state, period by period (:class:`Follow`); ``desired`` is then the nominal path (the
+    #: rule on the leader's desired), which the checks before a run sample. None: ``desired``.
+    follow: Follow | None = None
 
     @property
     def robust_inputs(self) -> tuple[np.ndarray, ...]:
@@ -504,6 +628,7 @@ class _Structure:
     system: Any  # kept alive: its id is part of the key
     plans: tuple
     controllers: tuple
+    follows: tuple  # per unit, its Follow (mirror = "measured") or None
 
 
 _STRUCTURES: OrderedDict[tuple, _Structure] = OrderedDict()
@@ -541,16 +666,19 @@ def _structure(sc: scenario_mod.Scenario, adapter, system) -> _Structure:
     """Plans and controllers, every check of the desired path and initial state passed; the
     checks run in the order they always did, so a bad scenario gets the same error."""
     scenario_mod.check_desired(sc)
-    plans, controllers = [], []
+    plans, controllers, follows = [], [], []
+    ramp = sc.robust.startup_ramp
     for plan in adapter.unit_plans(system, sc):
-        if sc.robust.startup_ramp > 0:
-            plan = dataclasses.replace(plan, desired=startup_ramp(plan, sc.space,
-                                                                  sc.robust.startup_ramp))
+        start = ramp_start(plan, sc.space) if ramp > 0 else None
+        if ramp > 0:
+            plan = dataclasses.replace(plan, desired=startup_ramp(plan, sc.space, ramp))
         check_start(sc, plan)
         controllers.append(build(plan.controller_model, sc.controller, variant=sc.variant,
                                  task_angles=plan.task_angles, task=plan.task))
+        follows.append(None if plan.follow is None else follow_setup(
+            plan, plans[plan.follow.leader], sc.space, ramp, start))
         plans.append(plan)
-    return _Structure(system, tuple(plans), tuple(controllers))
+    return _Structure(system, tuple(plans), tuple(controllers), tuple(follows))
 
 
 def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool = True,
@@ -588,8 +716,8 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool 
     drives = drive_grids(adapter, system, sc.plant, bridge_offset_applied(sc))
     first_joint = 0  # the unit's first joint in the system
     setups = []
-    for plan, controller, unit in zip(structure.plans, structure.controllers, sc.units,
-                                      strict=True):
+    for plan, controller, unit, follow in zip(structure.plans, structure.controllers, sc.units,
+                                              structure.follows, strict=True):
         m = plan.controller_model
         gains = np.concatenate([unit.gains[k] for k in controller.gain_names])
         n_p = len(m.param_names)
@@ -620,7 +748,7 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool 
             drive=None if drive_rows is None else drive_rows[:, mine].ravel(),
             gearbox=sc.plant.gearbox,
             quantum=quantum, grid_offset=offset, effort_grid=drive, robust=robust,
-            torque_scale=torque_scale(sc.plant, m.nq)))
+            torque_scale=torque_scale(sc.plant, m.nq), follow=follow))
     if gravity:
         real = None
         if on_motors:  # the motors' own Current Limits, whatever the simulated plant applies
@@ -687,6 +815,21 @@ def quintic_blend(tau):
     return tau ** 3 * (10 - 15 * tau + 6 * tau ** 2)
 
 
+def ramp_start(plan, space: str) -> np.ndarray:
+    """Where :func:`startup_ramp` starts a unit's path: its initial joint position, or in task
+    space its initial task pose (each angle within half a turn of the planned one at t = 0)."""
+    m = plan.controller_model
+    q0 = np.asarray(plan.x0[:m.nq], float)
+    if space == "joint":
+        return q0
+    fk = plan.task[0] if plan.task is not None else plan.fk_world
+    start = np.array(fk(q0), float).ravel()
+    planned = np.array(plan.desired(0.0)[0], float).ravel()
+    for i in plan.task_angles:
+        start[i] += 2 * np.pi * np.round((planned[i] - start[i]) / (2 * np.pi))
+    return start
+
+
 def startup_ramp(plan, space: str, duration: float) -> ca.Function:
     """``plan.desired`` blended from the unit's initial pose onto the planned path over
     ``duration`` s (``[control] startup_ramp_s``): ``x_r = x_d + (1 - s(t / T)) (x_0 - x_d)``
@@ -695,16 +838,7 @@ def startup_ramp(plan, space: str, duration: float) -> ca.Function:
     continuous and finite throughout (exact derivatives, symbolic). ``x_0`` is the initial
     joint position, or in task space the initial task pose (each angle taken within half a
     turn of the planned one at t = 0)."""
-    m = plan.controller_model
-    q0 = np.asarray(plan.x0[:m.nq], float)
-    if space == "joint":
-        start = q0
-    else:
-        fk = plan.task[0] if plan.task is not None else plan.fk_world
-        start = np.array(fk(q0), float).ravel()
-        planned = np.array(plan.desired(0.0)[0], float).ravel()
-        for i in plan.task_angles:
-            start[i] += 2 * np.pi * np.round((planned[i] - start[i]) / (2 * np.pi))
+    start = ramp_start(plan, space)
     t = ca.SX.sym("t")
     xd, xd_dot, xd_ddot = plan.desired(t)
     s = quintic_blend(t / duration)

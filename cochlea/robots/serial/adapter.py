@@ -19,6 +19,7 @@ from ...errors import CochleaError, KinematicsError, ModelError
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
+    FollowPlan,
     Layout,
     LinkFrames,
     RobotAdapter,
@@ -66,17 +67,23 @@ def _where(sc: ScenarioView) -> str:
     return str(getattr(sc, "path", sc.name))  # the file when the view has one
 
 
-def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView) -> None:
-    """Refuse a follower trajectory that leaves the workspace, before anything runs."""
+def _check_reachable(arm: Arm, pose_base_t: ca.SX, t: ca.SX, sc: ScenarioView,
+                     limit: float = 1.0) -> None:
+    """Refuse a follower trajectory that leaves the workspace, before anything runs;
+    ``limit`` < 1 (``mirror = "measured"``: :data:`MIRROR_COS_LIMIT`) keeps the elbow that far
+    from straight or folded."""
     c2 = ca.Function("c2", [t], [elbow_cosine(arm, pose_base_t)])
     for times, (values,) in sampled(c2, sc.duration, sc.period):
         values = values.ravel()
-        bad = np.flatnonzero(~(np.abs(values) <= 1.0))
+        bad = np.flatnonzero(~(np.abs(values) <= limit))
         if bad.size:
             k = bad[0]
+            margin = "" if limit >= 1.0 else (
+                f", beyond {limit:.4f}: mirror = \"measured\" stops a run whose follower's "
+                f"elbow comes within {MIRROR_MIN_BEND_DEG:g} deg of straight or folded")
             raise UnreachableTarget(f"scenario {_where(sc)}: {arm.name}'s desired pose leaves the "
                                     f"workspace at t = {times[k]:.3f} s (cos th2 = "
-                                    f"{values[k]:.4f})")
+                                    f"{values[k]:.4f}{margin})")
 
 
 def _check_path(arm: Arm, q_t: ca.SX, tool_t: ca.SX, t: ca.SX, sc: ScenarioView,
@@ -184,10 +191,85 @@ def _check_task_path(arm: Arm, space: TaskSpace, pose_t: ca.SX, t: ca.SX, sc: Sc
 PATH_SAMPLES = 2001
 
 
+#: ``mirror = "measured"``: the follower's elbow must stay this far (deg) from straight or
+#: folded, the workspace's edge, where the inverse kinematics' derivatives grow without bound
+#: (``dth2/dt = -d(cos th2)/dt / sin th2``: 5.8 times at 10 deg). The rule's pose beyond it is
+#: the run's safe stop (rule ``mirror-reach``); the nominal path is checked against it before.
+MIRROR_MIN_BEND_DEG = 10.0
+MIRROR_COS_LIMIT = float(np.cos(np.radians(MIRROR_MIN_BEND_DEG)))
+
+
+def _rule(pose):
+    """The dual-arm rule on a ``planar_yaw`` pose (world frame): the point reflection through
+    the cochlea centre, the tool turned by 180 deg to face the other's."""
+    return ca.vertcat(-pose[0], -pose[1], pose[2] + np.pi)
+
+
+def _follow_plan(lead: Arm, lead_model: RobotModel, lead_space: str, arm: Arm, space: str,
+                 elbow: int, offsets, turns: float) -> FollowPlan:
+    """``mirror = "measured"``: the rule applied to the leader's measured pose
+    ``fk_world(q)``, its velocity to the measured tool velocity ``J_world(q) qd``, its
+    acceleration to the leader's desired tool acceleration (nothing measures one); in joint
+    space through the closed-form IK of ``arm``'s branch (``elbow``, ``offsets``: the nominal
+    path's) and its first two derivatives. The margin is ``MIRROR_COS_LIMIT - |cos th2|`` of
+    the rule's pose in ``arm``'s base (:func:`.ik.elbow_cosine`): negative out of reach (its
+    elbow within :data:`MIRROR_MIN_BEND_DEG` of straight or folded). ``turns`` (rad, whole
+    turns) takes the measured heading to the leader's desired one's turn (the joints' sum may
+    be a turn away from the heading the scenario writes), once for the run."""
+    n = len(lead.links)
+    x_lead, a_lead = ca.SX.sym("x_lead", 2 * n), ca.SX.sym("a_lead", 3)
+    q, qd = x_lead[:n], x_lead[n:]
+    measured = lead_model.fk_world(q)
+    pose = _rule(ca.vertcat(measured[0], measured[1], measured[2] + turns))
+    flip = ca.DM(np.diag([-1.0, -1.0, 1.0]))
+    velocity, acceleration = flip @ (lead_model.J_world(q) @ qd), flip @ a_lead
+    margin = MIRROR_COS_LIMIT - ca.fabs(elbow_cosine(arm, world_to_base(arm, pose)))
+    if space == "task":
+        x, x_dot, x_ddot = pose, velocity, acceleration
+    else:
+        p, v, a = ca.SX.sym("p", 3), ca.SX.sym("v", 3), ca.SX.sym("a", 3)
+        joints = ik_symbolic(arm, world_to_base(arm, p), elbow, offsets)
+        dq_dp = ca.jacobian(joints, p)
+        joints_dot = dq_dp @ v
+        joints_ddot = dq_dp @ a + ca.jacobian(joints_dot, p) @ v
+        x, x_dot, x_ddot = ca.Function("ik_path", [p, v, a], [joints, joints_dot, joints_ddot])(
+            pose, velocity, acceleration)
+    step = ca.Function(f"follow_{arm.name}", [x_lead, a_lead], [x, x_dot, x_ddot, margin],
+                       ["x_lead", "a_lead"], ["x", "x_dot", "x_ddot", "margin"])
+    xs, xs_dot, xs_ddot = (ca.SX.sym(k, n) for k in ("x", "x_dot", "x_ddot"))
+    if lead_space == "task":
+        tool_acc = xs_ddot
+    else:  # d2/dt2 fk(q(t)) = J(q) qdd + (dJ/dt) qd
+        tool_vel = lead_model.J_world(xs) @ xs_dot
+        tool_acc = lead_model.J_world(xs) @ xs_ddot + ca.jacobian(tool_vel, xs) @ xs_dot
+    lead_acceleration = ca.Function(f"lead_acceleration_{lead.name}", [xs, xs_dot, xs_ddot],
+                                    [tool_acc], ["x", "x_dot", "x_ddot"], ["a_lead"])
+    return FollowPlan(0, step, lead_acceleration,
+                      f"out of its reach: its elbow would be within {MIRROR_MIN_BEND_DEG:g} deg "
+                      "of straight or folded")
+
+
+def _check_start_reachable(lead: Arm, lead_model: RobotModel, q0_lead, arm: Arm,
+                           sc: ScenarioView) -> None:
+    """``mirror = "measured"``: the rule's pose at t = 0, from the leader's initial position
+    (what the first period measures), within ``arm``'s reach, refused before anything moves."""
+    pose = np.array(ca.evalf(_rule(lead_model.fk_world(ca.DM(q0_lead))))).ravel()
+    c2 = float(ca.evalf(elbow_cosine(arm, world_to_base(arm, pose))))
+    if not abs(c2) <= MIRROR_COS_LIMIT:
+        raise UnreachableTarget(
+            f"scenario {_where(sc)}: mirror = \"measured\": {arm.name}'s desired pose at t = 0, "
+            f"the mirror of {lead.name}'s initial pose (x = {pose[0]:.4f} m, y = "
+            f"{pose[1]:.4f} m, phi = {np.degrees(pose[2]):.2f} deg), is out of "
+            f"{arm.name}'s reach (cos th2 = {c2:.4f}, at most {MIRROR_COS_LIMIT:.4f} in "
+            f"magnitude: the elbow {MIRROR_MIN_BEND_DEG:g} deg from straight or folded): start "
+            f"{lead.name} elsewhere")
+
+
 class SerialRobot(RobotAdapter):
     name = "serial"
     task_spaces = TASKS
     default_task = DEFAULT_TASK
+    mirror_modes = ("desired", "measured")
     method = "newton-euler"
     units_are_arms = True
     excitation_study = "serial_joint_realistic"
@@ -217,6 +299,11 @@ class SerialRobot(RobotAdapter):
         task = getattr(sc, "task", None) or DEFAULT_TASK
         if task == DEFAULT_TASK and all(_closed_form(a) for a in system.arms):
             return self._closed_form_plans(system, sc)
+        if getattr(sc, "mirror", "desired") == "measured":
+            raise KinematicsError(
+                f"scenario {_where(sc)}: mirror = \"measured\" needs the closed-form inverse "
+                f"kinematics (planar 3R arms on a level base, task {DEFAULT_TASK!r}; this is "
+                f"task {task!r}): use mirror = \"desired\"")
         return self._numeric_plans(system, sc, task)
 
     def _numeric_plans(self, system: SerialSystem, sc: ScenarioView, task: str
@@ -278,6 +365,7 @@ class SerialRobot(RobotAdapter):
         leader_arm = system.arms[0]
         # The leader's tool pose in the cochlea frame, as a function of t.
         lead_pose = x_lead if sc.space == "task" else models[leader_arm.name].fk_world(x_lead)
+        measured = getattr(sc, "mirror", "desired") == "measured"
         plans = []
         for arm, unit in zip(system.arms, sc.units, strict=True):
             m = models[arm.name]
@@ -285,12 +373,16 @@ class SerialRobot(RobotAdapter):
             qd0 = (unit.initial_velocity if unit.initial_velocity is not None
                    else np.zeros(len(q0)))
             own = sc.unit_desired(arm.name, t)
+            follows = False
             if own is not None:  # its own joint path (joint space only): no rule applies
                 desired_expr = own
             elif arm is leader_arm:
                 desired_expr = x_lead
             else:  # dual-arm rule: point reflection through the cochlea centre
-                pose = ca.vertcat(-lead_pose[0], -lead_pose[1], lead_pose[2] + np.pi)
+                follows = True
+                pose = _rule(lead_pose)
+                if measured:  # the run stops nearer than the edge: the nominal path must not
+                    _check_reachable(arm, world_to_base(arm, pose), t, sc, MIRROR_COS_LIMIT)
                 if sc.space == "task":
                     desired_expr = pose
                 else:
@@ -318,12 +410,21 @@ class SerialRobot(RobotAdapter):
             else:
                 _check_path(arm, desired_expr, m.fk_world(desired_expr), t, sc,
                             system.keep_out_radius)
+            follow = None
+            if follows and measured:  # the nominal path above is checked as before
+                lead_model, q0_lead = models[leader_arm.name], plans[0].x0[:len(q0)]
+                _check_start_reachable(leader_arm, lead_model, q0_lead, arm, sc)
+                heading = float(ca.evalf(ca.substitute(lead_pose[2], t, 0.0)))
+                start = float(lead_model.fk_world(q0_lead)[2])
+                turns = 2 * np.pi * np.round((heading - start) / (2 * np.pi))
+                follow = _follow_plan(leader_arm, lead_model, sc.space, arm, sc.space, elbow,
+                                      offsets, turns)
             tool = arm.links[-1]
             plans.append(UnitPlan(
                 arm.name, m, self.model(system, arm, "inertial", actuators=sc.plant_actuators),
                 desired_function(arm.name, desired_expr, t), np.concatenate([q0, qd0]),
                 {tool.name: np.array([tool.length, 0.0, 0.0])},
-                TASK_NAMES, TASK_UNITS, TASK_ANGLES, m.fk_world))
+                TASK_NAMES, TASK_UNITS, TASK_ANGLES, m.fk_world, follow=follow))
         return plans
 
     def actuated_joints(self, system: SerialSystem) -> list[ActuatedJoint]:
