@@ -226,25 +226,31 @@ def who(motor_id: int, drive: JointDrive | None = None) -> str:
 
 
 def value_text(item: Item, value: int, spec: ModelSpec = MX64) -> str:
-    """A register's value with its unit, e.g. ``250 (500 us)``."""
-    a = item.address
-    if a == 8:
+    """A register's value with its unit, e.g. ``250 (500 us)``: by the item's name, in the
+    units of ``spec``'s data (a P-series motor's mA and pulses per turn)."""
+    a = item.name
+    if a == "Baud Rate":
         return f"{value} ({BAUD_RATES[value]} baud)" if value in BAUD_RATES else str(value)
-    if a == 9:
+    if a == "Return Delay Time":
         return f"{value} ({value * 2} us)"
-    if a == 10:
+    if a == "Drive Mode":
         return f"{value} ({'reverse' if value & 1 else 'normal'} direction)"
-    if a == 11:
+    if a == "Operating Mode":
         return f"{value} ({MODE_NAMES.get(value, 'unknown')})"
-    if a in (38, 102, 126):
+    if a in ("Current Limit", "Goal Current", "Present Current"):
+        if spec.current_unit_mA is None:
+            return str(value)
         return f"{value} ({value * spec.current_unit_mA:.0f} mA)"
-    if a in (20, 48, 52, 116, 132):
-        return f"{value} ({value * 360 / 4096:.1f} deg)"
-    if a == 64:
+    if a in ("Homing Offset", "Max Position Limit", "Min Position Limit", "Goal Position",
+             "Present Position"):
+        if spec.counts_per_rev is None:
+            return str(value)
+        return f"{value} ({value * 360 / spec.counts_per_rev:.1f} deg)"
+    if a == "Torque Enable":
         return f"{value} ({'on' if value else 'off'})"
-    if a == 70:
+    if a == "Hardware Error Status":
         return f"{value} ({describe_hardware_error(value)})"
-    if a == 98:
+    if a == "Bus Watchdog":
         state = "tripped" if value < 0 else "off" if value == 0 else f"{value * 20} ms"
         return f"{value} ({state})"
     return str(value)
