@@ -74,9 +74,10 @@ EXIT_LOST = 7
 
 #: The runtime's default rate (cochlea-run --baud), what info and configure talk at by default.
 DEFAULT_BAUD = 4_000_000
-#: One READ of 120..135: Realtime Tick (ms, modulo 32768), Moving, Moving Status, Present PWM,
-#: Present Current, Present Velocity, Present Position (the same on the MX(2.0) and X series).
-PRESENT_ADDRESS, PRESENT = 120, struct.Struct("<H4xhii")
+#: One READ of Realtime Tick (ms, modulo 32768), Moving, Moving Status, Present PWM, Present
+#: Current, Present Velocity, Present Position: 120..135 on the MX(2.0) and X series, 568..583
+#: on the P series (each model's address: :func:`present_address`).
+PRESENT = struct.Struct("<H4xhii")
 TICK_MODULO_MS = 32768
 #: A motor whose Realtime Tick did not move over more than this (s) answered a stale packet.
 STALE_AFTER_S = 0.003
@@ -219,6 +220,23 @@ def check_output(path: Path, option: str, *, new: bool = False,
         "folder_not_writable": f"{option} {path}: cannot write in its folder {folder} "
                                f"({p.reason}); expected a writable folder{then}",
     }[p.code])
+
+
+def present_address(spec: ModelSpec) -> int:
+    """Where ``spec``'s block of :data:`PRESENT` starts (its Realtime Tick: 120 on the X series,
+    568 on the P series); a model whose block is laid out otherwise is refused in one line."""
+    offsets = {"Realtime Tick": (0, 2), "Present Current": (6, 2), "Present Velocity": (8, 4),
+               "Present Position": (12, 4)}
+    try:
+        start = spec.item("Realtime Tick").address
+        found = {n: (spec.item(n).address - start, spec.item(n).size) for n in offsets}
+    except KeyError as exc:
+        raise BusError(f"the {spec.name} has no {exc.args[0]} item: cochlea-dxl cannot read "
+                       "its present state") from None
+    if found != offsets:
+        raise BusError(f"the {spec.name}'s Realtime Tick .. Present Position are not laid out "
+                       f"as the X series' (offset, bytes: {found}): cochlea-dxl cannot read them")
+    return start
 
 
 def who(motor_id: int, drive: JointDrive | None = None) -> str:
@@ -450,9 +468,10 @@ class Bus:
         motor's last such read (its answer received more than :data:`STALE_AFTER_S` before
         this request left) is a stale packet: the motor repeats an old answer
         (:class:`MotorLost`)."""
-        what = f"READ Present state ({PRESENT_ADDRESS}..{PRESENT_ADDRESS + PRESENT.size - 1})"
+        address = present_address(d.spec)
+        what = f"READ Present state ({address}..{address + PRESENT.size - 1})"
         sent = time.perf_counter()
-        reply = self._expect(self.request(proto.read(d.id, PRESENT_ADDRESS, PRESENT.size), d.id),
+        reply = self._expect(self.request(proto.read(d.id, address, PRESENT.size), d.id),
                              d.id, what)
         if len(reply.params) != PRESENT.size:
             text = (f"{self.who(d.id)} answered {what} with a stale or garbled packet of "
