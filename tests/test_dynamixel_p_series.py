@@ -44,7 +44,7 @@ from cochlea.dynamixel.control_table import (
     MODELS_PACKAGE,
 )
 from cochlea.dynamixel.drives import joint_drives
-from cochlea.dynamixel.emulator import VirtualChain
+from cochlea.dynamixel.emulator import Truth, VirtualChain
 from cochlea.errors import DescriptionError
 from cochlea.runtime.backend import BackendError
 from cochlea.sim import load_scenario
@@ -84,6 +84,7 @@ EMANUAL_P = {
     "Velocity Limit": (44, 4, "RW", "0.01 rpm"),
     "Max Position Limit": (48, 4, "RW", "1 pulse"),
     "Min Position Limit": (52, 4, "RW", "1 pulse"),
+    "Indirect Address 128": (422, 2, "RW", "-"),  # the EEPROM area's last item
     "Torque Enable": (512, 1, "RW", "-"),
     "Status Return Level": (516, 1, "RW", "-"),
     "Hardware Error Status": (518, 1, "R", "-"),
@@ -211,11 +212,14 @@ def test_the_emulator_answers_as_a_ph54_at_the_p_addresses(tmp_path):
         assert _reply(bus, proto.write(1, 64, b"\x01"), 1).error == ACCESS
         # EEPROM (below 512, the data's area) writable with the torque off, locked with it on.
         bus.write(1, item("Current Limit"), 3000)
+        bus.write(1, item("Indirect Address 128"), 600)  # EEPROM (422), the torque still off
         bus.write(1, item("Operating Mode"), 0)
         bus.write(1, item("Bus Watchdog"), 10)
         bus.write(1, item("Torque Enable"), 1)
         assert _reply(bus, proto.write(1, 38, proto.le(2000, 2)), 1).error == ACCESS
         assert _reply(bus, proto.write(1, 20, proto.le(5, 4)), 1).error == ACCESS
+        assert _reply(bus, proto.write(1, 422, proto.le(700, 2)), 1).error == ACCESS
+        bus.write(1, item("Feedforward 2nd Gain"), 1234)  # RAM (536): free with the torque on
         # Goal Current (550) within the Current Limit, refused beyond it.
         assert _reply(bus, proto.write(1, 550, proto.le(3001, 2)), 1).error == DATA_LIMIT
         bus.write(1, item("Goal Current"), -2500)
@@ -228,6 +232,8 @@ def test_the_emulator_answers_as_a_ph54_at_the_p_addresses(tmp_path):
         assert bus.read(1, item("Torque Enable")) == 0
         assert bus.read(1, item("Bus Watchdog")) == 0
         assert bus.read(1, item("Current Limit")) == 3000
+        assert bus.read(1, item("Indirect Address 128")) == 600  # EEPROM kept
+        assert bus.read(1, item("Feedforward 2nd Gain")) == 0  # RAM restored
         assert bus.read(1, item("Operating Mode")) == 0
         assert bus.read(1, item("Goal Current")) == 3000  # reset to the Current Limit
         assert bus.read(2, MODELS["XM430-W350"].item("Current Limit")) == 600
@@ -337,6 +343,41 @@ def test_cochlea_run_converges_over_the_mixed_chain(tmp_path):
     assert (bus["read_instruction"], bus["write_instruction"]) == ("BULK_READ", "BULK_WRITE")
     assert "different addresses" in bus["read_choice"]
     assert bus["bytes_per_period"] == (10 + 7 * 2) + (10 + 5 * 2) + 2 * (11 + 16)
+
+
+def test_calibration_recovers_the_p_and_the_x_motor_s_mounting(tmp_path, monkeypatch):
+    """``cochlea-dxl calibrate`` on the mixed chain mounted otherwise than its description
+    says: each motor's offset comes back within one of its own counts (the PH42's 607500 a
+    turn, the XM430's 4096), each direction exactly."""
+    import argparse
+
+    from cochlea.dynamixel.bringup import calibrate
+
+    offsets, directions = {1: 100.0, 2: 37.3}, {1: -1}
+    description = tmp_path / "planar2_xp.toml"
+    description.write_text(ARM.read_text())
+    refs = {d.name: q for d, q in zip(joint_drives("serial", ARM),
+                                      (math.radians(30.0), math.radians(60.0)))}
+
+    def ask(prompt):
+        name = prompt.split(" ")[0].rstrip(":")
+        chain.move_joint(name, refs[name] + (0.0 if "reference pose" in prompt else 0.2))
+        return ""
+
+    monkeypatch.setattr(calibrate, "ask", ask)
+    parser = argparse.ArgumentParser()
+    calibrate.add_arguments(parser)
+    out = tmp_path / "calibrated.toml"
+    with VirtualChain("serial", SCENARIO, truth=Truth(offsets, directions)) as chain:
+        code = calibrate.run(parser.parse_args([
+            "--robot", "serial", "--port", chain.path, "--description", str(description),
+            "--out", str(out), "--reference", "arm.upper=30", "--reference", "arm.forearm=60"]))
+        assert not any(m.torque_on for m in chain.motors)
+    assert code == 0
+    for d in joint_drives("serial", out):
+        assert d.direction == directions.get(d.id, 1), d.name
+        error = (math.degrees(d.zero_offset) - offsets[d.id] + 180.0) % 360.0 - 180.0
+        assert abs(error) <= 360.0 / d.spec.counts_per_rev, (d.name, d.spec.name, error)
 
 
 # ---- bad input and what still refuses ------------------------------------------------------
