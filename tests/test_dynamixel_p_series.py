@@ -314,6 +314,32 @@ def test_scan_names_an_x_and_a_p_motor_on_one_bus(capsys):
     assert "not read" not in out
 
 
+def test_configure_info_and_reboot_on_the_mixed_chain(capsys):
+    """``cochlea-dxl info`` finds the factory registers that differ (at each model's address:
+    Bus Watchdog 546 and 98, ...), ``configure`` writes them (the PH42's Current Limit 4000 mA,
+    the XM430's in its 2.69 mA LSB), ``info`` then agrees, ``reboot`` brings both back."""
+    common = ["--port", None, "--baud", str(BAUD), "--robot", "serial", "--description",
+              str(ARM)]
+    with VirtualChain("serial", SCENARIO) as chain:
+        common[1] = chain.path
+        assert dxl_main(["info", *common]) != 0
+        out = capsys.readouterr().out
+        assert "Bus Watchdog           546" in out and "Bus Watchdog           98" in out
+        assert "Current Limit          38       4500 (4500 mA)" in out
+        assert dxl_main(["configure", *common]) == 0
+        assert chain.motors[0].get(38) == 4000 and chain.motors[0].get(11) == 0
+        assert chain.motors[1].get(38) == joint_drives("serial", ARM)[1].current_limit_lsb
+        capsys.readouterr()
+        assert dxl_main(["info", *common]) == 0
+        assert "all 2 motors as the description and the runtime expect" in capsys.readouterr().out
+        chain.motors[0].latch_hardware_error(5)  # overload on the PH42 (518)
+        assert dxl_main(["reboot", "--port", chain.path, "--baud", str(BAUD), "--ids",
+                         "1,2"]) == 0
+        out = capsys.readouterr().out
+        assert "ID 1: rebooted, back without alert (was 32 (overload))" in out
+        assert chain.motors[0].hardware_error == 0
+
+
 @pytest.mark.slow
 def test_cochlea_run_converges_over_the_mixed_chain(tmp_path):
     """The emulator as a command (the PH42 and the XM430 answering as themselves), then
@@ -378,6 +404,57 @@ def test_calibration_recovers_the_p_and_the_x_motor_s_mounting(tmp_path, monkeyp
         assert d.direction == directions.get(d.id, 1), d.name
         error = (math.degrees(d.zero_offset) - offsets[d.id] + 180.0) % 360.0 - 180.0
         assert abs(error) <= 360.0 / d.spec.counts_per_rev, (d.name, d.spec.name, error)
+
+
+def _p_carriage(tmp_path: Path) -> tuple[Path, Path]:
+    """tests/data/prismatic3 (a lead-screw carriage between two revolute joints, XM430-W350s)
+    with a PH42-020-S300-R on the carriage (the placeholder fit of planar2_xp.toml's)."""
+    text = (DATA / "prismatic3.toml").read_text()
+    head, sep, tail = text.partition('model = "XM430-W350"')
+    head2, sep2, tail2 = tail.partition('model = "XM430-W350"')
+    tail2 = tail2.replace('fit = { a = 178.3,', 'fit = { a = 100.0,', 1)
+    description = tmp_path / "prismatic3.toml"
+    description.write_text(head + sep + head2 + 'model = "PH42-020-S300-R"' + tail2)
+    scenario = tmp_path / "prismatic3_joint.toml"
+    scenario.write_text((DATA / "prismatic3_joint.toml").read_text())
+    return description, scenario
+
+
+def test_home_finds_a_p_carriage_s_stop_and_the_bridge_counts_from_it(tmp_path):
+    """``cochlea-dxl home`` drives the PH42 carriage onto its hard stop (its Goal Current at
+    550, its present state at 568..583, its homing token at 536), records it, and the bridge
+    then counts the carriage from the stop in the PH42's pulses."""
+    import argparse
+
+    from cochlea.dynamixel.bringup import home
+
+    description, scenario = _p_carriage(tmp_path)
+    drives = joint_drives("serial", description)
+    assert [d.spec.name for d in drives] == ["XM430-W350", "PH42-020-S300-R", "XM430-W350"]
+    stop, record = 0.03, tmp_path / "homing.json"
+    parser = argparse.ArgumentParser()
+    home.add_arguments(parser)
+    with VirtualChain("serial", scenario, truth=Truth(offset_deg={2: 500.0},
+                                                      hard_stop_m=stop)) as chain:
+        code = home.run(parser.parse_args([
+            "--robot", "serial", "--description", str(description), "--port", chain.path,
+            "--record", str(record), "--stop-m", str(stop), "--speed-mm-s", "10",
+            "--force-N", "20"]))
+        assert code == 0 and not any(m.torque_on for m in chain.motors)
+        (entry,) = json.loads(record.read_text())["joints"]
+        assert (entry["joint"], entry["motor_id"], entry["marker_address"]) == \
+            ("arm.carriage", 2, 536)
+        bridge = DynamixelBackend("serial", chain.path, description=description,
+                                  timeout_s=0.05, homing="required", homing_record=record)
+        assert (bridge.read_instruction, bridge.write_instruction) == ("bulk", "bulk")
+        bridge.enable()
+        try:
+            x = np.zeros(6)
+            assert bridge.read(x)
+            assert abs(x[1] - chain.joint_state()[1]) <= 3 * abs(drives[1].q_per_count)
+            assert abs(x[1] - stop) < 1e-3
+        finally:
+            bridge.disable()
 
 
 # ---- bad input and what still refuses ------------------------------------------------------
