@@ -16,6 +16,7 @@ and a mixed chain (an X-series arm with a P-series joint) on one bus.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import gc
 import json
@@ -369,6 +370,15 @@ def test_cochlea_run_converges_over_the_mixed_chain(tmp_path):
     assert (bus["read_instruction"], bus["write_instruction"]) == ("BULK_READ", "BULK_WRITE")
     assert "different addresses" in bus["read_choice"]
     assert bus["bytes_per_period"] == (10 + 7 * 2) + (10 + 5 * 2) + 2 * (11 + 16)
+    # The current columns (what identification reads) in each motor's own unit: whole mA on
+    # the PH42, whole 2.69 mA LSBs on the XM430, and not all zero.
+    with open(out / "log.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    shoulder = np.array([float(r["arm.current.shoulder_A"]) for r in rows])
+    elbow = np.array([float(r["arm.current.elbow_A"]) for r in rows])
+    assert np.count_nonzero(shoulder) > len(rows) / 2 and np.count_nonzero(elbow) > 10
+    assert np.allclose(shoulder * 1000.0, np.rint(shoulder * 1000.0), atol=1e-6)
+    assert np.allclose(elbow / 2.69e-3, np.rint(elbow / 2.69e-3), atol=1e-3)
 
 
 def test_calibration_recovers_the_p_and_the_x_motor_s_mounting(tmp_path, monkeypatch):
