@@ -191,6 +191,7 @@ def _reply(bus: Bus, frame: bytes, motor_id: int):
     return reply
 
 
+@pytest.mark.hil
 def test_the_emulator_answers_as_a_ph54_at_the_p_addresses(tmp_path):
     spec = MODELS["PH54-200-S500-R"]
     with VirtualChain("serial", _ph54_scenario(tmp_path)) as chain, Bus(chain.path, BAUD) as bus:
@@ -240,6 +241,7 @@ def test_the_emulator_answers_as_a_ph54_at_the_p_addresses(tmp_path):
         assert bus.read(2, MODELS["XM430-W350"].item("Current Limit")) == 600
 
 
+@pytest.mark.hil
 def test_the_bridge_drives_the_mixed_chain_by_bulk_frames():
     """In process: the bridge over the emulated PH42 + XM430 chain reads each motor's block at
     its address (BULK_READ) and writes each Goal Current at its address (BULK_WRITE); the
@@ -302,6 +304,7 @@ def test_the_bus_budget_is_the_bulk_frames_sent():
 # ---- cochlea-dxl and cochlea-run over the virtual mixed chain -------------------------------
 
 
+@pytest.mark.hil
 def test_scan_names_an_x_and_a_p_motor_on_one_bus(capsys):
     with VirtualChain("serial", SCENARIO) as chain:
         code = dxl_main(["scan", "--port", chain.path, "--baud", str(BAUD), "--ids", "0-5"])
@@ -315,6 +318,7 @@ def test_scan_names_an_x_and_a_p_motor_on_one_bus(capsys):
     assert "not read" not in out
 
 
+@pytest.mark.hil
 def test_configure_info_and_reboot_on_the_mixed_chain(capsys):
     """``cochlea-dxl info`` finds the factory registers that differ (at each model's address:
     Bus Watchdog 546 and 98, ...), ``configure`` writes them (the PH42's Current Limit 4000 mA,
@@ -342,6 +346,7 @@ def test_configure_info_and_reboot_on_the_mixed_chain(capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.hil
 def test_cochlea_run_converges_over_the_mixed_chain(tmp_path):
     """The emulator as a command (the PH42 and the XM430 answering as themselves), then
     ``cochlea-run --backend dynamixel``: it converges, says BULK_READ + BULK_WRITE, and its
@@ -381,6 +386,7 @@ def test_cochlea_run_converges_over_the_mixed_chain(tmp_path):
     assert np.allclose(elbow / 2.69e-3, np.rint(elbow / 2.69e-3), atol=1e-3)
 
 
+@pytest.mark.hil
 def test_calibration_recovers_the_p_and_the_x_motor_s_mounting(tmp_path, monkeypatch):
     """``cochlea-dxl calibrate`` on the mixed chain mounted otherwise than its description
     says: each motor's offset comes back within one of its own counts (the PH42's 607500 a
@@ -430,6 +436,7 @@ def _p_carriage(tmp_path: Path) -> tuple[Path, Path]:
     return description, scenario
 
 
+@pytest.mark.hil
 def test_home_finds_a_p_carriage_s_stop_and_the_bridge_counts_from_it(tmp_path):
     """``cochlea-dxl home`` drives the PH42 carriage onto its hard stop (its Goal Current at
     550, its present state at 568..583, its homing token at 536), records it, and the bridge
@@ -496,6 +503,7 @@ def test_a_p_motor_whose_counts_per_turn_are_unsourced_is_refused_in_one_line(mo
         "https://emanual.robotis.com/docs/en/dxl/p/ph42-020-s300-r/")
 
 
+@pytest.mark.slow
 def test_cochlea_run_on_an_unsourced_p_motor_says_one_line(tmp_path):
     (tmp_path / "planar2_xp.toml").write_text(
         ARM.read_text().replace('model = "PH42-020-S300-R"', 'model = "PM54-040-S250-R"'))
