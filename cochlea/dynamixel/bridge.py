@@ -26,11 +26,12 @@ shut-down, before anything moved:
 
 Every address and size the bridge writes or reads comes from the drives' model data
 (``cochlea/dynamixel/models``, each model's control-table items), none from the X series'
-constants: a confirmed WRITE or READ to one motor uses that motor's item; a frame that is one
-SYNC_WRITE or SYNC_READ for all motors (the torque-on, the shut-down's) the item they all
-share, a chain whose models place it differently being refused in one line
-(:func:`~cochlea.dynamixel.drives.shared_item`); and every value written is checked against
-its item's size and range before the port is opened
+constants: a confirmed WRITE or READ to one motor uses that motor's item; a frame for all
+motors (the torque-on and its read-back, the shut-down's) is one SYNC_WRITE / SYNC_READ of the
+item they all share (:func:`~cochlea.dynamixel.drives.shared_item`), or, where the models place
+it differently (an X-series arm with a P-series joint: Torque Enable 64 and 512), one
+BULK_WRITE / BULK_READ with each motor's own address; and every value written is checked
+against its item's size and range before the port is opened
 (:func:`~cochlea.dynamixel.drives.encode_item`).
 
 The per-period transfers come from the models' data (:func:`choose_transfers`, summary
