@@ -276,24 +276,38 @@ def test_a_unicast_item_is_each_motors_own(name):
     assert bus.sent == [relocated(f, old, old + SHIFT, {drives[2].id}) for f in golden]
 
 
-@pytest.mark.parametrize("name, write", [("Torque Enable", "auto"), ("Torque Enable", "bulk"),
-                                         ("Goal Current", "sync")])
-def test_a_sync_write_item_placed_differently_is_refused_in_one_line(name, write):
-    """Torque Enable goes on by one SYNC_WRITE to all motors, whatever carries Goal Current
-    (and off by one, with SYNC_WRITE); Goal Current by SYNC_WRITE unless BULK_WRITE: a chain
-    whose models place the item differently cannot be written so, and is refused before the
-    port is opened, naming the item (and, for Torque Enable, where each model has it)."""
-    drives = moved(joint_drives("serial"), name, which={2})
+def test_a_goal_current_placed_differently_is_refused_for_sync_write_in_one_line():
+    """Goal Current by SYNC_WRITE when asked: a chain whose models place it differently cannot
+    be written so, and is refused before the port is opened, naming the item."""
+    drives = moved(joint_drives("serial"), "Goal Current", which={2})
     opened = []
     with mock.patch.object(br, "joint_drives", lambda *args, **kwargs: drives), \
             pytest.raises(BackendError) as caught:
-        DynamixelBackend("serial", "/dev/null", write_instruction=write,
+        DynamixelBackend("serial", "/dev/null", write_instruction="sync",
                          open_port=lambda p, b: opened.append(p))
     message = str(caught.value)
-    assert "\n" not in message and not opened and name in message
-    if name == "Torque Enable":
-        assert "MX-64: address 64, 1 byte" in message
-        assert "MX-64*: address 464, 1 byte" in message
+    assert "\n" not in message and not opened and "Goal Current" in message
+
+
+@pytest.mark.parametrize("write", ["auto", "bulk"])
+def test_a_torque_enable_placed_differently_goes_by_bulk_frames(write):
+    """Torque Enable at another address on one motor's model (an X-series arm with a P-series
+    joint: 64 and 512): the torque goes on by one BULK_WRITE (each motor at its own address)
+    read back by one BULK_READ, and off by one BULK_WRITE; it was refused before (issue 27
+    item 4). Where every model places it alike the frames stay SYNC ones (the golden runs)."""
+    drives = moved(joint_drives("serial"), "Torque Enable", which={2})
+    with mock.patch.object(br, "joint_drives", lambda *args, **kwargs: drives):
+        backend = DynamixelBackend("serial", "/dev/null", write_instruction=write)
+    on, check, off = (backend._torque_on_frame, backend._torque_check_frame,
+                      backend._torque_off_frame)
+    assert (on[7], check[7], off[7]) == (0x93, 0x92, 0x93)  # BULK_WRITE, BULK_READ
+    moved_id = drives[2].id
+    entries = [(check[k], proto.from_le(check[k + 1:k + 3], False))
+               for k in range(8, len(check) - 2, 5)]
+    assert entries == [(d.id, 464 if d.id == moved_id else 64) for d in drives]
+    assert "BULK_WRITE Torque Enable = 1 at 464 (MX-64*), 64 (MX-64)" in backend._torque_on_what
+    same = DynamixelBackend("serial", "/dev/null", write_instruction=write)
+    assert same._torque_on_frame[7] == 0x83 and same._torque_check_frame[7] == 0x82
 
 
 def test_a_value_its_item_cannot_hold_is_refused_before_the_port_opens():

@@ -217,18 +217,23 @@ def test_a_baud_rate_the_model_does_not_take_is_refused(tmp_path):
                          description=str(tmp_path / "planar2.toml"))
 
 
-def test_a_p_series_motor_loads_but_no_x_addressed_component_takes_it(tmp_path):
-    """The P series' addresses differ: the description and the simulation take it, the
-    bridge, the emulator and the embedded drive tables (all through joint_drives) refuse."""
+def test_a_p_series_motor_drives_in_python_but_the_embedded_tables_refuse_it(tmp_path):
+    """The P series' addresses differ: the description, the simulation and the Python bridge
+    and emulator (joint_drives, each item from the data) take it; the embedded drive tables
+    and the C bridge (X layout only) refuse it in one line naming the model."""
+    from cochlea.dynamixel.embedded_drives import bus_choice
+
     sc = load_scenario(_user_robot(tmp_path, "PH54-200-S500-R", 2000.0))
     result = simulate(sc, duration=0.05, kernels="casadi")
     assert not result.diverged and np.all(np.isfinite(result.unit("arm").q))
+    drives = joint_drives("serial", system=sc.system)
+    assert [d.spec.name for d in drives][0] == "PH54-200-S500-R"
     with pytest.raises(BackendError) as info:
-        joint_drives("serial", system=sc.system)
+        bus_choice(drives)
     assert str(info.value) == (
-        "joint arm.upper: PH54-200-S500-R: not supported by the Dynamixel bridge, emulator "
-        "and embedded drive tables yet: its control table (p layout, Goal Current at 550) is "
-        "not the X series' one it speaks")
+        "joint arm.upper: PH54-200-S500-R: not supported by the embedded drive tables and the "
+        "C bridge yet: its control table (p layout, Goal Current at 550) is not the X series' "
+        "it speaks (the Python bridge, cochlea-run --backend dynamixel, drives it)")
 
 
 # --------------------------------------------------------------------------------------------

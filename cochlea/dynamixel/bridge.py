@@ -26,11 +26,12 @@ shut-down, before anything moved:
 
 Every address and size the bridge writes or reads comes from the drives' model data
 (``cochlea/dynamixel/models``, each model's control-table items), none from the X series'
-constants: a confirmed WRITE or READ to one motor uses that motor's item; a frame that is one
-SYNC_WRITE or SYNC_READ for all motors (the torque-on, the shut-down's) the item they all
-share, a chain whose models place it differently being refused in one line
-(:func:`~cochlea.dynamixel.drives.shared_item`); and every value written is checked against
-its item's size and range before the port is opened
+constants: a confirmed WRITE or READ to one motor uses that motor's item; a frame for all
+motors (the torque-on and its read-back, the shut-down's) is one SYNC_WRITE / SYNC_READ of the
+item they all share (:func:`~cochlea.dynamixel.drives.shared_item`), or, where the models place
+it differently (an X-series arm with a P-series joint: Torque Enable 64 and 512), one
+BULK_WRITE / BULK_READ with each motor's own address; and every value written is checked
+against its item's size and range before the port is opened
 (:func:`~cochlea.dynamixel.drives.encode_item`).
 
 The per-period transfers come from the models' data (:func:`choose_transfers`, summary
@@ -452,19 +453,30 @@ class DynamixelBackend:
                 [(d.id, it.address, encode_item(d, it, 0))
                  for d, it in zip(self.drives, torque)])
         else:
-            self._zero_frame = self._sync_write_all("Goal Current", 0)
-            self._torque_off_frame = self._sync_write_all("Torque Enable", 0)
+            self._zero_frame = self._write_all("Goal Current", 0)
+            self._torque_off_frame = self._write_all("Torque Enable", 0)
         #: The shut-down's confirming READ of Torque Enable, per motor: (frame, its 0).
         self._torque_off_checks = [(proto.read(d.id, it.address, it.size),
                                     encode_item(d, it, 0)) for d, it in zip(self.drives, torque)]
         # Start-up step 9's two transactions, made once: Torque Enable 1 to every motor (no
         # reply), then a read of Torque Enable from every motor, at the item's address and size
-        # in the models' data (one for all: shared_item; joint_drives admits one layout).
-        self._torque_on_frame = self._sync_write_all("Torque Enable", 1)
-        it = shared_item(self.drives, "Torque Enable")
-        self._torque_check_frame = proto.sync_read(it.address, it.size, self.ids)
-        self._torque_on_what = f"torque on (SYNC_WRITE {it.address} = 1, read back by SYNC_READ)"
-        self._torque_size = it.size
+        # in the models' data: one SYNC_WRITE and one SYNC_READ where every model places it
+        # alike, else (an X-series arm with a P-series joint: 64 and 512) one BULK_WRITE and
+        # one BULK_READ, each motor at its own address.
+        self._torque_on_frame = self._write_all("Torque Enable", 1)
+        self._torque_sizes = [it.size for it in torque]
+        if len({(it.address, it.size) for it in torque}) == 1:
+            it = torque[0]
+            self._torque_check_frame = proto.sync_read(it.address, it.size, self.ids)
+            self._torque_on_what = (f"torque on (SYNC_WRITE {it.address} = 1, read back by "
+                                    "SYNC_READ)")
+        else:
+            self._torque_check_frame = proto.bulk_read(
+                [(d.id, it.address, it.size) for d, it in zip(self.drives, torque)])
+            where = ", ".join(sorted({f"{it.address} ({d.spec.name})"
+                                      for d, it in zip(self.drives, torque)}))
+            self._torque_on_what = (f"torque on (BULK_WRITE Torque Enable = 1 at {where}, "
+                                    "read back by BULK_READ)")
         #: Start-up steps 2.-7.: (what, one confirmed WRITE per motor), each motor's item at
         #: its own address and size, every value checked against its item here, before the
         #: port is opened.
@@ -480,8 +492,14 @@ class DynamixelBackend:
             self._writes("Bus Watchdog", [self.watchdog_lsb] * n, "the Bus Watchdog"),
         ]
 
-    def _sync_write_all(self, name: str, value: int) -> bytes:
-        """One SYNC_WRITE of ``value`` to item ``name`` of every motor (the item they share)."""
+    def _write_all(self, name: str, value: int) -> bytes:
+        """One SYNC_WRITE of ``value`` to item ``name`` of every motor where their models
+        place it alike (the shipped robots' frames), else one BULK_WRITE, each motor's item
+        at its own address (a mixed chain's)."""
+        items = [drive_item(d, name) for d in self.drives]
+        if len({(it.address, it.size) for it in items}) > 1:
+            return proto.bulk_write([(d.id, it.address, encode_item(d, it, value))
+                                     for d, it in zip(self.drives, items)])
         it = shared_item(self.drives, name)
         return proto.sync_write(it.address, it.size,
                                 [(d.id, encode_item(d, it, value)) for d in self.drives])
@@ -941,8 +959,7 @@ class DynamixelBackend:
                 elif time.perf_counter() >= deadline:
                     break  # a flood of packets nobody asked for ends at the deadline too
         problems, first = [], -1
-        size = self._torque_size
-        for d, g in zip(self.drives, got):
+        for d, g, size in zip(self.drives, got, self._torque_sizes):
             who = self._who(d)
             if g is None:
                 problem = (f"{who} did not answer {what} on {self.port_path} at {self.baud} "

@@ -4,8 +4,9 @@ The models are data (``cochlea/dynamixel/models/*.toml``, docs/dynamixel.md "Mod
 file per family with each model's number, units, limits, baud rates and datasheet figures (a
 value no source gave is listed as unsourced, never guessed), and one file per control-table
 layout with each item's address, size, access, range and unit. The X series and MX(2.0) share
-one layout (the addresses below); the P series has another. Items at addresses below 64 live
-in EEPROM and accept writes only while Torque Enable (64) is 0. Multi-byte items are
+one layout (the addresses below); the P series has another. Each layout names where its RAM
+area starts (``ram_from``: 64 on the X series, 512 on the P series); the items below it live
+in EEPROM and accept writes only while Torque Enable is 0. Multi-byte items are
 little-endian; ``signed`` items are two's complement.
 
 Only the items the bridge and the emulator use, plus their neighbours in the documented table,
@@ -103,10 +104,13 @@ class Item:
     lo: int = 0  # valid range of a write (inclusive)
     hi: int = 0
     signed: bool = False
+    #: Where the RAM area of the item's control table starts (its layout's ``ram_from``): the
+    #: items below it are in EEPROM. 64 (the X series') only for an item made by hand.
+    ram_from: int = 64
 
     @property
     def eeprom(self) -> bool:
-        return self.address < 64
+        return self.address < self.ram_from
 
 
 @dataclass(frozen=True)
@@ -156,8 +160,11 @@ SOURCED_FIELDS = ("current_unit_mA", "current_limit_max", "baud_rates", "fast_sy
 LAYOUT_FIELDS = {"x": ("velocity_limit", "position_p_gain", "acceleration_limit"),
                  "p": ("velocity_limit", "position_limit", "counts_per_rev"),
                  "xl320": ()}
-#: The layout the bridge, the emulator and the embedded drive tables speak (X addresses).
-BRIDGE_LAYOUT = "x"
+#: The layouts the Python bridge, the emulator and cochlea-dxl speak (each item's address and
+#: size from the data; the per-period block in the same order and sizes on both).
+BRIDGE_LAYOUTS = ("x", "p")
+#: The layout the embedded drive tables and the C bridge speak (the X series').
+EMBEDDED_LAYOUTS = ("x",)
 
 
 @dataclass(frozen=True)
@@ -192,6 +199,8 @@ class ModelSpec:
     stall_voltage_V: float | None = None
     source_file: str = ""
     unsourced: tuple[str, ...] = ()
+    #: Where the RAM area starts (its layout's ``ram_from``): a REBOOT restores from here on.
+    ram_from: int = 64
 
     @property
     def max_current_mA(self) -> float | None:
@@ -233,6 +242,18 @@ class ModelSpec:
                     f"(cochlea/dynamixel/models/{self.source_file}): add {them} from {self.url}")
         return None
 
+    def units_problem(self) -> str | None:
+        """Why the toolkit cannot convert this model's position and velocity, or None: its
+        counts per turn (``counts_per_rev``) or velocity unit not sourced (never guessed)."""
+        missing = [f for f in ("counts_per_rev", "velocity_unit_rpm")
+                   if getattr(self, f) is None]
+        if not missing:
+            return None
+        are = "are" if len(missing) > 1 else "is"
+        return (f"the {self.name}'s {' and '.join(missing)} {are} not sourced yet "
+                f"(cochlea/dynamixel/models/{self.source_file}): add "
+                f"{'them' if len(missing) > 1 else 'it'} from {self.url}")
+
     def baud_problem(self, baud: int) -> str | None:
         """Why the model cannot talk at ``baud`` (bit/s), or None."""
         if self.baud_rates is not None and baud not in self.baud_rates:
@@ -240,14 +261,16 @@ class ModelSpec:
                     + ", ".join(str(b) for b in self.baud_rates) + ")")
         return None
 
-    def require_layout(self, component: str, layout: str = BRIDGE_LAYOUT) -> None:
-        """Refuse, in one line, a model whose control table is not ``layout`` in
+    def require_layout(self, component: str,
+                       layouts: tuple[str, ...] = BRIDGE_LAYOUTS) -> None:
+        """Refuse, in one line, a model whose control table is none of ``layouts`` in
         ``component`` (which would send it another table's addresses)."""
-        if self.layout != layout:
+        if self.layout not in layouts:
+            spoken = " and ".join(f"the {name.upper()} series'" for name in layouts)
             raise CochleaError(
                 f"{self.name}: not supported by {component} yet: its control table "
                 f"({self.layout} layout, Goal Current at {self._address('Goal Current')}) "
-                f"is not the X series' one it speaks")
+                f"is not {spoken} it speaks")
 
     def _address(self, name: str) -> str:
         try:
@@ -298,7 +321,7 @@ def _read_toml(name: str, text: bytes) -> dict:
 _ITEM_KEYS = {"name", "address", "size", "access", "default", "min", "max", "signed", "unit",
               "only_if"}
 _LAYOUT_KEYS = {"layout", "url", "counts_per_rev", "velocity_unit_rpm", "emulator_firmware",
-                "fallback", "unsourced", "item"}
+                "fallback", "unsourced", "item", "ram_from"}
 
 
 def _layout(name: str, data: dict) -> dict:
@@ -310,6 +333,9 @@ def _layout(name: str, data: dict) -> dict:
            data.get("layout"))
     _check(isinstance(data.get("url"), str) and data["url"].startswith("https://"),
            f"{name}: url", "the e-Manual page (https://...)", data.get("url"))
+    _check(_is_int(data.get("ram_from")) and 0 < data["ram_from"] < 1024, f"{name}: ram_from",
+           "the address where the RAM area starts (the items below it are in EEPROM)",
+           data.get("ram_from"))
     for f in ("counts_per_rev", "emulator_firmware"):
         if f in data:
             _check(_is_int(data[f]) and data[f] >= 0, f"{name}: {f}", "an integer >= 0",
@@ -429,7 +455,8 @@ def _model(file: str, family: str, layout: dict, k: int, m: object) -> ModelSpec
             continue
         items.append(Item(it["name"], it["address"], it["size"], it["access"] == "RW",
                           _resolve(it["default"], table), _resolve(it.get("min", 0), table),
-                          _resolve(it.get("max", 0), table), bool(it.get("signed", False))))
+                          _resolve(it.get("max", 0), table), bool(it.get("signed", False)),
+                          layout["ram_from"]))
     items.sort(key=lambda i: i.address)
     gearbox = None
     est = m.get("gearbox_estimates")
@@ -459,7 +486,7 @@ def _model(file: str, family: str, layout: dict, k: int, m: object) -> ModelSpec
         gear_ratio=fields["gear_ratio"], backlash_arcmin=fields["backlash_arcmin"],
         stall_torque_Nm=fields["stall_torque_Nm"], stall_current_A=fields["stall_current_A"],
         stall_voltage_V=fields["stall_voltage_V"], source_file=file,
-        unsourced=tuple(unsourced))
+        unsourced=tuple(unsourced), ram_from=layout["ram_from"])
 
 
 def load_models(files: dict[str, bytes] | None = None) -> dict[str, ModelSpec]:

@@ -2,9 +2,11 @@
 
 Per joint (SI on the joint side: rad or m, rad/s or m/s, N m or N):
 
-* **Position.** The motor's angle is ``theta = counts * 2 pi / 4096`` (Present Position, 0.088
-  deg per count). ``zero_offset_deg`` in the description is the motor angle at which the joint
-  coordinate is zero, ``direction`` (+1 or -1) whether they turn the same way, and ``ratio`` the
+* **Position.** The motor's angle is ``theta = counts * 2 pi / counts_per_rev`` (Present
+  Position; its model's data: 4096 on the X series and MX(2.0), 0.088 deg per count; the P
+  series' multi-turn signed pulses, 607500 a turn on the PH42-020-S300-R).
+  ``zero_offset_deg`` in the description is the motor angle at which the joint coordinate is
+  zero, ``direction`` (+1 or -1) whether they turn the same way, and ``ratio`` the
   joint travel per motor radian (1 for a revolute joint: the motor's output shaft is the joint;
   for a prismatic joint its transmission's m/rad, > 0: a pinion's or belt pulley's pitch
   radius, a lead screw's lead over 2 pi; the parallel robot's slider and a serial arm's
@@ -12,8 +14,13 @@ Per joint (SI on the joint side: rad or m, rad/s or m/s, N m or N):
 
       q = direction * ratio * (theta - zero_offset)
 
-* **Velocity.** ``qd = direction * ratio * v * 0.229 rpm`` (Present Velocity, 0.229 rpm/LSB).
-* **Current.** ``I = lsb * unit`` with 3.36 mA/LSB (MX-64(2.0)) or 2.69 mA/LSB (XM540-W270).
+* **Velocity.** ``qd = direction * ratio * v * unit`` (Present Velocity: 0.229 rpm/LSB on the X
+  series, 0.01 rpm/LSB on the P series).
+* **Current.** ``I = lsb * unit`` with 3.36 mA/LSB (MX-64(2.0)), 2.69 mA/LSB (XM540-W270), 1 mA
+  (P series): each model's ``current_unit_mA``.
+
+A model whose unit the toolkit needs is not sourced (``unsourced`` in its data) is refused in
+one line, never guessed (:func:`joint_drives`).
 * **Effort.** The motor torque is ``tau_m = direction * ratio * effort`` (the same power
   ``effort * qd = tau_m * theta_dot``, an ideal transmission); at a prismatic joint the effort
   is a force (N) and ``tau_m`` is ``force * ratio`` (N m): a 20 mm pinion turns 100 N into
@@ -40,7 +47,7 @@ from ..robots import robot
 from ..robots.description import Motor
 from ..robots.motor_fit import DEFAULT_RAMP_NM, Fit, MotorFitError, current_limit_lsb
 from ..runtime.backend import BackendError
-from .control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB, Item, ModelSpec
+from .control_table import BRIDGE_LAYOUTS, MODELS, Item, ModelSpec
 from .protocol import le
 
 __all__ = ["DEFAULT_RAMP_NM", "Fit", "JointDrive", "current_limit_lsb", "drive_item",
@@ -75,7 +82,7 @@ class JointDrive:
 
     @property
     def q_per_count(self) -> float:
-        return self.direction * self.ratio * RAD_PER_COUNT
+        return self.direction * self.ratio * self.spec.rad_per_count
 
     @property
     def q_offset(self) -> float:
@@ -84,7 +91,7 @@ class JointDrive:
 
     @property
     def qd_per_lsb(self) -> float:
-        return self.direction * self.ratio * RAD_S_PER_VELOCITY_LSB
+        return self.direction * self.ratio * self.spec.rad_s_per_velocity_lsb
 
     def q(self, counts):
         return self.q_per_count * np.asarray(counts, dtype=float) + self.q_offset
@@ -147,10 +154,13 @@ def joint_drives(robot_name: str, description: str | Path | None = None,
     drives = []
     for j in joints:
         spec = MODELS[j.motor.model]
-        try:  # the bridge, the emulator and the embedded tables speak the X series' addresses
-            spec.require_layout("the Dynamixel bridge, emulator and embedded drive tables")
+        try:  # the bridge, the emulator and cochlea-dxl speak the X and the P series' tables
+            spec.require_layout("the Dynamixel bridge and emulator", BRIDGE_LAYOUTS)
         except CochleaError as exc:
             raise BackendError(f"joint {j.name}: {exc}") from None
+        problem = spec.units_problem()  # counts per turn, velocity unit: never guessed
+        if problem:
+            raise BackendError(f"joint {j.name}: {problem}")
         try:
             fit = Fit.from_description(j.motor.fit, ramp)
         except MotorFitError as exc:
@@ -186,8 +196,9 @@ def drive_item(d: JointDrive, name: str, who: str = "the bridge") -> Item:
 def shared_item(drives: list[JointDrive], name: str, who: str = "the bridge") -> Item:
     """Item ``name`` where every motor of ``drives`` has it: one address and one size, what a
     single SYNC_WRITE or SYNC_READ of it to all of them needs. A chain whose models place it
-    differently is refused in one line naming them (``joint_drives`` admits one layout
-    only, so no shipped chain is)."""
+    differently is refused in one line naming them (an X-series arm with a P-series joint:
+    the per-period transfers are BULK ones there, chosen by the bridge's
+    :func:`~cochlea.dynamixel.bridge.choose_transfers`; no shipped chain is)."""
     items = [drive_item(d, name, who) for d in drives]
     if len({(it.address, it.size) for it in items}) > 1:
         places = sorted({f"{d.spec.name}: address {it.address}, {it.size} byte"

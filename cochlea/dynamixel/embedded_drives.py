@@ -8,9 +8,10 @@ conversions equal the bridge's bit for bit; the supervisor's limit arrays; and t
 from the model data, ``cochlea/dynamixel/models``) and the per-period transfers, chosen by the
 Python bridge's own rule (:func:`cochlea.dynamixel.bridge.choose_transfers`, with the Realtime
 Tick the C program always reads). A chain the C bridge cannot drive is refused here, in one
-line: a model whose control table is not the bridge's (:func:`~cochlea.dynamixel.drives.
-joint_drives`), or a chain whose models place the period's items at different addresses (the
-C bridge has no BULK_READ / BULK_WRITE).
+line: a model whose control table is not the X series' (a P-series motor, which the Python
+bridge drives: :data:`~cochlea.dynamixel.control_table.EMBEDDED_LAYOUTS`), or a chain whose
+models place the period's items at different addresses (the C bridge has no BULK_READ /
+BULK_WRITE).
 """
 
 from __future__ import annotations
@@ -19,12 +20,13 @@ import math
 import re
 from pathlib import Path
 
+from ..errors import CochleaError
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.model import JointInfo
 from ..runtime.backend import BackendError
 from .bridge import TICK_ITEMS, choose_transfers
-from .control_table import CURRENT_MODE
+from .control_table import CURRENT_MODE, EMBEDDED_LAYOUTS
 from .drives import JointDrive, drive_item, joint_drives
 
 #: The items of ``dxl_table`` (``embedded/core/dxl.h``, enum dxl_item_name), in its order: the
@@ -73,6 +75,13 @@ def bus_choice(drives: list[JointDrive]) -> tuple[str, str, str]:
     ``cochlea-run`` writes as ``read_choice``: :func:`choose_transfers` over the models' data
     with the items the C program reads (the Realtime Tick first). A chain that needs BULK_READ
     or BULK_WRITE raises :class:`BackendError` in one line: the C bridge does not send them."""
+    for d in drives:  # the C bridge's tables are the X series' (no P-series motor yet)
+        try:
+            d.spec.require_layout("the embedded drive tables and the C bridge",
+                                  EMBEDDED_LAYOUTS)
+        except CochleaError as exc:
+            raise BackendError(f"joint {d.name}: {exc} (the Python bridge, cochlea-run "
+                               "--backend dynamixel, drives it)") from None
     read, write, why = choose_transfers([d.spec for d in drives], TICK_ITEMS)
     if read == "bulk" or write == "bulk":
         models = ", ".join(sorted({d.spec.name for d in drives}))

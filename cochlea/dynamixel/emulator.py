@@ -33,8 +33,14 @@ Faults (:class:`Faults`), all counted from the first Torque Enable 1 (the start 
 motors ``ids`` or all), a hardware error on one motor (alert bit, torque off), a motor that
 stops answering, a motor that repeats a stale status packet (its last reply before the fault,
 Realtime Tick and all, for a number of reads or for good); and, from the start, motors missing
-from the bus or reporting another model number. The Realtime Tick (120) counts the
-milliseconds since the chain started, modulo 32768.
+from the bus or reporting another model number. The Realtime Tick counts the milliseconds
+since the chain started, modulo 32768.
+
+Each motor answers as its model (its data, ``cochlea/dynamixel/models``): its Model Number and
+firmware, its control table's addresses, sizes, defaults and limits, its units (counts per
+turn, velocity and current units), its EEPROM area (the layout's ``ram_from``), and the
+per-period block (Realtime Tick .. Present Position) at its model's addresses: 120..135 on the
+X series, 568..583 on the P series. An X-series arm with a P-series joint is one chain.
 
 For the bring-up tools (``cochlea-dxl``, see "Bring-up emulation" below): optionally each motor
 hears only instructions sent at the baud rate of its own Baud Rate register (``--check-baud``),
@@ -85,16 +91,11 @@ from ..sim.scenario import PLANT_PRESETS
 from . import protocol as proto
 from .control_table import (
     ACCESS,
-    ADDR_BUS_WATCHDOG,
-    ADDR_GOAL_CURRENT,
-    ADDR_HARDWARE_ERROR,
-    ADDR_TORQUE_ENABLE,
     ALERT_BIT,
     BAUD_RATES,
     BROADCAST_ID,
     BULK_READ,
     BULK_WRITE,
-    COUNTS_PER_REV,
     CRC_ERROR,
     CURRENT_MODE,
     DATA_LENGTH,
@@ -137,8 +138,8 @@ MAX_LATE_S = 10.0
 #: Exit code of the command when its --log could not be written (a full disk, a lost device).
 EXIT_LOG_FAILED = 3
 
-_PRESENT = struct.Struct("<hii")  # Present Current, Velocity, Position at 126
-_TICK = struct.Struct("<H")  # Realtime Tick at 120
+_PRESENT = struct.Struct("<hii")  # Present Current, Velocity, Position (126 on the X series)
+_TICK = struct.Struct("<H")  # Realtime Tick (120 on the X series)
 _INT32 = (-(2**31), 2**31 - 1)
 
 
@@ -228,6 +229,29 @@ class VirtualMotor:
         self.drive = drive
         self.spec = drive.spec
         self.items = {it.address: it for it in self.spec.items}
+        a = self.address = {it.name: it.address for it in self.spec.items}
+        missing = [n for n in self.NEEDED if n not in a]
+        if missing:
+            raise CochleaError(f"the {self.spec.name} (ID {drive.id}) cannot be emulated: its "
+                               f"control table has no {', '.join(missing)} item")
+        present = (a["Present Current"], a["Present Velocity"], a["Present Position"])
+        if present != (present[0], present[0] + 2, present[0] + 6) or \
+                a["Realtime Tick"] + 6 != present[0]:
+            raise CochleaError(f"the {self.spec.name}'s Realtime Tick and Present Current, "
+                               f"Velocity, Position are not one block in the X series' order")
+        # The registers every instruction and every plant step look at, at this model's
+        # addresses (X series: 64, 70, 98, 102, 68, 126, 120).
+        self.a_torque, self.a_mode = a["Torque Enable"], a["Operating Mode"]
+        self.a_error, self.a_watchdog = a["Hardware Error Status"], a["Bus Watchdog"]
+        self.a_goal_current, self.a_limit = a["Goal Current"], a["Current Limit"]
+        self.a_level, self.a_present, self.a_tick = (a["Status Return Level"], present[0],
+                                                     a["Realtime Tick"])
+        # Goal values (address) and the limit (address) that bounds each; a goal the model's
+        # table does not list is left out.
+        self.goal_limits = {a[g]: a[lim] for g, lim in self.GOAL_LIMIT_NAMES
+                            if g in a and lim in a}
+        self.goals = frozenset(a[g] for g in self.GOAL_NAMES if g in a)
+        self.ram_from = self.spec.ram_from
         self.table = bytearray(self.spec.table_size)
         self.answering = True
         self.last_contact = 0.0
@@ -248,6 +272,15 @@ class VirtualMotor:
 
     # ---- registers -----------------------------------------------------------------------------
 
+    #: The items the emulator needs of every model.
+    NEEDED = ("Model Number", "Firmware Version", "ID", "Baud Rate", "Return Delay Time",
+              "Operating Mode", "Current Limit", "Torque Enable", "Status Return Level",
+              "Hardware Error Status", "Bus Watchdog", "Goal Current", "Realtime Tick",
+              "Present Current", "Present Velocity", "Present Position")
+    GOAL_NAMES = ("Goal PWM", "Goal Current", "Goal Velocity", "Goal Position")
+    GOAL_LIMIT_NAMES = (("Goal PWM", "PWM Limit"), ("Goal Current", "Current Limit"),
+                        ("Goal Velocity", "Velocity Limit"))
+
     def _put(self, item: Item, value: int) -> None:
         self.table[item.address:item.address + item.size] = proto.le(value, item.size)
 
@@ -261,25 +294,26 @@ class VirtualMotor:
 
     @property
     def torque_on(self) -> bool:
-        return self.table[ADDR_TORQUE_ENABLE] == 1
+        return self.table[self.a_torque] == 1
 
     @property
     def hardware_error(self) -> int:
-        return self.table[ADDR_HARDWARE_ERROR]
+        return self.table[self.a_error]
 
     @property
     def watchdog_tripped(self) -> bool:
-        return self.table[ADDR_BUS_WATCHDOG] == 0xFF  # -1
+        return self.table[self.a_watchdog] == 0xFF  # -1
 
     def state(self) -> tuple[bool, int, float]:
         """``(driving, applied current (LSB), joint effort it gives)``, recomputed only when one
         of the registers it depends on changed (the plant asks at every step)."""
-        t = self.table
-        key = (t[64], t[11], t[70], t[98], t[102], t[103])
+        t, g = self.table, self.a_goal_current
+        key = (t[self.a_torque], t[self.a_mode], t[self.a_error], t[self.a_watchdog], t[g],
+               t[g + 1])
         if key != self._key:
             driving = (key[0] == 1 and key[1] == CURRENT_MODE and not key[2]
                        and key[3] != 0xFF)
-            current = proto.from_le(t[102:104], True) if driving else 0
+            current = proto.from_le(t[g:g + 2], True) if driving else 0
             effort = self.torque_scale * float(self.drive.effort(current, self.slope_only))
             self._key, self._state = key, (driving, current, effort)
         return self._state
@@ -309,23 +343,25 @@ class VirtualMotor:
         return self.table[9] * RETURN_DELAY_UNIT_S
 
     def set_present(self, current: int, velocity: int, position: int, tick_ms: int) -> None:
-        _PRESENT.pack_into(self.table, 126, current, velocity, position)
-        _TICK.pack_into(self.table, 120, tick_ms % 32768)
+        _PRESENT.pack_into(self.table, self.a_present, current, velocity, position)
+        _TICK.pack_into(self.table, self.a_tick, tick_ms % 32768)
 
     def latch_hardware_error(self, bit: int) -> None:
-        self.table[ADDR_HARDWARE_ERROR] |= 1 << bit
-        self.table[ADDR_TORQUE_ENABLE] = 0  # Shutdown: torque off, output 0
+        self.table[self.a_error] |= 1 << bit
+        self.table[self.a_torque] = 0  # Shutdown: torque off, output 0
 
     def trip_watchdog(self) -> None:
-        self.table[ADDR_BUS_WATCHDOG] = 0xFF  # -1: Bus Watchdog Error
-        self._put(self.items[ADDR_GOAL_CURRENT], 0)
+        self.table[self.a_watchdog] = 0xFF  # -1: Bus Watchdog Error
+        self._put(self.items[self.a_goal_current], 0)
 
     def reboot(self) -> None:
-        """RAM back to its defaults (torque off, errors cleared); EEPROM kept."""
-        present = bytes(self.table[120:136])
-        self.table[64:] = self.defaults[64:]
-        self._put(self.items[ADDR_GOAL_CURRENT], self.get(38))
-        self.table[120:136] = present
+        """RAM (from the model's ``ram_from``) back to its defaults (torque off, errors
+        cleared); EEPROM kept."""
+        lo, hi = self.a_tick, self.a_present + 10
+        present = bytes(self.table[lo:hi])
+        self.table[self.ram_from:] = self.defaults[self.ram_from:]
+        self._put(self.items[self.a_goal_current], self.get(self.a_limit))
+        self.table[lo:hi] = present
 
     # ---- instructions --------------------------------------------------------------------------
 
@@ -359,34 +395,34 @@ class VirtualMotor:
                 self._apply(it, value)
         return 0, [(it.address, value) for it, value in plan]
 
-    #: Goal values (address) and the limit (address) that bounds each.
-    GOAL_LIMITS = {100: 36, 102: 38, 104: 44}
-    GOALS = (100, 102, 104, 116)
-
     def _check(self, it: Item, value: int) -> int:
         a = it.address
         if not it.lo <= value <= it.hi:
             return DATA_RANGE
-        if a == 11 and value not in OPERATING_MODES:
+        if a == self.a_mode and value not in OPERATING_MODES:
             return DATA_RANGE
-        if a in self.GOALS and self.watchdog_tripped:
+        if a in self.goals and self.watchdog_tripped:
             return DATA_RANGE  # goal values are read-only after a watchdog error
-        if a in self.GOAL_LIMITS and abs(value) > self.get(self.GOAL_LIMITS[a]):
+        if a in self.goal_limits and abs(value) > self.get(self.goal_limits[a]):
             return DATA_LIMIT
-        if a == ADDR_TORQUE_ENABLE and value == 1 and self.hardware_error:
+        if a == self.a_torque and value == 1 and self.hardware_error:
             return RESULT_FAIL  # only a REBOOT re-enables the torque after a shutdown
         return 0
 
     def _apply(self, it: Item, value: int) -> None:
         a = it.address
-        before = self.get(a) if a in (11, ADDR_TORQUE_ENABLE) else None
+        before = self.get(a) if a in (self.a_mode, self.a_torque) else None
         self._put(it, value)
-        if a == 11 and value != before:
-            self._put(self.items[100], self.get(36))  # Goal PWM = PWM Limit
-            self._put(self.items[102], self.get(38))  # Goal Current = Current Limit
-            self._put(self.items[108], 0)
-            self._put(self.items[112], 0)
-        if a == ADDR_TORQUE_ENABLE and value == 1 and before == 0 and self.on_torque:
+        if a == self.a_mode and value != before:
+            # Goal PWM = PWM Limit, Goal Current = Current Limit, the profiles 0 (those the
+            # model's table lists).
+            for goal, limit in (("Goal PWM", "PWM Limit"), ("Goal Current", "Current Limit")):
+                if goal in self.address and limit in self.address:
+                    self._put(self.items[self.address[goal]], self.get(self.address[limit]))
+            for name in ("Profile Acceleration", "Profile Velocity"):
+                if name in self.address:
+                    self._put(self.items[self.address[name]], 0)
+        if a == self.a_torque and value == 1 and before == 0 and self.on_torque:
             self.on_torque(self)
 
 
@@ -772,11 +808,11 @@ class VirtualChain:
         for u in self.units:
             u.publish(tick_ms)
         for m in self.motors:
-            wd = m.table[ADDR_BUS_WATCHDOG]  # 0 off, 1..127 on, 0xFF (-1) tripped
+            wd = m.table[m.a_watchdog]  # 0 off, 1..127 on, 0xFF (-1) tripped
             if 0 < wd < 0x80 and m.torque_on and now - m.last_contact > wd * WATCHDOG_UNIT_S:
                 m.trip_watchdog()
                 self.counts["watchdog_trips"] += 1
-                self._event(now, "watchdog", m.id, ADDR_BUS_WATCHDOG, -1)
+                self._event(now, "watchdog", m.id, m.a_watchdog, -1)
 
     def _active(self, now: float) -> bool:
         return self.run_start is not None and now >= self.run_start + self.faults.delay_s
@@ -791,7 +827,7 @@ class VirtualChain:
             m = self.by_id.get(motor_id)
             if m is not None:
                 m.latch_hardware_error(bit)
-                self._event(now, "fault", motor_id, ADDR_HARDWARE_ERROR,
+                self._event(now, "fault", motor_id, m.a_error,
                             f"hardware error: {HARDWARE_ERROR_BITS.get(bit, bit)}")
         if f.silent is not None and not self._injected_silent:
             self._injected_silent = True
@@ -951,7 +987,7 @@ class VirtualChain:
         active = self._active(now)
         blocks, corrupt = [], []
         for m in here:
-            if m.table[68] == 0:  # Status Return Level 0: PING only
+            if m.table[m.a_level] == 0:  # Status Return Level 0: PING only
                 continue
             error, data = m.read(address, length)
             data = self._stale_reply(m, now, address, data)
@@ -1019,7 +1055,7 @@ class VirtualChain:
         t = max(now, self._bus_free) + request_len * self.byte_time
         active = self._active(now)
         for m, error, data in replies:
-            level = m.table[68]  # Status Return Level: 0 PING only, 1 + READ, 2 all
+            level = m.table[m.a_level]  # Status Return Level: 0 PING only, 1 + READ, 2 all
             if not (inst == PING or level == 2
                     or (level == 1 and inst in (READ, SYNC_READ, BULK_READ, FAST_SYNC_READ))):
                 continue
@@ -1103,12 +1139,13 @@ class VirtualChain:
     def power_cycle(self) -> None:
         """The motors' power off and on: RAM items back to their defaults (torque off, errors
         and the Bus Watchdog cleared), and each encoder keeps only its angle within one turn,
-        as a real one does (Present Position in 0..4095 again)."""
+        as a real one does (Present Position within one turn again: 0..4095 on the X series,
+        its model's counts per turn)."""
         for u in self.units:
             for j, m in enumerate(u.motors):
                 offset, per_count, _ = u._scales[j]
                 counts = round((u.x[j] - offset) / per_count)
-                m.turn_counts = counts - counts % COUNTS_PER_REV
+                m.turn_counts = counts - counts % m.spec.counts_per_rev
                 m.reboot()
             u.publish(int((time.perf_counter() - self._t0) * 1000))
 

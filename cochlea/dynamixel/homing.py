@@ -8,7 +8,8 @@ each homed joint: its entry is valid while its motor still holds the random toke
 was homed. That register is RAM, unused in current control, and returns to its default (0) at
 power-on and after a REBOOT, exactly when the single-turn encoder loses its turn count. A
 valid entry counts the joint from its stop:
-``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``.
+``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / N``
+(N: the model's counts per turn, 4096 on the X series).
 
 One record per robot description (:func:`default_record`): ``~/.cochlea/homing/ROBOT.json``
 for the shipped description of the kind ROBOT (``serial``, ``parallel``), as before, and

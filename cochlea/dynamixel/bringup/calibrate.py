@@ -8,8 +8,9 @@ Guided calibration, per joint (docs/hardware_calibration.md, "Calibration"):
    presses Enter: the motor's Present Position ``p0`` is read;
 2. the user moves the joint a little in its positive sense and presses Enter: the sign of the
    motor's change is ``direction``;
-3. ``zero_offset = theta0 - q_ref / (direction * ratio)`` with ``theta0 = p0 * 2 pi / 4096``
-   (inverting ``q = direction * ratio * (theta - zero_offset)``, :mod:`..drives`).
+3. ``zero_offset = theta0 - q_ref / (direction * ratio)`` with ``theta0 = p0 * 2 pi / N``, N
+   the motor's counts per turn (its model's data: 4096 on the X series) (inverting
+   ``q = direction * ratio * (theta - zero_offset)``, :mod:`..drives`).
 
 Every motor of the description is pinged and its torque turned off before the first prompt; the
 new description is the old text with only the two values of each calibrated motor replaced
@@ -35,10 +36,7 @@ from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
 from ...robots import ROBOTS
 from ...robots import robot as robot_adapter
-from ..control_table import (
-    RAD_PER_COUNT,
-    baud_code,
-)
+from ..control_table import baud_code
 from ..drives import Fit, JointDrive, joint_drives
 from . import common
 
@@ -251,7 +249,8 @@ def _calibrate_joint(bus: common.Bus, d: JointDrive, ref: tuple, args) -> tuple[
     if answer.lower() == "q":
         raise CochleaError("calibration stopped by the user: nothing written")
     p0 = bus.position(d)
-    need = args.min_motion_deg / math.degrees(RAD_PER_COUNT)
+    rad_per_count = d.spec.rad_per_count  # the model's (joint_drives refused it unsourced)
+    need = args.min_motion_deg / math.degrees(rad_per_count)
     for _ in range(3):
         answer = ask(f"{d.name}: now move it a little in its positive sense ("
                      f"{_positive(args, d.name)}), at least {args.min_motion_deg:g} deg at the "
@@ -261,14 +260,14 @@ def _calibrate_joint(bus: common.Bus, d: JointDrive, ref: tuple, args) -> tuple[
         delta = bus.position(d) - p0
         if abs(delta) >= need:
             break
-        print(f"{d.name}: the motor moved {delta * math.degrees(RAD_PER_COUNT):.2f} deg only; "
+        print(f"{d.name}: the motor moved {delta * math.degrees(rad_per_count):.2f} deg only; "
               "move it further", flush=True)
     else:
         raise CochleaError(f"{d.name} (ID {d.id}): the motor did not move {args.min_motion_deg:g}"
                            " deg in three tries: is it the right joint, and free? Nothing "
                            "written")
     direction = 1 if delta > 0 else -1
-    theta0 = p0 * RAD_PER_COUNT
+    theta0 = p0 * rad_per_count
     offset = math.degrees(theta0 - q_ref / (direction * d.ratio))
     if d.type == "revolute":  # any turn will do: the bridge unwraps revolute joints
         offset = (offset + 180.0) % 360.0 - 180.0

@@ -74,9 +74,10 @@ EXIT_LOST = 7
 
 #: The runtime's default rate (cochlea-run --baud), what info and configure talk at by default.
 DEFAULT_BAUD = 4_000_000
-#: One READ of 120..135: Realtime Tick (ms, modulo 32768), Moving, Moving Status, Present PWM,
-#: Present Current, Present Velocity, Present Position (the same on the MX(2.0) and X series).
-PRESENT_ADDRESS, PRESENT = 120, struct.Struct("<H4xhii")
+#: One READ of Realtime Tick (ms, modulo 32768), Moving, Moving Status, Present PWM, Present
+#: Current, Present Velocity, Present Position: 120..135 on the MX(2.0) and X series, 568..583
+#: on the P series (each model's address: :func:`present_address`).
+PRESENT = struct.Struct("<H4xhii")
 TICK_MODULO_MS = 32768
 #: A motor whose Realtime Tick did not move over more than this (s) answered a stale packet.
 STALE_AFTER_S = 0.003
@@ -221,30 +222,53 @@ def check_output(path: Path, option: str, *, new: bool = False,
     }[p.code])
 
 
+def present_address(spec: ModelSpec) -> int:
+    """Where ``spec``'s block of :data:`PRESENT` starts (its Realtime Tick: 120 on the X series,
+    568 on the P series); a model whose block is laid out otherwise is refused in one line."""
+    offsets = {"Realtime Tick": (0, 2), "Present Current": (6, 2), "Present Velocity": (8, 4),
+               "Present Position": (12, 4)}
+    try:
+        start = spec.item("Realtime Tick").address
+        found = {n: (spec.item(n).address - start, spec.item(n).size) for n in offsets}
+    except KeyError as exc:
+        raise BusError(f"the {spec.name} has no {exc.args[0]} item: cochlea-dxl cannot read "
+                       "its present state") from None
+    if found != offsets:
+        raise BusError(f"the {spec.name}'s Realtime Tick .. Present Position are not laid out "
+                       f"as the X series' (offset, bytes: {found}): cochlea-dxl cannot read them")
+    return start
+
+
 def who(motor_id: int, drive: JointDrive | None = None) -> str:
     return f"ID {motor_id}" + (f" ({drive.name}, {drive.spec.name})" if drive else "")
 
 
 def value_text(item: Item, value: int, spec: ModelSpec = MX64) -> str:
-    """A register's value with its unit, e.g. ``250 (500 us)``."""
-    a = item.address
-    if a == 8:
+    """A register's value with its unit, e.g. ``250 (500 us)``: by the item's name, in the
+    units of ``spec``'s data (a P-series motor's mA and pulses per turn)."""
+    a = item.name
+    if a == "Baud Rate":
         return f"{value} ({BAUD_RATES[value]} baud)" if value in BAUD_RATES else str(value)
-    if a == 9:
+    if a == "Return Delay Time":
         return f"{value} ({value * 2} us)"
-    if a == 10:
+    if a == "Drive Mode":
         return f"{value} ({'reverse' if value & 1 else 'normal'} direction)"
-    if a == 11:
+    if a == "Operating Mode":
         return f"{value} ({MODE_NAMES.get(value, 'unknown')})"
-    if a in (38, 102, 126):
+    if a in ("Current Limit", "Goal Current", "Present Current"):
+        if spec.current_unit_mA is None:
+            return str(value)
         return f"{value} ({value * spec.current_unit_mA:.0f} mA)"
-    if a in (20, 48, 52, 116, 132):
-        return f"{value} ({value * 360 / 4096:.1f} deg)"
-    if a == 64:
+    if a in ("Homing Offset", "Max Position Limit", "Min Position Limit", "Goal Position",
+             "Present Position"):
+        if spec.counts_per_rev is None:
+            return str(value)
+        return f"{value} ({value * 360 / spec.counts_per_rev:.1f} deg)"
+    if a == "Torque Enable":
         return f"{value} ({'on' if value else 'off'})"
-    if a == 70:
+    if a == "Hardware Error Status":
         return f"{value} ({describe_hardware_error(value)})"
-    if a == 98:
+    if a == "Bus Watchdog":
         state = "tripped" if value < 0 else "off" if value == 0 else f"{value * 20} ms"
         return f"{value} ({state})"
     return str(value)
@@ -444,9 +468,10 @@ class Bus:
         motor's last such read (its answer received more than :data:`STALE_AFTER_S` before
         this request left) is a stale packet: the motor repeats an old answer
         (:class:`MotorLost`)."""
-        what = f"READ Present state ({PRESENT_ADDRESS}..{PRESENT_ADDRESS + PRESENT.size - 1})"
+        address = present_address(d.spec)
+        what = f"READ Present state ({address}..{address + PRESENT.size - 1})"
         sent = time.perf_counter()
-        reply = self._expect(self.request(proto.read(d.id, PRESENT_ADDRESS, PRESENT.size), d.id),
+        reply = self._expect(self.request(proto.read(d.id, address, PRESENT.size), d.id),
                              d.id, what)
         if len(reply.params) != PRESENT.size:
             text = (f"{self.who(d.id)} answered {what} with a stale or garbled packet of "

@@ -84,7 +84,8 @@ def _plan(bus: Bus, drives: list[JointDrive], baud_to: int | None) -> tuple[list
             if present != s.value:
                 # A motor below Status Return Level 2 does not answer the WRITE of the level.
                 writes.append(Write(d, s.item, present, s.value, s.why,
-                                    confirmed=level == 2 or s.item.address != 68))
+                                    confirmed=level == 2
+                                    or s.item.name != "Status Return Level"))
         if baud_to is not None:
             item = spec.item("Baud Rate")
             present = bus.read(d.id, item)

@@ -30,7 +30,8 @@ joints already homed.
 
 The rule the runtime applies to each joint (:func:`reference_offset`): its entry is valid
 while its motor still holds the token, i.e. it has not been power-cycled or rebooted since it
-was homed; then ``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / 4096``,
+was homed; then ``d = stop_m + direction * ratio * (counts - raw_counts) * 2 pi / N``
+(N: the model's counts per turn, 4096 on the X series),
 whatever the description's ``zero_offset_deg`` says.
 """
 

@@ -17,7 +17,7 @@ import sys
 import time
 
 from .. import protocol as proto
-from ..control_table import MODELS_BY_NUMBER, MX64
+from ..control_table import BRIDGE_LAYOUTS, MODELS_BY_NUMBER, MX64
 from . import common
 from .common import Bus, BusError
 
@@ -46,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
                 missing.append(str(motor_id))
             else:
                 models[motor_id] = MODELS_BY_NUMBER.get(answer[0], MX64)
-                models[motor_id].require_layout("cochlea-dxl reboot")  # X addresses only
+                # Each model's Hardware Error Status (X 70, P 518); another table: refused.
+                models[motor_id].require_layout("cochlea-dxl reboot", BRIDGE_LAYOUTS)
         if missing:
             raise BusError(f"ID {', '.join(missing)} did not answer PING on {args.port} at "
                            f"{args.baud} baud: nothing rebooted (cochlea-dxl scan lists what "

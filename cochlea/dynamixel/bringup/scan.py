@@ -3,7 +3,8 @@
 At each baud rate (default: every Dynamixel rate, the runtime's 4 Mbaud and the factory 57600
 first) one broadcast PING finds the motors in the ID range; when it comes back garbled (two
 motors sharing an ID collide) or with ``--per-id``, each ID is pinged on its own. Each motor
-found is then read: Operating Mode, Torque Enable, Hardware Error Status. Nothing is written.
+found is then read: Operating Mode, Torque Enable, Hardware Error Status, each at the address
+its model's data gives (X series 11, 64, 70; P series 11, 512, 518). Nothing is written.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..control_table import BAUD_RATES, MAX_ID, MODELS_BY_NUMBER, MX64
+from ..control_table import BAUD_RATES, BRIDGE_LAYOUTS, MAX_ID, MODELS_BY_NUMBER, MX64
 from . import common
 from .common import Bus, BusError
 
@@ -64,10 +65,11 @@ def _find(bus: Bus, ids: list[int], per_id: bool) -> tuple[dict[int, tuple[int, 
 
 
 def _row(bus: Bus, motor_id: int, model: int, firmware: int) -> list[str]:
-    spec = MODELS_BY_NUMBER.get(model, MX64)  # X and MX(2.0) share these addresses
+    # An unknown model number: the X series' addresses (X and MX(2.0) share them).
+    spec = MODELS_BY_NUMBER.get(model, MX64)
     cells = []
     names = ("Operating Mode", "Torque Enable", "Hardware Error Status")
-    if spec.layout != "x":  # another table (P series, XL320): never read at X addresses
+    if spec.layout not in BRIDGE_LAYOUTS:  # another table (XL320): never read at X addresses
         cells = [f"not read ({spec.layout} layout: not supported by cochlea-dxl yet)"] * 3
         names = ()
     for name in names:
