@@ -91,6 +91,11 @@ def refused(setups) -> dict:
     return row
 
 
+#: The name a sample's scenario goes by on a worker (in a refusal's message): it is read from
+#: its text, never from a file.
+SAMPLE_FILE = Path("sample.toml")
+
+
 def evaluate(text: str, cache: bool = True, kernels: str = "auto",
              library: str | None = None) -> dict:
     """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
@@ -103,10 +108,9 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
     (the library also every other kernel's on this worker: ``$COCHLEA_LIB``)."""
     if library is not None:
         os.environ[ckernels.ENVIRONMENT] = library
-    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-        path = Path(tmp) / "sample.toml"
-        path.write_text(text, encoding="utf-8")
-        scenario = load_scenario(path)
+    # Read as the file would be, without writing one (a temporary folder a sample cost more
+    # than the summary); the sample's description path is absolute (sampling.scenario_data).
+    scenario = load_scenario(SAMPLE_FILE, text=text)
     try:
         setups = unit_setups(scenario, cache=cache)
     except GravityRefused:  # a sample the robot cannot start: counted, not an error
@@ -133,12 +137,8 @@ def _choose_kernels(spec: sweep_spec.Spec, kernels: str, library: str | None):
     """The kernels of the sweep, decided on its first sample before any worker starts
     (:func:`cochlea.sim.choose_kernels`): ``--kernels c`` refuses here, ``auto`` says here
     that it falls back."""
-    text = sampling.scenario_text(spec, 0)
-    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-        path = Path(tmp) / "sample.toml"
-        path.write_text(text, encoding="utf-8")
-        scenario = load_scenario(path)
-        setups = unit_setups(scenario, gravity=False)
+    scenario = load_scenario(SAMPLE_FILE, text=sampling.scenario_text(spec, 0))
+    setups = unit_setups(scenario, gravity=False)
     return choose_kernels(setups, scenario.plant_substeps, kernels, library)
 
 
@@ -146,17 +146,13 @@ def _check_sample(spec: sweep_spec.Spec) -> None:
     """Before any worker starts: the first sample's scenario (and the extremes of each
     uniform) through the scenario loader and the run's up-front checks."""
     for i in sorted({0, spec.total - 1}):
-        text = sampling.scenario_text(spec, i)
-        with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-            path = Path(tmp) / "sample.toml"
-            path.write_text(text, encoding="utf-8")
-            try:
-                unit_setups(load_scenario(path))
-            except GravityRefused:
-                pass  # a perturbation the robot cannot start with: that sample's row says so
-            except CochleaError as exc:
-                raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: "
-                                   f"{str(exc).replace(str(path), 'sample.toml')}") from None
+        try:
+            unit_setups(load_scenario(SAMPLE_FILE, text=sampling.scenario_text(spec, i)))
+        except GravityRefused:
+            pass  # a perturbation the robot cannot start with: that sample's row says so
+        except CochleaError as exc:
+            raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: {exc}") \
+                from None
 
 
 def _sweep(argv: list[str]) -> int:
