@@ -11,6 +11,7 @@ The plant's noise seed is drawn the same way unless the spec fixes ``[perturb] s
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 import tomllib
@@ -84,10 +85,16 @@ def _vector(value: Any, size: int | None) -> Any:
     return value
 
 
+@functools.lru_cache(maxsize=8)
+def _base_data(text: str) -> dict:
+    """A base scenario's TOML data, parsed once per process and text (never handed out
+    itself: each sample gets a deep copy)."""
+    return tomllib.loads(text)
+
+
 def scenario_data(spec: Spec, i: int) -> dict:
     """The base scenario's TOML data with sample ``i``'s plant, gains and duration."""
-    data = tomllib.loads(spec.scenario_text)
-    data = copy.deepcopy(data)
+    data = copy.deepcopy(_base_data(spec.scenario_text))
     description = data.get("description")
     if isinstance(description, str):  # a user's description file: found from anywhere
         path = Path(description)
