@@ -103,9 +103,10 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
 
     ``cache``: the set-ups' symbolic part (models, controllers, checked desired path) comes
     from the worker's cache when an earlier sample had the same structure
-    (:func:`cochlea.sim.setup.unit_setups`); ``False`` builds everything again, with the same
-    row, bit for bit. ``kernels``, ``library``: as :func:`cochlea.sim.simulate` takes them
-    (the library also every other kernel's on this worker: ``$COCHLEA_LIB``)."""
+    (:func:`cochlea.sim.setup.unit_setups`), and so do the supervisor's bound pose kernels;
+    ``False`` builds everything again, with the same row, bit for bit. ``kernels``,
+    ``library``: as :func:`cochlea.sim.simulate` takes them (the library also every other
+    kernel's on this worker: ``$COCHLEA_LIB``)."""
     if library is not None:
         os.environ[ckernels.ENVIRONMENT] = library
     # Read as the file would be, without writing one (a temporary folder a sample cost more
@@ -121,7 +122,7 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
     wall = time.perf_counter() - start
     supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
                                   kernels="casadi" if kernels == "casadi" else "c",
-                                  substeps=scenario.plant_substeps)
+                                  substeps=scenario.plant_substeps, cache=cache)
     result.supervisor = verdict(result, supervisor)
     limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
                                                            u.effort_limit)} for u in setups}
