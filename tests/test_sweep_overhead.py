@@ -19,7 +19,7 @@ from cochlea.apps import cochlea_sweep, report
 from cochlea.runtime import build_supervisor, first_violation, verdict
 from cochlea.runtime import supervisor as sv
 from cochlea.sim import load_scenario, simulate, unit_setups
-from cochlea.sim.result import UnitLog
+from cochlea.sim.result import StreamedResult, UnitLog
 from cochlea.sweep import sampling
 from cochlea.sweep import spec as sweep_spec
 
@@ -221,6 +221,9 @@ def test_every_sample_is_judged_and_summarised_as_on_the_old_path(study, tmp_pat
         result.supervisor = judged
         new = report.summary(result, 0.0)
         assert _plain(new["units"]) == _plain(_old_units(result)), i
+        # A run streamed to disk is read a chunk at a time: the same summary.
+        streamed = StreamedResult(result.scenario, result.units, result.periods, result.rows)
+        assert _plain(report.summary(streamed, 0.0)["units"]) == _plain(new["units"]), i
         # The sample's row through the worker's path (text, caches) is this summary's row.
         limits = {u.name: {j.name: float(lim) for j, lim in
                            zip(u.controller_model.joints, u.effort_limit)} for u in setups}
