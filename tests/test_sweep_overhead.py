@@ -263,3 +263,33 @@ def test_the_pose_kernels_are_bound_once_per_process():
     q = np.concatenate([u.x0[:u.controller_model.nq] for u in setups])
     assert np.array_equal(a.keep_out_points(q), fresh.keep_out_points(q))
     assert sv._POSE_KERNELS  # kept, with their Functions
+
+
+@pytest.mark.slow
+def test_a_worker_keeps_the_memory_a_sample_frees():
+    """A worker's samples free and allocate the same ~1 MB arrays again and again: after
+    warm(), glibc keeps them instead of handing them back and faulting them in again page by
+    page (in a process of its own: the setting lasts as long as the process)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import resource, sys\n"
+        "import numpy as np\n"
+        "from cochlea.apps import cochlea_sweep\n"
+        "def faults():\n"
+        "    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "    for _ in range(20):  # a sample's logs: ten arrays of ~1 MB, freed together\n"
+        "        logs = [np.ones((20000, 6)) for _ in range(10)]\n"
+        "        del logs\n"
+        "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before\n"
+        "plain = faults()\n"
+        "kept = cochlea_sweep.keep_freed_memory()\n"
+        "faults()\n"
+        "print(plain, kept, faults())\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True).stdout.split()
+    plain, kept, after = int(out[0]), out[1] == "True", int(out[2])
+    if not kept:
+        pytest.skip("not glibc: the worker leaves malloc as it is")
+    assert plain > 20 * 1000 and after < 100, (plain, after)  # 10 MB: 2,400 pages
