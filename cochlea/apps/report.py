@@ -134,17 +134,25 @@ class _ErrorStats:
         return float(np.sqrt(self.tail_sq[i] / self.tail_n))
 
 
-#: The fields a tracking error reads (:func:`_errors`).
+#: The fields a tracking error reads (:func:`_rows`).
 _ERROR_FIELDS = ("q", "errors", "desired", "true_q", "true_x")
 
 
-def _errors(u: UnitLog, part: slice) -> tuple[np.ndarray, np.ndarray]:
-    """``(measured, judged)`` tracking errors of ``u``'s periods ``part`` (judged: the true
-    one where the log has the true state), as :class:`UnitLog`'s properties compute them."""
-    rows = dataclasses.replace(u, **{k: getattr(u, k)[part] for k in _ERROR_FIELDS
+def _rows(u: UnitLog, part: slice) -> UnitLog:
+    """``u``'s periods ``part``, as far as a tracking error reads them."""
+    return dataclasses.replace(u, **{k: getattr(u, k)[part] for k in _ERROR_FIELDS
                                      if getattr(u, k) is not None})
-    measured = rows.measured_tracking_error
-    return measured, (rows.true_tracking_error if rows.has_true_state else measured)
+
+
+def _measured_error(u: UnitLog, part: slice) -> np.ndarray:
+    """:attr:`UnitLog.measured_tracking_error` of ``u``'s periods ``part``."""
+    return _rows(u, part).measured_tracking_error
+
+
+def _judged_error(u: UnitLog, part: slice) -> np.ndarray:
+    """:attr:`UnitLog.tracking_error` of ``u``'s periods ``part`` (the true one where the log
+    has the true state)."""
+    return _rows(u, part).tracking_error
 
 
 def _largest_norm(p: np.ndarray) -> float:
@@ -180,8 +188,8 @@ class _UnitStats:
         rows = len(u.q)
         if not rows:
             return
-        self.measured.add(lambda part: _errors(u, part)[0], rows, start)
-        self.judged.add(lambda part: _errors(u, part)[1], rows, start)
+        self.measured.add(lambda part: _measured_error(u, part), rows, start)
+        self.judged.add(lambda part: _judged_error(u, part), rows, start)
         # Each column's largest |effort| from its extremes (a NaN makes both NaN; abs() makes
         # a -0.0 the 0.0 np.abs gave).
         peaks = np.array([abs(max(c.max(), -c.min())) for c in u.tau.T])
