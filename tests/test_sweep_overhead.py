@@ -293,3 +293,28 @@ def test_a_worker_keeps_the_memory_a_sample_frees():
     if not kept:
         pytest.skip("not glibc: the worker leaves malloc as it is")
     assert plain > 20 * 1000 and after < 100, (plain, after)  # 10 MB: 2,400 pages
+
+
+@pytest.mark.parametrize("failed", [0, 1, 53, 120, 250, 265, 280])
+def test_a_run_whose_first_reads_failed_is_summarised_as_chunk_by_chunk(monkeypatch, failed):
+    """A hardware run logs NaN until its first good read: its initial error is that read's,
+    and the chunks before it add nothing to the tail, whether the run is read whole or a
+    chunk at a time (small chunks here: 300 periods in chunks of 53, the tail from 240)."""
+    from cochlea.sim import result as result_module
+
+    monkeypatch.setattr(result_module, "CHUNK_ROWS", 53)
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=0.3)
+    result = simulate(sc, threads=False)
+    for u in result.units[:1]:
+        for name in ("q", "qd", "errors", "true_q", "true_x"):
+            value = getattr(u, name).copy()
+            value[:failed] = np.nan
+            setattr(u, name, value)
+    whole = report.summary(result, 0.0)["units"]
+    assert _plain(whole) == _plain(_old_units(result))
+    streamed = StreamedResult(result.scenario, result.units, result.periods, result.rows)
+    assert _plain(report.summary(streamed, 0.0)["units"]) == _plain(whole)
+    # The tail is summed from the chunk of the first good read on: its failed reads there
+    # make the final RMS NaN; a first good read that starts a chunk leaves none (265 = 5 x 53).
+    rms = whole["arm1"]["tracked"]["x"]["final_rms_error"]
+    assert math.isnan(rms) == (max(240, failed // 53 * 53) < failed), rms

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ..log_schema import SCHEMA_VERSION, TIMING_COLUMNS, LogUnit, run_columns
-from ..sim.result import CHUNK_ROWS, SimulationResult, StreamedResult, UnitLog
+from ..sim import result as run_result
+from ..sim.result import SimulationResult, StreamedResult, UnitLog
 from .outputs import ReportError, atomic_path, write_text_atomic
 
 #: Convergence: the RMS tracking error over the last 20 % of the run must be at most this
@@ -102,7 +103,7 @@ class _ErrorStats:
         """``rows`` periods from period ``start`` (a chunk of a streamed run, or a whole run
         in memory); ``error(part)``: their error on the rows ``part`` (a slice), computed only
         where it is read: the first period and the tail."""
-        skip = 0
+        skip, chunk = 0, run_result.CHUNK_ROWS  # the size SimulationResult.chunks() reads in
         if self.initial is None:
             # The first period with a measured state: a run whose first reads failed logs NaN
             # until its first good read (the loop commands nothing before it).
@@ -115,16 +116,15 @@ class _ErrorStats:
                 e = e[found[0]:]
                 # As a run read a chunk at a time: the tail in the chunks before that period's
                 # is not summed.
-                skip = (start + int(found[0])) // CHUNK_ROWS * CHUNK_ROWS - start
+                skip = (start + int(found[0])) // chunk * chunk - start
             self.initial = np.abs(e[0])
         first = max(self.tail_start - start, skip, 0)
         if first < rows:
             e = error(slice(first, rows))
             # Column by column, as np.mean sums a column: a one-chunk run's numbers are exact.
-            # Summed in the pieces the chunks of CHUNK_ROWS periods cut it into, so a run read
+            # Summed in the pieces the chunks of a streamed run cut it into, so a run read
             # whole and one read a chunk at a time have the same numbers, bit for bit.
-            cuts = range((start + first) // CHUNK_ROWS * CHUNK_ROWS + CHUNK_ROWS, start + rows,
-                         CHUNK_ROWS)
+            cuts = range((start + first) // chunk * chunk + chunk, start + rows, chunk)
             for piece in np.split(e, [c - start - first for c in cuts]):
                 self.tail_sq = self.tail_sq + np.array([np.sum(piece[:, i] ** 2)
                                                         for i in range(piece.shape[1])])
