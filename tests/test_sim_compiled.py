@@ -393,3 +393,17 @@ def test_measurements_through_one_delay_are_the_delayed_rows(delay):
     assert np.array_equal(seen, expected) and not np.shares_memory(seen, states)
     assert np.array_equal(measurements(states, delay), expected)
     assert measurements(states[:0], delay).shape == (0, 4)
+
+
+def test_desired_samples_are_kept_for_the_same_grid_bit_for_bit():
+    """A structure's desired samples are computed once per time grid: the same grid (a new
+    array) finds them; a grid that differs in one bit (-0.0 for 0.0) computes its own."""
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=0.05)
+    u = unit_setups(sc)[0]
+    time = np.arange(50) * sc.period
+    first = csim.desired_samples(u, time)
+    assert csim.desired_samples(u, time.copy()) is first
+    assert csim.desired_samples(u, np.repeat(time, 2)[::2]) is first  # a strided view too
+    other = time.copy()
+    other[0] = -0.0
+    assert csim.desired_samples(u, other) is not first
