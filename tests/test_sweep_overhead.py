@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -263,6 +264,14 @@ def test_the_pose_kernels_are_bound_once_per_process():
     q = np.concatenate([u.x0[:u.controller_model.nq] for u in setups])
     assert np.array_equal(a.keep_out_points(q), fresh.keep_out_points(q))
     assert sv._POSE_KERNELS  # kept, with their Functions
+    # Another thread (a dask worker running two samples at once) binds its own: a kernel's
+    # buffers are written and read around each call.
+    other = []
+    thread = threading.Thread(target=lambda: other.append(build_supervisor(setups, 0.02,
+                                                                           cache=True)))
+    thread.start()
+    thread.join()
+    assert other[0].keep_out_points._units[0][0] is not a.keep_out_points._units[0][0]
 
 
 @pytest.mark.slow

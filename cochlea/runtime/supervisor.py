@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -257,18 +258,19 @@ class KeepOutPoints:
 
 
 #: Pose kernels bound for the keep-out rule (:func:`build_supervisor` with ``cache``), kept
-#: per process: a sweep's worker binds its structure's once, not once a sample.
+#: per process and thread: a sweep's worker binds its structure's once, not once a sample.
 POSE_KERNEL_CACHE_SIZE = 16
 _POSE_KERNELS: OrderedDict[tuple, tuple] = OrderedDict()
 
 
 def _pose_kernel(u: UnitSetup, substeps: int, kernels: str):
-    """:func:`period_kernels`' pose kernel of ``u``, bound once per process for the same
+    """:func:`period_kernels`' pose kernel of ``u``, bound once per thread for the same
     Functions, kernels and library (the Functions kept with it, so their ids stay theirs).
-    A C library that cannot run them falls back to CasADi with its warning every time, as
-    without the cache."""
-    key = (kernels, substeps, os.environ.get(ckernels.ENVIRONMENT), id(u.fk_world),
-           id(u.controller), id(u.plant_model), u.drive is not None, u.gearbox)
+    Per thread: a kernel is called through its own buffers, and a ``dask worker`` may run
+    several samples at once on its threads. A C library that cannot run them falls back to
+    CasADi with its warning every time, as without the cache."""
+    key = (threading.get_ident(), kernels, substeps, os.environ.get(ckernels.ENVIRONMENT),
+           id(u.fk_world), id(u.controller), id(u.plant_model), u.drive is not None, u.gearbox)
     hit = _POSE_KERNELS.get(key)
     if hit is not None:
         _POSE_KERNELS.move_to_end(key)
