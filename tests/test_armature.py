@@ -14,7 +14,7 @@ import cochlea
 from cochlea.resources import ROBOTS_DIR
 from cochlea.robots.parallel import SCENARIO_START
 from cochlea.sim.scenario import Plant
-from cochlea.sim.setup import perturbed_parameters
+from cochlea.sim.setup import INERTIAL_NAMES, perturbed_parameters
 
 SERIAL_ARMATURE = (4e-3, 3e-3, 2e-3)  # kg m^2 per joint: the MX-64's order of magnitude at 200:1
 #: The shipped descriptions declare their own armatures: these tests set theirs.
@@ -161,3 +161,32 @@ def test_scaled_masses_and_payload_leave_the_armature_alone(serial_with_armature
     assert p[full.names.index("link1.m")] == pytest.approx(1.3 * full.nominal[0])
     assert p[full.names.index("link3.m")] == pytest.approx(
         1.3 * full.nominal[full.names.index("link3.m")] + 0.05)
+
+
+def test_the_perturbed_parameters_are_the_name_by_name_ones(serial_with_armature):
+    """The parameters' owners are read once per name list: every parameter of a scaled body
+    (its armature too, as it always was) and every payload term, the same numbers bit for bit
+    as reading each name again."""
+    full = cochlea.model("serial", description=serial_with_armature, actuators="armature"
+                         ).parameters
+    plant = Plant(mass_scale=np.array([0.83, 1.21, 1.07]), payload_kg=0.037)
+    points = {"link3": np.array([0.08, 0.01, -0.02]), "link2": np.array([0.03])}
+    expected = np.asarray(full.nominal, float).copy()
+    bodies = list(dict.fromkeys(n.rsplit(".", 1)[0] for n in full.names
+                                if n.rsplit(".", 1)[1] in INERTIAL_NAMES))
+    for body, scale in zip(bodies, plant.mass_scale, strict=True):
+        for i, name in enumerate(full.names):
+            if name.rsplit(".", 1)[0] == body:
+                expected[i] *= scale
+    for body, point in points.items():
+        x, y, z = (list(point) + [0.0, 0.0])[:3]
+        m = plant.payload_kg
+        added = {"m": m, "mx": m * x, "my": m * y, "mz": m * z, "Ixx": m * (y * y + z * z),
+                 "Iyy": m * (x * x + z * z), "Izz": m * (x * x + y * y), "Ixy": -m * x * y,
+                 "Ixz": -m * x * z, "Iyz": -m * y * z}
+        for i, name in enumerate(full.names):
+            owner, kind = name.rsplit(".", 1)
+            if owner == body and kind in added:
+                expected[i] += added[kind]
+    for _ in range(2):  # the second through the owners read the first time
+        assert perturbed_parameters(full, plant, points).tobytes() == expected.tobytes()

@@ -360,7 +360,7 @@ def test_keep_out_stops_both_loops_alike(lib, name):
     n = 6
     for _ in range(20000):  # a joint position inside the limits whose tool is in the circle
         q = np.concatenate([rng.uniform(-2.9, 2.9, 3), setups[1].x0[:3]])
-        label, point, centre = supervisor.keep_out_points(q)[0]
+        point, centre = np.split(supervisor.keep_out_points(q)[0], 2)  # arm1's tool
         if math.hypot(point[0] - centre[0], point[1] - centre[1]) < \
                 0.5 * supervisor.limits.keep_out_radius:
             inside = q

@@ -428,10 +428,7 @@ def test_the_whole_run_gate_gives_the_screens_verdict(name, monkeypatch):
     result = simulate(sc, duration=0.3)
     sup = build_supervisor([u.setup for u in result.units], sc.system.keep_out_radius,
                            substeps=sc.plant_substeps)
-    q, qd = sv.measured_states(result)
-    tau = np.hstack([u.tau for u in result.units])
-    estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in result.units]
-    assert sv._nothing_flagged(result, sup, q, qd, tau, estimates)  # a safe run: skipped
+    assert sv._nothing_flagged(result, sup)  # a safe run: skipped
     rng = np.random.default_rng(5)
     u = result.units[0]
     L = sup.limits
@@ -467,10 +464,7 @@ def test_the_whole_run_gate_gives_the_screens_verdict(name, monkeypatch):
                  for key in ("q", "qd", "tau", "p_hat", "x", "true_x")}
         k, j = int(rng.integers(5, len(result.time) - 5)), int(rng.integers(u.q.shape[1]))
         break_one(kind, k, j)
-        q, qd = sv.measured_states(result)
-        tau = np.hstack([v.tau for v in result.units])
-        estimates = [np.vstack([v.p_hat[1:], v.p_hat[-1:]]) for v in result.units]
-        assert not sv._nothing_flagged(result, sup, q, qd, tau, estimates), kind
+        assert not sv._nothing_flagged(result, sup), kind
         gated = sv.first_violation(result, sup)
         with monkeypatch.context() as m:
             m.setattr(sv, "_nothing_flagged", lambda *args: False)

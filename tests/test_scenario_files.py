@@ -3,6 +3,7 @@ anything runs."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -59,6 +60,27 @@ def test_bad_scenario_names_the_key(tmp_path, case):
         load_scenario(path)
     assert str(info.value).startswith(f"{path}: {key}: expected"), str(info.value)
     assert expected in str(info.value)
+
+
+@pytest.mark.parametrize("case", ["missing key", "unknown name in a formula",
+                                  "encoder flag not a boolean"])
+def test_a_scenario_read_from_its_text_is_refused_as_its_file(tmp_path, case):
+    """A sweep's worker reads each sample's scenario from its text (no file written): the same
+    refusal, naming the path it goes by; a good text gives the file's scenario."""
+    text, old, new, key, expected = CASES[case]
+    bad = text.replace(old, new, 1)
+    path = tmp_path / "bad.toml"
+    path.write_text(bad)
+    with pytest.raises(DescriptionError) as from_file:
+        load_scenario(path)
+    with pytest.raises(DescriptionError) as from_text:
+        load_scenario(tmp_path / "never_written.toml", text=bad)
+    assert str(from_text.value) == str(from_file.value).replace("bad.toml", "never_written.toml")
+    with pytest.raises(DescriptionError, match="valid TOML"):
+        load_scenario("sample.toml", text="duration_s = [")
+    good = load_scenario(tmp_path / "good.toml", text=JOINT)
+    shipped = dataclasses.replace(load_scenario("serial_joint"), path=good.path, name=good.name)
+    assert good.name == "good" and repr(good) == repr(shipped)
 
 
 def test_unreachable_initial_pose_fails_before_the_run(tmp_path):

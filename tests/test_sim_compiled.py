@@ -20,6 +20,7 @@ from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.scenario import Plant
+from cochlea.sim.setup import measurements
 from tests.conftest import assert_periods_allocate_nothing
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -380,3 +381,29 @@ def test_the_in_place_measurement_grid_equals_quantise(rng):
     x = values[7, [0, 2]].copy()
     np.testing.assert_array_equal(everywhere.apply(x), quantise(values[7, [0, 2]],
                                                                 quantum[[0, 2]], offset[[0, 2]]))
+
+
+@pytest.mark.parametrize("delay", [0, 1, 3, 7, 8, 20])
+def test_measurements_through_one_delay_are_the_delayed_rows(delay):
+    """One delay shifts the rows by slices (not a fancy index): row k is row max(k - delay, 0),
+    a copy; a delay of the run's length or more is the first row throughout."""
+    states = np.random.default_rng(delay).normal(size=(8, 4))
+    expected = states[np.maximum(np.arange(8) - delay, 0)]
+    seen = measurements(states, delay, noise=np.zeros((8, 4)))  # noise: a copy even at 0
+    assert np.array_equal(seen, expected) and not np.shares_memory(seen, states)
+    assert np.array_equal(measurements(states, delay), expected)
+    assert measurements(states[:0], delay).shape == (0, 4)
+
+
+def test_desired_samples_are_kept_for_the_same_grid_bit_for_bit():
+    """A structure's desired samples are computed once per time grid: the same grid (a new
+    array) finds them; a grid that differs in one bit (-0.0 for 0.0) computes its own."""
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=0.05)
+    u = unit_setups(sc)[0]
+    time = np.arange(50) * sc.period
+    first = csim.desired_samples(u, time)
+    assert csim.desired_samples(u, time.copy()) is first
+    assert csim.desired_samples(u, np.repeat(time, 2)[::2]) is first  # a strided view too
+    other = time.copy()
+    other[0] = -0.0
+    assert csim.desired_samples(u, other) is not first

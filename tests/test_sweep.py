@@ -112,6 +112,19 @@ def test_a_sample_depends_only_on_the_seed_and_its_index(tmp_path):
     assert sampling.inputs(more, 3)["plant.mass_scale"] == masses[3]
 
 
+def test_a_sample_written_in_place_does_not_reach_the_base_or_the_next(tmp_path):
+    """The base scenario is parsed once per process (sampling._base_data); every sample gets
+    its own copy, so what one sample (or its caller) writes into its data reaches no other."""
+    spec = sweep_spec.load(write_spec(tmp_path, text=SPEC.format(samples=3, seed=7)))
+    before = [sampling.scenario_text(spec, i) for i in range(spec.total)]
+    data = sampling.scenario_data(spec, 0)
+    data["plant"]["mass_scale"] = [123.0] * 3
+    data["unit"][0]["gains"].clear()
+    data["desired"]["leader"].append("x")
+    assert [sampling.scenario_text(spec, i) for i in range(spec.total)] == before
+    assert "123.0" not in before[1] and sampling.scenario_data(spec, 0) != data
+
+
 def test_each_draws_every_component_and_normal_stays_in_range(tmp_path):
     text = SPEC.format(samples=50, seed=1).replace(
         "mass_scale = {uniform = [0.7, 1.3]}", "mass_scale = {normal = [0.05, 0.1], each = true}")

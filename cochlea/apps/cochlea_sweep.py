@@ -14,6 +14,7 @@ written; 130 interrupted (every finished batch is kept: run the same command to 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import dataclasses
 import functools
 import math
@@ -91,6 +92,11 @@ def refused(setups) -> dict:
     return row
 
 
+#: The name a sample's scenario goes by on a worker (in a refusal's message): it is read from
+#: its text, never from a file.
+SAMPLE_FILE = Path("sample.toml")
+
+
 def evaluate(text: str, cache: bool = True, kernels: str = "auto",
              library: str | None = None) -> dict:
     """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
@@ -98,15 +104,15 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
 
     ``cache``: the set-ups' symbolic part (models, controllers, checked desired path) comes
     from the worker's cache when an earlier sample had the same structure
-    (:func:`cochlea.sim.setup.unit_setups`); ``False`` builds everything again, with the same
-    row, bit for bit. ``kernels``, ``library``: as :func:`cochlea.sim.simulate` takes them
-    (the library also every other kernel's on this worker: ``$COCHLEA_LIB``)."""
+    (:func:`cochlea.sim.setup.unit_setups`), and so do the supervisor's bound pose kernels;
+    ``False`` builds everything again, with the same row, bit for bit. ``kernels``,
+    ``library``: as :func:`cochlea.sim.simulate` takes them (the library also every other
+    kernel's on this worker: ``$COCHLEA_LIB``)."""
     if library is not None:
         os.environ[ckernels.ENVIRONMENT] = library
-    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-        path = Path(tmp) / "sample.toml"
-        path.write_text(text, encoding="utf-8")
-        scenario = load_scenario(path)
+    # Read as the file would be, without writing one (a temporary folder a sample cost more
+    # than the summary); the sample's description path is absolute (sampling.scenario_data).
+    scenario = load_scenario(SAMPLE_FILE, text=text)
     try:
         setups = unit_setups(scenario, cache=cache)
     except GravityRefused:  # a sample the robot cannot start: counted, not an error
@@ -117,28 +123,48 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
     wall = time.perf_counter() - start
     supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
                                   kernels="casadi" if kernels == "casadi" else "c",
-                                  substeps=scenario.plant_substeps)
+                                  substeps=scenario.plant_substeps, cache=cache)
     result.supervisor = verdict(result, supervisor)
     limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
                                                            u.effort_limit)} for u in setups}
     return measures(report.summary(result, wall), limits)
 
 
+#: glibc's mallopt() parameters (malloc.h) and what a worker sets them to: blocks up to 32 MiB
+#: from the heap (not pages of their own), and up to 256 MiB of free heap kept.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_MMAP_THRESHOLD_BYTES, _TRIM_THRESHOLD_BYTES = 32 << 20, 256 << 20
+
+
+def keep_freed_memory() -> bool:
+    """Let this process's malloc keep the memory a sample frees for the next sample (glibc;
+    elsewhere nothing happens: False). A sample's logs are some 10 MB of arrays of about
+    1 MB; glibc hands such blocks back to the kernel when they are freed, and the next sample
+    faults them in again page by page: some 2,500 page faults and 4 ms of system time a
+    serial_joint sample of 20 s, a sixth of its CPU time. The process then holds its largest
+    sample's memory (up to 256 MiB of it free) for as long as it lives: a sweep's worker."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_BYTES)) and \
+        bool(mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_BYTES))
+
+
 def warm() -> None:
-    """Bind the C library in a worker process once, before its first batch."""
+    """A worker process before its first batch: the C library bound once, and freed memory
+    kept for the next sample (:func:`keep_freed_memory`)."""
     ckernels.load()
+    keep_freed_memory()
 
 
 def _choose_kernels(spec: sweep_spec.Spec, kernels: str, library: str | None):
     """The kernels of the sweep, decided on its first sample before any worker starts
     (:func:`cochlea.sim.choose_kernels`): ``--kernels c`` refuses here, ``auto`` says here
     that it falls back."""
-    text = sampling.scenario_text(spec, 0)
-    with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-        path = Path(tmp) / "sample.toml"
-        path.write_text(text, encoding="utf-8")
-        scenario = load_scenario(path)
-        setups = unit_setups(scenario, gravity=False)
+    scenario = load_scenario(SAMPLE_FILE, text=sampling.scenario_text(spec, 0))
+    setups = unit_setups(scenario, gravity=False)
     return choose_kernels(setups, scenario.plant_substeps, kernels, library)
 
 
@@ -146,17 +172,13 @@ def _check_sample(spec: sweep_spec.Spec) -> None:
     """Before any worker starts: the first sample's scenario (and the extremes of each
     uniform) through the scenario loader and the run's up-front checks."""
     for i in sorted({0, spec.total - 1}):
-        text = sampling.scenario_text(spec, i)
-        with tempfile.TemporaryDirectory(prefix="cochlea-sweep-") as tmp:
-            path = Path(tmp) / "sample.toml"
-            path.write_text(text, encoding="utf-8")
-            try:
-                unit_setups(load_scenario(path))
-            except GravityRefused:
-                pass  # a perturbation the robot cannot start with: that sample's row says so
-            except CochleaError as exc:
-                raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: "
-                                   f"{str(exc).replace(str(path), 'sample.toml')}") from None
+        try:
+            unit_setups(load_scenario(SAMPLE_FILE, text=sampling.scenario_text(spec, i)))
+        except GravityRefused:
+            pass  # a perturbation the robot cannot start with: that sample's row says so
+        except CochleaError as exc:
+            raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: {exc}") \
+                from None
 
 
 def _sweep(argv: list[str]) -> int:

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ..log_schema import SCHEMA_VERSION, TIMING_COLUMNS, LogUnit, run_columns
-from ..sim.result import SimulationResult, UnitLog
+from ..sim import result as run_result
+from ..sim.result import SimulationResult, StreamedResult, UnitLog
 from .outputs import ReportError, atomic_path, write_text_atomic
 
 #: Convergence: the RMS tracking error over the last 20 % of the run must be at most this
@@ -98,23 +99,75 @@ class _ErrorStats:
         self.initial = None  # |e| of the first period
         self.tail_sq = self.tail_n = 0
 
-    def add(self, e: np.ndarray, start: int) -> None:
+    def add(self, error, rows: int, start: int) -> None:
+        """``rows`` periods from period ``start`` (a chunk of a streamed run, or a whole run
+        in memory); ``error(part)``: their error on the rows ``part`` (a slice), computed only
+        where it is read: the first period and the tail."""
+        skip, chunk = 0, run_result.CHUNK_ROWS  # the size SimulationResult.chunks() reads in
         if self.initial is None:
             # The first period with a measured state: a run whose first reads failed logs NaN
             # until its first good read (the loop commands nothing before it).
-            rows = np.flatnonzero(np.isfinite(e).all(axis=1))
-            if not len(rows):
-                return
-            self.initial = np.abs(e[rows[0]])
-        first = max(self.tail_start - start, 0)
-        if first < len(e):
+            e = error(slice(0, 1))
+            if not np.isfinite(e).all():
+                e = error(slice(0, rows))
+                found = np.flatnonzero(np.isfinite(e).all(axis=1))
+                if not len(found):
+                    return
+                e = e[found[0]:]
+                # As a run read a chunk at a time: the tail in the chunks before that period's
+                # is not summed.
+                skip = (start + int(found[0])) // chunk * chunk - start
+            self.initial = np.abs(e[0])
+        first = max(self.tail_start - start, skip, 0)
+        if first < rows:
+            e = error(slice(first, rows))
             # Column by column, as np.mean sums a column: a one-chunk run's numbers are exact.
-            self.tail_sq = self.tail_sq + np.array([np.sum(e[first:, i] ** 2)
-                                                    for i in range(e.shape[1])])
-            self.tail_n += len(e) - first
+            # Summed in the pieces the chunks of a streamed run cut it into, so a run read
+            # whole and one read a chunk at a time have the same numbers, bit for bit.
+            cuts = range((start + first) // chunk * chunk + chunk, start + rows, chunk)
+            for piece in np.split(e, [c - start - first for c in cuts]):
+                self.tail_sq = self.tail_sq + np.array([np.sum(piece[:, i] ** 2)
+                                                        for i in range(piece.shape[1])])
+            self.tail_n += rows - first
 
     def final_rms(self, i: int) -> float:
         return float(np.sqrt(self.tail_sq[i] / self.tail_n))
+
+
+#: The fields a tracking error reads (:func:`_rows`).
+_ERROR_FIELDS = ("q", "errors", "desired", "true_q", "true_x")
+
+
+def _rows(u: UnitLog, part: slice) -> UnitLog:
+    """``u``'s periods ``part``, as far as a tracking error reads them."""
+    return dataclasses.replace(u, **{k: getattr(u, k)[part] for k in _ERROR_FIELDS
+                                     if getattr(u, k) is not None})
+
+
+def _measured_error(u: UnitLog, part: slice) -> np.ndarray:
+    """:attr:`UnitLog.measured_tracking_error` of ``u``'s periods ``part``."""
+    return _rows(u, part).measured_tracking_error
+
+
+def _judged_error(u: UnitLog, part: slice) -> np.ndarray:
+    """:attr:`UnitLog.tracking_error` of ``u``'s periods ``part`` (the true one where the log
+    has the true state)."""
+    return _rows(u, part).tracking_error
+
+
+def _largest_norm(p: np.ndarray) -> float:
+    """``max(np.linalg.norm(p, axis=1))``, bit for bit, without a norm of every row: the rows'
+    squares summed by einsum (fast, but rounded in another order) find the few rows that can
+    hold the largest, whose norms are then taken as np.linalg.norm takes them (its square
+    root is monotonic, so the largest norm is the root of the largest sum). Non-finite rows:
+    every norm, as before."""
+    squares = np.einsum("ij,ij->i", p, p)
+    top = squares.max(initial=0.0)
+    if not np.isfinite(top):
+        return np.max(np.linalg.norm(p, axis=1))
+    # Two sums of the same squares differ by far less than this (n eps of the largest).
+    near = p[squares >= top * (1 - 1e-9)]
+    return np.max(np.linalg.norm(near, axis=1))
 
 
 class _UnitStats:
@@ -132,16 +185,20 @@ class _UnitStats:
         self.last = None  # the last period, as a one-row UnitLog
 
     def add(self, u: UnitLog, start: int) -> None:
-        if not len(u.q):
+        rows = len(u.q)
+        if not rows:
             return
-        measured = u.measured_tracking_error
-        self.measured.add(measured, start)
-        self.judged.add(u.true_tracking_error if u.has_true_state else measured, start)
-        peaks = np.array([np.max(np.abs(u.tau[:, i]), initial=0.0)
-                          for i in range(u.tau.shape[1])])
+        self.measured.add(lambda part: _measured_error(u, part), rows, start)
+        self.judged.add(lambda part: _judged_error(u, part), rows, start)
+        # Each column's largest |effort| from its extremes (a NaN makes both NaN; abs() makes
+        # a -0.0 the 0.0 np.abs gave).
+        peaks = np.array([abs(max(c.max(), -c.min())) for c in u.tau.T])
         self.tau_max = peaks if self.tau_max is None else np.maximum(self.tau_max, peaks)
-        self.max_norm = np.maximum(self.max_norm, np.max(np.linalg.norm(u.p_hat, axis=1)))
-        self.finite = self.finite and bool(np.isfinite(u.p_hat).all())
+        largest = _largest_norm(u.p_hat)
+        self.max_norm = np.maximum(self.max_norm, largest)
+        # A finite largest norm: every estimate finite (a NaN or an infinity makes its norm so).
+        self.finite = self.finite and bool(np.isfinite(largest)
+                                           or np.isfinite(u.p_hat).all())
         self.last = dataclasses.replace(u, **{name: getattr(u, name)[-1:] for name in (
             "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x", "true_q",
             "true_qd", "true_x") if getattr(u, name) is not None})
@@ -243,7 +300,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
     sc = result.scenario
     stats = [_UnitStats(result.periods) for _ in result.units]
     start = 0
-    for chunk in result.chunks():
+    # A run in memory is read whole (its sums in the same pieces as a streamed run's chunks:
+    # _ErrorStats.add), a streamed one a chunk at a time.
+    for chunk in result.chunks() if isinstance(result, StreamedResult) else [result]:
         for s, u in zip(stats, chunk.units):
             s.add(u, start)
         start += chunk.periods

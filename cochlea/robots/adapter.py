@@ -226,6 +226,19 @@ def sampled(f: ca.Function, duration: float, period: float):
         yield times, [np.array(v) for v in values]
 
 
+def first_inside(times: np.ndarray, distances: np.ndarray, radius: float
+                 ) -> tuple[float, float] | None:
+    """The first ``(time, distance)`` (s, m) of sampled distances from a keep-out centre (one
+    chunk of :func:`sampled`) that lies inside the circle of ``radius`` (m): nearer than it,
+    or not a number; None when none does."""
+    r = np.ravel(distances)
+    inside = np.flatnonzero(~(r >= radius))
+    if not inside.size:
+        return None
+    k = inside[0]
+    return float(times[k]), float(r[k])
+
+
 def desired_function(name: str, expr_t: ca.SX, t: ca.SX) -> ca.Function:
     """``t -> (x, x_dot, x_ddot)`` of a trajectory expression in ``t``, derivatives exact."""
     x_dot = ca.jacobian(expr_t, t)

@@ -362,6 +362,12 @@ def read_toml(path: Path, what: str = "robot description") -> dict:
     except ValueError:  # a NUL byte in the path
         raise DescriptionError(path, "(file)", f"a {what} file name without NUL bytes") \
             from None
+    return parse_toml(raw, path, what)
+
+
+def parse_toml(raw: bytes, path: Path, what: str = "robot description") -> dict:
+    """:func:`read_toml` of a file's bytes already read (``path`` names it in the messages):
+    the same checks, the same refusals."""
     if len(raw) > MAX_FILE_BYTES:
         raise DescriptionError(path, "(file)", f"a {what} file of at most "
                                f"{MAX_FILE_BYTES // 1024} KiB")

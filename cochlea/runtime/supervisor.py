@@ -9,11 +9,15 @@ same period. The checks allocate nothing unless a rule is broken.
 from __future__ import annotations
 
 import math
+import os
 import signal
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..kernels import library as ckernels
 from ..sim.compiled import period_kernels
 from ..sim.result import SimulationResult
 from ..sim.setup import MIRROR_RULE, UnitSetup
@@ -84,7 +88,8 @@ class Supervisor:
         self._below = np.zeros(self.n, bool)  # scratch: the checks allocate nothing
         self._above = np.zeros(self.n, bool)
         self._speed = np.zeros(self.n)
-        # keep_out_points: callables (q_all) -> list of (label, point, centre) for the rule
+        # keep_out_points: (q_all) -> the tool points and their centres, one preallocated
+        # array written in place (KeepOutPoints), its rows named by .labels
         self.keep_out_points = keep_out_points
         self.bounds = [u.bound for u in setups]
 
@@ -110,13 +115,15 @@ class Supervisor:
             return Stop("velocity-limit", t, f"{L.joint_names[j]} speed = {qd[j]:.4g} {unit}, "
                         f"limit {L.velocity[j]:.4g} {unit}")
         if L.keep_out_radius is not None:
-            for label, point, centre in self.keep_out_points(q):
-                r = math.hypot(point[0] - centre[0], point[1] - centre[1])
+            points = self.keep_out_points(q)
+            for i in range(len(points)):
+                pu, pv, cu, cv = points[i, 0], points[i, 1], points[i, 2], points[i, 3]
+                r = math.hypot(pu - cu, pv - cv)
                 if r < L.keep_out_radius:
-                    return Stop("keep-out", t, f"{label} at ({point[0]:.4f}, {point[1]:.4f}) m "
-                                f"is {r * 1000:.1f} mm from the centre "
-                                f"({centre[0]:.4f}, {centre[1]:.4f}) m, inside the keep-out "
-                                f"radius {L.keep_out_radius * 1000:.1f} mm")
+                    return Stop("keep-out", t, f"{self.keep_out_points.labels[i]} at "
+                                f"({pu:.4f}, {pv:.4f}) m is {r * 1000:.1f} mm from the centre "
+                                f"({cu:.4f}, {cv:.4f}) m, inside the keep-out radius "
+                                f"{L.keep_out_radius * 1000:.1f} mm")
         return None
 
     def check_command(self, t: float, tau: np.ndarray, estimates: list[np.ndarray]
@@ -217,13 +224,77 @@ def _show(value: float, unit: str) -> str:
     return f"{math.degrees(value):.2f} deg" if unit == "rad" else f"{value:.4f} m"
 
 
+class KeepOutPoints:
+    """Every unit's keep-out tool points and their centres at a joint position of the whole
+    system (SI), written each call into one array made here: a row a point, ``(u, v)`` of the
+    point then of its centre (m, world frame), the rows named by :attr:`labels`. A period
+    builds no list or tuple and no array's data (the supervisor's checks allocate nothing)."""
+
+    def __init__(self, setups: list[UnitSetup], fks: list):
+        self.labels = tuple(f"{u.name} {label}" for u in setups for label, _ in u.tool_points)
+        self.points = np.zeros((len(self.labels), 4))
+        self._units = []
+        start = 0
+        for u, fk in zip(setups, fks):
+            n = u.controller_model.nq
+            moving = None if u.moving_centre_joint is None else start + u.moving_centre_joint
+            self._units.append((fk, slice(start, start + n),
+                                tuple(uv for _, uv in u.tool_points), tuple(u.centre), moving))
+            start += n
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        points = self.points
+        row = 0
+        for fk, joints, tools, (cu, cv), moving in self._units:
+            fk.inputs[0][...] = q[joints]
+            fk()
+            pose = fk.outputs[0]
+            if moving is not None:  # the parallel mechanism's slider point S = (0, d1)
+                cu, cv = 0.0, q[moving]
+            for iu, iv in tools:
+                points[row, 0] = pose[iu]
+                points[row, 1] = pose[iv]
+                points[row, 2] = cu
+                points[row, 3] = cv
+                row += 1
+        return points
+
+
+#: Pose kernels bound for the keep-out rule (:func:`build_supervisor` with ``cache``), kept
+#: per process and thread: a sweep's worker binds its structure's once, not once a sample.
+POSE_KERNEL_CACHE_SIZE = 16
+_POSE_KERNELS: OrderedDict[tuple, tuple] = OrderedDict()
+
+
+def _pose_kernel(u: UnitSetup, substeps: int, kernels: str):
+    """:func:`period_kernels`' pose kernel of ``u``, bound once per thread for the same
+    Functions, kernels and library (the Functions kept with it, so their ids stay theirs).
+    Per thread: a kernel is called through its own buffers, and a ``dask worker`` may run
+    several samples at once on its threads. A C library that cannot run them falls back to
+    CasADi with its warning every time, as without the cache."""
+    key = (threading.get_ident(), kernels, substeps, os.environ.get(ckernels.ENVIRONMENT),
+           id(u.fk_world), id(u.controller), id(u.plant_model), u.drive is not None, u.gearbox)
+    hit = _POSE_KERNELS.get(key)
+    if hit is not None:
+        _POSE_KERNELS.move_to_end(key)
+        return hit[-1]
+    *_, pose, source = period_kernels(u, substeps, kernels)
+    if source == kernels:
+        _POSE_KERNELS[key] = (u.fk_world, u.controller, u.plant_model, pose)
+        while len(_POSE_KERNELS) > POSE_KERNEL_CACHE_SIZE:
+            _POSE_KERNELS.popitem(last=False)
+    return pose
+
+
 def build_supervisor(setups: list[UnitSetup], keep_out_radius: float | None,
                      watchdog_misses: int = 20, watchdog_errors: int = 5,
-                     kernels: str = "c", substeps: int = 1) -> Supervisor:
+                     kernels: str = "c", substeps: int = 1, cache: bool = False) -> Supervisor:
     """Limits from the descriptions of every unit's joints; the keep-out circle (None: none)
     around each unit's centre (serial: the cochlea centre; parallel: the slider pivot S, which
     moves with d1) for each of its tool points, in joint-space runs as in task-space ones: the
-    circle protects what is around the centre whatever coordinates the controller tracks."""
+    circle protects what is around the centre whatever coordinates the controller tracks.
+    ``cache``: the pose kernels bound once per process (a sweep's samples; the same kernels,
+    so the same verdicts), else bound here."""
     joints = [j for u in setups for j in u.controller_model.joints]
     limits = Limits(
         position_lo=np.array([j.position_limits[0] for j in joints]),
@@ -234,24 +305,9 @@ def build_supervisor(setups: list[UnitSetup], keep_out_radius: float | None,
         joint_units=tuple(un for u in setups for un in u.joint_units),
         keep_out_radius=keep_out_radius,
         watchdog_misses=watchdog_misses, watchdog_errors=watchdog_errors)
-    fks, slices, start = [], [], 0
-    for u in setups:
-        fks.append(period_kernels(u, substeps, kernels)[2])
-        slices.append(slice(start, start + u.controller_model.nq))
-        start += u.controller_model.nq
-
-    def keep_out_points(q):
-        points = []
-        for u, fk, sl in zip(setups, fks, slices):
-            fk.inputs[0][...] = q[sl]
-            fk()
-            pose = fk.outputs[0]
-            centre = u.keep_out_centre(q[sl])
-            for label, (iu, iv) in u.tool_points:
-                points.append((f"{u.name} {label}", (pose[iu], pose[iv]), centre))
-        return points
-
-    return Supervisor(limits, setups, keep_out_points)
+    fks = [_pose_kernel(u, substeps, kernels) if cache else period_kernels(u, substeps, kernels)[2]
+           for u in setups]
+    return Supervisor(limits, setups, KeepOutPoints(setups, fks))
 
 
 def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | None:
@@ -263,109 +319,159 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
     period k + 1. The loop sees the robot through its measurement, so the state checked is the
     one the loop would read: the logged measured state, what the controller saw (delayed,
     noisy, on the encoder and velocity-register grids where the plant has them;
-    :func:`measured_states`). The rows are screened at once with numpy; the first flagged row
-    is then passed through the supervisor itself, so the rule and its message are the loop's
-    own.
+    :func:`measured_states`). A run that breaks no rule is told by each unit's whole-log
+    extremes (:func:`_nothing_flagged`); else the rows are screened at once with numpy and the
+    flagged ones passed through the supervisor itself, in order, so the rule and its message
+    are the loop's own (the keep-out circle is screened last, on the periods before the first
+    stop the other rules found: a pose the run did not log is computed there only).
     """
     logs = result.units
     rows = len(result.time)
     if rows == 0:
+        return None
+    if _nothing_flagged(result, supervisor):
         return None
     q, qd = measured_states(result)
     tau = np.hstack([u.tau for u in logs])
     # The estimate each period hands on: the next row's (the last row's own at the end).
     estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in logs]
     L = supervisor.limits
-    if _nothing_flagged(result, supervisor, q, qd, tau, estimates):
-        return None
     with np.errstate(invalid="ignore", over="ignore"):
         flagged = ~np.isfinite(q).all(axis=1) | ~np.isfinite(qd).all(axis=1)
         flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
         flagged |= (np.abs(qd) > L.velocity).any(axis=1)
-        if L.keep_out_radius is not None:
-            # Screened on the logged pose of the measured state, which the supervisor's own
-            # kernel may compute a last bit differently: flagged with a margin, confirmed
-            # exactly below.
-            margin = _KEEP_OUT_SCREEN
-            for u in logs:
-                s = u.setup
-                for _, (iu, iv) in s.tool_points:
-                    if s.moving_centre_joint is None:
-                        cu, cv = s.centre
-                    else:
-                        cu, cv = 0.0, u.q[:, s.moving_centre_joint]
-                    pose = u.pose  # computed now if the run did not log it
-                    flagged |= np.hypot(pose[:, iu] - cu, pose[:, iv] - cv) < \
-                        L.keep_out_radius + margin
         flagged |= ~np.isfinite(tau).all(axis=1)
         for p, bound in zip(estimates, supervisor.bounds):
             square = np.einsum("ij,ij->i", p, p)
             flagged |= ~np.isfinite(square) | (square > (bound * (1 + 1e-9)) ** 2)
     n = q.shape[1]
-    for k in np.flatnonzero(flagged):
+
+    def check(k: int) -> Stop | None:
         t = float(result.time[k])
         x = np.concatenate([q[k], qd[k]])
         stop = supervisor.check_state(t, x, x[:n], x[n:])
         if stop is None:
             stop = supervisor.check_command(t, tau[k].copy(), [p[k] for p in estimates])
+        return stop
+
+    first, stop = rows, None
+    for k in np.flatnonzero(flagged):
+        stop = check(k)
         if stop is not None:
-            return stop
-    return None
+            first = int(k)
+            break
+    if L.keep_out_radius is None or first == 0:
+        return stop
+    # The keep-out circle, on the periods before that stop only (the pose of the measured
+    # state is computed there if the run did not log it): screened on the logged pose, which
+    # the supervisor's own kernel may compute a last bit differently, so with a margin, and
+    # confirmed exactly. A period the screen above flagged was checked whole already.
+    with np.errstate(invalid="ignore"):
+        near = _near_keep_out(logs, first, L.keep_out_radius + _KEEP_OUT_SCREEN)
+    for k in np.flatnonzero(near & ~flagged[:first]):
+        earlier = check(k)
+        if earlier is not None:
+            return earlier
+    return stop
 
 
-def _nothing_flagged(result: SimulationResult, supervisor: Supervisor, q: np.ndarray,
-                     qd: np.ndarray, tau: np.ndarray, estimates: list[np.ndarray]) -> bool:
+def _near_keep_out(logs, rows: int, radius: float) -> np.ndarray:
+    """Per period of the first ``rows``, whether a measured tool point of any unit is within
+    ``radius`` (m) of its keep-out centre."""
+    near = np.zeros(rows, bool)
+    for u in logs:
+        s = u.setup
+        q = u.q[:rows]
+        if u.x is not None:
+            pose = u.x[:rows]
+        else:  # the pose of the measured state, as UnitLog.pose computes it, on these rows
+            pose = np.array(s.fk_world.map(rows)(q.T)).T
+        for _, (iu, iv) in s.tool_points:
+            if s.moving_centre_joint is None:
+                cu, cv = s.centre
+            else:
+                cu, cv = 0.0, q[:, s.moving_centre_joint]
+            near |= np.hypot(pose[:, iu] - cu, pose[:, iv] - cv) < radius
+    return near
+
+
+def _nothing_flagged(result: SimulationResult, supervisor: Supervisor) -> bool:
     """Whether the row-by-row screen of :func:`first_violation` would flag no row, from
-    whole-run reductions (a column's extremes, a sum): the common case, a run that breaks no
-    rule, for a fraction of the screen's time (a sweep judges every sample). Each test here
-    holding implies its screen flags nothing; one that fails sends the run through the screen
-    as before, so the verdict is the same either way."""
+    whole-run reductions of each unit's own log (a column's extremes, the largest estimate),
+    nothing stacked or copied: the common case, a run that breaks no rule, for a fraction of
+    the screen's time (a sweep judges every sample). Each test here holding implies its screen
+    flags nothing; one that fails sends the run through the screen as before, so the verdict
+    is the same either way."""
     L = supervisor.limits
+    first = 0  # the unit's first joint in the limits
     with np.errstate(invalid="ignore", over="ignore"):
-        # A NaN or an infinity anywhere makes the sum non-finite (so does a sum that
-        # overflows, which the screen then settles).
-        if not all(np.isfinite(a.sum()) for a in (q, qd, tau)):
-            return False
-        if not (_within(q, L.position_lo, L.position_hi)
-                and _within(qd, -L.velocity, L.velocity)):  # |qd| > v is qd outside [-v, v]
-            return False
-        for p, bound in zip(estimates, supervisor.bounds):
-            largest = np.einsum("ij,ij->i", p, p).max(initial=0.0)
-            if not largest <= (bound * (1 + 1e-9)) ** 2:  # NaN fails too
+        for u, bound in zip(result.units, supervisor.bounds):
+            joints = slice(first, first + u.q.shape[1])
+            first = joints.stop
+            # A column's extremes are finite only when all of it is (a NaN makes both NaN, an
+            # infinity one of them infinite), and inside the rule's bounds only when all of it
+            # is: a position within its limits, a speed |qd| within its limit.
+            if not (_columns_within(u.q, L.position_lo[joints], L.position_hi[joints])
+                    and _columns_within(u.qd, -L.velocity[joints], L.velocity[joints])
+                    and math.isfinite(u.tau.min(initial=0.0))
+                    and math.isfinite(u.tau.max(initial=0.0))):
                 return False
-        if L.keep_out_radius is not None:
-            # No pose near the circle at all: the screen flags none. The pose of the measured
-            # state where the run has it; else (an as-fast run measured through a delay or a
-            # grid, not yet computed) the true pose, with a margin no grid rounding crosses: each
-            # measured state is a delayed true one, a fraction of a count away. With noise,
-            # the measured pose itself.
-            noisy = result.scenario.plant.noise_q_std > 0
-            for u in result.units:
-                s = u.setup
-                if u.x is None and u.has_true_state and not noisy:
-                    pose, joints, margin = u.true_x, u.true_q, _GRID_SCREEN
-                else:
-                    pose, joints, margin = u.pose, u.q, _KEEP_OUT_SCREEN
-                for _, (iu, iv) in s.tool_points:
-                    if s.moving_centre_joint is None:
-                        cu, cv = s.centre
-                    else:
-                        cu, cv = 0.0, joints[:, s.moving_centre_joint]
-                    # Squared, without hypot's cost; the relative slack covers its rounding.
-                    du, dv = pose[:, iu] - cu, pose[:, iv] - cv
-                    nearest = (du * du + dv * dv).min(initial=np.inf)
-                    if not nearest >= ((L.keep_out_radius + margin) * (1 + 1e-9)) ** 2:
-                        return False
+            # The estimate each period hands on is the next row's (the last row's own at the
+            # end): every row but the first. |p|^2 <= n max|p_i|^2 settles most runs without
+            # a norm a row (the slack covers the sum's rounding); NaN fails both.
+            p = u.p_hat[1:] if len(u.p_hat) > 1 else u.p_hat
+            limit = (bound * (1 + 1e-9)) ** 2
+            peak = np.abs(p).max(initial=0.0)
+            if not p.shape[1] * peak * peak * (1 + 1e-12) <= limit:
+                largest = np.einsum("ij,ij->i", p, p).max(initial=0.0)
+                if not largest <= limit:
+                    return False
+        if L.keep_out_radius is not None and not _clear_of_keep_out(result, L.keep_out_radius):
+            return False
     return True
 
 
-def _within(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
-    """Every element of ``a`` (rows of columns) within its column's ``[lo, hi]``: the whole
-    array's extremes against the tightest bounds first (no temporaries; the common case where
-    every joint has the same limits), else column by column. A NaN fails both."""
-    if a.min() >= lo.max() and a.max() <= hi.min():
-        return True
-    return bool((a.min(axis=0) >= lo).all() and (a.max(axis=0) <= hi).all())
+def _columns_within(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Every column of ``a`` (rows of a log) finite and within its ``[lo, hi]``, from its
+    extremes, one column at a time (numpy reduces a column, a strided view, several times
+    faster than a block along its rows)."""
+    for j in range(a.shape[1]):
+        column = a[:, j]
+        low, high = column.min(initial=np.inf), column.max(initial=-np.inf)
+        if not (math.isfinite(low) and math.isfinite(high) and low >= lo[j] and high <= hi[j]):
+            return False
+    return True
+
+
+def _clear_of_keep_out(result: SimulationResult, radius: float) -> bool:
+    """No measured tool point of any unit near the keep-out circle: the pose of the measured
+    state where the run has it. Else (an as-fast run that measured through a delay or a grid
+    and did not compute that pose) the true pose: where the positions were measured exactly
+    (no grid, no noise) each measured position is a true one of an earlier period, with its
+    centre, so the true poses' nearest approach bounds the measured ones'; on a grid, with a
+    margin no grid rounding crosses (a few encoder counts of any joint move a tool by far
+    less). With position noise, the measured pose itself."""
+    noisy = result.scenario.plant.noise_q_std > 0
+    for u in result.units:
+        s = u.setup
+        n = u.q.shape[1]
+        if u.x is None and u.has_true_state and not noisy:
+            exact = s.quantum is None or not np.any(s.quantum[:n] > 0)
+            pose, joints = u.true_x, u.true_q
+            margin = _KEEP_OUT_SCREEN if exact else _GRID_SCREEN
+        else:
+            pose, joints, margin = u.pose, u.q, _KEEP_OUT_SCREEN
+        for _, (iu, iv) in s.tool_points:
+            if s.moving_centre_joint is None:
+                cu, cv = s.centre
+            else:
+                cu, cv = 0.0, joints[:, s.moving_centre_joint]
+            # Squared, without hypot's cost; the relative slack covers its rounding.
+            du, dv = pose[:, iu] - cu, pose[:, iv] - cv
+            nearest = (du * du + dv * dv).min(initial=np.inf)
+            if not nearest >= ((radius + margin) * (1 + 1e-9)) ** 2:
+                return False
+    return True
 
 
 #: How far outside the keep-out circle (m) a logged pose is still screened: the logged pose
@@ -390,16 +496,17 @@ def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
     sits exactly on the largest effort the joint can get: its limit, or its drive's
     :attr:`~cochlea.sim.setup.EffortGrid.top`, the Current Limit's effort or the grid level
     the limit rounds to)."""
-    tau = np.hstack([u.tau for u in result.units])
     top = supervisor.limits.effort
     if any(u.setup.effort_grid is not None for u in result.units):
         top = np.minimum(top, np.concatenate([
             u.setup.effort_limit if u.setup.effort_grid is None else u.setup.effort_grid.top
             for u in result.units]))
     with np.errstate(invalid="ignore"):
-        # Most runs never reach a limit: the columns' extremes show it without a row count.
-        if len(tau) == 0 or np.abs(tau).max() < top.min():  # NaN goes on to the count
+        # Most runs never reach a limit: each unit's largest |effort| shows it without a row
+        # count or a copy of the logs (a NaN goes on to the count).
+        if all(np.abs(u.tau).max(initial=0.0) < top.min() for u in result.units):
             return 0
+        tau = np.hstack([u.tau for u in result.units])
         return int(np.sum((np.abs(tau) >= top).any(axis=1)))
 
 

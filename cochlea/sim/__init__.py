@@ -31,11 +31,12 @@ from .setup import GravityRefused, UnitSetup, perturbed_parameters, run_inputs, 
 KERNELS = KERNEL_CHOICES
 
 
-def load_scenario(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
+def load_scenario(name_or_path: str | Path, plant_preset: str | None = None, *,
+                  text: str | None = None) -> Scenario:
     """A shipped scenario by name (``"serial_task"``) or a scenario file, with its robot's
     description loaded once; ``plant_preset`` (e.g. ``"realistic"``) replaces the preset of
-    its ``[plant]`` table."""
-    return _load(name_or_path, plant_preset)
+    its ``[plant]`` table; ``text``: the file's text, already read (the file is not)."""
+    return _load(name_or_path, plant_preset, text=text)
 
 
 def simulate(sc: Scenario, duration: float | None = None,

@@ -28,7 +28,7 @@ from ..resources import SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
-from ..robots.description import MAX_FILE_BYTES, Table, read_toml
+from ..robots.description import MAX_FILE_BYTES, Table, parse_toml, read_toml
 from ..robots.description import resolve_path as resolve_description
 from ..robots.model import ACTUATORS
 from .expressions import FUNCTIONS, ExpressionError, parse
@@ -457,14 +457,20 @@ def _check_run_length(top: Table, duration: float, rate: float) -> None:
                         "into several runs", duration)
 
 
-def load(name_or_path: str | Path, plant_preset: str | None = None) -> Scenario:
+def load(name_or_path: str | Path, plant_preset: str | None = None, *,
+         text: str | None = None) -> Scenario:
     """Load a scenario and the robot description it names; the robot's adapter tells the
     kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`).
 
     ``plant_preset`` (``cochlea-run --plant``) replaces the preset of the scenario's
-    ``[plant]`` table (or gives one where there is none); its other keys still apply."""
+    ``[plant]`` table (or gives one where there is none); its other keys still apply.
+    ``text``: the scenario file's text, already in memory (a sweep's sample): read as the
+    file at ``name_or_path`` would be, which names it in messages and is where a relative
+    description is found from, but is not read."""
     path = resolve(name_or_path)
-    top = Table(path, read_toml(path, "scenario"), "")
+    data = read_toml(path, "scenario") if text is None else \
+        parse_toml(text.encode("utf-8"), path, "scenario")
+    top = Table(path, data, "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     robot = top.string("robot", tuple(ROBOTS))
     space = top.string("space", ("joint", "task"))

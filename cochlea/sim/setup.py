@@ -8,6 +8,7 @@ emulator, so every one of them runs exactly the same controller on exactly the s
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -315,14 +316,11 @@ def perturbed_parameters(full, plant: scenario_mod.Plant,
     ``plant.payload_kg`` is added at ``payload_points[body]`` (m, body frame).
     """
     p = np.asarray(full.nominal, float).copy()
-    # Rigid bodies only: an actuator's parameters (armature) neither scale nor carry payloads.
-    bodies = list(dict.fromkeys(name.rsplit(".", 1)[0] for name in full.names
-                                if name.rsplit(".", 1)[1] in INERTIAL_NAMES))
+    bodies, owned = _parameter_owners(tuple(full.names))
     if plant.mass_scale is not None:
         for body, scale in zip(bodies, plant.mass_scale, strict=True):
-            for i, name in enumerate(full.names):
-                if name.rsplit(".", 1)[0] == body:
-                    p[i] *= scale
+            for i, _ in owned.get(body, ()):
+                p[i] *= scale
     m = plant.payload_kg
     for body, point in payload_points.items():
         x, y, z = (list(point) + [0.0, 0.0])[:3]
@@ -330,11 +328,24 @@ def perturbed_parameters(full, plant: scenario_mod.Plant,
                  "Ixx": m * (y * y + z * z), "Iyy": m * (x * x + z * z),
                  "Izz": m * (x * x + y * y), "Ixy": -m * x * y, "Ixz": -m * x * z,
                  "Iyz": -m * y * z}
-        for i, name in enumerate(full.names):
-            owner, kind = name.rsplit(".", 1)
-            if owner == body and kind in added:
+        for i, kind in owned.get(body, ()):
+            if kind in added:
                 p[i] += added[kind]
     return p
+
+
+@functools.lru_cache(maxsize=64)
+def _parameter_owners(names: tuple[str, ...]) -> tuple[tuple[str, ...], dict]:
+    """The rigid bodies of a parameter list in order (an actuator's parameters, armature,
+    neither scale nor carry payloads), and per owner of a parameter its ``(index, kind)``s in
+    order: read once per list (a sweep's samples share it), not once a sample."""
+    bodies = tuple(dict.fromkeys(name.rsplit(".", 1)[0] for name in names
+                                 if name.rsplit(".", 1)[1] in INERTIAL_NAMES))
+    owned: dict[str, list[tuple[int, str]]] = {}
+    for i, name in enumerate(names):
+        owner, kind = name.rsplit(".", 1)
+        owned.setdefault(owner, []).append((i, kind))
+    return bodies, {k: tuple(v) for k, v in owned.items()}
 
 
 def measurement_grids(adapter, system, plant: scenario_mod.Plant
@@ -941,8 +952,12 @@ def measurements(states: np.ndarray, delay, noise: np.ndarray | None = None,
         return states
     if jitter:
         delay = np.asarray(delay)[:len(states)]
-    seen = (states[np.maximum(np.arange(len(states)) - delay, 0)] if jitter or delay
-            else states.copy())
+        seen = states[np.maximum(np.arange(len(states)) - delay, 0)]
+    else:  # one delay: the rows shifted by slices (a fancy index costs several times more)
+        seen = np.empty_like(states)
+        d = min(int(delay), len(states))
+        seen[d:] = states[:len(states) - d]
+        seen[:d] = states[:1]
     if noise is not None:
         seen += noise[:len(states)]
     if quantum is not None:

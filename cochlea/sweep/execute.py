@@ -52,13 +52,14 @@ def run_batch(spec: Spec, indices: list[int], evaluate: Callable[[str], dict]) -
         g, k = sampling.grid_point(spec, i)
         row = {"sample": i, "grid": g, "draw": k}
         vectors = {e.name: e.rule.size for e in spec.entries if e.vector}
-        for name, value in sampling.inputs(spec, i).items():
+        values = sampling.inputs(spec, i)
+        for name, value in values.items():
             # An entry whose values may be lists is a list in every row (a number is every
             # component): the same columns whichever samples a batch holds.
             if name in vectors and not isinstance(value, list):
                 value = [value] * vectors[name]
             row.update(results.flatten(name, value))
-        row.update(evaluate(sampling.scenario_text(spec, i)))
+        row.update(evaluate(sampling.scenario_text(spec, i, values)))
         row["wall_s"] = time.perf_counter() - start
         rows.append(row)
     return rows

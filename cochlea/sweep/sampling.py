@@ -11,6 +11,7 @@ The plant's noise seed is drawn the same way unless the spec fixes ``[perturb] s
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 import tomllib
@@ -84,10 +85,17 @@ def _vector(value: Any, size: int | None) -> Any:
     return value
 
 
-def scenario_data(spec: Spec, i: int) -> dict:
-    """The base scenario's TOML data with sample ``i``'s plant, gains and duration."""
-    data = tomllib.loads(spec.scenario_text)
-    data = copy.deepcopy(data)
+@functools.lru_cache(maxsize=8)
+def _base_data(text: str) -> dict:
+    """A base scenario's TOML data, parsed once per process and text (never handed out
+    itself: each sample gets a deep copy)."""
+    return tomllib.loads(text)
+
+
+def scenario_data(spec: Spec, i: int, values: dict[str, Any] | None = None) -> dict:
+    """The base scenario's TOML data with sample ``i``'s plant, gains and duration
+    (``values``: its :func:`inputs`, when the caller has them already)."""
+    data = copy.deepcopy(_base_data(spec.scenario_text))
     description = data.get("description")
     if isinstance(description, str):  # a user's description file: found from anywhere
         path = Path(description)
@@ -99,7 +107,7 @@ def scenario_data(spec: Spec, i: int) -> dict:
     plant = data.setdefault("plant", {})
     rules = {e.name: e.rule for e in spec.entries}
     units = {u["name"]: u for u in data.get("unit", [])}
-    for name, value in inputs(spec, i).items():
+    for name, value in (inputs(spec, i) if values is None else values).items():
         parts = name.split(".")
         if parts[0] == "plant":
             rule = rules.get(name)
@@ -109,14 +117,15 @@ def scenario_data(spec: Spec, i: int) -> dict:
     return data
 
 
-def scenario_text(spec: Spec, i: int) -> str:
-    """Sample ``i``'s scenario file: ``cochlea-run --scenario`` on it runs exactly the sample."""
+def scenario_text(spec: Spec, i: int, values: dict[str, Any] | None = None) -> str:
+    """Sample ``i``'s scenario file: ``cochlea-run --scenario`` on it runs exactly the sample
+    (``values``: its :func:`inputs`, when the caller has them already)."""
     g, k = grid_point(spec, i)
     head = (f"# Sample {i} (grid point {g}, draw {k}) of the sweep {spec.path.name} "
             f"(seed {spec.seed}), from {spec.scenario_path.name}.\n"
             f"# cochlea-run --robot {spec.robot} --space {spec.space} --scenario THIS_FILE "
             "--realtime off\n\n")
-    return head + dumps(scenario_data(spec, i))
+    return head + dumps(scenario_data(spec, i, values))
 
 
 # --------------------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from ..adapter import (
     UnitPlan,
     UnitStart,
     desired_function,
+    first_inside,
     frames_function,
     sampled,
 )
@@ -64,12 +65,12 @@ def _check_keep_out(lead: ca.SX, t: ca.SX, radius: float, sc: ScenarioView) -> N
     the mirrored C'; checked period by period, not only at the workspace check's samples."""
     distance = ca.Function("distance", [t], [ca.fabs(lead[0]) / ca.fabs(ca.cos(lead[2]))])
     for times, (r,) in sampled(distance, sc.duration, sc.period):
-        inside = np.flatnonzero(~(r.ravel() >= radius))
-        if inside.size:
-            k = inside[0]
+        inside = first_inside(times, r, radius)
+        if inside is not None:
+            when, near = inside
             raise KinematicsError(
                 f"scenario {getattr(sc, 'path', sc.name)}: the desired end-effector path passes "
-                f"{r.ravel()[k] * 1000:.1f} mm from the slider point S at t = {times[k]:.3f} s, "
+                f"{near * 1000:.1f} mm from the slider point S at t = {when:.3f} s, "
                 f"inside the keep-out radius {radius * 1000:.1f} mm: the supervisor would stop "
                 "the run there; change the trajectory or shorten --duration")
 
@@ -85,13 +86,13 @@ def _check_joint_keep_out(fk_world: ca.Function, q_t: ca.SX, t: ca.SX, radius: f
     distance = ca.Function("distance", [t], [ca.fmin(ca.norm_2(pose[0:2] - S),
                                                       ca.norm_2(pose[3:5] - S))])
     for times, (r,) in sampled(distance, sc.duration, sc.period):
-        inside = np.flatnonzero(~(r.ravel() >= radius))
-        if inside.size:
-            k = inside[0]
+        inside = first_inside(times, r, radius)
+        if inside is not None:
+            when, near = inside
             raise KinematicsError(
                 f"scenario {getattr(sc, 'path', sc.name)}: the desired joint path takes an end "
-                f"effector {r.ravel()[k] * 1000:.1f} mm from the slider point S at t = "
-                f"{times[k]:.3f} s, inside the keep-out radius {radius * 1000:.1f} mm: the "
+                f"effector {near * 1000:.1f} mm from the slider point S at t = "
+                f"{when:.3f} s, inside the keep-out radius {radius * 1000:.1f} mm: the "
                 "supervisor would stop the run there; change the trajectory or shorten "
                 "--duration")
 

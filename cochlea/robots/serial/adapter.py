@@ -27,6 +27,7 @@ from ..adapter import (
     UnitPlan,
     UnitStart,
     desired_function,
+    first_inside,
     frames_function,
     sampled,
 )
@@ -106,13 +107,13 @@ def _check_path(arm: Arm, q_t: ca.SX, tool_t: ca.SX, t: ca.SX, sc: ScenarioView,
                 f"outside its limits [{lo_j:g}, {hi_j:g}] deg: the supervisor would stop the "
                 "run there; change the trajectory or shorten --duration")
         if keep_out is not None:
-            inside = np.flatnonzero(~(r.ravel() >= keep_out))
-            if inside.size:
-                k = inside[0]
+            inside = first_inside(times, r, keep_out)
+            if inside is not None:
+                when, near = inside
                 raise UnreachableTarget(
                     f"scenario {_where(sc)}: {arm.name}'s desired tool path passes "
-                    f"{r.ravel()[k] * 1000:.1f} mm from the cochlea centre at t = "
-                    f"{times[k]:.3f} s, inside the keep-out radius {keep_out * 1000:.1f} mm: the "
+                    f"{near * 1000:.1f} mm from the cochlea centre at t = "
+                    f"{when:.3f} s, inside the keep-out radius {keep_out * 1000:.1f} mm: the "
                     "supervisor would stop the run there; change the trajectory or shorten "
                     "--duration")
 
