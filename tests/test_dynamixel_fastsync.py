@@ -202,11 +202,15 @@ def test_the_transfers_are_chosen_from_the_data():
     x430, x540, mx64 = MODELS["XM430-W350"], MODELS["XM540-W270"], MODELS["MX-64"]
     read, write, why = choose_transfers([x430, x540, mx64])
     assert (read, write) == ("sync", "sync") and "MX-64 without FAST_SYNC_READ" in why
+    # The X series answers it (its data: the DynamixelSDK's example); MX(2.0) does not.
+    read, write, why = choose_transfers([x430, x540])
+    assert (read, write) == ("fast", "sync") and why == "every model answers FAST_SYNC_READ " \
+        "(its data)"
     # Unsourced support is not assumed.
-    read, _, why = choose_transfers([x430, x540])
-    assert read == "sync" and "not sourced" in why
-    fast = [dataclasses.replace(s, fast_sync_read=True) for s in (x430, x540)]
-    assert choose_transfers(fast)[:2] == ("fast", "sync")
+    unsure = dataclasses.replace(x430, name="XM430-W350?", fast_sync_read=None)
+    read, _, why = choose_transfers([unsure, x540])
+    assert read == "sync" and why == "SYNC_READ (XM430-W350?: FAST_SYNC_READ support not sourced)"
+    fast = [x430, x540]
     assert choose_transfers(fast + [mx64])[0] == "sync"
     # The state items of one model elsewhere (the whole block moved): BULK_READ.
     state = ("Present Current", "Present Velocity", "Present Position")
@@ -401,6 +405,7 @@ def test_fast_sync_read_on_a_model_without_it_stops_the_start_up():
             backend.enable()
     message = str(info.value)
     assert "\n" not in message and "FAST_SYNC_READ" in message and "error-byte" in message
+    assert message.endswith("cochlea-run --read-instruction sync reads with SYNC_READ")
     assert "torque off confirmed by all 6" in backend.shutdown_report
 
 
@@ -453,8 +458,9 @@ CHAINS = {"xm430": ["XM430-W350", "XM430-W350"], "xl330": ["XL330-M288", "XL330-
 @pytest.mark.parametrize("name", list(CHAINS))
 @pytest.mark.slow
 def test_each_chain_over_the_emulator(tmp_path, name):
-    """Each family and the mixed chains: the bridge chooses SYNC_READ / SYNC_WRITE (one
-    layout; FAST_SYNC_READ not sourced for these models) and reads the state right."""
+    """Each family and the mixed chains: the bridge chooses FAST_SYNC_READ where every model
+    answers it (the X series), SYNC_READ with an MX-64 on the bus, SYNC_WRITE (one layout),
+    and reads the state right."""
     scenario = chain_files(tmp_path, CHAINS[name])
     with VirtualChain("serial", scenario) as chain:
         assert [m.spec.name for m in chain.motors] == CHAINS[name]
@@ -470,7 +476,8 @@ def test_each_chain_over_the_emulator(tmp_path, name):
         finally:
             backend.disable()
     summary = backend.summary()["bus_budget"]
-    assert summary["read_instruction"] == "SYNC_READ"
+    assert summary["read_instruction"] == ("SYNC_READ" if "MX-64" in CHAINS[name]
+                                           else "FAST_SYNC_READ")
     assert summary["write_instruction"] == "SYNC_WRITE"
     assert set(backend.firmware) == set(backend.ids)  # from each motor's PING
 
@@ -505,16 +512,30 @@ def test_scan_and_run_over_the_virtual_chain(tmp_path, name):
              "joint", "--scenario", str(scenario), "--backend", "dynamixel", "--port", port,
              "--out", str(out), "--watchdog-misses", "300"],
             capture_output=True, text=True, timeout=180, cwd=tmp_path)
+        forced = subprocess.run(  # a firmware without FAST_SYNC_READ: the user's way back
+            [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+             "joint", "--scenario", str(scenario), "--backend", "dynamixel", "--port", port,
+             "--out", str(tmp_path / "forced"), "--watchdog-misses", "300", "--duration",
+             "0.3", "--read-instruction", "sync"],
+            capture_output=True, text=True, timeout=180, cwd=tmp_path)
     finally:
         proc.terminate()
         proc.communicate(timeout=20)
     assert done.returncode == 0, done.stderr
-    assert "cochlea-run: bus: SYNC_READ + SYNC_WRITE per period" in done.stdout
+    assert "cochlea-run: bus: FAST_SYNC_READ + SYNC_WRITE per period" in done.stdout
     summary = json.loads((out / "summary.json").read_text())
     bus = summary["timing"]["bus"]["bus_budget"]
-    # The budget of what is sent: SYNC_WRITE, SYNC_READ of 120..135, two status packets.
-    assert bus["bytes_per_period"] == (14 + 2 * 3) + (14 + 2) + 2 * (11 + 16)
-    assert bus["read_instruction"] == "SYNC_READ" and "not sourced" in bus["read_choice"]
+    # The budget of what is sent: SYNC_WRITE, FAST_SYNC_READ of 120..135, one status packet:
+    # its 8-byte header (to the instruction), then per motor its error, ID, 16 data bytes and
+    # CRC (the last CRC the packet's).
+    assert bus["bytes_per_period"] == (14 + 2 * 3) + (14 + 2) + 8 + 2 * (1 + 1 + 16 + 2)
+    assert bus["read_instruction"] == "FAST_SYNC_READ"
+    assert bus["read_choice"] == "every model answers FAST_SYNC_READ (its data)"
+    assert forced.returncode == 0, forced.stderr
+    bus = json.loads((tmp_path / "forced" / "summary.json").read_text()
+                     )["timing"]["bus"]["bus_budget"]
+    assert bus["read_instruction"] == "SYNC_READ" and bus["bytes_per_period"] == 90
+    assert bus["read_choice"].startswith("SYNC_READ (asked; the data: ")
 
 
 class _FixedReply:

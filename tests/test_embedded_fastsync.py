@@ -192,7 +192,7 @@ def test_the_generator_chooses_the_read_as_the_python_bridge():
         assert (read, write, why) == ({"sync": "SYNC_READ", "fast": "FAST_SYNC_READ"}[expect[0]],
                                       "SYNC_WRITE", expect[2])
     assert bus_choice(joint_drives("serial"))[0] == "SYNC_READ"  # MX-64: no
-    assert bus_choice(joint_drives("serial", ARM))[0] == "SYNC_READ"  # unsourced: no
+    assert bus_choice(joint_drives("serial", ARM))[0] == "FAST_SYNC_READ"  # XM540s: the SDK
     assert bus_choice(fast_drives())[0] == "FAST_SYNC_READ"
     # The text cochlea-run writes as read_choice, word for word.
     backend = DynamixelBackend("serial", "/dev/scripted", realtime_tick=True)
@@ -578,14 +578,13 @@ def test_the_fast_sync_read_chain_runs_and_states_its_read(fast_program, tmp_pat
 
 
 @pytest.mark.hil
-def test_the_emulator_refuses_fast_sync_read_where_the_data_do_not_have_it(fast_program,
-                                                                             tmp_path):
-    """The emulator as the data say (the XM540-W270's Fast Sync Read support is unsourced):
-    each motor refuses the instruction; the program's start-up stops in one line, exit 5,
-    nothing moved, torque off."""
+def test_a_firmware_without_fast_sync_read_stops_the_start_up(fast_program, tmp_path):
+    """Motors whose firmware does not answer FAST_SYNC_READ (the data give no first version
+    for the X series: the emulator told to refuse it): each motor refuses the instruction; the
+    program's start-up stops in one line, exit 5, nothing moved, torque off."""
     program, name = fast_program
     out = tmp_path / "run"
-    done, events = _on_chain(program, name, out, fast=None)
+    done, events = _on_chain(program, name, out, fast=False)
     assert done.returncode == 5, done.stderr
     # one line (besides the bus budget's warning about the adapter's latency, which a
     # pseudo-terminal does not have: the program assumes a USB adapter)

@@ -148,6 +148,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="--backend dynamixel: the homing record cochlea-dxl home wrote "
                         "(default ~/.cochlea/homing/ROBOT.json for the shipped description, "
                         "ROBOT-STEM-HASH.json for a user's; it must be the description's)")
+    p.add_argument("--read-instruction", default="auto",
+                   choices=["auto", "sync", "fast", "bulk"],
+                   help="--backend dynamixel: the per-period read: auto (default) chooses from "
+                        "the motors' data (FAST_SYNC_READ where every model answers it, "
+                        "BULK_READ for a chain whose models place the state differently, "
+                        "SYNC_READ otherwise); sync, fast or bulk force one (docs/dynamixel.md)")
     p.add_argument("--realtime", default="on", choices=["on", "off"],
                    help="on: 1 kHz absolute-deadline loop under the supervisor (default); "
                         "off: the as-fast-as-possible simulation")
@@ -538,6 +544,7 @@ def _dynamixel_backend(args, scenario, setups):
                                offset_current=bridge_compensates_friction(
                                    scenario.controller_actuators),
                                expected_start=start,
+                               read_instruction=args.read_instruction,
                                start_tolerance=(math.radians(args.start_tolerance_deg),
                                                 args.start_tolerance_mm * 1e-3))
     verdict = backend.check_rate(scenario.rate_hz)

@@ -1094,10 +1094,13 @@ class DynamixelBackend:
                 if self.read(x):
                     break
             else:
+                hint = ("; a firmware that does not answer FAST_SYNC_READ (the data give no "
+                        "first version): cochlea-run --read-instruction sync reads with "
+                        "SYNC_READ" if self.read_instruction == "fast" else "")
                 raise BackendError(f"no good {_READ_NAMES[self.read_instruction]} of the "
                                    f"motors' state on {self.port_path} "
                                    f"in {3 * self.retries} tries (last failure: "
-                                   f"{self.describe_last_failure()})")
+                                   f"{self.describe_last_failure()}){hint}")
         finally:
             self._active = False
         self._unwrap_and_check(x[:n])

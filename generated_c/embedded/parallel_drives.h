@@ -26,7 +26,7 @@ static const dxl_table parallel_tables[PARALLEL_N_DRIVES] = {
     {"MX-64", {{9, 1}, {11, 1}, {38, 2}, {64, 1}, {70, 1}, {98, 1}, {102, 2}, {88, 2}, {120, 2}, {126, 2}, {128, 4}, {132, 4}}, 0},
 };
 static const dxl_bus parallel_bus = {DXL_SYNC_READ, DXL_SYNC_WRITE,
-    "SYNC_READ (MX-64 without FAST_SYNC_READ; XM540-W270: FAST_SYNC_READ support not sourced)",
+    "SYNC_READ (MX-64 without FAST_SYNC_READ)",
     PARALLEL_N_DRIVES, parallel_tables};
 
 static const cochlea_drive parallel_drives[PARALLEL_N_DRIVES] = {
