@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import math
 import signal
+import socket
 import sys
 import time
 import zlib
@@ -76,7 +77,15 @@ class StreamRun:
     # ---- frames ----------------------------------------------------------------------
 
     def feed(self, data: bytes) -> bool:
-        """True once the end frame has come."""
+        """True once the end frame has come. The rows are in log.bin when it returns (a
+        reader following the file, as cochlea-ros2 follows cochlea-run's, sees them)."""
+        try:
+            return self._frames(data)
+        finally:
+            if self.file is not None:
+                self.file.flush()
+
+    def _frames(self, data: bytes) -> bool:
         for frame in self.decoder.feed(data):
             if frame.kind == HEADER:
                 if self.header is None:
@@ -227,20 +236,48 @@ class StreamRun:
         return report.write_all(result, self.out, None, timing, extra=extra)
 
 
+class _Socket:
+    """``socket://HOST:PORT`` read as a port (pyserial's own handler discards what arrived
+    before it returned from opening, which may be the header)."""
+
+    def __init__(self, address: str, timeout: float):
+        host, _, port = address.removeprefix("socket://").rpartition(":")
+        deadline = time.monotonic() + timeout
+        while True:  # QEMU's -serial tcp:...,server=on listens a moment after it starts
+            try:
+                self.sock = socket.create_connection((host or "127.0.0.1", int(port)), 1.0)
+                break
+            except (OSError, ValueError) as exc:
+                if time.monotonic() > deadline or isinstance(exc, ValueError):
+                    raise CochleaError(f"cannot connect to --port {address}: {exc}") from None
+                time.sleep(0.1)
+        self.sock.settimeout(0.05)
+
+    def read(self, n: int) -> bytes:
+        try:
+            data = self.sock.recv(n)
+        except TimeoutError:
+            return b""
+        if not data:
+            raise EOFError
+        return data
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 def _source(port: str, baud: int, timeout: float):
-    """A serial port, a pyserial URL (``socket://HOST:PORT``: QEMU's ``-serial tcp:...``,
-    retried until ``timeout`` while it starts listening), or a file of captured bytes."""
+    """A serial port, ``socket://HOST:PORT`` (QEMU's ``-serial tcp:...``), or a file of
+    captured bytes."""
     path = Path(port)
     if path.is_file():
         return open(path, "rb"), True
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return serial.serial_for_url(port, baud, timeout=0.05), False
-        except (serial.SerialException, OSError, ValueError) as exc:
-            if "://" not in port or time.monotonic() > deadline:
-                raise CochleaError(f"cannot open --port {port}: {exc}") from None
-            time.sleep(0.1)
+    if port.startswith("socket://"):
+        return _Socket(port, timeout), False
+    try:
+        return serial.Serial(port, baud, timeout=0.05), False
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise CochleaError(f"cannot open --port {port}: {exc}") from None
 
 
 def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -> int:
@@ -259,7 +296,12 @@ def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -
     try:
         last = time.monotonic()
         while True:
-            data = source.read(READ_SIZE)
+            try:
+                data = source.read(READ_SIZE)
+            except EOFError:  # the peer closed the connection (QEMU quit)
+                stream.decoder.finish()
+                why = "the connection closed before the end frame"
+                break
             if data:
                 last = time.monotonic()
                 if stream.feed(data):
