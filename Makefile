@@ -216,7 +216,8 @@ STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
                   -DSTM32_READ_TIMEOUT_NS=$(STM32_READ_TIMEOUT_US)000 -DSTM32_RATE_HZ=$(STM32_RATE) \
                   -DSTM32_BUS_WATCHDOG_MS=$(STM32_BUS_WATCHDOG_MS) -DSTM32_TIMER_HZ=$(STM32_TIMER_HZ)u \
                   -DSTM32_TIMER_START=$(STM32_TIMER_START)u \
-                  -DSTM32_STREAM_EVERY=$(STM32_STREAM_EVERY)u -DSTM32_STREAM_BAUD=$(STM32_STREAM_BAUD)u
+                  -DSTM32_STREAM_EVERY=$(STM32_STREAM_EVERY)u \
+                  -DSTM32_STREAM_BAUD=$(STM32_STREAM_BAUD)u
 STM32_LDFLAGS  := -T $(STM32_DIR)/stm32f405.ld -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 STM32_SOURCES  := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(STM32_SCENARIO).c \
@@ -239,6 +240,13 @@ $(BUILD)/stm32f4/%/cochlea-stm32f4.elf: $(STM32_DEPS)
 $(BUILD)/stm32f4/config.txt: stm32-config-check
 	@mkdir -p $(@D)
 	@echo '$(STM32_CONFIG)' | cmp -s - $@ || echo '$(STM32_CONFIG)' > $@
+
+# The row stream (docs/embedded.md, "The row stream"): the frame codec, cochlea-embedded-host
+# on made streams, and the firmware on QEMU's netduinoplus2 streaming to it.
+.PHONY: stm32-stream-test
+stm32-stream-test: $(STAMP) lib
+	-@bash embedded/ports/ensure_tools.sh
+	$(BIN)/python -m pytest -q tests/test_embedded_stream.py
 
 .PHONY: stm32-firmware stm32-config-check
 stm32-config-check:

@@ -250,6 +250,22 @@ def test_a_wrong_schema_or_no_header_is_one_line_and_nothing_written(tmp_path, c
     assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
+def test_a_firmware_that_refused_to_start_leaves_an_empty_log_and_its_exit_code(tmp_path,
+                                                                                   columns):
+    """A refusal before the bus starts (or a failed start) sends the header and the end
+    frame, no row: the host writes the empty log and exits with the firmware's code, 5."""
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, header(columns))
+                        + encode(END, 1, end_text(0, 0, rule="none", exit=5, stop_time_us=0)))
+    run = host("--port", str(capture), "--out", str(tmp_path / "run"))
+    assert run.returncode == 5, run.stderr
+    assert log_rows(tmp_path / "run").shape == (0, len(columns))
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "none" and summary["stop"]["exit_code"] == 5
+    assert summary["stream"]["complete"] and not summary["converged"]
+
+
 def serve(payload: bytes) -> tuple[int, threading.Event]:
     """A TCP server that sends ``payload`` to its one client and then holds the line open
     and silent until ``done`` is set."""

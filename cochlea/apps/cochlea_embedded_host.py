@@ -33,7 +33,8 @@ from ..sim import choose_kernels, load_scenario, unit_setups
 from . import report
 
 PROG = "cochlea-embedded-host"
-#: Exit codes: 0 the end frame came and the files are written; 2 a usage error (nothing
+#: Exit codes: after the end frame, the firmware's own (cochlea-run's: 0 completed, 5 the
+#: motors did not start, 10-15 a supervisor rule), the files written; 2 a usage error (nothing
 #: written); 3 the stream ended without its end frame (silence, Ctrl-C, SIGTERM, end of a
 #: file), what came is written; 4 no header came, or one this host cannot write (nothing
 #: written).
@@ -324,11 +325,13 @@ def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -
               f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
         return EXIT_NO_HEADER
     data = stream.write(why)
-    print(f"{PROG}: wrote {out}: {stream.rows} rows (every {stream.every}-th period), "
+    print(f"{PROG}: wrote {out}: {stream.rows} rows (one every {stream.every} periods), "
           f"stop {data['stop']['rule']}"
           + (f"; incomplete: {why}" if why else "")
           + (f"; {stream.missing} missing" if stream.missing else ""))
-    return 0 if why is None else EXIT_INCOMPLETE
+    if why is not None:
+        return EXIT_INCOMPLETE
+    return data["stop"]["exit_code"]
 
 
 def main(argv: list[str] | None = None) -> int:
