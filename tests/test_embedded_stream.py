@@ -18,13 +18,21 @@ import subprocess
 import sys
 import threading
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cochlea.runtime.row_stream import END, HEADER, ROW, Decoder, encode, parse_text, row_payload
+from cochlea.runtime.row_stream import (
+    END,
+    HEADER,
+    ROW,
+    Decoder,
+    chain_crc,
+    encode,
+    parse_text,
+    row_payload,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 H = 1e-3
@@ -172,8 +180,8 @@ def test_the_host_writes_cochlea_runs_files_and_counts_every_fault(tmp_path, col
             payload = row_payload(k, [np.nan, *row[1:]])
         if k == 30:
             payload = row_payload(k, row[:-1])
-        crc = zlib.crc32(payload, crc)
         frame = encode(ROW, k + 1, payload)
+        crc = chain_crc(crc, int.from_bytes(frame[-4:], "little"))
         if k == 10:
             frame = frame[:30] + bytes([frame[30] ^ 1]) + frame[31:]
         frames.append(frame)
@@ -217,9 +225,8 @@ def test_a_decimated_stream_keeps_its_rows_at_their_periods(tmp_path, columns):
     data = rows(columns, range(0, 60, 3))
     frames, crc = [encode(HEADER, 0, header(columns, every=3, periods=60))], 0
     for i, row in enumerate(data):
-        payload = row_payload(3 * i, row)
-        crc = zlib.crc32(payload, crc)
-        frames.append(encode(ROW, i + 1, payload))
+        frames.append(encode(ROW, i + 1, row_payload(3 * i, row)))
+        crc = chain_crc(crc, int.from_bytes(frames[-1][-4:], "little"))
     frames.append(encode(END, len(data) + 1, end_text(60, crc)))
     capture = tmp_path / "stream.bin"
     capture.write_bytes(b"".join(frames))
@@ -385,9 +392,10 @@ def test_the_firmwares_rows_reach_the_host_whole(stream_firmware, tmp_path):
     got = log_rows(out)
     assert got.shape[0] == PERIODS // EVERY
     assert np.array_equal(got[:, 0], np.arange(0, PERIODS, EVERY) * H)
-    crc = 0
+    crc = 0  # the row frames' CRCs chained (header 0, rows 1..100): the firmware's rows_crc
     for i, row in enumerate(got):
-        crc = zlib.crc32(row_payload(EVERY * i, row), crc)
+        crc = chain_crc(crc, int.from_bytes(encode(ROW, i + 1, row_payload(EVERY * i, row))[-4:],
+                                            "little"))
     assert crc == int(end["rows_crc"])  # the firmware's own rows, bit for bit
     summary = json.loads((out / "summary.json").read_text())
     s = summary["stream"]

@@ -19,7 +19,6 @@ import signal
 import socket
 import sys
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +27,7 @@ import serial
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
 from ..runtime.loop import raw_columns
-from ..runtime.row_stream import END, HEADER, ROW, Decoder, parse_text
+from ..runtime.row_stream import END, HEADER, ROW, Decoder, Frame, chain_crc, parse_text
 from ..sim import choose_kernels, load_scenario, unit_setups
 from . import report
 
@@ -95,7 +94,7 @@ class StreamRun:
                 if self.loop is None:
                     self.before_header += 1
                 else:
-                    self._row(frame.payload)
+                    self._row(frame)
             elif frame.kind == END and self.loop is not None:
                 self.end = parse_text(frame.payload)
                 return True
@@ -139,7 +138,8 @@ class StreamRun:
         write_raw_columns(self.out / "log.columns.json", loop)
         self.file = open(self.out / "log.bin", "wb")
 
-    def _row(self, payload: bytes) -> None:
+    def _row(self, frame: Frame) -> None:
+        payload = frame.payload
         if len(payload) != 8 + 8 * self.row_length:
             self.bad_rows["length"] += 1
             return
@@ -154,7 +154,7 @@ class StreamRun:
         if self.last_k is not None and k <= self.last_k:
             self.bad_rows["order"] += 1
             return
-        self.crc = zlib.crc32(payload, self.crc)
+        self.crc = chain_crc(self.crc, frame.crc)
         expected = 0 if self.last_k is None else self.last_k + self.every
         while expected < k:  # a hole: a NaN row at the missing period's time keeps the log's
             hole = np.full(self.row_length, np.nan)  # rows at their periods

@@ -47,6 +47,11 @@ def row_payload(k: int, row) -> bytes:
     return struct.pack(f"<q{len(row)}d", k, *row)
 
 
+def chain_crc(crc: int, frame_crc: int) -> int:
+    """The firmware's ``rows_crc`` after one more row frame (its CRC, 4 bytes LE)."""
+    return zlib.crc32(struct.pack("<I", frame_crc), crc)
+
+
 def parse_text(payload: bytes) -> dict[str, str]:
     """A header or end frame's ``key=value`` fields (``columns=`` is the rest of its line)."""
     text = payload.decode("ascii", errors="replace")
@@ -61,6 +66,7 @@ class Frame:
     kind: int
     sequence: int
     payload: bytes
+    crc: int  # its CRC-32 (the firmware's end frame chains the row frames' CRCs: rows_crc)
 
 
 @dataclass
@@ -131,7 +137,7 @@ class Decoder:
                 self._skip(1)
                 continue
             del buf[:end]
-            return Frame(kind, sequence, bytes(buf_payload(body)))
+            return Frame(kind, sequence, bytes(buf_payload(body)), crc)
 
     def _accept(self, frame: Frame) -> bool:
         if frame.kind == HEADER and frame.sequence == 0:

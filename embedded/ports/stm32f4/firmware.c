@@ -94,6 +94,10 @@ static volatile int running; /* between cochlea_loop_begin and cochlea_loop_end 
 static volatile int parked;  /* after the end: SysTick kicks the watchdog */
 static volatile int iwdg_on;
 static uint32_t kicks;
+/* The row stream's own cost, in TIM2 counts (STM32_TIMER_HZ; 1 ns under QEMU, where with
+ * -icount shift=0 a count is an instruction): the largest in-period on_row, and the largest
+ * framing between two periods. */
+static uint32_t stream_row_max, stream_pump_max;
 static char line[2048]; /* a console line, or the stream's header (its columns) */
 
 static char *put(char *at, const char *s)
@@ -159,6 +163,15 @@ static void on_tick(void *ctx)
     }
 }
 
+static void on_row(void *ctx, const double *row, int row_length)
+{
+    const uint32_t before = stm32f4_timer_count();
+    uint32_t spent;
+    stm32f4_stream_row(ctx, row, row_length);
+    spent = stm32f4_timer_count() - before;
+    stream_row_max = spent > stream_row_max ? spent : stream_row_max;
+}
+
 static void kick(void *ctx)
 {
     stm32f4_iwdg_kick(ctx);
@@ -219,6 +232,8 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "rows_sent", sc->rows_sent);
     at = put_kv(at, "rows_crc", sc->rows_crc);
     at = put_kv(at, "frames", sc->frames);
+    at = put_kv(at, "stream_row_counts_max", stream_row_max);
+    at = put_kv(at, "stream_pump_counts_max", stream_pump_max);
     *at = '\0';
     stm32f4_stream_end(line + 4, stm32f4_now_ns() + 2000000000); /* without "end " */
     say(at);
@@ -326,7 +341,7 @@ int main(void)
         park();
     }
     the_loop.kick_watchdog = kick;
-    the_loop.on_row = stm32f4_stream_row; /* a copy into a slot, or a count: never a wait */
+    the_loop.on_row = on_row; /* a copy into a slot, or a count: never a wait */
     if (!cochlea_bridge_start(&bridge, &report)) {
         at = put(line, "start failed");
         at = put_kv(at, "error", report.error);
@@ -352,7 +367,14 @@ int main(void)
     while (rule == COCHLEA_RULE_NONE) {
         /* waits (WFI) for its deadline: the tick's interrupt wakes the core */
         rule = cochlea_loop_period(&the_loop);
-        stm32f4_stream_pump(); /* between periods: frames the queued rows */
+        {
+            /* between periods: frames the queued rows */
+            const uint32_t before = stm32f4_timer_count();
+            uint32_t spent;
+            stm32f4_stream_pump();
+            spent = stm32f4_timer_count() - before;
+            stream_pump_max = spent > stream_pump_max ? spent : stream_pump_max;
+        }
     }
     stm32f4_iwdg_timeout(IWDG_STOP_MS);
     cochlea_loop_end(&the_loop); /* zero current, torque off, confirmed: every path */

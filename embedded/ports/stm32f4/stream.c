@@ -87,11 +87,14 @@ void USART3_IRQHandler(void)
 
 static void tx_put(const void *data, size_t n)
 {
-    const uint8_t *p = (const uint8_t *)data;
-    size_t i;
-    for (i = 0; i < n; ++i) {
-        tx[(tx_head + i) % STREAM_TX_RING] = p[i];
-    }
+    /* at most two copies (up to the ring's end, then from its start); the bytes are in place
+     * before the head moves over them (the interrupt reads only below the head) */
+    uint8_t *ring = (uint8_t *)(uintptr_t)tx;
+    const uint32_t at = tx_head % STREAM_TX_RING;
+    const size_t first = n < STREAM_TX_RING - at ? n : STREAM_TX_RING - at;
+    memcpy(ring + at, data, first);
+    memcpy(ring, (const uint8_t *)data + first, n - first);
+    __asm__ volatile("" ::: "memory");
     tx_head = tx_head + (uint32_t)n;
 }
 
@@ -103,8 +106,8 @@ static void put_le(uint8_t *at, uint32_t v, int bytes)
     }
 }
 
-/* One frame into the TX ring (the caller has checked the room): payload a then b. */
-static void frame(uint8_t type, const uint8_t *a, size_t na, const uint8_t *b, size_t nb)
+/* One frame into the TX ring (the caller has checked the room): payload a then b; its CRC. */
+static uint32_t frame(uint8_t type, const uint8_t *a, size_t na, const uint8_t *b, size_t nb)
 {
     uint8_t head[10], tail[4];
     uint32_t crc;
@@ -122,6 +125,7 @@ static void frame(uint8_t type, const uint8_t *a, size_t na, const uint8_t *b, s
     tx_put(b, nb);
     tx_put(tail, sizeof tail);
     counts.frames += 1u;
+    return crc;
 }
 
 void stm32f4_stream_init(uint32_t baud, uint32_t every, int row_length)
@@ -213,16 +217,17 @@ void stm32f4_stream_pump(void)
     if (!ready) {
         return;
     }
-    while (slot_tail != slot_head && tx_free() >= bytes + 8u + STREAM_OVERHEAD) {
+    /* one row a call: bounded work between two periods (a row is queued per period at most) */
+    if (slot_tail != slot_head && tx_free() >= bytes + 8u + STREAM_OVERHEAD) {
         uint8_t k[8];
         const int64_t kk = slots[slot_tail % STREAM_SLOTS].k;
         put_le(k, (uint32_t)kk, 4);
         put_le(k + 4, (uint32_t)((uint64_t)kk >> 32), 4);
+        uint8_t crc[4];
         /* little-endian doubles: the Cortex-M4's own byte order */
-        counts.rows_crc = crc_add(counts.rows_crc, k, 8);
-        counts.rows_crc = crc_add(counts.rows_crc,
-                                  (const uint8_t *)slots[slot_tail % STREAM_SLOTS].row, bytes);
-        frame(STREAM_ROW, k, 8, (const uint8_t *)slots[slot_tail % STREAM_SLOTS].row, bytes);
+        put_le(crc, frame(STREAM_ROW, k, 8, (const uint8_t *)slots[slot_tail % STREAM_SLOTS].row,
+                          bytes), 4);
+        counts.rows_crc = crc_add(counts.rows_crc, crc, 4);
         slot_tail += 1u;
         counts.rows_sent += 1u;
     }

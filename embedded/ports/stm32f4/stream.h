@@ -28,8 +28,9 @@
 #define STREAM_MAX_ROW 96
 /* Row slots between the period and the pump. */
 #define STREAM_SLOTS 8u
-/* Bytes between the pump and the USART (a power of two, above the largest frame). */
-#define STREAM_TX_RING 8192u
+/* Bytes between the pump and the USART (a power of two, above the largest frame: the header,
+ * at most the firmware's 2 KB line). */
+#define STREAM_TX_RING 4096u
 
 typedef struct {
     uint32_t every;          /* decimation: every N-th period's row */
@@ -38,7 +39,9 @@ typedef struct {
     uint32_t rows_queued;    /* taken into a slot */
     uint32_t rows_dropped;   /* a full ring of slots: counted, never waited on */
     uint32_t rows_sent;      /* framed into the TX ring */
-    uint32_t rows_crc;       /* CRC-32 of every sent row frame's payload, in order */
+    uint32_t rows_crc;       /* CRC-32 of the sent row frames' CRCs (4 bytes LE each), in
+                              * order: the host's log holds exactly what was sent when its
+                              * own equals it (one CRC pass a row, not two) */
     uint32_t frames;         /* frames framed (the next sequence number) */
     uint32_t bytes_dropped;  /* header or end bytes a stuck line did not take */
 } stm32f4_stream_counts;
