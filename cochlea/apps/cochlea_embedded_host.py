@@ -47,10 +47,6 @@ class _Backend:
     joint_current_A = True
 
 
-class _Stop(Exception):
-    pass
-
-
 class HeaderError(CochleaError):
     """No header, or one this host cannot write a run from: nothing is written."""
 
@@ -133,10 +129,10 @@ class StreamRun:
                 f"are not {name}'s log.bin rows here ({loop.width} values: "
                 f"{','.join(expected[:4])}...): a firmware built from another scenario or "
                 "schema; --scenario names the one it was built from")
-        self.header, self.loop = header, loop
         self.out.mkdir(parents=True, exist_ok=True)
         write_raw_columns(self.out / "log.columns.json", loop)
         self.file = open(self.out / "log.bin", "wb")
+        self.header, self.loop = header, loop  # last: the run has begun
 
     def _row(self, frame: Frame) -> None:
         payload = frame.payload
@@ -241,7 +237,7 @@ class _Socket:
     """``socket://HOST:PORT`` read as a port (pyserial's own handler discards what arrived
     before it returned from opening, which may be the header)."""
 
-    def __init__(self, address: str, timeout: float):
+    def __init__(self, address: str, timeout: float, stopped: list[str]):
         host, _, port = address.removeprefix("socket://").rpartition(":")
         deadline = time.monotonic() + timeout
         while True:  # QEMU's -serial tcp:...,server=on listens a moment after it starts
@@ -249,7 +245,7 @@ class _Socket:
                 self.sock = socket.create_connection((host or "127.0.0.1", int(port)), 1.0)
                 break
             except (OSError, ValueError) as exc:
-                if time.monotonic() > deadline or isinstance(exc, ValueError):
+                if time.monotonic() > deadline or isinstance(exc, ValueError) or stopped:
                     raise CochleaError(f"cannot connect to --port {address}: {exc}") from None
                 time.sleep(0.1)
         self.sock.settimeout(0.05)
@@ -267,36 +263,53 @@ class _Socket:
         self.sock.close()
 
 
-def _source(port: str, baud: int, timeout: float):
+def _source(port: str, baud: int, timeout: float, stopped: list[str]):
     """A serial port, ``socket://HOST:PORT`` (QEMU's ``-serial tcp:...``), or a file of
     captured bytes."""
     path = Path(port)
     if path.is_file():
         return open(path, "rb"), True
     if port.startswith("socket://"):
-        return _Socket(port, timeout), False
+        return _Socket(port, timeout, stopped), False
     try:
         return serial.Serial(port, baud, timeout=0.05), False
     except (serial.SerialException, OSError, ValueError) as exc:
         raise CochleaError(f"cannot open --port {port}: {exc}") from None
 
 
+#: The signals that end the read (what came is written): Ctrl-C, SIGTERM, a hang-up.
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -> int:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise CochleaError(f"--out {out} exists and is not an empty folder: choose a new one")
     stream = StreamRun(out, scenario)
-    source, is_file = _source(port, baud, timeout)
     stopped: list[str] = []
 
-    def on_signal(signum, frame):  # noqa: ARG001
+    def on_signal(signum, frame):  # noqa: ARG001 - noted; the read loop ends at its next turn
         stopped.append(signal.Signals(signum).name)
-        raise _Stop
 
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    # Installed before the port opens and kept until the report is written: a signal ends the
+    # read within a read's timeout (50 ms) and never cuts a row or the report in half.
+    previous = {s: signal.signal(s, on_signal) for s in SIGNALS}
+    try:
+        return _read_and_write(stream, port, out, baud, timeout, stopped)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _read_and_write(stream: StreamRun, port: str, out: Path, baud: int, timeout: float,
+                    stopped: list[str]) -> int:
+    source, is_file = _source(port, baud, timeout, stopped)
     why = None
     try:
         last = time.monotonic()
         while True:
+            if stopped:
+                why = f"stopped by {stopped[0]} before the end frame"
+                break
             try:
                 data = source.read(READ_SIZE)
             except EOFError:  # the peer closed the connection (QEMU quit)
@@ -314,11 +327,7 @@ def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -
             elif time.monotonic() - last > timeout:
                 why = f"the line was silent for {timeout:g} s before the end frame"
                 break
-    except _Stop:
-        why = f"stopped by {stopped[0]} before the end frame"
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
         source.close()
     if stream.loop is None:
         print(f"{PROG}: no stream header came ({why or 'no frame'}; decoder "
