@@ -253,6 +253,10 @@ def test_a_wrong_schema_or_no_header_is_one_line_and_nothing_written(tmp_path, c
     run = host("--port", str(capture), "--out", str(tmp_path / "run2"))
     assert run.returncode == 4 and "no stream header came" in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1
+    capture.write_bytes(encode(HEADER, 0, header(columns, scenario="no_such_scenario")))
+    run = host("--port", str(capture), "--out", str(tmp_path / "run3"))
+    assert run.returncode == 4 and "no_such_scenario" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and not (tmp_path / "run3").exists()
     run = host("--port", str(capture), "--out", str(tmp_path / "x"), "--timeout", "-1")
     assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1
 

@@ -4,11 +4,11 @@ figures, through cochlea-run's own code (the real-time loop's row layout and rep
 
     cochlea-embedded-host --port /dev/ttyUSB1 --out runs/board1 [--baud 921600] [--timeout 10]
 
-It reads frames (cochlea.runtime.row_stream) until the firmware's end frame, Ctrl-C or SIGTERM,
-or a line silent for --timeout seconds; every frame is checked (CRC, sequence, schema, row
-length, time) and what is wrong is counted in summary.json's ``stream``, never raised. A run
-that did not reach its end frame is written all the same, ``stream.complete`` false and its
-stop ``stream-incomplete``. docs/embedded.md, "The row stream".
+It reads frames (cochlea.runtime.row_stream) until the firmware's end frame, Ctrl-C, SIGTERM
+or SIGHUP, or a line silent for --timeout seconds; every frame is checked (CRC, sequence,
+schema, row length, time) and what is wrong is counted in summary.json's ``stream``, never
+raised. A run that did not reach its end frame is written all the same, ``stream.complete``
+false and its stop ``stream-incomplete``. docs/embedded.md, "The row stream".
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 import serial
 
 from ..errors import EXIT_USER_ERROR, CochleaError
+from ..log_schema import SCHEMA_VERSION
 from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
 from ..runtime.loop import raw_columns
 from ..runtime.row_stream import END, HEADER, ROW, Decoder, Frame, chain_crc, parse_text
@@ -34,9 +35,9 @@ from . import report
 PROG = "cochlea-embedded-host"
 #: Exit codes: after the end frame, the firmware's own (cochlea-run's: 0 completed, 5 the
 #: motors did not start, 10-15 a supervisor rule), the files written; 2 a usage error (nothing
-#: written); 3 the stream ended without its end frame (silence, Ctrl-C, SIGTERM, end of a
-#: file), what came is written; 4 no header came, or one this host cannot write (nothing
-#: written).
+#: written); 3 the stream ended without its end frame (silence, a signal, end of a file),
+#: what came is written; 4 no header came, or one this host cannot write (another schema or
+#: scenario; nothing written).
 EXIT_INCOMPLETE, EXIT_NO_HEADER = 3, 4
 READ_SIZE = 4096
 
@@ -106,12 +107,19 @@ class StreamRun:
             name = self.scenario_override or header["scenario"]
             columns = header["columns"].split(",")
         except (KeyError, ValueError) as exc:
-            raise HeaderError(f"the stream's header is malformed ({exc}): {header}") from None
+            raise HeaderError(f"the stream's header is malformed (field {exc})") from None
         if self.every < 1 or self.period_ns <= 0 or self.row_length <= 0:
             raise HeaderError("the stream's header says no rows are streamed (row_length "
                                f"{self.row_length}, every {self.every}): nothing to write")
-        self.scenario = load_scenario(name)
-        setups = unit_setups(self.scenario, on_motors=True)
+        if header.get("schema_version") != str(SCHEMA_VERSION):
+            raise HeaderError(f"the firmware's rows follow log schema version "
+                              f"{header.get('schema_version')}, this host's is {SCHEMA_VERSION}: "
+                              "rebuild the firmware from this checkout")
+        try:
+            self.scenario = load_scenario(name)
+            setups = unit_setups(self.scenario, on_motors=True)
+        except CochleaError as exc:
+            raise HeaderError(f"the stream's scenario {name!r}: {exc}") from None
         kernels = choose_kernels(setups, self.scenario.plant_substeps, "auto", None).used
         supervisor = build_supervisor(setups, self.scenario.system.keep_out_radius,
                                       watchdog_misses=self.misses, kernels=kernels,
