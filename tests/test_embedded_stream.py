@@ -416,3 +416,42 @@ def test_the_firmwares_rows_reach_the_host_whole(stream_firmware, tmp_path):
     assert len(tau) == 6 and np.count_nonzero(got[1:, tau]) > 0
     assert sum(".current." in c for c in spec["columns"]) == 6
     assert open_run(out).summary["scenario"] == SCENARIO
+
+
+@pytest.mark.slow
+def test_a_refusal_before_the_bus_streams_its_header_and_end(tmp_path):
+    """parallel_joint (a slider: the firmware refuses before the bus starts): the stream, into
+    a file here, still carries the header and the end frame, and the host writes the empty
+    run with the firmware's exit code 5 and its refusal's rule."""
+    from tests.test_embedded_qemu import ensure_tools
+    from tests.test_embedded_stm32 import console_lines, ended
+
+    ensure_tools()
+    build = tmp_path / "build"
+    made = subprocess.run(["make", "--no-print-directory", "-s", "stm32-firmware",
+                           f"BUILD={build}", "STM32_SCENARIO=parallel_joint"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=900)
+    assert made.returncode == 0, made.stderr[-3000:]
+    console, captured = tmp_path / "console.txt", tmp_path / "stream.bin"
+    qemu = subprocess.Popen(
+        ["qemu-system-arm", "-M", "netduinoplus2", "-nographic", "-monitor", "none",
+         "-serial", f"file:{tmp_path / 'bus.bin'}", "-serial", f"file:{console}",
+         "-serial", f"file:{captured}",
+         "-kernel", str(build / "stm32f4" / "float" / "cochlea-stm32f4.elf")],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        start = time.monotonic()
+        while time.monotonic() - start < 30 and not (
+                console.exists() and ended(console.read_bytes().decode())):
+            time.sleep(0.05)
+    finally:
+        qemu.terminate()
+        qemu.wait(timeout=20)
+    assert console_lines(console.read_bytes().decode())[1].startswith("refused what=homing")
+    run = host("--port", str(captured), "--out", str(tmp_path / "run"))
+    assert run.returncode == 5, run.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["scenario"] == "parallel_joint" and summary["log_rows"] == 0
+    assert summary["stop"]["rule"] == "none" and summary["stop"]["exit_code"] == 5
+    assert summary["stream"]["complete"] and summary["stream"]["firmware"]["rows_seen"] == 0
+    assert summary["stream"]["header"]["every"] == "10"  # the default decimation
