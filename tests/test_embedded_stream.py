@@ -236,8 +236,12 @@ def test_a_decimated_stream_keeps_its_rows_at_their_periods(tmp_path, columns):
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["stream"]["rows_crc_match"] is True
     assert summary["stream"]["every"] == 3 and summary["stream"]["log_rate_Hz"] == 1000 / 3
-    assert summary["periods"] == 60 and summary["log_rows"] == 20
+    # periods, rate and duration are the log's (20 rows, one every 3 ms), as the loaders
+    # check them; the firmware's periods and control rate are in stream
+    assert summary["periods"] == 20 and summary["rate_Hz"] == pytest.approx(1000 / 3)
     assert summary["duration_s"] == pytest.approx(0.06)
+    assert summary["stream"]["firmware_periods"] == 60
+    assert summary["stream"]["control_rate_Hz"] == 1000
 
 
 @pytest.mark.slow
@@ -406,7 +410,8 @@ def test_the_firmwares_rows_reach_the_host_whole(stream_firmware, tmp_path):
     assert s["complete"] and s["rows_crc_match"] and s["rows_missing"] == 0
     assert s["decoder"]["bad_crc"] == 0 and s["decoder"]["lost_frames"] == 0
     assert s["firmware"]["rows_dropped"] == 0 and s["every"] == EVERY
-    assert summary["stop"]["rule"] == "completed" and summary["periods"] == PERIODS
+    assert summary["stop"]["rule"] == "completed" and summary["periods"] == PERIODS // EVERY
+    assert s["firmware_periods"] == PERIODS and summary["duration_s"] == pytest.approx(0.3)
     assert summary["timing"]["bus"]["shutdown"] == "confirmed 6/6"
     assert summary["timing"]["overruns"] == int(end["overruns"])
     # The controller commanded currents (tau) every streamed period, and the drives' measured
@@ -416,6 +421,12 @@ def test_the_firmwares_rows_reach_the_host_whole(stream_firmware, tmp_path):
     assert len(tau) == 6 and np.count_nonzero(got[1:, tau]) > 0
     assert sum(".current." in c for c in spec["columns"]) == 6
     assert open_run(out).summary["scenario"] == SCENARIO
+    # cochlea-mcap and cochlea-view take the folder as they take cochlea-run's
+    for tool, args in (("cochlea_mcap", ["--out", str(tmp_path / "run.mcap")]),
+                       ("cochlea_view", ["--html-out", str(tmp_path / "run.html"), "--no-open"])):
+        done = subprocess.run([sys.executable, "-m", f"cochlea.apps.{tool}", str(out), *args],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0 and "wrote" in done.stdout, done.stderr
 
 
 @pytest.mark.slow
@@ -451,7 +462,7 @@ def test_a_refusal_before_the_bus_streams_its_header_and_end(tmp_path):
     run = host("--port", str(captured), "--out", str(tmp_path / "run"))
     assert run.returncode == 5, run.stderr
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert summary["scenario"] == "parallel_joint" and summary["log_rows"] == 0
+    assert summary["scenario"] == "parallel_joint" and summary["periods"] == 0
     assert summary["stop"]["rule"] == "none" and summary["stop"]["exit_code"] == 5
     assert summary["stream"]["complete"] and summary["stream"]["firmware"]["rows_seen"] == 0
     assert summary["stream"]["header"]["every"] == "10"  # the default decimation

@@ -235,9 +235,12 @@ class StreamRun:
             "decoder": self.decoder.counts.as_dict(),
             "header": {k: v for k, v in self.header.items() if k != "columns"},
         }
-        periods = seen if seen is not None else (self.last_k or 0) + 1
-        extra = {"rate_Hz": 1.0 / self.h, "duration_s": periods * self.h,
-                 "periods": periods, "log_rows": self.rows, "stream": stream}
+        # periods, rate_Hz and duration_s describe log.bin's rows, as cochlea-run's do and as
+        # the loaders (cochlea-mcap, cochlea-view) check them: with every > 1 the rate is the
+        # log's (the control rate and the firmware's periods are in stream).
+        stream["firmware_periods"] = seen
+        extra = {"rate_Hz": 1.0 / (self.h * self.every),
+                 "duration_s": self.rows * self.h * self.every, "stream": stream}
         return report.write_all(result, self.out, None, timing, extra=extra)
 
 
