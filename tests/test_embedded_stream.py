@@ -281,6 +281,29 @@ def test_a_firmware_that_refused_to_start_leaves_an_empty_log_and_its_exit_code(
     assert summary["stream"]["complete"] and not summary["converged"]
 
 
+@pytest.mark.slow
+def test_a_report_that_cannot_be_written_is_one_line_and_exit_18(tmp_path, columns, monkeypatch,
+                                                                   capsys):
+    """The figures fail to write (as on a full disk): cochlea-run's ReportError, said in one
+    line naming what was lost and kept, exit 18; log.bin and summary.json are kept."""
+    from cochlea.apps import cochlea_embedded_host, report
+
+    def full_disk(*_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report, "figures", full_disk)
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, header(columns))
+                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
+                                   for k, row in enumerate(rows(columns, range(3))))
+                        + encode(END, 4, end_text(3, 0)))
+    code = cochlea_embedded_host.main(["--port", str(capture), "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 18 and len(err.strip().splitlines()) == 1, err
+    assert "lost figures" in err and "log.bin" in err
+    assert (tmp_path / "run" / "summary.json").exists()
+
+
 def serve(payload: bytes) -> tuple[int, threading.Event]:
     """A TCP server that sends ``payload`` to its one client and then holds the line open
     and silent until ``done`` is set."""

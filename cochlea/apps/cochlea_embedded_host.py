@@ -31,14 +31,18 @@ from ..runtime.loop import raw_columns
 from ..runtime.row_stream import END, HEADER, ROW, Decoder, Frame, chain_crc, parse_text
 from ..sim import choose_kernels, load_scenario, unit_setups
 from . import report
+from .outputs import ReportError
 
 PROG = "cochlea-embedded-host"
 #: Exit codes: after the end frame, the firmware's own (cochlea-run's: 0 completed, 5 the
 #: motors did not start, 10-15 a supervisor rule), the files written; 2 a usage error (nothing
 #: written); 3 the stream ended without its end frame (silence, a signal, end of a file),
 #: what came is written; 4 no header came, or one this host cannot write (another schema or
-#: scenario; nothing written).
+#: scenario; nothing written); 18 part of the report could not be written (the line names
+#: what was lost and what is kept).
 EXIT_INCOMPLETE, EXIT_NO_HEADER = 3, 4
+#: Part of the report could not be written (a full disk): cochlea-run's code.
+EXIT_REPORT_FAILED = 18
 READ_SIZE = 4096
 
 
@@ -375,6 +379,9 @@ def main(argv: list[str] | None = None) -> int:
     except HeaderError as exc:
         print(f"{PROG}: {exc}: nothing written", file=sys.stderr)
         return EXIT_NO_HEADER
+    except ReportError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return EXIT_REPORT_FAILED
     except CochleaError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
