@@ -190,7 +190,10 @@ qemu-firmware:
 # STM32_BAUD, STM32_READ_TIMEOUT_US (a period's SYNC_READ reply), STM32_RATE (Hz, 0: the
 # scenario's; cochlea-run's --rate), STM32_BUS_WATCHDOG_MS (the motors' Bus Watchdog, 20..2540),
 # STM32_TIMER_HZ (TIM2's clock: 84 MHz on a board, 1000000000 under QEMU, whose model counts at
-# 1 GHz), STM32_TIMER_START (TIM2's first count: a test puts a wrap inside the run).
+# 1 GHz), STM32_TIMER_START (TIM2's first count: a test puts a wrap inside the run),
+# STM32_STREAM_EVERY (every N-th period's row goes out on USART3's row stream) and
+# STM32_STREAM_BAUD (its rate; `cochlea-embedded-host` reads it: docs/embedded.md "The row
+# stream").
 STM32_DIR              := embedded/ports/stm32f4
 STM32_SCENARIO         ?= serial_joint
 STM32_DURATION         ?= 0
@@ -202,6 +205,8 @@ STM32_RATE             ?= 0
 STM32_BUS_WATCHDOG_MS  ?= 100
 STM32_TIMER_HZ         ?= 84000000
 STM32_TIMER_START      ?= 0
+STM32_STREAM_EVERY     ?= 10
+STM32_STREAM_BAUD      ?= 921600
 STM32_CPU      := -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16
 STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
                   -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(STM32_DIR) \
@@ -210,7 +215,9 @@ STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
                   -DSTM32_WATCHDOG_ERRORS=$(STM32_WATCHDOG_ERRORS) -DSTM32_BAUD=$(STM32_BAUD)u \
                   -DSTM32_READ_TIMEOUT_NS=$(STM32_READ_TIMEOUT_US)000 -DSTM32_RATE_HZ=$(STM32_RATE) \
                   -DSTM32_BUS_WATCHDOG_MS=$(STM32_BUS_WATCHDOG_MS) -DSTM32_TIMER_HZ=$(STM32_TIMER_HZ)u \
-                  -DSTM32_TIMER_START=$(STM32_TIMER_START)u
+                  -DSTM32_TIMER_START=$(STM32_TIMER_START)u \
+                  -DSTM32_STREAM_EVERY=$(STM32_STREAM_EVERY)u \
+                  -DSTM32_STREAM_BAUD=$(STM32_STREAM_BAUD)u
 STM32_LDFLAGS  := -T $(STM32_DIR)/stm32f405.ld -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 STM32_SOURCES  := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(STM32_SCENARIO).c \
@@ -233,6 +240,13 @@ $(BUILD)/stm32f4/%/cochlea-stm32f4.elf: $(STM32_DEPS)
 $(BUILD)/stm32f4/config.txt: stm32-config-check
 	@mkdir -p $(@D)
 	@echo '$(STM32_CONFIG)' | cmp -s - $@ || echo '$(STM32_CONFIG)' > $@
+
+# The row stream (docs/embedded.md, "The row stream"): the frame codec, cochlea-embedded-host
+# on made streams, and the firmware on QEMU's netduinoplus2 streaming to it.
+.PHONY: stm32-stream-test
+stm32-stream-test: $(STAMP) lib
+	-@bash embedded/ports/ensure_tools.sh
+	$(BIN)/python -m pytest -q tests/test_embedded_stream.py
 
 .PHONY: stm32-firmware stm32-config-check
 stm32-config-check:

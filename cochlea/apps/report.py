@@ -484,11 +484,12 @@ def _desired_poses(u: UnitLog) -> np.ndarray:
 
 def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = None,
               timing: dict | None = None, realtime: dict | None = None,
-              position_quantum: dict | None = None) -> dict:
+              position_quantum: dict | None = None, extra: dict | None = None) -> dict:
     """log.csv, the figures, then summary.json, each to a temporary name and renamed: a reader
     never sees half a file, and a summary.json without ``report_lost`` means the report is
     whole. A part that fails to write (a full disk) does not stop the others; then
-    :class:`ReportError` names what was lost."""
+    :class:`ReportError` names what was lost. ``extra``: entries that replace or join the
+    summary's (cochlea-embedded-host: the firmware's rate and periods, its ``stream``)."""
     out.mkdir(parents=True, exist_ok=True)
     lost, causes = [], []
     try:
@@ -498,6 +499,7 @@ def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = N
         lost.append("log.csv")
         causes.append(exc)
     data = summary(result, wall_time_s, timing, realtime, position_quantum)
+    data.update(extra or {})
     try:
         data["figures"] = [str(p) for p in figures(result, out)] if result.periods > 1 else []
     except OSError as exc:

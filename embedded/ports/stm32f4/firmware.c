@@ -32,6 +32,7 @@
 #include "hal_stm32f4.h"
 #include "loop.h"
 #include "scenario.h"
+#include "stream.h"
 
 #ifndef STM32_SCENARIO
 #define STM32_SCENARIO serial_joint
@@ -64,6 +65,12 @@
 /* Through the safe stop (its waits are bounded; 6 motors confirm in well under a second)
  * and then kicked by SysTick while the core parks. */
 #define IWDG_STOP_MS 4000u
+#ifndef STM32_STREAM_BAUD
+#define STM32_STREAM_BAUD 921600u /* the row stream on USART3 (stream.h) */
+#endif
+#ifndef STM32_STREAM_EVERY
+#define STM32_STREAM_EVERY 10u /* every N-th period's row is streamed */
+#endif
 #ifndef STM32_BUS_WATCHDOG_MS
 #define STM32_BUS_WATCHDOG_MS 100 /* the motors stop by themselves when the bus goes quiet */
 #endif
@@ -87,7 +94,11 @@ static volatile int running; /* between cochlea_loop_begin and cochlea_loop_end 
 static volatile int parked;  /* after the end: SysTick kicks the watchdog */
 static volatile int iwdg_on;
 static uint32_t kicks;
-static char line[600];
+/* The row stream's own cost, in TIM2 counts (STM32_TIMER_HZ; 1 ns under QEMU, where with
+ * -icount shift=0 a count is an instruction): the largest in-period on_row, and the largest
+ * framing between two periods. */
+static uint32_t stream_row_max, stream_pump_max;
+static char line[2048]; /* a console line, or the stream's header (its columns) */
 
 static char *put(char *at, const char *s)
 {
@@ -152,6 +163,15 @@ static void on_tick(void *ctx)
     }
 }
 
+static void on_row(void *ctx, const double *row, int row_length)
+{
+    const uint32_t before = stm32f4_timer_count();
+    uint32_t spent;
+    stm32f4_stream_row(ctx, row, row_length);
+    spent = stm32f4_timer_count() - before;
+    stream_row_max = spent > stream_row_max ? spent : stream_row_max;
+}
+
 static void kick(void *ctx)
 {
     stm32f4_iwdg_kick(ctx);
@@ -160,7 +180,12 @@ static void kick(void *ctx)
 
 static void end_line(int rule, int64_t run_ns)
 {
-    char *at = put(line, "end rule=");
+    const stm32f4_stream_counts *sc;
+    char *at;
+    /* the rows still queued first, so that the end's counts are final (bounded: 2 s) */
+    stm32f4_stream_flush_rows(stm32f4_now_ns() + 2000000000);
+    sc = stm32f4_stream_counts_now();
+    at = put(line, "end rule=");
     at = put(at, rule == COCHLEA_RULE_NONE ? "none" : cochlea_rule_name(rule));
     at = put_kv(at, "exit", rule == COCHLEA_RULE_NONE ? COCHLEA_EXIT_BACKEND
                                                       : cochlea_exit_code(rule));
@@ -198,7 +223,49 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "stop_joint", the_loop.stop.joint);
     at = put_kv(at, "stop_value_u", (int64_t)(the_loop.stop.value * 1e6));
     at = put_kv(at, "stop_limit_u", (int64_t)(the_loop.stop.limit * 1e6));
+    /* the stop's time (us), and the row stream's counts (stream.h) */
+    at = put_kv(at, "stop_time_us", (int64_t)(the_loop.stop.time_s * 1e6));
+    at = put_kv(at, "stream_every", sc->every);
+    at = put_kv(at, "rows_seen", sc->rows_seen);
+    at = put_kv(at, "rows_queued", sc->rows_queued);
+    at = put_kv(at, "rows_dropped", sc->rows_dropped);
+    at = put_kv(at, "rows_sent", sc->rows_sent);
+    at = put_kv(at, "rows_crc", sc->rows_crc);
+    at = put_kv(at, "frames", sc->frames);
+    at = put_kv(at, "stream_row_counts_max", stream_row_max);
+    at = put_kv(at, "stream_pump_counts_max", stream_pump_max);
+    *at = '\0';
+    stm32f4_stream_end(line + 4, stm32f4_now_ns() + 2000000000); /* without "end " */
     say(at);
+}
+
+/* The stream's header frame: what the host needs to write cochlea-run's files. */
+static void stream_header(const cochlea_scenario *sc, double period, double duration, int clock)
+{
+    static const char *const clock_names[] = {"pll", "unmodelled", "no-hse", "no-pll"};
+    const int length = cochlea_loop_row_length(sc);
+    int i;
+    char *at = put(line, "cochlea-stm32f4-stream version=1 scenario=" STR(STM32_SCENARIO)
+                         " precision=");
+    at = put(at, sc->real_size == 4 ? "float" : "double");
+    at = put(at, " clock=");
+    at = put(at, clock_names[clock]);
+    at = put_kv(at, "period_ns", (int64_t)(period * 1e9 + 0.5));
+    at = put_kv(at, "periods", (int64_t)(duration / period + 0.5));
+    at = put_kv(at, "every", STM32_STREAM_EVERY);
+    at = put_kv(at, "row_length", length > STREAM_MAX_ROW ? 0 : length);
+    at = put_kv(at, "schema_version", sc->schema_version);
+    at = put_kv(at, "watchdog_misses", STM32_WATCHDOG_MISSES);
+    at = put_kv(at, "watchdog_errors", STM32_WATCHDOG_ERRORS);
+    at = put_kv(at, "timer_hz", STM32_TIMER_HZ);
+    at = put(at, " columns=");
+    for (i = 0; i < sc->n_raw_columns; ++i) {
+        at = put(at, i ? "," : "");
+        at = put(at, sc->raw_columns[i]);
+    }
+    *at = '\0';
+    stm32f4_stream_init(STM32_STREAM_BAUD, STM32_STREAM_EVERY, length);
+    stm32f4_stream_header(line);
 }
 
 int main(void)
@@ -226,6 +293,7 @@ int main(void)
     at = put_kv(at, "period_ns", (int64_t)(period * 1e9 + 0.5));
     at = put_kv(at, "periods", (int64_t)(duration / period + 0.5));
     say(at);
+    stream_header(sc, period, duration, clock);
     if (clock == STM32F4_CLOCK_NO_HSE || clock == STM32F4_CLOCK_NO_PLL) {
         say(put(line, "refused what=clock: the crystal or the PLL did not start; nothing moved"));
         end_line(COCHLEA_RULE_NONE, 0);
@@ -273,6 +341,7 @@ int main(void)
         park();
     }
     the_loop.kick_watchdog = kick;
+    the_loop.on_row = on_row; /* a copy into a slot, or a count: never a wait */
     if (!cochlea_bridge_start(&bridge, &report)) {
         at = put(line, "start failed");
         at = put_kv(at, "error", report.error);
@@ -298,6 +367,14 @@ int main(void)
     while (rule == COCHLEA_RULE_NONE) {
         /* waits (WFI) for its deadline: the tick's interrupt wakes the core */
         rule = cochlea_loop_period(&the_loop);
+        {
+            /* between periods: frames the queued rows */
+            const uint32_t before = stm32f4_timer_count();
+            uint32_t spent;
+            stm32f4_stream_pump();
+            spent = stm32f4_timer_count() - before;
+            stream_pump_max = spent > stream_pump_max ? spent : stream_pump_max;
+        }
     }
     stm32f4_iwdg_timeout(IWDG_STOP_MS);
     cochlea_loop_end(&the_loop); /* zero current, torque off, confirmed: every path */

@@ -116,6 +116,11 @@ static int64_t counts_to_ns(uint64_t counts)
     return (int64_t)(whole * 1000000000u + part * 1000000000u / STM32_TIMER_HZ);
 }
 
+uint32_t stm32f4_timer_count(void)
+{
+    return TIM2_CNT;
+}
+
 int64_t stm32f4_now_ns(void)
 {
     return counts_to_ns(timer_counts());

@@ -53,6 +53,8 @@ int stm32f4_clock_init(void);
  * compared with the last, with interrupts masked; SysTick's interrupt reads it every period,
  * so no wrap, 51 s at 84 MHz, can pass unseen). */
 void stm32f4_clock_start(void);
+/* TIM2's raw 32-bit count (STM32_TIMER_HZ): differences time short code paths. */
+uint32_t stm32f4_timer_count(void);
 /* The 64-bit nanosecond clock (monotonic, never wraps). */
 int64_t stm32f4_now_ns(void);
 /* SysTick at period_ns (the loop's period, at most 2^24 core cycles): its interrupt calls

@@ -22,6 +22,7 @@ void Fault_Handler(void);
 void Default_Handler(void);
 void SysTick_Handler(void);
 void USART1_IRQHandler(void);
+void USART3_IRQHandler(void);
 
 void Reset_Handler(void)
 {
@@ -81,8 +82,9 @@ void Default_Handler(void)
 
 typedef void (*vector)(void);
 
-/* The core's exceptions, then every external interrupt: the bus's receive (37, USART1) and
- * Default_Handler (a fault line) for the others, which the firmware never enables. */
+/* The core's exceptions, then every external interrupt: the bus's receive (37, USART1), the
+ * row stream's transmit (39, USART3; stream.c) and Default_Handler (a fault line) for the
+ * others, which the firmware never enables. */
 __attribute__((section(".isr_vector"), used)) const vector vectors[16 + IRQ_COUNT] = {
     (vector)(uintptr_t)&_estack, Reset_Handler,
     Fault_Handler,   /* NMI */
@@ -105,7 +107,7 @@ __attribute__((section(".isr_vector"), used)) const vector vectors[16 + IRQ_COUN
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 24-27 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 28-31 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 32-35 */
-    Default_Handler, USART1_IRQHandler, Default_Handler, Default_Handler, /* 36-39 */
+    Default_Handler, USART1_IRQHandler, Default_Handler, USART3_IRQHandler, /* 36-39 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 40-43 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 44-47 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 48-51 */

@@ -32,9 +32,11 @@
 #define RCC_CFGR_PPRE2_DIV2 (4u << 13)
 #define RCC_AHB1ENR REG32(RCC_BASE + 0x30u) /* 7.3.10 */
 #define RCC_AHB1ENR_GPIOAEN (1u << 0)
+#define RCC_AHB1ENR_GPIOBEN (1u << 1)
 #define RCC_APB1ENR REG32(RCC_BASE + 0x40u) /* 7.3.13 */
 #define RCC_APB1ENR_TIM2EN (1u << 0)
 #define RCC_APB1ENR_USART2EN (1u << 17)
+#define RCC_APB1ENR_USART3EN (1u << 18)
 #define RCC_APB2ENR REG32(RCC_BASE + 0x44u) /* 7.3.14 */
 #define RCC_APB2ENR_USART1EN (1u << 4)
 #define RCC_CSR REG32(RCC_BASE + 0x74u)     /* 7.3.21 */
@@ -58,11 +60,15 @@
 #define GPIOA_BSRR REG32(GPIOA_BASE + 0x18u)    /* 8.4.7: set 15:0, reset 31:16 */
 #define GPIOA_AFRL REG32(GPIOA_BASE + 0x20u)    /* 8.4.9: pins 0-7, 4 bits each */
 #define GPIOA_AFRH REG32(GPIOA_BASE + 0x24u)    /* 8.4.10: pins 8-15 */
+#define GPIOB_BASE 0x40020400u
+#define GPIOB_MODER REG32(GPIOB_BASE + 0x00u)
+#define GPIOB_AFRH REG32(GPIOB_BASE + 0x24u)
 #define GPIO_AF7_USART 7u                       /* USART1..3: AF7 (datasheet DS8626 table 9) */
 
 /* ---- USART: RM0090 section 30.6 (register map 30.6.8) ------------------------------------- */
 #define USART1_BASE 0x40011000u /* APB2 */
 #define USART2_BASE 0x40004400u /* APB1 */
+#define USART3_BASE 0x40004800u /* APB1 */
 #define USART_SR(base) REG32((base) + 0x00u)   /* 30.6.1 */
 #define USART_SR_ORE (1u << 3)
 #define USART_SR_RXNE (1u << 5)
@@ -74,6 +80,7 @@
 #define USART_CR1_RE (1u << 2)
 #define USART_CR1_TE (1u << 3)
 #define USART_CR1_RXNEIE (1u << 5)
+#define USART_CR1_TXEIE (1u << 7)
 #define USART_CR1_UE (1u << 13)
 #define USART_CR1_OVER8 (1u << 15)
 #define USART_CR2(base) REG32((base) + 0x10u)  /* 30.6.5: 0 = 1 stop bit */
@@ -95,6 +102,7 @@
 
 /* ---- Interrupt numbers: RM0090 section 12.2, the vector table ------------------------------------- */
 #define IRQ_USART1 37
+#define IRQ_USART3 39
 #define IRQ_COUNT 82 /* the vector table's external interrupts (0..81, FPU last) */
 
 /* ---- Cortex-M4 core: PM0214 section 4 ----------------------------------------------------- */

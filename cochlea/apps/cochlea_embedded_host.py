@@ -1,0 +1,397 @@
+"""cochlea-embedded-host: the rows a board's firmware streams (embedded/ports/stm32f4, USART3)
+written as cochlea-run writes a run: log.bin, log.columns.json, log.csv, summary.json and the
+figures, through cochlea-run's own code (the real-time loop's row layout and report).
+
+    cochlea-embedded-host --port /dev/ttyUSB1 --out runs/board1 [--baud 921600] [--timeout 10]
+
+It reads frames (cochlea.runtime.row_stream) until the firmware's end frame, Ctrl-C, SIGTERM
+or SIGHUP, or a line silent for --timeout seconds; every frame is checked (CRC, sequence,
+schema, row length, time) and what is wrong is counted in summary.json's ``stream``, never
+raised. A run that did not reach its end frame is written all the same, ``stream.complete``
+false and its stop ``stream-incomplete``. docs/embedded.md, "The row stream".
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import serial
+
+from ..errors import EXIT_USER_ERROR, CochleaError
+from ..log_schema import SCHEMA_VERSION
+from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
+from ..runtime.loop import raw_columns
+from ..runtime.row_stream import END, HEADER, ROW, Decoder, Frame, chain_crc, parse_text
+from ..sim import choose_kernels, load_scenario, unit_setups
+from . import report
+from .outputs import ReportError
+
+PROG = "cochlea-embedded-host"
+#: Exit codes: after the end frame, the firmware's own (cochlea-run's: 0 completed, 5 the
+#: motors did not start, 10-15 a supervisor rule), the files written; 2 a usage error (nothing
+#: written); 3 the stream ended without its end frame (silence, a signal, end of a file),
+#: what came is written; 4 no header came, or one this host cannot write (another schema or
+#: scenario; nothing written); 18 part of the report could not be written (the line names
+#: what was lost and what is kept).
+EXIT_INCOMPLETE, EXIT_NO_HEADER = 3, 4
+#: Part of the report could not be written (a full disk): cochlea-run's code.
+EXIT_REPORT_FAILED = 18
+READ_SIZE = 4096
+
+
+class _Backend:
+    """The loop's view of the firmware's bus: it measures current (the rows carry it)."""
+
+    joint_current_A = True
+
+
+class HeaderError(CochleaError):
+    """No header, or one this host cannot write a run from: nothing is written."""
+
+
+class StreamRun:
+    """The host's side of one firmware run: the header sets the loop (cochlea-run's row
+    layout), the rows go to log.bin, the end frame closes it."""
+
+    def __init__(self, out: Path, scenario_override: str | None):
+        self.out, self.scenario_override = out, scenario_override
+        self.decoder = Decoder()
+        self.header: dict | None = None
+        self.end: dict | None = None
+        self.loop: RealTimeLoop | None = None
+        self.file = None
+        self.rows = 0  # rows in log.bin (received, and NaN fill for missing periods)
+        self.received = 0
+        self.missing = 0  # periods the stream skipped (lost frames, the firmware's drops)
+        self.bad_rows = {"length": 0, "time": 0, "order": 0}
+        self.before_header = 0
+        self.crc = 0
+        self.last_k: int | None = None
+
+    # ---- frames ----------------------------------------------------------------------
+
+    def feed(self, data: bytes) -> bool:
+        """True once the end frame has come. The rows are in log.bin when it returns (a
+        reader following the file, as cochlea-ros2 follows cochlea-run's, sees them)."""
+        try:
+            return self._frames(data)
+        finally:
+            if self.file is not None:
+                self.file.flush()
+
+    def _frames(self, data: bytes) -> bool:
+        for frame in self.decoder.feed(data):
+            if frame.kind == HEADER:
+                if self.header is None:
+                    self._start(parse_text(frame.payload))
+            elif frame.kind == ROW:
+                if self.loop is None:
+                    self.before_header += 1
+                else:
+                    self._row(frame)
+            elif frame.kind == END and self.loop is not None:
+                self.end = parse_text(frame.payload)
+                return True
+        return False
+
+    def _start(self, header: dict) -> None:
+        try:
+            self.every = int(header["every"])
+            self.period_ns = int(header["period_ns"])
+            self.row_length = int(header["row_length"])
+            self.periods = int(header["periods"])
+            self.misses = int(header.get("watchdog_misses", 20))
+            name = self.scenario_override or header["scenario"]
+            columns = header["columns"].split(",")
+        except (KeyError, ValueError) as exc:
+            raise HeaderError(f"the stream's header is malformed (field {exc})") from None
+        if self.every < 1 or self.period_ns <= 0 or self.row_length <= 0:
+            raise HeaderError("the stream's header says no rows are streamed (row_length "
+                               f"{self.row_length}, every {self.every}): nothing to write")
+        if header.get("schema_version") != str(SCHEMA_VERSION):
+            raise HeaderError(f"the firmware's rows follow log schema version "
+                              f"{header.get('schema_version')}, this host's is {SCHEMA_VERSION}: "
+                              "rebuild the firmware from this checkout")
+        try:
+            self.scenario = load_scenario(name)
+            setups = unit_setups(self.scenario, on_motors=True)
+        except CochleaError as exc:
+            raise HeaderError(f"the stream's scenario {name!r}: {exc}") from None
+        kernels = choose_kernels(setups, self.scenario.plant_substeps, "auto", None).used
+        supervisor = build_supervisor(setups, self.scenario.system.keep_out_radius,
+                                      watchdog_misses=self.misses, kernels=kernels,
+                                      substeps=self.scenario.plant_substeps)
+        # The loop's rows are log.bin's; its period is the log's row spacing (every-th
+        # period), so that the report's desired samples fall at the rows' times.
+        self.h = self.period_ns * 1e-9
+        loop = RealTimeLoop(setups, _Backend(), supervisor, self.h * self.every,
+                            max(self.periods // self.every, 1), realtime=True,
+                            kernels=kernels, substeps=self.scenario.plant_substeps)
+        expected = raw_columns(loop)
+        if columns != expected or loop.width != self.row_length:
+            raise HeaderError(
+                f"the firmware's rows ({self.row_length} values: {','.join(columns[:4])}...) "
+                f"are not {name}'s log.bin rows here ({loop.width} values: "
+                f"{','.join(expected[:4])}...): a firmware built from another scenario or "
+                "schema; --scenario names the one it was built from")
+        self.out.mkdir(parents=True, exist_ok=True)
+        write_raw_columns(self.out / "log.columns.json", loop)
+        self.file = open(self.out / "log.bin", "wb")
+        self.header, self.loop = header, loop  # last: the run has begun
+
+    def _row(self, frame: Frame) -> None:
+        payload = frame.payload
+        if len(payload) != 8 + 8 * self.row_length:
+            self.bad_rows["length"] += 1
+            return
+        k = int(np.frombuffer(payload, "<i8", 1)[0])
+        row = np.frombuffer(payload, "<f8", self.row_length, offset=8)
+        t = float(row[0])
+        # time_s is never NaN and is k periods; rows come every every-th period, in order.
+        if not math.isfinite(t) or abs(t - k * self.h) > 1e-9 * max(1.0, abs(t)) + 1e-12 \
+                or k % self.every:
+            self.bad_rows["time"] += 1
+            return
+        if self.last_k is not None and k <= self.last_k:
+            self.bad_rows["order"] += 1
+            return
+        self.crc = chain_crc(self.crc, frame.crc)
+        expected = 0 if self.last_k is None else self.last_k + self.every
+        while expected < k:  # a hole: a NaN row at the missing period's time keeps the log's
+            hole = np.full(self.row_length, np.nan)  # rows at their periods
+            hole[0] = expected * self.h
+            self.file.write(hole.astype("<f8").tobytes())
+            self.rows += 1
+            self.missing += 1
+            expected += self.every
+        self.file.write(row.astype("<f8").tobytes())
+        self.rows += 1
+        self.received += 1
+        self.last_k = k
+
+    # ---- the report ------------------------------------------------------------------
+
+    def write(self, why_incomplete: str | None) -> dict:
+        self.file.close()
+        loop, end = self.loop, self.end or {}
+        loop.log_path, loop.rows = self.out / "log.bin", self.rows
+        result = loop.result(self.scenario)
+        result.kernels = {"used": "c", "requested": "c",
+                          "library": f"compiled in: cochlea-stm32f4 "
+                                     f"({self.header.get('precision', '?')})",
+                          "fallback_reason": None}
+        if why_incomplete is None:
+            rule = end.get("rule", "none")
+            exit_code = int(end.get("exit", 5))
+            stop_t = int(end.get("stop_time_us", 0)) * 1e-6
+            joint = int(end.get("stop_joint", -1))
+            detail = "" if rule in ("completed", "none") or joint < 0 else (
+                f"joint {joint}: {int(end.get('stop_value_u', 0)) * 1e-6:g} past its limit "
+                f"{int(end.get('stop_limit_u', 0)) * 1e-6:g} (SI)")
+            result.stop = {"rule": rule, "time_s": stop_t, "detail": detail,
+                           "exit_code": exit_code}
+        else:
+            last = (self.last_k or 0) * self.h
+            result.stop = {"rule": "stream-incomplete", "time_s": last,
+                           "detail": why_incomplete, "exit_code": None}
+        timing = loop.timing_summary()
+        # What only the firmware knows: its own overrun rule's counts, its lateness, the bus.
+        for key, kind in (("deadline_misses", int), ("overruns", int),
+                          ("tick_overruns", int)):
+            if key in end:
+                timing[key] = kind(end[key])
+        if "lateness_max_ns" in end:
+            timing["lateness_max"] = int(end["lateness_max_ns"]) * 1e-9
+        timing["deadline_miss_fraction"] = timing["deadline_misses"] / max(
+            int(end.get("rows", self.rows * self.every)), 1)
+        timing["nominal_period"] = self.h
+        timing["scheduling"] = "stm32f4 firmware: SysTick paces the periods, the main " \
+                               "context runs them"
+        if end:
+            timing["bus"] = {"reads": int(end.get("reads", 0)),
+                             "good_reads": int(end.get("good_reads", 0)),
+                             "failures": end.get("failures", "none"),
+                             "rx_overflows": int(end.get("rx_overflows", 0)),
+                             "shutdown": "confirmed " + end.get("confirmed_off", "?")}
+        seen = int(end["rows_seen"]) if "rows_seen" in end else None
+        firmware_crc = int(end["rows_crc"]) if "rows_crc" in end else None
+        stream = {
+            "complete": why_incomplete is None,
+            "incomplete_reason": why_incomplete,
+            "every": self.every,
+            "control_rate_Hz": 1.0 / self.h,
+            "log_rate_Hz": 1.0 / (self.h * self.every),
+            "rows_received": self.received,
+            "rows_missing": self.missing,
+            "rows_rejected": dict(self.bad_rows),
+            "rows_before_header": self.before_header,
+            "firmware": {k: int(end[k]) for k in ("rows_seen", "rows_queued", "rows_dropped",
+                                                  "rows_sent", "frames", "kicks")
+                         if k in end},
+            "rows_crc_match": None if firmware_crc is None else firmware_crc == self.crc,
+            "decoder": self.decoder.counts.as_dict(),
+            "header": {k: v for k, v in self.header.items() if k != "columns"},
+        }
+        # periods, rate_Hz and duration_s describe log.bin's rows, as cochlea-run's do and as
+        # the loaders (cochlea-mcap, cochlea-view) check them: with every > 1 the rate is the
+        # log's (the control rate and the firmware's periods are in stream).
+        stream["firmware_periods"] = seen
+        extra = {"rate_Hz": 1.0 / (self.h * self.every),
+                 "duration_s": self.rows * self.h * self.every, "stream": stream}
+        return report.write_all(result, self.out, None, timing, extra=extra)
+
+
+class _Socket:
+    """``socket://HOST:PORT`` read as a port (pyserial's own handler discards what arrived
+    before it returned from opening, which may be the header)."""
+
+    def __init__(self, address: str, timeout: float, stopped: list[str]):
+        host, _, port = address.removeprefix("socket://").rpartition(":")
+        deadline = time.monotonic() + timeout
+        while True:  # QEMU's -serial tcp:...,server=on listens a moment after it starts
+            try:
+                self.sock = socket.create_connection((host or "127.0.0.1", int(port)), 1.0)
+                break
+            except (OSError, ValueError) as exc:
+                if time.monotonic() > deadline or isinstance(exc, ValueError) or stopped:
+                    raise CochleaError(f"cannot connect to --port {address}: {exc}") from None
+                time.sleep(0.1)
+        self.sock.settimeout(0.05)
+
+    def read(self, n: int) -> bytes:
+        try:
+            data = self.sock.recv(n)
+        except TimeoutError:
+            return b""
+        if not data:
+            raise EOFError
+        return data
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def _source(port: str, baud: int, timeout: float, stopped: list[str]):
+    """A serial port, ``socket://HOST:PORT`` (QEMU's ``-serial tcp:...``), or a file of
+    captured bytes."""
+    path = Path(port)
+    if path.is_file():
+        return open(path, "rb"), True
+    if port.startswith("socket://"):
+        return _Socket(port, timeout, stopped), False
+    try:
+        return serial.Serial(port, baud, timeout=0.05), False
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise CochleaError(f"cannot open --port {port}: {exc}") from None
+
+
+#: The signals that end the read (what came is written): Ctrl-C, SIGTERM, a hang-up.
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -> int:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise CochleaError(f"--out {out} exists and is not an empty folder: choose a new one")
+    stream = StreamRun(out, scenario)
+    stopped: list[str] = []
+
+    def on_signal(signum, frame):  # noqa: ARG001 - noted; the read loop ends at its next turn
+        stopped.append(signal.Signals(signum).name)
+
+    # Installed before the port opens and kept until the report is written: a signal ends the
+    # read within a read's timeout (50 ms) and never cuts a row or the report in half.
+    previous = {s: signal.signal(s, on_signal) for s in SIGNALS}
+    try:
+        return _read_and_write(stream, port, out, baud, timeout, stopped)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _read_and_write(stream: StreamRun, port: str, out: Path, baud: int, timeout: float,
+                    stopped: list[str]) -> int:
+    source, is_file = _source(port, baud, timeout, stopped)
+    why = None
+    try:
+        last = time.monotonic()
+        while True:
+            if stopped:
+                why = f"stopped by {stopped[0]} before the end frame"
+                break
+            try:
+                data = source.read(READ_SIZE)
+            except EOFError:  # the peer closed the connection (QEMU quit)
+                stream.decoder.finish()
+                why = "the connection closed before the end frame"
+                break
+            if data:
+                last = time.monotonic()
+                if stream.feed(data):
+                    break
+            elif is_file:
+                stream.decoder.finish()
+                why = "the capture ended before the end frame"
+                break
+            elif time.monotonic() - last > timeout:
+                why = f"the line was silent for {timeout:g} s before the end frame"
+                break
+    finally:
+        source.close()
+    if stream.loop is None:
+        print(f"{PROG}: no stream header came ({why or 'no frame'}; decoder "
+              f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
+        return EXIT_NO_HEADER
+    data = stream.write(why)
+    print(f"{PROG}: wrote {out}: {stream.rows} rows (one every {stream.every} periods), "
+          f"stop {data['stop']['rule']}"
+          + (f"; incomplete: {why}" if why else "")
+          + (f"; {stream.missing} missing" if stream.missing else ""))
+    if why is not None:
+        return EXIT_INCOMPLETE
+    return data["stop"]["exit_code"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--port", required=True,
+                        help="the serial port of the firmware's USART3 (or a file of captured "
+                             "bytes)")
+    parser.add_argument("--out", type=Path, required=True, help="a new or empty folder")
+    parser.add_argument("--baud", type=int, default=921600,
+                        help="the stream's rate (the firmware's STM32_STREAM_BAUD)")
+    parser.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                        help="a line silent this long ends the read (s; default 10)")
+    parser.add_argument("--scenario", default=None,
+                        help="the scenario the firmware was built from (default: the header's)")
+    args = parser.parse_args(argv)
+    if not (args.timeout > 0 and math.isfinite(args.timeout)) or args.baud <= 0:
+        print(f"{PROG}: --timeout and --baud must be positive", file=sys.stderr)
+        return EXIT_USER_ERROR
+    try:
+        return run(args.port, args.out, args.baud, args.timeout, args.scenario)
+    except HeaderError as exc:
+        print(f"{PROG}: {exc}: nothing written", file=sys.stderr)
+        return EXIT_NO_HEADER
+    except ReportError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return EXIT_REPORT_FAILED
+    except CochleaError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except OSError as exc:
+        print(f"{PROG}: {exc.strerror or exc}: {getattr(exc, 'filename', '')}",
+              file=sys.stderr)
+        return EXIT_USER_ERROR
+
+
+__all__ = ["main", "run", "StreamRun"]
+
+if __name__ == "__main__":
+    sys.exit(main())
