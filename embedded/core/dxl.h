@@ -98,6 +98,16 @@ int32_t dxl_fast_sync_read(uint8_t *out, size_t cap, uint16_t address, uint16_t 
 int32_t dxl_sync_write(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
                        const uint8_t *ids, const uint8_t *data, size_t n_ids);
 
+/* BULK_READ (0x92), to the broadcast ID: per motor k its ID ids[k], then the address and
+ * length of the block it answers with (addresses[k], lengths[k]); each motor answers with its
+ * own status packet, as for SYNC_READ (protocol.py's bulk_read). */
+int32_t dxl_bulk_read(uint8_t *out, size_t cap, const uint8_t *ids, const uint16_t *addresses,
+                      const uint16_t *lengths, size_t n_ids);
+/* BULK_WRITE (0x93), to the broadcast ID, no reply: per motor k its ID, address, length, then
+ * lengths[k] bytes of data, the blocks back to back in data (protocol.py's bulk_write). */
+int32_t dxl_bulk_write(uint8_t *out, size_t cap, const uint8_t *ids, const uint16_t *addresses,
+                       const uint16_t *lengths, const uint8_t *data, size_t n_ids);
+
 /* Little-endian fields of the control table; the signed getters are two's complement. */
 void dxl_put_u16(uint8_t *p, uint16_t value);
 void dxl_put_u32(uint8_t *p, uint32_t value);
