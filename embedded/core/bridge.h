@@ -59,6 +59,9 @@ enum cochlea_failure {
     COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_STALE, COCHLEA_FAIL_KINDS
 };
 const char *cochlea_failure_name(int kind);
+/* The name cochlea-run writes of a transfer (dxl.h's DXL_SYNC_READ .. DXL_BULK_WRITE), e.g.
+ * "BULK_READ"; "unknown" for another code. */
+const char *cochlea_instruction_name(int instruction);
 
 /* Why a start-up failed. */
 enum cochlea_start_error {
@@ -113,7 +116,9 @@ typedef struct {
     int retries;
     int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
     int read_length;            /* bytes per motor of the period's read */
-    uint16_t read_address;      /* where that block starts (every motor's the same) */
+    uint16_t read_address;      /* where that block starts on the first motor */
+    uint16_t read_addresses[COCHLEA_MAX_DRIVES]; /* and on each motor (its model's data: they
+                                 * differ on a mixed chain, read by BULK_READ) */
     int read_at[4];             /* offsets in it of the Realtime Tick, Present Current,
                                  * Velocity, Position (the tick's only with realtime_tick) */
     uint8_t read_size[4];       /* and their sizes (bytes), from the model data */
@@ -143,9 +148,10 @@ typedef struct {
     int alert_status;           /* the alert motor's Hardware Error Status, -1 unreadable */
     /* Buffers. */
     dxl_parser parser;
-    uint8_t read_frame[DXL_FRAME_SIZE(4 + COCHLEA_MAX_DRIVES)];
+    /* room for BULK_READ's request (5 bytes per motor) and BULK_WRITE's Goal Current (7) */
+    uint8_t read_frame[DXL_FRAME_SIZE(5 * COCHLEA_MAX_DRIVES)];
     size_t read_len;
-    uint8_t write_frame[DXL_FRAME_SIZE(4 + 3 * COCHLEA_MAX_DRIVES)];
+    uint8_t write_frame[DXL_FRAME_SIZE(7 * COCHLEA_MAX_DRIVES)];
     uint8_t scratch[DXL_FRAME_SIZE(4 + 5 * COCHLEA_MAX_DRIVES)];
     uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_MAX_READ_LENGTH];
     int32_t last_tick[COCHLEA_MAX_DRIVES];        /* the last Realtime Tick seen, -1 none */
