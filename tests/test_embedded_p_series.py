@@ -667,3 +667,62 @@ def test_the_mixed_chain_program_tracks_like_cochlea_run_on_the_same_emulator(mi
                 (unit, coord, c, py)
             assert c["converged"], (unit, coord, c)
     assert summary["converged"] is True and python["converged"] is True
+
+
+@pytest.mark.slow
+@pytest.mark.hil
+def test_the_program_counts_a_p_carriage_from_the_record_home_writes(tmp_path):
+    """tests/data/prismatic3 with a PH42-020-S300-R on its lead-screw carriage (a mixed chain:
+    XM430, PH42, XM430): ``cochlea-dxl home`` records the carriage's stop (its token at 536),
+    and the embedded program checks that record (direction and m/rad from the drive table,
+    not from 4096 counts a turn: the PH42 has 607500), reads the token at the PH42's address
+    and counts the carriage from its stop in the PH42's pulses, by BULK frames."""
+    import argparse
+    import time
+
+    from cochlea.dynamixel.bringup import home
+    from cochlea.dynamixel.emulator import Truth, VirtualChain
+    from tests.test_dynamixel_p_series import _p_carriage
+    from tests.test_embedded_program import EMULATOR_SETTLE_S, PATIENT
+
+    description, scenario = _p_carriage(tmp_path)
+    assert [d.spec.name for d in joint_drives("serial", description)] == [
+        "XM430-W350", "PH42-020-S300-R", "XM430-W350"]
+    gen, build = tmp_path / "gen", tmp_path / "build"
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_codegen", "--scenario",
+                           str(scenario), "--embedded", "--no-build", "--out", str(gen)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    program = build / "cochlea-embedded"
+    done = subprocess.run(["make", "-s", f"GEN={gen}", f"BUILD={build}", str(program)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    stop, record, out = 0.03, tmp_path / "homing.json", tmp_path / "run"
+    parser = argparse.ArgumentParser()
+    home.add_arguments(parser)
+    chain = VirtualChain("serial", scenario, truth=Truth(offset_deg={2: 500.0},
+                                                        hard_stop_m=stop)).start()
+    try:
+        assert home.run(parser.parse_args([
+            "--robot", "serial", "--description", str(description), "--port", chain.path,
+            "--record", str(record), "--stop-m", str(stop), "--speed-mm-s", "8",
+            "--force-N", "20"])) == 0
+        chain.move_joint("arm.carriage", 0.0395)  # the scenario's initial pose, by hand
+        time.sleep(min(EMULATOR_SETTLE_S, 0.5))
+        done = subprocess.run([str(program), "--scenario", "prismatic3_joint", "--port",
+                               chain.path, "--duration", "0.3", "--out", str(out), *PATIENT,
+                               "--homing", "required", "--homing-record", str(record)],
+                              capture_output=True, text=True, timeout=120)
+        events = list(chain.events)
+    finally:
+        chain.close()
+    assert done.returncode == 0, done.stderr
+    assert "bus: BULK_READ + BULK_WRITE per period" in done.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timing"]["bus"]["homing"].startswith("homed ")
+    assert "torque off confirmed by all 3" in summary["timing"]["bus"]["shutdown"]
+    assert any(e[1] == "read" and e[2] == 2 and e[3] == 536 for e in events)  # the token
+    with open(out / "log.csv") as f:
+        header = f.readline().strip().split(",")
+        first = f.readline().strip().split(",")
+    assert abs(float(first[header.index("arm.q.carriage_joint_m")]) - 0.0395) < 1e-3
