@@ -811,7 +811,8 @@ static int bulk_item(const cochlea_bridge *b, int item)
 
 /* Start-up step 9 at the first nonzero command, its Goal Current already sent: two
  * transactions, one SYNC_WRITE of Torque Enable 1 to every motor, then one SYNC_READ of Torque
- * Enable confirming each (asked again, up to b->retries times in all, only while a reply is
+ * Enable confirming each (BULK_WRITE and BULK_READ, each motor at its own address, where the
+ * models place it differently) (asked again, up to b->retries times in all, only while a reply is
  * missing or corrupted), as the Python bridge's _torque_on, the same bytes on the wire. The ID
  * of the first motor (drive order) that did not answer, answered with an error or its alert,
  * or reads back anything but 1; 254 when the port failed; -1 when every motor confirmed. */

@@ -216,8 +216,10 @@ typedef struct {
 } dxl_table;
 
 /* A chain's transfers, chosen by the generator from the models' data with the Python bridge's
- * rule (cochlea.dynamixel.bridge.choose_transfers): the per-period read (DXL_SYNC_READ, or
- * DXL_FAST_SYNC_READ when every model's data says it answers it) and write (DXL_SYNC_WRITE),
+ * rule (cochlea.dynamixel.bridge.choose_transfers): the per-period read (DXL_BULK_READ when the
+ * models place the block at different addresses, DXL_FAST_SYNC_READ when every model's data
+ * says it answers it, DXL_SYNC_READ otherwise) and write (DXL_BULK_WRITE when they place Goal
+ * Current at different addresses, DXL_SYNC_WRITE otherwise),
  * why (the same text cochlea-run writes as read_choice), and each drive's table in the drive
  * table's order. */
 typedef struct dxl_bus {
