@@ -10,8 +10,9 @@ and a mixed chain (an X-series arm with a P-series joint) on one bus.
   PH42-020-S300-R shoulder and an XM430-W350 elbow (tests/data/planar2_xp*.toml): it converges,
   with BULK_READ / BULK_WRITE and the bus budget of those frames in its summary; Fast Sync
   Read is never chosen for such a chain;
-* bad input: a P motor whose needed value is unsourced, one line; the embedded drive tables
-  refuse a P motor in one line naming it.
+* bad input: a P motor whose needed value is unsourced, one line.
+
+The embedded drive tables and the C bridge on the same chain: tests/test_embedded_p_series.py.
 """
 
 from __future__ import annotations
@@ -517,13 +518,3 @@ def test_cochlea_run_on_an_unsourced_p_motor_says_one_line(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "PM54-040-S250-R" in lines[0] and "not sourced" in lines[0]
 
-
-def test_the_embedded_drive_tables_refuse_the_p_joint_in_one_line():
-    from cochlea.dynamixel.embedded_drives import drives_header
-
-    with pytest.raises(BackendError) as info:
-        drives_header("serial", ARM)
-    message = str(info.value)
-    assert "\n" not in message
-    assert message.startswith("joint arm.upper: PH42-020-S300-R: not supported by the embedded "
-                              "drive tables and the C bridge yet")

@@ -5,8 +5,9 @@ address and size of the C bridge from the model data.
   SDK's, and its check of the combined status packet ``protocol.check_fast_sync``'s, case for
   case (``dxl_fast_sync_check``);
 * the generator's choice (``embedded_drives.bus_choice``: ``choose_transfers`` over the models'
-  data, the Python bridge's rule and text), its refusals in one line (a chain that needs
-  BULK_READ / BULK_WRITE, a P-series motor, a model without current control);
+  data, the Python bridge's rule and text), its refusals in one line (a table the C bridge
+  does not speak, a model without current control; a chain that needs BULK_READ /
+  BULK_WRITE is generated: tests/test_embedded_p_series.py);
 * the C bridge's read over a scripted line against the Python bridge's on the same bytes:
   the good packet gives the same state, and every fault of the combined packet (a motor's
   block missing, a CRC error in the middle, a wrong running CRC, a short packet, an alert, an
@@ -216,22 +217,26 @@ def _moved(spec, names, shift):
 
 def test_what_the_c_bridge_cannot_drive_is_refused_in_one_line(tmp_path):
     drives = joint_drives("serial", ARM)
-    # A mixed chain whose state block lies elsewhere on one motor: BULK_READ, which the C
-    # bridge does not send; Goal Current elsewhere: BULK_WRITE.
+    # A mixed chain whose state block lies elsewhere on one motor is BULK_READ now, Goal
+    # Current elsewhere BULK_WRITE: the C bridge sends both (tests/test_embedded_p_series.py).
     state = ("Realtime Tick", "Moving", "Moving Status", "Present PWM", "Present Current",
              "Present Velocity", "Present Position")
-    for names, what in ((state, "BULK_READ"), (("Goal Current",), "BULK_WRITE")):
+    for names, what in ((state, "DXL_BULK_READ, DXL_SYNC_WRITE"),
+                        (("Goal Current",), "DXL_SYNC_READ, DXL_BULK_WRITE")):
         mixed = [drives[0], dataclasses.replace(drives[1], spec=_moved(drives[1].spec, names,
                                                                        256))]
-        with pytest.raises(BackendError) as info:
-            drives_header("serial", ARM, drives=mixed)
-        message = str(info.value)
-        assert "\n" not in message and "embedded bridge cannot drive" in message
-        assert what in message
-    # A P-series motor, and a model without current control: refused before any table.
+        assert what in drives_header("serial", ARM, drives=mixed)
+    # A model whose control table the C bridge does not speak (none with current control
+    # ships: the XL320's layout stands in), and a model without current control: refused
+    # before any table, in one line naming the model.
+    odd = [dataclasses.replace(drives[0], spec=dataclasses.replace(drives[0].spec,
+                                                                   layout="xl320")), drives[1]]
+    with pytest.raises(BackendError) as info:
+        drives_header("serial", ARM, drives=odd)
+    assert "\n" not in str(info.value) and "not supported by the embedded drive tables" in \
+        str(info.value) and "XM540-W270" in str(info.value)
     text = ARM.read_text()
-    for model, why in (("PH54-200-S500-R", "not supported"),
-                       ("XL430-W250", "no Current Control mode")):
+    for model, why in (("XL430-W250", "no Current Control mode"),):
         path = tmp_path / f"{model}.toml"
         path.write_text(text.replace('model = "XM540-W270"', f'model = "{model}"', 1))
         with pytest.raises(CochleaError) as info:
@@ -241,20 +246,21 @@ def test_what_the_c_bridge_cannot_drive_is_refused_in_one_line(tmp_path):
 
 
 def test_cochlea_codegen_refuses_the_table_before_writing_anything(tmp_path, capsys):
-    """``cochlea-codegen --scenario --embedded`` with a P-series motor: one line, exit 2, no
-    file written (it used to write the kernels first, then refuse the drive table)."""
+    """``cochlea-codegen --scenario --embedded`` with a motor the drive tables refuse (a model
+    without current control): one line, exit 2, no file written (it used to write the kernels
+    first, then refuse the drive table)."""
     from cochlea.apps import cochlea_codegen
     from cochlea.errors import EXIT_USER_ERROR
 
     description = tmp_path / "p.toml"
     description.write_text(ARM.read_text().replace('model = "XM540-W270"',
-                                                   'model = "PH54-200-S500-R"', 1))
+                                                   'model = "XL430-W250"', 1))
     out = tmp_path / "out"
     assert cochlea_codegen.main(["--scenario", str(ARM_SCENARIO), "--description",
                                  str(description), "--embedded", "--no-build", "--out",
                                  str(out)]) == EXIT_USER_ERROR
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "PH54-200-S500-R: not supported" in err[0]
+    assert len(err) == 1 and "XL430-W250" in err[0] and "no Current Control mode" in err[0]
     assert not out.exists() or not any(out.iterdir())
 
 

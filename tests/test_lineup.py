@@ -217,23 +217,25 @@ def test_a_baud_rate_the_model_does_not_take_is_refused(tmp_path):
                          description=str(tmp_path / "planar2.toml"))
 
 
-def test_a_p_series_motor_drives_in_python_but_the_embedded_tables_refuse_it(tmp_path):
+def test_a_p_series_motor_drives_in_python_and_in_the_embedded_tables(tmp_path):
     """The P series' addresses differ: the description, the simulation and the Python bridge
-    and emulator (joint_drives, each item from the data) take it; the embedded drive tables
-    and the C bridge (X layout only) refuse it in one line naming the model."""
-    from cochlea.dynamixel.embedded_drives import bus_choice
+    and emulator (joint_drives, each item from the data) take it, and so do the embedded drive
+    tables and the C bridge (issue 27 items 3, 4): a chain of P motors alone places every item
+    alike, so its transfers are the plain SYNC ones (its Fast Sync Read support unsourced),
+    each item at the P series' address."""
+    from cochlea.dynamixel.embedded_drives import bus_choice, drives_header
 
     sc = load_scenario(_user_robot(tmp_path, "PH54-200-S500-R", 2000.0))
     result = simulate(sc, duration=0.05, kernels="casadi")
     assert not result.diverged and np.all(np.isfinite(result.unit("arm").q))
     drives = joint_drives("serial", system=sc.system)
     assert [d.spec.name for d in drives][0] == "PH54-200-S500-R"
-    with pytest.raises(BackendError) as info:
-        bus_choice(drives)
-    assert str(info.value) == (
-        "joint arm.upper: PH54-200-S500-R: not supported by the embedded drive tables and the "
-        "C bridge yet: its control table (p layout, Goal Current at 550) is not the X series' "
-        "it speaks (the Python bridge, cochlea-run --backend dynamixel, drives it)")
+    assert bus_choice(drives[:1]) == (
+        "SYNC_READ", "SYNC_WRITE", "SYNC_READ (PH54-200-S500-R: FAST_SYNC_READ support not "
+        "sourced)")
+    header = drives_header("serial", system=sc.system, drives=drives)
+    assert '{"PH54-200-S500-R", {{9, 1}, {11, 1}, {38, 2}, {512, 1}, {518, 1}, {546, 1}, ' \
+        '{550, 2}, {536, 2}, {568, 2}, {574, 2}, {576, 4}, {580, 4}}, 0}' in header
 
 
 # --------------------------------------------------------------------------------------------

@@ -163,8 +163,10 @@ LAYOUT_FIELDS = {"x": ("velocity_limit", "position_p_gain", "acceleration_limit"
 #: The layouts the Python bridge, the emulator and cochlea-dxl speak (each item's address and
 #: size from the data; the per-period block in the same order and sizes on both).
 BRIDGE_LAYOUTS = ("x", "p")
-#: The layout the embedded drive tables and the C bridge speak (the X series').
-EMBEDDED_LAYOUTS = ("x",)
+#: The layouts the embedded drive tables and the C bridge speak: the Python bridge's (each
+#: motor's items and units from its data in the generated tables; a mixed X + P chain by
+#: BULK_READ / BULK_WRITE, embedded/core/bridge.c).
+EMBEDDED_LAYOUTS = BRIDGE_LAYOUTS
 
 
 @dataclass(frozen=True)

@@ -7,11 +7,14 @@ conversions equal the bridge's bit for bit; the supervisor's limit arrays; and t
 (``dxl_bus``, ``embedded/core/dxl.h``): each motor's control-table items (address and size,
 from the model data, ``cochlea/dynamixel/models``) and the per-period transfers, chosen by the
 Python bridge's own rule (:func:`cochlea.dynamixel.bridge.choose_transfers`, with the Realtime
-Tick the C program always reads). A chain the C bridge cannot drive is refused here, in one
-line: a model whose control table is not the X series' (a P-series motor, which the Python
-bridge drives: :data:`~cochlea.dynamixel.control_table.EMBEDDED_LAYOUTS`), or a chain whose
-models place the period's items at different addresses (the C bridge has no BULK_READ /
-BULK_WRITE).
+Tick the C program always reads): SYNC_READ, FAST_SYNC_READ or BULK_READ, SYNC_WRITE or
+BULK_WRITE (a mixed chain, e.g. an X-series arm with a P-series joint, whose models place the
+period's items at different addresses). Each motor's units are its model's, in its drive's
+constants (``q_per_count`` from its counts per turn, ``qd_per_lsb`` from its velocity unit,
+``lsb_per_ampere`` / ``ampere_per_lsb`` from its current unit). A model whose control table
+the C bridge does not speak is refused here in one line naming it
+(:data:`~cochlea.dynamixel.control_table.EMBEDDED_LAYOUTS`: the X and P series'; the XL320's
+is not), and a chain no single state layout reads (:func:`choose_transfers`' refusal).
 """
 
 from __future__ import annotations
@@ -35,11 +38,14 @@ BUS_ITEMS = ("Return Delay Time", "Operating Mode", "Current Limit", "Torque Ena
              "Hardware Error Status", "Bus Watchdog", "Goal Current", "Feedforward 2nd Gain",
              "Realtime Tick", "Present Current", "Present Velocity", "Present Position")
 OPTIONAL_ITEMS = ("Feedforward 2nd Gain",)
-#: The names ``cochlea-run`` writes (``read_instruction``) of the reads the C bridge sends.
-_READ_NAMES = {"sync": "SYNC_READ", "fast": "FAST_SYNC_READ"}
+#: The names ``cochlea-run`` writes (``read_instruction``, ``write_instruction``) of the
+#: transfers the C bridge sends.
+_READ_NAMES = {"sync": "SYNC_READ", "fast": "FAST_SYNC_READ", "bulk": "BULK_READ"}
+_WRITE_NAMES = {"sync": "SYNC_WRITE", "bulk": "BULK_WRITE"}
 #: ``dxl.h``'s code of each instruction choose_transfers can name.
 _C_INSTRUCTIONS = {"SYNC_READ": "DXL_SYNC_READ", "FAST_SYNC_READ": "DXL_FAST_SYNC_READ",
-                   "SYNC_WRITE": "DXL_SYNC_WRITE"}
+                   "BULK_READ": "DXL_BULK_READ", "SYNC_WRITE": "DXL_SYNC_WRITE",
+                   "BULK_WRITE": "DXL_BULK_WRITE"}
 
 
 def _real(value: float) -> str:
@@ -71,26 +77,19 @@ def _c_string(text: str) -> str:
 
 def bus_choice(drives: list[JointDrive]) -> tuple[str, str, str]:
     """The C bridge's per-period transfers for ``drives``: ``(read, write, why)`` with read
-    ``"SYNC_READ"`` or ``"FAST_SYNC_READ"``, write ``"SYNC_WRITE"``, and why the text
-    ``cochlea-run`` writes as ``read_choice``: :func:`choose_transfers` over the models' data
-    with the items the C program reads (the Realtime Tick first). A chain that needs BULK_READ
-    or BULK_WRITE raises :class:`BackendError` in one line: the C bridge does not send them."""
-    for d in drives:  # the C bridge's tables are the X series' (no P-series motor yet)
+    ``"SYNC_READ"``, ``"FAST_SYNC_READ"`` or ``"BULK_READ"``, write ``"SYNC_WRITE"`` or
+    ``"BULK_WRITE"``, and why the text ``cochlea-run`` writes as ``read_choice``:
+    :func:`choose_transfers` over the models' data with the items the C program reads (the
+    Realtime Tick first), the Python bridge's choice for the same chain. A model whose table
+    the C bridge does not speak raises :class:`BackendError` in one line naming it."""
+    for d in drives:
         try:
             d.spec.require_layout("the embedded drive tables and the C bridge",
                                   EMBEDDED_LAYOUTS)
         except CochleaError as exc:
-            raise BackendError(f"joint {d.name}: {exc} (the Python bridge, cochlea-run "
-                               "--backend dynamixel, drives it)") from None
+            raise BackendError(f"joint {d.name}: {exc}") from None
     read, write, why = choose_transfers([d.spec for d in drives], TICK_ITEMS)
-    if read == "bulk" or write == "bulk":
-        models = ", ".join(sorted({d.spec.name for d in drives}))
-        raise BackendError(
-            f"the embedded bridge cannot drive this chain ({models}): "
-            + (why if read == "bulk" else "the models place Goal Current at different "
-               "addresses") + "; it sends SYNC_READ / FAST_SYNC_READ and SYNC_WRITE only "
-            "(the Python bridge, cochlea-run --backend dynamixel, sends BULK_READ / BULK_WRITE)")
-    return _READ_NAMES[read], "SYNC_WRITE", why
+    return _READ_NAMES[read], _WRITE_NAMES[write], why
 
 
 def _table_row(d: JointDrive) -> str:

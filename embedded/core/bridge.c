@@ -25,6 +25,18 @@ const char *cochlea_failure_name(int kind)
     return (kind >= 0 && kind < COCHLEA_FAIL_KINDS) ? FAILURE_NAMES[kind] : "unknown";
 }
 
+const char *cochlea_instruction_name(int instruction)
+{
+    switch (instruction) {
+    case DXL_SYNC_READ: return "SYNC_READ";
+    case DXL_FAST_SYNC_READ: return "FAST_SYNC_READ";
+    case DXL_BULK_READ: return "BULK_READ";
+    case DXL_SYNC_WRITE: return "SYNC_WRITE";
+    case DXL_BULK_WRITE: return "BULK_WRITE";
+    default: return "unknown";
+    }
+}
+
 enum { RESULT_OK, RESULT_TIMEOUT, RESULT_CRC, RESULT_PORT };
 
 /* Motor i's item (its address and size, from its model's data). */
@@ -51,15 +63,22 @@ static int same_item(const cochlea_bridge *b, int item)
 }
 
 /* The block of each period's read: from the Realtime Tick (with the tick check) or from
- * Present Current, to the end of Present Position, at the same address, length and offsets
- * on every motor (else -1: a mixed chain the C bridge cannot read), and its request, a
- * SYNC_READ or a FAST_SYNC_READ as the bus says. */
+ * Present Current, to the end of Present Position, of the same length and offsets on every
+ * motor (else -1: no single state layout reads them, the Python bridge's choose_transfers
+ * refuses such a chain too), and its request as the bus says: a SYNC_READ or a
+ * FAST_SYNC_READ (the block at one address on every motor, else -1), or a BULK_READ (each
+ * motor's block at its own address: a mixed chain, e.g. 568 on a P-series motor, 120 on an
+ * X-series one), the Python bridge's frame byte for byte. */
 static int read_frame(cochlea_bridge *b, int tick)
 {
     static const int items[4] = {DXL_ITEM_REALTIME_TICK, DXL_ITEM_PRESENT_CURRENT,
                                  DXL_ITEM_PRESENT_VELOCITY, DXL_ITEM_PRESENT_POSITION};
     uint8_t ids[COCHLEA_MAX_DRIVES];
-    unsigned start = 0, end = 0;
+    uint16_t addresses[COCHLEA_MAX_DRIVES], lengths[COCHLEA_MAX_DRIVES];
+    unsigned length = 0;
+    int same_address = 1;
+    int read_at[4] = {0, 0, 0, 0};
+    uint8_t read_size[4] = {0, 0, 0, 0};
     int32_t len;
     int i, k;
     for (i = 0; i < b->n; ++i) {
@@ -73,41 +92,55 @@ static int read_frame(cochlea_bridge *b, int tick)
             hi = it->address + it->size > hi ? it->address + it->size : hi;
         }
         if (i == 0) {
-            start = lo;
-            end = hi;
-        } else if (lo != start || hi != end) {
+            length = hi - lo;
+        } else if (hi - lo != length) {
             return -1;
         }
         for (k = 0; k < 4; ++k) {
             const dxl_item *it = item_of(b, i, items[k]);
-            const int at = (int)it->address - (int)start;
+            const int at = (int)it->address - (int)lo;
             if (i == 0) {
-                b->read_at[k] = at;
-                b->read_size[k] = it->size;
-            } else if ((k > 0 || tick) && (at != b->read_at[k] || it->size != b->read_size[k])) {
+                read_at[k] = at;
+                read_size[k] = it->size;
+            } else if ((k > 0 || tick) && (at != read_at[k] || it->size != read_size[k])) {
                 return -1;
             }
         }
         ids[i] = b->drives[i].id;
+        addresses[i] = (uint16_t)lo;
+        lengths[i] = (uint16_t)length;
+        same_address = same_address && lo == addresses[0];
     }
-    if (end - start > COCHLEA_MAX_READ_LENGTH || b->read_size[1] > 2) {
+    if (length > COCHLEA_MAX_READ_LENGTH || read_size[1] > 2) {
         return -1;
     }
-    if (b->bus->read_instruction == DXL_FAST_SYNC_READ) {
-        len = dxl_fast_sync_read(b->read_frame, sizeof b->read_frame, (uint16_t)start,
-                                 (uint16_t)(end - start), ids, (size_t)b->n);
+    if (b->bus->read_instruction == DXL_BULK_READ) {
+        len = dxl_bulk_read(b->read_frame, sizeof b->read_frame, ids, addresses, lengths,
+                            (size_t)b->n);
+    } else if (!same_address) {
+        return -1; /* a mixed chain's blocks: only BULK_READ reads them */
+    } else if (b->bus->read_instruction == DXL_FAST_SYNC_READ) {
+        len = dxl_fast_sync_read(b->read_frame, sizeof b->read_frame, addresses[0],
+                                 (uint16_t)length, ids, (size_t)b->n);
     } else if (b->bus->read_instruction == DXL_SYNC_READ) {
-        len = dxl_sync_read(b->read_frame, sizeof b->read_frame, (uint16_t)start,
-                            (uint16_t)(end - start), ids, (size_t)b->n);
+        len = dxl_sync_read(b->read_frame, sizeof b->read_frame, addresses[0],
+                            (uint16_t)length, ids, (size_t)b->n);
     } else {
         return -1;
     }
     if (len < 0) {
         return -1;
     }
+    for (k = 0; k < 4; ++k) {
+        b->read_at[k] = read_at[k];
+        b->read_size[k] = read_size[k];
+    }
+    for (i = 0; i < b->n; ++i) {
+        b->read_addresses[i] = addresses[i];
+    }
     b->read_len = (size_t)len;
-    b->read_address = (uint16_t)start;
-    b->read_length = (int)(end - start);
+    b->read_address = addresses[0];
+    b->read_length = (int)length;
     b->realtime_tick = tick;
     return 0;
 }
@@ -134,15 +167,21 @@ static const char *check_tables(cochlea_bridge *b)
             }
         }
     }
-    if (b->bus->write_instruction != DXL_SYNC_WRITE || same_item(b, DXL_ITEM_GOAL_CURRENT) ||
-        same_item(b, DXL_ITEM_TORQUE_ENABLE) || item_of(b, 0, DXL_ITEM_GOAL_CURRENT)->size != 2) {
-        return "the motors place Goal Current or Torque Enable at different addresses (a "
-               "mixed chain: the C bridge sends SYNC_WRITE only, not BULK_WRITE)";
+    for (i = 0; i < b->n; ++i) { /* every period's frame carries an int16 Goal Current */
+        if (item_of(b, i, DXL_ITEM_GOAL_CURRENT)->size != 2) {
+            return "a motor's Goal Current is not 2 bytes";
+        }
+    }
+    if (!(b->bus->write_instruction == DXL_BULK_WRITE
+          || (b->bus->write_instruction == DXL_SYNC_WRITE
+              && same_item(b, DXL_ITEM_GOAL_CURRENT) == 0))) {
+        return "the motors place Goal Current at different addresses and the table's write is "
+               "not BULK_WRITE (a mixed chain's: regenerate the table with cochlea-codegen)";
     }
     if (read_frame(b, 0) != 0 || read_frame(b, 1) != 0) {
         return "the motors place Present Current .. Present Position (and the Realtime Tick) "
-               "differently (a mixed chain: the C bridge sends SYNC_READ or FAST_SYNC_READ "
-               "only, not BULK_READ)";
+               "differently and the table's read is not BULK_READ, or their blocks differ in "
+               "length or layout (no single read parses them)";
     }
     return 0;
 }
@@ -730,30 +769,50 @@ int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd)
     return sync_read(b, q, qd);
 }
 
-/* A SYNC_WRITE of item (ADDR_x, at one address on every motor: cochlea_bridge_init checked
- * it) of size bytes: values[i] per motor, or same to all. DXL_E_ARG when the table's item has
- * another size. */
+/* A write of item (ADDR_x) of size bytes to every motor, no reply: values[i] per motor, or
+ * same to all. bulk 0: one SYNC_WRITE, the item at one address on every motor (DXL_E_ARG
+ * otherwise); bulk 1: one BULK_WRITE, each motor's item at its own address (a mixed chain).
+ * DXL_E_ARG when a motor's item has another size. The Python bridge's frames byte for byte. */
 static int32_t goal_frame(cochlea_bridge *b, int item, int size, const int16_t *values,
-                          int32_t same)
+                          int32_t same, int bulk)
 {
     uint8_t ids[COCHLEA_MAX_DRIVES];
+    uint16_t addresses[COCHLEA_MAX_DRIVES], lengths[COCHLEA_MAX_DRIVES];
     uint8_t data[4 * COCHLEA_MAX_DRIVES];
-    const dxl_item *it = item_of(b, 0, item);
     int i;
-    if (it->size != size) {
+    if (!bulk && same_item(b, item) != 0) {
         return DXL_E_ARG;
     }
     for (i = 0; i < b->n; ++i) {
+        const dxl_item *it = item_of(b, i, item);
+        if (it->size != size) {
+            return DXL_E_ARG;
+        }
         ids[i] = b->drives[i].id;
+        addresses[i] = it->address;
+        lengths[i] = (uint16_t)size;
         put_value(data + (size_t)size * (size_t)i, size, values ? values[i] : same);
     }
-    return dxl_sync_write(b->write_frame, sizeof b->write_frame, it->address, (uint16_t)size,
+    if (bulk) {
+        return dxl_bulk_write(b->write_frame, sizeof b->write_frame, ids, addresses, lengths,
+                              data, (size_t)b->n);
+    }
+    return dxl_sync_write(b->write_frame, sizeof b->write_frame, addresses[0], (uint16_t)size,
                           ids, data, (size_t)b->n);
+}
+
+/* Whether a frame of item to every motor is a BULK one: where the models place it
+ * differently (Torque Enable: 64 on the X series, 512 on the P series), as the Python
+ * bridge's _write_all chooses. */
+static int bulk_item(const cochlea_bridge *b, int item)
+{
+    return same_item(b, item) != 0;
 }
 
 /* Start-up step 9 at the first nonzero command, its Goal Current already sent: two
  * transactions, one SYNC_WRITE of Torque Enable 1 to every motor, then one SYNC_READ of Torque
- * Enable confirming each (asked again, up to b->retries times in all, only while a reply is
+ * Enable confirming each (BULK_WRITE and BULK_READ, each motor at its own address, where the
+ * models place it differently) (asked again, up to b->retries times in all, only while a reply is
  * missing or corrupted), as the Python bridge's _torque_on, the same bytes on the wire. The ID
  * of the first motor (drive order) that did not answer, answered with an error or its alert,
  * or reads back anything but 1; 254 when the port failed; -1 when every motor confirmed. */
@@ -762,7 +821,8 @@ static int torque_on(cochlea_bridge *b)
     uint8_t ids[COCHLEA_MAX_DRIVES], got[COCHLEA_MAX_DRIVES], error[COCHLEA_MAX_DRIVES];
     int value[COCHLEA_MAX_DRIVES];
     int i, tries;
-    int32_t len = goal_frame(b, ADDR_TORQUE_ENABLE, 1, 0, 1);
+    const int bulk = bulk_item(b, ADDR_TORQUE_ENABLE);
+    int32_t len = goal_frame(b, ADDR_TORQUE_ENABLE, 1, 0, 1, bulk);
     if (len < 0 || !send(b, b->write_frame, (size_t)len)) {
         return 254;
     }
@@ -772,12 +832,21 @@ static int torque_on(cochlea_bridge *b)
         error[i] = 0;
         value[i] = -1;
     }
-    { /* the item's address and size from the drives' table (every motor's the same: a mixed
-       * layout is refused by cochlea_bridge_init) */
-        const dxl_item *it = item_of(b, 0, ADDR_TORQUE_ENABLE);
-        len = it->size == 1 ? dxl_sync_read(b->scratch, sizeof b->scratch, it->address, 1, ids,
-                                            (size_t)b->n)
-                            : DXL_E_ARG;
+    { /* read back where each motor's model keeps it: one SYNC_READ where all alike, else
+       * one BULK_READ, each at its own address (the Python bridge's frames) */
+        uint16_t addresses[COCHLEA_MAX_DRIVES], lengths[COCHLEA_MAX_DRIVES];
+        for (i = 0; i < b->n; ++i) {
+            const dxl_item *it = item_of(b, i, ADDR_TORQUE_ENABLE);
+            addresses[i] = it->address;
+            lengths[i] = it->size;
+            if (it->size != 1) {
+                return 254; /* not a frame this bridge can read back */
+            }
+        }
+        len = bulk ? dxl_bulk_read(b->scratch, sizeof b->scratch, ids, addresses, lengths,
+                                   (size_t)b->n)
+                   : dxl_sync_read(b->scratch, sizeof b->scratch, addresses[0], 1, ids,
+                                   (size_t)b->n);
     }
     if (len < 0) {
         return 254;
@@ -844,7 +913,8 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
     for (i = 0; i < b->n; ++i) { /* a NaN or infinite command: zero current, and report it */
         b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i], b->offset_current) : 0;
     }
-    len = goal_frame(b, ADDR_GOAL_CURRENT, 2, b->goal, 0);
+    len = goal_frame(b, ADDR_GOAL_CURRENT, 2, b->goal, 0,
+                     b->bus->write_instruction == DXL_BULK_WRITE);
     if (len < 0 || !send(b, b->write_frame, (size_t)len)) {
         return fail(b, COCHLEA_FAIL_PORT, -1);
     }
@@ -872,12 +942,16 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
 int cochlea_bridge_stop(cochlea_bridge *b)
 {
     int i, round, confirmed = 0;
+    /* The Python bridge's frames: BULK_WRITEs both when the period's write is one, else a
+     * SYNC_WRITE of Goal Current and Torque Enable's where the models place it alike. */
+    const int bulk = b->bus->write_instruction == DXL_BULK_WRITE;
     for (round = 0; round < 2; ++round) {
-        int32_t len = goal_frame(b, ADDR_GOAL_CURRENT, 2, 0, 0);
+        int32_t len = goal_frame(b, ADDR_GOAL_CURRENT, 2, 0, 0, bulk);
         if (len > 0) {
             (void)send(b, b->write_frame, (size_t)len);
         }
-        len = goal_frame(b, ADDR_TORQUE_ENABLE, 1, 0, 0);
+        len = goal_frame(b, ADDR_TORQUE_ENABLE, 1, 0, 0,
+                         bulk || bulk_item(b, ADDR_TORQUE_ENABLE));
         if (len > 0) {
             (void)send(b, b->write_frame, (size_t)len);
         }

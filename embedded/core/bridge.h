@@ -19,11 +19,14 @@
  *      (not-enabled), so the loop's read watchdog stops the run.
  * Each period: cochlea_bridge_read is one read of Present Current, Velocity and Position
  * (with the Realtime Tick check, from the Realtime Tick: on the X series 126..135 and
- * 120..135), cochlea_bridge_write one SYNC_WRITE of Goal Current. The read is a FAST_SYNC_READ
- * (one combined status packet) when every motor's model data says it answers it, a SYNC_READ
- * otherwise: the generator's choice (dxl_bus), by the Python bridge's rule. Every address and
- * size comes from the generated drive table's control tables (the model data), none from
- * this code. Failures (timeout, CRC, error byte, hardware alert, length, port, late
+ * 120..135; on the P series 568..583), cochlea_bridge_write one SYNC_WRITE of Goal Current.
+ * The read is a BULK_READ (each motor's block at its own address) when the models place it at
+ * different addresses (a mixed chain: an X-series arm with a P-series joint), a
+ * FAST_SYNC_READ (one combined status packet) when every motor's model data says it answers
+ * it, a SYNC_READ otherwise; the write a BULK_WRITE where the models place Goal Current
+ * differently: the generator's choice (dxl_bus), by the Python bridge's rule, and the Python
+ * bridge's frames byte for byte. Every address and size comes from the generated drive
+ * table's control tables (the model data), none from this code. Failures (timeout, CRC, error byte, hardware alert, length, port, late
  * traffic, non-finite command, stale packet) are a 0 return and counters, never a stop of
  * their own: the loop's watchdog decides.
  * The Realtime Tick check (cochlea_bridge_use_realtime_tick; the Python bridge's
@@ -33,7 +36,10 @@
  * data), and the read fails as stale-packet. It costs 6 bytes per motor and period.
  * Shut-down (cochlea_bridge_stop, also after a failed start-up and on every fault): SYNC_WRITE
  * Goal Current 0 and Torque Enable 0, each twice (no reply needed, so one dead motor cannot hold
- * up the others), then a READ of Torque Enable per motor to confirm.
+ * up the others), then a READ of Torque Enable per motor to confirm. These and the torque-on
+ * (and its read-back) are BULK_WRITE / BULK_READ where the models place the item differently
+ * (Torque Enable 64 and 512), as the Python bridge sends them; the rest of this text says
+ * SYNC_READ / SYNC_WRITE for any of them.
  */
 #ifndef COCHLEA_BRIDGE_H
 #define COCHLEA_BRIDGE_H
@@ -59,6 +65,9 @@ enum cochlea_failure {
     COCHLEA_FAIL_NOT_ENABLED, COCHLEA_FAIL_STALE, COCHLEA_FAIL_KINDS
 };
 const char *cochlea_failure_name(int kind);
+/* The name cochlea-run writes of a transfer (dxl.h's DXL_SYNC_READ .. DXL_BULK_WRITE), e.g.
+ * "BULK_READ"; "unknown" for another code. */
+const char *cochlea_instruction_name(int instruction);
 
 /* Why a start-up failed. */
 enum cochlea_start_error {
@@ -113,7 +122,9 @@ typedef struct {
     int retries;
     int realtime_tick;          /* read the Realtime Tick and refuse stale packets */
     int read_length;            /* bytes per motor of the period's read */
-    uint16_t read_address;      /* where that block starts (every motor's the same) */
+    uint16_t read_address;      /* where that block starts on the first motor */
+    uint16_t read_addresses[COCHLEA_MAX_DRIVES]; /* and on each motor (its model's data: they
+                                 * differ on a mixed chain, read by BULK_READ) */
     int read_at[4];             /* offsets in it of the Realtime Tick, Present Current,
                                  * Velocity, Position (the tick's only with realtime_tick) */
     uint8_t read_size[4];       /* and their sizes (bytes), from the model data */
@@ -143,9 +154,10 @@ typedef struct {
     int alert_status;           /* the alert motor's Hardware Error Status, -1 unreadable */
     /* Buffers. */
     dxl_parser parser;
-    uint8_t read_frame[DXL_FRAME_SIZE(4 + COCHLEA_MAX_DRIVES)];
+    /* room for BULK_READ's request (5 bytes per motor) and BULK_WRITE's Goal Current (7) */
+    uint8_t read_frame[DXL_FRAME_SIZE(5 * COCHLEA_MAX_DRIVES)];
     size_t read_len;
-    uint8_t write_frame[DXL_FRAME_SIZE(4 + 3 * COCHLEA_MAX_DRIVES)];
+    uint8_t write_frame[DXL_FRAME_SIZE(7 * COCHLEA_MAX_DRIVES)];
     uint8_t scratch[DXL_FRAME_SIZE(4 + 5 * COCHLEA_MAX_DRIVES)];
     uint8_t raw[COCHLEA_MAX_DRIVES * COCHLEA_MAX_READ_LENGTH];
     int32_t last_tick[COCHLEA_MAX_DRIVES];        /* the last Realtime Tick seen, -1 none */
@@ -155,8 +167,9 @@ typedef struct {
 
 /* 0, or -1 when the drive table does not fit the bridge (b->config_problem says why, one
  * line): more than COCHLEA_MAX_DRIVES drives, no bus, a motor without an item the bridge
- * writes, or a chain whose models place the period's items at different addresses (a mixed
- * chain: the C bridge has no BULK_READ / BULK_WRITE; the generator refuses it first).
+ * writes, a Goal Current not of 2 bytes, or transfers that do not fit the motors (a SYNC_READ
+ * or SYNC_WRITE where they place the items at different addresses, blocks of different
+ * lengths or layouts: a table written by hand; the generator never writes one).
  * watchdog_s is rounded up to whole 20 ms, within 20..2540 ms. */
 int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea_drive *drives,
                         int n, int64_t timeout_ns, double watchdog_s);

@@ -1,10 +1,13 @@
 /* cochlea embedded runtime: joint <-> motor conversions of one Dynamixel drive, the Python
  * bridge's (cochlea/dynamixel/drives.py, cochlea/robots/motor_fit.py) in C.
  *
- * Joint side SI (rad or m, rad/s or m/s, N m or N); motor side in control-table units:
- * Present Position in counts (2 pi / 4096 rad), Present Velocity in 0.229 rpm, currents in the
- * model's LSB (3.36 mA MX-64(2.0), 2.69 mA XM540-W270). The tables of a robot are generated
- * from its description (generated_c/embedded/<robot>_drives.h).
+ * Joint side SI (rad or m, rad/s or m/s, N m or N); motor side in control-table units, each
+ * the model's, from its data (cochlea/dynamixel/models): Present Position in counts (2 pi /
+ * counts per turn: 4096 on the X series, 607500 on a PH42-020-S300-R), Present Velocity in its
+ * LSB (0.229 rpm X series, 0.01 rpm P series), currents in its LSB (3.36 mA MX-64(2.0), 2.69 mA
+ * XM540-W270, 1 mA P series). Nothing here assumes one: each drive carries them in its
+ * constants. The tables of a robot are generated from its description
+ * (generated_c/embedded/<robot>_drives.h).
  */
 #ifndef COCHLEA_DRIVES_H
 #define COCHLEA_DRIVES_H
@@ -26,9 +29,11 @@ typedef struct {
     uint8_t id;                /* Dynamixel ID */
     uint16_t model_number;     /* what PING must answer (311 MX-64(2.0), 1120 XM540-W270) */
     int revolute;              /* 1 revolute (rad), 0 prismatic (m) */
-    double q_per_count;        /* direction ratio 2 pi / 4096 (rad or m per count) */
+    double q_per_count;        /* direction ratio 2 pi / counts per turn (rad or m per
+                                * count; the model's counts per turn, 4096 on the X series) */
     double q_offset;           /* -direction ratio zero_offset (rad or m) */
-    double qd_per_lsb;         /* direction ratio 0.229 rpm (rad/s or m/s per LSB) */
+    double qd_per_lsb;         /* direction ratio velocity LSB (rad/s or m/s per LSB; the
+                                * model's LSB, 0.229 rpm on the X series) */
     double torque_per_effort;  /* direction ratio: motor N m per joint N m (or N) */
     double inv_a;              /* 1 / a of the fit (A per N m) */
     double inv_ramp;           /* 1 / ramp (per N m) */

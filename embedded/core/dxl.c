@@ -262,6 +262,53 @@ int32_t dxl_sync_write(uint8_t *out, size_t cap, uint16_t address, uint16_t leng
     return finish(&e);
 }
 
+int32_t dxl_bulk_read(uint8_t *out, size_t cap, const uint8_t *ids, const uint16_t *addresses,
+                      const uint16_t *lengths, size_t n_ids)
+{
+    encoder e;
+    size_t k;
+    if ((n_ids != 0 && (ids == NULL || addresses == NULL || lengths == NULL))
+        || (out == NULL && cap != 0)) {
+        return DXL_E_ARG;
+    }
+    begin(&e, out, cap, DXL_BROADCAST_ID, DXL_BULK_READ);
+    for (k = 0; k < n_ids && !e.full; k++) {
+        param(&e, ids[k]);
+        param_u16(&e, addresses[k]);
+        param_u16(&e, lengths[k]);
+    }
+    return finish(&e);
+}
+
+int32_t dxl_bulk_write(uint8_t *out, size_t cap, const uint8_t *ids, const uint16_t *addresses,
+                       const uint16_t *lengths, const uint8_t *data, size_t n_ids)
+{
+    encoder e;
+    size_t k;
+    const uint8_t *block = data;
+    if ((n_ids != 0 && (ids == NULL || addresses == NULL || lengths == NULL))
+        || (out == NULL && cap != 0)) {
+        return DXL_E_ARG;
+    }
+    for (k = 0; k < n_ids; k++) { /* data may be NULL only when every block is empty */
+        if (data == NULL && lengths[k] != 0) {
+            return DXL_E_ARG;
+        }
+    }
+    begin(&e, out, cap, DXL_BROADCAST_ID, DXL_BULK_WRITE);
+    /* Stop at the first overflow, as dxl_sync_write does. */
+    for (k = 0; k < n_ids && !e.full; k++) {
+        param(&e, ids[k]);
+        param_u16(&e, addresses[k]);
+        param_u16(&e, lengths[k]);
+        if (lengths[k] != 0) { /* no arithmetic on a NULL data */
+            params(&e, block, lengths[k]);
+            block += lengths[k];
+        }
+    }
+    return finish(&e);
+}
+
 /* ------------------------------------------------------------------------------------------
  * Little-endian helpers
  * ------------------------------------------------------------------------------------------ */

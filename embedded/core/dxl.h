@@ -98,6 +98,16 @@ int32_t dxl_fast_sync_read(uint8_t *out, size_t cap, uint16_t address, uint16_t 
 int32_t dxl_sync_write(uint8_t *out, size_t cap, uint16_t address, uint16_t length,
                        const uint8_t *ids, const uint8_t *data, size_t n_ids);
 
+/* BULK_READ (0x92), to the broadcast ID: per motor k its ID ids[k], then the address and
+ * length of the block it answers with (addresses[k], lengths[k]); each motor answers with its
+ * own status packet, as for SYNC_READ (protocol.py's bulk_read). */
+int32_t dxl_bulk_read(uint8_t *out, size_t cap, const uint8_t *ids, const uint16_t *addresses,
+                      const uint16_t *lengths, size_t n_ids);
+/* BULK_WRITE (0x93), to the broadcast ID, no reply: per motor k its ID, address, length, then
+ * lengths[k] bytes of data, the blocks back to back in data (protocol.py's bulk_write). */
+int32_t dxl_bulk_write(uint8_t *out, size_t cap, const uint8_t *ids, const uint16_t *addresses,
+                       const uint16_t *lengths, const uint8_t *data, size_t n_ids);
+
 /* Little-endian fields of the control table; the signed getters are two's complement. */
 void dxl_put_u16(uint8_t *p, uint16_t value);
 void dxl_put_u32(uint8_t *p, uint32_t value);
@@ -206,8 +216,10 @@ typedef struct {
 } dxl_table;
 
 /* A chain's transfers, chosen by the generator from the models' data with the Python bridge's
- * rule (cochlea.dynamixel.bridge.choose_transfers): the per-period read (DXL_SYNC_READ, or
- * DXL_FAST_SYNC_READ when every model's data says it answers it) and write (DXL_SYNC_WRITE),
+ * rule (cochlea.dynamixel.bridge.choose_transfers): the per-period read (DXL_BULK_READ when the
+ * models place the block at different addresses, DXL_FAST_SYNC_READ when every model's data
+ * says it answers it, DXL_SYNC_READ otherwise) and write (DXL_BULK_WRITE when they place Goal
+ * Current at different addresses, DXL_SYNC_WRITE otherwise),
  * why (the same text cochlea-run writes as read_choice), and each drive's table in the drive
  * table's order. */
 typedef struct dxl_bus {

@@ -893,8 +893,10 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
     if (record_value(text, "date", value, sizeof value) && value[0] == '"') {
         snprintf(homing.date, sizeof homing.date, "%.*s", (int)strlen(value) - 2, value + 1);
     }
-    { /* the description's direction and pinion ratio, from the drive table's count */
-        const double per_rad = d->q_per_count * 4096.0 / (2.0 * 3.14159265358979323846);
+    { /* the description's direction and pinion ratio: the drive's torque_per_effort is
+       * direction * ratio (m/rad), whatever the motor's counts per turn (4096 on the X
+       * series, 607500 on a PH42: no model's resolution assumed here) */
+        const double per_rad = d->torque_per_effort;
         const long dir = per_rad < 0 ? -1 : 1;
         if (motor_id != d->id || direction != dir || fabs(ratio - fabs(per_rad)) > 1e-12) {
             snprintf(msg, n, "homing record %s was made for motor ID %ld, direction %+ld, ratio "
@@ -924,8 +926,7 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
         -1, -1, DXL_ITEM_TORQUE_ENABLE, DXL_ITEM_BUS_WATCHDOG, DXL_ITEM_OPERATING_MODE,
         DXL_ITEM_RETURN_DELAY, DXL_ITEM_CURRENT_LIMIT, DXL_ITEM_GOAL_CURRENT,
         DXL_ITEM_BUS_WATCHDOG, -1, -1, DXL_ITEM_TORQUE_ENABLE, DXL_ITEM_HOMING_MARKER};
-    const char *read_name = b->bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ"
-                                                                            : "SYNC_READ";
+    const char *read_name = cochlea_instruction_name(b->bus->read_instruction);
     char what[96] = "?";
     char name[160] = "the bus";
     char value[64];
@@ -1886,9 +1887,10 @@ static void timing_summary(FILE *f, const cochlea_loop *loop, const log_stats *s
     json_number(f, facts->cycle_s);
     /* the transfers sent, chosen from the models' data by cochlea-run's rule */
     fputs(", \"read_instruction\": ", f);
-    json_string(f, b->bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ"
-                                                                  : "SYNC_READ");
-    fputs(", \"write_instruction\": \"SYNC_WRITE\", \"read_choice\": ", f);
+    json_string(f, cochlea_instruction_name(b->bus->read_instruction));
+    fputs(", \"write_instruction\": ", f);
+    json_string(f, cochlea_instruction_name(b->bus->write_instruction));
+    fputs(", \"read_choice\": ", f);
     json_string(f, b->bus->read_choice);
     fputs("},\n", f);
     key(f, 6, "read_timeout_s");
@@ -2343,14 +2345,19 @@ int main(int argc, char **argv)
                           "does not fit");
     }
     { /* the bus budget, cochlea/dynamixel/budget.py's, of the transfers the bridge sends */
-        /* SYNC_WRITE of Goal Current; the read's request; then a status packet of 11 bytes
-         * and the block (Realtime Tick .. Present Position) per motor, or FAST_SYNC_READ's
-         * one combined packet of 8 bytes and ERR ID block CRC per motor, after one return
-         * delay and turnaround instead of n */
+        /* The write of Goal Current: SYNC_WRITE 14 + 3 n bytes, or BULK_WRITE 10 + 7 n (per
+         * motor ID, address, length, 2 bytes); the read's request: 14 + n, or BULK_READ's
+         * 10 + 5 n; then a status packet of 11 bytes and the block (Realtime Tick .. Present
+         * Position) per motor (SYNC_READ, BULK_READ), or FAST_SYNC_READ's one combined packet
+         * of 8 bytes and ERR ID block CRC per motor, after one return delay and turnaround
+         * instead of n */
         const double block = (double)bridge.read_length;
         const int fast = bridge.bus->read_instruction == DXL_FAST_SYNC_READ;
+        const int bulk_read = bridge.bus->read_instruction == DXL_BULK_READ;
+        const int bulk_write = bridge.bus->write_instruction == DXL_BULK_WRITE;
         const double replies = fast ? 8.0 + (block + 4.0) * n : (11.0 + block) * n;
-        const double bytes = (14.0 + 3.0 * n) + (14.0 + n) + replies;
+        const double bytes = (bulk_write ? 10.0 + 7.0 * n : 14.0 + 3.0 * n)
+                             + (bulk_read ? 10.0 + 5.0 * n : 14.0 + n) + replies;
         facts.budget_bytes = bytes;
         facts.wire_s = bytes * BITS_PER_BYTE / (double)o.baud;
         facts.bus_s = facts.wire_s + (fast ? 1 : n) * TURNAROUND_S;
@@ -2427,9 +2434,9 @@ int main(int argc, char **argv)
     printf("cochlea-embedded: %s (controller %s, %s variant), Dynamixel motors on %s, real time "
            "at %g Hz, %s precision -> %s\n", sc->name, sc->controller, sc->variant, o.port,
            1.0 / period, PRECISION, o.out);
-    printf("cochlea-embedded: bus: %s + SYNC_WRITE per period (%s)\n",
-           bridge.bus->read_instruction == DXL_FAST_SYNC_READ ? "FAST_SYNC_READ" : "SYNC_READ",
-           bridge.bus->read_choice);
+    printf("cochlea-embedded: bus: %s + %s per period (%s)\n",
+           cochlea_instruction_name(bridge.bus->read_instruction),
+           cochlea_instruction_name(bridge.bus->write_instruction), bridge.bus->read_choice);
     fflush(stdout);
     if (cochlea_posix_open(&port, o.port, o.baud) != 0) {
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: cannot "
