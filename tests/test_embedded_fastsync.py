@@ -222,7 +222,7 @@ def test_what_the_c_bridge_cannot_drive_is_refused_in_one_line(tmp_path):
     state = ("Realtime Tick", "Moving", "Moving Status", "Present PWM", "Present Current",
              "Present Velocity", "Present Position")
     for names, what in ((state, "DXL_BULK_READ, DXL_SYNC_WRITE"),
-                        (("Goal Current",), "DXL_SYNC_READ, DXL_BULK_WRITE")):
+                        (("Goal Current",), "DXL_FAST_SYNC_READ, DXL_BULK_WRITE")):
         mixed = [drives[0], dataclasses.replace(drives[1], spec=_moved(drives[1].spec, names,
                                                                        256))]
         assert what in drives_header("serial", ARM, drives=mixed)

@@ -1960,6 +1960,10 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     key(f, 2, "parameterisation");
     json_string(f, sc->parameterisation);
     fputs(",\n", f);
+    /* cochlea-run's [control] mirror: the generator refuses "measured" (the followers' desired
+     * paths are compiled in, functions of time), so every compiled-in scenario has "desired". */
+    key(f, 2, "mirror");
+    fputs("\"desired\",\n", f);
     key(f, 2, "program");
     fputs("\"cochlea-embedded (" PRECISION ")\",\n", f);
     /* cochlea-run's statement of the kernels it ran: here, always the C compiled in. */
