@@ -47,7 +47,7 @@ from cochlea.dynamixel.control_table import (
 )
 from cochlea.dynamixel.drives import joint_drives
 from cochlea.dynamixel.emulator import Truth, VirtualChain
-from cochlea.errors import DescriptionError
+from cochlea.errors import CochleaError, DescriptionError
 from cochlea.runtime.backend import BackendError
 from cochlea.sim import load_scenario
 
@@ -502,6 +502,29 @@ def test_a_p_motor_whose_counts_per_turn_are_unsourced_is_refused_in_one_line(mo
         "joint arm.upper: the PH42-020-S300-R's counts_per_rev is not sourced yet "
         "(cochlea/dynamixel/models/p.toml): add it from "
         "https://emanual.robotis.com/docs/en/dxl/p/ph42-020-s300-r/")
+
+
+def test_a_simulated_encoder_of_unsourced_counts_is_refused_not_guessed(tmp_path, monkeypatch):
+    """A simulated plant that reports what the motor measures (its encoder's counts) needs
+    the model's counts per turn: unsourced, the simulation refuses in one line as the bridge
+    does, where it once quantised the P motor's position with the X series' 4096 counts."""
+    from cochlea.sim.setup import unit_setups
+
+    spec = MODELS["PH42-020-S300-R"]
+    monkeypatch.setitem(drives_module.MODELS, spec.name, dataclasses.replace(
+        spec, counts_per_rev=None, unsourced=spec.unsourced + ("counts_per_rev",)))
+    (tmp_path / "planar2_xp.toml").write_text(ARM.read_text())
+    (tmp_path / "scenario.toml").write_text(
+        SCENARIO.read_text() + '\n[plant]\nplant = "ideal"\nposition_encoder = true\n')
+    sc = load_scenario(tmp_path / "scenario.toml")
+    with pytest.raises(CochleaError) as info:
+        unit_setups(sc, cache=False)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith("joint arm.upper: ")
+    assert "PH42-020-S300-R's counts_per_rev is not sourced" in message
+    # Without the encoder's grid the plant's position is continuous: nothing to refuse.
+    (tmp_path / "scenario.toml").write_text(SCENARIO.read_text())
+    assert unit_setups(load_scenario(tmp_path / "scenario.toml"), cache=False)
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from ..control import Controller, build
-from ..dynamixel.control_table import MODELS, RAD_PER_COUNT, RAD_S_PER_VELOCITY_LSB
+from ..dynamixel.control_table import MODELS
 from ..errors import CochleaError
 from ..robots import robot
 from ..robots.adapter import sampled
@@ -352,19 +352,25 @@ def measurement_grids(adapter, system, plant: scenario_mod.Plant
                       ) -> tuple[np.ndarray, np.ndarray] | None:
     """For every joint of the whole system in the loop's order, the measurement grid as the
     motor reports it: ``(quantum, offset)``, each ``(n_joints, 2)`` for (position, velocity).
-    Positions in encoder counts (``2 pi / 4096`` rad per count of the motor, through the
-    joint's ratio and zero offset), velocities in Present Velocity counts (0.229 rpm). A zero
-    quantum where the scenario's plant keeps the measurement continuous; None: neither."""
+    Positions in encoder counts (the motor model's, e.g. ``2 pi / 4096`` rad on the X series,
+    through the joint's ratio and zero offset), velocities in Present Velocity LSBs (0.229 rpm
+    on the X series). A zero quantum where the scenario's plant keeps the measurement
+    continuous; None: neither. A model whose units are unsourced is refused (CochleaError)."""
     if not (plant.position_encoder or plant.velocity_register):
         return None
     joints = adapter.actuated_joints(system)
     scale = np.array([abs(j.ratio) for j in joints])  # joint travel per motor radian
     # Each motor model's own units (X series: 4096 counts, 0.229 rpm; control_table.MODELS).
+    # A unit no source gave is refused, as the bridge refuses it (drives.joint_drives): the X
+    # series' 4096 counts would quantise a P motor's position 250 times too coarsely.
     units = [MODELS[j.motor.model] for j in joints]
-    per_count = np.array([RAD_PER_COUNT if m.rad_per_count is None else m.rad_per_count
-                          for m in units])
-    per_lsb = np.array([RAD_S_PER_VELOCITY_LSB if m.rad_s_per_velocity_lsb is None
-                        else m.rad_s_per_velocity_lsb for m in units])
+    for j, m in zip(joints, units):
+        problem = m.units_problem()
+        if problem:
+            raise CochleaError(f"joint {j.name}: the scenario's plant reports what the motor "
+                               f"measures, but {problem}")
+    per_count = np.array([m.rad_per_count for m in units])
+    per_lsb = np.array([m.rad_s_per_velocity_lsb for m in units])
     quantum = np.column_stack([scale * per_count * plant.position_encoder,
                                scale * per_lsb * plant.velocity_register])
     # q = direction * ratio * (theta - zero_offset): the position grid is shifted.
