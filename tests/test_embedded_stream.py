@@ -282,6 +282,35 @@ def test_a_firmware_that_refused_to_start_leaves_an_empty_log_and_its_exit_code(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("field", [{"exit": "nan"}, {"rows": "1.5"}, {"exit": "999"},
+                                   {"stop_time_us": "1e309"}, {"rows_crc": "x=y"},
+                                   {"stop_joint": "-2"}, {"reads": "9" * 30}])
+def test_an_end_frame_that_cannot_be_read_keeps_the_rows_and_says_so(tmp_path, columns,
+                                                                      field, capsys):
+    """An end frame whose integers are not integers (a firmware from another checkout, a
+    CRC matched by chance) ended in a traceback with the report lost: the rows are written,
+    the run is incomplete (exit 3), the reason names the field."""
+    from cochlea.apps import cochlea_embedded_host
+
+    data = rows(columns, range(3))
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, header(columns))
+                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
+                                   for k, row in enumerate(data))
+                        + encode(END, 4, end_text(3, 0, **field)))
+    out = tmp_path / "run"
+    code = cochlea_embedded_host.main(["--port", str(capture), "--out", str(out)])
+    said = capsys.readouterr()
+    assert code == 3 and said.err == ""
+    (key, value), = field.items()
+    assert f"incomplete: the end frame's {key} is {value[:40]!r}, not an integer" in said.out
+    assert np.array_equal(log_rows(out), np.array(data))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stop"]["rule"] == "stream-incomplete"
+    assert summary["stream"]["incomplete_reason"].startswith(f"the end frame's {key} ")
+
+
+@pytest.mark.slow
 def test_a_report_that_cannot_be_written_is_one_line_and_exit_18(tmp_path, columns, monkeypatch,
                                                                    capsys):
     """The figures fail to write (as on a full disk): cochlea-run's ReportError, said in one

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import signal
 import socket
 import sys
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from ..errors import EXIT_USER_ERROR, CochleaError
+from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..log_schema import SCHEMA_VERSION
 from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
 from ..runtime.loop import raw_columns
@@ -56,6 +57,33 @@ class HeaderError(CochleaError):
     """No header, or one this host cannot write a run from: nothing is written."""
 
 
+#: The end frame's integer fields and the least each may be (the firmware prints them with
+#: %ld / %lu; a stop's joint is -1 when no joint stopped it, a limit's values are signed).
+END_INTEGERS = {
+    **{k: 0 for k in ("exit", "rows", "kicks", "tick_overruns", "deadline_misses", "overruns",
+                      "lateness_max_ns", "reads", "good_reads", "rx_overflows", "stop_time_us",
+                      "rows_seen", "rows_queued", "rows_dropped", "rows_sent", "frames",
+                      "rows_crc")},
+    "stop_joint": -1, "stop_value_u": -2**63, "stop_limit_u": -2**63,
+}
+
+
+def end_fields(end: dict[str, str]) -> tuple[dict[str, str], str | None]:
+    """The end frame's fields, or ``({}, why)`` when one of its integers is not one (a
+    firmware built from another checkout, or a frame whose CRC matched by chance): the rows
+    are kept and the run is reported incomplete, never a traceback with the report lost."""
+    for key, least in END_INTEGERS.items():
+        if key not in end:
+            continue
+        text = end[key]
+        value = int(text) if re.fullmatch(r"-?[0-9]{1,20}", text) else None
+        top = 255 if key == "exit" else 2**64 - 1
+        if value is None or not least <= value <= top:
+            return {}, (f"the end frame's {key} is {printable(text[:40])!r}, not an integer "
+                        f"from {least} to {top}")
+    return end, None
+
+
 class StreamRun:
     """The host's side of one firmware run: the header sets the loop (cochlea-run's row
     layout), the rows go to log.bin, the end frame closes it."""
@@ -65,6 +93,7 @@ class StreamRun:
         self.decoder = Decoder()
         self.header: dict | None = None
         self.end: dict | None = None
+        self.end_problem: str | None = None  # the end frame came, but it cannot be read
         self.loop: RealTimeLoop | None = None
         self.file = None
         self.rows = 0  # rows in log.bin (received, and NaN fill for missing periods)
@@ -97,7 +126,7 @@ class StreamRun:
                 else:
                     self._row(frame)
             elif frame.kind == END and self.loop is not None:
-                self.end = parse_text(frame.payload)
+                self.end, self.end_problem = end_fields(parse_text(frame.payload))
                 return True
         return False
 
@@ -344,6 +373,7 @@ def _read_and_write(stream: StreamRun, port: str, out: Path, baud: int, timeout:
                 break
     finally:
         source.close()
+    why = why or stream.end_problem
     if stream.loop is None:
         print(f"{PROG}: no stream header came ({why or 'no frame'}; decoder "
               f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
