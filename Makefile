@@ -195,6 +195,9 @@ qemu-firmware:
 # STM32_STREAM_BAUD (its rate; `cochlea-embedded-host` reads it: docs/embedded.md "The row
 # stream").
 STM32_DIR              := embedded/ports/stm32f4
+# What the board ports share (the run, the console's report, the row stream's framing).
+PORTS_COMMON           := embedded/ports/common
+PORTS_COMMON_SRC       := $(sort $(wildcard $(PORTS_COMMON)/*.c))
 STM32_SCENARIO         ?= serial_joint
 STM32_DURATION         ?= 0
 STM32_WATCHDOG_MISSES  ?= 20
@@ -210,6 +213,7 @@ STM32_STREAM_BAUD      ?= 921600
 STM32_CPU      := -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16
 STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
                   -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(STM32_DIR) \
+                  -I$(PORTS_COMMON) \
                   -DSTM32_SCENARIO=$(STM32_SCENARIO) -DSTM32_DURATION_S=$(STM32_DURATION) \
                   -DSTM32_WATCHDOG_MISSES=$(STM32_WATCHDOG_MISSES) \
                   -DSTM32_WATCHDOG_ERRORS=$(STM32_WATCHDOG_ERRORS) -DSTM32_BAUD=$(STM32_BAUD)u \
@@ -221,8 +225,10 @@ STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
 STM32_LDFLAGS  := -T $(STM32_DIR)/stm32f405.ld -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 STM32_SOURCES  := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(STM32_SCENARIO).c \
-                  $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c $(sort $(wildcard $(STM32_DIR)/*.c))
+                  $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c $(sort $(wildcard $(STM32_DIR)/*.c)) \
+                  $(PORTS_COMMON_SRC)
 STM32_DEPS     := $(STM32_SOURCES) $(wildcard embedded/core/*.h $(STM32_DIR)/*.h) \
+                  $(wildcard $(PORTS_COMMON)/*.h) \
                   $(STM32_DIR)/stm32f405.ld $(GEN)/embedded/$(STM32_SCENARIO).h Makefile
 # The compiled-in settings: a change rebuilds (the file changes only when they do).
 STM32_CONFIG   := $(STM32_CFLAGS) $(STM32_CPU) $(ARM_CC)

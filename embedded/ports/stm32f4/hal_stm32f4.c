@@ -3,21 +3,13 @@
  * bounded count of polls (cochlea_rt.h's contract). */
 #include "hal_stm32f4.h"
 
+#include "board.h"
 #include "stm32f4_regs.h"
 
 /* ---- interrupts ------------------------------------------------------------------------- */
 
-static inline uint32_t irq_save(void)
-{
-    uint32_t primask;
-    __asm__ volatile("mrs %0, primask\n\tcpsid i" : "=r"(primask) : : "memory");
-    return primask;
-}
-
-static inline void irq_restore(uint32_t primask)
-{
-    __asm__ volatile("msr primask, %0" : : "r"(primask) : "memory");
-}
+#define irq_save board_irq_save
+#define irq_restore board_irq_restore
 
 void stm32f4_idle(void)
 {
