@@ -96,9 +96,9 @@ static volatile int running; /* between cochlea_loop_begin and cochlea_loop_end 
 static volatile int parked;  /* after the end: SysTick kicks the watchdog */
 static volatile int iwdg_on;
 static uint32_t kicks;
-/* The row stream's own cost, in the board's timer counts (board_timer_hz(); 1 ns under QEMU, where with
- * -icount shift=0 a count is an instruction): the largest in-period on_row, and the largest
- * framing between two periods. */
+/* The row stream's own cost, in the board's timer counts (board_timer_hz(); 1 ns under QEMU,
+ * where with -icount shift=0 a count is an instruction): the largest in-period on_row, and
+ * the largest framing between two periods. */
 static uint32_t stream_row_max, stream_pump_max;
 static char line[2048]; /* a console line, or the stream's header (its columns) */
 

@@ -1,5 +1,7 @@
-/* The STM32F405/407 as the shared firmware's board (embedded/ports/common/board.h): each
- * call is the port's own (hal_stm32f4.c). The board has no bus power switch: the motors'
+/* The STM32F405/407 as the shared firmware's board (embedded/ports/common/board.h): the
+ * console, the bus and the clocks are the port's own (hal_stm32f4.c); TIM2's clock, SysTick's
+ * period, the sleep and the watchdog are the STM32 ports' shared ones
+ * (embedded/ports/common/stm32_timebase.c). The board has no bus power switch: the motors'
  * supply is the user's. */
 #include "board.h"
 #include "hal_stm32f4.h"
@@ -13,41 +15,6 @@ uint32_t stm32f4_stack_used(void);
 int board_clock_init(void)
 {
     return stm32f4_clock_init(); /* enum stm32f4_clock: the same four values as board_clock */
-}
-
-void board_clock_start(void)
-{
-    stm32f4_clock_start();
-}
-
-uint32_t board_timer_count(void)
-{
-    return stm32f4_timer_count();
-}
-
-uint32_t board_timer_hz(void)
-{
-    return STM32_TIMER_HZ;
-}
-
-int64_t board_now_ns(void)
-{
-    return stm32f4_now_ns();
-}
-
-int board_tick_start(int64_t period_ns, void (*tick)(void *), void *ctx)
-{
-    return stm32f4_tick_start(period_ns, tick, ctx);
-}
-
-uint32_t board_ticks(void)
-{
-    return stm32f4_ticks();
-}
-
-void board_idle(void)
-{
-    stm32f4_idle();
 }
 
 void board_console_init(void)
@@ -83,26 +50,6 @@ void board_bus_power(int on)
 uint32_t board_bus_power_settle_ms(void)
 {
     return 0;
-}
-
-void board_iwdg_start(uint32_t timeout_ms)
-{
-    stm32f4_iwdg_start(timeout_ms);
-}
-
-void board_iwdg_kick(void *ctx)
-{
-    stm32f4_iwdg_kick(ctx);
-}
-
-void board_iwdg_timeout(uint32_t timeout_ms)
-{
-    stm32f4_iwdg_timeout(timeout_ms);
-}
-
-int board_reset_by_watchdog(void)
-{
-    return stm32f4_reset_by_watchdog();
 }
 
 uint32_t board_stack_used(void)

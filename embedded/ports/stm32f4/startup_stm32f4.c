@@ -7,6 +7,7 @@
  * parks: firmware.c refuses to start after a watchdog reset). */
 #include <stdint.h>
 
+#include "board.h"
 #include "hal_stm32f4.h"
 #include "stm32f4_regs.h"
 
@@ -47,7 +48,7 @@ void Reset_Handler(void)
     }
     main();
     for (;;) {
-        stm32f4_idle();
+        board_idle();
     }
 }
 
