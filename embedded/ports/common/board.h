@@ -65,9 +65,28 @@ uint32_t board_stack_used(void);
  * moves; NULL: none) is no longer seen; and a wait until a deadline made of such sleeps. */
 void stm32_sleep_before(int64_t deadline_ns, const volatile uint32_t *wake, uint32_t seen);
 void stm32_wait_until(int64_t deadline_ns);
+/* A clock's ready bit: 1 once (*reg & mask) == value, 0 after a bounded count of polls. */
+int stm32_wait_bits(volatile uint32_t *reg, uint32_t mask, uint32_t value);
 #ifdef BOARD_HOST_MODEL
 void model_idle(void); /* the register model's WFI */
 #endif
+
+/* The start-up (stm32_startup.c): the rest of a port's Reset_Handler, after its own first
+ * steps (the FPU on, ...): .data, .bss, the stack painted, main; never returns. The vector
+ * table's 16 core entries, the same on both ports (STM32_CORE_VECTORS; vector is a handler's
+ * type), and their handlers. */
+void stm32_start(void);
+void Reset_Handler(void);
+void Fault_Handler(void);
+void Default_Handler(void);
+void SysTick_Handler(void);
+typedef void (*vector)(void);
+#define STM32_CORE_VECTORS(stack_top)                                                        \
+    (vector)(uintptr_t)(stack_top), Reset_Handler, Fault_Handler /* NMI */,                \
+        Fault_Handler /* HardFault */, Fault_Handler /* MemManage */,                      \
+        Fault_Handler /* BusFault */, Fault_Handler /* UsageFault */, 0, 0, 0, 0,          \
+        Default_Handler /* SVCall */, Default_Handler /* DebugMonitor */, 0,               \
+        Default_Handler /* PendSV */, SysTick_Handler
 
 /* The row stream's UART (stream.c frames, the board moves bytes): set up at baud (transmit
  * only); whether it takes a byte now; one byte; its "transmit register empty" interrupt on

@@ -1,11 +1,28 @@
 /* What the STM32 ports share at the register level (board.h): TIM2 as the 64-bit nanosecond
  * clock, SysTick as the period timer, the sleep that never outlasts a deadline, and the
- * independent watchdog. TIM2, SysTick, the SCB, the IWDG and RCC_CSR's reset flags have the
+ * independent watchdog; the clocks' bounded wait for a ready bit. TIM2, SysTick, the SCB, the IWDG and RCC_CSR's reset flags have the
  * same addresses and bits on the STM32F405/407 (RM0090, PM0214) and the STM32F746 (RM0385,
  * PM0253); each port's board_config.h gives its registers' names and its rates
  * (STM32_SYSCLK_HZ, STM32_TIMER_HZ). */
 #include "board.h"
 #include "board_config.h"
+
+/* ---- clocks: a ready bit, polled a bounded number of times ------------------------------- */
+
+/* Polls before giving up: far beyond a crystal's start-up (a few ms), a PLL's lock and the
+ * F746's over-drive ramp (about 100 us each) at the HSI's 16 MHz. */
+#define CLOCK_POLLS 2000000u
+
+int stm32_wait_bits(volatile uint32_t *reg, uint32_t mask, uint32_t value)
+{
+    uint32_t i;
+    for (i = 0; i < CLOCK_POLLS; ++i) {
+        if ((*reg & mask) == value) {
+            return 1;
+        }
+    }
+    return 0;
+}
 
 /* ---- TIM2: the clock ------------------------------------------------------------------ */
 

@@ -10,21 +10,6 @@ const char board_name[] = "opencr";
 
 /* ---- clocks: HSE 25 MHz -> PLL 216 MHz, AHB 216, APB1 54, APB2 108 (RM0385 section 5.2) -- */
 
-/* Polls of a ready bit before giving up: far beyond the HSE's start-up (a few ms), the PLL's
- * lock and the over-drive's ramp (about 100 us each) at the HSI's 16 MHz. */
-#define CLOCK_POLLS 2000000u
-
-static int wait_bits(volatile uint32_t *reg, uint32_t mask, uint32_t value)
-{
-    uint32_t i;
-    for (i = 0; i < CLOCK_POLLS; ++i) {
-        if ((*reg & mask) == value) {
-            return 1;
-        }
-    }
-    return 0;
-}
-
 int board_clock_init(void)
 {
     const uint32_t pllm = STM32_HSE_HZ / 1000000u; /* 1 MHz at the VCO's input */
@@ -37,23 +22,23 @@ int board_clock_init(void)
     RCC_APB1ENR |= RCC_APB1ENR_PWREN;
     PWR_CR1 |= PWR_CR1_VOS_SCALE1; /* scale 1 (its reset value): needed for 216 MHz */
     RCC_CR |= RCC_CR_HSEON;
-    if (!wait_bits(&RCC_CR, RCC_CR_HSERDY, RCC_CR_HSERDY)) {
+    if (!stm32_wait_bits(&RCC_CR, RCC_CR_HSERDY, RCC_CR_HSERDY)) {
         return BOARD_CLOCK_NO_HSE;
     }
     RCC_PLLCFGR = pllm | (plln << 6) | (((pllp / 2u) - 1u) << 16) | RCC_PLLCFGR_PLLSRC_HSE
                   | (pllq << 24);
     RCC_CR |= RCC_CR_PLLON;
-    if (!wait_bits(&RCC_CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) {
+    if (!stm32_wait_bits(&RCC_CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) {
         return BOARD_CLOCK_NO_PLL;
     }
     /* Over 180 MHz the regulator's over-drive: ODEN, then the switch (section 4.1.4). A part
      * that does not come up is reported as the PLL's failure: nothing runs. */
     PWR_CR1 |= PWR_CR1_ODEN;
-    if (!wait_bits(&PWR_CSR1, PWR_CSR1_ODRDY, PWR_CSR1_ODRDY)) {
+    if (!stm32_wait_bits(&PWR_CSR1, PWR_CSR1_ODRDY, PWR_CSR1_ODRDY)) {
         return BOARD_CLOCK_NO_PLL;
     }
     PWR_CR1 |= PWR_CR1_ODSWEN;
-    if (!wait_bits(&PWR_CSR1, PWR_CSR1_ODSWRDY, PWR_CSR1_ODSWRDY)) {
+    if (!stm32_wait_bits(&PWR_CSR1, PWR_CSR1_ODSWRDY, PWR_CSR1_ODSWRDY)) {
         return BOARD_CLOCK_NO_PLL;
     }
     /* Wait states before the faster clock, read back (section 3.3.2); the ART accelerator. */
@@ -63,7 +48,7 @@ int board_clock_init(void)
     }
     RCC_CFGR = RCC_CFGR_PPRE1_DIV4 | RCC_CFGR_PPRE2_DIV2; /* AHB /1 */
     RCC_CFGR = (RCC_CFGR & ~3u) | RCC_CFGR_SW_PLL;
-    if (!wait_bits(&RCC_CFGR, 3u << 2, RCC_CFGR_SWS_PLL)) {
+    if (!stm32_wait_bits(&RCC_CFGR, 3u << 2, RCC_CFGR_SWS_PLL)) {
         return BOARD_CLOCK_NO_PLL;
     }
     return BOARD_CLOCK_PLL;

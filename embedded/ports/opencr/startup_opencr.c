@@ -1,8 +1,9 @@
 /* Start-up of the OpenCR firmware: the vector table (the core's 16 entries and the
  * STM32F746's 98 interrupts) and the reset handler: the FPU on before any floating-point
  * instruction (CPACR CP10/CP11, PM0253 section 4.6.1: the M7's double-precision FPv5),
- * VTOR at the table, .data copied, .bss zeroed, the instruction cache on, the stack painted
- * for the high-water mark, then main.
+ * VTOR at the table, the instruction cache on; then the STM32 ports' shared start-up
+ * (embedded/ports/common/stm32_startup.c): .data copied, .bss zeroed, the stack painted for
+ * the high-water mark, main; and its fault handler.
  *
  * Caches and MPU: the instruction cache is on (code and constants in flash over AXIM; nothing
  * writes code). The data cache stays off and the MPU is not used: .data, .bss and the stack
@@ -21,102 +22,31 @@
 #include "hal_opencr.h"
 #include "stm32f746_regs.h"
 
-#define STACK_PAINT 0x5afe57acu
+extern uint32_t _estack;
+extern const vector vectors[];
 
-extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack;
-extern void (*__init_array_start[])(void);
-extern void (*__init_array_end[])(void);
-
-int main(void);
-void Reset_Handler(void);
-void Fault_Handler(void);
-void Default_Handler(void);
-void SysTick_Handler(void);
 void DMA1_Stream1_IRQHandler(void);
 void USART2_IRQHandler(void);
 void USART3_IRQHandler(void);
 
-typedef void (*vector)(void);
-extern const vector vectors[];
-
 void Reset_Handler(void)
 {
-    uint32_t *src = &_sidata, *dst = &_sdata, *sp;
-    long i, n;
     SCB_CPACR |= 0xFu << 20; /* CP10, CP11: full access */
     SCB_VTOR = (uint32_t)(uintptr_t)vectors;
     __asm__ volatile("dsb\n\tisb" ::: "memory");
-    while (dst < &_edata) {
-        *dst++ = *src++;
-    }
-    for (dst = &_sbss; dst < &_ebss;) {
-        *dst++ = 0;
-    }
     /* The instruction cache: invalidated, then on (PM0253 section 4.8). */
     SCB_ICIALLU = 0;
     __asm__ volatile("dsb\n\tisb" ::: "memory");
     SCB_CCR |= SCB_CCR_IC;
     __asm__ volatile("dsb\n\tisb" ::: "memory");
-    /* Paint the free stack up to 64 bytes under this frame. */
-    __asm__ volatile("mov %0, sp" : "=r"(sp));
-    for (dst = &_ebss; dst < sp - 16;) {
-        *dst++ = STACK_PAINT;
-    }
-    n = __init_array_end - __init_array_start;
-    for (i = 0; i < n; ++i) {
-        __init_array_start[i]();
-    }
-    main();
-    for (;;) {
-        board_idle();
-    }
-}
-
-/* Bytes of stack ever used: from the top down to the deepest word not still painted. */
-uint32_t board_stack_used(void)
-{
-    const uint32_t *p = &_ebss;
-    while (p < &_estack && *p == STACK_PAINT) {
-        ++p;
-    }
-    return (uint32_t)((uintptr_t)&_estack - (uintptr_t)p);
-}
-
-void Fault_Handler(void)
-{
-    uint32_t ipsr;
-    char line[] = "fault exception=00\r\n";
-    __asm__ volatile("cpsid i\n\tmrs %0, ipsr" : "=r"(ipsr));
-    board_bus_power(0);
-    line[16] = (char)('0' + (ipsr / 10) % 10);
-    line[17] = (char)('0' + ipsr % 10);
-    board_console_write(line);
-    for (;;) {
-        __asm__ volatile("wfi");
-    }
-}
-
-void Default_Handler(void)
-{
-    Fault_Handler();
+    stm32_start(); /* .data, .bss, the stack painted, main (stm32_startup.c) */
 }
 
 /* The core's exceptions, then every external interrupt: the bus's DMA receive (12, DMA1
  * stream 1: its laps) and IDLE (39, USART3), the row stream's transmit (38, USART2; stream.c)
  * and Default_Handler (a fault line) for the others, which the firmware never enables. */
 __attribute__((section(".isr_vector"), used)) const vector vectors[16 + IRQ_COUNT] = {
-    (vector)(uintptr_t)&_estack, Reset_Handler,
-    Fault_Handler,   /* NMI */
-    Fault_Handler,   /* HardFault */
-    Fault_Handler,   /* MemManage */
-    Fault_Handler,   /* BusFault */
-    Fault_Handler,   /* UsageFault */
-    0, 0, 0, 0,      /* reserved */
-    Default_Handler, /* SVCall */
-    Default_Handler, /* DebugMonitor */
-    0,               /* reserved */
-    Default_Handler, /* PendSV */
-    SysTick_Handler,
+    STM32_CORE_VECTORS(&_estack),
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 0-3 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 4-7 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 8-11 */

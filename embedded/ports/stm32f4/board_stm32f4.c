@@ -10,8 +10,6 @@ const char board_name[] = "stm32f4";
 
 static stm32f4_uart bus;
 
-uint32_t stm32f4_stack_used(void);
-
 int board_clock_init(void)
 {
     return stm32f4_clock_init(); /* enum stm32f4_clock: the same four values as board_clock */
@@ -50,11 +48,6 @@ void board_bus_power(int on)
 uint32_t board_bus_power_settle_ms(void)
 {
     return 0;
-}
-
-uint32_t board_stack_used(void)
-{
-    return stm32f4_stack_used();
 }
 
 /* stm32f4_clock_init's answers are board_clock_init's. */

@@ -10,21 +10,6 @@
 
 /* ---- clocks: HSE -> PLL 168 MHz, AHB 168, APB1 42, APB2 84 (RM0090 section 7.2) ---------- */
 
-/* Polls of a ready bit before giving up: far beyond the HSE's start-up (a few ms) and the
- * PLL's lock (about 100 us) at the HSI's 16 MHz. */
-#define CLOCK_POLLS 2000000u
-
-static int wait_bits(volatile uint32_t *reg, uint32_t mask, uint32_t value)
-{
-    uint32_t i;
-    for (i = 0; i < CLOCK_POLLS; ++i) {
-        if ((*reg & mask) == value) {
-            return 1;
-        }
-    }
-    return 0;
-}
-
 int stm32f4_clock_init(void)
 {
     const uint32_t pllm = STM32_HSE_HZ / 1000000u; /* 1 MHz at the VCO's input */
@@ -35,7 +20,7 @@ int stm32f4_clock_init(void)
         return STM32F4_CLOCK_UNMODELLED;
     }
     RCC_CR |= RCC_CR_HSEON;
-    if (!wait_bits(&RCC_CR, RCC_CR_HSERDY, RCC_CR_HSERDY)) {
+    if (!stm32_wait_bits(&RCC_CR, RCC_CR_HSERDY, RCC_CR_HSERDY)) {
         return STM32F4_CLOCK_NO_HSE;
     }
     /* Wait states before the faster clock (section 3.5.1), the caches on. */
@@ -44,11 +29,11 @@ int stm32f4_clock_init(void)
     RCC_PLLCFGR = pllm | (plln << 6) | (((pllp / 2u) - 1u) << 16) | RCC_PLLCFGR_PLLSRC_HSE
                   | (pllq << 24);
     RCC_CR |= RCC_CR_PLLON;
-    if (!wait_bits(&RCC_CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) {
+    if (!stm32_wait_bits(&RCC_CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) {
         return STM32F4_CLOCK_NO_PLL;
     }
     RCC_CFGR = (RCC_CFGR & ~3u) | RCC_CFGR_SW_PLL;
-    if (!wait_bits(&RCC_CFGR, 3u << 2, RCC_CFGR_SWS_PLL)) {
+    if (!stm32_wait_bits(&RCC_CFGR, 3u << 2, RCC_CFGR_SWS_PLL)) {
         return STM32F4_CLOCK_NO_PLL;
     }
     return STM32F4_CLOCK_PLL;
