@@ -14,19 +14,29 @@
  *   event <t_ns> <what> <value>
  * then the case's own "key value" lines. No Dynamixel answers on the bus.
  *
+ * With "emulator PTY" the model's line is a pseudo-terminal (cochlea-emulator's): the bytes
+ * written to TDR go out when TC is reported, the bytes that come in are the DMA's (and an
+ * IDLE interrupt), TIM2 counts the host's monotonic clock and SysTick fires from the model's
+ * WFI at its period: the whole firmware runs in real time against the virtual chain. Each
+ * power event then also prints the bus's bytes so far: power_at <on> <sent> <received>.
+ *
  * Usage: opencr_model CASE [--tc-stuck] [--watchdog-reset]; CASE: ring, overflow, pending,
- * timeout, write, power, firmware. */
+ * timeout, write, power, firmware, emulator PTY. */
+#define _DEFAULT_SOURCE /* cfmakeraw, nanosleep, clock_gettime */
+#include <fcntl.h>
 #include <setjmp.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <termios.h>
+#include <time.h>
+#include <unistd.h>
 
 #include "board.h"
 #include "hal_opencr.h"
 #include "stm32f746_regs.h"
 
 void SysTick_Handler(void);
-void DMA1_Stream1_IRQHandler(void);
 
 #define STEP 100u          /* TIM2 counts a read (0.93 us at 108 MHz) */
 #define TC_POLLS 20u       /* status reads from the last TDR write until TC */
@@ -45,6 +55,53 @@ static size_t console_n;
 static int ended;
 static jmp_buf parked;
 static uint32_t bus_bytes;
+static int line_fd = -1; /* the pseudo-terminal, in the emulator case */
+static uint8_t tx_pending[4096];
+static size_t tx_n;
+static uint32_t rx_bytes, idle_pending;
+static int64_t clock_start_ns, next_tick_ns;
+
+static int64_t host_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+void DMA1_Stream1_IRQHandler(void);
+void USART3_IRQHandler(void);
+static void dma_put(const uint8_t *bytes, size_t n, int isr);
+
+/* The line's bytes in: into the DMA's ring, then the IDLE interrupt (the burst ended). */
+static void pump(void)
+{
+    uint8_t buf[512];
+    ssize_t n;
+    if (line_fd < 0) {
+        return;
+    }
+    while ((n = read(line_fd, buf, sizeof buf)) > 0) {
+        dma_put(buf, (size_t)n, 1);
+        rx_bytes += (uint32_t)n;
+        idle_pending = 1;
+    }
+    if (idle_pending) {
+        USART3_IRQHandler();
+    }
+}
+
+/* The bytes written to TDR out on the line, once the model says they left (TC). */
+static void flush_line(void)
+{
+    size_t done = 0;
+    while (line_fd >= 0 && done < tx_n) {
+        const ssize_t n = write(line_fd, tx_pending + done, tx_n - done);
+        if (n > 0) {
+            done += (size_t)n;
+        }
+    }
+    tx_n = 0;
+}
 
 static int64_t now_ns(void)
 {
@@ -83,12 +140,22 @@ static void written(uint32_t a, uint32_t v)
         *odr = (*odr | (v & 0xFFFFu)) & ~(v >> 16);
         if (v & ((1u << pin) | (1u << (pin + 16u)))) {
             event(pin == OPENCR_DXL_DIR_PIN ? "direction" : "power", (v >> pin) & 1u);
+            if (pin == OPENCR_DXL_POWER_PIN) {
+                printf("power_at %u %u %u\n", (unsigned)((v >> pin) & 1u), (unsigned)bus_bytes,
+                       (unsigned)rx_bytes);
+            }
         }
     } else if (a == USART3_BASE + 0x28u) {
         tc_polls = 0;
         tc_seen_after_write = 0;
         bus_bytes += 1u;
-        event("bus", (long)(v & 0xFFu));
+        if (line_fd >= 0) {
+            if (tx_n < sizeof tx_pending) {
+                tx_pending[tx_n++] = (uint8_t)v;
+            }
+        } else {
+            event("bus", (long)(v & 0xFFu));
+        }
     } else if (a == USART6_BASE + 0x28u) {
         if (console_n + 1 < sizeof console) {
             console[console_n++] = (char)v;
@@ -105,6 +172,8 @@ static void written(uint32_t a, uint32_t v)
         }
     } else if (a == DMA1_BASE + 0x08u) {
         lisr &= ~v;
+    } else if (a == USART3_BASE + 0x20u && (v & USART_ICR_IDLECF)) {
+        idle_pending = 0;
     }
 }
 
@@ -125,7 +194,11 @@ volatile uint32_t *model_reg(uint32_t a)
     a &= ~3u;
     p = raw(a);
     if (a == TIM2_BASE + 0x24u) {
-        counts += STEP;
+        if (line_fd >= 0) {
+            counts = (uint64_t)(host_ns() - clock_start_ns) * STM32_TIMER_HZ / 1000000000u;
+        } else {
+            counts += STEP;
+        }
         *p = (uint32_t)counts;
     } else if (a == USART3_BASE + 0x1Cu) {
         uint32_t isr = USART_ISR_TXE;
@@ -133,13 +206,21 @@ volatile uint32_t *model_reg(uint32_t a)
             isr |= USART_ISR_TC;
             if (!tc_seen_after_write) {
                 tc_seen_after_write = 1;
-                event("tc", 1);
+                if (line_fd >= 0) {
+                    flush_line();
+                } else {
+                    event("tc", 1);
+                }
             }
+        }
+        if (idle_pending) {
+            isr |= USART_ISR_IDLE;
         }
         *p = isr;
     } else if (a == USART6_BASE + 0x1Cu || a == USART2_BASE + 0x1Cu) {
         *p = USART_ISR_TXE | USART_ISR_TC;
     } else if (a == DMA1_BASE + 0x14u + 0x18u * BUS_DMA_STREAM) {
+        pump();
         *p = ndtr;
     } else if (a == DMA1_BASE + 0x00u) {
         *p = lisr;
@@ -174,6 +255,24 @@ void model_idle(void)
 {
     if (ended) {
         longjmp(parked, 1);
+    }
+    if (line_fd >= 0) {
+        /* asleep until the next interrupt: a byte on the line, or SysTick's tick */
+        const struct timespec nap = {0, 20000};
+        pump();
+        nanosleep(&nap, 0);
+        if ((SYST_CSR & 1u) && SYST_RVR != 0u) {
+            const int64_t period = ((int64_t)SYST_RVR + 1) * 1000000000 / STM32_SYSCLK_HZ;
+            const int64_t now = host_ns();
+            if (next_tick_ns == 0) {
+                next_tick_ns = now + period;
+            }
+            if (now >= next_tick_ns) {
+                next_tick_ns += period;
+                SysTick_Handler();
+            }
+        }
+        return;
     }
     counts += STM32_TIMER_HZ / 10000u; /* 100 us asleep */
     if ((SYST_CSR & 1u) && SYST_RVR != 0u) {
@@ -235,6 +334,18 @@ int main(int argc, char **argv)
         }
     }
     setvbuf(stdout, 0, _IOLBF, 0);
+    if (strcmp(what, "emulator") == 0) {
+        struct termios t;
+        line_fd = argc > 2 ? open(argv[2], O_RDWR | O_NOCTTY | O_NONBLOCK) : -1;
+        if (line_fd < 0 || tcgetattr(line_fd, &t) != 0) {
+            fprintf(stderr, "opencr_model: cannot open the line %s\n", argc > 2 ? argv[2] : "");
+            return 2;
+        }
+        cfmakeraw(&t);
+        tcsetattr(line_fd, TCSANOW, &t);
+        clock_start_ns = host_ns();
+        what = "firmware";
+    }
     board_clock_start();
     if (strcmp(what, "firmware") == 0) {
         if (setjmp(parked) == 0) {
@@ -245,6 +356,8 @@ int main(int argc, char **argv)
         printf("power_pin %u\n", (unsigned)((periph[(GPIOF_BASE + 0x14u - 0x40000000u) / 4u]
                                             >> OPENCR_DXL_POWER_PIN) & 1u));
         printf("bus_bytes %u\n", (unsigned)bus_bytes);
+        printf("rx_bytes %u\n", (unsigned)rx_bytes);
+        printf("laps %u\n", (unsigned)opencr_bus_dma_laps());
         return 0;
     }
     board_bus_init(4000000u);

@@ -32,11 +32,15 @@ from __future__ import annotations
 import re
 import struct
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
+from cochlea.dynamixel.drives import joint_drives
+from tests.test_dynamixel_hil import emulator
 from tests.test_embedded_qemu import ensure_tools
+from tests.test_embedded_stm32 import EMULATOR_SETTLE_S, value
 
 ROOT = Path(__file__).resolve().parent.parent
 OPENCR, COMMON = ROOT / "embedded" / "ports" / "opencr", ROOT / "embedded" / "ports" / "common"
@@ -124,14 +128,12 @@ def test_an_unknown_scenario_is_one_line_from_make(tmp_path):
     assert not (tmp_path / "opencr").exists()
 
 
-@pytest.fixture(scope="module")
-def model(tmp_path_factory) -> Path:
+def build_model(out: Path, *defines: str) -> Path:
     """tests/opencr_model.c with the port's HAL, the shared firmware, the core and
-    serial_joint, for the host (BOARD_HOST_MODEL)."""
-    out = tmp_path_factory.mktemp("opencr-model")
+    serial_joint, for the host (BOARD_HOST_MODEL); defines: the firmware's settings."""
     flags = ["-std=c99", "-O1", "-Wall", "-Wextra", "-Werror", "-DBOARD_HOST_MODEL",
              f"-I{ROOT / 'embedded' / 'core'}", f"-I{GEN}", f"-I{OPENCR}", f"-I{COMMON}",
-             "-DSTM32_SCENARIO=serial_joint"]
+             "-DSTM32_SCENARIO=serial_joint", *defines]
     firmware_object = out / "firmware.o"
     for command in (
             ["cc", *flags, "-Dmain=opencr_firmware_main", "-c", str(COMMON / "firmware.c"),
@@ -148,8 +150,15 @@ def model(tmp_path_factory) -> Path:
     return out / "model"
 
 
-def run_model(model: Path, case: str, *options: str) -> tuple[list[tuple[int, str, int]],
-                                                                 dict[str, str], str]:
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    return build_model(tmp_path_factory.mktemp("opencr-model"))
+
+
+def run_model(model: Path, case: str, *options: str
+              ) -> tuple[list[tuple[int, str, int]], dict[str, str], str, str]:
+    """The model's events (time, what, value), its "key value" lines, the firmware's console
+    and the whole output."""
     run = subprocess.run([str(model), case, *options], capture_output=True, text=True,
                          timeout=120)
     assert run.returncode == 0, run.stderr
@@ -158,11 +167,11 @@ def run_model(model: Path, case: str, *options: str) -> tuple[list[tuple[int, st
     values = dict(re.findall(r"^(\w+) (-?\d+)$", run.stdout, re.M))
     console = run.stdout.split("console_begin\n", 1)[1].split("console_end", 1)[0] \
         if "console_begin" in run.stdout else ""
-    return events, values, console
+    return events, values, console, run.stdout
 
 
 def test_the_bus_is_usart3_at_4_mbaud_with_dma1_stream1_channel4_circular(model):
-    _, values, _ = run_model(model, "ring")
+    _, values, _, _ = run_model(model, "ring")
     assert int(values["brr"]) == 0x15  # OVER8: USARTDIV 27 of 2 x 54 MHz = 4.000 Mbaud
     scr = int(values["dma_scr"])
     assert scr >> 25 & 7 == 4 and scr & 1  # channel 4 (USART3_RX), enabled
@@ -173,7 +182,7 @@ def test_the_bus_is_usart3_at_4_mbaud_with_dma1_stream1_channel4_circular(model)
 
 
 def test_the_dma_ring_read_keeps_order_across_the_rings_end(model):
-    _, values, _ = run_model(model, "ring")
+    _, values, _, _ = run_model(model, "ring")
     assert values["first"] == "1000" and values["second"] == "100"  # no mismatch line
     assert "mismatch" not in values
     assert values["laps"] == "1" and values["overflows"] == "0"
@@ -182,24 +191,24 @@ def test_the_dma_ring_read_keeps_order_across_the_rings_end(model):
 def test_a_lap_whose_interrupt_is_still_pending_loses_nothing(model):
     """NDTR reloaded, its transfer-complete interrupt not yet taken: the position looks
     behind the last one; the read counts the lap itself (no bytes lost, none repeated)."""
-    _, values, _ = run_model(model, "pending")
+    _, values, _, _ = run_model(model, "pending")
     assert (values["first"], values["second"], values["third"]) == ("1000", "100", "10")
     assert values["overflows"] == "0"
 
 
 def test_a_lapped_ring_counts_the_lost_bytes_and_reads_the_newest(model):
-    _, values, _ = run_model(model, "overflow")
+    _, values, _, _ = run_model(model, "overflow")
     assert values["got"] == "1024" and values["overflows"] == "50"
 
 
 def test_a_read_with_nothing_on_the_line_ends_at_its_timeout(model):
-    _, values, _ = run_model(model, "timeout")
+    _, values, _, _ = run_model(model, "timeout")
     assert values["got"] == "0"
     assert 2_000_000 <= int(values["waited_ns"]) < 2_100_000
 
 
 def test_a_write_returns_after_transmission_complete_then_the_pin_turns(model):
-    events, values, _ = run_model(model, "write")
+    events, values, _, _ = run_model(model, "write")
     assert values["wrote"] == "6"
     kinds = [(what, v) for _, what, v in events if what in ("bus", "tc", "direction")]
     assert kinds[-8:] == [("bus", 0xFF), ("bus", 0xFF), ("bus", 0xFD), ("bus", 0x00),
@@ -208,7 +217,7 @@ def test_a_write_returns_after_transmission_complete_then_the_pin_turns(model):
 
 
 def test_a_write_on_a_line_that_never_completes_gives_up_at_its_deadline(model):
-    events, values, _ = run_model(model, "write", "--tc-stuck")
+    events, values, _, _ = run_model(model, "write", "--tc-stuck")
     assert values["wrote"] == "-1"
     # 1 ms and twice the 6 bytes' wire time (30 us at 4 Mbaud), then one poll
     assert 1_030_000 <= int(values["write_ns"]) < 1_100_000
@@ -216,7 +225,7 @@ def test_a_write_on_a_line_that_never_completes_gives_up_at_its_deadline(model):
 
 
 def test_the_power_switch_is_pf15_high_on(model):
-    events, values, _ = run_model(model, "power")
+    events, values, _, _ = run_model(model, "power")
     assert [(what, v) for _, what, v in events if what == "power"] == [("power", 1),
                                                                       ("power", 0)]
     assert (int(values["moder_f"]) >> 30) & 3 == 1  # PF15 an output
@@ -228,7 +237,7 @@ def test_the_firmware_powers_the_bus_for_the_start_and_off_after_the_safe_stop(m
     current, torque off to every motor); the power goes on only after the configuration is
     accepted, the first byte waits for the motors' boot time, and the power goes off after
     the safe stop's last byte has left (TC), before the end line."""
-    events, values, console = run_model(model, "firmware")
+    events, values, console, _ = run_model(model, "firmware")
     lines = [line for line in console.replace("\r", "").splitlines() if line]
     assert lines[0].startswith("cochlea-opencr scenario=serial_joint "), lines
     assert lines[1].startswith("start failed error=1 step=1"), lines
@@ -245,7 +254,55 @@ def test_the_firmware_powers_the_bus_for_the_start_and_off_after_the_safe_stop(m
 
 
 def test_after_a_watchdog_reset_the_bus_is_never_powered(model):
-    events, values, console = run_model(model, "firmware", "--watchdog-reset")
+    events, values, console, _ = run_model(model, "firmware", "--watchdog-reset")
     assert "refused what=watchdog-reset" in console
     assert [v for _, what, v in events if what == "power"] == [0, 0]
     assert values["bus_bytes"] == "0" and values["power_pin"] == "0"
+
+
+#: The emulator run's build: 300 periods, and the tolerances the model's pace on a shared
+#: machine needs (as tests/test_embedded_stm32.py's QEMU build); 100 ms of boot time.
+EMULATOR_BUILD = ("-DSTM32_DURATION_S=0.3", "-DSTM32_WATCHDOG_MISSES=100000",
+                  "-DSTM32_WATCHDOG_ERRORS=100000", "-DSTM32_READ_TIMEOUT_NS=100000000",
+                  "-DSTM32_BUS_WATCHDOG_MS=2540", "-DOPENCR_POWER_SETTLE_MS=100u")
+GOAL_CURRENT, TORQUE_ENABLE = 102, 64
+
+
+@pytest.mark.hil
+def test_a_run_against_the_emulator_ends_in_torque_off_then_the_power_off(tmp_path):
+    """The whole firmware with the OpenCR HAL on the register model, its USART3 and DMA ring
+    on cochlea-emulator's pseudo-terminal, in real time: the start-up, 300 periods, the safe
+    stop confirmed by every motor, and only then the power switch off, with every byte of
+    the run already sent and received. The emulated motors get no torque (as in the STM32F4
+    port's QEMU test: the model's periods are not a board's)."""
+    binary = build_model(tmp_path, *EMULATOR_BUILD)
+    ids = [d.id for d in joint_drives("serial")]
+    still = [a for i in ids for a in ("--true-fit", f"{i}:1e-6,0")]
+    log = tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log, *still) as port:
+        time.sleep(EMULATOR_SETTLE_S)
+        _, values, console, out = run_model(binary, "emulator", port)
+    lines = [line for line in console.replace("\r", "").splitlines() if line]
+    assert lines[1] == "start ok", lines
+    end = dict(re.findall(r"(\w+)=(\S+)", lines[-1]))
+    n = len(ids)
+    assert end["rule"] == "completed" and end["exit"] == "0", lines[-1]
+    assert end["rows"] == "300" and end["reads"] == "300"
+    assert int(end["good_reads"]) >= 270 and end["rx_overflows"] == "0", lines[-1]
+    assert end["confirmed_off"] == f"{n}/{n}"
+    # the DMA lapped its ring many times over the run, and lost nothing
+    received = int(values["rx_bytes"])
+    assert int(values["laps"]) == received // 1024 > 10
+    # power: off at reset, on for the start, off after the last byte either way
+    power = re.findall(r"^power_at (\d) (\d+) (\d+)$", out, re.M)
+    assert power == [("0", "0", "0"), ("1", "0", "0"),
+                     ("0", values["bus_bytes"], values["rx_bytes"])], power
+    # the safe stop in the emulator's log: zero current, torque off to every motor, twice,
+    # then each motor read back
+    logged = [line.split() for line in log.read_text().splitlines()]
+    writes = [(int(value(e, "address")), int(value(e, "value"))) for e in logged
+              if e[1] == "sync-write"]
+    assert writes[-4 * n:] == ([(GOAL_CURRENT, 0)] * n + [(TORQUE_ENABLE, 0)] * n) * 2
+    last_stop = max(k for k, e in enumerate(logged) if e[1] == "sync-write")
+    assert [int(value(e, "id")) for e in logged[last_stop:]
+            if e[1] == "read" and value(e, "address") == str(TORQUE_ENABLE)] == ids
