@@ -65,6 +65,9 @@ uint32_t board_stack_used(void);
  * moves; NULL: none) is no longer seen; and a wait until a deadline made of such sleeps. */
 void stm32_sleep_before(int64_t deadline_ns, const volatile uint32_t *wake, uint32_t seen);
 void stm32_wait_until(int64_t deadline_ns);
+/* The HAL's now_ns and wait_until_ns over these (ctx unused). */
+int64_t stm32_hal_now(void *ctx);
+void stm32_hal_wait_until(void *ctx, int64_t deadline_ns);
 /* A clock's ready bit: 1 once (*reg & mask) == value, 0 after a bounded count of polls. */
 int stm32_wait_bits(volatile uint32_t *reg, uint32_t mask, uint32_t value);
 #ifdef BOARD_HOST_MODEL

@@ -160,6 +160,19 @@ void stm32_wait_until(int64_t deadline_ns)
     }
 }
 
+/* The HAL's clock callbacks (cochlea_rt.h: now_ns, wait_until_ns), the same on both ports. */
+int64_t stm32_hal_now(void *ctx)
+{
+    (void)ctx;
+    return board_now_ns();
+}
+
+void stm32_hal_wait_until(void *ctx, int64_t deadline_ns)
+{
+    (void)ctx;
+    stm32_wait_until(deadline_ns);
+}
+
 /* ---- the independent watchdog (RM0090 section 21.3; RM0385, "Independent watchdog") ------ */
 
 static void iwdg_set(uint32_t timeout_ms)

@@ -284,18 +284,6 @@ void opencr_bus_direction(void *ctx, int transmit)
                                      : (1u << (OPENCR_DXL_DIR_PIN + 16u));
 }
 
-static int64_t hal_now(void *ctx)
-{
-    (void)ctx;
-    return board_now_ns();
-}
-
-static void hal_wait_until(void *ctx, int64_t deadline_ns)
-{
-    (void)ctx;
-    stm32_wait_until(deadline_ns);
-}
-
 void board_bus_hal(cochlea_hal *hal, int rs485)
 {
     hal->ctx = 0;
@@ -303,8 +291,8 @@ void board_bus_hal(cochlea_hal *hal, int rs485)
     hal->serial_read = opencr_bus_read;
     hal->serial_discard_input = bus_discard;
     hal->rs485_direction = rs485 ? opencr_bus_direction : 0;
-    hal->now_ns = hal_now;
-    hal->wait_until_ns = hal_wait_until;
+    hal->now_ns = stm32_hal_now;
+    hal->wait_until_ns = stm32_hal_wait_until;
 }
 
 /* ---- USART6: the console (PC6 TX, PC7 RX: AF8), 115200 8N1, polled --------------------- */

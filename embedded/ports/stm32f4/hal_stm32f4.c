@@ -155,18 +155,6 @@ static void bus_direction(void *ctx, int transmit)
     GPIOA_BSRR = transmit ? (1u << 8) : (1u << (8 + 16));
 }
 
-static int64_t hal_now(void *ctx)
-{
-    (void)ctx;
-    return board_now_ns();
-}
-
-static void hal_wait_until(void *ctx, int64_t deadline_ns)
-{
-    (void)ctx;
-    stm32_wait_until(deadline_ns);
-}
-
 void stm32f4_hal(cochlea_hal *hal, stm32f4_uart *u, int rs485)
 {
     hal->ctx = u;
@@ -174,8 +162,8 @@ void stm32f4_hal(cochlea_hal *hal, stm32f4_uart *u, int rs485)
     hal->serial_read = bus_read;
     hal->serial_discard_input = bus_discard;
     hal->rs485_direction = rs485 ? bus_direction : 0;
-    hal->now_ns = hal_now;
-    hal->wait_until_ns = hal_wait_until;
+    hal->now_ns = stm32_hal_now;
+    hal->wait_until_ns = stm32_hal_wait_until;
 }
 
 /* ---- USART2: the console ---------------------------------------------------------------- */
