@@ -8,6 +8,15 @@
 
 const char board_name[] = "opencr";
 
+/* A peripheral's clock, enabled and read back: the first access must wait two cycles after
+ * the enable (ST's errata for the STM32F74x, "delay after an RCC peripheral clock enabling";
+ * their HAL reads the register back, as here). */
+static void clock_on(volatile uint32_t *enr, uint32_t bits)
+{
+    *enr |= bits;
+    (void)*enr;
+}
+
 /* ---- clocks: HSE 25 MHz -> PLL 216 MHz, AHB 216, APB1 54, APB2 108 (RM0385 section 5.2) -- */
 
 int board_clock_init(void)
@@ -19,7 +28,7 @@ int board_clock_init(void)
          * HSI runs the core): an emulator's, whose clock is the machine's. */
         return BOARD_CLOCK_UNMODELLED;
     }
-    RCC_APB1ENR |= RCC_APB1ENR_PWREN;
+    clock_on(&RCC_APB1ENR, RCC_APB1ENR_PWREN);
     PWR_CR1 |= PWR_CR1_VOS_SCALE1; /* scale 1 (its reset value): needed for 216 MHz */
     RCC_CR |= RCC_CR_HSEON;
     if (!stm32_wait_bits(&RCC_CR, RCC_CR_HSERDY, RCC_CR_HSERDY)) {
@@ -85,7 +94,7 @@ static void gpio_alternate(uint32_t base, uint32_t pin, uint32_t af)
 
 void board_bus_power(int on)
 {
-    RCC_AHB1ENR |= RCC_AHB1ENR_GPIOFEN;
+    clock_on(&RCC_AHB1ENR, RCC_AHB1ENR_GPIOFEN);
     gpio_output(GPIOF_BASE, OPENCR_DXL_POWER_PIN, on);
 }
 
@@ -185,8 +194,8 @@ void board_bus_init(uint32_t baud)
 {
     uint32_t polls;
     bus_baud = baud;
-    RCC_AHB1ENR |= RCC_AHB1ENR_GPIOCEN | RCC_AHB1ENR_DMA1EN;
-    RCC_APB1ENR |= RCC_APB1ENR_USART3EN;
+    clock_on(&RCC_AHB1ENR, RCC_AHB1ENR_GPIOCEN | RCC_AHB1ENR_DMA1EN);
+    clock_on(&RCC_APB1ENR, RCC_APB1ENR_USART3EN);
     /* PC9 the direction, low (receive); PC10 TX, PC11 RX (pulled up): AF7 */
     gpio_output(GPIOC_BASE, OPENCR_DXL_DIR_PIN, 0);
     gpio_alternate(GPIOC_BASE, 10u, GPIO_AF7);
@@ -299,8 +308,8 @@ void board_bus_hal(cochlea_hal *hal, int rs485)
 
 void board_console_init(void)
 {
-    RCC_AHB1ENR |= RCC_AHB1ENR_GPIOCEN;
-    RCC_APB2ENR |= RCC_APB2ENR_USART6EN;
+    clock_on(&RCC_AHB1ENR, RCC_AHB1ENR_GPIOCEN);
+    clock_on(&RCC_APB2ENR, RCC_APB2ENR_USART6EN);
     gpio_alternate(GPIOC_BASE, 6u, GPIO_AF8);
     gpio_alternate(GPIOC_BASE, 7u, GPIO_AF8);
     USART_CR1(USART6_BASE) = 0;
@@ -327,8 +336,8 @@ void board_console_write(const char *text)
 
 void board_stream_uart_init(uint32_t baud)
 {
-    RCC_AHB1ENR |= RCC_AHB1ENR_GPIODEN;
-    RCC_APB1ENR |= RCC_APB1ENR_USART2EN;
+    clock_on(&RCC_AHB1ENR, RCC_AHB1ENR_GPIODEN);
+    clock_on(&RCC_APB1ENR, RCC_APB1ENR_USART2EN);
     gpio_alternate(GPIOD_BASE, 5u, GPIO_AF7);
     USART_CR1(USART2_BASE) = 0;
     USART_CR2(USART2_BASE) = 0;
