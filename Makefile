@@ -195,6 +195,9 @@ qemu-firmware:
 # STM32_STREAM_BAUD (its rate; `cochlea-embedded-host` reads it: docs/embedded.md "The row
 # stream").
 STM32_DIR              := embedded/ports/stm32f4
+# What the board ports share (the run, the console's report, the row stream's framing).
+PORTS_COMMON           := embedded/ports/common
+PORTS_COMMON_SRC       := $(sort $(wildcard $(PORTS_COMMON)/*.c))
 STM32_SCENARIO         ?= serial_joint
 STM32_DURATION         ?= 0
 STM32_WATCHDOG_MISSES  ?= 20
@@ -210,6 +213,7 @@ STM32_STREAM_BAUD      ?= 921600
 STM32_CPU      := -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16
 STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
                   -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(STM32_DIR) \
+                  -I$(PORTS_COMMON) \
                   -DSTM32_SCENARIO=$(STM32_SCENARIO) -DSTM32_DURATION_S=$(STM32_DURATION) \
                   -DSTM32_WATCHDOG_MISSES=$(STM32_WATCHDOG_MISSES) \
                   -DSTM32_WATCHDOG_ERRORS=$(STM32_WATCHDOG_ERRORS) -DSTM32_BAUD=$(STM32_BAUD)u \
@@ -221,8 +225,10 @@ STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
 STM32_LDFLAGS  := -T $(STM32_DIR)/stm32f405.ld -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 STM32_SOURCES  := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(STM32_SCENARIO).c \
-                  $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c $(sort $(wildcard $(STM32_DIR)/*.c))
+                  $(GEN)/embedded/$(STM32_SCENARIO)_scenario.c $(sort $(wildcard $(STM32_DIR)/*.c)) \
+                  $(PORTS_COMMON_SRC)
 STM32_DEPS     := $(STM32_SOURCES) $(wildcard embedded/core/*.h $(STM32_DIR)/*.h) \
+                  $(wildcard $(PORTS_COMMON)/*.h) \
                   $(STM32_DIR)/stm32f405.ld $(GEN)/embedded/$(STM32_SCENARIO).h Makefile
 # The compiled-in settings: a change rebuilds (the file changes only when they do).
 STM32_CONFIG   := $(STM32_CFLAGS) $(STM32_CPU) $(ARM_CC)
@@ -257,3 +263,74 @@ stm32-firmware:
 	@bash embedded/ports/ensure_tools.sh
 	@$(MAKE) --no-print-directory $(BUILD)/stm32f4/float/cochlea-stm32f4.elf \
 	    $(BUILD)/stm32f4/double/cochlea-stm32f4.elf
+
+# The OpenCR board port (embedded/ports/opencr/, docs/embedded.md "OpenCR (STM32F746) port"):
+# the same firmware as the STM32F4 port's (embedded/ports/common/) on ROBOTIS's OpenCR, an
+# STM32F746ZG (Cortex-M7, double-precision FPU, 216 MHz): the Dynamixel bus on USART3 with DMA
+# receive, its direction pin (PC9) and power switch (PF15), float and double:
+# build/opencr/<float|double>/cochlea-opencr.elf (and .bin, .map, the compiler's .su files),
+# then each image's size and worst stack (embedded/ports/common/stack_report.py). No emulator
+# models this chip (QEMU 7.2 has no STM32F7 machine): tests/test_embedded_opencr.py checks the
+# build, the memory map and the HAL against a register model on the host. Compiled in: the
+# STM32F4 port's settings under OPENCR_ names (OPENCR_SCENARIO, OPENCR_DURATION, ...), and
+# OPENCR_POWER_SETTLE_MS (the motors' boot time after the power switch closes, ROBOTIS's 1 s).
+OPENCR_DIR              := embedded/ports/opencr
+OPENCR_SCENARIO         ?= serial_joint
+OPENCR_DURATION         ?= 0
+OPENCR_WATCHDOG_MISSES  ?= 20
+OPENCR_WATCHDOG_ERRORS  ?= 5
+OPENCR_BAUD             ?= 4000000
+OPENCR_READ_TIMEOUT_US  ?= 5000
+OPENCR_RATE             ?= 0
+OPENCR_BUS_WATCHDOG_MS  ?= 100
+OPENCR_STREAM_EVERY     ?= 10
+OPENCR_STREAM_BAUD      ?= 921600
+OPENCR_POWER_SETTLE_MS  ?= 1000
+OPENCR_CPU     := -mcpu=cortex-m7 -mthumb -mfloat-abi=hard -mfpu=fpv5-d16
+OPENCR_CFLAGS  := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
+                  -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(OPENCR_DIR) \
+                  -I$(PORTS_COMMON) \
+                  -DSTM32_SCENARIO=$(OPENCR_SCENARIO) -DSTM32_DURATION_S=$(OPENCR_DURATION) \
+                  -DSTM32_WATCHDOG_MISSES=$(OPENCR_WATCHDOG_MISSES) \
+                  -DSTM32_WATCHDOG_ERRORS=$(OPENCR_WATCHDOG_ERRORS) -DSTM32_BAUD=$(OPENCR_BAUD)u \
+                  -DSTM32_READ_TIMEOUT_NS=$(OPENCR_READ_TIMEOUT_US)000 \
+                  -DSTM32_RATE_HZ=$(OPENCR_RATE) \
+                  -DSTM32_BUS_WATCHDOG_MS=$(OPENCR_BUS_WATCHDOG_MS) \
+                  -DSTM32_STREAM_EVERY=$(OPENCR_STREAM_EVERY)u \
+                  -DSTM32_STREAM_BAUD=$(OPENCR_STREAM_BAUD)u \
+                  -DOPENCR_POWER_SETTLE_MS=$(OPENCR_POWER_SETTLE_MS)u
+OPENCR_LDFLAGS := -T $(OPENCR_DIR)/stm32f746.ld -nostartfiles --specs=nano.specs \
+                  --specs=nosys.specs -Wl,--gc-sections
+OPENCR_SOURCES := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(OPENCR_SCENARIO).c \
+                  $(GEN)/embedded/$(OPENCR_SCENARIO)_scenario.c \
+                  $(sort $(wildcard $(OPENCR_DIR)/*.c)) $(PORTS_COMMON_SRC)
+OPENCR_DEPS    := $(OPENCR_SOURCES) $(wildcard embedded/core/*.h $(OPENCR_DIR)/*.h) \
+                  $(wildcard $(PORTS_COMMON)/*.h) $(OPENCR_DIR)/stm32f746.ld \
+                  $(GEN)/embedded/$(OPENCR_SCENARIO).h Makefile $(BUILD)/opencr/config.txt
+OPENCR_CONFIG  := $(OPENCR_CFLAGS) $(OPENCR_CPU) $(ARM_CC)
+OPENCR_PREC_double :=
+OPENCR_PREC_float  := -DCOCHLEA_FLOAT
+
+$(BUILD)/opencr/%/cochlea-opencr.elf: $(OPENCR_DEPS)
+	@mkdir -p $(@D)
+	cd $(@D) && rm -f *.su
+	$(ARM_CC) $(OPENCR_CFLAGS) $(OPENCR_CPU) $(OPENCR_PREC_$*) $(OPENCR_SOURCES) \
+	    $(OPENCR_LDFLAGS) -Wl,-Map,$(@D)/cochlea-opencr.map -o $@.partial -lm
+	arm-none-eabi-objcopy -O binary $@.partial $(@D)/cochlea-opencr.bin
+	mv $@.partial $@
+
+$(BUILD)/opencr/config.txt: opencr-config-check
+	@mkdir -p $(@D)
+	@echo '$(OPENCR_CONFIG)' | cmp -s - $@ || echo '$(OPENCR_CONFIG)' > $@
+
+.PHONY: opencr-firmware opencr-config-check
+opencr-config-check:
+opencr-firmware:
+	$(if $(wildcard $(GEN)/embedded/$(OPENCR_SCENARIO)_scenario.c),,$(error opencr-firmware: \
+	    unknown scenario OPENCR_SCENARIO=$(OPENCR_SCENARIO); one of: $(patsubst \
+	    $(GEN)/embedded/%_scenario.c,%,$(wildcard $(GEN)/embedded/*_scenario.c))))
+	@bash embedded/ports/ensure_tools.sh
+	@$(MAKE) --no-print-directory $(BUILD)/opencr/float/cochlea-opencr.elf \
+	    $(BUILD)/opencr/double/cochlea-opencr.elf
+	@python3 $(PORTS_COMMON)/stack_report.py $(BUILD)/opencr/float/cochlea-opencr.elf \
+	    $(BUILD)/opencr/double/cochlea-opencr.elf

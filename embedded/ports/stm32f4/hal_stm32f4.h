@@ -49,20 +49,8 @@ typedef struct {
 
 /* Clocks (bounded waits: a part that does not lock is reported, never waited on for ever). */
 int stm32f4_clock_init(void);
-/* The clock: TIM2 free-running over its 32 bits, extended to 64 in software (each reading is
- * compared with the last, with interrupts masked; SysTick's interrupt reads it every period,
- * so no wrap, 51 s at 84 MHz, can pass unseen). */
-void stm32f4_clock_start(void);
-/* TIM2's raw 32-bit count (STM32_TIMER_HZ): differences time short code paths. */
-uint32_t stm32f4_timer_count(void);
-/* The 64-bit nanosecond clock (monotonic, never wraps). */
-int64_t stm32f4_now_ns(void);
-/* SysTick at period_ns (the loop's period, at most 2^24 core cycles): its interrupt calls
- * tick(tick_ctx) once per period and wakes the core. 0, or -1 for a period SysTick cannot
- * make. */
-int stm32f4_tick_start(int64_t period_ns, void (*tick)(void *), void *tick_ctx);
-/* Period ticks so far (SysTick interrupts). */
-uint32_t stm32f4_ticks(void);
+/* The clock (TIM2, 64-bit), SysTick's period, the sleep and the independent watchdog are the
+ * STM32 ports' shared ones: embedded/ports/common/stm32_timebase.c (board.h). */
 /* USART1 on PA9 (TX) / PA10 (RX), 8N1 at baud, its receive interrupt on, PA8 the RS-485
  * direction pin (low: receive). */
 void stm32f4_bus_init(stm32f4_uart *u, uint32_t baud);
@@ -72,15 +60,5 @@ void stm32f4_hal(cochlea_hal *hal, stm32f4_uart *u, int rs485);
 /* USART2 on PA2 / PA3 at 115200 8N1, polled: whole lines, outside the periods. */
 void stm32f4_console_init(void);
 void stm32f4_console_write(const char *text);
-/* The independent watchdog: started with a timeout of about timeout_ms (LSI nominal 32 kHz;
- * 17..47 kHz over parts and temperature, RM0090 section 21.3), kicked, or given a new timeout. */
-void stm32f4_iwdg_start(uint32_t timeout_ms);
-void stm32f4_iwdg_kick(void *ctx);
-void stm32f4_iwdg_timeout(uint32_t timeout_ms);
-/* Whether the last reset was the independent or window watchdog's (RCC_CSR); clears the
- * flags. */
-int stm32f4_reset_by_watchdog(void);
-/* Sleep until the next interrupt (WFI). */
-void stm32f4_idle(void);
 
 #endif /* COCHLEA_HAL_STM32F4_H */

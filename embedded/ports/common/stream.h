@@ -1,16 +1,17 @@
-/* The row stream of the STM32F4 port: the loop's log rows (cochlea-run's log.bin rows), every
- * STM32_STREAM_EVERY-th, framed and sent on USART3 to a host command
+/* The row stream of the board ports (STM32F4: USART3; OpenCR: USART2; board.h's
+ * board_stream_*): the loop's log rows (cochlea-run's log.bin rows), every
+ * STM32_STREAM_EVERY-th, framed and sent on the board's stream UART to a host command
  * (cochlea-embedded-host) that writes log.bin, log.columns.json and summary.json as
  * cochlea-run does. docs/embedded.md, "The row stream", has the frame format.
  *
- * Outside the period's critical path: stm32f4_stream_row (the loop's on_row, inside the
+ * Outside the period's critical path: stream_row (the loop's on_row, inside the
  * period) only copies a row into a ring of slots, or counts it dropped when the ring is full;
- * the framing and CRC-32 are done by stm32f4_stream_pump, called from the idle wait before
- * each period's deadline, and the bytes leave through USART3's TXE interrupt (and the same
+ * the framing and CRC-32 are done by stream_pump, called from the idle wait before
+ * each period's deadline, and the bytes leave through the UART's TXE interrupt (and the same
  * pump where the interrupt is not raised, as on QEMU 7.2). Nothing here ever waits in a
  * period. */
-#ifndef COCHLEA_STM32F4_STREAM_H
-#define COCHLEA_STM32F4_STREAM_H
+#ifndef COCHLEA_PORTS_STREAM_H
+#define COCHLEA_PORTS_STREAM_H
 
 #include <stdint.h>
 
@@ -44,20 +45,20 @@ typedef struct {
                               * own equals it (one CRC pass a row, not two) */
     uint32_t frames;         /* frames framed (the next sequence number) */
     uint32_t bytes_dropped;  /* header or end bytes a stuck line did not take */
-} stm32f4_stream_counts;
+} stream_counts;
 
-/* USART3 on PB10 (TX, AF7) at baud, 8N1; every-th row streamed; row_length values a row. */
-void stm32f4_stream_init(uint32_t baud, uint32_t every, int row_length);
+/* The board's stream UART at baud, 8N1; every-th row streamed; row_length values a row. */
+void stream_init(uint32_t baud, uint32_t every, int row_length);
 /* The header frame (text, key=value; NUL-terminated), before the periods. */
-void stm32f4_stream_header(const char *text);
+void stream_header(const char *text);
 /* The loop's on_row (inside the period: a copy or a count, nothing else). */
-void stm32f4_stream_row(void *ctx, const double *row, int row_length);
+void stream_row(void *ctx, const double *row, int row_length);
 /* Frames queued rows and moves bytes to the USART while it takes them (idle context). */
-void stm32f4_stream_pump(void);
+void stream_pump(void);
 /* After the run: every queued row framed (until deadline_ns), so the counts are final. */
-void stm32f4_stream_flush_rows(int64_t deadline_ns);
+void stream_flush_rows(int64_t deadline_ns);
 /* Then the end frame (text), its bytes sent before deadline_ns. */
-void stm32f4_stream_end(const char *text, int64_t deadline_ns);
-const stm32f4_stream_counts *stm32f4_stream_counts_now(void);
+void stream_end(const char *text, int64_t deadline_ns);
+const stream_counts *stream_counts_now(void);
 
-#endif /* COCHLEA_STM32F4_STREAM_H */
+#endif /* COCHLEA_PORTS_STREAM_H */

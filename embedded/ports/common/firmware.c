@@ -1,22 +1,26 @@
-/* cochlea on an STM32F405/407: one scenario's real-time loop over the Dynamixel bus.
+/* cochlea on a board (board.h: the STM32F4 and OpenCR ports): one scenario's real-time loop
+ * over the Dynamixel bus, the same on every board.
  *
- * At reset: the clocks (hal_stm32f4.c), TIM2 as the 64-bit clock, the console (USART2), the
- * bus (USART1, its receive interrupt), SysTick at the loop's period. Then, as
- * build/cochlea-embedded does: the controller and the loop first (a refused configuration moves nothing), the bridge's
+ * At reset: the bus's power switch off (OpenCR's; a no-op elsewhere), the clocks, the timer
+ * as the 64-bit clock, the console, the bus (its receive ring), SysTick at the loop's period.
+ * Then, as build/cochlea-embedded does: the controller and the loop first (a refused
+ * configuration moves nothing), the bus's power on (and the motors' boot time), the bridge's
  * start-up (PING and model check, configuration, Bus Watchdog, first read; the torque with the
  * first nonzero command), and the periods: SysTick's interrupt (cochlea_loop_tick) wakes the
  * core from WFI and the main context runs cochlea_loop_period; the independent watchdog is
  * started with period 0 and kicked after every completed period (loop.kick_watchdog). Every
- * end goes through cochlea_loop_end (zero current, torque off, confirmed per motor); the
- * firmware then reports on the console and parks: it never starts the motors again without a
- * reset, and refuses to start at all after a watchdog reset.
+ * end goes through cochlea_loop_end (zero current, torque off, confirmed per motor), then the
+ * bus's power goes off; the firmware then reports on the console and parks: it never starts
+ * the motors again without a reset, and refuses to start at all after a watchdog reset.
  *
  * Compiled in: the scenario (STM32_SCENARIO), the run's length (STM32_DURATION_S, 0: the
  * scenario's), the watchdog counts (cochlea-run's --watchdog-misses, --watchdog-errors), the
- * bus's baud rate, its read timeout, whether PA8 switches an RS-485 transceiver.
+ * bus's baud rate, its read timeout, whether the board switches an RS-485 (or half-duplex TTL)
+ * transceiver's direction.
  *
- * The console's lines (115200 8N1, key=value; docs/embedded.md, "STM32F4 port"):
- *   cochlea-stm32f4 scenario=S precision=float|double clock=pll|unmodelled|no-hse|no-pll
+ * The console's lines (115200 8N1, key=value; docs/embedded.md, "STM32F4 port"; NAME is
+ * board_name, stm32f4 or opencr):
+ *   cochlea-NAME scenario=S precision=float|double clock=pll|unmodelled|no-hse|no-pll
  *       baud=B timer_hz=F period_ns=P periods=N
  *   start ok | start failed error=E step=S drive=D detail=X
  *       | refused what=clock|watchdog-reset|homing|configuration|loop ...
@@ -29,7 +33,7 @@
 
 #include "bridge.h"
 #include "cochlea_rt.h"
-#include "hal_stm32f4.h"
+#include "board.h"
 #include "loop.h"
 #include "scenario.h"
 #include "stream.h"
@@ -56,7 +60,7 @@
 #define STM32_READ_TIMEOUT_NS 5000000 /* a period's SYNC_READ reply (ns) */
 #endif
 #ifndef STM32_RS485
-#define STM32_RS485 1 /* PA8 drives the transceiver's direction */
+#define STM32_RS485 1 /* the board's direction pin drives the transceiver */
 #endif
 /* The independent watchdog while the periods run: over the loop's own lateness limit (0.1 s)
  * and a period's read timeout even at the LSI's fastest (47 kHz: 0.68 of nominal), so it
@@ -81,11 +85,9 @@
 #define STR(a) STR2(a)
 
 extern const cochlea_scenario CAT(STM32_SCENARIO, _scenario);
-uint32_t stm32f4_stack_used(void);
 
 static cochlea_bridge bridge;
 static cochlea_loop the_loop;
-static stm32f4_uart bus;
 static union {
     double align; /* aligned for double loads (cochlea_rt.h) */
     uint8_t bytes[16384];
@@ -94,9 +96,9 @@ static volatile int running; /* between cochlea_loop_begin and cochlea_loop_end 
 static volatile int parked;  /* after the end: SysTick kicks the watchdog */
 static volatile int iwdg_on;
 static uint32_t kicks;
-/* The row stream's own cost, in TIM2 counts (STM32_TIMER_HZ; 1 ns under QEMU, where with
- * -icount shift=0 a count is an instruction): the largest in-period on_row, and the largest
- * framing between two periods. */
+/* The row stream's own cost, in the board's timer counts (board_timer_hz(); 1 ns under QEMU,
+ * where with -icount shift=0 a count is an instruction): the largest in-period on_row, and
+ * the largest framing between two periods. */
 static uint32_t stream_row_max, stream_pump_max;
 static char line[2048]; /* a console line, or the stream's header (its columns) */
 
@@ -139,14 +141,14 @@ static void say(char *at)
     at[0] = '\r';
     at[1] = '\n';
     at[2] = '\0';
-    stm32f4_console_write(line);
+    board_console_write(line);
 }
 
 static void park(void)
 {
     parked = 1;
     for (;;) {
-        stm32f4_idle();
+        board_idle();
     }
 }
 
@@ -159,32 +161,35 @@ static void on_tick(void *ctx)
         cochlea_loop_tick(&the_loop);
     }
     if (parked && iwdg_on) {
-        stm32f4_iwdg_kick(0);
+        board_iwdg_kick(0);
     }
 }
 
 static void on_row(void *ctx, const double *row, int row_length)
 {
-    const uint32_t before = stm32f4_timer_count();
+    const uint32_t before = board_timer_count();
     uint32_t spent;
-    stm32f4_stream_row(ctx, row, row_length);
-    spent = stm32f4_timer_count() - before;
+    stream_row(ctx, row, row_length);
+    spent = board_timer_count() - before;
     stream_row_max = spent > stream_row_max ? spent : stream_row_max;
 }
 
 static void kick(void *ctx)
 {
-    stm32f4_iwdg_kick(ctx);
+    board_iwdg_kick(ctx);
     kicks += 1u;
 }
 
 static void end_line(int rule, int64_t run_ns)
 {
-    const stm32f4_stream_counts *sc;
+    const stream_counts *sc;
     char *at;
+    /* Every end comes here after the safe stop (torque off, confirmed per motor) or before
+     * the bus started: the bus's power off. */
+    board_bus_power(0);
     /* the rows still queued first, so that the end's counts are final (bounded: 2 s) */
-    stm32f4_stream_flush_rows(stm32f4_now_ns() + 2000000000);
-    sc = stm32f4_stream_counts_now();
+    stream_flush_rows(board_now_ns() + 2000000000);
+    sc = stream_counts_now();
     at = put(line, "end rule=");
     at = put(at, rule == COCHLEA_RULE_NONE ? "none" : cochlea_rule_name(rule));
     at = put_kv(at, "exit", rule == COCHLEA_RULE_NONE ? COCHLEA_EXIT_BACKEND
@@ -199,7 +204,7 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "run_ns", run_ns);
     at = put_kv(at, "reads", bridge.reads);
     at = put_kv(at, "good_reads", bridge.good_reads);
-    at = put_kv(at, "rx_overflows", bus.overflows);
+    at = put_kv(at, "rx_overflows", board_bus_rx_overflows());
     at = put(at, " failures=");
     {
         int kind, any = 0;
@@ -217,7 +222,7 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "confirmed_off", bridge.confirmed_off);
     at = put(at, "/");
     at = put_int(at, bridge.n);
-    at = put_kv(at, "stack_bytes", stm32f4_stack_used());
+    at = put_kv(at, "stack_bytes", board_stack_used());
     /* where a rule was broken: the joint, and the value and limit in micro-SI (urad, um,
      * urad/s, um/s) */
     at = put_kv(at, "stop_joint", the_loop.stop.joint);
@@ -235,18 +240,19 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "stream_row_counts_max", stream_row_max);
     at = put_kv(at, "stream_pump_counts_max", stream_pump_max);
     *at = '\0';
-    stm32f4_stream_end(line + 4, stm32f4_now_ns() + 2000000000); /* without "end " */
+    stream_end(line + 4, board_now_ns() + 2000000000); /* without "end " */
     say(at);
 }
 
 /* The stream's header frame: what the host needs to write cochlea-run's files. */
-static void stream_header(const cochlea_scenario *sc, double period, double duration, int clock)
+static void send_header(const cochlea_scenario *sc, double period, double duration, int clock)
 {
     static const char *const clock_names[] = {"pll", "unmodelled", "no-hse", "no-pll"};
     const int length = cochlea_loop_row_length(sc);
     int i;
-    char *at = put(line, "cochlea-stm32f4-stream version=1 scenario=" STR(STM32_SCENARIO)
-                         " precision=");
+    char *at = put(line, "cochlea-");
+    at = put(at, board_name);
+    at = put(at, "-stream version=1 scenario=" STR(STM32_SCENARIO) " precision=");
     at = put(at, sc->real_size == 4 ? "float" : "double");
     at = put(at, " clock=");
     at = put(at, clock_names[clock]);
@@ -257,15 +263,15 @@ static void stream_header(const cochlea_scenario *sc, double period, double dura
     at = put_kv(at, "schema_version", sc->schema_version);
     at = put_kv(at, "watchdog_misses", STM32_WATCHDOG_MISSES);
     at = put_kv(at, "watchdog_errors", STM32_WATCHDOG_ERRORS);
-    at = put_kv(at, "timer_hz", STM32_TIMER_HZ);
+    at = put_kv(at, "timer_hz", board_timer_hz());
     at = put(at, " columns=");
     for (i = 0; i < sc->n_raw_columns; ++i) {
         at = put(at, i ? "," : "");
         at = put(at, sc->raw_columns[i]);
     }
     *at = '\0';
-    stm32f4_stream_init(STM32_STREAM_BAUD, STM32_STREAM_EVERY, length);
-    stm32f4_stream_header(line);
+    stream_init(STM32_STREAM_BAUD, STM32_STREAM_EVERY, length);
+    stream_header(line);
 }
 
 int main(void)
@@ -281,25 +287,28 @@ int main(void)
     int64_t started;
     char *at;
 
-    clock = stm32f4_clock_init();
-    stm32f4_clock_start();
-    stm32f4_console_init();
-    at = put(line, "cochlea-stm32f4 scenario=" STR(STM32_SCENARIO) " precision=");
+    board_bus_power(0); /* the motors stay unpowered until the bus starts */
+    clock = board_clock_init();
+    board_clock_start();
+    board_console_init();
+    at = put(line, "cochlea-");
+    at = put(at, board_name);
+    at = put(at, " scenario=" STR(STM32_SCENARIO) " precision=");
     at = put(at, sc->real_size == 4 ? "float" : "double");
     at = put(at, " clock=");
     at = put(at, clock_names[clock]);
     at = put_kv(at, "baud", STM32_BAUD);
-    at = put_kv(at, "timer_hz", STM32_TIMER_HZ);
+    at = put_kv(at, "timer_hz", board_timer_hz());
     at = put_kv(at, "period_ns", (int64_t)(period * 1e9 + 0.5));
     at = put_kv(at, "periods", (int64_t)(duration / period + 0.5));
     say(at);
-    stream_header(sc, period, duration, clock);
-    if (clock == STM32F4_CLOCK_NO_HSE || clock == STM32F4_CLOCK_NO_PLL) {
+    send_header(sc, period, duration, clock);
+    if (clock == BOARD_CLOCK_NO_HSE || clock == BOARD_CLOCK_NO_PLL) {
         say(put(line, "refused what=clock: the crystal or the PLL did not start; nothing moved"));
         end_line(COCHLEA_RULE_NONE, 0);
         park();
     }
-    if (stm32f4_reset_by_watchdog()) {
+    if (board_reset_by_watchdog()) {
         say(put(line, "refused what=watchdog-reset: the last run ended in a watchdog reset; "
                       "power-cycle to run again; nothing moved"));
         end_line(COCHLEA_RULE_NONE, 0);
@@ -318,10 +327,10 @@ int main(void)
             }
         }
     }
-    stm32f4_bus_init(&bus, STM32_BAUD);
-    stm32f4_hal(&hal, &bus, STM32_RS485);
+    board_bus_init(STM32_BAUD);
+    board_bus_hal(&hal, STM32_RS485);
     if (sc->state_size > sizeof controller.bytes
-        || stm32f4_tick_start((int64_t)(period * 1e9 + 0.5), on_tick, 0) != 0
+        || board_tick_start((int64_t)(period * 1e9 + 0.5), on_tick, 0) != 0
         || cochlea_bridge_init(&bridge, &hal, sc->drives, sc->nq, STM32_READ_TIMEOUT_NS,
                                STM32_BUS_WATCHDOG_MS * 1e-3) != 0
         || cochlea_bridge_use_realtime_tick(&bridge) != 0) {
@@ -342,6 +351,10 @@ int main(void)
     }
     the_loop.kick_watchdog = kick;
     the_loop.on_row = on_row; /* a copy into a slot, or a count: never a wait */
+    /* The bus's power on only now, the configuration accepted; then the motors' boot time
+     * (none on a board without a switch). */
+    board_bus_power(1);
+    hal.wait_until_ns(hal.ctx, board_now_ns() + (int64_t)board_bus_power_settle_ms() * 1000000);
     if (!cochlea_bridge_start(&bridge, &report)) {
         at = put(line, "start failed");
         at = put_kv(at, "error", report.error);
@@ -354,32 +367,32 @@ int main(void)
     say(put(line, "start ok"));
     /* Period 0 right after a tick, so that each later tick comes just before its deadline. */
     {
-        const uint32_t ticks = stm32f4_ticks();
-        while (stm32f4_ticks() == ticks) {
-            stm32f4_idle();
+        const uint32_t ticks = board_ticks();
+        while (board_ticks() == ticks) {
+            board_idle();
         }
     }
     running = 1;
     rule = cochlea_loop_begin(&the_loop);
     started = the_loop.t0_ns;
-    stm32f4_iwdg_start(IWDG_RUN_MS);
+    board_iwdg_start(IWDG_RUN_MS);
     iwdg_on = 1;
     while (rule == COCHLEA_RULE_NONE) {
         /* waits (WFI) for its deadline: the tick's interrupt wakes the core */
         rule = cochlea_loop_period(&the_loop);
         {
             /* between periods: frames the queued rows */
-            const uint32_t before = stm32f4_timer_count();
+            const uint32_t before = board_timer_count();
             uint32_t spent;
-            stm32f4_stream_pump();
-            spent = stm32f4_timer_count() - before;
+            stream_pump();
+            spent = board_timer_count() - before;
             stream_pump_max = spent > stream_pump_max ? spent : stream_pump_max;
         }
     }
-    stm32f4_iwdg_timeout(IWDG_STOP_MS);
+    board_iwdg_timeout(IWDG_STOP_MS);
     cochlea_loop_end(&the_loop); /* zero current, torque off, confirmed: every path */
     running = 0;
-    end_line(rule, stm32f4_now_ns() - started);
+    end_line(rule, board_now_ns() - started);
     park();
     return 0;
 }

@@ -1,0 +1,308 @@
+"""Issue 28 item 1: the OpenCR board port (embedded/ports/opencr/, ``make opencr-firmware``),
+the shared STM32 firmware on ROBOTIS's OpenCR (an STM32F746ZG, Cortex-M7 with a
+double-precision FPU). See docs/embedded.md, "OpenCR (STM32F746) port".
+
+No emulator models this chip (QEMU 7.2 has no STM32F7 machine; its mps2-an500 Cortex-M7 has
+none of the F746's peripherals), so what is checked here, and how:
+
+- the build: warning-free (``-Werror``) in float and double for ``-mcpu=cortex-m7
+  -mfpu=fpv5-d16 -mfloat-abi=hard``, linked, with its size and static worst stack reported;
+- the memory map an STM32F746 expects (RM0385 section 2.2.2): the vector table at the start
+  of flash (0x08000000) with the initial stack pointer at the DTCM's top (0x20010000) and the
+  port's handlers at their interrupt numbers; .data, .bss and the stack in the DTCM
+  (0x20000000, 64 KB), the DMA's receive ring in SRAM1 (0x20010000); the image built for the
+  double-precision FPU;
+- the HAL's logic against a register model on the host (tests/opencr_model.c): the port's
+  hal_opencr.c, the shared clock and, in the "firmware" cases, the whole shared firmware with
+  the core and serial_joint, every register access going to the model. It checks the DMA ring
+  read (bytes in order across the ring's end, a lap whose interrupt is still pending, a lapped
+  ring counted as lost bytes, a read that ends at its timeout), that a write returns only
+  after transmission complete (TC) and gives up at its deadline on a line that never
+  completes, the power switch's pin, and in the firmware: the bus powered only after the
+  configuration is accepted and the motors' boot time before the first byte, powered off
+  after the safe stop's last byte (no motor answers in the model: the start fails and shuts
+  down), never powered after a watchdog reset.
+
+What only a board can show: the clock tree and the over-drive at 216 MHz, the DMA and USART
+timing at 4 Mbaud, the transceiver's turnaround after TC, the power switch's FET, the
+watchdog's reset, and the period on the real core."""
+
+from __future__ import annotations
+
+import re
+import struct
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from cochlea.dynamixel.drives import joint_drives
+from tests.test_dynamixel_hil import emulator
+from tests.test_embedded_qemu import ensure_tools
+from tests.test_embedded_stm32 import EMULATOR_SETTLE_S, value
+
+ROOT = Path(__file__).resolve().parent.parent
+OPENCR, COMMON = ROOT / "embedded" / "ports" / "opencr", ROOT / "embedded" / "ports" / "common"
+GEN = ROOT / "generated_c" / "embedded"
+#: RM0385 section 2.2.2: flash, the DTCM, SRAM1 and SRAM2.
+FLASH, DTCM, SRAM1, SRAM2 = 0x0800_0000, 0x2000_0000, 0x2001_0000, 0x2004_C000
+FLASH_SIZE = 1024 * 1024
+#: The vector table: 16 core entries and the STM32F746's 98 interrupts.
+IRQS = 98
+HANDLERS = {12: "DMA1_Stream1_IRQHandler", 38: "USART2_IRQHandler", 39: "USART3_IRQHandler"}
+#: The model's Dynamixel bus timing: 4 Mbaud, TC 20 status reads after the last byte.
+SETTLE_NS = 1_000_000_000
+
+
+@pytest.fixture(scope="module")
+def firmware(tmp_path_factory) -> tuple[Path, str]:
+    """``make opencr-firmware`` into a temporary build folder: both precisions, its report."""
+    ensure_tools()
+    build = tmp_path_factory.mktemp("opencr-build")
+    run = subprocess.run(["make", "--no-print-directory", "opencr-firmware", f"BUILD={build}"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=900)
+    if run.returncode != 0:
+        pytest.fail(f"make opencr-firmware failed:\n{run.stderr[-4000:]}", pytrace=False)
+    assert "warning" not in (run.stderr + run.stdout).lower(), run.stderr[-4000:]
+    return build / "opencr", run.stdout
+
+
+def symbols(elf: Path) -> dict[str, int]:
+    out = subprocess.run(["arm-none-eabi-nm", str(elf)], capture_output=True, text=True,
+                         check=True).stdout
+    return {m[2]: int(m[0], 16) for m in re.findall(r"^([0-9a-f]+) (\w) (\S+)$", out, re.M)}
+
+
+@pytest.mark.parametrize("precision", ["float", "double"])
+def test_the_firmware_builds_and_reports_its_size_and_stack(firmware, precision):
+    build, report = firmware
+    elf = build / precision / "cochlea-opencr.elf"
+    assert elf.is_file() and elf.with_suffix(".bin").is_file()
+    size = re.search(rf"{re.escape(str(elf))}: text (\d+) B, data (\d+) B, bss (\d+) B, "
+                     r"sram1 (\d+) B", report)
+    stack = re.search(rf"{re.escape(str(elf))}: worst stack (\d+) B \(static bound: thread "
+                      r"(\d+),", report)
+    assert size and stack, report
+    text, data, bss, sram1 = map(int, size.groups())
+    assert 20_000 < text + data < FLASH_SIZE
+    assert sram1 == 1024  # the DMA ring, and nothing else, in SRAM1
+    # the DTCM holds .data, .bss and the stack's static bound, with room to spare
+    assert data + bss + int(stack.group(1)) < 64 * 1024
+    assert 500 < int(stack.group(2)) < int(stack.group(1))
+
+
+@pytest.mark.parametrize("precision", ["float", "double"])
+def test_the_image_is_laid_out_as_an_stm32f746_expects(firmware, precision):
+    build, _ = firmware
+    elf = build / precision / "cochlea-opencr.elf"
+    names = symbols(elf)
+    image = elf.with_suffix(".bin").read_bytes()
+    words = struct.unpack_from(f"<{16 + IRQS}I", image)
+    assert names["vectors"] == FLASH
+    assert words[0] == DTCM + 64 * 1024 == names["_estack"]  # the initial stack pointer
+    assert words[1] == names["Reset_Handler"] | 1 and FLASH <= words[1] < FLASH + FLASH_SIZE
+    assert words[15] == names["SysTick_Handler"] | 1
+    for irq, handler in HANDLERS.items():
+        assert words[16 + irq] == names[handler] | 1, handler
+    others = {w for i, w in enumerate(words[16:]) if i not in HANDLERS}
+    assert others == {names["Default_Handler"] | 1}
+    # .data, .bss and the stack in the DTCM; the ring the DMA writes in SRAM1
+    assert DTCM <= names["_sdata"] <= names["_ebss"] < DTCM + 64 * 1024
+    assert SRAM1 <= names["rx_ring"] < SRAM2
+    headers = subprocess.run(["arm-none-eabi-readelf", "-A", str(elf)], capture_output=True,
+                             text=True, check=True).stdout
+    assert "Tag_CPU_arch: v7E-M" in headers, headers
+    # the M7's double-precision FPv5 (the M4F's is FPv4-SP: no double in hardware)
+    assert "Tag_FP_arch: FPv5/FP-D16 for ARMv8" in headers, headers
+    assert "Tag_ABI_VFP_args: VFP registers" in headers, headers
+
+
+def test_an_unknown_scenario_is_one_line_from_make(tmp_path):
+    run = subprocess.run(["make", "--no-print-directory", "opencr-firmware", f"BUILD={tmp_path}",
+                          "OPENCR_SCENARIO=no_such_scenario"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode == 2
+    errors = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1 and "unknown scenario" in errors[0], run.stderr
+    assert not (tmp_path / "opencr").exists()
+
+
+def build_model(out: Path, *defines: str) -> Path:
+    """tests/opencr_model.c with the port's HAL, the shared firmware, the core and
+    serial_joint, for the host (BOARD_HOST_MODEL); defines: the firmware's settings."""
+    flags = ["-std=c99", "-O1", "-Wall", "-Wextra", "-Werror", "-DBOARD_HOST_MODEL",
+             f"-I{ROOT / 'embedded' / 'core'}", f"-I{GEN}", f"-I{OPENCR}", f"-I{COMMON}",
+             "-DSTM32_SCENARIO=serial_joint", *defines]
+    firmware_object = out / "firmware.o"
+    for command in (
+            ["cc", *flags, "-Dmain=opencr_firmware_main", "-c", str(COMMON / "firmware.c"),
+             "-o", str(firmware_object)],
+            ["cc", *flags, str(ROOT / "tests" / "opencr_model.c"), str(firmware_object),
+             str(OPENCR / "hal_opencr.c"), str(COMMON / "stm32_timebase.c"),
+             str(COMMON / "stream.c"), *map(str, sorted((ROOT / "embedded" / "core").glob("*.c"))),
+             str(GEN / "serial_joint.c"), str(GEN / "serial_joint_scenario.c"),
+             "-o", str(out / "model"), "-lm"]):
+        run = subprocess.run(command, capture_output=True, text=True, timeout=300)
+        if run.returncode != 0:
+            pytest.fail(f"the register model does not build:\n{run.stderr[-4000:]}",
+                        pytrace=False)
+    return out / "model"
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    return build_model(tmp_path_factory.mktemp("opencr-model"))
+
+
+def run_model(model: Path, case: str, *options: str
+              ) -> tuple[list[tuple[int, str, int]], dict[str, str], str, str]:
+    """The model's events (time, what, value), its "key value" lines, the firmware's console
+    and the whole output."""
+    run = subprocess.run([str(model), case, *options], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    events = [(int(t), what, int(v)) for t, what, v in
+              re.findall(r"^event (\d+) (\w+) (-?\d+)$", run.stdout, re.M)]
+    values = dict(re.findall(r"^(\w+) (-?\d+)$", run.stdout, re.M))
+    console = run.stdout.split("console_begin\n", 1)[1].split("console_end", 1)[0] \
+        if "console_begin" in run.stdout else ""
+    return events, values, console, run.stdout
+
+
+def test_the_bus_is_usart3_at_4_mbaud_with_dma1_stream1_channel4_circular(model):
+    _, values, _, _ = run_model(model, "ring")
+    assert int(values["brr"]) == 0x15  # OVER8: USARTDIV 27 of 2 x 54 MHz = 4.000 Mbaud
+    scr = int(values["dma_scr"])
+    assert scr >> 25 & 7 == 4 and scr & 1  # channel 4 (USART3_RX), enabled
+    assert scr & (1 << 8) and scr & (1 << 10) and scr & (1 << 4)  # circular, MINC, TCIE
+    assert (scr >> 6) & 3 == 0  # peripheral to memory
+    assert int(values["dma_par"]) == 0x4000_4824  # USART3_RDR
+    assert int(values["cr3"]) & (1 << 6)  # DMAR
+
+
+def test_the_dma_ring_read_keeps_order_across_the_rings_end(model):
+    _, values, _, _ = run_model(model, "ring")
+    assert values["first"] == "1000" and values["second"] == "100"  # no mismatch line
+    assert "mismatch" not in values
+    assert values["laps"] == "1" and values["overflows"] == "0"
+
+
+def test_a_lap_whose_interrupt_is_still_pending_loses_nothing(model):
+    """NDTR reloaded, its transfer-complete interrupt not yet taken: the position looks
+    behind the last one; the read counts the lap itself (no bytes lost, none repeated)."""
+    _, values, _, _ = run_model(model, "pending")
+    assert (values["first"], values["second"], values["third"]) == ("1000", "100", "10")
+    assert values["overflows"] == "0"
+
+
+def test_a_lapped_ring_counts_the_lost_bytes_and_reads_the_newest(model):
+    _, values, _, _ = run_model(model, "overflow")
+    assert values["got"] == "1024" and values["overflows"] == "50"
+
+
+def test_a_read_with_nothing_on_the_line_ends_at_its_timeout(model):
+    _, values, _, _ = run_model(model, "timeout")
+    assert values["got"] == "0"
+    assert 2_000_000 <= int(values["waited_ns"]) < 2_100_000
+
+
+def test_a_write_returns_after_transmission_complete_then_the_pin_turns(model):
+    events, values, _, _ = run_model(model, "write")
+    assert values["wrote"] == "6"
+    kinds = [(what, v) for _, what, v in events if what in ("bus", "tc", "direction")]
+    assert kinds[-8:] == [("bus", 0xFF), ("bus", 0xFF), ("bus", 0xFD), ("bus", 0x00),
+                          ("bus", 0xFE), ("bus", 0x03), ("tc", 1), ("direction", 0)]
+    assert kinds.index(("direction", 1)) < kinds.index(("bus", 0xFF))
+
+
+def test_a_write_on_a_line_that_never_completes_gives_up_at_its_deadline(model):
+    events, values, _, _ = run_model(model, "write", "--tc-stuck")
+    assert values["wrote"] == "-1"
+    # 1 ms and twice the 6 bytes' wire time (30 us at 4 Mbaud), then one poll
+    assert 1_030_000 <= int(values["write_ns"]) < 1_100_000
+    assert ("tc", 1) not in [(what, v) for _, what, v in events]
+
+
+def test_the_power_switch_is_pf15_high_on(model):
+    events, values, _, _ = run_model(model, "power")
+    assert [(what, v) for _, what, v in events if what == "power"] == [("power", 1),
+                                                                      ("power", 0)]
+    assert (int(values["moder_f"]) >> 30) & 3 == 1  # PF15 an output
+    assert values["power_pin"] == "0"
+
+
+def test_the_firmware_powers_the_bus_for_the_start_and_off_after_the_safe_stop(model):
+    """No motor answers in the model: the start fails at the PINGs and shuts down (zero
+    current, torque off to every motor); the power goes on only after the configuration is
+    accepted, the first byte waits for the motors' boot time, and the power goes off after
+    the safe stop's last byte has left (TC), before the end line."""
+    events, values, console, _ = run_model(model, "firmware")
+    lines = [line for line in console.replace("\r", "").splitlines() if line]
+    assert lines[0].startswith("cochlea-opencr scenario=serial_joint "), lines
+    assert lines[1].startswith("start failed error=1 step=1"), lines
+    assert lines[-1].startswith("end rule=none exit=5 "), lines
+    power = [(t, v) for t, what, v in events if what == "power"]
+    bus = [t for t, what, _ in events if what == "bus"]
+    tc = [t for t, what, _ in events if what == "tc"]
+    assert [v for _, v in power] == [0, 1, 0], power  # off at reset, on for the start, off
+    on, off = power[1][0], power[2][0]
+    assert bus and on + SETTLE_NS <= bus[0]
+    assert off >= bus[-1] and off >= tc[-1]
+    assert int(values["bus_bytes"]) == len(bus) > 10 * 6  # at least a 10-byte PING a motor
+    assert values["power_pin"] == "0"
+
+
+def test_after_a_watchdog_reset_the_bus_is_never_powered(model):
+    events, values, console, _ = run_model(model, "firmware", "--watchdog-reset")
+    assert "refused what=watchdog-reset" in console
+    assert [v for _, what, v in events if what == "power"] == [0, 0]
+    assert values["bus_bytes"] == "0" and values["power_pin"] == "0"
+
+
+#: The emulator run's build: 300 periods, and the tolerances the model's pace on a shared
+#: machine needs (as tests/test_embedded_stm32.py's QEMU build); 100 ms of boot time.
+EMULATOR_BUILD = ("-DSTM32_DURATION_S=0.3", "-DSTM32_WATCHDOG_MISSES=100000",
+                  "-DSTM32_WATCHDOG_ERRORS=100000", "-DSTM32_READ_TIMEOUT_NS=100000000",
+                  "-DSTM32_BUS_WATCHDOG_MS=2540", "-DOPENCR_POWER_SETTLE_MS=100u")
+GOAL_CURRENT, TORQUE_ENABLE = 102, 64
+
+
+@pytest.mark.hil
+def test_a_run_against_the_emulator_ends_in_torque_off_then_the_power_off(tmp_path):
+    """The whole firmware with the OpenCR HAL on the register model, its USART3 and DMA ring
+    on cochlea-emulator's pseudo-terminal, in real time: the start-up, 300 periods, the safe
+    stop confirmed by every motor, and only then the power switch off, with every byte of
+    the run already sent and received. The emulated motors get no torque (as in the STM32F4
+    port's QEMU test: the model's periods are not a board's)."""
+    binary = build_model(tmp_path, *EMULATOR_BUILD)
+    ids = [d.id for d in joint_drives("serial")]
+    still = [a for i in ids for a in ("--true-fit", f"{i}:1e-6,0")]
+    log = tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log, *still) as port:
+        time.sleep(EMULATOR_SETTLE_S)
+        _, values, console, out = run_model(binary, "emulator", port)
+    lines = [line for line in console.replace("\r", "").splitlines() if line]
+    assert lines[1] == "start ok", lines
+    end = dict(re.findall(r"(\w+)=(\S+)", lines[-1]))
+    n = len(ids)
+    assert end["rule"] == "completed" and end["exit"] == "0", lines[-1]
+    assert end["rows"] == "300" and end["reads"] == "300"
+    assert int(end["good_reads"]) >= 270 and end["rx_overflows"] == "0", lines[-1]
+    assert end["confirmed_off"] == f"{n}/{n}"
+    # the DMA lapped its ring many times over the run, and lost nothing
+    received = int(values["rx_bytes"])
+    assert int(values["laps"]) == received // 1024 > 10
+    # power: off at reset, on for the start, off after the last byte either way
+    power = re.findall(r"^power_at (\d) (\d+) (\d+)$", out, re.M)
+    assert power == [("0", "0", "0"), ("1", "0", "0"),
+                     ("0", values["bus_bytes"], values["rx_bytes"])], power
+    # the safe stop in the emulator's log: zero current, torque off to every motor, twice,
+    # then each motor read back
+    logged = [line.split() for line in log.read_text().splitlines()]
+    writes = [(int(value(e, "address")), int(value(e, "value"))) for e in logged
+              if e[1] == "sync-write"]
+    assert writes[-4 * n:] == ([(GOAL_CURRENT, 0)] * n + [(TORQUE_ENABLE, 0)] * n) * 2
+    last_stop = max(k for k, e in enumerate(logged) if e[1] == "sync-write")
+    assert [int(value(e, "id")) for e in logged[last_stop:]
+            if e[1] == "read" and value(e, "address") == str(TORQUE_ENABLE)] == ids
