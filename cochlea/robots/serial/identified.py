@@ -28,7 +28,8 @@ def identified_values(model: RobotModel, system: SerialSystem, arm_name: str,
     for i, link in enumerate(arm.links):
         b = link.name
         m = value[f"{b}.m"]
-        c = np.array([value[f"{b}.mx"], value[f"{b}.my"], value[f"{b}.mz"]]) / m
+        own = np.array([value[f"{b}.mx"], value[f"{b}.my"], value[f"{b}.mz"]]) / m
+        c = own.copy()
         for k, axis in enumerate(("mx", "my", "mz")):
             if f"{b}.{axis}" in free:
                 c[k] = link.com[k]
@@ -36,6 +37,12 @@ def identified_values(model: RobotModel, system: SerialSystem, arm_name: str,
                        [value[f"{b}.Ixy"], value[f"{b}.Iyy"], value[f"{b}.Iyz"]],
                        [value[f"{b}.Ixz"], value[f"{b}.Iyz"], value[f"{b}.Izz"]]])
         Ic = Io - m * (float(c @ c) * np.eye(3) - np.outer(c, c))
+        if not _consistent(Ic) and _consistent(own_ic := Io - m * (
+                float(own @ own) * np.eye(3) - np.outer(own, own))):
+            # A physically consistent fit moved a free centre-of-mass coordinate together
+            # with identified inertia products (its body is consistent only as a whole: the
+            # prismatic arm's forearm, my and Ixy): keep its own centre of mass.
+            c, Ic = own, own_ic
         for key, (r, s) in entries.items():
             if f"{b}.{key}" in free:
                 Ic[r, s] = Ic[s, r] = link.inertia_com[r, s]
@@ -57,6 +64,13 @@ def identified_values(model: RobotModel, system: SerialSystem, arm_name: str,
         out[base + ("inertia_com_kgm2",)] = "[" + ", ".join(_fmt(x) for x in six) + "]"
         out.update(actuator_values(model.joints[i], value, base + ("joint",)))
     return out
+
+
+def _consistent(Ic: np.ndarray) -> bool:
+    """Whether an inertia about the centre of mass is positive definite with principal
+    moments obeying the triangle inequality (what the description's loader asks)."""
+    moments = np.linalg.eigvalsh(0.5 * (Ic + Ic.T))
+    return bool(moments[0] > 0 and moments[2] <= moments[0] + moments[1])
 
 
 def fit_key(system: SerialSystem, arm_name: str, joint: str) -> tuple:
