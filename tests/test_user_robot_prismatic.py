@@ -242,6 +242,50 @@ def test_identify_refuses_the_prismatic_log_with_another_description(identified,
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.fixture(scope="module")
+def program(tmp_path_factory) -> Path:
+    """The embedded program of the user's study, as a user builds it: cochlea-codegen
+    --description --scenario --embedded into DIR, then make embedded GEN=DIR BUILD=DIR/build
+    (a BUILD of its own: the shipped build/cochlea-embedded is left alone)."""
+    gen = tmp_path_factory.mktemp("prismatic_embedded")
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_codegen",
+                           "--description", str(DESCRIPTION), "--scenario", str(STUDY),
+                           "--embedded", "--no-build", "--out", str(gen)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    path = gen / "build" / "cochlea-embedded"
+    done = subprocess.run(["make", "-s", f"GEN={gen}", f"BUILD={gen / 'build'}", str(path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    listed = subprocess.run([str(path), "--list"], capture_output=True, text=True, timeout=30)
+    assert listed.stdout.startswith(f"{STUDY.stem} (serial robot, joint space, controller e)")
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("record, says", [
+    (None, "not homed: no homing record"),  # the default record is not this description's
+    ("missing.json", "not homed: no homing record"),
+    ("empty.json", "holds 0 joints"),
+])
+def test_the_embedded_program_refuses_an_unhomed_carriage_before_the_port_opens(
+        program, tmp_path, record, says):
+    """--homing required with no record, a missing one or one of no joint: one line (after
+    the bus budget's warning), exit 5, nothing moved, no output folder."""
+    (tmp_path / "empty.json").write_text('{"format": "cochlea-homing/2", "joints": []}')
+    args = [str(program), "--scenario", STUDY.stem, "--port", "/dev/ttyUSB-none", "--out",
+            str(tmp_path / "run"), "--homing", "required"]
+    if record:
+        args += ["--homing-record", str(tmp_path / record)]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=60,
+                          env={"HOME": str(tmp_path), "PATH": "/usr/bin:/bin"})
+    errors = [line for line in done.stderr.splitlines() if ": warning: " not in line]
+    assert done.returncode == 5 and len(errors) == 1, done.stderr
+    assert errors[0].startswith("cochlea-embedded: the backend could not start, nothing "
+                                "moved: ") and says in errors[0], errors
+    assert "Traceback" not in done.stderr and not (tmp_path / "run").exists()
+
+
 def _machine_stopped(out: Path) -> bool:
     """Whether a run over the in-process emulator stopped for the shared machine, not the code
     under test (then it is repeated on the same homed chain, at most twice more): the cases
@@ -260,7 +304,7 @@ def _machine_stopped(out: Path) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.hil
-def test_the_embedded_program_tracks_like_cochlea_run_from_the_same_homing(tmp_path,
+def test_the_embedded_program_tracks_like_cochlea_run_from_the_same_homing(program, tmp_path,
                                                                            monkeypatch):
     """cochlea-codegen --description --scenario --embedded, make embedded GEN=DIR; the
     carriage homed on a hard stop at 30 mm with its motor 500 deg off the description's zero
@@ -283,16 +327,6 @@ def test_the_embedded_program_tracks_like_cochlea_run_from_the_same_homing(tmp_p
     home_dir = tmp_path / "home"
     home_dir.mkdir()
     monkeypatch.setenv("HOME", str(home_dir))
-    gen, build = tmp_path / "gen", tmp_path / "build"
-    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_codegen",
-                           "--description", str(DESCRIPTION), "--scenario", str(STUDY),
-                           "--embedded", "--no-build", "--out", str(gen)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    program = build / "cochlea-embedded"
-    done = subprocess.run(["make", "-s", f"GEN={gen}", f"BUILD={build}", str(program)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
     duration = 3.0
     outs = {}
     gc.collect()
