@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..description import MAX_INERTIA_KGM2, MIN_INERTIA_KGM2
 from ..identified import actuator_values
 from ..identified import number as _fmt
 from ..model import RobotModel
@@ -37,12 +38,7 @@ def identified_values(model: RobotModel, system: SerialSystem, arm_name: str,
                        [value[f"{b}.Ixy"], value[f"{b}.Iyy"], value[f"{b}.Iyz"]],
                        [value[f"{b}.Ixz"], value[f"{b}.Iyz"], value[f"{b}.Izz"]]])
         Ic = Io - m * (float(c @ c) * np.eye(3) - np.outer(c, c))
-        if not _consistent(Ic) and _consistent(own_ic := Io - m * (
-                float(own @ own) * np.eye(3) - np.outer(own, own))):
-            # A physically consistent fit moved a free centre-of-mass coordinate together
-            # with identified inertia products (its body is consistent only as a whole: the
-            # prismatic arm's forearm, my and Ixy): keep its own centre of mass.
-            c, Ic = own, own_ic
+        own_ic = Io - m * (float(own @ own) * np.eye(3) - np.outer(own, own))
         for key, (r, s) in entries.items():
             if f"{b}.{key}" in free:
                 Ic[r, s] = Ic[s, r] = link.inertia_com[r, s]
@@ -57,6 +53,13 @@ def identified_values(model: RobotModel, system: SerialSystem, arm_name: str,
                     deficit = Ic[o, o] - sum(Ic[x, x] for x in rest)
                     if deficit > 0:
                         Ic[k, k] += deficit * (1 + 1e-9)
+        if not _consistent(Ic) and _consistent(own_ic):
+            # A physically consistent fit moves free parameters together with identified
+            # ones (the prismatic arm's forearm: my with Ixy; the SO-101's base link: Ixx,
+            # Iyy and the products with a small Izz): its body is consistent as a whole, the
+            # description's values spliced into it need not be. Keep the fit's own body (the
+            # same inertia about the frame origin: the same dynamics).
+            c, Ic = own, own_ic
         base = ("arm", arm_index, "link", i)
         out[base + ("mass_kg",)] = _fmt(m)
         out[base + ("com_m",)] = "[" + ", ".join(_fmt(x) for x in c) + "]"
@@ -67,10 +70,13 @@ def identified_values(model: RobotModel, system: SerialSystem, arm_name: str,
 
 
 def _consistent(Ic: np.ndarray) -> bool:
-    """Whether an inertia about the centre of mass is positive definite with principal
-    moments obeying the triangle inequality (what the description's loader asks)."""
-    moments = np.linalg.eigvalsh(0.5 * (Ic + Ic.T))
-    return bool(moments[0] > 0 and moments[2] <= moments[0] + moments[1])
+    """Whether an inertia about the centre of mass is one the description's loader takes
+    (``description._physical_inertia``): positive definite, principal moments obeying the
+    triangle inequality, every entry and moment within the descriptions' bounds."""
+    if not (np.abs(Ic) <= MAX_INERTIA_KGM2).all():
+        return False
+    a, b, c = np.linalg.eigvalsh(0.5 * (Ic + Ic.T))
+    return bool(a >= MIN_INERTIA_KGM2 and a + b >= c - 1e-12 * c)
 
 
 def fit_key(system: SerialSystem, arm_name: str, joint: str) -> tuple:
