@@ -41,6 +41,7 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import minimize
 
+from ..dynamixel.control_table import MODELS
 from ..errors import CochleaError
 from ..robots import ROBOTS, ExcitationGeometry
 from ..robots import robot as robot_adapter
@@ -695,9 +696,18 @@ def scenario_text(result: Design, command: str, description_ref: str | None = No
                   "desired_joint = [", *[f'  "{text}",' for text in texts], "]",
                   "gains = { " + ", ".join(f"{k} = {_number_list(v)}"
                                            for k, v in unit.gains.items()) + " }"]
-    if all(j.actuator.armature is not None for j in adapter.actuated_joints(system)):
+    joints = adapter.actuated_joints(system)
+    no_gearbox = [j for j in joints if MODELS[j.motor.model].gearbox is None]
+    if all(j.actuator.armature is not None for j in joints) and not no_gearbox:
         lines += ["", "[plant]", 'plant = "realistic"  # cochlea-run --plant ideal for the '
                   "rigid links; ignored on the motors", ""]
+    elif all(j.actuator.armature is not None for j in joints):
+        # The geared plant needs the motor model's gearbox data (backlash, stiffness,
+        # Stribeck velocity), which only some models carry: the rigid links with their
+        # drives' armature instead.
+        lines += ["", "[plant]", 'plant = "ideal"  # the motor model '
+                  f"{no_gearbox[0].motor.model} has no gearbox data for the realistic plant; "
+                  "ignored on the motors", "armature = true", ""]
     else:  # the geared plant needs each joint's armature, which the description lacks
         lines += ["", "[plant]", 'plant = "ideal"  # the description gives no armature_kgm2 '
                   "for every joint, which the realistic plant needs; ignored on the motors", ""]

@@ -1034,7 +1034,11 @@ def starter_scenario(system: SerialSystem, description_ref: str) -> str:
     a few degrees (or millimetres) around a pose inside its limits, starting a little off it,
     with gains scaled to the arm's own inertia at that pose."""
     arm = system.arms[0]
-    model = build_model(system, arm)
+    # A description every joint of which declares its drive's armature (added by hand after
+    # an import, or written so): the controller carries it and the gains scale with it, as
+    # the plant moves it (a 12 g gripper behind a 350:1 gearbox is mostly its rotor).
+    geared = all(link.joint.actuator.armature is not None for link in arm.links)
+    model = build_model(system, arm, actuators="armature" if geared else "none")
     centres, amps, starts, units = [], [], [], []
     for link in arm.links:
         j = link.joint
@@ -1084,7 +1088,9 @@ def starter_scenario(system: SerialSystem, description_ref: str) -> str:
         'parameterisation = "base"',
         'initial_estimate = "nominal"',
         "adaptation_gain = 0.1",
+        *(['actuators = "armature"'] if geared else []),
         "",
+        *(["[plant]", "armature = true", ""] if geared else []),
         "[desired]",
         "leader = [" + ", ".join(leader) + "]",
         "",
