@@ -99,6 +99,15 @@ def test_a_duplicated_frame_is_dropped_and_counted():
     assert d.counts.duplicates == 1 and d.counts.lost_frames == 0
 
 
+def test_the_header_names_its_board():
+    """The firmware's header begins with ``cochlea-<board>-stream``: the host's summary names
+    that board (the OpenCR port's runs were said to come from an STM32F4)."""
+    assert parse_text(b"cochlea-opencr-stream version=1 every=2 columns=t,a")["board"] == \
+        "opencr"
+    assert parse_text(b"cochlea-stm32f4-stream version=1 columns=t")["board"] == "stm32f4"
+    assert "board" not in parse_text(b"something-else version=1")
+
+
 def test_garbage_before_the_first_sync_and_a_truncated_end():
     frames = sample()
     noise = bytes(range(256)) + b"\xc5\x7eR\x00\xff\xff" + b"\xc5"  # a fake head, half a sync
@@ -213,6 +222,7 @@ def test_the_host_writes_cochlea_runs_files_and_counts_every_fault(tmp_path, col
                                "exit_code": 0}
     assert summary["periods"] == 40 and summary["rate_Hz"] == 1000.0
     assert summary["schema_version"] == 2 and summary["scenario"] == "serial_joint"
+    assert summary["kernels"]["library"] == "compiled in: cochlea-stm32f4 (float)"
     # the same files cochlea-run leaves, readable by cochlea-mcap's and cochlea-view's loader
     assert {"log.bin", "log.columns.json", "log.csv", "summary.json"} <= \
         {p.name for p in out.iterdir()}

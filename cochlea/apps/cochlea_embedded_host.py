@@ -1,4 +1,4 @@
-"""cochlea-embedded-host: the rows a board's firmware streams (embedded/ports/stm32f4, USART3)
+"""cochlea-embedded-host: the rows a board's firmware streams (embedded/ports/, stm32f4: USART3)
 written as cochlea-run writes a run: log.bin, log.columns.json, log.csv, summary.json and the
 figures, through cochlea-run's own code (the real-time loop's row layout and report).
 
@@ -213,7 +213,7 @@ class StreamRun:
         loop.log_path, loop.rows = self.out / "log.bin", self.rows
         result = loop.result(self.scenario)
         result.kernels = {"used": "c", "requested": "c",
-                          "library": f"compiled in: cochlea-stm32f4 "
+                          "library": f"compiled in: cochlea-{self.header.get('board', 'board')} "
                                      f"({self.header.get('precision', '?')})",
                           "fallback_reason": None}
         if why_incomplete is None:
@@ -241,8 +241,8 @@ class StreamRun:
         timing["deadline_miss_fraction"] = timing["deadline_misses"] / max(
             int(end.get("rows", self.rows * self.every)), 1)
         timing["nominal_period"] = self.h
-        timing["scheduling"] = "stm32f4 firmware: SysTick paces the periods, the main " \
-                               "context runs them"
+        timing["scheduling"] = (f"{self.header.get('board', 'board')} firmware: SysTick paces "
+                                "the periods, the main context runs them")
         if end:
             timing["bus"] = {"reads": int(end.get("reads", 0)),
                              "good_reads": int(end.get("good_reads", 0)),

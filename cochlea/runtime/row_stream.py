@@ -1,4 +1,4 @@
-"""The row stream of a board's firmware (embedded/ports/stm32f4/stream.c): frames that carry
+"""The row stream of a board's firmware (embedded/ports/common/stream.c): frames that carry
 its loop's log rows to the host, and a decoder that survives what a serial line does to them.
 
 A frame (little-endian; docs/embedded.md, "The row stream")::
@@ -56,6 +56,10 @@ def parse_text(payload: bytes) -> dict[str, str]:
     """A header or end frame's ``key=value`` fields (``columns=`` is the rest of its line)."""
     text = payload.decode("ascii", errors="replace")
     fields = dict(re.findall(r"(\w+)=(\S+)", text))
+    # A header's first word names the board that sent it (cochlea-<board>-stream).
+    board = re.match(r"cochlea-(\w+)-stream ", text)
+    if board and "board" not in fields:
+        fields["board"] = board.group(1)
     if " columns=" in text:
         fields["columns"] = text.split(" columns=", 1)[1].strip()
     return fields
