@@ -356,6 +356,8 @@ def test_an_unhomed_slider_is_refused_before_any_write(tmp_path, program):
                     f"the slider (ID {_slider().id}) was power-cycled or rebooted since it was "
                     "homed (2026-11-23T10:00:00)")
         assert expected in done.stderr, done.stderr
+        if case == "none":  # a user description's record is elsewhere: the line says how
+            assert "--description FILE" in errors[0]
         assert " write " not in log.read_text()  # refused before any write
         assert not out.exists()
 

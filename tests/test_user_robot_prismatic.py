@@ -264,7 +264,9 @@ def program(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("record, says", [
-    (None, "not homed: no homing record"),  # the default record is not this description's
+    # the default record is not this description's: the line says where a user's is
+    (None, "cochlea-dxl home --robot serial --description FILE --port PORT, then "
+           "--homing-record"),
     ("missing.json", "not homed: no homing record"),
     ("empty.json", "holds 0 joints"),
 ])

@@ -849,8 +849,17 @@ static int check_homing(const options *o, const cochlea_scenario *sc, char *msg,
     f = fopen(path, "r");
     if (!f) {
         if (errno == ENOENT) {
-            snprintf(msg, n, "the slider is not homed: no homing record %s; run cochlea-dxl "
-                     "home --robot %s --port PORT first", path, sc->robot);
+            if (o->homing_record) {
+                snprintf(msg, n, "the slider is not homed: no homing record %s; run cochlea-dxl "
+                         "home --robot %s [--description FILE] --port PORT first, and pass "
+                         "the record it writes", path, sc->robot);
+            } else { /* a user description's record is not this default: say where it is */
+                snprintf(msg, n, "the slider is not homed: no homing record %s; run cochlea-dxl "
+                         "home --robot %s --port PORT first (a description of your own: "
+                         "cochlea-dxl home --robot %s --description FILE --port PORT, then "
+                         "--homing-record with the record it names)", path, sc->robot,
+                         sc->robot);
+            }
         } else {
             snprintf(msg, n, "homing record %s: cannot read it (%s); run cochlea-dxl home "
                      "again", path, strerror(errno));
