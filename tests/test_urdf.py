@@ -131,6 +131,20 @@ def test_limits_names_and_friction_carry_over(tmp_path):
                                                              "wrist"]
 
 
+def test_an_effort_limit_above_the_motors_stall_torque_is_noted(tmp_path):
+    """arm4's pan and lift allow 8 N m, above the XM430-W350's 4.1 N m stall torque: kept as
+    the URDF says (a limit the drive reaches first), and each said in the import's notes and
+    the description's header; the 3 N m roll joint is not."""
+    imported = import_urdf(ARM4, motors=["XM430-W350"])
+    said = [n for n in imported.notes if "stall torque" in n]
+    assert [n.split("'")[1] for n in said] == ["pan", "lift"]
+    assert said[0] == ("joint 'pan': the URDF's effort limit 8 N m is above the XM430-W350's "
+                       "stall torque 4.1 N m (the drive saturates first): consider "
+                       "torque_limit_Nm <= 4.1")
+    assert f"# * {said[1]}" in imported.text
+    assert load_serial(_imported(tmp_path, ARM4)).arms[0].links[0].joint.effort_limit == 8.0
+
+
 def test_rpy_of_inverts_the_rotation(rng):
     for _ in range(200):
         rpy = rng.uniform(-np.pi, np.pi, 3)

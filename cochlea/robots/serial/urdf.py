@@ -893,6 +893,22 @@ class Imported:
     system: SerialSystem
 
 
+def effort_notes(chain: list[ChainLink], motors: list[str], drives) -> list[str]:
+    """A note per revolute joint driven directly (no transmission) whose URDF effort limit is
+    above its motor's stall torque: the limit carries over as the URDF says, but the drive
+    saturates first, so a run's torque limit there would never be the one that stops it."""
+    out = []
+    for link, motor, drive in zip(chain, motors, drives, strict=True):
+        stall = MOTOR_SPECS[motor].stall_torque_Nm
+        effort = link.joint.limits[3]
+        if (link.joint.type != "prismatic" and drive.transmission is None
+                and stall is not None and effort > stall):
+            out.append(f"joint {link.joint.name!r}: the URDF's effort limit {effort:g} N m is "
+                       f"above the {motor}'s stall torque {stall:g} N m (the drive saturates "
+                       f"first): consider torque_limit_Nm <= {stall:g}")
+    return out
+
+
 def import_urdf(path: str | Path, base: str | None = None, tip: str | None = None,
                 motors: list[str] | None = None, ids: list[int] | None = None,
                 transmissions: list[str] | None = None,
@@ -908,7 +924,7 @@ def import_urdf(path: str | Path, base: str | None = None, tip: str | None = Non
     chain, notes, frames = extract_chain(path, urdf, base, tip)
     motor_models, motor_ids = assign_motors(path, chain, motors, ids)
     drives, drive_notes = assign_transmissions(path, urdf, chain, transmissions)
-    notes = urdf.notes + notes + drive_notes
+    notes = urdf.notes + notes + drive_notes + effort_notes(chain, motor_models, drives)
     text = description_text(chain, path, urdf.name, motor_models, motor_ids,
                             notes + urdf.snaps, frames, drives, keep_out_radius)
     system = load_text(text, path)
