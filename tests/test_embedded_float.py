@@ -628,3 +628,72 @@ def test_the_float_estimate_follows_the_double_one(tmp_path, name):
     assert relative.max() <= ESTIMATE_BOUND, relative.max()
     assert relative[-1] <= FINAL_BOUND, relative[-1]
     assert np.max(np.abs(tau_f - tau_d)) / np.max(np.abs(tau_d)) <= 1e-5
+
+
+_SUPERVISOR = r"""
+#include <math.h>
+#include <stdio.h>
+#include "cochlea_rt.h"
+
+/* The float build's supervisor (COCHLEA_FLOAT: cochlea_real is float) on the refusals of the
+ * double build: one line per case, "state|command|estimate <rule>" (0: none broken). */
+int main(void)
+{
+    const float lo[2] = {-1.0f, -1.0f}, hi[2] = {1.0f, 1.0f}, vel[2] = {2.0f, 2.0f};
+    const float eff[2] = {3.0f, 3.0f};
+    const cochlea_limits limits = {2, lo, hi, vel, eff, 0.0f, 1, 1};
+    const float bound[1] = {1.0f};
+    const int n_params[1] = {2};
+    const float big = 3.0e19f; /* its square overflows float: non-finite, as in Python */
+    const float states[][4] = {{0.5f, 0.5f, 0.1f, 0.1f}, {NAN, 0.5f, 0.1f, 0.1f},
+                               {0.5f, 0.5f, INFINITY, 0.1f}, {1.5f, 0.5f, 0.1f, 0.1f},
+                               {0.5f, 0.5f, 0.1f, -2.5f}, {big, 0.0f, 0.0f, 0.0f}};
+    const float commands[][2] = {{1.0f, -1.0f}, {NAN, 0.0f}, {0.0f, -INFINITY}};
+    /* |p_hat| = 1 (at the bound), 1 + 1e-6 (within the float tolerance), 1 + 1e-5 (over) */
+    const float estimates[][2] = {{0.6f, 0.8f}, {0.6000006f, 0.8000008f},
+                                  {0.600006f, 0.800008f}, {NAN, 0.0f}};
+    cochlea_stop stop;
+    size_t i;
+    for (i = 0; i < sizeof states / sizeof states[0]; ++i) {
+        const int broke = cochlea_check_state(&limits, 0.5f, states[i], states[i] + 2, &stop);
+        printf("state %d\n", broke ? stop.rule : 0);
+    }
+    for (i = 0; i < sizeof commands / sizeof commands[0]; ++i) {
+        const float *p[1] = {estimates[0]};
+        const int broke = cochlea_check_command(&limits, 0.5f, commands[i], 1, p, n_params,
+                                                bound, &stop);
+        printf("command %d\n", broke ? stop.rule : 0);
+    }
+    for (i = 0; i < sizeof estimates / sizeof estimates[0]; ++i) {
+        const float tau[2] = {0.0f, 0.0f};
+        const float *p[1] = {estimates[i]};
+        const int broke = cochlea_check_command(&limits, 0.5f, tau, 1, p, n_params, bound,
+                                                &stop);
+        printf("estimate %d\n", broke ? stop.rule : 0);
+    }
+    return 0;
+}
+"""
+
+
+def test_the_float_supervisor_keeps_every_refusal(tmp_path):
+    """The supervisor compiled in float refuses what the double one refuses: a NaN or
+    infinite state or command, a state whose square overflows, a position or speed past its
+    limit, a NaN estimate and an estimate over its bound by 1e-5; it passes an estimate at
+    its bound and 1e-6 over it (the float tolerance, 16 float epsilons: 1 + 1e-9 is 1 in
+    float)."""
+    source = tmp_path / "supervisor_check.c"
+    source.write_text(_SUPERVISOR)
+    program = tmp_path / "supervisor_check"
+    done = subprocess.run(
+        [compiler(), "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-O2",
+         "-DCOCHLEA_FLOAT", f"-I{CORE}", str(source), str(CORE / "supervisor.c"), "-lm", "-o",
+         str(program)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = subprocess.run([str(program)], capture_output=True, text=True, timeout=30,
+                           check=True).stdout.split("\n")
+    NON_FINITE, POSITION, VELOCITY, BOUND = 6, 3, 4, 7
+    assert lines[:-1] == [f"state {r}" for r in (0, NON_FINITE, NON_FINITE, POSITION,
+                                                 VELOCITY, NON_FINITE)] \
+        + [f"command {r}" for r in (0, NON_FINITE, NON_FINITE)] \
+        + [f"estimate {r}" for r in (0, 0, BOUND, NON_FINITE)]
