@@ -432,7 +432,14 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit],
         f"}} {name}_config;\n",
         "/* The controller's state; the caller owns it (no allocation anywhere). */",
         "typedef struct {",
-        f"  double p_hat[{N}_NP];         /* the estimate, double in every build */",
+        "#ifdef COCHLEA_FLOAT",
+        "  /* the estimate: p_hat + p_hat_lo, a compensated (two-float) sum; p_hat is the",
+        "   * estimate rounded to float (docs/embedded.md, \"The float build\") */",
+        f"  float p_hat[{N}_NP];",
+        f"  float p_hat_lo[{N}_NP];",
+        "#else",
+        f"  double p_hat[{N}_NP];         /* the estimate */",
+        "#endif",
         f"  double bound[{N}_UNITS];",
         "  double h;",
         f"  {name}_real gains[{N}_NG];",
@@ -449,7 +456,7 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit],
         f"  int64_t atom_last[{max(_n_atoms(atoms), 1)}];",
         f"  {name}_real h_real;",
         "  /* per unit: |p_hat|^2 at or under this is inside the ball (no projection) */",
-        f"  double bound2_inside[{N}_UNITS];",
+        f"  {name}_real bound2_inside[{N}_UNITS];",
         "  unsigned long steps;          /* periods run since init */",
         "  int ready;                    /* 1 between init and terminate */",
         f"}} {name}_state;\n",
@@ -464,7 +471,7 @@ def _header(name: str, title: str, period: float, units: list[EmbeddedUnit],
         " * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;",
         " * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.",
         " * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound, then clipped",
-        " * to its box [p_min, p_max]), in double.",
+        " * to its box [p_min, p_max]), in double (float: a compensated two-float sum).",
         " * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the",
         " * next estimate is not (the state is then left unchanged, command_out as computed). */",
         f"int {name}_step({name}_state *s, double t, const {name}_real measurement[{N}_NX],",
@@ -526,6 +533,28 @@ static int CFINITE(double x) {
   bits.d = x;
   return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
 }
+
+#ifdef COCHLEA_FLOAT
+/* CFINITE in the working precision: on the float's own bits (a float converted to double
+ * is a library call on a Cortex-M4F, which has no double instruction). */
+static int CFINITER(float x) {
+  union { float f; uint32_t u; } bits;
+  bits.f = x;
+  return (bits.u & 0x7F800000UL) != 0x7F800000UL;
+}
+
+/* The float build's estimate is a compensated (two-float) sum: hi + lo = a + b exactly,
+ * hi the sum rounded to float (Knuth's TwoSum: 6 float operations, whatever the orders of
+ * magnitude; p_hat starts at 0). An increment under half a float unit of p_hat, lost by a
+ * plain float sum (h Gamma p_hat_dot under 6e-8 |p_hat|), is carried in lo instead. */
+static void CTWOSUM(float a, float b, float *hi, float *lo) {
+  const float sum = a + b, b_virtual = sum - a;
+  *hi = sum;
+  *lo = (a - (sum - b_virtual)) + (b - b_virtual);
+}
+#else
+#define CFINITER(x) CFINITE(x)
+#endif
 """
 
 
@@ -568,11 +597,13 @@ static int64_t CLAST(double c, double h, int or_equal) {
 }
 """
 _CLAMPD = """
+#ifndef COCHLEA_FLOAT
 /* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
  * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
 static double CCLAMPD(double x, double lo, double hi) {
   return x < lo ? lo : (x > hi ? hi : x);
 }
+#endif
 """
 
 #: The float build's phase of a time atom (C, in #ifdef COCHLEA_FLOAT).
@@ -653,7 +684,12 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
               f"    s->bound_real[i] = ({R})c->bound[i];",
               "    /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the",
               "     * projection's scale is exactly 1 */",
+              "#ifdef COCHLEA_FLOAT",
+              "    s->bound2_inside[i] = (float)(((double)s->bound_real[i]"
+              " * (double)s->bound_real[i]) * (1.0 - 1e-6));",
+              "#else",
               "    s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);",
+              "#endif",
               "  }"]
     parts.append("\n".join([
         f"int {name}_init({name}_state *s, const {name}_config *c) {{",
@@ -665,8 +701,15 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         f"  for (i = 0; i < {N}_NG; ++i) s->gains[i] = ({R})c->gains[i];",
         f"  for (i = 0; i < {N}_NP; ++i) {{",
         "    s->gamma[i] = (" + R + ")c->gamma[i];",
+        "#ifdef COCHLEA_FLOAT",
+        "    if (!CFINITE(c->p_hat0[i])) return -1;",
+        "    s->p_hat[i] = (float)c->p_hat0[i];",
+        "    if (!CFINITER(s->p_hat[i])) return -1;",
+        "    s->p_hat_lo[i] = (float)(c->p_hat0[i] - (double)s->p_hat[i]);",
+        "#else",
         "    s->p_hat[i] = 1.0 * c->p_hat0[i];",
         "    if (!CFINITE(s->p_hat[i])) return -1;",
+        "#endif",
         "  }",
         *checks,
         f"  for (i = 0; i < {N}_NQ; ++i) {{",
@@ -762,7 +805,11 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
             f"{R} errors_out[{N}_NE]) {{",
             f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
+            "#ifdef COCHLEA_FLOAT",
+            f"  float next[{N}_NP], next_lo[{N}_NP], scale[{N}_UNITS], norm2;",
+            "#else",
             f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
+            "#endif",
             f"  const {R}* arg[14];",
             f"  {R}* res[3];",
             "  int i;",
@@ -780,6 +827,22 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             f"  res[0] = command_out + {o.q}; res[1] = p_hat_dot + {o.p}; "
             f"res[2] = errors_out + {o.e};",
             f"  if ({name}_{u.name}_law(arg, res)) return -1;",
+            "#ifdef COCHLEA_FLOAT",
+            "  /* p_hat + h p_hat_dot in a compensated two-float sum, scaled back onto the ball",
+            "   * |p_hat| <= bound in float; the scale is 1 inside it, so the square root and",
+            "   * the division (then of a positive norm) only when crossed */",
+            "  norm2 = 0.0f;",
+            f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
+            "    CTWOSUM(s->p_hat[i], s->h_real * p_hat_dot[i] + s->p_hat_lo[i], next + i,"
+            " next_lo + i);",
+            "    norm2 += next[i] * next[i];",
+            "  }",
+            f"  scale[{k}] = 1.0f;",
+            f"  if (!(norm2 <= s->bound2_inside[{k}])) {{ /* crossed, or NaN (refused below) */",
+            f"    const float ratio = s->bound_real[{k}] / sqrtf(norm2);",
+            f"    scale[{k}] = ratio < 1.0f ? ratio : 1.0f;",
+            "  }",
+            "#else",
             "  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the",
             "   * scale is 1 inside it, so the square root and the division only when crossed */",
             "  norm2 = 0.0;",
@@ -788,21 +851,32 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             "    norm2 += next[i] * next[i];",
             "  }",
             f"  scale[{k}] = norm2 <= s->bound2_inside[{k}] ? 1.0"
-            f" : fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));"]
+            f" : fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));",
+            "#endif"]
     step += [
-        "  /* Every output finite, or nothing changes (CFINITE: on the bits) */",
+        "  /* Every output finite, or nothing changes (CFINITER: on the bits) */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
-        "    if (!CFINITE((double)command_out[i])) return 1;",
+        "    if (!CFINITER(command_out[i])) return 1;",
         f"  for (i = 0; i < {N}_NE; ++i)",
-        "    if (!CFINITE((double)errors_out[i])) return 1;",
+        "    if (!CFINITER(errors_out[i])) return 1;",
         f"  for (i = 0; i < {N}_NP; ++i)",
-        "    if (!CFINITE(next[i])) return 2;",
+        "    if (!CFINITER(next[i])) return 2;",
         "  /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
         "    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);"]
+    step.append("#ifdef COCHLEA_FLOAT")
+    for k, (u, o) in enumerate(zip(units, off)):
+        step += [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
+                 f"    const float v = next[i] * scale[{k}];",
+                 "    s->p_hat[i] = CCLAMP(v, s->p_min_real[i], s->p_max_real[i]);",
+                 "    /* the low part scales with it; a box clip drops it */",
+                 f"    s->p_hat_lo[i] = s->p_hat[i] == v ? next_lo[i] * scale[{k}] : 0.0f;",
+                 "  }"]
+    step.append("#else")
     for k, (u, o) in enumerate(zip(units, off)):
         step += [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) "
                  f"s->p_hat[i] = CCLAMPD(next[i] * scale[{k}], s->p_min[i], s->p_max[i]);"]
+    step.append("#endif")
     step += ["  s->steps += 1;", "  return 0;", "}\n",
              f"int {name}_step({name}_state *s, double t, const {R} measurement[{N}_NX],",
              f"    {R} command_out[{N}_NQ], {R} errors_out[{N}_NE]) {{",
@@ -954,7 +1028,8 @@ def log_columns(units: list[EmbeddedUnit]) -> tuple[list[str], list[str]]:
 
 def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
     """``<name>_scenario.c``: the scenario as a ``cochlea_scenario`` (``embedded/core/
-    scenario.h``), its controller behind the runtime's double-precision interface."""
+    scenario.h``), its controller behind the runtime's interface in the working precision
+    (``cochlea_real``: the controller's own ``<name>_real``, no conversion in a period)."""
     name, N, R = sc.name, sc.name.upper(), f"{sc.name}_real"
     off = _offsets(units)
     D = f"{sc.robot.upper()}_N_DRIVES"
@@ -1000,11 +1075,11 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
               + _string_lines(log_cols) + ";",
               f"static const char *const raw_columns[{len(raw_cols)}] = "
               + _string_lines(raw_cols) + ";\n"]
-    to_real = [f"  {R} x[{N}_NX], u[{N}_NQ], e[{N}_NE];", "  int i, r;"]
+    to_real = [f"  {R} x[{N}_NX];", "  int i, r;"]
     for u, o in zip(units, off):
         to_real += [f"  for (i = 0; i < {u.nq}; ++i) {{",
-                    f"    x[{o.x} + i] = ({R})q[{o.q} + i];",
-                    f"    x[{o.x + u.nq} + i] = ({R})qd[{o.q} + i];", "  }"]
+                    f"    x[{o.x} + i] = q[{o.q} + i];",
+                    f"    x[{o.x + u.nq} + i] = qd[{o.q} + i];", "  }"]
     parts += [
         "static int init(void *state, double period_s) {",
         f"  {name}_config c;",
@@ -1012,21 +1087,18 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         "  c.h = period_s;",
         f"  return {name}_init(({name}_state *)state, &c);",
         "}\n",
-        "static int step(void *state, double t, const double *q, const double *qd, "
-        "double *command,",
-        "                double *errors) {",
+        "static int step(void *state, double t, const cochlea_real *q, "
+        "const cochlea_real *qd,",
+        "                cochlea_real *command, cochlea_real *errors) {",
         *to_real,
-        f"  r = {name}_step(({name}_state *)state, t, x, u, e);",
-        f"  for (i = 0; i < {N}_NQ; ++i) command[i] = (double)u[i];",
-        f"  for (i = 0; i < {N}_NE; ++i) errors[i] = (double)e[i];",
+        f"  r = {name}_step(({name}_state *)state, t, x, command, errors);",
         "  return r;",
         "}\n",
-        "static int step_period(void *state, int64_t k, const double *q, const double *qd,",
-        "                       double *command, double *errors) {",
+        "static int step_period(void *state, int64_t k, const cochlea_real *q, "
+        "const cochlea_real *qd,",
+        "                       cochlea_real *command, cochlea_real *errors) {",
         *to_real,
-        f"  r = {name}_step_period(({name}_state *)state, k, x, u, e);",
-        f"  for (i = 0; i < {N}_NQ; ++i) command[i] = (double)u[i];",
-        f"  for (i = 0; i < {N}_NE; ++i) errors[i] = (double)e[i];",
+        f"  r = {name}_step_period(({name}_state *)state, k, x, command, errors);",
         "  return r;",
         "}\n",
         f"static void terminate(void *state) {{ {name}_terminate(({name}_state *)state); }}\n",
@@ -1039,16 +1111,16 @@ def scenario_source(sc: EmbeddedScenario, units: list[EmbeddedUnit]) -> str:
         "  }",
         "  return 0;",
         "}\n",
-        "static const double *estimate(const void *state) {",
+        "static const cochlea_real *estimate(const void *state) {",
         f"  return ((const {name}_state *)state)->p_hat;",
         "}\n",
-        "static int tool_points(const double *q, double *points, double *centres) {",
-        f"  {R} qr[{N}_NQ], p[2 * {N}_NPOINTS + 1], c[2 * {N}_NPOINTS + 1];",
+        "static int tool_points(const cochlea_real *q, cochlea_real *points, "
+        "cochlea_real *centres) {",
+        f"  {R} p[2 * {N}_NPOINTS + 1], c[2 * {N}_NPOINTS + 1];",
         "  int i;",
-        f"  for (i = 0; i < {N}_NQ; ++i) qr[i] = ({R})q[i];",
-        f"  if ({name}_tool_points(qr, p, c)) return -1;",
+        f"  if ({name}_tool_points(q, p, c)) return -1;",
         f"  for (i = 0; i < 2 * {N}_NPOINTS; ++i) {{",
-        "    points[i] = (double)p[i]; centres[i] = (double)c[i];",
+        "    points[i] = p[i]; centres[i] = c[i];",
         "  }",
         "  return 0;",
         "}\n",

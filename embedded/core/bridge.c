@@ -230,8 +230,10 @@ int cochlea_bridge_init(cochlea_bridge *b, const cochlea_hal *hal, const cochlea
     b->confirmed_off = 0;
     for (i = 0; i < n; ++i) {
         b->position_offset[i] = drives[i].q_offset;
+        cochlea_drive_real_init(&b->conv[i], &drives[i], b->position_offset[i]);
+        b->present_position[i] = b->present_velocity[i] = 0;
         b->present_current[i] = 0;
-        b->joint_current[i] = 0.0;
+        b->joint_current[i] = COCHLEA_R(0.0);
         b->goal[i] = 0;
         b->last_tick[i] = -1;
         b->tick_seen_ns[i] = 0;
@@ -717,8 +719,9 @@ static int collect_fast(cochlea_bridge *b, int64_t deadline)
     return 1;
 }
 
-/* The period's read (SYNC_READ or FAST_SYNC_READ, as the bus says) into q, qd (SI). */
-static int sync_read(cochlea_bridge *b, double *q, double *qd)
+/* The period's read (SYNC_READ or FAST_SYNC_READ, as the bus says): each motor's Present
+ * Position, Velocity and Current as read (integers: present_*), converted by the caller. */
+static int sync_read(cochlea_bridge *b)
 {
     const int64_t t0 = now(b);
     const size_t length = (size_t)b->read_length;
@@ -747,26 +750,32 @@ static int sync_read(cochlea_bridge *b, double *q, double *qd)
         /* each item where the model data put it within the block */
         const uint8_t *raw = b->raw + (size_t)i * length;
         b->present_current[i] = (int16_t)get_signed(raw + b->read_at[1], b->read_size[1]);
-        b->joint_current[i] = cochlea_drive_current(&b->drives[i], b->present_current[i]);
-        qd[i] = cochlea_drive_velocity(&b->drives[i],
-                                       get_signed(raw + b->read_at[2], b->read_size[2]));
-        q[i] = cochlea_drive_position(&b->drives[i],
-                                      get_signed(raw + b->read_at[3], b->read_size[3]),
-                                      b->position_offset[i]);
+        b->present_velocity[i] = get_signed(raw + b->read_at[2], b->read_size[2]);
+        b->present_position[i] = get_signed(raw + b->read_at[3], b->read_size[3]);
     }
     b->good_reads += 1;
     return 1;
 }
 
-int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd)
+int cochlea_bridge_read(cochlea_bridge *b, cochlea_real *q, cochlea_real *qd)
 {
+    int i;
     if (!b->active) {
         return fail(b, COCHLEA_FAIL_NOT_ENABLED, -1);
     }
     if (b->torque_failed_id >= 0) { /* the torque did not come on: stop the run safely */
         return fail(b, COCHLEA_FAIL_NOT_ENABLED, b->torque_failed_id);
     }
-    return sync_read(b, q, qd);
+    if (!sync_read(b)) {
+        return 0;
+    }
+    for (i = 0; i < b->n; ++i) { /* the period's conversions, in the working precision */
+        const cochlea_drive_real *c = &b->conv[i];
+        b->joint_current[i] = cochlea_drive_current_real(c, b->present_current[i]);
+        qd[i] = cochlea_drive_velocity_real(c, b->present_velocity[i]);
+        q[i] = cochlea_drive_position_real(c, b->present_position[i]);
+    }
+    return 1;
 }
 
 /* A write of item (ADDR_x) of size bytes to every motor, no reply: values[i] per motor, or
@@ -899,7 +908,7 @@ static int torque_on(cochlea_bridge *b)
     return -1;
 }
 
-int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
+int cochlea_bridge_write(cochlea_bridge *b, const cochlea_real *tau)
 {
     int i, finite = 1;
     int32_t len;
@@ -908,10 +917,12 @@ int cochlea_bridge_write(cochlea_bridge *b, const double *tau)
     }
     b->writes += 1;
     for (i = 0; i < b->n; ++i) {
-        finite = finite && cochlea_finite(tau[i]);
+        finite = finite && cochlea_finite_real(tau[i]);
     }
     for (i = 0; i < b->n; ++i) { /* a NaN or infinite command: zero current, and report it */
-        b->goal[i] = finite ? cochlea_drive_goal_current(&b->drives[i], tau[i], b->offset_current) : 0;
+        b->goal[i] = finite ? cochlea_drive_goal_current_real(&b->conv[i], tau[i],
+                                                              b->offset_current)
+                            : 0;
     }
     len = goal_frame(b, ADDR_GOAL_CURRENT, 2, b->goal, 0,
                      b->bus->write_instruction == DXL_BULK_WRITE);
@@ -999,7 +1010,7 @@ int cochlea_bridge_stop(cochlea_bridge *b)
 static int start(cochlea_bridge *b, cochlea_start_report *r)
 {
     int32_t limits[COCHLEA_MAX_DRIVES], modes[COCHLEA_MAX_DRIVES];
-    double q[COCHLEA_MAX_DRIVES], qd[COCHLEA_MAX_DRIVES];
+    double q[COCHLEA_MAX_DRIVES];
     int i, tries, read_ok = 0;
     for (i = 0; i < b->n; ++i) { /* 1. every motor there, of the model the table names */
         const int32_t len = dxl_ping(b->scratch, sizeof b->scratch, b->drives[i].id);
@@ -1054,16 +1065,20 @@ static int start(cochlea_bridge *b, cochlea_start_report *r)
         }
     }
     for (tries = 0; tries < 3 * b->retries && !read_ok; ++tries) { /* 8. the first good read */
-        read_ok = sync_read(b, q, qd);
+        read_ok = sync_read(b);
     }
     if (!read_ok) {
         return fail_start(r, COCHLEA_START_NO_READ, COCHLEA_STEP_FIRST_READ, -1, b->last_failure);
     }
-    for (i = 0; i < b->n; ++i) {
+    for (i = 0; i < b->n; ++i) { /* in double: the start-up is no period */
         const cochlea_drive *d = &b->drives[i];
-        const double offset = cochlea_drive_unwrap(d, q[i], b->position_offset[i]);
+        double offset;
+        b->joint_current[i] = (cochlea_real)cochlea_drive_current(d, b->present_current[i]);
+        q[i] = cochlea_drive_position(d, b->present_position[i], b->position_offset[i]);
+        offset = cochlea_drive_unwrap(d, q[i], b->position_offset[i]);
         q[i] += offset - b->position_offset[i];
         b->position_offset[i] = offset;
+        cochlea_drive_real_init(&b->conv[i], d, offset);
         if (!(q[i] >= d->position_lo - b->position_margin &&
               q[i] <= d->position_hi + b->position_margin)) {
             r->value = q[i];
@@ -1111,12 +1126,12 @@ int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report)
     return 0;
 }
 
-static int backend_read(void *ctx, double *q, double *qd)
+static int backend_read(void *ctx, cochlea_real *q, cochlea_real *qd)
 {
     return cochlea_bridge_read((cochlea_bridge *)ctx, q, qd);
 }
 
-static int backend_write(void *ctx, const double *tau)
+static int backend_write(void *ctx, const cochlea_real *tau)
 {
     return cochlea_bridge_write((cochlea_bridge *)ctx, tau);
 }

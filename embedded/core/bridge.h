@@ -140,8 +140,13 @@ typedef struct {
     int torque_failed_id;       /* the motor that refused it (every read then fails), or -1 */
     int suspect;                /* a failed read: wait for a quiet line before the next */
     double position_offset[COCHLEA_MAX_DRIVES];
+    /* each drive's per-period conversions in the working precision (drives.h), set up with
+     * its position offset at init and again at the start (the unwrap, the homing) */
+    cochlea_drive_real conv[COCHLEA_MAX_DRIVES];
+    int32_t present_position[COCHLEA_MAX_DRIVES]; /* counts, last good read */
+    int32_t present_velocity[COCHLEA_MAX_DRIVES]; /* LSB, last good read */
     int16_t present_current[COCHLEA_MAX_DRIVES];  /* LSB, last good read */
-    double joint_current[COCHLEA_MAX_DRIVES];     /* the same in A at the joint's sign */
+    cochlea_real joint_current[COCHLEA_MAX_DRIVES]; /* the same in A at the joint's sign */
     int16_t goal[COCHLEA_MAX_DRIVES];             /* LSB, last written */
     /* Counters. */
     uint32_t reads, good_reads, writes, unexpected_packets, garbage_packets;  /* of the run */
@@ -187,11 +192,12 @@ void cochlea_bridge_expect_homing(cochlea_bridge *b, int drive, uint16_t marker,
 /* Steps 1-8, step 9 armed for the first nonzero command; 1 on success, else 0 with *report
  * filled, after the safe stop. */
 int cochlea_bridge_start(cochlea_bridge *b, cochlea_start_report *report);
-/* One SYNC_READ into q[n], qd[n] (SI); 1, or 0 on a failure (counted). */
-int cochlea_bridge_read(cochlea_bridge *b, double *q, double *qd);
+/* One SYNC_READ into q[n], qd[n] (SI, the working precision: integer counts to float by the
+ * drives' _real conversions in the float build); 1, or 0 on a failure (counted). */
+int cochlea_bridge_read(cochlea_bridge *b, cochlea_real *q, cochlea_real *qd);
 /* One SYNC_WRITE of Goal Current for the joint efforts tau[n] (SI); a non-finite effort sends
  * zero current to every motor and counts as a failure. 1, or 0 on a failure. */
-int cochlea_bridge_write(cochlea_bridge *b, const double *tau);
+int cochlea_bridge_write(cochlea_bridge *b, const cochlea_real *tau);
 /* The safe shut-down; the number of motors that confirmed torque off. */
 int cochlea_bridge_stop(cochlea_bridge *b);
 /* The bridge as the loop's backend (read, write, the safe shut-down as its shutdown, and

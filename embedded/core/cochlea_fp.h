@@ -33,4 +33,34 @@ static inline int cochlea_finite(double x)
     return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
 }
 
+/* The working precision of everything a period computes: the loop's q, qd, tau, errors and
+ * row, the supervisor's checks, the drives' per-period conversions, the scenario's interface.
+ * float with COCHLEA_FLOAT (a single-precision FPU: a Cortex-M4F has no double instruction,
+ * so a double there is a library routine), double otherwise. Configuration, start-up and the
+ * run's report stay double (outside the period). The generated <name>_real is the same type. */
+#ifdef COCHLEA_FLOAT
+typedef float cochlea_real;
+/* A literal in the working precision (COCHLEA_R(1.0) is 1.0f in float). */
+#define COCHLEA_R(x) x##f
+#else
+typedef double cochlea_real;
+#define COCHLEA_R(x) x
+#endif
+
+/* cochlea_finite in the working precision: on the float's own bits in the float build (a
+ * float converted to double would be a library call on a Cortex-M4F). */
+static inline int cochlea_finite_real(cochlea_real x)
+{
+#ifdef COCHLEA_FLOAT
+    union {
+        float f;
+        uint32_t u;
+    } bits;
+    bits.f = x;
+    return (bits.u & 0x7F800000UL) != 0x7F800000UL;
+#else
+    return cochlea_finite(x);
+#endif
+}
+
 #endif /* COCHLEA_FP_H */

@@ -46,17 +46,22 @@ const char *cochlea_rule_name(int rule);
 /* Where a rule was broken: enough for the port to print the same message as cochlea-run. */
 typedef struct {
     int rule;          /* enum cochlea_rule */
-    double time_s;     /* the period's time */
+    cochlea_real time_s; /* the period's time (s; in the float build a float: exact from
+                          * period, below) */
     int joint;         /* joint index (position, velocity, non-finite state), else -1 */
     int unit;          /* unit index (estimate rules) or keep-out point index, else -1 */
     int what;          /* non-finite: 0 state, 1 command, 2 estimate */
-    double value;      /* the offending value: position, speed, |p_hat|, distance (SI) */
-    double limit;      /* the limit it broke (SI) */
-    double point[2];   /* keep-out: the tool point and the circle's centre (m, world frame) */
-    double centre[2];
+    cochlea_real value; /* the offending value: position, speed, |p_hat|, distance (SI) */
+    cochlea_real limit; /* the limit it broke (SI) */
+    cochlea_real point[2]; /* keep-out: the tool point and the circle's centre (m, world) */
+    cochlea_real centre[2];
     int count;         /* watchdog: consecutive overruns or failed reads */
     int reason;        /* watchdog: 0 overruns, 1 backend read failures, 2 too late, 3 a stall
                         * (loop.h's enum cochlea_watchdog_reason) */
+    int64_t period;    /* the period the rule ended the run in (the loop's k; steps for
+                        * "completed"), -1 if the loop did not set it: its exact time is
+                        * cochlea_loop_time(loop, period) (last: the fields before it keep
+                        * their places) */
 } cochlea_stop;
 
 /* ---- the hardware-abstraction layer ----------------------------------------------------- */
@@ -115,31 +120,33 @@ typedef struct {
 
 /* ---- a backend: the motors (cochlea_bridge_backend) or a simulated robot ---------------- */
 
-/* What the loop drives. q, qd and tau hold every joint of the scenario in its order (SI). */
+/* What the loop drives. q, qd and tau hold every joint of the scenario in its order (SI), in
+ * the working precision (cochlea_real: float in the float build, cochlea_fp.h). */
 typedef struct {
     void *ctx;
     /* One measurement; 1, or 0 on a failure (q and qd then left as they were). */
-    int (*read)(void *ctx, double *q, double *qd);
+    int (*read)(void *ctx, cochlea_real *q, cochlea_real *qd);
     /* One command; 1, or 0 on a failure. */
-    int (*write)(void *ctx, const double *tau);
+    int (*write)(void *ctx, const cochlea_real *tau);
     /* The safe stop: zero effort, drives off. The number of drives that confirmed it. */
     int (*shutdown)(void *ctx);
     /* The measured motor current of every joint (A, signed so that a positive current drives
      * the joint positively), refreshed by every good read; the loop logs it after the timing.
      * NULL when the backend measures no current: those columns are then NaN. */
-    const double *current;
+    const cochlea_real *current;
 } cochlea_backend;
 
 /* ---- the supervisor ----------------------------------------------------------------------- */
 
-/* What the supervisor enforces, per joint of the whole system in the loop's order (SI). */
+/* What the supervisor enforces, per joint of the whole system in the loop's order (SI), in
+ * the working precision (the loop keeps its own copies of the scenario's double limits). */
 typedef struct {
     int n_joints;
-    const double *position_lo;     /* rad or m */
-    const double *position_hi;
-    const double *velocity;        /* rad/s or m/s */
-    const double *effort;          /* N m or N: every command is clipped to it */
-    double keep_out_radius;        /* m; 0 or less: no keep-out rule (no circle described) */
+    const cochlea_real *position_lo; /* rad or m */
+    const cochlea_real *position_hi;
+    const cochlea_real *velocity;  /* rad/s or m/s */
+    const cochlea_real *effort;    /* N m or N: every command is clipped to it */
+    cochlea_real keep_out_radius;  /* m; 0 or less: no keep-out rule (no circle described) */
     int watchdog_misses;           /* consecutive overruns tolerated (loop.h's overrun rule) */
     int watchdog_errors;           /* consecutive backend failures tolerated */
 } cochlea_limits;
@@ -147,22 +154,30 @@ typedef struct {
 /* The measured state: finite, inside the position limits, under the velocity limits (in that
  * order, first joint first, as the Python supervisor). 1 and *stop filled when a rule is
  * broken, else 0. */
-int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
-                        const double *qd, cochlea_stop *stop);
+int cochlea_check_state(const cochlea_limits *limits, cochlea_real t, const cochlea_real *q,
+                        const cochlea_real *qd, cochlea_stop *stop);
 
 /* Tool points against the keep-out circle: n_points points and their circles' centres
  * (m, world frame). */
-int cochlea_check_keep_out(const cochlea_limits *limits, double t, int n_points,
-                           const double *points, const double *centres, cochlea_stop *stop);
+int cochlea_check_keep_out(const cochlea_limits *limits, cochlea_real t, int n_points,
+                           const cochlea_real *points, const cochlea_real *centres,
+                           cochlea_stop *stop);
 
 /* The command (finite) and each unit's next estimate (finite, |p_hat| within its bound with
- * the Python supervisor's 1e-9 relative tolerance). estimates[u] has n_params[u] values. */
-int cochlea_check_command(const cochlea_limits *limits, double t, const double *tau,
-                          int n_units, const double *const *estimates, const int *n_params,
-                          const double *bounds, cochlea_stop *stop);
+ * the Python supervisor's 1e-9 relative tolerance; in the float build 16 float epsilons,
+ * 1.9e-6, since 1 + 1e-9 is 1 in float and the float projection rounds to about 6e-8).
+ * estimates[u] has n_params[u] values. */
+#ifdef COCHLEA_FLOAT
+#define COCHLEA_ESTIMATE_TOLERANCE 1.9073486e-6f /* 16 FLT_EPSILON */
+#else
+#define COCHLEA_ESTIMATE_TOLERANCE 1e-9
+#endif
+int cochlea_check_command(const cochlea_limits *limits, cochlea_real t, const cochlea_real *tau,
+                          int n_units, const cochlea_real *const *estimates,
+                          const int *n_params, const cochlea_real *bounds, cochlea_stop *stop);
 
 /* Clip every command to its joint's effort limit; the number of joints clipped. */
-int cochlea_saturate(const cochlea_limits *limits, double *tau);
+int cochlea_saturate(const cochlea_limits *limits, cochlea_real *tau);
 
 #ifdef __cplusplus
 }

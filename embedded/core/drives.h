@@ -69,6 +69,38 @@ int16_t cochlea_drive_goal_current(const cochlea_drive *d, double effort, int of
  * what cochlea-run logs as current.<joint>_A (the Python bridge's joint_current_A). */
 double cochlea_drive_current(const cochlea_drive *d, int16_t present_lsb);
 
+/* The per-period conversions in the working precision (cochlea_real, cochlea_fp.h), from a
+ * drive's constants rounded once, outside the period (cochlea_drive_real_init: at start-up,
+ * once the position offset is known). In the double build they are the functions above, bit
+ * for bit. In the float build (a Cortex-M4F has no double instruction) they run in float
+ * and integer counts only:
+ * - position: q = (counts - count0) q_per_count + q0, the count difference an integer
+ *   (count0 the count nearest the middle of the joint's limits, q0 its position, formed in
+ *   double at init), so the float product stays within the joint's range whatever the
+ *   encoder's count: error a few 1e-7 rad (or m), far under one count;
+ * - velocity and current: the LSB times the constant, in float;
+ * - goal current: the fit's inverse in float, clipped to the current limit, rounded half to
+ *   even by the float's own rounding (no nearbyint: the value is under 2^22): the double
+ *   function's LSB, or one LSB from it where the float rounding crosses a half
+ *   (tests/test_embedded_float.py measures it). */
+typedef struct {
+    const cochlea_drive *drive;
+    double position_offset;     /* the double build's, as cochlea_drive_position takes it */
+    int32_t count0;             /* float build: the count nearest the middle of the limits */
+    cochlea_real q0;            /* its position (rad or m) */
+    cochlea_real q_per_count, qd_per_lsb, ampere_per_lsb;
+    cochlea_real torque_per_effort, inv_a, inv_ramp, i0, lsb_per_ampere;
+    cochlea_real current_limit; /* current_limit_lsb */
+} cochlea_drive_real;
+
+void cochlea_drive_real_init(cochlea_drive_real *c, const cochlea_drive *d,
+                             double position_offset);
+cochlea_real cochlea_drive_position_real(const cochlea_drive_real *c, int32_t counts);
+cochlea_real cochlea_drive_velocity_real(const cochlea_drive_real *c, int32_t velocity_lsb);
+cochlea_real cochlea_drive_current_real(const cochlea_drive_real *c, int16_t present_lsb);
+int16_t cochlea_drive_goal_current_real(const cochlea_drive_real *c, cochlea_real effort,
+                                        int offset_current);
+
 #ifdef __cplusplus
 }
 #endif

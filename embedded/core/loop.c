@@ -3,6 +3,18 @@
 
 #include <math.h>
 
+/* The time of period k in the working precision: the double build's own (double)k h, bit
+ * for bit as before; the float build's in float (no double routine in the period; the
+ * control itself runs on k, the row's and the stop's t are for the log). */
+static cochlea_real period_time(const cochlea_loop *loop, int64_t k)
+{
+#ifdef COCHLEA_FLOAT
+    return (cochlea_real)k * loop->period_real;
+#else
+    return cochlea_loop_time(loop, k);
+#endif
+}
+
 int cochlea_loop_timing_at(const cochlea_scenario *sc)
 {
     int u, n = 1 + 3 * sc->nq;
@@ -74,23 +86,40 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
     }
     loop->row_length = cochlea_loop_row_length(sc);
     loop->limits.n_joints = sc->nq;
-    loop->limits.position_lo = sc->position_lo;
-    loop->limits.position_hi = sc->position_hi;
-    loop->limits.velocity = sc->velocity;
-    loop->limits.effort = sc->effort;
-    loop->limits.keep_out_radius = sc->keep_out_radius;
+    loop->limits.keep_out_radius = (cochlea_real)sc->keep_out_radius;
     loop->limits.watchdog_misses = watchdog_misses;
     loop->limits.watchdog_errors = watchdog_errors;
+    /* The scenario's controller must compute in the loop's working precision (its pointers
+     * are passed through as they are), and the float build steps by the period count. */
+    if (sc->real_size != (int)sizeof(cochlea_real)) {
+        return COCHLEA_LOOP_BAD_CONTROLLER;
+    }
+#ifdef COCHLEA_FLOAT
+    if (!sc->step_period) {
+        return COCHLEA_LOOP_BAD_CONTROLLER;
+    }
+#endif
+    for (i = 0; i < sc->nq; ++i) {
+        loop->position_lo[i] = (cochlea_real)sc->position_lo[i];
+        loop->position_hi[i] = (cochlea_real)sc->position_hi[i];
+        loop->velocity[i] = (cochlea_real)sc->velocity[i];
+        loop->effort[i] = (cochlea_real)sc->effort[i];
+    }
+    loop->limits.position_lo = loop->position_lo;
+    loop->limits.position_hi = loop->position_hi;
+    loop->limits.velocity = loop->velocity;
+    loop->limits.effort = loop->effort;
+    loop->period_real = (cochlea_real)h;
     if (sc->init(controller, h) != 0) {
         return COCHLEA_LOOP_BAD_CONTROLLER;
     }
     for (u = 0; u < sc->n_units; ++u) {
         loop->estimates[u] = sc->estimate(controller) + sc->units[u].p0;
         loop->n_params[u] = sc->units[u].np;
-        loop->bounds[u] = sc->units[u].bound;
+        loop->bounds[u] = (cochlea_real)sc->units[u].bound;
     }
     for (i = 0; i < sc->nq; ++i) {
-        loop->q[i] = loop->qd[i] = loop->tau[i] = 0.0;
+        loop->q[i] = loop->qd[i] = loop->tau[i] = COCHLEA_R(0.0);
     }
     return COCHLEA_LOOP_OK;
 }
@@ -105,11 +134,11 @@ static int64_t now(const cochlea_loop *loop)
     return (loop->hal && loop->hal->now_ns) ? loop->hal->now_ns(loop->hal->ctx) : 0;
 }
 
-static void fill_nan(double *v, int n)
+static void fill_nan(cochlea_real *v, int n)
 {
     int i;
     for (i = 0; i < n; ++i) {
-        v[i] = (double)NAN; /* NAN is a float constant: no promotion warning */
+        v[i] = (cochlea_real)NAN; /* NAN is a float constant: no promotion warning */
     }
 }
 
@@ -121,14 +150,15 @@ static void emit(cochlea_loop *loop)
     }
 }
 
-static void stop_here(cochlea_stop *stop, int rule, double t)
+static void stop_here(cochlea_stop *stop, int rule, cochlea_real t)
 {
     stop->rule = rule;
     stop->time_s = t;
+    stop->period = -1; /* cochlea_loop_period sets it */
     stop->joint = stop->unit = -1;
     stop->what = 0;
-    stop->value = stop->limit = 0.0;
-    stop->point[0] = stop->point[1] = stop->centre[0] = stop->centre[1] = 0.0;
+    stop->value = stop->limit = COCHLEA_R(0.0);
+    stop->point[0] = stop->point[1] = stop->centre[0] = stop->centre[1] = COCHLEA_R(0.0);
     stop->count = 0;
     stop->reason = 0;
 }
@@ -160,18 +190,19 @@ static int period(cochlea_loop *loop)
     const cochlea_scenario *sc = loop->scenario;
     const cochlea_backend *be = &loop->backend;
     const int n = sc->nq;
-    double *row = loop->row;
-    double *row_tau = row + 1 + 2 * n;
-    double *timing = row + cochlea_loop_timing_at(sc);
-    double *current = timing + COCHLEA_TIMING_COLUMNS;
+    cochlea_real *row = loop->row;
+    cochlea_real *row_tau = row + 1 + 2 * n;
+    cochlea_real *timing = row + cochlea_loop_timing_at(sc);
+    cochlea_real *current = timing + COCHLEA_TIMING_COLUMNS;
     const int64_t t0 = loop->t0_ns, k = loop->k;
     int64_t start, io_start, io_ns, end, deadline;
     int u, i, r;
     {
-        /* Time is the period count k (int64: no rounding, no wrap); t is formed here, in
-         * double, for what needs it. A float t would staircase: from 86 400 s its spacing
-         * is 7.8 ms. */
-        const double t = cochlea_loop_time(loop, k);
+        /* Time is the period count k (int64: no rounding, no wrap): the controller steps by
+         * k. t is formed here for the row and the stop only: in double in the double build;
+         * in float in the float build (it would staircase from a few hours on, 7.8 ms steps
+         * from 86 400 s: a port forms the exact k h outside the period, stop.period). */
+        const cochlea_real t = period_time(loop, k);
         deadline = t0 + k * loop->period_ns;
         if (loop->realtime) {
             loop->hal->wait_until_ns(loop->hal->ctx, deadline);
@@ -190,8 +221,8 @@ static int period(cochlea_loop *loop)
             if (lateness > loop->lateness_limit_ns) {
                 stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
                 loop->stop.reason = COCHLEA_WATCHDOG_LATE;
-                loop->stop.value = (double)lateness * 1e-9;
-                loop->stop.limit = (double)loop->lateness_limit_ns * 1e-9;
+                loop->stop.value = (cochlea_real)lateness * COCHLEA_R(1e-9);
+                loop->stop.limit = (cochlea_real)loop->lateness_limit_ns * COCHLEA_R(1e-9);
                 return COCHLEA_WATCHDOG;
             }
         }
@@ -220,7 +251,7 @@ static int period(cochlea_loop *loop)
             }
         }
         if (r && (cochlea_check_state(&loop->limits, t, loop->q, loop->qd, &loop->stop)
-                  || (loop->limits.keep_out_radius > 0.0 && sc->n_points > 0
+                  || (loop->limits.keep_out_radius > COCHLEA_R(0.0) && sc->n_points > 0
                       && sc->tool_points(loop->q, loop->points, loop->centres) == 0
                       && cochlea_check_keep_out(&loop->limits, t, sc->n_points, loop->points,
                                                 loop->centres, &loop->stop)))) {
@@ -229,8 +260,8 @@ static int period(cochlea_loop *loop)
             return loop->stop.rule;
         }
         { /* the estimate this period uses, in the row */
-            const double *p_hat = sc->estimate(loop->controller);
-            double *cell = row_tau + n;
+            const cochlea_real *p_hat = sc->estimate(loop->controller);
+            cochlea_real *cell = row_tau + n;
             for (u = 0; u < sc->n_units; ++u) {
                 const cochlea_unit_info *unit = &sc->units[u];
                 cell += unit->ne;
@@ -245,18 +276,23 @@ static int period(cochlea_loop *loop)
             /* No state measured yet: command nothing (zero effort keeps the drives' Bus
              * Watchdog fed and their torque off) and step no controller. */
             for (i = 0; i < n; ++i) {
-                loop->tau[i] = 0.0;
+                loop->tau[i] = COCHLEA_R(0.0);
             }
             fill_nan(loop->errors, sc->ne);
             r = 0;
         } else {
+#ifdef COCHLEA_FLOAT
+            r = sc->step_period(loop->controller, k, loop->q, loop->qd, loop->tau,
+                                loop->errors); /* cochlea_loop_init checked it is there */
+#else
             r = sc->step_period ? sc->step_period(loop->controller, k, loop->q, loop->qd,
                                                   loop->tau, loop->errors)
                                 : sc->step(loop->controller, t, loop->q, loop->qd, loop->tau,
                                            loop->errors);
+#endif
         }
         { /* errors, unit after unit, between tau and the estimate */
-            double *cell = row_tau + n;
+            cochlea_real *cell = row_tau + n;
             for (u = 0; u < sc->n_units; ++u) {
                 const cochlea_unit_info *unit = &sc->units[u];
                 for (i = 0; i < unit->ne; ++i) {
@@ -290,10 +326,18 @@ static int period(cochlea_loop *loop)
             row_tau[i] = loop->tau[i];
         }
         end = now(loop);
+#ifdef COCHLEA_FLOAT
+        /* in float from integer nanoseconds: the lateness as start - deadline, exact */
+        timing[0] = (cochlea_real)(start - deadline) * 1e-9f;
+        timing[1] = (cochlea_real)(start - loop->previous_start_ns) * 1e-9f;
+        timing[2] = (cochlea_real)(end - start) * 1e-9f;
+        timing[3] = (cochlea_real)io_ns * 1e-9f;
+#else
         timing[0] = (double)(start - t0) * 1e-9 - t;
         timing[1] = (double)(start - loop->previous_start_ns) * 1e-9;
         timing[2] = (double)(end - start) * 1e-9;
         timing[3] = (double)io_ns * 1e-9;
+#endif
         emit(loop);
         loop->previous_start_ns = start;
         if (loop->realtime) {
@@ -315,15 +359,15 @@ static int period(cochlea_loop *loop)
                     stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
                     loop->stop.reason = COCHLEA_WATCHDOG_STALL;
                     loop->stop.count = loop->consecutive_overruns;
-                    loop->stop.value = (double)own * 1e-9;
-                    loop->stop.limit = (double)loop->stall_ns * 1e-9;
+                    loop->stop.value = (cochlea_real)own * COCHLEA_R(1e-9);
+                    loop->stop.limit = (cochlea_real)loop->stall_ns * COCHLEA_R(1e-9);
                     return COCHLEA_WATCHDOG;
                 }
                 if (loop->consecutive_overruns > loop->limits.watchdog_misses) {
                     stop_here(&loop->stop, COCHLEA_WATCHDOG, t);
                     loop->stop.reason = COCHLEA_WATCHDOG_OVERRUNS;
                     loop->stop.count = loop->consecutive_overruns;
-                    loop->stop.value = (double)own * 1e-9;
+                    loop->stop.value = (cochlea_real)own * COCHLEA_R(1e-9);
                     return COCHLEA_WATCHDOG;
                 }
             }
@@ -339,11 +383,14 @@ int cochlea_loop_period(cochlea_loop *loop)
         return loop->stop.rule;
     }
     if (loop->k >= loop->steps) {
-        stop_here(&loop->stop, COCHLEA_COMPLETED, cochlea_loop_time(loop, loop->steps));
+        stop_here(&loop->stop, COCHLEA_COMPLETED, period_time(loop, loop->steps));
+        loop->stop.period = loop->steps;
         return COCHLEA_COMPLETED;
     }
     rule = period(loop);
-    if (rule == COCHLEA_RULE_NONE) {
+    if (rule != COCHLEA_RULE_NONE) {
+        loop->stop.period = loop->k;
+    } else {
         loop->k += 1;
         if (loop->kick_watchdog) { /* a whole period done: the hardware watchdog may wait */
             loop->kick_watchdog(loop->watchdog_ctx);

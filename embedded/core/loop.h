@@ -84,12 +84,16 @@ typedef struct {
     void *controller;                /* scenario->state_size bytes, the caller's */
     cochlea_limits limits;           /* from the scenario, with the watchdog's counts */
     double period_s;                 /* the control period (s) */
+    cochlea_real period_real;        /* the same in the working precision (the row's t) */
     int64_t period_ns;
     int64_t steps;                   /* periods to run; period k starts at t = k period_s */
     int realtime;                    /* 0: periods back to back, no waiting (tests) */
     /* Called at the end of every period with its row (row_length values). It runs inside
-     * the period: copy the row and return (the POSIX port hands it to a writer thread). */
-    void (*on_row)(void *ctx, const double *row, int row_length);
+     * the period: copy the row and return (the POSIX port hands it to a writer thread).
+     * The row is in the working precision (float in the float build: its t column then
+     * resolves 1 ms periods up to about 2.3 h; a port that logs longer runs forms t = k h
+     * from the period count outside the period, as the STM32 row stream does). */
+    void (*on_row)(void *ctx, const cochlea_real *row, int row_length);
     void *row_ctx;
     /* Optional, called with row_ctx at the start of every period, before anything is read or
      * commanded: 0 when the log cannot take the period's row (its writer failed, or a ring it
@@ -129,14 +133,18 @@ typedef struct {
     int measured;                    /* 1 from the run's first good read */
     int consecutive_overruns;
     int64_t previous_start_ns, previous_end_ns;
-    /* Scratch. */
-    double q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
-    double errors[COCHLEA_MAX_ERRORS];
-    double points[2 * COCHLEA_MAX_POINTS], centres[2 * COCHLEA_MAX_POINTS];
-    const double *estimates[COCHLEA_MAX_UNITS];
+    /* The supervisor's limits in the working precision (the scenario's, rounded once at
+     * init: a float period compares float with float). */
+    cochlea_real position_lo[COCHLEA_MAX_JOINTS], position_hi[COCHLEA_MAX_JOINTS];
+    cochlea_real velocity[COCHLEA_MAX_JOINTS], effort[COCHLEA_MAX_JOINTS];
+    /* Scratch, in the working precision (cochlea_real: float in the float build). */
+    cochlea_real q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
+    cochlea_real errors[COCHLEA_MAX_ERRORS];
+    cochlea_real points[2 * COCHLEA_MAX_POINTS], centres[2 * COCHLEA_MAX_POINTS];
+    const cochlea_real *estimates[COCHLEA_MAX_UNITS];
     int n_params[COCHLEA_MAX_UNITS];
-    double bounds[COCHLEA_MAX_UNITS];
-    double row[COCHLEA_MAX_ROW];
+    cochlea_real bounds[COCHLEA_MAX_UNITS];
+    cochlea_real row[COCHLEA_MAX_ROW];
 } cochlea_loop;
 
 /* The timing columns of a row (s), cochlea-run's TIMING_COLUMNS. */
@@ -159,7 +167,9 @@ int cochlea_loop_init(cochlea_loop *loop, const cochlea_scenario *sc, const coch
 
 /* The time of period k (s): k period_s, formed in double from the int64 period count the
  * loop carries, so that it resolves every period at any run length the loop accepts (at
- * 2^40 periods of 1 ms its spacing is 2.4e-7 s). */
+ * 2^40 periods of 1 ms its spacing is 2.4e-7 s). The double build's period uses it; the
+ * float build's does not (a Cortex-M4F has no double: its period forms the row's and the
+ * stop's t in float), so a float port calls it outside the period (loop->stop.period). */
 double cochlea_loop_time(const cochlea_loop *loop, int64_t k);
 
 /* The run in three parts, for a port whose timer interrupt or RTOS task runs one period at

@@ -5,6 +5,14 @@
 
 #include <math.h>
 
+#ifdef COCHLEA_FLOAT
+#define SQRT sqrtf /* VSQRT.F32 on a single-precision FPU */
+#define FABS fabsf
+#else
+#define SQRT sqrt
+#define FABS fabs
+#endif
+
 static const char *const RULE_NAMES[COCHLEA_RULE_COUNT] = {
     "none", "completed", "user-stop", "position-limit", "velocity-limit", "keep-out",
     "non-finite", "estimate-bound", "watchdog", "terminated", "log-failure"};
@@ -20,47 +28,48 @@ const char *cochlea_rule_name(int rule)
     return (rule >= 0 && rule < COCHLEA_RULE_COUNT) ? RULE_NAMES[rule] : "unknown";
 }
 
-static void stop_at(cochlea_stop *stop, int rule, double t)
+static void stop_at(cochlea_stop *stop, int rule, cochlea_real t)
 {
     stop->rule = rule;
     stop->time_s = t;
+    stop->period = -1; /* the loop's: it knows k */
     stop->joint = -1;
     stop->unit = -1;
     stop->what = 0;
-    stop->value = 0.0;
-    stop->limit = 0.0;
-    stop->point[0] = stop->point[1] = 0.0;
-    stop->centre[0] = stop->centre[1] = 0.0;
+    stop->value = COCHLEA_R(0.0);
+    stop->limit = COCHLEA_R(0.0);
+    stop->point[0] = stop->point[1] = COCHLEA_R(0.0);
+    stop->centre[0] = stop->centre[1] = COCHLEA_R(0.0);
     stop->count = 0;
     stop->reason = 0;
 }
 
 /* Finite as the Python supervisor judges it: the sum of squares is finite (so a value whose
  * square overflows counts as non-finite too, as there). */
-static int all_finite(const double *v, int n, double *square)
+static int all_finite(const cochlea_real *v, int n, cochlea_real *square)
 {
-    double s = 0.0;
+    cochlea_real s = COCHLEA_R(0.0);
     int i;
     for (i = 0; i < n; ++i) {
         s += v[i] * v[i];
     }
     *square = s;
     /* on the bits (cochlea_fp.h): no compiler assumption can fold it away */
-    return cochlea_finite(s);
+    return cochlea_finite_real(s);
 }
 
-int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
-                        const double *qd, cochlea_stop *stop)
+int cochlea_check_state(const cochlea_limits *limits, cochlea_real t, const cochlea_real *q,
+                        const cochlea_real *qd, cochlea_stop *stop)
 {
     const int n = limits->n_joints;
-    double square;
+    cochlea_real square;
     int j;
     int finite = all_finite(q, n, &square);
     finite = finite && all_finite(qd, n, &square);
     if (!finite) {
         stop_at(stop, COCHLEA_NON_FINITE, t);
         for (j = 0; j < n; ++j) {
-            if (!cochlea_finite(q[j]) || !cochlea_finite(qd[j])) {
+            if (!cochlea_finite_real(q[j]) || !cochlea_finite_real(qd[j])) {
                 stop->joint = j;
                 break;
             }
@@ -78,7 +87,7 @@ int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
         }
     }
     for (j = 0; j < n; ++j) {
-        if (fabs(qd[j]) > limits->velocity[j]) {
+        if (FABS(qd[j]) > limits->velocity[j]) {
             stop_at(stop, COCHLEA_VELOCITY_LIMIT, t);
             stop->joint = j;
             stop->value = qd[j];
@@ -89,17 +98,18 @@ int cochlea_check_state(const cochlea_limits *limits, double t, const double *q,
     return 0;
 }
 
-int cochlea_check_keep_out(const cochlea_limits *limits, double t, int n_points,
-                           const double *points, const double *centres, cochlea_stop *stop)
+int cochlea_check_keep_out(const cochlea_limits *limits, cochlea_real t, int n_points,
+                           const cochlea_real *points, const cochlea_real *centres,
+                           cochlea_stop *stop)
 {
     int i;
-    if (!(limits->keep_out_radius > 0.0)) {
+    if (!(limits->keep_out_radius > COCHLEA_R(0.0))) {
         return 0;
     }
     for (i = 0; i < n_points; ++i) {
-        const double du = points[2 * i] - centres[2 * i];
-        const double dv = points[2 * i + 1] - centres[2 * i + 1];
-        const double r = sqrt(du * du + dv * dv);
+        const cochlea_real du = points[2 * i] - centres[2 * i];
+        const cochlea_real dv = points[2 * i + 1] - centres[2 * i + 1];
+        const cochlea_real r = SQRT(du * du + dv * dv);
         /* A NaN distance is not inside the circle here: the state check catches it first. */
         if (r < limits->keep_out_radius) {
             stop_at(stop, COCHLEA_KEEP_OUT, t);
@@ -116,11 +126,11 @@ int cochlea_check_keep_out(const cochlea_limits *limits, double t, int n_points,
     return 0;
 }
 
-int cochlea_check_command(const cochlea_limits *limits, double t, const double *tau,
-                          int n_units, const double *const *estimates, const int *n_params,
-                          const double *bounds, cochlea_stop *stop)
+int cochlea_check_command(const cochlea_limits *limits, cochlea_real t, const cochlea_real *tau,
+                          int n_units, const cochlea_real *const *estimates,
+                          const int *n_params, const cochlea_real *bounds, cochlea_stop *stop)
 {
-    double square;
+    cochlea_real square;
     int u;
     if (!all_finite(tau, limits->n_joints, &square)) {
         stop_at(stop, COCHLEA_NON_FINITE, t);
@@ -128,7 +138,7 @@ int cochlea_check_command(const cochlea_limits *limits, double t, const double *
         return 1;
     }
     for (u = 0; u < n_units; ++u) {
-        const double tolerated = bounds[u] * (1.0 + 1e-9);
+        const cochlea_real tolerated = bounds[u] * (COCHLEA_R(1.0) + COCHLEA_ESTIMATE_TOLERANCE);
         if (!all_finite(estimates[u], n_params[u], &square)) {
             stop_at(stop, COCHLEA_NON_FINITE, t);
             stop->what = 2;
@@ -138,7 +148,7 @@ int cochlea_check_command(const cochlea_limits *limits, double t, const double *
         if (square > tolerated * tolerated) {
             stop_at(stop, COCHLEA_ESTIMATE_BOUND, t);
             stop->unit = u;
-            stop->value = sqrt(square);
+            stop->value = SQRT(square);
             stop->limit = bounds[u];
             return 1;
         }
@@ -146,11 +156,11 @@ int cochlea_check_command(const cochlea_limits *limits, double t, const double *
     return 0;
 }
 
-int cochlea_saturate(const cochlea_limits *limits, double *tau)
+int cochlea_saturate(const cochlea_limits *limits, cochlea_real *tau)
 {
     int j, clipped = 0;
     for (j = 0; j < limits->n_joints; ++j) {
-        const double lim = limits->effort[j];
+        const cochlea_real lim = limits->effort[j];
         if (tau[j] > lim) {
             tau[j] = lim;
             ++clipped;

@@ -598,24 +598,36 @@ static void show(char *buf, size_t n, double value, const char *unit)
     }
 }
 
-static void vector_text(char *buf, size_t n, const double *v, int count)
+static void vector_text(char *buf, size_t n, const cochlea_real *v, int count)
 {
     size_t used = 0;
     int i;
     used += (size_t)snprintf(buf, n, "[");
     for (i = 0; i < count && used < n; ++i) {
-        used += (size_t)snprintf(buf + used, n - used, "%s%.4g", i ? ", " : "", v[i]);
+        used += (size_t)snprintf(buf + used, n - used, "%s%.4g", i ? ", " : "", (double)v[i]);
     }
     if (used < n) {
         snprintf(buf + used, n - used, "]");
     }
 }
 
+/* The stop's time (s): the float build's period forms it in float; here, after the run, it
+ * is the exact k h of the stop's period, as the double build's. */
+static double stop_time_s(const cochlea_loop *loop)
+{
+#ifdef COCHLEA_FLOAT
+    if (loop->stop.period >= 0) {
+        return cochlea_loop_time(loop, loop->stop.period);
+    }
+#endif
+    return (double)loop->stop.time_s;
+}
+
 /* The first stop signal received (0: none); set by on_signal. */
 static volatile sig_atomic_t interrupted;
 
 /* The supervisor's message for a stop, as cochlea/runtime/supervisor.py words it. */
-static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const double *row)
+static void stop_detail(char *buf, size_t n, const cochlea_loop *loop, const cochlea_real *row)
 {
     const cochlea_stop *s = &loop->stop;
     const cochlea_scenario *sc = loop->scenario;
@@ -1028,6 +1040,7 @@ static void start_failure(char *buf, size_t n, const cochlea_bridge *b,
 
 typedef struct {
     double *ring;        /* ring_rows x row_length: row k in slot k % ring_rows */
+    double period_s;     /* the loop's period: the float build's t column is k period_s */
     int row_length;
     long ring_rows;
     long done;           /* rows the loop has finished (atomic; the loop's only) */
@@ -1056,17 +1069,30 @@ static int log_ready(void *ctx)
 }
 
 /* In the period (the loop's on_row): one copy into the ring. */
-static void log_row(void *ctx, const double *row, int row_length)
+static void log_row(void *ctx, const cochlea_real *row, int row_length)
 {
     run_log *log = (run_log *)ctx;
     const long k = __atomic_load_n(&log->done, __ATOMIC_RELAXED);
+#ifdef COCHLEA_FLOAT
+    double *slot = log->ring + (size_t)(k % log->ring_rows) * (size_t)row_length;
+    int j;
+#endif
     if (k - __atomic_load_n(&log->written, __ATOMIC_ACQUIRE) >= log->ring_rows) {
         /* log_ready() rules this out; should it ever happen, drop rather than overwrite. */
         __atomic_store_n(&log->overrun, 1, __ATOMIC_RELAXED);
         return;
     }
+#ifdef COCHLEA_FLOAT
+    /* log.bin is double: the float row widened, and its t the exact k h (row k is period
+     * k's), which a float t cannot carry past a few hours */
+    for (j = 1; j < row_length; ++j) {
+        slot[j] = (double)row[j];
+    }
+    slot[0] = (double)k * log->period_s;
+#else
     memcpy(log->ring + (size_t)(k % log->ring_rows) * (size_t)row_length, row,
            (size_t)row_length * sizeof(double));
+#endif
     __atomic_store_n(&log->done, k + 1, __ATOMIC_RELEASE);
 }
 
@@ -1605,8 +1631,8 @@ static int measurement_resolution(const cochlea_scenario *sc, int u, const log_s
                                   double period, double *res)
 {
     const cochlea_unit_info *t = &sc->units[u];
-    double q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
-    double base[COCHLEA_MAX_ERRORS], moved[COCHLEA_MAX_ERRORS];
+    cochlea_real q[COCHLEA_MAX_JOINTS], qd[COCHLEA_MAX_JOINTS], tau[COCHLEA_MAX_JOINTS];
+    cochlea_real base[COCHLEA_MAX_ERRORS], moved[COCHLEA_MAX_ERRORS];
     void *state;
     int i, j;
     if (st->rows == 0) {
@@ -1624,20 +1650,20 @@ static int measurement_resolution(const cochlea_scenario *sc, int u, const log_s
         return 0;
     }
     for (j = 0; j < sc->nq; ++j) {
-        q[j] = st->last[1 + j];
-        qd[j] = st->last[1 + sc->nq + j];
+        q[j] = (cochlea_real)st->last[1 + j];
+        qd[j] = (cochlea_real)st->last[1 + sc->nq + j];
     }
     (void)sc->step(state, st->last[0], q, qd, tau, base);
     for (i = 0; i < t->nd; ++i) {
         res[i] = 0.0;
     }
     for (j = t->q0; j < t->q0 + t->nq; ++j) {
-        const double keep = q[j];
-        q[j] += fabs(sc->drives[j].q_per_count);
+        const cochlea_real keep = q[j];
+        q[j] = (cochlea_real)(q[j] + fabs(sc->drives[j].q_per_count));
         (void)sc->step(state, st->last[0], q, qd, tau, moved);
         q[j] = keep;
         for (i = 0; i < t->nd; ++i) {
-            res[i] += fabs(moved[t->e0 + i] - base[t->e0 + i]);
+            res[i] += fabs((double)moved[t->e0 + i] - (double)base[t->e0 + i]);
         }
     }
     sc->terminate(state);
@@ -2005,7 +2031,7 @@ static int write_summary(const char *out, const cochlea_loop *loop, const log_st
     json_string(f, cochlea_rule_name(loop->stop.rule));
     fputs(",\n", f);
     key(f, 4, "time_s");
-    json_number(f, loop->stop.time_s);
+    json_number(f, stop_time_s(loop));
     fputs(",\n", f);
     key(f, 4, "detail");
     json_string(f, facts->detail);
@@ -2401,6 +2427,7 @@ int main(int argc, char **argv)
 #endif
     /* The ring, touched now so that no period takes a page fault in it (mlockall, when
      * permitted, would too). A short run needs no more rows than it has. */
+    log.period_s = period;
     log.ring_rows = (long)ceil(RING_SECONDS / period - 1e-9); /* 4 / 0.001 is 4000 */
     log.ring_rows = log.ring_rows < steps ? log.ring_rows : steps;
     log.ring = malloc(sizeof(double) * (size_t)log.ring_rows * (size_t)log.row_length);
@@ -2723,12 +2750,12 @@ int main(int argc, char **argv)
     }
     if (rule == COCHLEA_USER_STOP) {
         fprintf(stderr, "cochlea-embedded: stopped by the user at t = %.3f s; zero effort "
-                "commanded, drives disabled, log complete\n", the_loop.stop.time_s);
+                "commanded, drives disabled, log complete\n", stop_time_s(&the_loop));
     } else {
         /* A failed log is the one stop whose log is not whole: the detail says how much is. */
         fprintf(stderr, "cochlea-embedded: stopped by rule %s at t = %.3f s: %s; zero effort "
                 "commanded, drives disabled, %s\n", cochlea_rule_name(rule),
-                the_loop.stop.time_s, facts.detail,
+                stop_time_s(&the_loop), facts.detail,
                 rule == COCHLEA_LOG_FAILURE ? "log kept up to the failure" : "log complete");
     }
     return cochlea_exit_code(rule);

@@ -71,6 +71,15 @@ static int all_finite(const double *v, int n)
     return 1;
 }
 
+/* The same for the estimate, in the controller's precision (float in the float build). */
+static int all_finite_real(const sim_real *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i)
+        if (!(v[i] - v[i] == 0)) return 0;
+    return 1;
+}
+
 /* Each unit's [q, qd] (the first 2 nq of its plant's state: the encoders are on the links)
  * into x, unit after unit. */
 static void measured_state(const double *plant_x, double *x)
@@ -197,7 +206,7 @@ int main(int argc, char **argv)
         long age = SIM_DELAY; /* periods: how old this period's measurement is */
         const double *seen;
         double *slot = history[k % SIM_RING];
-        const double *p_hat = state.p_hat; /* the estimate used in this period */
+        const sim_real *p_hat = state.p_hat; /* the estimate used in this period */
         double *r = row;
 
 #if SIM_JITTER > 0
@@ -302,7 +311,7 @@ int main(int argc, char **argv)
         rows = k + 1;
         memcpy(plant_x, plant_next, sizeof plant_x);
         measured_state(plant_x, x);
-        if (!all_finite(plant_x, SIM_NXP) || !all_finite(state.p_hat, SIM_NP)) {
+        if (!all_finite(plant_x, SIM_NXP) || !all_finite_real(state.p_hat, SIM_NP)) {
             status = "diverged";
             break;
         }

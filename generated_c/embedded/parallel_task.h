@@ -76,7 +76,14 @@ typedef struct {
 
 /* The controller's state; the caller owns it (no allocation anywhere). */
 typedef struct {
-  double p_hat[PARALLEL_TASK_NP];         /* the estimate, double in every build */
+#ifdef COCHLEA_FLOAT
+  /* the estimate: p_hat + p_hat_lo, a compensated (two-float) sum; p_hat is the
+   * estimate rounded to float (docs/embedded.md, "The float build") */
+  float p_hat[PARALLEL_TASK_NP];
+  float p_hat_lo[PARALLEL_TASK_NP];
+#else
+  double p_hat[PARALLEL_TASK_NP];         /* the estimate */
+#endif
   double bound[PARALLEL_TASK_UNITS];
   double h;
   parallel_task_real gains[PARALLEL_TASK_NG];
@@ -93,7 +100,7 @@ typedef struct {
   int64_t atom_last[3];
   parallel_task_real h_real;
   /* per unit: |p_hat|^2 at or under this is inside the ball (no projection) */
-  double bound2_inside[PARALLEL_TASK_UNITS];
+  parallel_task_real bound2_inside[PARALLEL_TASK_UNITS];
   unsigned long steps;          /* periods run since init */
   int ready;                    /* 1 between init and terminate */
 } parallel_task_state;
@@ -111,7 +118,7 @@ int parallel_task_init(parallel_task_state *s, const parallel_task_config *c);
  * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;
  * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.
  * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound, then clipped
- * to its box [p_min, p_max]), in double.
+ * to its box [p_min, p_max]), in double (float: a compensated two-float sum).
  * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the
  * next estimate is not (the state is then left unchanged, command_out as computed). */
 int parallel_task_step(parallel_task_state *s, double t, const parallel_task_real measurement[PARALLEL_TASK_NX],

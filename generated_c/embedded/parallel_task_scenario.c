@@ -148,31 +148,27 @@ static int init(void *state, double period_s) {
   return parallel_task_init((parallel_task_state *)state, &c);
 }
 
-static int step(void *state, double t, const double *q, const double *qd, double *command,
-                double *errors) {
-  parallel_task_real x[PARALLEL_TASK_NX], u[PARALLEL_TASK_NQ], e[PARALLEL_TASK_NE];
+static int step(void *state, double t, const cochlea_real *q, const cochlea_real *qd,
+                cochlea_real *command, cochlea_real *errors) {
+  parallel_task_real x[PARALLEL_TASK_NX];
   int i, r;
   for (i = 0; i < 5; ++i) {
-    x[0 + i] = (parallel_task_real)q[0 + i];
-    x[5 + i] = (parallel_task_real)qd[0 + i];
+    x[0 + i] = q[0 + i];
+    x[5 + i] = qd[0 + i];
   }
-  r = parallel_task_step((parallel_task_state *)state, t, x, u, e);
-  for (i = 0; i < PARALLEL_TASK_NQ; ++i) command[i] = (double)u[i];
-  for (i = 0; i < PARALLEL_TASK_NE; ++i) errors[i] = (double)e[i];
+  r = parallel_task_step((parallel_task_state *)state, t, x, command, errors);
   return r;
 }
 
-static int step_period(void *state, int64_t k, const double *q, const double *qd,
-                       double *command, double *errors) {
-  parallel_task_real x[PARALLEL_TASK_NX], u[PARALLEL_TASK_NQ], e[PARALLEL_TASK_NE];
+static int step_period(void *state, int64_t k, const cochlea_real *q, const cochlea_real *qd,
+                       cochlea_real *command, cochlea_real *errors) {
+  parallel_task_real x[PARALLEL_TASK_NX];
   int i, r;
   for (i = 0; i < 5; ++i) {
-    x[0 + i] = (parallel_task_real)q[0 + i];
-    x[5 + i] = (parallel_task_real)qd[0 + i];
+    x[0 + i] = q[0 + i];
+    x[5 + i] = qd[0 + i];
   }
-  r = parallel_task_step_period((parallel_task_state *)state, k, x, u, e);
-  for (i = 0; i < PARALLEL_TASK_NQ; ++i) command[i] = (double)u[i];
-  for (i = 0; i < PARALLEL_TASK_NE; ++i) errors[i] = (double)e[i];
+  r = parallel_task_step_period((parallel_task_state *)state, k, x, command, errors);
   return r;
 }
 
@@ -188,17 +184,16 @@ static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {
   return 0;
 }
 
-static const double *estimate(const void *state) {
+static const cochlea_real *estimate(const void *state) {
   return ((const parallel_task_state *)state)->p_hat;
 }
 
-static int tool_points(const double *q, double *points, double *centres) {
-  parallel_task_real qr[PARALLEL_TASK_NQ], p[2 * PARALLEL_TASK_NPOINTS + 1], c[2 * PARALLEL_TASK_NPOINTS + 1];
+static int tool_points(const cochlea_real *q, cochlea_real *points, cochlea_real *centres) {
+  parallel_task_real p[2 * PARALLEL_TASK_NPOINTS + 1], c[2 * PARALLEL_TASK_NPOINTS + 1];
   int i;
-  for (i = 0; i < PARALLEL_TASK_NQ; ++i) qr[i] = (parallel_task_real)q[i];
-  if (parallel_task_tool_points(qr, p, c)) return -1;
+  if (parallel_task_tool_points(q, p, c)) return -1;
   for (i = 0; i < 2 * PARALLEL_TASK_NPOINTS; ++i) {
-    points[i] = (double)p[i]; centres[i] = (double)c[i];
+    points[i] = p[i]; centres[i] = c[i];
   }
   return 0;
 }

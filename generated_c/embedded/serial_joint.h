@@ -99,7 +99,14 @@ typedef struct {
 
 /* The controller's state; the caller owns it (no allocation anywhere). */
 typedef struct {
-  double p_hat[SERIAL_JOINT_NP];         /* the estimate, double in every build */
+#ifdef COCHLEA_FLOAT
+  /* the estimate: p_hat + p_hat_lo, a compensated (two-float) sum; p_hat is the
+   * estimate rounded to float (docs/embedded.md, "The float build") */
+  float p_hat[SERIAL_JOINT_NP];
+  float p_hat_lo[SERIAL_JOINT_NP];
+#else
+  double p_hat[SERIAL_JOINT_NP];         /* the estimate */
+#endif
   double bound[SERIAL_JOINT_UNITS];
   double h;
   serial_joint_real gains[SERIAL_JOINT_NG];
@@ -116,7 +123,7 @@ typedef struct {
   int64_t atom_last[2];
   serial_joint_real h_real;
   /* per unit: |p_hat|^2 at or under this is inside the ball (no projection) */
-  double bound2_inside[SERIAL_JOINT_UNITS];
+  serial_joint_real bound2_inside[SERIAL_JOINT_UNITS];
   unsigned long steps;          /* periods run since init */
   int ready;                    /* 1 between init and terminate */
 } serial_joint_state;
@@ -134,7 +141,7 @@ int serial_joint_init(serial_joint_state *s, const serial_joint_config *c);
  * command_out[NQ]: joint efforts (N m, N), clipped to the effort limits;
  * errors_out[NE]: per unit, the tracking error then the sliding/auxiliary error.
  * Then p_hat advances one period (Euler, projected onto |p_hat| <= bound, then clipped
- * to its box [p_min, p_max]), in double.
+ * to its box [p_min, p_max]), in double (float: a compensated two-float sum).
  * Returns 0; -1 if not initialised; 1 if a command or an error is not finite, 2 if the
  * next estimate is not (the state is then left unchanged, command_out as computed). */
 int serial_joint_step(serial_joint_state *s, double t, const serial_joint_real measurement[SERIAL_JOINT_NX],

@@ -190,39 +190,35 @@ static int init(void *state, double period_s) {
   return serial_joint_realistic_init((serial_joint_realistic_state *)state, &c);
 }
 
-static int step(void *state, double t, const double *q, const double *qd, double *command,
-                double *errors) {
-  serial_joint_realistic_real x[SERIAL_JOINT_REALISTIC_NX], u[SERIAL_JOINT_REALISTIC_NQ], e[SERIAL_JOINT_REALISTIC_NE];
+static int step(void *state, double t, const cochlea_real *q, const cochlea_real *qd,
+                cochlea_real *command, cochlea_real *errors) {
+  serial_joint_realistic_real x[SERIAL_JOINT_REALISTIC_NX];
   int i, r;
   for (i = 0; i < 3; ++i) {
-    x[0 + i] = (serial_joint_realistic_real)q[0 + i];
-    x[3 + i] = (serial_joint_realistic_real)qd[0 + i];
+    x[0 + i] = q[0 + i];
+    x[3 + i] = qd[0 + i];
   }
   for (i = 0; i < 3; ++i) {
-    x[6 + i] = (serial_joint_realistic_real)q[3 + i];
-    x[9 + i] = (serial_joint_realistic_real)qd[3 + i];
+    x[6 + i] = q[3 + i];
+    x[9 + i] = qd[3 + i];
   }
-  r = serial_joint_realistic_step((serial_joint_realistic_state *)state, t, x, u, e);
-  for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i) command[i] = (double)u[i];
-  for (i = 0; i < SERIAL_JOINT_REALISTIC_NE; ++i) errors[i] = (double)e[i];
+  r = serial_joint_realistic_step((serial_joint_realistic_state *)state, t, x, command, errors);
   return r;
 }
 
-static int step_period(void *state, int64_t k, const double *q, const double *qd,
-                       double *command, double *errors) {
-  serial_joint_realistic_real x[SERIAL_JOINT_REALISTIC_NX], u[SERIAL_JOINT_REALISTIC_NQ], e[SERIAL_JOINT_REALISTIC_NE];
+static int step_period(void *state, int64_t k, const cochlea_real *q, const cochlea_real *qd,
+                       cochlea_real *command, cochlea_real *errors) {
+  serial_joint_realistic_real x[SERIAL_JOINT_REALISTIC_NX];
   int i, r;
   for (i = 0; i < 3; ++i) {
-    x[0 + i] = (serial_joint_realistic_real)q[0 + i];
-    x[3 + i] = (serial_joint_realistic_real)qd[0 + i];
+    x[0 + i] = q[0 + i];
+    x[3 + i] = qd[0 + i];
   }
   for (i = 0; i < 3; ++i) {
-    x[6 + i] = (serial_joint_realistic_real)q[3 + i];
-    x[9 + i] = (serial_joint_realistic_real)qd[3 + i];
+    x[6 + i] = q[3 + i];
+    x[9 + i] = qd[3 + i];
   }
-  r = serial_joint_realistic_step_period((serial_joint_realistic_state *)state, k, x, u, e);
-  for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i) command[i] = (double)u[i];
-  for (i = 0; i < SERIAL_JOINT_REALISTIC_NE; ++i) errors[i] = (double)e[i];
+  r = serial_joint_realistic_step_period((serial_joint_realistic_state *)state, k, x, command, errors);
   return r;
 }
 
@@ -238,17 +234,16 @@ static int desired(double t, double *xd, double *xd_dot, double *xd_ddot) {
   return 0;
 }
 
-static const double *estimate(const void *state) {
+static const cochlea_real *estimate(const void *state) {
   return ((const serial_joint_realistic_state *)state)->p_hat;
 }
 
-static int tool_points(const double *q, double *points, double *centres) {
-  serial_joint_realistic_real qr[SERIAL_JOINT_REALISTIC_NQ], p[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1], c[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1];
+static int tool_points(const cochlea_real *q, cochlea_real *points, cochlea_real *centres) {
+  serial_joint_realistic_real p[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1], c[2 * SERIAL_JOINT_REALISTIC_NPOINTS + 1];
   int i;
-  for (i = 0; i < SERIAL_JOINT_REALISTIC_NQ; ++i) qr[i] = (serial_joint_realistic_real)q[i];
-  if (serial_joint_realistic_tool_points(qr, p, c)) return -1;
+  if (serial_joint_realistic_tool_points(q, p, c)) return -1;
   for (i = 0; i < 2 * SERIAL_JOINT_REALISTIC_NPOINTS; ++i) {
-    points[i] = (double)p[i]; centres[i] = (double)c[i];
+    points[i] = p[i]; centres[i] = c[i];
   }
   return 0;
 }

@@ -32,6 +32,28 @@ static int CFINITE(double x) {
   return (bits.u & 0x7FF0000000000000ULL) != 0x7FF0000000000000ULL;
 }
 
+#ifdef COCHLEA_FLOAT
+/* CFINITE in the working precision: on the float's own bits (a float converted to double
+ * is a library call on a Cortex-M4F, which has no double instruction). */
+static int CFINITER(float x) {
+  union { float f; uint32_t u; } bits;
+  bits.f = x;
+  return (bits.u & 0x7F800000UL) != 0x7F800000UL;
+}
+
+/* The float build's estimate is a compensated (two-float) sum: hi + lo = a + b exactly,
+ * hi the sum rounded to float (Knuth's TwoSum: 6 float operations, whatever the orders of
+ * magnitude; p_hat starts at 0). An increment under half a float unit of p_hat, lost by a
+ * plain float sum (h Gamma p_hat_dot under 6e-8 |p_hat|), is carried in lo instead. */
+static void CTWOSUM(float a, float b, float *hi, float *lo) {
+  const float sum = a + b, b_virtual = sum - a;
+  *hi = sum;
+  *lo = (a - (sum - b_virtual)) + (b - b_virtual);
+}
+#else
+#define CFINITER(x) CFINITE(x)
+#endif
+
 static serial_task_realistic_real CSQ(serial_task_realistic_real x) { return x * x; }
 
 
@@ -46,11 +68,13 @@ static uint64_t CTURNS(double w, double h) {
 }
 
 
+#ifndef COCHLEA_FLOAT
 /* x within [lo, hi] (lo <= hi) by comparison: fmin(fmax(x, lo), hi) for a finite x, with
  * no call (a Cortex-M4 has no float min/max instruction; a double one is a library call). */
 static double CCLAMPD(double x, double lo, double hi) {
   return x < lo ? lo : (x > hi ? hi : x);
 }
+#endif
 
 static serial_task_realistic_real CCLAMP(serial_task_realistic_real x, serial_task_realistic_real lo, serial_task_realistic_real hi) {
   return x < lo ? lo : (x > hi ? hi : x);
@@ -2947,8 +2971,15 @@ int serial_task_realistic_init(serial_task_realistic_state *s, const serial_task
   for (i = 0; i < SERIAL_TASK_REALISTIC_NG; ++i) s->gains[i] = (serial_task_realistic_real)c->gains[i];
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i) {
     s->gamma[i] = (serial_task_realistic_real)c->gamma[i];
+#ifdef COCHLEA_FLOAT
+    if (!CFINITE(c->p_hat0[i])) return -1;
+    s->p_hat[i] = (float)c->p_hat0[i];
+    if (!CFINITER(s->p_hat[i])) return -1;
+    s->p_hat_lo[i] = (float)(c->p_hat0[i] - (double)s->p_hat[i]);
+#else
     s->p_hat[i] = 1.0 * c->p_hat0[i];
     if (!CFINITE(s->p_hat[i])) return -1;
+#endif
   }
   for (i = 0; i < SERIAL_TASK_REALISTIC_UNITS; ++i) {
     if (!(c->bound[i] > 0.0 && c->bound[i] < HUGE_VAL)) return -1;
@@ -2956,7 +2987,11 @@ int serial_task_realistic_init(serial_task_realistic_state *s, const serial_task
     s->bound_real[i] = (serial_task_realistic_real)c->bound[i];
     /* at or under it, sqrt(|p_hat|^2) <= bound (sqrt is correctly rounded): the
      * projection's scale is exactly 1 */
+#ifdef COCHLEA_FLOAT
+    s->bound2_inside[i] = (float)(((double)s->bound_real[i] * (double)s->bound_real[i]) * (1.0 - 1e-6));
+#else
     s->bound2_inside[i] = (c->bound[i] * c->bound[i]) * (1.0 - 1e-15);
+#endif
   }
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i) {
     if (!(c->effort_limit[i] >= 0.0)) return -1;
@@ -3037,7 +3072,11 @@ static int serial_task_realistic_step_desired(serial_task_realistic_state *s, co
     const serial_task_realistic_real xd_dot[SERIAL_TASK_REALISTIC_ND], const serial_task_realistic_real xd_ddot[SERIAL_TASK_REALISTIC_ND],
     const serial_task_realistic_real measurement[SERIAL_TASK_REALISTIC_NX], serial_task_realistic_real command_out[SERIAL_TASK_REALISTIC_NQ], serial_task_realistic_real errors_out[SERIAL_TASK_REALISTIC_NE]) {
   serial_task_realistic_real p_hat[SERIAL_TASK_REALISTIC_NP], p_hat_dot[SERIAL_TASK_REALISTIC_NP];
+#ifdef COCHLEA_FLOAT
+  float next[SERIAL_TASK_REALISTIC_NP], next_lo[SERIAL_TASK_REALISTIC_NP], scale[SERIAL_TASK_REALISTIC_UNITS], norm2;
+#else
   double next[SERIAL_TASK_REALISTIC_NP], scale[SERIAL_TASK_REALISTIC_UNITS], norm2;
+#endif
   const serial_task_realistic_real* arg[14];
   serial_task_realistic_real* res[3];
   int i;
@@ -3051,6 +3090,21 @@ static int serial_task_realistic_step_desired(serial_task_realistic_state *s, co
   arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
   res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
   if (serial_task_realistic_arm1_law(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+  /* p_hat + h p_hat_dot in a compensated two-float sum, scaled back onto the ball
+   * |p_hat| <= bound in float; the scale is 1 inside it, so the square root and
+   * the division (then of a positive norm) only when crossed */
+  norm2 = 0.0f;
+  for (i = 0; i < 12; ++i) {
+    CTWOSUM(s->p_hat[i], s->h_real * p_hat_dot[i] + s->p_hat_lo[i], next + i, next_lo + i);
+    norm2 += next[i] * next[i];
+  }
+  scale[0] = 1.0f;
+  if (!(norm2 <= s->bound2_inside[0])) { /* crossed, or NaN (refused below) */
+    const float ratio = s->bound_real[0] / sqrtf(norm2);
+    scale[0] = ratio < 1.0f ? ratio : 1.0f;
+  }
+#else
   /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
    * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
@@ -3059,6 +3113,7 @@ static int serial_task_realistic_step_desired(serial_task_realistic_state *s, co
     norm2 += next[i] * next[i];
   }
   scale[0] = norm2 <= s->bound2_inside[0] ? 1.0 : fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
+#endif
   /* arm2 */
   arg[0] = measurement + 6; arg[1] = measurement + 9;
   arg[2] = xd + 3; arg[3] = xd_dot + 3; arg[4] = xd_ddot + 3;
@@ -3068,6 +3123,21 @@ static int serial_task_realistic_step_desired(serial_task_realistic_state *s, co
   arg[12] = s->static_excess + 3; arg[13] = s->stribeck_velocity + 3;
   res[0] = command_out + 3; res[1] = p_hat_dot + 12; res[2] = errors_out + 6;
   if (serial_task_realistic_arm2_law(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+  /* p_hat + h p_hat_dot in a compensated two-float sum, scaled back onto the ball
+   * |p_hat| <= bound in float; the scale is 1 inside it, so the square root and
+   * the division (then of a positive norm) only when crossed */
+  norm2 = 0.0f;
+  for (i = 12; i < 24; ++i) {
+    CTWOSUM(s->p_hat[i], s->h_real * p_hat_dot[i] + s->p_hat_lo[i], next + i, next_lo + i);
+    norm2 += next[i] * next[i];
+  }
+  scale[1] = 1.0f;
+  if (!(norm2 <= s->bound2_inside[1])) { /* crossed, or NaN (refused below) */
+    const float ratio = s->bound_real[1] / sqrtf(norm2);
+    scale[1] = ratio < 1.0f ? ratio : 1.0f;
+  }
+#else
   /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
    * scale is 1 inside it, so the square root and the division only when crossed */
   norm2 = 0.0;
@@ -3076,18 +3146,34 @@ static int serial_task_realistic_step_desired(serial_task_realistic_state *s, co
     norm2 += next[i] * next[i];
   }
   scale[1] = norm2 <= s->bound2_inside[1] ? 1.0 : fmin(1.0, s->bound[1] / fmax(sqrt(norm2), 1e-300));
-  /* Every output finite, or nothing changes (CFINITE: on the bits) */
+#endif
+  /* Every output finite, or nothing changes (CFINITER: on the bits) */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i)
-    if (!CFINITE((double)command_out[i])) return 1;
+    if (!CFINITER(command_out[i])) return 1;
   for (i = 0; i < SERIAL_TASK_REALISTIC_NE; ++i)
-    if (!CFINITE((double)errors_out[i])) return 1;
+    if (!CFINITER(errors_out[i])) return 1;
   for (i = 0; i < SERIAL_TASK_REALISTIC_NP; ++i)
-    if (!CFINITE(next[i])) return 2;
+    if (!CFINITER(next[i])) return 2;
   /* the supervisor's clip: |command| <= effort limit (by comparison: all finite) */
   for (i = 0; i < SERIAL_TASK_REALISTIC_NQ; ++i)
     command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);
+#ifdef COCHLEA_FLOAT
+  for (i = 0; i < 12; ++i) {
+    const float v = next[i] * scale[0];
+    s->p_hat[i] = CCLAMP(v, s->p_min_real[i], s->p_max_real[i]);
+    /* the low part scales with it; a box clip drops it */
+    s->p_hat_lo[i] = s->p_hat[i] == v ? next_lo[i] * scale[0] : 0.0f;
+  }
+  for (i = 12; i < 24; ++i) {
+    const float v = next[i] * scale[1];
+    s->p_hat[i] = CCLAMP(v, s->p_min_real[i], s->p_max_real[i]);
+    /* the low part scales with it; a box clip drops it */
+    s->p_hat_lo[i] = s->p_hat[i] == v ? next_lo[i] * scale[1] : 0.0f;
+  }
+#else
   for (i = 0; i < 12; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[0], s->p_min[i], s->p_max[i]);
   for (i = 12; i < 24; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[1], s->p_min[i], s->p_max[i]);
+#endif
   s->steps += 1;
   return 0;
 }

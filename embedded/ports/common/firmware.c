@@ -165,7 +165,7 @@ static void on_tick(void *ctx)
     }
 }
 
-static void on_row(void *ctx, const double *row, int row_length)
+static void on_row(void *ctx, const cochlea_real *row, int row_length)
 {
     const uint32_t before = board_timer_count();
     uint32_t spent;
@@ -229,7 +229,14 @@ static void end_line(int rule, int64_t run_ns)
     at = put_kv(at, "stop_value_u", (int64_t)(the_loop.stop.value * 1e6));
     at = put_kv(at, "stop_limit_u", (int64_t)(the_loop.stop.limit * 1e6));
     /* the stop's time (us), and the row stream's counts (stream.h) */
+#ifdef COCHLEA_FLOAT /* the period's float t rounded: the exact k h, after the run */
+    at = put_kv(at, "stop_time_us",
+                (int64_t)((the_loop.stop.period >= 0
+                               ? cochlea_loop_time(&the_loop, the_loop.stop.period)
+                               : (double)the_loop.stop.time_s) * 1e6));
+#else
     at = put_kv(at, "stop_time_us", (int64_t)(the_loop.stop.time_s * 1e6));
+#endif
     at = put_kv(at, "stream_every", sc->every);
     at = put_kv(at, "rows_seen", sc->rows_seen);
     at = put_kv(at, "rows_queued", sc->rows_queued);
@@ -270,7 +277,7 @@ static void send_header(const cochlea_scenario *sc, double period, double durati
         at = put(at, sc->raw_columns[i]);
     }
     *at = '\0';
-    stream_init(STM32_STREAM_BAUD, STM32_STREAM_EVERY, length);
+    stream_init(STM32_STREAM_BAUD, STM32_STREAM_EVERY, length, period);
     stream_header(line);
 }
 

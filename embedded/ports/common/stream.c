@@ -38,8 +38,12 @@ static uint32_t crc_add(uint32_t crc, const uint8_t *data, size_t n)
  * context, so plain counters do. */
 static struct {
     int64_t k;
-    double row[STREAM_MAX_ROW];
+    cochlea_real row[STREAM_MAX_ROW];
 } slots[STREAM_SLOTS];
+static double period_s;
+#ifdef COCHLEA_FLOAT
+static double wide[STREAM_MAX_ROW]; /* a float row as the frame's doubles (the pump's) */
+#endif
 static uint32_t slot_head, slot_tail;
 
 /* The TX ring: written by the pump (main context), read by the UART's interrupt and the pump
@@ -115,8 +119,9 @@ static uint32_t frame(uint8_t type, const uint8_t *a, size_t na, const uint8_t *
     return crc;
 }
 
-void stream_init(uint32_t baud, uint32_t every, int row_length)
+void stream_init(uint32_t baud, uint32_t every, int row_length, double period)
 {
+    period_s = period;
     crc_init();
     memset(&counts, 0, sizeof counts);
     counts.every = every > 0u ? every : 1u;
@@ -167,7 +172,7 @@ void stream_header(const char *text)
     text_frame(STREAM_HEADER, text, board_now_ns() + 1000000000);
 }
 
-void stream_row(void *ctx, const double *row, int row_length)
+void stream_row(void *ctx, const cochlea_real *row, int row_length)
 {
     const uint32_t k = counts.rows_seen;
     (void)ctx;
@@ -181,7 +186,7 @@ void stream_row(void *ctx, const double *row, int row_length)
         return;
     }
     slots[slot_head % STREAM_SLOTS].k = k;
-    memcpy(slots[slot_head % STREAM_SLOTS].row, row, (size_t)row_length * sizeof(double));
+    memcpy(slots[slot_head % STREAM_SLOTS].row, row, (size_t)row_length * sizeof *row);
     slot_head += 1u;
     counts.rows_queued += 1u;
 }
@@ -200,9 +205,20 @@ void stream_pump(void)
         put_le(k, (uint32_t)kk, 4);
         put_le(k + 4, (uint32_t)((uint64_t)kk >> 32), 4);
         uint8_t crc[4];
-        /* little-endian doubles: the Cortex-M4's own byte order */
-        put_le(crc, frame(STREAM_ROW, k, 8, (const uint8_t *)slots[slot_tail % STREAM_SLOTS].row,
-                          bytes), 4);
+#ifdef COCHLEA_FLOAT
+        const cochlea_real *row = slots[slot_tail % STREAM_SLOTS].row;
+        const uint8_t *payload = (const uint8_t *)wide;
+        int j;
+        /* widened here, between periods; t exact from k (a float t staircases) */
+        for (j = 1; j < counts.row_length; ++j) {
+            wide[j] = (double)row[j];
+        }
+        wide[0] = (double)kk * period_s;
+#else
+        const uint8_t *payload = (const uint8_t *)slots[slot_tail % STREAM_SLOTS].row;
+#endif
+        /* little-endian doubles: the Cortex-M's own byte order */
+        put_le(crc, frame(STREAM_ROW, k, 8, payload, bytes), 4);
         counts.rows_crc = crc_add(counts.rows_crc, crc, 4);
         slot_tail += 1u;
         counts.rows_sent += 1u;

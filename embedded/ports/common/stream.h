@@ -15,6 +15,8 @@
 
 #include <stdint.h>
 
+#include "cochlea_fp.h" /* cochlea_real: the working precision */
+
 /* Frame: sync 0xC5 0x7E, type (u8), flags (u8, 0), payload length (u16 LE), sequence
  * (u32 LE, 0 for the header, one more per frame), payload, CRC-32 (IEEE, zlib's; u32 LE) of
  * type .. payload. */
@@ -47,12 +49,15 @@ typedef struct {
     uint32_t bytes_dropped;  /* header or end bytes a stuck line did not take */
 } stream_counts;
 
-/* The board's stream UART at baud, 8N1; every-th row streamed; row_length values a row. */
-void stream_init(uint32_t baud, uint32_t every, int row_length);
+/* The board's stream UART at baud, 8N1; every-th row streamed; row_length values a row;
+ * period_s the loop's period (the float build's frames carry t = k period_s, exact). */
+void stream_init(uint32_t baud, uint32_t every, int row_length, double period_s);
 /* The header frame (text, key=value; NUL-terminated), before the periods. */
 void stream_header(const char *text);
-/* The loop's on_row (inside the period: a copy or a count, nothing else). */
-void stream_row(void *ctx, const double *row, int row_length);
+/* The loop's on_row (inside the period: a copy or a count, nothing else). The row is in the
+ * working precision (float in the float build); the frame is always doubles: the float row
+ * is widened when it is framed, between periods, its t formed as k period_s. */
+void stream_row(void *ctx, const cochlea_real *row, int row_length);
 /* Frames queued rows and moves bytes to the USART while it takes them (idle context). */
 void stream_pump(void);
 /* After the run: every queued row framed (until deadline_ns), so the counts are final. */

@@ -61,6 +61,10 @@ typedef struct {
 } replay;
 
 static replay the_replay;
+/* The canned measurements in the working precision (rounded once before the run, so that a
+ * period's read is a copy in both builds), and each drive's conversions (drives.h). */
+static cochlea_real replay_q[INPUT_STEPS][INPUT_NQ], replay_qd[INPUT_STEPS][INPUT_NQ];
+static cochlea_drive_real replay_conv[INPUT_NQ];
 /* The controller's state, aligned for any real type. */
 static double controller[8192];
 static cochlea_loop the_loop;
@@ -94,20 +98,20 @@ static uint64_t bits(double x)
     return v.u;
 }
 
-static int replay_read(void *ctx, double *q, double *qd)
+static int replay_read(void *ctx, cochlea_real *q, cochlea_real *qd)
 {
     replay *r = (replay *)ctx;
     int j;
     long k = r->k < INPUT_STEPS ? r->k : INPUT_STEPS - 1;
     r->read_tick = port_ticks();
     for (j = 0; j < INPUT_NQ; ++j) {
-        q[j] = input_q[k][j];
-        qd[j] = input_qd[k][j];
+        q[j] = replay_q[k][j];
+        qd[j] = replay_qd[k][j];
     }
     return 1;
 }
 
-static int replay_write(void *ctx, const double *tau)
+static int replay_write(void *ctx, const cochlea_real *tau)
 {
     replay *r = (replay *)ctx;
     char *at = r->line;
@@ -118,11 +122,11 @@ static int replay_write(void *ctx, const double *tau)
     at = put_str(at, "R");
     at = put_hex(at, (uint64_t)r->k, 4);
     for (j = 0; j < n; ++j) {
-        at = put_hex(at, bits(tau[j]), 16);
+        at = put_hex(at, bits((double)tau[j]), 16);
     }
     for (j = 0; j < n; ++j) {
-        int16_t goal = cochlea_drive_goal_current(&r->sc->drives[j], tau[j],
-                                                  r->sc->bridge_offset_current);
+        int16_t goal = cochlea_drive_goal_current_real(&replay_conv[j], tau[j],
+                                                       r->sc->bridge_offset_current);
         at = put_hex(at, (uint16_t)goal, 4);
     }
     *at = '\0';
@@ -142,8 +146,9 @@ int replay_main(void)
     replay *r = &the_replay;
     cochlea_backend backend;
     char *at;
-    const double *p;
+    const cochlea_real *p;
     int j, rule;
+    long k;
     uint32_t calibration_instructions = 0, calibration_ticks;
     r->k = 0;
     r->ticks = 0;
@@ -152,6 +157,15 @@ int replay_main(void)
     if (sc->nq != INPUT_NQ || sc->state_size > sizeof controller || sc->np > 56) {
         port_line("E inputs or state do not fit the scenario");
         return 2;
+    }
+    for (k = 0; k < INPUT_STEPS; ++k) {
+        for (j = 0; j < INPUT_NQ; ++j) {
+            replay_q[k][j] = (cochlea_real)input_q[k][j];
+            replay_qd[k][j] = (cochlea_real)input_qd[k][j];
+        }
+    }
+    for (j = 0; j < INPUT_NQ; ++j) {
+        cochlea_drive_real_init(&replay_conv[j], &sc->drives[j], sc->drives[j].q_offset);
     }
     backend.ctx = r;
     backend.read = replay_read;
@@ -175,7 +189,7 @@ int replay_main(void)
     p = sc->estimate(controller);
     at = put_str(r->line, "P");
     for (j = 0; j < sc->np; ++j) {
-        at = put_hex(at, bits(p[j]), 16);
+        at = put_hex(at, bits((double)p[j]), 16);
     }
     *at = '\0';
     port_line(r->line);
