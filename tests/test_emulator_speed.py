@@ -7,8 +7,11 @@ the system calls are counted, so the tests hold on a loaded machine
 
 from __future__ import annotations
 
+import ctypes
 import os
 import select
+import sys
+import threading
 import time
 import tty
 
@@ -17,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cochlea.dynamixel import protocol as proto
-from cochlea.dynamixel.emulator import VirtualChain
+from cochlea.dynamixel.emulator import VirtualChain, precise_timers
 
 
 @pytest.fixture
@@ -258,3 +261,92 @@ def test_frames_are_the_definitions_bytes_and_parse_back(first, params, packet_i
     got = bytes(parser.buf[parser.params_start - (first == 0x55):
                            parser.params_start + parser.params_len])
     assert got == params
+
+
+# ---- the wire-timed reply goes out on time ---------------------------------------------------
+
+def test_a_due_reply_goes_out_before_the_plants_update(monkeypatch):
+    """With wire timing, a reply falls due while the loop sleeps: it is written at once, not
+    after a plant update (a step, the publication, the watchdogs: tens of microseconds the
+    transaction used to take on top of its wire time), and no update runs that is not due."""
+    chain = VirtualChain("serial", "serial_joint", plant_period_s=0.05, wire_timing=True,
+                         baud=57600)  # next update in 50 ms; the reply due in 5 ms
+    chain.open()
+    fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(fd)
+    order: list[str] = []
+    real_select, real_tick, real_write = select.select, chain._tick, os.write
+
+    def counted_select(r, w, x, timeout=None):
+        order.append("select")
+        if order.count("select") > 2:  # the request, then the wait for its reply: stop
+            chain._stop.set()
+            return [], [], []
+        return real_select(r, w, x, min(timeout, 5.0))
+
+    def counted_tick(now):
+        order.append("tick")
+        real_tick(now)
+
+    def counted_write(f, data):
+        if f == chain.master:
+            order.append("write")
+        return real_write(f, data)
+
+    monkeypatch.setattr(select, "select", counted_select)
+    monkeypatch.setattr(chain, "_tick", counted_tick)
+    monkeypatch.setattr(os, "write", counted_write)
+    m = chain.motors[0]
+    try:
+        real_write(fd, proto.read(m.id, 132, 4))
+        chain.serve(duration=10)
+        monkeypatch.undo()
+        assert take(fd, 15) == proto.status(m.id, 0, bytes(m.table[132:136]))
+    finally:
+        os.close(fd)
+        chain.close()
+    # the request (its step to the arrival), the sleep until the replies are due, the replies
+    assert order[:4] == ["select", "tick", "select", "write"], order
+    assert "tick" not in order[2:], order
+
+
+def test_wire_timed_replies_are_not_early():
+    """Sleeping until shortly before a reply is due and waiting out the rest on the clock
+    (WIRE_SPIN_S) never sends it before its wire time: the request's and the replies' bytes
+    at 57600 baud (182 bytes, 31.6 ms), timed from the request's write to the last byte."""
+    chain = VirtualChain("serial", "serial_joint", wire_timing=True, baud=57600)
+    ids = [m.id for m in chain.motors]
+    request = proto.sync_read(132, 4, ids)
+    wire_s = (len(request) + 6 * 15) * 10 / 57600
+    with chain:
+        fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(fd)
+        try:
+            for _ in range(3):
+                t = time.perf_counter()
+                os.write(fd, request)
+                assert len(take(fd, 6 * 15)) == 6 * 15
+                assert time.perf_counter() - t >= wire_s
+        finally:
+            os.close(fd)
+
+
+def test_the_serving_thread_asks_for_precise_timers():
+    """The emulator's thread asks the kernel for a 1 ns timer slack (a sleep then ends on
+    time, not up to 50 us later): read back through prctl's PR_GET_TIMERSLACK in a thread
+    of its own."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("timer slack is Linux's")
+    libc = ctypes.CDLL(None)
+    got = {}
+
+    def probe():  # a thread inherits its creator's slack: start from the default's 50 us
+        assert libc.prctl(29, 50_000, 0, 0, 0) == 0  # PR_SET_TIMERSLACK
+        got["before"] = libc.prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+        got["ok"] = precise_timers()
+        got["after"] = libc.prctl(30, 0, 0, 0, 0)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    assert got["ok"] and got["before"] == 50_000 and got["after"] == 1, got
