@@ -65,27 +65,73 @@ def x_series_scenario(folder: Path) -> Path:
 
 
 @contextlib.contextmanager
-def emulator(scenario: Path, mode: str, path: Path | None):
+def emulator(scenario: Path | str, mode: str, path: Path | None, robot: str = "serial",
+             baud: int = BAUD, wire_timing: bool = True, quiet: bool = False):
     """The chain's pseudo-terminal, served as ``mode`` says (see the module docstring)."""
     if mode == "thread":
-        with VirtualChain("serial", scenario, baud=BAUD, wire_timing=True) as chain:
+        with VirtualChain(robot, scenario, baud=baud, wire_timing=wire_timing) as chain:
             yield chain.path
         return
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(str(p) for p in (path, ROOT) if p)}
     proc = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
-                             "serial", "--scenario", str(scenario), "--wire-timing", "--baud",
-                             str(BAUD)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                             robot, "--scenario", str(scenario), "--baud", str(baud)]
+                            + (["--wire-timing"] if wire_timing else []), env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         port = proc.stdout.readline().strip()
         if not port.startswith("/dev/"):
             raise SystemExit(f"fastsync_bench: the emulator did not start: "
                              f"{proc.stderr.read().strip()[-300:]}")
-        print(f"  {proc.stdout.readline().strip()}", flush=True)
+        started = proc.stdout.readline().strip()
+        if not quiet:
+            print(f"  {started}", flush=True)
         yield port
     finally:
         proc.terminate()
         proc.communicate(timeout=20)
+
+
+#: The rows of docs/dynamixel.md's measured bus table ("The bus budget"): robot, baud, wire
+#: timing.
+BUS_TABLE = [("serial", 4_000_000, False), ("serial", 4_000_000, True),
+             ("serial", 2_000_000, True), ("serial", 1_000_000, True),
+             ("parallel", 4_000_000, False), ("parallel", 4_000_000, True),
+             ("parallel", 2_000_000, True), ("parallel", 1_000_000, True)]
+
+
+def bus_table(periods: int, path: Path | None) -> list[dict]:
+    """The shipped robots (MX-64s, SYNC_READ + SYNC_WRITE) over ``cochlea-emulator`` in its own
+    process, at 500 Hz: read + write time per period, median and 99th percentile, against
+    the budget's bus time (docs/dynamixel.md, "The bus budget")."""
+    rows = []
+    for robot, baud, wire in BUS_TABLE:
+        scenario = f"{robot}_joint"
+        with emulator(scenario, "process", path, robot, baud, wire, quiet=True) as port:
+            backend = DynamixelBackend(robot, port, baud, realtime_tick=True)
+            backend.enable()
+            n = len(backend.drives)
+            x, tau, cycles = np.zeros(2 * n), np.zeros(n), []
+            try:
+                gc.disable()
+                for _ in range(periods):
+                    t0 = time.perf_counter()
+                    backend.read(x)
+                    backend.write(tau)
+                    cycles.append(time.perf_counter() - t0)
+                    time.sleep(max(0.0, 0.002 - (time.perf_counter() - t0)))
+            finally:
+                gc.enable()
+                backend.disable()
+        b = backend.budget
+        rows.append({"robot": robot, "baud": baud, "wire_timing": wire,
+                     "budget_ms": b.bus_s * 1e3,
+                     "median_ms": float(np.median(cycles)) * 1e3,
+                     "p99_ms": float(np.percentile(cycles, 99)) * 1e3})
+        r = rows[-1]
+        print(f"| {robot} | {baud // 1_000_000} M | {'on' if wire else 'off'} | "
+              f"{r['budget_ms']:.3f} ms | {r['median_ms']:.2f} / {r['p99_ms']:.2f} ms |",
+              flush=True)
+    return rows
 
 
 def measure(scenario: Path, read: str, periods: int, mode: str = "process",
@@ -198,8 +244,18 @@ def main(argv: list[str] | None = None) -> int:
                         "tree's cochlea/, e.g. a git archive of main)")
     p.add_argument("--floor", action="store_true",
                    help="also measure the pseudo-terminal's floor for each transfer")
+    p.add_argument("--bus-table", action="store_true",
+                   help="instead: the read + write table of docs/dynamixel.md's \"The bus "
+                        "budget\" (the shipped robots at 1-4 Mbaud, 500 Hz)")
     p.add_argument("--json", type=Path, help="also write the results here")
     args = p.parse_args(argv)
+    if args.bus_table:
+        print("| robot | baud | wire timing | budget (bus) | measured median / p99 |")
+        rows = bus_table(args.periods, args.emulator_path)
+        print(f"(load average {os.getloadavg()[0]:.1f})")
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1) + "\n")
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         scenario = x_series_scenario(Path(tmp))
         rows = [measure(scenario, read, args.periods, args.emulator, args.emulator_path)

@@ -26,7 +26,8 @@ in current control, a hardware error, a tripped watchdog) holds its joint: the g
 Optionally the wire's timing (``wire_timing``): an instruction occupies the bus for its bytes at
 the configured baud rate (10 bits each), each motor then waits its Return Delay Time and sends
 its status packet, which takes its bytes' time too; replies are written to the pseudo-terminal
-when their last byte would have arrived.
+when their last byte would have arrived (slept for with a 1 ns timer slack, the last
+``WIRE_SPIN_S`` waited on the clock, so that a reply is not late by the sleep's own slack).
 
 Faults (:class:`Faults`), all counted from the first Torque Enable 1 (the start of a run) plus
 ``delay_s``: dropped replies, corrupted CRCs, late replies (each with a probability, on the
