@@ -7,8 +7,11 @@ the system calls are counted, so the tests hold on a loaded machine
 
 from __future__ import annotations
 
+import ctypes
 import os
 import select
+import sys
+import threading
 import time
 import tty
 
@@ -17,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cochlea.dynamixel import protocol as proto
-from cochlea.dynamixel.emulator import VirtualChain
+from cochlea.dynamixel.emulator import VirtualChain, precise_timers
 
 
 @pytest.fixture
@@ -161,3 +164,189 @@ def test_the_two_byte_crc_is_the_specifications(data, start, stop, crc):
     expected = bitwise_crc16(data[start:stop], crc) if start < stop else crc
     assert proto.crc16(data, start, stop, crc) == expected
     assert proto.crc16(memoryview(bytearray(data)), start, stop, crc) == expected
+
+
+# ---- the per-period frame code's fast paths (issue 30, item 2) ------------------------------
+# Each fast path (nothing to stuff, a running CRC continued block by block, parameters copied
+# in one piece) must give the bytes the byte-by-byte definition gives, stuffing or not.
+
+def reference_fast_sync_status(blocks) -> bytes:
+    """The combined FAST_SYNC_READ status, byte by byte: the body stuffed with its CRC slots
+    zero, then each running CRC (bit by bit) over the frame from its header to that slot."""
+    body, marks = bytearray([0x55]), []
+    for k, (motor_id, error, data) in enumerate(blocks):
+        body += bytes([error, motor_id]) + bytes(data)
+        if k < len(blocks) - 1:
+            marks.append(len(body))
+            body += b"\0\0"
+    stuffed, slots, last1, last2 = bytearray(), [], 0, 0
+    for i, x in enumerate(body):
+        stuffed.append(x)
+        if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
+            stuffed.append(0xFD)
+        last2, last1 = last1, x
+        if i + 1 in marks:
+            slots.append(len(stuffed))
+    n = len(stuffed) + 2
+    frame = bytearray(b"\xff\xff\xfd\x00\xfe") + bytes([n & 0xFF, n >> 8]) + stuffed
+    for slot in slots:
+        crc = bitwise_crc16(bytes(frame[:proto.PREFIX + slot]))
+        frame[proto.PREFIX + slot:proto.PREFIX + slot + 2] = bytes([crc & 0xFF, crc >> 8])
+    crc = bitwise_crc16(bytes(frame))
+    return bytes(frame + bytes([crc & 0xFF, crc >> 8]))
+
+
+def reference_frame(packet_id: int, first: int, params: bytes) -> bytes:
+    body = proto.stuff(bytes([first]) + params)
+    n = len(body) + 2
+    frame = b"\xff\xff\xfd\x00" + bytes([packet_id, n & 0xFF, n >> 8]) + body
+    crc = bitwise_crc16(frame)
+    return frame + bytes([crc & 0xFF, crc >> 8])
+
+
+# Bytes that make stuffing likely (FF FF FD) as well as any.
+wire_bytes = st.lists(st.sampled_from([0xFF, 0xFD, 0x00]) | st.integers(0, 255),
+                      max_size=20).map(bytes)
+
+
+@settings(max_examples=300, database=None, derandomize=True)
+@given(length=st.integers(0, 12), n=st.integers(1, 7), seed=wire_bytes, errors=wire_bytes)
+def test_the_combined_status_is_the_definitions_bytes(length, n, seed, errors):
+    """fast_sync_status (no stuffing: the body as it is; running CRCs continued) gives the
+    byte-by-byte definition's frame, and the bridge's check accepts it; a corrupted CRC of
+    any motor but the last is found at that motor."""
+    pool = (seed or b"\x00") * (length * n + 1)
+    blocks = [(k + 1, (errors or b"\x00")[k % max(len(errors), 1)],
+               pool[k * length:(k + 1) * length]) for k in range(n)]
+    frame = proto.fast_sync_status(blocks)
+    assert frame == reference_fast_sync_status(blocks)
+    parser = proto.PacketParser(status=True)
+    parser.feed(frame)
+    assert parser.parse() == proto.OK
+    ids = [b[0] for b in blocks]
+    assert proto.check_fast_sync(parser, ids, length) == (0, -1)
+    stuffed = len(frame) != 8 + n * (length + 4)
+    for k in range(n - 1):
+        if stuffed:
+            break  # only the packet's own CRC is relied on then (check_fast_sync)
+        bad = bytearray(frame)
+        at = proto.PREFIX + 1 + k * (length + 4) + 2 + length  # motor k's CRC
+        bad[at] ^= 0x01
+        crc = bitwise_crc16(bytes(bad[:-2]))
+        bad[-2:] = bytes([crc & 0xFF, crc >> 8])  # the packet's own CRC still right
+        parser.reset()
+        parser.feed(bytes(bad))
+        if parser.parse() == proto.OK:  # (the flip may have made a stuffing pattern)
+            assert proto.check_fast_sync(parser, ids, length) == (proto.FAST_BLOCK_CRC, k)
+
+
+@settings(max_examples=400, database=None, derandomize=True)
+@given(first=st.sampled_from([0xFF, 0xFD, 0x55, 0x03, 0x83]), params=wire_bytes,
+       packet_id=st.integers(0, 252), as_array=st.booleans())
+def test_frames_are_the_definitions_bytes_and_parse_back(first, params, packet_id, as_array):
+    """encode_into copies parameters with nothing to stuff in one piece (an FF FF FD across
+    the first byte and the parameters counts too), and the parser skips unstuffing where
+    there is no FF FF FD: a frame is the definition's bytes and parses back to its fields."""
+    out = bytearray(proto.PREFIX + 2 * (1 + len(params)) + 2)
+    source = bytearray(params) if as_array else params
+    n = proto.encode_into(out, packet_id, first, source, len(params))
+    assert bytes(out[:n]) == reference_frame(packet_id, first, params)
+    parser = proto.PacketParser(status=first == 0x55)
+    parser.feed(bytes(out[:n]))
+    if first == 0x55 and not params:
+        assert parser.parse() == proto.BAD_LENGTH  # a status without its error byte
+        return
+    assert parser.parse() == proto.OK
+    assert (parser.id, parser.instruction) == (packet_id, first)
+    got = bytes(parser.buf[parser.params_start - (first == 0x55):
+                           parser.params_start + parser.params_len])
+    assert got == params
+
+
+# ---- the wire-timed reply goes out on time ---------------------------------------------------
+
+def test_a_due_reply_goes_out_before_the_plants_update(monkeypatch):
+    """With wire timing, a reply falls due while the loop sleeps: it is written at once, not
+    after a plant update (a step, the publication, the watchdogs: tens of microseconds the
+    transaction used to take on top of its wire time), and no update runs that is not due."""
+    chain = VirtualChain("serial", "serial_joint", plant_period_s=0.05, wire_timing=True,
+                         baud=57600)  # next update in 50 ms; the reply due in 5 ms
+    chain.open()
+    fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(fd)
+    order: list[str] = []
+    real_select, real_tick, real_write = select.select, chain._tick, os.write
+
+    def counted_select(r, w, x, timeout=None):
+        order.append("select")
+        if order.count("select") > 2:  # the request, then the wait for its reply: stop
+            chain._stop.set()
+            return [], [], []
+        return real_select(r, w, x, min(timeout, 5.0))
+
+    def counted_tick(now):
+        order.append("tick")
+        real_tick(now)
+
+    def counted_write(f, data):
+        if f == chain.master:
+            order.append("write")
+        return real_write(f, data)
+
+    monkeypatch.setattr(select, "select", counted_select)
+    monkeypatch.setattr(chain, "_tick", counted_tick)
+    monkeypatch.setattr(os, "write", counted_write)
+    m = chain.motors[0]
+    try:
+        real_write(fd, proto.read(m.id, 132, 4))
+        chain.serve(duration=10)
+        monkeypatch.undo()
+        assert take(fd, 15) == proto.status(m.id, 0, bytes(m.table[132:136]))
+    finally:
+        os.close(fd)
+        chain.close()
+    # the request (its step to the arrival), the sleep until the replies are due, the replies
+    assert order[:4] == ["select", "tick", "select", "write"], order
+    assert "tick" not in order[2:], order
+
+
+def test_wire_timed_replies_are_not_early():
+    """Sleeping until shortly before a reply is due and waiting out the rest on the clock
+    (WIRE_SPIN_S) never sends it before its wire time: the request's and the replies' bytes
+    at 57600 baud (182 bytes, 31.6 ms), timed from the request's write to the last byte."""
+    chain = VirtualChain("serial", "serial_joint", wire_timing=True, baud=57600)
+    ids = [m.id for m in chain.motors]
+    request = proto.sync_read(132, 4, ids)
+    wire_s = (len(request) + 6 * 15) * 10 / 57600
+    with chain:
+        fd = os.open(chain.path, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(fd)
+        try:
+            for _ in range(3):
+                t = time.perf_counter()
+                os.write(fd, request)
+                assert len(take(fd, 6 * 15)) == 6 * 15
+                assert time.perf_counter() - t >= wire_s
+        finally:
+            os.close(fd)
+
+
+def test_the_serving_thread_asks_for_precise_timers():
+    """The emulator's thread asks the kernel for a 1 ns timer slack (a sleep then ends on
+    time, not up to 50 us later): read back through prctl's PR_GET_TIMERSLACK in a thread
+    of its own."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("timer slack is Linux's")
+    libc = ctypes.CDLL(None)
+    got = {}
+
+    def probe():  # a thread inherits its creator's slack: start from the default's 50 us
+        assert libc.prctl(29, 50_000, 0, 0, 0) == 0  # PR_SET_TIMERSLACK
+        got["before"] = libc.prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+        got["ok"] = precise_timers()
+        got["after"] = libc.prctl(30, 0, 0, 0, 0)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    assert got["ok"] and got["before"] == 50_000 and got["after"] == 1, got

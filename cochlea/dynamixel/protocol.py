@@ -19,6 +19,7 @@ that returns a result code, never raises).
 
 from __future__ import annotations
 
+import struct
 from array import array
 from collections.abc import Iterable, Sequence
 
@@ -38,6 +39,8 @@ from .control_table import (
 )
 
 HEADER = b"\xff\xff\xfd\x00"
+#: The bytes after which a sender stuffs an extra FD.
+_STUFF_AFTER = HEADER[:3]
 #: Bytes before the instruction: header (4), ID, LEN_L, LEN_H.
 PREFIX = 7
 #: Largest frame the parser accepts (the official SDK uses the same bound).
@@ -70,13 +73,24 @@ def crc16(data, start: int = 0, end: int | None = None, crc: int = 0) -> int:
     pairs = CRC_TABLE2
     stop = len(data) if end is None else end
     crc &= 0xFFFF
-    i, last = start, stop - 1
-    while i < last:
-        crc = pairs[crc ^ ((data[i] << 8) | data[i + 1])]
-        i += 2
-    if i < stop:
-        crc = ((crc << 8) & 0xFFFF) ^ CRC_TABLE[(crc >> 8) ^ data[i]]
+    n = (stop - start) >> 1 if stop > start else 0
+    if n:
+        # The byte pairs as big-endian 16-bit numbers, unpacked in one call: the loop is then
+        # one table look-up per pair (148 bytes: 8.7 -> 4.8 us here, on the emulator's and the
+        # bridge's per-period path).
+        for pair in _pairs(n).unpack_from(data, start):
+            crc = pairs[crc ^ pair]
+    if start + 2 * n < stop:
+        crc = ((crc << 8) & 0xFFFF) ^ CRC_TABLE[(crc >> 8) ^ data[stop - 1]]
     return crc
+
+
+def _pairs(n: int, cache: dict = {}) -> struct.Struct:  # noqa: B006 (a cache, on purpose)
+    """``>nH``, made once per length."""
+    s = cache.get(n)
+    if s is None:
+        s = cache[n] = struct.Struct(f">{n}H")
+    return s
 
 
 def stuff(body: bytes | bytearray) -> bytes:
@@ -131,6 +145,13 @@ def encode_into(out: bytearray, packet_id: int, first: int, params, n_params: in
     w = PREFIX
     out[w] = first
     w += 1
+    if isinstance(params, (bytes, bytearray)) and params.find(_STUFF_AFTER, 0, n_params) < 0 \
+            and not (first == 0xFF and n_params >= 2 and params[0] == 0xFF
+                     and params[1] == 0xFD):
+        # Nothing to stuff (the usual case): the parameters in one copy, not byte by byte.
+        out[w:w + n_params] = memoryview(params)[:n_params]
+        w += n_params
+        n_params = 0  # the loop below has nothing left to do
     last1, last2 = first, 0
     for i in range(n_params):
         x = params[i]
@@ -249,34 +270,45 @@ def fast_sync_status(blocks: Sequence[tuple[int, int, bytes]]) -> bytes:
     if not blocks:
         raise ValueError("a FAST_SYNC_READ status needs at least one motor")
     body = bytearray([STATUS])
-    marks = []  # end (in body) of each motor's data, before its CRC
+    marks = []  # end (in body) of each motor's data but the last's, where its CRC goes
+    last = len(blocks) - 1
     for k, (motor_id, error, data) in enumerate(blocks):
-        body += bytes([error, motor_id]) + bytes(data)
-        marks.append(len(body))
-        if k < len(blocks) - 1:
+        body.append(error)
+        body.append(motor_id)
+        body += data
+        if k < last:
+            marks.append(len(body))
             body += b"\0\0"  # this motor's CRC, filled in below
-    # Stuff the body, then fill the running CRCs over the stuffed stream.
-    out = bytearray(HEADER) + bytes([BROADCAST_ID, 0, 0])
-    length = 0
-    stuffed = bytearray()
-    last1 = last2 = 0
-    crc_slots = []
-    for i, x in enumerate(body):
-        stuffed.append(x)
-        if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
-            stuffed.append(0xFD)
-        last2, last1 = last1, x
-        if i + 1 in marks[:-1]:
-            crc_slots.append(len(stuffed))
+    if _STUFF_AFTER in body:
+        # Stuff the body (the CRC slots still zero), noting where the slots went.
+        stuffed = bytearray()
+        slots = []
+        ends = set(marks)
+        last1 = last2 = 0
+        for i, x in enumerate(body):
+            stuffed.append(x)
+            if x == 0xFD and last1 == 0xFF and last2 == 0xFF:
+                stuffed.append(0xFD)
+            last2, last1 = last1, x
+            if i + 1 in ends:
+                slots.append(len(stuffed))
+    else:  # nothing to stuff (the usual case): the body as it is
+        stuffed, slots = body, marks
+    frame = bytearray(HEADER)
     length = len(stuffed) + 2
-    out[5], out[6] = length & 0xFF, length >> 8
-    frame = out + stuffed
-    for slot in crc_slots:
+    frame += bytes([BROADCAST_ID, length & 0xFF, length >> 8])
+    frame += stuffed
+    # The running CRCs over the stuffed stream, each continuing the previous one (each motor's
+    # covers the packet up to its data, the CRCs before it included).
+    crc = done = 0
+    for slot in slots:
         at = PREFIX + slot
-        crc = crc16(frame, 0, at)
+        crc = crc16(frame, done, at, crc)
         frame[at], frame[at + 1] = crc & 0xFF, crc >> 8
-    crc = crc16(frame)
-    frame += bytes([crc & 0xFF, crc >> 8])
+        done = at
+    crc = crc16(frame, done, len(frame), crc)
+    frame.append(crc & 0xFF)
+    frame.append(crc >> 8)
     return bytes(frame)
 
 
@@ -302,14 +334,17 @@ def check_fast_sync(parser: PacketParser, ids: Sequence[int], length: int) -> tu
     whole = parser.params_len + 3 == present * block
     frame = parser.params_start - 2 - PREFIX  # where the frame starts in the buffer
     stuffed = parser.frame_len != PREFIX + 2 + parser.params_len + 2
+    crc, done = 0, frame  # the running CRC, continued block by block (each covers the last)
     for k in range(min(n, present)):
         at = parser.params_start - 1 + k * block
         if b[at + 1] != ids[k]:
             return FAST_WRONG_ID, k
         if k < n - 1 and k < present - 1 and not stuffed:
             crc_at = at + 2 + length
-            if crc16(b, frame, crc_at) != (b[crc_at] | (b[crc_at + 1] << 8)):
+            crc = crc16(b, done, crc_at, crc)
+            if crc != (b[crc_at] | (b[crc_at + 1] << 8)):
                 return FAST_BLOCK_CRC, k
+            done = crc_at
     if present < n:
         return FAST_MISSING, present
     if present > n or not whole:
@@ -490,7 +525,10 @@ class PacketParser:
             return CRC_FAILURE
         self.start = s + total
         body = s + PREFIX
-        body_end = _unstuff_in_place(b, body, crc_end)
+        # Unstuffed in place only where a stuffing can be (an FF FF FD in the body): the byte
+        # loop costs about 25 us on a 148-byte packet, the search well under 1.
+        body_end = (crc_end if b.find(_STUFF_AFTER, body, crc_end) < 0
+                    else _unstuff_in_place(b, body, crc_end))
         self.instruction = b[body]
         if self.status:
             if self.instruction != STATUS:
