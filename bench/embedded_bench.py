@@ -40,6 +40,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -47,6 +48,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from cochlea.kernels import library as ckernels
+from cochlea.kernels.generate import _mark_unused_parameters, _work_sizes
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.result import SimulationResult, simulated_log
@@ -72,6 +74,9 @@ PRECISIONS = ("double", "float")
 #: Warnings are errors; the optimisation of the rest of the benchmark (make lib).
 CFLAGS = ("-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2")
 FLOAT_FLAGS = ("-DCOCHLEA_FLOAT",)
+#: The simulation is linked statically where the C library allows (else as usual): a dynamic
+#: program's loading took about 1 ms of every run's start-up, 10 % of a 20 s study at 2000x.
+LINK_FLAGS = ("-static", "-lm", "-lpthread")
 #: The targets of these rows (bench/run.py merges them into its TARGETS).
 TARGETS = {"embedded_sim_serial_rtf": 2000.0}
 #: What the step timing replays: the first second of each scenario (periods).
@@ -103,12 +108,15 @@ def _run_cc(command: list[str]) -> None:
         raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr}")
 
 
-def _object(source: Path, flags: tuple[str, ...], include: tuple[Path, ...] = ()) -> Path:
+def _object(source: Path, flags: tuple[str, ...], include: tuple[Path, ...] = (),
+            included: tuple[Path, ...] = ()) -> Path:
     """``source`` compiled with ``flags``, cached in build/embedded-sim/obj/ by the compiler,
-    the flags and the text of the source and of every header in its include folders."""
+    the flags and the text of the source, of every header in its include folders and of the
+    other sources it includes (``included``)."""
     cc = compiler()
     headers = sorted({h for d in (source.parent, *include) for h in Path(d).glob("*.h")})
-    key = _digest(cc, flags, source.read_text(), [(h.name, h.read_text()) for h in headers])
+    key = _digest(cc, flags, source.read_text(), [(h.name, h.read_text()) for h in headers],
+                  [(c.name, c.read_text()) for c in included])
     obj = BUILD / "obj" / f"{source.stem}-{key}.o"
     if not obj.exists():
         obj.parent.mkdir(parents=True, exist_ok=True)
@@ -164,10 +172,43 @@ def _stream_seeds(plant) -> list[str]:
     return lines
 
 
+def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function:
+    """Unit ``u``'s plant period (the Function its general kernel was generated from, which
+    :func:`cochlea.sim.compiled.unit_kernels` checks against the library) with the scenario's
+    constants folded in: ``(x, tau) -> x_next``, the true plant's parameters, its friction, the
+    period ``period`` (s) and, where the plant has one, its dry friction or drive (the 6th
+    input) as literals. Folding multiplies by no zero and adds no zero: on the ideal plants the
+    result is the general kernel's bit for bit (tests/test_embedded_sim.py)."""
+    general = u.plant_function(substeps)
+    x = ca.SX.sym("x", general.size1_in(0))
+    tau = ca.SX.sym("tau", general.size1_in(1))
+    constants = [u.plant_params, u.friction, period]
+    if general.n_in() == 6:
+        constants.append(u.drive)
+    x_next = general(x, tau, *(ca.DM(np.ravel(c)) for c in constants))
+    return ca.Function(name, [x, tau], [x_next], ["x", "tau"], ["x_next"])
+
+
+def plant_source(plants: list[ca.Function], title: str) -> str:
+    """The C source of the specialised plants (CasADi's calling convention, no work memory),
+    unused parameters marked as generated_c/'s are."""
+    gen = ca.CodeGenerator("sim_plant.c", {"with_header": False, "verbose": False,
+                                           "casadi_real": "double"})
+    for f in plants:
+        gen.add(f)
+    text = gen.dump()
+    for f in plants:
+        work = _work_sizes(text, f.name())
+        if work["iw"] or work["w"] or work["arg"] > 6 or work["res"] != 1:
+            raise RuntimeError(f"{f.name()} needs work memory ({work}): simulate.c passes none")
+    return f"/* {title} */\n" + _mark_unused_parameters(text)
+
+
 def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
-                        generated: Path = GENERATED) -> tuple[str, list[str]]:
-    """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, and the groups of
-    generated_c/ its plant and pose kernels are in.
+                        generated: Path = GENERATED) -> tuple[str, str, list[str]]:
+    """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, ``sim_plant.c``
+    (each unit's plant specialised to the scenario: :func:`specialised_plant`) and the groups of
+    generated_c/ its pose kernels are in.
 
     The kernels are the ones ``cochlea.sim.simulate`` runs for the scenario (found and checked
     against the setups by :func:`cochlea.sim.compiled.unit_kernels`); the data are the setups'
@@ -184,16 +225,24 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
              "SI units. */",
              "#ifndef SIM_SCENARIO_H", "#define SIM_SCENARIO_H", "",
              '#include "sim.h"', f'#include "{name}.h"']
-    groups, body, table = [], [], []
+    groups, body, table, plants = [], [], [], []
     n_pose, n_plant, sizes = 0, 0, []
     for u in setups:
         kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
         loop = lib.manifest["closed_loops"][kernels.closed_loop]
         plant, plant_group = _kernel_source(lib, kernels.plant, generated)
+        if u.gearbox:
+            # The geared plant keeps its general kernel: folded, its constants moved results by
+            # an ulp (6.7e-16), which backlash and stiction made 1e-2 rad over a study.
+            declare = []
+            groups += [] if plant_group in groups else [plant_group]
+        else:
+            plant = f"sim_{u.name}_plant"
+            plants.append(specialised_plant(u, sc.plant_substeps, sc.period, plant))
+            declare = [f"int {plant}(const double **arg, double **res, long long int *iw, "
+                       "double *w, int mem); /* sim_plant.c */"]
         pose, pose_group = _kernel_source(lib, kernels.pose, generated)
-        for g in (plant_group, pose_group):
-            if g not in groups:
-                groups.append(g)
+        groups += [] if pose_group in groups else [pose_group]
         n = u.controller_model.nq
         nd, np_, ne = u.controller.n_desired, u.controller.n_params, loop["n_errors"]
         n_pose += loop["n_pose"]
@@ -202,6 +251,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
                   f"{unit}_NE == {ne}"]
         prefix = f"sim_{u.name}"
         body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} */",
+                 *declare,
                  _c_array(f"{prefix}_x0", u.plant_x0),
                  _c_array(f"{prefix}_plant_p", u.plant_params),
                  _c_array(f"{prefix}_friction", u.friction)]
@@ -226,7 +276,8 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
             f"{names['effort_ramp']}, {names['torque_scale']}}},")
         n_plant += len(u.plant_x0)
     lines += [f'#include "{g}.h"' for g in groups]
-    lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x"]
+    lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x",
+              f'#define SIM_CONTROLLER_SOURCE "{name}.c" /* compiled into simulate.c */']
     for size in ("UNITS", "NQ", "NX", "ND", "NP", "NE"):
         lines.append(f"#define SIM_{size} {upper}_{size}")
     lines += [f"#define SIM_NPOSE {n_pose}",
@@ -244,7 +295,10 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
     lines += body
     lines += ["", "static const sim_unit sim_units[SIM_UNITS] = {", *table, "};", "",
               "#endif", ""]
-    return "\n".join(lines), groups
+    source = plant_source(plants, f"Scenario {name}: each unit's plant period with the "
+                          "scenario's constants folded in (embedded/sim/sim.h). Written by "
+                          "bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit.")
+    return "\n".join(lines), source, groups
 
 
 def build_simulation(name: str | Path, precision: str = "double",
@@ -258,30 +312,36 @@ def build_simulation(name: str | Path, precision: str = "double",
     <precision>/simulate``."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision: one of {PRECISIONS}")
-    header, groups = sim_scenario_header(name, lib, generated)
+    header, plant, groups = sim_scenario_header(name, lib, generated)
     name = sim_scenario(name).name
     embedded = generated / "embedded"
     folder = (BUILD if generated == GENERATED else generated / "embedded-sim") / name / precision
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "sim_scenario.h"
-    if not path.exists() or path.read_text() != header:
-        partial = folder / f".sim_scenario.h.{os.getpid()}"
-        partial.write_text(header)
-        os.replace(partial, path)
+    for file, text in (("sim_scenario.h", header), ("sim_plant.c", plant)):
+        path = folder / file
+        if not path.exists() or path.read_text() != text:
+            partial = folder / f".{file}.{os.getpid()}"
+            partial.write_text(text)
+            os.replace(partial, path)
     flags = CFLAGS + (FLOAT_FLAGS if precision == "float" else ())
     include = (SIM_SOURCE, embedded, generated)
+    # The controller is compiled into simulate.c (SIM_CONTROLLER_SOURCE): the loop calls its
+    # step on the desired sample it evaluated once for the step and the log.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
         jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS) for g in groups]
-        jobs.append(pool.submit(_object, embedded / f"{name}.c", flags))
+        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS))
         jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
-                                (folder, *include)))
+                                (folder, *include), (embedded / f"{name}.c",)))
         objects = [j.result() for j in jobs]
     binary = folder / "simulate"
-    key = _digest([o.name for o in objects])
+    key = _digest([o.name for o in objects], LINK_FLAGS)
     stamp = folder / "simulate.key"
     if not binary.exists() or not stamp.exists() or stamp.read_text() != key:
         partial = folder / f".simulate.{os.getpid()}"
-        _run_cc([compiler(), *map(str, objects), "-lm", "-o", str(partial)])
+        try:
+            _run_cc([compiler(), *map(str, objects), *LINK_FLAGS, "-o", str(partial)])
+        except RuntimeError:  # no static C library here: linked as usual
+            _run_cc([compiler(), *map(str, objects), "-lm", "-lpthread", "-o", str(partial)])
         os.replace(partial, binary)
         stamp.write_text(key)
     return binary

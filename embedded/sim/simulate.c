@@ -3,9 +3,10 @@
  *   simulate [--duration S] [--log FILE]
  *
  * The controller is the scenario's generated embedded controller (generated_c/embedded/), which
- * evaluates the desired trajectory itself at each period's time; the plant is the generated
- * plant kernel of each unit (generated_c/), the same RK4 period as the simulation's. The
- * scenario is compiled in (sim.h, sim_scenario.h): build it with
+ * evaluates the desired trajectory itself at each period's time; the plant is each unit's
+ * generated plant period, the same RK4 period as the simulation's, specialised to the
+ * scenario's constants (sim.h: sim_plant.c; the geared plant runs its generated_c/ kernel).
+ * The scenario is compiled in (sim.h, sim_scenario.h): build it with
  * `python bench/embedded_bench.py build` or `make embedded-sim`.
  *
  * Period k, at t = k h (h = SIM_PERIOD, s), as cochlea.sim.simulate runs it:
@@ -14,7 +15,9 @@
  *      jitter, if any) of every unit, its positions off by whole encoder counts, if any, put
  *      on the unit's measurement grid, if any;
  *   3. <scenario>_step returns the commands (N m, N), clipped to the effort limits as the
- *      supervisor clips them, the errors, and advances the estimate one period;
+ *      supervisor clips them, the errors, and advances the estimate one period (here as its
+ *      two halves: <scenario>_desired at t, then the step on that sample, which the log
+ *      keeps);
  *   4. each drive applies its command on its effort grid, if any; the applied effort is logged
  *      and held over the period;
  *   5. each unit's plant integrates the period under the applied effort, times the motors'
@@ -30,14 +33,18 @@
  *
  * --log FILE writes one row of doubles (native byte order) per period:
  *   t (s), x[NX], p_hat[NP], tau[NQ], errors[NE], pose[NPOSE], xd[ND], xd_dot[ND]
- * each block unit after unit (x: per unit [q, qd]). Without --log the pose and the desired
- * trajectory, which only the log needs, are not evaluated.
+ * each block unit after unit (x: per unit [q, qd]). Without --log the pose, which only the log
+ * needs, is not evaluated.
  *
  * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status and the
  * wall time (s) of the loop and of the whole program from main() on, and each unit's sizes.
  * Exit status: 0 completed, 1 diverged or step-failed, 2 bad arguments or an unwritable log. */
 #define _POSIX_C_SOURCE 199309L
 #include "sim_scenario.h"
+/* The controller in this translation unit: the loop evaluates the desired trajectory once per
+ * period and hands it to the step (<scenario>_step is <scenario>_desired at t, then
+ * <scenario>_step_desired on that sample), and the log writes the same sample. */
+#include SIM_CONTROLLER_SOURCE
 
 #include <math.h>
 #include <stdint.h>
@@ -233,7 +240,9 @@ int main(int argc, char **argv)
             }
         }
 
-        code = SIM_C(_step)(&state, t, measurement, command, errors);
+        /* <scenario>_step(&state, t, ...), its desired sample kept for the log */
+        code = SIM_C(_desired)(t, xd, xd_dot, xd_ddot) != 0 ? -1
+               : SIM_C(_step_desired)(&state, xd, xd_dot, xd_ddot, measurement, command, errors);
         if (code != 0) {
             status = "step-failed";
             break;
@@ -291,7 +300,6 @@ int main(int argc, char **argv)
                 r += s->npose;
                 i += 2 * s->nq;
             }
-            SIM_C(_desired)(t, xd, xd_dot, xd_ddot);
             for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd[i];
             for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd_dot[i];
             if (fwrite(row, sizeof row, 1, log) != 1) {
