@@ -76,7 +76,7 @@ CFLAGS = ("-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2")
 FLOAT_FLAGS = ("-DCOCHLEA_FLOAT",)
 #: The simulation is linked statically where the C library allows (else as usual): a dynamic
 #: program's loading took about 1 ms of every run's start-up, 10 % of a 20 s study at 2000x.
-LINK_FLAGS = ("-static", "-lm", "-lpthread")
+LINK_FLAGS = ("-static", "-pthread", "-lm")
 #: The targets of these rows (bench/run.py merges them into its TARGETS).
 TARGETS = {"embedded_sim_serial_rtf": 2000.0}
 #: What the step timing replays: the first second of each scenario (periods).
@@ -341,7 +341,7 @@ def build_simulation(name: str | Path, precision: str = "double",
         try:
             _run_cc([compiler(), *map(str, objects), *LINK_FLAGS, "-o", str(partial)])
         except RuntimeError:  # no static C library here: linked as usual
-            _run_cc([compiler(), *map(str, objects), "-lm", "-lpthread", "-o", str(partial)])
+            _run_cc([compiler(), *map(str, objects), "-pthread", "-lm", "-o", str(partial)])
         os.replace(partial, binary)
         stamp.write_text(key)
     return binary

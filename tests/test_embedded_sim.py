@@ -161,19 +161,23 @@ def test_full_length_without_a_log():
 
 @pytest.mark.slow
 def test_needs_neither_python_nor_casadi():
-    """The program links the C library and libm only (statically where the C library allows,
-    so nothing at all is loaded at start-up)."""
+    """The program links the C library (its threads: the log's writer) and libm only,
+    statically where the C library allows, so that nothing is loaded at start-up."""
     binary = eb.build_simulation("parallel_task_realistic")
     dynamic = subprocess.run(["readelf", "-d", str(binary)], capture_output=True, text=True,
                              check=True).stdout
     needed = {line.split("[")[1].split("]")[0] for line in dynamic.splitlines()
               if "(NEEDED)" in line}
-    assert needed <= {"libm.so.6", "libc.so.6"}, needed
+    assert needed <= {"libm.so.6", "libc.so.6", "libpthread.so.0"}, needed
 
 
 @pytest.mark.parametrize("args", [["--duration", "-1"], ["--duration", "2s"], ["--rate", "1"],
-                                  ["--log"], ["--log", "/nonexistent/folder/log.bin"]])
+                                  ["--log"], ["--log", "/nonexistent/folder/log.bin"],
+                                  pytest.param(["--log", "/dev/full"], marks=pytest.mark.skipif(
+                                      not Path("/dev/full").exists(), reason="no /dev/full"))])
 def test_refuses_bad_arguments(args):
+    """One line on stderr, exit 2, no summary: also when the log's writer thread finds the
+    disk full."""
     done = subprocess.run([str(eb.build_simulation("serial_joint")), *args],
                           capture_output=True, text=True)
     assert done.returncode == 2 and done.stderr and not done.stdout
