@@ -10,8 +10,9 @@
    (``RealTimeLoop`` as fast as possible on the sim backend: its compute time less the
    backend's read and write).
 2. **The all-in-C simulation** (``embedded/sim/simulate.c``): the embedded controller (its own
-   desired trajectory, evaluated in C every period) and the units' generated plant kernels
-   (``generated_c/<group>.c``), one process, no Python and no CasADi. Its real-time factor is
+   desired trajectory, evaluated in C every period) and the units' plant periods, specialised
+   to the scenario's constants (:func:`specialised_plant`; the geared plant: its general kernel
+   in ``generated_c/<group>.c``), one process, no Python and no CasADi. Its real-time factor is
    taken end to end: from starting the process to its exit, log written.
 
 Build the programs with ``python bench/embedded_bench.py build [SCENARIO ...]`` (or
@@ -20,8 +21,8 @@ Build the programs with ``python bench/embedded_bench.py build [SCENARIO ...]`` 
 :func:`bench_embedded_sims`, :func:`verdicts` and :func:`markdown`.
 
 A program's scenario is compiled in: :func:`sim_scenario_header` writes its
-``sim_scenario.h`` (``embedded/sim/sim.h`` says what it defines) from ``unit_setups`` -- the
-plant's parameters, the initial state, the grids -- once, at build time.
+``sim_scenario.h`` (``embedded/sim/sim.h`` says what it defines) and ``sim_plant.c`` from
+``unit_setups`` -- the plant's parameters, the initial state, the grids -- once, at build time.
 """
 
 from __future__ import annotations
@@ -645,15 +646,14 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
             why += (f": the controller's step {step * 1e6:.2f} us (both arms, the desired "
                     f"trajectory evaluated in C), the rest ({(period - step) * 1e6:.2f} us) the "
                     f"{r['units']} arms' RK4 plant periods (4 forward-dynamics evaluations "
-                    "each) and the measurement")
+                    "each, the scenario's constants folded in) and the measurement")
         lines.append(
             f"- **missed** by {target / rtf:.2f}x: {r['scenario']} all-in-C simulation "
             f"(embedded/sim) at {rtf:.0f}x real time end to end, log written "
             f"({r['rtf_double_no_log']:.0f}x without a log; target >= {target:g}x). Why: "
             f"{why}, a cap of {1e-3 / period:.0f}x on one core. The log adds "
-            f"{log_period * 1e6:.2f} us per period: the poses, a second evaluation of the "
-            "desired trajectory (the step evaluates it but does not return it) and "
-            f"{r['log_bytes'] / 1e6:.1f} MB written; the process start-up "
+            f"{log_period * 1e6:.2f} us per period to the loop: the poses, the rows and "
+            f"{r['log_bytes'] / 1e6:.1f} MB handed to the writer thread; the process start-up "
             f"{r['startup_s'] * 1e3:.2f} ms.")
     return lines
 
@@ -697,12 +697,14 @@ def markdown(steps: list[dict] | None, sims: list[dict] | None,
     out += ["", "## All-in-C simulation (embedded/sim, real-time factor)", ""]
     if sims is None:
         return out + why("embedded_sims")
-    out += ["`embedded/sim/simulate.c` built per scenario (-O2): the embedded controller, which "
-            "evaluates its desired trajectory in C each period, and each unit's generated plant "
-            "kernel (RK4, the scenario's sub-steps), with the scenario's measurement delay and "
-            "grids; no Python, no CasADi. Full scenario length; wall time from starting the "
-            "process to its exit (medians of runs taken turn about), log written (a row of "
-            "doubles per period) unless said. *loop*: the program's own time for its loop "
+    out += ["`embedded/sim/simulate.c` built per scenario (-O2, linked statically): the embedded "
+            "controller, which evaluates its desired trajectory in C each period (once, for the "
+            "step and the log), and each unit's plant period (RK4, the scenario's sub-steps) "
+            "generated with the scenario's constants folded in (the geared plant: its general "
+            "kernel), with the scenario's measurement delay and grids; no Python, no CasADi. "
+            "Full scenario length; wall time from starting the process to its exit (medians of "
+            "runs taken turn about), log written (a row of doubles per period, written by a "
+            "second thread) unless said. *loop*: the program's own time for its loop "
             "(log written); *start-up*: process wall time less the loop, without a log; "
             "*simulate()*: the all-in-C path of `cochlea.sim.simulate` on the same scenario, end "
             "to end (its set-up samples the desired trajectory with CasADi; units on threads), "

@@ -34,9 +34,10 @@
  * --log FILE writes one row of doubles (native byte order) per period:
  *   t (s), x[NX], p_hat[NP], tau[NQ], errors[NE], pose[NPOSE], xd[ND], xd_dot[ND]
  * each block unit after unit (x: per unit [q, qd]). The loop writes its rows into blocks of
- * about 512 KB, which a second thread writes to the file while the loop fills the other
- * (the page cache's copy was a sixth of a serial study's time). Without --log the pose, which
- * only the log needs, is not evaluated.
+ * about 512 KB; a second thread evaluates each row's poses from its x and writes the block to
+ * the file while the loop fills the other (the poses and the page cache's copy were a quarter
+ * of a serial study's time). Without --log the pose, which only the log needs, is not
+ * evaluated.
  *
  * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status and the
  * wall time (s) of the loop and of the whole program from main() on, and each unit's sizes.
@@ -138,8 +139,8 @@ static double sim_integer(sim_pcg64 *g, int low, int high)
 
 #define SIM_RING (SIM_DELAY + SIM_JITTER + 1) /* periods of true states kept */
 
-/* The log: rows in blocks of about 512 KB, each written by the writer thread while the loop
- * fills the other block. */
+/* The log: rows in blocks of about 512 KB; the writer thread fills in each row's poses and
+ * writes the block while the loop fills the other. */
 #define SIM_BLOCK_ROWS ((1 << 19) / (8 * SIM_COLUMNS) + 1)
 
 typedef struct {
@@ -147,11 +148,36 @@ typedef struct {
     pthread_t thread;
     pthread_mutex_t lock;
     pthread_cond_t changed;
-    const double *full; /* the block handed over, NULL: none (the writer has written it) */
+    double *full;       /* the block handed over, NULL: none (the writer has written it) */
     size_t bytes;       /* its size */
     int stop;           /* no more blocks */
-    int failed;         /* a write failed: the log is incomplete */
+    int failed;         /* 1: a write failed, 2: a pose kernel did; the log is incomplete */
 } sim_writer;
+
+#define SIM_POSE_COLUMN (1 + SIM_NX + SIM_NP + SIM_NQ + SIM_NE)
+
+/* Each row's pose[NPOSE], unit after unit, from the row's x (the state logged): 0, or -1 if a
+ * pose kernel returned an error. */
+static int fill_poses(double *block, long rows)
+{
+    long k;
+    for (k = 0; k < rows; ++k) {
+        double *row = block + k * SIM_COLUMNS, *pose = row + SIM_POSE_COLUMN;
+        const double *x = row + 1;
+        int u;
+        for (u = 0; u < SIM_UNITS; ++u) {
+            const sim_unit *s = &sim_units[u];
+            const double *arg[1];
+            double *res[1];
+            arg[0] = x;
+            res[0] = pose;
+            if (s->pose(arg, res, NULL, NULL, 0) != 0) return -1;
+            x += 2 * s->nq;
+            pose += s->npose;
+        }
+    }
+    return 0;
+}
 
 static double sim_blocks[2][SIM_BLOCK_ROWS * SIM_COLUMNS];
 
@@ -175,13 +201,14 @@ static void *writer_main(void *arg)
         while (!w->full && !w->stop) pthread_cond_wait(&w->changed, &w->lock);
         if (!w->full) break; /* stopped, every block written */
         {
-            const double *block = w->full;
+            double *block = w->full;
             const size_t bytes = w->bytes;
             int failed;
             pthread_mutex_unlock(&w->lock);
-            failed = write_all(w->fd, (const char *)block, bytes);
+            failed = fill_poses(block, (long)(bytes / (SIM_COLUMNS * sizeof(double)))) ? 2
+                     : write_all(w->fd, (const char *)block, bytes) ? 1 : 0;
             pthread_mutex_lock(&w->lock);
-            w->failed |= failed != 0;
+            if (!w->failed) w->failed = failed;
             w->full = NULL;
             pthread_cond_broadcast(&w->changed);
         }
@@ -190,9 +217,9 @@ static void *writer_main(void *arg)
     return NULL;
 }
 
-/* Hand rows [0, rows) of block to the writer, once it has written the block before; 0, or -1
- * if a write failed. */
-static int writer_hand(sim_writer *w, const double *block, long rows)
+/* Hand rows [0, rows) of block to the writer, once it has written the block before; 0, or
+ * the writer's failure so far (sim_writer.failed). */
+static int writer_hand(sim_writer *w, double *block, long rows)
 {
     int failed;
     pthread_mutex_lock(&w->lock);
@@ -204,7 +231,7 @@ static int writer_hand(sim_writer *w, const double *block, long rows)
     }
     failed = w->failed;
     pthread_mutex_unlock(&w->lock);
-    return failed ? -1 : 0;
+    return failed;
 }
 
 static int writer_start(sim_writer *w, const char *path)
@@ -218,18 +245,25 @@ static int writer_start(sim_writer *w, const char *path)
     return pthread_create(&w->thread, NULL, writer_main, w) != 0 ? -1 : 0;
 }
 
-/* The last rows of block, then the writer stopped and the file closed; 0, or -1 if a write
- * or the close failed. */
-static int writer_finish(sim_writer *w, const double *block, long rows)
+/* The last rows of block, then the writer stopped and the file closed; 0, or the writer's
+ * failure (1 also when the close failed). */
+static int writer_finish(sim_writer *w, double *block, long rows)
 {
-    int failed = writer_hand(w, block, rows);
+    writer_hand(w, block, rows);
     pthread_mutex_lock(&w->lock);
     w->stop = 1;
     pthread_cond_broadcast(&w->changed);
     pthread_mutex_unlock(&w->lock);
     pthread_join(w->thread, NULL);
-    failed |= w->failed;
-    return (close(w->fd) != 0 || failed) ? -1 : 0;
+    if (close(w->fd) != 0 && !w->failed) w->failed = 1;
+    return w->failed;
+}
+
+static int cannot_write(const char *path, int failed)
+{
+    fprintf(stderr, "simulate: cannot write %s%s\n", path,
+            failed == 2 ? " (a pose kernel returned an error)" : "");
+    return 2;
 }
 
 static int usage(void)
@@ -391,23 +425,12 @@ int main(int argc, char **argv)
         if (log) {
             for (i = 0; i < SIM_NQ; ++i) *r++ = tau[i];
             for (i = 0; i < SIM_NE; ++i) *r++ = (double)errors[i];
-            for (u = 0, i = 0; u < SIM_UNITS; ++u) {
-                const sim_unit *s = &sim_units[u];
-                const double *arg[1];
-                double *res[1];
-                arg[0] = x + i;
-                res[0] = r;
-                if (s->pose(arg, res, NULL, NULL, 0) != 0) return 2;
-                r += s->npose;
-                i += 2 * s->nq;
-            }
+            r += SIM_NPOSE; /* the writer thread evaluates the poses from the row's x */
             for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd[i];
             for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd_dot[i];
             if (++in_block == SIM_BLOCK_ROWS) {
-                if (writer_hand(&writer, sim_blocks[block], in_block) != 0) {
-                    fprintf(stderr, "simulate: cannot write %s\n", log_path);
-                    return 2;
-                }
+                const int failed = writer_hand(&writer, sim_blocks[block], in_block);
+                if (failed) return cannot_write(log_path, failed);
                 block ^= 1;
                 in_block = 0;
             }
@@ -422,9 +445,9 @@ int main(int argc, char **argv)
     }
     end = now_s();
     SIM_C(_terminate)(&state);
-    if (log && writer_finish(&writer, sim_blocks[block], in_block) != 0) {
-        fprintf(stderr, "simulate: cannot write %s\n", log_path);
-        return 2;
+    if (log) {
+        const int failed = writer_finish(&writer, sim_blocks[block], in_block);
+        if (failed) return cannot_write(log_path, failed);
     }
     printf("{\"scenario\": \"%s\", \"precision\": \"%s\", \"period_s\": %.17g, "
            "\"duration_s\": %.17g, \"periods\": %ld, \"rows\": %ld, \"status\": \"%s\", "
