@@ -116,6 +116,22 @@ def sc_duration(name: str) -> float:
     return float(load_scenario(name).duration)
 
 
+def test_the_log_ends_on_any_row_of_its_blocks(tmp_path):
+    """The writer thread's ring of blocks (simulate.c: SIM_BLOCKS of SIM_BLOCK_ROWS rows): a run
+    that ends on a block's last row, after the ring wrapped, one row into a block, or before
+    the first block is full, logs the first rows of a longer run, byte for byte."""
+    binary = eb.build_simulation("serial_joint")
+    longer = tmp_path / "longer.log"
+    info = eb.run_simulation(binary, 3.0, longer)
+    block = (1 << 18) // (8 * info["columns"]) + 1  # SIM_BLOCK_ROWS
+    whole = longer.read_bytes()
+    for rows in (block, 4 * block, 4 * block + 1, 7):
+        log = tmp_path / f"{rows}.log"
+        part = eb.run_simulation(binary, rows * 1e-3, log)
+        assert part["rows"] == rows and part["status"] == "completed"
+        assert log.read_bytes() == whole[:rows * 8 * info["columns"]], rows
+
+
 @pytest.mark.parametrize("name", ["serial_joint", "parallel_task"])
 def test_specialised_plant_is_the_general_one(name):
     """A unit's plant with the scenario's constants folded in (x, tau) gives the general

@@ -33,10 +33,10 @@
  *
  * --log FILE writes one row of doubles (native byte order) per period:
  *   t (s), x[NX], p_hat[NP], tau[NQ], errors[NE], pose[NPOSE], xd[ND], xd_dot[ND]
- * each block unit after unit (x: per unit [q, qd]). The loop writes its rows into blocks of
- * about 512 KB; a second thread evaluates each row's poses from its x and writes the block to
- * the file while the loop fills the other (the poses and the page cache's copy were a quarter
- * of a serial study's time). Without --log the pose, which only the log needs, is not
+ * each block unit after unit (x: per unit [q, qd]). The loop writes its rows into a ring of
+ * blocks of about 256 KB; a second thread evaluates each row's poses from its x and writes the
+ * block to the file while the loop fills the next (the poses and the page cache's copy were a
+ * quarter of a serial study's time). Without --log the pose, which only the log needs, is not
  * evaluated.
  *
  * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status and the
@@ -139,20 +139,25 @@ static double sim_integer(sim_pcg64 *g, int low, int high)
 
 #define SIM_RING (SIM_DELAY + SIM_JITTER + 1) /* periods of true states kept */
 
-/* The log: rows in blocks of about 512 KB; the writer thread fills in each row's poses and
- * writes the block while the loop fills the other. */
-#define SIM_BLOCK_ROWS ((1 << 19) / (8 * SIM_COLUMNS) + 1)
+/* The log: rows in SIM_BLOCKS blocks of about 256 KB, a ring; the writer thread fills in each
+ * handed block's poses and writes it while the loop fills the next ones (several, so that a
+ * writer held up by other work on the machine does not stop the loop at once). */
+#define SIM_BLOCKS 4
+#define SIM_BLOCK_ROWS ((1 << 18) / (8 * SIM_COLUMNS) + 1)
 
 typedef struct {
     int fd;
     pthread_t thread;
     pthread_mutex_t lock;
     pthread_cond_t changed;
-    double *full;       /* the block handed over, NULL: none (the writer has written it) */
-    size_t bytes;       /* its size */
-    int stop;           /* no more blocks */
-    int failed;         /* 1: a write failed, 2: a pose kernel did; the log is incomplete */
+    long rows[SIM_BLOCKS]; /* rows of each handed block */
+    int next;              /* the block the writer writes next */
+    int queued;            /* blocks handed and not yet written (the one being written too) */
+    int stop;              /* no more blocks */
+    int failed;            /* 1: a write failed, 2: a pose kernel did; the log is incomplete */
 } sim_writer;
+
+static double sim_blocks[SIM_BLOCKS][SIM_BLOCK_ROWS * SIM_COLUMNS];
 
 #define SIM_POSE_COLUMN (1 + SIM_NX + SIM_NP + SIM_NQ + SIM_NE)
 
@@ -179,8 +184,6 @@ static int fill_poses(double *block, long rows)
     return 0;
 }
 
-static double sim_blocks[2][SIM_BLOCK_ROWS * SIM_COLUMNS];
-
 static int write_all(int fd, const char *data, size_t bytes)
 {
     while (bytes > 0) {
@@ -198,18 +201,20 @@ static void *writer_main(void *arg)
     sim_writer *w = arg;
     pthread_mutex_lock(&w->lock);
     for (;;) {
-        while (!w->full && !w->stop) pthread_cond_wait(&w->changed, &w->lock);
-        if (!w->full) break; /* stopped, every block written */
+        while (!w->queued && !w->stop) pthread_cond_wait(&w->changed, &w->lock);
+        if (!w->queued) break; /* stopped, every block written */
         {
-            double *block = w->full;
-            const size_t bytes = w->bytes;
+            double *block = sim_blocks[w->next];
+            const long rows = w->rows[w->next];
             int failed;
             pthread_mutex_unlock(&w->lock);
-            failed = fill_poses(block, (long)(bytes / (SIM_COLUMNS * sizeof(double)))) ? 2
-                     : write_all(w->fd, (const char *)block, bytes) ? 1 : 0;
+            failed = fill_poses(block, rows) ? 2
+                     : write_all(w->fd, (const char *)block,
+                                 (size_t)rows * SIM_COLUMNS * sizeof(double)) ? 1 : 0;
             pthread_mutex_lock(&w->lock);
             if (!w->failed) w->failed = failed;
-            w->full = NULL;
+            w->next = (w->next + 1) % SIM_BLOCKS;
+            w->queued -= 1;
             pthread_cond_broadcast(&w->changed);
         }
     }
@@ -217,39 +222,37 @@ static void *writer_main(void *arg)
     return NULL;
 }
 
-/* Hand rows [0, rows) of block to the writer, once it has written the block before; 0, or
- * the writer's failure so far (sim_writer.failed). */
-static int writer_hand(sim_writer *w, double *block, long rows)
+/* Hand the first rows of block *block (rows > 0) to the writer and move *block on to the next
+ * one, once the writer has written it; 0, or the writer's failure so far (sim_writer.failed). */
+static int writer_hand(sim_writer *w, int *block, long rows)
 {
     int failed;
     pthread_mutex_lock(&w->lock);
-    while (w->full) pthread_cond_wait(&w->changed, &w->lock);
-    if (rows > 0) {
-        w->full = block;
-        w->bytes = (size_t)rows * SIM_COLUMNS * sizeof(double);
-        pthread_cond_broadcast(&w->changed);
-    }
+    w->rows[*block] = rows;
+    w->queued += 1;
+    pthread_cond_broadcast(&w->changed);
+    while (w->queued == SIM_BLOCKS) pthread_cond_wait(&w->changed, &w->lock);
     failed = w->failed;
     pthread_mutex_unlock(&w->lock);
+    *block = (*block + 1) % SIM_BLOCKS;
     return failed;
 }
 
 static int writer_start(sim_writer *w, const char *path)
 {
     w->fd = open(path, O_WRONLY | O_CREAT | O_TRUNC, 0666);
-    w->full = NULL;
-    w->stop = w->failed = 0;
+    w->next = w->queued = w->stop = w->failed = 0;
     if (w->fd < 0) return -1;
     if (pthread_mutex_init(&w->lock, NULL) != 0) return -1;
     if (pthread_cond_init(&w->changed, NULL) != 0) return -1;
     return pthread_create(&w->thread, NULL, writer_main, w) != 0 ? -1 : 0;
 }
 
-/* The last rows of block, then the writer stopped and the file closed; 0, or the writer's
- * failure (1 also when the close failed). */
-static int writer_finish(sim_writer *w, double *block, long rows)
+/* The last rows of block (rows >= 0), then the writer stopped and the file closed; 0, or the
+ * writer's failure (1 also when the close failed). */
+static int writer_finish(sim_writer *w, int block, long rows)
 {
-    writer_hand(w, block, rows);
+    if (rows > 0) writer_hand(w, &block, rows);
     pthread_mutex_lock(&w->lock);
     w->stop = 1;
     pthread_cond_broadcast(&w->changed);
@@ -429,9 +432,8 @@ int main(int argc, char **argv)
             for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd[i];
             for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd_dot[i];
             if (++in_block == SIM_BLOCK_ROWS) {
-                const int failed = writer_hand(&writer, sim_blocks[block], in_block);
+                const int failed = writer_hand(&writer, &block, in_block);
                 if (failed) return cannot_write(log_path, failed);
-                block ^= 1;
                 in_block = 0;
             }
         }
@@ -446,7 +448,7 @@ int main(int argc, char **argv)
     end = now_s();
     SIM_C(_terminate)(&state);
     if (log) {
-        const int failed = writer_finish(&writer, sim_blocks[block], in_block);
+        const int failed = writer_finish(&writer, block, in_block);
         if (failed) return cannot_write(log_path, failed);
     }
     printf("{\"scenario\": \"%s\", \"precision\": \"%s\", \"period_s\": %.17g, "
