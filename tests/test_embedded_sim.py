@@ -173,6 +173,7 @@ def test_full_length_without_a_log():
     assert info["rows"] == info["periods"] == round(sc.duration / sc.period)
     assert info["duration_s"] == sc.duration and info["period_s"] == sc.period
     assert 0 < info["loop_s"] <= info["main_s"]
+    assert 0 < info["loop_cpu_s"] <= info["loop_s"] + 1e-3  # one thread: CPU <= wall
 
 
 @pytest.mark.slow

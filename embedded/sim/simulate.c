@@ -39,8 +39,10 @@
  * quarter of a serial study's time). Without --log the pose, which only the log needs, is not
  * evaluated.
  *
- * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status and the
- * wall time (s) of the loop and of the whole program from main() on, and each unit's sizes.
+ * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status, the
+ * wall time (s) of the loop (loop_s) and of the whole program from main() on (main_s), the
+ * loop's own CPU time (loop_cpu_s: its thread's, the log's writer not included; on a busy
+ * machine the measure of the loop's work) and each unit's sizes.
  * Exit status: 0 completed, 1 diverged or step-failed, 2 bad arguments or an unwritable log. */
 #define _POSIX_C_SOURCE 200112L
 #include "sim_scenario.h"
@@ -70,11 +72,16 @@
 
 typedef SIM_C(_real) sim_real;
 
-static double now_s(void)
+static double clock_s(clockid_t clock)
 {
     struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
+    clock_gettime(clock, &t);
     return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
+}
+
+static double now_s(void)
+{
+    return clock_s(CLOCK_MONOTONIC);
 }
 
 static int all_finite(const double *v, int n)
@@ -284,6 +291,7 @@ int main(int argc, char **argv)
     const double start = now_s();
     const double h = SIM_PERIOD;
     double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], torque[SIM_NQ], loop_start, end;
+    double loop_cpu; /* s: the loop's thread's CPU time over the loop */
     double plant_x[SIM_NXP], plant_next[SIM_NXP]; /* the plants' states; x is their [q, qd] */
     sim_real measurement[SIM_NX], command[SIM_NQ], errors[SIM_NE];
     sim_real xd[SIM_ND], xd_dot[SIM_ND], xd_ddot[SIM_ND];
@@ -336,6 +344,7 @@ int main(int argc, char **argv)
 #if SIM_ENCODER_COUNTS > 0
     sim_pcg64_start(&encoder, sim_encoder_seed);
 #endif
+    loop_cpu = clock_s(CLOCK_THREAD_CPUTIME_ID);
     loop_start = now_s();
     for (k = 0; k < steps; ++k) {
         const double t = (double)k * h; /* as the simulation's time grid, arange(N) * h */
@@ -446,6 +455,7 @@ int main(int argc, char **argv)
         }
     }
     end = now_s();
+    loop_cpu = clock_s(CLOCK_THREAD_CPUTIME_ID) - loop_cpu;
     SIM_C(_terminate)(&state);
     if (log) {
         const int failed = writer_finish(&writer, block, in_block);
@@ -455,10 +465,10 @@ int main(int argc, char **argv)
            "\"duration_s\": %.17g, \"periods\": %ld, \"rows\": %ld, \"status\": \"%s\", "
            "\"step_code\": %d, \"units\": %d, \"nx\": %d, \"np\": %d, \"nq\": %d, \"ne\": %d, "
            "\"npose\": %d, \"nd\": %d, \"columns\": %d, \"log\": %s, \"loop_s\": %.9f, "
-           "\"main_s\": %.9f, \"unit_sizes\": [",
+           "\"loop_cpu_s\": %.9f, \"main_s\": %.9f, \"unit_sizes\": [",
            SIM_NAME, SIM_PRECISION, h, duration, steps, rows, status, code, SIM_UNITS, SIM_NX,
            SIM_NP, SIM_NQ, SIM_NE, SIM_NPOSE, SIM_ND, SIM_COLUMNS, log ? "true" : "false",
-           end - loop_start, now_s() - start);
+           end - loop_start, loop_cpu, now_s() - start);
     for (u = 0; u < SIM_UNITS; ++u) {
         const sim_unit *s = &sim_units[u];
         printf("%s{\"name\": \"%s\", \"nq\": %d, \"np\": %d, \"nd\": %d, \"ne\": %d, "
