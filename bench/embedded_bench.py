@@ -75,8 +75,8 @@ PRECISIONS = ("double", "float")
 #: Warnings are errors; the optimisation of the rest of the benchmark (make lib).
 CFLAGS = ("-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2")
 FLOAT_FLAGS = ("-DCOCHLEA_FLOAT",)
-#: The simulation is linked statically where the C library allows (else as usual): a dynamic
-#: program's loading took about 1 ms of every run's start-up, 10 % of a 20 s study at 2000x.
+#: The simulation is linked statically where the C library allows (else as usual): loading it
+#: dynamically took 0.6-1 ms of every run, up to 10 % of a 20 s study at 2000x.
 LINK_FLAGS = ("-static", "-pthread", "-lm")
 #: The targets of these rows (bench/run.py merges them into its TARGETS).
 TARGETS = {"embedded_sim_serial_rtf": 2000.0}
