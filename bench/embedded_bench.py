@@ -10,8 +10,9 @@
    (``RealTimeLoop`` as fast as possible on the sim backend: its compute time less the
    backend's read and write).
 2. **The all-in-C simulation** (``embedded/sim/simulate.c``): the embedded controller (its own
-   desired trajectory, evaluated in C every period) and the units' generated plant kernels
-   (``generated_c/<group>.c``), one process, no Python and no CasADi. Its real-time factor is
+   desired trajectory, evaluated in C every period) and the units' plant periods, specialised
+   to the scenario's constants (:func:`specialised_plant`; the geared plant: its general kernel
+   in ``generated_c/<group>.c``), one process, no Python and no CasADi. Its real-time factor is
    taken end to end: from starting the process to its exit, log written.
 
 Build the programs with ``python bench/embedded_bench.py build [SCENARIO ...]`` (or
@@ -20,8 +21,8 @@ Build the programs with ``python bench/embedded_bench.py build [SCENARIO ...]`` 
 :func:`bench_embedded_sims`, :func:`verdicts` and :func:`markdown`.
 
 A program's scenario is compiled in: :func:`sim_scenario_header` writes its
-``sim_scenario.h`` (``embedded/sim/sim.h`` says what it defines) from ``unit_setups`` -- the
-plant's parameters, the initial state, the grids -- once, at build time.
+``sim_scenario.h`` (``embedded/sim/sim.h`` says what it defines) and ``sim_plant.c`` from
+``unit_setups`` -- the plant's parameters, the initial state, the grids -- once, at build time.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -47,6 +49,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from cochlea.kernels import library as ckernels
+from cochlea.kernels.generate import _mark_unused_parameters, _work_sizes
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.result import SimulationResult, simulated_log
@@ -72,6 +75,9 @@ PRECISIONS = ("double", "float")
 #: Warnings are errors; the optimisation of the rest of the benchmark (make lib).
 CFLAGS = ("-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2")
 FLOAT_FLAGS = ("-DCOCHLEA_FLOAT",)
+#: The simulation is linked statically where the C library allows (else as usual): loading it
+#: dynamically took 0.6-1 ms of every run, up to 10 % of a 20 s study at 2000x.
+LINK_FLAGS = ("-static", "-pthread", "-lm")
 #: The targets of these rows (bench/run.py merges them into its TARGETS).
 TARGETS = {"embedded_sim_serial_rtf": 2000.0}
 #: What the step timing replays: the first second of each scenario (periods).
@@ -103,12 +109,15 @@ def _run_cc(command: list[str]) -> None:
         raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr}")
 
 
-def _object(source: Path, flags: tuple[str, ...], include: tuple[Path, ...] = ()) -> Path:
+def _object(source: Path, flags: tuple[str, ...], include: tuple[Path, ...] = (),
+            included: tuple[Path, ...] = ()) -> Path:
     """``source`` compiled with ``flags``, cached in build/embedded-sim/obj/ by the compiler,
-    the flags and the text of the source and of every header in its include folders."""
+    the flags and the text of the source, of every header in its include folders and of the
+    other sources it includes (``included``)."""
     cc = compiler()
     headers = sorted({h for d in (source.parent, *include) for h in Path(d).glob("*.h")})
-    key = _digest(cc, flags, source.read_text(), [(h.name, h.read_text()) for h in headers])
+    key = _digest(cc, flags, source.read_text(), [(h.name, h.read_text()) for h in headers],
+                  [(c.name, c.read_text()) for c in included])
     obj = BUILD / "obj" / f"{source.stem}-{key}.o"
     if not obj.exists():
         obj.parent.mkdir(parents=True, exist_ok=True)
@@ -164,10 +173,43 @@ def _stream_seeds(plant) -> list[str]:
     return lines
 
 
+def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function:
+    """Unit ``u``'s plant period (the Function its general kernel was generated from, which
+    :func:`cochlea.sim.compiled.unit_kernels` checks against the library) with the scenario's
+    constants folded in: ``(x, tau) -> x_next``, the true plant's parameters, its friction, the
+    period ``period`` (s) and, where the plant has one, its dry friction or drive (the 6th
+    input) as literals. Folding multiplies by no zero and adds no zero: on the ideal plants the
+    result is the general kernel's bit for bit (tests/test_embedded_sim.py)."""
+    general = u.plant_function(substeps)
+    x = ca.SX.sym("x", general.size1_in(0))
+    tau = ca.SX.sym("tau", general.size1_in(1))
+    constants = [u.plant_params, u.friction, period]
+    if general.n_in() == 6:
+        constants.append(u.drive)
+    x_next = general(x, tau, *(ca.DM(np.ravel(c)) for c in constants))
+    return ca.Function(name, [x, tau], [x_next], ["x", "tau"], ["x_next"])
+
+
+def plant_source(plants: list[ca.Function], title: str) -> str:
+    """The C source of the specialised plants (CasADi's calling convention, no work memory),
+    unused parameters marked as generated_c/'s are."""
+    gen = ca.CodeGenerator("sim_plant.c", {"with_header": False, "verbose": False,
+                                           "casadi_real": "double"})
+    for f in plants:
+        gen.add(f)
+    text = gen.dump()
+    for f in plants:
+        work = _work_sizes(text, f.name())
+        if work["iw"] or work["w"] or work["arg"] > 6 or work["res"] != 1:
+            raise RuntimeError(f"{f.name()} needs work memory ({work}): simulate.c passes none")
+    return f"/* {title} */\n" + _mark_unused_parameters(text)
+
+
 def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
-                        generated: Path = GENERATED) -> tuple[str, list[str]]:
-    """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, and the groups of
-    generated_c/ its plant and pose kernels are in.
+                        generated: Path = GENERATED) -> tuple[str, str, list[str]]:
+    """``sim_scenario.h`` of scenario ``name`` for embedded/sim/simulate.c, ``sim_plant.c``
+    (each unit's plant specialised to the scenario: :func:`specialised_plant`) and the groups of
+    generated_c/ its pose kernels are in.
 
     The kernels are the ones ``cochlea.sim.simulate`` runs for the scenario (found and checked
     against the setups by :func:`cochlea.sim.compiled.unit_kernels`); the data are the setups'
@@ -184,16 +226,24 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
              "SI units. */",
              "#ifndef SIM_SCENARIO_H", "#define SIM_SCENARIO_H", "",
              '#include "sim.h"', f'#include "{name}.h"']
-    groups, body, table = [], [], []
+    groups, body, table, plants = [], [], [], []
     n_pose, n_plant, sizes = 0, 0, []
     for u in setups:
         kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
         loop = lib.manifest["closed_loops"][kernels.closed_loop]
         plant, plant_group = _kernel_source(lib, kernels.plant, generated)
+        if u.gearbox:
+            # The geared plant keeps its general kernel: folded, its constants moved results by
+            # an ulp (6.7e-16), which backlash and stiction made 1e-2 rad over a study.
+            declare = []
+            groups += [] if plant_group in groups else [plant_group]
+        else:
+            plant = f"sim_{u.name}_plant"
+            plants.append(specialised_plant(u, sc.plant_substeps, sc.period, plant))
+            declare = [f"int {plant}(const double **arg, double **res, long long int *iw, "
+                       "double *w, int mem); /* sim_plant.c */"]
         pose, pose_group = _kernel_source(lib, kernels.pose, generated)
-        for g in (plant_group, pose_group):
-            if g not in groups:
-                groups.append(g)
+        groups += [] if pose_group in groups else [pose_group]
         n = u.controller_model.nq
         nd, np_, ne = u.controller.n_desired, u.controller.n_params, loop["n_errors"]
         n_pose += loop["n_pose"]
@@ -202,6 +252,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
                   f"{unit}_NE == {ne}"]
         prefix = f"sim_{u.name}"
         body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} */",
+                 *declare,
                  _c_array(f"{prefix}_x0", u.plant_x0),
                  _c_array(f"{prefix}_plant_p", u.plant_params),
                  _c_array(f"{prefix}_friction", u.friction)]
@@ -226,7 +277,8 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
             f"{names['effort_ramp']}, {names['torque_scale']}}},")
         n_plant += len(u.plant_x0)
     lines += [f'#include "{g}.h"' for g in groups]
-    lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x"]
+    lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x",
+              f'#define SIM_CONTROLLER_SOURCE "{name}.c" /* compiled into simulate.c */']
     for size in ("UNITS", "NQ", "NX", "ND", "NP", "NE"):
         lines.append(f"#define SIM_{size} {upper}_{size}")
     lines += [f"#define SIM_NPOSE {n_pose}",
@@ -244,7 +296,10 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
     lines += body
     lines += ["", "static const sim_unit sim_units[SIM_UNITS] = {", *table, "};", "",
               "#endif", ""]
-    return "\n".join(lines), groups
+    source = plant_source(plants, f"Scenario {name}: each unit's plant period with the "
+                          "scenario's constants folded in (embedded/sim/sim.h). Written by "
+                          "bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit.")
+    return "\n".join(lines), source, groups
 
 
 def build_simulation(name: str | Path, precision: str = "double",
@@ -258,30 +313,36 @@ def build_simulation(name: str | Path, precision: str = "double",
     <precision>/simulate``."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision: one of {PRECISIONS}")
-    header, groups = sim_scenario_header(name, lib, generated)
+    header, plant, groups = sim_scenario_header(name, lib, generated)
     name = sim_scenario(name).name
     embedded = generated / "embedded"
     folder = (BUILD if generated == GENERATED else generated / "embedded-sim") / name / precision
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "sim_scenario.h"
-    if not path.exists() or path.read_text() != header:
-        partial = folder / f".sim_scenario.h.{os.getpid()}"
-        partial.write_text(header)
-        os.replace(partial, path)
+    for file, text in (("sim_scenario.h", header), ("sim_plant.c", plant)):
+        path = folder / file
+        if not path.exists() or path.read_text() != text:
+            partial = folder / f".{file}.{os.getpid()}"
+            partial.write_text(text)
+            os.replace(partial, path)
     flags = CFLAGS + (FLOAT_FLAGS if precision == "float" else ())
     include = (SIM_SOURCE, embedded, generated)
+    # The controller is compiled into simulate.c (SIM_CONTROLLER_SOURCE): the loop calls its
+    # step on the desired sample it evaluated once for the step and the log.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
         jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS) for g in groups]
-        jobs.append(pool.submit(_object, embedded / f"{name}.c", flags))
+        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS))
         jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
-                                (folder, *include)))
+                                (folder, *include), (embedded / f"{name}.c",)))
         objects = [j.result() for j in jobs]
     binary = folder / "simulate"
-    key = _digest([o.name for o in objects])
+    key = _digest([o.name for o in objects], LINK_FLAGS)
     stamp = folder / "simulate.key"
     if not binary.exists() or not stamp.exists() or stamp.read_text() != key:
         partial = folder / f".simulate.{os.getpid()}"
-        _run_cc([compiler(), *map(str, objects), "-lm", "-o", str(partial)])
+        try:
+            _run_cc([compiler(), *map(str, objects), *LINK_FLAGS, "-o", str(partial)])
+        except RuntimeError:  # no static C library here: linked as usual
+            _run_cc([compiler(), *map(str, objects), "-pthread", "-lm", "-o", str(partial)])
         os.replace(partial, binary)
         stamp.write_text(key)
     return binary
@@ -535,6 +596,7 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
                     "float": [str(binaries["float"]), "--log", str(log)]}
         walls = {v: [] for v in variants}
         loops = {v: [] for v in variants}
+        cpus = {v: [] for v in variants}
         for command in variants.values():  # warm up: page cache, CPU frequency
             _timed_run(command, log)
         for _ in range(runs):
@@ -542,10 +604,13 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
                 wall, info = _timed_run(command, log)
                 walls[v].append(wall)
                 loops[v].append(info["loop_s"])
+                cpus[v].append(info["loop_cpu_s"])
         log.unlink(missing_ok=True)
         for v in variants:
             row[f"wall_{v}_s"] = statistics.median(walls[v])
             row[f"loop_{v}_s"] = statistics.median(loops[v])
+            # the loop's thread's CPU time: its work, when other work shares the machine
+            row[f"loop_cpu_{v}_s"] = statistics.median(cpus[v])
             row[f"rtf_{v}"] = row["duration_s"] / row[f"wall_{v}_s"]
         row["rtf_loop_double"] = row["duration_s"] / row["loop_double_s"]
         row["startup_s"] = row["wall_double_no_log_s"] - row["loop_double_no_log_s"]
@@ -577,23 +642,28 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
                          f"{rtf:.0f}x real time end to end, log written (target >= "
                          f"{target:g}x).")
             continue
-        period = r["loop_double_no_log_s"] / r["periods"]
-        log_period = (r["loop_double_s"] - r["loop_double_no_log_s"]) / r["periods"]
-        why = f"without a log each period costs {period * 1e6:.2f} us in the loop"
+        # The loop's CPU time where the program reports it (other work on the machine stretches
+        # its wall time, not its CPU time), its wall time otherwise.
+        cpu = "loop_cpu_double_no_log_s" in r
+        loop = "loop_cpu_double" if cpu else "loop_double"
+        period = r[f"{loop}_no_log_s"] / r["periods"]
+        log_period = (r[f"{loop}_s"] - r[f"{loop}_no_log_s"]) / r["periods"]
+        why = (f"without a log each period costs {period * 1e6:.2f} us in the loop"
+               + (" (its CPU time)" if cpu else ""))
         if r["scenario"] in by_name:
             step = by_name[r["scenario"]]["double_ns"] * 1e-9
             why += (f": the controller's step {step * 1e6:.2f} us (both arms, the desired "
                     f"trajectory evaluated in C), the rest ({(period - step) * 1e6:.2f} us) the "
                     f"{r['units']} arms' RK4 plant periods (4 forward-dynamics evaluations "
-                    "each) and the measurement")
+                    "each, the scenario's constants folded in) and the measurement")
         lines.append(
             f"- **missed** by {target / rtf:.2f}x: {r['scenario']} all-in-C simulation "
             f"(embedded/sim) at {rtf:.0f}x real time end to end, log written "
             f"({r['rtf_double_no_log']:.0f}x without a log; target >= {target:g}x). Why: "
             f"{why}, a cap of {1e-3 / period:.0f}x on one core. The log adds "
-            f"{log_period * 1e6:.2f} us per period: the poses, a second evaluation of the "
-            "desired trajectory (the step evaluates it but does not return it) and "
-            f"{r['log_bytes'] / 1e6:.1f} MB written; the process start-up "
+            f"{log_period * 1e6:.2f} us per period to the loop: its rows, "
+            f"{r['log_bytes'] / 1e6:.1f} MB handed to the writer thread (which evaluates the "
+            "poses and writes the file on the other core); the process start-up "
             f"{r['startup_s'] * 1e3:.2f} ms.")
     return lines
 
@@ -637,12 +707,14 @@ def markdown(steps: list[dict] | None, sims: list[dict] | None,
     out += ["", "## All-in-C simulation (embedded/sim, real-time factor)", ""]
     if sims is None:
         return out + why("embedded_sims")
-    out += ["`embedded/sim/simulate.c` built per scenario (-O2): the embedded controller, which "
-            "evaluates its desired trajectory in C each period, and each unit's generated plant "
-            "kernel (RK4, the scenario's sub-steps), with the scenario's measurement delay and "
-            "grids; no Python, no CasADi. Full scenario length; wall time from starting the "
-            "process to its exit (medians of runs taken turn about), log written (a row of "
-            "doubles per period) unless said. *loop*: the program's own time for its loop "
+    out += ["`embedded/sim/simulate.c` built per scenario (-O2, linked statically): the embedded "
+            "controller, which evaluates its desired trajectory in C each period (once, for the "
+            "step and the log), and each unit's plant period (RK4, the scenario's sub-steps) "
+            "generated with the scenario's constants folded in (the geared plant: its general "
+            "kernel), with the scenario's measurement delay and grids; no Python, no CasADi. "
+            "Full scenario length; wall time from starting the process to its exit (medians of "
+            "runs taken turn about), log written (a row of doubles per period, written by a "
+            "second thread) unless said. *loop*: the program's own time for its loop "
             "(log written); *start-up*: process wall time less the loop, without a log; "
             "*simulate()*: the all-in-C path of `cochlea.sim.simulate` on the same scenario, end "
             "to end (its set-up samples the desired trajectory with CasADi; units on threads), "

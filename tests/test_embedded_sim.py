@@ -94,6 +94,76 @@ def test_float_build_follows_the_simulation(name, tmp_path):
         assert np.max(np.abs(u.q - r.q)) <= 1e-5
 
 
+@pytest.mark.parametrize("name", [
+    "serial_joint", "serial_task",
+    pytest.param("parallel_joint", marks=pytest.mark.slow),
+    pytest.param("parallel_task", marks=pytest.mark.slow)])
+def test_full_length_log_is_the_simulations_bit_for_bit(name, tmp_path):
+    """The whole study, log written: every logged value is ``simulate()``'s bit for bit (its C
+    path runs the general kernels; bench/results.md's max diff 0.0). So the plant specialised
+    to the scenario's constants computes what the general kernel does, and the log's desired
+    trajectory is the sample the step used (evaluated once a period)."""
+    result, info, sc, setups = run_logged(name, "double", tmp_path, duration=sc_duration(name))
+    reference = simulate(sc, setups=setups)
+    assert info["status"] == "completed" and info["rows"] == len(reference.time)
+    for u, r in zip(result.units, reference.units, strict=True):
+        for key in eb.LOG_FIELDS:
+            a, b = getattr(u, key), getattr(r, key)
+            assert a.shape == b.shape and np.array_equal(a, b), (u.name, key)
+
+
+def sc_duration(name: str) -> float:
+    return float(load_scenario(name).duration)
+
+
+def test_the_log_ends_on_any_row_of_its_blocks(tmp_path):
+    """The writer thread's ring of blocks (simulate.c: SIM_BLOCKS of SIM_BLOCK_ROWS rows): a run
+    that ends on a block's last row, after the ring wrapped, one row into a block, or before
+    the first block is full, logs the first rows of a longer run, byte for byte."""
+    binary = eb.build_simulation("serial_joint")
+    longer = tmp_path / "longer.log"
+    info = eb.run_simulation(binary, 3.0, longer)
+    block = (1 << 18) // (8 * info["columns"]) + 1  # SIM_BLOCK_ROWS
+    whole = longer.read_bytes()
+    for rows in (block, 4 * block, 4 * block + 1, 7):
+        log = tmp_path / f"{rows}.log"
+        part = eb.run_simulation(binary, rows * 1e-3, log)
+        assert part["rows"] == rows and part["status"] == "completed"
+        assert log.read_bytes() == whole[:rows * 8 * info["columns"]], rows
+
+
+@pytest.mark.parametrize("name", ["serial_joint", "parallel_task"])
+def test_specialised_plant_is_the_general_one(name):
+    """A unit's plant with the scenario's constants folded in (x, tau) gives the general
+    Function's next state bit for bit, at states and efforts away from the start."""
+    sc = eb.sim_scenario(name)
+    u = unit_setups(sc)[0]
+    general = u.plant_function(sc.plant_substeps)
+    special = eb.specialised_plant(u, sc.plant_substeps, sc.period, "sim_unit_plant")
+    assert special.n_in() == 2 and special.n_instructions() < general.n_instructions()
+    rng = np.random.default_rng(3)
+    n = u.plant_model.nq
+    for _ in range(20):
+        x = np.asarray(u.plant_x0) + rng.normal(0.0, 0.2, len(u.plant_x0))
+        tau = rng.normal(0.0, 1.0, n)
+        constants = [u.plant_params, u.friction, sc.period] + \
+            ([u.drive] if general.n_in() == 6 else [])
+        a = np.asarray(general(x, tau, *constants)).ravel()
+        b = np.asarray(special(x, tau)).ravel()
+        assert np.array_equal(a, b), np.max(np.abs(a - b))
+
+
+def test_the_geared_plant_stays_general():
+    """The geared plant (realistic preset) runs its generated_c/ kernel: folding its constants
+    moved results by an ulp, which backlash and stiction grew to 1e-2 rad over a study."""
+    header, plant_c, groups = eb.sim_scenario_header("serial_joint_realistic")
+    assert "serial_arm1_gear_plant_step, serial_arm1_fk_world" in header
+    assert "sim_arm1_plant" not in plant_c and "serial_arm1" in groups
+    header, plant_c, groups = eb.sim_scenario_header("serial_task")
+    assert "sim_arm1_plant, serial_arm1_fk_world" in header
+    assert "int sim_arm1_plant(" in plant_c and "int sim_arm2_plant(" in plant_c
+
+
 @pytest.mark.slow
 def test_full_length_without_a_log():
     """The scenario's own duration by default; without a log nothing is written."""
@@ -103,22 +173,28 @@ def test_full_length_without_a_log():
     assert info["rows"] == info["periods"] == round(sc.duration / sc.period)
     assert info["duration_s"] == sc.duration and info["period_s"] == sc.period
     assert 0 < info["loop_s"] <= info["main_s"]
+    assert 0 < info["loop_cpu_s"] <= info["loop_s"] + 1e-3  # one thread: CPU <= wall
 
 
 @pytest.mark.slow
 def test_needs_neither_python_nor_casadi():
-    """The program links the C library and libm only."""
+    """The program links the C library (its threads: the log's writer) and libm only,
+    statically where the C library allows, so that nothing is loaded at start-up."""
     binary = eb.build_simulation("parallel_task_realistic")
     dynamic = subprocess.run(["readelf", "-d", str(binary)], capture_output=True, text=True,
                              check=True).stdout
     needed = {line.split("[")[1].split("]")[0] for line in dynamic.splitlines()
               if "(NEEDED)" in line}
-    assert needed <= {"libm.so.6", "libc.so.6"}, needed
+    assert needed <= {"libm.so.6", "libc.so.6", "libpthread.so.0"}, needed
 
 
 @pytest.mark.parametrize("args", [["--duration", "-1"], ["--duration", "2s"], ["--rate", "1"],
-                                  ["--log"], ["--log", "/nonexistent/folder/log.bin"]])
+                                  ["--log"], ["--log", "/nonexistent/folder/log.bin"],
+                                  pytest.param(["--log", "/dev/full"], marks=pytest.mark.skipif(
+                                      not Path("/dev/full").exists(), reason="no /dev/full"))])
 def test_refuses_bad_arguments(args):
+    """One line on stderr, exit 2, no summary: also when the log's writer thread finds the
+    disk full."""
     done = subprocess.run([str(eb.build_simulation("serial_joint")), *args],
                           capture_output=True, text=True)
     assert done.returncode == 2 and done.stderr and not done.stdout

@@ -1,12 +1,17 @@
 /* cochlea all-in-C simulation: what simulate.c needs of a scenario.
  *
  * A scenario is compiled in through "sim_scenario.h", which bench/embedded_bench.py writes from
- * the scenario (build/embedded-sim/<scenario>/sim_scenario.h). It includes the scenario's
- * embedded controller (generated_c/embedded/<scenario>.h) and the headers of its plant kernels
- * (generated_c/<group>.h), and defines:
+ * the scenario (build/embedded-sim/<scenario>/<precision>/sim_scenario.h), with sim_plant.c
+ * beside it: each unit's plant period specialised to the scenario, its true parameters,
+ * friction, dry friction and period folded in as literals (CasADi; the same results as the
+ * general kernel, bit for bit on the studies). The header includes the scenario's embedded
+ * controller (generated_c/embedded/<scenario>.h) and the headers of its pose kernels and of a
+ * geared plant's kernel, which stays general (generated_c/<group>.h), and defines:
  *
  *   SIM_NAME            the scenario's name (a string)
  *   SIM_C(x)            the controller's identifier x: SIM_C(_step) is <scenario>_step
+ *   SIM_CONTROLLER_SOURCE  the controller's source, "<scenario>.c", which simulate.c includes
+ *                       (it calls the step's halves: the desired sample, then the step on it)
  *   SIM_UNITS, SIM_NQ, SIM_NX, SIM_ND, SIM_NP, SIM_NE
  *                       the controller's sizes (<SCENARIO>_UNITS, ...)
  *   SIM_NPOSE           logged pose coordinates, all units
@@ -47,7 +52,8 @@ typedef struct {
     int ne;    /* errors */
     int npose; /* logged pose coordinates (m, rad) */
     /* x_next = plant(x, tau, p, friction, h[, coulomb]): the period (RK4 with the scenario's
-     * sub-steps, or the geared plant's linearly implicit steps) on the plant's state */
+     * sub-steps, or the geared plant's linearly implicit steps) on the plant's state; a plant
+     * specialised to the scenario (sim_plant.c) reads x and tau only, the data below folded in */
     sim_kernel plant;
     sim_kernel pose;          /* pose = fk_world(q) */
     const double *x0;         /* the plant's initial state (nxp) */
