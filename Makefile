@@ -103,8 +103,11 @@ robustness: $(STAMP)
 robustness-maps: $(STAMP)
 	$(BIN)/python bench/robustness_maps.py
 
-# The benchmark: writes bench/results.md and bench/results.json (takes a few minutes).
+# The benchmark: writes bench/results.md and bench/results.json (takes a few minutes). It first
+# installs the bench extra (MuJoCo, the reference of the plant step's speed) into the venv;
+# `make test` and `make demo` do not need it and do not install it.
 bench: $(STAMP) lib
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
 	$(BIN)/python bench/run.py
 
 # A user's robot on C kernels (UR5 and a 4-DoF arm imported from URDFs): generation +
