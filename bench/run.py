@@ -22,6 +22,9 @@ Python loop that repeats the call (tens of ns, the same for every path, the floo
    period at 1-4 Mbaud with the emulator's wire timing, the deadline misses of 20 s.
 6. A sweep's samples per core (bench/sweep_bench.py's serial part, CPU time): each study's
    full-length sample as a cochlea-sweep worker runs it, and where its time goes.
+7. The generated plant step against MuJoCo's RK4 step of the same arm
+   (bench/mujoco_compare.py; mujoco is the bench extra): the arm checked the same first
+   (accelerations and one step to 1e-9), then both steps timed in C and their ratio.
 
 A section that cannot run (a tool missing, a program that refuses, a run that fails) does not
 end the benchmark: its section in results.md says why ("not measured in this run: ..."),
@@ -56,6 +59,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 import casadi as ca  # noqa: E402
 import embedded_bench  # noqa: E402
 import embedded_program  # noqa: E402
+import mujoco_compare  # noqa: E402
 import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 import sweep_bench  # noqa: E402
@@ -554,6 +558,7 @@ def markdown(results: dict) -> str:
     else:
         out += [embedded_program.TITLE, "", *not_measured(results, "embedded_program")]
     out += sweep_markdown(results.get("sweep"), not_measured(results, "sweep"))
+    out += mujoco_compare.markdown(results.get("mujoco"), not_measured(results, "mujoco"))
     return "\n".join(out)
 
 
@@ -617,6 +622,7 @@ SECTIONS = {
     "embedded_sims": "the all-in-C simulation (embedded/sim)",
     "embedded_program": "the embedded program against the emulator (about 2 min)",
     "sweep": "a sweep's samples per core",
+    "mujoco": "the plant step against MuJoCo's RK4 step",
 }
 
 
@@ -644,6 +650,8 @@ def run_sections(names) -> dict:
         "embedded_sims": embedded_bench.bench_embedded_sims,
         "embedded_program": embedded_program.bench,
         "sweep": sweep_section,
+        "mujoco": lambda: mujoco_compare.bench(
+            lib(), functools.partial(time_kernel, helpers()[1], lib())),
     }
     results = {"machine": machine(), "targets": TARGETS, "load_before": load_average(),
                "not_run": {}}
@@ -660,6 +668,12 @@ def run_sections(names) -> dict:
                   file=sys.stderr, flush=True)
     results["load_after"] = load_average()
     return results
+
+
+def time_kernel(harness: Path, lib: ckernels.Library, name: str,
+                inputs: list[np.ndarray]) -> float:
+    """A kernel's time per call in C: the median of 51 runs of 2000 calls."""
+    return time_in_c(harness, lib, name, inputs, 51, 2000)
 
 
 def sweep_section() -> list[dict]:

@@ -19,11 +19,19 @@ import embedded_program  # noqa: E402  (bench/, as bench/run.py imports it)
 import run as bench_run  # noqa: E402  (bench/run.py)
 
 #: The last full run's rows (bench/results.json) stand in for the sections that run; a sweep
-#: row of its shape (bench/sweep_bench.py's serial()) where that file has none.
+#: row of its shape (bench/sweep_bench.py's serial()) where that file has none, and likewise
+#: a MuJoCo row (bench/mujoco_compare.py's bench()).
 LAST = json.loads((ROOT / "bench" / "results.json").read_text())
 LAST.setdefault("sweep", [{"study": "serial_joint", "duration_s": 20.0, "per_s_core": 40.0,
                            "cpu_s": 0.025, "uncached_cpu_s": 0.1,
                            "parts": {"setup": 0.001, "simulate": 0.02}}])
+LAST.setdefault("mujoco", {
+    "scenario": "serial_joint", "unit": "arm1", "period_s": 1e-3, "plant_substeps": 1,
+    "plant_kernel": "serial_arm1_plant_step", "plant_operations": 840, "mujoco": "4.0.0",
+    "states": 50, "tolerance": 1e-9, "xml": "build/bench/serial_joint_arm1.xml",
+    "load_before": 1.0, "load_after": 1.0, "qacc_max_rel": 2e-14, "step_max_rel": 2e-14,
+    "same_arm": True, "plant_c_s": 2.7e-7, "mujoco_c_s": 3.7e-6, "mujoco_c_version": "4.0.0",
+    "mujoco_rollout_s": 6.2e-6, "mujoco_python_s": 7e-6, "ratio": 13.7})
 
 
 def fake_sections(monkeypatch, failing: dict[str, Exception]) -> None:
@@ -46,6 +54,7 @@ def fake_sections(monkeypatch, failing: dict[str, Exception]) -> None:
     monkeypatch.setattr(bench_run.embedded_bench, "bench_embedded_sims",
                         section("embedded_sims"))
     monkeypatch.setattr(bench_run.embedded_program, "bench", section("embedded_program"))
+    monkeypatch.setattr(bench_run.mujoco_compare, "bench", section("mujoco"))
 
 
 def sections(markdown: str) -> dict[str, str]:
