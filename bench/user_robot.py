@@ -6,9 +6,10 @@ kernels"), measured in one run, as ratios (this machine is shared: absolute figu
    URDF with ``cochlea-urdf import`` (its starter scenario: joint space, controller e), then
    ``cochlea-codegen --scenario starter.toml --out DIR`` (wall time of each stage; target 60 s
    on 2 cores);
-2. the as-fast run of user robots (UR5, and a 4-DoF arm imported from tests/data/arm4.urdf, its
-   slider made revolute) on their C kernels against CasADi, and their real-time factor per
-   joint (real-time factor x joints) against the shipped serial study's on its C kernels
+2. the as-fast run of user robots (UR5, a 4-DoF arm imported from tests/data/arm4.urdf, its
+   slider made revolute, and the planar 2-DoF example models/examples/planar2_xm540.toml) on
+   their C kernels against CasADi, and their real-time factor per joint (real-time factor x
+   joints) against the shipped serial study's on its C kernels
    (serial_joint: two 3-joint arms), each the median of several full-length runs (target:
    >= 80 % of the shipped arms' per joint); also with every unit on one thread (``simulate(...,
    threads=False)``): the shipped study's two arms otherwise run on a thread each, two cores
@@ -106,7 +107,9 @@ def main() -> int:
         arm4 = tmp / "arm4r.urdf"
         arm4.write_text((ROOT / "tests" / "data" / "arm4.urdf").read_text().replace(
             'name="extend" type="prismatic"', 'name="extend" type="revolute"'))
-        robots = {"ur5": imported(ur5_urdf(), tmp / "ur5"), "arm4": imported(arm4, tmp / "arm4")}
+        # planar2: the shipped example of a user's planar arm (two XM540s), written by hand
+        robots = {"ur5": imported(ur5_urdf(), tmp / "ur5"), "arm4": imported(arm4, tmp / "arm4"),
+                  "planar2": ROOT / "models" / "examples" / "planar2_xm540_joint.toml"}
         for name, scenario in robots.items():
             results[name] = {"codegen": generated(scenario, tmp / name / "kernels")}
             print(f"{name}: generated and compiled in {results[name]['codegen']['total_s']:.1f} s",
@@ -128,7 +131,7 @@ def main() -> int:
     print(f"| serial_joint (shipped) | {s['joints']} | -- | {s['rtf_c']:.0f} | "
           f"{s['rtf_casadi']:.1f} | {s['c_over_casadi']:.0f}x | {s['rtf_per_joint_c']:.0f} "
           f"(100 %) | {s['rtf_per_joint_c_one_thread']:.0f} (100 %) |")
-    for name in ("arm4", "ur5"):
+    for name in ("planar2", "arm4", "ur5"):
         r, g = results[name]["run"], results[name]["codegen"]
         print(f"| {name} (user) | {r['joints']} | {g['generate_s']:.1f} + {g['compile_s']:.1f} "
               f"| {r['rtf_c']:.0f} | {r['rtf_casadi']:.1f} | {r['c_over_casadi']:.0f}x | "
