@@ -335,4 +335,4 @@ def test_float_build_follows_the_double_build(built, name):
     estimate = np.max(np.linalg.norm(p_f - p_d, axis=1)
                       / np.maximum(np.linalg.norm(p_d, axis=1), 1e-12))
     assert torque <= 1e-5, torque
-    assert estimate <= 1e-3, estimate
+    assert estimate <= 5e-6, estimate  # docs/embedded.md: within 5e-6 (compensated sum)
