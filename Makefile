@@ -54,7 +54,9 @@ CFLAGS_C ?= -O2
 LIBFLAGS := -std=c99 -fPIC -Wall -Wextra -Werror
 JOBS     ?= $(shell nproc 2>/dev/null || echo 2)
 GEN      ?= generated_c
-BUILD    ?= build
+# A user's kernels (GEN=DIR from `cochlea-codegen --out DIR`) build into DIR/build unless BUILD
+# says otherwise, so they never overwrite the shipped build/libcochlea.so or cochlea-embedded.
+BUILD    ?= $(if $(filter generated_c generated_c/,$(GEN)),build,$(GEN)/build)
 LIB      := $(BUILD)/libcochlea.so
 C_SRC    := $(sort $(wildcard $(GEN)/*.c))
 C_OBJ    := $(patsubst $(GEN)/%.c,$(BUILD)/obj/%.o,$(C_SRC))

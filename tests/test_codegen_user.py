@@ -257,3 +257,16 @@ def test_a_sweep_runs_on_the_users_kernels_or_refuses_before_any_worker(user, tm
     assert not row["diverged"] and row["stop_rule"] == "none", row  # 0.5 s: not converged yet
     rms = [v for k, v in row.items() if ".final_rms." in k]
     assert rms and all(np.isfinite(v) for v in rms)
+
+
+def test_a_users_kernels_build_beside_them_not_over_the_shipped_program(tmp_path):
+    """``make embedded GEN=DIR`` without ``BUILD=`` builds into DIR/build: it used to write
+    build/cochlea-embedded, replacing the shipped scenarios' program with the user's."""
+    gen = tmp_path / "kernels"
+    planned = subprocess.run(["make", "-n", "embedded", f"GEN={gen}"], cwd=ROOT, check=True,
+                             capture_output=True, text=True).stdout
+    outputs = [word for word in planned.split() if word.endswith("cochlea-embedded")]
+    assert outputs == [str(gen / "build" / "cochlea-embedded")]
+    shipped = subprocess.run(["make", "-n", "-B", "embedded"], cwd=ROOT, check=True,
+                             capture_output=True, text=True).stdout
+    assert "-o build/cochlea-embedded " in shipped
