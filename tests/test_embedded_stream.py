@@ -528,3 +528,35 @@ def test_a_refusal_before_the_bus_streams_its_header_and_end(tmp_path):
     assert summary["stop"]["rule"] == "none" and summary["stop"]["exit_code"] == 5
     assert summary["stream"]["complete"] and summary["stream"]["firmware"]["rows_seen"] == 0
     assert summary["stream"]["header"]["every"] == "10"  # the default decimation
+
+
+@pytest.mark.slow
+def test_log_bin_that_cannot_take_more_rows_keeps_whole_rows_and_exits_18(tmp_path, columns):
+    """A full disk while the rows stream (here a file-size limit, EFBIG): log.bin keeps the
+    whole rows that fit, the read stops, the report is written from them as far as it can be,
+    and the host says so in one line with exit 18. It used to end with exit 2 and no report."""
+    import resource
+
+    sent = rows(columns, range(40))
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, header(columns))
+                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
+                                   for k, row in enumerate(sent))
+                        + encode(END, 41, end_text(40, 0)))
+    row_bytes = 8 * len(columns)
+    limit = 12 * row_bytes + row_bytes // 2  # the 13th row is torn by the limit
+
+    def limited():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past it fails with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_embedded_host", "--port",
+                           str(capture), "--out", str(out)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=180, preexec_fn=limited)
+    assert done.returncode == 18, done.stderr
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert "log.bin could not be written" in done.stderr and "first 12 rows" in done.stderr
+    kept = log_rows(out)
+    assert kept.shape[0] == 12
+    np.testing.assert_array_equal(kept, np.array(sent[:12]))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 import signal
 import socket
@@ -95,8 +96,10 @@ class StreamRun:
         self.end: dict | None = None
         self.end_problem: str | None = None  # the end frame came, but it cannot be read
         self.loop: RealTimeLoop | None = None
-        self.file = None
+        self.file: int | None = None  # log.bin's descriptor: rows are written whole
+        self.pending = bytearray()  # this feed's rows, written when it returns
         self.rows = 0  # rows in log.bin (received, and NaN fill for missing periods)
+        self.disk_error: str | None = None  # log.bin could not take the rows (a full disk)
         self.received = 0
         self.missing = 0  # periods the stream skipped (lost frames, the firmware's drops)
         self.bad_rows = {"length": 0, "time": 0, "order": 0}
@@ -110,10 +113,34 @@ class StreamRun:
         """True once the end frame has come. The rows are in log.bin when it returns (a
         reader following the file, as cochlea-ros2 follows cochlea-run's, sees them)."""
         try:
-            return self._frames(data)
+            done = self._frames(data)
         finally:
-            if self.file is not None:
-                self.file.flush()
+            if self.file is not None and self.pending:
+                self._write_pending()
+        return done or self.disk_error is not None
+
+    def _write_pending(self) -> None:
+        """The rows of this feed into log.bin. A write that fails (a full disk, a file too
+        large) leaves log.bin with the whole rows that fit and ends the read: the report is
+        then written from them, and the host exits 18 as cochlea-run does."""
+        data, self.pending = bytes(self.pending), bytearray()
+        try:
+            done = 0
+            while done < len(data):
+                done += os.write(self.file, data[done:])
+        except OSError as exc:
+            width = 8 * self.row_length
+            size = os.fstat(self.file).st_size
+            kept = size // width
+            try:
+                os.ftruncate(self.file, kept * width)  # no torn row at the end
+            except OSError:
+                pass
+            lost = self.rows - kept
+            self.rows = kept
+            self.disk_error = (f"log.bin could not be written ({exc.strerror or exc}): it "
+                               f"keeps its first {kept} rows, {lost} more were lost, and the "
+                               "read stopped there")
 
     def _frames(self, data: bytes) -> bool:
         for frame in self.decoder.feed(data):
@@ -172,7 +199,7 @@ class StreamRun:
                 "schema; --scenario names the one it was built from")
         self.out.mkdir(parents=True, exist_ok=True)
         write_raw_columns(self.out / "log.columns.json", loop)
-        self.file = open(self.out / "log.bin", "wb")
+        self.file = os.open(self.out / "log.bin", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self.header, self.loop = header, loop  # last: the run has begun
 
     def _row(self, frame: Frame) -> None:
@@ -196,11 +223,11 @@ class StreamRun:
         while expected < k:  # a hole: a NaN row at the missing period's time keeps the log's
             hole = np.full(self.row_length, np.nan)  # rows at their periods
             hole[0] = expected * self.h
-            self.file.write(hole.astype("<f8").tobytes())
+            self.pending += hole.astype("<f8").tobytes()
             self.rows += 1
             self.missing += 1
             expected += self.every
-        self.file.write(row.astype("<f8").tobytes())
+        self.pending += row.astype("<f8").tobytes()
         self.rows += 1
         self.received += 1
         self.last_k = k
@@ -208,7 +235,7 @@ class StreamRun:
     # ---- the report ------------------------------------------------------------------
 
     def write(self, why_incomplete: str | None) -> dict:
-        self.file.close()
+        os.close(self.file)
         loop, end = self.loop, self.end or {}
         loop.log_path, loop.rows = self.out / "log.bin", self.rows
         result = loop.result(self.scenario)
@@ -373,12 +400,22 @@ def _read_and_write(stream: StreamRun, port: str, out: Path, baud: int, timeout:
                 break
     finally:
         source.close()
-    why = why or stream.end_problem
+    why = stream.disk_error or why or stream.end_problem
     if stream.loop is None:
         print(f"{PROG}: no stream header came ({why or 'no frame'}; decoder "
               f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
         return EXIT_NO_HEADER
-    data = stream.write(why)
+    try:
+        data = stream.write(why)
+    except ReportError as exc:
+        if stream.disk_error is None:
+            raise
+        print(f"{PROG}: {stream.disk_error}; {exc}", file=sys.stderr)
+        return EXIT_REPORT_FAILED
+    if stream.disk_error is not None:
+        print(f"{PROG}: {stream.disk_error}; wrote the report of {out} from them",
+              file=sys.stderr)
+        return EXIT_REPORT_FAILED
     print(f"{PROG}: wrote {out}: {stream.rows} rows (one every {stream.every} periods), "
           f"stop {data['stop']['rule']}"
           + (f"; incomplete: {why}" if why else "")
