@@ -560,3 +560,49 @@ def test_log_bin_that_cannot_take_more_rows_keeps_whole_rows_and_exits_18(tmp_pa
     kept = log_rows(out)
     assert kept.shape[0] == 12
     np.testing.assert_array_equal(kept, np.array(sent[:12]))
+
+
+@pytest.mark.slow
+def test_a_board_that_restarts_mid_stream_leaves_each_run_in_its_own_folder(tmp_path, columns):
+    """A reset or power cycle mid-run: the board sends its header again, numbered from 0. The
+    first run ends there, incomplete, in DIR; the restarted one goes to DIR/restart-1 with its
+    own end frame; exit 3. The second header used to be ignored, its rows rejected as out of
+    order and its end frame taken as the first run's."""
+    first, second = rows(columns, range(10)), rows(columns, range(5))
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, header(columns))
+                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
+                                   for k, row in enumerate(first))
+                        + encode(HEADER, 0, header(columns))
+                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
+                                   for k, row in enumerate(second))
+                        + encode(END, 6, end_text(5, 0)))
+    out = tmp_path / "run"
+    done = host("--port", str(capture), "--out", str(out))
+    assert done.returncode == 3, done.stderr
+    assert "Traceback" not in done.stderr
+    np.testing.assert_array_equal(log_rows(out), np.array(first))
+    np.testing.assert_array_equal(log_rows(out / "restart-1"), np.array(second))
+    cut = json.loads((out / "summary.json").read_text())
+    assert cut["stream"]["incomplete_reason"].startswith("the board restarted")
+    assert cut["stop"]["rule"] == "stream-incomplete"
+    restarted = json.loads((out / "restart-1" / "summary.json").read_text())
+    assert restarted["stream"]["complete"] and restarted["stop"]["rule"] == "completed"
+    assert done.stdout.count("wrote ") == 2
+
+
+@pytest.mark.slow
+def test_a_header_repeated_before_any_row_is_not_a_restart(tmp_path, columns):
+    """The same header twice before the first row (a board reset during its start-up, or a
+    repeat on the line) is one run: nothing was lost."""
+    sent = rows(columns, range(4))
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, header(columns)) + encode(HEADER, 0, header(columns))
+                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
+                                   for k, row in enumerate(sent))
+                        + encode(END, 5, end_text(4, 0)))
+    out = tmp_path / "run"
+    done = host("--port", str(capture), "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    np.testing.assert_array_equal(log_rows(out), np.array(sent))
+    assert not (out / "restart-1").exists()

@@ -89,9 +89,11 @@ class StreamRun:
     """The host's side of one firmware run: the header sets the loop (cochlea-run's row
     layout), the rows go to log.bin, the end frame closes it."""
 
-    def __init__(self, out: Path, scenario_override: str | None):
+    def __init__(self, out: Path, scenario_override: str | None,
+                 decoder: Decoder | None = None):
         self.out, self.scenario_override = out, scenario_override
-        self.decoder = Decoder()
+        self.decoder = decoder or Decoder()
+        self.restart_ended = False  # the frames that began it held its end frame too
         self.header: dict | None = None
         self.end: dict | None = None
         self.end_problem: str | None = None  # the end frame came, but it cannot be read
@@ -106,6 +108,9 @@ class StreamRun:
         self.before_header = 0
         self.crc = 0
         self.last_k: int | None = None
+        #: A second header (the board restarted: a reset, a power cycle) ends this run; the
+        #: header and the frames after it begin the next run, in its own folder.
+        self.restart: list[Frame] | None = None
 
     # ---- frames ----------------------------------------------------------------------
 
@@ -118,6 +123,18 @@ class StreamRun:
             if self.file is not None and self.pending:
                 self._write_pending()
         return done or self.disk_error is not None
+
+    def following(self, out: Path) -> StreamRun:
+        """The run the board began when it restarted, from the frames after this one's end
+        (its header first), written to ``out``; the same decoder reads on."""
+        run = StreamRun(out, self.scenario_override, self.decoder)
+        try:
+            run.restart_ended = run.frames(self.restart)
+        finally:
+            if run.file is not None and run.pending:
+                run._write_pending()
+        run.restart_ended = run.restart_ended or run.disk_error is not None
+        return run
 
     def _write_pending(self) -> None:
         """The rows of this feed into log.bin. A write that fails (a full disk, a file too
@@ -143,10 +160,19 @@ class StreamRun:
                                "read stopped there")
 
     def _frames(self, data: bytes) -> bool:
-        for frame in self.decoder.feed(data):
+        return self.frames(self.decoder.feed(data))
+
+    def frames(self, frames: list[Frame]) -> bool:
+        for i, frame in enumerate(frames):
             if frame.kind == HEADER:
                 if self.header is None:
                     self._start(parse_text(frame.payload))
+                elif frame.sequence == 0 and (self.received or any(self.bad_rows.values())):
+                    # numbered from 0 again after rows had come: the board restarted
+                    self.restart = frames[i:]
+                    self.end_problem = ("the board restarted (a new stream header) before the "
+                                        "end frame")
+                    return True
             elif frame.kind == ROW:
                 if self.loop is None:
                     self.before_header += 1
@@ -371,46 +397,78 @@ def run(port: str, out: Path, baud: int, timeout: float, scenario: str | None) -
             signal.signal(s, handler)
 
 
+#: A board that keeps restarting (a reset loop) stops the read after this many restarts.
+MAX_RESTARTS = 20
+
+
 def _read_and_write(stream: StreamRun, port: str, out: Path, baud: int, timeout: float,
                     stopped: list[str]) -> int:
+    """Read the stream into ``out``; a board that restarts mid-stream (a second header) ends
+    the run there (incomplete) and each run after it goes to ``out/restart-N``. The reports
+    are written once the read ends, so that writing one does not hold up the line."""
     source, is_file = _source(port, baud, timeout, stopped)
-    why = None
+    runs: list[tuple[StreamRun, str | None]] = []
     try:
-        last = time.monotonic()
         while True:
-            if stopped:
-                why = f"stopped by {stopped[0]} before the end frame"
+            why = None if stream.restart_ended else _read(stream, source, is_file, timeout,
+                                                          stopped)
+            runs.append((stream, stream.disk_error or why or stream.end_problem))
+            if stream.restart is None or stream.disk_error is not None:
+                break
+            if len(runs) > MAX_RESTARTS:
+                print(f"{PROG}: the board restarted {len(runs) - 1} times: the read stops "
+                      "there", file=sys.stderr)
                 break
             try:
-                data = source.read(READ_SIZE)
-            except EOFError:  # the peer closed the connection (QEMU quit)
-                stream.decoder.finish()
-                why = "the connection closed before the end frame"
-                break
-            if data:
-                last = time.monotonic()
-                if stream.feed(data):
-                    break
-            elif is_file:
-                stream.decoder.finish()
-                why = "the capture ended before the end frame"
-                break
-            elif time.monotonic() - last > timeout:
-                why = f"the line was silent for {timeout:g} s before the end frame"
+                stream = stream.following(out / f"restart-{len(runs)}")
+            except HeaderError as exc:
+                print(f"{PROG}: the board restarted with a header this host cannot write "
+                      f"({exc}): the read stops there", file=sys.stderr)
                 break
     finally:
         source.close()
-    why = stream.disk_error or why or stream.end_problem
+    codes = [_write_run(run, why) for run, why in runs]
+    if EXIT_REPORT_FAILED in codes:
+        return EXIT_REPORT_FAILED
+    if len(runs) > 1:
+        return EXIT_INCOMPLETE  # the first run was cut by the restart
+    return codes[-1]
+
+
+def _read(stream: StreamRun, source, is_file: bool, timeout: float,
+          stopped: list[str]) -> str | None:
+    """Feed the stream until its end frame (None) or another end, said in words."""
+    last = time.monotonic()
+    while True:
+        if stopped:
+            return f"stopped by {stopped[0]} before the end frame"
+        try:
+            data = source.read(READ_SIZE)
+        except EOFError:  # the peer closed the connection (QEMU quit)
+            stream.decoder.finish()
+            return "the connection closed before the end frame"
+        if data:
+            last = time.monotonic()
+            if stream.feed(data):
+                return None
+        elif is_file:
+            stream.decoder.finish()
+            return "the capture ended before the end frame"
+        elif time.monotonic() - last > timeout:
+            return f"the line was silent for {timeout:g} s before the end frame"
+
+
+def _write_run(stream: StreamRun, why: str | None) -> int:
+    out = stream.out
     if stream.loop is None:
         print(f"{PROG}: no stream header came ({why or 'no frame'}; decoder "
               f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
         return EXIT_NO_HEADER
     try:
         data = stream.write(why)
-    except ReportError as exc:
-        if stream.disk_error is None:
-            raise
-        print(f"{PROG}: {stream.disk_error}; {exc}", file=sys.stderr)
+    except ReportError as exc:  # the runs after this one are still written
+        print(f"{PROG}: " + (f"{stream.disk_error}; " if stream.disk_error else "") + str(exc),
+              file=sys.stderr)
         return EXIT_REPORT_FAILED
     if stream.disk_error is not None:
         print(f"{PROG}: {stream.disk_error}; wrote the report of {out} from them",
