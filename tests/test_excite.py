@@ -320,3 +320,23 @@ def test_desired_joint_validated(tmp_path, extra, space, key):
     with pytest.raises(DescriptionError) as info:
         load_scenario(path)
     assert key in str(info.value)
+
+
+def test_a_joint_that_started_on_its_path_is_told_why_it_is_not_converged(capsys, tmp_path):
+    """An excitation run starts on its path: its initial error is below the floor, so only the
+    floor can judge it, and the line says so instead of a bare NOT CONVERGED."""
+    from cochlea.apps.cochlea_run import _report
+
+    def coord(initial, final, converged):
+        return {"initial_abs_error": initial, "final_rms_error": final, "converged": converged,
+                "convergence_floor": 1e-6, "unit": "rad", "measured_final_rms_error": final}
+
+    data = {"duration_s": 1.0, "judged_error": "true", "converged": False, "figures": [],
+            "units": {"arm": {"tracked": {"q1": coord(0.0, 3e-6, False),
+                                          "q2": coord(0.1, 3e-2, False),
+                                          "q3": coord(0.1, 1e-7, True)}}}}
+    _report(data, tmp_path, 0.5)
+    lines = {line.split(":")[0].strip(): line for line in capsys.readouterr().out.splitlines()}
+    assert "NOT CONVERGED (started on its path" in lines["arm.q1"]
+    assert lines["arm.q2"].endswith("NOT CONVERGED")
+    assert "NOT CONVERGED" not in lines["arm.q3"]

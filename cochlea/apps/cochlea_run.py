@@ -569,9 +569,13 @@ def _report(data: dict, out: Path, wall: float) -> None:
                 continue
             # Judged on the true error where the run has it; the measured one beside it.
             seen = f" (measured {c['measured_final_rms_error']:.3e})" if true else ""
+            verdict = "" if c["converged"] else "  NOT CONVERGED"
+            if not c["converged"] and c["initial_abs_error"] <= c["convergence_floor"]:
+                # No error to shrink: the rule's ratio cannot hold, only the floor can.
+                verdict += (f" (started on its path: the final RMS is above the floor "
+                            f"{c['convergence_floor']:.1e} {c['unit']})")
             print(f"  {name}.{coord}: initial |e| {c['initial_abs_error']:.3e} {c['unit']}, "
-                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}{seen}"
-                  f"{'' if c['converged'] else '  NOT CONVERGED'}")
+                  f"final RMS {c['final_rms_error']:.3e} {c['unit']}{seen}{verdict}")
     print(f"  converged: {'yes' if data['converged'] else 'no'} (judged on the "
           f"{data['judged_error']} error)")
     print(f"  log: {out / 'log.csv'}\n  summary: {out / 'summary.json'}")
