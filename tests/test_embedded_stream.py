@@ -169,6 +169,12 @@ def host(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
                           cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
 
+def header_and_rows(columns, sent: list[np.ndarray]) -> bytes:
+    """A run's header (sequence 0) and its rows (sequence 1, 2, ...), as a firmware sends them."""
+    return encode(HEADER, 0, header(columns)) + b"".join(
+        encode(ROW, k + 1, row_payload(k, row)) for k, row in enumerate(sent))
+
+
 def log_rows(out: Path) -> np.ndarray:
     spec = json.loads((out / "log.columns.json").read_text())
     return np.fromfile(out / "log.bin", "<f8").reshape(-1, spec["row_length"])
@@ -539,10 +545,7 @@ def test_log_bin_that_cannot_take_more_rows_keeps_whole_rows_and_exits_18(tmp_pa
 
     sent = rows(columns, range(40))
     capture = tmp_path / "stream.bin"
-    capture.write_bytes(encode(HEADER, 0, header(columns))
-                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
-                                   for k, row in enumerate(sent))
-                        + encode(END, 41, end_text(40, 0)))
+    capture.write_bytes(header_and_rows(columns, sent) + encode(END, 41, end_text(40, 0)))
     row_bytes = 8 * len(columns)
     limit = 12 * row_bytes + row_bytes // 2  # the 13th row is torn by the limit
 
@@ -570,12 +573,7 @@ def test_a_board_that_restarts_mid_stream_leaves_each_run_in_its_own_folder(tmp_
     order and its end frame taken as the first run's."""
     first, second = rows(columns, range(10)), rows(columns, range(5))
     capture = tmp_path / "stream.bin"
-    capture.write_bytes(encode(HEADER, 0, header(columns))
-                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
-                                   for k, row in enumerate(first))
-                        + encode(HEADER, 0, header(columns))
-                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
-                                   for k, row in enumerate(second))
+    capture.write_bytes(header_and_rows(columns, first) + header_and_rows(columns, second)
                         + encode(END, 6, end_text(5, 0)))
     out = tmp_path / "run"
     done = host("--port", str(capture), "--out", str(out))
@@ -597,9 +595,7 @@ def test_a_header_repeated_before_any_row_is_not_a_restart(tmp_path, columns):
     repeat on the line) is one run: nothing was lost."""
     sent = rows(columns, range(4))
     capture = tmp_path / "stream.bin"
-    capture.write_bytes(encode(HEADER, 0, header(columns)) + encode(HEADER, 0, header(columns))
-                        + b"".join(encode(ROW, k + 1, row_payload(k, row))
-                                   for k, row in enumerate(sent))
+    capture.write_bytes(encode(HEADER, 0, header(columns)) + header_and_rows(columns, sent)
                         + encode(END, 5, end_text(4, 0)))
     out = tmp_path / "run"
     done = host("--port", str(capture), "--out", str(out))
