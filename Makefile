@@ -279,7 +279,17 @@ stm32-firmware:
 # build, the memory map and the HAL against a register model on the host. Compiled in: the
 # STM32F4 port's settings under OPENCR_ names (OPENCR_SCENARIO, OPENCR_DURATION, ...), and
 # OPENCR_POWER_SETTLE_MS (the motors' boot time after the power switch closes, ROBOTIS's 1 s).
+# OPENCR_LOAD=swd (default) links at 0x08000000 for an SWD probe or DFU, replacing OpenCR's
+# bootloader, into build/opencr/; OPENCR_LOAD=bootloader links at 0x08040000 for ROBOTIS's
+# bootloader and its opencr_ld, into build/opencr-bootloader/.
 OPENCR_DIR              := embedded/ports/opencr
+OPENCR_LOAD             ?= swd
+OPENCR_LD_swd           := stm32f746.ld
+OPENCR_LD_bootloader    := stm32f746_bootloader.ld
+OPENCR_OUT_swd          := opencr
+OPENCR_OUT_bootloader   := opencr-bootloader
+OPENCR_LD               := $(OPENCR_LD_$(OPENCR_LOAD))
+OPENCR_OUT              := $(BUILD)/$(OPENCR_OUT_$(OPENCR_LOAD))
 OPENCR_SCENARIO         ?= serial_joint
 OPENCR_DURATION         ?= 0
 OPENCR_WATCHDOG_MISSES  ?= 20
@@ -304,19 +314,19 @@ OPENCR_CFLAGS  := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
                   -DSTM32_STREAM_EVERY=$(OPENCR_STREAM_EVERY)u \
                   -DSTM32_STREAM_BAUD=$(OPENCR_STREAM_BAUD)u \
                   -DOPENCR_POWER_SETTLE_MS=$(OPENCR_POWER_SETTLE_MS)u
-OPENCR_LDFLAGS := -T $(OPENCR_DIR)/stm32f746.ld -nostartfiles --specs=nano.specs \
+OPENCR_LDFLAGS := -L $(OPENCR_DIR) -T $(OPENCR_DIR)/$(OPENCR_LD) -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 OPENCR_SOURCES := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(OPENCR_SCENARIO).c \
                   $(GEN)/embedded/$(OPENCR_SCENARIO)_scenario.c \
                   $(sort $(wildcard $(OPENCR_DIR)/*.c)) $(PORTS_COMMON_SRC)
 OPENCR_DEPS    := $(OPENCR_SOURCES) $(wildcard embedded/core/*.h $(OPENCR_DIR)/*.h) \
-                  $(wildcard $(PORTS_COMMON)/*.h) $(OPENCR_DIR)/stm32f746.ld \
-                  $(GEN)/embedded/$(OPENCR_SCENARIO).h Makefile $(BUILD)/opencr/config.txt
-OPENCR_CONFIG  := $(OPENCR_CFLAGS) $(OPENCR_CPU) $(ARM_CC)
+                  $(wildcard $(PORTS_COMMON)/*.h) $(wildcard $(OPENCR_DIR)/*.ld) \
+                  $(GEN)/embedded/$(OPENCR_SCENARIO).h Makefile $(OPENCR_OUT)/config.txt
+OPENCR_CONFIG  := $(OPENCR_CFLAGS) $(OPENCR_CPU) $(ARM_CC) $(OPENCR_LD)
 OPENCR_PREC_double :=
 OPENCR_PREC_float  := -DCOCHLEA_FLOAT
 
-$(BUILD)/opencr/%/cochlea-opencr.elf: $(OPENCR_DEPS)
+$(OPENCR_OUT)/%/cochlea-opencr.elf: $(OPENCR_DEPS)
 	@mkdir -p $(@D)
 	cd $(@D) && rm -f *.su
 	$(ARM_CC) $(OPENCR_CFLAGS) $(OPENCR_CPU) $(OPENCR_PREC_$*) $(OPENCR_SOURCES) \
@@ -324,7 +334,7 @@ $(BUILD)/opencr/%/cochlea-opencr.elf: $(OPENCR_DEPS)
 	arm-none-eabi-objcopy -O binary $@.partial $(@D)/cochlea-opencr.bin
 	mv $@.partial $@
 
-$(BUILD)/opencr/config.txt: opencr-config-check
+$(OPENCR_OUT)/config.txt: opencr-config-check
 	@mkdir -p $(@D)
 	@echo '$(OPENCR_CONFIG)' | cmp -s - $@ || echo '$(OPENCR_CONFIG)' > $@
 
@@ -334,8 +344,10 @@ opencr-firmware:
 	$(if $(wildcard $(GEN)/embedded/$(OPENCR_SCENARIO)_scenario.c),,$(error opencr-firmware: \
 	    unknown scenario OPENCR_SCENARIO=$(OPENCR_SCENARIO); one of: $(patsubst \
 	    $(GEN)/embedded/%_scenario.c,%,$(wildcard $(GEN)/embedded/*_scenario.c))))
+	$(if $(OPENCR_LD),,$(error opencr-firmware: OPENCR_LOAD=$(OPENCR_LOAD) is not swd or \
+	    bootloader))
 	@bash embedded/ports/ensure_tools.sh
-	@$(MAKE) --no-print-directory $(BUILD)/opencr/float/cochlea-opencr.elf \
-	    $(BUILD)/opencr/double/cochlea-opencr.elf
-	@python3 $(PORTS_COMMON)/stack_report.py $(BUILD)/opencr/float/cochlea-opencr.elf \
-	    $(BUILD)/opencr/double/cochlea-opencr.elf
+	@$(MAKE) --no-print-directory $(OPENCR_OUT)/float/cochlea-opencr.elf \
+	    $(OPENCR_OUT)/double/cochlea-opencr.elf
+	@python3 $(PORTS_COMMON)/stack_report.py $(OPENCR_OUT)/float/cochlea-opencr.elf \
+	    $(OPENCR_OUT)/double/cochlea-opencr.elf

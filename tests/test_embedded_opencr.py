@@ -92,16 +92,30 @@ def test_the_firmware_builds_and_reports_its_size_and_stack(firmware, precision)
     assert 500 < int(stack.group(2)) < int(stack.group(1))
 
 
+def boot_table_is_quiet(words: tuple, names: dict, load: int, size: int) -> None:
+    """The table the core starts on (at the image's load address): the stack's top, the
+    reset handler, the faults', and a handler that silences every other exception (a
+    bootloader's SysTick still running), so that no firmware handler runs before .bss is."""
+    assert words[0] == DTCM + 64 * 1024 == names["_estack"]  # the initial stack pointer
+    assert words[1] == names["Reset_Handler"] | 1 and load <= words[1] < load + size
+    assert set(words[2:7]) == {names["Fault_Handler"] | 1}
+    quiet = names["Boot_Quiet_Handler"] | 1
+    assert [words[i] for i in (11, 12, 14, 15)] == [quiet] * 4
+    assert set(words[16:]) == {quiet}
+
+
 @pytest.mark.parametrize("precision", ["float", "double"])
 def test_the_image_is_laid_out_as_an_stm32f746_expects(firmware, precision):
     build, _ = firmware
     elf = build / precision / "cochlea-opencr.elf"
     names = symbols(elf)
     image = elf.with_suffix(".bin").read_bytes()
-    words = struct.unpack_from(f"<{16 + IRQS}I", image)
-    assert names["vectors"] == FLASH
-    assert words[0] == DTCM + 64 * 1024 == names["_estack"]  # the initial stack pointer
-    assert words[1] == names["Reset_Handler"] | 1 and FLASH <= words[1] < FLASH + FLASH_SIZE
+    assert names["boot_vectors"] == FLASH
+    boot_table_is_quiet(struct.unpack_from(f"<{16 + IRQS}I", image), names, FLASH, FLASH_SIZE)
+    # the firmware's own table, which Reset_Handler moves VTOR to: aligned as VTOR needs
+    assert names["vectors"] % 512 == 0 and FLASH < names["vectors"] < FLASH + FLASH_SIZE
+    words = struct.unpack_from(f"<{16 + IRQS}I", image, names["vectors"] - FLASH)
+    assert words[0] == names["_estack"] and words[1] == names["Reset_Handler"] | 1
     assert words[15] == names["SysTick_Handler"] | 1
     for irq, handler in HANDLERS.items():
         assert words[16 + irq] == names[handler] | 1, handler
@@ -116,6 +130,32 @@ def test_the_image_is_laid_out_as_an_stm32f746_expects(firmware, precision):
     # the M7's double-precision FPv5 (the M4F's is FPv4-SP: no double in hardware)
     assert "Tag_FP_arch: FPv5/FP-D16 for ARMv8" in headers, headers
     assert "Tag_ABI_VFP_args: VFP registers" in headers, headers
+
+
+@pytest.mark.slow
+def test_the_bootloader_build_links_where_opencrs_bootloader_jumps(tmp_path):
+    """``OPENCR_LOAD=bootloader``: the image at 0x08040000, within the bootloader's 768 KB
+    (ROBOTIS's FLASH_FW_ADDR_START and FLASH_FW_SIZE), starting on the quiet table: the
+    bootloader jumps with VTOR on the image and its SysTick still interrupting."""
+    ensure_tools()
+    run = subprocess.run(["make", "--no-print-directory", "opencr-firmware", f"BUILD={tmp_path}",
+                          "OPENCR_LOAD=bootloader"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=900)
+    assert run.returncode == 0, run.stderr[-4000:]
+    load, size = 0x0804_0000, 768 * 1024
+    for precision in ("float", "double"):
+        elf = tmp_path / "opencr-bootloader" / precision / "cochlea-opencr.elf"
+        names = symbols(elf)
+        image = elf.with_suffix(".bin").read_bytes()
+        assert names["boot_vectors"] == load and len(image) < size
+        boot_table_is_quiet(struct.unpack_from(f"<{16 + IRQS}I", image), names, load, size)
+        assert names["vectors"] % 512 == 0 and load < names["vectors"] < load + len(image)
+        # .data's image follows the code in the bootloader's region, not below it
+        assert load < names["_sidata"] < load + size
+    wrong = subprocess.run(["make", "--no-print-directory", "opencr-firmware", f"BUILD={tmp_path}",
+                            "OPENCR_LOAD=usb"], cwd=ROOT, capture_output=True, text=True,
+                           timeout=60)
+    assert wrong.returncode == 2 and "OPENCR_LOAD=usb is not swd or bootloader" in wrong.stderr
 
 
 def test_an_unknown_scenario_is_one_line_from_make(tmp_path):

@@ -12,6 +12,14 @@
  * the core reads as the DMA wrote it: no cache maintenance, no non-cacheable MPU region to
  * get wrong. The cost is uncached reads of flash constants and of the ring.
  *
+ * Two vector tables. The core (or OpenCR's bootloader, which jumps here with VTOR already on
+ * this image and with its SysTick still interrupting: ROBOTIS's jump_to_fw) starts on
+ * boot_vectors, at the image's first word: the initial stack pointer, Reset_Handler, the
+ * fault handlers, and for every other exception Boot_Quiet_Handler, which silences what
+ * interrupted. Reset_Handler then masks interrupts, stops SysTick, disables and clears every
+ * NVIC line, moves VTOR to vectors (the firmware's handlers) and unmasks, as at a reset: no
+ * handler of the firmware runs before .data and .bss are set up, whoever started the core.
+ *
  * A fault switches the Dynamixel power off (the motors stop; a torque-off packet cannot be
  * trusted from a faulted core), prints one line on the console and parks with interrupts off;
  * the independent watchdog, if the run had started it, resets the core, which then refuses to
@@ -24,16 +32,39 @@
 
 extern uint32_t _estack;
 extern const vector vectors[];
+extern const vector boot_vectors[];
 
 void DMA1_Stream1_IRQHandler(void);
 void USART2_IRQHandler(void);
 void USART3_IRQHandler(void);
 
+/* An exception taken while boot_vectors is the table (before Reset_Handler quietens the core:
+ * a bootloader's SysTick or a line it left enabled): stopped or disabled, then back. */
+static void Boot_Quiet_Handler(void)
+{
+    uint32_t ipsr;
+    __asm__ volatile("mrs %0, ipsr" : "=r"(ipsr));
+    SYST_CSR = 0u;
+    SCB_ICSR = SCB_ICSR_PENDSTCLR;
+    if (ipsr >= 16u) {
+        NVIC_ICER((ipsr - 16u) / 32u) = 1u << ((ipsr - 16u) % 32u);
+    }
+}
+
 void Reset_Handler(void)
 {
+    uint32_t n;
+    __asm__ volatile("cpsid i" ::: "memory");
+    SYST_CSR = 0u; /* a bootloader's SysTick (reset value: off) */
+    for (n = 0; n < NVIC_REGISTERS; ++n) {
+        NVIC_ICER(n) = 0xFFFFFFFFu;
+        NVIC_ICPR(n) = 0xFFFFFFFFu;
+    }
+    SCB_ICSR = SCB_ICSR_PENDSTCLR | SCB_ICSR_PENDSVCLR;
     SCB_CPACR |= 0xFu << 20; /* CP10, CP11: full access */
     SCB_VTOR = (uint32_t)(uintptr_t)vectors;
     __asm__ volatile("dsb\n\tisb" ::: "memory");
+    __asm__ volatile("cpsie i" ::: "memory"); /* PRIMASK as a reset leaves it */
     /* The instruction cache: invalidated, then on (PM0253 section 4.8). */
     SCB_ICIALLU = 0;
     __asm__ volatile("dsb\n\tisb" ::: "memory");
@@ -45,7 +76,18 @@ void Reset_Handler(void)
 /* The core's exceptions, then every external interrupt: the bus's DMA receive (12, DMA1
  * stream 1: its laps) and IDLE (39, USART3), the row stream's transmit (38, USART2; stream.c)
  * and Default_Handler (a fault line) for the others, which the firmware never enables. */
-__attribute__((section(".isr_vector"), used)) const vector vectors[16 + IRQ_COUNT] = {
+/* The table the core starts on (above): first in flash, at the image's load address. */
+__attribute__((section(".isr_vector"), used)) const vector boot_vectors[16 + IRQ_COUNT] = {
+    (vector)(uintptr_t)&_estack, Reset_Handler, Fault_Handler /* NMI */,
+    Fault_Handler /* HardFault */, Fault_Handler /* MemManage */, Fault_Handler /* BusFault */,
+    Fault_Handler /* UsageFault */, 0, 0, 0, 0, Boot_Quiet_Handler /* SVCall */,
+    Boot_Quiet_Handler /* DebugMonitor */, 0, Boot_Quiet_Handler /* PendSV */,
+    Boot_Quiet_Handler /* SysTick */, [16 ... 16 + IRQ_COUNT - 1] = Boot_Quiet_Handler,
+};
+
+/* The firmware's table, from Reset_Handler on. VTOR takes a table aligned to its size rounded
+ * up to a power of two (PM0253 section 4.3.4): 114 words, 512 bytes. */
+__attribute__((aligned(512), used)) const vector vectors[16 + IRQ_COUNT] = {
     STM32_CORE_VECTORS(&_estack),
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 0-3 */
     Default_Handler, Default_Handler, Default_Handler, Default_Handler, /* 4-7 */

@@ -163,9 +163,14 @@ volatile uint32_t *model_reg(uint32_t address);
 #define SYST_RVR REG32(0xE000E014u) /* 4.4.2: 24-bit reload */
 #define SYST_CVR REG32(0xE000E018u) /* 4.4.3: counts down */
 #define NVIC_ISER(n) REG32(0xE000E100u + 4u * (n))          /* 4.2.2 */
+#define NVIC_ICER(n) REG32(0xE000E180u + 4u * (n))          /* 4.2.3: a 1 disables */
+#define NVIC_ICPR(n) REG32(0xE000E280u + 4u * (n))          /* 4.2.5: a 1 clears pending */
+#define NVIC_REGISTERS 8u /* ICER/ICPR words: 256 interrupt lines, more than the 98 used */
 #define NVIC_IPR_BYTE(irq) REG8(0xE000E400u + (uint32_t)(irq)) /* 4.2.7 */
 #define SCB_ICSR REG32(0xE000ED04u)  /* 4.3.3: PENDSTSET 26 */
 #define SCB_ICSR_PENDSTSET (1u << 26)
+#define SCB_ICSR_PENDSTCLR (1u << 25)
+#define SCB_ICSR_PENDSVCLR (1u << 27)
 #define SCB_VTOR REG32(0xE000ED08u)  /* 4.3.4 */
 #define SCB_CCR REG32(0xE000ED14u)   /* 4.3.7: DC 16, IC 17 */
 #define SCB_CCR_IC (1u << 17)
