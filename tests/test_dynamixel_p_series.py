@@ -41,6 +41,7 @@ from cochlea.dynamixel.budget import bus_budget
 from cochlea.dynamixel.control_table import (
     ACCESS,
     DATA_LIMIT,
+    DATA_RANGE,
     MODELS,
     MODELS_BY_NUMBER,
     MODELS_PACKAGE,
@@ -216,6 +217,13 @@ def test_the_emulator_answers_as_a_ph54_at_the_p_addresses(tmp_path):
         # EEPROM (below 512, the data's area) writable with the torque off, locked with it on.
         bus.write(1, item("Current Limit"), 3000)
         bus.write(1, item("Indirect Address 128"), 600)  # EEPROM (422), the torque still off
+        # The P series has no current-based position mode (5): refused, as by the X motor
+        # beside it a mode no model has (2); the X motor takes 5.
+        assert _reply(bus, proto.write(1, 11, b"\x05"), 1).error == DATA_RANGE
+        assert _reply(bus, proto.write(2, 11, b"\x02"), 2).error == DATA_RANGE
+        bus.write(2, MODELS["XM430-W350"].item("Operating Mode"), 5)
+        bus.write(2, MODELS["XM430-W350"].item("Operating Mode"), 3)
+        bus.write(1, item("Operating Mode"), 16)
         bus.write(1, item("Operating Mode"), 0)
         bus.write(1, item("Bus Watchdog"), 10)
         bus.write(1, item("Torque Enable"), 1)

@@ -275,6 +275,12 @@ CORRUPTIONS = {
                           "p.toml: layout: expected one of p, x, xl320, got 'q'"),
     "an unknown key": ("mx2.toml", b"number = 311", b"numbr = 311",
                        "mx2.toml: model[0].numbr: expected no such key"),
+    "an Operating Mode outside its range": (
+        "layout_p.toml", b"values = [0, 1, 3, 4, 16]", b"values = [0, 1, 3, 4, 17]",
+        "layout_p.toml: item Operating Mode.values: expected distinct integers within min..max"),
+    "Operating Modes that are not integers": (
+        "layout_x.toml", b"values = [0, 1, 3, 4, 5, 16]", b'values = ["current"]',
+        "layout_x.toml: item Operating Mode.values: expected distinct integers"),
 }
 
 

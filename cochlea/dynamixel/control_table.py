@@ -107,6 +107,9 @@ class Item:
     #: Where the RAM area of the item's control table starts (its layout's ``ram_from``): the
     #: items below it are in EEPROM. 64 (the X series') only for an item made by hand.
     ram_from: int = 64
+    #: The values a write may take where not every integer from lo to hi is one (Operating
+    #: Mode: the modes the model has), else None.
+    values: tuple[int, ...] | None = None
 
     @property
     def eeprom(self) -> bool:
@@ -321,7 +324,7 @@ def _read_toml(name: str, text: bytes) -> dict:
 
 
 _ITEM_KEYS = {"name", "address", "size", "access", "default", "min", "max", "signed", "unit",
-              "only_if"}
+              "only_if", "values"}
 _LAYOUT_KEYS = {"layout", "url", "counts_per_rev", "velocity_unit_rpm", "emulator_firmware",
                 "fallback", "unsourced", "item", "ram_from"}
 
@@ -375,6 +378,12 @@ def _layout(name: str, data: dict) -> dict:
         if "signed" in it:
             _check(isinstance(it["signed"], bool), f"{where}.signed", "true or false",
                    it["signed"])
+        if "values" in it:
+            v = it["values"]
+            _check(isinstance(v, list) and bool(v) and all(_is_int(x) for x in v)
+                   and len(set(v)) == len(v) and _is_int(it.get("min"))
+                   and _is_int(it.get("max")) and all(it["min"] <= x <= it["max"] for x in v),
+                   f"{where}.values", "distinct integers within min..max", v)
     return data
 
 
@@ -458,7 +467,8 @@ def _model(file: str, family: str, layout: dict, k: int, m: object) -> ModelSpec
         items.append(Item(it["name"], it["address"], it["size"], it["access"] == "RW",
                           _resolve(it["default"], table), _resolve(it.get("min", 0), table),
                           _resolve(it.get("max", 0), table), bool(it.get("signed", False)),
-                          layout["ram_from"]))
+                          layout["ram_from"],
+                          tuple(it["values"]) if "values" in it else None))
     items.sort(key=lambda i: i.address)
     gearbox = None
     est = m.get("gearbox_estimates")

@@ -107,7 +107,6 @@ from .control_table import (
     HARDWARE_ERROR_BITS,
     INSTRUCTION_ERROR,
     INSTRUCTION_NAMES,
-    OPERATING_MODES,
     PING,
     READ,
     REBOOT,
@@ -407,8 +406,8 @@ class VirtualMotor:
         a = it.address
         if not it.lo <= value <= it.hi:
             return DATA_RANGE
-        if a == self.a_mode and value not in OPERATING_MODES:
-            return DATA_RANGE
+        if it.values is not None and value not in it.values:
+            return DATA_RANGE  # e.g. an Operating Mode the model does not have (P: no 5)
         if a in self.goals and self.watchdog_tripped:
             return DATA_RANGE  # goal values are read-only after a watchdog error
         if a in self.goal_limits and abs(value) > self.get(self.goal_limits[a]):
