@@ -215,6 +215,15 @@ STM32_TIMER_HZ         ?= 84000000
 STM32_TIMER_START      ?= 0
 STM32_STREAM_EVERY     ?= 10
 STM32_STREAM_BAUD      ?= 921600
+# A prismatic joint (the parallel robot's slider) moves only counted from a homing record,
+# compiled in (a board has no file system): STM32_HOMING_RECORD=FILE, the record cochlea-dxl
+# home wrote, checked at build time against STM32_HOMING_SCENARIO (default STM32_SCENARIO; a
+# user's scenario file for GEN=DIR) by cochlea.dynamixel.homing_firmware (the venv's Python);
+# the firmware reads the token from the motor at its start (docs/embedded.md, "Homing").
+STM32_HOMING_RECORD    ?=
+STM32_HOMING_SCENARIO  ?= $(STM32_SCENARIO)
+STM32_HOMING_H         := $(BUILD)/stm32f4/homing/homing_record.h
+STM32_HOMING_FLAGS     := $(if $(STM32_HOMING_RECORD),-DSTM32_HOMED=1 -I$(dir $(STM32_HOMING_H)))
 STM32_CPU      := -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16
 STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
                   -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(STM32_DIR) \
@@ -226,7 +235,7 @@ STM32_CFLAGS   := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
                   -DSTM32_BUS_WATCHDOG_MS=$(STM32_BUS_WATCHDOG_MS) -DSTM32_TIMER_HZ=$(STM32_TIMER_HZ)u \
                   -DSTM32_TIMER_START=$(STM32_TIMER_START)u \
                   -DSTM32_STREAM_EVERY=$(STM32_STREAM_EVERY)u \
-                  -DSTM32_STREAM_BAUD=$(STM32_STREAM_BAUD)u
+                  -DSTM32_STREAM_BAUD=$(STM32_STREAM_BAUD)u $(STM32_HOMING_FLAGS)
 STM32_LDFLAGS  := -T $(STM32_DIR)/stm32f405.ld -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 STM32_SOURCES  := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(STM32_SCENARIO).c \
@@ -236,8 +245,9 @@ STM32_DEPS     := $(STM32_SOURCES) $(wildcard embedded/core/*.h $(STM32_DIR)/*.h
                   $(wildcard $(PORTS_COMMON)/*.h) \
                   $(STM32_DIR)/stm32f405.ld $(GEN)/embedded/$(STM32_SCENARIO).h Makefile
 # The compiled-in settings: a change rebuilds (the file changes only when they do).
-STM32_CONFIG   := $(STM32_CFLAGS) $(STM32_CPU) $(ARM_CC)
-STM32_DEPS     += $(BUILD)/stm32f4/config.txt
+STM32_CONFIG   := $(STM32_CFLAGS) $(STM32_CPU) $(ARM_CC) $(STM32_HOMING_RECORD) \
+                  $(STM32_HOMING_SCENARIO)
+STM32_DEPS     += $(BUILD)/stm32f4/config.txt $(if $(STM32_HOMING_RECORD),$(STM32_HOMING_H))
 STM32_PREC_double :=
 STM32_PREC_float  := -DCOCHLEA_FLOAT
 
@@ -251,6 +261,10 @@ $(BUILD)/stm32f4/%/cochlea-stm32f4.elf: $(STM32_DEPS)
 $(BUILD)/stm32f4/config.txt: stm32-config-check
 	@mkdir -p $(@D)
 	@echo '$(STM32_CONFIG)' | cmp -s - $@ || echo '$(STM32_CONFIG)' > $@
+
+$(STM32_HOMING_H): $(wildcard $(STM32_HOMING_RECORD)) $(BUILD)/stm32f4/config.txt $(STAMP)
+	@$(BIN)/python -m cochlea.dynamixel.homing_firmware --scenario $(STM32_HOMING_SCENARIO) \
+	    --record $(STM32_HOMING_RECORD) --out $@
 
 # The row stream (docs/embedded.md, "The row stream"): the frame codec, cochlea-embedded-host
 # on made streams, and the firmware on QEMU's netduinoplus2 streaming to it.
@@ -301,6 +315,11 @@ OPENCR_BUS_WATCHDOG_MS  ?= 100
 OPENCR_STREAM_EVERY     ?= 10
 OPENCR_STREAM_BAUD      ?= 921600
 OPENCR_POWER_SETTLE_MS  ?= 1000
+OPENCR_HOMING_RECORD    ?=
+OPENCR_HOMING_SCENARIO  ?= $(OPENCR_SCENARIO)
+OPENCR_HOMING_H         := $(OPENCR_OUT)/homing/homing_record.h
+OPENCR_HOMING_FLAGS     := $(if $(OPENCR_HOMING_RECORD),-DSTM32_HOMED=1 \
+                           -I$(dir $(OPENCR_HOMING_H)))
 OPENCR_CPU     := -mcpu=cortex-m7 -mthumb -mfloat-abi=hard -mfpu=fpv5-d16
 OPENCR_CFLAGS  := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunction-sections \
                   -fdata-sections -fstack-usage -Iembedded/core -I$(GEN)/embedded -I$(OPENCR_DIR) \
@@ -313,7 +332,7 @@ OPENCR_CFLAGS  := -std=c99 -O2 -Wall -Wextra -Werror -ffp-contract=off -ffunctio
                   -DSTM32_BUS_WATCHDOG_MS=$(OPENCR_BUS_WATCHDOG_MS) \
                   -DSTM32_STREAM_EVERY=$(OPENCR_STREAM_EVERY)u \
                   -DSTM32_STREAM_BAUD=$(OPENCR_STREAM_BAUD)u \
-                  -DOPENCR_POWER_SETTLE_MS=$(OPENCR_POWER_SETTLE_MS)u
+                  -DOPENCR_POWER_SETTLE_MS=$(OPENCR_POWER_SETTLE_MS)u $(OPENCR_HOMING_FLAGS)
 OPENCR_LDFLAGS := -L $(OPENCR_DIR) -T $(OPENCR_DIR)/$(OPENCR_LD) -nostartfiles --specs=nano.specs \
                   --specs=nosys.specs -Wl,--gc-sections
 OPENCR_SOURCES := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(OPENCR_SCENARIO).c \
@@ -321,8 +340,10 @@ OPENCR_SOURCES := $(sort $(wildcard embedded/core/*.c)) $(GEN)/embedded/$(OPENCR
                   $(sort $(wildcard $(OPENCR_DIR)/*.c)) $(PORTS_COMMON_SRC)
 OPENCR_DEPS    := $(OPENCR_SOURCES) $(wildcard embedded/core/*.h $(OPENCR_DIR)/*.h) \
                   $(wildcard $(PORTS_COMMON)/*.h) $(wildcard $(OPENCR_DIR)/*.ld) \
-                  $(GEN)/embedded/$(OPENCR_SCENARIO).h Makefile $(OPENCR_OUT)/config.txt
-OPENCR_CONFIG  := $(OPENCR_CFLAGS) $(OPENCR_CPU) $(ARM_CC) $(OPENCR_LD)
+                  $(GEN)/embedded/$(OPENCR_SCENARIO).h Makefile $(OPENCR_OUT)/config.txt \
+                  $(if $(OPENCR_HOMING_RECORD),$(OPENCR_HOMING_H))
+OPENCR_CONFIG  := $(OPENCR_CFLAGS) $(OPENCR_CPU) $(ARM_CC) $(OPENCR_LD) $(OPENCR_HOMING_RECORD) \
+                  $(OPENCR_HOMING_SCENARIO)
 OPENCR_PREC_double :=
 OPENCR_PREC_float  := -DCOCHLEA_FLOAT
 
@@ -337,6 +358,10 @@ $(OPENCR_OUT)/%/cochlea-opencr.elf: $(OPENCR_DEPS)
 $(OPENCR_OUT)/config.txt: opencr-config-check
 	@mkdir -p $(@D)
 	@echo '$(OPENCR_CONFIG)' | cmp -s - $@ || echo '$(OPENCR_CONFIG)' > $@
+
+$(OPENCR_HOMING_H): $(wildcard $(OPENCR_HOMING_RECORD)) $(OPENCR_OUT)/config.txt $(STAMP)
+	@$(BIN)/python -m cochlea.dynamixel.homing_firmware --scenario $(OPENCR_HOMING_SCENARIO) \
+	    --record $(OPENCR_HOMING_RECORD) --out $@
 
 .PHONY: opencr-firmware opencr-config-check
 opencr-config-check:

@@ -29,6 +29,7 @@ watchdog's reset, and the period on the real core."""
 
 from __future__ import annotations
 
+import json
 import re
 import struct
 import subprocess
@@ -168,12 +169,12 @@ def test_an_unknown_scenario_is_one_line_from_make(tmp_path):
     assert not (tmp_path / "opencr").exists()
 
 
-def build_model(out: Path, *defines: str) -> Path:
-    """tests/opencr_model.c with the port's HAL, the shared firmware, the core and
-    serial_joint, for the host (BOARD_HOST_MODEL); defines: the firmware's settings."""
+def build_model(out: Path, *defines: str, scenario: str = "serial_joint") -> Path:
+    """tests/opencr_model.c with the port's HAL, the shared firmware, the core and the
+    scenario, for the host (BOARD_HOST_MODEL); defines: the firmware's settings."""
     flags = ["-std=c99", "-O1", "-Wall", "-Wextra", "-Werror", "-DBOARD_HOST_MODEL",
              f"-I{ROOT / 'embedded' / 'core'}", f"-I{GEN}", f"-I{OPENCR}", f"-I{COMMON}",
-             "-DSTM32_SCENARIO=serial_joint", *defines]
+             f"-DSTM32_SCENARIO={scenario}", *defines]
     firmware_object = out / "firmware.o"
     for command in (
             ["cc", *flags, "-Dmain=opencr_firmware_main", "-c", str(COMMON / "firmware.c"),
@@ -181,7 +182,7 @@ def build_model(out: Path, *defines: str) -> Path:
             ["cc", *flags, str(ROOT / "tests" / "opencr_model.c"), str(firmware_object),
              str(OPENCR / "hal_opencr.c"), str(COMMON / "stm32_timebase.c"),
              str(COMMON / "stream.c"), *map(str, sorted((ROOT / "embedded" / "core").glob("*.c"))),
-             str(GEN / "serial_joint.c"), str(GEN / "serial_joint_scenario.c"),
+             str(GEN / f"{scenario}.c"), str(GEN / f"{scenario}_scenario.c"),
              "-o", str(out / "model"), "-lm"]):
         run = subprocess.run(command, capture_output=True, text=True, timeout=300)
         if run.returncode != 0:
@@ -300,6 +301,71 @@ def test_after_a_watchdog_reset_the_bus_is_never_powered(model):
     assert values["bus_bytes"] == "0" and values["power_pin"] == "0"
 
 
+def homing_header(folder: Path, scenario: str, **entry_changes) -> Path:
+    """A homing record of the parallel robot's slider as cochlea-dxl home writes it, and the
+    header cochlea.dynamixel.homing_firmware makes of it for ``scenario`` (its folder)."""
+    from cochlea.dynamixel.homing_firmware import main as homing_firmware
+
+    (slider,) = [d for d in joint_drives("parallel") if d.type == "prismatic"]
+    entry = {"joint": slider.name, "motor_id": slider.id, "model": slider.spec.name,
+             "raw_counts": 1234, "stop_m": 0.0125, "direction": slider.direction,
+             "ratio_m_per_rad": slider.ratio, "marker_address": 88, "marker": 4321,
+             **entry_changes}
+    record = folder / "parallel.json"
+    record.write_text(json.dumps({"format": "cochlea-homing/2", "robot": "parallel",
+                                  "description": "shipped", "date": "2026-11-26T13:40:00",
+                                  "port": "/dev/ttyACM0", "joints": [entry]}))
+    out = folder / "homing" / "homing_record.h"
+    assert homing_firmware(["--scenario", scenario, "--record", str(record), "--out",
+                            str(out)]) == 0
+    return out.parent
+
+
+def test_a_slider_without_its_homing_record_never_powers_the_bus(tmp_path):
+    """The parallel robot's slider counts its turns only from a homing record: a firmware
+    built without one refuses before the bus is powered, saying how to build it."""
+    binary = build_model(tmp_path, scenario="parallel_joint")
+    events, values, console, _ = run_model(binary, "firmware")
+    assert "refused what=homing: a prismatic joint needs its homing record" in console
+    assert "STM32_HOMING_RECORD=FILE" in console
+    assert [v for _, what, v in events if what == "power"] == [0, 0]
+    assert values["bus_bytes"] == "0"
+
+
+def test_a_slider_with_its_homing_record_compiled_in_starts_the_bus(tmp_path):
+    """With the record compiled in (its offset and token from the record, checked against the
+    scenario's drives at build time), the firmware passes the gate and starts the bus: here
+    no motor answers, so the start fails at the PINGs and shuts down. The console's first line
+    names the record's date."""
+    folder = homing_header(tmp_path, "parallel_joint")
+    header = (folder / "homing_record.h").read_text()
+    (slider,) = [j for j, d in enumerate(joint_drives("parallel")) if d.type == "prismatic"]
+    assert f"#define STM32_HOMING_DRIVE {slider} " in header
+    assert "#define STM32_HOMING_MARKER 4321u" in header
+    binary = build_model(tmp_path, "-DSTM32_HOMED=1", f"-I{folder}",
+                         scenario="parallel_joint")
+    events, values, console, _ = run_model(binary, "firmware")
+    lines = [line for line in console.replace("\r", "").splitlines() if line]
+    assert lines[0].startswith("cochlea-opencr scenario=parallel_joint ") and \
+        lines[0].endswith(" homed=2026-11-26T13:40:00"), lines
+    assert lines[1].startswith("start failed error=1 step=1"), lines
+    assert [v for _, what, v in events if what == "power"] == [0, 1, 0]
+
+
+def test_a_homing_record_that_does_not_fit_is_refused_when_the_firmware_is_built(tmp_path):
+    """Another motor ID than the description's slider, or the serial robot (no prismatic
+    joint): one line from the header's generator, no header."""
+    from cochlea.dynamixel.homing_firmware import main as homing_firmware
+
+    with pytest.raises(AssertionError):
+        homing_header(tmp_path, "parallel_joint", motor_id=17)
+    assert not (tmp_path / "homing" / "homing_record.h").exists()
+    record = tmp_path / "parallel.json"
+    assert homing_firmware(["--scenario", "serial_joint", "--record", str(record), "--out",
+                            str(tmp_path / "h.h")]) == 2
+    assert not (tmp_path / "h.h").exists()
+
+
 #: The emulator run's build: 300 periods, and the tolerances the model's pace on a shared
 #: machine needs (as tests/test_embedded_stm32.py's QEMU build); 100 ms of boot time.
 EMULATOR_BUILD = ("-DSTM32_DURATION_S=0.3", "-DSTM32_WATCHDOG_MISSES=100000",
@@ -346,3 +412,67 @@ def test_a_run_against_the_emulator_ends_in_torque_off_then_the_power_off(tmp_pa
     last_stop = max(k for k, e in enumerate(logged) if e[1] == "sync-write")
     assert [int(value(e, "id")) for e in logged[last_stop:]
             if e[1] == "read" and value(e, "address") == str(TORQUE_ENABLE)] == ids
+
+
+def _start_errors() -> list[str]:
+    """enum cochlea_start_error's names in order (embedded/core/bridge.h)."""
+    text = (ROOT / "embedded" / "core" / "bridge.h").read_text()
+    body = text.split("enum cochlea_start_error {", 1)[1].split("};", 1)[0]
+    return re.findall(r"^\s*(COCHLEA_START_\w+)", body, re.M)
+
+
+@pytest.mark.hil
+def test_the_slider_homed_on_the_emulator_starts_and_refuses_once_rebooted(tmp_path,
+                                                                          monkeypatch):
+    """The whole firmware on the register model, on the emulator, for the parallel robot:
+    cochlea-dxl home finds the slider's stop (its motor mounted 500 deg of screw away from
+    the description's zero) and writes the record and the token; the firmware built with that
+    record counts the slider from the stop and starts (500 deg off, its first read would be
+    out of the slider's limits); after a REBOOT of the slider's motor (the token back to 0, as
+    at power-on) the same firmware refuses at the homing step, nothing moved."""
+    from cochlea.dynamixel import homing, protocol
+    from cochlea.dynamixel.bringup import home
+    from cochlea.dynamixel.bringup.common import Bus
+    from cochlea.dynamixel.emulator import Truth, VirtualChain
+    from cochlea.dynamixel.homing_firmware import main as homing_firmware
+    from cochlea.sim import load_scenario, unit_setups
+    from tests.test_homing_records import FAST as HOME_FAST
+    from tests.test_homing_records import STOP_M, parse
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    drives = joint_drives("parallel")
+    (slider,) = [d for d in drives if d.type == "prismatic"]
+    setup = unit_setups(load_scenario("parallel_joint"))[0]
+    pose = {j.name: q for j, q in zip(setup.controller_model.joints, setup.plant_x0)}
+    start = {d.name: pose[d.name] for d in drives}
+    chain = VirtualChain("parallel", "parallel_joint",
+                         truth=Truth(offset_deg={slider.id: 500.0}, hard_stop_m=STOP_M)).start()
+    try:
+        assert home.run(parse("--robot", "parallel", "--port", chain.path, "--stop-m",
+                              str(STOP_M), *HOME_FAST)) == 0
+        record = homing.default_record("parallel")
+        folder = tmp_path / "homing"
+        assert homing_firmware(["--scenario", "parallel_joint", "--record", str(record),
+                                "--out", str(folder / "homing_record.h")]) == 0
+        binary = build_model(tmp_path, *EMULATOR_BUILD, "-DSTM32_HOMED=1", f"-I{folder}",
+                             scenario="parallel_joint")
+        consoles = []
+        for reboot in (False, True):
+            if reboot:
+                with Bus(chain.path, 4_000_000) as bus:
+                    assert bus.request(protocol.reboot(slider.id), slider.id).error == 0
+            for name, q in start.items():
+                chain.move_joint(name, q)  # the scenario's initial pose, by hand
+            time.sleep(EMULATOR_SETTLE_S)
+            _, _, console, _ = run_model(binary, "emulator", chain.path)
+            consoles.append([line for line in console.replace("\r", "").splitlines() if line])
+    finally:
+        chain.close()
+    homed, rebooted = consoles
+    date = json.loads(record.read_text())["date"]
+    assert homed[0].split(" homed=")[1] == re.sub(r"[^0-9A-Za-z:.+_-]", "_", date)[:40], homed
+    assert homed[1] == "start ok", homed
+    failed = dict(re.findall(r"(\w+)=(\S+)", rebooted[1]))
+    assert rebooted[1].startswith("start failed"), rebooted
+    assert int(failed["error"]) == _start_errors().index("COCHLEA_START_NOT_HOMED")
+    assert failed["step"] == "12" and failed["detail"] == "0"  # the token a reboot leaves

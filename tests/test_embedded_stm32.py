@@ -283,8 +283,8 @@ def test_a_missing_motor_stops_the_start_before_anything_moves(firmware, tmp_pat
 
 @pytest.mark.slow
 def test_a_slider_is_refused_before_the_bus_starts(tmp_path):
-    """parallel_joint (its slider's encoder loses its turns at power-on, and the firmware does
-    not carry the homing record's check): one refusal line, exit 5, nothing on the bus."""
+    """parallel_joint (its slider's encoder loses its turns at power-on) built without its
+    homing record (STM32_HOMING_RECORD): one refusal line, exit 5, nothing on the bus."""
     ensure_tools()
     build = tmp_path / "build"
     run = subprocess.run(["make", "--no-print-directory", "-s", "stm32-firmware",

@@ -16,12 +16,12 @@
  * Compiled in: the scenario (STM32_SCENARIO), the run's length (STM32_DURATION_S, 0: the
  * scenario's), the watchdog counts (cochlea-run's --watchdog-misses, --watchdog-errors), the
  * bus's baud rate, its read timeout, whether the board switches an RS-485 (or half-duplex TTL)
- * transceiver's direction.
+ * transceiver's direction; for a prismatic joint, its homing record (STM32_HOMED).
  *
  * The console's lines (115200 8N1, key=value; docs/embedded.md, "STM32F4 port"; NAME is
  * board_name, stm32f4 or opencr):
  *   cochlea-NAME scenario=S precision=float|double clock=pll|unmodelled|no-hse|no-pll
- *       baud=B timer_hz=F period_ns=P periods=N
+ *       baud=B timer_hz=F period_ns=P periods=N [homed=DATE]
  *   start ok | start failed error=E step=S drive=D detail=X
  *       | refused what=clock|watchdog-reset|homing|configuration|loop ...
  *   end rule=NAME exit=C rows=N kicks=K tick_overruns=T deadline_misses=M overruns=O
@@ -37,6 +37,12 @@
 #include "loop.h"
 #include "scenario.h"
 #include "stream.h"
+
+#ifdef STM32_HOMED
+/* The slider's homing record, compiled in (make STM32_HOMING_RECORD=FILE: its drive, token and
+ * offset, checked against the scenario by cochlea.dynamixel.homing_firmware at build time). */
+#include "homing_record.h"
+#endif
 
 #ifndef STM32_SCENARIO
 #define STM32_SCENARIO serial_joint
@@ -308,6 +314,9 @@ int main(void)
     at = put_kv(at, "timer_hz", board_timer_hz());
     at = put_kv(at, "period_ns", (int64_t)(period * 1e9 + 0.5));
     at = put_kv(at, "periods", (int64_t)(duration / period + 0.5));
+#ifdef STM32_HOMED
+    at = put(at, " homed=" STM32_HOMING_DATE); /* the compiled-in record's date */
+#endif
     say(at);
     send_header(sc, period, duration, clock);
     if (clock == BOARD_CLOCK_NO_HSE || clock == BOARD_CLOCK_NO_PLL) {
@@ -322,17 +331,38 @@ int main(void)
         park();
     }
     {
-        /* A slider's encoder loses its turns at power-on: without the homing record's check
-         * (cochlea-run's --homing, not carried by this firmware) it must not move. */
-        int j;
+        /* A slider's encoder loses its turns at power-on: it moves only counted from the
+         * homing record compiled in, and only while its motor still holds the record's token
+         * (the bridge reads it at the start, before any write: cochlea_bridge_expect_homing). */
+        int j, sliders = 0;
         for (j = 0; j < sc->nq; ++j) {
             if (!sc->drives[j].revolute) {
-                say(put(line, "refused what=homing: a prismatic joint needs the homing record's "
-                              "check, which this firmware does not carry; nothing moved"));
-                end_line(COCHLEA_RULE_NONE, 0);
-                park();
+                ++sliders;
+#ifdef STM32_HOMED
+                if (j != STM32_HOMING_DRIVE || sc->drives[j].id != STM32_HOMING_MOTOR_ID) {
+                    sliders = -1; /* a record made for another scenario's joint */
+                    break;
+                }
+#endif
             }
         }
+#ifdef STM32_HOMED
+        if (sliders != 1) {
+            say(put(line, "refused what=homing: the homing record compiled in is not for this "
+                          "scenario's prismatic joint (rebuild with its record); nothing moved"));
+            end_line(COCHLEA_RULE_NONE, 0);
+            park();
+        }
+#else
+        if (sliders > 0) {
+            say(put(line, "refused what=homing: a prismatic joint needs its homing record, "
+                          "compiled in: build with STM32_HOMING_RECORD=FILE (OpenCR: "
+                          "OPENCR_HOMING_RECORD), the record cochlea-dxl home wrote; nothing "
+                          "moved"));
+            end_line(COCHLEA_RULE_NONE, 0);
+            park();
+        }
+#endif
     }
     board_bus_init(STM32_BAUD);
     board_bus_hal(&hal, STM32_RS485);
@@ -346,6 +376,10 @@ int main(void)
         park();
     }
     bridge.offset_current = sc->bridge_offset_current;
+#ifdef STM32_HOMED
+    cochlea_bridge_expect_homing(&bridge, STM32_HOMING_DRIVE, STM32_HOMING_MARKER,
+                                 STM32_HOMING_OFFSET_M);
+#endif
     backend = cochlea_bridge_backend(&bridge);
     /* The controller before the motors: a configuration it refuses moves nothing. */
     error = cochlea_loop_init(&the_loop, sc, &hal, &backend, controller.bytes, period,
