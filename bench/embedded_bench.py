@@ -185,7 +185,7 @@ def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function
     plants the result is the general kernel's bit for bit (tests/test_embedded_sim.py).
 
     The parallel mechanism's rigid plant integrates its forward dynamics in the block form
-    (:func:`cochlea.robots.parallel.forward.forward_dynamics`: 488 operations an evaluation
+    (:func:`cochlea.robots.parallel.forward.forward_dynamics`: 369 operations an evaluation
     instead of 1688), the same RK4 period: equal to the general kernel to rounding (1e-12
     relative), not bit for bit."""
     general = u.plant_function(substeps)

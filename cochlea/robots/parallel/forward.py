@@ -7,7 +7,8 @@ them the bias ``C qd + G``, 370 the solve. The same dynamics, computed body by b
 
 * every body's pose is an explicit function of q, so its origin moves at ``v = J_o qd`` and it
   turns at ``omega = j qd``; at ``qdd = 0`` its origin accelerates at ``a = J_o_dot qd`` and it
-  at ``alpha = j_dot qd``, written out below from the geometry (no symbolic differentiation);
+  at ``alpha = j_dot qd``, written out below from the geometry (no symbolic differentiation),
+  the pantograph's terms reduced to ``cos(th1 - th2)`` and ``sin(th1 - th2)``;
 * each planar body ``[m, h = (mx, my), Izz]`` (body frame at its origin, turned by its angle)
   then needs, about its origin, the force ``F = m (a - g) + alpha E h - omega^2 R h`` and the
   moment ``N = Izz alpha + (R h) x (a - g)`` (gravity as an acceleration of the world), and
@@ -20,7 +21,7 @@ them the bias ``C qd + G``, 370 the solve. The same dynamics, computed body by b
 * the four motor angles' sines and cosines are computed once and shared by every body; each
   side takes one square root (the rod's direction ``(C - S) / |C - S|``).
 
-At the shipped plant's parameters folded in, an evaluation is 429 operations instead of 1688
+At the shipped plant's parameters folded in, an evaluation is 369 operations instead of 1688
 (docs/models.md); it agrees with the Lagrange model's forward dynamics to rounding
 (tests/test_parallel_forward.py: 1e-12 relative on random states, 2e-14 measured). It is not
 the general kernels' form (generated_c/ keeps the Lagrange one, bit for bit what every
@@ -55,110 +56,85 @@ def _reciprocal(y):
     return 2 / (y + y)
 
 
-class _Side:
-    """One side's three coordinates ``(th1, th2, d1)``: M's 3x3 block (upper triangle) and the
-    bias's three entries, accumulated body by body.
-
-    A body is given by its origin's velocity columns ``J`` (per coordinate ``(vector, its
-    squared length)``, or None for zero), its angular rate's row ``j`` (per coordinate an entry
-    or None), the velocity-product accelerations ``a`` (origin) and ``alpha`` (angle) and the
-    rate ``omega``. Bodies that turn alike (the same ``j``, named by ``turn``) share their
-    rotational terms: their inertias ``Izz`` and moments are summed first, then multiplied by
-    ``j`` once (fewer operations, and the folded constants add up before they meet a
-    variable)."""
-
-    def __init__(self):
-        self.M = [[0, 0, 0] for _ in range(3)]
-        self.b = [0, 0, 0]
-        self.turns = {}  # turn -> [j, alpha, sum of Izz, sum of (R h) x (a - g), J^T E h]
-
-    def body(self, turn, params, J, j, a, alpha, omega, cos, sin, gravity):
-        m, hx, hy, izz = (params[k] for k in range(4))
-        Rh = (cos * hx - sin * hy, sin * hx + cos * hy)
-        Eh = (-Rh[1], Rh[0])
-        ag = (a[0] - gravity[0], a[1] - gravity[1])
-        group = self.turns.setdefault(turn, [j, alpha, 0, 0, [0, 0, 0]])
-        group[2] = group[2] + izz
-        group[3] = group[3] + _cross(Rh, ag)
-        if all(c is None for c in J):
-            return
-        w2 = omega * omega
-        F = (m * ag[0] + alpha * Eh[0] - w2 * Rh[0], m * ag[1] + alpha * Eh[1] - w2 * Rh[1])
-        for k in range(3):
-            if J[k] is None:
-                continue
-            self.b[k] = self.b[k] + _dot(J[k][0], F)
-            group[4][k] = group[4][k] + _dot(J[k][0], Eh)
-            for col in range(k, 3):
-                if J[col] is not None:
-                    self.M[k][col] = self.M[k][col] + m * (
-                        J[k][1] if k == col else _dot(J[k][0], J[col][0]))
-
-    def finish(self):
-        """Add each turn's rotational terms: ``j^T (Izz alpha + sum (R h) x (a - g))`` to the
-        bias, ``Izz j^T j + U j^T + j U^T`` to M with ``U = sum J^T E h``."""
-        for j, alpha, izz, moment, U in self.turns.values():
-            N = izz * alpha + moment
-            t = [None if jk is None else izz * jk for jk in j]
-            for k in range(3):
-                if j[k] is not None:
-                    self.b[k] = self.b[k] + j[k] * N
-                for col in range(k, 3):
-                    term = 0
-                    if j[k] is not None and j[col] is not None:
-                        term = term + t[k] * j[col]
-                    if j[col] is not None:
-                        term = term + U[k] * j[col]
-                    if j[k] is not None:
-                        term = term + U[col] * j[k]
-                    self.M[k][col] = self.M[k][col] + term
-        return self
-
-
 def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
-    """M's block and the bias of one side's six bodies in its coordinates ``(th1, th2, d1)``
-    (``q``, ``qd``: those three)."""
+    """M's block (upper triangle, ``M[k][l]`` for ``k <= l``) and the bias of one side's six
+    bodies in its coordinates ``(th1, th2, d1)`` (``q``, ``qd``: those three), Kane's terms
+    written out with the pantograph's identities.
+
+    Notation: ``e_i = (cos th_i, sin th_i)``, ``e_i' = (-sin th_i, cos th_i)`` (its normal),
+    ``C12 = cos(th1 - th2) = e_1 . e_2 = e_1' . e_2'``, ``S12 = sin(th1 - th2) = e_1 . e_2' =
+    -e_1' . e_2``, ``a x b = a_u b_v - a_v b_u``. A body's ``R h = h_x e + h_y e'`` turned with
+    it, ``E h`` that turned by 90 deg.
+
+    * Links 1 and 4 turn about B; link 2 hangs at A1 (its origin moves at ``lp e_1' w1``,
+      accelerates by ``-lp w1^2 e_1``) turned by th2, link 3 at A4 turned by th1. Together:
+      ``M = [[Izz1 + Izz3 + m2 lp^2, lp ((hx2 + hx3) C12 + (hy2 - hy3) S12)], [., Izz4 + Izz2 +
+      m3 lp^2]]`` and the bias ``(w2^2 P, -w1^2 P) + G`` with ``P = lp ((hx2 + hx3) S12 +
+      (hy3 - hy2) C12)`` (= ``dM01/dth2``) and the gravity ``G``.
+    * Links 5 (at C) and 7 (at S) turn with the rod: ``phi = atan2(w_v, w_u)``, ``w = C - S``,
+      at the rate ``omega = j . qd`` with ``j = (lp w . e_1, lp w . e_2, -w_u) / |w|^2``, and
+      ``alpha = (w x a_C - 2 (w . w_dot) omega) / |w|^2`` at ``qdd = 0``, where C accelerates by
+      ``a_C = -lp (w1^2 e_1 + w2^2 e_2)``. Link 5's origin moves with C's columns ``lp e_1',
+      lp e_2'``, link 7's with the slider.
+    """
     th1, th2, d1 = q
     w1, w2, vd = qd
     lp = system.link_length
-    g = (float(system.gravity[0]), float(system.gravity[1]))
+    gu, gv = float(system.gravity[0]), float(system.gravity[1])
     c1, s1, c2, s2 = ca.cos(th1), ca.sin(th1), ca.cos(th2), ca.sin(th2)
+    C12, S12 = c1 * c2 + s1 * s2, s1 * c2 - c1 * s2
+    w1s, w2s = w1 * w1, w2 * w2
+    # Links 1 and 4 turn about a fixed point: their masses do not enter.
+    _, hx1, hy1, izz1 = (phi_of(f"{side.name}.link1")[k] for k in range(4))
+    _, hx4, hy4, izz4 = (phi_of(f"{side.name}.link4")[k] for k in range(4))
+    m2, hx2, hy2, izz2 = (phi_of(f"{side.name}.link2")[k] for k in range(4))
+    m3, hx3, hy3, izz3 = (phi_of(f"{side.name}.link3")[k] for k in range(4))
+    m5, hx5, hy5, izz5 = (phi_of(f"{side.name}.link5")[k] for k in range(4))
+    m7, hx7, hy7, izz7 = (phi_of(f"{side.name}.link7")[k] for k in range(4))
+    lp2 = lp * lp
+    # The pantograph (links 1-4). e_i' . g = e_i x g; e_i x g and e_i' x g give each link's
+    # moment of gravity about its origin.
+    x1g, y1g = c1 * gv - s1 * gu, -(s1 * gv + c1 * gu)  # e_1 x g, e_1' x g
+    x2g, y2g = c2 * gv - s2 * gu, -(s2 * gv + c2 * gu)
+    P = lp * ((hx2 + hx3) * S12 + (hy3 - hy2) * C12)
+    M = [[izz1 + izz3 + m2 * lp2 + m5 * lp2, lp * ((hx2 + hx3) * C12 + (hy2 - hy3) * S12)
+          + m5 * lp2 * C12, 0],
+         [None, izz4 + izz2 + m3 * lp2 + m5 * lp2, 0],
+         [None, None, m7]]
+    b = [w2s * P - (hx1 + hx3 + lp * m2) * x1g - (hy1 + hy3) * y1g,
+         -w1s * P - (hx4 + hx2 + lp * m3) * x2g - (hy4 + hy2) * y2g,
+         -m7 * gv]
+    # The rod (links 5 and 7).
     bu = side.sign * system.base_offset
-    out = _Side()
-    none3 = (None, None, None)
-    zero = (0, 0)
-
-    def params(body):
-        return phi_of(f"{side.name}.{body}")
-
-    # Links 1 and 4 turn about the base: only their rotation and gravity.
-    out.body("th1", params("link1"), none3, (1, None, None), zero, 0, w1, c1, s1, g)
-    out.body("th2", params("link4"), none3, (None, 1, None), zero, 0, w2, c2, s2, g)
-    # Link 2 hangs at link 1's tip A1 = B + lp e(th1), turned by th2; link 3 at A4, by th1.
-    p1, p2 = (-lp * s1, lp * c1), (-lp * s2, lp * c2)  # d A1 / d th1, d A4 / d th2
-    k1, k2 = lp * (w1 * w1), lp * (w2 * w2)
-    a1, a2 = (-k1 * c1, -k1 * s1), (-k2 * c2, -k2 * s2)  # A1's and A4's accelerations
-    J1, J2 = (p1, lp * lp), (p2, lp * lp)
-    out.body("th2", params("link2"), (J1, None, None), (None, 1, None), a1, 0, w2, c2, s2, g)
-    out.body("th1", params("link3"), (None, J2, None), (1, None, None), a2, 0, w1, c1, s1, g)
-    # Links 5 (at C) and 7 (at S) turn with the rod, phi = atan2(C_v - d1, C_u).
-    wu = bu + lp * (c1 + c2)
-    wv = lp * (s1 + s2) - d1
-    w = (wu, wv)
+    wu, wv = bu + lp * (c1 + c2), lp * (s1 + s2) - d1
     inv_r = _reciprocal(ca.sqrt(wu * wu + wv * wv))
     inv_r2 = inv_r * inv_r
-    cos_phi, sin_phi = wu * inv_r, wv * inv_r
-    slider = ((0, 1), 1)
-    w_dot = (p1[0] * w1 + p2[0] * w2, p1[1] * w1 + p2[1] * w2 - vd)
-    j_rod = (_cross(w, p1) * inv_r2, _cross(w, p2) * inv_r2, -wu * inv_r2)  # w x (0, -1) = -wu
-    omega = _cross(w, w_dot) * inv_r2
-    aC = (a1[0] + a2[0], a1[1] + a2[1])
-    alpha = (_cross(w, aC) - 2 * _dot(w, w_dot) * omega) * inv_r2
-    out.body("rod", params("link5"), (J1, J2, None), j_rod, aC, alpha, omega, cos_phi, sin_phi,
-             g)
-    out.body("rod", params("link7"), (None, None, slider), j_rod, zero, alpha, omega, cos_phi,
-             sin_phi, g)
-    return out.finish()
+    nu, nv = wu * inv_r, wv * inv_r  # (cos phi, sin phi)
+    j = [lp * (wu * c1 + wv * s1) * inv_r2, lp * (wu * c2 + wv * s2) * inv_r2, -wu * inv_r2]
+    omega = j[0] * w1 + j[1] * w2 + j[2] * vd
+    wdu, wdv = -lp * (s1 * w1 + s2 * w2), lp * (c1 * w1 + c2 * w2) - vd  # w_dot
+    w_x_aC = -lp * (w1s * (wu * s1 - wv * c1) + w2s * (wu * s2 - wv * c2))
+    alpha = (w_x_aC - 2 * (wu * wdu + wv * wdv) * omega) * inv_r2
+    R5 = (hx5 * nu - hy5 * nv, hx5 * nv + hy5 * nu)  # R h of link 5, link 7
+    R7 = (hx7 * nu - hy7 * nv, hx7 * nv + hy7 * nu)
+    # U = J^T E h: e_i' . E h = e_i . R h; the slider's column (0, 1) . E h7 = R7_u.
+    U = [lp * (c1 * R5[0] + s1 * R5[1]), lp * (c2 * R5[0] + s2 * R5[1]), R7[0]]
+    i_rod = izz5 + izz7
+    t = [i_rod * jk for jk in j]
+    for k in range(3):
+        for col in range(k, 3):
+            M[k][col] = M[k][col] + (t[k] * j[col] + U[k] * j[col] + U[col] * j[k])
+    aC_g = (-lp * (w1s * c1 + w2s * c2) - gu, -lp * (w1s * s1 + w2s * s2) - gv)  # a_C - g
+    N = (i_rod * alpha + (R5[0] * aC_g[1] - R5[1] * aC_g[0])
+         - (R7[0] * gv - R7[1] * gu))
+    w_rod2 = omega * omega
+    # Link 5's force on C's columns: e_1' . a_C = lp w2^2 S12, e_2' . a_C = -lp w1^2 S12.
+    b[0] = b[0] + lp * (m5 * (lp * w2s * S12 - x1g) - w_rod2 * (c1 * R5[1] - s1 * R5[0])) \
+        + alpha * U[0] + j[0] * N
+    b[1] = b[1] + lp * (m5 * (-lp * w1s * S12 - x2g) - w_rod2 * (c2 * R5[1] - s2 * R5[0])) \
+        + alpha * U[1] + j[1] * N
+    b[2] = b[2] + alpha * R7[0] - w_rod2 * R7[1] + j[2] * N
+    return M, b
 
 
 def parallel_dynamics(system: ParallelSystem, q, qd, phi):
@@ -175,12 +151,13 @@ def parallel_dynamics(system: ParallelSystem, q, qd, phi):
     M = ca.SX.zeros(5, 5)
     bias = ca.SX.zeros(5)
     for side, idx in zip(system.sides, ((0, 1, 2), (3, 4, 2))):
-        terms = _side_terms(system, side, [q[i] for i in idx], [qd[i] for i in idx], phi_of)
+        M_side, b_side = _side_terms(system, side, [q[i] for i in idx],
+                                     [qd[i] for i in idx], phi_of)
         for a in range(3):
-            bias[idx[a]] = bias[idx[a]] + terms.b[a]
+            bias[idx[a]] = bias[idx[a]] + b_side[a]
             for b in range(a, 3):
                 i, k = sorted((idx[a], idx[b]))  # upper triangle, mirrored below
-                M[i, k] = M[i, k] + terms.M[a][b]
+                M[i, k] = M[i, k] + M_side[a][b]
     m_slider = phi_of("slider")[0]
     M[2, 2] = M[2, 2] + m_slider
     bias[2] = bias[2] - m_slider * float(system.gravity[1])
