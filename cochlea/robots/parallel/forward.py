@@ -138,10 +138,11 @@ def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
 
 
 def parallel_dynamics(system: ParallelSystem, q, qd, phi):
-    """``(M, bias)`` of the mechanism at ``(q, qd)`` in its full parameters ``phi`` (the layout
-    of :func:`cochlea.robots.parallel.model._full_parameters`: the slider's mass, four per
-    planar body, then the armatures), body by body (module docstring): ``M qdd + bias`` is the
-    Lagrange model's inverse dynamics without friction. ``M`` is a 5x5 SX."""
+    """``(M, bias, full)`` of the mechanism at ``(q, qd)`` in its full parameters ``phi`` (the
+    layout of :func:`cochlea.robots.parallel.model._full_parameters`, returned as ``full``: the
+    slider's mass, four per planar body, then the armatures), body by body (module docstring):
+    ``M qdd + bias`` is the Lagrange model's inverse dynamics without friction. ``M`` is a 5x5
+    SX."""
     full, blocks = _full_parameters(system)
     block_of = dict(blocks)
 
