@@ -39,7 +39,8 @@ def stribeck_level(v, coulomb, static, vs):
     return coulomb + (static - coulomb) * ca.exp(-(v * v) / (vs * vs + _TINY))
 
 
-def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False) -> ca.Function:
+def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
+               forward=None) -> ca.Function:
     """One control period of a plant, torque held: RK4 with ``substeps`` equal steps.
 
     ``(x, tau, p, friction, h) -> x_next`` with ``x = [q, qd]``, ``p`` the plant's full
@@ -67,7 +68,13 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False) -> ca.Fu
 
     One pass, not an iteration over the stick/slip sets: a holding torque clipped at its level
     lets that joint slide from the next step on.
-        """
+
+    ``forward``: None (the model's ``forward_dynamics_p``), or a callable ``(q, qd, tau, p) ->
+    qdd`` computing the same dynamics another exact way (the closed chain's block form,
+    :func:`cochlea.robots.parallel.forward.forward_dynamics`); equal to rounding, not bit for
+    bit, so the general kernels keep the model's.
+    """
+    forward_dynamics = plant.forward_dynamics_p if forward is None else forward
     n = plant.nq
     x = ca.SX.sym("x", 2 * n)
     tau = ca.SX.sym("tau", n)
@@ -101,7 +108,7 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False) -> ca.Fu
 
         def f(state, dry=dry):
             q, qd = state[:n], state[n:]
-            return ca.vertcat(qd, plant.forward_dynamics_p(q, qd, tau - friction * qd + dry, p))
+            return ca.vertcat(qd, forward_dynamics(q, qd, tau - friction * qd + dry, p))
 
         k1 = f(xk)
         k2 = f(xk + dt / 2 * k1)
