@@ -353,13 +353,15 @@ def test_a_slider_with_its_homing_record_compiled_in_starts_the_bus(tmp_path):
 
 
 def test_a_homing_record_that_does_not_fit_is_refused_when_the_firmware_is_built(tmp_path):
-    """Another motor ID than the description's slider, or the serial robot (no prismatic
-    joint): one line from the header's generator, no header."""
+    """Another motor ID than the description's slider, a token the C bridge's 16 bits would
+    truncate, an offset that is not finite, or the serial robot (no prismatic joint): one
+    line from the header's generator, no header."""
     from cochlea.dynamixel.homing_firmware import main as homing_firmware
 
-    with pytest.raises(AssertionError):
-        homing_header(tmp_path, "parallel_joint", motor_id=17)
-    assert not (tmp_path / "homing" / "homing_record.h").exists()
+    for change in ({"motor_id": 17}, {"marker": 70000}, {"raw_counts": 10**320}):
+        with pytest.raises(AssertionError):  # one line, exit 2
+            homing_header(tmp_path, "parallel_joint", **change)
+        assert not (tmp_path / "homing" / "homing_record.h").exists()
     record = tmp_path / "parallel.json"
     assert homing_firmware(["--scenario", "serial_joint", "--record", str(record), "--out",
                             str(tmp_path / "h.h")]) == 2

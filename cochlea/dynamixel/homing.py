@@ -82,9 +82,19 @@ def _home_command(robot: str, description: str) -> str:
             + " --port PORT")
 
 
+#: What each integer of an entry can be: a Protocol 2.0 ID, a 4-byte signed Present
+#: Position, a 2-byte register. A record out of them was not written by cochlea-dxl home (a
+#: raw count of 10**320 used to end the start-up in an OverflowError).
+_ENTRY_INT_RANGES = {"motor_id": (0, 252), "raw_counts": (-2**31, 2**31 - 1),
+                     "marker": (0, 65535)}
+
+
 def _check_entry(entry) -> None:
     for key in _ENTRY_INTS:
         if not isinstance(entry[key], int) or isinstance(entry[key], bool):
+            raise ValueError
+        low, high = _ENTRY_INT_RANGES[key]
+        if not low <= entry[key] <= high:
             raise ValueError
     for key in _ENTRY_FLOATS:  # a number: "0.02" (a string) would fail later, in arithmetic
         if not isinstance(entry[key], (int, float)) or isinstance(entry[key], bool) or \

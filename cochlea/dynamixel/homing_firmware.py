@@ -19,6 +19,7 @@ One line and exit 2 when the record does not fit the scenario; the header is the
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
 from pathlib import Path
@@ -52,6 +53,13 @@ def header(scenario: str, record_path: Path) -> str:
     # The marker as the motor holds it when the record is valid: the entry's own, so that the
     # offset is the one the bridge would take at this power cycle.
     offset = homing.reference_offset(entry, record, record_path, d, entry["marker"])
+    low, high = homing.MARKER_RANGE
+    if not low <= entry["marker"] <= high or not math.isfinite(offset):
+        # The C bridge keeps the token in 16 bits: one outside home's range could match a
+        # motor's value by truncation, where the Python bridge would refuse it.
+        raise CochleaError(f"homing record {record_path}: its token {entry['marker']} or its "
+                           f"offset {offset!r} m is not one cochlea-dxl home writes "
+                           f"({low}..{high}, finite): run cochlea-dxl home again")
     marker_address = homing.marker_item(d).address
     # A console value: no space, no quote (the firmware prints it as key=value).
     date = re.sub(r"[^0-9A-Za-z:.+_-]", "_", str(record.get("date") or "unknown"))[:40]
