@@ -140,7 +140,7 @@ def load_record(path: Path, robot: str | None = None,
                     raise ValueError
         else:
             raise ValueError
-    except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError, OverflowError):
         raise BackendError(f"homing record {path}: not a {FORMAT} record (nor a {FORMAT_1} "
                            "one); run cochlea-dxl home again") from None
     return record
