@@ -47,6 +47,13 @@ CASES = {
                                    "must be a constant"),
     "encoder flag not a boolean": (JOINT, "[control]", "[plant]\nposition_encoder = 1\n\n"
                                    "[control]", "plant.position_encoder", "true or false"),
+    # tomllib reads any integer whole; a check taking it as a float ended in an OverflowError
+    # (found by putting 10**400 into every number of the shipped files: 308 of 528 crashed)
+    "an integer beyond 64 bits": (JOINT, "duration_s = 20.0", "duration_s = 1" + "0" * 400,
+                                  "duration_s", "an integer within 64 bits"),
+    "an integer past Python's digits limit": (JOINT, "duration_s = 20.0",
+                                              "duration_s = 1" + "0" * 5000, "(syntax)",
+                                              "valid TOML"),
 }
 
 

@@ -317,7 +317,7 @@ def _is_int(v) -> bool:
 def _read_toml(name: str, text: bytes) -> dict:
     try:
         return tomllib.loads(text.decode("utf-8"))
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+    except ValueError as exc:  # not UTF-8, not TOML, or a 4300-digit integer
         raise ModelDataError(f"{name}: not a valid UTF-8 TOML file "
                              f"({str(exc).splitlines()[0] if str(exc) else 'unreadable'})"
                              ) from None

@@ -111,7 +111,7 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: TOML's, or a 4300-digit integer
         raise CodegenError(f"{path}: cannot read the codegen configuration: {exc}") from exc
     top = {"format", "output", "library", "casadi", "function", "robot", "embedded"}
     for key in data:

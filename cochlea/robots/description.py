@@ -379,7 +379,7 @@ def parse_toml(raw: bytes, path: Path, what: str = "robot description") -> dict:
                                f"byte 0x{raw[exc.start]:02x}") from None
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except ValueError as exc:  # TOMLDecodeError, or an integer of over 4300 digits
         raise DescriptionError(path, "(syntax)", "valid TOML", str(exc)) from None
     except RecursionError:
         raise DescriptionError(path, "(syntax)", f"tables and lists nested at most "
@@ -390,13 +390,20 @@ def parse_toml(raw: bytes, path: Path, what: str = "robot description") -> dict:
 
 def _check_nesting(path: Path, data: dict) -> None:
     """Refuse structures deeper than MAX_NESTING, which no description or scenario needs and
-    which recursive code (printing a value, copying it) could not handle."""
+    which recursive code (printing a value, copying it) could not handle; and integers beyond
+    64 bits, which TOML itself rules out (tomllib reads them whole) and which end any check
+    that takes them as a float (``math.isfinite``) in an OverflowError."""
     stack = [("", data, 0)]
     while stack:
         key, value, depth = stack.pop()
         if depth > MAX_NESTING:
             raise DescriptionError(path, key, f"tables and lists nested at most {MAX_NESTING} "
                                    "deep")
+        if isinstance(value, int) and not -2**63 <= value < 2**63:
+            digits = len(str(abs(value)))
+            raise DescriptionError(path, key, "an integer within 64 bits (TOML's range; a "
+                                   "float such as 1e30 for a large number)",
+                                   f"an integer of {digits} digits")
         if isinstance(value, dict):
             stack.extend((f"{key}.{k}" if key else str(k), v, depth + 1)
                          for k, v in value.items())
