@@ -1,11 +1,11 @@
 """A sweep sample's cost outside its closed loop (issue 30 item 3): the supervisor's verdict
 and the summary judged on each unit's whole log (no stacked copies, the sums in the pieces the
-chunks cut them into), the scenario read from its text, the supervisor's pose kernels bound
-once per process. What it must not change: any sample's verdict, summary or row. The old path
-is kept here as it was (the log stacked and screened row by row, the summary a chunk at a
-time) and every sample of each shipped study, at its full length, is judged both ways, with
-the description's limits and with limits tight enough to stop it (a velocity, a position,
-the keep-out circle)."""
+chunks cut them into), the scenario read from the data its text reads as (no TOML written
+or parsed), the supervisor's pose kernels bound once per process. What it must not
+change: any sample's verdict, summary or row. The old path is kept here as it was (the log
+stacked and screened row by row, the summary a chunk at a time) and every sample of each
+shipped study, at its full length, is judged both ways, with the description's limits and
+with limits tight enough to stop it (a velocity, a position, the keep-out circle)."""
 
 from __future__ import annotations
 
@@ -198,6 +198,9 @@ def test_every_sample_is_judged_and_summarised_as_on_the_old_path(study, tmp_pat
     for i in range(spec.total):
         text = sampling.scenario_text(spec, i)
         row = cochlea_sweep.evaluate(text)
+        # What a worker hands evaluate: the data that text reads as (no TOML written or
+        # parsed), the same row bit for bit.
+        assert _plain(cochlea_sweep.evaluate(sampling.scenario_data(spec, i))) == _plain(row)
         # The old path: the sample's file written and read, a supervisor bound for it alone.
         file = tmp_path / "sample.toml"
         file.write_text(text)
@@ -327,3 +330,88 @@ def test_a_run_whose_first_reads_failed_is_summarised_as_chunk_by_chunk(monkeypa
     # make the final RMS NaN; a first good read that starts a chunk leaves none (265 = 5 x 53).
     rms = whole["arm1"]["tracked"]["x"]["final_rms_error"]
     assert math.isnan(rms) == (max(240, failed // 53 * 53) < failed), rms
+
+
+# --------------------------------------------------------------------------------------------
+# The sample's scenario as data, against its replay file
+# --------------------------------------------------------------------------------------------
+
+#: Every kind of input a sample's data holds: a drawn float, a drawn integer, a choice, a
+#: grid of vectors and numbers, a per-component draw, a fixed value, the duration.
+DATA_SPEC = """format = "cochlea-sweep/1"
+scenario = "serial_task"
+samples = 3
+seed = 5
+duration_s = 0.05
+
+[perturb]
+mass_scale = {uniform = [0.7, 1.3]}
+delay_periods = {uniform = [0, 2]}
+position_encoder = {choice = [true, false]}
+noise_q_std_SI = 1e-5
+
+[gains.arm1]
+G_g = {grid = [1.5, [2.0, 2.0, 3.0]]}
+G_a = {uniform = [0.5, 2.0], each = true}
+"""
+
+
+def _typed(value):
+    """TOML data with every scalar's type: 1 and 1.0 and True differ."""
+    if isinstance(value, dict):
+        return {k: _typed(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_typed(v) for v in value]
+    return (type(value).__name__, repr(value))
+
+
+@pytest.mark.parametrize("study", [*STUDIES, "data"])
+def test_a_sample_s_data_is_what_its_replay_file_reads_as(study, tmp_path):
+    import tomllib
+
+    path = tmp_path / "spec.toml"
+    path.write_text(DATA_SPEC if study == "data" else SPEC.format(study=study))
+    spec = sweep_spec.load(path)
+    for i in range(spec.total):
+        data, text = sampling.scenario_data(spec, i), sampling.scenario_text(spec, i)
+        assert _typed(tomllib.loads(text)) == _typed(data), i
+        # A new object every call, nothing shared with the base's: a sample's loader may
+        # keep parts of it.
+        data["plant"]["mass_scale"] = -1.0
+        data.setdefault("control", {})["rate_Hz"] = -1.0
+        data["unit"][0].setdefault("gains", {})["extra"] = [0.0]
+        assert _typed(sampling.scenario_data(spec, i)) == _typed(tomllib.loads(text)), i
+
+
+def test_a_sample_read_from_its_data_runs_and_is_refused_as_from_its_text(tmp_path):
+    import tomllib
+
+    from cochlea.errors import CochleaError, DescriptionError
+
+    path = tmp_path / "spec.toml"
+    path.write_text(DATA_SPEC)
+    spec = sweep_spec.load(path)
+    for i in (0, spec.total - 1):
+        text = sampling.scenario_text(spec, i)
+        row = cochlea_sweep.evaluate(sampling.scenario_data(spec, i))
+        assert _plain(row) == _plain(cochlea_sweep.evaluate(text)), i
+    # A bad value is the same one line either way (the file's name, the key, the value).
+    data = sampling.scenario_data(spec, 0)
+    data["plant"]["mass_scale"] = -2.0
+    text = sampling.dumps(data)
+    messages = []
+    for kind in ({"text": text}, {"data": data}):
+        with pytest.raises(DescriptionError) as err:
+            load_scenario(cochlea_sweep.SAMPLE_FILE, **kind)
+        messages.append(str(err.value))
+    assert messages[0] == messages[1] and "mass_scale" in messages[0], messages
+    # Nesting no scenario needs is refused as the parsed file's would be.
+    deep = tomllib.loads(sampling.scenario_text(spec, 0))
+    deep["plant"]["extra"] = nested = []
+    for _ in range(40):
+        nested.append([])
+        nested = nested[0]
+    with pytest.raises(DescriptionError, match="nested at most"):
+        load_scenario(cochlea_sweep.SAMPLE_FILE, data=deep)
+    with pytest.raises(CochleaError, match="not both"):
+        load_scenario(cochlea_sweep.SAMPLE_FILE, text=text, data=data)
