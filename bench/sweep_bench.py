@@ -2,7 +2,7 @@
 it starts Dask clusters and takes minutes; ``make bench`` runs its serial part, :func:`serial`):
 
 1. samples per second per core of each of the four thesis studies at full length (20 s serial,
-   10 s parallel), serially in this process: scenario file, set-ups, C simulation, supervisor
+   10 s parallel), serially in this process: scenario data, set-ups, C simulation, supervisor
    verdict and summary per sample, as a sweep's worker does it, in CPU time (process time: on a
    shared machine wall time measures the neighbours), with the set-ups from the worker's cache
    (:func:`cochlea.sim.setup.unit_setups`) and, for comparison, built again for every sample;
@@ -73,7 +73,7 @@ def _per_sample(spec, samples: int, cache: bool) -> tuple[float, float]:
 def breakdown(spec, samples: int) -> dict[str, float]:
     """Where a cached sample's CPU time goes (s per sample): ``evaluate``'s steps one by one,
     the C closed loop (``run_c``, every unit) apart from the rest of ``simulate``."""
-    parts = dict.fromkeys(("scenario text", "scenario load", "set-ups", "C closed loop",
+    parts = dict.fromkeys(("scenario data", "scenario load", "set-ups", "C closed loop",
                            "simulate (rest)", "supervisor verdict", "summary + row"), 0.0)
     run_c = compiled.run_c
     loop = [0.0]
@@ -96,9 +96,9 @@ def breakdown(spec, samples: int) -> dict[str, float]:
                 parts[name] += now - clock
                 clock = now
 
-            text = sampling.scenario_text(spec, i)
-            lap("scenario text")
-            sc = load_scenario(cochlea_sweep.SAMPLE_FILE, text=text)  # as evaluate reads it
+            data = sampling.scenario_data(spec, i)  # what run_batch hands evaluate
+            lap("scenario data")
+            sc = load_scenario(cochlea_sweep.SAMPLE_FILE, data=data)  # as evaluate reads it
             lap("scenario load")
             setups = unit_setups(sc)
             lap("set-ups")
@@ -143,12 +143,14 @@ def serial(folder: Path, samples: int, uncached: int = 3) -> list[dict]:
               f"{old:.3f} | {wall:.4f} | {load0:.1f}-{load1:.1f} |", flush=True)
     print("\n## Where a sample's CPU time goes (ms per sample)\n")
     names = list(rows[0]["parts"])
-    print("| study | " + " | ".join(names) + " | total |")
-    print("| --- |" + " --- |" * (len(names) + 1))
+    print("| study | " + " | ".join(names) + " | total | outside / loop |")
+    print("| --- |" + " --- |" * (len(names) + 2))
     for r in rows:
         parts = r["parts"]
+        total, loop = sum(parts.values()), parts["C closed loop"]
+        r["outside_share"] = (total - loop) / loop  # issue 30 item 3: under 10 %
         print(f"| {r['study']} | " + " | ".join(f"{parts[k] * 1e3:.2f}" for k in names)
-              + f" | {sum(parts.values()) * 1e3:.2f} |")
+              + f" | {total * 1e3:.2f} | {r['outside_share']:.0%} |")
     print()
     return rows
 

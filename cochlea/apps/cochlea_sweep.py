@@ -97,10 +97,13 @@ def refused(setups) -> dict:
 SAMPLE_FILE = Path("sample.toml")
 
 
-def evaluate(text: str, cache: bool = True, kernels: str = "auto",
+def evaluate(sample: str | dict, cache: bool = True, kernels: str = "auto",
              library: str | None = None) -> dict:
     """One sample on a worker: exactly what ``cochlea-run --scenario FILE --realtime off``
-    computes for its summary.json, from the sample's scenario file.
+    computes for its summary.json, from the sample's scenario file: its text
+    (:func:`cochlea.sweep.sampling.scenario_text`), or the data that text reads as
+    (:func:`cochlea.sweep.sampling.scenario_data`: what a sweep's worker passes, which spares
+    writing the text and parsing it again; the same row, bit for bit).
 
     ``cache``: the set-ups' symbolic part (models, controllers, checked desired path) comes
     from the worker's cache when an earlier sample had the same structure
@@ -112,7 +115,8 @@ def evaluate(text: str, cache: bool = True, kernels: str = "auto",
         os.environ[ckernels.ENVIRONMENT] = library
     # Read as the file would be, without writing one (a temporary folder a sample cost more
     # than the summary); the sample's description path is absolute (sampling.scenario_data).
-    scenario = load_scenario(SAMPLE_FILE, text=text)
+    scenario = load_scenario(SAMPLE_FILE, data=sample) if isinstance(sample, dict) else \
+        load_scenario(SAMPLE_FILE, text=sample)
     try:
         setups = unit_setups(scenario, cache=cache)
     except GravityRefused:  # a sample the robot cannot start: counted, not an error

@@ -411,8 +411,8 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor) -> bool:
             # A column's extremes are finite only when all of it is (a NaN makes both NaN, an
             # infinity one of them infinite), and inside the rule's bounds only when all of it
             # is: a position within its limits, a speed |qd| within its limit.
-            if not (_columns_within(u.q, L.position_lo[joints], L.position_hi[joints])
-                    and _columns_within(u.qd, -L.velocity[joints], L.velocity[joints])
+            if not (_state_within(u.q, u.qd, L.position_lo[joints], L.position_hi[joints],
+                                  L.velocity[joints])
                     and math.isfinite(u.tau.min(initial=0.0))
                     and math.isfinite(u.tau.max(initial=0.0))):
                 return False
@@ -429,6 +429,58 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor) -> bool:
         if L.keep_out_radius is not None and not _clear_of_keep_out(result, L.keep_out_radius):
             return False
     return True
+
+
+#: Rows a block of :func:`column_extremes` holds: the block's columns are reduced across the
+#: blocks with whole rows of SIMD work, then within the block.
+_EXTREMES_BLOCK = 256
+
+
+def column_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each column's ``(min, max)`` of a C-contiguous 2-D log (``+inf``, ``-inf`` for no
+    rows), exactly (a NaN in a column makes both NaN), in two passes over the memory: numpy
+    reduces a C-ordered log along its rows element by element (several times slower than a
+    column alone), so the rows go in blocks whose every column is reduced at once."""
+    n, m = a.shape
+    low, high = np.full(m, np.inf), np.full(m, -np.inf)
+    full = n // _EXTREMES_BLOCK * _EXTREMES_BLOCK
+    if full:
+        blocks = a[:full].reshape(-1, _EXTREMES_BLOCK * m)  # a view: whole rows per block
+        low = np.minimum.reduce(blocks, axis=0).reshape(_EXTREMES_BLOCK, m).min(axis=0)
+        high = np.maximum.reduce(blocks, axis=0).reshape(_EXTREMES_BLOCK, m).max(axis=0)
+    if full < n:
+        low = np.minimum(low, a[full:].min(axis=0))
+        high = np.maximum(high, a[full:].max(axis=0))
+    return low, high
+
+
+def _side_by_side(q: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
+    """``[q, qd]`` as one C-contiguous array without a copy when they are the two halves of
+    each row of one (a simulated log's measured state), else None."""
+    rows, n = q.shape
+    item = q.itemsize
+    if (qd.shape != (rows, n) or q.dtype != np.float64 or qd.dtype != np.float64 or rows < 2
+            or q.strides != (2 * n * item, item) or qd.strides != q.strides
+            or qd.ctypes.data != q.ctypes.data + n * item):
+        return None
+    # The same memory q and qd cover together: every row's 2 n values, in order.
+    return np.lib.stride_tricks.as_strided(q, (rows, 2 * n), q.strides, writeable=False)
+
+
+def _state_within(q: np.ndarray, qd: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  speed: np.ndarray) -> bool:
+    """Every position of ``q`` finite and within its ``[lo, hi]``, every speed |qd| within
+    its ``speed`` (and finite): :func:`_columns_within` of both, from the extremes of the
+    array they share when they share one (:func:`column_extremes`, a pass for all columns)."""
+    state = _side_by_side(q, qd)
+    if state is None:
+        return _columns_within(q, lo, hi) and _columns_within(qd, -speed, speed)
+    low, high = column_extremes(state)
+    n = q.shape[1]
+    with np.errstate(invalid="ignore"):
+        return bool(np.isfinite(low).all() and np.isfinite(high).all()
+                    and (low[:n] >= lo).all() and (high[:n] <= hi).all()
+                    and (low[n:] >= -speed).all() and (high[n:] <= speed).all())
 
 
 def _columns_within(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:

@@ -32,11 +32,12 @@ KERNELS = KERNEL_CHOICES
 
 
 def load_scenario(name_or_path: str | Path, plant_preset: str | None = None, *,
-                  text: str | None = None) -> Scenario:
+                  text: str | None = None, data: dict | None = None) -> Scenario:
     """A shipped scenario by name (``"serial_task"``) or a scenario file, with its robot's
     description loaded once; ``plant_preset`` (e.g. ``"realistic"``) replaces the preset of
-    its ``[plant]`` table; ``text``: the file's text, already read (the file is not)."""
-    return _load(name_or_path, plant_preset, text=text)
+    its ``[plant]`` table; ``text``: the file's text, already read (the file is not);
+    ``data``: the TOML data that text reads as (a sweep's sample), checked as the file's."""
+    return _load(name_or_path, plant_preset, text=text, data=data)
 
 
 def simulate(sc: Scenario, duration: float | None = None,

@@ -29,6 +29,7 @@ from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
 from ..robots.description import MAX_FILE_BYTES, Table, parse_toml, read_toml
+from ..robots.description import _check_nesting as check_nesting
 from ..robots.description import resolve_path as resolve_description
 from ..robots.model import ACTUATORS
 from .expressions import FUNCTIONS, ExpressionError, parse
@@ -458,7 +459,7 @@ def _check_run_length(top: Table, duration: float, rate: float) -> None:
 
 
 def load(name_or_path: str | Path, plant_preset: str | None = None, *,
-         text: str | None = None) -> Scenario:
+         text: str | None = None, data: dict | None = None) -> Scenario:
     """Load a scenario and the robot description it names; the robot's adapter tells the
     kinds and sizes of its coordinates (:class:`~cochlea.robots.adapter.Layout`).
 
@@ -466,10 +467,18 @@ def load(name_or_path: str | Path, plant_preset: str | None = None, *,
     ``[plant]`` table (or gives one where there is none); its other keys still apply.
     ``text``: the scenario file's text, already in memory (a sweep's sample): read as the
     file at ``name_or_path`` would be, which names it in messages and is where a relative
-    description is found from, but is not read."""
+    description is found from, but is not read. ``data``: the file's TOML data, already
+    parsed (a sweep's sample, built from its base scenario's data without writing and reading
+    its text back: ``tomllib.loads`` of the text gives the same data); checked and read as the
+    parsed file's would be, and not changed."""
     path = resolve(name_or_path)
-    data = read_toml(path, "scenario") if text is None else \
-        parse_toml(text.encode("utf-8"), path, "scenario")
+    if data is not None:
+        if text is not None:
+            raise CochleaError("load: give a scenario's text or its data, not both")
+        check_nesting(path, data)
+    else:
+        data = read_toml(path, "scenario") if text is None else \
+            parse_toml(text.encode("utf-8"), path, "scenario")
     top = Table(path, data, "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     robot = top.string("robot", tuple(ROBOTS))

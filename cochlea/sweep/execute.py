@@ -44,8 +44,12 @@ MEASURED_SAMPLES = 1000
 CONNECT_TIMEOUT_S = 30
 
 
-def run_batch(spec: Spec, indices: list[int], evaluate: Callable[[str], dict]) -> list[dict]:
-    """One batch, on a worker: each sample's scenario built, run and measured."""
+def run_batch(spec: Spec, indices: list[int],
+              evaluate: Callable[[dict], dict]) -> list[dict]:
+    """One batch, on a worker: each sample's scenario built, run and measured. ``evaluate``
+    gets the sample's scenario as data (:func:`~cochlea.sweep.sampling.scenario_data`): what
+    its replay file (:func:`~cochlea.sweep.sampling.scenario_text`) reads as, without the
+    text written and parsed again."""
     rows = []
     for i in indices:
         start = time.perf_counter()
@@ -59,7 +63,7 @@ def run_batch(spec: Spec, indices: list[int], evaluate: Callable[[str], dict]) -
             if name in vectors and not isinstance(value, list):
                 value = [value] * vectors[name]
             row.update(results.flatten(name, value))
-        row.update(evaluate(sampling.scenario_text(spec, i, values)))
+        row.update(evaluate(sampling.scenario_data(spec, i, values)))
         row["wall_s"] = time.perf_counter() - start
         rows.append(row)
     return rows
@@ -112,7 +116,7 @@ def connect(workers: int | None, scheduler: str | None):
     return Client(cluster), cluster
 
 
-def run(spec: Spec, out: Path, evaluate: Callable[[str], dict], *, workers: int | None = None,
+def run(spec: Spec, out: Path, evaluate: Callable[[dict], dict], *, workers: int | None = None,
         scheduler: str | None = None, batch: int | None = None, progress: bool = True,
         warm: Callable[[], object] | None = None, log=None) -> dict:
     """Run every sample not yet in ``out``; returns what ran (``samples``, ``batches``,

@@ -514,7 +514,7 @@ def best(records: list[dict]) -> dict | None:
 # --------------------------------------------------------------------------------------------
 
 
-def _evaluate(client, jobs: dict[Any, Spec], size: int, evaluate: Callable[[str], dict],
+def _evaluate(client, jobs: dict[Any, Spec], size: int, evaluate: Callable[[dict], dict],
               n_workers: int, done: Callable[[Any, list[dict]], None],
               progress: Callable[[int], None], out: Path = Path(".")) -> None:
     """Every job's sample on the workers, in chunks that keep every worker busy; ``done(key,
@@ -542,7 +542,7 @@ def _evaluate(client, jobs: dict[Any, Spec], size: int, evaluate: Callable[[str]
             done(key, got.pop(key))
 
 
-def run(tune: Tune, out: Path, evaluate: Callable[[str], dict], *, workers: int | None = None,
+def run(tune: Tune, out: Path, evaluate: Callable[[dict], dict], *, workers: int | None = None,
         scheduler: str | None = None, progress: bool = True,
         warm: Callable[[], object] | None = None, log=None) -> dict:
     """Evaluate the nominal gains and every trial not yet finished in ``out``, then write
