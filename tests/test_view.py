@@ -364,3 +364,25 @@ def test_a_row_whose_q_is_not_finite_is_not_drawn(runs, tmp_path):
     assert arm2["frames"][-1] is None and arm2["actual"][0][-1] == [None, None, None]
     assert arm1["frames"][-1] is not None and None not in arm1["actual"][0][-1]
     assert main([str(folder), "--html-out", str(tmp_path / "page.html")]) == 0
+
+
+@pytest.mark.parametrize("field, value", [("duration_s", 10**30), ("space", float("inf")),
+                                          ("periods", float("nan")), ("stop", {"rule": "x",
+                                                                               "time_s": 10**30})])
+def test_a_summary_with_numbers_no_reader_expects_is_one_line_or_drawn(runs, tmp_path, capsys,
+                                                                        field, value):
+    """Fuzzing 400 summaries (a field set to 10**400, infinity, NaN, text...) found two
+    tracebacks: an integer no float holds (duration_s) and an infinity copied into the page's
+    JSON (space). Now an integer beyond 64 bits is a damaged summary (one line, exit 2) and a
+    field of the wrong kind is left out of the page."""
+    damaged = tmp_path / "run"
+    shutil.copytree(runs["serial_task"], damaged)
+    summary = json.loads((damaged / "summary.json").read_text())
+    summary[field] = value
+    (damaged / "summary.json").write_text(json.dumps(summary).replace(
+        "1000000000000000000000000000000", "1" + "0" * 400))
+    code = main([str(damaged), "--html-out", str(tmp_path / "page.html")])
+    if field in ("duration_s", "stop"):
+        assert code == EXIT_USER_ERROR and "integer of 401 digits" in one_line(capsys)
+    else:
+        assert code == 0 and (tmp_path / "page.html").is_file()

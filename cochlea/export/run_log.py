@@ -121,6 +121,15 @@ class RunLog:
             raise RunFolderError(f"{self.csv} holds no period: nothing to export")
 
 
+
+def _int64(text: str) -> int:
+    """A summary's integer, within 64 bits as cochlea writes them: a longer one is damage
+    (json reads any integer whole, and a reader taking it as a float would overflow)."""
+    value = int(text)
+    if not -2**63 <= value < 2**63:
+        raise ValueError(f"an integer of {len(text)} digits")
+    return value
+
 def strip_unit(element: str, units: tuple[str, ...]) -> str:
     for unit in units:
         if element.endswith(unit):
@@ -155,7 +164,7 @@ def open_run(folder: Path) -> RunLog:
             raise RunFolderError(f"{folder} is not a finished run: {path.name} is {problem}"
                                  f"{hint}")
     try:
-        summary = json.loads(summary_path.read_text(encoding="utf-8"))
+        summary = json.loads(summary_path.read_text(encoding="utf-8"), parse_int=_int64)
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise RunFolderError(f"{summary_path} is damaged: not JSON ({exc})") from None
     if not isinstance(summary, dict) or not isinstance(summary.get("robot"), str) \

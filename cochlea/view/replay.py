@@ -123,15 +123,30 @@ def _scenario(run: RunLog):
         raise RunFolderError(f"{run.folder}: its scenario cannot be loaded: {exc}") from None
 
 
+def _number(v) -> float | None:
+    """A summary's number as a finite float, or None (a damaged field: text, NaN, an integer
+    no float holds)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        v = float(v)
+    except OverflowError:
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _text(v) -> str | None:
+    return v if isinstance(v, str) else None
+
+
 def _stop(summary: dict) -> dict | None:
     for key, kind in (("stop", "stopped"), ("supervisor", "would have stopped")):
         entry = summary.get(key)
         if isinstance(entry, dict) and isinstance(entry.get("rule"), str) \
                 and entry["rule"] not in CLEAN_STOPS:
-            t = entry.get("time_s")
             return {"rule": entry["rule"], "kind": kind,
-                    "time_s": float(t) if isinstance(t, (int, float)) and math.isfinite(t)
-                    else None, "detail": str(entry.get("detail", ""))}
+                    "time_s": _number(entry.get("time_s")),
+                    "detail": str(entry.get("detail", ""))}
     return None
 
 
@@ -139,8 +154,8 @@ def build_replay(run: RunLog, rate_hz: float = DEFAULT_RATE_HZ) -> dict:
     """The replay of ``run`` (see the module's docstring): a JSON-able dict."""
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise CochleaError(f"the replay rate must be a positive number of Hz, not {rate_hz}")
-    duration = run.summary.get("duration_s")
-    if isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0:
+    duration = _number(run.summary.get("duration_s"))
+    if duration is not None and duration > 0:
         rate_hz = min(rate_hz, MAX_FRAMES / duration)
     rows = decimate(run, rate_hz)
     scenario = _scenario(run)
@@ -162,9 +177,10 @@ def build_replay(run: RunLog, rate_hz: float = DEFAULT_RATE_HZ) -> dict:
                       "actual": actual, "desired": desired})
         keep_out += [r for r in keep_out_regions(run, unit, plan, rows) if r not in keep_out]
     return {"robot": run.adapter.name, "description": getattr(run.system, "name", ""),
-            "scenario": run.summary.get("scenario"), "space": run.summary.get("space"),
-            "controller": run.summary.get("controller"), "rate_hz": rate_hz,
-            "periods": run.summary.get("periods"),
+            "scenario": _text(run.summary.get("scenario")),
+            "space": _text(run.summary.get("space")),
+            "controller": _text(run.summary.get("controller")), "rate_hz": rate_hz,
+            "periods": _number(run.summary.get("periods")),
             "times": [float(t) for t in rows[:, 0]], "units": units, "keep_out": keep_out,
             "stop": _stop(run.summary)}
 
