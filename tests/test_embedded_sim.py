@@ -173,7 +173,7 @@ def test_full_length_without_a_log():
     assert info["rows"] == info["periods"] == round(sc.duration / sc.period)
     assert info["duration_s"] == sc.duration and info["period_s"] == sc.period
     assert 0 < info["loop_s"] <= info["main_s"]
-    assert 0 < info["loop_cpu_s"] <= info["loop_s"] + 1e-3  # one thread: CPU <= wall
+    assert 0 < info["loop_cpu_s"] <= info["loop_s"] + 1e-3  # each thread: CPU <= wall
 
 
 @pytest.mark.slow
@@ -237,3 +237,46 @@ def test_issue_24s_disturbances_run_in_c(name, tmp_path, monkeypatch):
     assert np.abs(result.units[0].true_q - nominal.units[0].true_q).max() > 1e-9
     u = reference.units[0]
     assert not np.array_equal(u.q, u.true_q)
+
+
+def test_each_arm_runs_on_a_thread_of_its_own():
+    """The serial studies' two arms run on two threads (each its own plant, controller state
+    and history, for the whole run); the parallel mechanism, one unit, on one. The summary
+    gives each unit thread's CPU time, and loop_cpu_s is the busiest one's."""
+    serial = eb.run_simulation(eb.build_simulation("serial_joint"), 0.2)
+    assert serial["threads"] == 2 and len(serial["unit_cpu_s"]) == 2
+    assert serial["loop_cpu_s"] == max(serial["unit_cpu_s"]) > 0
+    parallel = eb.run_simulation(eb.build_simulation("parallel_joint"), 0.05)
+    assert parallel["threads"] == 1 and parallel["unit_cpu_s"] == [parallel["loop_cpu_s"]]
+
+
+@pytest.mark.parametrize("scale, first, status", [(0.01, "arm2", "diverged"),
+                                                  (0.05, "arm1", "step-failed")])
+@pytest.mark.slow
+def test_the_run_ends_where_the_first_arm_stops(scale, first, status, tmp_path, monkeypatch):
+    """Link 3 made light (mass_scale) drives both arms of serial_joint unstable, one before
+    the other. Each arm's thread stops where its arm does; the run and its log end at the first
+    stop, as one loop over the arms ends them (measured: the same rows, status and log bytes
+    as the program before the threads) and as simulate() ends every unit's log: arm 2 first
+    (the thread beside the main one; its state diverges), then arm 1 first (the main thread's;
+    its step refuses non-finite commands first, so the log keeps the periods before that one,
+    which simulate() logs as well)."""
+    import dataclasses
+
+    from cochlea.sim.result import truncate
+
+    sc = load_scenario("serial_joint")
+    sc = dataclasses.replace(sc, plant=dataclasses.replace(
+        sc.plant, mass_scale=np.array([1.0, 1.0, scale])))
+    monkeypatch.setattr(eb, "sim_scenario", lambda _: sc)
+    monkeypatch.setattr(eb, "BUILD", tmp_path / "build")
+    result, info, _, setups = run_logged("serial_joint", "double", tmp_path, 2.0)
+    reference = simulate(sc, duration=2.0, setups=setups)
+    assert min(reference.diverged, key=reference.diverged.get) == first
+    assert info["status"] == status and info["threads"] == 2
+    rows = len(reference.time) - (status == "step-failed")
+    assert info["rows"] == rows < 2000
+    truncate(reference.units, rows)
+    reference.time = reference.time[:rows]
+    worst = worst_relative(result, reference)
+    assert max(worst.values()) <= TOLERANCE, worst
