@@ -444,3 +444,29 @@ def test_the_serial_plant_in_c_is_the_general_one_within_rounding(tmp_path):
             worst = max(worst, float(np.max(np.abs(out - expected)
                                             / np.maximum(1.0, np.abs(expected)))))
     assert worst <= 1e-14, worst
+
+
+@pytest.mark.parametrize("unit", [0, 1])
+def test_the_other_arm_is_cut_where_one_diverges_at_once(unit, tmp_path, monkeypatch):
+    """One arm made unstable (negative viscous friction) diverges within a few periods while
+    the other would run the whole 20 s: the log ends where simulate() ends it, and the healthy
+    arm's thread stops at its first block (the writer has ended) instead of running on (20 s
+    take it about 10 ms of CPU; a block of 596 rows, 0.3 ms) -- whether the unstable arm is on
+    the main thread (0) or beside it (1)."""
+    import dataclasses
+
+    sc = load_scenario("serial_joint")
+    setups = unit_setups(sc)
+    setups[unit] = dataclasses.replace(setups[unit], friction=np.full(3, -0.05))
+    monkeypatch.setattr(eb, "unit_setups", lambda _: setups)
+    monkeypatch.setattr(eb, "BUILD", tmp_path / "build")
+    monkeypatch.setattr(eb, "INLINE_TRIG_ROBOTS", ())
+    log = tmp_path / "log.bin"
+    info = eb.run_simulation(eb.build_simulation("serial_joint"), 20.0, log)
+    result = eb.read_log(log, info, sc, setups)
+    reference = simulate(sc, duration=20.0, setups=setups)
+    assert list(reference.diverged) == [setups[unit].name]
+    assert info["status"] == "diverged" and info["rows"] == len(reference.time) < 10
+    worst = worst_relative(result, reference)
+    assert max(worst.values()) <= TOLERANCE, worst
+    assert info["unit_cpu_s"][1 - unit] < 3e-3, info["unit_cpu_s"]
