@@ -293,6 +293,12 @@ def shared_reciprocals(text: str) -> str:
     return "\n".join(lines)
 
 
+def renamed(f: ca.Function, name: str) -> ca.Function:
+    """``f`` (one input, one output) as a Function ``name`` of the same expression (SX)."""
+    x = ca.SX.sym(f.name_in(0), f.size1_in(0))
+    return ca.Function(name, [x], [f(x)], [f.name_in(0)], [f.name_out(0)])
+
+
 def plant_source(plants: list[ca.Function], title: str, trig: bool = False) -> str:
     """The C source of the specialised plants (CasADi's calling convention, no work memory),
     unused parameters marked as generated_c/'s are. ``trig``: sin and cos from sim_sincos
@@ -337,6 +343,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
              '#include "sim.h"', f'#include "{name}.h"']
     groups, body, table, plants = [], [], [], []
     n_pose, n_plant, sizes = 0, 0, []
+    trig = inline_trig_applies(sc, setups)
     for u in setups:
         kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
         loop = lib.manifest["closed_loops"][kernels.closed_loop]
@@ -352,7 +359,13 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
             declare = [f"int {plant}(const double **arg, double **res, long long int *iw, "
                        "double *w, int mem); /* sim_plant.c */"]
         pose, pose_group = _kernel_source(lib, kernels.pose, generated)
-        groups += [] if pose_group in groups else [pose_group]
+        if trig:  # the log's pose with sim_sincos too (the writer thread's largest part)
+            pose = f"sim_{u.name}_pose"
+            plants.append(renamed(u.fk_world, pose))
+            declare = [*declare, f"int {pose}(const double **arg, double **res, long long int "
+                       "*iw, double *w, int mem); /* sim_plant.c */"]
+        else:
+            groups += [] if pose_group in groups else [pose_group]
         n = u.controller_model.nq
         nd, np_, ne = u.controller.n_desired, u.controller.n_params, loop["n_errors"]
         n_pose += loop["n_pose"]
@@ -360,7 +373,8 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
         sizes += [f"{unit}_NQ == {n}", f"{unit}_NP == {np_}", f"{unit}_ND == {nd}",
                   f"{unit}_NE == {ne}"]
         prefix = f"sim_{u.name}"
-        body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} */",
+        body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} "
+                 f"(runs {pose}) */",
                  *declare,
                  _c_array(f"{prefix}_x0", u.plant_x0),
                  _c_array(f"{prefix}_plant_p", u.plant_params),
@@ -386,7 +400,6 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
             f"{names['effort_ramp']}, {names['torque_scale']}}},")
         n_plant += len(u.plant_x0)
     lines += [f'#include "{g}.h"' for g in groups]
-    trig = inline_trig_applies(sc, setups)
     lines += ["", f'#define SIM_NAME "{name}"', f"#define SIM_C(x) {name}##x",
               f'#define SIM_CONTROLLER_SOURCE "{name}.c" /* compiled into simulate.c */']
     for size in ("UNITS", "NQ", "NX", "ND", "NP", "NE"):

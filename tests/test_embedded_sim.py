@@ -173,17 +173,19 @@ def test_the_geared_plant_stays_general():
     """The geared plant (realistic preset) runs its generated_c/ kernel: folding its constants
     moved results by an ulp, which backlash and stiction grew to 1e-2 rad over a study. Its
     study keeps libm (SIM_INLINE_TRIG 0), as the parallel mechanism does; the ideal serial
-    studies take every sin and cos of their plants from sim_sincos, paired (one call for a sin
-    and a cos of one angle: 4 RK4 stages x 2 angles an arm)."""
+    studies take every sin and cos of their plants and logged poses from sim_sincos, paired
+    (one call for a sin and a cos of one angle: 4 RK4 stages x 2 angles an arm, and 3 angles
+    a pose), so they link no general kernel."""
     header, plant_c, groups = eb.sim_scenario_header("serial_joint_realistic")
     assert "serial_arm1_gear_plant_step, serial_arm1_fk_world" in header
     assert "sim_arm1_plant" not in plant_c and "serial_arm1" in groups
     assert "#define SIM_INLINE_TRIG 0" in header
     header, plant_c, groups = eb.sim_scenario_header("serial_task")
-    assert "sim_arm1_plant, serial_arm1_fk_world" in header
-    assert "int sim_arm1_plant(" in plant_c and "int sim_arm2_plant(" in plant_c
+    assert "sim_arm1_plant, sim_arm1_pose" in header and groups == []
+    assert "int sim_arm1_plant(" in plant_c and "int sim_arm2_pose(" in plant_c
     assert "#define SIM_INLINE_TRIG 1" in header
-    assert plant_c.count("sim_sincos(") == 16 and "sin(" not in plant_c.replace("sim_sin(", "")
+    assert plant_c.count("sim_sincos(") == 2 * (8 + 3)
+    assert "sin(" not in plant_c.replace("sim_sin(", "")
     header, plant_c, _ = eb.sim_scenario_header("parallel_joint")
     assert "#define SIM_INLINE_TRIG 0" in header and "sim_sincos" not in plant_c
 

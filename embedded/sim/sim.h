@@ -59,7 +59,7 @@ typedef struct {
      * sub-steps, or the geared plant's linearly implicit steps) on the plant's state; a plant
      * specialised to the scenario (sim_plant.c) reads x and tau only, the data below folded in */
     sim_kernel plant;
-    sim_kernel pose;          /* pose = fk_world(q) */
+    sim_kernel pose;          /* pose = fk_world(q) (in sim_plant.c where SIM_INLINE_TRIG) */
     const double *x0;         /* the plant's initial state (nxp) */
     const double *plant_p;    /* the plant's parameters (SI) */
     const double *friction;   /* viscous friction per joint: N m s/rad or N s/m */
