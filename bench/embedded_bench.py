@@ -33,6 +33,7 @@ import gc
 import hashlib
 import json
 import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -202,9 +203,119 @@ def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function
     return ca.Function(name, [x, tau], [x_next], ["x", "tau"], ["x_next"])
 
 
-def plant_source(plants: list[ca.Function], title: str) -> str:
+#: The robots whose all-in-C simulations take sin and cos from sim_sincos (embedded/sim/
+#: sim_trig.h, inline, within an ulp of libm's) instead of libm, in the plant and in the
+#: double build's controller, and divide by the plant's articulated inertias through shared
+#: reciprocals, where :func:`inline_trig_applies`: the serial arms, whose ideal studies do not
+#: amplify an ulp (docs/embedded.md). The parallel mechanism keeps libm and its divisions, bit
+#: for bit with the general kernels.
+INLINE_TRIG_ROBOTS = ("serial",)
+
+
+def inline_trig_applies(sc, setups) -> bool:
+    """Whether scenario ``sc``'s simulation takes sin and cos from sim_sincos: a robot of
+    :data:`INLINE_TRIG_ROBOTS` with no geared plant (its backlash grew an ulp to 1e-2 rad over
+    a study) and no measurement or effort grid (an ulp may move a value across a grid step):
+    elsewhere libm, and the log is simulate()'s bit for bit."""
+    return sc.robot in INLINE_TRIG_ROBOTS and not any(
+        u.gearbox or u.quantum is not None or u.effort_grid is not None for u in setups)
+
+_ASSIGN = re.compile(r"^\s*(a\d+)=(.*);$")
+_TRIG = re.compile(r"^(\s*)(a\d+)=(sin|cos)\((a\d+)\);$")
+
+
+def inline_trig(text: str) -> str:
+    """CasADi's C of straight-line functions with each ``sin(a)`` and ``cos(a)`` of one value
+    of ``a`` (a variable between two assignments) taken from one ``sim_sincos(a, ...)`` at the
+    first of them, and a lone ``sin`` or ``cos`` from ``sim_sin`` or ``sim_cos``
+    (embedded/sim/sim_trig.h). No other call of sin or cos may be left."""
+    lines = text.split("\n")
+    version: dict[str, int] = {}
+    seen: dict[tuple[str, int], dict] = {}  # (variable, version) -> its sin and cos lines
+    pairs = 0
+    for i, line in enumerate(lines):
+        if line.startswith("static ") or line.startswith("}"):
+            version, seen = {}, {}  # a function's variables are its own
+            continue
+        trig = _TRIG.match(line)
+        if trig:
+            indent, target, kind, arg = trig.groups()
+            uses = seen.setdefault((arg, version.get(arg, 0)), {"lines": {}})
+            if kind in uses["lines"]:
+                raise RuntimeError(f"inline_trig: {kind}({arg}) twice: {line.strip()}")
+            uses["lines"][kind] = (i, indent, target)
+            if len(uses["lines"]) == 2:
+                (first, f_indent, f_target), (second, s_indent, s_target) = sorted(
+                    (uses["lines"]["sin"], uses["lines"]["cos"]))
+                first_kind = "sin" if first == uses["lines"]["sin"][0] else "cos"
+                second_kind = "cos" if first_kind == "sin" else "sin"
+                s_, c_ = f"sim_s{pairs}", f"sim_c{pairs}"
+                pairs += 1
+                lines[first] = (f"{f_indent}casadi_real {s_}, {c_}; sim_sincos({arg}, &{s_}, "
+                                f"&{c_}); {f_target}={s_ if first_kind == 'sin' else c_};")
+                lines[second] = (f"{s_indent}{s_target}="
+                                 f"{s_ if second_kind == 'sin' else c_};")
+        assign = _ASSIGN.match(line)
+        if assign:
+            version[assign.group(1)] = version.get(assign.group(1), 0) + 1
+    for i, line in enumerate(lines):  # the lone ones
+        trig = _TRIG.match(line)
+        if trig:
+            indent, target, kind, arg = trig.groups()
+            lines[i] = f"{indent}{target}=sim_{kind}({arg});"
+    out = "\n".join(lines)
+    if re.search(r"\b(sin|cos|sincos)\(", out):
+        raise RuntimeError("inline_trig: a sin or cos of something other than a variable")
+    return out
+
+
+_DIVISION = re.compile(r"^(\s*)(a\d+)=\((a\d+)/(a\d+)\);$")
+
+
+def shared_reciprocals(text: str) -> str:
+    """CasADi's C of straight-line functions with the divisions by one value of a variable
+    (between two of its assignments), where there are several, turned into multiplications by
+    its reciprocal, formed once at the first: each quotient then differs from the division's
+    by an ulp at most (the ABA's articulated inertia divides three times a stage)."""
+    lines = text.split("\n")
+    version: dict[str, int] = {}
+    uses: dict[tuple[int, str, int], list[int]] = {}  # (function, divisor, its version)
+    function = 0
+    for i, line in enumerate(lines):
+        if line.startswith("static ") or line.startswith("}"):
+            version, function = {}, function + 1
+            continue
+        division = _DIVISION.match(line)
+        if division:
+            divisor = division.group(4)
+            uses.setdefault((function, divisor, version.get(divisor, 0)), []).append(i)
+        assign = _ASSIGN.match(line)
+        if assign:
+            version[assign.group(1)] = version.get(assign.group(1), 0) + 1
+    count = 0
+    for at in uses.values():
+        if len(at) < 2:
+            continue
+        name = f"sim_r{count}"
+        count += 1
+        for j, i in enumerate(at):
+            indent, target, numerator, divisor = _DIVISION.match(lines[i]).groups()
+            first = f"casadi_real {name} = 1. / {divisor}; " if j == 0 else ""
+            lines[i] = f"{indent}{first}{target}=({numerator}*{name});"
+    return "\n".join(lines)
+
+
+def renamed(f: ca.Function, name: str) -> ca.Function:
+    """``f`` (one input, one output) as a Function ``name`` of the same expression (SX)."""
+    x = ca.SX.sym(f.name_in(0), f.size1_in(0))
+    return ca.Function(name, [x], [f(x)], [f.name_in(0)], [f.name_out(0)])
+
+
+def plant_source(plants: list[ca.Function], title: str, trig: bool = False) -> str:
     """The C source of the specialised plants (CasADi's calling convention, no work memory),
-    unused parameters marked as generated_c/'s are."""
+    unused parameters marked as generated_c/'s are. ``trig``: sin and cos from sim_sincos
+    (:func:`inline_trig`) instead of libm, and repeated divisions by one value as one
+    reciprocal (:func:`shared_reciprocals`): within an ulp per operation, not bit for bit."""
     gen = ca.CodeGenerator("sim_plant.c", {"with_header": False, "verbose": False,
                                            "casadi_real": "double"})
     for f in plants:
@@ -214,7 +325,11 @@ def plant_source(plants: list[ca.Function], title: str) -> str:
         work = _work_sizes(text, f.name())
         if work["iw"] or work["w"] or work["arg"] > 6 or work["res"] != 1:
             raise RuntimeError(f"{f.name()} needs work memory ({work}): simulate.c passes none")
-    return f"/* {title} */\n" + _mark_unused_parameters(text)
+    text = _mark_unused_parameters(text)
+    if trig:
+        text = ('#include "sim_trig.h" /* sim_sincos: sin and cos inline */\n'
+                + shared_reciprocals(inline_trig(text)))
+    return f"/* {title} */\n" + text
 
 
 def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
@@ -240,6 +355,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
              '#include "sim.h"', f'#include "{name}.h"']
     groups, body, table, plants = [], [], [], []
     n_pose, n_plant, sizes = 0, 0, []
+    trig = inline_trig_applies(sc, setups)
     for u in setups:
         kernels = csim.unit_kernels(lib, u, sc.plant_substeps)
         loop = lib.manifest["closed_loops"][kernels.closed_loop]
@@ -255,7 +371,13 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
             declare = [f"int {plant}(const double **arg, double **res, long long int *iw, "
                        "double *w, int mem); /* sim_plant.c */"]
         pose, pose_group = _kernel_source(lib, kernels.pose, generated)
-        groups += [] if pose_group in groups else [pose_group]
+        if trig:  # the log's pose with sim_sincos too (the writer thread's largest part)
+            pose = f"sim_{u.name}_pose"
+            plants.append(renamed(u.fk_world, pose))
+            declare = [*declare, f"int {pose}(const double **arg, double **res, long long int "
+                       "*iw, double *w, int mem); /* sim_plant.c */"]
+        else:
+            groups += [] if pose_group in groups else [pose_group]
         n = u.controller_model.nq
         nd, np_, ne = u.controller.n_desired, u.controller.n_params, loop["n_errors"]
         n_pose += loop["n_pose"]
@@ -263,7 +385,8 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
         sizes += [f"{unit}_NQ == {n}", f"{unit}_NP == {np_}", f"{unit}_ND == {nd}",
                   f"{unit}_NE == {ne}"]
         prefix = f"sim_{u.name}"
-        body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} */",
+        body += [f"/* {u.name}: plant {kernels.plant} (runs {plant}), pose {kernels.pose} "
+                 f"(runs {pose}) */",
                  *declare,
                  _c_array(f"{prefix}_x0", u.plant_x0),
                  _c_array(f"{prefix}_plant_p", u.plant_params),
@@ -300,6 +423,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
               f"#define SIM_DELAY {int(sc.plant.delay_periods)} /* periods */",
               f"#define SIM_JITTER {int(sc.plant.delay_jitter_periods)} /* periods */",
               f"#define SIM_ENCODER_COUNTS {int(sc.plant.encoder_noise_counts)} /* counts */",
+              f"#define SIM_INLINE_TRIG {int(trig)} /* 1: sin and cos from sim_trig.h */",
               *_stream_seeds(sc.plant),
               "",
               "/* The controller's sizes are the setups' (a negative array size otherwise). */",
@@ -310,7 +434,8 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
               "#endif", ""]
     source = plant_source(plants, f"Scenario {name}: each unit's plant period with the "
                           "scenario's constants folded in (embedded/sim/sim.h). Written by "
-                          "bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit.")
+                          "bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit.",
+                          trig=trig)
     return "\n".join(lines), source, groups
 
 
@@ -342,7 +467,7 @@ def build_simulation(name: str | Path, precision: str = "double",
     # step on the desired sample it evaluated once for the step and the log.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
         jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS) for g in groups]
-        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS))
+        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS, (SIM_SOURCE,)))
         jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
                                 (folder, *include), (embedded / f"{name}.c",)))
         objects = [j.result() for j in jobs]
@@ -625,6 +750,7 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
             row[f"loop_cpu_{v}_s"] = statistics.median(cpus[v])
             row[f"rtf_{v}"] = row["duration_s"] / row[f"wall_{v}_s"]
         row["rtf_loop_double"] = row["duration_s"] / row["loop_double_s"]
+        row["threads"] = info["threads"]  # the units' threads (one per unit)
         row["startup_s"] = row["wall_double_no_log_s"] - row["loop_double_no_log_s"]
         rows.append(row)
         print(f"  {name}: all-in-C {row['rtf_double']:.0f}x real time end to end (no log "
@@ -660,9 +786,15 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
         loop = "loop_cpu_double" if cpu else "loop_double"
         period = r[f"{loop}_no_log_s"] / r["periods"]
         log_period = (r[f"{loop}_s"] - r[f"{loop}_no_log_s"]) / r["periods"]
+        threads = r.get("threads", 1)
         why = (f"without a log each period costs {period * 1e6:.2f} us in the loop"
                + (" (its CPU time)" if cpu else ""))
-        if r["scenario"] in by_name:
+        if threads > 1:  # a unit a thread: the busier thread's, one arm's work
+            why = (f"without a log each period costs {period * 1e6:.2f} us on the busier of "
+                   f"its {threads} unit threads" + (" (its CPU time)" if cpu else "")
+                   + ": one arm's desired sample, step and RK4 plant period (4 forward-dynamics "
+                   "evaluations, the scenario's constants folded in) and the measurement")
+        elif r["scenario"] in by_name:
             step = by_name[r["scenario"]]["double_ns"] * 1e-9
             why += (f": the controller's step {step * 1e6:.2f} us (both arms, the desired "
                     f"trajectory evaluated in C), the rest ({(period - step) * 1e6:.2f} us) the "
@@ -672,10 +804,12 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
             f"- **missed** by {target / rtf:.2f}x: {r['scenario']} all-in-C simulation "
             f"(embedded/sim) at {rtf:.0f}x real time end to end, log written "
             f"({r['rtf_double_no_log']:.0f}x without a log; target >= {target:g}x). Why: "
-            f"{why}, a cap of {1e-3 / period:.0f}x on one core. The log adds "
+            f"{why}, a cap of {1e-3 / period:.0f}x "
+            f"{'with a core per arm' if threads > 1 else 'on one core'}. The log adds "
             f"{log_period * 1e6:.2f} us per period to the loop: its rows, "
-            f"{r['log_bytes'] / 1e6:.1f} MB handed to the writer thread (which evaluates the "
-            "poses and writes the file on the other core); the process start-up "
+            f"{r['log_bytes'] / 1e6:.1f} MB handed to the writer thread (which puts the "
+            "units' rows together, evaluates the poses and writes the file: a third thread on "
+            "the two cores); the process start-up "
             f"{r['startup_s'] * 1e3:.2f} ms.")
     return lines
 
@@ -723,10 +857,13 @@ def markdown(steps: list[dict] | None, sims: list[dict] | None,
             "controller, which evaluates its desired trajectory in C each period (once, for the "
             "step and the log), and each unit's plant period (RK4, the scenario's sub-steps) "
             "generated with the scenario's constants folded in (the geared plant: its general "
-            "kernel), with the scenario's measurement delay and grids; no Python, no CasADi. "
+            "kernel), with the scenario's measurement delay and grids; no Python, no CasADi; "
+            "each unit on a thread of its own (the serial studies: two); the serial studies' "
+            "sin and cos inline (embedded/sim/sim_trig.h, within an ulp of libm). "
             "Full scenario length; wall time from starting the process to its exit (medians of "
-            "runs taken turn about), log written (a row of doubles per period, written by a "
-            "second thread) unless said. *loop*: the program's own time for its loop "
+            "runs taken turn about), log written (a row of doubles per period, put together "
+            "and written by a writer thread) unless said. *loop*: the program's own time for "
+            "its loop "
             "(log written); *start-up*: process wall time less the loop, without a log; "
             "*simulate()*: the all-in-C path of `cochlea.sim.simulate` on the same scenario, end "
             "to end (its set-up samples the desired trajectory with CasADi; units on threads), "

@@ -618,6 +618,153 @@ static float CPHASE(uint64_t turns) {
 """
 
 
+def _unit_update(name: str, k: int, u: EmbeddedUnit, o: _Offsets) -> list[str]:
+    """The step's lines for unit ``k``: its law into ``command_out``, ``p_hat_dot`` and
+    ``errors_out``, then its next estimate ``next`` and its projection's ``scale[k]``."""
+    return [
+        f"  /* {u.name} */",
+        f"  arg[0] = measurement + {o.x}; arg[1] = measurement + {o.x + u.nq};",
+        f"  arg[2] = xd + {o.d}; arg[3] = xd_dot + {o.d}; arg[4] = xd_ddot + {o.d};",
+        f"  arg[5] = p_hat + {o.p}; arg[6] = s->gains + {o.g}; arg[7] = s->gamma + {o.p};",
+        f"  arg[8] = s->bound_real + {k};",
+        f"  arg[9] = s->deadzone_real + {o.q}; arg[10] = s->p_min_real + {o.p}; "
+        f"arg[11] = s->p_max_real + {o.p};",
+        f"  arg[12] = s->static_excess + {o.q}; arg[13] = s->stribeck_velocity + {o.q};",
+        f"  res[0] = command_out + {o.q}; res[1] = p_hat_dot + {o.p}; "
+        f"res[2] = errors_out + {o.e};",
+        f"  if ({name}_{u.name}_law(arg, res)) return -1;",
+        "#ifdef COCHLEA_FLOAT",
+        "  /* p_hat + h p_hat_dot in a compensated two-float sum, scaled back onto the ball",
+        "   * |p_hat| <= bound in float; the scale is 1 inside it, so the square root and",
+        "   * the division (then of a positive norm) only when crossed */",
+        "  norm2 = 0.0f;",
+        f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
+        "    CTWOSUM(s->p_hat[i], s->h_real * p_hat_dot[i] + s->p_hat_lo[i], next + i,"
+        " next_lo + i);",
+        "    norm2 += next[i] * next[i];",
+        "  }",
+        f"  scale[{k}] = 1.0f;",
+        f"  if (!(norm2 <= s->bound2_inside[{k}])) {{ /* crossed, or NaN (refused below) */",
+        f"    const float ratio = s->bound_real[{k}] / sqrtf(norm2);",
+        f"    scale[{k}] = ratio < 1.0f ? ratio : 1.0f;",
+        "  }",
+        "#else",
+        "  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the",
+        "   * scale is 1 inside it, so the square root and the division only when crossed */",
+        "  norm2 = 0.0;",
+        f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
+        "    next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];",
+        "    norm2 += next[i] * next[i];",
+        "  }",
+        f"  scale[{k}] = norm2 <= s->bound2_inside[{k}] ? 1.0"
+        f" : fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));",
+        "#endif"]
+
+
+def _unit_commit(k: int, u: EmbeddedUnit, o: _Offsets, precision: str) -> list[str]:
+    """The step's lines that store unit ``k``'s next estimate: scaled onto its ball, then
+    clipped to its box (``precision``: the build, "float" or "double")."""
+    if precision == "float":
+        return [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
+                f"    const float v = next[i] * scale[{k}];",
+                "    s->p_hat[i] = CCLAMP(v, s->p_min_real[i], s->p_max_real[i]);",
+                "    /* the low part scales with it; a box clip drops it */",
+                f"    s->p_hat_lo[i] = s->p_hat[i] == v ? next_lo[i] * scale[{k}] : 0.0f;",
+                "  }"]
+    return [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) "
+            f"s->p_hat[i] = CCLAMPD(next[i] * scale[{k}], s->p_min[i], s->p_max[i]);"]
+
+
+def _unit_steps(name: str, units: list[EmbeddedUnit], off: list[_Offsets]) -> str:
+    """``<name>_desired_unit`` and ``<name>_step_desired_unit``: one unit's desired sample and
+    step, for a program that runs the units apart (the all-in-C simulation runs each unit on
+    a thread of its own, with a state of its own: embedded/sim/simulate.c). Compiled only
+    where the source is included with COCHLEA_UNIT_STEPS defined: the shipped builds do not
+    change."""
+    N, R = name.upper(), f"{name}_real"
+    out = ["#ifdef COCHLEA_UNIT_STEPS",
+           "/* One unit's period alone (not part of the interface: compiled where this source",
+           " * is included with COCHLEA_UNIT_STEPS defined, as embedded/sim/simulate.c does to",
+           " * run each unit on a thread of its own, with a state of its own). The units are",
+           " * independent (each its own desired path, law and estimate), so unit u's step is",
+           f" * {name}_step's work on unit u's entries of the same arrays: its desired sample,",
+           " * its commands, errors and estimate; nothing changes unless all of these are",
+           " * finite. The other units' entries are not read or written. */",
+           f"static int {name}_desired_unit(int unit, double t, {R} xd[{N}_ND],",
+           f"    {R} xd_dot[{N}_ND], {R} xd_ddot[{N}_ND]) {{",
+           "#ifdef COCHLEA_FLOAT",
+           f"  double x[{N}_ND], x_dot[{N}_ND], x_ddot[{N}_ND];",
+           "  int i, first, n;",
+           "#else",
+           "  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;",
+           "#endif",
+           "  const double* arg[1];",
+           "  double* res[3];",
+           "  arg[0] = &t;",
+           "  switch (unit) {"]
+    for k, (u, o) in enumerate(zip(units, off)):
+        out += [f"  case {k}: /* {u.name} */",
+                f"    res[0] = x + {o.d}; res[1] = x_dot + {o.d}; res[2] = x_ddot + {o.d};",
+                f"    if ({name}_{u.name}_desired(arg, res)) return -1;",
+                "#ifdef COCHLEA_FLOAT",
+                f"    first = {o.d}; n = {u.nd};",
+                "#endif",
+                "    break;"]
+    out += ["  default:",
+            "    return -1;",
+            "  }",
+            "#ifdef COCHLEA_FLOAT",
+            "  for (i = first; i < first + n; ++i) {",
+            f"    xd[i] = ({R})x[i]; xd_dot[i] = ({R})x_dot[i]; xd_ddot[i] = ({R})x_ddot[i];",
+            "  }",
+            "#endif",
+            "  return 0;",
+            "}",
+            "",
+            f"static int {name}_step_desired_unit({name}_state *s, int unit, "
+            f"const {R} xd[{N}_ND],",
+            f"    const {R} xd_dot[{N}_ND], const {R} xd_ddot[{N}_ND],",
+            f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
+            f"{R} errors_out[{N}_NE]) {{",
+            f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
+            "#ifdef COCHLEA_FLOAT",
+            f"  float next[{N}_NP], next_lo[{N}_NP], scale[{N}_UNITS], norm2;",
+            "#else",
+            f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
+            "#endif",
+            f"  const {R}* arg[14];",
+            f"  {R}* res[3];",
+            "  int i;",
+            f"  for (i = 0; i < {N}_NP; ++i) p_hat[i] = ({R})s->p_hat[i];",
+            "  switch (unit) {"]
+    for k, (u, o) in enumerate(zip(units, off)):
+        out += [f"  case {k}:", *("  " + line if not line.startswith("#") else line
+                                  for line in _unit_update(name, k, u, o)),
+                f"    for (i = {o.q}; i < {o.q + u.nq}; ++i)",
+                "      if (!CFINITER(command_out[i])) return 1;",
+                f"    for (i = {o.e}; i < {o.e + u.n_errors}; ++i)",
+                "      if (!CFINITER(errors_out[i])) return 1;",
+                f"    for (i = {o.p}; i < {o.p + u.n_params}; ++i)",
+                "      if (!CFINITER(next[i])) return 2;",
+                f"    for (i = {o.q}; i < {o.q + u.nq}; ++i)",
+                "      command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], "
+                "s->effort_limit[i]);",
+                "#ifdef COCHLEA_FLOAT",
+                *("  " + line for line in _unit_commit(k, u, o, "float")),
+                "#else",
+                *("  " + line for line in _unit_commit(k, u, o, "double")),
+                "#endif",
+                "    break;"]
+    out += ["  default:",
+            "    return -1;",
+            "  }",
+            "  s->steps += 1;",
+            "  return 0;",
+            "}",
+            "#endif /* COCHLEA_UNIT_STEPS */\n"]
+    return "\n".join(out)
+
+
 def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, str],
             config: str, atoms: list[tuple[TimeAtom, ...] | None]) -> str:
     N = name.upper()
@@ -815,44 +962,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
             "  int i;",
             f"  for (i = 0; i < {N}_NP; ++i) p_hat[i] = ({R})s->p_hat[i];"]
     for k, (u, o) in enumerate(zip(units, off)):
-        step += [
-            f"  /* {u.name} */",
-            f"  arg[0] = measurement + {o.x}; arg[1] = measurement + {o.x + u.nq};",
-            f"  arg[2] = xd + {o.d}; arg[3] = xd_dot + {o.d}; arg[4] = xd_ddot + {o.d};",
-            f"  arg[5] = p_hat + {o.p}; arg[6] = s->gains + {o.g}; arg[7] = s->gamma + {o.p};",
-            f"  arg[8] = s->bound_real + {k};",
-            f"  arg[9] = s->deadzone_real + {o.q}; arg[10] = s->p_min_real + {o.p}; "
-            f"arg[11] = s->p_max_real + {o.p};",
-            f"  arg[12] = s->static_excess + {o.q}; arg[13] = s->stribeck_velocity + {o.q};",
-            f"  res[0] = command_out + {o.q}; res[1] = p_hat_dot + {o.p}; "
-            f"res[2] = errors_out + {o.e};",
-            f"  if ({name}_{u.name}_law(arg, res)) return -1;",
-            "#ifdef COCHLEA_FLOAT",
-            "  /* p_hat + h p_hat_dot in a compensated two-float sum, scaled back onto the ball",
-            "   * |p_hat| <= bound in float; the scale is 1 inside it, so the square root and",
-            "   * the division (then of a positive norm) only when crossed */",
-            "  norm2 = 0.0f;",
-            f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
-            "    CTWOSUM(s->p_hat[i], s->h_real * p_hat_dot[i] + s->p_hat_lo[i], next + i,"
-            " next_lo + i);",
-            "    norm2 += next[i] * next[i];",
-            "  }",
-            f"  scale[{k}] = 1.0f;",
-            f"  if (!(norm2 <= s->bound2_inside[{k}])) {{ /* crossed, or NaN (refused below) */",
-            f"    const float ratio = s->bound_real[{k}] / sqrtf(norm2);",
-            f"    scale[{k}] = ratio < 1.0f ? ratio : 1.0f;",
-            "  }",
-            "#else",
-            "  /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the",
-            "   * scale is 1 inside it, so the square root and the division only when crossed */",
-            "  norm2 = 0.0;",
-            f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
-            "    next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];",
-            "    norm2 += next[i] * next[i];",
-            "  }",
-            f"  scale[{k}] = norm2 <= s->bound2_inside[{k}] ? 1.0"
-            f" : fmin(1.0, s->bound[{k}] / fmax(sqrt(norm2), 1e-300));",
-            "#endif"]
+        step += _unit_update(name, k, u, o)
     step += [
         "  /* Every output finite, or nothing changes (CFINITER: on the bits) */",
         f"  for (i = 0; i < {N}_NQ; ++i)",
@@ -866,16 +976,10 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
         "    command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);"]
     step.append("#ifdef COCHLEA_FLOAT")
     for k, (u, o) in enumerate(zip(units, off)):
-        step += [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) {{",
-                 f"    const float v = next[i] * scale[{k}];",
-                 "    s->p_hat[i] = CCLAMP(v, s->p_min_real[i], s->p_max_real[i]);",
-                 "    /* the low part scales with it; a box clip drops it */",
-                 f"    s->p_hat_lo[i] = s->p_hat[i] == v ? next_lo[i] * scale[{k}] : 0.0f;",
-                 "  }"]
+        step += _unit_commit(k, u, o, "float")
     step.append("#else")
     for k, (u, o) in enumerate(zip(units, off)):
-        step += [f"  for (i = {o.p}; i < {o.p + u.n_params}; ++i) "
-                 f"s->p_hat[i] = CCLAMPD(next[i] * scale[{k}], s->p_min[i], s->p_max[i]);"]
+        step += _unit_commit(k, u, o, "double")
     step.append("#endif")
     step += ["  s->steps += 1;", "  return 0;", "}\n",
              f"int {name}_step({name}_state *s, double t, const {R} measurement[{N}_NX],",
@@ -897,6 +1001,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
              "}\n"]
     parts.append("\n".join(step))
     parts.append(_tool_points(name, units, off))
+    parts.append(_unit_steps(name, units, off))
     return "\n".join(parts)
 
 

@@ -4,7 +4,8 @@
  * the scenario (build/embedded-sim/<scenario>/<precision>/sim_scenario.h), with sim_plant.c
  * beside it: each unit's plant period specialised to the scenario, its true parameters,
  * friction, dry friction and period folded in as literals (CasADi; the same results as the
- * general kernel, bit for bit on the studies). The header includes the scenario's embedded
+ * general kernel, bit for bit, or within an ulp per sin and cos where SIM_INLINE_TRIG says so).
+ * The header includes the scenario's embedded
  * controller (generated_c/embedded/<scenario>.h) and the headers of its pose kernels and of a
  * geared plant's kernel, which stays general (generated_c/<group>.h), and defines:
  *
@@ -23,6 +24,9 @@
  *                       delay_jitter_periods; 0: none), and then sim_jitter_seed
  *   SIM_ENCODER_COUNTS  whole encoder counts of position noise ([plant] encoder_noise_counts;
  *                       0: none), and then sim_encoder_seed
+ *   SIM_INLINE_TRIG     1: sin and cos from sim_trig.h's sim_sincos (inline, within an ulp of
+ *                       libm) in sim_plant.c and in the double build's controller; 0: libm
+ *                       (bench/embedded_bench.py's inline_trig_applies says where)
  *   sim_jitter_seed[4], sim_encoder_seed[4]
  *                       the numpy PCG64 generator of each stream of the scenario's seed
  *                       (cochlea.sim.setup.disturbance_rng) as it starts: state and increment,
@@ -55,7 +59,7 @@ typedef struct {
      * sub-steps, or the geared plant's linearly implicit steps) on the plant's state; a plant
      * specialised to the scenario (sim_plant.c) reads x and tau only, the data below folded in */
     sim_kernel plant;
-    sim_kernel pose;          /* pose = fk_world(q) */
+    sim_kernel pose;          /* pose = fk_world(q) (in sim_plant.c where SIM_INLINE_TRIG) */
     const double *x0;         /* the plant's initial state (nxp) */
     const double *plant_p;    /* the plant's parameters (SI) */
     const double *friction;   /* viscous friction per joint: N m s/rad or N s/m */

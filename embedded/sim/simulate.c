@@ -31,25 +31,54 @@
  * The run stops after period k when a state or the estimate is no longer finite ("diverged",
  * k + 1 rows), or before it when the step refuses a non-finite output ("step-failed", k rows).
  *
+ * Each unit runs on a thread of its own (the first on the main thread), with its own plant,
+ * its own copy of the controller's state and its own measurement history, for the whole run:
+ * no synchronisation per period. The units of an embedded controller are independent (each
+ * its own desired path, law and estimate: mirror = "desired", the only mode the embedded
+ * controller has), so each unit's numbers are those of one loop over all units, bit for bit;
+ * the controller's per-unit step (<scenario>_step_desired_unit, COCHLEA_UNIT_STEPS) is its
+ * step's work on that unit's entries. The delay's jitter and the encoder counts are drawn by
+ * every unit's thread from the same streams (the same numbers; each uses its own). The run
+ * ends at the first unit's stop, in the order one loop over the units would meet it (a step
+ * refused in period k before a state diverged in it, k rows; diverged in period k, k + 1
+ * rows); a unit that runs on past it is cut there.
+ *
  * --log FILE writes one row of doubles (native byte order) per period:
  *   t (s), x[NX], p_hat[NP], tau[NQ], errors[NE], pose[NPOSE], xd[ND], xd_dot[ND]
- * each block unit after unit (x: per unit [q, qd]). The loop writes its rows into a ring of
- * blocks of about 256 KB; a second thread evaluates each row's poses from its x and writes the
- * block to the file while the loop fills the next (the poses and the page cache's copy were a
- * quarter of a serial study's time). Without --log the pose, which only the log needs, is not
- * evaluated.
+ * each block unit after unit (x: per unit [q, qd]). Each unit's thread writes its part of the
+ * rows into a ring of blocks of its own; a writer thread puts the units' parts of each block's
+ * rows together, evaluates their poses from their x and writes the block to the file while the
+ * units fill the next (the poses and the page cache's copy were a quarter of a serial study's
+ * time). Without --log the pose, which only the log needs, is not evaluated.
  *
  * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status, the
- * wall time (s) of the loop (loop_s) and of the whole program from main() on (main_s), the
- * loop's own CPU time (loop_cpu_s: its thread's, the log's writer not included; on a busy
- * machine the measure of the loop's work) and each unit's sizes.
+ * wall time (s) of the loop (loop_s: from starting the units' threads to the last one's end)
+ * and of the whole program from main() on (main_s), the loop's own CPU time (loop_cpu_s: the
+ * busiest unit thread's, the log's writer not included; on a busy machine the measure of the
+ * loop's work; unit_cpu_s: each unit thread's), the threads the units ran on and each unit's
+ * sizes.
  * Exit status: 0 completed, 1 diverged or step-failed, 2 bad arguments or an unwritable log. */
 #define _POSIX_C_SOURCE 200112L
 #include "sim_scenario.h"
-/* The controller in this translation unit: the loop evaluates the desired trajectory once per
- * period and hands it to the step (<scenario>_step is <scenario>_desired at t, then
- * <scenario>_step_desired on that sample), and the log writes the same sample. */
+/* The controller in this translation unit: each unit's thread evaluates its desired sample
+ * once per period and hands it to its step (<scenario>_step is <scenario>_desired at t, then
+ * <scenario>_step_desired on that sample; per unit <scenario>_desired_unit and
+ * <scenario>_step_desired_unit, which COCHLEA_UNIT_STEPS compiles), and the log writes the
+ * same sample. */
+#define COCHLEA_UNIT_STEPS
+#if SIM_INLINE_TRIG && !defined(COCHLEA_FLOAT)
+/* The double build's controller takes sin and cos from sim_sincos too (sim_trig.h: inline,
+ * within an ulp of libm; the scenario says where that is allowed) */
+#include <math.h>
+#include "sim_trig.h"
+#define sin(x) sim_sin(x)
+#define cos(x) sim_cos(x)
 #include SIM_CONTROLLER_SOURCE
+#undef sin
+#undef cos
+#else
+#include SIM_CONTROLLER_SOURCE
+#endif
 
 #include <errno.h>
 #include <fcntl.h>
@@ -101,18 +130,6 @@ static int all_finite_real(const sim_real *v, int n)
     return 1;
 }
 
-/* Each unit's [q, qd] (the first 2 nq of its plant's state: the encoders are on the links)
- * into x, unit after unit. */
-static void measured_state(const double *plant_x, double *x)
-{
-    int u, i = 0, j = 0;
-    for (u = 0; u < SIM_UNITS; ++u) {
-        memcpy(x + j, plant_x + i, (size_t)(2 * sim_units[u].nq) * sizeof(double));
-        i += sim_units[u].nxp;
-        j += 2 * sim_units[u].nq;
-    }
-}
-
 #if SIM_JITTER > 0 || SIM_ENCODER_COUNTS > 0
 /* numpy's PCG64 (128-bit LCG, XSL-RR output), as np.random.default_rng draws */
 __extension__ typedef unsigned __int128 sim_u128;
@@ -155,9 +172,51 @@ static double sim_integer(sim_pcg64 *g, int low, int high)
 
 #define SIM_RING (SIM_DELAY + SIM_JITTER + 1) /* periods of true states kept */
 
-/* The log: rows in SIM_BLOCKS blocks of about 256 KB, a ring; the writer thread fills in each
- * handed block's poses and writes it while the loop fills the next ones (several, so that a
- * writer held up by other work on the machine does not stop the loop at once). */
+/* Where each unit's entries are in the arrays of the whole scenario, and its part of a row */
+typedef struct {
+    int xp, x, q, p, e, d, pose; /* first entry in the plants' state, x, tau, p_hat, errors,
+                                    xd, pose */
+    int width;                   /* its part of a row: x, p_hat, tau, errors, xd, xd_dot */
+} sim_offsets;
+
+static sim_offsets sim_offset[SIM_UNITS];
+
+#define SIM_POSE_COLUMN (1 + SIM_NX + SIM_NP + SIM_NQ + SIM_NE)
+#define SIM_UNIT_COLUMNS (SIM_COLUMNS - 1 - SIM_NPOSE) /* at most, a unit's part of a row */
+
+/* The column of a row each entry of a unit's part goes to (a scatter, which the compiler
+ * does not turn into calls of memcpy as it does loops of a few copies) */
+static int sim_column[SIM_UNITS][SIM_UNIT_COLUMNS];
+
+static void find_offsets(void)
+{
+    sim_offsets o = {0, 0, 0, 0, 0, 0, 0, 0};
+    int u, i;
+    for (u = 0; u < SIM_UNITS; ++u) {
+        const sim_unit *s = &sim_units[u];
+        int *to = sim_column[u];
+        o.width = 2 * s->nq + s->np + s->nq + s->ne + 2 * s->nd;
+        sim_offset[u] = o;
+        for (i = 0; i < 2 * s->nq; ++i) *to++ = 1 + o.x + i;
+        for (i = 0; i < s->np; ++i) *to++ = 1 + SIM_NX + o.p + i;
+        for (i = 0; i < s->nq; ++i) *to++ = 1 + SIM_NX + SIM_NP + o.q + i;
+        for (i = 0; i < s->ne; ++i) *to++ = 1 + SIM_NX + SIM_NP + SIM_NQ + o.e + i;
+        for (i = 0; i < s->nd; ++i) *to++ = SIM_POSE_COLUMN + SIM_NPOSE + o.d + i;
+        for (i = 0; i < s->nd; ++i) *to++ = SIM_POSE_COLUMN + SIM_NPOSE + SIM_ND + o.d + i;
+        o.xp += s->nxp;
+        o.x += 2 * s->nq;
+        o.q += s->nq;
+        o.p += s->np;
+        o.e += s->ne;
+        o.d += s->nd;
+        o.pose += s->npose;
+    }
+}
+
+/* The log: each unit's parts of the rows in SIM_BLOCKS blocks of SIM_BLOCK_ROWS rows (a ring
+ * per unit); the writer thread takes block n once every unit has handed it, puts the rows
+ * together (with their poses) and writes them while the units fill the next ones (several,
+ * so that a writer held up by other work on the machine does not stop the units at once). */
 #define SIM_BLOCKS 4
 #define SIM_BLOCK_ROWS ((1 << 18) / (8 * SIM_COLUMNS) + 1)
 
@@ -166,16 +225,16 @@ typedef struct {
     pthread_t thread;
     pthread_mutex_t lock;
     pthread_cond_t changed;
-    long rows[SIM_BLOCKS]; /* rows of each handed block */
-    int next;              /* the block the writer writes next */
-    int queued;            /* blocks handed and not yet written (the one being written too) */
-    int stop;              /* no more blocks */
-    int failed;            /* 1: a write failed, 2: a pose kernel did; the log is incomplete */
+    long rows[SIM_UNITS][SIM_BLOCKS]; /* rows of each unit's handed blocks */
+    long handed[SIM_UNITS];           /* blocks each unit has handed */
+    int done[SIM_UNITS];              /* 1: the unit has handed its last block */
+    long written;                     /* blocks written (or being written: then not free) */
+    int ended;                        /* the writer has written the last whole rows */
+    int failed;                       /* 1: a write failed, 2: a pose kernel did */
 } sim_writer;
 
-static double sim_blocks[SIM_BLOCKS][SIM_BLOCK_ROWS * SIM_COLUMNS];
-
-#define SIM_POSE_COLUMN (1 + SIM_NX + SIM_NP + SIM_NQ + SIM_NE)
+static double sim_unit_blocks[SIM_UNITS][SIM_BLOCKS][SIM_BLOCK_ROWS * SIM_UNIT_COLUMNS];
+static double sim_rows[SIM_BLOCK_ROWS * SIM_COLUMNS]; /* the writer's rows, put together */
 
 /* Each row's pose[NPOSE], unit after unit, from the row's x (the state logged): 0, or -1 if a
  * pose kernel returned an error. */
@@ -200,6 +259,23 @@ static int fill_poses(double *block, long rows)
     return 0;
 }
 
+/* Rows [first, first + rows) of the run from the units' block slot: t, then each unit's parts
+ * in their places (the poses are filled in after). */
+static void put_together(int slot, long first, long rows)
+{
+    long k;
+    int u, i;
+    for (k = 0; k < rows; ++k) {
+        double *row = sim_rows + k * SIM_COLUMNS;
+        row[0] = (double)(first + k) * SIM_PERIOD; /* the units' t of the period */
+        for (u = 0; u < SIM_UNITS; ++u) {
+            const int width = sim_offset[u].width, *to = sim_column[u];
+            const double *part = sim_unit_blocks[u][slot] + k * width;
+            for (i = 0; i < width; ++i) row[to[i]] = part[i];
+        }
+    }
+}
+
 static int write_all(int fd, const char *data, size_t bytes)
 {
     while (bytes > 0) {
@@ -217,62 +293,84 @@ static void *writer_main(void *arg)
     sim_writer *w = arg;
     pthread_mutex_lock(&w->lock);
     for (;;) {
-        while (!w->queued && !w->stop) pthread_cond_wait(&w->changed, &w->lock);
-        if (!w->queued) break; /* stopped, every block written */
+        const long n = w->written;     /* the block to write next */
+        const int slot = (int)(n % SIM_BLOCKS);
+        long rows = SIM_BLOCK_ROWS;
+        int u, ready = 1, last = 0;
+        for (u = 0; u < SIM_UNITS; ++u) {
+            if (w->handed[u] > n) {
+                if (w->rows[u][slot] < rows) rows = w->rows[u][slot];
+            } else if (w->done[u]) {
+                last = 1; /* this unit's rows end before block n: so do the log's */
+            } else {
+                ready = 0;
+            }
+        }
+        if (last) break;
+        if (!ready) {
+            pthread_cond_wait(&w->changed, &w->lock);
+            continue;
+        }
         {
-            double *block = sim_blocks[w->next];
-            const long rows = w->rows[w->next];
             int failed;
             pthread_mutex_unlock(&w->lock);
-            failed = fill_poses(block, rows) ? 2
-                     : write_all(w->fd, (const char *)block,
+            put_together(slot, n * SIM_BLOCK_ROWS, rows);
+            failed = fill_poses(sim_rows, rows) ? 2
+                     : write_all(w->fd, (const char *)sim_rows,
                                  (size_t)rows * SIM_COLUMNS * sizeof(double)) ? 1 : 0;
             pthread_mutex_lock(&w->lock);
             if (!w->failed) w->failed = failed;
-            w->next = (w->next + 1) % SIM_BLOCKS;
-            w->queued -= 1;
+            w->written = n + 1;
             pthread_cond_broadcast(&w->changed);
+            if (rows < SIM_BLOCK_ROWS) break; /* a unit's last rows: the log's */
         }
     }
+    w->ended = 1;
+    pthread_cond_broadcast(&w->changed);
     pthread_mutex_unlock(&w->lock);
     return NULL;
 }
 
-/* Hand the first rows of block *block (rows > 0) to the writer and move *block on to the next
- * one, once the writer has written it; 0, or the writer's failure so far (sim_writer.failed). */
-static int writer_hand(sim_writer *w, int *block, long rows)
+/* Unit u hands the first rows of its block *slot (rows > 0, or 0 with last) to the writer and
+ * moves *slot on to its next block once that one is free; last: the unit's last rows. 0, or
+ * the writer's failure so far (sim_writer.failed), or -1 when the writer has ended (the log
+ * ends before this unit's rows: another unit stopped first). */
+static int writer_hand(sim_writer *w, int u, int *slot, long rows, int last)
 {
     int failed;
     pthread_mutex_lock(&w->lock);
-    w->rows[*block] = rows;
-    w->queued += 1;
+    if (rows > 0) {
+        w->rows[u][*slot] = rows;
+        w->handed[u] += 1;
+    }
+    if (last) w->done[u] = 1;
     pthread_cond_broadcast(&w->changed);
-    while (w->queued == SIM_BLOCKS) pthread_cond_wait(&w->changed, &w->lock);
-    failed = w->failed;
+    while (!last && !w->ended && w->handed[u] - w->written >= SIM_BLOCKS)
+        pthread_cond_wait(&w->changed, &w->lock);
+    failed = w->failed ? w->failed : w->ended && !last ? -1 : 0;
     pthread_mutex_unlock(&w->lock);
-    *block = (*block + 1) % SIM_BLOCKS;
+    *slot = (*slot + 1) % SIM_BLOCKS;
     return failed;
 }
 
 static int writer_start(sim_writer *w, const char *path)
 {
+    memset(w->rows, 0, sizeof w->rows);
+    memset(w->handed, 0, sizeof w->handed);
+    memset(w->done, 0, sizeof w->done);
+    w->written = 0;
+    w->ended = w->failed = 0;
     w->fd = open(path, O_WRONLY | O_CREAT | O_TRUNC, 0666);
-    w->next = w->queued = w->stop = w->failed = 0;
     if (w->fd < 0) return -1;
     if (pthread_mutex_init(&w->lock, NULL) != 0) return -1;
     if (pthread_cond_init(&w->changed, NULL) != 0) return -1;
     return pthread_create(&w->thread, NULL, writer_main, w) != 0 ? -1 : 0;
 }
 
-/* The last rows of block (rows >= 0), then the writer stopped and the file closed; 0, or the
- * writer's failure (1 also when the close failed). */
-static int writer_finish(sim_writer *w, int block, long rows)
+/* Every unit has handed its last rows: the writer's end, the file closed; 0, or the writer's
+ * failure (1 also when the close failed). */
+static int writer_finish(sim_writer *w)
 {
-    if (rows > 0) writer_hand(w, &block, rows);
-    pthread_mutex_lock(&w->lock);
-    w->stop = 1;
-    pthread_cond_broadcast(&w->changed);
-    pthread_mutex_unlock(&w->lock);
     pthread_join(w->thread, NULL);
     if (close(w->fd) != 0 && !w->failed) w->failed = 1;
     return w->failed;
@@ -291,25 +389,45 @@ static int usage(void)
     return 2;
 }
 
-int main(int argc, char **argv)
+/* One unit's run on its thread: what it is given, and how it ended */
+typedef struct {
+    int unit;
+    long steps;                /* periods to run */
+    sim_writer *writer;        /* the log's writer, NULL: no log */
+    SIM_C(_state) state;       /* the controller's state as initialised (a copy per unit) */
+    pthread_t thread;
+    long rows;                 /* rows run */
+    const char *status;        /* "completed", "diverged" or "step-failed" */
+    int code;                  /* the step's code when it failed, the plant's (plant_failed) */
+    int plant_failed;          /* 1: the plant returned an error code */
+    int log_failed;            /* the writer's failure seen at a hand */
+    double cpu_s;              /* s: the thread's CPU time over its loop */
+    char pad[64];              /* units on other cores: nothing they write shares a line */
+} sim_lane;
+
+/* Unit lane->unit's periods, as the loop over all units runs them (the header's steps 1-5) on
+ * its entries of the scenario's arrays. */
+static void *run_unit(void *arg)
 {
-    static double history[SIM_RING][SIM_NX]; /* x of the last SIM_RING periods */
-    sim_writer writer;
-    int block = 0;     /* the block the loop fills */
-    long in_block = 0; /* its rows */
-    const double start = now_s();
+    sim_lane *lane = arg;
+    const int u = lane->unit;
+    const sim_unit *s = &sim_units[u];
+    const sim_offsets *o = &sim_offset[u];
     const double h = SIM_PERIOD;
-    double duration = SIM_DURATION, x[SIM_NX], tau[SIM_NQ], torque[SIM_NQ], loop_start, end;
-    double loop_cpu; /* s: the loop's thread's CPU time over the loop */
-    double plant_x[SIM_NXP], plant_next[SIM_NXP]; /* the plants' states; x is their [q, qd] */
+    const int log = lane->writer != NULL;
+    /* the plants' states (its entries; x = [q, qd] is the first 2 nq of its plant's) and
+     * those of the last SIM_RING periods: copied whole, a size the compiler knows */
+    double plant_x[SIM_NXP] = {0}, plant_next[SIM_NXP] = {0}, history[SIM_RING][SIM_NXP];
+    const double *x = plant_x + o->xp;
+    double tau[SIM_NQ], torque[SIM_NQ];
     sim_real measurement[SIM_NX], command[SIM_NQ], errors[SIM_NE];
     sim_real xd[SIM_ND], xd_dot[SIM_ND], xd_ddot[SIM_ND];
-    SIM_C(_config) config;
-    SIM_C(_state) state;
-    const char *log_path = NULL, *status = "completed";
-    int log = 0;
-    long steps, k, rows = 0;
-    int i, u, qi, code = 0;
+    SIM_C(_state) state = lane->state;
+    int slot = 0;      /* its block the thread fills */
+    long in_block = 0; /* its rows */
+    long k, rows = 0;
+    int i, code = 0;
+    double cpu;
 #if SIM_JITTER > 0
     sim_pcg64 jitter;
 #endif
@@ -317,6 +435,146 @@ int main(int argc, char **argv)
     sim_pcg64 encoder;
     double counts[SIM_NQ]; /* this period's encoder counts of noise, joint after joint */
 #endif
+
+    lane->status = "completed";
+    memcpy(plant_x + o->xp, s->x0, (size_t)s->nxp * sizeof(double));
+#if SIM_JITTER > 0
+    sim_pcg64_start(&jitter, sim_jitter_seed);
+#endif
+#if SIM_ENCODER_COUNTS > 0
+    sim_pcg64_start(&encoder, sim_encoder_seed);
+#endif
+    cpu = clock_s(CLOCK_THREAD_CPUTIME_ID);
+    for (k = 0; k < lane->steps; ++k) {
+        const double t = (double)k * h; /* as the simulation's time grid, arange(N) * h */
+        long age = SIM_DELAY; /* periods: how old this period's measurement is */
+        const double *seen;
+        double *r = sim_unit_blocks[u][slot] + in_block * o->width;
+
+#if SIM_JITTER > 0
+        age += (long)sim_integer(&jitter, 0, SIM_JITTER);
+#endif
+        seen = history[k >= age ? (k - age) % SIM_RING : 0] + o->xp;
+#if SIM_ENCODER_COUNTS > 0
+        for (i = 0; i < SIM_NQ; ++i)
+            counts[i] = sim_integer(&encoder, -SIM_ENCODER_COUNTS, SIM_ENCODER_COUNTS);
+#endif
+
+        memcpy(history[k % SIM_RING], plant_x, sizeof plant_x);
+        if (log) {
+            for (i = 0; i < 2 * s->nq; ++i) *r++ = x[i];
+            for (i = o->p; i < o->p + s->np; ++i) *r++ = state.p_hat[i]; /* used this period */
+        }
+
+        /* The measurement, its encoder counts of noise, on the unit's grid */
+        for (i = 0; i < 2 * s->nq; ++i) {
+            double m = seen[i];
+#if SIM_ENCODER_COUNTS > 0
+            if (i < s->nq) m += counts[o->q + i] * s->quantum[i];
+#endif
+            if (s->quantum && s->quantum[i] > 0) {
+                const double q = s->quantum[i], off = s->offset[i];
+                m = off + q * nearbyint((m - off) / q);
+            }
+            measurement[o->x + i] = (sim_real)m;
+        }
+
+        /* <scenario>_step's work for this unit at t, its desired sample kept for the log */
+        code = SIM_C(_desired_unit)(u, t, xd, xd_dot, xd_ddot) != 0 ? -1
+               : SIM_C(_step_desired_unit)(&state, u, xd, xd_dot, xd_ddot, measurement,
+                                           command, errors);
+        if (code != 0) {
+            lane->status = "step-failed";
+            break;
+        }
+
+        /* The drives: each command on its joint's effort grid */
+        for (i = 0; i < s->nq; ++i) {
+            double e = (double)command[o->q + i];
+            if (s->effort_offset)
+                e += s->effort_offset[i] * fmin(fmax(e / s->effort_ramp[i], -1.0), 1.0);
+            if (s->effort_quantum) {
+                if (s->effort_quantum[i] > 0)
+                    e = s->effort_quantum[i] * nearbyint(e / s->effort_quantum[i]);
+                e = fmin(fmax(e, -s->effort_bound[i]), s->effort_bound[i]);
+            }
+            tau[o->q + i] = e;
+            torque[o->q + i] = s->torque_scale ? s->torque_scale[i] * e : e;
+        }
+
+        /* The plant */
+        {
+            const double *in[6]; /* a plant without a 6th input reads the first 5 */
+            double *out[1];
+            in[0] = plant_x + o->xp;
+            in[1] = torque + o->q;
+            in[2] = s->plant_p;
+            in[3] = s->friction;
+            in[4] = &h;
+            in[5] = s->coulomb;
+            out[0] = plant_next + o->xp;
+            code = s->plant(in, out, NULL, NULL, 0);
+            if (code != 0) {
+                lane->plant_failed = 1;
+                break;
+            }
+        }
+
+        if (log) {
+            for (i = o->q; i < o->q + s->nq; ++i) *r++ = tau[i];
+            for (i = o->e; i < o->e + s->ne; ++i) *r++ = (double)errors[i];
+            for (i = o->d; i < o->d + s->nd; ++i) *r++ = (double)xd[i];
+            for (i = o->d; i < o->d + s->nd; ++i) *r++ = (double)xd_dot[i];
+            if (++in_block == SIM_BLOCK_ROWS) {
+                const int failed = writer_hand(lane->writer, u, &slot, in_block, 0);
+                in_block = 0;
+                if (failed > 0) lane->log_failed = failed;
+                if (failed) {
+                    rows = k + 1; /* the writer has ended: another unit stopped first */
+                    break;
+                }
+            }
+        }
+        rows = k + 1;
+        memcpy(plant_x, plant_next, sizeof plant_x);
+        if (!all_finite(plant_x + o->xp, s->nxp) || !all_finite_real(state.p_hat + o->p, s->np)) {
+            lane->status = "diverged";
+            break;
+        }
+    }
+    lane->cpu_s = clock_s(CLOCK_THREAD_CPUTIME_ID) - cpu;
+    lane->rows = rows;
+    lane->code = code;
+    if (log && !lane->plant_failed && !lane->log_failed) {
+        const int failed = writer_hand(lane->writer, u, &slot, in_block, 1);
+        if (failed > 0) lane->log_failed = failed;
+    }
+    SIM_C(_terminate)(&state);
+    return NULL;
+}
+
+/* Where a unit's stop falls in one loop over all units: in period k, the step's refusal
+ * (k rows) before the states' divergence (k + 1 rows); completed, after every period. */
+static long stop_order(const sim_lane *lane)
+{
+    if (strcmp(lane->status, "step-failed") == 0) return 2 * lane->rows;
+    if (strcmp(lane->status, "diverged") == 0) return 2 * lane->rows - 1;
+    return 2 * lane->rows + 1;
+}
+
+int main(int argc, char **argv)
+{
+    static sim_lane lanes[SIM_UNITS];
+    sim_writer writer;
+    const double start = now_s();
+    const double h = SIM_PERIOD;
+    double duration = SIM_DURATION, loop_start, end, loop_cpu = 0.0;
+    SIM_C(_config) config;
+    SIM_C(_state) state;
+    const sim_lane *first;
+    const char *log_path = NULL;
+    long steps;
+    int i, u, threads = 1;
 
     for (i = 1; i < argc; ++i) {
         if (strcmp(argv[i], "--duration") == 0 && i + 1 < argc) {
@@ -336,153 +594,66 @@ int main(int argc, char **argv)
         fprintf(stderr, "simulate: the default configuration of %s is refused\n", SIM_NAME);
         return 2;
     }
-    if (log_path) {
-        log = 1;
-        if (writer_start(&writer, log_path) != 0) {
-            fprintf(stderr, "simulate: cannot write %s\n", log_path);
+    find_offsets();
+    if (log_path && writer_start(&writer, log_path) != 0) {
+        fprintf(stderr, "simulate: cannot write %s\n", log_path);
+        return 2;
+    }
+    for (u = 0; u < SIM_UNITS; ++u) {
+        lanes[u].unit = u;
+        lanes[u].steps = steps;
+        lanes[u].writer = log_path ? &writer : NULL;
+        lanes[u].state = state;
+    }
+
+    loop_start = now_s();
+    /* the other units on threads of their own, the first on this one; one loop over all units
+     * on this thread if a thread cannot be started */
+    for (u = 1; u < SIM_UNITS; ++u)
+        if (pthread_create(&lanes[u].thread, NULL, run_unit, &lanes[u]) == 0) ++threads;
+        else break;
+    if (threads < SIM_UNITS) {
+        fprintf(stderr, "simulate: cannot start a thread per unit\n");
+        for (u = 1; u < threads; ++u) pthread_join(lanes[u].thread, NULL);
+        return 2;
+    }
+    run_unit(&lanes[0]);
+    for (u = 1; u < SIM_UNITS; ++u) pthread_join(lanes[u].thread, NULL);
+    end = now_s();
+    SIM_C(_terminate)(&state);
+
+    for (u = 0; u < SIM_UNITS; ++u) {
+        if (lanes[u].plant_failed) {
+            fprintf(stderr, "simulate: the plant of %s returned %d\n", sim_units[u].name,
+                    lanes[u].code);
             return 2;
         }
+        if (lanes[u].log_failed) return cannot_write(log_path, lanes[u].log_failed);
+        if (lanes[u].cpu_s > loop_cpu) loop_cpu = lanes[u].cpu_s;
     }
-    for (u = 0, i = 0; u < SIM_UNITS; i += sim_units[u].nxp, ++u)
-        memcpy(plant_x + i, sim_units[u].x0, (size_t)sim_units[u].nxp * sizeof(double));
-    measured_state(plant_x, x);
-
-#if SIM_JITTER > 0
-    sim_pcg64_start(&jitter, sim_jitter_seed);
-#endif
-#if SIM_ENCODER_COUNTS > 0
-    sim_pcg64_start(&encoder, sim_encoder_seed);
-#endif
-    loop_cpu = clock_s(CLOCK_THREAD_CPUTIME_ID);
-    loop_start = now_s();
-    for (k = 0; k < steps; ++k) {
-        const double t = (double)k * h; /* as the simulation's time grid, arange(N) * h */
-        long age = SIM_DELAY; /* periods: how old this period's measurement is */
-        const double *seen;
-        double *slot = history[k % SIM_RING];
-        const sim_real *p_hat = state.p_hat; /* the estimate used in this period */
-        double *r = sim_blocks[block] + in_block * SIM_COLUMNS;
-
-#if SIM_JITTER > 0
-        age += (long)sim_integer(&jitter, 0, SIM_JITTER);
-#endif
-        seen = history[k >= age ? (k - age) % SIM_RING : 0];
-#if SIM_ENCODER_COUNTS > 0
-        for (i = 0; i < SIM_NQ; ++i)
-            counts[i] = sim_integer(&encoder, -SIM_ENCODER_COUNTS, SIM_ENCODER_COUNTS);
-#endif
-
-        for (i = 0; i < SIM_NX; ++i) slot[i] = x[i];
-        if (log) {
-            *r++ = t;
-            for (i = 0; i < SIM_NX; ++i) *r++ = x[i];
-            for (i = 0; i < SIM_NP; ++i) *r++ = p_hat[i];
-        }
-
-        /* The measurement, its encoder counts of noise, on each unit's grid */
-        for (u = 0, i = 0, qi = 0; u < SIM_UNITS; qi += sim_units[u].nq, ++u) {
-            const sim_unit *s = &sim_units[u];
-            int j;
-            for (j = 0; j < 2 * s->nq; ++j, ++i) {
-                double m = seen[i];
-#if SIM_ENCODER_COUNTS > 0
-                if (j < s->nq) m += counts[qi + j] * s->quantum[j];
-#endif
-                if (s->quantum && s->quantum[j] > 0) {
-                    const double q = s->quantum[j], o = s->offset[j];
-                    m = o + q * nearbyint((m - o) / q);
-                }
-                measurement[i] = (sim_real)m;
-            }
-        }
-
-        /* <scenario>_step(&state, t, ...), its desired sample kept for the log */
-        code = SIM_C(_desired)(t, xd, xd_dot, xd_ddot) != 0 ? -1
-               : SIM_C(_step_desired)(&state, xd, xd_dot, xd_ddot, measurement, command, errors);
-        if (code != 0) {
-            status = "step-failed";
-            break;
-        }
-
-        /* The drives: each command on its joint's effort grid */
-        for (u = 0, i = 0; u < SIM_UNITS; ++u) {
-            const sim_unit *s = &sim_units[u];
-            int j;
-            for (j = 0; j < s->nq; ++j, ++i) {
-                double e = (double)command[i];
-                if (s->effort_offset)
-                    e += s->effort_offset[j] * fmin(fmax(e / s->effort_ramp[j], -1.0), 1.0);
-                if (s->effort_quantum) {
-                    if (s->effort_quantum[j] > 0)
-                        e = s->effort_quantum[j] * nearbyint(e / s->effort_quantum[j]);
-                    e = fmin(fmax(e, -s->effort_bound[j]), s->effort_bound[j]);
-                }
-                tau[i] = e;
-                torque[i] = s->torque_scale ? s->torque_scale[j] * e : e;
-            }
-        }
-
-        /* The plants, unit after unit */
-        for (u = 0, i = 0, qi = 0; u < SIM_UNITS; ++u) {
-            const sim_unit *s = &sim_units[u];
-            const double *arg[6]; /* a plant without a 6th input reads the first 5 */
-            double *res[1];
-            arg[0] = plant_x + i;
-            arg[1] = torque + qi;
-            arg[2] = s->plant_p;
-            arg[3] = s->friction;
-            arg[4] = &h;
-            arg[5] = s->coulomb;
-            res[0] = plant_next + i;
-            code = s->plant(arg, res, NULL, NULL, 0);
-            if (code != 0) {
-                fprintf(stderr, "simulate: the plant of %s returned %d\n", s->name, code);
-                return 2;
-            }
-            i += s->nxp;
-            qi += s->nq;
-        }
-
-        if (log) {
-            for (i = 0; i < SIM_NQ; ++i) *r++ = tau[i];
-            for (i = 0; i < SIM_NE; ++i) *r++ = (double)errors[i];
-            r += SIM_NPOSE; /* the writer thread evaluates the poses from the row's x */
-            for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd[i];
-            for (i = 0; i < SIM_ND; ++i) *r++ = (double)xd_dot[i];
-            if (++in_block == SIM_BLOCK_ROWS) {
-                const int failed = writer_hand(&writer, &block, in_block);
-                if (failed) return cannot_write(log_path, failed);
-                in_block = 0;
-            }
-        }
-        rows = k + 1;
-        memcpy(plant_x, plant_next, sizeof plant_x);
-        measured_state(plant_x, x);
-        if (!all_finite(plant_x, SIM_NXP) || !all_finite_real(state.p_hat, SIM_NP)) {
-            status = "diverged";
-            break;
-        }
-    }
-    end = now_s();
-    loop_cpu = clock_s(CLOCK_THREAD_CPUTIME_ID) - loop_cpu;
-    SIM_C(_terminate)(&state);
-    if (log) {
-        const int failed = writer_finish(&writer, block, in_block);
+    if (log_path) {
+        const int failed = writer_finish(&writer);
         if (failed) return cannot_write(log_path, failed);
     }
+    first = &lanes[0]; /* the stop the run makes: the first in one loop over the units */
+    for (u = 1; u < SIM_UNITS; ++u)
+        if (stop_order(&lanes[u]) < stop_order(first)) first = &lanes[u];
     printf("{\"scenario\": \"%s\", \"precision\": \"%s\", \"period_s\": %.17g, "
            "\"duration_s\": %.17g, \"periods\": %ld, \"rows\": %ld, \"status\": \"%s\", "
            "\"step_code\": %d, \"units\": %d, \"nx\": %d, \"np\": %d, \"nq\": %d, \"ne\": %d, "
-           "\"npose\": %d, \"nd\": %d, \"columns\": %d, \"log\": %s, \"loop_s\": %.9f, "
-           "\"loop_cpu_s\": %.9f, \"main_s\": %.9f, \"unit_sizes\": [",
-           SIM_NAME, SIM_PRECISION, h, duration, steps, rows, status, code, SIM_UNITS, SIM_NX,
-           SIM_NP, SIM_NQ, SIM_NE, SIM_NPOSE, SIM_ND, SIM_COLUMNS, log ? "true" : "false",
-           end - loop_start, loop_cpu, now_s() - start);
+           "\"npose\": %d, \"nd\": %d, \"columns\": %d, \"log\": %s, \"threads\": %d, "
+           "\"loop_s\": %.9f, \"loop_cpu_s\": %.9f, \"main_s\": %.9f, \"unit_cpu_s\": [",
+           SIM_NAME, SIM_PRECISION, h, duration, steps, first->rows, first->status,
+           strcmp(first->status, "step-failed") == 0 ? first->code : 0, SIM_UNITS, SIM_NX,
+           SIM_NP, SIM_NQ, SIM_NE, SIM_NPOSE, SIM_ND, SIM_COLUMNS, log_path ? "true" : "false",
+           threads, end - loop_start, loop_cpu, now_s() - start);
+    for (u = 0; u < SIM_UNITS; ++u) printf("%s%.9f", u ? ", " : "", lanes[u].cpu_s);
+    printf("], \"unit_sizes\": [");
     for (u = 0; u < SIM_UNITS; ++u) {
         const sim_unit *s = &sim_units[u];
         printf("%s{\"name\": \"%s\", \"nq\": %d, \"np\": %d, \"nd\": %d, \"ne\": %d, "
                "\"npose\": %d}", u ? ", " : "", s->name, s->nq, s->np, s->nd, s->ne, s->npose);
     }
     printf("]}\n");
-    return strcmp(status, "completed") == 0 ? 0 : 1;
+    return strcmp(first->status, "completed") == 0 ? 0 : 1;
 }

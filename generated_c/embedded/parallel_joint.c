@@ -2761,3 +2761,116 @@ int parallel_joint_tool_points(const parallel_joint_real q[PARALLEL_JOINT_NQ], p
   centres[2] = CR(0.); centres[3] = q[2];
   return 0;
 }
+
+#ifdef COCHLEA_UNIT_STEPS
+/* One unit's period alone (not part of the interface: compiled where this source
+ * is included with COCHLEA_UNIT_STEPS defined, as embedded/sim/simulate.c does to
+ * run each unit on a thread of its own, with a state of its own). The units are
+ * independent (each its own desired path, law and estimate), so unit u's step is
+ * parallel_joint_step's work on unit u's entries of the same arrays: its desired sample,
+ * its commands, errors and estimate; nothing changes unless all of these are
+ * finite. The other units' entries are not read or written. */
+static int parallel_joint_desired_unit(int unit, double t, parallel_joint_real xd[PARALLEL_JOINT_ND],
+    parallel_joint_real xd_dot[PARALLEL_JOINT_ND], parallel_joint_real xd_ddot[PARALLEL_JOINT_ND]) {
+#ifdef COCHLEA_FLOAT
+  double x[PARALLEL_JOINT_ND], x_dot[PARALLEL_JOINT_ND], x_ddot[PARALLEL_JOINT_ND];
+  int i, first, n;
+#else
+  double *x = xd, *x_dot = xd_dot, *x_ddot = xd_ddot;
+#endif
+  const double* arg[1];
+  double* res[3];
+  arg[0] = &t;
+  switch (unit) {
+  case 0: /* mechanism */
+    res[0] = x + 0; res[1] = x_dot + 0; res[2] = x_ddot + 0;
+    if (parallel_joint_mechanism_desired(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+    first = 0; n = 5;
+#endif
+    break;
+  default:
+    return -1;
+  }
+#ifdef COCHLEA_FLOAT
+  for (i = first; i < first + n; ++i) {
+    xd[i] = (parallel_joint_real)x[i]; xd_dot[i] = (parallel_joint_real)x_dot[i]; xd_ddot[i] = (parallel_joint_real)x_ddot[i];
+  }
+#endif
+  return 0;
+}
+
+static int parallel_joint_step_desired_unit(parallel_joint_state *s, int unit, const parallel_joint_real xd[PARALLEL_JOINT_ND],
+    const parallel_joint_real xd_dot[PARALLEL_JOINT_ND], const parallel_joint_real xd_ddot[PARALLEL_JOINT_ND],
+    const parallel_joint_real measurement[PARALLEL_JOINT_NX], parallel_joint_real command_out[PARALLEL_JOINT_NQ], parallel_joint_real errors_out[PARALLEL_JOINT_NE]) {
+  parallel_joint_real p_hat[PARALLEL_JOINT_NP], p_hat_dot[PARALLEL_JOINT_NP];
+#ifdef COCHLEA_FLOAT
+  float next[PARALLEL_JOINT_NP], next_lo[PARALLEL_JOINT_NP], scale[PARALLEL_JOINT_UNITS], norm2;
+#else
+  double next[PARALLEL_JOINT_NP], scale[PARALLEL_JOINT_UNITS], norm2;
+#endif
+  const parallel_joint_real* arg[14];
+  parallel_joint_real* res[3];
+  int i;
+  for (i = 0; i < PARALLEL_JOINT_NP; ++i) p_hat[i] = (parallel_joint_real)s->p_hat[i];
+  switch (unit) {
+  case 0:
+    /* mechanism */
+    arg[0] = measurement + 0; arg[1] = measurement + 5;
+    arg[2] = xd + 0; arg[3] = xd_dot + 0; arg[4] = xd_ddot + 0;
+    arg[5] = p_hat + 0; arg[6] = s->gains + 0; arg[7] = s->gamma + 0;
+    arg[8] = s->bound_real + 0;
+    arg[9] = s->deadzone_real + 0; arg[10] = s->p_min_real + 0; arg[11] = s->p_max_real + 0;
+    arg[12] = s->static_excess + 0; arg[13] = s->stribeck_velocity + 0;
+    res[0] = command_out + 0; res[1] = p_hat_dot + 0; res[2] = errors_out + 0;
+    if (parallel_joint_mechanism_law(arg, res)) return -1;
+#ifdef COCHLEA_FLOAT
+    /* p_hat + h p_hat_dot in a compensated two-float sum, scaled back onto the ball
+     * |p_hat| <= bound in float; the scale is 1 inside it, so the square root and
+     * the division (then of a positive norm) only when crossed */
+    norm2 = 0.0f;
+    for (i = 0; i < 13; ++i) {
+      CTWOSUM(s->p_hat[i], s->h_real * p_hat_dot[i] + s->p_hat_lo[i], next + i, next_lo + i);
+      norm2 += next[i] * next[i];
+    }
+    scale[0] = 1.0f;
+    if (!(norm2 <= s->bound2_inside[0])) { /* crossed, or NaN (refused below) */
+      const float ratio = s->bound_real[0] / sqrtf(norm2);
+      scale[0] = ratio < 1.0f ? ratio : 1.0f;
+    }
+#else
+    /* p_hat + h p_hat_dot, scaled back onto the ball |p_hat| <= bound (double); the
+     * scale is 1 inside it, so the square root and the division only when crossed */
+    norm2 = 0.0;
+    for (i = 0; i < 13; ++i) {
+      next[i] = s->p_hat[i] + s->h * (double)p_hat_dot[i];
+      norm2 += next[i] * next[i];
+    }
+    scale[0] = norm2 <= s->bound2_inside[0] ? 1.0 : fmin(1.0, s->bound[0] / fmax(sqrt(norm2), 1e-300));
+#endif
+    for (i = 0; i < 5; ++i)
+      if (!CFINITER(command_out[i])) return 1;
+    for (i = 0; i < 10; ++i)
+      if (!CFINITER(errors_out[i])) return 1;
+    for (i = 0; i < 13; ++i)
+      if (!CFINITER(next[i])) return 2;
+    for (i = 0; i < 5; ++i)
+      command_out[i] = CCLAMP(command_out[i], -s->effort_limit[i], s->effort_limit[i]);
+#ifdef COCHLEA_FLOAT
+    for (i = 0; i < 13; ++i) {
+      const float v = next[i] * scale[0];
+      s->p_hat[i] = CCLAMP(v, s->p_min_real[i], s->p_max_real[i]);
+      /* the low part scales with it; a box clip drops it */
+      s->p_hat_lo[i] = s->p_hat[i] == v ? next_lo[i] * scale[0] : 0.0f;
+    }
+#else
+    for (i = 0; i < 13; ++i) s->p_hat[i] = CCLAMPD(next[i] * scale[0], s->p_min[i], s->p_max[i]);
+#endif
+    break;
+  default:
+    return -1;
+  }
+  s->steps += 1;
+  return 0;
+}
+#endif /* COCHLEA_UNIT_STEPS */
