@@ -35,8 +35,7 @@ import casadi as ca
 
 from ...errors import ModelError
 from ..model import ARMATURE, RobotModel
-from .description import ParallelSystem
-from .model import _full_parameters
+from .description import ParallelSystem, full_parameters
 
 
 def _cross(a, b):
@@ -139,11 +138,11 @@ def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
 
 def parallel_dynamics(system: ParallelSystem, q, qd, phi):
     """``(M, bias, full)`` of the mechanism at ``(q, qd)`` in its full parameters ``phi`` (the
-    layout of :func:`cochlea.robots.parallel.model._full_parameters`, returned as ``full``: the
-    slider's mass, four per planar body, then the armatures), body by body (module docstring):
-    ``M qdd + bias`` is the Lagrange model's inverse dynamics without friction. ``M`` is a 5x5
-    SX."""
-    full, blocks = _full_parameters(system)
+    layout of :func:`~cochlea.robots.parallel.description.full_parameters`, returned as
+    ``full``: the slider's mass, four per planar body, then the armatures), body by body
+    (module docstring): ``M qdd + bias`` is the Lagrange model's inverse dynamics without
+    friction. ``M`` is a 5x5 SX."""
+    full, blocks = full_parameters(system)
     block_of = dict(blocks)
 
     def phi_of(body):
@@ -201,7 +200,7 @@ def forward_dynamics(model: RobotModel):
     if not isinstance(system, ParallelSystem):
         raise ModelError(f"model {model.name!r} is not a parallel mechanism: its forward "
                          "dynamics has no block form")
-    full, _ = _full_parameters(system)
+    full, _ = full_parameters(system)
     n_full = len(full.names)
     if tuple(model.full_parameters.names[:n_full]) != tuple(full.names):
         raise ModelError(f"model {model.name!r}: its parameters are not its description's")
