@@ -24,6 +24,10 @@ Christoffel ``C`` and ``G = dU/dq`` (:mod:`cochlea.lagrange`). Each planar body 
 parameters in its body frame, ``[m, mx, my, Izz]`` (mass, first moments ``m c``, inertia about the
 body-frame origin and the plane normal), on which K and U are linear; the slider only translates,
 so its mass is its only parameter.
+
+The regressor ``Y`` differentiates ``M qdd_r + C(q, qd) qd_r + G`` computed body by body instead
+(:func:`cochlea.robots.parallel.forward.regressand`: the same Christoffel ``C``, to rounding, in
+a quarter of the operations); ``M``, ``C``, ``G`` and the dynamics Functions keep this form.
 """
 
 
@@ -38,6 +42,7 @@ from ..description import Actuator
 from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix, time_derivative
 from ..model import ARMATURE, RobotModel, assemble_model, check_options
 from .description import SIDE_BODIES, ParallelSystem, Side, full_parameters
+from .forward import regressand
 from .geometry import ParallelGeometry
 
 
@@ -194,7 +199,7 @@ def build_model(system: ParallelSystem, parameterisation: str = "inertial",
                            source=system.path,
                            friction=([(j.actuator.viscous, j.actuator.coulomb)
                                       for j in system.joints] if actuators == "all" else None),
-                           actuators=actuators)
+                           actuators=actuators, regressand=regressand(system, x["phi"]))
     nominal = ca.DM(x["full"].nominal)
     energy = ca.substitute(ca.vertcat(x["K"], x["U"]), x["phi"], nominal)
     F = ca.Function
