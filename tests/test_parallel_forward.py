@@ -1,5 +1,6 @@
-"""The closed chain's forward dynamics in its block form (cochlea/robots/parallel/forward.py)
-against the Lagrange model's: the same dynamics to rounding, in a fraction of the operations."""
+"""The closed chain's forward dynamics and the regressor's ``M qdd_r + C qd_r + G`` in their
+block form (cochlea/robots/parallel/forward.py) against the Lagrange model's: the same dynamics
+to rounding, in a fraction of the operations."""
 
 from __future__ import annotations
 
@@ -11,8 +12,14 @@ import pytest
 
 import cochlea
 from cochlea.errors import ModelError
+from cochlea.robots.lagrange import time_derivative
 from cochlea.robots.parallel import build_model, load_parallel
-from cochlea.robots.parallel.forward import forward_dynamics, parallel_dynamics, solve_arrow
+from cochlea.robots.parallel.forward import (
+    forward_dynamics,
+    parallel_dynamics,
+    regressand,
+    solve_arrow,
+)
 from cochlea.robots.plant import plant_step
 
 RELATIVE = 1e-12  # of the largest entry of the Lagrange model's result
@@ -26,6 +33,12 @@ def rigid():
 @pytest.fixture(scope="module")
 def armature():
     return cochlea.model("parallel", actuators="armature")
+
+
+@pytest.fixture(scope="module")
+def actuated():
+    """The realistic studies' controller model: armatures and friction, one mass each."""
+    return cochlea.model("parallel", parameterisation="mass", actuators="all")
 
 
 @pytest.fixture(scope="module")
@@ -125,6 +138,63 @@ def test_plant_step_with_the_block_form(rigid):
             a = np.asarray(general(*args)).ravel()
             b = np.asarray(fast(*args)).ravel()
             assert np.max(np.abs(a - b)) <= 1e-12 * np.max(np.abs(a))
+
+
+def _lagrange_regressor(model):
+    """The Lagrange model's ``Y``: the Jacobian in ``p`` of ``M_p qdd_r + C_p qd_r + G_p +
+    F(qd_r)`` (its Christoffel ``C``), what the model's ``Y`` was before the block form."""
+    q, qd, qd_r, qdd_r = (ca.SX.sym(n, 5) for n in ("q", "qd", "qd_r", "qdd_r"))
+    p = ca.SX.sym("p", len(model.param_names))
+    f_r = (model.M_p(q, p) @ qdd_r + model.C_p(q, qd, p) @ qd_r + model.G_p(q, p)
+           + model.friction_p(qd_r, p))
+    return ca.Function("Y_lagrange", [q, qd, qd_r, qdd_r], [ca.jacobian(f_r, p)])
+
+
+@pytest.mark.parametrize("which", ["rigid", "actuated", "tilted"])
+def test_the_regressor_is_the_lagrange_models(which, request):
+    """The model's ``Y`` (the block form's ``M qdd_r + C(q, qd) qd_r + G``) equals the Lagrange
+    form's entry by entry to 1e-12 of its largest, with ``qd_r`` unlike ``qd``: a ``C`` other
+    than the Christoffel one (``C(q, qd_r) qd``, or the bias at ``qd_r``) fails."""
+    model = request.getfixturevalue(which)
+    reference = _lagrange_regressor(model)
+    rng = np.random.default_rng(31)
+    worst = 0.0
+    for q, qd, qdd_r in _states(model, rng, 30):
+        qd_r = rng.normal(0.0, 2.0, 5)
+        qd_r[2] *= 0.1
+        ref = np.asarray(reference(q, qd, qd_r, qdd_r))
+        got = np.asarray(model.Y(q, qd, qd_r, qdd_r))
+        worst = max(worst, np.max(np.abs(got - ref)) / np.max(np.abs(ref)))
+    assert worst <= RELATIVE, worst
+
+
+def test_the_block_forms_coriolis_matrix_is_christoffels(tilted):
+    """``C(q, qd)``, read off the block form's regressand as its Jacobian in ``qd_r``, is the
+    Lagrange model's ``C_p`` and keeps ``M_dot - 2 C`` skew-symmetric (the controllers'
+    Lyapunov property), at perturbed parameters."""
+    system = tilted.geometry.system
+    q, qd, qd_r, qdd_r = (ca.SX.sym(n, 5) for n in ("q", "qd", "qd_r", "qdd_r"))
+    rng = np.random.default_rng(32)
+    p = _parameters(tilted, rng, 0.3)
+    phi = ca.DM(tilted.parameters.to_full) @ p
+    f_r = regressand(system, phi)(q, qd, qd_r, qdd_r)
+    C = ca.Function("C", [q, qd], [ca.jacobian(f_r, qd_r)])
+    M, _, _ = parallel_dynamics(system, q, qd, phi)
+    M_dot = ca.Function("M_dot", [q, qd], [time_derivative(M, q, qd)])
+    for q_v, qd_v, _ in _states(tilted, rng, 30):
+        C_ref = np.asarray(tilted.C_p(q_v, qd_v, p))
+        C_got = np.asarray(C(q_v, qd_v))
+        assert np.max(np.abs(C_got - C_ref)) <= RELATIVE * np.max(np.abs(C_ref))
+        S = np.asarray(M_dot(q_v, qd_v)) - 2 * C_got
+        assert np.max(np.abs(S + S.T)) <= RELATIVE * np.max(np.abs(S))
+        assert np.max(np.abs(S)) > 1e-3
+
+
+def test_the_regressor_costs_fewer_operations(rigid):
+    """The block form's ``Y`` costs under a third of the Lagrange form's operations (477
+    against 2150 in the mass parameterisation when written)."""
+    mass = cochlea.model("parallel", parameterisation="mass")
+    assert mass.Y.n_instructions() * 3 < _lagrange_regressor(mass).n_instructions()
 
 
 def test_refuses_a_serial_model():

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import parameters as params_mod
 from ..description import (
     MAX_INERTIA_KGM2,
     MAX_LENGTH_M,
@@ -29,7 +30,7 @@ from ..description import (
     read_motor,
     resolve_path,
 )
-from ..model import JointInfo
+from ..model import JointInfo, full_inertial, with_armatures
 
 #: Bodies of one side, in the order their parameters appear (proximal links first, so that the
 #: base-parameter elimination groups distal masses into proximal inertias).
@@ -162,6 +163,26 @@ class ParallelSystem:
     def joints(self) -> tuple[ParallelJoint, ...]:
         """The five joints in the order of q: th1, th2, d1, th1', th2'."""
         return (self.left.th1, self.left.th2, self.d1, self.right.th1, self.right.th2)
+
+
+def full_parameters(system: ParallelSystem):
+    """The full parameter set of the model and the block form (:mod:`.model`, :mod:`.forward`):
+    the slider's mass, then ``[m, mx, my, Izz]`` per planar body (left side, then right side,
+    proximal links first), then the armature of each joint whose drive declares one, with each
+    body's slice."""
+    slider, slider_blocks = full_inertial([("slider", np.array([system.slider_mass]))],
+                                          names=("m",), meanings=SLIDER_MEANING)
+    planar, planar_blocks = full_inertial(
+        [(f"{side.name}.{b}", side.body(b).inertial_parameters()) for side in system.sides
+         for b in SIDE_BODIES], names=PLANAR_NAMES, meanings=PLANAR_MEANING)
+    n0 = len(slider.names)
+    blocks = slider_blocks + [(body, slice(s.start + n0, s.stop + n0))
+                              for body, s in planar_blocks]
+    full = params_mod.inertial(slider.names + planar.names,
+                               np.concatenate([slider.nominal, planar.nominal]),
+                               slider.si_units + planar.si_units, slider.meanings + planar.meanings)
+    return with_armatures(full, blocks, [(j.name, j.type, j.actuator.armature)
+                                         for j in system.joints])
 
 
 # --------------------------------------------------------------------------------------------

@@ -35,8 +35,7 @@ import casadi as ca
 
 from ...errors import ModelError
 from ..model import ARMATURE, RobotModel
-from .description import ParallelSystem
-from .model import _full_parameters
+from .description import ParallelSystem, full_parameters
 
 
 def _cross(a, b):
@@ -56,10 +55,15 @@ def _reciprocal(y):
     return 2 / (y + y)
 
 
-def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
+def _side_terms(system: ParallelSystem, side, q, qd, phi_of, qd_r=None):
     """M's block (upper triangle, ``M[k][l]`` for ``k <= l``) and the bias of one side's six
     bodies in its coordinates ``(th1, th2, d1)`` (``q``, ``qd``: those three), Kane's terms
-    written out with the pantograph's identities.
+    written out with the pantograph's identities. With ``qd_r`` (that side's three), the bias
+    is ``C(q, qd) qd_r + G`` with the Christoffel ``C`` instead of ``C(q, qd) qd + G``: the
+    velocity terms are a quadratic form ``h(qd)``, and the Christoffel ``C(q, a) b`` is the
+    symmetric bilinear form with ``B(v, v) = h(v)`` (its symbols are symmetric in their last
+    two indices), so each product of two terms linear in the velocity, ``x(v) y(v)``, becomes
+    ``(x(a) y(b) + x(b) y(a)) / 2`` (polarisation, term by term).
 
     Notation: ``e_i = (cos th_i, sin th_i)``, ``e_i' = (-sin th_i, cos th_i)`` (its normal),
     ``C12 = cos(th1 - th2) = e_1 . e_2 = e_1' . e_2'``, ``S12 = sin(th1 - th2) = e_1 . e_2' =
@@ -79,11 +83,12 @@ def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
     """
     th1, th2, d1 = q
     w1, w2, vd = qd
+    r1, r2, rd = qd if qd_r is None else qd_r
     lp = system.link_length
     gu, gv = float(system.gravity[0]), float(system.gravity[1])
     c1, s1, c2, s2 = ca.cos(th1), ca.sin(th1), ca.cos(th2), ca.sin(th2)
     C12, S12 = c1 * c2 + s1 * s2, s1 * c2 - c1 * s2
-    w1s, w2s = w1 * w1, w2 * w2
+    w1s, w2s = w1 * r1, w2 * r2  # w1^2, w2^2 (with qd_r: polarised)
     # Links 1 and 4 turn about a fixed point: their masses do not enter.
     _, hx1, hy1, izz1 = (phi_of(f"{side.name}.link1")[k] for k in range(4))
     _, hx4, hy4, izz4 = (phi_of(f"{side.name}.link4")[k] for k in range(4))
@@ -114,7 +119,15 @@ def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
     omega = j[0] * w1 + j[1] * w2 + j[2] * vd
     wdu, wdv = -lp * (s1 * w1 + s2 * w2), lp * (c1 * w1 + c2 * w2) - vd  # w_dot
     w_x_aC = -lp * (w1s * (wu * s1 - wv * c1) + w2s * (wu * s2 - wv * c2))
-    alpha = (w_x_aC - 2 * (wu * wdu + wv * wdv) * omega) * inv_r2
+    if qd_r is None:
+        twice = 2 * (wu * wdu + wv * wdv) * omega  # 2 (w . w_dot) omega
+        w_rod2 = omega * omega
+    else:
+        omega_r = j[0] * r1 + j[1] * r2 + j[2] * rd
+        wdu_r, wdv_r = -lp * (s1 * r1 + s2 * r2), lp * (c1 * r1 + c2 * r2) - rd
+        twice = (wu * wdu + wv * wdv) * omega_r + (wu * wdu_r + wv * wdv_r) * omega
+        w_rod2 = omega * omega_r
+    alpha = (w_x_aC - twice) * inv_r2
     R5 = (hx5 * nu - hy5 * nv, hx5 * nv + hy5 * nu)  # R h of link 5, link 7
     R7 = (hx7 * nu - hy7 * nv, hx7 * nv + hy7 * nu)
     # U = J^T E h: e_i' . E h = e_i . R h; the slider's column (0, 1) . E h7 = R7_u.
@@ -127,7 +140,6 @@ def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
     aC_g = (-lp * (w1s * c1 + w2s * c2) - gu, -lp * (w1s * s1 + w2s * s2) - gv)  # a_C - g
     N = (i_rod * alpha + (R5[0] * aC_g[1] - R5[1] * aC_g[0])
          - (R7[0] * gv - R7[1] * gu))
-    w_rod2 = omega * omega
     # Link 5's force on C's columns: e_1' . a_C = lp w2^2 S12, e_2' . a_C = -lp w1^2 S12.
     b[0] = b[0] + lp * (m5 * (lp * w2s * S12 - x1g) - w_rod2 * (c1 * R5[1] - s1 * R5[0])) \
         + alpha * U[0] + j[0] * N
@@ -137,13 +149,14 @@ def _side_terms(system: ParallelSystem, side, q, qd, phi_of):
     return M, b
 
 
-def parallel_dynamics(system: ParallelSystem, q, qd, phi):
+def parallel_dynamics(system: ParallelSystem, q, qd, phi, qd_r=None):
     """``(M, bias, full)`` of the mechanism at ``(q, qd)`` in its full parameters ``phi`` (the
-    layout of :func:`cochlea.robots.parallel.model._full_parameters`, returned as ``full``: the
-    slider's mass, four per planar body, then the armatures), body by body (module docstring):
-    ``M qdd + bias`` is the Lagrange model's inverse dynamics without friction. ``M`` is a 5x5
-    SX."""
-    full, blocks = _full_parameters(system)
+    layout of :func:`~cochlea.robots.parallel.description.full_parameters`, returned as
+    ``full``: the slider's mass, four per planar body, then the armatures), body by body
+    (module docstring): ``M qdd + bias`` is the Lagrange model's inverse dynamics without
+    friction. ``M`` is a 5x5 SX. With ``qd_r``, the bias is ``C(q, qd) qd_r + G`` with the
+    Lagrange model's Christoffel ``C`` (:func:`_side_terms`)."""
+    full, blocks = full_parameters(system)
     block_of = dict(blocks)
 
     def phi_of(body):
@@ -153,7 +166,8 @@ def parallel_dynamics(system: ParallelSystem, q, qd, phi):
     bias = ca.SX.zeros(5)
     for side, idx in zip(system.sides, ((0, 1, 2), (3, 4, 2))):
         M_side, b_side = _side_terms(system, side, [q[i] for i in idx],
-                                     [qd[i] for i in idx], phi_of)
+                                     [qd[i] for i in idx], phi_of,
+                                     None if qd_r is None else [qd_r[i] for i in idx])
         for a in range(3):
             bias[idx[a]] = bias[idx[a]] + b_side[a]
             for b in range(a, 3):
@@ -169,6 +183,17 @@ def parallel_dynamics(system: ParallelSystem, q, qd, phi):
         for b in range(a):
             M[a, b] = M[b, a]
     return M, bias, full
+
+
+def regressand(system: ParallelSystem, phi):
+    """The regressor's ``M qdd_r + C(q, qd) qd_r + G`` (the Christoffel ``C``, no friction) in
+    the full parameters ``phi``, body by body, as the callable ``(q, qd, qd_r, qdd_r) -> ...``
+    of :func:`cochlea.robots.model.assemble_model`'s ``regressand``: the Lagrange model's
+    expression to rounding, in fewer operations (docs/models.md)."""
+    def f_r(q, qd, qd_r, qdd_r):
+        M, bias, _ = parallel_dynamics(system, q, qd, phi, qd_r)
+        return M @ qdd_r + bias
+    return f_r
 
 
 def solve_arrow(M, rhs):
@@ -201,7 +226,7 @@ def forward_dynamics(model: RobotModel):
     if not isinstance(system, ParallelSystem):
         raise ModelError(f"model {model.name!r} is not a parallel mechanism: its forward "
                          "dynamics has no block form")
-    full, _ = _full_parameters(system)
+    full, _ = full_parameters(system)
     n_full = len(full.names)
     if tuple(model.full_parameters.names[:n_full]) != tuple(full.names):
         raise ModelError(f"model {model.name!r}: its parameters are not its description's")

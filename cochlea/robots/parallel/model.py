@@ -24,6 +24,10 @@ Christoffel ``C`` and ``G = dU/dq`` (:mod:`cochlea.lagrange`). Each planar body 
 parameters in its body frame, ``[m, mx, my, Izz]`` (mass, first moments ``m c``, inertia about the
 body-frame origin and the plane normal), on which K and U are linear; the slider only translates,
 so its mass is its only parameter.
+
+The regressor ``Y`` differentiates ``M qdd_r + C(q, qd) qd_r + G`` computed body by body instead
+(:func:`cochlea.robots.parallel.forward.regressand`: the same Christoffel ``C``, to rounding, in
+a quarter of the operations); ``M``, ``C``, ``G`` and the dynamics Functions keep this form.
 """
 
 
@@ -33,27 +37,12 @@ import re
 from dataclasses import replace
 
 import casadi as ca
-import numpy as np
 
-from .. import parameters as params_mod
 from ..description import Actuator
 from ..lagrange import christoffel_coriolis, gravity_vector, mass_matrix, time_derivative
-from ..model import (
-    ARMATURE,
-    RobotModel,
-    assemble_model,
-    check_options,
-    full_inertial,
-    with_armatures,
-)
-from .description import (
-    PLANAR_MEANING,
-    PLANAR_NAMES,
-    SIDE_BODIES,
-    SLIDER_MEANING,
-    ParallelSystem,
-    Side,
-)
+from ..model import ARMATURE, RobotModel, assemble_model, check_options
+from .description import SIDE_BODIES, ParallelSystem, Side, full_parameters
+from .forward import regressand
 from .geometry import ParallelGeometry
 
 
@@ -120,25 +109,6 @@ def _side_expressions(system: ParallelSystem, side: Side, th1, th2, d1, q, qd, p
     return K, U, C, ca.atan2(w[1], w[0])
 
 
-def _full_parameters(system: ParallelSystem):
-    """The full parameter set: the slider's mass, then ``[m, mx, my, Izz]`` per planar body
-    (left side, then right side, proximal links first), then the armature of each joint whose
-    drive declares one, with each body's slice."""
-    slider, slider_blocks = full_inertial([("slider", np.array([system.slider_mass]))],
-                                          names=("m",), meanings=SLIDER_MEANING)
-    planar, planar_blocks = full_inertial(
-        [(f"{side.name}.{b}", side.body(b).inertial_parameters()) for side in system.sides
-         for b in SIDE_BODIES], names=PLANAR_NAMES, meanings=PLANAR_MEANING)
-    n0 = len(slider.names)
-    blocks = slider_blocks + [(body, slice(s.start + n0, s.stop + n0))
-                              for body, s in planar_blocks]
-    full = params_mod.inertial(slider.names + planar.names,
-                               np.concatenate([slider.nominal, planar.nominal]),
-                               slider.si_units + planar.si_units, slider.meanings + planar.meanings)
-    return with_armatures(full, blocks, [(j.name, j.type, j.actuator.armature)
-                                         for j in system.joints])
-
-
 def _left_pseudo_inverse(J: ca.SX) -> ca.SX:
     """``(J^T J)^-1 J^T`` of a tall J of full column rank, as ``R^-1 Q^T`` from the QR
     factorisation of J (CasADi's modified Gram-Schmidt) and back substitution.
@@ -162,7 +132,7 @@ def _symbolic(system: ParallelSystem):
     q = ca.SX.sym("q", 5)
     qd = ca.SX.sym("qd", 5)
     qdd = ca.SX.sym("qdd", 5)
-    full, blocks = _full_parameters(system)
+    full, blocks = full_parameters(system)
     phi = ca.SX.sym("phi", len(full.names))
     block_of = dict(blocks)
 
@@ -229,7 +199,7 @@ def build_model(system: ParallelSystem, parameterisation: str = "inertial",
                            source=system.path,
                            friction=([(j.actuator.viscous, j.actuator.coulomb)
                                       for j in system.joints] if actuators == "all" else None),
-                           actuators=actuators)
+                           actuators=actuators, regressand=regressand(system, x["phi"]))
     nominal = ca.DM(x["full"].nominal)
     energy = ca.substitute(ca.vertcat(x["K"], x["U"]), x["phi"], nominal)
     F = ca.Function
