@@ -158,18 +158,21 @@ def test_a_bridge_that_goes_away_leaves_the_chain_listening(tmp_path):
 
 
 @pytest.mark.hil
-def test_the_python_bridge_runs_over_the_socket(tmp_path):
+@pytest.mark.parametrize("robot", ["serial", "parallel"])
+def test_the_python_bridge_runs_over_the_socket(tmp_path, robot):
     """The bridge's port for ``unix:PATH`` is a SocketPort: its start-up, reads and writes, and
-    its shut-down on the virtual chain; no adapter latency in its budget."""
-    with VirtualChain("serial", "serial_joint", listen=f"unix:{tmp_path}/c.sock") as chain:
-        backend = DynamixelBackend("serial", chain.path, description=chain.scenario.description,
+    its shut-down on the virtual chain; no adapter latency in its budget; the slider's homing
+    not asked of the virtual chain (as on its pseudo-terminal)."""
+    with VirtualChain(robot, f"{robot}_joint", listen=f"unix:{tmp_path}/c.sock") as chain:
+        backend = DynamixelBackend(robot, chain.path, description=chain.scenario.description,
                                    timeout_s=0.05)
         assert backend.budget.cycle_s == backend.budget.bus_s
         backend.enable()
         try:
             assert isinstance(backend._port, SocketPort)
-            x = np.zeros(12)
-            good = sum(backend.read(x) and backend.write(np.zeros(6)) for _ in range(50))
+            x = np.zeros(2 * backend.nq)
+            good = sum(backend.read(x) and backend.write(np.zeros(backend.nq))
+                       for _ in range(50))
             assert good >= 45, backend.summary()
             assert np.isfinite(x).all()
             assert chain.counts["instructions"] > 100  # a SYNC_READ and a SYNC_WRITE each
@@ -177,6 +180,8 @@ def test_the_python_bridge_runs_over_the_socket(tmp_path):
             backend.disable()
         assert backend.shutdown_report is not None
         assert all(m.table[64] == 0 for m in chain.motors)  # torque off on every motor
+    assert backend.homing_report == ("no slider" if robot == "serial" else
+                                     "not checked (a socket: the virtual chain)")
 
 
 def test_a_socket_port_sees_its_emulator_go_away(tmp_path):
@@ -351,3 +356,19 @@ def test_the_c_program_runs_over_the_socket_and_stops_safely_when_it_goes(tmp_pa
     summary = json.loads((out / "summary.json").read_text())
     assert summary["timing"]["bus"]["failures"].get("port", 0) > 0, summary["timing"]["bus"]
     assert 200 < summary["periods"] < 10_000
+
+
+@pytest.mark.hil
+def test_the_c_program_does_not_ask_the_virtual_chain_s_slider_for_its_homing(tmp_path, program):
+    """--homing auto over the emulator's socket: not checked, as over its pseudo-terminal
+    (only cochlea-emulator listens on a socket; a real motor's port is a device)."""
+    out = tmp_path / "run"
+    with VirtualChain("parallel", "parallel_joint", listen=f"unix:{tmp_path}/c.sock") as chain:
+        time.sleep(0.5)
+        done = subprocess.run([str(program), "--scenario", "parallel_joint", "--port",
+                               chain.path, "--duration", "0.2", "--out", str(out),
+                               "--watchdog-misses", "300", "--watchdog-errors", "100"],
+                              capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    bus = json.loads((out / "summary.json").read_text())["timing"]["bus"]
+    assert bus["homing"] == "not checked (a socket: the virtual chain)"
