@@ -55,6 +55,13 @@ watchdog trip, with its time.
 The command (``main``) runs under SCHED_FIFO when permitted and with the garbage collector off
 while serving, as the real-time loop does: a virtual device should answer as promptly as a real
 one, whatever else the machine runs.
+
+With ``listen`` (``--listen unix:PATH`` or ``socket://HOST:PORT``) the chain serves on a stream
+socket instead of the pseudo-terminal: the same bytes, wire timing and faults, one bridge at a
+time (one that disconnects leaves the chain listening for the next). The kernel moves a
+pseudo-terminal's bytes in worker threads of ordinary priority, which a loaded machine delays
+whatever the two ends' SCHED_FIFO; a socket's are delivered in the writer's own system call
+(docs/dynamixel.md, "The emulator's socket").
 """
 
 from __future__ import annotations
@@ -565,10 +572,11 @@ def default_scenario(robot: str, plant: str | None) -> str:
 
 
 class VirtualChain:
-    """The motors of a scenario's robot on a pseudo-terminal (see the module docstring).
+    """The motors of a scenario's robot on a pseudo-terminal, or with ``listen`` on a socket
+    (see the module docstring).
 
     Use :meth:`start` (a background thread) and :meth:`stop`, or :meth:`serve` in the
-    foreground; :attr:`path` is the pseudo-terminal to open.
+    foreground; :attr:`path` is the pseudo-terminal to open (the socket's address).
     """
 
     #: Which motors answer FAST_SYNC_READ (0x8A): None, as their model's data says
