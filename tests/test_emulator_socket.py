@@ -372,3 +372,20 @@ def test_the_c_program_does_not_ask_the_virtual_chain_s_slider_for_its_homing(tm
     assert done.returncode == 0, done.stderr
     bus = json.loads((out / "summary.json").read_text())["timing"]["bus"]
     assert bus["homing"] == "not checked (a socket: the virtual chain)"
+
+
+@pytest.mark.hil
+def test_cochlea_run_with_no_emulator_on_the_socket_is_one_line(tmp_path):
+    """--port unix:PATH with nothing listening: exit 5 (the backend could not start), one line
+    naming the address and the command to start, no output folder left."""
+    address = f"unix:{tmp_path}/none.sock"
+    done = subprocess.run([sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial",
+                           "--space", "joint", "--backend", "dynamixel", "--port", address,
+                           "--duration", "1", "--out", str(tmp_path / "run")],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 5, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "cochlea-run: the backend could not start, nothing moved: cannot connect to "
+        f"{address}: No such file or directory (is cochlea-emulator --listen {address} "
+        "running?)"]
+    assert not (tmp_path / "run").exists()
