@@ -18,9 +18,14 @@ alike):
 * **pty floor** (once, with the hogs): a period's bytes to and fro between two processes under
   SCHED_FIFO that do nothing else, at 1 kHz: what the pseudo-terminal alone costs, the floor
   no emulator can beat (the kernel moves a pseudo-terminal's bytes in worker threads of
-  ordinary priority).
+  ordinary priority); the same over a Unix-domain socket pair (**socket floor**), whose bytes
+  the writer's own system call delivers.
+* **transports** (``--transports``, default ``pty,unix``): the hil runs of this tree's emulator
+  on its pseudo-terminal and on a socket (``cochlea-emulator --listen unix:PATH`` or
+  ``socket://127.0.0.1:0``); the baseline's on the pseudo-terminal only.
 
-The baseline (``--baseline REV``, default ``main``) is that revision's package (``cochlea/``
+The baseline (``--baseline REV``, default ``main``; ``none``: this tree alone) is that
+revision's package (``cochlea/``
 and its data) exported with ``git archive`` into the output folder; the loops are always this
 tree's. Nothing is written outside ``--out`` (default: a new temporary folder, printed). Run
 by hand, not a test:
@@ -114,17 +119,24 @@ def _echo(master: int, reply: int) -> None:
         os.write(master, b"x" * reply)
 
 
-def pty_floor(periods: int, request: int = 20 + 29, reply: int = 6 * 27) -> dict:
+def pty_floor(periods: int, request: int = 20 + 29, reply: int = 6 * 27,
+              transport: str = "pty") -> dict:
     """The pseudo-terminal alone: a 1 kHz round trip of a period's bytes (the loop's SYNC_WRITE
     and SYNC_READ, six replies) between two processes under SCHED_FIFO (40 and 30, as the loop
     and the emulator) that do no other work: the floor that no emulator can beat. The kernel
     passes a pseudo-terminal's bytes on in its own worker threads (ordinary priority), so a
-    loaded machine delays them whatever the two ends' priority."""
+    loaded machine delays them whatever the two ends' priority. ``transport="unix"``: the same
+    over a Unix-domain socket pair (delivered in the writer's own system call)."""
+    import socket
     import tty
 
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
+    if transport == "pty":
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)
+    else:
+        a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        master, slave = a.detach(), b.detach()
     echo = multiprocessing.Process(target=_echo, args=(master, reply), daemon=True)
     echo.start()
     rtts, lost = [], 0
@@ -200,16 +212,24 @@ def micro(tree: Path, robot: str, periods: int) -> dict:
     return json.loads(done.stdout)
 
 
-def hil(tree: Path, loop: str, out: Path, duration: float, program: Path) -> dict:
-    """One run of ``loop`` (``python`` or ``c``) against the emulator of ``tree``."""
+#: ``--transports``: the emulator's ``--listen`` for each (the pseudo-terminal: none).
+LISTEN = {"pty": None, "unix": "unix:{out}/chain.sock", "tcp": "socket://127.0.0.1:0"}
+
+
+def hil(tree: Path, loop: str, out: Path, duration: float, program: Path,
+        transport: str = "pty") -> dict:
+    """One run of ``loop`` (``python`` or ``c``) against the emulator of ``tree``, on its
+    pseudo-terminal or a socket (``transport``: a key of :data:`LISTEN`)."""
     log = out / "emulator.log"
+    listen = LISTEN[transport]
     emu = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
-                            "serial", "--scenario", "serial_joint", "--log", str(log)],
+                            "serial", "--scenario", "serial_joint", "--log", str(log),
+                            *(() if listen is None else ("--listen", listen.format(out=out)))],
                            env=env_for(tree), cwd=out, stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
     try:
         port = emu.stdout.readline().strip()
-        if not port.startswith("/dev/"):
+        if not port.startswith(("/dev/", "unix:", "socket://")):
             raise RuntimeError(f"the emulator did not start: {emu.stderr.read().strip()}")
         time.sleep(2.0)  # as tests/test_embedded_program.py: the emulator settles
         cpu_before = cpu_seconds(emu.pid)
@@ -262,16 +282,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=4,
                    help="micro: the versions take this many turns each (4)")
     p.add_argument("--loops", default="python,c", help="python, c or both (python,c)")
+    p.add_argument("--transports", default="pty,unix",
+                   help="the emulator's line for this tree's hil runs: pty, unix, tcp "
+                        "(pty,unix; the baseline's: pty)")
     p.add_argument("--program", type=Path, default=ROOT / "build" / "cochlea-embedded",
                    help="the C program (default build/cochlea-embedded)")
     p.add_argument("--out", type=Path, help="output folder (default: a new temporary one)")
     args = p.parse_args(argv)
     loops = [x for x in args.loops.split(",") if x]
+    transports = [x for x in args.transports.split(",") if x]
     if not 0 < args.duration <= 600 or args.hogs < 0 or args.periods < 10 or \
             not 1 <= args.rounds <= 100 or \
-            not set(loops) <= {"python", "c"}:
+            not set(loops) <= {"python", "c"} or not transports or \
+            not set(transports) <= set(LISTEN):
         print("emulator_speed: expected --duration in (0, 600] s, --hogs >= 0, --periods >= 10, "
-              "--rounds 1..100, --loops of python,c", file=sys.stderr)
+              "--rounds 1..100, --loops of python,c, --transports of pty,unix,tcp",
+              file=sys.stderr)
         return 2
     if "c" in loops and not args.program.is_file():
         print(f"emulator_speed: {args.program} is not built (make embedded), or --loops python",
@@ -287,7 +313,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"output in {out}", flush=True)
     trees = {}
     try:
-        trees = {"baseline": export(args.baseline, out / "baseline"), "this": ROOT}
+        trees = {"this": ROOT} if args.baseline == "none" else \
+            {"baseline": export(args.baseline, out / "baseline"), "this": ROOT}
         results = {name: {"micro": {}, "hil": {}} for name in trees}
         for robot in ("serial", "parallel"):
             # The versions take turns, in alternating order, so a change of the machine's load
@@ -311,21 +338,29 @@ def main(argv: list[str] | None = None) -> int:
         for h in hogs:
             h.start()
         try:
-            results["pty_floor"] = r = pty_floor(args.periods * 3)
-            print(f"pty floor ({args.hogs} hogs): round trip median {r['median_us']:.0f} us  "
-                  f"p99 {r['p99_us']:.0f} us  max {r['max_ms']:.1f} ms  over 1 ms "
-                  f"{100 * r['over_1ms_fraction']:.2f} %", flush=True)
+            results["pty_floor"] = pty_floor(args.periods * 3)
+            results["socket_floor"] = pty_floor(args.periods * 3, transport="unix")
+            for what in ("pty", "socket"):
+                r = results[f"{what}_floor"]
+                print(f"{what} floor ({args.hogs} hogs): round trip median "
+                      f"{r['median_us']:.0f} us  p99 {r['p99_us']:.0f} us  max "
+                      f"{r['max_ms']:.1f} ms  over 1 ms {100 * r['over_1ms_fraction']:.2f} %",
+                      flush=True)
             for loop in loops:
-                for name, tree in trees.items():
-                    folder = out / f"hil_{loop}_{name}"
-                    folder.mkdir(exist_ok=True)
-                    results[name]["hil"][loop] = r = hil(tree, loop, folder, args.duration,
-                                                         args.program)
-                    print(f"hil   {name:8s} {loop:6s} ({args.hogs} hogs) misses "
-                          f"{100 * r['deadline_miss_fraction']:.2f} %  failed reads "
-                          f"{r['failed_reads']}  lateness max {r['lateness_max_ms']:.1f} ms  "
-                          f"emulator CPU {r['emulator_cpu_us_per_period']:.0f} us/period  "
-                          f"stop {r['stop']}", flush=True)
+                for transport in transports:
+                    for name, tree in trees.items():
+                        if name == "baseline" and transport != "pty":
+                            continue  # the baseline may have no --listen
+                        folder = out / f"hil_{loop}_{name}_{transport}"
+                        folder.mkdir(exist_ok=True)
+                        results[name]["hil"][f"{loop}_{transport}"] = r = hil(
+                            tree, loop, folder, args.duration, args.program, transport)
+                        print(f"hil   {name:8s} {loop:6s} {transport:4s} ({args.hogs} hogs) "
+                              f"misses {100 * r['deadline_miss_fraction']:.2f} %  failed "
+                              f"reads {r['failed_reads']}  lateness max "
+                              f"{r['lateness_max_ms']:.1f} ms  emulator CPU "
+                              f"{r['emulator_cpu_us_per_period']:.0f} us/period  stop "
+                              f"{r['stop']}", flush=True)
         finally:
             for h in hogs:
                 h.terminate()

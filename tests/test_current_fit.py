@@ -88,7 +88,7 @@ def test_the_bridge_logs_present_current_at_the_joints_sign(tmp_path):
     k + 1 is the Goal Current the bridge sent for the effort of period k (what the emulator
     reports as Present Current in current control), times the LSB, signed so that it has the
     effort's sign."""
-    from tests.test_dynamixel_hil import emulator, run
+    from tests.test_dynamixel_hil import LOOP_TRANSPORT, emulator, run
 
     old = "id = 2\n  " + _shipped_fit(122.3, -23.7) + "\n  direction = 1"
     description = _description_with(tmp_path, old, old.replace("direction = 1",
@@ -97,7 +97,8 @@ def test_the_bridge_logs_present_current_at_the_joints_sign(tmp_path):
     scenario.write_text((SCENARIOS_DIR / "serial_joint.toml").read_text().replace(
         'space = "joint"\n', f'space = "joint"\ndescription = "{description}"\n', 1))
     out = tmp_path / "run"
-    with emulator("serial", str(scenario), tmp_path / "emulator.log") as port:
+    with emulator("serial", str(scenario), tmp_path / "emulator.log",
+                  transport=LOOP_TRANSPORT) as port:
         done = run("--robot", "serial", "--space", "joint", "--scenario", str(scenario),
                    "--backend", "dynamixel", "--port", port, "--duration", "2", "--out",
                    str(out), cwd=tmp_path)
@@ -301,7 +302,7 @@ def test_a_line_is_recovered_from_a_log_recorded_against_the_emulator(tmp_path):
     The bridge logs the Present Current; cochlea-identify places the log's samples and
     commands at their logged times (--sample-times auto) and fits the line with the base
     parameters."""
-    from tests.test_dynamixel_hil import ALWAYS_OFFSET, emulator, run
+    from tests.test_dynamixel_hil import ALWAYS_OFFSET, LOOP_TRANSPORT, emulator, run
     from tests.test_identify import SERIAL_PLANT, _excitation, fourier_leader
 
     description = _description_with(tmp_path, _shipped_fit(*TRUE_FIT),
@@ -321,27 +322,23 @@ def test_a_line_is_recovered_from_a_log_recorded_against_the_emulator(tmp_path):
     # excitation's controller compensates friction itself, so the bridge would command the
     # slope alone (issue 24) and a frictionless plant would never show b: the rule is patched
     # in both processes.
-    for attempt in range(2):
-        out, report = tmp_path / f"run{attempt}", tmp_path / f"ident{attempt}.json"
-        with emulator("serial", str(scenario), tmp_path / f"emulator{attempt}.log",
-                      "--true-fit", "1:98,-12", prefix=ALWAYS_OFFSET) as port:
-            done = run("--robot", "serial", "--space", "joint", "--scenario", str(scenario),
-                       "--backend", "dynamixel", "--port", port, "--out", str(out),
-                       cwd=tmp_path, prefix=ALWAYS_OFFSET)
-        assert done.returncode == 0, done.stderr
-        assert main([str(out), "--robot", "serial", "--description", str(description),
-                     "--out", str(report), "--min-speed", "0", "--no-figures",
-                     "--parallel-cutoff-hz", "4"]) == 0
-        doc = json.loads(report.read_text())
-        [line] = doc["current_fits"]
-        got = line["description_units"]
-        # The fit's accuracy rides on the run's timing on this shared machine (the excitation
-        # is read back at its logged times): quiet runs give a = 97-99, CI once 89.6 (8.6 %
-        # low; every run here misses some deadlines, 0.3-0.5 % of its periods on a quiet
-        # machine). A fit off the bounds is repeated once on a fresh emulator, as the HIL
-        # tests' lagged() repeats a run the machine stopped; two in a row fail.
-        if abs(got["a"] - 98.0) < 0.08 * 98.0 and abs(got["b"] + 12.0) < 0.08 * 12.0:
-            break
+    out, report = tmp_path / "run", tmp_path / "ident.json"
+    with emulator("serial", str(scenario), tmp_path / "emulator.log", "--true-fit", "1:98,-12",
+                  prefix=ALWAYS_OFFSET, transport=LOOP_TRANSPORT) as port:
+        done = run("--robot", "serial", "--space", "joint", "--scenario", str(scenario),
+                   "--backend", "dynamixel", "--port", port, "--out", str(out),
+                   cwd=tmp_path, prefix=ALWAYS_OFFSET)
+    assert done.returncode == 0, done.stderr
+    assert main([str(out), "--robot", "serial", "--description", str(description),
+                 "--out", str(report), "--min-speed", "0", "--no-figures",
+                 "--parallel-cutoff-hz", "4"]) == 0
+    doc = json.loads(report.read_text())
+    [line] = doc["current_fits"]
+    got = line["description_units"]
+    # The fit's accuracy rides on the run's timing (the excitation is read back at its logged
+    # times): quiet runs gave a = 97-99, CI once 89.6 (8.6 % low) over the pseudo-terminal,
+    # whose fit off the bounds was repeated; over the emulator's socket the run misses few
+    # deadlines (issue 30: under 0.5 % beside make test-fast) and runs once.
     # Measured in three runs: a 93.3, 97.9, 96.7 and b -11.46, -11.92, -11.80 (within 4.8 %
     # and 4.5 %), held-out NRMS 0.1-0.4 %; on the nominal grid (--sample-times nominal) the
     # same kind of log gave a = 48.8 and b = -7.4. Bounds: 8 % on each (the placeholder is

@@ -25,10 +25,10 @@ from cochlea.sim import load_scenario, unit_setups
 from tests.test_dynamixel_hil import (
     FAULTS,
     FLOOR,
+    LOOP_TRANSPORT,
     SHARED_MACHINE,
     assert_fault_stop,
     assert_log_complete,
-    lagged,
     last_commands,
     run,
     run_on_emulator,
@@ -45,15 +45,18 @@ STUDIES = [("serial", "joint"), ("serial", "task"), ("parallel", "joint"), ("par
 #: three; enough for the read watchdog). cochlea-run takes about 2 s to import before it talks;
 #: the C program starts in a millisecond, so its tests give the emulator that time.
 EMULATOR_SETTLE_S = 2.0
-#: Runs that are not about failed reads tolerate more of them: the emulator's lag (see
-#: :func:`lagged`) then costs a few late periods, not the run (as SHARED_MACHINE does for
-#: deadline misses).
+#: Runs that are not about failed reads tolerate more of them: a late reply (see
+#: tests/test_dynamixel_hil.lagged) then costs a few late periods, not the run (as
+#: SHARED_MACHINE does for deadline misses).
 PATIENT = (*SHARED_MACHINE, "--watchdog-errors", "100")
 
 
 @contextmanager
-def emulator(robot: str, scenario: str, log: Path, *options: str):
-    with started_emulator(robot, scenario, log, *options) as port:
+def emulator(robot: str, scenario: str, log: Path, *options: str,
+             transport: str = LOOP_TRANSPORT):
+    """``cochlea-emulator`` settled; its socket by default (the timed runs: no retry needed),
+    ``transport="pty"`` for what opens a serial device (cochlea-dxl's bus)."""
+    with started_emulator(robot, scenario, log, *options, transport=transport) as port:
         time.sleep(EMULATOR_SETTLE_S)
         yield port
 
@@ -68,16 +71,13 @@ def program() -> Path:
     return PROGRAM
 
 
-def on_emulator(program: Path, tmp_path: Path, emulator_args: tuple, *args: str,
-                before: float = float("inf")) -> tuple[subprocess.CompletedProcess, Path, Path]:
-    """``build/cochlea-embedded ARGS --out DIR`` on a fresh emulator; once more if the first
-    run lagged (:func:`lagged`). The result, the output folder and the emulator's log."""
-    for attempt in range(2):
-        out, log = tmp_path / f"c{attempt}", tmp_path / f"emulator{attempt}.log"
-        with emulator(*emulator_args[:2], log, *emulator_args[2:]) as port:
-            done = embedded(program, "--port", port, "--out", str(out), *args)
-        if not lagged(out, before):
-            break
+def on_emulator(program: Path, tmp_path: Path, emulator_args: tuple, *args: str
+                ) -> tuple[subprocess.CompletedProcess, Path, Path]:
+    """``build/cochlea-embedded ARGS --out DIR`` on a fresh emulator, over its socket, once.
+    The result, the output folder and the emulator's log."""
+    out, log = tmp_path / "c", tmp_path / "emulator.log"
+    with emulator(*emulator_args[:2], log, *emulator_args[2:]) as port:
+        done = embedded(program, "--port", port, "--out", str(out), *args)
     return done, out, log
 
 
@@ -256,7 +256,7 @@ def test_every_fault_ends_in_the_safe_stop(tmp_path, program, name):
     done, out, log = on_emulator(program, tmp_path,
                                  ("serial", "serial_joint", "--fault-delay", "0.3", *options),
                                  "--scenario", "serial_joint", "--duration", "3",
-                                 *SHARED_MACHINE, before=0.32)
+                                 *SHARED_MACHINE)
     assert STOP_CODES["watchdog"] == 15
     summary = assert_fault_stop(done, out, log, name)
     assert "consecutive backend read failures" in summary["stop"]["detail"]
@@ -270,7 +270,7 @@ def test_a_motor_repeating_its_status_packet_is_refused_by_its_realtime_tick(tmp
                                  ("serial", "serial_joint", "--fault-delay", "0.3",
                                   "--stale-replies", "3:-1"),
                                  "--scenario", "serial_joint", "--duration", "3",
-                                 *SHARED_MACHINE, before=0.32)
+                                 *SHARED_MACHINE)
     assert done.returncode == STOP_CODES["watchdog"], done.stderr
     summary = json.loads((out / "summary.json").read_text())
     bus = summary["timing"]["bus"]
@@ -345,7 +345,7 @@ def test_an_unhomed_slider_is_refused_before_any_write(tmp_path, program):
     for case, record in (("none", tmp_path / "none.json"),
                          ("stale", _record(tmp_path / "stale.json", 4321, 0.0, legacy=True))):
         log, out = tmp_path / f"{case}.log", tmp_path / case
-        with emulator("parallel", "parallel_joint", log) as port:
+        with emulator("parallel", "parallel_joint", log, transport="pty") as port:
             done = embedded(program, "--scenario", "parallel_joint", "--port", port,
                             "--duration", "1", "--out", str(out), "--homing", "required",
                             "--homing-record", str(record))
@@ -394,7 +394,7 @@ def test_a_homed_slider_is_counted_from_its_record(tmp_path, program):
     first = {}
     for case in ("auto", "required"):
         log, out = tmp_path / f"{case}.log", tmp_path / case
-        with emulator("parallel", "parallel_joint", log) as port:
+        with emulator("parallel", "parallel_joint", log, transport="pty") as port:
             args = []
             if case == "required":
                 _hold_marker(port, marker)
@@ -515,21 +515,19 @@ def test_a_robot_away_from_the_scenarios_start_stops_before_anything_moves(tmp_p
 
 
 def _interrupted_run(program: Path, tmp_path: Path, interrupt) -> tuple:
-    """serial_joint on a fresh emulator, ``interrupt(proc, log)`` 1.5 s after the start (the
-    motors' start-up, then about a second of running); once more if it lagged before that."""
-    for attempt in range(2):
-        out, log = tmp_path / f"c{attempt}", tmp_path / f"emulator{attempt}.log"
-        with emulator("serial", "serial_joint", log) as port:
-            proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
-                                     "--duration", "10", "--out", str(out), *PATIENT],
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            time.sleep(1.5)
-            running = proc.poll() is None
-            if running:
-                interrupt(proc, log)
-            _, stderr = proc.communicate(timeout=30)
-        if running or not lagged(out):
-            return proc, stderr, out, log
+    """serial_joint on a fresh emulator (its socket), ``interrupt(proc, log)`` 1.5 s after the
+    start (the motors' start-up, then about a second of running)."""
+    out, log = tmp_path / "c", tmp_path / "emulator.log"
+    with emulator("serial", "serial_joint", log) as port:
+        proc = subprocess.Popen([str(program), "--scenario", "serial_joint", "--port", port,
+                                 "--duration", "10", "--out", str(out), *PATIENT],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(1.5)
+        running = proc.poll() is None
+        if running:
+            interrupt(proc, log)
+        _, stderr = proc.communicate(timeout=30)
+    assert running, f"the run stopped before its interruption: {stderr}"
     return proc, stderr, out, log
 
 

@@ -101,7 +101,7 @@ from .drives import (
     joint_drives,
     shared_item,
 )
-from .port import SerialPort, latency_timer_ms
+from .port import SerialPort, is_socket_address, latency_timer_ms, open_port
 
 #: Failure kinds a period can report (index into ``DynamixelBackend.failures``).
 TIMEOUT, CRC, ERROR_BYTE, ALERT, LENGTH, PORT, LATE, NON_FINITE, NOT_ENABLED, INTERNAL, \
@@ -263,7 +263,7 @@ class DynamixelBackend:
                  timeout_s: float | None = None, ramp_Nm: float = DEFAULT_RAMP_NM,
                  position_margin_rad: float = math.radians(2.0),
                  adapter_latency_s: float | None = None, retries: int = 3,
-                 open_port=SerialPort, system=None, homing: str = "auto",
+                 open_port=open_port, system=None, homing: str = "auto",
                  homing_record: str | Path | None = None, realtime_tick: bool = False,
                  offset_current: bool = True, read_instruction: str = "auto",
                  write_instruction: str = "auto", expected_start=None,
@@ -284,8 +284,8 @@ class DynamixelBackend:
             timer = latency_timer_ms(self.port_path)
             if timer is not None:
                 adapter_latency_s = timer * 1e-3
-            elif self.port_path.startswith("/dev/pts/"):
-                adapter_latency_s = 0.0
+            elif self.port_path.startswith("/dev/pts/") or is_socket_address(self.port_path):
+                adapter_latency_s = 0.0  # the emulator: no adapter holds the bytes
             else:
                 adapter_latency_s = DEFAULT_ADAPTER_LATENCY_S
         self.realtime_tick = bool(realtime_tick)
@@ -1121,10 +1121,13 @@ class DynamixelBackend:
         sliders = [j for j, d in enumerate(self.drives) if d.type == "prismatic"]
         if not sliders:
             return
-        virtual = os.path.realpath(self.port_path).startswith("/dev/pts/")
+        socket_port = is_socket_address(self.port_path)  # only the emulator listens on one
+        virtual = socket_port or os.path.realpath(self.port_path).startswith("/dev/pts/")
         if self.homing == "off" or (self.homing == "auto" and virtual):
-            self.homing_report = ("not checked (" + ("homing off" if self.homing == "off" else
-                                  "a pseudo-terminal: the virtual chain") + ")")
+            self.homing_report = ("not checked (" + (
+                "homing off" if self.homing == "off" else
+                "a socket: the virtual chain" if socket_port else
+                "a pseudo-terminal: the virtual chain") + ")")
             return
         path = Path(self.homing_record) if self.homing_record is not None \
             else homing.default_record(self.robot, self.description)

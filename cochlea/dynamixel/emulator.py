@@ -55,6 +55,13 @@ watchdog trip, with its time.
 The command (``main``) runs under SCHED_FIFO when permitted and with the garbage collector off
 while serving, as the real-time loop does: a virtual device should answer as promptly as a real
 one, whatever else the machine runs.
+
+With ``listen`` (``--listen unix:PATH`` or ``socket://HOST:PORT``) the chain serves on a stream
+socket instead of the pseudo-terminal: the same bytes, wire timing and faults, one bridge at a
+time (one that disconnects leaves the chain listening for the next). The kernel moves a
+pseudo-terminal's bytes in worker threads of ordinary priority, which a loaded machine delays
+whatever the two ends' SCHED_FIFO; a socket's are delivered in the writer's own system call
+(docs/dynamixel.md, "The emulator's socket").
 """
 
 from __future__ import annotations
@@ -70,6 +77,7 @@ import os
 import random
 import select
 import signal
+import socket
 import struct
 import sys
 import threading
@@ -121,6 +129,7 @@ from .control_table import (
 )
 from .drives import DEFAULT_RAMP_NM, Fit, JointDrive, joint_drives
 from .drives import check_baud as check_model_baud
+from .port import UNIX_PREFIX, socket_address
 
 #: The command's real-time priority: below cochlea-run's loop (40), above normal processes.
 EMULATOR_FIFO_PRIORITY = 30
@@ -562,10 +571,11 @@ def default_scenario(robot: str, plant: str | None) -> str:
 
 
 class VirtualChain:
-    """The motors of a scenario's robot on a pseudo-terminal (see the module docstring).
+    """The motors of a scenario's robot on a pseudo-terminal, or with ``listen`` on a socket
+    (see the module docstring).
 
     Use :meth:`start` (a background thread) and :meth:`stop`, or :meth:`serve` in the
-    foreground; :attr:`path` is the pseudo-terminal to open.
+    foreground; :attr:`path` is the pseudo-terminal to open (the socket's address).
     """
 
     #: Which motors answer FAST_SYNC_READ (0x8A): None, as their model's data says
@@ -578,8 +588,19 @@ class VirtualChain:
                  plant_period_s: float | None = None, log_path: str | Path | None = None,
                  max_events: int = 200_000, plant: str | None = None,
                  check_baud: bool = False, ignore_writes=(),
-                 truth: Truth | None = None):
+                 truth: Truth | None = None, listen: str | None = None):
         code = baud_code(baud)
+        # listen: serve on a socket (unix:PATH, socket://HOST:PORT) instead of a
+        # pseudo-terminal; None, the pseudo-terminal.
+        self.listen = listen
+        if listen is not None:
+            try:
+                socket_address(listen, listening=True)
+            except ValueError as exc:
+                raise CochleaError(f"--listen {exc}") from None
+            if check_baud:
+                raise CochleaError("--check-baud needs the pseudo-terminal (a socket has no "
+                                   "baud rate to check): drop --listen or --check-baud")
         # plant: a preset of the scenario's [plant] table, e.g. "realistic": the motors' rotors
         # and gearbox friction move the joints (their counts are the motors' own already).
         self.scenario = load_scenario(scenario or f"{robot}_joint", plant_preset=plant)
@@ -650,6 +671,9 @@ class VirtualChain:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.master = self.slave = -1
+        self._listener: socket.socket | None = None  # with listen: the listening socket
+        self._client: socket.socket | None = None  # and the connected bridge (self.master)
+        self._unix_path: str | None = None  # the socket file this chain made (removed at close)
         self.path = ""
         self._last_tick_end = self._t0
         for u in self.units:
@@ -665,12 +689,62 @@ class VirtualChain:
         self._by_id_order = sorted(self.motors, key=lambda m: m.id)
 
     def open(self) -> str:
+        """The port's name for the bridge's ``--port``: the pseudo-terminal's path, or with
+        ``listen`` the socket's address (``socket://HOST:0`` gives the port chosen). OSError
+        when it cannot be opened (bound)."""
+        if self.listen is not None:
+            if self._listener is None:
+                self._open_socket()
+            return self.path
         if self.master < 0:
             self.master, self.slave = os.openpty()
             tty.setraw(self.slave)  # no echo, no line editing: bytes as they are
             os.set_blocking(self.master, False)
             self.path = os.ttyname(self.slave)
         return self.path
+
+    def _open_socket(self) -> None:
+        """Listen on ``self.listen``: one bridge at a time is served (as one host owns a
+        serial line); a bridge that disconnects leaves the chain listening for the next, its
+        motors running on as motors whose host went away."""
+        family, address = socket_address(self.listen, listening=True)
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            if family != socket.AF_UNIX:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind(address)
+            sock.listen(1)
+            sock.setblocking(False)
+        except OSError:
+            sock.close()
+            raise
+        self._listener = sock
+        if family == socket.AF_UNIX:
+            self._unix_path = address
+            self.path = UNIX_PREFIX + address
+        else:
+            host, port = sock.getsockname()[:2]
+            self.path = f"socket://{f'[{host}]' if ':' in host else host}:{port}"
+
+    def _accept(self) -> None:
+        """A bridge connects: it becomes the line (``self.master``)."""
+        try:
+            client, _ = self._listener.accept()
+        except OSError:  # it went away again, or a transient failure: keep listening
+            return
+        client.setblocking(False)
+        if client.family != socket.AF_UNIX:
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._client, self.master = client, client.fileno()
+
+    def _disconnect(self) -> None:
+        """The bridge closed its end: what it had not read yet, and any half-received
+        instruction, go with it; the chain listens for the next."""
+        client, self._client, self.master = self._client, None, -1
+        if client is not None:
+            client.close()
+        self._queue.clear()
+        self._parser = proto.PacketParser(status=False)
 
     def start(self) -> VirtualChain:
         self.open()
@@ -687,6 +761,8 @@ class VirtualChain:
 
     def close(self) -> None:
         self.stop()
+        if self._client is not None:
+            self._disconnect()
         for fd in (self.master, self.slave):
             if fd >= 0:
                 try:
@@ -694,6 +770,15 @@ class VirtualChain:
                 except OSError:
                     pass
         self.master = self.slave = -1
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+            if self._unix_path is not None:
+                try:
+                    os.unlink(self._unix_path)
+                except OSError:
+                    pass
+                self._unix_path = None
         if self._log:
             log, self._log = self._log, None
             try:
@@ -756,15 +841,20 @@ class VirtualChain:
             # A status packet due: sleep until shortly before, then wait on the clock (a sleep
             # ends some 20 us late even with precise timers; see WIRE_SPIN_S).
             spin = due <= wake and due - now < 0.01
+            # With listen and no bridge connected: wait for one (the plant runs on meanwhile).
+            waiting = self.master < 0 and self._listener is not None
             try:
-                ready, _, _ = select.select([self.master], [], [],
-                                            max(0.0, wake - now - (WIRE_SPIN_S if spin else 0)))
+                ready, _, _ = select.select([self._listener if waiting else self.master], [],
+                                            [], max(0.0, wake - now - (WIRE_SPIN_S if spin
+                                                                       else 0)))
             except (OSError, ValueError):
                 break
             if spin and not ready:
                 while time.perf_counter() < due:
                     time.sleep(0)  # lets another thread (a test's bridge) have the GIL
-            if ready:
+            if ready and waiting:
+                self._accept()
+            elif ready:
                 self._receive()  # integrates the plant up to the request's arrival itself
                 self._flush(time.perf_counter())
                 now = time.perf_counter()
@@ -792,8 +882,14 @@ class VirtualChain:
             data = os.read(self.master, 4096)
         except (BlockingIOError, InterruptedError):
             return
-        except OSError:
-            return  # nobody has the other end open
+        except OSError:  # nobody has the pseudo-terminal's other end open; a socket reset
+            if self._client is not None:
+                self._disconnect()
+            return
+        if not data:  # readable and empty: the bridge closed its socket
+            if self._client is not None:
+                self._disconnect()
+            return
         now = time.perf_counter()
         self._read_line_baud()
         self._tick(now)  # the state a request sees is the state at its arrival (one sub-step)
@@ -1251,9 +1347,10 @@ def _parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="cochlea-emulator",
         description="A virtual Dynamixel chain: the motors of the robot description answer "
-                    "Protocol 2.0 on a pseudo-terminal, their joints moved in real time by the "
-                    "scenario's plant model. Prints the pseudo-terminal's path on the first "
-                    "line, then runs until Ctrl-C (or --duration).",
+                    "Protocol 2.0 on a pseudo-terminal (or a socket: --listen), their joints "
+                    "moved in real time by the scenario's plant model. Prints the "
+                    "pseudo-terminal's path (the socket's address) on the first line, then runs "
+                    "until Ctrl-C (or --duration).",
         epilog="Example: cochlea-emulator --robot serial, then cochlea-run ... --backend "
                "dynamixel --port PATH. Faults start at the first Torque Enable 1 plus "
                "--fault-delay.")
@@ -1273,6 +1370,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="the plant's RK4 step in real time (default: the scenario's, its "
                         "control period over its plant_substeps)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--listen", metavar="ADDRESS",
+                   help="serve on a socket instead of a pseudo-terminal: unix:PATH or "
+                        "socket://HOST:PORT (PORT 0: a free one); the first line is then the "
+                        "address to give cochlea-run and build/cochlea-embedded as --port. The "
+                        "bytes and their wire timing are the same; the kernel delivers them in "
+                        "the writer's own system call (a loaded machine delays a "
+                        "pseudo-terminal's)")
     p.add_argument("--log", type=Path, metavar="FILE", help="write every event to FILE")
     p.add_argument("--priority", choices=["fifo", "normal"], default="fifo",
                    help="fifo: run under SCHED_FIFO 30 when permitted (below cochlea-run's loop, "
@@ -1354,7 +1458,8 @@ def _main(args: argparse.Namespace) -> int:
                              else args.plant_period_ms * 1e-3, log_path=args.log,
                              max_events=1000,  # the --log file keeps them all
                              plant=args.plant, check_baud=args.check_baud,
-                             ignore_writes=args.ignore_write, truth=truth_from_args(args))
+                             ignore_writes=args.ignore_write, truth=truth_from_args(args),
+                             listen=args.listen)
     except CochleaError as exc:
         print(f"cochlea-emulator: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
@@ -1380,8 +1485,8 @@ def _main(args: argparse.Namespace) -> int:
         chain.close()
         if chain.log_path is not None:
             chain.log_path.unlink(missing_ok=True)
-        print(f"cochlea-emulator: cannot open a pseudo-terminal: {exc.strerror or exc}",
-              file=sys.stderr)
+        what = "a pseudo-terminal" if args.listen is None else f"--listen {args.listen}"
+        print(f"cochlea-emulator: cannot open {what}: {exc.strerror or exc}", file=sys.stderr)
         return 1
     print(path, flush=True)
     ids = ", ".join(f"{m.id} ({m.drive.name}, {m.spec.name})" for m in chain.motors)

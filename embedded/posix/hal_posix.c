@@ -6,7 +6,14 @@
 
 #include <errno.h>
 #include <fcntl.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
 #include <poll.h>
+#include <stdio.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <sys/un.h>
 #include <termios.h>
 #include <time.h>
 #include <unistd.h>
@@ -34,6 +41,88 @@ static speed_t speed_of(long baud, int *ok)
     }
 }
 
+/* The emulator's socket (cochlea-emulator --listen): "unix:PATH" or "socket://HOST:PORT".
+ * Connected (blocking: a listening emulator accepts at once), then non-blocking as the serial
+ * device is. */
+static int open_socket(cochlea_posix_port *port, const char *path)
+{
+    int fd = -1, saved;
+    if (strncmp(path, "unix:", 5) == 0) {
+        struct sockaddr_un addr;
+        const size_t len = strlen(path + 5);
+        memset(&addr, 0, sizeof addr);
+        addr.sun_family = AF_UNIX;
+        if (len == 0 || len >= sizeof addr.sun_path) {
+            errno = ENAMETOOLONG;
+            return -1;
+        }
+        memcpy(addr.sun_path, path + 5, len);
+        fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+        if (fd < 0 || connect(fd, (const struct sockaddr *)&addr, sizeof addr) != 0) {
+            goto fail;
+        }
+    } else {
+        char host[256];
+        const char *rest = path + 9, *colon = strrchr(rest, ':');
+        const char *service = colon ? colon + 1 : "";
+        struct addrinfo hints, *found = 0, *a;
+        size_t n = colon ? (size_t)(colon - rest) : 0;
+        int rc, one = 1;
+        if (n >= 2 && rest[0] == '[' && rest[n - 1] == ']') { /* [::1]:PORT */
+            ++rest;
+            n -= 2;
+        }
+        if (n == 0 || n >= sizeof host || *service == 0
+            || strspn(service, "0123456789") != strlen(service)) {
+            errno = EINVAL;
+            return -1;
+        }
+        memcpy(host, rest, n);
+        host[n] = 0;
+        memset(&hints, 0, sizeof hints);
+        hints.ai_family = AF_UNSPEC;
+        hints.ai_socktype = SOCK_STREAM;
+        hints.ai_flags = AI_NUMERICSERV;
+        rc = getaddrinfo(host, service, &hints, &found);
+        if (rc != 0) {
+            errno = rc == EAI_SYSTEM ? errno : EHOSTUNREACH;
+            return -1;
+        }
+        errno = ECONNREFUSED;
+        for (a = found; a; a = a->ai_next) {
+            fd = socket(a->ai_family, a->ai_socktype | SOCK_CLOEXEC, a->ai_protocol);
+            if (fd >= 0 && connect(fd, a->ai_addr, a->ai_addrlen) == 0) {
+                break;
+            }
+            if (fd >= 0) {
+                saved = errno;
+                close(fd);
+                errno = saved;
+                fd = -1;
+            }
+        }
+        freeaddrinfo(found);
+        if (fd < 0) {
+            return -1;
+        }
+        /* Each write is a whole frame: sent at once, not held for the previous one's ACK. */
+        (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    }
+    if (fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK) != 0) {
+        goto fail;
+    }
+    port->fd = fd;
+    port->socket = 1;
+    return 0;
+fail:
+    saved = errno;
+    if (fd >= 0) {
+        close(fd);
+    }
+    errno = saved;
+    return -1;
+}
+
 int cochlea_posix_open(cochlea_posix_port *port, const char *path, long baud)
 {
     struct termios tio;
@@ -41,9 +130,13 @@ int cochlea_posix_open(cochlea_posix_port *port, const char *path, long baud)
     const speed_t speed = speed_of(baud, &ok);
     port->fd = -1;
     port->baud = baud;
+    port->socket = 0;
     if (!ok) {
         errno = EINVAL;
         return -1;
+    }
+    if (strncmp(path, "unix:", 5) == 0 || strncmp(path, "socket://", 9) == 0) {
+        return open_socket(port, path); /* the baud rate is the emulator's --baud */
     }
     port->fd = open(path, O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
     if (port->fd < 0) {
@@ -176,6 +269,12 @@ static long serial_read(void *ctx, uint8_t *data, size_t n, int64_t timeout_ns)
 static void discard_input(void *ctx)
 {
     const cochlea_posix_port *port = ctx;
+    if (port->socket) { /* no tty queue: read what is there (an end of stream stays seen) */
+        uint8_t drop[256];
+        while (recv(port->fd, drop, sizeof drop, MSG_DONTWAIT) > 0) {
+        }
+        return;
+    }
     tcflush(port->fd, TCIFLUSH);
 }
 
