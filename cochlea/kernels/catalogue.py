@@ -111,6 +111,8 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise  # cochlea-codegen says "not UTF-8" itself
     except (OSError, ValueError) as exc:  # ValueError: TOML's, or a 4300-digit integer
         raise CodegenError(f"{path}: cannot read the codegen configuration: {exc}") from exc
     top = {"format", "output", "library", "casadi", "function", "robot", "embedded"}

@@ -384,11 +384,11 @@ def parse_toml(raw: bytes, path: Path, what: str = "robot description") -> dict:
     except RecursionError:
         raise DescriptionError(path, "(syntax)", f"tables and lists nested at most "
                                f"{MAX_NESTING} deep") from None
-    _check_nesting(path, data)
+    check_structure(path, data)
     return data
 
 
-def _check_nesting(path: Path, data: dict) -> None:
+def check_structure(path: Path, data: dict) -> None:
     """Refuse structures deeper than MAX_NESTING, which no description or scenario needs and
     which recursive code (printing a value, copying it) could not handle; and integers beyond
     64 bits, which TOML itself rules out (tomllib reads them whole) and which end any check

@@ -29,7 +29,7 @@ from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
 from ..robots.description import MAX_FILE_BYTES, Table, parse_toml, read_toml
-from ..robots.description import _check_nesting as check_nesting
+from ..robots.description import check_structure as check_nesting
 from ..robots.description import resolve_path as resolve_description
 from ..robots.model import ACTUATORS
 from .expressions import FUNCTIONS, ExpressionError, parse
