@@ -321,6 +321,7 @@ def homing_header(folder: Path, scenario: str, **entry_changes) -> Path:
     return out.parent
 
 
+@pytest.mark.slow
 def test_a_slider_without_its_homing_record_never_powers_the_bus(tmp_path):
     """The parallel robot's slider counts its turns only from a homing record: a firmware
     built without one refuses before the bus is powered, saying how to build it."""
@@ -332,6 +333,7 @@ def test_a_slider_without_its_homing_record_never_powers_the_bus(tmp_path):
     assert values["bus_bytes"] == "0"
 
 
+@pytest.mark.slow
 def test_a_slider_with_its_homing_record_compiled_in_starts_the_bus(tmp_path):
     """With the record compiled in (its offset and token from the record, checked against the
     scenario's drives at build time), the firmware passes the gate and starts the bus: here

@@ -366,6 +366,7 @@ def test_a_row_whose_q_is_not_finite_is_not_drawn(runs, tmp_path):
     assert main([str(folder), "--html-out", str(tmp_path / "page.html")]) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("field, value", [("duration_s", 10**30), ("space", float("inf")),
                                           ("periods", float("nan")), ("stop", {"rule": "x",
                                                                                "time_s": 10**30})])
