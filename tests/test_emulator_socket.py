@@ -327,8 +327,8 @@ def test_the_c_program_that_cannot_reach_the_socket_says_so_in_one_line(tmp_path
                            "--out", str(out)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 5, done.stderr
     assert done.stderr.strip().splitlines()[-1] == (
-        "cochlea-embedded: the backend could not start, nothing moved: cannot open the "
-        f"serial port {address}: {why}")
+        "cochlea-embedded: the backend could not start, nothing moved: cannot connect to "
+        f"the socket {address}: {why}")
     assert "Traceback" not in done.stderr and not out.exists()
 
 

@@ -2486,8 +2486,11 @@ int main(int argc, char **argv)
            cochlea_instruction_name(bridge.bus->write_instruction), bridge.bus->read_choice);
     fflush(stdout);
     if (cochlea_posix_open(&port, o.port, o.baud) != 0) {
+        const int socket_port = strncmp(o.port, "unix:", 5) == 0
+                                || strncmp(o.port, "socket://", 9) == 0;
         fprintf(stderr, "cochlea-embedded: the backend could not start, nothing moved: cannot "
-                "open the serial port %s: %s\n", o.port, strerror(errno));
+                "%s %s: %s\n", socket_port ? "connect to the socket" : "open the serial port",
+                o.port, strerror(errno));
         undo_start(o.out);
         return COCHLEA_EXIT_BACKEND;
     }
