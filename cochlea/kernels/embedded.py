@@ -675,6 +675,27 @@ def _unit_commit(k: int, u: EmbeddedUnit, o: _Offsets, precision: str) -> list[s
             f"s->p_hat[i] = CCLAMPD(next[i] * scale[{k}], s->p_min[i], s->p_max[i]);"]
 
 
+def _step_head(name: str, suffix: str = "", unit: str = "") -> list[str]:
+    """The opening of ``<name>_step_desired[<suffix>]`` (all units' step, or one unit's with
+    ``unit`` its first parameter): its signature, its locals, the estimate read in."""
+    N, R = name.upper(), f"{name}_real"
+    return [f"static int {name}_step_desired{suffix}({name}_state *s, {unit}"
+            f"const {R} xd[{N}_ND],",
+            f"    const {R} xd_dot[{N}_ND], const {R} xd_ddot[{N}_ND],",
+            f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
+            f"{R} errors_out[{N}_NE]) {{",
+            f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
+            "#ifdef COCHLEA_FLOAT",
+            f"  float next[{N}_NP], next_lo[{N}_NP], scale[{N}_UNITS], norm2;",
+            "#else",
+            f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
+            "#endif",
+            f"  const {R}* arg[14];",
+            f"  {R}* res[3];",
+            "  int i;",
+            f"  for (i = 0; i < {N}_NP; ++i) p_hat[i] = ({R})s->p_hat[i];"]
+
+
 def _unit_steps(name: str, units: list[EmbeddedUnit], off: list[_Offsets]) -> str:
     """``<name>_desired_unit`` and ``<name>_step_desired_unit``: one unit's desired sample and
     step, for a program that runs the units apart (the all-in-C simulation runs each unit on
@@ -721,21 +742,7 @@ def _unit_steps(name: str, units: list[EmbeddedUnit], off: list[_Offsets]) -> st
             "  return 0;",
             "}",
             "",
-            f"static int {name}_step_desired_unit({name}_state *s, int unit, "
-            f"const {R} xd[{N}_ND],",
-            f"    const {R} xd_dot[{N}_ND], const {R} xd_ddot[{N}_ND],",
-            f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
-            f"{R} errors_out[{N}_NE]) {{",
-            f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
-            "#ifdef COCHLEA_FLOAT",
-            f"  float next[{N}_NP], next_lo[{N}_NP], scale[{N}_UNITS], norm2;",
-            "#else",
-            f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
-            "#endif",
-            f"  const {R}* arg[14];",
-            f"  {R}* res[3];",
-            "  int i;",
-            f"  for (i = 0; i < {N}_NP; ++i) p_hat[i] = ({R})s->p_hat[i];",
+            *_step_head(name, "_unit", "int unit, "),
             "  switch (unit) {"]
     for k, (u, o) in enumerate(zip(units, off)):
         out += [f"  case {k}:", *("  " + line if not line.startswith("#") else line
@@ -947,20 +954,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
     dp.append("}\n")
     parts.append("\n".join(dp))
     # step: the desired given, then the entries at t and at period k
-    step = [f"static int {name}_step_desired({name}_state *s, const {R} xd[{N}_ND],",
-            f"    const {R} xd_dot[{N}_ND], const {R} xd_ddot[{N}_ND],",
-            f"    const {R} measurement[{N}_NX], {R} command_out[{N}_NQ], "
-            f"{R} errors_out[{N}_NE]) {{",
-            f"  {R} p_hat[{N}_NP], p_hat_dot[{N}_NP];",
-            "#ifdef COCHLEA_FLOAT",
-            f"  float next[{N}_NP], next_lo[{N}_NP], scale[{N}_UNITS], norm2;",
-            "#else",
-            f"  double next[{N}_NP], scale[{N}_UNITS], norm2;",
-            "#endif",
-            f"  const {R}* arg[14];",
-            f"  {R}* res[3];",
-            "  int i;",
-            f"  for (i = 0; i < {N}_NP; ++i) p_hat[i] = ({R})s->p_hat[i];"]
+    step = _step_head(name)
     for k, (u, o) in enumerate(zip(units, off)):
         step += _unit_update(name, k, u, o)
     step += [
