@@ -184,6 +184,23 @@ def test_the_python_bridge_runs_over_the_socket(tmp_path, robot):
                                      "not checked (a socket: the virtual chain)")
 
 
+@pytest.mark.hil
+def test_bring_up_talks_to_the_chain_over_its_socket(tmp_path):
+    """cochlea-dxl's bus (scan, configure, calibrate, home) opens the emulator's socket as the
+    bridge does: a PING of every motor answers; with nothing listening there, one line naming
+    the socket, not a serial port."""
+    from cochlea.dynamixel.bringup.common import Bus, BusError
+
+    with VirtualChain("serial", "serial_joint", listen=f"unix:{tmp_path}/c.sock") as chain:
+        with Bus(chain.path, 4_000_000) as bus:
+            for motor in chain.motors:
+                assert bus.ping(motor.drive.id)[0] == motor.spec.number
+    with pytest.raises(BusError) as caught:
+        Bus(f"unix:{tmp_path}/c.sock", 4_000_000)
+    message = str(caught.value)
+    assert "expected the emulator's socket" in message and "\n" not in message
+
+
 def test_a_socket_port_sees_its_emulator_go_away(tmp_path):
     """discard_input drops what is waiting; after the other end closes, a read is -1 (a port
     error: the loop's read failures and its safe stop follow), never an exception."""

@@ -60,7 +60,7 @@ from ..control_table import (
     describe_hardware_error,
 )
 from ..drives import JointDrive, joint_drives
-from ..port import SerialPort
+from ..port import SerialPort, is_socket_address, open_port
 
 EXIT_OK = 0
 #: A check found a difference (see the module docstring).
@@ -340,10 +340,14 @@ class Bus:
     def open(self, baud: int) -> None:
         self.close()
         try:
-            self._port = SerialPort(self.path, baud)
+            # A serial device, or the emulator's socket (cochlea-emulator --listen), as the
+            # bridge opens them: bring-up against a loaded machine's virtual chain too.
+            self._port = open_port(self.path, baud)
         except BackendError as exc:
-            raise BusError(f"--port {self.path}: {exc}; expected a serial port (check the "
-                           "path, the adapter's cable and who else has it open)") from None
+            expected = "the emulator's socket (is cochlea-emulator --listen running there?)" \
+                if is_socket_address(self.path) else \
+                "a serial port (check the path, the adapter's cable and who else has it open)"
+            raise BusError(f"--port {self.path}: {exc}; expected {expected}") from None
         self.baud = int(baud)
 
     def close(self) -> None:
