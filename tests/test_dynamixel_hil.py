@@ -95,63 +95,6 @@ def run(*args: str, cwd: Path, prefix: str = "") -> subprocess.CompletedProcess:
         cwd=cwd, capture_output=True, text=True, timeout=180)
 
 
-#: A current held this many periods or more (one period's wall time, in periods) is more than
-#: the thesis's rigid serial plant takes: its distal link (about 6e-6 kg m^2, no rotor) has
-#: h G / M = 1.2 of damping margin, and issue 24 measured 3 periods of delay turning the start-up
-#: transient of serial_task into a velocity-limit stop. A quiet machine's slowest period was the
-#: first (the torque came on in it, one confirmed write per motor): about 2.3 periods; it is now
-#: one SYNC_WRITE and one SYNC_READ (docs/dynamixel.md, start-up step 9).
-HELD_PERIODS = 3.0
-
-
-def lagged(out: Path, before: float = float("inf")) -> bool:
-    """Whether a run stopped, before ``before`` s, for the machine rather than the code under
-    test, by evidence in its own summary and log. Only for a chain that is a thread of the test
-    process (``VirtualChain(...).start()``: no SCHED_FIFO of its own); the runs on
-    ``cochlea-emulator``'s socket (:data:`LOOP_TRANSPORT`) are not repeated:
-
-    - on the read watchdog: on this shared machine the emulator (a Python process integrating
-      the plant) now and then falls tens of milliseconds behind, six reads time out and the
-      program rightly stops. Seen in a few runs of a hundred on a quiet machine, more under
-      load; runs not about failed reads tolerate more of them (PATIENT in
-      test_embedded_program);
-    - on the velocity limit, after reads timed out: the emulator, behind, integrates the plant
-      over the lost time at once and the next reads show a joint catching up faster than its
-      limit (seen under a load average above 10 on 2 cores);
-    - on the velocity limit, after a period that held its current :data:`HELD_PERIODS` or more
-      (the loop itself late: without SCHED_FIFO, or its pseudo-terminal's bytes moved late by
-      the kernel's ordinary-priority workers, 5-8 ms periods under load; the CI machine
-      stopped serial_task so at 50 ms, the C program and cochlea-run alike).
-
-    Such a run is repeated once, on a fresh chain; a second one fails the test."""
-    try:
-        summary = json.loads((out / "summary.json").read_text())
-        stop, failures = summary["stop"], summary["timing"]["bus"]["failures"]
-        h = summary["timing"]["nominal_period"]
-    except (OSError, ValueError, KeyError):
-        return False
-    if stop["time_s"] >= before:
-        return False
-    if stop["rule"] == "watchdog":
-        return "read failures" in stop["detail"]
-    if stop["rule"] != "velocity-limit":
-        return False
-    return failures.get("timeout", 0) > 0 or longest_period(out) >= HELD_PERIODS * h
-
-
-def longest_period(out: Path) -> float:
-    """The longest wall-clock period (s) in a real-time run's log.csv (``wall_period_s``, NaN
-    on the stop's own row); 0 without a log."""
-    try:
-        with (out / "log.csv").open() as f:
-            column = f.readline().strip().split(",").index("wall_period_s")
-        rows = np.loadtxt(out / "log.csv", delimiter=",", skiprows=1, ndmin=2)
-    except (OSError, ValueError):
-        return 0.0
-    periods = rows[:, column]
-    return float(np.nanmax(periods)) if np.isfinite(periods).any() else 0.0
-
-
 def run_on_emulator(robot: str, scenario: str, tmp_path: Path, *args: str
                     ) -> tuple[subprocess.CompletedProcess, Path, Path]:
     """``cochlea-run ARGS --backend dynamixel --port PORT --out DIR`` on a fresh emulator of

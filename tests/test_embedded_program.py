@@ -45,9 +45,9 @@ STUDIES = [("serial", "joint"), ("serial", "task"), ("parallel", "joint"), ("par
 #: three; enough for the read watchdog). cochlea-run takes about 2 s to import before it talks;
 #: the C program starts in a millisecond, so its tests give the emulator that time.
 EMULATOR_SETTLE_S = 2.0
-#: Runs that are not about failed reads tolerate more of them: a late reply (see
-#: tests/test_dynamixel_hil.lagged) then costs a few late periods, not the run (as
-#: SHARED_MACHINE does for deadline misses).
+#: Runs that are not about failed reads tolerate more of them: a late reply (the machine's
+#: real-time wake-up latency, docs/dynamixel.md) then costs a few late periods, not the run
+#: (as SHARED_MACHINE does for deadline misses).
 PATIENT = (*SHARED_MACHINE, "--watchdog-errors", "100")
 
 
