@@ -220,14 +220,23 @@ def slow_run(hooked: Path, tmp_path: Path, slow: str, *args: str):
     by ``slow`` (COCHLEA_TEST_SLOW_READS). The result and the summary."""
     from tests.test_embedded_program import emulator
 
-    out = tmp_path / "run"
-    with emulator("serial", "serial_joint", tmp_path / "emulator.log") as port:
-        done = subprocess.run(
-            [str(hooked), "--scenario", "serial_joint", "--port", port, "--duration", "2",
-             "--out", str(out), "--watchdog-misses", "20", "--watchdog-errors", "100",
-             *args], capture_output=True, text=True, timeout=120,
-            env={**os.environ, "COCHLEA_TEST_SLOW_READS": slow})
-    return done, json.loads((out / "summary.json").read_text())
+    injected_s = int(slow.split(":")[0]) * 1e-3  # the first slowed period's time (1 kHz)
+    for attempt in range(2):
+        out = tmp_path / f"run{attempt}"
+        with emulator("serial", "serial_joint", tmp_path / f"emulator{attempt}.log") as port:
+            done = subprocess.run(
+                [str(hooked), "--scenario", "serial_joint", "--port", port, "--duration", "2",
+                 "--out", str(out), "--watchdog-misses", "20", "--watchdog-errors", "100",
+                 *args], capture_output=True, text=True, timeout=120,
+                env={**os.environ, "COCHLEA_TEST_SLOW_READS": slow})
+        summary = json.loads((out / "summary.json").read_text())
+        stop = summary["stop"] or {}
+        # A stall of the shared machine before the fault is injected (CI: 36 ms at 0.41 s)
+        # is not what these tests test: that run alone is repeated, once.
+        if not (stop.get("detail", "").startswith("the loop stalled")
+                and stop.get("time_s", 1e9) < injected_s):
+            break
+    return done, summary
 
 
 @pytest.mark.hil
