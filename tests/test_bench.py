@@ -181,3 +181,82 @@ def test_a_run_that_stops_early_every_time_is_reported_after_three(monkeypatch):
     result = embedded_program.deadline_misses(0.1)
     assert len(starts) == embedded_program.ATTEMPTS
     assert "stopped early 3 times" in result["not_run"] and "watchdog" in result["not_run"]
+
+
+def sim_row(scenario: str, rtf: float, **changes) -> dict:
+    """An all-in-C row of bench/embedded_bench.py's bench_embedded_sims() shape: ``rtf`` end
+    to end with the log (a 20 s serial study on two unit threads, a 10 s parallel one on
+    one)."""
+    serial = scenario.startswith("serial")
+    duration, threads = (20.0, 2) if serial else (10.0, 1)
+    periods = int(duration * 1e3)
+    row = {"scenario": scenario, "duration_s": duration, "units": threads, "periods": periods,
+           "robot": "serial" if serial else "parallel", "gearbox": False, "plant_substeps": 1,
+           "threads": threads, "rtf_double": rtf, "rtf_double_no_log": 1.1 * rtf,
+           "loop_cpu_double_s": 0.9 * duration / rtf,
+           "loop_cpu_double_no_log_s": 0.8 * duration / rtf,
+           "log_bytes": 8_800_000, "startup_s": 1e-3}
+    row.update(changes)
+    return row
+
+
+def test_the_all_in_c_verdicts_hold_each_robot_to_issue_30s_target():
+    """Serial studies against 2000x, parallel ones against 1000x (end to end, log written):
+    a parallel study at 1500x meets its target, a serial one at 1500x misses by 1.33x; a miss
+    says why from the row (its loop's cost a period, the cap it sets, the geared plant)."""
+    eb = bench_run.embedded_bench
+    assert bench_run.TARGETS["embedded_sim_serial_rtf"] == 2000.0
+    assert bench_run.TARGETS["embedded_sim_parallel_rtf"] == 1000.0
+    steps = [{"scenario": "parallel_task", "double_ns": 1300.0}]
+    rows = [sim_row("serial_joint", 2100.0), sim_row("serial_task", 1500.0),
+            sim_row("parallel_joint", 1500.0), sim_row("parallel_task", 800.0),
+            sim_row("parallel_joint_realistic", 70.0, gearbox=True)]
+    lines = eb.verdicts(steps, rows)
+    assert len(lines) == len(rows)
+    assert lines[0].startswith("- **met**: serial_joint ") and "target >= 2000x" in lines[0]
+    assert lines[1].startswith("- **missed** by 1.33x: serial_task ")
+    # 0.8 * 20 s / 1500 / 20000 periods: 0.53 us a period, a cap of 1875x
+    assert "0.53 us (its CPU time) on the busier of its 2 unit threads" in lines[1]
+    assert "a cap of 1875x" in lines[1]
+    assert lines[2].startswith("- **met**: parallel_joint ") and "target >= 1000x" in lines[2]
+    assert lines[3].startswith("- **missed** by 1.25x: parallel_task ")
+    assert "the controller's step 1.30 us (the mechanism's" in lines[3]
+    assert "RK4 plant period" in lines[3] and "on one core" in lines[3]
+    assert lines[4].startswith("- **missed** by 14.29x: parallel_joint_realistic ")
+    assert "geared plant" in lines[4] and "RK4" not in lines[4]
+
+
+def test_the_sweep_verdicts_hold_each_robot_to_issue_30s_target():
+    """Sweeps: the 20 s serial studies against 60 samples/s/core, the 10 s parallel ones
+    against 40; a miss says where a sample's CPU time goes (the C closed loop, the rest)."""
+    def row(study, rate, loop_share=0.85):
+        cpu = 1.0 / rate
+        return {"study": study, "duration_s": 20.0 if study.startswith("serial") else 10.0,
+                "per_s_core": rate, "cpu_s": cpu, "uncached_cpu_s": 0.2,
+                "parts": {"C closed loop": loop_share * cpu,
+                          "supervisor verdict": (1 - loop_share) * cpu * 0.6,
+                          "summary + row": (1 - loop_share) * cpu * 0.4}}
+
+    rows = [row("serial_joint", 61.0), row("serial_task", 50.0), row("parallel_joint", 45.0),
+            row("parallel_task", 35.0)]
+    lines = bench_run.sweep_verdicts(rows)
+    assert lines[0].startswith("- **met**: serial_joint (20 s) ") and "(target >= 60)" in lines[0]
+    assert lines[1].startswith("- **missed** by 1.20x: serial_task (20 s) ")
+    assert "20.0 ms of CPU where the target allows 16.7 ms" in lines[1]
+    assert "the C closed loop 17.0 ms (85%" in lines[1]
+    assert "supervisor verdict 1.80 ms" in lines[1]
+    assert lines[2].startswith("- **met**: parallel_joint (10 s) ") and "(target >= 40)" in lines[2]
+    assert lines[3].startswith("- **missed** by 1.14x: parallel_task (10 s) ")
+    assert "where the target allows 25.0 ms" in lines[3]
+
+
+def test_the_targets_section_gives_every_verdict(monkeypatch, tmp_path):
+    """results.md's Targets list the sweep's verdicts and the parallel all-in-C studies' too."""
+    fake_sections(monkeypatch, {})
+    assert bench_run.main(["--out", str(tmp_path)]) == 0
+    targets = sections((tmp_path / "results.md").read_text())["Targets"]
+    for r in LAST["sweep"]:
+        assert f"{r['study']} ({r['duration_s']:g} s) sweeps at " in targets
+    for r in LAST["embedded_sims"]:
+        assert f"{r['scenario']} all-in-C simulation (embedded/sim) at " in targets
+    assert "(target >= 1000x" in targets and "(target >= 40)" in targets
