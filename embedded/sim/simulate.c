@@ -49,7 +49,10 @@
  * rows into a ring of blocks of its own; a writer thread puts the units' parts of each block's
  * rows together, evaluates their poses from their x and writes the block to the file while the
  * units fill the next (the poses and the page cache's copy were a quarter of a serial study's
- * time). Without --log the pose, which only the log needs, is not evaluated.
+ * time). Without --log the pose, which only the log needs, is not evaluated. An existing
+ * regular FILE (one link) is removed and a new one created, not truncated (open_log: 4-5 ms
+ * less on ext4 over a previous serial log); anything else (a link, a device, a FIFO, a file
+ * that cannot be removed) is opened and truncated as before.
  *
  * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status, the
  * wall time (s) of the loop (loop_s: from starting the units' threads to the last one's end)
@@ -88,6 +91,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -353,6 +357,25 @@ static int writer_hand(sim_writer *w, int u, int *slot, long rows, int last)
     return failed;
 }
 
+/* The log's file descriptor: a new file in place of an existing regular file of one link
+ * (removed, then created with O_EXCL), else path opened as before, truncated. Truncating the
+ * previous run's log (8.8 MB for a serial study) cost 4-5 ms more wall time than writing a new
+ * file on ext4 (freeing its blocks, and at close the flush ext4's auto_da_alloc starts for a
+ * file truncated and written again). lstat: a symbolic link, a device (/dev/null, /dev/full),
+ * a FIFO or a file with other names is never removed; a file that cannot be removed (its
+ * folder not writable) or that another process creates again in between is truncated. The
+ * new file has mode 0666 less the umask, not the old one's. -1: not writable. */
+static int open_log(const char *path)
+{
+    struct stat st;
+    if (lstat(path, &st) == 0 && S_ISREG(st.st_mode) && st.st_nlink == 1 &&
+        unlink(path) == 0) {
+        const int fd = open(path, O_WRONLY | O_CREAT | O_EXCL, 0666);
+        if (fd >= 0 || errno != EEXIST) return fd;
+    }
+    return open(path, O_WRONLY | O_CREAT | O_TRUNC, 0666);
+}
+
 static int writer_start(sim_writer *w, const char *path)
 {
     memset(w->rows, 0, sizeof w->rows);
@@ -360,7 +383,7 @@ static int writer_start(sim_writer *w, const char *path)
     memset(w->done, 0, sizeof w->done);
     w->written = 0;
     w->ended = w->failed = 0;
-    w->fd = open(path, O_WRONLY | O_CREAT | O_TRUNC, 0666);
+    w->fd = open_log(path);
     if (w->fd < 0) return -1;
     if (pthread_mutex_init(&w->lock, NULL) != 0) return -1;
     if (pthread_cond_init(&w->changed, NULL) != 0) return -1;
