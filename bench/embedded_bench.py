@@ -709,6 +709,73 @@ def _timed_run(command: list[str]) -> tuple[float, dict]:
     return wall, json.loads(done.stdout)
 
 
+#: The program :func:`sibling_slowdown` times: one unit, so one thread.
+SIBLING_PROGRAM = "parallel_joint"
+
+
+def _idle_us(cpu: int) -> float | None:
+    """Microseconds CPU ``cpu`` has spent idle (its cpuidle states' residency), None where the
+    kernel does not say."""
+    states = sorted(Path(f"/sys/devices/system/cpu/cpu{cpu}/cpuidle").glob("state*/time"))
+    try:
+        return float(sum(int(t.read_text()) for t in states)) if states else None
+    except OSError:
+        return None
+
+
+def sibling_slowdown(rounds: int = 9, runs: int = 3, program: str = SIBLING_PROGRAM) -> dict:
+    """How much a unit thread's work slows when the machine's other vCPU is busy, in one run:
+    ``program``'s all-in-C simulation (one thread, no log) pinned to the first CPU this
+    process may use, its loop's CPU time alone and while a busy loop (``sh -c 'while :; do :;
+    done'``) runs pinned to the second; ``rounds`` rounds turn about of ``runs`` runs each.
+    Where the two vCPUs are one physical core's two hardware threads the ratio is well above
+    1: two threads on "2 cores" do not get twice one's work done.
+
+    Other work on the machine may keep the second CPU busy during the runs "alone": each run's
+    share of idle time on that CPU is taken (cpuidle residency); the runs alone are those with
+    it at least 90 % idle where there are ``runs`` such, else all of them, and
+    ``other_idle_alone`` (the median share) says how alone they were. Returns the medians (s),
+    their ratio (``ratio``: busy / alone) and the CPUs."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        raise RuntimeError(f"sibling_slowdown needs two CPUs, this process may use {cpus}")
+    first, second = cpus[:2]
+    command = [str(build_simulation(program))]
+    alone, busy = [], []  # (loop CPU s, the other CPU's idle share over the run)
+
+    def timed() -> tuple[float, float]:
+        idle0, t0 = _idle_us(second), time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True,
+                              preexec_fn=lambda: os.sched_setaffinity(0, {first}))
+        wall_us, idle1 = (time.perf_counter() - t0) * 1e6, _idle_us(second)
+        if done.returncode != 0:
+            raise RuntimeError(f"{command[0]} exited {done.returncode}: {done.stderr.strip()}")
+        share = float("nan") if idle0 is None else min(1.0, (idle1 - idle0) / wall_us)
+        return float(json.loads(done.stdout)["loop_cpu_s"]), share
+
+    timed()  # warm up: page cache, CPU frequency
+    for _ in range(rounds):
+        alone += [timed() for _ in range(runs)]
+        spinner = subprocess.Popen(["sh", "-c", "while :; do :; done"],
+                                   preexec_fn=lambda: os.sched_setaffinity(0, {second}))
+        try:
+            time.sleep(0.05)  # the loop running on its CPU
+            busy += [timed() for _ in range(runs)]
+        finally:
+            spinner.kill()
+            spinner.wait()
+    quiet = [c for c, share in alone if share >= 0.9]
+    row = {"program": program, "cpus": [first, second], "runs": len(alone),
+           "alone_quiet_runs": len(quiet) if len(quiet) >= runs else 0,
+           "alone_cpu_s": statistics.median(quiet if len(quiet) >= runs
+                                            else [c for c, _ in alone]),
+           "busy_cpu_s": statistics.median(c for c, _ in busy),
+           "other_idle_alone": statistics.median(share for _, share in alone),
+           "other_idle_busy": statistics.median(share for _, share in busy)}
+    row["ratio"] = row["busy_cpu_s"] / row["alone_cpu_s"]
+    return row
+
+
 def bench_embedded_sims(runs: int = 11) -> list[dict]:
     """Per scenario, full length: the all-in-C simulation's log against ``simulate()``'s (the
     largest difference of any logged value, double and float builds), then ``runs`` timed runs
@@ -717,6 +784,12 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
     rows = []
     work = BUILD / "bench"
     work.mkdir(parents=True, exist_ok=True)
+    try:  # the machine's fact the serial rows' why-lines quote
+        sibling = sibling_slowdown()
+    except (RuntimeError, OSError) as error:
+        sibling = {"not_run": f"{type(error).__name__}: {error}"}
+    print(f"  a thread beside a busy vCPU: {sibling.get('ratio', 0):.2f}x its CPU time alone",
+          flush=True)
     for name in SCENARIOS:
         sc = sim_scenario(name)
         setups = unit_setups(sc)
@@ -757,6 +830,7 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
             row[f"rtf_{v}"] = row["duration_s"] / row[f"wall_{v}_s"]
         row["rtf_loop_double"] = row["duration_s"] / row["loop_double_s"]
         row["threads"] = info["threads"]  # the units' threads (one per unit)
+        row["sibling"] = sibling
         row["startup_s"] = row["wall_double_no_log_s"] - row["loop_double_no_log_s"]
         rows.append(row)
         print(f"  {name}: all-in-C {row['rtf_double']:.0f}x real time end to end (no log "
@@ -815,9 +889,24 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
         threads = r.get("threads", 1)
         plant = _plant_words(r)
         cost = f"{period * 1e6:.2f} us" + (" (its CPU time)" if cpu else "")
+        sibling = r.get("sibling") or {}
         if threads > 1:  # a unit a thread: the busier thread's, one unit's work
             why = (f"without a log each period costs {cost} on the busier of its {threads} "
                    f"unit threads: one unit's desired sample, step, {plant} and measurement")
+            if "ratio" in sibling:
+                ratio = sibling["ratio"]
+                why += (f" (with the other unit's thread on the other vCPU; the two vCPUs share "
+                        f"one physical core's execution units: in this run a thread's work "
+                        f"took {ratio:.2f}x its CPU time while the other vCPU was busy, "
+                        f"{sibling['alone_cpu_s'] * 1e3:.1f} against "
+                        f"{sibling['busy_cpu_s'] * 1e3:.1f} ms for {sibling['program']}'s "
+                        f"program pinned to one vCPU, so {threads} threads get about "
+                        f"{2 / ratio:.2f} cores' worth of work done, not 2, and alone on the "
+                        f"core the period would cost about {period / ratio * 1e6:.2f} us"
+                        + (f"; the other vCPU was only {sibling['other_idle_alone']:.0%} idle "
+                           "in the runs alone, other work on the machine, so the ratio "
+                           "understates" if sibling.get("other_idle_alone", 1.0) < 0.9 else "")
+                        + ")")
         else:
             why = f"without a log each period costs {cost} in the loop"
             if r["scenario"] in by_name:
@@ -928,7 +1017,21 @@ def main(argv: list[str] | None = None) -> int:
                        help="a user's scenario (each SCENARIO a file): the folder "
                             "cochlea-codegen --scenario FILE --out DIR --embedded wrote")
     sub.add_parser("bench", help="run only these rows; write build/embedded-bench.json")
+    sub.add_parser("sibling", help="a thread's slowdown while the other vCPU is busy")
     args = parser.parse_args(argv)
+    if args.command == "sibling":
+        try:
+            row = sibling_slowdown()
+        except (RuntimeError, OSError) as error:
+            print(f"embedded_bench.py: sibling: {error}", file=sys.stderr)
+            return 2
+        print(f"{row['program']} pinned to CPU {row['cpus'][0]}: loop CPU "
+              f"{row['alone_cpu_s'] * 1e3:.2f} ms alone, {row['busy_cpu_s'] * 1e3:.2f} ms with "
+              f"CPU {row['cpus'][1]} busy ({row['runs']} runs each, turn about; alone: "
+              f"{row['alone_quiet_runs']} runs with CPU {row['cpus'][1]} >= 90 % idle, its "
+              f"idle share {row['other_idle_alone']:.0%} alone, {row['other_idle_busy']:.0%} "
+              f"busy): {row['ratio']:.2f}x")
+        return 0
     if args.command == "build" and args.kernels is not None:
         lib = ckernels.load(args.kernels)
         for name in args.scenarios:

@@ -260,3 +260,31 @@ def test_the_targets_section_gives_every_verdict(monkeypatch, tmp_path):
     for r in LAST["embedded_sims"]:
         assert f"{r['scenario']} all-in-C simulation (embedded/sim) at " in targets
     assert "(target >= 1000x" in targets and "(target >= 40)" in targets
+
+
+def test_the_serial_why_line_quotes_the_measured_sibling_slowdown():
+    """Two unit threads on the two vCPUs of one physical core: the serial miss says the ratio
+    measured in the run (a thread's work beside a busy vCPU over alone), the cores' worth it
+    leaves (2 / ratio) and the period alone; a ratio taken while other work kept the other
+    vCPU busy is said to understate. A single-threaded (parallel) row does not quote it."""
+    eb = bench_run.embedded_bench
+    sibling = {"program": "parallel_joint", "ratio": 1.5, "alone_cpu_s": 8.0e-3,
+               "busy_cpu_s": 12.0e-3, "other_idle_alone": 0.97}
+    serial = sim_row("serial_joint", 1500.0, sibling=sibling)
+    line = eb.verdicts([], [serial])[0]
+    assert "took 1.50x its CPU time while the other vCPU was busy, 8.0 against 12.0 ms" in line
+    assert "about 1.33 cores' worth" in line
+    assert "the period would cost about 0.36 us" in line  # 0.53 us / 1.5
+    assert "understates" not in line
+    contended = sim_row("serial_joint", 1500.0, sibling={**sibling, "other_idle_alone": 0.2})
+    assert "only 20% idle in the runs alone" in eb.verdicts([], [contended])[0]
+    assert "vCPU" not in eb.verdicts([], [sim_row("parallel_task", 800.0, sibling=sibling)])[0]
+    assert "vCPU" not in eb.verdicts([], [sim_row("serial_joint", 1500.0)])[0]  # not measured
+
+
+def test_the_sibling_slowdown_needs_two_cpus(monkeypatch):
+    """One CPU to run on: the measure refuses in one line (the rows then go without it)."""
+    eb = bench_run.embedded_bench
+    monkeypatch.setattr(eb.os, "sched_getaffinity", lambda _pid: {0})
+    with pytest.raises(RuntimeError, match="needs two CPUs"):
+        eb.sibling_slowdown()

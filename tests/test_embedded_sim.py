@@ -354,6 +354,22 @@ def test_each_arm_runs_on_a_thread_of_its_own():
     assert parallel["threads"] == 1 and parallel["unit_cpu_s"] == [parallel["loop_cpu_s"]]
 
 
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU")
+def test_the_sibling_slowdown_is_measured_turn_about_and_leaves_no_busy_loop():
+    """bench's measure of how much a thread slows beside a busy vCPU: the program's loop CPU
+    time alone and beside the busy loop, pinned to two different CPUs, their ratio; the busy
+    loop is ended (no child of this process left spinning)."""
+    row = eb.sibling_slowdown(rounds=2, runs=1)
+    assert row["runs"] == 2 and row["cpus"][0] != row["cpus"][1]
+    assert row["alone_cpu_s"] > 0 and row["busy_cpu_s"] > 0
+    assert row["ratio"] == row["busy_cpu_s"] / row["alone_cpu_s"]
+    if eb._idle_us(row["cpus"][1]) is not None:  # the kernel says how idle it was
+        assert 0.0 <= row["other_idle_busy"] <= 0.5  # the busy loop kept it busy
+    children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children")
+    if children.exists():
+        assert children.read_text().split() == []
+
+
 @pytest.mark.parametrize("scale, first, status", [(0.01, "arm2", "diverged"),
                                                   (0.05, "arm1", "step-failed")])
 @pytest.mark.slow
