@@ -867,6 +867,27 @@ def _plant_words(row: dict) -> str:
             "folded in)")
 
 
+def _sibling_words(sibling: dict, threads: int, period: float) -> str:
+    """What :func:`sibling_slowdown`'s row says about the unit threads' two vCPUs, for a why-line
+    (``period``: the busier thread's CPU time a period, s)."""
+    ratio = sibling["ratio"]
+    measured = (f"{sibling['program']}'s program pinned to one vCPU took "
+                f"{sibling['busy_cpu_s'] * 1e3:.1f} ms of loop CPU time while the other vCPU "
+                f"ran a busy loop")
+    idle = sibling.get("other_idle_alone", 1.0)
+    if idle < 0.9:  # NaN (not known) passes as quiet
+        return (f"{measured} and {sibling['alone_cpu_s'] * 1e3:.1f} ms without it, {ratio:.2f}x, "
+                f"but the other vCPU was only {idle:.0%} idle in the runs without it (other "
+                "work on the machine), so how much the vCPUs slow each other was not measured "
+                "in this run")
+    words = (f"{measured} and {sibling['alone_cpu_s'] * 1e3:.1f} ms alone: {ratio:.2f}x")
+    if ratio < 1.1:
+        return words + ", the two vCPUs hardly slow each other"
+    return (words + f"; the two vCPUs share one physical core's execution units, so {threads} "
+            f"threads get about {2 / ratio:.2f} cores' worth of work done, not 2, and alone on "
+            f"the core the period would cost about {period / ratio * 1e6:.2f} us")
+
+
 def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
     """The target lines of the all-in-C rows: each study's real-time factor end to end with
     its log against issue 30's (serial 2000x, parallel 1000x), met, or missed by how much and
@@ -894,19 +915,8 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
             why = (f"without a log each period costs {cost} on the busier of its {threads} "
                    f"unit threads: one unit's desired sample, step, {plant} and measurement")
             if "ratio" in sibling:
-                ratio = sibling["ratio"]
-                why += (f" (with the other unit's thread on the other vCPU; the two vCPUs share "
-                        f"one physical core's execution units: in this run a thread's work "
-                        f"took {ratio:.2f}x its CPU time while the other vCPU was busy, "
-                        f"{sibling['alone_cpu_s'] * 1e3:.1f} against "
-                        f"{sibling['busy_cpu_s'] * 1e3:.1f} ms for {sibling['program']}'s "
-                        f"program pinned to one vCPU, so {threads} threads get about "
-                        f"{2 / ratio:.2f} cores' worth of work done, not 2, and alone on the "
-                        f"core the period would cost about {period / ratio * 1e6:.2f} us"
-                        + (f"; the other vCPU was only {sibling['other_idle_alone']:.0%} idle "
-                           "in the runs alone, other work on the machine, so the ratio "
-                           "understates" if sibling.get("other_idle_alone", 1.0) < 0.9 else "")
-                        + ")")
+                why += " (with the other unit's thread on the other vCPU; " + _sibling_words(
+                    sibling, threads, period) + ")"
         else:
             why = f"without a log each period costs {cost} in the loop"
             if r["scenario"] in by_name:

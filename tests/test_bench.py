@@ -263,23 +263,31 @@ def test_the_targets_section_gives_every_verdict(monkeypatch, tmp_path):
 
 
 def test_the_serial_why_line_quotes_the_measured_sibling_slowdown():
-    """Two unit threads on the two vCPUs of one physical core: the serial miss says the ratio
-    measured in the run (a thread's work beside a busy vCPU over alone), the cores' worth it
-    leaves (2 / ratio) and the period alone; a ratio taken while other work kept the other
-    vCPU busy is said to understate. A single-threaded (parallel) row does not quote it."""
+    """Two unit threads on the two vCPUs: the serial miss says the ratio measured in the run (a
+    thread's work beside a busy vCPU over alone), the cores' worth it leaves (2 / ratio) and
+    the period alone; no shared core where the ratio is about 1; and a ratio taken while other
+    work kept the other vCPU busy is not passed off as a measure. A single-threaded
+    (parallel) row, or a row without the measure, does not quote it."""
     eb = bench_run.embedded_bench
     sibling = {"program": "parallel_joint", "ratio": 1.5, "alone_cpu_s": 8.0e-3,
                "busy_cpu_s": 12.0e-3, "other_idle_alone": 0.97}
-    serial = sim_row("serial_joint", 1500.0, sibling=sibling)
-    line = eb.verdicts([], [serial])[0]
-    assert "took 1.50x its CPU time while the other vCPU was busy, 8.0 against 12.0 ms" in line
-    assert "about 1.33 cores' worth" in line
-    assert "the period would cost about 0.36 us" in line  # 0.53 us / 1.5
-    assert "understates" not in line
-    contended = sim_row("serial_joint", 1500.0, sibling={**sibling, "other_idle_alone": 0.2})
-    assert "only 20% idle in the runs alone" in eb.verdicts([], [contended])[0]
+
+    def line(**changes):
+        return eb.verdicts([], [sim_row("serial_joint", 1500.0,
+                                        sibling={**sibling, **changes})])[0]
+
+    shared = line()
+    assert "took 12.0 ms of loop CPU time while the other vCPU ran a busy loop and 8.0 ms " \
+        "alone: 1.50x; the two vCPUs share one physical core's execution units" in shared
+    assert "about 1.33 cores' worth" in shared
+    assert "the period would cost about 0.36 us" in shared  # 0.53 us / 1.5
+    apart = line(ratio=1.02, busy_cpu_s=8.16e-3)
+    assert "1.02x, the two vCPUs hardly slow each other" in apart and "share" not in apart
+    contended = line(ratio=1.0, busy_cpu_s=8.0e-3, other_idle_alone=0.0)
+    assert "only 0% idle in the runs without it" in contended
+    assert "was not measured in this run" in contended and "cores' worth" not in contended
     assert "vCPU" not in eb.verdicts([], [sim_row("parallel_task", 800.0, sibling=sibling)])[0]
-    assert "vCPU" not in eb.verdicts([], [sim_row("serial_joint", 1500.0)])[0]  # not measured
+    assert "vCPU" not in eb.verdicts([], [sim_row("serial_joint", 1500.0)])[0]
 
 
 def test_the_sibling_slowdown_needs_two_cpus(monkeypatch):
