@@ -786,7 +786,7 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
     work.mkdir(parents=True, exist_ok=True)
     try:  # the machine's fact the serial rows' why-lines quote
         sibling = sibling_slowdown()
-    except (RuntimeError, OSError) as error:
+    except (RuntimeError, OSError, subprocess.SubprocessError) as error:
         sibling = {"not_run": f"{type(error).__name__}: {error}"}
     print(f"  a thread beside a busy vCPU: {sibling.get('ratio', 0):.2f}x its CPU time alone",
           flush=True)
@@ -1032,7 +1032,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "sibling":
         try:
             row = sibling_slowdown()
-        except (RuntimeError, OSError) as error:
+        except (RuntimeError, OSError, subprocess.SubprocessError) as error:
             print(f"embedded_bench.py: sibling: {error}", file=sys.stderr)
             return 2
         print(f"{row['program']} pinned to CPU {row['cpus'][0]}: loop CPU "

@@ -264,6 +264,7 @@ def test_needs_neither_python_nor_casadi():
 
 @pytest.mark.parametrize("args", [["--duration", "-1"], ["--duration", "2s"], ["--rate", "1"],
                                   ["--log"], ["--log", "/nonexistent/folder/log.bin"],
+                                  ["--log", "/"],  # a folder: refused, never removed
                                   pytest.param(["--log", "/dev/full"], marks=pytest.mark.skipif(
                                       not Path("/dev/full").exists(), reason="no /dev/full"))])
 def test_refuses_bad_arguments(args):
