@@ -18,6 +18,8 @@ from __future__ import annotations
 import casadi as ca
 
 from .model import ACTUATOR_SUFFIX, RobotModel
+from .parallel.description import ParallelSystem
+from .parallel.forward import forward_dynamics
 
 #: Per joint, the rows of the gear plant's ``drive`` input (each ``n`` long, in this order).
 GEAR_DRIVE = ("armature", "backlash", "stiffness", "damping", "coulomb", "static",
@@ -45,8 +47,6 @@ def cheapest_forward_dynamics(plant: RobotModel):
     (:func:`cochlea.robots.parallel.forward.forward_dynamics`: 2389 operations a period of the
     shipped mechanism's general plant step instead of 9955 with the Lagrange model's QR
     solve, equal to rounding), any other model's ``forward_dynamics_p``."""
-    from .parallel.description import ParallelSystem  # the parallel package imports this one
-    from .parallel.forward import forward_dynamics
     if isinstance(getattr(plant.geometry, "system", None), ParallelSystem):
         return forward_dynamics(plant)
     return plant.forward_dynamics_p
