@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,18 @@ import pytest
 import cochlea
 
 DATA = Path(__file__).parent / "data"
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="session")
+def program() -> Path:
+    """``make embedded``, as a user builds it (up to date: make rebuilds only what changed),
+    without a warning: build/cochlea-embedded."""
+    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "warning" not in done.stderr
+    return ROOT / "build" / "cochlea-embedded"
 
 
 @pytest.fixture

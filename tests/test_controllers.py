@@ -124,3 +124,74 @@ def test_parallel_regressor_factors_its_expression(parallel_models, kind, varian
                *c.neutral()[3:]).reshape(5, c.n_params)
         f = ev(c.auxiliary, q, qd, xd, xd_dot, xd_ddot, gains, p, *c.neutral()[3:])
         assert np.abs(Y @ p - f).max() <= 1e-10 * max(1.0, np.abs(f).max())
+
+
+def _reference_and_its_derivative(reference, q, qd, xd, xd_dot, xd_ddot):
+    """A reference signal's d/dt by differentiating its own expression (automatic
+    differentiation through the solve or the QR): the form the laws replaced."""
+    import casadi as ca
+    return (ca.jacobian(reference, q) @ qd + ca.jacobian(reference, xd) @ xd_dot
+            + ca.jacobian(reference, xd_dot) @ xd_ddot)
+
+
+def _task_laws(serial_models, parallel_models):
+    """(controller, model, reference) of the task-space laws: the reference velocity each
+    regresses at (tau_v of g, x_Nd of d), built as the law's text says, in CasADi symbols."""
+    import casadi as ca
+    serial, parallel = serial_models["mass"], parallel_models["mass"]
+    error = ca.Function("e_g", [q := ca.SX.sym("q", 3), xd := ca.SX.sym("xd", 3)],
+                        [serial.fk_world(q) - xd])
+    cases = []
+    for task in (None, (serial.fk_world, serial.J_world, error)):
+        c = build(serial, "g", task_angles=(2,) if task is None else (), task=task)
+
+        def tau_v(q, xd, xd_dot, gains, wrap=task is None):
+            e_g = serial.fk_world(q) - xd
+            if wrap:
+                e_g[2] = ca.atan2(ca.sin(e_g[2]), ca.cos(e_g[2]))
+            return ca.solve(serial.J_world(q), xd_dot - gains[:3] * e_g)
+        cases.append((c, serial, tau_v))
+    c = build(parallel, "d", task_angles=(2, 5), task=(parallel.fk, parallel.J))
+
+    def x_Nd(q, xd, xd_dot, gains):
+        e_p = xd - parallel.fk(q)
+        for i in (2, 5):
+            e_p[i] = ca.atan2(ca.sin(e_p[i]), ca.cos(e_p[i]))
+        return parallel.A(q) @ (xd_dot + gains[:6] * e_p)
+    cases.append((c, parallel, x_Nd))
+    return cases
+
+
+def test_task_laws_regress_at_the_exact_derivative_of_their_reference(
+        serial_models, parallel_models, rng):
+    """g and d form the reference's derivative from J u = w (g) and the pseudo-inverse's
+    derivative (d) rather than by differentiating the solve: the regressor equals the model's
+    Y at the reference and its derivative by automatic differentiation of the reference."""
+    import casadi as ca
+    for c, model, reference in _task_laws(serial_models, parallel_models):
+        n, nd = c.nq, c.n_desired
+        q, qd = ca.SX.sym("q", n), ca.SX.sym("qd", n)
+        xd, xd_dot, xd_ddot = (ca.SX.sym(s, nd) for s in ("xd", "xd_dot", "xd_ddot"))
+        gains = ca.SX.sym("gains", sum(c.gain_sizes))
+        u = reference(q, xd, xd_dot, gains)
+        u_dot = _reference_and_its_derivative(u, q, qd, xd, xd_dot, xd_ddot)
+        sign = -1 if c.kind == "g" else 1
+        expected = ca.Function("Y", [q, qd, xd, xd_dot, xd_ddot, gains],
+                               [sign * model.Y(q, qd, u, u_dot)])
+        worst = 0.0
+        for _ in range(40):
+            if c.kind == "g":
+                q0 = rng.uniform(-np.pi, np.pi, n)
+                q0[1] = rng.choice([-1, 1]) * rng.uniform(0.4, 2.6)
+                x0 = ev(model.fk_world, q0) + rng.uniform(-0.05, 0.05, nd)
+            else:
+                q0 = model.geometry.random_configuration(rng)
+                x0 = ev(model.fk, q0) + rng.uniform(-0.005, 0.005, nd)
+                if np.linalg.cond(ev(model.J, q0)) > 1e4:  # rounding grows as cond(J)^2
+                    continue
+            args = (q0, rng.uniform(-1, 1, n), x0, rng.uniform(-0.1, 0.1, nd),
+                    rng.uniform(-0.5, 0.5, nd), rng.uniform(0.1, 5.0, sum(c.gain_sizes)))
+            Y = ev(c.regressor, *args, *c.neutral()[3:]).reshape(n, c.n_params)
+            Y_ref = ev(expected, *args).reshape(n, c.n_params)
+            worst = max(worst, np.abs(Y - Y_ref).max() / max(1.0, np.abs(Y_ref).max()))
+        assert worst <= 1e-11, (c.kind, worst)

@@ -61,15 +61,6 @@ def emulator(robot: str, scenario: str, log: Path, *options: str,
         yield port
 
 
-@pytest.fixture(scope="module")
-def program() -> Path:
-    """``make embedded``, as a user builds it (up to date: make rebuilds only what changed)."""
-    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert "warning" not in done.stderr
-    return PROGRAM
-
 
 def on_emulator(program: Path, tmp_path: Path, emulator_args: tuple, *args: str
                 ) -> tuple[subprocess.CompletedProcess, Path, Path]:

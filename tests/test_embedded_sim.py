@@ -165,16 +165,14 @@ def test_the_log_ends_on_any_row_of_its_blocks(tmp_path):
 def test_specialised_plant_is_the_general_one(name):
     """A unit's plant with the scenario's constants folded in (x, tau) gives the general
     Function's next state bit for bit, at states and efforts away from the start; the parallel
-    mechanism's, which integrates the closed chain's block form (under a third of the general
-    kernel's operations: 1503 against 9955), to 1e-12 relative."""
+    mechanism's (both integrate the closed chain's block form: 1503 operations against the
+    general kernel's 2389), whose folded constants round differently, to 1e-12 relative."""
     sc = eb.sim_scenario(name)
     u = unit_setups(sc)[0]
     general = u.plant_function(sc.plant_substeps)
     special = eb.specialised_plant(u, sc.plant_substeps, sc.period, "sim_unit_plant")
     assert special.n_in() == 2 and special.n_instructions() < general.n_instructions()
     parallel = name.startswith("parallel")
-    if parallel:
-        assert 3 * special.n_instructions() < general.n_instructions()
     rng = np.random.default_rng(3)
     n = u.plant_model.nq
     for _ in range(20):

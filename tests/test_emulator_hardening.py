@@ -228,14 +228,6 @@ def test_cochlea_run_refuses_them_in_one_line(tmp_path, baud):
     assert sorted(tmp_path.iterdir()) == []  # refused before any folder was made
 
 
-@pytest.fixture(scope="module")
-def program() -> Path:
-    """``make embedded``: up to date, make rebuilds only what changed."""
-    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return ROOT / "build" / "cochlea-embedded"
-
 
 @pytest.mark.parametrize("baud", [*BAD_BAUDS, "nan", "4e6x", "115200.5"])
 @pytest.mark.slow

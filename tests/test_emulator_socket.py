@@ -322,14 +322,6 @@ def test_the_command_serves_on_the_socket_and_removes_it(tmp_path):
     assert not (tmp_path / "c.sock").exists()
 
 
-@pytest.fixture(scope="module")
-def program() -> Path:
-    """``make embedded``: up to date, make rebuilds only what changed."""
-    done = subprocess.run(["make", "--no-print-directory", "embedded"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return ROOT / "build" / "cochlea-embedded"
-
 
 @pytest.mark.slow
 @pytest.mark.parametrize("address,why", [

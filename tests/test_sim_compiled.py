@@ -124,7 +124,11 @@ def test_thesis_variants_run_on_the_c_kernels(name, loop):
     """The printed thesis's laws by name, though the C of a law that computes what the corrected
     one does is that law's (serial_arm*_e_thesis_step and its driver are aliases): the source
     hashes still check, and the log is the reference's up to a divergence (the printed task-space
-    law of the parallel mechanism blows up within 0.2 s)."""
+    law of the parallel mechanism blows up within 0.2 s: it drives the pantographs into their
+    singular pose, where a difference in the last bit, here from the plant's constants folded
+    into the reference's fused graph, grows from 1e-16 to 1e-6 within five periods, its
+    velocities from 30 to 4000 rad/s; so the rows are compared while every value is below
+    1e3)."""
     sc = dataclasses.replace(load_scenario(name), variant="thesis")
     setups = unit_setups(sc)
     if name == "serial_joint":
@@ -135,7 +139,7 @@ def test_thesis_variants_run_on_the_c_kernels(name, loop):
             assert lib.manifest["closed_loops"][names.closed_loop]["symbol"] != names.closed_loop
     reference = simulate(sc, 0.5, setups, kernels="casadi")
     result = csim.simulate_compiled(sc, 0.5, setups, loop=loop)
-    wild = [np.abs(getattr(u, key)).max(axis=1) > 1e6 for u in reference.units for key in FIELDS]
+    wild = [np.abs(getattr(u, key)).max(axis=1) > 1e3 for u in reference.units for key in FIELDS]
     tame = min(int(np.argmax(w)) if w.any() else len(w) for w in wild)
     assert tame >= 100
     assert_same_log(result, reference, rows=tame)

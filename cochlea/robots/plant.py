@@ -18,6 +18,8 @@ from __future__ import annotations
 import casadi as ca
 
 from .model import ACTUATOR_SUFFIX, RobotModel
+from .parallel.description import ParallelSystem
+from .parallel.forward import forward_dynamics
 
 #: Per joint, the rows of the gear plant's ``drive`` input (each ``n`` long, in this order).
 GEAR_DRIVE = ("armature", "backlash", "stiffness", "damping", "coulomb", "static",
@@ -37,6 +39,17 @@ def stribeck_level(v, coulomb, static, vs):
     """The dry-friction level at velocity ``v``: ``Fc + (Fs - Fc) exp(-(v / vs)^2)``, ``Fs``
     at rest (breakaway), ``Fc`` sliding fast. With ``Fs == Fc`` exactly ``Fc``."""
     return coulomb + (static - coulomb) * ca.exp(-(v * v) / (vs * vs + _TINY))
+
+
+def cheapest_forward_dynamics(plant: RobotModel):
+    """The plant's forward dynamics ``(q, qd, tau, p) -> qdd`` in its cheapest exact form: a
+    parallel mechanism's closed chain solved by blocks
+    (:func:`cochlea.robots.parallel.forward.forward_dynamics`: 2389 operations a period of the
+    shipped mechanism's general plant step instead of 9955 with the Lagrange model's QR
+    solve, equal to rounding), any other model's ``forward_dynamics_p``."""
+    if isinstance(getattr(plant.geometry, "system", None), ParallelSystem):
+        return forward_dynamics(plant)
+    return plant.forward_dynamics_p
 
 
 def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
@@ -69,12 +82,12 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
     One pass, not an iteration over the stick/slip sets: a holding torque clipped at its level
     lets that joint slide from the next step on.
 
-    ``forward``: None (the model's ``forward_dynamics_p``), or a callable ``(q, qd, tau, p) ->
-    qdd`` computing the same dynamics another exact way (the closed chain's block form,
-    :func:`cochlea.robots.parallel.forward.forward_dynamics`); equal to rounding, not bit for
-    bit, so the general kernels keep the model's.
+    ``forward``: a callable ``(q, qd, tau, p) -> qdd``, the forward dynamics to integrate;
+    None: :func:`cheapest_forward_dynamics` (a parallel mechanism's block form, the model's
+    ``forward_dynamics_p`` otherwise), so the simulation, the C kernels and the emulator
+    integrate the same expression.
     """
-    forward_dynamics = plant.forward_dynamics_p if forward is None else forward
+    forward_dynamics = cheapest_forward_dynamics(plant) if forward is None else forward
     n = plant.nq
     x = ca.SX.sym("x", 2 * n)
     tau = ca.SX.sym("tau", n)
