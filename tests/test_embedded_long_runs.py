@@ -24,11 +24,9 @@ import pytest
 
 from cochlea.runtime.supervisor import STOP_CODES
 from tests.test_dynamixel_hil import assert_log_complete, last_commands
-from tests.test_embedded_program import ROOT, emulator, program, read_csv
+from tests.test_embedded_program import ROOT, emulator, read_csv
 
 pytestmark = pytest.mark.hil
-
-__all__ = ["program"]  # the fixture, shared with test_embedded_program.py
 
 HOOKED = ROOT / "build" / "test-hooks" / "cochlea-embedded"
 SCENARIO = ("serial", "serial_joint")

@@ -29,7 +29,6 @@ from cochlea.sweep import results
 from tests.test_dynamixel_hil import assert_log_complete, last_commands
 from tests.test_dynamixel_hil import emulator as started_emulator
 from tests.test_embedded_program import PATIENT, _interrupted_run, emulator
-from tests.test_embedded_program import program as program  # noqa: F401 (the fixture)
 from tests.test_outputs import (
     test_signals_held_over_a_section_are_obeyed_after_it as held_over_a_section,
 )
