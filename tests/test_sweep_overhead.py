@@ -643,3 +643,42 @@ def test_a_user_description_is_named_by_its_absolute_path_in_every_sample(tmp_pa
     monkeypatch.chdir(tmp_path / "robots")  # and again from elsewhere: not what it was
     assert sampling.scenario_data(relative, 0)["description"] == \
         str((tmp_path / "robots" / "robots" / "mine.toml").resolve())
+
+
+@pytest.fixture(scope="module")
+def five_seconds():
+    """serial_task, 5 s (5,000 periods: every block of the screen), its supervisor."""
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=5.0)
+    setups = unit_setups(sc)
+    return sc, setups, simulate(sc, None, setups, threads=False)
+
+
+@pytest.mark.parametrize("row", [0, 1, 255, 256, 257, 4095, 4096, 4999, None])
+@pytest.mark.parametrize("rule", ["velocity-limit", "estimate-bound"])
+@pytest.mark.parametrize("keep_out", [False, True])
+def test_the_screen_finds_the_first_stop_whichever_block_holds_it(five_seconds, row, rule,
+                                                                  keep_out):
+    """A run the gate sends on is screened a block of periods at a time (up to 256, 4,096,
+    the rest): a speed over its limit, or an estimate handed on over its bound (the next
+    period's row, across a block's end too), in any period, with or without a keep-out circle
+    the tool grazes earlier or later, stops where the whole run stacked and screened stops."""
+    sc, setups, result = five_seconds
+    sup = build_supervisor(setups, sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    assert list(sv._screen_blocks(5000)) == [(0, 256), (256, 4096), (4096, 5000)]
+    if keep_out:  # the tool grazes the circle in one period, around the middle block
+        sup.limits.keep_out_radius = _nearest(result) + 1e-7
+    u = result.units[1]
+    log, at = (u.qd, row) if rule == "velocity-limit" else (u.p_hat, min((row or 0) + 1, 4999))
+    saved = log[at].copy()
+    try:
+        if row is not None:
+            log[at, 1] = 1.5 * (sup.limits.velocity[4] if rule == "velocity-limit"
+                                else sup.bounds[1])
+        old = _stop(_old_first_violation(result, sup))
+        assert _stop(first_violation(result, sup)) == old
+        assert old is not None or (row is None and not keep_out)
+        if row is not None:
+            assert old[0] in (rule, "keep-out"), old
+            assert old[0] == rule or keep_out
+    finally:
+        log[at] = saved  # the log is the module's: as it was

@@ -334,35 +334,57 @@ def first_violation(result: SimulationResult, supervisor: Supervisor,
         return None
     if _nothing_flagged(result, supervisor, reductions):
         return None
-    q, qd = measured_states(result)
-    tau = np.hstack([u.tau for u in logs])
-    # The estimate each period hands on: the next row's (the last row's own at the end).
-    estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in logs]
     L = supervisor.limits
-    with np.errstate(invalid="ignore", over="ignore"):
-        flagged = ~np.isfinite(q).all(axis=1) | ~np.isfinite(qd).all(axis=1)
-        flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
-        flagged |= (np.abs(qd) > L.velocity).any(axis=1)
-        flagged |= ~np.isfinite(tau).all(axis=1)
-        for p, bound in zip(estimates, supervisor.bounds):
-            square = np.einsum("ij,ij->i", p, p)
-            flagged |= ~np.isfinite(square) | (square > (bound * (1 + 1e-9)) ** 2)
-    n = q.shape[1]
+    limits = [(bound * (1 + 1e-9)) ** 2 for bound in supervisor.bounds]
+    n = sum(u.q.shape[1] for u in logs)
+
+    def screen(a: int, b: int):
+        """Periods a..b-1 stacked (measured states, efforts, the estimates they hand on: the
+        next row's, the last row's own at the end) and which of them the screen flags."""
+        q = np.hstack([u.q[a:b] for u in logs])
+        qd = np.hstack([u.qd[a:b] for u in logs])
+        tau = np.hstack([u.tau[a:b] for u in logs])
+        estimates = [np.vstack([u.p_hat[a + 1:b + 1]] + ([u.p_hat[-1:]] if b == rows else []))
+                     for u in logs]
+        with np.errstate(invalid="ignore", over="ignore"):
+            flagged = ~np.isfinite(q).all(axis=1) | ~np.isfinite(qd).all(axis=1)
+            flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
+            flagged |= (np.abs(qd) > L.velocity).any(axis=1)
+            flagged |= ~np.isfinite(tau).all(axis=1)
+            for p, limit in zip(estimates, limits):
+                square = np.einsum("ij,ij->i", p, p)
+                flagged |= ~np.isfinite(square) | (square > limit)
+        return q, qd, tau, estimates, flagged
+
+    # A run the gate sends here mostly broke a rule early (a gain or a plant the controller
+    # cannot hold): the periods are screened a block at a time, from the start, up to the
+    # block of the first stop, not the whole run stacked and screened for one early period.
+    blocks = []  # (start, q, qd, tau, estimates) of each block screened
 
     def check(k: int) -> Stop | None:
+        """Period k (in a block screened) as the loop checks it."""
+        a, q, qd, tau, estimates = next(block for block in reversed(blocks) if block[0] <= k)
         t = float(result.time[k])
-        x = np.concatenate([q[k], qd[k]])
+        x = np.concatenate([q[k - a], qd[k - a]])
         stop = supervisor.check_state(t, x, x[:n], x[n:])
         if stop is None:
-            stop = supervisor.check_command(t, tau[k].copy(), [p[k] for p in estimates])
+            stop = supervisor.check_command(t, tau[k - a].copy(), [p[k - a] for p in estimates])
         return stop
 
-    first, stop = rows, None
-    for k in np.flatnonzero(flagged):
-        stop = check(k)
+    first, stop, flags = rows, None, []
+    for a, b in _screen_blocks(rows):
+        q, qd, tau, estimates, flagged = screen(a, b)
+        blocks.append((a, q, qd, tau, estimates))
+        flags.append(flagged)
+        for k in np.flatnonzero(flagged) + a:
+            stop = check(int(k))
+            if stop is not None:
+                first = int(k)
+                break
         if stop is not None:
-            first = int(k)
             break
+    flagged = np.concatenate(flags)
+
     if L.keep_out_radius is None or first == 0:
         return stop
     # The keep-out circle, on the periods before that stop only (the pose of the measured
@@ -376,6 +398,19 @@ def first_violation(result: SimulationResult, supervisor: Supervisor,
         if earlier is not None:
             return earlier
     return stop
+
+
+#: The periods :func:`first_violation` screens at once: the first blocks end here (each a
+#: multiple of 64 periods, so each period's row sits where it sat in one array of them all).
+_SCREEN_ENDS = (256, 4096)
+
+
+def _screen_blocks(rows: int):
+    """``(start, stop)`` of each block of periods :func:`first_violation` screens, in order."""
+    start = 0
+    for end in (*[e for e in _SCREEN_ENDS if e < rows], rows):
+        yield start, end
+        start = end
 
 
 def _near_keep_out(logs, rows: int, radius: float) -> np.ndarray:
