@@ -33,9 +33,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT)]
+if __name__ == "__main__":
+    # As a sweep's worker runs: its nanny starts it with one BLAS thread (distributed's
+    # pre-spawn-environ), which must be set before numpy is imported. A sample wakes no BLAS
+    # thread either way (docs/sweeps.md, third pass); only the pool's spin at numpy's import
+    # (some 0.1 s of CPU, before anything is measured) is spared.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from cochlea.apps import cochlea_sweep, report  # noqa: E402
 from cochlea.runtime import build_supervisor, verdict  # noqa: E402
+from cochlea.runtime.supervisor import log_reductions  # noqa: E402
 from cochlea.sim import compiled, load_scenario, simulate, unit_setups  # noqa: E402
 from cochlea.sweep import execute, sampling  # noqa: E402
 from cochlea.sweep import spec as sweep_spec  # noqa: E402
@@ -109,11 +116,12 @@ def breakdown(spec, samples: int) -> dict[str, float]:
             parts["C closed loop"] += loop[0]
             supervisor = build_supervisor(setups, sc.system.keep_out_radius,
                                           kernels="c", substeps=sc.plant_substeps, cache=True)
-            result.supervisor = verdict(result, supervisor)
+            reductions = [log_reductions(u) for u in result.units]  # read by both
+            result.supervisor = verdict(result, supervisor, reductions)
             lap("supervisor verdict")
             limits = {u.name: {j.name: float(lim) for j, lim in
                                zip(u.controller_model.joints, u.effort_limit)} for u in setups}
-            cochlea_sweep.measures(report.summary(result, 0.0), limits)
+            cochlea_sweep.measures(report.summary(result, 0.0, reductions=reductions), limits)
             lap("summary + row")
     finally:
         compiled.run_c = run_c

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -210,11 +211,14 @@ def test_every_sample_is_judged_and_summarised_as_on_the_old_path(study, tmp_pat
         result = simulate(sc, None, setups, threads=False)
         assert result.periods == round(sc.duration * sc.rate_hz) >= 10_000  # full length
         nearest = _nearest(result)
+        reductions = [sv.log_reductions(u) for u in result.units]  # what a worker shares
         for kind in ("none", "velocity", "position", "keep-out", "keep-out-edge",
                      "keep-out-clear"):
             sup = _tightened(build_supervisor(setups, sc.system.keep_out_radius,
                                               substeps=sc.plant_substeps), kind, nearest)
             new = _stop(first_violation(result, sup))
+            assert _stop(first_violation(result, sup, reductions)) == new, (i, kind)
+            assert verdict(result, sup, reductions) == verdict(result, sup), (i, kind)
             logged = [u.x for u in result.units]
             old = _stop(_old_first_violation(result, sup))  # computes the measured poses
             for u, x in zip(result.units, logged):
@@ -226,6 +230,7 @@ def test_every_sample_is_judged_and_summarised_as_on_the_old_path(study, tmp_pat
         result.supervisor = judged
         new = report.summary(result, 0.0)
         assert _plain(new["units"]) == _plain(_old_units(result)), i
+        assert _plain(report.summary(result, 0.0, reductions=reductions)) == _plain(new), i
         # A run streamed to disk is read a chunk at a time: the same summary.
         streamed = StreamedResult(result.scenario, result.units, result.periods, result.rows)
         assert _plain(report.summary(streamed, 0.0)["units"]) == _plain(new["units"]), i
@@ -483,3 +488,197 @@ def test_the_largest_estimate_norm_is_numpy_s_bit_for_bit(columns):
         q = p.copy()
         q[7, 0] = bad
         assert _same(report._largest_norm(q), np.max(np.linalg.norm(q, axis=1)))
+
+
+# --------------------------------------------------------------------------------------------
+# The third pass (issue 30 item 3): fewer numpy calls a sample, the same numbers
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("rows", [1, 2, 7, 8, 9, 127, 128, 129, 1000, 3616, 8191, 8192])
+def test_a_tail_s_column_sums_are_np_sum_s_bit_for_bit(rows):
+    rng = np.random.default_rng(rows)
+    e = rng.normal(size=(rows, 7)) * 10.0 ** rng.uniform(-9, 3, size=7)
+    e = e[:, 1:6]  # a strided piece of a wider log, as the errors' first block is
+    want = np.array([np.sum(e[:, i] ** 2) for i in range(e.shape[1])])
+    got = report._column_square_sums(e)
+    assert got.view(np.int64).tolist() == want.view(np.int64).tolist()
+    for bad in (np.nan, np.inf):
+        b = e.copy()
+        b[rows // 2, 2] = bad
+        assert _same(report._column_square_sums(b), [np.sum(b[:, i] ** 2) for i in range(5)])
+
+
+def test_a_unit_s_rows_are_what_dataclasses_replace_makes_of_them():
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=0.05)
+    u = simulate(sc, threads=False).units[0]
+    for part, fields in ((slice(3, 9), report._ERROR_FIELDS),
+                         (slice(-1, None), report._LAST_FIELDS)):
+        got = report._rows(u, part, fields)
+        want = dataclasses.replace(u, **{k: getattr(u, k)[part] for k in fields
+                                         if getattr(u, k) is not None})
+        assert type(got) is UnitLog and got is not u
+        for f in dataclasses.fields(UnitLog):
+            a, b = getattr(got, f.name), getattr(want, f.name)
+            assert (_same(a, b) if isinstance(b, np.ndarray) else a is b), f.name
+    assert len(u.q) == 50  # the log itself is left whole
+
+
+def _old_saturated(result, supervisor) -> int:
+    top = supervisor.limits.effort
+    if any(u.setup.effort_grid is not None for u in result.units):
+        top = np.minimum(top, np.concatenate([
+            u.setup.effort_limit if u.setup.effort_grid is None else u.setup.effort_grid.top
+            for u in result.units]))
+    with np.errstate(invalid="ignore"):
+        tau = np.hstack([u.tau for u in result.units])
+        return int(np.sum((np.abs(tau) >= top).any(axis=1)))
+
+
+@pytest.mark.parametrize("study", ["serial_task", "parallel_task"])
+def test_clipped_periods_are_counted_as_on_the_stacked_log(study):
+    sc = dataclasses.replace(load_scenario(study), duration=0.2)
+    setups = unit_setups(sc)
+    result = simulate(sc, None, setups, threads=False)
+    sup = build_supervisor(setups, sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    assert sv.saturated_periods(result, sup) == _old_saturated(result, sup) == 0
+    top = sup.limits.effort
+    rng = np.random.default_rng(4)
+    first = 0
+    for u in result.units:
+        n = u.tau.shape[1]
+        tau = u.tau.copy()
+        rows = rng.choice(len(tau), size=12, replace=False)
+        tau[rows[:4], 0] = top[first]  # at the top: clipped
+        tau[rows[4:8], n - 1] = -top[first + n - 1]  # at the bottom: clipped
+        tau[rows[8], n - 1] = np.nextafter(top[first + n - 1], 0.0)  # just under: not
+        tau[rows[9], 0] = np.nan  # not clipped (a NaN is the verdict's other rule)
+        tau[rows[10:], :] = top[first:first + n]  # every joint at once: one period
+        u.tau = tau
+        first += n
+    count = sv.saturated_periods(result, sup)
+    assert count == _old_saturated(result, sup)
+    # From the efforts' extremes a worker shares with the summary: the same count.
+    assert sv.saturated_periods(result, sup, [sv.log_reductions(u) for u in result.units]) \
+        == count
+    assert len(result.units) * 10 >= count >= 10  # rows may coincide across the units
+
+
+def test_the_gate_sends_an_estimate_over_its_bound_or_not_finite_to_the_screen():
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=0.3)
+    setups = unit_setups(sc)
+    sup = build_supervisor(setups, sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    result = simulate(sc, None, setups, threads=False)
+    assert sv._nothing_flagged(result, sup) and first_violation(result, sup) is None
+    p_hat = result.units[1].p_hat
+    bound = sup.bounds[1]
+    for row, value in ((150, np.nan), (299, -np.inf), (120, -1.01 * bound), (0, 2 * bound)):
+        changed = p_hat.copy()
+        changed[row, -1] = value
+        result.units[1].p_hat = changed
+        # Row 0 is no estimate a period hands on: nothing to stop, and none is made up.
+        reductions = [sv.log_reductions(u) for u in result.units]
+        assert sv._nothing_flagged(result, sup) == (row == 0), row
+        assert sv._nothing_flagged(result, sup, reductions) == (row == 0), row
+        old = _stop(_old_first_violation(result, sup))
+        assert _stop(first_violation(result, sup)) == old
+        assert _stop(first_violation(result, sup, reductions)) == old
+        if row:
+            assert first_violation(result, sup).rule in ("non-finite", "estimate-bound")
+    result.units[1].p_hat = p_hat
+    tau = result.units[0].tau.copy()
+    tau[77, 1] = np.nan  # a command that is not finite: the gate sends it on either way
+    result.units[0].tau = tau
+    reductions = [sv.log_reductions(u) for u in result.units]
+    assert not sv._nothing_flagged(result, sup) and not sv._nothing_flagged(result, sup,
+                                                                             reductions)
+    assert _stop(first_violation(result, sup, reductions)) == \
+        _stop(_old_first_violation(result, sup)) == _stop(first_violation(result, sup))
+    assert first_violation(result, sup).rule == "non-finite"
+    # Reductions that cannot be this run's (another run's, one unit's only) are not read.
+    other = simulate(dataclasses.replace(sc, duration=0.2), None, setups, threads=False)
+    for wrong in ([sv.log_reductions(u) for u in other.units], reductions[:1]):
+        assert not sv._nothing_flagged(result, sup, wrong)
+        assert sv.verdict(result, sup, wrong) == sv.verdict(result, sup)
+        assert _plain(report.summary(result, 0.0, reductions=wrong)) == \
+            _plain(report.summary(result, 0.0))
+
+
+def test_a_sample_s_random_inputs_are_default_rng_s_draws(tmp_path):
+    import zlib
+
+    path = tmp_path / "spec.toml"
+    path.write_text(DATA_SPEC)
+    spec = sweep_spec.load(path)
+    for k in (0, 1, 7):
+        for name in ("plant.mass_scale", "gains.arm1.G_a"):
+            want = np.random.default_rng(np.random.SeedSequence(
+                spec.seed, spawn_key=(k, zlib.crc32(name.encode())))).random(4)
+            assert np.array_equal(sampling._rng(spec, k, name).random(4), want)
+
+
+def test_a_user_description_is_named_by_its_absolute_path_in_every_sample(tmp_path,
+                                                                           monkeypatch):
+    import tomllib
+
+    from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
+
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "robots" / "mine.toml").write_text(
+        (ROBOTS_DIR / "serial.toml").read_text())
+    base = tomllib.loads((SCENARIOS_DIR / "serial_task.toml").read_text())
+    base["description"] = "robots/mine.toml"
+    (tmp_path / "scenario.toml").write_text(sampling.dumps(base))
+    (tmp_path / "spec.toml").write_text(DATA_SPEC.replace('"serial_task"', '"scenario.toml"'))
+    want = str((tmp_path / "robots" / "mine.toml").resolve())
+    spec = sweep_spec.load(tmp_path / "spec.toml")
+    assert spec.scenario_path.is_absolute()
+    for i in (0, 1):
+        assert sampling.scenario_data(spec, i)["description"] == want
+    monkeypatch.chdir(tmp_path / "robots")  # a worker's own folder: the same file
+    assert sampling.scenario_data(spec, 2)["description"] == want
+    relative = dataclasses.replace(spec, scenario_path=Path("scenario.toml"))
+    monkeypatch.chdir(tmp_path)  # a scenario named relative to the folder: resolved there
+    assert sampling.scenario_data(relative, 0)["description"] == want
+    monkeypatch.chdir(tmp_path / "robots")  # and again from elsewhere: not what it was
+    assert sampling.scenario_data(relative, 0)["description"] == \
+        str((tmp_path / "robots" / "robots" / "mine.toml").resolve())
+
+
+@pytest.fixture(scope="module")
+def five_seconds():
+    """serial_task, 5 s (5,000 periods: every block of the screen), its supervisor."""
+    sc = dataclasses.replace(load_scenario("serial_task"), duration=5.0)
+    setups = unit_setups(sc)
+    return sc, setups, simulate(sc, None, setups, threads=False)
+
+
+@pytest.mark.parametrize("row", [0, 1, 255, 256, 257, 4095, 4096, 4999, None])
+@pytest.mark.parametrize("rule", ["velocity-limit", "estimate-bound"])
+@pytest.mark.parametrize("keep_out", [False, True])
+def test_the_screen_finds_the_first_stop_whichever_block_holds_it(five_seconds, row, rule,
+                                                                  keep_out):
+    """A run the gate sends on is screened a block of periods at a time (up to 256, 4,096,
+    the rest): a speed over its limit, or an estimate handed on over its bound (the next
+    period's row, across a block's end too), in any period, with or without a keep-out circle
+    the tool grazes earlier or later, stops where the whole run stacked and screened stops."""
+    sc, setups, result = five_seconds
+    sup = build_supervisor(setups, sc.system.keep_out_radius, substeps=sc.plant_substeps)
+    assert list(sv._screen_blocks(5000)) == [(0, 256), (256, 4096), (4096, 5000)]
+    if keep_out:  # the tool grazes the circle in one period, around the middle block
+        sup.limits.keep_out_radius = _nearest(result) + 1e-7
+    u = result.units[1]
+    log, at = (u.qd, row) if rule == "velocity-limit" else (u.p_hat, min((row or 0) + 1, 4999))
+    saved = log[at].copy()
+    try:
+        if row is not None:
+            log[at, 1] = 1.5 * (sup.limits.velocity[4] if rule == "velocity-limit"
+                                else sup.bounds[1])
+        old = _stop(_old_first_violation(result, sup))
+        assert _stop(first_violation(result, sup)) == old
+        assert old is not None or (row is None and not keep_out)
+        if row is not None:
+            assert old[0] in (rule, "keep-out"), old
+            assert old[0] == rule or keep_out
+    finally:
+        log[at] = saved  # the log is the module's: as it was

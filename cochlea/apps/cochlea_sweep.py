@@ -29,6 +29,7 @@ from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
+from ..runtime.supervisor import log_reductions
 from ..sim import KERNELS, GravityRefused, choose_kernels, load_scenario, simulate, unit_setups
 from ..sim.setup import GRAVITY_RULE
 from ..sweep import execute, results, sampling
@@ -128,10 +129,13 @@ def evaluate(sample: str | dict, cache: bool = True, kernels: str = "auto",
     supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
                                   kernels="casadi" if kernels == "casadi" else "c",
                                   substeps=scenario.plant_substeps, cache=cache)
-    result.supervisor = verdict(result, supervisor)
+    # The reductions the verdict and the summary both read (the efforts' extremes, the
+    # estimates' squares), each log read once for them; the same verdict and summary.
+    reductions = [log_reductions(u) for u in result.units]
+    result.supervisor = verdict(result, supervisor, reductions)
     limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
                                                            u.effort_limit)} for u in setups}
-    return measures(report.summary(result, wall), limits)
+    return measures(report.summary(result, wall, reductions=reductions), limits)
 
 
 #: glibc's mallopt() parameters (malloc.h) and what a worker sets them to: blocks up to 32 MiB

@@ -8,13 +8,14 @@ degrees (an edge of the program) with the unit on every axis.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 from ..log_schema import SCHEMA_VERSION, TIMING_COLUMNS, LogUnit, run_columns
+from ..runtime.supervisor import LogReductions, column_extremes, own_reductions
+from ..runtime.supervisor import row_squares as _row_squares
 from ..sim import result as run_result
 from ..sim.result import SimulationResult, StreamedResult, UnitLog
 from .outputs import ReportError, atomic_path, write_text_atomic
@@ -124,10 +125,10 @@ class _ErrorStats:
             # Column by column, as np.mean sums a column: a one-chunk run's numbers are exact.
             # Summed in the pieces the chunks of a streamed run cut it into, so a run read
             # whole and one read a chunk at a time have the same numbers, bit for bit.
-            cuts = range((start + first) // chunk * chunk + chunk, start + rows, chunk)
-            for piece in np.split(e, [c - start - first for c in cuts]):
-                self.tail_sq = self.tail_sq + np.array([np.sum(piece[:, i] ** 2)
-                                                        for i in range(piece.shape[1])])
+            cuts = [c - start - first for c in range((start + first) // chunk * chunk + chunk,
+                                                     start + rows, chunk)]
+            for a, b in zip([0, *cuts], [*cuts, len(e)]):
+                self.tail_sq = self.tail_sq + _column_square_sums(e[a:b])
             self.tail_n += rows - first
 
     def final_rms(self, i: int) -> float:
@@ -136,12 +137,29 @@ class _ErrorStats:
 
 #: The fields a tracking error reads (:func:`_rows`).
 _ERROR_FIELDS = ("q", "errors", "desired", "true_q", "true_x")
+#: The fields of a unit's last period the summary keeps.
+_LAST_FIELDS = ("q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x", "true_q",
+                "true_qd", "true_x")
 
 
-def _rows(u: UnitLog, part: slice) -> UnitLog:
-    """``u``'s periods ``part``, as far as a tracking error reads them."""
-    return dataclasses.replace(u, **{k: getattr(u, k)[part] for k in _ERROR_FIELDS
-                                     if getattr(u, k) is not None})
+def _column_square_sums(e: np.ndarray) -> np.ndarray:
+    """Each column's sum of squares, as ``np.sum(e[:, i] ** 2)`` sums it (pairwise, in the
+    same order, so bit for bit): the columns squared into the rows of one C-ordered array,
+    each row reduced along its memory; two calls for every column instead of two a column."""
+    return np.add.reduce(np.square(e.T, order="C"), axis=1)
+
+
+def _rows(u: UnitLog, part: slice, fields: tuple[str, ...] = _ERROR_FIELDS) -> UnitLog:
+    """``u``'s periods ``part``, as far as ``fields`` (default: what a tracking error reads):
+    what ``dataclasses.replace`` makes of it (a UnitLog's fields are only stored), without
+    calling its ``__init__`` (a third of the time; the summary asks for five a unit)."""
+    rows = object.__new__(UnitLog)
+    rows.__dict__.update(u.__dict__)
+    for k in fields:
+        value = getattr(u, k)
+        if value is not None:
+            setattr(rows, k, value[part])
+    return rows
 
 
 def _measured_error(u: UnitLog, part: slice) -> np.ndarray:
@@ -155,30 +173,15 @@ def _judged_error(u: UnitLog, part: slice) -> np.ndarray:
     return _rows(u, part).tracking_error
 
 
-#: Up to this many columns, :func:`_row_squares` adds column after column (einsum beyond).
-_COLUMN_SUMS = 8
-
-
-def _row_squares(p: np.ndarray) -> np.ndarray:
-    """Each row's sum of squares, for :func:`_largest_norm`'s screen (in any order: it allows
-    for the rounding): of a few columns, the squares added a column at a time, several times
-    faster than einsum's row by row."""
-    if not 0 < p.shape[1] <= _COLUMN_SUMS:
-        return np.einsum("ij,ij->i", p, p)
-    squares = p * p
-    total = squares[:, 0].copy()
-    for j in range(1, p.shape[1]):
-        total += squares[:, j]
-    return total
-
-
-def _largest_norm(p: np.ndarray) -> float:
+def _largest_norm(p: np.ndarray, squares: np.ndarray | None = None) -> float:
     """``max(np.linalg.norm(p, axis=1))``, bit for bit, without a norm of every row: the rows'
-    squares summed by einsum (fast, but rounded in another order) find the few rows that can
-    hold the largest, whose norms are then taken as np.linalg.norm takes them (its square
-    root is monotonic, so the largest norm is the root of the largest sum). Non-finite rows:
-    every norm, as before."""
-    squares = _row_squares(p)
+    squares (:func:`~cochlea.runtime.supervisor.row_squares`, or ``squares`` when the caller
+    has them; rounded in another order for many columns) find the few rows that can hold the
+    largest, whose norms are then taken as np.linalg.norm takes them (its square root is
+    monotonic, so the largest norm is the root of the largest sum). Non-finite rows: every
+    norm, as before."""
+    if squares is None:
+        squares = _row_squares(p)
     top = squares.max(initial=0.0)
     if not np.isfinite(top):
         return np.max(np.linalg.norm(p, axis=1))
@@ -201,24 +204,25 @@ class _UnitStats:
         self.finite = True
         self.last = None  # the last period, as a one-row UnitLog
 
-    def add(self, u: UnitLog, start: int) -> None:
+    def add(self, u: UnitLog, start: int, reduced: LogReductions | None = None) -> None:
+        """``reduced``: the reductions of this ``u`` (a whole run), when the caller has them."""
         rows = len(u.q)
         if not rows:
             return
         self.measured.add(lambda part: _measured_error(u, part), rows, start)
         self.judged.add(lambda part: _judged_error(u, part), rows, start)
-        # Each column's largest |effort| from its extremes (a NaN makes both NaN; abs() makes
-        # a -0.0 the 0.0 np.abs gave).
-        peaks = np.array([abs(max(c.max(), -c.min())) for c in u.tau.T])
+        # Each column's largest |effort| from its extremes, all columns in one blocked pass
+        # (a NaN makes both NaN; np.abs makes a -0.0 the 0.0 it gave column by column).
+        low, high = column_extremes(u.tau) if reduced is None else (reduced.tau_low,
+                                                                   reduced.tau_high)
+        peaks = np.abs(np.maximum(high, -low))
         self.tau_max = peaks if self.tau_max is None else np.maximum(self.tau_max, peaks)
-        largest = _largest_norm(u.p_hat)
+        largest = _largest_norm(u.p_hat, None if reduced is None else reduced.p_squares)
         self.max_norm = np.maximum(self.max_norm, largest)
         # A finite largest norm: every estimate finite (a NaN or an infinity makes its norm so).
         self.finite = self.finite and bool(np.isfinite(largest)
                                            or np.isfinite(u.p_hat).all())
-        self.last = dataclasses.replace(u, **{name: getattr(u, name)[-1:] for name in (
-            "q", "qd", "desired", "desired_dot", "errors", "tau", "p_hat", "x", "true_q",
-            "true_qd", "true_x") if getattr(u, name) is not None})
+        self.last = _rows(u, slice(-1, None), _LAST_FIELDS)
 
 
 def unit_summary(u: UnitLog, position_quantum: np.ndarray | None = None) -> dict:
@@ -311,17 +315,23 @@ def _position_quantum(u: UnitLog, position_quantum: np.ndarray | None) -> dict |
 
 def summary(result: SimulationResult, wall_time_s: float | None = None,
             timing: dict | None = None, realtime: dict | None = None,
-            position_quantum: dict | None = None) -> dict:
+            position_quantum: dict | None = None,
+            reductions: list[LogReductions] | None = None) -> dict:
     """``position_quantum``: per unit name, its joints' encoder counts (SI) when the run
-    measured real drives (a hardware run); the convergence floor then knows them."""
+    measured real drives (a hardware run); the convergence floor then knows them.
+    ``reductions``: each unit's :func:`~cochlea.runtime.supervisor.log_reductions` of this
+    result held in memory, when the caller has them (a sweep's worker: the verdict read them
+    too); the same summary either way."""
     sc = result.scenario
     stats = [_UnitStats(result.periods) for _ in result.units]
     start = 0
     # A run in memory is read whole (its sums in the same pieces as a streamed run's chunks:
     # _ErrorStats.add), a streamed one a chunk at a time.
-    for chunk in result.chunks() if isinstance(result, StreamedResult) else [result]:
-        for s, u in zip(stats, chunk.units):
-            s.add(u, start)
+    streamed = isinstance(result, StreamedResult)
+    reductions = own_reductions(None if streamed else reductions, result.units)
+    for chunk in result.chunks() if streamed else [result]:
+        for s, u, reduced in zip(stats, chunk.units, reductions):
+            s.add(u, start, reduced)
         start += chunk.periods
     quanta = position_quantum or {}
     units = {u.name: _unit_summary(u, s, quanta.get(u.name))

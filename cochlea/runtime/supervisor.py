@@ -310,7 +310,8 @@ def build_supervisor(setups: list[UnitSetup], keep_out_radius: float | None,
     return Supervisor(limits, setups, KeepOutPoints(setups, fks))
 
 
-def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | None:
+def first_violation(result: SimulationResult, supervisor: Supervisor,
+                    reductions: list[LogReductions] | None = None) -> Stop | None:
     """The rule a real-time run of the same periods would have stopped on, and when: the
     supervisor's checks applied to a logged run (an as-fast simulation, which does not stop).
 
@@ -324,42 +325,66 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
     flagged ones passed through the supervisor itself, in order, so the rule and its message
     are the loop's own (the keep-out circle is screened last, on the periods before the first
     stop the other rules found: a pose the run did not log is computed there only).
+    ``reductions``: each unit's :func:`log_reductions` of this result, when the caller has
+    them (the summary reads them too); the same verdict either way.
     """
     logs = result.units
     rows = len(result.time)
     if rows == 0:
         return None
-    if _nothing_flagged(result, supervisor):
+    if _nothing_flagged(result, supervisor, reductions):
         return None
-    q, qd = measured_states(result)
-    tau = np.hstack([u.tau for u in logs])
-    # The estimate each period hands on: the next row's (the last row's own at the end).
-    estimates = [np.vstack([u.p_hat[1:], u.p_hat[-1:]]) for u in logs]
     L = supervisor.limits
-    with np.errstate(invalid="ignore", over="ignore"):
-        flagged = ~np.isfinite(q).all(axis=1) | ~np.isfinite(qd).all(axis=1)
-        flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
-        flagged |= (np.abs(qd) > L.velocity).any(axis=1)
-        flagged |= ~np.isfinite(tau).all(axis=1)
-        for p, bound in zip(estimates, supervisor.bounds):
-            square = np.einsum("ij,ij->i", p, p)
-            flagged |= ~np.isfinite(square) | (square > (bound * (1 + 1e-9)) ** 2)
-    n = q.shape[1]
+    limits = [(bound * (1 + 1e-9)) ** 2 for bound in supervisor.bounds]
+    n = sum(u.q.shape[1] for u in logs)
+
+    def screen(a: int, b: int):
+        """Periods a..b-1 stacked (measured states, efforts, the estimates they hand on: the
+        next row's, the last row's own at the end) and which of them the screen flags."""
+        q = np.hstack([u.q[a:b] for u in logs])
+        qd = np.hstack([u.qd[a:b] for u in logs])
+        tau = np.hstack([u.tau[a:b] for u in logs])
+        estimates = [np.vstack([u.p_hat[a + 1:b + 1]] + ([u.p_hat[-1:]] if b == rows else []))
+                     for u in logs]
+        with np.errstate(invalid="ignore", over="ignore"):
+            flagged = ~np.isfinite(q).all(axis=1) | ~np.isfinite(qd).all(axis=1)
+            flagged |= ((q < L.position_lo) | (q > L.position_hi)).any(axis=1)
+            flagged |= (np.abs(qd) > L.velocity).any(axis=1)
+            flagged |= ~np.isfinite(tau).all(axis=1)
+            for p, limit in zip(estimates, limits):
+                square = np.einsum("ij,ij->i", p, p)
+                flagged |= ~np.isfinite(square) | (square > limit)
+        return q, qd, tau, estimates, flagged
+
+    # A run the gate sends here mostly broke a rule early (a gain or a plant the controller
+    # cannot hold): the periods are screened a block at a time, from the start, up to the
+    # block of the first stop, not the whole run stacked and screened for one early period.
+    blocks = []  # (start, q, qd, tau, estimates) of each block screened
 
     def check(k: int) -> Stop | None:
+        """Period k (in a block screened) as the loop checks it."""
+        a, q, qd, tau, estimates = next(block for block in reversed(blocks) if block[0] <= k)
         t = float(result.time[k])
-        x = np.concatenate([q[k], qd[k]])
+        x = np.concatenate([q[k - a], qd[k - a]])
         stop = supervisor.check_state(t, x, x[:n], x[n:])
         if stop is None:
-            stop = supervisor.check_command(t, tau[k].copy(), [p[k] for p in estimates])
+            stop = supervisor.check_command(t, tau[k - a].copy(), [p[k - a] for p in estimates])
         return stop
 
-    first, stop = rows, None
-    for k in np.flatnonzero(flagged):
-        stop = check(k)
+    first, stop, flags = rows, None, []
+    for a, b in _screen_blocks(rows):
+        q, qd, tau, estimates, flagged = screen(a, b)
+        blocks.append((a, q, qd, tau, estimates))
+        flags.append(flagged)
+        for k in np.flatnonzero(flagged) + a:
+            stop = check(int(k))
+            if stop is not None:
+                first = int(k)
+                break
         if stop is not None:
-            first = int(k)
             break
+    flagged = np.concatenate(flags)
+
     if L.keep_out_radius is None or first == 0:
         return stop
     # The keep-out circle, on the periods before that stop only (the pose of the measured
@@ -373,6 +398,19 @@ def first_violation(result: SimulationResult, supervisor: Supervisor) -> Stop | 
         if earlier is not None:
             return earlier
     return stop
+
+
+#: The periods :func:`first_violation` screens at once: the first blocks end here (each a
+#: multiple of 64 periods, so each period's row sits where it sat in one array of them all).
+_SCREEN_ENDS = (256, 4096)
+
+
+def _screen_blocks(rows: int):
+    """``(start, stop)`` of each block of periods :func:`first_violation` screens, in order."""
+    start = 0
+    for end in (*[e for e in _SCREEN_ENDS if e < rows], rows):
+        yield start, end
+        start = end
 
 
 def _near_keep_out(logs, rows: int, radius: float) -> np.ndarray:
@@ -395,7 +433,8 @@ def _near_keep_out(logs, rows: int, radius: float) -> np.ndarray:
     return near
 
 
-def _nothing_flagged(result: SimulationResult, supervisor: Supervisor) -> bool:
+def _nothing_flagged(result: SimulationResult, supervisor: Supervisor,
+                     reductions: list[LogReductions] | None = None) -> bool:
     """Whether the row-by-row screen of :func:`first_violation` would flag no row, from
     whole-run reductions of each unit's own log (a column's extremes, the largest estimate),
     nothing stacked or copied: the common case, a run that breaks no rule, for a fraction of
@@ -404,31 +443,93 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor) -> bool:
     is the same either way."""
     L = supervisor.limits
     first = 0  # the unit's first joint in the limits
+    reductions = own_reductions(reductions, result.units)
     with np.errstate(invalid="ignore", over="ignore"):
-        for u, bound in zip(result.units, supervisor.bounds):
+        for i, (u, bound) in enumerate(zip(result.units, supervisor.bounds)):
             joints = slice(first, first + u.q.shape[1])
             first = joints.stop
             # A column's extremes are finite only when all of it is (a NaN makes both NaN, an
             # infinity one of them infinite), and inside the rule's bounds only when all of it
             # is: a position within its limits, a speed |qd| within its limit.
-            if not (_state_within(u.q, u.qd, L.position_lo[joints], L.position_hi[joints],
-                                  L.velocity[joints])
-                    and math.isfinite(u.tau.min(initial=0.0))
-                    and math.isfinite(u.tau.max(initial=0.0))):
+            if not _state_within(u.q, u.qd, L.position_lo[joints], L.position_hi[joints],
+                                 L.velocity[joints]):
+                return False
+            reduced = reductions[i]
+            if reduced is None:
+                if not (math.isfinite(u.tau.min(initial=0.0))
+                        and math.isfinite(u.tau.max(initial=0.0))):
+                    return False
+            elif not (np.isfinite(reduced.tau_low).all() and np.isfinite(reduced.tau_high).all()):
                 return False
             # The estimate each period hands on is the next row's (the last row's own at the
-            # end): every row but the first. |p|^2 <= n max|p_i|^2 settles most runs without
-            # a norm a row (the slack covers the sum's rounding); NaN fails both.
+            # end): every row but the first. |p|^2 <= n max|p_i|^2, or the rows' squares summed
+            # in another order, settle most runs without einsum's norm a row (the slack covers
+            # the sums' rounding); NaN fails every test.
             p = u.p_hat[1:] if len(u.p_hat) > 1 else u.p_hat
             limit = (bound * (1 + 1e-9)) ** 2
-            peak = np.abs(p).max(initial=0.0)
-            if not p.shape[1] * peak * peak * (1 + 1e-12) <= limit:
+            if reduced is None:
+                # max |p_i| from the extremes, without an array of |p| (a NaN makes both NaN).
+                peak = max(p.max(initial=0.0), -p.min(initial=0.0))
+                screened = p.shape[1] * peak * peak * (1 + 1e-12) <= limit
+            else:
+                squares = reduced.p_squares
+                squares = squares[1:] if len(squares) > 1 else squares
+                screened = squares.max(initial=0.0) * (1 + 1e-12) <= limit
+            if not screened:
                 largest = np.einsum("ij,ij->i", p, p).max(initial=0.0)
                 if not largest <= limit:
                     return False
         if L.keep_out_radius is not None and not _clear_of_keep_out(result, L.keep_out_radius):
             return False
     return True
+
+
+@dataclass(frozen=True)
+class LogReductions:
+    """One unit log's whole-run reductions that the verdict and the summary both read
+    (:func:`log_reductions`): each read once, while the log is still near in the caches, not
+    once by each rule that needs it. They describe the log as it was when computed."""
+
+    tau_low: np.ndarray  # each effort column's min (NaN where the column has one)
+    tau_high: np.ndarray  # and max
+    p_squares: np.ndarray  # each estimate row's sum of squares (row_squares)
+
+    def describes(self, u) -> bool:
+        """Whether these can be ``u``'s: as many columns of effort, rows of estimates."""
+        return self.tau_low.shape == u.tau.shape[1:] and len(self.p_squares) == len(u.p_hat)
+
+
+def own_reductions(reductions: list[LogReductions | None] | None, units
+                   ) -> list[LogReductions | None]:
+    """Per unit log, the caller's reductions where they can be its own, else None (each
+    reader then reduces the log itself)."""
+    if reductions is None or len(reductions) != len(units):
+        return [None] * len(units)
+    return [r if r is not None and r.describes(u) else None for r, u in zip(reductions, units)]
+
+
+def log_reductions(u) -> LogReductions:
+    """:class:`LogReductions` of a unit's log (a :class:`~cochlea.sim.result.UnitLog`)."""
+    low, high = column_extremes(u.tau)
+    return LogReductions(low, high, row_squares(u.p_hat))
+
+
+#: Up to this many columns, :func:`row_squares` adds column after column (einsum beyond).
+_COLUMN_SUMS = 8
+
+
+def row_squares(p: np.ndarray) -> np.ndarray:
+    """Each row's sum of squares, for screens that allow for the sum's rounding (einsum's
+    order differs): of a few columns, the squares added a column at a time into one scratch
+    row, several times faster than einsum's row by row, and in the order np.linalg.norm adds
+    them."""
+    if not 0 < p.shape[1] <= _COLUMN_SUMS:
+        return np.einsum("ij,ij->i", p, p)
+    total = np.multiply(p[:, 0], p[:, 0])
+    square = np.empty_like(total)
+    for j in range(1, p.shape[1]):
+        total += np.multiply(p[:, j], p[:, j], out=square)
+    return total
 
 
 #: Rows a block of :func:`column_extremes` holds: the block's columns are reduced across the
@@ -460,10 +561,21 @@ def _side_by_side(q: np.ndarray, qd: np.ndarray) -> np.ndarray | None:
     rows, n = q.shape
     item = q.itemsize
     if (qd.shape != (rows, n) or q.dtype != np.float64 or qd.dtype != np.float64 or rows < 2
-            or q.strides != (2 * n * item, item) or qd.strides != q.strides
-            or qd.ctypes.data != q.ctypes.data + n * item):
+            or q.strides != (2 * n * item, item) or qd.strides != q.strides):
         return None
-    # The same memory q and qd cover together: every row's 2 n values, in order.
+    start = q.ctypes.data
+    if qd.ctypes.data != start + n * item:
+        return None
+    # The same memory q and qd cover together: every row's 2 n values, in order. Most often
+    # that is the first rows of the array they were cut from (a simulated log's state): a
+    # slice of it costs a fraction of a strided view built anew.
+    base = q.base
+    if (isinstance(base, np.ndarray) and base.dtype == np.float64 and base.ndim == 2
+            and base.strides == q.strides and base.shape[1] == 2 * n and len(base) >= rows
+            and base.ctypes.data == start):
+        state = base[:rows]
+        state.flags.writeable = False
+        return state
     return np.lib.stride_tricks.as_strided(q, (rows, 2 * n), q.strides, writeable=False)
 
 
@@ -518,9 +630,13 @@ def _clear_of_keep_out(result: SimulationResult, radius: float) -> bool:
                 cu, cv = s.centre
             else:
                 cu, cv = 0.0, joints[:, s.moving_centre_joint]
-            # Squared, without hypot's cost; the relative slack covers its rounding.
-            du, dv = pose[:, iu] - cu, pose[:, iv] - cv
-            nearest = (du * du + dv * dv).min(initial=np.inf)
+            # Squared, without hypot's cost; the relative slack covers its rounding. In place:
+            # two arrays of a column, not five.
+            du, dv = np.subtract(pose[:, iu], cu), np.subtract(pose[:, iv], cv)
+            du *= du
+            dv *= dv
+            du += dv
+            nearest = du.min(initial=np.inf)
             if not nearest >= ((radius + margin) * (1 + 1e-9)) ** 2:
                 return False
     return True
@@ -542,7 +658,8 @@ def measured_states(result: SimulationResult) -> tuple[np.ndarray, np.ndarray]:
     return (np.hstack([u.q for u in result.units]), np.hstack([u.qd for u in result.units]))
 
 
-def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
+def saturated_periods(result: SimulationResult, supervisor: Supervisor,
+                      reductions: list[LogReductions] | None = None) -> int:
     """Periods whose command was clipped to a joint's effort limit or, with current
     quantisation, saturated by its drive (the logs hold the applied command, so a clipped one
     sits exactly on the largest effort the joint can get: its limit, or its drive's
@@ -554,21 +671,43 @@ def saturated_periods(result: SimulationResult, supervisor: Supervisor) -> int:
             u.setup.effort_limit if u.setup.effort_grid is None else u.setup.effort_grid.top
             for u in result.units]))
     with np.errstate(invalid="ignore"):
-        # Most runs never reach a limit: each unit's largest |effort| shows it without a row
-        # count or a copy of the logs (a NaN goes on to the count).
-        if all(np.abs(u.tau).max(initial=0.0) < top.min() for u in result.units):
-            return 0
-        tau = np.hstack([u.tau for u in result.units])
-        return int(np.sum((np.abs(tau) >= top).any(axis=1)))
+        # Most runs never reach a limit: each column's largest |effort| shows it without a
+        # row count or a copy of the logs (a NaN goes on to the count), from its extremes.
+        reductions = own_reductions(reductions, result.units)
+        if not reductions or any(r is None for r in reductions):
+            lowest = top.min()
+            if all(max(u.tau.max(initial=0.0), -u.tau.min(initial=0.0)) < lowest
+                   for u in result.units):
+                return 0
+            can_clip = np.ones(len(top), bool)
+        else:
+            peaks = np.concatenate([np.maximum(r.tau_high, -r.tau_low) for r in reductions])
+            can_clip = ~(peaks < top)
+            if not can_clip.any():
+                return 0
+        # The periods with any joint at its top: a column at a time into one row of flags
+        # (what np.hstack and a reduction along each row count, without either), the columns
+        # that never reach theirs left out.
+        clipped = np.zeros(len(result.units[0].tau), bool)
+        first = 0
+        for u in result.units:
+            for j in range(u.tau.shape[1]):
+                if can_clip[first + j]:
+                    clipped |= np.abs(u.tau[:, j]) >= top[first + j]
+            first += u.tau.shape[1]
+        return int(np.count_nonzero(clipped))
 
 
-def verdict(result: SimulationResult, supervisor: Supervisor) -> dict:
+def verdict(result: SimulationResult, supervisor: Supervisor,
+            reductions: list[LogReductions] | None = None) -> dict:
     """``summary.json``'s ``supervisor`` entry of an as-fast run: the first rule a real run
-    would have stopped on (``"none"``: it would have run to the end) and the clipped periods."""
-    stop = first_violation(result, supervisor)
+    would have stopped on (``"none"``: it would have run to the end) and the clipped periods.
+    ``reductions``: each unit's :func:`log_reductions` of this result, when the caller has
+    them (a sweep's worker, whose summary reads them too); the same entry either way."""
+    stop = first_violation(result, supervisor, reductions)
     mirror = result.mirror_stop  # the logs end before it: any rule above came first
     if stop is None and mirror is not None:
         stop = Stop(mirror["rule"], mirror["time_s"], mirror["detail"])
     entry = {"rule": "none"} if stop is None else {
         "rule": stop.rule, "time_s": stop.time, "detail": stop.detail, "exit_code": stop.code}
-    return {**entry, "saturated_periods": saturated_periods(result, supervisor)}
+    return {**entry, "saturated_periods": saturated_periods(result, supervisor, reductions)}

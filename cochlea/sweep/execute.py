@@ -51,11 +51,11 @@ def run_batch(spec: Spec, indices: list[int],
     its replay file (:func:`~cochlea.sweep.sampling.scenario_text`) reads as, without the
     text written and parsed again."""
     rows = []
+    vectors = {e.name: e.rule.size for e in spec.entries if e.vector}
     for i in indices:
         start = time.perf_counter()
         g, k = sampling.grid_point(spec, i)
         row = {"sample": i, "grid": g, "draw": k}
-        vectors = {e.name: e.rule.size for e in spec.entries if e.vector}
         values = sampling.inputs(spec, i)
         for name, value in values.items():
             # An entry whose values may be lists is a list in every row (a number is every

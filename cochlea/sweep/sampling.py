@@ -33,9 +33,15 @@ def grid_point(spec: Spec, i: int) -> tuple[int, int]:
     return divmod(i, spec.samples)
 
 
+@functools.lru_cache(maxsize=1024)
+def _name_key(name: str) -> int:
+    return zlib.crc32(name.encode())
+
+
 def _rng(spec: Spec, k: int, name: str) -> np.random.Generator:
-    key = zlib.crc32(name.encode())
-    return np.random.default_rng(np.random.SeedSequence(spec.seed, spawn_key=(k, key)))
+    # What np.random.default_rng makes of a SeedSequence, without its checks.
+    return np.random.Generator(np.random.PCG64(
+        np.random.SeedSequence(spec.seed, spawn_key=(k, _name_key(name)))))
 
 
 def _draw(e: Entry, rng: np.random.Generator) -> Any:
@@ -101,6 +107,17 @@ def _copy(value: Any) -> Any:
     return value  # str, int, float, bool, dates: immutable
 
 
+@functools.lru_cache(maxsize=64)
+def _description_path(folder: Path, description: str) -> str:
+    """A scenario's ``description`` as its samples name it: a user's description file by its
+    absolute path (found from anywhere), a shipped robot's name as it is. Resolved once per
+    process and absolute ``folder`` (every sample of a sweep names the same file)."""
+    path = Path(description)
+    if path.suffix == ".toml" or path.parent != Path("."):
+        return str((folder / path).resolve() if not path.is_absolute() else path)
+    return description
+
+
 def scenario_data(spec: Spec, i: int, values: dict[str, Any] | None = None) -> dict:
     """The base scenario's TOML data with sample ``i``'s plant, gains and duration
     (``values``: its :func:`inputs`, when the caller has them already): what
@@ -108,10 +125,9 @@ def scenario_data(spec: Spec, i: int, values: dict[str, Any] | None = None) -> d
     data = _copy(_base_data(spec.scenario_text))
     description = data.get("description")
     if isinstance(description, str):  # a user's description file: found from anywhere
-        path = Path(description)
-        if path.suffix == ".toml" or path.parent != Path("."):
-            data["description"] = str((spec.scenario_path.parent / path).resolve()
-                                      if not path.is_absolute() else path)
+        folder = spec.scenario_path.parent
+        data["description"] = _description_path(folder, description) if folder.is_absolute() \
+            else _description_path.__wrapped__(folder, description)  # cwd may change
     if spec.duration is not None:
         data["duration_s"] = spec.duration
     plant = data.setdefault("plant", {})
