@@ -124,7 +124,9 @@ def test_thesis_variants_run_on_the_c_kernels(name, loop):
     """The printed thesis's laws by name, though the C of a law that computes what the corrected
     one does is that law's (serial_arm*_e_thesis_step and its driver are aliases): the source
     hashes still check, and the log is the reference's up to a divergence (the printed task-space
-    law of the parallel mechanism blows up within 0.2 s)."""
+    law of the parallel mechanism blows up within 0.2 s). Up to the blow-up: in its last periods
+    (values from 30 to 1e52 in five) an ulp grows by 1e5 a period, and the C plant's inline sin
+    and cos (docs/codegen.md) are libm's only within an ulp."""
     sc = dataclasses.replace(load_scenario(name), variant="thesis")
     setups = unit_setups(sc)
     if name == "serial_joint":
@@ -135,7 +137,7 @@ def test_thesis_variants_run_on_the_c_kernels(name, loop):
             assert lib.manifest["closed_loops"][names.closed_loop]["symbol"] != names.closed_loop
     reference = simulate(sc, 0.5, setups, kernels="casadi")
     result = csim.simulate_compiled(sc, 0.5, setups, loop=loop)
-    wild = [np.abs(getattr(u, key)).max(axis=1) > 1e6 for u in reference.units for key in FIELDS]
+    wild = [np.abs(getattr(u, key)).max(axis=1) > 1e3 for u in reference.units for key in FIELDS]
     tame = min(int(np.argmax(w)) if w.any() else len(w) for w in wild)
     assert tame >= 100
     assert_same_log(result, reference, rows=tame)
