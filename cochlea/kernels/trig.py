@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import re
 
-from .catalogue import CODEGEN_DIR, CodegenError
+from ..resources import CODEGEN_DIR
+from .catalogue import CodegenError
 
 #: The header's source (copied into every folder whose kernels use it) and its name there.
 HEADER = CODEGEN_DIR / "cochlea_trig.h"
