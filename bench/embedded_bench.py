@@ -472,7 +472,8 @@ def build_simulation(name: str | Path, precision: str = "double",
     # step on the desired sample it evaluated once for the step and the log.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
         jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS) for g in groups]
-        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS, (SIM_SOURCE,)))
+        # GENERATED: sim_trig.h includes its cochlea_trig.h (the cache key reads its headers)
+        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS, (SIM_SOURCE, GENERATED)))
         jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
                                 (folder, *include), (embedded / f"{name}.c",)))
         objects = [j.result() for j in jobs]

@@ -85,7 +85,8 @@ def test_the_wheel_holds_the_data_and_the_library(installed):
     assert "serial_task.toml" in scenarios and "parallel_joint.toml" in scenarios
     # models/ and codegen/ of the checkout, carried as cochlea/data/ (setup.py)
     assert "planar2_xm540.toml" in examples
-    assert codegen == "['closed_loop.c.in', 'kernels.toml']"
+    # cochlea_trig.h: what cochlea-codegen copies beside a user's ideal plant steps
+    assert codegen == "['closed_loop.c.in', 'cochlea_trig.h', 'kernels.toml']"
     assert lib.startswith(str(installed[0].parent)) and lib.endswith("cochlea/lib/libcochlea.so")
 
 

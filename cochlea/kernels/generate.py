@@ -32,7 +32,10 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
   (:mod:`cochlea.kernels.embedded`, ``docs/embedded.md``); ``make lib`` does not build them;
 * ``manifest.c`` (``cochlea_manifest()``: every kernel's signature and the SHA-256 of the CasADi
   Function it came from, so a caller can tell a stale library), ``cochlea.h`` (includes every
-  header) and ``README.md`` (each function's inputs, outputs, sizes, units and work memory).
+  header) and ``README.md`` (each function's inputs, outputs, sizes, units and work memory);
+* ``cochlea_trig.h`` (a copy of ``codegen/cochlea_trig.h``): the inline ``cochlea_sincos`` the
+  ideal plant steps take each angle's sin and cos from (:mod:`cochlea.kernels.trig`; not the
+  geared plant, the controllers or the model kernels, which keep libm).
 
 No body is generated twice: a kernel that computes exactly what an earlier one does (the same
 :func:`~cochlea.kernels.naming.computation_hash`) is an *alias*. It has no C of its own; the
@@ -74,6 +77,9 @@ from .catalogue import (
 )
 from .naming import MANIFEST_FORMAT, source_hash
 from .readme import readme
+from .trig import HEADER as TRIG_HEADER
+from .trig import HEADER_NAME as TRIG_HEADER_NAME
+from .trig import inline_trig
 
 __all__ = ["CONFIG", "CodegenError", "load_config", "generate", "check", "write_kernels"]
 
@@ -129,12 +135,17 @@ def _signature(f: ca.Function) -> dict:
 
 
 def _generate_group(stem: str, kernels: list[Kernel], out: Path, options: dict) -> str:
+    """Write ``<stem>.c`` and ``.h``; the ideal plant steps' sin and cos inline (:mod:`.trig`;
+    with ``cochlea_trig.h`` beside them)."""
     gen = ca.CodeGenerator(f"{stem}.c", dict(options))
     for k in kernels:
         gen.add(k.function)
     gen.generate(str(out) + "/")
     c_file = out / f"{stem}.c"
     text = _mark_unused_parameters(c_file.read_text())
+    text, sincos = inline_trig(text, [k.name for k in kernels if k.inline_trig])
+    if sincos:
+        (out / TRIG_HEADER_NAME).write_text(TRIG_HEADER.read_text())
     c_file.write_text(text)
     return text
 

@@ -29,7 +29,11 @@ make lib                                   # -> build/libcochlea.so (-O2 -Wall -
 cc -O2 -fPIC -shared -o libcochlea.so generated_c/*.c -lm    # the same, by hand
 ```
 
-`{library}.h` includes every header. The code is C99 with no dependency but `libm`.
+`{library}.h` includes every header. The code is C99 with no dependency but `libm`. The ideal
+plant steps (`*_plant_step[_coulomb]`, not the geared `*_gear_plant_step`) take each angle's
+sin and cos from one inline `cochlea_sincos` (`cochlea_trig.h`, beside them: within an ulp of
+libm's, not always its last bit; it needs no contraction into fused multiply-adds, which
+`-std=c99` gives with GCC and its pragma with clang).
 
 ## Calling convention
 
