@@ -208,8 +208,9 @@ def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function
 #: sim_trig.h, inline, within an ulp of libm's) instead of libm, in the plant and in the
 #: double build's controller, and divide by the plant's articulated inertias through shared
 #: reciprocals, where :func:`inline_trig_applies`: the serial arms, whose ideal studies do not
-#: amplify an ulp (docs/embedded.md). The parallel mechanism keeps libm and its divisions, bit
-#: for bit with the general kernels: with "parallel" added its ideal studies' logs stayed within
+#: amplify an ulp (docs/embedded.md). The parallel mechanism keeps libm and its divisions
+#: (its general plant kernel takes the inline sincos since issue 30's block form, within
+#: rounding of this plant either way): with "parallel" added its ideal studies' logs stayed within
 #: rounding of simulate()'s (1.0e-14 and 4.4e-15 absolute over 10 s, as with libm) but were no
 #: faster (loop CPU 8.05 -> 8.02 ms and 17.67 -> 17.70 ms, 100 runs each turn about): the
 #: inline sincos costs what libm's __sincos_fma did (perf: 12 % of parallel_task moved into the
