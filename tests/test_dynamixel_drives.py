@@ -233,6 +233,7 @@ def test_without_the_offset_current_the_bridge_commands_the_slope_alone(robot, r
                                                    abs=1)
 
 
+@pytest.mark.slow  # 1.7 s
 def test_friction_is_compensated_once():
     """One rule decides it: the bridge adds the offset current unless the controller's model
     carries friction (and so compensates it)."""

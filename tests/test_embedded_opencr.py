@@ -75,6 +75,7 @@ def symbols(elf: Path) -> dict[str, int]:
     return {m[2]: int(m[0], 16) for m in re.findall(r"^([0-9a-f]+) (\w) (\S+)$", out, re.M)}
 
 
+@pytest.mark.slow  # its module fixture builds the firmware (make opencr-firmware, 4 s)
 @pytest.mark.parametrize("precision", ["float", "double"])
 def test_the_firmware_builds_and_reports_its_size_and_stack(firmware, precision):
     build, report = firmware
@@ -105,6 +106,7 @@ def boot_table_is_quiet(words: tuple, names: dict, load: int, size: int) -> None
     assert set(words[16:]) == {quiet}
 
 
+@pytest.mark.slow  # the same firmware build
 @pytest.mark.parametrize("precision", ["float", "double"])
 def test_the_image_is_laid_out_as_an_stm32f746_expects(firmware, precision):
     build, _ = firmware

@@ -353,6 +353,7 @@ def test_each_arm_runs_on_a_thread_of_its_own():
     assert parallel["threads"] == 1 and parallel["unit_cpu_s"] == [parallel["loop_cpu_s"]]
 
 
+@pytest.mark.slow  # runs the program and a busy loop turn about
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU")
 def test_the_sibling_slowdown_is_measured_turn_about_and_leaves_no_busy_loop():
     """bench's measure of how much a thread slows beside a busy vCPU: the program's loop CPU

@@ -209,6 +209,7 @@ wire_bytes = st.lists(st.sampled_from([0xFF, 0xFD, 0x00]) | st.integers(0, 255),
                       max_size=20).map(bytes)
 
 
+@pytest.mark.slow  # 300 examples, 0.7 s
 @settings(max_examples=300, database=None, derandomize=True)
 @given(length=st.integers(0, 12), n=st.integers(1, 7), seed=wire_bytes, errors=wire_bytes)
 def test_the_combined_status_is_the_definitions_bytes(length, n, seed, errors):
@@ -240,6 +241,7 @@ def test_the_combined_status_is_the_definitions_bytes(length, n, seed, errors):
             assert proto.check_fast_sync(parser, ids, length) == (proto.FAST_BLOCK_CRC, k)
 
 
+@pytest.mark.slow  # 400 examples, 0.8 s
 @settings(max_examples=400, database=None, derandomize=True)
 @given(first=st.sampled_from([0xFF, 0xFD, 0x55, 0x03, 0x83]), params=wire_bytes,
        packet_id=st.integers(0, 252), as_array=st.booleans())

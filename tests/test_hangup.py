@@ -60,6 +60,7 @@ def test_a_hangup_stops_the_loop_safely_at_its_next_period():
     assert loop.rows < 5
 
 
+@pytest.mark.slow  # a held section of 0.5 s
 def test_a_hangup_inside_a_held_section_is_obeyed_after_it():
     """codegen's renames and cochlea-run's folder claim: not cut in two by a hang-up."""
     held_over_a_section(signal.SIGHUP)

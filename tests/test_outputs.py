@@ -445,6 +445,7 @@ def test_codegen_that_fails_midway_leaves_the_old_files_whole(tmp_path, capsys, 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["generated_c"]  # no staging left
 
 
+@pytest.mark.slow  # a held section of 0.5 s each
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_signals_held_over_a_section_are_obeyed_after_it(signum):
     """What codegen's renames and cochlea-run's folder claim rely on: a signal sent to the
