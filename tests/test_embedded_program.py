@@ -61,7 +61,6 @@ def emulator(robot: str, scenario: str, log: Path, *options: str,
         yield port
 
 
-
 def on_emulator(program: Path, tmp_path: Path, emulator_args: tuple, *args: str
                 ) -> tuple[subprocess.CompletedProcess, Path, Path]:
     """``build/cochlea-embedded ARGS --out DIR`` on a fresh emulator, over its socket, once.

@@ -358,16 +358,19 @@ def test_each_arm_runs_on_a_thread_of_its_own():
 def test_the_sibling_slowdown_is_measured_turn_about_and_leaves_no_busy_loop():
     """bench's measure of how much a thread slows beside a busy vCPU: the program's loop CPU
     time alone and beside the busy loop, pinned to two different CPUs, their ratio; the busy
-    loop is ended (no child of this process left spinning)."""
+    loop is ended (no child of this process left that was not there before: earlier tests of
+    the session may have left a child that outlives them, multiprocessing's resource tracker
+    for one)."""
+    children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children")
+    before = set(children.read_text().split()) if children.exists() else set()
     row = eb.sibling_slowdown(rounds=2, runs=1)
     assert row["runs"] == 2 and row["cpus"][0] != row["cpus"][1]
     assert row["alone_cpu_s"] > 0 and row["busy_cpu_s"] > 0
     assert row["ratio"] == row["busy_cpu_s"] / row["alone_cpu_s"]
     if eb._idle_us(row["cpus"][1]) is not None:  # the kernel says how idle it was
         assert 0.0 <= row["other_idle_busy"] <= 0.5  # the busy loop kept it busy
-    children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children")
     if children.exists():
-        assert children.read_text().split() == []
+        assert set(children.read_text().split()) <= before
 
 
 @pytest.mark.parametrize("scale, first, status", [(0.01, "arm2", "diverged"),
