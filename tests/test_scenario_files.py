@@ -4,9 +4,11 @@ anything runs."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from cochlea import CochleaError, DescriptionError
@@ -157,3 +159,24 @@ def test_a_relative_description_is_relative_to_the_scenario(tmp_path, monkeypatc
     (folder / "u.toml").write_text(JOINT.replace('space = "joint"\n',
                                                  'space = "joint"\ndescription = "serial"\n', 1))
     assert load_scenario(folder / "u.toml").system.keep_out_radius == 0.02
+
+
+def test_the_estimate_bound_does_not_depend_on_the_machines_blas(monkeypatch):
+    """The bound is written into the generated embedded C (``cochlea-codegen --check``
+    compares it byte for byte): numpy's norm sums through the BLAS kernel of the CPU, and an
+    AMD EPYC gave the realistic serial studies' bound another last bit than the machine that
+    wrote generated_c/."""
+    from cochlea.sim import setup as setup_mod
+
+    sc = load_scenario("serial_joint_realistic")
+    bounds = [u.bound for u in unit_setups(sc)]
+    p = [float(v) for v in unit_setups(sc)[0].controller_model.p_nominal]
+    total = 0.0
+    for v in p:
+        total += v * v
+    assert bounds == [sc.estimate_bound * math.sqrt(total)] * 2
+    assert abs(setup_mod.euclidean_norm(p) - math.hypot(*p)) <= 2 * math.ulp(math.hypot(*p))
+    norm = np.linalg.norm  # another BLAS: numpy's norm one ulp off
+    monkeypatch.setattr(np.linalg, "norm", lambda *a, **k: np.nextafter(norm(*a, **k), np.inf))
+    assert [u.bound for u in setup_mod.unit_setups(load_scenario("serial_joint_realistic"),
+                                                   cache=False)] == bounds

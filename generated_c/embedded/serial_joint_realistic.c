@@ -2500,8 +2500,8 @@ void serial_joint_realistic_default_config(serial_joint_realistic_config *c) {
   c->effort_limit[3] = 2.5;
   c->effort_limit[4] = 2.5;
   c->effort_limit[5] = 2.5;
-  c->bound[0] = 3.8998514958905806;  /* arm1 */
-  c->bound[1] = 3.8998514958905806;  /* arm2 */
+  c->bound[0] = 3.899851495890581;  /* arm1 */
+  c->bound[1] = 3.899851495890581;  /* arm2 */
   /* arm1: deadzone */
   c->deadzone[0] = 0.0;
   c->deadzone[1] = 0.0;

@@ -28,8 +28,8 @@ static const double arm2_nominal[12] = {0.09518, 0.07878, 0.01119, 0.0034, 0.003
 static const char *const arm2_points[1] = {"tool"};
 
 static const cochlea_unit_info units[SERIAL_TASK_REALISTIC_UNITS] = {
-    {"arm1", "g (corrected), task space", 3, 3, 12, 6, 0, 0, 0, 0, arm1_tracked, arm1_tracked_units, arm1_joints, arm1_joint_units, arm1_params, arm1_param_units, arm1_nominal, 3.8998514958905806, {"e_g", "e_v"}, -1, 1, arm1_points},
-    {"arm2", "g (corrected), task space", 3, 3, 12, 6, 3, 3, 12, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 3.8998514958905806, {"e_g", "e_v"}, -1, 1, arm2_points},
+    {"arm1", "g (corrected), task space", 3, 3, 12, 6, 0, 0, 0, 0, arm1_tracked, arm1_tracked_units, arm1_joints, arm1_joint_units, arm1_params, arm1_param_units, arm1_nominal, 3.899851495890581, {"e_g", "e_v"}, -1, 1, arm1_points},
+    {"arm2", "g (corrected), task space", 3, 3, 12, 6, 3, 3, 12, 6, arm2_tracked, arm2_tracked_units, arm2_joints, arm2_joint_units, arm2_params, arm2_param_units, arm2_nominal, 3.899851495890581, {"e_g", "e_v"}, -1, 1, arm2_points},
 };
 
 /* Where the scenario starts the joints (rad, m): the start-up refuses a robot farther away. */
