@@ -84,9 +84,9 @@ extern "C" {
   #endif
 #endif
 
-casadi_real casadi_sq(casadi_real x) { return x*x;}
+static casadi_real casadi_sq(casadi_real x) { return x*x;}
 
-casadi_real casadi_fabs(casadi_real x) {
+static casadi_real casadi_fabs(casadi_real x) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
   return x>0 ? x : -x;
@@ -95,23 +95,23 @@ casadi_real casadi_fabs(casadi_real x) {
 #endif
 }
 
-casadi_real casadi_sign(casadi_real x) { return x<0 ? -1 : x>0 ? 1 : x;}
+static casadi_real casadi_sign(casadi_real x) { return x<0 ? -1 : x>0 ? 1 : x;}
 
-casadi_real casadi_fmax(casadi_real x, casadi_real y) {
+static casadi_real casadi_fmax(casadi_real x, casadi_real y) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
   return x>y ? x : y;
 #else
-  return fmax(x, y);
+  return x > y ? x : y >= x ? y : fmax(x, y);
 #endif
 }
 
-casadi_real casadi_fmin(casadi_real x, casadi_real y) {
+static casadi_real casadi_fmin(casadi_real x, casadi_real y) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
   return x<y ? x : y;
 #else
-  return fmin(x, y);
+  return x < y ? x : y <= x ? y : fmin(x, y);
 #endif
 }
 

@@ -57,25 +57,25 @@ extern "C" {
   #endif
 #endif
 
-casadi_real casadi_fmax(casadi_real x, casadi_real y) {
+static casadi_real casadi_fmax(casadi_real x, casadi_real y) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
   return x>y ? x : y;
 #else
-  return fmax(x, y);
+  return x > y ? x : y >= x ? y : fmax(x, y);
 #endif
 }
 
-casadi_real casadi_fmin(casadi_real x, casadi_real y) {
+static casadi_real casadi_fmin(casadi_real x, casadi_real y) {
 /* Pre-c99 compatibility */
 #if __STDC_VERSION__ < 199901L
   return x<y ? x : y;
 #else
-  return fmin(x, y);
+  return x < y ? x : y <= x ? y : fmin(x, y);
 #endif
 }
 
-casadi_real casadi_sq(casadi_real x) { return x*x;}
+static casadi_real casadi_sq(casadi_real x) { return x*x;}
 
 /* Configuration this file was compiled with */
 CASADI_SYMBOL_EXPORT void serial_arm2_g_casadi_version(int* major, int* minor, int* patch) {

@@ -301,7 +301,7 @@ def _bodies(functions: list[ca.Function], real: str) -> dict[str, str]:
                                "Functions without it")
         body = body.replace("casadi_real", real)
         body = body.replace("casadi_sq(", "CSQ(")
-        body = re.sub(r"\bcasadi_(fmin|fmax)\(", r"\1(", body)
+        body = body.replace("casadi_fmin(", "CFMIN(").replace("casadi_fmax(", "CFMAX(")
         body = _LITERAL.sub(_literal, body)
         # A float as a condition (CasADi's if_else and logical and/or) is a conversion to
         # _Bool that clang's -Wfloat-conversion reports: compare with zero, as C would.
@@ -566,7 +566,8 @@ def _in_double(body: str, real: str) -> str:
     body = body.replace(real, "double")
     body = re.sub(r"\bCM\((\w+)\)\(", r"\1(", body)
     body = re.sub(r"\b(?:CR|CTINY)\(([^()]*)\)", r"\1", body)
-    return body.replace("CSQ(", "CSQD(")
+    return body.replace("CSQ(", "CSQD(").replace("CFMIN(", "CFMIND(").replace("CFMAX(",
+                                                                            "CFMAXD(")
 
 
 #: The helpers of the time atoms and the clamps (in the generated .c that use them).
@@ -605,6 +606,22 @@ static double CCLAMPD(double x, double lo, double hi) {
 }
 #endif
 """
+
+def _min_max(real: str, text: str) -> str:
+    """The laws' min and max (CasADi's ``fmin``/``fmax``) in the working precision
+    (``CFMIN``, ``CFMAX``) and in double (``CFMIND``, ``CFMAXD``: the desired trajectory's),
+    those ``text`` calls (an unused static function is a warning, and warnings are errors)."""
+    parts = [
+        "/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:\n"
+        " * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without\n"
+        " * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */\n"]
+    for name, less, libm in (("CFMIN", "<", "fmin"), ("CFMAX", ">", "fmax")):
+        for suffix, kind, call in (("", real, f"CM({libm})"), ("D", "double", libm)):
+            if f"{name}{suffix}(" in text:
+                parts.append(f"static {kind} {name}{suffix}({kind} x, {kind} y) {{\n"
+                             f"  return x {less} y ? x : (y {less}= x ? y : {call}(x, y));\n}}\n")
+    return "".join(parts) if len(parts) > 1 else ""
+
 
 #: The float build's phase of a time atom (C, in #ifdef COCHLEA_FLOAT).
 _PHASE = """
@@ -807,6 +824,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
     text = "".join(functions)
     helpers = ([f"static {R} CSQ({R} x) {{ return x * x; }}\n"] if "CSQ(" in text else []) + (
         ["static double CSQD(double x) { return x * x; }\n"] if "CSQD(" in text else [])
+    helpers.append(_min_max(R, text))
     helpers += ([_CTURNS] if any(a.kind == "phase" for a in kinds) else []) + (
         [_CLAST] if any(a.kind != "phase" for a in kinds) else []) + [_CLAMPD]
     helpers.append(f"static {R} CCLAMP({R} x, {R} lo, {R} hi) {{\n"

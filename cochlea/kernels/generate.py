@@ -37,6 +37,11 @@ What is generated, per robot unit (``serial_arm1``, ``serial_arm2``, ``parallel`
   ideal plant steps take each angle's sin and cos from (:mod:`cochlea.kernels.trig`; not the
   geared plant, the controllers or the model kernels, which keep libm).
 
+In every file CasADi's helpers (``casadi_sq``, ``casadi_fmin``, ...) are ``static``, so the
+compiler inlines them even in the ``-fPIC`` library, and ``casadi_fmin``/``casadi_fmax`` compare
+where both arguments are numbers instead of calling libm (:mod:`cochlea.kernels.helpers`: the
+same bits as libm's, but for the sign of a zero where +0 ties -0).
+
 No body is generated twice: a kernel that computes exactly what an earlier one does (the same
 :func:`~cochlea.kernels.naming.computation_hash`) is an *alias*. It has no C of its own; the
 manifest keeps its entry (name, signature, source hash) with ``"symbol"``, the kernel whose C it
@@ -75,6 +80,7 @@ from .catalogue import (
     collect,
     load_config,
 )
+from .helpers import static_helpers
 from .naming import MANIFEST_FORMAT, source_hash
 from .readme import readme
 from .trig import HEADER as TRIG_HEADER
@@ -135,14 +141,15 @@ def _signature(f: ca.Function) -> dict:
 
 
 def _generate_group(stem: str, kernels: list[Kernel], out: Path, options: dict) -> str:
-    """Write ``<stem>.c`` and ``.h``; the ideal plant steps' sin and cos inline (:mod:`.trig`;
-    with ``cochlea_trig.h`` beside them)."""
+    """Write ``<stem>.c`` and ``.h``; CasADi's helpers static, min and max inline
+    (:mod:`.helpers`), the ideal plant steps' sin and cos inline (:mod:`.trig`; with
+    ``cochlea_trig.h`` beside them)."""
     gen = ca.CodeGenerator(f"{stem}.c", dict(options))
     for k in kernels:
         gen.add(k.function)
     gen.generate(str(out) + "/")
     c_file = out / f"{stem}.c"
-    text = _mark_unused_parameters(c_file.read_text())
+    text = static_helpers(_mark_unused_parameters(c_file.read_text()))
     text, sincos = inline_trig(text, [k.name for k in kernels if k.inline_trig])
     if sincos:
         (out / TRIG_HEADER_NAME).write_text(TRIG_HEADER.read_text())

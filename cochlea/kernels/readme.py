@@ -33,7 +33,9 @@ cc -O2 -fPIC -shared -o libcochlea.so generated_c/*.c -lm    # the same, by hand
 plant steps (`*_plant_step[_coulomb]`, not the geared `*_gear_plant_step`) take each angle's
 sin and cos from one inline `cochlea_sincos` (`cochlea_trig.h`, beside them: within an ulp of
 libm's, not always its last bit; it needs no contraction into fused multiply-adds, which
-`-std=c99` gives with GCC and its pragma with clang).
+`-std=c99` gives with GCC and its pragma with clang). CasADi's helpers (`casadi_sq`,
+`casadi_fmin`, ...) are `static`, so they inline in a `-fPIC` library too, and min and max
+compare where both arguments are numbers (libm's bits, NaN left to libm).
 
 ## Calling convention
 

@@ -58,6 +58,19 @@ static parallel_joint_real CSQ(parallel_joint_real x) { return x * x; }
 
 static double CSQD(double x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static parallel_joint_real CFMIN(parallel_joint_real x, parallel_joint_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static double CFMIND(double x, double y) {
+  return x < y ? x : (y <= x ? y : fmin(x, y));
+}
+static parallel_joint_real CFMAX(parallel_joint_real x, parallel_joint_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
  * the double build's own t and comparison, so that an integer test of k decides as it
@@ -96,7 +109,7 @@ static int parallel_joint_mechanism_desired(const double** arg, double** res) {
   a01=3.9206000000000002e-01;
   a02=arg[0]? arg[0][0] : 0;
   a03=5.;
-  a04=fmin(a02,a03);
+  a04=CFMIND(a02,a03);
   a05=CSQD(a04);
   a06=(a04*a05);
   a07=(a01*a06);
@@ -869,8 +882,8 @@ static int parallel_joint_mechanism_law(const parallel_joint_real** arg, paralle
   a18=arg[7]? arg[7][0] : 0;
   a47=arg[9]? arg[9][2] : 0;
   a61=(-a47);
-  a61=CM(fmax)(a50,a61);
-  a61=CM(fmin)(a61,a47);
+  a61=CFMAX(a50,a61);
+  a61=CFMIN(a61,a47);
   a61=(a50-a61);
   a56=(a56*a61);
   a56=(a18*a56);
@@ -909,8 +922,8 @@ static int parallel_joint_mechanism_law(const parallel_joint_real** arg, paralle
   a35=arg[7]? arg[7][1] : 0;
   a71=arg[9]? arg[9][0] : 0;
   a36=(-a71);
-  a36=CM(fmax)(a05,a36);
-  a36=CM(fmin)(a36,a71);
+  a36=CFMAX(a05,a36);
+  a36=CFMIN(a36,a71);
   a36=(a05-a36);
   a10=(a10*a36);
   a10=(a35*a10);
@@ -919,8 +932,8 @@ static int parallel_joint_mechanism_law(const parallel_joint_real** arg, paralle
   a71=arg[7]? arg[7][2] : 0;
   a69=arg[9]? arg[9][1] : 0;
   a64=(-a69);
-  a64=CM(fmax)(a21,a64);
-  a64=CM(fmin)(a64,a69);
+  a64=CFMAX(a21,a64);
+  a64=CFMIN(a64,a69);
   a64=(a21-a64);
   a55=(a55*a64);
   a55=(a71*a55);
@@ -961,8 +974,8 @@ static int parallel_joint_mechanism_law(const parallel_joint_real** arg, paralle
   a38=arg[7]? arg[7][7] : 0;
   a28=arg[9]? arg[9][3] : 0;
   a64=(-a28);
-  a64=CM(fmax)(a29,a64);
-  a64=CM(fmin)(a64,a28);
+  a64=CFMAX(a29,a64);
+  a64=CFMIN(a64,a28);
   a64=(a29-a64);
   a25=(a25*a64);
   a25=(a38*a25);
@@ -971,8 +984,8 @@ static int parallel_joint_mechanism_law(const parallel_joint_real** arg, paralle
   a28=arg[7]? arg[7][8] : 0;
   a36=arg[9]? arg[9][4] : 0;
   a08=(-a36);
-  a08=CM(fmax)(a63,a08);
-  a08=CM(fmin)(a08,a36);
+  a08=CFMAX(a63,a08);
+  a08=CFMIN(a08,a36);
   a08=(a63-a08);
   a07=(a07*a08);
   a07=(a28*a07);
@@ -1051,7 +1064,7 @@ static int parallel_joint_mechanism_law(const parallel_joint_real** arg, paralle
   a08=(a01*a19);
   a24=(a24+a08);
   a08=CTINY(1.0000000000000000e-300);
-  a24=CM(fmax)(a24,a08);
+  a24=CFMAX(a24,a08);
   a14=(a14/a24);
   a18=(a18*a14);
   a18=(a47!=CR(0.)?a18:0);

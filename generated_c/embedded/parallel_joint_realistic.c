@@ -58,6 +58,19 @@ static parallel_joint_realistic_real CSQ(parallel_joint_realistic_real x) { retu
 
 static double CSQD(double x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static parallel_joint_realistic_real CFMIN(parallel_joint_realistic_real x, parallel_joint_realistic_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static double CFMIND(double x, double y) {
+  return x < y ? x : (y <= x ? y : fmin(x, y));
+}
+static parallel_joint_realistic_real CFMAX(parallel_joint_realistic_real x, parallel_joint_realistic_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
  * the double build's own t and comparison, so that an integer test of k decides as it
@@ -96,7 +109,7 @@ static int parallel_joint_realistic_mechanism_desired(const double** arg, double
   a01=3.9206000000000002e-01;
   a02=arg[0]? arg[0][0] : 0;
   a03=5.;
-  a04=fmin(a02,a03);
+  a04=CFMIND(a02,a03);
   a05=CSQD(a04);
   a06=(a04*a05);
   a07=(a01*a06);
@@ -509,7 +522,7 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a064=arg[13]? arg[13][0] : 0;
   a064=CSQ(a064);
   a065=CTINY(1.0000000000000000e-300);
-  a064=CM(fmax)(a064,a065);
+  a064=CFMAX(a064,a065);
   a063=(a063/a064);
   a063=(-a063);
   a063=CM(exp)(a063);
@@ -590,7 +603,7 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a066=CSQ(a024);
   a068=arg[13]? arg[13][1] : 0;
   a068=CSQ(a068);
-  a068=CM(fmax)(a068,a065);
+  a068=CFMAX(a068,a065);
   a066=(a066/a068);
   a066=(-a066);
   a066=CM(exp)(a066);
@@ -793,7 +806,7 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a087=CSQ(a054);
   a043=arg[13]? arg[13][2] : 0;
   a043=CSQ(a043);
-  a043=CM(fmax)(a043,a065);
+  a043=CFMAX(a043,a065);
   a087=(a087/a043);
   a087=(-a087);
   a087=CM(exp)(a087);
@@ -880,7 +893,7 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a095=CSQ(a074);
   a096=arg[13]? arg[13][3] : 0;
   a096=CSQ(a096);
-  a096=CM(fmax)(a096,a065);
+  a096=CFMAX(a096,a065);
   a095=(a095/a096);
   a095=(-a095);
   a095=CM(exp)(a095);
@@ -962,7 +975,7 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a036=CSQ(a081);
   a035=arg[13]? arg[13][4] : 0;
   a035=CSQ(a035);
-  a035=CM(fmax)(a035,a065);
+  a035=CFMAX(a035,a065);
   a036=(a036/a035);
   a036=(-a036);
   a036=CM(exp)(a036);
@@ -985,8 +998,8 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a068=arg[7]? arg[7][0] : 0;
   a047=arg[9]? arg[9][2] : 0;
   a036=(-a047);
-  a036=CM(fmax)(a050,a036);
-  a036=CM(fmin)(a036,a047);
+  a036=CFMAX(a050,a036);
+  a036=CFMIN(a036,a047);
   a036=(a050-a036);
   a064=(a064*a036);
   a064=(a068*a064);
@@ -1055,8 +1068,8 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a084=arg[7]? arg[7][1] : 0;
   a070=arg[9]? arg[9][0] : 0;
   a051=(-a070);
-  a051=CM(fmax)(a005,a051);
-  a051=CM(fmin)(a051,a070);
+  a051=CFMAX(a005,a051);
+  a051=CFMIN(a051,a070);
   a051=(a005-a051);
   a010=(a010*a051);
   a010=(a084*a010);
@@ -1065,8 +1078,8 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a070=arg[7]? arg[7][2] : 0;
   a032=arg[9]? arg[9][1] : 0;
   a091=(-a032);
-  a091=CM(fmax)(a021,a091);
-  a091=CM(fmin)(a091,a032);
+  a091=CFMAX(a021,a091);
+  a091=CFMIN(a091,a032);
   a091=(a021-a091);
   a063=(a063*a091);
   a063=(a070*a063);
@@ -1107,8 +1120,8 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a038=arg[7]? arg[7][7] : 0;
   a028=arg[9]? arg[9][3] : 0;
   a008=(-a028);
-  a008=CM(fmax)(a071,a008);
-  a008=CM(fmin)(a008,a028);
+  a008=CFMAX(a071,a008);
+  a008=CFMIN(a008,a028);
   a008=(a071-a008);
   a087=(a087*a008);
   a087=(a038*a087);
@@ -1117,8 +1130,8 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a028=arg[7]? arg[7][8] : 0;
   a098=arg[9]? arg[9][4] : 0;
   a022=(-a098);
-  a022=CM(fmax)(a078,a022);
-  a022=CM(fmin)(a022,a098);
+  a022=CFMAX(a078,a022);
+  a022=CFMIN(a022,a098);
   a022=(a078-a022);
   a007=(a007*a022);
   a007=(a028*a007);
@@ -1316,7 +1329,7 @@ static int parallel_joint_realistic_mechanism_law(const parallel_joint_realistic
   a099=(a099*a061);
   a100=(a061*a099);
   a022=(a022+a100);
-  a022=CM(fmax)(a022,a065);
+  a022=CFMAX(a022,a065);
   a086=(a086/a022);
   a068=(a068*a086);
   a068=(a047!=CR(0.)?a068:0);

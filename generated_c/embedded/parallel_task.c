@@ -58,6 +58,19 @@ static parallel_task_real CSQ(parallel_task_real x) { return x * x; }
 
 static double CSQD(double x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static parallel_task_real CFMIN(parallel_task_real x, parallel_task_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static double CFMIND(double x, double y) {
+  return x < y ? x : (y <= x ? y : fmin(x, y));
+}
+static parallel_task_real CFMAX(parallel_task_real x, parallel_task_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
  * the double build's own t and comparison, so that an integer test of k decides as it
@@ -92,7 +105,7 @@ static int parallel_task_mechanism_desired(const double** arg, double** res) {
   a00=-5.4699999999999996e-04;
   a01=arg[0]? arg[0][0] : 0;
   a02=5.;
-  a03=fmin(a01,a02);
+  a03=CFMIND(a01,a02);
   a04=CSQD(a03);
   a05=(a03*a04);
   a06=(a00*a05);
@@ -1463,8 +1476,8 @@ static int parallel_task_mechanism_law(const parallel_task_real** arg, parallel_
   a003=arg[7]? arg[7][0] : 0;
   a105=arg[9]? arg[9][2] : 0;
   a054=(-a105);
-  a054=CM(fmax)(a014,a054);
-  a054=CM(fmin)(a054,a105);
+  a054=CFMAX(a014,a054);
+  a054=CFMIN(a054,a105);
   a054=(a014-a054);
   a090=(a090*a054);
   a090=(a003*a090);
@@ -1503,8 +1516,8 @@ static int parallel_task_mechanism_law(const parallel_task_real** arg, parallel_
   a050=arg[7]? arg[7][1] : 0;
   a039=arg[9]? arg[9][0] : 0;
   a036=(-a039);
-  a036=CM(fmax)(a038,a036);
-  a036=CM(fmin)(a036,a039);
+  a036=CFMAX(a038,a036);
+  a036=CFMIN(a036,a039);
   a036=(a038-a036);
   a051=(a051*a036);
   a051=(a050*a051);
@@ -1513,8 +1526,8 @@ static int parallel_task_mechanism_law(const parallel_task_real** arg, parallel_
   a039=arg[7]? arg[7][2] : 0;
   a099=arg[9]? arg[9][1] : 0;
   a058=(-a099);
-  a058=CM(fmax)(a053,a058);
-  a058=CM(fmin)(a058,a099);
+  a058=CFMAX(a053,a058);
+  a058=CFMIN(a058,a099);
   a058=(a053-a058);
   a007=(a007*a058);
   a007=(a039*a007);
@@ -1555,8 +1568,8 @@ static int parallel_task_mechanism_law(const parallel_task_real** arg, parallel_
   a001=arg[7]? arg[7][7] : 0;
   a019=arg[9]? arg[9][3] : 0;
   a058=(-a019);
-  a058=CM(fmax)(a026,a058);
-  a058=CM(fmin)(a058,a019);
+  a058=CFMAX(a026,a058);
+  a058=CFMIN(a058,a019);
   a058=(a026-a058);
   a110=(a110*a058);
   a110=(a001*a110);
@@ -1565,8 +1578,8 @@ static int parallel_task_mechanism_law(const parallel_task_real** arg, parallel_
   a019=arg[7]? arg[7][8] : 0;
   a036=arg[9]? arg[9][4] : 0;
   a035=(-a036);
-  a035=CM(fmax)(a073,a035);
-  a035=CM(fmin)(a035,a036);
+  a035=CFMAX(a073,a035);
+  a035=CFMIN(a035,a036);
   a035=(a073-a035);
   a104=(a104*a035);
   a104=(a019*a104);
@@ -1645,7 +1658,7 @@ static int parallel_task_mechanism_law(const parallel_task_real** arg, parallel_
   a035=(a088*a002);
   a049=(a049+a035);
   a035=CTINY(1.0000000000000000e-300);
-  a049=CM(fmax)(a049,a035);
+  a049=CFMAX(a049,a035);
   a070=(a070/a049);
   a003=(a003*a070);
   a003=(a105!=CR(0.)?a003:0);

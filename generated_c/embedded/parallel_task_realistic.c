@@ -58,6 +58,19 @@ static parallel_task_realistic_real CSQ(parallel_task_realistic_real x) { return
 
 static double CSQD(double x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static parallel_task_realistic_real CFMIN(parallel_task_realistic_real x, parallel_task_realistic_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static double CFMIND(double x, double y) {
+  return x < y ? x : (y <= x ? y : fmin(x, y));
+}
+static parallel_task_realistic_real CFMAX(parallel_task_realistic_real x, parallel_task_realistic_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The last period k >= 0 whose t = (double)k * h is <= c (or_equal) or < c, -1 if none:
  * the double build's own t and comparison, so that an integer test of k decides as it
@@ -92,7 +105,7 @@ static int parallel_task_realistic_mechanism_desired(const double** arg, double*
   a00=-5.4699999999999996e-04;
   a01=arg[0]? arg[0][0] : 0;
   a02=5.;
-  a03=fmin(a01,a02);
+  a03=CFMIND(a01,a02);
   a04=CSQD(a03);
   a05=(a03*a04);
   a06=(a00*a05);
@@ -1123,7 +1136,7 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a057=arg[13]? arg[13][0] : 0;
   a057=CSQ(a057);
   a081=CTINY(1.0000000000000000e-300);
-  a057=CM(fmax)(a057,a081);
+  a057=CFMAX(a057,a081);
   a102=(a102/a057);
   a102=(-a102);
   a102=CM(exp)(a102);
@@ -1201,7 +1214,7 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a016=CSQ(a053);
   a083=arg[13]? arg[13][1] : 0;
   a083=CSQ(a083);
-  a083=CM(fmax)(a083,a081);
+  a083=CFMAX(a083,a081);
   a016=(a016/a083);
   a016=(-a016);
   a016=CM(exp)(a016);
@@ -1394,7 +1407,7 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a096=CSQ(a014);
   a064=arg[13]? arg[13][2] : 0;
   a064=CSQ(a064);
-  a064=CM(fmax)(a064,a081);
+  a064=CFMAX(a064,a081);
   a096=(a096/a064);
   a096=(-a096);
   a096=CM(exp)(a096);
@@ -1478,7 +1491,7 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a069=CSQ(a026);
   a068=arg[13]? arg[13][3] : 0;
   a068=CSQ(a068);
-  a068=CM(fmax)(a068,a081);
+  a068=CFMAX(a068,a081);
   a069=(a069/a068);
   a069=(-a069);
   a069=CM(exp)(a069);
@@ -1557,7 +1570,7 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a036=CSQ(a073);
   a050=arg[13]? arg[13][4] : 0;
   a050=CSQ(a050);
-  a050=CM(fmax)(a050,a081);
+  a050=CFMAX(a050,a081);
   a036=(a036/a050);
   a036=(-a036);
   a036=CM(exp)(a036);
@@ -1577,8 +1590,8 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a022=arg[7]? arg[7][0] : 0;
   a036=arg[9]? arg[9][2] : 0;
   a050=(-a036);
-  a050=CM(fmax)(a015,a050);
-  a050=CM(fmin)(a050,a036);
+  a050=CFMAX(a015,a050);
+  a050=CFMIN(a050,a036);
   a050=(a015-a050);
   a080=(a080*a050);
   a080=(a022*a080);
@@ -1647,8 +1660,8 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a095=arg[7]? arg[7][1] : 0;
   a004=arg[9]? arg[9][0] : 0;
   a047=(-a004);
-  a047=CM(fmax)(a072,a047);
-  a047=CM(fmin)(a047,a004);
+  a047=CFMAX(a072,a047);
+  a047=CFMIN(a047,a004);
   a047=(a072-a047);
   a051=(a051*a047);
   a051=(a095*a051);
@@ -1657,8 +1670,8 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a004=arg[7]? arg[7][2] : 0;
   a056=arg[9]? arg[9][1] : 0;
   a034=(-a056);
-  a034=CM(fmax)(a074,a034);
-  a034=CM(fmin)(a034,a056);
+  a034=CFMAX(a074,a034);
+  a034=CFMIN(a034,a056);
   a034=(a074-a034);
   a102=(a102*a034);
   a102=(a004*a102);
@@ -1699,8 +1712,8 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a001=arg[7]? arg[7][7] : 0;
   a019=arg[9]? arg[9][3] : 0;
   a035=(-a019);
-  a035=CM(fmax)(a107,a035);
-  a035=CM(fmin)(a035,a019);
+  a035=CFMAX(a107,a035);
+  a035=CFMIN(a035,a019);
   a035=(a107-a035);
   a096=(a096*a035);
   a096=(a001*a096);
@@ -1709,8 +1722,8 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a019=arg[7]? arg[7][8] : 0;
   a048=arg[9]? arg[9][4] : 0;
   a063=(-a048);
-  a063=CM(fmax)(a105,a063);
-  a063=CM(fmin)(a063,a048);
+  a063=CFMAX(a105,a063);
+  a063=CFMIN(a063,a048);
   a063=(a105-a063);
   a104=(a104*a063);
   a104=(a019*a104);
@@ -1908,7 +1921,7 @@ static int parallel_task_realistic_mechanism_law(const parallel_task_realistic_r
   a005=(a005*a020);
   a078=(a020*a005);
   a063=(a063+a078);
-  a063=CM(fmax)(a063,a081);
+  a063=CFMAX(a063,a081);
   a099=(a099/a063);
   a022=(a022*a099);
   a022=(a036!=CR(0.)?a022:0);

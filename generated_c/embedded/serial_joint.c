@@ -58,6 +58,16 @@ static serial_joint_real CSQ(serial_joint_real x) { return x * x; }
 
 static double CSQD(double x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static serial_joint_real CFMIN(serial_joint_real x, serial_joint_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static serial_joint_real CFMAX(serial_joint_real x, serial_joint_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
  * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
@@ -378,8 +388,8 @@ static int serial_joint_arm1_law(const serial_joint_real** arg, serial_joint_rea
   a26=arg[7]? arg[7][0] : 0;
   a11=arg[9]? arg[9][0] : 0;
   a31=(-a11);
-  a31=CM(fmax)(a05,a31);
-  a31=CM(fmin)(a31,a11);
+  a31=CFMAX(a05,a31);
+  a31=CFMIN(a31,a11);
   a31=(a05-a31);
   a00=(a00*a31);
   a00=(a26*a00);
@@ -399,8 +409,8 @@ static int serial_joint_arm1_law(const serial_joint_real** arg, serial_joint_rea
   a15=(a15*a31);
   a02=arg[9]? arg[9][1] : 0;
   a24=(-a02);
-  a24=CM(fmax)(a13,a24);
-  a24=CM(fmin)(a24,a02);
+  a24=CFMAX(a13,a24);
+  a24=CFMIN(a24,a02);
   a24=(a13-a24);
   a08=(a08*a24);
   a15=(a15+a08);
@@ -413,8 +423,8 @@ static int serial_joint_arm1_law(const serial_joint_real** arg, serial_joint_rea
   a01=(a01+a12);
   a12=arg[9]? arg[9][2] : 0;
   a24=(-a12);
-  a24=CM(fmax)(a30,a24);
-  a24=CM(fmin)(a24,a12);
+  a24=CFMAX(a30,a24);
+  a24=CFMIN(a24,a12);
   a24=(a30-a24);
   a14=(a14*a24);
   a01=(a01+a14);
@@ -432,7 +442,7 @@ static int serial_joint_arm1_law(const serial_joint_real** arg, serial_joint_rea
   a24=(a20*a08);
   a14=(a14+a24);
   a24=CTINY(1.0000000000000000e-300);
-  a14=CM(fmax)(a14,a24);
+  a14=CFMAX(a14,a24);
   a07=(a07/a14);
   a26=(a26*a07);
   a26=(a11!=CR(0.)?a26:0);
@@ -1178,8 +1188,8 @@ static int serial_joint_arm2_law(const serial_joint_real** arg, serial_joint_rea
   a26=arg[7]? arg[7][0] : 0;
   a11=arg[9]? arg[9][0] : 0;
   a31=(-a11);
-  a31=CM(fmax)(a05,a31);
-  a31=CM(fmin)(a31,a11);
+  a31=CFMAX(a05,a31);
+  a31=CFMIN(a31,a11);
   a31=(a05-a31);
   a00=(a00*a31);
   a00=(a26*a00);
@@ -1199,8 +1209,8 @@ static int serial_joint_arm2_law(const serial_joint_real** arg, serial_joint_rea
   a15=(a15*a31);
   a02=arg[9]? arg[9][1] : 0;
   a24=(-a02);
-  a24=CM(fmax)(a13,a24);
-  a24=CM(fmin)(a24,a02);
+  a24=CFMAX(a13,a24);
+  a24=CFMIN(a24,a02);
   a24=(a13-a24);
   a08=(a08*a24);
   a15=(a15+a08);
@@ -1213,8 +1223,8 @@ static int serial_joint_arm2_law(const serial_joint_real** arg, serial_joint_rea
   a01=(a01+a12);
   a12=arg[9]? arg[9][2] : 0;
   a24=(-a12);
-  a24=CM(fmax)(a30,a24);
-  a24=CM(fmin)(a24,a12);
+  a24=CFMAX(a30,a24);
+  a24=CFMIN(a24,a12);
   a24=(a30-a24);
   a14=(a14*a24);
   a01=(a01+a14);
@@ -1232,7 +1242,7 @@ static int serial_joint_arm2_law(const serial_joint_real** arg, serial_joint_rea
   a24=(a20*a08);
   a14=(a14+a24);
   a24=CTINY(1.0000000000000000e-300);
-  a14=CM(fmax)(a14,a24);
+  a14=CFMAX(a14,a24);
   a07=(a07/a14);
   a26=(a26*a07);
   a26=(a11!=CR(0.)?a26:0);

@@ -58,6 +58,16 @@ static serial_joint_realistic_real CSQ(serial_joint_realistic_real x) { return x
 
 static double CSQD(double x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static serial_joint_realistic_real CFMIN(serial_joint_realistic_real x, serial_joint_realistic_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static serial_joint_realistic_real CFMAX(serial_joint_realistic_real x, serial_joint_realistic_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
  * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
@@ -357,7 +367,7 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a19=arg[13]? arg[13][0] : 0;
   a19=CSQ(a19);
   a28=CTINY(1.0000000000000000e-300);
-  a19=CM(fmax)(a19,a28);
+  a19=CFMAX(a19,a28);
   a39=(a39/a19);
   a39=(-a39);
   a39=CM(exp)(a39);
@@ -392,7 +402,7 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a19=CSQ(a11);
   a20=arg[13]? arg[13][1] : 0;
   a20=CSQ(a20);
-  a20=CM(fmax)(a20,a28);
+  a20=CFMAX(a20,a28);
   a19=(a19/a20);
   a19=(-a19);
   a19=CM(exp)(a19);
@@ -424,7 +434,7 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a20=CSQ(a32);
   a27=arg[13]? arg[13][2] : 0;
   a27=CSQ(a27);
-  a27=CM(fmax)(a27,a28);
+  a27=CFMAX(a27,a28);
   a20=(a20/a27);
   a20=(-a20);
   a20=CM(exp)(a20);
@@ -447,8 +457,8 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a10=arg[7]? arg[7][0] : 0;
   a31=arg[9]? arg[9][0] : 0;
   a20=(-a31);
-  a20=CM(fmax)(a05,a20);
-  a20=CM(fmin)(a20,a31);
+  a20=CFMAX(a05,a20);
+  a20=CFMIN(a20,a31);
   a20=(a05-a20);
   a00=(a00*a20);
   a00=(a10*a00);
@@ -486,8 +496,8 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a16=(a16*a20);
   a41=arg[9]? arg[9][1] : 0;
   a42=(-a41);
-  a42=CM(fmax)(a13,a42);
-  a42=CM(fmin)(a42,a41);
+  a42=CFMAX(a13,a42);
+  a42=CFMIN(a42,a41);
   a42=(a13-a42);
   a08=(a08*a42);
   a16=(a16+a08);
@@ -500,8 +510,8 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a26=(a26+a35);
   a35=arg[9]? arg[9][2] : 0;
   a41=(-a35);
-  a41=CM(fmax)(a34,a41);
-  a41=CM(fmin)(a41,a35);
+  a41=CFMAX(a34,a41);
+  a41=CFMIN(a41,a35);
   a41=(a34-a41);
   a15=(a15*a41);
   a26=(a26+a15);
@@ -590,7 +600,7 @@ static int serial_joint_realistic_arm1_law(const serial_joint_realistic_real** a
   a47=(a47*a24);
   a48=(a24*a47);
   a41=(a41+a48);
-  a41=CM(fmax)(a41,a28);
+  a41=CFMAX(a41,a28);
   a37=(a37/a41);
   a10=(a10*a37);
   a10=(a31!=CR(0.)?a10:0);
@@ -1441,7 +1451,7 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a19=arg[13]? arg[13][0] : 0;
   a19=CSQ(a19);
   a28=CTINY(1.0000000000000000e-300);
-  a19=CM(fmax)(a19,a28);
+  a19=CFMAX(a19,a28);
   a39=(a39/a19);
   a39=(-a39);
   a39=CM(exp)(a39);
@@ -1476,7 +1486,7 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a19=CSQ(a11);
   a20=arg[13]? arg[13][1] : 0;
   a20=CSQ(a20);
-  a20=CM(fmax)(a20,a28);
+  a20=CFMAX(a20,a28);
   a19=(a19/a20);
   a19=(-a19);
   a19=CM(exp)(a19);
@@ -1508,7 +1518,7 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a20=CSQ(a32);
   a27=arg[13]? arg[13][2] : 0;
   a27=CSQ(a27);
-  a27=CM(fmax)(a27,a28);
+  a27=CFMAX(a27,a28);
   a20=(a20/a27);
   a20=(-a20);
   a20=CM(exp)(a20);
@@ -1531,8 +1541,8 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a10=arg[7]? arg[7][0] : 0;
   a31=arg[9]? arg[9][0] : 0;
   a20=(-a31);
-  a20=CM(fmax)(a05,a20);
-  a20=CM(fmin)(a20,a31);
+  a20=CFMAX(a05,a20);
+  a20=CFMIN(a20,a31);
   a20=(a05-a20);
   a00=(a00*a20);
   a00=(a10*a00);
@@ -1570,8 +1580,8 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a16=(a16*a20);
   a41=arg[9]? arg[9][1] : 0;
   a42=(-a41);
-  a42=CM(fmax)(a13,a42);
-  a42=CM(fmin)(a42,a41);
+  a42=CFMAX(a13,a42);
+  a42=CFMIN(a42,a41);
   a42=(a13-a42);
   a08=(a08*a42);
   a16=(a16+a08);
@@ -1584,8 +1594,8 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a26=(a26+a35);
   a35=arg[9]? arg[9][2] : 0;
   a41=(-a35);
-  a41=CM(fmax)(a34,a41);
-  a41=CM(fmin)(a41,a35);
+  a41=CFMAX(a34,a41);
+  a41=CFMIN(a41,a35);
   a41=(a34-a41);
   a15=(a15*a41);
   a26=(a26+a15);
@@ -1674,7 +1684,7 @@ static int serial_joint_realistic_arm2_law(const serial_joint_realistic_real** a
   a47=(a47*a24);
   a48=(a24*a47);
   a41=(a41+a48);
-  a41=CM(fmax)(a41,a28);
+  a41=CFMAX(a41,a28);
   a37=(a37/a41);
   a10=(a10*a37);
   a10=(a31!=CR(0.)?a10:0);

@@ -56,6 +56,16 @@ static void CTWOSUM(float a, float b, float *hi, float *lo) {
 
 static serial_task_real CSQ(serial_task_real x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static serial_task_real CFMIN(serial_task_real x, serial_task_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static serial_task_real CFMAX(serial_task_real x, serial_task_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
  * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
@@ -632,8 +642,8 @@ static int serial_task_arm1_law(const serial_task_real** arg, serial_task_real**
   a26=arg[7]? arg[7][0] : 0;
   a39=arg[9]? arg[9][0] : 0;
   a24=(-a39);
-  a24=CM(fmax)(a45,a24);
-  a24=CM(fmin)(a24,a39);
+  a24=CFMAX(a45,a24);
+  a24=CFMIN(a24,a39);
   a24=(a45-a24);
   a00=(a00*a24);
   a00=(a26*a00);
@@ -653,8 +663,8 @@ static int serial_task_arm1_law(const serial_task_real** arg, serial_task_real**
   a34=(a34*a24);
   a12=arg[9]? arg[9][1] : 0;
   a28=(-a12);
-  a28=CM(fmax)(a47,a28);
-  a28=CM(fmin)(a28,a12);
+  a28=CFMAX(a47,a28);
+  a28=CFMIN(a28,a12);
   a28=(a47-a28);
   a55=(a55*a28);
   a34=(a34+a55);
@@ -667,8 +677,8 @@ static int serial_task_arm1_law(const serial_task_real** arg, serial_task_real**
   a27=(a27+a42);
   a42=arg[9]? arg[9][2] : 0;
   a28=(-a42);
-  a28=CM(fmax)(a48,a28);
-  a28=CM(fmin)(a28,a42);
+  a28=CFMAX(a48,a28);
+  a28=CFMIN(a28,a42);
   a28=(a48-a28);
   a09=(a09*a28);
   a27=(a27+a09);
@@ -687,7 +697,7 @@ static int serial_task_arm1_law(const serial_task_real** arg, serial_task_real**
   a28=(a01*a55);
   a09=(a09+a28);
   a28=CTINY(1.0000000000000000e-300);
-  a09=CM(fmax)(a09,a28);
+  a09=CFMAX(a09,a28);
   a10=(a10/a09);
   a26=(a26*a10);
   a26=(-a26);
@@ -1354,8 +1364,8 @@ static int serial_task_arm2_law(const serial_task_real** arg, serial_task_real**
   a26=arg[7]? arg[7][0] : 0;
   a39=arg[9]? arg[9][0] : 0;
   a24=(-a39);
-  a24=CM(fmax)(a45,a24);
-  a24=CM(fmin)(a24,a39);
+  a24=CFMAX(a45,a24);
+  a24=CFMIN(a24,a39);
   a24=(a45-a24);
   a00=(a00*a24);
   a00=(a26*a00);
@@ -1375,8 +1385,8 @@ static int serial_task_arm2_law(const serial_task_real** arg, serial_task_real**
   a34=(a34*a24);
   a12=arg[9]? arg[9][1] : 0;
   a28=(-a12);
-  a28=CM(fmax)(a47,a28);
-  a28=CM(fmin)(a28,a12);
+  a28=CFMAX(a47,a28);
+  a28=CFMIN(a28,a12);
   a28=(a47-a28);
   a55=(a55*a28);
   a34=(a34+a55);
@@ -1389,8 +1399,8 @@ static int serial_task_arm2_law(const serial_task_real** arg, serial_task_real**
   a27=(a27+a42);
   a42=arg[9]? arg[9][2] : 0;
   a28=(-a42);
-  a28=CM(fmax)(a48,a28);
-  a28=CM(fmin)(a28,a42);
+  a28=CFMAX(a48,a28);
+  a28=CFMIN(a28,a42);
   a28=(a48-a28);
   a09=(a09*a28);
   a27=(a27+a09);
@@ -1409,7 +1419,7 @@ static int serial_task_arm2_law(const serial_task_real** arg, serial_task_real**
   a28=(a01*a55);
   a09=(a09+a28);
   a28=CTINY(1.0000000000000000e-300);
-  a09=CM(fmax)(a09,a28);
+  a09=CFMAX(a09,a28);
   a10=(a10/a09);
   a26=(a26*a10);
   a26=(-a26);

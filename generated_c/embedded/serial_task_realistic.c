@@ -56,6 +56,16 @@ static void CTWOSUM(float a, float b, float *hi, float *lo) {
 
 static serial_task_realistic_real CSQ(serial_task_realistic_real x) { return x * x; }
 
+/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:
+ * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without
+ * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */
+static serial_task_realistic_real CFMIN(serial_task_realistic_real x, serial_task_realistic_real y) {
+  return x < y ? x : (y <= x ? y : CM(fmin)(x, y));
+}
+static serial_task_realistic_real CFMAX(serial_task_realistic_real x, serial_task_realistic_real y) {
+  return x > y ? x : (y >= x ? y : CM(fmax)(x, y));
+}
+
 
 /* The phase of w t per period (h s) in turns, as a 64-bit fraction (Q0.64: 2^64 is one
  * turn; the whole turns dropped). At init, in double: w h / 2pi is a few 1e-4, so the
@@ -600,7 +610,7 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a50=arg[13]? arg[13][0] : 0;
   a50=CSQ(a50);
   a31=CTINY(1.0000000000000000e-300);
-  a50=CM(fmax)(a50,a31);
+  a50=CFMAX(a50,a31);
   a18=(a18/a50);
   a18=(-a18);
   a18=CM(exp)(a18);
@@ -642,7 +652,7 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a41=CSQ(a36);
   a24=arg[13]? arg[13][1] : 0;
   a24=CSQ(a24);
-  a24=CM(fmax)(a24,a31);
+  a24=CFMAX(a24,a31);
   a41=(a41/a24);
   a41=(-a41);
   a41=CM(exp)(a41);
@@ -675,7 +685,7 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a41=CSQ(a47);
   a24=arg[13]? arg[13][2] : 0;
   a24=CSQ(a24);
-  a24=CM(fmax)(a24,a31);
+  a24=CFMAX(a24,a31);
   a41=(a41/a24);
   a41=(-a41);
   a41=CM(exp)(a41);
@@ -699,8 +709,8 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a27=arg[7]? arg[7][0] : 0;
   a40=arg[9]? arg[9][0] : 0;
   a25=(-a40);
-  a25=CM(fmax)(a46,a25);
-  a25=CM(fmin)(a25,a40);
+  a25=CFMAX(a46,a25);
+  a25=CFMIN(a25,a40);
   a25=(a46-a25);
   a00=(a00*a25);
   a00=(a27*a00);
@@ -738,8 +748,8 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a13=(a13*a25);
   a41=arg[9]? arg[9][1] : 0;
   a24=(-a41);
-  a24=CM(fmax)(a48,a24);
-  a24=CM(fmin)(a24,a41);
+  a24=CFMAX(a48,a24);
+  a24=CFMIN(a24,a41);
   a24=(a48-a24);
   a56=(a56*a24);
   a13=(a13+a56);
@@ -752,8 +762,8 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a26=(a26+a39);
   a39=arg[9]? arg[9][2] : 0;
   a41=(-a39);
-  a41=CM(fmax)(a49,a41);
-  a41=CM(fmin)(a41,a39);
+  a41=CFMAX(a49,a41);
+  a41=CFMIN(a41,a39);
   a41=(a49-a41);
   a34=(a34*a41);
   a26=(a26+a34);
@@ -843,7 +853,7 @@ static int serial_task_realistic_arm1_law(const serial_task_realistic_real** arg
   a04=(a04*a02);
   a52=(a02*a04);
   a41=(a41+a52);
-  a41=CM(fmax)(a41,a31);
+  a41=CFMAX(a41,a31);
   a18=(a18/a41);
   a27=(a27*a18);
   a27=(-a27);
@@ -1622,7 +1632,7 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a50=arg[13]? arg[13][0] : 0;
   a50=CSQ(a50);
   a31=CTINY(1.0000000000000000e-300);
-  a50=CM(fmax)(a50,a31);
+  a50=CFMAX(a50,a31);
   a18=(a18/a50);
   a18=(-a18);
   a18=CM(exp)(a18);
@@ -1664,7 +1674,7 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a41=CSQ(a36);
   a24=arg[13]? arg[13][1] : 0;
   a24=CSQ(a24);
-  a24=CM(fmax)(a24,a31);
+  a24=CFMAX(a24,a31);
   a41=(a41/a24);
   a41=(-a41);
   a41=CM(exp)(a41);
@@ -1697,7 +1707,7 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a41=CSQ(a47);
   a24=arg[13]? arg[13][2] : 0;
   a24=CSQ(a24);
-  a24=CM(fmax)(a24,a31);
+  a24=CFMAX(a24,a31);
   a41=(a41/a24);
   a41=(-a41);
   a41=CM(exp)(a41);
@@ -1721,8 +1731,8 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a27=arg[7]? arg[7][0] : 0;
   a40=arg[9]? arg[9][0] : 0;
   a25=(-a40);
-  a25=CM(fmax)(a46,a25);
-  a25=CM(fmin)(a25,a40);
+  a25=CFMAX(a46,a25);
+  a25=CFMIN(a25,a40);
   a25=(a46-a25);
   a00=(a00*a25);
   a00=(a27*a00);
@@ -1760,8 +1770,8 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a13=(a13*a25);
   a41=arg[9]? arg[9][1] : 0;
   a24=(-a41);
-  a24=CM(fmax)(a48,a24);
-  a24=CM(fmin)(a24,a41);
+  a24=CFMAX(a48,a24);
+  a24=CFMIN(a24,a41);
   a24=(a48-a24);
   a56=(a56*a24);
   a13=(a13+a56);
@@ -1774,8 +1784,8 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a26=(a26+a39);
   a39=arg[9]? arg[9][2] : 0;
   a41=(-a39);
-  a41=CM(fmax)(a49,a41);
-  a41=CM(fmin)(a41,a39);
+  a41=CFMAX(a49,a41);
+  a41=CFMIN(a41,a39);
   a41=(a49-a41);
   a34=(a34*a41);
   a26=(a26+a34);
@@ -1865,7 +1875,7 @@ static int serial_task_realistic_arm2_law(const serial_task_realistic_real** arg
   a04=(a04*a02);
   a20=(a02*a04);
   a41=(a41+a20);
-  a41=CM(fmax)(a41,a31);
+  a41=CFMAX(a41,a31);
   a18=(a18/a41);
   a27=(a27*a18);
   a27=(-a27);
