@@ -259,15 +259,6 @@ class ClosedLoop:
     def is_alias(self) -> bool:
         return self.symbol != self.name
 
-    @property
-    def inline_trig(self) -> bool:
-        """Whether its C takes each angle's sin and cos from one inline ``cochlea_sincos``
-        (:mod:`cochlea.kernels.trig`): the ideal plants' RK4 steps (``<unit>_plant_step``,
-        ``_plant_step_coulomb``, ``<unit>_armature_plant_step[_coulomb]``), not the geared
-        plant (``<unit>_gear_plant_step``: its backlash grows an ulp to 1e-2 rad over a
-        study), the controllers or the model's kernels, which keep libm bit for bit."""
-        return self.role == "plant" and not self.name.endswith("_gear_plant_step")
-
 
 def export(function: ca.Function, name: str, options: dict | None = None) -> ca.Function:
     """The same computation as ``function`` under ``name``, every output dense."""
