@@ -946,19 +946,29 @@ def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.
 
 
 def measurements(states: np.ndarray, delay, noise: np.ndarray | None = None,
-                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None
-                 ) -> np.ndarray:
+                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None,
+                 shifted: np.ndarray | None = None) -> np.ndarray:
     """What the controller saw in every period of a run, from the true states ``[q, qd]`` it
     logged: row k is ``states[max(k - delay, 0)] + noise[k]``, on the measurement grid where
     there is one; the same floating-point operations as the C driver (and
     :class:`MeasurementGrid`). ``delay``: whole periods, or per period (:func:`delay_ages`).
-    ``states`` itself when the plant measures exactly."""
+    ``states`` itself when the plant measures exactly. ``shifted``: those delayed rows
+    ``states[max(k - delay, 0)]`` (one delay), when the caller has them without a copy (a
+    view of the C driver's log: :meth:`cochlea.kernels.library.ClosedLoopLog.delayed`);
+    never written."""
     jitter = np.ndim(delay) > 0
     if not jitter and not delay and noise is None and quantum is None:
         return states
     if jitter:
         delay = np.asarray(delay)[:len(states)]
         seen = states[np.maximum(np.arange(len(states)) - delay, 0)]
+    elif shifted is not None:
+        if shifted.shape != states.shape:
+            raise ValueError(f"measurements: the shifted states are {shifted.shape}, the "
+                             f"states {states.shape}")
+        # The noise added into a new array: the same sums the copy and its += give.
+        seen = shifted if noise is None else np.add(shifted, noise[:len(states)])
+        return seen if quantum is None else quantise(seen, quantum, offset)
     else:  # one delay: the rows shifted by slices (a fancy index costs several times more)
         seen = np.empty_like(states)
         d = min(int(delay), len(states))
