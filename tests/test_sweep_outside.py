@@ -9,15 +9,24 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import shutil
+import time
+import tomllib
 
 import numpy as np
 import pytest
 
+from cochlea.apps import cochlea_sweep
+from cochlea.errors import CochleaError
 from cochlea.kernels import library as ckernels
 from cochlea.kernels.library import LibraryError
+from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.sim import compiled, load_scenario, unit_setups
+from cochlea.sim import scenario as scenario_mod
 from cochlea.sim.setup import measurements, quantise
+from cochlea.sweep import sampling
+from cochlea.sweep import spec as sweep_spec
 
 # --------------------------------------------------------------------------------------------
 # The library: found again in one stat, never a file it no longer names
@@ -175,3 +184,188 @@ def test_quantise_reads_a_read_only_view():
 def test_no_cache_of_this_pass_outlives_its_bound():
     assert len(compiled._UNIT_KERNELS) <= compiled.UNIT_KERNEL_CACHE_SIZE
     assert all(os.path.isabs(v[2]) for v in ckernels._FOUND.values())
+
+
+# --------------------------------------------------------------------------------------------
+# A scenario: taken from the template of its structure, only the plant and the gains read
+# --------------------------------------------------------------------------------------------
+
+
+def _same(a, b, where="scenario"):
+    """Equal field by field, of the same types, arrays bit for bit (the system by identity)."""
+    assert type(a) is type(b), where
+    if dataclasses.is_dataclass(a):
+        for f in dataclasses.fields(a):
+            if f.name == "system":
+                assert getattr(a, f.name) is getattr(b, f.name), where
+            else:
+                _same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), where
+        assert a is not b or a.size == 0, f"{where}: shared"
+    elif isinstance(a, (tuple, list)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, dict):
+        assert list(a) == list(b), where
+        for k in a:
+            _same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, float) and np.isnan(a):
+        assert np.isnan(b), where
+    else:
+        assert a == b and (not isinstance(a, float) or repr(a) == repr(b)), where
+
+
+def _full(path, data, preset=None):
+    """The scenario read whole, as before the templates."""
+    scenario_mod.check_nesting(scenario_mod.resolve(path), data)
+    return scenario_mod._load(scenario_mod.resolve(path), preset, data)[0]
+
+
+SPEC_TEXT = """format = "cochlea-sweep/1"
+scenario = "{study}"
+samples = 4
+seed = 9
+
+[perturb]
+mass_scale = {{uniform = [0.7, 1.3]}}
+payload_kg = {{uniform = [0.0, 0.05]}}
+delay_periods = {{choice = [0, 1, 2]}}
+{extra}
+"""
+
+
+@pytest.mark.parametrize("study", ["serial_joint", "serial_task", "parallel_joint",
+                                   "parallel_task_realistic", "serial_joint_realistic"])
+@pytest.mark.parametrize("preset", [None, "realistic"])
+def test_every_sample_s_scenario_is_what_the_full_load_reads(study, preset, tmp_path):
+    gains = {"serial_joint": "[gains.arm1]\nalpha = {uniform = [1.0, 9.0]}",
+             "serial_task": "[gains.arm2]\nG_g = {uniform = [1.0, 9.0], each = true}"}.get(
+                 study, "")
+    path = tmp_path / "spec.toml"
+    path.write_text(SPEC_TEXT.format(study=study, extra=gains))
+    spec = sweep_spec.load(path)
+    for i in range(spec.total):
+        data = sampling.scenario_data(spec, i)
+        fast = load_scenario(cochlea_sweep.SAMPLE_FILE, preset, data=data)
+        _same(fast, _full(cochlea_sweep.SAMPLE_FILE, sampling.scenario_data(spec, i), preset))
+        assert data == sampling.scenario_data(spec, i)  # the data is not changed
+    # The same from a file and from its text.
+    text = sampling.scenario_text(spec, 1)
+    (tmp_path / "sample.toml").write_text(text)
+    for sc in (load_scenario(tmp_path / "sample.toml", preset),
+               load_scenario(tmp_path / "sample.toml", preset, text=text)):
+        _same(sc, _full(tmp_path / "sample.toml", tomllib.loads(text), preset))
+
+
+def _sample(**changes) -> dict:
+    data = tomllib.loads((SCENARIOS_DIR / "serial_joint.toml").read_text())
+    for dotted, value in changes.items():
+        *parents, last = dotted.split("/")
+        table = data
+        for p in parents:
+            table = table[int(p)] if p.isdigit() else table.setdefault(p, {})
+        table[last] = value
+    return data
+
+
+@pytest.mark.parametrize("change", [
+    {"duration_s": 7.0}, {"duration_s": 7}, {"control/rate_Hz": 500.0},
+    {"control/estimate_bound": 5.0}, {"control/variant": "thesis"},
+    {"unit/0/initial_joint": ["74 deg", "83 deg", "110 deg"]},
+    {"unit/1/elbow": 1}, {"desired/define": {"w": "0.5"}},
+    {"control/adaptation_deadzone_SI": [0.0, -0.0, 0.0]},
+    {"control/adaptation_deadzone_SI": [0.0, 0.0, 0.0]},
+    {"control/adaptation_deadzone_SI": [0, 0, 0]},
+])
+def test_a_scenario_that_differs_elsewhere_is_read_whole(change):
+    """Anything but the plant and the gains (a float's sign, an int for a float) is part of
+    the template's key: a scenario that differs there is never given another's."""
+    load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample())  # the template of the base
+    try:
+        expected = _full(cochlea_sweep.SAMPLE_FILE, _sample(**change))
+    except CochleaError as exc:
+        with pytest.raises(CochleaError, match=re.escape(str(exc))):
+            load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample(**change))
+        return
+    for _ in range(2):  # read whole, then from its own template
+        _same(load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample(**change)), expected)
+
+
+@pytest.mark.parametrize("change", [
+    {"unit/0/gains/alpha": [5.0, 4.0, -3.0]}, {"unit/0/gains/alpha": [5.0, 4.0]},
+    {"unit/1/gains/K_e": "0.2"}, {"unit/1/gains/extra": [1.0]}, {"unit/0/gains": 5},
+    {"plant/payload_kg": -1.0}, {"plant/mass_scale": [1.0]}, {"plant/unknown": 1},
+    {"plant/plant": "gentle"}, {"plant/seed": 2**64}, {"plant": [1, 2]},
+    {"plant/encoder_noise_counts": 1},
+])
+def test_a_bad_plant_or_gain_is_refused_as_by_the_full_load(change):
+    good = load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample(**{"plant/payload_kg": 0.01}))
+    assert good.plant.payload_kg == 0.01
+    with pytest.raises(CochleaError) as full:
+        _full(cochlea_sweep.SAMPLE_FILE, _sample(**change))
+    for _ in range(2):
+        with pytest.raises(CochleaError) as fast:
+            load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample(**change))
+        assert str(fast.value) == str(full.value) and type(fast.value) is type(full.value)
+
+
+def test_gains_read_before_are_copies_and_a_scenario_s_arrays_its_own():
+    first = load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample())
+    first.units[0].gains["alpha"][:] = 99.0
+    first.units[0].initial_joint[:] = 99.0
+    second = load_scenario(cochlea_sweep.SAMPLE_FILE, data=_sample())
+    _same(second, _full(cochlea_sweep.SAMPLE_FILE, _sample()))
+    other = load_scenario(cochlea_sweep.SAMPLE_FILE,
+                          data=_sample(**{"unit/0/gains/alpha": [1.0, 2.0, 3.0]}))
+    assert other.units[0].gains["alpha"].tolist() == [1.0, 2.0, 3.0]
+    assert second.units[0].gains["alpha"].tolist() == [5.0, 4.0, 3.0]
+
+
+def test_the_template_is_not_used_for_another_description_file(tmp_path):
+    """A user's description named by path: edited (another content, even one of the same
+    size written within the same clock tick), the scenario gets the new system."""
+    source = (ROBOTS_DIR / "serial.toml").read_text()
+    desc = tmp_path / "robot.toml"
+    desc.write_text(source)
+    old = time.time_ns() - 10**10
+    os.utime(desc, ns=(old, old))  # settled: the next loads do not read it again
+    data = _sample(description=str(desc))
+    first = load_scenario(cochlea_sweep.SAMPLE_FILE, data=data)
+    assert load_scenario(cochlea_sweep.SAMPLE_FILE, data=data).system is first.system
+    edited = source.replace("0.", "1.", 1)
+    assert len(edited) == len(source) and edited != source
+    desc.write_text(edited)
+    os.utime(desc, ns=(old, old))  # the same size and times of change: its status changed
+    second = load_scenario(cochlea_sweep.SAMPLE_FILE, data=data)
+    assert second.system is not first.system
+    desc.write_text(source)  # back: the first content's system again
+    assert load_scenario(cochlea_sweep.SAMPLE_FILE, data=data).system is first.system
+    desc.unlink()
+    with pytest.raises(CochleaError, match="robot.toml"):
+        load_scenario(cochlea_sweep.SAMPLE_FILE, data=data)
+
+
+def test_a_description_changed_in_its_last_seconds_is_read_every_time(tmp_path, monkeypatch):
+    desc = tmp_path / "robot.toml"
+    desc.write_text((ROBOTS_DIR / "serial.toml").read_text())
+    reads = []
+    real = scenario_mod.robot_adapter("serial").load
+
+    def counted(description):
+        reads.append(description)
+        return real(description)
+
+    monkeypatch.setattr(scenario_mod.robot_adapter("serial"), "load", counted)
+    opened = []
+    monkeypatch.setattr(scenario_mod, "_file_state",
+                        lambda p: opened.append(p) or _state(p))
+    for _ in range(3):
+        scenario_mod.load_system("serial", str(desc))
+    assert len(opened) == 3  # fresh: its state read, and the file with it, every time
+
+
+def _state(path):
+    st = os.stat(path)
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
