@@ -14,6 +14,7 @@ import shutil
 import time
 import tomllib
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -25,6 +26,7 @@ from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
 from cochlea.runtime import supervisor as sv
 from cochlea.sim import compiled, load_scenario, unit_setups
 from cochlea.sim import scenario as scenario_mod
+from cochlea.sim import setup as setup_mod
 from cochlea.sim.setup import measurements, quantise
 from cochlea.sweep import sampling
 from cochlea.sweep import spec as sweep_spec
@@ -425,3 +427,33 @@ def test_row_squares_are_the_old_ones_bit_for_bit(columns):
     p = rng.normal(size=(3001, columns)) * 10.0 ** rng.integers(-150, 150, size=columns)
     p[7, 0], p[9, -1] = np.nan, np.inf
     assert sv.row_squares(p).tobytes() == _old_row_squares(p).tobytes()
+
+
+# --------------------------------------------------------------------------------------------
+# The gravity check: G_p through buffers, the call's numbers
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("study", ["serial_joint", "parallel_task_realistic"])
+def test_gravity_through_buffers_is_the_call_bit_for_bit(study):
+    rng = np.random.default_rng(1)
+    for u in unit_setups(load_scenario(study), gravity=False):
+        G = u.plant_model.G_p
+        for _ in range(20):
+            q = rng.uniform(-2, 2, u.controller_model.nq)
+            p = u.plant_params * rng.uniform(0.5, 2.0, len(u.plant_params))
+            got = setup_mod.evaluate_column(G, q, p)
+            assert got.tobytes() == np.array(G(q, p), float).ravel().tobytes()
+        # Not its sizes: the call's own result or error, as before.
+        with pytest.raises(RuntimeError):
+            setup_mod.evaluate_column(G, np.zeros(u.controller_model.nq + 1), u.plant_params)
+
+
+def test_a_function_with_a_sparse_output_is_called_as_before():
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f", [x], [ca.vertcat(x[0] * 2, ca.SX(1, 1))])  # a structural zero
+    assert not f.sparsity_out(0).is_dense()
+    assert setup_mod.evaluate_column(f, np.array([1.5, 2.0])).tolist() == [3.0, 0.0]
+    g = ca.Function("g", [x], [x * 3])
+    assert setup_mod.evaluate_column(g, np.array([1.0, -2.0])).tolist() == [3.0, -6.0]
+    assert setup_mod.evaluate_column(g, np.array([2.0, 1.0])).tolist() == [6.0, 3.0]
