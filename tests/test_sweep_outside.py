@@ -8,6 +8,7 @@ differs. Each cache here is shown to miss on a changed input."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import re
 import shutil
@@ -18,13 +19,14 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from cochlea.apps import cochlea_sweep
+from cochlea.apps import cochlea_sweep, report
 from cochlea.errors import CochleaError
 from cochlea.kernels import library as ckernels
 from cochlea.kernels.library import LibraryError
 from cochlea.resources import ROBOTS_DIR, SCENARIOS_DIR
+from cochlea.runtime import build_supervisor
 from cochlea.runtime import supervisor as sv
-from cochlea.sim import compiled, load_scenario, unit_setups
+from cochlea.sim import compiled, load_scenario, simulate, unit_setups
 from cochlea.sim import scenario as scenario_mod
 from cochlea.sim import setup as setup_mod
 from cochlea.sim.setup import measurements, quantise
@@ -457,3 +459,58 @@ def test_a_function_with_a_sparse_output_is_called_as_before():
     g = ca.Function("g", [x], [x * 3])
     assert setup_mod.evaluate_column(g, np.array([1.0, -2.0])).tolist() == [3.0, -6.0]
     assert setup_mod.evaluate_column(g, np.array([2.0, 1.0])).tolist() == [6.0, 3.0]
+
+
+# --------------------------------------------------------------------------------------------
+# A sweep's row: from a summary of only what it reads, bit for bit the full summary's row
+# --------------------------------------------------------------------------------------------
+
+
+def _row_both_ways(result, setups, sup):
+    reductions = [sv.log_reductions(u) for u in result.units]
+    result.supervisor = sv.verdict(result, sup, reductions)
+    limits = {u.name: {j.name: float(lim) for j, lim in
+                       zip(u.controller_model.joints, u.effort_limit)} for u in setups}
+    full = report.summary(result, 0.0, reductions=reductions)
+    row = report.summary(result, 0.0, reductions=reductions, row=True)
+    a, b = cochlea_sweep.measures(full, limits), cochlea_sweep.measures(row, limits)
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+    # Everything but the measured error and a settled norm is the full summary's.
+    for name, u in row["units"].items():
+        for coord, c in u["tracked"].items():
+            for key, value in c.items():
+                if not key.startswith("measured_"):
+                    assert repr(value) == repr(full["units"][name]["tracked"][coord][key])
+        e, f = u["estimates"], full["units"][name]["estimates"]
+        assert e["bounded"] == f["bounded"]
+        assert e["max_norm"] is None or repr(e["max_norm"]) == repr(f["max_norm"])
+    return a
+
+
+@pytest.mark.parametrize("study", ["serial_joint", "serial_task", "parallel_joint",
+                                   "parallel_task", "serial_task_realistic"])
+def test_a_row_from_the_row_s_summary_is_the_full_summary_s(study, tmp_path):
+    path = tmp_path / "spec.toml"
+    path.write_text(SPEC_TEXT.format(study=study, extra="").replace(
+        "samples = 4", "samples = 2\nduration_s = 2.0"))
+    spec = sweep_spec.load(path)
+    for i in range(spec.total):
+        sc = load_scenario(cochlea_sweep.SAMPLE_FILE, data=sampling.scenario_data(spec, i))
+        setups = unit_setups(sc)
+        result = simulate(sc, None, setups, threads=False)
+        sup = build_supervisor(setups, sc.system.keep_out_radius, substeps=sc.plant_substeps)
+        _row_both_ways(result, setups, sup)
+        # Estimates at, past and far past the bound, not finite, or overflowing a square.
+        for u in result.units:
+            p, bound = u.p_hat.copy(), u.setup.bound
+            direction = np.ones(p.shape[1]) / np.sqrt(p.shape[1])
+            for k, value in enumerate([bound * (1 + 1e-9) * direction, bound * direction,
+                                       bound * (1 - 1e-13) * direction,
+                                       bound * (1 + 2e-9) * direction, 1e200 * direction,
+                                       np.nan * direction, np.inf * direction]):
+                u.p_hat = p.copy()
+                u.p_hat[(k * 37) % len(p)] = value
+                row = _row_both_ways(result, setups, sup)
+                if k in (3, 4, 5, 6):
+                    assert row["estimate_bound_hit"]
+            u.p_hat = p
