@@ -525,8 +525,15 @@ def row_squares(p: np.ndarray) -> np.ndarray:
     them."""
     if not 0 < p.shape[1] <= _COLUMN_SUMS:
         return np.einsum("ij,ij->i", p, p)
-    # Every square at once (one contiguous pass), then the columns added in order: the same
-    # products and sums as squaring a column at a time.
+    if p.shape[1] <= 3:  # a column at a time: two scratch rows, no array of every square
+        total = np.multiply(p[:, 0], p[:, 0])
+        square = np.empty_like(total)
+        for j in range(1, p.shape[1]):
+            total += np.multiply(p[:, j], p[:, j], out=square)
+        return total
+    # More columns: every square at once (one contiguous pass), then the columns added in
+    # order: the same products and sums as squaring a column at a time, in fewer strided
+    # passes (a sweep's worker: the parallel mechanism's estimates, 1.5 -> 1.1 ms a verdict).
     squares = np.square(p)
     total = squares[:, 0].copy()
     for j in range(1, p.shape[1]):
