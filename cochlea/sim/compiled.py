@@ -27,6 +27,7 @@ warning and the CasADi reference runs.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
 from collections import OrderedDict
@@ -112,12 +113,14 @@ def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKern
            pm.name, substeps, u.drive is not None, bool(u.gearbox), id(u.fk_world))
     hit = _UNIT_KERNELS.get(key)
     if hit is not None:
-        _UNIT_KERNELS.move_to_end(key)
+        with contextlib.suppress(KeyError):  # another thread may have let it go meanwhile
+            _UNIT_KERNELS.move_to_end(key)
         return hit[1]
     found = _unit_kernels(lib, u, substeps)
     _UNIT_KERNELS[key] = ((lib, c.step, pm, u.fk_world), found)  # their ids stay theirs
     while len(_UNIT_KERNELS) > UNIT_KERNEL_CACHE_SIZE:
-        _UNIT_KERNELS.popitem(last=False)
+        with contextlib.suppress(KeyError):
+            _UNIT_KERNELS.popitem(last=False)
     return found
 
 

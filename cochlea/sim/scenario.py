@@ -10,6 +10,7 @@ the controller's nominal model. Every quantity with a dimension is written with 
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import math
@@ -348,7 +349,8 @@ def load_system(robot: str, description: str | Path):
     if before is not None and before[3] < time.time_ns() - _SETTLED_NS:
         _SEEN[named] = (adapter, str(path), before, system)
         while len(_SEEN) > SYSTEM_CACHE_SIZE:
-            _SEEN.pop(next(iter(_SEEN)))
+            with contextlib.suppress(KeyError, RuntimeError, StopIteration):
+                _SEEN.pop(next(iter(_SEEN)))
     return system
 
 
@@ -530,7 +532,8 @@ def load(name_or_path: str | Path, plant_preset: str | None = None, *,
     _FRAMES[key] = (scenario, layout, robot_adapter(scenario.robot),
                     controller_of(scenario.robot, scenario.space), {})
     while len(_FRAMES) > FRAME_CACHE_SIZE:
-        _FRAMES.popitem(last=False)
+        with contextlib.suppress(KeyError):  # a dask worker's threads load at once
+            _FRAMES.popitem(last=False)
     # The template keeps its own arrays: what a caller does to its scenario stays there.
     return _instance(scenario, path, [u.gains for u in scenario.units], scenario.plant)
 
@@ -758,7 +761,8 @@ def _known(key: tuple, frozen_gains: tuple, path: Path, plant_preset: str | None
         plant = _plant(top.table("plant") if "plant" in top.data else None, layout, plant_preset)
     except Exception:  # noqa: BLE001 (the full load raises it, with its own message)
         return None
-    _FRAMES.move_to_end(key)
+    with contextlib.suppress(KeyError):  # another thread may have let it go meanwhile
+        _FRAMES.move_to_end(key)
     return _instance(template, path, gains, plant)
 
 
