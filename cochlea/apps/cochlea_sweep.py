@@ -135,7 +135,8 @@ def evaluate(sample: str | dict, cache: bool = True, kernels: str = "auto",
     result.supervisor = verdict(result, supervisor, reductions)
     limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
                                                            u.effort_limit)} for u in setups}
-    return measures(report.summary(result, wall, reductions=reductions), limits)
+    # Only what the row reads (no summary.json is written): the same row, bit for bit.
+    return measures(report.summary(result, wall, reductions=reductions, row=True), limits)
 
 
 #: glibc's mallopt() parameters (malloc.h) and what a worker sets them to: blocks up to 32 MiB

@@ -195,21 +195,26 @@ class _UnitStats:
     the run is judged on (the true one where the run knows the true state) and the error the
     controller measured."""
 
-    def __init__(self, periods: int):
+    def __init__(self, periods: int, row: bool = False):
         tail_start = int(periods * (1 - TAIL_FRACTION))
         self.judged = _ErrorStats(tail_start)
-        self.measured = _ErrorStats(tail_start)
+        self.measured = None if row else _ErrorStats(tail_start)
         self.tau_max = None
         self.max_norm = np.zeros(())
         self.finite = True
         self.last = None  # the last period, as a one-row UnitLog
+        #: Only what a sweep's row reads (:func:`summary`'s ``row``): no measured error, and
+        #: the largest estimate norm left out (None) where the rows' squares settle that
+        #: every estimate is inside its bound.
+        self.row = row
 
     def add(self, u: UnitLog, start: int, reduced: LogReductions | None = None) -> None:
         """``reduced``: the reductions of this ``u`` (a whole run), when the caller has them."""
         rows = len(u.q)
         if not rows:
             return
-        self.measured.add(lambda part: _measured_error(u, part), rows, start)
+        if self.measured is not None:
+            self.measured.add(lambda part: _measured_error(u, part), rows, start)
         self.judged.add(lambda part: _judged_error(u, part), rows, start)
         # Each column's largest |effort| from its extremes, all columns in one blocked pass
         # (a NaN makes both NaN; np.abs makes a -0.0 the 0.0 it gave column by column).
@@ -217,12 +222,29 @@ class _UnitStats:
                                                                    reduced.tau_high)
         peaks = np.abs(np.maximum(high, -low))
         self.tau_max = peaks if self.tau_max is None else np.maximum(self.tau_max, peaks)
+        # (A row's summary is of a run in memory, one chunk: summary() gives streamed runs
+        # no reductions.)
+        if self.row and reduced is not None and _inside(reduced.p_squares, u.setup.bound):
+            self.max_norm = None  # every estimate finite and inside the bound: not needed
+            self.last = _rows(u, slice(-1, None), _LAST_FIELDS)
+            return
         largest = _largest_norm(u.p_hat, None if reduced is None else reduced.p_squares)
         self.max_norm = np.maximum(self.max_norm, largest)
         # A finite largest norm: every estimate finite (a NaN or an infinity makes its norm so).
         self.finite = self.finite and bool(np.isfinite(largest)
                                            or np.isfinite(u.p_hat).all())
         self.last = _rows(u, slice(-1, None), _LAST_FIELDS)
+
+
+def _inside(squares: np.ndarray, bound: float) -> bool:
+    """Whether every row whose squares these are (:func:`~cochlea.runtime.supervisor.
+    row_squares`, summed in any order) has a finite norm within ``bound`` as the summary
+    judges it (``np.linalg.norm`` at most ``bound (1 + 1e-9)``), from the largest sum alone:
+    finite (no NaN, no infinity, no overflow) and below the bound's square with a slack far
+    wider than two sums' rounding. False: undecided (the norm decides)."""
+    top = squares.max(initial=0.0)
+    limit = bound * (1 + 1e-9)
+    return bool(np.isfinite(top)) and top * (1 + 1e-12) <= limit * limit * (1 - 1e-12)
 
 
 def unit_summary(u: UnitLog, position_quantum: np.ndarray | None = None) -> dict:
@@ -258,7 +280,8 @@ def _unit_summary(u: UnitLog, stats: _UnitStats,
                 final_rms <= CONVERGENCE_RATIO * initial or final_rms <= floor))
 
         initial, final_rms, converged = judge(stats.judged)
-        m_initial, m_final_rms, m_converged = judge(stats.measured)
+        m_initial, m_final_rms, m_converged = (None, None, None) if stats.measured is None \
+            else judge(stats.measured)
         tracked[name] = {
             "unit": unit,
             # Judged: of the true state where the run has it (summary's judged_error).
@@ -280,7 +303,7 @@ def _unit_summary(u: UnitLog, stats: _UnitStats,
     for i, (j, unit) in enumerate(zip(u.setup.controller_model.joints, u.setup.joint_units)):
         peak = 0.0 if stats.tau_max is None else float(stats.tau_max[i])
         torque[j.name] = {"unit": _UNIT_TEXT[_EFFORT_UNIT[unit]], "max_abs": peak}
-    max_norm = float(stats.max_norm)
+    max_norm = None if stats.max_norm is None else float(stats.max_norm)
     params = u.setup.controller_model.parameters
     return {
         "tracked": tracked,
@@ -291,7 +314,8 @@ def _unit_summary(u: UnitLog, stats: _UnitStats,
             "units": list(params.si_units),
             "bound_norm": u.setup.bound,
             "max_norm": max_norm,
-            "bounded": bool(stats.finite and max_norm <= u.setup.bound * (1 + 1e-9)),
+            "bounded": max_norm is None or bool(stats.finite
+                                                and max_norm <= u.setup.bound * (1 + 1e-9)),
             "final": [float(v) for v in stats.last.p_hat[-1]] if stats.last is not None
             else None,
             "nominal": [float(v) for v in u.setup.controller_model.p_nominal],
@@ -316,14 +340,20 @@ def _position_quantum(u: UnitLog, position_quantum: np.ndarray | None) -> dict |
 def summary(result: SimulationResult, wall_time_s: float | None = None,
             timing: dict | None = None, realtime: dict | None = None,
             position_quantum: dict | None = None,
-            reductions: list[LogReductions] | None = None) -> dict:
+            reductions: list[LogReductions] | None = None, row: bool = False) -> dict:
     """``position_quantum``: per unit name, its joints' encoder counts (SI) when the run
     measured real drives (a hardware run); the convergence floor then knows them.
     ``reductions``: each unit's :func:`~cochlea.runtime.supervisor.log_reductions` of this
     result held in memory, when the caller has them (a sweep's worker: the verdict read them
-    too); the same summary either way."""
+    too); the same summary either way.
+
+    ``row``: only what a sweep's row reads (:func:`cochlea.apps.cochlea_sweep.measures`),
+    for a worker that writes no summary.json: every coordinate's ``measured_*`` entries are
+    None (the measured error is not computed), and so is an estimate's ``max_norm`` where
+    the shared reductions' row squares settle that it is ``bounded``; every other entry as
+    without it, bit for bit."""
     sc = result.scenario
-    stats = [_UnitStats(result.periods) for _ in result.units]
+    stats = [_UnitStats(result.periods, row) for _ in result.units]
     start = 0
     # A run in memory is read whole (its sums in the same pieces as a streamed run's chunks:
     # _ErrorStats.add), a streamed one a chunk at a time.

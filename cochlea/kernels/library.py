@@ -38,6 +38,7 @@ import ctypes
 import functools
 import json
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,13 +122,45 @@ def _load(path: str) -> Library:
     return Library(path)
 
 
+#: What :func:`load` found for each way of naming a library (the argument, ``$COCHLEA_LIB``
+#: and, for a relative name, the working directory): the file's path as named, the file
+#: itself (device and inode) and its real path. A sweep's worker asks for the library every
+#: sample; resolving the checkout's folder and the real path each time cost 0.1-0.2 ms.
+_FOUND: dict[tuple, tuple[str, tuple[int, int], str]] = {}
+
+
+def _file_id(path: str) -> tuple[int, int] | None:
+    """The regular file ``path`` names (symbolic links followed): ``(device, inode)``, or
+    None when there is none."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
+
+
 def load(path: str | Path | None = None) -> Library:
-    """The library (opened once per path and process)."""
+    """The library (opened once per path and process).
+
+    Found again in one ``stat`` when asked for the same way as before: the name it was
+    found by must still name the same file (device and inode), else it is looked up anew
+    (a moved link or a rebuilt file at the link's target gets its own real path)."""
+    env = os.environ.get(ENVIRONMENT) if path is None else None
+    named = path if path is not None else env
+    key = (None if path is None else os.fspath(path), env,
+           None if named is not None and os.path.isabs(named) else os.getcwd())
+    hit = _FOUND.get(key)
+    if hit is not None and _file_id(hit[0]) == hit[1]:
+        return _load(hit[2])
     resolved = library_path(path)
     if not resolved.is_file():
         raise LibraryError(f"the C kernels' library {resolved} does not exist: build it with "
                            "`make lib` (it compiles generated_c/; no Python needed)")
-    return _load(str(resolved.resolve()))
+    real = str(resolved.resolve())
+    found = _file_id(str(resolved))
+    if found is not None and found == _file_id(real):
+        _FOUND[key] = (str(resolved), found, real)
+    return _load(real)
 
 
 class Library:
@@ -152,6 +185,7 @@ class Library:
                                f" expected {MANIFEST_FORMAT!r}: rebuild with `make lib`")
         self._signatures: dict[str, Signature] = {}
         self._functions: dict[str, ctypes._CFuncPtr] = {}
+        self._closed_loops: dict[str, ClosedLoop] = {}
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -237,7 +271,15 @@ class Library:
         return Kernel(self.function(name), self.signature(name), buffers)
 
     def closed_loop(self, name: str) -> ClosedLoop:
-        """Bind the generated closed-loop driver ``name`` (see generated_c/README.md)."""
+        """Bind the generated closed-loop driver ``name`` (see generated_c/README.md): once
+        per library and name (a driver keeps nothing of a run; a sweep runs one every
+        sample)."""
+        loop = self._closed_loops.get(name)
+        if loop is None:
+            loop = self._closed_loops[name] = self._bind_closed_loop(name)
+        return loop
+
+    def _bind_closed_loop(self, name: str) -> ClosedLoop:
         try:
             meta = self.manifest["closed_loops"][name]
         except KeyError:
@@ -344,6 +386,22 @@ class ClosedLoopLog:
     tau: np.ndarray  # (N, nq)
     errors: np.ndarray  # (N, ne)
     pose: np.ndarray  # (N, npose)
+    #: Rows in front of ``x`` in its buffer ``padded`` (``ClosedLoop.run``'s ``lead``; ``x``
+    #: is ``padded[lead:]``), each a copy of its first row once the run logged one:
+    #: :meth:`delayed` reads them.
+    lead: int = 0
+    padded: np.ndarray | None = None
+
+    def delayed(self, delay: int, rows: int) -> np.ndarray | None:
+        """The first ``rows`` logged states each ``delay`` periods earlier (the first state
+        before the first period): ``x[max(k - delay, 0)]`` for row k, the same values as that
+        gather, as a read-only view of the log's buffer without a copy; None when the buffer
+        has fewer than ``delay`` rows in front."""
+        if not 0 <= delay <= self.lead or not 0 < rows <= len(self.x) or self.padded is None:
+            return None
+        view = self.padded[self.lead - delay:self.lead - delay + rows]
+        view.flags.writeable = False
+        return view
 
 
 class ClosedLoop:
@@ -371,7 +429,7 @@ class ClosedLoop:
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
             offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
             effort_bound=None, effort_offset=None, effort_ramp=None,
-            robust=None, delays=None, torque_scale=None) -> ClosedLoopLog:
+            robust=None, delays=None, torque_scale=None, lead: int = 0) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call.
         ``x0`` is the plant's initial state (``nx``); ``coulomb`` its 6th input (``n_drive``
         values: the dry friction's rows, or the gear plant's drive). ``effort_quantum`` and
@@ -382,7 +440,8 @@ class ClosedLoop:
         that order; default: the neutral ones). ``delays`` (n whole periods, each >= 0): each
         period's own delay, instead of ``delay`` (the jittering delay). ``torque_scale`` (nq):
         the plant gets the applied efforts times it (the motors' torque-constant error); the
-        log keeps the applied efforts."""
+        log keeps the applied efforts. ``lead``: rows the state log's buffer holds in front of
+        it, each the first logged state after the run (:meth:`ClosedLoopLog.delayed`)."""
         nq, nd = self.nq, self.n_desired
         if robust is None:
             robust = (np.zeros(nq), np.full(self.n_params, -np.inf),
@@ -424,9 +483,12 @@ class ClosedLoop:
             delays = np.ascontiguousarray(delays, dtype=np.int64)
             if delays.shape != (n,) or (n and delays.min() < 0):
                 raise KernelError(f"{self.name}: delays must be {n} whole periods, each >= 0")
-        log = ClosedLoopLog(0, np.empty((n, 2 * nq)), np.empty((n, self.n_params)),
+        if not isinstance(lead, int) or isinstance(lead, bool) or lead < 0:
+            raise KernelError(f"{self.name}: lead must be whole rows, >= 0, got {lead!r}")
+        states = np.empty((n + lead, 2 * nq))
+        log = ClosedLoopLog(0, states[lead:] if lead else states, np.empty((n, self.n_params)),
                             np.empty((n, nq)), np.empty((n, self.n_errors)),
-                            np.empty((n, self.n_pose)))
+                            np.empty((n, self.n_pose)), lead, states)
         rows = _int(0)
         flag = self._fn(n, delay, None if delays is None else delays.ctypes.data,
                         ins["x0"].ctypes.data, ins["p_hat0"].ctypes.data,
@@ -449,4 +511,6 @@ class ClosedLoop:
         if flag:
             raise KernelError(f"{self.name}: a kernel returned code {flag}")
         log.rows = rows.value
+        if lead and log.rows:
+            states[:lead] = log.x[0]
         return log

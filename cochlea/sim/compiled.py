@@ -27,6 +27,7 @@ warning and the CasADi reference runs.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
 from collections import OrderedDict
@@ -96,9 +97,35 @@ def _plant(u: UnitSetup, substeps: int):
     return _PLANTS[key][1]
 
 
+#: Units whose kernels :func:`unit_kernels` found and checked, by everything it reads (the
+#: Functions by identity, kept alive with the entry, the names and options by value).
+UNIT_KERNEL_CACHE_SIZE = 64
+_UNIT_KERNELS: OrderedDict[tuple, tuple[tuple, UnitKernels]] = OrderedDict()
+
+
 def unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKernels:
     """Find a unit's kernels in the library and check they compute what the setup does
-    (source hashes; computed once per Function object)."""
+    (source hashes; computed once per Function object). A unit found before in the same
+    library, with the same Functions, names and plant options (a sweep's samples of one
+    structure), is not looked up and checked again; a failure is never kept."""
+    c, m, pm = u.controller, u.controller_model, u.plant_model
+    key = (id(lib), id(c.step), c.kind, c.variant, m.name, m.actuators, id(pm), pm.actuators,
+           pm.name, substeps, u.drive is not None, bool(u.gearbox), id(u.fk_world))
+    hit = _UNIT_KERNELS.get(key)
+    if hit is not None:
+        with contextlib.suppress(KeyError):  # another thread may have let it go meanwhile
+            _UNIT_KERNELS.move_to_end(key)
+        return hit[1]
+    found = _unit_kernels(lib, u, substeps)
+    _UNIT_KERNELS[key] = ((lib, c.step, pm, u.fk_world), found)  # their ids stay theirs
+    while len(_UNIT_KERNELS) > UNIT_KERNEL_CACHE_SIZE:
+        with contextlib.suppress(KeyError):
+            _UNIT_KERNELS.popitem(last=False)
+    return found
+
+
+def _unit_kernels(lib: ckernels.Library, u: UnitSetup, substeps: int) -> UnitKernels:
+    """:func:`unit_kernels`, looked up and checked."""
     c = u.controller
     group = controller_kernel_name(unit_prefix(u.controller_model), c.kind, c.variant, "",
                                    u.controller_model.actuators)[:-1]
@@ -181,7 +208,10 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
     xd, xd_dot, xd_ddot = desired
     grid = u.effort_grid
     jitter = np.ndim(delay) > 0
-    return loop.run(len(xd), x0=u.plant_x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot,
+    # One delay: its rows in front of the state log, so the measured states are a view of it
+    # (ClosedLoopLog.delayed), not a copy of the whole log.
+    lead = 0 if jitter else min(int(delay), len(xd))
+    return loop.run(len(xd), lead=lead, x0=u.plant_x0, p_hat0=u.p_hat0, xd=xd, xd_dot=xd_dot,
                     xd_ddot=xd_ddot, gains=u.gains, Gamma=u.gamma, bound=u.bound, h=h,
                     plant_p=u.plant_params, friction=u.friction, noise=noise,
                     delay=0 if jitter else delay, delays=delay if jitter else None,
@@ -191,6 +221,14 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
                     effort_offset=None if grid is None else grid.offset,
                     effort_ramp=None if grid is None else grid.ramp,
                     robust=u.robust_inputs, torque_scale=u.torque_scale)
+
+
+def _shifted(log: ckernels.ClosedLoopLog, delay, rows: int) -> np.ndarray | None:
+    """The first ``rows`` logged states ``delay`` periods earlier, a view of the log (one
+    delay, a C driver's log with its rows in front), else None."""
+    if np.ndim(delay) > 0 or not delay or not rows:
+        return None
+    return log.delayed(int(delay), rows)
 
 
 def run_python(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float,
@@ -339,7 +377,7 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
             diverged[u.name] = float(time[rows - 1])
         X = r.x[:rows]
         # What the controller saw, from the true states as the driver measured them.
-        seen = measurements(X, delay, noise, u.quantum, u.grid_offset)
+        seen = measurements(X, delay, noise, u.quantum, u.grid_offset, _shifted(r, delay, rows))
         logs.append(simulated_log(u, sc.space, X, seen, r.pose[:rows], d[0][:rows],
                                   d[1][:rows], r.errors[:rows], r.tau[:rows], r.p_hat[:rows]))
     rows = min(len(u.q) for u in logs)
@@ -387,7 +425,7 @@ def _simulate_following(sc, setups: list[UnitSetup], lib, plans, run, time: np.n
         if r.rows < rows:
             diverged[u.name] = float(time[r.rows - 1])
         X = r.x[:r.rows]
-        seen = measurements(X, ages, noise, u.quantum, u.grid_offset)
+        seen = measurements(X, ages, noise, u.quantum, u.grid_offset, _shifted(r, ages, r.rows))
         seen_by.append(seen)
         logs.append(simulated_log(u, sc.space, X, seen, r.pose[:r.rows], desired[0][:r.rows],
                                   desired[1][:r.rows], r.errors[:r.rows], r.tau[:r.rows],

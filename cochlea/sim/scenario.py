@@ -10,9 +10,12 @@ the controller's nominal model. Every quantity with a dimension is written with 
 
 from __future__ import annotations
 
+import contextlib
+import datetime
 import hashlib
 import math
 import os
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -28,7 +31,7 @@ from ..resources import SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
-from ..robots.description import MAX_FILE_BYTES, Table, parse_toml, read_toml
+from ..robots.description import MAX_FILE_BYTES, MAX_NESTING, Table, parse_toml, read_toml
 from ..robots.description import check_structure as check_nesting
 from ..robots.description import resolve_path as resolve_description
 from ..robots.model import ACTUATORS
@@ -324,8 +327,13 @@ def load_system(robot: str, description: str | Path):
     file. The key holds the file's bytes' hash, so an edited file is read again; the systems
     are frozen dataclasses, safe to share. Errors are the loader's own (nothing is cached)."""
     adapter = robot_adapter(robot)
+    named = (robot, description, os.getcwd())  # a relative path is the working folder's
+    seen = _SEEN.get(named)
+    if seen is not None and seen[0] is adapter and _unchanged(seen[1], seen[2]):
+        return seen[3]
     path = resolve_description(description if description is not None else robot)
     try:
+        before = _file_state(path)
         with open(path, "rb") as f:
             raw = f.read(MAX_FILE_BYTES + 1)
     except (OSError, ValueError):
@@ -338,7 +346,35 @@ def load_system(robot: str, description: str | Path):
             _SYSTEMS.popitem(last=False)
     else:
         _SYSTEMS.move_to_end(key)
+    if before is not None and before[3] < time.time_ns() - _SETTLED_NS:
+        _SEEN[named] = (adapter, str(path), before, system)
+        while len(_SEEN) > SYSTEM_CACHE_SIZE:
+            with contextlib.suppress(KeyError, RuntimeError, StopIteration):
+                _SEEN.pop(next(iter(_SEEN)))
     return system
+
+
+#: :func:`load_system`'s descriptions by how they were named (robot, description, working
+#: folder): the adapter, the file's path and its state when read (:func:`_file_state`), the
+#: system. The file is not read again while its state is the same.
+_SEEN: dict[tuple, tuple[Any, str, tuple, Any]] = {}
+#: A file changed less than this long before it was read (ns) is read again every time: a
+#: file system's clock may not tell two writes within it apart (git's "racily clean" files).
+_SETTLED_NS = 2_000_000_000
+
+
+def _file_state(path) -> tuple | None:
+    """What tells a file's content changed without reading it: device, inode, size and the
+    times of its last change (of data and of status, nanoseconds); None for no file."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def _unchanged(path: str, state: tuple) -> bool:
+    return _file_state(path) == state
 
 
 def resolve(name_or_path: str | Path) -> Path:
@@ -470,15 +506,41 @@ def load(name_or_path: str | Path, plant_preset: str | None = None, *,
     description is found from, but is not read. ``data``: the file's TOML data, already
     parsed (a sweep's sample, built from its base scenario's data without writing and reading
     its text back: ``tomllib.loads`` of the text gives the same data); checked and read as the
-    parsed file's would be, and not changed."""
+    parsed file's would be, and not changed.
+
+    A scenario whose data differs from one this process loaded before only in its
+    ``[plant]`` table and its units' gains (a sweep's samples, a tuning search's candidates)
+    has everything else taken from that one (:func:`_known`): only those tables are read
+    and checked again; the same scenario, bit for bit, and any error the same."""
     path = resolve(name_or_path)
     if data is not None:
         if text is not None:
             raise CochleaError("load: give a scenario's text or its data, not both")
-        check_nesting(path, data)
     else:
         data = read_toml(path, "scenario") if text is None else \
             parse_toml(text.encode("utf-8"), path, "scenario")
+    gains: list = []  # each unit's gains table as frozen in the key
+    key = _frame_key(path, data, gains)  # None: a structure check_nesting refuses, or not TOML's
+    if key is not None:
+        known = _known(key, tuple(gains), path, plant_preset, data)
+        if known is not None:
+            return known
+    check_nesting(path, data)
+    scenario, layout = _load(path, plant_preset, data)
+    if key is None:
+        return scenario
+    _FRAMES[key] = (scenario, layout, robot_adapter(scenario.robot),
+                    controller_of(scenario.robot, scenario.space), {})
+    while len(_FRAMES) > FRAME_CACHE_SIZE:
+        with contextlib.suppress(KeyError):  # a dask worker's threads load at once
+            _FRAMES.popitem(last=False)
+    # The template keeps its own arrays: what a caller does to its scenario stays there.
+    return _instance(scenario, path, [u.gains for u in scenario.units], scenario.plant)
+
+
+def _load(path: Path, plant_preset: str | None, data: dict) -> tuple[Scenario, Any]:
+    """:func:`load` of checked-nesting TOML data, every key read and checked; the scenario
+    and its robot's layout."""
     top = Table(path, data, "")
     top.get("format", f"the string {FORMAT!r}", lambda v: v == FORMAT)
     robot = top.string("robot", tuple(ROBOTS))
@@ -561,17 +623,7 @@ def load(name_or_path: str | Path, plant_preset: str | None = None, *,
                           "unit's own joint path is for space = \"joint\")", show_got=False)
         elbow = u.get("elbow", "+1 or -1 (inverse-kinematics branch)", lambda v: v in (1, -1)
                       and not isinstance(v, bool), required=False)
-        g = u.table("gains")
-        gains = {k: _positive_list(g, k, gain_set.size(k, layout.n_joint, layout.n_task))
-                 for k in gain_set.required}
-        weight = gain_set.weight
-        if weight:
-            size = gain_set.size(weight, layout.n_joint, layout.n_task)
-            given = g.vector(weight, size, "the gain's SI unit", required=False,
-                             check=lambda v: all(0 < x <= MAX_GAIN for x in v),
-                             what=f"(all positive, at most {MAX_GAIN:g})")
-            gains[weight] = np.ones(size) if given is None else given
-        g.done()
+        gains = _gains(u, gain_set, layout)
         u.done()
         initial = {}
         for key, qs in (("initial_joint", joint_q), ("initial_task", task_q),
@@ -589,7 +641,162 @@ def load(name_or_path: str | Path, plant_preset: str | None = None, *,
                     variant, parameterisation, adaptation_gain, adaptation, initial_estimate,
                     bound, mirror,
                     controller_actuators, dict(definitions), leader, tuple(units), plant, system,
-                    robust=robust, task=task)
+                    robust=robust, task=task), layout
+
+
+def _gains(u: Table, gain_set, layout) -> dict[str, np.ndarray]:
+    """A ``[[unit]]`` table's ``gains``, each list of its size, positive and bounded."""
+    g = u.table("gains")
+    gains = {k: _positive_list(g, k, gain_set.size(k, layout.n_joint, layout.n_task))
+             for k in gain_set.required}
+    weight = gain_set.weight
+    if weight:
+        size = gain_set.size(weight, layout.n_joint, layout.n_task)
+        given = g.vector(weight, size, "the gain's SI unit", required=False,
+                         check=lambda v: all(0 < x <= MAX_GAIN for x in v),
+                         what=f"(all positive, at most {MAX_GAIN:g})")
+        gains[weight] = np.ones(size) if given is None else given
+    g.done()
+    return gains
+
+
+#: Scenarios a process keeps as templates (:func:`load`): a sweep's worker meets one.
+FRAME_CACHE_SIZE = 8
+#: By :func:`_frame_key`: the scenario first loaded with it, its robot's layout, the adapter
+#: and gain set it was read with, and the units' gains tables read with them (by their frozen
+#: data: up to :data:`GAINS_CACHE_SIZE`).
+_FRAMES: OrderedDict[tuple, tuple[Scenario, Any, Any, Any, dict]] = OrderedDict()
+GAINS_CACHE_SIZE = 256
+#: What stands in a frame key for a part read again every time: the ``[plant]`` table and
+#: each unit's ``gains``.
+_READ_AGAIN = ("read again",)
+_SCALARS = (str, int, float, bool, datetime.datetime, datetime.date, datetime.time)
+
+
+def _frozen(value, depth: int, variable: str | None = None, gains: list | None = None):
+    """TOML data as a hashable value equal only for equal data of the same types (a float
+    by its bits: ``-0.0`` is not ``0.0``; ``1``, ``1.0`` and ``true`` differ), or None where
+    :func:`~cochlea.robots.description.check_structure` refuses it or it is not TOML's.
+    ``variable``: at the top level, the parts read again (the plant table, each unit's
+    gains) stand as :data:`_READ_AGAIN`, though they are checked here like the rest; each
+    unit's gains, frozen, are appended to ``gains``."""
+    if depth > MAX_NESTING:
+        return None
+    kind = type(value)
+    if kind is dict:
+        items = []
+        for k, v in value.items():
+            if type(k) is not str:
+                return None
+            f = _frozen(v, depth + 1, "unit" if variable == "top" and k == "unit" else None,
+                        gains)
+            if f is None:
+                return None
+            if variable == "unit" and k == "gains" and gains is not None:
+                gains.append(f)
+            if (variable == "top" and k == "plant") or (variable == "unit" and k == "gains"):
+                f = _READ_AGAIN
+            items.append((k, f))
+        return (dict, tuple(items))
+    if kind is list:
+        items = []
+        for v in value:
+            f = _frozen(v, depth + 1, variable if type(v) is dict else None, gains)
+            if f is None:
+                return None
+            items.append(f)
+        return (list, tuple(items))
+    if kind is float:
+        return (float, value.hex())
+    if kind is int:
+        return (int, value) if -2**63 <= value < 2**63 else None
+    if kind in _SCALARS:
+        return (kind, value)
+    return None
+
+
+def _frame_key(path: Path, data, gains: list | None = None) -> tuple | None:
+    """The key of a scenario's template in :data:`_FRAMES`: its path and its data as far as
+    :func:`_known` does not read it again; None when the data is not TOML's or
+    check_nesting refuses it (the full load then says why). ``gains``: each unit's gains
+    table, frozen, appended (:func:`_known` reads a table once per template)."""
+    if type(data) is not dict:
+        return None
+    frozen = _frozen(data, 0, "top", gains)
+    return None if frozen is None else (type(path), str(path), frozen)
+
+
+def _known(key: tuple, frozen_gains: tuple, path: Path, plant_preset: str | None,
+           data: dict) -> Scenario | None:
+    """The scenario of ``data`` from the template loaded with the same :func:`_frame_key`:
+    its plant table and its units' gains read and checked as :func:`_load` reads them, the
+    rest the template's (each array a copy of its own); the robot's description loaded again
+    (:func:`load_system`: its file's content), and the template used only if that gives the
+    template's system, with the same adapter and gain set. None where anything differs or
+    raises: the full load then reads everything (and raises the same error as ever). A
+    unit's gains table read before with this template (``frozen_gains``, its data frozen as
+    in the key) is not read again: its gains are copies of what it read as."""
+    hit = _FRAMES.get(key)
+    if hit is None:
+        return None
+    template, layout, adapter, gain_set, known_gains = hit
+    try:
+        if (robot_adapter(template.robot) is not adapter
+                or controller_of(template.robot, template.space) is not gain_set
+                or load_system(template.robot, template.description) is not template.system):
+            return None
+        top = Table(path, data, "")
+        unit_tables = top.tables("unit", "")
+        if len(unit_tables) != len(template.units) or len(frozen_gains) != len(unit_tables):
+            return None
+        gains = []
+        for table, frozen in zip(unit_tables, frozen_gains):
+            read = known_gains.get(frozen)
+            if read is None:
+                read = _gains(table, gain_set, layout)
+                if len(known_gains) >= GAINS_CACHE_SIZE:
+                    known_gains.clear()
+                known_gains[frozen] = read
+            gains.append({k: v.copy() for k, v in read.items()})
+        plant = _plant(top.table("plant") if "plant" in top.data else None, layout, plant_preset)
+    except Exception:  # noqa: BLE001 (the full load raises it, with its own message)
+        return None
+    with contextlib.suppress(KeyError):  # another thread may have let it go meanwhile
+        _FRAMES.move_to_end(key)
+    return _instance(template, path, gains, plant)
+
+
+def _instance(template: Scenario, path: Path, gains: list[dict], plant: Plant) -> Scenario:
+    """``template`` at ``path`` with each unit's ``gains`` and the ``plant``, every other
+    array a copy of the template's (its initial states, the robust options' vectors) and its
+    definitions a dict of their own."""
+    units = tuple(_replace(
+        unit, initial_joint=_copy(unit.initial_joint), initial_task=_copy(unit.initial_task),
+        initial_velocity=_copy(unit.initial_velocity), gains=g)
+        for unit, g in zip(template.units, gains, strict=True))
+    robust = template.robust
+    robust = _replace(robust, deadzone=_copy(robust.deadzone),
+                      static_ratio=_copy(robust.static_ratio),
+                      stribeck_velocity=_copy(robust.stribeck_velocity))
+    return _replace(template, path=path, name=path.stem, definitions=dict(template.definitions),
+                    units=units, plant=plant, robust=robust)
+
+
+def _copy(a: np.ndarray | None) -> np.ndarray | None:
+    return None if a is None else a.copy()
+
+
+def _replace(obj, **changes):
+    """``dataclasses.replace(obj, **changes)`` of a frozen dataclass whose fields are only
+    stored (no ``__post_init__``, every field in ``__init__``): its fields copied, without
+    calling ``__init__`` (several times faster; a sample's scenario makes four)."""
+    new = object.__new__(type(obj))
+    new.__dict__.update(obj.__dict__)
+    for name, value in changes.items():
+        if name not in new.__dict__:
+            raise TypeError(f"{type(obj).__name__} has no field {name!r}")
+        new.__dict__[name] = value
+    return new
 
 
 def _robust(c: Table, layout, actuators: str) -> RobustOptions:

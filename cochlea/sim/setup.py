@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
@@ -20,6 +21,7 @@ import numpy as np
 from ..control import Controller, build
 from ..dynamixel.control_table import MODELS
 from ..errors import CochleaError
+from ..kernels.bind import BufferedFunction
 from ..robots import robot
 from ..robots.adapter import sampled
 from ..robots.model import INERTIAL_NAMES, RobotModel
@@ -563,6 +565,50 @@ def check_start(sc: scenario_mod.Scenario, plan) -> None:
                                    "--duration")
 
 
+#: Functions of one dense column out of dense columns in, bound to buffers once per process
+#: (:func:`evaluate_column`), each kept alive with its buffers (so its id stays its own).
+BUFFERED_CACHE_SIZE = 64
+_BUFFERED: OrderedDict[int, tuple[ca.Function, BufferedFunction | None]] = OrderedDict()
+_BUFFERED_LOCK = threading.Lock()
+
+
+def _column_function(f: ca.Function) -> BufferedFunction | None:
+    """``f`` bound to buffers, or None where its call converts more than dense columns."""
+    if f.n_out() < 1 or not f.sparsity_out(0).is_dense() or f.size2_out(0) != 1:
+        return None
+    if not all(f.sparsity_in(i).is_dense() and f.size2_in(i) == 1 for i in range(f.n_in())):
+        return None
+    try:
+        return BufferedFunction(f)
+    except RuntimeError:  # a Function CasADi cannot buffer: called as before
+        return None
+
+
+def evaluate_column(f: ca.Function, *args: np.ndarray) -> np.ndarray:
+    """``np.array(f(*args), float).ravel()`` of ``f``'s first output, bit for bit (the same
+    Function evaluated on the same doubles), through buffers bound once per Function object
+    instead of CasADi's conversions of every argument and result (0.12 ms a call against a
+    few microseconds: every unit of every sweep sample is checked against gravity). Anything
+    but dense columns of the right sizes goes through the call as before."""
+    with _BUFFERED_LOCK:
+        hit = _BUFFERED.get(id(f))
+        if hit is None or hit[0] is not f:
+            hit = _BUFFERED[id(f)] = (f, _column_function(f))
+            while len(_BUFFERED) > BUFFERED_CACHE_SIZE:
+                _BUFFERED.popitem(last=False)
+        else:
+            _BUFFERED.move_to_end(id(f))
+        bound = hit[1]
+        if bound is not None and len(args) == len(bound.inputs):
+            values = [np.asarray(a, float) for a in args]
+            if all(v.shape == b.shape for v, b in zip(values, bound.inputs)):
+                for v, b in zip(values, bound.inputs):
+                    b[:] = v
+                bound()
+                return bound.outputs[0].copy()
+    return np.array(f(*args), float).ravel()
+
+
 class GravityRefused(CochleaError):
     """Gravity at a unit's initial pose needs more effort than a joint's drive can give: the
     motor cannot hold the robot there (it would sag the moment torque is enabled). A sweep or a
@@ -589,7 +635,7 @@ def check_gravity(sc: scenario_mod.Scenario, setups: list[UnitSetup],
     for u in setups:
         m = u.controller_model
         q0 = u.x0[:m.nq]
-        gravity = np.abs(np.array(u.plant_model.G_p(q0, u.plant_params), float).ravel())
+        gravity = np.abs(evaluate_column(u.plant_model.G_p, q0, u.plant_params))
         limit = u.effort_limit
         drive = None
         if u.effort_grid is not None:
@@ -958,19 +1004,29 @@ def quantise(values: np.ndarray, quantum: np.ndarray, offset: np.ndarray) -> np.
 
 
 def measurements(states: np.ndarray, delay, noise: np.ndarray | None = None,
-                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None
-                 ) -> np.ndarray:
+                 quantum: np.ndarray | None = None, offset: np.ndarray | None = None,
+                 shifted: np.ndarray | None = None) -> np.ndarray:
     """What the controller saw in every period of a run, from the true states ``[q, qd]`` it
     logged: row k is ``states[max(k - delay, 0)] + noise[k]``, on the measurement grid where
     there is one; the same floating-point operations as the C driver (and
     :class:`MeasurementGrid`). ``delay``: whole periods, or per period (:func:`delay_ages`).
-    ``states`` itself when the plant measures exactly."""
+    ``states`` itself when the plant measures exactly. ``shifted``: those delayed rows
+    ``states[max(k - delay, 0)]`` (one delay), when the caller has them without a copy (a
+    view of the C driver's log: :meth:`cochlea.kernels.library.ClosedLoopLog.delayed`);
+    never written."""
     jitter = np.ndim(delay) > 0
     if not jitter and not delay and noise is None and quantum is None:
         return states
     if jitter:
         delay = np.asarray(delay)[:len(states)]
         seen = states[np.maximum(np.arange(len(states)) - delay, 0)]
+    elif shifted is not None:
+        if shifted.shape != states.shape:
+            raise ValueError(f"measurements: the shifted states are {shifted.shape}, the "
+                             f"states {states.shape}")
+        # The noise added into a new array: the same sums the copy and its += give.
+        seen = shifted if noise is None else np.add(shifted, noise[:len(states)])
+        return seen if quantum is None else quantise(seen, quantum, offset)
     else:  # one delay: the rows shifted by slices (a fancy index costs several times more)
         seen = np.empty_like(states)
         d = min(int(delay), len(states))
