@@ -248,6 +248,14 @@ def test_the_sweep_verdicts_hold_each_robot_to_issue_30s_target():
     assert lines[2].startswith("- **met**: parallel_joint (10 s) ") and "(target >= 40)" in lines[2]
     assert lines[3].startswith("- **missed** by 1.14x: parallel_task (10 s) ")
     assert "where the target allows 25.0 ms" in lines[3]
+    assert "speed moved" not in lines[1] + lines[3]
+    # The rate measured in a slow spell, the breakdown after it in a quick one: "outside" is
+    # the breakdown's own, and the line says the two measures disagree.
+    slow = row("parallel_task", 25.0)
+    slow["parts"] = {k: v * 0.5 for k, v in slow["parts"].items()}
+    line = bench_run.sweep_verdicts([slow])[0]
+    assert "totals 20.0 ms a sample: this machine's speed moved" in line
+    assert "the C closed loop 17.0 ms (85%" in line and "the rest 3.0 ms outside it" in line
 
 
 def test_the_targets_section_gives_every_verdict(monkeypatch, tmp_path):
