@@ -514,3 +514,48 @@ def test_a_row_from_the_row_s_summary_is_the_full_summary_s(study, tmp_path):
                 if k in (3, 4, 5, 6):
                     assert row["estimate_bound_hit"]
             u.p_hat = p
+
+
+class _EvictedByAnotherThread(dict):
+    """A cache whose entry another thread evicts right after this one found it (between the
+    lookup and its move to the end), and which another thread empties before an eviction."""
+
+    def get(self, key, default=None):
+        value = super().get(key, default)
+        if value is not None:
+            del self[key]
+        return value
+
+    def move_to_end(self, key, last=True):
+        raise KeyError(key) if key not in self else None
+
+    def popitem(self, last=True):
+        self.clear()  # another thread evicted them all first
+        raise KeyError("dictionary is empty")
+
+
+def test_the_older_caches_do_not_fail_a_sample_another_thread_evicts_from(monkeypatch):
+    """A dask worker runs samples on several threads: the desired samples', the structures'
+    and the pose kernels' caches may lose an entry between its lookup and its move, or be
+    emptied before an eviction; the sample goes on with what it found or built."""
+    sc = load_scenario("serial_joint")
+    u = unit_setups(sc)[0]
+    time_grid = np.arange(5) * 1e-3
+    monkeypatch.setattr(compiled, "_DESIRED", _EvictedByAnotherThread())
+    monkeypatch.setattr(compiled, "DESIRED_CACHE_SIZE", 0)  # every insertion evicts
+    first = compiled.desired_samples(u, time_grid)
+    monkeypatch.setattr(compiled, "DESIRED_CACHE_SIZE", 16)  # kept, then found and evicted
+    compiled.desired_samples(u, time_grid)
+    again = compiled.desired_samples(u, time_grid)
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+
+    monkeypatch.setattr(setup_mod, "_STRUCTURES", _EvictedByAnotherThread())
+    monkeypatch.setattr(setup_mod, "STRUCTURE_CACHE_SIZE", 0)
+    for _ in range(2):
+        assert [s.name for s in unit_setups(sc)] == ["arm1", "arm2"]
+
+    monkeypatch.setattr(sv, "_POSE_KERNELS", _EvictedByAnotherThread())
+    monkeypatch.setattr(sv, "POSE_KERNEL_CACHE_SIZE", 0)
+    for _ in range(2):
+        build_supervisor(unit_setups(sc), sc.system.keep_out_radius, kernels="c",
+                         substeps=sc.plant_substeps, cache=True)

@@ -8,6 +8,7 @@ same period. The checks allocate nothing unless a rule is broken.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -276,13 +277,15 @@ def _pose_kernel(u: UnitSetup, substeps: int, kernels: str):
            id(u.fk_world), id(u.controller), id(u.plant_model), u.drive is not None, u.gearbox)
     hit = _POSE_KERNELS.get(key)
     if hit is not None:
-        _POSE_KERNELS.move_to_end(key)
+        with contextlib.suppress(KeyError):  # another thread's eviction may come first
+            _POSE_KERNELS.move_to_end(key)
         return hit[-1]
     *_, pose, source = period_kernels(u, substeps, kernels)
     if source == kernels:
         _POSE_KERNELS[key] = (u.fk_world, u.controller, u.plant_model, pose)
         while len(_POSE_KERNELS) > POSE_KERNEL_CACHE_SIZE:
-            _POSE_KERNELS.popitem(last=False)
+            with contextlib.suppress(KeyError):  # emptied by another thread meanwhile
+                _POSE_KERNELS.popitem(last=False)
     return pose
 
 

@@ -179,7 +179,8 @@ def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     # The whole grid, bit for bit (not only its ends; -0.0 is not 0.0 to every formula): as
     # integers, without the two copies tobytes() made (0.1 ms a unit, every sweep sample).
     if hit is not None and np.array_equal(hit[1].view(np.int64), time.view(np.int64)):
-        _DESIRED.move_to_end(key)
+        with contextlib.suppress(KeyError):  # a dask worker's other thread may evict it
+            _DESIRED.move_to_end(key)
         return hit[2]
     n = len(time)
     t = ca.SX.sym("t")
@@ -196,7 +197,8 @@ def desired_samples(u: UnitSetup, time: np.ndarray) -> tuple[np.ndarray, ...]:
     grid.flags.writeable = False
     _DESIRED[key] = (u.desired, grid, samples)
     while len(_DESIRED) > DESIRED_CACHE_SIZE:
-        _DESIRED.popitem(last=False)
+        with contextlib.suppress(KeyError):  # emptied by another thread meanwhile
+            _DESIRED.popitem(last=False)
     return samples
 
 

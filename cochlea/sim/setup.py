@@ -7,6 +7,7 @@ emulator, so every one of them runs exactly the same controller on exactly the s
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -767,12 +768,16 @@ def unit_setups(sc: scenario_mod.Scenario, cache: bool = True, *, gravity: bool 
     else:
         key = structure_key(sc, system)
         structure = _STRUCTURES.get(key)
+        # A dask worker runs samples on several threads: another may evict or add an entry
+        # between these lines, which must not fail this sample.
         if structure is None:
             structure = _STRUCTURES[key] = _structure(sc, adapter, system)
             while len(_STRUCTURES) > STRUCTURE_CACHE_SIZE:
-                _STRUCTURES.popitem(last=False)
+                with contextlib.suppress(KeyError):
+                    _STRUCTURES.popitem(last=False)
         else:
-            _STRUCTURES.move_to_end(key)
+            with contextlib.suppress(KeyError):
+                _STRUCTURES.move_to_end(key)
     grids = measurement_grids(adapter, system, sc.plant)
     viscous, coulomb = plant_friction(adapter, system, sc.plant)
     drive_rows = plant_drive(adapter, system, sc.plant, coulomb)
