@@ -17,8 +17,7 @@ import pytest
 
 from cochlea.kernels import library as ckernels
 from cochlea.kernels.catalogue import CodegenError
-from cochlea.kernels.embedded import _min_max
-from cochlea.kernels.helpers import static_helpers
+from cochlea.kernels.helpers import min_max_functions, static_helpers
 
 ROOT = Path(__file__).resolve().parent.parent
 GENERATED = ROOT / "generated_c"
@@ -132,9 +131,9 @@ def _helpers_in_c(tmp_path: Path) -> str:
     library = (library.replace("casadi_real", "double").replace("casadi_fmin", "DMIN")
                .replace("casadi_fmax", "DMAX"))
     used = "CFMIN( CFMAX("
-    embedded = (_min_max("float", used).replace("CM(", "CM_float(")
+    embedded = (min_max_functions("float", used).replace("CM(", "CM_float(")
                 .replace("CFMIN", "FMIN").replace("CFMAX", "FMAX"))
-    double = _min_max("double", used).replace("CM(", "CM_double(")
+    double = min_max_functions("double", used).replace("CM(", "CM_double(")
     return f"{library}\n{embedded}\n{double}"
 
 

@@ -44,6 +44,7 @@ import numpy as np
 
 from .. import log_schema
 from .catalogue import CodegenError, export
+from .helpers import min_max_functions
 
 __all__ = ["EmbeddedUnit", "embedded_sources", "MATH_FUNCTIONS"]
 
@@ -607,22 +608,6 @@ static double CCLAMPD(double x, double lo, double hi) {
 #endif
 """
 
-def _min_max(real: str, text: str) -> str:
-    """The laws' min and max (CasADi's ``fmin``/``fmax``) in the working precision
-    (``CFMIN``, ``CFMAX``) and in double (``CFMIND``, ``CFMAXD``: the desired trajectory's),
-    those ``text`` calls (an unused static function is a warning, and warnings are errors)."""
-    parts = [
-        "/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:\n"
-        " * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without\n"
-        " * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */\n"]
-    for name, less, libm in (("CFMIN", "<", "fmin"), ("CFMAX", ">", "fmax")):
-        for suffix, kind, call in (("", real, f"CM({libm})"), ("D", "double", libm)):
-            if f"{name}{suffix}(" in text:
-                parts.append(f"static {kind} {name}{suffix}({kind} x, {kind} y) {{\n"
-                             f"  return x {less} y ? x : (y {less}= x ? y : {call}(x, y));\n}}\n")
-    return "".join(parts) if len(parts) > 1 else ""
-
-
 #: The float build's phase of a time atom (C, in #ifdef COCHLEA_FLOAT).
 _PHASE = """
 /* A phase in turns (Q0.64) as an angle in [-pi, pi) rad, in float: its top 32 bits as a
@@ -824,7 +809,7 @@ def _source(name: str, title: str, units: list[EmbeddedUnit], bodies: dict[str, 
     text = "".join(functions)
     helpers = ([f"static {R} CSQ({R} x) {{ return x * x; }}\n"] if "CSQ(" in text else []) + (
         ["static double CSQD(double x) { return x * x; }\n"] if "CSQD(" in text else [])
-    helpers.append(_min_max(R, text))
+    helpers.append(min_max_functions(R, text))
     helpers += ([_CTURNS] if any(a.kind == "phase" for a in kinds) else []) + (
         [_CLAST] if any(a.kind != "phase" for a in kinds) else []) + [_CLAMPD]
     helpers.append(f"static {R} CCLAMP({R} x, {R} lo, {R} hi) {{\n"

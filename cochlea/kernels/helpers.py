@@ -19,7 +19,8 @@ NaN (signalling ones included), so the kernels' results are bit for bit those of
 calls, but for a tie of +0 and -0, where it returns ``y`` (glibc's ``fmax`` does too) and C
 leaves the choice open: GCC, which takes ``fmax`` for commutative, may swap libm's operands
 itself (``fmax(-0.0, +0.0)`` is -0 at -O2 and +0 at -O0 with the same glibc). Only the sign of
-a zero can differ, where a compiler chose otherwise.
+a zero can differ, where a compiler chose otherwise. :func:`min_max_functions` writes the same
+form for the embedded laws (``CFMIN``/``CFMAX``), in float too.
 """
 
 from __future__ import annotations
@@ -51,3 +52,22 @@ def static_helpers(text: str) -> str:
                                f"(a different CasADi version?): {body!r}")
         text = text[:start.end()] + body.replace(libm, inline) + text[end:]
     return _HELPER.sub(r"static casadi_real \1(\2) {", text)
+
+
+def min_max_functions(real: str, text: str) -> str:
+    """The embedded laws' min and max (CasADi's ``fmin``/``fmax`` in
+    :mod:`~cochlea.kernels.embedded`'s C) in :func:`static_helpers`' form, in the working
+    precision ``real``
+    (``CFMIN``, ``CFMAX``: ``CM(fmin)`` is its libm function) and in double (``CFMIND``,
+    ``CFMAXD``: the desired trajectory's), those ``text`` calls (an unused static function is
+    a warning, and warnings are errors)."""
+    parts = [
+        "/* CasADi's fmin/fmax by comparison where both are numbers, libm's where either is NaN:\n"
+        " * libm's result for every pair (y on a tie of +0 and -0, which C leaves open), without\n"
+        " * a call (a Cortex-M4 has no min/max instruction; -ffinite-math-only is refused). */\n"]
+    for name, less, libm in (("CFMIN", "<", "fmin"), ("CFMAX", ">", "fmax")):
+        for suffix, kind, call in (("", real, f"CM({libm})"), ("D", "double", libm)):
+            if f"{name}{suffix}(" in text:
+                parts.append(f"static {kind} {name}{suffix}({kind} x, {kind} y) {{\n"
+                             f"  return x {less} y ? x : (y {less}= x ? y : {call}(x, y));\n}}\n")
+    return "".join(parts) if len(parts) > 1 else ""
