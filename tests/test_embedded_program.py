@@ -29,6 +29,7 @@ from tests.test_dynamixel_hil import (
     SHARED_MACHINE,
     assert_fault_stop,
     assert_log_complete,
+    chain_scenario,
     last_commands,
     run,
     run_on_emulator,
@@ -137,10 +138,11 @@ def test_each_study_tracks_like_cochlea_run_on_the_same_emulator(tmp_path, progr
                                                                  space):
     name, duration = f"{robot}_{space}", 5.0
     (tmp_path / "py").mkdir()
-    done, c_out, c_log = on_emulator(program, tmp_path, (robot, name), "--scenario", name,
+    chain = chain_scenario(name, tmp_path)  # serial_task: the motors with their rotors
+    done, c_out, c_log = on_emulator(program, tmp_path, (robot, chain), "--scenario", name,
                                      "--duration", str(duration), *PATIENT)
     assert done.returncode == 0, done.stderr
-    reference, py_out, _ = run_on_emulator(robot, name, tmp_path / "py", "--robot", robot,
+    reference, py_out, _ = run_on_emulator(robot, chain, tmp_path / "py", "--robot", robot,
                                            "--space", space, "--duration", str(duration))
     assert reference.returncode == 0, reference.stderr
 
