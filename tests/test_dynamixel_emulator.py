@@ -9,6 +9,7 @@ import math
 import os
 import select
 import time
+import weakref
 from datetime import timedelta
 
 import numpy as np
@@ -191,6 +192,40 @@ def test_the_event_log_file(tmp_path):
         client.close()
     lines = log.read_text().splitlines()
     assert any(" write id=5 address=65 value=1" in line for line in lines)
+
+
+def test_an_in_process_chain_keeps_the_hosts_objects_out_of_the_collectors_way():
+    """While a chain serves from a thread of this process, the objects alive before it started
+    are frozen (a full collection triggered by its allocations would scan a long pytest
+    session's whole heap); after the last chain stops they are the collector's again, so a
+    cycle made before the chain is collected, and nested chains thaw only at the last stop."""
+    class Cycle:
+        pass
+
+    from cochlea.dynamixel import emulator
+    assert emulator._serving[0] == 0, "an earlier test left a chain serving"
+    before = gc.get_freeze_count()
+    gc.disable()  # no automatic collection takes the cycle before the chain starts
+    try:
+        cycle = Cycle()
+        cycle.self = cycle
+        collected = []
+        ref = weakref.ref(cycle, lambda _: collected.append(True))
+        del cycle
+        with VirtualChain("serial") as outer:
+            frozen = gc.get_freeze_count()
+            assert frozen > before
+            gc.collect()
+            assert ref() is not None  # frozen: the collector leaves it
+            with VirtualChain("serial"):
+                assert gc.get_freeze_count() >= frozen
+            assert gc.get_freeze_count() >= frozen  # the outer chain still serves
+            assert outer._thread is not None
+        assert gc.get_freeze_count() == 0
+        gc.collect()
+    finally:
+        gc.enable()
+    assert ref() is None and collected == [True]
 
 
 def test_command_line_errors(capsys):

@@ -562,6 +562,26 @@ class _Unit:
             m.set_present(m.state()[1], vel, pos, tick_ms)
 
 
+#: How many in-process chains are serving (:meth:`VirtualChain.start`): the host's objects
+#: stay frozen (``gc.freeze``) while any is, and are handed back to the collector after the last.
+_serving = [0]
+_serving_lock = threading.Lock()
+
+
+def _freeze_host_objects() -> None:
+    with _serving_lock:
+        if _serving[0] == 0:
+            gc.freeze()
+        _serving[0] += 1
+
+
+def _thaw_host_objects() -> None:
+    with _serving_lock:
+        _serving[0] -= 1
+        if _serving[0] == 0:
+            gc.unfreeze()
+
+
 def default_scenario(robot: str, plant: str | None) -> str:
     """The command's scenario without ``--scenario``: the realistic joint-space study, whose
     plant is what the motors have (rotors, gearbox friction, counts), so that a controller
@@ -670,6 +690,7 @@ class VirtualChain:
         self._next_step = self._t0 + self.h
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._frozen = False  # whether start() froze the host's objects (stop() thaws them)
         self.master = self.slave = -1
         self._listener: socket.socket | None = None  # with listen: the listening socket
         self._client: socket.socket | None = None  # and the connected bridge (self.master)
@@ -747,8 +768,15 @@ class VirtualChain:
         self._parser = proto.PacketParser(status=False)
 
     def start(self) -> VirtualChain:
+        """Serve from a thread of this process (a test's, a benchmark's). The objects alive
+        here are frozen out of the collector's way until :meth:`stop`: a full collection
+        triggered by the chain's own allocations scans the whole host process, and in a long
+        pytest session that pause (tens to hundreds of milliseconds) outlasts a bridge's
+        start-up retries (seen once: a PH42's homing marker unanswered three times in 20 ms)."""
         self.open()
         self._stop.clear()
+        _freeze_host_objects()
+        self._frozen = True
         self._thread = threading.Thread(target=self.serve, name="cochlea-emulator", daemon=True)
         self._thread.start()
         return self
@@ -758,6 +786,9 @@ class VirtualChain:
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
+        if self._frozen:
+            self._frozen = False
+            _thaw_host_objects()
 
     def close(self) -> None:
         self.stop()
