@@ -251,12 +251,12 @@ def test_the_c_program_refuses_them_in_one_line(tmp_path, program, baud):
     ("5:4", "ID 5 (arm2.link2, MX-64): hardware error (electrical shock)"),
     (None, "last failure timeout from ID 3 (arm1.link3, MX-64)")])
 def test_cochlea_run_s_stop_line_names_the_motor_and_its_alert(tmp_path, fault, expected):
-    from tests.test_dynamixel_hil import emulator, run  # noqa: PLC0415
+    from tests.test_dynamixel_hil import LOOP_TRANSPORT, emulator, run  # noqa: PLC0415
 
     options = ["--hardware-error", fault] if fault else ["--silent-motor", "3"]
     out = tmp_path / "run"
     with emulator("serial", "serial_joint", tmp_path / "emulator.log", "--fault-delay", "0.3",
-                  *options) as port:
+                  *options, transport=LOOP_TRANSPORT) as port:
         done = run("--robot", "serial", "--space", "joint", "--backend", "dynamixel", "--port",
                    port, "--duration", "3", "--out", str(out), cwd=tmp_path)
     assert done.returncode == 15, done.stderr

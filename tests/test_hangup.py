@@ -26,7 +26,7 @@ from cochlea.dynamixel import protocol as proto
 from cochlea.dynamixel.drives import joint_drives
 from cochlea.runtime.supervisor import SIGNAL_STOPS, STOP_CODES
 from cochlea.sweep import results
-from tests.test_dynamixel_hil import assert_log_complete, last_commands
+from tests.test_dynamixel_hil import LOOP_TRANSPORT, assert_log_complete, last_commands
 from tests.test_dynamixel_hil import emulator as started_emulator
 from tests.test_embedded_program import PATIENT, _interrupted_run, emulator
 from tests.test_outputs import (
@@ -198,7 +198,7 @@ def test_cochlea_run_on_a_terminal_that_hung_up_still_stops_safely(tmp_path):
 @pytest.mark.hil
 def test_cochlea_run_over_the_chain_hung_up_turns_the_torque_off(tmp_path):
     out, log = tmp_path / "hil", tmp_path / "emulator.log"
-    with started_emulator("serial", "serial_joint", log) as port:
+    with started_emulator("serial", "serial_joint", log, transport=LOOP_TRANSPORT) as port:
         proc = _cli(["--robot", "serial", "--space", "joint", "--backend", "dynamixel",
                      "--port", port, "--duration", "20", "--out", str(out), "--watchdog-misses",
                      "300"], tmp_path)
