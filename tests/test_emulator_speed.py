@@ -125,9 +125,9 @@ def test_a_request_takes_one_plant_step_not_two(monkeypatch):
             return [], [], []
         return real_select(r, w, x, 5.0)  # the request below
 
-    def counted_tick(now):
+    def counted_tick(now, **how):
         order.append("tick")
-        real_tick(now)
+        real_tick(now, **how)
 
     monkeypatch.setattr(select, "select", counted_select)
     monkeypatch.setattr(chain, "_tick", counted_tick)
@@ -286,9 +286,9 @@ def test_a_due_reply_goes_out_before_the_plants_update(monkeypatch):
             return [], [], []
         return real_select(r, w, x, min(timeout, 5.0))
 
-    def counted_tick(now):
+    def counted_tick(now, **how):
         order.append("tick")
-        real_tick(now)
+        real_tick(now, **how)
 
     def counted_write(f, data):
         if f == chain.master:
@@ -352,3 +352,78 @@ def test_the_serving_thread_asks_for_precise_timers():
     t.start()
     t.join()
     assert got["ok"] and got["before"] == 50_000 and got["after"] == 1, got
+
+
+@settings(max_examples=300, database=None, derandomize=True)
+@given(error=st.sampled_from([0x00, 0xFF, 0x80, 0x07]), params=wire_bytes,
+       packet_id=st.integers(0, 252), as_array=st.booleans())
+def test_a_status_packet_is_the_definitions_bytes(error, params, packet_id, as_array):
+    """status() builds a packet with nothing to stuff in one piece, its CRC continued from a
+    remembered head's (an FF FF FD across the error byte and the data counts too): the
+    definition's bytes either way, for any motor, error and data, and again from the head's
+    cache."""
+    expected = reference_frame(packet_id, 0x55, bytes([error]) + params)
+    source = bytearray(params) if as_array else params
+    assert proto.status(packet_id, error, source) == expected
+    assert proto.status(packet_id, error, source) == expected
+
+
+def test_a_one_item_write_is_the_loops_write():
+    """A write of one whole item (a period's Goal Current) takes the short path: the same
+    errors and the same table as the same item written beside another one, over the range,
+    the limit, the sign, and with the torque on (an EEPROM item is refused)."""
+    chain = VirtualChain("serial", "serial_joint")
+    try:
+        one, two = chain.motors[0], chain.motors[1]
+        for m in (one, two):
+            m.write(11, bytes([0]))  # current control
+        goal, limit = one.a_goal_current, one.get(one.a_limit)
+        before = one.a_goal_current - 2  # the item just below Goal Current (Goal PWM)
+        assert one.items[before].size == 2
+        pwm = proto.le(one.get(before), 2)
+        for value in (0, 5, -5, limit, -limit, limit + 1, -limit - 1, 32767, -32768):
+            data = proto.le(value, 2)
+            alone = one.write(goal, data)
+            beside = two.write(before, pwm + data)
+            assert alone[0] == beside[0], value
+            assert alone[1] == [w for w in beside[1] if w[0] == goal], value
+            ram = slice(one.ram_from, one.a_tick)  # the writable RAM items (not their states)
+            assert one.table[ram] == two.table[ram], value
+        for m in (one, two):
+            m.write(m.a_torque, bytes([1]))
+        assert one.write(11, bytes([0]))[0] == two.write(10, bytes([0, 0]))[0] != 0
+    finally:
+        chain.close()
+
+
+def test_a_write_request_leaves_the_registers_to_the_next_read(chain):
+    """A request's update publishes the present registers only for an instruction that reads
+    them: a SYNC_WRITE alone publishes nothing; a SYNC_READ after it in the same data reports
+    the currents applied at the data's arrival (before the write), and the next request's
+    read the new ones; the Realtime Tick is the update's."""
+    ids = [m.id for m in chain.motors]
+    for frame in [proto.write(i, 11, bytes([0])) for i in ids] + \
+            [proto.write(i, 64, bytes([1])) for i in ids]:
+        serve(chain, frame, now=float("inf"))
+        take(chain.client, 11)
+    published: list[int] = []
+    real = chain._publish
+
+    def counted(tick_ms, currents=None):
+        published.append(tick_ms)
+        real(tick_ms, currents)
+
+    chain._publish = counted
+    serve(chain, proto.sync_write(102, 2, [(i, proto.le(7, 2)) for i in ids]))
+    assert published == []
+    serve(chain, proto.sync_write(102, 2, [(i, proto.le(9, 2)) for i in ids])
+          + proto.sync_read(126, 2, ids), now=float("inf"))
+    assert len(published) == 1
+    got = take(chain.client, len(ids) * 13)
+    assert got == b"".join(proto.status(i, 0, proto.le(7, 2)) for i in ids)
+    serve(chain, proto.sync_read(120, 8, ids), now=float("inf"))
+    got = take(chain.client, len(ids) * 19)
+    assert len(published) == 2
+    assert got == expected_statuses(chain, 120, 8)
+    assert all(m.get(126) == 9 for m in chain.motors)
+    assert [m.get(120) for m in chain.motors] == [published[-1] % 32768] * len(ids)
