@@ -202,8 +202,8 @@ def test_an_in_process_chain_keeps_the_hosts_objects_out_of_the_collectors_way()
     class Cycle:
         pass
 
-    from cochlea.dynamixel import emulator
-    assert emulator._serving[0] == 0, "an earlier test left a chain serving"
+    from cochlea.dynamixel.emulator import serving_chains
+    assert serving_chains() == 0, "an earlier test left a chain serving"
     before = gc.get_freeze_count()
     gc.disable()  # no automatic collection takes the cycle before the chain starts
     try:
@@ -218,10 +218,12 @@ def test_an_in_process_chain_keeps_the_hosts_objects_out_of_the_collectors_way()
             gc.collect()
             assert ref() is not None  # frozen: the collector leaves it
             with VirtualChain("serial"):
-                assert gc.get_freeze_count() >= frozen
+                assert gc.get_freeze_count() >= frozen and serving_chains() == 2
             assert gc.get_freeze_count() >= frozen  # the outer chain still serves
-            assert outer._thread is not None
-        assert gc.get_freeze_count() == 0
+            thread = outer._thread
+            assert outer.start() is outer  # already serving: the same thread, one freeze
+            assert outer._thread is thread and serving_chains() == 1
+        assert gc.get_freeze_count() == 0 and serving_chains() == 0
         gc.collect()
     finally:
         gc.enable()

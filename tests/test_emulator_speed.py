@@ -15,6 +15,7 @@ import threading
 import time
 import tty
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -427,3 +428,34 @@ def test_a_write_request_leaves_the_registers_to_the_next_read(chain):
     assert got == expected_statuses(chain, 120, 8)
     assert all(m.get(126) == 9 for m in chain.motors)
     assert [m.get(120) for m in chain.motors] == [published[-1] % 32768] * len(ids)
+
+
+@pytest.mark.parametrize("robot", ["serial", "parallel"])
+def test_whole_plant_steps_taken_at_once_are_the_steps_one_by_one(robot):
+    """Between two requests the realistic plant (50 us sub-steps) takes about ten whole steps
+    per unit: with every motor driving they go in one call (two buffers, no copies), the same
+    arithmetic as step after step: the same state to the bit, odd and even counts; a unit with
+    a joint held takes them one by one."""
+    chains = [VirtualChain(robot) for _ in range(2)]  # the realistic (geared) plant
+    try:
+        for chain in chains:
+            for m in chain.motors:
+                m.write(m.a_mode, bytes([0]))
+                m.write(m.a_torque, bytes([1]))
+                m.write(m.a_goal_current, proto.le(40 + m.id, 2))
+        one, many = chains
+        h = one.h
+        for k in (2, 3, 10):
+            for u in one.units:
+                for _ in range(k):
+                    assert u.advance(h)
+            for u in many.units:
+                assert u.batchable()
+                assert u.advance_many(h, k)
+            for a, b in zip(one.units, many.units):
+                assert np.array_equal(a.x, b.x) and np.any(a.x[a.n:2 * a.n] != 0)
+        many.motors[0].write(many.motors[0].a_torque, bytes([0]))
+        assert not many.units[0].batchable()
+    finally:
+        for chain in chains:
+            chain.close()
