@@ -459,3 +459,23 @@ def test_whole_plant_steps_taken_at_once_are_the_steps_one_by_one(robot):
     finally:
         for chain in chains:
             chain.close()
+
+
+def test_steps_taken_at_once_keep_to_the_plants_budget():
+    """A plant whose steps cost more than real time allows falls behind (counted) rather than
+    hog the processor (MAX_PLANT_DUTY of the time since the last update), steps taken at once
+    or not: a batch holds no more steps than the budget has room for at the measured cost of
+    a step. Here 40 ms of 50 us steps of the parallel mechanism's geared plant (tens of us a
+    step) after 1 ms of quiet: far fewer steps than 800, and one overrun."""
+    chain = VirtualChain("parallel", plant_period_s=5e-5, plant="realistic")
+    try:
+        for m in chain.motors:
+            m.write(m.a_mode, bytes([0]))
+            m.write(m.a_torque, bytes([1]))
+        assert all(u.batchable() for u in chain.units)
+        chain._last_tick_end = time.perf_counter() - 1e-3
+        chain._tick(chain._plant_time + 0.04)
+        assert chain.counts["plant_overruns"] == 1
+        assert 1 <= chain.counts["plant_steps"] < 400, chain.counts
+    finally:
+        chain.close()

@@ -754,6 +754,9 @@ class VirtualChain:
         self._unix_path: str | None = None  # the socket file this chain made (removed at close)
         self.path = ""
         self._last_tick_end = self._t0
+        #: The last measured cost of a whole plant step of every unit (s): it bounds how many
+        #: steps _tick takes in one go. Unknown at first: the first steps go one by one.
+        self._step_cost = math.inf
         # A request's own update publishes the registers only when an instruction reads them
         # (see _tick): the tick it was made at, and the applied currents before any write
         # that came first in the same data.
@@ -1047,8 +1050,15 @@ class VirtualChain:
                 self._plant_time = now
                 break
             whole = int((now - self._plant_time) / self.h)
+            if whole >= 2:
+                # No more of them than the plant's budget has room for, at the last measured
+                # cost of a step: a step dearer than real time allows must still fall behind
+                # (the budget above), never spin.
+                room = budget - (time.perf_counter() - started)
+                whole = min(whole, int(room / max(self._step_cost, 1e-9))) if room > 0 else 0
             if whole >= 2 and all(u.batchable() for u in self.units):
                 # Several whole steps, every unit driven: each unit takes them in one go.
+                batch = time.perf_counter()
                 for u in self.units:
                     if not u.advance_many(self.h, whole):
                         for m in u.motors:
@@ -1058,9 +1068,11 @@ class VirtualChain:
                     self._plant_time += self.h
                 steps += whole
                 self.counts["plant_steps"] += whole
+                self._step_cost = (time.perf_counter() - batch) / whole
                 continue
             steps += 1
             h = min(self.h, now - self._plant_time)
+            step = time.perf_counter()
             for u in self.units:
                 if not u.advance(h):
                     for m in u.motors:
@@ -1068,6 +1080,7 @@ class VirtualChain:
                     self._event(now, "fault", -1, -1, f"{u.name}: plant not finite, overload")
             self.counts["plant_steps"] += 1
             self._plant_time += h
+            self._step_cost = time.perf_counter() - step
         # Requests integrate up to their arrival themselves: between them, 1 ms is enough.
         self._next_step = self._plant_time + max(self.h, 1e-3)
         self._last_tick_end = time.perf_counter()
