@@ -1034,7 +1034,7 @@ class VirtualChain:
         a request sees the state at its arrival and a new current acts from its arrival.
         ``publish=False`` (a request's own update): the registers are published when an
         instruction reads them (:meth:`_publish_pending`); a write does not need them, and
-        publishing took a third of the chain's work on a period's two requests."""
+        publishing took about a sixth of the chain's work on a period's two requests."""
         self._faults(now)
         if now - self._plant_time > 0.05:  # 50 ms behind (the host was busy): skip ahead
             self.counts["plant_overruns"] += 1
