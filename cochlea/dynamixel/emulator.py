@@ -1061,9 +1061,7 @@ class VirtualChain:
                 batch = time.perf_counter()
                 for u in self.units:
                     if not u.advance_many(self.h, whole):
-                        for m in u.motors:
-                            m.latch_hardware_error(5)
-                        self._event(now, "fault", -1, -1, f"{u.name}: plant not finite, overload")
+                        self._plant_failed(u, now)
                 for _ in range(whole):  # as the steps one by one add them
                     self._plant_time += self.h
                 steps += whole
@@ -1075,9 +1073,7 @@ class VirtualChain:
             step = time.perf_counter()
             for u in self.units:
                 if not u.advance(h):
-                    for m in u.motors:
-                        m.latch_hardware_error(5)
-                    self._event(now, "fault", -1, -1, f"{u.name}: plant not finite, overload")
+                    self._plant_failed(u, now)
             self.counts["plant_steps"] += 1
             self._plant_time += h
             self._step_cost = time.perf_counter() - step
@@ -1095,6 +1091,12 @@ class VirtualChain:
                 m.trip_watchdog()
                 self.counts["watchdog_trips"] += 1
                 self._event(now, "watchdog", m.id, m.a_watchdog, -1)
+
+    def _plant_failed(self, u: _Unit, now: float) -> None:
+        """A unit's plant went non-finite: its motors shut down with an overload error."""
+        for m in u.motors:
+            m.latch_hardware_error(5)
+        self._event(now, "fault", -1, -1, f"{u.name}: plant not finite, overload")
 
     def _active(self, now: float) -> bool:
         return self.run_start is not None and now >= self.run_start + self.faults.delay_s
