@@ -24,6 +24,7 @@ Protocol instead, as ``robots.adapter.ScenarioView`` does).
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from pathlib import Path
 
@@ -92,11 +93,15 @@ def imports(module: str) -> list[tuple[str, str | None, int]]:
     return found
 
 
-GRAPH = {m: imports(m) for m in MODULES}
+@functools.cache
+def graph() -> dict[str, list[tuple[str, str | None, int]]]:
+    """Every module's :func:`imports`: parsed when a test first asks (not at collection, which
+    every ``pytest -n`` worker pays), once per process."""
+    return {m: imports(m) for m in MODULES}
 
 
 def test_every_module_has_a_layer_and_every_import_resolves():
-    for module, edges in GRAPH.items():
+    for module, edges in graph().items():
         for target, _, line in edges:
             assert target in MODULES, f"cochlea.{module}:{line} imports cochlea.{target}, " \
                                       "which is not a module of the package"
@@ -104,18 +109,18 @@ def test_every_module_has_a_layer_and_every_import_resolves():
 
 def test_imports_go_only_downward():
     upward = [f"cochlea.{m}:{line} (layer {layer(m)}) imports cochlea.{t} (layer {layer(t)})"
-              for m, edges in GRAPH.items() for t, _, line in edges if layer(t) > layer(m)]
+              for m, edges in graph().items() for t, _, line in edges if layer(t) > layer(m)]
     assert not upward, "imports against the layer order:\n" + "\n".join(upward)
 
 
 def test_nothing_inside_imports_the_package_facade():
-    facade = [f"cochlea.{m}:{line}" for m, edges in GRAPH.items() for t, _, line in edges
+    facade = [f"cochlea.{m}:{line}" for m, edges in graph().items() for t, _, line in edges
               if t == ""]
     assert not facade, "modules importing cochlea/__init__.py:\n" + "\n".join(facade)
 
 
 def test_no_import_cycle():
-    edges = {m: sorted({t for t, _, _ in GRAPH[m] if t != m}) for m in GRAPH}
+    edges = {m: sorted({t for t, _, _ in out if t != m}) for m, out in graph().items()}
     state: dict[str, int] = {}  # 1: on the path, 2: done
     path: list[str] = []
 
@@ -138,7 +143,7 @@ def test_no_import_cycle():
 
 def test_no_private_name_crosses_a_module():
     private = [f"cochlea.{m}:{line} imports {name} from cochlea.{t}"
-               for m, edges in GRAPH.items() for t, name, line in edges
+               for m, edges in graph().items() for t, name, line in edges
                if name and name.startswith("_") and t != m]
     assert not private, "private names used across modules:\n" + "\n".join(private)
 
@@ -152,7 +157,8 @@ def test_the_checks_catch_what_they_are_for(monkeypatch, bad, message):
     """Each rule fails on a graph that breaks it (so a green run means something)."""
     for module in bad:
         monkeypatch.setitem(MODULES, module, PACKAGE / "x.py")
-    monkeypatch.setattr(sys.modules[__name__], "GRAPH", {**GRAPH, **bad})
+    patched = {**graph(), **bad}
+    monkeypatch.setattr(sys.modules[__name__], "graph", lambda: patched)
     checks = {"layer": test_imports_go_only_downward, "cycle": test_no_import_cycle,
               "private": test_no_private_name_crosses_a_module}
     with pytest.raises((AssertionError, pytest.fail.Exception)):
@@ -239,11 +245,11 @@ def robot_name_uses(package: Path = PACKAGE) -> list[str]:
     return bad
 
 
-def robot_kind_imports(graph: dict | None = None) -> list[str]:
+def robot_kind_imports(modules: dict | None = None) -> list[str]:
     """Every import of a robot kind's package outside cochlea/robots/ not in
     :data:`ALLOWED_IMPORTS`."""
     bad = []
-    for module, edges in (GRAPH if graph is None else graph).items():
+    for module, edges in (graph() if modules is None else modules).items():
         if module == "robots" or module.startswith("robots."):
             continue
         for target, name, line in edges:

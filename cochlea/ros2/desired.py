@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from ..errors import CochleaError
 from ..robots.adapter import sample_times
@@ -282,6 +281,9 @@ def splines(tr: Trajectory, columns: np.ndarray, x0: np.ndarray) -> list[JointSp
         A = None if A is None else np.vstack([np.zeros(n), A])
     if V is None:  # positions only: the C2 cubic spline, clamped at rest at both ends
         if len(times) > 1:
+            # scipy.interpolate would be 0.6 s of every cochlea-run start at the top.
+            from scipy.interpolate import CubicSpline  # noqa: PLC0415
+
             V = CubicSpline(times, P, bc_type="clamped").derivative()(times)
         else:
             V = np.zeros_like(P)
