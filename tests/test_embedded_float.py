@@ -650,14 +650,16 @@ int main(void)
     const cochlea_limits limits = {2, lo, hi, vel, eff, 0.0f, 1, 1};
     const float bound[1] = {1.0f};
     const int n_params[1] = {2};
-    const float big = 3.0e19f; /* its square overflows float: non-finite, as in Python */
+    /* Finite, its square overflows float: a position, a speed, an estimate past their limits
+     * as in Python (where it does not overflow); a command so large stops as non-finite. */
+    const float big = 3.0e19f;
     const float states[][4] = {{0.5f, 0.5f, 0.1f, 0.1f}, {NAN, 0.5f, 0.1f, 0.1f},
                                {0.5f, 0.5f, INFINITY, 0.1f}, {1.5f, 0.5f, 0.1f, 0.1f},
                                {0.5f, 0.5f, 0.1f, -2.5f}, {big, 0.0f, 0.0f, 0.0f}};
-    const float commands[][2] = {{1.0f, -1.0f}, {NAN, 0.0f}, {0.0f, -INFINITY}};
+    const float commands[][2] = {{1.0f, -1.0f}, {NAN, 0.0f}, {0.0f, -INFINITY}, {big, 0.0f}};
     /* |p_hat| = 1 (at the bound), 1 + 1e-6 (within the float tolerance), 1 + 1e-5 (over) */
     const float estimates[][2] = {{0.6f, 0.8f}, {0.6000006f, 0.8000008f},
-                                  {0.600006f, 0.800008f}, {NAN, 0.0f}};
+                                  {0.600006f, 0.800008f}, {NAN, 0.0f}, {-big, 0.0f}};
     cochlea_stop stop;
     size_t i;
     for (i = 0; i < sizeof states / sizeof states[0]; ++i) {
@@ -675,7 +677,7 @@ int main(void)
         const float *p[1] = {estimates[i]};
         const int broke = cochlea_check_command(&limits, 0.5f, tau, 1, p, n_params, bound,
                                                 &stop);
-        printf("estimate %d\n", broke ? stop.rule : 0);
+        printf("estimate %d %.3g\n", broke ? stop.rule : 0, broke ? (double)stop.value : 0.0);
     }
     return 0;
 }
@@ -684,10 +686,12 @@ int main(void)
 
 def test_the_float_supervisor_keeps_every_refusal(tmp_path):
     """The supervisor compiled in float refuses what the double one refuses: a NaN or
-    infinite state or command, a state whose square overflows, a position or speed past its
-    limit, a NaN estimate and an estimate over its bound by 1e-5; it passes an estimate at
-    its bound and 1e-6 over it (the float tolerance, 16 float epsilons: 1 + 1e-9 is 1 in
-    float)."""
+    infinite state or command, a position or speed past its limit (one whose square
+    overflows float too: position-limit, not non-finite), a NaN estimate and an estimate over
+    its bound by 1e-5 or by 3e19 (its square overflows float: estimate-bound, with its norm);
+    it passes an estimate at its bound and 1e-6 over it (the float tolerance, 16 float
+    epsilons: 1 + 1e-9 is 1 in float). A command of 3e19 N m, which double clips, float
+    stops as non-finite (its squares overflow): stricter, not looser."""
     source = tmp_path / "supervisor_check.c"
     source.write_text(_SUPERVISOR)
     program = tmp_path / "supervisor_check"
@@ -700,6 +704,7 @@ def test_the_float_supervisor_keeps_every_refusal(tmp_path):
                            check=True).stdout.split("\n")
     NON_FINITE, POSITION, VELOCITY, BOUND = 6, 3, 4, 7
     assert lines[:-1] == [f"state {r}" for r in (0, NON_FINITE, NON_FINITE, POSITION,
-                                                 VELOCITY, NON_FINITE)] \
-        + [f"command {r}" for r in (0, NON_FINITE, NON_FINITE)] \
-        + [f"estimate {r}" for r in (0, 0, BOUND, NON_FINITE)]
+                                                 VELOCITY, POSITION)] \
+        + [f"command {r}" for r in (0, NON_FINITE, NON_FINITE, NON_FINITE)] \
+        + [f"estimate {r}" for r in ("0 0", "0 0", f"{BOUND} 1", f"{NON_FINITE} 0",
+                                     f"{BOUND} 3e+19")]

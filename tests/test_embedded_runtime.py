@@ -225,8 +225,9 @@ def test_the_supervisor_breaks_the_same_rule_on_the_same_joint(built, rng):
     for trial in range(3000):
         q = rng.uniform(lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo))
         qd = rng.uniform(-1.3, 1.3, n) * vel
-        if trial % 7 == 0:
-            (q if trial % 2 else qd)[rng.integers(n)] = rng.choice([np.nan, np.inf, -np.inf])
+        if trial % 7 == 0:  # finite values whose squares overflow are not "non-finite"
+            (q if trial % 2 else qd)[rng.integers(n)] = rng.choice([np.nan, np.inf, -np.inf,
+                                                                   1e200, -1e300])
         x = np.concatenate([q, qd])
         expected = python.check_state(0.5, x, x[:n], x[n:])
         broke = c.cochlea_check_state(ctypes.byref(limits), ctypes.c_double(0.5),
@@ -255,6 +256,7 @@ def test_command_rules_and_saturation(built, rng):
     dp = ctypes.POINTER(ctypes.c_double)
     bounds = np.array([2.0, 3.0])
     sizes = (ctypes.c_int * 2)(3, 4)
+    rules, huge = set(), set()
     for trial in range(500):
         tau = rng.uniform(-2, 2, n) * effort
         estimates = [rng.uniform(-1.3, 1.3, 3), rng.uniform(-1.7, 1.7, 4)]
@@ -262,6 +264,8 @@ def test_command_rules_and_saturation(built, rng):
             tau[rng.integers(n)] = np.nan
         if trial % 11 == 0:
             estimates[1][2] = np.inf
+        if trial % 13 == 0:  # finite, its squares overflow: estimate-bound, its true norm
+            estimates[trial % 2][1] = -1e200
         pointers = (dp * 2)(*(e.ctypes.data_as(dp) for e in estimates))
         python = Supervisor(Limits(*[np.zeros(n)] * 3, effort.copy(), ("j",) * n,
                                    ("rad",) * n), [type("U", (), {"name": f"u{i}", "bound": b})
@@ -273,12 +277,18 @@ def test_command_rules_and_saturation(built, rng):
         assert bool(broke) == (expected is not None)
         if expected is not None:
             assert RULES[stop.rule] == expected.rule
+            rules.add(expected.rule)
+            if expected.rule == "estimate-bound":
+                norm = float(expected.detail.split("= ")[1].split(",")[0])
+                assert stop.value == pytest.approx(norm, rel=1e-3)
+                huge.add(norm > 1e199)
         clipped = tau.copy()
         count = c.cochlea_saturate(ctypes.byref(limits), clipped.ctypes.data_as(dp))
         if np.isfinite(tau).all():
             python.saturate(tau)
             assert np.array_equal(clipped, tau)
             assert count == int(np.sum(np.abs(tau) == effort))
+    assert rules == {"non-finite", "estimate-bound"} and huge == {True, False}
 
 
 def test_keep_out_and_exit_codes(built):

@@ -90,7 +90,10 @@ def _set(index, value):
     ("position-limit", _set(2, math.radians(175)), "arm1.joint3 = 175.00 deg outside "
                                                    "[-170.00 deg, 170.00 deg]"),
     ("velocity-limit", _set(6 + 4, -7.5), "arm2.joint2 speed = -7.5 rad/s, limit 6 rad/s"),
-    ("non-finite", _set(1, math.nan), "state = [")])
+    ("non-finite", _set(1, math.nan), "state = ["),
+    # Finite, however large, is not "non-finite" (its square overflows; the value does not).
+    ("position-limit", _set(2, 1e200), "arm1.joint3 = 5.73e+201 deg outside"),
+    ("velocity-limit", _set(6 + 4, -1e300), "arm2.joint2 speed = -1e+300 rad/s")])
 def test_state_rules(rule, fault, text):
     _, loop, backend = make_loop(fault=fault, at=5)
     stop = loop.run()
@@ -137,6 +140,27 @@ def test_estimate_beyond_its_bound():
     stop = loop.run()
     assert_safe_stop(loop, backend, stop, "estimate-bound", rows=1)
     assert "arm1 |p_hat| = " in stop.detail
+
+
+@pytest.mark.parametrize("value, rule, text", [
+    (1e200, "estimate-bound", "arm1 |p_hat| = 1.414e+200, bound"),  # squares overflow
+    (-math.inf, "non-finite", "arm1 estimate = ["),
+    (math.nan, "non-finite", "arm1 estimate = [")])
+def test_an_estimate_is_non_finite_only_when_a_value_is(value, rule, text):
+    """An estimate of finite values beyond its bound stops the run as estimate-bound however
+    large, with its true norm; a NaN or an infinity as non-finite."""
+    _, loop, backend = make_loop()
+    kernel = loop.kernels[0]
+    original = kernel._trigger
+
+    def broken():
+        original()
+        kernel.outputs[1][:2] = value
+
+    kernel._trigger = broken
+    stop = loop.run()
+    assert_safe_stop(loop, backend, stop, rule, rows=1)
+    assert text in stop.detail
 
 
 def test_watchdog_on_backend_failures():

@@ -129,14 +129,19 @@ class Supervisor:
 
     def check_command(self, t: float, tau: np.ndarray, estimates: list[np.ndarray]
                       ) -> Stop | None:
-        if not _finite(tau):
+        """A command with a NaN or an infinity stops the run as ``non-finite``, and so does one
+        whose sum of squares overflows (a joint's effort beyond about 1e154: a controller that
+        has blown up, stopped rather than clipped to the effort limit); an estimate that is
+        finite but beyond its bound stops it as ``estimate-bound`` however large it is."""
+        if not math.isfinite(float(tau @ tau)):
             return Stop("non-finite", t, f"command = {_fmt(tau)}")
         for u, p, bound in zip(self.setups, estimates, self.bounds):
             square = float(p @ p)
-            if not math.isfinite(square):
+            if not math.isfinite(square) and not _finite(p):
                 return Stop("non-finite", t, f"{u.name} estimate = {_fmt(p)}")
             if square > (bound * (1 + 1e-9)) ** 2:
-                norm = math.sqrt(square)
+                # finite values whose squares overflow: the norm taken without overflow
+                norm = math.sqrt(square) if math.isfinite(square) else math.hypot(*p.tolist())
                 return Stop("estimate-bound", t, f"{u.name} |p_hat| = {norm:.4g}, bound "
                             f"{bound:.4g}")
         return None
@@ -213,8 +218,10 @@ class OverrunWatch:
 
 
 def _finite(v: np.ndarray) -> bool:
-    """All finite, without a temporary array (a NaN or infinity makes the sum of squares so)."""
-    return math.isfinite(float(v @ v))
+    """Every value finite (neither NaN nor infinite), however large: no array made, and
+    faster than a sum of squares at a loop's few values (whose overflow would also call
+    finite values non-finite)."""
+    return all(map(math.isfinite, v.tolist()))
 
 
 def _fmt(v) -> str:
@@ -222,7 +229,11 @@ def _fmt(v) -> str:
 
 
 def _show(value: float, unit: str) -> str:
-    return f"{math.degrees(value):.2f} deg" if unit == "rad" else f"{value:.4f} m"
+    shown = math.degrees(value) if unit == "rad" else value
+    # beyond any joint's travel (a wrong measurement): digits, not a 200-digit number
+    number = f"{shown:.4g}" if abs(shown) >= 1e9 else \
+        f"{shown:.2f}" if unit == "rad" else f"{shown:.4f}"
+    return f"{number} deg" if unit == "rad" else f"{number} m"
 
 
 class KeepOutPoints:

@@ -44,29 +44,56 @@ static void stop_at(cochlea_stop *stop, int rule, cochlea_real t)
     stop->reason = 0;
 }
 
-/* Finite as the Python supervisor judges it: the sum of squares is finite (so a value whose
- * square overflows counts as non-finite too, as there). */
-static int all_finite(const cochlea_real *v, int n, cochlea_real *square)
+/* The sum of squares of v (infinite when finite values' squares overflow). */
+static cochlea_real squares(const cochlea_real *v, int n)
 {
     cochlea_real s = COCHLEA_R(0.0);
     int i;
     for (i = 0; i < n; ++i) {
         s += v[i] * v[i];
     }
-    *square = s;
-    /* on the bits (cochlea_fp.h): no compiler assumption can fold it away */
-    return cochlea_finite_real(s);
+    return s;
+}
+
+/* Every value finite, however large, as the Python supervisor judges it; tested on the bits
+ * (cochlea_fp.h): no compiler assumption can fold it away. */
+static int all_finite(const cochlea_real *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        if (!cochlea_finite_real(v[i])) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* |v| without overflow where its sum of squares overflows: scaled by the largest |v_i|. */
+static cochlea_real scaled_norm(const cochlea_real *v, int n)
+{
+    cochlea_real largest = COCHLEA_R(0.0), s = COCHLEA_R(0.0);
+    int i;
+    for (i = 0; i < n; ++i) {
+        if (FABS(v[i]) > largest) {
+            largest = FABS(v[i]);
+        }
+    }
+    if (!(largest > COCHLEA_R(0.0))) {
+        return COCHLEA_R(0.0);
+    }
+    for (i = 0; i < n; ++i) {
+        const cochlea_real r = v[i] / largest;
+        s += r * r;
+    }
+    return largest * SQRT(s);
 }
 
 int cochlea_check_state(const cochlea_limits *limits, cochlea_real t, const cochlea_real *q,
                         const cochlea_real *qd, cochlea_stop *stop)
 {
     const int n = limits->n_joints;
-    cochlea_real square;
     int j;
-    int finite = all_finite(q, n, &square);
-    finite = finite && all_finite(qd, n, &square);
-    if (!finite) {
+    if (!all_finite(q, n) || !all_finite(qd, n)) {
         stop_at(stop, COCHLEA_NON_FINITE, t);
         for (j = 0; j < n; ++j) {
             if (!cochlea_finite_real(q[j]) || !cochlea_finite_real(qd[j])) {
@@ -130,25 +157,29 @@ int cochlea_check_command(const cochlea_limits *limits, cochlea_real t, const co
                           int n_units, const cochlea_real *const *estimates,
                           const int *n_params, const cochlea_real *bounds, cochlea_stop *stop)
 {
-    cochlea_real square;
     int u;
-    if (!all_finite(tau, limits->n_joints, &square)) {
+    /* A command whose squares overflow (an effort past about 1e154 in double, 1.8e19 in
+     * float: a controller that has blown up) is stopped as a non-finite one, not clipped. */
+    if (!cochlea_finite_real(squares(tau, limits->n_joints))) {
         stop_at(stop, COCHLEA_NON_FINITE, t);
         stop->what = 1;
         return 1;
     }
     for (u = 0; u < n_units; ++u) {
         const cochlea_real tolerated = bounds[u] * (COCHLEA_R(1.0) + COCHLEA_ESTIMATE_TOLERANCE);
-        if (!all_finite(estimates[u], n_params[u], &square)) {
+        const cochlea_real square = squares(estimates[u], n_params[u]);
+        const int overflowed = !cochlea_finite_real(square);
+        if (overflowed && !all_finite(estimates[u], n_params[u])) {
             stop_at(stop, COCHLEA_NON_FINITE, t);
             stop->what = 2;
             stop->unit = u;
             return 1;
         }
-        if (square > tolerated * tolerated) {
+        /* finite values whose squares overflow are beyond any bound: estimate-bound */
+        if (overflowed || square > tolerated * tolerated) {
             stop_at(stop, COCHLEA_ESTIMATE_BOUND, t);
             stop->unit = u;
-            stop->value = SQRT(square);
+            stop->value = overflowed ? scaled_norm(estimates[u], n_params[u]) : SQRT(square);
             stop->limit = bounds[u];
             return 1;
         }
