@@ -479,3 +479,38 @@ def test_steps_taken_at_once_keep_to_the_plants_budget():
         assert 1 <= chain.counts["plant_steps"] < 400, chain.counts
     finally:
         chain.close()
+
+
+@pytest.mark.parametrize("robot, batched", [("serial", True), ("serial", False),
+                                            ("parallel", True), ("parallel", False)])
+def test_a_plant_gone_non_finite_shuts_its_motors_down(robot, batched):
+    """A unit's plant that goes non-finite (here a speed of 1e308, whose next step overflows)
+    latches every one of its motors' overload error (Hardware Error Status bit 5), turns their
+    torque off and keeps the last finite state with its speeds zeroed, whether the steps went
+    one by one or at once; the chain's other unit drives on."""
+    chain = VirtualChain(robot)  # the realistic (geared) plant, served by hand: no thread
+    try:
+        for m in chain.motors:
+            m.write(m.a_mode, bytes([0]))
+            m.write(m.a_torque, bytes([1]))
+            m.write(m.a_goal_current, proto.le(40, 2))
+        broken = chain.units[-1]
+        n = broken.n
+        broken.x[n] = 1e308
+        q = broken.x[:n].copy()
+        assert all(u.batchable() for u in chain.units)
+        steps = 10 if batched else 1
+        chain._last_tick_end = time.perf_counter() - 1.0  # budget for every step at once
+        chain._step_cost = 1e-6  # as measured by earlier steps (unmeasured: one by one)
+        chain._tick(chain._plant_time + steps * chain.h - 1e-9 * (not batched))
+        assert chain.counts["plant_steps"] == steps
+        for m in broken.motors:
+            assert m.table[m.a_error] & (1 << 5) and m.table[m.a_torque] == 0, m.id
+        assert np.isfinite(broken.x).all() and np.array_equal(broken.x[:n], q)
+        assert not broken.x[n:2 * n].any() and not broken.x[3 * n:].any()
+        assert not broken.batchable()  # its motors no longer drive
+        for u in chain.units[:-1]:  # the other arm drives on
+            assert all(m.table[m.a_error] == 0 and m.table[m.a_torque] == 1 for m in u.motors)
+            assert np.isfinite(u.x).all() and np.any(u.x[u.n:2 * u.n] != 0)
+    finally:
+        chain.close()

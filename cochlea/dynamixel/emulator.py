@@ -545,23 +545,28 @@ class _Unit:
         ten steps per unit, and Python's work on each (currents, copies, held joints, finite
         check) cost more than the plant itself. False if the plant went non-finite: the state
         is then kept as it was before the k steps (its speeds zeroed, as advance does)."""
-        n, x, tau = self.n, self.x, self._tau
+        tau = self._tau
         for j, m in enumerate(self.motors):
             tau[j] = m.state()[2]
         self._h[0] = h
-        self._x[:] = x
+        self._x[:] = self.x
         forth, back = self._call, self._call_back
         for i in range(k):
             if i % 2:
                 back()
             else:
                 forth()
-        last = self._next if k % 2 else self._x
-        if not math.isfinite(sum(last.tolist())):
+        return self._accept(self._next if k % 2 else self._x)
+
+    def _accept(self, nxt: np.ndarray) -> bool:
+        """``nxt`` becomes the state if finite; else the state stays, its speeds zeroed (the
+        link's and, with the gearbox, the rotor's), and False."""
+        x, n = self.x, self.n
+        if not math.isfinite(sum(nxt.tolist())):  # numpy's sum costs 5x more at this size
             x[n:2 * n] = 0.0
             x[3 * n:] = 0.0
             return False
-        x[:] = last
+        x[:] = nxt
         return True
 
     def advance(self, h: float) -> bool:
@@ -589,11 +594,8 @@ class _Unit:
                 if self.gearbox:
                     nxt[2 * n + j] = x[2 * n + j]
                     nxt[3 * n + j] = 0.0
-        if not math.isfinite(sum(nxt.tolist())):  # numpy's sum costs 5x more at this size
-            x[n:2 * n] = 0.0
-            x[3 * n:] = 0.0
+        if not self._accept(nxt):
             return False
-        x[:] = nxt
         if self.stops:
             _hold_at_stops(self)
         return True
