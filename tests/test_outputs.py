@@ -254,6 +254,7 @@ def test_an_interrupt_while_preparing_undoes_the_start(tmp_path, capsys, monkeyp
     """Ctrl-C after the folder was claimed, while the loop is built: nothing ran, so the
     message says so, and the identical retry finds no folder in its way."""
     real = cochlea_run.RealTimeLoop
+    before = signal.getsignal(signal.SIGINT)  # ignored when the tests run in the background
 
     def interrupted_loop(*args, **kwargs):
         os.kill(os.getpid(), signal.SIGINT)
@@ -266,7 +267,7 @@ def test_an_interrupt_while_preparing_undoes_the_start(tmp_path, capsys, monkeyp
     _one_line(capsys.readouterr().err,
               "cochlea-run: interrupted before the run started; nothing moved")
     assert _tree(tmp_path) == []
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handed back
+    assert signal.getsignal(signal.SIGINT) is before  # handed back
 
 
 @pytest.mark.parametrize("where", ["_mkdir_missing", "_lock"])

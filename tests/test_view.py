@@ -213,9 +213,12 @@ class Server:
     """``cochlea-view RUN_DIR --port 0 --no-open`` in a subprocess; its URL."""
 
     def __init__(self, folder: Path):
+        # Ctrl-C (stop's SIGINT) reaches it as a terminal's would: a test run started in the
+        # background by a non-interactive shell has SIGINT ignored, which a child inherits.
         self.process = subprocess.Popen(
             [sys.executable, "-m", "cochlea.apps.cochlea_view", str(folder), "--no-open"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         line = self.process.stdout.readline()
         assert "serving" in line, (line, self.process.stderr.read() if
                                    self.process.poll() is not None else "")
