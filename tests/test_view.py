@@ -226,7 +226,12 @@ class Server:
 
     def stop(self) -> int:
         self.process.send_signal(signal.SIGINT)
-        return self.process.wait(timeout=30)
+        try:
+            return self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()  # the test fails, and leaves no server behind
+            self.process.wait()
+            raise
 
 
 @pytest.mark.parametrize("name", ["serial_task", "parallel_joint", "imported_arm"])
