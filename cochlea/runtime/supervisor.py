@@ -229,11 +229,10 @@ def _fmt(v) -> str:
 
 
 def _show(value: float, unit: str) -> str:
-    shown = math.degrees(value) if unit == "rad" else value
+    shown, suffix, places = (math.degrees(value), "deg", ".2f") if unit == "rad" else \
+        (value, "m", ".4f")
     # beyond any joint's travel (a wrong measurement): digits, not a 200-digit number
-    number = f"{shown:.4g}" if abs(shown) >= 1e9 else \
-        f"{shown:.2f}" if unit == "rad" else f"{shown:.4f}"
-    return f"{number} deg" if unit == "rad" else f"{number} m"
+    return f"{shown:{'.4g' if abs(shown) >= 1e9 else places}} {suffix}"
 
 
 class KeepOutPoints:
