@@ -121,7 +121,8 @@ def breakdown(spec, samples: int) -> dict[str, float]:
             lap("supervisor verdict")
             limits = {u.name: {j.name: float(lim) for j, lim in
                                zip(u.controller_model.joints, u.effort_limit)} for u in setups}
-            cochlea_sweep.measures(report.summary(result, 0.0, reductions=reductions), limits)
+            cochlea_sweep.measures(report.summary(result, 0.0, reductions=reductions, row=True),
+                                   limits)
             lap("summary + row")
     finally:
         compiled.run_c = run_c

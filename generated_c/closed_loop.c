@@ -51,6 +51,14 @@
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -77,9 +85,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -87,6 +96,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -101,6 +114,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -153,10 +168,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -184,6 +229,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -210,9 +263,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -220,6 +274,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -234,6 +292,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -286,10 +346,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -317,6 +407,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -343,9 +441,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -353,6 +452,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -367,6 +470,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -419,10 +524,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -450,6 +585,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -476,9 +619,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -486,6 +630,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -500,6 +648,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -552,10 +702,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -583,6 +763,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -609,9 +797,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -619,6 +808,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -633,6 +826,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -685,10 +880,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -716,6 +941,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -742,9 +975,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -752,6 +986,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -766,6 +1004,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -818,10 +1058,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -849,6 +1119,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -875,9 +1153,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -885,6 +1164,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -899,6 +1182,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -951,10 +1236,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -982,6 +1297,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1008,9 +1331,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1018,6 +1342,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1032,6 +1360,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1084,10 +1414,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1115,6 +1475,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1141,9 +1509,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1151,6 +1520,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1165,6 +1538,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1217,10 +1592,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1248,6 +1653,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1274,9 +1687,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1284,6 +1698,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1298,6 +1716,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1350,10 +1770,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1381,6 +1831,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1407,9 +1865,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -1417,6 +1876,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1431,6 +1894,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1483,10 +1948,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1514,6 +2009,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1540,9 +2043,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -1550,6 +2054,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1564,6 +2072,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1616,10 +2126,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1647,6 +2187,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1673,9 +2221,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -1683,6 +2232,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1697,6 +2250,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1749,10 +2304,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1780,6 +2365,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1806,9 +2399,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -1816,6 +2410,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1830,6 +2428,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -1882,10 +2482,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -1913,6 +2543,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1939,9 +2577,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -1949,6 +2588,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1963,6 +2606,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2015,10 +2660,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2046,6 +2721,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2072,9 +2755,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2082,6 +2766,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2096,6 +2784,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2148,10 +2838,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2179,6 +2899,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2205,9 +2933,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2215,6 +2944,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2229,6 +2962,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2281,10 +3016,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2312,6 +3077,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2338,9 +3111,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2348,6 +3122,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2362,6 +3140,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2414,10 +3194,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2445,6 +3255,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2471,9 +3289,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2481,6 +3300,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2495,6 +3318,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2547,10 +3372,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2578,6 +3433,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2604,9 +3467,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2614,6 +3478,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2628,6 +3496,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2680,10 +3550,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2711,6 +3611,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2737,9 +3645,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -2747,6 +3656,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2761,6 +3674,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2813,10 +3728,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2844,6 +3789,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2870,9 +3823,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -2880,6 +3834,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2894,6 +3852,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -2946,10 +3906,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -2977,6 +3967,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3003,9 +4001,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -3013,6 +4012,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3027,6 +4030,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3079,10 +4084,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3110,6 +4145,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3136,9 +4179,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -3146,6 +4190,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3160,6 +4208,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3212,10 +4262,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3243,6 +4323,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3269,9 +4357,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -3279,6 +4368,10 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm1_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm1_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3293,6 +4386,8 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3345,10 +4440,40 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
     flag = serial_arm1_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3376,6 +4501,14 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3402,9 +4535,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -3412,6 +4546,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3426,6 +4564,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3478,10 +4618,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3509,6 +4679,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3535,9 +4713,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -3545,6 +4724,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3559,6 +4742,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3611,10 +4796,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3642,6 +4857,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3668,9 +4891,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -3678,6 +4902,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3692,6 +4920,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3744,10 +4974,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3775,6 +5035,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3801,9 +5069,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -3811,6 +5080,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3825,6 +5098,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -3877,10 +5152,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -3908,6 +5213,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3934,9 +5247,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -3944,6 +5258,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3958,6 +5276,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4010,10 +5330,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4041,6 +5391,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4067,9 +5425,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -4077,6 +5436,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4091,6 +5454,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4143,10 +5508,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4174,6 +5569,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4200,9 +5603,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -4210,6 +5614,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4224,6 +5632,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4276,10 +5686,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4307,6 +5747,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4333,9 +5781,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -4343,6 +5792,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4357,6 +5810,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4409,10 +5864,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4440,6 +5925,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4466,9 +5959,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -4476,6 +5970,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4490,6 +5988,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4542,10 +6042,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4573,6 +6103,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4599,9 +6137,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -4609,6 +6148,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4623,6 +6166,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4675,10 +6220,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4706,6 +6281,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4732,9 +6315,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -4742,6 +6326,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4756,6 +6344,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4808,10 +6398,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4839,6 +6459,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4865,9 +6493,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -4875,6 +6504,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4889,6 +6522,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -4941,10 +6576,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -4972,6 +6637,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4998,9 +6671,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -5008,6 +6682,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5022,6 +6700,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5074,10 +6754,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5105,6 +6815,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5131,9 +6849,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -5141,6 +6860,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5155,6 +6878,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5207,10 +6932,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5238,6 +6993,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5264,9 +7027,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -5274,6 +7038,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5288,6 +7056,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5340,10 +7110,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5371,6 +7171,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5397,9 +7205,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -5407,6 +7216,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5421,6 +7234,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5473,10 +7288,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5504,6 +7349,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5530,9 +7383,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -5540,6 +7394,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5554,6 +7412,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5606,10 +7466,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5637,6 +7527,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5663,9 +7561,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -5673,6 +7572,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5687,6 +7590,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5739,10 +7644,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5770,6 +7705,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5796,9 +7739,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -5806,6 +7750,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5820,6 +7768,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -5872,10 +7822,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -5903,6 +7883,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5929,9 +7917,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -5939,6 +7928,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5953,6 +7946,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6005,10 +8000,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6036,6 +8061,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6062,9 +8095,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -6072,6 +8106,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   casadi_real* plant_res[serial_arm1_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6086,6 +8124,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6138,10 +8178,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6169,6 +8239,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6195,9 +8273,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -6205,6 +8284,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   casadi_real* plant_res[serial_arm1_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6219,6 +8302,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6271,10 +8356,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6302,6 +8417,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6328,9 +8451,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -6338,6 +8462,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   casadi_real* plant_res[serial_arm1_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6352,6 +8480,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6404,10 +8534,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6435,6 +8595,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6461,9 +8629,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -6471,6 +8640,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   casadi_real* plant_res[serial_arm1_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6485,6 +8658,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6537,10 +8712,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6568,6 +8773,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6594,9 +8807,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3 };
+         NPOSE = 3, NR = 20 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -6604,6 +8818,10 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
   casadi_real* plant_res[serial_arm1_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[serial_arm2_fk_world_SZ_ARG];
   casadi_real* pose_res[serial_arm2_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6618,6 +8836,8 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6670,10 +8890,40 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
     flag = serial_arm2_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6701,6 +8951,14 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6727,9 +8985,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -6737,6 +8996,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   casadi_real* plant_res[parallel_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6751,6 +9014,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6803,10 +9068,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6834,6 +9129,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6860,9 +9163,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -6870,6 +9174,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   casadi_real* plant_res[parallel_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6884,6 +9192,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -6936,10 +9246,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -6967,6 +9307,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6993,9 +9341,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -7003,6 +9352,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   casadi_real* plant_res[parallel_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7017,6 +9370,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7069,10 +9424,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7100,6 +9485,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7126,9 +9519,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -7136,6 +9530,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   casadi_real* plant_res[parallel_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7150,6 +9548,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7202,10 +9602,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7233,6 +9663,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7259,9 +9697,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -7269,6 +9708,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
   casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7283,6 +9726,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7335,10 +9780,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7366,6 +9841,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7392,9 +9875,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -7402,6 +9886,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   casadi_real* plant_res[parallel_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7416,6 +9904,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7468,10 +9958,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7499,6 +10019,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7525,9 +10053,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -7535,6 +10064,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   casadi_real* plant_res[parallel_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7549,6 +10082,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7601,10 +10136,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7632,6 +10197,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7658,9 +10231,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -7668,6 +10242,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   casadi_real* plant_res[parallel_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7682,6 +10260,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7734,10 +10314,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7765,6 +10375,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7791,9 +10409,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -7801,6 +10420,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   casadi_real* plant_res[parallel_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7815,6 +10438,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -7867,10 +10492,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -7898,6 +10553,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7924,9 +10587,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -7934,6 +10598,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
   casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7948,6 +10616,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8000,10 +10670,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8031,6 +10731,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8057,9 +10765,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -8067,6 +10776,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   casadi_real* plant_res[parallel_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8081,6 +10794,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8133,10 +10848,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8164,6 +10909,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8190,9 +10943,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -8200,6 +10954,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   casadi_real* plant_res[parallel_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8214,6 +10972,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8266,10 +11026,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8297,6 +11087,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8323,9 +11121,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -8333,6 +11132,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   casadi_real* plant_res[parallel_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8347,6 +11150,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8399,10 +11204,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8430,6 +11265,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8456,9 +11299,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -8466,6 +11310,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   casadi_real* plant_res[parallel_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8480,6 +11328,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8532,10 +11382,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8563,6 +11443,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8589,9 +11477,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -8599,6 +11488,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
   casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8613,6 +11506,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8665,10 +11560,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8696,6 +11621,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8722,9 +11655,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -8732,6 +11666,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   casadi_real* plant_res[parallel_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8746,6 +11684,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8798,10 +11738,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8829,6 +11799,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8855,9 +11833,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -8865,6 +11844,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   casadi_real* plant_res[parallel_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8879,6 +11862,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -8931,10 +11916,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -8962,6 +11977,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8988,9 +12011,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -8998,6 +12022,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   casadi_real* plant_res[parallel_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9012,6 +12040,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9064,10 +12094,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9095,6 +12155,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9121,9 +12189,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -9131,6 +12200,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   casadi_real* plant_res[parallel_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9145,6 +12218,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9197,10 +12272,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9228,6 +12333,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9254,9 +12367,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -9264,6 +12378,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
   casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9278,6 +12396,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9330,10 +12450,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9361,6 +12511,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9387,9 +12545,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -9397,6 +12556,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   casadi_real* plant_res[parallel_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9411,6 +12574,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9463,10 +12628,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9494,6 +12689,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9520,9 +12723,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -9530,6 +12734,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   casadi_real* plant_res[parallel_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9544,6 +12752,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9596,10 +12806,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9627,6 +12867,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9653,9 +12901,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -9663,6 +12912,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   casadi_real* plant_res[parallel_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9677,6 +12930,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9729,10 +12984,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9760,6 +13045,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9786,9 +13079,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -9796,6 +13090,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   casadi_real* plant_res[parallel_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9810,6 +13108,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9862,10 +13162,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -9893,6 +13223,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9919,9 +13257,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -9929,6 +13268,10 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
   casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9943,6 +13286,8 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -9995,10 +13340,40 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -10026,6 +13401,14 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10052,9 +13435,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -10062,6 +13446,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   casadi_real* plant_res[parallel_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10076,6 +13464,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -10128,10 +13518,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -10159,6 +13579,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10185,9 +13613,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -10195,6 +13624,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   casadi_real* plant_res[parallel_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10209,6 +13642,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -10261,10 +13696,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -10292,6 +13757,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10318,9 +13791,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -10328,6 +13802,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   casadi_real* plant_res[parallel_armature_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10342,6 +13820,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   (void)drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -10394,10 +13874,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -10425,6 +13935,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10451,9 +13969,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -10461,6 +13980,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   casadi_real* plant_res[parallel_armature_plant_step_coulomb_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10475,6 +13998,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -10527,10 +14052,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }
@@ -10558,6 +14113,14 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
+ * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * written, gathered while each value is at hand instead of by a second pass over the logs:
+ * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
+ * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
+ * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
+ * added in order) over every row, then over the rows after the first (the first alone when
+ * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
+ * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10584,9 +14147,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows) {
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6 };
+         NPOSE = 6, NR = 32 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -10594,6 +14158,10 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
   casadi_real* plant_res[parallel_gear_plant_step_SZ_RES];
   const casadi_real* pose_arg[parallel_fk_world_SZ_ARG];
   casadi_real* pose_res[parallel_fk_world_SZ_RES];
+  /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
+   * explicitly and a NaN held is never replaced. */
+  casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10608,6 +14176,8 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
   plant_arg[5] = drive;
   plant_res[0] = x_next;
   pose_arg[0] = x;
+  for (i = 0; i < NX; ++i) { meas_low[i] = INFINITY; meas_high[i] = -INFINITY; }
+  for (i = 0; i < NQ; ++i) { tau_low[i] = INFINITY; tau_high[i] = -INFINITY; }
   for (k = 0; k < n; ++k) {
     casadi_real* x_k = x_log + k * NX;
     const casadi_int d_k = delays ? delays[k] : delay;
@@ -10660,10 +14230,40 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
     flag = parallel_fk_world(pose_arg, pose_res, 0, 0, 0);
     if (flag) return flag;
     *rows = k + 1;
+    if (reductions) {
+      const casadi_real* tau_k = tau_log + k * NQ;
+      casadi_real square = p_hat[0] * p_hat[0];
+      for (i = 0; i < NX; ++i) {
+        if (meas[i] < meas_low[i] || meas[i] != meas[i]) meas_low[i] = meas[i];
+        if (meas[i] > meas_high[i] || meas[i] != meas[i]) meas_high[i] = meas[i];
+      }
+      for (i = 0; i < NQ; ++i) {
+        if (tau_k[i] < tau_low[i] || tau_k[i] != tau_k[i]) tau_low[i] = tau_k[i];
+        if (tau_k[i] > tau_high[i] || tau_k[i] != tau_k[i]) tau_high[i] = tau_k[i];
+      }
+      for (i = 1; i < NP; ++i) square += p_hat[i] * p_hat[i];
+      if (square > square_all || square != square) square_all = square;
+      if (k == 0) {
+        square_first = square;
+      } else if (square > square_later || square != square) {
+        square_later = square;
+      }
+    }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
-    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) return 0;
-    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) return 0;
+    for (i = 0; i < NXP; ++i) if (!isfinite(x[i])) break;
+    if (i < NXP) break;
+    for (i = 0; i < NP; ++i) if (!isfinite(p_hat[i])) break;
+    if (i < NP) break;
+  }
+  if (reductions) {
+    for (i = 0; i < NX; ++i) { reductions[i] = meas_low[i]; reductions[NX + i] = meas_high[i]; }
+    for (i = 0; i < NQ; ++i) {
+      reductions[2 * NX + i] = tau_low[i];
+      reductions[2 * NX + NQ + i] = tau_high[i];
+    }
+    reductions[NR - 2] = square_all;
+    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
   }
   return 0;
 }

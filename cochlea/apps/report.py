@@ -9,6 +9,7 @@ degrees (an edge of the program) with the unit on every axis.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -224,11 +225,11 @@ class _UnitStats:
         self.tau_max = peaks if self.tau_max is None else np.maximum(self.tau_max, peaks)
         # (A row's summary is of a run in memory, one chunk: summary() gives streamed runs
         # no reductions.)
-        if self.row and reduced is not None and _inside(reduced.p_squares, u.setup.bound):
+        if self.row and reduced is not None and _inside(reduced.square_all, u.setup.bound):
             self.max_norm = None  # every estimate finite and inside the bound: not needed
             self.last = _rows(u, slice(-1, None), _LAST_FIELDS)
             return
-        largest = _largest_norm(u.p_hat, None if reduced is None else reduced.p_squares)
+        largest = _largest_norm(u.p_hat)
         self.max_norm = np.maximum(self.max_norm, largest)
         # A finite largest norm: every estimate finite (a NaN or an infinity makes its norm so).
         self.finite = self.finite and bool(np.isfinite(largest)
@@ -236,15 +237,15 @@ class _UnitStats:
         self.last = _rows(u, slice(-1, None), _LAST_FIELDS)
 
 
-def _inside(squares: np.ndarray, bound: float) -> bool:
-    """Whether every row whose squares these are (:func:`~cochlea.runtime.supervisor.
-    row_squares`, summed in any order) has a finite norm within ``bound`` as the summary
-    judges it (``np.linalg.norm`` at most ``bound (1 + 1e-9)``), from the largest sum alone:
+def _inside(largest_square: float, bound: float) -> bool:
+    """Whether every estimate row has a finite norm within ``bound`` as the summary judges it
+    (``np.linalg.norm`` at most ``bound (1 + 1e-9)``), from the rows' largest sum of squares
+    (:class:`~cochlea.runtime.supervisor.LogReductions`' ``square_all``, summed in any order):
     finite (no NaN, no infinity, no overflow) and below the bound's square with a slack far
     wider than two sums' rounding. False: undecided (the norm decides)."""
-    top = squares.max(initial=0.0)
     limit = bound * (1 + 1e-9)
-    return bool(np.isfinite(top)) and top * (1 + 1e-12) <= limit * limit * (1 - 1e-12)
+    return math.isfinite(largest_square) and \
+        largest_square * (1 + 1e-12) <= limit * limit * (1 - 1e-12)
 
 
 def unit_summary(u: UnitLog, position_quantum: np.ndarray | None = None) -> dict:

@@ -259,6 +259,17 @@ class ClosedLoop:
     def is_alias(self) -> bool:
         return self.symbol != self.name
 
+    @property
+    def n_reductions(self) -> int:
+        """The size of the driver's ``reductions`` output: the measured state's column
+        extremes (2 x 2 nq), the applied efforts' (2 nq), two largest estimate row squares."""
+        return closed_loop_reductions(self.nq)
+
+
+def closed_loop_reductions(nq: int) -> int:
+    """:attr:`ClosedLoop.n_reductions` of a driver of ``nq`` joints."""
+    return 2 * (2 * nq) + 2 * nq + 2
+
 
 def export(function: ca.Function, name: str, options: dict | None = None) -> ca.Function:
     """The same computation as ``function`` under ``name``, every output dense."""

@@ -207,7 +207,7 @@ _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_int* delays, "
               "const casadi_real* effort_ramp, const casadi_real* torque_scale, "
               "casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "
-              "casadi_int* rows")
+              "casadi_int* rows, casadi_real* reductions")
 
 
 def _write_closed_loops(loops: list[ClosedLoop], kernels: list[Kernel], out: Path,
@@ -225,7 +225,7 @@ def _write_closed_loops(loops: list[ClosedLoop], kernels: list[Kernel], out: Pat
         parts.append("\n" + template.substitute(
             name=loop.name, step=step, plant=plant, pose=pose, nq=loop.nq,
             np=loop.n_params, nd=loop.n_desired, ne=loop.n_errors, npose=loop.n_pose,
-            nxp=loop.nx, n_drive=loop.n_drive,
+            nxp=loop.nx, n_drive=loop.n_drive, nr=loop.n_reductions,
             coulomb_arg="plant_arg[5] = drive;" if loop.coulomb else "(void)drive;"))
     (out / "closed_loop.c").write_text("".join(parts))
     header = [_preamble("Closed-loop drivers (closed_loop.c); see README.md.", source),
@@ -257,7 +257,7 @@ def _manifest(config: CodegenConfig, kernels: list[Kernel], loops: list[ClosedLo
             "n_params": loop.n_params, "n_desired": loop.n_desired, "n_errors": loop.n_errors,
             "n_pose": loop.n_pose, "n_plant_params": loop.n_plant_params,
             "nx": loop.nx, "n_drive": loop.n_drive,
-            "n_gains": loop.n_gains,
+            "n_gains": loop.n_gains, "n_reductions": loop.n_reductions,
         } for loop in loops},
     }
 

@@ -287,7 +287,7 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 11 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 15 + [ctypes.POINTER(_int)])
+                    + [pointer] * 15 + [ctypes.POINTER(_int), pointer])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -391,6 +391,9 @@ class ClosedLoopLog:
     #: :meth:`delayed` reads them.
     lead: int = 0
     padded: np.ndarray | None = None
+    #: What the driver gathered of the ``rows`` written (``ClosedLoop.run``'s ``reductions``;
+    #: None when not asked for): :class:`LoopReductions`.
+    reductions: LoopReductions | None = None
 
     def delayed(self, delay: int, rows: int) -> np.ndarray | None:
         """The first ``rows`` logged states each ``delay`` periods earlier (the first state
@@ -402,6 +405,29 @@ class ClosedLoopLog:
         view = self.padded[self.lead - delay:self.lead - delay + rows]
         view.flags.writeable = False
         return view
+
+
+@dataclass(frozen=True)
+class LoopReductions:
+    """What a closed-loop driver gathers of the rows it writes, while each value is at hand
+    (generated_c/README.md): the verdict's and the summary's reads of the logs without a
+    second pass over them. A NaN in a column makes both its extremes NaN."""
+
+    rows: int  # the rows these describe
+    state_low: np.ndarray  # (2 nq,) each measured state column's minimum ([q, qd], SI)
+    state_high: np.ndarray  # and maximum
+    tau_low: np.ndarray  # (nq,) each applied effort column's minimum
+    tau_high: np.ndarray  # and maximum
+    #: The largest sum of squares of a logged estimate row, its columns added in order: over
+    #: every row, and over the rows after the first (the first alone when it is the only one).
+    square_all: float
+    square_later: float
+
+    @classmethod
+    def unpack(cls, values: np.ndarray, nq: int, rows: int) -> LoopReductions:
+        nx = 2 * nq
+        return cls(rows, values[:nx], values[nx:2 * nx], values[2 * nx:2 * nx + nq],
+                   values[2 * nx + nq:2 * nx + 2 * nq], float(values[-2]), float(values[-1]))
 
 
 class ClosedLoop:
@@ -417,6 +443,7 @@ class ClosedLoop:
         #: its 6th input (``drive``).
         self.nx = meta.get("nx", 2 * self.nq)
         self.n_drive = meta.get("n_drive", self.nq)
+        self.n_reductions = meta["n_reductions"]
 
     def _array(self, label: str, value, shape: tuple[int, ...]) -> np.ndarray:
         array = np.ascontiguousarray(value, dtype=np.float64)
@@ -429,7 +456,8 @@ class ClosedLoop:
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
             offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
             effort_bound=None, effort_offset=None, effort_ramp=None,
-            robust=None, delays=None, torque_scale=None, lead: int = 0) -> ClosedLoopLog:
+            robust=None, delays=None, torque_scale=None, lead: int = 0,
+            reductions: bool = False) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call.
         ``x0`` is the plant's initial state (``nx``); ``coulomb`` its 6th input (``n_drive``
         values: the dry friction's rows, or the gear plant's drive). ``effort_quantum`` and
@@ -441,7 +469,9 @@ class ClosedLoop:
         period's own delay, instead of ``delay`` (the jittering delay). ``torque_scale`` (nq):
         the plant gets the applied efforts times it (the motors' torque-constant error); the
         log keeps the applied efforts. ``lead``: rows the state log's buffer holds in front of
-        it, each the first logged state after the run (:meth:`ClosedLoopLog.delayed`)."""
+        it, each the first logged state after the run (:meth:`ClosedLoopLog.delayed`).
+        ``reductions``: the log also holds what the driver gathered of its rows
+        (:class:`LoopReductions`)."""
         nq, nd = self.nq, self.n_desired
         if robust is None:
             robust = (np.zeros(nq), np.full(self.n_params, -np.inf),
@@ -490,6 +520,7 @@ class ClosedLoop:
                             np.empty((n, nq)), np.empty((n, self.n_errors)),
                             np.empty((n, self.n_pose)), lead, states)
         rows = _int(0)
+        gathered = np.empty(self.n_reductions) if reductions else None
         flag = self._fn(n, delay, None if delays is None else delays.ctypes.data,
                         ins["x0"].ctypes.data, ins["p_hat0"].ctypes.data,
                         ins["xd"].ctypes.data, ins["xd_dot"].ctypes.data,
@@ -507,10 +538,13 @@ class ClosedLoop:
                         None if effort_offset is None else effort_ramp.ctypes.data,
                         None if torque_scale is None else torque_scale.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
-                        log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows))
+                        log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows),
+                        None if gathered is None else gathered.ctypes.data)
         if flag:
             raise KernelError(f"{self.name}: a kernel returned code {flag}")
         log.rows = rows.value
+        if gathered is not None:
+            log.reductions = LoopReductions.unpack(gathered, nq, log.rows)
         if lead and log.rows:
             states[:lead] = log.x[0]
         return log

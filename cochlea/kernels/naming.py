@@ -24,7 +24,9 @@ from ..robots.model import ACTUATOR_SUFFIX, RobotModel
 #: has ``n_drive`` values (the dry-friction rows, or the gear plant's).
 #: 7: and the per-period delays (after delay; NULL: the scalar) and the torque scale (after
 #: effort_ramp; NULL: 1), the jittering delay and the motor's torque-constant error.
-MANIFEST_FORMAT = "cochlea-kernels/7"
+#: 8: and a last output, ``reductions`` (``n_reductions`` values; NULL: none), the column
+#: extremes and largest estimate squares a verdict and a summary read of the rows written.
+MANIFEST_FORMAT = "cochlea-kernels/8"
 
 
 def source_hash(function: ca.Function) -> str:

@@ -86,17 +86,19 @@ kernel it runs.
 ## The closed loop in C
 
 ```c
-int NAME_closed_loop(casadi_int n, casadi_int delay,
+int NAME_closed_loop(casadi_int n, casadi_int delay, const casadi_int* delays,
     const casadi_real* x0, const casadi_real* p_hat0,
     const casadi_real* xd, const casadi_real* xd_dot, const casadi_real* xd_ddot,
     const casadi_real* noise, const casadi_real* quantum, const casadi_real* offset,
     const casadi_real* gains, const casadi_real* Gamma, casadi_real bound, casadi_real h,
     const casadi_real* robust,
-    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* coulomb,
+    const casadi_real* plant_p, const casadi_real* friction, const casadi_real* drive,
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
-    const casadi_real* effort_bound,
+    const casadi_real* effort_bound, const casadi_real* effort_offset,
+    const casadi_real* effort_ramp, const casadi_real* torque_scale,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
-    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows);
+    casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
+    casadi_real* reductions);
 ```
 
 Runs `n` periods of length `h` (s). All arrays are row-major with one row per period and are
@@ -104,24 +106,38 @@ the caller's (the function allocates nothing): `gains` stacks the controller's d
 (the `gains` input of its step), `robust` its robust options packed in the order of the
 step's trailing inputs (`deadzone[nq], p_min[np], p_max[np], static_excess[nq],
 stribeck_velocity[nq]`; zeros, -inf, inf, zeros, ones: none; never NULL), `plant_p` the plant's
-full inertial parameters; inputs
+full inertial parameters, `x0` the plant's initial state (`2 nq`, or `4 nq` with the gearbox:
+`[q, qd, theta, theta_dot]`); inputs
 `xd, xd_dot, xd_ddot` (n x nd, the desired samples at `t = k h`), `noise` (n x 2nq, added to
 the measurement; NULL for none), `quantum` and `offset` (2nq each: the measurement grid, e.g.
 encoder counts; NULL for continuous measurements); outputs
 `x_log` (n x 2nq, the true state `[q, qd]` at the start of each period), `p_hat_log` (n x np, the
 estimate used in the period), `tau_log` (n x nq), `errors_log` (n x ne), `pose_log` (n x npose).
-The controller sees `x_log[max(k - delay, 0)] + noise[k]` (a measurement `delay` periods old),
+The controller sees `x_log[max(k - d_k, 0)] + noise[k]` (a measurement `d_k` periods old:
+`delays[k]`, the jittering delay, or `delay` where `delays` is NULL),
 rounded to `offset[i] + quantum[i] * nearbyint((value - offset[i]) / quantum[i])` where
 `quantum[i] > 0`; its command is clipped to `+-effort_limit[i]` (NULL: no limit), as the
-runtime's supervisor clips every command; with `effort_quantum` (nq; NULL: none) it is then put
+runtime's supervisor clips every command; with `effort_offset` and `effort_ramp` (nq each;
+NULL: none) the bridge's offset is added, `tau + effort_offset[i] * clip(tau / effort_ramp[i],
+-1, 1)`; with `effort_quantum` (nq; NULL: none) it is then put
 on the drives' effort grid, `effort_quantum[i] * nearbyint(tau / effort_quantum[i])` where
 `effort_quantum[i] > 0`, and bounded by `+-effort_bound[i]` (whole Goal Current LSBs through the
 motor's fit, saturated at its Current Limit: the scenario key `current_quantisation`); it is
-logged as applied. A driver `*_closed_loop_coulomb`
-runs the plant with dry friction, `<unit>_plant_step_coulomb`, whose levels are `coulomb` (nq,
-N m or N per joint; NULL: zero); the others ignore `coulomb`.
+logged as applied. The plant integrates the period under the applied effort times
+`torque_scale[i]` (the motor's torque-constant error; NULL: 1). A plant with a 6th input reads
+`drive` (the manifest's `n_drive` values: the dry friction's levels of a `*_closed_loop_coulomb`
+driver, or the geared plant's drive rows; NULL: zero); the others ignore it.
 The run stops after the first period whose next state or estimate is not finite; `*rows` says
 how many rows were written. Returns 0, or the failing kernel's code.
+
+`reductions` (the manifest's `n_reductions` = 6 nq + 2 values; NULL: none) receives what the
+verdict and the summary of an as-fast run read of the rows written, gathered while each value
+is at hand instead of by a second pass over the logs (a sweep judges every sample): each
+measured state column's minimum (2 nq: what the controller saw, delayed, noisy and on the grid)
+and maximum (2 nq), each applied effort column's minimum (nq) and maximum (nq), then the largest
+sum of squares of a logged estimate row (its columns added in order) over every row, and over
+every row after the first (the first alone when it is the only one). A NaN in a column makes its
+extremes NaN, a NaN sum the largest NaN; with no row, `+inf`, `-inf` and 0.
 
 | function | controller step | plant | pose | nq | np | nd | ne | npose | gains | plant p |
 |---|---|---|---|---|---|---|---|---|---|---|

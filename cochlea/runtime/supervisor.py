@@ -464,10 +464,16 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor,
             # A column's extremes are finite only when all of it is (a NaN makes both NaN, an
             # infinity one of them infinite), and inside the rule's bounds only when all of it
             # is: a position within its limits, a speed |qd| within its limit.
-            if not _state_within(u.q, u.qd, L.position_lo[joints], L.position_hi[joints],
-                                 L.velocity[joints]):
-                return False
             reduced = reductions[i]
+            if reduced is not None and reduced.state_low is not None:
+                within = _extremes_within(reduced.state_low, reduced.state_high,
+                                          L.position_lo[joints], L.position_hi[joints],
+                                          L.velocity[joints])
+            else:
+                within = _state_within(u.q, u.qd, L.position_lo[joints], L.position_hi[joints],
+                                       L.velocity[joints])
+            if not within:
+                return False
             if reduced is None:
                 if not (math.isfinite(u.tau.min(initial=0.0))
                         and math.isfinite(u.tau.max(initial=0.0))):
@@ -485,9 +491,7 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor,
                 peak = max(p.max(initial=0.0), -p.min(initial=0.0))
                 screened = p.shape[1] * peak * peak * (1 + 1e-12) <= limit
             else:
-                squares = reduced.p_squares
-                squares = squares[1:] if len(squares) > 1 else squares
-                screened = squares.max(initial=0.0) * (1 + 1e-12) <= limit
+                screened = reduced.square_later * (1 + 1e-12) <= limit
             if not screened:
                 largest = np.einsum("ij,ij->i", p, p).max(initial=0.0)
                 if not largest <= limit:
@@ -501,15 +505,28 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor,
 class LogReductions:
     """One unit log's whole-run reductions that the verdict and the summary both read
     (:func:`log_reductions`): each read once, while the log is still near in the caches, not
-    once by each rule that needs it. They describe the log as it was when computed."""
+    once by each rule that needs it, or gathered by the C driver as it wrote the log. They
+    describe the log as it was when computed."""
 
+    rows: int  # the rows they describe
     tau_low: np.ndarray  # each effort column's min (NaN where the column has one)
     tau_high: np.ndarray  # and max
-    p_squares: np.ndarray  # each estimate row's sum of squares (row_squares)
+    #: The largest estimate row sum of squares (row_squares, or the driver's sum in column
+    #: order: the screens allow for the order): over every row, and over the rows after the
+    #: first, the estimates the periods hand on (the first alone when it is the only row);
+    #: NaN where a row's is.
+    square_all: float
+    square_later: float
+    #: Each measured state column's ``[q, qd]`` min and max, when the driver gathered them
+    #: (None: the verdict reads the log).
+    state_low: np.ndarray | None = None
+    state_high: np.ndarray | None = None
 
     def describes(self, u) -> bool:
-        """Whether these can be ``u``'s: as many columns of effort, rows of estimates."""
-        return self.tau_low.shape == u.tau.shape[1:] and len(self.p_squares) == len(u.p_hat)
+        """Whether these can be ``u``'s: as many rows, columns of effort and of state."""
+        return (self.rows == len(u.p_hat) == len(u.tau) == len(u.q)
+                and self.tau_low.shape == u.tau.shape[1:]
+                and (self.state_low is None or self.state_low.shape == (2 * u.q.shape[1],)))
 
 
 def own_reductions(reductions: list[LogReductions | None] | None, units
@@ -522,9 +539,20 @@ def own_reductions(reductions: list[LogReductions | None] | None, units
 
 
 def log_reductions(u) -> LogReductions:
-    """:class:`LogReductions` of a unit's log (a :class:`~cochlea.sim.result.UnitLog`)."""
+    """:class:`LogReductions` of a unit's log (a :class:`~cochlea.sim.result.UnitLog`): what
+    its C driver gathered while writing it where it still holds those arrays, else read from
+    the log (the same extremes; the largest squares summed in another order for many
+    columns)."""
+    gathered = u.gathered.of(u) if getattr(u, "gathered", None) is not None else None
+    if gathered is not None:
+        return LogReductions(gathered.rows, gathered.tau_low, gathered.tau_high,
+                             gathered.square_all, gathered.square_later, gathered.state_low,
+                             gathered.state_high)
     low, high = column_extremes(u.tau)
-    return LogReductions(low, high, row_squares(u.p_hat))
+    squares = row_squares(u.p_hat)
+    later = squares[1:] if len(squares) > 1 else squares
+    return LogReductions(len(u.p_hat), low, high, float(squares.max(initial=0.0)),
+                         float(later.max(initial=0.0)))
 
 
 #: Up to this many columns, :func:`row_squares` adds column after column (einsum beyond).
@@ -622,8 +650,14 @@ def _state_within(q: np.ndarray, qd: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     state = _side_by_side(q, qd)
     if state is None:
         return _columns_within(q, lo, hi) and _columns_within(qd, -speed, speed)
-    low, high = column_extremes(state)
-    n = q.shape[1]
+    return _extremes_within(*column_extremes(state), lo, hi, speed)
+
+
+def _extremes_within(low: np.ndarray, high: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                     speed: np.ndarray) -> bool:
+    """From each ``[q, qd]`` column's extremes (a NaN in a column makes them NaN): every
+    position finite and within its ``[lo, hi]``, every speed |qd| within its ``speed``."""
+    n = len(lo)
     with np.errstate(invalid="ignore"):
         return bool(np.isfinite(low).all() and np.isfinite(high).all()
                     and (low[:n] >= lo).all() and (high[:n] <= hi).all()

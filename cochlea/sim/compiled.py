@@ -222,7 +222,7 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
                     effort_bound=None if grid is None else grid.bound,
                     effort_offset=None if grid is None else grid.offset,
                     effort_ramp=None if grid is None else grid.ramp,
-                    robust=u.robust_inputs, torque_scale=u.torque_scale)
+                    robust=u.robust_inputs, torque_scale=u.torque_scale, reductions=True)
 
 
 def _shifted(log: ckernels.ClosedLoopLog, delay, rows: int) -> np.ndarray | None:
@@ -381,7 +381,8 @@ def simulate_compiled(sc, duration: float | None = None, setups: list[UnitSetup]
         # What the controller saw, from the true states as the driver measured them.
         seen = measurements(X, delay, noise, u.quantum, u.grid_offset, _shifted(r, delay, rows))
         logs.append(simulated_log(u, sc.space, X, seen, r.pose[:rows], d[0][:rows],
-                                  d[1][:rows], r.errors[:rows], r.tau[:rows], r.p_hat[:rows]))
+                                  d[1][:rows], r.errors[:rows], r.tau[:rows], r.p_hat[:rows],
+                                  r.reductions))
     rows = min(len(u.q) for u in logs)
     if rows < steps:  # every unit's log ends where the first one diverged (as the reference)
         truncate(logs, rows)
@@ -431,7 +432,7 @@ def _simulate_following(sc, setups: list[UnitSetup], lib, plans, run, time: np.n
         seen_by.append(seen)
         logs.append(simulated_log(u, sc.space, X, seen, r.pose[:r.rows], desired[0][:r.rows],
                                   desired[1][:r.rows], r.errors[:r.rows], r.tau[:r.rows],
-                                  r.p_hat[:r.rows]))
+                                  r.p_hat[:r.rows], r.reductions))
     rows = min(len(u.q) for u in logs)
     if rows < steps:
         truncate(logs, rows)

@@ -56,6 +56,9 @@ class UnitLog:
     true_q: np.ndarray | None = None
     true_qd: np.ndarray | None = None
     true_x: np.ndarray | None = None
+    #: What the C driver gathered of these rows while it ran (:class:`Gathered`), for the
+    #: verdict and the summary; None where no driver did, and once the rows are cut.
+    gathered: Gathered | None = field(default=None, repr=False)
 
     @property
     def has_true_state(self) -> bool:
@@ -112,18 +115,46 @@ class UnitLog:
         return self.setup.joint_units if self.space == "joint" else self.setup.task_units
 
 
+@dataclass(frozen=True)
+class Gathered:
+    """A C driver's :class:`~cochlea.kernels.library.LoopReductions` and the log arrays they
+    describe, made read-only when gathered: :meth:`of` hands them out only while a log still
+    holds those very arrays (an array put in their place, a part of the log, is read again)."""
+
+    reductions: object  # cochlea.kernels.library.LoopReductions
+    q: np.ndarray
+    qd: np.ndarray
+    tau: np.ndarray
+    p_hat: np.ndarray
+
+    def of(self, u: UnitLog):
+        """The reductions, when ``u`` still holds the arrays they describe, else None."""
+        if (u.q is self.q and u.qd is self.qd and u.tau is self.tau and u.p_hat is self.p_hat
+                and self.reductions.rows == len(u.q)):
+            return self.reductions
+        return None
+
+
 def simulated_log(u: UnitSetup, space: str, states: np.ndarray, measured: np.ndarray,
                   pose: np.ndarray, desired: np.ndarray, desired_dot: np.ndarray,
-                  errors: np.ndarray, tau: np.ndarray, p_hat: np.ndarray) -> UnitLog:
+                  errors: np.ndarray, tau: np.ndarray, p_hat: np.ndarray,
+                  gathered=None) -> UnitLog:
     """A simulated unit's log: ``states`` the plant's true ``[q, qd]`` of every period and
     ``pose`` its pose, ``measured`` what the controller saw (the same array when the plant
     measures exactly: no delay, noise or grid), whose pose is computed when first asked for
-    (:attr:`UnitLog.pose`)."""
+    (:attr:`UnitLog.pose`); ``gathered``: what the C driver gathered of these rows."""
     n = u.controller_model.nq
     seen_pose = pose if measured is states else None
-    return UnitLog(u.name, space, measured[:, :n], measured[:, n:], desired, desired_dot, errors,
-                   tau, p_hat, seen_pose, u, true_q=states[:, :n], true_qd=states[:, n:],
-                   true_x=pose)
+    q, qd, true_q, true_qd = measured[:, :n], measured[:, n:], states[:, :n], states[:, n:]
+    if gathered is not None:
+        if gathered.rows != len(measured):
+            gathered = None
+        else:  # what they describe cannot change under them (the true state may be it)
+            for array in (q, qd, tau, p_hat, true_q, true_qd):
+                array.flags.writeable = False
+            gathered = Gathered(gathered, q, qd, tau, p_hat)
+    return UnitLog(u.name, space, q, qd, desired, desired_dot, errors, tau, p_hat, seen_pose, u,
+                   true_q=true_q, true_qd=true_qd, true_x=pose, gathered=gathered)
 
 
 def truncate(logs: list[UnitLog], rows: int) -> None:
@@ -169,9 +200,10 @@ class SimulationResult:
     def rows(self, start: int, stop: int, step: int = 1) -> SimulationResult:
         """Periods ``start:stop:step`` as a result of their own (views, no copies)."""
         part = slice(start, stop, step)
-        units = [dataclasses.replace(u, **{name: getattr(u, name)[part] for name in _ROW_FIELDS
-                                           + _TRUE_FIELDS + ("current",)
-                                           if getattr(u, name) is not None})
+        units = [dataclasses.replace(u, gathered=None,
+                                     **{name: getattr(u, name)[part] for name in _ROW_FIELDS
+                                        + _TRUE_FIELDS + ("current",)
+                                        if getattr(u, name) is not None})
                  for u in self.units]
         timing = None if self.timing is None else {k: v[part] for k, v in self.timing.items()}
         return dataclasses.replace(self, time=self.time[part], units=units, timing=timing)
