@@ -51,14 +51,19 @@
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -84,11 +89,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -99,7 +105,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -186,6 +192,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -200,8 +215,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -229,14 +245,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -262,11 +283,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -277,7 +299,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -364,6 +386,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -378,8 +409,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -407,14 +439,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -440,11 +477,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -455,7 +493,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -542,6 +580,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -556,8 +603,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -585,14 +633,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -618,11 +671,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -633,7 +687,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -720,6 +774,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -734,8 +797,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -763,14 +827,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -796,11 +865,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -811,7 +881,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -898,6 +968,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -912,8 +991,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -941,14 +1021,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -974,11 +1059,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -989,7 +1075,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1076,6 +1162,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -1090,8 +1185,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -1119,14 +1215,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1152,11 +1253,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1167,7 +1269,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1254,6 +1356,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -1268,8 +1379,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -1297,14 +1409,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1330,11 +1447,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1345,7 +1463,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1432,6 +1550,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -1446,8 +1573,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -1475,14 +1603,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1508,11 +1641,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1523,7 +1657,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1610,6 +1744,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -1624,8 +1767,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -1653,14 +1797,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1686,11 +1835,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_step_SZ_RES];
@@ -1701,7 +1851,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1788,6 +1938,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -1802,8 +1961,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -1831,14 +1991,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -1864,11 +2029,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -1879,7 +2045,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -1966,6 +2132,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -1980,8 +2155,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -2009,14 +2185,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2042,11 +2223,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -2057,7 +2239,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2144,6 +2326,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -2158,8 +2349,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -2187,14 +2379,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2220,11 +2417,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -2235,7 +2433,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2322,6 +2520,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -2336,8 +2543,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -2365,14 +2573,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2398,11 +2611,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -2413,7 +2627,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2500,6 +2714,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -2514,8 +2737,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -2543,14 +2767,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2576,11 +2805,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_thesis_step_SZ_RES];
@@ -2591,7 +2821,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2678,6 +2908,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -2692,8 +2931,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -2721,14 +2961,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2754,11 +2999,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2769,7 +3015,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -2856,6 +3102,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -2870,8 +3125,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -2899,14 +3155,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -2932,11 +3193,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -2947,7 +3209,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3034,6 +3296,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -3048,8 +3319,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -3077,14 +3349,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3110,11 +3387,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -3125,7 +3403,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3212,6 +3490,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -3226,8 +3513,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -3255,14 +3543,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3288,11 +3581,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -3303,7 +3597,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3390,6 +3684,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -3404,8 +3707,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -3433,14 +3737,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3466,11 +3775,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -3481,7 +3791,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3568,6 +3878,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -3582,8 +3901,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -3611,14 +3931,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_e_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3644,11 +3969,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -3659,7 +3985,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3746,6 +4072,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -3760,8 +4095,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -3789,14 +4125,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -3822,11 +4163,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -3837,7 +4179,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -3924,6 +4266,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -3938,8 +4289,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -3967,14 +4319,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4000,11 +4357,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -4015,7 +4373,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4102,6 +4460,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -4116,8 +4483,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -4145,14 +4513,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4178,11 +4551,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -4193,7 +4567,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4280,6 +4654,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -4294,8 +4677,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -4323,14 +4707,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4356,11 +4745,12 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_g_actuated_step_SZ_RES];
@@ -4371,7 +4761,7 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4458,6 +4848,15 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -4472,8 +4871,9 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -4501,14 +4901,19 @@ CASADI_SYMBOL_EXPORT int serial_arm1_g_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4534,11 +4939,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -4549,7 +4955,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4636,6 +5042,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -4650,8 +5065,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -4679,14 +5095,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4712,11 +5133,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -4727,7 +5149,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4814,6 +5236,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -4828,8 +5259,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -4857,14 +5289,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -4890,11 +5327,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -4905,7 +5343,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -4992,6 +5430,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -5006,8 +5453,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -5035,14 +5483,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5068,11 +5521,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -5083,7 +5537,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5170,6 +5624,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -5184,8 +5647,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -5213,14 +5677,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5246,11 +5715,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_step_SZ_RES];
@@ -5261,7 +5731,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5348,6 +5818,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -5362,8 +5841,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -5391,14 +5871,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5424,11 +5909,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -5439,7 +5925,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5526,6 +6012,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -5540,8 +6035,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -5569,14 +6065,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5602,11 +6103,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -5617,7 +6119,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5704,6 +6206,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -5718,8 +6229,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -5747,14 +6259,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5780,11 +6297,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -5795,7 +6313,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -5882,6 +6400,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -5896,8 +6423,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -5925,14 +6453,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -5958,11 +6491,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -5973,7 +6507,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6060,6 +6594,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -6074,8 +6617,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -6103,14 +6647,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6136,11 +6685,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_step_SZ_RES];
@@ -6151,7 +6701,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6238,6 +6788,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -6252,8 +6811,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -6281,14 +6841,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6314,11 +6879,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -6329,7 +6895,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6416,6 +6982,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -6430,8 +7005,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -6459,14 +7035,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6492,11 +7073,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -6507,7 +7089,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6594,6 +7176,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -6608,8 +7199,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -6637,14 +7229,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6670,11 +7267,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -6685,7 +7283,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6772,6 +7370,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -6786,8 +7393,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -6815,14 +7423,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -6848,11 +7461,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -6863,7 +7477,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -6950,6 +7564,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -6964,8 +7587,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -6993,14 +7617,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7026,11 +7655,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 3, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_thesis_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_thesis_step_SZ_RES];
@@ -7041,7 +7671,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7128,6 +7758,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -7142,8 +7781,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -7171,14 +7811,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7204,11 +7849,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -7219,7 +7865,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7306,6 +7952,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -7320,8 +7975,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -7349,14 +8005,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7382,11 +8043,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -7397,7 +8059,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7484,6 +8146,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -7498,8 +8169,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -7527,14 +8199,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7560,11 +8237,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -7575,7 +8253,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7662,6 +8340,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -7676,8 +8363,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -7705,14 +8393,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7738,11 +8431,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -7753,7 +8447,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -7840,6 +8534,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -7854,8 +8557,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -7883,14 +8587,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -7916,11 +8625,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm1_e_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm1_e_actuated_step_SZ_RES];
@@ -7931,7 +8641,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8018,6 +8728,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -8032,8 +8751,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -8061,14 +8781,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_e_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8094,11 +8819,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -8109,7 +8835,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8196,6 +8922,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -8210,8 +8945,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -8239,14 +8975,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8272,11 +9013,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -8287,7 +9029,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8374,6 +9116,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -8388,8 +9139,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -8417,14 +9169,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8450,11 +9207,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -8465,7 +9223,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8552,6 +9310,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -8566,8 +9333,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -8595,14 +9363,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8628,11 +9401,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 6, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -8643,7 +9417,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8730,6 +9504,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -8744,8 +9527,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -8773,14 +9557,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 20 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 21 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8806,11 +9595,12 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 3, NX = 2 * 3, NXP = 12, NP = 12, ND = 3, NE = 6,
-         NPOSE = 3, NR = 20 };
+         NPOSE = 3, NR = 21 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[serial_arm2_g_actuated_step_SZ_ARG];
   casadi_real* step_res[serial_arm2_g_actuated_step_SZ_RES];
@@ -8821,7 +9611,7 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -8908,6 +9698,15 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -8922,8 +9721,9 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -8951,14 +9751,19 @@ CASADI_SYMBOL_EXPORT int serial_arm2_g_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -8984,11 +9789,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -8999,7 +9805,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9086,6 +9892,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -9100,8 +9915,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -9129,14 +9945,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9162,11 +9983,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -9177,7 +9999,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9264,6 +10086,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -9278,8 +10109,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -9307,14 +10139,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9340,11 +10177,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -9355,7 +10193,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9442,6 +10280,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -9456,8 +10303,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -9485,14 +10333,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9518,11 +10371,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -9533,7 +10387,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9620,6 +10474,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -9634,8 +10497,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -9663,14 +10527,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9696,11 +10565,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_step_SZ_ARG];
   casadi_real* step_res[parallel_f_step_SZ_RES];
@@ -9711,7 +10581,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9798,6 +10668,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -9812,8 +10691,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -9841,14 +10721,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -9874,11 +10759,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -9889,7 +10775,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -9976,6 +10862,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -9990,8 +10885,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -10019,14 +10915,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10052,11 +10953,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -10067,7 +10969,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10154,6 +11056,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -10168,8 +11079,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -10197,14 +11109,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10230,11 +11147,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -10245,7 +11163,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10332,6 +11250,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -10346,8 +11273,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -10375,14 +11303,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10408,11 +11341,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -10423,7 +11357,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10510,6 +11444,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -10524,8 +11467,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -10553,14 +11497,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10586,11 +11535,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_f_thesis_step_SZ_RES];
@@ -10601,7 +11551,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10688,6 +11638,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -10702,8 +11661,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -10731,14 +11691,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10764,11 +11729,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -10779,7 +11745,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -10866,6 +11832,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -10880,8 +11855,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -10909,14 +11885,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -10942,11 +11923,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -10957,7 +11939,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -11044,6 +12026,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -11058,8 +12049,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -11087,14 +12079,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -11120,11 +12117,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -11135,7 +12133,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -11222,6 +12220,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -11236,8 +12243,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -11265,14 +12273,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -11298,11 +12311,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -11313,7 +12327,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -11400,6 +12414,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -11414,8 +12437,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -11443,14 +12467,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -11476,11 +12505,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_step_SZ_ARG];
   casadi_real* step_res[parallel_d_step_SZ_RES];
@@ -11491,7 +12521,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -11578,6 +12608,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -11592,8 +12631,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -11621,14 +12661,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -11654,11 +12699,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -11669,7 +12715,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -11756,6 +12802,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -11770,8 +12825,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -11799,14 +12855,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -11832,11 +12893,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -11847,7 +12909,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -11934,6 +12996,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -11948,8 +13019,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -11977,14 +13049,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -12010,11 +13087,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -12025,7 +13103,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -12112,6 +13190,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -12126,8 +13213,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -12155,14 +13243,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -12188,11 +13281,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -12203,7 +13297,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -12290,6 +13384,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -12304,8 +13407,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -12333,14 +13437,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -12366,11 +13475,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 13, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_thesis_step_SZ_ARG];
   casadi_real* step_res[parallel_d_thesis_step_SZ_RES];
@@ -12381,7 +13491,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -12468,6 +13578,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -12482,8 +13601,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -12511,14 +13631,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_thesis_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -12544,11 +13669,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -12559,7 +13685,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -12646,6 +13772,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -12660,8 +13795,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -12689,14 +13825,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -12722,11 +13863,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -12737,7 +13879,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -12824,6 +13966,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -12838,8 +13989,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -12867,14 +14019,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -12900,11 +14057,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -12915,7 +14073,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -13002,6 +14160,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -13016,8 +14183,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -13045,14 +14213,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -13078,11 +14251,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -13093,7 +14267,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -13180,6 +14354,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -13194,8 +14377,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -13223,14 +14407,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -13256,11 +14445,12 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 5, NE = 10,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_f_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_f_actuated_step_SZ_RES];
@@ -13271,7 +14461,7 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -13358,6 +14548,15 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -13372,8 +14571,9 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -13401,14 +14601,19 @@ CASADI_SYMBOL_EXPORT int parallel_f_actuated_closed_loop_gear(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -13434,11 +14639,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -13449,7 +14655,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -13536,6 +14742,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -13550,8 +14765,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -13579,14 +14795,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -13612,11 +14833,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -13627,7 +14849,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -13714,6 +14936,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -13728,8 +14959,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -13757,14 +14989,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -13790,11 +15027,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -13805,7 +15043,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -13892,6 +15130,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -13906,8 +15153,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -13935,14 +15183,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -13968,11 +15221,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 10, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -13983,7 +15237,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -14070,6 +15324,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -14084,8 +15347,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }
@@ -14113,14 +15377,19 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_armature_coulomb(
  * [q, qd, theta, theta_dot]); only its first 2 nq, the link's [q, qd], are logged and measured.
  * The run stops after period k when the next state or estimate is not finite: *rows = k + 1
  * rows are written.
- * reductions (NR = 32 values; may be NULL): what a verdict and a summary read of the rows
+ * reductions (NR = 33 values; may be NULL): what a verdict and a summary read of the rows
  * written, gathered while each value is at hand instead of by a second pass over the logs:
  * [0, NX) each measured state column's minimum, [NX, 2 NX) its maximum (the state the
  * controller saw: delayed, noisy, on the grid), then each applied effort column's minimum (NQ)
  * and maximum (NQ), then the largest sum of squares of a logged estimate row (its columns
  * added in order) over every row, then over the rows after the first (the first alone when
- * it is the only one). A NaN anywhere in a column makes its minimum and maximum NaN, and a
- * NaN sum makes its largest NaN; with no row: +inf, -inf and 0.
+ * it is the only one), then the smallest squared distance of a keep-out tool point to its
+ * centre over the rows' logged poses. A NaN anywhere in a column makes its minimum and
+ * maximum NaN, and a NaN sum or distance makes its extreme NaN; with no row (or no tool
+ * point): +inf, -inf, 0 and +inf.
+ * The keep-out tool points (n_keep_out of them; 0: none): keep_out_index holds three per point,
+ * the pose columns of its u and v and the joint whose position is its centre's v (-1: a fixed
+ * centre), keep_out_centre two, the centre's u and v (v read where the joint is -1).
  * robust: the step's robust options, packed: deadzone[NQ], p_min[NP], p_max[NP],
  * static_excess[NQ], stribeck_velocity[NQ] (never NULL; docs/controllers.md).
  * Arrays are row-major, one row per period. Returns 0, or the failing kernel's nonzero code.
@@ -14146,11 +15415,12 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
     const casadi_real* effort_limit, const casadi_real* effort_quantum,
     const casadi_real* effort_bound, const casadi_real* effort_offset,
     const casadi_real* effort_ramp, const casadi_real* torque_scale,
+    casadi_int n_keep_out, const casadi_int* keep_out_index, const casadi_real* keep_out_centre,
     casadi_real* x_log, casadi_real* p_hat_log, casadi_real* tau_log,
     casadi_real* errors_log, casadi_real* pose_log, casadi_int* rows,
     casadi_real* reductions) {
   enum { NQ = 5, NX = 2 * 5, NXP = 20, NP = 28, ND = 6, NE = 11,
-         NPOSE = 6, NR = 32 };
+         NPOSE = 6, NR = 33 };
   casadi_real x[NXP], x_next[NXP], meas[NX], p_hat[NP], p_next[NP], torque[NQ];
   const casadi_real* step_arg[parallel_d_actuated_step_SZ_ARG];
   casadi_real* step_res[parallel_d_actuated_step_SZ_RES];
@@ -14161,7 +15431,7 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
   /* The reductions, NaN-sticky: a comparison with NaN is false, so a NaN value is taken
    * explicitly and a NaN held is never replaced. */
   casadi_real meas_low[NX], meas_high[NX], tau_low[NQ], tau_high[NQ];
-  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0;
+  casadi_real square_all = 0.0, square_later = 0.0, square_first = 0.0, nearest = INFINITY;
   casadi_int i, k;
   int flag;
   *rows = 0;
@@ -14248,6 +15518,15 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
       } else if (square > square_later || square != square) {
         square_later = square;
       }
+      for (i = 0; i < n_keep_out; ++i) {
+        const casadi_int* index = keep_out_index + 3 * i;
+        const casadi_real* pose_k = pose_log + k * NPOSE;
+        casadi_real du = pose_k[index[0]] - keep_out_centre[2 * i];
+        casadi_real dv = pose_k[index[1]]
+                         - (index[2] < 0 ? keep_out_centre[2 * i + 1] : x[index[2]]);
+        casadi_real distance = du * du + dv * dv;
+        if (distance < nearest || distance != distance) nearest = distance;
+      }
     }
     for (i = 0; i < NXP; ++i) x[i] = x_next[i];
     for (i = 0; i < NP; ++i) p_hat[i] = p_next[i];
@@ -14262,8 +15541,9 @@ CASADI_SYMBOL_EXPORT int parallel_d_actuated_closed_loop_gear(
       reductions[2 * NX + i] = tau_low[i];
       reductions[2 * NX + NQ + i] = tau_high[i];
     }
-    reductions[NR - 2] = square_all;
-    reductions[NR - 1] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 3] = square_all;
+    reductions[NR - 2] = *rows == 1 ? square_first : square_later;
+    reductions[NR - 1] = nearest;
   }
   return 0;
 }

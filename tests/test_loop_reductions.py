@@ -61,6 +61,15 @@ def _assert_gathered_is_the_logs(u) -> None:
     for got, want in ((gathered.square_all, square_all),
                       (gathered.square_later, square_later)):
         assert got == want if exact else abs(got - want) <= 1e-13 * want, (got, want)
+    # The keep-out tool points' nearest approach over the true poses, as the gate sums it.
+    s, nearest = u.setup, np.inf
+    for _, (iu, iv) in s.tool_points:
+        cu, cv = s.centre if s.moving_centre_joint is None else \
+            (0.0, u.true_q[:, s.moving_centre_joint])
+        du, dv = u.true_x[:, iu] - cu, u.true_x[:, iv] - cv
+        nearest = min(nearest, (du * du + dv * dv).min())
+    assert s.tool_points and np.isfinite(nearest)
+    assert abs(gathered.keep_out_nearest - nearest) <= 1e-12 * nearest
 
 
 @pytest.mark.parametrize("options", OPTIONS, ids=list(OPTIONS))
@@ -198,3 +207,39 @@ def test_a_summary_from_gathered_reductions_is_the_summary_from_the_logs():
         assert repr(a) == repr(report.summary(result, 0.0, reductions=read, row=row))
         if not row:
             assert repr(a) == repr(report.summary(result, 0.0))
+
+
+@pytest.mark.parametrize("point, message", [
+    ((0, 99, None, 0.0, 0.0), "v must be a whole index below"),
+    ((-1, 1, None, 0.0, 0.0), "u must be a whole index below"),
+    ((0, 1, 3, 0.0, 0.0), "joint must be a whole index below 3"),
+    ((0, 1, -2, 0.0, 0.0), "joint must be"),
+    ((0.0, 1, None, 0.0, 0.0), "u must be a whole index"),
+    ((True, 1, None, 0.0, 0.0), "u must be a whole index"),
+    ((0, 1, None), "a keep-out point is"),
+    (None, "a keep-out point is"),
+])
+def test_keep_out_points_the_driver_cannot_read_are_refused(point, message):
+    """The driver reads the pose and the state at the points' indices: each is checked."""
+    loop, inputs = _driver()
+    with pytest.raises(ckernels.KernelError, match=message):
+        loop.run(50, **inputs, reductions=True, keep_out=[point])
+
+
+def test_the_gate_reads_the_gathered_keep_out_approach_only_for_the_true_poses():
+    sc = load_scenario("parallel_task")  # its keep-out centre moves with the slider
+    setups = unit_setups(sc)
+    result = simulate(sc, 0.5, setups, threads=False)
+    u = result.units[0]
+    gathered = [sv.log_reductions(v) for v in result.units]
+    nearest = gathered[0].keep_out_nearest
+    radius = float(np.sqrt(nearest))
+    for r, clear in ((radius * (1 - 1e-6), True), (radius * (1 + 1e-6), False)):
+        assert sv._clear_of_keep_out(result, r, gathered) == clear
+        assert sv._clear_of_keep_out(result, r) == clear
+    # A pose array put in the true poses' place is read, not the driver's approach.
+    u.true_x = u.true_x.copy()
+    u.x = u.true_x if u.x is not None else None
+    u.true_x[3, :] = np.nan
+    assert not sv._clear_of_keep_out(result, radius * 0.5, [sv.log_reductions(v)
+                                                             for v in result.units])

@@ -455,6 +455,12 @@ def test_the_whole_run_gate_gives_the_screens_verdict(name, monkeypatch):
     assert sv._nothing_flagged(result, sup)  # a safe run: skipped
     rng = np.random.default_rng(5)
     u = result.units[0]
+    # A simulated log is read-only (its driver's reductions describe it): copies are broken,
+    # one copy of an array two fields share.
+    copies = {}
+    for key in ("q", "qd", "tau", "p_hat", "x", "true_q", "true_x"):
+        if getattr(u, key) is not None:
+            setattr(u, key, copies.setdefault(id(getattr(u, key)), getattr(u, key).copy()))
     L = sup.limits
 
     def break_one(kind, k, j):

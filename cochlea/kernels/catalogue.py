@@ -262,13 +262,14 @@ class ClosedLoop:
     @property
     def n_reductions(self) -> int:
         """The size of the driver's ``reductions`` output: the measured state's column
-        extremes (2 x 2 nq), the applied efforts' (2 nq), two largest estimate row squares."""
+        extremes (2 x 2 nq), the applied efforts' (2 nq), two largest estimate row squares,
+        the keep-out tool points' nearest squared distance."""
         return closed_loop_reductions(self.nq)
 
 
 def closed_loop_reductions(nq: int) -> int:
     """:attr:`ClosedLoop.n_reductions` of a driver of ``nq`` joints."""
-    return 2 * (2 * nq) + 2 * nq + 2
+    return 2 * (2 * nq) + 2 * nq + 3
 
 
 def export(function: ca.Function, name: str, options: dict | None = None) -> ca.Function:

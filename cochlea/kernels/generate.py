@@ -205,6 +205,8 @@ _LOOP_ARGS = ("casadi_int n, casadi_int delay, const casadi_int* delays, "
               "const casadi_real* effort_limit, const casadi_real* effort_quantum, "
               "const casadi_real* effort_bound, const casadi_real* effort_offset, "
               "const casadi_real* effort_ramp, const casadi_real* torque_scale, "
+              "casadi_int n_keep_out, const casadi_int* keep_out_index, "
+              "const casadi_real* keep_out_centre, "
               "casadi_real* x_log, casadi_real* p_hat_log, "
               "casadi_real* tau_log, casadi_real* errors_log, casadi_real* pose_log, "
               "casadi_int* rows, casadi_real* reductions")

@@ -287,7 +287,8 @@ class Library:
                                + ", ".join(self.closed_loops)) from None
         pointer = ctypes.c_void_p
         argtypes = ([_int, _int] + [pointer] * 11 + [ctypes.c_double, ctypes.c_double]
-                    + [pointer] * 15 + [ctypes.POINTER(_int), pointer])
+                    + [pointer] * 10 + [_int, pointer, pointer] + [pointer] * 5
+                    + [ctypes.POINTER(_int), pointer])
         # An alias runs the driver that makes the same kernel calls.
         return ClosedLoop(name, meta, self._symbol(meta.get("symbol", name), ctypes.c_int,
                                                    argtypes))
@@ -422,12 +423,16 @@ class LoopReductions:
     #: every row, and over the rows after the first (the first alone when it is the only one).
     square_all: float
     square_later: float
+    #: The smallest squared distance (m^2) of a keep-out tool point to its centre over the
+    #: rows' logged poses (the true state's); +inf without a tool point.
+    keep_out_nearest: float
 
     @classmethod
     def unpack(cls, values: np.ndarray, nq: int, rows: int) -> LoopReductions:
         nx = 2 * nq
         return cls(rows, values[:nx], values[nx:2 * nx], values[2 * nx:2 * nx + nq],
-                   values[2 * nx + nq:2 * nx + 2 * nq], float(values[-2]), float(values[-1]))
+                   values[2 * nx + nq:2 * nx + 2 * nq], float(values[-3]), float(values[-2]),
+                   float(values[-1]))
 
 
 class ClosedLoop:
@@ -452,12 +457,34 @@ class ClosedLoop:
                               f"{array.shape}")
         return array
 
+    def _keep_out(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """``run``'s ``keep_out`` as the driver reads it, each index checked: the driver
+        reads the pose and state rows at them."""
+        index, centre = [], []
+        for point in points:
+            try:
+                u, v, joint, cu, cv = point
+            except (TypeError, ValueError):
+                raise KernelError(f"{self.name}: a keep-out point is (u, v, joint, centre_u, "
+                                  f"centre_v), got {point!r}") from None
+            for label, value, low, size in (("u", u, 0, self.n_pose), ("v", v, 0, self.n_pose),
+                                            ("joint", -1 if joint is None else joint, -1,
+                                             self.nq)):
+                if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or \
+                        not low <= value < size:
+                    raise KernelError(f"{self.name}: a keep-out point's {label} must be a "
+                                      f"whole index below {size}, got {value!r}")
+            index += [int(u), int(v), -1 if joint is None else int(joint)]
+            centre += [float(cu), float(cv)]
+        return (np.array(index, dtype=np.int64).reshape(-1, 3),
+                np.array(centre, dtype=np.float64).reshape(-1, 2))
+
     def run(self, n: int, *, x0, p_hat0, xd, xd_dot, xd_ddot, gains, Gamma, bound: float,
             h: float, plant_p, friction, noise=None, delay: int = 0, quantum=None,
             offset=None, effort_limit=None, coulomb=None, effort_quantum=None,
             effort_bound=None, effort_offset=None, effort_ramp=None,
             robust=None, delays=None, torque_scale=None, lead: int = 0,
-            reductions: bool = False) -> ClosedLoopLog:
+            reductions: bool = False, keep_out=()) -> ClosedLoopLog:
         """Run ``n`` periods; every array is checked and converted once, before the call.
         ``x0`` is the plant's initial state (``nx``); ``coulomb`` its 6th input (``n_drive``
         values: the dry friction's rows, or the gear plant's drive). ``effort_quantum`` and
@@ -471,7 +498,9 @@ class ClosedLoop:
         log keeps the applied efforts. ``lead``: rows the state log's buffer holds in front of
         it, each the first logged state after the run (:meth:`ClosedLoopLog.delayed`).
         ``reductions``: the log also holds what the driver gathered of its rows
-        (:class:`LoopReductions`)."""
+        (:class:`LoopReductions`), the nearest approach of the ``keep_out`` tool points among
+        them: each ``(u, v, joint, centre_u, centre_v)``, the pose columns of the point, the
+        joint whose position is its centre's v (None: the centre is fixed, at ``centre_v``)."""
         nq, nd = self.nq, self.n_desired
         if robust is None:
             robust = (np.zeros(nq), np.full(self.n_params, -np.inf),
@@ -519,6 +548,7 @@ class ClosedLoop:
         log = ClosedLoopLog(0, states[lead:] if lead else states, np.empty((n, self.n_params)),
                             np.empty((n, nq)), np.empty((n, self.n_errors)),
                             np.empty((n, self.n_pose)), lead, states)
+        index, centre = self._keep_out(keep_out)
         rows = _int(0)
         gathered = np.empty(self.n_reductions) if reductions else None
         flag = self._fn(n, delay, None if delays is None else delays.ctypes.data,
@@ -537,6 +567,7 @@ class ClosedLoop:
                         None if effort_offset is None else effort_offset.ctypes.data,
                         None if effort_offset is None else effort_ramp.ctypes.data,
                         None if torque_scale is None else torque_scale.ctypes.data,
+                        len(centre), index.ctypes.data, centre.ctypes.data,
                         log.x.ctypes.data, log.p_hat.ctypes.data, log.tau.ctypes.data,
                         log.errors.ctypes.data, log.pose.ctypes.data, ctypes.byref(rows),
                         None if gathered is None else gathered.ctypes.data)

@@ -25,7 +25,9 @@ from ..robots.model import ACTUATOR_SUFFIX, RobotModel
 #: 7: and the per-period delays (after delay; NULL: the scalar) and the torque scale (after
 #: effort_ramp; NULL: 1), the jittering delay and the motor's torque-constant error.
 #: 8: and a last output, ``reductions`` (``n_reductions`` values; NULL: none), the column
-#: extremes and largest estimate squares a verdict and a summary read of the rows written.
+#: extremes, largest estimate squares and nearest keep-out approach a verdict and a summary
+#: read of the rows written, and the keep-out tool points (n_keep_out, keep_out_index,
+#: keep_out_centre) after torque_scale.
 MANIFEST_FORMAT = "cochlea-kernels/8"
 
 

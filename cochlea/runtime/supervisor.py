@@ -496,7 +496,8 @@ def _nothing_flagged(result: SimulationResult, supervisor: Supervisor,
                 largest = np.einsum("ij,ij->i", p, p).max(initial=0.0)
                 if not largest <= limit:
                     return False
-        if L.keep_out_radius is not None and not _clear_of_keep_out(result, L.keep_out_radius):
+        if L.keep_out_radius is not None and not _clear_of_keep_out(result, L.keep_out_radius,
+                                                                    reductions):
             return False
     return True
 
@@ -521,6 +522,9 @@ class LogReductions:
     #: (None: the verdict reads the log).
     state_low: np.ndarray | None = None
     state_high: np.ndarray | None = None
+    #: The smallest squared distance (m^2) of a keep-out tool point to its centre over the
+    #: rows' true poses (``true_x``), when the driver gathered it.
+    keep_out_nearest: float | None = None
 
     def describes(self, u) -> bool:
         """Whether these can be ``u``'s: as many rows, columns of effort and of state."""
@@ -547,7 +551,7 @@ def log_reductions(u) -> LogReductions:
     if gathered is not None:
         return LogReductions(gathered.rows, gathered.tau_low, gathered.tau_high,
                              gathered.square_all, gathered.square_later, gathered.state_low,
-                             gathered.state_high)
+                             gathered.state_high, gathered.keep_out_nearest)
     low, high = column_extremes(u.tau)
     squares = row_squares(u.p_hat)
     later = squares[1:] if len(squares) > 1 else squares
@@ -676,16 +680,20 @@ def _columns_within(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     return True
 
 
-def _clear_of_keep_out(result: SimulationResult, radius: float) -> bool:
+def _clear_of_keep_out(result: SimulationResult, radius: float,
+                       reductions: list[LogReductions | None] | None = None) -> bool:
     """No measured tool point of any unit near the keep-out circle: the pose of the measured
     state where the run has it. Else (an as-fast run that measured through a delay or a grid
     and did not compute that pose) the true pose: where the positions were measured exactly
     (no grid, no noise) each measured position is a true one of an earlier period, with its
     centre, so the true poses' nearest approach bounds the measured ones'; on a grid, with a
     margin no grid rounding crosses (a few encoder counts of any joint move a tool by far
-    less). With position noise, the measured pose itself."""
+    less). With position noise, the measured pose itself. ``reductions``: each unit's
+    (:func:`own_reductions`), whose nearest approach the driver gathered over the true poses
+    is read where the true poses are the ones judged."""
     noisy = result.scenario.plant.noise_q_std > 0
-    for u in result.units:
+    reductions = own_reductions(reductions, result.units)
+    for u, reduced in zip(result.units, reductions):
         s = u.setup
         n = u.q.shape[1]
         if u.x is None and u.has_true_state and not noisy:
@@ -694,6 +702,14 @@ def _clear_of_keep_out(result: SimulationResult, radius: float) -> bool:
             margin = _KEEP_OUT_SCREEN if exact else _GRID_SCREEN
         else:
             pose, joints, margin = u.pose, u.q, _KEEP_OUT_SCREEN
+        limit = ((radius + margin) * (1 + 1e-9)) ** 2
+        if reduced is not None and reduced.keep_out_nearest is not None and \
+                pose is u.true_x and len(s.tool_points):
+            # The true poses (the measured ones where the plant measures exactly: the same
+            # array), each tool point's distance summed as below.
+            if not reduced.keep_out_nearest >= limit:
+                return False
+            continue
         for _, (iu, iv) in s.tool_points:
             if s.moving_centre_joint is None:
                 cu, cv = s.centre
@@ -706,7 +722,7 @@ def _clear_of_keep_out(result: SimulationResult, radius: float) -> bool:
             dv *= dv
             du += dv
             nearest = du.min(initial=np.inf)
-            if not nearest >= ((radius + margin) * (1 + 1e-9)) ** 2:
+            if not nearest >= limit:
                 return False
     return True
 

@@ -222,7 +222,17 @@ def run_c(lib: ckernels.Library, kernels: UnitKernels, u: UnitSetup, h: float, d
                     effort_bound=None if grid is None else grid.bound,
                     effort_offset=None if grid is None else grid.offset,
                     effort_ramp=None if grid is None else grid.ramp,
-                    robust=u.robust_inputs, torque_scale=u.torque_scale, reductions=True)
+                    robust=u.robust_inputs, torque_scale=u.torque_scale, reductions=True,
+                    keep_out=keep_out_points(u))
+
+
+def keep_out_points(u: UnitSetup) -> list[tuple]:
+    """A unit's keep-out tool points as a closed-loop driver gathers their nearest approach
+    (:meth:`cochlea.kernels.library.ClosedLoop.run`): each tool point's pose columns and its
+    centre, fixed or on the moving joint (at u = 0, as the supervisor places it)."""
+    joint = u.moving_centre_joint
+    centre = (0.0, 0.0) if joint is not None else tuple(u.centre)
+    return [(iu, iv, joint, *centre) for _, (iu, iv) in u.tool_points]
 
 
 def _shifted(log: ckernels.ClosedLoopLog, delay, rows: int) -> np.ndarray | None:

@@ -126,11 +126,12 @@ class Gathered:
     qd: np.ndarray
     tau: np.ndarray
     p_hat: np.ndarray
+    true_x: np.ndarray  # the pose log the keep-out approach is of
 
     def of(self, u: UnitLog):
         """The reductions, when ``u`` still holds the arrays they describe, else None."""
         if (u.q is self.q and u.qd is self.qd and u.tau is self.tau and u.p_hat is self.p_hat
-                and self.reductions.rows == len(u.q)):
+                and u.true_x is self.true_x and self.reductions.rows == len(u.q)):
             return self.reductions
         return None
 
@@ -150,9 +151,9 @@ def simulated_log(u: UnitSetup, space: str, states: np.ndarray, measured: np.nda
         if gathered.rows != len(measured):
             gathered = None
         else:  # what they describe cannot change under them (the true state may be it)
-            for array in (q, qd, tau, p_hat, true_q, true_qd):
+            for array in (q, qd, tau, p_hat, true_q, true_qd, pose):
                 array.flags.writeable = False
-            gathered = Gathered(gathered, q, qd, tau, p_hat)
+            gathered = Gathered(gathered, q, qd, tau, p_hat, pose)
     return UnitLog(u.name, space, q, qd, desired, desired_dot, errors, tau, p_hat, seen_pose, u,
                    true_q=true_q, true_qd=true_qd, true_x=pose, gathered=gathered)
 
