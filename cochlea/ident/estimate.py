@@ -50,8 +50,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, signal
 
+# scipy.signal and scipy.optimize are imported by the functions that use them: at the top they
+# cost every cochlea-identify start (a --help, a refused file) some 2 s.
 from ..errors import CochleaError
 from ..robots import RobotModel
 from .current import CurrentFitError, Line, offset_shape
@@ -311,6 +312,7 @@ class Prepared:
 
     def like_tau(self, series: np.ndarray) -> np.ndarray:
         """``series`` (full rate) through the efforts' filters and decimations."""
+        from scipy import signal  # noqa: PLC0415 (start-up time: see the imports)
         b, a, keep, b2, a2, keep2 = self.filters
         out = signal.filtfilt(b, a, series, axis=0)[keep]
         if b2 is not None:
@@ -353,6 +355,7 @@ def process(log: RunLog, settings: Settings, model: RobotModel,
 def prepare(log: RunLog, settings: Settings, model: RobotModel) -> Prepared:
     """The states' side of :func:`process`. Refuses a log too short for the filters and the
     parameters (one line)."""
+    from scipy import signal  # noqa: PLC0415 (start-up time: see the imports)
     n_parameters = len(model.parameters.names)
     rate = log.rate_hz
     dt = 1.0 / rate
@@ -467,6 +470,7 @@ def estimate_lag(model: RobotModel, prepared: list[Prepared], cuts: list[int],
     search between the best point's neighbours. Refuses a flat curve (the lag does not show
     in the data), a best lag at either end of the grid, and two separated minima of about the
     same depth."""
+    from scipy import optimize  # noqa: PLC0415 (start-up time: see the imports)
     n = model.nq
     W = np.vstack([p.Y[:cut].reshape(-1, p.Y.shape[2]) for p, cut in zip(prepared, cuts)])
     keep = np.concatenate([np.repeat(p.moving[:cut], n) for p, cut in zip(prepared, cuts)])
@@ -721,6 +725,7 @@ def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | Non
     """OLS and WLS base parameters of ``model`` from ``logs``; validated on ``validate``, or
     without it on the last ``settings.holdout`` of every log (each log's own tail). With
     ``lines``, also those joints' current-to-torque lines (:mod:`cochlea.ident.current`)."""
+    from scipy import optimize  # noqa: PLC0415 (start-up time: see the imports)
     lines = tuple(lines)
     if validate is None and not MIN_HOLDOUT <= settings.holdout <= MAX_HOLDOUT:
         raise CochleaError(f"--holdout must lie between {MIN_HOLDOUT:g} and {MAX_HOLDOUT:g} "

@@ -52,8 +52,9 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import least_squares
 
+# scipy.optimize is imported where it is used: at the top it costs every cochlea-identify start
+# (a --help, a refused file) about a second.
 from ..errors import ModelError
 from ..robots.description import (
     MAX_ARMATURE,
@@ -527,6 +528,8 @@ def physically_consistent_fit(model, W, tau, weights=None, *, prior_full=None) -
     pad_column = np.zeros((G.shape[0] + logs.size, MINPACK_PAD))
 
     def solve(theta0):
+        from scipy.optimize import least_squares  # noqa: PLC0415 (start-up time: see the imports)
+
         # An overflowing trial step (exp of a large coordinate) is an infinite cost the trust
         # region rejects and shrinks from: not worth a warning.
         with np.errstate(over="ignore", invalid="ignore"):
