@@ -111,11 +111,12 @@ def run(*args: str, cwd: Path, prefix: str = "") -> subprocess.CompletedProcess:
 ROTORS_ON_THE_CHAIN = {"serial_task"}
 
 
-def chain_scenario(name: str, folder: Path) -> str:
+def chain_scenario(name: str, folder: Path, rotors: bool | None = None) -> str:
     """The scenario ``cochlea-emulator`` serves for study ``name``: the study itself, or for
-    :data:`ROTORS_ON_THE_CHAIN` a copy in ``folder`` whose plant has the drives' armature. The
-    controller's scenario stays the study; compare with ``simulate(load_scenario(this))``."""
-    if name not in ROTORS_ON_THE_CHAIN:
+    :data:`ROTORS_ON_THE_CHAIN` (``rotors``: whichever study it is told) a copy in ``folder``
+    whose plant has the drives' armature. The controller's scenario stays the study; compare
+    with ``simulate(load_scenario(this))``."""
+    if not (name in ROTORS_ON_THE_CHAIN if rotors is None else rotors):
         return name
     from cochlea.resources import SCENARIOS_DIR
     text = (SCENARIOS_DIR / f"{name}.toml").read_text()
