@@ -500,7 +500,8 @@ class ClosedLoop:
         ``reductions``: the log also holds what the driver gathered of its rows
         (:class:`LoopReductions`), the nearest approach of the ``keep_out`` tool points among
         them: each ``(u, v, joint, centre_u, centre_v)``, the pose columns of the point, the
-        joint whose position is its centre's v (None: the centre is fixed, at ``centre_v``)."""
+        joint whose position is its centre's v (None: the centre is fixed, at ``(centre_u,
+        centre_v)``)."""
         nq, nd = self.nq, self.n_desired
         if robust is None:
             robust = (np.zeros(nq), np.full(self.n_params, -np.inf),
