@@ -188,6 +188,23 @@ def _write_record(path: Path, record: dict) -> None:
                            "but nothing records it: home again with another --record") from None
 
 
+def _window_said(d: JointDrive, window: list, start_counts: int, counts: int,
+                 args: argparse.Namespace) -> str:
+    """What the last dwell's samples showed, for the error of a homing that found no stop: how
+    far the slider went, how still it stayed, whether the loop pushed with its full force, and
+    how often it sampled (a loaded host's loop samples rarely)."""
+    moved_mm = (counts - start_counts) * d.q_per_count * 1e3
+    if not window:
+        return f"moved {moved_mm:.1f} mm, no sample"
+    positions = [c for _, c, _ in window]
+    full = sum(1 for _, _, f in window if f)
+    span = window[-1][0] - window[0][0]
+    return (f"moved {moved_mm:.1f} mm; over its last {span:.2f} s: {len(window)} samples, "
+            f"positions within {max(positions) - min(positions)} counts (still: at most "
+            f"{STILL_COUNTS} over --dwell-s {args.dwell_s:g}), {full} of them at the full "
+            f"{args.force_N:g} N")
+
+
 def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: float,
                timeout: float, marker: int) -> int:
     """Drive the slider down at ``speed`` (m/s) under a force limit until it rests on its
@@ -206,12 +223,14 @@ def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: 
     t0 = last = time.perf_counter()
     stroke = d.position_limits[1] - d.position_limits[0] + 0.01
     goal_current = d.spec.item("Goal Current")
+    counts = start_counts
     while True:
         now = time.perf_counter()
         if now - t0 > timeout:
-            raise common.BusError(f"no hard stop found in {timeout:g} s: check that the "
-                                  "slider moves down, its direction in the description, and "
-                                  "--stop-m")
+            raise common.BusError(f"no hard stop found in {timeout:g} s "
+                                  f"({_window_said(d, window, start_counts, counts, args)}): "
+                                  "check that the slider moves down, its direction in the "
+                                  "description, and --stop-m")
         _, lsb, counts = bus.present(d)  # one READ, its Realtime Tick checked for staleness
         if abs((counts - start_counts) * d.q_per_count) > stroke:
             raise common.BusError(f"the slider travelled more than its stroke ({stroke:g} m) "
@@ -225,10 +244,13 @@ def _seek_stop(bus: common.Bus, d: JointDrive, args: argparse.Namespace, speed: 
         goal = int(min(max(float(d.goal_current_lsb(force)), -limit), limit))
         bus.write(d.id, goal_current, goal)
         window.append((now, counts, force <= -0.99 * args.force_N))
-        while window and window[0][0] < now - args.dwell_s:
+        # The window spans the dwell from its first sample: the newest sample at or before
+        # now - dwell stays as its start, so a loop slowed by a loaded host (samples 30 ms or
+        # more apart) still sees a whole dwell rather than never enough of one.
+        while len(window) > 1 and window[1][0] <= now - args.dwell_s:
             window.pop(0)
         positions = [c for _, c, _ in window]
-        if (now - t0 > args.dwell_s and window[-1][0] - window[0][0] >= 0.9 * args.dwell_s
+        if (len(window) >= 3 and window[-1][0] - window[0][0] >= args.dwell_s
                 and max(positions) - min(positions) <= STILL_COUNTS
                 and all(full for _, _, full in window)):
             bus.write(d.id, marker_item(d), marker)
