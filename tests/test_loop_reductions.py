@@ -243,3 +243,26 @@ def test_the_gate_reads_the_gathered_keep_out_approach_only_for_the_true_poses()
     u.true_x[3, :] = np.nan
     assert not sv._clear_of_keep_out(result, radius * 0.5, [sv.log_reductions(v)
                                                              for v in result.units])
+
+
+@pytest.mark.parametrize("name", ["serial_joint", "parallel_joint"])
+def test_one_rule_places_the_keep_out_centre_for_the_driver_and_the_supervisor(name):
+    # The driver's keep-out points, the supervisor's checks on a log and one position all
+    # take the centre from UnitSetup.keep_out_centre: a fixed centre, or one riding on a joint.
+    for u in unit_setups(load_scenario(name)):
+        rows = np.random.default_rng(3).uniform(-0.5, 0.5, (7, u.controller_model.nq))
+        cu, cv = u.keep_out_centre(rows)
+        for k, q in enumerate(rows):
+            assert u.keep_out_centre(q) == pytest.approx((float(np.broadcast_to(cu, 7)[k]),
+                                                          float(np.broadcast_to(cv, 7)[k])))
+        ru, rv, joint = u.keep_out_reference()
+        assert joint == u.moving_centre_joint
+        for _, _, j, pu, pv in csim.keep_out_points(u):
+            assert (j, pu, pv) == (joint, ru, rv)
+            moved = 0.0 if j is None else rows[:, j]
+            assert np.array_equal(np.broadcast_to(cv, 7), np.broadcast_to(pv + moved, 7))
+            assert np.array_equal(np.broadcast_to(cu, 7), np.broadcast_to(pu, 7))
+        if name.startswith("parallel"):
+            assert joint is not None  # the slider carries the cochlea
+        else:
+            assert joint is None and (cu, cv) == tuple(u.centre)

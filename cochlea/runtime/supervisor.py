@@ -437,11 +437,8 @@ def _near_keep_out(logs, rows: int, radius: float) -> np.ndarray:
             pose = u.x[:rows]
         else:  # the pose of the measured state, as UnitLog.pose computes it, on these rows
             pose = np.array(s.fk_world.map(rows)(q.T)).T
+        cu, cv = s.keep_out_centre(q)
         for _, (iu, iv) in s.tool_points:
-            if s.moving_centre_joint is None:
-                cu, cv = s.centre
-            else:
-                cu, cv = 0.0, q[:, s.moving_centre_joint]
             near |= np.hypot(pose[:, iu] - cu, pose[:, iv] - cv) < radius
     return near
 
@@ -703,18 +700,14 @@ def _clear_of_keep_out(result: SimulationResult, radius: float,
         else:
             pose, joints, margin = u.pose, u.q, _KEEP_OUT_SCREEN
         limit = ((radius + margin) * (1 + 1e-9)) ** 2
-        if reduced is not None and reduced.keep_out_nearest is not None and \
-                pose is u.true_x and len(s.tool_points):
+        if reduced is not None and reduced.keep_out_nearest is not None and pose is u.true_x:
             # The true poses (the measured ones where the plant measures exactly: the same
             # array), each tool point's distance summed as below.
             if not reduced.keep_out_nearest >= limit:
                 return False
             continue
+        cu, cv = s.keep_out_centre(joints)
         for _, (iu, iv) in s.tool_points:
-            if s.moving_centre_joint is None:
-                cu, cv = s.centre
-            else:
-                cu, cv = 0.0, joints[:, s.moving_centre_joint]
             # Squared, without hypot's cost; the relative slack covers its rounding. In place:
             # two arrays of a column, not five.
             du, dv = np.subtract(pose[:, iu], cu), np.subtract(pose[:, iv], cv)

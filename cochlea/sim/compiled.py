@@ -230,9 +230,8 @@ def keep_out_points(u: UnitSetup) -> list[tuple]:
     """A unit's keep-out tool points as a closed-loop driver gathers their nearest approach
     (:meth:`cochlea.kernels.library.ClosedLoop.run`): each tool point's pose columns and its
     centre, fixed or on the moving joint (at u = 0, as the supervisor places it)."""
-    joint = u.moving_centre_joint
-    centre = (0.0, 0.0) if joint is not None else tuple(u.centre)
-    return [(iu, iv, joint, *centre) for _, (iu, iv) in u.tool_points]
+    cu, cv, joint = u.keep_out_reference()
+    return [(iu, iv, joint, cu, cv) for _, (iu, iv) in u.tool_points]
 
 
 def _shifted(log: ckernels.ClosedLoopLog, delay, rows: int) -> np.ndarray | None:

@@ -303,11 +303,24 @@ class UnitSetup:
         every command to it, in the real-time loop and the as-fast simulation alike."""
         return np.array([j.effort_limit for j in self.controller_model.joints])
 
-    def keep_out_centre(self, q) -> tuple[float, float]:
-        """Centre of the safety keep-out circle at joint position q (m, world frame)."""
+    def keep_out_centre(self, q) -> tuple:
+        """Centre ``(u, v)`` of the safety keep-out circle (m, world frame) at joint position
+        ``q``, or at each row of ``q`` (then ``v`` is a column where the centre moves): the
+        fixed :attr:`centre`, or ``(0, q[moving_centre_joint])`` where the centre rides on a
+        joint (the parallel robot's slider). The one statement of that rule: the
+        supervisor's checks and the C drivers' keep-out points (:meth:`keep_out_reference`)
+        take it from here."""
         if self.moving_centre_joint is None:
             return self.centre
-        return (0.0, float(q[self.moving_centre_joint]))
+        v = np.asarray(q)[..., self.moving_centre_joint]
+        return (0.0, float(v) if v.ndim == 0 else v)
+
+    def keep_out_reference(self) -> tuple[float, float, int | None]:
+        """The centre as a closed-loop driver takes it: ``(u, v, joint)``, the fixed centre
+        and no joint, or the moving centre's joint with its u (and ``v`` 0: the joint's
+        position is added) -- :meth:`keep_out_centre` at ``q = 0``."""
+        u, v = self.keep_out_centre(np.zeros(self.controller_model.nq))
+        return float(u), float(v), self.moving_centre_joint
 
 
 def perturbed_parameters(full, plant: scenario_mod.Plant,
