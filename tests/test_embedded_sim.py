@@ -188,6 +188,7 @@ def test_specialised_plant_is_the_general_one(name):
             assert np.array_equal(a, b), np.max(np.abs(a - b))
 
 
+@pytest.mark.slow
 def test_the_geared_plant_stays_general():
     """The geared plant (realistic preset) runs its generated_c/ kernel: folding its constants
     moved results by an ulp, which backlash and stiction grew to 1e-2 rad over a study. Its

@@ -355,6 +355,7 @@ def test_the_serving_thread_asks_for_precise_timers():
     assert got["ok"] and got["before"] == 50_000 and got["after"] == 1, got
 
 
+@pytest.mark.slow
 @settings(max_examples=300, database=None, derandomize=True)
 @given(error=st.sampled_from([0x00, 0xFF, 0x80, 0x07]), params=wire_bytes,
        packet_id=st.integers(0, 252), as_array=st.booleans())

@@ -138,6 +138,7 @@ def test_a_full_disk_stops_the_run_safely_with_its_own_rule(tmp_path, small_chun
     assert data["periods"] == source.rows and not data["converged"]
 
 
+@pytest.mark.slow
 def test_a_writer_a_ring_behind_stops_a_realtime_run(tmp_path, small_chunks, monkeypatch):
     sc, loop, backend = make_loop("serial_joint", seconds=1.0, realtime=True)
 

@@ -161,6 +161,7 @@ def test_a_relative_description_is_relative_to_the_scenario(tmp_path, monkeypatc
     assert load_scenario(folder / "u.toml").system.keep_out_radius == 0.02
 
 
+@pytest.mark.slow
 def test_the_estimate_bound_does_not_depend_on_the_machines_blas(monkeypatch):
     """The bound is written into the generated embedded C (``cochlea-codegen --check``
     compares it byte for byte): numpy's norm sums through the BLAS kernel of the CPU, and an

@@ -76,6 +76,7 @@ def test_quantised_measurements_lie_on_the_encoder_grid(kernels):
         assert not np.allclose(continuous, np.rint(continuous), rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_quantised_c_loop_equals_the_reference():
     sc = load_scenario("parallel_joint")
     sc = dataclasses.replace(sc, plant=Plant(position_encoder=True, velocity_register=True,

@@ -92,6 +92,7 @@ def test_a_closed_loop_driver_is_bound_once_per_library_and_name():
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_unit_s_kernels_are_checked_again_for_another_controller_or_library(tmp_path):
     lib = ckernels.load()
     corrected = unit_setups(load_scenario("serial_joint"), gravity=False)
@@ -534,6 +535,7 @@ class _EvictedByAnotherThread(dict):
         raise KeyError("dictionary is empty")
 
 
+@pytest.mark.slow
 def test_the_older_caches_do_not_fail_a_sample_another_thread_evicts_from(monkeypatch):
     """A dask worker runs samples on several threads: the desired samples', the structures'
     and the pose kernels' caches may lose an entry between its lookup and its move, or be
