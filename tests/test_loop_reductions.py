@@ -266,3 +266,18 @@ def test_one_rule_places_the_keep_out_centre_for_the_driver_and_the_supervisor(n
             assert joint is not None  # the slider carries the cochlea
         else:
             assert joint is None and (cu, cv) == tuple(u.centre)
+    # The 1 kHz check's points (the whole system's q, units stacked) place it alike.
+    sc = load_scenario(name)
+    setups = unit_setups(sc)
+    points = build_supervisor(setups, sc.system.keep_out_radius, kernels="c").keep_out_points
+    q_all = np.random.default_rng(4).uniform(-0.5, 0.5, sum(u.controller_model.nq
+                                                              for u in setups))
+    row, start = 0, 0
+    rows = points(q_all)
+    for u in setups:
+        q = q_all[start:start + u.controller_model.nq]
+        for _ in u.tool_points:
+            assert tuple(rows[row, 2:]) == tuple(map(float, u.keep_out_centre(q)))
+            row += 1
+        start += u.controller_model.nq
+    assert row == len(rows)

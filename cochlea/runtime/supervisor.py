@@ -248,9 +248,10 @@ class KeepOutPoints:
         start = 0
         for u, fk in zip(setups, fks):
             n = u.controller_model.nq
-            moving = None if u.moving_centre_joint is None else start + u.moving_centre_joint
+            cu, cv, joint = u.keep_out_reference()  # the centre's rule: UnitSetup's
+            moving = None if joint is None else start + joint
             self._units.append((fk, slice(start, start + n),
-                                tuple(uv for _, uv in u.tool_points), tuple(u.centre), moving))
+                                tuple(uv for _, uv in u.tool_points), (cu, cv), moving))
             start += n
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
@@ -260,8 +261,8 @@ class KeepOutPoints:
             fk.inputs[0][...] = q[joints]
             fk()
             pose = fk.outputs[0]
-            if moving is not None:  # the parallel mechanism's slider point S = (0, d1)
-                cu, cv = 0.0, q[moving]
+            if moving is not None:  # on a joint: the parallel mechanism's slider, S = (0, d1)
+                cv = cv + q[moving]
             for iu, iv in tools:
                 points[row, 0] = pose[iu]
                 points[row, 1] = pose[iv]
