@@ -377,3 +377,38 @@ def test_cochlea_dxl_home_hung_up_turns_the_torque_off(tmp_path):
               and e[3] == "address=64"]
     assert 1 in torque and torque[-1] == 0, torque  # on while homing, off at the end
     assert not record.exists()
+
+
+def test_dask_errors_print_one_line_without_a_traceback():
+    # What the hang-up above once printed beside "cochlea-sweep: interrupted" (CI, with other
+    # tests on both cores): distributed.batched's "Error in batched write" with its traceback.
+    # As in cochlea-sweep's process: distributed's own handler, which its records stop at.
+    import io
+    import logging
+
+    from cochlea.sweep import execute
+
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    dask_logger = logging.getLogger("distributed")
+    saved = dask_logger.propagate
+    dask_logger.addHandler(handler)
+    dask_logger.propagate = False
+    try:
+        execute.one_line_logs()
+        execute.one_line_logs()  # idempotent: one filter
+        try:
+            raise OSError("Stream is closed")
+        except OSError:
+            logging.getLogger("distributed.batched").exception("Error in batched %s", "write")
+        logging.getLogger("distributed.batched").error("plain %d", 7)
+    finally:
+        dask_logger.removeHandler(handler)
+        dask_logger.propagate = saved
+    lines = stream.getvalue().splitlines()
+    assert lines == ["Error in batched write (OSError: Stream is closed)", "plain 7"]
+    assert sum(isinstance(f, execute._OneLineErrors) for f in handler.filters) == 1
+    # Another logger's record keeps its traceback, through the same handler.
+    record = logging.LogRecord("cochlea", logging.ERROR, __file__, 1, "x", None,
+                               (OSError, OSError("kept"), None))
+    assert execute._OneLineErrors().filter(record) and record.exc_info is not None

@@ -96,6 +96,41 @@ def batch_size(cost_s: float, overhead_s: float, remaining: int, workers: int) -
     return max(1, min(n, share))
 
 
+#: The loggers whose records :func:`one_line_logs` folds: Dask's, and tornado's beneath it.
+DASK_LOGGERS = ("distributed", "tornado")
+
+
+class _OneLineErrors(logging.Filter):
+    """A Dask log record's traceback folded into its one line (the exception's type and text).
+    Dask logs a broken connection with its traceback: when the sweep is interrupted (Ctrl-C,
+    SIGTERM, a hang-up sent to the whole process group) its workers go first, and the
+    scheduler's or a worker's write to them then printed a traceback of distributed's internals
+    beside "cochlea-sweep: interrupted", as if the sweep had crashed. Other records pass as
+    they are."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None and \
+                record.name.split(".")[0] in DASK_LOGGERS:
+            exc = record.exc_info[1]
+            record.msg = f"{record.getMessage()} ({type(exc).__name__}: {exc})"
+            record.args = None
+            record.exc_info = record.exc_text = None
+        return True
+
+
+def one_line_logs() -> None:
+    """Every handler that prints Dask's records (distributed's own, or wherever they propagate
+    to) prints them on one line, without a traceback (:class:`_OneLineErrors`); in this
+    process, and in a local cluster's workers through ``client.run``. Idempotent."""
+    for name in DASK_LOGGERS:
+        logger: logging.Logger | None = logging.getLogger(name)
+        while logger is not None:
+            for handler in logger.handlers:
+                if not any(isinstance(f, _OneLineErrors) for f in handler.filters):
+                    handler.addFilter(_OneLineErrors())
+            logger = logger.parent if logger.propagate else None
+
+
 def connect(workers: int | None, scheduler: str | None):
     # distributed is imported here: it takes a second, which the spec's checks and the
     # subcommands (replay, report) need not wait for.
@@ -113,7 +148,15 @@ def connect(workers: int | None, scheduler: str | None):
         return client, None
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                            dashboard_address=None, silence_logs=logging.ERROR)
-    return Client(cluster), cluster
+    one_line_logs()  # the scheduler and the nannies run in this process
+    client = Client(cluster)
+    try:
+        client.run(one_line_logs)  # the workers' processes (ours: a remote cluster's are not)
+    except BaseException:  # an interrupt already: nothing of the cluster is left running
+        client.close()
+        cluster.close()
+        raise
+    return client, cluster
 
 
 def run(spec: Spec, out: Path, evaluate: Callable[[dict], dict], *, workers: int | None = None,
