@@ -14,6 +14,7 @@ import fcntl
 import json
 import os
 import shutil
+import socket
 import stat
 import subprocess
 import sys
@@ -441,3 +442,21 @@ def test_a_full_disk_is_one_line_and_leaves_no_partial_file(program, tmp_path):
     assert code == results.EXIT_WRITE and "No space left on device" in line, line
     assert not [p for p in paths if p.endswith(".tmp") or ".tmp" in Path(p).name], paths
     assert [p for p in paths if p.endswith(".parquet")] == []  # none half-written as whole
+
+
+@pytest.mark.slow
+def test_a_sweep_beside_another_cluster_prints_nothing_of_dask(tmp_path):
+    # Distributed's default HTTP port (8787) taken, as by another sweep, tune or Dask cluster on
+    # the machine: the scheduler chose another and warned "Port 8787 is already in use" into
+    # the sweep's stderr (found with two sweeps at once in make test's shared-out pass).
+    with socket.socket() as taken:
+        try:
+            taken.bind(("", 8787))
+            taken.listen()
+        except OSError:
+            pass  # already taken: the case itself
+        spec = write(tmp_path, SPEC.format(extra=""))
+        done = subprocess.run([*_bin("sweep"), str(spec), "--out", str(tmp_path / "out"), *RUN],
+                              capture_output=True, text=True, env=ENV, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == "", done.stderr

@@ -146,8 +146,12 @@ def connect(workers: int | None, scheduler: str | None):
                                f"{scheduler}`, or leave --scheduler out for local workers") \
                 from None
         return client, None
+    # No dashboard; the scheduler's HTTP routes (health, metrics) on a port the system
+    # chooses: on distributed's default, 8787, a second sweep or tune on the machine (or
+    # anything else there) got the port taken and printed a UserWarning into its stderr.
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=None, silence_logs=logging.ERROR,
+                           scheduler_kwargs={"dashboard_address": ":0"})
     one_line_logs()  # the scheduler and the nannies run in this process
     client = Client(cluster)
     try:
