@@ -76,7 +76,7 @@ C_SRC    := $(sort $(wildcard $(GEN)/*.c))
 C_OBJ    := $(patsubst $(GEN)/%.c,$(BUILD)/obj/%.o,$(C_SRC))
 
 lib:
-	@$(MAKE) --no-print-directory -j$(JOBS) $(LIB)
+	@$(MAKE) --no-print-directory -j$(JOBS) $(LIB) $(LANE)
 
 $(BUILD)/obj/%.o: $(GEN)/%.c $(wildcard $(GEN)/*.h)
 	@mkdir -p $(@D)
@@ -84,6 +84,15 @@ $(BUILD)/obj/%.o: $(GEN)/%.c $(wildcard $(GEN)/*.h)
 
 $(LIB): $(C_OBJ)
 	$(CC) -shared -o $@ $(C_OBJ) -lm
+
+# The virtual chain's period requests in C (cochlea/dynamixel/lane.py): always into build/,
+# whatever GEN, as the emulator looks for it there; without it the emulator answers in Python.
+LANE     := build/libcochlea-lane.so
+LANE_SRC := cochlea/dynamixel/c/emulator_lane.c embedded/core/dxl.c
+
+$(LANE): $(LANE_SRC) embedded/core/dxl.h
+	@mkdir -p $(@D)
+	$(CC) $(CFLAGS_C) $(LIBFLAGS) -Iembedded/core -shared -o $@ $(LANE_SRC)
 
 # The embedded program, no Python: build/cochlea-embedded (double) and
 # build/cochlea-embedded-float (single precision) from the portable core (embedded/core/), the

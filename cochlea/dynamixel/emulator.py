@@ -98,6 +98,7 @@ from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
 from ..robots.motor_fit import bridge_compensates_friction
 from ..sim import load_scenario, unit_setups
 from ..sim.scenario import PLANT_PRESETS
+from . import lane as c_lane
 from . import protocol as proto
 from .control_table import (
     ACCESS,
@@ -774,6 +775,8 @@ class VirtualChain:
         self.by_id = {m.id: m for m in self.motors}
         # A broadcast's motors in ID order, sorted once per ID change, not once per request.
         self._by_id_order = sorted(self.motors, key=lambda m: m.id)
+        # The C lane's motor index by ID too (None: no library, or motors it cannot serve).
+        self._lane = c_lane.lane_for(self.motors, self.by_id)
 
     def open(self) -> str:
         """The port's name for the bridge's ``--port``: the pseudo-terminal's path, or with
@@ -991,10 +994,18 @@ class VirtualChain:
             if self._client is not None:
                 self._disconnect()
             return
-        now = time.perf_counter()
+        self._received(data, time.perf_counter())
+
+    def _received(self, data: bytes, now: float) -> None:
+        """The bytes of one read from the line, arrived at ``now``."""
         self._read_line_baud()
         # The state a request sees is the state at its arrival (one sub-step).
         self._tick(now, publish=False)
+        if self._lane is not None and self._parser.pending == 0 and self._lane_open():
+            packets = self._lane.scan(data)
+            if packets:  # the period's requests, whole: in C (see lane.py)
+                self._lane_serve(now, packets)
+                return
         offset = 0
         while offset < len(data):
             offset += self._parser.feed(data[offset:])
@@ -1012,6 +1023,47 @@ class VirtualChain:
                         self._reply(now, self._parser.frame_len, [(m, CRC_ERROR, b"")], -1)
                 else:
                     self.counts["bad_instructions"] += 1
+
+    def _lane_open(self) -> bool:
+        """Whether the C lane may serve: nothing it does not model (faults on the replies,
+        stale packets, baud checks, writes that do not take; a hardware error, a silent motor
+        and a tripped watchdog it does model)."""
+        f = self.faults
+        return not (self.check_baud or f.stale is not None or f.drop or f.crc or f.late
+                    or any(m.ignored for m in self.motors))
+
+    def _lane_serve(self, now: float, packets) -> None:
+        """The requests :meth:`Lane.scan` took, applied in C: what :meth:`_instruction` and
+        :meth:`_reply` do with a SYNC_WRITE of Goal Current and a SYNC_READ, the same events,
+        contacts, counts and replies at the same times."""
+        lane = self._lane
+        lane.refresh()
+        queue, byte_time = self._queue, self.byte_time
+        for inst, frame_len, k in packets:
+            self.counts["instructions"] += 1
+            if self._unpublished is not None:
+                self._publish_pending(inst == SYNC_READ)
+            t = max(now, self._bus_free) + frame_len * byte_time
+            for kind, m, a, b in lane.execute(k):
+                if kind == c_lane.REPLY:
+                    m.last_contact = now
+                    if self.wire_timing:
+                        t += m.return_delay_s
+                    t += len(a) * byte_time
+                    self._seq += 1
+                    heapq.heappush(queue, (t, self._seq, a))
+                    self.counts["replies"] += 1
+                elif kind == c_lane.WRITTEN:
+                    m.last_contact = now
+                    self._event(now, "sync-write", m.id, m.a_goal_current, a)
+                elif kind == c_lane.REFUSED:
+                    m.last_contact = now
+                    self._event(now, "refused", m.id, m.a_goal_current, f"sync-write: error {a}")
+                elif kind == c_lane.READ:
+                    self._event(now, "sync-read", BROADCAST_ID, a, b)
+                else:  # a motor read that does not answer (Status Return Level 0)
+                    m.last_contact = now
+            self._bus_free = t
 
     def _publish(self, tick_ms: int, currents: list[int] | None = None) -> None:
         """Every motor's present registers from the plant's state (``currents``: the applied

@@ -1,0 +1,218 @@
+"""The virtual chain's C lane (``cochlea/dynamixel/lane.py``) against its Python path.
+
+Two chains of the same robot take the same bytes at the same (fixed) time, one answering the
+period's requests in C and one in Python (``_lane = None``); their replies (bytes and due
+times), control tables, events, counts and contacts must be equal after every receive. The
+plant is held still (its update is the chain's own, the same on both paths), so the present
+registers are what the test puts there.
+"""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from cochlea.dynamixel import lane as c_lane
+from cochlea.dynamixel import protocol as proto
+from cochlea.dynamixel.emulator import Faults, VirtualChain
+
+PERIOD_BLOCK = (120, 16)  # Realtime Tick .. Present Position (X series)
+
+
+def _pair(robot: str = "serial", **options) -> list[VirtualChain]:
+    chains = [VirtualChain(robot, f"{robot}_joint", **options) for _ in range(2)]
+    assert chains[0]._lane is not None, "build/libcochlea-lane.so missing: run make lib"
+    chains[1]._lane = None
+    for c in chains:
+        c._tick = lambda now, publish=True: None  # the plant holds still
+        c.lane_served = 0
+        serve = c._lane_serve
+
+        def counted(now, packets, c=c, serve=serve):
+            c.lane_served += 1
+            serve(now, packets)
+
+        c._lane_serve = counted
+    return chains
+
+
+def _replies(chain: VirtualChain) -> list[tuple[float, bytes]]:
+    """The queued status packets by due time, bytes in wire order (the lane may queue one
+    entry where Python queues one per motor: the same bytes at the same time)."""
+    due: dict[float, bytes] = {}
+    for t, _, packet in sorted(chain._queue):
+        due[t] = due.get(t, b"") + packet
+    chain._queue.clear()
+    return list(due.items())
+
+
+def _state(chain: VirtualChain):
+    return ([bytes(m.table) for m in chain.motors], [e[1:] for e in chain.events],
+            dict(chain.counts), [m.last_contact for m in chain.motors],
+            [m.answering for m in chain.motors], chain._bus_free)
+
+
+def _both(chains, data: bytes, now: float) -> list[tuple[float, bytes]]:
+    got = []
+    for c in chains:
+        c._received(data, now)
+        got.append(_replies(c))
+    assert got[0] == got[1]
+    assert _state(chains[0]) == _state(chains[1])
+    return got[0]
+
+
+def _start(chains, now: float = 1.0) -> list[int]:
+    ids = [m.id for m in chains[0].motors]
+    for i in ids:  # current control, torque on (WRITEs: the Python path on both)
+        _both(chains, proto.write(i, 11, bytes([0])) + proto.write(i, 64, bytes([1])), now)
+    return ids
+
+
+def test_a_period_is_answered_by_the_lane_as_python_answers_it():
+    chains = _pair()
+    ids = _start(chains)
+    served = chains[0].lane_served
+    now = 2.0
+    for k in range(20):
+        now += 1e-3
+        for c in chains:  # a request's own update, not yet published (see VirtualChain._tick)
+            c._unpublished, c._unpublished_currents = k, None
+        period = proto.sync_write(102, 2, [(i, proto.le(10 * k - 50 + i, 2)) for i in ids]) + \
+            proto.sync_read(*PERIOD_BLOCK, ids)
+        replies = _both(chains, period, now)
+        assert len(replies) == 1 and replies[0][1].count(b"\xff\xff\xfd\x00") == len(ids)
+    assert chains[0].lane_served == served + 20
+    assert chains[1].lane_served == 0
+    # The goal currents written are in the tables, and logged as the Python path logs them.
+    assert chains[0].writes()[-len(ids):] == [(i, 102, 190 - 50 + i) for i in ids]
+
+
+def test_refusals_errors_levels_and_stuffing_are_the_python_paths():
+    chains = _pair(wire_timing=True, baud=1_000_000)
+    ids = _start(chains)
+    now = 3.0
+    a, b, c, d = ids[:4]
+    # Status Return Level 0 (no reply to a read) and 1 (replies to reads only).
+    _both(chains, proto.write(a, 68, bytes([0])) + proto.write(b, 68, bytes([1])), now)
+    for ch in chains:
+        ch.by_id[c].latch_hardware_error(2)  # the alert bit in its replies, torque off
+        ch.by_id[d].trip_watchdog()  # its goal values refused (Data Range)
+        ch.by_id[ids[4]].answering = False
+        # Present Position bytes that need stuffing in the status packet: FF FF FD.
+        ch.by_id[ids[5]].table[132:136] = b"\xff\xff\xfd\x00"
+    served = chains[0].lane_served
+    limit = chains[0].by_id[a].get(chains[0].by_id[a].a_limit)
+    requests = [
+        # over the limit (Data Limit), an unknown ID, a duplicate, the extremes
+        proto.sync_write(102, 2, [(a, proto.le(limit + 1, 2)), (99, proto.le(1, 2)),
+                                  (b, proto.le(-limit, 2)), (b, proto.le(limit, 2)),
+                                  (c, proto.le(-32768, 2)), (d, proto.le(1, 2))]
+                         + [(i, proto.le(3, 2)) for i in ids[4:]]),
+        proto.sync_read(*PERIOD_BLOCK, ids + [99, a]),  # unknown ID, a duplicate
+        proto.sync_read(0, 4, ids),
+        proto.sync_read(len(chains[0].motors[0].table) - 2, 4, ids),  # past the table: Access
+        proto.sync_read(120, 0, ids),  # no data: Access
+        proto.sync_read(*PERIOD_BLOCK, []),  # nobody
+    ]
+    for r in requests:
+        now += 1e-3
+        _both(chains, r, now)
+    assert chains[0].lane_served == served + len(requests)
+    errors = [e for e in chains[0].events if e[1] == "refused"]
+    assert {e[2] for e in errors} >= {a, d}
+
+
+def test_anything_else_takes_the_python_path_unchanged():
+    chains = _pair()
+    ids = _start(chains)
+    now = 4.0
+    good = proto.sync_read(*PERIOD_BLOCK, ids)
+    bad_crc = bytearray(good)
+    bad_crc[-1] ^= 0xFF
+    stuffed = proto.sync_read(0xFFFF, 0xFD, ids)  # FF FF FD in its parameters: stuffed
+    assert len(stuffed) == len(proto.sync_read(0, 0, ids)) + 1
+    cases = [
+        good[:9],  # a request in pieces: the rest finds the parser holding the start
+        bytes(bad_crc),  # a corrupted request
+        b"\x00" + good,  # garbage before it
+        stuffed,  # a parameter that needed stuffing
+        proto.sync_write(116, 4, [(i, proto.le(0, 4)) for i in ids]),  # another item
+        proto.sync_write(102, 2, [(ids[0], proto.le(1, 2))]) + proto.ping(ids[0]),
+        proto.read(ids[0], 120, 16),
+    ]
+    served = chains[0].lane_served
+    for data in cases:
+        now += 1e-3
+        _both(chains, data, now)
+        assert chains[0].lane_served == served, data  # none of them is the lane's
+        if data == good[:9]:
+            _both(chains, good[9:], now)
+        for c in chains:
+            assert c._parser.pending == 0 or data in (bytes(bad_crc), good[:9])
+            c._parser.reset()
+    assert chains[0].lane_served == served
+    now += 1e-3
+    _both(chains, good, now)
+    assert chains[0].lane_served == served + 1
+
+
+def test_a_chain_with_faults_on_its_replies_is_served_in_python():
+    chains = _pair(faults=Faults(drop=0.5, seed=3))
+    ids = _start(chains)
+    chains[0]._received(proto.sync_read(*PERIOD_BLOCK, ids), 5.0)
+    assert chains[0].lane_served == 0
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_random_requests_agree(seed):
+    """Random receives of period requests, refused values, other instructions, torn packets
+    and register changes behind the instructions' back."""
+    rng = random.Random(seed)
+    chains = _pair("parallel" if seed == 2 else "serial")
+    ids = _start(chains)
+    table_size = len(chains[0].motors[0].table)
+    now = 5.0
+
+    def packet() -> bytes:
+        kind = rng.random()
+        some = rng.sample(ids + [77], rng.randint(0, len(ids) + 1))
+        if kind < 0.35:
+            return proto.sync_write(102, 2, [(i, proto.le(rng.choice(
+                [rng.randint(-1500, 1500), rng.randint(-32768, 32767), 0]), 2)) for i in some])
+        if kind < 0.7:
+            return proto.sync_read(rng.choice([120, 126, rng.randrange(table_size)]),
+                                   rng.choice([16, 10, 1, rng.randint(0, 40)]), some)
+        if kind < 0.8:
+            return proto.write(rng.choice(ids), rng.choice([68, 64, 98]),
+                               bytes([rng.choice([0, 1, 2])]))
+        if kind < 0.85:
+            return proto.instruction(proto.BROADCAST_ID, proto.REBOOT) if rng.random() < 0.2 \
+                else proto.reboot(rng.choice(ids))
+        if kind < 0.9:
+            return proto.ping(rng.choice(ids))
+        return bytes(rng.randrange(256) for _ in range(rng.randint(1, 12)))
+
+    served = 0
+    for _ in range(300):
+        now += rng.choice([1e-4, 1e-3, 0.05])
+        r = rng.random()
+        for c in chains:  # behind the instructions' back, the same on both
+            m = c.motors[int(r * 1000) % len(ids)]
+            if r < 0.03:
+                m.latch_hardware_error(random.Random(r).randrange(6))
+            elif r < 0.05:
+                m.trip_watchdog()
+            elif r < 0.08:
+                m.answering = not m.answering
+            elif r < 0.15:
+                m.table[132:136] = random.Random(r).choice([b"\xff\xff\xfd\x00", b"\x01\x02\x03\x04"])
+            elif r < 0.3:
+                c._unpublished, c._unpublished_currents = int(r * 1e4), None
+        data = b"".join(packet() for _ in range(rng.randint(1, 3)))
+        if rng.random() < 0.1:
+            data = data[:rng.randint(0, len(data))]  # torn: the rest is lost
+        _both(chains, data, now)
+        served = chains[0].lane_served
+    assert served > 50  # the lane took a good share of them
