@@ -207,7 +207,8 @@ def test_random_requests_agree(seed):
             elif r < 0.08:
                 m.answering = not m.answering
             elif r < 0.15:
-                m.table[132:136] = random.Random(r).choice([b"\xff\xff\xfd\x00", b"\x01\x02\x03\x04"])
+                m.table[132:136] = random.Random(r).choice([b"\xff\xff\xfd\x00",
+                                                            b"\x01\x02\x03\x04"])
             elif r < 0.3:
                 c._unpublished, c._unpublished_currents = int(r * 1e4), None
         data = b"".join(packet() for _ in range(rng.randint(1, 3)))
@@ -216,3 +217,15 @@ def test_random_requests_agree(seed):
         _both(chains, data, now)
         served = chains[0].lane_served
     assert served > 50  # the lane took a good share of them
+
+
+def test_the_lane_can_be_switched_off(monkeypatch):
+    """``COCHLEA_EMULATOR_LANE=0``: no lane, the chain answers the period in Python."""
+    assert c_lane.load() is not None
+    monkeypatch.setenv(c_lane.ENVIRONMENT, "0")
+    assert c_lane.load() is None
+    chain = VirtualChain("serial", "serial_joint")
+    assert chain._lane is None
+    ids = [m.id for m in chain.motors]
+    chain._received(proto.sync_read(*PERIOD_BLOCK, ids), 1.0)
+    assert len(_replies(chain)[0][1]) == len(ids) * (11 + PERIOD_BLOCK[1])
