@@ -919,6 +919,19 @@ class VirtualChain:
             except OSError as exc:
                 self._log_failed(exc)
 
+    def _events(self, now: float, items) -> None:
+        """Several events at ``now``: ``(kind, motor_id, address, value)`` each, as
+        :meth:`_event` records them, the log's lines in one write."""
+        t = now - self._t0
+        self.events.extend([(t, *e) for e in items])
+        if self._log:
+            try:
+                self._log.write("".join([f"{t:.6f} {kind} id={motor_id} address={address} "
+                                         f"value={value}\n"
+                                         for kind, motor_id, address, value in items]))
+            except OSError as exc:
+                self._log_failed(exc)
+
     def _log_failed(self, exc: OSError) -> None:
         """The event log cannot be written (a full disk): stop serving, as a recorder that lost
         its record should; the motors go silent and the bridge on the other end stops safely."""
@@ -1035,34 +1048,51 @@ class VirtualChain:
     def _lane_serve(self, now: float, packets) -> None:
         """The requests :meth:`Lane.scan` took, applied in C: what :meth:`_instruction` and
         :meth:`_reply` do with a SYNC_WRITE of Goal Current and a SYNC_READ, the same events,
-        contacts, counts and replies at the same times."""
+        contacts, counts and replies at the same times. Without wire timing a read's replies
+        are all due at once: they are queued as one entry (:meth:`_flush` joins the entries
+        due together anyway: the same bytes in the same write)."""
         lane = self._lane
         lane.refresh()
-        queue, byte_time = self._queue, self.byte_time
+        motors, queue, byte_time = lane.motors, self._queue, self.byte_time
+        counts = self.counts
         for inst, frame_len, k in packets:
-            self.counts["instructions"] += 1
+            counts["instructions"] += 1
             if self._unpublished is not None:
                 self._publish_pending(inst == SYNC_READ)
             t = max(now, self._bus_free) + frame_len * byte_time
-            for kind, m, a, b in lane.execute(k):
+            actions, out = lane.execute(k)
+            events = []
+            first = last = -1  # the replies' bytes in out
+            for j in range(0, len(actions), 4):
+                kind, m = actions[j], motors[actions[j + 1]]
                 if kind == c_lane.REPLY:
                     m.last_contact = now
+                    offset, length = actions[j + 2], actions[j + 3]
                     if self.wire_timing:
-                        t += m.return_delay_s
-                    t += len(a) * byte_time
-                    self._seq += 1
-                    heapq.heappush(queue, (t, self._seq, a))
-                    self.counts["replies"] += 1
+                        t += m.return_delay_s  # two sums, as _reply adds them
+                        t += length * byte_time
+                        self._seq += 1
+                        heapq.heappush(queue, (t, self._seq, bytes(out[offset:offset + length])))
+                    else:
+                        first = offset if first < 0 else first
+                        last = offset + length
+                    counts["replies"] += 1
                 elif kind == c_lane.WRITTEN:
                     m.last_contact = now
-                    self._event(now, "sync-write", m.id, m.a_goal_current, a)
+                    events.append(("sync-write", m.table[7], m.a_goal_current, actions[j + 2]))
                 elif kind == c_lane.REFUSED:
                     m.last_contact = now
-                    self._event(now, "refused", m.id, m.a_goal_current, f"sync-write: error {a}")
+                    events.append(("refused", m.table[7], m.a_goal_current,
+                                   f"sync-write: error {actions[j + 2]}"))
                 elif kind == c_lane.READ:
-                    self._event(now, "sync-read", BROADCAST_ID, a, b)
+                    events.append(("sync-read", BROADCAST_ID, actions[j + 2], actions[j + 3]))
                 else:  # a motor read that does not answer (Status Return Level 0)
                     m.last_contact = now
+            if first >= 0:
+                self._seq += 1
+                heapq.heappush(queue, (t, self._seq, bytes(out[first:last])))
+            if events:
+                self._events(now, events)
             self._bus_free = t
 
     def _publish(self, tick_ms: int, currents: list[int] | None = None) -> None:

@@ -146,24 +146,16 @@ class Lane:
         packets = self._packets
         return [(packets[k].instruction, packets[k].frame_len, k) for k in range(count)]
 
-    def execute(self, k: int) -> list:
-        """Packet ``k`` of the last :meth:`scan` applied: ``[(kind, motor, a, b)]``, a reply's
-        ``a`` its status packet's bytes."""
+    def execute(self, k: int) -> tuple[list[int], memoryview]:
+        """Packet ``k`` of the last :meth:`scan` applied: its actions, four numbers each
+        ``(kind, motor index, a, b)`` (see emulator_lane.c; a reply's ``a, b`` are its status
+        packet's offset and length in the returned buffer, the replies back to back)."""
         got = self._lib.lane_execute(ctypes.byref(self._chain), self._in,
                                      ctypes.byref(self._packets[k]), self._actions,
                                      self._cap_actions, self._out, len(self._out))
         if got < 0:
             raise RuntimeError("the lane's reply buffer is too small")  # cannot be: sized
-        a = self._actions[:4 * got]
-        out, motors = self._out_view, self.motors
-        actions = []
-        for j in range(0, 4 * got, 4):
-            kind, i = a[j], a[j + 1]
-            if kind == REPLY:
-                actions.append((kind, motors[i], bytes(out[a[j + 2]:a[j + 2] + a[j + 3]]), 0))
-            else:
-                actions.append((kind, motors[i] if i >= 0 else None, a[j + 2], a[j + 3]))
-        return actions
+        return self._actions[:4 * got], self._out_view
 
 
 def lane_for(motors, by_id: dict) -> Lane | None:
