@@ -88,7 +88,7 @@ $(LIB): $(C_OBJ)
 # The virtual chain's period requests in C (cochlea/dynamixel/lane.py): always into build/,
 # whatever GEN, as the emulator looks for it there; without it the emulator answers in Python.
 LANE     := build/libcochlea-lane.so
-LANE_SRC := cochlea/dynamixel/c/emulator_lane.c embedded/core/dxl.c
+LANE_SRC := cochlea/dynamixel/c/lane.c embedded/core/dxl.c
 
 $(LANE): $(LANE_SRC) embedded/core/dxl.h
 	@mkdir -p $(@D)

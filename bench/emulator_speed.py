@@ -25,9 +25,12 @@ alike):
   ``socket://127.0.0.1:0``); the baseline's on the pseudo-terminal only.
 
 The baseline (``--baseline REV``, default ``main``; ``none``: this tree alone) is that
-revision's package (``cochlea/``
-and its data) exported with ``git archive`` into the output folder; the loops are always this
-tree's. Nothing is written outside ``--out`` (default: a new temporary folder, printed). Run
+revision's package (``cochlea/`` and its data) exported with ``git archive`` into the output
+folder, its plant on this tree's ``build/libcochlea.so`` (an export has no build);
+``--baseline python`` is this tree with the C lane switched off at both ends
+(``COCHLEA_EMULATOR_LANE=0``: the emulator's period requests and the bridge's SYNC_READ replies
+in Python), on every transport. The loops are always this tree's. Nothing is written outside
+``--out`` (default: a new temporary folder, printed). Run
 by hand, not a test:
 ``python bench/emulator_speed.py --out /tmp/emuspeed`` (numbers in docs/dynamixel.md, "Does
 the virtual chain keep up").
@@ -200,12 +203,23 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def env_for(tree: Path) -> dict:
-    return {**os.environ, "PYTHONPATH": f"{tree}{os.pathsep}{ROOT}"}
+#: ``--baseline python``: this tree with the emulator's C lane switched off (its period
+#: requests answered in Python, cochlea/dynamixel/lane.py).
+PYTHON_PATH_BASELINE = "python"
 
 
-def micro(tree: Path, robot: str, periods: int) -> dict:
-    done = subprocess.run([sys.executable, "-c", MICRO, robot, str(periods)], env=env_for(tree),
+def env_for(tree: Path, lane: bool = True) -> dict:
+    env = {**os.environ, "PYTHONPATH": f"{tree}{os.pathsep}{ROOT}"}
+    if tree != ROOT:  # an exported revision has no build/: the plant on this tree's kernels
+        env["COCHLEA_LIB"] = str(ROOT / "build" / "libcochlea.so")
+    if not lane:
+        env["COCHLEA_EMULATOR_LANE"] = "0"
+    return env
+
+
+def micro(tree: Path, robot: str, periods: int, lane: bool = True) -> dict:
+    done = subprocess.run([sys.executable, "-c", MICRO, robot, str(periods)],
+                          env=env_for(tree, lane),
                           capture_output=True, text=True, timeout=120, cwd=tree)
     if done.returncode != 0:
         raise RuntimeError(f"micro ({tree}): {done.stderr.strip().splitlines()[-1:]}")
@@ -217,7 +231,7 @@ LISTEN = {"pty": None, "unix": "unix:{out}/chain.sock", "tcp": "socket://127.0.0
 
 
 def hil(tree: Path, loop: str, out: Path, duration: float, program: Path,
-        transport: str = "pty") -> dict:
+        transport: str = "pty", lane: bool = True) -> dict:
     """One run of ``loop`` (``python`` or ``c``) against the emulator of ``tree``, on its
     pseudo-terminal or a socket (``transport``: a key of :data:`LISTEN`)."""
     log = out / "emulator.log"
@@ -225,7 +239,7 @@ def hil(tree: Path, loop: str, out: Path, duration: float, program: Path,
     emu = subprocess.Popen([sys.executable, "-m", "cochlea.dynamixel.emulator", "--robot",
                             "serial", "--scenario", "serial_joint", "--log", str(log),
                             *(() if listen is None else ("--listen", listen.format(out=out)))],
-                           env=env_for(tree), cwd=out, stdout=subprocess.PIPE,
+                           env=env_for(tree, lane), cwd=out, stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
     try:
         port = emu.stdout.readline().strip()
@@ -243,8 +257,8 @@ def hil(tree: Path, loop: str, out: Path, duration: float, program: Path,
                    "--space", "joint", "--backend", "dynamixel", *common]
         else:
             cmd = [str(program), "--scenario", "serial_joint", *common]
-        done = subprocess.run(cmd, env=env_for(ROOT), cwd=out, capture_output=True, text=True,
-                              timeout=duration + 120)
+        done = subprocess.run(cmd, env=env_for(ROOT, lane), cwd=out, capture_output=True,
+                              text=True, timeout=duration + 120)
         emulator_cpu = cpu_seconds(emu.pid) - cpu_before
     finally:
         emu.terminate()
@@ -273,7 +287,9 @@ class _Parser(argparse.ArgumentParser):
 
 def main(argv: list[str] | None = None) -> int:
     p = _Parser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--baseline", default="main", help="git revision to compare with (main)")
+    p.add_argument("--baseline", default="main",
+                   help="git revision to compare with (main); 'python': this tree with the "
+                        "emulator's C lane off; 'none': this tree alone")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per HIL run (20)")
     p.add_argument("--hogs", type=int, default=os.cpu_count() or 2,
                    help="busy processes beside the runs (default: one per core)")
@@ -313,8 +329,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"output in {out}", flush=True)
     trees = {}
     try:
-        trees = {"this": ROOT} if args.baseline == "none" else \
-            {"baseline": export(args.baseline, out / "baseline"), "this": ROOT}
+        if args.baseline == "none":
+            trees = {"this": ROOT}
+        elif args.baseline == PYTHON_PATH_BASELINE:
+            trees = {"baseline": ROOT, "this": ROOT}
+        else:
+            trees = {"baseline": export(args.baseline, out / "baseline"), "this": ROOT}
+        # The baseline's emulator without the C lane when it is this tree's.
+        lanes = {name: not (name == "baseline" and args.baseline == PYTHON_PATH_BASELINE)
+                 for name in trees}
         results = {name: {"micro": {}, "hil": {}} for name in trees}
         for robot in ("serial", "parallel"):
             # The versions take turns, in alternating order, so a change of the machine's load
@@ -324,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
             names = list(trees)
             for k in range(args.rounds):
                 for name in names if k % 2 == 0 else names[::-1]:
-                    got = micro(trees[name], robot, max(args.periods // args.rounds, 10))
+                    got = micro(trees[name], robot, max(args.periods // args.rounds, 10),
+                                lanes[name])
                     for key in raw[name]:
                         raw[name][key] += got[key]
             for name in trees:
@@ -349,12 +373,13 @@ def main(argv: list[str] | None = None) -> int:
             for loop in loops:
                 for transport in transports:
                     for name, tree in trees.items():
-                        if name == "baseline" and transport != "pty":
-                            continue  # the baseline may have no --listen
+                        if name == "baseline" and transport != "pty" and lanes[name]:
+                            continue  # an older revision may have no --listen
                         folder = out / f"hil_{loop}_{name}_{transport}"
                         folder.mkdir(exist_ok=True)
                         results[name]["hil"][f"{loop}_{transport}"] = r = hil(
-                            tree, loop, folder, args.duration, args.program, transport)
+                            tree, loop, folder, args.duration, args.program, transport,
+                            lanes[name])
                         print(f"hil   {name:8s} {loop:6s} {transport:4s} ({args.hogs} hogs) "
                               f"misses {100 * r['deadline_miss_fraction']:.2f} %  failed "
                               f"reads {r['failed_reads']}  lateness max "

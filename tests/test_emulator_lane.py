@@ -10,7 +10,9 @@ registers are what the test puts there.
 from __future__ import annotations
 
 import random
+import time
 
+import numpy as np
 import pytest
 
 from cochlea.dynamixel import lane as c_lane
@@ -229,3 +231,135 @@ def test_the_lane_can_be_switched_off(monkeypatch):
     ids = [m.id for m in chain.motors]
     chain._received(proto.sync_read(*PERIOD_BLOCK, ids), 1.0)
     assert len(_replies(chain)[0][1]) == len(ids) * (11 + PERIOD_BLOCK[1])
+
+
+class _ScriptedLine:
+    """A port whose replies are scripted: the chunks of ``replies`` arrive after the next
+    request is written, one per read; otherwise a read gets nothing until its deadline."""
+
+    low_latency = None
+
+    def __init__(self):
+        self.replies: list[bytes] = []
+        self.chunks: list[bytes] = []
+
+    def discard_input(self) -> bool:
+        return True
+
+    def write(self, view, n, deadline) -> bool:
+        self.chunks, self.replies = self.replies, []
+        return True
+
+    def read_into(self, view, deadline: float) -> int:
+        if not self.chunks:
+            time.sleep(max(0.0, min(deadline - time.perf_counter(), 0.05)))
+            return 0
+        chunk = self.chunks.pop(0)
+        view[:len(chunk)] = chunk
+        return len(chunk)
+
+
+def _blocks(bridge):
+    """``block(tick, j)``: motor j's bytes of the bridge's per-period read (its own layout:
+    Present Current, Velocity, Position, and the Realtime Tick when it reads it)."""
+    dtype = bridge._cur.base.dtype
+
+    def block(tick: int, j: int) -> bytes:
+        record = np.zeros(1, dtype)
+        record["current"], record["velocity"], record["position"] = 10 * j - 20, -3 * j, \
+            2048 + 100 * j
+        if "tick" in dtype.names:
+            record["tick"] = tick
+        return record.tobytes()
+    return block
+
+
+@pytest.mark.hil
+def test_the_bridge_reads_a_sync_read_in_c_as_in_python():
+    """The bridge's SYNC_READ replies checked in one C call (lane.StatusBlock) or parsed in
+    Python: the same result, state, failures and counters for healthy and damaged replies."""
+    from cochlea.dynamixel.bridge import DynamixelBackend
+
+    chains = [VirtualChain("serial").start() for _ in range(2)]
+    bridges = [DynamixelBackend("serial", c.path, description=c.scenario.description,
+                                timeout_s=0.01) for c in chains]
+    try:
+        for b in bridges:
+            b.enable()
+        block = bridges[0]._status_block
+        assert block is not None
+        bridges[1]._status_block = None
+        taken = []
+
+        class Counted:  # the C check, counting the replies it took
+            total = block.total
+
+            def __call__(self, start, n_bytes):
+                taken.append(block(start, n_bytes))
+                return taken[-1]
+
+        bridges[0]._status_block = Counted()
+        lines = [_ScriptedLine() for _ in bridges]
+        for b, line in zip(bridges, lines):
+            b._port = line
+        ids = bridges[0].ids
+        n = len(ids)
+        _block = _blocks(bridges[0])
+
+        def replies(tick, change=None):
+            packets = [proto.status(i, 0, _block(tick, j)) for j, i in enumerate(ids)]
+            if change is not None:
+                packets = change(packets)
+            return b"".join(packets)
+
+        def corrupt(k):
+            def f(p):
+                p = list(p)
+                p[k] = p[k][:-1] + bytes([p[k][-1] ^ 0xFF])
+                return p
+            return f
+
+        def replace(k, packet):
+            def f(p):
+                p = list(p)
+                p[k] = packet
+                return p
+            return f
+
+        cases = [
+            lambda t: [replies(t)],
+            lambda t: [replies(t)[:10], replies(t)[10:70], replies(t)[70:]],
+            lambda t: [b"\x00\x01" + replies(t)],
+            lambda t: [replies(t) + b"\xff\xff\xfd"],
+            lambda t: [replies(t, corrupt(2))],
+            lambda t: [replies(t, replace(1, proto.status(ids[1], 1, _block(t, 1))))],
+            lambda t: [replies(t, lambda p: [p[1], p[0], *p[2:]])],
+            lambda t: [replies(t, lambda p: p[:-1])],  # the last motor silent
+            lambda t: [replies(t, replace(3, proto.status(ids[3], 0, b"\xff\xff\xfd"
+                                                          + _block(t, 3)[3:])))],  # stuffed
+            lambda t: [replies(t, replace(0, proto.status(ids[0], 0, _block(t, 0)[:-1])))],
+            lambda t: [replies(t, lambda p: [p[0], *p])],  # a packet twice
+            lambda t: [replies(t, replace(4, proto.status(ids[4], 0x80, _block(t, 4))))],
+            lambda t: [replies(t)],
+        ]
+        good = 0
+        for k, case in enumerate(cases):
+            results = []
+            for b, line in zip(bridges, lines):
+                line.replies = case(100 + 7 * k)
+                x = np.full(2 * n, np.nan)
+                ok = b.read(x)
+                good += ok
+                results.append((ok, x.tobytes(), bytes(b._raw), list(b.failures),
+                                b.garbage_packets, b.unexpected_packets, sorted(b.alert_ids),
+                                b._alert_pending, b.describe_last_failure(), b.good_reads))
+            assert results[0] == results[1], k
+        assert good >= 2 * 5  # the healthy replies were read
+        # In C: the healthy replies whole, in pieces, and with bytes after them; the rest (bytes
+        # before them, another order, a stuffed byte, a packet twice) read in Python.
+        assert sum(taken) == 3
+    finally:
+        for b in bridges:
+            b._port = None
+        for c in chains:
+            c.close()

@@ -78,6 +78,7 @@ import numpy as np
 
 from ..runtime.backend import BackendError
 from . import homing
+from . import lane as c_lane
 from . import protocol as proto
 from .budget import DEFAULT_ADAPTER_LATENCY_S, BusBudget, Verdict, bus_budget
 from .control_table import (
@@ -393,6 +394,11 @@ class DynamixelBackend:
         for j, motor_id in enumerate(self.ids):
             self._slot_of[motor_id] = j
         self._slots = bytearray(n)  # 0 waiting, 1 good, 2 failed
+        # A SYNC_READ's whole reply checked and copied in C when it is what a healthy chain
+        # sends (None: no library, or another read instruction; see _sync_read).
+        self._status_block = (c_lane.status_block(self._parser.buf, self.ids, read_length,
+                                                  self._raw)
+                              if self.read_instruction == "sync" else None)
         f = np.array
         self._q_per_count = f([d.q_per_count for d in self.drives])
         self._q_offset = f([d.q_offset for d in self.drives])
@@ -699,6 +705,18 @@ class DynamixelBackend:
             if not ok:
                 return False
             return self._finish_read(x, asked)
+        block = self._status_block
+        if block is not None:
+            # The whole reply as a healthy chain sends it, in one C call; anything else (a
+            # timeout, a fault, a stuffed byte) goes on below on the same bytes, as before.
+            while parser.pending < block.total:
+                got = port.read_into(parser.space(), deadline)
+                if got <= 0:
+                    break
+                parser.commit(got)
+            if parser.pending >= block.total and block(parser.start, parser.pending):
+                parser.start += block.total
+                return self._finish_read(x, asked)
         slots, slot_of = self._slots, self._slot_of
         n = self.nq
         length = self._read_length

@@ -1,10 +1,12 @@
-"""The virtual chain's period requests in C: ``build/libcochlea-lane.so`` (``make lib``).
+"""The period's packet work in C, at both ends of the bus: ``build/libcochlea-lane.so``
+(``make lib``), for the virtual chain's requests (:class:`Lane`) and the bridge's SYNC_READ
+replies (:class:`StatusBlock`).
 
 A 1 kHz loop sends :class:`~cochlea.dynamixel.emulator.VirtualChain` a SYNC_WRITE of every
 motor's Goal Current and a SYNC_READ of the per-period block each period. Their packet work in
 Python (parse, CRC, the writes' checks, the status packets built) was most of the chain's time
 and kept the loops against it late (issue 30, item 2). :class:`Lane` does that work in C
-(``cochlea/dynamixel/c/emulator_lane.c``, with ``embedded/core/dxl.c``'s codec) on the
+(``cochlea/dynamixel/c/lane.c``, with ``embedded/core/dxl.c``'s codec) on the
 motors' own control tables, shared by pointer; the chain keeps the rest (plant, publication,
 events, the reply queue and its timing). A receive the lane does not take entirely (anything
 but those two requests, whole and clean) goes to the Python path unchanged, and so does every
@@ -12,9 +14,9 @@ receive of a chain with what the lane does not model (faults, baud checks, ignor
 :meth:`VirtualChain._lane_open` decides.
 
 Without the library (an installed package, a checkout before ``make lib``), or with
-``COCHLEA_EMULATOR_LANE=0``, :func:`load` returns None and the chain answers in Python: the
-same bytes, slower. ``tests/test_emulator_lane.py`` checks both paths give the same replies,
-tables and events on the same requests.
+``COCHLEA_EMULATOR_LANE=0``, :func:`load` returns None and both ends work in Python: the
+same bytes and results, slower. ``tests/test_emulator_lane.py`` checks both paths give the
+same replies, tables and events on the same requests, and the bridge the same reads.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ LIBRARY_NAME = "libcochlea-lane.so"
 
 MAX_MOTORS = 64
 MAX_PACKETS = 16
-#: Action kinds (emulator_lane.c).
+#: Action kinds (lane.c).
 WRITTEN, REFUSED, READ, REPLY, CONTACT = 1, 2, 3, 4, 5
 
 
@@ -75,6 +77,9 @@ def _library(path: str) -> ctypes.CDLL | None:
     lib.lane_scan.restype = ctypes.c_int32
     lib.lane_scan.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t,
                               ctypes.c_void_p]
+    lib.lane_status_block.restype = ctypes.c_int32
+    lib.lane_status_block.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p,
+                                      ctypes.c_size_t, ctypes.c_size_t, ctypes.c_void_p]
     lib.lane_execute.restype = ctypes.c_int32
     lib.lane_execute.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
                                  ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p,
@@ -148,7 +153,7 @@ class Lane:
 
     def execute(self, k: int) -> tuple[list[int], memoryview]:
         """Packet ``k`` of the last :meth:`scan` applied: its actions, four numbers each
-        ``(kind, motor index, a, b)`` (see emulator_lane.c; a reply's ``a, b`` are its status
+        ``(kind, motor index, a, b)`` (see lane.c; a reply's ``a, b`` are its status
         packet's offset and length in the returned buffer, the replies back to back)."""
         got = self._lib.lane_execute(ctypes.byref(self._chain), self._in,
                                      ctypes.byref(self._packets[k]), self._actions,
@@ -156,6 +161,37 @@ class Lane:
         if got < 0:
             raise RuntimeError("the lane's reply buffer is too small")  # cannot be: sized
         return self._actions[:4 * got], self._out_view
+
+
+class StatusBlock:
+    """The bridge's side: the replies to its SYNC_READ checked and copied in one C call when
+    they are what a healthy chain sends (``lane_status_block`` in lane.c): ``block(start,
+    n_bytes)`` on the parser's buffer; True and the data in ``raw``, or False and nothing
+    changed (the bridge then parses the same bytes in Python)."""
+
+    def __init__(self, lib: ctypes.CDLL, buffer: bytearray, ids, length: int, raw: bytearray):
+        self._call = lib.lane_status_block
+        # Exported to C: neither bytearray may be resized while this lives (the parser's
+        # buffer and the bridge's raw block never are).
+        self._buffer = (ctypes.c_uint8 * len(buffer)).from_buffer(buffer)
+        self._base = ctypes.addressof(self._buffer)
+        self._ids = (ctypes.c_uint8 * len(ids))(*ids)
+        self._raw = (ctypes.c_uint8 * len(raw)).from_buffer(raw)
+        self.n, self.length = len(ids), length
+        #: The bytes of the whole reply: n status packets of 11 + length bytes.
+        self.total = len(ids) * (11 + length)
+
+    def __call__(self, start: int, n_bytes: int) -> bool:
+        return self._call(self._base + start, n_bytes, self._ids, self.n, self.length,
+                          self._raw) == 1
+
+
+def status_block(buffer: bytearray, ids, length: int, raw: bytearray) -> StatusBlock | None:
+    """A :class:`StatusBlock`, or None without the library (the bridge parses in Python)."""
+    lib = load()
+    if lib is None or not ids or len(raw) != len(ids) * length:
+        return None
+    return StatusBlock(lib, buffer, ids, length, raw)
 
 
 def lane_for(motors, by_id: dict) -> Lane | None:

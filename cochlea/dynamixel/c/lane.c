@@ -1,6 +1,8 @@
 /*
- * emulator_lane.c - the virtual chain's period requests in C (cochlea-emulator's "lane").
+ * lane.c - the period's packet work in C, at both ends of the bus: the virtual chain's
+ * requests (cochlea-emulator) and the bridge's SYNC_READ replies (cochlea-run).
  *
+ * The emulator's side:
  * A 1 kHz loop sends the chain two instructions a period: a SYNC_WRITE of every motor's Goal
  * Current and a SYNC_READ of the per-period block (Realtime Tick .. Present Position). In
  * Python their packet work (parse, CRC, the writes' checks, six status packets built and
@@ -230,6 +232,43 @@ int32_t lane_execute(lane_chain *c, const uint8_t *in, const lane_packet *pk, in
         w += (size_t)got;
     }
     return (int32_t)n_act;
+}
+
+/*
+ * The bridge's side: the replies to a SYNC_READ of n motors, length data bytes each, as a
+ * healthy chain sends them -- status packets back to back in the order asked, each with its
+ * motor's ID, no error, the length asked, a good CRC and nothing stuffed. In Python their
+ * parse (header search, CRC, a packet at a time) was a tenth of cochlea-run's period
+ * (cochlea/dynamixel/bridge.py). Returns 1 and copies each motor's data into
+ * raw[k * length ..] when the first n * (11 + length) bytes of buf are exactly that; else 0,
+ * raw untouched, and the bridge parses the same bytes in Python (whatever is wrong is
+ * reported as before).
+ */
+int32_t lane_status_block(const uint8_t *buf, size_t n_bytes, const uint8_t *ids, size_t n,
+                          size_t length, uint8_t *raw)
+{
+    size_t k, i, frame = DXL_PREFIX + 2 + length + 2;
+    if (n == 0 || length == 0 || length > DXL_MAX_FRAME || n_bytes < n * frame) {
+        return 0;
+    }
+    for (k = 0; k < n; k++) {
+        const uint8_t *p = buf + k * frame;
+        if (p[0] != 0xFF || p[1] != 0xFF || p[2] != 0xFD || p[3] != 0x00 || p[4] != ids[k] ||
+            u16(p + 5) != length + 4 || p[7] != DXL_STATUS || p[8] != 0) {
+            return 0;
+        }
+        if (dxl_crc16(0, p, frame - 2) != u16(p + frame - 2) ||
+            has_ff_ff_fd(p + DXL_PREFIX, frame - 2 - DXL_PREFIX)) {
+            return 0;
+        }
+    }
+    for (k = 0; k < n; k++) {
+        const uint8_t *data = buf + k * frame + DXL_PREFIX + 2;
+        for (i = 0; i < length; i++) {
+            raw[k * length + i] = data[i];
+        }
+    }
+    return 1;
 }
 
 /* The layout Python's ctypes structures must match (checked when the lane is loaded). */
