@@ -51,6 +51,23 @@ class BuildWithKernels(build_py):
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="cochlea-kernels-") as objects:
             self._compile(sources, Path(objects), out)
+        self._compile_lane(out)
+
+    def _compile_lane(self, out: Path) -> None:
+        """``libcochlea-lane.so`` (``make lib``'s rule): the bus period's packet work in C for
+        the emulator and the bridge; without it both answer in Python, the same bytes."""
+        cc = shlex.split(os.environ.get("CC", "cc"))
+        sources = [ROOT / "cochlea" / "dynamixel" / "c" / "lane.c",
+                   ROOT / "embedded" / "core" / "dxl.c"]
+        try:
+            subprocess.run([*cc, *FLAGS, f"-I{ROOT / 'embedded' / 'core'}", "-shared", "-o",
+                            str(out / "libcochlea-lane.so"), *map(str, sources)], check=True,
+                           capture_output=True, text=True)
+        except (OSError, subprocess.CalledProcessError) as exc:
+            detail = getattr(exc, "stderr", "") or str(exc)
+            print(f"cochlea: the bus lane was not compiled ({detail.strip()[:500]}); the "
+                  "installed emulator and bridge will do their packet work in Python",
+                  file=sys.stderr)
 
     def _compile(self, sources: list[Path], objects: Path, out: Path) -> None:
         cc = shlex.split(os.environ.get("CC", "cc"))

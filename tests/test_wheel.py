@@ -76,9 +76,12 @@ def test_the_wheel_holds_the_data_and_the_library(installed):
                    "print(sorted(p.name for p in r.SCENARIOS_DIR.iterdir()))\n"
                    "print(sorted(p.name for p in r.EXAMPLES_DIR.iterdir()))\n"
                    "print(sorted(p.name for p in r.CODEGEN_DIR.iterdir()))\n"
-                   "print(library.load().path)")
+                   "print(library.load().path)\n"
+                   "from cochlea.dynamixel import lane\n"
+                   "print(lane.library_path() if lane.load() is not None else None)")
     assert located.returncode == 0, located.stderr
-    package, checkout, robots, scenarios, examples, codegen, lib = located.stdout.splitlines()
+    package, checkout, robots, scenarios, examples, codegen, lib, bus_lane = \
+        located.stdout.splitlines()
     assert str(installed[0].parent) in package and str(ROOT) not in package
     assert checkout == "None"
     assert robots == "['parallel.toml', 'serial.toml']"
@@ -88,6 +91,8 @@ def test_the_wheel_holds_the_data_and_the_library(installed):
     # cochlea_trig.h: what cochlea-codegen copies beside a user's ideal plant steps
     assert codegen == "['closed_loop.c.in', 'cochlea_trig.h', 'kernels.toml']"
     assert lib.startswith(str(installed[0].parent)) and lib.endswith("cochlea/lib/libcochlea.so")
+    # the bus lane (the emulator's and the bridge's packet work in C) beside it
+    assert bus_lane == str(Path(lib).parent / "libcochlea-lane.so")
 
 
 def test_cochlea_run_outside_the_repository(installed):

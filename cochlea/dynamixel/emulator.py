@@ -52,6 +52,10 @@ Everything the motors do is recorded in ``events`` (and ``--log FILE``): each it
 WRITE or SYNC_WRITE), each read, ping and reboot, each refused instruction, each fault and
 watchdog trip, with its time.
 
+A period's requests (SYNC_WRITE of Goal Current, SYNC_READ) are applied in C when the library
+``build/libcochlea-lane.so`` is there (:mod:`cochlea.dynamixel.lane`): the same replies,
+tables and events as the Python path below, which takes everything else.
+
 The command (``main``) runs under SCHED_FIFO when permitted and with the garbage collector off
 while serving, as the real-time loop does: a virtual device should answer as promptly as a real
 one, whatever else the machine runs.

@@ -13,7 +13,7 @@ but those two requests, whole and clean) goes to the Python path unchanged, and 
 receive of a chain with what the lane does not model (faults, baud checks, ignored writes):
 :meth:`VirtualChain._lane_open` decides.
 
-Without the library (an installed package, a checkout before ``make lib``), or with
+Without the library (a checkout before ``make lib``, a wheel built without a C compiler), or with
 ``COCHLEA_EMULATOR_LANE=0``, :func:`load` returns None and both ends work in Python: the
 same bytes and results, slower. ``tests/test_emulator_lane.py`` checks both paths give the
 same replies, tables and events on the same requests, and the bridge the same reads.
@@ -24,6 +24,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import os
+from importlib import resources
 from pathlib import Path
 
 from ..resources import checkout
@@ -58,9 +59,13 @@ class _Packet(ctypes.Structure):
                 ("instruction", ctypes.c_uint32)]
 
 
-def library_path() -> Path | None:
+def library_path() -> Path:
+    """A checkout's ``build/`` (``make lib``), else the installed package's ``lib/`` (setup.py
+    compiles it into the wheel)."""
     root = checkout()
-    return None if root is None else root / "build" / LIBRARY_NAME
+    if root is not None:
+        return root / "build" / LIBRARY_NAME
+    return Path(str(resources.files("cochlea") / "lib" / LIBRARY_NAME))
 
 
 @functools.cache
@@ -92,7 +97,7 @@ def load() -> ctypes.CDLL | None:
     if os.environ.get(ENVIRONMENT, "1") == "0":
         return None
     path = library_path()
-    if path is None or not path.is_file():
+    if not path.is_file():
         return None
     return _library(str(path))
 
