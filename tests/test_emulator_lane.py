@@ -143,6 +143,10 @@ def test_anything_else_takes_the_python_path_unchanged():
         proto.sync_write(116, 4, [(i, proto.le(0, 4)) for i in ids]),  # another item
         proto.sync_write(102, 2, [(ids[0], proto.le(1, 2))]) + proto.ping(ids[0]),
         proto.read(ids[0], 120, 16),
+        # more than the lane's bounds (a hostile host): 300 motors listed, a 2000-byte read
+        proto.sync_read(*PERIOD_BLOCK, (ids * 60)[:300]),
+        proto.sync_write(102, 2, [(i, proto.le(1, 2)) for i in (ids * 60)[:300]]),
+        proto.sync_read(0, 2000, ids),
     ]
     served = chains[0].lane_served
     for data in cases:

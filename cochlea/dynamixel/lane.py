@@ -74,11 +74,13 @@ def _library(path: str) -> ctypes.CDLL | None:
         lib = ctypes.CDLL(path)
     except OSError:
         return None
-    sizes = (ctypes.c_uint32 * 5)()
+    sizes = (ctypes.c_uint32 * 7)()
     lib.lane_sizes(sizes)
-    if list(sizes) != [ctypes.sizeof(_Motor), ctypes.sizeof(_Chain), ctypes.sizeof(_Packet),
-                       MAX_MOTORS, MAX_PACKETS]:
+    if list(sizes[:5]) != [ctypes.sizeof(_Motor), ctypes.sizeof(_Chain), ctypes.sizeof(_Packet),
+                           MAX_MOTORS, MAX_PACKETS]:
         return None  # built from another version of the source: not to be trusted
+    # The room one packet's actions and status packets take at most (lane.c's bounds).
+    lib.max_actions, lib.out_size = sizes[5], sizes[6]
     lib.lane_scan.restype = ctypes.c_int32
     lib.lane_scan.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t,
                               ctypes.c_void_p]
@@ -132,9 +134,9 @@ class Lane:
             cm.answering = bool(m.answering)
         self._answering = [bool(m.answering) for m in self.motors]
         self._packets = (_Packet * MAX_PACKETS)()
-        self._cap_actions = 2 * 256 + 1
+        self._cap_actions = lib.max_actions
         self._actions = (ctypes.c_int32 * (4 * self._cap_actions))()
-        self._out = ctypes.create_string_buffer(256 * (11 + 2 * 1024))
+        self._out = ctypes.create_string_buffer(lib.out_size)
         self._out_view = memoryview(self._out).cast("B")
         self._in = ctypes.create_string_buffer(4096)
 
@@ -163,8 +165,8 @@ class Lane:
         got = self._lib.lane_execute(ctypes.byref(self._chain), self._in,
                                      ctypes.byref(self._packets[k]), self._actions,
                                      self._cap_actions, self._out, len(self._out))
-        if got < 0:
-            raise RuntimeError("the lane's reply buffer is too small")  # cannot be: sized
+        if got < 0:  # cannot be: the buffers have lane.c's own sizes (lane_sizes)
+            raise RuntimeError("the emulator's lane buffers are smaller than lane.c needs")
         return self._actions[:4 * got], self._out_view
 
 

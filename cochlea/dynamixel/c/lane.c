@@ -26,6 +26,13 @@
 
 #define LANE_MAX_MOTORS 64
 #define LANE_MAX_PACKETS 16
+/* The most motors one lane request may list, and the longest read it may ask: a request past
+ * either (a hostile or broken host's) goes to the Python path, so that a packet's actions and
+ * status packets always fit the buffers Python made (lane_sizes). */
+#define LANE_MAX_LISTED 256
+#define LANE_MAX_READ 1024
+#define LANE_MAX_ACTIONS (1 + LANE_MAX_LISTED)
+#define LANE_OUT_SIZE (LANE_MAX_LISTED * DXL_FRAME_SIZE(1 + LANE_MAX_READ))
 
 /* The Protocol 2.0 error numbers of control_table.py. */
 #define E_DATA_RANGE 4
@@ -127,7 +134,7 @@ int32_t lane_scan(const lane_chain *c, const uint8_t *in, size_t n, lane_packet 
         if (pk->instruction == DXL_SYNC_WRITE) {
             const uint8_t *q = in + pk->params;
             uint16_t address = u16(q);
-            if (u16(q + 2) != 2) {
+            if (u16(q + 2) != 2 || (pk->n_params - 4) / 3 > LANE_MAX_LISTED) {
                 return 0;
             }
             /* Every motor the write reaches must take it as its Goal Current. */
@@ -137,7 +144,8 @@ int32_t lane_scan(const lane_chain *c, const uint8_t *in, size_t n, lane_packet 
                     return 0;
                 }
             }
-        } else if (pk->instruction != DXL_SYNC_READ) {
+        } else if (pk->instruction != DXL_SYNC_READ || pk->n_params - 4 > LANE_MAX_LISTED ||
+                   u16(in + pk->params + 2) > LANE_MAX_READ) {
             return 0;
         }
         o += total;
@@ -177,9 +185,10 @@ static int32_t write_goal(lane_motor *m, const uint8_t *data, int32_t *value)
 }
 
 /*
- * One packet lane_scan returned, applied to the tables: its actions (at most 2 per listed
- * motor + 1) into actions, the status packets into out. Returns the number of actions, or -1
- * when out is too small (nothing of the replies then counts; the writes are done).
+ * One packet lane_scan returned, applied to the tables: its actions (at most LANE_MAX_ACTIONS)
+ * into actions, the status packets into out (at most LANE_OUT_SIZE bytes). Returns the number
+ * of actions, or -1 when the caller's buffers are smaller than that (checked before anything
+ * is changed).
  */
 int32_t lane_execute(lane_chain *c, const uint8_t *in, const lane_packet *pk, int32_t *actions,
                      size_t cap_actions, uint8_t *out, size_t cap_out)
@@ -187,6 +196,9 @@ int32_t lane_execute(lane_chain *c, const uint8_t *in, const lane_packet *pk, in
     const uint8_t *q = in + pk->params;
     size_t k, n_act = 0, w = 0;
     uint16_t address = u16(q), length = u16(q + 2);
+    if (cap_actions < LANE_MAX_ACTIONS || cap_out < LANE_OUT_SIZE) {
+        return -1;
+    }
     if (pk->instruction == DXL_SYNC_WRITE) {
         for (k = 4; k + 3 <= pk->n_params && n_act < cap_actions; k += 3) {
             int16_t i = c->by_id[q[k]];
@@ -279,5 +291,7 @@ int32_t lane_sizes(uint32_t *sizes)
     sizes[2] = (uint32_t)sizeof(lane_packet);
     sizes[3] = LANE_MAX_MOTORS;
     sizes[4] = LANE_MAX_PACKETS;
+    sizes[5] = LANE_MAX_ACTIONS;
+    sizes[6] = (uint32_t)LANE_OUT_SIZE;
     return 0;
 }
