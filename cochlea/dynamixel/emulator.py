@@ -1068,7 +1068,7 @@ class VirtualChain:
             events = []
             first = last = -1  # the replies' bytes in out
             for j in range(0, len(actions), 4):
-                kind, m = actions[j], motors[actions[j + 1]]
+                kind, m = actions[j], motors[actions[j + 1]]  # (a READ's motor: -1, unused)
                 if kind == c_lane.REPLY:
                     m.last_contact = now
                     offset, length = actions[j + 2], actions[j + 3]
