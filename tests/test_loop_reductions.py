@@ -14,6 +14,7 @@ import pytest
 
 from cochlea.apps import report
 from cochlea.kernels import library as ckernels
+from cochlea.robots import robot
 from cochlea.runtime import build_supervisor
 from cochlea.runtime import supervisor as sv
 from cochlea.sim import compiled as csim
@@ -266,6 +267,14 @@ def test_one_rule_places_the_keep_out_centre_for_the_driver_and_the_supervisor(n
             assert joint is not None  # the slider carries the cochlea
         else:
             assert joint is None and (cu, cv) == tuple(u.centre)
+    # The robot adapter's plans state it (the replay draws the circle from them) and the
+    # set-ups take it from there: the same centre at every row.
+    sc = load_scenario(name)
+    plans = robot(sc.robot).unit_plans(sc.system, sc)
+    for plan, u in zip(plans, unit_setups(sc)):
+        rows = np.random.default_rng(5).uniform(-0.5, 0.5, (7, u.controller_model.nq))
+        for a, b in zip(plan.keep_out_centre(rows), u.keep_out_centre(rows)):
+            assert np.array_equal(np.broadcast_to(a, 7), np.broadcast_to(b, 7))
     # The 1 kHz check's points (the whole system's q, units stacked) place it alike.
     sc = load_scenario(name)
     setups = unit_setups(sc)

@@ -159,6 +159,10 @@ class UnitPlan:
     #: is then the nominal path (the rule on the leader's desired), checked before a run.
     follow: FollowPlan | None = None
 
+    def keep_out_centre(self, q) -> tuple:
+        """The keep-out circle's centre at ``q`` (see :func:`keep_out_centre`)."""
+        return keep_out_centre(self.centre, self.moving_centre_joint, q)
+
     @property
     def joint_units(self) -> tuple[str, ...]:
         return tuple("rad" if j.type == "revolute" else "m"
@@ -215,6 +219,19 @@ def sample_times(duration: float, period: float):
         count, step = MAX_CHECK_SAMPLES, duration / (MAX_CHECK_SAMPLES - 1)
     for start in range(0, count, CHECK_CHUNK):
         yield np.minimum(np.arange(start, min(start + CHECK_CHUNK, count)) * step, duration)
+
+
+def keep_out_centre(centre: tuple[float, float], moving_centre_joint: int | None, q) -> tuple:
+    """Centre ``(u, v)`` of the safety keep-out circle (m, world frame) at joint position ``q``,
+    or at each row of ``q`` (then ``v`` is a column where the centre moves): the fixed
+    ``centre``, or ``(0, q[moving_centre_joint])`` where the centre rides on a joint (the
+    parallel robot's slider: S = (0, d1)). The one statement of that rule: the supervisor's
+    checks and the C drivers' keep-out points (:meth:`cochlea.sim.setup.UnitSetup.
+    keep_out_centre`) and the replay's circle (:mod:`cochlea.view.replay`) take it from here."""
+    if moving_centre_joint is None:
+        return centre
+    v = np.asarray(q)[..., moving_centre_joint]
+    return (0.0, float(v) if v.ndim == 0 else v)
 
 
 def sampled(f: ca.Function, duration: float, period: float):

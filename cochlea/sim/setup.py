@@ -24,7 +24,7 @@ from ..dynamixel.control_table import MODELS
 from ..errors import CochleaError
 from ..kernels.bind import BufferedFunction
 from ..robots import robot
-from ..robots.adapter import sampled
+from ..robots.adapter import keep_out_centre, sampled
 from ..robots.model import INERTIAL_NAMES, RobotModel
 from ..robots.motor_fit import bridge_compensates_friction, drive_terms, effort_grid
 from ..robots.plant import gear_plant_step, plant_step
@@ -305,15 +305,11 @@ class UnitSetup:
 
     def keep_out_centre(self, q) -> tuple:
         """Centre ``(u, v)`` of the safety keep-out circle (m, world frame) at joint position
-        ``q``, or at each row of ``q`` (then ``v`` is a column where the centre moves): the
-        fixed :attr:`centre`, or ``(0, q[moving_centre_joint])`` where the centre rides on a
-        joint (the parallel robot's slider). The one statement of that rule: the
-        supervisor's checks and the C drivers' keep-out points (:meth:`keep_out_reference`)
-        take it from here."""
-        if self.moving_centre_joint is None:
-            return self.centre
-        v = np.asarray(q)[..., self.moving_centre_joint]
-        return (0.0, float(v) if v.ndim == 0 else v)
+        ``q``, or at each row of ``q``: the robot adapter's rule
+        (:func:`cochlea.robots.adapter.keep_out_centre`) on this unit's plan. The supervisor's
+        checks and the C drivers' keep-out points (:meth:`keep_out_reference`) take it from
+        here."""
+        return keep_out_centre(self.centre, self.moving_centre_joint, q)
 
     def keep_out_reference(self) -> tuple[float, float, int | None]:
         """The centre as a closed-loop driver takes it: ``(u, v, joint)``, the fixed centre

@@ -232,7 +232,7 @@ def tool_paths(run: RunLog, unit, plan, frames, rows: np.ndarray, p: np.ndarray,
 
 def keep_out_regions(run: RunLog, unit, plan, rows: np.ndarray) -> list[dict]:
     """The unit's keep-out region: the description's spheres, or the keep-out circle (whose
-    centre moves with ``plan.moving_centre_joint`` where the robot has one)."""
+    centre moves with a joint where the robot's plan says so: ``plan.keep_out_centre``)."""
     volumes = getattr(run.system, "keep_out_volumes", None)
     if volumes is not None:
         if unit is not run.units[0]:  # the system's spheres, once
@@ -243,10 +243,11 @@ def keep_out_regions(run: RunLog, unit, plan, rows: np.ndarray) -> list[dict]:
     radius = float(getattr(run.system, "keep_out_radius", 0.0) or 0.0)
     if radius <= 0:
         return []
-    centre = [float(plan.centre[0]), float(plan.centre[1]), 0.0]
-    moving = None
-    if plan.moving_centre_joint is not None:
-        moving = _round(rows[:, unit.groups["q"].columns[plan.moving_centre_joint]])
+    # The supervisor's own rule (the robot adapter's): a centre that rides on a joint is a
+    # column, drawn frame by frame ("moving" replaces the centre's v).
+    u, v = plan.keep_out_centre(rows[:, unit.groups["q"].columns])
+    moving = None if np.ndim(v) == 0 else _round(v)
+    centre = [float(u), 0.0 if moving is not None else float(v), 0.0]
     region = {"kind": "circle", "name": "keep-out", "radius": radius,
               "centre": centre, "moving": moving}
     return [region]
