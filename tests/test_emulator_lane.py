@@ -9,6 +9,7 @@ registers are what the test puts there.
 
 from __future__ import annotations
 
+import os
 import random
 import time
 
@@ -24,7 +25,8 @@ PERIOD_BLOCK = (120, 16)  # Realtime Tick .. Present Position (X series)
 
 def _pair(robot: str = "serial", **options) -> list[VirtualChain]:
     chains = [VirtualChain(robot, f"{robot}_joint", **options) for _ in range(2)]
-    assert chains[0]._lane is not None, "build/libcochlea-lane.so missing: run make lib"
+    assert chains[0]._lane is not None, \
+        "build/libcochlea-lane.so missing or older than its sources: run make lib"
     chains[1]._lane = None
     for c in chains:
         c._tick = lambda now, publish=True: None  # the plant holds still
@@ -223,6 +225,23 @@ def test_random_requests_agree(seed):
         _both(chains, data, now)
         served = chains[0].lane_served
     assert served > 50  # the lane took a good share of them
+
+
+def test_a_library_older_than_its_sources_is_not_used(tmp_path, monkeypatch):
+    """A checkout whose lane.c changed after ``make lib`` (edited, pulled) answers in Python
+    until the library is rebuilt: an old library may not do what the source now says."""
+    root = tmp_path / "checkout"
+    for name in c_lane.SOURCES:
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text("/* source */\n")
+    built = root / "build" / c_lane.LIBRARY_NAME
+    built.parent.mkdir()
+    built.write_bytes(c_lane.library_path().read_bytes())
+    monkeypatch.setattr(c_lane, "checkout", lambda: root)
+    os.utime(built, (2e9, 2e9))  # built after its sources
+    assert c_lane.load() is not None
+    os.utime(root / c_lane.SOURCES[0], (2e9 + 1, 2e9 + 1))  # lane.c edited since
+    assert c_lane.load() is None
 
 
 def test_the_lane_can_be_switched_off(monkeypatch):

@@ -72,10 +72,10 @@ def library_path() -> Path:
 def _library(path: str) -> ctypes.CDLL | None:
     try:
         lib = ctypes.CDLL(path)
-    except OSError:
+        sizes = (ctypes.c_uint32 * 7)()
+        lib.lane_sizes(sizes)
+    except (OSError, AttributeError):  # not a library, or not this one
         return None
-    sizes = (ctypes.c_uint32 * 7)()
-    lib.lane_sizes(sizes)
     if list(sizes[:5]) != [ctypes.sizeof(_Motor), ctypes.sizeof(_Chain), ctypes.sizeof(_Packet),
                            MAX_MOTORS, MAX_PACKETS]:
         return None  # built from another version of the source: not to be trusted
@@ -94,12 +94,30 @@ def _library(path: str) -> ctypes.CDLL | None:
     return lib
 
 
+#: The lane's sources in a checkout (the Makefile's LANE_SRC and the header).
+SOURCES = ("cochlea/dynamixel/c/lane.c", "embedded/core/dxl.c", "embedded/core/dxl.h")
+
+
+def _stale(path: Path) -> bool:
+    """In a checkout: the library is older than one of its sources (edited or pulled since
+    ``make lib``), so it may not do what they say; it is not used until rebuilt."""
+    root = checkout()
+    if root is None:
+        return False
+    try:
+        built = path.stat().st_mtime
+        return any((root / name).stat().st_mtime > built for name in SOURCES)
+    except OSError:
+        return True
+
+
 def load() -> ctypes.CDLL | None:
-    """The lane's library, or None (not built, switched off, or from another source)."""
+    """The lane's library, or None (not built or older than its sources, switched off, or from
+    another source): then the emulator and the bridge do the work in Python."""
     if os.environ.get(ENVIRONMENT, "1") == "0":
         return None
     path = library_path()
-    if not path.is_file():
+    if not path.is_file() or _stale(path):
         return None
     return _library(str(path))
 
