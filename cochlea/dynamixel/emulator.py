@@ -1019,6 +1019,7 @@ class VirtualChain:
         # The state a request sees is the state at its arrival (one sub-step).
         self._tick(now, publish=False)
         if self._lane is not None and self._parser.pending == 0 and self._lane_open():
+            self._lane.refresh()  # before the scan: which motors a write reaches counts there
             packets = self._lane.scan(data)
             if packets:  # the period's requests, whole: in C (see lane.py)
                 self._lane_serve(now, packets)
@@ -1056,7 +1057,6 @@ class VirtualChain:
         are all due at once: they are queued as one entry (:meth:`_flush` joins the entries
         due together anyway: the same bytes in the same write)."""
         lane = self._lane
-        lane.refresh()
         motors, queue, byte_time = lane.motors, self._queue, self.byte_time
         counts = self.counts
         for inst, frame_len, k in packets:

@@ -230,6 +230,8 @@ def lane_for(motors, by_id: dict) -> Lane | None:
         limit = m.items.get(m.a_limit)
         if (goal is None or limit is None or goal.size != 2 or not goal.signed
                 or not goal.writable or goal.eeprom or goal.values is not None
+                or not all(isinstance(b, int) and -2**31 <= b < 2**31
+                           for b in (goal.lo, goal.hi))
                 or m.goal_limits.get(m.a_goal_current) != m.a_limit
                 or limit.size != 2 or limit.signed):
             return None
