@@ -85,8 +85,8 @@ $(BUILD)/obj/%.o: $(GEN)/%.c $(wildcard $(GEN)/*.h)
 $(LIB): $(C_OBJ)
 	$(CC) -shared -o $@ $(C_OBJ) -lm
 
-# The virtual chain's period requests in C (cochlea/dynamixel/lane.py): always into build/,
-# whatever GEN, as the emulator looks for it there; without it the emulator answers in Python.
+# The bus period's packet work in C, for the emulator and the bridge (cochlea/dynamixel/lane.py):
+# always into build/, whatever GEN, as both look for it there; without it they work in Python.
 LANE     := build/libcochlea-lane.so
 LANE_SRC := cochlea/dynamixel/c/lane.c embedded/core/dxl.c
 
