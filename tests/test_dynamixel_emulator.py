@@ -174,14 +174,16 @@ def test_the_plant_moves_a_driven_joint_and_holds_the_others(client_chain):
                   proto.write(1, 64, b"\x01"), proto.write(1, 102, proto.le(200, 2))):
         assert client.ask(frame)[0][2] == 0
     time.sleep(0.05)
-    state = chain.joint_state()
+    motor = chain.by_id[1]
+    with chain.paused():  # the state and the registers of one update (not one in between)
+        state = chain.joint_state()
+        present = motor.get(126), motor.get(132), motor.get(128)
     assert state[0] > q0[0] + 1e-3 and state[6] > 0  # 0.67 A -> about 0.57 N m, positive
     assert list(state[1:6]) == list(q0[1:6]) and not state[7:].any()  # torque off: held
-    # The registers follow: Present Position, Velocity, Current.
-    motor = chain.by_id[1]
-    assert motor.get(126) == 200
-    assert motor.get(132) == round(state[0] / ct.RAD_PER_COUNT)
-    assert motor.get(128) > 0
+    # The registers follow: Present Current, Position, Velocity.
+    assert present[0] == 200
+    assert present[1] == round(state[0] / ct.RAD_PER_COUNT)
+    assert present[2] > 0
 
 
 def test_the_event_log_file(tmp_path):

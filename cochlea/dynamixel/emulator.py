@@ -71,6 +71,7 @@ whatever the two ends' SCHED_FIFO; a socket's are delivered in the writer's own 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import dataclasses
 import fcntl
@@ -754,6 +755,11 @@ class VirtualChain:
         self._next_step = self._t0 + self.h
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        #: Held by the serving thread while it changes the plant or the registers (an update,
+        #: a request), and by another thread's reads and hands (joint_state, paused, move_joint,
+        #: power_cycle): the plant's state is integrated first and published after, and a read
+        #: in between saw a position the registers did not yet show (a CI failure, 18 counts).
+        self._state_lock = threading.RLock()
         self._frozen = False  # whether start() froze the host's objects (stop() thaws them)
         self.master = self.slave = -1
         self._listener: socket.socket | None = None  # with listen: the listening socket
@@ -903,10 +909,21 @@ class VirtualChain:
     # ---- state for tests and reports ---------------------------------------------------------
 
     def joint_state(self) -> np.ndarray:
-        """``[q, qd]`` of all joints (SI), in the bridge's order."""
-        q = np.concatenate([u.x[:u.n] for u in self.units])
-        qd = np.concatenate([u.x[u.n:2 * u.n] for u in self.units])
+        """``[q, qd]`` of all joints (SI), in the bridge's order: of one update, whole."""
+        with self._state_lock:
+            q = np.concatenate([u.x[:u.n] for u in self.units])
+            qd = np.concatenate([u.x[u.n:2 * u.n] for u in self.units])
         return np.concatenate([q, qd])
+
+    @contextlib.contextmanager
+    def paused(self):
+        """The serving thread held between two updates: the plant's state and the registers
+        read inside agree (a request's update not yet published is published first, as the
+        next read would). Keep it short: the chain answers nothing meanwhile."""
+        with self._state_lock:
+            if self._unpublished is not None:
+                self._publish(self._unpublished, self._unpublished_currents)
+            yield self
 
     def writes(self, kinds=("write", "sync-write")) -> list[tuple]:
         """``(id, address, value)`` of every item written, in order."""
@@ -976,7 +993,8 @@ class VirtualChain:
             if ready and waiting:
                 self._accept()
             elif ready:
-                self._receive()  # integrates the plant up to the request's arrival itself
+                with self._state_lock:
+                    self._receive()  # integrates the plant up to the request's arrival itself
                 self._flush(time.perf_counter())
                 now = time.perf_counter()
                 if now < self._next_step and not (self._queue and self._queue[0][0] <= now):
@@ -990,7 +1008,8 @@ class VirtualChain:
             now = time.perf_counter()
             self._flush(now)
             if now >= self._next_step:
-                self._tick(now)
+                with self._state_lock:
+                    self._tick(now)
                 self._flush(time.perf_counter())
         if self._log:
             try:
@@ -1499,6 +1518,10 @@ class VirtualChain:
     def move_joint(self, name: str, q: float) -> None:
         """A hand moves joint ``name`` to ``q`` (rad or m, the plant's true coordinate), as
         in a guided calibration with the torque off; its speed is left at zero."""
+        with self._state_lock:  # not between a plant step's copy of the state and its result
+            self._move_joint(name, q)
+
+    def _move_joint(self, name: str, q: float) -> None:
         for u in self.units:
             for j, m in enumerate(u.motors):
                 if m.drive.name == name:
@@ -1513,6 +1536,10 @@ class VirtualChain:
         and the Bus Watchdog cleared), and each encoder keeps only its angle within one turn,
         as a real one does (Present Position within one turn again: 0..4095 on the X series,
         its model's counts per turn)."""
+        with self._state_lock:
+            self._power_cycle()
+
+    def _power_cycle(self) -> None:
         for u in self.units:
             for j, m in enumerate(u.motors):
                 offset, per_count, _ = u._scales[j]
