@@ -495,7 +495,7 @@ def markdown(results: dict) -> str:
     out += verdicts(steps, loops, build)
     out += embedded_bench.verdicts(results.get("embedded_steps") or [],
                                    results.get("embedded_sims") or [])
-    out += sweep_verdicts(results.get("sweep") or [])
+    out += sweep_verdicts(results.get("sweep") or [], loops)
     for section, reason in results.get("not_run", {}).items():
         out.append(f"- **not measured**: {SECTIONS[section]}: {reason}")
     out += ["", "## Per call of the fused step (us)", ""]
@@ -593,10 +593,23 @@ def sweep_target(study: str) -> float:
     return TARGETS[f"sweep_{robot}_samples_per_s_core"]
 
 
-def sweep_verdicts(rows: list[dict]) -> list[str]:
+def kernel_floor(loop: dict | None, duration_s: float) -> float | None:
+    """The CPU time (s) a ``duration_s`` run of a closed-loop row's scenario cannot go below on
+    this machine: every unit's plant step and controller step each period, as timed alone in C
+    (bench/time_kernel.c), nothing else. None without the row."""
+    if loop is None:
+        return None
+    periods = loop["periods"] * duration_s / loop["duration_s"]
+    return (loop["plant_kernel_c_s"] + loop["step_kernel_c_s"]) * loop["units"] * periods
+
+
+def sweep_verdicts(rows: list[dict], loops: list[dict] | None = None) -> list[str]:
     """The target line of each study's sweep row (bench/sweep_bench.py's serial()): met, or
-    missed by how much and why (where the sample's CPU time goes)."""
+    missed by how much and why (where the sample's CPU time goes). ``loops``: the closed-loop
+    rows, whose kernels timed in C say whether the target is within this machine's reach at
+    all (:func:`kernel_floor`: a sample's loop runs those very kernels)."""
     lines = []
+    by_name = {r["scenario"]: r for r in loops or []}
     for r in rows:
         rate, target = r["per_s_core"], sweep_target(r["study"])
         head = (f"{r['study']} ({r['duration_s']:g} s) sweeps at {rate:.1f} samples/s/core "
@@ -623,6 +636,18 @@ def sweep_verdicts(rows: list[dict]) -> list[str]:
             f"{outside * 1e3:.1f} ms outside it (" + ", ".join(
                 f"{k} {v * 1e3:.2f} ms" for v, k in parts) + "; issue 30 wants it under "
             f"10 % of the loop's, {0.1 * loop * 1e3:.1f} ms).")
+        floor = kernel_floor(by_name.get(r["study"]), r["duration_s"])
+        if floor is not None and floor > 1 / target:
+            k = by_name[r["study"]]
+            lines[-1] += (
+                f" Out of reach here whatever the rest costs: the plant step "
+                f"({us(k['plant_kernel_c_s'])} us) and the controller step "
+                f"({us(k['step_kernel_c_s'])} us) alone, timed in C, {k['units']} "
+                f"unit{'s' if k['units'] != 1 else ''} and {k['periods'] * r['duration_s'] / k['duration_s']:.0f} periods, are "
+                f"{floor * 1e3:.1f} ms a sample, above the {1e3 / target:.1f} ms the target "
+                f"allows (at most {1 / floor:.0f} samples/s/core with nothing else): only a "
+                "cheaper plant or controller (the studies' own integrator and law) or a faster "
+                "core would meet it.")
     return lines
 
 
@@ -640,7 +665,8 @@ def sweep_markdown(rows: list[dict] | None, reason: list[str] = ()) -> list[str]
            f"least {TARGETS['sweep_serial_samples_per_s_core']:g} samples/s/core for the 20 s "
            f"serial studies, {TARGETS['sweep_parallel_samples_per_s_core']:g} for the 10 s "
            "parallel ones."]
-    names = list(rows[0]["parts"])
+    # In a sample's order (results.json sorts the keys), any part an older row lacks last.
+    names = sorted(rows[0]["parts"], key=lambda k: (sweep_bench.PARTS + (k,)).index(k))
     out += ["", "| study | s | samples/s/core | CPU ms per sample | uncached ms | "
             + " | ".join(names) + " |", "|---|---|---|---|---|" + "---|" * len(names)]
     for r in rows:

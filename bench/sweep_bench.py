@@ -77,11 +77,15 @@ def _per_sample(spec, samples: int, cache: bool) -> tuple[float, float]:
     return (time.process_time() - cpu0) / samples, (time.perf_counter() - wall0) / samples
 
 
+#: The parts of a sample :func:`breakdown` times, in the order a sample goes through them.
+PARTS = ("scenario data", "scenario load", "set-ups", "C closed loop", "simulate (rest)",
+         "supervisor verdict", "summary + row")
+
+
 def breakdown(spec, samples: int) -> dict[str, float]:
     """Where a cached sample's CPU time goes (s per sample): ``evaluate``'s steps one by one,
     the C closed loop (``run_c``, every unit) apart from the rest of ``simulate``."""
-    parts = dict.fromkeys(("scenario data", "scenario load", "set-ups", "C closed loop",
-                           "simulate (rest)", "supervisor verdict", "summary + row"), 0.0)
+    parts = dict.fromkeys(PARTS, 0.0)
     run_c = compiled.run_c
     loop = [0.0]
 

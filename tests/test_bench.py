@@ -256,6 +256,35 @@ def test_the_sweep_verdicts_hold_each_robot_to_issue_30s_target():
     line = bench_run.sweep_verdicts([slow])[0]
     assert "totals 20.0 ms a sample: this machine's speed moved" in line
     assert "the C closed loop 17.0 ms (85%" in line and "the rest 3.0 ms outside it" in line
+    assert "Out of reach" not in line  # no closed-loop rows: no floor to judge by
+
+
+def test_a_sweep_target_below_the_kernels_floor_says_so():
+    """When the plant and controller steps alone, as timed in C, take more of a sample than
+    the target allows, the miss says the target is out of this machine's reach (and only
+    then): the sample's loop runs those kernels every unit and period."""
+    def loop(scenario, plant_s, step_s, units):
+        return {"scenario": scenario, "periods": 20000 if units == 2 else 10000,
+                "duration_s": 20.0 if units == 2 else 10.0, "units": units,
+                "plant_kernel_c_s": plant_s, "step_kernel_c_s": step_s}
+
+    def row(study, rate):
+        return {"study": study, "duration_s": 20.0 if study.startswith("serial") else 10.0,
+                "per_s_core": rate, "cpu_s": 1 / rate, "uncached_cpu_s": 0.2,
+                "parts": {"C closed loop": 0.9 / rate, "summary + row": 0.1 / rate}}
+
+    loops = [loop("serial_joint", 0.368e-6, 0.134e-6, 2),  # 20.1 ms a sample > 16.7
+             loop("serial_task", 0.15e-6, 0.1e-6, 2),  # 10 ms: within reach
+             loop("parallel_joint", 0.89e-6, 0.26e-6, 1)]  # 11.5 ms < 25
+    lines = bench_run.sweep_verdicts([row("serial_joint", 30.0), row("serial_task", 30.0),
+                                      row("parallel_joint", 30.0)], loops)
+    assert "Out of reach here" in lines[0]
+    assert "0.368 us" in lines[0] and "0.134 us" in lines[0]
+    assert "20.1 ms a sample, above the 16.7 ms the target allows" in lines[0]
+    assert "at most 50 samples/s/core" in lines[0]
+    assert "Out of reach" not in lines[1] and "Out of reach" not in lines[2]
+    # A scenario the closed loops did not run (a user's sweep): no floor, no claim.
+    assert "Out of reach" not in bench_run.sweep_verdicts([row("serial_joint", 30.0)], [])[0]
 
 
 def test_the_targets_section_gives_every_verdict(monkeypatch, tmp_path):
