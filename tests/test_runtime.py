@@ -412,6 +412,26 @@ def test_cli_as_fast_run_exits_with_the_rule_a_real_run_would_stop_on(tmp_path):
     assert summary["supervisor"]["exit_code"] == 11 and summary["periods"] == 1000
 
 
+def test_the_loops_clip_is_np_clips_to_the_bit():
+    """Supervisor.saturate (the 1 kHz loop's clip, two ufuncs on a lower side made once) gives
+    np.clip's values for every kind of command: inside, beyond either side, on a limit, a
+    signed zero, a NaN (kept: the command check stops on it), infinities."""
+    sc = load_scenario("serial_joint")
+    sup = build_supervisor(unit_setups(sc), None, substeps=sc.plant_substeps)
+    effort = sup.limits.effort
+    rng = np.random.default_rng(5)
+    specials = np.array([np.nan, np.inf, -np.inf, -0.0, 0.0, effort[0], -effort[0]])
+    for k in range(200):
+        tau = rng.uniform(-3, 3, len(effort)) * effort
+        if k % 2:
+            tau[rng.integers(len(tau))] = specials[k % len(specials)]
+        want = np.clip(tau, -effort, effort)
+        sup.saturate(tau)
+        assert np.array_equal(tau, want, equal_nan=True)
+        assert np.array_equal(np.signbit(tau), np.signbit(want))
+    assert np.array_equal(sup.limits.effort, effort)  # the limits themselves untouched
+
+
 @pytest.mark.slow
 def test_as_fast_run_clips_commands_as_the_loop_does(tmp_path):
     """Torque limits low enough to bind: the as-fast run (C and CasADi) applies the same

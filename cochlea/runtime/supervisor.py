@@ -93,6 +93,9 @@ class Supervisor:
         # array written in place (KeepOutPoints), its rows named by .labels
         self.keep_out_points = keep_out_points
         self.bounds = [u.bound for u in setups]
+        # The clip's lower side, made once: np.clip with a fresh -effort each period cost the
+        # 1 kHz loop ~3.6 us where the two ufuncs below take ~1.4 (the same values, NaN too).
+        self._effort_lo = -limits.effort
 
     def check_state(self, t: float, x: np.ndarray, q: np.ndarray, qd: np.ndarray
                     ) -> Stop | None:
@@ -147,7 +150,8 @@ class Supervisor:
         return None
 
     def saturate(self, tau: np.ndarray) -> None:
-        np.clip(tau, -self.limits.effort, self.limits.effort, out=tau)
+        """Each joint's command clipped to its effort limit, in place (np.clip's values)."""
+        np.minimum(np.maximum(tau, self._effort_lo, out=tau), self.limits.effort, out=tau)
 
 
 #: The least the loop may fall behind its absolute deadlines before the watchdog stops it (s);
