@@ -1109,7 +1109,7 @@ class VirtualChain:
                                    f"sync-write: error {actions[j + 2]}"))
                 elif kind == c_lane.READ:
                     events.append(("sync-read", BROADCAST_ID, actions[j + 2], actions[j + 3]))
-                else:  # a motor read that does not answer (Status Return Level 0)
+                elif kind == c_lane.CONTACT:  # a read it heard and does not answer (level 0)
                     m.last_contact = now
             if first >= 0:
                 self._seq += 1
