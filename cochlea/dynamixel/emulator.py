@@ -736,7 +736,7 @@ class VirtualChain:
         self.wire_timing = wire_timing
         self.h = plant_period_s
         self._rng = random.Random(self.faults.seed)
-        self.events: deque = deque(maxlen=max_events)
+        self._event_log: deque = deque(maxlen=max_events)  # read through .events
         self.log_path = None if log_path is None else Path(log_path)
         self.log_error: str | None = None  # why the event log stopped, if it failed
         self.counts = {"instructions": 0, "bad_instructions": 0, "replies": 0, "dropped": 0,
@@ -925,14 +925,22 @@ class VirtualChain:
                 self._publish(self._unpublished, self._unpublished_currents)
             yield self
 
+    @property
+    def events(self) -> list[tuple]:
+        """``(t, kind, id, address, value)`` of what the chain did, oldest first (the last
+        ``max_events``): a copy taken at once, so another thread may go through it while the
+        chain serves (the deque itself raised "mutated during iteration" under a test's
+        comprehension when a request or a watchdog added an event meanwhile)."""
+        return list(self._event_log)  # one C call: no event is added halfway
+
     def writes(self, kinds=("write", "sync-write")) -> list[tuple]:
         """``(id, address, value)`` of every item written, in order."""
-        return [(e[2], e[3], e[4]) for e in list(self.events) if e[1] in kinds]
+        return [(e[2], e[3], e[4]) for e in self.events if e[1] in kinds]
 
     def _event(self, now: float, kind: str, motor_id: int, address: int = -1,
                value: object = None) -> None:
         t = now - self._t0
-        self.events.append((t, kind, motor_id, address, value))
+        self._event_log.append((t, kind, motor_id, address, value))
         if self._log:
             try:
                 self._log.write(f"{t:.6f} {kind} id={motor_id} address={address} "
@@ -944,7 +952,7 @@ class VirtualChain:
         """Several events at ``now``: ``(kind, motor_id, address, value)`` each, as
         :meth:`_event` records them, the log's lines in one write."""
         t = now - self._t0
-        self.events.extend([(t, *e) for e in items])
+        self._event_log.extend([(t, *e) for e in items])
         if self._log:
             try:
                 self._log.write("".join([f"{t:.6f} {kind} id={motor_id} address={address} "
