@@ -640,7 +640,7 @@ def sweep_verdicts(rows: list[dict], loops: list[dict] | None = None) -> list[st
         if floor is not None and floor > 1 / target:
             k = by_name[r["study"]]
             lines[-1] += (
-                f" Out of reach here whatever the rest costs: the plant step "
+                f" Out of reach at this run's speed, whatever the rest costs: the plant step "
                 f"({us(k['plant_kernel_c_s'])} us) and the controller step "
                 f"({us(k['step_kernel_c_s'])} us) alone, timed in C, {k['units']} "
                 f"unit{'s' if k['units'] != 1 else ''} and "
@@ -648,7 +648,8 @@ def sweep_verdicts(rows: list[dict], loops: list[dict] | None = None) -> list[st
                 f"{floor * 1e3:.1f} ms a sample, above the {1e3 / target:.1f} ms the target "
                 f"allows (at most {1 / floor:.0f} samples/s/core with nothing else): only a "
                 "cheaper plant or controller (the studies' own integrator and law) or a faster "
-                "core would meet it.")
+                "machine would meet it (this one's speed moves by up to 2x over minutes: "
+                "docs/sweeps.md).")
     return lines
 
 
