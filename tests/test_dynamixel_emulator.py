@@ -7,6 +7,7 @@ from __future__ import annotations
 import gc
 import math
 import os
+import random
 import select
 import time
 import weakref
@@ -19,7 +20,7 @@ from hypothesis import strategies as st
 
 from cochlea.dynamixel import control_table as ct
 from cochlea.dynamixel import protocol as proto
-from cochlea.dynamixel.emulator import VirtualChain, main
+from cochlea.dynamixel.emulator import Truth, VirtualChain, main
 from cochlea.sim import unit_setups
 
 # The virtual chain on a pseudo-terminal, in real time.
@@ -184,6 +185,42 @@ def test_the_plant_moves_a_driven_joint_and_holds_the_others(client_chain):
     assert present[0] == 200
     assert present[1] == round(state[0] / ct.RAD_PER_COUNT)
     assert present[2] > 0
+
+
+@pytest.mark.parametrize("steps", ["1 ms", "uneven"])
+def test_a_slider_pushed_onto_its_hard_stop_stays_on_it(steps):
+    """The realistic (geared) plant's slider, 0.5 mm above its hard stop, pushed down at its
+    full homing force (10 N) with the plant's steps of 1 ms or of uneven lengths (a loaded
+    machine's): once on the stop it stays there, within a micrometre (a count is 30), and comes
+    to rest. Before the rotor went back with the link, each step's overshoot wound the gear's
+    spring up further: the slider bounced 3.8 mm off its stop, and homing timed out in CI."""
+    stop = 0.01
+    chain = VirtualChain("parallel", plant="realistic",
+                         truth=Truth(offset_deg={1: 100.0}, hard_stop_m=stop))
+    slider = next(m for m in chain.motors if m.drive.type == "prismatic")
+    unit = next(u for u in chain.units if slider in u.motors)
+    j = unit.motors.index(slider)
+    assert unit.gearbox
+    chain.move_joint(slider.drive.name, stop + 5e-4)
+    goal = int(slider.drive.goal_current_lsb(-10.0))  # down, as cochlea-dxl home pushes
+    now = chain._plant_time  # the requests at the plant's own time: they step nothing
+    for frame in (proto.write(slider.id, 11, b"\x00"), proto.write(slider.id, 64, b"\x01"),
+                  proto.write(slider.id, 102, proto.le(goal & 0xFFFF, 2))):
+        chain._received(frame, now)
+    assert slider.state()[0] and slider.state()[2] < -9.0  # driving, about 10 N down
+    rng = random.Random(3)
+    t, touched, highest = 0.0, None, 0.0
+    while t < 3.0:
+        h = 1e-3 if steps == "1 ms" else rng.uniform(5e-5, 1e-3)
+        assert unit.advance(h)
+        t += h
+        if touched is None and unit.x[j] <= stop:
+            touched = t
+        elif touched is not None:
+            highest = max(highest, unit.x[j] - stop)
+    assert touched is not None and touched < 0.5
+    assert highest < 1e-6, f"{highest * 1e3:.3f} mm above the stop"
+    assert abs(unit.x[unit.n + j]) < 1e-6  # at rest on it
 
 
 def test_the_event_log_file(tmp_path):
