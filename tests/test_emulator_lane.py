@@ -9,6 +9,7 @@ registers are what the test puts there.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import time
@@ -297,24 +298,24 @@ def _blocks(bridge):
     return block
 
 
-@pytest.mark.hil
-def test_the_bridge_reads_a_sync_read_in_c_as_in_python():
-    """The bridge's SYNC_READ replies checked in one C call (lane.StatusBlock) or parsed in
-    Python: the same result, state, failures and counters for healthy and damaged replies."""
+@contextlib.contextmanager
+def _bridge_pair(timeout_s: float):
+    """Two enabled bridges of the serial chain on scripted lines: the first checks whole
+    SYNC_READ replies in C (``taken``: what each of its C checks said), the second parses
+    every reply in Python. Yields ``(bridges, lines, taken)``."""
     from cochlea.dynamixel.bridge import DynamixelBackend
 
     chains = [VirtualChain("serial").start() for _ in range(2)]
     bridges = [DynamixelBackend("serial", c.path, description=c.scenario.description,
-                                timeout_s=0.01) for c in chains]
+                                timeout_s=timeout_s) for c in chains]
     try:
         for b in bridges:
             b.enable()
         block = bridges[0]._status_block
         assert block is not None
-        bridges[1]._status_block = None
         taken = []
 
-        class Counted:  # the C check, counting the replies it took
+        class Counted:  # the C check, counting the replies it took whole
             total = block.total
 
             def __call__(self, start, n_bytes):
@@ -322,9 +323,23 @@ def test_the_bridge_reads_a_sync_read_in_c_as_in_python():
                 return taken[-1]
 
         bridges[0]._status_block = Counted()
+        bridges[1]._status_block = None
         lines = [_ScriptedLine() for _ in bridges]
         for b, line in zip(bridges, lines):
             b._port = line
+        yield bridges, lines, taken
+    finally:
+        for b in bridges:
+            b._port = None
+        for c in chains:
+            c.close()
+
+
+@pytest.mark.hil
+def test_the_bridge_reads_a_sync_read_in_c_as_in_python():
+    """The bridge's SYNC_READ replies checked in one C call (lane.StatusBlock) or parsed in
+    Python: the same result, state, failures and counters for healthy and damaged replies."""
+    with _bridge_pair(timeout_s=0.01) as (bridges, lines, taken):
         ids = bridges[0].ids
         n = len(ids)
         _block = _blocks(bridges[0])
@@ -381,11 +396,6 @@ def test_the_bridge_reads_a_sync_read_in_c_as_in_python():
         # In C: the healthy replies whole, in pieces, and with bytes after them; the rest (bytes
         # before them, another order, a stuffed byte, a packet twice) read in Python.
         assert sum(taken) == 3
-    finally:
-        for b in bridges:
-            b._port = None
-        for c in chains:
-            c.close()
 
 
 def _recrc(packet: bytes) -> bytes:
@@ -405,31 +415,8 @@ def test_the_bridges_c_check_agrees_with_python_on_random_damage(seed):
     parses them in Python: the same verdict, state, raw blocks, failures, counters and alerts
     every period. A wrong parse here would hand the controller a wrong state. (Removing the C
     check's stuffing test survives this: a stuffed packet's length field differs already.)"""
-    from cochlea.dynamixel.bridge import DynamixelBackend
-
     rng = random.Random(seed)
-    chains = [VirtualChain("serial").start() for _ in range(2)]
-    bridges = [DynamixelBackend("serial", c.path, description=c.scenario.description,
-                                timeout_s=0.002) for c in chains]
-    try:
-        for b in bridges:
-            b.enable()
-        block = bridges[0]._status_block
-        assert block is not None
-        taken = []
-
-        class Counted:  # the C check, counting the replies it took whole
-            total = block.total
-
-            def __call__(self, start, n_bytes):
-                taken.append(block(start, n_bytes))
-                return taken[-1]
-
-        bridges[0]._status_block = Counted()
-        bridges[1]._status_block = None
-        lines = [_ScriptedLine() for _ in bridges]
-        for b, line in zip(bridges, lines):
-            b._port = line
+    with _bridge_pair(timeout_s=0.002) as (bridges, lines, taken):
         ids = bridges[0].ids
         _block = _blocks(bridges[0])
 
@@ -489,8 +476,3 @@ def test_the_bridges_c_check_agrees_with_python_on_random_damage(seed):
                                 b.describe_last_failure(), b.good_reads, b.reads))
             assert results[0] == results[1], (k, chunks)
         assert 10 <= sum(taken) < 150  # both paths were exercised
-    finally:
-        for b in bridges:
-            b._port = None
-        for c in chains:
-            c.close()
