@@ -415,7 +415,8 @@ def test_cli_as_fast_run_exits_with_the_rule_a_real_run_would_stop_on(tmp_path):
 def test_the_loops_clip_is_np_clips_to_the_bit():
     """Supervisor.saturate (the 1 kHz loop's clip, two ufuncs on a lower side made once) gives
     np.clip's values for every kind of command: inside, beyond either side, on a limit, a
-    signed zero, a NaN (kept: the command check stops on it), infinities."""
+    signed zero, a NaN (kept: the command check stops on it), infinities; and limits changed in
+    place afterwards bind on both sides."""
     sc = load_scenario("serial_joint")
     sup = build_supervisor(unit_setups(sc), None, substeps=sc.plant_substeps)
     effort = sup.limits.effort
@@ -430,6 +431,12 @@ def test_the_loops_clip_is_np_clips_to_the_bit():
         assert np.array_equal(tau, want, equal_nan=True)
         assert np.array_equal(np.signbit(tau), np.signbit(want))
     assert np.array_equal(sup.limits.effort, effort)  # the limits themselves untouched
+    # Limits lowered in place (as test_saturation_clips_without_stopping does) bind both ways.
+    sup.limits.effort[:] = 1e-3
+    tau = np.array([-5.0, 5.0, -1e-4, 2e-3, -2e-3, 0.0])[:len(effort)]
+    sup.saturate(tau)
+    assert np.array_equal(tau, np.clip(np.array([-5.0, 5.0, -1e-4, 2e-3, -2e-3, 0.0])
+                                       [:len(effort)], -1e-3, 1e-3))
 
 
 @pytest.mark.slow
