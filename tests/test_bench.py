@@ -292,11 +292,19 @@ def test_the_targets_section_gives_every_verdict(monkeypatch, tmp_path):
     fake_sections(monkeypatch, {})
     assert bench_run.main(["--out", str(tmp_path)]) == 0
     targets = sections((tmp_path / "results.md").read_text())["Targets"]
+    lines = targets.splitlines()
+
+    def line(start: str) -> str:
+        (found,) = [x for x in lines if start in x]
+        return found
+
+    # Met or missed, each study's line names its own target (whatever the run measured).
     for r in LAST["sweep"]:
-        assert f"{r['study']} ({r['duration_s']:g} s) sweeps at " in targets
+        want = "target >= 60)" if r["study"].startswith("serial") else "target >= 40)"
+        assert want in line(f"{r['study']} ({r['duration_s']:g} s) sweeps at ")
     for r in LAST["embedded_sims"]:
-        assert f"{r['scenario']} all-in-C simulation (embedded/sim) at " in targets
-    assert "(target >= 1000x" in targets and "(target >= 40)" in targets
+        want = "target >= 2000x" if r["scenario"].startswith("serial") else "target >= 1000x"
+        assert want in line(f"{r['scenario']} all-in-C simulation (embedded/sim) at ")
 
 
 def test_the_serial_why_line_quotes_the_measured_sibling_slowdown():
