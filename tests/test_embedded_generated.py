@@ -119,6 +119,10 @@ void shim_terminate(void) {{ {name}_terminate(&state); }}
 int shim_desired(double t, {name}_real *xd, {name}_real *xd_dot, {name}_real *xd_ddot) {{
   return {name}_desired(t, xd, xd_dot, xd_ddot);
 }}
+int shim_tool_points(const {name}_real *q, {name}_real *points, {name}_real *centres) {{
+  return {name}_tool_points(q, points, centres);
+}}
+int shim_n_points(void) {{ return {N}_NPOINTS; }}
 """
 
 _P = ctypes.c_void_p
@@ -235,6 +239,34 @@ def test_desired_trajectory_equals_casadi(built, name):
         for g, w in zip(got, want):
             worst = max(worst, float(np.max(np.abs(g - w) / np.maximum(1.0, np.abs(w)))))
     assert worst <= 1e-12, worst
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_tool_points_and_centres_are_the_supervisors(built, name):
+    """``<name>_tool_points``, which the embedded supervisor's keep-out check reads: each unit's
+    tool points from its world pose and each point's circle centre by the robot's rule
+    (:meth:`cochlea.sim.setup.UnitSetup.keep_out_centre`: the parallel mechanism's centre rides
+    on its slider), at random joint positions."""
+    lib = ctypes.CDLL(str(built[name, "double"]))
+    setups = unit_setups(load_scenario(name))
+    n = lib.shim_n_points()
+    assert n == sum(len(u.tool_points) for u in setups)
+    rng = np.random.default_rng(7)
+    nq = sum(u.controller_model.nq for u in setups)
+    for _ in range(20):
+        q = rng.uniform(-1.0, 1.0, nq)
+        points, centres = np.full(2 * n + 1, np.nan), np.full(2 * n + 1, np.nan)
+        assert lib.shim_tool_points(*(a.ctypes.data_as(_P) for a in (q, points, centres))) == 0
+        want_points, want_centres, start = [], [], 0
+        for u in setups:
+            qu = q[start:start + u.controller_model.nq]
+            start += u.controller_model.nq
+            pose = np.array(u.fk_world(qu)).ravel()
+            for _, (iu, iv) in u.tool_points:
+                want_points += [pose[iu], pose[iv]]
+                want_centres += [float(c) for c in u.keep_out_centre(qu)]
+        np.testing.assert_allclose(points[:2 * n], want_points, rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(centres[:2 * n], want_centres)
 
 
 def _replay(c: Embedded, name: str, duration: float):

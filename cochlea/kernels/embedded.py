@@ -79,10 +79,11 @@ class EmbeddedUnit:
     fk: ca.Function | None = None
     #: Tool points: label -> indices of (u, v) in the pose (m, world frame).
     tool_points: tuple[tuple[str, tuple[int, int]], ...] = ()
-    #: The keep-out circle's centre (m, world frame), or the joint whose value moves it along
-    #: v (the parallel mechanism's slider: S = (0, d1)).
-    centre: tuple[float, float] = (0.0, 0.0)
-    moving_centre_joint: int | None = None
+    #: The keep-out circle's centre as a driver takes it, ``(u, v, joint)`` (m, world frame):
+    #: the joint's position, where one moves the centre (the parallel mechanism's slider:
+    #: S = (0, d1)), is added to v (:meth:`cochlea.sim.setup.UnitSetup.keep_out_reference`,
+    #: the rule's one statement).
+    keep_out_reference: tuple[float, float, int | None] = (0.0, 0.0, None)
     # What the run's summary says of the unit (cochlea-run's summary.json).
     tracked_names: tuple[str, ...] = ()
     tracked_units: tuple[str, ...] = ()
@@ -1016,10 +1017,10 @@ def _tool_points(name: str, units: list[EmbeddedUnit], off: list[_Offsets]) -> s
         lines += [f"  /* {u.name} */", f"  arg[0] = q + {o.q};",
                   f"  if ({name}_{u.name}_fk(arg, res)) return -1;"]
         for label, (iu, iv) in u.tool_points:
-            if u.moving_centre_joint is None:
-                cu, cv = (f"CR({_double(c)})" for c in u.centre)
-            else:
-                cu, cv = "CR(0.)", f"q[{o.q + u.moving_centre_joint}]"
+            cu, cv, joint = u.keep_out_reference
+            cu, cv = f"CR({_double(cu)})", f"CR({_double(cv)})"
+            if joint is not None:
+                cv = f"{cv} + q[{o.q + joint}]"
             lines += [f"  /* {label} */",
                       f"  points[{2 * point}] = pose[{iu}]; points[{2 * point + 1}] = pose[{iv}];",
                       f"  centres[{2 * point}] = {cu}; centres[{2 * point + 1}] = {cv};"]

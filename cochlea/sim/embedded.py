@@ -55,8 +55,8 @@ def embedded_units(sc: Scenario) -> list[EmbeddedUnit]:
             c.error_names, tuple(u.controller_model.param_names),
             law_units(u.controller_model, c), u.gains, u.gamma, float(u.bound), u.p_hat0,
             u.effort_limit, controller=f"{c.kind} ({c.variant}), {c.space} space",
-            fk=u.fk_world, tool_points=tuple(u.tool_points), centre=tuple(u.centre),
-            moving_centre_joint=u.moving_centre_joint,
+            fk=u.fk_world, tool_points=tuple(u.tool_points),
+            keep_out_reference=u.keep_out_reference(),
             tracked_names=(tuple(j.name for j in u.controller_model.joints)
                            if c.space == "joint" else tuple(u.task_names)),
             tracked_units=(tuple(u.joint_units) if c.space == "joint"

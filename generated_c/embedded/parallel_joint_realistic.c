@@ -2353,10 +2353,10 @@ int parallel_joint_realistic_tool_points(const parallel_joint_realistic_real q[P
   if (parallel_joint_realistic_mechanism_fk(arg, res)) return -1;
   /* C */
   points[0] = pose[0]; points[1] = pose[1];
-  centres[0] = CR(0.); centres[1] = q[2];
+  centres[0] = CR(0.0); centres[1] = CR(0.0) + q[2];
   /* C' */
   points[2] = pose[3]; points[3] = pose[4];
-  centres[2] = CR(0.); centres[3] = q[2];
+  centres[2] = CR(0.0); centres[3] = CR(0.0) + q[2];
   return 0;
 }
 
