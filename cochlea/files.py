@@ -28,6 +28,7 @@ sweep does).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import stat
 import tempfile
@@ -49,6 +50,32 @@ def kind(mode: int) -> str:
         if test(mode):
             return name
     return "not a regular file"
+
+
+def read_regular(path: str | Path, limit: int) -> bytes:
+    """At most ``limit + 1`` bytes of the regular file at ``path`` (one more than ``limit``
+    says the file is larger: the caller words that). An input that is not a regular file --
+    a FIFO, a device, a socket -- is refused before a byte is read: opening or reading one
+    blocks until a writer comes, or never ends (OSError EINVAL, its kind in the message); a
+    folder is IsADirectoryError; a missing file FileNotFoundError; a NUL byte in the name
+    ValueError, as ``open`` raises them. The file is opened without blocking and without
+    becoming the controlling terminal, so a pipe or a serial port named by mistake costs
+    nothing."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(errno.EISDIR, "a folder, not a file", str(path))
+        if not stat.S_ISREG(mode):
+            raise OSError(errno.EINVAL, f"{kind(mode)}, not a regular file", str(path))
+        os.set_blocking(fd, True)
+        chunks, left = [], limit + 1
+        while left > 0 and (chunk := os.read(fd, min(left, 1 << 20))):
+            chunks.append(chunk)
+            left -= len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def existing_ancestor(path: Path) -> Path:

@@ -15,6 +15,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import pytest
@@ -281,3 +282,80 @@ def test_temporary_names_are_recognised_and_others_are_not():
         assert files.is_temporary(Path(name)), name
     for name in ("log.csv", "tmp.csv", "results.tmp.csv", ".cochlea.lock"):
         assert not files.is_temporary(Path(name)), name
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs: a regular file only, bounded
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def fifo(tmp_path):
+    """A FIFO in place of an input file; should a reader block on it after all, a writer
+    opens and closes it after 10 s, so the test fails on the reader's result, not by hanging."""
+    path = tmp_path / "input.toml"
+    os.mkfifo(path)
+    done = threading.Event()
+
+    def release():
+        if not done.wait(10.0):
+            os.close(os.open(path, os.O_RDWR))  # Linux: a writer, without waiting for a reader
+
+    thread = threading.Thread(target=release, daemon=True)
+    thread.start()
+    yield path
+    done.set()
+    thread.join()
+
+
+def test_read_regular_reads_a_file_bounded_and_refuses_any_other_kind(tmp_path, fifo):
+    path = tmp_path / "f.bin"
+    path.write_bytes(b"x" * 100)
+    assert files.read_regular(path, 1000) == b"x" * 100
+    assert files.read_regular(path, 10) == b"x" * 11  # one past the limit: "too large"
+    with pytest.raises(OSError, match="FIFO"):
+        files.read_regular(fifo, 1000)
+    with pytest.raises(OSError, match="device"):
+        files.read_regular("/dev/zero", 1000)  # would never end
+    with pytest.raises(IsADirectoryError):
+        files.read_regular(tmp_path, 1000)
+    with pytest.raises(FileNotFoundError):
+        files.read_regular(tmp_path / "missing", 1000)
+    with pytest.raises(ValueError):
+        files.read_regular(str(tmp_path / "a\0b"), 1000)
+
+
+def _urdf(path):
+    from cochlea.robots.serial.urdf import read_urdf
+    return read_urdf(path)
+
+
+def _scenario(path):
+    from cochlea.sim import load_scenario
+    return load_scenario(path)
+
+
+def _description(path):
+    from cochlea.robots.description import read_toml
+    return read_toml(path)
+
+
+def _homing(path):
+    from cochlea.dynamixel.homing import load_record
+    return load_record(path)
+
+
+def _codegen(path):
+    from cochlea.kernels.catalogue import load_config
+    return load_config(path)
+
+
+@pytest.mark.parametrize("reader", [_description, _scenario, _urdf, _homing, _codegen])
+def test_every_input_reader_refuses_a_fifo_at_once_naming_it(fifo, reader):
+    """A FIFO (or a device) named as a description, scenario, URDF, homing record or codegen
+    configuration: one error naming its kind, before anything blocks (the readers opened it
+    plainly and waited for a writer that never came)."""
+    from cochlea.errors import CochleaError
+
+    with pytest.raises(CochleaError, match="FIFO"):
+        reader(fifo)

@@ -34,6 +34,7 @@ import math
 import re
 from pathlib import Path
 
+from .. import files
 from ..resources import ROBOTS_DIR, shipped
 from ..runtime.backend import BackendError
 from .control_table import Item
@@ -104,23 +105,30 @@ def _check_entry(entry) -> None:
         raise ValueError
 
 
+#: A homing record is a few hundred bytes a joint; anything over this is not one.
+MAX_RECORD_BYTES = 1 << 20
+
+
 def load_record(path: Path, robot: str | None = None,
                 description: str | Path | None = None) -> dict:
     """The record at ``path`` as a ``cochlea-homing/2`` dict (a ``/1`` one turned into one
     entry, ``legacy`` True); a missing or malformed one is a BackendError naming what to do
     (the ``cochlea-dxl home`` of ``robot`` and ``description`` when given)."""
     try:
-        text = Path(path).read_text()
+        raw = files.read_regular(path, MAX_RECORD_BYTES)  # a FIFO or a device is refused
     except FileNotFoundError:
         command = "cochlea-dxl home --robot ROBOT [--description FILE] --port PORT" \
             if robot is None else _home_command(robot, description_id(robot, description))
         raise BackendError(f"the robot's prismatic joints are not homed: no homing record "
                            f"{path}; run {command} first") from None
-    except OSError as exc:
-        raise BackendError(f"homing record {path}: cannot read it ({exc.strerror}); run "
-                           "cochlea-dxl home again") from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the name
+        raise BackendError(f"homing record {path}: cannot read it "
+                           f"({getattr(exc, 'strerror', None) or exc}); run cochlea-dxl home "
+                           "again") from None
     try:
-        record = json.loads(text)
+        if len(raw) > MAX_RECORD_BYTES:
+            raise ValueError
+        record = json.loads(raw.decode("utf-8"))
         if not isinstance(record, dict):
             raise ValueError
         if record.get("format") == FORMAT_1:

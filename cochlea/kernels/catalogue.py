@@ -19,10 +19,12 @@ from pathlib import Path
 
 import casadi as ca
 
+from .. import files
 from ..control import KINDS, VARIANTS, Controller, build
 from ..errors import CochleaError
 from ..resources import CODEGEN_DIR, checkout
 from ..robots import model
+from ..robots.description import MAX_FILE_BYTES
 from ..robots.model import ACTUATORS, RobotModel
 from ..robots.plant import gear_plant_step, plant_step
 from .naming import closed_loop_name, computation_hash, controller_kernel_name, unit_prefix
@@ -110,7 +112,11 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
     """Read and validate the generator's configuration."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        # A regular file only (a FIFO or a device would block), bounded like a description.
+        raw = files.read_regular(path, MAX_FILE_BYTES)
+        if len(raw) > MAX_FILE_BYTES:
+            raise ValueError(f"larger than {MAX_FILE_BYTES // 1024} KiB")
+        data = tomllib.loads(raw.decode("utf-8"))
     except UnicodeDecodeError:
         raise  # cochlea-codegen says "not UTF-8" itself
     except (OSError, ValueError) as exc:  # ValueError: TOML's, or a 4300-digit integer

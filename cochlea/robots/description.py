@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import files
 from ..dynamixel.control_table import MODELS as MOTOR_SPECS
 from ..errors import DescriptionError
 from ..resources import ROBOTS_DIR, shipped
@@ -350,8 +351,9 @@ def read_toml(path: Path, what: str = "robot description") -> dict:
     file that is missing, unreadable, too large, not UTF-8, not TOML or nested too deep is one
     :class:`DescriptionError` naming the file."""
     try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_FILE_BYTES + 1)  # bounded: a device or a huge file never fills memory
+        # Bounded, a regular file only: a huge file never fills memory, a FIFO or a device
+        # never blocks the tool.
+        raw = files.read_regular(path, MAX_FILE_BYTES)
     except FileNotFoundError:
         raise DescriptionError(path, "(file)", f"an existing {what} file") from None
     except IsADirectoryError:

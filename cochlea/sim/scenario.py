@@ -25,6 +25,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from .. import files
 from ..control.gains import controller_of
 from ..errors import CochleaError, DescriptionError
 from ..resources import SCENARIOS_DIR, shipped
@@ -334,8 +335,7 @@ def load_system(robot: str, description: str | Path):
     path = resolve_description(description if description is not None else robot)
     try:
         before = _file_state(path)
-        with open(path, "rb") as f:
-            raw = f.read(MAX_FILE_BYTES + 1)
+        raw = files.read_regular(path, MAX_FILE_BYTES)
     except (OSError, ValueError):
         return adapter.load(description)  # the loader's error, naming the file
     key = (robot, str(path), os.path.abspath(path), hashlib.sha256(raw).digest())

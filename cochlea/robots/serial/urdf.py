@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ... import files
 from ...dynamixel.control_table import MODELS as MOTOR_SPECS
 from ...errors import CochleaError, DescriptionError
 from ..description import (
@@ -116,8 +117,7 @@ def _fail(path, message: str) -> UrdfError:
 
 def _read_bytes(path: Path) -> bytes:
     try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_URDF_BYTES + 1)
+        raw = files.read_regular(path, MAX_URDF_BYTES)  # a FIFO or a device is refused
     except FileNotFoundError:
         raise _fail(path, "no such file") from None
     except IsADirectoryError:
