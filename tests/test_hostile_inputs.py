@@ -106,8 +106,9 @@ def test_missing_or_folder_scenario_is_called_a_scenario(refused, tmp_path):
     ('"1e400*t deg"', "not a finite"),
     ('"1/(t-t) deg"', "not a finite"),
     ('"81 + 0*t % 2 deg"', "unsupported"),
+    ('"8_1 + t deg"', "without underscores"),  # Python's 8_1 is 81: a typo's tenfold value
 ], ids=["div0", "overflow", "exp", "arity1", "arity2", "long", "deep", "inf-literal", "t-t",
-        "modulo"])
+        "modulo", "underscore"])
 def test_bad_formula_names_the_key(refused, tmp_path, formula, expected):
     path = write(tmp_path, "s.toml", SERIAL_JOINT.replace(LEADER_1, formula))
     line = refused("--scenario", path)

@@ -299,6 +299,16 @@ BAD = {
     "zero axis": (_edit('<axis xyz="0 0.6 0.8"/>', '<axis xyz="0 0 0"/>'), "not a direction"),
     "nan": (_edit('xyz="0.02 0.03 0.06"', 'xyz="0.02 nan 0.06"'), "finite"),
     "bad number": (_edit('xyz="0.02 0.03 0.06"', 'xyz="0.02 0.03"'), "3 finite numbers"),
+    # float() reads each of these as a number: 0_2 is 2 (a tenfold mass), the others 0.2 or 2
+    "underscore": (_edit('<mass value="0.2"/>', '<mass value="0_2"/>'), "'0_2'"),
+    "arabic digits": (_edit('<mass value="0.2"/>', '<mass value="\u0660.\u0662"/>'),
+                      "finite number"),
+    "full-width digits": (_edit('<mass value="0.2"/>', '<mass value="\uff10.\uff12"/>'),
+                          "finite number"),
+    "infinity word": (_edit('velocity="3.0" effort="8.0"', 'velocity="Infinity" effort="8.0"'),
+                      "finite number"),
+    "underscore reduction": (_edit("<mechanicalReduction>", "<mechanicalReduction>1_"),
+                             "mechanicalReduction"),
     "undefined link": (_edit('<child link="wrist"/>', '<child link="hand"/>'), "not defined"),
     "duplicate link": (_edit("</robot>", '<link name="wrist"/></robot>'), "two links"),
     "two roots": (_edit("</robot>", '<link name="island"/></robot>'), "not one tree"),
@@ -396,6 +406,16 @@ def test_option_mistakes_are_one_line(tmp_path, capsys):
     assert "no joint 'elbow'" in _run_bad(tmp_path, capsys, [arm4, "--motor", "elbow=MX-64"])
     assert "4 joints" in _run_bad(tmp_path, capsys, [arm4, "--ids", "1,2,3"])
     assert "distinct" in _run_bad(tmp_path, capsys, [arm4, "--ids", "1,1,2,3"])
+    # int() and float() take "1_0" (10), "nan" and other scripts' digits: argparse refuses
+    for option, value in [("--ids", "1,2,3,1_0"), ("--ids", "1,2,3,\u0664"),
+                          ("--keep-out-radius-m", "1_0"), ("--keep-out-radius-m", "nan")]:
+        with pytest.raises(SystemExit) as exit_:
+            main(["import", arm4, "--out", str(tmp_path / "o.toml"), option, value])
+        assert exit_.value.code == EXIT_USER_ERROR
+        assert repr(value) in capsys.readouterr().err
+        assert not (tmp_path / "o.toml").exists()
+    assert "[0.0001, 1]" in _run_bad(tmp_path, capsys, [arm4, "--transmission",
+                                                      "extend=lead_screw:0_1"])
     assert "ending in .toml" in main_line(tmp_path, capsys, [arm4, "--out", "robot"])
     assert "no such link" in _run_bad(tmp_path, capsys, [arm4, "--tip", "hand"])
     assert "not below" in _run_bad(tmp_path, capsys, [arm4, "--base", "slider", "--tip",

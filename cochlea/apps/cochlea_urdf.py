@@ -17,15 +17,22 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots.urdf import export_urdf, import_urdf, load_chain, starter_scenario
+from ..text import decimal, integer
 from . import outputs
 
 
 def _ids(text: str) -> list[int]:
-    try:
-        return [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: comma-separated integers, e.g. 1,2,3") \
-            from None
+    ids = [integer(x) for x in text.split(",") if x.strip()]  # ASCII digits only ("1_0": no)
+    if None in ids:
+        raise argparse.ArgumentTypeError(f"{text!r}: comma-separated integers, e.g. 1,2,3")
+    return ids
+
+
+def _metres(text: str) -> float:
+    value = decimal(text)  # float() would take "1_0" (10 m), "nan" and other scripts' digits
+    if value is None:
+        raise argparse.ArgumentTypeError(f"{text!r}: a decimal number of metres, e.g. 0.05")
+    return value
 
 
 def _check(path: Path, option: str, suffix: str) -> None:
@@ -106,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                           "<transmission> with a mechanicalReduction for it): KIND lead_screw "
                           "(SIZE: the lead, m per motor turn), pinion or belt (SIZE: the pitch "
                           "radius, m), ratio (SIZE: m per motor rad); repeatable")
-    imp.add_argument("--keep-out-radius-m", type=float, metavar="R",
+    imp.add_argument("--keep-out-radius-m", type=_metres, metavar="R",
                      help="write keep_out_radius_m = R (m), the keep-out circle around the "
                           "world origin (default: none written, no keep-out circle)")
     imp.add_argument("--scenario-out", type=Path, metavar="FILE",

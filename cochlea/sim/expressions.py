@@ -95,6 +95,9 @@ def _build(node, t, text, definitions):
             and not isinstance(node.value, bool):
         try:
             part = ast.get_source_segment(text, node) or "a number"
+            if "_" in part:  # Python reads 5_0 as 50: a typo's tenfold value, in a file
+                raise ExpressionError(f"the number {_short(part, 30)}: write numbers without "
+                                      "underscores", text)
             return _constant(float(node.value), f"the number {_short(part, 30)}", text)
         except OverflowError:
             raise ExpressionError("a number too large for a float", text) from None

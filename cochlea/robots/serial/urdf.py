@@ -32,6 +32,7 @@ import numpy as np
 from ... import files
 from ...dynamixel.control_table import MODELS as MOTOR_SPECS
 from ...errors import CochleaError, DescriptionError
+from ...text import decimal
 from ..description import (
     MAX_LENGTH_M,
     MAX_MOTOR_ID,
@@ -150,11 +151,10 @@ def _numbers(path, element, attr: str, size: int, where: str, default=None) -> n
         if default is None:
             raise _fail(path, f"{where}: the attribute {attr!r} is missing")
         return np.array(default, dtype=float)
-    try:
-        values = [float(v) for v in text.split()]
-    except ValueError:
-        values = []
-    if len(values) != size or not all(math.isfinite(v) and abs(v) <= MAX_VALUE
+    # Each token a plain ASCII decimal: float() alone would read "0_5" as 5.0 (a tenfold
+    # mass), "nan", and other scripts' digits.
+    values = [decimal(v) for v in text.split()]
+    if None in values or len(values) != size or not all(math.isfinite(v) and abs(v) <= MAX_VALUE
                                       for v in values):
         raise _fail(path, f"{where}: {attr}={text[:80]!r}: expected {size} finite "
                     f"number{'s' if size > 1 else ''} within +-{MAX_VALUE:g}")
@@ -347,9 +347,8 @@ def _transmissions(path, root, joints: dict[str, UJoint], notes: list[str]) -> d
         found = el.findall("actuator/mechanicalReduction") + el.findall("mechanicalReduction")
         if not found:
             continue
-        try:
-            value = float((found[0].text or "").strip())
-        except ValueError:
+        value = decimal(found[0].text or "")
+        if value is None:
             value = math.nan
         if not (math.isfinite(value) and value != 0.0 and abs(value) <= MAX_VALUE):
             raise _fail(path, f"transmission {name!r}: mechanicalReduction "
@@ -820,9 +819,8 @@ def assign_transmissions(path, urdf: Urdf, chain: list[ChainLink],
                             "its motor's output shaft)")
         if kind not in TRANSMISSIONS:
             raise UrdfError(f"--transmission {option!r}: unknown kind {kind!r}; known: {kinds}")
-        try:
-            size = float(size_text)
-        except ValueError:
+        size = decimal(size_text)
+        if size is None:
             size = math.nan
         lo, hi = TRANSMISSION_RANGE_M
         if not lo <= size <= hi:  # NaN fails too

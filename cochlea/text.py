@@ -1,0 +1,69 @@
+"""Text read from and written into the files a user gives and gets: numbers read strictly, TOML
+strings and comments written so that any name survives them.
+
+- :func:`decimal`: a number of a file or an option, as a person writes it in ASCII (``-1.5``,
+  ``2e-3``, ``.5``). Python's ``float()`` also takes ``"0_5"`` (5.0: a tenfold mass from a
+  typo), ``"nan"``, ``"infinity"``, and Arabic-Indic or full-width digits; none of them is a
+  number a robot's file should hold.
+- :func:`toml_string`: a TOML basic string (``"..."``) of any text: the quotation mark, the
+  backslash and every control character escaped (TOML refuses C0 and DEL raw; C1 is escaped
+  too, so the file shows what is there). Every writer of TOML text goes through it.
+- :func:`comment`: a name as it may stand in a TOML or XML comment, on one line
+  (:func:`cochlea.errors.printable`), with nothing a comment cannot hold.
+"""
+
+from __future__ import annotations
+
+import re
+
+from .errors import printable
+
+#: A decimal number in ASCII: optional sign, digits with an optional point (or a point and
+#: digits), an optional exponent. No underscores, no other scripts' digits, no nan or inf.
+DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+#: A whole number in ASCII, optionally signed.
+INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def decimal(text: str) -> float | None:
+    """``text`` (surrounding white space allowed) as a float if it is a plain decimal number,
+    else None. The value may still overflow to inf (``1e999``): callers check finiteness."""
+    text = text.strip(" \t\r\n")
+    if not DECIMAL.fullmatch(text):
+        return None
+    return float(text)
+
+
+def integer(text: str) -> int | None:
+    """``text`` as an int if it is plain ASCII digits (optionally signed, at most 18 of them),
+    else None."""
+    text = text.strip(" \t\r\n")
+    if not INTEGER.fullmatch(text) or len(text.lstrip("+-")) > 18:
+        return None
+    return int(text)
+
+
+_TOML_ESCAPES = {0x22: '\\"', 0x5c: "\\\\", 0x08: "\\b", 0x09: "\\t", 0x0a: "\\n", 0x0c: "\\f",
+                 0x0d: "\\r"}
+_TOML_ESCAPES.update({c: f"\\u{c:04X}" for c in (*range(0x20), *range(0x7f, 0xa0))
+                      if c not in _TOML_ESCAPES})
+
+
+def toml_string(text: str) -> str:
+    """``text`` as a TOML basic string, quotes included: ``it's "x"`` -> ``"it's \\"x\\""``.
+    Raises ValueError for a lone surrogate (a file name's byte that is not UTF-8, as Python
+    carries it): no TOML string can hold one."""
+    for ch in text:
+        if 0xd800 <= ord(ch) <= 0xdfff:
+            raise ValueError(f"{printable(comment(text))!r} holds a byte that is not UTF-8: a "
+                             "TOML file cannot name it")
+    return '"' + text.translate(_TOML_ESCAPES) + '"'
+
+
+def comment(text: str) -> str:
+    """``text`` fit for a comment line of a TOML file or of an XML document: control
+    characters as ``\\xNN`` (one line; TOML and XML refuse them raw), a lone surrogate as
+    ``\\udcNN``, and ``--`` (which ends nothing in TOML but may not appear inside an XML
+    comment) as ``-\\x2d``."""
+    out = printable(text).encode("utf-8", "backslashreplace").decode("utf-8")
+    return out.replace("--", "-\\x2d")
