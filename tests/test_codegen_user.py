@@ -192,6 +192,29 @@ def test_codegen_option_mistakes_are_one_line(user, tmp_path, capsys):
     assert "did not generate" in capsys.readouterr().err
 
 
+def test_an_output_folder_holding_an_input_is_refused(tmp_path, capsys):
+    """The generator replaces and removes the files of --out (and --out/embedded) once it has
+    generated there (manifest.c): a scenario or description kept in that folder was deleted."""
+    gen = tmp_path / "gen"
+    gen.mkdir()
+    urdf = tmp_path / "arm2.urdf"
+    urdf.write_text(ARM2_URDF, encoding="utf-8")
+    assert cochlea_urdf.main(["import", str(urdf), "--out", str(gen / "robot.toml"),
+                              "--scenario-out", str(gen / "starter.toml")]) == 0
+    (gen / "manifest.c").write_text("/* generated */\n")
+    capsys.readouterr()
+    assert cochlea_codegen.main(["--scenario", str(gen / "starter.toml"), "--out", str(gen),
+                                 "--no-build"]) == EXIT_USER_ERROR
+    assert "holds the input --scenario" in capsys.readouterr().err
+    elsewhere = tmp_path / "starter.toml"
+    elsewhere.write_text((gen / "starter.toml").read_text().replace(
+        'description = "robot.toml"', 'description = "gen/robot.toml"'))
+    assert cochlea_codegen.main(["--scenario", str(elsewhere), "--out", str(gen),
+                                 "--no-build"]) == EXIT_USER_ERROR
+    assert "holds the input the scenario's description" in capsys.readouterr().err
+    assert sorted(p.name for p in gen.iterdir()) == ["manifest.c", "robot.toml", "starter.toml"]
+
+
 @pytest.mark.slow
 def test_the_embedded_program_builds_for_the_users_scenario(user, tmp_path):
     """``--embedded``: the scenario's embedded controller and the robot's drive table in

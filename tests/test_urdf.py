@@ -422,6 +422,34 @@ def test_option_mistakes_are_one_line(tmp_path, capsys):
                                                       "upper"])
 
 
+def test_an_output_that_is_an_input_or_another_output_is_refused(tmp_path, capsys):
+    """Before anything is written: ``export in.toml --out in.toml`` overwrote the description
+    with URDF XML, and ``import --out same.toml --scenario-out same.toml`` left a scenario
+    naming itself (both exit 0). A hard link and a spelling through ``..`` are the same file."""
+    description = _imported(tmp_path, ARM4)
+    before = description.read_bytes()
+    (tmp_path / "sub").mkdir()
+    linked = tmp_path / "linked.toml"
+    linked.hardlink_to(description)
+    for out in (description, tmp_path / "sub" / ".." / "robot.toml", linked):
+        assert main(["export", str(description), "--out", str(out)]) == EXIT_USER_ERROR
+        err = capsys.readouterr().err
+        assert "is the input description" in err and len(err.strip().splitlines()) == 1
+    assert description.read_bytes() == before
+    same = tmp_path / "same.toml"
+    assert "are the same file" in _run_bad(tmp_path, capsys, [
+        str(ARM4), "--scenario-out", str(tmp_path / "sub" / ".." / "out.toml")])
+    assert main(["import", str(ARM4), "--out", str(same), "--scenario-out",
+                 str(same)]) == EXIT_USER_ERROR
+    assert "are the same file" in capsys.readouterr().err and not same.exists()
+    urdf_named_toml = tmp_path / "arm.toml"
+    urdf_named_toml.write_bytes(ARM4.read_bytes())
+    assert main(["import", str(urdf_named_toml), "--out", str(urdf_named_toml)]) \
+        == EXIT_USER_ERROR
+    assert "is the input URDF" in capsys.readouterr().err
+    assert urdf_named_toml.read_bytes() == ARM4.read_bytes()
+
+
 def test_a_starter_scenario_drives_a_prismatic_joint(tmp_path, capsys):
     """The fixture's prismatic joint has a <transmission>: the starter is written, moves it in
     metres, and its plan has a motor on every joint (the carriage's m/rad from the URDF)."""

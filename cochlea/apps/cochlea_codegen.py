@@ -22,7 +22,7 @@ from ..sim import load_scenario, unit_setups
 from ..sim.compiled import scenario_units
 from ..sim.embedded import check_embeddable, scenario_sources, write_embedded
 from ..sim.scenario import PLANT_PRESETS, load_system
-from .outputs import check_folder
+from .outputs import check_folder, refuse_inputs_inside
 
 
 def write_embedded_folder(config, folder) -> list[Path]:
@@ -102,7 +102,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"cochlea-codegen: {config.output} is up to date")
             return 0
         out = args.out if args.out is not None else config.output
-        _check_out(out, "--out" if args.out is not None else f"{config.path}: output")
+        option = "--out" if args.out is not None else f"{config.path}: output"
+        refuse_inputs_inside(out, option, [("--config", config.path)])
+        _check_out(out, option)
         start = time.perf_counter()
         try:
             paths = generate(config, out, write_embedded_folder)
@@ -187,6 +189,11 @@ def _user(args) -> int:
     if out.resolve() == load_config(CONFIG).output:
         raise CochleaError(f"--out {out} is the shipped robots' generated_c/: choose a folder "
                            "of your own for a scenario's kernels")
+    inputs = [("--scenario", args.scenario), ("the scenario's description",
+                                               load_scenario(args.scenario).system.path)]
+    if args.description is not None:
+        inputs.append(("--description", args.description))
+    refuse_inputs_inside(out, "--out", inputs)  # its files are replaced and removed
     if not args.check:
         _check_out(out, "--out")
     start = time.perf_counter()

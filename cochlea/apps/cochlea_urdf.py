@@ -63,6 +63,10 @@ def _import(args: argparse.Namespace) -> None:
     _check(args.out, "--out", ".toml")
     if args.scenario_out is not None:
         _check(args.scenario_out, "--scenario-out", ".toml")
+    outputs.refuse_overlap([("--out", args.out)]
+                           + ([("--scenario-out", args.scenario_out)]
+                              if args.scenario_out is not None else []),
+                           [("URDF", args.urdf)])
     result = import_urdf(args.urdf, base=args.base, tip=args.tip, motors=args.motor,
                          ids=args.ids, transmissions=args.transmission,
                          keep_out_radius=args.keep_out_radius_m)
@@ -86,6 +90,7 @@ def _export(args: argparse.Namespace) -> None:
     system = load_chain(args.description)
     arm = system.arm(args.arm) if args.arm else system.arms[0]
     _check(args.out, "--out", ".urdf")
+    outputs.refuse_overlap([("--out", args.out)], [("description", system.path)])
     _write(args.out, export_urdf(system, arm))
     print(f"wrote {args.out}: arm {arm.name!r}, {len(arm.links)} joints")
 

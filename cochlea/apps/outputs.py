@@ -350,6 +350,39 @@ def check_output_file(path: Path, option: str, suffix: str,
     }[p.code])
 
 
+def same_path(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` name one file: the same existing file (a hard or symbolic link, another
+    spelling), or, for names not there yet, the same path once links and ``..`` are resolved."""
+    return files.same_file(a, b) or os.path.realpath(a) == os.path.realpath(b)
+
+
+def refuse_overlap(outputs: list[tuple[str, Path]],
+                   inputs: list[tuple[str, Path]] = ()) -> None:
+    """Before anything is written: refuse an output that is one of the command's inputs (it
+    would be destroyed) or another of its outputs (one would replace the other), in one line
+    naming both. ``outputs`` and ``inputs`` are ``(option, path)`` pairs."""
+    for i, (option, path) in enumerate(outputs):
+        for what, source in inputs:
+            if same_path(path, source):
+                raise CochleaError(f"{option} {path} is the input {what} {source}: name a new "
+                                   "file (an input is never overwritten)")
+        for other, earlier in outputs[:i]:
+            if same_path(path, earlier):
+                raise CochleaError(f"{option} {path} and {other} {earlier} are the same file: "
+                                   "name two files")
+
+
+def refuse_inputs_inside(folder: Path, option: str, inputs: list[tuple[str, Path]]) -> None:
+    """Refuse an output ``folder`` that holds (at any depth, or is) one of ``inputs``: the
+    generator replaces and removes the files of the folders it writes."""
+    root = os.path.realpath(folder)
+    for what, source in inputs:
+        real = os.path.realpath(source)
+        if real == root or real.startswith(root.rstrip(os.sep) + os.sep):
+            raise CochleaError(f"{option} {folder} holds the input {what} {source}, and "
+                               "its files are replaced: choose a folder without inputs in it")
+
+
 #: A temporary file beside its target, renamed over it once whole (cochlea.files).
 atomic_path = files.atomic_path
 
