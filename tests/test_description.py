@@ -97,6 +97,36 @@ def test_bad_description_names_file_key_and_expectation(tmp_path, case):
     assert info.value.key == key
 
 
+def _joint_names(names: list[str | None]) -> str:
+    """The shipped description with arm1's joints named ``names`` (None: no name key, the
+    default: jointK for linkK)."""
+    head, *joints = SERIAL.split("  [arm.link.joint]\n")
+    out = head
+    for i, rest in enumerate(joints):
+        name = names[i] if i < len(names) else None
+        out += "  [arm.link.joint]\n" + (f'  name = "{name}"\n' if name else "") + rest
+    return out
+
+
+@pytest.mark.parametrize("names, key, expected", [
+    ([None, "joint1"], "arm[0].link[1].joint.name", "link 0's joint is already called 'joint1'"),
+    (["joint2", None], "arm[0].link[1]", "this link's joint is 'joint2' by default"),
+    (["j", "j"], "arm[0].link[1].joint.name", "a joint name unique within the arm"),
+], ids=["given-as-a-default", "default-as-given", "given-twice"])
+def test_two_joints_of_an_arm_with_one_name_are_refused(tmp_path, names, key, expected):
+    """Joint names, given or by default, name the model's joints and parameters and an exported
+    URDF's joints. Before, two alike loaded (cochlea-model exit 0, 'joint1.Ia' twice among the
+    parameters, an export that its own import refused). The other arm's are its own."""
+    path = tmp_path / "dup.toml"
+    path.write_text(_joint_names(names))
+    with pytest.raises(DescriptionError) as info:
+        load_serial(path)
+    assert str(info.value).startswith(f"{path}: {key}: expected "), str(info.value)
+    assert expected in str(info.value)
+    path.write_text(_joint_names(["a", "b", "c", "a", "b", "c"]))  # per arm: allowed
+    assert [link.joint.name for link in load_serial(path).arm("arm2").links] == ["a", "b", "c"]
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(DescriptionError, match="expected an existing robot description file"):
         load_serial(tmp_path / "nowhere.toml")

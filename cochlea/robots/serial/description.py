@@ -300,8 +300,30 @@ def _read_arm(t: Table) -> Arm:
         if n in names[:i]:
             raise DescriptionError(t.path, f"{t.where}.link[{i}].name",
                                    "a link name unique within the arm", n)
+    # Joint names, given or the default (joint_name), name the model's joints and parameters
+    # ("j1.Ia") and an exported URDF's joints: two alike would make both ambiguous.
+    joints = [joint_name(link) for link in links]
+    for i, n in enumerate(joints):
+        if n in joints[:i]:
+            given = links[i].joint.name is not None
+            raise DescriptionError(
+                t.path, f"{t.where}.link[{i}].joint.name" if given else f"{t.where}.link[{i}]",
+                "a joint name unique within the arm (link "
+                f"{joints.index(n)}'s joint is already called {n!r}"
+                + ("" if given else f"; this link's joint is {n!r} by default: give it a "
+                   "name") + ")", n)
     return Arm(name, base_xyz, base_yaw, tuple(links), roll, pitch, tool_xyz, tool_rpy,
                working_pose=poses[0], calibration_pose=poses[1], positive_direction=positive)
+
+
+def joint_name(link: Link) -> str:
+    """The name of ``link``'s joint: its ``name`` key, else ``jointK`` for a link ``linkK``
+    (the shipped arms), else ``<link>_joint``."""
+    if link.joint.name is not None:
+        return link.joint.name
+    if link.name.startswith("link"):
+        return link.name.replace("link", "joint", 1)
+    return f"{link.name}_joint"
 
 
 def _read_pose(t: Table, key: str, links: list[Link]) -> np.ndarray | None:

@@ -27,7 +27,7 @@ from .chain import (
     rnea,
     tool_point,
 )
-from .description import Arm, SerialSystem
+from .description import Arm, SerialSystem, joint_name
 
 
 def rigid_arm(arm: Arm) -> Arm:
@@ -93,11 +93,8 @@ def build_model(system: SerialSystem, arm: Arm | str | None = None,
                   "J_world": ca.jacobian(fk_world, q)}
 
     joints = tuple(
-        JointInfo(link.joint.name if link.joint.name is not None
-                  else link.name.replace("link", "joint", 1) if link.name.startswith("link")
-                  else f"{link.name}_joint",
-                  link.joint.type, link.joint.position_limits, link.joint.velocity_limit,
-                  link.joint.effort_limit)
+        JointInfo(joint_name(link), link.joint.type, link.joint.position_limits,
+                  link.joint.velocity_limit, link.joint.effort_limit)
         for link in arm.links
     )
     full, blocks = with_armatures(
