@@ -422,6 +422,28 @@ def test_option_mistakes_are_one_line(tmp_path, capsys):
                                                       "upper"])
 
 
+def test_export_names_its_fixed_joints_apart_from_the_arms(tmp_path, capsys):
+    """A description joint called base_link_fixed or tool_fixed: export wrote two joints of
+    that name (which its own import refused); the fixed joints now take other names."""
+    text = _imported(tmp_path, ARM4).read_text(encoding="utf-8")
+    for old, new in [('name = "pan"', 'name = "base_link_fixed"'),
+                     ('name = "roll"', 'name = "tool_fixed"'),
+                     ("base_xyz_m = ", "tool_xyz_m = [0.05, 0.0, 0.0]\nbase_xyz_m = ")]:
+        assert old in text
+        text = text.replace(old, new)
+    first = tmp_path / "named.toml"
+    first.write_text(text, encoding="utf-8")
+    exported, second = tmp_path / "named.urdf", tmp_path / "again.toml"
+    assert main(["export", str(first), "--out", str(exported)]) == 0
+    joints = re.findall(r'<joint name="([^"]+)" type=', exported.read_text(encoding="utf-8"))
+    assert len(joints) == len(set(joints)) == 6, joints
+    assert main(["import", str(exported), "--out", str(second)]) == 0, capsys.readouterr().err
+    arm = load_serial(second).arms[0]
+    assert [link.joint.name for link in arm.links] == [
+        "base_link_fixed", "lift", "extend", "tool_fixed"]
+    assert np.allclose(arm.tool_xyz, [0.05, 0.0, 0.0])
+
+
 def test_an_output_that_is_an_input_or_another_output_is_refused(tmp_path, capsys):
     """Before anything is written: ``export in.toml --out in.toml`` overwrote the description
     with URDF XML, and ``import --out same.toml --scenario-out same.toml`` left a scenario

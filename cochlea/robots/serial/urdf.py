@@ -969,7 +969,16 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
         f"{np.asarray(system.gravity).tolist()} m/s^2) and the keep-out radius. "))
     ET.SubElement(root, "link", name=world)
     ET.SubElement(root, "link", name=base)
-    fixed = ET.SubElement(root, "joint", name=f"{base}_fixed", type="fixed")
+    joint_names = set(names)  # the fixed joints' names must avoid the arm's (URDF: unique)
+
+    def fixed_name(stem: str) -> str:
+        name = f"{stem}_fixed"
+        while name in joint_names:
+            name += "_frame"
+        joint_names.add(name)
+        return name
+
+    fixed = ET.SubElement(root, "joint", name=fixed_name(base), type="fixed")
     ET.SubElement(fixed, "parent", link=world)
     ET.SubElement(fixed, "child", link=base)
     ET.SubElement(fixed, "origin", xyz=_attr_vec(arm.base_xyz),
@@ -1015,7 +1024,7 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
         name = "tool"
         while name in taken:
             name += "_frame"
-        tool = ET.SubElement(root, "joint", name=f"{name}_fixed", type="fixed")
+        tool = ET.SubElement(root, "joint", name=fixed_name(name), type="fixed")
         ET.SubElement(root, "link", name=name)
         ET.SubElement(tool, "parent", link=parent)
         ET.SubElement(tool, "child", link=name)
