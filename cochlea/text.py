@@ -5,9 +5,9 @@ strings and comments written so that any name survives them.
   ``2e-3``, ``.5``). Python's ``float()`` also takes ``"0_5"`` (5.0: a tenfold mass from a
   typo), ``"nan"``, ``"infinity"``, and Arabic-Indic or full-width digits; none of them is a
   number a robot's file should hold.
-- :func:`toml_string`: a TOML basic string (``"..."``) of any text: the quotation mark, the
-  backslash and every control character escaped (TOML refuses C0 and DEL raw; C1 is escaped
-  too, so the file shows what is there). Every writer of TOML text goes through it.
+- :func:`toml_string`: a TOML basic string (``"..."``) of any text, in ASCII: the quotation
+  mark, the backslash, every control character (TOML refuses C0 and DEL raw) and every other
+  character escaped. Every writer of TOML text goes through it.
 - :func:`comment`: a name as it may stand in a TOML or XML comment, on one line
   (:func:`cochlea.errors.printable`), with nothing a comment cannot hold.
 """
@@ -43,27 +43,36 @@ def integer(text: str) -> int | None:
     return int(text)
 
 
-_TOML_ESCAPES = {0x22: '\\"', 0x5c: "\\\\", 0x08: "\\b", 0x09: "\\t", 0x0a: "\\n", 0x0c: "\\f",
-                 0x0d: "\\r"}
-_TOML_ESCAPES.update({c: f"\\u{c:04X}" for c in (*range(0x20), *range(0x7f, 0xa0))
-                      if c not in _TOML_ESCAPES})
+_TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f",
+                 "\r": "\\r"}
+
+
+def _escape(ch: str) -> str:
+    code = ord(ch)
+    if ch in _TOML_ESCAPES:
+        return _TOML_ESCAPES[ch]
+    if 0x20 <= code < 0x7f:
+        return ch
+    if 0xd800 <= code <= 0xdfff:
+        raise ValueError(f"{comment(ch)!r} is a byte that is not UTF-8: a TOML file cannot "
+                         "name it")
+    return f"\\u{code:04x}" if code <= 0xffff else f"\\U{code:08x}"
 
 
 def toml_string(text: str) -> str:
-    """``text`` as a TOML basic string, quotes included: ``it's "x"`` -> ``"it's \\"x\\""``.
+    """``text`` as a TOML basic string, quotes included, in ASCII: ``it's "x"`` ->
+    ``"it's \\"x\\""``; every control character (C0, DEL, C1) and every character beyond
+    ASCII as ``\\uXXXX`` (``\\UXXXXXXXX`` beyond the BMP, where JSON's surrogate pair is no
+    TOML). For text without DEL or characters beyond the BMP, the same as ``json.dumps``.
     Raises ValueError for a lone surrogate (a file name's byte that is not UTF-8, as Python
     carries it): no TOML string can hold one."""
-    for ch in text:
-        if 0xd800 <= ord(ch) <= 0xdfff:
-            raise ValueError(f"{printable(comment(text))!r} holds a byte that is not UTF-8: a "
-                             "TOML file cannot name it")
-    return '"' + text.translate(_TOML_ESCAPES) + '"'
+    return '"' + "".join(_escape(ch) for ch in text) + '"'
 
 
-def comment(text: str) -> str:
-    """``text`` fit for a comment line of a TOML file or of an XML document: control
-    characters as ``\\xNN`` (one line; TOML and XML refuse them raw), a lone surrogate as
-    ``\\udcNN``, and ``--`` (which ends nothing in TOML but may not appear inside an XML
-    comment) as ``-\\x2d``."""
+def comment(text: str, xml: bool = False) -> str:
+    """``text`` fit for a comment line of a TOML file (or, ``xml``, inside an XML comment):
+    control characters as ``\\xNN`` (one line; TOML and XML refuse them raw), a lone
+    surrogate as ``\\udcNN``; with ``xml``, ``--`` (which an XML comment may not hold) as
+    ``-\\x2d``."""
     out = printable(text).encode("utf-8", "backslashreplace").decode("utf-8")
-    return out.replace("--", "-\\x2d")
+    return out.replace("--", "-\\x2d") if xml else out

@@ -472,6 +472,31 @@ def test_an_output_that_is_an_input_or_another_output_is_refused(tmp_path, capsy
     assert urdf_named_toml.read_bytes() == ARM4.read_bytes()
 
 
+@pytest.mark.parametrize("name", ["it's", 'say "hi"', "back\\slash", "del\x7f", "esc\x1b[1m",
+                                  "new\nline", "smile\U0001F600", "bras articul\u00e9"])
+def test_any_file_name_gives_valid_toml_and_urdf(tmp_path, capsys, name):
+    """The starter names its description in a TOML string: written as '{x!r}', a quote or a
+    control character in --out's name made it invalid TOML (exit 0). The URDF's own name goes
+    into the description's header comment: a DEL, newline or ESC there made the import refuse
+    a valid URDF ("not a valid cochlea description: (syntax)"). Export's XML comment names
+    the description: '--' or a control character there is no XML."""
+    from cochlea.sim import load_scenario
+
+    folder = tmp_path / "r"
+    folder.mkdir()
+    urdf = folder / f"{name}.urdf"
+    urdf.write_bytes(ARM4.read_bytes())
+    out, starter = folder / f"{name}.toml", folder / "s.toml"
+    assert main(["import", str(urdf), "--out", str(out), "--scenario-out", str(starter)]) == 0, \
+        capsys.readouterr().err
+    assert load_scenario(starter).system.path == out
+    exported = folder / "x.urdf"
+    weird = folder / f"a--{name}-.toml"
+    weird.write_bytes(out.read_bytes())
+    assert main(["export", str(weird), "--out", str(exported)]) == 0
+    assert main(["import", str(exported), "--out", str(folder / "back.toml")]) == 0
+
+
 def test_a_starter_scenario_drives_a_prismatic_joint(tmp_path, capsys):
     """The fixture's prismatic joint has a <transmission>: the starter is written, moves it in
     metres, and its plan has a motor on every joint (the carriage's m/rad from the URDF)."""

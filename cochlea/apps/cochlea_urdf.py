@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots.urdf import export_urdf, import_urdf, load_chain, starter_scenario
-from ..text import decimal, integer
+from ..text import decimal, integer, toml_string
 from . import outputs
 
 
@@ -63,6 +63,11 @@ def _import(args: argparse.Namespace) -> None:
     _check(args.out, "--out", ".toml")
     if args.scenario_out is not None:
         _check(args.scenario_out, "--scenario-out", ".toml")
+    if args.scenario_out is not None:  # the starter names the description: a TOML string
+        try:
+            toml_string(_relative(args.out, args.scenario_out.parent))
+        except ValueError as exc:
+            raise CochleaError(f"--out {args.out}: {exc}") from None
     outputs.refuse_overlap([("--out", args.out)]
                            + ([("--scenario-out", args.scenario_out)]
                               if args.scenario_out is not None else []),

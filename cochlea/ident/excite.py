@@ -31,7 +31,6 @@ from ``numpy.random.default_rng(seed)``: the same options give the same trajecto
 
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 from dataclasses import dataclass, field
@@ -47,6 +46,7 @@ from ..robots import ROBOTS, ExcitationGeometry
 from ..robots import robot as robot_adapter
 from ..robots.urdf import starter_scenario
 from ..sim.scenario import load as load_scenario
+from ..text import comment, toml_string
 
 #: The joint-space studies tuned for the realistic plant (each robot's
 #: ``excitation_study``): their control settings and gains track the excitation too
@@ -628,7 +628,7 @@ def scenario_text(result: Design, command: str, description_ref: str | None = No
     lines = [
         f"# Excitation for identification of the {result.robot} robot's {result.unit} (issue 14),",
         "# made by cochlea-excite (docs/excitation.md):",
-        f"#   {command}",
+        f"#   {comment(command)}",
         f"# seed {options.seed}, {options.starts} starts of SLSQP, {options.iterations} "
         "iterations each.",
         "#",
@@ -661,13 +661,13 @@ def scenario_text(result: Design, command: str, description_ref: str | None = No
                                   (result.keep_out_volume_distance,
                                    "the description's keep-out volumes")) if v is not None]
     lines += [
-        f"# Control: the settings and gains of {study_name} (controller "
+        f"# Control: the settings and gains of {comment(study_name)} (controller "
         f"{study.controller}).",
         "# Every unit tracks its own desired_joint; the leader repeats the first unit's path.",
         "",
         'format = "cochlea-scenario/1"',
         f'robot = "{result.robot}"',
-        *([f"description = {json.dumps(description_ref)}"] if description_ref else []),
+        *([f"description = {toml_string(description_ref)}"] if description_ref else []),
         'space = "joint"',
         f"duration_s = {options.periods * options.period!r}",
         "",
@@ -685,15 +685,15 @@ def scenario_text(result: Design, command: str, description_ref: str | None = No
         "",
         "[desired]",
         "leader = [",
-        *[f'  "{text}",' for text in leader],
+        *[f"  {toml_string(text)}," for text in leader],
         "]",
     ]
     for unit in study.units:
         texts, pose = paths[unit.name]
-        lines += ["", "[[unit]]", f'name = "{unit.name}"',
+        lines += ["", "[[unit]]", f"name = {toml_string(unit.name)}",
                   "initial_joint = [" + ", ".join(f'"{float(v)!r} {kind}"'
                                                   for v, kind in zip(pose, kinds)) + "]",
-                  "desired_joint = [", *[f'  "{text}",' for text in texts], "]",
+                  "desired_joint = [", *[f"  {toml_string(text)}," for text in texts], "]",
                   "gains = { " + ", ".join(f"{k} = {_number_list(v)}"
                                            for k, v in unit.gains.items()) + " }"]
     joints = adapter.actuated_joints(system)

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import CochleaError
 from ..robots import RobotModel, robot
+from ..text import comment, toml_string
 from . import files
 
 _HEADER = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.-]+)\s*\]\]?\s*(#.*)?$")
@@ -102,7 +103,8 @@ def fit_values(robot_name: str, unit: str, system, lines, ab: np.ndarray) -> dic
     for ln, (a, b) in zip(lines, ab):
         a_d, b_d = ln.in_description_units(a, b)
         path = adapter.fit_key(system, unit, ln.joint, ln.name)
-        out[path] = (f'{{ a = {a_d:.6g}, b = {b_d:.6g}, x = "{ln.x}", y = "{ln.y}", '
+        out[path] = (f"{{ a = {a_d:.6g}, b = {b_d:.6g}, x = {toml_string(ln.x)}, "
+                     f"y = {toml_string(ln.y)}, "
                      'source = "identified" }')
     return out
 
@@ -193,13 +195,14 @@ def write_back(model: RobotModel, robot_name: str, unit: str, description: Path,
     edited = edit(text, values, description, fits)
     today = datetime.date.today().isoformat()
     what = f" ({unit})" if adapter.units_are_arms else ""
-    header = [f"# Dynamic parameters{what} identified by cochlea-identify on {today} ({how}),"]
+    header = [f"# Dynamic parameters{what} identified by cochlea-identify on {today} "
+              f"({comment(how)}),"]
     if fits:
         header += ["# and the current-to-torque fits of "
                    + ", ".join(f"{ln.name} (ID {ln.motor_id})" for ln in lines)
                    + " from the measured current (source = \"identified\"),"]
     header += ["# from the logs:"]
-    header += [f"#   {folder} (log.csv sha256 {digest})" for folder, digest in logs]
+    header += [f"#   {comment(str(folder))} (log.csv sha256 {digest})" for folder, digest in logs]
     edited = "\n".join(header) + "\n" + edited
     own = stage is None
     stage = files.Staged() if own else stage

@@ -11,7 +11,6 @@ The plant's noise seed is drawn the same way unless the spec fixes ``[perturb] s
 from __future__ import annotations
 
 import functools
-import json
 import math
 import tomllib
 import zlib
@@ -20,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..text import comment, toml_string
 from .spec import Entry, Spec
 
 #: Draws of a truncated normal before giving up (a mean far outside the range).
@@ -147,8 +147,8 @@ def scenario_text(spec: Spec, i: int, values: dict[str, Any] | None = None) -> s
     """Sample ``i``'s scenario file: ``cochlea-run --scenario`` on it runs exactly the sample
     (``values``: its :func:`inputs`, when the caller has them already)."""
     g, k = grid_point(spec, i)
-    head = (f"# Sample {i} (grid point {g}, draw {k}) of the sweep {spec.path.name} "
-            f"(seed {spec.seed}), from {spec.scenario_path.name}.\n"
+    head = (f"# Sample {i} (grid point {g}, draw {k}) of the sweep {comment(spec.path.name)} "
+            f"(seed {spec.seed}), from {comment(spec.scenario_path.name)}.\n"
             f"# cochlea-run --robot {spec.robot} --space {spec.space} --scenario THIS_FILE "
             "--realtime off\n\n")
     return head + dumps(scenario_data(spec, i, values))
@@ -169,7 +169,7 @@ def _value(v: Any) -> str:
             raise ValueError(f"{v} has no place in a scenario")
         return repr(v)  # the shortest text that reads back as the same double
     if isinstance(v, str):
-        return json.dumps(v)  # a TOML basic string: JSON's escapes are TOML's
+        return toml_string(v)  # JSON's escapes are not all TOML's (non-BMP, DEL)
     if isinstance(v, list):
         return "[" + ", ".join(_value(x) for x in v) + "]"
     if isinstance(v, dict):
@@ -179,7 +179,7 @@ def _value(v: Any) -> str:
 
 def _key(k: str) -> str:
     bare = k and all(c.isascii() and (c.isalnum() or c in "_-") for c in k)
-    return k if bare else json.dumps(k)
+    return k if bare else toml_string(k)
 
 
 def _is_tables(v: Any) -> bool:

@@ -55,6 +55,7 @@ from tqdm import tqdm
 from ..errors import CochleaError, DescriptionError
 from ..robots.description import Table, read_toml
 from ..sim import load_scenario
+from ..text import comment
 from . import execute, results, sampling
 from . import spec as sweep_spec
 from .spec import Entry, Spec
@@ -756,7 +757,7 @@ def write_tuned(out: Path, tune: Tune, chosen: dict | None) -> Path:
     which = ("the nominal gains: no trial beat them" if chosen["trial"] == "nominal"
              else f"trial {chosen['trial']}")
     length = f"{tune.spec.duration:g} s" if tune.spec.duration else "the scenario's duration"
-    header = (f"# Tuned by cochlea-tune from {tune.spec.path.name} ({which}): "
+    header = (f"# Tuned by cochlea-tune from {comment(tune.spec.path.name)} ({which}): "
               f"{tune.settings.objective} of the convergence ratio {chosen['objective']:.6g} "
               f"over {tune.size} perturbed runs of {length}.\n"
               f"# cochlea-run --robot {tune.spec.robot} --space {tune.spec.space} --scenario "

@@ -36,6 +36,7 @@ from ...errors import CochleaError
 from ...resources import ROBOTS_DIR
 from ...robots import ROBOTS
 from ...robots import robot as robot_adapter
+from ...text import comment
 from ..control_table import baud_code
 from ..drives import Fit, JointDrive, joint_drives
 from . import common
@@ -285,6 +286,7 @@ def edit_description(text: str, results: dict[int, tuple[int, float]], note: str
     """``text`` with ``direction`` and ``zero_offset_deg`` of each motor ID in ``results``
     replaced (``(direction, zero_offset_deg)``), found by key in its ``[..motor]`` table,
     everything else kept; the changed lines carry ``note`` as their comment."""
+    note = comment(note)  # one line, whatever --port held
     lines = text.splitlines(keepends=True)
     tables, current = {}, None
     for i, line in enumerate(lines):

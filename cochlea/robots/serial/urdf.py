@@ -32,7 +32,7 @@ import numpy as np
 from ... import files
 from ...dynamixel.control_table import MODELS as MOTOR_SPECS
 from ...errors import CochleaError, DescriptionError
-from ...text import decimal
+from ...text import comment, decimal, toml_string
 from ..description import (
     MAX_LENGTH_M,
     MAX_MOTOR_ID,
@@ -662,7 +662,8 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
     used_joints: set[str] = set()
     fits = sorted({m: motor_fit(m) for m in motors}.items())
     lines = [
-        f"# cochlea robot description imported from the URDF {source.name} by cochlea-urdf "
+        f"# cochlea robot description imported from the URDF {comment(source.name)} by "
+        "cochlea-urdf "
         "import.",
         "#",
         "# Units: every dimensional key names its unit in its suffix (_m, _kg, _kgm2, _deg, "
@@ -698,7 +699,8 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
     ]
     for link, drive in zip(chain, drives, strict=True):
         if drive.transmission is not None:
-            lines.append(f"# * the transmission of joint {link.joint.name!r}: {drive.source}; "
+            lines.append(f"# * the transmission of joint {comment(repr(link.joint.name))}: "
+                         f"{comment(drive.source)}; "
                          "its sign is the motor's direction.")
     if keep_out_radius is None:
         lines += ["# No keep_out_radius_m: no keep-out circle around the world origin "
@@ -708,13 +710,13 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
         lines.append(f"# keep_out_radius_m = {keep_out_radius!r} m: from cochlea-urdf import "
                      "--keep-out-radius-m.")
     if notes:
-        lines += ["#", "# Import notes:"] + [f"# * {n}" for n in notes]
+        lines += ["#", "# Import notes:"] + [f"# * {comment(n)}" for n in notes]
     lines += [
         "",
         'format = "cochlea-robot/1"',
         "",
         "[system]",
-        f'name = "{clean_name(robot_name, set(), "robot")}"',
+        f'name = {toml_string(clean_name(robot_name, set(), "robot"))}',
         'kind = "serial"',
         "gravity_m_s2 = [0.0, 0.0, -9.81]",
         *([] if keep_out_radius is None else [f"keep_out_radius_m = {keep_out_radius!r}"]),
@@ -733,14 +735,14 @@ def description_text(chain: list[ChainLink], source: Path, robot_name: str,
         lines += [
             "",
             "  [[arm.link]]",
-            f'  name = "{clean_name(link.name, used_links, "link")}"',
+            f'  name = {toml_string(clean_name(link.name, used_links, "link"))}',
             "  length_m = 0.0",
             f"  mass_kg = {_f(body.mass)}",
             f"  com_m = {_vec(body.com)}",
             f"  inertia_com_kgm2 = {_vec(six)}  # [Ixx, Iyy, Izz, Ixy, Ixz, Iyz]",
             "",
             "  [arm.link.joint]",
-            f'  name = "{clean_name(j.name, used_joints, "joint")}"',
+            f'  name = {toml_string(clean_name(j.name, used_joints, "joint"))}',
             f'  type = "{jtype}"',
             f"  axis = {_vec(j.axis)}",
             f"  origin_xyz_m = {_vec(link.xyz)}",
@@ -962,7 +964,8 @@ def export_urdf(system: SerialSystem, arm: Arm | None = None) -> str:
     world = "world" if "world" not in link_names else f"{arm.name}_world"
     root = ET.Element("robot", name=f"{system.name}_{arm.name}")
     root.append(ET.Comment(
-        f" written by cochlea-urdf export from {system.path.name}, arm {arm.name!r}. Not in "
+        f" written by cochlea-urdf export from {comment(system.path.name, xml=True)}, arm "
+        f"{arm.name!r}. Not in "
         "a URDF, so not here: the motors (model, ID, fit, offset), the armature, "
         "a prismatic joint's kind of transmission (its <transmission> has the ratio only, "
         "signed by the motor's direction), gravity (a URDF assumes -z; the description's is "
@@ -1087,7 +1090,8 @@ def starter_scenario(system: SerialSystem, description_ref: str) -> str:
               for c, a, u in zip(centres, amps, units)]
     start = [f'"{s:.6g} {u}"' for s, u in zip(starts, units)]
     return "\n".join([
-        f"# A starter joint-space scenario for {system.path.name}, written by cochlea-urdf "
+        f"# A starter joint-space scenario for {comment(system.path.name)}, written by "
+        "cochlea-urdf "
         "import.",
         f"# Each joint moves {STARTER_AMPLITUDE['revolute']:g} deg "
         f"({STARTER_AMPLITUDE['prismatic']:g} m for a prismatic joint; at most a tenth of its "
@@ -1102,7 +1106,7 @@ def starter_scenario(system: SerialSystem, description_ref: str) -> str:
         "",
         'format = "cochlea-scenario/1"',
         'robot = "serial"',
-        f"description = {description_ref!r}".replace("'", '"'),
+        f"description = {toml_string(description_ref)}",
         'space = "joint"',
         f"duration_s = {STARTER_DURATION_S:g}",
         "",
@@ -1118,7 +1122,7 @@ def starter_scenario(system: SerialSystem, description_ref: str) -> str:
         "leader = [" + ", ".join(leader) + "]",
         "",
         "[[unit]]",
-        f'name = "{arm.name}"',
+        f"name = {toml_string(arm.name)}",
         "initial_joint = [" + ", ".join(start) + "]",
         f"gains = {{ alpha = {_vec([alpha] * len(d))}, G_e = {_vec(G_e)}, K_e = {_vec(K_e)} }}",
         "",
