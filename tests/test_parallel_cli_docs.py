@@ -47,6 +47,23 @@ def test_cli_refuses_options_of_the_other_robot(argv, message, capsys):
     assert err.startswith("cochlea-model: ") and message in err
 
 
+@pytest.mark.parametrize("argv", [
+    ["serial", "--arm", "arm1", "--at-deg", "nan", "0", "0"],
+    ["serial", "--arm", "arm1", "--at-deg", "0", "inf", "0"],
+    ["serial", "--arm", "arm1", "--at-deg", "1_0", "0", "0"],  # float(): 10
+    ["parallel", "--at", "nan", "29", "0.073", "43", "150"],
+    ["parallel", "--at", "131.5", "29", "inf", "43", "150"],
+    ["parallel", "--at", "131.5", "1e300", "0.073", "43", "150"],
+], ids=["serial-nan", "serial-inf", "serial-underscore", "parallel-nan", "parallel-inf",
+        "parallel-huge"])
+def test_cli_refuses_a_configuration_that_is_not_a_finite_number(argv, capsys):
+    """Before, NaN and inf printed rows of NaN with exit 0."""
+    assert model_main(argv) == 2
+    captured = capsys.readouterr()
+    assert "expected a finite decimal number" in captured.err
+    assert len(captured.err.strip().splitlines()) == 1 and "nan" not in captured.out.lower()
+
+
 def test_cli_serial_unchanged(capsys):
     assert model_main(["serial", "--arm", "arm1", "--at-deg", "73", "83", "110"]) == 0
     out = capsys.readouterr().out

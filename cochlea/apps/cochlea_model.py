@@ -5,15 +5,38 @@ stops reading (``cochlea-model | head -1``) ends it quietly, with the shell's co
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 
 from ..console import EXIT_BROKEN_PIPE, stdout_was_closed, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS, robot
+from ..text import decimal
+
+#: A joint coordinate of --at-deg / --at beyond this (deg, or m) is a typo: ten turns of a
+#: revolute joint are 3600 deg, and no prismatic joint moves 10 km.
+MAX_COORDINATE = 1e4
+
+
+def _numbers(values: list[str] | None, option: str) -> list[float] | None:
+    """An option's values as finite numbers: NaN or inf printed a table of NaNs with exit 0,
+    and float() would read 1_0 as 10 (cochlea.text.decimal reads plain decimals only)."""
+    if values is None:
+        return None
+    out = []
+    for text in values:
+        value = decimal(text)
+        if value is None or not math.isfinite(value) or abs(value) > MAX_COORDINATE:
+            raise CochleaError(f"{option} {text!r}: expected a finite decimal number within "
+                               f"+-{MAX_COORDINATE:g}")
+        out.append(value)
+    return out
 
 
 def _print_summary(args: argparse.Namespace) -> None:
+    args.at_deg = _numbers(args.at_deg, "--at-deg")
+    args.at = _numbers(args.at, "--at")
     adapter = robot(args.robot)
     adapter.print_summary(adapter.load(args.description), args)
 
@@ -38,10 +61,10 @@ def main(argv: list[str] | None = None) -> int:
                              "mechanism's model is Lagrangian only")
     parser.add_argument("--description", help="a robot description TOML instead of the shipped "
                         "one (models/robots/)")
-    parser.add_argument("--at-deg", nargs="+", type=float, metavar="DEG",
+    parser.add_argument("--at-deg", nargs="+", metavar="DEG",
                         help="serial: joint angles in degrees (metres for a prismatic joint) "
                              "at which to evaluate M, G and the tool pose (default: all zero)")
-    parser.add_argument("--at", nargs=5, type=float, metavar="X",
+    parser.add_argument("--at", nargs=5, metavar="X",
                         help="parallel: th1 th2 d1 th1' th2' in deg, deg, m, deg, deg (default: "
                              "the joint-space scenario's start)")
     args = parser.parse_args(argv)
