@@ -189,6 +189,50 @@ def test_configuration_errors_name_the_key(tmp_path):
     assert (out / "serial_arm1.c").read_text() == "/* committed */\n"
 
 
+def _top(text: str, line: str) -> str:
+    """``text`` with its [[robot]] tables left out and ``line`` a top-level key."""
+    return text.replace('format = "cochlea-codegen/1"',
+                        f'format = "cochlea-codegen/1"\n{line}').split("[[robot]]", 1)[0]
+
+
+@pytest.mark.parametrize("edit, key, expected", [
+    (lambda t: t.replace("[[robot]]", "[robot]", 1).split("[[robot]]")[0], "robot",
+     "an array of tables; [robot] is one table"),
+    (lambda t: _top(t, "robot = 5"), "robot", "[[robot]] tables"),
+    (lambda t: _top(t, "robot = [1]"), "robot", "[[robot]] tables"),
+    (lambda t: re.sub(r"\[casadi\]\n(?:.*\n)*?\n", "", t, count=1).replace(
+        'format = "cochlea-codegen/1"', 'format = "cochlea-codegen/1"\ncasadi = 5'), "casadi",
+     "a table of CasADi options"),
+    (lambda t: t.replace("[casadi]\n", "[casadi]\nbogus_option = 1\n"), "casadi",
+     "Unrecognized option: bogus_option"),
+    (lambda t: t.replace("[function]\n", "[function]\nbogus_option = 1\n"), "function",
+     "Unknown option: bogus_option"),
+    (lambda t: t.replace("[function]\n", '[function]\ncse = "yes"\n').replace(
+        "cse = false", ""), "function", "Illegal type for cse"),
+    (lambda t: t.replace("cse = true", "cse = true\nbogus_option = 1"), "embedded.function",
+     "Unknown option: bogus_option"),
+    (lambda t: t.replace('units = ["arm1", "arm2"]', "units = [1, 2]", 1), "robot[0].units",
+     "a list of strings"),
+    (lambda t: t.replace("plant_substeps = 1", "plant_substeps = true", 1),
+     "robot[0].plant_substeps", "an integer"),
+    (lambda t: t.replace("plant_substeps = 1", "plant_substeps = 1000000000", 1),
+     "robot[0].plant_substeps", "in 1..100"),
+    (lambda t: "a = " + "[" * 100_000 + "]" * 100_000 + "\n" + t, "", "nested too deep"),
+], ids=["robot-table", "robot-int", "robot-list-int", "casadi-int", "casadi-unknown",
+        "function-unknown", "function-type", "embedded-function-unknown", "units-int",
+        "substeps-bool", "substeps-huge", "deep"])
+def test_a_configuration_of_the_wrong_shape_is_one_clear_error(tmp_path, edit, key, expected):
+    """Each of these was a TypeError, a RecursionError or CasADi's own RuntimeError (the
+    embedded one only after every kernel was generated), or a misleading message."""
+    path = tmp_path / "k.toml"
+    path.write_text(edit((CODEGEN_DIR / "kernels.toml").read_text()))
+    with pytest.raises(CodegenError) as err:
+        load_config(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: {key}") and expected in message, message
+    assert "\n" not in message and len(message) < 400 + len(str(path))
+
+
 def _manifest_json() -> dict:
     text = (GENERATED / "manifest.c").read_text()
     body = text.split("static const char manifest[] =\n", 1)[1].split(";\n", 1)[0]

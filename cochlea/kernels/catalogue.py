@@ -105,7 +105,49 @@ _OPTIONAL = {"plant_actuators": ["none"], "controller_actuators": ["none"], "pla
 
 
 def _fail(path: Path, key: str, expected: str, got: object) -> CodegenError:
-    return CodegenError(f"{path}: {key}: expected {expected}, got {got!r}")
+    shown = repr(got)
+    shown = shown if len(shown) <= 120 else shown[:120] + "..."
+    return CodegenError(f"{path}: {key}: expected {expected}, got {shown}")
+
+
+#: Most RK4 sub-steps a period a configuration may ask for: each is a copy of the dynamics in
+#: the generated C (the shipped kernels use 1).
+MAX_PLANT_SUBSTEPS = 100
+_NOUN = {str: "a string", int: "an integer", bool: "a boolean", list: "a list"}
+#: The element type of each list of a [[robot]] table.
+_LIST_ITEMS = {"units": str, "kernels": str, "controllers": str, "variants": str, "task": str,
+               "task_angles": int, "plant_actuators": str, "controller_actuators": str}
+
+
+def _casadi_message(exc: Exception) -> str:
+    """CasADi's refusal in a few words: its lines without the source locations."""
+    lines = [re.sub(r"^.*?\.(?:cpp|hpp):\d+:\s*", "", line).strip()
+             for line in str(exc).splitlines()]
+    lines = [line for line in lines if line and not line.startswith("Error in ")]
+    for i, line in enumerate(lines):  # CasADi's list of every option that exists
+        if line.startswith("Did you mean"):
+            lines = lines[:i]
+            break
+    return "; ".join(lines)[:200] or type(exc).__name__
+
+
+def _options(path: Path, key: str, table: object, kind: str) -> dict:
+    """A table of CasADi options, checked by CasADi itself now (an unknown option or a wrong
+    type), not after kernels are generated: ``kind`` ``"codegen"`` (casadi.CodeGenerator's) or
+    ``"function"`` (casadi.Function's)."""
+    if not isinstance(table, dict):
+        raise _fail(path, key, "a table of CasADi options", table)
+    options = dict(table)
+    try:
+        if kind == "codegen":
+            ca.CodeGenerator("check.c", dict(options))
+        else:
+            x = ca.SX.sym("x")
+            ca.Function("check", [x], [x], ["x"], ["y"], dict(options))
+    except (RuntimeError, TypeError, ValueError, NotImplementedError, OverflowError) as exc:
+        raise CodegenError(f"{path}: {key}: CasADi refuses these options: "
+                           f"{_casadi_message(exc)}") from None
+    return options
 
 
 def load_config(path: str | Path = CONFIG) -> CodegenConfig:
@@ -121,6 +163,9 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
         raise  # cochlea-codegen says "not UTF-8" itself
     except (OSError, ValueError) as exc:  # ValueError: TOML's, or a 4300-digit integer
         raise CodegenError(f"{path}: cannot read the codegen configuration: {exc}") from exc
+    except RecursionError:  # tables or arrays nested thousands deep
+        raise CodegenError(f"{path}: cannot read the codegen configuration: nested too "
+                           "deep") from None
     top = {"format", "output", "library", "casadi", "function", "robot", "embedded"}
     for key in data:
         if key not in top:
@@ -131,15 +176,25 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
         if not isinstance(data.get(key), str) or not data[key]:
             raise _fail(path, key, "a non-empty string", data.get(key))
     robots = []
-    for i, table in enumerate(data.get("robot", [])):
+    tables = data.get("robot", [])
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise _fail(path, "robot", "[[robot]] tables (an array of tables; [robot] is one table)",
+                    tables)
+    for i, table in enumerate(tables):
         where = f"robot[{i}]"
         for key in table:
             if key not in _ROBOT_KEYS:
                 raise _fail(path, f"{where}.{key}", "one of " + ", ".join(_ROBOT_KEYS), key)
         table = {**_OPTIONAL, **table}
         for key, kind in _ROBOT_KEYS.items():
-            if not isinstance(table.get(key), kind):
-                raise _fail(path, f"{where}.{key}", f"a {kind.__name__}", table.get(key))
+            if not isinstance(table.get(key), kind) or (kind is int
+                                                        and isinstance(table[key], bool)):
+                raise _fail(path, f"{where}.{key}", _NOUN[kind], table.get(key))
+            item = _LIST_ITEMS.get(key)
+            if item is not None and not all(isinstance(v, item) and not isinstance(v, bool)
+                                            for v in table[key]):
+                raise _fail(path, f"{where}.{key}", f"a list of {_NOUN[item].split()[1]}s",
+                            table[key])
         for kind in table["controllers"]:
             if kind not in KINDS or KINDS[kind][0] != table["name"]:
                 raise _fail(path, f"{where}.controllers", f"controllers of {table['name']}",
@@ -153,9 +208,9 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
                     or len(set(table[key])) != len(table[key]):
                 raise _fail(path, f"{where}.{key}", "distinct options of "
                             + ", ".join(ACTUATORS), table[key])
-        if table["plant_substeps"] < 1:
-            raise _fail(path, f"{where}.plant_substeps", "a positive integer",
-                        table["plant_substeps"])
+        if not 1 <= table["plant_substeps"] <= MAX_PLANT_SUBSTEPS:
+            raise _fail(path, f"{where}.plant_substeps",
+                        f"an integer in 1..{MAX_PLANT_SUBSTEPS}", table["plant_substeps"])
         if len(table["task"]) != 2:
             raise _fail(path, f"{where}.task", "[fk, J]", table["task"])
         robots.append(RobotConfig(
@@ -168,11 +223,12 @@ def load_config(path: str | Path = CONFIG) -> CodegenConfig:
     if not robots:
         raise _fail(path, "robot", "at least one [[robot]] table", [])
     embedded = _embedded_config(path, data.get("embedded", {}))
+    casadi = _options(path, "casadi", data.get("casadi", {}), "codegen")
+    function = _options(path, "function", data.get("function", {}), "function")
     # The output folder is relative to the checkout (or, installed, the working directory).
     root = checkout() or Path.cwd()
     return CodegenConfig(path, (root / data["output"]).resolve(), data["library"],
-                         dict(data.get("casadi", {})), dict(data.get("function", {})),
-                         tuple(robots), embedded)
+                         casadi, function, tuple(robots), embedded)
 
 
 def _embedded_config(path: Path, table: object) -> EmbeddedConfig:
@@ -193,7 +249,9 @@ def _embedded_config(path: Path, table: object) -> EmbeddedConfig:
             raise _fail(path, "embedded.scenarios", "scenario names (C identifiers)", name)
     if len(set(scenarios)) != len(scenarios):
         raise _fail(path, "embedded.scenarios", "distinct names", scenarios)
-    return EmbeddedConfig(folder, tuple(scenarios), dict(table.get("function", {"cse": True})))
+    function = _options(path, "embedded.function", table.get("function", {"cse": True}),
+                        "function")
+    return EmbeddedConfig(folder, tuple(scenarios), function)
 
 
 # --------------------------------------------------------------------------------------------
