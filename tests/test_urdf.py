@@ -391,6 +391,34 @@ def test_a_description_name_casadi_cannot_take_is_one_line(tmp_path, name):
     assert "\n" not in str(err.value)
 
 
+def _chain_urdf(n: int, name: str = "j") -> str:
+    body = ['<robot name="long"><link name="l0"/>']
+    for i in range(1, n + 1):
+        body.append(f'<link name="l{i}"><inertial><mass value="0.1"/><inertia ixx="1e-4" '
+                    'iyy="1e-4" izz="1e-4" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+                    f'<joint name="{name}{i}" type="revolute"><parent link="l{i - 1}"/>'
+                    f'<child link="l{i}"/><origin xyz="0.05 0 0"/><axis xyz="0 0 1"/>'
+                    '<limit lower="-1" upper="1" velocity="1" effort="1"/></joint>')
+    return "".join(body) + "</robot>"
+
+
+def test_a_chain_longer_than_an_arm_is_refused_in_a_short_line(tmp_path, capsys):
+    """A 17-joint chain: before, imported (and cochlea-model ran for seconds to minutes as the
+    chain grew); a 5000-joint one was refused with a 29 KB line about --ids the user never
+    gave. Now a short line about the chain's length; other lists of names stay bounded."""
+    long = tmp_path / "long.urdf"
+    long.write_text(_chain_urdf(17), encoding="utf-8")
+    line = _run_bad(tmp_path, capsys, [str(long)])
+    assert "the chain has 17 moving joints" in line and "at most 16" in line
+    assert "--ids" not in line
+    long.write_text(_chain_urdf(5000), encoding="utf-8")
+    assert len(_run_bad(tmp_path, capsys, [str(long)])) < 300
+    named = tmp_path / "named.urdf"
+    named.write_text(_chain_urdf(3, "j" + "x" * 5000), encoding="utf-8")
+    assert len(_run_bad(tmp_path, capsys, [str(named), "--ids", "1,2"])) < 400
+    assert len(_run_bad(tmp_path, capsys, [str(named), "--motor", "nope=MX-64"])) < 400
+
+
 def test_file_level_mistakes_are_one_line(tmp_path, capsys):
     assert "no such file" in _run_bad(tmp_path, capsys, [str(tmp_path / "missing.urdf")])
     assert "a folder" in _run_bad(tmp_path, capsys, [str(tmp_path)])

@@ -33,6 +33,12 @@ from ..description import (
     resolve_path,
 )
 
+#: Most joints (links) of one arm. The symbolic model's cost grows about with the cube of the
+#: joints (cochlea-model on a chain of n joints, this 2-core machine: 16 joints 1.3 s, 20 3.2 s,
+#: 24 4.9 s, 30 11 s and 0.4 GB, 60 over 2 min and 3.3 GB), and the controllers and C kernels
+#: cost more again; 16 keeps a model within seconds and is twice a 7-DoF arm's joints.
+MAX_JOINTS = 16
+
 # --------------------------------------------------------------------------------------------
 # Dataclasses (SI units)
 # --------------------------------------------------------------------------------------------
@@ -286,7 +292,12 @@ def _read_arm(t: Table) -> Arm:
     tool_rpy = None if tool_rpy is None else np.radians(tool_rpy)
     links = []
     parent_length = 0.0  # the first joint sits at the base origin unless told otherwise
-    for lt in t.tables("link", "the links from base to tip"):
+    link_tables = t.tables("link", "the links from base to tip")
+    if len(link_tables) > MAX_JOINTS:
+        raise DescriptionError(t.path, t.key("link"), f"at most {MAX_JOINTS} [[arm.link]] tables "
+                               " (a joint each: the model's cost grows with the cube of "
+                               f"the joints), not {len(link_tables)}")
+    for lt in link_tables:
         link = _read_link(lt, parent_length)
         links.append(link)
         parent_length = link.length

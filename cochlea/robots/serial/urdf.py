@@ -42,7 +42,7 @@ from ..description import (
     Transmission,
 )
 from .chain import tool_offset
-from .description import Arm, SerialSystem, load_serial, rpy_matrix
+from .description import MAX_JOINTS, Arm, SerialSystem, load_serial, rpy_matrix
 from .model import build_model
 
 #: A file angle this close to a multiple of pi/12 (15 deg) is snapped to it.
@@ -813,8 +813,8 @@ def assign_transmissions(path, urdf: Urdf, chain: list[ChainLink],
                             "extend=lead_screw:0.008 (m of travel per motor turn)")
         link = by_name.get(joint)
         if link is None:
-            raise UrdfError(f"--transmission {option!r}: the chain has no joint {joint!r}; its "
-                            "joints: " + ", ".join(by_name))
+            raise UrdfError(f"--transmission {_short(option)}: the chain has no joint "
+                            f"{_short(joint)}; its joints: " + _listed(list(by_name)))
         if link.joint.type != "prismatic":
             raise UrdfError(f"--transmission {option!r}: joint {joint!r} is {link.joint.type}: "
                             "only a prismatic joint has a transmission (a revolute joint is "
@@ -856,9 +856,24 @@ def assign_transmissions(path, urdf: Urdf, chain: list[ChainLink],
     return out, notes
 
 
+def _short(text: str, size: int = 40) -> str:
+    """A name from the file or an option as a message shows it: quoted, at most ``size``
+    characters."""
+    return repr(text if len(text) <= size else text[:size] + "...")
+
+
+def _listed(names: list[str], most: int = MAX_JOINTS) -> str:
+    """Names for a one-line message: each shortened, at most ``most`` of them."""
+    shown = ", ".join(_short(n)[1:-1] for n in names[:most])
+    return shown + (f", ... ({len(names)} in all)" if len(names) > most else "")
+
+
 def assign_motors(path, chain: list[ChainLink], motor_options: list[str] | None,
                   ids: list[int] | None) -> tuple[list[str], list[int]]:
     """Each joint's motor model (``MODEL`` for all, ``JOINT=MODEL`` for one) and ID."""
+    if len(chain) > MAX_JOINTS:  # before any message lists the joints
+        raise UrdfError(f"{path}: the chain has {len(chain)} moving joints; a cochlea arm has "
+                        f"at most {MAX_JOINTS} (choose a shorter one with --base and --tip)")
     known = ", ".join(sorted(DATASHEET_STALL))
     default, per_joint = DEFAULT_MOTOR, {}
     joint_names = [link.joint.name for link in chain]
@@ -869,8 +884,8 @@ def assign_motors(path, chain: list[ChainLink], motor_options: list[str] | None,
         if not sep:
             default = model
         elif joint not in joint_names:
-            raise UrdfError(f"--motor {option!r}: the chain has no joint {joint!r}; its joints: "
-                            + ", ".join(joint_names))
+            raise UrdfError(f"--motor {_short(option)}: the chain has no joint {_short(joint)}; "
+                            "its joints: " + _listed(joint_names))
         else:
             per_joint[joint] = model
     motors = [per_joint.get(name, default) for name in joint_names]
@@ -878,7 +893,7 @@ def assign_motors(path, chain: list[ChainLink], motor_options: list[str] | None,
         ids = list(range(1, len(chain) + 1))
     if len(ids) != len(chain):
         raise UrdfError(f"--ids gives {len(ids)} IDs for the chain's {len(chain)} joints ("
-                        + ", ".join(joint_names) + ")")
+                        + _listed(joint_names) + ")")
     if len(set(ids)) != len(ids) or not all(0 <= i <= MAX_MOTOR_ID for i in ids):
         raise UrdfError(f"--ids {ids}: distinct integers in 0..{MAX_MOTOR_ID} are needed")
     return motors, ids
