@@ -14,8 +14,11 @@ The checkout itself (``checkout()``) holds what is not shipped: ``generated_c/``
 
 from __future__ import annotations
 
+import os
 from importlib import resources
 from pathlib import Path
+
+from .errors import CochleaError
 
 
 def checkout() -> Path | None:
@@ -43,10 +46,32 @@ CODEGEN_DIR = DATA / "codegen"
 PACKAGED_LIBRARY = Path(str(resources.files("cochlea") / "lib" / "libcochlea.so"))
 
 
+class AmbiguousName(CochleaError):
+    """A bare name that is both a shipped file's and a local file's or folder's."""
+
+
 def shipped(folder: Path, name_or_path: str | Path) -> Path:
     """A bare name such as ``"serial"`` means ``<folder>/serial.toml``; anything else (a name
-    with a ``.toml`` suffix or a folder part) is a path of the user's."""
+    with a ``.toml`` suffix or a folder part, ``./serial`` included) is a path of the user's.
+
+    A bare name that is also a file or folder in the working directory is refused
+    (:class:`AmbiguousName`, whose text says how to name either): loading the shipped robot
+    when ``./serial`` is the user's own description would run the wrong robot silently.
+    (A default, which the user did not type, is passed as the shipped file's path.)"""
+    text = str(name_or_path)
     candidate = Path(name_or_path)
+    if (isinstance(name_or_path, str) and text.startswith(("./", ".\\"))) or not text:
+        return candidate
     if candidate.suffix != ".toml" and candidate.parent == Path("."):
+        if os.path.lexists(candidate):
+            mine = (f"the {'folder' if os.path.isdir(candidate) else 'file'} "
+                    f"{os.path.abspath(text)} here")
+            ship = folder / f"{text}.toml"
+            raise AmbiguousName(
+                (f"{text!r} names both the shipped {ship} and {mine}" if ship.is_file() else
+                 f"{text!r}, a bare name, means the shipped {ship} (there is none), not {mine}")
+                + f": give {os.path.join('.', text)} or its full path for yours"
+                + (", or run from another folder for the shipped one" if ship.is_file()
+                   else ""))
         return folder / f"{candidate}.toml"
     return candidate

@@ -146,6 +146,28 @@ def test_an_arm_of_more_than_16_joints_is_refused(tmp_path):
     assert "not 17" in str(info.value)
 
 
+def test_a_bare_name_that_is_also_a_local_file_or_folder_is_refused(tmp_path, monkeypatch,
+                                                                     capsys):
+    """`--description serial` with a folder ./serial loaded the shipped arms; a local file
+    `myarm` was reported as models/robots/myarm.toml. Now the bare name is refused, naming
+    both; `./myarm` is the local file; no option (the default) is the shipped one."""
+    from cochlea.apps.cochlea_model import main as model_main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "serial").mkdir()
+    (tmp_path / "myarm").write_text(SERIAL)
+    assert model_main(["serial", "--description", "serial"]) == 2
+    err = capsys.readouterr().err
+    assert "names both the shipped" in err and str(tmp_path / "serial") in err
+    assert model_main(["serial", "--description", "myarm"]) == 2
+    err = capsys.readouterr().err
+    assert "(there is none)" in err and str(tmp_path / "myarm") in err and "./myarm" in err
+    assert model_main(["serial", "--description", "./myarm"]) == 0
+    assert "description: myarm" in capsys.readouterr().out
+    assert model_main(["serial"]) == 0  # the default: the shipped file
+    assert load_serial("./myarm").path.name == "myarm"
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(DescriptionError, match="expected an existing robot description file"):
         load_serial(tmp_path / "nowhere.toml")

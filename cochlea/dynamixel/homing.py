@@ -57,7 +57,8 @@ _ENTRY_FLOATS = ("stop_m", "ratio_m_per_rad")
 def description_id(robot: str, description: str | Path | None) -> str:
     """What a record says it was made for: :data:`SHIPPED` for the shipped description of the
     kind ``robot`` (None, its bare name, or its file), else the description's resolved path."""
-    path = shipped(ROBOTS_DIR, description if description is not None else robot)
+    path = (shipped(ROBOTS_DIR, description) if description is not None
+            else ROBOTS_DIR / f"{robot}.toml")
     resolved = Path(path).expanduser().resolve()
     if resolved == (ROBOTS_DIR / f"{robot}.toml").resolve():
         return SHIPPED

@@ -28,7 +28,7 @@ import numpy as np
 from .. import files
 from ..control.gains import controller_of
 from ..errors import CochleaError, DescriptionError
-from ..resources import SCENARIOS_DIR, shipped
+from ..resources import ROBOTS_DIR, SCENARIOS_DIR, shipped
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
@@ -553,7 +553,10 @@ def _load(path: Path, plant_preset: str | None, data: dict) -> tuple[Scenario, A
         description = str(path.parent / named)
     duration = top.number("duration_s", "a positive number (s)", lambda v: v > 0)
     adapter = robot_adapter(robot)
-    system = load_system(robot, description)
+    # No description key: the shipped one, by its path (a bare name is refused where a file
+    # or folder of that name is in the working directory: cochlea.resources.shipped).
+    system = load_system(robot, description if "description" in data
+                         else ROBOTS_DIR / f"{robot}.toml")
 
     c = top.table("control")
     task = None

@@ -18,6 +18,7 @@ import casadi as ca
 import numpy as np
 
 from ...errors import CochleaError, KinematicsError
+from ...resources import ROBOTS_DIR
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
@@ -135,7 +136,8 @@ class ParallelRobot(RobotAdapter):
                           "up")
 
     def load(self, description: str | Path | None = None) -> ParallelSystem:
-        return load_parallel(description if description is not None else self.name)
+        return load_parallel(description if description is not None
+                             else ROBOTS_DIR / f"{self.name}.toml")  # a default: the shipped file
 
     def model(self, system: ParallelSystem, arm: str | None = None,
               parameterisation: str = "inertial", method: str | None = None,

@@ -16,6 +16,7 @@ import casadi as ca
 import numpy as np
 
 from ...errors import CochleaError, KinematicsError, ModelError
+from ...resources import ROBOTS_DIR
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
@@ -280,7 +281,8 @@ class SerialRobot(RobotAdapter):
     positive_direction = "counter-clockwise seen from above"
 
     def load(self, description: str | Path | None = None) -> SerialSystem:
-        return load_serial(description if description is not None else self.name)
+        return load_serial(description if description is not None
+                           else ROBOTS_DIR / f"{self.name}.toml")  # a default: the shipped file
 
     def model(self, system: SerialSystem, arm: str | Arm | None = None,
               parameterisation: str = "inertial", method: str | None = None,
