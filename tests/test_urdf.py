@@ -434,6 +434,9 @@ def test_option_mistakes_are_one_line(tmp_path, capsys):
     assert "no joint 'elbow'" in _run_bad(tmp_path, capsys, [arm4, "--motor", "elbow=MX-64"])
     assert "4 joints" in _run_bad(tmp_path, capsys, [arm4, "--ids", "1,2,3"])
     assert "distinct" in _run_bad(tmp_path, capsys, [arm4, "--ids", "1,1,2,3"])
+    with pytest.raises(SystemExit):  # an empty item: was read as 1,2,3,4
+        main(["import", arm4, "--out", str(tmp_path / "o.toml"), "--ids", "1,,2,3,4"])
+    assert "'1,,2,3,4'" in capsys.readouterr().err
     # int() and float() take "1_0" (10), "nan" and other scripts' digits: argparse refuses
     for option, value in [("--ids", "1,2,3,1_0"), ("--ids", "1,2,3,\u0664"),
                           ("--keep-out-radius-m", "1_0"), ("--keep-out-radius-m", "nan")]:
@@ -523,6 +526,21 @@ def test_any_file_name_gives_valid_toml_and_urdf(tmp_path, capsys, name):
     weird.write_bytes(out.read_bytes())
     assert main(["export", str(weird), "--out", str(exported)]) == 0
     assert main(["import", str(exported), "--out", str(folder / "back.toml")]) == 0
+
+
+def test_the_starter_stays_inside_a_tiny_joint_range(tmp_path, capsys):
+    """A joint whose range is 5.7e-6 deg wide around 57.29578 deg: the centre written with
+    .6g (57.2958) lay outside it, and the starter was refused when loaded."""
+    from cochlea.sim import load_scenario, unit_setups
+
+    urdf = tmp_path / "tiny.urdf"
+    urdf.write_text(_edit('lower="-1.8" upper="1.8"', 'lower="1.0" upper="1.0000001"')(
+        ARM4.read_text(encoding="utf-8")), encoding="utf-8")
+    out, starter = tmp_path / "robot.toml", tmp_path / "s.toml"
+    assert main(["import", str(urdf), "--out", str(out), "--scenario-out", str(starter)]) == 0
+    (setup,) = unit_setups(load_scenario(starter))
+    lo, hi = load_serial(out).arms[0].links[1].joint.position_limits
+    assert lo <= setup.x0[1] <= hi
 
 
 def test_a_starter_scenario_drives_a_prismatic_joint(tmp_path, capsys):

@@ -22,7 +22,7 @@ from . import outputs
 
 
 def _ids(text: str) -> list[int]:
-    ids = [integer(x) for x in text.split(",") if x.strip()]  # ASCII digits only ("1_0": no)
+    ids = [integer(x) for x in text.split(",")]  # ASCII digits only ("1_0": no), none empty
     if None in ids:
         raise argparse.ArgumentTypeError(f"{text!r}: comma-separated integers, e.g. 1,2,3")
     return ids

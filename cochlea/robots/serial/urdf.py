@@ -1101,9 +1101,11 @@ def starter_scenario(system: SerialSystem, description_ref: str) -> str:
     G_e = [float(f"{10.0 * x:.3g}") for x in d]
     K_e = [float(f"{25.0 * x:.3g}") for x in d]
     w = 2 * math.pi / STARTER_PERIOD_S
-    leader = [f'"{"" if c == 0 else f"{c:.6g} + "}{a:.6g}*sin({w:.6g}*t) {u}"'
+    # Centre and start with every digit (repr): .6g could round a pose of a tiny range onto
+    # or past its limit.
+    leader = [f'"{"" if c == 0 else f"{c!r} + "}{a:.6g}*sin({w:.6g}*t) {u}"'
               for c, a, u in zip(centres, amps, units)]
-    start = [f'"{s:.6g} {u}"' for s, u in zip(starts, units)]
+    start = [f'"{float(s)!r} {u}"' for s, u in zip(starts, units)]
     return "\n".join([
         f"# A starter joint-space scenario for {comment(system.path.name)}, written by "
         "cochlea-urdf "
