@@ -232,6 +232,63 @@ def test_damaged_logs_are_refused_in_one_line_naming_the_file(log, tmp_path, cap
     assert not out.exists() and not list(tmp_path.glob("*.png"))
 
 
+def _edited(log: Path, folder: Path, edit) -> Path:
+    """A copy of ``log`` whose data (time, q, qd, tau of arm1, a float array) ``edit`` changed
+    in place."""
+    header = (log / "log.csv").read_text().split("\n", 1)[0]
+    data = np.loadtxt(log / "log.csv", delimiter=",", skiprows=1)
+    edit(data)
+    folder.mkdir()
+    np.savetxt(folder / "log.csv", data, delimiter=",", header=header, comments="",
+               fmt="%.10g")
+    return folder
+
+
+def _tau(data: np.ndarray) -> np.ndarray:
+    return data[:, 7:10]
+
+
+UNIT_MISTAKES = {
+    # positions in degrees under the _rad columns, whole turns off, efforts in mN m
+    "degrees": (lambda d: d.__setitem__((slice(None), slice(1, 4)), np.degrees(d[:, 1:4])),
+                "arm1.q.joint1_rad", "row 1 of the data", "degrees"),
+    "offset": (lambda d: d.__setitem__((slice(2000, None), 2), d[2000:, 2] + 1000.0),
+               "arm1.q.joint2_rad", "row 2001 of the data", "offset"),
+    "millinewton_metres": (lambda d: _tau(d).__imul__(1000.0), "arm1.tau.joint1_Nm",
+                           "effort limit 2.5 N m", "mN m"),
+    "out_of_range": (lambda d: _tau(d).__imul__(1e300), "arm1.tau.joint1_Nm",
+                     "row 1 of the data", "corrupt"),
+    # efforts not recorded: zero, or one constant
+    "zero": (lambda d: _tau(d).__imul__(0.0), "arm1.tau.joint1_Nm", "no signal", "0 N m"),
+    "constant": (lambda d: d.__setitem__((slice(None), 9), 0.25), "arm1.tau.joint3_Nm",
+                 "no signal", "on every row"),
+    # time_s off its uniform grid: a 100 s gap, a repeated row, an irregular clock
+    "gap": (lambda d: d.__setitem__((slice(2000, None), 0), d[2000:, 0] + 100.0), "time_s",
+            "row 2001 of the data", "uniform grid"),
+    "repeated": (lambda d: d.__setitem__((11, 0), d[10, 0]), "time_s", "row 12 of the data",
+                 "strictly increasing"),
+    "irregular": (lambda d: d.__setitem__((slice(None), 0), np.cumsum(
+        np.random.default_rng(0).uniform(0.2e-3, 1.8e-3, len(d)))), "time_s", "row ",
+        "uniform grid"),
+}
+
+
+@pytest.mark.parametrize("case", list(UNIT_MISTAKES))
+def test_unit_mistakes_and_bad_time_are_refused_naming_column_row_and_cause(
+        log, tmp_path, capsys, case):
+    # Each was fitted and written with exit 0: estimates 1000 times nominal (mN m), positions
+    # 57 times their size (degrees), filters on a grid with a 100 s hole; all-zero efforts
+    # crashed with LinAlgError (SVD did not converge), huge ones wrote NaN into the report.
+    edit, column, where, cause = UNIT_MISTAKES[case]
+    folder = _edited(log, tmp_path / case, edit)
+    out = tmp_path / "ident.json"
+    err = _refused(capsys, cochlea_identify.main,
+                   [str(folder), *FIT, "--out", str(out), "--no-figures"], EXIT_USER_ERROR)
+    assert str(folder / "log.csv") in err and column in err and where in err \
+        and cause in err, err
+    assert not out.exists()
+
+
 # ---- hostile numbers and malformed options ----------------------------------------------------
 
 
