@@ -272,6 +272,17 @@ def test_a_design_identify_would_refuse_is_not_written(tmp_path, capsys):
     assert "--max-condition" in err and list(tmp_path.iterdir()) == []
 
 
+def test_a_task_space_tracking_scenario_is_refused_in_one_line(tmp_path, capsys):
+    # It crashed in the band's check: TypeError, iteration over a 0-d array.
+    out = tmp_path / "x.toml"
+    code = cochlea_excite.main(["--robot", "serial", "--scenario", "serial_task", "--out",
+                                str(out)])
+    err = capsys.readouterr().err
+    assert code == EXIT_USER_ERROR and err.count("\n") == 1, err
+    assert "--scenario serial_task" in err and "task-space" in err and "joint" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.slow
 def test_infeasible_limits_clear_error():
     # Torques within 1e-4 of their limits: the parallel mechanism's gravity alone needs more.

@@ -243,7 +243,8 @@ def _same_file(a, b) -> bool:
 def tracking_study(robot: str, system, tracking: str | Path | None = None):
     """``(scenario, how to name it)``: the joint-space scenario whose control settings and
     gains track the excitation:
-    ``tracking`` where given (it must run the same description); else the robot's
+    ``tracking`` where given (it must be a joint-space scenario running the same
+    description); else the robot's
     :attr:`excitation_study` when the description is the one it was made for (or a copy:
     ``is_shipped``); else (a
     user's robot) the gentle starter scenario ``cochlea-urdf`` writes for the description
@@ -251,6 +252,12 @@ def tracking_study(robot: str, system, tracking: str | Path | None = None):
     adapter = robot_adapter(robot)
     if tracking is not None:
         study = load_scenario(tracking)
+        if study.space != "joint":
+            # Its gains are for the task-space controller, and its units' initial states are
+            # no joint poses: the excitation is tracked in joint space.
+            raise CochleaError(f"--scenario {tracking}: a {study.space}-space scenario; the "
+                               "excitation is tracked in joint space: give a joint-space "
+                               "scenario (space = \"joint\") of the same description")
         if study.robot != robot or not (_same_file(study.system.path, system.path)
                                         or study.system.name == system.name):
             raise CochleaError(f"--scenario {tracking}: it runs {study.robot} "
