@@ -16,6 +16,7 @@ import pytest
 from cochlea.apps import cochlea_excite
 from cochlea.errors import EXIT_USER_ERROR, CochleaError, DescriptionError
 from cochlea.ident import excite
+from cochlea.ident.estimate import DEFAULT_MAX_CONDITION
 from cochlea.robots import model as build_model
 from cochlea.robots import robot as robot_adapter
 from cochlea.robots.serial import excitation as serial_excitation
@@ -130,7 +131,10 @@ def _without_gearbox(path):
     path.write_text(path.read_text() + BEFORE_GEARBOX)
 
 
-@pytest.mark.parametrize("robot,extra", [("serial", ["--arm", "arm2"]), ("parallel", [])])
+#: Two starts for the parallel mechanism: with one (25 iterations) its design's scaled
+#: condition number is 1.4e4, above cochlea-identify's default limit, and refused.
+@pytest.mark.parametrize("robot,extra", [("serial", ["--arm", "arm2"]),
+                                         ("parallel", ["--starts", "2"])])
 @pytest.mark.slow
 def test_scenario_loads_and_tracks_without_a_stop(tmp_path, capsys, robot, extra):
     code, out = _write(tmp_path, f"{robot}.toml", "--robot", robot, *extra)
@@ -207,6 +211,9 @@ BAD = [
     (["--robot", "serial", "--harmonics", "1"], "--harmonics"),
     (["--robot", "serial", "--amplitude-deg", "0"], "--amplitude-deg"),
     (["--robot", "serial", "--amplitude-deg", "-5"], "--amplitude-deg"),
+    # A band of a few encoder counts (the design's condition number was 2.5e16, exit 0).
+    (["--robot", "serial", "--amplitude-deg", "1e-9"], "--amplitude-deg"),
+    (["--robot", "parallel", "--amplitude-mm", "1e-6"], "--amplitude-mm"),
     (["--robot", "parallel", "--amplitude-mm", "inf"], "--amplitude-mm"),
     (["--robot", "serial", "--periods", "0"], "--periods"),
     (["--robot", "serial", "--periods", "1000", "--period", "600"], "--periods"),
@@ -249,6 +256,31 @@ def test_bad_out_one_line_exit_5(tmp_path, capsys, where):
     err = capsys.readouterr().err
     assert code == cochlea_excite.EXIT_OUTPUT_REFUSED and err.count("\n") == 1 and "--out" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+@pytest.mark.slow
+def test_a_design_identify_would_refuse_is_not_written(tmp_path, capsys):
+    # 1 deg, two harmonics, five iterations: scaled condition number 1.4e5; it was written,
+    # exit 0, and cochlea-identify would have refused the log of its run.
+    out = tmp_path / "x.toml"
+    code = cochlea_excite.main(["--robot", "serial", "--period", "1", "--harmonics", "2",
+                                "--starts", "1", "--iterations", "5", "--periods", "1",
+                                "--amplitude-deg", "1", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == EXIT_USER_ERROR and err.count("\n") == 1, err
+    assert "condition number" in err and f"above {DEFAULT_MAX_CONDITION:g}" in err
+    assert "--max-condition" in err and list(tmp_path.iterdir()) == []
+
+
+def test_a_task_space_tracking_scenario_is_refused_in_one_line(tmp_path, capsys):
+    # It crashed in the band's check: TypeError, iteration over a 0-d array.
+    out = tmp_path / "x.toml"
+    code = cochlea_excite.main(["--robot", "serial", "--scenario", "serial_task", "--out",
+                                str(out)])
+    err = capsys.readouterr().err
+    assert code == EXIT_USER_ERROR and err.count("\n") == 1, err
+    assert "--scenario serial_task" in err and "task-space" in err and "joint" in err
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.slow

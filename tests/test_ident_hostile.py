@@ -7,6 +7,7 @@ motion of arm1 and its nominal inverse dynamics), so every fit takes about a sec
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -14,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +25,9 @@ import cochlea
 from cochlea.apps import cochlea_excite, cochlea_identify
 from cochlea.apps.cochlea_identify import EXIT_DUPLICATE_LOG, EXIT_OUTPUT_REFUSED, EXIT_WRITE_FAILED
 from cochlea.errors import EXIT_USER_ERROR
-from cochlea.ident import files
+from cochlea.ident import estimate, files
 from cochlea.ident.cli import EXIT_TERMINATED, Terminated, exit_code, sigterm_unwinds
+from cochlea.ident.logs import read_run
 
 ROOT = Path(__file__).resolve().parent.parent
 FIT = ["--robot", "serial", "--min-speed", "0", "--effort-lag", "0"]
@@ -230,6 +233,109 @@ def test_damaged_logs_are_refused_in_one_line_naming_the_file(log, tmp_path, cap
                    EXIT_USER_ERROR)
     assert "regular file" in err
     assert not out.exists() and not list(tmp_path.glob("*.png"))
+
+
+def _edited(log: Path, folder: Path, edit) -> Path:
+    """A copy of ``log`` whose data (time, q, qd, tau of arm1, a float array) ``edit`` changed
+    in place."""
+    header = (log / "log.csv").read_text().split("\n", 1)[0]
+    data = np.loadtxt(log / "log.csv", delimiter=",", skiprows=1)
+    edit(data)
+    folder.mkdir()
+    np.savetxt(folder / "log.csv", data, delimiter=",", header=header, comments="",
+               fmt="%.10g")
+    return folder
+
+
+def _tau(data: np.ndarray) -> np.ndarray:
+    return data[:, 7:10]
+
+
+UNIT_MISTAKES = {
+    # positions in degrees under the _rad columns, whole turns off, efforts in mN m
+    "degrees": (lambda d: d.__setitem__((slice(None), slice(1, 4)), np.degrees(d[:, 1:4])),
+                "arm1.q.joint1_rad", "row 1 of the data", "degrees"),
+    "offset": (lambda d: d.__setitem__((slice(2000, None), 2), d[2000:, 2] + 1000.0),
+               "arm1.q.joint2_rad", "row 2001 of the data", "offset"),
+    "millinewton_metres": (lambda d: _tau(d).__imul__(1000.0), "arm1.tau.joint1_Nm",
+                           "effort limit 2.5 N m", "mN m"),
+    "out_of_range": (lambda d: _tau(d).__imul__(1e300), "arm1.tau.joint1_Nm",
+                     "row 1 of the data", "corrupt"),
+    # efforts not recorded: zero, or one constant
+    "zero": (lambda d: _tau(d).__imul__(0.0), "arm1.tau.joint1_Nm", "no signal", "0 N m"),
+    "constant": (lambda d: d.__setitem__((slice(None), 9), 0.25), "arm1.tau.joint3_Nm",
+                 "no signal", "on every row"),
+    # time_s off its uniform grid: a 100 s gap, a repeated row, an irregular clock
+    "gap": (lambda d: d.__setitem__((slice(2000, None), 0), d[2000:, 0] + 100.0), "time_s",
+            "row 2001 of the data", "uniform grid"),
+    "repeated": (lambda d: d.__setitem__((11, 0), d[10, 0]), "time_s", "row 12 of the data",
+                 "strictly increasing"),
+    "irregular": (lambda d: d.__setitem__((slice(None), 0), np.cumsum(
+        np.random.default_rng(0).uniform(0.2e-3, 1.8e-3, len(d)))), "time_s", "row ",
+        "uniform grid"),
+}
+
+
+@pytest.mark.parametrize("case", list(UNIT_MISTAKES))
+def test_unit_mistakes_and_bad_time_are_refused_naming_column_row_and_cause(
+        log, tmp_path, capsys, case):
+    # Each was fitted and written with exit 0: estimates 1000 times nominal (mN m), positions
+    # 57 times their size (degrees), filters on a grid with a 100 s hole; all-zero efforts
+    # crashed with LinAlgError (SVD did not converge), huge ones wrote NaN into the report.
+    edit, column, where, cause = UNIT_MISTAKES[case]
+    folder = _edited(log, tmp_path / case, edit)
+    out = tmp_path / "ident.json"
+    err = _refused(capsys, cochlea_identify.main,
+                   [str(folder), *FIT, "--out", str(out), "--no-figures"], EXIT_USER_ERROR)
+    assert str(folder / "log.csv") in err and column in err and where in err \
+        and cause in err, err
+    assert not out.exists()
+
+
+def test_zero_residuals_weigh_the_joints_equally():
+    # An exact fit (every residual zero) gave 1 / 1e-312 = inf weights, then NaN in the
+    # weighted regressor and "SVD did not converge".
+    W = np.eye(6)
+    joint = np.tile(np.arange(3), 2)
+    ols = estimate.LeastSquares(np.zeros(6), np.zeros(6), np.zeros(3))
+    with np.errstate(all="raise"):
+        weights = estimate.joint_weights(W, np.zeros(6), joint, 3, ols)
+    assert np.array_equal(weights, np.ones(6))
+
+
+@pytest.mark.slow
+def test_a_fit_out_of_floating_point_range_is_one_line_and_writes_nothing(
+        log, tmp_path, capsys, monkeypatch):
+    # Past the log's checks (read_run replaced), efforts of 1e300 N m: the fit overflows. It
+    # printed ~20 RuntimeWarnings and wrote estimates and NRMS as NaN / Infinity, exit 0.
+    m = cochlea.model("serial", parameterisation="base", actuators="all")
+    good = read_run(log, m, "serial", "arm1")
+    monkeypatch.setattr(cochlea_identify, "read_run", lambda *a: dataclasses.replace(
+        good, tau=good.tau * 1e300))
+    out = tmp_path / "ident.json"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        err = _refused(capsys, cochlea_identify.main, [str(log), *FIT, "--out", str(out)],
+                       EXIT_USER_ERROR)
+    assert "not finite" in err or "inf" in err, err
+    assert "units" in err and list(tmp_path.iterdir()) == []
+    # A linear-algebra failure anywhere in the fit is one line too, not a traceback.
+    monkeypatch.setattr(cochlea_identify, "read_run", lambda *a: good)
+
+    def no_convergence(*a, **k):
+        raise np.linalg.LinAlgError("SVD did not converge")
+    monkeypatch.setattr(estimate, "_solve", no_convergence)
+    err = _refused(capsys, cochlea_identify.main, [str(log), *FIT, "--out", str(out)],
+                   EXIT_USER_ERROR)
+    assert "SVD did not converge" in err and list(tmp_path.iterdir()) == []
+
+
+def test_a_report_with_a_non_finite_number_is_refused():
+    doc = {"parameters": [{"name": "b1", "wls": 1.0}, {"name": "b2", "wls": math.nan}],
+           "condition_number": None}
+    with pytest.raises(estimate.NumericalError, match=r"parameters\[1\]\.wls is nan"):
+        cochlea_identify._check_finite(doc)
+    cochlea_identify._check_finite({"a": [1.0, None, 2], "b": "inf"})  # null and text pass
 
 
 # ---- hostile numbers and malformed options ----------------------------------------------------

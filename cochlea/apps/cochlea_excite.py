@@ -18,6 +18,7 @@ from pathlib import Path
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import files
 from ..ident.cli import OneLineParser, Terminated, exit_code, sigterm_unwinds
+from ..ident.estimate import DEFAULT_MAX_CONDITION
 from ..ident.excite import ExcitationOptions, check_options, design, scenario_text
 from ..robots import ROBOTS, robot
 from ..sim.scenario import load as load_scenario
@@ -135,6 +136,19 @@ def _description_ref(args: argparse.Namespace) -> str | None:
         return os.path.abspath(path)
 
 
+def check_condition(result) -> None:
+    """Refuse a design that ``cochlea-identify`` would refuse at its default
+    ``--max-condition`` (:data:`cochlea.ident.estimate.DEFAULT_MAX_CONDITION`, on the same
+    column-scaled condition number): running it would record a log that identifies nothing."""
+    limit = DEFAULT_MAX_CONDITION
+    if not result.scaled_condition <= limit:
+        raise CochleaError(
+            f"the designed excitation of {result.unit} is not good enough to identify from: its "
+            f"scaled condition number is {result.scaled_condition:.3g}, above {limit:g} (the "
+            "largest cochlea-identify accepts by default, --max-condition); nothing written: "
+            "raise --amplitude-deg / --amplitude-mm, --harmonics, --starts or --iterations")
+
+
 def _command(argv: list[str] | None) -> str:
     words = sys.argv[1:] if argv is None else argv
     return "cochlea-excite " + " ".join(shlex.quote(w) for w in words)
@@ -151,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         inputs = tuple(Path(p) for p in (args.description, args.scenario) if p)
         check_out(args.out, args.force, inputs)
         result = design(args.robot, args.arm, options, args.description, args.scenario)
+        check_condition(result)
         text = scenario_text(result, _command(argv), _description_ref(args))
         # Written under a temporary name beside --out, renamed when complete and checked: a
         # full disk or an I/O error leaves no partial file and the previous one as it was.

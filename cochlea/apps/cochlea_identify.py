@@ -18,6 +18,8 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..ident import current as current_fit
 from ..ident import estimate, files, writeback
@@ -150,6 +152,22 @@ def _report(args, m, unit, logs, validate, result, physical) -> dict:
                            "prediction_nrms_percent":
                                [_finite(x) for x in result.prediction_nrms(physical.base)]}
     return doc
+
+
+def _check_finite(doc, where: str = "") -> None:
+    """Refuse a report holding a NaN or an infinity (JSON has no such number; a reader would
+    take the token, or fail on it): every number it holds is finite, or null where the
+    report says what null means. Named by its place in the report."""
+    if isinstance(doc, dict):
+        for key, value in doc.items():
+            _check_finite(value, f"{where}.{key}" if where else str(key))
+    elif isinstance(doc, (list, tuple)):
+        for i, value in enumerate(doc):
+            _check_finite(value, f"{where}[{i}]")
+    elif isinstance(doc, float) and not math.isfinite(doc):
+        raise estimate.NumericalError(f"the report's {where} is {doc}, not a finite number: "
+                                      "the logs' numbers are out of the range the fit can "
+                                      "take; check their units")
 
 
 def _timing_report(result: estimate.Identification, logs) -> dict:
@@ -305,8 +323,13 @@ def run(args) -> int:
                                  args.max_condition, args.min_speed, effort_lag,
                                  parallel, args.guard_s, args.sample_times, max_bus)
     result = estimate.identify(m, logs, validate or None, settings, lines)
-    physical = _physical(m, result) if args.physical else None
+    try:
+        physical = _physical(m, result) if args.physical else None
+    except np.linalg.LinAlgError as exc:
+        raise estimate.NumericalError(f"--physical: the physically consistent fit failed "
+                                      f"numerically ({exc})") from None
     doc = _report(args, m, unit, logs, validate, result, physical)
+    _check_finite(doc)
     written = []
     # Every output is written under a temporary name beside its target and renamed only when
     # all are complete: a full disk or an I/O error leaves the previous files as they were.
@@ -332,7 +355,7 @@ def run(args) -> int:
             figures.torque_figure(result, stage.path(torques))
             figures.parameter_figure(result, stage.path(parameters))
             doc["figures"] = [str(torques), str(parameters)]
-        stage.write_text(out, json.dumps(doc, indent=2) + "\n")
+        stage.write_text(out, json.dumps(doc, indent=2, allow_nan=False) + "\n")
         stage.commit()
     _print_table(doc)
     print(f"  wrote {out}" + "".join(f", {p}" for p in written + doc.get("figures", [])))

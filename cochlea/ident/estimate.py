@@ -616,7 +616,11 @@ def joint_weights(W: np.ndarray, y: np.ndarray, joint: np.ndarray, n_joints: int
         if rows.any():
             dof = max(rows.sum() * (m - n_b) / m, 1.0)
             sigma[j] = np.sqrt(np.sum(r[rows] ** 2) / dof)
-    sigma = np.maximum(sigma, 1e-12 * max(sigma.max(), 1e-300))  # an exact joint: no 1/0
+    if not (np.isfinite(sigma).all() and sigma.max() > 0.0):
+        # Every residual zero (an exact fit) or out of range: no joint to prefer, and 1/0
+        # (or 1/inf) would poison the weighted fit; equal weights.
+        return np.ones(len(joint))
+    sigma = np.maximum(sigma, 1e-12 * sigma.max())  # an exact joint: no 1/0
     return 1.0 / sigma[joint]
 
 
@@ -628,9 +632,11 @@ def nrms(measured: np.ndarray, predicted: np.ndarray, mask: np.ndarray | None = 
     out = np.full(measured.shape[1], np.inf)
     for j in range(measured.shape[1]):
         rows = mask[:, j]
-        size = np.sqrt(np.mean(measured[rows, j] ** 2)) if rows.any() else 0.0
-        if size > 0:
-            err = np.sqrt(np.mean((measured[rows, j] - predicted[rows, j]) ** 2))
+        # Both RMS values in units of the largest effort: no square overflows.
+        scale = float(np.max(np.abs(measured[rows, j]))) if rows.any() else 0.0
+        if scale > 0 and math.isfinite(scale):
+            size = np.sqrt(np.mean((measured[rows, j] / scale) ** 2))
+            err = np.sqrt(np.mean(((measured[rows, j] - predicted[rows, j]) / scale) ** 2))
             out[j] = 100.0 * err / size
     return out
 
@@ -719,12 +725,74 @@ def _check_excited(model: RobotModel, W: np.ndarray, settings: Settings, where: 
     return cond
 
 
+class NumericalError(LogError):
+    """The fit of these logs is not a finite number (or its linear algebra failed): their
+    numbers are out of the range least squares can take."""
+
+
 def identify(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | None = None,
              settings: Settings = Settings(), lines: tuple[Line, ...] | list[Line] = ()
              ) -> Identification:
     """OLS and WLS base parameters of ``model`` from ``logs``; validated on ``validate``, or
     without it on the last ``settings.holdout`` of every log (each log's own tail). With
-    ``lines``, also those joints' current-to-torque lines (:mod:`cochlea.ident.current`)."""
+    ``lines``, also those joints' current-to-torque lines (:mod:`cochlea.ident.current`).
+
+    Refuses (:class:`NumericalError`, one line) a fit whose estimates, standard errors,
+    residuals, weights or held-out predictions are not finite, or whose linear algebra fails
+    (an SVD that does not converge): numpy's overflow warnings are not printed, the refusal
+    says it once."""
+    where = ", ".join(str(log.folder) for log in logs)
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+            result = _identify_logs(model, logs, validate, settings, lines)
+            check_finite(result, where)
+    except np.linalg.LinAlgError as exc:
+        raise NumericalError(f"{where}: the least-squares fit failed numerically ({exc}): "
+                             "check the logs' units and that every joint moved") from None
+    return result
+
+
+def check_finite(result: Identification, where: str) -> None:
+    """Refuse an identification with a non-finite estimate, standard error, residual, weight
+    or held-out prediction (NaN, or an infinity an overflow left), naming the first."""
+    names = list(result.model.parameters.names)
+    checks = [("OLS estimate", result.ols.beta), ("OLS standard error", result.ols.std_error),
+              ("WLS estimate", result.wls.beta), ("WLS standard error", result.wls.std_error)]
+    if result.line_wls is not None:
+        checks += [("current-to-torque line", result.line_wls.ravel()),
+                   ("current-to-torque line's standard error", result.line_wls_std.ravel())]
+    for what, values in checks:
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            i = int(bad[0])
+            label = names[i] if what.startswith(("OLS", "WLS")) else f"#{i + 1}"
+            raise NumericalError(f"{where}: the fit's {what} of {label} is {values[i]} "
+                                 f"({bad.size} non-finite): the logs' numbers are out of the "
+                                 "range least squares can take; check their units")
+    joints = list(result.model.joint_names)
+    for what, values in (("residual (OLS)", result.ols.residual_rms),
+                         ("residual (WLS)", result.wls.residual_rms),
+                         ("held-out NRMS (WLS)", result.prediction_nrms()),
+                         ("held-out NRMS (OLS)", result.prediction_nrms(result.ols.beta)),
+                         ("held-out NRMS (all samples)",
+                          result.prediction_nrms(moving=False))):
+        # A held-out NRMS is infinite by definition where the joint's held-out effort is all
+        # zero (reported as null); NaN, or an infinite residual, is an overflow.
+        bad = np.flatnonzero(np.isnan(values) if "NRMS" in what else ~np.isfinite(values))
+        if bad.size:
+            j = int(bad[0])
+            raise NumericalError(f"{where}: the fit's {what} of {joints[j]} is {values[j]}: "
+                                 "the logs' numbers are out of the range least squares can "
+                                 "take; check their units")
+    if not np.isfinite(result.weights).all():
+        raise NumericalError(f"{where}: the fit's weights are not finite: the logs' numbers "
+                             "are out of the range least squares can take; check their units")
+
+
+def _identify_logs(model: RobotModel, logs: list[RunLog], validate: list[RunLog] | None,
+                   settings: Settings, lines: tuple[Line, ...] | list[Line]
+                   ) -> Identification:
+    """:func:`identify` without its numerical checks."""
     from scipy import optimize  # noqa: PLC0415 (start-up time: see the imports)
     lines = tuple(lines)
     if validate is None and not MIN_HOLDOUT <= settings.holdout <= MAX_HOLDOUT:

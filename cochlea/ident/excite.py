@@ -64,6 +64,11 @@ AGGREGATION_SHARPNESS = 400.0
 MIN_SAMPLES = 100
 #: Rate (Hz) of the final check of the designed trajectory: cochlea-run's control rate.
 CHECK_RATE_HZ = 1000.0
+#: Smallest band a joint may be asked to move in (``--amplitude-deg``, ``--amplitude-mm``):
+#: about ten encoder counts of a directly driven Dynamixel joint (0.088 deg a count); below
+#: it the motion is mostly quantisation and no parameter is excited.
+MIN_AMPLITUDE_RAD = math.radians(1.0)
+MIN_AMPLITUDE_M = 0.001
 
 
 @dataclass(frozen=True)
@@ -238,7 +243,8 @@ def _same_file(a, b) -> bool:
 def tracking_study(robot: str, system, tracking: str | Path | None = None):
     """``(scenario, how to name it)``: the joint-space scenario whose control settings and
     gains track the excitation:
-    ``tracking`` where given (it must run the same description); else the robot's
+    ``tracking`` where given (it must be a joint-space scenario running the same
+    description); else the robot's
     :attr:`excitation_study` when the description is the one it was made for (or a copy:
     ``is_shipped``); else (a
     user's robot) the gentle starter scenario ``cochlea-urdf`` writes for the description
@@ -246,6 +252,12 @@ def tracking_study(robot: str, system, tracking: str | Path | None = None):
     adapter = robot_adapter(robot)
     if tracking is not None:
         study = load_scenario(tracking)
+        if study.space != "joint":
+            # Its gains are for the task-space controller, and its units' initial states are
+            # no joint poses: the excitation is tracked in joint space.
+            raise CochleaError(f"--scenario {tracking}: a {study.space}-space scenario; the "
+                               "excitation is tracked in joint space: give a joint-space "
+                               "scenario (space = \"joint\") of the same description")
         if study.robot != robot or not (_same_file(study.system.path, system.path)
                                         or study.system.name == system.name):
             raise CochleaError(f"--scenario {tracking}: it runs {study.robot} "
@@ -463,10 +475,13 @@ def check_options(options: ExcitationOptions) -> None:
         (2 <= options.harmonics <= 20,
          f"--harmonics must be between 2 and 20 (two at least: the series starts and ends at "
          f"rest), got {options.harmonics}"),
-        (math.isfinite(options.amplitude_rad) and 0 < options.amplitude_rad <= math.pi,
-         f"--amplitude-deg must be in (0, 180], got {math.degrees(options.amplitude_rad):g}"),
-        (math.isfinite(options.amplitude_m) and 0 < options.amplitude_m <= 1.0,
-         f"--amplitude-mm must be in (0, 1000], got {options.amplitude_m * 1000:g}"),
+        (math.isfinite(options.amplitude_rad) and
+         MIN_AMPLITUDE_RAD <= options.amplitude_rad <= math.pi,
+         f"--amplitude-deg must be in [{math.degrees(MIN_AMPLITUDE_RAD):g}, 180] (a band of "
+         f"a few encoder counts excites nothing), got {math.degrees(options.amplitude_rad):g}"),
+        (math.isfinite(options.amplitude_m) and MIN_AMPLITUDE_M <= options.amplitude_m <= 1.0,
+         f"--amplitude-mm must be in [{MIN_AMPLITUDE_M * 1000:g}, 1000] (a band of a few "
+         f"encoder counts excites nothing), got {options.amplitude_m * 1000:g}"),
         (1 <= options.periods <= 1000,
          f"--periods must be between 1 and 1000, got {options.periods}"),
         (options.periods * options.period <= 3600.0,

@@ -44,6 +44,25 @@ TIMING = ("start_lateness_s", "compute_s", "backend_io_s")
 #: Largest log.csv read (bytes): an hour at 1 kHz of the serial system is about 1.5 GB;
 #: identification runs are minutes long.
 MAX_LOG_BYTES = 2 * 1024**3
+#: ``time_s`` is the control loop's nominal grid ``k h`` (every writer logs it so; the real
+#: times of a real-time run are in the timing columns): the filters assume it uniform. A step
+#: more than this factor above or below the median step (a gap where the run was paused or
+#: two runs were spliced, a jittered or rounded clock) is refused, naming the row.
+MAX_STEP_RATIO = 1.5
+#: Positions are refused outside each joint's position limits (the description's) widened by
+#: this fraction of the joint's range, at least :data:`MIN_POSITION_MARGIN` (rad or m): room
+#: for an overshoot at a limit, none for degrees logged under a ``_rad`` column, millimetres
+#: under ``_m`` or an encoder offset of whole turns.
+POSITION_MARGIN = 0.1
+MIN_POSITION_MARGIN = {"revolute": 0.1, "prismatic": 0.005}
+#: Efforts are refused beyond this multiple of the joint's effort limit (the description's;
+#: every command is clipped to it): a factor a drive cannot reach, so mN m logged as N m
+#: (x1000) or a corrupt column is caught, a command at its limit is not.
+MAX_EFFORT_MULTIPLE = 3.0
+#: An effort column whose range over the log is at most this fraction of the joint's effort
+#: limit carries no signal (all zero, or constant: efforts not recorded, or a column zeroed):
+#: every estimate would be zero and the joint's weight 1/0.
+FLAT_EFFORT = 1e-9
 
 
 class LogError(CochleaError):
@@ -173,7 +192,10 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
     """The signals of ``unit`` (an arm of the serial system, or ``mechanism``) in the run
     folder ``folder`` (or a log.csv itself), refused with one :class:`LogError` when the
     folder, the file or a column is missing, a value is not a number or not finite (the row
-    is named), time does not increase, or the log belongs to the other robot."""
+    is named), time does not increase on a uniform grid, a position lies outside its joint's
+    limits or an effort far beyond its drive's (a unit mistake: the column, row and likely
+    cause named), an effort column carries no signal, or the log belongs to the other
+    robot."""
     folder = Path(folder)
     file = folder / "log.csv" if folder.is_dir() else folder
     if not folder.exists():
@@ -243,9 +265,89 @@ def read_run(folder: str | Path, model: RobotModel, robot: str, unit: str) -> Ru
     if len(data) < 2:
         raise LogError(f"{file}: expected at least two rows of data under the header, got "
                        f"{len(data)}")
-    if not (np.diff(data[:, 0]) > 0).all():
-        raise LogError(f"{file}: expected time_s strictly increasing over at least two rows")
+    _check_time(file, data[:, 0])
     n = model.nq
+    _check_signals(file, model, names, data[:, 1:1 + n], data[:, 1 + 2 * n:1 + 3 * n])
     return RunLog(folder, file, _sha256(file), unit, data[:, 0], data[:, 1:1 + n],
                   data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:1 + 3 * n],
                   data[:, 1 + 3 * n:1 + 4 * n] if has_current else None, timing)
+
+
+def _check_time(file: Path, time: np.ndarray) -> None:
+    """``time_s`` strictly increasing on a uniform grid (:data:`MAX_STEP_RATIO`): the first
+    row that breaks it is named."""
+    step = np.diff(time)
+    back = np.flatnonzero(~(step > 0))
+    if back.size:
+        row = int(back[0]) + 1
+        raise LogError(f"{file}: expected time_s strictly increasing, but row {row + 1} of the "
+                       f"data (line {row + 2}) is at {time[row]:.10g} s, not after the row "
+                       f"before it ({time[row - 1]:.10g} s): a repeated or reordered row, or "
+                       "times too large for their step to show")
+    median = float(np.median(step))
+    off = np.flatnonzero((step > MAX_STEP_RATIO * median) | (step < median / MAX_STEP_RATIO))
+    if off.size:
+        row = int(off[0]) + 1
+        raise LogError(f"{file}: expected time_s on a uniform grid (the control period, "
+                       f"{median:.4g} s here), but row {row + 1} of the data (line {row + 2}) "
+                       f"comes {step[row - 1]:.4g} s after the row before it ({off.size} such "
+                       f"step{'s' if off.size > 1 else ''}): a gap (a paused or spliced run) "
+                       "or an irregular clock; the filters need one rate: identify the parts "
+                       "on either side as separate logs")
+
+
+def _joint_units(kind: str) -> tuple[str, str]:
+    return ("rad", "N m") if kind == "revolute" else ("m", "N")
+
+
+def _check_signals(file: Path, model: RobotModel, names: list[str], q: np.ndarray,
+                   tau: np.ndarray) -> None:
+    """Positions inside the joints' limits (:data:`POSITION_MARGIN`), efforts within
+    :data:`MAX_EFFORT_MULTIPLE` of their limits and each effort column carrying a signal
+    (:data:`FLAT_EFFORT`): a unit mistake (degrees, mN m) or a column that was not recorded,
+    named with its first row and the likely cause, before anything is fitted."""
+    n = model.nq
+    for i, j in enumerate(model.joints):
+        length = _joint_units(j.type)[0]
+        lo, hi = j.position_limits
+        margin = max(POSITION_MARGIN * (hi - lo), MIN_POSITION_MARGIN[j.type])
+        column = q[:, i]
+        out = np.flatnonzero((column < lo - margin) | (column > hi + margin))
+        if out.size:
+            row = int(out[0])
+            if j.type == "revolute":
+                scaled = np.radians(column)
+                cause = "degrees logged under a _rad column?"
+            else:
+                scaled = column / 1000.0
+                cause = "millimetres logged under a _m column?"
+            if not ((scaled >= lo - margin) & (scaled <= hi + margin)).all():
+                cause = ("an encoder offset, another description's joint or a corrupt "
+                         "column?")
+            raise LogError(f"{file}: {names[1 + i]} is {column[row]:.6g} {length} at row "
+                           f"{row + 1} of the data (line {row + 2}), outside joint {j.name}'s "
+                           f"limits [{lo:.4g}, {hi:.4g}] {length} by more than {margin:.3g} "
+                           f"{length} ({out.size} such row{'s' if out.size > 1 else ''}): {cause}")
+    for i, j in enumerate(model.joints):
+        force = _joint_units(j.type)[1]
+        name = names[1 + 2 * n + i]
+        column = tau[:, i]
+        limit = j.effort_limit
+        big = np.flatnonzero(np.abs(column) > MAX_EFFORT_MULTIPLE * limit)
+        if big.size:
+            row = int(big[0])
+            cause = ("efforts in mN m logged as N m?" if j.type == "revolute" else
+                     "forces in mN logged as N?") \
+                if (np.abs(column) / 1000.0 <= MAX_EFFORT_MULTIPLE * limit).all() else \
+                "a scaled or corrupt column?"
+            raise LogError(f"{file}: {name} is {column[row]:.6g} {force} at row {row + 1} of "
+                           f"the data (line {row + 2}), beyond {MAX_EFFORT_MULTIPLE:g} times "
+                           f"joint {j.name}'s effort limit {limit:g} {force} ({big.size} such "
+                           f"row{'s' if big.size > 1 else ''}): {cause}")
+        spread = float(np.ptp(column))
+        if spread <= FLAT_EFFORT * limit:
+            raise LogError(f"{file}: {name} carries no signal: "
+                           + (f"{column[0]:.6g} {force} on every row" if spread == 0 else
+                              f"it varies by {spread:.3g} {force} over the log")
+                           + ": expected the commanded effort of a moving joint (efforts not "
+                           "recorded, or a column zeroed)")
