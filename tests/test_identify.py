@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
@@ -253,6 +254,22 @@ def _copy_log(src: Path, dst: Path, edit) -> Path:
     lines = (src / "log.csv").read_text().splitlines(keepends=True)
     (dst / "log.csv").write_text("".join(edit(lines)))
     return dst
+
+
+@pytest.mark.slow
+def test_an_output_is_never_one_of_the_runs_own_files(serial_run, tmp_path, capsys):
+    """--out naming the summary.json of a run folder being read is refused in one line; the
+    summary is unchanged (the log.csv alone was protected before)."""
+    tmp, _ = serial_run
+    folder = tmp_path / "m"
+    shutil.copytree(tmp / "measured", folder)
+    shutil.copy(tmp / "run" / "summary.json", folder / "summary.json")
+    before = (folder / "summary.json").read_bytes()
+    assert main([str(folder), "--robot", "serial", "--no-figures", "--out",
+                 str(folder / "summary.json")]) == EXIT_OUTPUT_REFUSED
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is the input" in err and "summary.json" in err
+    assert (folder / "summary.json").read_bytes() == before
 
 
 @pytest.mark.slow

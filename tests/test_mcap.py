@@ -439,6 +439,25 @@ def test_bad_outputs(capsys, tmp_path, runs):
 
 
 @pytest.mark.slow
+def test_the_runs_own_files_are_never_the_output(capsys, tmp_path, runs):
+    """An --out that is one of the run's own files (its log, summary, raw log, column list, a
+    figure), by its name, through a link or by another path to the folder, is refused before
+    anything is written: the run's files are left byte for byte (a probe found log.csv and
+    summary.json replaced by the MCAP, exit 0)."""
+    run = copy_run(runs, tmp_path)
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    (tmp_path / "alias").symlink_to(run)
+    (tmp_path / "link.mcap").symlink_to(run / "log.csv")
+    for out in [run / name for name in ("log.csv", "summary.json", "log.bin",
+                                        "log.columns.json", "paths.png")] + [
+            tmp_path / "alias" / "summary.json", run / ".." / "run" / "log.bin",
+            tmp_path / "link.mcap"]:
+        assert "the run's own" in refused(capsys, str(run), "--out", str(out))
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    assert main([str(run), "--out", str(run / "log.mcap")]) == 0  # its export: allowed
+
+
+@pytest.mark.slow
 def test_unwritable_output_folder(capsys, tmp_path, runs):
     """A folder no one may create files in (/proc: even root cannot) and, for a user, a folder
     without write permission."""

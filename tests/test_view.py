@@ -330,6 +330,22 @@ def test_bad_input_is_one_line_and_its_exit_code(runs, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_html_out_is_never_one_of_the_runs_own_files(runs, tmp_path, capsys):
+    """--html-out naming the run's log.csv, summary.json or a figure (directly or through a
+    link) is refused (exit 4, one line) and the run's files are unchanged (a probe found
+    log.csv replaced by the page, exit 0)."""
+    run = tmp_path / "run"
+    shutil.copytree(runs["parallel_joint"], run)
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    (tmp_path / "link.html").symlink_to(run / "summary.json")
+    for out in (run / "log.csv", run / "summary.json", run / "paths.png",
+                tmp_path / "link.html"):
+        assert main([str(run), "--html-out", str(out)]) == EXIT_HTML_OUT
+        assert "the run's own" in one_line(capsys)
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+
+
+@pytest.mark.slow
 def test_html_out_writes_a_self_contained_page(runs, replays, tmp_path, capsys):
     page = tmp_path / "replay.html"
     page.write_text("old")

@@ -23,18 +23,21 @@ from .outputs import atomic_path, check_output_file
 PROG = "cochlea-mcap"
 
 
-def check_output(path: Path) -> None:
+def check_output(path: Path, run_dir: Path | None = None) -> None:
     """Refuse an output that exists and is not a regular file, or whose folder is missing or
-    not writable; creates nothing."""
-    check_output_file(path, "--out", ".mcap")
+    not writable, or that is one of the files of ``run_dir`` (the run being read); creates
+    nothing."""
+    check_output_file(path, "--out", ".mcap", run_dir=run_dir)
 
 
 def export(run_dir: Path, out: Path | None = None) -> tuple[Path, dict[str, int]]:
     """Write ``run_dir``'s log to ``out`` (default ``run_dir/log.mcap``); the messages per
     topic."""
+    if out is not None:
+        check_output(Path(out), Path(run_dir))  # before the run is read at all
     run = open_run(run_dir)
     out = Path(out) if out is not None else run.folder / "log.mcap"
-    check_output(out)
+    check_output(out, run.folder)
     try:
         with atomic_path(out) as tmp, open(tmp, "wb") as stream:
             counts = Exporter(run, stream).export()

@@ -40,10 +40,11 @@ class PortError(CochleaError):
     """The server's port cannot be opened."""
 
 
-def check_output(path: Path) -> None:
+def check_output(path: Path, run_dir: Path | None = None) -> None:
     """Refuse an output that exists and is not a regular file, or whose folder is missing or
-    not writable; creates nothing."""
-    check_output_file(path, "--html-out", ".html", OutputError)
+    not writable, or that is one of the files of ``run_dir`` (the run being read); creates
+    nothing."""
+    check_output_file(path, "--html-out", ".html", OutputError, run_dir=run_dir)
 
 
 def page_of(run_dir: Path, rate_hz: float = DEFAULT_RATE_HZ) -> tuple[str, dict]:
@@ -52,8 +53,8 @@ def page_of(run_dir: Path, rate_hz: float = DEFAULT_RATE_HZ) -> tuple[str, dict]
     return render_page(replay), replay
 
 
-def write_page(page: str, out: Path) -> None:
-    check_output(out)
+def write_page(page: str, out: Path, run_dir: Path | None = None) -> None:
+    check_output(out, run_dir)
     try:
         with atomic_path(out) as tmp:
             tmp.write_text(page, encoding="utf-8")
@@ -105,10 +106,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_PORT
     try:
         if args.html_out is not None:
-            check_output(args.html_out)
+            check_output(args.html_out, args.run_dir)
         page, replay = page_of(args.run_dir)
         if args.html_out is not None:
-            write_page(page, args.html_out)
+            write_page(page, args.html_out, args.run_dir)
             print(printable(f"{PROG}: wrote {args.html_out}: {len(replay['times'])} frames"))
             return 0
         server = make_server(page, args.port)

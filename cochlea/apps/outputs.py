@@ -331,10 +331,18 @@ def claim_new(parent: Path, name: str, option: str = "--out") -> OutputFolder:
 
 
 def check_output_file(path: Path, option: str, suffix: str,
-                      error: type[CochleaError] = CochleaError) -> None:
+                      error: type[CochleaError] = CochleaError,
+                      run_dir: Path | None = None) -> None:
     """Refuse an output file that exists and is not a regular file, or whose folder is missing
-    or cannot be written in (probed: :func:`cochlea.files.file_problem`); creates nothing
-    (cochlea-mcap's ``--out``, cochlea-view's ``--html-out``)."""
+    or cannot be written in (probed: :func:`cochlea.files.file_problem`), or that is one of the
+    files of ``run_dir``, the run folder being read (:func:`cochlea.files.run_file_of`: its log,
+    summary, raw log, column list or figures, by any name); creates nothing (cochlea-mcap's
+    ``--out``, cochlea-view's ``--html-out``)."""
+    if run_dir is not None and Path(run_dir).is_dir():
+        own = files.run_file_of(path, run_dir)
+        if own is not None:
+            raise error(f"{option} {path} is the run's own {own.name} in {run_dir}: name "
+                        f"another {suffix} file (the run's files are never overwritten)")
     p = files.file_problem(path)
     if p is None:
         return
