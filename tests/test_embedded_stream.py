@@ -349,6 +349,30 @@ def test_a_report_that_cannot_be_written_is_one_line_and_exit_18(tmp_path, colum
     assert (tmp_path / "run" / "summary.json").exists()
 
 
+@pytest.mark.slow
+def test_rows_no_figure_can_draw_lose_the_figures_only(tmp_path, columns, capsys):
+    """Rows of 1e308 (a valid header, then values matplotlib cannot scale: its ValueError
+    'arange: cannot compute length') ended in a traceback and no summary.json: now the
+    figures alone are lost, summary.json is written and says so (report_lost), and the exit
+    (18) says so in one line."""
+    from cochlea.apps import cochlea_embedded_host
+
+    sent = [np.full(len(columns), 1e308) for _ in range(10)]
+    for k, row in enumerate(sent):
+        row[0] = k * H
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(header_and_rows(columns, sent) + encode(END, 11, end_text(10, 0)))
+    out = tmp_path / "run"
+    code = cochlea_embedded_host.main(["--port", str(capture), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 18 and len(err.strip().splitlines()) == 1, err
+    assert "lost figures" in err and "a figure could not be drawn" in err
+    assert "Free some space" not in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["report_lost"] == ["figures"]
+    assert np.array_equal(log_rows(out), np.array(sent))
+
+
 def serve(payload: bytes) -> tuple[int, threading.Event]:
     """A TCP server that sends ``payload`` to its one client and then holds the line open
     and silent until ``done`` is set."""

@@ -465,7 +465,10 @@ def _write_run(stream: StreamRun, why: str | None) -> int:
               f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
         return EXIT_NO_HEADER
     try:
-        data = stream.write(why)
+        # Values near the float64 limit (1e308 rows) overflow in the summary's sums: the
+        # summary says inf, the console stays one line.
+        with np.errstate(over="ignore", invalid="ignore"):
+            data = stream.write(why)
     except ReportError as exc:  # the runs after this one are still written
         print(f"{PROG}: " + (f"{stream.disk_error}; " if stream.disk_error else "") + str(exc),
               file=sys.stderr)

@@ -52,9 +52,13 @@ class ReportError(Exception):
     def __str__(self) -> str:
         return printable(super().__str__())  # one line, whatever the folder's name holds
 
-    def __init__(self, folder: Path, lost: list[str], cause: OSError):
+    def __init__(self, folder: Path, lost: list[str], cause: Exception):
         self.folder, self.lost, self.cause = folder, lost, cause
-        reason = cause.strerror or str(cause)
+        disk = isinstance(cause, OSError)
+        # A figure that cannot be drawn (values matplotlib cannot scale: 1e308, an overflow)
+        # is not a disk's failure: its own words, and no advice to free space.
+        reason = (getattr(cause, "strerror", None) or str(cause)) if disk else \
+            f"a figure could not be drawn: {type(cause).__name__}: {cause}"
         kept = sorted(p.name for p in folder.iterdir()
                       if p.is_file() and not p.name.startswith(".")) if folder.is_dir() else []
         super().__init__(
@@ -63,7 +67,7 @@ class ReportError(Exception):
             + (", ".join(kept) if kept else "nothing")
             + (" (log.bin is the whole raw log; log.columns.json names its columns)"
                if "log.bin" in kept else "")
-            + ". Free some space before the next run")
+            + (". Free some space before the next run" if disk else ""))
 
 
 # --------------------------------------------------------------------------------------------

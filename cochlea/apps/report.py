@@ -446,6 +446,13 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    try:
+        return _figures(plt, result, out)
+    finally:
+        plt.close("all")  # a figure that failed part way is not left open
+
+
+def _figures(plt, result: SimulationResult, out: Path) -> list[Path]:
     paths = []
     result = result.decimated(FIGURE_POINTS)  # figures of a long run read a sample of it
     t = result.time
@@ -560,7 +567,9 @@ def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = N
     data.update(extra or {})
     try:
         data["figures"] = [str(p) for p in figures(result, out)] if result.periods > 1 else []
-    except OSError as exc:
+    except Exception as exc:  # noqa: BLE001 - a figure never costs the summary
+        # A full disk (OSError), or values matplotlib cannot draw (1e308 in a row: ValueError,
+        # OverflowError, ...): the figures are lost, summary.json is still written and says so.
         lost.append("figures")
         causes.append(exc)
         data["figures"] = []
