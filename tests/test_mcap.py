@@ -515,6 +515,36 @@ def test_interrupt_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     no_output(run)
 
 
+TERMINATE_PART_WAY = """
+import os, signal, sys
+import cochlea.export.to_mcap as to_mcap
+from cochlea.apps.cochlea_mcap import main
+real, calls = to_mcap.Exporter.write, [0]
+def write(self, *args):
+    calls[0] += 1
+    if calls[0] == 1500:
+        os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    return real(self, *args)
+to_mcap.Exporter.write = write
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, code", [("SIGTERM", 143), ("SIGHUP", 129)])
+def test_sigterm_or_sighup_leaves_nothing(tmp_path, runs, name, code):
+    """SIGTERM (timeout, a batch system) or SIGHUP part way unwinds as Ctrl-C does: one line,
+    the shell's code, and no hidden temporary file left beside the output (it was, after a
+    SIGTERM)."""
+    run = copy_run(runs, tmp_path)
+    done = subprocess.run([sys.executable, "-c", TERMINATE_PART_WAY, name, str(run)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == code, done.stderr
+    assert done.stderr == f"cochlea-mcap: {'terminated' if code == 143 else 'hung up (SIGHUP)'}" \
+        "; nothing written\n"
+    no_output(run)
+
+
 @pytest.mark.slow
 def test_non_finite_rows_have_no_transforms(tmp_path, runs):
     """A row whose measured q is not finite (a run stopped by the rule non-finite) keeps its

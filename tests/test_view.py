@@ -346,6 +346,30 @@ def test_html_out_is_never_one_of_the_runs_own_files(runs, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_sigterm_while_the_page_is_written_leaves_nothing(runs, tmp_path):
+    """SIGTERM while --html-out is written unwinds as Ctrl-C: exit 143, one line, and neither
+    the page nor its hidden temporary file is left (the temporary file was)."""
+    script = (
+        "import os, signal, sys, pathlib\n"
+        "from cochlea.apps.cochlea_view import main\n"
+        "real = pathlib.Path.write_text\n"
+        "def write_text(self, text, *a, **k):\n"
+        "    real(self, text[:100], *a, **k)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    return real(self, text, *a, **k)\n"
+        "pathlib.Path.write_text = write_text\n"
+        "sys.exit(main(sys.argv[1:]))\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    done = subprocess.run([sys.executable, "-c", script, str(runs["parallel_joint"]),
+                           "--html-out", str(out / "page.html")], capture_output=True,
+                          text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr == "cochlea-view: terminated; nothing written\n"
+    assert list(out.iterdir()) == []
+
+
+@pytest.mark.slow
 def test_html_out_writes_a_self_contained_page(runs, replays, tmp_path, capsys):
     page = tmp_path / "replay.html"
     page.write_text("old")

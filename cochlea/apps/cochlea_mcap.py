@@ -18,7 +18,7 @@ from pathlib import Path
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..export.to_mcap import Exporter
-from .outputs import atomic_path, check_output_file
+from .outputs import atomic_path, check_output_file, interrupted_exit, signals_unwind
 
 PROG = "cochlea-mcap"
 
@@ -55,13 +55,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="the MCAP file to write (default: RUN_DIR/log.mcap)")
     args = parser.parse_args(argv)
     try:
-        out, counts = export(args.run_dir, args.out)
+        with signals_unwind():  # SIGTERM, SIGHUP: as Ctrl-C, the temporary file removed
+            out, counts = export(args.run_dir, args.out)
     except CochleaError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        word, code = interrupted_exit(exc)
+        print(f"{PROG}: {word}; nothing written", file=sys.stderr)
+        return code
     print(printable(f"{PROG}: wrote {out}: {sum(counts.values())} messages on "
                     f"{len(counts)} topics"))
     return 0

@@ -384,6 +384,38 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+#: The shell's exit code of each stop signal: 130 (SIGINT), 143 (SIGTERM), 129 (SIGHUP).
+SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
+#: How each stop signal is named on the console.
+SIGNAL_WORD = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated",
+               signal.SIGHUP: "hung up (SIGHUP)"}
+
+
+@contextlib.contextmanager
+def signals_unwind():
+    """SIGTERM and SIGHUP raise :class:`Interrupted` (a KeyboardInterrupt) for the section, as
+    Ctrl-C does: a tool writing one output file (cochlea-mcap, cochlea-view --html-out)
+    unwinds through :func:`atomic_path`, which removes its temporary file, instead of dying
+    with it left beside the output. ``signum`` of the exception says which signal; a Ctrl-C is
+    a plain KeyboardInterrupt (SIGINT). The previous handlers come back afterwards."""
+    def unwind(signum, frame):
+        raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, unwind) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def interrupted_exit(exc: BaseException) -> tuple[str, int]:
+    """The word and exit code of a KeyboardInterrupt raised by Ctrl-C or
+    :func:`signals_unwind`."""
+    signum = getattr(exc, "signum", signal.SIGINT)
+    return SIGNAL_WORD.get(signum, "interrupted"), SIGNAL_EXIT.get(signum, 130)
+
+
 class SignalShield:
     """SIGINT, SIGTERM and SIGHUP (a hang-up, handled as SIGTERM) for the life of a run, in
     three phases:
