@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -254,6 +255,18 @@ def _copy_log(src: Path, dst: Path, edit) -> Path:
     lines = (src / "log.csv").read_text().splitlines(keepends=True)
     (dst / "log.csv").write_text("".join(edit(lines)))
     return dst
+
+
+def test_a_summary_nested_too_deep_or_a_fifo_is_read_as_no_summary(tmp_path):
+    """The schema check reads summary.json beside a log: nested 200 000 deep it raised
+    RecursionError (a traceback), and a FIFO in its place blocked; both are now a summary that
+    says nothing, and the log is checked column by column."""
+    from cochlea.ident.logs import _check_version
+
+    (tmp_path / "summary.json").write_text("[" * 200000 + "]" * 200000)
+    assert _check_version(tmp_path / "summary.json") is None
+    os.mkfifo(tmp_path / "fifo.json")
+    assert _check_version(tmp_path / "fifo.json") is None
 
 
 @pytest.mark.slow

@@ -380,6 +380,15 @@ def test_not_a_run(capsys, tmp_path, runs):
     ("summary_json", "not JSON"),
     ("summary_robot", "no robot"),
     ("missing_columns", "is not this run's log"),
+    ("time_negative", "outside [0, 2**31) s"),
+    ("time_beyond_ros", "outside [0, 2**31) s"),
+    ("time_1e300", "outside [0, 2**31) s"),
+    ("summary_deep", "nested too deep"),
+    ("summary_fifo", "not a regular file"),
+    ("periods_missing", "its periods is None"),
+    ("periods_float", "its periods is 1000.0"),
+    ("periods_text", "its periods is '1000'"),
+    ("periods_bool", "its periods is True"),
 ])
 @pytest.mark.slow
 def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damage, message):
@@ -408,6 +417,30 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
         cells = [line.rstrip("\n").split(",") for line in lines]
         drop = cells[0].index("arm2.tau.joint3_N_m")
         csv.write_text("".join(",".join(c[:drop] + c[drop + 1:]) + "\n" for c in cells))
+    elif damage.startswith("time_"):
+        # every time shifted (-1 s; +3e9 s, beyond a ROS stamp's int32 seconds) or scaled
+        # (1e300): struct.error, int32 'sec' tracebacks and overflow warnings before
+        shift = {"time_negative": lambda t: t - 1, "time_beyond_ros": lambda t: t + 3e9,
+                 "time_1e300": lambda t: (t + 1) * 1e300}[damage]
+        cells = [line.rstrip("\n").split(",") for line in lines]
+        for c in cells[1:]:
+            c[0] = repr(shift(float(c[0])))
+        csv.write_text("".join(",".join(c) + "\n" for c in cells))
+    elif damage == "summary_deep":  # RecursionError in the parser before
+        (run / "summary.json").write_text("[" * 200000 + "]" * 200000)
+    elif damage == "summary_fifo":
+        (run / "summary.json").unlink()
+        os.mkfifo(run / "summary.json")
+    elif damage.startswith("periods_"):
+        # without a whole number of periods the truncation check was off (a log cut to 299
+        # of 1000 rows was exported as whole)
+        summary = json.loads((run / "summary.json").read_text())
+        summary.pop("periods")
+        value = {"periods_missing": None, "periods_float": 1000.0, "periods_text": "1000",
+                 "periods_bool": True}[damage]
+        if value is not None:
+            summary["periods"] = value
+        (run / "summary.json").write_text(json.dumps(summary))
     # An earlier export stays as it was when a new one fails.
     previous = run / "log.mcap"
     previous.write_bytes(b"previous export")
@@ -543,6 +576,21 @@ def test_sigterm_or_sighup_leaves_nothing(tmp_path, runs, name, code):
     assert done.stderr == f"cochlea-mcap: {'terminated' if code == 143 else 'hung up (SIGHUP)'}" \
         "; nothing written\n"
     no_output(run)
+
+
+@pytest.mark.slow
+def test_a_stop_time_no_nanosecond_count_holds_is_clamped(tmp_path, runs):
+    """summary.json's stop and supervisor times of 1e308 s (an OverflowError in the event's
+    stamp before) are stamped at the log's last row, the text keeping the summary's value."""
+    run = copy_run(runs, tmp_path, "serial_joint_fast")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["stop"] = {"rule": "keep-out", "time_s": 1e308, "detail": "x", "exit_code": 11}
+    summary["supervisor"]["time_s"] = 1e308
+    (run / "summary.json").write_text(json.dumps(summary))
+    rosout = export(run, tmp_path)["/rosout"]
+    last = max(t for t, _, _, _ in export(run, tmp_path, "again.mcap")["/tf"])
+    assert [t for t, _, _, _ in rosout[1:3]] == [last, last]
+    assert "1e+308" in rosout[1][3].msg
 
 
 @pytest.mark.slow

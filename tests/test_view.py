@@ -433,5 +433,7 @@ def test_a_summary_with_numbers_no_reader_expects_is_one_line_or_drawn(runs, tmp
     code = main([str(damaged), "--html-out", str(tmp_path / "page.html")])
     if field in ("duration_s", "stop"):
         assert code == EXIT_USER_ERROR and "integer of 401 digits" in one_line(capsys)
+    elif field == "periods":  # the count the log is checked against: a whole number only
+        assert code == EXIT_USER_ERROR and "its periods is nan" in one_line(capsys)
     else:
         assert code == 0 and (tmp_path / "page.html").is_file()

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..errors import CochleaError
 from ..log_schema import SCHEMA_VERSION
 from ..robots import RobotAdapter, robot
@@ -31,6 +32,9 @@ from ..sim.scenario import load as load_scenario
 COMPILED_IN = "compiled in: "
 #: Rows read (and exported) at a time.
 CHUNK_ROWS = 8192
+#: time_s of a row must lie in [0, MAX_TIME_S): an MCAP or ROS time stamp holds seconds in 32
+#: bits (builtin_interfaces/Time's int32 sec), and no run lasts 68 years.
+MAX_TIME_S = 2.0**31
 #: The joint position groups and the units their elements end with.
 JOINT_UNITS = ("_rad", "_m")
 
@@ -108,13 +112,20 @@ class RunLog:
                     bad = int(np.argmax(~np.isfinite(times) | ~(steps > 0)))
                     raise RunFolderError(
                         f"{self.csv} is damaged: line {first_line + bad}: time_s = "
-                        f"{times[bad]!r} is not finite or not after the row before")
+                        f"{float(times[bad])!r} is not finite or not after the row before")
+                outside = (times < 0) | (times >= MAX_TIME_S)
+                if outside.any():
+                    bad = int(np.argmax(outside))
+                    raise RunFolderError(
+                        f"{self.csv} is damaged: line {first_line + bad}: time_s = "
+                        f"{float(times[bad])!r} is outside [0, 2**31) s (a run's time from its "
+                        "first period; a ROS time stamp holds no more)")
                 last_time = float(times[-1])
                 count += len(rows)
                 yield rows
                 if len(rows) < CHUNK_ROWS:
                     break
-        if isinstance(expected, int) and count != expected:
+        if count != expected:
             raise RunFolderError(f"{self.csv} is truncated or damaged: it holds {count} rows "
                                  f"but summary.json says the run logged {expected} periods")
         if count == 0:
@@ -129,6 +140,29 @@ def _int64(text: str) -> int:
     if not -2**63 <= value < 2**63:
         raise ValueError(f"an integer of {len(text)} digits")
     return value
+
+#: The largest run-folder JSON file read (summary.json, log.columns.json): a few hundred kB.
+MAX_JSON_BYTES = 64 * 2**20
+
+
+def read_json(path: Path, **options):
+    """A run folder's JSON file (summary.json, log.columns.json), read as a regular file only
+    (a FIFO or a device is refused without blocking: :func:`cochlea.files.read_regular`);
+    every way it can be unreadable -- missing, a folder, not UTF-8, not JSON, nested so deep
+    that the parser recurses out (``[[[...`` 200 000 deep), larger than
+    :data:`MAX_JSON_BYTES` -- is one :class:`RunFolderError`."""
+    try:
+        data = files.read_regular(path, MAX_JSON_BYTES)
+        if len(data) > MAX_JSON_BYTES:
+            raise ValueError(f"larger than {MAX_JSON_BYTES} bytes")
+        return json.loads(data.decode("utf-8"), **options)
+    except OSError as exc:
+        raise RunFolderError(f"{path} cannot be read ({exc.strerror or exc})") from None
+    except RecursionError:
+        raise RunFolderError(f"{path} is damaged: not JSON (nested too deep)") from None
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise RunFolderError(f"{path} is damaged: not JSON ({exc})") from None
+
 
 def strip_unit(element: str, units: tuple[str, ...]) -> str:
     for unit in units:
@@ -163,14 +197,18 @@ def open_run(folder: Path) -> RunLog:
                     "exports finished runs)") if (folder / "log.bin").exists() else ""
             raise RunFolderError(f"{folder} is not a finished run: {path.name} is {problem}"
                                  f"{hint}")
-    try:
-        summary = json.loads(summary_path.read_text(encoding="utf-8"), parse_int=_int64)
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise RunFolderError(f"{summary_path} is damaged: not JSON ({exc})") from None
+    summary = read_json(summary_path, parse_int=_int64)
     if not isinstance(summary, dict) or not isinstance(summary.get("robot"), str) \
             or not isinstance(summary.get("scenario_file"), str):
         raise RunFolderError(f"{summary_path} is not a run's summary: it has no robot and "
                              "scenario_file")
+    periods = summary.get("periods")
+    if not isinstance(periods, int) or isinstance(periods, bool) or periods < 1:
+        # The count every reader checks the log against (a log cut short is refused by it):
+        # without a whole number of periods a truncated log would pass as whole.
+        raise RunFolderError(f"{summary_path} is damaged: its periods is {periods!r}, not a "
+                             "whole number >= 1 (the log's row count, which the log is "
+                             "checked against)")
     version = summary.get("schema_version", 1)  # a log without one is of version 1
     if not isinstance(version, int) or isinstance(version, bool) or \
             not 1 <= version <= SCHEMA_VERSION:
