@@ -389,6 +389,9 @@ def test_not_a_run(capsys, tmp_path, runs):
     ("periods_float", "its periods is 1000.0"),
     ("periods_text", "its periods is '1000'"),
     ("periods_bool", "its periods is True"),
+    ("joint_in_degrees", "'joint1_deg' is in 'deg', not 'rad'"),
+    ("joint_unknown", "'elbow_rad' names no joint of the unit"),
+    ("late_row", "after the run's end"),
 ])
 @pytest.mark.slow
 def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damage, message):
@@ -426,6 +429,16 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
         for c in cells[1:]:
             c[0] = repr(shift(float(c[0])))
         csv.write_text("".join(",".join(c) + "\n" for c in cells))
+    elif damage in ("joint_in_degrees", "joint_unknown"):
+        # columns were taken by their position in the group: degrees read as radians
+        new = {"joint_in_degrees": "arm1.q.joint1_deg", "joint_unknown": "arm1.q.elbow_rad"}
+        old = {"joint_in_degrees": "arm1.q.joint1_rad", "joint_unknown": "arm1.q.joint2_rad"}
+        csv.write_text("".join(lines).replace(old[damage], new[damage], 1))
+    elif damage == "late_row":  # cochlea-ros2 replay waited for it (1e9 s)
+        cells = lines[-1].split(",")
+        cells[0] = "1e9"
+        lines[-1] = ",".join(cells)
+        csv.write_text("".join(lines))
     elif damage == "summary_deep":  # RecursionError in the parser before
         (run / "summary.json").write_text("[" * 200000 + "]" * 200000)
     elif damage == "summary_fifo":
@@ -576,6 +589,29 @@ def test_sigterm_or_sighup_leaves_nothing(tmp_path, runs, name, code):
     assert done.stderr == f"cochlea-mcap: {'terminated' if code == 143 else 'hung up (SIGHUP)'}" \
         "; nothing written\n"
     no_output(run)
+
+
+@pytest.mark.slow
+def test_columns_are_read_by_joint_name_not_position(tmp_path, runs, exported):
+    """Two joints' q columns swapped, header and data alike (the same log written in another
+    order), export exactly as the original: the columns are taken by the joints' names (they
+    were taken by position: /tf and tool_pose then disagreed)."""
+    run = copy_run(runs, tmp_path)
+    lines = (run / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    a, b = header.index("arm1.q.joint1_rad"), header.index("arm1.q.joint3_rad")
+    out = []
+    for line in lines:
+        cells = line.split(",")
+        cells[a], cells[b] = cells[b], cells[a]
+        out.append(",".join(cells))
+    (run / "log.csv").write_text("\n".join(out) + "\n")
+    topics = export(run, tmp_path)
+    original = exported["serial_task_rt"]
+    for topic in ("/arm1/joint_states", "/tf", "/arm1/tool_pose/actual"):
+        assert [str(m) for _, _, _, m in topics[topic]] == \
+            [str(m) for _, _, _, m in original[topic]]
+    assert topics["/arm1/joint_states"][0][3].name == ["joint1", "joint2", "joint3"]
 
 
 @pytest.mark.slow

@@ -39,6 +39,14 @@ MAX_TIME_S = 2.0**31
 JOINT_UNITS = ("_rad", "_m")
 
 
+
+def time_steps(times: np.ndarray) -> np.ndarray:
+    """The differences of ``times``, quietly (garbage times of 1e300 overflow to inf, which the
+    caller refuses in one line)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.diff(times)
+
+
 class RunFolderError(CochleaError):
     """The folder is not a run cochlea-mcap can read, or its log is damaged."""
 
@@ -77,12 +85,32 @@ class RunLog:
     def csv(self) -> Path:
         return self.folder / "log.csv"
 
+    def end_time(self) -> float:
+        """The latest time_s a row of this run may have: its length (summary.json's
+        ``duration_s``, or ``periods`` at ``rate_Hz``, the larger) and one period more; inf
+        where the summary gives neither. A row later than this is damage (a time of 1e9 s in
+        the last row made cochlea-ros2 replay wait for it)."""
+        s = self.summary
+
+        def number(key):
+            v = s.get(key)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and \
+                math.isfinite(v) and v > 0
+            return float(v) if ok else None
+
+        rate, duration, periods = number("rate_Hz"), number("duration_s"), number("periods")
+        if rate is None:
+            return duration if duration is not None else math.inf
+        ends = [x for x in (duration, periods / rate if periods else None) if x is not None]
+        return max(ends) + 1.0 / rate if ends else math.inf
+
     def chunks(self):
         """``log.csv``'s rows, :data:`CHUNK_ROWS` at a time, as float64 arrays; a row that is
         not the header's number of numbers, a time that is not finite or does not increase, or
         fewer rows than ``summary.json``'s ``periods`` raise :class:`RunFolderError`."""
         width, last_time, count = len(self.header), -math.inf, 0
         expected = self.summary.get("periods")
+        limit = self.end_time()
         try:
             f = open(self.csv, encoding="utf-8", errors="strict")
         except OSError as exc:
@@ -107,7 +135,7 @@ class RunLog:
                     raise RunFolderError(f"{self.csv} is damaged: rows from line {first_line} "
                                          f"have {rows.shape[1]} values, the header {width}")
                 times = rows[:, 0]
-                steps = np.diff(np.concatenate([[last_time], times]))
+                steps = time_steps(np.concatenate([[last_time], times]))
                 if not np.all(np.isfinite(times)) or not np.all(steps > 0):
                     bad = int(np.argmax(~np.isfinite(times) | ~(steps > 0)))
                     raise RunFolderError(
@@ -120,6 +148,13 @@ class RunLog:
                         f"{self.csv} is damaged: line {first_line + bad}: time_s = "
                         f"{float(times[bad])!r} is outside [0, 2**31) s (a run's time from its "
                         "first period; a ROS time stamp holds no more)")
+                late = times > limit
+                if late.any():
+                    bad = int(np.argmax(late))
+                    raise RunFolderError(
+                        f"{self.csv} is damaged: line {first_line + bad}: time_s = "
+                        f"{float(times[bad])!r} is after the run's end ({limit:g} s: "
+                        "summary.json's duration_s and one period)")
                 last_time = float(times[-1])
                 count += len(rows)
                 yield rows
@@ -164,6 +199,67 @@ def read_json(path: Path, **options):
         raise RunFolderError(f"{path} is damaged: not JSON ({exc})") from None
 
 
+#: The unit of a per-joint group's elements, from the joint's position unit (rad, m); the
+#: groups whose elements are the joints (or, in joint space, the tracked coordinates).
+JOINT_GROUP_UNITS = {
+    **{g: {"rad": ("rad",), "m": ("m",)} for g in ("q", "true_q", "desired", "error",
+                                                  "true_error", "e", "e_g", "e_p")},
+    **{g: {"rad": ("rad_s",), "m": ("m_s",)} for g in ("qd", "true_qd", "desired_dot", "r",
+                                                      "e_v", "e_d")},
+    "tau": {"rad": ("N_m", "Nm"), "m": ("N",)},  # Nm: a version-1 log's
+    "current": {"rad": ("A",), "m": ("A",)},
+}
+
+
+def model_joints(adapter, system, unit: str) -> list[tuple[str, str]]:
+    """``(name, position unit)`` of the unit's joints in the model's order (the order of
+    ``q`` in its kinematics): ``rad`` for a revolute joint, ``m`` for a prismatic one."""
+    return [(j.name, "rad" if j.type == "revolute" else "m")
+            for j in adapter.model(system, unit).joints]
+
+
+def by_joint(group: Group, unit: str, joints: list[tuple[str, str]], where: Path,
+             required: bool = True) -> Group:
+    """``group``'s columns in the model's joint order, each element named by the
+    description's joint and unit (``joint1_rad``): a log is read by its columns' names,
+    never by their position (two joints' columns swapped were exported swapped). A
+    ``required`` group (``q``, ``qd``, ``tau``) whose elements are not exactly the joints,
+    each once, in the group's unit, is refused (an unknown joint, ``joint1_deg``); another
+    group is reordered when its elements are the joints (a joint-space run's ``desired``) and
+    kept as it is otherwise (a task-space run's ``x``, ``y``, ``phi``)."""
+    units = JOINT_GROUP_UNITS.get(group.name)
+    if units is None:
+        return group
+    names = sorted((j for j, _ in joints), key=len, reverse=True)  # longest name first
+    found: dict[str, tuple[int, str, str]] = {}
+    problem = None
+    for column, element in zip(group.columns, group.elements):
+        joint = next((j for j in names if element.startswith(j + "_")), None)
+        if joint is None:
+            problem = f"{element!r} names no joint of the unit ({', '.join(j for j, _ in joints)})"
+            break
+        if joint in found:
+            problem = f"joint {joint} has two columns"
+            break
+        found[joint] = (column, element, element[len(joint) + 1:])
+    if problem is None:
+        for joint, kind in joints:
+            if joint not in found:
+                problem = f"joint {joint} has no column"
+                break
+            column, element, unit_text = found[joint]
+            if unit_text not in units[kind]:
+                problem = (f"{element!r} is in {unit_text!r}, not {units[kind][0]!r} (joint "
+                           f"{joint} is {'revolute' if kind == 'rad' else 'prismatic'})")
+                break
+    if problem is not None:
+        if not required:
+            return group  # not the joints (a task's coordinates): as it is
+        raise RunFolderError(f"{where} is not this run's log: {unit}.{group.name}: {problem}")
+    return Group(group.name, [found[j][0] for j, _ in joints],
+                 [found[j][1] for j, _ in joints])
+
+
 def strip_unit(element: str, units: tuple[str, ...]) -> str:
     for unit in units:
         if element.endswith(unit):
@@ -193,8 +289,10 @@ def open_run(folder: Path) -> RunLog:
     for path in (summary_path, csv_path):
         problem = _is_regular(path)
         if problem is not None:
+            # The hint only where the report is missing, not where something else is there.
             hint = (" (log.bin holds the raw log of a run whose report was lost; this command "
-                    "exports finished runs)") if (folder / "log.bin").exists() else ""
+                    "exports finished runs)") if problem == "missing" and \
+                (folder / "log.bin").exists() else ""
             raise RunFolderError(f"{folder} is not a finished run: {path.name} is {problem}"
                                  f"{hint}")
     summary = read_json(summary_path, parse_int=_int64)
@@ -251,12 +349,15 @@ def open_run(folder: Path) -> RunLog:
             run_level.columns.append(index)
             run_level.elements.append(column)
     for unit in units.values():
-        n = int(adapter.link_frames(scenario.system, unit.name).function.size1_in(0))
+        joints = model_joints(adapter, scenario.system, unit.name)
         for group in ("q", "qd", "tau"):
             found = len(unit.groups[group].columns) if group in unit.groups else 0
-            if found != n:
+            if found != len(joints):
                 raise RunFolderError(f"{csv_path} is not this run's log: unit {unit.name} of "
-                                     f"the {adapter.name} robot has {n} joints but the log "
-                                     f"has {found} {unit.name}.{group} columns")
+                                     f"the {adapter.name} robot has {len(joints)} joints but "
+                                     f"the log has {found} {unit.name}.{group} columns")
+        for name, group in unit.groups.items():
+            unit.groups[name] = by_joint(group, unit.name, joints, csv_path,
+                                         required=name in ("q", "qd", "tau"))
     return RunLog(folder, summary, adapter, scenario.system, header, list(units.values()),
                   run_level)
