@@ -415,6 +415,27 @@ def test_a_row_whose_q_is_not_finite_is_not_drawn(runs, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_value_too_large_to_round_is_drawn_as_it_is(runs, tmp_path, capsys):
+    """A desired cell of 1e305 (and a q of 1e300): rounding it to 0.1 um overflowed to inf and
+    the page's strict JSON refused it (ValueError traceback); now a finite value is kept, one
+    that is not finite becomes null, and the page is written."""
+    folder = tmp_path / "big"
+    shutil.copytree(runs["serial_task"], folder)
+    lines = (folder / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[-1].split(",")
+    row[header.index("arm1.desired.x_m")] = "1e305"
+    row[header.index("arm2.q.joint1_rad")] = "1e300"
+    lines[-1] = ",".join(row)
+    (folder / "log.csv").write_text("\n".join(lines) + "\n")
+    page = tmp_path / "page.html"
+    assert main([str(folder), "--html-out", str(page)]) == 0, capsys.readouterr().err
+    data = page.read_text().split('<script id="replay" type="application/json">')[1]
+    replay = json.loads(data.split("</script>")[0])
+    assert replay["units"][0]["desired"][0][-1][0] == 1e305
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("field, value", [("duration_s", 10**30), ("space", float("inf")),
                                           ("periods", float("nan")), ("stop", {"rule": "x",
                                                                                "time_s": 10**30})])
