@@ -281,6 +281,29 @@ def test_a_wrong_schema_or_no_header_is_one_line_and_nothing_written(tmp_path, c
     assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("field, value", [
+    ("every", 10**30), ("periods", 2**31), ("period_ns", 10**30), ("period_ns", 10),
+    ("watchdog_misses", -1), ("watchdog_misses", 10**30)])
+def test_a_header_its_own_readers_would_refuse_is_refused(tmp_path, columns, capsys, field,
+                                                          value):
+    """Header values the host accepted and its readers then refused (every = 10**30: 'summary
+    .json damaged' from cochlea-mcap; period_ns = 10**30: times beyond a ROS stamp) or that
+    cochlea-run never allows (watchdog_misses -1, 10**30): one line, exit 4, nothing written."""
+    from cochlea.apps import cochlea_embedded_host
+
+    defaults = {"every": "1", "periods": "40", "period_ns": "1000000", "watchdog_misses": "20"}
+    text = header(columns).replace(f" {field}={defaults[field]} ".encode(),
+                                   f" {field}={value} ".encode())
+    assert f"{field}={value}".encode() in text
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, text) + encode(END, 1, end_text(0, 0)))
+    out = tmp_path / "run"
+    assert cochlea_embedded_host.main(["--port", str(capture), "--out", str(out)]) == 4
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and f"field {field} = " in err, err
+    assert not out.exists()
+
+
 @pytest.mark.slow
 def test_a_firmware_that_refused_to_start_leaves_an_empty_log_and_its_exit_code(tmp_path,
                                                                                    columns):

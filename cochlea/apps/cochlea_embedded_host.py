@@ -30,10 +30,29 @@ from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..log_schema import SCHEMA_VERSION
 from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
 from ..runtime.loop import raw_columns
-from ..runtime.row_stream import END, HEADER, ROW, Decoder, Frame, chain_crc, parse_text
+from ..runtime.row_stream import (
+    END,
+    HEADER,
+    MAX_PAYLOAD,
+    ROW,
+    Decoder,
+    Frame,
+    chain_crc,
+    parse_text,
+)
 from ..sim import choose_kernels, load_scenario, unit_setups
+from ..sim.scenario import MAX_RATE_HZ, MIN_RATE_HZ
 from . import report
+from .cochlea_run import MAX_WATCHDOG_MISSES
 from .outputs import ReportError
+
+#: The header's bounds: counts (every, periods) within 32 bits (a log's time_s below 2**31 s);
+#: the period of a control rate cochlea-run allows (MIN_RATE_HZ .. MAX_RATE_HZ); cochlea-run's
+#: watchdog range; a row no longer than a frame can carry.
+MAX_COUNT = 2**31 - 1
+MIN_PERIOD_NS = round(1e9 / MAX_RATE_HZ)
+MAX_PERIOD_NS = round(1e9 / MIN_RATE_HZ)
+MAX_ROW_LENGTH = (MAX_PAYLOAD - 8) // 8  # a row frame: its period (int64), then the row
 
 PROG = "cochlea-embedded-host"
 #: Exit codes: after the end frame, the firmware's own (cochlea-run's: 0 completed, 5 the
@@ -197,6 +216,17 @@ class StreamRun:
         if self.every < 1 or self.period_ns <= 0 or self.row_length <= 0:
             raise HeaderError("the stream's header says no rows are streamed (row_length "
                                f"{self.row_length}, every {self.every}): nothing to write")
+        # What the host's own readers (cochlea-mcap, cochlea-view, cochlea-ros2) and
+        # cochlea-run accept, so that a run written here is read back: counts within 32 bits,
+        # a control rate cochlea-run allows, its watchdog's range.
+        for field, value, low, high in (
+                ("every", self.every, 1, MAX_COUNT), ("periods", self.periods, 0, MAX_COUNT),
+                ("row_length", self.row_length, 1, MAX_ROW_LENGTH),
+                ("period_ns", self.period_ns, MIN_PERIOD_NS, MAX_PERIOD_NS),
+                ("watchdog_misses", self.misses, 1, MAX_WATCHDOG_MISSES)):
+            if not low <= value <= high:
+                raise HeaderError(f"the stream's header is malformed (field {field} = "
+                                  f"{str(value)[:40]}, outside [{low}, {high}])")
         if header.get("schema_version") != str(SCHEMA_VERSION):
             raise HeaderError(f"the firmware's rows follow log schema version "
                               f"{header.get('schema_version')}, this host's is {SCHEMA_VERSION}: "
