@@ -651,6 +651,24 @@ def test_non_finite_rows_have_no_transforms(tmp_path, runs):
 
 
 @pytest.mark.slow
+def test_a_relative_scenario_is_recorded_absolute(tmp_path):
+    """cochlea-run --scenario my.toml (relative) stored "my.toml" in summary.json: exported
+    from another folder it named no file (or another my.toml). It is stored absolute, and the
+    run exports from anywhere."""
+    shutil.copy(ROOT / "models" / "scenarios" / "serial_joint.toml", tmp_path / "my.toml")
+    run = tmp_path / "run"
+    done = subprocess.run(  # from the scenario's folder, this checkout's cochlea
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+         "joint", "--scenario", "my.toml", "--duration", "0.05", "--realtime", "off",
+         "--status", "off", "--out", "run"], capture_output=True, text=True, timeout=300,
+        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["scenario_file"] == str(tmp_path / "my.toml")
+    assert Path.cwd() != tmp_path and main([str(run)]) == 0
+
+
+@pytest.mark.slow
 def test_existing_output_file_is_replaced_whole(tmp_path, runs):
     run = copy_run(runs, tmp_path, "parallel_joint_fast")
     out = run / "log.mcap"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -378,7 +379,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         # The column names of log.csv and log.columns.json (cochlea.log_schema).
         "schema_version": SCHEMA_VERSION,
         "scenario": sc.name,
-        "scenario_file": str(sc.path),
+        # Absolute: a relative --scenario (my.toml) stored as given would name another file,
+        # or none, from wherever the run is read (cochlea-mcap, cochlea-view, cochlea-ros2).
+        "scenario_file": os.path.abspath(sc.path),
         "robot": sc.robot,
         "space": sc.space,
         "controller": sc.controller,
