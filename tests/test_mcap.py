@@ -13,6 +13,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -461,6 +462,58 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
     assert previous.read_bytes() == b"previous export"
     previous.unlink()
     no_output(run)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage, message", [
+    ("comment_row", "could not convert string '#"),
+    ("blank_row", "truncated or damaged"),
+    ("csv_fifo", "log.csv is not a regular file"),
+    ("csv_folder", "log.csv is not a regular file"),
+])
+def test_a_damaged_log_says_one_line_and_no_more(capfd, tmp_path, runs, damage, message):
+    """A '#' or blank row printed numpy's 3-line UserWarning before the one-line error (a '#'
+    row was even skipped as a comment); log.csv a FIFO or a folder got the hint that log.bin
+    holds the raw log of a run whose report was lost (it is not lost: something else is
+    there). Now: one line, and the hint only where log.csv is missing."""
+    run = copy_run(runs, tmp_path)
+    csv = run / "log.csv"
+    lines = csv.read_text().splitlines(keepends=True)
+    if damage == "comment_row":
+        lines[100] = "#" + lines[100]
+    elif damage == "blank_row":
+        lines[100] = "\n"
+    else:
+        csv.unlink()
+        os.mkfifo(csv) if damage == "csv_fifo" else csv.mkdir()
+    if damage.endswith("_row"):
+        csv.write_text("".join(lines))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main([str(run)]) == EXIT_USER_ERROR
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and message in err and "log.bin holds" not in err, err
+    assert not [str(w.message) for w in caught]
+
+
+@pytest.mark.slow
+def test_an_infinite_pose_is_exported_without_warnings(capfd, tmp_path, runs):
+    """An infinite pose angle (and q) in log.csv is exported as logged, and numpy's
+    RuntimeWarnings (invalid value in sin, cos) no longer reach the console."""
+    run = copy_run(runs, tmp_path)
+    lines = (run / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[50].split(",")
+    cells[header.index("arm1.pose.phi_rad")] = "inf"
+    cells[header.index("arm1.q.joint1_rad")] = "-inf"
+    lines[50] = ",".join(cells)
+    (run / "log.csv").write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main([str(run)]) == 0
+    out = capfd.readouterr()
+    assert out.err == "" and out.out.count("\n") == 1
+    assert not [str(w.message) for w in caught]
 
 
 @pytest.mark.slow

@@ -15,6 +15,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..export.to_mcap import Exporter
@@ -39,7 +41,10 @@ def export(run_dir: Path, out: Path | None = None) -> tuple[Path, dict[str, int]
     out = Path(out) if out is not None else run.folder / "log.mcap"
     check_output(out, run.folder)
     try:
-        with atomic_path(out) as tmp, open(tmp, "wb") as stream:
+        # A logged inf or NaN (a pose of a run stopped by non-finite) is exported as logged,
+        # without numpy's warnings on the console (one line is all a tool prints).
+        with atomic_path(out) as tmp, open(tmp, "wb") as stream, \
+                np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             counts = Exporter(run, stream).export()
     except OSError as exc:
         raise CochleaError(f"--out {out}: cannot write it ({exc.strerror or exc}); nothing "

@@ -22,6 +22,8 @@ import sys
 import webbrowser
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..view import DEFAULT_RATE_HZ, build_replay, render_page
@@ -49,7 +51,8 @@ def check_output(path: Path, run_dir: Path | None = None) -> None:
 
 def page_of(run_dir: Path, rate_hz: float = DEFAULT_RATE_HZ) -> tuple[str, dict]:
     """The replay page of ``run_dir`` and its replay."""
-    replay = build_replay(open_run(run_dir), rate_hz)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # inf in a log: quiet
+        replay = build_replay(open_run(run_dir), rate_hz)
     return render_page(replay), replay
 
 

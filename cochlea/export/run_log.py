@@ -122,8 +122,12 @@ class RunLog:
                 try:
                     with warnings.catch_warnings():  # the end of a log that fills its chunks
                         warnings.filterwarnings("ignore", "loadtxt: input contained no data")
+                        # A blank line is skipped (the row count then tells the log is
+                        # damaged), quietly: numpy's 3-line warning is not one line.
+                        warnings.filterwarnings("ignore", "Input line .* contained no data")
+                        # comments=None: a '#' line is a damaged row, not a comment to skip.
                         rows = np.loadtxt(f, delimiter=",", max_rows=CHUNK_ROWS, ndmin=2,
-                                          dtype=np.float64)
+                                          dtype=np.float64, comments=None)
                 except (ValueError, UnicodeDecodeError) as exc:
                     raise RunFolderError(
                         f"{self.csv} is damaged: a row from line {first_line} on is not "
