@@ -43,12 +43,11 @@ from ..runtime.row_stream import (
 from ..sim import choose_kernels, load_scenario, unit_setups
 from ..sim.scenario import MAX_RATE_HZ, MIN_RATE_HZ
 from . import report
-from .cochlea_run import MAX_WATCHDOG_MISSES
 from .outputs import ReportError
 
-#: The header's bounds: counts (every, periods) within 32 bits (a log's time_s below 2**31 s);
-#: the period of a control rate cochlea-run allows (MIN_RATE_HZ .. MAX_RATE_HZ); cochlea-run's
-#: watchdog range; a row no longer than a frame can carry.
+#: The header's bounds: counts (every, periods, watchdog_misses) within 32 bits (a log's
+#: time_s below 2**31 s, the firmware's C int); the period of a control rate cochlea-run allows
+#: (MIN_RATE_HZ .. MAX_RATE_HZ); a row no longer than a frame can carry.
 MAX_COUNT = 2**31 - 1
 MIN_PERIOD_NS = round(1e9 / MAX_RATE_HZ)
 MAX_PERIOD_NS = round(1e9 / MIN_RATE_HZ)
@@ -217,13 +216,14 @@ class StreamRun:
             raise HeaderError("the stream's header says no rows are streamed (row_length "
                                f"{self.row_length}, every {self.every}): nothing to write")
         # What the host's own readers (cochlea-mcap, cochlea-view, cochlea-ros2) and
-        # cochlea-run accept, so that a run written here is read back: counts within 32 bits,
-        # a control rate cochlea-run allows, its watchdog's range.
+        # cochlea-run accept, so that a run written here is read back: counts within 32 bits
+        # (the firmware's C int; watchdog_misses too: a firmware built for QEMU tolerates
+        # 100 000, more than cochlea-run's 500), a control rate cochlea-run allows.
         for field, value, low, high in (
                 ("every", self.every, 1, MAX_COUNT), ("periods", self.periods, 0, MAX_COUNT),
                 ("row_length", self.row_length, 1, MAX_ROW_LENGTH),
                 ("period_ns", self.period_ns, MIN_PERIOD_NS, MAX_PERIOD_NS),
-                ("watchdog_misses", self.misses, 1, MAX_WATCHDOG_MISSES)):
+                ("watchdog_misses", self.misses, 1, MAX_COUNT)):
             if not low <= value <= high:
                 raise HeaderError(f"the stream's header is malformed (field {field} = "
                                   f"{str(value)[:40]}, outside [{low}, {high}])")
