@@ -185,6 +185,40 @@ def same_file(a: Path, b: Path) -> bool:
         return False
 
 
+#: The files a run leaves in its folder (docs/logs.md, "The run folder"), besides its figures
+#: (``*.png``): a tool that reads a run folder never writes over one of them.
+RUN_FILES = ("log.csv", "summary.json", "log.bin", "log.columns.json")
+
+
+def run_files(folder: Path) -> list[Path]:
+    """The run's own files in ``folder`` (:data:`RUN_FILES` and the figures ``*.png``) that
+    exist, the run's lock file with them."""
+    folder = Path(folder)
+    found = [folder / name for name in RUN_FILES + (".cochlea.lock",)
+             if os.path.lexists(folder / name)]
+    with contextlib.suppress(OSError):
+        found += sorted(p for p in folder.iterdir() if p.suffix.lower() == ".png")
+    return found
+
+
+def run_file_of(path: Path, folder: Path) -> Path | None:
+    """The file of the run folder ``folder`` that writing ``path`` would replace or stand in
+    for, or None: ``path`` is in that folder (by any name of it: a link, ``..``) under one of
+    the run's names (:data:`RUN_FILES`, a figure ``*.png``, present or not), or is (a link to,
+    another hard link of) one of its files."""
+    path = Path(path)
+    parent = Path(os.path.abspath(path)).parent
+    if same_file(parent, folder):
+        name = path.name
+        if name in RUN_FILES or name == ".cochlea.lock" or Path(name).suffix.lower() == ".png":
+            return Path(folder) / name
+    if os.path.lexists(path):
+        for own in run_files(folder):
+            if same_file(path, own) or os.path.abspath(path) == os.path.abspath(own):
+                return own
+    return None
+
+
 def file_problem(path: Path, *, replace: bool = True, links: bool = True,
                  inputs: tuple[Path, ...] = (), hard_links: bool = True,
                  probe_it: bool = True) -> Problem | None:

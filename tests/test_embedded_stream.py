@@ -281,6 +281,30 @@ def test_a_wrong_schema_or_no_header_is_one_line_and_nothing_written(tmp_path, c
     assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("field, value", [
+    ("every", 10**30), ("periods", 2**31), ("period_ns", 10**30), ("period_ns", 10),
+    ("watchdog_misses", -1), ("watchdog_misses", 10**30)])
+def test_a_header_its_own_readers_would_refuse_is_refused(tmp_path, columns, capsys, field,
+                                                          value):
+    """Header values the host accepted and its readers then refused (every = 10**30: 'summary
+    .json damaged' from cochlea-mcap; period_ns = 10**30: times beyond a ROS stamp) or that
+    no firmware's C int holds (watchdog_misses -1, 10**30; a QEMU build's 100 000 is
+    accepted): one line, exit 4, nothing written."""
+    from cochlea.apps import cochlea_embedded_host
+
+    defaults = {"every": "1", "periods": "40", "period_ns": "1000000", "watchdog_misses": "20"}
+    text = header(columns).replace(f" {field}={defaults[field]} ".encode(),
+                                   f" {field}={value} ".encode())
+    assert f"{field}={value}".encode() in text
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(encode(HEADER, 0, text) + encode(END, 1, end_text(0, 0)))
+    out = tmp_path / "run"
+    assert cochlea_embedded_host.main(["--port", str(capture), "--out", str(out)]) == 4
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and f"field {field} = " in err, err
+    assert not out.exists()
+
+
 @pytest.mark.slow
 def test_a_firmware_that_refused_to_start_leaves_an_empty_log_and_its_exit_code(tmp_path,
                                                                                    columns):
@@ -347,6 +371,30 @@ def test_a_report_that_cannot_be_written_is_one_line_and_exit_18(tmp_path, colum
     assert code == 18 and len(err.strip().splitlines()) == 1, err
     assert "lost figures" in err and "log.bin" in err
     assert (tmp_path / "run" / "summary.json").exists()
+
+
+@pytest.mark.slow
+def test_rows_no_figure_can_draw_lose_the_figures_only(tmp_path, columns, capsys):
+    """Rows of 1e308 (a valid header, then values matplotlib cannot scale: its ValueError
+    'arange: cannot compute length') ended in a traceback and no summary.json: now the
+    figures alone are lost, summary.json is written and says so (report_lost), and the exit
+    (18) says so in one line."""
+    from cochlea.apps import cochlea_embedded_host
+
+    sent = [np.full(len(columns), 1e308) for _ in range(10)]
+    for k, row in enumerate(sent):
+        row[0] = k * H
+    capture = tmp_path / "stream.bin"
+    capture.write_bytes(header_and_rows(columns, sent) + encode(END, 11, end_text(10, 0)))
+    out = tmp_path / "run"
+    code = cochlea_embedded_host.main(["--port", str(capture), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 18 and len(err.strip().splitlines()) == 1, err
+    assert "lost figures" in err and "a figure could not be drawn" in err
+    assert "Free some space" not in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["report_lost"] == ["figures"]
+    assert np.array_equal(log_rows(out), np.array(sent))
 
 
 def serve(payload: bytes) -> tuple[int, threading.Event]:

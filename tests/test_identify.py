@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
@@ -253,6 +255,34 @@ def _copy_log(src: Path, dst: Path, edit) -> Path:
     lines = (src / "log.csv").read_text().splitlines(keepends=True)
     (dst / "log.csv").write_text("".join(edit(lines)))
     return dst
+
+
+def test_a_summary_nested_too_deep_or_a_fifo_is_read_as_no_summary(tmp_path):
+    """The schema check reads summary.json beside a log: nested 200 000 deep it raised
+    RecursionError (a traceback), and a FIFO in its place blocked; both are now a summary that
+    says nothing, and the log is checked column by column."""
+    from cochlea.ident.logs import _check_version
+
+    (tmp_path / "summary.json").write_text("[" * 200000 + "]" * 200000)
+    assert _check_version(tmp_path / "summary.json") is None
+    os.mkfifo(tmp_path / "fifo.json")
+    assert _check_version(tmp_path / "fifo.json") is None
+
+
+@pytest.mark.slow
+def test_an_output_is_never_one_of_the_runs_own_files(serial_run, tmp_path, capsys):
+    """--out naming the summary.json of a run folder being read is refused in one line; the
+    summary is unchanged (the log.csv alone was protected before)."""
+    tmp, _ = serial_run
+    folder = tmp_path / "m"
+    shutil.copytree(tmp / "measured", folder)
+    shutil.copy(tmp / "run" / "summary.json", folder / "summary.json")
+    before = (folder / "summary.json").read_bytes()
+    assert main([str(folder), "--robot", "serial", "--no-figures", "--out",
+                 str(folder / "summary.json")]) == EXIT_OUTPUT_REFUSED
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is the input" in err and "summary.json" in err
+    assert (folder / "summary.json").read_bytes() == before
 
 
 @pytest.mark.slow

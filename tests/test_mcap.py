@@ -13,6 +13,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -380,6 +381,18 @@ def test_not_a_run(capsys, tmp_path, runs):
     ("summary_json", "not JSON"),
     ("summary_robot", "no robot"),
     ("missing_columns", "is not this run's log"),
+    ("time_negative", "outside [0, 2**31) s"),
+    ("time_beyond_ros", "outside [0, 2**31) s"),
+    ("time_1e300", "outside [0, 2**31) s"),
+    ("summary_deep", "nested too deep"),
+    ("summary_fifo", "not a regular file"),
+    ("periods_missing", "its periods is None"),
+    ("periods_float", "its periods is 1000.0"),
+    ("periods_text", "its periods is '1000'"),
+    ("periods_bool", "its periods is True"),
+    ("joint_in_degrees", "'joint1_deg' is in 'deg', not 'rad'"),
+    ("joint_unknown", "'elbow_rad' names no joint of the unit"),
+    ("late_row", "after the run's end"),
 ])
 @pytest.mark.slow
 def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damage, message):
@@ -408,6 +421,40 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
         cells = [line.rstrip("\n").split(",") for line in lines]
         drop = cells[0].index("arm2.tau.joint3_N_m")
         csv.write_text("".join(",".join(c[:drop] + c[drop + 1:]) + "\n" for c in cells))
+    elif damage.startswith("time_"):
+        # every time shifted (-1 s; +3e9 s, beyond a ROS stamp's int32 seconds) or scaled
+        # (1e300): struct.error, int32 'sec' tracebacks and overflow warnings before
+        shift = {"time_negative": lambda t: t - 1, "time_beyond_ros": lambda t: t + 3e9,
+                 "time_1e300": lambda t: (t + 1) * 1e300}[damage]
+        cells = [line.rstrip("\n").split(",") for line in lines]
+        for c in cells[1:]:
+            c[0] = repr(shift(float(c[0])))
+        csv.write_text("".join(",".join(c) + "\n" for c in cells))
+    elif damage in ("joint_in_degrees", "joint_unknown"):
+        # columns were taken by their position in the group: degrees read as radians
+        new = {"joint_in_degrees": "arm1.q.joint1_deg", "joint_unknown": "arm1.q.elbow_rad"}
+        old = {"joint_in_degrees": "arm1.q.joint1_rad", "joint_unknown": "arm1.q.joint2_rad"}
+        csv.write_text("".join(lines).replace(old[damage], new[damage], 1))
+    elif damage == "late_row":  # cochlea-ros2 replay waited for it (1e9 s)
+        cells = lines[-1].split(",")
+        cells[0] = "1e9"
+        lines[-1] = ",".join(cells)
+        csv.write_text("".join(lines))
+    elif damage == "summary_deep":  # RecursionError in the parser before
+        (run / "summary.json").write_text("[" * 200000 + "]" * 200000)
+    elif damage == "summary_fifo":
+        (run / "summary.json").unlink()
+        os.mkfifo(run / "summary.json")
+    elif damage.startswith("periods_"):
+        # without a whole number of periods the truncation check was off (a log cut to 299
+        # of 1000 rows was exported as whole)
+        summary = json.loads((run / "summary.json").read_text())
+        summary.pop("periods")
+        value = {"periods_missing": None, "periods_float": 1000.0, "periods_text": "1000",
+                 "periods_bool": True}[damage]
+        if value is not None:
+            summary["periods"] = value
+        (run / "summary.json").write_text(json.dumps(summary))
     # An earlier export stays as it was when a new one fails.
     previous = run / "log.mcap"
     previous.write_bytes(b"previous export")
@@ -415,6 +462,58 @@ def test_damaged_log_is_refused_and_leaves_nothing(capsys, tmp_path, runs, damag
     assert previous.read_bytes() == b"previous export"
     previous.unlink()
     no_output(run)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage, message", [
+    ("comment_row", "could not convert string '#"),
+    ("blank_row", "truncated or damaged"),
+    ("csv_fifo", "log.csv is not a regular file"),
+    ("csv_folder", "log.csv is not a regular file"),
+])
+def test_a_damaged_log_says_one_line_and_no_more(capfd, tmp_path, runs, damage, message):
+    """A '#' or blank row printed numpy's 3-line UserWarning before the one-line error (a '#'
+    row was even skipped as a comment); log.csv a FIFO or a folder got the hint that log.bin
+    holds the raw log of a run whose report was lost (it is not lost: something else is
+    there). Now: one line, and the hint only where log.csv is missing."""
+    run = copy_run(runs, tmp_path)
+    csv = run / "log.csv"
+    lines = csv.read_text().splitlines(keepends=True)
+    if damage == "comment_row":
+        lines[100] = "#" + lines[100]
+    elif damage == "blank_row":
+        lines[100] = "\n"
+    else:
+        csv.unlink()
+        os.mkfifo(csv) if damage == "csv_fifo" else csv.mkdir()
+    if damage.endswith("_row"):
+        csv.write_text("".join(lines))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main([str(run)]) == EXIT_USER_ERROR
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and message in err and "log.bin holds" not in err, err
+    assert not [str(w.message) for w in caught]
+
+
+@pytest.mark.slow
+def test_an_infinite_pose_is_exported_without_warnings(capfd, tmp_path, runs):
+    """An infinite pose angle (and q) in log.csv is exported as logged, and numpy's
+    RuntimeWarnings (invalid value in sin, cos) no longer reach the console."""
+    run = copy_run(runs, tmp_path)
+    lines = (run / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[50].split(",")
+    cells[header.index("arm1.pose.phi_rad")] = "inf"
+    cells[header.index("arm1.q.joint1_rad")] = "-inf"
+    lines[50] = ",".join(cells)
+    (run / "log.csv").write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main([str(run)]) == 0
+    out = capfd.readouterr()
+    assert out.err == "" and out.out.count("\n") == 1
+    assert not [str(w.message) for w in caught]
 
 
 @pytest.mark.slow
@@ -436,6 +535,25 @@ def test_bad_outputs(capsys, tmp_path, runs):
     no_output(run)
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "afile", "dangling.mcap", "folder.mcap", "pipe.mcap", "run"]
+
+
+@pytest.mark.slow
+def test_the_runs_own_files_are_never_the_output(capsys, tmp_path, runs):
+    """An --out that is one of the run's own files (its log, summary, raw log, column list, a
+    figure), by its name, through a link or by another path to the folder, is refused before
+    anything is written: the run's files are left byte for byte (a probe found log.csv and
+    summary.json replaced by the MCAP, exit 0)."""
+    run = copy_run(runs, tmp_path)
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    (tmp_path / "alias").symlink_to(run)
+    (tmp_path / "link.mcap").symlink_to(run / "log.csv")
+    for out in [run / name for name in ("log.csv", "summary.json", "log.bin",
+                                        "log.columns.json", "paths.png")] + [
+            tmp_path / "alias" / "summary.json", run / ".." / "run" / "log.bin",
+            tmp_path / "link.mcap"]:
+        assert "the run's own" in refused(capsys, str(run), "--out", str(out))
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    assert main([str(run), "--out", str(run / "log.mcap")]) == 0  # its export: allowed
 
 
 @pytest.mark.slow
@@ -496,6 +614,74 @@ def test_interrupt_leaves_nothing(capsys, tmp_path, runs, monkeypatch):
     no_output(run)
 
 
+TERMINATE_PART_WAY = """
+import os, signal, sys
+import cochlea.export.to_mcap as to_mcap
+from cochlea.apps.cochlea_mcap import main
+real, calls = to_mcap.Exporter.write, [0]
+def write(self, *args):
+    calls[0] += 1
+    if calls[0] == 1500:
+        os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    return real(self, *args)
+to_mcap.Exporter.write = write
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, code", [("SIGTERM", 143), ("SIGHUP", 129)])
+def test_sigterm_or_sighup_leaves_nothing(tmp_path, runs, name, code):
+    """SIGTERM (timeout, a batch system) or SIGHUP part way unwinds as Ctrl-C does: one line,
+    the shell's code, and no hidden temporary file left beside the output (it was, after a
+    SIGTERM)."""
+    run = copy_run(runs, tmp_path)
+    done = subprocess.run([sys.executable, "-c", TERMINATE_PART_WAY, name, str(run)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == code, done.stderr
+    assert done.stderr == f"cochlea-mcap: {'terminated' if code == 143 else 'hung up (SIGHUP)'}" \
+        "; nothing written\n"
+    no_output(run)
+
+
+@pytest.mark.slow
+def test_columns_are_read_by_joint_name_not_position(tmp_path, runs, exported):
+    """Two joints' q columns swapped, header and data alike (the same log written in another
+    order), export exactly as the original: the columns are taken by the joints' names (they
+    were taken by position: /tf and tool_pose then disagreed)."""
+    run = copy_run(runs, tmp_path)
+    lines = (run / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    a, b = header.index("arm1.q.joint1_rad"), header.index("arm1.q.joint3_rad")
+    out = []
+    for line in lines:
+        cells = line.split(",")
+        cells[a], cells[b] = cells[b], cells[a]
+        out.append(",".join(cells))
+    (run / "log.csv").write_text("\n".join(out) + "\n")
+    topics = export(run, tmp_path)
+    original = exported["serial_task_rt"]
+    for topic in ("/arm1/joint_states", "/tf", "/arm1/tool_pose/actual"):
+        assert [str(m) for _, _, _, m in topics[topic]] == \
+            [str(m) for _, _, _, m in original[topic]]
+    assert topics["/arm1/joint_states"][0][3].name == ["joint1", "joint2", "joint3"]
+
+
+@pytest.mark.slow
+def test_a_stop_time_no_nanosecond_count_holds_is_clamped(tmp_path, runs):
+    """summary.json's stop and supervisor times of 1e308 s (an OverflowError in the event's
+    stamp before) are stamped at the log's last row, the text keeping the summary's value."""
+    run = copy_run(runs, tmp_path, "serial_joint_fast")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["stop"] = {"rule": "keep-out", "time_s": 1e308, "detail": "x", "exit_code": 11}
+    summary["supervisor"]["time_s"] = 1e308
+    (run / "summary.json").write_text(json.dumps(summary))
+    rosout = export(run, tmp_path)["/rosout"]
+    last = max(t for t, _, _, _ in export(run, tmp_path, "again.mcap")["/tf"])
+    assert [t for t, _, _, _ in rosout[1:3]] == [last, last]
+    assert "1e+308" in rosout[1][3].msg
+
+
 @pytest.mark.slow
 def test_non_finite_rows_have_no_transforms(tmp_path, runs):
     """A row whose measured q is not finite (a run stopped by the rule non-finite) keeps its
@@ -515,6 +701,24 @@ def test_non_finite_rows_have_no_transforms(tmp_path, runs):
     assert bad_ns not in {t for t, _, _, _ in topics["/tf"]}
     states = topics["/mechanism/joint_states"]
     assert len(states) == len(rows) and np.isnan(states[119][3].position[1])
+
+
+@pytest.mark.slow
+def test_a_relative_scenario_is_recorded_absolute(tmp_path):
+    """cochlea-run --scenario my.toml (relative) stored "my.toml" in summary.json: exported
+    from another folder it named no file (or another my.toml). It is stored absolute, and the
+    run exports from anywhere."""
+    shutil.copy(ROOT / "models" / "scenarios" / "serial_joint.toml", tmp_path / "my.toml")
+    run = tmp_path / "run"
+    done = subprocess.run(  # from the scenario's folder, this checkout's cochlea
+        [sys.executable, "-m", "cochlea.apps.cochlea_run", "--robot", "serial", "--space",
+         "joint", "--scenario", "my.toml", "--duration", "0.05", "--realtime", "off",
+         "--status", "off", "--out", "run"], capture_output=True, text=True, timeout=300,
+        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["scenario_file"] == str(tmp_path / "my.toml")
+    assert Path.cwd() != tmp_path and main([str(run)]) == 0
 
 
 @pytest.mark.slow

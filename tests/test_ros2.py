@@ -435,6 +435,85 @@ def test_a_damaged_or_foreign_log(capsys, tmp_path, columns, message):
     assert message in refused(capsys, 2, "follow", str(tmp_path), "--scenario", "serial_joint")
 
 
+def serial_joint_columns() -> list[str]:
+    """log.columns.json's names of a serial_joint run on the sim backend (the one schema)."""
+    from cochlea.log_schema import LogUnit, raw_columns
+    from cochlea.sim import load_scenario, unit_setups
+
+    setups = unit_setups(load_scenario("serial_joint"))
+    return raw_columns([LogUnit.of_setup(u, u.controller.space) for u in setups],
+                       current=False, true_state=True)
+
+
+def write_columns(folder: Path, names: list[str]) -> None:
+    (folder / "log.columns.json").write_text(json.dumps(
+        {"schema_version": 2, "dtype": "float64", "row_length": len(names), "columns": names}))
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("columns_ints", "not a real-time run's column list"),
+    ("columns_deep", "nested too deep"),
+    ("columns_fifo", "not a regular file"),
+    ("bin_folder", "not a regular file"),
+    ("time_nan", "time_s = nan"),
+    ("time_inf", "time_s = inf"),
+    ("time_backwards", "not after the row before"),
+    ("time_garbage", "is damaged"),
+    ("finished_without_bin", "finished run without log.bin"),
+    ("finished_empty_bin", "finished run without log.bin"),
+])
+def test_a_damaged_raw_log_is_one_line(capsys, tmp_path, damage, message):
+    """follow on damaged log.columns.json or log.bin: columns as ints (AttributeError), JSON
+    nested 200 000 deep (RecursionError), a FIFO (a hang), log.bin a folder
+    (IsADirectoryError), a NaN, infinite, backwards or garbage time (ValueError,
+    OverflowError, SystemError in the publisher), and a finished run without rows (exit 0,
+    'published 0 rows of 0'): each one line, exit 2, before or without publishing."""
+    names = serial_joint_columns()
+    write_columns(tmp_path, names)
+    rows = np.zeros((5, len(names)))
+    rows[:, 0] = np.arange(5) * 1e-3
+    if damage == "columns_ints":
+        (tmp_path / "log.columns.json").write_text(
+            '{"dtype": "float64", "row_length": 2, "columns": [1, 2]}')
+    elif damage == "columns_deep":
+        (tmp_path / "log.columns.json").write_text("[" * 200000 + "]" * 200000)
+    elif damage == "columns_fifo":
+        (tmp_path / "log.columns.json").unlink()
+        os.mkfifo(tmp_path / "log.columns.json")
+    elif damage == "bin_folder":
+        (tmp_path / "log.bin").mkdir()
+    elif damage.startswith("time_"):
+        rows[3, 0] = {"time_nan": np.nan, "time_inf": np.inf, "time_backwards": 0.0,
+                      "time_garbage": -6.28e161}[damage]
+    elif damage.startswith("finished_"):
+        (tmp_path / "summary.json").write_text("{}")
+        if damage == "finished_empty_bin":
+            (tmp_path / "log.bin").write_bytes(b"")
+    if damage.startswith("time_"):
+        rows.tofile(tmp_path / "log.bin")
+    assert message in refused(capsys, 2, "follow", str(tmp_path), "--scenario",
+                              "serial_joint", "--idle", "5")
+
+
+def test_raw_columns_are_taken_by_joint_name_and_unit(tmp_path):
+    """log.bin's q columns in another order map to the model's joints by name (they were
+    taken by position); a joint in degrees or a name no joint has is refused."""
+    from cochlea.export.run_log import RunFolderError
+
+    adapter, system = describe_scenario("serial_joint")
+    names = serial_joint_columns()
+    a, b = names.index("arm1.q.joint1_rad"), names.index("arm1.q.joint2_rad")
+    swapped = list(names)
+    swapped[a], swapped[b] = swapped[b], swapped[a]
+    units = raw_units(adapter, system, swapped, tmp_path / "log.bin")
+    assert units[0].groups["q"].columns[:2] == [b, a]
+    assert units[0].joints() == ["joint1", "joint2", "joint3"]
+    for wrong in ("arm1.q.joint1_deg", "arm1.q.elbow_rad"):
+        bad = [wrong if n == "arm1.q.joint1_rad" else n for n in names]
+        with pytest.raises(RunFolderError, match="not this run.s log"):
+            raw_units(adapter, system, bad, tmp_path / "log.bin")
+
+
 def test_an_unknown_scenario(capsys, tmp_path):
     (tmp_path / "log.columns.json").write_text(
         '{"dtype": "float64", "row_length": 1, "columns": ["time_s"]}')

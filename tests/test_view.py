@@ -330,6 +330,46 @@ def test_bad_input_is_one_line_and_its_exit_code(runs, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_html_out_is_never_one_of_the_runs_own_files(runs, tmp_path, capsys):
+    """--html-out naming the run's log.csv, summary.json or a figure (directly or through a
+    link) is refused (exit 4, one line) and the run's files are unchanged (a probe found
+    log.csv replaced by the page, exit 0)."""
+    run = tmp_path / "run"
+    shutil.copytree(runs["parallel_joint"], run)
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    (tmp_path / "link.html").symlink_to(run / "summary.json")
+    for out in (run / "log.csv", run / "summary.json", run / "paths.png",
+                tmp_path / "link.html"):
+        assert main([str(run), "--html-out", str(out)]) == EXIT_HTML_OUT
+        assert "the run's own" in one_line(capsys)
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+
+
+@pytest.mark.slow
+def test_sigterm_while_the_page_is_written_leaves_nothing(runs, tmp_path):
+    """SIGTERM while --html-out is written unwinds as Ctrl-C: exit 143, one line, and neither
+    the page nor its hidden temporary file is left (the temporary file was)."""
+    script = (
+        "import os, signal, sys, pathlib\n"
+        "from cochlea.apps.cochlea_view import main\n"
+        "real = pathlib.Path.write_text\n"
+        "def write_text(self, text, *a, **k):\n"
+        "    real(self, text[:100], *a, **k)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    return real(self, text, *a, **k)\n"
+        "pathlib.Path.write_text = write_text\n"
+        "sys.exit(main(sys.argv[1:]))\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    done = subprocess.run([sys.executable, "-c", script, str(runs["parallel_joint"]),
+                           "--html-out", str(out / "page.html")], capture_output=True,
+                          text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr == "cochlea-view: terminated; nothing written\n"
+    assert list(out.iterdir()) == []
+
+
+@pytest.mark.slow
 def test_html_out_writes_a_self_contained_page(runs, replays, tmp_path, capsys):
     page = tmp_path / "replay.html"
     page.write_text("old")
@@ -375,6 +415,27 @@ def test_a_row_whose_q_is_not_finite_is_not_drawn(runs, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_value_too_large_to_round_is_drawn_as_it_is(runs, tmp_path, capsys):
+    """A desired cell of 1e305 (and a q of 1e300): rounding it to 0.1 um overflowed to inf and
+    the page's strict JSON refused it (ValueError traceback); now a finite value is kept, one
+    that is not finite becomes null, and the page is written."""
+    folder = tmp_path / "big"
+    shutil.copytree(runs["serial_task"], folder)
+    lines = (folder / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[-1].split(",")
+    row[header.index("arm1.desired.x_m")] = "1e305"
+    row[header.index("arm2.q.joint1_rad")] = "1e300"
+    lines[-1] = ",".join(row)
+    (folder / "log.csv").write_text("\n".join(lines) + "\n")
+    page = tmp_path / "page.html"
+    assert main([str(folder), "--html-out", str(page)]) == 0, capsys.readouterr().err
+    data = page.read_text().split('<script id="replay" type="application/json">')[1]
+    replay = json.loads(data.split("</script>")[0])
+    assert replay["units"][0]["desired"][0][-1][0] == 1e305
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("field, value", [("duration_s", 10**30), ("space", float("inf")),
                                           ("periods", float("nan")), ("stop", {"rule": "x",
                                                                                "time_s": 10**30})])
@@ -393,5 +454,7 @@ def test_a_summary_with_numbers_no_reader_expects_is_one_line_or_drawn(runs, tmp
     code = main([str(damaged), "--html-out", str(tmp_path / "page.html")])
     if field in ("duration_s", "stop"):
         assert code == EXIT_USER_ERROR and "integer of 401 digits" in one_line(capsys)
+    elif field == "periods":  # the count the log is checked against: a whole number only
+        assert code == EXIT_USER_ERROR and "its periods is nan" in one_line(capsys)
     else:
         assert code == 0 and (tmp_path / "page.html").is_file()

@@ -30,10 +30,28 @@ from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..log_schema import SCHEMA_VERSION
 from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
 from ..runtime.loop import raw_columns
-from ..runtime.row_stream import END, HEADER, ROW, Decoder, Frame, chain_crc, parse_text
+from ..runtime.row_stream import (
+    END,
+    HEADER,
+    MAX_PAYLOAD,
+    ROW,
+    Decoder,
+    Frame,
+    chain_crc,
+    parse_text,
+)
 from ..sim import choose_kernels, load_scenario, unit_setups
+from ..sim.scenario import MAX_RATE_HZ, MIN_RATE_HZ
 from . import report
 from .outputs import ReportError
+
+#: The header's bounds: counts (every, periods, watchdog_misses) within 32 bits (a log's
+#: time_s below 2**31 s, the firmware's C int); the period of a control rate cochlea-run allows
+#: (MIN_RATE_HZ .. MAX_RATE_HZ); a row no longer than a frame can carry.
+MAX_COUNT = 2**31 - 1
+MIN_PERIOD_NS = round(1e9 / MAX_RATE_HZ)
+MAX_PERIOD_NS = round(1e9 / MIN_RATE_HZ)
+MAX_ROW_LENGTH = (MAX_PAYLOAD - 8) // 8  # a row frame: its period (int64), then the row
 
 PROG = "cochlea-embedded-host"
 #: Exit codes: after the end frame, the firmware's own (cochlea-run's: 0 completed, 5 the
@@ -197,6 +215,18 @@ class StreamRun:
         if self.every < 1 or self.period_ns <= 0 or self.row_length <= 0:
             raise HeaderError("the stream's header says no rows are streamed (row_length "
                                f"{self.row_length}, every {self.every}): nothing to write")
+        # What the host's own readers (cochlea-mcap, cochlea-view, cochlea-ros2) and
+        # cochlea-run accept, so that a run written here is read back: counts within 32 bits
+        # (the firmware's C int; watchdog_misses too: a firmware built for QEMU tolerates
+        # 100 000, more than cochlea-run's 500), a control rate cochlea-run allows.
+        for field, value, low, high in (
+                ("every", self.every, 1, MAX_COUNT), ("periods", self.periods, 0, MAX_COUNT),
+                ("row_length", self.row_length, 1, MAX_ROW_LENGTH),
+                ("period_ns", self.period_ns, MIN_PERIOD_NS, MAX_PERIOD_NS),
+                ("watchdog_misses", self.misses, 1, MAX_COUNT)):
+            if not low <= value <= high:
+                raise HeaderError(f"the stream's header is malformed (field {field} = "
+                                  f"{str(value)[:40]}, outside [{low}, {high}])")
         if header.get("schema_version") != str(SCHEMA_VERSION):
             raise HeaderError(f"the firmware's rows follow log schema version "
                               f"{header.get('schema_version')}, this host's is {SCHEMA_VERSION}: "
@@ -465,7 +495,10 @@ def _write_run(stream: StreamRun, why: str | None) -> int:
               f"{stream.decoder.counts.as_dict()}): nothing written", file=sys.stderr)
         return EXIT_NO_HEADER
     try:
-        data = stream.write(why)
+        # Values near the float64 limit (1e308 rows) overflow in the summary's sums: the
+        # summary says inf, the console stays one line.
+        with np.errstate(over="ignore", invalid="ignore"):
+            data = stream.write(why)
     except ReportError as exc:  # the runs after this one are still written
         print(f"{PROG}: " + (f"{stream.disk_error}; " if stream.disk_error else "") + str(exc),
               file=sys.stderr)

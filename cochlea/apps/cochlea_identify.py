@@ -275,7 +275,8 @@ def run(args) -> int:
     descriptions = (Path(args.description),) if args.description else ()
     if args.update_description:
         descriptions += (Path(args.update_description),)
-    inputs = tuple(files.log_file(f) for f in args.logs + (args.validate or [])) + descriptions
+    inputs = tuple(p for f in args.logs + (args.validate or []) for p in files.run_inputs(f)) \
+        + descriptions
     _outputs(args, out, inputs)
     target = None
     if args.update_description:

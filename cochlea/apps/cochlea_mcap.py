@@ -15,28 +15,36 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..export.to_mcap import Exporter
-from .outputs import atomic_path, check_output_file
+from .outputs import atomic_path, check_output_file, interrupted_exit, signals_unwind
 
 PROG = "cochlea-mcap"
 
 
-def check_output(path: Path) -> None:
+def check_output(path: Path, run_dir: Path | None = None) -> None:
     """Refuse an output that exists and is not a regular file, or whose folder is missing or
-    not writable; creates nothing."""
-    check_output_file(path, "--out", ".mcap")
+    not writable, or that is one of the files of ``run_dir`` (the run being read); creates
+    nothing."""
+    check_output_file(path, "--out", ".mcap", run_dir=run_dir)
 
 
 def export(run_dir: Path, out: Path | None = None) -> tuple[Path, dict[str, int]]:
     """Write ``run_dir``'s log to ``out`` (default ``run_dir/log.mcap``); the messages per
     topic."""
+    if out is not None:
+        check_output(Path(out), Path(run_dir))  # before the run is read at all
     run = open_run(run_dir)
     out = Path(out) if out is not None else run.folder / "log.mcap"
-    check_output(out)
+    check_output(out, run.folder)
     try:
-        with atomic_path(out) as tmp, open(tmp, "wb") as stream:
+        # A logged inf or NaN (a pose of a run stopped by non-finite) is exported as logged,
+        # without numpy's warnings on the console (one line is all a tool prints).
+        with atomic_path(out) as tmp, open(tmp, "wb") as stream, \
+                np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             counts = Exporter(run, stream).export()
     except OSError as exc:
         raise CochleaError(f"--out {out}: cannot write it ({exc.strerror or exc}); nothing "
@@ -52,13 +60,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="the MCAP file to write (default: RUN_DIR/log.mcap)")
     args = parser.parse_args(argv)
     try:
-        out, counts = export(args.run_dir, args.out)
+        with signals_unwind():  # SIGTERM, SIGHUP: as Ctrl-C, the temporary file removed
+            out, counts = export(args.run_dir, args.out)
     except CochleaError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        word, code = interrupted_exit(exc)
+        print(f"{PROG}: {word}; nothing written", file=sys.stderr)
+        return code
     print(printable(f"{PROG}: wrote {out}: {sum(counts.values())} messages on "
                     f"{len(counts)} topics"))
     return 0

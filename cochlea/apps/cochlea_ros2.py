@@ -112,6 +112,9 @@ def follow(args) -> int:
                         "run that is starting")
         time.sleep(0.05)
     tail = RawTail(folder)
+    if (folder / "summary.json").exists() and tail.rows_written() == 0:
+        raise CochleaError(f"{folder} is a finished run without log.bin (or with no row in it): "
+                           f"nothing to follow; use {PROG} replay")
     if args.scenario is not None:
         adapter, system = describe_scenario(args.scenario)
     elif (folder / "summary.json").exists():

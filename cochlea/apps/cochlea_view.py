@@ -22,10 +22,12 @@ import sys
 import webbrowser
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..view import DEFAULT_RATE_HZ, build_replay, render_page
-from .outputs import atomic_path, check_output_file
+from .outputs import atomic_path, check_output_file, interrupted_exit, signals_unwind
 
 PROG = "cochlea-view"
 EXIT_PORT = 3
@@ -40,20 +42,22 @@ class PortError(CochleaError):
     """The server's port cannot be opened."""
 
 
-def check_output(path: Path) -> None:
+def check_output(path: Path, run_dir: Path | None = None) -> None:
     """Refuse an output that exists and is not a regular file, or whose folder is missing or
-    not writable; creates nothing."""
-    check_output_file(path, "--html-out", ".html", OutputError)
+    not writable, or that is one of the files of ``run_dir`` (the run being read); creates
+    nothing."""
+    check_output_file(path, "--html-out", ".html", OutputError, run_dir=run_dir)
 
 
 def page_of(run_dir: Path, rate_hz: float = DEFAULT_RATE_HZ) -> tuple[str, dict]:
     """The replay page of ``run_dir`` and its replay."""
-    replay = build_replay(open_run(run_dir), rate_hz)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # inf in a log: quiet
+        replay = build_replay(open_run(run_dir), rate_hz)
     return render_page(replay), replay
 
 
-def write_page(page: str, out: Path) -> None:
-    check_output(out)
+def write_page(page: str, out: Path, run_dir: Path | None = None) -> None:
+    check_output(out, run_dir)
     try:
         with atomic_path(out) as tmp:
             tmp.write_text(page, encoding="utf-8")
@@ -104,14 +108,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: --port {args.port}: not a port (0..65535)", file=sys.stderr)
         return EXIT_PORT
     try:
-        if args.html_out is not None:
-            check_output(args.html_out)
-        page, replay = page_of(args.run_dir)
-        if args.html_out is not None:
-            write_page(page, args.html_out)
-            print(printable(f"{PROG}: wrote {args.html_out}: {len(replay['times'])} frames"))
-            return 0
-        server = make_server(page, args.port)
+        with signals_unwind():  # SIGTERM, SIGHUP: as Ctrl-C, the temporary file removed
+            if args.html_out is not None:
+                check_output(args.html_out, args.run_dir)
+            page, replay = page_of(args.run_dir)
+            if args.html_out is not None:
+                write_page(page, args.html_out, args.run_dir)
+                print(printable(f"{PROG}: wrote {args.html_out}: {len(replay['times'])} "
+                                "frames"))
+                return 0
+            server = make_server(page, args.port)
     except OutputError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_HTML_OUT
@@ -121,16 +127,18 @@ def main(argv: list[str] | None = None) -> int:
     except CochleaError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        word, code = interrupted_exit(exc)
+        print(f"{PROG}: {word}; nothing written", file=sys.stderr)
+        return code
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     print(printable(f"{PROG}: serving the replay of {args.run_dir} "
                     f"({len(replay['times'])} frames) on {url} until Ctrl-C"), flush=True)
     if not args.no_open:
         webbrowser.open(url)
     try:
-        server.serve_forever()
+        with signals_unwind():  # SIGTERM, SIGHUP: the server closed as after Ctrl-C
+            server.serve_forever()
     except KeyboardInterrupt:
         pass
     finally:

@@ -52,9 +52,13 @@ class ReportError(Exception):
     def __str__(self) -> str:
         return printable(super().__str__())  # one line, whatever the folder's name holds
 
-    def __init__(self, folder: Path, lost: list[str], cause: OSError):
+    def __init__(self, folder: Path, lost: list[str], cause: Exception):
         self.folder, self.lost, self.cause = folder, lost, cause
-        reason = cause.strerror or str(cause)
+        disk = isinstance(cause, OSError)
+        # A figure that cannot be drawn (values matplotlib cannot scale: 1e308, an overflow)
+        # is not a disk's failure: its own words, and no advice to free space.
+        reason = (getattr(cause, "strerror", None) or str(cause)) if disk else \
+            f"a figure could not be drawn: {type(cause).__name__}: {cause}"
         kept = sorted(p.name for p in folder.iterdir()
                       if p.is_file() and not p.name.startswith(".")) if folder.is_dir() else []
         super().__init__(
@@ -63,7 +67,7 @@ class ReportError(Exception):
             + (", ".join(kept) if kept else "nothing")
             + (" (log.bin is the whole raw log; log.columns.json names its columns)"
                if "log.bin" in kept else "")
-            + ". Free some space before the next run")
+            + (". Free some space before the next run" if disk else ""))
 
 
 # --------------------------------------------------------------------------------------------
@@ -331,10 +335,18 @@ def claim_new(parent: Path, name: str, option: str = "--out") -> OutputFolder:
 
 
 def check_output_file(path: Path, option: str, suffix: str,
-                      error: type[CochleaError] = CochleaError) -> None:
+                      error: type[CochleaError] = CochleaError,
+                      run_dir: Path | None = None) -> None:
     """Refuse an output file that exists and is not a regular file, or whose folder is missing
-    or cannot be written in (probed: :func:`cochlea.files.file_problem`); creates nothing
-    (cochlea-mcap's ``--out``, cochlea-view's ``--html-out``)."""
+    or cannot be written in (probed: :func:`cochlea.files.file_problem`), or that is one of the
+    files of ``run_dir``, the run folder being read (:func:`cochlea.files.run_file_of`: its log,
+    summary, raw log, column list or figures, by any name); creates nothing (cochlea-mcap's
+    ``--out``, cochlea-view's ``--html-out``)."""
+    if run_dir is not None and Path(run_dir).is_dir():
+        own = files.run_file_of(path, run_dir)
+        if own is not None:
+            raise error(f"{option} {path} is the run's own {own.name} in {run_dir}: name "
+                        f"another {suffix} file (the run's files are never overwritten)")
     p = files.file_problem(path)
     if p is None:
         return
@@ -403,6 +415,38 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int):
         super().__init__(signum)
         self.signum = signum
+
+
+#: The shell's exit code of each stop signal: 130 (SIGINT), 143 (SIGTERM), 129 (SIGHUP).
+SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
+#: How each stop signal is named on the console.
+SIGNAL_WORD = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated",
+               signal.SIGHUP: "hung up (SIGHUP)"}
+
+
+@contextlib.contextmanager
+def signals_unwind():
+    """SIGTERM and SIGHUP raise :class:`Interrupted` (a KeyboardInterrupt) for the section, as
+    Ctrl-C does: a tool writing one output file (cochlea-mcap, cochlea-view --html-out)
+    unwinds through :func:`atomic_path`, which removes its temporary file, instead of dying
+    with it left beside the output. ``signum`` of the exception says which signal; a Ctrl-C is
+    a plain KeyboardInterrupt (SIGINT). The previous handlers come back afterwards."""
+    def unwind(signum, frame):
+        raise Interrupted(signum)
+
+    previous = {s: signal.signal(s, unwind) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def interrupted_exit(exc: BaseException) -> tuple[str, int]:
+    """The word and exit code of a KeyboardInterrupt raised by Ctrl-C or
+    :func:`signals_unwind`."""
+    signum = getattr(exc, "signum", signal.SIGINT)
+    return SIGNAL_WORD.get(signum, "interrupted"), SIGNAL_EXIT.get(signum, 130)
 
 
 class SignalShield:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -378,7 +379,9 @@ def summary(result: SimulationResult, wall_time_s: float | None = None,
         # The column names of log.csv and log.columns.json (cochlea.log_schema).
         "schema_version": SCHEMA_VERSION,
         "scenario": sc.name,
-        "scenario_file": str(sc.path),
+        # Absolute: a relative --scenario (my.toml) stored as given would name another file,
+        # or none, from wherever the run is read (cochlea-mcap, cochlea-view, cochlea-ros2).
+        "scenario_file": os.path.abspath(sc.path),
         "robot": sc.robot,
         "space": sc.space,
         "controller": sc.controller,
@@ -446,6 +449,13 @@ def figures(result: SimulationResult, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    try:
+        return _figures(plt, result, out)
+    finally:
+        plt.close("all")  # a figure that failed part way is not left open
+
+
+def _figures(plt, result: SimulationResult, out: Path) -> list[Path]:
     paths = []
     result = result.decimated(FIGURE_POINTS)  # figures of a long run read a sample of it
     t = result.time
@@ -560,7 +570,9 @@ def write_all(result: SimulationResult, out: Path, wall_time_s: float | None = N
     data.update(extra or {})
     try:
         data["figures"] = [str(p) for p in figures(result, out)] if result.periods > 1 else []
-    except OSError as exc:
+    except Exception as exc:  # noqa: BLE001 - a figure never costs the summary
+        # A full disk (OSError), or values matplotlib cannot draw (1e308 in a row: ValueError,
+        # OverflowError, ...): the figures are lost, summary.json is still written and says so.
         lost.append("figures")
         causes.append(exc)
         data["figures"] = []

@@ -305,8 +305,10 @@ class Exporter:
 
         def at(entry) -> int:
             t = entry.get("time_s")
-            if isinstance(t, (int, float)) and np.isfinite(t):
-                return min(max(int(round(t * 1e9)), first_ns), last_ns)
+            if isinstance(t, (int, float)) and not isinstance(t, bool) and np.isfinite(t):
+                # Clamped to the log's span as a float first: 1e308 s is no integer of ns.
+                ns = min(max(float(t) * 1e9, float(first_ns)), float(last_ns))
+                return min(max(int(round(ns)), first_ns), last_ns)
             return last_ns
 
         stop = s.get("stop")

@@ -58,6 +58,13 @@ def log_file(folder: str | Path) -> Path:
     return folder / "log.csv" if folder.is_dir() else folder
 
 
+def run_inputs(folder: str | Path) -> tuple[Path, ...]:
+    """The log.csv of a run folder (or the file itself) and every other file of that run
+    (summary.json, log.bin, log.columns.json, the figures): an output never replaces one."""
+    log = log_file(folder)
+    return (log, *(p for p in files.run_files(log.parent) if p.name != log.name))
+
+
 def check_distinct_logs(fit: list[str | Path], validate: list[str | Path]) -> None:
     """Refuse a log given twice (same content: a copy, a hard or symbolic link, the same path)
     among the fit logs, and a validation log with the content of a fit log. Files that cannot

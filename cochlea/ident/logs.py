@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CochleaError
+from ..files import read_regular
 from ..log_schema import SCHEMA_VERSION
 from ..robots import ROBOTS, RobotModel
 
@@ -178,8 +179,11 @@ def _check_version(summary: Path) -> None:
     else); a folder without summary.json, or a summary without ``schema_version`` (version 1),
     is read."""
     try:
-        version = json.loads(summary.read_text(encoding="utf-8")).get("schema_version", 1)
-    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        # A regular file only (a FIFO named summary.json would block), and a summary nested
+        # too deep for the parser (RecursionError) is as unreadable as one that is not JSON.
+        version = json.loads(read_regular(summary, 64 * 2**20).decode("utf-8")).get(
+            "schema_version", 1)
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError, RecursionError):
         return  # the log itself is checked column by column
     if not isinstance(version, int) or isinstance(version, bool) or \
             not 1 <= version <= SCHEMA_VERSION:

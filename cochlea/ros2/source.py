@@ -8,24 +8,35 @@ computed by the same code ``cochlea-mcap`` uses
 
 from __future__ import annotations
 
-import json
+import errno
 import math
 import os
+import stat
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .. import files
 from ..errors import CochleaError
-from ..export.run_log import JOINT_UNITS, Group, RunFolderError, UnitColumns
+from ..export.run_log import (
+    MAX_TIME_S,
+    Group,
+    RunFolderError,
+    UnitColumns,
+    by_joint,
+    model_joints,
+    read_json,
+    time_steps,
+)
 from ..export.to_mcap import frame_transforms
 from ..robots import robot
 from ..robots.urdf import export_urdf  # the public face of the serial kind's URDF
 from ..sim.scenario import load as load_scenario
 
-#: The raw log's groups the bridge needs, and the unit suffixes of their elements.
-RAW_GROUPS = {"q": JOINT_UNITS, "qd": ("_rad_s", "_m_s"), "tau": ("_N_m", "_Nm", "_N")}
+#: The raw log's groups the bridge needs (their elements' units: run_log.JOINT_GROUP_UNITS).
+RAW_GROUPS = ("q", "qd", "tau")
 
 
 @dataclass
@@ -75,13 +86,14 @@ def raw_units(adapter, system, names: list[str], where: Path) -> list[UnitColumn
     docs/logs.md), or a version-1 log's ``GROUP.UNIT.JOINT_UNIT``."""
     units = []
     for unit in adapter.layout(system, "joint").units:
-        n = int(adapter.link_frames(system, unit).function.size1_in(0))
+        joints = model_joints(adapter, system, unit)
+        n = len(joints)
         groups = {}
-        for group, suffixes in RAW_GROUPS.items():
+        for group in RAW_GROUPS:
             g = Group(group)
             for prefix in (f"{unit}.{group}.", f"{group}.{unit}."):  # version 2, then 1
                 for index, name in enumerate(names):
-                    if name.startswith(prefix) and name.endswith(suffixes):
+                    if name.startswith(prefix):
                         g.columns.append(index)
                         g.elements.append(name[len(prefix):])
                 if g.columns:
@@ -89,7 +101,8 @@ def raw_units(adapter, system, names: list[str], where: Path) -> list[UnitColumn
             if len(g.columns) != n:
                 raise RunFolderError(f"{where} is not this robot's log: unit {unit} has {n} "
                                      f"joints but the log has {len(g.columns)} {group} columns")
-            groups[group] = g
+            # By the joints' names and units, in the model's order; never by position.
+            groups[group] = by_joint(g, unit, joints, where)
         units.append(UnitColumns(unit, groups))
     return units
 
@@ -104,39 +117,73 @@ class RawTail:
         self.bin = self.folder / "log.bin"
         spec_path = self.folder / "log.columns.json"
         try:
-            spec = json.loads(spec_path.read_text(encoding="utf-8"))
-            self.names = list(spec["columns"])
-            self.width = int(spec["row_length"])
-            if spec.get("dtype") != "float64" or self.width != len(self.names):
-                raise ValueError("not float64 rows of its columns")
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            # A regular file only (a FIFO would block), any JSON damage one line (nested too
+            # deep included): run_log.read_json.
+            spec = read_json(spec_path)
+        except RunFolderError as exc:
             raise RunFolderError(f"{spec_path} is not a real-time run's column list ({exc})") \
                 from None
+        columns, width = (spec.get("columns"), spec.get("row_length")) \
+            if isinstance(spec, dict) else (None, None)
+        if not isinstance(columns, list) or not all(isinstance(c, str) for c in columns) \
+                or not columns or columns[0] != "time_s" or isinstance(width, bool) \
+                or not isinstance(width, int) or spec.get("dtype") != "float64" \
+                or width != len(columns):
+            raise RunFolderError(f"{spec_path} is not a real-time run's column list (float64 "
+                                 "rows: dtype, row_length and its columns, names from time_s)")
+        self.names, self.width = list(columns), width
         self.row_bytes = 8 * self.width
+        #: time_s of the last row checked (rows are checked as they are read).
+        self._last_time = -math.inf
+
+    def _read(self, start: int, count: int) -> bytes:
+        """``count`` rows from row ``start`` of log.bin, a regular file (a folder or a FIFO
+        there is a damaged run folder, one line)."""
+        try:
+            with open(self.bin, "rb") as f:
+                if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                    raise OSError(errno.EINVAL, "not a regular file")
+                f.seek(start * self.row_bytes)
+                data = f.read(count * self.row_bytes)
+        except OSError as exc:
+            raise RunFolderError(f"{self.bin} cannot be read ({exc.strerror or exc})") from None
+        if len(data) != count * self.row_bytes:
+            raise RunFolderError(f"{self.bin} shrank while it was read: not a growing run log")
+        return data
 
     def rows_written(self) -> int:
         try:
-            return os.stat(self.bin).st_size // self.row_bytes
+            st = os.stat(self.bin)
         except FileNotFoundError:
             return 0
+        except OSError as exc:
+            raise RunFolderError(f"{self.bin} cannot be read ({exc.strerror})") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise RunFolderError(f"{self.bin} is {files.kind(st.st_mode)}, not a regular file: "
+                                 "not a run's raw log")
+        return st.st_size // self.row_bytes
 
     def times(self, start: int, stop: int) -> np.ndarray:
-        """``time_s`` of rows ``start`` to ``stop - 1`` (rows counted by :meth:`rows_written`)."""
-        with open(self.bin, "rb") as f:
-            f.seek(start * self.row_bytes)
-            data = f.read((stop - start) * self.row_bytes)
-        if len(data) != (stop - start) * self.row_bytes:
-            raise RunFolderError(f"{self.bin} shrank while it was read: not a growing run log")
-        return np.frombuffer(data, dtype=np.float64).reshape(-1, self.width)[:, 0].copy()
+        """``time_s`` of rows ``start`` to ``stop - 1`` (rows counted by :meth:`rows_written`),
+        each checked: finite, in [0, 2**31) s (a ROS stamp's seconds) and after the row before
+        (a NaN, an infinity or garbage there is damage, refused in one line; a NaN row of a
+        lost period keeps its time)."""
+        data = self._read(start, stop - start)
+        times = np.frombuffer(data, dtype=np.float64).reshape(-1, self.width)[:, 0].copy()
+        steps = time_steps(np.concatenate([[self._last_time], times]))
+        bad = ~np.isfinite(times) | (times < 0) | (times >= MAX_TIME_S) | ~(steps > 0)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RunFolderError(f"{self.bin} is damaged: row {start + k + 1}: time_s = "
+                                 f"{float(times[k])!r} is not finite, outside [0, 2**31) s or "
+                                 "not after the row before")
+        if len(times):
+            self._last_time = float(times[-1])
+        return times
 
     def row(self, index: int) -> np.ndarray:
         """Row ``index`` (0-based; a row counted by :meth:`rows_written`)."""
-        with open(self.bin, "rb") as f:
-            f.seek(index * self.row_bytes)
-            data = f.read(self.row_bytes)
-        if len(data) != self.row_bytes:
-            raise RunFolderError(f"{self.bin} shrank while it was read: not a growing run log")
-        return np.frombuffer(data, dtype=np.float64).reshape(1, self.width)
+        return np.frombuffer(self._read(index, 1), dtype=np.float64).reshape(1, self.width)
 
 
 def _rpy(R: np.ndarray) -> tuple[float, float, float]:

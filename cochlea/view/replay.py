@@ -45,11 +45,19 @@ DECIMALS = 7
 CLEAN_STOPS = ("completed", "user-stop", "none")
 
 
+#: Beyond this magnitude a float64 has no decimals to round (and rounding it to DECIMALS
+#: overflows: np.round(1e305, 7) is inf).
+NO_DECIMALS = 2.0**53
+
+
 def _round(a) -> list | float | None:
-    """``a`` as nested lists rounded to :data:`DECIMALS`, non-finite values as None."""
+    """``a`` as nested lists rounded to :data:`DECIMALS`, non-finite values as None (strict
+    JSON has no infinity); a finite value too large to round (1e305 in a cell) as it is."""
     a = np.asarray(a, float)
     if a.ndim == 0:
-        return float(np.round(a, DECIMALS)) if math.isfinite(a) else None
+        if not math.isfinite(a):
+            return None
+        return float(a) if abs(a) >= NO_DECIMALS else float(np.round(a, DECIMALS))
     return [_round(x) for x in a]
 
 
