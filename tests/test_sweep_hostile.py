@@ -256,6 +256,26 @@ UP_FRONT = {
     "a duration the workers refuse": ("duration_s = 0.1", "duration_s = 4000.0",
                                       "3,600,000 control periods"),
     "too many samples": ("samples = 2", "samples = 100000000", "at most 1,000,000"),
+    # A rule between [plant] keys that only a middle sample, or no drawn sample, breaks: every
+    # combination the spec's values allow is checked (it stopped the sweep with exit 7 at
+    # that sample, part 0 written, and every resume at the same sample).
+    "encoder noise off the encoder in the middle": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "encoder_noise_counts = 1\n"
+        "position_encoder = {grid = [true, false, true]}", "can give (plant.encoder_noise_counts "
+        "= 1, plant.position_encoder = false)"),
+    "encoder noise under one of two presets": (
+        "mass_scale = {uniform = [0.9, 1.1]}", 'plant = {grid = ["realistic", "ideal", '
+        '"realistic"]}\nencoder_noise_counts = {uniform = [0, 2]}', "plant.encoder_noise_counts"),
+    # Seed 7 draws the 2nd and 4th value of 4 for plant.gearbox: true is never drawn here.
+    "the gearbox without armature, not drawn": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "gearbox = {choice = [true, false, true, false]}",
+        "(plant.gearbox = true)"),
+    "a gear key without the gearbox, not drawn": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "armature = true\ngearbox = {choice = [false, "
+        "true, false, true]}\nbacklash_SI = 0.001", "plant.backlash_SI"),
+    "delay and jitter beyond their sum at the ends of a range": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "delay_periods = {uniform = [0, 1000]}\n"
+        "delay_jitter_periods = {choice = [0, 1]}", "plant.delay_jitter_periods"),
     "too many samples over a grid": ("samples = 2", "samples = 500000", "at most 1,000,000"),
 }
 GRID = "G_g = {grid = [1.0, 2.0, 3.0]}"
