@@ -330,6 +330,26 @@ def test_a_sample_that_fails_on_a_worker_is_one_line_and_leaves_no_folder(tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.slow
+def test_a_worker_logs_a_failed_sample_on_one_line(tmp_path):
+    # The worker processes' own stderr (capsys sees only this process's): distributed.worker
+    # logged "Compute Failed" on six lines, the last a "Traceback:" of cochlea's internals.
+    spec = write(tmp_path, SPEC.format(extra=""))
+    script = ("import sys\nfrom cochlea.apps import cochlea_sweep\n"
+              "cochlea_sweep.evaluate = int  # raises inside the worker\n"
+              "sys.exit(cochlea_sweep.main(sys.argv[1:]))\n")
+    done = subprocess.run([sys.executable, "-c", script, str(spec), "--out",
+                           str(tmp_path / "out"), *RUN], capture_output=True, text=True,
+                          env=ENV, timeout=300)
+    assert done.returncode == results.EXIT_SAMPLE, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    lines = done.stderr.strip().splitlines()
+    failed = [ln for ln in lines if "Compute Failed" in ln]
+    assert len(failed) == 1 and "Exception: \"TypeError(" in failed[0], done.stderr
+    assert lines[-1].startswith("cochlea-sweep: a sample failed on a worker (TypeError"), lines
+    assert all(ln.startswith("cochlea-sweep: ") or " - distributed." in ln for ln in lines), lines
+
+
 # --------------------------------------------------------------------------------------------
 # Damaged folders
 # --------------------------------------------------------------------------------------------

@@ -101,20 +101,28 @@ DASK_LOGGERS = ("distributed", "tornado")
 
 
 class _OneLineErrors(logging.Filter):
-    """A Dask log record's traceback folded into its one line (the exception's type and text).
-    Dask logs a broken connection with its traceback: when the sweep is interrupted (Ctrl-C,
-    SIGTERM, a hang-up sent to the whole process group) its workers go first, and the
-    scheduler's or a worker's write to them then printed a traceback of distributed's internals
-    beside "cochlea-sweep: interrupted", as if the sweep had crashed. Other records pass as
-    they are."""
+    """A Dask log record on one line, without a traceback. Dask logs a broken connection with
+    its traceback: when the sweep is interrupted (Ctrl-C, SIGTERM, a hang-up sent to the whole
+    process group) its workers go first, and the scheduler's or a worker's write to them then
+    printed a traceback of distributed's internals beside "cochlea-sweep: interrupted", as if
+    the sweep had crashed; such a record's exception is folded into its line (its type and
+    text). And a worker logs a task that raised as several lines, the last a ``Traceback:``
+    (``distributed.worker - ERROR - Compute Failed``, beside the sweep's own line saying which
+    sample failed and why): every multi-line message is one line, its lines joined by "; ",
+    a traceback's left out. Other loggers' records pass as they are."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.exc_info and record.exc_info[1] is not None and \
-                record.name.split(".")[0] in DASK_LOGGERS:
+        if record.name.split(".")[0] not in DASK_LOGGERS:
+            return True
+        text = record.getMessage()
+        if record.exc_info and record.exc_info[1] is not None:
             exc = record.exc_info[1]
-            record.msg = f"{record.getMessage()} ({type(exc).__name__}: {exc})"
-            record.args = None
-            record.exc_info = record.exc_text = None
+            text = f"{text} ({type(exc).__name__}: {exc})"
+        if "\n" in text or "\r" in text:
+            text = "; ".join(" ".join(line.split()) for line in text.splitlines()
+                             if line.strip() and not line.lstrip().startswith("Traceback"))
+        record.msg, record.args = text, None
+        record.exc_info = record.exc_text = record.stack_info = None
         return True
 
 
