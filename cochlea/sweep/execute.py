@@ -17,6 +17,7 @@ cache) and keeps the spec, which is sent once (``scatter``).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import statistics
@@ -28,7 +29,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..errors import CochleaError
+from ..errors import CochleaError, printable
 from . import results, sampling
 from .spec import Spec
 
@@ -145,14 +146,22 @@ def connect(workers: int | None, scheduler: str | None):
     from distributed import Client, LocalCluster  # noqa: PLC0415
 
     if scheduler is not None:
+        client = None
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise CochleaError(f"--scheduler {scheduler}: cannot reach a Dask scheduler with "
-                               f"workers there ({exc}); start `dask scheduler` and `dask worker "
-                               f"{scheduler}`, or leave --scheduler out for local workers") \
-                from None
+        except Exception as exc:  # noqa: BLE001 (any failure to connect is one line)
+            # Not only OSError, TimeoutError, ValueError: tls:// without a certificate raised
+            # TypeError, ucx:// without UCX a TypeError of an abstract class.
+            if client is not None:
+                with contextlib.suppress(Exception):
+                    client.close()
+            text = (str(exc).strip().splitlines() or [""])[0]
+            raise CochleaError(f"--scheduler {printable(scheduler)}: cannot reach a Dask "
+                               f"scheduler with workers there ({type(exc).__name__}: "
+                               f"{printable(text)[:300]}); start `dask scheduler` and `dask "
+                               f"worker {printable(scheduler)}` (a tcp:// address: no TLS), "
+                               "or leave --scheduler out for local workers") from None
         return client, None
     # No dashboard; the scheduler's HTTP routes (health, metrics) on a port the system
     # chooses: on distributed's default, 8787, a second sweep or tune on the machine (or
