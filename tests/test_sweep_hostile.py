@@ -399,6 +399,65 @@ def test_a_damaged_sweep_json_is_one_line(case, swept, tmp_path, capsys):
     assert tree(out) == before
 
 
+def _foreign_part(parts: Path, case: str) -> Path:
+    """A file in a sweep's parts/ (the fixture's two batches, part-0-0 and part-1-1) that is
+    not one of its batches (``case``: one of FOREIGN_PARTS)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    first, second = (parts / f"part-{i:09d}-{i:09d}.parquet" for i in (0, 1))
+    row0, row1 = pq.read_table(first), pq.read_table(second)
+    path = second  # in place of the sweep's own second batch, unless said otherwise
+    if case == "a copy under another name":
+        path = parts / "part-000000007-000000007.parquet"
+        table = row0
+    elif case == "a sample in two files":
+        path = parts / "part-000000000-000000001.parquet"
+        table = pa.concat_tables([row0, row1])
+    elif case == "a sample beyond the sweep":
+        path = parts / "part-000000009-000000009.parquet"
+        table = row1.set_column(0, "sample", pa.array([9]))
+    else:
+        table = {
+            "one column foo": pa.table({"foo": [1, 2]}),
+            "samples as text with a gap": pa.table({"sample": ["x", None]}),
+            "a name that is not its range": row0,
+            "a column of another type": row1.set_column(
+                row1.column_names.index("success"), "success", pa.array(["yes"])),
+        }[case]
+    pq.write_table(table, path)
+    return path
+
+
+FOREIGN_PARTS = ["one column foo", "samples as text with a gap", "a copy under another name",
+                 "a sample beyond the sweep", "a name that is not its range",
+                 "a column of another type", "a sample in two files"]
+
+
+@pytest.mark.parametrize("case", FOREIGN_PARTS)
+@pytest.mark.slow
+def test_a_part_file_not_of_the_sweep_is_one_line_exit_5(case, swept, tmp_path, capsys):
+    # They gave exit 18 with advice that never worked (a column foo; samples as text), a
+    # resume that ran nothing (samples as text), or exit 0 with "2 of 1 samples finished" (a
+    # copy of part 0 under another name).
+    spec, finished = swept
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    foreign = _foreign_part(out / results.PARTS, case)
+    before = tree(out)
+    for argv in (["report", str(out)], [str(spec), "--out", str(out), *RUN]):
+        code = cochlea_sweep.main(argv)
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_DAMAGED, (argv[0], line)
+        assert f"{foreign}: not a part file of this sweep" in line, line
+        assert "move it away and run the same command" in line, line
+    assert tree(out) == before
+    foreign.unlink()  # as the line says: the same command then runs what is missing
+    assert cochlea_sweep.main([str(spec), "--out", str(out), *RUN]) == 0
+    assert sorted(results.done(out)) == [0, 1]
+    capsys.readouterr()
+
+
 @pytest.mark.slow
 def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     spec, finished = tuned

@@ -344,7 +344,7 @@ def test_a_sweep_with_refused_samples_runs_them_all_and_writes_one_table(tmp_pat
     assert len({tuple(sorted(r)) for r in rows}) == 1  # the same columns
     (tmp_path / "out" / results.PARTS).mkdir(parents=True)
     results.write_part(tmp_path / "out", rows)
-    table = results.read(tmp_path / "out")
+    table = results.read(tmp_path / "out", spec.total)
     assert table.num_rows == len(rows)
     assert table["stop_rule"].to_pylist().count("gravity-refused") == len(refused)
 

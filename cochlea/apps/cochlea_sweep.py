@@ -251,7 +251,10 @@ def _sweep(argv: list[str]) -> int:
                            scheduler=args.scheduler, batch=args.batch, progress=progress,
                            warm=warm, log=lambda m: print(f"cochlea-sweep: {m}", flush=True))
     except KeyboardInterrupt:
-        finished = len(results.done(args.out)) if args.out.is_dir() else 0
+        try:
+            finished = len(results.done(args.out, spec.total)) if args.out.is_dir() else 0
+        except CochleaError:
+            finished = 0
         print(f"cochlea-sweep: interrupted; {finished} of {spec.total} samples are in "
               f"{args.out}: run the same command to resume", file=sys.stderr)
         return EXIT_INTERRUPTED

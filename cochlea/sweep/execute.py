@@ -191,7 +191,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[dict], dict], *, workers: int
     if resuming:  # another run's folder in use is refused here, before anything changes
         lock = results.hold(out)
     try:
-        missing = deque(sorted(set(range(spec.total)) - (results.done(out) if resuming
+        missing = deque(sorted(set(range(spec.total)) - (results.done(out, spec.total) if resuming
                                                          else set())))
     except BaseException:
         results.release(lock)
@@ -213,7 +213,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[dict], dict], *, workers: int
             lock, created = results.claim(out)  # the lock first: then the folder is written
         results.prepare(out, spec)
         # Whatever another run finished while this one started (it held the lock then).
-        missing = deque(sorted(set(range(spec.total)) - results.done(out)))
+        missing = deque(sorted(set(range(spec.total)) - results.done(out, spec.total)))
         n_workers = len(client.scheduler_info()["workers"])
         info["workers"] = n_workers
         if warm is not None:
