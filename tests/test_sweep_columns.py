@@ -139,7 +139,7 @@ def test_a_resumed_tune_reads_its_legacy_trial_rows_and_judges_their_limits(tmp_
     for r in rows:
         r.update(stop_rule="none", diverged=False)
     pq.write_table(pa.Table.from_pylist(rows), path)
-    read = tune.read_rows(tmp_path, 3)
+    read = tune.read_rows(tmp_path, 3, 2)
     assert "arm1.torque_ratio.joint1_1" in read[0] and "torque_ratio.arm1.joint1" not in read[0]
     verdict = tune.judge(read, "worst")
     assert verdict["max_torque_ratio"] == 1.0 and not verdict["feasible"]

@@ -474,6 +474,27 @@ def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     assert tree(out) == before
 
 
+@pytest.mark.parametrize("key", ["nominal", 3])
+@pytest.mark.slow
+def test_a_run_file_not_of_the_search_is_one_line_exit_5(key, tuned, tmp_path, capsys):
+    # samples/nominal.parquet (or a trial's, asked but not yet told) with columns sample, foo:
+    # a KeyError 'convergence_ratio' traceback judging it (exit 0 with a wrong verdict had the
+    # columns been there but the rows not the sample's).
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    foreign = tuning.rows_path(out, key)
+    pq.write_table(pa.table({"sample": [0, 1], "foo": [1.0, 2.0]}), foreign)
+    code = cochlea_tune.main([str(spec), "--out", str(out), "--trials", "4", *RUN])
+    line = one_line(capsys.readouterr().err, "cochlea-tune")
+    assert code == results.EXIT_DAMAGED, line
+    assert f"{foreign}: not a run file of this search (no column 'grid')" in line, line
+    assert (out / tuning.RESULT).read_bytes() == (finished / tuning.RESULT).read_bytes()
+
+
 # --------------------------------------------------------------------------------------------
 # Full and read-only disks: a private tmpfs in a mount namespace
 # --------------------------------------------------------------------------------------------

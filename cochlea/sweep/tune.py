@@ -412,14 +412,28 @@ def write_rows(out: Path, key: int | str, rows: list[dict]) -> None:
     write_atomic(rows_path(out, key), sink.getvalue())
 
 
-def read_rows(out: Path, key: int | str) -> list[dict] | None:
+def read_rows(out: Path, key: int | str, size: int) -> list[dict] | None:
+    """A candidate's rows (``key``: a trial's number or "nominal"), None when its file is
+    missing or unreadable (its runs are simply run again). A file that reads but is not a
+    candidate's ``size`` runs -- a row column missing, ``sample`` other than 0 to size - 1,
+    each once, in order -- is :class:`~cochlea.sweep.results.FolderDamaged` naming it (judged,
+    it was a KeyError, or a verdict on rows that are not the sample's)."""
     path = rows_path(out, key)
     if not path.exists():
         return None
     try:
-        return results.upgrade(pq.read_table(path)).to_pylist()
+        table = results.upgrade(pq.read_table(path))
     except (OSError, pa.ArrowException):
         return None  # unreadable: its runs are simply run again
+    missing = [c for c in results.ROW_COLUMNS if c not in table.column_names]
+    samples = table["sample"] if "sample" in table.column_names else None
+    if missing or samples is None or not pa.types.is_integer(samples.type) \
+            or samples.to_pylist() != list(range(size)):
+        why = (f"no column {missing[0]!r}" if missing else
+               f"its samples are not the {size} runs of a candidate, 0 to {size - 1}")
+        raise results.FolderDamaged(f"{path}: not a run file of this search ({why}); move it "
+                                    "away and run the same command to run them again")
+    return table.to_pylist()
 
 
 def open_study(out: Path, tune: Tune) -> optuna.Study:
@@ -558,7 +572,8 @@ def run(tune: Tune, out: Path, evaluate: Callable[[dict], dict], *, workers: int
             study = open_study(out, tune)
             finished = {t.number for t in study.get_trials(deepcopy=False,
                                                            states=(TrialState.COMPLETE,))}
-            if finished >= set(range(s.trials)) and read_rows(out, "nominal") is not None:
+            if finished >= set(range(s.trials)) and \
+                    read_rows(out, "nominal", tune.size) is not None:
                 info.update(write_result(out, tune, study))  # nothing to run: no workers
                 return info
         return _run(tune, out, evaluate, workers, scheduler, progress, warm, log, info, lock)
@@ -585,7 +600,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
         finished = {t.number for t in study.get_trials(deepcopy=False,
                                                        states=(TrialState.COMPLETE,))}
         todo_trials = sum(1 for n in range(s.trials) if n not in finished)
-        nominal_rows = read_rows(out, "nominal")
+        nominal_rows = read_rows(out, "nominal", tune.size)
         total = (s.trials + 1) * tune.size
         bar = tqdm(total=total, initial=total - (todo_trials + (nominal_rows is None))
                    * tune.size, unit="run", file=sys.stderr, disable=not progress,
@@ -639,7 +654,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
             for n in numbers:
                 if states[n].state == TrialState.COMPLETE:
                     continue
-                rows = read_rows(out, n)
+                rows = read_rows(out, n, tune.size)
                 if rows is not None and len(rows) == tune.size:
                     finish_from_file(study, n, rows, s.objective)
                     records[:] = trial_records(study, tune)
@@ -649,7 +664,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
                 jobs[n] = tune.candidate(tune.gains(states[n].params))
             _evaluate(client, jobs, tune.size, evaluate, n_workers, finish, bar.update, out)
         if not nominal_rows:
-            nominal_rows = read_rows(out, "nominal")
+            nominal_rows = read_rows(out, "nominal", tune.size)
         if nominal_rows is None:  # the trials were all done before: only the nominal runs
             _evaluate(client, {"nominal": tune.sample}, tune.size, evaluate, n_workers,
                       lambda key, rows: write_rows(out, key, rows), bar.update, out)
@@ -700,7 +715,7 @@ def write_result(out: Path, tune: Tune, study: optuna.Study | None = None) -> di
         study = open_study(out, tune)
     records = trial_records(study, tune)
     write_trials_csv(out, tune, records)
-    nominal_rows = read_rows(out, "nominal")
+    nominal_rows = read_rows(out, "nominal", tune.size)
     nominal = judge(nominal_rows, tune.settings.objective) if nominal_rows else None
     b = best(records)
     chosen = b
