@@ -474,6 +474,35 @@ def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     assert tree(out) == before
 
 
+@pytest.mark.slow
+def test_a_journal_of_another_search_is_one_line_exit_5(tuned, tmp_path, capsys):
+    # A study.journal whose G_g was searched on a range (this search's is a choice by index):
+    # its values were taken for this search's (a choice's index from a gain; the other way, a
+    # choice's index 0 as G_g = 0 in tuned.toml, exit 0).
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    journal = out / tuning.JOURNAL
+    journal.unlink()
+    study = optuna.create_study(study_name=tuning.STUDY, direction="minimize",
+                                storage=JournalStorage(JournalFileBackend(str(journal))))
+    for _ in range(3):
+        trial = study.ask({"gains.arm1.G_g": FloatDistribution(1.0, 5.0)})
+        study.tell(trial, 0.5)
+    before = tree(out)
+    code = cochlea_tune.main([str(spec), "--out", str(out), *RUN])
+    line = one_line(capsys.readouterr().err, "cochlea-tune")
+    assert code == results.EXIT_DAMAGED, line
+    assert f"{journal}: not this search's journal: trial 0's gains.arm1.G_g is " \
+           "FloatDistribution(" in line, line
+    assert tree(out) == before
+
+
 @pytest.mark.parametrize("key", ["nominal", 3])
 @pytest.mark.slow
 def test_a_run_file_not_of_the_search_is_one_line_exit_5(key, tuned, tmp_path, capsys):

@@ -443,9 +443,15 @@ def open_study(out: Path, tune: Tune) -> optuna.Study:
     journal = out / JOURNAL
     try:
         storage = JournalStorage(JournalFileBackend(str(journal)))
-        study = optuna.create_study(study_name=STUDY, storage=storage, direction="minimize",
-                                    load_if_exists=True, sampler=sampler(tune, 0))
-        study.get_trials(deepcopy=False)  # every line read now, not mid-search
+        # Loaded when it is there: create_study(load_if_exists=True) appended a line to the
+        # journal every time (a folder refused as damaged was changed).
+        if any(s.study_name == STUDY for s in storage.get_all_studies()):
+            study = optuna.load_study(study_name=STUDY, storage=storage,
+                                      sampler=sampler(tune, 0))
+        else:
+            study = optuna.create_study(study_name=STUDY, storage=storage,
+                                        direction="minimize", sampler=sampler(tune, 0))
+        trials = study.get_trials(deepcopy=False)  # every line read now, not mid-search
     except OSError as exc:
         raise results.WriteFailed(f"{journal}: cannot read or write it ({exc.strerror or exc})"
                                   ) from None
@@ -453,6 +459,18 @@ def open_study(out: Path, tune: Tune) -> optuna.Study:
         raise results.FolderDamaged(f"{journal}: damaged journal ({type(exc).__name__}: "
                                     f"{str(exc)[:200]}): a line was changed; move the folder "
                                     "away and start a new search") from None
+    # A journal of another search (one that searched a gain on another range or as a
+    # choice) read as this one's: its trials' values would be taken for this search's (a
+    # choice's index 0 as a gain of 0, written into tuned.toml).
+    ours = tune.distributions()
+    for t in trials:
+        for name, distribution in t.distributions.items():
+            if ours.get(name) != distribution:
+                theirs = ("not a parameter of this search" if name not in ours
+                          else f"this search's is {ours[name]}")
+                raise results.FolderDamaged(
+                    f"{journal}: not this search's journal: trial {t.number}'s {name} is "
+                    f"{distribution} ({theirs}); move the folder away and start a new search")
     return study
 
 
