@@ -728,7 +728,8 @@ def finish_from_file(study: optuna.Study, number: int, rows: list[dict], objecti
 
 def write_result(out: Path, tune: Tune, study: optuna.Study | None = None) -> dict:
     """result.json: the nominal and the best candidate on the same sample. The nominal gains
-    count as a candidate: when no trial beats them, they are the result."""
+    count as a candidate: when no trial beats them (a smaller objective; a tie does not),
+    they are the result."""
     if study is None:
         study = open_study(out, tune)
     records = trial_records(study, tune)
@@ -737,8 +738,9 @@ def write_result(out: Path, tune: Tune, study: optuna.Study | None = None) -> di
     nominal = judge(nominal_rows, tune.settings.objective) if nominal_rows else None
     b = best(records)
     chosen = b
+    # A trial that only ties the nominal gains does not beat them: they stay the result.
     if nominal is not None and nominal["feasible"] and (b is None
-                                                        or nominal["objective"] < b["objective"]):
+                                                        or nominal["objective"] <= b["objective"]):
         chosen = {"trial": "nominal", **nominal, "gains": nominal_gains(tune)}
     result = {"objective": tune.settings.objective, "trials": len(records),
               "feasible_trials": sum(1 for r in records if r["feasible"]),
