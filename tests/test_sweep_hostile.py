@@ -474,6 +474,18 @@ def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     assert tree(out) == before
 
 
+@pytest.mark.parametrize("command", ["report", "replay"])
+def test_a_file_given_as_the_sweep_folder_is_not_a_sweep_folder(command, tmp_path, capsys):
+    # It was exit 5, "unreadable sweep manifest (Not a directory)": a damaged folder.
+    afile = write(tmp_path, "notes", "afile")
+    for folder in (afile, afile / "below"):
+        code = cochlea_sweep.main([command, str(folder)] + (["0"] if command == "replay" else []))
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_OUT, line
+        assert line.startswith(f"cochlea-sweep: {folder}: not a sweep folder ("), line
+    assert afile.read_text() == "notes"
+
+
 @pytest.mark.slow
 def test_a_journal_of_another_search_is_one_line_exit_5(tuned, tmp_path, capsys):
     # A study.journal whose G_g was searched on a range (this search's is a choice by index):

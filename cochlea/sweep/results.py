@@ -294,6 +294,11 @@ def read_manifest(out: Path) -> Manifest:
     except FileNotFoundError:
         raise SweepFolderError(f"{out}: not a sweep folder (no {MANIFEST}): give the --out "
                                "of a cochlea-sweep run") from None
+    except NotADirectoryError:  # DIR a file (or under one): not a damaged manifest
+        what = (f"it is {kind_words(os.stat(out).st_mode)}" if out.exists() and not out.is_dir()
+                else "not a folder")
+        raise SweepFolderError(f"{out}: not a sweep folder ({what}): give the --out of a "
+                               "cochlea-sweep run") from None
     except (OSError, ValueError) as exc:
         raise FolderDamaged(f"{path}: unreadable sweep manifest "
                             f"({getattr(exc, 'strerror', None) or exc})") from None
