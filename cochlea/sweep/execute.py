@@ -18,6 +18,7 @@ cache) and keeps the spec, which is sent once (``scatter``).
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import math
 import statistics
@@ -140,6 +141,25 @@ def one_line_logs() -> None:
             logger = logger.parent if logger.propagate else None
 
 
+#: Schemes a scheduler may be reached by only with certificates, which the commands do not
+#: take: Dask's client raised TypeError for them.
+_SECURE_SCHEMES = ("tls", "wss")
+
+
+def _connectable(scheduler: str) -> None:
+    """Refuse a scheduler address Dask cannot connect to at all, before a Client is made: an
+    unknown scheme, a backend that is not installed (``ucx://`` without UCX: a TypeError of an
+    abstract class), a scheme that needs certificates (``tls://``, ``wss://``)."""
+    from distributed.comm import parse_address  # noqa: PLC0415 (see connect)
+    from distributed.comm.registry import get_backend  # noqa: PLC0415
+
+    scheme, _ = parse_address(scheduler)
+    get_backend(scheme).get_connector()
+    if scheme in _SECURE_SCHEMES:
+        raise ValueError(f"{scheme}:// needs TLS certificates, which cochlea-sweep and "
+                         "cochlea-tune do not take: give the scheduler's tcp:// address")
+
+
 def connect(workers: int | None, scheduler: str | None):
     # distributed is imported here: it takes a second, which the spec's checks and the
     # subcommands (replay, report) need not wait for.
@@ -148,6 +168,7 @@ def connect(workers: int | None, scheduler: str | None):
     if scheduler is not None:
         client = None
         try:
+            _connectable(scheduler)  # before a Client is made: see there
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
         except Exception as exc:  # noqa: BLE001 (any failure to connect is one line)
@@ -156,6 +177,10 @@ def connect(workers: int | None, scheduler: str | None):
             if client is not None:
                 with contextlib.suppress(Exception):
                     client.close()
+            # A Client whose construction raised is half made, its loop thread started: its
+            # __del__ closes it now, not when a later collection happens to run it while
+            # another Client starts (a deadlock on distributed's loop lock, seen in-process).
+            gc.collect()
             text = (str(exc).strip().splitlines() or [""])[0]
             raise CochleaError(f"--scheduler {printable(scheduler)}: cannot reach a Dask "
                                f"scheduler with workers there ({type(exc).__name__}: "
