@@ -19,7 +19,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from cochlea.apps import cochlea_run, cochlea_sweep
+from cochlea.apps import cochlea_run, cochlea_sweep, cochlea_tune
 from cochlea.errors import DescriptionError
 from cochlea.resources import SCENARIOS_DIR
 from cochlea.sweep import results, sampling
@@ -325,6 +325,26 @@ def test_an_unreachable_scheduler_is_one_line_exit_2(tmp_path, capsys, monkeypat
                                f"tcp://127.0.0.1:{_free_port()}", "--progress", "off"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--scheduler" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("address", ["tls://127.0.0.1:1", "ucx://192.0.2.1:5"])
+@pytest.mark.parametrize("program", ["sweep", "tune"])
+@pytest.mark.slow  # distributed's import
+def test_a_scheduler_dask_cannot_connect_to_is_one_line_exit_2(address, program, tmp_path,
+                                                                capsys):
+    # tls:// without a certificate raised TypeError, ucx:// without UCX a TypeError of an
+    # abstract class: tracebacks (only OSError, TimeoutError and ValueError were caught).
+    spec_path = write_spec(tmp_path)
+    if program == "tune":
+        spec_path.write_text(spec_path.read_text() + "\n[tune]\ntrials = 1\n")
+    main = cochlea_sweep.main if program == "sweep" else cochlea_tune.main
+    code = main([str(spec_path), "--out", str(tmp_path / "out"), "--scheduler", address,
+                 "--progress", "off"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"cochlea-{program}: --scheduler {address}: cannot reach"), err
     assert not (tmp_path / "out").exists()
 
 

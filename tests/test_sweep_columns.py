@@ -98,9 +98,15 @@ def test_every_legacy_name_has_its_schema_name():
     assert results.upgrade(table).column_names == table.column_names
 
 
+#: A row's columns besides its results (results.ROW_COLUMNS, every part file has them).
+ROW = {"converged": True, "diverged": False, "estimate_bound_hit": False, "stop_rule": "none",
+       "stop_time_s": math.nan, "saturated_periods": 0, "wall_s": 0.1}
+
+
 def legacy_part(samples: range) -> pa.Table:
     n = len(samples)
-    return pa.table({"sample": list(samples), "success": [True] * n,
+    return pa.table({"sample": list(samples), "grid": [0] * n, "draw": list(samples),
+                     **{k: [v] * n for k, v in ROW.items()}, "success": [True] * n,
                      "convergence_ratio": [0.5] * n,
                      "final_rms.arm1.x_m": [1e-4] * n, "peak_torque.arm1.joint1_Nm": [0.5] * n,
                      "torque_ratio.arm1.joint1": [0.2 + 0.8 * (i == 1) for i in samples]})
@@ -111,10 +117,11 @@ def test_a_folder_of_legacy_and_new_part_files_reads_as_one_schema(tmp_path):
     pq.write_table(legacy_part(range(0, 2)),
                    tmp_path / results.PARTS / "part-000000000-000000001.parquet")
     new = cochlea_sweep.measures(summary(), LIMITS)
-    new_rows = [{"sample": 2, "success": True, "convergence_ratio": 0.5,
+    new_rows = [{"sample": 2, "grid": 0, "draw": 2, **ROW, "success": True,
+                 "convergence_ratio": 0.5,
                  **{k: v for k, v in new.items() if k.startswith("arm1.")}}]
     results.write_part(tmp_path, new_rows)
-    table = results.read(tmp_path)
+    table = results.read(tmp_path, 3)
     assert table["sample"].to_pylist() == [0, 1, 2]
     check_schema(results.columns(table.column_names, results.RMS)
                  + results.columns(table.column_names, results.PEAK)
@@ -132,7 +139,7 @@ def test_a_resumed_tune_reads_its_legacy_trial_rows_and_judges_their_limits(tmp_
     for r in rows:
         r.update(stop_rule="none", diverged=False)
     pq.write_table(pa.Table.from_pylist(rows), path)
-    read = tune.read_rows(tmp_path, 3)
+    read = tune.read_rows(tmp_path, 3, 2)
     assert "arm1.torque_ratio.joint1_1" in read[0] and "torque_ratio.arm1.joint1" not in read[0]
     verdict = tune.judge(read, "worst")
     assert verdict["max_torque_ratio"] == 1.0 and not verdict["feasible"]

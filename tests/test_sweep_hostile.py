@@ -256,6 +256,26 @@ UP_FRONT = {
     "a duration the workers refuse": ("duration_s = 0.1", "duration_s = 4000.0",
                                       "3,600,000 control periods"),
     "too many samples": ("samples = 2", "samples = 100000000", "at most 1,000,000"),
+    # A rule between [plant] keys that only a middle sample, or no drawn sample, breaks: every
+    # combination the spec's values allow is checked (it stopped the sweep with exit 7 at
+    # that sample, part 0 written, and every resume at the same sample).
+    "encoder noise off the encoder in the middle": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "encoder_noise_counts = 1\n"
+        "position_encoder = {grid = [true, false, true]}", "can give (plant.encoder_noise_counts "
+        "= 1, plant.position_encoder = false)"),
+    "encoder noise under one of two presets": (
+        "mass_scale = {uniform = [0.9, 1.1]}", 'plant = {grid = ["realistic", "ideal", '
+        '"realistic"]}\nencoder_noise_counts = {uniform = [0, 2]}', "plant.encoder_noise_counts"),
+    # Seed 7 draws the 2nd and 4th value of 4 for plant.gearbox: true is never drawn here.
+    "the gearbox without armature, not drawn": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "gearbox = {choice = [true, false, true, false]}",
+        "(plant.gearbox = true)"),
+    "a gear key without the gearbox, not drawn": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "armature = true\ngearbox = {choice = [false, "
+        "true, false, true]}\nbacklash_SI = 0.001", "plant.backlash_SI"),
+    "delay and jitter beyond their sum at the ends of a range": (
+        "mass_scale = {uniform = [0.9, 1.1]}", "delay_periods = {uniform = [0, 1000]}\n"
+        "delay_jitter_periods = {choice = [0, 1]}", "plant.delay_jitter_periods"),
     "too many samples over a grid": ("samples = 2", "samples = 500000", "at most 1,000,000"),
 }
 GRID = "G_g = {grid = [1.0, 2.0, 3.0]}"
@@ -310,6 +330,26 @@ def test_a_sample_that_fails_on_a_worker_is_one_line_and_leaves_no_folder(tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.slow
+def test_a_worker_logs_a_failed_sample_on_one_line(tmp_path):
+    # The worker processes' own stderr (capsys sees only this process's): distributed.worker
+    # logged "Compute Failed" on six lines, the last a "Traceback:" of cochlea's internals.
+    spec = write(tmp_path, SPEC.format(extra=""))
+    script = ("import sys\nfrom cochlea.apps import cochlea_sweep\n"
+              "cochlea_sweep.evaluate = int  # raises inside the worker\n"
+              "sys.exit(cochlea_sweep.main(sys.argv[1:]))\n")
+    done = subprocess.run([sys.executable, "-c", script, str(spec), "--out",
+                           str(tmp_path / "out"), *RUN], capture_output=True, text=True,
+                          env=ENV, timeout=300)
+    assert done.returncode == results.EXIT_SAMPLE, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    lines = done.stderr.strip().splitlines()
+    failed = [ln for ln in lines if "Compute Failed" in ln]
+    assert len(failed) == 1 and "Exception: \"TypeError(" in failed[0], done.stderr
+    assert lines[-1].startswith("cochlea-sweep: a sample failed on a worker (TypeError"), lines
+    assert all(ln.startswith("cochlea-sweep: ") or " - distributed." in ln for ln in lines), lines
+
+
 # --------------------------------------------------------------------------------------------
 # Damaged folders
 # --------------------------------------------------------------------------------------------
@@ -359,6 +399,65 @@ def test_a_damaged_sweep_json_is_one_line(case, swept, tmp_path, capsys):
     assert tree(out) == before
 
 
+def _foreign_part(parts: Path, case: str) -> Path:
+    """A file in a sweep's parts/ (the fixture's two batches, part-0-0 and part-1-1) that is
+    not one of its batches (``case``: one of FOREIGN_PARTS)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    first, second = (parts / f"part-{i:09d}-{i:09d}.parquet" for i in (0, 1))
+    row0, row1 = pq.read_table(first), pq.read_table(second)
+    path = second  # in place of the sweep's own second batch, unless said otherwise
+    if case == "a copy under another name":
+        path = parts / "part-000000007-000000007.parquet"
+        table = row0
+    elif case == "a sample in two files":
+        path = parts / "part-000000000-000000001.parquet"
+        table = pa.concat_tables([row0, row1])
+    elif case == "a sample beyond the sweep":
+        path = parts / "part-000000009-000000009.parquet"
+        table = row1.set_column(0, "sample", pa.array([9]))
+    else:
+        table = {
+            "one column foo": pa.table({"foo": [1, 2]}),
+            "samples as text with a gap": pa.table({"sample": ["x", None]}),
+            "a name that is not its range": row0,
+            "a column of another type": row1.set_column(
+                row1.column_names.index("success"), "success", pa.array(["yes"])),
+        }[case]
+    pq.write_table(table, path)
+    return path
+
+
+FOREIGN_PARTS = ["one column foo", "samples as text with a gap", "a copy under another name",
+                 "a sample beyond the sweep", "a name that is not its range",
+                 "a column of another type", "a sample in two files"]
+
+
+@pytest.mark.parametrize("case", FOREIGN_PARTS)
+@pytest.mark.slow
+def test_a_part_file_not_of_the_sweep_is_one_line_exit_5(case, swept, tmp_path, capsys):
+    # They gave exit 18 with advice that never worked (a column foo; samples as text), a
+    # resume that ran nothing (samples as text), or exit 0 with "2 of 1 samples finished" (a
+    # copy of part 0 under another name).
+    spec, finished = swept
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    foreign = _foreign_part(out / results.PARTS, case)
+    before = tree(out)
+    for argv in (["report", str(out)], [str(spec), "--out", str(out), *RUN]):
+        code = cochlea_sweep.main(argv)
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_DAMAGED, (argv[0], line)
+        assert f"{foreign}: not a part file of this sweep" in line, line
+        assert "move it away and run the same command" in line, line
+    assert tree(out) == before
+    foreign.unlink()  # as the line says: the same command then runs what is missing
+    assert cochlea_sweep.main([str(spec), "--out", str(out), *RUN]) == 0
+    assert sorted(results.done(out)) == [0, 1]
+    capsys.readouterr()
+
+
 @pytest.mark.slow
 def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     spec, finished = tuned
@@ -373,6 +472,68 @@ def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
     line = one_line(capsys.readouterr().err, "cochlea-tune")
     assert code == results.EXIT_DAMAGED and str(journal) in line, line
     assert tree(out) == before
+
+
+@pytest.mark.parametrize("command", ["report", "replay"])
+def test_a_file_given_as_the_sweep_folder_is_not_a_sweep_folder(command, tmp_path, capsys):
+    # It was exit 5, "unreadable sweep manifest (Not a directory)": a damaged folder.
+    afile = write(tmp_path, "notes", "afile")
+    for folder in (afile, afile / "below"):
+        code = cochlea_sweep.main([command, str(folder)] + (["0"] if command == "replay" else []))
+        line = one_line(capsys.readouterr().err)
+        assert code == results.EXIT_OUT, line
+        assert line.startswith(f"cochlea-sweep: {folder}: not a sweep folder ("), line
+    assert afile.read_text() == "notes"
+
+
+@pytest.mark.slow
+def test_a_journal_of_another_search_is_one_line_exit_5(tuned, tmp_path, capsys):
+    # A study.journal whose G_g was searched on a range (this search's is a choice by index):
+    # its values were taken for this search's (a choice's index from a gain; the other way, a
+    # choice's index 0 as G_g = 0 in tuned.toml, exit 0).
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    journal = out / tuning.JOURNAL
+    journal.unlink()
+    study = optuna.create_study(study_name=tuning.STUDY, direction="minimize",
+                                storage=JournalStorage(JournalFileBackend(str(journal))))
+    for _ in range(3):
+        trial = study.ask({"gains.arm1.G_g": FloatDistribution(1.0, 5.0)})
+        study.tell(trial, 0.5)
+    before = tree(out)
+    code = cochlea_tune.main([str(spec), "--out", str(out), *RUN])
+    line = one_line(capsys.readouterr().err, "cochlea-tune")
+    assert code == results.EXIT_DAMAGED, line
+    assert f"{journal}: not this search's journal: trial 0's gains.arm1.G_g is " \
+           "FloatDistribution(" in line, line
+    assert tree(out) == before
+
+
+@pytest.mark.parametrize("key", ["nominal", 3])
+@pytest.mark.slow
+def test_a_run_file_not_of_the_search_is_one_line_exit_5(key, tuned, tmp_path, capsys):
+    # samples/nominal.parquet (or a trial's, asked but not yet told) with columns sample, foo:
+    # a KeyError 'convergence_ratio' traceback judging it (exit 0 with a wrong verdict had the
+    # columns been there but the rows not the sample's).
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    spec, finished = tuned
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    foreign = tuning.rows_path(out, key)
+    pq.write_table(pa.table({"sample": [0, 1], "foo": [1.0, 2.0]}), foreign)
+    code = cochlea_tune.main([str(spec), "--out", str(out), "--trials", "4", *RUN])
+    line = one_line(capsys.readouterr().err, "cochlea-tune")
+    assert code == results.EXIT_DAMAGED, line
+    assert f"{foreign}: not a run file of this search (no column 'grid')" in line, line
+    assert (out / tuning.RESULT).read_bytes() == (finished / tuning.RESULT).read_bytes()
 
 
 # --------------------------------------------------------------------------------------------

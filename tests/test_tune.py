@@ -92,6 +92,14 @@ def _row(ratio, torque=0.5, rule="none", diverged=False):
             "success": ratio <= 1}
 
 
+def _run_rows(*rows: dict) -> list[dict]:
+    """``rows`` as a candidate's run file holds them: samples 0, 1, ... with every row column
+    (results.ROW_COLUMNS)."""
+    return [{"sample": i, "grid": 0, "draw": i, "converged": r["success"],
+             "estimate_bound_hit": False, "stop_time_s": math.nan, "saturated_periods": 0,
+             "wall_s": 0.1, **r} for i, r in enumerate(rows)]
+
+
 def test_the_objective_is_a_percentile_of_the_runs_and_limits_make_a_candidate_infeasible():
     rows = [_row(r) for r in (0.5, 4.0, 1.0, 2.0, 3.0)]
     # The smallest value that at least NN % of the runs do not exceed: a run's own value.
@@ -416,7 +424,7 @@ def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
     for n, v in enumerate([verdict(3.0), verdict(0.5, feasible=False), verdict(2.0)]):
         assert study.ask(ask).number == n
         tuning.tell(study, n, v)
-    nominal_rows = [_row(r) | {"sample": i} for i, r in enumerate((1.0, 1.5))]
+    nominal_rows = _run_rows(_row(1.0), _row(1.5))
     tuning.write_rows(out, "nominal", nominal_rows)
     result = tuning.write_result(out, tune, study)["result"]
     assert result["best_trial"]["trial"] == 2  # trial 1 is lower but infeasible
@@ -434,7 +442,7 @@ def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
     for n in range(3):
         study.ask(ask)
         tuning.tell(study, n, verdict(1.0 + n, feasible=False))
-    tuning.write_rows(other, "nominal", [_row(1.0, torque=1.0) | {"sample": 0}])
+    tuning.write_rows(other, "nominal", _run_rows(_row(1.0, torque=1.0), _row(1.0)))
     result = tuning.write_result(other, tune, study)["result"]
     assert result["chosen"] is None and result["best_trial"] is None
     assert result["nominal"]["torque_limit_runs"] == 1
@@ -443,6 +451,19 @@ def test_the_nominal_gains_are_the_result_when_no_trial_beats_them(tmp_path):
     summary = cochlea_tune.write_report(other, tune, result).read_text()
     assert "No candidate was feasible" in summary and "none feasible" in summary
     assert (other / "history.png").stat().st_size > 0
+    # A trial that only ties the nominal gains does not beat them: they stay the result
+    # (the earliest trial of the tie was chosen over them).
+    tie = tmp_path / "tie"
+    tuning.prepare(tie, tune)
+    study = tuning.open_study(tie, tune)
+    for n, objective in enumerate([1.5, 2.0, 1.5]):
+        study.ask(ask)
+        tuning.tell(study, n, verdict(objective))
+    tuning.write_rows(tie, "nominal", nominal_rows)
+    result = tuning.write_result(tie, tune, study)["result"]
+    assert result["best_trial"]["trial"] == 0 and result["best_trial"]["objective"] == 1.5
+    assert result["nominal"]["objective"] == 1.5
+    assert result["chosen"]["trial"] == "nominal", result["chosen"]
 
 
 @pytest.mark.slow

@@ -335,7 +335,7 @@ def test_a_sweep_with_refused_samples_runs_them_all_and_writes_one_table(tmp_pat
                     'seed = 3\nduration_s = 0.05\n\n[perturb]\n'
                     'payload_kg = {choice = [0.0, 2.0]}\n')
     spec = sweep_spec.load(path)
-    cochlea_sweep._check_sample(spec)  # the first and last samples: no refusal of the sweep
+    cochlea_sweep.check_samples(spec)  # checked up front: no refusal of the sweep
     rows = execute.run_batch(spec, list(range(spec.total)), cochlea_sweep.evaluate)
     refused = [r for r in rows if r["stop_rule"] == "gravity-refused"]
     assert 0 < len(refused) < len(rows)
@@ -344,7 +344,7 @@ def test_a_sweep_with_refused_samples_runs_them_all_and_writes_one_table(tmp_pat
     assert len({tuple(sorted(r)) for r in rows}) == 1  # the same columns
     (tmp_path / "out" / results.PARTS).mkdir(parents=True)
     results.write_part(tmp_path / "out", rows)
-    table = results.read(tmp_path / "out")
+    table = results.read(tmp_path / "out", spec.total)
     assert table.num_rows == len(rows)
     assert table["stop_rule"].to_pylist().count("gravity-refused") == len(refused)
 

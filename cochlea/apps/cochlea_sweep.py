@@ -177,17 +177,32 @@ def _choose_kernels(spec: sweep_spec.Spec, kernels: str, library: str | None):
     return choose_kernels(setups, scenario.plant_substeps, kernels, library)
 
 
-def _check_sample(spec: sweep_spec.Spec) -> None:
-    """Before any worker starts: the first sample's scenario (and the extremes of each
-    uniform) through the scenario loader and the run's up-front checks."""
-    for i in sorted({0, spec.total - 1}):
+def check_samples(spec: sweep_spec.Spec, gains: str = "") -> None:
+    """Before any worker starts or a folder is made: the first and last samples' scenarios
+    through the scenario loader and the run's up-front checks (reachability, a finite
+    trajectory), and so every combination of the values the spec gives the keys of the
+    loader's rules between ``[plant]`` keys (:func:`cochlea.sweep.sampling.cases`): such a
+    rule refusing a sample in the middle stopped the sweep there, and every resume at the same
+    sample. ``gains``: what the message says of the gains (cochlea-tune's ends of a range)."""
+    checks = [(f"sample {i}'s scenario{gains}", sampling.scenario_data(spec, i))
+              for i in sorted({0, spec.total - 1})]
+    seen = set()
+    for values in sampling.cases(spec):
+        varied = tuple((k, values[k]) for k in values
+                       if k.split(".", 1)[-1] in sampling.CROSS_KEYS and k.startswith("plant."))
+        if varied in seen:
+            continue
+        seen.add(varied)
+        shown = ", ".join(f"{k} = {sampling.dumps({'v': v})[4:].strip()}" for k, v in varied)
+        checks.append((f"the scenario of a sample the spec can give ({shown}){gains}",
+                       sampling.scenario_data(spec, 0, values)))
+    for what, data in checks:
         try:
-            unit_setups(load_scenario(SAMPLE_FILE, text=sampling.scenario_text(spec, i)))
+            unit_setups(load_scenario(SAMPLE_FILE, data=data))
         except GravityRefused:
             pass  # a perturbation the robot cannot start with: that sample's row says so
         except CochleaError as exc:
-            raise CochleaError(f"{spec.path}: sample {i}'s scenario is refused: {exc}") \
-                from None
+            raise CochleaError(f"{spec.path}: {what} is refused: {exc}") from None
 
 
 def _sweep(argv: list[str]) -> int:
@@ -226,7 +241,7 @@ def _sweep(argv: list[str]) -> int:
     if args.batch is not None and args.batch < 1:
         raise CochleaError(f"--batch must be a positive number of samples, got {args.batch}")
     spec = sweep_spec.load(args.spec)
-    _check_sample(spec)
+    check_samples(spec)
     choice = _choose_kernels(spec, args.kernels, args.library)
     print(f"cochlea-sweep: kernels: {choice.line()}", flush=True)
     evaluate_sample = functools.partial(evaluate, kernels=choice.used, library=choice.library)
@@ -236,7 +251,10 @@ def _sweep(argv: list[str]) -> int:
                            scheduler=args.scheduler, batch=args.batch, progress=progress,
                            warm=warm, log=lambda m: print(f"cochlea-sweep: {m}", flush=True))
     except KeyboardInterrupt:
-        finished = len(results.done(args.out)) if args.out.is_dir() else 0
+        try:
+            finished = len(results.done(args.out, spec.total)) if args.out.is_dir() else 0
+        except CochleaError:
+            finished = 0
         print(f"cochlea-sweep: interrupted; {finished} of {spec.total} samples are in "
               f"{args.out}: run the same command to resume", file=sys.stderr)
         return EXIT_INTERRUPTED

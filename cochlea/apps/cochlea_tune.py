@@ -22,15 +22,13 @@ import io
 import math
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 from matplotlib.figure import Figure
 
 from ..console import sigterm_interrupts, tolerate_closed_stdout
 from ..errors import CochleaError
-from ..sim import GravityRefused, load_scenario, unit_setups
-from ..sweep import results, sampling
+from ..sweep import results
 from ..sweep import tune as tuning
 from . import cochlea_sweep
 
@@ -41,27 +39,15 @@ LISTED = 10
 
 
 def check_corners(tune: tuning.Tune) -> None:
-    """Before any worker starts: the sample's first and last scenarios, with every searched
-    gain at the low end of its range and then at the high end, through the scenario loader and
-    the run's up-front checks."""
-    lows = {d.name: d.corners()[0] for d in tune.dims}
-    highs = {d.name: d.corners()[1] for d in tune.dims}
-    for gains in (lows, highs):
-        spec = tune.candidate(gains)
-        for i in sorted({0, spec.total - 1}):
-            text = sampling.scenario_text(spec, i)
-            with tempfile.TemporaryDirectory(prefix="cochlea-tune-") as tmp:
-                path = Path(tmp) / "sample.toml"
-                path.write_text(text, encoding="utf-8")
-                try:
-                    unit_setups(load_scenario(path))
-                except GravityRefused:
-                    pass  # that sample's row counts it as refused: the candidate infeasible
-                except CochleaError as exc:
-                    raise CochleaError(f"{tune.spec.path}: sample {i}'s scenario with the gains "
-                                       f"at the {'low' if gains is lows else 'high'} end of "
-                                       f"their ranges is refused: "
-                                       f"{str(exc).replace(str(path), 'sample.toml')}") from None
+    """Before any worker starts: with every searched gain at the low end of its range and then
+    at the high end, the sample's first and last scenarios and every combination of the
+    values the spec gives the keys of the loader's rules between ``[plant]`` keys
+    (:func:`cochlea.apps.cochlea_sweep.check_samples`) through the scenario loader and the
+    run's up-front checks."""
+    for end, k in (("low", 0), ("high", 1)):
+        gains = {d.name: d.corners()[k] for d in tune.dims}
+        cochlea_sweep.check_samples(tune.candidate(gains),
+                                    f" with the gains at the {end} end of their ranges")
 
 
 def _fmt(value) -> str:

@@ -849,6 +849,18 @@ def _torque_constant_error(p: Table, n: int, default) -> np.ndarray | None:
     return np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy()
 
 
+#: The ``[plant]`` keys the rules between keys at the end of :func:`_plant` read (each key's
+#: own range is checked on its own), the preset that sets their defaults among them. A sweep
+#: checks every combination of the values its spec gives these keys before anything runs
+#: (:func:`cochlea.sweep.sampling.cases`). The rules on integers are thresholds
+#: (``delay_periods + delay_jitter_periods`` at most :data:`MAX_DELAY_PERIODS`;
+#: ``encoder_noise_counts`` zero or not), so each integer key's smallest and largest values
+#: stand for all of its values. The gear keys (``backlash_SI`` & co.) count by being there
+#: or not, the same in every sample of a sweep. A new rule's keys go here.
+CROSS_KEYS = ("plant", "delay_periods", "delay_jitter_periods", "encoder_noise_counts",
+              "position_encoder", "gearbox", "armature")
+
+
 def _plant(p: Table | None, layout, preset_override: str | None) -> Plant:
     """The ``[plant]`` table: a preset's defaults (:data:`PLANT_PRESETS`), then its keys."""
     if preset_override is not None and preset_override not in PLANT_PRESETS:

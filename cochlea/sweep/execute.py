@@ -17,6 +17,8 @@ cache) and keeps the spec, which is sent once (``scatter``).
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import logging
 import math
 import statistics
@@ -28,7 +30,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..errors import CochleaError
+from ..errors import CochleaError, printable
 from . import results, sampling
 from .spec import Spec
 
@@ -101,20 +103,28 @@ DASK_LOGGERS = ("distributed", "tornado")
 
 
 class _OneLineErrors(logging.Filter):
-    """A Dask log record's traceback folded into its one line (the exception's type and text).
-    Dask logs a broken connection with its traceback: when the sweep is interrupted (Ctrl-C,
-    SIGTERM, a hang-up sent to the whole process group) its workers go first, and the
-    scheduler's or a worker's write to them then printed a traceback of distributed's internals
-    beside "cochlea-sweep: interrupted", as if the sweep had crashed. Other records pass as
-    they are."""
+    """A Dask log record on one line, without a traceback. Dask logs a broken connection with
+    its traceback: when the sweep is interrupted (Ctrl-C, SIGTERM, a hang-up sent to the whole
+    process group) its workers go first, and the scheduler's or a worker's write to them then
+    printed a traceback of distributed's internals beside "cochlea-sweep: interrupted", as if
+    the sweep had crashed; such a record's exception is folded into its line (its type and
+    text). And a worker logs a task that raised as several lines, the last a ``Traceback:``
+    (``distributed.worker - ERROR - Compute Failed``, beside the sweep's own line saying which
+    sample failed and why): every multi-line message is one line, its lines joined by "; ",
+    a traceback's left out. Other loggers' records pass as they are."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.exc_info and record.exc_info[1] is not None and \
-                record.name.split(".")[0] in DASK_LOGGERS:
+        if record.name.split(".")[0] not in DASK_LOGGERS:
+            return True
+        text = record.getMessage()
+        if record.exc_info and record.exc_info[1] is not None:
             exc = record.exc_info[1]
-            record.msg = f"{record.getMessage()} ({type(exc).__name__}: {exc})"
-            record.args = None
-            record.exc_info = record.exc_text = None
+            text = f"{text} ({type(exc).__name__}: {exc})"
+        if "\n" in text or "\r" in text:
+            text = "; ".join(" ".join(line.split()) for line in text.splitlines()
+                             if line.strip() and not line.lstrip().startswith("Traceback"))
+        record.msg, record.args = text, None
+        record.exc_info = record.exc_text = record.stack_info = None
         return True
 
 
@@ -131,20 +141,52 @@ def one_line_logs() -> None:
             logger = logger.parent if logger.propagate else None
 
 
+#: Schemes a scheduler may be reached by only with certificates, which the commands do not
+#: take: Dask's client raised TypeError for them.
+_SECURE_SCHEMES = ("tls", "wss")
+
+
+def _connectable(scheduler: str) -> None:
+    """Refuse a scheduler address Dask cannot connect to at all, before a Client is made: an
+    unknown scheme, a backend that is not installed (``ucx://`` without UCX: a TypeError of an
+    abstract class), a scheme that needs certificates (``tls://``, ``wss://``)."""
+    from distributed.comm import parse_address  # noqa: PLC0415 (see connect)
+    from distributed.comm.registry import get_backend  # noqa: PLC0415
+
+    scheme, _ = parse_address(scheduler)
+    get_backend(scheme).get_connector()
+    if scheme in _SECURE_SCHEMES:
+        raise ValueError(f"{scheme}:// needs TLS certificates, which cochlea-sweep and "
+                         "cochlea-tune do not take: give the scheduler's tcp:// address")
+
+
 def connect(workers: int | None, scheduler: str | None):
     # distributed is imported here: it takes a second, which the spec's checks and the
     # subcommands (replay, report) need not wait for.
     from distributed import Client, LocalCluster  # noqa: PLC0415
 
     if scheduler is not None:
+        client = None
         try:
+            _connectable(scheduler)  # before a Client is made: see there
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise CochleaError(f"--scheduler {scheduler}: cannot reach a Dask scheduler with "
-                               f"workers there ({exc}); start `dask scheduler` and `dask worker "
-                               f"{scheduler}`, or leave --scheduler out for local workers") \
-                from None
+        except Exception as exc:  # noqa: BLE001 (any failure to connect is one line)
+            # Not only OSError, TimeoutError, ValueError: tls:// without a certificate raised
+            # TypeError, ucx:// without UCX a TypeError of an abstract class.
+            if client is not None:
+                with contextlib.suppress(Exception):
+                    client.close()
+            # A Client whose construction raised is half made, its loop thread started: its
+            # __del__ closes it now, not when a later collection happens to run it while
+            # another Client starts (a deadlock on distributed's loop lock, seen in-process).
+            gc.collect()
+            text = (str(exc).strip().splitlines() or [""])[0]
+            raise CochleaError(f"--scheduler {printable(scheduler)}: cannot reach a Dask "
+                               f"scheduler with workers there ({type(exc).__name__}: "
+                               f"{printable(text)[:300]}); start `dask scheduler` and `dask "
+                               f"worker {printable(scheduler)}` (a tcp:// address: no TLS), "
+                               "or leave --scheduler out for local workers") from None
         return client, None
     # No dashboard; the scheduler's HTTP routes (health, metrics) on a port the system
     # chooses: on distributed's default, 8787, a second sweep or tune on the machine (or
@@ -174,7 +216,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[dict], dict], *, workers: int
     if resuming:  # another run's folder in use is refused here, before anything changes
         lock = results.hold(out)
     try:
-        missing = deque(sorted(set(range(spec.total)) - (results.done(out) if resuming
+        missing = deque(sorted(set(range(spec.total)) - (results.done(out, spec.total) if resuming
                                                          else set())))
     except BaseException:
         results.release(lock)
@@ -196,7 +238,7 @@ def run(spec: Spec, out: Path, evaluate: Callable[[dict], dict], *, workers: int
             lock, created = results.claim(out)  # the lock first: then the folder is written
         results.prepare(out, spec)
         # Whatever another run finished while this one started (it held the lock then).
-        missing = deque(sorted(set(range(spec.total)) - results.done(out)))
+        missing = deque(sorted(set(range(spec.total)) - results.done(out, spec.total)))
         n_workers = len(client.scheduler_info()["workers"])
         info["workers"] = n_workers
         if warm is not None:

@@ -98,7 +98,7 @@ def write(out: Path) -> Path:
     import matplotlib.pyplot as plt
 
     manifest = results.read_manifest(out)
-    table = results.read(out)
+    table = results.read(out, manifest.total)
     n = table.num_rows
     lines = [f"# Sweep report: {out}", "",
              f"{n} of {manifest.total} samples finished; robot {manifest.robot}, space "

@@ -12,6 +12,7 @@ import errno
 import fcntl
 import json
 import os
+import re
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -293,6 +294,11 @@ def read_manifest(out: Path) -> Manifest:
     except FileNotFoundError:
         raise SweepFolderError(f"{out}: not a sweep folder (no {MANIFEST}): give the --out "
                                "of a cochlea-sweep run") from None
+    except NotADirectoryError:  # DIR a file (or under one): not a damaged manifest
+        what = (f"it is {kind_words(os.stat(out).st_mode)}" if out.exists() and not out.is_dir()
+                else "not a folder")
+        raise SweepFolderError(f"{out}: not a sweep folder ({what}): give the --out of a "
+                               "cochlea-sweep run") from None
     except (OSError, ValueError) as exc:
         raise FolderDamaged(f"{path}: unreadable sweep manifest "
                             f"({getattr(exc, 'strerror', None) or exc})") from None
@@ -424,30 +430,107 @@ def write_part(out: Path, rows: list[dict]) -> Path:
     return final
 
 
-def read(out: Path) -> pa.Table:
-    """Every finished sample's row, sorted by sample (an empty table when there is none)."""
-    files = sorted((out / PARTS).glob("part-*.parquet"))
+#: The columns of every row (docs/sweeps.md, "Columns of a row"), in every sweep's part files
+#: since the first: what a resume and the report read besides the inputs and the per-unit
+#: results.
+ROW_COLUMNS = ("sample", "grid", "draw", "converged", "diverged", "convergence_ratio",
+               "estimate_bound_hit", "stop_rule", "stop_time_s", "saturated_periods", "success",
+               "wall_s")
+_PART_NAME = re.compile(r"part-(\d{9})-(\d{9})\.parquet")
+_MOVE_AWAY = "; move it away and run the same command to run its samples again"
+
+
+def _part_samples(f: Path, names: list[str], samples: pa.ChunkedArray | None,
+                  total: int) -> list[int]:
+    """The samples of part file ``f`` (its columns ``names``, its ``sample`` column), checked:
+    every row column there, ``sample`` whole numbers in ``0..total-1``, each once, from the
+    first to the last its name says; else :class:`FolderDamaged` naming it (a file that is
+    not one of this sweep's batches: a resume would skip or repeat samples, the report count
+    them wrongly)."""
+    damaged = f"{f}: not a part file of this sweep"
+    missing = [c for c in ROW_COLUMNS if c not in names]
+    if missing:
+        raise FolderDamaged(f"{damaged} (no column {missing[0]!r}){_MOVE_AWAY}")
+    if samples is None or not pa.types.is_integer(samples.type) or samples.null_count:
+        what = "none" if samples is None else f"{samples.type}" + (
+            f" with {samples.null_count} empty" if samples.null_count else "")
+        raise FolderDamaged(f"{damaged} (sample: expected whole numbers, got {what})"
+                            f"{_MOVE_AWAY}")
+    values = samples.to_pylist()
+    if not values:
+        raise FolderDamaged(f"{damaged} (no rows){_MOVE_AWAY}")
+    outside = [v for v in values if not 0 <= v < total]
+    if outside:
+        raise FolderDamaged(f"{damaged} (sample {outside[0]}: expected 0 to {total - 1}, the "
+                            f"sweep's {total} samples){_MOVE_AWAY}")
+    if len(set(values)) != len(values):
+        twice = next(v for v in values if values.count(v) > 1)
+        raise FolderDamaged(f"{damaged} (sample {twice} in two rows){_MOVE_AWAY}")
+    m = _PART_NAME.fullmatch(f.name)
+    first, last = min(values), max(values)
+    if m is None or (int(m[1]), int(m[2])) != (first, last):
+        raise FolderDamaged(f"{damaged} (its rows are samples {first} to {last}: its name "
+                            f"would be part-{first:09d}-{last:09d}.parquet){_MOVE_AWAY}")
+    return values
+
+
+def _part_files(out: Path) -> list[Path]:
+    return sorted((out / PARTS).glob("part-*.parquet"))
+
+
+def _once(f: Path, values: list[int], seen: dict[int, Path]) -> None:
+    """Each sample in one part file only (a copy of a part under another name: counted twice)."""
+    for v in values:
+        other = seen.setdefault(v, f)
+        if other is not f:
+            raise FolderDamaged(f"{f}: not a part file of this sweep (sample {v} is also in "
+                                f"{other.name}){_MOVE_AWAY}")
+
+
+def read(out: Path, total: int | None = None) -> pa.Table:
+    """Every finished sample's row, sorted by sample (an empty table when there is none); each
+    part file checked (:func:`_part_samples`). ``total``: the sweep's samples (default: its
+    manifest's)."""
+    files = _part_files(out)
     if not files:
         return pa.table({"sample": pa.array([], pa.int64())})
+    total = read_manifest(out).total if total is None else total
+    tables, seen = [], {}
+    for f in files:
+        try:
+            table = upgrade(pq.read_table(f))
+        except (OSError, pa.ArrowException) as exc:
+            raise FolderDamaged(f"{f}: unreadable part file ({exc}){_MOVE_AWAY}") from None
+        sample = table["sample"] if "sample" in table.column_names else None
+        _once(f, _part_samples(f, table.column_names, sample, total), seen)
+        tables.append(table)
     try:
-        tables = [upgrade(pq.read_table(f)) for f in files]
-    except (OSError, pa.ArrowException) as exc:
-        raise FolderDamaged(f"{out / PARTS}: a part file cannot be read ({exc}); remove it "
-                               "and resume to run its samples again") from None
-    table = pa.concat_tables(tables, promote_options="default")
+        table = pa.concat_tables(tables, promote_options="default")
+    except pa.ArrowException:
+        # A column of one type in a file and another in the next: name the first such file.
+        for f, t in zip(files[1:], tables[1:]):
+            try:
+                pa.unify_schemas([tables[0].schema, t.schema])
+            except pa.ArrowException as exc:
+                raise FolderDamaged(f"{f}: not a part file of this sweep (its columns do not "
+                                    f"match {files[0].name}'s: {exc}){_MOVE_AWAY}") from None
+        raise
     return table.sort_by("sample")
 
 
-def done(out: Path) -> set[int]:
-    """The samples already in the folder's part files."""
-    if not (out / PARTS).is_dir():
+def done(out: Path, total: int | None = None) -> set[int]:
+    """The samples already in the folder's part files (each checked: :func:`_part_samples`).
+    ``total``: the sweep's samples (default: its manifest's)."""
+    if not (out / PARTS).is_dir() or not _part_files(out):
         return set()
-    files = sorted((out / PARTS).glob("part-*.parquet"))
-    seen: set[int] = set()
-    for f in files:
+    total = read_manifest(out).total if total is None else total
+    seen: dict[int, Path] = {}
+    for f in _part_files(out):
         try:
-            seen.update(pq.read_table(f, columns=["sample"])["sample"].to_pylist())
+            names = upgrade(pq.read_schema(f).empty_table()).column_names
+            sample = pq.read_table(f, columns=["sample"])["sample"] if "sample" in names \
+                else None
         except (OSError, pa.ArrowException) as exc:
-            raise FolderDamaged(f"{f}: unreadable part file ({exc}); remove it and resume "
-                                   "to run its samples again") from None
-    return seen
+            raise FolderDamaged(f"{f}: unreadable part file ({exc}){_MOVE_AWAY}") from None
+        _once(f, _part_samples(f, names, sample, total), seen)
+    return set(seen)

@@ -11,6 +11,7 @@ The plant's noise seed is drawn the same way unless the spec fixes ``[perturb] s
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import tomllib
 import zlib
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ..sim.scenario import CROSS_KEYS
 from ..text import comment, toml_string
 from .spec import Entry, Spec
 
@@ -82,6 +84,29 @@ def inputs(spec: Spec, i: int) -> dict[str, Any]:
         state = np.random.SeedSequence(spec.seed, spawn_key=(k,)).generate_state(2, np.uint32)
         out["plant.seed"] = (int(state[0]) << 31) | (int(state[1]) >> 1)  # below 2**63
     return out
+
+
+def cases(spec: Spec) -> list[dict[str, Any]]:
+    """Inputs (as :func:`inputs` gives them) that together meet every rule between
+    ``[plant]`` keys the scenario loader has, for every sample the spec can give: sample 0's
+    inputs with the keys those rules read (:data:`cochlea.sim.scenario.CROSS_KEYS`) set to
+    every combination of the values the spec gives them (a fixed value; each value of a
+    choice or grid, drawn or not; both ends of an integer range), an integer key's smallest
+    and largest value standing for the rest (the rules on integers are thresholds). The other
+    keys meet no rule but their own range, which the spec's loader checks."""
+    base = inputs(spec, 0)
+    names, options = [], []
+    for e in spec.entries:
+        if not e.name.startswith("plant.") or e.name[len("plant."):] not in CROSS_KEYS:
+            continue
+        # Every such key is a flag, a preset or an integer: fixed, a choice, a grid or an
+        # integer range (no normal), its values in args.
+        values = list(dict.fromkeys(e.args))
+        if e.rule.kind == "int":
+            values = sorted({min(values), max(values)})
+        names.append(e.name)
+        options.append(values)
+    return [{**base, **dict(zip(names, combo))} for combo in itertools.product(*options)]
 
 
 def _vector(value: Any, size: int | None) -> Any:

@@ -413,14 +413,28 @@ def write_rows(out: Path, key: int | str, rows: list[dict]) -> None:
     write_atomic(rows_path(out, key), sink.getvalue())
 
 
-def read_rows(out: Path, key: int | str) -> list[dict] | None:
+def read_rows(out: Path, key: int | str, size: int) -> list[dict] | None:
+    """A candidate's rows (``key``: a trial's number or "nominal"), None when its file is
+    missing or unreadable (its runs are simply run again). A file that reads but is not a
+    candidate's ``size`` runs -- a row column missing, ``sample`` other than 0 to size - 1,
+    each once, in order -- is :class:`~cochlea.sweep.results.FolderDamaged` naming it (judged,
+    it was a KeyError, or a verdict on rows that are not the sample's)."""
     path = rows_path(out, key)
     if not path.exists():
         return None
     try:
-        return results.upgrade(pq.read_table(path)).to_pylist()
+        table = results.upgrade(pq.read_table(path))
     except (OSError, pa.ArrowException):
         return None  # unreadable: its runs are simply run again
+    missing = [c for c in results.ROW_COLUMNS if c not in table.column_names]
+    samples = table["sample"] if "sample" in table.column_names else None
+    if missing or samples is None or not pa.types.is_integer(samples.type) \
+            or samples.to_pylist() != list(range(size)):
+        why = (f"no column {missing[0]!r}" if missing else
+               f"its samples are not the {size} runs of a candidate, 0 to {size - 1}")
+        raise results.FolderDamaged(f"{path}: not a run file of this search ({why}); move it "
+                                    "away and run the same command to run them again")
+    return table.to_pylist()
 
 
 def open_study(out: Path, tune: Tune) -> optuna.Study:
@@ -430,9 +444,15 @@ def open_study(out: Path, tune: Tune) -> optuna.Study:
     journal = out / JOURNAL
     try:
         storage = JournalStorage(JournalFileBackend(str(journal)))
-        study = optuna.create_study(study_name=STUDY, storage=storage, direction="minimize",
-                                    load_if_exists=True, sampler=sampler(tune, 0))
-        study.get_trials(deepcopy=False)  # every line read now, not mid-search
+        # Loaded when it is there: create_study(load_if_exists=True) appended a line to the
+        # journal every time (a folder refused as damaged was changed).
+        if any(s.study_name == STUDY for s in storage.get_all_studies()):
+            study = optuna.load_study(study_name=STUDY, storage=storage,
+                                      sampler=sampler(tune, 0))
+        else:
+            study = optuna.create_study(study_name=STUDY, storage=storage,
+                                        direction="minimize", sampler=sampler(tune, 0))
+        trials = study.get_trials(deepcopy=False)  # every line read now, not mid-search
     except OSError as exc:
         raise results.WriteFailed(f"{journal}: cannot read or write it ({exc.strerror or exc})"
                                   ) from None
@@ -440,6 +460,18 @@ def open_study(out: Path, tune: Tune) -> optuna.Study:
         raise results.FolderDamaged(f"{journal}: damaged journal ({type(exc).__name__}: "
                                     f"{str(exc)[:200]}): a line was changed; move the folder "
                                     "away and start a new search") from None
+    # A journal of another search (one that searched a gain on another range or as a
+    # choice) read as this one's: its trials' values would be taken for this search's (a
+    # choice's index 0 as a gain of 0, written into tuned.toml).
+    ours = tune.distributions()
+    for t in trials:
+        for name, distribution in t.distributions.items():
+            if ours.get(name) != distribution:
+                theirs = ("not a parameter of this search" if name not in ours
+                          else f"this search's is {ours[name]}")
+                raise results.FolderDamaged(
+                    f"{journal}: not this search's journal: trial {t.number}'s {name} is "
+                    f"{distribution} ({theirs}); move the folder away and start a new search")
     return study
 
 
@@ -559,7 +591,8 @@ def run(tune: Tune, out: Path, evaluate: Callable[[dict], dict], *, workers: int
             study = open_study(out, tune)
             finished = {t.number for t in study.get_trials(deepcopy=False,
                                                            states=(TrialState.COMPLETE,))}
-            if finished >= set(range(s.trials)) and read_rows(out, "nominal") is not None:
+            if finished >= set(range(s.trials)) and \
+                    read_rows(out, "nominal", tune.size) is not None:
                 info.update(write_result(out, tune, study))  # nothing to run: no workers
                 return info
         return _run(tune, out, evaluate, workers, scheduler, progress, warm, log, info, lock)
@@ -586,7 +619,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
         finished = {t.number for t in study.get_trials(deepcopy=False,
                                                        states=(TrialState.COMPLETE,))}
         todo_trials = sum(1 for n in range(s.trials) if n not in finished)
-        nominal_rows = read_rows(out, "nominal")
+        nominal_rows = read_rows(out, "nominal", tune.size)
         total = (s.trials + 1) * tune.size
         bar = tqdm(total=total, initial=total - (todo_trials + (nominal_rows is None))
                    * tune.size, unit="run", file=sys.stderr, disable=not progress,
@@ -640,7 +673,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
             for n in numbers:
                 if states[n].state == TrialState.COMPLETE:
                     continue
-                rows = read_rows(out, n)
+                rows = read_rows(out, n, tune.size)
                 if rows is not None and len(rows) == tune.size:
                     finish_from_file(study, n, rows, s.objective)
                     records[:] = trial_records(study, tune)
@@ -650,7 +683,7 @@ def _run(tune: Tune, out: Path, evaluate, workers, scheduler, progress, warm, lo
                 jobs[n] = tune.candidate(tune.gains(states[n].params))
             _evaluate(client, jobs, tune.size, evaluate, n_workers, finish, bar.update, out)
         if not nominal_rows:
-            nominal_rows = read_rows(out, "nominal")
+            nominal_rows = read_rows(out, "nominal", tune.size)
         if nominal_rows is None:  # the trials were all done before: only the nominal runs
             _evaluate(client, {"nominal": tune.sample}, tune.size, evaluate, n_workers,
                       lambda key, rows: write_rows(out, key, rows), bar.update, out)
@@ -696,17 +729,19 @@ def finish_from_file(study: optuna.Study, number: int, rows: list[dict], objecti
 
 def write_result(out: Path, tune: Tune, study: optuna.Study | None = None) -> dict:
     """result.json: the nominal and the best candidate on the same sample. The nominal gains
-    count as a candidate: when no trial beats them, they are the result."""
+    count as a candidate: when no trial beats them (a smaller objective; a tie does not),
+    they are the result."""
     if study is None:
         study = open_study(out, tune)
     records = trial_records(study, tune)
     write_trials_csv(out, tune, records)
-    nominal_rows = read_rows(out, "nominal")
+    nominal_rows = read_rows(out, "nominal", tune.size)
     nominal = judge(nominal_rows, tune.settings.objective) if nominal_rows else None
     b = best(records)
     chosen = b
+    # A trial that only ties the nominal gains does not beat them: they stay the result.
     if nominal is not None and nominal["feasible"] and (b is None
-                                                        or nominal["objective"] < b["objective"]):
+                                                        or nominal["objective"] <= b["objective"]):
         chosen = {"trial": "nominal", **nominal, "gains": nominal_gains(tune)}
     result = {"objective": tune.settings.objective, "trials": len(records),
               "feasible_trials": sum(1 for r in records if r["feasible"]),
