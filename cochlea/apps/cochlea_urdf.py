@@ -21,17 +21,21 @@ from ..text import decimal, integer, toml_string
 from . import outputs
 
 
-def _ids(text: str) -> list[int]:
+def _ids(text: str | None) -> list[int] | None:
+    if text is None:
+        return None
     ids = [integer(x) for x in text.split(",")]  # ASCII digits only ("1_0": no), none empty
     if None in ids:
-        raise argparse.ArgumentTypeError(f"{text!r}: comma-separated integers, e.g. 1,2,3")
+        raise CochleaError(f"--ids {text!r}: comma-separated integers, e.g. 1,2,3")
     return ids
 
 
-def _metres(text: str) -> float:
+def _metres(text: str | None, option: str) -> float | None:
+    if text is None:
+        return None
     value = decimal(text)  # float() would take "1_0" (10 m), "nan" and other scripts' digits
     if value is None:
-        raise argparse.ArgumentTypeError(f"{text!r}: a decimal number of metres, e.g. 0.05")
+        raise CochleaError(f"{option} {text!r}: a decimal number of metres, e.g. 0.05")
     return value
 
 
@@ -72,9 +76,10 @@ def _import(args: argparse.Namespace) -> None:
                            + ([("--scenario-out", args.scenario_out)]
                               if args.scenario_out is not None else []),
                            [("URDF", args.urdf)])
+    # Parsed here, not by argparse, so that a mistake is one line like every other refusal.
+    ids, radius = _ids(args.ids), _metres(args.keep_out_radius_m, "--keep-out-radius-m")
     result = import_urdf(args.urdf, base=args.base, tip=args.tip, motors=args.motor,
-                         ids=args.ids, transmissions=args.transmission,
-                         keep_out_radius=args.keep_out_radius_m)
+                         ids=ids, transmissions=args.transmission, keep_out_radius=radius)
     for snap in result.snaps:
         print(f"snapped: {snap}")
     for note in result.notes:
@@ -116,14 +121,14 @@ def main(argv: list[str] | None = None) -> int:
     imp.add_argument("--motor", action="append", metavar="MODEL|JOINT=MODEL",
                      help="the Dynamixel of every joint (MODEL) or of one joint (JOINT=MODEL, "
                           "the URDF joint name); repeatable; default XM540-W270")
-    imp.add_argument("--ids", type=_ids, metavar="1,2,..",
+    imp.add_argument("--ids", metavar="1,2,..",
                      help="the motors' Dynamixel IDs from base to tip (default: 1..n)")
     imp.add_argument("--transmission", action="append", metavar="JOINT=KIND:SIZE",
                      help="a prismatic joint's transmission (required where the URDF has no "
                           "<transmission> with a mechanicalReduction for it): KIND lead_screw "
                           "(SIZE: the lead, m per motor turn), pinion or belt (SIZE: the pitch "
                           "radius, m), ratio (SIZE: m per motor rad); repeatable")
-    imp.add_argument("--keep-out-radius-m", type=_metres, metavar="R",
+    imp.add_argument("--keep-out-radius-m", metavar="R",
                      help="write keep_out_radius_m = R (m), the keep-out circle around the "
                           "world origin (default: none written, no keep-out circle)")
     imp.add_argument("--scenario-out", type=Path, metavar="FILE",
