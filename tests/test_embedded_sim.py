@@ -354,6 +354,34 @@ def test_each_arm_runs_on_a_thread_of_its_own():
     assert parallel["threads"] == 1 and parallel["unit_cpu_s"] == [parallel["loop_cpu_s"]]
 
 
+def test_each_arm_has_a_processor_of_its_own_when_there_are_enough(tmp_path):
+    """Without a log the two arms' threads are the only busy ones: each is held on a
+    processor of its own (left to the scheduler, the second started on the first's processor
+    and the two shared it for much of a short run). With the log's writer too there are more
+    busy threads than this machine's processors and the scheduler places them; either way
+    each arm's log is the same, bit for bit."""
+    binary = eb.build_simulation("serial_joint")
+    cpus = os.sched_getaffinity(0)
+    alone = eb.run_simulation(binary, 0.2)
+    assert len(alone["unit_processors"]) == 2
+    assert set(alone["unit_processors"]) <= cpus
+    if len(cpus) >= 2:
+        assert alone["unit_processors"][0] != alone["unit_processors"][1]
+    # A process held to one processor runs both arms there (nothing placed, nothing refused).
+    one = min(cpus)
+    def hold():
+        os.sched_setaffinity(0, {one})
+
+    held = subprocess.run([str(binary), "--duration", "0.2"], preexec_fn=hold,
+                          capture_output=True, text=True, check=True)
+    assert json.loads(held.stdout)["unit_processors"] == [one, one]
+    first, second = tmp_path / "a.bin", tmp_path / "b.bin"
+    eb.run_simulation(binary, 0.2, first)
+    subprocess.run([str(binary), "--duration", "0.2", "--log", str(second)], preexec_fn=hold,
+                   capture_output=True, text=True, check=True)
+    assert first.read_bytes() == second.read_bytes()
+
+
 @pytest.mark.slow  # runs the program and a busy loop turn about
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU")
 def test_the_sibling_slowdown_is_measured_turn_about_and_leaves_no_busy_loop():
