@@ -50,6 +50,13 @@ class AmbiguousName(CochleaError):
     """A bare name that is both a shipped file's and a local file's or folder's."""
 
 
+def shipped_file(folder: Path, name: str) -> Path:
+    """The shipped file a bare ``name`` stands for in ``folder`` (``ROBOTS_DIR``,
+    ``SCENARIOS_DIR``): ``<folder>/<name>.toml``. A default the user did not type is passed as
+    this path, so that :func:`shipped`'s refusal of an ambiguous bare name never meets it."""
+    return folder / f"{name}.toml"
+
+
 def shipped(folder: Path, name_or_path: str | Path) -> Path:
     """A bare name such as ``"serial"`` means ``<folder>/serial.toml``; anything else (a name
     with a ``.toml`` suffix or a folder part, ``./serial`` included) is a path of the user's.
@@ -66,12 +73,12 @@ def shipped(folder: Path, name_or_path: str | Path) -> Path:
         if os.path.lexists(candidate):
             mine = (f"the {'folder' if os.path.isdir(candidate) else 'file'} "
                     f"{os.path.abspath(text)} here")
-            ship = folder / f"{text}.toml"
+            ship = shipped_file(folder, text)
             raise AmbiguousName(
                 (f"{text!r} names both the shipped {ship} and {mine}" if ship.is_file() else
                  f"{text!r}, a bare name, means the shipped {ship} (there is none), not {mine}")
                 + f": give {os.path.join('.', text)} or its full path for yours"
                 + (", or run from another folder for the shipped one" if ship.is_file()
                    else ""))
-        return folder / f"{candidate}.toml"
+        return shipped_file(folder, text)
     return candidate

@@ -60,7 +60,7 @@ from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.library import ENVIRONMENT
-from ..resources import SCENARIOS_DIR
+from ..resources import SCENARIOS_DIR, shipped_file
 from ..robots import ROBOTS
 from ..robots.motor_fit import bridge_compensates_friction
 from ..ros2 import desired as ros2_desired
@@ -360,7 +360,7 @@ def _run(args: argparse.Namespace, run: _Run) -> int:
     if args.out is not None:  # the cheap checks first; the folder is created only at the end
         outputs.check_folder(args.out)
     study = f"{args.robot}_{args.space}" + ("_realistic" if args.plant == "realistic" else "")
-    scenario = load_scenario(args.scenario or SCENARIOS_DIR / f"{study}.toml",  # default: shipped
+    scenario = load_scenario(args.scenario or shipped_file(SCENARIOS_DIR, study),
                              plant_preset=args.plant)
     _validate(args, scenario)
     topic = None

@@ -35,7 +35,7 @@ import re
 from pathlib import Path
 
 from .. import files
-from ..resources import ROBOTS_DIR, shipped
+from ..resources import ROBOTS_DIR, shipped, shipped_file
 from ..runtime.backend import BackendError
 from .control_table import Item
 from .drives import drive_item
@@ -58,9 +58,9 @@ def description_id(robot: str, description: str | Path | None) -> str:
     """What a record says it was made for: :data:`SHIPPED` for the shipped description of the
     kind ``robot`` (None, its bare name, or its file), else the description's resolved path."""
     path = (shipped(ROBOTS_DIR, description) if description is not None
-            else ROBOTS_DIR / f"{robot}.toml")
+            else shipped_file(ROBOTS_DIR, robot))
     resolved = Path(path).expanduser().resolve()
-    if resolved == (ROBOTS_DIR / f"{robot}.toml").resolve():
+    if resolved == shipped_file(ROBOTS_DIR, robot).resolve():
         return SHIPPED
     return str(resolved)
 

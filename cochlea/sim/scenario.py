@@ -28,7 +28,7 @@ import numpy as np
 from .. import files
 from ..control.gains import controller_of
 from ..errors import CochleaError, DescriptionError
-from ..resources import ROBOTS_DIR, SCENARIOS_DIR, shipped
+from ..resources import ROBOTS_DIR, SCENARIOS_DIR, shipped, shipped_file
 from ..robots import ROBOTS
 from ..robots import robot as robot_adapter
 from ..robots.adapter import sampled
@@ -556,7 +556,7 @@ def _load(path: Path, plant_preset: str | None, data: dict) -> tuple[Scenario, A
     # No description key: the shipped one, by its path (a bare name is refused where a file
     # or folder of that name is in the working directory: cochlea.resources.shipped).
     system = load_system(robot, description if "description" in data
-                         else ROBOTS_DIR / f"{robot}.toml")
+                         else shipped_file(ROBOTS_DIR, robot))
 
     c = top.table("control")
     task = None

@@ -33,7 +33,7 @@ import numpy as np
 
 from ... import files
 from ...errors import CochleaError
-from ...resources import ROBOTS_DIR
+from ...resources import ROBOTS_DIR, shipped_file
 from ...robots import ROBOTS
 from ...robots import robot as robot_adapter
 from ...text import comment
@@ -225,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _shipped(robot: str) -> Path:
-    return ROBOTS_DIR / f"{robot}.toml"
+    return shipped_file(ROBOTS_DIR, robot)
 
 
 def _is_shipped(args: argparse.Namespace) -> bool:

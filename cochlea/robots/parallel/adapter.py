@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from ...errors import CochleaError, KinematicsError
-from ...resources import ROBOTS_DIR
+from ...resources import ROBOTS_DIR, shipped_file
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
@@ -137,7 +137,7 @@ class ParallelRobot(RobotAdapter):
 
     def load(self, description: str | Path | None = None) -> ParallelSystem:
         return load_parallel(description if description is not None
-                             else ROBOTS_DIR / f"{self.name}.toml")  # a default: the shipped file
+                             else shipped_file(ROBOTS_DIR, self.name))
 
     def model(self, system: ParallelSystem, arm: str | None = None,
               parameterisation: str = "inertial", method: str | None = None,

@@ -16,7 +16,7 @@ import casadi as ca
 import numpy as np
 
 from ...errors import CochleaError, KinematicsError, ModelError
-from ...resources import ROBOTS_DIR
+from ...resources import ROBOTS_DIR, shipped_file
 from ..adapter import (
     ActuatedJoint,
     ExcitationGeometry,
@@ -282,7 +282,7 @@ class SerialRobot(RobotAdapter):
 
     def load(self, description: str | Path | None = None) -> SerialSystem:
         return load_serial(description if description is not None
-                           else ROBOTS_DIR / f"{self.name}.toml")  # a default: the shipped file
+                           else shipped_file(ROBOTS_DIR, self.name))
 
     def model(self, system: SerialSystem, arm: str | Arm | None = None,
               parameterisation: str = "inertial", method: str | None = None,
