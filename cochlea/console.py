@@ -146,18 +146,27 @@ def _start_resource_tracker_deaf_to_hangups() -> None:
 
 
 @contextlib.contextmanager
-def sigterm_interrupts():
-    """SIGTERM (a batch system's or a cluster's stop) and SIGHUP (the terminal or session
-    closed) raise KeyboardInterrupt, as Ctrl-C does, for the section: the long-running programs
-    that resume (cochlea-sweep, cochlea-tune) keep what finished and say so either way. The
-    previous handlers come back afterwards."""
-    def terminate(signum, frame):
-        raise KeyboardInterrupt
+def stop_signals_raise(exception):
+    """For the section, SIGTERM and SIGHUP raise ``exception(signum)`` (a KeyboardInterrupt,
+    as Ctrl-C's) in the main thread, so that the section unwinds through its ``finally``
+    blocks; the previous handlers come back afterwards."""
+    def unwind(signum, frame):
+        raise exception(signum)
 
-    _start_resource_tracker_deaf_to_hangups()
-    previous = {s: signal.signal(s, terminate) for s in (signal.SIGTERM, signal.SIGHUP)}
+    previous = {s: signal.signal(s, unwind) for s in (signal.SIGTERM, signal.SIGHUP)}
     try:
         yield
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def sigterm_interrupts():
+    """SIGTERM (a batch system's or a cluster's stop) and SIGHUP (the terminal or session
+    closed) raise KeyboardInterrupt, as Ctrl-C does, for the section: the long-running programs
+    that resume (cochlea-sweep, cochlea-tune) keep what finished and say so either way. The
+    previous handlers come back afterwards."""
+    _start_resource_tracker_deaf_to_hangups()
+    with stop_signals_raise(lambda signum: KeyboardInterrupt()):
+        yield

@@ -31,7 +31,7 @@ import stat
 from pathlib import Path
 
 from .. import files
-from ..console import STOP_SIGNALS
+from ..console import STOP_SIGNALS, stop_signals_raise
 from ..errors import CochleaError, printable
 
 #: The lock file of a claimed folder (removed when the run ends).
@@ -431,15 +431,8 @@ def signals_unwind():
     unwinds through :func:`atomic_path`, which removes its temporary file, instead of dying
     with it left beside the output. ``signum`` of the exception says which signal; a Ctrl-C is
     a plain KeyboardInterrupt (SIGINT). The previous handlers come back afterwards."""
-    def unwind(signum, frame):
-        raise Interrupted(signum)
-
-    previous = {s: signal.signal(s, unwind) for s in (signal.SIGTERM, signal.SIGHUP)}
-    try:
+    with stop_signals_raise(Interrupted):
         yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
 
 
 def interrupted_exit(exc: BaseException) -> tuple[str, int]:

@@ -140,25 +140,20 @@ class RunLog:
                                          f"have {rows.shape[1]} values, the header {width}")
                 times = rows[:, 0]
                 steps = time_steps(np.concatenate([[last_time], times]))
-                if not np.all(np.isfinite(times)) or not np.all(steps > 0):
-                    bad = int(np.argmax(~np.isfinite(times) | ~(steps > 0)))
-                    raise RunFolderError(
-                        f"{self.csv} is damaged: line {first_line + bad}: time_s = "
-                        f"{float(times[bad])!r} is not finite or not after the row before")
-                outside = (times < 0) | (times >= MAX_TIME_S)
-                if outside.any():
-                    bad = int(np.argmax(outside))
-                    raise RunFolderError(
-                        f"{self.csv} is damaged: line {first_line + bad}: time_s = "
-                        f"{float(times[bad])!r} is outside [0, 2**31) s (a run's time from its "
-                        "first period; a ROS time stamp holds no more)")
-                late = times > limit
-                if late.any():
-                    bad = int(np.argmax(late))
-                    raise RunFolderError(
-                        f"{self.csv} is damaged: line {first_line + bad}: time_s = "
-                        f"{float(times[bad])!r} is after the run's end ({limit:g} s: "
-                        "summary.json's duration_s and one period)")
+                for wrong, why in (
+                        (~np.isfinite(times) | ~(steps > 0),
+                         "is not finite or not after the row before"),
+                        ((times < 0) | (times >= MAX_TIME_S),
+                         "is outside [0, 2**31) s (a run's time from its first period; a ROS "
+                         "time stamp holds no more)"),
+                        (times > limit,
+                         f"is after the run's end ({limit:g} s: summary.json's duration_s and "
+                         "one period)")):
+                    if wrong.any():
+                        bad = int(np.argmax(wrong))
+                        raise RunFolderError(
+                            f"{self.csv} is damaged: line {first_line + bad}: time_s = "
+                            f"{float(times[bad])!r} {why}")
                 last_time = float(times[-1])
                 count += len(rows)
                 yield rows
