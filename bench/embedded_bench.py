@@ -54,6 +54,7 @@ from cochlea.kernels.generate import _mark_unused_parameters, _work_sizes
 from cochlea.robots.parallel import ParallelSystem
 from cochlea.robots.parallel.forward import forward_dynamics as parallel_forward
 from cochlea.robots.plant import plant_step
+from cochlea.robots.serial.folded import folded_forward_dynamics
 from cochlea.sim import compiled as csim
 from cochlea.sim import load_scenario, simulate, unit_setups
 from cochlea.sim.result import SimulationResult, simulated_log
@@ -183,25 +184,38 @@ def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function
     :func:`cochlea.sim.compiled.unit_kernels` checks against the library) with the scenario's
     constants folded in: ``(x, tau) -> x_next``, the true plant's parameters, its friction, the
     period ``period`` (s) and, where the plant has one, its dry friction or drive (the 6th
-    input) as literals. Folding multiplies by no zero and adds no zero: on the ideal serial
-    plants the result is the general kernel's bit for bit (tests/test_embedded_sim.py).
+    input) as literals.
 
-    The parallel mechanism's rigid plant integrates its forward dynamics in the block form
+    The forward dynamics it integrates (the same RK4 period) is the cheapest exact form at
+    those constants: a serial arm's folded sums and ``L D L^T`` solve
+    (:func:`cochlea.robots.serial.folded.folded_forward_dynamics`: the shipped arms' plant
+    period 520 operations instead of the articulated-body algorithm's 652) where that has
+    fewer operations than the general form folded, the parallel mechanism's block form
     (:func:`cochlea.robots.parallel.forward.forward_dynamics`: 369 operations an evaluation
-    instead of 1688), the same RK4 period: equal to the general kernel to rounding (1e-12
-    relative), not bit for bit."""
+    instead of 1688): equal to the general kernel to rounding (1e-12 relative,
+    tests/test_embedded_sim.py), not bit for bit. The geared plant keeps its general form
+    (folding its constants moved results by an ulp, which backlash grew to 1e-2 rad)."""
     general = u.plant_function(substeps)
-    if not u.gearbox and isinstance(getattr(u.plant_model.geometry, "system", None),
-                                    ParallelSystem):
-        general = plant_step(u.plant_model, substeps, coulomb=u.drive is not None,
-                             forward=parallel_forward(u.plant_model))
+    candidates = [general]
+    if not u.gearbox:
+        coulomb = u.drive is not None
+        if isinstance(getattr(u.plant_model.geometry, "system", None), ParallelSystem):
+            candidates = [plant_step(u.plant_model, substeps, coulomb=coulomb,
+                                     forward=parallel_forward(u.plant_model))]
+        else:
+            folded = folded_forward_dynamics(u.plant_model, u.plant_params)
+            if folded is not None:
+                candidates.append(plant_step(u.plant_model, substeps, coulomb=coulomb,
+                                             forward=folded))
     x = ca.SX.sym("x", general.size1_in(0))
     tau = ca.SX.sym("tau", general.size1_in(1))
     constants = [u.plant_params, u.friction, period]
     if general.n_in() == 6:
         constants.append(u.drive)
-    x_next = general(x, tau, *(ca.DM(np.ravel(c)) for c in constants))
-    return ca.Function(name, [x, tau], [x_next], ["x", "tau"], ["x_next"])
+    specialised = [ca.Function(name, [x, tau], [f(x, tau, *(ca.DM(np.ravel(c))
+                                                             for c in constants))],
+                               ["x", "tau"], ["x_next"]) for f in candidates]
+    return min(specialised, key=lambda f: f.n_instructions())
 
 
 #: The robots whose all-in-C simulations take sin and cos from sim_sincos (embedded/sim/
