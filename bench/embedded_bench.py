@@ -823,6 +823,7 @@ def bench_embedded_sims(runs: int = 11) -> list[dict]:
                 raise RuntimeError(f"{name} ({p}): {info['status']} after {info['rows']} rows")
             row[f"max_diff_{p}"] = max_log_difference(result, reference)
             row["log_bytes"] = log.stat().st_size
+            row["log_writer"] = info.get("log_writer", "thread")
         variants = {"double": [str(binaries["double"]), "--log", str(log)],
                     "double_no_log": [str(binaries["double"])],
                     "float": [str(binaries["float"]), "--log", str(log)]}
@@ -904,6 +905,17 @@ def _sibling_words(sibling: dict, threads: int, period: float) -> str:
             f"the core the period would cost about {period / ratio * 1e6:.2f} us")
 
 
+def _writer_words(row: dict, threads: int) -> str:
+    """Who wrote the row's log (simulate.c's sim_writer), for its why-line."""
+    if row.get("log_writer") == "units":
+        return ("put together, their poses evaluated and written by the units themselves, "
+                "whichever is ahead of the oldest block not written (no third thread on the two "
+                "cores; each unit held on its own)")
+    return ("handed to the writer thread (which puts the units' rows together, evaluates the "
+            f"poses and writes the file: {'a third' if threads > 1 else 'a second'} thread on "
+            "the two cores)")
+
+
 def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
     """The target lines of the all-in-C rows: each study's real-time factor end to end with
     its log against issue 30's (serial 2000x, parallel 1000x), met, or missed by how much and
@@ -950,9 +962,7 @@ def verdicts(steps: list[dict], sims: list[dict]) -> list[str]:
             f"{why}, a cap of {1e-3 / period:.0f}x "
             f"{'with a core per unit' if threads > 1 else 'on one core'}. The log adds "
             f"{log_period * 1e6:.2f} us per period to the loop: its rows, "
-            f"{r['log_bytes'] / 1e6:.1f} MB handed to the writer thread (which puts the "
-            "units' rows together, evaluates the poses and writes the file: "
-            f"{'a third' if threads > 1 else 'a second'} thread on the two cores); the process "
+            f"{r['log_bytes'] / 1e6:.1f} MB {_writer_words(r, threads)}; the process "
             f"start-up {r['startup_s'] * 1e3:.2f} ms.")
     return lines
 
@@ -1005,7 +1015,9 @@ def markdown(steps: list[dict] | None, sims: list[dict] | None,
             "sin and cos inline (embedded/sim/sim_trig.h, within an ulp of libm). "
             "Full scenario length; wall time from starting the process to its exit (medians of "
             "runs taken turn about), log written (a row of doubles per period, put together "
-            "and written by a writer thread) unless said. *loop*: the program's own time for "
+            "and written by a writer thread, or by the units themselves where they are as many "
+            "as the processors: the serial studies here) unless said. *loop*: the program's own "
+            "time for "
             "its loop "
             "(log written); *start-up*: process wall time less the loop, without a log; "
             "*simulate()*: the all-in-C path of `cochlea.sim.simulate` on the same scenario, end "

@@ -146,10 +146,13 @@ def sc_duration(name: str) -> float:
     return float(load_scenario(name).duration)
 
 
-def test_the_log_ends_on_any_row_of_its_blocks(tmp_path):
-    """The writer thread's ring of blocks (simulate.c: SIM_BLOCKS of SIM_BLOCK_ROWS rows): a run
-    that ends on a block's last row, after the ring wrapped, one row into a block, or before
-    the first block is full, logs the first rows of a longer run, byte for byte."""
+@pytest.mark.parametrize("writer", ["thread", "units"])
+def test_the_log_ends_on_any_row_of_its_blocks(writer, tmp_path, monkeypatch):
+    """The log's ring of blocks (simulate.c: SIM_BLOCKS of SIM_BLOCK_ROWS rows), written by a
+    writer thread or by the units: a run that ends on a block's last row, after the ring
+    wrapped, one row into a block, or before the first block is full, logs the first rows of a
+    longer run, byte for byte."""
+    monkeypatch.setenv("COCHLEA_SIM_LOG_WRITER", writer)
     binary = eb.build_simulation("serial_joint")
     longer = tmp_path / "longer.log"
     info = eb.run_simulation(binary, 3.0, longer)
@@ -159,7 +162,52 @@ def test_the_log_ends_on_any_row_of_its_blocks(tmp_path):
         log = tmp_path / f"{rows}.log"
         part = eb.run_simulation(binary, rows * 1e-3, log)
         assert part["rows"] == rows and part["status"] == "completed"
+        assert part["log_writer"] == writer
         assert log.read_bytes() == whole[:rows * 8 * info["columns"]], rows
+
+
+@pytest.mark.parametrize("name", ["serial_joint", "parallel_joint"])
+def test_both_log_writers_write_the_same_log(name, tmp_path, monkeypatch):
+    """The units writing their log (whichever is ahead of the oldest block not written) and a
+    writer thread write the same bytes, the serial arms' two units and the mechanism's one."""
+    binary = eb.build_simulation(name)
+    logs = {}
+    for writer in ("thread", "units"):
+        monkeypatch.setenv("COCHLEA_SIM_LOG_WRITER", writer)
+        logs[writer] = tmp_path / f"{writer}.log"
+        info = eb.run_simulation(binary, 2.345, logs[writer])
+        assert info["log_writer"] == writer and info["status"] == "completed"
+        assert (info["writer_cpu_s"] > 0) == (writer == "thread")
+    assert logs["thread"].read_bytes() == logs["units"].read_bytes()
+    monkeypatch.setenv("COCHLEA_SIM_LOG_WRITER", "both")
+    done = subprocess.run([str(binary), "--log", str(tmp_path / "x.log")], capture_output=True,
+                          text=True)
+    assert done.returncode == 2 and "COCHLEA_SIM_LOG_WRITER" in done.stderr
+    assert not done.stdout and not (tmp_path / "x.log").exists()
+
+
+def test_the_units_write_their_log_where_they_are_as_many_as_the_processors(tmp_path):
+    """Left to choose, the serial arms write their own log where the process has no more
+    processors than arms (a writer thread would leave one arm a processor to itself and the
+    other arm and the writer the other one), each arm held on a processor of its own; the
+    mechanism's one unit has a writer thread beside it."""
+    cpus = os.sched_getaffinity(0)
+    if len(cpus) > 2:
+        two = set(sorted(cpus)[:2])
+    else:
+        two = cpus
+    binary = eb.build_simulation("serial_joint")
+    done = subprocess.run([str(binary), "--duration", "0.5", "--log", str(tmp_path / "a.log")],
+                          preexec_fn=lambda: os.sched_setaffinity(0, two), capture_output=True,
+                          text=True, check=True, env={k: v for k, v in os.environ.items()
+                                                      if k != "COCHLEA_SIM_LOG_WRITER"})
+    info = json.loads(done.stdout)
+    assert info["log_writer"] == "units" and info["writer_cpu_s"] == 0.0
+    if len(two) == 2:
+        assert sorted(info["unit_processors"]) == sorted(two)
+    parallel = eb.run_simulation(eb.build_simulation("parallel_joint"), 0.5, tmp_path / "p.log")
+    assert parallel["log_writer"] == "thread"
+    assert eb.run_simulation(binary, 0.5)["log_writer"] == "none"
 
 
 @pytest.mark.parametrize("name", ["serial_joint", "parallel_task"])

@@ -46,21 +46,27 @@
  * --log FILE writes one row of doubles (native byte order) per period:
  *   t (s), x[NX], p_hat[NP], tau[NQ], errors[NE], pose[NPOSE], xd[ND], xd_dot[ND]
  * each block unit after unit (x: per unit [q, qd]). Each unit's thread writes its part of the
- * rows into a ring of blocks of its own; a writer thread puts the units' parts of each block's
- * rows together, evaluates their poses from their x and writes the block to the file while the
+ * rows into a ring of blocks of its own; the units' parts of each block's rows are put
+ * together, their poses evaluated from their x and the block written to the file while the
  * units fill the next (the poses and the page cache's copy were a quarter of a serial study's
- * time). Without --log the pose, which only the log needs, is not evaluated. An existing
+ * time), by a writer thread where the process has a processor more than its units, else by the
+ * units themselves, whichever is ahead (sim_writer; COCHLEA_SIM_LOG_WRITER=thread or units
+ * chooses). Without --log the pose, which only the log needs, is not evaluated. An existing
  * regular FILE (one link) is removed and a new one created, not truncated (open_log: 4-5 ms
  * less on ext4 over a previous serial log); anything else (a link, a device, a FIFO, a file
- * that cannot be removed) is opened and truncated as before.
+ * that cannot be removed) is opened and truncated as before. The file's blocks are reserved
+ * for the whole run at its first write (reserve_blocks) and what a shorter run did not use is
+ * given back at its end.
  *
  * Prints one line of JSON on stdout: the scenario, the sizes, the rows run, the status, the
  * wall time (s) of the loop (loop_s: from starting the units' threads to the last one's end)
  * and of the whole program from main() on (main_s), the loop's own CPU time (loop_cpu_s: the
- * busiest unit thread's, the log's writer not included; on a busy machine the measure of the
- * loop's work; unit_cpu_s: each unit thread's), the threads the units ran on, the processor
- * each unit's thread ended on (unit_processors: each on its own while the units are no more
- * than the processors, place_main; -1 where the system does not say) and each unit's sizes.
+ * busiest unit thread's, a writer thread's not included; on a busy machine the measure of the
+ * loop's work; unit_cpu_s: each unit thread's, with what it wrote of the log), the threads the
+ * units ran on, the processor each unit's thread ended on (unit_processors: each on its own
+ * while the units' and the writer's threads are no more than the processors, place_main; -1
+ * where the system does not say), who wrote the log (log_writer: "thread", "units" or "none")
+ * and a writer thread's CPU time (writer_cpu_s, 0 without one), and each unit's sizes.
  * Exit status: 0 completed, 1 diverged or step-failed, 2 bad arguments or an unwritable log. */
 #ifdef __linux__
 #define _GNU_SOURCE /* sched_getcpu, pthread_setaffinity_np: see place_main */
@@ -226,14 +232,29 @@ static void find_offsets(void)
 }
 
 /* The log: each unit's parts of the rows in SIM_BLOCKS blocks of SIM_BLOCK_ROWS rows (a ring
- * per unit); the writer thread takes block n once every unit has handed it, puts the rows
- * together (with their poses) and writes them while the units fill the next ones (several,
- * so that a writer held up by other work on the machine does not stop the units at once). */
+ * per unit); block n is written once every unit has handed it: its rows put together (with
+ * their poses) and written while the units fill the next ones (several, so that a writer held
+ * up by other work on the machine does not stop the units at once). Who writes it:
+ *
+ * - a writer thread of its own, where the process has a processor more than it has units (the
+ *   parallel studies' one unit: the writer runs on the other processor);
+ * - else the units themselves (units_write): a unit that has handed a block looks at the
+ *   oldest block not written and writes it if it is ready and the unit is ahead of it (has
+ *   handed a later block), must have its slot back to go on, has handed its last rows, or is
+ *   the only unit still running. The unit ahead has time to spare, so the writing goes to
+ *   whichever unit is ahead, which then falls behind: on two vCPUs the two arms' threads, each
+ *   held on its own processor, share the writing as their loads allow, where a third thread
+ *   left one arm a processor to itself and the other arm and the writer the other one (the
+ *   scheduler balances threads, not their work: serial_task's arms 6.2 ms of CPU each and the
+ *   writer 4 ms, the loop 8-11 ms).
+ *
+ * One block is written at a time (writing), in order. */
 #define SIM_BLOCKS 4
 #define SIM_BLOCK_ROWS ((1 << 18) / (8 * SIM_COLUMNS) + 1)
 
 typedef struct {
     int fd;
+    int units_write;                  /* 1: no writer thread, the units write (above) */
     pthread_t thread;
     pthread_mutex_t lock;
     pthread_cond_t changed;
@@ -241,11 +262,14 @@ typedef struct {
     long handed[SIM_UNITS];           /* blocks each unit has handed */
     int done[SIM_UNITS];              /* 1: the unit has handed its last block */
     long written;                     /* blocks written (or being written: then not free) */
-    int ended;                        /* the writer has written the last whole rows */
+    int writing;                      /* 1: block `written` is being written */
+    int ended;                        /* the last whole rows are written: the log's end */
     int failed;                       /* 1: a write failed, 2: a pose kernel did */
     long expected;                    /* rows of a whole run: the file's blocks reserved */
     long rows_written;                /* rows in the file */
     int held;                         /* the last run's log, removed (open_log), or -1 */
+    int reserved;                     /* 1: the blocks are reserved, the last log let go */
+    double cpu_s;                     /* s: the writer thread's CPU time (0: units_write) */
 } sim_writer;
 
 static double sim_unit_blocks[SIM_UNITS][SIM_BLOCKS][SIM_BLOCK_ROWS * SIM_UNIT_COLUMNS];
@@ -319,59 +343,104 @@ static void reserve_blocks(int fd, long rows)
 #endif
 }
 
+/* Under w->lock: whether block w->written can be written: 1 (its rows in *rows: the fewest a
+ * unit handed in it), 0 not yet (a unit still filling it), -1 the log ends before it (a unit
+ * has handed its last rows before it). */
+static int block_ready(const sim_writer *w, long *rows)
+{
+    const long n = w->written;
+    const int slot = (int)(n % SIM_BLOCKS);
+    int u, ready = 1;
+    *rows = SIM_BLOCK_ROWS;
+    for (u = 0; u < SIM_UNITS; ++u) {
+        if (w->handed[u] > n) {
+            if (w->rows[u][slot] < *rows) *rows = w->rows[u][slot];
+        } else if (w->done[u]) {
+            return -1; /* this unit's rows end before block n: so do the log's */
+        } else {
+            ready = 0;
+        }
+    }
+    return ready;
+}
+
+/* Under w->lock, block w->written ready with rows rows: written (the lock let go meanwhile),
+ * then w->written moved on; a block of fewer rows than a whole one ends the log. The first
+ * write lets the last run's log go (its pages freed) and reserves this one's blocks, while
+ * the units fill the first blocks. */
+static void write_block(sim_writer *w, long rows)
+{
+    const long n = w->written;
+    int failed;
+    w->writing = 1;
+    pthread_mutex_unlock(&w->lock);
+    if (!w->reserved) {
+        if (w->held >= 0) close(w->held);
+        w->held = -1;
+        reserve_blocks(w->fd, w->expected);
+        w->reserved = 1;
+    }
+    put_together((int)(n % SIM_BLOCKS), n * SIM_BLOCK_ROWS, rows);
+    failed = fill_poses(sim_rows, rows) ? 2
+             : write_all(w->fd, (const char *)sim_rows,
+                         (size_t)rows * SIM_COLUMNS * sizeof(double)) ? 1 : 0;
+    pthread_mutex_lock(&w->lock);
+    w->writing = 0;
+    if (!w->failed) w->failed = failed;
+    if (!failed) w->rows_written += rows;
+    w->written = n + 1;
+    if (rows < SIM_BLOCK_ROWS) w->ended = 1; /* a unit's last rows: the log's */
+    pthread_cond_broadcast(&w->changed);
+}
+
 static void *writer_main(void *arg)
 {
     sim_writer *w = arg;
-    /* while the units fill the first blocks: the last run's log let go (its pages freed) and
-     * this one's blocks reserved */
-    if (w->held >= 0) close(w->held);
-    w->held = -1;
-    reserve_blocks(w->fd, w->expected);
+    long rows;
     pthread_mutex_lock(&w->lock);
-    for (;;) {
-        const long n = w->written;     /* the block to write next */
-        const int slot = (int)(n % SIM_BLOCKS);
-        long rows = SIM_BLOCK_ROWS;
-        int u, ready = 1, last = 0;
-        for (u = 0; u < SIM_UNITS; ++u) {
-            if (w->handed[u] > n) {
-                if (w->rows[u][slot] < rows) rows = w->rows[u][slot];
-            } else if (w->done[u]) {
-                last = 1; /* this unit's rows end before block n: so do the log's */
-            } else {
-                ready = 0;
-            }
-        }
-        if (last) break;
-        if (!ready) {
-            pthread_cond_wait(&w->changed, &w->lock);
-            continue;
-        }
-        {
-            int failed;
-            pthread_mutex_unlock(&w->lock);
-            put_together(slot, n * SIM_BLOCK_ROWS, rows);
-            failed = fill_poses(sim_rows, rows) ? 2
-                     : write_all(w->fd, (const char *)sim_rows,
-                                 (size_t)rows * SIM_COLUMNS * sizeof(double)) ? 1 : 0;
-            pthread_mutex_lock(&w->lock);
-            if (!w->failed) w->failed = failed;
-            if (!failed) w->rows_written += rows;
-            w->written = n + 1;
-            pthread_cond_broadcast(&w->changed);
-            if (rows < SIM_BLOCK_ROWS) break; /* a unit's last rows: the log's */
-        }
+    while (!w->ended) {
+        const int ready = block_ready(w, &rows);
+        if (ready < 0) break;
+        if (ready) write_block(w, rows);
+        else pthread_cond_wait(&w->changed, &w->lock);
     }
     w->ended = 1;
+    w->cpu_s = clock_s(CLOCK_THREAD_CPUTIME_ID);
     pthread_cond_broadcast(&w->changed);
     pthread_mutex_unlock(&w->lock);
     return NULL;
 }
 
+/* Under w->lock, units_write: unit u (u < 0: the main thread after the units) writes the ready
+ * blocks it should (above); with wait, it waits for its next slot while that is not free,
+ * writing the blocks it can meanwhile. */
+static void units_write(sim_writer *w, int u, int wait)
+{
+    long rows;
+    while (!w->ended) {
+        int v, running = 0, ready;
+        for (v = 0; v < SIM_UNITS; ++v)
+            if (v != u && !w->done[v]) running = 1;
+        ready = w->writing ? 0 : block_ready(w, &rows);
+        if (ready < 0) {
+            w->ended = 1;
+            pthread_cond_broadcast(&w->changed);
+            break;
+        }
+        if (ready && (u < 0 || w->done[u] || !running || w->handed[u] > w->written + 1 ||
+                      (wait && w->handed[u] - w->written >= SIM_BLOCKS))) {
+            write_block(w, rows);
+            continue;
+        }
+        if (!wait || w->handed[u] - w->written < SIM_BLOCKS) break;
+        pthread_cond_wait(&w->changed, &w->lock);
+    }
+}
+
 /* Unit u hands the first rows of its block *slot (rows > 0, or 0 with last) to the writer and
  * moves *slot on to its next block once that one is free; last: the unit's last rows. 0, or
- * the writer's failure so far (sim_writer.failed), or -1 when the writer has ended (the log
- * ends before this unit's rows: another unit stopped first). */
+ * the writer's failure so far (sim_writer.failed), or -1 when the log has ended (before this
+ * unit's rows: another unit stopped first). */
 static int writer_hand(sim_writer *w, int u, int *slot, long rows, int last)
 {
     int failed;
@@ -382,8 +451,12 @@ static int writer_hand(sim_writer *w, int u, int *slot, long rows, int last)
     }
     if (last) w->done[u] = 1;
     pthread_cond_broadcast(&w->changed);
-    while (!last && !w->ended && w->handed[u] - w->written >= SIM_BLOCKS)
-        pthread_cond_wait(&w->changed, &w->lock);
+    if (w->units_write) {
+        units_write(w, u, !last);
+    } else {
+        while (!last && !w->ended && w->handed[u] - w->written >= SIM_BLOCKS)
+            pthread_cond_wait(&w->changed, &w->lock);
+    }
     failed = w->failed ? w->failed : w->ended && !last ? -1 : 0;
     pthread_mutex_unlock(&w->lock);
     *slot = (*slot + 1) % SIM_BLOCKS;
@@ -438,31 +511,54 @@ static int close_log(sim_writer *w)
     return failed;
 }
 
-static int writer_start(sim_writer *w, const char *path, long expected)
+/* The log's writer for a run of expected rows: the units write it (units_write, 1) or a
+ * thread of its own (0). 0, or -1 if the log cannot be opened or the thread started. */
+static int writer_start(sim_writer *w, const char *path, long expected, int by_units)
 {
     memset(w->rows, 0, sizeof w->rows);
     memset(w->handed, 0, sizeof w->handed);
     memset(w->done, 0, sizeof w->done);
+    w->units_write = by_units;
     w->written = 0;
-    w->ended = w->failed = 0;
+    w->writing = w->ended = w->failed = w->reserved = 0;
     w->expected = expected;
     w->rows_written = 0;
+    w->cpu_s = 0.0;
     w->fd = open_log(w, path);
     if (w->fd < 0) return -1;
     if (pthread_mutex_init(&w->lock, NULL) == 0 && pthread_cond_init(&w->changed, NULL) == 0 &&
-        pthread_create(&w->thread, NULL, writer_main, w) == 0)
+        (by_units || pthread_create(&w->thread, NULL, writer_main, w) == 0))
         return 0;
     (void)close_log(w);
     return -1;
 }
 
-/* Every unit has handed its last rows: the writer's end, the log closed (close_log); 0, or
- * the writer's failure (1 also when closing failed). */
+/* Every unit has handed its last rows: the writer's end (units_write: what is left written by
+ * this thread), the log closed (close_log); 0, or the writer's failure (1 also when closing
+ * failed). */
 static int writer_finish(sim_writer *w)
 {
-    pthread_join(w->thread, NULL);
+    if (w->units_write) {
+        pthread_mutex_lock(&w->lock);
+        units_write(w, -1, 0);
+        w->ended = 1;
+        pthread_mutex_unlock(&w->lock);
+    } else {
+        pthread_join(w->thread, NULL);
+    }
     if (close_log(w) && !w->failed) w->failed = 1;
     return w->failed;
+}
+
+/* The processors the process may run on (Linux; elsewhere one more than the units: a writer
+ * thread, as before). */
+static int usable_processors(void)
+{
+#ifdef __linux__
+    cpu_set_t allowed;
+    if (sched_getaffinity(0, sizeof allowed, &allowed) == 0) return CPU_COUNT(&allowed);
+#endif
+    return SIM_UNITS + 1;
 }
 
 /* A run that ends without every unit's last rows (a thread not started, a plant's error, the
@@ -670,15 +766,16 @@ static long stop_order(const sim_lane *lane)
 }
 
 /* The units' processors (Linux), where the process has a processor for each of its busy
- * threads (the units, and the log's writer if any): the main thread's unit stays on the
+ * threads (the units, and the log's writer thread if any): the main thread's unit stays on the
  * processor it is on and the others go round the processors the process may use from the next
  * one on. Left to the scheduler, a new thread starts on its creator's processor and waits there
  * for a load balancer to move it, and the main thread moves about too: on this project's 2-vCPU
  * machine the two units of a 10 ms run shared one processor for milliseconds of it
  * (serial_task's loop 11.5 ms against 5.8 ms of each unit's CPU time; placed, 15 runs each:
  * 3405x real time against 2230x, serial_joint 2757x against 2081x). With more busy threads
- * than processors nothing is placed: a unit held on its processor could not make way for the
- * writer (with the log, placed units ran serial_joint at 1590x against 2223x left free). A
+ * than processors nothing is placed: a unit held on its processor could not make way for a
+ * writer thread (placed units ran serial_joint with its log at 1590x against 2223x left free;
+ * where the units are as many as the processors they write the log themselves, sim_writer). A
  * placement the system refuses is left to the scheduler; the main thread's own set is given
  * back after the run (restore_placement). */
 typedef struct {
@@ -760,9 +857,9 @@ int main(int argc, char **argv)
     SIM_C(_config) config;
     SIM_C(_state) state;
     const sim_lane *first;
-    const char *log_path = NULL;
+    const char *log_path = NULL, *writer_choice;
     long steps;
-    int i, u, threads = 1;
+    int i, u, threads = 1, by_units;
     sim_placement placement;
 
     for (i = 1; i < argc; ++i) {
@@ -784,7 +881,18 @@ int main(int argc, char **argv)
         return 2;
     }
     find_offsets();
-    if (log_path && writer_start(&writer, log_path, steps) != 0) {
+    /* who writes the log (sim_writer): COCHLEA_SIM_LOG_WRITER=thread or units chooses (to
+     * compare the two), else the units where they are as many as the processors */
+    writer_choice = getenv("COCHLEA_SIM_LOG_WRITER");
+    if (writer_choice && strcmp(writer_choice, "units") != 0 &&
+        strcmp(writer_choice, "thread") != 0) {
+        fprintf(stderr, "simulate: COCHLEA_SIM_LOG_WRITER is %s: thread or units\n",
+                writer_choice);
+        return 2;
+    }
+    by_units = writer_choice ? strcmp(writer_choice, "units") == 0
+                             : SIM_UNITS >= 2 && usable_processors() <= SIM_UNITS;
+    if (log_path && writer_start(&writer, log_path, steps, by_units) != 0) {
         fprintf(stderr, "simulate: cannot write %s\n", log_path);
         return 2;
     }
@@ -798,7 +906,7 @@ int main(int argc, char **argv)
     loop_start = now_s();
     /* the other units on threads of their own, the first on this one; one loop over all units
      * on this thread if a thread cannot be started */
-    place_main(&placement, SIM_UNITS + (log_path != NULL));
+    place_main(&placement, SIM_UNITS + (log_path != NULL && !by_units));
     for (u = 1; u < SIM_UNITS; ++u)
         if (start_unit(&placement, &lanes[u], u) == 0) ++threads;
         else break;
@@ -854,7 +962,8 @@ int main(int argc, char **argv)
     for (u = 0; u < SIM_UNITS; ++u) printf("%s%.9f", u ? ", " : "", lanes[u].cpu_s);
     printf("], \"unit_processors\": [");
     for (u = 0; u < SIM_UNITS; ++u) printf("%s%d", u ? ", " : "", lanes[u].processor);
-    printf("], \"unit_sizes\": [");
+    printf("], \"log_writer\": \"%s\", \"writer_cpu_s\": %.9f, \"unit_sizes\": [",
+           !log_path ? "none" : by_units ? "units" : "thread", log_path ? writer.cpu_s : 0.0);
     for (u = 0; u < SIM_UNITS; ++u) {
         const sim_unit *s = &sim_units[u];
         printf("%s{\"name\": \"%s\", \"nq\": %d, \"np\": %d, \"nd\": %d, \"ne\": %d, "
