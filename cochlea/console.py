@@ -1,5 +1,6 @@
 """What every command-line program shares: standard output that a departed reader cannot
-crash, and critical sections that an interrupt cannot cut in two.
+crash, critical sections that an interrupt cannot cut in two, and option mistakes told in
+one line (:class:`OneLineParser`).
 
 ``cochlea-run ... | head -1`` closes the pipe after the first line; the next ``print`` raises
 BrokenPipeError, which would end a run mid-motion or before its report. A terminal or SSH
@@ -18,12 +19,15 @@ hang-up is a stop like SIGTERM, never a death without the safe stop).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import errno
 import os
 import signal
 import sys
 from multiprocessing import resource_tracker
+
+from .errors import EXIT_USER_ERROR, printable
 
 #: Exit code when the reader of the output went away: 128 + SIGPIPE, as the shell reports a
 #: program that signal ended (``yes | head -1`` under ``set -o pipefail``).
@@ -35,6 +39,17 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 #: A write to a stream whose reader went away: a closed pipe (EPIPE), a terminal that hung up
 #: (EIO).
 _GONE = (errno.EPIPE, errno.EIO)
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An option the parser cannot read (unknown, missing, ``--force-N 0_5`` for a number:
+    cochlea.text.number_argument) is one line on stderr naming it and exit code 2, like every
+    other refusal, not argparse's usage block. Its subcommands' parsers are of this class too
+    (argparse makes them of the parent's class)."""
+
+    def error(self, message: str):  # noqa: D102 (argparse's hook)
+        print(printable(f"{self.prog}: {message} (see {self.prog} --help)"), file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
 
 
 def _reader_gone(exc: OSError) -> bool:

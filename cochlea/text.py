@@ -5,6 +5,8 @@ strings and comments written so that any name survives them.
   ``2e-3``, ``.5``). Python's ``float()`` also takes ``"0_5"`` (5.0: a tenfold mass from a
   typo), ``"nan"``, ``"infinity"``, and Arabic-Indic or full-width digits; none of them is a
   number a robot's file should hold.
+- :func:`number_argument`, :func:`whole_argument`: the argparse types of every numeric
+  option of the command-line tools (``type=float`` and ``type=int`` take the same typos).
 - :func:`toml_string`: a TOML basic string (``"..."``) of any text, in ASCII: the quotation
   mark, the backslash, every control character (TOML refuses C0 and DEL raw) and every other
   character escaped. Every writer of TOML text goes through it.
@@ -14,6 +16,8 @@ strings and comments written so that any name survives them.
 
 from __future__ import annotations
 
+import argparse
+import math
 import re
 
 from .errors import printable
@@ -41,6 +45,42 @@ def integer(text: str) -> int | None:
     if not INTEGER.fullmatch(text) or len(text.lstrip("+-")) > 18:
         return None
     return int(text)
+
+
+def strict_float(text: str) -> float:
+    """:func:`decimal`, finite, or ValueError (where ``float()`` was: a parser's ``try``)."""
+    value = decimal(text)
+    if value is None or not math.isfinite(value):
+        raise ValueError(f"not a plain finite decimal number: {comment(text)!r}")
+    return value
+
+
+def strict_int(text: str) -> int:
+    """:func:`integer`, or ValueError (where ``int()`` was)."""
+    value = integer(text)
+    if value is None:
+        raise ValueError(f"not a plain whole number: {comment(text)!r}")
+    return value
+
+
+def number_argument(text: str) -> float:
+    """argparse type of a number option: a plain decimal (:func:`decimal`) and finite, else
+    argparse's one-line refusal (exit 2): ``--force-N 0_5`` is not 5 N, ``--speed-mm-s nan``
+    no speed. Ranges are the option's own checks."""
+    value = decimal(text)
+    if value is None or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(
+            f"{comment(text)!r}: expected a plain decimal number, e.g. 0.5, -2 or 1e-3")
+    return value
+
+
+def whole_argument(text: str) -> int:
+    """argparse type of a whole-number option: plain ASCII digits, optionally signed
+    (:func:`integer`), else argparse's one-line refusal (exit 2)."""
+    value = integer(text)
+    if value is None:
+        raise argparse.ArgumentTypeError(f"{comment(text)!r}: expected a whole number, e.g. 3")
+    return value
 
 
 _TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f",

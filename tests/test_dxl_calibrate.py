@@ -319,7 +319,7 @@ def test_calibrate_never_overwrites(tmp_path):
     (["--robot", "serial"], "no slider to home"),
     (["--robot", "parallel", "--speed-mm-s", "0"], "--speed-mm-s"),
     (["--robot", "parallel", "--speed-mm-s", "500"], "at most 60 mm/s"),
-    (["--robot", "parallel", "--force-N", "nan"], "--force-N"),
+    (["--robot", "parallel", "--force-N", "-3"], "--force-N"),
     (["--robot", "parallel", "--force-N", "1000"], "force limit"),
     (["--robot", "parallel", "--stop-m", "2"], "--stop-m"),
     (["--robot", "parallel", "--timeout-s", "-1"], "--timeout-s"),

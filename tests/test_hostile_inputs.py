@@ -30,8 +30,11 @@ def refused(tmp_path, monkeypatch, capsys):
 
     def run(*argv, robot="serial", space="joint"):
         out = tmp_path / "out"
-        code = cochlea_run.main(["--robot", robot, "--space", space, *FAST, "--out", str(out),
-                                 *argv])
+        try:
+            code = cochlea_run.main(["--robot", robot, "--space", space, *FAST, "--out",
+                                     str(out), *argv])
+        except SystemExit as stop:  # the parser's own refusal (a number that is no number)
+            code = stop.code
         err = capsys.readouterr().err
         lines = err.strip().splitlines()
         assert code == EXIT_USER_ERROR, err
@@ -207,14 +210,15 @@ def test_initial_state_refused_up_front(refused, tmp_path, old, new, expected):
 # -- class 5: degenerate run lengths ----------------------------------------------------------
 
 @pytest.mark.parametrize("argv, expected", [
-    (["--duration", "inf"], "--duration must be positive and finite"),
-    (["--duration", "nan"], "--duration must be positive and finite"),
+    (["--duration", "inf"], "--duration: 'inf': expected a plain decimal number"),
+    (["--duration", "nan"], "--duration: 'nan': expected a plain decimal number"),
+    (["--duration", "0_5"], "--duration: '0_5': expected a plain decimal number"),
     (["--duration", "-1"], "--duration must be positive and finite"),
     (["--duration", "1e12"], "split the session"),
     (["--duration", "1e-6"], "shorter than one control period"),
     (["--rate", "1", "--duration", "0.4"], "shorter than one control period"),
     (["--rate", "0"], "--rate must be between"),
-    (["--rate", "nan"], "--rate must be between"),
+    (["--rate", "nan"], "--rate: 'nan': expected a plain decimal number"),
     (["--duration", "7200"], "split the session"),  # as fast: every period kept in memory
 ])
 def test_degenerate_duration_or_rate_option(refused, argv, expected):

@@ -4,7 +4,6 @@ into ``DIR`` (``DIR/libcochlea.so``, which ``cochlea-run --library DIR`` runs on
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import filecmp
 import sys
@@ -12,7 +11,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..console import tolerate_closed_stdout
+from ..console import OneLineParser, tolerate_closed_stdout
 from ..dynamixel.embedded_drives import drives_header, write_drive_tables
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels.build import compile_library
@@ -55,7 +54,7 @@ def _check_out(out: Path, option: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="cochlea-codegen",
         description="Regenerate the C kernels (generated_c/) from the robot descriptions in "
                     "models/robots/ and the configuration codegen/kernels.toml, "

@@ -21,7 +21,7 @@ import signal
 import sys
 import threading
 
-from ..console import tolerate_closed_stdout
+from ..console import OneLineParser, tolerate_closed_stdout
 from ..dynamixel.bringup import calibrate, common, configure, home, info, reboot, scan
 from ..errors import EXIT_USER_ERROR, CochleaError
 
@@ -63,15 +63,8 @@ def _stop_signals():
             signal.signal(s, h)
 
 
-class _Parser(argparse.ArgumentParser):
-    """An option the parser cannot read is one line naming it, as every other mistake is."""
-
-    def error(self, message: str):
-        self.exit(EXIT_USER_ERROR, f"{self.prog}: {message} (--help lists the options)\n")
-
-
 def parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog="cochlea-dxl",
         description="Bring-up of the Dynamixel motors: find them, compare and write the "
                     "registers the runtime relies on, reboot a motor in alert. Works on a real "
@@ -83,7 +76,7 @@ def parser() -> argparse.ArgumentParser:
                "128+N stopped by signal N (129 SIGHUP, 130 SIGINT, 143 SIGTERM). Only home "
                "and calibrate --torque-fit turn a torque on, and off again whatever ends them.")
     sub = p.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True,
-                           parser_class=_Parser)
+                           parser_class=OneLineParser)
     for module in SUBCOMMANDS:
         sp = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
         module.add_arguments(sp)

@@ -13,7 +13,6 @@ false and its stop ``stream-incomplete``. docs/embedded.md, "The row stream".
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import re
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import serial
 
+from ..console import OneLineParser
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..log_schema import SCHEMA_VERSION
 from ..runtime import RealTimeLoop, build_supervisor, write_raw_columns
@@ -42,6 +42,7 @@ from ..runtime.row_stream import (
 )
 from ..sim import choose_kernels, load_scenario, unit_setups
 from ..sim.scenario import MAX_RATE_HZ, MIN_RATE_HZ
+from ..text import number_argument, whole_argument
 from . import report
 from .outputs import ReportError
 
@@ -517,14 +518,14 @@ def _write_run(stream: StreamRun, why: str | None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--port", required=True,
                         help="the serial port of the firmware's USART3 (or a file of captured "
                              "bytes)")
     parser.add_argument("--out", type=Path, required=True, help="a new or empty folder")
-    parser.add_argument("--baud", type=int, default=921600,
+    parser.add_argument("--baud", type=whole_argument, default=921600,
                         help="the stream's rate (the firmware's STM32_STREAM_BAUD)")
-    parser.add_argument("--timeout", type=float, default=10.0, metavar="S",
+    parser.add_argument("--timeout", type=number_argument, default=10.0, metavar="S",
                         help="a line silent this long ends the read (s; default 10)")
     parser.add_argument("--scenario", default=None,
                         help="the scenario the firmware was built from (default: the header's)")

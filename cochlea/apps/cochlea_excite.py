@@ -23,6 +23,7 @@ from ..ident.excite import ExcitationOptions, check_options, design, scenario_te
 from ..robots import ROBOTS, robot
 from ..sim.scenario import load as load_scenario
 from ..sim.setup import unit_setups
+from ..text import number_argument, whole_argument
 
 #: Exit codes (docs/excitation.md, "Exit codes"); EXIT_USER_ERROR (2): a wrong option or
 #: number, limits nothing fits.
@@ -67,30 +68,30 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, metavar="FILE.toml",
                    help="the scenario to write (refused if it exists, unless --force)")
     p.add_argument("--force", action="store_true", help="overwrite an existing --out file")
-    p.add_argument("--period", type=float, default=defaults.period, metavar="S",
+    p.add_argument("--period", type=number_argument, default=defaults.period, metavar="S",
                    help=f"period of the fundamental, s (default {defaults.period:g})")
-    p.add_argument("--harmonics", type=int, default=defaults.harmonics, metavar="H",
+    p.add_argument("--harmonics", type=whole_argument, default=defaults.harmonics, metavar="H",
                    help=f"harmonics per joint, at least 2 (default {defaults.harmonics})")
-    p.add_argument("--amplitude-deg", type=float,
+    p.add_argument("--amplitude-deg", type=number_argument,
                    default=math.degrees(defaults.amplitude_rad), metavar="DEG",
                    help="revolute joints stay within this of their working pose (default "
                         f"{math.degrees(defaults.amplitude_rad):g})")
-    p.add_argument("--amplitude-mm", type=float, default=defaults.amplitude_m * 1000,
+    p.add_argument("--amplitude-mm", type=number_argument, default=defaults.amplitude_m * 1000,
                    metavar="MM", help="prismatic joints (the slider) likewise (default "
                                       f"{defaults.amplitude_m * 1000:g})")
-    p.add_argument("--periods", type=int, default=defaults.periods, metavar="N",
+    p.add_argument("--periods", type=whole_argument, default=defaults.periods, metavar="N",
                    help="the run's length in whole periods; it ends at rest where it began "
                         f"(default {defaults.periods})")
-    p.add_argument("--seed", type=int, default=defaults.seed,
+    p.add_argument("--seed", type=whole_argument, default=defaults.seed,
                    help=f"seed of the optimiser's random starts (default {defaults.seed})")
-    p.add_argument("--starts", type=int, default=defaults.starts, metavar="N",
+    p.add_argument("--starts", type=whole_argument, default=defaults.starts, metavar="N",
                    help=f"random starts of the optimiser (default {defaults.starts})")
-    p.add_argument("--iterations", type=int, default=defaults.iterations, metavar="N",
+    p.add_argument("--iterations", type=whole_argument, default=defaults.iterations, metavar="N",
                    help=f"SLSQP iterations per start (default {defaults.iterations})")
-    p.add_argument("--limit-fraction", type=float, default=defaults.limit_fraction,
+    p.add_argument("--limit-fraction", type=number_argument, default=defaults.limit_fraction,
                    metavar="F", help="velocity and nominal torque stay within this fraction "
                                      f"of their limits (default {defaults.limit_fraction:g})")
-    p.add_argument("--clearance-mm", type=float, default=defaults.clearance * 1000,
+    p.add_argument("--clearance-mm", type=number_argument, default=defaults.clearance * 1000,
                    metavar="MM", help="serial: smallest distance between the excited arm and "
                                       f"the other one (default {defaults.clearance * 1000:g})")
     return p

@@ -28,6 +28,7 @@ from ..ident.cli import exit_code as terminated_code
 from ..ident.logs import read_run
 from ..ident.physical import physically_consistent_fit
 from ..robots import ROBOTS, model, robot
+from ..text import number_argument, whole_argument
 
 #: Exit codes (docs/identification.md, "Exit codes"). EXIT_USER_ERROR (2): a wrong option,
 #: description or log (unreadable, damaged, cut short, columns or units not the
@@ -381,15 +382,16 @@ def parser() -> argparse.ArgumentParser:
                    "ident.json); figures go beside it as OUT_torques.png, OUT_parameters.png")
     p.add_argument("--validate", nargs="+", metavar="LOG_DIR", help="run folders held out "
                    "for validation (default: the last --holdout of every fitted log)")
-    p.add_argument("--holdout", type=float, default=estimate.DEFAULT_HOLDOUT,
+    p.add_argument("--holdout", type=number_argument, default=estimate.DEFAULT_HOLDOUT,
                    help="fraction of each log held out when no --validate is given "
                         f"(default {estimate.DEFAULT_HOLDOUT:g})")
-    p.add_argument("--cutoff-hz", type=float, default=estimate.DEFAULT_CUTOFF_HZ,
+    p.add_argument("--cutoff-hz", type=number_argument, default=estimate.DEFAULT_CUTOFF_HZ,
                    help="cut-off of the zero-phase Butterworth filter (default "
                         f"{estimate.DEFAULT_CUTOFF_HZ:g} Hz)")
-    p.add_argument("--decimate", type=int, help="keep every N-th filtered sample (default: "
+    p.add_argument("--decimate", type=whole_argument,
+                   help="keep every N-th filtered sample (default: "
                    "the log's rate over ten times the cut-off)")
-    p.add_argument("--min-speed", type=float, default=estimate.DEFAULT_MIN_SPEED,
+    p.add_argument("--min-speed", type=number_argument, default=estimate.DEFAULT_MIN_SPEED,
                    help="leave out samples where a joint moves slower than this (rad/s; a "
                         "prismatic joint: times 0.02 m/rad) (default "
                         f"{estimate.DEFAULT_MIN_SPEED:g})")
@@ -416,11 +418,11 @@ def parser() -> argparse.ArgumentParser:
                    metavar="F|off", help="low-pass of the regressor's columns and the "
                    "efforts (parallel filtering): just above the excitation's highest "
                    f"harmonic (default {estimate.DEFAULT_PARALLEL_CUTOFF_HZ:g} Hz; off: none)")
-    p.add_argument("--guard-s", type=float, default=estimate.DEFAULT_GUARD_S,
+    p.add_argument("--guard-s", type=number_argument, default=estimate.DEFAULT_GUARD_S,
                    help="with parallel filtering, leave out samples this close (s) to one "
                         "where a joint moves slower than --min-speed (default "
                         f"{estimate.DEFAULT_GUARD_S:g})")
-    p.add_argument("--max-condition", type=float, default=estimate.DEFAULT_MAX_CONDITION,
+    p.add_argument("--max-condition", type=number_argument, default=estimate.DEFAULT_MAX_CONDITION,
                    help="largest condition number of the column-scaled regressor accepted "
                         f"(default {estimate.DEFAULT_MAX_CONDITION:g})")
     p.add_argument("--fit-current", default=current_fit.AUTO, metavar="auto|off|JOINT,...",

@@ -11,12 +11,12 @@ the same folder and renamed once complete, an existing file being replaced only 
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from ..console import OneLineParser
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..export.to_mcap import Exporter
@@ -53,7 +53,7 @@ def export(run_dir: Path, out: Path | None = None) -> tuple[Path, dict[str, int]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", type=Path, metavar="RUN_DIR",
                         help="a run's output folder (cochlea-run or the embedded program)")
     parser.add_argument("--out", type=Path, default=None, metavar="FILE.mcap",

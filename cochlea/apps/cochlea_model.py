@@ -9,7 +9,7 @@ import math
 import os
 import sys
 
-from ..console import EXIT_BROKEN_PIPE, stdout_was_closed, tolerate_closed_stdout
+from ..console import EXIT_BROKEN_PIPE, OneLineParser, stdout_was_closed, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots import ROBOTS, robot
 from ..text import decimal
@@ -45,7 +45,7 @@ EXIT_INTERRUPTED = 130
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="cochlea-model",
         description="Print the symbolic model of a robot: joints and limits, dynamic parameters "
                     "(full, base or mass-only), and M, G and the tool pose (for the parallel "

@@ -17,7 +17,6 @@ interrupted.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -26,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..console import OneLineParser
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
 from ..ros2.node import Publisher, load_ros
@@ -199,7 +199,7 @@ def replay(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     f = sub.add_parser("follow", help="publish a real-time run while it runs")
     r = sub.add_parser("replay", help="publish a finished run at its own pace")

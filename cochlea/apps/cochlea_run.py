@@ -55,7 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..console import signals_held, tolerate_closed_stdout
+from ..console import OneLineParser, signals_held, tolerate_closed_stdout
 from ..dynamixel.bridge import DynamixelBackend
 from ..dynamixel.control_table import baud_code
 from ..errors import EXIT_USER_ERROR, CochleaError
@@ -81,6 +81,7 @@ from ..runtime import (
 from ..sim import KERNELS, choose_kernels, load_scenario, simulate, unit_setups
 from ..sim.scenario import MAX_PERIODS, MAX_RATE_HZ, MIN_RATE_HZ, PLANT_PRESETS
 from ..sim.setup import MAX_FAST_PERIODS, MIRROR_RULE, check_run_length
+from ..text import number_argument, whole_argument
 from . import outputs, report
 
 EXIT_DIVERGED = 3
@@ -94,7 +95,7 @@ MAX_WATCHDOG_MISSES = 500
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="cochlea-run",
         description="Run one of the four robust adaptive controllers of the thesis -- e "
                     "(serial, joint space), g (serial, task space), f (parallel, joint space), "
@@ -122,7 +123,7 @@ def _parser() -> argparse.ArgumentParser:
                         "period of delay). Without "
                         "--scenario, realistic runs the study tuned for it "
                         "(ROBOT_SPACE_realistic.toml); with one, it sets that scenario's plant")
-    p.add_argument("--duration", type=float, metavar="S",
+    p.add_argument("--duration", type=number_argument, metavar="S",
                    help="seconds to run (default: the scenario's)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output folder (default: a new runs/ROBOT_SPACE_YYYYmmdd-HHMMSS)")
@@ -133,17 +134,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--port", metavar="PATH",
                    help="--backend dynamixel: the serial port, e.g. /dev/ttyUSB0, or the "
                         "pseudo-terminal cochlea-emulator prints")
-    p.add_argument("--baud", type=int, metavar="B",
+    p.add_argument("--baud", type=whole_argument, metavar="B",
                    help="--backend dynamixel: the motors' baud rate (default 4000000)")
     p.add_argument("--homing", default="auto", choices=["auto", "required"],
                    help="--backend dynamixel, a robot with prismatic joints: check their "
                         "homing record (cochlea-dxl home) on a real port and not on the "
                         "emulator's pseudo-terminal (auto, default), or always (required)")
-    p.add_argument("--start-tolerance-deg", type=float, default=5.0, metavar="DEG",
+    p.add_argument("--start-tolerance-deg", type=number_argument, default=5.0, metavar="DEG",
                    help="--backend dynamixel: how far a revolute joint may stand from the "
                         "scenario's initial pose at the start (default 5 deg); farther is "
                         "refused before the torque comes on (exit code 5)")
-    p.add_argument("--start-tolerance-mm", type=float, default=5.0, metavar="MM",
+    p.add_argument("--start-tolerance-mm", type=number_argument, default=5.0, metavar="MM",
                    help="--backend dynamixel: the same for a prismatic joint (default 5 mm)")
     p.add_argument("--homing-record", metavar="FILE",
                    help="--backend dynamixel: the homing record cochlea-dxl home wrote "
@@ -167,9 +168,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the C kernels' library: a .so, or the folder cochlea-codegen "
                         "--scenario FILE --out DIR wrote (default: $COCHLEA_LIB, else the "
                         "shipped build/libcochlea.so)")
-    p.add_argument("--rate", type=float, metavar="HZ",
+    p.add_argument("--rate", type=number_argument, metavar="HZ",
                    help="control rate (default: the scenario's, 1000 Hz)")
-    p.add_argument("--watchdog-misses", type=int, default=20, metavar="N",
+    p.add_argument("--watchdog-misses", type=whole_argument, default=20, metavar="N",
                    help="real time: consecutive overrunning periods before the watchdog's "
                         "safe stop; one period stuck for longer than N periods stops at once "
                         f"(default 20; at most {MAX_WATCHDOG_MISSES}). Raise it only on a loaded "
@@ -184,7 +185,7 @@ def _parser() -> argparse.ArgumentParser:
                         "JointTrajectory on this ROS 2 topic, check it as a scenario's path and "
                         "follow it instead of the scenario's (docs/logs.md, A desired trajectory "
                         "from ROS 2)")
-    p.add_argument("--desired-timeout", type=float,
+    p.add_argument("--desired-timeout", type=number_argument,
                    metavar="S", help="--desired-topic: seconds to wait for the message "
                    f"(default {ros2_desired.DEFAULT_TIMEOUT_S:g}; exit 8 without one)")
     p.add_argument("--status", default="auto", choices=["auto", "on", "off"],
@@ -196,14 +197,14 @@ def _parser() -> argparse.ArgumentParser:
     rt.add_argument("--mlockall", choices=["on", "off"],
                     help="on: lock the process's memory while the loop runs, so no page fault "
                          "stalls a period (needs CAP_IPC_LOCK or a memlock limit; default off)")
-    rt.add_argument("--cpu", type=int, metavar="N",
+    rt.add_argument("--cpu", type=whole_argument, metavar="N",
                     help="pin the loop's thread to CPU N, e.g. one isolated with isolcpus "
                          "(default: leave it on the CPUs the process was given)")
     rt.add_argument("--sched", choices=list(POLICIES),
                     help="the loop's scheduling policy: fifo (default), rr or other (the "
                          "normal time-shared one); fifo and rr need root, CAP_SYS_NICE or an "
                          "rtprio limit")
-    rt.add_argument("--priority", type=int, metavar="N",
+    rt.add_argument("--priority", type=whole_argument, metavar="N",
                     help=f"--sched fifo or rr: the real-time priority, 1..99 (default "
                          f"{FIFO_PRIORITY}: above normal processes, below the kernel's own "
                          "threads at 50)")

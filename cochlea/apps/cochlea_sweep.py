@@ -13,7 +13,6 @@ written; 130 interrupted (every finished batch is kept: run the same command to 
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import dataclasses
 import functools
@@ -25,7 +24,7 @@ import time
 from pathlib import Path
 
 from .. import files
-from ..console import sigterm_interrupts, tolerate_closed_stdout
+from ..console import OneLineParser, sigterm_interrupts, tolerate_closed_stdout
 from ..errors import CochleaError, printable
 from ..kernels import library as ckernels
 from ..runtime import build_supervisor, verdict
@@ -35,6 +34,7 @@ from ..sim.setup import GRAVITY_RULE
 from ..sweep import execute, results, sampling
 from ..sweep import report as sweep_report
 from ..sweep import spec as sweep_spec
+from ..text import whole_argument
 from . import report
 
 EXIT_INTERRUPTED = 130
@@ -206,7 +206,7 @@ def check_samples(spec: sweep_spec.Spec, gains: str = "") -> None:
 
 
 def _sweep(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="cochlea-sweep",
         description="Run a scenario for every sample of a sweep spec (perturbed plants, gain "
                     "grids) on Dask workers; one Parquet row per sample in DIR/parts, a "
@@ -216,12 +216,12 @@ def _sweep(argv: list[str]) -> int:
                "docs/sweeps.md.")
     p.add_argument("spec", type=Path, metavar="SPEC.toml")
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
-    p.add_argument("--workers", type=int, metavar="N",
+    p.add_argument("--workers", type=whole_argument, metavar="N",
                    help=f"local worker processes (default: the cores, {os.cpu_count()})")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786, whose workers "
                         "run the samples (instead of local processes)")
-    p.add_argument("--batch", type=int, metavar="N",
+    p.add_argument("--batch", type=whole_argument, metavar="N",
                    help="samples per batch (default: measured, see docs/sweeps.md)")
     p.add_argument("--progress", default="auto", choices=["auto", "on", "off"],
                    help="progress bar on stderr (auto: when stderr is a terminal)")
@@ -282,12 +282,12 @@ def _report(out: Path) -> int:
 
 
 def _replay(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="cochlea-sweep replay",
+    p = OneLineParser(prog="cochlea-sweep replay",
                                 description="Write the exact scenario of one sample: "
                                             "cochlea-run --scenario FILE --realtime off "
                                             "reproduces its row.")
     p.add_argument("dir", type=Path, metavar="DIR")
-    p.add_argument("sample", type=int, metavar="SAMPLE")
+    p.add_argument("sample", type=whole_argument, metavar="SAMPLE")
     p.add_argument("--out", type=Path, metavar="FILE.toml",
                    help="where to write it (default: standard output)")
     args = p.parse_args(argv)
@@ -363,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
             if argv[:1] == ["replay"]:
                 return _replay(argv[1:])
             if argv[:1] == ["report"]:
-                p = argparse.ArgumentParser(prog="cochlea-sweep report",
+                p = OneLineParser(prog="cochlea-sweep report",
                                             description="Write DIR/summary.md and the figures "
                                                         "from the samples finished so far.")
                 p.add_argument("dir", type=Path, metavar="DIR")

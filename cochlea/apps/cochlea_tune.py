@@ -17,7 +17,6 @@ trial is kept).
 
 from __future__ import annotations
 
-import argparse
 import io
 import math
 import os
@@ -26,10 +25,11 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
-from ..console import sigterm_interrupts, tolerate_closed_stdout
+from ..console import OneLineParser, sigterm_interrupts, tolerate_closed_stdout
 from ..errors import CochleaError
 from ..sweep import results
 from ..sweep import tune as tuning
+from ..text import whole_argument
 from . import cochlea_sweep
 
 EXIT_NO_FEASIBLE = 1
@@ -153,7 +153,7 @@ def _history(path: Path, records: list[dict], nominal: dict | None, objective: s
 
 
 def _tune(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="cochlea-tune",
         description="Search a scenario's gains (the spec's [gains] ranges) for the best "
                     "objective over the spec's perturbation sample, on Dask workers; writes "
@@ -162,10 +162,10 @@ def _tune(argv: list[str]) -> int:
                "--trials continues a finished one). See docs/sweeps.md.")
     p.add_argument("spec", type=Path, metavar="SPEC.toml")
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
-    p.add_argument("--trials", type=int, metavar="N",
+    p.add_argument("--trials", type=whole_argument, metavar="N",
                    help=f"candidates to evaluate (default: [tune] trials, else "
                         f"{tuning.DEFAULTS['trials']})")
-    p.add_argument("--workers", type=int, metavar="N",
+    p.add_argument("--workers", type=whole_argument, metavar="N",
                    help=f"local worker processes (default: the cores, {os.cpu_count()})")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786, whose workers "
@@ -173,7 +173,7 @@ def _tune(argv: list[str]) -> int:
     p.add_argument("--objective", metavar="pNN|worst|mean",
                    help="over the sample's convergence ratios (default: [tune] objective, else "
                         "p95)")
-    p.add_argument("--seed", type=int, metavar="S",
+    p.add_argument("--seed", type=whole_argument, metavar="S",
                    help="the sampler's seed (default: [tune] seed, else the spec's seed)")
     p.add_argument("--progress", default="auto", choices=["auto", "on", "off"],
                    help="progress bar on stderr (auto: when stderr is a terminal)")

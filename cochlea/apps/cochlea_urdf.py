@@ -15,6 +15,7 @@ import os
 import sys
 from pathlib import Path
 
+from ..console import OneLineParser
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..robots.urdf import export_urdf, import_urdf, load_chain, starter_scenario
 from ..text import decimal, integer, toml_string
@@ -106,7 +107,7 @@ def _export(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="cochlea-urdf",
         description="Import a URDF's serial chain as a cochlea robot description, or export a "
                     "description's arm as a URDF (docs/models.md, \"URDF in and out\").")

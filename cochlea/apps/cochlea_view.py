@@ -16,7 +16,6 @@ the write fails. Each is one line on stderr.
 
 from __future__ import annotations
 
-import argparse
 import http.server
 import sys
 import webbrowser
@@ -24,8 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..console import OneLineParser
 from ..errors import EXIT_USER_ERROR, CochleaError, printable
 from ..export.run_log import open_run
+from ..text import whole_argument
 from ..view import DEFAULT_RATE_HZ, build_replay, render_page
 from .outputs import atomic_path, check_output_file, interrupted_exit, signals_unwind
 
@@ -94,10 +95,10 @@ def make_server(page: str, port: int) -> http.server.HTTPServer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", type=Path, metavar="RUN_DIR",
                         help="a run's output folder (cochlea-run or the embedded program)")
-    parser.add_argument("--port", type=int, default=0, metavar="P",
+    parser.add_argument("--port", type=whole_argument, default=0, metavar="P",
                         help="the port on 127.0.0.1 (default 0: any free port)")
     parser.add_argument("--no-open", action="store_true",
                         help="do not open the page in a browser; print its address only")

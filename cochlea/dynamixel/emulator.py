@@ -94,7 +94,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..console import STOP_SIGNALS, tolerate_closed_stdout
+from ..console import STOP_SIGNALS, OneLineParser, tolerate_closed_stdout
 from ..errors import EXIT_USER_ERROR, CochleaError
 from ..kernels import library as ckernels
 from ..kernels.naming import source_hash
@@ -103,6 +103,7 @@ from ..robots.description import MAX_FIT, MIN_FIT_SLOPE
 from ..robots.motor_fit import bridge_compensates_friction
 from ..sim import load_scenario, unit_setups
 from ..sim.scenario import PLANT_PRESETS
+from ..text import number_argument, strict_float, strict_int, whole_argument
 from . import lane as c_lane
 from . import protocol as proto
 from .control_table import (
@@ -1564,14 +1565,14 @@ class VirtualChain:
 
 def _id_list(text: str) -> frozenset[int]:
     try:
-        return frozenset(int(v) for v in text.split(",") if v.strip())
+        return frozenset(strict_int(v) for v in text.split(",") if v.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected IDs like 1,2,3, got {text!r}") from None
 
 
 def _probability(text: str) -> float:
     try:
-        value = float(text)
+        value = strict_float(text)
     except ValueError:
         value = -1.0
     if not 0.0 <= value <= 1.0:
@@ -1582,7 +1583,7 @@ def _probability(text: str) -> float:
 def _id_bit(text: str) -> tuple[int, int]:
     try:
         motor_id, _, bit = text.partition(":")
-        result = (int(motor_id), int(bit) if bit else 5)
+        result = (strict_int(motor_id), strict_int(bit) if bit else 5)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected ID[:BIT], got {text!r}") from None
     if result[1] not in HARDWARE_ERROR_BITS:
@@ -1594,7 +1595,7 @@ def _id_bit(text: str) -> tuple[int, int]:
 def _id_count(text: str) -> tuple[int, int]:
     try:
         motor_id, _, count = text.partition(":")
-        return int(motor_id), int(count) if count else -1
+        return strict_int(motor_id), strict_int(count) if count else -1
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected ID[:N], got {text!r}") from None
 
@@ -1602,20 +1603,13 @@ def _id_count(text: str) -> tuple[int, int]:
 def _id_number(text: str) -> tuple[int, int]:
     try:
         motor_id, number = text.split(":")
-        return int(motor_id), int(number)
+        return strict_int(motor_id), strict_int(number)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected ID:NUMBER, got {text!r}") from None
 
 
-class _Parser(argparse.ArgumentParser):
-    """An option the parser cannot read is one line naming it, as every other mistake is."""
-
-    def error(self, message: str):
-        self.exit(EXIT_USER_ERROR, f"{self.prog}: {message} (--help lists the options)\n")
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog="cochlea-emulator",
         description="A virtual Dynamixel chain: the motors of the robot description answer "
                     "Protocol 2.0 on a pseudo-terminal (or a socket: --listen), their joints "
@@ -1629,7 +1623,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", help="the scenario whose description, plant and initial state "
                    "the chain takes (default: ROBOT_joint_realistic, the geared motors; with "
                    "--plant ideal, ROBOT_joint)")
-    p.add_argument("--baud", type=int, default=4_000_000, help="the motors' baud rate, for "
+    p.add_argument("--baud", type=whole_argument, default=4_000_000,
+                   help="the motors' baud rate, for "
                    "--wire-timing and their Baud Rate register (default 4000000)")
     p.add_argument("--wire-timing", action="store_true", help="bytes take the time the baud "
                    "rate gives them and each motor waits its Return Delay Time")
@@ -1637,10 +1632,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="the plant's preset (default: the scenario's own [plant]): ideal, the "
                         "rigid links; realistic, the geared Dynamixels (armature, friction with "
                         "sticking from the description)")
-    p.add_argument("--plant-period-ms", type=float, metavar="MS",
+    p.add_argument("--plant-period-ms", type=number_argument, metavar="MS",
                    help="the plant's RK4 step in real time (default: the scenario's, its "
                         "control period over its plant_substeps)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=number_argument, metavar="S", help="stop after S seconds")
     p.add_argument("--listen", metavar="ADDRESS",
                    help="serve on a socket instead of a pseudo-terminal: unix:PATH or "
                         "socket://HOST:PORT (PORT 0: a free one); the first line is then the "
@@ -1660,13 +1655,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="probability that a status packet's CRC is wrong")
     f.add_argument("--late-replies", type=_probability, default=0.0, metavar="P",
                    help="probability that a status packet comes --late-ms late")
-    f.add_argument("--late-ms", type=float, default=5.0, metavar="MS")
+    f.add_argument("--late-ms", type=number_argument, default=5.0, metavar="MS")
     f.add_argument("--fault-ids", type=_id_list, metavar="IDS",
                    help="the motors the three options above hit, e.g. 1,3 (default: all)")
     f.add_argument("--hardware-error", type=_id_bit, metavar="ID[:BIT]",
                    help="motor ID latches a hardware error (bit of Hardware Error Status, "
                         "default 5 = overload): alert bit set, torque off")
-    f.add_argument("--silent-motor", type=int, metavar="ID", help="motor ID stops answering")
+    f.add_argument("--silent-motor", type=whole_argument, metavar="ID",
+                   help="motor ID stops answering")
     f.add_argument("--stale-replies", type=_id_count, metavar="ID[:N]",
                    help="motor ID repeats its last status packet before the fault (a stale "
                         "packet: its Realtime Tick does not move) for its next N reads "
@@ -1674,13 +1670,14 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--stale-unicast", action="store_true",
                    help="the stale packets of --stale-replies answer that motor's READs too "
                         "(cochlea-dxl's), not only its part of a SYNC_READ (the runtime's)")
-    f.add_argument("--fault-delay", type=float, default=0.0, metavar="S",
+    f.add_argument("--fault-delay", type=number_argument, default=0.0, metavar="S",
                    help="the faults above start S seconds after the first Torque Enable 1")
-    f.add_argument("--missing-motor", type=int, action="append", default=[], metavar="ID",
+    f.add_argument("--missing-motor", type=whole_argument, action="append", default=[],
+                   metavar="ID",
                    help="motor ID is not on the bus at all (repeatable)")
     f.add_argument("--model-number", type=_id_number, action="append", default=[],
                    metavar="ID:NUMBER", help="motor ID reports another model number")
-    f.add_argument("--seed", type=int, default=0, help="seed of the random faults")
+    f.add_argument("--seed", type=whole_argument, default=0, help="seed of the random faults")
     b = p.add_argument_group("bring-up (cochlea-dxl)")
     b.add_argument("--check-baud", action="store_true",
                    help="a motor hears only instructions sent at the rate of its Baud Rate "
@@ -1895,7 +1892,7 @@ def _id_value(kind, shape: str = "ID:VALUE"):
     def parse(text: str):
         try:
             motor_id, value = text.split(":")
-            return int(motor_id), kind(value)
+            return strict_int(motor_id), kind(value)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {shape}, got {text!r}") from None
     return parse
@@ -1903,13 +1900,14 @@ def _id_value(kind, shape: str = "ID:VALUE"):
 
 def add_truth_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("mounting (to test calibration and homing)")
-    g.add_argument("--true-offset", type=_id_value(float), action="append", default=[],
+    g.add_argument("--true-offset", type=_id_value(strict_float), action="append", default=[],
                    metavar="ID:DEG", help="motor ID's angle at joint zero really is DEG "
                    "(the description's zero_offset_deg is a placeholder; repeatable)")
-    g.add_argument("--true-direction", type=_id_value(int), action="append", default=[],
+    g.add_argument("--true-direction", type=_id_value(strict_int), action="append", default=[],
                    metavar="ID:SIGN", help="motor ID really turns with (1) or against (-1) "
                    "its joint (repeatable)")
-    g.add_argument("--hard-stop-m", type=float, metavar="LOW", help="a hard stop under the "
+    g.add_argument("--hard-stop-m", type=number_argument, metavar="LOW",
+                   help="a hard stop under the "
                    "slider at d1 = LOW m: the plant stops there, the motor pushes on")
     g.add_argument("--true-fit", type=_id_value(_pair, "ID:A,B"), action="append", default=[],
                    metavar="ID:A,B", help="motor ID's current-to-torque line really is "
@@ -1919,7 +1917,7 @@ def add_truth_arguments(p: argparse.ArgumentParser) -> None:
 
 def _pair(text: str) -> tuple[float, float]:
     a, b = text.split(",")  # a ValueError: the ID:VALUE parser's message
-    return float(a), float(b)
+    return strict_float(a), strict_float(b)
 
 
 def truth_from_args(args: argparse.Namespace) -> Truth | None:

@@ -4,19 +4,11 @@ like every other refusal, not argparse's usage block."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import signal
-import sys
 import threading
 
-from ..errors import EXIT_USER_ERROR, printable
-
-
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str):  # noqa: D102 (argparse's hook)
-        print(printable(f"{self.prog}: {message} (see {self.prog} --help)"), file=sys.stderr)
-        sys.exit(EXIT_USER_ERROR)
+from ..console import OneLineParser  # noqa: F401 (the ident tools' parser; shared)
 
 
 class Terminated(KeyboardInterrupt):

@@ -36,7 +36,7 @@ from ...errors import CochleaError
 from ...resources import ROBOTS_DIR, shipped_file
 from ...robots import ROBOTS
 from ...robots import robot as robot_adapter
-from ...text import comment
+from ...text import comment, decimal, number_argument
 from ..control_table import baud_code
 from ..drives import Fit, JointDrive, joint_drives
 from . import common
@@ -91,14 +91,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", action="append", default=[], metavar="JOINT=VALUE",
                    help="the reference pose of JOINT in deg (m for the slider) instead of the "
                         "documented one, e.g. for a jig (repeatable)")
-    p.add_argument("--min-motion-deg", type=float, default=5.0, metavar="DEG",
+    p.add_argument("--min-motion-deg", type=number_argument, default=5.0, metavar="DEG",
                    help="the smallest motor motion accepted when checking the direction "
                         "(default 5)")
     t = p.add_argument_group("torque fit (--torque-fit)")
     t.add_argument("--torque-fit", action="store_true", help="instead: hold --joint against a "
                    "lever on a scale, step the current, type the scale's force, fit the line")
     t.add_argument("--joint", help="the joint whose motor is fitted")
-    t.add_argument("--lever-m", type=float, metavar="M", help="the lever: from the joint's "
+    t.add_argument("--lever-m", type=number_argument, metavar="M",
+                   help="the lever: from the joint's "
                    "axis to where it presses on the scale, m")
     t.add_argument("--currents-mA", metavar="LIST", help="the current steps, mA (default: six "
                    "from 20 to 70 %% of the current the joint's torque limit needs)")
@@ -165,9 +166,8 @@ def _references(args: argparse.Namespace, drives: list[JointDrive]) -> dict[str,
         if not sep or d is None:
             raise CochleaError(f"--reference {text!r}: expected JOINT=VALUE with JOINT one of "
                                f"{', '.join(by_name)}")
-        try:
-            number = float(value)
-        except ValueError:
+        number = decimal(value)  # float() would take 1_0 (10 deg) and other scripts' digits
+        if number is None:
             number = math.nan
         if not math.isfinite(number):
             raise CochleaError(f"--reference {text!r}: expected a finite number of "
@@ -364,9 +364,8 @@ def _torque_fit(args: argparse.Namespace) -> int:
         top = 1000.0 * float(d.fit.current(d.effort_limit))
         currents = [top * k for k in np.linspace(0.2, 0.7, 6)]
     else:
-        try:
-            currents = [float(v) for v in args.currents_mA.split(",")]
-        except ValueError:
+        currents = [decimal(v) for v in args.currents_mA.split(",")]
+        if None in currents:
             currents = [math.nan]
         if len(currents) < 2 or not all(math.isfinite(c) and 0 < c <= limit_mA
                                         for c in currents):

@@ -42,6 +42,7 @@ from ...errors import CochleaError
 from ...robots import ROBOTS
 from ...runtime.backend import BackendError
 from ...runtime.supervisor import EXIT_BACKEND
+from ...text import strict_int
 from .. import protocol as proto
 from ..control_table import (
     ALERT_BIT,
@@ -129,7 +130,7 @@ class MotorLost(MotionStopped):
 def baud_rate(text: str) -> int:
     """argparse type: a Dynamixel baud rate."""
     try:
-        value = int(text)
+        value = strict_int(text)
         baud_code(value)
     except (ValueError, CochleaError):
         raise argparse.ArgumentTypeError(

@@ -47,6 +47,7 @@ from datetime import datetime
 from pathlib import Path
 
 from ...errors import CochleaError
+from ...text import number_argument
 from .. import homing
 from ..control_table import baud_code
 from ..drives import JointDrive
@@ -75,17 +76,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "record (default ~/.cochlea/homing/ROBOT.json for the shipped description, "
                    "ROBOT-STEM-HASH.json for a user's, where the runtime looks; replaced at "
                    "each homing)")
-    p.add_argument("--stop-m", type=float, action="append", metavar="M", help="the "
+    p.add_argument("--stop-m", type=number_argument, action="append", metavar="M", help="the "
                    "prismatic joint's coordinate at its lower hard stop (default: the "
                    "description's lower limit); with several prismatic joints, once per joint "
                    "in the description's order")
-    p.add_argument("--speed-mm-s", type=float, default=5.0, metavar="V",
+    p.add_argument("--speed-mm-s", type=number_argument, default=5.0, metavar="V",
                    help="the approach speed (default 5 mm/s)")
-    p.add_argument("--force-N", type=float, default=10.0, metavar="F",
+    p.add_argument("--force-N", type=number_argument, default=10.0, metavar="F",
                    help="the most force the motor may push with (default 10 N)")
-    p.add_argument("--dwell-s", type=float, default=0.3, metavar="S",
+    p.add_argument("--dwell-s", type=number_argument, default=0.3, metavar="S",
                    help="how long the slider must stay still under the full force (default 0.3)")
-    p.add_argument("--timeout-s", type=float, metavar="S", help="give up after S seconds "
+    p.add_argument("--timeout-s", type=number_argument, metavar="S", help="give up after S seconds "
                    "(default: twice the stroke at --speed-mm-s, plus 5 s)")
 
 
