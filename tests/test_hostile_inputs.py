@@ -159,6 +159,9 @@ def test_definitions_cannot_shadow_t_or_functions(refused, tmp_path):
     ("a = 108.2,", "a = 1e-300,", "arm[0].link[0].motor.fit.a"),
     ("base_yaw_deg = 0.0", "base_yaw_deg = 1e300", "arm[0].base_yaw_deg"),
     ("keep_out_radius_m = 0.02", "keep_out_radius_m = 1e9", "system.keep_out_radius_m"),
+    # a circle smaller than the arms' positioning error protects nothing (MIN_KEEP_OUT_M)
+    ("keep_out_radius_m = 0.02", "keep_out_radius_m = 1e-300", "system.keep_out_radius_m"),
+    ("keep_out_radius_m = 0.02", "keep_out_radius_m = 0.0009", "system.keep_out_radius_m"),
     ('name = "arm1"', 'name = "../../etc"', "arm[0].name"),
 ], ids=lambda v: v if isinstance(v, str) and v.count(".") < 3 and "=" not in v else None)
 def test_absurd_description_value_is_refused_with_key_and_range(refused, tmp_path, old, new,

@@ -442,6 +442,7 @@ BAD_OPTIONS = {
     "revolute joint": (["--transmission", "pan=belt:0.01"], "joint 'pan' is revolute"),
     "zero keep-out": (["--keep-out-radius-m", "0"], "--keep-out-radius-m"),
     "NaN keep-out": (["--keep-out-radius-m", "nan"], "--keep-out-radius-m"),
+    "vanishing keep-out": (["--keep-out-radius-m", "1e-300"], "--keep-out-radius-m"),
 }
 
 

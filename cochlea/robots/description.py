@@ -47,6 +47,11 @@ MAX_MOTOR_ID = 252
 MAX_FILE_BYTES = 1024 * 1024  # a description or scenario file (the shipped ones: ~10 KiB)
 MAX_NESTING = 32  # levels of tables and lists
 MAX_LENGTH_M = 10.0  # any length, position or offset
+#: The smallest keep-out radius (m): a circle of less than a millimetre is within the arms'
+#: positioning error (a joint's encoder count on a 0.1 m link is 0.15 mm) and keeps the tool
+#: from nothing; ``keep_out_radius_m = 1e-300`` was a description with no protection that read
+#: as one. A description without a circle leaves the key out (a user's serial arm).
+MIN_KEEP_OUT_M = 1e-3
 MIN_MASS_KG, MAX_MASS_KG = 1e-6, 1000.0
 MIN_INERTIA_KGM2, MAX_INERTIA_KGM2 = 1e-12, 1000.0
 MAX_GRAVITY_M_S2 = 100.0  # about 10 g
@@ -434,8 +439,8 @@ def open_description(path: Path, kind: str, gravity_size: int, gravity_frame: st
                             check=lambda v: math.hypot(*v) <= MAX_GRAVITY_M_S2,
                             what=f"{gravity_frame}, of magnitude at most {MAX_GRAVITY_M_S2:g}")
     keep_out = system.bounded("keep_out_radius_m", f"a positive number (m): R_m, the radius "
-                              f"around {keep_out_around} must not enter", lambda v: v > 0, 0,
-                              MAX_LENGTH_M, "m", required=keep_out_required)
+                              f"around {keep_out_around} must not enter", lambda v: v > 0,
+                              MIN_KEEP_OUT_M, MAX_LENGTH_M, "m", required=keep_out_required)
     system.done()
     return top, name, gravity, keep_out
 

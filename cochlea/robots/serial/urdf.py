@@ -36,6 +36,7 @@ from ...text import comment, decimal, toml_string
 from ..description import (
     MAX_LENGTH_M,
     MAX_MOTOR_ID,
+    MIN_KEEP_OUT_M,
     NAME_PATTERN,
     TRANSMISSION_RANGE_M,
     TRANSMISSIONS,
@@ -932,9 +933,10 @@ def import_urdf(path: str | Path, base: str | None = None, tip: str | None = Non
     ``transmissions``: ``JOINT=KIND:SIZE`` options (:func:`assign_transmissions`);
     ``keep_out_radius`` (m): the ``keep_out_radius_m`` to write, None for none."""
     path = Path(path)
-    if keep_out_radius is not None and not 0.0 < keep_out_radius <= MAX_LENGTH_M:
-        raise UrdfError(f"--keep-out-radius-m {keep_out_radius}: expected a positive number "
-                        f"of metres, at most {MAX_LENGTH_M:g}")
+    if keep_out_radius is not None and not MIN_KEEP_OUT_M <= keep_out_radius <= MAX_LENGTH_M:
+        raise UrdfError(f"--keep-out-radius-m {keep_out_radius}: expected a number of metres "
+                        f"within [{MIN_KEEP_OUT_M:g}, {MAX_LENGTH_M:g}] (less than a millimetre "
+                        "protects nothing; leave the option out for no circle)")
     urdf = read_urdf(path)
     chain, notes, frames = extract_chain(path, urdf, base, tip)
     motor_models, motor_ids = assign_motors(path, chain, motors, ids)
