@@ -460,18 +460,29 @@ def test_a_part_file_not_of_the_sweep_is_one_line_exit_5(case, swept, tmp_path, 
 
 @pytest.mark.slow
 def test_a_damaged_journal_line_is_one_line(tuned, tmp_path, capsys):
+    def damage(journal):
+        lines = journal.read_bytes().splitlines(keepends=True)
+        lines[2] = b'{"op_code": 5, "worker_id": \n'
+        journal.write_bytes(b"".join(lines))
+
+    journal, line = _tune_refuses_its_journal(tuned, tmp_path, capsys, damage, "--trials", "5")
+    assert str(journal) in line, line
+
+
+def _tune_refuses_its_journal(tuned, tmp_path, capsys, damage, *argv) -> tuple[Path, str]:
+    """A finished search copied, its journal damaged (``damage(path)``), resumed: exit 5 with
+    one line, and the folder left as it was. The journal's path and the line."""
     spec, finished = tuned
     out = tmp_path / "out"
     shutil.copytree(finished, out)
     journal = out / tuning.JOURNAL
-    lines = journal.read_bytes().splitlines(keepends=True)
-    lines[2] = b'{"op_code": 5, "worker_id": \n'
-    journal.write_bytes(b"".join(lines))
+    damage(journal)
     before = tree(out)
-    code = cochlea_tune.main([str(spec), "--out", str(out), "--trials", "5", *RUN])
+    code = cochlea_tune.main([str(spec), "--out", str(out), *argv, *RUN])
     line = one_line(capsys.readouterr().err, "cochlea-tune")
-    assert code == results.EXIT_DAMAGED and str(journal) in line, line
+    assert code == results.EXIT_DAMAGED, line
     assert tree(out) == before
+    return journal, line
 
 
 @pytest.mark.parametrize("command", ["report", "replay"])
@@ -496,23 +507,17 @@ def test_a_journal_of_another_search_is_one_line_exit_5(tuned, tmp_path, capsys)
     from optuna.storages import JournalStorage
     from optuna.storages.journal import JournalFileBackend
 
-    spec, finished = tuned
-    out = tmp_path / "out"
-    shutil.copytree(finished, out)
-    journal = out / tuning.JOURNAL
-    journal.unlink()
-    study = optuna.create_study(study_name=tuning.STUDY, direction="minimize",
-                                storage=JournalStorage(JournalFileBackend(str(journal))))
-    for _ in range(3):
-        trial = study.ask({"gains.arm1.G_g": FloatDistribution(1.0, 5.0)})
-        study.tell(trial, 0.5)
-    before = tree(out)
-    code = cochlea_tune.main([str(spec), "--out", str(out), *RUN])
-    line = one_line(capsys.readouterr().err, "cochlea-tune")
-    assert code == results.EXIT_DAMAGED, line
+    def another_search(journal):
+        journal.unlink()
+        study = optuna.create_study(study_name=tuning.STUDY, direction="minimize",
+                                    storage=JournalStorage(JournalFileBackend(str(journal))))
+        for _ in range(3):
+            trial = study.ask({"gains.arm1.G_g": FloatDistribution(1.0, 5.0)})
+            study.tell(trial, 0.5)
+
+    journal, line = _tune_refuses_its_journal(tuned, tmp_path, capsys, another_search)
     assert f"{journal}: not this search's journal: trial 0's gains.arm1.G_g is " \
            "FloatDistribution(" in line, line
-    assert tree(out) == before
 
 
 @pytest.mark.parametrize("key", ["nominal", 3])

@@ -395,18 +395,25 @@ def test_a_long_run_is_kept_at_a_lower_rate(runs, monkeypatch):
     assert capped["times"][-1] == rows[-1, 0]
 
 
+def _last_row_edited(run: Path, folder: Path, cells: dict[str, str]) -> Path:
+    """A copy of ``run`` in ``folder`` whose log.csv's last row has ``cells`` (column: text)."""
+    shutil.copytree(run, folder)
+    lines = (folder / "log.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[-1].split(",")
+    for column, text in cells.items():
+        row[header.index(column)] = text
+    lines[-1] = ",".join(row)
+    (folder / "log.csv").write_text("\n".join(lines) + "\n")
+    return folder
+
+
 @pytest.mark.slow
 def test_a_row_whose_q_is_not_finite_is_not_drawn(runs, tmp_path):
     """A run stopped by the rule non-finite logs NaN joints: that row has no frames and no
     actual tool point, and the page (strict JSON) is still written."""
-    folder = tmp_path / "nan"
-    shutil.copytree(runs["serial_task"], folder)
-    lines = (folder / "log.csv").read_text().splitlines()
-    header = lines[0].split(",")
-    row = lines[-1].split(",")
-    row[header.index("arm2.q.joint2_rad")] = "nan"
-    lines[-1] = ",".join(row)
-    (folder / "log.csv").write_text("\n".join(lines) + "\n")
+    folder = _last_row_edited(runs["serial_task"], tmp_path / "nan",
+                              {"arm2.q.joint2_rad": "nan"})
     replay = build_replay(open_run(folder))
     arm1, arm2 = replay["units"]
     assert arm2["frames"][-1] is None and arm2["actual"][0][-1] == [None, None, None]
@@ -419,15 +426,8 @@ def test_a_value_too_large_to_round_is_drawn_as_it_is(runs, tmp_path, capsys):
     """A desired cell of 1e305 (and a q of 1e300): rounding it to 0.1 um overflowed to inf and
     the page's strict JSON refused it (ValueError traceback); now a finite value is kept, one
     that is not finite becomes null, and the page is written."""
-    folder = tmp_path / "big"
-    shutil.copytree(runs["serial_task"], folder)
-    lines = (folder / "log.csv").read_text().splitlines()
-    header = lines[0].split(",")
-    row = lines[-1].split(",")
-    row[header.index("arm1.desired.x_m")] = "1e305"
-    row[header.index("arm2.q.joint1_rad")] = "1e300"
-    lines[-1] = ",".join(row)
-    (folder / "log.csv").write_text("\n".join(lines) + "\n")
+    folder = _last_row_edited(runs["serial_task"], tmp_path / "big",
+                              {"arm1.desired.x_m": "1e305", "arm2.q.joint1_rad": "1e300"})
     page = tmp_path / "page.html"
     assert main([str(folder), "--html-out", str(page)]) == 0, capsys.readouterr().err
     data = page.read_text().split('<script id="replay" type="application/json">')[1]
