@@ -301,7 +301,12 @@ def test_wrong_combinations_fail_before_anything_moves(tmp_path):
         *[(["--robot", "serial", "--space", "task", "--backend", "dynamixel", "--port",
             "/dev/null", option, value], f"{option} must be a positive number")
           for option in ("--start-tolerance-deg", "--start-tolerance-mm")
-          for value in ("nan", "0", "-3", "inf")]]:
+          for value in ("0", "-3")],
+        # no number at all: the parser's own one-line refusal (cochlea.text.number_argument)
+        *[(["--robot", "serial", "--space", "task", "--backend", "dynamixel", "--port",
+            "/dev/null", option, value], f"{option}: '{value}': expected a plain decimal")
+          for option in ("--start-tolerance-deg", "--start-tolerance-mm")
+          for value in ("nan", "inf", "1_0")]]:
         proc = _cli(args, tmp_path)
         _, stderr = proc.communicate(timeout=60)
         assert proc.returncode == 2 and message in stderr and "Traceback" not in stderr
