@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import os
 import shutil
 import signal
@@ -82,12 +83,23 @@ PARTS = ("scenario data", "scenario load", "set-ups", "C closed loop", "simulate
          "supervisor verdict", "summary + row")
 
 
+def group_size(spec) -> int:
+    """How many of ``spec``'s samples ``cochlea_sweep.evaluate_many`` takes through each phase
+    together (its GROUP_PERIODS, GROUP_SAMPLES)."""
+    sc = load_scenario(cochlea_sweep.SAMPLE_FILE, data=sampling.scenario_data(spec, 0))
+    held = round(float(sc.duration) / sc.period) * len(unit_setups(sc))
+    return max(1, min(cochlea_sweep.GROUP_SAMPLES,
+                      math.ceil(cochlea_sweep.GROUP_PERIODS / max(held, 1))))
+
+
 def breakdown(spec, samples: int) -> dict[str, float]:
     """Where a cached sample's CPU time goes (s per sample): ``evaluate``'s steps one by one,
-    the C closed loop (``run_c``, every unit) apart from the rest of ``simulate``."""
+    the C closed loop (``run_c``, every unit) apart from the rest of ``simulate``, the samples
+    in groups as ``evaluate_many`` takes a worker's batch (each phase for the whole group)."""
     parts = dict.fromkeys(PARTS, 0.0)
     run_c = compiled.run_c
     loop = [0.0]
+    size = group_size(spec)
 
     def timed_run_c(*args, **kw):  # each unit's own CPU time (on threads or not)
         t0 = time.thread_time()
@@ -97,37 +109,44 @@ def breakdown(spec, samples: int) -> dict[str, float]:
             loop[0] += time.thread_time() - t0
 
     compiled.run_c = timed_run_c  # simulate_compiled looks it up at each call
+    clock = time.process_time()
+
+    def lap(name):
+        nonlocal clock
+        now = time.process_time()
+        parts[name] += now - clock
+        clock = now
+
     try:
-        for i in range(samples):
-            clock = time.process_time()
-
-            def lap(name):
-                nonlocal clock
-                now = time.process_time()
-                parts[name] += now - clock
-                clock = now
-
-            data = sampling.scenario_data(spec, i)  # what run_batch hands evaluate
-            lap("scenario data")
-            sc = load_scenario(cochlea_sweep.SAMPLE_FILE, data=data)  # as evaluate reads it
-            lap("scenario load")
-            setups = unit_setups(sc)
-            lap("set-ups")
-            loop[0] = 0.0
-            result = simulate(sc, None, setups, threads=False)  # as evaluate runs it
-            lap("simulate (rest)")
-            parts["simulate (rest)"] -= loop[0]
-            parts["C closed loop"] += loop[0]
-            supervisor = build_supervisor(setups, sc.system.keep_out_radius,
-                                          kernels="c", substeps=sc.plant_substeps, cache=True)
-            reductions = [log_reductions(u) for u in result.units]  # read by both
-            result.supervisor = verdict(result, supervisor, reductions)
-            lap("supervisor verdict")
-            limits = {u.name: {j.name: float(lim) for j, lim in
-                               zip(u.controller_model.joints, u.effort_limit)} for u in setups}
-            cochlea_sweep.measures(report.summary(result, 0.0, reductions=reductions, row=True),
-                                   limits)
-            lap("summary + row")
+        for first in range(0, samples, size):
+            group = []
+            for i in range(first, min(first + size, samples)):
+                data = sampling.scenario_data(spec, i)  # what run_batch hands evaluate
+                lap("scenario data")
+                sc = load_scenario(cochlea_sweep.SAMPLE_FILE, data=data)  # as evaluate reads it
+                lap("scenario load")
+                group.append((sc, unit_setups(sc)))
+                lap("set-ups")
+            results_ = []
+            for sc, setups in group:
+                loop[0] = 0.0
+                results_.append(simulate(sc, None, setups, threads=False))  # as evaluate runs it
+                lap("simulate (rest)")
+                parts["simulate (rest)"] -= loop[0]
+                parts["C closed loop"] += loop[0]
+            for (sc, setups), result in zip(group, results_):
+                supervisor = build_supervisor(setups, sc.system.keep_out_radius,
+                                              kernels="c", substeps=sc.plant_substeps,
+                                              cache=True)
+                reductions = [log_reductions(u) for u in result.units]  # read by both
+                result.supervisor = verdict(result, supervisor, reductions)
+                lap("supervisor verdict")
+                limits = {u.name: {j.name: float(lim) for j, lim in
+                                   zip(u.controller_model.joints, u.effort_limit)}
+                          for u in setups}
+                cochlea_sweep.measures(report.summary(result, 0.0, reductions=reductions,
+                                                      row=True), limits)
+                lap("summary + row")
     finally:
         compiled.run_c = run_c
     return {k: v / samples for k, v in parts.items()}

@@ -111,24 +111,55 @@ def evaluate(sample: str | dict, cache: bool = True, kernels: str = "auto",
     (:func:`cochlea.sim.setup.unit_setups`), and so do the supervisor's bound pose kernels;
     ``False`` builds everything again, with the same row, bit for bit. ``kernels``,
     ``library``: as :func:`cochlea.sim.simulate` takes them (the library also every other
-    kernel's on this worker: ``$COCHLEA_LIB``)."""
-    if library is not None:
-        os.environ[ckernels.ENVIRONMENT] = library
+    kernel's on this worker: ``$COCHLEA_LIB``). Several samples at once: :func:`evaluate_many`
+    (a batch's, as :func:`cochlea.sweep.execute.run_batch` runs them)."""
+    return evaluate_many([sample], cache, kernels, library)[0][0]
+
+
+#: The most periods (times units) of the samples :func:`evaluate_many` holds run at once: their
+#: logs (about 250 bytes a unit and period: 80 MB) stay in memory until their rows are made.
+GROUP_PERIODS = 320_000
+#: ... and the most samples.
+GROUP_SAMPLES = 16
+
+
+@dataclasses.dataclass
+class _Sample:
+    """A sample through :func:`evaluate_many`: its scenario and set-ups (or its row already:
+    refused before it ran), its log, and the seconds of its own work so far."""
+
+    scenario: object
+    setups: list
+    row: dict | None = None
+    result: object = None
+    wall: float = 0.0
+    seconds: float = 0.0
+
+
+def _prepare(sample: str | dict, cache: bool) -> _Sample:
     # Read as the file would be, without writing one (a temporary folder a sample cost more
     # than the summary); the sample's description path is absolute (sampling.scenario_data).
     scenario = load_scenario(SAMPLE_FILE, data=sample) if isinstance(sample, dict) else \
         load_scenario(SAMPLE_FILE, text=sample)
     try:
-        setups = unit_setups(scenario, cache=cache)
+        return _Sample(scenario, unit_setups(scenario, cache=cache))
     except GravityRefused:  # a sample the robot cannot start: counted, not an error
-        return refused(unit_setups(scenario, cache=cache, gravity=False))
+        setups = unit_setups(scenario, cache=cache, gravity=False)
+        return _Sample(scenario, setups, row=refused(setups))
+
+
+def _run(s: _Sample, kernels: str, library: str | None) -> None:
     start = time.perf_counter()
     # One worker per core: the arms one after the other, no thread pool a sample.
-    result = simulate(scenario, None, setups, kernels, threads=False, library=library)
-    wall = time.perf_counter() - start
-    supervisor = build_supervisor(setups, scenario.system.keep_out_radius,
+    s.result = simulate(s.scenario, None, s.setups, kernels, threads=False, library=library)
+    s.wall = time.perf_counter() - start
+
+
+def _judge(s: _Sample, cache: bool, kernels: str) -> dict:
+    result, setups = s.result, s.setups
+    supervisor = build_supervisor(setups, s.scenario.system.keep_out_radius,
                                   kernels="casadi" if kernels == "casadi" else "c",
-                                  substeps=scenario.plant_substeps, cache=cache)
+                                  substeps=s.scenario.plant_substeps, cache=cache)
     # The reductions the verdict and the summary both read (the efforts' extremes, the
     # estimates' squares), each log read once for them; the same verdict and summary.
     reductions = [log_reductions(u) for u in result.units]
@@ -136,7 +167,56 @@ def evaluate(sample: str | dict, cache: bool = True, kernels: str = "auto",
     limits = {u.name: {j.name: float(lim) for j, lim in zip(u.controller_model.joints,
                                                            u.effort_limit)} for u in setups}
     # Only what the row reads (no summary.json is written): the same row, bit for bit.
-    return measures(report.summary(result, wall, reductions=reductions, row=True), limits)
+    return measures(report.summary(result, s.wall, reductions=reductions, row=True), limits)
+
+
+def evaluate_many(samples: list, cache: bool = True, kernels: str = "auto",
+                  library: str | None = None) -> list[tuple[dict, float]]:
+    """:func:`evaluate` of each sample, and the seconds of its own work: each sample's row
+    is :func:`evaluate`'s, bit for bit. The samples go through in groups
+    (:data:`GROUP_PERIODS`, :data:`GROUP_SAMPLES`), each phase once for the whole group: every
+    scenario read and set up, then every closed loop in C, then every verdict and row. The
+    first Python call after a C closed loop took 3-4x its time (0.18 against 0.05 ms for a
+    sample's scenario data, 0.25 against 0.07 ms for its summary: the loop's generated code
+    evicts the interpreter's from the caches and the branch predictors, which streaming as
+    many bytes of data did not do), so sample after sample each of the six Python parts paid
+    it: 11-14 % of the loop's time outside it on this project's 2-vCPU machine (issue 30 item 3:
+    under 10 %). In groups a phase pays it once a group."""
+    if library is not None:
+        os.environ[ckernels.ENVIRONMENT] = library
+    rows: list[tuple[dict, float]] = []
+    group: list[_Sample] = []
+
+    def finish():
+        for s in group:
+            if s.row is None:
+                start = time.perf_counter()
+                _run(s, kernels, library)
+                s.seconds += time.perf_counter() - start
+        for s in group:
+            if s.row is None:
+                start = time.perf_counter()
+                s.row = _judge(s, cache, kernels)
+                s.seconds += time.perf_counter() - start
+            s.result = None  # its log freed as soon as its row is made
+            rows.append((s.row, s.seconds))
+        group.clear()
+
+    held = 0
+    for sample in samples:
+        start = time.perf_counter()
+        s = _prepare(sample, cache)
+        s.seconds = time.perf_counter() - start
+        group.append(s)
+        held += round(float(s.scenario.duration) / s.scenario.period) * len(s.setups)
+        if held >= GROUP_PERIODS or len(group) >= GROUP_SAMPLES:
+            finish()
+            held = 0
+    finish()
+    return rows
+
+
+evaluate.many = evaluate_many  # what execute.run_batch calls for a batch (see there)
 
 
 #: glibc's mallopt() parameters (malloc.h) and what a worker sets them to: blocks up to 32 MiB

@@ -18,6 +18,7 @@ cache) and keeps the spec, which is sent once (``scatter``).
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import logging
 import math
@@ -52,7 +53,7 @@ def run_batch(spec: Spec, indices: list[int],
     gets the sample's scenario as data (:func:`~cochlea.sweep.sampling.scenario_data`): what
     its replay file (:func:`~cochlea.sweep.sampling.scenario_text`) reads as, without the
     text written and parsed again."""
-    rows = []
+    rows, data, heads = [], [], []
     vectors = {e.name: e.rule.size for e in spec.entries if e.vector}
     for i in indices:
         start = time.perf_counter()
@@ -65,10 +66,32 @@ def run_batch(spec: Spec, indices: list[int],
             if name in vectors and not isinstance(value, list):
                 value = [value] * vectors[name]
             row.update(results.flatten(name, value))
-        row.update(evaluate(sampling.scenario_data(spec, i, values)))
-        row["wall_s"] = time.perf_counter() - start
+        data.append(sampling.scenario_data(spec, i, values))
+        heads.append((row, time.perf_counter() - start))
+    many = _many(evaluate)
+    if many is None:  # one sample after the other
+        measured = []
+        for d in data:
+            start = time.perf_counter()
+            measured.append((evaluate(d), time.perf_counter() - start))
+    else:  # the phases of several samples together (cochlea_sweep.evaluate_many)
+        measured = many(data)
+    for (row, head_s), (values, own_s) in zip(heads, measured, strict=True):
+        row.update(values)
+        row["wall_s"] = head_s + own_s  # the sample's own work, wherever its phases ran
         rows.append(row)
     return rows
+
+
+def _many(evaluate) -> Callable[[list], list[tuple[dict, float]]] | None:
+    """``evaluate``'s way to take a batch's samples together, ``evaluate.many`` (with a
+    functools.partial's arguments), or None."""
+    func = getattr(evaluate, "func", evaluate)
+    many = getattr(func, "many", None)
+    if many is None or getattr(evaluate, "args", ()):  # a partial binding the sample: as is
+        return None
+    keywords = getattr(evaluate, "keywords", {})
+    return functools.partial(many, **keywords) if keywords else many
 
 
 def batch_rows(future, out: Path) -> list[dict]:
