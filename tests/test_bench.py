@@ -259,6 +259,27 @@ def test_the_sweep_verdicts_hold_each_robot_to_issue_30s_target():
     assert "Out of reach" not in line  # no closed-loop rows: no floor to judge by
 
 
+def test_the_outside_verdicts_judge_item_3():
+    """Issue 30 item 3: a sample's cost outside its C closed loop under 10 % of the loop's, met
+    or missed with its two largest parts; the sweep table gives the share."""
+    def row(study, outside_ms, loop_ms=10.0):
+        return {"study": study, "duration_s": 20.0, "per_s_core": 70.0, "cpu_s": 0.014,
+                "uncached_cpu_s": 0.2,
+                "parts": {"C closed loop": loop_ms * 1e-3,
+                          "scenario load": 0.25 * outside_ms * 1e-3,
+                          "summary + row": 0.75 * outside_ms * 1e-3}}
+
+    lines = bench_run.outside_verdicts([row("serial_joint", 0.8), row("serial_task", 1.2),
+                                        row("broken", 1.0, loop_ms=0.0)])
+    assert len(lines) == 2
+    assert lines[0] == ("- **met**: serial_joint (20 s): a sample's cost outside its C closed "
+                        "loop is 8.0% of the loop's (target < 10%).")
+    assert lines[1].startswith("- **missed** by 1.20x: serial_task (20 s): ")
+    assert "12.0% of the loop's" in lines[1] and "summary + row 0.90 ms" in lines[1]
+    table = bench_run.sweep_markdown([row("serial_joint", 0.8)])
+    assert table[-3].endswith("| outside / loop |") and table[-1].endswith("| 8.0% |")
+
+
 def test_a_sweep_target_below_the_kernels_floor_says_so():
     """When the plant and controller steps alone, as timed in C, take more of a sample than
     the target allows, the miss says the target is out of this machine's reach (and only
