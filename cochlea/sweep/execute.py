@@ -52,7 +52,11 @@ def run_batch(spec: Spec, indices: list[int],
     """One batch, on a worker: each sample's scenario built, run and measured. ``evaluate``
     gets the sample's scenario as data (:func:`~cochlea.sweep.sampling.scenario_data`): what
     its replay file (:func:`~cochlea.sweep.sampling.scenario_text`) reads as, without the
-    text written and parsed again."""
+    text written and parsed again. Where ``evaluate`` has a ``many`` (a function of the list
+    of samples' data giving each row and the seconds of its own work:
+    ``cochlea_sweep.evaluate_many``, through a functools.partial's keywords too), the batch's
+    samples go to it together, which takes them through each phase in groups; each row is the
+    same. A sample's ``wall_s`` is its own work's time either way."""
     rows, data, heads = [], [], []
     vectors = {e.name: e.rule.size for e in spec.entries if e.vector}
     for i in indices:
