@@ -87,7 +87,7 @@ def group_size(spec) -> int:
     """How many of ``spec``'s samples ``cochlea_sweep.evaluate_many`` takes through each phase
     together (its GROUP_PERIODS, GROUP_SAMPLES)."""
     sc = load_scenario(cochlea_sweep.SAMPLE_FILE, data=sampling.scenario_data(spec, 0))
-    held = round(float(sc.duration) / sc.period) * len(unit_setups(sc))
+    held = cochlea_sweep.unit_periods(sc, len(unit_setups(sc)))
     return max(1, min(cochlea_sweep.GROUP_SAMPLES,
                       math.ceil(cochlea_sweep.GROUP_PERIODS / max(held, 1))))
 

@@ -123,6 +123,11 @@ GROUP_PERIODS = 320_000
 GROUP_SAMPLES = 16
 
 
+def unit_periods(scenario, units: int) -> int:
+    """The periods a sample's log holds, times its units: what :data:`GROUP_PERIODS` counts."""
+    return round(float(scenario.duration) / scenario.period) * units
+
+
 @dataclasses.dataclass
 class _Sample:
     """A sample through :func:`evaluate_many`: its scenario and set-ups (or its row already:
@@ -190,9 +195,8 @@ def evaluate_many(samples: list, cache: bool = True, kernels: str = "auto",
     def finish():
         for s in group:
             if s.row is None:
-                start = time.perf_counter()
                 _run(s, kernels, library)
-                s.seconds += time.perf_counter() - start
+                s.seconds += s.wall
         for s in group:
             if s.row is None:
                 start = time.perf_counter()
@@ -208,7 +212,7 @@ def evaluate_many(samples: list, cache: bool = True, kernels: str = "auto",
         s = _prepare(sample, cache)
         s.seconds = time.perf_counter() - start
         group.append(s)
-        held += round(float(s.scenario.duration) / s.scenario.period) * len(s.setups)
+        held += unit_periods(s.scenario, len(s.setups))
         if held >= GROUP_PERIODS or len(group) >= GROUP_SAMPLES:
             finish()
             held = 0
