@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import ctypes
 import dataclasses
+import functools
 import gc
 import hashlib
 import json
@@ -179,7 +180,8 @@ def _stream_seeds(plant) -> list[str]:
     return lines
 
 
-def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function:
+def specialised_plant(u, substeps: int, period: float, name: str,
+                      stage_trig: bool = False) -> ca.Function | None:
     """Unit ``u``'s plant period (the Function its general kernel was generated from, which
     :func:`cochlea.sim.compiled.unit_kernels` checks against the library) with the scenario's
     constants folded in: ``(x, tau) -> x_next``, the true plant's parameters, its friction, the
@@ -194,28 +196,45 @@ def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function
     (:func:`cochlea.robots.parallel.forward.forward_dynamics`: 369 operations an evaluation
     instead of 1688): equal to the general kernel to rounding (1e-12 relative,
     tests/test_embedded_sim.py), not bit for bit. The geared plant keeps its general form
-    (folding its constants moved results by an ulp, which backlash grew to 1e-2 rad)."""
+    (folding its constants moved results by an ulp, which backlash grew to 1e-2 rad).
+
+    ``stage_trig=True``: the same period with its RK4 stages' sines and cosines shifted from
+    the first stage's (:mod:`cochlea.robots.stage_trig`), ``(x, tau) -> (x_next, far)``; None
+    for the geared plant and a plant that takes no sine or cosine of a joint angle."""
     general = u.plant_function(substeps)
-    candidates = [general]
+    coulomb = u.drive is not None
+    forwards = [None]  # None: the general Function's own forward dynamics
     if not u.gearbox:
-        coulomb = u.drive is not None
         if isinstance(getattr(u.plant_model.geometry, "system", None), ParallelSystem):
-            candidates = [plant_step(u.plant_model, substeps, coulomb=coulomb,
-                                     forward=parallel_forward(u.plant_model))]
+            forwards = [parallel_forward(u.plant_model)]
         else:
             folded = folded_forward_dynamics(u.plant_model, u.plant_params)
-            if folded is not None:
-                candidates.append(plant_step(u.plant_model, substeps, coulomb=coulomb,
-                                             forward=folded))
+            forwards += [] if folded is None else [folded]
     x = ca.SX.sym("x", general.size1_in(0))
     tau = ca.SX.sym("tau", general.size1_in(1))
     constants = [u.plant_params, u.friction, period]
     if general.n_in() == 6:
         constants.append(u.drive)
-    specialised = [ca.Function(name, [x, tau], [f(x, tau, *(ca.DM(np.ravel(c))
-                                                             for c in constants))],
-                               ["x", "tau"], ["x_next"]) for f in candidates]
-    return min(specialised, key=lambda f: f.n_instructions())
+    constants = [ca.DM(np.ravel(c)) for c in constants]
+
+    def specialised(f: ca.Function) -> ca.Function:
+        outs = f(x, tau, *constants)
+        outs = list(outs) if isinstance(outs, tuple) else [outs]
+        return ca.Function(name, [x, tau], outs, ["x", "tau"], f.name_out())
+
+    candidates = [specialised(general if forward is None else
+                              plant_step(u.plant_model, substeps, coulomb=coulomb,
+                                         forward=forward)) for forward in forwards]
+    best = min(range(len(candidates)), key=lambda i: candidates[i].n_instructions())
+    if not stage_trig:
+        return candidates[best]
+    if u.gearbox:
+        return None
+    stages = plant_step(u.plant_model, substeps, coulomb=coulomb, forward=forwards[best],
+                        stage_trig=True)
+    if not ca.depends_on(stages(x, tau, *constants)[1], x):
+        return None  # no joint angle's sine or cosine to shift
+    return specialised(stages)
 
 
 #: The robots whose all-in-C simulations take sin and cos from sim_sincos (embedded/sim/
@@ -232,13 +251,69 @@ def specialised_plant(u, substeps: int, period: float, name: str) -> ca.Function
 INLINE_TRIG_ROBOTS = ("serial",)
 
 
+def rounding_free(sc, setups) -> bool:
+    """Whether scenario ``sc``'s results may move by rounding: no geared plant (its backlash
+    grew an ulp to 1e-2 rad over a study) and no measurement or effort grid (an ulp may move a
+    value across a grid step). Elsewhere the simulation's log is simulate()'s bit for bit."""
+    return not any(u.gearbox or u.quantum is not None or u.effort_grid is not None
+                   for u in setups)
+
+
 def inline_trig_applies(sc, setups) -> bool:
     """Whether scenario ``sc``'s simulation takes sin and cos from sim_sincos: a robot of
-    :data:`INLINE_TRIG_ROBOTS` with no geared plant (its backlash grew an ulp to 1e-2 rad over
-    a study) and no measurement or effort grid (an ulp may move a value across a grid step):
-    elsewhere libm, and the log is simulate()'s bit for bit."""
-    return sc.robot in INLINE_TRIG_ROBOTS and not any(
-        u.gearbox or u.quantum is not None or u.effort_grid is not None for u in setups)
+    :data:`INLINE_TRIG_ROBOTS` whose results may move by rounding (:func:`rounding_free`):
+    elsewhere libm."""
+    return sc.robot in INLINE_TRIG_ROBOTS and rounding_free(sc, setups)
+
+
+#: Whether a unit's specialised plant takes its later RK4 stages' sines and cosines from the
+#: first stage's (:func:`stage_plant_c`, :mod:`cochlea.robots.stage_trig`): 12 of the parallel
+#: plant's 16 sincos a period and 6 of a serial arm's 8 become a few products each; the
+#: program's instructions fell by a tenth, its time by 2-9 % (the sincos had mostly run beside
+#: the plant's longer chain of dependent operations).
+STAGE_TRIG = True
+
+
+#: What the simulation of a study that may move by rounding (:func:`rounding_free`) is
+#: compiled for where the machine building it has x86-64's v3 level (AVX2 and FMA: Intel from
+#: 2013, AMD from 2015): that machine's instructions, multiply-adds fused. Every period of the
+#: program is one chain of dependent operations (the law's torque into the plant's four RK4
+#: stages into the next law), so its speed is the chain's latency, and a fused multiply-add
+#: halves a product-and-sum's: parallel_task's loop 7.65 -> 6.26 ms, serial_task's 7.50 ->
+#: 6.74 ms (40 runs each turn about; -march=x86-64-v3 alone 7.00 ms, -O3 7.53 ms). The results
+#: move by rounding (a fused operation rounds once), within 1e-14 of simulate()'s
+#: (tests/test_embedded_sim.py). The program runs where it was built (build/embedded-sim/);
+#: ``COCHLEA_SIM_HOST_ISA=0`` builds it for any x86-64 instead.
+HOST_ISA_FLAGS = ("-march=x86-64-v3", "-ffp-contract=fast")
+
+
+@functools.cache
+def _host_has_v3(cc: str) -> bool:
+    """Whether this machine runs x86-64 v3 code and ``cc`` compiles for it (GCC 12's or
+    clang's ``__builtin_cpu_supports("x86-64-v3")``, probed by a program built and run)."""
+    probe = BUILD / "obj" / "host-isa"
+    probe.mkdir(parents=True, exist_ok=True)
+    source = probe / "probe.c"
+    source.write_text('int main(void) { __builtin_cpu_init(); '
+                      'return !__builtin_cpu_supports("x86-64-v3"); }\n')
+    binary = probe / f"probe-{os.getpid()}"
+    try:
+        built = subprocess.run([cc, *HOST_ISA_FLAGS, str(source), "-o", str(binary)],
+                               capture_output=True)
+        return built.returncode == 0 and subprocess.run([str(binary)]).returncode == 0
+    except OSError:
+        return False
+    finally:
+        binary.unlink(missing_ok=True)
+
+
+def host_isa_flags(sc, setups) -> tuple[str, ...]:
+    """:data:`HOST_ISA_FLAGS` for scenario ``sc``'s simulation where they apply (a study that
+    may move by rounding, built on an x86-64 v3 machine, ``COCHLEA_SIM_HOST_ISA`` not 0), else
+    none."""
+    if os.environ.get("COCHLEA_SIM_HOST_ISA", "1") == "0" or not rounding_free(sc, setups):
+        return ()
+    return HOST_ISA_FLAGS if _host_has_v3(compiler()) else ()
 
 _ASSIGN = re.compile(r"^\s*(a\d+)=(.*);$")
 _TRIG = re.compile(r"^(\s*)(a\d+)=(sin|cos)\((a\d+)\);$")
@@ -343,13 +418,36 @@ def plant_source(plants: list[ca.Function], title: str, trig: bool = False) -> s
     text = gen.dump()
     for f in plants:
         work = _work_sizes(text, f.name())
-        if work["iw"] or work["w"] or work["arg"] > 6 or work["res"] != 1:
+        if work["iw"] or work["w"] or work["arg"] > 6 or work["res"] != f.n_out():
             raise RuntimeError(f"{f.name()} needs work memory ({work}): simulate.c passes none")
     text = _mark_unused_parameters(text)
     if trig:
         text = ('#include "sim_trig.h" /* sim_sincos: sin and cos inline */\n'
                 + shared_reciprocals(inline_trig(text)))
     return f"/* {title} */\n" + text
+
+
+def stage_plant_c(plant: str, nx: int) -> str:
+    """The C of ``plant``, a unit's plant period: ``<plant>_stages`` (its RK4 stages' sines and
+    cosines shifted from the first stage's, :mod:`cochlea.robots.stage_trig`), or
+    ``<plant>_plain`` where a stage's offset is past the shift's reach (``far``: a joint
+    faster than the series are exact for). Both are in sim_plant.c (:func:`plant_source`)."""
+    return f"""
+/* {plant}: the unit's plant period, its later RK4 stages' sines and cosines shifted from the
+ * first's ({plant}_stages); the plain period ({plant}_plain) where an offset is past the
+ * shift's reach (cochlea/robots/stage_trig.py) */
+int {plant}(const double **arg, double **res, long long int *iw, double *w, int mem) {{
+  double next[{nx}], far = 0.0;
+  double *out[2];
+  int code, i;
+  out[0] = next;
+  out[1] = &far;
+  code = {plant}_stages(arg, out, iw, w, mem);
+  if (code != 0 || far != 0.0) return code != 0 ? code : {plant}_plain(arg, res, iw, w, mem);
+  for (i = 0; i < {nx}; ++i) res[0][i] = next[i];
+  return 0;
+}}
+"""
 
 
 def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
@@ -374,6 +472,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
              "#ifndef SIM_SCENARIO_H", "#define SIM_SCENARIO_H", "",
              '#include "sim.h"', f'#include "{name}.h"']
     groups, body, table, plants = [], [], [], []
+    shifted = []  # (plant, its state's size): periods with shifted stage trig (stage_plant_c)
     n_pose, n_plant, sizes = 0, 0, []
     trig = inline_trig_applies(sc, setups)
     for u in setups:
@@ -387,7 +486,15 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
             groups += [] if plant_group in groups else [plant_group]
         else:
             plant = f"sim_{u.name}_plant"
-            plants.append(specialised_plant(u, sc.plant_substeps, sc.period, plant))
+            stages = specialised_plant(u, sc.plant_substeps, sc.period, f"{plant}_stages",
+                                       stage_trig=True) if STAGE_TRIG else None
+            if stages is None:
+                plants.append(specialised_plant(u, sc.plant_substeps, sc.period, plant))
+            else:
+                plants.append(specialised_plant(u, sc.plant_substeps, sc.period,
+                                                f"{plant}_plain"))
+                plants.append(stages)
+                shifted.append((plant, len(u.plant_x0)))
             declare = [f"int {plant}(const double **arg, double **res, long long int *iw, "
                        "double *w, int mem); /* sim_plant.c */"]
         pose, pose_group = _kernel_source(lib, kernels.pose, generated)
@@ -456,6 +563,7 @@ def sim_scenario_header(name: str | Path, lib: ckernels.Library | None = None,
                           "scenario's constants folded in (embedded/sim/sim.h). Written by "
                           "bench/embedded_bench.py from cochlea.sim.unit_setups: do not edit.",
                           trig=trig)
+    source += "".join(stage_plant_c(plant, nx) for plant, nx in shifted)
     return "\n".join(lines), source, groups
 
 
@@ -471,7 +579,9 @@ def build_simulation(name: str | Path, precision: str = "double",
     if precision not in PRECISIONS:
         raise ValueError(f"precision: one of {PRECISIONS}")
     header, plant, groups = sim_scenario_header(name, lib, generated)
-    name = sim_scenario(name).name
+    sc = sim_scenario(name)
+    name = sc.name
+    isa = host_isa_flags(sc, unit_setups(sc))
     embedded = generated / "embedded"
     folder = (BUILD if generated == GENERATED else generated / "embedded-sim") / name / precision
     folder.mkdir(parents=True, exist_ok=True)
@@ -481,14 +591,15 @@ def build_simulation(name: str | Path, precision: str = "double",
             partial = folder / f".{file}.{os.getpid()}"
             partial.write_text(text)
             os.replace(partial, path)
-    flags = CFLAGS + (FLOAT_FLAGS if precision == "float" else ())
+    flags = CFLAGS + isa + (FLOAT_FLAGS if precision == "float" else ())
     include = (SIM_SOURCE, embedded, generated)
     # The controller is compiled into simulate.c (SIM_CONTROLLER_SOURCE): the loop calls its
     # step on the desired sample it evaluated once for the step and the log.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as pool:
-        jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS) for g in groups]
+        jobs = [pool.submit(_object, generated / f"{g}.c", CFLAGS + isa) for g in groups]
         # GENERATED: sim_trig.h includes its cochlea_trig.h (the cache key reads its headers)
-        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS, (SIM_SOURCE, GENERATED)))
+        jobs.append(pool.submit(_object, folder / "sim_plant.c", CFLAGS + isa,
+                                (SIM_SOURCE, GENERATED)))
         jobs.append(pool.submit(_object, SIM_SOURCE / "simulate.c", (*flags, "-Wconversion"),
                                 (folder, *include), (embedded / f"{name}.c",)))
         objects = [j.result() for j in jobs]

@@ -267,7 +267,9 @@ def test_the_geared_plant_stays_general():
     assert "sim_arm1_plant, sim_arm1_pose" in header and groups == []
     assert "int sim_arm1_plant(" in plant_c and "int sim_arm2_pose(" in plant_c
     assert "#define SIM_INLINE_TRIG 1" in header
-    assert plant_c.count("sim_sincos(") == 2 * (8 + 3)
+    # an arm: the plain period's 4 stages x 2 angles, the stage period's first stage (its
+    # later stages shift those: cochlea/robots/stage_trig.py), the pose's 3 angles
+    assert plant_c.count("sim_sincos(") == 2 * (8 + 2 + 3)
     assert "sin(" not in plant_c.replace("sim_sin(", "")
     header, plant_c, _ = eb.sim_scenario_header("parallel_joint")
     assert "#define SIM_INLINE_TRIG 0" in header and "sim_sincos" not in plant_c
@@ -492,6 +494,9 @@ def test_the_run_ends_where_the_first_arm_stops(scale, first, status, tmp_path, 
     # and the plant's general form folded (the folded sums round differently: near the blow-up
     # arm 2 then stopped on its step, not its state)
     monkeypatch.setattr(eb, "folded_forward_dynamics", lambda model, p: None)
+    # and the plain RK4 stages, compiled for any x86-64 (no fused multiply-adds)
+    monkeypatch.setattr(eb, "STAGE_TRIG", False)
+    monkeypatch.setenv("COCHLEA_SIM_HOST_ISA", "0")
     result, info, _, setups = run_logged("serial_joint", "double", tmp_path, 2.0)
     reference = simulate(sc, duration=2.0, setups=setups, kernels="casadi")
     assert min(reference.diverged, key=reference.diverged.get) == first
@@ -615,6 +620,69 @@ def test_the_serial_plant_in_c_is_the_general_one_within_rounding(tmp_path):
     assert worst <= 1e-14, worst
 
 
+def test_the_plant_takes_the_plain_period_past_the_shifts_reach(tmp_path):
+    """sim_plant.c of parallel_task: the unit's plant (``sim_mechanism_plant``) is its stage
+    period's result bit for bit where every RK4 offset is within reach (and that differs from
+    the plain period's somewhere: the shifted sines run), and the plain period's bit for bit at
+    a joint speed past reach (400 rad/s: 0.2 rad an RK4 stage), where the series are not exact
+    enough; the input state is left as it was."""
+    import ctypes
+
+    _, plant_c, _ = eb.sim_scenario_header("parallel_task")
+    lib = ctypes.CDLL(str(_c_library(tmp_path, "plant", plant_c)))
+    sc = eb.sim_scenario("parallel_task")
+    u = unit_setups(sc)[0]
+    n = u.plant_model.nq
+    rng = np.random.default_rng(8)
+
+    def call(name, x, tau):
+        x = np.array(x, float)
+        before = x.copy()
+        out, far = np.zeros(len(x)), np.zeros(1)
+        args = (ctypes.POINTER(ctypes.c_double) * 2)(
+            np.ctypeslib.as_ctypes(x), np.ctypeslib.as_ctypes(tau))
+        res = (ctypes.POINTER(ctypes.c_double) * 2)(np.ctypeslib.as_ctypes(out),
+                                                    np.ctypeslib.as_ctypes(far))
+        assert getattr(lib, name)(args, res, None, None, 0) == 0
+        np.testing.assert_array_equal(x, before)
+        return out, far[0]
+
+    differs = False
+    for _ in range(20):
+        x = np.asarray(u.plant_x0) + rng.normal(0.0, 0.3, len(u.plant_x0))
+        tau = rng.normal(0.0, 1.0, n)
+        got, _ = call("sim_mechanism_plant", x, tau)
+        stages, far = call("sim_mechanism_plant_stages", x, tau)
+        plain, _ = call("sim_mechanism_plant_plain", x, tau)
+        assert far == 0.0
+        np.testing.assert_array_equal(got, stages)
+        differs = differs or not np.array_equal(got, plain)
+    assert differs
+    x = np.asarray(u.plant_x0, float).copy()
+    x[n] = 400.0  # rad/s at motor 1
+    tau = np.zeros(n)
+    _, far = call("sim_mechanism_plant_stages", x, tau)
+    assert far >= 1.0
+    np.testing.assert_array_equal(call("sim_mechanism_plant", x, tau)[0],
+                                  call("sim_mechanism_plant_plain", x, tau)[0])
+
+
+def test_the_host_isa_flags_go_to_studies_that_may_move_by_rounding(monkeypatch):
+    """x86-64 v3 code with fused multiply-adds (HOST_ISA_FLAGS) for the ideal studies where the
+    building machine has the level, never for a realistic study (geared plant, grids: bit for
+    bit), and not with COCHLEA_SIM_HOST_ISA=0."""
+    monkeypatch.setattr(eb, "_host_has_v3", lambda cc: True)
+    ideal = eb.sim_scenario("parallel_task")
+    realistic = eb.sim_scenario("serial_task_realistic")
+    assert eb.host_isa_flags(ideal, unit_setups(ideal)) == eb.HOST_ISA_FLAGS
+    assert eb.host_isa_flags(realistic, unit_setups(realistic)) == ()
+    monkeypatch.setenv("COCHLEA_SIM_HOST_ISA", "0")
+    assert eb.host_isa_flags(ideal, unit_setups(ideal)) == ()
+    monkeypatch.delenv("COCHLEA_SIM_HOST_ISA")
+    monkeypatch.setattr(eb, "_host_has_v3", lambda cc: False)
+    assert eb.host_isa_flags(ideal, unit_setups(ideal)) == ()
+
+
 # realtime: the healthy arm's CPU time depends on when the diverging arm's thread runs; with
 # other tests beside it on both cores (make test's first pass) it ran 11 blocks, not 1.
 @pytest.mark.slow
@@ -637,6 +705,8 @@ def test_the_other_arm_is_cut_where_one_diverges_at_once(unit, tmp_path, monkeyp
     # the general plant folded: a state growing without bound grows the folded sums' rounding
     # differences with it (the rows compared here are simulate()'s kernels' to the last bit)
     monkeypatch.setattr(eb, "folded_forward_dynamics", lambda model, p: None)
+    monkeypatch.setattr(eb, "STAGE_TRIG", False)  # and plain RK4 stages, no fused operations
+    monkeypatch.setenv("COCHLEA_SIM_HOST_ISA", "0")
     log = tmp_path / "log.bin"
     info = eb.run_simulation(eb.build_simulation("serial_joint"), 20.0, log)
     result = eb.read_log(log, info, sc, setups)

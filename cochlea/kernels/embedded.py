@@ -43,6 +43,7 @@ import casadi as ca
 import numpy as np
 
 from .. import log_schema
+from ..sx_graph import post_order, same_operation
 from .catalogue import CodegenError, export
 from .helpers import min_max_functions
 
@@ -190,29 +191,14 @@ def time_atoms(desired: ca.Function) -> tuple[ca.Function, tuple[TimeAtom, ...]]
         return None
     t = desired.sx_in(0)
     outs = desired.call([t])
-    nodes: dict[int, ca.SX] = {}
-    parents: dict[int, set[int]] = {}
-    order: list[int] = []  # post-order: every node after its dependencies
-    done: set[int] = set()
-    stack = [(o[i], False) for o in outs for i in range(o.numel())]
-    if any(e.is_symbolic() for e, _ in stack):
+    elements = [o[i] for o in outs for i in range(o.numel())]
+    if any(e.is_symbolic() for e in elements):
         return None  # t itself is an output
-    while stack:
-        e, expanded = stack.pop()
-        h = e.element_hash()
-        if expanded:
-            if h not in done:
-                done.add(h)
-                order.append(h)
-            continue
-        if h in nodes:
-            continue
-        nodes[h] = e
-        stack.append((e, True))
+    nodes, order = post_order(elements)
+    parents: dict[int, set[int]] = {}
+    for e in nodes.values():
         for i in range(e.n_dep()):
-            d = e.dep(i)
-            parents.setdefault(d.element_hash(), set()).add(e.op())
-            stack.append((d, False))
+            parents.setdefault(e.dep(i).element_hash(), set()).add(e.op())
     atoms: list[TimeAtom] = []
     symbols: dict[TimeAtom, ca.SX] = {}
     new: dict[int, ca.SX] = {}
@@ -230,13 +216,10 @@ def time_atoms(desired: ca.Function) -> tuple[ca.Function, tuple[TimeAtom, ...]]
                 atoms.append(atom)
             new[h] = symbols[atom]
             continue
-        deps = [new[e.dep(i).element_hash()] for i in range(e.n_dep())]
-        if len(deps) == 1:
-            new[h] = ca.SX.unary(e.op(), deps[0])
-        elif len(deps) == 2:
-            new[h] = ca.SX.binary(e.op(), deps[0], deps[1])
-        else:
+        rebuilt = same_operation(e, [new[e.dep(i).element_hash()] for i in range(e.n_dep())])
+        if rebuilt is None:
             return None
+        new[h] = rebuilt
     if not atoms:
         return None
     rebuilt = [ca.reshape(ca.vertcat(*[new[o[i].element_hash()] for i in range(o.numel())]),

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import casadi as ca
 
+from . import stage_trig as stage_trig_mod
 from .model import ACTUATOR_SUFFIX, RobotModel
 from .parallel.description import ParallelSystem
 from .parallel.forward import forward_dynamics
@@ -53,7 +54,7 @@ def cheapest_forward_dynamics(plant: RobotModel):
 
 
 def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
-               forward=None) -> ca.Function:
+               forward=None, stage_trig: bool = False) -> ca.Function:
     """One control period of a plant, torque held: RK4 with ``substeps`` equal steps.
 
     ``(x, tau, p, friction, h) -> x_next`` with ``x = [q, qd]``, ``p`` the plant's full
@@ -86,8 +87,18 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
     None: :func:`cheapest_forward_dynamics` (a parallel mechanism's block form, the model's
     ``forward_dynamics_p`` otherwise), so the simulation, the C kernels and the emulator
     integrate the same expression.
+
+    ``stage_trig=True``: each RK4 step's later stages take the joints' sines and cosines from
+    its first stage's by the angle sums (:mod:`cochlea.robots.stage_trig`), and the Function
+    has a second output ``far``, the number of stage offsets past
+    :data:`~cochlea.robots.stage_trig.REACH`: where it is not 0 the result is not to be used
+    (take the plain period's). Equal to the plain period to rounding where ``far`` is 0.
     """
     forward_dynamics = cheapest_forward_dynamics(plant) if forward is None else forward
+    lift = (stage_trig_mod.lifted(forward_dynamics, plant.nq, len(plant.param_names))
+            if stage_trig else None)
+    lifted_forward, angles = lift if lift is not None else (None, ())
+    far = ca.SX(0)
     n = plant.nq
     x = ca.SX.sym("x", 2 * n)
     tau = ca.SX.sym("tau", n)
@@ -119,14 +130,34 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
             z = ca.solve(A, rest + slides * sliding + M @ ((1 - slides) * qd0 / dt))
             dry = ca.fmin(ca.fmax(slides * sliding + (1 - slides) * z, -level), level)
 
-        def f(state, dry=dry):
-            q, qd = state[:n], state[n:]
-            return ca.vertcat(qd, forward_dynamics(q, qd, tau - friction * qd + dry, p))
+        if lift is None:
+            def f(state, dry=dry):
+                q, qd = state[:n], state[n:]
+                return ca.vertcat(qd, forward_dynamics(q, qd, tau - friction * qd + dry, p))
 
-        k1 = f(xk)
-        k2 = f(xk + dt / 2 * k1)
-        k3 = f(xk + dt / 2 * k2)
-        k4 = f(xk + dt * k3)
+            k1 = f(xk)
+            k2 = f(xk + dt / 2 * k1)
+            k3 = f(xk + dt / 2 * k2)
+            k4 = f(xk + dt * k3)
+        else:
+            def f(state, trig, dry=dry):
+                q, qd = state[:n], state[n:]
+                return ca.vertcat(qd, lifted_forward(q, *trig, qd, tau - friction * qd + dry,
+                                                     p))
+
+            first = (ca.SX.zeros(n), ca.SX.zeros(n))
+            for i in angles:
+                first[0][i], first[1][i] = ca.sin(xk[i]), ca.cos(xk[i])
+            k1 = f(xk, first)
+            offset = dt / 2 * k1
+            k2 = f(xk + offset, _shifted_trig(first, offset, angles))
+            far = far + _past_reach(offset, angles)
+            offset = dt / 2 * k2
+            k3 = f(xk + offset, _shifted_trig(first, offset, angles))
+            far = far + _past_reach(offset, angles)
+            offset = dt * k3
+            k4 = f(xk + offset, _shifted_trig(first, offset, angles))
+            far = far + _past_reach(offset, angles)
         x_rk4 = xk + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         if coulomb:  # a sticking joint ends the step at rest, where it decelerated to
             x_rk4 = ca.vertcat(sticks * (q0 + qd0 * dt / 2) + (1 - sticks) * x_rk4[:n],
@@ -134,7 +165,24 @@ def plant_step(plant: RobotModel, substeps: int, coulomb: bool = False,
         xk = x_rk4
     prefix = plant.name.replace("/", "_") + ACTUATOR_SUFFIX[plant.actuators]
     suffix = "_coulomb" if coulomb else ""
+    if lift is not None:
+        return ca.Function(f"{prefix}_plant_step{suffix}_stages", inputs, [xk, far], names,
+                           ["x_next", "far"])
     return ca.Function(f"{prefix}_plant_step{suffix}", inputs, [xk], names, ["x_next"])
+
+
+def _shifted_trig(first, offset, angles):
+    """The sines and cosines of an RK4 stage at ``offset`` from the first stage, whose own are
+    ``first`` (:func:`cochlea.robots.stage_trig.shifted`, for the joints ``angles``)."""
+    s, c = ca.SX(first[0]), ca.SX(first[1])
+    for i in angles:
+        s[i], c[i] = stage_trig_mod.shifted(first[0][i], first[1][i], offset[i])
+    return s, c
+
+
+def _past_reach(offset, angles):
+    """How many of the joints ``angles``' stage offsets are past the series' reach."""
+    return sum((ca.fabs(offset[i]) > stage_trig_mod.REACH for i in angles), ca.SX(0))
 
 
 def dead_zone(d, half):
