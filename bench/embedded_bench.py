@@ -293,7 +293,7 @@ def _host_has_v3(cc: str) -> bool:
     clang's ``__builtin_cpu_supports("x86-64-v3")``, probed by a program built and run)."""
     probe = BUILD / "obj" / "host-isa"
     probe.mkdir(parents=True, exist_ok=True)
-    source = probe / "probe.c"
+    source = probe / f"probe-{os.getpid()}.c"  # one a process: pytest's workers probe at once
     source.write_text('int main(void) { __builtin_cpu_init(); '
                       'return !__builtin_cpu_supports("x86-64-v3"); }\n')
     binary = probe / f"probe-{os.getpid()}"
@@ -305,6 +305,7 @@ def _host_has_v3(cc: str) -> bool:
         return False
     finally:
         binary.unlink(missing_ok=True)
+        source.unlink(missing_ok=True)
 
 
 def host_isa_flags(sc, setups) -> tuple[str, ...]:
