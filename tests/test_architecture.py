@@ -7,7 +7,7 @@ The layers, lowest first (a module may import its own layer and those below):
    descriptions check against), ``log_schema`` (the names of every log's columns, which the
    runtime, the embedded tables and the readers share), ``files`` (output paths checked and
    files written whole, for every tool), ``text`` (numbers read strictly, TOML strings and
-   comments written escaped);
+   comments written escaped), ``sx_graph`` (CasADi expression graphs walked and rebuilt);
 1. ``robots``: descriptions, parameters, the symbolic models, one adapter per robot;
 2. ``control``: the four controllers and the registry of their gains;
 3. ``kernels``: C code generation, kernel naming, the ctypes library;
@@ -36,7 +36,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "cochlea"
 #: Module-name prefixes and their layer; the longest matching prefix decides.
 LAYERS = {
     "errors": 0, "resources": 0, "console": 0, "dynamixel.control_table": 0, "log_schema": 0,
-    "files": 0, "text": 0,
+    "files": 0, "text": 0, "sx_graph": 0,
     "robots": 1,
     "control": 2,
     "kernels": 3,
