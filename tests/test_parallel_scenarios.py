@@ -138,3 +138,36 @@ def test_run_writes_both_end_effector_paths(tmp_path):
     assert set(summary["units"]["mechanism"]["tracked"]) == {"C_u", "C_v", "phi", "C'_u",
                                                               "C'_v", "phi'"}
     assert (out / "paths.png").stat().st_size > 10_000
+
+
+def test_the_paths_figure_draws_the_centre_where_the_slider_takes_it():
+    """The cochlea's centre rides on the slider (S = (0, d1)): the paths figure draws it and
+    its circle where the plant's slider was at the start and at the end, and the track between
+    (each row's d1), not at one place; the serial arms' fixed centre is one circle, no track."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    result = simulate(load_scenario("parallel_task"), duration=3.0)
+    d1 = result.units[0].true_q[:, 2]
+    assert d1.max() - d1.min() > 5e-3  # the slider moves over these 3 s
+    fig = report.paths_figure(plt, result, "parallel_task")
+    try:
+        ax = fig.axes[0]
+        centres = [tuple(c.center) for c in ax.patches]
+        assert centres == [(0.0, d1[0]), (0.0, d1[-1])]
+        assert ax.patches[0].radius == ax.patches[1].radius
+        (track,) = [line for line in ax.lines if "track" in line.get_label()]
+        np.testing.assert_array_equal(track.get_ydata(), d1)
+        np.testing.assert_array_equal(track.get_xdata(), np.zeros_like(d1))
+    finally:
+        plt.close(fig)
+    serial = simulate(load_scenario("serial_task"), duration=0.2)
+    fig = report.paths_figure(plt, serial, "serial_task")
+    try:
+        ax = fig.axes[0]
+        assert [tuple(c.center) for c in ax.patches] == [tuple(serial.units[0].setup.centre)]
+        assert not [line for line in ax.lines if "track" in line.get_label()]
+    finally:
+        plt.close(fig)

@@ -517,8 +517,23 @@ def _figures(plt, result: SimulationResult, out: Path) -> list[Path]:
         axes[-1].set_xlabel("time [s]")
         save(fig, f"{u.name}_estimates.png")
 
+    save(paths_figure(plt, result, label_text), "paths.png")
+    return paths
+
+
+def paths_figure(plt, result: SimulationResult, label_text: str):
+    """The tool paths in the plane, desired and actual, with the cochlea's centre and the
+    circle about it through the first desired point. Where the centre rides on a joint (the
+    parallel mechanism's slider: :func:`cochlea.robots.adapter.keep_out_centre`), it is drawn
+    where it was at the start and at the end, with its track between: one circle at the start
+    centre alone misplaced it by the slider's travel (18 mm over parallel_task)."""
     fig, ax = plt.subplots(figsize=(6, 6))
-    centre = np.asarray(result.units[0].setup.centre, float)
+    first = result.units[0]
+    q = first.true_q if first.has_true_state else first.q
+    cu, cv = first.setup.keep_out_centre(q)
+    track = np.column_stack(np.broadcast_arrays(np.asarray(cu, float), np.asarray(cv, float)))
+    track = track.reshape(-1, 2)
+    start, end = track[0], track[-1]
     radius = None
     for u in result.units:
         desired = _desired_poses(u)
@@ -529,18 +544,26 @@ def _figures(plt, result: SimulationResult, out: Path) -> list[Path]:
             ax.plot(pose[:, iu], pose[:, iv], lw=1.2, label=f"{name} actual")
             ax.plot(pose[0, iu], pose[0, iv], "o", ms=4, color=ax.lines[-1].get_color())
             if radius is None:
-                radius = float(np.hypot(*(desired[0, [iu, iv]] - centre)))
-    circle = plt.Circle(centre, radius, fill=False, color="0.5", lw=0.8, ls=":",
-                        label=f"cochlea-centred circle, r = {radius * 1000:.1f} mm")
-    ax.add_patch(circle)
-    ax.plot(*centre, "k+", ms=10, label="cochlea centre")
+                radius = float(np.hypot(*(desired[0, [iu, iv]] - start)))
+    moves = first.setup.moving_centre_joint is not None
+    when = " at the start" if moves else ""
+    ax.add_patch(plt.Circle(start, radius, fill=False, color="0.5", lw=0.8, ls=":",
+                            label=f"cochlea-centred circle{when}, r = {radius * 1000:.1f} mm"))
+    ax.plot(*start, "k+", ms=10, label=f"cochlea centre{when}")
+    if moves:
+        joint = first.setup.controller_model.joints[first.setup.moving_centre_joint].name
+        ax.plot(track[:, 0], track[:, 1], "k-", lw=0.8,
+                label=f"cochlea centre's track (rides on {joint}: "
+                      f"{(track[:, 1].max() - track[:, 1].min()) * 1000:.1f} mm)")
+        ax.add_patch(plt.Circle(end, radius, fill=False, color="0.3", lw=0.8, ls="--",
+                                label=f"the circle at the end (t = {result.time[-1]:.2f} s)"))
+        ax.plot(*end, "kx", ms=8, label="cochlea centre at the end")
     ax.set_aspect("equal")
-    ax.set_xlabel(f"{u.setup.task_names[0]} [m]")
-    ax.set_ylabel(f"{u.setup.task_names[1]} [m]")
+    ax.set_xlabel(f"{first.setup.task_names[0]} [m]")
+    ax.set_ylabel(f"{first.setup.task_names[1]} [m]")
     ax.set_title(f"{label_text}: tool paths in the plane")
     ax.legend(loc="best", fontsize=7)
-    save(fig, "paths.png")
-    return paths
+    return fig
 
 
 def _desired_poses(u: UnitLog) -> np.ndarray:
