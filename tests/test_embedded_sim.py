@@ -398,6 +398,17 @@ def test_zero_duration_runs_no_period(tmp_path):
     assert json.loads(json.dumps(info)) == info
 
 
+def test_a_duration_of_a_half_period_more_rounds_as_the_simulation_does():
+    """--duration rounds to whole periods as simulate() does, halves to even: 2.5 periods
+    (0.0025 s at 1 kHz) run 2, 3.5 run 4 (C's lround ran 3 and 4: a row more than the
+    simulation's log at every even whole)."""
+    binary = eb.build_simulation("serial_joint")
+    sc = load_scenario("serial_joint")
+    for duration in (0.0025, 0.0035, 0.0045000000000000005, 0.0019, 0.0021):
+        info = eb.run_simulation(binary, duration)
+        assert info["rows"] == len(simulate(sc, duration=duration).time), duration
+
+
 def _disturbed(name, **changes):
     import dataclasses
 

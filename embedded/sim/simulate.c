@@ -905,7 +905,9 @@ int main(int argc, char **argv)
             return usage();
         }
     }
-    steps = lround(duration / h); /* as the simulation's int(round(duration / h)) */
+    /* as the simulation's int(round(duration / h)): halves to even (nearbyint in the default
+     * rounding mode), where lround took 2.5 periods (--duration 0.0025) to 3 and Python to 2 */
+    steps = (long)nearbyint(duration / h);
 
     SIM_C(_default_config)(&config);
     if (config.h != h || SIM_C(_init)(&state, &config) != 0) {
