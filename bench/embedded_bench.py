@@ -311,8 +311,12 @@ def _host_has_v3(cc: str) -> bool:
 def host_isa_flags(sc, setups) -> tuple[str, ...]:
     """:data:`HOST_ISA_FLAGS` for scenario ``sc``'s simulation where they apply (a study that
     may move by rounding, built on an x86-64 v3 machine, ``COCHLEA_SIM_HOST_ISA`` not 0), else
-    none."""
-    if os.environ.get("COCHLEA_SIM_HOST_ISA", "1") == "0" or not rounding_free(sc, setups):
+    none. ``COCHLEA_SIM_HOST_ISA`` is 0 or 1 (unset: 1); any other value is refused."""
+    choice = os.environ.get("COCHLEA_SIM_HOST_ISA", "1")
+    if choice not in ("0", "1"):
+        raise ValueError(f"COCHLEA_SIM_HOST_ISA is {choice!r}: 0 (build for any x86-64) or 1 "
+                         "(for this machine's x86-64 v3 level where it has it)")
+    if choice == "0" or not rounding_free(sc, setups):
         return ()
     return HOST_ISA_FLAGS if _host_has_v3(compiler()) else ()
 
@@ -1182,18 +1186,18 @@ def main(argv: list[str] | None = None) -> int:
               f"idle share {row['other_idle_alone']:.0%} alone, {row['other_idle_busy']:.0%} "
               f"busy): {row['ratio']:.2f}x")
         return 0
-    if args.command == "build" and args.kernels is not None:
-        lib = ckernels.load(args.kernels)
-        for name in args.scenarios:
-            for p in PRECISIONS:
-                print(build_simulation(Path(name), p, lib, args.kernels))
+    if args.command == "build":
+        try:
+            lib = ckernels.load(args.kernels) if args.kernels is not None else ckernels.load()
+            for name in args.scenarios:
+                for p in PRECISIONS:
+                    print(build_simulation(Path(name) if args.kernels is not None else name, p,
+                                           lib, args.kernels or GENERATED))
+        except (RuntimeError, ValueError, OSError) as error:  # a compiler's, a setting's
+            print(f"embedded_bench.py: build: {error}", file=sys.stderr)
+            return 2
         return 0
     lib = ckernels.load()
-    if args.command == "build":
-        for name in args.scenarios:
-            for p in PRECISIONS:
-                print(build_simulation(name, p, lib))
-        return 0
     print("bench: the embedded step in double and float", flush=True)
     steps = bench_embedded_steps()
     print("bench: the all-in-C simulation", flush=True)

@@ -700,10 +700,10 @@ def test_the_plant_takes_the_plain_period_past_the_shifts_reach(tmp_path):
                                   call("sim_mechanism_plant_plain", x, tau)[0])
 
 
-def test_the_host_isa_flags_go_to_studies_that_may_move_by_rounding(monkeypatch):
+def test_the_host_isa_flags_go_to_studies_that_may_move_by_rounding(monkeypatch, capsys):
     """x86-64 v3 code with fused multiply-adds (HOST_ISA_FLAGS) for the ideal studies where the
     building machine has the level, never for a realistic study (geared plant, grids: bit for
-    bit), and not with COCHLEA_SIM_HOST_ISA=0."""
+    bit), and not with COCHLEA_SIM_HOST_ISA=0; another value of it is refused by name."""
     monkeypatch.setattr(eb, "_host_has_v3", lambda cc: True)
     ideal = eb.sim_scenario("parallel_task")
     realistic = eb.sim_scenario("serial_task_realistic")
@@ -711,6 +711,12 @@ def test_the_host_isa_flags_go_to_studies_that_may_move_by_rounding(monkeypatch)
     assert eb.host_isa_flags(realistic, unit_setups(realistic)) == ()
     monkeypatch.setenv("COCHLEA_SIM_HOST_ISA", "0")
     assert eb.host_isa_flags(ideal, unit_setups(ideal)) == ()
+    for bad in ("no", "", "01", "true"):
+        monkeypatch.setenv("COCHLEA_SIM_HOST_ISA", bad)
+        with pytest.raises(ValueError, match="COCHLEA_SIM_HOST_ISA"):
+            eb.host_isa_flags(ideal, unit_setups(ideal))
+    assert eb.main(["build", "parallel_task"]) == 2  # the command: one line, no traceback
+    assert "COCHLEA_SIM_HOST_ISA is 'true'" in capsys.readouterr().err
     monkeypatch.delenv("COCHLEA_SIM_HOST_ISA")
     monkeypatch.setattr(eb, "_host_has_v3", lambda cc: False)
     assert eb.host_isa_flags(ideal, unit_setups(ideal)) == ()

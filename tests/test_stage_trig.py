@@ -138,6 +138,31 @@ def test_the_stage_period_is_the_plain_one_to_rounding(which, coulomb, request):
         assert differs
 
 
+def test_an_arm_from_its_urdf_takes_the_stage_period(tmp_path):
+    """A spatial arm imported from its URDF (tests/data/arm4.urdf, 4 joints, the
+    articulated-body algorithm's forward dynamics): its joints' sines are lifted and its stage
+    period is its plain one's to 1e-13 relative."""
+    from cochlea.robots.urdf import import_urdf
+
+    from .conftest import DATA
+
+    description = tmp_path / "arm4.toml"
+    description.write_text(import_urdf(DATA / "arm4.urdf").text, encoding="utf-8")
+    arm = cochlea.model("serial", description=description, parameterisation="inertial")
+    n = arm.nq
+    _, angles = stage_trig.lifted(arm.forward_dynamics_p, n, len(arm.param_names))
+    assert angles
+    plain, stages = plant_step(arm, 1), plant_step(arm, 1, stage_trig=True)
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        x = np.concatenate([rng.uniform(-3.0, 3.0, n), rng.uniform(-3.0, 3.0, n)])
+        args = _period_args(arm, x, rng.normal(0.0, 1.0, n), False)
+        a = np.asarray(plain(*args)).ravel()
+        b, far = stages(*args)
+        assert float(far) == 0.0
+        assert np.max(np.abs(a - np.asarray(b).ravel())) <= 1e-13 * max(1.0, np.max(np.abs(a)))
+
+
 def test_far_counts_the_offsets_past_reach(serial):
     """``far`` is the number of stage offsets (3 a sub-step per lifted joint) past REACH: 0 at
     rest, 3 for one joint at 2.5 REACH / h without friction (every later stage of it past: the
