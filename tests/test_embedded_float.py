@@ -16,8 +16,8 @@ single-precision FPU.
   period (loop, supervisor, controller, estimate, goal current), also on the STM32F4 port
   (bridge, row stream, HAL, interrupts);
 * its drive conversions (float, integer counts) within one LSB / a hundredth of a count of the
-  double ones, and its estimate (a compensated two-float sum) within 5e-6 of the double
-  build's in closed loop, where a plain float sum drifts past it.
+  double ones. (Its estimate, a compensated two-float sum, against the double build's in closed
+  loop: tests/test_embedded_generated.py, test_float_build_follows_the_double_build.)
 """
 
 from __future__ import annotations
@@ -598,42 +598,9 @@ def test_float_drive_conversions_follow_the_double_ones(tmp_path, robot):
         assert float(vel) <= 1.2e-7, line
 
 
-#: The float build's estimate against the double build's, each in its own closed loop on the
-#: same plant (tests/test_embedded_generated.py's), 2000 periods of the four thesis studies,
-#: relative to |p_hat|: at most ESTIMATE_BOUND in every period (docs/embedded.md), and
-#: FINAL_BOUND at the end. Measured with the compensated two-float sum: largest 2.5e-6,
-#: 4.5e-6, 6.5e-8, 5.2e-8, final 3.0e-8, 1.3e-6, 3.5e-8, 3.9e-8 (serial_joint, serial_task,
-#: parallel_joint, parallel_task; the double accumulator it replaces: 2.6e-6, 4.5e-6,
-#: 3.9e-8, 2.9e-8). A plain float sum loses the small increments and drifts: largest
-#: 4.6e-6, 8.6e-6, 6.6e-6, 3.2e-6, final 3.7e-6, 7.3e-6, 6.6e-6, 3.2e-6.
-ESTIMATE_BOUND, FINAL_BOUND = 5e-6, 2e-6
-
-
-@pytest.mark.parametrize("name", ["serial_joint", "serial_task", "parallel_joint",
-                                  "parallel_task"])
-@pytest.mark.slow
-def test_the_float_estimate_follows_the_double_one(tmp_path, name):
-    from tests import test_embedded_generated as generated
-
-    def build(precision):
-        shim = tmp_path / f"shim_{name}.c"
-        shim.write_text(generated._SHIM.format(name=name, N=name.upper()))
-        lib = tmp_path / f"lib{name}_{precision}.so"
-        extra = ["-DCOCHLEA_FLOAT"] if precision == "float" else []
-        subprocess.run([compiler(), "-O1", "-fPIC", "-shared", "-std=c99", *extra,
-                        f"-I{GENERATED}", str(shim), str(GENERATED / f"{name}.c"), "-o",
-                        str(lib), "-lm"], check=True, capture_output=True)
-        return generated.Embedded(name, lib)
-
-    steps = 2000
-    tau_d, p_d = generated._closed_loop(build("double"), name, steps)
-    tau_f, p_f = generated._closed_loop(build("float"), name, steps)
-    relative = (np.linalg.norm(p_f - p_d, axis=1)
-                / np.maximum(np.linalg.norm(p_d, axis=1), 1e-12))
-    assert np.abs(p_d[-1]).max() > 0  # the estimate moved
-    assert relative.max() <= ESTIMATE_BOUND, relative.max()
-    assert relative[-1] <= FINAL_BOUND, relative[-1]
-    assert np.max(np.abs(tau_f - tau_d)) / np.max(np.abs(tau_d)) <= 1e-5
+# The float build's estimate against the double build's in closed loop (a compensated sum):
+# tests/test_embedded_generated.py's test_float_build_follows_the_double_build (estimate_drift,
+# DRIFT_BOUND), which this file had a copy of.
 
 
 _SUPERVISOR = r"""

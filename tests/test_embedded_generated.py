@@ -357,6 +357,30 @@ def _closed_loop(c: Embedded, name: str, steps: int):
     return taus, estimates
 
 
+def estimate_drift(p_f: np.ndarray, p_d: np.ndarray) -> tuple[float, float]:
+    """How far the float build's estimate ``p_f`` is from the double build's ``p_d`` (rows:
+    periods): the largest distance over the run relative to the largest norm ``p_d`` reaches,
+    and the distance at the end relative to ``p_d`` there. Not each period's relative: in its
+    first periods the estimate is a small fraction of its size (serial_task's |p_hat| at
+    period 73 a tenth of its final), where that measured float's resolution of a small number
+    (5.2e-6 there, 3.6e-7 at the end) rather than a drift."""
+    distance = np.linalg.norm(p_f - p_d, axis=1)
+    return (float(distance.max() / np.linalg.norm(p_d, axis=1).max()),
+            float(distance[-1] / max(np.linalg.norm(p_d[-1]), 1e-300)))
+
+
+#: The float build's estimate against the double build's, each in its own closed loop on the
+#: same plant (:func:`_closed_loop`), 2000 periods of the four thesis studies
+#: (:func:`estimate_drift`): at most DRIFT_BOUND in every period relative to the estimate's
+#: largest norm, and at the end relative to the estimate there (docs/embedded.md). Measured
+#: with the compensated two-float sum and the exact angle wrap: largest 6.2e-8, 5.0e-7, 9.3e-8,
+#: 7.0e-8, at the end 3.0e-8, 3.6e-7, 4.7e-8, 4.4e-8 (serial_joint, serial_task,
+#: parallel_joint, parallel_task; with atan2(sin, cos) as the wrap serial_task's were 1.3e-6
+#: and 1.3e-6). A plain float sum loses the small increments and drifts: at the end 3.7e-6,
+#: 7.3e-6, 6.6e-6, 3.2e-6.
+DRIFT_BOUND = 2e-6
+
+
 @pytest.mark.parametrize("name", THESIS)
 @pytest.mark.slow
 def test_float_build_follows_the_double_build(built, name):
@@ -364,7 +388,7 @@ def test_float_build_follows_the_double_build(built, name):
     tau_d, p_d = _closed_loop(Embedded(name, built[name, "double"]), name, steps)
     tau_f, p_f = _closed_loop(Embedded(name, built[name, "float"]), name, steps)
     torque = np.max(np.abs(tau_f - tau_d)) / np.max(np.abs(tau_d))
-    estimate = np.max(np.linalg.norm(p_f - p_d, axis=1)
-                      / np.maximum(np.linalg.norm(p_d, axis=1), 1e-12))
+    assert np.abs(p_d[-1]).max() > 0  # the estimate moved
+    largest, final = estimate_drift(p_f, p_d)
     assert torque <= 1e-5, torque
-    assert estimate <= 5e-6, estimate  # docs/embedded.md: within 5e-6 (compensated sum)
+    assert largest <= DRIFT_BOUND and final <= DRIFT_BOUND, (largest, final)
