@@ -24,7 +24,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import casadi as ca
@@ -184,27 +183,6 @@ def test_both_log_writers_write_the_same_log(name, tmp_path, monkeypatch):
     done = subprocess.run([str(binary), "--log", str(tmp_path / "x.log")], capture_output=True,
                           text=True)
     assert done.returncode == 2 and "COCHLEA_SIM_LOG_WRITER" in done.stderr
-    assert not done.stdout and not (tmp_path / "x.log").exists()
-
-
-def test_the_rings_in_huge_pages_write_the_same_log(tmp_path, monkeypatch):
-    """The units' rings of blocks in a mapping advised to take 2 MB pages (where Linux gives
-    it; fewer page faults in the first blocks) and in the static arrays write the same bytes;
-    another COCHLEA_SIM_RING is refused before anything is written."""
-    binary = eb.build_simulation("parallel_joint")
-    logs = {}
-    for ring in ("huge", "static"):
-        monkeypatch.setenv("COCHLEA_SIM_RING", ring)
-        logs[ring] = tmp_path / f"{ring}.log"
-        info = eb.run_simulation(binary, 1.5, logs[ring])
-        assert info["status"] == "completed"
-        assert info["ring_memory"] == ("static" if ring == "static" or not sys.platform.startswith(
-            "linux") else "huge")
-    assert logs["huge"].read_bytes() == logs["static"].read_bytes()
-    monkeypatch.setenv("COCHLEA_SIM_RING", "tiny")
-    done = subprocess.run([str(binary), "--log", str(tmp_path / "x.log")], capture_output=True,
-                          text=True)
-    assert done.returncode == 2 and "COCHLEA_SIM_RING" in done.stderr
     assert not done.stdout and not (tmp_path / "x.log").exists()
 
 

@@ -66,9 +66,7 @@
  * units ran on, the processor each unit's thread ended on (unit_processors: each on its own
  * while the units' and the writer's threads are no more than the processors, place_main; -1
  * where the system does not say), who wrote the log (log_writer: "thread", "units" or "none")
- * and a writer thread's CPU time (writer_cpu_s, 0 without one), where the units' rings of
- * blocks were (ring_memory: "huge", a mapping advised to take 2 MB pages, or "static";
- * COCHLEA_SIM_RING=static chooses the latter), and each unit's sizes.
+ * and a writer thread's CPU time (writer_cpu_s, 0 without one), and each unit's sizes.
  * Exit status: 0 completed, 1 diverged or step-failed, 2 bad arguments or an unwritable log. */
 #ifdef __linux__
 #define _GNU_SOURCE /* sched_getcpu, pthread_setaffinity_np: see place_main */
@@ -107,7 +105,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/mman.h>
 #include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
@@ -275,37 +272,8 @@ typedef struct {
     double cpu_s;                     /* s: the writer thread's CPU time (0: units_write) */
 } sim_writer;
 
-typedef double sim_ring[SIM_BLOCKS][SIM_BLOCK_ROWS * SIM_UNIT_COLUMNS]; /* a unit's blocks */
-static sim_ring sim_unit_rings[SIM_UNITS];
-/* The units' rings: sim_unit_rings, or the huge pages ring_memory gives */
-static sim_ring *sim_unit_blocks = sim_unit_rings;
+static double sim_unit_blocks[SIM_UNITS][SIM_BLOCKS][SIM_BLOCK_ROWS * SIM_UNIT_COLUMNS];
 static double sim_rows[SIM_BLOCK_ROWS * SIM_COLUMNS]; /* the writer's rows, put together */
-
-/* The units' rings in transparent huge pages where the system gives them (Linux, madvise):
- * a unit's ring is about 1 MB, which in 4 KB pages the unit faults in, zeroed, one page at a
- * time in its first blocks (256 faults; parallel_task's loop 7.96 -> 7.72 ms, serial_task's
- * 9.85 -> 9.71 ms, 30 runs each turn about); a 2 MB page is one fault. Where the mapping or
- * the advice is refused, the static rings (as before). 1: the huge pages' mapping is used. */
-static int ring_memory(void)
-{
-#if defined(__linux__) && defined(MADV_HUGEPAGE)
-    const size_t huge = (size_t)1 << 21;
-    const size_t bytes = (sizeof(sim_ring) * SIM_UNITS + huge - 1) / huge * huge;
-    char *map = mmap(NULL, bytes + huge, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS,
-                     -1, 0);
-    char *aligned;
-    if (map == MAP_FAILED) return 0;
-    aligned = map + (huge - (size_t)((uintptr_t)map % huge)) % huge;
-    if (madvise(aligned, bytes, MADV_HUGEPAGE) != 0) {
-        (void)munmap(map, bytes + huge);
-        return 0;
-    }
-    sim_unit_blocks = (sim_ring *)(void *)aligned; /* for the process's life */
-    return 1;
-#else
-    return 0;
-#endif
-}
 
 /* Each row's pose[NPOSE], unit after unit, from the row's x (the state logged): 0, or -1 if a
  * pose kernel returned an error. */
@@ -889,9 +857,9 @@ int main(int argc, char **argv)
     SIM_C(_config) config;
     SIM_C(_state) state;
     const sim_lane *first;
-    const char *log_path = NULL, *writer_choice, *ring_choice;
+    const char *log_path = NULL, *writer_choice;
     long steps;
-    int i, u, threads = 1, by_units, huge_ring = 0;
+    int i, u, threads = 1, by_units;
     sim_placement placement;
 
     for (i = 1; i < argc; ++i) {
@@ -926,14 +894,6 @@ int main(int argc, char **argv)
     }
     by_units = writer_choice ? strcmp(writer_choice, "units") == 0
                              : SIM_UNITS >= 2 && usable_processors() <= SIM_UNITS;
-    /* where the rings are (ring_memory): COCHLEA_SIM_RING=static keeps the static ones */
-    ring_choice = getenv("COCHLEA_SIM_RING");
-    if (ring_choice && strcmp(ring_choice, "static") != 0 && strcmp(ring_choice, "huge") != 0) {
-        fprintf(stderr, "simulate: COCHLEA_SIM_RING is %s: huge or static\n", ring_choice);
-        return 2;
-    }
-    if (log_path && !(ring_choice && strcmp(ring_choice, "static") == 0))
-        huge_ring = ring_memory();
     if (log_path && writer_start(&writer, log_path, steps, by_units) != 0) {
         fprintf(stderr, "simulate: cannot write %s\n", log_path);
         return 2;
@@ -1004,9 +964,8 @@ int main(int argc, char **argv)
     for (u = 0; u < SIM_UNITS; ++u) printf("%s%.9f", u ? ", " : "", lanes[u].cpu_s);
     printf("], \"unit_processors\": [");
     for (u = 0; u < SIM_UNITS; ++u) printf("%s%d", u ? ", " : "", lanes[u].processor);
-    printf("], \"log_writer\": \"%s\", \"writer_cpu_s\": %.9f, \"ring_memory\": \"%s\", "
-           "\"unit_sizes\": [", !log_path ? "none" : by_units ? "units" : "thread",
-           log_path ? writer.cpu_s : 0.0, huge_ring ? "huge" : "static");
+    printf("], \"log_writer\": \"%s\", \"writer_cpu_s\": %.9f, \"unit_sizes\": [",
+           !log_path ? "none" : by_units ? "units" : "thread", log_path ? writer.cpu_s : 0.0);
     for (u = 0; u < SIM_UNITS; ++u) {
         const sim_unit *s = &sim_units[u];
         printf("%s{\"name\": \"%s\", \"nq\": %d, \"np\": %d, \"nd\": %d, \"ne\": %d, "
