@@ -281,7 +281,7 @@ STAGE_TRIG = True
 #: stages into the next law), so its speed is the chain's latency, and a fused multiply-add
 #: halves a product-and-sum's: parallel_task's loop 7.65 -> 6.26 ms, serial_task's 7.50 ->
 #: 6.74 ms (40 runs each turn about; -march=x86-64-v3 alone 7.00 ms, -O3 7.53 ms). The results
-#: move by rounding (a fused operation rounds once), within 1e-14 of simulate()'s
+#: move by rounding (a fused operation rounds once), within 2e-14 of simulate()'s
 #: (tests/test_embedded_sim.py). The program runs where it was built (build/embedded-sim/);
 #: ``COCHLEA_SIM_HOST_ISA=0`` builds it for any x86-64 instead.
 HOST_ISA_FLAGS = ("-march=x86-64-v3", "-ffp-contract=fast")
